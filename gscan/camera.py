@@ -1,0 +1,209 @@
+"""Pinhole camera model, RGB-D frames, back-projection and robust keypoint lifting.
+
+Conventions: pixel (u, v) = (column, row) with the centre of the top-left pixel at (0, 0);
+camera frame x right, y down, z forward (OpenCV); depth in metres, 0 = invalid.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from gscan.errors import InputError
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole intrinsics of an image of `width` x `height` pixels."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+
+    def __post_init__(self) -> None:
+        vals = np.array([self.fx, self.fy, self.cx, self.cy], dtype=float)
+        if not np.all(np.isfinite(vals)) or self.fx <= 0 or self.fy <= 0:
+            raise ValueError(f"invalid intrinsics fx={self.fx} fy={self.fy} cx={self.cx} cy={self.cy}")
+        if self.width <= 0 or self.height <= 0:
+            raise ValueError(f"invalid image size {self.width}x{self.height}")
+
+    @property
+    def K(self) -> np.ndarray:
+        """[3 x 3] calibration matrix."""
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    @classmethod
+    def from_matrix(cls, K: np.ndarray, width: int, height: int) -> "Intrinsics":
+        K = np.asarray(K, dtype=float).reshape(3, 3)
+        return cls(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), int(width), int(height))
+
+    def scaled(self, s: float) -> "Intrinsics":
+        """Intrinsics of the image resized by factor `s` (pixel-centre convention)."""
+        return Intrinsics(self.fx * s, self.fy * s, (self.cx + 0.5) * s - 0.5, (self.cy + 0.5) * s - 0.5,
+                          max(1, round(self.width * s)), max(1, round(self.height * s)))
+
+    def to_dict(self) -> dict:
+        return {"fx": self.fx, "fy": self.fy, "cx": self.cx, "cy": self.cy, "width": self.width, "height": self.height}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Intrinsics":
+        return cls(float(d["fx"]), float(d["fy"]), float(d["cx"]), float(d["cy"]), int(d["width"]), int(d["height"]))
+
+
+def _bad(path: Path, reason: str) -> InputError:
+    return InputError(path, reason)
+
+
+def load_intrinsics(path: str | Path, width: int | None = None, height: int | None = None) -> Intrinsics:
+    """Read intrinsics from `cam_K.txt` (3x3 text) or an Open3D `PinholeCameraIntrinsic` JSON.
+
+    A cam_K.txt carries no image size: `width`/`height` must then be given (readers pass the
+    size of the first colour image). Raises InputError naming the file on any problem.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise _bad(path, "intrinsics file not found")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as e:
+        raise _bad(path, f"cannot read intrinsics ({e.__class__.__name__})") from None
+    if path.suffix.lower() == ".json" or text.lstrip().startswith("{"):
+        try:
+            d = json.loads(text)
+            if "intrinsic_matrix" in d:  # Open3D: column-major 3x3
+                K = np.asarray(d["intrinsic_matrix"], dtype=float).reshape(3, 3).T
+                w, h = int(d.get("width", width or 0)), int(d.get("height", height or 0))
+            elif "cam_K" in d:  # BOP camera entry: row-major 3x3
+                K = np.asarray(d["cam_K"], dtype=float).reshape(3, 3)
+                w, h = int(d.get("width", width or 0)), int(d.get("height", height or 0))
+            elif "fx" in d:
+                K = np.array([[d["fx"], 0, d["cx"]], [0, d["fy"], d["cy"]], [0, 0, 1]], dtype=float)
+                w, h = int(d.get("width", width or 0)), int(d.get("height", height or 0))
+            else:
+                raise ValueError("no intrinsic_matrix, cam_K or fx/fy/cx/cy key")
+        except (ValueError, TypeError, KeyError) as e:
+            raise _bad(path, f"malformed intrinsics JSON: {e}") from None
+    else:
+        try:
+            K = np.array([[float(x) for x in line.replace(",", " ").split()] for line in text.splitlines() if line.strip()])
+            K = K.reshape(3, 3)
+        except ValueError:
+            raise _bad(path, "malformed cam_K.txt: expected a 3x3 matrix of numbers") from None
+        w, h = int(width or 0), int(height or 0)
+    if width and w and width != w or height and h and height != h:
+        raise _bad(path, f"intrinsics are for {w}x{h} images but the images are {width}x{height}")
+    if not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0 or K[0, 2] < 0 or K[1, 2] < 0:
+        raise _bad(path, f"invalid intrinsics values fx={K[0, 0]} fy={K[1, 1]} cx={K[0, 2]} cy={K[1, 2]}")
+    if w <= 0 or h <= 0:
+        raise _bad(path, "intrinsics carry no image size and none was given")
+    return Intrinsics.from_matrix(K, w, h)
+
+
+@dataclass
+class RGBDFrame:
+    """One RGB-D image.
+
+    color: [H x W x 3] uint8 RGB; depth: [H x W] float32 metres (0 = invalid);
+    mask: optional [H x W] bool object mask; name: frame name (file stem).
+    """
+
+    name: str
+    color: np.ndarray
+    depth: np.ndarray
+    intrinsics: Intrinsics
+    mask: np.ndarray | None = None
+    source: Path | None = field(default=None, compare=False)
+
+    def __post_init__(self) -> None:
+        h, w = self.depth.shape[:2]
+        if self.color.shape[:2] != (h, w):
+            raise InputError(self.source, f"colour {self.color.shape[1]}x{self.color.shape[0]} and depth {w}x{h} sizes differ")
+        if (self.intrinsics.width, self.intrinsics.height) != (w, h):
+            raise InputError(self.source, f"intrinsics are for {self.intrinsics.width}x{self.intrinsics.height} "
+                             f"but the frame is {w}x{h}")
+
+
+def pixel_rays(intr: Intrinsics) -> np.ndarray:
+    """[H x W x 3] ray directions with z = 1 for every pixel centre."""
+    u, v = np.meshgrid(np.arange(intr.width, dtype=np.float64), np.arange(intr.height, dtype=np.float64))
+    return np.stack([(u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy, np.ones_like(u)], axis=-1)
+
+
+def backproject(depth: np.ndarray, intr: Intrinsics) -> np.ndarray:
+    """[H x W] depth (m) -> [H x W x 3] camera-frame points (zeros where depth is 0)."""
+    return (pixel_rays(intr) * depth[..., None]).astype(np.float32)
+
+
+def backproject_pixels(pixels: np.ndarray, z: np.ndarray, intr: Intrinsics) -> np.ndarray:
+    """[N x 2] pixels (u, v) and [N] depths -> [N x 3] camera-frame points."""
+    pixels = np.asarray(pixels, dtype=np.float64)
+    z = np.asarray(z, dtype=np.float64)
+    x = (pixels[:, 0] - intr.cx) / intr.fx * z
+    y = (pixels[:, 1] - intr.cy) / intr.fy * z
+    return np.stack([x, y, z], axis=1)
+
+
+def project(points: np.ndarray, intr: Intrinsics) -> np.ndarray:
+    """[N x 3] camera-frame points -> [N x 2] pixels (u, v). Points need z > 0."""
+    p = np.asarray(points, dtype=np.float64)
+    return np.stack([p[:, 0] / p[:, 2] * intr.fx + intr.cx, p[:, 1] / p[:, 2] * intr.fy + intr.cy], axis=1)
+
+
+def point_cloud(frame: RGBDFrame, mask: np.ndarray | None = None, stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Valid points of a frame: ([N x 3] camera-frame metres, [N x 3] colours in [0, 1]).
+
+    `mask` ([H x W] bool) restricts the pixels; `stride` subsamples rows and columns.
+    """
+    valid = frame.depth > 0
+    if mask is not None:
+        valid &= mask
+    sl = (slice(None, None, stride), slice(None, None, stride))
+    pts = backproject(frame.depth, frame.intrinsics)[sl][valid[sl]]
+    cols = frame.color[sl][valid[sl]].astype(np.float32) / 255.0
+    return pts, cols
+
+
+def lift_keypoints(pixels: np.ndarray, depth: np.ndarray, intr: Intrinsics, window: int = 2,
+                   max_rel_spread: float = 0.03, min_valid_frac: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """Lift 2D keypoints to 3D with robust depth.
+
+    For each keypoint the depth is the median of the valid depths in the (2*window+1)^2
+    window around its rounded pixel. A keypoint is rejected when fewer than
+    `min_valid_frac` of the window is valid, or when the window spans a depth
+    discontinuity (valid depths spread beyond `max_rel_spread` of the median, measured
+    between the 10th and 90th percentile).
+
+    pixels: [N x 2] (u, v). Returns ([N x 3] points, zeros where rejected; [N] bool valid).
+    """
+    pixels = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
+    n = len(pixels)
+    H, W = depth.shape
+    pts = np.zeros((n, 3))
+    if n == 0:
+        return pts, np.zeros(0, dtype=bool)
+    r = window
+    u = np.clip(np.rint(pixels[:, 0]).astype(int), 0, W - 1)
+    v = np.clip(np.rint(pixels[:, 1]).astype(int), 0, H - 1)
+    padded = np.pad(depth.astype(np.float64), r, mode="constant", constant_values=0.0)
+    offs = np.arange(-r, r + 1)
+    dv, du = np.meshgrid(offs, offs, indexing="ij")
+    patches = padded[(v[:, None] + r + dv.ravel()[None]), (u[:, None] + r + du.ravel()[None])]  # [N x w^2]
+    valid_px = patches > 0
+    frac = valid_px.mean(axis=1)
+    masked = np.where(valid_px, patches, np.nan)
+    with np.errstate(all="ignore"):
+        import warnings
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            med = np.nanmedian(masked, axis=1)
+            lo = np.nanpercentile(masked, 10, axis=1)
+            hi = np.nanpercentile(masked, 90, axis=1)
+    ok = (frac >= min_valid_frac) & np.isfinite(med) & (med > 0)
+    ok &= np.where(ok, (hi - lo) <= max_rel_spread * np.where(ok, med, 1.0), False)
+    pts[ok] = backproject_pixels(pixels[ok], med[ok], intr)
+    return pts, ok

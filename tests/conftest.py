@@ -1,0 +1,26 @@
+"""Shared fixtures. Tests that need ../shared/data fail (never skip) when it is missing."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED_DATA = ROOT.parent / "shared" / "data"
+
+
+@pytest.fixture(scope="session")
+def shared_data() -> Path:
+    if not (SHARED_DATA / "meshes").is_dir():
+        pytest.fail(f"shared test data not found at {SHARED_DATA} (tests read ../shared/data beside the project)")
+    return SHARED_DATA
+
+
+@pytest.fixture(scope="session")
+def meshes_dir(shared_data: Path) -> Path:
+    return shared_data / "meshes"
+
+
+@pytest.fixture(scope="session")
+def real_dir(shared_data: Path) -> Path:
+    return shared_data / "real"
