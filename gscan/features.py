@@ -1,0 +1,264 @@
+"""Keypoint descriptors (SIFT, RootSIFT, ORB) lifted to 3D with the frame's depth.
+
+Backends are OpenCV's `SIFT_create` / `ORB_create`. Every returned keypoint has a valid,
+discontinuity-free depth (see `gscan.camera.lift_keypoints`) and a 3D point in the camera
+frame. Output order is by decreasing detector response; ties are broken by (y, x, angle),
+so the result does not depend on the order in which OpenCV's worker threads emit
+keypoints: the same image always gives identical arrays (checked in the tests with
+OpenCV's default thread count; no global `cv2.setNumThreads` is needed or changed).
+
+Descriptor scales (they matter to GMatch's feature threshold `eps_f`):
+- "sift": OpenCV's raw float32 vectors, 128-d, integer-valued in [0, 255], L2 norm ~512
+  (OpenCV normalises to 512 before rounding); distances are Euclidean in those units.
+- "rootsift": the SIFT vector L1-normalised then square-rooted (Arandjelovic & Zisserman
+  2012), unit L2 norm, so L2 distances lie in [0, sqrt(2)] (Hellinger distance of SIFT).
+- "orb": uint8 [N x 32] (256-bit) binary strings; distance = Hamming bit count in [0, 256].
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from gscan.camera import RGBDFrame, lift_keypoints
+
+log = logging.getLogger(__name__)
+
+KINDS = ("sift", "rootsift", "orb")
+_DIMS = {"sift": 128, "rootsift": 128, "orb": 32}
+_DTYPES = {"sift": np.float32, "rootsift": np.float32, "orb": np.uint8}
+
+
+@dataclass
+class Features:
+    """Keypoints of one frame with descriptors and camera-frame 3D points.
+
+    pixels: [N x 2] float32 (u, v); points: [N x 3] float32 camera-frame metres;
+    descriptors: [N x 128] float32 (sift, rootsift) or [N x 32] uint8 (orb);
+    kind: "sift" | "rootsift" | "orb"; scales: [N] float32 keypoint size (pixels).
+    """
+
+    pixels: np.ndarray
+    points: np.ndarray
+    descriptors: np.ndarray
+    kind: str
+    scales: np.ndarray
+
+    def __post_init__(self) -> None:
+        if self.kind not in KINDS:
+            raise ValueError(f"unknown descriptor kind {self.kind!r}; expected one of {KINDS}")
+        n = len(self.pixels)
+        if self.pixels.shape != (n, 2) or self.points.shape != (n, 3) or self.scales.shape != (n,):
+            raise ValueError(f"inconsistent feature shapes: pixels {self.pixels.shape}, points {self.points.shape}, "
+                             f"scales {self.scales.shape}")
+        if self.descriptors.shape != (n, _DIMS[self.kind]):
+            raise ValueError(f"{self.kind} descriptors must be [{n} x {_DIMS[self.kind]}], got {self.descriptors.shape}")
+
+    def __len__(self) -> int:
+        return len(self.pixels)
+
+    @property
+    def metric(self) -> str:
+        """Descriptor distance: "l2" (sift, rootsift) or "hamming" (orb)."""
+        return metric_of(self.kind)
+
+    def subset(self, idx: np.ndarray) -> "Features":
+        """Features at `idx` ([K] int indices or [N] bool mask), copied."""
+        idx = np.asarray(idx)
+        if idx.dtype != bool:
+            idx = idx.astype(np.intp).reshape(-1)
+        return Features(self.pixels[idx].copy(), self.points[idx].copy(), self.descriptors[idx].copy(), self.kind,
+                        self.scales[idx].copy())
+
+
+@dataclass(frozen=True)
+class FeatureParams:
+    kind: str = "rootsift"  # "sift" | "rootsift" | "orb"
+    max_keypoints: int = 2000  # cap on returned (valid-depth) keypoints; strongest responses kept
+    lift_window: int = 2  # depth median over a (2w+1)^2 window around each keypoint
+    lift_max_rel_spread: float = 0.03  # reject windows whose 10-90% depth spread exceeds this * median
+    lift_min_valid_frac: float = 0.5  # reject windows with fewer valid depth pixels than this fraction
+    sift_contrast_threshold: float = 0.04  # OpenCV default; lower -> more keypoints on weak texture
+    sift_edge_threshold: float = 10.0  # OpenCV default
+    sift_n_octave_layers: int = 3  # OpenCV default
+    sift_sigma: float = 1.6  # OpenCV default
+    orb_detect_factor: float = 2.0  # ORB detects max_keypoints * factor before the depth filter
+    orb_scale_factor: float = 1.2  # OpenCV default
+    orb_n_levels: int = 8  # OpenCV default
+    orb_fast_threshold: int = 20  # OpenCV default
+
+    def __post_init__(self) -> None:
+        if self.kind not in KINDS:
+            raise ValueError(f"unknown descriptor kind {self.kind!r}; expected one of {KINDS}")
+        if self.max_keypoints <= 0 or self.lift_window < 0:
+            raise ValueError(f"max_keypoints must be > 0 and lift_window >= 0 "
+                             f"(got {self.max_keypoints}, {self.lift_window})")
+
+
+def metric_of(kind: str) -> str:
+    """"l2" for sift/rootsift, "hamming" for orb."""
+    if kind not in KINDS:
+        raise ValueError(f"unknown descriptor kind {kind!r}; expected one of {KINDS}")
+    return "hamming" if kind == "orb" else "l2"
+
+
+def empty_features(kind: str) -> Features:
+    """A Features with N = 0 of the given kind (descriptor width and dtype set)."""
+    if kind not in KINDS:
+        raise ValueError(f"unknown descriptor kind {kind!r}; expected one of {KINDS}")
+    return Features(np.zeros((0, 2), np.float32), np.zeros((0, 3), np.float32),
+                    np.zeros((0, _DIMS[kind]), _DTYPES[kind]), kind, np.zeros(0, np.float32))
+
+
+def _to_gray(color: np.ndarray) -> np.ndarray:
+    """[H x W x 3] uint8 RGB (or [H x W] gray) -> [H x W] uint8 gray."""
+    if color.ndim == 2:
+        gray = color
+    elif color.ndim == 3 and color.shape[2] == 3:
+        gray = cv2.cvtColor(np.ascontiguousarray(color), cv2.COLOR_RGB2GRAY)
+    else:
+        raise ValueError(f"colour image must be [H x W x 3] or [H x W], got {color.shape}")
+    if gray.dtype != np.uint8:
+        raise ValueError(f"colour image must be uint8, got {gray.dtype}")
+    return np.ascontiguousarray(gray)
+
+
+def _detect(gray: np.ndarray, mask_u8: np.ndarray | None, params: FeatureParams) -> tuple[list, np.ndarray | None]:
+    if params.kind == "orb":
+        n = max(params.max_keypoints, int(round(params.max_keypoints * params.orb_detect_factor)))
+        det = cv2.ORB_create(nfeatures=n, scaleFactor=params.orb_scale_factor, nlevels=params.orb_n_levels,
+                             fastThreshold=params.orb_fast_threshold)
+    else:
+        det = cv2.SIFT_create(nfeatures=0, nOctaveLayers=params.sift_n_octave_layers,
+                              contrastThreshold=params.sift_contrast_threshold,
+                              edgeThreshold=params.sift_edge_threshold, sigma=params.sift_sigma)
+    kps, desc = det.detectAndCompute(gray, mask_u8)
+    return list(kps), desc
+
+
+def _rootsift(desc: np.ndarray) -> np.ndarray:
+    """[N x 128] SIFT -> RootSIFT: L1-normalise, square root, then unit L2 (guards rounding)."""
+    d = np.maximum(desc.astype(np.float64), 0.0)
+    d = np.sqrt(d / np.maximum(d.sum(axis=1, keepdims=True), 1e-12))
+    d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+    return d.astype(np.float32)
+
+
+def extract_features(frame: RGBDFrame, params: FeatureParams = FeatureParams(),
+                     mask: np.ndarray | None = None) -> Features:
+    """Detect, describe and lift keypoints of `frame`.
+
+    mask: optional [H x W] bool; detection is restricted to True pixels (a keypoint is kept
+    only if its rounded pixel lies in the mask). `frame.mask` is NOT applied implicitly:
+    pass `mask=frame.mask` to use it. Keypoints without a robust depth (invalid or
+    discontinuous window, see `lift_keypoints`) are dropped; of the rest the
+    `params.max_keypoints` strongest are kept, ordered by decreasing response with ties
+    broken by (y, x, angle). Deterministic.
+    """
+    gray = _to_gray(frame.color)
+    H, W = gray.shape
+    mask_u8 = None
+    if mask is not None:
+        mask = np.asarray(mask)
+        if mask.shape != (H, W):
+            raise ValueError(f"mask is {mask.shape[1] if mask.ndim > 1 else '?'}x{mask.shape[0]} "
+                             f"but the frame {frame.name!r} is {W}x{H}")
+        mask = mask.astype(bool)
+        if not mask.any():
+            return empty_features(params.kind)
+        mask_u8 = mask.astype(np.uint8) * 255
+    kps, desc = _detect(gray, mask_u8, params)
+    if not kps or desc is None:
+        log.debug("frame %s: no keypoints", frame.name)
+        return empty_features(params.kind)
+    px = np.array([k.pt for k in kps], dtype=np.float64).reshape(-1, 2)
+    resp = np.array([k.response for k in kps], dtype=np.float64)
+    angle = np.array([k.angle for k in kps], dtype=np.float64)
+    size = np.array([k.size for k in kps], dtype=np.float32)
+    keep = np.ones(len(kps), dtype=bool)
+    if mask is not None:
+        u = np.clip(np.rint(px[:, 0]).astype(int), 0, W - 1)
+        v = np.clip(np.rint(px[:, 1]).astype(int), 0, H - 1)
+        keep &= mask[v, u]
+    pts, valid = lift_keypoints(px, frame.depth, frame.intrinsics, window=params.lift_window,
+                                max_rel_spread=params.lift_max_rel_spread,
+                                min_valid_frac=params.lift_min_valid_frac)
+    keep &= valid
+    idx = np.flatnonzero(keep)
+    # strongest first; ties by (y, x, angle); lexsort's primary key is the last one
+    order = np.lexsort((angle[idx], px[idx, 0], px[idx, 1], -resp[idx]))
+    idx = idx[order][: params.max_keypoints]
+    desc = desc[idx]
+    if params.kind == "rootsift":
+        desc = _rootsift(desc)
+    elif params.kind == "sift":
+        desc = desc.astype(np.float32)
+    else:
+        desc = np.ascontiguousarray(desc, dtype=np.uint8)
+    log.debug("frame %s: %d %s keypoints detected, %d with depth, %d kept", frame.name, len(kps), params.kind,
+              int(keep.sum()), len(idx))
+    return Features(px[idx].astype(np.float32), pts[idx].astype(np.float32), np.ascontiguousarray(desc),
+                    params.kind, size[idx])
+
+
+_POPCOUNT8 = np.array([bin(i).count("1") for i in range(256)], dtype=np.uint8)
+
+
+def _hamming(d_s: np.ndarray, d_t: np.ndarray, chunk_bytes: int) -> np.ndarray:
+    """Bit-count distances of [Ns x B] and [Nt x B] uint8 codes -> [Ns x Nt] float32.
+
+    Loops over the code's words (64-bit when B % 8 == 0), XOR-ing a [rows x Nt] block
+    at a time and accumulating its popcount, so intermediates stay near `chunk_bytes`.
+    """
+    ns, nt = len(d_s), len(d_t)
+    out = np.empty((ns, nt), dtype=np.float32)
+    a, b = np.ascontiguousarray(d_s), np.ascontiguousarray(d_t)
+    if a.shape[1] % 8 == 0:  # 64-bit words: 8x fewer element operations
+        a, b = a.view(np.uint64), b.view(np.uint64)
+    acc_t = np.uint16 if d_s.shape[1] * 8 < 65536 else np.uint32
+    rows = max(1, chunk_bytes // max(1, nt * a.itemsize))
+    bt = np.ascontiguousarray(b.T)  # [words x Nt]
+    for i in range(0, ns, rows):
+        blk = a[i:i + rows]
+        acc = np.zeros((len(blk), nt), dtype=acc_t)
+        for w in range(a.shape[1]):
+            x = blk[:, w, None] ^ bt[w][None, :]
+            if hasattr(np, "bitwise_count"):  # numpy >= 2.0
+                acc += np.bitwise_count(x)
+            else:
+                acc += _POPCOUNT8[x.view(np.uint8)].reshape(len(blk), nt, a.itemsize).sum(axis=2, dtype=acc_t)
+        out[i:i + rows] = acc
+    return out
+
+
+def descriptor_distances(d_s: np.ndarray, d_t: np.ndarray, kind: str,
+                         chunk_bytes: int = 32 << 20) -> np.ndarray:
+    """All pairwise descriptor distances, [Ns x D] x [Nt x D] -> [Ns x Nt] float32.
+
+    sift / rootsift: exact Euclidean distance by GEMM in float32, |a|^2 + |b|^2 - 2 a.b
+    clamped at 0 before the square root (float32 cancellation: near zero distance the result
+    can be off by up to ~1e-3 * |a|, i.e. ~0.5 for SIFT's norm-512 vectors, ~1e-3 for RootSIFT). SIFT vectors
+    are not normalised here. orb: Hamming bit count of uint8 [N x 32] codes, computed in
+    chunks of about `chunk_bytes` of XOR intermediates.
+    """
+    metric = metric_of(kind)
+    d_s, d_t = np.asarray(d_s), np.asarray(d_t)
+    if d_s.ndim != 2 or d_t.ndim != 2 or d_s.shape[1] != d_t.shape[1]:
+        raise ValueError(f"descriptor arrays must be [Ns x D] and [Nt x D], got {d_s.shape} and {d_t.shape}")
+    ns, nt = len(d_s), len(d_t)
+    if ns == 0 or nt == 0:
+        return np.zeros((ns, nt), dtype=np.float32)
+    if metric == "hamming":
+        if d_s.dtype != np.uint8 or d_t.dtype != np.uint8:
+            raise ValueError(f"orb descriptors must be uint8, got {d_s.dtype} and {d_t.dtype}")
+        return _hamming(d_s, d_t, chunk_bytes)
+    a = np.ascontiguousarray(d_s, dtype=np.float32)
+    b = np.ascontiguousarray(d_t, dtype=np.float32)
+    d2 = a @ b.T
+    d2 *= -2.0
+    d2 += np.einsum("ij,ij->i", a, a)[:, None]
+    d2 += np.einsum("ij,ij->i", b, b)[None, :]
+    np.maximum(d2, 0.0, out=d2)
+    return np.sqrt(d2, out=d2)
