@@ -1,0 +1,394 @@
+"""gscan command line (typer). The only module that prints or exits.
+
+Exit codes: 0 ok, 2 bad input (one line naming the file), 1 internal error.
+`--json` prints exactly one JSON object on stdout; progress and logs go to stderr.
+Heavy modules are imported inside the commands so `gscan --help` stays fast.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import os
+import sys
+from pathlib import Path
+from typing import Any, Optional
+
+import typer
+from rich.console import Console
+
+from gscan.errors import GscanError, InputError
+
+app = typer.Typer(add_completion=False, pretty_exceptions_enable=False, no_args_is_help=True,
+                  help="Scan objects with an RGB-D camera into GMatch templates; estimate their 6DoF pose on a CPU.")
+grasp_app = typer.Typer(no_args_is_help=True, help="Named grasp poses stored in a template (object frame).")
+config_app = typer.Typer(no_args_is_help=True, help="Scan configuration.")
+app.add_typer(grasp_app, name="grasp")
+app.add_typer(config_app, name="config")
+
+err = Console(stderr=True, highlight=False)
+
+
+class UsageError(InputError):
+    """Bad command-line usage that names a file or option (exit 2)."""
+
+
+def _print_json(obj: Any) -> None:
+    sys.stdout.write(json.dumps(obj, indent=None, default=_json_default) + "\n")
+    sys.stdout.flush()
+
+
+def _json_default(o: Any) -> Any:
+    import numpy as np
+
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serialisable: {type(o)}")
+
+
+def _matrix(T: Any) -> list[list[float]] | None:
+    return None if T is None else [[float(x) for x in row] for row in T]
+
+
+def _setup_logging(verbose: bool) -> None:
+    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, stream=sys.stderr,
+                        format="%(levelname)s %(name)s: %(message)s")
+
+
+# --------------------------------------------------------------------------------------------- scan
+
+
+@app.command()
+def scan(
+    input_dir: Path = typer.Argument(..., help="RGB-D folder (capture, Open3D, TUM or BOP layout)"),
+    output: Path = typer.Option(..., "-o", "--output", help="template database to write (OBJ.gscan)"),
+    format: str = typer.Option("auto", "--format", help="auto|capture|open3d|tum|bop"),
+    intrinsics: Optional[Path] = typer.Option(None, "--intrinsics", help="cam_K.txt or Open3D intrinsics JSON"),
+    depth_scale: Optional[float] = typer.Option(None, "--depth-scale", help="metres per raw depth unit"),
+    mode: str = typer.Option("auto", "--mode", help="auto|static-object|moving-object"),
+    no_segment: bool = typer.Option(False, "--no-segment", help="fuse the whole scene, not the object alone"),
+    resume: bool = typer.Option(False, "--resume", help="continue an interrupted scan into OUTPUT"),
+    force: bool = typer.Option(False, "--force", help="replace an existing OUTPUT"),
+    config: Optional[Path] = typer.Option(None, "--config", help="YAML configuration (see `gscan config dump`)"),
+    json_out: bool = typer.Option(False, "--json", help="print one JSON object on stdout"),
+    verbose: bool = typer.Option(False, "-v", "--verbose", help="log progress details to stderr"),
+) -> None:
+    """Register every view of an RGB-D capture into one object frame and write a template database."""
+    _setup_logging(verbose)
+    from gscan.config import load_config
+    from gscan.progress import RichProgress
+    from gscan.scan import ScanOptions, run_scan
+
+    if format not in ("auto", "capture", "open3d", "tum", "bop"):
+        raise UsageError(None, f"--format must be auto, capture, open3d, tum or bop, not {format!r}")
+    if mode not in ("auto", "static-object", "moving-object"):
+        raise UsageError(None, f"--mode must be auto, static-object or moving-object, not {mode!r}")
+    if resume and force:
+        raise UsageError(output, "--resume and --force exclude each other")
+    opts = ScanOptions(input_dir=input_dir, output=output, fmt=format, intrinsics=intrinsics,
+                       depth_scale=depth_scale, mode=mode, segment=not no_segment, resume=resume,
+                       force=force, config=load_config(config))
+    with RichProgress(err, enabled=not json_out or sys.stderr.isatty()) as progress:
+        result = run_scan(opts, progress=progress)
+    if json_out:
+        _print_json(result.to_json())
+    else:
+        _print_scan_summary(result)
+
+
+def _print_scan_summary(result: Any) -> None:
+    from rich.table import Table
+
+    table = Table(title="stage timings", show_header=True)
+    table.add_column("stage")
+    table.add_column("seconds", justify="right")
+    for stage, sec in result.timings_s.items():
+        table.add_row(stage, f"{sec:.2f}")
+    err.print(table)
+    err.print(f"[bold]{result.output}[/bold]: {result.registered}/{result.frames} frames registered "
+              f"({result.mode}), edges {result.edges_accepted} accepted / {result.edges_rejected} rejected, "
+              f"mesh {result.mesh_vertices} vertices / {result.mesh_triangles} triangles")
+    if result.unregistered:
+        err.print(f"[yellow]unregistered frames:[/yellow] {', '.join(result.unregistered)}")
+    for name, reason in result.problems.items():
+        err.print(f"[yellow]skipped frame {name}:[/yellow] {reason}")
+
+
+# ------------------------------------------------------------------------------------- template-from-mesh
+
+
+@app.command("template-from-mesh")
+def template_from_mesh(
+    mesh: Path = typer.Argument(..., help="textured mesh (OBJ with texture, PLY, GLB)"),
+    output: Path = typer.Option(..., "-o", "--output", help="template database to write"),
+    views: int = typer.Option(36, "--views", min=4, max=500, help="snapshots rendered around the mesh"),
+    scale: float = typer.Option(1.0, "--scale", help="mesh units to metres (0.001 for millimetres)"),
+    force: bool = typer.Option(False, "--force", help="replace an existing OUTPUT"),
+    json_out: bool = typer.Option(False, "--json", help="print one JSON object on stdout"),
+) -> None:
+    """Render snapshots around a CAD mesh into a template database (mesh frame kept)."""
+    from gscan.cadtemplate import build_template_from_mesh
+    from gscan.progress import RichProgress
+
+    if scale <= 0:
+        raise UsageError(mesh, f"--scale must be positive, not {scale}")
+    with RichProgress(err, enabled=not json_out) as progress:
+        summary = build_template_from_mesh(mesh, output, n_views=views, scale=scale, force=force, progress=progress)
+    if json_out:
+        _print_json(summary)
+    else:
+        err.print(f"[bold]{output}[/bold]: {summary['views']} views rendered from {mesh}")
+
+
+# ------------------------------------------------------------------------------------------- estimate
+
+
+def _load_query_frame(color: Path, depth: Path, intrinsics: Path, depth_scale: float, mask: Optional[Path]):
+    from gscan.io import load_frame
+
+    return load_frame(color, depth, intrinsics, depth_scale=depth_scale, mask=mask)
+
+
+@app.command()
+def estimate(
+    template: Path = typer.Argument(..., help="template database (OBJ.gscan)"),
+    color: Path = typer.Option(..., "--color", help="colour image"),
+    depth: Path = typer.Option(..., "--depth", help="16-bit depth image"),
+    intrinsics: Path = typer.Option(..., "--intrinsics", help="cam_K.txt or Open3D intrinsics JSON"),
+    depth_scale: float = typer.Option(0.001, "--depth-scale", help="metres per raw depth unit"),
+    mask: Optional[Path] = typer.Option(None, "--mask", help="restrict the search to this mask"),
+    no_icp: bool = typer.Option(False, "--no-icp", help="skip the ICP refinement"),
+    json_out: bool = typer.Option(False, "--json", help="print one JSON object on stdout"),
+) -> None:
+    """Estimate the object's pose T_cam_obj in a new RGB-D frame."""
+    from gscan.estimate import Estimator
+
+    estimator = Estimator.from_path(template)
+    frame = _load_query_frame(color, depth, intrinsics, depth_scale, mask)
+    result = estimator.estimate(frame, mask=frame.mask, refine=not no_icp)
+    out = result.to_json()
+    if json_out:
+        _print_json(out)
+        return
+    if result.T_cam_obj is None:
+        err.print(f"[yellow]object not found[/yellow]: {result.reason}")
+    else:
+        err.print(f"found: view {result.view}, {result.n_matches} matches, score {result.score:.3f}")
+        err.print("T_cam_obj =")
+        err.print(json.dumps(out["T_cam_obj"]))
+        for name, T in out["grasps"].items():
+            err.print(f"grasp {name}: T_cam_grasp = {json.dumps(T)}")
+    err.print("timings (ms): " + ", ".join(f"{k} {v:.1f}" for k, v in out["timings_ms"].items()))
+
+
+# ------------------------------------------------------------------------------------- poses / info
+
+
+@app.command()
+def poses(
+    template: Path = typer.Argument(..., help="template database"),
+    json_out: bool = typer.Option(False, "--json", help="print one JSON object on stdout"),
+) -> None:
+    """Camera pose T_obj_cam of every registered input frame in the template frame."""
+    from gscan.template import TemplateDB
+
+    with TemplateDB.open(template, require_complete=True) as db:
+        out = db.poses()
+    if json_out:
+        _print_json(out)
+        return
+    for name, T in out["frames"].items():
+        t = [row[3] for row in T[:3]]
+        err.print(f"{name}: t = [{t[0]:+.4f}, {t[1]:+.4f}, {t[2]:+.4f}] m")
+    if out["unregistered"]:
+        err.print(f"unregistered: {', '.join(out['unregistered'])}")
+
+
+@app.command()
+def info(
+    template: Path = typer.Argument(..., help="template database"),
+    json_out: bool = typer.Option(False, "--json", help="print one JSON object on stdout"),
+) -> None:
+    """Summary of a template database (works on partial ones too)."""
+    from gscan.template import TemplateDB
+
+    with TemplateDB.open(template, require_complete=False) as db:
+        out = db.summary()
+    if json_out:
+        _print_json(out)
+        return
+    for k, v in out.items():
+        err.print(f"{k}: {v}")
+
+
+# ------------------------------------------------------------------------------------------ export
+
+
+@app.command()
+def export(
+    template: Path = typer.Argument(..., help="template database"),
+    format: str = typer.Option(..., "--format", help="bop|foundationpose|colmap|ply|obj|glb|json"),
+    output: Path = typer.Option(..., "-o", "--output", help="output file or folder"),
+    force: bool = typer.Option(False, "--force", help="replace an existing output"),
+) -> None:
+    """Export a template for other tools."""
+    from gscan.export import FORMATS, export as do_export
+
+    if format not in FORMATS:
+        raise UsageError(None, f"--format must be one of {', '.join(FORMATS)}, not {format!r}")
+    written = do_export(template, format, output, force=force)
+    err.print(f"wrote {written}")
+
+
+# -------------------------------------------------------------------------------------------- view
+
+
+@app.command()
+def view(
+    template: Path = typer.Argument(..., help="template database"),
+    host: str = typer.Option("127.0.0.1", "--host", help="address to bind"),
+    port: int = typer.Option(8080, "--port", help="port to serve on"),
+    color: Optional[Path] = typer.Option(None, "--color", help="show this frame with the estimated pose"),
+    depth: Optional[Path] = typer.Option(None, "--depth", help="depth of --color"),
+    intrinsics: Optional[Path] = typer.Option(None, "--intrinsics", help="intrinsics of --color"),
+    depth_scale: float = typer.Option(0.001, "--depth-scale", help="metres per raw depth unit"),
+) -> None:
+    """Browse a template (views, matches, pose graph) in the web browser."""
+    from gscan.viewer import run_viewer
+
+    frame = T_cam_obj = None
+    if color is not None or depth is not None or intrinsics is not None:
+        if color is None or depth is None or intrinsics is None:
+            raise UsageError(None, "--color, --depth and --intrinsics go together")
+        from gscan.estimate import Estimator
+
+        frame = _load_query_frame(color, depth, intrinsics, depth_scale, None)
+        result = Estimator.from_path(template).estimate(frame)
+        T_cam_obj = result.T_cam_obj
+        err.print(f"estimate: {'not found (' + str(result.reason) + ')' if T_cam_obj is None else 'view ' + str(result.view)}")
+    run_viewer(template, host=host, port=port, scene_frame=frame, T_cam_obj=T_cam_obj,
+               on_ready=lambda url: err.print(f"viewer at [bold]{url}[/bold] (Ctrl+C to stop)"))
+
+
+# ------------------------------------------------------------------------------------------- grasp
+
+
+@grasp_app.command("add")
+def grasp_add(
+    template: Path = typer.Argument(..., help="template database"),
+    name: str = typer.Option(..., "--name", help="grasp name"),
+    pose: Path = typer.Option(..., "--pose", help='JSON file: {"T": 4x4} or a bare 4x4 list (object frame, metres)'),
+) -> None:
+    """Store a named grasp pose T_obj_grasp in the template."""
+    from gscan.template import TemplateDB, read_pose_file
+
+    T = read_pose_file(pose)
+    with TemplateDB.open(template, require_complete=True, writable=True) as db:
+        db.add_grasp(name, T)
+    err.print(f"grasp {name!r} stored in {template}")
+
+
+@grasp_app.command("list")
+def grasp_list(
+    template: Path = typer.Argument(..., help="template database"),
+    json_out: bool = typer.Option(False, "--json", help="print one JSON object on stdout"),
+) -> None:
+    """List the grasp poses stored in a template."""
+    from gscan.template import TemplateDB
+
+    with TemplateDB.open(template, require_complete=False) as db:
+        grasps = db.grasps()
+    if json_out:
+        _print_json({"grasps": {k: _matrix(v) for k, v in grasps.items()}})
+        return
+    if not grasps:
+        err.print("no grasps")
+    for k, T in grasps.items():
+        err.print(f"{k}: t = {[round(float(x), 4) for x in T[:3, 3]]}")
+
+
+# -------------------------------------------------------------------------------------------- eval
+
+
+@app.command("eval")
+def eval_cmd(
+    template: Path = typer.Argument(..., help="template database of the object"),
+    scenes: Path = typer.Argument(..., help="BOP scene folder, or a folder of rendered scenes (capture layout)"),
+    output: Path = typer.Option(..., "-o", "--output", help="BOP19 results CSV to write"),
+    obj_id: int = typer.Option(1, "--obj-id", help="object id in scene_gt.json and in the CSV"),
+    model: Optional[Path] = typer.Option(None, "--model", help="object model for ADD/ADD-S/MSSD/MSPD (default: template mesh)"),
+    symmetric: bool = typer.Option(False, "--symmetric", help="report ADD-S as the main metric"),
+    no_icp: bool = typer.Option(False, "--no-icp", help="skip the ICP refinement"),
+    force: bool = typer.Option(False, "--force", help="replace an existing output"),
+    json_out: bool = typer.Option(False, "--json", help="print one JSON object on stdout"),
+) -> None:
+    """Run estimation over scenes, write BOP19 results CSV and print a metrics table."""
+    from gscan.evaluate import evaluate
+
+    report = evaluate(template, scenes, output, obj_id=obj_id, model_path=model, refine=not no_icp, force=force)
+    if json_out:
+        _print_json(report.to_json())
+        return
+    from rich.table import Table
+
+    table = Table(title=f"{report.n_images} images, {report.n_found} found")
+    table.add_column("metric")
+    table.add_column("value", justify="right")
+    for k, v in report.metrics.items():
+        table.add_row(k, f"{v:.2f}")
+    err.print(table)
+    err.print(f"results written to {output}")
+
+
+# ------------------------------------------------------------------------------------------ config
+
+
+@config_app.command("dump")
+def config_dump() -> None:
+    """Print the default scan configuration as commented YAML."""
+    from gscan.config import dump_defaults
+
+    sys.stdout.write(dump_defaults())
+
+
+# -------------------------------------------------------------------------------------------- demo
+
+
+@app.command()
+def demo(
+    no_view: bool = typer.Option(False, "--no-view", help="do not open the viewer at the end"),
+    output: Path = typer.Option(Path("demo-output"), "-o", "--output", help="folder for the demo's template"),
+    port: int = typer.Option(8080, "--port", help="viewer port"),
+) -> None:
+    """Scan the bundled sample, estimate its held-back frames, then open the viewer."""
+    from gscan.demo import run_demo
+
+    run_demo(output, console=err, view=not no_view, port=port)
+
+
+def main() -> None:
+    """Console entry point: maps errors to exit codes (2 bad input, 1 internal)."""
+    try:
+        app()
+    except InputError as e:
+        err.print(f"error: {e}", markup=False, highlight=False, soft_wrap=True)
+        sys.exit(2)
+    except GscanError as e:
+        err.print(f"error: {e}", markup=False, highlight=False, soft_wrap=True)
+        sys.exit(2)
+    except KeyboardInterrupt:
+        err.print("interrupted")
+        sys.exit(130)
+    except Exception as e:  # noqa: BLE001 - the CLI is the boundary
+        if os.environ.get("GSCAN_DEBUG"):
+            raise
+        msg = " ".join(f"{e.__class__.__name__}: {e}".split())
+        err.print(f"internal error: {msg} (set GSCAN_DEBUG=1 for the traceback)", markup=False, soft_wrap=True)
+        sys.exit(1)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,106 @@
+"""Typed configuration of the scan pipeline (pydantic), loaded from YAML by the CLI.
+
+Every key has a default and a one-line description; `gscan config dump` prints them as
+commented YAML. The algorithms never see this object: `gscan.scan` turns each section into
+the parameter dataclass of the module it configures.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from gscan.errors import InputError
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class FeaturesConfig(_Section):
+    kind: Literal["sift", "rootsift", "orb"] = Field("rootsift", description="keypoint descriptor")
+    max_keypoints: int = Field(2000, ge=50, le=20000, description="strongest keypoints kept per frame")
+
+
+class MatchConfig(_Section):
+    method: Literal["gmatch", "ratio", "mutual", "ransac", "lo-ransac", "fgr"] = Field(
+        "gmatch", description="pairwise matcher: GMatch or a baseline (for comparison)")
+    eps_f: float | None = Field(None, gt=0, description="descriptor distance threshold; null = the descriptor's default")
+    eps_c: float = Field(0.08, gt=0, lt=1, description="GMatch relative pairwise-distance tolerance")
+    eta: float = Field(0.01, gt=0, description="GMatch absolute distance margin at 0.5 m depth (m), grows with depth^2")
+    T: int = Field(24, ge=1, le=256, description="GMatch seeds (top-T most similar candidates)")
+    L: int = Field(24, ge=3, le=256, description="GMatch maximum match-list length")
+    constraint: Literal["flip", "triple"] = Field("flip", description="flip-over or scalar-triple-product constraint")
+
+
+class RegisterConfig(_Section):
+    min_matches: int = Field(8, ge=3, description="an edge needs at least this many geometric matches")
+    icp: bool = Field(True, description="refine each edge by point-to-plane ICP")
+    icp_max_dist: float = Field(0.01, gt=0, description="ICP correspondence distance (m)")
+    icp_voxel: float = Field(0.004, ge=0, description="voxel size for ICP clouds (m), 0 = no downsampling")
+    min_fitness: float = Field(0.3, ge=0, le=1, description="an edge needs ICP fitness at least this")
+    max_rmse: float = Field(0.006, gt=0, description="an edge needs ICP inlier RMSE at most this (m)")
+    max_icp_shift_deg: float = Field(5.0, gt=0, description="reject an edge whose ICP moved the match pose more (deg)")
+    max_icp_shift_m: float = Field(0.02, gt=0, description="reject an edge whose ICP moved the match pose more (m)")
+
+
+class PoseGraphConfig(_Section):
+    loop_candidates: int = Field(4, ge=0, description="loop-closure candidates tried per frame")
+    max_view_angle_deg: float = Field(75.0, gt=0, le=180, description="loop candidates view the object within this angle")
+    prune_rot_deg: float = Field(2.0, gt=0, description="edges disagreeing with the optimised graph by more are pruned")
+    prune_trans_m: float = Field(0.01, gt=0, description="edges disagreeing with the optimised graph by more are pruned (m)")
+
+
+class FusionConfig(_Section):
+    voxel: float = Field(0.002, gt=0, description="TSDF voxel size (m)")
+    depth_max: float = Field(2.0, gt=0, description="depth beyond this is ignored when fusing (m)")
+
+
+class KeyframeConfig(_Section):
+    min_angle_deg: float = Field(12.0, ge=0, description="a new keyframe views the object at least this far from all others")
+    max_views: int = Field(120, ge=1, description="at most this many template views")
+
+
+class ScanConfig(_Section):
+    features: FeaturesConfig = FeaturesConfig()
+    match: MatchConfig = MatchConfig()
+    registration: RegisterConfig = RegisterConfig()
+    posegraph: PoseGraphConfig = PoseGraphConfig()
+    fusion: FusionConfig = FusionConfig()
+    keyframes: KeyframeConfig = KeyframeConfig()
+
+
+def load_config(path: str | Path | None) -> ScanConfig:
+    """Read and validate a YAML config; None gives the defaults. Raises InputError naming the file."""
+    if path is None:
+        return ScanConfig()
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
+    except OSError as e:
+        raise InputError(path, f"cannot read config ({e.strerror or e})") from None
+    except yaml.YAMLError as e:
+        raise InputError(path, f"malformed YAML: {str(e).splitlines()[0]}") from None
+    if not isinstance(data, dict):
+        raise InputError(path, "config must be a mapping of sections")
+    try:
+        return ScanConfig.model_validate(data)
+    except ValidationError as e:
+        err = e.errors()[0]
+        where = ".".join(str(x) for x in err["loc"])
+        raise InputError(path, f"invalid config key {where}: {err['msg']}") from None
+
+
+def dump_defaults() -> str:
+    """The default configuration as YAML with a comment per key."""
+    lines = ["# gscan scan configuration (defaults). Pass an edited copy with --config."]
+    cfg = ScanConfig()
+    for section, model in cfg:
+        lines.append(f"{section}:")
+        for key, field in type(model).model_fields.items():
+            value = yaml.safe_dump(getattr(model, key), default_flow_style=True).strip().removesuffix("\n...")
+            value = value.removesuffix("...").strip()
+            lines.append(f"  {key}: {value}  # {field.description}")
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,69 @@
+"""Progress reporting: library code calls a `Progress`; the CLI supplies a rich progress bar.
+
+Library functions take `progress: Progress | None` and use it as
+`with progress.stage("features", total=n) as advance: ... advance()`.
+"""
+from __future__ import annotations
+
+import contextlib
+import time
+from typing import Callable, Iterator, Protocol
+
+
+class Progress(Protocol):
+    def stage(self, name: str, total: int | None = None) -> contextlib.AbstractContextManager[Callable[[int], None]]:
+        ...
+
+
+class NullProgress:
+    """Progress that reports nothing (library default)."""
+
+    @contextlib.contextmanager
+    def stage(self, name: str, total: int | None = None) -> Iterator[Callable[[int], None]]:
+        yield lambda n=1: None
+
+
+class StageTimer:
+    """Wraps a Progress and records wall-clock seconds per stage (`timings`)."""
+
+    def __init__(self, progress: Progress | None = None):
+        self.progress = progress or NullProgress()
+        self.timings: dict[str, float] = {}
+
+    @contextlib.contextmanager
+    def stage(self, name: str, total: int | None = None) -> Iterator[Callable[[int], None]]:
+        t0 = time.perf_counter()
+        with self.progress.stage(name, total) as advance:
+            yield advance
+        self.timings[name] = self.timings.get(name, 0.0) + time.perf_counter() - t0
+
+
+class RichProgress:
+    """A rich progress bar per stage, on the given (stderr) console."""
+
+    def __init__(self, console, enabled: bool = True):
+        self.console = console
+        self.enabled = enabled
+        self._progress = None
+
+    def __enter__(self) -> "RichProgress":
+        if self.enabled:
+            from rich.progress import BarColumn, MofNCompleteColumn, Progress as RP, TextColumn, TimeElapsedColumn
+
+            self._progress = RP(TextColumn("{task.description:<12}"), BarColumn(), MofNCompleteColumn(),
+                                TimeElapsedColumn(), console=self.console, transient=False)
+            self._progress.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self._progress is not None:
+            self._progress.stop()
+
+    @contextlib.contextmanager
+    def stage(self, name: str, total: int | None = None) -> Iterator[Callable[[int], None]]:
+        if self._progress is None:
+            yield lambda n=1: None
+            return
+        task = self._progress.add_task(name, total=total if total else 1)
+        yield lambda n=1: self._progress.advance(task, n)
+        self._progress.update(task, completed=total if total else 1)
