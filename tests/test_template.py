@@ -1,0 +1,251 @@
+"""Template database: round trips, status, refusal cases, overwrite rules, crash safety."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import sqlite3
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from gscan.camera import Intrinsics
+from gscan.errors import InputError
+from gscan.geometry import make_T, rotvec_to_R
+from gscan.template import (SCHEMA_VERSION, Edge, TemplateDB, View, ViewFeatures, open_template)
+
+K = Intrinsics(520.0, 515.0, 31.5, 23.5, 64, 48)
+
+
+def _pose(rng: np.random.Generator) -> np.ndarray:
+    return make_T(rotvec_to_R(rng.normal(size=3)), rng.normal(size=3))
+
+
+def _view(name: str, rng: np.random.Generator, T: np.ndarray | None = None, idx: int | None = None) -> View:
+    color = rng.integers(0, 256, (48, 64, 3), dtype=np.uint8)
+    depth = (rng.integers(0, 4000, (48, 64)) / 1000.0).astype(np.float32)  # whole millimetres: exact in 16-bit PNG
+    depth[rng.random((48, 64)) < 0.1] = 0.0
+    return View(name, K, T, color, depth, depth > 1.0, keyframe=True, quality=0.75, input_index=idx)
+
+
+def _feats(rng: np.random.Generator, n: int, kind: str = "rootsift") -> ViewFeatures:
+    desc = rng.integers(0, 256, (n, 32), dtype=np.uint8) if kind == "orb" else rng.random((n, 128), dtype=np.float32)
+    return ViewFeatures(rng.random((n, 2), dtype=np.float32) * 60, rng.normal(size=(n, 3)).astype(np.float32),
+                        desc, kind, rng.random(n, dtype=np.float32))
+
+
+@pytest.fixture()
+def db_path(tmp_path: Path) -> Path:
+    return tmp_path / "obj.gscan"
+
+
+def test_view_round_trip_png_exact_and_jpeg_close(db_path: Path) -> None:
+    rng = np.random.default_rng(0)
+    v_png, v_jpg = _view("a", rng, _pose(rng), 0), _view("b", rng, None, 1)
+    v_jpg.color = np.full((48, 64, 3), (200, 120, 40), dtype=np.uint8)
+    with TemplateDB.create(db_path) as db:
+        assert db.add_view(v_png, color_codec="png") != db.add_view(v_jpg, color_codec="jpg")
+        a, b = db.view("a"), db.view("b")
+        lazy = db.views()
+    assert np.array_equal(a.color, v_png.color) and a.color.dtype == np.uint8
+    assert np.array_equal(a.depth, v_png.depth) and a.depth.dtype == np.float32
+    assert np.array_equal(a.mask, v_png.mask) and a.mask.dtype == bool
+    assert np.array_equal(a.T_obj_cam, v_png.T_obj_cam) and b.T_obj_cam is None
+    assert a.intrinsics == K and a.quality == 0.75 and a.keyframe and a.input_index == 0
+    assert np.abs(b.color.astype(int) - v_jpg.color).max() <= 3  # JPEG q90 of a flat colour
+    assert [v.name for v in lazy] == ["a", "b"] and all(v.color is None and v.depth is None for v in lazy)
+
+
+def test_depth_quantised_to_millimetres(db_path: Path) -> None:
+    depth = np.array([[0.0, 0.0004, 0.5004, 1.2346, 70.0, np.nan]], dtype=np.float32)
+    with TemplateDB.create(db_path) as db:
+        db.add_view(View("d", Intrinsics(1, 1, 0, 0, 6, 1), None, None, depth))
+        out = db.view("d").depth
+    assert np.allclose(out, [0.0, 0.0, 0.5, 1.235, 0.0, 0.0], atol=1e-7)
+
+
+@settings(max_examples=15, deadline=None)
+@given(n=st.integers(0, 40), kind=st.sampled_from(["rootsift", "sift", "orb"]), seed=st.integers(0, 2**31))
+def test_features_round_trip_bit_exact(tmp_path_factory: pytest.TempPathFactory, n: int, kind: str, seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    path = tmp_path_factory.mktemp("f") / "f.gscan"
+    f = _feats(rng, n, kind)
+    with TemplateDB.create(path) as db:
+        db.add_view(View("v", K, _pose(rng)), features=f)
+        g = db.features("v")
+        pixels, points, desc, k = g
+    for x, y in ((f.pixels, pixels), (f.points_obj, points), (f.descriptors, desc), (f.scales, g.scales)):
+        assert x.dtype == y.dtype and x.shape == y.shape and x.tobytes() == y.tobytes()
+    assert k == kind
+
+
+def test_update_pose_moves_keypoints_into_the_new_object_frame(db_path: Path) -> None:
+    rng = np.random.default_rng(1)
+    pts_cam = rng.normal(size=(20, 3)).astype(np.float32)
+    T1, T2 = _pose(rng), _pose(rng)
+    with TemplateDB.create(db_path) as db:
+        db.add_view(View("v", K))  # unregistered: keypoints in the camera frame
+        db.add_features("v", rng.random((20, 2), dtype=np.float32), pts_cam, rng.random((20, 128), dtype=np.float32),
+                        "rootsift")
+        db.update_pose("v", T1)
+        got1 = db.features("v").points_obj
+        db.update_pose("v", T2)
+        got2 = db.features("v").points_obj
+        assert np.array_equal(db.view("v", load_images=False).T_obj_cam, T2)
+    ref = lambda T: pts_cam.astype(np.float64) @ T[:3, :3].T + T[:3, 3]  # noqa: E731
+    assert np.allclose(got1, ref(T1), atol=1e-5) and np.allclose(got2, ref(T2), atol=1e-5)
+
+
+def test_edges_mesh_cloud_grasps_meta_round_trip(db_path: Path) -> None:
+    rng = np.random.default_rng(2)
+    e1 = Edge("a", "b", _pose(rng), rng.integers(0, 100, (30, 2)).astype(np.int32), 0.01, 0.002, 0.9, "sequential")
+    e2 = Edge("b", "c", None, np.zeros((0, 2), np.int32), None, None, None, "loop", False, "too few matches")
+    V = rng.normal(size=(50, 3))
+    F = rng.integers(0, 50, (80, 3)).astype(np.int32)
+    C = rng.integers(0, 256, (50, 3), dtype=np.uint8)
+    P = rng.normal(size=(100, 3)).astype(np.float32)
+    Tg = _pose(rng)
+    with TemplateDB.create(db_path, meta={"source": "mesh", "descriptor": {"kind": "orb", "max_keypoints": 500}}) as db:
+        db.add_edge(e1)
+        db.add_edge(e2)
+        db.set_mesh(V, F, C)
+        db.set_cloud(P, rng.random((100, 3)))
+        db.add_grasp("top grip ü", Tg)
+        with pytest.raises(InputError, match="already exists"):
+            db.add_grasp("top grip ü", Tg)
+        db.set_meta("config", {"voxel": 0.002, "nested": [1, 2]})
+        edges, mesh, cloud, grasps, meta = db.edges(), db.mesh(), db.cloud(), db.grasps(), db.meta()
+        assert [e.src for e in db.edges(accepted_only=True)] == ["a"]
+    assert np.array_equal(edges[0].T_tgt_src, e1.T_tgt_src) and np.array_equal(edges[0].matches, e1.matches)
+    assert (edges[0].cost, edges[0].rmse, edges[0].fitness, edges[0].kind, edges[0].accepted) == (0.01, 0.002, 0.9,
+                                                                                                 "sequential", True)
+    assert edges[1].T_tgt_src is None and edges[1].matches.shape == (0, 2) and edges[1].reason == "too few matches"
+    Vm, Fm, Cm = mesh
+    assert np.array_equal(Vm, V) and np.array_equal(Fm, F) and np.array_equal(Cm, C)
+    assert np.array_equal(cloud[0], P) and cloud[1].dtype == np.uint8
+    assert np.array_equal(grasps["top grip ü"], Tg)
+    assert meta["config"] == {"voxel": 0.002, "nested": [1, 2]} and meta["units"] == "m"
+    assert meta["schema"] == SCHEMA_VERSION and meta["source"] == "mesh"
+
+
+def test_status_summary_poses_and_template(db_path: Path) -> None:
+    rng = np.random.default_rng(3)
+    names = ["frame 0", "frame é 1", "frame 2"]
+    Ts = [_pose(rng), None, _pose(rng)]
+    with TemplateDB.create(db_path, meta={"descriptor": {"kind": "rootsift"}}) as db:
+        for i, (n, T) in enumerate(zip(names, Ts)):
+            db.add_view(View(n, K, T, input_index=i), features=_feats(rng, 5 + i))
+        db.set_mesh(np.array([[0, 0, 0], [0.1, 0.2, 0.3], [0.05, 0, 0]]), np.array([[0, 1, 2]]))
+        db.add_grasp("g", np.eye(4))
+        assert db.status == "partial"
+    with pytest.raises(InputError, match=r"partial scan; run `gscan scan --resume`"):
+        TemplateDB.open(db_path)
+    with TemplateDB.open(db_path, require_complete=False, writable=True) as db:
+        db.mark_complete()
+    with TemplateDB.open(db_path) as db:
+        s, p = db.summary(), db.poses()
+        t = db.load_template()
+    assert s["schema"] == 1 and s["status"] == "complete" and s["views"] == 3 and s["descriptor"] == "rootsift"
+    assert s["extent_m"] == pytest.approx([0.1, 0.2, 0.3]) and s["grasps"] == ["g"] and s["source"] == "scan"
+    json.dumps(s), json.dumps(p)
+    assert list(p["frames"]) == ["frame 0", "frame 2"] and p["unregistered"] == ["frame é 1"]
+    assert np.allclose(p["frames"]["frame 2"], Ts[2])
+    assert t.view_names == ["frame 0", "frame 2"] and t.T_obj_cam.shape == (2, 4, 4)
+    assert len(t.pixels) == len(t.points_obj) == len(t.descriptors) == len(t.kp_view) == 5 + 7
+    assert list(t.view_offsets) == [0, 5, 12] and list(np.bincount(t.kp_view)) == [5, 7]
+    assert open_template(db_path).grasps.keys() == {"g"}
+
+
+def test_create_refuses_existing_without_force(db_path: Path) -> None:
+    TemplateDB.create(db_path).close()
+    with pytest.raises(InputError, match="already exists") as ei:
+        TemplateDB.create(db_path)
+    assert str(db_path) in str(ei.value) and "\n" not in str(ei.value)
+    with TemplateDB.open(db_path, require_complete=False, writable=True) as db:
+        db.add_view(View("x", K))
+    with TemplateDB.create(db_path, force=True) as db:
+        assert db.view_names() == []
+
+
+@pytest.mark.parametrize("case", ["missing", "random", "empty", "other_sqlite", "newer", "older"])
+def test_open_refusals(tmp_path: Path, case: str) -> None:
+    path = tmp_path / f"{case} é.gscan"
+    expect = {"missing": "not found", "random": "not an SQLite file", "empty": "not an SQLite file",
+              "other_sqlite": "not a gscan template database", "newer": "written by a newer gscan",
+              "older": "old template schema"}[case]
+    if case == "random":
+        path.write_bytes(np.random.default_rng(0).integers(0, 256, 4096, dtype=np.uint8).tobytes())
+    elif case == "empty":
+        path.write_bytes(b"")
+    elif case == "other_sqlite":
+        with sqlite3.connect(path) as c:
+            c.execute("CREATE TABLE meta (key TEXT, value TEXT)")
+    elif case in ("newer", "older"):
+        with TemplateDB.create(path) as db:
+            db.mark_complete()
+        with sqlite3.connect(path) as c:
+            c.execute("UPDATE meta SET value=? WHERE key='schema'", (str(SCHEMA_VERSION + 1 if case == "newer" else 0),))
+    with pytest.raises(InputError, match=expect) as ei:
+        TemplateDB.open(path, require_complete=False)
+    assert str(path) in str(ei.value) and "\n" not in str(ei.value)
+
+
+def test_duplicate_view_and_read_only(db_path: Path) -> None:
+    with TemplateDB.create(db_path) as db:
+        db.add_view(View("v", K), features=_feats(np.random.default_rng(0), 3))
+        with pytest.raises(InputError, match="already exists"):
+            db.add_view(View("v", K))
+        db.add_view(View("v", K, np.eye(4)), replace=True)
+        assert db.features("v") is None and db.view_names() == ["v"]
+        db.mark_complete()
+    with TemplateDB.open(db_path) as db, pytest.raises(Exception, match="read-only"):
+        db.set_meta("x", 1)
+
+
+_WRITER = textwrap.dedent("""
+    import sys, numpy as np
+    from gscan.camera import Intrinsics
+    from gscan.template import TemplateDB, View, ViewFeatures
+    db = TemplateDB.create(sys.argv[1])
+    K = Intrinsics(500.0, 500.0, 160.0, 120.0, 320, 240)
+    rng = np.random.default_rng(0)
+    for i in range(100000):
+        c = rng.integers(0, 256, (240, 320, 3), dtype=np.uint8)
+        d = rng.random((240, 320), dtype=np.float32)
+        f = ViewFeatures(rng.random((500, 2), dtype=np.float32), rng.random((500, 3), dtype=np.float32),
+                         rng.random((500, 128), dtype=np.float32), "rootsift")
+        db.add_view(View(f"view {i}", K, np.eye(4), c, d, d > 0.5, input_index=i), features=f, color_codec="png")
+        print(i, flush=True)
+""")
+
+
+def test_sigkill_mid_write_leaves_consistent_partial_db(db_path: Path) -> None:
+    proc = subprocess.Popen([sys.executable, "-c", _WRITER, str(db_path)], stdout=subprocess.PIPE, text=True)
+    try:
+        written = -1
+        deadline = time.monotonic() + 60
+        while written < 4 and time.monotonic() < deadline:
+            line = proc.stdout.readline()
+            assert line, "writer exited early"
+            written = int(line)
+        time.sleep(0.05)  # land the kill inside a later write
+    finally:
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+    with TemplateDB.open(db_path, require_complete=False) as db:  # replays a hot journal
+        assert db.status == "partial"
+        names = db.view_names()
+        assert len(names) >= written + 1
+        for n in names:  # every committed view is whole
+            assert db.features(n) is not None and db.view(n).color.shape == (240, 320, 3)
+    with sqlite3.connect(db_path) as c:
+        assert c.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
+    with pytest.raises(InputError, match="partial"):
+        TemplateDB.open(db_path)
