@@ -1,0 +1,29 @@
+"""RGB-D readers: sequences in four folder layouts, single frames, and odd depth formats.
+
+    open_sequence(path, format="auto", intrinsics=None, depth_scale=None, obj_id=None) -> Sequence
+    load_frame(color, depth, intrinsics, depth_scale=0.001, mask_path=None, name=None) -> RGBDFrame
+    read_image_rgb / read_depth / read_mask / read_sun_depth / read_nyu_depth / read_ycbv_meta
+
+Bad input raises gscan.errors.InputError naming the offending file.
+"""
+from gscan.io.images import (
+    DEPTH_RANGE_M,
+    YcbvMeta,
+    check_depth_range,
+    load_frame,
+    read_depth,
+    read_depth_raw,
+    read_image_rgb,
+    read_mask,
+    read_nyu_depth,
+    read_sun_depth,
+    read_ycbv_meta,
+)
+from gscan.io.layouts import FORMATS, FrameSpec, associate, detect_format, natural_key, read_open3d_log
+from gscan.io.sequence import Sequence, open_sequence
+
+__all__ = [
+    "DEPTH_RANGE_M", "FORMATS", "FrameSpec", "Sequence", "YcbvMeta", "associate", "check_depth_range",
+    "detect_format", "load_frame", "natural_key", "open_sequence", "read_depth", "read_depth_raw",
+    "read_image_rgb", "read_mask", "read_nyu_depth", "read_open3d_log", "read_sun_depth", "read_ycbv_meta",
+]

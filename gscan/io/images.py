@@ -1,0 +1,268 @@
+"""Image readers: colour (RGB), 16-bit depth, masks, odd depth formats (SUN, NYU) and single frames.
+
+Every reader takes a path (spaces and non-ASCII characters are fine: files are read as bytes and
+decoded with cv2.imdecode) and raises InputError(path, one-line reason) on any problem.
+Depth is returned as [H x W] float32 metres with 0 = invalid.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from gscan.camera import Intrinsics, RGBDFrame, load_intrinsics
+from gscan.errors import InputError
+
+log = logging.getLogger(__name__)
+
+#: Plausible median scene depth (metres); outside it the depth scale is almost surely wrong.
+DEPTH_RANGE_M = (0.05, 20.0)
+
+_JPEG_SOI = b"\xff\xd8"
+_JPEG_EOI = b"\xff\xd9"
+
+
+def read_bytes(path: str | Path) -> np.ndarray:
+    """Raw bytes of a file as a [N] uint8 array; InputError when missing, empty or unreadable."""
+    path = Path(path)
+    if not path.exists():
+        raise InputError(path, "file not found")
+    if not path.is_file():
+        raise InputError(path, "not a regular file")
+    try:
+        data = np.fromfile(path, dtype=np.uint8)
+    except PermissionError:
+        raise InputError(path, "permission denied") from None
+    except OSError as e:
+        raise InputError(path, f"cannot read file ({e.__class__.__name__}: {e.strerror or e})") from None
+    if data.size == 0:
+        raise InputError(path, "file is empty")
+    return data
+
+
+def decode_image(path: str | Path, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray:
+    """Decode an image file with cv2 (bytes + imdecode, safe for non-ASCII paths).
+
+    Returns the array as cv2 gives it (BGR order for colour). InputError when the file is not a
+    decodable image, or is a JPEG without its end-of-image marker (truncated).
+    """
+    path = Path(path)
+    data = read_bytes(path)
+    try:
+        img = cv2.imdecode(data, flags)
+    except cv2.error:
+        img = None
+    if img is None or img.size == 0:
+        raise InputError(path, "corrupt or truncated image (cannot be decoded)")
+    if bytes(data[:2]) == _JPEG_SOI and _JPEG_EOI not in bytes(data[-64:]):
+        # OpenCV 4.x decodes truncated JPEGs with a grey tail and only a warning.
+        raise InputError(path, "truncated JPEG (no end-of-image marker)")
+    return img
+
+
+def read_image_rgb(path: str | Path) -> np.ndarray:
+    """Colour image -> [H x W x 3] uint8 RGB (grey images are expanded, 16-bit reduced to 8-bit)."""
+    bgr = decode_image(path, cv2.IMREAD_COLOR)
+    if bgr.ndim != 3 or bgr.shape[2] != 3 or bgr.dtype != np.uint8:
+        raise InputError(path, f"unexpected colour image layout {bgr.shape} {bgr.dtype}")
+    return np.ascontiguousarray(bgr[:, :, ::-1])
+
+
+def read_depth_raw(path: str | Path) -> np.ndarray:
+    """Depth image -> [H x W] uint16 raw values. Refuses 8-bit, float, signed and multi-channel depth."""
+    path = Path(path)
+    raw = decode_image(path, cv2.IMREAD_UNCHANGED)
+    if raw.ndim == 3 and raw.shape[2] == 1:
+        raw = raw[:, :, 0]
+    if raw.ndim != 2:
+        raise InputError(path, f"depth has {raw.shape[2]} channels; depth must be a single-channel 16-bit image")
+    if raw.dtype != np.uint16:
+        kind = {np.dtype(np.uint8): "8-bit", np.dtype(np.float32): "float", np.dtype(np.float64): "float"}.get(
+            raw.dtype, str(raw.dtype))
+        raise InputError(path, f"depth is {kind}; depth must be 16-bit unsigned (e.g. millimetres)")
+    return raw
+
+
+def read_depth(path: str | Path, depth_scale: float = 0.001) -> np.ndarray:
+    """16-bit depth image -> [H x W] float32 metres (raw * depth_scale; 0 = invalid).
+
+    depth_scale: metres per raw unit (0.001 for millimetres, 1/5000 for TUM, 1e-4 for YCB-Video).
+    Raises InputError when the image holds no valid depth at all.
+    """
+    _check_scale(depth_scale, path)
+    raw = read_depth_raw(path)
+    if not np.any(raw):
+        raise InputError(path, "depth image is all zero (no valid depth)")
+    return (raw.astype(np.float32) * np.float32(depth_scale)).astype(np.float32)
+
+
+def read_mask(path: str | Path) -> np.ndarray:
+    """Mask image -> [H x W] bool (pixel > 127; colour masks are converted to grey first)."""
+    img = decode_image(path, cv2.IMREAD_GRAYSCALE)
+    if img.ndim != 2:
+        raise InputError(path, f"unexpected mask layout {img.shape}")
+    return img > 127
+
+
+def read_sun_depth(path: str | Path, max_depth: float = 7.0) -> np.ndarray:
+    """SUN RGB-D depth PNG -> [H x W] float32 metres.
+
+    SUN RGB-D stores millimetres rotated left by 3 bits inside the uint16 (the 3 low bits of the
+    file sample are the 3 high bits of the value). Open3D's RGBDImage.create_from_sun_format undoes
+    it with d = (d >> 3) | (d << 13), then divides by 1000 and truncates beyond 7 m; this does
+    the same (max_depth=None keeps every depth).
+    """
+    raw = read_depth_raw(path).astype(np.uint32)
+    mm = ((raw >> 3) | (raw << 13)) & 0xFFFF
+    depth = (mm.astype(np.float64) / 1000.0).astype(np.float32)
+    if max_depth is not None:
+        depth[depth > max_depth] = 0.0
+    if not np.any(depth):
+        raise InputError(path, "depth image is all zero (no valid depth)")
+    return depth
+
+
+def read_nyu_depth(path: str | Path, max_depth: float = 7.0) -> np.ndarray:
+    """NYU Depth v2 raw depth PGM (P5, 16-bit, big-endian per the PGM spec) -> [H x W] float32 metres.
+
+    The samples are Kinect v1 disparities. Open3D's tutorial parses the PGM big-endian and its
+    RGBDImage.create_from_nyu_format then swaps the two bytes of every sample again before applying
+    the Kinect disparity model depth_m = 351.3 / (1092.5 - d) (non-positive -> invalid), rounding to
+    millimetres and truncating beyond 7 m. This reproduces it exactly (max_depth=None keeps all).
+    """
+    path = Path(path)
+    data = read_bytes(path)
+    if bytes(data[:2]) != b"P5":
+        raise InputError(path, "not a binary PGM (P5) file; NYU raw depth is a 16-bit PGM")
+    raw = read_depth_raw(path)  # cv2 decodes 16-bit PGM big-endian samples to native uint16
+    d = raw.byteswap().astype(np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xx = 351.3 / (1092.5 - d)
+    depth = np.where(xx > 0.0, np.floor(xx * 1000.0 + 0.5), 0.0) / 1000.0
+    depth = depth.astype(np.float32)
+    if max_depth is not None:
+        depth[depth > max_depth] = 0.0
+    if not np.any(depth):
+        raise InputError(path, "depth image is all zero (no valid depth)")
+    return depth
+
+
+def _check_scale(depth_scale: float, path: str | Path | None) -> None:
+    if not (isinstance(depth_scale, (int, float, np.floating)) and np.isfinite(depth_scale) and depth_scale > 0):
+        raise InputError(path, f"invalid depth scale {depth_scale!r}: must be a positive number (metres per raw unit)")
+
+
+def check_depth_range(depth: np.ndarray, depth_scale: float, path: str | Path) -> float:
+    """Median valid depth (m) of [H x W] metres; InputError when outside DEPTH_RANGE_M (wrong scale)."""
+    valid = depth[depth > 0]
+    if valid.size == 0:
+        raise InputError(path, "depth image is all zero (no valid depth)")
+    med = float(np.median(valid))
+    lo, hi = DEPTH_RANGE_M
+    if not lo <= med <= hi:
+        raise InputError(path, f"depth scale {depth_scale:g} puts the scene at {med:.3g} m "
+                         f"(expected {lo:g}-{hi:g} m); pass --depth-scale")
+    return med
+
+
+def resolve_intrinsics(intrinsics: Intrinsics | str | Path, width: int, height: int) -> Intrinsics:
+    """Intrinsics object or file (cam_K.txt / Open3D JSON) for images of width x height."""
+    if isinstance(intrinsics, Intrinsics):
+        return intrinsics
+    if isinstance(intrinsics, (str, Path)):
+        return load_intrinsics(Path(intrinsics), width, height)
+    raise InputError(None, f"intrinsics must be an Intrinsics or a file path, got {type(intrinsics).__name__}")
+
+
+DEPTH_FORMATS = ("uint16", "sun", "nyu")
+
+
+def load_frame(color_path: str | Path, depth_path: str | Path, intrinsics: Intrinsics | str | Path,
+               depth_scale: float = 0.001, mask_path: str | Path | None = None, name: str | None = None,
+               depth_format: str = "uint16", check_range: bool = True) -> RGBDFrame:
+    """Load one RGB-D frame.
+
+    color_path: any image cv2 decodes (returned RGB). depth_path: 16-bit depth with `depth_scale`
+    metres per raw unit (depth_format="uint16"), or a SUN RGB-D PNG ("sun") / NYU raw PGM ("nyu"),
+    whose own conversions fix the scale (depth_scale is then ignored). intrinsics: an Intrinsics or a
+    cam_K.txt / Open3D JSON file (cam_K.txt takes the colour image's size). mask_path: optional mask
+    (> 127 = object) of the same size. name defaults to the colour file stem.
+    With check_range, a median depth outside 0.05-20 m is refused as a wrong depth scale.
+    """
+    color_path, depth_path = Path(color_path), Path(depth_path)
+    if depth_format not in DEPTH_FORMATS:
+        raise ValueError(f"depth_format must be one of {DEPTH_FORMATS}, got {depth_format!r}")
+    color = read_image_rgb(color_path)
+    if depth_format == "sun":
+        depth, depth_scale = read_sun_depth(depth_path), 0.001
+    elif depth_format == "nyu":
+        depth, depth_scale = read_nyu_depth(depth_path), 0.001
+    else:
+        depth = read_depth(depth_path, depth_scale)
+    h, w = color.shape[:2]
+    if depth.shape != (h, w):
+        raise InputError(depth_path, f"depth is {depth.shape[1]}x{depth.shape[0]} but colour image "
+                         f"{color_path.name} is {w}x{h}")
+    if check_range:
+        check_depth_range(depth, depth_scale, depth_path)
+    intr = resolve_intrinsics(intrinsics, w, h)
+    if (intr.width, intr.height) != (w, h):
+        src = intrinsics if isinstance(intrinsics, (str, Path)) else color_path
+        raise InputError(src, f"intrinsics are for {intr.width}x{intr.height} images but {color_path.name} is {w}x{h}")
+    mask = None
+    if mask_path is not None:
+        mask_path = Path(mask_path)
+        mask = read_mask(mask_path)
+        if mask.shape != (h, w):
+            raise InputError(mask_path, f"mask is {mask.shape[1]}x{mask.shape[0]} but the frame is {w}x{h}")
+    return RGBDFrame(name=name if name is not None else color_path.stem, color=color, depth=depth,
+                     intrinsics=intr, mask=mask, source=color_path)
+
+
+@dataclass
+class YcbvMeta:
+    """Contents of a YCB-Video `-meta.mat`.
+
+    K: [3 x 3] calibration; depth_scale: metres per raw depth unit (1 / factor_depth);
+    poses: class index (cls_indexes, 1-based YCB id order) -> [4 x 4] T_cam_obj (metres).
+    """
+
+    K: np.ndarray
+    depth_scale: float
+    poses: dict[int, np.ndarray]
+
+    def __iter__(self):
+        """Unpack as (K, depth_scale, poses)."""
+        return iter((self.K, self.depth_scale, self.poses))
+
+
+def read_ycbv_meta(path: str | Path) -> YcbvMeta:
+    """Read a YCB-Video `NNNNNN-meta.mat` (scipy.io.loadmat). Iterable as (K, depth_scale, poses)."""
+    import scipy.io
+
+    path = Path(path)
+    read_bytes(path)  # existence / permission / empty checks with a clear message
+    try:
+        m = scipy.io.loadmat(str(path))
+        K = np.asarray(m["intrinsic_matrix"], dtype=np.float64).reshape(3, 3)
+        factor = float(np.asarray(m["factor_depth"]).ravel()[0])
+        cls = np.asarray(m["cls_indexes"]).ravel().astype(int)
+        P = np.asarray(m["poses"], dtype=np.float64)
+    except (KeyError, ValueError, TypeError, IndexError, OSError, NotImplementedError) as e:
+        raise InputError(path, f"not a YCB-Video meta file ({e.__class__.__name__}: {e})") from None
+    if P.ndim == 2:
+        P = P[:, :, None]
+    if P.shape[:2] != (3, 4) or P.shape[2] != len(cls):
+        raise InputError(path, f"poses have shape {P.shape} for {len(cls)} objects; expected 3x4xK")
+    if not (np.isfinite(factor) and factor > 0) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise InputError(path, f"invalid factor_depth {factor} or intrinsic_matrix")
+    poses: dict[int, np.ndarray] = {}
+    for k, c in enumerate(cls):
+        T = np.eye(4)
+        T[:3, :4] = P[:, :, k]
+        poses[int(c)] = T
+    return YcbvMeta(K=K, depth_scale=1.0 / factor, poses=poses)
+

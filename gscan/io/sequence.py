@@ -1,0 +1,234 @@
+"""RGB-D sequences: open a folder in one of the four layouts, validate it, load frames lazily.
+
+Opening checks every frame cheaply (files present, image headers: sizes and depth bit depth) and
+fully loads the first usable frame's depth to check the depth scale. Frames that cannot be used
+are listed in `Sequence.problems` (name -> reason naming the file) and left out of `names`; only
+a sequence with no usable frame, or a sequence-wide problem (intrinsics, depth scale), raises.
+"""
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+from gscan.camera import Intrinsics, RGBDFrame, load_intrinsics
+from gscan.errors import InputError
+from gscan.io.images import _check_scale, check_depth_range, load_frame, read_depth
+from gscan.io.layouts import FrameSpec, Layout, discover
+
+log = logging.getLogger(__name__)
+
+_EIGHT_BIT_MODES = {"1", "L", "P", "LA", "PA", "RGB", "RGBA", "RGBX", "CMYK", "YCbCr", "LAB", "HSV"}
+
+
+def image_header(path: Path) -> tuple[int, int, str]:
+    """(width, height, PIL mode) read from the image header only; InputError naming the file."""
+    from PIL import Image
+
+    if not path.is_file():
+        raise InputError(path, "file not found" if not path.exists() else "not a regular file")
+    try:
+        with Image.open(path) as im:
+            w, h = im.size
+            return int(w), int(h), str(im.mode)
+    except PermissionError:
+        raise InputError(path, "permission denied") from None
+    except Exception as e:  # PIL raises many types (UnidentifiedImageError, SyntaxError, DecompressionBomb...)
+        raise InputError(path, f"corrupt or unrecognised image ({e.__class__.__name__})") from None
+
+
+def _depth_mode_problem(mode: str) -> str | None:
+    if mode.startswith("I;16") or mode == "I":
+        return None
+    if mode == "F":
+        return "depth is float; depth must be 16-bit unsigned (e.g. millimetres)"
+    if mode in ("1", "L", "P"):
+        return "depth is 8-bit; depth must be 16-bit unsigned (e.g. millimetres)"
+    return f"depth is not a single-channel 16-bit image (mode {mode})"
+
+
+class Sequence:
+    """An opened RGB-D sequence (see open_sequence). Indexing loads a frame from disk.
+
+    Attributes: name (folder name), format ("capture"|"open3d"|"tum"|"bop"), root, names (usable
+    frame names in order), intrinsics (sequence / first frame), depth_scale (metres per raw unit),
+    gt_T_cam_obj / gt_T_world_cam (name -> [4 x 4], or None when the layout has none),
+    has_masks, problems (name -> reason, frames left out or that failed to load).
+    """
+
+    def __init__(self, layout: Layout, specs: dict[str, FrameSpec], intrinsics: Intrinsics,
+                 frame_intrinsics: dict[str, Intrinsics], depth_scale: float, frame_scales: dict[str, float],
+                 problems: dict[str, str]):
+        self.root: Path = layout.root
+        self.name: str = layout.root.name
+        self.format: str = layout.format
+        self._specs = specs
+        self.names: list[str] = list(specs)
+        self.intrinsics = intrinsics
+        self._frame_intrinsics = frame_intrinsics
+        self.depth_scale = depth_scale
+        self._frame_scales = frame_scales
+        keep = set(specs)
+        self.gt_T_cam_obj = None if layout.gt_T_cam_obj is None else \
+            {n: T for n, T in layout.gt_T_cam_obj.items() if n in keep}
+        self.gt_T_world_cam = None if layout.gt_T_world_cam is None else \
+            {n: T for n, T in layout.gt_T_world_cam.items() if n in keep}
+        self.has_masks: bool = any(s.mask is not None for s in specs.values())
+        self.problems: dict[str, str] = problems
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+    def __repr__(self) -> str:
+        return (f"Sequence({self.name!r}, format={self.format!r}, frames={len(self)}, "
+                f"problems={len(self.problems)}, masks={self.has_masks})")
+
+    def files(self, key: int | str) -> FrameSpec:
+        """Files of a frame (by index or name)."""
+        name = self.names[key] if isinstance(key, (int, np.integer)) else key
+        if name not in self._specs:
+            raise KeyError(name)
+        return self._specs[name]
+
+    def frame_intrinsics(self, key: int | str) -> Intrinsics:
+        return self._frame_intrinsics.get(self.files(key).name, self.intrinsics)
+
+    def __getitem__(self, key: int | str) -> RGBDFrame:
+        """Load frame `key` (index or name): RGB colour, depth in metres, mask when present.
+
+        Raises InputError naming the file when it turns out unusable (also recorded in problems).
+        """
+        spec = self.files(key)
+        try:
+            return load_frame(spec.color, spec.depth, self.frame_intrinsics(spec.name),
+                              self._frame_scales.get(spec.name, self.depth_scale), spec.mask, spec.name,
+                              check_range=False)
+        except InputError as e:
+            self.problems[spec.name] = str(e)
+            raise
+
+    def __iter__(self) -> Iterator[RGBDFrame]:
+        """Every frame in order; raises InputError on the first unusable one (see iter_frames)."""
+        return self.iter_frames(skip_bad=False)
+
+    def iter_frames(self, skip_bad: bool = True) -> Iterator[RGBDFrame]:
+        """Frames in order; with skip_bad, unusable frames are logged, recorded in problems and skipped."""
+        for name in self.names:
+            try:
+                yield self[name]
+            except InputError as e:
+                if not skip_bad:
+                    raise
+                log.warning("skipping frame %s: %s", name, e)
+
+
+def _resolve_intrinsics(layout: Layout, override: Intrinsics | str | Path | None, w: int, h: int,
+                        first: FrameSpec) -> Intrinsics:
+    if isinstance(override, Intrinsics):
+        return override
+    if override is not None:
+        return load_intrinsics(Path(override), w, h)
+    if layout.intrinsics_file is not None:
+        return load_intrinsics(layout.intrinsics_file, w, h)
+    if layout.per_frame_K and first.K is not None:
+        try:
+            return Intrinsics.from_matrix(first.K, w, h)
+        except ValueError as e:
+            raise InputError(layout.root / "scene_camera.json", f"image {first.name}: {e}") from None
+    if layout.format == "tum":
+        raise InputError(layout.root, f"no {layout.intrinsics_expected}")
+    raise InputError(layout.root / layout.intrinsics_expected,
+                     "intrinsics file not found (intrinsics are never guessed; pass --intrinsics)")
+
+
+def open_sequence(path: str | Path, format: str = "auto", intrinsics: Intrinsics | str | Path | None = None,
+                  depth_scale: float | None = None, obj_id: int | None = None) -> Sequence:
+    """Open an RGB-D sequence folder.
+
+    format: "auto" (detected) or "capture" | "open3d" | "tum" | "bop".
+    intrinsics: Intrinsics or a cam_K.txt / Open3D JSON file overriding the layout's own.
+    depth_scale: metres per raw depth unit overriding the layout's (capture/Open3D 0.001, TUM 1/5000,
+    BOP scene_camera depth_scale / 1000). obj_id: BOP object whose scene_gt pose / mask is used
+    (default: the first object of the first image).
+    Raises InputError naming the file for a missing/unrecognised folder, missing intrinsics, a
+    depth scale that puts the scene outside 0.05-20 m, or when no frame is usable.
+    """
+    root = Path(path)
+    layout = discover(root, format, obj_id)
+    if depth_scale is not None:
+        _check_scale(depth_scale, root)
+    problems = dict(layout.problems)
+    specs: dict[str, FrameSpec] = {}
+    sizes: dict[str, tuple[int, int]] = {}
+    for f in layout.frames:
+        try:
+            cw, ch, _ = image_header(f.color)
+            dw, dh, mode = image_header(f.depth)
+            bad = _depth_mode_problem(mode)
+            if bad:
+                raise InputError(f.depth, bad)
+            if (dw, dh) != (cw, ch):
+                raise InputError(f.depth, f"depth is {dw}x{dh} but colour image {f.color.name} is {cw}x{ch}")
+            if f.mask is not None:
+                mw, mh, _ = image_header(f.mask)
+                if (mw, mh) != (cw, ch):
+                    raise InputError(f.mask, f"mask is {mw}x{mh} but colour image {f.color.name} is {cw}x{ch}")
+        except InputError as e:
+            problems[f.name] = str(e)
+            continue
+        specs[f.name] = f
+        sizes[f.name] = (cw, ch)
+    if not specs:
+        first = next(iter(problems.items()), None)
+        detail = f"; first: {first[0]}: {first[1]}" if first else ""
+        raise InputError(root, f"no usable RGB-D frame ({len(problems)} unusable){detail}")
+
+    first = next(iter(specs.values()))
+    intr = _resolve_intrinsics(layout, intrinsics, *sizes[first.name], first)
+    frame_intr: dict[str, Intrinsics] = {}
+    frame_scales: dict[str, float] = {}
+    for name, f in list(specs.items()):
+        w, h = sizes[name]
+        if layout.per_frame_K and intrinsics is None:
+            try:
+                frame_intr[name] = Intrinsics.from_matrix(f.K, w, h)
+            except ValueError as e:
+                problems[name] = f"{f.color.name}: invalid cam_K in scene_camera.json ({e})"
+                del specs[name]
+                continue
+        elif (intr.width, intr.height) != (w, h):
+            problems[name] = f"{f.color.name} is {w}x{h} but the intrinsics are for {intr.width}x{intr.height}"
+            del specs[name]
+            continue
+        if depth_scale is None and f.depth_scale is not None:
+            if not (np.isfinite(f.depth_scale) and f.depth_scale > 0):
+                problems[name] = f"{f.color.name}: invalid depth_scale in scene_camera.json"
+                del specs[name]
+                continue
+            frame_scales[name] = f.depth_scale
+    scale = float(depth_scale) if depth_scale is not None else layout.depth_scale
+
+    # Depth-scale sanity check on the first frame whose depth reads.
+    for name in list(specs):
+        f = specs[name]
+        s = frame_scales.get(name, scale)
+        try:
+            depth = read_depth(f.depth, s)
+        except InputError as e:
+            problems[name] = str(e)
+            del specs[name]
+            continue
+        check_depth_range(depth, s, f.depth)
+        if depth_scale is None and name in frame_scales:
+            scale = frame_scales[name]
+        break
+    if not specs:
+        first_p = next(iter(problems.items()))
+        raise InputError(root, f"no usable RGB-D frame ({len(problems)} unusable); first: {first_p[0]}: {first_p[1]}")
+    if layout.per_frame_K and intrinsics is None:
+        intr = frame_intr[next(iter(specs))]
+    for name, reason in problems.items():
+        log.warning("%s: frame %s left out: %s", root, name, reason)
+    return Sequence(layout, specs, intr, frame_intr, scale, frame_scales, problems)
