@@ -1,0 +1,170 @@
+"""Hand-computed checks of gscan.metrics (ADD/ADD-S/AUC, ATE, MSSD/MSPD, BOP recall)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from gscan.camera import Intrinsics
+from gscan.geometry import make_T, rotvec_to_R
+from gscan.metrics import (
+    add, adds, ar_mspd, ar_mssd, ate, ate_rmse, auc, average_recall, mspd, mspd_thresholds, mssd, mssd_thresholds,
+    recall_at, rotation_error_deg, translation_error,
+)
+
+RZ180 = make_T(rotvec_to_R([0.0, 0.0, np.pi]), np.zeros(3))
+RX180 = make_T(rotvec_to_R([np.pi, 0.0, 0.0]), np.zeros(3))
+
+
+def _box_points(sx: float = 0.2, sy: float = 0.1, sz: float = 0.05, n: int = 5) -> np.ndarray:
+    """Surface grid of an axis-aligned box centred at the origin (symmetric under Rz(180))."""
+    g = np.linspace(-0.5, 0.5, n)
+    X, Y, Z = np.meshgrid(g * sx, g * sy, g * sz, indexing="ij")
+    P = np.stack([X.ravel(), Y.ravel(), Z.ravel()], 1)
+    on_surface = np.isclose(np.abs(P) / np.array([sx, sy, sz]), 0.5).any(axis=1)
+    return P[on_surface]
+
+
+def test_rotation_and_translation_error():
+    T_gt = make_T(rotvec_to_R([0.1, -0.2, 0.3]), [0.1, 0.2, 0.3])
+    dR = rotvec_to_R(np.radians(30.0) * np.array([0.0, 0.6, 0.8]))
+    T_est = make_T(dR @ T_gt[:3, :3], T_gt[:3, 3] + [0.03, 0.0, -0.04])
+    assert rotation_error_deg(T_est, T_gt) == pytest.approx(30.0, abs=1e-9)
+    assert rotation_error_deg(T_est[:3, :3], T_gt[:3, :3]) == pytest.approx(30.0, abs=1e-9)
+    assert translation_error(T_est, T_gt) == pytest.approx(0.05, abs=1e-12)
+    assert rotation_error_deg(RZ180, np.eye(4)) == pytest.approx(180.0)
+
+
+def test_auc_hand_computed():
+    assert auc(np.zeros(7)) == pytest.approx(100.0)
+    assert auc([0.11, 0.5, np.inf, np.nan]) == 0.0
+    # n = 4; finite errors 0.02 (acc 1/4), 0.04 (acc 2/4); 0.2 and NaN are failures:
+    # area = 0.02 * 0.25 + 0.02 * 0.5 + (0.1 - 0.04) * 0.5 = 0.045 -> 45 % of 0.1
+    assert auc([0.04, 0.2, 0.02, np.nan]) == pytest.approx(45.0)
+    # exactly at the threshold still counts (toolbox: D(D > 0.1) = inf): the interval
+    # (0, 0.1] takes the accuracy of the first of the equal errors, 1/2 -> 50
+    assert auc([0.1, 0.1]) == pytest.approx(50.0)
+    assert auc([0.1, 0.1000001]) == pytest.approx(50.0)
+    # duplicates: [0.05, 0.05]: area = 0.05 * 0.5 + 0.05 * 1.0 = 0.075 -> 75
+    assert auc([0.05, 0.05]) == pytest.approx(75.0)
+    assert auc([0.01], max_threshold=0.02) == pytest.approx(100.0)
+    with pytest.raises(ValueError):
+        auc([])
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.floats(0.0, 0.2, allow_nan=False), min_size=1, max_size=30))
+def test_auc_equals_exact_integral_plus_toolbox_bias(errors):
+    """VOCap = exact area under the empirical accuracy curve + d_max / n (derived in auc's docstring)."""
+    e = np.asarray(errors)
+    n = len(e)
+    ok = e[e <= 0.1]
+    exact = np.sum(0.1 - ok) / n
+    bias = (ok.max() if ok.size else 0.0) / n
+    assert auc(e) == pytest.approx((exact + bias) / 0.1 * 100.0, abs=1e-9)
+    assert 0.0 <= auc(e) <= 100.0
+
+
+def test_add_pure_translation():
+    pts = np.random.default_rng(0).normal(size=(200, 3)) * 0.05
+    T_gt = make_T(rotvec_to_R([0.3, 0.1, -0.4]), [0.0, 0.1, 0.7])
+    t = np.array([0.01, -0.02, 0.02])
+    T_est = T_gt.copy()
+    T_est[:3, 3] += t
+    assert add(pts, T_est, T_gt) == pytest.approx(np.linalg.norm(t), abs=1e-12)
+    assert add(pts, T_gt, T_gt) == 0.0
+    assert adds(pts, T_gt, T_gt) < 1e-12
+
+
+def test_adds_symmetric_box():
+    pts = _box_points()
+    T_gt = make_T(rotvec_to_R([0.2, -0.5, 0.1]), [0.05, -0.02, 0.8])
+    T_est = T_gt @ RZ180  # the box turned 180 degrees about its own z (symmetry) axis
+    assert adds(pts, T_est, T_gt) < 1e-9
+    # every point (x, y, z) -> (-x, -y, z): distance 2 * sqrt(x^2 + y^2)
+    expected = np.mean(2 * np.linalg.norm(pts[:, :2], axis=1))
+    assert add(pts, T_est, T_gt) == pytest.approx(expected, rel=1e-9)
+    assert add(pts, T_est, T_gt) > 0.1
+    # and ADD-S is a true nearest-neighbour distance: a shift of 1 mm in z is seen as 1 mm at most
+    T_shift = T_gt @ make_T(np.eye(3), [0.0, 0.0, 0.001])
+    assert 0.0 < adds(pts, T_shift, T_gt) <= 0.001 + 1e-12
+
+
+def _random_rigid(rng: np.random.Generator) -> np.ndarray:
+    return make_T(rotvec_to_R(rng.normal(size=3)), rng.normal(size=3) * 2.0)
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(1, 25))
+def test_ate_invariant_to_rigid_motion(seed, n):
+    rng = np.random.default_rng(seed)
+    gt = [_random_rigid(rng) for _ in range(n)]
+    M = _random_rigid(rng)  # the estimate lives in another world frame
+    est = [M @ T for T in gt]
+    assert ate_rmse(est, gt) < 1e-9
+
+
+def test_ate_hand_computed():
+    # octahedron of positions, estimate scaled outwards by delta: alignment stays identity
+    # (C = 2 (1 + delta) I), each error is delta -> ATE = delta
+    delta = 0.03
+    dirs = np.concatenate([np.eye(3), -np.eye(3)])
+    gt = [make_T(np.eye(3), d) for d in dirs]
+    est = [make_T(rotvec_to_R([0.0, 0.0, 0.7]), d * (1 + delta)) for d in dirs]  # orientations do not matter
+    res = ate(est, gt)
+    assert res.rmse == pytest.approx(delta, abs=1e-12)
+    assert res.max == pytest.approx(delta, abs=1e-12)
+    np.testing.assert_allclose(res.T_gt_est, np.eye(4), atol=1e-12)
+    # one pose: always 0; two poses 1.0 m and 1.2 m apart: each end off by 0.1 m
+    assert ate_rmse([make_T(np.eye(3), [5.0, 0, 0])], [np.eye(4)]) == 0.0
+    two_gt = [np.eye(4), make_T(np.eye(3), [1.0, 0.0, 0.0])]
+    two_est = [make_T(np.eye(3), [3.0, 3.0, 3.0]), make_T(np.eye(3), [3.0, 4.2, 3.0])]
+    assert ate_rmse(two_est, two_gt) == pytest.approx(0.1, abs=1e-12)
+    # a single outlier among 4 collinear-free poses: the alignment spreads it, RMSE below the raw offset
+    sq = [make_T(np.eye(3), p) for p in ([0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1])]
+    bad = [T.copy() for T in sq]
+    bad[3][:3, 3] += [0.0, 0.0, 0.2]
+    r = ate_rmse(bad, sq)
+    assert 0.0 < r < 0.2 / 2 + 1e-12
+    with pytest.raises(ValueError):
+        ate(sq, sq[:2])
+
+
+def test_mssd_mspd_hand_computed():
+    pts = np.array([[0.1, 0.0, 0.0], [-0.1, 0.0, 0.0], [0.0, 0.05, 0.0]])
+    T_gt = make_T(np.eye(3), [0.0, 0.0, 1.0])
+    T_est = T_gt @ RZ180  # points -> (-0.1,0,0), (0.1,0,0), (0,-0.05,0): distances 0.2, 0.2, 0.1
+    K = np.array([[100.0, 0.0, 0.0], [0.0, 100.0, 0.0], [0.0, 0.0, 1.0]])
+    assert mssd(pts, T_est, T_gt) == pytest.approx(0.2)
+    assert mssd(pts, T_est, T_gt, syms=[RZ180]) == pytest.approx(0.0, abs=1e-12)
+    assert mssd(pts, T_est, T_gt, syms=[RX180]) == pytest.approx(0.2)  # a symmetry that does not help
+    # at z = 1 with f = 100: 0.2 m -> 20 px
+    assert mspd(pts, T_est, T_gt, K) == pytest.approx(20.0)
+    assert mspd(pts, T_est, T_gt, K, syms=[RX180, RZ180]) == pytest.approx(0.0, abs=1e-9)
+    # a lateral shift of 1 cm at 1 m: 1 px everywhere; MSSD 1 cm
+    T_shift = make_T(np.eye(3), [0.01, 0.0, 1.0])
+    assert mspd(pts, T_shift, T_gt, K) == pytest.approx(1.0)
+    assert mssd(pts, T_shift, T_gt) == pytest.approx(0.01)
+    # moving to 2 m halves the projections: u 10 -> 5 px is the largest change
+    T_far = make_T(np.eye(3), [0.0, 0.0, 2.0])
+    intr = Intrinsics(100.0, 100.0, 0.0, 0.0, 640, 480)
+    assert mspd(pts, T_far, T_gt, intr) == pytest.approx(5.0)
+    assert mssd(pts, T_far, T_gt) == pytest.approx(1.0)
+    with pytest.raises(ValueError):
+        mspd(pts, make_T(np.eye(3), [0.0, 0.0, -1.0]), T_gt, K)
+
+
+def test_bop_recall():
+    np.testing.assert_allclose(mssd_thresholds(0.2), np.arange(1, 11) * 0.01)
+    np.testing.assert_allclose(mspd_thresholds(640), np.arange(1, 11) * 5.0)
+    np.testing.assert_allclose(mspd_thresholds(1280), np.arange(1, 11) * 10.0)
+    # 0.012 is below 9 of the 10 thresholds (not 0.01); 0.5 below none -> mean (9 * 0.5) / 10
+    assert ar_mssd([0.012, 0.5], diameter=0.2) == pytest.approx(0.45)
+    # strictly below: an error equal to a threshold fails it
+    np.testing.assert_allclose(recall_at([5.0], [5.0, 5.0001]), [0.0, 1.0])
+    assert ar_mspd([0.0, np.nan]) == pytest.approx(0.5)
+    assert ar_mspd([12.0], image_width=1280) == pytest.approx(0.9)  # thresholds 10..100 px
+    assert average_recall([0.0, 0.0], [1.0]) == 1.0
+    with pytest.raises(ValueError):
+        mssd_thresholds(0.0)
