@@ -1,0 +1,491 @@
+"""Pose graph: loop-closure candidate selection, robust global optimisation, edge pruning.
+
+Conventions (match open3d's `PoseGraphEdge(source, target, transformation)`):
+
+- An edge `(i, j, T_j_i)` has source node `i`, target node `j` and the measured transform
+  `T_j_i` that maps points of frame `i` into frame `j` (what `registration_icp(source=i,
+  target=j)` returns, and what `register.PairResult.T_tgt_src` holds).
+- A node pose is `T_world_node` (open3d's `PoseGraphNode.pose`): it maps node-frame points
+  into the common frame. An edge is consistent when `T_world_j @ T_j_i == T_world_i`.
+- The residual of an edge is `E = inv(T_j_i) @ inv(T_world_j) @ T_world_i` (identity when
+  consistent), reported as (rotation angle in degrees, |translation| in metres).
+
+`optimize_pose_graph` runs open3d's Levenberg-Marquardt optimiser with the line process
+(uncertain edges = loop closures may be switched off), then removes edges whose residual
+exceeds explicit rotation / translation thresholds (worst first, re-optimising after each
+round). Nodes that are no longer connected to the reference node through accepted edges
+are reported as unregistered and get no pose.
+"""
+from __future__ import annotations
+
+import logging
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from gscan.geometry import inv_T, rotation_angle_deg
+
+log = logging.getLogger(__name__)
+
+
+# ----------------------------------------------------------------------------- edges / information
+
+def information_from_points(points_tgt: np.ndarray) -> np.ndarray:
+    """[6 x 6] information matrix of an edge from its matched points in the TARGET frame.
+
+    Same formula as open3d's `get_information_matrix_from_point_clouds` (sum of G^T G with
+    G = [-[p]x | I] per correspondence, rotation first), so edges built from matches and
+    edges built from dense clouds are on the same scale per correspondence.
+    points_tgt: [N x 3] metres.
+    """
+    p = np.asarray(points_tgt, dtype=np.float64).reshape(-1, 3)
+    x, y, z = p[:, 0], p[:, 1], p[:, 2]
+    zero, one = np.zeros(len(p)), np.ones(len(p))
+    info = np.zeros((6, 6))
+    for G in (np.stack([zero, z, -y, one, zero, zero], 1),
+              np.stack([-z, zero, x, zero, one, zero], 1),
+              np.stack([y, -x, zero, zero, zero, one], 1)):
+        info += G.T @ G
+    return info
+
+
+def information_from_clouds(src_pts: np.ndarray, tgt_pts: np.ndarray, T_tgt_src: np.ndarray,
+                            max_correspondence_distance: float) -> np.ndarray:
+    """[6 x 6] information via open3d's `get_information_matrix_from_point_clouds`.
+
+    src_pts: [N x 3] source-frame points; tgt_pts: [M x 3] target-frame points; T_tgt_src: [4 x 4].
+    """
+    import open3d as o3d
+
+    src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(src_pts, dtype=np.float64)))
+    tgt = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(tgt_pts, dtype=np.float64)))
+    return np.asarray(o3d.pipelines.registration.get_information_matrix_from_point_clouds(
+        src, tgt, float(max_correspondence_distance), np.asarray(T_tgt_src, dtype=np.float64))).copy()
+
+
+def information_from_count(n_matches: int, depth_m: float = 0.5, spread_m: float = 0.1) -> np.ndarray:
+    """[6 x 6] diagonal information for `n_matches` correspondences when no points are at hand.
+
+    Approximates `information_from_points` for n points at mean depth `depth_m` (along z) with a
+    lateral spread `spread_m` (std in x and y): n * diag(d^2 + s^2, d^2 + s^2, 2 s^2, 1, 1, 1)
+    (rotation first, cross terms dropped).
+    """
+    d2, s2 = depth_m ** 2, spread_m ** 2
+    return float(max(n_matches, 1)) * np.diag([d2 + s2, d2 + s2, 2.0 * s2, 1.0, 1.0, 1.0])
+
+
+@dataclass
+class GraphEdge:
+    """A measured relative pose: `T_tgt_src` maps source-node points into the target node frame."""
+
+    src: int
+    tgt: int
+    T_tgt_src: np.ndarray                  # [4 x 4]
+    information: np.ndarray = field(default_factory=lambda: np.eye(6))  # [6 x 6]
+    uncertain: bool = False                # True for loop closures (line process may drop them)
+
+
+@dataclass
+class EdgeReport:
+    """Outcome of one input edge (same order as the input list)."""
+
+    src: int
+    tgt: int
+    uncertain: bool
+    residual_deg: float                    # nan when an end node is unregistered
+    residual_m: float
+    accepted: bool
+    reason: str | None                     # why it was rejected (None when accepted)
+
+
+@dataclass
+class PoseGraphResult:
+    """Optimised poses and per-edge verdicts.
+
+    T_world_node: per node [4 x 4] or None (unregistered). The world frame is the frame of the
+    initial poses, anchored so that the reference node keeps its initial pose.
+    """
+
+    T_world_node: list[np.ndarray | None]
+    edges: list[EdgeReport]
+    reference_node: int
+    rounds: int
+
+    @property
+    def registered(self) -> list[int]:
+        return [i for i, T in enumerate(self.T_world_node) if T is not None]
+
+    @property
+    def unregistered(self) -> list[int]:
+        return [i for i, T in enumerate(self.T_world_node) if T is None]
+
+    def T_ref_node(self, i: int) -> np.ndarray | None:
+        """[4 x 4] pose of node i in the reference node's frame (None when unregistered)."""
+        T, R = self.T_world_node[i], self.T_world_node[self.reference_node]
+        return None if T is None or R is None else inv_T(R) @ T
+
+
+@dataclass(frozen=True)
+class PoseGraphParams:
+    max_correspondence_distance: float = 0.02   # m, scales the line process (open3d option), final stage
+    graduated_start: float = 16.0                # first stage uses this multiple of it, halved per stage
+    edge_prune_threshold: float = 0.25           # line-process weight below which loop closures are dropped
+    preference_loop_closure: float = 1.0         # open3d: weight of loop closures vs odometry
+    max_residual_deg: float = 5.0                # explicit consistency thresholds after optimisation
+    max_residual_m: float = 0.02
+    prune_certain_edges: bool = True             # also check odometry (uncertain=False) edges
+    max_rounds: int = 20                         # prune / re-optimise rounds
+    max_iterations: int = 100                    # LM iterations per optimisation
+
+
+def edge_residual(T_world_src: np.ndarray, T_world_tgt: np.ndarray, T_tgt_src: np.ndarray) -> tuple[float, float]:
+    """(deg, m) of `inv(T_tgt_src) @ inv(T_world_tgt) @ T_world_src` (identity = consistent)."""
+    E = inv_T(T_tgt_src) @ inv_T(T_world_tgt) @ T_world_src
+    return rotation_angle_deg(E[:3, :3]), float(np.linalg.norm(E[:3, 3]))
+
+
+def _component(n: int, edges: list[tuple[int, int]], root: int) -> list[int]:
+    """Sorted node ids reachable from `root` through undirected `edges`."""
+    adj: list[list[int]] = [[] for _ in range(n)]
+    for a, b in edges:
+        adj[a].append(b)
+        adj[b].append(a)
+    seen = np.zeros(n, dtype=bool)
+    seen[root] = True
+    q = deque([root])
+    while q:
+        a = q.popleft()
+        for b in adj[a]:
+            if not seen[b]:
+                seen[b] = True
+                q.append(b)
+    return [int(i) for i in np.flatnonzero(seen)]
+
+
+def _optimize(poses: list[np.ndarray], edges: list[GraphEdge], active: list[int], nodes: list[int],
+              ref: int, params: PoseGraphParams) -> tuple[dict[int, np.ndarray], set[int]]:
+    """One open3d LM run over the sub-graph `nodes` with edges `active`.
+
+    Returns (optimised T_world_node per node id, indices of edges removed by the line process).
+    """
+    import open3d as o3d
+
+    reg = o3d.pipelines.registration
+    local = {g: k for k, g in enumerate(nodes)}
+    pg = reg.PoseGraph()
+    for g in nodes:
+        pg.nodes.append(reg.PoseGraphNode(np.asarray(poses[g], dtype=np.float64)))
+    for e in active:
+        ed = edges[e]
+        pg.edges.append(reg.PoseGraphEdge(local[ed.src], local[ed.tgt], np.asarray(ed.T_tgt_src, dtype=np.float64),
+                                          np.asarray(ed.information, dtype=np.float64), ed.uncertain, 1.0))
+    criteria = reg.GlobalOptimizationConvergenceCriteria()
+    criteria.max_iteration = params.max_iterations
+    # graduated line process: a large correspondence distance first (tolerates the odometry
+    # drift, drops only gross outliers), halved down to the requested one; open3d removes the
+    # edges whose line-process weight falls below edge_prune_threshold at every stage
+    d = params.max_correspondence_distance * max(params.graduated_start, 1.0)
+    while True:
+        option = reg.GlobalOptimizationOption(max_correspondence_distance=d,
+                                              edge_prune_threshold=params.edge_prune_threshold,
+                                              preference_loop_closure=params.preference_loop_closure,
+                                              reference_node=local[ref])
+        with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+            reg.global_optimization(pg, reg.GlobalOptimizationLevenbergMarquardt(), criteria, option)
+        if d <= params.max_correspondence_distance * 1.0001:
+            break
+        d = max(d / 2.0, params.max_correspondence_distance)
+    out = {g: np.asarray(pg.nodes[k].pose).copy() for k, g in enumerate(nodes)}
+    # open3d keeps the surviving edges in order: match them back to find the pruned ones
+    kept = [(int(ed.source_node_id), int(ed.target_node_id), np.asarray(ed.transformation)) for ed in pg.edges]
+    pruned: set[int] = set()
+    k = 0
+    for e in active:
+        ed = edges[e]
+        if k < len(kept) and kept[k][0] == local[ed.src] and kept[k][1] == local[ed.tgt] \
+                and np.allclose(kept[k][2], ed.T_tgt_src):
+            k += 1
+        else:
+            pruned.add(e)
+    return out, pruned
+
+
+def _fill_initial(poses: list[np.ndarray | None], edges: list[GraphEdge], ref: int) -> list[np.ndarray]:
+    """Give every node without an initial pose one propagated through edges (BFS from known poses)."""
+    out = list(poses)
+    if out[ref] is None:
+        out[ref] = np.eye(4)
+    q = deque(i for i, T in enumerate(out) if T is not None)
+    adj: list[list[GraphEdge]] = [[] for _ in out]
+    for ed in edges:
+        adj[ed.src].append(ed)
+        adj[ed.tgt].append(ed)
+    while q:
+        a = q.popleft()
+        for ed in adj[a]:
+            if ed.src == a and out[ed.tgt] is None:  # T_w_tgt = T_w_src @ inv(T_tgt_src)
+                out[ed.tgt] = out[a] @ inv_T(ed.T_tgt_src)
+                q.append(ed.tgt)
+            elif ed.tgt == a and out[ed.src] is None:  # T_w_src = T_w_tgt @ T_tgt_src
+                out[ed.src] = out[a] @ np.asarray(ed.T_tgt_src, dtype=np.float64)
+                q.append(ed.src)
+    return [np.eye(4) if T is None else T for T in out]
+
+
+def optimize_pose_graph(n_nodes: int, edges: list[GraphEdge],
+                        T_world_node_init: list[np.ndarray | None] | np.ndarray,
+                        params: PoseGraphParams = PoseGraphParams(), reference_node: int = 0) -> PoseGraphResult:
+    """Robust global optimisation of a pose graph, then pruning of inconsistent edges.
+
+    n_nodes: number of frames; edges: measured relative poses (see module docstring);
+    T_world_node_init: [n_nodes x 4 x 4] initial poses (e.g. `chain_odometry`); None entries
+    are initialised by propagating neighbours' poses through the edges.
+
+    Each round: optimise the component of `reference_node` (open3d LM + line process), compute
+    every active edge's residual, reject the edges beyond the thresholds (all offending loop
+    closures at once if any, else the single worst odometry edge), and repeat until every
+    accepted edge is consistent. Deterministic.
+    """
+    if not 0 <= reference_node < n_nodes:
+        raise ValueError(f"reference node {reference_node} outside 0..{n_nodes - 1}")
+    if len(T_world_node_init) != n_nodes:
+        raise ValueError(f"{len(T_world_node_init)} initial poses for {n_nodes} nodes")
+    for e in edges:
+        if not (0 <= e.src < n_nodes and 0 <= e.tgt < n_nodes) or e.src == e.tgt:
+            raise ValueError(f"invalid edge {e.src} -> {e.tgt} for {n_nodes} nodes")
+    poses = _fill_initial([None if T is None else np.asarray(T, dtype=np.float64).reshape(4, 4).copy()
+                           for T in T_world_node_init], edges, reference_node)
+    reasons: dict[int, str] = {}
+    active = list(range(len(edges)))
+    rounds = 0
+    result: dict[int, np.ndarray] = {reference_node: poses[reference_node]}
+
+    def score_of(e: int, res: dict[int, np.ndarray]) -> tuple[float, float, float]:
+        ed = edges[e]
+        deg, m = edge_residual(res[ed.src], res[ed.tgt], ed.T_tgt_src)
+        return max(deg / params.max_residual_deg, m / params.max_residual_m), deg, m
+
+    for attempt in range(2):
+        while True:
+            rounds += 1
+            nodes = _component(n_nodes, [(edges[e].src, edges[e].tgt) for e in active], reference_node)
+            in_comp = set(nodes)
+            sub = [e for e in active if edges[e].src in in_comp]
+            if not sub:
+                result = {reference_node: poses[reference_node]}
+                break
+            result, pruned = _optimize(poses, edges, sub, nodes, reference_node, params)
+            for e in sorted(pruned):
+                reasons[e] = f"line process weight < {params.edge_prune_threshold}"
+            active = [e for e in active if e not in pruned]
+            sub = [e for e in sub if e not in pruned]
+            # keep optimised poses as the next initial guess
+            for g, T in result.items():
+                poses[g] = T
+            bad: list[tuple[float, int, float, float]] = []
+            for e in sub:
+                ed = edges[e]
+                if not ed.uncertain and not params.prune_certain_edges:
+                    continue
+                score, deg, m = score_of(e, result)
+                if score > 1.0:
+                    bad.append((score, e, deg, m))
+            if not bad and not pruned:
+                break
+            if not bad:
+                continue  # line process removed edges: re-optimise without them
+            if rounds >= params.max_rounds:
+                log.warning("pose graph: %d inconsistent edges left after %d rounds", len(bad), rounds)
+                break
+            loops = [b for b in bad if edges[b[1]].uncertain]
+            reject = loops if loops else [max(bad, key=lambda b: (b[0], -b[1]))]
+            for _, e, deg, m in reject:
+                reasons[e] = (f"residual {deg:.2f} deg / {m * 1000:.1f} mm beyond "
+                              f"{params.max_residual_deg:g} deg / {params.max_residual_m * 1000:g} mm")
+            rej = {b[1] for b in reject}
+            active = [e for e in active if e not in rej]
+
+        # recovery: an edge dropped while the graph was still distorted (early line-process stages,
+        # or before a wrong edge was found) is re-admitted once if the final poses agree with it
+        if attempt == 1:
+            break
+        recover = sorted(e for e in reasons if edges[e].src in result and edges[e].tgt in result
+                         and score_of(e, result)[0] <= 1.0)
+        if not recover:
+            break
+        log.debug("pose graph: re-admitting %d edges consistent with the optimised poses", len(recover))
+        for e in recover:
+            del reasons[e]
+        active = sorted(active + recover)
+
+    T_out: list[np.ndarray | None] = [result.get(i) for i in range(n_nodes)]
+    reports = []
+    for k, ed in enumerate(edges):
+        Ts, Tt = T_out[ed.src], T_out[ed.tgt]
+        deg, m = edge_residual(Ts, Tt, ed.T_tgt_src) if Ts is not None and Tt is not None else (float("nan"),) * 2
+        reason = reasons.get(k)
+        if reason is None and (Ts is None or Tt is None):
+            reason = "not connected to the reference node"
+        reports.append(EdgeReport(ed.src, ed.tgt, ed.uncertain, deg, m, reason is None, reason))
+    n_unreg = sum(T is None for T in T_out)
+    log.info("pose graph: %d nodes (%d unregistered), %d/%d edges accepted, %d rounds",
+             n_nodes, n_unreg, sum(r.accepted for r in reports), len(reports), rounds)
+    return PoseGraphResult(T_out, reports, reference_node, rounds)
+
+
+def chain_odometry(n_nodes: int, edges: list[GraphEdge]) -> list[np.ndarray | None]:
+    """Initial T_world_node (world = node 0) by chaining the certain edges i -> i+1 / i+1 -> i.
+
+    Nodes that the chain does not reach get None.
+    """
+    T: list[np.ndarray | None] = [None] * n_nodes
+    T[0] = np.eye(4)
+    step = {}
+    for ed in edges:
+        if ed.uncertain:
+            continue
+        if ed.tgt == ed.src + 1:
+            step.setdefault(ed.src, inv_T(ed.T_tgt_src))  # T_i_{i+1}
+        elif ed.src == ed.tgt + 1:
+            step.setdefault(ed.tgt, np.asarray(ed.T_tgt_src, dtype=np.float64))
+    for i in range(n_nodes - 1):
+        if T[i] is not None and i in step:
+            T[i + 1] = T[i] @ step[i]
+    return T
+
+
+# ----------------------------------------------------------------------------- loop-closure candidates
+
+@dataclass
+class LoopCandidate:
+    """A pair of nodes worth registering: i < j."""
+
+    i: int
+    j: int
+    score: float          # higher = more promising (overlap score + appearance similarity)
+    angle_deg: float      # angle between the two viewing directions (current pose estimates)
+    distance_m: float     # distance between the camera centres
+    similarity: float     # appearance similarity (cosine of tf-idf bag-of-words vectors), 0 if unused
+    reason: str           # "overlap" | "appearance" | "overlap+appearance"
+
+
+@dataclass(frozen=True)
+class LoopParams:
+    max_per_node: int = 3          # each node takes part in at most this many candidates
+    min_index_gap: int = 3         # skip near-sequential pairs (|i - j| < gap)
+    max_angle_deg: float = 45.0    # views overlap when viewing directions are within this angle ...
+    max_distance_m: float = 0.5    # ... and the camera centres within this distance
+    appearance_top_k: int = 2      # per node, the k most similar nodes by appearance are candidates
+    min_similarity: float = 0.2    # ... if their similarity reaches this
+    vocabulary_size: int = 64      # bag-of-words words (k-means on the descriptors)
+    seed: int = 0
+
+
+def bow_vectors(descriptors: list[np.ndarray], vocabulary_size: int = 64, seed: int = 0,
+                max_train: int = 20000, iterations: int = 10) -> np.ndarray:
+    """[N x K] L2-normalised tf-idf bag-of-visual-words vectors, one per frame.
+
+    descriptors: per frame [n_i x D] float (SIFT/RootSIFT) or uint8 [n_i x 32] binary (ORB,
+    unpacked to bits so that squared L2 equals Hamming distance). The vocabulary is a k-means
+    (seeded k-means++ init, `iterations` Lloyd steps) on at most `max_train` descriptors.
+    """
+    def as_float(d: np.ndarray) -> np.ndarray:
+        d = np.asarray(d)
+        if d.dtype == np.uint8:
+            return np.unpackbits(d, axis=1).astype(np.float32)
+        return d.astype(np.float32)
+
+    feats = [as_float(d).reshape(len(d), -1) for d in descriptors]
+    dim = next((f.shape[1] for f in feats if len(f)), 0)
+    n = len(feats)
+    if dim == 0:
+        return np.zeros((n, vocabulary_size), dtype=np.float32)
+    allf = np.concatenate([f for f in feats if len(f)])
+    rng = np.random.default_rng(seed)
+    train = allf[np.sort(rng.choice(len(allf), min(max_train, len(allf)), replace=False))]
+    k = min(vocabulary_size, len(train))
+    centres = [train[rng.integers(len(train))]]
+    d2 = ((train - centres[0]) ** 2).sum(1)
+    for _ in range(1, k):  # k-means++
+        p = d2 / d2.sum() if d2.sum() > 0 else np.full(len(train), 1.0 / len(train))
+        centres.append(train[rng.choice(len(train), p=p)])
+        d2 = np.minimum(d2, ((train - centres[-1]) ** 2).sum(1))
+    C = np.stack(centres)
+
+    def assign(X: np.ndarray) -> np.ndarray:
+        return np.argmin((C ** 2).sum(1)[None] - 2.0 * X @ C.T, axis=1)
+
+    for _ in range(iterations):
+        a = assign(train)
+        for c in range(k):
+            if np.any(a == c):
+                C[c] = train[a == c].mean(0)
+    H = np.zeros((n, vocabulary_size), dtype=np.float64)
+    for i, f in enumerate(feats):
+        if len(f):
+            H[i, :k] = np.bincount(assign(f), minlength=k)
+    df = (H > 0).sum(0)
+    idf = np.log((n + 1.0) / (df + 1.0)) + 1.0
+    H = H / np.maximum(H.sum(1, keepdims=True), 1.0) * idf
+    H /= np.maximum(np.linalg.norm(H, axis=1, keepdims=True), 1e-12)
+    return H.astype(np.float32)
+
+
+def select_loop_candidates(T_world_node: list[np.ndarray | None], descriptors: list[np.ndarray] | None = None,
+                           existing: list[tuple[int, int]] | None = None,
+                           params: LoopParams = LoopParams()) -> list[LoopCandidate]:
+    """Pairs of nodes to try as loop closures, best first, at most `max_per_node` per node.
+
+    A pair qualifies by view overlap (current pose estimates: viewing directions within
+    `max_angle_deg` and camera centres within `max_distance_m`) or by appearance (one is among
+    the other's `appearance_top_k` most similar frames by bag-of-words, similarity >=
+    `min_similarity`). Pairs closer than `min_index_gap` in index and pairs in `existing`
+    (either order) are skipped. Score = overlap (1 - angle/max_angle)(1 - dist/max_dist) when
+    overlapping, plus the similarity. Greedy by score (ties by (i, j)): deterministic.
+
+    T_world_node: per node [4 x 4] camera pose (OpenCV camera, z = viewing direction) or None.
+    descriptors: per node [n_i x D] descriptors, or None for geometry only.
+    """
+    n = len(T_world_node)
+    have = np.array([T is not None for T in T_world_node])
+    C = np.array([T[:3, 3] if T is not None else np.zeros(3) for T in T_world_node]).reshape(n, 3)
+    Z = np.array([T[:3, 2] if T is not None else np.zeros(3) for T in T_world_node]).reshape(n, 3)
+    ang = np.degrees(np.arccos(np.clip(Z @ Z.T, -1.0, 1.0)))
+    dist = np.linalg.norm(C[:, None] - C[None], axis=2)
+    overlap = have[:, None] & have[None] & (ang <= params.max_angle_deg) & (dist <= params.max_distance_m)
+    ov_score = np.where(overlap, (1 - ang / params.max_angle_deg) * (1 - dist / params.max_distance_m), 0.0)
+    sim = np.zeros((n, n))
+    appear = np.zeros((n, n), dtype=bool)
+    if descriptors is not None:
+        if len(descriptors) != n:
+            raise ValueError(f"{len(descriptors)} descriptor sets for {n} nodes")
+        H = bow_vectors(descriptors, params.vocabulary_size, params.seed)
+        sim = (H @ H.T).astype(np.float64)
+        idx = np.arange(n)
+        for i in range(n):
+            s = np.where(np.abs(idx - i) >= params.min_index_gap, sim[i], -np.inf)
+            order = np.lexsort((idx, -s))[: params.appearance_top_k]
+            for j in order:
+                if s[j] >= params.min_similarity:
+                    appear[i, j] = appear[j, i] = True
+    skip = {(min(a, b), max(a, b)) for a, b in (existing or [])}
+    cands = []
+    for i in range(n):
+        for j in range(i + params.min_index_gap, n):
+            if (i, j) in skip or not (overlap[i, j] or appear[i, j]):
+                continue
+            reason = "overlap+appearance" if overlap[i, j] and appear[i, j] else \
+                "overlap" if overlap[i, j] else "appearance"
+            cands.append(LoopCandidate(i, j, float(ov_score[i, j] + sim[i, j]), float(ang[i, j]) if have[i] and
+                                       have[j] else float("nan"), float(dist[i, j]) if have[i] and have[j]
+                                       else float("nan"), float(sim[i, j]), reason))
+    cands.sort(key=lambda c: (-c.score, c.i, c.j))
+    count = np.zeros(n, dtype=int)
+    out = []
+    for c in cands:
+        if count[c.i] < params.max_per_node and count[c.j] < params.max_per_node:
+            out.append(c)
+            count[c.i] += 1
+            count[c.j] += 1
+    return out
