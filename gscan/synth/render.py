@@ -1,0 +1,219 @@
+"""CPU ray-cast RGB-D renderer (open3d RaycastingScene) with exact ground truth and RealSense-like noise.
+
+World frame: z up, the table top is the plane z = 0. Cameras are OpenCV cameras (x right, y down,
+z forward) given by T_world_cam. Each object is ray cast in its own mesh frame, so moving an
+object (turntable) never rebuilds a scene. Depth is the camera-frame z, not the ray length.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+import open3d as o3d
+
+from gscan.camera import Intrinsics, pixel_rays
+from gscan.geometry import inv_T
+from gscan.synth.mesh import TexturedMesh, sample_mip, texture_pyramid
+from gscan.synth.noise import DepthNoise, apply_depth_noise
+from gscan.synth.textures import table_texture
+
+log = logging.getLogger(__name__)
+
+DEFAULT_INTRINSICS = Intrinsics(fx=615.0, fy=615.0, cx=319.5, cy=239.5, width=640, height=480)
+_SURF_NONE, _SURF_TABLE, _SURF_WALL, _SURF_OBJ = 0, 1, 2, 3
+
+
+@dataclass
+class RenderedFrame:
+    """One rendered RGB-D frame with ground truth.
+
+    color: [H x W x 3] uint8 RGB; depth: [H x W] float32 m (noisy, quantised, with holes; 0 invalid);
+    depth_clean: [H x W] float32 m exact camera-frame z (0 where nothing is hit);
+    mask: [H x W] bool visible pixels of the target (object 0); labels: [H x W] int16
+    (-1 table/wall/background, k = object k); T_cam_obj: [4 x 4] target pose in the camera;
+    T_world_cam: [4 x 4]; T_world_objs: [K x 4 x 4] every object's pose.
+    """
+
+    color: np.ndarray
+    depth: np.ndarray
+    depth_clean: np.ndarray
+    mask: np.ndarray
+    labels: np.ndarray
+    T_cam_obj: np.ndarray
+    T_world_cam: np.ndarray
+    T_world_objs: np.ndarray
+    intrinsics: Intrinsics = field(default=DEFAULT_INTRINSICS)
+
+
+class SynthScene:
+    """Textured objects on an optional textured table (z = 0) and an optional back wall, one directional light.
+
+    objects: list of (TexturedMesh, T_world_obj [4 x 4]); object 0 is the target.
+    table: draw a square table top of half side `table_half_extent` m (texture `table_kind`).
+    wall_y: if given, a vertical textured wall in the plane y = wall_y facing -y.
+    light_dir: direction towards the light (world); ambient + diffuse * max(0, n.l) * visibility.
+    """
+
+    def __init__(self, objects: list[tuple[TexturedMesh, np.ndarray]], table: bool = True, seed: int = 0,
+                 table_kind: str = "newspaper", table_half_extent: float = 0.75, table_texture_size: int = 2048,
+                 wall_y: float | None = None, wall_kind: str = "wood",
+                 light_dir: tuple[float, float, float] = (0.35, -0.3, 1.0), ambient: float = 0.5,
+                 diffuse: float = 0.6, shadows: bool = True,
+                 background_rgb: tuple[int, int, int] = (58, 60, 66)) -> None:
+        if not objects:
+            raise ValueError("a scene needs at least one object (object 0 is the target)")
+        self.meshes = [m for m, _ in objects]
+        self.T_world_objs = np.stack([np.asarray(T, dtype=np.float64).reshape(4, 4) for _, T in objects])
+        self.table, self.table_half_extent = table, float(table_half_extent)
+        self.wall_y = wall_y
+        self.seed = seed
+        self.ambient, self.diffuse, self.shadows = float(ambient), float(diffuse), shadows
+        light = np.asarray(light_dir, dtype=np.float64)
+        self.light_dir = light / np.linalg.norm(light)
+        self.background_rgb = np.asarray(background_rgb, dtype=np.float32)
+        self._scenes = []
+        for m in self.meshes:
+            sc = o3d.t.geometry.RaycastingScene()
+            sc.add_triangles(o3d.core.Tensor(m.vertices.astype(np.float32)), o3d.core.Tensor(m.triangles.astype(np.uint32)))
+            self._scenes.append(sc)
+        self._density = [m.texels_per_metre() for m in self.meshes]
+        self._pyramids = [m.pyramid() for m in self.meshes]
+        self._table_pyr = texture_pyramid(table_texture(table_kind, seed, table_texture_size)) if table else None
+        self._wall_pyr = texture_pyramid(table_texture(wall_kind, seed + 1, 1024)) if wall_y is not None else None
+        self._table_density = table_texture_size / (2 * self.table_half_extent)
+        self._wall_density = 1024 / 2.0  # wall texture covers 2 m x 2 m
+
+    # ------------------------------------------------------------------ ray casting
+    def _poses(self, override: np.ndarray | list | None) -> np.ndarray:
+        T = self.T_world_objs.copy()
+        if override is None:
+            return T
+        ov = override if isinstance(override, (list, tuple)) else [override]
+        if len(ov) > len(T):
+            raise ValueError(f"{len(ov)} pose overrides for {len(T)} objects")
+        for k, Tk in enumerate(ov):
+            if Tk is not None:
+                T[k] = np.asarray(Tk, dtype=np.float64).reshape(4, 4)
+        return T
+
+    def _cast_objects(self, origin_w: np.ndarray, dirs_w: np.ndarray, T_wo: np.ndarray) -> dict[str, np.ndarray]:
+        """First hits of rays (origin [3], dirs [N x 3] world) over all objects."""
+        n = len(dirs_w)
+        best = {"t": np.full(n, np.inf), "label": np.full(n, -1, np.int16), "prim": np.zeros(n, np.int64),
+                "bary": np.zeros((n, 2), np.float32), "normal": np.zeros((n, 3))}
+        for k, sc in enumerate(self._scenes):
+            T_ow = inv_T(T_wo[k])
+            o = T_ow[:3, :3] @ origin_w + T_ow[:3, 3]
+            d = dirs_w @ T_ow[:3, :3].T
+            rays = np.concatenate([np.broadcast_to(o, d.shape), d], axis=1).astype(np.float32)
+            res = sc.cast_rays(o3d.core.Tensor(rays))
+            t = res["t_hit"].numpy().astype(np.float64)
+            closer = np.isfinite(t) & (t < best["t"])
+            if not closer.any():
+                continue
+            best["t"][closer] = t[closer]
+            best["label"][closer] = k
+            best["prim"][closer] = res["primitive_ids"].numpy()[closer]
+            best["bary"][closer] = res["primitive_uvs"].numpy()[closer]
+            best["normal"][closer] = res["primitive_normals"].numpy()[closer] @ T_wo[k][:3, :3].T
+        return best
+
+    def _occluded(self, pts_w: np.ndarray, T_wo: np.ndarray) -> np.ndarray:
+        """[N] bool: the segment from each world point towards the light hits an object."""
+        occ = np.zeros(len(pts_w), bool)
+        for k, sc in enumerate(self._scenes):
+            T_ow = inv_T(T_wo[k])
+            o = pts_w @ T_ow[:3, :3].T + T_ow[:3, 3]
+            d = np.broadcast_to(T_ow[:3, :3] @ self.light_dir, o.shape)
+            rays = o3d.core.Tensor(np.concatenate([o, d], axis=1).astype(np.float32))
+            occ |= sc.test_occlusions(rays, tnear=1e-4, tfar=10.0).numpy().astype(bool)
+        return occ
+
+    # ------------------------------------------------------------------ rendering
+    def render(self, T_world_cam: np.ndarray, intr: Intrinsics = DEFAULT_INTRINSICS, noise: bool = True,
+               rng: np.random.Generator | None = None, T_world_obj_override: np.ndarray | list | None = None,
+               shading: bool = True, noise_params: DepthNoise = DepthNoise()) -> RenderedFrame:
+        """Render one frame seen from T_world_cam [4 x 4].
+
+        T_world_obj_override: a [4 x 4] pose for the target, or a list of per-object poses (None keeps
+        an object's scene pose). shading=False gives the raw texture colour (no light, no shadow).
+        noise: RealSense-like depth noise and holes plus slight colour noise (see gscan.synth.noise);
+        rng defaults to a generator seeded by the scene seed.
+        """
+        T_world_cam = np.asarray(T_world_cam, dtype=np.float64)
+        T_wo = self._poses(T_world_obj_override)
+        H, W = intr.height, intr.width
+        rays_c = pixel_rays(intr).reshape(-1, 3)  # z = 1: hit distance equals camera z
+        R_wc, origin = T_world_cam[:3, :3], T_world_cam[:3, 3]
+        dirs = rays_c @ R_wc.T
+        hit = self._cast_objects(origin, dirs, T_wo)
+        t, label = hit["t"], hit["label"]
+        surf = np.where(np.isfinite(t), _SURF_OBJ, _SURF_NONE).astype(np.int8)
+        normal = hit["normal"]
+        plane_uv = np.zeros((len(t), 2))
+        if self.table and abs(origin[2]) > 1e-9:
+            with np.errstate(divide="ignore", invalid="ignore"):
+                tt = -origin[2] / dirs[:, 2]
+            p = origin[:2] + tt[:, None] * dirs[:, :2]
+            e = self.table_half_extent
+            ok = (tt > 0) & (tt < t) & (np.abs(p) <= e).all(1) & (origin[2] > 0)
+            t[ok], label[ok], surf[ok] = tt[ok], -1, _SURF_TABLE
+            normal[ok] = (0.0, 0.0, 1.0)
+            plane_uv[ok] = (p[ok] + e) / (2 * e)
+        if self.wall_y is not None:
+            with np.errstate(divide="ignore", invalid="ignore"):
+                tw = (self.wall_y - origin[1]) / dirs[:, 1]
+            p = origin + tw[:, None] * dirs
+            ok = (tw > 0) & (tw < t) & (p[:, 2] >= 0) & (p[:, 2] <= 2.0) & (np.abs(p[:, 0]) <= 1.0)
+            t[ok], label[ok], surf[ok] = tw[ok], -1, _SURF_WALL
+            normal[ok] = (0.0, -1.0, 0.0)
+            plane_uv[ok] = np.stack([(p[ok, 0] + 1.0) / 2.0, p[ok, 2] / 2.0], 1)
+
+        normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
+        dir_len = np.linalg.norm(dirs, axis=1)
+        cos_view = np.einsum("ij,ij->i", normal, dirs) / dir_len
+        normal[cos_view > 0] *= -1  # face the camera (meshes are not closed / consistently wound)
+        cos_view = np.abs(cos_view)
+        # pixel footprint on the surface (m): z / f per pixel, stretched by the viewing obliquity
+        footprint = np.where(np.isfinite(t), t / intr.fx / np.sqrt(np.maximum(cos_view, 0.05)), 0.0)
+
+        rgb = np.broadcast_to(self.background_rgb, (len(t), 3)).astype(np.float32)
+        for k in range(len(self.meshes)):
+            sel = np.flatnonzero(label == k)
+            if len(sel) == 0:
+                continue
+            prim = hit["prim"][sel]
+            b = hit["bary"][sel].astype(np.float64)
+            w = np.stack([1.0 - b[:, 0] - b[:, 1], b[:, 0], b[:, 1]], 1)
+            uv = np.einsum("ij,ijk->ik", w, self.meshes[k].uv[prim])
+            level = np.log2(np.maximum(footprint[sel] * self._density[k][prim], 1e-6))
+            rgb[sel] = sample_mip(self._pyramids[k], uv, level)
+        for code, pyr, dens in ((_SURF_TABLE, self._table_pyr, self._table_density),
+                                (_SURF_WALL, self._wall_pyr, self._wall_density)):
+            sel = np.flatnonzero(surf == code)
+            if len(sel):
+                rgb[sel] = sample_mip(pyr, plane_uv[sel], np.log2(np.maximum(footprint[sel] * dens, 1e-6)))
+
+        if shading:
+            lit = np.flatnonzero(surf != _SURF_NONE)
+            lam = np.clip(normal[lit] @ self.light_dir, 0.0, None)
+            if self.shadows:
+                cand = lit[lam > 0]
+                pts = origin + t[cand, None] * dirs[cand] + 5e-4 * normal[cand]
+                occ = self._occluded(pts, T_wo)
+                lam[np.searchsorted(lit, cand[occ])] = 0.0
+            rgb[lit] *= (self.ambient + self.diffuse * lam)[:, None].astype(np.float32)
+
+        depth_clean = np.where(np.isfinite(t), t, 0.0).reshape(H, W).astype(np.float32)
+        labels = label.reshape(H, W)
+        if noise:
+            rng = rng if rng is not None else np.random.default_rng([self.seed, 0xD3])
+            depth = apply_depth_noise(depth_clean, labels, cos_view.reshape(H, W), rng, noise_params)
+            rgb += rng.normal(0.0, noise_params.color_sigma, rgb.shape).astype(np.float32)
+        else:
+            depth = depth_clean.copy()
+        color = np.clip(np.rint(rgb), 0, 255).astype(np.uint8).reshape(H, W, 3)
+        T_cam_obj = inv_T(T_world_cam) @ T_wo[0]
+        return RenderedFrame(color, depth, depth_clean, labels == 0, labels, T_cam_obj, T_world_cam.copy(),
+                             T_wo, intr)

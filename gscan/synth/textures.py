@@ -1,0 +1,240 @@
+"""Procedural textures: printed product boxes and table surfaces (wood, fabric, newspaper).
+
+Every texture is a deterministic function of its seed and size, rich in non-repeating
+structure so that SIFT finds many distinctive keypoints.
+"""
+from __future__ import annotations
+
+from functools import lru_cache
+
+import cv2
+import numpy as np
+
+FONTS = (cv2.FONT_HERSHEY_SIMPLEX, cv2.FONT_HERSHEY_PLAIN, cv2.FONT_HERSHEY_DUPLEX, cv2.FONT_HERSHEY_COMPLEX,
+         cv2.FONT_HERSHEY_TRIPLEX, cv2.FONT_HERSHEY_COMPLEX_SMALL, cv2.FONT_HERSHEY_SCRIPT_SIMPLEX,
+         cv2.FONT_HERSHEY_SCRIPT_COMPLEX)
+TABLE_KINDS = ("newspaper", "wood", "fabric")
+_CONSONANTS = "BCDFGHJKLMNPRSTVWXZ"
+_VOWELS = "AEIOUY"
+
+
+def smooth_noise(rng: np.random.Generator, shape: tuple[int, int], cell: float, octaves: int = 4) -> np.ndarray:
+    """[H x W] float32 fractal value noise in about [-1, 1]; `cell` is the coarsest feature size in pixels."""
+    h, w = shape
+    out = np.zeros((h, w), np.float32)
+    amp, total = 1.0, 0.0
+    for _ in range(octaves):
+        gh, gw = max(2, int(np.ceil(h / cell)) + 1), max(2, int(np.ceil(w / cell)) + 1)
+        grid = rng.uniform(-1, 1, (gh, gw)).astype(np.float32)
+        out += amp * cv2.resize(grid, (w, h), interpolation=cv2.INTER_CUBIC)
+        total += amp
+        amp *= 0.5
+        cell = max(cell / 2, 1.0)
+    return out / total
+
+
+def random_word(rng: np.random.Generator, n_min: int = 3, n_max: int = 9) -> str:
+    n = int(rng.integers(n_min, n_max + 1))
+    return "".join(_CONSONANTS[rng.integers(len(_CONSONANTS))] if (i % 2 == 0) != (rng.random() < 0.2)
+                   else _VOWELS[rng.integers(len(_VOWELS))] for i in range(n))
+
+
+def _color(rng: np.random.Generator, dark: bool | None = None) -> tuple[int, int, int]:
+    if dark is None:
+        return tuple(int(c) for c in rng.integers(0, 256, 3))
+    lo, hi = (0, 110) if dark else (150, 256)
+    return tuple(int(c) for c in rng.integers(lo, hi, 3))
+
+
+def _put_text(img: np.ndarray, rng: np.random.Generator, text: str, org: tuple[int, int], height_px: float,
+              color: tuple[int, int, int], font: int | None = None) -> None:
+    font = FONTS[rng.integers(len(FONTS))] if font is None else font
+    if rng.random() < 0.25:
+        font |= cv2.FONT_ITALIC
+    (_, th), _ = cv2.getTextSize("H", font, 1.0, 1)
+    scale = height_px / max(th, 1)
+    thick = max(1, int(round(scale * rng.uniform(0.8, 2.5))))
+    cv2.putText(img, text, org, font, scale, color, thick, cv2.LINE_AA)
+
+
+def _star(center: np.ndarray, r_out: float, r_in: float, n: int, phase: float) -> np.ndarray:
+    ang = phase + np.arange(2 * n) * np.pi / n
+    r = np.where(np.arange(2 * n) % 2 == 0, r_out, r_in)
+    return np.round(center + np.stack([np.cos(ang) * r, np.sin(ang) * r], 1)).astype(np.int32)
+
+
+def _logo(img: np.ndarray, rng: np.random.Generator, c: np.ndarray, r: float) -> None:
+    kind = rng.integers(4)
+    col, col2 = _color(rng), _color(rng)
+    if kind == 0:  # concentric rings, partly filled
+        for k in range(int(rng.integers(2, 5))):
+            rr = int(r * (1 - 0.22 * k))
+            cv2.circle(img, tuple(int(x) for x in c), rr, col if k % 2 == 0 else col2, -1 if k == 0 else
+                       int(rng.integers(2, 6)), cv2.LINE_AA)
+    elif kind == 1:  # star burst
+        pts = _star(c, r, r * rng.uniform(0.35, 0.7), int(rng.integers(5, 13)), rng.uniform(0, np.pi))
+        cv2.fillPoly(img, [pts], col, cv2.LINE_AA)
+        cv2.polylines(img, [pts], True, col2, 2, cv2.LINE_AA)
+    elif kind == 2:  # polygon with an inner letter
+        n = int(rng.integers(3, 8))
+        ang = rng.uniform(0, 2 * np.pi) + np.sort(rng.uniform(0, 2 * np.pi, n))
+        pts = np.round(c + np.stack([np.cos(ang), np.sin(ang)], 1) * r * rng.uniform(0.6, 1.0, (n, 1))).astype(np.int32)
+        cv2.fillPoly(img, [pts], col, cv2.LINE_AA)
+        _put_text(img, rng, random_word(rng, 1, 2), (int(c[0] - r / 2), int(c[1] + r / 4)), r * 0.6, col2)
+    else:  # ellipse swoosh
+        cv2.ellipse(img, tuple(int(x) for x in c), (int(r), int(r * rng.uniform(0.3, 0.7))), rng.uniform(0, 180),
+                    rng.uniform(0, 120), rng.uniform(200, 360), col, int(rng.integers(3, 10)), cv2.LINE_AA)
+        cv2.circle(img, tuple(int(x) for x in c), int(r * 0.25), col2, -1, cv2.LINE_AA)
+
+
+def _barcode(img: np.ndarray, rng: np.random.Generator, x: int, y: int, w: int, h: int) -> None:
+    cv2.rectangle(img, (x - 4, y - 4), (x + w + 4, y + h + 16), (255, 255, 255), -1)
+    pos = x
+    while pos < x + w:
+        bw = int(rng.integers(1, 5))
+        if rng.random() < 0.5:
+            cv2.rectangle(img, (pos, y), (min(pos + bw - 1, x + w), y + h), (0, 0, 0), -1)
+        pos += bw
+    digits = "".join(str(d) for d in rng.integers(0, 10, 12))
+    cv2.putText(img, digits, (x, y + h + 13), cv2.FONT_HERSHEY_PLAIN, max(0.6, w / 130), (0, 0, 0), 1, cv2.LINE_AA)
+
+
+def _stripes(img: np.ndarray, rng: np.random.Generator) -> None:
+    h, w = img.shape[:2]
+    y = int(rng.integers(0, h))
+    band = int(rng.integers(h // 30 + 2, h // 8 + 3))
+    pos = 0
+    while pos < w:  # irregular stripe widths and colours: no period
+        sw = int(rng.integers(4, 40))
+        cv2.rectangle(img, (pos, y), (pos + sw, y + band), _color(rng), -1)
+        pos += sw
+    if rng.random() < 0.5:
+        img[y:y + band] = np.ascontiguousarray(img[y:y + band, ::-1])
+
+
+def procedural_box_texture(seed: int = 0, size: tuple[int, int] = (1024, 1536)) -> np.ndarray:
+    """[H x W x 3] uint8 RGB printed-packaging texture (size = (H, W)): gradients, text in several
+    fonts, sizes and colours, logos, irregular stripe bands, barcodes and dot patches; not repetitive."""
+    rng = np.random.default_rng([seed, 0xB0C5])
+    h, w = size
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    c0, c1 = np.array(_color(rng, dark=False), np.float32), np.array(_color(rng), np.float32)
+    ang = rng.uniform(0, 2 * np.pi)
+    t = ((xx * np.cos(ang) + yy * np.sin(ang)) / max(h, w)) % 1.0
+    img = c0 * (1 - t[..., None]) + c1 * t[..., None]
+    img += 25 * smooth_noise(rng, (h, w), max(h, w) / 6)[..., None]
+    img = np.clip(img, 0, 255).astype(np.uint8)
+    area = h * w / (512 * 512)
+    for _ in range(int(3 * area)):
+        _stripes(img, rng)
+    for _ in range(int(6 * area)):  # colour panels
+        x0, y0 = int(rng.integers(0, w)), int(rng.integers(0, h))
+        cv2.rectangle(img, (x0, y0), (x0 + int(rng.integers(40, w // 3)), y0 + int(rng.integers(30, h // 4))),
+                      _color(rng), -1)
+    for _ in range(int(5 * area)):
+        _logo(img, rng, rng.uniform([0, 0], [w, h]), rng.uniform(18, 70))
+    for _ in range(int(4 * area)):  # dot patches with jittered grid (not periodic)
+        x0, y0, n = int(rng.integers(0, w)), int(rng.integers(0, h)), int(rng.integers(20, 60))
+        pts = np.array([x0, y0]) + rng.uniform(0, 90, (n, 2))
+        col = _color(rng)
+        for p, r in zip(pts.astype(int), rng.integers(2, 7, n)):
+            cv2.circle(img, (int(p[0]), int(p[1])), int(r), col, -1, cv2.LINE_AA)
+    for _ in range(int(3 * area)):  # titles
+        _put_text(img, rng, random_word(rng, 4, 9), (int(rng.integers(-20, w - 100)), int(rng.integers(40, h))),
+                  rng.uniform(28, 64), _color(rng))
+    for _ in range(int(26 * area)):  # small print
+        words = " ".join(random_word(rng, 2, 7) for _ in range(int(rng.integers(1, 5))))
+        _put_text(img, rng, words, (int(rng.integers(-20, w - 60)), int(rng.integers(10, h))),
+                  rng.uniform(7, 18), _color(rng, dark=bool(rng.random() < 0.7)), FONTS[rng.integers(6)])
+    for _ in range(max(1, int(1.2 * area))):
+        bw, bh = int(rng.integers(90, 170)), int(rng.integers(40, 70))
+        _barcode(img, rng, int(rng.integers(5, w - bw - 10)), int(rng.integers(5, h - bh - 25)), bw, bh)
+    return img
+
+
+def _newspaper(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
+    paper = 232 + 8 * smooth_noise(rng, (h, w), 200)[..., None] + np.array([0, -2, -10], np.float32)
+    img = np.clip(paper, 0, 255).astype(np.uint8)
+    y = 0
+    while y < h:  # pages of columns with headlines, text and photos
+        ncol = int(rng.integers(3, 7))
+        block_h = int(rng.integers(h // 5, h // 2))
+        colw = w / ncol
+        ink = (int(rng.integers(10, 50)),) * 3
+        _put_text(img, rng, " ".join(random_word(rng, 3, 9) for _ in range(int(rng.integers(2, 5)))),
+                  (int(rng.integers(0, 30)), y + 40), rng.uniform(22, 40), ink, cv2.FONT_HERSHEY_TRIPLEX)
+        for c in range(ncol):
+            x0, yy = int(c * colw + 8), y + 60
+            if rng.random() < 0.35:  # halftone-like photo
+                ph = int(rng.integers(60, 180))
+                photo = 128 + 110 * smooth_noise(rng, (ph, int(colw - 16)), rng.uniform(15, 60))
+                img[yy:yy + ph, x0:x0 + int(colw - 16)] = np.clip(photo, 0, 255).astype(np.uint8)[
+                    : max(0, min(ph, h - yy)), : max(0, min(int(colw - 16), w - x0)), None]
+                yy += ph + 10
+            while yy < y + block_h:
+                line = " ".join(random_word(rng, 1, 8) for _ in range(int(colw // 45) + 1))
+                cv2.putText(img, line, (x0, yy), cv2.FONT_HERSHEY_PLAIN, rng.uniform(0.7, 0.95), ink, 1, cv2.LINE_AA)
+                yy += int(rng.integers(12, 15))
+            cv2.line(img, (int((c + 1) * colw), y + 50), (int((c + 1) * colw), y + block_h), ink, 1)
+        y += block_h + 10
+        cv2.line(img, (0, y - 5), (w, y - 5), ink, 2)
+    return img
+
+
+def _wood(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    warp = 60 * smooth_noise(rng, (h, w), w / 3) + 10 * smooth_noise(rng, (h, w), 60)
+    rings = yy + warp
+    for _ in range(int(rng.integers(3, 7))):  # knots bend the grain
+        kx, ky, kr = rng.uniform(0, w), rng.uniform(0, h), rng.uniform(15, 45)
+        d = np.sqrt((xx - kx) ** 2 / 4 + (yy - ky) ** 2)
+        rings += 3 * kr * np.exp(-d / (2 * kr)) * np.sign(yy - ky)
+        rings += np.where(d < kr, d * 0.8, 0)
+    grain = 0.5 + 0.5 * np.sin(rings * 2 * np.pi / rng.uniform(14, 24))
+    streak_grid = rng.uniform(-1, 1, (h, max(2, w // 40))).astype(np.float32)
+    streaks = cv2.resize(streak_grid, (w, h), interpolation=cv2.INTER_LINEAR)
+    light, dark = np.array([196, 150, 100], np.float32), np.array([120, 76, 42], np.float32)
+    t = np.clip(0.55 * grain ** 2 + 0.25 * (streaks + 1) / 2 + 0.2 * (smooth_noise(rng, (h, w), 150) + 1) / 2, 0, 1)
+    img = light * (1 - t[..., None]) + dark * t[..., None]
+    planks = int(rng.integers(3, 6))
+    for k in range(1, planks):  # plank seams
+        y = int(k * h / planks + rng.integers(-20, 20))
+        img[max(0, y - 1):y + 2] *= 0.55
+    return np.clip(img, 0, 255).astype(np.uint8)
+
+
+def _fabric(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
+    base = np.array(_color(rng), np.float32)
+    img = np.broadcast_to(base, (h, w, 3)).copy()
+    for axis in (0, 1):  # irregular plaid bands
+        pos, n = 0, (w if axis == 1 else h)
+        while pos < n:
+            bw = int(rng.integers(6, 80))
+            col, alpha = np.array(_color(rng), np.float32), rng.uniform(0.2, 0.6)
+            sl = (slice(None), slice(pos, pos + bw)) if axis == 1 else (slice(pos, pos + bw), slice(None))
+            img[sl] = img[sl] * (1 - alpha) + col * alpha
+            pos += bw + int(rng.integers(5, 120))
+    yy, xx = np.mgrid[0:h, 0:w]
+    weave = np.where((xx // 2 + yy // 2) % 2 == 0, 1.06, 0.94).astype(np.float32)
+    thread = 1 + 0.08 * cv2.resize(rng.uniform(-1, 1, (h, max(2, w // 25))).astype(np.float32), (w, h))
+    img *= (weave * thread)[..., None]
+    img *= (1 + 0.25 * smooth_noise(rng, (h, w), 120))[..., None]  # stains and wear
+    out = np.clip(img, 0, 255).astype(np.uint8)
+    for _ in range(int(h * w / 80000)):  # embroidered motifs
+        _logo(out, rng, rng.uniform([0, 0], [w, h]), rng.uniform(10, 30))
+    return out
+
+
+@lru_cache(maxsize=8)
+def _table_texture_cached(kind: str, seed: int, size: int) -> np.ndarray:
+    rng = np.random.default_rng([seed, 0x7AB1E, TABLE_KINDS.index(kind)])
+    img = {"newspaper": _newspaper, "wood": _wood, "fabric": _fabric}[kind](rng, size, size)
+    img.setflags(write=False)
+    return img
+
+
+def table_texture(kind: str = "newspaper", seed: int = 0, size: int = 2048) -> np.ndarray:
+    """[size x size x 3] uint8 RGB table-top texture of `kind` ("newspaper", "wood", "fabric"); read-only, cached."""
+    if kind not in TABLE_KINDS:
+        raise ValueError(f"unknown table texture {kind!r}; choose one of {TABLE_KINDS}")
+    return _table_texture_cached(kind, int(seed), int(size))
