@@ -163,8 +163,10 @@ def check_depth_range(depth: np.ndarray, depth_scale: float, path: str | Path) -
     med = float(np.median(valid))
     lo, hi = DEPTH_RANGE_M
     if not lo <= med <= hi:
+        k = -round(float(np.log10(med)))
+        hint = f"{depth_scale * 10.0 ** k:g} would put it at {med * 10.0 ** k:.3g} m"
         raise InputError(path, f"depth scale {depth_scale:g} puts the scene at {med:.3g} m "
-                         f"(expected {lo:g}-{hi:g} m); pass --depth-scale")
+                         f"(expected {lo:g}-{hi:g} m; {hint}); pass --depth-scale")
     return med
 
 
@@ -251,7 +253,7 @@ def read_ycbv_meta(path: str | Path) -> YcbvMeta:
         factor = float(np.asarray(m["factor_depth"]).ravel()[0])
         cls = np.asarray(m["cls_indexes"]).ravel().astype(int)
         P = np.asarray(m["poses"], dtype=np.float64)
-    except (KeyError, ValueError, TypeError, IndexError, OSError, NotImplementedError) as e:
+    except Exception as e:  # loadmat raises many types on garbage (MatReadError, ValueError, zlib.error...)
         raise InputError(path, f"not a YCB-Video meta file ({e.__class__.__name__}: {e})") from None
     if P.ndim == 2:
         P = P[:, :, None]
