@@ -99,6 +99,8 @@ def load_intrinsics(path: str | Path, width: int | None = None, height: int | No
         raise _bad(path, f"intrinsics are for {w}x{h} images but the images are {width}x{height}")
     if not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0 or K[0, 2] < 0 or K[1, 2] < 0:
         raise _bad(path, f"invalid intrinsics values fx={K[0, 0]} fy={K[1, 1]} cx={K[0, 2]} cy={K[1, 2]}")
+    if abs(K[0, 1]) > 1e-6 * K[0, 0] or np.any(K[1, 0] != 0) or not np.allclose(K[2], [0.0, 0.0, 1.0]):
+        raise _bad(path, "not a pinhole calibration matrix: expected [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]")
     if w <= 0 or h <= 0:
         raise _bad(path, "intrinsics carry no image size and none was given")
     return Intrinsics.from_matrix(K, w, h)
@@ -178,6 +180,9 @@ def lift_keypoints(pixels: np.ndarray, depth: np.ndarray, intr: Intrinsics, wind
     discontinuity (valid depths spread beyond `max_rel_spread` of the median, measured
     between the 10th and 90th percentile).
 
+    Keypoints with non-finite coordinates or whose rounded pixel lies outside the image
+    are rejected.
+
     pixels: [N x 2] (u, v). Returns ([N x 3] points, zeros where rejected; [N] bool valid).
     """
     pixels = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
@@ -187,8 +192,12 @@ def lift_keypoints(pixels: np.ndarray, depth: np.ndarray, intr: Intrinsics, wind
     if n == 0:
         return pts, np.zeros(0, dtype=bool)
     r = window
-    u = np.clip(np.rint(pixels[:, 0]).astype(int), 0, W - 1)
-    v = np.clip(np.rint(pixels[:, 1]).astype(int), 0, H - 1)
+    finite = np.all(np.isfinite(pixels), axis=1)
+    ur = np.rint(np.where(finite, pixels[:, 0], -1.0))
+    vr = np.rint(np.where(finite, pixels[:, 1], -1.0))
+    inside = finite & (ur >= 0) & (ur <= W - 1) & (vr >= 0) & (vr <= H - 1)
+    u = np.clip(ur, 0, W - 1).astype(int)
+    v = np.clip(vr, 0, H - 1).astype(int)
     padded = np.pad(depth.astype(np.float64), r, mode="constant", constant_values=0.0)
     offs = np.arange(-r, r + 1)
     dv, du = np.meshgrid(offs, offs, indexing="ij")
@@ -203,7 +212,7 @@ def lift_keypoints(pixels: np.ndarray, depth: np.ndarray, intr: Intrinsics, wind
             med = np.nanmedian(masked, axis=1)
             lo = np.nanpercentile(masked, 10, axis=1)
             hi = np.nanpercentile(masked, 90, axis=1)
-    ok = (frac >= min_valid_frac) & np.isfinite(med) & (med > 0)
+    ok = inside & (frac >= min_valid_frac) & np.isfinite(med) & (med > 0)
     ok &= np.where(ok, (hi - lo) <= max_rel_spread * np.where(ok, med, 1.0), False)
     pts[ok] = backproject_pixels(pixels[ok], med[ok], intr)
     return pts, ok

@@ -1,0 +1,297 @@
+"""gscan.camera (pinhole model, back-projection, keypoint lifting, intrinsics files) and
+gscan.geometry (SE(3) helpers, Kabsch, look_at)."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from gscan.camera import (
+    Intrinsics, RGBDFrame, backproject, backproject_pixels, lift_keypoints, load_intrinsics, pixel_rays,
+    point_cloud, project,
+)
+from gscan.errors import InputError
+from gscan.geometry import inv_T, kabsch, look_at, make_T, rotvec_to_R, transform_points
+
+finite = dict(allow_nan=False, allow_infinity=False)
+
+
+@pytest.fixture(scope="module")
+def o3d_root(real_dir: Path) -> Path:
+    root = real_dir / "open3d_rgbd"
+    if not (root / "camera_primesense.json").is_file():
+        pytest.fail(f"Open3D RGB-D test frames missing under {root}")
+    return root
+
+
+# ---------------------------------------------------------------- back-projection vs open3d
+
+@pytest.mark.parametrize("idx", [0, 3])
+def test_backproject_matches_open3d(o3d_root, idx):
+    import open3d as o3d
+
+    intr = load_intrinsics(o3d_root / "camera_primesense.json")
+    depth_mm = cv2.imread(str(o3d_root / "RGBD" / "depth" / f"{idx:05d}.png"), cv2.IMREAD_UNCHANGED)
+    assert depth_mm.dtype == np.uint16 and depth_mm.shape == (intr.height, intr.width)
+    o3d_intr = o3d.camera.PinholeCameraIntrinsic(intr.width, intr.height, intr.fx, intr.fy, intr.cx, intr.cy)
+    pc = o3d.geometry.PointCloud.create_from_depth_image(
+        o3d.geometry.Image(depth_mm), o3d_intr, np.eye(4), depth_scale=1000.0, depth_trunc=1e6, stride=1,
+        project_valid_depth_only=True)
+    ref = np.asarray(pc.points)
+    depth = depth_mm.astype(np.float32) / 1000.0
+    ours = backproject(depth, intr)[depth > 0]  # row-major valid pixels, same order as open3d
+    assert len(ref) == len(ours) > 100000
+    assert np.abs(ours - ref).max() < 1e-5
+    frame = RGBDFrame("f", np.zeros((*depth.shape, 3), np.uint8), depth, intr)
+    pts, cols = point_cloud(frame)
+    np.testing.assert_array_equal(pts, ours)
+    assert cols.shape == pts.shape
+    pts2, _ = point_cloud(frame, stride=2)
+    np.testing.assert_array_equal(pts2, backproject(depth, intr)[::2, ::2][depth[::2, ::2] > 0])
+
+
+def test_pixel_rays_convention():
+    intr = Intrinsics(100.0, 200.0, 1.5, 0.5, 4, 2)
+    r = pixel_rays(intr)
+    assert r.shape == (2, 4, 3)
+    np.testing.assert_allclose(r[0, 0], [-1.5 / 100, -0.5 / 200, 1.0])  # centre of the top-left pixel is (0, 0)
+    np.testing.assert_allclose(r[1, 3], [1.5 / 100, 0.5 / 200, 1.0])
+
+
+# ---------------------------------------------------------------- round trips
+
+intrinsics_st = st.builds(
+    Intrinsics, st.floats(50.0, 2000.0), st.floats(50.0, 2000.0), st.floats(0.0, 1000.0), st.floats(0.0, 1000.0),
+    st.integers(16, 2000), st.integers(16, 2000))
+
+
+@settings(max_examples=60, deadline=None)
+@given(intrinsics_st, st.integers(0, 2**32 - 1))
+def test_project_backproject_round_trip(intr, seed):
+    rng = np.random.default_rng(seed)
+    px = rng.uniform([0, 0], [intr.width, intr.height], size=(50, 2))
+    z = rng.uniform(0.1, 10.0, size=50)
+    P = backproject_pixels(px, z, intr)
+    np.testing.assert_allclose(P[:, 2], z)
+    np.testing.assert_allclose(project(P, intr), px, atol=1e-8)
+
+
+@settings(max_examples=60, deadline=None)
+@given(intrinsics_st, st.sampled_from([0.25, 0.5, 2.0, 4.0]))
+def test_intrinsics_scaled_round_trip(intr, s):
+    back = intr.scaled(s).scaled(1.0 / s)
+    for a in ("fx", "fy", "cx", "cy"):
+        assert getattr(back, a) == pytest.approx(getattr(intr, a), rel=1e-12, abs=1e-9)
+    # pixel-centre convention: the point at a scaled pixel centre projects to the matching location
+    sc = intr.scaled(s)
+    P = backproject_pixels(np.array([[3.0, 7.0]]), np.array([2.0]), intr)
+    np.testing.assert_allclose(project(P, sc), [[(3.0 + 0.5) * s - 0.5, (7.0 + 0.5) * s - 0.5]], atol=1e-9)
+    if (intr.width * s).is_integer() and (intr.height * s).is_integer():
+        assert (back.width, back.height) == (intr.width, intr.height)
+    assert Intrinsics.from_dict(intr.to_dict()) == intr
+    assert Intrinsics.from_matrix(intr.K, intr.width, intr.height) == intr
+
+
+def test_intrinsics_validation():
+    with pytest.raises(ValueError):
+        Intrinsics(-1.0, 1.0, 0.0, 0.0, 10, 10)
+    with pytest.raises(ValueError):
+        Intrinsics(1.0, 1.0, float("nan"), 0.0, 10, 10)
+    with pytest.raises(ValueError):
+        Intrinsics(1.0, 1.0, 0.0, 0.0, 0, 10)
+
+
+# ---------------------------------------------------------------- geometry
+
+def _rigid(rng: np.random.Generator) -> np.ndarray:
+    return make_T(rotvec_to_R(rng.normal(size=3) * rng.uniform(0, 3)), rng.normal(size=3))
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.integers(0, 2**32 - 1))
+def test_inv_T_and_kabsch_exact(seed):
+    rng = np.random.default_rng(seed)
+    T = _rigid(rng)
+    np.testing.assert_allclose(inv_T(T) @ T, np.eye(4), atol=1e-12)
+    np.testing.assert_allclose(T @ inv_T(T), np.eye(4), atol=1e-12)
+    src = rng.normal(size=(int(rng.integers(3, 60)), 3))
+    dst = transform_points(T, src)
+    T_est = kabsch(src, dst)
+    np.testing.assert_allclose(T_est, T, atol=1e-9)
+    assert np.linalg.det(T_est[:3, :3]) == pytest.approx(1.0)
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 2**32 - 1))
+def test_kabsch_never_returns_a_reflection(seed):
+    rng = np.random.default_rng(seed)
+    src = rng.normal(size=(20, 3))
+    dst = transform_points(_rigid(rng), src * np.array([-1.0, 1.0, 1.0]))  # mirrored copy
+    R = kabsch(src, dst)[:3, :3]
+    np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-9)
+    assert np.linalg.det(R) == pytest.approx(1.0)
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.lists(st.floats(-5, 5, **finite), min_size=3, max_size=3),
+       st.lists(st.floats(-5, 5, **finite), min_size=3, max_size=3))
+def test_look_at_is_a_proper_rotation_looking_at_the_target(eye, target):
+    eye, target = np.array(eye), np.array(target)
+    if np.linalg.norm(target - eye) < 1e-3:
+        return
+    T = look_at(eye, target)
+    R = T[:3, :3]
+    np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-9)
+    assert np.linalg.det(R) == pytest.approx(1.0)
+    np.testing.assert_allclose(T[:3, 3], eye)
+    p_cam = transform_points(inv_T(T), target[None])[0]  # the target sits on the optical axis, in front
+    assert p_cam[2] == pytest.approx(np.linalg.norm(target - eye))
+    np.testing.assert_allclose(p_cam[:2], 0.0, atol=1e-9)
+    assert R[:, 1] @ np.array([0.0, 0.0, 1.0]) <= 1e-9  # image y (down) never points up in the world
+
+
+def test_look_at_horizontal_has_world_up_as_image_up():
+    T = look_at([0.0, 0.0, 0.0], [1.0, 0.0, 0.0])
+    np.testing.assert_allclose(T[:3, 1], [0.0, 0.0, -1.0], atol=1e-12)  # y down
+    np.testing.assert_allclose(T[:3, 0], [0.0, -1.0, 0.0], atol=1e-12)  # x right
+
+
+# ---------------------------------------------------------------- lift_keypoints
+
+INTR = Intrinsics(500.0, 500.0, 31.5, 23.5, 64, 48)
+
+
+def test_lift_rejects_invalid_depth():
+    depth = np.full((48, 64), 1.5, np.float32)
+    depth[:, 32:] = 0.0
+    px = np.array([[10.0, 20.0], [50.0, 20.0], [31.0, 20.0], [33.0, 20.0], [30.0, 10.0]])
+    pts, ok = lift_keypoints(px, depth, INTR, window=2)
+    # u=31: 3 of 5 columns valid (60 %) -> kept; u=33: 1 of 5 -> rejected
+    np.testing.assert_array_equal(ok, [True, False, True, False, True])
+    np.testing.assert_allclose(pts[ok][:, 2], 1.5)
+    np.testing.assert_array_equal(pts[~ok], 0.0)
+    np.testing.assert_allclose(pts[ok], backproject_pixels(px[ok], np.full(3, 1.5), INTR))
+    _, ok = lift_keypoints(np.zeros((0, 2)), depth, INTR)
+    assert ok.shape == (0,)
+
+
+def test_lift_rejects_pixels_outside_the_image_and_nan():
+    depth = np.full((48, 64), 1.0, np.float32)
+    px = np.array([[-5.0, 10.0], [70.0, 10.0], [10.0, 48.0], [np.nan, 3.0], [0.0, 0.0], [63.4, 47.4]])
+    _, ok = lift_keypoints(px, depth, INTR, window=1, min_valid_frac=0.4)
+    np.testing.assert_array_equal(ok, [False, False, False, False, True, True])
+
+
+def test_lift_rejects_depth_discontinuities():
+    depth = np.full((48, 64), 1.0, np.float32)
+    depth[:, 32:] = 1.3  # a step of 30 cm between columns 31 and 32
+    u = np.arange(20.0, 45.0)
+    px = np.stack([u, np.full_like(u, 24.0)], 1)
+    pts, ok = lift_keypoints(px, depth, INTR, window=2)
+    straddles = (u + 2 >= 32) & (u - 2 <= 31)
+    np.testing.assert_array_equal(ok, ~straddles)
+    np.testing.assert_allclose(pts[ok][:, 2], np.where(u[ok] < 32, 1.0, 1.3), rtol=1e-6)
+    # a gentle slant (1 mm per pixel) is not a discontinuity
+    slant = (1.0 + 0.001 * np.arange(64, dtype=np.float32))[None, :].repeat(48, 0)
+    pts, ok = lift_keypoints(px, slant, INTR, window=2)
+    assert ok.all()
+    np.testing.assert_allclose(pts[:, 2], 1.0 + 0.001 * u, rtol=1e-6)  # median of a linear window = centre
+
+
+def test_lift_takes_the_median_despite_corrupted_pixels():
+    depth = np.full((48, 64), 0.8, np.float32)
+    v, u = 20, 30
+    depth[v - 2, u - 2] = 5.0  # two far spikes
+    depth[v + 1, u + 2] = 4.0
+    depth[v + 2, u] = 0.3  # one near spike
+    depth[v - 1, u - 1:u + 2] = 0.0  # three holes
+    pts, ok = lift_keypoints(np.array([[u, v]], float), depth, INTR, window=2)
+    assert ok[0]
+    assert pts[0, 2] == pytest.approx(0.8)
+    # many spikes: the window straddles two surfaces and is rejected rather than guessed
+    depth[v - 2:v + 3, u + 1:u + 3] = 3.0
+    _, ok = lift_keypoints(np.array([[u, v]], float), depth, INTR, window=2)
+    assert not ok[0]
+
+
+def test_lift_on_real_depth_equals_window_median(o3d_root):
+    intr = load_intrinsics(o3d_root / "camera_primesense.json")
+    depth = cv2.imread(str(o3d_root / "RGBD" / "depth" / "00001.png"), cv2.IMREAD_UNCHANGED).astype(np.float32) / 1000
+    rng = np.random.default_rng(0)
+    px = rng.uniform([3, 3], [intr.width - 4, intr.height - 4], size=(400, 2))
+    pts, ok = lift_keypoints(px, depth, intr, window=2)
+    assert 100 < ok.sum() < 400
+    for i in np.flatnonzero(ok):
+        u, v = np.rint(px[i]).astype(int)
+        win = depth[v - 2:v + 3, u - 2:u + 3]
+        assert pts[i, 2] == pytest.approx(np.median(win[win > 0]), abs=1e-6)
+    np.testing.assert_allclose(project(pts[ok], intr), px[ok], atol=1e-6)
+
+
+# ---------------------------------------------------------------- load_intrinsics
+
+def test_load_intrinsics_open3d_json(o3d_root):
+    intr = load_intrinsics(o3d_root / "camera_primesense.json")
+    assert (intr.fx, intr.fy, intr.cx, intr.cy, intr.width, intr.height) == (525.0, 525.0, 319.5, 239.5, 640, 480)
+    with pytest.raises(InputError, match="camera_primesense.json"):
+        load_intrinsics(o3d_root / "camera_primesense.json", width=320, height=240)
+
+
+def test_load_intrinsics_cam_k_txt_and_bop(tmp_path):
+    p = tmp_path / "cam_K.txt"
+    p.write_text("600.5 0 320.25\n0 601 239.75\n0 0 1\n")
+    intr = load_intrinsics(p, 640, 480)
+    np.testing.assert_allclose(intr.K, [[600.5, 0, 320.25], [0, 601, 239.75], [0, 0, 1]])
+    assert (intr.width, intr.height) == (640, 480)
+    with pytest.raises(InputError, match="no image size"):
+        load_intrinsics(p)
+    b = tmp_path / "camera.json"
+    b.write_text(json.dumps({"cam_K": [572.4, 0.0, 325.3, 0.0, 573.6, 242.0, 0.0, 0.0, 1.0], "depth_scale": 0.1}))
+    intr = load_intrinsics(b, 640, 480)
+    assert (intr.fx, intr.fy, intr.cx, intr.cy) == (572.4, 573.6, 325.3, 242.0)
+    b.write_text(json.dumps({"fx": 500.0, "fy": 501.0, "cx": 300.0, "cy": 200.0, "width": 600, "height": 400}))
+    intr = load_intrinsics(b)
+    assert (intr.fx, intr.fy, intr.cx, intr.cy, intr.width, intr.height) == (500.0, 501.0, 300.0, 200.0, 600, 400)
+
+
+@pytest.mark.parametrize("name,text", [
+    ("cam_K.txt", "600 0 320\n0 600 240\n"),  # 2 rows
+    ("cam_K.txt", "600 0 320\n0 600\n0 0 1\n"),  # ragged
+    ("cam_K.txt", "600 0 320\n0 abc 240\n0 0 1\n"),  # not a number
+    ("cam_K.txt", "nan 0 320\n0 600 240\n0 0 1\n"),  # NaN
+    ("cam_K.txt", "-600 0 320\n0 600 240\n0 0 1\n"),  # negative focal length
+    ("cam_K.txt", "600 0 -320\n0 600 240\n0 0 1\n"),  # negative principal point
+    ("cam_K.txt", "600 5 320\n0 600 240\n0 0 1\n"),  # skew: not representable
+    ("cam_K.txt", "600 0 320\n0 600 240\n0 0 2\n"),  # not normalised
+    ("cam_K.txt", ""),
+    ("camera.json", "{\"cam_K\": [1, 2, 3]}"),
+    ("camera.json", "{\"fx\": 500, \"fy\": NaN, \"cx\": 1, \"cy\": 1, \"width\": 10, \"height\": 10}"),
+    ("camera.json", "{\"intrinsic_matrix\": [525, 0, 0, 0, 525, 0, 319.5, 239.5, 1], \"width\": -640, "
+                    "\"height\": 480}"),
+    ("camera.json", "{\"something\": 1}"),
+    ("camera.json", "{not json"),
+    ("camera.json", "[1, 2, 3]"),
+])
+def test_load_intrinsics_rejects_malformed(tmp_path, name, text):
+    p = tmp_path / name
+    p.write_text(text)
+    with pytest.raises(InputError) as ei:
+        load_intrinsics(p, 640, 480)
+    assert ei.value.path == p and name in str(ei.value) and "\n" not in str(ei.value)
+
+
+def test_load_intrinsics_missing_file(tmp_path):
+    with pytest.raises(InputError, match="not found"):
+        load_intrinsics(tmp_path / "nope.txt", 640, 480)
+
+
+def test_rgbd_frame_size_checks():
+    with pytest.raises(InputError):
+        RGBDFrame("x", np.zeros((48, 64, 3), np.uint8), np.zeros((48, 63), np.float32), INTR)
+    with pytest.raises(InputError):
+        RGBDFrame("x", np.zeros((24, 32, 3), np.uint8), np.zeros((24, 32), np.float32), INTR)
