@@ -1,0 +1,122 @@
+"""Exporters of a complete template database to other tools' formats.
+
+`export(db_path, fmt, out, force)` is the one entry point (`gscan export`). Formats:
+
+| format | output |
+|---|---|
+| `bop` | a BOP dataset folder (camera.json, models/, test/000001/ with GT poses and masks) |
+| `foundationpose` | FoundationPose model-free reference views (`ob_0000001/`) |
+| `colmap` | a COLMAP sparse model (pycolmap `Reconstruction.write`) |
+| `ply`, `obj`, `glb` | the template mesh (metres, object frame, vertex colours) |
+| `json` | intrinsics, per-view poses, edges with their quality numbers, grasps |
+
+Outputs are never half-written: everything is written into a hidden temporary sibling of `out`
+and renamed into place at the end. An existing non-empty `out` is refused without `force`; a
+partial database is refused (InputError naming the file).
+"""
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+from gscan.errors import InputError
+from gscan.template import TemplateDB
+
+log = logging.getLogger(__name__)
+
+FORMATS = ("bop", "foundationpose", "colmap", "ply", "obj", "glb", "json")
+_FILE_FORMATS = ("ply", "obj", "glb", "json")
+
+
+@dataclass
+class ExportResult:
+    """What an export wrote: `path` (folder or file), number of views and files written."""
+
+    format: str
+    path: Path
+    views: int
+    files: int
+
+
+def _occupied(out: Path) -> bool:
+    if out.is_dir():
+        return any(out.iterdir())
+    return out.exists() or out.is_symlink()
+
+
+def _writer(fmt: str) -> Callable[[TemplateDB, Path], int]:
+    """The format's writer: writer(db, tmp_out) -> number of views exported."""
+    if fmt == "bop":
+        from gscan.export.bop import write_bop
+        return write_bop
+    if fmt == "foundationpose":
+        from gscan.export.foundationpose import write_foundationpose
+        return write_foundationpose
+    if fmt == "colmap":
+        from gscan.export.colmap import write_colmap
+        return write_colmap
+    if fmt == "json":
+        from gscan.export.jsonfmt import write_json
+        return write_json
+    from gscan.export.mesh import write_mesh
+    return lambda db, path: write_mesh(db, path, fmt)
+
+
+def export(db_path: str | Path, fmt: str, out: str | Path, force: bool = False) -> ExportResult:
+    """Export the complete template database `db_path` as `fmt` to `out` (a folder, or a file for
+    ply/obj/glb/json). Raises InputError for an unknown format, an occupied `out` without `force`,
+    a partial / unreadable database, or a database lacking what the format needs."""
+    db_path, out = Path(db_path), Path(out)
+    if fmt not in FORMATS:
+        raise InputError(out, f"unknown export format {fmt!r}; expected one of {', '.join(FORMATS)}")
+    if _occupied(out) and not force:
+        raise InputError(out, "output already exists; use --force to overwrite")
+    if out.resolve() == db_path.resolve():
+        raise InputError(out, "output would overwrite the template database itself")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.parent / f".{out.name}.tmp-{os.getpid()}"
+    with TemplateDB.open(db_path, require_complete=True) as db:
+        _remove(tmp)
+        try:
+            if fmt not in _FILE_FORMATS:
+                tmp.mkdir()
+            n_views = _writer(fmt)(db, tmp)
+        except BaseException:
+            _remove(tmp)
+            raise
+    files = sum(len(f) for _, _, f in os.walk(tmp)) if tmp.is_dir() else 1
+    _replace(tmp, out)
+    log.info("exported %s as %s to %s (%d views, %d files)", db_path, fmt, out, n_views, files)
+    return ExportResult(fmt, out, n_views, files)
+
+
+def _remove(p: Path) -> None:
+    if p.is_dir() and not p.is_symlink():
+        shutil.rmtree(p)
+    elif p.exists() or p.is_symlink():
+        p.unlink()
+
+
+def _replace(tmp: Path, out: Path) -> None:
+    """Move `tmp` to `out`; an existing `out` is moved aside first and deleted only afterwards."""
+    old = None
+    if out.exists() or out.is_symlink():
+        old = out.parent / f".{out.name}.old-{os.getpid()}"
+        _remove(old)
+        os.replace(out, old)
+    try:
+        os.replace(tmp, out)
+    except BaseException:
+        if old is not None:
+            os.replace(old, out)
+        _remove(tmp)
+        raise
+    if old is not None:
+        _remove(old)
+
+
+__all__ = ["FORMATS", "ExportResult", "export"]

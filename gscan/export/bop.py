@@ -1,0 +1,157 @@
+"""BOP dataset export: the template's captured views as one test scene with ground truth.
+
+Layout (BOP toolkit conventions, docs/bop_datasets_format.md; millimetres, row-major matrices):
+
+    camera.json                       {cx, cy, fx, fy, width, height, depth_scale}
+    models/obj_000001.ply             template mesh in mm with vertex normals and colours
+    models/models_info.json           {"1": {diameter, min_x/y/z, size_x/y/z}} in mm
+    test/000001/rgb/IIIIII.png        colour
+    test/000001/depth/IIIIII.png      uint16, depth_scale 1.0 (raw * 1.0 = millimetres)
+    test/000001/mask/IIIIII_000000.png, mask_visib/IIIIII_000000.png   0/255
+    test/000001/scene_camera.json     {im_id: {cam_K, depth_scale, cam_R_w2c, cam_t_w2c}} (world = object)
+    test/000001/scene_gt.json         {im_id: [{cam_R_m2c, cam_t_m2c, obj_id: 1}]}, T_cam_obj = inv(T_obj_cam)
+    test/000001/scene_gt_info.json    {im_id: [{bbox_obj, bbox_visib, px_count_all, px_count_valid,
+                                                px_count_visib, visib_fract}]}
+    gscan_views.json                  {im_id: template view name} (gscan's own addition)
+
+Masks and counts: with a mesh, `mask` is the mesh silhouette ray-cast from the view's pose and
+`mask_visib` the silhouette pixels whose measured depth is missing or within 15 mm of the rendered
+depth (the BOP toolkit's "bop19" visibility rule, delta 15 mm), intersected with the view's stored
+object mask when it has one. Without a mesh both are the stored mask (views without one are skipped).
+px_count_valid counts silhouette pixels with measured depth; visib_fract = px_count_visib / px_count_all.
+"""
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from gscan.errors import InputError
+from gscan.export.common import bbox_xywh, depth_to_mm_u16, imwrite, posed_views, render_depth
+from gscan.geometry import inv_T
+from gscan.template import MeshData, TemplateDB
+
+log = logging.getLogger(__name__)
+
+SCENE_ID = 1
+OBJ_ID = 1
+DEPTH_SCALE = 1.0  # raw uint16 * DEPTH_SCALE = millimetres
+VISIB_DELTA_MM = 15.0
+
+
+def write_ply_mm(mesh: MeshData, path: Path) -> None:
+    """Binary little-endian PLY in millimetres: x y z nx ny nz (float32) red green blue (uchar) and
+    `vertex_indices` faces (list uchar int) — the properties `bop_toolkit_lib.inout.load_ply` reads."""
+    from gscan.export.mesh import to_trimesh
+
+    tm = to_trimesh(mesh)
+    V = np.asarray(mesh.vertices, dtype=np.float64) * 1000.0
+    N = np.asarray(tm.vertex_normals, dtype=np.float64)
+    C = mesh.vertex_colors if mesh.vertex_colors is not None else np.full((len(V), 3), 255, np.uint8)
+    vdt = np.dtype([(k, "<f4") for k in ("x", "y", "z", "nx", "ny", "nz")] + [(k, "u1") for k in ("red", "green", "blue")])
+    verts = np.empty(len(V), dtype=vdt)
+    for i, k in enumerate(("x", "y", "z")):
+        verts[k] = V[:, i]
+        verts["n" + k] = N[:, i]
+    for i, k in enumerate(("red", "green", "blue")):
+        verts[k] = C[:, i]
+    fdt = np.dtype([("n", "u1"), ("i", "<i4", (3,))])
+    faces = np.empty(len(mesh.triangles), dtype=fdt)
+    faces["n"] = 3
+    faces["i"] = np.asarray(mesh.triangles, dtype=np.int64)
+    header = ("ply\nformat binary_little_endian 1.0\ncomment gscan template mesh, millimetres\n"
+              f"element vertex {len(V)}\n" + "".join(f"property float {k}\n" for k in ("x", "y", "z", "nx", "ny", "nz"))
+              + "property uchar red\nproperty uchar green\nproperty uchar blue\n"
+              f"element face {len(faces)}\nproperty list uchar int vertex_indices\nend_header\n")
+    path.write_bytes(header.encode("ascii") + verts.tobytes() + faces.tobytes())
+
+
+def models_info(mesh: MeshData) -> dict:
+    """BOP models_info entry (mm): diameter (largest vertex distance) and the axis-aligned box."""
+    V = np.asarray(mesh.vertices, dtype=np.float64) * 1000.0
+    pts = V
+    try:
+        from scipy.spatial import ConvexHull
+        pts = V[ConvexHull(V).vertices]
+    except Exception:  # flat or degenerate mesh: all vertices (subsampled deterministically)
+        pts = V[:: max(1, len(V) // 4000)]
+    d = pts[:, None, :] - pts[None, :, :] if len(pts) <= 4000 else None
+    diam = float(np.sqrt((d ** 2).sum(-1)).max()) if d is not None else _diameter_chunked(pts)
+    lo, hi = V.min(axis=0), V.max(axis=0)
+    return {"diameter": diam, "min_x": float(lo[0]), "min_y": float(lo[1]), "min_z": float(lo[2]),
+            "size_x": float(hi[0] - lo[0]), "size_y": float(hi[1] - lo[1]), "size_z": float(hi[2] - lo[2])}
+
+
+def _diameter_chunked(pts: np.ndarray) -> float:
+    best = 0.0
+    for i in range(0, len(pts), 1000):
+        d = ((pts[i:i + 1000, None, :] - pts[None, :, :]) ** 2).sum(-1)
+        best = max(best, float(d.max()))
+    return float(np.sqrt(best))
+
+
+def write_bop(db: TemplateDB, out: Path) -> int:
+    """Write the BOP dataset into the (empty) folder `out`; returns the number of images."""
+    mesh = db.mesh()
+    if mesh is not None and (len(mesh.vertices) == 0 or len(mesh.triangles) == 0):
+        mesh = None
+    views = posed_views(db, need_images=True)
+    if mesh is None:
+        log.warning("%s has no mesh: BOP export without models/, masks from the stored object masks", db.path)
+        kept = [v for v in views if v.mask is not None]
+        if len(kept) < len(views):
+            log.warning("%d views without an object mask skipped", len(views) - len(kept))
+        views = kept
+        if not views:
+            raise InputError(db.path, "BOP export needs a mesh or stored object masks; the template has neither")
+    intr0 = views[0].intrinsics
+    scene = out / "test" / f"{SCENE_ID:06d}"
+    for sub in ("rgb", "depth", "mask", "mask_visib"):
+        (scene / sub).mkdir(parents=True)
+    cam = {"cx": intr0.cx, "cy": intr0.cy, "depth_scale": DEPTH_SCALE, "fx": intr0.fx, "fy": intr0.fy,
+           "height": intr0.height, "width": intr0.width}
+    _dump(out / "camera.json", cam)
+    if mesh is not None:
+        (out / "models").mkdir()
+        write_ply_mm(mesh, out / "models" / f"obj_{OBJ_ID:06d}.ply")
+        _dump(out / "models" / "models_info.json", {str(OBJ_ID): models_info(mesh)})
+    scene_camera, scene_gt, scene_gt_info, names = {}, {}, {}, {}
+    for im_id, v in enumerate(views):
+        T_cam_obj = inv_T(v.T_obj_cam)
+        depth_mm = depth_to_mm_u16(v.depth)
+        if mesh is not None:
+            ren_mm = render_depth(mesh, v.intrinsics, v.T_obj_cam).astype(np.float64) * 1000.0
+            mask_all = ren_mm > 0
+            meas = depth_mm.astype(np.float64)
+            visib = mask_all & ((meas == 0) | (np.abs(meas - ren_mm) <= VISIB_DELTA_MM))
+            if v.mask is not None:
+                visib &= v.mask
+        else:
+            mask_all = visib = v.mask
+        key = str(im_id)
+        stem = f"{im_id:06d}"
+        imwrite(scene / "rgb" / f"{stem}.png", v.color, rgb=True)
+        imwrite(scene / "depth" / f"{stem}.png", depth_mm)
+        imwrite(scene / "mask" / f"{stem}_000000.png", np.where(mask_all, 255, 0).astype(np.uint8))
+        imwrite(scene / "mask_visib" / f"{stem}_000000.png", np.where(visib, 255, 0).astype(np.uint8))
+        R_flat = [float(x) for x in T_cam_obj[:3, :3].reshape(-1)]
+        t_mm = [float(x) for x in T_cam_obj[:3, 3] * 1000.0]
+        scene_camera[key] = {"cam_K": [float(x) for x in v.intrinsics.K.reshape(-1)], "depth_scale": DEPTH_SCALE,
+                             "cam_R_w2c": R_flat, "cam_t_w2c": t_mm}
+        scene_gt[key] = [{"cam_R_m2c": R_flat, "cam_t_m2c": t_mm, "obj_id": OBJ_ID}]
+        n_all, n_visib = int(mask_all.sum()), int(visib.sum())
+        scene_gt_info[key] = [{"bbox_obj": bbox_xywh(mask_all), "bbox_visib": bbox_xywh(visib),
+                               "px_count_all": n_all, "px_count_valid": int((mask_all & (depth_mm > 0)).sum()),
+                               "px_count_visib": n_visib, "visib_fract": n_visib / n_all if n_all else 0.0}]
+        names[key] = v.name
+    _dump(scene / "scene_camera.json", scene_camera)
+    _dump(scene / "scene_gt.json", scene_gt)
+    _dump(scene / "scene_gt_info.json", scene_gt_info)
+    _dump(out / "gscan_views.json", names)
+    return len(views)
+
+
+def _dump(path: Path, obj: dict) -> None:
+    path.write_text(json.dumps(obj, indent=2) + "\n", encoding="utf-8")

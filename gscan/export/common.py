@@ -1,0 +1,80 @@
+"""Helpers shared by the exporters: view selection, image writing, mesh rendering."""
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from gscan.camera import Intrinsics, pixel_rays
+from gscan.errors import GscanError, InputError
+from gscan.template import MeshData, TemplateDB, View
+
+log = logging.getLogger(__name__)
+
+
+def posed_views(db: TemplateDB, need_images: bool = True) -> list[View]:
+    """Registered views in input order (images decoded); with `need_images`, only views that store
+    colour and depth. InputError naming the database when none is left."""
+    out = []
+    for v in db.views(load_images=False):
+        if v.T_obj_cam is None:
+            continue
+        if need_images:
+            v = db.view(v.name, load_images=True)
+            if v.color is None or v.depth is None:
+                log.warning("view %s stores no colour/depth image: not exported", v.name)
+                continue
+        out.append(v)
+    if not out:
+        raise InputError(db.path, "no registered view with colour and depth images to export" if need_images
+                         else "no registered view to export")
+    return out
+
+
+def require_mesh(db: TemplateDB) -> MeshData:
+    m = db.mesh()
+    if m is None or len(m.vertices) == 0 or len(m.triangles) == 0:
+        raise InputError(db.path, "the template has no mesh to export")
+    return m
+
+
+def imwrite(path: Path, img: np.ndarray, rgb: bool = False) -> None:
+    """Write a PNG (`rgb`: [H x W x 3] RGB uint8 -> stored as a normal colour PNG)."""
+    data = cv2.cvtColor(img, cv2.COLOR_RGB2BGR) if rgb else img
+    ok, buf = cv2.imencode(path.suffix, data)
+    if not ok:
+        raise GscanError(f"cannot encode {path}")
+    path.write_bytes(buf.tobytes())
+
+
+def depth_to_mm_u16(depth: np.ndarray) -> np.ndarray:
+    """[H x W] float metres -> [H x W] uint16 millimetres (0 invalid, out of range -> 0)."""
+    mm = np.rint(np.nan_to_num(depth.astype(np.float64), nan=0.0) * 1000.0)
+    mm[(mm < 0) | (mm > 65535)] = 0
+    return mm.astype(np.uint16)
+
+
+def render_depth(mesh: MeshData, intr: Intrinsics, T_obj_cam: np.ndarray) -> np.ndarray:
+    """Ray-cast the mesh from a camera: [H x W] float32 depth (m, along the optical axis), 0 = no hit."""
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(mesh.vertices, dtype=np.float32)),
+                        o3d.core.Tensor(np.ascontiguousarray(mesh.triangles, dtype=np.uint32)))
+    d_cam = pixel_rays(intr).reshape(-1, 3)  # z = 1, so the hit distance t is the depth
+    d_obj = d_cam @ T_obj_cam[:3, :3].T
+    o_obj = np.broadcast_to(T_obj_cam[:3, 3], d_obj.shape)
+    rays = np.concatenate([o_obj, d_obj], axis=1).astype(np.float32)
+    t = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().reshape(intr.height, intr.width)
+    return np.where(np.isfinite(t), t, 0.0).astype(np.float32)
+
+
+def bbox_xywh(mask: np.ndarray) -> list[int]:
+    """BOP bounding box [x, y, width, height] of a [H x W] bool mask; [-1, -1, -1, -1] if empty."""
+    ys, xs = np.nonzero(mask)
+    if len(xs) == 0:
+        return [-1, -1, -1, -1]
+    x0, y0 = int(xs.min()), int(ys.min())
+    return [x0, y0, int(xs.max()) - x0 + 1, int(ys.max()) - y0 + 1]

@@ -1,0 +1,43 @@
+"""Mesh exports (PLY / OBJ / GLB) through trimesh: metres, object frame, vertex colours."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from gscan.errors import InputError
+from gscan.export.common import require_mesh
+from gscan.template import MeshData, TemplateDB
+
+
+def to_trimesh(mesh: MeshData, scale: float = 1.0) -> trimesh.Trimesh:
+    """The template mesh as a trimesh (vertex order kept; `scale` multiplies the vertices)."""
+    tm = trimesh.Trimesh(vertices=np.asarray(mesh.vertices, dtype=np.float64) * scale,
+                         faces=np.asarray(mesh.triangles, dtype=np.int64), process=False)
+    if mesh.vertex_colors is not None:
+        rgba = np.concatenate([mesh.vertex_colors, np.full((len(mesh.vertex_colors), 1), 255, np.uint8)], axis=1)
+        tm.visual = trimesh.visual.ColorVisuals(tm, vertex_colors=rgba)
+    return tm
+
+
+def write_mesh(db: TemplateDB, path: Path, fmt: str) -> int:
+    """Write the mesh as `fmt` ("ply" | "obj" | "glb") to the file `path`. A template without a mesh
+    but with a point cloud exports the cloud as PLY; OBJ/GLB need a mesh. Returns 0 (no views)."""
+    if fmt == "ply" and db.mesh() is None and db.cloud() is not None:
+        pts, cols = db.cloud()
+        pc = trimesh.PointCloud(np.asarray(pts, dtype=np.float64), colors=cols)
+        path.write_bytes(pc.export(file_type="ply"))
+        return 0
+    tm = to_trimesh(require_mesh(db))
+    if fmt == "ply":
+        data = trimesh.exchange.ply.export_ply(tm, encoding="binary", vertex_normal=True)
+    elif fmt == "obj":
+        data = trimesh.exchange.obj.export_obj(tm, include_color=True, include_normals=True,
+                                               include_texture=False).encode("utf-8")
+    elif fmt == "glb":
+        data = trimesh.exchange.gltf.export_glb(trimesh.Scene(tm))
+    else:
+        raise InputError(path, f"not a mesh format: {fmt}")
+    path.write_bytes(data)
+    return 0
