@@ -271,7 +271,7 @@ def test_capture_layout_roundtrip(tmp_path: Path):
 
 
 def test_capture_depth_scale_override_and_forced_intrinsics(tmp_path: Path):
-    root = make_capture(tmp_path / "cap", masks=False, poses=False)
+    root = make_capture(tmp_path / "cap", masks=False, poses=False, jpg=True)
     seq = open_sequence(root, depth_scale=0.002, intrinsics=Intrinsics(70.0, 70.0, 32.0, 24.0, W, H))
     assert seq.depth_scale == 0.002 and seq.intrinsics.fx == 70.0
     np.testing.assert_allclose(seq[0].depth, depth_mm(0).astype(np.float32) * 0.002, rtol=1e-6)
@@ -291,6 +291,18 @@ def test_open3d_layout_built(tmp_path: Path):
         np.testing.assert_allclose(seq.gt_T_world_cam[n], pose(10 + i), atol=1e-12)
     fr = seq[1]
     assert abs(int(fr.color[5, 5, 0]) - 250) < 30  # JPEG, red half
+
+
+def test_open3d_layout_differently_numbered_folders(tmp_path: Path):
+    root = make_open3d(tmp_path / "redwood", n=3)
+    for i in range(3):  # Redwood-style: depth files numbered differently from the colour files
+        (root / "depth" / f"{i:05d}.png").rename(root / "depth" / f"d{i + 1:06d}.png")
+    seq = open_sequence(root)
+    assert seq.names == ["00000", "00001", "00002"] and seq.problems == {}
+    np.testing.assert_allclose(seq[2].depth, depth_mm(2).astype(np.float32) * 0.001, rtol=1e-6)
+    (root / "depth" / "d000003.png").unlink()  # counts differ now: no pairing by order
+    with pytest.raises(InputError, match="00000.jpg"):
+        open_sequence(root)
 
 
 def test_tum_layout_built(tmp_path: Path):
