@@ -628,6 +628,29 @@ class TemplateDB:
             mesh=self.mesh(), grasps=self.grasps(), extent_m=self.extent())
 
 
+def read_pose_file(path: str | Path) -> np.ndarray:
+    """Read a pose file (`{"T": [[4x4]]}` or a bare 4x4 list, metres) -> [4 x 4] rigid transform.
+    InputError naming the file when it is missing, malformed or not a rigid transform."""
+    path = Path(path)
+    try:
+        d = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise InputError(path, "pose file not found") from None
+    except (OSError, UnicodeDecodeError, ValueError) as e:
+        raise InputError(path, f"malformed pose JSON ({e.__class__.__name__})") from None
+    try:
+        T = np.asarray(d["T"] if isinstance(d, dict) else d, dtype=np.float64)
+    except (KeyError, TypeError, ValueError):
+        raise InputError(path, 'expected {"T": [[4x4]]} or a bare 4x4 list') from None
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise InputError(path, f"expected a finite 4x4 matrix, got shape {T.shape}")
+    R = T[:3, :3]
+    if not np.allclose(T[3], [0, 0, 0, 1], atol=1e-6) or not np.allclose(R @ R.T, np.eye(3), atol=1e-4) \
+            or np.linalg.det(R) < 0:
+        raise InputError(path, "not a rigid transform (rotation not orthonormal or last row not 0 0 0 1)")
+    return T
+
+
 def open_template(path: str | Path) -> Template:
     """Open a complete database and load its Template (InputError as `TemplateDB.open`)."""
     with TemplateDB.open(path, require_complete=True) as db:

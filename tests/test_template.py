@@ -249,3 +249,20 @@ def test_sigkill_mid_write_leaves_consistent_partial_db(db_path: Path) -> None:
         assert c.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
     with pytest.raises(InputError, match="partial"):
         TemplateDB.open(db_path)
+
+
+def test_read_pose_file(tmp_path: Path) -> None:
+    from gscan.template import read_pose_file
+
+    T = _pose(np.random.default_rng(5))
+    (tmp_path / "a.json").write_text(json.dumps({"T": T.tolist()}))
+    (tmp_path / "b.json").write_text(json.dumps(T.tolist()))
+    assert np.array_equal(read_pose_file(tmp_path / "a.json"), T) and np.array_equal(read_pose_file(tmp_path / "b.json"), T)
+    bad = {"c.json": "{not json", "d.json": json.dumps({"R": 1}), "e.json": json.dumps(np.eye(3).tolist()),
+           "f.json": json.dumps((2 * np.eye(4)).tolist()), "missing.json": None}
+    for name, text in bad.items():
+        if text is not None:
+            (tmp_path / name).write_text(text)
+        with pytest.raises(InputError) as ei:
+            read_pose_file(tmp_path / name)
+        assert name in str(ei.value)

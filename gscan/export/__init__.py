@@ -41,6 +41,9 @@ class ExportResult:
     views: int
     files: int
 
+    def __str__(self) -> str:
+        return f"{self.format} export of {self.views} views ({self.files} files) at {self.path}"
+
 
 def _occupied(out: Path) -> bool:
     if out.is_dir():
