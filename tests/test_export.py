@@ -30,7 +30,7 @@ def _box_mesh() -> MeshData:
                     rng.integers(0, 256, (len(tm.vertices), 3), dtype=np.uint8))
 
 
-def _build_db(path: Path, with_mesh: bool = True, complete: bool = True) -> dict:
+def _build_db(path: Path, with_mesh: bool = True, complete: bool = True, with_masks: bool = True) -> dict:
     """A small synthetic template: 4 views of a box, consistent depth/masks/keypoints, tracked points."""
     mesh = _box_mesh()
     rng = np.random.default_rng(1)
@@ -54,7 +54,8 @@ def _build_db(path: Path, with_mesh: bool = True, complete: bool = True) -> dict
             ids = np.flatnonzero(vis)
             feats = ViewFeatures(px[ids].astype(np.float32), surf[ids].astype(np.float32),
                                  rng.random((len(ids), 128), dtype=np.float32), "rootsift")
-            db.add_view(View(f"frame {i:02d} é", K, T_obj_cam, color, depth.astype(np.float32), mask, True, 0.9, i),
+            db.add_view(View(f"frame {i:02d} é", K, T_obj_cam, color, depth.astype(np.float32),
+                             mask if with_masks else None, True, 0.9, i),
                         features=feats, color_codec="png")
             Ts.append(T_obj_cam)
             kp_ids.append(ids)
@@ -253,3 +254,19 @@ def test_refuses_partial_db_and_missing_mesh(tmp_path: Path) -> None:
     export(partial, "bop", tmp_path / "bop")
     info = json.loads((tmp_path / "bop" / "test" / "000001" / "scene_gt_info.json").read_text())
     assert not (tmp_path / "bop" / "models").exists() and all(g[0]["visib_fract"] == 1.0 for g in info.values())
+
+
+def test_foundationpose_masks_from_mesh_when_views_have_none(tmp_path: Path) -> None:
+    db_path = tmp_path / "nomask.gscan"
+    gt = _build_db(db_path, with_masks=False)
+    export(db_path, "foundationpose", tmp_path / "fp")
+    for i, T_obj_cam in enumerate(gt["Ts"]):
+        mask = cv2.imread(str(tmp_path / "fp" / "ob_0000001" / "mask" / f"{i:07d}.png"), -1) > 0
+        assert np.array_equal(mask, render_depth(gt["mesh"], K, T_obj_cam) > 0)
+    with TemplateDB.create(tmp_path / "bare.gscan") as db:  # neither masks nor mesh: nothing to export
+        db.add_view(View("v", K, np.eye(4), np.zeros((120, 160, 3), np.uint8), np.ones((120, 160), np.float32)))
+        db.mark_complete()
+    for fmt in ("foundationpose", "bop"):
+        with pytest.raises(InputError, match="neither"):
+            export(tmp_path / "bare.gscan", fmt, tmp_path / fmt)
+        assert not (tmp_path / fmt).exists()

@@ -17,7 +17,8 @@ Layout (BOP toolkit conventions, docs/bop_datasets_format.md; millimetres, row-m
 Masks and counts: with a mesh, `mask` is the mesh silhouette ray-cast from the view's pose and
 `mask_visib` the silhouette pixels whose measured depth is missing or within 15 mm of the rendered
 depth (the BOP toolkit's "bop19" visibility rule, delta 15 mm), intersected with the view's stored
-object mask when it has one. Without a mesh both are the stored mask (views without one are skipped).
+object mask when it has one; bbox_obj and px_count_all are clipped to the image (the toolkit renders
+a larger canvas for objects that leave the image). Without a mesh both are the stored mask (views without one are skipped).
 px_count_valid counts silhouette pixels with measured depth; visib_fract = px_count_visib / px_count_all.
 """
 from __future__ import annotations
@@ -29,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from gscan.errors import InputError
-from gscan.export.common import bbox_xywh, depth_to_mm_u16, imwrite, posed_views, render_depth
+from gscan.export.common import MeshRaycaster, bbox_xywh, depth_to_mm_u16, imwrite, posed_views
 from gscan.geometry import inv_T
 from gscan.template import MeshData, TemplateDB
 
@@ -117,12 +118,13 @@ def write_bop(db: TemplateDB, out: Path) -> int:
         (out / "models").mkdir()
         write_ply_mm(mesh, out / "models" / f"obj_{OBJ_ID:06d}.ply")
         _dump(out / "models" / "models_info.json", {str(OBJ_ID): models_info(mesh)})
+    caster = MeshRaycaster(mesh) if mesh is not None else None
     scene_camera, scene_gt, scene_gt_info, names = {}, {}, {}, {}
     for im_id, v in enumerate(views):
         T_cam_obj = inv_T(v.T_obj_cam)
         depth_mm = depth_to_mm_u16(v.depth)
         if mesh is not None:
-            ren_mm = render_depth(mesh, v.intrinsics, v.T_obj_cam).astype(np.float64) * 1000.0
+            ren_mm = caster.depth(v.intrinsics, v.T_obj_cam).astype(np.float64) * 1000.0
             mask_all = ren_mm > 0
             meas = depth_mm.astype(np.float64)
             visib = mask_all & ((meas == 0) | (np.abs(meas - ren_mm) <= VISIB_DELTA_MM))

@@ -56,19 +56,30 @@ def depth_to_mm_u16(depth: np.ndarray) -> np.ndarray:
     return mm.astype(np.uint16)
 
 
-def render_depth(mesh: MeshData, intr: Intrinsics, T_obj_cam: np.ndarray) -> np.ndarray:
-    """Ray-cast the mesh from a camera: [H x W] float32 depth (m, along the optical axis), 0 = no hit."""
-    import open3d as o3d
+class MeshRaycaster:
+    """Ray-casts one mesh from many cameras (the BVH is built once)."""
 
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(mesh.vertices, dtype=np.float32)),
-                        o3d.core.Tensor(np.ascontiguousarray(mesh.triangles, dtype=np.uint32)))
-    d_cam = pixel_rays(intr).reshape(-1, 3)  # z = 1, so the hit distance t is the depth
-    d_obj = d_cam @ T_obj_cam[:3, :3].T
-    o_obj = np.broadcast_to(T_obj_cam[:3, 3], d_obj.shape)
-    rays = np.concatenate([o_obj, d_obj], axis=1).astype(np.float32)
-    t = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().reshape(intr.height, intr.width)
-    return np.where(np.isfinite(t), t, 0.0).astype(np.float32)
+    def __init__(self, mesh: MeshData):
+        import open3d as o3d
+
+        self._o3d = o3d
+        self.scene = o3d.t.geometry.RaycastingScene()
+        self.scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(mesh.vertices, dtype=np.float32)),
+                                 o3d.core.Tensor(np.ascontiguousarray(mesh.triangles, dtype=np.uint32)))
+
+    def depth(self, intr: Intrinsics, T_obj_cam: np.ndarray) -> np.ndarray:
+        """[H x W] float32 depth (m, along the optical axis) of the mesh seen from T_obj_cam, 0 = no hit."""
+        d_cam = pixel_rays(intr).reshape(-1, 3)  # z = 1, so the hit distance t is the depth
+        d_obj = d_cam @ T_obj_cam[:3, :3].T
+        o_obj = np.broadcast_to(T_obj_cam[:3, 3], d_obj.shape)
+        rays = np.concatenate([o_obj, d_obj], axis=1).astype(np.float32)
+        t = self.scene.cast_rays(self._o3d.core.Tensor(rays))["t_hit"].numpy().reshape(intr.height, intr.width)
+        return np.where(np.isfinite(t), t, 0.0).astype(np.float32)
+
+
+def render_depth(mesh: MeshData, intr: Intrinsics, T_obj_cam: np.ndarray) -> np.ndarray:
+    """One-off ray-cast of the mesh: [H x W] float32 depth (m), 0 = no hit (see MeshRaycaster)."""
+    return MeshRaycaster(mesh).depth(intr, T_obj_cam)
 
 
 def bbox_xywh(mask: np.ndarray) -> list[int]:

@@ -16,6 +16,7 @@ OpenCV camera's pose in the object frame: gscan's `T_obj_cam`. The reconstructed
 `{base_dir}/model/model.obj`, which `datareader.py` (`get_reconstructed_mesh`) loads; gscan writes its
 own template mesh there (vertex colours, metres), so FoundationPose can run without retraining.
 
+`depth_enhanced/` holds the stored depth as captured (no hole filling).
 Written: `ob_0000001/{rgb,depth_enhanced,mask,cam_in_ob}/NNNNNNN.*`, `K.txt`, `select_frames.yml`
 (YAML list of the exported gscan view names, in file order), `model/model.obj` (when there is a mesh).
 Views: registered keyframes with colour, depth and a mask (or a mesh, whose ray-cast silhouette is
@@ -30,7 +31,7 @@ import numpy as np
 import yaml
 
 from gscan.errors import InputError
-from gscan.export.common import depth_to_mm_u16, imwrite, posed_views, render_depth
+from gscan.export.common import MeshRaycaster, depth_to_mm_u16, imwrite, posed_views
 from gscan.template import TemplateDB
 
 log = logging.getLogger(__name__)
@@ -58,12 +59,13 @@ def write_foundationpose(db: TemplateDB, out: Path) -> int:
             kept.append(v)
     if not kept:
         raise InputError(db.path, "FoundationPose export needs object masks or a mesh; the template has neither")
+    caster = MeshRaycaster(mesh) if mesh is not None and any(v.mask is None for v in kept) else None
     ob = out / OB_DIR
     for sub in ("rgb", "depth_enhanced", "mask", "cam_in_ob"):
         (ob / sub).mkdir(parents=True)
     for i, v in enumerate(kept):
         stem = f"{i:07d}"
-        mask = v.mask if v.mask is not None else render_depth(mesh, v.intrinsics, v.T_obj_cam) > 0
+        mask = v.mask if v.mask is not None else caster.depth(v.intrinsics, v.T_obj_cam) > 0
         imwrite(ob / "rgb" / f"{stem}.png", v.color, rgb=True)
         imwrite(ob / "depth_enhanced" / f"{stem}.png", depth_to_mm_u16(v.depth))
         imwrite(ob / "mask" / f"{stem}.png", np.where(mask, 255, 0).astype(np.uint8))
