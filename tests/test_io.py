@@ -385,6 +385,14 @@ def test_unicode_and_spaces(tmp_path: Path):
     assert read_mask(root / "masks" / "кадр 2.png").dtype == bool
 
 
+def test_jpeg_with_trailing_data_reads(tmp_path: Path):
+    """Phones append metadata after the JPEG end-of-image marker: that is not a truncated file."""
+    p = write_img(tmp_path / "trail.jpg", color_img(3))
+    ref = read_image_rgb(p)
+    p.write_bytes(p.read_bytes() + bytes(np.random.default_rng(1).integers(0, 256, 4000, dtype=np.uint8)))
+    np.testing.assert_array_equal(read_image_rgb(p), ref)
+
+
 # ---------------------------------------------------------------- bad inputs
 
 def _frame_files(tmp: Path, color=None, depth=None, mask=None, ext="png"):

@@ -10,6 +10,7 @@ from gscan.io.images import (
     DEPTH_RANGE_M,
     YcbvMeta,
     check_depth_range,
+    check_depth_scale,
     load_frame,
     read_depth,
     read_depth_raw,
@@ -23,7 +24,7 @@ from gscan.io.layouts import FORMATS, FrameSpec, associate, detect_format, natur
 from gscan.io.sequence import Sequence, open_sequence
 
 __all__ = [
-    "DEPTH_RANGE_M", "FORMATS", "FrameSpec", "Sequence", "YcbvMeta", "associate", "check_depth_range",
+    "DEPTH_RANGE_M", "FORMATS", "FrameSpec", "Sequence", "YcbvMeta", "associate", "check_depth_range", "check_depth_scale",
     "detect_format", "load_frame", "natural_key", "open_sequence", "read_depth", "read_depth_raw",
     "read_image_rgb", "read_mask", "read_nyu_depth", "read_open3d_log", "read_sun_depth", "read_ycbv_meta",
 ]

@@ -23,6 +23,8 @@ DEPTH_RANGE_M = (0.05, 20.0)
 
 _JPEG_SOI = b"\xff\xd8"
 _JPEG_EOI = b"\xff\xd9"
+_JPEG_SOS = b"\xff\xda"
+_CV2_MAJOR = int(cv2.__version__.split(".")[0])
 
 
 def read_bytes(path: str | Path) -> np.ndarray:
@@ -57,9 +59,12 @@ def decode_image(path: str | Path, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndar
         img = None
     if img is None or img.size == 0:
         raise InputError(path, "corrupt or truncated image (cannot be decoded)")
-    if bytes(data[:2]) == _JPEG_SOI and _JPEG_EOI not in bytes(data[-64:]):
-        # OpenCV 4.x decodes truncated JPEGs with a grey tail and only a warning.
-        raise InputError(path, "truncated JPEG (no end-of-image marker)")
+    if _CV2_MAJOR < 5 and bytes(data[:2]) == _JPEG_SOI:
+        # OpenCV 4.x decodes a truncated JPEG with a grey tail and only a warning (5.x returns None).
+        # Truncated: no end-of-image marker after the last start-of-scan (data after EOI is fine).
+        raw = data.tobytes()
+        if raw.find(_JPEG_EOI, max(raw.rfind(_JPEG_SOS), 0)) < 0:
+            raise InputError(path, "truncated JPEG (no end-of-image marker)")
     return img
 
 
@@ -92,7 +97,7 @@ def read_depth(path: str | Path, depth_scale: float = 0.001) -> np.ndarray:
     depth_scale: metres per raw unit (0.001 for millimetres, 1/5000 for TUM, 1e-4 for YCB-Video).
     Raises InputError when the image holds no valid depth at all.
     """
-    _check_scale(depth_scale, path)
+    check_depth_scale(depth_scale, path)
     raw = read_depth_raw(path)
     if not np.any(raw):
         raise InputError(path, "depth image is all zero (no valid depth)")
@@ -150,7 +155,7 @@ def read_nyu_depth(path: str | Path, max_depth: float = 7.0) -> np.ndarray:
     return depth
 
 
-def _check_scale(depth_scale: float, path: str | Path | None) -> None:
+def check_depth_scale(depth_scale: float, path: str | Path | None) -> None:
     if not (isinstance(depth_scale, (int, float, np.floating)) and np.isfinite(depth_scale) and depth_scale > 0):
         raise InputError(path, f"invalid depth scale {depth_scale!r}: must be a positive number (metres per raw unit)")
 

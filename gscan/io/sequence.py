@@ -15,7 +15,7 @@ import numpy as np
 
 from gscan.camera import Intrinsics, RGBDFrame, load_intrinsics
 from gscan.errors import InputError
-from gscan.io.images import _check_scale, check_depth_range, load_frame, read_depth
+from gscan.io.images import check_depth_scale, check_depth_range, load_frame, read_depth
 from gscan.io.layouts import FrameSpec, Layout, discover
 
 log = logging.getLogger(__name__)
@@ -158,7 +158,7 @@ def open_sequence(path: str | Path, format: str = "auto", intrinsics: Intrinsics
     root = Path(path)
     layout = discover(root, format, obj_id)
     if depth_scale is not None:
-        _check_scale(depth_scale, root)
+        check_depth_scale(depth_scale, root)
     problems = dict(layout.problems)
     specs: dict[str, FrameSpec] = {}
     sizes: dict[str, tuple[int, int]] = {}
