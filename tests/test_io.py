@@ -583,6 +583,45 @@ def test_bad_input_names_file(tmp_path: Path, case):
     assert "\n" not in msg
 
 
+def test_unreadable_permissions(tmp_path: Path):
+    """A file without read permission is refused by name (at open time it is a per-frame problem).
+
+    Root reads anything, so as root the check runs in a child process whose capability bounding set
+    lacks CAP_DAC_OVERRIDE / CAP_DAC_READ_SEARCH (util-linux setpriv).
+    """
+    import os
+    import shutil
+    import subprocess
+    import sys
+
+    root = make_capture(tmp_path / "perm", names=("a", "b"), masks=False, poses=False)
+    (root / "depth" / "b.png").chmod(0)
+    script = (
+        "import sys\n"
+        "from gscan.io import load_frame, open_sequence\n"
+        "from gscan.errors import InputError\n"
+        "r = sys.argv[1]\n"
+        "seq = open_sequence(r)\n"
+        "print('NAMES', seq.names)\n"
+        "print('PROBLEM', seq.problems['b'])\n"
+        "try:\n"
+        "    load_frame(r + '/rgb/b.png', r + '/depth/b.png', r + '/cam_K.txt')\n"
+        "except InputError as e:\n"
+        "    print('ERROR', e)\n"
+    )
+    cmd = [sys.executable, "-c", script, str(root)]
+    if os.geteuid() == 0:
+        if shutil.which("setpriv") is None:
+            pytest.fail("running as root without util-linux setpriv: cannot drop the right to read any file")
+        cmd = ["setpriv", "--bounding-set", "-dac_override,-dac_read_search"] + cmd
+    out = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    lines = dict(line.split(" ", 1) for line in out.stdout.splitlines() if " " in line)
+    assert lines["NAMES"] == "['a']"
+    assert "b.png" in lines["PROBLEM"] and "permission denied" in lines["PROBLEM"]
+    assert "b.png" in lines["ERROR"] and "permission denied" in lines["ERROR"]
+
+
 def test_depth_scale_message(tmp_path: Path):
     call, _ = bad_depth_scale_sequence(tmp_path)
     with pytest.raises(InputError, match=r"depth scale 1 puts the scene at 799 m.*0\.001 would put it at 0\.799 m.*--depth-scale"):
