@@ -295,10 +295,10 @@ class TemplateDB:
             schema = json.loads(row[0]) if row else None
             row = conn.execute("SELECT value FROM meta WHERE key='status'").fetchone()
             status = json.loads(row[0]) if row else None
-        except sqlite3.DatabaseError as e:
+        except (sqlite3.DatabaseError, ValueError) as e:
             if conn is not None:
                 conn.close()
-            raise InputError(path, f"corrupt or unreadable template database ({e})") from None
+            raise InputError(path, f"corrupt or unreadable template database ({e.__class__.__name__}: {e})") from None
         except InputError:
             conn.close()
             raise

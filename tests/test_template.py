@@ -174,16 +174,20 @@ def test_create_refuses_existing_without_force(db_path: Path) -> None:
         assert db.view_names() == []
 
 
-@pytest.mark.parametrize("case", ["missing", "random", "empty", "other_sqlite", "newer", "older"])
+@pytest.mark.parametrize("case", ["missing", "random", "empty", "truncated", "other_sqlite", "newer", "older"])
 def test_open_refusals(tmp_path: Path, case: str) -> None:
     path = tmp_path / f"{case} é.gscan"
     expect = {"missing": "not found", "random": "not an SQLite file", "empty": "not an SQLite file",
               "other_sqlite": "not a gscan template database", "newer": "written by a newer gscan",
-              "older": "old template schema"}[case]
+              "older": "old template schema", "truncated": "corrupt"}[case]
     if case == "random":
         path.write_bytes(np.random.default_rng(0).integers(0, 256, 4096, dtype=np.uint8).tobytes())
     elif case == "empty":
         path.write_bytes(b"")
+    elif case == "truncated":
+        with TemplateDB.create(path) as db:
+            db.mark_complete()
+        path.write_bytes(path.read_bytes()[:100])
     elif case == "other_sqlite":
         with sqlite3.connect(path) as c:
             c.execute("CREATE TABLE meta (key TEXT, value TEXT)")
