@@ -13,7 +13,6 @@ from pathlib import Path
 
 import numpy as np
 
-from gscan.camera import Intrinsics
 from gscan.errors import InputError
 
 log = logging.getLogger(__name__)
@@ -87,7 +86,7 @@ def _require_dir(path: Path, what: str) -> None:
         raise InputError(path, f"{what} folder not found")
 
 
-def _pair(root: Path, colors: dict[str, Path], depths: dict[str, Path], masks: dict[str, Path] | None,
+def _pair(colors: dict[str, Path], depths: dict[str, Path], masks: dict[str, Path] | None,
           depth_dir: Path) -> tuple[list[FrameSpec], dict[str, str]]:
     frames, problems = [], {}
     for name, c in colors.items():
@@ -129,7 +128,7 @@ def discover_capture(root: Path) -> Layout:
         raise InputError(root / "rgb", "no colour images (.png/.jpg) in folder")
     depths = list_images(root / "depth", DEPTH_EXTS)
     masks = list_images(root / "masks", MASK_EXTS) if (root / "masks").is_dir() else None
-    frames, problems = _pair(root, colors, depths, masks, root / "depth")
+    frames, problems = _pair(colors, depths, masks, root / "depth")
     gt = None
     if (root / "annotated_poses").is_dir():
         gt = {}
@@ -176,7 +175,7 @@ def discover_open3d(root: Path) -> Layout:
         # Redwood-style numbering that differs between the folders: pair in sorted order.
         log.info("%s: colour and depth stems differ; pairing them in sorted order", root)
         depths = dict(zip(colors, depths.values()))
-    frames, problems = _pair(root, colors, depths, None, root / "depth")
+    frames, problems = _pair(colors, depths, None, root / "depth")
     gt = None
     traj = root / "trajectory.log"
     if traj.is_file():
@@ -316,7 +315,7 @@ def discover_bop(root: Path, obj_id: int | None = None) -> Layout:
     gt_path = root / "scene_gt.json"
     scene_gt = _read_json(gt_path) if gt_path.is_file() else None
     mask_dir = next((root / m for m in ("mask_visib", "mask") if (root / m).is_dir()), None)
-    frames, problems = _pair(root, colors, depths, None, root / "depth")
+    frames, problems = _pair(colors, depths, None, root / "depth")
     kept, gt = [], ({} if scene_gt is not None else None)
     for f in frames:
         try:
