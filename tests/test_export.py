@@ -123,6 +123,8 @@ def test_bop_export(synth: tuple[Path, dict], tmp_path: Path) -> None:
     assert np.array_equal(ply.visual.vertex_colors[:, :3], gt["mesh"].vertex_colors)
     assert b"property float nx" in (out / "models" / "obj_000001.ply").read_bytes()[:600]
     assert json.loads((out / "gscan_views.json").read_text())["2"] == "frame 02 é"
+    targets = json.loads((out / "test_targets_bop19.json").read_text())
+    assert targets[1] == {"im_id": 1, "inst_count": 1, "obj_id": 1, "scene_id": 1} and len(targets) == 4
     _check_with_gscan_io(scene, gt["Ts"])
 
 

@@ -12,6 +12,7 @@ Layout (BOP toolkit conventions, docs/bop_datasets_format.md; millimetres, row-m
     test/000001/scene_gt.json         {im_id: [{cam_R_m2c, cam_t_m2c, obj_id: 1}]}, T_cam_obj = inv(T_obj_cam)
     test/000001/scene_gt_info.json    {im_id: [{bbox_obj, bbox_visib, px_count_all, px_count_valid,
                                                 px_count_visib, visib_fract}]}
+    test_targets_bop19.json           [{im_id, inst_count: 1, obj_id: 1, scene_id: 1}] (evaluation targets)
     gscan_views.json                  {im_id: template view name} (gscan's own addition)
 
 Masks and counts: with a mesh, `mask` is the mesh silhouette ray-cast from the view's pose and
@@ -152,6 +153,8 @@ def write_bop(db: TemplateDB, out: Path) -> int:
     _dump(scene / "scene_gt.json", scene_gt)
     _dump(scene / "scene_gt_info.json", scene_gt_info)
     _dump(out / "gscan_views.json", names)
+    targets = [{"im_id": int(k), "inst_count": 1, "obj_id": OBJ_ID, "scene_id": SCENE_ID} for k in scene_gt]
+    (out / "test_targets_bop19.json").write_text(json.dumps(targets, indent=1) + "\n", encoding="utf-8")
     return len(views)
 
 
