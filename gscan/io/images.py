@@ -73,7 +73,7 @@ def read_image_rgb(path: str | Path) -> np.ndarray:
     bgr = decode_image(path, cv2.IMREAD_COLOR)
     if bgr.ndim != 3 or bgr.shape[2] != 3 or bgr.dtype != np.uint8:
         raise InputError(path, f"unexpected colour image layout {bgr.shape} {bgr.dtype}")
-    return np.ascontiguousarray(bgr[:, :, ::-1])
+    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
 
 
 def read_depth_raw(path: str | Path) -> np.ndarray:
@@ -101,7 +101,9 @@ def read_depth(path: str | Path, depth_scale: float = 0.001) -> np.ndarray:
     raw = read_depth_raw(path)
     if not np.any(raw):
         raise InputError(path, "depth image is all zero (no valid depth)")
-    return (raw.astype(np.float32) * np.float32(depth_scale)).astype(np.float32)
+    depth = raw.astype(np.float32)
+    depth *= np.float32(depth_scale)
+    return depth
 
 
 def read_mask(path: str | Path) -> np.ndarray:
