@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
+from functools import lru_cache
 
 import numpy as np
 import open3d as o3d
@@ -22,6 +23,14 @@ log = logging.getLogger(__name__)
 
 DEFAULT_INTRINSICS = Intrinsics(fx=615.0, fy=615.0, cx=319.5, cy=239.5, width=640, height=480)
 _SURF_NONE, _SURF_TABLE, _SURF_WALL, _SURF_OBJ = 0, 1, 2, 3
+
+
+@lru_cache(maxsize=8)
+def _pixel_rays_cached(intr: Intrinsics) -> np.ndarray:
+    """[H*W x 3] read-only camera rays with z = 1."""
+    r = pixel_rays(intr).reshape(-1, 3).astype(np.float32)
+    r.setflags(write=False)
+    return r
 
 
 @dataclass
@@ -98,36 +107,46 @@ class SynthScene:
         return T
 
     def _cast_objects(self, origin_w: np.ndarray, dirs_w: np.ndarray, T_wo: np.ndarray) -> dict[str, np.ndarray]:
-        """First hits of rays (origin [3], dirs [N x 3] world) over all objects."""
+        """First hits of rays (origin [3], dirs [N x 3] float32 world) over all objects."""
         n = len(dirs_w)
-        best = {"t": np.full(n, np.inf), "label": np.full(n, -1, np.int16), "prim": np.zeros(n, np.int64),
-                "bary": np.zeros((n, 2), np.float32), "normal": np.zeros((n, 3))}
+        best = {"t": np.full(n, np.inf, np.float32), "label": np.full(n, -1, np.int16),
+                "prim": np.zeros(n, np.int64), "bary": np.zeros((n, 2), np.float32),
+                "normal": np.zeros((n, 3), np.float32)}
+        rays = np.empty((n, 6), np.float32)
         for k, sc in enumerate(self._scenes):
             T_ow = inv_T(T_wo[k])
-            o = T_ow[:3, :3] @ origin_w + T_ow[:3, 3]
-            d = dirs_w @ T_ow[:3, :3].T
-            rays = np.concatenate([np.broadcast_to(o, d.shape), d], axis=1).astype(np.float32)
-            res = sc.cast_rays(o3d.core.Tensor(rays))
-            t = res["t_hit"].numpy().astype(np.float64)
-            closer = np.isfinite(t) & (t < best["t"])
-            if not closer.any():
+            rays[:, :3] = T_ow[:3, :3] @ origin_w + T_ow[:3, 3]
+            np.matmul(dirs_w, T_ow[:3, :3].T.astype(np.float32), out=rays[:, 3:])
+            res = sc.cast_rays(o3d.core.Tensor.from_numpy(rays))
+            t = res["t_hit"].numpy()
+            closer = np.flatnonzero(t < best["t"])  # inf (miss) never compares smaller
+            if len(closer) == 0:
                 continue
             best["t"][closer] = t[closer]
             best["label"][closer] = k
             best["prim"][closer] = res["primitive_ids"].numpy()[closer]
             best["bary"][closer] = res["primitive_uvs"].numpy()[closer]
-            best["normal"][closer] = res["primitive_normals"].numpy()[closer] @ T_wo[k][:3, :3].T
+            best["normal"][closer] = res["primitive_normals"].numpy()[closer] @ T_wo[k][:3, :3].T.astype(np.float32)
         return best
 
     def _occluded(self, pts_w: np.ndarray, T_wo: np.ndarray) -> np.ndarray:
-        """[N] bool: the segment from each world point towards the light hits an object."""
+        """[N] bool: the ray from each world point [N x 3] towards the light hits an object."""
         occ = np.zeros(len(pts_w), bool)
+        L = self.light_dir
         for k, sc in enumerate(self._scenes):
+            # only rays passing the object's bounding sphere can be blocked by it
+            c = T_wo[k][:3, :3] @ self.meshes[k].center + T_wo[k][:3, 3]
+            r = self.meshes[k].radius * 1.01 + 1e-3
+            rel = c - pts_w
+            along = rel @ L
+            cand = np.flatnonzero((along > -r) & (np.einsum("ij,ij->i", rel, rel) - along ** 2 < r * r))
+            if len(cand) == 0:
+                continue
             T_ow = inv_T(T_wo[k])
-            o = pts_w @ T_ow[:3, :3].T + T_ow[:3, 3]
-            d = np.broadcast_to(T_ow[:3, :3] @ self.light_dir, o.shape)
+            o = pts_w[cand] @ T_ow[:3, :3].T + T_ow[:3, 3]
+            d = np.broadcast_to(T_ow[:3, :3] @ L, o.shape)
             rays = o3d.core.Tensor(np.concatenate([o, d], axis=1).astype(np.float32))
-            occ |= sc.test_occlusions(rays, tnear=1e-4, tfar=10.0).numpy().astype(bool)
+            occ[cand] |= sc.test_occlusions(rays, tnear=1e-4, tfar=10.0).numpy().astype(bool)
         return occ
 
     # ------------------------------------------------------------------ rendering
@@ -144,41 +163,46 @@ class SynthScene:
         T_world_cam = np.asarray(T_world_cam, dtype=np.float64)
         T_wo = self._poses(T_world_obj_override)
         H, W = intr.height, intr.width
-        rays_c = pixel_rays(intr).reshape(-1, 3)  # z = 1: hit distance equals camera z
+        rays_c = _pixel_rays_cached(intr)  # z = 1: hit distance equals camera z
         R_wc, origin = T_world_cam[:3, :3], T_world_cam[:3, 3]
-        dirs = rays_c @ R_wc.T
+        dirs = rays_c @ R_wc.T.astype(np.float32)  # [N x 3] float32 world directions
         hit = self._cast_objects(origin, dirs, T_wo)
-        t, label = hit["t"], hit["label"]
-        surf = np.where(np.isfinite(t), _SURF_OBJ, _SURF_NONE).astype(np.int8)
-        normal = hit["normal"]
-        plane_uv = np.zeros((len(t), 2))
-        if self.table and abs(origin[2]) > 1e-9:
-            with np.errstate(divide="ignore", invalid="ignore"):
-                tt = -origin[2] / dirs[:, 2]
-            p = origin[:2] + tt[:, None] * dirs[:, :2]
+        t, label, normal = hit["t"], hit["label"], hit["normal"]
+        surf = np.where(label >= 0, _SURF_OBJ, _SURF_NONE).astype(np.int8)
+        plane_uv = np.zeros((len(t), 2), np.float32)
+        if self.table and origin[2] > 1e-9:
+            down = np.flatnonzero(dirs[:, 2] < 0)
+            tt = (-origin[2] / dirs[down, 2]).astype(np.float32)
+            p = origin[:2] + tt[:, None] * dirs[down, :2]
             e = self.table_half_extent
-            ok = (tt > 0) & (tt < t) & (np.abs(p) <= e).all(1) & (origin[2] > 0)
-            t[ok], label[ok], surf[ok] = tt[ok], -1, _SURF_TABLE
-            normal[ok] = (0.0, 0.0, 1.0)
-            plane_uv[ok] = (p[ok] + e) / (2 * e)
+            ok = (tt < t[down]) & (np.abs(p) <= e).all(1)
+            idx = down[ok]
+            t[idx], label[idx], surf[idx] = tt[ok], -1, _SURF_TABLE
+            normal[idx] = (0.0, 0.0, 1.0)
+            plane_uv[idx] = (p[ok] + e) / (2 * e)
         if self.wall_y is not None:
-            with np.errstate(divide="ignore", invalid="ignore"):
-                tw = (self.wall_y - origin[1]) / dirs[:, 1]
-            p = origin + tw[:, None] * dirs
-            ok = (tw > 0) & (tw < t) & (p[:, 2] >= 0) & (p[:, 2] <= 2.0) & (np.abs(p[:, 0]) <= 1.0)
-            t[ok], label[ok], surf[ok] = tw[ok], -1, _SURF_WALL
-            normal[ok] = (0.0, -1.0, 0.0)
-            plane_uv[ok] = np.stack([(p[ok, 0] + 1.0) / 2.0, p[ok, 2] / 2.0], 1)
+            fwd = np.flatnonzero(dirs[:, 1] * (self.wall_y - origin[1]) > 0)
+            tw = ((self.wall_y - origin[1]) / dirs[fwd, 1]).astype(np.float32)
+            p = origin + tw[:, None] * dirs[fwd]
+            ok = (tw < t[fwd]) & (p[:, 2] >= 0) & (p[:, 2] <= 2.0) & (np.abs(p[:, 0]) <= 1.0)
+            idx = fwd[ok]
+            t[idx], label[idx], surf[idx] = tw[ok], -1, _SURF_WALL
+            normal[idx] = (0.0, -1.0, 0.0)
+            plane_uv[idx] = np.stack([(p[ok, 0] + 1.0) / 2.0, p[ok, 2] / 2.0], 1)
 
-        normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
-        dir_len = np.linalg.norm(dirs, axis=1)
-        cos_view = np.einsum("ij,ij->i", normal, dirs) / dir_len
-        normal[cos_view > 0] *= -1  # face the camera (meshes are not closed / consistently wound)
-        cos_view = np.abs(cos_view)
+        hit_idx = np.flatnonzero(surf != _SURF_NONE)
+        d_hit = dirs[hit_idx]
+        n_hit = normal[hit_idx]
+        c = np.einsum("ij,ij->i", n_hit, d_hit) / np.linalg.norm(d_hit, axis=1)
+        n_hit[c > 0] *= -1  # face the camera (meshes are not closed / consistently wound)
+        cos_view = np.zeros(len(t), np.float32)
+        cos_view[hit_idx] = np.abs(c)
         # pixel footprint on the surface (m): z / f per pixel, stretched by the viewing obliquity
-        footprint = np.where(np.isfinite(t), t / intr.fx / np.sqrt(np.maximum(cos_view, 0.05)), 0.0)
+        footprint = np.zeros(len(t), np.float32)
+        footprint[hit_idx] = t[hit_idx] / intr.fx / np.sqrt(np.maximum(cos_view[hit_idx], 0.05))
 
-        rgb = np.broadcast_to(self.background_rgb, (len(t), 3)).astype(np.float32)
+        rgb = np.empty((len(t), 3), np.float32)
+        rgb[:] = self.background_rgb
         for k in range(len(self.meshes)):
             sel = np.flatnonzero(label == k)
             if len(sel) == 0:
@@ -196,21 +220,20 @@ class SynthScene:
                 rgb[sel] = sample_mip(pyr, plane_uv[sel], np.log2(np.maximum(footprint[sel] * dens, 1e-6)))
 
         if shading:
-            lit = np.flatnonzero(surf != _SURF_NONE)
-            lam = np.clip(normal[lit] @ self.light_dir, 0.0, None)
+            lam = np.clip(n_hit @ self.light_dir.astype(np.float32), 0.0, None)
             if self.shadows:
-                cand = lit[lam > 0]
-                pts = origin + t[cand, None] * dirs[cand] + 5e-4 * normal[cand]
-                occ = self._occluded(pts, T_wo)
-                lam[np.searchsorted(lit, cand[occ])] = 0.0
-            rgb[lit] *= (self.ambient + self.diffuse * lam)[:, None].astype(np.float32)
+                cand = np.flatnonzero(lam > 0)
+                pts = origin + t[hit_idx[cand], None].astype(np.float64) * d_hit[cand] + 5e-4 * n_hit[cand]
+                lam[cand[self._occluded(pts, T_wo)]] = 0.0
+            rgb[hit_idx] *= (self.ambient + self.diffuse * lam)[:, None]
 
         depth_clean = np.where(np.isfinite(t), t, 0.0).reshape(H, W).astype(np.float32)
+        depth_clean[depth_clean < 0] = 0.0
         labels = label.reshape(H, W)
         if noise:
             rng = rng if rng is not None else np.random.default_rng([self.seed, 0xD3])
             depth = apply_depth_noise(depth_clean, labels, cos_view.reshape(H, W), rng, noise_params)
-            rgb += rng.normal(0.0, noise_params.color_sigma, rgb.shape).astype(np.float32)
+            rgb += np.float32(noise_params.color_sigma) * rng.standard_normal(rgb.shape, dtype=np.float32)
         else:
             depth = depth_clean.copy()
         color = np.clip(np.rint(rgb), 0, 255).astype(np.uint8).reshape(H, W, 3)

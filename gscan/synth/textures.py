@@ -39,7 +39,11 @@ def random_word(rng: np.random.Generator, n_min: int = 3, n_max: int = 9) -> str
                    else _VOWELS[rng.integers(len(_VOWELS))] for i in range(n))
 
 
-def _color(rng: np.random.Generator, dark: bool | None = None) -> tuple[int, int, int]:
+def _color(rng: np.random.Generator, dark: bool | None = None,
+           palette: np.ndarray | None = None) -> tuple[int, int, int]:
+    if palette is not None and dark is None:  # brand colour with slight jitter
+        c = palette[rng.integers(len(palette))] + rng.integers(-12, 13, 3)
+        return tuple(int(x) for x in np.clip(c, 0, 255))
     if dark is None:
         return tuple(int(c) for c in rng.integers(0, 256, 3))
     lo, hi = (0, 110) if dark else (150, 256)
@@ -63,9 +67,10 @@ def _star(center: np.ndarray, r_out: float, r_in: float, n: int, phase: float) -
     return np.round(center + np.stack([np.cos(ang) * r, np.sin(ang) * r], 1)).astype(np.int32)
 
 
-def _logo(img: np.ndarray, rng: np.random.Generator, c: np.ndarray, r: float) -> None:
+def _logo(img: np.ndarray, rng: np.random.Generator, c: np.ndarray, r: float,
+          palette: np.ndarray | None = None) -> None:
     kind = rng.integers(4)
-    col, col2 = _color(rng), _color(rng)
+    col, col2 = _color(rng, palette=palette), _color(rng, palette=palette)
     if kind == 0:  # concentric rings, partly filled
         for k in range(int(rng.integers(2, 5))):
             rr = int(r * (1 - 0.22 * k))
@@ -99,14 +104,14 @@ def _barcode(img: np.ndarray, rng: np.random.Generator, x: int, y: int, w: int, 
     cv2.putText(img, digits, (x, y + h + 13), cv2.FONT_HERSHEY_PLAIN, max(0.6, w / 130), (0, 0, 0), 1, cv2.LINE_AA)
 
 
-def _stripes(img: np.ndarray, rng: np.random.Generator) -> None:
+def _stripes(img: np.ndarray, rng: np.random.Generator, palette: np.ndarray | None = None) -> None:
     h, w = img.shape[:2]
     y = int(rng.integers(0, h))
     band = int(rng.integers(h // 30 + 2, h // 8 + 3))
     pos = 0
     while pos < w:  # irregular stripe widths and colours: no period
         sw = int(rng.integers(4, 40))
-        cv2.rectangle(img, (pos, y), (pos + sw, y + band), _color(rng), -1)
+        cv2.rectangle(img, (pos, y), (pos + sw, y + band), _color(rng, palette=palette), -1)
         pos += sw
     if rng.random() < 0.5:
         img[y:y + band] = np.ascontiguousarray(img[y:y + band, ::-1])
@@ -117,36 +122,41 @@ def procedural_box_texture(seed: int = 0, size: tuple[int, int] = (1024, 1536)) 
     fonts, sizes and colours, logos, irregular stripe bands, barcodes and dot patches; not repetitive."""
     rng = np.random.default_rng([seed, 0xB0C5])
     h, w = size
+    palette = np.concatenate([rng.integers(0, 256, (4, 3)), [[250, 250, 245], [20, 20, 25]]]).astype(np.int64)
     yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
-    c0, c1 = np.array(_color(rng, dark=False), np.float32), np.array(_color(rng), np.float32)
+    c0 = np.array(_color(rng, dark=False), np.float32)
+    c1 = np.array(_color(rng, palette=palette), np.float32)
     ang = rng.uniform(0, 2 * np.pi)
     t = ((xx * np.cos(ang) + yy * np.sin(ang)) / max(h, w)) % 1.0
     img = c0 * (1 - t[..., None]) + c1 * t[..., None]
     img += 25 * smooth_noise(rng, (h, w), max(h, w) / 6)[..., None]
     img = np.clip(img, 0, 255).astype(np.uint8)
     area = h * w / (512 * 512)
-    for _ in range(int(3 * area)):
-        _stripes(img, rng)
-    for _ in range(int(6 * area)):  # colour panels
+    for _ in range(int(2.5 * area)):  # colour panels, some with rounded corners
         x0, y0 = int(rng.integers(0, w)), int(rng.integers(0, h))
-        cv2.rectangle(img, (x0, y0), (x0 + int(rng.integers(40, w // 3)), y0 + int(rng.integers(30, h // 4))),
-                      _color(rng), -1)
-    for _ in range(int(5 * area)):
-        _logo(img, rng, rng.uniform([0, 0], [w, h]), rng.uniform(18, 70))
-    for _ in range(int(4 * area)):  # dot patches with jittered grid (not periodic)
-        x0, y0, n = int(rng.integers(0, w)), int(rng.integers(0, h)), int(rng.integers(20, 60))
+        x1, y1 = x0 + int(rng.integers(60, w // 3)), y0 + int(rng.integers(40, h // 4))
+        col = _color(rng, palette=palette)
+        cv2.rectangle(img, (x0, y0), (x1, y1), col, -1)
+        if rng.random() < 0.5:
+            cv2.rectangle(img, (x0 + 6, y0 + 6), (x1 - 6, y1 - 6), _color(rng, palette=palette), 2, cv2.LINE_AA)
+    for _ in range(max(1, int(0.7 * area))):
+        _stripes(img, rng, palette)
+    for _ in range(int(4 * area)):
+        _logo(img, rng, rng.uniform([0, 0], [w, h]), rng.uniform(18, 70), palette)
+    for _ in range(int(2.5 * area)):  # dot patches with jittered positions (not periodic)
+        x0, y0, n = int(rng.integers(0, w)), int(rng.integers(0, h)), int(rng.integers(15, 45))
         pts = np.array([x0, y0]) + rng.uniform(0, 90, (n, 2))
-        col = _color(rng)
+        col = _color(rng, palette=palette)
         for p, r in zip(pts.astype(int), rng.integers(2, 7, n)):
             cv2.circle(img, (int(p[0]), int(p[1])), int(r), col, -1, cv2.LINE_AA)
     for _ in range(int(3 * area)):  # titles
         _put_text(img, rng, random_word(rng, 4, 9), (int(rng.integers(-20, w - 100)), int(rng.integers(40, h))),
-                  rng.uniform(28, 64), _color(rng))
-    for _ in range(int(26 * area)):  # small print
+                  rng.uniform(28, 64), _color(rng, palette=palette))
+    for _ in range(int(30 * area)):  # small print
         words = " ".join(random_word(rng, 2, 7) for _ in range(int(rng.integers(1, 5))))
         _put_text(img, rng, words, (int(rng.integers(-20, w - 60)), int(rng.integers(10, h))),
                   rng.uniform(7, 18), _color(rng, dark=bool(rng.random() < 0.7)), FONTS[rng.integers(6)])
-    for _ in range(max(1, int(1.2 * area))):
+    for _ in range(max(1, int(1.0 * area))):
         bw, bh = int(rng.integers(90, 170)), int(rng.integers(40, 70))
         _barcode(img, rng, int(rng.integers(5, w - bw - 10)), int(rng.integers(5, h - bh - 25)), bw, bh)
     return img

@@ -1,0 +1,289 @@
+"""Tests of the synthetic RGB-D renderer gscan.synth against independent geometry."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import open3d as o3d
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from gscan.camera import Intrinsics, backproject, load_intrinsics, project
+from gscan.geometry import inv_T, make_T, rotvec_to_R, transform_points
+from gscan.synth import (DEFAULT_INTRINSICS, DepthNoise, SynthScene, TexturedMesh, apply_depth_noise, box_mesh,
+                         default_distance, depth_sigma, load_textured_mesh, orbit_poses, place_distractors,
+                         procedural_box_texture, render_capture, rest_on_table, save_textured_mesh,
+                         table_texture, turntable_poses, write_capture)
+
+SMALL = Intrinsics(fx=307.5, fy=307.5, cx=159.5, cy=119.5, width=320, height=240)
+MESH_NAME = "Apples_to_Apples_Kids_Edition"
+
+
+@pytest.fixture(scope="module")
+def shared_mesh(meshes_dir: Path) -> TexturedMesh:
+    return load_textured_mesh(meshes_dir / MESH_NAME / "model_0.obj")
+
+
+@pytest.fixture(scope="module")
+def box() -> TexturedMesh:
+    return box_mesh((0.16, 0.10, 0.07), procedural_box_texture(0))
+
+
+def silhouette(mesh: TexturedMesh, T_cam_obj: np.ndarray, intr: Intrinsics, ss: int = 4) -> np.ndarray:
+    """Reference [H x W] bool silhouette: triangles projected by the pose, filled at ss x ss supersampling,
+    a pixel counts when more than half of it is covered."""
+    px = project(transform_points(T_cam_obj, mesh.vertices), intr)
+    px_ss = (px + 0.5) * ss - 0.5
+    img = np.zeros((intr.height * ss, intr.width * ss), np.uint8)
+    for tri in np.round(px_ss[mesh.triangles] * 16).astype(np.int32):
+        cv2.fillConvexPoly(img, tri, 1, lineType=cv2.LINE_8, shift=4)
+    cover = cv2.resize(img.astype(np.float32), (intr.width, intr.height), interpolation=cv2.INTER_AREA)
+    return cover > 0.5
+
+
+def test_load_shared_mesh_has_corner_uvs_and_texture(shared_mesh: TexturedMesh) -> None:
+    m = shared_mesh
+    assert m.uv.shape == (len(m.triangles), 3, 2)
+    assert m.texture.shape == (256, 256, 3) and m.texture.dtype == np.uint8
+    assert np.all((m.uv >= -1e-6) & (m.uv <= 1 + 1e-6))
+    assert 0.05 < m.radius < 0.5  # metres
+
+
+def test_load_missing_mesh_names_the_file(tmp_path: Path) -> None:
+    from gscan.errors import InputError
+    with pytest.raises(InputError, match="nothere.obj"):
+        load_textured_mesh(tmp_path / "nothere.obj")
+
+
+def first_hits(origin: np.ndarray, dirs: np.ndarray, tri: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Independent Moller-Trumbore ray casting: origin [3], dirs [R x 3], triangles [F x 3 x 3] ->
+    (hit triangle [R], barycentric (w0, w1, w2) [R x 3]); triangle -1 where nothing is hit."""
+    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    p = np.cross(dirs[:, None], e2[None])  # [R x F x 3]
+    det = np.einsum("rfk,fk->rf", p, e1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / det
+        s = origin[None, None] - tri[None, :, 0]
+        u = np.einsum("rfk,rfk->rf", s, p) * inv
+        q = np.cross(s, e1[None])
+        v = np.einsum("rk,rfk->rf", dirs, q) * inv
+        t = np.einsum("fk,rfk->rf", e2, q) * inv
+    ok = (np.abs(det) > 1e-15) & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 1e-9)
+    t = np.where(ok, t, np.inf)
+    f = np.argmin(t, axis=1)
+    r = np.arange(len(dirs))
+    hit = np.where(np.isfinite(t[r, f]), f, -1)
+    return hit, np.stack([1 - u[r, f] - v[r, f], u[r, f], v[r, f]], 1)
+
+
+def test_colour_equals_texture_at_interpolated_uv(shared_mesh: TexturedMesh) -> None:
+    """Unshaded colour at hit pixels = bilinear texture at the barycentric UV (OBJ v flipped), with the hit
+    found by an independent ray-triangle intersection."""
+    m = shared_mesh
+    T_wo = rest_on_table(m)
+    scene = SynthScene([(m, T_wo)], table=True, shadows=False)
+    c = transform_points(T_wo, m.center[None])[0]
+    T_wc = orbit_poses(c, 0.45, [35.0], 3)[1]  # close: texels about pixel size, no mip blur
+    f = scene.render(T_wc, SMALL, noise=False, shading=False)
+    rng = np.random.default_rng(1)
+    ys, xs = np.nonzero(cv2.erode(f.mask.astype(np.uint8), np.ones((5, 5), np.uint8)))
+    pick = rng.choice(len(xs), 60, replace=False)
+    px = np.stack([xs[pick], ys[pick]], 1).astype(float)
+    T_oc = inv_T(f.T_cam_obj)
+    dirs_c = np.c_[(px[:, 0] - SMALL.cx) / SMALL.fx, (px[:, 1] - SMALL.cy) / SMALL.fy, np.ones(len(pick))]
+    hit, bary = first_hits(T_oc[:3, 3], dirs_c @ T_oc[:3, :3].T, m.vertices[m.triangles])
+    assert (hit >= 0).all()
+    tex = m.texture.astype(np.float32)
+    h, w = tex.shape[:2]
+    errs = []
+    for i in range(len(pick)):
+        u, v = bary[i] @ m.uv[hit[i]]
+        ref = cv2.getRectSubPix(tex, (1, 1), (float(u * w - 0.5), float((1 - v) * h - 0.5)))[0, 0]
+        errs.append(np.abs(ref - f.color[int(px[i, 1]), int(px[i, 0])]).max())
+    errs = np.asarray(errs)
+    assert np.median(errs) <= 3.0, errs
+    assert np.mean(errs <= 8.0) >= 0.9, errs
+    # a v-unflipped lookup would disagree: the test can tell the conventions apart
+    flipped = [np.abs(cv2.getRectSubPix(tex, (1, 1), (float((bary[i] @ m.uv[hit[i]])[0] * w - 0.5),
+                                                       float((bary[i] @ m.uv[hit[i]])[1] * h - 0.5)))[0, 0]
+                      - f.color[int(px[i, 1]), int(px[i, 0])]).max() for i in range(len(pick))]
+    assert np.median(flipped) > 3 * max(np.median(errs), 1.0)
+
+
+def test_mask_matches_projected_silhouette_and_depth_lies_on_surface(shared_mesh: TexturedMesh) -> None:
+    m = shared_mesh
+    frames = render_capture(m, None, 2, intr=DEFAULT_INTRINSICS, seed=3, noise=False)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(m.vertices.astype(np.float32)), o3d.core.Tensor(m.triangles.astype(np.uint32)))
+    for f in frames:
+        ref = silhouette(m, f.T_cam_obj, DEFAULT_INTRINSICS)
+        iou = (ref & f.mask).sum() / (ref | f.mask).sum()
+        assert iou >= 0.98, iou
+        assert f.mask.sum() > 5000
+        pts_c = backproject(f.depth_clean, DEFAULT_INTRINSICS)[f.mask]
+        pts_o = transform_points(inv_T(f.T_cam_obj), pts_c).astype(np.float32)
+        dist = scene.compute_distance(o3d.core.Tensor(pts_o)).numpy()
+        assert np.percentile(dist, 99.5) < 1e-3 and np.median(dist) < 1e-4, (np.median(dist), dist.max())
+        table = (f.labels == -1) & (f.depth_clean > 0)
+        z_world = transform_points(f.T_world_cam, backproject(f.depth_clean, DEFAULT_INTRINSICS)[table])[:, 2]
+        assert np.abs(z_world).max() < 1e-4  # table pixels lie on z = 0
+        assert np.array_equal(f.depth, f.depth_clean)  # noise=False is exact
+
+
+def test_object_rests_on_table(shared_mesh: TexturedMesh) -> None:
+    R = rotvec_to_R(np.array([0.4, -0.2, 1.0]))
+    T = rest_on_table(shared_mesh, R, (0.1, -0.05))
+    v = transform_points(T, shared_mesh.vertices)
+    assert abs(v[:, 2].min()) < 1e-12
+    np.testing.assert_allclose(0.5 * (v.min(0) + v.max(0))[:2], [0.1, -0.05], atol=1e-12)
+
+
+def test_sift_keypoints_on_objects(shared_mesh: TexturedMesh, box: TexturedMesh) -> None:
+    sift = cv2.SIFT_create()
+
+    def n_kp(f) -> int:
+        return len(sift.detect(cv2.cvtColor(f.color, cv2.COLOR_RGB2GRAY), f.mask.astype(np.uint8) * 255))
+    # measured (seed 0, default distance, 640x480): shared mesh 204-337, procedural box 266-399
+    shared = [n_kp(f) for f in render_capture(shared_mesh, None, 2, seed=0)]
+    boxes = [n_kp(f) for f in render_capture(box, None, 2, seed=0)]
+    assert min(shared) >= 150, shared
+    assert min(boxes) >= 200, boxes
+    f = render_capture(box, None, 1, seed=0)[0]
+    table_kp = len(sift.detect(cv2.cvtColor(f.color, cv2.COLOR_RGB2GRAY), (~f.mask).astype(np.uint8) * 255))
+    assert table_kp >= 1000, table_kp  # the table carries texture for whole-frame registration
+
+
+def test_turntable_background_static_object_moves(box: TexturedMesh) -> None:
+    f0, f1 = render_capture(box, None, 4, mode="turntable", intr=SMALL, noise=False, shadows=False)[:2]
+    bg = (f0.labels == -1) & (f1.labels == -1)
+    assert bg.sum() > 0.5 * bg.size
+    assert np.array_equal(f0.color[bg], f1.color[bg]) and np.array_equal(f0.depth[bg], f1.depth[bg])
+    np.testing.assert_allclose(f0.T_world_cam, f1.T_world_cam)
+    obj = f0.mask & f1.mask
+    assert np.abs(f0.color[obj].astype(int) - f1.color[obj]).mean() > 10
+    ang = np.degrees(np.arccos(np.clip((np.trace(f0.T_cam_obj[:3, :3].T @ f1.T_cam_obj[:3, :3]) - 1) / 2, -1, 1)))
+    assert abs(ang - 90.0) < 1e-6
+    # the spin axis is vertical through the object centre: the centre stays put
+    c0 = transform_points(f0.T_world_objs[0], box.center[None])
+    c1 = transform_points(f1.T_world_objs[0], box.center[None])
+    np.testing.assert_allclose(c0, c1, atol=1e-12)
+
+
+def test_static_path_pose_consistency(box: TexturedMesh) -> None:
+    frames = render_capture(box, None, 3, intr=SMALL, noise=True, distractors=1)
+    for f in frames:
+        np.testing.assert_allclose(f.T_cam_obj, inv_T(f.T_world_cam) @ f.T_world_objs[0], atol=1e-12)
+        np.testing.assert_allclose(f.T_world_objs[0], frames[0].T_world_objs[0])
+        assert set(np.unique(f.labels)) <= {-1, 0, 1}
+        assert np.array_equal(f.mask, f.labels == 0)
+    assert frames[0].T_world_objs.shape == (2, 4, 4)
+    assert (frames[0].labels == 1).any()  # the distractor is in view
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.floats(0.2, 2.0), st.lists(st.floats(-80, 85), min_size=1, max_size=3), st.integers(1, 6),
+       st.tuples(st.floats(-1, 1), st.floats(-1, 1), st.floats(0, 1)))
+def test_orbit_poses_look_at_centre(radius, elevations, n, center) -> None:
+    c = np.asarray(center)
+    poses = orbit_poses(c, radius, elevations, n)
+    assert len(poses) == n * len(elevations)
+    for i, T in enumerate(poses):
+        R = T[:3, :3]
+        np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-9)
+        assert np.linalg.det(R) > 0
+        np.testing.assert_allclose(np.linalg.norm(T[:3, 3] - c), radius, rtol=1e-9)
+        p_cam = transform_points(inv_T(T), c[None])[0]
+        np.testing.assert_allclose(p_cam[:2], 0.0, atol=1e-9)  # centre on the optical axis
+        el = elevations[i // n]
+        np.testing.assert_allclose(T[2, 3] - c[2], radius * np.sin(np.radians(el)), atol=1e-9)
+        if abs(el) < 80:
+            assert R[2, 1] < 0  # image y (down) points against world z (up): upright images
+
+
+def test_depth_noise_statistics_and_holes() -> None:
+    H, W = 240, 320
+    z = np.full((H, W), 1.2, np.float32)
+    z[:, 200:] = 0.7  # a step edge
+    labels = np.full((H, W), -1, np.int16)
+    p = DepthNoise(clusters_mean=0.0, edge_drop_prob=0.0)
+    d = apply_depth_noise(z, labels, None, np.random.default_rng(0), p)
+    region = d[5:-5, 5:190]
+    ok = region > 0
+    assert ok.mean() > 0.99
+    std = region[ok].std()
+    assert abs(std - depth_sigma(1.2)) < 0.25 * depth_sigma(1.2), (std, depth_sigma(1.2))
+    assert np.allclose(np.round(d * 1000), d * 1000, atol=1e-3)  # 1 mm quantisation
+    assert (d[:, 199] == 0).all() and (d[:, 200] == 0).all()  # both sides of the discontinuity dropped
+    d2 = apply_depth_noise(z, labels, None, np.random.default_rng(0), DepthNoise(clusters_mean=20.0))
+    assert (d2 == 0).mean() > (d == 0).mean()  # dropout clusters add holes
+    far = apply_depth_noise(np.full((8, 8), 3.5, np.float32), None, None, np.random.default_rng(0))
+    assert (far == 0).all()  # beyond max range
+    again = apply_depth_noise(z, labels, None, np.random.default_rng(0), p)
+    assert np.array_equal(d, again)  # seeded
+
+
+def test_write_capture_layout_and_roundtrip(tmp_path: Path, box: TexturedMesh) -> None:
+    frames = render_capture(box, tmp_path / "cap", 2, intr=SMALL, seed=1, jpeg=True)
+    out = tmp_path / "cap"
+    assert sorted(p.name for p in out.iterdir()) == ["annotated_poses", "cam_K.txt", "depth", "masks", "rgb"]
+    for sub, ext in (("rgb", ".jpg"), ("depth", ".png"), ("masks", ".png"), ("annotated_poses", ".txt")):
+        assert sorted(p.name for p in (out / sub).iterdir()) == [f"00000{i}{ext}" for i in range(2)]
+    intr = load_intrinsics(out / "cam_K.txt", SMALL.width, SMALL.height)
+    np.testing.assert_allclose(intr.K, SMALL.K)
+    for i, f in enumerate(frames):
+        d = cv2.imread(str(out / "depth" / f"00000{i}.png"), cv2.IMREAD_UNCHANGED)
+        assert d.dtype == np.uint16 and d.shape == (SMALL.height, SMALL.width)
+        assert np.abs(d / 1000.0 - f.depth).max() <= 0.0005 + 1e-6
+        m = cv2.imread(str(out / "masks" / f"00000{i}.png"), cv2.IMREAD_UNCHANGED)
+        assert set(np.unique(m)) <= {0, 255} and np.array_equal(m == 255, f.mask)
+        np.testing.assert_allclose(np.loadtxt(out / "annotated_poses" / f"00000{i}.txt"), f.T_cam_obj, atol=1e-9)
+        rgb = cv2.cvtColor(cv2.imread(str(out / "rgb" / f"00000{i}.jpg")), cv2.COLOR_BGR2RGB)
+        assert np.abs(rgb.astype(int) - f.color).mean() < 6  # JPEG
+
+
+def test_box_mesh_closed_and_textures_saved(tmp_path: Path, box: TexturedMesh) -> None:
+    import trimesh
+    assert len(box.vertices) == 8 and len(box.triangles) == 12
+    tm = trimesh.Trimesh(box.vertices, box.triangles, process=False)
+    assert tm.is_watertight and tm.is_winding_consistent and tm.volume > 0  # outward winding
+    np.testing.assert_allclose(tm.volume, 0.16 * 0.10 * 0.07, rtol=1e-9)
+    obj = save_textured_mesh(box, tmp_path / "box.obj")
+    back = load_textured_mesh(obj)
+    assert back.texture.shape == box.texture.shape and np.array_equal(back.texture, box.texture)
+    np.testing.assert_allclose(back.bounds, box.bounds, atol=1e-9)
+    np.testing.assert_allclose(back.vertices[back.triangles], box.vertices[box.triangles], atol=1e-9)
+    np.testing.assert_allclose(back.uv, box.uv, atol=1e-9)
+
+
+def test_textures_deterministic_and_distinct() -> None:
+    a, b, c = procedural_box_texture(5, (256, 384)), procedural_box_texture(5, (256, 384)), procedural_box_texture(6, (256, 384))
+    assert np.array_equal(a, b) and not np.array_equal(a, c)
+    for kind in ("newspaper", "wood", "fabric"):
+        t = table_texture(kind, 2, 512)
+        assert t.shape == (512, 512, 3) and t.std() > 10
+    with pytest.raises(ValueError):
+        table_texture("marble")
+
+
+def test_distractors_do_not_overlap(box: TexturedMesh) -> None:
+    rng = np.random.default_rng(0)
+    T_t = rest_on_table(box)
+    others = [box_mesh((0.08, 0.06, 0.1), procedural_box_texture(i, (128, 192))) for i in range(3)]
+    poses = place_distractors(box, T_t, others, rng)
+    from gscan.synth import footprint_radius
+    circles = [footprint_radius(box, T_t)] + [footprint_radius(m, T) for m, T in zip(others, poses)]
+    for i in range(len(circles)):
+        for j in range(i + 1, len(circles)):
+            assert np.linalg.norm(circles[i][0] - circles[j][0]) > circles[i][1] + circles[j][1]
+    for m, T in zip(others, poses):
+        assert abs(transform_points(T, m.vertices)[:, 2].min()) < 1e-12
+
+
+def test_default_distance_fills_frame(box: TexturedMesh) -> None:
+    d = default_distance(box)
+    f = render_capture(box, None, 1, noise=False)[0]
+    np.testing.assert_allclose(np.linalg.norm(transform_points(f.T_cam_obj, box.center[None])), d, rtol=1e-9)
+    xs = np.nonzero(f.mask.any(0))[0]
+    assert 0.2 * 640 < xs.max() - xs.min() < 0.5 * 640
