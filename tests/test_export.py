@@ -99,7 +99,8 @@ def test_bop_export(synth: tuple[Path, dict], tmp_path: Path) -> None:
         T[:3, :3] = np.reshape(e["cam_R_m2c"], (3, 3))
         T[:3, 3] = np.array(e["cam_t_m2c"]) / 1000.0
         assert e["obj_id"] == 1 and np.abs(T - inv_T(T_obj_cam)).max() < 1e-6
-        assert np.allclose(np.reshape(scene_cam[str(i)]["cam_K"], (3, 3)), K.K) and scene_cam[str(i)]["depth_scale"] == 1.0
+        assert np.allclose(np.reshape(scene_cam[str(i)]["cam_K"], (3, 3)), K.K)
+        assert scene_cam[str(i)]["depth_scale"] == 1.0
         raw = cv2.imread(str(scene / "depth" / f"{i:06d}.png"), cv2.IMREAD_UNCHANGED)
         assert raw.dtype == np.uint16
         with TemplateDB.open(db_path) as db:
@@ -146,7 +147,8 @@ def test_foundationpose_export(synth: tuple[Path, dict], tmp_path: Path) -> None
     assert export(db_path, "foundationpose", out).views == 4
     ob = out / "ob_0000001"
     assert np.allclose(np.loadtxt(ob / "K.txt"), K.K)
-    assert yaml.safe_load((ob / "select_frames.yml").read_text(encoding="utf-8")) == [f"frame {i:02d} é" for i in range(4)]
+    selected = yaml.safe_load((ob / "select_frames.yml").read_text(encoding="utf-8"))
+    assert selected == [f"frame {i:02d} é" for i in range(4)]
     color_files = sorted((ob / "rgb").glob("*.png"))  # FoundationPose's run_one_ob reading order
     assert len(color_files) == 4
     for i, cf in enumerate(color_files):

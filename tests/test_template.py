@@ -195,7 +195,8 @@ def test_open_refusals(tmp_path: Path, case: str) -> None:
         with TemplateDB.create(path) as db:
             db.mark_complete()
         with sqlite3.connect(path) as c:
-            c.execute("UPDATE meta SET value=? WHERE key='schema'", (str(SCHEMA_VERSION + 1 if case == "newer" else 0),))
+            schema = SCHEMA_VERSION + 1 if case == "newer" else 0
+            c.execute("UPDATE meta SET value=? WHERE key='schema'", (str(schema),))
     with pytest.raises(InputError, match=expect) as ei:
         TemplateDB.open(path, require_complete=False)
     assert str(path) in str(ei.value) and "\n" not in str(ei.value)
@@ -261,7 +262,8 @@ def test_read_pose_file(tmp_path: Path) -> None:
     T = _pose(np.random.default_rng(5))
     (tmp_path / "a.json").write_text(json.dumps({"T": T.tolist()}))
     (tmp_path / "b.json").write_text(json.dumps(T.tolist()))
-    assert np.array_equal(read_pose_file(tmp_path / "a.json"), T) and np.array_equal(read_pose_file(tmp_path / "b.json"), T)
+    assert np.array_equal(read_pose_file(tmp_path / "a.json"), T)
+    assert np.array_equal(read_pose_file(tmp_path / "b.json"), T)
     bad = {"c.json": "{not json", "d.json": json.dumps({"R": 1}), "e.json": json.dumps(np.eye(3).tolist()),
            "f.json": json.dumps((2 * np.eye(4)).tolist()), "missing.json": None}
     for name, text in bad.items():

@@ -19,7 +19,8 @@ Masks and counts: with a mesh, `mask` is the mesh silhouette ray-cast from the v
 `mask_visib` the silhouette pixels whose measured depth is missing or within 15 mm of the rendered
 depth (the BOP toolkit's "bop19" visibility rule, delta 15 mm), intersected with the view's stored
 object mask when it has one; bbox_obj and px_count_all are clipped to the image (the toolkit renders
-a larger canvas for objects that leave the image). Without a mesh both are the stored mask (views without one are skipped).
+a larger canvas for objects that leave the image). Without a mesh both are the stored mask (views
+without one are skipped).
 px_count_valid counts silhouette pixels with measured depth; visib_fract = px_count_visib / px_count_all.
 """
 from __future__ import annotations
@@ -52,7 +53,8 @@ def write_ply_mm(mesh: MeshData, path: Path) -> None:
     V = np.asarray(mesh.vertices, dtype=np.float64) * 1000.0
     N = np.asarray(tm.vertex_normals, dtype=np.float64)
     C = mesh.vertex_colors if mesh.vertex_colors is not None else np.full((len(V), 3), 255, np.uint8)
-    vdt = np.dtype([(k, "<f4") for k in ("x", "y", "z", "nx", "ny", "nz")] + [(k, "u1") for k in ("red", "green", "blue")])
+    vdt = np.dtype([(k, "<f4") for k in ("x", "y", "z", "nx", "ny", "nz")]
+                   + [(k, "u1") for k in ("red", "green", "blue")])
     verts = np.empty(len(V), dtype=vdt)
     for i, k in enumerate(("x", "y", "z")):
         verts[k] = V[:, i]
