@@ -1,0 +1,295 @@
+"""Object segmentation in RGB-D frames: support plane + working volume, single frame or whole sequence.
+
+Single frame (`segment_frame`): a given mask wins; otherwise the dominant support plane is
+found by RANSAC (open3d `segment_plane`, seeded) on a downsampled cloud, the points in a
+height band above it and inside the depth range are split into connected components on the
+image grid (depth discontinuities cut them), and the component nearest the image centre
+(weighted by its area) is the object. Without a plane, the same component choice runs on all
+valid pixels in the depth range.
+
+Sequence (`segment_sequence`): with registered poses T_world_cam the plane is estimated once
+in the world frame from several frames, the object cluster above it (DBSCAN) defines a
+cylindrical working volume (axis along the plane normal), and every frame is segmented by
+that volume, so all masks agree with each other.
+
+Planes: `height(p) = normal . p + offset`, normal pointing up (towards the cameras).
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from gscan.camera import RGBDFrame, backproject
+from gscan.geometry import transform_points
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Plane:
+    """Plane {p : normal . p + offset = 0}; `height` is the signed distance along `normal`."""
+
+    normal: np.ndarray  # [3] unit
+    offset: float
+
+    def height(self, pts: np.ndarray) -> np.ndarray:
+        """[N x 3] (or [... x 3]) points -> [N] signed heights (m)."""
+        return np.asarray(pts, dtype=np.float64) @ self.normal + self.offset
+
+    def transformed(self, T_b_a: np.ndarray) -> "Plane":
+        """The same plane expressed in frame b, given this plane in frame a."""
+        n = T_b_a[:3, :3] @ self.normal
+        return Plane(n, float(self.offset - n @ T_b_a[:3, 3]))
+
+
+@dataclass(frozen=True)
+class SegmentParams:
+    depth_min: float = 0.1          # m, working depth range
+    depth_max: float = 1.5
+    plane_voxel: float = 0.005      # m, downsampling before RANSAC
+    plane_distance: float = 0.004   # m, RANSAC inlier threshold
+    plane_iterations: int = 1000
+    min_plane_fraction: float = 0.15  # plane must hold this fraction of the sampled points
+    height_min: float = 0.004       # m, band above the plane that may be object
+    height_max: float = 0.5
+    depth_edge_rel: float = 0.03    # neighbour depth jump (relative) that separates components
+    min_area_px: int = 150          # smallest component considered an object
+    cluster_eps: float = 0.015      # m, DBSCAN radius for the sequence working volume
+    volume_margin: float = 0.02     # m, added around the object cluster (radius and height)
+    volume_frames: int = 6          # frames (evenly spaced) used to build the working volume
+    seed: int = 0
+
+
+@dataclass
+class Segmentation:
+    mask: np.ndarray            # [H x W] bool
+    plane_cam: Plane | None     # support plane in the camera frame (None: not found / not estimated)
+    method: str                 # "given" | "plane" | "depth" | "volume"
+    reason: str | None = None   # note when a fallback was used
+
+
+@dataclass(frozen=True)
+class WorkingVolume:
+    """Vertical cylinder over the support plane: base centre on the plane, axis = plane normal."""
+
+    plane_world: Plane
+    center_world: np.ndarray    # [3] on the plane
+    radius: float               # m
+    height: float               # m above the plane
+
+    def contains(self, pts_world: np.ndarray, height_min: float = 0.0) -> np.ndarray:
+        """[N x 3] world points -> [N] bool inside the cylinder (heights in [height_min, height])."""
+        p = np.asarray(pts_world, dtype=np.float64)
+        h = self.plane_world.height(p)
+        radial = p - self.center_world - (h - self.plane_world.height(self.center_world[None])[0])[:, None] \
+            * self.plane_world.normal
+        return (h >= height_min) & (h <= self.height) & (np.linalg.norm(radial, axis=1) <= self.radius)
+
+
+def fit_support_plane(points: np.ndarray, viewpoint: np.ndarray, params: SegmentParams = SegmentParams()) -> Plane | None:
+    """Dominant plane of [N x 3] points by seeded RANSAC, normal oriented towards `viewpoint` [3].
+
+    Returns None when the plane holds fewer than `min_plane_fraction` of the (downsampled) points.
+    """
+    import open3d as o3d
+
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64)))
+    pc = pc.voxel_down_sample(params.plane_voxel)
+    n = len(pc.points)
+    if n < 50:
+        return None
+    o3d.utility.random.seed(params.seed)
+    (a, b, c, d), inliers = pc.segment_plane(params.plane_distance, 3, params.plane_iterations)
+    if len(inliers) < params.min_plane_fraction * n:
+        log.debug("support plane: %d of %d points, below %.2f", len(inliers), n, params.min_plane_fraction)
+        return None
+    normal = np.array([a, b, c], dtype=np.float64)
+    scale = np.linalg.norm(normal)
+    plane = Plane(normal / scale, float(d / scale))
+    # refine by least squares on the inliers
+    P = np.asarray(pc.points)[np.asarray(inliers)]
+    mu = P.mean(0)
+    _, _, Vt = np.linalg.svd(P - mu, full_matrices=False)
+    nn = Vt[2] * np.sign(Vt[2] @ plane.normal)
+    plane = Plane(nn, float(-nn @ mu))
+    if plane.height(np.asarray(viewpoint, dtype=np.float64)[None])[0] < 0:
+        plane = Plane(-plane.normal, -plane.offset)
+    return plane
+
+
+def _depth_edges(depth: np.ndarray, rel: float) -> np.ndarray:
+    """[H x W] bool: pixels with a 4-neighbour whose depth differs by more than rel * depth."""
+    d = depth.astype(np.float32)
+    edge = np.zeros(d.shape, dtype=bool)
+    for dy, dx in ((0, 1), (1, 0)):
+        a, b = d[: d.shape[0] - dy, : d.shape[1] - dx], d[dy:, dx:]
+        jump = np.abs(a - b) > rel * np.maximum(a, b)
+        edge[: d.shape[0] - dy, : d.shape[1] - dx] |= jump
+        edge[dy:, dx:] |= jump
+    return edge
+
+
+def _fill_holes(mask: np.ndarray, allowed: np.ndarray) -> np.ndarray:
+    """Add enclosed holes of `mask` where `allowed` ([H x W] bool) is True."""
+    m = mask.astype(np.uint8)
+    padded = np.pad(1 - m, 1, constant_values=1)
+    ff = padded.copy()
+    cv2.floodFill(ff, None, (0, 0), 2)
+    holes = (ff[1:-1, 1:-1] == 1)
+    return mask | (holes & allowed)
+
+
+def pick_component(cand: np.ndarray, depth: np.ndarray, params: SegmentParams, keep_fraction: float = 0.0
+                   ) -> np.ndarray:
+    """Object mask from candidate pixels [H x W] bool: connected components cut at depth edges.
+
+    The chosen component maximises area / (1 + (distance of its centroid to the image centre
+    / (0.25 * image diagonal))^2); with keep_fraction > 0 every component of at least that
+    fraction of the chosen one's area is kept too. The result is grown back over the edge
+    pixels (2 px, within `cand`) and its enclosed holes without depth are filled.
+    """
+    H, W = cand.shape
+    core = cand & ~_depth_edges(depth, params.depth_edge_rel)
+    n, labels, stats, cents = cv2.connectedComponentsWithStats(core.astype(np.uint8), connectivity=8)
+    if n <= 1:
+        return np.zeros_like(cand)
+    areas = stats[1:, cv2.CC_STAT_AREA].astype(np.float64)
+    dist = np.linalg.norm(cents[1:] - np.array([(W - 1) / 2, (H - 1) / 2]), axis=1)
+    score = np.where(areas >= params.min_area_px, areas / (1.0 + (dist / (0.25 * np.hypot(W, H))) ** 2), -1.0)
+    best = int(np.argmax(score))
+    if score[best] < 0:
+        return np.zeros_like(cand)
+    keep = np.zeros(n, dtype=bool)
+    keep[best + 1] = True
+    if keep_fraction > 0:
+        keep[1:] |= (areas >= max(keep_fraction * areas[best], params.min_area_px))
+    mask = keep[labels]
+    grown = cv2.dilate(mask.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool) & cand
+    return _fill_holes(mask | grown, depth <= 0)
+
+
+def segment_frame(frame: RGBDFrame, params: SegmentParams = SegmentParams(),
+                  mask: np.ndarray | None = None) -> Segmentation:
+    """Object mask of one frame: `mask`, else `frame.mask`, else automatic (plane + component)."""
+    given = mask if mask is not None else frame.mask
+    if given is not None:
+        return Segmentation(np.asarray(given, dtype=bool) & (frame.depth > 0), None, "given")
+    depth = frame.depth
+    valid = (depth >= params.depth_min) & (depth <= params.depth_max)
+    pts = backproject(depth, frame.intrinsics)
+    plane = fit_support_plane(pts[::2, ::2][valid[::2, ::2]], np.zeros(3), params)
+    if plane is not None:
+        h = plane.height(pts)
+        cand = valid & (h > params.height_min) & (h < params.height_max)
+        m = pick_component(cand, depth, params)
+        if m.any():
+            return Segmentation(m, plane, "plane")
+        why = "nothing above the dominant plane (an object face?)"
+    else:
+        why = "no support plane found"
+    m = pick_component(valid, depth, params)
+    return Segmentation(m, None, "depth", f"{why}: component nearest the image centre")
+
+
+def _look_at_point(T_world_cam: list[np.ndarray], plane: Plane) -> np.ndarray:
+    """[3] point the cameras look at: least-squares meeting point of the optical axes when they
+    spread, else where the first optical axis meets the plane."""
+    A = np.zeros((3, 3))
+    b = np.zeros(3)
+    for T in T_world_cam:
+        z, c = T[:3, 2], T[:3, 3]
+        P = np.eye(3) - np.outer(z, z)
+        A += P
+        b += P @ c
+    if len(T_world_cam) >= 2 and np.linalg.cond(A) < 1e4:
+        return np.linalg.solve(A, b)
+    c, z = T_world_cam[0][:3, 3], T_world_cam[0][:3, 2]
+    denom = plane.normal @ z
+    t = -plane.height(c[None])[0] / denom if abs(denom) > 1e-6 else 0.5
+    return c + max(t, 0.0) * z
+
+
+def estimate_working_volume(frames: list[RGBDFrame], T_world_cam: list[np.ndarray],
+                            params: SegmentParams = SegmentParams()) -> WorkingVolume | None:
+    """Support plane (world frame) and a cylinder around the object cluster on it.
+
+    Uses `volume_frames` frames evenly spaced over the sequence (stride-4 points, depth range).
+    Returns None when no plane or no cluster above it is found.
+    """
+    import open3d as o3d
+
+    if not frames:
+        return None
+    idx = np.unique(np.linspace(0, len(frames) - 1, min(params.volume_frames, len(frames))).round().astype(int))
+    pts = []
+    for i in idx:
+        f = frames[i]
+        valid = (f.depth >= params.depth_min) & (f.depth <= params.depth_max)
+        p = backproject(f.depth, f.intrinsics)[::4, ::4][valid[::4, ::4]]
+        pts.append(transform_points(T_world_cam[i], p))
+    P = np.concatenate(pts)
+    cams = [T_world_cam[i] for i in idx]
+    plane = fit_support_plane(P, np.mean([T[:3, 3] for T in cams], axis=0), params)
+    if plane is None:
+        return None
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(P)).voxel_down_sample(params.plane_voxel)
+    Q = np.asarray(pc.points)
+    h = plane.height(Q)
+    Q = Q[(h > params.height_min) & (h < params.height_max)]
+    if len(Q) < 20:
+        return None
+    labels = np.asarray(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(Q)).cluster_dbscan(
+        params.cluster_eps, min_points=8))
+    target = _look_at_point(cams, plane)
+    best, best_score = -1, -np.inf
+    for lab in range(labels.max() + 1):
+        C = Q[labels == lab]
+        d = np.linalg.norm(C.mean(0) - target)
+        score = len(C) / (1.0 + (d / 0.1) ** 2)
+        if len(C) >= 20 and score > best_score:
+            best, best_score = lab, score
+    if best < 0:
+        return None
+    C = Q[labels == best]
+    hc = plane.height(C)
+    foot = C - hc[:, None] * plane.normal
+    centre = foot.mean(0)
+    radius = float(np.linalg.norm(foot - centre, axis=1).max()) + params.volume_margin
+    vol = WorkingVolume(plane, centre, radius, float(hc.max()) + params.volume_margin)
+    log.info("working volume: radius %.3f m, height %.3f m, %d cluster points", vol.radius, vol.height, len(C))
+    return vol
+
+
+def segment_sequence(frames: list[RGBDFrame], T_world_cam: list[np.ndarray],
+                     params: SegmentParams = SegmentParams()) -> tuple[list[Segmentation], WorkingVolume | None]:
+    """Masks of registered frames from one working volume; given masks win.
+
+    Frames whose pose is None get an empty mask. Without a volume (no plane or cluster found)
+    every frame falls back to `segment_frame`.
+    """
+    if len(frames) != len(T_world_cam):
+        raise ValueError(f"{len(frames)} frames but {len(T_world_cam)} poses")
+    if all(f.mask is not None for f in frames):
+        return [segment_frame(f, params) for f in frames], None
+    reg = [(f, T) for f, T in zip(frames, T_world_cam) if T is not None]
+    vol = estimate_working_volume([f for f, _ in reg], [T for _, T in reg], params)
+    out = []
+    for f, T in zip(frames, T_world_cam):
+        if f.mask is not None:
+            out.append(segment_frame(f, params))
+        elif T is None:
+            out.append(Segmentation(np.zeros(f.depth.shape, dtype=bool), None, "volume", "frame not registered"))
+        elif vol is None:
+            s = segment_frame(f, params)
+            s.reason = (s.reason + "; " if s.reason else "") + "no working volume for the sequence"
+            out.append(s)
+        else:
+            valid = (f.depth >= params.depth_min) & (f.depth <= params.depth_max)
+            pw = transform_points(T, backproject(f.depth, f.intrinsics).reshape(-1, 3))
+            cand = valid & vol.contains(pw, params.height_min).reshape(f.depth.shape)
+            m = pick_component(cand, f.depth, params, keep_fraction=0.05)
+            out.append(Segmentation(m, vol.plane_world.transformed(np.linalg.inv(T)), "volume"))
+    return out, vol
