@@ -1,0 +1,578 @@
+"""GMatch: geometry-constrained keypoint matching (paper `gmatch.tex`, Method + Algorithm 1).
+
+Inputs per side: 3D keypoints [N x 3] (metres, in that side's camera frame), a descriptor
+distance matrix [Ns x Nt] and the viewing direction of each side in the frame of its points.
+
+Definitions (DESIGN.md "GMatch, as we implement it"):
+
+* candidates: all pairs (i, j) with descriptor distance d_f(i, j) < eps_f, ordered by
+  (d_f ascending, row-major index) -- this order is the "descriptor order" below and the
+  tie-break of every argmin, which makes the search deterministic.
+* delta(p, q) for two pairs p = (i1, j1), q = (i2, j2): with l_s = |ps_i1 - ps_i2| and
+  l_t = |pt_j1 - pt_j2|, delta = |l_s - l_t| / l_s if |l_s - l_t| < eta_pq, else 1.
+  eta_pq = eta * max(f(p), f(q)) with f(i, j) = max(1, (z / eta_ref_depth)^2) over the
+  depths z of the pair's two keypoints when `eta_depth` (depth noise grows with z^2),
+  else 1. Pairs sharing a source or a target keypoint are never combined (one-to-one).
+* g(matches, q) = max over p in matches of delta(p, q); a pair is consistent if g <= eps_c.
+* flip-over test of a pair q against the last two matches m1 = matches[-1], m2 = matches[-2]:
+  n_s = (ps_m1 - ps_m2) x (ps_m1 - ps_q), likewise n_t; with z_s = n_s . view_s / |n_s| and
+  z_t = n_t . view_t / |n_t|, q flips over iff z_s * z_t < 0 and |z_s - z_t| > flip_margin.
+  Near-collinear triples (|n| < collinear_sin * |e1| * |e2| on either side) are not tested.
+* "triple" constraint set (instead of flip-over): the hypothesis' start triangle (a, b, c)
+  fixes a plane on each side (unit normals from the same ordered triangle, so a mirror image
+  has the opposite sign); a pair q gets the extra cost |h_s - h_t| / |ps_q - ps_a| if
+  |h_s - h_t| < eta_aq else 1, h = signed off-plane distance (the triple product
+  (b - a) x (c - a) . (q - a) divided by |(b - a) x (c - a)|). Bounded in [0, 1] like delta.
+  With pairwise distances this is the paper's complete characterisation up to rigid motion.
+* "distance": pairwise distances only (ablation; cannot tell a mirror image apart).
+
+Search (bounded; every bound is a parameter):
+
+1. seeds: the first T candidates in descriptor order.
+2. per seed s: A_s = candidates consistent with s (delta <= eps_c), kept in descriptor order.
+   Level 2: the first K2 pairs b of A_s. Level 3: for each b, the first K3 pairs c of A_s
+   (c != b, one-to-one) with g({s, b}, c) <= eps_c, flip-over respected (flip mode) and a
+   non-degenerate triangle (sine of the angle at s >= collinear_sin on both sides).
+   At most T * K2 * K3 hypotheses of length 3, each with start cost g = max of its 3 deltas.
+   The hypotheses of one seed are grown in ascending start cost (ties: generation order).
+3. growth (Algorithm 1 `Step`, up to length L): the hypothesis keeps its survivors (members
+   of A_s consistent with every match so far) with their running max cost, updated with the
+   newest match only, so a Step is O(#survivors). Each Step removes survivors with
+   g > eps_c or sharing a keypoint with the newest match, skips flip-overs w.r.t. the last
+   two matches (flip mode; skipped pairs stay survivors), and appends the argmin of g.
+4. the longest list wins, ties by lower cost, then by search order. Exact pruning: since
+   g never decreases as a list grows, a hypothesis is abandoned once it cannot beat the best
+   list (its cost >= best cost at best length L, or length + #survivors < best length).
+
+The hot loop is numba-compiled (`cache=True`); candidate extraction is a separate function.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from numba import njit
+
+log = logging.getLogger(__name__)
+
+CONSTRAINTS = {"distance": 0, "flip": 1, "triple": 2}
+
+# Default feature thresholds per descriptor kind (distance metric of gscan.features.descriptor_distances:
+# L2 on unit-norm RootSIFT vectors, L2 on raw OpenCV SIFT vectors (norm ~512), Hamming bits for ORB).
+# Chosen by the sweep recorded in BENCHMARKS.md (Matcher section, bench/match.py --sweep-eps-f).
+_DEFAULT_EPS_F = {"rootsift": 0.65, "sift": 250.0, "orb": 64.0}
+
+
+def default_eps_f(kind: str) -> float:
+    """Default feature threshold eps_f of a descriptor kind ("rootsift" | "sift" | "orb")."""
+    try:
+        return _DEFAULT_EPS_F[kind]
+    except KeyError:
+        raise ValueError(f"unknown descriptor kind {kind!r}; expected one of {sorted(_DEFAULT_EPS_F)}") from None
+
+
+@dataclass(frozen=True)
+class GMatchParams:
+    eps_f: float | None = None  # feature threshold; None -> default_eps_f(kind)
+    eps_c: float = 0.08  # geometric cost tolerance on the relative distance error
+    eta: float = 0.01  # absolute distance margin (m) at eta_ref_depth
+    eta_depth: bool = True  # eta grows with (z / eta_ref_depth)^2 beyond eta_ref_depth
+    eta_ref_depth: float = 0.5  # m
+    T: int = 24  # seeds
+    L: int = 24  # max match list length
+    constraint: str = "flip"  # "flip" | "triple" | "distance" (ablation)
+    K2: int = 8  # second pairs per seed (level 2 of the hypothesis search)
+    K3: int = 4  # third pairs per second pair (level 3)
+    flip_margin: float = 0.8  # |z_s - z_t| above which opposite-signed normals count as a flip-over
+    collinear_sin: float = 0.1  # triangles with a smaller sine are degenerate / not flip-tested
+
+    def __post_init__(self) -> None:
+        if self.constraint not in CONSTRAINTS:
+            raise ValueError(f"constraint must be one of {sorted(CONSTRAINTS)}, got {self.constraint!r}")
+        if self.T < 1 or self.L < 3 or self.K2 < 1 or self.K3 < 1:
+            raise ValueError("need T >= 1, L >= 3, K2 >= 1, K3 >= 1")
+        if not (self.eps_c > 0 and self.eta > 0 and self.eta_ref_depth > 0):
+            raise ValueError("eps_c, eta and eta_ref_depth must be positive")
+
+
+@dataclass(frozen=True)
+class HypothesisTrace:
+    seed: tuple[int, int]  # (source, target) keypoint indices of the seed pair
+    start: np.ndarray  # [3 x 2] int32 the length-3 hypothesis
+    length: int  # final length (when pruned: length reached before pruning)
+    cost: float  # max pairwise cost of the list
+    pruned: bool  # abandoned because it could no longer beat the best list
+
+
+@dataclass
+class GMatchResult:
+    matches: np.ndarray  # [M x 2] int32 (source index, target index), in match order
+    cost: float  # max pairwise delta over the final list (1.0 when empty)
+    n_candidates: int = 0
+    timings_ms: dict[str, float] = field(default_factory=dict)  # "candidates", "search" (+ "distances")
+    # per hypothesis: start [H x 3 x 2] int32, length [H], cost [H], pruned [H] (see `trace`)
+    hyp_start: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 2), np.int32))
+    hyp_length: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    hyp_cost: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    hyp_pruned: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+
+    @property
+    def trace(self) -> list[HypothesisTrace]:
+        """Per hypothesis, in search order: seed pair, 3-pair start, final length, cost, pruned."""
+        return [HypothesisTrace((int(h[0, 0]), int(h[0, 1])), h, int(n), float(c), bool(p))
+                for h, n, c, p in zip(self.hyp_start, self.hyp_length, self.hyp_cost, self.hyp_pruned)]
+
+
+@dataclass(frozen=True)
+class Candidates:
+    src: np.ndarray  # [C] int32 source keypoint index, descriptor order
+    tgt: np.ndarray  # [C] int32 target keypoint index
+    dist: np.ndarray  # [C] float32 descriptor distance (ascending)
+
+
+def extract_candidates(dist: np.ndarray, eps_f: float) -> Candidates:
+    """Pairs with dist [Ns x Nt] < eps_f, sorted by (distance, row-major index) (stable sort)."""
+    dist = np.asarray(dist)
+    if dist.ndim != 2:
+        raise ValueError(f"distance matrix must be [Ns x Nt], got shape {dist.shape}")
+    flat = np.flatnonzero(dist < eps_f)
+    d = dist.reshape(-1)[flat].astype(np.float32)
+    order = np.argsort(d, kind="stable")
+    flat = flat[order]
+    nt = dist.shape[1]
+    return Candidates((flat // nt).astype(np.int32), (flat % nt).astype(np.int32), d[order])
+
+
+# ----------------------------------------------------------------------------------------------
+# numba kernel
+# ----------------------------------------------------------------------------------------------
+
+
+@njit(cache=True, inline="always")
+def _d3(P, a, b):
+    x = P[a, 0] - P[b, 0]
+    y = P[a, 1] - P[b, 1]
+    z = P[a, 2] - P[b, 2]
+    return np.sqrt(x * x + y * y + z * z)
+
+
+@njit(cache=True)
+def _dists_from(P, a, out):
+    for k in range(P.shape[0]):
+        out[k] = _d3(P, a, k)
+
+
+@njit(cache=True)
+def _delta(ps, pt, ci, cj, cf, p, q, eta):
+    """delta between candidate pairs p and q (indices into the candidate arrays)."""
+    if ci[p] == ci[q] or cj[p] == cj[q]:
+        return 1.0
+    ls = _d3(ps, ci[p], ci[q])
+    lt = _d3(pt, cj[p], cj[q])
+    err = abs(ls - lt)
+    if err >= eta * max(cf[p], cf[q]) or ls <= 0.0:
+        return 1.0
+    return err / ls
+
+
+@njit(cache=True)
+def _normal_z(P, a, b, c, view, collinear_sin):
+    """(z, ok): z = unit normal of (P_a - P_b) x (P_a - P_c) dotted with view; ok False when near-collinear."""
+    e1x = P[a, 0] - P[b, 0]
+    e1y = P[a, 1] - P[b, 1]
+    e1z = P[a, 2] - P[b, 2]
+    e2x = P[a, 0] - P[c, 0]
+    e2y = P[a, 1] - P[c, 1]
+    e2z = P[a, 2] - P[c, 2]
+    nx = e1y * e2z - e1z * e2y
+    ny = e1z * e2x - e1x * e2z
+    nz = e1x * e2y - e1y * e2x
+    nn = np.sqrt(nx * nx + ny * ny + nz * nz)
+    l1 = np.sqrt(e1x * e1x + e1y * e1y + e1z * e1z)
+    l2 = np.sqrt(e2x * e2x + e2y * e2y + e2z * e2z)
+    if nn <= collinear_sin * l1 * l2 or nn == 0.0:
+        return 0.0, False
+    return (nx * view[0] + ny * view[1] + nz * view[2]) / nn, True
+
+
+@njit(cache=True)
+def _flips(ps, pt, i1, i2, i3, j1, j2, j3, view_s, view_t, flip_margin, collinear_sin):
+    """True if triangle (i1, i2, i3) <-> (j1, j2, j3) is seen from opposite sides (flip-over)."""
+    zs, oks = _normal_z(ps, i1, i2, i3, view_s, collinear_sin)
+    if not oks:
+        return False
+    zt, okt = _normal_z(pt, j1, j2, j3, view_t, collinear_sin)
+    if not okt:
+        return False
+    return zs * zt < 0.0 and abs(zs - zt) > flip_margin
+
+
+@njit(cache=True)
+def _plane(P, a, b, c):
+    e1 = P[b] - P[a]
+    e2 = P[c] - P[a]
+    n = np.cross(e1, e2)
+    return n / np.sqrt(np.sum(n * n))
+
+
+@njit(cache=True)
+def _search(ps, pt, ci, cj, cf, fsrc, ft_max, view_s, view_t, T, L, K2, K3, eps_c, eta, mode, flip_margin, collinear_sin):
+    """Returns (best [L] candidate indices, best_len, best_cost, hyp [H x 3], hyp_len, hyp_cost, hyp_pruned)."""
+    C = ci.shape[0]
+    n_seed = min(T, C)
+    Hmax = n_seed * K2 * K3
+    hyp = np.full((Hmax, 3), -1, np.int64)
+    hyp_len = np.zeros(Hmax, np.int64)
+    hyp_cost = np.ones(Hmax, np.float64)
+    hyp_pruned = np.zeros(Hmax, np.bool_)
+    H = 0
+    best = np.full(L, -1, np.int64)
+    best_len = 0
+    best_cost = 1.0
+    A = np.empty(C, np.int64)  # A_s: candidates consistent with the seed, descriptor order
+    Ag = np.empty(C, np.float64)
+    AB = np.empty((K2, C), np.int64)  # A_s members consistent with second pair b (per b)
+    ABg = np.empty((K2, C), np.float64)
+    nab = np.zeros(K2, np.int64)
+    surv = np.empty(C, np.int64)
+    sg = np.empty(C, np.float64)
+    cur = np.empty(L, np.int64)
+    Ds = np.empty(ps.shape[0], np.float64)
+    Dxs = np.empty(ps.shape[0], np.float64)
+    lo = np.empty(ps.shape[0], np.float64)
+    hi = np.empty(ps.shape[0], np.float64)
+    Dt = np.empty(pt.shape[0], np.float64)
+    Dxt = np.empty(pt.shape[0], np.float64)
+    seed_b = np.empty(K2 * K3, np.int64)
+    seed_c = np.empty(K2 * K3, np.int64)
+    seed_hc = np.empty(K2 * K3, np.float64)
+    eps_e = eps_c  # effective tolerance: min(eps_c, best cost) once a full-length list exists (exact bound)
+    for s in range(n_seed):
+        si = ci[s]
+        sj = cj[s]
+        _dists_from(ps, si, Ds)
+        _dists_from(pt, sj, Dt)
+        # per-source acceptance interval for the target distance (upper bound of the tolerance,
+        # exact check below): |Ds[i] - Dt[j]| <= min(eta * max(cf_s, fs_i, ft_max), eps_e * Ds[i])
+        cfs = cf[s]
+        for k in range(ps.shape[0]):
+            tol = min(eta * max(cfs, fsrc[k], ft_max), eps_e * Ds[k])
+            lo[k] = Ds[k] - tol
+            hi[k] = Ds[k] + tol
+        lo[si] = 1.0
+        hi[si] = -1.0  # one-to-one: nothing pairs with the seed's source keypoint
+        Dt[sj] = -2.0  # ... nor with its target keypoint
+        na = 0
+        for c in range(C):
+            qi = ci[c]
+            dt = Dt[cj[c]]
+            if dt < lo[qi] or dt > hi[qi]:
+                continue
+            ls = Ds[qi]
+            err = abs(ls - dt)
+            if err >= eta * max(cfs, cf[c]):
+                continue
+            A[na] = c
+            Ag[na] = err / ls
+            na += 1
+        # level 2: the first K2 members b of A_s; A_b = members of A_s consistent with b
+        nb = min(K2, na)
+        for ib in range(nb):
+            b = A[ib]
+            bi = ci[b]
+            bj = cj[b]
+            _dists_from(ps, bi, Dxs)
+            _dists_from(pt, bj, Dxt)
+            w = 0
+            for k in range(na):
+                q = A[k]
+                qi = ci[q]
+                qj = cj[q]
+                if qi == bi or qj == bj:
+                    continue
+                ls = Dxs[qi]
+                err = abs(ls - Dxt[qj])
+                if err >= eta * max(cf[b], cf[q]) or err > eps_e * ls:
+                    continue
+                AB[ib, w] = q
+                ABg[ib, w] = max(Ag[k], err / ls)
+                w += 1
+            nab[ib] = w
+        # level 3: per b, the first K3 members c of A_b forming a valid triangle (s, b, c)
+        nh = 0
+        for ib in range(nb):
+            b = A[ib]
+            gb = Ag[ib]
+            n3 = 0
+            for k in range(nab[ib]):
+                if n3 >= K3:
+                    break
+                c = AB[ib, k]
+                g = max(gb, ABg[ib, k])
+                zs, oks = _normal_z(ps, si, ci[b], ci[c], view_s, collinear_sin)
+                if not oks:
+                    continue  # degenerate triangle
+                zt, okt = _normal_z(pt, sj, cj[b], cj[c], view_t, collinear_sin)
+                if not okt:
+                    continue
+                if mode == 1 and _flips(ps, pt, ci[b], si, ci[c], cj[b], sj, cj[c], view_s, view_t,
+                                        flip_margin, collinear_sin):
+                    continue
+                seed_b[nh] = ib
+                seed_c[nh] = c
+                seed_hc[nh] = g
+                nh += 1
+                n3 += 1
+        order = np.argsort(seed_hc[:nh], kind="mergesort")
+        for oh in range(nh):
+            ib = seed_b[order[oh]]
+            b = A[ib]
+            c = seed_c[order[oh]]
+            g0 = seed_hc[order[oh]]
+            hyp[H, 0] = s
+            hyp[H, 1] = b
+            hyp[H, 2] = c
+            hyp_cost[H] = g0
+            hyp_len[H] = 3
+            if best_len == L and g0 >= best_cost:
+                hyp_pruned[H] = True
+                H += 1
+                continue
+            # survivors: members of A_b consistent with c (and with the start plane in triple mode)
+            ns_ = np.zeros(3)
+            nt_ = np.zeros(3)
+            if mode == 2:
+                ns_ = _plane(ps, si, ci[b], ci[c])
+                nt_ = _plane(pt, sj, cj[b], cj[c])
+            _dists_from(ps, ci[c], Dxs)
+            _dists_from(pt, cj[c], Dxt)
+            nsv = 0
+            for k in range(nab[ib]):
+                q = AB[ib, k]
+                qi = ci[q]
+                qj = cj[q]
+                if q == c or qi == ci[c] or qj == cj[c]:
+                    continue
+                ls = Dxs[qi]
+                err = abs(ls - Dxt[qj])
+                if err >= eta * max(cf[c], cf[q]) or err > eps_e * ls:
+                    continue
+                g = max(ABg[ib, k], err / ls)
+                if mode == 2:
+                    hs = 0.0
+                    ht = 0.0
+                    for d in range(3):
+                        hs += ns_[d] * (ps[qi, d] - ps[si, d])
+                        ht += nt_[d] * (pt[qj, d] - pt[sj, d])
+                    err = abs(hs - ht)
+                    la = Ds[qi]
+                    if err >= eta * max(cf[s], cf[q]) or err > eps_e * la:
+                        continue
+                    g = max(g, err / la)
+                surv[nsv] = q
+                sg[nsv] = g
+                nsv += 1
+            cur[0] = s
+            cur[1] = b
+            cur[2] = c
+            n = 3
+            cost = g0
+            pruned = False
+            while n < L:
+                if n + nsv < best_len or (best_len == L and cost >= best_cost):
+                    pruned = True
+                    break
+                m1 = cur[n - 1]
+                m2 = cur[n - 2]
+                arg = -1
+                ga = 2.0
+                for k in range(nsv):
+                    if sg[k] < ga:
+                        q = surv[k]
+                        if mode == 1 and _flips(ps, pt, ci[m1], ci[m2], ci[q], cj[m1], cj[m2], cj[q],
+                                                view_s, view_t, flip_margin, collinear_sin):
+                            continue
+                        ga = sg[k]
+                        arg = k
+                if arg < 0:
+                    break
+                m = surv[arg]
+                cur[n] = m
+                n += 1
+                cost = max(cost, ga)
+                # update the survivors with the newest match only: O(#survivors) per Step
+                w = 0
+                for k in range(nsv):
+                    q = surv[k]
+                    if q == m:
+                        continue
+                    g = max(sg[k], _delta(ps, pt, ci, cj, cf, m, q, eta))
+                    if g > eps_e:
+                        continue
+                    surv[w] = q
+                    sg[w] = g
+                    w += 1
+                nsv = w
+            if n >= L and best_len == L and cost >= best_cost:
+                pruned = True
+            hyp_len[H] = n
+            hyp_cost[H] = cost
+            hyp_pruned[H] = pruned
+            H += 1
+            if not pruned and (n > best_len or (n == best_len and cost < best_cost)):
+                best_len = n
+                best_cost = cost
+                best[:n] = cur[:n]
+                if best_len == L:
+                    eps_e = min(eps_c, best_cost)
+    return best, best_len, best_cost, hyp[:H], hyp_len[:H], hyp_cost[:H], hyp_pruned[:H]
+
+
+# ----------------------------------------------------------------------------------------------
+# public API
+# ----------------------------------------------------------------------------------------------
+
+
+def _as_points(p: np.ndarray, name: str) -> np.ndarray:
+    p = np.ascontiguousarray(p, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise ValueError(f"{name} must be [N x 3], got shape {p.shape}")
+    if not np.all(np.isfinite(p)):
+        raise ValueError(f"{name} holds non-finite values")
+    return p
+
+
+def _unit(v, name: str) -> np.ndarray:
+    v = np.asarray(v, dtype=np.float64).reshape(3)
+    nv = np.linalg.norm(v)
+    if not np.isfinite(nv) or nv == 0:
+        raise ValueError(f"{name} must be a non-zero 3-vector")
+    return v / nv
+
+
+def _depth_factor(pts: np.ndarray, view: np.ndarray, params: GMatchParams, depth: np.ndarray | None) -> np.ndarray:
+    if not params.eta_depth:
+        return np.ones(len(pts))
+    z = pts @ view if depth is None else np.asarray(depth, dtype=np.float64).reshape(len(pts))
+    return np.maximum(1.0, (z / params.eta_ref_depth) ** 2)
+
+
+def search_candidates(pts_s: np.ndarray, pts_t: np.ndarray, cand: Candidates, params: GMatchParams = GMatchParams(),
+                      view_s=(0.0, 0.0, 1.0), view_t=(0.0, 0.0, 1.0), depth_s: np.ndarray | None = None,
+                      depth_t: np.ndarray | None = None) -> GMatchResult:
+    """GMatch search over precomputed candidates (see module docstring).
+
+    pts_s [Ns x 3], pts_t [Nt x 3] metres; view_* [3] viewing direction in the frame of the points;
+    depth_* [N] optional depths for the eta growth (default: pts @ view, right for camera-frame points).
+    """
+    pts_s = _as_points(pts_s, "pts_s")
+    pts_t = _as_points(pts_t, "pts_t")
+    vs, vt = _unit(view_s, "view_s"), _unit(view_t, "view_t")
+    t0 = time.perf_counter()
+    C = len(cand.src)
+    if C == 0:
+        return GMatchResult(np.zeros((0, 2), np.int32), 1.0, 0, {"search": 0.0})
+    ci = np.ascontiguousarray(cand.src, dtype=np.int32)
+    cj = np.ascontiguousarray(cand.tgt, dtype=np.int32)
+    if ci.min() < 0 or ci.max() >= len(pts_s) or cj.min() < 0 or cj.max() >= len(pts_t):
+        raise ValueError("candidate indices out of range")
+    fs = _depth_factor(pts_s, vs, params, depth_s)
+    ft = _depth_factor(pts_t, vt, params, depth_t)
+    cf = np.maximum(fs[ci], ft[cj]).astype(np.float32)
+    best, n, cost, hyp, hlen, hcost, hpruned = _search(
+        pts_s, pts_t, ci, cj, cf, fs, float(ft.max()), vs, vt, int(params.T), int(params.L), int(params.K2), int(params.K3),
+        float(params.eps_c), float(params.eta), CONSTRAINTS[params.constraint], float(params.flip_margin),
+        float(params.collinear_sin))
+    matches = np.stack([ci[best[:n]], cj[best[:n]]], 1).astype(np.int32) if n else np.zeros((0, 2), np.int32)
+    ms = (time.perf_counter() - t0) * 1e3
+    return GMatchResult(matches, float(cost) if n else 1.0, C, {"search": ms},
+                        np.stack([ci[hyp], cj[hyp]], -1).astype(np.int32), hlen, hcost, hpruned)
+
+
+def step(pts_s: np.ndarray, pts_t: np.ndarray, cand: Candidates, matches: np.ndarray,
+         params: GMatchParams = GMatchParams(), view_s=(0.0, 0.0, 1.0), view_t=(0.0, 0.0, 1.0)) -> int | None:
+    """Algorithm 1 (`Step`) written out in numpy: the readable reference of the kernel's growth.
+
+    matches [M x 2] (M >= 2; M >= 3 for "triple") source/target indices. Returns the index (into the
+    candidate arrays) of the pair to append -- argmin of g over the candidates that are one-to-one
+    with the matches, have g <= eps_c and do not flip over w.r.t. the last two matches (ties: the
+    first in descriptor order) -- or None. O(#candidates * M); the kernel does the same in
+    O(#survivors) per Step.
+    """
+    pts_s = _as_points(pts_s, "pts_s")
+    pts_t = _as_points(pts_t, "pts_t")
+    vs, vt = _unit(view_s, "view_s"), _unit(view_t, "view_t")
+    m = np.asarray(matches, dtype=np.int64).reshape(-1, 2)
+    ci, cj = cand.src.astype(np.int64), cand.tgt.astype(np.int64)
+    fs = _depth_factor(pts_s, vs, params, None)
+    ft = _depth_factor(pts_t, vt, params, None)
+    cf = np.maximum(fs[ci], ft[cj])
+    ok = ~np.isin(ci, m[:, 0]) & ~np.isin(cj, m[:, 1])
+    g = np.zeros(len(ci))
+    for i, j in m:
+        ls = np.linalg.norm(pts_s[ci] - pts_s[i], axis=1)
+        lt = np.linalg.norm(pts_t[cj] - pts_t[j], axis=1)
+        err = np.abs(ls - lt)
+        eta = params.eta * np.maximum(cf, max(fs[i], ft[j]))
+        d = np.where((err < eta) & (ls > 0), err / np.maximum(ls, 1e-12), 1.0)
+        g = np.maximum(g, d)
+    if params.constraint == "triple" and len(m) >= 3:
+        a, b, c = m[:3]
+        ns = np.cross(pts_s[b[0]] - pts_s[a[0]], pts_s[c[0]] - pts_s[a[0]])
+        nt = np.cross(pts_t[b[1]] - pts_t[a[1]], pts_t[c[1]] - pts_t[a[1]])
+        hs = (pts_s[ci] - pts_s[a[0]]) @ (ns / np.linalg.norm(ns))
+        ht = (pts_t[cj] - pts_t[a[1]]) @ (nt / np.linalg.norm(nt))
+        la = np.linalg.norm(pts_s[ci] - pts_s[a[0]], axis=1)
+        err = np.abs(hs - ht)
+        eta = params.eta * np.maximum(cf, max(fs[a[0]], ft[a[1]]))
+        g = np.maximum(g, np.where((err < eta) & (la > 0), err / np.maximum(la, 1e-12), 1.0))
+    ok &= g <= params.eps_c
+    if params.constraint == "flip" and len(m) >= 2:
+        (i1, j1), (i2, j2) = m[-1], m[-2]
+        for k in np.flatnonzero(ok):
+            if _flips(pts_s, pts_t, i1, i2, ci[k], j1, j2, cj[k], vs, vt, params.flip_margin, params.collinear_sin):
+                ok[k] = False
+    if not ok.any():
+        return None
+    idx = np.flatnonzero(ok)
+    return int(idx[np.argmin(g[idx])])
+
+
+def gmatch(pts_s: np.ndarray, pts_t: np.ndarray, dist: np.ndarray, eps_f: float, params: GMatchParams = GMatchParams(),
+           view_s=(0.0, 0.0, 1.0), view_t=(0.0, 0.0, 1.0), depth_s: np.ndarray | None = None,
+           depth_t: np.ndarray | None = None) -> GMatchResult:
+    """Match keypoints pts_s [Ns x 3] <-> pts_t [Nt x 3] given descriptor distances dist [Ns x Nt].
+
+    Returns GMatchResult with matches [M x 2] int32 (M <= L; empty when nothing consistent).
+    """
+    dist = np.asarray(dist)
+    if dist.shape != (len(pts_s), len(pts_t)):
+        raise ValueError(f"distance matrix shape {dist.shape} != ({len(pts_s)}, {len(pts_t)})")
+    t0 = time.perf_counter()
+    cand = extract_candidates(dist, eps_f)
+    t_cand = (time.perf_counter() - t0) * 1e3
+    res = search_candidates(pts_s, pts_t, cand, params, view_s, view_t, depth_s, depth_t)
+    res.timings_ms["candidates"] = t_cand
+    log.debug("gmatch: %d candidates, %d matches, cost %.4f, %s", res.n_candidates, len(res.matches), res.cost,
+              res.timings_ms)
+    return res
+
+
+def match_features(fs, ft, params: GMatchParams = GMatchParams(), view_s=(0.0, 0.0, 1.0),
+                   view_t=(0.0, 0.0, 1.0)) -> GMatchResult:
+    """GMatch on two gscan.features.Features of the same descriptor kind."""
+    from gscan.features import descriptor_distances
+
+    if fs.kind != ft.kind:
+        raise ValueError(f"descriptor kinds differ: {fs.kind} vs {ft.kind}")
+    eps_f = params.eps_f if params.eps_f is not None else default_eps_f(fs.kind)
+    if len(fs.points) == 0 or len(ft.points) == 0:
+        return GMatchResult(np.zeros((0, 2), np.int32), 1.0, 0, {})
+    t0 = time.perf_counter()
+    dist = descriptor_distances(fs.descriptors, ft.descriptors, fs.kind)
+    t_dist = (time.perf_counter() - t0) * 1e3
+    res = gmatch(fs.points, ft.points, dist, eps_f, params, view_s, view_t)
+    res.timings_ms["distances"] = t_dist
+    return res
