@@ -193,23 +193,28 @@ def _newspaper(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
 
 def _wood(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
     yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
-    warp = 60 * smooth_noise(rng, (h, w), w / 3) + 10 * smooth_noise(rng, (h, w), 60)
-    rings = yy + warp
-    for _ in range(int(rng.integers(3, 7))):  # knots bend the grain
-        kx, ky, kr = rng.uniform(0, w), rng.uniform(0, h), rng.uniform(15, 45)
-        d = np.sqrt((xx - kx) ** 2 / 4 + (yy - ky) ** 2)
-        rings += 3 * kr * np.exp(-d / (2 * kr)) * np.sign(yy - ky)
-        rings += np.where(d < kr, d * 0.8, 0)
-    grain = 0.5 + 0.5 * np.sin(rings * 2 * np.pi / rng.uniform(14, 24))
-    streak_grid = rng.uniform(-1, 1, (h, max(2, w // 40))).astype(np.float32)
-    streaks = cv2.resize(streak_grid, (w, h), interpolation=cv2.INTER_LINEAR)
-    light, dark = np.array([196, 150, 100], np.float32), np.array([120, 76, 42], np.float32)
-    t = np.clip(0.55 * grain ** 2 + 0.25 * (streaks + 1) / 2 + 0.2 * (smooth_noise(rng, (h, w), 150) + 1) / 2, 0, 1)
-    img = light * (1 - t[..., None]) + dark * t[..., None]
-    planks = int(rng.integers(3, 6))
-    for k in range(1, planks):  # plank seams
-        y = int(k * h / planks + rng.integers(-20, 20))
-        img[max(0, y - 1):y + 2] *= 0.55
+    img = np.zeros((h, w, 3), np.float32)
+    planks = int(rng.integers(4, 7))
+    edges = np.linspace(0, h, planks + 1).astype(int)
+    for p in range(planks):  # each plank: its own grain phase, tone and warp
+        y0, y1 = edges[p], edges[p + 1]
+        ph = y1 - y0
+        py, px = yy[y0:y1], xx[y0:y1]
+        warp = 40 * smooth_noise(rng, (ph, w), w / 2, 3) + 6 * smooth_noise(rng, (ph, w), 40, 2)
+        rings = py + warp + 0.02 * px * rng.uniform(-1, 1)
+        for _ in range(int(rng.integers(0, 3))):  # knots: rings bend around them
+            kx, ky, kr = rng.uniform(0, w), rng.uniform(y0, y1), rng.uniform(8, 22)
+            d = np.sqrt((px - kx) ** 2 / 6 + (py - ky) ** 2)
+            rings += 2.5 * kr * np.exp(-d / (1.5 * kr)) * np.sign(py - ky)
+        period = rng.uniform(9, 16)
+        lines = (0.5 + 0.5 * np.cos(rings * 2 * np.pi / period)) ** 6  # thin dark late-wood lines
+        streaks = cv2.resize(rng.uniform(-1, 1, (ph, max(2, w // 120))).astype(np.float32), (w, ph),
+                             interpolation=cv2.INTER_LINEAR)
+        tone = rng.uniform(-0.12, 0.12)
+        t = np.clip(0.25 + tone + 0.45 * lines + 0.12 * streaks + 0.15 * smooth_noise(rng, (ph, w), 90, 3), 0, 1)
+        light, dark = np.array([205, 160, 110], np.float32), np.array([105, 62, 32], np.float32)
+        img[y0:y1] = light * (1 - t[..., None]) + dark * t[..., None]
+        img[max(0, y0 - 1):y0 + 1] *= 0.5  # seam
     return np.clip(img, 0, 255).astype(np.uint8)
 
 
