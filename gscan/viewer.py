@@ -1,0 +1,675 @@
+"""Web viewer of a template database (viser): the only gscan module that imports viser.
+
+`serve(db_path, ...)` loads a complete template (`TemplateDB.open(require_complete=True)`), starts a viser
+server bound to `host:port` (127.0.0.1 by default; a port in use raises `PortInUseError`, never a silent
+move to another port) and populates the scene, all in the template (object) frame:
+
+- the fused mesh (vertex colours) and point cloud; the template's axes;
+- one camera frustum per registered view carrying its downscaled snapshot, coloured by registration
+  quality (green good .. red poor); unregistered views are listed in the GUI, not drawn;
+- pose-graph edges as line segments between camera centres: sequential edges green .. red by ICP RMSE,
+  loop closures cyan .. magenta by RMSE, rejected edges grey (own toggle); a legend explains the scales;
+- the views' 3D keypoints (hidden by default), grasp frames as axes;
+- optionally a query RGB-D frame's cloud placed in the template frame by an estimated `T_cam_obj`.
+
+GUI: layer toggles, point / frustum size sliders, a view slider + dropdown (or click a frustum) showing the
+view's image with its keypoints and its edges, "Go to view" (moves every browser's camera to the view's
+pose), and the "Match panel": for a chosen edge, both images side by side with the matched keypoint pairs
+joined by lines and the edge's numbers.
+
+View quality: `View.quality` when the database stores one (read as a score in [0, 1], 1 = best), else
+derived from the view's accepted edges: 1 - median RMSE / `ViewerOptions.rmse_red_m` (0 without any).
+"""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import errno
+import io
+import logging
+import socket
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import cv2
+import numpy as np
+
+from gscan.camera import Intrinsics, RGBDFrame, point_cloud
+from gscan.errors import InputError
+from gscan.geometry import inv_T, transform_points
+from gscan.template import Edge, MeshData, TemplateDB, View
+
+log = logging.getLogger(__name__)
+
+_SELECT_EDGE = "(select an edge)"
+
+
+class PortInUseError(InputError):
+    """The viewer's port cannot be bound (exit code 2 in the CLI)."""
+
+    def __init__(self, host: str, port: int, detail: str = "already in use"):
+        self.host, self.port = host, int(port)
+        super().__init__(None, f"cannot serve the viewer on {host}:{port}: {detail}; choose another --port")
+
+
+@dataclass(frozen=True)
+class ViewerOptions:
+    thumb_px: int = 320            # longest side of the view / match images sent to the browser (JPEG)
+    frustum_px: int = 160          # longest side of the snapshot shown on each frustum
+    jpeg_quality: int = 80
+    rmse_red_m: float = 0.01       # edge RMSE drawn fully red (and view quality 0)
+    max_cloud_points: int = 200_000
+    max_keypoints: int = 60_000
+    scene_stride: int = 2          # pixel stride of the query frame's cloud
+    max_match_lines: int = 150     # matched pairs drawn in the match panel
+
+
+# ------------------------------------------------------------------------------------------ pure helpers
+def quality_color(q: float | None) -> tuple[int, int, int]:
+    """Quality in [0, 1] (1 best) -> RGB: green (1) .. yellow (0.5) .. red (0); grey when None."""
+    if q is None or not np.isfinite(q):
+        return (150, 150, 150)
+    q = float(np.clip(q, 0.0, 1.0))
+    good, mid, bad = np.array([30, 190, 60]), np.array([240, 200, 0]), np.array([220, 30, 30])
+    c = mid + (good - mid) * (q - 0.5) * 2 if q >= 0.5 else bad + (mid - bad) * q * 2
+    return tuple(int(round(x)) for x in c)
+
+
+def edge_color(edge: Edge, rmse_red_m: float) -> tuple[int, int, int]:
+    """Colour of a pose-graph edge: sequential green..red by RMSE, loop cyan..magenta, rejected grey."""
+    if not edge.accepted:
+        return (160, 160, 160)
+    if edge.rmse is None or not np.isfinite(edge.rmse):
+        return (120, 120, 120) if edge.kind == "sequential" else (110, 110, 200)
+    t = float(np.clip(edge.rmse / rmse_red_m, 0.0, 1.0))
+    if edge.kind == "loop":
+        lo, hi = np.array([0, 200, 230]), np.array([230, 0, 200])
+        return tuple(int(round(x)) for x in lo + (hi - lo) * t)
+    return quality_color(1.0 - t)
+
+
+def thumbnail(img: np.ndarray, max_side: int) -> np.ndarray:
+    """[H x W x 3] uint8 -> the image downscaled (area filter) so its longest side is <= max_side."""
+    h, w = img.shape[:2]
+    s = min(1.0, max_side / float(max(h, w)))
+    if s >= 1.0:
+        return np.ascontiguousarray(img)
+    return cv2.resize(img, (max(1, round(w * s)), max(1, round(h * s))), interpolation=cv2.INTER_AREA)
+
+
+def scale_pixels(pixels: np.ndarray, src_wh: tuple[int, int], dst_wh: tuple[int, int]) -> np.ndarray:
+    """[N x 2] pixels (u, v) of a src_wh image -> the same points in a resized dst_wh image
+    (pixel-centre convention, per-axis factors)."""
+    f = np.array([dst_wh[0] / src_wh[0], dst_wh[1] / src_wh[1]])
+    return (np.asarray(pixels, dtype=np.float64).reshape(-1, 2) + 0.5) * f - 0.5
+
+
+def _hue_colors(n: int) -> np.ndarray:
+    """[n x 3] uint8 RGB, deterministic well-separated hues."""
+    hsv = np.zeros((1, max(n, 1), 3), np.uint8)
+    hsv[0, :, 0] = (np.arange(max(n, 1)) * 47) % 180
+    hsv[0, :, 1], hsv[0, :, 2] = 230, 255
+    return cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)[0, :n]
+
+
+def _wh(img: np.ndarray) -> tuple[int, int]:
+    return img.shape[1], img.shape[0]
+
+
+def draw_keypoints(img: np.ndarray, pixels: np.ndarray, full_wh: tuple[int, int]) -> np.ndarray:
+    """Keypoints [N x 2] (u, v in the full_wh image) drawn as small circles on a copy of `img` (a resized
+    version of that image)."""
+    out = img.copy()
+    r = max(1, int(round(img.shape[1] / 320)))
+    for u, v in scale_pixels(pixels, full_wh, _wh(img)):
+        cv2.circle(out, (int(round(u)), int(round(v))), r, (40, 255, 40), -1, cv2.LINE_AA)
+    return out
+
+
+def draw_matches(img_s: np.ndarray, px_s: np.ndarray, wh_s: tuple[int, int], img_t: np.ndarray, px_t: np.ndarray,
+                 wh_t: tuple[int, int], matches: np.ndarray, max_lines: int, height: int = 240) -> np.ndarray:
+    """Two images side by side (each resized to `height`) with matched pairs joined by coloured lines.
+
+    px_s [Ns x 2], px_t [Nt x 2] pixels of the full-resolution images of size wh_s / wh_t (img_* may be
+    downscaled versions); matches [M x 2] (source index, target index), all valid. At most `max_lines`
+    pairs (evenly spaced) are drawn.
+    """
+    fs, ft = height / img_s.shape[0], height / img_t.shape[0]
+    a = cv2.resize(img_s, (max(1, round(img_s.shape[1] * fs)), height), interpolation=cv2.INTER_AREA)
+    b = cv2.resize(img_t, (max(1, round(img_t.shape[1] * ft)), height), interpolation=cv2.INTER_AREA)
+    out = np.concatenate([a, b], axis=1)
+    m = np.asarray(matches).reshape(-1, 2)
+    if len(m) > max_lines:
+        m = m[np.linspace(0, len(m) - 1, max_lines).round().astype(int)]
+    cols = _hue_colors(len(m))
+    for (i, j), c in zip(m, cols):
+        p = scale_pixels(px_s[i], wh_s, _wh(a))[0]
+        q = scale_pixels(px_t[j], wh_t, _wh(b))[0] + np.array([a.shape[1], 0.0])
+        c = tuple(int(x) for x in c)
+        p_, q_ = (int(round(p[0])), int(round(p[1]))), (int(round(q[0])), int(round(q[1])))
+        cv2.line(out, p_, q_, c, 1, cv2.LINE_AA)
+        cv2.circle(out, p_, 2, c, -1, cv2.LINE_AA)
+        cv2.circle(out, q_, 2, c, -1, cv2.LINE_AA)
+    return out
+
+
+def check_port(host: str, port: int) -> None:
+    """Raise PortInUseError when `host:port` cannot be bound (viser would silently move to another port)."""
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except socket.gaierror as e:
+        raise PortInUseError(host, port, f"unknown host ({e.strerror})") from None
+    for family, stype, proto, _, addr in infos[:1]:
+        with socket.socket(family, stype, proto) as s:
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as asyncio's server does
+            try:
+                s.bind(addr)
+                s.listen(1)
+            except OSError as e:
+                detail = "already in use" if e.errno == errno.EADDRINUSE else (e.strerror or str(e))
+                raise PortInUseError(host, port, detail) from None
+
+
+def _quat_wxyz(R: np.ndarray) -> np.ndarray:
+    import viser.transforms as vtf
+
+    return np.asarray(vtf.SO3.from_matrix(np.asarray(R, dtype=np.float64)).wxyz)
+
+
+# ------------------------------------------------------------------------------------------ loaded data
+@dataclass
+class ViewerData:
+    """A template loaded for display (numpy only). thumbs[name]: downscaled RGB uint8 image; image_wh[name]:
+    (width, height) of the stored image; keypoints[name] = (pixels [N x 2], points [N x 3])."""
+
+    path: Path
+    meta: dict
+    views: list[View]
+    thumbs: dict[str, np.ndarray]
+    image_wh: dict[str, tuple[int, int]]
+    keypoints: dict[str, tuple[np.ndarray, np.ndarray]]
+    edges: list[Edge]
+    mesh: MeshData | None
+    cloud: tuple[np.ndarray, np.ndarray | None] | None
+    grasps: dict[str, np.ndarray]
+    quality: dict[str, float | None] = field(default_factory=dict)
+    center: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    size: float = 0.1  # largest side of the object's bounding box (m)
+
+    @property
+    def registered(self) -> list[View]:
+        return [v for v in self.views if v.T_obj_cam is not None]
+
+
+def load_viewer_data(db_path: str | Path, options: ViewerOptions = ViewerOptions()) -> ViewerData:
+    """Read a complete template database (InputError for a partial, missing or foreign one)."""
+    with TemplateDB.open(db_path, require_complete=True) as db:
+        meta, views, edges = db.meta(), db.views(load_images=True), db.edges()
+        mesh, cloud, grasps = db.mesh(), db.cloud(), db.grasps()
+        feats = {v.name: db.features(v.name) for v in views}
+    thumbs, sizes, kps = {}, {}, {}
+    for v in views:
+        img = v.color if v.color is not None else np.full((v.intrinsics.height, v.intrinsics.width, 3), 90, np.uint8)
+        thumbs[v.name], sizes[v.name] = thumbnail(img, options.thumb_px), _wh(img)
+        v.depth = v.mask = None  # the viewer never needs them: free the memory
+        f = feats[v.name]
+        kps[v.name] = ((np.zeros((0, 2), np.float32), np.zeros((0, 3), np.float32)) if f is None
+                       else (np.asarray(f.pixels, np.float32), np.asarray(f.points_obj, np.float32)))
+    data = ViewerData(Path(db_path), meta, views, thumbs, sizes, kps, edges, mesh, cloud, grasps)
+    data.quality = _view_quality(views, edges, options.rmse_red_m)
+    data.center, data.size = _object_box(data)
+    return data
+
+
+def _view_quality(views: list[View], edges: list[Edge], rmse_red_m: float) -> dict[str, float | None]:
+    rm: dict[str, list[float]] = {v.name: [] for v in views}
+    for e in edges:
+        if e.accepted and e.rmse is not None and np.isfinite(e.rmse):
+            for n in (e.src, e.tgt):
+                rm.setdefault(n, []).append(float(e.rmse))
+    out: dict[str, float | None] = {}
+    for v in views:
+        if v.T_obj_cam is None:
+            out[v.name] = None
+        elif v.quality is not None and np.isfinite(v.quality):
+            out[v.name] = float(np.clip(v.quality, 0.0, 1.0))
+        else:
+            out[v.name] = float(np.clip(1.0 - np.median(rm[v.name]) / rmse_red_m, 0, 1)) if rm[v.name] else 0.0
+    return out
+
+
+def _object_box(d: ViewerData) -> tuple[np.ndarray, float]:
+    """Centre [3] and largest side (m) of the mesh, else cloud, else registered keypoints, else cameras."""
+    cands = [None if d.mesh is None else d.mesh.vertices, None if d.cloud is None else d.cloud[0]]
+    reg = d.registered
+    kp = [d.keypoints[v.name][1] for v in reg if len(d.keypoints[v.name][1])]
+    cands.append(np.concatenate(kp) if kp else None)
+    cands.append(np.array([v.T_obj_cam[:3, 3] for v in reg]) if len(reg) >= 2 else None)
+    for pts in cands:
+        if pts is not None and len(pts):
+            pts = np.asarray(pts, dtype=np.float64)
+            lo, hi = np.percentile(pts, 1, axis=0), np.percentile(pts, 99, axis=0)
+            size = float(np.max(hi - lo))
+            if size > 1e-6:
+                return (lo + hi) / 2, size
+    return np.zeros(3), 0.1
+
+
+# ------------------------------------------------------------------------------------------ the app
+class ViewerApp:
+    """A running viewer: `server` (viser.ViserServer), `url`, `data`; select_view / select_edge / go_to_view
+    drive the GUI from Python (the browser drives the same functions); `stop()` shuts the server down."""
+
+    def __init__(self, server, data: ViewerData, host: str, port: int, options: ViewerOptions):
+        self.server, self.data, self.host, self.port, self.options = server, data, host, port, options
+        self.url = f"http://{host}:{port}"
+        self.scene_points_obj: np.ndarray | None = None  # [N x 3] query-frame cloud drawn (template frame)
+        self._lock = threading.RLock()
+        self._names = [v.name for v in data.views]
+        self._by_name = {v.name: v for v in data.views}
+        self._current: str | None = None
+        self._edge_labels: dict[str, Edge] = {}
+        self.layers: dict[str, list] = {}
+
+    # -- selection ---------------------------------------------------------------------------------
+    def select_view(self, name: str) -> None:
+        """Show view `name` in the Views folder and list its edges in the Match panel."""
+        with self._lock:
+            if name not in self._by_name:
+                raise KeyError(f"no view named {name!r}")
+            if name == self._current:
+                return
+            self._current = name
+            self._view_slider.value = self._names.index(name)
+            self._view_dropdown.value = name
+            v, d = self._by_name[name], self.data
+            px, _ = d.keypoints[name]
+            self._view_image.image = draw_keypoints(d.thumbs[name], px, d.image_wh[name])
+            self._view_md.content = self._view_markdown(v)
+            self._goto_button.disabled = v.T_obj_cam is None
+            edges = [e for e in d.edges if name in (e.src, e.tgt)]
+            self._edge_labels = {_edge_label(e): e for e in edges}
+            self._edge_dropdown.options = [_SELECT_EDGE, *self._edge_labels]
+            self._edge_dropdown.value = _SELECT_EDGE
+            self._show_edge(None)
+
+    def select_edge(self, label: str) -> None:
+        with self._lock:
+            if label != _SELECT_EDGE and label not in self._edge_labels:
+                raise KeyError(f"no edge {label!r} for the selected view")
+            self._edge_dropdown.value = label
+            self._show_edge(self._edge_labels.get(label))
+
+    def go_to_view(self, name: str | None = None) -> None:
+        """Move every connected browser's camera to the pose of view `name` (default: the selected one)."""
+        v = self._by_name[name or self._current]
+        if v.T_obj_cam is None:
+            return
+        R, t = v.T_obj_cam[:3, :3], v.T_obj_cam[:3, 3]
+        depth = max(float((self.data.center - t) @ R[:, 2]), 0.1 * self.data.size)
+        fov = 2.0 * np.arctan2(v.intrinsics.height / 2.0, v.intrinsics.fy)
+        for client in self.server.get_clients().values():
+            with client.atomic():
+                client.camera.position = t
+                client.camera.look_at = t + R[:, 2] * depth
+                client.camera.up_direction = -R[:, 1]
+                client.camera.fov = float(fov)
+
+    def stop(self) -> None:
+        with contextlib.redirect_stdout(io.StringIO()):
+            self.server.stop()
+
+    # -- panels ------------------------------------------------------------------------------------
+    def _view_markdown(self, v: View) -> str:
+        n_kp = len(self.data.keypoints[v.name][0])
+        q = self.data.quality.get(v.name)
+        lines = [f"**{v.name}** ({self._names.index(v.name) + 1}/{len(self._names)})  ",
+                 f"keypoints: {n_kp} · quality: {'-' if q is None else f'{q:.2f}'}"
+                 + ("" if v.keyframe else " · not a keyframe") + "  "]
+        if v.T_obj_cam is None:
+            lines.append("**unregistered** (not drawn)")
+        else:
+            lines.append("centre (m): " + ", ".join(f"{x:+.3f}" for x in v.T_obj_cam[:3, 3]))
+        edges = [e for e in self.data.edges if v.name in (e.src, e.tgt)]
+        if edges:
+            lines += ["", "| edge | kind | matches | mm | ok |", "|---|---|---|---|---|"]
+            for e in edges:
+                other = e.tgt if e.src == v.name else e.src
+                arrow = "→" if e.src == v.name else "←"
+                lines.append(f"| {arrow} {other} | {e.kind} | {len(e.matches)} | {_mm(e.rmse)} | "
+                             f"{'yes' if e.accepted else 'no'} |")
+        else:
+            lines.append("\nno edges")
+        return "\n".join(lines)
+
+    def _show_edge(self, e: Edge | None) -> None:
+        if e is None:
+            self._match_image.visible = False
+            self._match_md.visible = False
+            return
+        d = self.data
+        px_s, px_t = d.keypoints[e.src][0] if e.src in d.keypoints else np.zeros((0, 2)), \
+            d.keypoints[e.tgt][0] if e.tgt in d.keypoints else np.zeros((0, 2))
+        m = np.asarray(e.matches, dtype=np.int64).reshape(-1, 2)
+        ok = (m[:, 0] >= 0) & (m[:, 0] < len(px_s)) & (m[:, 1] >= 0) & (m[:, 1] < len(px_t))
+        grey = np.full((240, 320, 3), 90, np.uint8)
+        img = draw_matches(d.thumbs.get(e.src, grey), px_s, d.image_wh.get(e.src, (320, 240)), d.thumbs.get(e.tgt, grey),
+                           px_t, d.image_wh.get(e.tgt, (320, 240)), m[ok], self.options.max_match_lines)
+        self._match_image.image = img
+        txt = [f"**{e.src} → {e.tgt}**  ", f"kind: {e.kind} · accepted: {'yes' if e.accepted else 'no'}  ",
+               f"matches: {len(m)} · cost: {_num(e.cost, '.4f')}  ",
+               f"RMSE: {_mm(e.rmse)} mm · fitness: {_num(e.fitness, '.3f')}"]
+        if e.reason:
+            txt.append(f"  \nreason: {e.reason}")
+        if not ok.all():
+            txt.append(f"  \n{int((~ok).sum())} match indices out of range (not drawn)")
+        self._match_md.content = "\n".join(txt)
+        self._match_image.visible = True
+        self._match_md.visible = True
+
+
+def _edge_label(e: Edge) -> str:
+    return f"{e.src} → {e.tgt} ({e.kind}{'' if e.accepted else ', rejected'})"
+
+
+def _num(x: float | None, fmt: str) -> str:
+    return "-" if x is None or not np.isfinite(x) else format(x, fmt)
+
+
+def _mm(x: float | None) -> str:
+    return "-" if x is None or not np.isfinite(x) else f"{x * 1000:.2f}"
+
+
+# ------------------------------------------------------------------------------------------ building
+def serve(db_path: str | Path, host: str = "127.0.0.1", port: int = 8080, scene_frame: RGBDFrame | None = None,
+          T_cam_obj: np.ndarray | None = None, grasps: dict[str, np.ndarray] | None = None,
+          options: ViewerOptions = ViewerOptions()) -> ViewerApp:
+    """Load a complete template and serve it on http://host:port; returns once the scene is populated.
+
+    scene_frame / T_cam_obj [4 x 4]: a query frame and the object's estimated pose in it; the frame's cloud
+    is drawn in the template frame (inv(T_cam_obj) applied), or listed as "not found" when T_cam_obj is None.
+    grasps: {name: T_obj_grasp [4 x 4]} drawn as axes, added to the template's own grasps.
+    Raises InputError (partial / missing database) and PortInUseError.
+    """
+    import viser
+
+    data = load_viewer_data(db_path, options)
+    check_port(host, port)
+    with contextlib.redirect_stdout(io.StringIO()) as banner:  # viser prints a banner; library code never prints
+        server = viser.ViserServer(host=host, port=port, label=f"gscan · {Path(db_path).name}", verbose=False)
+    log.debug("viser: %s", banner.getvalue().strip())
+    bound = server.get_port()
+    if bound != port:  # lost a race for the port after check_port: viser moved on silently
+        with contextlib.redirect_stdout(io.StringIO()):
+            server.stop()
+        raise PortInUseError(host, port)
+    app = ViewerApp(server, data, host, port, options)
+    try:
+        _build_scene(app, scene_frame, T_cam_obj, {**data.grasps, **(grasps or {})})
+        _build_gui(app, scene_frame is not None, T_cam_obj)
+        if data.views:
+            app.select_view(data.views[0].name)
+    except BaseException:
+        app.stop()
+        raise
+    return app
+
+
+def _build_scene(app: ViewerApp, frame: RGBDFrame | None, T_cam_obj: np.ndarray | None,
+                 grasps: dict[str, np.ndarray]) -> None:
+    sc, d, o = app.server.scene, app.data, app.options
+    s = d.size
+    reg = d.registered
+    # Initial browser camera: beyond the mean camera direction, looking at the object.
+    ups = np.array([-v.T_obj_cam[:3, 1] for v in reg]) if reg else np.array([[0.0, 0.0, 1.0]])
+    up = ups.mean(0) / max(np.linalg.norm(ups.mean(0)), 1e-9)
+    axis = int(np.argmax(np.abs(up)))
+    sc.set_up_direction(("+" if up[axis] > 0 else "-") + "xyz"[axis])
+    if reg:  # beyond the first view's camera, raised along "up", far enough to see every frustum
+        cams = np.array([v.T_obj_cam[:3, 3] for v in reg])
+        dist = float(np.median(np.linalg.norm(cams - d.center, axis=1)))
+        d0 = cams[0] - d.center
+        d0 = d0 - (d0 @ up) * up
+        d0 = d0 / np.linalg.norm(d0) if np.linalg.norm(d0) > 1e-9 else np.cross(up, [1.0, 0.0, 0.0])
+        direction = d0 + 1.6 * up  # above the cameras: the first frustum does not hide the object
+        eye = d.center + direction / np.linalg.norm(direction) * max(1.5 * dist, 2.0 * s)
+    else:
+        eye = d.center + np.array([1.0, 1.0, 1.0]) * 1.5 * s
+    app.server.initial_camera.position = eye
+    app.server.initial_camera.look_at = d.center
+    app.server.initial_camera.near = 0.01 * s
+    app.server.initial_camera.far = 1000.0 * s
+
+    layers: dict[str, list] = {k: [] for k in ("mesh", "cloud", "frustums", "edges", "rejected", "keypoints",
+                                               "scene", "grasps")}
+    sc.add_frame("/template", axes_length=0.3 * s, axes_radius=0.008 * s, origin_radius=0.015 * s)
+    pt = 0.004 * s
+    if d.mesh is not None and len(d.mesh.triangles):
+        layers["mesh"].append(_add_mesh(sc, d.mesh))
+    if d.cloud is not None and len(d.cloud[0]):
+        pts, cols = d.cloud
+        step = max(1, int(np.ceil(len(pts) / o.max_cloud_points)))
+        cols = np.full((len(pts), 3), 200, np.uint8) if cols is None else cols
+        layers["cloud"].append(sc.add_point_cloud("/cloud", np.asarray(pts[::step], np.float32), cols[::step],
+                                                  point_size=pt, visible=d.mesh is None))
+    kp = [(d.keypoints[v.name][1], i) for i, v in enumerate(reg) if len(d.keypoints[v.name][1])]
+    if kp:
+        pts = np.concatenate([p for p, _ in kp])
+        hues = _hue_colors(len(reg))
+        cols = np.concatenate([np.repeat(hues[i][None], len(p), 0) for p, i in kp])
+        step = max(1, int(np.ceil(len(pts) / o.max_keypoints)))
+        layers["keypoints"].append(sc.add_point_cloud("/keypoints", pts[::step], cols[::step], point_size=1.5 * pt,
+                                                      visible=False))
+    for v in reg:
+        layers["frustums"].append(_add_frustum(app, f"/views/{_node(v.name)}", v.intrinsics, v.T_obj_cam,
+                                               d.thumbs[v.name], quality_color(d.quality[v.name]), v.name))
+    centres = {v.name: v.T_obj_cam[:3, 3] for v in reg}
+    for key, accepted, width in (("edges", True, 3.0), ("rejected", False, 1.5)):
+        es = [e for e in d.edges if e.accepted == accepted and e.src in centres and e.tgt in centres]
+        if es:
+            seg = np.array([[centres[e.src], centres[e.tgt]] for e in es], np.float32)
+            col = np.array([[edge_color(e, o.rmse_red_m)] * 2 for e in es], np.uint8)
+            layers[key].append(sc.add_line_segments(f"/{key}", seg, col, thickness=width, thickness_units="screen",
+                                                    visible=accepted))
+    for name, T in grasps.items():
+        layers["grasps"].append(sc.add_frame(f"/grasps/{_node(name)}", axes_length=0.15 * s, axes_radius=0.006 * s,
+                                             wxyz=_quat_wxyz(T[:3, :3]), position=T[:3, 3]))
+        layers["grasps"].append(sc.add_label(f"/grasps/{_node(name)}/label", name))
+    if frame is not None and T_cam_obj is not None:
+        T_obj_cam = inv_T(np.asarray(T_cam_obj, dtype=np.float64))
+        pts_cam, cols = point_cloud(frame, stride=o.scene_stride)
+        app.scene_points_obj = transform_points(T_obj_cam, pts_cam).astype(np.float32)
+        layers["scene"].append(sc.add_point_cloud("/scene/cloud", app.scene_points_obj,
+                                                  (cols * 255).astype(np.uint8), point_size=pt))
+        thumb = thumbnail(frame.color, o.frustum_px)
+        layers["scene"].append(_add_frustum(app, "/scene/camera", frame.intrinsics, T_obj_cam, thumb,
+                                            (40, 120, 255), None))
+    app.layers = layers
+
+
+def _node(name: str) -> str:
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in name)
+
+
+def _add_mesh(sc, mesh: MeshData):
+    import trimesh
+
+    V = np.asarray(mesh.vertices, np.float64)
+    F = np.asarray(mesh.triangles, np.int64)
+    if mesh.vertex_colors is None:
+        return sc.add_mesh_simple("/mesh", V.astype(np.float32), F.astype(np.uint32), color=(200, 170, 120),
+                                  side="double")
+    tm = trimesh.Trimesh(V, F, vertex_colors=np.asarray(mesh.vertex_colors, np.uint8), process=False)
+    return sc.add_mesh_trimesh("/mesh", tm)
+
+
+def _add_frustum(app: ViewerApp, node: str, intr: Intrinsics, T_obj_cam: np.ndarray, image: np.ndarray,
+                 color: tuple[int, int, int], view_name: str | None):
+    o, s = app.options, app.data.size
+    img = thumbnail(image, o.frustum_px)
+    h = app.server.scene.add_camera_frustum(
+        node, fov=float(2.0 * np.arctan2(intr.height / 2.0, intr.fy)), aspect=intr.width / intr.height,
+        scale=0.25 * s, thickness=1.5, thickness_units="screen", color=color, image=img, format="jpeg",
+        jpeg_quality=o.jpeg_quality, wxyz=_quat_wxyz(T_obj_cam[:3, :3]), position=T_obj_cam[:3, 3])
+    if view_name is not None:
+        h.on_click(lambda _ev, n=view_name: app.select_view(n))
+    return h
+
+
+def _build_gui(app: ViewerApp, has_frame: bool, T_cam_obj: np.ndarray | None) -> None:
+    gui, d, o = app.server.gui, app.data, app.options
+    reg = d.registered
+    unreg = [v.name for v in d.views if v.T_obj_cam is None]
+    acc = sum(e.accepted for e in d.edges)
+    loops = sum(e.accepted and e.kind == "loop" for e in d.edges)
+    summary = [f"**{d.path.name}** · {d.meta.get('source', 'scan')}  ",
+               f"views: {len(d.views)} · registered: {len(reg)}  ",
+               f"edges: {acc} accepted ({loops} loop) · {len(d.edges) - acc} rejected  ",
+               f"size: {d.size * 100:.1f} cm"]
+    if unreg:
+        summary.append(f"  \n**unregistered ({len(unreg)}):** " + ", ".join(unreg))
+    if has_frame:
+        summary.append("  \n**query frame:** " + ("pose not found (cloud not placed)" if T_cam_obj is None
+                                                   else "cloud placed by the estimated pose"))
+    gui.add_markdown("\n".join(summary))
+
+    with gui.add_folder("Layers", expand_by_default=False):
+        toggles = [("Mesh", "mesh"), ("Cloud", "cloud"), ("Frustums", "frustums"), ("Edges", "edges"),
+                   ("Rejected edges", "rejected"), ("3D keypoints", "keypoints"), ("Grasps", "grasps"),
+                   ("Query frame", "scene")]
+        for label, key in toggles:
+            if app.layers.get(key):
+                cb = gui.add_checkbox(label, initial_value=all(h.visible for h in app.layers[key]))
+                cb.on_update(lambda ev, k=key: [setattr(h, "visible", ev.target.value) for h in app.layers[k]])
+        base = 0.004 * d.size * 1000.0
+        ps = gui.add_slider("Point size (mm)", min=0.1, max=round(max(4 * base, 1.0), 1), step=0.1,
+                            initial_value=round(base, 1))
+
+        @ps.on_update
+        def _(_ev) -> None:
+            for key, f in (("cloud", 1.0), ("scene", 1.0), ("keypoints", 1.5)):
+                for h in app.layers.get(key, []):
+                    h.point_size = f * ps.value / 1000.0
+
+        fs = gui.add_slider("Frustum size", min=0.25, max=3.0, step=0.05, initial_value=1.0)
+
+        @fs.on_update
+        def _(_ev) -> None:
+            for h in app.layers.get("frustums", []):
+                h.scale = 0.25 * d.size * fs.value
+
+    with gui.add_folder("Views"):
+        n = max(len(d.views), 1)
+        app._view_slider = gui.add_slider("View #", min=0, max=max(n - 1, 1), step=1, initial_value=0,
+                                          disabled=len(d.views) < 2)
+        app._view_dropdown = gui.add_dropdown("View", [v.name for v in d.views] or ["(no views)"])
+        app._goto_button = gui.add_button("Go to view", icon=None)
+        app._view_image = gui.add_image(np.full((240, 320, 3), 90, np.uint8), label="View image",
+                                        format="jpeg", jpeg_quality=o.jpeg_quality)
+        app._view_md = gui.add_markdown("")
+    app._view_slider.on_update(lambda ev: app.select_view(app._names[int(ev.target.value)])
+                               if int(ev.target.value) < len(app._names) else None)
+    app._view_dropdown.on_update(lambda ev: app.select_view(ev.target.value) if ev.target.value in app._by_name
+                                 else None)
+    app._goto_button.on_click(lambda _ev: app.go_to_view())
+
+    with gui.add_folder("Match panel"):
+        app._edge_dropdown = gui.add_dropdown("Edge", [_SELECT_EDGE])
+        app._match_image = gui.add_image(np.full((240, 640, 3), 90, np.uint8), label="Matches", format="jpeg",
+                                         jpeg_quality=o.jpeg_quality, visible=False)
+        app._match_md = gui.add_markdown("", visible=False)
+    app._edge_dropdown.on_update(lambda ev: app.select_edge(ev.target.value)
+                                 if ev.target.value == _SELECT_EDGE or ev.target.value in app._edge_labels else None)
+
+    with gui.add_folder("Legend", expand_by_default=False):
+        gui.add_html(_legend_html(o.rmse_red_m))
+
+
+def _legend_html(red_m: float) -> str:
+    def sw(c: tuple[int, int, int]) -> str:
+        return (f'<span style="display:inline-block;width:10px;height:10px;margin:0 2px;'
+                f'background:rgb{tuple(c)}"></span>')
+
+    seq = "".join(sw(edge_color(Edge("a", "b", None, np.zeros((0, 2)), rmse=r, kind="sequential"), red_m))
+                  for r in np.linspace(0, red_m, 5))
+    loop = "".join(sw(edge_color(Edge("a", "b", None, np.zeros((0, 2)), rmse=r, kind="loop"), red_m))
+                   for r in np.linspace(0, red_m, 5))
+    q = "".join(sw(quality_color(x)) for x in np.linspace(1, 0, 5))
+    return (f'<div style="font-size:12px;line-height:1.7">'
+            f"frustums, quality 1 → 0: {q}<br>"
+            f"sequential edges, RMSE 0 → {red_m * 1000:.0f} mm: {seq}<br>"
+            f"loop closures, RMSE 0 → {red_m * 1000:.0f} mm: {loop}<br>"
+            f"rejected edges: {sw((160, 160, 160))}<br>"
+            f"query camera: {sw((40, 120, 255))}</div>")
+
+
+def run_viewer(db_path: str | Path, host: str = "127.0.0.1", port: int = 8080, scene_frame: RGBDFrame | None = None,
+               T_cam_obj: np.ndarray | None = None, grasps: dict[str, np.ndarray] | None = None,
+               on_ready: Callable[[str], None] | None = None, options: ViewerOptions = ViewerOptions()) -> None:
+    """`serve` and block until interrupted (Ctrl+C); `on_ready(url)` is called once the scene is populated."""
+    app = serve(db_path, host, port, scene_frame=scene_frame, T_cam_obj=T_cam_obj, grasps=grasps, options=options)
+    try:
+        if on_ready is not None:
+            on_ready(app.url)
+        while True:
+            time.sleep(0.5)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        app.stop()
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`python -m gscan.viewer DB [--host H] [--port P] [--color C --depth D --intrinsics K [--pose T.json]]`.
+
+    --pose gives T_cam_obj of the query frame directly (the CLI `gscan view` estimates it instead).
+    Logs "viewer ready at URL" on stderr once the scene is populated. Exit 2 on bad input.
+    """
+    ap = argparse.ArgumentParser(prog="python -m gscan.viewer", description=__doc__.splitlines()[0])
+    ap.add_argument("db", type=Path)
+    ap.add_argument("--host", default="127.0.0.1")
+    ap.add_argument("--port", type=int, default=8080)
+    ap.add_argument("--color", type=Path)
+    ap.add_argument("--depth", type=Path)
+    ap.add_argument("--intrinsics", type=Path)
+    ap.add_argument("--depth-scale", type=float, default=0.001)
+    ap.add_argument("--pose", type=Path, help='T_cam_obj of the query frame: {"T": 4x4} or a bare 4x4 list')
+    a = ap.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(levelname)s %(name)s: %(message)s")
+    try:
+        frame = T = None
+        if a.color or a.depth or a.intrinsics:
+            if not (a.color and a.depth and a.intrinsics):
+                raise InputError(None, "--color, --depth and --intrinsics go together")
+            from gscan.io import load_frame
+
+            frame = load_frame(a.color, a.depth, a.intrinsics, depth_scale=a.depth_scale)
+        if a.pose is not None:
+            T = _read_pose(a.pose)
+        run_viewer(a.db, a.host, a.port, scene_frame=frame, T_cam_obj=T,
+                   on_ready=lambda url: log.info("viewer ready at %s", url))
+    except InputError as e:
+        log.error("%s", e)
+        return 2
+    return 0
+
+
+def _read_pose(path: Path) -> np.ndarray:
+    import json
+
+    try:
+        obj = json.loads(path.read_text(encoding="utf-8"))
+        T = np.asarray(obj["T"] if isinstance(obj, dict) else obj, dtype=np.float64)
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise InputError(path, f"unreadable pose file ({e.__class__.__name__})") from None
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise InputError(path, f"pose must be a finite 4x4 matrix, got shape {T.shape}")
+    return T
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,229 @@
+"""The web viewer (gscan.viewer): server-side checks, and headless Chromium driving the real page.
+
+The template is rendered with gscan.synth and written with TemplateDB (web/synth_template.py) until the
+scan pipeline produces one. Browser tests use Debian's /usr/bin/chromium through Playwright (SwiftShader).
+"""
+from __future__ import annotations
+
+import importlib.util
+import shutil
+import socket
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from gscan.camera import RGBDFrame
+from gscan.errors import InputError
+from gscan.geometry import inv_T, look_at
+from gscan.template import TemplateDB
+from gscan.viewer import (PortInUseError, check_port, draw_matches, edge_color, quality_color, scale_pixels, serve,
+                          thumbnail)
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _load(name: str):
+    spec = importlib.util.spec_from_file_location(name, ROOT / "web" / f"{name}.py")
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[name] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+vp = _load("viewer_probe")
+synth_template = _load("synth_template")
+
+MIN_CANVAS_STD = 8.0  # an empty (white) 3D view has std ~0; the populated scene measures ~18-21
+
+
+@pytest.fixture(scope="module")
+def template(tmp_path_factory):
+    """6 rendered views of a textured box; view 000004 unregistered (its two edges rejected)."""
+    return synth_template.build_synth_template(tmp_path_factory.mktemp("viewer") / "box.gscan", n_views=6,
+                                               unregistered=(4,), max_keypoints=250)
+
+
+def _box_or_table_distance(p_obj: np.ndarray) -> np.ndarray:
+    """[N] distance (m) of object-frame points to the box surface or to the table plane under it."""
+    h = np.asarray(synth_template.BOX_SIZE) / 2
+    q = np.abs(p_obj) - h
+    sdf = np.linalg.norm(np.maximum(q, 0), axis=1) + np.minimum(q.max(axis=1), 0)
+    return np.minimum(np.abs(sdf), np.abs(p_obj[:, 2] + h[2]))
+
+
+# ------------------------------------------------------------------------------------ no browser
+def test_refuses_partial_template_and_busy_port(template, tmp_path):
+    partial = tmp_path / "partial.gscan"
+    TemplateDB.create(partial).close()
+    with pytest.raises(InputError, match="partial"):
+        serve(partial, port=vp.free_port())
+    with socket.socket() as s:  # a listening socket holds the port
+        s.bind(("127.0.0.1", 0))
+        s.listen(1)
+        port = s.getsockname()[1]
+        with pytest.raises(PortInUseError, match=f"127.0.0.1:{port}") as ei:
+            serve(template.path, port=port)
+        assert isinstance(ei.value, InputError) and "\n" not in str(ei.value)
+        with pytest.raises(PortInUseError):
+            check_port("127.0.0.1", port)
+
+
+def test_query_frame_is_drawn_in_template_frame(template):
+    """The hook for `gscan view --color/--depth`: the frame's cloud lands on the template's box and table."""
+    scene, T_world_obj = template.scene, template.T_world_obj
+    eye = T_world_obj[:3, 3] + np.array([0.25, -0.35, 0.3])
+    fr = scene.render(look_at(eye, T_world_obj[:3, 3]), noise=False)
+    frame = RGBDFrame("query", fr.color, fr.depth, fr.intrinsics, fr.mask)
+    T_obj_grasp = np.eye(4)
+    app = serve(template.path, port=vp.free_port(), scene_frame=frame, T_cam_obj=fr.T_cam_obj,
+                grasps={"side": T_obj_grasp})
+    try:
+        pts = app.scene_points_obj
+        assert pts is not None and len(pts) > 10_000
+        assert np.mean(_box_or_table_distance(pts) < 0.004) > 0.97
+        assert app.layers["scene"] and len(app.layers["grasps"]) == 4  # "top" (database) + "side": axes + label
+        # The inverse mistake (drawing by T_cam_obj instead of its inverse) would miss the box.
+        wrong = (pts.astype(np.float64) @ fr.T_cam_obj[:3, :3].T + fr.T_cam_obj[:3, 3])
+        wrong = wrong @ fr.T_cam_obj[:3, :3].T + fr.T_cam_obj[:3, 3]
+        assert np.mean(_box_or_table_distance(wrong) < 0.004) < 0.5
+    finally:
+        app.stop()
+    app = serve(template.path, port=vp.free_port(), scene_frame=frame, T_cam_obj=None)  # not found: no cloud
+    try:
+        assert app.scene_points_obj is None and not app.layers["scene"]
+    finally:
+        app.stop()
+
+
+def test_selection_and_match_panel_state(template):
+    app = serve(template.path, port=vp.free_port())
+    try:
+        names = [v.name for v in app.data.views]
+        assert names == template.names and [v.name for v in app.data.views if v.T_obj_cam is None] == ["000004"]
+        assert len(app.layers["frustums"]) == 5  # the unregistered view is not drawn
+        app.select_view("000002")
+        assert app._view_slider.value == 2 and app._view_dropdown.value == "000002"
+        labels = list(app._edge_dropdown.options[1:])
+        assert labels == ["000001 → 000002 (sequential)", "000002 → 000003 (sequential)"]
+        app.select_edge(labels[1])
+        with TemplateDB.open(template.path) as db:
+            e = next(e for e in db.edges() if (e.src, e.tgt) == ("000002", "000003"))
+        assert f"matches: {len(e.matches)}" in app._match_md.content and app._match_image.visible
+        assert f"RMSE: {e.rmse * 1000:.2f} mm" in app._match_md.content
+    finally:
+        app.stop()
+
+
+@settings(max_examples=30, deadline=None)
+@given(h=st.integers(20, 900), w=st.integers(20, 900), side=st.integers(16, 400))
+def test_thumbnail_and_pixel_mapping(h, w, side):
+    img = np.zeros((h, w, 3), np.uint8)
+    th = thumbnail(img, side)
+    assert max(th.shape[:2]) <= max(side, 1) or th.shape == img.shape
+    corners = scale_pixels(np.array([[0, 0], [w - 1, h - 1]]), (w, h), (th.shape[1], th.shape[0]))
+    assert np.all(corners >= -0.5) and corners[1, 0] <= th.shape[1] - 0.5 and corners[1, 1] <= th.shape[0] - 0.5
+    back = scale_pixels(corners, (th.shape[1], th.shape[0]), (w, h))
+    assert np.allclose(back, [[0, 0], [w - 1, h - 1]])
+
+
+def test_colour_scales_and_match_drawing():
+    g_minus_r = [quality_color(q)[1] - quality_color(q)[0] for q in np.linspace(1, 0, 11)]
+    assert all(a > b for a, b in zip(g_minus_r, g_minus_r[1:]))  # greener is better
+    assert quality_color(None) == quality_color(float("nan"))
+    from gscan.template import Edge
+
+    seq = Edge("a", "b", None, np.zeros((0, 2)), rmse=0.001, kind="sequential")
+    loop = Edge("a", "b", None, np.zeros((0, 2)), rmse=0.001, kind="loop")
+    assert edge_color(seq, 0.01) != edge_color(loop, 0.01)
+    a, b = np.full((240, 320, 3), 50, np.uint8), np.full((480, 640, 3), 50, np.uint8)
+    px = np.array([[10.0, 10.0], [300.0, 200.0]])
+    out = draw_matches(a, px, (320, 240), b, px * 2, (640, 480), np.array([[0, 1], [1, 0]]), max_lines=10)
+    assert out.shape == (240, 640, 3) and (out != 50).any(axis=2).sum() > 200
+
+
+# ------------------------------------------------------------------------------------ browser
+@pytest.mark.browser
+def test_viewer_in_browser(template, tmp_path):
+    from playwright.sync_api import sync_playwright
+
+    port = vp.free_port()
+    proc, _ = vp.start_viewer(template.path, port, log_path=tmp_path / "viewer.log")
+    try:
+        with sync_playwright() as p:
+            browser = vp.launch(p)
+            try:
+                page = browser.new_page(viewport=vp.VIEWPORT)
+                vp.open_viewer(page, f"http://127.0.0.1:{port}")
+                shot, std = vp.wait_scene_drawn(page, MIN_CANVAS_STD)
+                page.screenshot(path=str(tmp_path / "viewer.png"))
+                out = ROOT / "test-output"
+                out.mkdir(exist_ok=True)
+                shutil.copy(tmp_path / "viewer.png", out / "viewer.png")
+                assert std > MIN_CANVAS_STD, f"3D view looks blank (std {std:.1f})"
+                # The GUI lists the views and names the unregistered one.
+                assert page.locator(f"input[id='{vp.gui_control_id(page, 'View')}']").input_value() == "000000"
+                assert page.get_by_text("unregistered (1):").count() == 1
+                assert page.get_by_text("000004").count() >= 1
+                # Moving the view slider changes the displayed image.
+                img = vp.gui_image(page, "View image")
+                before = img.screenshot()
+                vp.gui_slider(page, "View #").focus()
+                page.keyboard.press("ArrowRight")
+                after = vp.wait_image_changed(img, before)
+                assert after != before
+                assert page.get_by_text("000001 (2/6)").count() == 1
+                # Choosing an edge opens the match panel with its numbers.
+                assert page.get_by_text("matches:").count() == 0
+                vp.select_option(page, "Edge", "000001 → 000002 (sequential)")
+                page.get_by_text("matches:").first.wait_for(timeout=10_000)
+                text = page.get_by_text("matches:").first.inner_text()
+                with TemplateDB.open(template.path) as db:
+                    e = next(e for e in db.edges() if (e.src, e.tgt) == ("000001", "000002"))
+                assert f"matches: {len(e.matches)}" in text
+                assert vp.gui_image(page, "Matches").is_visible()
+                page.screenshot(path=str(tmp_path / "viewer_match.png"))
+            finally:
+                browser.close()
+    finally:
+        vp.stop_viewer(proc)
+    assert "viewer ready at" in (tmp_path / "viewer.log").read_text()
+
+
+@pytest.mark.browser
+def test_go_to_view_moves_browser_camera(template):
+    from playwright.sync_api import sync_playwright
+
+    app = serve(template.path, port=vp.free_port())
+    try:
+        with sync_playwright() as p:
+            browser = vp.launch(p)
+            try:
+                page = browser.new_page(viewport=vp.VIEWPORT)
+                vp.open_viewer(page, app.url)
+                vp.wait_scene_drawn(page, MIN_CANVAS_STD)
+                t0 = time.perf_counter()
+                while not app.server.get_clients() and time.perf_counter() - t0 < 10:
+                    time.sleep(0.1)
+                (client,) = app.server.get_clients().values()
+                before = vp.canvas_region(vp.png_array(page.screenshot()))
+                app.select_view("000003")
+                page.get_by_role("button", name="Go to view").click()
+                T = next(v.T_obj_cam for v in app.data.views if v.name == "000003")
+                t0 = time.perf_counter()
+                while np.linalg.norm(client.camera.position - T[:3, 3]) > 1e-4 and time.perf_counter() - t0 < 10:
+                    time.sleep(0.1)
+                assert np.allclose(client.camera.position, T[:3, 3], atol=1e-4)
+                look = client.camera.look_at - client.camera.position
+                assert np.dot(look / np.linalg.norm(look), T[:3, 2]) > 0.999
+                page.wait_for_timeout(1500)
+                after = vp.canvas_region(vp.png_array(page.screenshot()))
+                assert np.abs(after.astype(int) - before.astype(int)).mean() > 2.0  # the browser view moved
+            finally:
+                browser.close()
+    finally:
+        app.stop()
