@@ -1,0 +1,471 @@
+"""Pose of a templated object in a new RGB-D frame (DESIGN.md `estimate`).
+
+Pipeline of `Estimator.estimate` (every stage timed, `EstimateResult.timings_ms`):
+
+1. features: RootSIFT keypoints of the query (inside `mask` when given; the frame is then cropped
+   to the mask's bounding box before detection, which is where most of the time goes), lifted with
+   the query depth into the camera frame.
+2. retrieval: one GEMM of the query descriptors against the template's stacked descriptors
+   (normalised once at load); the per-view best similarity of every query keypoint gives each view
+   a vote per query keypoint it explains (descriptor distance < `retrieval_dist`); the top-`top_k`
+   views by votes are kept.
+3. match: GMatch (gscan.gmatch) of each retrieved view's keypoints, expressed in THAT view's camera
+   frame (view direction +z), against the query keypoints (+z); descriptor distances are sliced
+   from the retrieval GEMM, never recomputed.
+4. solve: Kabsch on each view's match list (object-frame template points -> query camera points);
+   the view with the most matches wins (ties: lower GMatch cost).
+5. refine: point-to-plane ICP (gscan.geometry.icp) of the template cloud's points visible from the
+   predicted pose onto the query cloud cropped to the mask, or to a sphere of 1.2 object radii
+   around the predicted centre.
+6. score: the visible template cloud is projected into the query depth; score = consistent /
+   (consistent + see-through) points, where "consistent" is |z_query - z_pred| < tol and
+   "see-through" means the query surface lies behind the predicted object (occluded points, with
+   query depth in front, count for neither). Not found (T_cam_obj None, `reason`) when the best
+   list has fewer than `min_matches` matches, the score is below `min_score`, or too few visible
+   points are confirmed by the depth.
+
+Without usable query depth (valid fraction of the search region < `min_depth_frac`) the pose is
+solved 2D-3D: the query keypoints are detected without depth lifting, matched by descriptor
+(nearest + ratio test within each retrieved view) to the template's object-frame points, and the
+pose is estimated by LO-RANSAC PnP + refinement (pycolmap `estimate_and_refine_absolute_pose`);
+score = inlier fraction. No ICP in that mode.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from gscan.camera import Intrinsics, RGBDFrame, backproject
+from gscan.errors import InputError
+from gscan.features import FeatureParams, Features, descriptor_distances, extract_features
+from gscan.geometry import icp, inv_T, kabsch, transform_points
+from gscan.gmatch import GMatchParams, default_eps_f, gmatch
+from gscan.template import Template, TemplateDB
+
+log = logging.getLogger(__name__)
+
+STAGES = ("features", "retrieval", "match", "solve", "refine", "total")
+
+
+@dataclass(frozen=True)
+class EstimateParams:
+    features: FeatureParams = FeatureParams()  # query keypoints (kind must equal the template's)
+    gmatch: GMatchParams = GMatchParams()  # matcher parameters (eps_f None -> default of the kind)
+    top_k: int = 4  # template views retrieved and matched
+    retrieval_dist: float = 0.5  # descriptor distance under which a query keypoint votes for a view (RootSIFT L2)
+    min_matches: int = 6  # fewer GMatch matches -> not found
+    min_score: float = 0.6  # depth-consistency score below this -> not found
+    min_confirmed: float = 0.15  # fraction of visible template points confirmed by depth below this -> not found
+    icp_max_dist: float = 0.01  # m, ICP correspondence distance
+    icp_voxel: float = 0.003  # m, ICP downsampling
+    icp_iterations: int = 30
+    crop_margin: int = 16  # px around the mask's bounding box kept for detection
+    depth_tol: float = 0.01  # m, depth agreement tolerance of the score (grows 2 % of depth beyond 0.5 m)
+    min_depth_frac: float = 0.2  # valid-depth fraction of the search region below which PnP is used
+    pnp_ratio: float = 0.8  # Lowe ratio of 2D-3D descriptor matches
+    pnp_max_error_px: float = 4.0  # RANSAC reprojection threshold
+    pnp_min_inliers: int = 8
+    remove_plane: bool = True  # without a mask: leave out the dominant plane (table) from the search region
+    plane_min_frac: float = 0.3  # a plane counts as dominant when it holds this fraction of the valid depth
+    plane_iterations: int = 64  # RANSAC plane hypotheses (seeded)
+
+
+@dataclass
+class EstimateResult:
+    """Outcome of one estimate. T_cam_obj [4 x 4] or None (not found, see `reason`); grasps
+    {name: T_cam_grasp [4 x 4]} = T_cam_obj @ T_obj_grasp (empty when not found); timings_ms per stage."""
+
+    T_cam_obj: np.ndarray | None
+    score: float
+    n_matches: int
+    view: str | None
+    reason: str | None
+    grasps: dict[str, np.ndarray] = field(default_factory=dict)
+    timings_ms: dict[str, float] = field(default_factory=dict)
+    method: str = "gmatch"  # "gmatch" (3D-3D) | "pnp" (2D-3D, no usable depth)
+
+    @property
+    def found(self) -> bool:
+        return self.T_cam_obj is not None
+
+    def to_json(self) -> dict:
+        """The `gscan estimate --json` object (DESIGN.md); matrices as nested lists, metres."""
+        def mat(T: np.ndarray | None) -> list[list[float]] | None:
+            return None if T is None else [[float(x) for x in row] for row in np.asarray(T)]
+
+        return {"T_cam_obj": mat(self.T_cam_obj), "score": float(self.score), "n_matches": int(self.n_matches),
+                "view": self.view, "reason": self.reason, "grasps": {k: mat(v) for k, v in self.grasps.items()},
+                "timings_ms": {k: float(self.timings_ms.get(k, 0.0)) for k in STAGES}}
+
+
+def _restrict_to_masks(db: TemplateDB, tpl: Template) -> np.ndarray:
+    """[N] bool: template keypoints whose pixel lies inside their view's stored object mask (all True
+    for views without a mask)."""
+    keep = np.ones(len(tpl.pixels), dtype=bool)
+    for i, name in enumerate(tpl.view_names):
+        a, b = int(tpl.view_offsets[i]), int(tpl.view_offsets[i + 1])
+        if a == b:
+            continue
+        mask = db.view(name, load_images=True).mask
+        if mask is None:
+            continue
+        H, W = mask.shape
+        px = tpl.pixels[a:b]
+        u = np.clip(np.rint(px[:, 0]).astype(int), 0, W - 1)
+        v = np.clip(np.rint(px[:, 1]).astype(int), 0, H - 1)
+        keep[a:b] = mask[v, u]
+    return keep
+
+
+class Estimator:
+    """A template loaded once for repeated pose estimation (`from_path`, then `estimate`)."""
+
+    def __init__(self, tpl: Template, keep: np.ndarray | None = None, params: EstimateParams = EstimateParams()):
+        if tpl.kind is None or len(tpl.view_names) == 0 or len(tpl.descriptors) == 0:
+            raise InputError(tpl.path, "template holds no registered view with keypoints")
+        if tpl.kind != params.features.kind:
+            params = EstimateParams(**{**params.__dict__, "features": FeatureParams(kind=tpl.kind)})
+        self.params = params
+        self.path = tpl.path
+        self.kind = tpl.kind
+        self.view_names = list(tpl.view_names)
+        self.T_obj_cam = tpl.T_obj_cam  # [V x 4 x 4]
+        keep = np.ones(len(tpl.pixels), bool) if keep is None else keep
+        # per view: kept keypoint rows, in the stacked arrays below
+        kp_view = tpl.kp_view[keep]
+        self.pixels = tpl.pixels[keep]
+        self.points_obj = tpl.points_obj[keep].astype(np.float64)
+        desc = tpl.descriptors[keep]
+        self.descriptors = np.ascontiguousarray(desc, dtype=np.float32 if self.kind != "orb" else np.uint8)
+        self.unit = self.kind == "rootsift"
+        V = len(self.view_names)
+        self.offsets = np.searchsorted(kp_view, np.arange(V + 1)).astype(np.int64)
+        # view-camera-frame points of every keypoint (GMatch source side, view direction +z)
+        self.points_cam = np.empty_like(self.points_obj)
+        for v in range(V):
+            a, b = self.offsets[v], self.offsets[v + 1]
+            self.points_cam[a:b] = transform_points(inv_T(self.T_obj_cam[v]), self.points_obj[a:b])
+        self.groups = [_coincident_groups(self.points_obj[self.offsets[v]:self.offsets[v + 1]]) for v in range(V)]
+        self.nonempty = np.flatnonzero(self.offsets[1:] > self.offsets[:-1])
+        cloud = tpl.cloud_points if tpl.cloud_points is not None and len(tpl.cloud_points) else None
+        if cloud is None and tpl.mesh is not None and len(tpl.mesh.vertices):
+            cloud = tpl.mesh.vertices
+        if cloud is None:
+            cloud = self.points_obj
+        self.cloud = np.asarray(cloud, dtype=np.float64)
+        self.cloud_icp = _voxel_down(self.cloud, params.icp_voxel)
+        lo, hi = self.cloud.min(0), self.cloud.max(0)
+        self.center = 0.5 * (lo + hi)
+        self.radius = float(np.linalg.norm(self.cloud - self.center, axis=1).max())
+        self.grasps = dict(tpl.grasps)
+        self.eps_f = params.gmatch.eps_f if params.gmatch.eps_f is not None else default_eps_f(self.kind)
+
+    @classmethod
+    def from_path(cls, path: str | Path, params: EstimateParams = EstimateParams()) -> "Estimator":
+        """Open a complete template database (InputError for a missing / partial / foreign file)."""
+        with TemplateDB.open(path, require_complete=True) as db:
+            tpl = db.load_template()
+            keep = _restrict_to_masks(db, tpl)
+        return cls(tpl, keep, params)
+
+    # ------------------------------------------------------------------------------------------------
+    def estimate(self, frame: RGBDFrame, mask: np.ndarray | None = None, refine: bool = True) -> EstimateResult:
+        """Pose T_cam_obj of the template's object in `frame` (mask: optional [H x W] bool search region)."""
+        t_all = time.perf_counter()
+        tm: dict[str, float] = {k: 0.0 for k in STAGES}
+        if mask is not None:
+            mask = np.asarray(mask, dtype=bool)
+            if mask.shape != frame.depth.shape:
+                raise InputError(frame.source, f"mask is {mask.shape[1]}x{mask.shape[0]} but the frame is "
+                                               f"{frame.depth.shape[1]}x{frame.depth.shape[0]}")
+        region = mask if mask is not None else np.ones(frame.depth.shape, bool)
+        n_region = int(region.sum())
+        depth_frac = float(((frame.depth > 0) & region).sum()) / max(1, n_region)
+        use_pnp = depth_frac < self.params.min_depth_frac
+
+        t = time.perf_counter()
+        off_plane = None
+        if mask is None and not use_pnp and self.params.remove_plane:
+            off_plane = off_plane_region(frame, self.params)
+        search = mask if mask is not None else off_plane
+        feats = self._features(frame, search, lift=not use_pnp)
+        tm["features"] = _ms(t)
+        if len(feats) < 3:
+            return self._fail(tm, t_all, "too few keypoints in the query frame" + (" mask" if mask is not None else ""))
+
+        t = time.perf_counter()
+        S, views = self._retrieve(feats.descriptors)
+        tm["retrieval"] = _ms(t)
+        if use_pnp:
+            return self._estimate_pnp(frame, feats, S, views, tm, t_all)
+
+        t = time.perf_counter()
+        best = None  # (n, -cost, view, matches)
+        q_order, q_starts = _coincident_groups(feats.points)
+        pts_q = feats.points[q_order[q_starts]]
+        for v in views:
+            a, b = self.offsets[v], self.offsets[v + 1]
+            s_order, s_starts = self.groups[v]
+            dist = self._dist(S[:, a:b]).T  # [Ns x Nt] template view -> query
+            # keypoints sharing a 3D point (SIFT orientations of one location) are merged: min distance
+            dist = np.minimum.reduceat(np.minimum.reduceat(dist[s_order][:, q_order], s_starts, axis=0),
+                                       q_starts, axis=1)
+            res = gmatch(self.points_cam[a + s_order[s_starts]], pts_q, dist, self.eps_f, self.params.gmatch)
+            n = len(res.matches)
+            if n >= 3 and (best is None or (n, -res.cost) > (best[0], best[1])):
+                m = np.stack([s_order[s_starts[res.matches[:, 0]]], q_order[q_starts[res.matches[:, 1]]]], 1)
+                best = (n, -res.cost, int(v), m)
+        tm["match"] = _ms(t)
+        if best is None or best[0] < self.params.min_matches:
+            n = 0 if best is None else best[0]
+            return self._fail(tm, t_all, f"too few geometrically consistent matches ({n} < {self.params.min_matches})",
+                              n, None if best is None else self.view_names[best[2]])
+        n, _, v, m = best
+        a = self.offsets[v]
+        t = time.perf_counter()
+        T_cam_obj = kabsch(self.points_obj[a + m[:, 0]], feats.points[m[:, 1]].astype(np.float64))
+        tm["solve"] = _ms(t)
+
+        t = time.perf_counter()
+        if refine:
+            T_cam_obj = self._refine(frame, search, T_cam_obj)
+        score, confirmed = self._score(frame, T_cam_obj, off_plane)
+        tm["refine"] = _ms(t)
+        view = self.view_names[v]
+        if score < self.params.min_score or confirmed < self.params.min_confirmed:
+            return self._fail(tm, t_all, f"pose not confirmed by the depth (score {score:.2f}, "
+                                         f"{confirmed:.0%} of visible surface confirmed)", n, view, score)
+        return self._found(T_cam_obj, score, n, view, tm, t_all, "gmatch")
+
+    # ------------------------------------------------------------------------------------------------
+    def _features(self, frame: RGBDFrame, mask: np.ndarray | None, lift: bool) -> Features:
+        """Query keypoints; with a mask, detection runs on the mask's bounding box (+ margin) only.
+        Without `lift` (PnP mode) every keypoint is kept: a unit placeholder depth is lifted, so only
+        pixels and descriptors are meaningful."""
+        depth = frame.depth if lift else np.ones_like(frame.depth)
+        x0 = y0 = 0
+        color, intr, sub = frame.color, frame.intrinsics, mask
+        if mask is not None:
+            if not mask.any():
+                return extract_features(RGBDFrame(frame.name, color, depth, intr), self.params.features, mask=mask)
+            H, W = mask.shape
+            ys, xs = np.nonzero(mask)
+            mg = self.params.crop_margin
+            x0, x1 = max(0, xs.min() - mg), min(W, xs.max() + mg + 1)
+            y0, y1 = max(0, ys.min() - mg), min(H, ys.max() + mg + 1)
+            color, depth, sub = color[y0:y1, x0:x1], depth[y0:y1, x0:x1], mask[y0:y1, x0:x1]
+            intr = Intrinsics(intr.fx, intr.fy, intr.cx - x0, intr.cy - y0, x1 - x0, y1 - y0)
+        f = extract_features(RGBDFrame(frame.name, np.ascontiguousarray(color), np.ascontiguousarray(depth), intr),
+                             self.params.features, mask=sub)
+        if x0 or y0:
+            f.pixels = f.pixels + np.array([x0, y0], np.float32)
+        return f
+
+    def _retrieve(self, q: np.ndarray) -> tuple[np.ndarray, list[int]]:
+        """Query descriptors [M x D] -> (similarity or distance matrix [M x N], top-k view indices)."""
+        if self.unit:
+            S = q.astype(np.float32) @ self.descriptors.T  # cosine similarity of unit vectors
+            thr = 1.0 - 0.5 * self.params.retrieval_dist ** 2
+            best = np.maximum.reduceat(S, self.offsets[self.nonempty], axis=1)  # [M x V']
+            votes = (best >= thr).sum(axis=0)
+        else:
+            S = descriptor_distances(q, self.descriptors, self.kind)
+            thr = self.eps_f
+            best = np.minimum.reduceat(S, self.offsets[self.nonempty], axis=1)
+            votes = (best < thr).sum(axis=0)
+        order = np.lexsort((self.nonempty, -votes))  # most votes first, ties by view order
+        views = [int(self.nonempty[i]) for i in order[: self.params.top_k] if votes[i] > 0]
+        return S, views
+
+    def _dist(self, S: np.ndarray) -> np.ndarray:
+        """Similarity block (unit descriptors) or distance block -> L2/Hamming distances."""
+        if self.unit:
+            return np.sqrt(np.maximum(2.0 - 2.0 * S, 0.0))
+        return S
+
+    def _visible(self, T_cam_obj: np.ndarray, intr: Intrinsics, pts: np.ndarray, cell: int = 4,
+                 tol: float = 0.01) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Template points [P x 3] visible from the camera at T_cam_obj (coarse z-buffer of `cell` px).
+        Returns (indices [K], camera points [K x 3], integer pixels [K x 2])."""
+        pc = transform_points(T_cam_obj, pts)
+        z = pc[:, 2]
+        ok = z > 1e-3
+        u = np.full(len(pc), -1.0)
+        v = np.full(len(pc), -1.0)
+        u[ok] = pc[ok, 0] / z[ok] * intr.fx + intr.cx
+        v[ok] = pc[ok, 1] / z[ok] * intr.fy + intr.cy
+        ui, vi = np.rint(u).astype(np.int64), np.rint(v).astype(np.int64)
+        ok &= (ui >= 0) & (ui < intr.width) & (vi >= 0) & (vi < intr.height)
+        idx = np.flatnonzero(ok)
+        gw, gh = (intr.width + cell - 1) // cell, (intr.height + cell - 1) // cell
+        cid = (vi[idx] // cell) * gw + ui[idx] // cell
+        zbuf = np.full(gw * gh, np.inf)
+        np.minimum.at(zbuf, cid, z[idx])
+        vis = z[idx] <= zbuf[cid] + tol + 0.01 * z[idx]
+        idx = idx[vis]
+        return idx, pc[idx], np.stack([ui[idx], vi[idx]], 1)
+
+    def _refine(self, frame: RGBDFrame, mask: np.ndarray | None, T_cam_obj: np.ndarray) -> np.ndarray:
+        """Point-to-plane ICP of the visible template cloud onto the cropped query cloud."""
+        p = self.params
+        idx, _, _ = self._visible(T_cam_obj, frame.intrinsics, self.cloud_icp)
+        if len(idx) < 30:
+            return T_cam_obj
+        st = (slice(None, None, 2), slice(None, None, 2))  # every 2nd pixel: ~2 mm spacing at 0.6 m, ample for ICP
+        valid = frame.depth[st] > 0
+        if mask is not None:
+            valid &= mask[st]
+        tgt = backproject(frame.depth, frame.intrinsics)[st][valid]
+        c = transform_points(T_cam_obj, self.center[None])[0]
+        tgt = tgt[np.linalg.norm(tgt - c, axis=1) < 1.2 * self.radius + p.icp_max_dist]
+        if len(tgt) < 30:
+            return T_cam_obj
+        res = icp(self.cloud_icp[idx], tgt, T_cam_obj, p.icp_max_dist, voxel=p.icp_voxel,
+                  iterations=p.icp_iterations, point_to_plane=True)
+        dR = res.T[:3, :3] @ T_cam_obj[:3, :3].T
+        moved = np.linalg.norm(res.T[:3, 3] - T_cam_obj[:3, 3])
+        if res.fitness <= 0 or moved > self.radius or np.trace(dR) < 1.0 + 2.0 * np.cos(np.radians(30)):
+            log.debug("ICP rejected (fitness %.2f, moved %.3f m)", res.fitness, moved)
+            return T_cam_obj
+        return res.T
+
+    def _score(self, frame: RGBDFrame, T_cam_obj: np.ndarray, region: np.ndarray | None = None) -> tuple[float, float]:
+        """(consistent / (consistent + see-through), consistent / visible) of the visible template cloud.
+        With `region` ([H x W] bool, the off-plane pixels) a point only counts as consistent inside it."""
+        _, pc, uv = self._visible(T_cam_obj, frame.intrinsics, self.cloud_icp)
+        if len(pc) == 0:
+            return 0.0, 0.0
+        zq = frame.depth[uv[:, 1], uv[:, 0]].astype(np.float64)
+        z = pc[:, 2]
+        tol = self.params.depth_tol + 0.02 * np.maximum(z - 0.5, 0.0)
+        has = zq > 0
+        consistent = has & (np.abs(zq - z) < tol)
+        if region is not None:
+            consistent &= region[uv[:, 1], uv[:, 0]]
+        behind = has & (zq > z + tol)
+        n_c, n_b = int(consistent.sum()), int(behind.sum())
+        return n_c / max(1, n_c + n_b), n_c / len(pc)
+
+    # ------------------------------------------------------------------------------------------------
+    def _estimate_pnp(self, frame: RGBDFrame, feats: Features, S: np.ndarray, views: list[int],
+                      tm: dict[str, float], t_all: float) -> EstimateResult:
+        import pycolmap
+
+        p = self.params
+        t = time.perf_counter()
+        q_idx, t_idx = [], []
+        for v in views:
+            a, b = self.offsets[v], self.offsets[v + 1]
+            if b - a < 2:
+                continue
+            D = self._dist(S[:, a:b])  # [M x Nv]
+            two = np.argpartition(D, 1, axis=1)[:, :2]
+            d2 = np.take_along_axis(D, two, axis=1)
+            o = np.argsort(d2, axis=1)
+            d1, dn = np.take_along_axis(d2, o, 1)[:, 0], np.take_along_axis(d2, o, 1)[:, 1]
+            j = np.take_along_axis(two, o, 1)[:, 0]
+            ok = (d1 < p.pnp_ratio * dn) & (d1 < self.eps_f)
+            q_idx.append(np.flatnonzero(ok))
+            t_idx.append(a + j[ok])
+        tm["match"] = _ms(t)
+        if not q_idx or sum(len(x) for x in q_idx) < p.pnp_min_inliers:
+            return self._fail(tm, t_all, "too few 2D-3D matches for PnP (query depth unusable)", method="pnp")
+        qi, ti = np.concatenate(q_idx), np.concatenate(t_idx)
+        t = time.perf_counter()
+        intr = frame.intrinsics
+        cam = pycolmap.Camera(model="PINHOLE", width=intr.width, height=intr.height,
+                              params=[intr.fx, intr.fy, intr.cx, intr.cy])
+        opts = pycolmap.AbsolutePoseEstimationOptions()
+        opts.ransac.max_error = p.pnp_max_error_px
+        opts.ransac.random_seed = 0
+        res = pycolmap.estimate_and_refine_absolute_pose(feats.pixels[qi].astype(np.float64),
+                                                        self.points_obj[ti], cam, opts)
+        tm["solve"] = _ms(t)
+        if res is None or int(res["num_inliers"]) < p.pnp_min_inliers:
+            n = 0 if res is None else int(res["num_inliers"])
+            return self._fail(tm, t_all, f"PnP found too few inliers ({n} < {p.pnp_min_inliers})", n, method="pnp")
+        T = np.eye(4)
+        T[:3, :] = np.asarray(res["cam_from_world"].matrix())
+        inl = np.asarray(res["inlier_mask"], bool)
+        n = int(inl.sum())
+        votes = np.bincount(np.searchsorted(self.offsets, ti[inl], side="right") - 1, minlength=len(self.view_names))
+        return self._found(T, n / len(qi), n, self.view_names[int(np.argmax(votes))], tm, t_all, "pnp")
+
+    def _found(self, T: np.ndarray, score: float, n: int, view: str, tm: dict[str, float], t_all: float,
+               method: str) -> EstimateResult:
+        tm["total"] = _ms(t_all)
+        grasps = {k: T @ G for k, G in self.grasps.items()}
+        return EstimateResult(T, float(score), int(n), view, None, grasps, tm, method)
+
+    def _fail(self, tm: dict[str, float], t_all: float, reason: str, n: int = 0, view: str | None = None,
+              score: float = 0.0, method: str = "gmatch") -> EstimateResult:
+        tm["total"] = _ms(t_all)
+        log.info("not found: %s", reason)
+        return EstimateResult(None, float(score), int(n), view, reason, {}, tm, method)
+
+
+def off_plane_region(frame: RGBDFrame, params: EstimateParams = EstimateParams(), stride: int = 4) -> np.ndarray | None:
+    """[H x W] bool: valid-depth pixels in front of the frame's dominant plane (a table top), or None
+    when no plane holds `plane_min_frac` of the valid depth. RANSAC on every `stride`-th pixel
+    (seeded, deterministic), least-squares refit on the inliers; a pixel is off the plane when it lies
+    on the camera's side by more than 8 mm + 0.5 % of its depth."""
+    depth = frame.depth
+    P = backproject(depth, frame.intrinsics)
+    sub = P[::stride, ::stride].reshape(-1, 3).astype(np.float64)
+    sub = sub[sub[:, 2] > 0]
+    if len(sub) < 100:
+        return None
+    rng = np.random.default_rng(0)
+    tri = rng.integers(0, len(sub), size=(params.plane_iterations, 3))
+    a, b, c = sub[tri[:, 0]], sub[tri[:, 1]], sub[tri[:, 2]]
+    n = np.cross(b - a, c - a)
+    nn = np.linalg.norm(n, axis=1)
+    ok = nn > 1e-9
+    n, a = n[ok] / nn[ok, None], a[ok]
+    if len(n) == 0:
+        return None
+    thr = 0.006 + 0.005 * sub[:, 2]
+    counts = (np.abs(sub @ n.T - np.einsum("ij,ij->i", n, a)[None, :]) < thr[:, None]).sum(axis=0)
+    k = int(np.argmax(counts))
+    inl = np.abs(sub @ n[k] - n[k] @ a[k]) < thr
+    if inl.sum() < params.plane_min_frac * len(sub):
+        return None
+    cen = sub[inl].mean(0)
+    normal = np.linalg.svd(sub[inl] - cen, full_matrices=False)[2][2]
+    if normal @ cen > 0:  # orient the normal towards the camera (origin)
+        normal = -normal
+    h = (P.reshape(-1, 3).astype(np.float64) - cen) @ normal  # signed height above the plane, camera side > 0
+    z = depth.reshape(-1)
+    region = (z > 0) & (h > 0.008 + 0.005 * z)
+    return region.reshape(depth.shape)
+
+
+def _ms(t0: float) -> float:
+    return (time.perf_counter() - t0) * 1e3
+
+
+def _coincident_groups(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Group [N x 3] points that coincide (to 0.1 mm): (order [N], starts [G]) such that
+    pts[order[starts[g]:starts[g+1]]] is group g; groups in first-occurrence order, members in input order."""
+    n = len(pts)
+    if n == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    keys = np.rint(np.asarray(pts, dtype=np.float64) * 1e4).astype(np.int64)
+    _, first, inv = np.unique(keys, axis=0, return_index=True, return_inverse=True)
+    rank = np.argsort(np.argsort(first, kind="stable"), kind="stable")[inv.reshape(-1)]  # group id by first occurrence
+    order = np.lexsort((np.arange(n), rank))
+    starts = np.flatnonzero(np.r_[True, np.diff(rank[order]) != 0])
+    return order.astype(np.int64), starts.astype(np.int64)
+
+
+def _voxel_down(pts: np.ndarray, voxel: float) -> np.ndarray:
+    """[N x 3] -> [M x 3] one point (the first, in input order) per occupied voxel; deterministic."""
+    if voxel <= 0 or len(pts) == 0:
+        return np.asarray(pts, dtype=np.float64)
+    keys = np.floor(pts / voxel).astype(np.int64)
+    _, first = np.unique(keys, axis=0, return_index=True)
+    return np.asarray(pts, dtype=np.float64)[np.sort(first)]
