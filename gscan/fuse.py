@@ -16,8 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from gscan.camera import RGBDFrame
-from gscan.geometry import inv_T, make_T
+from gscan.camera import RGBDFrame, backproject
+from gscan.geometry import inv_T, make_T, transform_points
 from gscan.segment import Plane
 
 log = logging.getLogger(__name__)
@@ -69,9 +69,6 @@ def _masked_depth(frame: RGBDFrame, mask: np.ndarray | None) -> np.ndarray:
 
 def _extent_estimate(depths: list[np.ndarray], frames: list[RGBDFrame], T_world_cam: list[np.ndarray]) -> float:
     """Largest extent (m) of the masked points of a few frames in the world frame (robust percentiles)."""
-    from gscan.camera import backproject
-    from gscan.geometry import transform_points
-
     pts = []
     for k in np.unique(np.linspace(0, len(frames) - 1, min(6, len(frames))).round().astype(int)):
         d = depths[k]
@@ -84,8 +81,8 @@ def _extent_estimate(depths: list[np.ndarray], frames: list[RGBDFrame], T_world_
     return float((hi - lo).max())
 
 
-def fuse_tsdf(frames: list[RGBDFrame], T_world_cam: list[np.ndarray | None], masks: list[np.ndarray | None] | None = None,
-              params: FusionParams = FusionParams()) -> FusedModel:
+def fuse_tsdf(frames: list[RGBDFrame], T_world_cam: list[np.ndarray | None],
+              masks: list[np.ndarray | None] | None = None, params: FusionParams = FusionParams()) -> FusedModel:
     """Integrate the masked depth (and colour) of registered frames; extract mesh + point cloud.
 
     frames: N RGB-D frames; T_world_cam: N [4 x 4] poses (None = unregistered, skipped);

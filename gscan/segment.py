@@ -1,7 +1,7 @@
 """Object segmentation in RGB-D frames: support plane + working volume, single frame or whole sequence.
 
 Single frame (`segment_frame`): a given mask wins; otherwise the dominant support plane is
-found by RANSAC (open3d `segment_plane`, seeded) on a downsampled cloud, the points in a
+found by a seeded RANSAC on a downsampled cloud, the points in a
 height band above it and inside the depth range are split into connected components on the
 image grid (depth discontinuities cut them), and the component nearest the image centre
 (weighted by its area) is the object. Without a plane, the same component choice runs on all
@@ -84,37 +84,56 @@ class WorkingVolume:
         """[N x 3] world points -> [N] bool inside the cylinder (heights in [height_min, height])."""
         p = np.asarray(pts_world, dtype=np.float64)
         h = self.plane_world.height(p)
-        radial = p - self.center_world - (h - self.plane_world.height(self.center_world[None])[0])[:, None] \
-            * self.plane_world.normal
+        h0 = self.plane_world.height(self.center_world[None])[0]
+        radial = p - self.center_world - (h - h0)[:, None] * self.plane_world.normal
         return (h >= height_min) & (h <= self.height) & (np.linalg.norm(radial, axis=1) <= self.radius)
 
 
-def fit_support_plane(points: np.ndarray, viewpoint: np.ndarray, params: SegmentParams = SegmentParams()) -> Plane | None:
+def fit_support_plane(points: np.ndarray, viewpoint: np.ndarray,
+                      params: SegmentParams = SegmentParams()) -> Plane | None:
     """Dominant plane of [N x 3] points by seeded RANSAC, normal oriented towards `viewpoint` [3].
 
-    Returns None when the plane holds fewer than `min_plane_fraction` of the (downsampled) points.
+    The points are voxel-downsampled (`plane_voxel`) and sorted, then `plane_iterations` random
+    triplets (numpy generator seeded by `params.seed`; open3d's `segment_plane` is not repeatable
+    across runs because of its threading) are scored by inlier count within `plane_distance`; the
+    best plane is refined by least squares on its inliers (twice). Returns None when the plane
+    holds fewer than `min_plane_fraction` of the downsampled points.
     """
     import open3d as o3d
 
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64)))
-    pc = pc.voxel_down_sample(params.plane_voxel)
-    n = len(pc.points)
+    P = np.asarray(pc.voxel_down_sample(params.plane_voxel).points)
+    P = P[np.lexsort((P[:, 2], P[:, 1], P[:, 0]))]
+    n = len(P)
     if n < 50:
         return None
-    o3d.utility.random.seed(params.seed)
-    (a, b, c, d), inliers = pc.segment_plane(params.plane_distance, 3, params.plane_iterations)
-    if len(inliers) < params.min_plane_fraction * n:
-        log.debug("support plane: %d of %d points, below %.2f", len(inliers), n, params.min_plane_fraction)
+    rng = np.random.default_rng(params.seed)
+    best_n, best_count = None, -1
+    for start in range(0, params.plane_iterations, 100):
+        m = min(100, params.plane_iterations - start)
+        tri = P[rng.integers(0, n, size=(m, 3))]
+        nrm = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        length = np.linalg.norm(nrm, axis=1)
+        ok = length > 1e-12
+        nrm = nrm[ok] / length[ok, None]
+        off = -np.einsum("ij,ij->i", nrm, tri[ok, 0])
+        counts = (np.abs(P @ nrm.T + off) < params.plane_distance).sum(0)
+        if len(counts) and counts.max() > best_count:
+            k = int(np.argmax(counts))
+            best_count, best_n = int(counts[k]), np.append(nrm[k], off[k])
+    if best_n is None or best_count < params.min_plane_fraction * n:
+        log.debug("support plane: %d of %d points, below %.2f", max(best_count, 0), n, params.min_plane_fraction)
         return None
-    normal = np.array([a, b, c], dtype=np.float64)
-    scale = np.linalg.norm(normal)
-    plane = Plane(normal / scale, float(d / scale))
-    # refine by least squares on the inliers
-    P = np.asarray(pc.points)[np.asarray(inliers)]
-    mu = P.mean(0)
-    _, _, Vt = np.linalg.svd(P - mu, full_matrices=False)
-    nn = Vt[2] * np.sign(Vt[2] @ plane.normal)
-    plane = Plane(nn, float(-nn @ mu))
+    normal, offset = best_n[:3], best_n[3]
+    for _ in range(2):  # least-squares refinement on the inliers
+        inl = P[np.abs(P @ normal + offset) < params.plane_distance]
+        if len(inl) < 3:
+            break
+        mu = inl.mean(0)
+        _, _, Vt = np.linalg.svd(inl - mu, full_matrices=False)
+        normal = Vt[2] * (1.0 if Vt[2] @ normal >= 0 else -1.0)
+        offset = float(-normal @ mu)
+    plane = Plane(normal, float(offset))
     if plane.height(np.asarray(viewpoint, dtype=np.float64)[None])[0] < 0:
         plane = Plane(-plane.normal, -plane.offset)
     return plane
@@ -237,6 +256,7 @@ def estimate_working_volume(frames: list[RGBDFrame], T_world_cam: list[np.ndarra
         return None
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(P)).voxel_down_sample(params.plane_voxel)
     Q = np.asarray(pc.points)
+    Q = Q[np.lexsort((Q[:, 2], Q[:, 1], Q[:, 0]))]  # order-independent clustering input
     h = plane.height(Q)
     Q = Q[(h > params.height_min) & (h < params.height_max)]
     if len(Q) < 20:
