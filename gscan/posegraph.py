@@ -28,7 +28,7 @@ from gscan.geometry import inv_T, rotation_angle_deg
 from gscan.loops import LoopCandidate, LoopParams, bow_vectors, select_loop_candidates
 
 __all__ = ["GraphEdge", "EdgeReport", "PoseGraphParams", "PoseGraphResult", "optimize_pose_graph", "chain_odometry",
-           "edge_residual", "information_from_points", "information_from_clouds", "information_from_count",
+           "edge_residual", "information_matrix", "information_from_points", "information_from_clouds", "information_from_count",
            "LoopCandidate", "LoopParams", "bow_vectors", "select_loop_candidates"]
 
 log = logging.getLogger(__name__)
@@ -78,6 +78,18 @@ def information_from_count(n_matches: int, depth_m: float = 0.5, spread_m: float
     """
     d2, s2 = depth_m ** 2, spread_m ** 2
     return float(max(n_matches, 1)) * np.diag([d2 + s2, d2 + s2, 2.0 * s2, 1.0, 1.0, 1.0])
+
+
+def information_matrix(T_tgt_src: np.ndarray, n_matches: int,
+                       clouds: tuple[np.ndarray, np.ndarray] | None = None,
+                       max_correspondence_distance: float = 0.01) -> np.ndarray:
+    """[6 x 6] information of an edge: from the clouds (src [N x 3] in the source frame, tgt [M x 3]
+    in the target frame) through open3d when given, else from the match count."""
+    if clouds is not None and len(clouds[0]) and len(clouds[1]):
+        info = information_from_clouds(clouds[0], clouds[1], T_tgt_src, max_correspondence_distance)
+        if info[5, 5] > 0:
+            return info
+    return information_from_count(n_matches)
 
 
 @dataclass

@@ -7,6 +7,7 @@ from hypothesis import given, settings, strategies as st
 
 from gscan.geometry import inv_T, look_at, make_T, pose_error, rotvec_to_R
 from gscan.posegraph import (GraphEdge, LoopParams, PoseGraphParams, bow_vectors, chain_odometry, edge_residual,
+                             information_matrix,
                              information_from_count, information_from_points, optimize_pose_graph,
                              select_loop_candidates)
 
@@ -194,3 +195,22 @@ def test_threshold_pruning_of_certain_edges():
     assert not bad.accepted and bad.reason.startswith("residual")
     assert sum(not r.accepted for r in res.edges) <= 2
     assert ate(res.T_world_node, gt) < 0.01
+
+
+def test_information_matrix_dispatch_and_trivial_graphs():
+    rng = np.random.default_rng(0)
+    src = rng.normal(size=(300, 3)) * 0.05 + [0, 0, 0.5]
+    T = make_T(rotvec_to_R([0, 0.1, 0]), [0.01, 0, 0])
+    tgt = src @ T[:3, :3].T + T[:3, 3]
+    info = information_matrix(T, 40, (src, tgt), 0.005)
+    assert info[5, 5] == pytest.approx(300)  # every source point has its correspondence
+    np.testing.assert_allclose(information_matrix(T, 40), information_from_count(40))
+    # clouds too far apart for any correspondence: fall back to the count
+    np.testing.assert_allclose(information_matrix(T, 40, (src, tgt + 1.0), 0.005), information_from_count(40))
+    # one node, no edges; two nodes, no edges
+    res = optimize_pose_graph(1, [], [np.eye(4)])
+    assert res.registered == [0] and res.edges == []
+    res = optimize_pose_graph(2, [], [np.eye(4), None])
+    assert res.unregistered == [1]
+    with pytest.raises(ValueError):
+        optimize_pose_graph(2, [GraphEdge(0, 2, np.eye(4))], [np.eye(4), np.eye(4)])

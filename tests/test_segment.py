@@ -137,3 +137,27 @@ def test_plane_transform_preserves_heights(v, off):
     vol = WorkingVolume(plane, -plane.offset * plane.normal, 0.1, 0.2)
     inside = vol.center_world + 0.05 * plane.normal
     assert vol.contains(inside[None])[0] and not vol.contains((inside + 0.3 * plane.normal)[None])[0]
+
+
+@pytest.mark.parametrize("stem", ["000001", "000002"])
+def test_real_ycbv_frame(real_dir, stem):
+    """Real cluttered table (YCB-Video): the mask lies on labelled objects and covers the central one."""
+    import cv2
+    import scipy.io as sio
+
+    d = real_dir / "ycbv_frames" / "data"
+    color = cv2.imread(str(d / f"{stem}-color.png"), cv2.IMREAD_COLOR)[..., ::-1].copy()
+    depth = cv2.imread(str(d / f"{stem}-depth.png"), cv2.IMREAD_UNCHANGED).astype(np.float32) / 10000.0
+    labels = cv2.imread(str(d / f"{stem}-label.png"), cv2.IMREAD_UNCHANGED)
+    K = sio.loadmat(str(d / f"{stem}-meta.mat"))["intrinsic_matrix"]
+    from gscan.camera import Intrinsics
+
+    intr = Intrinsics.from_matrix(K, color.shape[1], color.shape[0])
+    seg = segment_frame(RGBDFrame(stem, color, depth, intr))
+    assert seg.method == "plane"
+    assert seg.plane_cam.normal[1] < -0.7  # the table faces the camera from below (OpenCV y down)
+    lab = labels[seg.mask]
+    assert (lab > 0).mean() > 0.95  # precision: the mask is on objects, not on the table
+    ids, counts = np.unique(lab[lab > 0], return_counts=True)
+    best = ids[np.argmax(counts)]
+    assert counts.max() / (labels == best).sum() > 0.85  # the main object is covered
