@@ -65,27 +65,36 @@ def detect_mode(frames: list[RGBDFrame], static_fraction: float = 0.5, max_pairs
     return ModeDecision(mode, med, len(fracs))
 
 
-def background_masks(frames: list[RGBDFrame], min_offset: float = 0.01, min_area: int = 400) -> list[np.ndarray]:
-    """Object masks for a static camera by background subtraction.
+def moving_object_masks(frames: list[RGBDFrame], min_offset: float = 0.01, min_area: int = 400) -> list[np.ndarray]:
+    """Object masks for a static camera without given masks. Returns [H x W] bool per frame.
 
-    The background depth is the per-pixel 80th percentile of valid depths over the frames (the
-    object covers any one pixel in a minority of frames when it turns or moves); the object is
-    where a frame is closer than the background by `min_offset` (m) or where the background is
-    unknown, cleaned by a morphological opening and restricted to connected components of at
-    least `min_area` pixels (the largest one always kept). Returns [H x W] bool per frame.
+    Each frame is segmented on its own by the support plane and the component above it
+    (`gscan.segment.segment_frame`). A frame without a support plane (object in hand) falls back
+    to background subtraction: the background depth is the per-pixel 90th percentile of the
+    valid depths over the sequence (the farthest surface seen there), and the object is where
+    the frame is closer than that by max(`min_offset`, 2 %), cleaned by an opening and kept as
+    the connected components of at least `min_area` pixels (the largest always kept).
     """
+    from gscan.segment import segment_frame
+
+    segs = [segment_frame(RGBDFrame(f.name, f.color, f.depth, f.intrinsics)) for f in frames]
+    if all(s.plane_cam is not None for s in segs):
+        return [s.mask for s in segs]
     stack = np.stack([f.depth for f in frames]).astype(np.float32)
     stack[stack <= 0] = np.nan
     import warnings
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        bg = np.nanpercentile(stack, 80, axis=0)
+        bg = np.nan_to_num(np.nanpercentile(stack, 90, axis=0), nan=np.inf)
     out = []
     kernel = np.ones((5, 5), np.uint8)
-    for f in frames:
+    for f, s in zip(frames, segs):
+        if s.plane_cam is not None:
+            out.append(s.mask)
+            continue
         d = f.depth
-        fg = (d > 0) & (np.isnan(bg) | (d < bg - np.maximum(min_offset, 0.02 * np.nan_to_num(bg))))
+        fg = (d > 0) & (d < bg - np.maximum(min_offset, 0.02 * np.where(np.isfinite(bg), bg, 0)))
         fg = cv2.morphologyEx(fg.astype(np.uint8), cv2.MORPH_OPEN, kernel)
         n, lab, stats, _ = cv2.connectedComponentsWithStats(fg, connectivity=8)
         keep = np.zeros(n, dtype=bool)

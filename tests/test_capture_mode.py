@@ -1,0 +1,49 @@
+"""Capture-mode detection, background masks and keyframe selection on rendered captures."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gscan.camera import RGBDFrame
+from gscan.capture_mode import MOVING_OBJECT, STATIC_OBJECT, moving_object_masks, detect_mode, select_keyframes
+from gscan.synth import DEFAULT_INTRINSICS, box_mesh, procedural_box_texture, render_capture
+
+
+@pytest.fixture(scope="module")
+def box():
+    return box_mesh((0.14, 0.09, 0.07), procedural_box_texture(3, (512, 768)))
+
+
+def _frames(rendered, masks: bool) -> list[RGBDFrame]:
+    return [RGBDFrame(f"{i:06d}", r.color, r.depth, DEFAULT_INTRINSICS, r.mask if masks else None)
+            for i, r in enumerate(rendered)]
+
+
+@pytest.mark.parametrize("masks", [False, True])
+def test_static_and_turntable_are_told_apart(box, masks):
+    static = render_capture(box, None, 8, mode="static", elevations_deg=(40.0,), seed=1)
+    turn = render_capture(box, None, 8, mode="turntable", seed=1)
+    d_static = detect_mode(_frames(static, masks))
+    d_turn = detect_mode(_frames(turn, masks))
+    assert d_static.mode == STATIC_OBJECT and d_static.static_fraction < 0.3
+    assert d_turn.mode == MOVING_OBJECT and d_turn.static_fraction > 0.7
+
+
+def test_moving_object_masks_find_the_turning_object(box):
+    turn = render_capture(box, None, 10, mode="turntable", seed=2)
+    masks = moving_object_masks(_frames(turn, False))
+    ious = [(m & r.mask).sum() / (m | r.mask).sum() for m, r in zip(masks, turn)]
+    assert min(ious) > 0.8, ious
+
+
+def test_keyframes_cover_directions_and_respect_the_cap():
+    angles = np.radians(np.arange(0, 360, 5))  # 72 views on a ring, 5 degrees apart
+    dirs = {i: np.array([np.cos(a), np.sin(a), 0.0]) for i, a in enumerate(angles)}
+    kf = select_keyframes(dirs, min_angle_deg=12.0, max_views=100)
+    assert kf[0] == 0 and len(kf) == 24  # every third view (15 degrees apart)
+    for a in kf:
+        for b in kf:
+            if a != b:
+                assert np.degrees(np.arccos(np.clip(dirs[a] @ dirs[b], -1, 1))) >= 12.0 - 1e-9
+    capped = select_keyframes(dirs, min_angle_deg=12.0, max_views=10)
+    assert 1 < len(capped) <= 10
