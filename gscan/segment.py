@@ -52,6 +52,7 @@ class SegmentParams:
     plane_voxel: float = 0.005      # m, downsampling before RANSAC
     plane_distance: float = 0.004   # m, RANSAC inlier threshold
     plane_iterations: int = 1000
+    plane_max_points: int = 5000    # RANSAC scores hypotheses on at most this many (seeded subsample)
     min_plane_fraction: float = 0.15  # plane must hold this fraction of the sampled points
     height_min: float = 0.004       # m, band above the plane that may be object
     height_max: float = 0.5
@@ -95,8 +96,9 @@ def fit_support_plane(points: np.ndarray, viewpoint: np.ndarray,
 
     The points are voxel-downsampled (`plane_voxel`) and sorted, then `plane_iterations` random
     triplets (numpy generator seeded by `params.seed`; open3d's `segment_plane` is not repeatable
-    across runs because of its threading) are scored by inlier count within `plane_distance`; the
-    best plane is refined by least squares on its inliers (twice). Returns None when the plane
+    across runs because of its threading) are scored by inlier count within `plane_distance` on at
+    most `plane_max_points` points; the best plane is refined by least squares on all its inliers
+    (twice). Returns None when the plane
     holds fewer than `min_plane_fraction` of the downsampled points.
     """
     import open3d as o3d
@@ -108,21 +110,22 @@ def fit_support_plane(points: np.ndarray, viewpoint: np.ndarray,
     if n < 50:
         return None
     rng = np.random.default_rng(params.seed)
+    S = P if n <= params.plane_max_points else P[np.sort(rng.choice(n, params.plane_max_points, replace=False))]
     best_n, best_count = None, -1
     for start in range(0, params.plane_iterations, 100):
         m = min(100, params.plane_iterations - start)
-        tri = P[rng.integers(0, n, size=(m, 3))]
+        tri = S[rng.integers(0, len(S), size=(m, 3))]
         nrm = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
         length = np.linalg.norm(nrm, axis=1)
         ok = length > 1e-12
         nrm = nrm[ok] / length[ok, None]
         off = -np.einsum("ij,ij->i", nrm, tri[ok, 0])
-        counts = (np.abs(P @ nrm.T + off) < params.plane_distance).sum(0)
+        counts = (np.abs(S @ nrm.T + off) < params.plane_distance).sum(0)
         if len(counts) and counts.max() > best_count:
             k = int(np.argmax(counts))
             best_count, best_n = int(counts[k]), np.append(nrm[k], off[k])
-    if best_n is None or best_count < params.min_plane_fraction * n:
-        log.debug("support plane: %d of %d points, below %.2f", max(best_count, 0), n, params.min_plane_fraction)
+    if best_n is None or best_count < params.min_plane_fraction * len(S):
+        log.debug("support plane: %d of %d points, below %.2f", max(best_count, 0), len(S), params.min_plane_fraction)
         return None
     normal, offset = best_n[:3], best_n[3]
     for _ in range(2):  # least-squares refinement on the inliers
