@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -57,9 +57,10 @@ class EstimateParams:
     gmatch: GMatchParams = GMatchParams()  # matcher parameters (eps_f None -> default of the kind)
     top_k: int = 4  # template views retrieved and matched
     retrieval_dist: float = 0.5  # descriptor distance under which a query keypoint votes for a view (RootSIFT L2)
-    min_matches: int = 6  # fewer GMatch matches -> not found
+    min_matches: int = 9  # fewer GMatch matches -> not found (chance lists of 6-8 occur in clutter)
     min_score: float = 0.6  # depth-consistency score below this -> not found
     min_confirmed: float = 0.15  # fraction of visible template points confirmed by depth below this -> not found
+    min_ncc: float = 0.4  # grey-level correlation of template cloud and query pixels below this -> not found
     icp_max_dist: float = 0.01  # m, ICP correspondence distance
     icp_voxel: float = 0.003  # m, ICP downsampling
     icp_iterations: int = 30
@@ -68,7 +69,8 @@ class EstimateParams:
     min_depth_frac: float = 0.2  # valid-depth fraction of the search region below which PnP is used
     pnp_ratio: float = 0.8  # Lowe ratio of 2D-3D descriptor matches
     pnp_max_error_px: float = 4.0  # RANSAC reprojection threshold
-    pnp_min_inliers: int = 8
+    pnp_min_inliers: int = 12
+    pnp_min_inlier_ratio: float = 0.25  # PnP inliers / 2D-3D matches below this -> not found
     remove_plane: bool = True  # without a mask: leave out the dominant plane (table) from the search region
     plane_min_frac: float = 0.3  # a plane counts as dominant when it holds this fraction of the valid depth
     plane_iterations: int = 64  # RANSAC plane hypotheses (seeded)
@@ -128,7 +130,7 @@ class Estimator:
         if tpl.kind is None or len(tpl.view_names) == 0 or len(tpl.descriptors) == 0:
             raise InputError(tpl.path, "template holds no registered view with keypoints")
         if tpl.kind != params.features.kind:
-            params = EstimateParams(**{**params.__dict__, "features": FeatureParams(kind=tpl.kind)})
+            params = replace(params, features=replace(params.features, kind=tpl.kind))
         self.params = params
         self.path = tpl.path
         self.kind = tpl.kind
@@ -157,7 +159,16 @@ class Estimator:
         if cloud is None:
             cloud = self.points_obj
         self.cloud = np.asarray(cloud, dtype=np.float64)
-        self.cloud_icp = _voxel_down(self.cloud, params.icp_voxel)
+        # model points for metrics: mesh vertices when the template has a mesh, else the cloud
+        self.model_points = np.asarray(tpl.mesh.vertices if tpl.mesh is not None and len(tpl.mesh.vertices)
+                                       else self.cloud, dtype=np.float64)
+        sel = _voxel_down(self.cloud, params.icp_voxel)
+        self.cloud_icp = self.cloud[sel]
+        colors = tpl.cloud_colors if cloud is tpl.cloud_points else None
+        if colors is None and cloud is not self.points_obj and tpl.mesh is not None and cloud is tpl.mesh.vertices:
+            colors = tpl.mesh.vertex_colors
+        self.gray_icp = None if colors is None or len(colors) != len(self.cloud) else \
+            np.asarray(colors, np.float64)[sel] @ np.array([0.299, 0.587, 0.114])
         lo, hi = self.cloud.min(0), self.cloud.max(0)
         self.center = 0.5 * (lo + hi)
         self.radius = float(np.linalg.norm(self.cloud - self.center, axis=1).max())
@@ -233,12 +244,15 @@ class Estimator:
         t = time.perf_counter()
         if refine:
             T_cam_obj = self._refine(frame, search, T_cam_obj)
-        score, confirmed = self._score(frame, T_cam_obj, off_plane)
+        score, confirmed, ncc = self._score(frame, T_cam_obj, off_plane)
         tm["refine"] = _ms(t)
         view = self.view_names[v]
         if score < self.params.min_score or confirmed < self.params.min_confirmed:
             return self._fail(tm, t_all, f"pose not confirmed by the depth (score {score:.2f}, "
                                          f"{confirmed:.0%} of visible surface confirmed)", n, view, score)
+        if ncc is not None and ncc < self.params.min_ncc:
+            return self._fail(tm, t_all, f"appearance does not match the template at the pose (correlation {ncc:.2f})",
+                              n, view, score)
         return self._found(T_cam_obj, score, n, view, tm, t_all, "gmatch")
 
     # ------------------------------------------------------------------------------------------------
@@ -247,11 +261,12 @@ class Estimator:
         Without `lift` (PnP mode) every keypoint is kept: a unit placeholder depth is lifted, so only
         pixels and descriptors are meaningful."""
         depth = frame.depth if lift else np.ones_like(frame.depth)
+        fparams = self.params.features if lift else replace(self.params.features, lift_window=0)
         x0 = y0 = 0
         color, intr, sub = frame.color, frame.intrinsics, mask
         if mask is not None:
             if not mask.any():
-                return extract_features(RGBDFrame(frame.name, color, depth, intr), self.params.features, mask=mask)
+                return extract_features(RGBDFrame(frame.name, color, depth, intr), fparams, mask=mask)
             H, W = mask.shape
             ys, xs = np.nonzero(mask)
             mg = self.params.crop_margin
@@ -260,7 +275,7 @@ class Estimator:
             color, depth, sub = color[y0:y1, x0:x1], depth[y0:y1, x0:x1], mask[y0:y1, x0:x1]
             intr = Intrinsics(intr.fx, intr.fy, intr.cx - x0, intr.cy - y0, x1 - x0, y1 - y0)
         f = extract_features(RGBDFrame(frame.name, np.ascontiguousarray(color), np.ascontiguousarray(depth), intr),
-                             self.params.features, mask=sub)
+                             fparams, mask=sub)
         if x0 or y0:
             f.pixels = f.pixels + np.array([x0, y0], np.float32)
         return f
@@ -333,12 +348,16 @@ class Estimator:
             return T_cam_obj
         return res.T
 
-    def _score(self, frame: RGBDFrame, T_cam_obj: np.ndarray, region: np.ndarray | None = None) -> tuple[float, float]:
-        """(consistent / (consistent + see-through), consistent / visible) of the visible template cloud.
-        With `region` ([H x W] bool, the off-plane pixels) a point only counts as consistent inside it."""
-        _, pc, uv = self._visible(T_cam_obj, frame.intrinsics, self.cloud_icp)
+    def _score(self, frame: RGBDFrame, T_cam_obj: np.ndarray,
+               region: np.ndarray | None = None) -> tuple[float, float, float | None]:
+        """(score, confirmed, ncc) of the visible template cloud at T_cam_obj: score = consistent /
+        (consistent + see-through), confirmed = consistent / visible, ncc = zero-mean normalised
+        correlation of the grey levels of the consistent points (template colour vs query pixel; None
+        without template colours). With `region` ([H x W] bool, the off-plane pixels) a point only
+        counts as consistent inside it."""
+        idx, pc, uv = self._visible(T_cam_obj, frame.intrinsics, self.cloud_icp)
         if len(pc) == 0:
-            return 0.0, 0.0
+            return 0.0, 0.0, None
         zq = frame.depth[uv[:, 1], uv[:, 0]].astype(np.float64)
         z = pc[:, 2]
         tol = self.params.depth_tol + 0.02 * np.maximum(z - 0.5, 0.0)
@@ -348,7 +367,13 @@ class Estimator:
             consistent &= region[uv[:, 1], uv[:, 0]]
         behind = has & (zq > z + tol)
         n_c, n_b = int(consistent.sum()), int(behind.sum())
-        return n_c / max(1, n_c + n_b), n_c / len(pc)
+        ncc = None
+        if self.gray_icp is not None and n_c > 10:
+            g_t = self.gray_icp[idx[consistent]]
+            g_q = frame.color[uv[consistent, 1], uv[consistent, 0]].astype(np.float64) @ np.array([0.299, 0.587, 0.114])
+            g_t, g_q = g_t - g_t.mean(), g_q - g_q.mean()
+            ncc = float(g_t @ g_q / max(1e-9, np.linalg.norm(g_t) * np.linalg.norm(g_q)))
+        return n_c / max(1, n_c + n_b), n_c / len(pc), ncc
 
     # ------------------------------------------------------------------------------------------------
     def _estimate_pnp(self, frame: RGBDFrame, feats: Features, S: np.ndarray, views: list[int],
@@ -385,9 +410,10 @@ class Estimator:
         res = pycolmap.estimate_and_refine_absolute_pose(feats.pixels[qi].astype(np.float64),
                                                         self.points_obj[ti], cam, opts)
         tm["solve"] = _ms(t)
-        if res is None or int(res["num_inliers"]) < p.pnp_min_inliers:
-            n = 0 if res is None else int(res["num_inliers"])
-            return self._fail(tm, t_all, f"PnP found too few inliers ({n} < {p.pnp_min_inliers})", n, method="pnp")
+        n = 0 if res is None else int(res["num_inliers"])
+        if n < p.pnp_min_inliers or n < p.pnp_min_inlier_ratio * len(qi):
+            return self._fail(tm, t_all, f"PnP found too few inliers ({n} of {len(qi)} 2D-3D matches)", n,
+                              score=n / len(qi), method="pnp")
         T = np.eye(4)
         T[:3, :] = np.asarray(res["cam_from_world"].matrix())
         inl = np.asarray(res["inlier_mask"], bool)
@@ -463,9 +489,9 @@ def _coincident_groups(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _voxel_down(pts: np.ndarray, voxel: float) -> np.ndarray:
-    """[N x 3] -> [M x 3] one point (the first, in input order) per occupied voxel; deterministic."""
+    """[N x 3] -> [M] indices of one point (the first, in input order) per occupied voxel; deterministic."""
     if voxel <= 0 or len(pts) == 0:
-        return np.asarray(pts, dtype=np.float64)
-    keys = np.floor(pts / voxel).astype(np.int64)
+        return np.arange(len(pts))
+    keys = np.floor(np.asarray(pts, dtype=np.float64) / voxel).astype(np.int64)
     _, first = np.unique(keys, axis=0, return_index=True)
-    return np.asarray(pts, dtype=np.float64)[np.sort(first)]
+    return np.sort(first)

@@ -1,0 +1,208 @@
+"""Evaluate pose estimation over RGB-D scenes with ground truth; write BOP19 results.
+
+`evaluate(template, scenes, output_csv)` runs `gscan.estimate.Estimator` on every image of
+- a BOP scene folder (rgb/, depth/, scene_camera.json, scene_gt.json; ground truth of `obj_id`),
+- a capture-layout folder (rgb/, depth/, cam_K.txt, annotated_poses/ = T_cam_obj per image), or
+- a folder whose sub-folders are such scenes (scene ids from numeric folder names, else their order).
+
+Results CSV (BOP19, https://bop.felk.cvut.cz/challenges/): header `scene_id,im_id,obj_id,score,R,t,time`,
+R = 9 numbers row-major, t = 3 numbers in millimetres, both space-separated; time = seconds spent on
+the image (the same for all rows of one image). Only found poses are written. The file is written
+to a temporary name and renamed, so it is never half-written.
+
+Metrics over all images with ground truth (a not-found pose counts as an infinite error):
+"AUC ADD" / "AUC ADD-S" (YCB-Video AUC, 0-10 cm, percent), "AR MSSD" / "AR MSPD" (BOP average
+recall, percent), "AR" (their mean), "found" (percent of images with a pose), "mean time ms".
+Model points: the template's mesh vertices (else its cloud), or `model_path` (any mesh trimesh
+reads; BOP models in millimetres are detected by a diameter above 10 units and scaled to metres).
+"""
+from __future__ import annotations
+
+import logging
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from gscan.errors import InputError
+from gscan.estimate import Estimator
+from gscan.io import open_sequence
+from gscan.io.layouts import detect_format
+from gscan.metrics import adds as adds_err, add as add_err, ar_mspd, ar_mssd, auc, mspd, mssd
+
+log = logging.getLogger(__name__)
+
+CSV_HEADER = "scene_id,im_id,obj_id,score,R,t,time"
+MM_DIAMETER_LIMIT = 10.0  # a model whose diameter exceeds this many units is taken to be in millimetres
+MAX_MODEL_POINTS = 4000  # model points used by the metrics (deterministic subsample beyond)
+
+
+@dataclass
+class EvalRow:
+    """One image: ids, pose (None = not found), errors (inf when not found / no ground truth: nan)."""
+
+    scene_id: int
+    im_id: int
+    found: bool
+    score: float
+    time_s: float
+    T_cam_obj: np.ndarray | None
+    add: float = float("nan")
+    adds: float = float("nan")
+    mssd: float = float("nan")
+    mspd: float = float("nan")
+    reason: str | None = None
+
+    def to_json(self) -> dict:
+        f = (lambda x: None if not np.isfinite(x) else float(x))
+        return {"scene_id": self.scene_id, "im_id": self.im_id, "found": self.found, "score": float(self.score),
+                "time_s": float(self.time_s), "add_m": f(self.add), "adds_m": f(self.adds), "mssd_m": f(self.mssd),
+                "mspd_px": f(self.mspd), "reason": self.reason,
+                "T_cam_obj": None if self.T_cam_obj is None else np.asarray(self.T_cam_obj).tolist()}
+
+
+@dataclass
+class EvalReport:
+    """n_images evaluated, n_found with a pose, metrics {name: value} (see module docstring), rows."""
+
+    output: Path
+    n_images: int
+    n_found: int
+    metrics: dict[str, float]
+    rows: list[EvalRow] = field(default_factory=list)
+
+    def to_json(self) -> dict:
+        return {"output": str(self.output), "n_images": self.n_images, "n_found": self.n_found,
+                "metrics": {k: float(v) for k, v in self.metrics.items()}, "rows": [r.to_json() for r in self.rows]}
+
+
+def _scene_dirs(scenes: Path) -> list[tuple[int, Path]]:
+    """(scene_id, folder) of one scene folder or of every scene sub-folder."""
+    if not scenes.is_dir():
+        raise InputError(scenes, "scenes folder not found")
+    try:
+        detect_format(scenes)
+        return [(int(scenes.name) if scenes.name.isdigit() else 0, scenes)]
+    except InputError:
+        pass
+    subs = sorted(p for p in scenes.iterdir() if p.is_dir())
+    out = []
+    for i, p in enumerate(subs):
+        try:
+            detect_format(p)
+        except InputError:
+            continue
+        out.append((int(p.name) if p.name.isdigit() else i, p))
+    if not out:
+        raise InputError(scenes, "neither an RGB-D scene (BOP or capture layout) nor a folder of scenes")
+    return out
+
+
+def load_model_points(model_path: Path | None, estimator: Estimator) -> np.ndarray:
+    """[N x 3] model points in metres (object frame), at most MAX_MODEL_POINTS (seeded subsample)."""
+    if model_path is None:
+        pts = estimator.model_points
+    else:
+        import trimesh
+
+        model_path = Path(model_path)
+        if not model_path.is_file():
+            raise InputError(model_path, "model file not found")
+        try:
+            m = trimesh.load(str(model_path), force="mesh", process=False)
+            pts = np.asarray(m.vertices, dtype=np.float64)
+        except Exception as e:  # noqa: BLE001 - trimesh raises many types on malformed files
+            raise InputError(model_path, f"cannot load model ({e.__class__.__name__}: {e})") from None
+        if len(pts) == 0:
+            raise InputError(model_path, "model holds no vertices")
+        if _diameter(pts) > MM_DIAMETER_LIMIT:
+            log.info("%s: diameter %.1f units, taken as millimetres", model_path, _diameter(pts))
+            pts = pts * 1e-3
+    if len(pts) > MAX_MODEL_POINTS:
+        pts = pts[np.sort(np.random.default_rng(0).choice(len(pts), MAX_MODEL_POINTS, replace=False))]
+    return np.asarray(pts, dtype=np.float64)
+
+
+def _diameter(pts: np.ndarray) -> float:
+    """Largest distance between two of the points (exact up to 2000 points, else on a seeded subsample)."""
+    p = np.asarray(pts, dtype=np.float64)
+    if len(p) > 2000:
+        p = p[np.random.default_rng(1).choice(len(p), 2000, replace=False)]
+    d2 = (p * p).sum(1)
+    return float(np.sqrt(max(0.0, (d2[:, None] + d2[None, :] - 2 * p @ p.T).max())))
+
+
+def _csv_row(scene_id: int, im_id: int, obj_id: int, score: float, T: np.ndarray, time_s: float) -> str:
+    R = " ".join(f"{x:.9g}" for x in T[:3, :3].reshape(-1))
+    t = " ".join(f"{x:.6f}" for x in T[:3, 3] * 1000.0)
+    return f"{scene_id},{im_id},{obj_id},{score:.6f},{R},{t},{time_s:.6f}"
+
+
+def evaluate(template: str | Path, scenes: str | Path, output_csv: str | Path, obj_id: int = 1,
+             model_path: str | Path | None = None, refine: bool = True, force: bool = False) -> EvalReport:
+    """Estimate the pose of the template's object in every image under `scenes`, write BOP19 CSV
+    `output_csv` and return the metrics. InputError for an existing output without `force`, a missing
+    or partial template, unreadable scenes or model."""
+    output_csv = Path(output_csv)
+    if output_csv.is_dir():
+        raise InputError(output_csv, "output is a folder, expected a .csv file path")
+    if output_csv.exists() and not force:
+        raise InputError(output_csv, "already exists; use --force to overwrite")
+    estimator = Estimator.from_path(template)
+    pts = load_model_points(None if model_path is None else Path(model_path), estimator)
+    diameter = _diameter(pts)
+    rows: list[EvalRow] = []
+    lines = [CSV_HEADER]
+    width = 640
+    for scene_id, folder in _scene_dirs(Path(scenes)):
+        seq = open_sequence(folder, format="auto", obj_id=obj_id)
+        gt = seq.gt_T_cam_obj or {}
+        for name in seq.names:
+            frame = seq[name]
+            width = frame.intrinsics.width
+            im_id = int(name) if name.isdigit() else seq.names.index(name)
+            t0 = time.perf_counter()
+            res = estimator.estimate(frame, mask=None, refine=refine)
+            dt = time.perf_counter() - t0
+            row = EvalRow(scene_id, im_id, res.found, res.score, dt, res.T_cam_obj, reason=res.reason)
+            T_gt = gt.get(name)
+            if T_gt is not None:
+                if res.found:
+                    row.add = add_err(pts, res.T_cam_obj, T_gt)
+                    row.adds = adds_err(pts, res.T_cam_obj, T_gt)
+                    row.mssd = mssd(pts, res.T_cam_obj, T_gt)
+                    try:
+                        row.mspd = mspd(pts, res.T_cam_obj, T_gt, frame.intrinsics)
+                    except ValueError:  # estimated model partly behind the camera
+                        row.mspd = float("inf")
+                else:
+                    row.add = row.adds = row.mssd = row.mspd = float("inf")
+            if res.found:
+                lines.append(_csv_row(scene_id, im_id, obj_id, res.score, res.T_cam_obj, dt))
+            rows.append(row)
+            log.info("scene %d image %d: %s", scene_id, im_id, "found" if res.found else f"not found ({res.reason})")
+    if not rows:
+        raise InputError(Path(scenes), "no image to evaluate")
+    output_csv.parent.mkdir(parents=True, exist_ok=True)
+    tmp = output_csv.with_name(f".{output_csv.name}.tmp-{os.getpid()}")
+    try:
+        tmp.write_text("\n".join(lines) + "\n", encoding="utf-8")
+        os.replace(tmp, output_csv)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return EvalReport(output_csv, len(rows), sum(r.found for r in rows), _metrics(rows, diameter, width), rows)
+
+
+def _metrics(rows: list[EvalRow], diameter: float, width: int) -> dict[str, float]:
+    g = [r for r in rows if not np.isnan(r.add)]
+    m: dict[str, float] = {"found": 100.0 * sum(r.found for r in rows) / len(rows),
+                           "mean time ms": 1e3 * float(np.mean([r.time_s for r in rows]))}
+    if g:
+        m["AUC ADD"] = auc([r.add for r in g])
+        m["AUC ADD-S"] = auc([r.adds for r in g])
+        m["AR MSSD"] = 100.0 * ar_mssd([r.mssd for r in g], diameter)
+        m["AR MSPD"] = 100.0 * ar_mspd([r.mspd for r in g], width)
+        m["AR"] = 0.5 * (m["AR MSSD"] + m["AR MSPD"])
+    return m
