@@ -287,3 +287,23 @@ def test_default_distance_fills_frame(box: TexturedMesh) -> None:
     np.testing.assert_allclose(np.linalg.norm(transform_points(f.T_cam_obj, box.center[None])), d, rtol=1e-9)
     xs = np.nonzero(f.mask.any(0))[0]
     assert 0.2 * 640 < xs.max() - xs.min() < 0.5 * 640
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.floats(0.3, 2.5), st.floats(0.0, 75.0), st.floats(0.0, 360.0))
+def test_no_depth_holes_on_slanted_planes(dist, slant_deg, azimuth_deg) -> None:
+    """Discontinuity detection marks depth jumps, never a smooth plane, however slanted."""
+    from gscan.synth.noise import discontinuities
+    from gscan.camera import pixel_rays
+    s, a = np.radians(slant_deg), np.radians(azimuth_deg)
+    n = np.array([np.sin(s) * np.cos(a), np.sin(s) * np.sin(a), -np.cos(s)])  # plane n.x = -dist, facing the camera
+    z = (-dist / (pixel_rays(SMALL) @ n)).astype(np.float32)
+    z[(z <= 0) | (z > 10)] = 0
+    edge = discontinuities(z, None, DepthNoise().edge_jump)
+    inner = cv2.erode((z > 0).astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+    assert not edge[inner].any()
+    z2 = z.copy()
+    z2[:, 160:] *= 0.9  # a 10% step
+    edge2 = discontinuities(z2, None, DepthNoise().edge_jump)
+    rows = inner[:, 158:162].all(1)
+    assert edge2[rows][:, 159].all() and edge2[rows][:, 160].all()

@@ -3,9 +3,11 @@
 Applied to an exact depth image, in this order:
 1. axial gaussian noise, sigma(z) = sigma_0 + sigma_2 * (z - z_ref)^2 (default 1.2 mm + 1.9 mm/m^2
    * (z - 0.4 m)^2, the structured-light model of Nguyen et al. 2012, close to a D435 at 0.3-1.5 m);
-2. invalid pixels at depth discontinuities: every pixel whose 3x3 neighbourhood spans a jump larger
-   than `edge_jump` (relative to depth) or two different labels is dropped, and the band up to
-   `edge_band_px` further pixels around it is dropped with probability `edge_drop_prob` (ragged edge);
+2. invalid pixels at depth discontinuities: pixels where the second difference of inverse depth
+   along a row or column exceeds `edge_jump` relative to the inverse depth (a jump of about that
+   fraction of the depth; planes of any slant give none), where two labels meet, or at the border
+   of the valid region are dropped, and the band up to `edge_band_px` further pixels around them is
+   dropped with probability `edge_drop_prob` (ragged edges);
 3. grazing surfaces (|cos| between ray and normal below `grazing_cos`) are dropped;
 4. random dropout clusters: a Poisson(`clusters_mean`) number of ellipses, radii 2-`cluster_max_px` px;
 5. quantisation to `quantum` m (1 mm) and the valid range [min_range, max_range] (0.1-3 m).
@@ -42,19 +44,26 @@ def depth_sigma(z: np.ndarray, p: DepthNoise = DepthNoise()) -> np.ndarray:
 
 
 def discontinuities(depth: np.ndarray, labels: np.ndarray | None, rel_jump: float) -> np.ndarray:
-    """[H x W] bool: pixels whose 3x3 neighbourhood spans a relative depth jump or a label change."""
-    kernel = np.ones((3, 3), np.uint8)
-    big = np.where(depth > 0, depth, 1e3).astype(np.float32)
-    small = np.where(depth > 0, depth, 0).astype(np.float32)
-    dmax = cv2.dilate(small, kernel)
-    dmin = cv2.erode(big, kernel)
+    """[H x W] bool: pixels at a depth discontinuity, a label change or the border of the valid region.
+
+    A discontinuity is a second difference of inverse depth (zero on any plane, however oblique)
+    along a row or column larger than `rel_jump` relative to the pixel's inverse depth; both
+    pixels next to a jump are marked.
+    """
     valid = depth > 0
-    edge = valid & ((dmax - dmin) > rel_jump * np.maximum(depth, 1e-3))
-    edge |= valid & (cv2.erode(valid.astype(np.uint8), kernel) == 0)  # border of the valid region
+    inv = np.where(valid, 1.0 / np.maximum(depth, 1e-6), 0.0).astype(np.float32)
+    thr = rel_jump * inv
+    edge = np.zeros(depth.shape, bool)
+    d2 = np.abs(inv[:, 2:] - 2 * inv[:, 1:-1] + inv[:, :-2])
+    edge[:, 1:-1] |= d2 > thr[:, 1:-1]
+    d2 = np.abs(inv[2:] - 2 * inv[1:-1] + inv[:-2])
+    edge[1:-1] |= d2 > thr[1:-1]
+    kernel = np.ones((3, 3), np.uint8)
+    edge |= cv2.erode(valid.astype(np.uint8), kernel) == 0  # border of the valid region
     if labels is not None:
         lab = labels.astype(np.float32)
-        edge |= valid & (cv2.dilate(lab, kernel) != cv2.erode(lab, kernel))
-    return edge
+        edge |= cv2.dilate(lab, kernel) != cv2.erode(lab, kernel)
+    return edge & valid
 
 
 def apply_depth_noise(depth_clean: np.ndarray, labels: np.ndarray | None, cos_view: np.ndarray | None,
