@@ -90,6 +90,18 @@ class WorkingVolume:
         return (h >= height_min) & (h <= self.height) & (np.linalg.norm(radial, axis=1) <= self.radius)
 
 
+    def contains_camera(self, pts_cam: np.ndarray, T_world_cam: np.ndarray, height_min: float = 0.0) -> np.ndarray:
+        """`contains` for camera-frame points [... x 3] of a camera at T_world_cam (float32 fast path)."""
+        T_cam_world = np.linalg.inv(np.asarray(T_world_cam, dtype=np.float64))
+        pl = self.plane_world.transformed(T_cam_world)
+        c = (T_cam_world[:3, :3] @ self.center_world + T_cam_world[:3, 3]).astype(np.float32)
+        n = pl.normal.astype(np.float32)
+        d = np.asarray(pts_cam, dtype=np.float32) - c
+        along = d @ n  # height above the base centre (the centre is on the plane)
+        radial2 = np.einsum("...i,...i->...", d, d) - along * along
+        return (along >= height_min) & (along <= self.height) & (radial2 <= self.radius ** 2)
+
+
 def fit_support_plane(points: np.ndarray, viewpoint: np.ndarray,
                       params: SegmentParams = SegmentParams()) -> Plane | None:
     """Dominant plane of [N x 3] points by seeded RANSAC, normal oriented towards `viewpoint` [3].
@@ -311,8 +323,7 @@ def segment_sequence(frames: list[RGBDFrame], T_world_cam: list[np.ndarray],
             out.append(s)
         else:
             valid = (f.depth >= params.depth_min) & (f.depth <= params.depth_max)
-            pw = transform_points(T, backproject(f.depth, f.intrinsics).reshape(-1, 3))
-            cand = valid & vol.contains(pw, params.height_min).reshape(f.depth.shape)
+            cand = valid & vol.contains_camera(backproject(f.depth, f.intrinsics), T, params.height_min)
             m = pick_component(cand, f.depth, params, keep_fraction=0.05)
             out.append(Segmentation(m, vol.plane_world.transformed(np.linalg.inv(T)), "volume"))
     return out, vol

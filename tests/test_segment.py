@@ -161,3 +161,19 @@ def test_real_ycbv_frame(real_dir, stem):
     ids, counts = np.unique(lab[lab > 0], return_counts=True)
     best = ids[np.argmax(counts)]
     assert counts.max() / (labels == best).sum() > 0.85  # the main object is covered
+
+
+def test_working_volume_camera_fast_path_matches_world():
+    rng = np.random.default_rng(1)
+    n = np.array([0.1, 0.2, 0.95])
+    plane = Plane(n / np.linalg.norm(n), -0.02)
+    p = np.array([0.01, -0.02, 0.0])
+    centre = p - plane.height(p[None])[0] * plane.normal  # on the plane
+    vol = WorkingVolume(plane, centre, 0.08, 0.12)
+    T_world_cam = make_T(rotvec_to_R(np.array([2.2, 0.3, -0.4])), [0.1, -0.3, 0.45])
+    world = centre + rng.uniform(-0.15, 0.15, size=(2000, 3))
+    pts_cam = transform_points(inv_T(T_world_cam), world).reshape(50, 40, 3)
+    inside_w = vol.contains(world, 0.004).reshape(50, 40)
+    inside_c = vol.contains_camera(pts_cam, T_world_cam, 0.004)
+    assert inside_w.sum() > 50 and (~inside_w).sum() > 50
+    assert (inside_w != inside_c).sum() <= 2  # float32 rounding at the boundary only
