@@ -137,7 +137,8 @@ def render_capture(mesh: TexturedMesh, out_dir: str | Path | None, n_views: int,
                    distractor_meshes: list[TexturedMesh] | None = None, distance: float | None = None,
                    elevations_deg: tuple[float, ...] = (30.0, 55.0), table_kind: str = "newspaper",
                    noise: bool = True, shadows: bool = True, jpeg: bool = False, write_masks: bool = True,
-                   R_world_obj: np.ndarray | None = None) -> list[RenderedFrame]:
+                   R_world_obj: np.ndarray | None = None, table: bool = True,
+                   wall_y: float | None = None) -> list[RenderedFrame]:
     """Render (and, when out_dir is given, write) a capture of `mesh` resting on a textured table.
 
     mode "static": object fixed, cameras on orbit rings at `elevations_deg` (views spread evenly over
@@ -145,6 +146,8 @@ def render_capture(mesh: TexturedMesh, out_dir: str | Path | None, n_views: int,
     the object spins 360 degrees about the vertical axis through its centre over the n_views frames.
     distance defaults to `default_distance` (object ~40% of the frame). Distractors are
     `distractor_meshes` or procedural boxes, placed around the target without overlap.
+    R_world_obj turns the object before it is put on the table; table=False renders it floating
+    over an empty background; wall_y adds a textured back wall in the plane y = wall_y.
     """
     if mode not in ("static", "turntable"):
         raise ValueError(f"mode must be 'static' or 'turntable', got {mode!r}")
@@ -159,7 +162,7 @@ def render_capture(mesh: TexturedMesh, out_dir: str | Path | None, n_views: int,
         distractor_meshes = list(distractor_meshes)[:distractors]
     d_poses = place_distractors(mesh, T_world_obj, distractor_meshes, rng)
     scene = SynthScene([(mesh, T_world_obj)] + list(zip(distractor_meshes, d_poses)), seed=seed,
-                       table_kind=table_kind, shadows=shadows)
+                       table_kind=table_kind, shadows=shadows, table=table, wall_y=wall_y)
     center = transform_points(T_world_obj, mesh.center[None])[0]
     dist = default_distance(mesh, intr) if distance is None else float(distance)
     frames = []

@@ -11,7 +11,8 @@ Applied to an exact depth image, in this order:
 3. grazing surfaces (|cos| between ray and normal below `grazing_cos`) are dropped;
 4. random dropout clusters: a Poisson(`clusters_mean`) number of ellipses, radii 2-`cluster_max_px` px;
 5. quantisation to `quantum` m (1 mm) and the valid range [min_range, max_range] (0.1-3 m).
-Colour noise (`color_sigma`, 8-bit units) is added by the renderer.
+The renderer also blurs the colour image slightly (`color_blur_sigma` px, lens / demosaicing
+softness, which also hides ray-casting aliasing) and adds gaussian noise (`color_sigma`, 8-bit units).
 """
 from __future__ import annotations
 
@@ -36,6 +37,7 @@ class DepthNoise:
     min_range: float = 0.1
     max_range: float = 3.0
     color_sigma: float = 1.5
+    color_blur_sigma: float = 0.5
 
 
 def depth_sigma(z: np.ndarray, p: DepthNoise = DepthNoise()) -> np.ndarray:

@@ -251,6 +251,8 @@ class SynthScene:
         if noise:
             rng = rng if rng is not None else np.random.default_rng([self.seed, 0xD3])
             depth = apply_depth_noise(depth_clean, labels, cos_view.reshape(H, W), rng, noise_params)
+            if noise_params.color_blur_sigma > 0:
+                rgb = cv2.GaussianBlur(rgb.reshape(H, W, 3), (0, 0), noise_params.color_blur_sigma).reshape(-1, 3)
             rgb += np.float32(noise_params.color_sigma) * rng.standard_normal(rgb.shape, dtype=np.float32)
         else:
             depth = depth_clean.copy()
