@@ -31,7 +31,8 @@ class FusionParams:
     trunc_voxels: float = 4.0            # truncation distance in voxels
     block_resolution: int = 16
     depth_max: float | None = None       # m; None: 1.05 x the largest masked depth
-    weight_threshold: float = 1.5        # voxels seen by fewer (weighted) observations are not surfaced
+    weight_threshold: float = 1.5        # voxels with less weight (~observations) are not surfaced (capped
+                                         # below the number of fused frames)
     min_component_fraction: float = 0.1  # drop mesh components below this fraction of the largest one's triangles
     keep_largest_only: bool = False      # keep just the largest connected component
 
@@ -118,8 +119,9 @@ def fuse_tsdf(frames: list[RGBDFrame], T_world_cam: list[np.ndarray | None],
         color = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(f.color, dtype=np.float32) / 255.0))
         blocks = vbg.compute_unique_block_coordinates(depth, K, extr, 1.0, depth_max, params.trunc_voxels)
         vbg.integrate(blocks, depth, color, K, extr, 1.0, depth_max, params.trunc_voxels)
-    mesh = vbg.extract_triangle_mesh(weight_threshold=params.weight_threshold).to_legacy()
-    pcd = vbg.extract_point_cloud(weight_threshold=params.weight_threshold)
+    wt = min(params.weight_threshold, max(len(use) - 0.5, 0.5))  # a single frame still gives a surface
+    mesh = vbg.extract_triangle_mesh(weight_threshold=wt).to_legacy()
+    pcd = vbg.extract_point_cloud(weight_threshold=wt)
     V, F, C = _mesh_arrays(mesh)
     V, F, C = remove_small_components(V, F, C, params.min_component_fraction, params.keep_largest_only)
     P = pcd.point.positions.numpy().astype(np.float64) if "positions" in pcd.point else np.zeros((0, 3))

@@ -94,6 +94,8 @@ def test_skips_unregistered_and_rejects_empty(capture):
     b = fuse_tsdf([frames[0], frames[2]], [poses[0], poses[2]], [renders[0].mask, renders[2].mask])
     np.testing.assert_array_equal(a.vertices, b.vertices)  # also: deterministic
     np.testing.assert_array_equal(a.triangles, b.triangles)
+    one = fuse_tsdf(frames[:1], poses[:1], [renders[0].mask])  # a single view still gives a surface
+    assert len(one.triangles) > 100
 
 
 def test_remove_small_components():
