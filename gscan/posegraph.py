@@ -11,10 +11,17 @@ Conventions (match open3d's `PoseGraphEdge(source, target, transformation)`):
   consistent), reported as (rotation angle in degrees, |translation| in metres).
 
 `optimize_pose_graph` runs open3d's Levenberg-Marquardt optimiser with the line process
-(uncertain edges = loop closures may be switched off), then removes edges whose residual
-exceeds explicit rotation / translation thresholds (worst first, re-optimising after each
-round). Nodes that are no longer connected to the reference node through accepted edges
-are reported as unregistered and get no pose.
+(uncertain edges = loop closures may be switched off), graduated: the correspondence distance
+starts at `graduated_start` times the requested one (so the odometry drift does not switch off
+correct loop closures) and is halved down to it. Then edges whose residual exceeds explicit
+rotation / translation thresholds are rejected (all offending loop closures, else the worst
+odometry edge) and the graph is re-optimised until every accepted edge is consistent; edges
+dropped on the way that agree with the final poses are re-admitted once. Nodes that are no
+longer connected to the reference node through accepted edges are reported as unregistered
+and get no pose. Information matrices follow open3d's scale (per correspondence, translation
+block = number of correspondences), which the line process relies on.
+
+Loop-closure candidates (`select_loop_candidates`) live in `gscan.loops` and are re-exported.
 """
 from __future__ import annotations
 
@@ -27,9 +34,10 @@ import numpy as np
 from gscan.geometry import inv_T, rotation_angle_deg
 from gscan.loops import LoopCandidate, LoopParams, bow_vectors, select_loop_candidates
 
-__all__ = ["GraphEdge", "EdgeReport", "PoseGraphParams", "PoseGraphResult", "optimize_pose_graph", "chain_odometry",
-           "edge_residual", "information_matrix", "information_from_points", "information_from_clouds", "information_from_count",
-           "LoopCandidate", "LoopParams", "bow_vectors", "select_loop_candidates"]
+__all__ = ["GraphEdge", "EdgeReport", "PoseGraphParams", "PoseGraphResult", "optimize_pose_graph",
+           "chain_odometry", "edge_residual", "information_matrix", "information_from_points",
+           "information_from_clouds", "information_from_count", "LoopCandidate", "LoopParams", "bow_vectors",
+           "select_loop_candidates"]
 
 log = logging.getLogger(__name__)
 
