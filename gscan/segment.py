@@ -23,6 +23,7 @@ import cv2
 import numpy as np
 
 from gscan.camera import RGBDFrame, backproject
+from gscan.errors import InputError
 from gscan.geometry import transform_points
 
 log = logging.getLogger(__name__)
@@ -207,10 +208,18 @@ def pick_component(cand: np.ndarray, depth: np.ndarray, params: SegmentParams, k
 
 def segment_frame(frame: RGBDFrame, params: SegmentParams = SegmentParams(),
                   mask: np.ndarray | None = None) -> Segmentation:
-    """Object mask of one frame: `mask`, else `frame.mask`, else automatic (plane + component)."""
+    """Object mask of one frame: `mask`, else `frame.mask` (returned as given), else automatic
+    (support plane + component; without a usable plane, the central component of the valid depth).
+
+    Raises InputError (naming the frame's file) when a given mask's size differs from the depth's.
+    """
     given = mask if mask is not None else frame.mask
     if given is not None:
-        return Segmentation(np.asarray(given, dtype=bool) & (frame.depth > 0), None, "given")
+        given = np.asarray(given, dtype=bool)
+        if given.shape != frame.depth.shape:
+            raise InputError(frame.source, f"mask {given.shape[1::-1]} and depth {frame.depth.shape[1::-1]} "
+                             f"sizes differ (frame {frame.name})")
+        return Segmentation(given.copy(), None, "given")
     depth = frame.depth
     valid = (depth >= params.depth_min) & (depth <= params.depth_max)
     pts = backproject(depth, frame.intrinsics)

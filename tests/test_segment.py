@@ -6,6 +6,7 @@ import pytest
 from hypothesis import given, settings, strategies as st
 
 from gscan.camera import RGBDFrame
+from gscan.errors import InputError
 from gscan.geometry import inv_T, make_T, rotvec_to_R, transform_points
 from gscan.segment import (Plane, SegmentParams, WorkingVolume, estimate_working_volume, fit_support_plane,
                            segment_frame, segment_sequence)
@@ -84,7 +85,9 @@ def test_given_masks_win_and_unregistered_frames(scene):
     given_mask[50:120, 100:200] = True
     seg = segment_frame(f, mask=given_mask)
     assert seg.method == "given"
-    np.testing.assert_array_equal(seg.mask, given_mask & (f.depth > 0))
+    np.testing.assert_array_equal(seg.mask, given_mask)
+    with pytest.raises(InputError):
+        segment_frame(f, mask=given_mask[:-1])
     framed = RGBDFrame(f.name, f.color, f.depth, f.intrinsics, mask=given_mask)
     assert segment_frame(framed).method == "given"
     segs, _ = segment_sequence([frames[0], framed, frames[4]], [poses[0], poses[2], None])
