@@ -11,11 +11,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from gscan.camera import Intrinsics, backproject, load_intrinsics, project
-from gscan.geometry import inv_T, make_T, rotvec_to_R, transform_points
+from gscan.geometry import inv_T, rotvec_to_R, transform_points
 from gscan.synth import (DEFAULT_INTRINSICS, DepthNoise, SynthScene, TexturedMesh, apply_depth_noise, box_mesh,
                          default_distance, depth_sigma, load_textured_mesh, orbit_poses, place_distractors,
                          procedural_box_texture, render_capture, rest_on_table, save_textured_mesh,
-                         table_texture, turntable_poses, write_capture)
+                         table_texture, write_capture)
 
 SMALL = Intrinsics(fx=307.5, fy=307.5, cx=159.5, cy=119.5, width=320, height=240)
 MESH_NAME = "Apples_to_Apples_Kids_Edition"
@@ -241,6 +241,12 @@ def test_write_capture_layout_and_roundtrip(tmp_path: Path, box: TexturedMesh) -
         np.testing.assert_allclose(np.loadtxt(out / "annotated_poses" / f"00000{i}.txt"), f.T_cam_obj, atol=1e-9)
         rgb = cv2.cvtColor(cv2.imread(str(out / "rgb" / f"00000{i}.jpg")), cv2.COLOR_BGR2RGB)
         assert np.abs(rgb.astype(int) - f.color).mean() < 6  # JPEG
+    out2 = write_capture(tmp_path / "named", frames, SMALL, names=["a", "b"], write_masks=False)
+    assert sorted(p.name for p in out2.iterdir()) == ["annotated_poses", "cam_K.txt", "depth", "rgb"]
+    rgb = cv2.cvtColor(cv2.imread(str(out2 / "rgb" / "b.png")), cv2.COLOR_BGR2RGB)
+    assert np.array_equal(rgb, frames[1].color)  # PNG is lossless
+    with pytest.raises(ValueError):
+        write_capture(tmp_path / "bad", frames, SMALL, names=["only_one"])
 
 
 def test_box_mesh_closed_and_textures_saved(tmp_path: Path, box: TexturedMesh) -> None:
@@ -307,3 +313,17 @@ def test_no_depth_holes_on_slanted_planes(dist, slant_deg, azimuth_deg) -> None:
     edge2 = discontinuities(z2, None, DepthNoise().edge_jump)
     rows = inner[:, 158:162].all(1)
     assert edge2[rows][:, 159].all() and edge2[rows][:, 160].all()
+
+
+def test_render_deterministic_and_seed_dependent(box: TexturedMesh) -> None:
+    T_wo = rest_on_table(box)
+    intr = DEFAULT_INTRINSICS.scaled(0.25)
+    T_wc = orbit_poses(transform_points(T_wo, box.center[None])[0], 0.5, [40.0], 2)
+    a = SynthScene([(box, T_wo)], seed=3, table_texture_size=512)
+    f1, f2, g = a.render(T_wc[0], intr), a.render(T_wc[0], intr), a.render(T_wc[1], intr)
+    assert np.array_equal(f1.color, f2.color) and np.array_equal(f1.depth, f2.depth)
+    h = SynthScene([(box, T_wo)], seed=4, table_texture_size=512).render(T_wc[0], intr)
+    assert not np.array_equal(f1.color, h.color)  # another seed: other table, other noise
+    assert np.array_equal(f1.depth_clean, h.depth_clean)  # same geometry
+    holes_1, holes_g = (f1.depth == 0) & (f1.depth_clean > 0), (g.depth == 0) & (g.depth_clean > 0)
+    assert holes_1.any() and holes_g.any()

@@ -265,25 +265,29 @@ def sample_mip_pixels(pyramid: list[np.ndarray], uv: np.ndarray, level: np.ndarr
     lo = np.floor(level).astype(np.int64)
     frac = (level - lo).astype(np.float32)
     r0, c0 = int(rows.min()), int(cols.min())
-    rr, cc = rows - r0, cols - c0
-    hh, ww = int(rr.max()) + 1, int(cc.max()) + 1
-    for L in range(int(lo.min()), min(int(lo.max()) + 1, len(pyramid) - 1) + 1):
-        wgt = np.where(lo == L, 1.0 - frac, 0.0) + np.where(lo + 1 == L, frac, 0.0)
-        sel = np.flatnonzero(wgt > 0)
+    hh, ww = int(rows.max()) - r0 + 1, int(cols.max()) - c0 + 1
+    flat = (rows - r0) * ww + (cols - c0)  # index into the bounding box
+    levels = range(int(lo.min()), min(int(lo.max()) + 1, len(pyramid) - 1) + 1)
+    for L in levels:
+        if len(levels) == 1:
+            sel, wl = np.arange(n), np.ones(n, np.float32)
+        else:
+            wgt = np.where(lo == L, 1.0 - frac, 0.0) + np.where(lo + 1 == L, frac, 0.0)
+            sel = np.flatnonzero(wgt > 0)
+            wl = wgt[sel].astype(np.float32)
         if len(sel) == 0:
             continue
         img = pyramid[L]
         h, w = img.shape[:2]
-        x = (u[sel] * w - 0.5).astype(np.float32)
-        y = ((1.0 - v[sel]) * h - 0.5).astype(np.float32)
         if len(sel) < 0.05 * hh * ww or len(sel) < 2000:  # sparse: gather directly
-            uv_l = np.stack([u[sel], v[sel]], 1)
-            vals = sample_bilinear(img, uv_l)
+            vals = sample_bilinear(img, np.stack([u[sel], v[sel]], 1))
         else:
-            mx = np.zeros((hh, ww), np.float32)
-            my = np.zeros((hh, ww), np.float32)
-            mx[rr[sel], cc[sel]] = x
-            my[rr[sel], cc[sel]] = y
-            vals = cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)[rr[sel], cc[sel]]
-        out[sel] += wgt[sel, None].astype(np.float32) * vals.reshape(len(sel), -1)
+            mx = np.zeros(hh * ww, np.float32)
+            my = np.zeros(hh * ww, np.float32)
+            mx[flat[sel]] = u[sel] * w - 0.5
+            my[flat[sel]] = (1.0 - v[sel]) * h - 0.5
+            res = cv2.remap(img, mx.reshape(hh, ww), my.reshape(hh, ww), cv2.INTER_LINEAR,
+                            borderMode=cv2.BORDER_REPLICATE)
+            vals = res.reshape(hh * ww, -1)[flat[sel]]
+        out[sel] += wl[:, None] * vals.reshape(len(sel), -1)
     return out

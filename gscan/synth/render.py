@@ -7,6 +7,7 @@ object (turntable) never rebuilds a scene. Depth is the camera-frame z, not the 
 from __future__ import annotations
 
 import logging
+import zlib
 from dataclasses import dataclass, field
 from functools import lru_cache
 
@@ -115,7 +116,10 @@ class SynthScene:
         T = self.T_world_objs.copy()
         if override is None:
             return T
-        ov = override if isinstance(override, (list, tuple)) else [override]
+        if isinstance(override, np.ndarray) and override.ndim == 3:
+            ov = list(override)
+        else:
+            ov = override if isinstance(override, (list, tuple)) else [override]
         if len(ov) > len(T):
             raise ValueError(f"{len(ov)} pose overrides for {len(T)} objects")
         for k, Tk in enumerate(ov):
@@ -175,7 +179,7 @@ class SynthScene:
         T_world_obj_override: a [4 x 4] pose for the target, or a list of per-object poses (None keeps
         an object's scene pose). shading=False gives the raw texture colour (no light, no shadow).
         noise: RealSense-like depth noise and holes plus slight colour noise (see gscan.synth.noise);
-        rng defaults to a generator seeded by the scene seed.
+        rng defaults to a generator seeded by the scene seed and the poses (same view, same noise).
         """
         T_world_cam = np.asarray(T_world_cam, dtype=np.float64)
         T_wo = self._poses(T_world_obj_override)
@@ -249,7 +253,8 @@ class SynthScene:
         depth_clean[depth_clean < 0] = 0.0
         labels = label.reshape(H, W)
         if noise:
-            rng = rng if rng is not None else np.random.default_rng([self.seed, 0xD3])
+            if rng is None:  # deterministic per (scene seed, camera pose, object poses), independent of call order
+                rng = np.random.default_rng([self.seed, zlib.crc32(T_world_cam.tobytes() + T_wo.tobytes())])
             depth = apply_depth_noise(depth_clean, labels, cos_view.reshape(H, W), rng, noise_params)
             if noise_params.color_blur_sigma > 0:
                 rgb = cv2.GaussianBlur(rgb.reshape(H, W, 3), (0, 0), noise_params.color_blur_sigma).reshape(-1, 3)
