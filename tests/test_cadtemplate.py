@@ -1,0 +1,121 @@
+"""Templates rendered from CAD meshes (gscan.cadtemplate)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gscan.cadtemplate import build_template_from_mesh, fibonacci_directions, view_poses
+from gscan.camera import project
+from gscan.errors import InputError
+from gscan.geometry import inv_T, transform_points
+from gscan.synth import DEFAULT_INTRINSICS, load_textured_mesh
+from gscan.template import TemplateDB
+
+MESH = "Vans_Cereal_Honey_Nut_Crunch_11_oz_box"
+
+
+@pytest.fixture(scope="module")
+def built(meshes_dir: Path, tmp_path_factory) -> tuple[Path, dict]:
+    out = tmp_path_factory.mktemp("cad") / "vans.gscan"
+    summary = build_template_from_mesh(meshes_dir / MESH / "model_0.obj", out, n_views=8, scale=1.0)
+    return out, summary
+
+
+def test_summary_and_database(built, meshes_dir):
+    out, summary = built
+    mesh = load_textured_mesh(meshes_dir / MESH / "model_0.obj")
+    assert summary["output"] == str(out) and summary["views"] == 8 and summary["source"] == "mesh"
+    assert summary["descriptor"] == "rootsift"
+    np.testing.assert_allclose(summary["extent_m"], mesh.extent, atol=1e-6)
+    with TemplateDB.open(out, require_complete=True) as db:
+        info = db.summary()
+        assert info["status"] == "complete" and info["source"] == "mesh" and info["views"] == 8
+        V, F, C = db.mesh()
+        np.testing.assert_allclose(V, mesh.vertices)  # the mesh frame is kept
+        assert F.shape == mesh.triangles.shape and C.shape == V.shape and C.dtype == np.uint8
+        assert C.std() > 5  # colours come from the texture, not a flat grey
+        P, _ = db.cloud()
+        lo, hi = mesh.bounds
+        assert len(P) > 1000 and np.all(P >= lo - 2e-3) and np.all(P <= hi + 2e-3)
+        for v in db.views(load_images=True):
+            assert v.T_obj_cam is not None and v.mask is not None and v.mask.any()
+            assert not v.depth[~v.mask].any()  # depth only on the object
+            assert np.percentile(v.color[~v.mask], 99) <= 8  # black background, no table (JPEG ringing at edges)
+            px, pts_obj, desc, kind = db.features(v.name)
+            assert kind == "rootsift" and len(px) > 10
+            # object-frame keypoints project back onto their pixels through the view pose
+            uv = project(transform_points(inv_T(v.T_obj_cam), pts_obj), v.intrinsics)
+            np.testing.assert_allclose(uv, px, atol=0.05)
+            u, w = np.rint(px).astype(int).T
+            assert v.mask[w, u].all()
+
+
+def test_views_cover_both_hemispheres_at_fill_distance(meshes_dir):
+    d = fibonacci_directions(36)
+    np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1.0)
+    assert (d[:, 2] > 0.3).sum() >= 10 and (d[:, 2] < -0.3).sum() >= 10
+    mesh = load_textured_mesh(meshes_dir / MESH / "model_0.obj")
+    for T_obj_cam in view_poses(mesh, 12):
+        c_cam = transform_points(inv_T(T_obj_cam), mesh.center[None])[0]
+        uv = project(c_cam[None], DEFAULT_INTRINSICS)[0]
+        np.testing.assert_allclose(uv, [DEFAULT_INTRINSICS.cx, DEFAULT_INTRINSICS.cy], atol=1e-6)
+        span = 2 * mesh.radius * DEFAULT_INTRINSICS.fx / c_cam[2] / DEFAULT_INTRINSICS.width
+        assert 0.4 <= span <= 0.5
+
+
+def test_scale_converts_units(meshes_dir, tmp_path):
+    out = tmp_path / "mm.gscan"
+    s = build_template_from_mesh(meshes_dir / MESH / "model_0.obj", out, n_views=4, scale=0.5)
+    mesh = load_textured_mesh(meshes_dir / MESH / "model_0.obj")
+    np.testing.assert_allclose(s["extent_m"], 0.5 * mesh.extent, atol=1e-6)
+
+
+def test_vertex_coloured_ply(tmp_path):
+    import trimesh
+
+    box = trimesh.creation.box(extents=(0.1, 0.06, 0.04))
+    rng = np.random.default_rng(0)
+    box = box.subdivide().subdivide()
+    box.visual.vertex_colors = np.c_[rng.integers(0, 256, (len(box.vertices), 3)), np.full(len(box.vertices), 255)]
+    ply = tmp_path / "box.ply"
+    box.export(ply)
+    out = tmp_path / "box.gscan"
+    s = build_template_from_mesh(ply, out, n_views=4)
+    assert s["views"] == 4
+    with TemplateDB.open(out) as db:
+        v = db.views(load_images=True)[0]
+        assert v.color[v.mask].std() > 20  # rendered with its colours, not grey
+
+
+@pytest.mark.parametrize("content", [None, b"", b"v 0 0 0\nf 1 2 3\n", b"\x00\x01garbage"])
+def test_bad_mesh_refused_and_nothing_written(tmp_path, content):
+    mesh = tmp_path / "bad.obj"
+    if content is not None:
+        mesh.write_bytes(content)
+    out = tmp_path / "out.gscan"
+    with pytest.raises(InputError, match="bad.obj"):
+        build_template_from_mesh(mesh, out, n_views=4)
+    assert not out.exists()
+
+
+def test_existing_output_refused_without_force(built, meshes_dir, tmp_path):
+    out = tmp_path / "exists.gscan"
+    out.write_bytes(b"keep me")
+    with pytest.raises(InputError, match="exists.gscan"):
+        build_template_from_mesh(meshes_dir / MESH / "model_0.obj", out, n_views=4)
+    assert out.read_bytes() == b"keep me"
+
+
+def test_failure_midway_removes_output(meshes_dir, tmp_path, monkeypatch):
+    import gscan.cadtemplate as cad
+
+    def boom(*a, **k):
+        raise RuntimeError("disk full")
+
+    monkeypatch.setattr(cad, "vertex_colors", boom)
+    out = tmp_path / "half.gscan"
+    with pytest.raises(RuntimeError):
+        build_template_from_mesh(meshes_dir / MESH / "model_0.obj", out, n_views=4)
+    assert not out.exists()

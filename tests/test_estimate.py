@@ -1,0 +1,163 @@
+"""Pose estimation against a CAD template in cluttered rendered scenes (gscan.estimate)."""
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gscan.camera import RGBDFrame
+from gscan.cadtemplate import build_template_from_mesh
+from gscan.errors import InputError
+from gscan.estimate import STAGES, Estimator, off_plane_region
+from gscan.geometry import look_at, make_T, pose_error, rotvec_to_R, transform_points
+from gscan.metrics import add
+from gscan.synth import (DEFAULT_INTRINSICS, SynthScene, default_distance, load_textured_mesh, place_distractors,
+                         rest_on_table)
+from gscan.template import TemplateDB, View
+
+TARGET = "Frozen_Scrabble_Jr"
+DISTRACTORS = ("Crayola_Bonus_64_Crayons", "Little_Debbie_Cloud_Cakes_10_ct")
+
+
+def render_scene(target, distractors, seed: int, with_target: bool = True, elevation=None, azimuth=None):
+    """Target (or, without it, only the distractors) on a textured table seen from a seeded random
+    viewpoint. Returns (RenderedFrame, T_cam_obj of the target's place)."""
+    rng = np.random.default_rng(seed)
+    T_world_tgt = rest_on_table(target, rotvec_to_R([0.0, 0.0, rng.uniform(0, 2 * np.pi)]))
+    d_poses = place_distractors(target, T_world_tgt, list(distractors), rng)
+    objs = ([(target, T_world_tgt)] if with_target else []) + list(zip(distractors, d_poses))
+    scene = SynthScene(objs, seed=seed)
+    c = transform_points(T_world_tgt, target.center[None])[0]
+    el = np.radians(rng.uniform(25, 60) if elevation is None else elevation)
+    az = np.radians(rng.uniform(0, 360) if azimuth is None else azimuth)
+    dist = default_distance(target, fill=0.45) * rng.uniform(0.95, 1.2)
+    eye = c + dist * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    T_world_cam = look_at(eye, c)
+    r = scene.render(T_world_cam, DEFAULT_INTRINSICS, rng=np.random.default_rng([seed, 1]))
+    return r, np.linalg.inv(T_world_cam) @ T_world_tgt
+
+
+def as_frame(r, depth=None) -> RGBDFrame:
+    return RGBDFrame("query", r.color, r.depth if depth is None else depth, DEFAULT_INTRINSICS)
+
+
+@pytest.fixture(scope="module")
+def meshes(meshes_dir: Path):
+    return [load_textured_mesh(meshes_dir / n / "model_0.obj") for n in (TARGET,) + DISTRACTORS]
+
+
+@pytest.fixture(scope="module")
+def template(meshes_dir: Path, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("estimate") / "target.gscan"
+    build_template_from_mesh(meshes_dir / TARGET / "model_0.obj", out, n_views=24)
+    return out
+
+
+@pytest.fixture(scope="module")
+def estimator(template: Path) -> Estimator:
+    return Estimator.from_path(template)
+
+
+@pytest.mark.parametrize("seed", [0, 3])
+def test_target_found_in_clutter(meshes, estimator, seed):
+    r, T_gt = render_scene(meshes[0], meshes[1:], seed)
+    res = estimator.estimate(as_frame(r))
+    assert res.found, res.reason
+    assert res.method == "gmatch"
+    assert add(meshes[0].vertices, res.T_cam_obj, T_gt) < 0.01
+    assert res.n_matches >= estimator.params.min_matches and 0.6 <= res.score <= 1.0
+    assert res.view in estimator.view_names
+    # with the target's mask the search is restricted and the answer agrees
+    res_m = estimator.estimate(as_frame(r), mask=r.mask)
+    assert res_m.found and add(meshes[0].vertices, res_m.T_cam_obj, T_gt) < 0.01
+
+
+def test_icp_refinement_does_not_hurt(meshes, estimator):
+    r, T_gt = render_scene(meshes[0], meshes[1:], 0)
+    raw = estimator.estimate(as_frame(r), refine=False)
+    ref = estimator.estimate(as_frame(r), refine=True)
+    assert raw.found and ref.found
+    assert add(meshes[0].vertices, ref.T_cam_obj, T_gt) <= add(meshes[0].vertices, raw.T_cam_obj, T_gt) + 1e-3
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_scene_without_target_is_not_found(meshes, estimator, seed):
+    r, _ = render_scene(meshes[0], meshes[1:], seed, with_target=False)
+    res = estimator.estimate(as_frame(r))
+    assert res.T_cam_obj is None and not res.found
+    assert isinstance(res.reason, str) and res.reason
+    assert res.grasps == {}
+    out = res.to_json()
+    assert out["T_cam_obj"] is None and out["reason"] == res.reason
+
+
+def test_deterministic(meshes, estimator):
+    r, _ = render_scene(meshes[0], meshes[1:], 3)
+    a, b = estimator.estimate(as_frame(r)), estimator.estimate(as_frame(r))
+    assert np.array_equal(a.T_cam_obj, b.T_cam_obj) and a.n_matches == b.n_matches and a.view == b.view
+
+
+def test_pnp_fallback_without_depth(meshes, estimator):
+    r, T_gt = render_scene(meshes[0], meshes[1:], 3)
+    res = estimator.estimate(as_frame(r, depth=np.zeros_like(r.depth)), mask=r.mask)
+    assert res.found, res.reason
+    assert res.method == "pnp"
+    deg, m = pose_error(res.T_cam_obj, T_gt)
+    assert deg < 3.0 and m < 0.03
+    assert res.timings_ms["refine"] == 0.0
+
+
+def test_grasps_json_contract(meshes, template, tmp_path):
+    path = tmp_path / "with_grasps.gscan"
+    shutil.copy(template, path)
+    T_obj_grasp = make_T(rotvec_to_R([0.3, -0.2, 1.0]), [0.01, -0.02, 0.15])
+    with TemplateDB.open(path, writable=True) as db:
+        db.add_grasp("top", T_obj_grasp)
+        db.add_grasp("side", np.eye(4))
+    est = Estimator.from_path(path)
+    r, _ = render_scene(meshes[0], meshes[1:], 0)
+    res = est.estimate(as_frame(r))
+    assert res.found
+    assert set(res.grasps) == {"top", "side"}
+    np.testing.assert_allclose(res.grasps["top"], res.T_cam_obj @ T_obj_grasp, atol=1e-12)
+    np.testing.assert_allclose(res.grasps["side"], res.T_cam_obj, atol=1e-12)
+    out = json.loads(json.dumps(res.to_json()))
+    assert list(out) == ["T_cam_obj", "score", "n_matches", "view", "reason", "grasps", "timings_ms"]
+    assert np.asarray(out["T_cam_obj"]).shape == (4, 4) and out["reason"] is None
+    assert isinstance(out["score"], float) and isinstance(out["n_matches"], int) and isinstance(out["view"], str)
+    assert {k: np.asarray(v).shape for k, v in out["grasps"].items()} == {"top": (4, 4), "side": (4, 4)}
+    assert list(out["timings_ms"]) == list(STAGES)
+    assert all(v >= 0 for v in out["timings_ms"].values())
+    assert out["timings_ms"]["total"] >= out["timings_ms"]["features"]
+
+
+def test_partial_and_foreign_templates_refused(tmp_path):
+    partial = tmp_path / "partial.gscan"
+    with TemplateDB.create(partial, meta={"source": "mesh"}) as db:
+        db.add_view(View(name="v0", intrinsics=DEFAULT_INTRINSICS, T_obj_cam=np.eye(4)))
+    with pytest.raises(InputError, match="partial"):
+        Estimator.from_path(partial)
+    junk = tmp_path / "junk.gscan"
+    junk.write_bytes(b"not a database")
+    with pytest.raises(InputError, match="junk.gscan"):
+        Estimator.from_path(junk)
+    with pytest.raises(InputError, match="missing.gscan"):
+        Estimator.from_path(tmp_path / "missing.gscan")
+
+
+def test_mask_of_wrong_size_is_refused(meshes, estimator):
+    r, _ = render_scene(meshes[0], meshes[1:], 0)
+    with pytest.raises(InputError, match="mask"):
+        estimator.estimate(as_frame(r), mask=np.ones((10, 10), bool))
+
+
+def test_off_plane_region_removes_the_table(meshes):
+    r, _ = render_scene(meshes[0], meshes[1:], 0)
+    region = off_plane_region(as_frame(r))
+    assert region is not None
+    table = (r.labels < 0) & (r.depth > 0)
+    assert region[table].mean() < 0.02  # the table top is left out ...
+    assert region[r.mask & (r.depth > 0)].mean() > 0.8  # ... the objects are kept
