@@ -1,0 +1,126 @@
+"""BOP19 results and metrics over rendered scenes (gscan.evaluate)."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from gscan.cadtemplate import build_template_from_mesh
+from gscan.errors import InputError
+from gscan.evaluate import CSV_HEADER, evaluate
+from gscan.geometry import look_at, rotvec_to_R, transform_points
+from gscan.synth import DEFAULT_INTRINSICS, SynthScene, default_distance, load_textured_mesh, rest_on_table, write_capture
+
+TARGET = "Whey_Protein_Chocolate_12_Packets"
+
+
+@pytest.fixture(scope="module")
+def setup(meshes_dir: Path, tmp_path_factory):
+    """A 20-view CAD template and three rendered images of the object on a table (one showing only the table)."""
+    root = tmp_path_factory.mktemp("evaluate")
+    mesh = load_textured_mesh(meshes_dir / TARGET / "model_0.obj")
+    tpl = root / "whey.gscan"
+    build_template_from_mesh(meshes_dir / TARGET / "model_0.obj", tpl, n_views=20)
+    T_wo = rest_on_table(mesh, rotvec_to_R([0, 0, 0.7]))
+    scene = SynthScene([(mesh, T_wo)], seed=4)
+    c = transform_points(T_wo, mesh.center[None])[0]
+    d = default_distance(mesh, fill=0.45)
+    frames = []
+    for k, (el, az) in enumerate([(40, 30), (55, 200), (-89, 0)]):  # the last camera looks away, below the table
+        e, a = np.radians(el), np.radians(az)
+        eye = c + d * np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
+        target = c if el > 0 else c + np.array([0.0, 0.0, -1.0])
+        frames.append(scene.render(look_at(eye, target), DEFAULT_INTRINSICS, rng=np.random.default_rng(k)))
+    frames[2].color[:] = 90  # blank the last image: nothing to find
+    frames[2].depth[:] = 0.8
+    capture = write_capture(root / "capture", frames, DEFAULT_INTRINSICS)
+    bop = _write_bop(root / "000007", frames, obj_id=5)
+    return mesh, tpl, capture, bop, frames
+
+
+def _write_bop(folder: Path, frames, obj_id: int) -> Path:
+    for d in ("rgb", "depth"):
+        (folder / d).mkdir(parents=True)
+    cams, gts = {}, {}
+    for i, f in enumerate(frames):
+        cv2.imwrite(str(folder / "rgb" / f"{i:06d}.png"), cv2.cvtColor(f.color, cv2.COLOR_RGB2BGR))
+        cv2.imwrite(str(folder / "depth" / f"{i:06d}.png"), np.rint(f.depth * 10000).astype(np.uint16))  # 0.1 mm
+        cams[str(i)] = {"cam_K": DEFAULT_INTRINSICS.K.reshape(-1).tolist(), "depth_scale": 0.1}
+        gts[str(i)] = [{"obj_id": 2, "cam_R_m2c": np.eye(3).reshape(-1).tolist(), "cam_t_m2c": [0, 0, 900]},
+                       {"obj_id": obj_id, "cam_R_m2c": f.T_cam_obj[:3, :3].reshape(-1).tolist(),
+                        "cam_t_m2c": (f.T_cam_obj[:3, 3] * 1000).tolist()}]
+    (folder / "scene_camera.json").write_text(json.dumps(cams))
+    (folder / "scene_gt.json").write_text(json.dumps(gts))
+    return folder
+
+
+def _read_csv(path: Path) -> list[list[str]]:
+    lines = path.read_text().splitlines()
+    assert lines[0] == CSV_HEADER
+    return [ln.split(",") for ln in lines[1:]]
+
+
+def test_capture_layout_csv_and_metrics(setup, tmp_path):
+    mesh, tpl, capture, _, frames = setup
+    out = tmp_path / "results.csv"
+    rep = evaluate(tpl, capture, out, obj_id=3)
+    assert rep.n_images == 3 and rep.n_found == 2
+    rows = _read_csv(out)
+    assert len(rows) == 2  # only found poses are written
+    for row, f in zip(rows, frames[:2]):
+        scene_id, im_id, obj_id, score, R, t, time_s = row
+        assert (int(scene_id), int(obj_id)) == (0, 3) and 0 < float(score) <= 1 and float(time_s) > 0
+        R = np.array(R.split(), dtype=float).reshape(3, 3)
+        t = np.array(t.split(), dtype=float)
+        np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-6)
+        np.testing.assert_allclose(t, f.T_cam_obj[:3, 3] * 1000, atol=10.0)  # mm
+        assert int(im_id) == rows.index(row)
+    m = rep.metrics
+    assert m["found"] == pytest.approx(200 / 3)
+    # two of three images within 1 cm -> AUCs near 2/3 of 100; the blank one counts as a failure
+    assert 60 < m["AUC ADD"] <= 66.7 and 60 < m["AUC ADD-S"] <= 66.7
+    assert 50 < m["AR MSSD"] <= 66.7 and 50 < m["AR MSPD"] <= 66.7
+    assert m["AR"] == pytest.approx(0.5 * (m["AR MSSD"] + m["AR MSPD"]))
+    assert [r.found for r in rep.rows] == [True, True, False] and np.isinf(rep.rows[2].add)
+    js = json.loads(json.dumps(rep.to_json()))
+    assert js["n_images"] == 3 and js["n_found"] == 2 and set(js["metrics"]) == set(m)
+
+
+def test_bop_scene_and_model_option(setup, tmp_path):
+    mesh, tpl, _, bop, _ = setup
+    model = tmp_path / "model_mm.ply"
+    import trimesh
+
+    trimesh.Trimesh(mesh.vertices * 1000.0, mesh.triangles, process=False).export(model)  # BOP models: mm
+    out = tmp_path / "bop.csv"
+    rep = evaluate(tpl, bop, out, obj_id=5, model_path=model)
+    rows = _read_csv(out)
+    assert {(r[0], r[2]) for r in rows} == {("7", "5")}  # scene id from the folder name, the requested object
+    assert rep.n_found == 2 and rep.metrics["AUC ADD"] > 60  # GT of object 5 (not object 2) was used
+
+
+def test_existing_output_refused_and_force(setup, tmp_path):
+    _, tpl, capture, _, _ = setup
+    out = tmp_path / "exists.csv"
+    out.write_text("old\n")
+    with pytest.raises(InputError, match="exists.csv"):
+        evaluate(tpl, capture, out)
+    assert out.read_text() == "old\n"
+    evaluate(tpl, capture, out, force=True, refine=False)
+    assert out.read_text().startswith(CSV_HEADER)
+    assert not list(tmp_path.glob(".exists.csv.tmp*"))
+
+
+def test_bad_inputs(setup, tmp_path):
+    _, tpl, capture, _, _ = setup
+    with pytest.raises(InputError, match="nowhere"):
+        evaluate(tpl, tmp_path / "nowhere", tmp_path / "a.csv")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(InputError, match="empty"):
+        evaluate(tpl, tmp_path / "empty", tmp_path / "b.csv")
+    with pytest.raises(InputError, match="nomodel.ply"):
+        evaluate(tpl, capture, tmp_path / "c.csv", model_path=tmp_path / "nomodel.ply")
+    assert not (tmp_path / "a.csv").exists() and not (tmp_path / "c.csv").exists()
