@@ -27,10 +27,12 @@ import contextlib
 import errno
 import io
 import logging
+import os
 import socket
 import sys
 import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -188,7 +190,7 @@ class ViewerData:
 
     path: Path
     meta: dict
-    views: list[View]
+    views: list[View]  # images dropped (None) once downscaled into `thumbs`
     thumbs: dict[str, np.ndarray]
     image_wh: dict[str, tuple[int, int]]
     keypoints: dict[str, tuple[np.ndarray, np.ndarray]]
@@ -208,14 +210,18 @@ class ViewerData:
 def load_viewer_data(db_path: str | Path, options: ViewerOptions = ViewerOptions()) -> ViewerData:
     """Read a complete template database (InputError for a partial, missing or foreign one)."""
     with TemplateDB.open(db_path, require_complete=True) as db:
-        meta, views, edges = db.meta(), db.views(load_images=True), db.edges()
+        meta, edges = db.meta(), db.edges()
         mesh, cloud, grasps = db.mesh(), db.cloud(), db.grasps()
+        names = db.view_names()
+        # Image decoding (OpenCV releases the GIL) dominates opening a large template: one view per task.
+        with ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 1)) as pool:
+            views = list(pool.map(lambda n: db.view(n, load_images=True), names))
         feats = {v.name: db.features(v.name) for v in views}
     thumbs, sizes, kps = {}, {}, {}
     for v in views:
         img = v.color if v.color is not None else np.full((v.intrinsics.height, v.intrinsics.width, 3), 90, np.uint8)
         thumbs[v.name], sizes[v.name] = thumbnail(img, options.thumb_px), _wh(img)
-        v.depth = v.mask = None  # the viewer never needs them: free the memory
+        v.color = v.depth = v.mask = None  # only the thumbnail is shown: free the memory
         f = feats[v.name]
         kps[v.name] = ((np.zeros((0, 2), np.float32), np.zeros((0, 3), np.float32)) if f is None
                        else (np.asarray(f.pixels, np.float32), np.asarray(f.points_obj, np.float32)))
@@ -268,6 +274,7 @@ class ViewerApp:
         self.server, self.data, self.host, self.port, self.options = server, data, host, port, options
         self.url = f"http://{host}:{port}"
         self.scene_points_obj: np.ndarray | None = None  # [N x 3] query-frame cloud drawn (template frame)
+        self.frustum_scale = 0.25 * data.size  # frustum depth (m) at "Frustum size" 1
         self._lock = threading.RLock()
         self._names = [v.name for v in data.views]
         self._by_name = {v.name: v for v in data.views}
@@ -436,9 +443,18 @@ def _build_scene(app: ViewerApp, frame: RGBDFrame | None, T_cam_obj: np.ndarray 
         d0 = d0 - (d0 @ up) * up
         d0 = d0 / np.linalg.norm(d0) if np.linalg.norm(d0) > 1e-9 else np.cross(up, [1.0, 0.0, 0.0])
         direction = d0 + 1.6 * up  # above the cameras: the first frustum does not hide the object
-        eye = d.center + direction / np.linalg.norm(direction) * max(1.5 * dist, 2.0 * s)
+        eye = d.center + direction / np.linalg.norm(direction) * max(1.9 * dist, 2.0 * s)
     else:
         eye = d.center + np.array([1.0, 1.0, 1.0]) * 1.5 * s
+    # Frustum size: a quarter of the object, less where cameras are dense (half the median spacing).
+    app.frustum_scale = 0.25 * s
+    if len(reg) >= 2:
+        from scipy.spatial import cKDTree
+
+        cams = np.array([v.T_obj_cam[:3, 3] for v in reg])
+        spacing = float(np.median(cKDTree(cams).query(cams, k=2)[0][:, 1]))
+        if spacing > 1e-6:
+            app.frustum_scale = min(app.frustum_scale, 0.5 * spacing)
     app.server.initial_camera.position = eye
     app.server.initial_camera.look_at = d.center
     app.server.initial_camera.near = 0.01 * s
@@ -513,7 +529,7 @@ def _add_frustum(app: ViewerApp, node: str, intr: Intrinsics, T_obj_cam: np.ndar
     img = thumbnail(image, o.frustum_px)
     h = app.server.scene.add_camera_frustum(
         node, fov=float(2.0 * np.arctan2(intr.height / 2.0, intr.fy)), aspect=intr.width / intr.height,
-        scale=0.25 * s, thickness=1.5, thickness_units="screen", color=color, image=img, format="jpeg",
+        scale=app.frustum_scale, thickness=1.5, thickness_units="screen", color=color, image=img, format="jpeg",
         jpeg_quality=o.jpeg_quality, wxyz=_quat_wxyz(T_obj_cam[:3, :3]), position=T_obj_cam[:3, 3])
     if view_name is not None:
         h.on_click(lambda _ev, n=view_name: app.select_view(n))
@@ -560,7 +576,7 @@ def _build_gui(app: ViewerApp, has_frame: bool, T_cam_obj: np.ndarray | None) ->
         @fs.on_update
         def _(_ev) -> None:
             for h in app.layers.get("frustums", []):
-                h.scale = 0.25 * d.size * fs.value
+                h.scale = app.frustum_scale * fs.value
 
     with gui.add_folder("Views"):
         n = max(len(d.views), 1)
@@ -640,6 +656,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--pose", type=Path, help='T_cam_obj of the query frame: {"T": 4x4} or a bare 4x4 list')
     a = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(levelname)s %(name)s: %(message)s")
+    logging.getLogger("websockets").setLevel(logging.WARNING)
     try:
         frame = T = None
         if a.color or a.depth or a.intrinsics:
