@@ -1,0 +1,370 @@
+"""The scan pipeline: an RGB-D folder to registered views, pose graph, fused mesh and template database.
+
+Stages (each timed, each reported through a `Progress`):
+  load      read every frame (unusable ones are reported by name and left out)
+  mode      static-object vs moving-object (`gscan.capture_mode`); object masks for a static camera
+  features  keypoints + descriptors lifted to 3D; whole frame for a static object, object only for a
+            moving one; stored at once in the database (camera frame, pose unknown)
+  register  pairwise edges: each frame against the previous one (falling back to up to
+            `MAX_SKIP` earlier frames when that fails), then loop closures chosen by view overlap
+            and bag-of-words votes; each edge = GMatch -> Kabsch -> ICP, accepted by the rules
+            of `gscan.register`; stored as it is computed
+  posegraph robust global optimisation (open3d, line process) with pruning of inconsistent edges;
+            frames not connected to the reference frame stay unregistered and are never fused
+  segment   object masks (given, background subtraction, or support plane + working volume)
+  fuse      TSDF fusion of the object's depth; template frame (DESIGN.md "Frames of reference")
+  database  poses, masks, keyframes and keypoints in the object frame, mesh, cloud; status complete
+
+Resume: the database is `partial` until the last transaction. `--resume` reuses the stored views'
+keypoints and every stored edge (the expensive parts) and recomputes the rest, which is
+deterministic, so an interrupted scan resumes to the same result as an uninterrupted one.
+"""
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from gscan.camera import RGBDFrame, backproject
+from gscan.capture_mode import MOVING_OBJECT, STATIC_OBJECT, moving_object_masks, detect_mode, select_keyframes
+from gscan.config import ScanConfig
+from gscan.errors import InputError
+from gscan.features import FeatureParams, Features, extract_features
+from gscan.geometry import inv_T, transform_points
+from gscan.progress import Progress, StageTimer
+from gscan.register import RegisterParams, register_features
+from gscan.template import Edge, TemplateDB, View, ViewFeatures
+
+log = logging.getLogger(__name__)
+
+MAX_SKIP = 3  # a frame that fails against its predecessor is tried against up to this many earlier frames
+ICP_VOXEL_STRIDE = 2  # pixel stride of the clouds kept for ICP before voxel downsampling
+PRUNED = "pruned by the pose graph: "  # reason prefix of edges registration accepted and the pose graph rejected
+
+
+@dataclass
+class ScanOptions:
+    input_dir: Path
+    output: Path
+    fmt: str = "auto"
+    intrinsics: Path | None = None
+    depth_scale: float | None = None
+    mode: str = "auto"
+    segment: bool = True
+    resume: bool = False
+    force: bool = False
+    config: ScanConfig = field(default_factory=ScanConfig)
+
+
+@dataclass
+class ScanResult:
+    output: Path
+    frames: int
+    registered: int
+    unregistered: list[str]
+    edges_accepted: int
+    edges_rejected: int
+    mode: str
+    mesh_vertices: int
+    mesh_triangles: int
+    timings_s: dict[str, float]
+    problems: dict[str, str]
+    keyframes: int = 0
+
+    def to_json(self) -> dict:
+        """The `scan --json` object of the CLI contract."""
+        return {"output": str(self.output), "frames": self.frames, "registered": self.registered,
+                "unregistered": list(self.unregistered),
+                "edges": {"accepted": self.edges_accepted, "rejected": self.edges_rejected},
+                "mode": self.mode, "mesh": {"vertices": self.mesh_vertices, "triangles": self.mesh_triangles},
+                "timings_s": {k: round(v, 3) for k, v in self.timings_s.items()},
+                "skipped": dict(self.problems), "keyframes": self.keyframes}
+
+
+@dataclass
+class _Frame:
+    frame: RGBDFrame
+    feats: Features | None = None  # camera frame
+    cloud: np.ndarray | None = None  # [P x 3] camera-frame points for ICP
+    mask: np.ndarray | None = None  # [H x W] bool object mask (given or computed)
+
+
+def _register_params(cfg: ScanConfig) -> RegisterParams:
+    from gscan.gmatch import GMatchParams
+
+    m, r = cfg.match, cfg.registration
+    gm = GMatchParams(eps_f=m.eps_f, eps_c=m.eps_c, eta=m.eta, T=m.T, L=m.L, constraint=m.constraint)
+    return RegisterParams(method=m.method, gmatch=gm, min_matches=r.min_matches, icp=r.icp,
+                          icp_max_dist=r.icp_max_dist, icp_voxel=r.icp_voxel, min_fitness=r.min_fitness,
+                          max_rmse=r.max_rmse, max_icp_shift_deg=r.max_icp_shift_deg,
+                          max_icp_shift_m=r.max_icp_shift_m)
+
+
+def _open_output(opts: ScanOptions) -> tuple[TemplateDB, bool]:
+    """(database, resumed). A resumed database must come from the same input and configuration."""
+    meta = {"source": "scan", "input": str(opts.input_dir.resolve()), "format": opts.fmt,
+            "config": opts.config.model_dump(), "mode_option": opts.mode, "segment": opts.segment,
+            "descriptor": opts.config.features.kind, "units": "m"}
+    if opts.resume and opts.output.exists():
+        db = TemplateDB.open(opts.output, require_complete=False, writable=True)
+        stored = {k: db.get_meta(k) for k in ("input", "config", "mode_option", "segment")}
+        wanted = {k: json.loads(json.dumps(meta[k])) for k in stored}
+        if stored != wanted:
+            db.close()
+            raise InputError(opts.output, "was written from another input or configuration; "
+                             "use --force to start over")
+        db.mark_partial()
+        return db, True
+    return TemplateDB.create(opts.output, force=opts.force, meta=meta), False
+
+
+def run_scan(opts: ScanOptions, progress: Progress | None = None) -> ScanResult:
+    """Run the whole pipeline (see the module docstring). Raises InputError for bad input."""
+    from gscan.io import open_sequence
+
+    timer = StageTimer(progress)
+    cfg = opts.config
+    seq = open_sequence(opts.input_dir, format=opts.fmt, intrinsics=opts.intrinsics, depth_scale=opts.depth_scale)
+    if opts.output.exists() and not (opts.force or opts.resume):
+        raise InputError(opts.output, "exists; pass --force to replace it or --resume to continue it")
+    frames: list[_Frame] = []
+    with timer.stage("load", total=len(seq)) as advance:
+        for name in seq.names:
+            try:
+                frames.append(_Frame(seq[name]))
+            except InputError as e:
+                log.warning("skipping frame %s: %s", name, e)
+            advance(1)
+    problems = dict(seq.problems)
+    if not frames:
+        raise InputError(opts.input_dir, "no usable frame: " + "; ".join(f"{k}: {v}" for k, v in problems.items()))
+
+    created = not (opts.resume and opts.output.exists())
+    db, resumed = _open_output(opts)
+    try:
+        result = _scan_frames(frames, opts, db, resumed, timer, problems)
+    except InputError:
+        db.close()
+        if created:
+            opts.output.unlink(missing_ok=True)
+        raise
+    except BaseException:
+        db.close()
+        raise
+    db.close()
+    return result
+
+
+def _scan_frames(frames: list[_Frame], opts: ScanOptions, db: TemplateDB, resumed: bool, timer: StageTimer,
+                 problems: dict[str, str]) -> ScanResult:
+    cfg = opts.config
+    names = [f.frame.name for f in frames]
+    with timer.stage("mode", total=1) as advance:
+        if opts.mode == "auto":
+            mode = detect_mode([f.frame for f in frames]).mode
+        else:
+            mode = opts.mode
+        given_masks = all(f.frame.mask is not None for f in frames)
+        if given_masks:
+            for f in frames:
+                f.mask = f.frame.mask
+        elif mode == MOVING_OBJECT:
+            for f, m in zip(frames, moving_object_masks([f.frame for f in frames])):
+                f.mask = m
+        advance(1)
+    db.set_meta("mode", mode)
+    log.info("%s capture, %d frames%s", mode, len(frames), ", masks given" if given_masks else "")
+
+    fparams = FeatureParams(kind=cfg.features.kind, max_keypoints=cfg.features.max_keypoints)
+    stored = set(db.view_names()) if resumed else set()
+    with timer.stage("features", total=len(frames)) as advance:
+        for k, f in enumerate(frames):
+            reg_mask = f.mask if mode == MOVING_OBJECT else None
+            vf = db.features(f.frame.name) if f.frame.name in stored else None
+            if vf is not None and db.view(f.frame.name, load_images=False).T_obj_cam is None:
+                f.feats = Features(vf.pixels, vf.points_obj, vf.descriptors, vf.kind,
+                                   vf.scales if vf.scales is not None else np.ones(len(vf.pixels), np.float32))
+            else:
+                f.feats = extract_features(f.frame, fparams, mask=reg_mask)
+                view = View(f.frame.name, f.frame.intrinsics, None, f.frame.color, f.frame.depth, f.frame.mask,
+                            keyframe=False, input_index=k)
+                db.add_view(view, ViewFeatures(f.feats.pixels, f.feats.points, f.feats.descriptors, f.feats.kind,
+                                               f.feats.scales), replace=f.frame.name in stored)
+            f.cloud = _icp_cloud(f.frame, reg_mask, cfg.registration.icp_voxel)
+            advance(1)
+
+    rparams = _register_params(cfg)
+    done = {(e.src, e.tgt): e for e in db.edges()} if resumed else {}
+    edges: list[Edge] = []
+
+    def edge(i: int, j: int, kind: str) -> Edge:
+        key = (names[i], names[j])
+        if key in done:
+            e = done[key]
+            if e.reason and e.reason.startswith(PRUNED):  # restore the registration verdict
+                e.accepted, e.reason = True, None
+            return e
+        r = register_features(frames[i].feats, frames[j].feats, rparams, clouds=(frames[i].cloud, frames[j].cloud))
+        e = Edge(names[i], names[j], r.T_tgt_src, r.matches, r.cost, r.rmse, r.fitness, kind, r.accepted, r.reason)
+        db.add_edge(e)
+        return e
+
+    n = len(frames)
+    with timer.stage("register", total=max(1, n - 1)) as advance:
+        for j in range(1, n):
+            for i in range(j - 1, max(-1, j - 1 - MAX_SKIP), -1):
+                e = edge(i, j, "sequential")
+                edges.append(e)
+                if e.accepted:
+                    break
+            advance(1)
+        from gscan.posegraph import GraphEdge, LoopParams, chain_odometry, select_loop_candidates
+
+        index = {nm: k for k, nm in enumerate(names)}
+        seq_graph = [GraphEdge(index[e.src], index[e.tgt], e.T_tgt_src) for e in edges if e.accepted]
+        T_init = _spanning_poses(n, seq_graph)
+        existing = [(index[e.src], index[e.tgt]) for e in edges]
+        lp = LoopParams(max_per_node=cfg.posegraph.loop_candidates, max_angle_deg=cfg.posegraph.max_view_angle_deg)
+        cands = select_loop_candidates(T_init, [f.feats.descriptors for f in frames], existing, lp)
+        for c in cands:
+            edges.append(edge(c.i, c.j, "loop"))
+
+    with timer.stage("posegraph", total=1) as advance:
+        T_world_cam, verdicts = _optimise(n, edges, index, frames, cfg)
+        advance(1)
+    registered = [k for k in range(n) if T_world_cam[k] is not None]
+
+    with timer.stage("segment", total=1) as advance:
+        masks, plane_world = _segment(frames, T_world_cam, mode, opts.segment)
+        advance(1)
+
+    with timer.stage("fuse", total=1) as advance:
+        from gscan.fuse import FusionParams, fuse_tsdf, template_frame
+
+        fparams_tsdf = FusionParams(voxel_size=cfg.fusion.voxel, depth_max=cfg.fusion.depth_max)
+        model = fuse_tsdf([f.frame for f in frames], T_world_cam, masks, fparams_tsdf)
+        obj_pts = model.points if len(model.points) >= 3 else model.vertices
+        if len(obj_pts) < 3:
+            raise InputError(opts.input_dir, "nothing could be fused: no object depth in the registered frames")
+        T_obj_world = template_frame(obj_pts, plane_world, T_world_cam[registered[0]])
+        advance(1)
+
+    with timer.stage("database", total=n + 1) as advance:
+        T_obj_cam = [None if T is None else T_obj_world @ T for T in T_world_cam]
+        dirs = {k: T_obj_cam[k][:3, 2] for k in registered}
+        keyframes = set(select_keyframes(dirs, cfg.keyframes.min_angle_deg, cfg.keyframes.max_views))
+        for k, f in enumerate(frames):
+            T = T_obj_cam[k]
+            pts = f.feats.points if T is None else transform_points(T, f.feats.points).astype(np.float32)
+            view = View(f.frame.name, f.frame.intrinsics, T, f.frame.color, f.frame.depth,
+                        masks[k] if T is not None else f.frame.mask, keyframe=k in keyframes,
+                        quality=verdicts.get(k), input_index=k)
+            db.add_view(view, ViewFeatures(f.feats.pixels, pts, f.feats.descriptors, f.feats.kind, f.feats.scales),
+                        replace=True)
+            advance(1)
+        for e in edges:
+            if e.reason and e.reason.startswith(PRUNED):
+                db.add_edge(e)
+        V = transform_points(T_obj_world, model.vertices)
+        db.set_mesh(V, model.triangles, model.vertex_colors)
+        db.set_cloud(transform_points(T_obj_world, model.points), model.point_colors)
+        unregistered = [names[k] for k in range(n) if T_world_cam[k] is None]
+        db.set_meta("unregistered", unregistered)
+        db.set_meta("skipped", problems)
+        db.set_meta("voxel_size", model.voxel_size)
+        db.set_meta("support_plane", plane_world is not None)
+        db.set_meta("timings_s", timer.timings)
+        db.mark_complete()
+        advance(1)
+    accepted = sum(1 for e in db.edges() if e.accepted)
+    total_edges = len(db.edges())
+    return ScanResult(opts.output, len(frames) + len(problems), len(registered), unregistered + sorted(problems),
+                      accepted, total_edges - accepted, mode, len(V), len(model.triangles), dict(timer.timings),
+                      problems, len(keyframes))
+
+
+def _icp_cloud(frame: RGBDFrame, mask: np.ndarray | None, voxel: float) -> np.ndarray:
+    """[P x 3] camera-frame points for ICP: valid depth (inside `mask`), pixel stride, voxel grid."""
+    import open3d as o3d
+
+    s = ICP_VOXEL_STRIDE
+    valid = frame.depth > 0
+    if mask is not None:
+        valid &= mask
+    pts = backproject(frame.depth, frame.intrinsics)[::s, ::s][valid[::s, ::s]]
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts.astype(np.float64)))
+    if voxel > 0:
+        pc = pc.voxel_down_sample(voxel)
+    return np.asarray(pc.points)
+
+
+def _spanning_poses(n: int, graph_edges: list) -> list[np.ndarray | None]:
+    """Initial T_world_cam (world = frame 0's camera... or the first frame reachable) by BFS over edges."""
+    from collections import deque
+
+    T: list[np.ndarray | None] = [None] * n
+    adj: list[list] = [[] for _ in range(n)]
+    for e in graph_edges:
+        adj[e.src].append(e)
+        adj[e.tgt].append(e)
+    for root in range(n):  # start from the first frame that has any edge (or frame 0)
+        if adj[root] or root == n - 1:
+            break
+    T[root] = np.eye(4)
+    q = deque([root])
+    while q:
+        a = q.popleft()
+        for e in adj[a]:
+            if e.src == a and T[e.tgt] is None:
+                T[e.tgt] = T[a] @ inv_T(e.T_tgt_src)
+                q.append(e.tgt)
+            elif e.tgt == a and T[e.src] is None:
+                T[e.src] = T[a] @ e.T_tgt_src
+                q.append(e.src)
+    return T
+
+
+def _optimise(n: int, edges: list[Edge], index: dict[str, int], frames: list[_Frame],
+              cfg: ScanConfig) -> tuple[list[np.ndarray | None], dict[int, float]]:
+    """Pose graph over accepted edges -> (T_world_cam per frame or None, quality per frame)."""
+    from gscan.posegraph import GraphEdge, PoseGraphParams, information_from_points, optimize_pose_graph
+
+    use = [e for e in edges if e.accepted and e.T_tgt_src is not None]
+    graph = []
+    for e in use:
+        i, j = index[e.src], index[e.tgt]
+        pts_t = frames[j].feats.points[e.matches[:, 1]] if len(e.matches) else frames[j].cloud
+        graph.append(GraphEdge(i, j, e.T_tgt_src, information_from_points(pts_t), uncertain=e.kind == "loop"))
+    T0 = _spanning_poses(n, graph)
+    ref = next((k for k in range(n) if T0[k] is not None), 0)
+    # the reference is the frame with the most edges among the first component (frame 0 usually)
+    params = PoseGraphParams(max_residual_deg=cfg.posegraph.prune_rot_deg,
+                             max_residual_m=cfg.posegraph.prune_trans_m,
+                             max_correspondence_distance=cfg.registration.icp_max_dist)
+    res = optimize_pose_graph(n, graph, T0, params, reference_node=ref)
+    verdict: dict[int, float] = {}
+    for rep, e in zip(res.edges, use):
+        # mark the edge in the database record's eyes: pruned edges become rejected
+        if not rep.accepted:
+            e.accepted = False
+            e.reason = PRUNED + str(rep.reason)
+        for k in (rep.src, rep.tgt):
+            if rep.accepted and e.rmse is not None:
+                verdict[k] = min(verdict.get(k, np.inf), float(e.rmse))
+    return res.T_world_node, verdict
+
+
+def _segment(frames: list[_Frame], T_world_cam: list[np.ndarray | None], mode: str,
+             segment: bool) -> tuple[list[np.ndarray | None], object]:
+    """Per-frame object masks for fusion and the support plane in the world frame (or None)."""
+    from gscan.segment import segment_sequence
+
+    if not segment:
+        return [None] * len(frames), None
+    if all(f.mask is not None for f in frames):
+        return [f.mask for f in frames], None
+    segs, vol = segment_sequence([f.frame for f in frames], T_world_cam)
+    return [s.mask for s in segs], (vol.plane_world if vol is not None else None)
