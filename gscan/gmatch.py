@@ -272,7 +272,7 @@ def _search(ps, pt, ci, cj, cf, fsrc, ft_max, view_s, view_t, T, L, K2, K3, eps_
                 continue
             ls = Ds[qi]
             err = abs(ls - dt)
-            if err >= eta * max(cfs, cf[c]):
+            if err >= eta * max(cfs, cf[c]) or ls <= 0.0:
                 continue
             A[na] = c
             Ag[na] = err / ls
@@ -294,7 +294,7 @@ def _search(ps, pt, ci, cj, cf, fsrc, ft_max, view_s, view_t, T, L, K2, K3, eps_
                     continue
                 ls = Dxs[qi]
                 err = abs(ls - Dxt[qj])
-                if err >= eta * max(cf[b], cf[q]) or err > eps_e * ls:
+                if err >= eta * max(cf[b], cf[q]) or err > eps_e * ls or ls <= 0.0:
                     continue
                 AB[ib, w] = q
                 ABg[ib, w] = max(Ag[k], err / ls)
@@ -357,7 +357,7 @@ def _search(ps, pt, ci, cj, cf, fsrc, ft_max, view_s, view_t, T, L, K2, K3, eps_
                     continue
                 ls = Dxs[qi]
                 err = abs(ls - Dxt[qj])
-                if err >= eta * max(cf[c], cf[q]) or err > eps_e * ls:
+                if err >= eta * max(cf[c], cf[q]) or err > eps_e * ls or ls <= 0.0:
                     continue
                 g = max(ABg[ib, k], err / ls)
                 if mode == 2:
@@ -368,7 +368,7 @@ def _search(ps, pt, ci, cj, cf, fsrc, ft_max, view_s, view_t, T, L, K2, K3, eps_
                         ht += nt_[d] * (pt[qj, d] - pt[sj, d])
                     err = abs(hs - ht)
                     la = Ds[qi]
-                    if err >= eta * max(cf[s], cf[q]) or err > eps_e * la:
+                    if err >= eta * max(cf[s], cf[q]) or err > eps_e * la or la <= 0.0:
                         continue
                     g = max(g, err / la)
                 surv[nsv] = q

@@ -1,0 +1,165 @@
+"""Matcher benchmark: GMatch vs baselines on rendered view pairs, search speed on synthetic inputs.
+
+Usage (from the repository root):
+    python bench/match.py pairs  [--meshes N] [--gaps 20,60,120]      # success rate + time per pair
+    python bench/match.py speed  [--inputs DIR] [--repeats 20]        # GMatch search time vs the C++ figures
+    python bench/match.py sweep  [--meshes N] [--gap 60] [--kinds rootsift,sift,orb]   # eps_f sweep
+
+pairs: every shared mesh (/work/shared/data/meshes/*/model_0.obj) rests on a textured table and is
+rendered by gscan.synth at 640x480 (noisy depth) from cameras at 40 deg elevation, at azimuth 0 and
+at each gap; each (0, gap) pair is registered on whole-frame RootSIFT keypoints (the same keypoints
+for every method), matches only (no ICP). Success: rotation error < 5 deg and translation < 2 cm.
+speed: /work/shared/bench_inputs/make_synthetic.py inputs (generated into --inputs when missing);
+GMatch with T = L = 24, eps_f 0.65, eps_c 0.1, eta 0.01 m (no depth growth) -- the reference
+parameters -- timed as CPU time, median of --repeats, candidate extraction timed separately.
+Prints tables; writes nothing in the repository.
+"""
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+SHARED = Path(__file__).resolve().parents[2] / "shared"
+CPP_MS = {500: 17.0, 1000: 83.0, 2000: 361.0}
+
+
+def render_views(mesh_dir: Path, azimuths_deg: list[float], seed: int, elevation_deg: float = 40.0):
+    """[(RGBDFrame, T_world_cam)] of the mesh resting on a table, one per azimuth (640x480, noisy depth)."""
+    from gscan.camera import RGBDFrame
+    from gscan.geometry import look_at, transform_points
+    from gscan.synth import DEFAULT_INTRINSICS, SynthScene, default_distance, load_textured_mesh, rest_on_table
+
+    mesh = load_textured_mesh(mesh_dir / "model_0.obj")
+    T_world_obj = rest_on_table(mesh)
+    c = transform_points(T_world_obj, mesh.center[None])[0]
+    scene = SynthScene([(mesh, T_world_obj)], table=True, seed=seed)
+    r = default_distance(mesh)
+    el = np.radians(elevation_deg)
+    out = []
+    for k, az in enumerate(azimuths_deg):
+        a = np.radians(az)
+        T = look_at(c + r * np.array([np.cos(el) * np.cos(a), np.cos(el) * np.sin(a), np.sin(el)]), c)
+        f = scene.render(T, DEFAULT_INTRINSICS, rng=np.random.default_rng([seed, k]))
+        out.append((RGBDFrame(f"{mesh_dir.name}_{k}", f.color, f.depth, DEFAULT_INTRINSICS, f.mask, None), T))
+    return out
+
+
+def _meshes(n: int | None) -> list[Path]:
+    ms = sorted(p for p in (SHARED / "data" / "meshes").iterdir() if (p / "model_0.obj").is_file())
+    return ms[:n] if n else ms
+
+
+def cmd_pairs(args) -> None:
+    from gscan.features import FeatureParams, extract_features
+    from gscan.geometry import inv_T, pose_error
+    from gscan.register import METHODS, RegisterParams, register_features
+
+    gaps = [float(g) for g in args.gaps.split(",")]
+    methods = args.methods.split(",") if args.methods else list(METHODS)
+    ok = {(m, g): [] for m in methods for g in gaps}
+    ms = {(m, g): [] for m in methods for g in gaps}
+    fp = FeatureParams(kind="rootsift")
+    for mi, md in enumerate(_meshes(args.meshes)):
+        views = render_views(md, [0.0] + gaps, seed=mi)
+        feats = [extract_features(v[0], fp) for v in views]
+        line = []
+        for gi, g in enumerate(gaps):
+            T_gt = inv_T(views[gi + 1][1]) @ views[0][1]
+            for m in methods:
+                t0 = time.process_time()
+                r = register_features(feats[0], feats[gi + 1], RegisterParams(method=m, icp=False))
+                ms[(m, g)].append((time.process_time() - t0) * 1e3)
+                e = pose_error(r.T_tgt_src, T_gt) if r.T_tgt_src is not None else (np.inf, np.inf)
+                ok[(m, g)].append(e[0] < 5.0 and e[1] < 0.02)
+            line.append(f"{g:.0f}:" + "".join("+" if ok[(m, g)][-1] else "." for m in methods))
+        print(f"{md.name[:40]:40s} kp {len(feats[0]):4d}  " + "  ".join(line), file=sys.stderr, flush=True)
+    print(f"\nsuccess rate (rot < 5 deg, trans < 2 cm) over {len(_meshes(args.meshes))} meshes; "
+          "median CPU ms per pair (distances + match + Kabsch)")
+    print("| method | " + " | ".join(f"{g:.0f} deg" for g in gaps) + " | " + " | ".join(f"ms @{g:.0f}" for g in gaps) + " |")
+    print("|---" * (1 + 2 * len(gaps)) + "|")
+    for m in methods:
+        rates = [f"{100 * np.mean(ok[(m, g)]):.0f} %" for g in gaps]
+        times = [f"{np.median(ms[(m, g)]):.0f}" for g in gaps]
+        print(f"| {m} | " + " | ".join(rates) + " | " + " | ".join(times) + " |")
+
+
+def cmd_sweep(args) -> None:
+    from gscan.features import FeatureParams, extract_features
+    from gscan.geometry import inv_T, pose_error
+    from gscan.gmatch import GMatchParams
+    from gscan.register import RegisterParams, register_features
+
+    grid = {"rootsift": [0.5, 0.55, 0.6, 0.65, 0.7, 0.75, 0.8], "sift": [150.0, 200.0, 250.0, 300.0, 350.0],
+            "orb": [40.0, 50.0, 64.0, 80.0, 96.0]}
+    kinds = args.kinds.split(",")
+    ok = {(k, e): [] for k in kinds for e in grid[k]}
+    for mi, md in enumerate(_meshes(args.meshes)):
+        views = render_views(md, [0.0, args.gap], seed=mi)
+        T_gt = inv_T(views[1][1]) @ views[0][1]
+        for k in kinds:
+            fp = FeatureParams(kind=k)
+            fs, ft = extract_features(views[0][0], fp), extract_features(views[1][0], fp)
+            for e in grid[k]:
+                r = register_features(fs, ft, RegisterParams(gmatch=GMatchParams(eps_f=e), icp=False))
+                err = pose_error(r.T_tgt_src, T_gt) if r.T_tgt_src is not None else (np.inf, np.inf)
+                ok[(k, e)].append(err[0] < 5.0 and err[1] < 0.02)
+        print(md.name, file=sys.stderr, flush=True)
+    print(f"\neps_f sweep: GMatch success rate at a {args.gap:.0f} deg view change, {len(_meshes(args.meshes))} meshes")
+    for k in kinds:
+        print(f"{k:9s} " + "  ".join(f"{e:g}: {100 * np.mean(ok[(k, e)]):.0f} %" for e in grid[k]))
+
+
+def cmd_speed(args) -> None:
+    from gscan.gmatch import GMatchParams, extract_candidates, search_candidates
+
+    inputs = Path(args.inputs)
+    if not (inputs / "synth_N2000.npz").is_file():
+        subprocess.run([sys.executable, str(SHARED / "bench_inputs" / "make_synthetic.py"), str(inputs)], check=True,
+                       stdout=subprocess.DEVNULL)
+    p = GMatchParams(eps_c=0.1, eta=0.01, eta_depth=False, T=24, L=24)
+    print("| keypoints | candidates | extraction ms | search ms (CPU, median) | C++ ms | ratio | correct / found |")
+    print("|---|---|---|---|---|---|---|")
+    for n in (500, 1000, 2000):
+        d = np.load(inputs / f"synth_N{n}.npz")
+        search_candidates(d["pts1"], d["pts2"], extract_candidates(d["Mf12"], 0.65), p)  # compile / warm up
+        te, ts = [], []
+        for _ in range(args.repeats):
+            t0 = time.process_time()
+            cand = extract_candidates(d["Mf12"], 0.65)
+            t1 = time.process_time()
+            res = search_candidates(d["pts1"], d["pts2"], cand, p)
+            t2 = time.process_time()
+            te.append(t1 - t0)
+            ts.append(t2 - t1)
+        gt = {int(i): int(j) for i, j in d["gt_matches"]}
+        good = sum(gt.get(int(i), -1) == int(j) for i, j in res.matches)
+        s = np.median(ts) * 1e3
+        print(f"| {n} | {len(cand.src)} | {np.median(te) * 1e3:.1f} | {s:.1f} | {CPP_MS[n]:.0f} | "
+              f"{s / CPP_MS[n]:.2f} | {good} / {len(res.matches)} |")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    a = sub.add_parser("pairs")
+    a.add_argument("--meshes", type=int, default=None)
+    a.add_argument("--gaps", default="20,60,120")
+    a.add_argument("--methods", default=None, help="comma list (default: gmatch and every baseline)")
+    b = sub.add_parser("speed")
+    b.add_argument("--inputs", default="/tmp/gscan_bench_inputs")
+    b.add_argument("--repeats", type=int, default=20)
+    c = sub.add_parser("sweep")
+    c.add_argument("--meshes", type=int, default=10)
+    c.add_argument("--gap", type=float, default=60.0)
+    c.add_argument("--kinds", default="rootsift,sift,orb")
+    args = ap.parse_args()
+    {"pairs": cmd_pairs, "speed": cmd_speed, "sweep": cmd_sweep}[args.cmd](args)
+
+
+if __name__ == "__main__":
+    main()

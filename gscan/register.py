@@ -1,0 +1,174 @@
+"""Pairwise registration: features -> match (GMatch or a baseline) -> Kabsch -> ICP -> verdict.
+
+`register_features(fs, ft, params, clouds)` registers two frames' keypoints; `match_frames(frame_s,
+frame_t)` also extracts the features and back-projects the ICP clouds (the one-call Python API).
+T_tgt_src maps source-camera points into the target camera (p_t = T_tgt_src @ p_s).
+
+Acceptance rules, applied in this order (the first failing one is the `reason`):
+1. "too few matches": fewer than `min_matches` geometric matches (GMatch list / baseline inliers).
+2. "kabsch residual": RMS of |T p_s - p_t| over the matches above `max_kabsch_rmse`.
+3. with ICP (params.icp and both clouds given), point-to-plane ICP from the match pose, then
+   "icp fitness" below `min_fitness`, "icp rmse" above `max_rmse`, or "icp shift": ICP moved the
+   match pose by more than `max_icp_shift_deg` / `max_icp_shift_m` (a slide, not a refinement).
+   A rejected ICP leaves the match pose in T_tgt_src; an accepted one replaces it.
+Without ICP, rmse is the Kabsch residual and fitness is None.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from gscan.baselines import BASELINES, BaselineParams, run_baseline
+from gscan.geometry import icp, inv_T, kabsch, pose_error, transform_points
+from gscan.gmatch import GMatchParams, default_eps_f, gmatch
+
+log = logging.getLogger(__name__)
+
+METHODS = ("gmatch",) + BASELINES
+
+
+@dataclass(frozen=True)
+class RegisterParams:
+    method: str = "gmatch"  # "gmatch" or a baseline name (gscan.baselines.BASELINES)
+    gmatch: GMatchParams = GMatchParams()  # matcher parameters (eps_f None -> default of the descriptor)
+    baseline: BaselineParams = BaselineParams()  # fixed baseline parameters
+    min_matches: int = 6  # rule 1
+    max_kabsch_rmse: float = 0.01  # rule 2 (m)
+    icp: bool = True  # refine by point-to-plane ICP when clouds are given
+    icp_max_dist: float = 0.01  # ICP correspondence distance (m)
+    icp_voxel: float = 0.004  # ICP voxel downsampling (m), 0 = none
+    icp_iterations: int = 30
+    min_fitness: float = 0.3  # rule 3
+    max_rmse: float = 0.006  # rule 3 (m)
+    max_icp_shift_deg: float = 5.0  # rule 3
+    max_icp_shift_m: float = 0.02  # rule 3 (m)
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise ValueError(f"unknown registration method {self.method!r}; expected one of {METHODS}")
+        if self.min_matches < 3:
+            raise ValueError("min_matches must be >= 3")
+
+
+@dataclass
+class PairResult:
+    T_tgt_src: np.ndarray | None  # [4 x 4]; None when fewer than 3 matches
+    matches: np.ndarray  # [M x 2] int32 (source keypoint, target keypoint)
+    cost: float  # GMatch list cost; for baselines the Kabsch RMSE (m)
+    n_matches: int
+    rmse: float | None  # ICP inlier RMSE (m) when ICP ran, else the Kabsch RMSE over the matches
+    fitness: float | None  # ICP fitness, None without ICP
+    accepted: bool
+    reason: str | None  # None when accepted, else the first failed rule (module docstring)
+    method: str = "gmatch"
+    T_match: np.ndarray | None = None  # [4 x 4] pose from the matches alone (before ICP)
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+
+def _kabsch_rmse(pts_s: np.ndarray, pts_t: np.ndarray, T: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.sum((transform_points(T, pts_s) - pts_t) ** 2, axis=1))))
+
+
+def register_points(pts_s: np.ndarray, pts_t: np.ndarray, desc_s: np.ndarray, desc_t: np.ndarray, kind: str,
+                    params: RegisterParams = RegisterParams(), clouds: tuple | None = None,
+                    view_s=(0.0, 0.0, 1.0), view_t=(0.0, 0.0, 1.0)) -> PairResult:
+    """Register keypoints pts_s [Ns x 3] -> pts_t [Nt x 3] (descriptors [N x D] of `kind`).
+
+    clouds: optional (src [P x 3], tgt [Q x 3]) camera-frame clouds for ICP.
+    """
+    from gscan.features import descriptor_distances
+
+    tm: dict[str, float] = {}
+    t0 = time.perf_counter()
+    dist = descriptor_distances(desc_s, desc_t, kind)
+    tm["distances"] = (time.perf_counter() - t0) * 1e3
+    t0 = time.perf_counter()
+    if params.method == "gmatch":
+        eps_f = params.gmatch.eps_f if params.gmatch.eps_f is not None else default_eps_f(kind)
+        res = gmatch(pts_s, pts_t, dist, eps_f, params.gmatch, view_s, view_t)
+        matches, cost, T = res.matches, res.cost, None
+    else:
+        b = run_baseline(params.method, pts_s, pts_t, dist, desc_s, desc_t, params.baseline)
+        matches, cost, T = b.matches, float("nan"), b.T_tgt_src
+    tm["match"] = (time.perf_counter() - t0) * 1e3
+    n = len(matches)
+    ps = np.asarray(pts_s, np.float64)[matches[:, 0]] if n else np.zeros((0, 3))
+    pt = np.asarray(pts_t, np.float64)[matches[:, 1]] if n else np.zeros((0, 3))
+    if n >= 3:
+        if T is None or params.method == "gmatch":
+            T = kabsch(ps, pt)
+        krmse = _kabsch_rmse(ps, pt, T)
+    else:
+        T, krmse = None, float("inf")
+    if params.method != "gmatch":
+        cost = krmse
+    out = PairResult(T, matches, float(cost), n, krmse if n >= 3 else None, None, False, None, params.method,
+                     None if T is None else T.copy(), tm)
+    if n < params.min_matches:
+        out.reason = f"too few matches ({n} < {params.min_matches})"
+        return out
+    if krmse > params.max_kabsch_rmse:
+        out.reason = f"kabsch residual ({krmse:.4f} m > {params.max_kabsch_rmse} m)"
+        return out
+    if params.icp and clouds is not None and clouds[0] is not None and clouds[1] is not None:
+        t0 = time.perf_counter()
+        r = icp(clouds[0], clouds[1], T, params.icp_max_dist, params.icp_voxel, params.icp_iterations, True)
+        tm["icp"] = (time.perf_counter() - t0) * 1e3
+        out.fitness, out.rmse = r.fitness, r.rmse
+        deg, m = pose_error(r.T, T)
+        if r.fitness < params.min_fitness:
+            out.reason = f"icp fitness ({r.fitness:.2f} < {params.min_fitness})"
+        elif r.rmse > params.max_rmse:
+            out.reason = f"icp rmse ({r.rmse:.4f} m > {params.max_rmse} m)"
+        elif deg > params.max_icp_shift_deg or m > params.max_icp_shift_m:
+            out.reason = f"icp shift ({deg:.1f} deg, {m:.3f} m)"
+        else:
+            out.T_tgt_src = r.T
+            out.accepted = True
+        return out
+    out.accepted = True
+    return out
+
+
+def register_features(fs, ft, params: RegisterParams = RegisterParams(), clouds: tuple | None = None,
+                      method: str | None = None, view_s=(0.0, 0.0, 1.0), view_t=(0.0, 0.0, 1.0)) -> PairResult:
+    """Register two gscan.features.Features (camera-frame points). `method` overrides params.method."""
+    if fs.kind != ft.kind:
+        raise ValueError(f"descriptor kinds differ: {fs.kind} vs {ft.kind}")
+    if method is not None and method != params.method:
+        params = RegisterParams(**{**params.__dict__, "method": method})
+    return register_points(fs.points, ft.points, fs.descriptors, ft.descriptors, fs.kind, params, clouds,
+                           view_s, view_t)
+
+
+def frame_cloud(frame, stride: int = 2, mask: np.ndarray | None = None) -> np.ndarray:
+    """Camera-frame ICP cloud [P x 3] of an RGBDFrame (valid depth, every `stride`-th pixel, optional mask)."""
+    from gscan.camera import point_cloud
+
+    return point_cloud(frame, mask, stride)[0]
+
+
+def match_frames(frame_s, frame_t, params: RegisterParams = RegisterParams(), feature_params=None,
+                 use_masks: bool = False, icp_stride: int = 2) -> PairResult:
+    """One call: features of both RGBDFrames -> match -> Kabsch -> ICP (whole frames unless use_masks)."""
+    from gscan.features import FeatureParams, extract_features
+
+    fp = feature_params if feature_params is not None else FeatureParams()
+    ms = frame_s.mask if use_masks else None
+    mt = frame_t.mask if use_masks else None
+    t0 = time.perf_counter()
+    fs = extract_features(frame_s, fp, mask=ms)
+    ft = extract_features(frame_t, fp, mask=mt)
+    t_feat = (time.perf_counter() - t0) * 1e3
+    clouds = (frame_cloud(frame_s, icp_stride, ms), frame_cloud(frame_t, icp_stride, mt)) if params.icp else None
+    out = register_features(fs, ft, params, clouds)
+    out.timings_ms["features"] = t_feat
+    return out
+
+
+def relative_pose(T_world_cam_s: np.ndarray, T_world_cam_t: np.ndarray) -> np.ndarray:
+    """Ground-truth T_tgt_src from two camera poses: inv(T_world_cam_t) @ T_world_cam_s."""
+    return inv_T(T_world_cam_t) @ T_world_cam_s
