@@ -217,20 +217,12 @@ class Estimator:
 
         t = time.perf_counter()
         best = None  # (n, -cost, view, matches)
-        q_order, q_starts = _coincident_groups(feats.points)
-        pts_q = feats.points[q_order[q_starts]]
+        q_groups = _coincident_groups(feats.points)
         for v in views:
-            a, b = self.offsets[v], self.offsets[v + 1]
-            s_order, s_starts = self.groups[v]
-            dist = self._dist(S[:, a:b]).T  # [Ns x Nt] template view -> query
-            # keypoints sharing a 3D point (SIFT orientations of one location) are merged: min distance
-            dist = np.minimum.reduceat(np.minimum.reduceat(dist[s_order][:, q_order], s_starts, axis=0),
-                                       q_starts, axis=1)
-            res = gmatch(self.points_cam[a + s_order[s_starts]], pts_q, dist, self.eps_f, self.params.gmatch)
-            n = len(res.matches)
-            if n >= 3 and (best is None or (n, -res.cost) > (best[0], best[1])):
-                m = np.stack([s_order[s_starts[res.matches[:, 0]]], q_order[q_starts[res.matches[:, 1]]]], 1)
-                best = (n, -res.cost, int(v), m)
+            m, cost = self._match_view(int(v), S, feats, q_groups)
+            n = len(m)
+            if n >= 3 and (best is None or (n, -cost) > (best[0], best[1])):
+                best = (n, -cost, int(v), m)
         tm["match"] = _ms(t)
         if best is None or best[0] < self.params.min_matches:
             n = 0 if best is None else best[0]
@@ -257,6 +249,21 @@ class Estimator:
         return self._found(T_cam_obj, score, n, view, tm, t_all, "gmatch")
 
     # ------------------------------------------------------------------------------------------------
+    def _match_view(self, v: int, S: np.ndarray, feats: Features,
+                    q_groups: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, float]:
+        """GMatch of template view `v` against the query: (matches [M x 2] (keypoint row within the view,
+        query keypoint index), cost). S: the retrieval matrix [M_query x N_template]."""
+        a, b = self.offsets[v], self.offsets[v + 1]
+        s_order, s_starts = self.groups[v]
+        q_order, q_starts = q_groups
+        dist = self._dist(S[:, a:b]).T  # [Ns x Nt] template view -> query
+        # keypoints sharing a 3D point (SIFT orientations of one location) are merged: min distance
+        dist = np.minimum.reduceat(np.minimum.reduceat(dist[s_order][:, q_order], s_starts, axis=0), q_starts, axis=1)
+        res = gmatch(self.points_cam[a + s_order[s_starts]], feats.points[q_order[q_starts]], dist, self.eps_f,
+                     self.params.gmatch)
+        m = np.stack([s_order[s_starts[res.matches[:, 0]]], q_order[q_starts[res.matches[:, 1]]]], 1)
+        return m.reshape(-1, 2), float(res.cost)
+
     def _features(self, frame: RGBDFrame, mask: np.ndarray | None, lift: bool) -> Features:
         """Query keypoints; with a mask, detection runs on the mask's bounding box (+ margin) only.
         Without `lift` (PnP mode) every keypoint is kept: a unit placeholder depth is lifted, so only

@@ -1,0 +1,188 @@
+"""Benchmark of pose estimation (gscan.estimate) on cluttered rendered scenes, against a baseline.
+
+For every shared mesh (or --meshes): a CAD template (`build_template_from_mesh`, --views views,
+cached under --work), then --scenes scenes: the target resting on a textured table in a random
+orientation with two other shared meshes beside it as distractors, seen from a random viewpoint
+(elevation 20-65 deg, distance 0.95-1.3 x the 45 %-fill distance); every other scene looks at the
+target past a distractor from low (elevation 15-35 deg), so the distractor partly occludes it. Depth noise and holes as rendered.
+
+Methods, same templates, same query features, same retrieval, same ICP / scoring / acceptance:
+- gscan: `Estimator` (GMatch per retrieved view), full frame, ICP on.
+- gscan-mask-noicp: the same with the ground-truth mask as --mask and no ICP (speed target).
+- baseline: nearest neighbour + Lowe ratio 0.8 per retrieved view, then 3D-3D LO-RANSAC (pycolmap
+  `estimate_rigid3d_robust`, 1 cm threshold, seeded), the view with the most inliers, then the same
+  Kabsch / ICP / score as gscan.
+
+Reports per method: found %, AUC of ADD and ADD-S (YCB-Video, 0-10 cm; not found = failure),
+ADD < 10 % of the diameter, and the median milliseconds of every stage.
+
+    python bench/estimate.py                      # all 21 meshes, 4 scenes each
+    python bench/estimate.py --meshes 3 --scenes 2 --json out.json
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from gscan.cadtemplate import build_template_from_mesh
+from gscan.camera import RGBDFrame
+from gscan.estimate import STAGES, Estimator
+from gscan.features import Features
+from gscan.geometry import look_at, rotvec_to_R, transform_points
+from gscan.metrics import add, adds, auc
+from gscan.synth import (DEFAULT_INTRINSICS, SynthScene, default_distance, load_textured_mesh, place_distractors,
+                         rest_on_table)
+
+ROOT = Path(__file__).resolve().parents[1]
+MESHES = ROOT.parent / "shared" / "data" / "meshes"
+
+
+class RatioRansacEstimator(Estimator):
+    """Baseline: NN + ratio test + 3D-3D LO-RANSAC in place of GMatch (everything else shared)."""
+
+    ratio = 0.8
+    inlier_m = 0.01
+
+    def _match_view(self, v: int, S: np.ndarray, feats: Features,
+                    q_groups: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, float]:
+        import pycolmap
+
+        a, b = self.offsets[v], self.offsets[v + 1]
+        if b - a < 2:
+            return np.zeros((0, 2), np.int64), 1.0
+        D = self._dist(S[:, a:b])  # [M_query x N_view]
+        two = np.argpartition(D, 1, axis=1)[:, :2]
+        d2 = np.take_along_axis(D, two, axis=1)
+        first = np.argmin(d2, axis=1)
+        d1, dn = d2[np.arange(len(D)), first], d2[np.arange(len(D)), 1 - first]
+        j = two[np.arange(len(D)), first]
+        qi = np.flatnonzero((d1 < self.ratio * dn) & (d1 < self.eps_f))
+        if len(qi) < 3:
+            return np.zeros((0, 2), np.int64), 1.0
+        src, tgt = self.points_obj[a + j[qi]], feats.points[qi].astype(np.float64)
+        opts = pycolmap.RANSACOptions()
+        opts.max_error = self.inlier_m
+        opts.random_seed = 0
+        res = pycolmap.estimate_rigid3d_robust(src, tgt, opts)
+        if res is None:
+            return np.zeros((0, 2), np.int64), 1.0
+        M = np.asarray(res["tgt_from_src"].matrix())
+        r = np.linalg.norm(src @ M[:, :3].T + M[:, 3] - tgt, axis=1)
+        inl = r < self.inlier_m
+        return np.stack([j[qi[inl]], qi[inl]], 1), float(r[inl].mean()) if inl.any() else 1.0
+
+
+def make_scene(target, distractors, seed: int, occlude: bool):
+    """(RenderedFrame, visible fraction of the target) of one cluttered scene."""
+    rng = np.random.default_rng([seed, 0xE57])
+    T_wt = rest_on_table(target, rotvec_to_R([0.0, 0.0, rng.uniform(0, 2 * np.pi)]))
+    d_poses = place_distractors(target, T_wt, distractors, rng)
+    scene = SynthScene([(target, T_wt)] + list(zip(distractors, d_poses)), seed=seed)
+    c = transform_points(T_wt, target.center[None])[0]
+    if occlude:  # look at the target past the first distractor, from low
+        el = np.radians(rng.uniform(15, 35))
+        dc = transform_points(d_poses[0], distractors[0].center[None])[0]
+        az = np.arctan2(dc[1] - c[1], dc[0] - c[0]) + np.radians(rng.uniform(-10, 10))
+    else:
+        el = np.radians(rng.uniform(20, 65))
+        az = rng.uniform(0, 2 * np.pi)
+    dist = default_distance(target, fill=0.45) * rng.uniform(0.95, 1.3)
+    eye = c + dist * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    r = scene.render(look_at(eye, c), DEFAULT_INTRINSICS, rng=np.random.default_rng([seed, 1]))
+    alone = SynthScene([(target, T_wt)], table=False, seed=seed).render(look_at(eye, c), DEFAULT_INTRINSICS,
+                                                                        noise=False, shading=False)
+    return r, float(r.mask.sum()) / max(1, int(alone.mask.sum()))
+
+
+def run(args: argparse.Namespace) -> dict:
+    names = sorted(p.name for p in MESHES.iterdir() if (p / "model_0.obj").is_file())
+    if args.meshes:
+        names = names[: int(args.meshes)] if args.meshes.isdigit() else [n for n in names if n in args.meshes.split(",")]
+    work = Path(args.work)
+    work.mkdir(parents=True, exist_ok=True)
+    all_meshes = {n: load_textured_mesh(MESHES / n / "model_0.obj") for n in sorted(p.name for p in MESHES.iterdir()
+                                                                                   if (p / "model_0.obj").is_file())}
+    methods = ("gscan", "gscan-mask-noicp", "baseline")
+    recs: dict[str, list[dict]] = {m: [] for m in methods}
+    t_build = []
+    for ti, name in enumerate(names):
+        tpl = work / f"{name}_v{args.views}.gscan"
+        if not tpl.exists():
+            t0 = time.perf_counter()
+            build_template_from_mesh(MESHES / name / "model_0.obj", tpl, n_views=args.views)
+            t_build.append(time.perf_counter() - t0)
+        est = {"gscan": Estimator.from_path(tpl), "baseline": RatioRansacEstimator.from_path(tpl)}
+        est["gscan-mask-noicp"] = est["gscan"]
+        target = all_meshes[name]
+        pts = target.vertices
+        diameter = float(np.linalg.norm(target.extent))
+        others = [n for n in all_meshes if n != name]
+        for k in range(args.scenes):
+            seed = 1000 * ti + k
+            rng = np.random.default_rng([seed, 7])
+            distractors = [all_meshes[n] for n in rng.choice(others, 2, replace=False)]
+            r, visible = make_scene(target, distractors, seed, occlude=(k % 2 == 1))
+            frame = RGBDFrame(f"{name}_{k}", r.color, r.depth, DEFAULT_INTRINSICS)
+            for m in methods:
+                mask, refine = (r.mask, False) if m == "gscan-mask-noicp" else (None, True)
+                res = est[m].estimate(frame, mask=mask, refine=refine)
+                e_add = add(pts, res.T_cam_obj, r.T_cam_obj) if res.found else float("inf")
+                e_adds = adds(pts, res.T_cam_obj, r.T_cam_obj) if res.found else float("inf")
+                recs[m].append({"mesh": name, "scene": k, "visible": visible, "found": res.found, "add": e_add,
+                                "adds": e_adds, "diameter": diameter, "n_matches": res.n_matches,
+                                "timings_ms": res.timings_ms, "reason": res.reason})
+            line = "  ".join(f"{m}: {'%.1f mm' % (recs[m][-1]['add'] * 1e3) if recs[m][-1]['found'] else 'not found'}"
+                             for m in methods)
+            print(f"{name[:28]:28s} scene {k} visible {visible:4.0%}  {line}", file=sys.stderr, flush=True)
+    summary = {}
+    for m in methods:
+        rs = recs[m]
+        add_e = [r["add"] for r in rs]
+        summary[m] = {
+            "scenes": len(rs), "found %": 100.0 * np.mean([r["found"] for r in rs]),
+            "AUC ADD": auc(add_e), "AUC ADD-S": auc([r["adds"] for r in rs]),
+            "ADD<0.1d %": 100.0 * np.mean([r["add"] < 0.1 * r["diameter"] for r in rs]),
+            "wrong found %": 100.0 * np.mean([r["found"] and r["add"] > 0.1 * r["diameter"] for r in rs]),
+            "median ms": {s: float(np.median([r["timings_ms"].get(s, 0.0) for r in rs])) for s in STAGES},
+        }
+    return {"meshes": names, "views": args.views, "scenes_per_mesh": args.scenes, "summary": summary,
+            "template_build_s_median": float(np.median(t_build)) if t_build else None,
+            "records": {m: [{k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in r.items()}
+                            for r in recs[m]] for m in methods}}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--meshes", default="", help="number of meshes (first N sorted) or comma-separated names")
+    ap.add_argument("--scenes", type=int, default=4, help="scenes per mesh")
+    ap.add_argument("--views", type=int, default=36, help="template views")
+    ap.add_argument("--work", default="/tmp/gscan-bench-estimate", help="template cache folder")
+    ap.add_argument("--json", default=None, help="write the full results here")
+    args = ap.parse_args()
+    logging.basicConfig(level=logging.WARNING)
+    out = run(args)
+    s = out["summary"]
+    print(f"\n{len(out['meshes'])} meshes x {out['scenes_per_mesh']} scenes, {out['views']}-view CAD templates")
+    print("| method | found % | AUC ADD | AUC ADD-S | ADD<0.1d % | wrong % |")
+    print("|---|---|---|---|---|---|")
+    for m, v in s.items():
+        print(f"| {m} | {v['found %']:.1f} | {v['AUC ADD']:.1f} | {v['AUC ADD-S']:.1f} | {v['ADD<0.1d %']:.1f} | "
+              f"{v['wrong found %']:.1f} |")
+    print("\n| method | " + " | ".join(STAGES) + " |  (median ms)")
+    print("|---|" + "---|" * len(STAGES))
+    for m, v in s.items():
+        print(f"| {m} | " + " | ".join(f"{v['median ms'][k]:.0f}" for k in STAGES) + " |")
+    if out["template_build_s_median"] is not None:
+        print(f"\ntemplate build: median {out['template_build_s_median']:.1f} s")
+    if args.json:
+        Path(args.json).write_text(json.dumps(out, indent=1))
+
+
+if __name__ == "__main__":
+    main()
