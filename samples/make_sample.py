@@ -17,8 +17,8 @@ from pathlib import Path
 import numpy as np
 
 from gscan.geometry import look_at, rotvec_to_R, transform_points
-from gscan.synth import (DEFAULT_INTRINSICS, SynthScene, box_mesh, place_distractors, procedural_box_texture,
-                         rest_on_table, save_textured_mesh, write_capture)
+from gscan.synth import (DEFAULT_INTRINSICS, RenderedFrame, SynthScene, TexturedMesh, box_mesh, place_distractors,
+                         procedural_box_texture, rest_on_table, save_textured_mesh, write_capture)
 
 BOX_SIZE = (0.16, 0.10, 0.07)
 BOX_SEED = 7
@@ -46,23 +46,39 @@ def camera(center: np.ndarray, elevation_deg: float, azimuth_deg: float, dist: f
     return look_at(eye, center + target_jitter)
 
 
-def make(out: Path) -> dict:
-    rng = np.random.default_rng(2024)
-    intr = DEFAULT_INTRINSICS
-    box = box_mesh(BOX_SIZE, procedural_box_texture(BOX_SEED), name="printed_box")
-    save_textured_mesh(box, out / "object" / "box.obj")
+def sample_box() -> TexturedMesh:
+    """The sample object: procedural printed box, origin at its centre."""
+    return box_mesh(BOX_SIZE, procedural_box_texture(BOX_SEED), name="printed_box")
 
-    # --- capture: static object, hand-held-like camera on two rings
+
+def capture_setup(box: TexturedMesh, rng: np.random.Generator) -> tuple[SynthScene, list[np.ndarray]]:
+    """The capture scene (box standing on a newspaper table) and its 30 T_world_cam, ring by ring."""
     T_world_obj = rest_on_table(box)
     center = transform_points(T_world_obj, box.center[None])[0]
     scene = SynthScene([(box, T_world_obj)], seed=BOX_SEED, table_kind="newspaper")
-    frames = []
+    cams = []
     for r, (el, dist) in enumerate(RINGS):
         for j in range(N_PER_RING):
             az = 360.0 * (j + 0.5 * r) / N_PER_RING
-            T_wc = camera(center, el + rng.uniform(-3, 3), az + rng.uniform(-3, 3), dist + rng.uniform(-0.04, 0.04),
-                          rng.uniform(-0.01, 0.01, 3))
-            frames.append(scene.render(T_wc, intr, noise=True, rng=np.random.default_rng([BOX_SEED, len(frames)])))
+            cams.append(camera(center, el + rng.uniform(-3, 3), az + rng.uniform(-3, 3),
+                               dist + rng.uniform(-0.04, 0.04), rng.uniform(-0.01, 0.01, 3)))
+    return scene, cams
+
+
+def render_capture_frame(scene: SynthScene, T_world_cam: np.ndarray, index: int) -> RenderedFrame:
+    """Capture frame `index` (its noise is seeded by the index)."""
+    return scene.render(T_world_cam, DEFAULT_INTRINSICS, noise=True, rng=np.random.default_rng([BOX_SEED, index]))
+
+
+def make(out: Path) -> dict:
+    rng = np.random.default_rng(2024)
+    intr = DEFAULT_INTRINSICS
+    box = sample_box()
+    save_textured_mesh(box, out / "object" / "box.obj")
+
+    # --- capture: static object, hand-held-like camera on two rings
+    scene, cams = capture_setup(box, rng)
+    frames = [render_capture_frame(scene, T_wc, i) for i, T_wc in enumerate(cams)]
     write_capture(out / "capture", frames, intr, jpeg=True, jpeg_quality=92)
 
     # --- held-out frames: same object elsewhere, other tables, one distractor

@@ -327,3 +327,53 @@ def test_render_deterministic_and_seed_dependent(box: TexturedMesh) -> None:
     assert np.array_equal(f1.depth_clean, h.depth_clean)  # same geometry
     holes_1, holes_g = (f1.depth == 0) & (f1.depth_clean > 0), (g.depth == 0) & (g.depth_clean > 0)
     assert holes_1.any() and holes_g.any()
+
+
+SAMPLES = Path(__file__).resolve().parents[1] / "samples"
+
+
+def _load_make_sample():
+    import importlib.util
+    spec = importlib.util.spec_from_file_location("make_sample", SAMPLES / "make_sample.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_bundled_sample_consistent_with_ground_truth() -> None:
+    """The committed sample: layout, masks = GT silhouettes of object/box.obj, depth on the box surface."""
+    box = load_textured_mesh(SAMPLES / "object" / "box.obj")
+    np.testing.assert_allclose(box.extent, [0.16, 0.10, 0.07], atol=1e-9)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(box.vertices.astype(np.float32)), o3d.core.Tensor(box.triangles.astype(np.uint32)))
+    for sub, n in (("capture", 30), ("heldout", 4)):
+        d = SAMPLES / sub
+        names = sorted(p.stem for p in (d / "rgb").glob("*.jpg"))
+        assert names == [f"{i:06d}" for i in range(n)]
+        intr = load_intrinsics(d / "cam_K.txt", 640, 480)
+        for name in names[:: max(1, n // 4)]:
+            T = np.loadtxt(d / "annotated_poses" / f"{name}.txt")
+            mask = cv2.imread(str(d / "masks" / f"{name}.png"), cv2.IMREAD_UNCHANGED) == 255
+            ref = silhouette(box, T, intr)
+            assert (ref & mask).sum() / (ref | mask).sum() >= 0.98
+            depth = cv2.imread(str(d / "depth" / f"{name}.png"), cv2.IMREAD_UNCHANGED) / 1000.0
+            sel = mask & (depth > 0)
+            pts = transform_points(inv_T(T), backproject(depth, intr)[sel]).astype(np.float32)
+            dist = scene.compute_distance(o3d.core.Tensor(pts)).numpy()
+            assert np.median(dist) < 0.002 and np.percentile(dist, 95) < 0.006  # noisy depth on the surface
+
+
+def test_bundled_sample_regenerates() -> None:
+    """make_sample.py reproduces committed capture frames (a few pixels may differ across CPUs)."""
+    mod = _load_make_sample()
+    box = mod.sample_box()
+    scene, cams = mod.capture_setup(box, np.random.default_rng(2024))
+    assert len(cams) == 30
+    for i in (0, 22):
+        f = mod.render_capture_frame(scene, cams[i], i)
+        np.testing.assert_allclose(np.loadtxt(SAMPLES / "capture" / "annotated_poses" / f"{i:06d}.txt"), f.T_cam_obj,
+                                   atol=1e-8)
+        depth = cv2.imread(str(SAMPLES / "capture" / "depth" / f"{i:06d}.png"), cv2.IMREAD_UNCHANGED)
+        assert np.mean(depth == np.rint(f.depth * 1000)) > 0.99
+        rgb = cv2.cvtColor(cv2.imread(str(SAMPLES / "capture" / "rgb" / f"{i:06d}.jpg")), cv2.COLOR_BGR2RGB)
+        assert np.abs(rgb.astype(int) - f.color).mean() < 3.0
