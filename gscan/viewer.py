@@ -280,7 +280,10 @@ class ViewerApp:
         self._by_name = {v.name: v for v in data.views}
         self._current: str | None = None
         self._edge_labels: dict[str, Edge] = {}
-        self.layers: dict[str, list] = {}
+        self.layers: dict[str, list] = {}  # layer key -> viser scene handles (toggled together)
+        # GUI handles, created by _build_gui
+        self._view_slider = self._view_dropdown = self._goto_button = self._view_image = self._view_md = None
+        self._edge_dropdown = self._match_image = self._match_md = None
 
     # -- selection ---------------------------------------------------------------------------------
     def select_view(self, name: str) -> None:
@@ -313,9 +316,10 @@ class ViewerApp:
 
     def go_to_view(self, name: str | None = None) -> None:
         """Move every connected browser's camera to the pose of view `name` (default: the selected one)."""
-        v = self._by_name[name or self._current]
-        if v.T_obj_cam is None:
+        name = name or self._current
+        if name is None or self._by_name[name].T_obj_cam is None:
             return
+        v = self._by_name[name]
         R, t = v.T_obj_cam[:3, :3], v.T_obj_cam[:3, 3]
         depth = max(float((self.data.center - t) @ R[:, 2]), 0.1 * self.data.size)
         fov = 2.0 * np.arctan2(v.intrinsics.height / 2.0, v.intrinsics.fy)
@@ -359,14 +363,14 @@ class ViewerApp:
             self._match_md.visible = False
             return
         d = self.data
-        px_s, px_t = d.keypoints[e.src][0] if e.src in d.keypoints else np.zeros((0, 2)), \
-            d.keypoints[e.tgt][0] if e.tgt in d.keypoints else np.zeros((0, 2))
+        grey = np.full((240, 320, 3), 90, np.uint8)
+        side = {n: (d.thumbs.get(n, grey), d.keypoints[n][0] if n in d.keypoints else np.zeros((0, 2)),
+                    d.image_wh.get(n, (320, 240))) for n in (e.src, e.tgt)}
+        (img_s, px_s, wh_s), (img_t, px_t, wh_t) = side[e.src], side[e.tgt]
         m = np.asarray(e.matches, dtype=np.int64).reshape(-1, 2)
         ok = (m[:, 0] >= 0) & (m[:, 0] < len(px_s)) & (m[:, 1] >= 0) & (m[:, 1] < len(px_t))
-        grey = np.full((240, 320, 3), 90, np.uint8)
-        img = draw_matches(d.thumbs.get(e.src, grey), px_s, d.image_wh.get(e.src, (320, 240)), d.thumbs.get(e.tgt, grey),
-                           px_t, d.image_wh.get(e.tgt, (320, 240)), m[ok], self.options.max_match_lines)
-        self._match_image.image = img
+        self._match_image.image = draw_matches(img_s, px_s, wh_s, img_t, px_t, wh_t, m[ok],
+                                               self.options.max_match_lines)
         txt = [f"**{e.src} → {e.tgt}**  ", f"kind: {e.kind} · accepted: {'yes' if e.accepted else 'no'}  ",
                f"matches: {len(m)} · cost: {_num(e.cost, '.4f')}  ",
                f"RMSE: {_mm(e.rmse)} mm · fitness: {_num(e.fitness, '.3f')}"]
@@ -404,8 +408,9 @@ def serve(db_path: str | Path, host: str = "127.0.0.1", port: int = 8080, scene_
     """
     import viser
 
-    data = load_viewer_data(db_path, options)
     check_port(host, port)
+    data = load_viewer_data(db_path, options)
+    _quiet_websockets()
     with contextlib.redirect_stdout(io.StringIO()) as banner:  # viser prints a banner; library code never prints
         server = viser.ViserServer(host=host, port=port, label=f"gscan · {Path(db_path).name}", verbose=False)
     log.debug("viser: %s", banner.getvalue().strip())
@@ -505,6 +510,20 @@ def _build_scene(app: ViewerApp, frame: RGBDFrame | None, T_cam_obj: np.ndarray 
         layers["scene"].append(_add_frustum(app, "/scene/camera", frame.intrinsics, T_obj_cam, thumb,
                                             (40, 120, 255), None))
     app.layers = layers
+
+
+class _DropHandshakeNoise(logging.Filter):
+    """websockets logs a traceback for every TCP connection that is not a WebSocket/HTTP request (port
+    probes, health checks); they are not errors of the viewer."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return "opening handshake failed" not in record.getMessage()
+
+
+def _quiet_websockets() -> None:
+    lg = logging.getLogger("websockets.server")
+    if not any(isinstance(f, _DropHandshakeNoise) for f in lg.filters):
+        lg.addFilter(_DropHandshakeNoise())
 
 
 def _node(name: str) -> str:

@@ -6,6 +6,7 @@ scan pipeline produces one. Browser tests use Debian's /usr/bin/chromium through
 from __future__ import annotations
 
 import importlib.util
+import json
 import shutil
 import socket
 import sys
@@ -19,7 +20,7 @@ from hypothesis import strategies as st
 
 from gscan.camera import RGBDFrame
 from gscan.errors import InputError
-from gscan.geometry import inv_T, look_at
+from gscan.geometry import look_at
 from gscan.template import TemplateDB
 from gscan.viewer import (PortInUseError, check_port, draw_matches, edge_color, quality_color, scale_pixels, serve,
                           thumbnail)
@@ -151,8 +152,17 @@ def test_colour_scales_and_match_drawing():
 def test_viewer_in_browser(template, tmp_path):
     from playwright.sync_api import sync_playwright
 
+    # A query frame on disk with its pose, as `gscan view --color --depth --intrinsics` would pass it.
+    from gscan.synth import write_capture
+
+    T_world_obj = template.T_world_obj
+    fr = template.scene.render(look_at(T_world_obj[:3, 3] + [0.3, 0.3, 0.35], T_world_obj[:3, 3]), noise=False)
+    cap = write_capture(tmp_path / "query", [fr], fr.intrinsics)
+    (tmp_path / "pose.json").write_text(json.dumps({"T": fr.T_cam_obj.tolist()}))
+    query = ["--color", str(cap / "rgb" / "000000.png"), "--depth", str(cap / "depth" / "000000.png"),
+             "--intrinsics", str(cap / "cam_K.txt"), "--pose", str(tmp_path / "pose.json")]
     port = vp.free_port()
-    proc, _ = vp.start_viewer(template.path, port, log_path=tmp_path / "viewer.log")
+    proc, _ = vp.start_viewer(template.path, port, extra=query, log_path=tmp_path / "viewer.log")
     try:
         with sync_playwright() as p:
             browser = vp.launch(p)
@@ -169,6 +179,7 @@ def test_viewer_in_browser(template, tmp_path):
                 assert page.locator(f"input[id='{vp.gui_control_id(page, 'View')}']").input_value() == "000000"
                 assert page.get_by_text("unregistered (1):").count() == 1
                 assert page.get_by_text("000004").count() >= 1
+                assert page.get_by_text("cloud placed by the estimated pose").count() == 1
                 # Moving the view slider changes the displayed image.
                 img = vp.gui_image(page, "View image")
                 before = img.screenshot()
