@@ -9,7 +9,7 @@ Detection rule (`detect_mode`): compare frame pairs spread over the capture. A p
 *static* when both frames have valid depth there, the depths agree within
 max(4 mm, 1 % of the depth) and the grey levels within 12. Pixels inside a given object
 mask (dilated) are ignored. When the median static fraction over the pairs is at least
-`static_fraction` (0.5) the camera did not move: moving-object; otherwise static-object.
+`static_fraction` (0.65) the camera did not move: moving-object; otherwise static-object.
 """
 from __future__ import annotations
 
@@ -50,15 +50,17 @@ def _static_fraction(a: RGBDFrame, b: RGBDFrame) -> float:
     return float((same & valid).sum() / valid.sum())
 
 
-def detect_mode(frames: list[RGBDFrame], static_fraction: float = 0.5, max_pairs: int = 6) -> ModeDecision:
-    """Decide static-object vs moving-object from the frames (see module docstring)."""
+def detect_mode(frames: list[RGBDFrame], static_fraction: float = 0.65) -> ModeDecision:
+    """Decide static-object vs moving-object from the frames (see module docstring).
+
+    The pairs compared are far apart in the sequence (first-last, first-middle, middle-last,
+    quarter-three quarters), so that a slowly moving hand-held camera has moved between them.
+    """
     n = len(frames)
     if n < 2:
         return ModeDecision(STATIC_OBJECT, 0.0, 0)
-    # pairs (i, i + gap) spread over the sequence, gap ~ n/8 so that a slow hand-held scan still moves
-    gap = max(1, n // 8)
-    starts = np.unique(np.linspace(0, max(0, n - 1 - gap), num=min(max_pairs, n - 1)).round().astype(int))
-    fracs = [_static_fraction(frames[i], frames[min(n - 1, i + gap)]) for i in starts]
+    pairs = sorted({(0, n - 1), (0, n // 2), (n // 2, n - 1), (n // 4, (3 * n) // 4)} - {(k, k) for k in range(n)})
+    fracs = [_static_fraction(frames[i], frames[j]) for i, j in pairs]
     med = float(np.median(fracs))
     mode = MOVING_OBJECT if med >= static_fraction else STATIC_OBJECT
     log.info("capture mode %s (static background fraction %.2f over %d pairs)", mode, med, len(fracs))

@@ -54,7 +54,7 @@ class PoseGraphConfig(_Section):
 
 
 class FusionConfig(_Section):
-    voxel: float = Field(0.002, gt=0, description="TSDF voxel size (m)")
+    voxel: float | None = Field(None, gt=0, description="TSDF voxel size (m); null = object extent / 150 within 2-10 mm")
     depth_max: float = Field(2.0, gt=0, description="depth beyond this is ignored when fusing (m)")
 
 
