@@ -120,7 +120,7 @@ def test_mask_matches_projected_silhouette_and_depth_lies_on_surface(shared_mesh
     for f in frames:
         ref = silhouette(m, f.T_cam_obj, DEFAULT_INTRINSICS)
         iou = (ref & f.mask).sum() / (ref | f.mask).sum()
-        assert iou >= 0.98, iou
+        assert iou >= 0.99, iou  # measured >= 0.9978 over all 21 shared meshes
         assert f.mask.sum() > 5000
         pts_c = backproject(f.depth_clean, DEFAULT_INTRINSICS)[f.mask]
         pts_o = transform_points(inv_T(f.T_cam_obj), pts_c).astype(np.float32)
@@ -374,6 +374,23 @@ def test_bundled_sample_regenerates() -> None:
         np.testing.assert_allclose(np.loadtxt(SAMPLES / "capture" / "annotated_poses" / f"{i:06d}.txt"), f.T_cam_obj,
                                    atol=1e-8)
         depth = cv2.imread(str(SAMPLES / "capture" / "depth" / f"{i:06d}.png"), cv2.IMREAD_UNCHANGED)
-        assert np.mean(depth == np.rint(f.depth * 1000)) > 0.99
+        assert np.mean(depth == np.rint(f.depth * 1000)) > 0.998
         rgb = cv2.cvtColor(cv2.imread(str(SAMPLES / "capture" / "rgb" / f"{i:06d}.jpg")), cv2.COLOR_BGR2RGB)
         assert np.abs(rgb.astype(int) - f.color).mean() < 3.0
+
+
+def test_stereo_occlusion_band_left_of_objects(box: TexturedMesh) -> None:
+    """With a 5 cm baseline to the right, table points hidden from the second imager (just left of the
+    box in the image) lose their depth; no such band appears without a baseline."""
+    T_wo = rest_on_table(box)
+    sc = SynthScene([(box, T_wo)], table_texture_size=512)
+    T_wc = orbit_poses(transform_points(T_wo, box.center[None])[0], 0.5, [25.0], 1, azimuth0_deg=-60)[0]
+    quiet = dict(clusters_mean=0.0, edge_band_px=0, sigma_0=0.0, sigma_2=0.0)
+    f0 = sc.render(T_wc, SMALL, noise_params=DepthNoise(baseline=0.0, **quiet))
+    f1 = sc.render(T_wc, SMALL, noise_params=DepthNoise(baseline=0.05, **quiet))
+    extra = (f1.depth == 0) & (f0.depth > 0)
+    assert not ((f0.depth == 0) & (f1.depth > 0)).any()
+    rows, cols = np.nonzero(extra & (f1.labels == -1))
+    assert len(rows) > 20
+    right_of = [f1.mask[r, c + 1:c + 12].any() for r, c in zip(rows, cols)]
+    assert all(right_of)  # every dropped table pixel lies just left of the box

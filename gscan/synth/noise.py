@@ -10,7 +10,10 @@ Applied to an exact depth image, in this order:
    dropped with probability `edge_drop_prob` (ragged edges);
 3. grazing surfaces (|cos| between ray and normal below `grazing_cos`) are dropped;
 4. random dropout clusters: a Poisson(`clusters_mean`) number of ellipses, radii 2-`cluster_max_px` px;
-5. quantisation to `quantum` m (1 mm) and the valid range [min_range, max_range] (0.1-3 m).
+5. stereo occlusion (computed by the renderer): surface points that a second imager `baseline` m to
+   the right of the camera (+x, the D435's 50 mm left-to-right imager baseline) cannot see are invalid,
+   the band of missing depth left of foreground objects that active-stereo sensors show;
+6. quantisation to `quantum` m (1 mm) and the valid range [min_range, max_range] (0.1-3 m).
 The renderer also blurs the colour image slightly (`color_blur_sigma` px, lens / demosaicing
 softness, which also hides ray-casting aliasing) and adds gaussian noise (`color_sigma`, 8-bit units).
 """
@@ -36,6 +39,7 @@ class DepthNoise:
     quantum: float = 0.001
     min_range: float = 0.1
     max_range: float = 3.0
+    baseline: float = 0.05
     color_sigma: float = 1.5
     color_blur_sigma: float = 0.5
 
@@ -69,8 +73,13 @@ def discontinuities(depth: np.ndarray, labels: np.ndarray | None, rel_jump: floa
 
 
 def apply_depth_noise(depth_clean: np.ndarray, labels: np.ndarray | None, cos_view: np.ndarray | None,
-                      rng: np.random.Generator, p: DepthNoise = DepthNoise()) -> np.ndarray:
-    """Noisy [H x W] float32 depth (0 = invalid) from exact depth [H x W] m (0 where nothing was hit)."""
+                      rng: np.random.Generator, p: DepthNoise = DepthNoise(),
+                      invalid: np.ndarray | None = None) -> np.ndarray:
+    """Noisy [H x W] float32 depth (0 = invalid) from exact depth [H x W] m (0 where nothing was hit).
+
+    labels: [H x W] object labels (label changes are discontinuities) or None; cos_view: [H x W]
+    |cos| between ray and surface normal or None; invalid: [H x W] bool pixels to drop (the
+    renderer's stereo-occlusion shadow) or None."""
     H, W = depth_clean.shape
     valid = depth_clean > 0
     z = depth_clean.astype(np.float64)
@@ -88,6 +97,8 @@ def apply_depth_noise(depth_clean: np.ndarray, labels: np.ndarray | None, cos_vi
         ax = (int(rng.integers(2, p.cluster_max_px + 1)), int(rng.integers(2, p.cluster_max_px + 1)))
         cv2.ellipse(holes, c, ax, float(rng.uniform(0, 180)), 0, 360, 1, -1)
     drop |= holes.astype(bool)
+    if invalid is not None:
+        drop |= invalid
     if p.quantum > 0:
         noisy = np.round(noisy / p.quantum) * p.quantum
     ok = valid & ~drop & (noisy >= p.min_range) & (noisy <= p.max_range)

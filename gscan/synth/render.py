@@ -150,24 +150,33 @@ class SynthScene:
             best["normal"][closer] = _xform(res["primitive_normals"].numpy()[closer], T_wo[k][:3, :3])
         return best
 
-    def _occluded(self, pts_w: np.ndarray, T_wo: np.ndarray) -> np.ndarray:
-        """[N] bool: the ray from each world point [N x 3] towards the light hits an object."""
+    def _occluded(self, pts_w: np.ndarray, T_wo: np.ndarray, towards: np.ndarray | None = None) -> np.ndarray:
+        """[N] bool: an object blocks the ray from each world point [N x 3] towards the light
+        (towards=None) or the segment to the world point `towards` [3] (a second camera centre)."""
         occ = np.zeros(len(pts_w), bool)
-        L = self.light_dir
+        if towards is None:
+            dirs = np.broadcast_to(self.light_dir, pts_w.shape)
+            tfar = 10.0
+        else:
+            dirs = np.asarray(towards, dtype=np.float64) - pts_w  # unit of t: the segment length
+            tfar = 1.0
         for k, sc in enumerate(self._scenes):
             # only rays passing the object's bounding sphere can be blocked by it
             c = T_wo[k][:3, :3] @ self.meshes[k].center + T_wo[k][:3, 3]
             r = self.meshes[k].radius * 1.01 + 1e-3
             rel = c - pts_w
-            along = _dot(rel, L)
-            cand = np.flatnonzero((along > -r) & (np.einsum("ij,ij->i", rel, rel) - along ** 2 < r * r))
+            dd = np.einsum("ij,ij->i", dirs, dirs)
+            along = np.einsum("ij,ij->i", rel, dirs) / np.sqrt(dd)
+            reach = np.sqrt(dd) * tfar + r
+            near = np.einsum("ij,ij->i", rel, rel) - along ** 2 < r * r
+            cand = np.flatnonzero((along > -r) & (along < reach) & near)
             if len(cand) == 0:
                 continue
             T_ow = inv_T(T_wo[k])
             o = _xform(pts_w[cand], T_ow[:3, :3], T_ow[:3, 3])
-            d = np.broadcast_to(T_ow[:3, :3] @ L, o.shape)
+            d = _xform(np.ascontiguousarray(dirs[cand]), T_ow[:3, :3])
             rays = o3d.core.Tensor(np.concatenate([o, d], axis=1).astype(np.float32))
-            occ[cand] |= sc.test_occlusions(rays, tnear=1e-4, tfar=10.0).numpy().astype(bool)
+            occ[cand] |= sc.test_occlusions(rays, tnear=1e-4, tfar=tfar).numpy().astype(bool)
         return occ
 
     # ------------------------------------------------------------------ rendering
@@ -255,7 +264,14 @@ class SynthScene:
         if noise:
             if rng is None:  # deterministic per (scene seed, camera pose, object poses), independent of call order
                 rng = np.random.default_rng([self.seed, zlib.crc32(T_world_cam.tobytes() + T_wo.tobytes())])
-            depth = apply_depth_noise(depth_clean, labels, cos_view.reshape(H, W), rng, noise_params)
+            invalid = None
+            if noise_params.baseline > 0:  # stereo / projector occlusion: points the second imager cannot see
+                T_w2 = T_world_cam[:3, :3] @ np.array([noise_params.baseline, 0.0, 0.0]) + origin
+                pts = origin + t[hit_idx, None].astype(np.float64) * d_hit + 5e-4 * n_hit
+                invalid = np.zeros(H * W, bool)
+                invalid[hit_idx[self._occluded(pts, T_wo, towards=T_w2)]] = True
+                invalid = invalid.reshape(H, W)
+            depth = apply_depth_noise(depth_clean, labels, cos_view.reshape(H, W), rng, noise_params, invalid)
             if noise_params.color_blur_sigma > 0:
                 rgb = cv2.GaussianBlur(rgb.reshape(H, W, 3), (0, 0), noise_params.color_blur_sigma).reshape(-1, 3)
             rgb += np.float32(noise_params.color_sigma) * rng.standard_normal(rgb.shape, dtype=np.float32)
