@@ -302,28 +302,31 @@ def _icp_cloud(frame: RGBDFrame, mask: np.ndarray | None, voxel: float) -> np.nd
 
 
 def _spanning_poses(n: int, graph_edges: list) -> list[np.ndarray | None]:
-    """Initial T_world_cam (world = frame 0's camera... or the first frame reachable) by BFS over edges."""
+    """Initial T_world_cam per frame (world = the first frame with an edge; None = unreachable).
+
+    Breadth-first over the certain (sequential) edges first, so that odometry sets the initial
+    guess; uncertain loop closures only reach frames the odometry chain does not.
+    """
     from collections import deque
 
     T: list[np.ndarray | None] = [None] * n
-    adj: list[list] = [[] for _ in range(n)]
-    for e in graph_edges:
-        adj[e.src].append(e)
-        adj[e.tgt].append(e)
-    for root in range(n):  # start from the first frame that has any edge (or frame 0)
-        if adj[root] or root == n - 1:
-            break
+    root = next((k for k in range(n) if any(k in (e.src, e.tgt) for e in graph_edges)), 0)
     T[root] = np.eye(4)
-    q = deque([root])
-    while q:
-        a = q.popleft()
-        for e in adj[a]:
-            if e.src == a and T[e.tgt] is None:
-                T[e.tgt] = T[a] @ inv_T(e.T_tgt_src)
-                q.append(e.tgt)
-            elif e.tgt == a and T[e.src] is None:
-                T[e.src] = T[a] @ e.T_tgt_src
-                q.append(e.src)
+    for allowed in ([e for e in graph_edges if not e.uncertain], graph_edges):
+        adj: list[list] = [[] for _ in range(n)]
+        for e in allowed:
+            adj[e.src].append(e)
+            adj[e.tgt].append(e)
+        q = deque(k for k in range(n) if T[k] is not None)
+        while q:
+            a = q.popleft()
+            for e in adj[a]:
+                if e.src == a and T[e.tgt] is None:
+                    T[e.tgt] = T[a] @ inv_T(e.T_tgt_src)
+                    q.append(e.tgt)
+                elif e.tgt == a and T[e.src] is None:
+                    T[e.src] = T[a] @ e.T_tgt_src
+                    q.append(e.src)
     return T
 
 
