@@ -205,8 +205,18 @@ def test_viewer_in_browser(template, tmp_path):
     assert "viewer ready at" in (tmp_path / "viewer.log").read_text()
 
 
+def _screen_xy(camera, p_world: np.ndarray) -> tuple[float, float]:
+    """Pixel of a world point in the browser's view, from the camera state the client reports to viser."""
+    import viser.transforms as vtf
+
+    R = vtf.SO3(np.asarray(camera.wxyz)).as_matrix()  # OpenCV convention (x right, y down, z forward)
+    pc = R.T @ (p_world - camera.position)
+    f = camera.image_height / 2 / np.tan(camera.fov / 2)
+    return pc[0] / pc[2] * f + camera.image_width / 2, pc[1] / pc[2] * f + camera.image_height / 2
+
+
 @pytest.mark.browser
-def test_go_to_view_moves_browser_camera(template):
+def test_frustum_click_and_go_to_view(template):
     from playwright.sync_api import sync_playwright
 
     app = serve(template.path, port=vp.free_port())
@@ -221,6 +231,15 @@ def test_go_to_view_moves_browser_camera(template):
                 while not app.server.get_clients() and time.perf_counter() - t0 < 10:
                     time.sleep(0.1)
                 (client,) = app.server.get_clients().values()
+                # Clicking view 000002's frustum (its image, along its optical axis) selects that view.
+                T2 = next(v.T_obj_cam for v in app.data.views if v.name == "000002")
+                for k in (2.0, 2.4, 2.8, 3.2):  # depth of the snapshot in frustum sizes
+                    page.mouse.click(*_screen_xy(client.camera, T2[:3, 3] + T2[:3, 2] * k * app.frustum_scale))
+                    page.wait_for_timeout(700)
+                    if app._current == "000002":
+                        break
+                assert app._current == "000002"
+                assert page.get_by_text("000002 (3/6)").count() == 1
                 before = vp.canvas_region(vp.png_array(page.screenshot()))
                 app.select_view("000003")
                 page.get_by_role("button", name="Go to view").click()
