@@ -29,20 +29,22 @@ Definitions (DESIGN.md "GMatch, as we implement it"):
 Search (bounded; every bound is a parameter):
 
 1. seeds: the first T candidates in descriptor order.
-2. per seed s: A_s = candidates consistent with s (delta <= eps_c), kept in descriptor order.
-   Level 2: the first K2 pairs b of A_s. Level 3: for each b, the first K3 pairs c of A_s
-   (c != b, one-to-one) with g({s, b}, c) <= eps_c, flip-over respected (flip mode) and a
-   non-degenerate triangle (sine of the angle at s >= collinear_sin on both sides).
-   At most T * K2 * K3 hypotheses of length 3, each with start cost g = max of its 3 deltas.
-   The hypotheses of one seed are grown in ascending start cost (ties: generation order).
-3. growth (Algorithm 1 `Step`, up to length L): the hypothesis keeps its survivors (members
-   of A_s consistent with every match so far) with their running max cost, updated with the
-   newest match only, so a Step is O(#survivors). Each Step removes survivors with
-   g > eps_c or sharing a keypoint with the newest match, skips flip-overs w.r.t. the last
-   two matches (flip mode; skipped pairs stay survivors), and appends the argmin of g.
-4. the longest list wins, ties by lower cost, then by search order. Exact pruning: since
-   g never decreases as a list grows, a hypothesis is abandoned once it cannot beat the best
-   list (its cost >= best cost at best length L, or length + #survivors < best length).
+2. per seed s: A_s = candidates consistent with s (delta <= eps), kept in descriptor order.
+   Level 2: the first K2 members b of A_s; A_b = members of A_s consistent with b.
+   Level 3: per b, the first K3 members c of A_b (one-to-one, g({s, b}, c) <= eps) whose triangle
+   (s, b, c) is non-degenerate (sine of the angle at s >= collinear_sin on both sides) and, in flip
+   mode, does not flip over. At most T * K2 * K3 hypotheses of length 3; start cost = max of the
+   three deltas. Each hypothesis is grown as soon as it is generated (seed, b, c order).
+3. growth (Algorithm 1 `Step`, up to length L): the hypothesis keeps its survivors (members of
+   A_b consistent with every match so far) with their running max cost g, updated with the newest
+   match only, so a Step is O(#survivors). Each Step removes survivors with g > eps or sharing a
+   keypoint with the newest match, skips flip-overs w.r.t. the last two matches (flip mode; skipped
+   pairs stay survivors) and appends the argmin of g (ties: descriptor order).
+4. the longest list wins, ties by lower cost, then by search order. Bound: g never decreases as
+   a list grows, so once a full-length (L) list of cost c* exists nothing containing a pair with
+   g >= c* can win; eps tightens from eps_c to min(eps_c, c*) for everything generated afterwards
+   (A_s is compacted), and a hypothesis is abandoned ("pruned") once its cost reaches c* or its
+   length + #survivors falls below the best length.
 
 The hot loop is numba-compiled (`cache=True`); candidate extraction is a separate function.
 """
@@ -233,9 +235,8 @@ def _search(ps, pt, ci, cj, cf, fsrc, ft_max, view_s, view_t, T, L, K2, K3, eps_
     best_cost = 1.0
     A = np.empty(C, np.int64)  # A_s: candidates consistent with the seed, descriptor order
     Ag = np.empty(C, np.float64)
-    AB = np.empty((K2, C), np.int64)  # A_s members consistent with second pair b (per b)
-    ABg = np.empty((K2, C), np.float64)
-    nab = np.zeros(K2, np.int64)
+    AB = np.empty(C, np.int64)  # A_b: members of A_s consistent with the current second pair b
+    ABg = np.empty(C, np.float64)
     surv = np.empty(C, np.int64)
     sg = np.empty(C, np.float64)
     cur = np.empty(L, np.int64)
@@ -245,9 +246,8 @@ def _search(ps, pt, ci, cj, cf, fsrc, ft_max, view_s, view_t, T, L, K2, K3, eps_
     hi = np.empty(ps.shape[0], np.float64)
     Dt = np.empty(pt.shape[0], np.float64)
     Dxt = np.empty(pt.shape[0], np.float64)
-    seed_b = np.empty(K2 * K3, np.int64)
-    seed_c = np.empty(K2 * K3, np.int64)
-    seed_hc = np.empty(K2 * K3, np.float64)
+    Dys = np.empty(ps.shape[0], np.float64)
+    Dyt = np.empty(pt.shape[0], np.float64)
     eps_e = eps_c  # effective tolerance: min(eps_c, best cost) once a full-length list exists (exact bound)
     for s in range(n_seed):
         si = ci[s]
@@ -277,15 +277,39 @@ def _search(ps, pt, ci, cj, cf, fsrc, ft_max, view_s, view_t, T, L, K2, K3, eps_
             A[na] = c
             Ag[na] = err / ls
             na += 1
-        # level 2: the first K2 members b of A_s; A_b = members of A_s consistent with b
-        nb = min(K2, na)
-        for ib in range(nb):
-            b = A[ib]
+        # levels 2 and 3, grown as generated so that a full-length list tightens eps_e early:
+        # b = the next member of A_s (at most K2 per seed); A_b = members of A_s consistent with b;
+        # c = the first K3 members of A_b forming a valid triangle (s, b, c), each grown at once.
+        nb_done = 0
+        pos = 0  # next b position in A
+        eps_a = eps_e  # tolerance A was filtered with
+        while nb_done < K2 and pos < na:
+            if eps_e < eps_a:  # a full-length list tightened the tolerance: compact A (order kept)
+                w = 0
+                newpos = 0
+                for k in range(na):
+                    if k == pos:
+                        newpos = w
+                    if Ag[k] <= eps_e:
+                        A[w] = A[k]
+                        Ag[w] = Ag[k]
+                        w += 1
+                if pos >= na:
+                    newpos = w
+                na = w
+                pos = newpos
+                eps_a = eps_e
+                if pos >= na:
+                    break
+            b = A[pos]
+            gb = Ag[pos]
+            pos += 1
+            nb_done += 1
             bi = ci[b]
             bj = cj[b]
             _dists_from(ps, bi, Dxs)
             _dists_from(pt, bj, Dxt)
-            w = 0
+            nab = 0
             for k in range(na):
                 q = A[k]
                 qi = ci[q]
@@ -296,137 +320,121 @@ def _search(ps, pt, ci, cj, cf, fsrc, ft_max, view_s, view_t, T, L, K2, K3, eps_
                 err = abs(ls - Dxt[qj])
                 if err >= eta * max(cf[b], cf[q]) or err > eps_e * ls or ls <= 0.0:
                     continue
-                AB[ib, w] = q
-                ABg[ib, w] = max(Ag[k], err / ls)
-                w += 1
-            nab[ib] = w
-        # level 3: per b, the first K3 members c of A_b forming a valid triangle (s, b, c)
-        nh = 0
-        for ib in range(nb):
-            b = A[ib]
-            gb = Ag[ib]
+                AB[nab] = q
+                ABg[nab] = max(Ag[k], err / ls)
+                nab += 1
             n3 = 0
-            for k in range(nab[ib]):
+            for kc in range(nab):
                 if n3 >= K3:
                     break
-                c = AB[ib, k]
-                g = max(gb, ABg[ib, k])
-                zs, oks = _normal_z(ps, si, ci[b], ci[c], view_s, collinear_sin)
-                if not oks:
+                c = AB[kc]
+                g0 = max(gb, ABg[kc])
+                if g0 > eps_e:
+                    continue
+                if not _normal_z(ps, si, bi, ci[c], view_s, collinear_sin)[1]:
                     continue  # degenerate triangle
-                zt, okt = _normal_z(pt, sj, cj[b], cj[c], view_t, collinear_sin)
-                if not okt:
+                if not _normal_z(pt, sj, bj, cj[c], view_t, collinear_sin)[1]:
                     continue
-                if mode == 1 and _flips(ps, pt, ci[b], si, ci[c], cj[b], sj, cj[c], view_s, view_t,
-                                        flip_margin, collinear_sin):
+                if mode == 1 and _flips(ps, pt, bi, si, ci[c], bj, sj, cj[c], view_s, view_t, flip_margin,
+                                        collinear_sin):
                     continue
-                seed_b[nh] = ib
-                seed_c[nh] = c
-                seed_hc[nh] = g
-                nh += 1
                 n3 += 1
-        order = np.argsort(seed_hc[:nh], kind="mergesort")
-        for oh in range(nh):
-            ib = seed_b[order[oh]]
-            b = A[ib]
-            c = seed_c[order[oh]]
-            g0 = seed_hc[order[oh]]
-            hyp[H, 0] = s
-            hyp[H, 1] = b
-            hyp[H, 2] = c
-            hyp_cost[H] = g0
-            hyp_len[H] = 3
-            if best_len == L and g0 >= best_cost:
-                hyp_pruned[H] = True
-                H += 1
-                continue
-            # survivors: members of A_b consistent with c (and with the start plane in triple mode)
-            ns_ = np.zeros(3)
-            nt_ = np.zeros(3)
-            if mode == 2:
-                ns_ = _plane(ps, si, ci[b], ci[c])
-                nt_ = _plane(pt, sj, cj[b], cj[c])
-            _dists_from(ps, ci[c], Dxs)
-            _dists_from(pt, cj[c], Dxt)
-            nsv = 0
-            for k in range(nab[ib]):
-                q = AB[ib, k]
-                qi = ci[q]
-                qj = cj[q]
-                if q == c or qi == ci[c] or qj == cj[c]:
+                hyp[H, 0] = s
+                hyp[H, 1] = b
+                hyp[H, 2] = c
+                hyp_cost[H] = g0
+                hyp_len[H] = 3
+                if best_len == L and g0 >= best_cost:
+                    hyp_pruned[H] = True
+                    H += 1
                     continue
-                ls = Dxs[qi]
-                err = abs(ls - Dxt[qj])
-                if err >= eta * max(cf[c], cf[q]) or err > eps_e * ls or ls <= 0.0:
-                    continue
-                g = max(ABg[ib, k], err / ls)
+                # survivors: members of A_b consistent with c (and with the start plane in triple mode)
+                ns_ = np.zeros(3)
+                nt_ = np.zeros(3)
                 if mode == 2:
-                    hs = 0.0
-                    ht = 0.0
-                    for d in range(3):
-                        hs += ns_[d] * (ps[qi, d] - ps[si, d])
-                        ht += nt_[d] * (pt[qj, d] - pt[sj, d])
-                    err = abs(hs - ht)
-                    la = Ds[qi]
-                    if err >= eta * max(cf[s], cf[q]) or err > eps_e * la or la <= 0.0:
+                    ns_ = _plane(ps, si, bi, ci[c])
+                    nt_ = _plane(pt, sj, bj, cj[c])
+                _dists_from(ps, ci[c], Dys)
+                _dists_from(pt, cj[c], Dyt)
+                nsv = 0
+                for k in range(nab):
+                    q = AB[k]
+                    qi = ci[q]
+                    qj = cj[q]
+                    if q == c or qi == ci[c] or qj == cj[c] or ABg[k] > eps_e:
                         continue
-                    g = max(g, err / la)
-                surv[nsv] = q
-                sg[nsv] = g
-                nsv += 1
-            cur[0] = s
-            cur[1] = b
-            cur[2] = c
-            n = 3
-            cost = g0
-            pruned = False
-            while n < L:
-                if n + nsv < best_len or (best_len == L and cost >= best_cost):
-                    pruned = True
-                    break
-                m1 = cur[n - 1]
-                m2 = cur[n - 2]
-                arg = -1
-                ga = 2.0
-                for k in range(nsv):
-                    if sg[k] < ga:
-                        q = surv[k]
-                        if mode == 1 and _flips(ps, pt, ci[m1], ci[m2], ci[q], cj[m1], cj[m2], cj[q],
-                                                view_s, view_t, flip_margin, collinear_sin):
+                    ls = Dys[qi]
+                    err = abs(ls - Dyt[qj])
+                    if err >= eta * max(cf[c], cf[q]) or err > eps_e * ls or ls <= 0.0:
+                        continue
+                    g = max(ABg[k], err / ls)
+                    if mode == 2:
+                        hs = 0.0
+                        ht = 0.0
+                        for d in range(3):
+                            hs += ns_[d] * (ps[qi, d] - ps[si, d])
+                            ht += nt_[d] * (pt[qj, d] - pt[sj, d])
+                        err = abs(hs - ht)
+                        la = Ds[qi]
+                        if err >= eta * max(cf[s], cf[q]) or err > eps_e * la or la <= 0.0:
                             continue
-                        ga = sg[k]
-                        arg = k
-                if arg < 0:
-                    break
-                m = surv[arg]
-                cur[n] = m
-                n += 1
-                cost = max(cost, ga)
-                # update the survivors with the newest match only: O(#survivors) per Step
-                w = 0
-                for k in range(nsv):
-                    q = surv[k]
-                    if q == m:
-                        continue
-                    g = max(sg[k], _delta(ps, pt, ci, cj, cf, m, q, eta))
-                    if g > eps_e:
-                        continue
-                    surv[w] = q
-                    sg[w] = g
-                    w += 1
-                nsv = w
-            if n >= L and best_len == L and cost >= best_cost:
-                pruned = True
-            hyp_len[H] = n
-            hyp_cost[H] = cost
-            hyp_pruned[H] = pruned
-            H += 1
-            if not pruned and (n > best_len or (n == best_len and cost < best_cost)):
-                best_len = n
-                best_cost = cost
-                best[:n] = cur[:n]
-                if best_len == L:
-                    eps_e = min(eps_c, best_cost)
+                        g = max(g, err / la)
+                    surv[nsv] = q
+                    sg[nsv] = g
+                    nsv += 1
+                cur[0] = s
+                cur[1] = b
+                cur[2] = c
+                n = 3
+                cost = g0
+                pruned = False
+                while n < L:
+                    if n + nsv < best_len or (best_len == L and cost >= best_cost):
+                        pruned = True
+                        break
+                    m1 = cur[n - 1]
+                    m2 = cur[n - 2]
+                    arg = -1
+                    ga = 2.0
+                    for k in range(nsv):
+                        if sg[k] < ga:
+                            q = surv[k]
+                            if mode == 1 and _flips(ps, pt, ci[m1], ci[m2], ci[q], cj[m1], cj[m2], cj[q],
+                                                    view_s, view_t, flip_margin, collinear_sin):
+                                continue
+                            ga = sg[k]
+                            arg = k
+                    if arg < 0:
+                        break
+                    m = surv[arg]
+                    cur[n] = m
+                    n += 1
+                    cost = max(cost, ga)
+                    # update the survivors with the newest match only: O(#survivors) per Step
+                    w = 0
+                    for k in range(nsv):
+                        q = surv[k]
+                        if q == m:
+                            continue
+                        g = max(sg[k], _delta(ps, pt, ci, cj, cf, m, q, eta))
+                        if g > eps_e:
+                            continue
+                        surv[w] = q
+                        sg[w] = g
+                        w += 1
+                    nsv = w
+                if n >= L and best_len == L and cost >= best_cost:
+                    pruned = True
+                hyp_len[H] = n
+                hyp_cost[H] = cost
+                hyp_pruned[H] = pruned
+                H += 1
+                if not pruned and (n > best_len or (n == best_len and cost < best_cost)):
+                    best_len = n
+                    best_cost = cost
+                    best[:n] = cur[:n]
+                    if best_len == L:
+                        eps_e = min(eps_c, best_cost)
     return best, best_len, best_cost, hyp[:H], hyp_len[:H], hyp_cost[:H], hyp_pruned[:H]
 
 
