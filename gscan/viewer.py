@@ -436,7 +436,7 @@ def _build_scene(app: ViewerApp, frame: RGBDFrame | None, T_cam_obj: np.ndarray 
     sc, d, o = app.server.scene, app.data, app.options
     s = d.size
     reg = d.registered
-    # Initial browser camera: beyond the mean camera direction, looking at the object.
+    # Scene up: the nearest axis to the cameras' mean image-up direction (-y of each camera).
     ups = np.array([-v.T_obj_cam[:3, 1] for v in reg]) if reg else np.array([[0.0, 0.0, 1.0]])
     up = ups.mean(0) / max(np.linalg.norm(ups.mean(0)), 1e-9)
     axis = int(np.argmax(np.abs(up)))
@@ -476,7 +476,7 @@ def _build_scene(app: ViewerApp, frame: RGBDFrame | None, T_cam_obj: np.ndarray 
         step = max(1, int(np.ceil(len(pts) / o.max_cloud_points)))
         cols = np.full((len(pts), 3), 200, np.uint8) if cols is None else cols
         layers["cloud"].append(sc.add_point_cloud("/cloud", np.asarray(pts[::step], np.float32), cols[::step],
-                                                  point_size=pt, visible=d.mesh is None))
+                                                  point_size=pt, visible=not layers["mesh"]))
     kp = [(d.keypoints[v.name][1], i) for i, v in enumerate(reg) if len(d.keypoints[v.name][1])]
     if kp:
         pts = np.concatenate([p for p, _ in kp])
@@ -531,20 +531,20 @@ def _node(name: str) -> str:
 
 
 def _add_mesh(sc, mesh: MeshData):
-    import trimesh
-
     V = np.asarray(mesh.vertices, np.float64)
     F = np.asarray(mesh.triangles, np.int64)
     if mesh.vertex_colors is None:
         return sc.add_mesh_simple("/mesh", V.astype(np.float32), F.astype(np.uint32), color=(200, 170, 120),
                                   side="double")
+    import trimesh  # only for vertex colours (sent as GLB)
+
     tm = trimesh.Trimesh(V, F, vertex_colors=np.asarray(mesh.vertex_colors, np.uint8), process=False)
     return sc.add_mesh_trimesh("/mesh", tm)
 
 
 def _add_frustum(app: ViewerApp, node: str, intr: Intrinsics, T_obj_cam: np.ndarray, image: np.ndarray,
                  color: tuple[int, int, int], view_name: str | None):
-    o, s = app.options, app.data.size
+    o = app.options
     img = thumbnail(image, o.frustum_px)
     h = app.server.scene.add_camera_frustum(
         node, fov=float(2.0 * np.arctan2(intr.height / 2.0, intr.fy)), aspect=intr.width / intr.height,

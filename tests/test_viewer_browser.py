@@ -253,6 +253,14 @@ def test_frustum_click_and_go_to_view(template):
                 page.wait_for_timeout(1500)
                 after = vp.canvas_region(vp.png_array(page.screenshot()))
                 assert np.abs(after.astype(int) - before.astype(int)).mean() > 2.0  # the browser view moved
+                # Layer toggles: hide the frustums from the (collapsed) Layers folder.
+                page.get_by_text("Layers", exact=True).click()
+                page.locator(f"[id='{vp.gui_control_id(page, 'Frustums')}']").click()
+                t0 = time.perf_counter()
+                while any(h.visible for h in app.layers["frustums"]) and time.perf_counter() - t0 < 10:
+                    time.sleep(0.1)
+                assert not any(h.visible for h in app.layers["frustums"])
+                assert all(h.visible for h in app.layers["mesh"] + app.layers["edges"])
             finally:
                 browser.close()
     finally:
