@@ -94,7 +94,7 @@ def cmd_sweep(args) -> None:
     from gscan.gmatch import GMatchParams
     from gscan.register import RegisterParams, register_features
 
-    grid = {"rootsift": [0.5, 0.55, 0.6, 0.65, 0.7, 0.75, 0.8], "sift": [150.0, 200.0, 250.0, 300.0, 350.0],
+    grid = {"rootsift": [0.4, 0.45, 0.5, 0.55, 0.6, 0.65, 0.7, 0.75, 0.8], "sift": [100.0, 150.0, 200.0, 250.0, 300.0],
             "orb": [40.0, 50.0, 64.0, 80.0, 96.0]}
     kinds = args.kinds.split(",")
     ok = {(k, e): [] for k in kinds for e in grid[k]}

@@ -63,8 +63,9 @@ CONSTRAINTS = {"distance": 0, "flip": 1, "triple": 2}
 
 # Default feature thresholds per descriptor kind (distance metric of gscan.features.descriptor_distances:
 # L2 on unit-norm RootSIFT vectors, L2 on raw OpenCV SIFT vectors (norm ~512), Hamming bits for ORB).
-# Chosen by the sweep recorded in BENCHMARKS.md (Matcher section, bench/match.py --sweep-eps-f).
-_DEFAULT_EPS_F = {"rootsift": 0.65, "sift": 250.0, "orb": 64.0}
+# Chosen by the sweep recorded in BENCHMARKS.md (Matcher section, `bench/match.py sweep`): the smallest
+# threshold keeping the best success rate with margin (fewer candidates = faster search).
+_DEFAULT_EPS_F = {"rootsift": 0.5, "sift": 150.0, "orb": 64.0}
 
 
 def default_eps_f(kind: str) -> float:
