@@ -60,9 +60,9 @@ class EstimateParams:
     min_matches: int = 9  # fewer GMatch matches -> not found (chance lists of 6-8 occur in clutter)
     min_score: float = 0.6  # depth-consistency score below this -> not found
     min_confirmed: float = 0.15  # fraction of visible template points confirmed by depth below this -> not found
-    min_ncc: float = 0.4  # grey-level correlation of template cloud and query pixels below this -> not found
-    icp_max_dist: float = 0.01  # m, ICP correspondence distance
-    icp_voxel: float = 0.003  # m, ICP downsampling
+    icp_max_dist: float = 0.005  # m, ICP correspondence distance
+    icp_voxel: float = 0.003  # m, template cloud downsampling (ICP source, score)
+    icp_target_voxel: float = 0.004  # m, query cloud voxel averaging (ICP target)
     icp_iterations: int = 20
     icp_max_points: int = 1500  # source (template) points used by ICP, evenly subsampled
     crop_margin: int = 16  # px around the mask's bounding box kept for detection
@@ -165,11 +165,7 @@ class Estimator:
                                        else self.cloud, dtype=np.float64)
         sel = _voxel_down(self.cloud, params.icp_voxel)
         self.cloud_icp = self.cloud[sel]
-        colors = tpl.cloud_colors if cloud is tpl.cloud_points else None
-        if colors is None and cloud is not self.points_obj and tpl.mesh is not None and cloud is tpl.mesh.vertices:
-            colors = tpl.mesh.vertex_colors
-        self.gray_icp = None if colors is None or len(colors) != len(self.cloud) else \
-            np.asarray(colors, np.float64)[sel] @ np.array([0.299, 0.587, 0.114])
+        self.normals_icp = pca_normals(self.cloud_icp)
         lo, hi = self.cloud.min(0), self.cloud.max(0)
         self.center = 0.5 * (lo + hi)
         self.radius = float(np.linalg.norm(self.cloud - self.center, axis=1).max())
@@ -237,15 +233,12 @@ class Estimator:
         t = time.perf_counter()
         if refine:
             T_cam_obj = self._refine(frame, search, T_cam_obj)
-        score, confirmed, ncc = self._score(frame, T_cam_obj, off_plane)
+        score, confirmed = self._score(frame, T_cam_obj, off_plane)
         tm["refine"] = _ms(t)
         view = self.view_names[v]
         if score < self.params.min_score or confirmed < self.params.min_confirmed:
             return self._fail(tm, t_all, f"pose not confirmed by the depth (score {score:.2f}, "
                                          f"{confirmed:.0%} of visible surface confirmed)", n, view, score)
-        if ncc is not None and ncc < self.params.min_ncc:
-            return self._fail(tm, t_all, f"appearance does not match the template at the pose (correlation {ncc:.2f})",
-                              n, view, score)
         return self._found(T_cam_obj, score, n, view, tm, t_all, "gmatch")
 
     # ------------------------------------------------------------------------------------------------
@@ -347,9 +340,10 @@ class Estimator:
         tgt = tgt[np.linalg.norm(tgt - c, axis=1) < 1.2 * self.radius + p.icp_max_dist]
         if len(tgt) < 30:
             return T_cam_obj
-        tgt = tgt[_voxel_down(tgt, p.icp_voxel)]
+        tgt = _voxel_mean(tgt, p.icp_target_voxel)  # averaging, not picking: depth noise shrinks
         idx = idx[:: max(1, int(np.ceil(len(idx) / p.icp_max_points)))]
-        T, fitness = icp_point_to_plane(self.cloud_icp[idx], tgt, T_cam_obj, p.icp_max_dist, p.icp_iterations)
+        T, fitness = icp_point_to_plane(self.cloud_icp[idx], self.normals_icp[idx], tgt, T_cam_obj, p.icp_max_dist,
+                                        p.icp_iterations)
         dR = T[:3, :3] @ T_cam_obj[:3, :3].T
         moved = np.linalg.norm(T[:3, 3] - T_cam_obj[:3, 3])
         if fitness <= 0 or moved > self.radius or np.trace(dR) < 1.0 + 2.0 * np.cos(np.radians(30)):
@@ -357,16 +351,13 @@ class Estimator:
             return T_cam_obj
         return T
 
-    def _score(self, frame: RGBDFrame, T_cam_obj: np.ndarray,
-               region: np.ndarray | None = None) -> tuple[float, float, float | None]:
-        """(score, confirmed, ncc) of the visible template cloud at T_cam_obj: score = consistent /
-        (consistent + see-through), confirmed = consistent / visible, ncc = zero-mean normalised
-        correlation of the grey levels of the consistent points (template colour vs query pixel; None
-        without template colours). With `region` ([H x W] bool, the off-plane pixels) a point only
-        counts as consistent inside it."""
-        idx, pc, uv = self._visible(T_cam_obj, frame.intrinsics, self.cloud_icp)
+    def _score(self, frame: RGBDFrame, T_cam_obj: np.ndarray, region: np.ndarray | None = None) -> tuple[float, float]:
+        """(score, confirmed) of the visible template cloud at T_cam_obj: score = consistent /
+        (consistent + see-through), confirmed = consistent / visible. With `region` ([H x W] bool, the
+        off-plane pixels) a point only counts as consistent inside it."""
+        _, pc, uv = self._visible(T_cam_obj, frame.intrinsics, self.cloud_icp)
         if len(pc) == 0:
-            return 0.0, 0.0, None
+            return 0.0, 0.0
         zq = frame.depth[uv[:, 1], uv[:, 0]].astype(np.float64)
         z = pc[:, 2]
         tol = self.params.depth_tol + 0.02 * np.maximum(z - 0.5, 0.0)
@@ -376,13 +367,7 @@ class Estimator:
             consistent &= region[uv[:, 1], uv[:, 0]]
         behind = has & (zq > z + tol)
         n_c, n_b = int(consistent.sum()), int(behind.sum())
-        ncc = None
-        if self.gray_icp is not None and n_c > 10:
-            g_t = self.gray_icp[idx[consistent]]
-            g_q = frame.color[uv[consistent, 1], uv[consistent, 0]].astype(np.float64) @ np.array([0.299, 0.587, 0.114])
-            g_t, g_q = g_t - g_t.mean(), g_q - g_q.mean()
-            ncc = float(g_t @ g_q / max(1e-9, np.linalg.norm(g_t) * np.linalg.norm(g_q)))
-        return n_c / max(1, n_c + n_b), n_c / len(pc), ncc
+        return n_c / max(1, n_c + n_b), n_c / len(pc)
 
     # ------------------------------------------------------------------------------------------------
     def _estimate_pnp(self, frame: RGBDFrame, feats: Features, S: np.ndarray, views: list[int],
@@ -446,8 +431,9 @@ class Estimator:
 def off_plane_region(frame: RGBDFrame, params: EstimateParams = EstimateParams(), stride: int = 6) -> np.ndarray | None:
     """[H x W] bool: valid-depth pixels in front of the frame's dominant plane (a table top), or None
     when no plane holds `plane_min_frac` of the valid depth. RANSAC on every `stride`-th pixel
-    (seeded, deterministic), least-squares refit on the inliers; a pixel is off the plane when it lies
-    on the camera's side by more than 8 mm + 0.5 % of its depth."""
+    (seeded, deterministic) over hypotheses with at most 5 % of the points behind them (so a large
+    object face seen head-on is never taken for the table), least-squares refit on the inliers; a pixel
+    is off the plane when it lies on the camera's side by more than 8 mm + 0.5 % of its depth."""
     depth = frame.depth
     P = backproject(depth, frame.intrinsics)
     sub = P[::stride, ::stride].reshape(-1, 3).astype(np.float64)
@@ -463,19 +449,25 @@ def off_plane_region(frame: RGBDFrame, params: EstimateParams = EstimateParams()
     n, a = n[ok] / nn[ok, None], a[ok]
     if len(n) == 0:
         return None
-    thr = 0.006 + 0.005 * sub[:, 2]
-    counts = (np.abs(sub @ n.T - np.einsum("ij,ij->i", n, a)[None, :]) < thr[:, None]).sum(axis=0)
+    n = np.where((np.einsum("ij,ij->i", n, a) > 0)[:, None], -n, n)  # normals towards the camera (origin)
+    thr = (0.006 + 0.005 * sub[:, 2])[:, None]
+    h = sub @ n.T - np.einsum("ij,ij->i", n, a)[None, :]  # [S x H] signed heights, camera side > 0
+    counts = (np.abs(h) < thr).sum(axis=0)
+    # a support plane has (almost) nothing behind it; a large object face seen head-on does
+    counts[(h < -thr).sum(axis=0) > 0.05 * len(sub)] = 0
     k = int(np.argmax(counts))
-    inl = np.abs(sub @ n[k] - n[k] @ a[k]) < thr
-    if inl.sum() < params.plane_min_frac * len(sub):
+    if counts[k] < params.plane_min_frac * len(sub):
         return None
+    inl = np.abs(h[:, k]) < thr[:, 0]
     cen = sub[inl].mean(0)
     normal = np.linalg.svd(sub[inl] - cen, full_matrices=False)[2][2]
     if normal @ cen > 0:  # orient the normal towards the camera (origin)
         normal = -normal
-    h = (P.reshape(-1, 3).astype(np.float64) - cen) @ normal  # signed height above the plane, camera side > 0
+    hp = (P.reshape(-1, 3).astype(np.float64) - cen) @ normal  # signed height above the plane, camera side > 0
     z = depth.reshape(-1)
-    region = (z > 0) & (h > 0.008 + 0.005 * z)
+    region = (z > 0) & (hp > 0.008 + 0.005 * z)
+    if region.mean() < 0.002:  # nothing stands on the plane
+        return None
     return region.reshape(depth.shape)
 
 
@@ -483,26 +475,37 @@ def _ms(t0: float) -> float:
     return (time.perf_counter() - t0) * 1e3
 
 
-def icp_point_to_plane(src: np.ndarray, tgt: np.ndarray, T_init: np.ndarray, max_dist: float,
-                       iterations: int = 30, k_normals: int = 8) -> tuple[np.ndarray, float]:
-    """Point-to-plane ICP of src [N x 3] onto tgt [M x 3] from T_init (tgt <- src) -> (T [4 x 4], fitness).
+def pca_normals(pts: np.ndarray, k: int = 8) -> np.ndarray:
+    """[N x 3] points -> [N x 3] unit normals (unoriented): smallest principal axis of the k nearest points."""
+    from scipy.spatial import cKDTree
 
-    Target normals by PCA of `k_normals` neighbours; each iteration pairs every moved source point with
-    its nearest target point within `max_dist` and solves the linearised 6-DoF step. Single-threaded
-    and deterministic (bit-identical output for identical input), unlike open3d's threaded reductions;
-    fitness = fraction of source points paired in the last iteration.
+    pts = np.asarray(pts, dtype=np.float64)
+    if len(pts) < k:
+        return np.tile([0.0, 0.0, 1.0], (len(pts), 1))
+    _, nn = cKDTree(pts).query(pts, k=k, workers=-1)
+    nb = pts[nn] - pts[nn].mean(axis=1, keepdims=True)
+    return np.linalg.eigh(np.einsum("mki,mkj->mij", nb, nb))[1][:, :, 0]
+
+
+def icp_point_to_plane(src: np.ndarray, src_normals: np.ndarray, tgt: np.ndarray, T_init: np.ndarray,
+                       max_dist: float, iterations: int = 20) -> tuple[np.ndarray, float]:
+    """Point-to-plane ICP of src [N x 3] (normals src_normals [N x 3]) onto tgt [M x 3] from T_init
+    (tgt <- src) -> (T [4 x 4], fitness).
+
+    The planes are the SOURCE's (the template's clean surface), not normals estimated on the noisy
+    query depth, which measurably drag the pose (BENCHMARKS.md). Each iteration pairs every moved
+    source point with its nearest target point within `max_dist` and solves the linearised 6-DoF
+    step. Deterministic (bit-identical output for identical input), unlike open3d's threaded
+    reductions; fitness = fraction of source points paired in the last iteration.
     """
     from scipy.spatial import cKDTree
 
     src = np.asarray(src, dtype=np.float64)
     tgt = np.asarray(tgt, dtype=np.float64)
     T = np.asarray(T_init, dtype=np.float64).copy()
-    if len(src) < 10 or len(tgt) < max(10, k_normals):
+    if len(src) < 10 or len(tgt) < 10:
         return T, 0.0
     tree = cKDTree(tgt)
-    _, nn = tree.query(tgt, k=k_normals, workers=-1)
-    nb = tgt[nn] - tgt[nn].mean(axis=1, keepdims=True)
-    normals = np.linalg.eigh(np.einsum("mki,mkj->mij", nb, nb))[1][:, :, 0]  # smallest-eigenvalue axis
     fitness = 0.0
     for _ in range(iterations):
         p = src @ T[:3, :3].T + T[:3, 3]
@@ -511,7 +514,7 @@ def icp_point_to_plane(src: np.ndarray, tgt: np.ndarray, T_init: np.ndarray, max
         fitness = float(ok.mean())
         if ok.sum() < 10:
             break
-        p, q, n = p[ok], tgt[j[ok]], normals[j[ok]]
+        p, q, n = p[ok], tgt[j[ok]], src_normals[ok] @ T[:3, :3].T
         r = np.einsum("ij,ij->i", p - q, n)
         A = np.hstack([np.cross(p, n), n])  # [K x 6]: d(residual) / d(rotvec, translation)
         x = np.linalg.solve(np.einsum("ki,kj->ij", A, A) + 1e-9 * np.eye(6), -np.einsum("ki,k->i", A, r))
@@ -533,6 +536,17 @@ def _coincident_groups(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     order = np.lexsort((np.arange(n), rank))
     starts = np.flatnonzero(np.r_[True, np.diff(rank[order]) != 0])
     return order.astype(np.int64), starts.astype(np.int64)
+
+
+def _voxel_mean(pts: np.ndarray, voxel: float) -> np.ndarray:
+    """[N x 3] -> [M x 3] mean point of every occupied voxel (ordered by voxel key); deterministic."""
+    pts = np.asarray(pts, dtype=np.float64)
+    if voxel <= 0 or len(pts) == 0:
+        return pts
+    _, inv, cnt = np.unique(np.floor(pts / voxel).astype(np.int64), axis=0, return_inverse=True, return_counts=True)
+    out = np.zeros((len(cnt), 3))
+    np.add.at(out, inv.reshape(-1), pts)
+    return out / cnt[:, None]
 
 
 def _voxel_down(pts: np.ndarray, voxel: float) -> np.ndarray:
