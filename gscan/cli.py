@@ -149,7 +149,7 @@ def template_from_mesh(
 def _load_query_frame(color: Path, depth: Path, intrinsics: Path, depth_scale: float, mask: Optional[Path]):
     from gscan.io import load_frame
 
-    return load_frame(color, depth, intrinsics, depth_scale=depth_scale, mask=mask)
+    return load_frame(color, depth, intrinsics, depth_scale=depth_scale, mask_path=mask)
 
 
 @app.command()

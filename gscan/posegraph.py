@@ -281,6 +281,7 @@ def optimize_pose_graph(n_nodes: int, edges: list[GraphEdge],
             raise ValueError(f"invalid edge {e.src} -> {e.tgt} for {n_nodes} nodes")
     poses = _fill_initial([None if T is None else np.asarray(T, dtype=np.float64).reshape(4, 4).copy()
                            for T in T_world_node_init], edges, reference_node)
+    anchor = poses[reference_node].copy()
     reasons: dict[int, str] = {}
     active = list(range(len(edges)))
     rounds = 0
@@ -330,6 +331,12 @@ def optimize_pose_graph(n_nodes: int, edges: list[GraphEdge],
                               f"{params.max_residual_deg:g} deg / {params.max_residual_m * 1000:g} mm")
             rej = {b[1] for b in reject}
             active = [e for e in active if e not in rej]
+            # restart from the surviving edges (odometry first): poses pulled by a wrong edge can
+            # sit in a local minimum, e.g. a 180-degree flip, that LM does not leave
+            start: list[np.ndarray | None] = [None] * n_nodes
+            start[reference_node] = anchor
+            poses = _fill_initial(start, sorted((edges[e] for e in active), key=lambda ed: ed.uncertain),
+                                  reference_node)
 
         # recovery: an edge dropped while the graph was still distorted (early line-process stages,
         # or before a wrong edge was found) is re-admitted once if the final poses agree with it

@@ -362,12 +362,24 @@ def _optimise(n: int, edges: list[Edge], index: dict[str, int], frames: list[_Fr
 
 def _segment(frames: list[_Frame], T_world_cam: list[np.ndarray | None], mode: str,
              segment: bool) -> tuple[list[np.ndarray | None], object]:
-    """Per-frame object masks for fusion and the support plane in the world frame (or None)."""
-    from gscan.segment import segment_sequence
+    """Per-frame object masks for fusion and the support plane in the world frame (or None).
+
+    The plane defines the template frame's z axis even when masks are given: for a static object
+    it comes from the working volume over the registered frames; for a moving object from the
+    reference frame alone (a turntable's plane moves with the object; an object in hand has none).
+    """
+    from gscan.segment import estimate_working_volume, segment_frame, segment_sequence
 
     if not segment:
         return [None] * len(frames), None
+    reg = [k for k, T in enumerate(T_world_cam) if T is not None]
+    if mode == MOVING_OBJECT:
+        ref = frames[reg[0]].frame
+        plane_cam = segment_frame(RGBDFrame(ref.name, ref.color, ref.depth, ref.intrinsics)).plane_cam
+        plane = None if plane_cam is None else plane_cam.transformed(T_world_cam[reg[0]])
+        return [f.mask for f in frames], plane
     if all(f.mask is not None for f in frames):
-        return [f.mask for f in frames], None
+        vol = estimate_working_volume([frames[k].frame for k in reg], [T_world_cam[k] for k in reg])
+        return [f.mask for f in frames], (vol.plane_world if vol is not None else None)
     segs, vol = segment_sequence([f.frame for f in frames], T_world_cam)
     return [s.mask for s in segs], (vol.plane_world if vol is not None else None)
