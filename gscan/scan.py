@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import json
 import logging
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -42,6 +43,7 @@ log = logging.getLogger(__name__)
 
 MAX_SKIP = 3  # a frame that fails against its predecessor is tried against up to this many earlier frames
 ICP_VOXEL_STRIDE = 2  # pixel stride of the clouds kept for ICP before voxel downsampling
+WORKERS = 2  # threads for per-frame and per-edge work (the target machines have 2 cores)
 PRUNED = "pruned by the pose graph: "  # reason prefix of edges registration accepted and the pose graph rejected
 
 
@@ -181,20 +183,31 @@ def _scan_frames(frames: list[_Frame], opts: ScanOptions, db: TemplateDB, resume
     fparams = FeatureParams(kind=cfg.features.kind, max_keypoints=cfg.features.max_keypoints)
     stored = set(db.view_names()) if resumed else set()
     with timer.stage("features", total=len(frames)) as advance:
-        for k, f in enumerate(frames):
+        def compute(k: int) -> tuple[Features | None, np.ndarray]:
+            f = frames[k]
             reg_mask = f.mask if mode == MOVING_OBJECT else None
-            vf = db.features(f.frame.name) if f.frame.name in stored else None
-            if vf is not None and db.view(f.frame.name, load_images=False).T_obj_cam is None:
-                f.feats = Features(vf.pixels, vf.points_obj, vf.descriptors, vf.kind,
-                                   vf.scales if vf.scales is not None else np.ones(len(vf.pixels), np.float32))
-            else:
-                f.feats = extract_features(f.frame, fparams, mask=reg_mask)
-                view = View(f.frame.name, f.frame.intrinsics, None, f.frame.color, f.frame.depth, f.frame.mask,
-                            keyframe=False, input_index=k)
-                db.add_view(view, ViewFeatures(f.feats.pixels, f.feats.points, f.feats.descriptors, f.feats.kind,
-                                               f.feats.scales), replace=f.frame.name in stored)
-            f.cloud = _icp_cloud(f.frame, reg_mask, cfg.registration.icp_voxel)
-            advance(1)
+            reuse = f.frame.name in stored and db_poses.get(f.frame.name, 1) is None
+            feats = None if reuse else extract_features(f.frame, fparams, mask=reg_mask)
+            return feats, _icp_cloud(f.frame, reg_mask, cfg.registration.icp_voxel)
+
+        db_poses = {v.name: v.T_obj_cam for v in db.views()} if stored else {}
+        # OpenCV and open3d release the GIL: two threads use both cores; results are per frame
+        # and written in input order, so the output does not depend on the scheduling
+        with ThreadPoolExecutor(max_workers=WORKERS) as pool:
+            for k, (feats, cloud) in enumerate(pool.map(compute, range(len(frames)))):
+                f = frames[k]
+                f.cloud = cloud
+                if feats is None:  # stored by the interrupted run, still in the camera frame
+                    vf = db.features(f.frame.name)
+                    feats = Features(vf.pixels, vf.points_obj, vf.descriptors, vf.kind,
+                                     vf.scales if vf.scales is not None else np.ones(len(vf.pixels), np.float32))
+                else:
+                    view = View(f.frame.name, f.frame.intrinsics, None, f.frame.color, f.frame.depth, f.frame.mask,
+                                keyframe=False, input_index=k)
+                    db.add_view(view, ViewFeatures(feats.pixels, feats.points, feats.descriptors, feats.kind,
+                                                   feats.scales), replace=f.frame.name in stored)
+                f.feats = feats
+                advance(1)
 
     rparams = _register_params(cfg)
     done = {(e.src, e.tgt): e for e in db.edges()} if resumed else {}
