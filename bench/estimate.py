@@ -10,6 +10,9 @@ target past a distractor from low (elevation 15-35 deg), so the distractor partl
 Methods, same templates, same query features, same retrieval, same ICP / scoring / acceptance:
 - gscan: `Estimator` (GMatch per retrieved view), full frame, ICP on.
 - gscan-mask-noicp: the same with the ground-truth mask as --mask and no ICP (speed target).
+- gscan-scanned (--scanned N): the first N meshes also scanned (gscan.scan) from a rendered 24-frame
+  capture on a table; the scanned template's frame is mapped to the ground truth by the mean of
+  T_obj_cam[f] @ T_cam_gt[f] over the capture frames (DESIGN.md); full frame, ICP on.
 - baseline: gscan.baselines "ratio" per retrieved view (nearest neighbour + Lowe ratio 0.75, then
   open3d correspondence RANSAC with a 1 cm inlier distance, seeded), the view with the most inliers,
   then the same Kabsch / ICP / score / acceptance as gscan.
@@ -34,7 +37,7 @@ import numpy as np
 from gscan.baselines import run_baseline
 from gscan.cadtemplate import build_template_from_mesh
 from gscan.camera import RGBDFrame
-from gscan.estimate import STAGES, Estimator
+from gscan.estimate import STAGES, EstimateParams, Estimator
 from gscan.features import Features
 from gscan.geometry import look_at, rotvec_to_R, transform_points
 from gscan.metrics import add, adds, auc
@@ -91,6 +94,28 @@ def make_scene(target, distractors, seed: int, occlude: bool, min_visible: float
     return r, visible
 
 
+def scanned_template(name: str, mesh, work: Path, n_frames: int) -> tuple[Path, np.ndarray]:
+    """Scan a rendered capture of `mesh` (gscan.scan, static object on a textured table) into a template;
+    returns (template path, T_obj_gt [4 x 4]): the template->ground-truth alignment, the mean of
+    T_obj_cam[f] @ T_cam_gt[f] over the capture frames (DESIGN.md), never from the test scenes."""
+    from gscan.geometry import mean_pose
+    from gscan.io import open_sequence
+    from gscan.scan import ScanOptions, run_scan
+    from gscan.synth import render_capture
+    from gscan.template import TemplateDB
+
+    cap, tpl = work / f"{name}_capture{n_frames}", work / f"{name}_scan{n_frames}.gscan"
+    if not cap.exists():
+        render_capture(mesh, cap, n_frames, seed=11)
+    if not tpl.exists():
+        run_scan(ScanOptions(input_dir=cap, output=tpl))
+    seq = open_sequence(cap)
+    with TemplateDB.open(tpl) as db:
+        frames = db.poses()["frames"]
+    T_obj_gt = mean_pose([np.asarray(frames[n]) @ seq.gt_T_cam_obj[n] for n in frames])
+    return tpl, T_obj_gt
+
+
 def run(args: argparse.Namespace) -> dict:
     names = sorted(p.name for p in MESHES.iterdir() if (p / "model_0.obj").is_file())
     if args.meshes:
@@ -100,10 +125,11 @@ def run(args: argparse.Namespace) -> dict:
     all_meshes = {n: load_textured_mesh(MESHES / n / "model_0.obj") for n in sorted(p.name for p in MESHES.iterdir()
                                                                                    if (p / "model_0.obj").is_file())}
     methods = ("gscan", "gscan-mask-noicp", "baseline")
-    recs: dict[str, list[dict]] = {m: [] for m in methods}
+    recs: dict[str, list[dict]] = {m: [] for m in methods + ("gscan-scanned",)}
     t_build = []
     for ti, name in enumerate(names):
-        tpl = work / f"{name}_v{args.views}.gscan"
+        ct = EstimateParams().features.sift_contrast_threshold  # cache key: the template's keypoint settings
+        tpl = work / f"{name}_v{args.views}_c{ct:g}.gscan"
         if not tpl.exists():
             t0 = time.perf_counter()
             build_template_from_mesh(MESHES / name / "model_0.obj", tpl, n_views=args.views)
@@ -111,6 +137,10 @@ def run(args: argparse.Namespace) -> dict:
         est = {"gscan": Estimator.from_path(tpl), "baseline": RatioRansacEstimator.from_path(tpl)}
         est["gscan-mask-noicp"] = est["gscan"]
         target = all_meshes[name]
+        scanned = None
+        if ti < args.scanned:
+            tpl_s, T_obj_gt = scanned_template(name, target, work, args.scan_frames)
+            scanned = (Estimator.from_path(tpl_s), T_obj_gt)
         pts = target.vertices
         diameter = float(np.linalg.norm(target.extent))
         others = [n for n in all_meshes if n != name]
@@ -128,12 +158,22 @@ def run(args: argparse.Namespace) -> dict:
                 recs[m].append({"mesh": name, "scene": k, "visible": visible, "found": res.found, "add": e_add,
                                 "adds": e_adds, "diameter": diameter, "n_matches": res.n_matches,
                                 "timings_ms": res.timings_ms, "reason": res.reason})
+            if scanned is not None:  # same scene, scanned template, pose mapped to the ground-truth frame
+                res = scanned[0].estimate(frame)
+                T = None if res.T_cam_obj is None else res.T_cam_obj @ scanned[1]
+                recs["gscan-scanned"].append({
+                    "mesh": name, "scene": k, "visible": visible, "found": res.found,
+                    "add": add(pts, T, r.T_cam_obj) if res.found else float("inf"),
+                    "adds": adds(pts, T, r.T_cam_obj) if res.found else float("inf"), "diameter": diameter,
+                    "n_matches": res.n_matches, "timings_ms": res.timings_ms, "reason": res.reason})
             line = "  ".join(f"{m}: {'%.1f mm' % (recs[m][-1]['add'] * 1e3) if recs[m][-1]['found'] else 'not found'}"
                              for m in methods)
             print(f"{name[:28]:28s} scene {k} visible {visible:4.0%}  {line}", file=sys.stderr, flush=True)
     summary = {}
-    for m in methods:
+    for m in recs:
         rs = recs[m]
+        if not rs:
+            continue
         add_e = [r["add"] for r in rs]
         summary[m] = {
             "scenes": len(rs), "found %": 100.0 * np.mean([r["found"] for r in rs]),
@@ -145,7 +185,7 @@ def run(args: argparse.Namespace) -> dict:
     return {"meshes": names, "views": args.views, "scenes_per_mesh": args.scenes, "summary": summary,
             "template_build_s_median": float(np.median(t_build)) if t_build else None,
             "records": {m: [{k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in r.items()}
-                            for r in recs[m]] for m in methods}}
+                            for r in recs[m]] for m in recs}}
 
 
 def main() -> None:
@@ -153,13 +193,17 @@ def main() -> None:
     ap.add_argument("--meshes", default="", help="number of meshes (first N sorted) or comma-separated names")
     ap.add_argument("--scenes", type=int, default=4, help="scenes per mesh")
     ap.add_argument("--views", type=int, default=36, help="template views")
+    ap.add_argument("--scanned", type=int, default=0, help="also scan a rendered capture of the first N meshes "
+                    "(gscan.scan) and estimate the same scenes with that template")
+    ap.add_argument("--scan-frames", type=int, default=24, help="frames of each scanned capture")
     ap.add_argument("--work", default="/tmp/gscan-bench-estimate", help="template cache folder")
     ap.add_argument("--json", default=None, help="write the full results here")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
     out = run(args)
     s = out["summary"]
-    print(f"\n{len(out['meshes'])} meshes x {out['scenes_per_mesh']} scenes, {out['views']}-view CAD templates")
+    print(f"\n{len(out['meshes'])} meshes x {out['scenes_per_mesh']} scenes, {out['views']}-view CAD templates"
+          + (f"; gscan-scanned: the first {args.scanned} meshes, {args.scan_frames}-frame scans" if args.scanned else ""))
     print("| method | found % | AUC ADD | AUC ADD-S | ADD<0.1d % | wrong % |")
     print("|---|---|---|---|---|---|")
     for m, v in s.items():

@@ -8,7 +8,8 @@ Views: `n_views` cameras on a Fibonacci sphere (both hemispheres, poles avoided)
 the mesh's bounding box, at the distance where the bounding sphere spans `FILL` of the image width
 of `gscan.synth.DEFAULT_INTRINSICS` (640 x 480), image "up" along the mesh's +z. Each view is rendered
 without table or background (black), with clean depth on the object only and mask = object. RootSIFT
-keypoints inside the mask are lifted with the depth and stored in the OBJECT frame. The template
+keypoints inside the mask (the estimator's query feature parameters) are lifted with the depth and
+stored in the OBJECT frame. The template
 cloud is the union of the views' back-projected depth (surfaces actually visible from outside),
 voxel-downsampled; the template mesh is the input mesh with per-vertex colours sampled from the texture.
 
@@ -25,6 +26,7 @@ import numpy as np
 
 from gscan.camera import RGBDFrame, backproject
 from gscan.errors import InputError
+from gscan.estimate import EstimateParams
 from gscan.features import FeatureParams, extract_features
 from gscan.geometry import look_at, transform_points
 from gscan.progress import NullProgress, Progress
@@ -113,7 +115,7 @@ def _voxel_cloud(points: np.ndarray, colors: np.ndarray, voxel: float) -> tuple[
 
 def build_template_from_mesh(mesh_path: str | Path, output: str | Path, n_views: int = 36, scale: float = 1.0,
                              force: bool = False, progress: Progress | None = None,
-                             feature_params: FeatureParams = FeatureParams()) -> dict:
+                             feature_params: FeatureParams | None = None) -> dict:
     """Render `n_views` snapshots of the mesh at `mesh_path` into a new template database `output`.
 
     Returns the `info --json`-style summary {"output", "views", "descriptor", "source": "mesh", "extent_m"}.
@@ -126,13 +128,15 @@ def build_template_from_mesh(mesh_path: str | Path, output: str | Path, n_views:
     if not (np.isfinite(scale) and scale > 0):
         raise InputError(mesh_path, f"scale must be positive, not {scale}")
     progress = progress or NullProgress()
+    feature_params = feature_params or EstimateParams().features  # the estimator's query keypoints
     mesh = _load_mesh(mesh_path, scale)
     if mesh.radius <= 0:
         raise InputError(mesh_path, "mesh is degenerate (all vertices coincide)")
     if output.exists() and not force:
         raise InputError(output, "already exists; use --force to overwrite")
     db = TemplateDB.create(output, force=force, meta={
-        "source": "mesh", "descriptor": {"kind": feature_params.kind, "max_keypoints": feature_params.max_keypoints},
+        "source": "mesh", "descriptor": {"kind": feature_params.kind, "max_keypoints": feature_params.max_keypoints,
+                                         "sift_contrast_threshold": feature_params.sift_contrast_threshold},
         "mesh_source": {"path": str(mesh_path), "scale": float(scale), "views": int(n_views), "fill": FILL}})
     try:
         intr = DEFAULT_INTRINSICS

@@ -6,9 +6,8 @@ Pipeline of `Estimator.estimate` (every stage timed, `EstimateResult.timings_ms`
    to the mask's bounding box before detection, which is where most of the time goes), lifted with
    the query depth into the camera frame.
 2. retrieval: one GEMM of the query descriptors against the template's stacked descriptors
-   (normalised once at load); the per-view best similarity of every query keypoint gives each view
-   a vote per query keypoint it explains (descriptor distance < `retrieval_dist`); the top-`top_k`
-   views by votes are kept.
+   (normalised once at load); every query keypoint whose nearest template descriptor is closer than
+   `retrieval_dist` votes for that descriptor's view; the top-`top_k` views by votes are kept.
 3. match: GMatch (gscan.gmatch) of each retrieved view's keypoints, expressed in THAT view's camera
    frame (view direction +z), against the query keypoints (+z); descriptor distances are sliced
    from the retrieval GEMM, never recomputed.
@@ -41,7 +40,7 @@ import numpy as np
 
 from gscan.camera import Intrinsics, RGBDFrame, backproject
 from gscan.errors import InputError
-from gscan.features import FeatureParams, Features, descriptor_distances, extract_features
+from gscan.features import FeatureParams, Features, descriptor_distances, empty_features, extract_features
 from gscan.geometry import inv_T, kabsch, make_T, rotvec_to_R, transform_points
 from gscan.gmatch import GMatchParams, default_eps_f, gmatch
 from gscan.template import Template, TemplateDB
@@ -53,7 +52,9 @@ STAGES = ("features", "retrieval", "match", "solve", "refine", "total")
 
 @dataclass(frozen=True)
 class EstimateParams:
-    features: FeatureParams = FeatureParams()  # query keypoints (kind must equal the template's)
+    # query keypoints (kind follows the template's); SIFT contrast threshold halved from OpenCV's 0.04:
+    # 2-3x more keypoints on weakly textured packaging, measured +16 found % on bench/estimate.py
+    features: FeatureParams = FeatureParams(sift_contrast_threshold=0.02)
     gmatch: GMatchParams = GMatchParams()  # matcher parameters (eps_f None -> default of the kind)
     top_k: int = 4  # template views retrieved and matched
     retrieval_dist: float = 0.5  # descriptor distance under which a query keypoint votes for a view (RootSIFT L2)
@@ -67,7 +68,7 @@ class EstimateParams:
     icp_max_points: int = 1500  # source (template) points used by ICP, evenly subsampled
     crop_margin: int = 16  # px around the mask's bounding box kept for detection
     depth_tol: float = 0.01  # m, depth agreement tolerance of the score (grows 2 % of depth beyond 0.5 m)
-    min_depth_frac: float = 0.2  # valid-depth fraction of the search region below which PnP is used
+    min_depth_frac: float = 0.05  # valid-depth fraction of the search region below which PnP is used (depth "mostly zero")
     pnp_ratio: float = 0.8  # Lowe ratio of 2D-3D descriptor matches
     pnp_max_error_px: float = 4.0  # RANSAC reprojection threshold
     pnp_min_inliers: int = 12
@@ -105,29 +106,65 @@ class EstimateResult:
                 "timings_ms": {k: float(self.timings_ms.get(k, 0.0)) for k in STAGES}}
 
 
-def _restrict_to_masks(db: TemplateDB, tpl: Template) -> np.ndarray:
-    """[N] bool: template keypoints whose pixel lies inside their view's stored object mask (all True
-    for views without a mask)."""
-    keep = np.ones(len(tpl.pixels), dtype=bool)
+def object_keypoints(db: TemplateDB, tpl: Template, params: FeatureParams = FeatureParams(),
+                     reextract_frac: float = 0.9) -> Template:
+    """The template restricted to object keypoints: in every view with a stored object mask only the
+    keypoints whose pixel lies inside the mask are kept. A view whose stored keypoints hit the
+    extraction cap (>= `reextract_frac` * params.max_keypoints: the background took most of them,
+    typical of a static-object scan, whose registration uses the whole frame) gets its keypoints
+    re-extracted inside the mask from its stored images (a cropped detection per such view)."""
+    px, pts, desc, kv = [], [], [], []
     for i, name in enumerate(tpl.view_names):
         a, b = int(tpl.view_offsets[i]), int(tpl.view_offsets[i + 1])
-        if a == b:
-            continue
-        mask = db.view(name, load_images=True).mask
-        if mask is None:
-            continue
-        H, W = mask.shape
-        px = tpl.pixels[a:b]
-        u = np.clip(np.rint(px[:, 0]).astype(int), 0, W - 1)
-        v = np.clip(np.rint(px[:, 1]).astype(int), 0, H - 1)
-        keep[a:b] = mask[v, u]
-    return keep
+        view = db.view(name, load_images=True)
+        sel = np.arange(a, b)
+        if view.mask is not None and view.mask.any():
+            H, W = view.mask.shape
+            if b - a >= reextract_frac * params.max_keypoints and view.color is not None and view.depth is not None:
+                f = _masked_features(RGBDFrame(name, view.color, view.depth, view.intrinsics), view.mask,
+                                     replace(params, kind=tpl.kind or params.kind))
+                px.append(f.pixels)
+                pts.append(transform_points(tpl.T_obj_cam[i], f.points).astype(np.float32))
+                desc.append(f.descriptors.astype(tpl.descriptors.dtype))
+                kv.append(np.full(len(f), i, np.int32))
+                continue
+            uv = tpl.pixels[a:b]
+            u = np.clip(np.rint(uv[:, 0]).astype(int), 0, W - 1)
+            v = np.clip(np.rint(uv[:, 1]).astype(int), 0, H - 1)
+            sel = sel[view.mask[v, u]]
+        px.append(tpl.pixels[sel])
+        pts.append(tpl.points_obj[sel])
+        desc.append(tpl.descriptors[sel])
+        kv.append(tpl.kp_view[sel])
+    kp_view = np.concatenate(kv) if kv else np.zeros(0, np.int32)
+    offsets = np.searchsorted(kp_view, np.arange(len(tpl.view_names) + 1)).astype(np.int64)
+    return replace(tpl, pixels=np.concatenate(px) if px else tpl.pixels[:0],
+                   points_obj=np.concatenate(pts) if pts else tpl.points_obj[:0],
+                   descriptors=np.concatenate(desc) if desc else tpl.descriptors[:0], kp_view=kp_view,
+                   view_offsets=offsets)
+
+
+def _masked_features(frame: RGBDFrame, mask: np.ndarray, params: FeatureParams, margin: int = 16) -> Features:
+    """Features of `frame` inside `mask` [H x W] bool, detected on the mask's bounding box (+ margin)
+    only; pixels in full-frame coordinates, points in the camera frame."""
+    H, W = mask.shape
+    ys, xs = np.nonzero(mask)
+    x0, x1 = max(0, xs.min() - margin), min(W, xs.max() + margin + 1)
+    y0, y1 = max(0, ys.min() - margin), min(H, ys.max() + margin + 1)
+    intr = frame.intrinsics
+    sub = RGBDFrame(frame.name, np.ascontiguousarray(frame.color[y0:y1, x0:x1]),
+                    np.ascontiguousarray(frame.depth[y0:y1, x0:x1]),
+                    Intrinsics(intr.fx, intr.fy, intr.cx - x0, intr.cy - y0, x1 - x0, y1 - y0))
+    f = extract_features(sub, params, mask=mask[y0:y1, x0:x1])
+    f.pixels = f.pixels + np.array([x0, y0], np.float32)
+    return f
 
 
 class Estimator:
     """A template loaded once for repeated pose estimation (`from_path`, then `estimate`)."""
 
-    def __init__(self, tpl: Template, keep: np.ndarray | None = None, params: EstimateParams = EstimateParams()):
+    def __init__(self, tpl: Template, params: EstimateParams = EstimateParams()):
+        """tpl: a loaded template (see `object_keypoints` for restricting it to the object first)."""
         if tpl.kind is None or len(tpl.view_names) == 0 or len(tpl.descriptors) == 0:
             raise InputError(tpl.path, "template holds no registered view with keypoints")
         if tpl.kind != params.features.kind:
@@ -137,16 +174,15 @@ class Estimator:
         self.kind = tpl.kind
         self.view_names = list(tpl.view_names)
         self.T_obj_cam = tpl.T_obj_cam  # [V x 4 x 4]
-        keep = np.ones(len(tpl.pixels), bool) if keep is None else keep
-        # per view: kept keypoint rows, in the stacked arrays below
-        kp_view = tpl.kp_view[keep]
-        self.pixels = tpl.pixels[keep]
-        self.points_obj = tpl.points_obj[keep].astype(np.float64)
-        desc = tpl.descriptors[keep]
+        kp_view = tpl.kp_view
+        self.pixels = tpl.pixels
+        self.points_obj = tpl.points_obj.astype(np.float64)
+        desc = tpl.descriptors
         self.descriptors = np.ascontiguousarray(desc, dtype=np.float32 if self.kind != "orb" else np.uint8)
         self.unit = self.kind == "rootsift"
         V = len(self.view_names)
         self.offsets = np.searchsorted(kp_view, np.arange(V + 1)).astype(np.int64)
+        self.kp_view = np.asarray(kp_view, dtype=np.int64)
         # view-camera-frame points of every keypoint (GMatch source side, view direction +z)
         self.points_cam = np.empty_like(self.points_obj)
         for v in range(V):
@@ -176,9 +212,8 @@ class Estimator:
     def from_path(cls, path: str | Path, params: EstimateParams = EstimateParams()) -> "Estimator":
         """Open a complete template database (InputError for a missing / partial / foreign file)."""
         with TemplateDB.open(path, require_complete=True) as db:
-            tpl = db.load_template()
-            keep = _restrict_to_masks(db, tpl)
-        return cls(tpl, keep, params)
+            tpl = object_keypoints(db, db.load_template(), params.features)
+        return cls(tpl, params)
 
     # ------------------------------------------------------------------------------------------------
     def estimate(self, frame: RGBDFrame, mask: np.ndarray | None = None, refine: bool = True) -> EstimateResult:
@@ -261,40 +296,29 @@ class Estimator:
         """Query keypoints; with a mask, detection runs on the mask's bounding box (+ margin) only.
         Without `lift` (PnP mode) every keypoint is kept: a unit placeholder depth is lifted, so only
         pixels and descriptors are meaningful."""
-        depth = frame.depth if lift else np.ones_like(frame.depth)
         fparams = self.params.features if lift else replace(self.params.features, lift_window=0)
-        x0 = y0 = 0
-        color, intr, sub = frame.color, frame.intrinsics, mask
-        if mask is not None:
-            if not mask.any():
-                return extract_features(RGBDFrame(frame.name, color, depth, intr), fparams, mask=mask)
-            H, W = mask.shape
-            ys, xs = np.nonzero(mask)
-            mg = self.params.crop_margin
-            x0, x1 = max(0, xs.min() - mg), min(W, xs.max() + mg + 1)
-            y0, y1 = max(0, ys.min() - mg), min(H, ys.max() + mg + 1)
-            color, depth, sub = color[y0:y1, x0:x1], depth[y0:y1, x0:x1], mask[y0:y1, x0:x1]
-            intr = Intrinsics(intr.fx, intr.fy, intr.cx - x0, intr.cy - y0, x1 - x0, y1 - y0)
-        f = extract_features(RGBDFrame(frame.name, np.ascontiguousarray(color), np.ascontiguousarray(depth), intr),
-                             fparams, mask=sub)
-        if x0 or y0:
-            f.pixels = f.pixels + np.array([x0, y0], np.float32)
-        return f
+        if not lift:
+            frame = RGBDFrame(frame.name, frame.color, np.ones_like(frame.depth), frame.intrinsics)
+        if mask is None:
+            return extract_features(frame, fparams)
+        if not mask.any():
+            return empty_features(fparams.kind)
+        return _masked_features(frame, mask, fparams, self.params.crop_margin)
 
     def _retrieve(self, q: np.ndarray) -> tuple[np.ndarray, list[int]]:
         """Query descriptors [M x D] -> (similarity or distance matrix [M x N], top-k view indices)."""
         if self.unit:
             S = q.astype(np.float32) @ self.descriptors.T  # cosine similarity of unit vectors
-            thr = 1.0 - 0.5 * self.params.retrieval_dist ** 2
-            best = np.maximum.reduceat(S, self.offsets[self.nonempty], axis=1)  # [M x V']
-            votes = (best >= thr).sum(axis=0)
+            nn = np.argmax(S, axis=1)
+            ok = S[np.arange(len(S)), nn] >= 1.0 - 0.5 * self.params.retrieval_dist ** 2
         else:
             S = descriptor_distances(q, self.descriptors, self.kind)
-            thr = self.eps_f
-            best = np.minimum.reduceat(S, self.offsets[self.nonempty], axis=1)
-            votes = (best < thr).sum(axis=0)
-        order = np.lexsort((self.nonempty, -votes))  # most votes first, ties by view order
-        views = [int(self.nonempty[i]) for i in order[: self.params.top_k] if votes[i] > 0]
+            nn = np.argmin(S, axis=1)
+            ok = S[np.arange(len(S)), nn] < self.eps_f
+        # each query keypoint votes for the view holding its nearest template descriptor
+        votes = np.bincount(self.kp_view[nn[ok]], minlength=len(self.view_names))
+        order = np.lexsort((np.arange(len(votes)), -votes))  # most votes first, ties by view order
+        views = [int(v) for v in order[: self.params.top_k] if votes[v] > 0]
         return S, views
 
     def _dist(self, S: np.ndarray) -> np.ndarray:
