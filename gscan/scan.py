@@ -133,16 +133,20 @@ def run_scan(opts: ScanOptions, progress: Progress | None = None) -> ScanResult:
     if opts.output.exists() and not (opts.force or opts.resume):
         raise InputError(opts.output, "exists; pass --force to replace it or --resume to continue it")
     frames: list[_Frame] = []
+    failed: list[tuple[str, InputError]] = []
     with timer.stage("load", total=len(seq)) as advance:
         for name in seq.names:
             try:
                 frames.append(_Frame(seq[name]))
             except InputError as e:
-                log.warning("skipping frame %s: %s", name, e)
+                failed.append((name, e))
             advance(1)
     problems = dict(seq.problems)
-    if not frames:
-        raise InputError(opts.input_dir, "no usable frame: " + "; ".join(f"{k}: {v}" for k, v in problems.items()))
+    if not frames:  # one line (the CLI contract), no per-frame warnings before it
+        first = next(iter(problems.items()), ("?", "?"))
+        raise InputError(opts.input_dir, f"no usable frame ({len(problems)} unusable); first: {first[0]}: {first[1]}")
+    for name, e in failed:
+        log.warning("skipping frame %s: %s", name, e)
 
     created = not (opts.resume and opts.output.exists())
     db, resumed = _open_output(opts)
