@@ -80,9 +80,11 @@ def export(db_path: str | Path, fmt: str, out: str | Path, force: bool = False) 
         raise InputError(out, "output already exists; use --force to overwrite")
     if out.resolve() == db_path.resolve():
         raise InputError(out, "output would overwrite the template database itself")
-    out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.parent / f".{out.name}.tmp-{os.getpid()}"
     with TemplateDB.open(db_path, require_complete=True) as db:
+        # parent folders are made only once the database is known good, and removed on failure
+        made = [d for d in (out.parent, *out.parent.parents) if not d.exists()]
+        out.parent.mkdir(parents=True, exist_ok=True)
         _remove(tmp)
         try:
             if fmt not in _FILE_FORMATS:
@@ -90,6 +92,9 @@ def export(db_path: str | Path, fmt: str, out: str | Path, force: bool = False) 
             n_views = _writer(fmt)(db, tmp)
         except BaseException:
             _remove(tmp)
+            for d in made:  # deepest first
+                if d.is_dir() and not any(d.iterdir()):
+                    d.rmdir()
             raise
     files = sum(len(f) for _, _, f in os.walk(tmp)) if tmp.is_dir() else 1
     _replace(tmp, out)
