@@ -1,0 +1,669 @@
+"""Bad input through the real command line (GitHub issue 7, DESIGN.md "Command line").
+
+The contract: bad input exits with code 2 and one line on stderr, `error: ...`, naming the
+offending file; never a traceback; never a half-written output. A capture in which only some
+frames are unusable is not bad input: those frames are reported by name and the scan goes on.
+
+Every case is built in its own folder and all cases run as concurrent subprocesses in one
+module fixture (each is dominated by interpreter start-up); the parametrised tests then check
+one result each. The output of a failing command goes into an empty folder `out/` that must
+still be empty afterwards (no output, no journal, no temporary sibling left behind).
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import sqlite3
+import subprocess
+import sys
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import cv2
+import numpy as np
+import pytest
+
+from gscan import synth
+
+ROOT = Path(__file__).resolve().parents[1]
+INTR = synth.DEFAULT_INTRINSICS.scaled(0.5)  # 320 x 240: small and fast, still registers
+N_VIEWS = 8  # 45 degree steps on one ring
+TIMEOUT_S = 240
+# lines OpenCV / libpng / libjpeg may print on stderr themselves while gscan decodes a corrupt file
+LIBRARY_NOISE = ("libpng", "corrupt jpeg", "premature end", "[ warn:", "warning:", "imgcodecs")
+
+
+# ------------------------------------------------------------------------------------------ fixtures
+
+
+@dataclass
+class Ctx:
+    """Shared, read-only inputs the cases copy from."""
+
+    capture: Path  # a good capture (rgb/ depth/ masks/ cam_K.txt annotated_poses/)
+    template: Path  # a complete template database
+    mesh: Path  # the box as a textured OBJ
+
+
+@dataclass
+class Run:
+    """One command to run and what it must leave behind."""
+
+    argv: list[str]
+    names: list[str]  # strings the error line must contain (file names, option values)
+    out_dir: Path | None = None  # must exist and be empty afterwards
+    unchanged: list[Path] = field(default_factory=list)  # files / folders whose content must not change
+    unreadable: bool = False  # run without root's right to read any file (setpriv)
+    expect_rc: int = 2
+
+
+def _cli(*args: str | Path) -> list[str]:
+    return [sys.executable, "-m", "gscan.cli", *map(str, args)]
+
+
+def _snapshot(p: Path) -> dict[str, str]:
+    if p.is_file():
+        return {"": hashlib.sha256(p.read_bytes()).hexdigest()}
+    if not p.exists():
+        return {}
+    return {str(f.relative_to(p)): (hashlib.sha256(f.read_bytes()).hexdigest() if f.is_file() else "dir")
+            for f in sorted(p.rglob("*"))}
+
+
+def _copy_capture(ctx: Ctx, work: Path, name: str = "cap") -> Path:
+    dst = work / name
+    shutil.copytree(ctx.capture, dst)
+    return dst
+
+
+def _for_each(folder: Path, pattern: str, fn: Callable[[Path], None]) -> list[Path]:
+    files = sorted(folder.glob(pattern))
+    assert files, f"no {pattern} under {folder}"
+    for f in files:
+        fn(f)
+    return files
+
+
+def _rewrite_depth(fn: Callable[[np.ndarray], np.ndarray], ext: str = ".png") -> Callable[[Path], None]:
+    def apply(p: Path) -> None:
+        d = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+        p.unlink()
+        assert cv2.imwrite(str(p.with_suffix(ext)), fn(d))
+    return apply
+
+
+def _scan_case(work: Path, cap: Path, *names: str, extra: tuple[str, ...] = ()) -> Run:
+    out = work / "out"
+    out.mkdir(exist_ok=True)
+    return Run(_cli("scan", cap, "-o", out / "obj.gscan", "--json", *extra), list(names), out_dir=out)
+
+
+def _template_copy(ctx: Ctx, work: Path, name: str = "obj.gscan", **meta: object) -> Path:
+    dst = work / name
+    shutil.copy(ctx.template, dst)
+    if meta:
+        with sqlite3.connect(dst) as c:
+            for k, v in meta.items():
+                c.execute("UPDATE meta SET value=? WHERE key=?", (json.dumps(v), k))
+    return dst
+
+
+def _query_files(ctx: Ctx, work: Path) -> tuple[Path, Path, Path]:
+    q = work / "query"
+    q.mkdir()
+    for sub, ext in (("rgb", ".png"), ("depth", ".png")):
+        shutil.copy(ctx.capture / sub / f"000002{ext}", q / f"{sub}.png")
+    shutil.copy(ctx.capture / "cam_K.txt", q / "cam_K.txt")
+    return q / "rgb.png", q / "depth.png", q / "cam_K.txt"
+
+
+def _template_command(cmd: str, db: Path, ctx: Ctx, work: Path) -> Run:
+    """`cmd` run on template `db`; commands that write get an empty out/ folder to keep empty."""
+    out = work / "out"
+    out.mkdir(exist_ok=True)
+    if cmd == "estimate":
+        c, d, k = _query_files(ctx, work)
+        return Run(_cli("estimate", db, "--color", c, "--depth", d, "--intrinsics", k, "--json"), [db.name], out)
+    if cmd == "export":
+        return Run(_cli("export", db, "--format", "json", "-o", out / "x.json"), [db.name], out)
+    if cmd == "view":
+        return Run(_cli("view", db, "--port", "0"), [db.name], out)
+    if cmd in ("info", "poses"):
+        return Run(_cli(cmd, db, "--json"), [db.name], out)
+    raise ValueError(cmd)
+
+
+# ------------------------------------------------------------------------------------------ the corpus
+
+CASES: dict[str, Callable[[Ctx, Path], Run]] = {}
+
+
+def case(name: str):
+    def deco(fn: Callable[[Ctx, Path], Run]) -> Callable[[Ctx, Path], Run]:
+        assert name not in CASES
+        CASES[name] = fn
+        return fn
+    return deco
+
+
+@case("scan-empty-folder")
+def _(ctx: Ctx, work: Path) -> Run:
+    (work / "empty capture").mkdir()
+    return _scan_case(work, work / "empty capture", "empty capture")
+
+
+@case("scan-missing-folder")
+def _(ctx: Ctx, work: Path) -> Run:
+    return _scan_case(work, work / "no_such_capture", "no_such_capture")
+
+
+@case("scan-unrecognised-layout")
+def _(ctx: Ctx, work: Path) -> Run:
+    cap = work / "holiday_photos"
+    (cap / "pictures").mkdir(parents=True)
+    (cap / "notes.txt").write_text("not a capture\n")
+    shutil.copy(ctx.capture / "rgb" / "000000.png", cap / "pictures" / "a.png")
+    return _scan_case(work, cap, "holiday_photos")
+
+
+@case("scan-no-depth-for-any-frame")
+def _(ctx: Ctx, work: Path) -> Run:
+    cap = _copy_capture(ctx, work, "nodepth")
+    _for_each(cap / "depth", "*.png", Path.unlink)
+    return _scan_case(work, cap, "nodepth", "000000")
+
+
+@case("scan-size-mismatch-all-frames")
+def _(ctx: Ctx, work: Path) -> Run:
+    cap = _copy_capture(ctx, work, "mismatch")
+    _for_each(cap / "depth", "*.png", _rewrite_depth(lambda d: cv2.resize(d, (160, 120), interpolation=cv2.INTER_NEAREST)))
+    return _scan_case(work, cap, "mismatch", "000000")
+
+
+@case("scan-8bit-depth")
+def _(ctx: Ctx, work: Path) -> Run:
+    cap = _copy_capture(ctx, work, "depth8")
+    _for_each(cap / "depth", "*.png", _rewrite_depth(lambda d: (d // 8).clip(0, 255).astype(np.uint8)))
+    return _scan_case(work, cap, "depth8", "000000")
+
+
+@case("scan-float-depth-tiff")
+def _(ctx: Ctx, work: Path) -> Run:
+    cap = _copy_capture(ctx, work, "depthf")
+    _for_each(cap / "depth", "*.png", _rewrite_depth(lambda d: d.astype(np.float32) / 1000.0, ".tiff"))
+    return _scan_case(work, cap, "depthf", "000000.tiff")
+
+
+@case("scan-float-depth-32bit-png-rgba")
+def _(ctx: Ctx, work: Path) -> Run:
+    # float32 metres smuggled into an 8-bit RGBA PNG (4 bytes per pixel): a 4-channel "depth"
+    cap = _copy_capture(ctx, work, "depthrgba")
+    _for_each(cap / "depth", "*.png", _rewrite_depth(
+        lambda d: (d.astype(np.float32) / 1000.0).view(np.uint8).reshape(d.shape[0], d.shape[1], 4)))
+    return _scan_case(work, cap, "depthrgba", "000000.png")
+
+
+@case("scan-all-zero-depth")
+def _(ctx: Ctx, work: Path) -> Run:
+    cap = _copy_capture(ctx, work, "zerodepth")
+    _for_each(cap / "depth", "*.png", _rewrite_depth(np.zeros_like))
+    return _scan_case(work, cap, "zerodepth", "000000.png")
+
+
+@case("scan-corrupt-png")
+def _(ctx: Ctx, work: Path) -> Run:
+    cap = _copy_capture(ctx, work, "corruptpng")
+    rng = np.random.default_rng(1)
+
+    def corrupt(p: Path) -> None:  # PNG signature and IHDR kept, image data garbled
+        b = bytearray(p.read_bytes())
+        b[60:] = rng.integers(0, 256, len(b) - 60, dtype=np.uint8).tobytes()
+        p.write_bytes(bytes(b))
+    _for_each(cap / "rgb", "*.png", corrupt)
+    return _scan_case(work, cap, "corruptpng", "000000.png")
+
+
+@case("scan-corrupt-jpeg")
+def _(ctx: Ctx, work: Path) -> Run:
+    cap = _copy_capture(ctx, work, "corruptjpg")
+    rng = np.random.default_rng(2)
+
+    def to_bad_jpeg(p: Path) -> None:  # JPEG start-of-image marker, then garbage
+        p.unlink()
+        p.with_suffix(".jpg").write_bytes(b"\xff\xd8\xff\xe0" + rng.integers(0, 256, 4000, dtype=np.uint8).tobytes())
+    _for_each(cap / "rgb", "*.png", to_bad_jpeg)
+    return _scan_case(work, cap, "corruptjpg", "000000.jpg")
+
+
+@case("scan-truncated-png")
+def _(ctx: Ctx, work: Path) -> Run:
+    cap = _copy_capture(ctx, work, "truncpng")
+    _for_each(cap / "rgb", "*.png", lambda p: p.write_bytes(p.read_bytes()[: p.stat().st_size // 2]))
+    return _scan_case(work, cap, "truncpng", "000000.png")
+
+
+@case("scan-missing-cam-K")
+def _(ctx: Ctx, work: Path) -> Run:
+    cap = _copy_capture(ctx, work)
+    (cap / "cam_K.txt").unlink()
+    return _scan_case(work, cap, "cam_K.txt")
+
+
+@case("scan-malformed-cam-K")
+def _(ctx: Ctx, work: Path) -> Run:
+    cap = _copy_capture(ctx, work)
+    (cap / "cam_K.txt").write_text("focal length: about 600\n")
+    return _scan_case(work, cap, "cam_K.txt")
+
+
+@case("scan-nan-intrinsics")
+def _(ctx: Ctx, work: Path) -> Run:
+    cap = _copy_capture(ctx, work)
+    (cap / "cam_K.txt").write_text("nan 0 160\n0 307.5 120\n0 0 1\n")
+    return _scan_case(work, cap, "cam_K.txt")
+
+
+@case("scan-negative-focal-length")
+def _(ctx: Ctx, work: Path) -> Run:
+    cap = _copy_capture(ctx, work)
+    (cap / "cam_K.txt").write_text("-307.5 0 160\n0 307.5 120\n0 0 1\n")
+    return _scan_case(work, cap, "cam_K.txt")
+
+
+@case("scan-missing-intrinsics-option-file")
+def _(ctx: Ctx, work: Path) -> Run:
+    cap = _copy_capture(ctx, work)
+    return _scan_case(work, cap, "other_K.txt", extra=("--intrinsics", str(work / "other_K.txt")))
+
+
+@case("scan-depth-scale-kilometres")
+def _(ctx: Ctx, work: Path) -> Run:
+    cap = _copy_capture(ctx, work)
+    return _scan_case(work, cap, "000000.png", extra=("--depth-scale", "10"))
+
+
+@case("scan-invalid-depth-scale")
+def _(ctx: Ctx, work: Path) -> Run:
+    cap = _copy_capture(ctx, work, "negscale")
+    return _scan_case(work, cap, "negscale", "-0.001", extra=("--depth-scale", "-0.001"))
+
+
+@case("scan-duplicate-frame-names")
+def _(ctx: Ctx, work: Path) -> Run:
+    cap = _copy_capture(ctx, work)
+    img = cv2.imread(str(cap / "rgb" / "000001.png"))
+    assert cv2.imwrite(str(cap / "rgb" / "000001.jpg"), img)
+    return _scan_case(work, cap, "000001")
+
+
+@case("scan-unreadable-permissions")
+def _(ctx: Ctx, work: Path) -> Run:
+    cap = _copy_capture(ctx, work, "locked")
+    _for_each(cap / "depth", "*.png", lambda p: p.chmod(0))
+    run = _scan_case(work, cap, "locked", "000000.png", "permission denied")
+    run.unreadable = True
+    return run
+
+
+@case("scan-output-exists")
+def _(ctx: Ctx, work: Path) -> Run:
+    cap = _copy_capture(ctx, work)
+    existing = work / "keep.gscan"
+    existing.write_bytes(b"precious")
+    return Run(_cli("scan", cap, "-o", existing, "--json"), ["keep.gscan", "--force"], unchanged=[existing])
+
+
+@case("scan-output-is-folder")
+def _(ctx: Ctx, work: Path) -> Run:
+    cap = _copy_capture(ctx, work)
+    (work / "dir.gscan").mkdir()
+    return Run(_cli("scan", cap, "-o", work / "dir.gscan", "--force", "--json"), ["dir.gscan"],
+               unchanged=[work / "dir.gscan"])
+
+
+@case("scan-resume-and-force")
+def _(ctx: Ctx, work: Path) -> Run:
+    cap = _copy_capture(ctx, work)
+    run = _scan_case(work, cap, "obj.gscan", "--resume", "--force")
+    run.argv += ["--resume", "--force"]
+    return run
+
+
+@case("scan-invalid-format")
+def _(ctx: Ctx, work: Path) -> Run:
+    cap = _copy_capture(ctx, work)
+    return _scan_case(work, cap, "'kinect'", extra=("--format", "kinect"))
+
+
+@case("scan-wrong-format")
+def _(ctx: Ctx, work: Path) -> Run:
+    cap = _copy_capture(ctx, work, "capfolder")
+    return _scan_case(work, cap, "capfolder", extra=("--format", "tum"))
+
+
+@case("scan-config-malformed-yaml")
+def _(ctx: Ctx, work: Path) -> Run:
+    cap = _copy_capture(ctx, work)
+    (work / "bad.yaml").write_text("features: [kind: sift\n  max_keypoints: {\n")
+    return _scan_case(work, cap, "bad.yaml", extra=("--config", str(work / "bad.yaml")))
+
+
+@case("scan-config-unknown-key")
+def _(ctx: Ctx, work: Path) -> Run:
+    cap = _copy_capture(ctx, work)
+    (work / "unknown.yaml").write_text("features:\n  kind: sift\n  max_keypointz: 500\n")
+    return _scan_case(work, cap, "unknown.yaml", "max_keypointz", extra=("--config", str(work / "unknown.yaml")))
+
+
+@case("scan-config-invalid-value")
+def _(ctx: Ctx, work: Path) -> Run:
+    cap = _copy_capture(ctx, work)
+    (work / "invalid.yaml").write_text("match:\n  eps_c: -3\n")
+    return _scan_case(work, cap, "invalid.yaml", "eps_c", extra=("--config", str(work / "invalid.yaml")))
+
+
+@case("scan-config-missing-file")
+def _(ctx: Ctx, work: Path) -> Run:
+    cap = _copy_capture(ctx, work)
+    return _scan_case(work, cap, "nothere.yaml", extra=("--config", str(work / "nothere.yaml")))
+
+
+def _random_bytes_file(work: Path) -> Path:
+    p = work / "random.gscan"
+    p.write_bytes(np.random.default_rng(3).integers(0, 256, 5000, dtype=np.uint8).tobytes())
+    return p
+
+
+def _foreign_sqlite_file(work: Path) -> Path:
+    p = work / "foreign.gscan"
+    with sqlite3.connect(p) as c:
+        c.execute("CREATE TABLE songs(title TEXT, artist TEXT)")
+        c.execute("INSERT INTO songs VALUES ('a', 'b')")
+    c.close()
+    return p
+
+
+for _cmd in ("estimate", "info", "export", "view", "poses"):
+    case(f"{_cmd}-random-bytes")(lambda ctx, work, c=_cmd: _template_command(c, _random_bytes_file(work), ctx, work))
+    case(f"{_cmd}-sqlite-of-another-app")(
+        lambda ctx, work, c=_cmd: _template_command(c, _foreign_sqlite_file(work), ctx, work))
+
+for _cmd in ("info", "estimate"):
+    case(f"{_cmd}-newer-schema")(
+        lambda ctx, work, c=_cmd: _template_command(c, _template_copy(ctx, work, "future.gscan", schema=99), ctx, work))
+
+for _cmd in ("estimate", "export", "view", "poses"):
+    def _partial(ctx: Ctx, work: Path, c: str = _cmd) -> Run:
+        run = _template_command(c, _template_copy(ctx, work, "half.gscan", status="partial"), ctx, work)
+        run.names.append("--resume")
+        return run
+    case(f"{_cmd}-partial-template")(_partial)
+
+
+@case("estimate-missing-template")
+def _(ctx: Ctx, work: Path) -> Run:
+    return _template_command("estimate", work / "ghost.gscan", ctx, work)
+
+
+@case("export-non-empty-folder")
+def _(ctx: Ctx, work: Path) -> Run:
+    out = work / "bop_out"
+    out.mkdir()
+    (out / "mine.txt").write_text("do not delete\n")
+    return Run(_cli("export", ctx.template, "--format", "bop", "-o", out), ["bop_out", "--force"], unchanged=[out])
+
+
+@case("export-invalid-format")
+def _(ctx: Ctx, work: Path) -> Run:
+    out = work / "out"
+    out.mkdir()
+    return Run(_cli("export", ctx.template, "--format", "stl", "-o", out / "x.stl"), ["'stl'"], out)
+
+
+@case("export-into-missing-parent-of-bad-template")
+def _(ctx: Ctx, work: Path) -> Run:
+    out = work / "out"
+    out.mkdir()
+    db = _random_bytes_file(work)
+    return Run(_cli("export", db, "--format", "bop", "-o", out / "deeper" / "bop"), [db.name], out)
+
+
+@case("export-mesh-of-meshless-template")
+def _(ctx: Ctx, work: Path) -> Run:
+    out = work / "out"
+    out.mkdir()
+    db = _template_copy(ctx, work, "meshless.gscan")
+    with sqlite3.connect(db) as c:
+        c.execute("DELETE FROM mesh")
+    c.close()
+    return Run(_cli("export", db, "--format", "obj", "-o", out / "deeper" / "m.obj"), [db.name, "mesh"], out)
+
+
+def _estimate(ctx: Ctx, work: Path, color: Path, depth: Path, K: Path, *extra: str | Path) -> Run:
+    out = work / "out"
+    out.mkdir(exist_ok=True)
+    return Run(_cli("estimate", ctx.template, "--color", color, "--depth", depth, "--intrinsics", K, "--json",
+                    *extra), [], out)
+
+
+@case("estimate-missing-color")
+def _(ctx: Ctx, work: Path) -> Run:
+    c, d, k = _query_files(ctx, work)
+    run = _estimate(ctx, work, work / "missing_color.png", d, k)
+    run.names.append("missing_color.png")
+    return run
+
+
+@case("estimate-corrupt-depth")
+def _(ctx: Ctx, work: Path) -> Run:
+    c, d, k = _query_files(ctx, work)
+    d.write_bytes(d.read_bytes()[:200])
+    run = _estimate(ctx, work, c, d, k)
+    run.names.append(d.name)
+    return run
+
+
+@case("estimate-8bit-depth")
+def _(ctx: Ctx, work: Path) -> Run:
+    c, d, k = _query_files(ctx, work)
+    _rewrite_depth(lambda x: (x // 8).clip(0, 255).astype(np.uint8))(d)
+    run = _estimate(ctx, work, c, d, k)
+    run.names += [d.name, "8-bit"]
+    return run
+
+
+@case("estimate-size-mismatch")
+def _(ctx: Ctx, work: Path) -> Run:
+    c, d, k = _query_files(ctx, work)
+    _rewrite_depth(lambda x: cv2.resize(x, (160, 120), interpolation=cv2.INTER_NEAREST))(d)
+    run = _estimate(ctx, work, c, d, k)
+    run.names.append(d.name)
+    return run
+
+
+@case("estimate-mask-wrong-size")
+def _(ctx: Ctx, work: Path) -> Run:
+    c, d, k = _query_files(ctx, work)
+    m = work / "query" / "small_mask.png"
+    assert cv2.imwrite(str(m), np.full((100, 100), 255, np.uint8))
+    run = _estimate(ctx, work, c, d, k, "--mask", m)
+    run.names.append(m.name)
+    return run
+
+
+@case("estimate-malformed-intrinsics")
+def _(ctx: Ctx, work: Path) -> Run:
+    c, d, k = _query_files(ctx, work)
+    k.write_text("1 2 3\n")
+    run = _estimate(ctx, work, c, d, k)
+    run.names.append(k.name)
+    return run
+
+
+@case("estimate-depth-scale-kilometres")
+def _(ctx: Ctx, work: Path) -> Run:
+    c, d, k = _query_files(ctx, work)
+    run = _estimate(ctx, work, c, d, k, "--depth-scale", "10")
+    run.names.append(d.name)
+    return run
+
+
+def _grasp(ctx: Ctx, work: Path, content: str) -> Run:
+    db = _template_copy(ctx, work)
+    pose = work / "grasp_pose.json"
+    pose.write_text(content)
+    return Run(_cli("grasp", "add", db, "--name", "top", "--pose", pose), ["grasp_pose.json"], unchanged=[db])
+
+
+@case("grasp-add-malformed-pose")
+def _(ctx: Ctx, work: Path) -> Run:
+    return _grasp(ctx, work, '{"T": [[1, 0, 0, 0], [0, 1, 0')
+
+
+@case("grasp-add-not-a-matrix")
+def _(ctx: Ctx, work: Path) -> Run:
+    return _grasp(ctx, work, '{"T": [[1, 0, 0], [0, 1, 0], [0, 0, 1]]}')
+
+
+@case("grasp-add-non-rigid")
+def _(ctx: Ctx, work: Path) -> Run:
+    return _grasp(ctx, work, json.dumps({"T": [[2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0.1], [0, 0, 0, 1]]}))
+
+
+@case("grasp-add-missing-pose-file")
+def _(ctx: Ctx, work: Path) -> Run:
+    run = _grasp(ctx, work, "{}")
+    run.argv[-1] = str(work / "nowhere.json")
+    run.names = ["nowhere.json"]
+    return run
+
+
+@case("mesh-missing")
+def _(ctx: Ctx, work: Path) -> Run:
+    out = work / "out"
+    out.mkdir()
+    return Run(_cli("template-from-mesh", work / "ghost.obj", "-o", out / "m.gscan", "--views", "4"), ["ghost.obj"], out)
+
+
+@case("mesh-corrupt")
+def _(ctx: Ctx, work: Path) -> Run:
+    out = work / "out"
+    out.mkdir()
+    bad = work / "broken.ply"
+    bad.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 99\n" + bytes(range(256)) * 3)
+    return Run(_cli("template-from-mesh", bad, "-o", out / "m.gscan", "--views", "4"), ["broken.ply"], out)
+
+
+
+
+# A capture with one corrupt frame among good ones is NOT bad input: exit 0, the frame is reported.
+PARTIAL = "scan-one-corrupt-frame"
+
+
+@case(PARTIAL)
+def _(ctx: Ctx, work: Path) -> Run:
+    cap = _copy_capture(ctx, work, "mostly_good")
+    p = cap / "rgb" / "000005.png"
+    p.write_bytes(p.read_bytes()[:300])
+    out = work / "out"
+    out.mkdir()
+    return Run(_cli("scan", cap, "-o", out / "obj.gscan", "--json"), ["000005"], expect_rc=0)
+
+
+# ------------------------------------------------------------------------------------------ running
+
+
+def _run(run: Run) -> subprocess.CompletedProcess:
+    cmd = list(run.argv)
+    if run.unreadable and os.geteuid() == 0:
+        if shutil.which("setpriv") is None:
+            pytest.fail("running as root without util-linux setpriv: cannot drop the right to read any file")
+        cmd = ["setpriv", "--bounding-set", "-dac_override,-dac_read_search"] + cmd
+    env = dict(os.environ, COLUMNS="300", GSCAN_DEBUG="")
+    env.pop("GSCAN_DEBUG")
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=TIMEOUT_S, cwd=ROOT, env=env)
+
+
+@pytest.fixture(scope="module")
+def ctx(tmp_path_factory: pytest.TempPathFactory) -> Ctx:
+    from gscan.cadtemplate import build_template_from_mesh
+
+    base = tmp_path_factory.mktemp("inputs")
+    mesh = synth.box_mesh((0.14, 0.09, 0.07), synth.procedural_box_texture(3, (512, 768)))
+    synth.render_capture(mesh, base / "capture", N_VIEWS, mode="static", elevations_deg=(40.0,), intr=INTR)
+    mesh_path = synth.save_textured_mesh(mesh, base / "box" / "box.obj")
+    build_template_from_mesh(mesh_path, base / "good.gscan", n_views=6)
+    return Ctx(base / "capture", base / "good.gscan", mesh_path)
+
+
+@pytest.fixture(scope="module")
+def results(ctx: Ctx, tmp_path_factory: pytest.TempPathFactory) -> dict[str, tuple[Run, dict, subprocess.CompletedProcess]]:
+    """Build every case, then run them all concurrently: name -> (run, snapshots before, process)."""
+    runs: dict[str, tuple[Run, dict]] = {}
+    for name, build in CASES.items():
+        run = build(ctx, tmp_path_factory.mktemp(name))
+        runs[name] = (run, {str(p): _snapshot(p) for p in run.unchanged})
+    order = [PARTIAL] + [n for n in runs if n != PARTIAL]  # the one slow case first
+    with ThreadPoolExecutor(max_workers=4) as pool:
+        procs = dict(zip(order, pool.map(lambda n: _run(runs[n][0]), order)))
+    return {n: (runs[n][0], runs[n][1], procs[n]) for n in runs}
+
+
+def _error_line(stderr: str) -> str:
+    """The last stderr line once lines printed by image libraries themselves are set aside."""
+    lines = [ln for ln in stderr.splitlines() if ln.strip()]
+    own = [ln for ln in lines if not any(tag in ln.lower() for tag in LIBRARY_NOISE) or ln.startswith("error:")]
+    assert own, f"nothing on stderr: {stderr!r}"
+    return own[-1]
+
+
+BAD = sorted(n for n in CASES if n != PARTIAL)
+
+
+def test_corpus_is_large_enough():
+    assert len(BAD) >= 30
+
+
+@pytest.mark.parametrize("name", BAD)
+def test_bad_input(name: str, results):
+    run, before, proc = results[name]
+    detail = f"{' '.join(run.argv[3:])}\nstdout: {proc.stdout!r}\nstderr: {proc.stderr!r}"
+    assert proc.returncode == 2, detail
+    assert "Traceback" not in proc.stderr, detail
+    assert proc.stdout == "", detail  # a failing --json command prints no half JSON object
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    line = _error_line(proc.stderr)
+    assert line.startswith("error: "), detail
+    assert sum(ln.startswith("error: ") for ln in lines) == 1, detail
+    # one line: everything gscan itself printed is that line (library noise aside)
+    assert [ln for ln in lines if not any(t in ln.lower() for t in LIBRARY_NOISE)] in ([line], []), detail
+    for s in run.names:
+        assert s in line, f"{s!r} not named in {line!r}"
+    if run.out_dir is not None:
+        left = sorted(p.name for p in run.out_dir.iterdir())
+        assert left == [], f"left behind in {run.out_dir}: {left}"
+    for p in run.unchanged:
+        assert _snapshot(p) == before[str(p)], f"{p} was changed"
+
+
+def test_partially_bad_capture_is_scanned(results):
+    run, _, proc = results[PARTIAL]
+    assert proc.returncode == 0, proc.stderr
+    assert "Traceback" not in proc.stderr
+    out = json.loads(proc.stdout)
+    assert out["frames"] == N_VIEWS
+    assert "000005" in out["skipped"] and "000005.png" in out["skipped"]["000005"]
+    assert "000005" in out["unregistered"]
+    assert out["registered"] >= N_VIEWS // 2
+    assert "000005" in proc.stderr and "000005.png" in proc.stderr
+    db = Path(out["output"])
+    with sqlite3.connect(db) as c:
+        names = [r[0] for r in c.execute("SELECT name FROM views")]
+    c.close()
+    assert "000005" not in names and len(names) == N_VIEWS - 1
+    info = subprocess.run(_cli("info", db, "--json"), capture_output=True, text=True, timeout=TIMEOUT_S)
+    assert info.returncode == 0 and json.loads(info.stdout)["status"] == "complete"
