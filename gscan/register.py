@@ -12,6 +12,14 @@ Acceptance rules, applied in this order (the first failing one is the `reason`):
    match pose by more than `max_icp_shift_deg` / `max_icp_shift_m` (a slide, not a refinement).
    A rejected ICP leaves the match pose in T_tgt_src; an accepted one replaces it.
 Without ICP, rmse is the Kabsch residual and fitness is None.
+
+Guided refinement (GMatch only, `refine`): GMatch stops at L (24) matches, and a pose from 24
+points is limited by their depth noise. From the Kabsch pose, every candidate pair (descriptor
+distance < eps_f) whose transformed source point lies within tau of its target point is
+collected, made one-to-one greedily by residual, and the pose re-solved by Kabsch on all of
+them; tau shrinks over `refine_taus`. A round that keeps fewer pairs than the GMatch list
+stops the refinement. Measured on rendered captures: mean rotation error per edge 0.44 -> 0.28
+deg (turntable, object only) and 0.074 -> 0.029 deg (static object, whole frame).
 """
 from __future__ import annotations
 
@@ -37,6 +45,8 @@ class RegisterParams:
     baseline: BaselineParams = BaselineParams()  # fixed baseline parameters
     min_matches: int = 6  # rule 1
     max_kabsch_rmse: float = 0.01  # rule 2 (m)
+    refine: bool = True  # guided refinement of the GMatch pose (module docstring); gmatch only
+    refine_taus: tuple[float, ...] = (0.008, 0.004, 0.003)  # its inlier distances per round (m)
     icp: bool = True  # refine by point-to-plane ICP when clouds are given
     icp_max_dist: float = 0.01  # ICP correspondence distance (m)
     icp_voxel: float = 0.004  # ICP voxel downsampling (m), 0 = none
@@ -65,11 +75,41 @@ class PairResult:
     reason: str | None  # None when accepted, else the first failed rule (module docstring)
     method: str = "gmatch"
     T_match: np.ndarray | None = None  # [4 x 4] pose from the matches alone (before ICP)
+    inliers: np.ndarray | None = None  # [K x 2] int32 correspondences the pose was solved from (refined)
     timings_ms: dict[str, float] = field(default_factory=dict)
 
 
 def _kabsch_rmse(pts_s: np.ndarray, pts_t: np.ndarray, T: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sum((transform_points(T, pts_s) - pts_t) ** 2, axis=1))))
+
+
+def refine_pose(pts_s: np.ndarray, pts_t: np.ndarray, dist: np.ndarray, eps_f: float, T: np.ndarray,
+                taus: tuple[float, ...], min_pairs: int) -> tuple[np.ndarray, np.ndarray]:
+    """Guided refinement (module docstring): (T_tgt_src [4 x 4], inliers [K x 2] int32).
+
+    pts_s [Ns x 3], pts_t [Nt x 3], dist [Ns x Nt] descriptor distances, T the starting pose.
+    Returns the input pose and an empty inlier set when no round keeps `min_pairs` pairs.
+    """
+    ii, jj = np.nonzero(dist < eps_f)
+    ps, pt = np.asarray(pts_s, np.float64), np.asarray(pts_t, np.float64)
+    best = np.zeros((0, 2), np.int32)
+    for tau in taus:
+        r = np.linalg.norm(transform_points(T, ps[ii]) - pt[jj], axis=1)
+        ok = np.flatnonzero(r < tau)
+        ok = ok[np.lexsort((jj[ok], ii[ok], r[ok]))]  # by residual, ties by index: deterministic
+        used_s = np.zeros(len(ps), bool)
+        used_t = np.zeros(len(pt), bool)
+        keep = []
+        for k in ok:
+            a, b = ii[k], jj[k]
+            if not (used_s[a] or used_t[b]):
+                used_s[a] = used_t[b] = True
+                keep.append((a, b))
+        if len(keep) < min_pairs:
+            break
+        best = np.asarray(keep, np.int32)
+        T = kabsch(ps[best[:, 0]], pt[best[:, 1]])
+    return T, best
 
 
 def register_points(pts_s: np.ndarray, pts_t: np.ndarray, desc_s: np.ndarray, desc_t: np.ndarray, kind: str,
@@ -103,10 +143,17 @@ def register_points(pts_s: np.ndarray, pts_t: np.ndarray, desc_s: np.ndarray, de
         krmse = _kabsch_rmse(ps, pt, T)
     else:
         T, krmse = None, float("inf")
+    inliers = matches
     if params.method != "gmatch":
         cost = krmse
+    elif params.refine and n >= 3:
+        T_ref, refined = refine_pose(pts_s, pts_t, dist, eps_f, T, params.refine_taus, n)
+        if len(refined):
+            T, inliers = T_ref, refined
+            krmse = _kabsch_rmse(np.asarray(pts_s, np.float64)[refined[:, 0]],
+                                 np.asarray(pts_t, np.float64)[refined[:, 1]], T)
     out = PairResult(T, matches, float(cost), n, krmse if n >= 3 else None, None, False, None, params.method,
-                     None if T is None else T.copy(), tm)
+                     T_match=None if T is None else T.copy(), inliers=inliers, timings_ms=tm)
     if n < params.min_matches:
         out.reason = f"too few matches ({n} < {params.min_matches})"
         return out

@@ -225,7 +225,10 @@ def _scan_frames(frames: list[_Frame], opts: ScanOptions, db: TemplateDB, resume
                 e.accepted, e.reason = True, None
             return e
         r = register_features(frames[i].feats, frames[j].feats, rparams, clouds=(frames[i].cloud, frames[j].cloud))
-        e = Edge(names[i], names[j], r.T_tgt_src, r.matches, r.cost, r.rmse, r.fitness, kind, r.accepted, r.reason)
+        # the edge keeps the correspondences its pose was solved from (GMatch's list grown by the
+        # guided refinement of gscan.register), which also weigh it in the pose graph
+        used = r.inliers if r.inliers is not None and len(r.inliers) else r.matches
+        e = Edge(names[i], names[j], r.T_tgt_src, used, r.cost, r.rmse, r.fitness, kind, r.accepted, r.reason)
         db.add_edge(e)
         return e
 
