@@ -53,6 +53,10 @@ def _matrix(T: Any) -> list[list[float]] | None:
     return None if T is None else [[float(x) for x in row] for row in T]
 
 
+def _format_matrix(T: list[list[float]]) -> str:
+    return "\n".join("  [" + " ".join(f"{x:+.5f}" for x in row) + "]" for row in T)
+
+
 def _setup_logging(verbose: bool) -> None:
     logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, stream=sys.stderr,
                         format="%(levelname)s %(name)s: %(message)s")
@@ -177,10 +181,9 @@ def estimate(
         err.print(f"[yellow]object not found[/yellow]: {result.reason}")
     else:
         err.print(f"found: view {result.view}, {result.n_matches} matches, score {result.score:.3f}")
-        err.print("T_cam_obj =")
-        err.print(json.dumps(out["T_cam_obj"]))
+        err.print("T_cam_obj =\n" + _format_matrix(out["T_cam_obj"]))
         for name, T in out["grasps"].items():
-            err.print(f"grasp {name}: T_cam_grasp = {json.dumps(T)}")
+            err.print(f"grasp {name}: T_cam_grasp =\n" + _format_matrix(T))
     err.print("timings (ms): " + ", ".join(f"{k} {v:.1f}" for k, v in out["timings_ms"].items()))
 
 
