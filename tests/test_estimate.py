@@ -161,3 +161,33 @@ def test_off_plane_region_removes_the_table(meshes):
     table = (r.labels < 0) & (r.depth > 0)
     assert region[table].mean() < 0.02  # the table top is left out ...
     assert region[r.mask & (r.depth > 0)].mean() > 0.8  # ... the objects are kept
+
+
+@pytest.fixture(scope="module")
+def scanned(meshes, tmp_path_factory):
+    """A template scanned (gscan.scan) from a rendered 12-frame capture of the target on a table, and its
+    template->ground-truth alignment: the mean of T_obj_cam[f] @ T_cam_gt[f] over the capture frames."""
+    from gscan.geometry import mean_pose
+    from gscan.io import open_sequence
+    from gscan.scan import ScanOptions, run_scan
+    from gscan.synth import render_capture
+
+    root = tmp_path_factory.mktemp("scanned")
+    render_capture(meshes[0], root / "capture", 12, seed=5)
+    run_scan(ScanOptions(input_dir=root / "capture", output=root / "scanned.gscan"))
+    seq = open_sequence(root / "capture")
+    with TemplateDB.open(root / "scanned.gscan") as db:
+        frames = db.poses()["frames"]
+    assert len(frames) >= 10
+    T_obj_gt = mean_pose([np.asarray(frames[n]) @ seq.gt_T_cam_obj[n] for n in frames])
+    return Estimator.from_path(root / "scanned.gscan"), T_obj_gt
+
+
+def test_scanned_template_finds_target_in_clutter(meshes, scanned):
+    est, T_obj_gt = scanned
+    r, T_gt = render_scene(meshes[0], meshes[1:], 0)
+    res = est.estimate(as_frame(r))
+    assert res.found, res.reason
+    assert add(meshes[0].vertices, res.T_cam_obj @ T_obj_gt, T_gt) < 0.01
+    r, _ = render_scene(meshes[0], meshes[1:], 1, with_target=False)
+    assert not est.estimate(as_frame(r)).found
