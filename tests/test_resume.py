@@ -1,0 +1,200 @@
+"""Crash safety of `gscan scan` (GitHub issue 7; DESIGN.md "Template database").
+
+A scan killed with SIGKILL leaves a consistent SQLite file whose status is `partial`; `info`
+shows it, `estimate` and `export` refuse it (exit 2, suggesting `scan --resume`), and
+`scan --resume` finishes it to exactly the result of an uninterrupted scan: the same poses (to
+1e-9), the same accepted edges, the same mesh.
+"""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import sqlite3
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gscan import synth
+from gscan.template import TemplateDB
+
+INTR = synth.DEFAULT_INTRINSICS.scaled(0.5)  # 320 x 240
+N_VIEWS = 6  # 60 degree steps on one ring
+TIMEOUT_S = 300
+
+
+def _cli(*args: str | Path) -> list[str]:
+    return [sys.executable, "-m", "gscan.cli", *map(str, args)]
+
+
+def _gscan(*args: str | Path) -> subprocess.CompletedProcess:
+    return subprocess.run(_cli(*args), capture_output=True, text=True, timeout=TIMEOUT_S)
+
+
+@dataclass
+class ScanState:
+    """What a finished scan database holds, for comparing two scans."""
+
+    T_obj_cam: dict[str, np.ndarray | None]  # view name -> [4 x 4] or None
+    accepted: set[tuple[str, str]]  # accepted edges (src, tgt)
+    n_edges: int
+    mesh_vertices: int
+    mesh_triangles: int
+
+
+def _state(db_path: Path) -> ScanState:
+    with TemplateDB.open(db_path, require_complete=True) as db:
+        poses = {v.name: v.T_obj_cam for v in db.views(load_images=False)}
+        edges = db.edges()
+        mesh = db.mesh()
+    return ScanState(poses, {(e.src, e.tgt) for e in edges if e.accepted}, len(edges),
+                     len(mesh.vertices), len(mesh.triangles))
+
+
+def _assert_same(a: ScanState, b: ScanState) -> None:
+    assert sorted(a.T_obj_cam) == sorted(b.T_obj_cam)
+    for name, T in a.T_obj_cam.items():
+        U = b.T_obj_cam[name]
+        assert (T is None) == (U is None), name
+        if T is not None:
+            assert np.max(np.abs(T - U)) <= 1e-9, (name, np.max(np.abs(T - U)))
+    assert a.accepted == b.accepted
+    assert a.n_edges == b.n_edges
+    assert (a.mesh_vertices, a.mesh_triangles) == (b.mesh_vertices, b.mesh_triangles)
+
+
+def _count(db: Path, table: str) -> int | None:
+    """Rows in `table` of the database being written by another process (None: not readable yet)."""
+    if not db.exists():
+        return None
+    try:
+        conn = sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=0.05)
+        try:
+            return int(conn.execute(f"SELECT count(*) FROM {table}").fetchone()[0])
+        finally:
+            conn.close()
+    except sqlite3.Error:  # locked by the writer, or the schema is not written yet
+        return None
+
+
+def _scan_and_kill(capture: Path, db: Path, ready, resume: bool = False) -> None:
+    """Start `gscan scan capture -o db [--resume]`, SIGKILL it as soon as `ready(db)` holds."""
+    argv = _cli("scan", capture, "-o", db, "--json", *(["--resume"] if resume else []))
+    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    t0 = time.monotonic()
+    try:
+        while proc.poll() is None and time.monotonic() - t0 < TIMEOUT_S:
+            if ready(db):
+                os.kill(proc.pid, signal.SIGKILL)
+                break
+            time.sleep(0.005)
+        proc.wait(timeout=TIMEOUT_S)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    out, err = proc.communicate()
+    assert proc.returncode == -signal.SIGKILL, f"the scan ended before it was killed (rc {proc.returncode}): {err!r}"
+
+
+def _check_partial(db: Path, capture: Path) -> None:
+    """The killed scan's file: intact SQLite, status partial, refused by estimate and export."""
+    conn = sqlite3.connect(db)  # a read-write connection rolls a hot journal back first
+    try:
+        assert conn.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
+    finally:
+        conn.close()
+    info = _gscan("info", db, "--json")
+    assert info.returncode == 0, info.stderr
+    assert json.loads(info.stdout)["status"] == "partial"
+    out = db.parent / "export_out"
+    for argv in (("estimate", db, "--color", capture / "rgb" / "000001.png", "--depth", capture / "depth" / "000001.png",
+                  "--intrinsics", capture / "cam_K.txt", "--json"),
+                 ("export", db, "--format", "json", "-o", out)):
+        r = _gscan(*argv)
+        assert r.returncode == 2, (argv[0], r.stdout, r.stderr)
+        line = r.stderr.strip().splitlines()[-1]
+        assert line.startswith("error: ") and db.name in line and "--resume" in line, line
+        assert r.stdout == ""
+    assert not out.exists()
+
+
+def _resume(capture: Path, db: Path) -> dict:
+    r = _gscan("scan", capture, "-o", db, "--resume", "--json")
+    assert r.returncode == 0, r.stderr
+    return json.loads(r.stdout)
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    root = tmp_path_factory.mktemp("resume") / "capture"
+    mesh = synth.box_mesh((0.14, 0.09, 0.07), synth.procedural_box_texture(3, (512, 768)))
+    synth.render_capture(mesh, root, N_VIEWS, mode="static", elevations_deg=(40.0,), intr=INTR)
+    return root
+
+
+@pytest.fixture(scope="module")
+def reference(capture: Path) -> tuple[dict, ScanState]:
+    """An uninterrupted scan: (its --json output, its database state)."""
+    db = capture.parent / "reference.gscan"
+    r = _gscan("scan", capture, "-o", db, "--json")
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    assert out["registered"] >= N_VIEWS - 1, out  # a precondition: the capture registers
+    return out, _state(db)
+
+
+def test_kill_before_any_view_then_during_registration_then_resume(capture: Path, reference, tmp_path: Path):
+    """Killed twice: in the first stage (database created, no view written yet), then the resumed
+    scan killed again in the middle of registration; the second resume completes it."""
+    db = tmp_path / "killed.gscan"
+    # 1. the database exists (schema and meta committed) and holds no view yet
+    _scan_and_kill(capture, db, lambda p: _count(p, "views") == 0 and bool(_count(p, "meta")))
+    conn = sqlite3.connect(db)
+    try:
+        assert conn.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
+        assert conn.execute("SELECT count(*) FROM views").fetchone()[0] == 0
+    finally:
+        conn.close()
+    info = _gscan("info", db, "--json")
+    assert info.returncode == 0, info.stderr
+    assert json.loads(info.stdout)["status"] == "partial"
+
+    # 2. resume, killed again once some edges are stored
+    _scan_and_kill(capture, db, lambda p: (_count(p, "edges") or 0) >= 2, resume=True)
+    _check_partial(db, capture)
+    with TemplateDB.open(db, require_complete=False) as part:
+        n_views, n_edges = len(part.view_names()), len(part.edges())
+    assert n_views == N_VIEWS and 2 <= n_edges < reference[1].n_edges  # killed mid-registration
+
+    # 3. resume to the end: the uninterrupted scan's result
+    out = _resume(capture, db)
+    ref_out, ref_state = reference
+    assert out["registered"] == ref_out["registered"]
+    assert out["edges"] == ref_out["edges"] and out["mesh"] == ref_out["mesh"]
+    _assert_same(_state(db), ref_state)
+    info = _gscan("info", db, "--json")
+    assert info.returncode == 0 and json.loads(info.stdout)["status"] == "complete"
+
+
+def test_resume_refuses_another_input(capture: Path, reference, tmp_path: Path):
+    """--resume into a database written from another capture is bad input, and leaves it untouched."""
+    other = tmp_path / "other"
+    other.mkdir()
+    for sub in ("rgb", "depth"):
+        (other / sub).mkdir()
+        for k in range(3):
+            (other / sub / f"00000{k}.png").write_bytes((capture / sub / f"00000{k}.png").read_bytes())
+    (other / "cam_K.txt").write_bytes((capture / "cam_K.txt").read_bytes())
+    db = capture.parent / "reference.gscan"
+    before = db.read_bytes()
+    r = _gscan("scan", other, "-o", db, "--resume", "--json")
+    assert r.returncode == 2, r.stderr
+    line = r.stderr.strip().splitlines()[-1]
+    assert line.startswith("error: ") and db.name in line, line
+    assert db.read_bytes() == before
