@@ -1,7 +1,8 @@
 """Matcher benchmark: GMatch vs baselines on rendered view pairs, search speed on synthetic inputs.
 
 Usage (from the repository root):
-    python bench/match.py pairs  [--meshes N] [--gaps 20,60,120]      # success rate + time per pair
+    python bench/match.py pairs  [--meshes N] [--gaps 20,60,120] [--masks] [--methods M,..] [--eps-f E]
+                                                                      # success rate + time per pair
     python bench/match.py speed  [--inputs DIR] [--repeats 20]        # GMatch search time vs the C++ figures
     python bench/match.py sweep  [--meshes N] [--gap 60] [--kinds rootsift,sift,orb]   # eps_f sweep
 
@@ -57,6 +58,7 @@ def _meshes(n: int | None) -> list[Path]:
 def cmd_pairs(args) -> None:
     from gscan.features import FeatureParams, extract_features
     from gscan.geometry import inv_T, pose_error
+    from gscan.gmatch import GMatchParams
     from gscan.register import METHODS, RegisterParams, register_features
 
     gaps = [float(g) for g in args.gaps.split(",")]
@@ -64,21 +66,23 @@ def cmd_pairs(args) -> None:
     ok = {(m, g): [] for m in methods for g in gaps}
     ms = {(m, g): [] for m in methods for g in gaps}
     fp = FeatureParams(kind="rootsift")
+    gp = GMatchParams(eps_f=args.eps_f)
     for mi, md in enumerate(_meshes(args.meshes)):
         views = render_views(md, [0.0] + gaps, seed=mi)
-        feats = [extract_features(v[0], fp) for v in views]
+        feats = [extract_features(v[0], fp, mask=v[0].mask if args.masks else None) for v in views]
         line = []
         for gi, g in enumerate(gaps):
             T_gt = inv_T(views[gi + 1][1]) @ views[0][1]
             for m in methods:
                 t0 = time.process_time()
-                r = register_features(feats[0], feats[gi + 1], RegisterParams(method=m, icp=False))
+                r = register_features(feats[0], feats[gi + 1], RegisterParams(method=m, icp=False, gmatch=gp))
                 ms[(m, g)].append((time.process_time() - t0) * 1e3)
                 e = pose_error(r.T_tgt_src, T_gt) if r.T_tgt_src is not None else (np.inf, np.inf)
                 ok[(m, g)].append(e[0] < 5.0 and e[1] < 0.02)
             line.append(f"{g:.0f}:" + "".join("+" if ok[(m, g)][-1] else "." for m in methods))
         print(f"{md.name[:40]:40s} kp {len(feats[0]):4d}  " + "  ".join(line), file=sys.stderr, flush=True)
-    print(f"\nsuccess rate (rot < 5 deg, trans < 2 cm) over {len(_meshes(args.meshes))} meshes; "
+    print(f"\n{'object pixels only' if args.masks else 'whole frame'}: "
+          f"success rate (rot < 5 deg, trans < 2 cm) over {len(_meshes(args.meshes))} meshes; "
           "median CPU ms per pair (distances + match + Kabsch)")
     print("| method | " + " | ".join(f"{g:.0f} deg" for g in gaps) + " | " + " | ".join(f"ms @{g:.0f}" for g in gaps) + " |")
     print("|---" * (1 + 2 * len(gaps)) + "|")
@@ -150,6 +154,8 @@ def main() -> None:
     a.add_argument("--meshes", type=int, default=None)
     a.add_argument("--gaps", default="20,60,120")
     a.add_argument("--methods", default=None, help="comma list (default: gmatch and every baseline)")
+    a.add_argument("--eps-f", type=float, default=None, help="GMatch eps_f (default: the descriptor's default)")
+    a.add_argument("--masks", action="store_true", help="keypoints on the object's pixels only (moving-object mode)")
     b = sub.add_parser("speed")
     b.add_argument("--inputs", default="/tmp/gscan_bench_inputs")
     b.add_argument("--repeats", type=int, default=20)

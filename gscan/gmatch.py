@@ -65,7 +65,7 @@ CONSTRAINTS = {"distance": 0, "flip": 1, "triple": 2}
 # L2 on unit-norm RootSIFT vectors, L2 on raw OpenCV SIFT vectors (norm ~512), Hamming bits for ORB).
 # Chosen by the sweep recorded in BENCHMARKS.md (Matcher section, `bench/match.py sweep`): the smallest
 # threshold keeping the best success rate with margin (fewer candidates = faster search).
-_DEFAULT_EPS_F = {"rootsift": 0.5, "sift": 150.0, "orb": 64.0}
+_DEFAULT_EPS_F = {"rootsift": 0.6, "sift": 150.0, "orb": 64.0}
 
 
 def default_eps_f(kind: str) -> float:

@@ -42,7 +42,8 @@ def rendered(meshes_dir):
     out = []
     for i, d in enumerate(dirs):
         views = _render_views(d, seed=i)
-        out.append((views, [extract_features(v[0], FeatureParams(kind="rootsift")) for v in views]))
+        fp = FeatureParams(kind="rootsift", max_keypoints=1000)  # keeps the 60 whole-frame pairs fast
+        out.append((views, [extract_features(v[0], fp) for v in views]))
     return out
 
 
