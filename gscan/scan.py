@@ -248,9 +248,14 @@ def _scan_frames(frames: list[_Frame], opts: ScanOptions, db: TemplateDB, resume
         T_init = _spanning_poses(n, seq_graph)
         existing = [(index[e.src], index[e.tgt]) for e in edges]
         lp = LoopParams(max_per_node=cfg.posegraph.loop_candidates, max_angle_deg=cfg.posegraph.max_view_angle_deg)
-        cands = select_loop_candidates(T_init, [f.feats.descriptors for f in frames], existing, lp)
+        # frames without any keypoint (textureless, dark) take no part: bag-of-words needs descriptors
+        kp = [k for k in range(n) if len(frames[k].feats.descriptors)]
+        sub = {k: s for s, k in enumerate(kp)}
+        cands = [] if len(kp) < 2 else select_loop_candidates(
+            [T_init[k] for k in kp], [frames[k].feats.descriptors for k in kp],
+            [(sub[a], sub[b]) for a, b in existing if a in sub and b in sub], lp)
         for c in cands:
-            edges.append(edge(c.i, c.j, "loop"))
+            edges.append(edge(kp[c.i], kp[c.j], "loop"))
 
     with timer.stage("posegraph", total=1) as advance:
         T_world_cam, verdicts = _optimise(n, edges, index, frames, cfg)
