@@ -84,7 +84,8 @@ def cmd_pairs(args) -> None:
     print(f"\n{'object pixels only' if args.masks else 'whole frame'}: "
           f"success rate (rot < 5 deg, trans < 2 cm) over {len(_meshes(args.meshes))} meshes; "
           "median CPU ms per pair (distances + match + Kabsch)")
-    print("| method | " + " | ".join(f"{g:.0f} deg" for g in gaps) + " | " + " | ".join(f"ms @{g:.0f}" for g in gaps) + " |")
+    print("| method | " + " | ".join(f"{g:.0f} deg" for g in gaps) + " | "
+          + " | ".join(f"ms @{g:.0f}" for g in gaps) + " |")
     print("|---" * (1 + 2 * len(gaps)) + "|")
     for m in methods:
         rates = [f"{100 * np.mean(ok[(m, g)]):.0f} %" for g in gaps]

@@ -223,7 +223,8 @@ def _plane(P, a, b, c):
 
 
 @njit(cache=True)
-def _search(ps, pt, ci, cj, cf, fsrc, ft_max, view_s, view_t, T, L, K2, K3, eps_c, eta, mode, flip_margin, collinear_sin):
+def _search(ps, pt, ci, cj, cf, fsrc, ft_max, view_s, view_t, T, L, K2, K3, eps_c, eta, mode, flip_margin,
+            collinear_sin):
     """Returns (best [L] candidate indices, best_len, best_cost, hyp [H x 3], hyp_len, hyp_cost, hyp_pruned)."""
     C = ci.shape[0]
     n_seed = min(T, C)
@@ -493,7 +494,8 @@ def search_candidates(pts_s: np.ndarray, pts_t: np.ndarray, cand: Candidates, pa
     ft = _depth_factor(pts_t, vt, params, depth_t)
     cf = np.maximum(fs[ci], ft[cj]).astype(np.float32)
     best, n, cost, hyp, hlen, hcost, hpruned = _search(
-        pts_s, pts_t, ci, cj, cf, fs, float(ft.max()), vs, vt, int(params.T), int(params.L), int(params.K2), int(params.K3),
+        pts_s, pts_t, ci, cj, cf, fs, float(ft.max()), vs, vt, int(params.T), int(params.L), int(params.K2),
+        int(params.K3),
         float(params.eps_c), float(params.eta), CONSTRAINTS[params.constraint], float(params.flip_margin),
         float(params.collinear_sin))
     matches = np.stack([ci[best[:n]], cj[best[:n]]], 1).astype(np.int32) if n else np.zeros((0, 2), np.int32)
