@@ -574,6 +574,24 @@ def _(ctx: Ctx, work: Path) -> Run:
     return Run(_cli("scan", cap, "-o", out / "obj.gscan", "--json"), ["000005"], expect_rc=0)
 
 
+# A frame without any keypoint (lens cap on, a blank wall) is not bad input either: it stays unregistered.
+DARK = "scan-one-dark-frame"
+
+
+@case(DARK)
+def _(ctx: Ctx, work: Path) -> Run:
+    cap = work / "dark"
+    for sub in ("rgb", "depth"):
+        (cap / sub).mkdir(parents=True)
+        for k in range(3):
+            shutil.copy(ctx.capture / sub / f"00000{k}.png", cap / sub / f"00000{k}.png")
+    shutil.copy(ctx.capture / "cam_K.txt", cap / "cam_K.txt")
+    assert cv2.imwrite(str(cap / "rgb" / "000001.png"), np.zeros((INTR.height, INTR.width, 3), np.uint8))
+    out = work / "out"
+    out.mkdir()
+    return Run(_cli("scan", cap, "-o", out / "obj.gscan", "--json"), ["000001"], expect_rc=0)
+
+
 # ------------------------------------------------------------------------------------------ running
 
 
@@ -607,7 +625,7 @@ def results(ctx: Ctx, tmp_path_factory: pytest.TempPathFactory) -> dict[str, tup
     for name, build in CASES.items():
         run = build(ctx, tmp_path_factory.mktemp(name))
         runs[name] = (run, {str(p): _snapshot(p) for p in run.unchanged})
-    order = [PARTIAL] + [n for n in runs if n != PARTIAL]  # the one slow case first
+    order = [PARTIAL, DARK] + [n for n in runs if n not in (PARTIAL, DARK)]  # the slow cases first
     with ThreadPoolExecutor(max_workers=4) as pool:
         procs = dict(zip(order, pool.map(lambda n: _run(runs[n][0]), order)))
     return {n: (runs[n][0], runs[n][1], procs[n]) for n in runs}
@@ -621,7 +639,7 @@ def _error_line(stderr: str) -> str:
     return own[-1]
 
 
-BAD = sorted(n for n in CASES if n != PARTIAL)
+BAD = sorted(n for n in CASES if n not in (PARTIAL, DARK))
 
 
 def test_corpus_is_large_enough():
@@ -667,3 +685,12 @@ def test_partially_bad_capture_is_scanned(results):
     assert "000005" not in names and len(names) == N_VIEWS - 1
     info = subprocess.run(_cli("info", db, "--json"), capture_output=True, text=True, timeout=TIMEOUT_S)
     assert info.returncode == 0 and json.loads(info.stdout)["status"] == "complete"
+
+
+def test_frame_without_keypoints_is_scanned(results):
+    _, _, proc = results[DARK]
+    assert proc.returncode == 0, proc.stderr
+    assert "Traceback" not in proc.stderr
+    out = json.loads(proc.stdout)
+    assert out["frames"] == 3 and out["registered"] >= 1
+    assert "000001" in out["unregistered"]
