@@ -11,8 +11,9 @@ Pipeline of `Estimator.estimate` (every stage timed, `EstimateResult.timings_ms`
 3. match: GMatch (gscan.gmatch) of each retrieved view's keypoints, expressed in THAT view's camera
    frame (view direction +z), against the query keypoints (+z); descriptor distances are sliced
    from the retrieval GEMM, never recomputed.
-4. solve: Kabsch on each view's match list (object-frame template points -> query camera points);
-   the view with the most matches wins (ties: lower GMatch cost).
+4. solve: Kabsch on the best view's match list (object-frame template points -> query camera points);
+   the view with the most matches wins (ties: lower GMatch cost). Views are matched in vote order and
+   a view whose list reaches GMatch's full length L ends the search (saves most of the match time).
 5. refine: point-to-plane ICP (`icp_point_to_plane`, deterministic) of the template cloud's points visible from the
    predicted pose onto the query cloud cropped to the mask, or to a sphere of 1.2 object radii
    around the predicted centre.
@@ -254,6 +255,8 @@ class Estimator:
             n = len(m)
             if n >= 3 and (best is None or (n, -cost) > (best[0], best[1])):
                 best = (n, -cost, int(v), m)
+            if n >= self.params.gmatch.L:  # a full-length list cannot be beaten on length: stop early
+                break
         tm["match"] = _ms(t)
         if best is None or best[0] < self.params.min_matches:
             n = 0 if best is None else best[0]
