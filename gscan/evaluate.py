@@ -160,7 +160,11 @@ def evaluate(template: str | Path, scenes: str | Path, output_csv: str | Path, o
         seq = open_sequence(folder, format="auto", obj_id=obj_id)
         gt = seq.gt_T_cam_obj or {}
         for name in seq.names:
-            frame = seq[name]
+            try:
+                frame = seq[name]
+            except InputError as e:  # an unreadable image is left out (and reported), not fatal
+                log.warning("scene %d: image %s left out: %s", scene_id, name, e)
+                continue
             width = frame.intrinsics.width
             im_id = int(name) if name.isdigit() else seq.names.index(name)
             t0 = time.perf_counter()

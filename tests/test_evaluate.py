@@ -124,3 +124,14 @@ def test_bad_inputs(setup, tmp_path):
     with pytest.raises(InputError, match="nomodel.ply"):
         evaluate(tpl, capture, tmp_path / "c.csv", model_path=tmp_path / "nomodel.ply")
     assert not (tmp_path / "a.csv").exists() and not (tmp_path / "c.csv").exists()
+
+
+def test_unreadable_image_is_left_out(setup, tmp_path):
+    import shutil
+
+    _, tpl, capture, _, _ = setup
+    cap = tmp_path / "capture"
+    shutil.copytree(capture, cap)
+    (cap / "rgb" / "000001.png").write_bytes(b"\x89PNG\r\n\x1a\n truncated")
+    rep = evaluate(tpl, cap, tmp_path / "r.csv", refine=False)
+    assert rep.n_images == 2 and [r.im_id for r in rep.rows] == [0, 2]
