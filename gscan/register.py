@@ -16,7 +16,8 @@ Without ICP, rmse is the Kabsch residual and fitness is None.
 Guided refinement (GMatch only, `refine`): GMatch stops at L (24) matches, and a pose from 24
 points is limited by their depth noise. From the Kabsch pose, every candidate pair (descriptor
 distance < eps_f) whose transformed source point lies within tau of its target point is
-collected, made one-to-one greedily by residual, and the pose re-solved by Kabsch on all of
+collected, made one-to-one by residual (each source its closest target, then each target its
+closest source), and the pose re-solved by Kabsch on all of
 them; tau shrinks over `refine_taus`. A round that keeps fewer pairs than the GMatch list
 stops the refinement. Measured on rendered captures: mean rotation error per edge 0.44 -> 0.28
 deg (turntable, object only) and 0.074 -> 0.029 deg (static object, whole frame).
@@ -92,22 +93,21 @@ def refine_pose(pts_s: np.ndarray, pts_t: np.ndarray, dist: np.ndarray, eps_f: f
     """
     ii, jj = np.nonzero(dist < eps_f)
     ps, pt = np.asarray(pts_s, np.float64), np.asarray(pts_t, np.float64)
+    # candidates far from consistent under the starting pose never come back: keep the loosest band
+    r = np.linalg.norm(transform_points(T, ps[ii]) - pt[jj], axis=1)
+    near = r < max(taus)
+    ii, jj = ii[near], jj[near]
     best = np.zeros((0, 2), np.int32)
     for tau in taus:
         r = np.linalg.norm(transform_points(T, ps[ii]) - pt[jj], axis=1)
         ok = np.flatnonzero(r < tau)
         ok = ok[np.lexsort((jj[ok], ii[ok], r[ok]))]  # by residual, ties by index: deterministic
-        used_s = np.zeros(len(ps), bool)
-        used_t = np.zeros(len(pt), bool)
-        keep = []
-        for k in ok:
-            a, b = ii[k], jj[k]
-            if not (used_s[a] or used_t[b]):
-                used_s[a] = used_t[b] = True
-                keep.append((a, b))
-        if len(keep) < min_pairs:
+        # one-to-one: each source keeps its closest target, then each target its closest source
+        ok = ok[np.sort(np.unique(ii[ok], return_index=True)[1])]
+        ok = ok[np.sort(np.unique(jj[ok], return_index=True)[1])]
+        if len(ok) < min_pairs:
             break
-        best = np.asarray(keep, np.int32)
+        best = np.stack([ii[ok], jj[ok]], axis=1).astype(np.int32)
         T = kabsch(ps[best[:, 0]], pt[best[:, 1]])
     return T, best
 

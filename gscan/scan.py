@@ -43,6 +43,10 @@ log = logging.getLogger(__name__)
 
 MAX_SKIP = 3  # a frame that fails against its predecessor is tried against up to this many earlier frames
 ICP_VOXEL_STRIDE = 2  # pixel stride of the clouds kept for ICP before voxel downsampling
+# eps_f for whole-frame registration (static object) when the config leaves it unset: on rendered
+# whole-frame pairs RootSIFT 0.5 is as accurate as the object-only default 0.6 (100 % at every
+# threshold from 0.4 to 0.8, BENCHMARKS.md) and 7x faster (85 vs 640 ms a pair: fewer candidates)
+WHOLE_FRAME_EPS_F = {"rootsift": 0.5}
 WORKERS = 2  # threads for per-frame and per-edge work (the target machines have 2 cores)
 PRUNED = "pruned by the pose graph: "  # reason prefix of edges registration accepted and the pose graph rejected
 
@@ -94,11 +98,14 @@ class _Frame:
     mask: np.ndarray | None = None  # [H x W] bool object mask (given or computed)
 
 
-def _register_params(cfg: ScanConfig) -> RegisterParams:
+def _register_params(cfg: ScanConfig, mode: str) -> RegisterParams:
     from gscan.gmatch import GMatchParams
 
     m, r = cfg.match, cfg.registration
-    gm = GMatchParams(eps_f=m.eps_f, eps_c=m.eps_c, eta=m.eta, T=m.T, L=m.L, constraint=m.constraint)
+    eps_f = m.eps_f
+    if eps_f is None and mode == STATIC_OBJECT:
+        eps_f = WHOLE_FRAME_EPS_F.get(cfg.features.kind)
+    gm = GMatchParams(eps_f=eps_f, eps_c=m.eps_c, eta=m.eta, T=m.T, L=m.L, constraint=m.constraint)
     return RegisterParams(method=m.method, gmatch=gm, min_matches=r.min_matches, icp=r.icp,
                           icp_max_dist=r.icp_max_dist, icp_voxel=r.icp_voxel, min_fitness=r.min_fitness,
                           max_rmse=r.max_rmse, max_icp_shift_deg=r.max_icp_shift_deg,
@@ -149,13 +156,17 @@ def run_scan(opts: ScanOptions, progress: Progress | None = None) -> ScanResult:
         log.warning("skipping frame %s: %s", name, e)
 
     created = not (opts.resume and opts.output.exists())
+    made = [d for d in (opts.output.parent, *opts.output.parent.parents) if not d.exists()]  # deepest first
     db, resumed = _open_output(opts)
     try:
         result = _scan_frames(frames, opts, db, resumed, timer, problems)
     except InputError:
         db.close()
-        if created:
+        if created:  # bad input leaves no output behind: neither the file nor folders made for it
             opts.output.unlink(missing_ok=True)
+            for d in made:
+                if d.is_dir() and not any(d.iterdir()):
+                    d.rmdir()
         raise
     except BaseException:
         db.close()
@@ -213,7 +224,7 @@ def _scan_frames(frames: list[_Frame], opts: ScanOptions, db: TemplateDB, resume
                 f.feats = feats
                 advance(1)
 
-    rparams = _register_params(cfg)
+    rparams = _register_params(cfg, mode)
     done = {(e.src, e.tgt): e for e in db.edges()} if resumed else {}
     edges: list[Edge] = []
 
@@ -270,7 +281,13 @@ def _scan_frames(frames: list[_Frame], opts: ScanOptions, db: TemplateDB, resume
         from gscan.fuse import FusionParams, fuse_tsdf, template_frame
 
         fparams_tsdf = FusionParams(voxel_size=cfg.fusion.voxel, depth_max=cfg.fusion.depth_max)
-        model = fuse_tsdf([f.frame for f in frames], T_world_cam, masks, fparams_tsdf)
+        # frames without object depth in fusion range would make the TSDF integration abort: left out
+        T_fuse = [T if T is not None and _depth_in_range(frames[k].frame.depth, masks[k], cfg.fusion.depth_max)
+                  else None for k, T in enumerate(T_world_cam)]
+        if all(T is None for T in T_fuse):
+            raise InputError(opts.input_dir, f"nothing could be fused: no object depth within "
+                             f"{cfg.fusion.depth_max} m (fusion.depth_max) in the registered frames; check --depth-scale")
+        model = fuse_tsdf([f.frame for f in frames], T_fuse, masks, fparams_tsdf)
         obj_pts = model.points if len(model.points) >= 3 else model.vertices
         if len(obj_pts) < 3:
             raise InputError(opts.input_dir, "nothing could be fused: no object depth in the registered frames")
@@ -309,6 +326,16 @@ def _scan_frames(frames: list[_Frame], opts: ScanOptions, db: TemplateDB, resume
     return ScanResult(opts.output, len(frames) + len(problems), len(registered), unregistered + sorted(problems),
                       accepted, total_edges - accepted, mode, len(V), len(model.triangles), dict(timer.timings),
                       problems, len(keyframes))
+
+
+def _depth_in_range(depth: np.ndarray, mask: np.ndarray | None, depth_max: float | None) -> bool:
+    """Whether [H x W] depth (m) has a valid value up to depth_max (None: any) inside [H x W] mask."""
+    valid = (depth > 0) & np.isfinite(depth)
+    if depth_max:
+        valid &= depth <= depth_max
+    if mask is not None:
+        valid &= mask
+    return bool(valid.any())
 
 
 def _icp_cloud(frame: RGBDFrame, mask: np.ndarray | None, voxel: float) -> np.ndarray:
