@@ -36,7 +36,7 @@ from gscan.template import TemplateDB, View
 log = logging.getLogger(__name__)
 
 FILL = 0.45  # fraction of the image width spanned by the object's bounding sphere
-CLOUD_VOXEL = 0.002  # m, voxel size of the template cloud
+CLOUD_VOXEL = 0.002  # m, voxel size of the template cloud (x radius / 15 cm for larger objects)
 CLOUD_STRIDE = 2  # pixel stride of the back-projection of each view into the cloud
 MAX_POLAR_COS = 0.97  # |cos| of the polar angle kept away from the poles (look_at up-vector degeneracy)
 
@@ -161,7 +161,8 @@ def build_template_from_mesh(mesh_path: str | Path, output: str | Path, n_views:
                 cloud_c.append(r.color[sl][sel])
                 advance(1)
         with progress.stage("store", total=1) as advance:
-            P, C = _voxel_cloud(np.concatenate(cloud_p), np.concatenate(cloud_c), CLOUD_VOXEL * max(1.0, mesh.radius / 0.15))
+            voxel = CLOUD_VOXEL * max(1.0, mesh.radius / 0.15)  # ~same point count for large objects
+            P, C = _voxel_cloud(np.concatenate(cloud_p), np.concatenate(cloud_c), voxel)
             db.set_cloud(P, C)
             db.set_mesh(mesh.vertices, mesh.triangles, vertex_colors(mesh))
             db.mark_complete()

@@ -2,9 +2,11 @@
 
 Pipeline of `Estimator.estimate` (every stage timed, `EstimateResult.timings_ms`):
 
-1. features: RootSIFT keypoints of the query (inside `mask` when given; the frame is then cropped
-   to the mask's bounding box before detection, which is where most of the time goes), lifted with
-   the query depth into the camera frame.
+1. features: RootSIFT keypoints of the query, lifted with the query depth into the camera frame,
+   inside `mask` when given (the frame is then cropped to the mask's bounding box before detection,
+   which is where most of the time goes); without a mask, inside the pixels standing off the
+   dominant plane (`off_plane_region`: the table top, whose texture would otherwise take most of the
+   keypoints), or the whole frame when there is no such plane.
 2. retrieval: one GEMM of the query descriptors against the template's stacked descriptors
    (normalised once at load); every query keypoint whose nearest template descriptor is closer than
    `retrieval_dist` votes for that descriptor's view; the top-`top_k` views by votes are kept.
@@ -14,9 +16,10 @@ Pipeline of `Estimator.estimate` (every stage timed, `EstimateResult.timings_ms`
 4. solve: Kabsch on the best view's match list (object-frame template points -> query camera points);
    the view with the most matches wins (ties: lower GMatch cost). Views are matched in vote order and
    a view whose list reaches GMatch's full length L ends the search (saves most of the match time).
-5. refine: point-to-plane ICP (`icp_point_to_plane`, deterministic) of the template cloud's points visible from the
-   predicted pose onto the query cloud cropped to the mask, or to a sphere of 1.2 object radii
-   around the predicted centre.
+5. refine: point-to-plane ICP (`icp_point_to_plane`, deterministic, template normals) of the
+   template cloud's points visible from the predicted pose onto the query cloud cropped to the search
+   region and to a sphere of 1.2 object radii around the predicted centre. A refinement that moves
+   the pose by more than the object radius or 30 degrees is discarded.
 6. score: the visible template cloud is projected into the query depth; score = consistent /
    (consistent + see-through) points, where "consistent" is |z_query - z_pred| < tol and
    "see-through" means the query surface lies behind the predicted object (occluded points, with
@@ -54,7 +57,7 @@ STAGES = ("features", "retrieval", "match", "solve", "refine", "total")
 @dataclass(frozen=True)
 class EstimateParams:
     # query keypoints (kind follows the template's); SIFT contrast threshold halved from OpenCV's 0.04:
-    # 2-3x more keypoints on weakly textured packaging, measured +16 found % on bench/estimate.py
+    # 2-3x more keypoints on weakly textured packaging (bench/estimate.py, BENCHMARKS.md)
     features: FeatureParams = FeatureParams(sift_contrast_threshold=0.02)
     gmatch: GMatchParams = GMatchParams()  # matcher parameters (eps_f None -> default of the kind)
     top_k: int = 4  # template views retrieved and matched
@@ -69,7 +72,7 @@ class EstimateParams:
     icp_max_points: int = 1500  # source (template) points used by ICP, evenly subsampled
     crop_margin: int = 16  # px around the mask's bounding box kept for detection
     depth_tol: float = 0.01  # m, depth agreement tolerance of the score (grows 2 % of depth beyond 0.5 m)
-    min_depth_frac: float = 0.05  # valid-depth fraction of the search region below which PnP is used (depth "mostly zero")
+    min_depth_frac: float = 0.05  # valid-depth fraction of the search region below which PnP is used
     pnp_ratio: float = 0.8  # Lowe ratio of 2D-3D descriptor matches
     pnp_max_error_px: float = 4.0  # RANSAC reprojection threshold
     pnp_min_inliers: int = 12

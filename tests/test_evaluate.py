@@ -12,7 +12,8 @@ from gscan.cadtemplate import build_template_from_mesh
 from gscan.errors import InputError
 from gscan.evaluate import CSV_HEADER, evaluate
 from gscan.geometry import look_at, rotvec_to_R, transform_points
-from gscan.synth import DEFAULT_INTRINSICS, SynthScene, default_distance, load_textured_mesh, rest_on_table, write_capture
+from gscan.synth import (DEFAULT_INTRINSICS, SynthScene, default_distance, load_textured_mesh, rest_on_table,
+                         write_capture)
 
 TARGET = "Whey_Protein_Chocolate_12_Packets"
 
