@@ -155,7 +155,7 @@ def extract_candidates(dist: np.ndarray, eps_f: float) -> Candidates:
 # ----------------------------------------------------------------------------------------------
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _d3(P, a, b):
     x = P[a, 0] - P[b, 0]
     y = P[a, 1] - P[b, 1]
@@ -163,13 +163,13 @@ def _d3(P, a, b):
     return np.sqrt(x * x + y * y + z * z)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _dists_from(P, a, out):
     for k in range(P.shape[0]):
         out[k] = _d3(P, a, k)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _delta(ps, pt, ci, cj, cf, p, q, eta):
     """delta between candidate pairs p and q (indices into the candidate arrays)."""
     if ci[p] == ci[q] or cj[p] == cj[q]:
@@ -182,7 +182,7 @@ def _delta(ps, pt, ci, cj, cf, p, q, eta):
     return err / ls
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _normal_z(P, a, b, c, view, collinear_sin):
     """(z, ok): z = unit normal of (P_a - P_b) x (P_a - P_c) dotted with view; ok False when near-collinear."""
     e1x = P[a, 0] - P[b, 0]
@@ -202,7 +202,7 @@ def _normal_z(P, a, b, c, view, collinear_sin):
     return (nx * view[0] + ny * view[1] + nz * view[2]) / nn, True
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _flips(ps, pt, i1, i2, i3, j1, j2, j3, view_s, view_t, flip_margin, collinear_sin):
     """True if triangle (i1, i2, i3) <-> (j1, j2, j3) is seen from opposite sides (flip-over)."""
     zs, oks = _normal_z(ps, i1, i2, i3, view_s, collinear_sin)
@@ -214,7 +214,7 @@ def _flips(ps, pt, i1, i2, i3, j1, j2, j3, view_s, view_t, flip_margin, collinea
     return zs * zt < 0.0 and abs(zs - zt) > flip_margin
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _plane(P, a, b, c):
     e1 = P[b] - P[a]
     e2 = P[c] - P[a]
@@ -222,7 +222,7 @@ def _plane(P, a, b, c):
     return n / np.sqrt(np.sum(n * n))
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _search(ps, pt, ci, cj, cf, fsrc, ft_max, view_s, view_t, T, L, K2, K3, eps_c, eta, mode, flip_margin,
             collinear_sin):
     """Returns (best [L] candidate indices, best_len, best_cost, hyp [H x 3], hyp_len, hyp_cost, hyp_pruned)."""

@@ -228,31 +228,41 @@ def _scan_frames(frames: list[_Frame], opts: ScanOptions, db: TemplateDB, resume
     done = {(e.src, e.tgt): e for e in db.edges()} if resumed else {}
     edges: list[Edge] = []
 
-    def edge(i: int, j: int, kind: str) -> Edge:
-        key = (names[i], names[j])
-        if key in done:
-            e = done[key]
-            if e.reason and e.reason.startswith(PRUNED):  # restore the registration verdict
-                e.accepted, e.reason = True, None
-            return e
-        r = register_features(frames[i].feats, frames[j].feats, rparams, clouds=(frames[i].cloud, frames[j].cloud))
-        # the edge keeps the correspondences its pose was solved from (GMatch's list grown by the
-        # guided refinement of gscan.register), which also weigh it in the pose graph
-        used = r.inliers if r.inliers is not None and len(r.inliers) else r.matches
-        e = Edge(names[i], names[j], r.T_tgt_src, used, r.cost, r.rmse, r.fitness, kind, r.accepted, r.reason)
-        db.add_edge(e)
-        return e
+    def compute(pair: tuple[int, int]):
+        i, j = pair
+        if (names[i], names[j]) in done:
+            return None
+        return register_features(frames[i].feats, frames[j].feats, rparams, clouds=(frames[i].cloud, frames[j].cloud))
+
+    def register_all(pairs: list[tuple[int, int]], kind: str, pool: ThreadPoolExecutor) -> list[Edge]:
+        """Edges of `pairs`, computed on the pool (numba and OpenCV release the GIL), stored in order."""
+        out = []
+        for (i, j), r in zip(pairs, pool.map(compute, pairs)):
+            if r is None:  # stored by the interrupted run
+                e = done[(names[i], names[j])]
+                if e.reason and e.reason.startswith(PRUNED):  # restore the registration verdict
+                    e.accepted, e.reason = True, None
+            else:
+                # the edge keeps the correspondences its pose was solved from (GMatch's list grown by
+                # the guided refinement of gscan.register), which also weigh it in the pose graph
+                used = r.inliers if r.inliers is not None and len(r.inliers) else r.matches
+                e = Edge(names[i], names[j], r.T_tgt_src, used, r.cost, r.rmse, r.fitness, kind, r.accepted, r.reason)
+                db.add_edge(e)
+            out.append(e)
+        return out
 
     n = len(frames)
-    with timer.stage("register", total=max(1, n - 1)) as advance:
-        for j in range(1, n):
-            for i in range(j - 1, max(-1, j - 1 - MAX_SKIP), -1):
-                e = edge(i, j, "sequential")
-                edges.append(e)
-                if e.accepted:
+    with timer.stage("register", total=max(1, n - 1)) as advance, ThreadPoolExecutor(max_workers=WORKERS) as pool:
+        # each frame against its predecessor; a frame that fails is tried against earlier ones
+        for e in register_all([(j - 1, j) for j in range(1, n)], "sequential", pool):
+            edges.append(e)
+            j = names.index(e.tgt)
+            for i in range(j - 2, max(-1, j - 1 - MAX_SKIP), -1):
+                if edges[-1].accepted:
                     break
+                edges += register_all([(i, j)], "sequential", pool)
             advance(1)
-        from gscan.posegraph import GraphEdge, LoopParams, chain_odometry, select_loop_candidates
+        from gscan.posegraph import GraphEdge, LoopParams, select_loop_candidates
 
         index = {nm: k for k, nm in enumerate(names)}
         seq_graph = [GraphEdge(index[e.src], index[e.tgt], e.T_tgt_src) for e in edges if e.accepted]
@@ -265,8 +275,7 @@ def _scan_frames(frames: list[_Frame], opts: ScanOptions, db: TemplateDB, resume
         cands = [] if len(kp) < 2 else select_loop_candidates(
             [T_init[k] for k in kp], [frames[k].feats.descriptors for k in kp],
             [(sub[a], sub[b]) for a, b in existing if a in sub and b in sub], lp)
-        for c in cands:
-            edges.append(edge(kp[c.i], kp[c.j], "loop"))
+        edges += register_all([(kp[c.i], kp[c.j]) for c in cands], "loop", pool)
 
     with timer.stage("posegraph", total=1) as advance:
         T_world_cam, verdicts = _optimise(n, edges, index, frames, cfg)
