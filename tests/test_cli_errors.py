@@ -286,6 +286,21 @@ def _(ctx: Ctx, work: Path) -> Run:
     return _scan_case(work, cap, "000000.png", extra=("--depth-scale", "10"))
 
 
+@case("scan-depth-beyond-fusion-range")
+def _(ctx: Ctx, work: Path) -> Run:
+    # a plausible scene depth (8 m) that registers, but lies beyond fusion.depth_max: nothing to fuse
+    cap = work / "far"
+    for sub in ("rgb", "depth"):
+        (cap / sub).mkdir(parents=True)
+        for k in range(3):
+            shutil.copy(ctx.capture / sub / f"00000{k}.png", cap / sub / f"00000{k}.png")
+    shutil.copy(ctx.capture / "cam_K.txt", cap / "cam_K.txt")
+    out = work / "out"
+    out.mkdir()
+    return Run(_cli("scan", cap, "-o", out / "deeper" / "obj.gscan", "--depth-scale", "0.02", "--json"),
+               ["far", "depth_max"], out_dir=out)
+
+
 @case("scan-invalid-depth-scale")
 def _(ctx: Ctx, work: Path) -> Run:
     cap = _copy_capture(ctx, work, "negscale")
@@ -625,7 +640,8 @@ def results(ctx: Ctx, tmp_path_factory: pytest.TempPathFactory) -> dict[str, tup
     for name, build in CASES.items():
         run = build(ctx, tmp_path_factory.mktemp(name))
         runs[name] = (run, {str(p): _snapshot(p) for p in run.unchanged})
-    order = [PARTIAL, DARK] + [n for n in runs if n not in (PARTIAL, DARK)]  # the slow cases first
+    slow = [PARTIAL, DARK, "scan-depth-beyond-fusion-range"]  # cases that register frames: started first
+    order = slow + [n for n in runs if n not in slow]
     with ThreadPoolExecutor(max_workers=4) as pool:
         procs = dict(zip(order, pool.map(lambda n: _run(runs[n][0]), order)))
     return {n: (runs[n][0], runs[n][1], procs[n]) for n in runs}
