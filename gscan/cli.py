@@ -10,6 +10,7 @@ import json
 import logging
 import os
 import sys
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Optional
 
@@ -55,6 +56,18 @@ def _matrix(T: Any) -> list[list[float]] | None:
 
 def _format_matrix(T: list[list[float]]) -> str:
     return "\n".join("  [" + " ".join(f"{x:+.5f}" for x in row) + "]" for row in T)
+
+
+@contextmanager
+def _template_reads(template: Path):
+    """Corruption that SQLite detects only while reading (past TemplateDB.open's checks) is bad
+    input naming the template (exit 2), not an internal error."""
+    import sqlite3
+
+    try:
+        yield
+    except sqlite3.DatabaseError as e:
+        raise InputError(template, f"corrupt template database ({e.__class__.__name__}: {e})") from None
 
 
 def _setup_logging(verbose: bool) -> None:
@@ -170,7 +183,8 @@ def estimate(
     """Estimate the object's pose T_cam_obj in a new RGB-D frame."""
     from gscan.estimate import Estimator
 
-    estimator = Estimator.from_path(template)
+    with _template_reads(template):
+        estimator = Estimator.from_path(template)
     frame = _load_query_frame(color, depth, intrinsics, depth_scale, mask)
     result = estimator.estimate(frame, mask=frame.mask, refine=not no_icp)
     out = result.to_json()
@@ -198,7 +212,7 @@ def poses(
     """Camera pose T_obj_cam of every registered input frame in the template frame."""
     from gscan.template import TemplateDB
 
-    with TemplateDB.open(template, require_complete=True) as db:
+    with _template_reads(template), TemplateDB.open(template, require_complete=True) as db:
         out = db.poses()
     if json_out:
         _print_json(out)
@@ -218,7 +232,7 @@ def info(
     """Summary of a template database (works on partial ones too)."""
     from gscan.template import TemplateDB
 
-    with TemplateDB.open(template, require_complete=False) as db:
+    with _template_reads(template), TemplateDB.open(template, require_complete=False) as db:
         out = db.summary()
     if json_out:
         _print_json(out)
@@ -242,7 +256,8 @@ def export(
 
     if format not in FORMATS:
         raise UsageError(None, f"--format must be one of {', '.join(FORMATS)}, not {format!r}")
-    written = do_export(template, format, output, force=force)
+    with _template_reads(template):
+        written = do_export(template, format, output, force=force)
     err.print(f"wrote {written}")
 
 
@@ -289,7 +304,7 @@ def grasp_add(
     from gscan.template import TemplateDB, read_pose_file
 
     T = read_pose_file(pose)
-    with TemplateDB.open(template, require_complete=True, writable=True) as db:
+    with _template_reads(template), TemplateDB.open(template, require_complete=True, writable=True) as db:
         db.add_grasp(name, T)
     err.print(f"grasp {name!r} stored in {template}")
 
@@ -302,7 +317,7 @@ def grasp_list(
     """List the grasp poses stored in a template."""
     from gscan.template import TemplateDB
 
-    with TemplateDB.open(template, require_complete=False) as db:
+    with _template_reads(template), TemplateDB.open(template, require_complete=False) as db:
         grasps = db.grasps()
     if json_out:
         _print_json({"grasps": {k: _matrix(v) for k, v in grasps.items()}})
