@@ -246,6 +246,47 @@ def _(ctx: Ctx, work: Path) -> Run:
     return _scan_case(work, cap, "truncpng", "000000.png")
 
 
+@case("scan-open3d-malformed-trajectory")
+def _(ctx: Ctx, work: Path) -> Run:
+    cap = work / "redwood"
+    for sub in ("color", "depth"):
+        (cap / sub).mkdir(parents=True)
+        for k in range(2):
+            shutil.copy(ctx.capture / ("rgb" if sub == "color" else sub) / f"00000{k}.png", cap / sub / f"00000{k}.png")
+    (cap / "camera_intrinsic.json").write_text(json.dumps(
+        {"width": INTR.width, "height": INTR.height, "intrinsic_matrix": INTR.K.T.ravel().tolist()}))
+    (cap / "trajectory.log").write_text("0 0 1\n1 0 0 0\n")
+    return _scan_case(work, cap, "trajectory.log")
+
+
+@case("scan-tum-malformed-list")
+def _(ctx: Ctx, work: Path) -> Run:
+    cap = work / "tum"
+    for sub in ("rgb", "depth"):
+        (cap / sub).mkdir(parents=True)
+        shutil.copy(ctx.capture / sub / "000000.png", cap / sub / "1.0.png")
+    (cap / "rgb.txt").write_text("# timestamp filename\nyesterday rgb/1.0.png\n")
+    (cap / "depth.txt").write_text("# timestamp filename\n1.0 depth/1.0.png\n")
+    return _scan_case(work, cap, "rgb.txt")
+
+
+@case("scan-bop-malformed-scene-camera")
+def _(ctx: Ctx, work: Path) -> Run:
+    cap = work / "bop_scene"
+    for sub in ("rgb", "depth"):
+        (cap / sub).mkdir(parents=True)
+        shutil.copy(ctx.capture / sub / "000000.png", cap / sub / "000000.png")
+    (cap / "scene_camera.json").write_text('{"0": {"cam_K": [1, 0')
+    return _scan_case(work, cap, "scene_camera.json")
+
+
+@case("scan-masks-wrong-size")
+def _(ctx: Ctx, work: Path) -> Run:
+    cap = _copy_capture(ctx, work, "badmasks")
+    _for_each(cap / "masks", "*.png", lambda p: cv2.imwrite(str(p), np.zeros((10, 10), np.uint8)))
+    return _scan_case(work, cap, "badmasks", "000000.png")
+
+
 @case("scan-missing-cam-K")
 def _(ctx: Ctx, work: Path) -> Run:
     cap = _copy_capture(ctx, work)
@@ -417,6 +458,24 @@ for _cmd in ("estimate", "export", "view", "poses"):
         run.names.append("--resume")
         return run
     case(f"{_cmd}-partial-template")(_partial)
+
+
+def _corrupt_views_table(ctx: Ctx, work: Path) -> Path:
+    """A template whose meta table is intact (it opens) but whose views table's root page is garbage."""
+    db = _template_copy(ctx, work, "damaged.gscan")
+    with sqlite3.connect(db) as c:
+        page = c.execute("PRAGMA page_size").fetchone()[0]
+        root = c.execute("SELECT rootpage FROM sqlite_master WHERE name='views'").fetchone()[0]
+    c.close()
+    with open(db, "r+b") as f:
+        f.seek((root - 1) * page)
+        f.write(np.random.default_rng(4).integers(0, 256, page, dtype=np.uint8).tobytes())
+    return db
+
+
+for _cmd in ("info", "estimate", "export", "poses"):
+    case(f"{_cmd}-damaged-pages")(
+        lambda ctx, work, c=_cmd: _template_command(c, _corrupt_views_table(ctx, work), ctx, work))
 
 
 @case("estimate-missing-template")
