@@ -14,8 +14,9 @@ Pipeline of `Estimator.estimate` (every stage timed, `EstimateResult.timings_ms`
    frame (view direction +z), against the query keypoints (+z); descriptor distances are sliced
    from the retrieval GEMM, never recomputed.
 4. solve: Kabsch on the best view's match list (object-frame template points -> query camera points);
-   the view with the most matches wins (ties: lower GMatch cost). Views are matched in vote order and
-   a view whose list reaches GMatch's full length L ends the search (saves most of the match time).
+   the view with the most matches wins (ties: lower GMatch cost). Every retrieved view is matched:
+   stopping at the first full-length list saved ~40 % of the match time but let a look-alike
+   distractor win ties that the cost decides (BENCHMARKS.md).
 5. refine: point-to-plane ICP (`icp_point_to_plane`, deterministic, template normals) of the
    template cloud's points visible from the predicted pose onto the query cloud cropped to the search
    region and to a sphere of 1.2 object radii around the predicted centre. A refinement that moves
@@ -62,7 +63,7 @@ class EstimateParams:
     gmatch: GMatchParams = GMatchParams()  # matcher parameters (eps_f None -> default of the kind)
     top_k: int = 4  # template views retrieved and matched
     retrieval_dist: float = 0.5  # descriptor distance under which a query keypoint votes for a view (RootSIFT L2)
-    min_matches: int = 9  # fewer GMatch matches -> not found (chance lists of 6-8 occur in clutter)
+    min_matches: int = 14  # fewer GMatch matches -> not found (bench: correct lists >= 15, wrong ones <= 13)
     min_score: float = 0.6  # depth-consistency score below this -> not found
     min_confirmed: float = 0.15  # fraction of visible template points confirmed by depth below this -> not found
     icp_max_dist: float = 0.005  # m, ICP correspondence distance
@@ -258,8 +259,6 @@ class Estimator:
             n = len(m)
             if n >= 3 and (best is None or (n, -cost) > (best[0], best[1])):
                 best = (n, -cost, int(v), m)
-            if n >= self.params.gmatch.L:  # a full-length list cannot be beaten on length: stop early
-                break
         tm["match"] = _ms(t)
         if best is None or best[0] < self.params.min_matches:
             n = 0 if best is None else best[0]
