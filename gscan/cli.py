@@ -19,6 +19,11 @@ from rich.console import Console
 
 from gscan.errors import GscanError, InputError
 
+try:  # typer >= 0.2x vendors click as typer._click; older releases use click itself
+    from typer._click import exceptions as _cx
+except ImportError:  # pragma: no cover - depends on the installed typer
+    import click.exceptions as _cx
+
 app = typer.Typer(add_completion=False, pretty_exceptions_enable=False, no_args_is_help=True,
                   help="Scan objects with an RGB-D camera into GMatch templates; estimate their 6DoF pose on a CPU.")
 grasp_app = typer.Typer(no_args_is_help=True, help="Named grasp poses stored in a template (object frame).")
@@ -390,7 +395,19 @@ def demo(
 def main() -> None:
     """Console entry point: maps errors to exit codes (2 bad input, 1 internal)."""
     try:
-        app()
+        rc = app(standalone_mode=False)
+        sys.exit(rc if isinstance(rc, int) else 0)
+    except _cx.NoArgsIsHelpError as e:  # bare `gscan` or a bare group: show the help
+        sys.stdout.write(e.ctx.get_help() + "\n" if e.ctx else "")
+        sys.exit(0)
+    except _cx.UsageError as e:  # a wrong option value or a missing argument: one line, exit 2
+        cmd = e.ctx.command_path if e.ctx else "gscan"
+        err.print(f"error: {cmd}: {e.format_message()} (see `{cmd} --help`)", markup=False, highlight=False,
+                  soft_wrap=True)
+        sys.exit(2)
+    except typer.Abort:
+        err.print("aborted")
+        sys.exit(130)
     except InputError as e:
         err.print(f"error: {e}", markup=False, highlight=False, soft_wrap=True)
         sys.exit(2)
