@@ -23,6 +23,7 @@ from __future__ import annotations
 import io
 import json
 import logging
+import os
 import sqlite3
 import threading
 from contextlib import contextmanager
@@ -252,21 +253,28 @@ class TemplateDB:
         if path.exists() and not force:
             raise InputError(path, "already exists; use --force to overwrite (or scan --resume to continue)")
         path.parent.mkdir(parents=True, exist_ok=True)
-        for p in (path, Path(f"{path}-journal"), Path(f"{path}-wal"), Path(f"{path}-shm")):
+        # the schema is written to a temporary sibling and renamed into place, so a crash never
+        # leaves an empty or schema-less file at `path` (an existing one is replaced atomically)
+        tmp = path.with_name(f".{path.name}.creating")
+        for p in (tmp, Path(f"{tmp}-journal"), Path(f"{path}-journal"), Path(f"{path}-wal"), Path(f"{path}-shm")):
             p.unlink(missing_ok=True)
-        conn = cls._connect(path)
-        db = cls(path, conn, writable=True)
         base = {"schema": SCHEMA_VERSION, "status": "partial", "units": "m", "source": "scan"}
         base.update(meta or {})
         base["schema"], base["status"] = SCHEMA_VERSION, "partial"
-        with db._tx() as c:
-            c.execute(f"PRAGMA application_id={APPLICATION_ID}")
-            c.execute(f"PRAGMA user_version={SCHEMA_VERSION}")
-            for stmt in _SCHEMA.strip().split(";"):
-                if stmt.strip():
-                    c.execute(stmt)
-            c.executemany("INSERT INTO meta(key, value) VALUES (?, ?)",
-                          [(k, json.dumps(v, sort_keys=True)) for k, v in base.items()])
+        setup = cls(tmp, cls._connect(tmp), writable=True)
+        try:
+            with setup._tx() as c:
+                c.execute(f"PRAGMA application_id={APPLICATION_ID}")
+                c.execute(f"PRAGMA user_version={SCHEMA_VERSION}")
+                for stmt in _SCHEMA.strip().split(";"):
+                    if stmt.strip():
+                        c.execute(stmt)
+                c.executemany("INSERT INTO meta(key, value) VALUES (?, ?)",
+                              [(k, json.dumps(v, sort_keys=True)) for k, v in base.items()])
+        finally:
+            setup.close()
+        os.replace(tmp, path)
+        db = cls(path, cls._connect(path), writable=True)
         log.info("created template database %s", path)
         return db
 
