@@ -115,19 +115,23 @@ def peer_depth_max(name: str) -> float:
     return default_distance(mesh) + PEER_DEPTH_RADII * mesh.radius
 
 
-def run_peers(cap: Path, gt: dict[str, np.ndarray], depth_max: float) -> dict:
+def run_peers(cap: Path, gt: dict[str, np.ndarray], depth_max: float, masked: bool) -> dict:
+    """Both peers on whole frames (keys odometry, fpfh) or, masked, on the object's depth alone
+    (depth outside the rendered mask set to 0; keys odometry_masked, fpfh_masked)."""
     from peers import fpfh_ransac_icp_chain, rgbd_odometry_chain
 
     seq = open_sequence(cap)
     frames = [seq[n] for n in seq.names]
     for f in frames:
-        f.mask = None  # peers see whole frames
+        if masked:
+            f.depth = np.where(f.mask, f.depth, 0.0).astype(np.float32)
+        f.mask = None
     out = {}
     for key, fn in (("odometry", rgbd_odometry_chain), ("fpfh", fpfh_ransac_icp_chain)):
         r = fn(frames, depth_max)
         s = score(r.T_world_cam, gt)
         s.update(seconds=r.seconds, s_per_frame=r.seconds / len(frames), notes=r.notes, depth_max=depth_max)
-        out[key] = s
+        out[key + ("_masked" if masked else "")] = s
     return out
 
 
@@ -135,18 +139,38 @@ def _mm(x: float) -> str:
     return "  -  " if not np.isfinite(x) else f"{1000 * x:6.2f}"
 
 
-def accuracy(names: list[str], views: int, peers: bool, result: dict, json_path: Path) -> dict:
-    """Per-mesh rows; the raw results so far are rewritten to json_path after every mesh."""
+def wait_for_capture(name: str, views: int, seed: int, timeout_s: float = 3600.0) -> None:
+    """Block until another process has rendered this capture (a split run renders each once)."""
+    tag = f"{name}_v{views}_e{'-'.join(f'{e:g}' for e in ELEVATIONS)}_s{seed}"
+    t = time.perf_counter()
+    while not (OUT / "captures" / f"{tag}_nomask" / ".done").exists():
+        if time.perf_counter() - t > timeout_s:
+            raise TimeoutError(f"capture {tag} not rendered after {timeout_s:.0f} s")
+        time.sleep(5.0)
+
+
+def accuracy(names: list[str], views: int, what: set[str], result: dict, json_path: Path,
+             wait: bool = False) -> dict:
+    """Per-mesh rows of the methods in `what` ("scan", "peers", "peers_masked"); the raw results
+    so far are rewritten to json_path after every mesh."""
     rows = result.setdefault("accuracy", {})
     everything = mesh_names()
     for k, name in enumerate(names):
         print(f"[{k + 1}/{len(names)}] {name}", flush=True)
-        cap, bare = capture(name, views, ELEVATIONS, seed=everything.index(name))  # seed: index among all meshes
+        seed = everything.index(name)  # index among all meshes: the same capture in a split run
+        if wait:
+            wait_for_capture(name, views, seed)
+        cap, bare = capture(name, views, ELEVATIONS, seed=seed)
         gt = gt_T_world_cam(cap)
-        row = {"masks": scan_once(cap, gt, OUT / "bench_scan.gscan"),
-               "nomask": scan_once(bare, gt, OUT / "bench_scan.gscan")}
-        if peers:
-            row.update(run_peers(cap, gt, peer_depth_max(name)))
+        row = {}
+        if "scan" in what:
+            db = OUT / f"bench_scan_{name}.gscan"  # per mesh: split runs never share a database
+            row["masks"] = scan_once(cap, gt, db)
+            row["nomask"] = scan_once(bare, gt, db)
+        if "peers" in what:
+            row.update(run_peers(cap, gt, peer_depth_max(name), masked=False))
+        if "peers_masked" in what:
+            row.update(run_peers(cap, gt, peer_depth_max(name), masked=True))
         rows[name] = row
         line = "  ".join(f"{m}: {r['registered']}/{r['frames']} ATE {_mm(r['ate_rmse']).strip()} mm "
                          f"({r['s_per_frame']:.2f} s/f)" for m, r in row.items() if isinstance(r, dict))
@@ -156,27 +180,56 @@ def accuracy(names: list[str], views: int, peers: bool, result: dict, json_path:
 
 
 def print_accuracy(rows: dict, views: int) -> None:
-    methods = [m for m in ("masks", "nomask", "odometry", "fpfh") if any(m in r for r in rows.values())]
-    label = {"masks": "gscan (masks)", "nomask": "gscan (no masks)", "odometry": "o3d RGB-D odometry",
-             "fpfh": "o3d FPFH+RANSAC+ICP"}
-    print(f"\nATE RMSE (mm) and registered frames of {views}, per mesh")
-    print(f"{'mesh':44s}" + "".join(f"{label[m]:>24s}" for m in methods))
-    for name, r in rows.items():
-        print(f"{name[:44]:44s}" + "".join(f"{_mm(r[m]['ate_rmse'])} ({r[m]['registered']:3d}/{r[m]['frames']})".rjust(24)
-                                          for m in methods))
+    order = ("masks", "nomask", "odometry", "fpfh", "odometry_masked", "fpfh_masked")
+    methods = [m for m in order if any(m in r for r in rows.values())]
+    label = {"masks": "gscan masks", "nomask": "gscan no masks", "odometry": "o3d odometry",
+             "fpfh": "o3d FPFH+ICP", "odometry_masked": "o3d odometry masked",
+             "fpfh_masked": "o3d FPFH+ICP masked"}
+    print(f"\nATE RMSE (mm) (registered frames of {views}), per mesh")
+    print(f"{'mesh':40s}" + "".join(f"{label[m]:>21s}" for m in methods))
+    for name, r in sorted(rows.items()):
+        cells = [(f"{_mm(r[m]['ate_rmse'])} ({r[m]['registered']:2d}/{r[m]['frames']})" if m in r else "")
+                 for m in methods]
+        print(f"{name[:40]:40s}" + "".join(c.rjust(21) for c in cells))
     print("\nsummary")
-    print(f"{'method':24s} {'median ATE mm':>14s} {'mean ATE mm':>12s} {'max ATE mm':>11s} {'meshes all reg.':>16s} "
-          f"{'frames reg.':>12s} {'meshes ATE<=5mm & all reg.':>27s} {'s/frame (median)':>17s}")
+    print(f"{'method':20s} {'meshes':>6s} {'median ATE mm':>14s} {'mean ATE mm':>12s} {'max ATE mm':>11s} "
+          f"{'all frames reg.':>16s} {'frames reg.':>12s} {'ATE<=5mm & all reg.':>20s} {'s/frame median':>15s}")
     for m in methods:
-        rs = [r[m] for r in rows.values()]
+        rs = [r[m] for r in rows.values() if m in r]
         a = np.array([x["ate_rmse"] for x in rs])
         full = sum(x["registered"] == x["frames"] for x in rs)
         ok = sum(x["registered"] == x["frames"] and x["ate_rmse"] <= TARGET_ATE_M for x in rs)
         reg = sum(x["registered"] for x in rs)
         tot = sum(x["frames"] for x in rs)
-        print(f"{label[m]:24s} {_mm(np.nanmedian(a)):>14s} {_mm(np.nanmean(a)):>12s} {_mm(np.nanmax(a)):>11s} "
-              f"{full:>9d}/{len(rs):<6d} {reg:>6d}/{tot:<5d} {ok:>20d}/{len(rs):<6d} "
-              f"{np.median([x['s_per_frame'] for x in rs]):>17.2f}")
+        print(f"{label[m]:20s} {len(rs):6d} {_mm(np.nanmedian(a)):>14s} {_mm(np.nanmean(a)):>12s} "
+              f"{_mm(np.nanmax(a)):>11s} {full:>13d}/{len(rs):<2d} {reg:>7d}/{tot:<4d} {ok:>17d}/{len(rs):<2d} "
+              f"{np.median([x['s_per_frame'] for x in rs]):>15.2f}")
+
+
+def markdown_accuracy(rows: dict) -> str:
+    """The per-mesh and summary tables as Markdown (for BENCHMARKS.md)."""
+    order = ("masks", "nomask", "odometry", "fpfh", "odometry_masked", "fpfh_masked")
+    methods = [m for m in order if any(m in r for r in rows.values())]
+    label = {"masks": "gscan, masks", "nomask": "gscan, no masks", "odometry": "o3d odometry",
+             "fpfh": "o3d FPFH+RANSAC+ICP", "odometry_masked": "o3d odometry, masked depth",
+             "fpfh_masked": "o3d FPFH+RANSAC+ICP, masked depth"}
+    out = ["| mesh | " + " | ".join(label[m] for m in methods) + " |", "|---" * (len(methods) + 1) + "|"]
+    for name, r in sorted(rows.items()):
+        cells = [(f"{1000 * r[m]['ate_rmse']:.2f} ({r[m]['registered']}/{r[m]['frames']})" if m in r else "")
+                 for m in methods]
+        out.append(f"| {name} | " + " | ".join(cells) + " |")
+    out += ["", "| method | meshes | median ATE (mm) | mean ATE (mm) | max ATE (mm) | meshes with every frame "
+            "registered | frames registered | meshes ATE <= 5 mm and all registered | s/frame (median) |",
+            "|---|---|---|---|---|---|---|---|---|"]
+    for m in methods:
+        rs = [r[m] for r in rows.values() if m in r]
+        a = 1000 * np.array([x["ate_rmse"] for x in rs])
+        ok = sum(x["registered"] == x["frames"] and x["ate_rmse"] <= TARGET_ATE_M for x in rs)
+        out.append(f"| {label[m]} | {len(rs)} | {np.nanmedian(a):.2f} | {np.nanmean(a):.2f} | {np.nanmax(a):.2f} | "
+                   f"{sum(x['registered'] == x['frames'] for x in rs)}/{len(rs)} | "
+                   f"{sum(x['registered'] for x in rs)}/{sum(x['frames'] for x in rs)} | {ok}/{len(rs)} | "
+                   f"{np.median([x['s_per_frame'] for x in rs]):.2f} |")
+    return "\n".join(out)
 
 
 def e2e(views: int) -> dict:
@@ -236,9 +289,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--views", type=int, default=36, help="views per accuracy capture (two rings)")
     ap.add_argument("--e2e-views", type=int, default=100, help="frames of the end-to-end run (0 = skip)")
     ap.add_argument("--no-peers", action="store_true", help="skip the open3d peers")
+    ap.add_argument("--no-scan", action="store_true", help="skip the gscan scans (peers only)")
+    ap.add_argument("--no-masked-peers", action="store_true", help="skip the peers on masked depth")
+    ap.add_argument("--wait-captures", action="store_true",
+                    help="wait for the captures to be rendered by another process of a split run")
     ap.add_argument("--quick", action="store_true", help="3 meshes, 24 views, 40-frame end-to-end run")
     ap.add_argument("--json", type=Path, default=OUT / "scan.json", help="raw results")
     ap.add_argument("--tables", type=Path, default=None, help="only print the tables of an earlier (partial) JSON")
+    ap.add_argument("--markdown", action="store_true", help="with --tables: Markdown tables")
     ap.add_argument("--merge", type=Path, nargs="*", help="with --tables: add the rows of these JSONs")
     ap.add_argument("--child-scan", nargs=3, metavar=("CAPTURE", "DB", "JSON"), help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
@@ -248,9 +306,15 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if a.tables:
         old = json.loads(a.tables.read_text())
-        for extra in a.merge or []:  # further JSONs of a split run
-            old.setdefault("accuracy", {}).update(json.loads(extra.read_text()).get("accuracy", {}))
-        if old.get("accuracy"):
+        for extra in a.merge or []:  # further JSONs of a split run: rows merged method by method
+            more = json.loads(extra.read_text())
+            for name, row in more.get("accuracy", {}).items():
+                old.setdefault("accuracy", {}).setdefault(name, {}).update(row)
+            if "e2e" in more:
+                old["e2e"] = more["e2e"]
+        if old.get("accuracy") and a.markdown:
+            print(markdown_accuracy(old["accuracy"]))
+        elif old.get("accuracy"):
             print_accuracy(old["accuracy"], old["views"])
         if "e2e" in old:
             print_e2e(old["e2e"])
@@ -266,7 +330,9 @@ def main(argv: list[str] | None = None) -> int:
         result["e2e"] = e2e(a.e2e_views)
         print_e2e(result["e2e"])
         write_json(result, a.json)
-    accuracy(names, a.views, not a.no_peers, result, a.json)
+    what = {w for w, off in (("scan", a.no_scan), ("peers", a.no_peers), ("peers_masked", a.no_masked_peers))
+            if not off}
+    accuracy(names, a.views, what, result, a.json, wait=a.wait_captures)
     print_accuracy(result["accuracy"], a.views)
     if "e2e" in result:
         print_e2e(result["e2e"])
