@@ -293,7 +293,7 @@ def view(
         T_cam_obj = result.T_cam_obj
         err.print(f"estimate: {'not found (' + str(result.reason) + ')' if T_cam_obj is None else 'view ' + str(result.view)}")
     run_viewer(template, host=host, port=port, scene_frame=frame, T_cam_obj=T_cam_obj,
-               on_ready=lambda url: err.print(f"viewer at [bold]{url}[/bold] (Ctrl+C to stop)"))
+               on_ready=lambda url: err.print(f"viewer ready at [bold]{url}[/bold] (Ctrl+C to stop)"))
 
 
 # ------------------------------------------------------------------------------------------- grasp

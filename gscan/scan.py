@@ -47,6 +47,7 @@ ICP_VOXEL_STRIDE = 2  # pixel stride of the clouds kept for ICP before voxel dow
 # whole-frame pairs RootSIFT 0.5 is as accurate as the object-only default 0.6 (100 % at every
 # threshold from 0.4 to 0.8, BENCHMARKS.md) and 7x faster (85 vs 640 ms a pair: fewer candidates)
 WHOLE_FRAME_EPS_F = {"rootsift": 0.5}
+QUALITY_RMSE = 0.01  # m: a view whose best accepted edge has this residual gets quality 0
 WORKERS = 2  # threads for per-frame and per-edge work (the target machines have 2 cores)
 PRUNED = "pruned by the pose graph: "  # reason prefix of edges registration accepted and the pose graph rejected
 
@@ -278,7 +279,7 @@ def _scan_frames(frames: list[_Frame], opts: ScanOptions, db: TemplateDB, resume
         edges += register_all([(kp[c.i], kp[c.j]) for c in cands], "loop", pool)
 
     with timer.stage("posegraph", total=1) as advance:
-        T_world_cam, verdicts = _optimise(n, edges, index, frames, cfg)
+        T_world_cam, quality = _optimise(n, edges, index, frames, cfg)
         advance(1)
     registered = [k for k in range(n) if T_world_cam[k] is not None]
 
@@ -312,7 +313,7 @@ def _scan_frames(frames: list[_Frame], opts: ScanOptions, db: TemplateDB, resume
             pts = f.feats.points if T is None else transform_points(T, f.feats.points).astype(np.float32)
             view = View(f.frame.name, f.frame.intrinsics, T, f.frame.color, f.frame.depth,
                         masks[k] if T is not None else f.frame.mask, keyframe=k in keyframes,
-                        quality=verdicts.get(k), input_index=k)
+                        quality=quality.get(k), input_index=k)
             db.add_view(view, ViewFeatures(f.feats.pixels, pts, f.feats.descriptors, f.feats.kind, f.feats.scales),
                         replace=True)
             advance(1)
@@ -393,7 +394,7 @@ def _spanning_poses(n: int, graph_edges: list) -> list[np.ndarray | None]:
 
 def _optimise(n: int, edges: list[Edge], index: dict[str, int], frames: list[_Frame],
               cfg: ScanConfig) -> tuple[list[np.ndarray | None], dict[int, float]]:
-    """Pose graph over accepted edges -> (T_world_cam per frame or None, quality per frame)."""
+    """Pose graph over accepted edges -> (T_world_cam per frame or None, quality in [0, 1] per frame)."""
     from gscan.posegraph import GraphEdge, PoseGraphParams, information_from_points, optimize_pose_graph
 
     use = [e for e in edges if e.accepted and e.T_tgt_src is not None]
@@ -403,22 +404,23 @@ def _optimise(n: int, edges: list[Edge], index: dict[str, int], frames: list[_Fr
         pts_t = frames[j].feats.points[e.matches[:, 1]] if len(e.matches) else frames[j].cloud
         graph.append(GraphEdge(i, j, e.T_tgt_src, information_from_points(pts_t), uncertain=e.kind == "loop"))
     T0 = _spanning_poses(n, graph)
-    ref = next((k for k in range(n) if T0[k] is not None), 0)
-    # the reference is the frame with the most edges among the first component (frame 0 usually)
+    ref = next((k for k in range(n) if T0[k] is not None), 0)  # the first frame with an edge
     params = PoseGraphParams(max_residual_deg=cfg.posegraph.prune_rot_deg,
                              max_residual_m=cfg.posegraph.prune_trans_m,
                              max_correspondence_distance=cfg.registration.icp_max_dist)
     res = optimize_pose_graph(n, graph, T0, params, reference_node=ref)
-    verdict: dict[int, float] = {}
+    best_rmse: dict[int, float] = {}
     for rep, e in zip(res.edges, use):
-        # mark the edge in the database record's eyes: pruned edges become rejected
+        # the pose graph's verdict joins the registration's: pruned edges are recorded as rejected
         if not rep.accepted:
             e.accepted = False
             e.reason = PRUNED + str(rep.reason)
         for k in (rep.src, rep.tgt):
             if rep.accepted and e.rmse is not None:
-                verdict[k] = min(verdict.get(k, np.inf), float(e.rmse))
-    return res.T_world_node, verdict
+                best_rmse[k] = min(best_rmse.get(k, np.inf), float(e.rmse))
+    # registration quality of a view in [0, 1] (1 = perfect): 1 - RMSE / QUALITY_RMSE of its best edge
+    quality = {k: float(np.clip(1.0 - r / QUALITY_RMSE, 0.0, 1.0)) for k, r in best_rmse.items()}
+    return res.T_world_node, quality
 
 
 def _segment(frames: list[_Frame], T_world_cam: list[np.ndarray | None], mode: str,

@@ -265,3 +265,54 @@ def test_frustum_click_and_go_to_view(template):
                 browser.close()
     finally:
         app.stop()
+
+
+@pytest.fixture(scope="module")
+def sample_template(tmp_path_factory):
+    """The bundled sample (samples/capture) scanned by the real pipeline."""
+    from gscan.scan import ScanOptions, run_scan
+
+    out = tmp_path_factory.mktemp("sample") / "sample.gscan"
+    res = run_scan(ScanOptions(input_dir=ROOT / "samples" / "capture", output=out))
+    assert res.registered == res.frames
+    return out
+
+
+@pytest.mark.browser
+def test_gscan_view_on_the_bundled_sample(sample_template, tmp_path):
+    """`gscan view` on the sample's scanned template: scene drawn, view list, slider, match panel."""
+    from playwright.sync_api import sync_playwright
+
+    with TemplateDB.open(sample_template) as db:
+        names = db.view_names()
+        first_edge = next(e for e in db.edges() if e.accepted)
+    port = vp.free_port()
+    proc, _ = vp.start_viewer(sample_template, port, log_path=tmp_path / "view.log", cli=True)
+    try:
+        with sync_playwright() as p:
+            browser = vp.launch(p)
+            try:
+                page = browser.new_page(viewport=vp.VIEWPORT)
+                vp.open_viewer(page, f"http://127.0.0.1:{port}")
+                _, std = vp.wait_scene_drawn(page, MIN_CANVAS_STD)
+                page.screenshot(path=str(tmp_path / "sample.png"))
+                out = ROOT / "test-output"
+                out.mkdir(exist_ok=True)
+                shutil.copy(tmp_path / "sample.png", out / "viewer_sample.png")
+                assert std > MIN_CANVAS_STD, f"3D view looks blank (std {std:.1f})"
+                assert page.locator(f"input[id='{vp.gui_control_id(page, 'View')}']").input_value() == names[0]
+                img = vp.gui_image(page, "View image")
+                before = img.screenshot()
+                vp.gui_slider(page, "View #").focus()
+                page.keyboard.press("ArrowRight")
+                assert vp.wait_image_changed(img, before) != before
+                assert page.get_by_text(f"{names[1]} (2/{len(names)})").count() == 1
+                vp.select_option(page, "Edge", f"{first_edge.src} → {first_edge.tgt} ({first_edge.kind})")
+                page.get_by_text("matches:").first.wait_for(timeout=10_000)
+                assert f"matches: {len(first_edge.matches)}" in page.get_by_text("matches:").first.inner_text()
+                page.screenshot(path=str(tmp_path / "sample_match.png"))
+                shutil.copy(tmp_path / "sample_match.png", out / "viewer_sample_match.png")
+            finally:
+                browser.close()
+    finally:
+        vp.stop_viewer(proc)
