@@ -132,7 +132,8 @@ def _print_scan_summary(result: Any) -> None:
     err.print(table)
     err.print(f"[bold]{result.output}[/bold]: {result.registered}/{result.frames} frames registered "
               f"({result.mode}), edges {result.edges_accepted} accepted / {result.edges_rejected} rejected, "
-              f"mesh {result.mesh_vertices} vertices / {result.mesh_triangles} triangles")
+              f"mesh {result.mesh_vertices} vertices / {result.mesh_triangles} triangles, "
+              f"{result.keyframes} template views")
     if result.unregistered:
         err.print(f"[yellow]unregistered frames:[/yellow] {', '.join(result.unregistered)}")
     for name, reason in result.problems.items():
@@ -387,9 +388,31 @@ def demo(
     port: int = typer.Option(8080, "--port", help="viewer port"),
 ) -> None:
     """Scan the bundled sample, estimate its held-back frames, then open the viewer."""
-    from gscan.demo import run_demo
+    from rich.table import Table
 
-    run_demo(output, console=err, view=not no_view, port=port)
+    from gscan.demo import SAMPLES, evaluate_sample, scan_sample
+    from gscan.progress import RichProgress
+
+    err.print(f"[bold]1/3 scanning[/bold] {SAMPLES / 'capture'} -> {output / 'sample.gscan'}")
+    with RichProgress(err) as progress:
+        result = scan_sample(output, progress)
+    _print_scan_summary(result)
+    err.print("[bold]2/3 estimating[/bold] the held-back frames")
+    table = Table(title="pose estimation on held-back frames (errors against ground truth)")
+    for col in ("frame", "found", "rot err (deg)", "trans err (mm)", "ADD (mm)", "matches", "time (ms)"):
+        table.add_column(col, justify="right")
+    for r in evaluate_sample(result.output):
+        table.add_row(r.name, "yes" if r.found else "no", f"{r.rot_err_deg:.2f}", f"{r.trans_err_mm:.1f}",
+                      f"{r.add_mm:.1f}", str(r.n_matches), f"{r.total_ms:.0f}")
+    err.print(table)
+    if no_view:
+        err.print(f"[bold]3/3[/bold] viewer skipped; run `gscan view {result.output}`")
+        return
+    from gscan.viewer import run_viewer
+
+    err.print("[bold]3/3 viewer[/bold]")
+    run_viewer(result.output, port=port,
+               on_ready=lambda url: err.print(f"viewer ready at [bold]{url}[/bold] (Ctrl+C to stop)"))
 
 
 def main() -> None:

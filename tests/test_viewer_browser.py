@@ -267,17 +267,6 @@ def test_frustum_click_and_go_to_view(template):
         app.stop()
 
 
-@pytest.fixture(scope="module")
-def sample_template(tmp_path_factory):
-    """The bundled sample (samples/capture) scanned by the real pipeline."""
-    from gscan.scan import ScanOptions, run_scan
-
-    out = tmp_path_factory.mktemp("sample") / "sample.gscan"
-    res = run_scan(ScanOptions(input_dir=ROOT / "samples" / "capture", output=out))
-    assert res.registered == res.frames
-    return out
-
-
 @pytest.mark.browser
 def test_gscan_view_on_the_bundled_sample(sample_template, tmp_path):
     """`gscan view` on the sample's scanned template: scene drawn, view list, slider, match panel."""
