@@ -45,7 +45,8 @@ import numpy as np
 
 from gscan.camera import Intrinsics, RGBDFrame, backproject
 from gscan.errors import InputError
-from gscan.features import FeatureParams, Features, descriptor_distances, empty_features, extract_features
+from gscan.features import (OBJECT_FEATURES, FeatureParams, Features, descriptor_distances, empty_features,
+                            extract_features, extract_features_in_mask)
 from gscan.geometry import inv_T, kabsch, make_T, rotvec_to_R, transform_points
 from gscan.gmatch import GMatchParams, default_eps_f, gmatch
 from gscan.template import Template, TemplateDB
@@ -57,9 +58,8 @@ STAGES = ("features", "retrieval", "match", "solve", "refine", "total")
 
 @dataclass(frozen=True)
 class EstimateParams:
-    # query keypoints (kind follows the template's); SIFT contrast threshold halved from OpenCV's 0.04:
-    # 2-3x more keypoints on weakly textured packaging (bench/estimate.py, BENCHMARKS.md)
-    features: FeatureParams = FeatureParams(sift_contrast_threshold=0.02)
+    # query keypoints (kind follows the template's), the same settings as the template's object keypoints
+    features: FeatureParams = OBJECT_FEATURES
     gmatch: GMatchParams = GMatchParams()  # matcher parameters (eps_f None -> default of the kind)
     top_k: int = 4  # template views retrieved and matched
     retrieval_dist: float = 0.5  # descriptor distance under which a query keypoint votes for a view (RootSIFT L2)
@@ -111,65 +111,11 @@ class EstimateResult:
                 "timings_ms": {k: float(self.timings_ms.get(k, 0.0)) for k in STAGES}}
 
 
-def object_keypoints(db: TemplateDB, tpl: Template, params: FeatureParams = FeatureParams(),
-                     reextract_frac: float = 0.9) -> Template:
-    """The template restricted to object keypoints: in every view with a stored object mask only the
-    keypoints whose pixel lies inside the mask are kept. A view whose stored keypoints hit the
-    extraction cap (>= `reextract_frac` * params.max_keypoints: the background took most of them,
-    typical of a static-object scan, whose registration uses the whole frame) gets its keypoints
-    re-extracted inside the mask from its stored images (a cropped detection per such view)."""
-    px, pts, desc, kv = [], [], [], []
-    for i, name in enumerate(tpl.view_names):
-        a, b = int(tpl.view_offsets[i]), int(tpl.view_offsets[i + 1])
-        view = db.view(name, load_images=True)
-        sel = np.arange(a, b)
-        if view.mask is not None and view.mask.any():
-            H, W = view.mask.shape
-            if b - a >= reextract_frac * params.max_keypoints and view.color is not None and view.depth is not None:
-                f = _masked_features(RGBDFrame(name, view.color, view.depth, view.intrinsics), view.mask,
-                                     replace(params, kind=tpl.kind or params.kind))
-                px.append(f.pixels)
-                pts.append(transform_points(tpl.T_obj_cam[i], f.points).astype(np.float32))
-                desc.append(f.descriptors.astype(tpl.descriptors.dtype))
-                kv.append(np.full(len(f), i, np.int32))
-                continue
-            uv = tpl.pixels[a:b]
-            u = np.clip(np.rint(uv[:, 0]).astype(int), 0, W - 1)
-            v = np.clip(np.rint(uv[:, 1]).astype(int), 0, H - 1)
-            sel = sel[view.mask[v, u]]
-        px.append(tpl.pixels[sel])
-        pts.append(tpl.points_obj[sel])
-        desc.append(tpl.descriptors[sel])
-        kv.append(tpl.kp_view[sel])
-    kp_view = np.concatenate(kv) if kv else np.zeros(0, np.int32)
-    offsets = np.searchsorted(kp_view, np.arange(len(tpl.view_names) + 1)).astype(np.int64)
-    return replace(tpl, pixels=np.concatenate(px) if px else tpl.pixels[:0],
-                   points_obj=np.concatenate(pts) if pts else tpl.points_obj[:0],
-                   descriptors=np.concatenate(desc) if desc else tpl.descriptors[:0], kp_view=kp_view,
-                   view_offsets=offsets)
-
-
-def _masked_features(frame: RGBDFrame, mask: np.ndarray, params: FeatureParams, margin: int = 16) -> Features:
-    """Features of `frame` inside `mask` [H x W] bool, detected on the mask's bounding box (+ margin)
-    only; pixels in full-frame coordinates, points in the camera frame."""
-    H, W = mask.shape
-    ys, xs = np.nonzero(mask)
-    x0, x1 = max(0, xs.min() - margin), min(W, xs.max() + margin + 1)
-    y0, y1 = max(0, ys.min() - margin), min(H, ys.max() + margin + 1)
-    intr = frame.intrinsics
-    sub = RGBDFrame(frame.name, np.ascontiguousarray(frame.color[y0:y1, x0:x1]),
-                    np.ascontiguousarray(frame.depth[y0:y1, x0:x1]),
-                    Intrinsics(intr.fx, intr.fy, intr.cx - x0, intr.cy - y0, x1 - x0, y1 - y0))
-    f = extract_features(sub, params, mask=mask[y0:y1, x0:x1])
-    f.pixels = f.pixels + np.array([x0, y0], np.float32)
-    return f
-
-
 class Estimator:
     """A template loaded once for repeated pose estimation (`from_path`, then `estimate`)."""
 
     def __init__(self, tpl: Template, params: EstimateParams = EstimateParams()):
-        """tpl: a loaded template (see `object_keypoints` for restricting it to the object first)."""
+        """tpl: a loaded template (TemplateDB.load_template: object keypoints in the object frame)."""
         if tpl.kind is None or len(tpl.view_names) == 0 or len(tpl.descriptors) == 0:
             raise InputError(tpl.path, "template holds no registered view with keypoints")
         if tpl.kind != params.features.kind:
@@ -217,7 +163,7 @@ class Estimator:
     def from_path(cls, path: str | Path, params: EstimateParams = EstimateParams()) -> "Estimator":
         """Open a complete template database (InputError for a missing / partial / foreign file)."""
         with TemplateDB.open(path, require_complete=True) as db:
-            tpl = object_keypoints(db, db.load_template(), params.features)
+            tpl = db.load_template()
         return cls(tpl, params)
 
     # ------------------------------------------------------------------------------------------------
@@ -308,7 +254,7 @@ class Estimator:
             return extract_features(frame, fparams)
         if not mask.any():
             return empty_features(fparams.kind)
-        return _masked_features(frame, mask, fparams, self.params.crop_margin)
+        return extract_features_in_mask(frame, mask, fparams, self.params.crop_margin)
 
     def _retrieve(self, q: np.ndarray) -> tuple[np.ndarray, list[int]]:
         """Query descriptors [M x D] -> (similarity or distance matrix [M x N], top-k view indices)."""

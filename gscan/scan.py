@@ -24,7 +24,7 @@ from __future__ import annotations
 import json
 import logging
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -33,7 +33,7 @@ from gscan.camera import RGBDFrame, backproject
 from gscan.capture_mode import MOVING_OBJECT, STATIC_OBJECT, moving_object_masks, detect_mode, select_keyframes
 from gscan.config import ScanConfig
 from gscan.errors import InputError
-from gscan.features import FeatureParams, Features, extract_features
+from gscan.features import OBJECT_FEATURES, FeatureParams, Features, extract_features, extract_features_in_mask
 from gscan.geometry import inv_T, transform_points
 from gscan.progress import Progress, StageTimer
 from gscan.register import RegisterParams, register_features
@@ -308,15 +308,28 @@ def _scan_frames(frames: list[_Frame], opts: ScanOptions, db: TemplateDB, resume
         T_obj_cam = [None if T is None else T_obj_world @ T for T in T_world_cam]
         dirs = {k: T_obj_cam[k][:3, 2] for k in registered}
         keyframes = set(select_keyframes(dirs, cfg.keyframes.min_angle_deg, cfg.keyframes.max_views))
-        for k, f in enumerate(frames):
-            T = T_obj_cam[k]
-            pts = f.feats.points if T is None else transform_points(T, f.feats.points).astype(np.float32)
-            view = View(f.frame.name, f.frame.intrinsics, T, f.frame.color, f.frame.depth,
-                        masks[k] if T is not None else f.frame.mask, keyframe=k in keyframes,
-                        quality=quality.get(k), input_index=k)
-            db.add_view(view, ViewFeatures(f.feats.pixels, pts, f.feats.descriptors, f.feats.kind, f.feats.scales),
-                        replace=True)
-            advance(1)
+        # keyframes also keep keypoints on the object alone, detected inside the object mask with the
+        # estimator's settings: the template's keypoints for pose estimation (registration keypoints
+        # of a static object are mostly on the table)
+        oparams = replace(OBJECT_FEATURES, kind=cfg.features.kind, max_keypoints=cfg.features.max_keypoints)
+
+        def object_feats(k: int) -> Features | None:
+            m = masks[k]
+            return extract_features_in_mask(frames[k].frame, m, oparams) if k in keyframes and m is not None else None
+
+        with ThreadPoolExecutor(max_workers=WORKERS) as pool:
+            for k, obj in enumerate(pool.map(object_feats, range(n))):
+                f, T = frames[k], T_obj_cam[k]
+                pts = f.feats.points if T is None else transform_points(T, f.feats.points).astype(np.float32)
+                view = View(f.frame.name, f.frame.intrinsics, T, f.frame.color, f.frame.depth,
+                            masks[k] if T is not None else f.frame.mask, keyframe=k in keyframes,
+                            quality=quality.get(k), input_index=k)
+                db.add_view(view, ViewFeatures(f.feats.pixels, pts, f.feats.descriptors, f.feats.kind,
+                                               f.feats.scales), replace=True)
+                if obj is not None:
+                    db.add_features(f.frame.name, ViewFeatures(obj.pixels, transform_points(T, obj.points).astype(
+                        np.float32), obj.descriptors, obj.kind, obj.scales), role="object")
+                advance(1)
         for e in edges:
             if e.reason and e.reason.startswith(PRUNED):
                 db.add_edge(e)

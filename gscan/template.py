@@ -40,6 +40,9 @@ from gscan.errors import GscanError, InputError
 log = logging.getLogger(__name__)
 
 SCHEMA_VERSION = 1
+# keypoint sets of a view: "registration" (what its edges' matches index; whole frame for a static
+# object) and "object" (on the object only, for pose estimation; a scan adds them to its keyframes)
+FEATURE_ROLES = ("registration", "object")
 APPLICATION_ID = 0x6753434E  # "gSCN", PRAGMA application_id of every gscan database
 _SQLITE_MAGIC = b"SQLite format 3\x00"
 
@@ -50,8 +53,9 @@ CREATE TABLE views (
     intrinsics TEXT NOT NULL, T_obj_cam BLOB, color BLOB, color_codec TEXT, depth BLOB, mask BLOB,
     keyframe INTEGER NOT NULL, quality REAL);
 CREATE TABLE features (
-    view_id INTEGER PRIMARY KEY REFERENCES views(id), kind TEXT NOT NULL, n INTEGER NOT NULL,
-    pixels BLOB NOT NULL, points BLOB NOT NULL, descriptors BLOB NOT NULL, scales BLOB);
+    view_id INTEGER NOT NULL REFERENCES views(id), role TEXT NOT NULL, kind TEXT NOT NULL, n INTEGER NOT NULL,
+    pixels BLOB NOT NULL, points BLOB NOT NULL, descriptors BLOB NOT NULL, scales BLOB,
+    PRIMARY KEY (view_id, role));
 CREATE TABLE edges (
     id INTEGER PRIMARY KEY, src TEXT NOT NULL, tgt TEXT NOT NULL, T_tgt_src BLOB, matches BLOB NOT NULL,
     cost REAL, rmse REAL, fitness REAL, kind TEXT NOT NULL, accepted INTEGER NOT NULL, reason TEXT,
@@ -422,10 +426,11 @@ class TemplateDB:
         with self._tx() as c:
             vid, T_old = self._view_id(c, name)
             c.execute("UPDATE views SET T_obj_cam=? WHERE id=?", (_arr(T_new), vid))
-            row = c.execute("SELECT points FROM features WHERE view_id=?", (vid,)).fetchone()
-            if move_features and row is not None:
-                A = (np.eye(4) if T_new is None else T_new) @ np.linalg.inv(np.eye(4) if T_old is None else T_old)
-                c.execute("UPDATE features SET points=? WHERE view_id=?", (_arr(_apply(A, _unarr(row[0]))), vid))
+            A = (np.eye(4) if T_new is None else T_new) @ np.linalg.inv(np.eye(4) if T_old is None else T_old)
+            rows = c.execute("SELECT role, points FROM features WHERE view_id=?", (vid,)).fetchall()
+            for role, pts in rows if move_features else []:
+                c.execute("UPDATE features SET points=? WHERE view_id=? AND role=?",
+                          (_arr(_apply(A, _unarr(pts))), vid, role))
 
     def set_keyframe(self, name: str, keyframe: bool) -> None:
         with self._tx() as c:
@@ -466,7 +471,9 @@ class TemplateDB:
         return self._row_to_view(rows[0], load_images)
 
     # -- features --------------------------------------------------------------------------------
-    def _put_features(self, c: sqlite3.Connection, vid: int, f: ViewFeatures) -> None:
+    def _put_features(self, c: sqlite3.Connection, vid: int, f: ViewFeatures, role: str = "registration") -> None:
+        if role not in FEATURE_ROLES:
+            raise ValueError(f"feature role must be one of {FEATURE_ROLES}, not {role!r}")
         px = np.asarray(f.pixels, dtype=np.float32).reshape(-1, 2)
         pts = np.asarray(f.points_obj, dtype=np.float32).reshape(-1, 3)
         desc = np.asarray(f.descriptors)
@@ -475,23 +482,26 @@ class TemplateDB:
         sc = None if f.scales is None else np.asarray(f.scales, dtype=np.float32).reshape(-1)
         if len(pts) != len(px) or len(desc) != len(px) or (sc is not None and len(sc) != len(px)):
             raise ValueError(f"keypoint arrays disagree: {len(px)} pixels, {len(pts)} points, {len(desc)} descriptors")
-        c.execute("INSERT OR REPLACE INTO features(view_id, kind, n, pixels, points, descriptors, scales) "
-                  "VALUES (?,?,?,?,?,?,?)", (vid, str(f.kind), len(px), _arr(px), _arr(pts), _arr(desc), _arr(sc)))
+        c.execute("INSERT OR REPLACE INTO features(view_id, role, kind, n, pixels, points, descriptors, scales) "
+                  "VALUES (?,?,?,?,?,?,?,?)",
+                  (vid, role, str(f.kind), len(px), _arr(px), _arr(pts), _arr(desc), _arr(sc)))
 
     def add_features(self, view_name: str, pixels: np.ndarray | ViewFeatures, points_obj: np.ndarray | None = None,
                      descriptors: np.ndarray | None = None, kind: str | None = None,
-                     scales: np.ndarray | None = None) -> None:
-        """Store (replace) a view's keypoints: a ViewFeatures, or pixels [N x 2], points_obj [N x 3]
-        (object frame; camera frame while the view is unregistered), descriptors [N x D], kind."""
+                     scales: np.ndarray | None = None, role: str = "registration") -> None:
+        """Store (replace) a view's keypoints of a role (FEATURE_ROLES): a ViewFeatures, or pixels
+        [N x 2], points_obj [N x 3] (object frame; camera frame while the view is unregistered),
+        descriptors [N x D], kind."""
         f = pixels if isinstance(pixels, ViewFeatures) else ViewFeatures(pixels, points_obj, descriptors, kind, scales)
         with self._tx() as c:
             vid, _ = self._view_id(c, view_name)
-            self._put_features(c, vid, f)
+            self._put_features(c, vid, f, role)
 
-    def features(self, view_name: str) -> ViewFeatures | None:
-        """The view's keypoints (unpacks as (pixels, points_obj, descriptors, kind)); None if it has none."""
+    def features(self, view_name: str, role: str = "registration") -> ViewFeatures | None:
+        """The view's keypoints of a role (unpacks as (pixels, points_obj, descriptors, kind)); None if
+        it has none."""
         rows = self._q("SELECT f.pixels, f.points, f.descriptors, f.kind, f.scales FROM features f "
-                       "JOIN views v ON v.id = f.view_id WHERE v.name=?", (view_name,))
+                       "JOIN views v ON v.id = f.view_id WHERE v.name=? AND f.role=?", (view_name, role))
         if not rows:
             return None
         px, pts, desc, kind, sc = rows[0]
@@ -606,12 +616,13 @@ class TemplateDB:
         return {"frames": frames, "unregistered": unreg}
 
     def load_template(self, keyframes_only: bool = True) -> Template:
-        """Everything the estimator needs, loaded once: registered (key)frame views with their keypoints."""
+        """Everything the estimator needs, loaded once: registered (key)frame views with their keypoints
+        (a view's "object" keypoints where it has them, else its "registration" keypoints)."""
         views = [v for v in self.views(keyframes_only=keyframes_only) if v.T_obj_cam is not None]
         names, intr, Ts, px, pts, desc, kv, offs = [], [], [], [], [], [], [], [0]
         kind = self.descriptor_kind()
         for v in views:
-            f = self.features(v.name)
+            f = self.features(v.name, "object") or self.features(v.name)
             names.append(v.name)
             intr.append(v.intrinsics)
             Ts.append(v.T_obj_cam)
