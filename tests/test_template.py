@@ -272,3 +272,29 @@ def test_read_pose_file(tmp_path: Path) -> None:
         with pytest.raises(InputError) as ei:
             read_pose_file(tmp_path / name)
         assert name in str(ei.value)
+
+
+def test_object_keypoints_are_what_the_estimator_loads(db_path: Path) -> None:
+    """A view's "object" keypoints replace its "registration" ones in load_template; both move with
+    update_pose and both go when the view is replaced."""
+    rng = np.random.default_rng(7)
+    T = _pose(rng)
+    reg, obj = _feats(rng, 30), _feats(rng, 12)
+    with TemplateDB.create(db_path) as db:
+        db.add_view(_view("a", rng, T, 0), reg)
+        db.add_view(_view("b", rng, T, 1), _feats(rng, 5))
+        db.add_features("a", obj, role="object")
+        with pytest.raises(ValueError):
+            db.add_features("a", obj, role="other")
+        tpl = db.load_template()
+        assert list(tpl.view_offsets) == [0, 12, 17]  # a: its 12 object keypoints; b: its registration ones
+        np.testing.assert_array_equal(tpl.descriptors[:12], obj.descriptors)
+        np.testing.assert_array_equal(db.features("a").descriptors, reg.descriptors)
+        T2 = _pose(rng)
+        db.update_pose("a", T2)
+        A = T2 @ np.linalg.inv(T)
+        for role, f in (("registration", reg), ("object", obj)):
+            moved = db.features("a", role).points_obj
+            np.testing.assert_allclose(moved, f.points_obj @ A[:3, :3].T + A[:3, 3], atol=1e-5)
+        db.add_view(_view("a", rng, T, 0), reg, replace=True)
+        assert db.features("a", "object") is None
