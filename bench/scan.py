@@ -286,6 +286,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--meshes", type=int, default=None, help="first N shared meshes (default all)")
     ap.add_argument("--offset", type=int, default=0, help="skip the first K meshes (to split a run)")
+    ap.add_argument("--names", default=None, help="comma-separated mesh names (instead of --offset/--meshes)")
     ap.add_argument("--views", type=int, default=36, help="views per accuracy capture (two rings)")
     ap.add_argument("--e2e-views", type=int, default=100, help="frames of the end-to-end run (0 = skip)")
     ap.add_argument("--no-peers", action="store_true", help="skip the open3d peers")
@@ -322,7 +323,10 @@ def main(argv: list[str] | None = None) -> int:
     if a.quick:
         a.meshes, a.views, a.e2e_views = a.meshes or 3, 24, 40
     OUT.mkdir(parents=True, exist_ok=True)
-    names = mesh_names()[a.offset:][: a.meshes]
+    names = a.names.split(",") if a.names else mesh_names()[a.offset:][: a.meshes]
+    unknown = sorted(set(names) - set(mesh_names()))
+    if unknown:
+        ap.error(f"unknown meshes: {', '.join(unknown)}")
     t0 = time.perf_counter()
     result: dict = {"date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "argv": sys.argv[1:],
                     "views": a.views, "elevations_deg": ELEVATIONS}
@@ -332,8 +336,9 @@ def main(argv: list[str] | None = None) -> int:
         write_json(result, a.json)
     what = {w for w, off in (("scan", a.no_scan), ("peers", a.no_peers), ("peers_masked", a.no_masked_peers))
             if not off}
-    accuracy(names, a.views, what, result, a.json, wait=a.wait_captures)
-    print_accuracy(result["accuracy"], a.views)
+    if names:  # --meshes 0: the end-to-end run alone
+        accuracy(names, a.views, what, result, a.json, wait=a.wait_captures)
+        print_accuracy(result["accuracy"], a.views)
     if "e2e" in result:
         print_e2e(result["e2e"])
     result["total_s"] = time.perf_counter() - t0
