@@ -10,6 +10,7 @@
 2. Peers on the same captures (bench/peers.py, whole frames): open3d RGB-D odometry chain and
    FPFH + RANSAC + point-to-plane ICP chain; registered / failed frames and ATE. Their depth_max
    is the capture's camera distance plus two object radii (the object and the table around it).
+   Both are run again on masked depth (depth outside the rendered mask set to 0; --no-masked-peers skips).
 3. End to end: one --e2e-views capture (640x480, three rings at 25/45/65 degrees) scanned in a
    child process (features, registration, pose graph, segmentation, fusion, database): total
    seconds, per-stage seconds (ScanResult.timings_s), peak resident memory of the child
@@ -21,6 +22,8 @@ Raw results go to --json (default bench/out/scan.json).
     python bench/scan.py                  # 21 meshes x 36 views, peers, 100-frame end-to-end run
     python bench/scan.py --meshes 3       # quick end-to-end check of the script
     python bench/scan.py --quick          # 3 meshes, 24 views, 40-frame end-to-end run
+    python bench/scan.py --meshes 0       # the end-to-end run alone
+    python bench/scan.py --tables bench/out/scan_a.json --merge bench/out/scan_b.json --markdown
 """
 from __future__ import annotations
 
