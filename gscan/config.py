@@ -48,6 +48,8 @@ class RegisterConfig(_Section):
 
 class PoseGraphConfig(_Section):
     loop_candidates: int = Field(4, ge=0, description="loop-closure candidates tried per frame")
+    certain_min_inliers: int = Field(48, ge=0, description="sequential edges with fewer inliers are treated like "
+                                     "loop closures (the pose graph may switch them off)")
     max_view_angle_deg: float = Field(75.0, gt=0, le=180, description="loop candidates view the object within this angle")
     prune_rot_deg: float = Field(2.0, gt=0, description="edges disagreeing with the optimised graph by more are pruned")
     prune_trans_m: float = Field(0.01, gt=0, description="edges disagreeing with the optimised graph by more are pruned (m)")

@@ -376,32 +376,39 @@ def _icp_cloud(frame: RGBDFrame, mask: np.ndarray | None, voxel: float) -> np.nd
     return np.asarray(pc.points)
 
 
-def _spanning_poses(n: int, graph_edges: list) -> list[np.ndarray | None]:
+def _spanning_poses(n: int, graph_edges: list, weights: list[float] | None = None) -> list[np.ndarray | None]:
     """Initial T_world_cam per frame (world = the first frame with an edge; None = unreachable).
 
-    Breadth-first over the certain (sequential) edges first, so that odometry sets the initial
-    guess; uncertain loop closures only reach frames the odometry chain does not.
+    Poses are chained along a maximum spanning tree (Prim, from the root): certain edges before
+    uncertain ones, each kind strongest first (`weights`, e.g. inlier counts; ties by edge order),
+    so that a weak or doubtful edge never sets a frame's initial pose when a better one reaches it.
     """
-    from collections import deque
+    import heapq
 
     T: list[np.ndarray | None] = [None] * n
     root = next((k for k in range(n) if any(k in (e.src, e.tgt) for e in graph_edges)), 0)
     T[root] = np.eye(4)
-    for allowed in ([e for e in graph_edges if not e.uncertain], graph_edges):
-        adj: list[list] = [[] for _ in range(n)]
-        for e in allowed:
-            adj[e.src].append(e)
-            adj[e.tgt].append(e)
-        q = deque(k for k in range(n) if T[k] is not None)
-        while q:
-            a = q.popleft()
-            for e in adj[a]:
-                if e.src == a and T[e.tgt] is None:
-                    T[e.tgt] = T[a] @ inv_T(e.T_tgt_src)
-                    q.append(e.tgt)
-                elif e.tgt == a and T[e.src] is None:
-                    T[e.src] = T[a] @ e.T_tgt_src
-                    q.append(e.src)
+    w = weights if weights is not None else [1.0] * len(graph_edges)
+    adj: list[list[int]] = [[] for _ in range(n)]
+    for k, e in enumerate(graph_edges):
+        adj[e.src].append(k)
+        adj[e.tgt].append(k)
+    heap: list[tuple[bool, float, int]] = []
+
+    def push(a: int) -> None:
+        for k in adj[a]:
+            heapq.heappush(heap, (bool(graph_edges[k].uncertain), -float(w[k]), k))
+
+    push(root)
+    while heap:
+        _, _, k = heapq.heappop(heap)
+        e = graph_edges[k]
+        if T[e.src] is not None and T[e.tgt] is None:
+            T[e.tgt] = T[e.src] @ inv_T(e.T_tgt_src)
+            push(e.tgt)
+        elif T[e.tgt] is not None and T[e.src] is None:
+            T[e.src] = T[e.tgt] @ e.T_tgt_src
+            push(e.src)
     return T
 
 
@@ -415,8 +422,12 @@ def _optimise(n: int, edges: list[Edge], index: dict[str, int], frames: list[_Fr
     for e in use:
         i, j = index[e.src], index[e.tgt]
         pts_t = frames[j].feats.points[e.matches[:, 1]] if len(e.matches) else frames[j].cloud
-        graph.append(GraphEdge(i, j, e.T_tgt_src, information_from_points(pts_t), uncertain=e.kind == "loop"))
-    T0 = _spanning_poses(n, graph)
+        # loop closures and weakly supported edges may be switched off by the line process: a
+        # repetitive or symmetric texture can give a consistent but wrong list of L matches, which
+        # then explains few other candidates (measured: wrong edges 27-40, right ones 63-700)
+        doubtful = e.kind == "loop" or len(e.matches) < cfg.posegraph.certain_min_inliers
+        graph.append(GraphEdge(i, j, e.T_tgt_src, information_from_points(pts_t), uncertain=doubtful))
+    T0 = _spanning_poses(n, graph, [len(e.matches) for e in use])
     ref = next((k for k in range(n) if T0[k] is not None), 0)  # the first frame with an edge
     params = PoseGraphParams(max_residual_deg=cfg.posegraph.prune_rot_deg,
                              max_residual_m=cfg.posegraph.prune_trans_m,
