@@ -62,9 +62,10 @@ class EstimateParams:
     features: FeatureParams = OBJECT_FEATURES
     gmatch: GMatchParams = GMatchParams()  # matcher parameters (eps_f None -> default of the kind)
     top_k: int = 4  # template views retrieved and matched
-    # stop matching retrieved views once one gives a full-length (L) GMatch list: the longest list
-    # wins, so only a lower-cost tie could replace it; 2-3 searches saved on a well-seen object
-    stop_at_full_length: bool = True
+    # stop matching retrieved views once one gives a full-length (L) GMatch list (only a lower-cost
+    # tie could replace it). Off: it saves 2-3 searches (masked 75 -> 45 ms on the sample) but took a
+    # near-identical distractor product in 1 of 84 benchmark scenes that the full search got right
+    stop_at_full_length: bool = False
     retrieval_dist: float = 0.5  # descriptor distance under which a query keypoint votes for a view (RootSIFT L2)
     min_matches: int = 14  # fewer GMatch matches -> not found (bench: correct lists >= 15, wrong ones <= 13)
     min_score: float = 0.6  # depth-consistency score below this -> not found
