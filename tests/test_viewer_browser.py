@@ -148,6 +148,24 @@ def test_colour_scales_and_match_drawing():
 
 
 # ------------------------------------------------------------------------------------ browser
+def _screenshot(page, tmp_path: Path, name: str) -> None:
+    """Screenshot into the test's folder, with a copy in test-output/ (gitignored) to look at."""
+    page.screenshot(path=str(tmp_path / name))
+    out = ROOT / "test-output"
+    out.mkdir(exist_ok=True)
+    shutil.copy(tmp_path / name, out / name)
+
+
+def _open_drawn_page(browser, port: int, tmp_path: Path, name: str):
+    """A page on the viewer at `port`, once its 3D view is drawn (not blank), screenshot as `name`."""
+    page = browser.new_page(viewport=vp.VIEWPORT)
+    vp.open_viewer(page, f"http://127.0.0.1:{port}")
+    _, std = vp.wait_scene_drawn(page, MIN_CANVAS_STD)
+    _screenshot(page, tmp_path, name)
+    assert std > MIN_CANVAS_STD, f"3D view looks blank (std {std:.1f})"
+    return page
+
+
 @pytest.mark.browser
 def test_viewer_in_browser(template, tmp_path):
     from playwright.sync_api import sync_playwright
@@ -167,14 +185,7 @@ def test_viewer_in_browser(template, tmp_path):
         with sync_playwright() as p:
             browser = vp.launch(p)
             try:
-                page = browser.new_page(viewport=vp.VIEWPORT)
-                vp.open_viewer(page, f"http://127.0.0.1:{port}")
-                shot, std = vp.wait_scene_drawn(page, MIN_CANVAS_STD)
-                page.screenshot(path=str(tmp_path / "viewer.png"))
-                out = ROOT / "test-output"
-                out.mkdir(exist_ok=True)
-                shutil.copy(tmp_path / "viewer.png", out / "viewer.png")
-                assert std > MIN_CANVAS_STD, f"3D view looks blank (std {std:.1f})"
+                page = _open_drawn_page(browser, port, tmp_path, "viewer.png")
                 # The GUI lists the views and names the unregistered one.
                 assert page.locator(f"input[id='{vp.gui_control_id(page, 'View')}']").input_value() == "000000"
                 assert page.get_by_text("unregistered (1):").count() == 1
@@ -197,7 +208,7 @@ def test_viewer_in_browser(template, tmp_path):
                     e = next(e for e in db.edges() if (e.src, e.tgt) == ("000001", "000002"))
                 assert f"matches: {len(e.matches)}" in text
                 assert vp.gui_image(page, "Matches").is_visible()
-                page.screenshot(path=str(tmp_path / "viewer_match.png"))
+                _screenshot(page, tmp_path, "viewer_match.png")
             finally:
                 browser.close()
     finally:
@@ -281,14 +292,7 @@ def test_gscan_view_on_the_bundled_sample(sample_template, tmp_path):
         with sync_playwright() as p:
             browser = vp.launch(p)
             try:
-                page = browser.new_page(viewport=vp.VIEWPORT)
-                vp.open_viewer(page, f"http://127.0.0.1:{port}")
-                _, std = vp.wait_scene_drawn(page, MIN_CANVAS_STD)
-                page.screenshot(path=str(tmp_path / "sample.png"))
-                out = ROOT / "test-output"
-                out.mkdir(exist_ok=True)
-                shutil.copy(tmp_path / "sample.png", out / "viewer_sample.png")
-                assert std > MIN_CANVAS_STD, f"3D view looks blank (std {std:.1f})"
+                page = _open_drawn_page(browser, port, tmp_path, "viewer_sample.png")
                 assert page.locator(f"input[id='{vp.gui_control_id(page, 'View')}']").input_value() == names[0]
                 img = vp.gui_image(page, "View image")
                 before = img.screenshot()
@@ -299,8 +303,7 @@ def test_gscan_view_on_the_bundled_sample(sample_template, tmp_path):
                 vp.select_option(page, "Edge", f"{first_edge.src} → {first_edge.tgt} ({first_edge.kind})")
                 page.get_by_text("matches:").first.wait_for(timeout=10_000)
                 assert f"matches: {len(first_edge.matches)}" in page.get_by_text("matches:").first.inner_text()
-                page.screenshot(path=str(tmp_path / "sample_match.png"))
-                shutil.copy(tmp_path / "sample_match.png", out / "viewer_sample_match.png")
+                _screenshot(page, tmp_path, "viewer_sample_match.png")
             finally:
                 browser.close()
     finally:
