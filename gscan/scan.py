@@ -7,8 +7,8 @@ Stages (each timed, each reported through a `Progress`):
             moving one; stored at once in the database (camera frame, pose unknown)
   register  pairwise edges: each frame against the previous one (falling back to up to
             `MAX_SKIP` earlier frames when that fails), then loop closures chosen by view overlap
-            and bag-of-words votes; each edge = GMatch -> Kabsch -> ICP, accepted by the rules
-            of `gscan.register`; stored as it is computed
+            and bag-of-words votes; each edge = GMatch -> Kabsch -> guided refinement (-> ICP when
+            configured), accepted by the rules of `gscan.register`; stored as it is computed
   posegraph robust global optimisation (open3d, line process) with pruning of inconsistent edges;
             frames not connected to the reference frame stay unregistered and are never fused
   segment   object masks (given, background subtraction, or support plane + working volume)
@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from gscan.camera import RGBDFrame, backproject
-from gscan.capture_mode import MOVING_OBJECT, STATIC_OBJECT, moving_object_masks, detect_mode, select_keyframes
+from gscan.capture_mode import MOVING_OBJECT, STATIC_OBJECT, detect_mode, moving_object_masks, select_keyframes
 from gscan.config import ScanConfig
 from gscan.errors import InputError
 from gscan.features import OBJECT_FEATURES, FeatureParams, Features, extract_features, extract_features_in_mask
@@ -199,7 +199,7 @@ def _scan_frames(frames: list[_Frame], opts: ScanOptions, db: TemplateDB, resume
     fparams = FeatureParams(kind=cfg.features.kind, max_keypoints=cfg.features.max_keypoints)
     stored = set(db.view_names()) if resumed else set()
     with timer.stage("features", total=len(frames)) as advance:
-        def compute(k: int) -> tuple[Features | None, np.ndarray]:
+        def frame_work(k: int) -> tuple[Features | None, np.ndarray]:
             f = frames[k]
             reg_mask = f.mask if mode == MOVING_OBJECT else None
             reuse = f.frame.name in stored and db_poses.get(f.frame.name, 1) is None
@@ -210,7 +210,7 @@ def _scan_frames(frames: list[_Frame], opts: ScanOptions, db: TemplateDB, resume
         # OpenCV and open3d release the GIL: two threads use both cores; results are per frame
         # and written in input order, so the output does not depend on the scheduling
         with ThreadPoolExecutor(max_workers=WORKERS) as pool:
-            for k, (feats, cloud) in enumerate(pool.map(compute, range(len(frames)))):
+            for k, (feats, cloud) in enumerate(pool.map(frame_work, range(len(frames)))):
                 f = frames[k]
                 f.cloud = cloud
                 if feats is None:  # stored by the interrupted run, still in the camera frame
@@ -229,7 +229,7 @@ def _scan_frames(frames: list[_Frame], opts: ScanOptions, db: TemplateDB, resume
     done = {(e.src, e.tgt): e for e in db.edges()} if resumed else {}
     edges: list[Edge] = []
 
-    def compute(pair: tuple[int, int]):
+    def pair_work(pair: tuple[int, int]):
         i, j = pair
         if (names[i], names[j]) in done:
             return None
@@ -238,7 +238,7 @@ def _scan_frames(frames: list[_Frame], opts: ScanOptions, db: TemplateDB, resume
     def register_all(pairs: list[tuple[int, int]], kind: str, pool: ThreadPoolExecutor) -> list[Edge]:
         """Edges of `pairs`, computed on the pool (numba and OpenCV release the GIL), stored in order."""
         out = []
-        for (i, j), r in zip(pairs, pool.map(compute, pairs)):
+        for (i, j), r in zip(pairs, pool.map(pair_work, pairs)):
             if r is None:  # stored by the interrupted run
                 e = done[(names[i], names[j])]
                 if e.reason and e.reason.startswith(PRUNED):  # restore the registration verdict
