@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass, field
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -130,10 +131,13 @@ class RGBDFrame:
                              f"but the frame is {w}x{h}")
 
 
+@lru_cache(maxsize=8)
 def pixel_rays(intr: Intrinsics) -> np.ndarray:
-    """[H x W x 3] ray directions with z = 1 for every pixel centre."""
+    """[H x W x 3] ray directions with z = 1 for every pixel centre (cached per intrinsics, read-only)."""
     u, v = np.meshgrid(np.arange(intr.width, dtype=np.float64), np.arange(intr.height, dtype=np.float64))
-    return np.stack([(u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy, np.ones_like(u)], axis=-1)
+    rays = np.stack([(u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy, np.ones_like(u)], axis=-1)
+    rays.setflags(write=False)
+    return rays
 
 
 def backproject(depth: np.ndarray, intr: Intrinsics) -> np.ndarray:

@@ -10,7 +10,6 @@ import json
 import logging
 import os
 import sys
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Optional
 
@@ -61,18 +60,6 @@ def _matrix(T: Any) -> list[list[float]] | None:
 
 def _format_matrix(T: list[list[float]]) -> str:
     return "\n".join("  [" + " ".join(f"{x:+.5f}" for x in row) + "]" for row in T)
-
-
-@contextmanager
-def _template_reads(template: Path):
-    """Corruption that SQLite detects only while reading (past TemplateDB.open's checks) is bad
-    input naming the template (exit 2), not an internal error."""
-    import sqlite3
-
-    try:
-        yield
-    except sqlite3.DatabaseError as e:
-        raise InputError(template, f"corrupt template database ({e.__class__.__name__}: {e})") from None
 
 
 def _setup_logging(verbose: bool) -> None:
@@ -189,8 +176,7 @@ def estimate(
     """Estimate the object's pose T_cam_obj in a new RGB-D frame."""
     from gscan.estimate import Estimator
 
-    with _template_reads(template):
-        estimator = Estimator.from_path(template)
+    estimator = Estimator.from_path(template)
     frame = _load_query_frame(color, depth, intrinsics, depth_scale, mask)
     result = estimator.estimate(frame, mask=frame.mask, refine=not no_icp)
     out = result.to_json()
@@ -218,7 +204,7 @@ def poses(
     """Camera pose T_obj_cam of every registered input frame in the template frame."""
     from gscan.template import TemplateDB
 
-    with _template_reads(template), TemplateDB.open(template, require_complete=True) as db:
+    with TemplateDB.open(template, require_complete=True) as db:
         out = db.poses()
     if json_out:
         _print_json(out)
@@ -238,7 +224,7 @@ def info(
     """Summary of a template database (works on partial ones too)."""
     from gscan.template import TemplateDB
 
-    with _template_reads(template), TemplateDB.open(template, require_complete=False) as db:
+    with TemplateDB.open(template, require_complete=False) as db:
         out = db.summary()
     if json_out:
         _print_json(out)
@@ -262,8 +248,7 @@ def export(
 
     if format not in FORMATS:
         raise UsageError(None, f"--format must be one of {', '.join(FORMATS)}, not {format!r}")
-    with _template_reads(template):
-        written = do_export(template, format, output, force=force)
+    written = do_export(template, format, output, force=force)
     err.print(f"wrote {written}")
 
 
@@ -310,7 +295,7 @@ def grasp_add(
     from gscan.template import TemplateDB, read_pose_file
 
     T = read_pose_file(pose)
-    with _template_reads(template), TemplateDB.open(template, require_complete=True, writable=True) as db:
+    with TemplateDB.open(template, require_complete=True, writable=True) as db:
         db.add_grasp(name, T)
     err.print(f"grasp {name!r} stored in {template}")
 
@@ -323,7 +308,7 @@ def grasp_list(
     """List the grasp poses stored in a template."""
     from gscan.template import TemplateDB
 
-    with _template_reads(template), TemplateDB.open(template, require_complete=False) as db:
+    with TemplateDB.open(template, require_complete=False) as db:
         grasps = db.grasps()
     if json_out:
         _print_json({"grasps": {k: _matrix(v) for k, v in grasps.items()}})
@@ -344,7 +329,6 @@ def eval_cmd(
     output: Path = typer.Option(..., "-o", "--output", help="BOP19 results CSV to write"),
     obj_id: int = typer.Option(1, "--obj-id", help="object id in scene_gt.json and in the CSV"),
     model: Optional[Path] = typer.Option(None, "--model", help="object model for ADD/ADD-S/MSSD/MSPD (default: template mesh)"),
-    symmetric: bool = typer.Option(False, "--symmetric", help="report ADD-S as the main metric"),
     no_icp: bool = typer.Option(False, "--no-icp", help="skip the ICP refinement"),
     force: bool = typer.Option(False, "--force", help="replace an existing output"),
     json_out: bool = typer.Option(False, "--json", help="print one JSON object on stdout"),
@@ -431,10 +415,7 @@ def main() -> None:
     except typer.Abort:
         err.print("aborted")
         sys.exit(130)
-    except InputError as e:
-        err.print(f"error: {e}", markup=False, highlight=False, soft_wrap=True)
-        sys.exit(2)
-    except GscanError as e:
+    except GscanError as e:  # InputError and the other deliberate errors: bad input
         err.print(f"error: {e}", markup=False, highlight=False, soft_wrap=True)
         sys.exit(2)
     except KeyboardInterrupt:

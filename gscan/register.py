@@ -96,10 +96,9 @@ def refine_pose(pts_s: np.ndarray, pts_t: np.ndarray, dist: np.ndarray, eps_f: f
     # candidates far from consistent under the starting pose never come back: keep the loosest band
     r = np.linalg.norm(transform_points(T, ps[ii]) - pt[jj], axis=1)
     near = r < max(taus)
-    ii, jj = ii[near], jj[near]
+    ii, jj, r = ii[near], jj[near], r[near]
     best = np.zeros((0, 2), np.int32)
     for tau in taus:
-        r = np.linalg.norm(transform_points(T, ps[ii]) - pt[jj], axis=1)
         ok = np.flatnonzero(r < tau)
         ok = ok[np.lexsort((jj[ok], ii[ok], r[ok]))]  # by residual, ties by index: deterministic
         # one-to-one: each source keeps its closest target, then each target its closest source
@@ -109,6 +108,7 @@ def refine_pose(pts_s: np.ndarray, pts_t: np.ndarray, dist: np.ndarray, eps_f: f
             break
         best = np.stack([ii[ok], jj[ok]], axis=1).astype(np.int32)
         T = kabsch(ps[best[:, 0]], pt[best[:, 1]])
+        r = np.linalg.norm(transform_points(T, ps[ii]) - pt[jj], axis=1)
     return T, best
 
 

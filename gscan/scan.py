@@ -204,7 +204,7 @@ def _scan_frames(frames: list[_Frame], opts: ScanOptions, db: TemplateDB, resume
             reg_mask = f.mask if mode == MOVING_OBJECT else None
             reuse = f.frame.name in stored and db_poses.get(f.frame.name, 1) is None
             feats = None if reuse else extract_features(f.frame, fparams, mask=reg_mask)
-            return feats, _icp_cloud(f.frame, reg_mask, cfg.registration.icp_voxel)
+            return feats, _icp_cloud(f.frame, reg_mask, cfg.registration.icp_voxel) if cfg.registration.icp else None
 
         db_poses = {v.name: v.T_obj_cam for v in db.views()} if stored else {}
         # OpenCV and open3d release the GIL: two threads use both cores; results are per frame
@@ -227,6 +227,7 @@ def _scan_frames(frames: list[_Frame], opts: ScanOptions, db: TemplateDB, resume
 
     rparams = _register_params(cfg, mode)
     done = {(e.src, e.tgt): e for e in db.edges()} if resumed else {}
+    restored: set[tuple[str, str]] = set()  # stored as pruned, accepted again until the pose graph says
     edges: list[Edge] = []
 
     def pair_work(pair: tuple[int, int]):
@@ -243,6 +244,7 @@ def _scan_frames(frames: list[_Frame], opts: ScanOptions, db: TemplateDB, resume
                 e = done[(names[i], names[j])]
                 if e.reason and e.reason.startswith(PRUNED):  # restore the registration verdict
                     e.accepted, e.reason = True, None
+                    restored.add((e.src, e.tgt))
             else:
                 # the edge keeps the correspondences its pose was solved from (GMatch's list grown by
                 # the guided refinement of gscan.register), which also weigh it in the pose graph
@@ -253,11 +255,12 @@ def _scan_frames(frames: list[_Frame], opts: ScanOptions, db: TemplateDB, resume
         return out
 
     n = len(frames)
+    index = {nm: k for k, nm in enumerate(names)}
     with timer.stage("register", total=max(1, n - 1)) as advance, ThreadPoolExecutor(max_workers=WORKERS) as pool:
         # each frame against its predecessor; a frame that fails is tried against earlier ones
         for e in register_all([(j - 1, j) for j in range(1, n)], "sequential", pool):
             edges.append(e)
-            j = names.index(e.tgt)
+            j = index[e.tgt]
             for i in range(j - 2, max(-1, j - 1 - MAX_SKIP), -1):
                 if edges[-1].accepted:
                     break
@@ -265,7 +268,6 @@ def _scan_frames(frames: list[_Frame], opts: ScanOptions, db: TemplateDB, resume
             advance(1)
         from gscan.posegraph import GraphEdge, LoopParams, select_loop_candidates
 
-        index = {nm: k for k, nm in enumerate(names)}
         seq_graph = [GraphEdge(index[e.src], index[e.tgt], e.T_tgt_src) for e in edges if e.accepted]
         T_init = _spanning_poses(n, seq_graph)
         existing = [(index[e.src], index[e.tgt]) for e in edges]
@@ -330,8 +332,8 @@ def _scan_frames(frames: list[_Frame], opts: ScanOptions, db: TemplateDB, resume
                     db.add_features(f.frame.name, ViewFeatures(obj.pixels, transform_points(T, obj.points).astype(
                         np.float32), obj.descriptors, obj.kind, obj.scales), role="object")
                 advance(1)
-        for e in edges:
-            if e.reason and e.reason.startswith(PRUNED):
+        for e in edges:  # the pose graph's verdicts, also where a resumed run reaches another one
+            if (e.reason and e.reason.startswith(PRUNED)) or (e.src, e.tgt) in restored:
                 db.add_edge(e)
         V = transform_points(T_obj_world, model.vertices)
         db.set_mesh(V, model.triangles, model.vertex_colors)
@@ -344,8 +346,9 @@ def _scan_frames(frames: list[_Frame], opts: ScanOptions, db: TemplateDB, resume
         db.set_meta("timings_s", timer.timings)
         db.mark_complete()
         advance(1)
-    accepted = sum(1 for e in db.edges() if e.accepted)
-    total_edges = len(db.edges())
+    stored_edges = db.edges()
+    accepted = sum(1 for e in stored_edges if e.accepted)
+    total_edges = len(stored_edges)
     return ScanResult(opts.output, len(frames) + len(problems), len(registered), unregistered + sorted(problems),
                       accepted, total_edges - accepted, mode, len(V), len(model.triangles), dict(timer.timings),
                       problems, len(keyframes))
@@ -421,7 +424,7 @@ def _optimise(n: int, edges: list[Edge], index: dict[str, int], frames: list[_Fr
     graph = []
     for e in use:
         i, j = index[e.src], index[e.tgt]
-        pts_t = frames[j].feats.points[e.matches[:, 1]] if len(e.matches) else frames[j].cloud
+        pts_t = frames[j].feats.points[e.matches[:, 1]]  # accepted edges have >= min_matches matches
         # loop closures and weakly supported edges may be switched off by the line process: a
         # repetitive or symmetric texture can give a consistent but wrong list of L matches, which
         # then explains few other candidates (measured: wrong edges 27-40, right ones 63-700)

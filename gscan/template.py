@@ -26,7 +26,7 @@ import logging
 import os
 import sqlite3
 import threading
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterator
@@ -345,17 +345,31 @@ class TemplateDB:
             raise GscanError(f"{self.path}: opened read-only")
         with self._lock:
             c = self._conn
-            c.execute("BEGIN IMMEDIATE")
             try:
-                yield c
-            except BaseException:
-                c.execute("ROLLBACK")
-                raise
-            c.execute("COMMIT")
+                c.execute("BEGIN IMMEDIATE")
+                try:
+                    yield c
+                except BaseException:
+                    with suppress(sqlite3.Error):
+                        c.execute("ROLLBACK")
+                    raise
+                c.execute("COMMIT")
+            except sqlite3.DatabaseError as e:
+                if isinstance(e, sqlite3.IntegrityError):
+                    raise
+                raise self._corrupt(e) from None
 
     def _q(self, sql: str, args: tuple = ()) -> list[tuple]:
         with self._lock:
-            return self._conn.execute(sql, args).fetchall()
+            try:
+                return self._conn.execute(sql, args).fetchall()
+            except sqlite3.DatabaseError as e:
+                raise self._corrupt(e) from None
+
+    def _corrupt(self, e: sqlite3.DatabaseError) -> InputError:
+        """Corruption SQLite detects only while reading or writing pages (past open()'s checks) is bad
+        input naming the database, not an internal error."""
+        return InputError(self.path, f"corrupt template database ({e.__class__.__name__}: {e})")
 
     # -- meta ------------------------------------------------------------------------------------
     def get_meta(self, key: str, default: Any = None) -> Any:
