@@ -49,7 +49,7 @@ from gscan.features import (OBJECT_FEATURES, FeatureParams, Features, descriptor
                             extract_features, extract_features_in_mask)
 from gscan.geometry import inv_T, kabsch, make_T, rotvec_to_R, transform_points
 from gscan.gmatch import GMatchParams, default_eps_f, gmatch
-from gscan.template import Template, TemplateDB
+from gscan.template import Template, open_template
 
 log = logging.getLogger(__name__)
 
@@ -129,22 +129,19 @@ class Estimator:
         self.kind = tpl.kind
         self.view_names = list(tpl.view_names)
         self.T_obj_cam = tpl.T_obj_cam  # [V x 4 x 4]
-        kp_view = tpl.kp_view
-        self.pixels = tpl.pixels
         self.points_obj = tpl.points_obj.astype(np.float64)
         desc = tpl.descriptors
         self.descriptors = np.ascontiguousarray(desc, dtype=np.float32 if self.kind != "orb" else np.uint8)
         self.unit = self.kind == "rootsift"
         V = len(self.view_names)
-        self.offsets = np.searchsorted(kp_view, np.arange(V + 1)).astype(np.int64)
-        self.kp_view = np.asarray(kp_view, dtype=np.int64)
+        self.offsets = np.asarray(tpl.view_offsets, dtype=np.int64)  # keypoints of view v: offsets[v]:offsets[v+1]
+        self.kp_view = np.asarray(tpl.kp_view, dtype=np.int64)
         # view-camera-frame points of every keypoint (GMatch source side, view direction +z)
         self.points_cam = np.empty_like(self.points_obj)
         for v in range(V):
             a, b = self.offsets[v], self.offsets[v + 1]
             self.points_cam[a:b] = transform_points(inv_T(self.T_obj_cam[v]), self.points_obj[a:b])
         self.groups = [_coincident_groups(self.points_obj[self.offsets[v]:self.offsets[v + 1]]) for v in range(V)]
-        self.nonempty = np.flatnonzero(self.offsets[1:] > self.offsets[:-1])
         cloud = tpl.cloud_points if tpl.cloud_points is not None and len(tpl.cloud_points) else None
         if cloud is None and tpl.mesh is not None and len(tpl.mesh.vertices):
             cloud = tpl.mesh.vertices
@@ -166,9 +163,7 @@ class Estimator:
     @classmethod
     def from_path(cls, path: str | Path, params: EstimateParams = EstimateParams()) -> "Estimator":
         """Open a complete template database (InputError for a missing / partial / foreign file)."""
-        with TemplateDB.open(path, require_complete=True) as db:
-            tpl = db.load_template()
-        return cls(tpl, params)
+        return cls(open_template(path), params)
 
     # ------------------------------------------------------------------------------------------------
     def estimate(self, frame: RGBDFrame, mask: np.ndarray | None = None, refine: bool = True) -> EstimateResult:
@@ -393,7 +388,7 @@ class Estimator:
         T[:3, :] = np.asarray(res["cam_from_world"].matrix())
         inl = np.asarray(res["inlier_mask"], bool)
         n = int(inl.sum())
-        votes = np.bincount(np.searchsorted(self.offsets, ti[inl], side="right") - 1, minlength=len(self.view_names))
+        votes = np.bincount(self.kp_view[ti[inl]], minlength=len(self.view_names))
         return self._found(T, n / len(qi), n, self.view_names[int(np.argmax(votes))], tm, t_all, "pnp")
 
     def _found(self, T: np.ndarray, score: float, n: int, view: str, tm: dict[str, float], t_all: float,

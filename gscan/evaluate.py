@@ -30,7 +30,7 @@ from gscan.errors import InputError
 from gscan.estimate import Estimator
 from gscan.io import open_sequence
 from gscan.io.layouts import detect_format
-from gscan.metrics import adds as adds_err, add as add_err, ar_mspd, ar_mssd, auc, mspd, mssd
+from gscan.metrics import adds as adds_err, add as add_err, ar_mspd, ar_mssd, auc, diameter, mspd, mssd
 
 log = logging.getLogger(__name__)
 
@@ -117,21 +117,13 @@ def load_model_points(model_path: Path | None, estimator: Estimator) -> np.ndarr
             raise InputError(model_path, f"cannot load model ({e.__class__.__name__}: {e})") from None
         if len(pts) == 0:
             raise InputError(model_path, "model holds no vertices")
-        if _diameter(pts) > MM_DIAMETER_LIMIT:
-            log.info("%s: diameter %.1f units, taken as millimetres", model_path, _diameter(pts))
+        d = diameter(pts)
+        if d > MM_DIAMETER_LIMIT:
+            log.info("%s: diameter %.1f units, taken as millimetres", model_path, d)
             pts = pts * 1e-3
     if len(pts) > MAX_MODEL_POINTS:
         pts = pts[np.sort(np.random.default_rng(0).choice(len(pts), MAX_MODEL_POINTS, replace=False))]
     return np.asarray(pts, dtype=np.float64)
-
-
-def _diameter(pts: np.ndarray) -> float:
-    """Largest distance between two of the points (exact up to 2000 points, else on a seeded subsample)."""
-    p = np.asarray(pts, dtype=np.float64)
-    if len(p) > 2000:
-        p = p[np.random.default_rng(1).choice(len(p), 2000, replace=False)]
-    d2 = (p * p).sum(1)
-    return float(np.sqrt(max(0.0, (d2[:, None] + d2[None, :] - 2 * p @ p.T).max())))
 
 
 def _csv_row(scene_id: int, im_id: int, obj_id: int, score: float, T: np.ndarray, time_s: float) -> str:
@@ -152,7 +144,7 @@ def evaluate(template: str | Path, scenes: str | Path, output_csv: str | Path, o
         raise InputError(output_csv, "already exists; use --force to overwrite")
     estimator = Estimator.from_path(template)
     pts = load_model_points(None if model_path is None else Path(model_path), estimator)
-    diameter = _diameter(pts)
+    diam = diameter(pts)
     rows: list[EvalRow] = []
     lines = [CSV_HEADER]
     width = 640
@@ -196,7 +188,7 @@ def evaluate(template: str | Path, scenes: str | Path, output_csv: str | Path, o
         os.replace(tmp, output_csv)
     finally:
         tmp.unlink(missing_ok=True)
-    return EvalReport(output_csv, len(rows), sum(r.found for r in rows), _metrics(rows, diameter, width), rows)
+    return EvalReport(output_csv, len(rows), sum(r.found for r in rows), _metrics(rows, diam, width), rows)
 
 
 def _metrics(rows: list[EvalRow], diameter: float, width: int) -> dict[str, float]:

@@ -235,3 +235,23 @@ def ar_mssd(errors_m: Sequence[float] | np.ndarray, diameter: float) -> float:
 def ar_mspd(errors_px: Sequence[float] | np.ndarray, image_width: int = 640) -> float:
     """BOP AR_MSPD of MSPD errors (px) measured in images `image_width` pixels wide."""
     return average_recall(errors_px, mspd_thresholds(image_width))
+
+
+def diameter(points: np.ndarray) -> float:
+    """Largest distance between two of the points [N x 3] (BOP's object diameter), exact: the
+    farthest pair lies on the convex hull, whose vertices are compared pairwise in chunks."""
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if len(p) < 2:
+        return 0.0
+    if len(p) > 4:
+        from scipy.spatial import ConvexHull, QhullError
+
+        try:
+            p = p[ConvexHull(p).vertices]
+        except (QhullError, ValueError):  # flat or degenerate: every point is a candidate
+            pass
+    best = 0.0
+    for i in range(0, len(p), 512):
+        d2 = ((p[i:i + 512, None, :] - p[None, :, :]) ** 2).sum(-1)
+        best = max(best, float(d2.max()))
+    return float(np.sqrt(best))

@@ -168,3 +168,17 @@ def test_bop_recall():
     assert average_recall([0.0, 0.0], [1.0]) == 1.0
     with pytest.raises(ValueError):
         mssd_thresholds(0.0)
+
+
+def test_diameter_is_the_largest_pairwise_distance():
+    from gscan.metrics import diameter
+
+    rng = np.random.default_rng(3)
+    pts = rng.normal(size=(700, 3))
+    brute = np.sqrt(((pts[:, None] - pts[None]) ** 2).sum(-1)).max()
+    assert diameter(pts) == pytest.approx(brute, rel=1e-12)
+    box = np.array([[x, y, z] for x in (0, 0.3) for y in (0, 0.2) for z in (0, 0.1)])
+    assert diameter(box) == pytest.approx(np.sqrt(0.3 ** 2 + 0.2 ** 2 + 0.1 ** 2))
+    flat = np.c_[rng.random((50, 2)), np.zeros(50)]  # coplanar: no 3D hull, still exact
+    assert diameter(flat) == pytest.approx(np.sqrt(((flat[:, None] - flat[None]) ** 2).sum(-1)).max())
+    assert diameter(pts[:1]) == 0.0

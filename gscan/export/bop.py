@@ -34,6 +34,7 @@ import numpy as np
 from gscan.errors import InputError
 from gscan.export.common import MeshRaycaster, bbox_xywh, depth_to_mm_u16, imwrite, posed_views
 from gscan.geometry import inv_T
+from gscan.metrics import diameter
 from gscan.template import MeshData, TemplateDB
 
 log = logging.getLogger(__name__)
@@ -75,25 +76,10 @@ def write_ply_mm(mesh: MeshData, path: Path) -> None:
 def models_info(mesh: MeshData) -> dict:
     """BOP models_info entry (mm): diameter (largest vertex distance) and the axis-aligned box."""
     V = np.asarray(mesh.vertices, dtype=np.float64) * 1000.0
-    pts = V
-    try:
-        from scipy.spatial import ConvexHull
-        pts = V[ConvexHull(V).vertices]
-    except Exception:  # flat or degenerate mesh: all vertices (subsampled deterministically)
-        pts = V[:: max(1, len(V) // 4000)]
-    d = pts[:, None, :] - pts[None, :, :] if len(pts) <= 4000 else None
-    diam = float(np.sqrt((d ** 2).sum(-1)).max()) if d is not None else _diameter_chunked(pts)
+    diam = diameter(V)
     lo, hi = V.min(axis=0), V.max(axis=0)
     return {"diameter": diam, "min_x": float(lo[0]), "min_y": float(lo[1]), "min_z": float(lo[2]),
             "size_x": float(hi[0] - lo[0]), "size_y": float(hi[1] - lo[1]), "size_z": float(hi[2] - lo[2])}
-
-
-def _diameter_chunked(pts: np.ndarray) -> float:
-    best = 0.0
-    for i in range(0, len(pts), 1000):
-        d = ((pts[i:i + 1000, None, :] - pts[None, :, :]) ** 2).sum(-1)
-        best = max(best, float(d.max()))
-    return float(np.sqrt(best))
 
 
 def write_bop(db: TemplateDB, out: Path) -> int:
