@@ -179,10 +179,15 @@ def _enc_color(rgb: np.ndarray, codec: str) -> bytes:
     return buf.tobytes()
 
 
-def _enc_depth(depth: np.ndarray) -> bytes:
+def depth_to_mm_u16(depth: np.ndarray) -> np.ndarray:
+    """[H x W] float metres -> [H x W] uint16 millimetres (0 invalid, out of range -> 0)."""
     mm = np.rint(np.nan_to_num(np.asarray(depth, dtype=np.float64), nan=0.0) * 1000.0)
     mm[(mm < 0) | (mm > 65535)] = 0
-    return cv2.imencode(".png", mm.astype(np.uint16))[1].tobytes()
+    return mm.astype(np.uint16)
+
+
+def _enc_depth(depth: np.ndarray) -> bytes:
+    return cv2.imencode(".png", depth_to_mm_u16(depth))[1].tobytes()
 
 
 def _enc_mask(mask: np.ndarray) -> bytes:

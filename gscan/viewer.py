@@ -43,7 +43,7 @@ import numpy as np
 from gscan.camera import Intrinsics, RGBDFrame, point_cloud
 from gscan.errors import InputError
 from gscan.geometry import inv_T, transform_points
-from gscan.template import Edge, MeshData, TemplateDB, View
+from gscan.template import Edge, MeshData, TemplateDB, View, read_pose_file
 
 log = logging.getLogger(__name__)
 
@@ -685,26 +685,13 @@ def main(argv: list[str] | None = None) -> int:
 
             frame = load_frame(a.color, a.depth, a.intrinsics, depth_scale=a.depth_scale)
         if a.pose is not None:
-            T = _read_pose(a.pose)
+            T = read_pose_file(a.pose)
         run_viewer(a.db, a.host, a.port, scene_frame=frame, T_cam_obj=T,
                    on_ready=lambda url: log.info("viewer ready at %s", url))
     except InputError as e:
         log.error("%s", e)
         return 2
     return 0
-
-
-def _read_pose(path: Path) -> np.ndarray:
-    import json
-
-    try:
-        obj = json.loads(path.read_text(encoding="utf-8"))
-        T = np.asarray(obj["T"] if isinstance(obj, dict) else obj, dtype=np.float64)
-    except (OSError, ValueError, KeyError, TypeError) as e:
-        raise InputError(path, f"unreadable pose file ({e.__class__.__name__})") from None
-    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-        raise InputError(path, f"pose must be a finite 4x4 matrix, got shape {T.shape}")
-    return T
 
 
 if __name__ == "__main__":

@@ -32,10 +32,10 @@ from pathlib import Path
 import numpy as np
 
 from gscan.errors import InputError
-from gscan.export.common import MeshRaycaster, bbox_xywh, depth_to_mm_u16, imwrite, posed_views
+from gscan.export.common import MeshRaycaster, bbox_xywh, imwrite, posed_views
 from gscan.geometry import inv_T
 from gscan.metrics import diameter
-from gscan.template import MeshData, TemplateDB
+from gscan.template import MeshData, TemplateDB, depth_to_mm_u16
 
 log = logging.getLogger(__name__)
 

@@ -49,13 +49,6 @@ def imwrite(path: Path, img: np.ndarray, rgb: bool = False) -> None:
     path.write_bytes(buf.tobytes())
 
 
-def depth_to_mm_u16(depth: np.ndarray) -> np.ndarray:
-    """[H x W] float metres -> [H x W] uint16 millimetres (0 invalid, out of range -> 0)."""
-    mm = np.rint(np.nan_to_num(depth.astype(np.float64), nan=0.0) * 1000.0)
-    mm[(mm < 0) | (mm > 65535)] = 0
-    return mm.astype(np.uint16)
-
-
 class MeshRaycaster:
     """Ray-casts one mesh from many cameras (the BVH is built once)."""
 

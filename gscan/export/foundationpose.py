@@ -31,8 +31,8 @@ import numpy as np
 import yaml
 
 from gscan.errors import InputError
-from gscan.export.common import MeshRaycaster, depth_to_mm_u16, imwrite, posed_views
-from gscan.template import TemplateDB
+from gscan.export.common import MeshRaycaster, imwrite, posed_views
+from gscan.template import TemplateDB, depth_to_mm_u16
 
 log = logging.getLogger(__name__)
 
