@@ -98,21 +98,17 @@ def scanned_template(name: str, mesh, work: Path, n_frames: int) -> tuple[Path, 
     """Scan a rendered capture of `mesh` (gscan.scan, static object on a textured table) into a template;
     returns (template path, T_obj_gt [4 x 4]): the template->ground-truth alignment, the mean of
     T_obj_cam[f] @ T_cam_gt[f] over the capture frames (DESIGN.md), never from the test scenes."""
-    from gscan.geometry import mean_pose
+    from gscan.evaluate import template_to_gt
     from gscan.io import open_sequence
     from gscan.scan import ScanOptions, run_scan
     from gscan.synth import render_capture
-    from gscan.template import TemplateDB
 
     cap, tpl = work / f"{name}_capture{n_frames}", work / f"{name}_scan{n_frames}.gscan"
     if not cap.exists():
         render_capture(mesh, cap, n_frames, seed=11)
     if not tpl.exists():
         run_scan(ScanOptions(input_dir=cap, output=tpl))
-    seq = open_sequence(cap)
-    with TemplateDB.open(tpl) as db:
-        frames = db.poses()["frames"]
-    T_obj_gt = mean_pose([np.asarray(frames[n]) @ seq.gt_T_cam_obj[n] for n in frames])
+    T_obj_gt = template_to_gt(tpl, open_sequence(cap).gt_T_cam_obj)
     return tpl, T_obj_gt
 
 

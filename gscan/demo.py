@@ -14,7 +14,8 @@ from pathlib import Path
 import numpy as np
 
 from gscan.errors import InputError
-from gscan.geometry import mean_pose, pose_error
+from gscan.evaluate import template_to_gt
+from gscan.geometry import pose_error
 
 SAMPLES = Path(__file__).resolve().parents[1] / "samples"
 
@@ -28,18 +29,6 @@ class HeldOutResult:
     add_mm: float
     n_matches: int
     total_ms: float
-
-
-def template_to_gt(db_path: Path, gt_T_cam_obj: dict[str, np.ndarray]) -> np.ndarray:
-    """T_obj_gt [4 x 4]: the scanned template frame <- ground-truth object frame (mean over frames)."""
-    from gscan.template import TemplateDB
-
-    with TemplateDB.open(db_path, require_complete=True) as db:
-        frames = db.poses()["frames"]
-    Ts = [np.asarray(frames[n]) @ gt_T_cam_obj[n] for n in frames if n in gt_T_cam_obj]
-    if not Ts:
-        raise InputError(db_path, "no registered frame has ground truth")
-    return mean_pose(Ts)
 
 
 def evaluate_heldout(db_path: Path, heldout_dir: Path, model_points: np.ndarray) -> list[HeldOutResult]:

@@ -28,9 +28,11 @@ import numpy as np
 
 from gscan.errors import InputError
 from gscan.estimate import Estimator
+from gscan.geometry import mean_pose
 from gscan.io import open_sequence
 from gscan.io.layouts import detect_format
 from gscan.metrics import adds as adds_err, add as add_err, ar_mspd, ar_mssd, auc, diameter, mspd, mssd
+from gscan.template import TemplateDB
 
 log = logging.getLogger(__name__)
 
@@ -124,6 +126,17 @@ def load_model_points(model_path: Path | None, estimator: Estimator) -> np.ndarr
     if len(pts) > MAX_MODEL_POINTS:
         pts = pts[np.sort(np.random.default_rng(0).choice(len(pts), MAX_MODEL_POINTS, replace=False))]
     return np.asarray(pts, dtype=np.float64)
+
+
+def template_to_gt(db_path: Path, gt_T_cam_obj: dict[str, np.ndarray]) -> np.ndarray:
+    """T_obj_gt [4 x 4]: the scanned template frame <- ground-truth object frame (DESIGN.md), the mean
+    over the capture's registered frames of T_obj_cam[f] @ T_cam_gt[f]; never from test frames."""
+    with TemplateDB.open(db_path, require_complete=True) as db:
+        frames = db.poses()["frames"]
+    Ts = [np.asarray(frames[n]) @ gt_T_cam_obj[n] for n in frames if n in gt_T_cam_obj]
+    if not Ts:
+        raise InputError(db_path, "no registered frame has ground truth")
+    return mean_pose(Ts)
 
 
 def _csv_row(scene_id: int, im_id: int, obj_id: int, score: float, T: np.ndarray, time_s: float) -> str:

@@ -6,7 +6,8 @@ import sys
 
 import numpy as np
 
-from gscan.demo import evaluate_sample, template_to_gt
+from gscan.demo import evaluate_sample
+from gscan.evaluate import template_to_gt
 from gscan.geometry import inv_T, pose_error
 from gscan.io import open_sequence
 from tests.conftest import ROOT

@@ -167,7 +167,7 @@ def test_off_plane_region_removes_the_table(meshes):
 def scanned(meshes, tmp_path_factory):
     """A template scanned (gscan.scan) from a rendered 12-frame capture of the target on a table, and its
     template->ground-truth alignment: the mean of T_obj_cam[f] @ T_cam_gt[f] over the capture frames."""
-    from gscan.geometry import mean_pose
+    from gscan.evaluate import template_to_gt
     from gscan.io import open_sequence
     from gscan.scan import ScanOptions, run_scan
     from gscan.synth import render_capture
@@ -175,11 +175,9 @@ def scanned(meshes, tmp_path_factory):
     root = tmp_path_factory.mktemp("scanned")
     render_capture(meshes[0], root / "capture", 12, seed=5)
     run_scan(ScanOptions(input_dir=root / "capture", output=root / "scanned.gscan"))
-    seq = open_sequence(root / "capture")
     with TemplateDB.open(root / "scanned.gscan") as db:
-        frames = db.poses()["frames"]
-    assert len(frames) >= 10
-    T_obj_gt = mean_pose([np.asarray(frames[n]) @ seq.gt_T_cam_obj[n] for n in frames])
+        assert len(db.poses()["frames"]) >= 10
+    T_obj_gt = template_to_gt(root / "scanned.gscan", open_sequence(root / "capture").gt_T_cam_obj)
     return Estimator.from_path(root / "scanned.gscan"), T_obj_gt
 
 
