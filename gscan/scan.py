@@ -458,7 +458,7 @@ def _segment(frames: list[_Frame], T_world_cam: list[np.ndarray | None], mode: s
     it comes from the working volume over the registered frames; for a moving object from the
     reference frame alone (a turntable's plane moves with the object; an object in hand has none).
     """
-    from gscan.segment import estimate_working_volume, segment_frame, segment_sequence
+    from gscan.segment import segment_frame, segment_sequence
 
     if not segment:
         return [None] * len(frames), None
@@ -468,8 +468,5 @@ def _segment(frames: list[_Frame], T_world_cam: list[np.ndarray | None], mode: s
         plane_cam = segment_frame(RGBDFrame(ref.name, ref.color, ref.depth, ref.intrinsics)).plane_cam
         plane = None if plane_cam is None else plane_cam.transformed(T_world_cam[reg[0]])
         return [f.mask for f in frames], plane
-    if all(f.mask is not None for f in frames):
-        vol = estimate_working_volume([frames[k].frame for k in reg], [T_world_cam[k] for k in reg])
-        return [f.mask for f in frames], (vol.plane_world if vol is not None else None)
-    segs, vol = segment_sequence([f.frame for f in frames], T_world_cam)
+    segs, vol = segment_sequence([f.frame for f in frames], T_world_cam)  # given masks win
     return [s.mask for s in segs], (vol.plane_world if vol is not None else None)

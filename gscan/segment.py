@@ -316,8 +316,6 @@ def segment_sequence(frames: list[RGBDFrame], T_world_cam: list[np.ndarray],
     """
     if len(frames) != len(T_world_cam):
         raise ValueError(f"{len(frames)} frames but {len(T_world_cam)} poses")
-    if all(f.mask is not None for f in frames):
-        return [segment_frame(f, params) for f in frames], None
     reg = [(f, T) for f, T in zip(frames, T_world_cam) if T is not None]
     vol = estimate_working_volume([f for f, _ in reg], [T for _, T in reg], params)
     out = []
