@@ -99,9 +99,11 @@ def fuse_tsdf(frames: list[RGBDFrame], T_world_cam: list[np.ndarray | None],
         raise ValueError(f"{len(frames)} frames, {len(T_world_cam)} poses, {len(masks)} masks")
     use = [k for k in range(len(frames)) if T_world_cam[k] is not None]
     depths = {k: _masked_depth(frames[k], masks[k]) for k in use}
-    use = [k for k in use if np.any(depths[k] > 0)]
+    # frames with no masked depth in range are left out: open3d's integration aborts on them
+    use = [k for k in use if np.any((depths[k] > 0) & (depths[k] <= (params.depth_max or np.inf)))]
     if not use:
-        raise ValueError("no registered frame with masked depth to fuse")
+        raise ValueError("no registered frame with masked depth to fuse"
+                         + (f" within {params.depth_max} m" if params.depth_max else ""))
     voxel = params.voxel_size or auto_voxel_size(
         _extent_estimate([depths[k] for k in use], [frames[k] for k in use], [T_world_cam[k] for k in use]), params)
     depth_max = params.depth_max or 1.05 * max(float(depths[k].max()) for k in use)

@@ -293,13 +293,11 @@ def _scan_frames(frames: list[_Frame], opts: ScanOptions, db: TemplateDB, resume
         from gscan.fuse import FusionParams, fuse_tsdf, template_frame
 
         fparams_tsdf = FusionParams(voxel_size=cfg.fusion.voxel, depth_max=cfg.fusion.depth_max)
-        # frames without object depth in fusion range would make the TSDF integration abort: left out
-        T_fuse = [T if T is not None and _depth_in_range(frames[k].frame.depth, masks[k], cfg.fusion.depth_max)
-                  else None for k, T in enumerate(T_world_cam)]
-        if all(T is None for T in T_fuse):
-            raise InputError(opts.input_dir, f"nothing could be fused: no object depth within "
-                             f"{cfg.fusion.depth_max} m (fusion.depth_max) in the registered frames; check --depth-scale")
-        model = fuse_tsdf([f.frame for f in frames], T_fuse, masks, fparams_tsdf)
+        try:
+            model = fuse_tsdf([f.frame for f in frames], T_world_cam, masks, fparams_tsdf)
+        except ValueError as e:  # no registered frame has object depth within fusion.depth_max
+            raise InputError(opts.input_dir, f"nothing could be fused: {e} (fusion.depth_max); "
+                             "check --depth-scale") from None
         obj_pts = model.points if len(model.points) >= 3 else model.vertices
         if len(obj_pts) < 3:
             raise InputError(opts.input_dir, "nothing could be fused: no object depth in the registered frames")
@@ -352,16 +350,6 @@ def _scan_frames(frames: list[_Frame], opts: ScanOptions, db: TemplateDB, resume
     return ScanResult(opts.output, len(frames) + len(problems), len(registered), unregistered + sorted(problems),
                       accepted, total_edges - accepted, mode, len(V), len(model.triangles), dict(timer.timings),
                       problems, len(keyframes))
-
-
-def _depth_in_range(depth: np.ndarray, mask: np.ndarray | None, depth_max: float | None) -> bool:
-    """Whether [H x W] depth (m) has a valid value up to depth_max (None: any) inside [H x W] mask."""
-    valid = (depth > 0) & np.isfinite(depth)
-    if depth_max:
-        valid &= depth <= depth_max
-    if mask is not None:
-        valid &= mask
-    return bool(valid.any())
 
 
 def _icp_cloud(frame: RGBDFrame, mask: np.ndarray | None, voxel: float) -> np.ndarray:
