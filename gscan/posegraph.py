@@ -258,6 +258,45 @@ def _fill_initial(poses: list[np.ndarray | None], edges: list[GraphEdge], ref: i
     return [np.eye(4) if T is None else T for T in out]
 
 
+def spanning_poses(n: int, graph_edges: list[GraphEdge], weights: list[float] | None = None,
+                   root: int | None = None, T_root: np.ndarray | None = None) -> list[np.ndarray | None]:
+    """Initial T_world_node per node by chaining edges from `root` (default: the first node with an
+    edge), whose pose is `T_root` (default identity); None for nodes the edges do not reach.
+
+    Poses are chained along a maximum spanning tree (Prim, from the root): certain edges before
+    uncertain ones, each kind strongest first (`weights`, e.g. inlier counts; ties by edge order),
+    so that a weak or doubtful edge never sets a frame's initial pose when a better one reaches it.
+    """
+    import heapq
+
+    T: list[np.ndarray | None] = [None] * n
+    if root is None:
+        root = next((k for k in range(n) if any(k in (e.src, e.tgt) for e in graph_edges)), 0)
+    T[root] = np.eye(4) if T_root is None else np.asarray(T_root, dtype=np.float64)
+    w = weights if weights is not None else [1.0] * len(graph_edges)
+    adj: list[list[int]] = [[] for _ in range(n)]
+    for k, e in enumerate(graph_edges):
+        adj[e.src].append(k)
+        adj[e.tgt].append(k)
+    heap: list[tuple[bool, float, int]] = []
+
+    def push(a: int) -> None:
+        for k in adj[a]:
+            heapq.heappush(heap, (bool(graph_edges[k].uncertain), -float(w[k]), k))
+
+    push(root)
+    while heap:
+        _, _, k = heapq.heappop(heap)
+        e = graph_edges[k]
+        if T[e.src] is not None and T[e.tgt] is None:
+            T[e.tgt] = T[e.src] @ inv_T(e.T_tgt_src)
+            push(e.tgt)
+        elif T[e.tgt] is not None and T[e.src] is None:
+            T[e.src] = T[e.tgt] @ e.T_tgt_src
+            push(e.src)
+    return T
+
+
 def optimize_pose_graph(n_nodes: int, edges: list[GraphEdge],
                         T_world_node_init: list[np.ndarray | None] | np.ndarray,
                         params: PoseGraphParams = PoseGraphParams(), reference_node: int = 0) -> PoseGraphResult:
@@ -331,12 +370,13 @@ def optimize_pose_graph(n_nodes: int, edges: list[GraphEdge],
                               f"{params.max_residual_deg:g} deg / {params.max_residual_m * 1000:g} mm")
             rej = {b[1] for b in reject}
             active = [e for e in active if e not in rej]
-            # restart from the surviving edges (odometry first): poses pulled by a wrong edge can
-            # sit in a local minimum, e.g. a 180-degree flip, that LM does not leave
-            start: list[np.ndarray | None] = [None] * n_nodes
-            start[reference_node] = anchor
-            poses = _fill_initial(start, sorted((edges[e] for e in active), key=lambda ed: ed.uncertain),
-                                  reference_node)
+            # restart from the surviving edges (a maximum spanning tree, certain edges first): poses
+            # pulled by a wrong edge can sit in a local minimum, e.g. a 180-degree flip, that LM
+            # does not leave
+            kept = [edges[e] for e in active]
+            tree = spanning_poses(n_nodes, kept, [float(np.trace(ed.information)) for ed in kept],
+                                  reference_node, anchor)
+            poses = [T if T is not None else poses[k] for k, T in enumerate(tree)]
 
         # recovery: an edge dropped while the graph was still distorted (early line-process stages,
         # or before a wrong edge was found) is re-admitted once if the final poses agree with it

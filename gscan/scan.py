@@ -266,10 +266,10 @@ def _scan_frames(frames: list[_Frame], opts: ScanOptions, db: TemplateDB, resume
                     break
                 edges += register_all([(i, j)], "sequential", pool)
             advance(1)
-        from gscan.posegraph import GraphEdge, LoopParams, select_loop_candidates
+        from gscan.posegraph import GraphEdge, LoopParams, select_loop_candidates, spanning_poses
 
         seq_graph = [GraphEdge(index[e.src], index[e.tgt], e.T_tgt_src) for e in edges if e.accepted]
-        T_init = _spanning_poses(n, seq_graph)
+        T_init = spanning_poses(n, seq_graph)
         existing = [(index[e.src], index[e.tgt]) for e in edges]
         lp = LoopParams(max_per_node=cfg.posegraph.loop_candidates, max_angle_deg=cfg.posegraph.max_view_angle_deg)
         # frames without any keypoint (textureless, dark) take no part: bag-of-words needs descriptors
@@ -367,46 +367,11 @@ def _icp_cloud(frame: RGBDFrame, mask: np.ndarray | None, voxel: float) -> np.nd
     return np.asarray(pc.points)
 
 
-def _spanning_poses(n: int, graph_edges: list, weights: list[float] | None = None) -> list[np.ndarray | None]:
-    """Initial T_world_cam per frame (world = the first frame with an edge; None = unreachable).
-
-    Poses are chained along a maximum spanning tree (Prim, from the root): certain edges before
-    uncertain ones, each kind strongest first (`weights`, e.g. inlier counts; ties by edge order),
-    so that a weak or doubtful edge never sets a frame's initial pose when a better one reaches it.
-    """
-    import heapq
-
-    T: list[np.ndarray | None] = [None] * n
-    root = next((k for k in range(n) if any(k in (e.src, e.tgt) for e in graph_edges)), 0)
-    T[root] = np.eye(4)
-    w = weights if weights is not None else [1.0] * len(graph_edges)
-    adj: list[list[int]] = [[] for _ in range(n)]
-    for k, e in enumerate(graph_edges):
-        adj[e.src].append(k)
-        adj[e.tgt].append(k)
-    heap: list[tuple[bool, float, int]] = []
-
-    def push(a: int) -> None:
-        for k in adj[a]:
-            heapq.heappush(heap, (bool(graph_edges[k].uncertain), -float(w[k]), k))
-
-    push(root)
-    while heap:
-        _, _, k = heapq.heappop(heap)
-        e = graph_edges[k]
-        if T[e.src] is not None and T[e.tgt] is None:
-            T[e.tgt] = T[e.src] @ inv_T(e.T_tgt_src)
-            push(e.tgt)
-        elif T[e.tgt] is not None and T[e.src] is None:
-            T[e.src] = T[e.tgt] @ e.T_tgt_src
-            push(e.src)
-    return T
-
-
 def _optimise(n: int, edges: list[Edge], index: dict[str, int], frames: list[_Frame],
               cfg: ScanConfig) -> tuple[list[np.ndarray | None], dict[int, float]]:
     """Pose graph over accepted edges -> (T_world_cam per frame or None, quality in [0, 1] per frame)."""
-    from gscan.posegraph import GraphEdge, PoseGraphParams, information_from_points, optimize_pose_graph
+    from gscan.posegraph import (GraphEdge, PoseGraphParams, information_from_points, optimize_pose_graph,
+                                 spanning_poses)
 
     use = [e for e in edges if e.accepted and e.T_tgt_src is not None]
     graph = []
@@ -418,7 +383,7 @@ def _optimise(n: int, edges: list[Edge], index: dict[str, int], frames: list[_Fr
         # then explains few other candidates (measured: wrong edges 27-40, right ones 63-700)
         doubtful = e.kind == "loop" or len(e.matches) < cfg.posegraph.certain_min_inliers
         graph.append(GraphEdge(i, j, e.T_tgt_src, information_from_points(pts_t), uncertain=doubtful))
-    T0 = _spanning_poses(n, graph, [len(e.matches) for e in use])
+    T0 = spanning_poses(n, graph, [len(e.matches) for e in use])
     ref = next((k for k in range(n) if T0[k] is not None), 0)  # the first frame with an edge
     params = PoseGraphParams(max_residual_deg=cfg.posegraph.prune_rot_deg,
                              max_residual_m=cfg.posegraph.prune_trans_m,
