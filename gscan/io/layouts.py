@@ -119,14 +119,19 @@ def _check_rigid(T: np.ndarray, path: Path) -> None:
         raise InputError(path, "pose is not a rigid transform (rotation not orthonormal or bad last row)")
 
 
+def _color_and_depth(root: Path, color_dir: str) -> tuple[dict[str, Path], dict[str, Path]]:
+    """The colour images of root/color_dir (at least one, else InputError) and the depth images of root/depth."""
+    _require_dir(root / color_dir, f"{color_dir}/")
+    _require_dir(root / "depth", "depth/")
+    colors = list_images(root / color_dir, COLOR_EXTS)
+    if not colors:
+        raise InputError(root / color_dir, "no colour images (.png/.jpg) in folder")
+    return colors, list_images(root / "depth", DEPTH_EXTS)
+
+
 def discover_capture(root: Path) -> Layout:
     """Object-capture layout: rgb/, depth/ (uint16 mm), optional masks/, cam_K.txt, annotated_poses/."""
-    _require_dir(root / "rgb", "rgb/")
-    _require_dir(root / "depth", "depth/")
-    colors = list_images(root / "rgb", COLOR_EXTS)
-    if not colors:
-        raise InputError(root / "rgb", "no colour images (.png/.jpg) in folder")
-    depths = list_images(root / "depth", DEPTH_EXTS)
+    colors, depths = _color_and_depth(root, "rgb")
     masks = list_images(root / "masks", MASK_EXTS) if (root / "masks").is_dir() else None
     frames, problems = _pair(colors, depths, masks, root / "depth")
     gt = None
@@ -165,12 +170,7 @@ def read_open3d_log(path: Path) -> list[tuple[int, np.ndarray]]:
 
 def discover_open3d(root: Path) -> Layout:
     """Open3D / Redwood layout: color/, depth/ (uint16 mm), camera_intrinsic.json, trajectory.log."""
-    _require_dir(root / "color", "color/")
-    _require_dir(root / "depth", "depth/")
-    colors = list_images(root / "color", COLOR_EXTS)
-    if not colors:
-        raise InputError(root / "color", "no colour images (.png/.jpg) in folder")
-    depths = list_images(root / "depth", DEPTH_EXTS)
+    colors, depths = _color_and_depth(root, "color")
     if not set(colors) & set(depths) and len(colors) == len(depths):
         # Redwood-style numbering that differs between the folders: pair in sorted order.
         log.info("%s: colour and depth stems differ; pairing them in sorted order", root)
