@@ -13,7 +13,7 @@ import pytest
 from hypothesis import given, settings, strategies as st
 
 from gscan.geometry import kabsch, make_T, pose_error, rotvec_to_R, transform_points
-from gscan.gmatch import (Candidates, GMatchParams, _delta, _flips, default_eps_f, extract_candidates, gmatch,
+from gscan.gmatch import (Candidates, GMatchParams, _flips, _keep_consistent, default_eps_f, extract_candidates, gmatch,
                           search_candidates, step)
 
 Z = np.array([0.0, 0.0, 1.0])
@@ -68,21 +68,40 @@ def _cands(pairs):
     return p[:, 0].copy(), p[:, 1].copy()
 
 
+def _members(ps, pt, pairs, cf=None):
+    """Member set (F, I, G) of the kernel for candidate pairs [(i, j)] with zero running cost."""
+    p = np.asarray(pairs)
+    F = np.vstack([ps[p[:, 0]].T, pt[p[:, 1]].T, np.ones(len(p)) if cf is None else cf])
+    I = np.vstack([np.arange(len(p)), p[:, 0], p[:, 1]]).astype(np.int32)
+    return np.ascontiguousarray(F), I, np.zeros(len(p))
+
+
+def _keep(F, I, G, k_m, eps, eta):
+    """(kept candidate indices, their g, argmin position) of _keep_consistent, written to fresh arrays."""
+    n = F.shape[1]
+    Fo, Io, Go = np.empty_like(F), np.empty_like(I), np.empty_like(G)
+    w, arg, _ = _keep_consistent(F, I, G, n, Fo, Io, Go, k_m, eps, eta, np.empty(n), np.empty(n, bool))
+    return list(Io[0, :w]), Go[:w], arg
+
+
 def test_delta_relative_error_with_hard_margin():
     ps = np.array([[0, 0, 1.0], [0.1, 0, 1.0], [0.3, 0, 1.0]])
     pt = np.array([[0, 0, 1.0], [0.104, 0, 1.0], [0.32, 0, 1.0]])
-    ci, cj = _cands([(0, 0), (1, 1), (2, 2), (0, 1)])
-    cf = np.ones(4, np.float32)
-    # |0.1 - 0.104| = 4 mm < eta = 1 cm -> 0.004 / 0.1
-    assert _delta(ps, pt, ci, cj, cf, 0, 1, 0.01) == pytest.approx(0.04, abs=1e-9)
-    # |0.3 - 0.32| = 2 cm >= eta -> hard penalty 1
-    assert _delta(ps, pt, ci, cj, cf, 0, 2, 0.01) == 1.0
-    assert _delta(ps, pt, ci, cj, cf, 0, 2, 0.03) == pytest.approx(0.02 / 0.3, abs=1e-9)
-    # pairs sharing a keypoint are never combined
-    assert _delta(ps, pt, ci, cj, cf, 0, 3, 0.01) == 1.0
-    # depth factor scales the margin: 2 cm error passes eta 1 cm at factor 2.5
-    cf2 = np.array([1.0, 1.0, 2.5, 1.0], np.float32)
-    assert _delta(ps, pt, ci, cj, cf2, 0, 2, 0.01) == pytest.approx(0.02 / 0.3, abs=1e-9)
+    F, I, G = _members(ps, pt, [(0, 0), (1, 1), (2, 2), (0, 1)])
+    # |0.1 - 0.104| = 4 mm < eta = 1 cm -> 0.004 / 0.1; |0.3 - 0.32| = 2 cm >= eta -> never consistent;
+    # a pair sharing a keypoint with the anchor is never combined; the anchor itself is not kept
+    kept, g, arg = _keep(F, I, G, 0, 0.08, 0.01)
+    assert kept == [1] and g == pytest.approx([0.04], abs=1e-9) and arg == 0
+    kept, g, _ = _keep(F, I, G, 0, 0.08, 0.03)  # eta 3 cm: 2 cm / 0.3 m passes
+    assert kept == [1, 2] and g == pytest.approx([0.04, 0.02 / 0.3], abs=1e-9)
+    assert _keep(F, I, G, 0, 0.03, 0.03)[0] == []  # both relative errors above eps
+    # the depth factor scales the margin: a 2 cm error passes eta 1 cm at factor 2.5
+    F2, I2, G2 = _members(ps, pt, [(0, 0), (1, 1), (2, 2), (0, 1)], cf=np.array([1.0, 1.0, 2.5, 1.0]))
+    assert _keep(F2, I2, G2, 0, 0.08, 0.01)[0] == [1, 2]
+    # g is the running max: a member's earlier cost is kept when larger; argmin picks the smaller g
+    G2[1] = 0.07
+    kept, g, arg = _keep(F2, I2, G2, 0, 0.08, 0.01)
+    assert g == pytest.approx([0.07, 0.02 / 0.3], abs=1e-9) and arg == 1
 
 
 def test_flip_test_mirror_and_collinear():
@@ -152,6 +171,23 @@ def test_extract_candidates_order_and_threshold():
     assert np.all(np.diff(c.dist) >= 0)
 
 
+@given(seed=st.integers(0, 10_000), levels=st.integers(2, 50), negative=st.booleans())
+@settings(max_examples=60, deadline=None)
+def test_extract_candidates_matches_stable_argsort(seed, levels, negative):
+    """The packed-key sort gives the order of a stable argsort (many ties, -0.0, negative values)."""
+    rng = np.random.default_rng(seed)
+    d = (rng.integers(0, levels, (int(rng.integers(1, 40)), int(rng.integers(1, 40)))) / levels).astype(np.float32)
+    d[rng.random(d.shape) < 0.05] = -0.0
+    if negative:
+        d -= 0.1
+    c = extract_candidates(d, 0.6)
+    flat = np.flatnonzero(d < 0.6)
+    order = np.argsort(d.reshape(-1)[flat], kind="stable")
+    np.testing.assert_array_equal(c.src, flat[order] // d.shape[1])
+    np.testing.assert_array_equal(c.tgt, flat[order] % d.shape[1])
+    np.testing.assert_array_equal(c.dist, d.reshape(-1)[flat[order]])
+
+
 def test_inputs_validated():
     with pytest.raises(ValueError):
         gmatch(np.zeros((3, 2)), np.zeros((3, 3)), np.zeros((3, 3)), 1.0)
@@ -159,6 +195,8 @@ def test_inputs_validated():
         gmatch(np.zeros((3, 3)), np.zeros((4, 3)), np.zeros((3, 3)), 1.0)
     with pytest.raises(ValueError):
         GMatchParams(constraint="nope")
+    with pytest.raises(ValueError):
+        GMatchParams(eps_c=1.0)  # a relative distance error: (0, 1)
     with pytest.raises(ValueError):
         default_eps_f("akaze")
     empty = gmatch(np.zeros((3, 3)), np.zeros((3, 3)), np.full((3, 3), 5.0), 1.0)
