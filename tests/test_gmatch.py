@@ -13,8 +13,9 @@ import pytest
 from hypothesis import given, settings, strategies as st
 
 from gscan.geometry import kabsch, make_T, pose_error, rotvec_to_R, transform_points
-from gscan.gmatch import (Candidates, GMatchParams, _flips, _keep_consistent, default_eps_f, extract_candidates, gmatch,
-                          search_candidates, step)
+from gscan.gmatch import (Candidates, GMatchParams, default_eps_f, extract_candidates, gmatch, search_candidates,
+                          step)
+from gscan.gmatch_kernel import flips, keep_consistent
 
 Z = np.array([0.0, 0.0, 1.0])
 
@@ -80,7 +81,7 @@ def _keep(F, I, G, k_m, eps, eta):
     """(kept candidate indices, their g, argmin position) of _keep_consistent, written to fresh arrays."""
     n = F.shape[1]
     Fo, Io, Go = np.empty_like(F), np.empty_like(I), np.empty_like(G)
-    w, arg, _ = _keep_consistent(F, I, G, n, Fo, Io, Go, k_m, eps, eta, np.empty(n), np.empty(n, bool))
+    w, arg, _ = keep_consistent(F, I, G, n, Fo, Io, Go, k_m, eps, eta, np.empty(n), np.empty(n, bool))
     return list(Io[0, :w]), Go[:w], arg
 
 
@@ -110,16 +111,16 @@ def test_flip_test_mirror_and_collinear():
     mirror = np.array([[0.0, 0, 1], [-0.1, 0, 1], [0, 0.1, 1]])  # x -> -x: seen from the other side
     rot = transform_points(make_T(rotvec_to_R([0, 0, 0.7]), [0.02, 0, 0.1]), ps)  # in-plane rotation
     args = (Z, Z, 0.8, 0.1)
-    assert _flips(ps, mirror, 0, 1, 2, 0, 1, 2, *args)
-    assert not _flips(ps, rot, 0, 1, 2, 0, 1, 2, *args)
+    assert flips(ps, mirror, 0, 1, 2, 0, 1, 2, *args)
+    assert not flips(ps, rot, 0, 1, 2, 0, 1, 2, *args)
     # near-collinear triples are not decided
     col = np.array([[0.0, 0, 1], [0.1, 0, 1], [0.2, 0.001, 1]])
     col_m = col * np.array([-1, 1, 1])
-    assert not _flips(col, col_m, 0, 1, 2, 0, 1, 2, *args)
+    assert not flips(col, col_m, 0, 1, 2, 0, 1, 2, *args)
     # a triangle seen edge-on (normal perpendicular to view) is below the flip margin
     edge = np.array([[0.0, 0, 1], [0.1, 0, 1], [0, 0.0, 1.1]])
     tilt = transform_points(make_T(rotvec_to_R([0.2, 0, 0]), [0, 0, 0]), edge)
-    assert not _flips(edge, tilt, 0, 1, 2, 0, 1, 2, *args)
+    assert not flips(edge, tilt, 0, 1, 2, 0, 1, 2, *args)
 
 
 def test_step_hand_made():
