@@ -124,6 +124,7 @@ class GMatchResult:
     hyp_length: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     hyp_cost: np.ndarray = field(default_factory=lambda: np.zeros(0))
     hyp_pruned: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    candidates: Candidates | None = None  # the candidate pairs searched (set by `gmatch`)
 
     @property
     def trace(self) -> list[HypothesisTrace]:
@@ -286,6 +287,7 @@ def gmatch(pts_s: np.ndarray, pts_t: np.ndarray, dist: np.ndarray, eps_f: float,
     t_cand = (time.perf_counter() - t0) * 1e3
     res = search_candidates(pts_s, pts_t, cand, params, view_s, view_t, depth_s, depth_t)
     res.timings_ms["candidates"] = t_cand
+    res.candidates = cand
     log.debug("gmatch: %d candidates, %d matches, cost %.4f, %s", res.n_candidates, len(res.matches), res.cost,
               res.timings_ms)
     return res

@@ -32,7 +32,7 @@ import numpy as np
 
 from gscan.baselines import BASELINES, BaselineParams, run_baseline
 from gscan.geometry import icp, inv_T, kabsch, pose_error, transform_points
-from gscan.gmatch import GMatchParams, default_eps_f, gmatch
+from gscan.gmatch import Candidates, GMatchParams, default_eps_f, gmatch
 
 log = logging.getLogger(__name__)
 
@@ -86,14 +86,14 @@ def _kabsch_rmse(pts_s: np.ndarray, pts_t: np.ndarray, T: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sum((transform_points(T, pts_s) - pts_t) ** 2, axis=1))))
 
 
-def refine_pose(pts_s: np.ndarray, pts_t: np.ndarray, dist: np.ndarray, eps_f: float, T: np.ndarray,
-                taus: tuple[float, ...], min_pairs: int) -> tuple[np.ndarray, np.ndarray]:
+def refine_pose(pts_s: np.ndarray, pts_t: np.ndarray, cand: Candidates, T: np.ndarray, taus: tuple[float, ...],
+                min_pairs: int) -> tuple[np.ndarray, np.ndarray]:
     """Guided refinement (module docstring): (T_tgt_src [4 x 4], inliers [K x 2] int32).
 
-    pts_s [Ns x 3], pts_t [Nt x 3], dist [Ns x Nt] descriptor distances, T the starting pose.
+    pts_s [Ns x 3], pts_t [Nt x 3], cand the GMatch candidate pairs, T the starting pose.
     Returns the input pose and an empty inlier set when no round keeps `min_pairs` pairs.
     """
-    ii, jj = np.nonzero(dist < eps_f)
+    ii, jj = cand.src.astype(np.int64), cand.tgt.astype(np.int64)
     ps, pt = np.asarray(pts_s, np.float64), np.asarray(pts_t, np.float64)
     # candidates far from consistent under the starting pose never come back: keep the loosest band
     r = np.linalg.norm(transform_points(T, ps[ii]) - pt[jj], axis=1)
@@ -131,7 +131,7 @@ def register_points(pts_s: np.ndarray, pts_t: np.ndarray, desc_s: np.ndarray, de
     if params.method == "gmatch":
         eps_f = params.gmatch.eps_f if params.gmatch.eps_f is not None else default_eps_f(kind)
         res = gmatch(pts_s, pts_t, dist, eps_f, params.gmatch, view_s, view_t)
-        matches, cost, T = res.matches, res.cost, None
+        matches, cost, T, cand = res.matches, res.cost, None, res.candidates
     else:
         b = run_baseline(params.method, pts_s, pts_t, dist, desc_s, desc_t, params.baseline)
         matches, cost, T = b.matches, float("nan"), b.T_tgt_src
@@ -149,7 +149,7 @@ def register_points(pts_s: np.ndarray, pts_t: np.ndarray, desc_s: np.ndarray, de
     if params.method != "gmatch":
         cost = krmse
     elif params.refine and n >= 3:
-        T_ref, refined = refine_pose(pts_s, pts_t, dist, eps_f, T, params.refine_taus, n)
+        T_ref, refined = refine_pose(pts_s, pts_t, cand, T, params.refine_taus, n)
         if len(refined):
             T, inliers = T_ref, refined
             krmse = _kabsch_rmse(np.asarray(pts_s, np.float64)[refined[:, 0]],
@@ -182,15 +182,11 @@ def register_points(pts_s: np.ndarray, pts_t: np.ndarray, desc_s: np.ndarray, de
     return out
 
 
-def register_features(fs, ft, params: RegisterParams = RegisterParams(), clouds: tuple | None = None,
-                      method: str | None = None, view_s=(0.0, 0.0, 1.0), view_t=(0.0, 0.0, 1.0)) -> PairResult:
-    """Register two gscan.features.Features (camera-frame points). `method` overrides params.method."""
+def register_features(fs, ft, params: RegisterParams = RegisterParams(), clouds: tuple | None = None) -> PairResult:
+    """Register two gscan.features.Features (camera-frame points, viewed along +z)."""
     if fs.kind != ft.kind:
         raise ValueError(f"descriptor kinds differ: {fs.kind} vs {ft.kind}")
-    if method is not None and method != params.method:
-        params = RegisterParams(**{**params.__dict__, "method": method})
-    return register_points(fs.points, ft.points, fs.descriptors, ft.descriptors, fs.kind, params, clouds,
-                           view_s, view_t)
+    return register_points(fs.points, ft.points, fs.descriptors, ft.descriptors, fs.kind, params, clouds)
 
 
 def frame_cloud(frame, stride: int = 2, mask: np.ndarray | None = None) -> np.ndarray:
