@@ -2,11 +2,13 @@
 
 Usage (from the repository root):
     python bench/match.py pairs  [--meshes N] [--gaps 20,60,120] [--masks] [--methods M,..] [--eps-f E]
+                                 [--table newspaper|wood|fabric] [--gmatch T=64,eps_c=0.05,..]
                                                                       # success rate + time per pair
     python bench/match.py speed  [--inputs DIR] [--repeats 20]        # GMatch search time vs the C++ figures
     python bench/match.py sweep  [--meshes N] [--gap 60] [--kinds rootsift,sift,orb]   # eps_f sweep
 
-pairs: every shared mesh (/work/shared/data/meshes/*/model_0.obj) rests on a textured table and is
+pairs: every shared mesh (/work/shared/data/meshes/*/model_0.obj) rests on a textured table (--table:
+a gscan.synth.table_texture kind; newspaper is rich in keypoints, wood and fabric are sparser) and is
 rendered by gscan.synth at 640x480 (noisy depth) from cameras at 40 deg elevation, at azimuth 0 and
 at each gap; each (0, gap) pair is registered on whole-frame RootSIFT keypoints (the same keypoints
 for every method), matches only (no ICP). Success: rotation error < 5 deg and translation < 2 cm.
@@ -29,8 +31,13 @@ SHARED = Path(__file__).resolve().parents[2] / "shared"
 CPP_MS = {500: 17.0, 1000: 83.0, 2000: 361.0}
 
 
-def render_views(mesh_dir: Path, azimuths_deg: list[float], seed: int, elevation_deg: float = 40.0):
-    """[(RGBDFrame, T_world_cam)] of the mesh resting on a table, one per azimuth (640x480, noisy depth)."""
+def render_views(mesh_dir: Path, azimuths_deg: list[float], seed: int, elevation_deg: float = 40.0,
+                 table_kind: str = "newspaper"):
+    """[(RGBDFrame, T_world_cam)] of the mesh resting on a table, one per azimuth (640x480, noisy depth).
+
+    table_kind: the table top's texture (gscan.synth.table_texture kind: "newspaper", "wood", "fabric").
+    The depth noise of each view depends on (seed, azimuth) only.
+    """
     from gscan.camera import RGBDFrame
     from gscan.geometry import look_at, transform_points
     from gscan.synth import DEFAULT_INTRINSICS, SynthScene, default_distance, load_textured_mesh, rest_on_table
@@ -38,14 +45,16 @@ def render_views(mesh_dir: Path, azimuths_deg: list[float], seed: int, elevation
     mesh = load_textured_mesh(mesh_dir / "model_0.obj")
     T_world_obj = rest_on_table(mesh)
     c = transform_points(T_world_obj, mesh.center[None])[0]
-    scene = SynthScene([(mesh, T_world_obj)], table=True, seed=seed)
+    scene = SynthScene([(mesh, T_world_obj)], table=True, seed=seed, table_kind=table_kind)
     r = default_distance(mesh)
     el = np.radians(elevation_deg)
     out = []
     for k, az in enumerate(azimuths_deg):
         a = np.radians(az)
         T = look_at(c + r * np.array([np.cos(el) * np.cos(a), np.cos(el) * np.sin(a), np.sin(el)]), c)
-        f = scene.render(T, DEFAULT_INTRINSICS, rng=np.random.default_rng([seed, k]))
+        # depth noise seeded by the azimuth (milli-degrees), not by the position in the list: a view is the same
+        # render whichever other gaps are asked for (`--gaps 60` reproduces the 60 deg pair of the full run)
+        f = scene.render(T, DEFAULT_INTRINSICS, rng=np.random.default_rng([seed, int(round(az * 1000)) % 360000]))
         out.append((RGBDFrame(f"{mesh_dir.name}_{k}", f.color, f.depth, DEFAULT_INTRINSICS, f.mask, None), T))
     return out
 
@@ -53,6 +62,33 @@ def render_views(mesh_dir: Path, azimuths_deg: list[float], seed: int, elevation
 def _meshes(n: int | None) -> list[Path]:
     ms = sorted(p for p in (SHARED / "data" / "meshes").iterdir() if (p / "model_0.obj").is_file())
     return ms[:n] if n else ms
+
+
+def gmatch_overrides(spec: str | None) -> dict:
+    """GMatchParams fields from "KEY=VALUE,KEY=VALUE" (values cast to the field's default type)."""
+    from dataclasses import fields
+
+    from gscan.gmatch import GMatchParams
+
+    if not spec:
+        return {}
+    types = {f.name: type(f.default) for f in fields(GMatchParams) if f.default is not None}
+    out = {}
+    for item in spec.split(","):
+        key, sep, val = item.partition("=")
+        key = key.strip()
+        if not sep or key not in types:
+            raise SystemExit(f"--gmatch: expected KEY=VALUE with KEY one of {sorted(types)}, got {item!r}")
+        t, v = types[key], val.strip()
+        try:
+            out[key] = v.lower() in ("1", "true", "yes") if t is bool else t(v)
+        except ValueError:
+            raise SystemExit(f"--gmatch: {key} needs a {t.__name__}, got {v!r}") from None
+    try:
+        GMatchParams(**out)
+    except ValueError as e:
+        raise SystemExit(f"--gmatch: {e}") from None
+    return out
 
 
 def cmd_pairs(args) -> None:
@@ -66,9 +102,10 @@ def cmd_pairs(args) -> None:
     ok = {(m, g): [] for m in methods for g in gaps}
     ms = {(m, g): [] for m in methods for g in gaps}
     fp = FeatureParams(kind="rootsift")
-    gp = GMatchParams(eps_f=args.eps_f)
+    over = gmatch_overrides(args.gmatch)
+    gp = GMatchParams(eps_f=args.eps_f, **over)
     for mi, md in enumerate(_meshes(args.meshes)):
-        views = render_views(md, [0.0] + gaps, seed=mi)
+        views = render_views(md, [0.0] + gaps, seed=mi, table_kind=args.table)
         feats = [extract_features(v[0], fp, mask=v[0].mask if args.masks else None) for v in views]
         line = []
         for gi, g in enumerate(gaps):
@@ -81,8 +118,11 @@ def cmd_pairs(args) -> None:
                 ok[(m, g)].append(e[0] < 5.0 and e[1] < 0.02)
             line.append(f"{g:.0f}:" + "".join("+" if ok[(m, g)][-1] else "." for m in methods))
         print(f"{md.name[:40]:40s} kp {len(feats[0]):4d}  " + "  ".join(line), file=sys.stderr, flush=True)
-    print(f"\n{'object pixels only' if args.masks else 'whole frame'}: "
-          f"success rate (rot < 5 deg, trans < 2 cm) over {len(_meshes(args.meshes))} meshes; "
+    n_meshes = len(ok[(methods[0], gaps[0])])
+    tuned = "".join(f", {k} {v}" for k, v in over.items())
+    eps_f = f"eps_f {args.eps_f:g}" if args.eps_f is not None else "default eps_f"
+    print(f"\n{'object pixels only' if args.masks else 'whole frame'}, {args.table} table "
+          f"(gmatch: {eps_f}{tuned}): success rate (rot < 5 deg, trans < 2 cm) over {n_meshes} meshes; "
           "median CPU ms per pair (distances + match + Kabsch)")
     print("| method | " + " | ".join(f"{g:.0f} deg" for g in gaps) + " | "
           + " | ".join(f"ms @{g:.0f}" for g in gaps) + " |")
@@ -157,6 +197,10 @@ def main() -> None:
     a.add_argument("--methods", default=None, help="comma list (default: gmatch and every baseline)")
     a.add_argument("--eps-f", type=float, default=None, help="GMatch eps_f (default: the descriptor's default)")
     a.add_argument("--masks", action="store_true", help="keypoints on the object's pixels only (moving-object mode)")
+    a.add_argument("--table", default="newspaper", choices=("newspaper", "wood", "fabric"),
+                   help="table-top texture (gscan.synth.table_texture kind)")
+    a.add_argument("--gmatch", default=None, metavar="KEY=VALUE,..",
+                   help="GMatchParams overrides for the gmatch method, e.g. T=64,eps_c=0.05")
     b = sub.add_parser("speed")
     b.add_argument("--inputs", default="/tmp/gscan_bench_inputs")
     b.add_argument("--repeats", type=int, default=20)
