@@ -47,7 +47,7 @@ from gscan.camera import Intrinsics, RGBDFrame, backproject
 from gscan.errors import InputError
 from gscan.features import (OBJECT_FEATURES, FeatureParams, Features, descriptor_distances, empty_features,
                             extract_features, extract_features_in_mask)
-from gscan.geometry import inv_T, kabsch, make_T, rotvec_to_R, transform_points
+from gscan.geometry import inv_T, kabsch_trimmed, make_T, rotvec_to_R, transform_points
 from gscan.gmatch import GMatchParams, default_eps_f, gmatch
 from gscan.template import Template, open_template
 
@@ -70,6 +70,7 @@ class EstimateParams:
     min_matches: int = 14  # fewer GMatch matches -> not found (bench: correct lists >= 15, wrong ones <= 13)
     min_score: float = 0.6  # depth-consistency score below this -> not found
     min_confirmed: float = 0.15  # fraction of visible template points confirmed by depth below this -> not found
+    trim_tau: float = 0.008  # m, the match list's pose drops pairs off by more (gscan.geometry.kabsch_trimmed)
     icp_max_dist: float = 0.005  # m, ICP correspondence distance
     icp_voxel: float = 0.003  # m, template cloud downsampling (ICP source, score)
     icp_target_voxel: float = 0.004  # m, query cloud voxel averaging (ICP target)
@@ -214,7 +215,8 @@ class Estimator:
         n, _, v, m = best
         a = self.offsets[v]
         t = time.perf_counter()
-        T_cam_obj = kabsch(self.points_obj[a + m[:, 0]], feats.points[m[:, 1]].astype(np.float64))
+        T_cam_obj, _ = kabsch_trimmed(self.points_obj[a + m[:, 0]], feats.points[m[:, 1]].astype(np.float64),
+                                      self.params.trim_tau)
         tm["solve"] = _ms(t)
 
         t = time.perf_counter()

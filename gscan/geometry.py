@@ -100,6 +100,40 @@ def kabsch(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) 
     return umeyama(src, dst, weights, with_scale=False)
 
 
+def kabsch_trimmed(src: np.ndarray, dst: np.ndarray, tau: float) -> tuple[np.ndarray, np.ndarray]:
+    """Kabsch on matched points src, dst [N x 3] (N >= 3) with a minority of gross outliers trimmed:
+    (T, keep [N] bool).
+
+    Drops the worst pair while its residual |T src - dst| is above tau, re-solving each time; then
+    the same with leave-one-out residuals (each pair against the pose solved without it), which also
+    catch a far-off pair that tilts the fit towards itself (high leverage: a clustered list plus one
+    distant point). When a drop would leave fewer than half of the pairs (or 3), the list is not a
+    consistent majority plus a few outliers: plain Kabsch on all of them is returned.
+    """
+    n = len(src)
+    keep = np.ones(n, bool)
+    loo = False
+    while True:
+        idx = np.flatnonzero(keep)
+        T = kabsch(src[idx], dst[idx])
+        if loo and len(idx) <= 3:  # leave-one-out needs 3 pairs left
+            return T, keep
+        if loo:
+            r = np.array([np.linalg.norm(transform_points(kabsch(np.delete(src[idx], k, 0), np.delete(dst[idx], k, 0)),
+                                                          src[i][None])[0] - dst[i]) for k, i in enumerate(idx)])
+        else:
+            r = np.linalg.norm(transform_points(T, src[idx]) - dst[idx], axis=1)
+        worst = int(np.argmax(r))
+        if r[worst] <= tau:
+            if loo:
+                return T, keep
+            loo = True
+            continue
+        if len(idx) - 1 < max(3, (n + 1) // 2):
+            return kabsch(src, dst), np.ones(n, bool)
+        keep[idx[worst]] = False
+
+
 def mean_pose(Ts: list[np.ndarray] | np.ndarray) -> np.ndarray:
     """Chordal mean of rigid transforms: mean translation, rotation projected onto SO(3)."""
     Ts = np.asarray(Ts, dtype=np.float64)

@@ -6,8 +6,13 @@ distance matrix [Ns x Nt] and the viewing direction of each side in the frame of
 Definitions (DESIGN.md "GMatch, as we implement it"):
 
 * candidates: all pairs (i, j) with descriptor distance d_f(i, j) < eps_f, ordered by
-  (d_f ascending, row-major index) -- this order is the "descriptor order" below and the
-  tie-break of every argmin, which makes the search deterministic.
+  (key ascending, row-major index) -- this order is the "descriptor order" below (seeds, levels 2
+  and 3) and the tie-break of every argmin, which makes the search deterministic. `order` picks the
+  key: "ratio" (default) d_f(i, j) / d_2(i), d_2(i) the second-smallest distance of source i's row
+  (Lowe's ratio: the most distinctive pairs first), or "distance" d_f itself (the paper's "top-T
+  most similar"). On repetitive textures (newspaper glyphs, wood grain) the most similar pairs are
+  copies of one pattern: the first true candidate was at rank 69 / 302 by distance and at rank
+  <= 10 / 5 by ratio, so no seed of the T = 24 was true by distance (BENCHMARKS.md, Matcher).
 * delta(p, q) for two pairs p = (i1, j1), q = (i2, j2): with l_s = |ps_i1 - ps_i2| and
   l_t = |pt_j1 - pt_j2|, delta = |l_s - l_t| / l_s if |l_s - l_t| < eta_pq, else 1.
   eta_pq = eta * max(f(p), f(q)) with f(i, j) = max(1, (z / eta_ref_depth)^2) over the
@@ -57,11 +62,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from gscan.gmatch_kernel import flips, search
+from gscan.gmatch_kernel import flips, search, second_smallest_per_row
 
 log = logging.getLogger(__name__)
 
 CONSTRAINTS = {"distance": 0, "flip": 1, "triple": 2}
+ORDERS = ("ratio", "distance")
 
 # Default feature thresholds per descriptor kind (distance metric of gscan.features.descriptor_distances:
 # L2 on unit-norm RootSIFT vectors, L2 on raw OpenCV SIFT vectors (norm ~512), Hamming bits for ORB).
@@ -94,8 +100,11 @@ class GMatchParams:
     K3: int = 4  # third pairs per second pair (level 3)
     flip_margin: float = 0.8  # |z_s - z_t| above which opposite-signed normals count as a flip-over
     collinear_sin: float = 0.1  # triangles with a smaller sine are degenerate / not flip-tested
+    order: str = "ratio"  # search order of the candidates: "distance" | "ratio" (module docstring)
 
     def __post_init__(self) -> None:
+        if self.order not in ORDERS:
+            raise ValueError(f"order must be one of {ORDERS}, got {self.order!r}")
         if self.constraint not in CONSTRAINTS:
             raise ValueError(f"constraint must be one of {sorted(CONSTRAINTS)}, got {self.constraint!r}")
         if self.T < 1 or self.L < 3 or self.K2 < 1 or self.K3 < 1:
@@ -140,25 +149,33 @@ class Candidates:
     dist: np.ndarray  # [C] float32 descriptor distance (ascending)
 
 
-def extract_candidates(dist: np.ndarray, eps_f: float) -> Candidates:
-    """Pairs with dist [Ns x Nt] < eps_f, sorted by (distance, row-major index)."""
+def extract_candidates(dist: np.ndarray, eps_f: float, order: str = "distance") -> Candidates:
+    """Pairs with dist [Ns x Nt] < eps_f in search order (module docstring): by (key, row-major index)
+    with key = the distance ("distance") or the distance over the second-smallest distance of its row
+    ("ratio"; rows with fewer than two targets use eps_f)."""
+    if order not in ORDERS:
+        raise ValueError(f"order must be one of {ORDERS}, got {order!r}")
     dist = np.asarray(dist)
     if dist.ndim != 2:
         raise ValueError(f"distance matrix must be [Ns x Nt], got shape {dist.shape}")
     flat = np.flatnonzero(dist < eps_f)
     d = dist.reshape(-1)[flat].astype(np.float32) + np.float32(0.0)  # (-0 -> +0)
-    if dist.size < 2**32 and (len(d) == 0 or d.min() >= 0):
-        # one sort of 64-bit keys (float32 bits, monotone for non-negative values | flat index): 3-4x faster
-        # than a stable argsort of the distances, same order
-        key = (d.view(np.uint32).astype(np.uint64) << np.uint64(32)) | flat.astype(np.uint64)
-        key.sort()
-        flat = (key & np.uint64(0xFFFFFFFF)).astype(np.int64)
-        d = (key >> np.uint64(32)).astype(np.uint32).view(np.float32)
-    else:
-        order = np.argsort(d, kind="stable")
-        flat, d = flat[order], d[order]
     nt = dist.shape[1]
-    return Candidates((flat // nt).astype(np.int32), (flat % nt).astype(np.int32), d)
+    key = d
+    if order == "ratio" and len(d):
+        d2 = second_smallest_per_row(np.ascontiguousarray(dist, dtype=np.float32)) if nt >= 2 else None
+        d2 = np.full(len(dist), eps_f, np.float32) if d2 is None else d2
+        key = (d / np.maximum(d2[flat // nt], np.float32(1e-30))).astype(np.float32)
+    if dist.size < 2**32 and (len(key) == 0 or key.min() >= 0):
+        # one sort of 64-bit keys (float32 bits, monotone for non-negative values | flat index): 3-4x faster
+        # than a stable argsort, same order
+        packed = (key.view(np.uint32).astype(np.uint64) << np.uint64(32)) | flat.astype(np.uint64)
+        packed.sort()
+        flat = (packed & np.uint64(0xFFFFFFFF)).astype(np.int64)
+    else:
+        flat = flat[np.argsort(key, kind="stable")]
+    return Candidates((flat // nt).astype(np.int32), (flat % nt).astype(np.int32),
+                      dist.reshape(-1)[flat].astype(np.float32))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -283,7 +300,7 @@ def gmatch(pts_s: np.ndarray, pts_t: np.ndarray, dist: np.ndarray, eps_f: float,
     if dist.shape != (len(pts_s), len(pts_t)):
         raise ValueError(f"distance matrix shape {dist.shape} != ({len(pts_s)}, {len(pts_t)})")
     t0 = time.perf_counter()
-    cand = extract_candidates(dist, eps_f)
+    cand = extract_candidates(dist, eps_f, params.order)
     t_cand = (time.perf_counter() - t0) * 1e3
     res = search_candidates(pts_s, pts_t, cand, params, view_s, view_t, depth_s, depth_t)
     res.timings_ms["candidates"] = t_cand

@@ -350,3 +350,22 @@ def search(ps, pt, ci, cj, cf, fsrc, ft_max, view_s, view_t, T, L, K2, K3, eps_c
                     if best_len == L:
                         eps_e = min(eps_c, best_cost)
     return best, best_len, best_cost, hyp[:H], hyp_len[:H], hyp_cost[:H], hyp_pruned[:H]
+
+
+@njit(cache=True, nogil=True)
+def second_smallest_per_row(d):
+    """[Ns] float32 second-smallest value of each row of d [Ns x Nt] (Nt >= 2)."""
+    out = np.empty(d.shape[0], np.float32)
+    for i in range(d.shape[0]):
+        a = np.inf
+        b = np.inf
+        for j in range(d.shape[1]):
+            x = d[i, j]
+            if x < b:
+                if x < a:
+                    b = a
+                    a = x
+                else:
+                    b = x
+        out[i] = b
+    return out

@@ -6,12 +6,17 @@ T_tgt_src maps source-camera points into the target camera (p_t = T_tgt_src @ p_
 
 Acceptance rules, applied in this order (the first failing one is the `reason`):
 1. "too few matches": fewer than `min_matches` geometric matches (GMatch list / baseline inliers).
-2. "kabsch residual": RMS of |T p_s - p_t| over the matches above `max_kabsch_rmse`.
+2. "kabsch residual": RMS of |T p_s - p_t| over the (kept) matches above `max_kabsch_rmse`.
 3. with ICP (params.icp and both clouds given), point-to-plane ICP from the match pose, then
    "icp fitness" below `min_fitness`, "icp rmse" above `max_rmse`, or "icp shift": ICP moved the
    match pose by more than `max_icp_shift_deg` / `max_icp_shift_m` (a slide, not a refinement).
    A rejected ICP leaves the match pose in T_tgt_src; an accepted one replaces it.
 Without ICP, rmse is the Kabsch residual and fitness is None.
+
+Pose from a GMatch list: `kabsch_trimmed` (Kabsch, then the worst pair is dropped and the pose re-solved
+while it lies more than refine_taus[0] off, down to half of the list). Pairwise distances cannot tell a
+point from its mirror image across a plane holding the other matches, so on a flat, self-similar table a
+24-pair list can carry one pair 40 cm off: plain Kabsch then errs by 24 deg, the trimmed one by 0.3.
 
 Guided refinement (GMatch only, `refine`): GMatch stops at L (24) matches, and a pose from 24
 points is limited by their depth noise. From the Kabsch pose, every candidate pair (descriptor
@@ -31,7 +36,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from gscan.baselines import BASELINES, BaselineParams, run_baseline
-from gscan.geometry import icp, inv_T, kabsch, pose_error, transform_points
+from gscan.geometry import icp, inv_T, kabsch, kabsch_trimmed, pose_error, transform_points
 from gscan.gmatch import Candidates, GMatchParams, default_eps_f, gmatch
 
 log = logging.getLogger(__name__)
@@ -140,7 +145,10 @@ def register_points(pts_s: np.ndarray, pts_t: np.ndarray, desc_s: np.ndarray, de
     ps = np.asarray(pts_s, np.float64)[matches[:, 0]] if n else np.zeros((0, 3))
     pt = np.asarray(pts_t, np.float64)[matches[:, 1]] if n else np.zeros((0, 3))
     if n >= 3:
-        if T is None or params.method == "gmatch":
+        if params.method == "gmatch":  # a consistent list may hold a far-off pair (e.g. mirrored across a plane)
+            T, keep = kabsch_trimmed(ps, pt, params.refine_taus[0])
+            ps, pt = ps[keep], pt[keep]
+        elif T is None:
             T = kabsch(ps, pt)
         krmse = _kabsch_rmse(ps, pt, T)
     else:

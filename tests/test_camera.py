@@ -16,7 +16,7 @@ from gscan.camera import (
     point_cloud, project,
 )
 from gscan.errors import InputError
-from gscan.geometry import inv_T, kabsch, look_at, make_T, rotvec_to_R, transform_points
+from gscan.geometry import inv_T, kabsch, kabsch_trimmed, look_at, make_T, pose_error, rotvec_to_R, transform_points
 
 finite = dict(allow_nan=False, allow_infinity=False)
 
@@ -124,6 +124,49 @@ def test_inv_T_and_kabsch_exact(seed):
     T_est = kabsch(src, dst)
     np.testing.assert_allclose(T_est, T, atol=1e-9)
     assert np.linalg.det(T_est[:3, :3]) == pytest.approx(1.0)
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(0, 4))
+def test_kabsch_trimmed_drops_a_minority_of_gross_outliers(seed, n_out):
+    """0.1 m-scale points, 1 mm noise, n_out pairs moved 5-40 cm: the pose is the inliers' Kabsch."""
+    rng = np.random.default_rng(seed)
+    T = _rigid(rng)
+    src = rng.uniform(-0.1, 0.1, size=(24, 3))
+    dst = transform_points(T, src) + rng.normal(0, 0.001, size=src.shape)
+    bad = rng.choice(24, n_out, replace=False)
+    dst[bad] += rng.normal(size=(n_out, 3)) * rng.uniform(0.05, 0.4, (n_out, 1))
+    T_est, keep = kabsch_trimmed(src, dst, 0.008)
+    assert not keep[bad].any() and keep.sum() >= 24 - n_out - 1
+    np.testing.assert_allclose(T_est, kabsch(src[keep], dst[keep]), atol=1e-12)
+    deg, m = pose_error(T_est, T)
+    assert deg < 1.0 and m < 0.003
+    if n_out == 0:  # nothing trimmed: plain Kabsch
+        assert keep.all()
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 2**32 - 1))
+def test_kabsch_trimmed_catches_a_high_leverage_pair(seed):
+    """23 pairs in a 3 cm patch plus one 20 cm away and 14 mm off: it tilts plain Kabsch by degrees
+    while fitting within a few mm itself; the leave-one-out pass drops it."""
+    rng = np.random.default_rng(seed)
+    T = _rigid(rng)
+    src = np.vstack([rng.uniform(-0.015, 0.015, size=(23, 3)), [[0.2, 0.0, 0.0]]])
+    dst = transform_points(T, src) + rng.normal(0, 0.0003, size=src.shape)
+    dst[23] += 0.014 * np.array([0.0, 0.0, 1.0]) @ T[:3, :3].T
+    T_est, keep = kabsch_trimmed(src, dst, 0.008)
+    assert not keep[23] and keep[:23].sum() >= 22
+    assert pose_error(T_est, T)[0] < pose_error(kabsch(src, dst), T)[0] / 3
+
+
+def test_kabsch_trimmed_keeps_all_when_no_majority_agrees():
+    rng = np.random.default_rng(3)
+    src = rng.uniform(-0.1, 0.1, size=(10, 3))
+    dst = rng.uniform(-0.1, 0.1, size=(10, 3))  # unrelated: no consistent majority
+    T_est, keep = kabsch_trimmed(src, dst, 0.008)
+    assert keep.all()
+    np.testing.assert_allclose(T_est, kabsch(src, dst), atol=1e-12)
 
 
 @settings(max_examples=30, deadline=None)

@@ -172,6 +172,20 @@ def test_extract_candidates_order_and_threshold():
     assert np.all(np.diff(c.dist) >= 0)
 
 
+def test_extract_candidates_ratio_order_puts_distinctive_pairs_first():
+    # row 0: a repeated pattern (0.10 vs 0.11: ratio 0.91); row 1: one clear match (0.2 vs 0.9: ratio 0.22)
+    d = np.array([[0.10, 0.11, 0.9], [0.2, 0.9, 0.95]], np.float32)
+    by_dist = extract_candidates(d, 0.5, "distance")
+    by_ratio = extract_candidates(d, 0.5, "ratio")
+    assert list(zip(by_dist.src, by_dist.tgt)) == [(0, 0), (0, 1), (1, 0)]
+    assert list(zip(by_ratio.src, by_ratio.tgt)) == [(1, 0), (0, 0), (0, 1)]
+    np.testing.assert_array_equal(by_ratio.dist, np.float32([0.2, 0.10, 0.11]))  # distances travel along
+    one = extract_candidates(d[:, :1], 0.5, "ratio")  # a single target: rows keyed by d / eps_f
+    assert list(zip(one.src, one.tgt)) == [(0, 0), (1, 0)]
+    with pytest.raises(ValueError):
+        extract_candidates(d, 0.5, "nope")
+
+
 @given(seed=st.integers(0, 10_000), levels=st.integers(2, 50), negative=st.booleans())
 @settings(max_examples=60, deadline=None)
 def test_extract_candidates_matches_stable_argsort(seed, levels, negative):
