@@ -30,7 +30,9 @@ class MatchConfig(_Section):
     eps_f: float | None = Field(None, gt=0, description="descriptor distance threshold; null = the descriptor's default")
     eps_c: float = Field(0.08, gt=0, lt=1, description="GMatch relative pairwise-distance tolerance")
     eta: float = Field(0.01, gt=0, description="GMatch absolute distance margin at 0.5 m depth (m), grows with depth^2")
-    T: int = Field(24, ge=1, le=256, description="GMatch seeds (top-T most similar candidates)")
+    order: Literal["ratio", "distance"] = Field(
+        "ratio", description="GMatch candidate order: Lowe ratio (distinctive first) or descriptor distance (the paper's)")
+    T: int = Field(24, ge=1, le=256, description="GMatch seeds (the first T candidates in that order)")
     L: int = Field(24, ge=3, le=256, description="GMatch maximum match-list length")
     constraint: Literal["flip", "triple"] = Field("flip", description="flip-over or scalar-triple-product constraint")
 

@@ -106,7 +106,7 @@ def _register_params(cfg: ScanConfig, mode: str) -> RegisterParams:
     eps_f = m.eps_f
     if eps_f is None and mode == STATIC_OBJECT:
         eps_f = WHOLE_FRAME_EPS_F.get(cfg.features.kind)
-    gm = GMatchParams(eps_f=eps_f, eps_c=m.eps_c, eta=m.eta, T=m.T, L=m.L, constraint=m.constraint)
+    gm = GMatchParams(eps_f=eps_f, eps_c=m.eps_c, eta=m.eta, T=m.T, L=m.L, constraint=m.constraint, order=m.order)
     return RegisterParams(method=m.method, gmatch=gm, min_matches=r.min_matches, icp=r.icp,
                           icp_max_dist=r.icp_max_dist, icp_voxel=r.icp_voxel, min_fitness=r.min_fitness,
                           max_rmse=r.max_rmse, max_icp_shift_deg=r.max_icp_shift_deg,
