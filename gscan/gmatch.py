@@ -149,7 +149,7 @@ class Candidates:
     dist: np.ndarray  # [C] float32 descriptor distance (ascending)
 
 
-def extract_candidates(dist: np.ndarray, eps_f: float, order: str = "distance") -> Candidates:
+def extract_candidates(dist: np.ndarray, eps_f: float, order: str) -> Candidates:
     """Pairs with dist [Ns x Nt] < eps_f in search order (module docstring): by (key, row-major index)
     with key = the distance ("distance") or the distance over the second-smallest distance of its row
     ("ratio"; rows with fewer than two targets use eps_f)."""

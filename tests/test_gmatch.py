@@ -149,7 +149,7 @@ def test_kernel_growth_equals_repeated_step():
     for seed in range(30):
         ps, pt, dist, T, gt = _problem(seed, n_in=30, n_out=10, n_false=6)
         params = GMatchParams(T=1, K2=1, K3=1, L=12, eta_depth=False)
-        cand = extract_candidates(dist, 1.0)
+        cand = extract_candidates(dist, 1.0, "distance")
         res = search_candidates(ps, pt, cand, params)
         if len(res.hyp_start) == 0:  # the single seed had no valid triangle
             continue
@@ -167,7 +167,7 @@ def test_kernel_growth_equals_repeated_step():
 
 def test_extract_candidates_order_and_threshold():
     d = np.array([[0.5, 0.1, 0.9], [0.1, 0.95, 0.3]], np.float32)
-    c = extract_candidates(d, 0.6)
+    c = extract_candidates(d, 0.6, "distance")
     assert list(zip(c.src, c.tgt)) == [(0, 1), (1, 0), (1, 2), (0, 0)]  # ties by row-major index
     assert np.all(np.diff(c.dist) >= 0)
 
@@ -195,7 +195,7 @@ def test_extract_candidates_matches_stable_argsort(seed, levels, negative):
     d[rng.random(d.shape) < 0.05] = -0.0
     if negative:
         d -= 0.1
-    c = extract_candidates(d, 0.6)
+    c = extract_candidates(d, 0.6, "distance")
     flat = np.flatnonzero(d < 0.6)
     order = np.argsort(d.reshape(-1)[flat], kind="stable")
     np.testing.assert_array_equal(c.src, flat[order] // d.shape[1])
