@@ -104,34 +104,36 @@ def kabsch_trimmed(src: np.ndarray, dst: np.ndarray, tau: float) -> tuple[np.nda
     """Kabsch on matched points src, dst [N x 3] (N >= 3) with a minority of gross outliers trimmed:
     (T, keep [N] bool).
 
-    Drops the worst pair while its residual |T src - dst| is above tau, re-solving each time; then
-    the same with leave-one-out residuals (each pair against the pose solved without it), which also
-    catch a far-off pair that tilts the fit towards itself (high leverage: a clustered list plus one
-    distant point). When a drop would leave fewer than half of the pairs (or 3), the list is not a
-    consistent majority plus a few outliers: plain Kabsch on all of them is returned.
+    1. Drops the worst pair while its residual |T src - dst| is above tau, re-solving each time; when a
+       drop would leave fewer than half of the pairs (or 3), the list is not a consistent majority plus
+       a few outliers and plain Kabsch on all pairs is returned.
+    2. Then the same with leave-one-out residuals (each pair against the pose solved without it) while
+       at least 5 pairs are kept: they also catch a far-off pair that tilts the fit towards itself (high
+       leverage: a clustered list plus one distant point). Stops at the floor with the pose reached.
+    Without outliers this is plain Kabsch.
     """
     n = len(src)
+    floor = max(3, (n + 1) // 2)
     keep = np.ones(n, bool)
-    loo = False
-    while True:
-        idx = np.flatnonzero(keep)
-        T = kabsch(src[idx], dst[idx])
-        if loo and len(idx) <= 3:  # leave-one-out needs 3 pairs left
-            return T, keep
-        if loo:
-            r = np.array([np.linalg.norm(transform_points(kabsch(np.delete(src[idx], k, 0), np.delete(dst[idx], k, 0)),
-                                                          src[i][None])[0] - dst[i]) for k, i in enumerate(idx)])
-        else:
-            r = np.linalg.norm(transform_points(T, src[idx]) - dst[idx], axis=1)
+    while True:  # 1. plain residuals
+        T = kabsch(src[keep], dst[keep])
+        r = np.linalg.norm(transform_points(T, src[keep]) - dst[keep], axis=1)
         worst = int(np.argmax(r))
         if r[worst] <= tau:
-            if loo:
-                return T, keep
-            loo = True
-            continue
-        if len(idx) - 1 < max(3, (n + 1) // 2):
+            break
+        if keep.sum() - 1 < floor:
             return kabsch(src, dst), np.ones(n, bool)
+        keep[np.flatnonzero(keep)[worst]] = False
+    while keep.sum() >= 5 and keep.sum() - 1 >= floor:  # 2. leave-one-out residuals
+        idx = np.flatnonzero(keep)
+        r = np.array([np.linalg.norm(transform_points(kabsch(np.delete(src[idx], k, 0), np.delete(dst[idx], k, 0)),
+                                                      src[i][None])[0] - dst[i]) for k, i in enumerate(idx)])
+        worst = int(np.argmax(r))
+        if r[worst] <= tau:
+            break
         keep[idx[worst]] = False
+        T = kabsch(src[keep], dst[keep])
+    return T, keep
 
 
 def mean_pose(Ts: list[np.ndarray] | np.ndarray) -> np.ndarray:

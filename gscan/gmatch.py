@@ -146,7 +146,7 @@ class GMatchResult:
 class Candidates:
     src: np.ndarray  # [C] int32 source keypoint index, descriptor order
     tgt: np.ndarray  # [C] int32 target keypoint index
-    dist: np.ndarray  # [C] float32 descriptor distance (ascending)
+    dist: np.ndarray  # [C] float32 descriptor distance, in search order
 
 
 def extract_candidates(dist: np.ndarray, eps_f: float, order: str) -> Candidates:

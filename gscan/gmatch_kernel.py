@@ -49,15 +49,21 @@ def flips(ps, pt, i1, i2, i3, j1, j2, j3, view_s, view_t, flip_margin, collinear
 # I [3 x cap] int32 rows candidate index, source index, target index; G [cap] float64 running cost g.
 
 
-# Member sets (A_s, A_b, survivors) are kept in structure-of-arrays form so that the filtering loops run
-# without gathers or branches: F [7 x cap] float64 rows source xyz, target xyz, depth factor cf;
-# I [3 x cap] int32 rows candidate index, source index, target index; G [cap] float64 running cost g.
-
-
 @njit(cache=True, nogil=True)
 def _member_set(cap):
     """(F [7 x cap] float64, I [3 x cap] int32, G [cap] float64), uninitialised."""
     return np.empty((7, cap)), np.empty((3, cap), np.int32), np.empty(cap)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _copy_member(F, I, k, Fo, Io, Go, w, g):
+    """Member k of (F, I) to slot w of (Fo, Io, Go), with running cost g."""
+    for r in range(7):
+        Fo[r, w] = F[r, k]
+    Io[0, w] = I[0, k]
+    Io[1, w] = I[1, k]
+    Io[2, w] = I[2, k]
+    Go[w] = g
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -89,13 +95,8 @@ def keep_consistent(F, I, G, n, Fo, Io, Go, k_m, eps, eta, tg, tok):
     ga = 2.0
     for k in range(n):
         if tok[k]:
-            for r in range(7):
-                Fo[r, w] = F[r, k]
-            Io[0, w] = I[0, k]
-            Io[1, w] = I[1, k]
-            Io[2, w] = I[2, k]
             g = tg[k]
-            Go[w] = g
+            _copy_member(F, I, k, Fo, Io, Go, w, g)
             if g < ga:
                 ga = g
                 arg = w
@@ -118,12 +119,7 @@ def _keep_on_plane(F, I, G, n, a_s, a_t, n_s, n_t, cfa, eps, eta):
         err = abs(hs - ht)
         g = max(G[k], err / la)
         ok = (g <= eps) & (err < eta * max(cfa, F[6, k])) & (la > 0.0)
-        for r in range(7):
-            F[r, w] = F[r, k]
-        I[0, w] = I[0, k]
-        I[1, w] = I[1, k]
-        I[2, w] = I[2, k]
-        G[w] = g
+        _copy_member(F, I, k, F, I, G, w, g)
         w += ok
     return w
 
@@ -180,7 +176,7 @@ def search(ps, pt, ci, cj, cf, fsrc, ft_max, view_s, view_t, T, L, K2, K3, eps_c
     Dt = np.empty(pt.shape[0], np.float64)
     tolv = np.empty(Ns, np.float64)
     W = np.empty(C, np.int32)  # candidates passing the window test of the current seed
-    # member sets A_s, A_b, survivors and scratch (tg, tok: _keep_consistent; xk, xg: set-aside flip-overs),
+    # member sets A_s, A_b, survivors and scratch (tg, tok: keep_consistent; xk, xg: set-aside flip-overs),
     # grown to the largest A_s seen
     cap = 0
     FA, IA, GA = _member_set(0)
@@ -235,7 +231,7 @@ def search(ps, pt, ci, cj, cf, fsrc, ft_max, view_s, view_t, T, L, K2, K3, eps_c
             IA[1, na] = qi
             IA[2, na] = qj
             GA[na] = err / ls
-            na += (err < eta * max(cfs, cf[c])) & (ls > 0.0)
+            na += (err < eta * max(cfs, cf[c])) & (err / ls <= eps_e) & (ls > 0.0)
         # levels 2 and 3, grown as generated so that a full-length list tightens eps_e early:
         # b = the next member of A_s (at most K2 per seed); A_b = members of A_s consistent with b;
         # c = the first K3 members of A_b forming a valid triangle (s, b, c), each grown at once.
@@ -250,12 +246,7 @@ def search(ps, pt, ci, cj, cf, fsrc, ft_max, view_s, view_t, T, L, K2, K3, eps_c
                     if k == pos:
                         newpos = w
                     if GA[k] <= eps_e:
-                        for r in range(7):
-                            FA[r, w] = FA[r, k]
-                        IA[0, w] = IA[0, k]
-                        IA[1, w] = IA[1, k]
-                        IA[2, w] = IA[2, k]
-                        GA[w] = GA[k]
+                        _copy_member(FA, IA, k, FA, IA, GA, w, GA[k])
                         w += 1
                 pos = min(newpos, w)
                 na = w

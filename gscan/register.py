@@ -5,18 +5,21 @@ frame_t)` also extracts the features and back-projects the ICP clouds (the one-c
 T_tgt_src maps source-camera points into the target camera (p_t = T_tgt_src @ p_s).
 
 Acceptance rules, applied in this order (the first failing one is the `reason`):
-1. "too few matches": fewer than `min_matches` geometric matches (GMatch list / baseline inliers).
-2. "kabsch residual": RMS of |T p_s - p_t| over the (kept) matches above `max_kabsch_rmse`.
+1. "too few matches": fewer than `min_matches` geometric matches (trimmed GMatch list / baseline inliers).
+2. "kabsch residual": RMS of |T p_s - p_t| over the pairs the pose rests on (`inliers`) above `max_kabsch_rmse`.
 3. with ICP (params.icp and both clouds given), point-to-plane ICP from the match pose, then
    "icp fitness" below `min_fitness`, "icp rmse" above `max_rmse`, or "icp shift": ICP moved the
    match pose by more than `max_icp_shift_deg` / `max_icp_shift_m` (a slide, not a refinement).
    A rejected ICP leaves the match pose in T_tgt_src; an accepted one replaces it.
 Without ICP, rmse is the Kabsch residual and fitness is None.
 
-Pose from a GMatch list: `kabsch_trimmed` (Kabsch, then the worst pair is dropped and the pose re-solved
-while it lies more than refine_taus[0] off, down to half of the list). Pairwise distances cannot tell a
-point from its mirror image across a plane holding the other matches, so on a flat, self-similar table a
-24-pair list can carry one pair 40 cm off: plain Kabsch then errs by 24 deg, the trimmed one by 0.3.
+Pose from a GMatch list: `geometry.kabsch_trimmed` with `trim_tau`: Kabsch, then the worst pair is
+dropped while it lies more than trim_tau off, first by plain then by leave-one-out residuals, never
+below half of the list (a list with no consistent majority keeps plain Kabsch). Pairwise distances
+cannot tell a point from its mirror image across a plane holding the other matches, so on a flat,
+self-similar table a 24-pair list can carry one pair 40 cm off (plain Kabsch: 24 deg error, trimmed:
+0.3); one distant pair with a bad depth next to a clustered list tilts plain Kabsch by 6 deg. The
+trimmed pairs are not inliers and do not count for rule 1.
 
 Guided refinement (GMatch only, `refine`): GMatch stops at L (24) matches, and a pose from 24
 points is limited by their depth noise. From the Kabsch pose, every candidate pair (descriptor
@@ -53,6 +56,7 @@ class RegisterParams:
     max_kabsch_rmse: float = 0.01  # rule 2 (m)
     refine: bool = True  # guided refinement of the GMatch pose (module docstring); gmatch only
     refine_taus: tuple[float, ...] = (0.008, 0.004, 0.003)  # its inlier distances per round (m)
+    trim_tau: float = 0.008  # GMatch list pairs off by more are trimmed from the pose (kabsch_trimmed, m)
     # refine by point-to-plane ICP when clouds are given; off by default: on textured planar scenes and
     # on the real Open3D pairs ICP slid away from the match pose (8.5 vs 0.34 mm ATE on the sample)
     icp: bool = False
@@ -120,9 +124,8 @@ def refine_pose(pts_s: np.ndarray, pts_t: np.ndarray, cand: Candidates, T: np.nd
 
 
 def register_points(pts_s: np.ndarray, pts_t: np.ndarray, desc_s: np.ndarray, desc_t: np.ndarray, kind: str,
-                    params: RegisterParams = RegisterParams(), clouds: tuple | None = None,
-                    view_s=(0.0, 0.0, 1.0), view_t=(0.0, 0.0, 1.0)) -> PairResult:
-    """Register keypoints pts_s [Ns x 3] -> pts_t [Nt x 3] (descriptors [N x D] of `kind`).
+                    params: RegisterParams = RegisterParams(), clouds: tuple | None = None) -> PairResult:
+    """Register camera-frame keypoints pts_s [Ns x 3] -> pts_t [Nt x 3] (descriptors [N x D] of `kind`).
 
     clouds: optional (src [P x 3], tgt [Q x 3]) camera-frame clouds for ICP.
     """
@@ -135,37 +138,36 @@ def register_points(pts_s: np.ndarray, pts_t: np.ndarray, desc_s: np.ndarray, de
     t0 = time.perf_counter()
     if params.method == "gmatch":
         eps_f = params.gmatch.eps_f if params.gmatch.eps_f is not None else default_eps_f(kind)
-        res = gmatch(pts_s, pts_t, dist, eps_f, params.gmatch, view_s, view_t)
+        res = gmatch(pts_s, pts_t, dist, eps_f, params.gmatch)
         matches, cost, T, cand = res.matches, res.cost, None, res.candidates
     else:
         b = run_baseline(params.method, pts_s, pts_t, dist, desc_s, desc_t, params.baseline)
         matches, cost, T = b.matches, float("nan"), b.T_tgt_src
     tm["match"] = (time.perf_counter() - t0) * 1e3
     n = len(matches)
-    ps = np.asarray(pts_s, np.float64)[matches[:, 0]] if n else np.zeros((0, 3))
-    pt = np.asarray(pts_t, np.float64)[matches[:, 1]] if n else np.zeros((0, 3))
-    if n >= 3:
-        if params.method == "gmatch":  # a consistent list may hold a far-off pair (e.g. mirrored across a plane)
-            T, keep = kabsch_trimmed(ps, pt, params.refine_taus[0])
-            ps, pt = ps[keep], pt[keep]
-        elif T is None:
-            T = kabsch(ps, pt)
-        krmse = _kabsch_rmse(ps, pt, T)
+    inliers = matches  # the pairs the pose rests on
+    if n < 3:
+        T = None
     else:
-        T, krmse = None, float("inf")
-    inliers = matches
-    if params.method != "gmatch":
-        cost = krmse
-    elif params.refine and n >= 3:
-        T_ref, refined = refine_pose(pts_s, pts_t, cand, T, params.refine_taus, n)
+        if params.method == "gmatch":  # a consistent list may hold a far-off pair (module docstring)
+            T, keep = kabsch_trimmed(np.asarray(pts_s, np.float64)[matches[:, 0]],
+                                     np.asarray(pts_t, np.float64)[matches[:, 1]], params.trim_tau)
+            inliers = matches[keep]
+        elif T is None:
+            T = kabsch(np.asarray(pts_s, np.float64)[matches[:, 0]], np.asarray(pts_t, np.float64)[matches[:, 1]])
+    n_kept = len(inliers)
+    if params.method == "gmatch" and params.refine and n_kept >= 3:
+        T_ref, refined = refine_pose(pts_s, pts_t, cand, T, params.refine_taus, len(inliers))
         if len(refined):
             T, inliers = T_ref, refined
-            krmse = _kabsch_rmse(np.asarray(pts_s, np.float64)[refined[:, 0]],
-                                 np.asarray(pts_t, np.float64)[refined[:, 1]], T)
+    krmse = _kabsch_rmse(np.asarray(pts_s, np.float64)[inliers[:, 0]], np.asarray(pts_t, np.float64)[inliers[:, 1]],
+                         T) if T is not None else float("inf")
+    if params.method != "gmatch":
+        cost = krmse
     out = PairResult(T, matches, float(cost), n, krmse if n >= 3 else None, None, False, None, params.method,
                      T_match=None if T is None else T.copy(), inliers=inliers, timings_ms=tm)
-    if n < params.min_matches:
-        out.reason = f"too few matches ({n} < {params.min_matches})"
+    if n_kept < params.min_matches:
+        out.reason = f"too few matches ({n_kept} < {params.min_matches})"
         return out
     if krmse > params.max_kabsch_rmse:
         out.reason = f"kabsch residual ({krmse:.4f} m > {params.max_kabsch_rmse} m)"

@@ -78,14 +78,14 @@ def _members(ps, pt, pairs, cf=None):
 
 
 def _keep(F, I, G, k_m, eps, eta):
-    """(kept candidate indices, their g, argmin position) of _keep_consistent, written to fresh arrays."""
+    """(kept candidate indices, their g, argmin position) of keep_consistent, written to fresh arrays."""
     n = F.shape[1]
     Fo, Io, Go = np.empty_like(F), np.empty_like(I), np.empty_like(G)
     w, arg, _ = keep_consistent(F, I, G, n, Fo, Io, Go, k_m, eps, eta, np.empty(n), np.empty(n, bool))
     return list(Io[0, :w]), Go[:w], arg
 
 
-def test_delta_relative_error_with_hard_margin():
+def test_keep_consistent_delta_is_the_relative_error_with_a_hard_margin():
     ps = np.array([[0, 0, 1.0], [0.1, 0, 1.0], [0.3, 0, 1.0]])
     pt = np.array([[0, 0, 1.0], [0.104, 0, 1.0], [0.32, 0, 1.0]])
     F, I, G = _members(ps, pt, [(0, 0), (1, 1), (2, 2), (0, 1)])
