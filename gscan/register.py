@@ -145,23 +145,21 @@ def register_points(pts_s: np.ndarray, pts_t: np.ndarray, desc_s: np.ndarray, de
         matches, cost, T = b.matches, float("nan"), b.T_tgt_src
     tm["match"] = (time.perf_counter() - t0) * 1e3
     n = len(matches)
+    ps, pt = np.asarray(pts_s, np.float64), np.asarray(pts_t, np.float64)
     inliers = matches  # the pairs the pose rests on
     if n < 3:
         T = None
-    else:
-        if params.method == "gmatch":  # a consistent list may hold a far-off pair (module docstring)
-            T, keep = kabsch_trimmed(np.asarray(pts_s, np.float64)[matches[:, 0]],
-                                     np.asarray(pts_t, np.float64)[matches[:, 1]], params.trim_tau)
-            inliers = matches[keep]
-        elif T is None:
-            T = kabsch(np.asarray(pts_s, np.float64)[matches[:, 0]], np.asarray(pts_t, np.float64)[matches[:, 1]])
+    elif params.method == "gmatch":  # a consistent list may hold a far-off pair (module docstring)
+        T, keep = kabsch_trimmed(ps[matches[:, 0]], pt[matches[:, 1]], params.trim_tau)
+        inliers = matches[keep]
+    elif T is None:
+        T = kabsch(ps[matches[:, 0]], pt[matches[:, 1]])
     n_kept = len(inliers)
     if params.method == "gmatch" and params.refine and n_kept >= 3:
-        T_ref, refined = refine_pose(pts_s, pts_t, cand, T, params.refine_taus, n)
+        T_ref, refined = refine_pose(ps, pt, cand, T, params.refine_taus, n)
         if len(refined):
             T, inliers = T_ref, refined
-    krmse = _kabsch_rmse(np.asarray(pts_s, np.float64)[inliers[:, 0]], np.asarray(pts_t, np.float64)[inliers[:, 1]],
-                         T) if T is not None else float("inf")
+    krmse = _kabsch_rmse(ps[inliers[:, 0]], pt[inliers[:, 1]], T) if T is not None else float("inf")
     if params.method != "gmatch":
         cost = krmse
     out = PairResult(T, matches, float(cost), n, krmse if n >= 3 else None, None, False, None, params.method,
