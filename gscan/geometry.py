@@ -100,6 +100,22 @@ def kabsch(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) 
     return umeyama(src, dst, weights, with_scale=False)
 
 
+def leave_one_out_residuals(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """[N] residual |T_k src_k - dst_k| of each pair under T_k = kabsch of the other N - 1 pairs (src, dst
+    [N x 3], N >= 4): the N fits in one batched SVD, each from the totals less the pair left out."""
+    src = np.asarray(src, dtype=np.float64)
+    dst = np.asarray(dst, dtype=np.float64)
+    m = len(src) - 1
+    mu_s = (src.sum(0) - src) / m  # [N x 3] centroids without pair k
+    mu_d = (dst.sum(0) - dst) / m
+    C = dst.T @ src - dst[:, :, None] * src[:, None, :] - m * mu_d[:, :, None] * mu_s[:, None, :]  # [N x 3 x 3]
+    U, _, Vt = np.linalg.svd(C)
+    U[:, :, 2] *= np.where(np.linalg.det(U) * np.linalg.det(Vt) < 0, -1.0, 1.0)[:, None]  # reflection guard (umeyama)
+    R = U @ Vt
+    pred = np.einsum("kij,kj->ki", R, src - mu_s) + mu_d
+    return np.linalg.norm(pred - dst, axis=1)
+
+
 def kabsch_trimmed(src: np.ndarray, dst: np.ndarray, tau: float) -> tuple[np.ndarray, np.ndarray]:
     """Kabsch on matched points src, dst [N x 3] (N >= 3) with a minority of gross outliers trimmed:
     (T, keep [N] bool).
@@ -126,8 +142,7 @@ def kabsch_trimmed(src: np.ndarray, dst: np.ndarray, tau: float) -> tuple[np.nda
         keep[np.flatnonzero(keep)[worst]] = False
     while keep.sum() >= 5 and keep.sum() - 1 >= floor:  # 2. leave-one-out residuals
         idx = np.flatnonzero(keep)
-        r = np.array([np.linalg.norm(transform_points(kabsch(np.delete(src[idx], k, 0), np.delete(dst[idx], k, 0)),
-                                                      src[i][None])[0] - dst[i]) for k, i in enumerate(idx)])
+        r = leave_one_out_residuals(src[idx], dst[idx])
         worst = int(np.argmax(r))
         if r[worst] <= tau:
             break

@@ -16,7 +16,7 @@ from gscan.camera import (
     point_cloud, project,
 )
 from gscan.errors import InputError
-from gscan.geometry import inv_T, kabsch, kabsch_trimmed, look_at, make_T, pose_error, rotvec_to_R, transform_points
+from gscan.geometry import inv_T, kabsch, kabsch_trimmed, leave_one_out_residuals, look_at, make_T, pose_error, rotvec_to_R, transform_points
 
 finite = dict(allow_nan=False, allow_infinity=False)
 
@@ -160,6 +160,19 @@ def test_kabsch_trimmed_catches_a_high_leverage_pair(seed):
     assert not keep[23] and keep[:23].sum() >= 22
     np.testing.assert_allclose(T_est, kabsch(src[keep], dst[keep]), atol=1e-12)
     assert pose_error(T_est, T)[0] < pose_error(kabsch(src, dst), T)[0] / 2
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(4, 30))
+def test_leave_one_out_residuals_equal_n_separate_fits(seed, n):
+    """The batched leave-one-out residuals equal N separate Kabsch fits, reflection-prone layouts included."""
+    rng = np.random.default_rng(seed)
+    src = rng.normal(size=(n, 3)) * [0.1, 0.1, rng.choice([0.1, 1e-4])]  # sometimes near-planar
+    dst = transform_points(_rigid(rng), src) + rng.normal(0, rng.choice([0.001, 0.1]), size=src.shape)
+    dst[: n // 3] = dst[: n // 3] * [1.0, 1.0, -1.0]  # a mirrored part: some fits need the reflection guard
+    ref = [np.linalg.norm(transform_points(kabsch(np.delete(src, k, 0), np.delete(dst, k, 0)), src[k][None])[0]
+                          - dst[k]) for k in range(n)]
+    np.testing.assert_allclose(leave_one_out_residuals(src, dst), ref, atol=1e-9)
 
 
 def test_kabsch_trimmed_keeps_all_when_no_majority_agrees():
