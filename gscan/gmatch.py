@@ -45,7 +45,8 @@ Search (bounded; every bound is a parameter):
    match only, so a Step is O(#survivors). Each Step removes survivors with g > eps or sharing a
    keypoint with the newest match, skips flip-overs w.r.t. the last two matches (flip mode; skipped
    pairs stay survivors) and appends the argmin of g (ties: descriptor order).
-4. the longest list wins, ties by lower cost, then by search order. Bound: g never decreases as
+4. the longest list wins, ties by lower cost, then by search order (every hypothesis' list is kept in
+   the trace: `gscan.register` checks the support of the runners-up). Bound: g never decreases as
    a list grows, so once a full-length (L) list of cost c* exists nothing containing a pair with
    g >= c* can win; eps tightens from eps_c to min(eps_c, c*) for everything generated afterwards
    (A_s is compacted), and a hypothesis is abandoned ("pruned") once its cost reaches c* or its
@@ -117,6 +118,7 @@ class GMatchParams:
 class HypothesisTrace:
     seed: tuple[int, int]  # (source, target) keypoint indices of the seed pair
     start: np.ndarray  # [3 x 2] int32 the length-3 hypothesis
+    matches: np.ndarray  # [length x 2] int32 its list as grown (up to where it was pruned)
     length: int  # final length (when pruned: length reached before pruning)
     cost: float  # max pairwise cost of the list
     pruned: bool  # abandoned because it could no longer beat the best list
@@ -128,18 +130,20 @@ class GMatchResult:
     cost: float  # max pairwise delta over the final list (1.0 when empty)
     n_candidates: int = 0
     timings_ms: dict[str, float] = field(default_factory=dict)  # "candidates", "search" (+ "distances")
-    # per hypothesis: start [H x 3 x 2] int32, length [H], cost [H], pruned [H] (see `trace`)
+    # per hypothesis: start [H x 3 x 2] int32, length [H], cost [H], pruned [H], list [H x L x 2] (see `trace`)
     hyp_start: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 2), np.int32))
     hyp_length: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     hyp_cost: np.ndarray = field(default_factory=lambda: np.zeros(0))
     hyp_pruned: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    hyp_matches: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 2), np.int32))  # [H x L x 2], -1 past length
     candidates: Candidates | None = None  # the candidate pairs searched (set by `gmatch`)
 
     @property
     def trace(self) -> list[HypothesisTrace]:
-        """Per hypothesis, in search order: seed pair, 3-pair start, final length, cost, pruned."""
-        return [HypothesisTrace((int(h[0, 0]), int(h[0, 1])), h, int(n), float(c), bool(p))
-                for h, n, c, p in zip(self.hyp_start, self.hyp_length, self.hyp_cost, self.hyp_pruned)]
+        """Per hypothesis, in search order: seed pair, 3-pair start, its list, final length, cost, pruned."""
+        return [HypothesisTrace((int(h[0, 0]), int(h[0, 1])), h, m[:n], int(n), float(c), bool(p))
+                for h, m, n, c, p in zip(self.hyp_start, self.hyp_matches, self.hyp_length, self.hyp_cost,
+                                         self.hyp_pruned)]
 
 
 @dataclass(frozen=True)
@@ -229,15 +233,16 @@ def search_candidates(pts_s: np.ndarray, pts_t: np.ndarray, cand: Candidates, pa
     fs = _depth_factor(pts_s, vs, params, depth_s)
     ft = _depth_factor(pts_t, vt, params, depth_t)
     cf = np.maximum(fs[ci], ft[cj]).astype(np.float32)
-    best, n, cost, hyp, hlen, hcost, hpruned = search(
+    best, n, cost, hyp, hlen, hcost, hpruned, hlist = search(
         pts_s, pts_t, ci, cj, cf, fs, float(ft.max()), vs, vt, int(params.T), int(params.L), int(params.K2),
         int(params.K3),
         float(params.eps_c), float(params.eta), CONSTRAINTS[params.constraint], float(params.flip_margin),
         float(params.collinear_sin))
     matches = np.stack([ci[best[:n]], cj[best[:n]]], 1).astype(np.int32) if n else np.zeros((0, 2), np.int32)
+    hmatches = np.where(hlist[..., None] >= 0, np.stack([ci[hlist], cj[hlist]], -1), -1).astype(np.int32)
     ms = (time.perf_counter() - t0) * 1e3
     return GMatchResult(matches, float(cost) if n else 1.0, C, {"search": ms},
-                        np.stack([ci[hyp], cj[hyp]], -1).astype(np.int32), hlen, hcost, hpruned)
+                        np.stack([ci[hyp], cj[hyp]], -1).astype(np.int32), hlen, hcost, hpruned, hmatches)
 
 
 def step(pts_s: np.ndarray, pts_t: np.ndarray, cand: Candidates, matches: np.ndarray,

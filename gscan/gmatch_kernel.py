@@ -152,7 +152,8 @@ def _dists_soa(X, Y, Z, a, out):
 @njit(cache=True, nogil=True, error_model="numpy")
 def search(ps, pt, ci, cj, cf, fsrc, ft_max, view_s, view_t, T, L, K2, K3, eps_c, eta, mode, flip_margin,
             collinear_sin):
-    """Returns (best [L] candidate indices, best_len, best_cost, hyp [H x 3], hyp_len, hyp_cost, hyp_pruned)."""
+    """Returns (best [L] candidate indices, best_len, best_cost, hyp [H x 3], hyp_len, hyp_cost, hyp_pruned,
+    hyp_list [H x L]: each hypothesis' list as grown (candidate indices, -1 past its length))."""
     C = ci.shape[0]
     Ns = ps.shape[0]
     n_seed = min(T, C)
@@ -161,6 +162,7 @@ def search(ps, pt, ci, cj, cf, fsrc, ft_max, view_s, view_t, T, L, K2, K3, eps_c
     hyp_len = np.zeros(Hmax, np.int64)
     hyp_cost = np.ones(Hmax, np.float64)
     hyp_pruned = np.zeros(Hmax, np.bool_)
+    hyp_list = np.full((Hmax, L), -1, np.int64)
     H = 0
     best = np.full(L, -1, np.int64)
     best_len = 0
@@ -284,6 +286,9 @@ def search(ps, pt, ci, cj, cf, fsrc, ft_max, view_s, view_t, T, L, K2, K3, eps_c
                 hyp[H, 2] = c
                 hyp_cost[H] = g0
                 hyp_len[H] = 3
+                hyp_list[H, 0] = s
+                hyp_list[H, 1] = b
+                hyp_list[H, 2] = c
                 if best_len == L and g0 >= best_cost:
                     hyp_pruned[H] = True
                     H += 1
@@ -333,6 +338,7 @@ def search(ps, pt, ci, cj, cf, fsrc, ft_max, view_s, view_t, T, L, K2, K3, eps_c
                 hyp_len[H] = n
                 hyp_cost[H] = cost
                 hyp_pruned[H] = pruned
+                hyp_list[H, :n] = cur[:n]
                 H += 1
                 if not pruned and (n > best_len or (n == best_len and cost < best_cost)):
                     best_len = n
@@ -340,7 +346,7 @@ def search(ps, pt, ci, cj, cf, fsrc, ft_max, view_s, view_t, T, L, K2, K3, eps_c
                     best[:n] = cur[:n]
                     if best_len == L:
                         eps_e = min(eps_c, best_cost)
-    return best, best_len, best_cost, hyp[:H], hyp_len[:H], hyp_cost[:H], hyp_pruned[:H]
+    return best, best_len, best_cost, hyp[:H], hyp_len[:H], hyp_cost[:H], hyp_pruned[:H], hyp_list[:H]
 
 
 @njit(cache=True, nogil=True)

@@ -304,3 +304,24 @@ def test_deterministic_and_consistent(seed, constraint):
         if constraint != "triple":  # triple adds the off-plane term to the cost
             assert worst == pytest.approx(a.cost, abs=1e-6)
     assert len(a.matches) <= p.L
+
+
+def test_trace_holds_each_hypothesis_list():
+    """Every hypothesis' list starts with its 3-pair start, has its recorded length, is one-to-one and within
+    eps_c; the winner is the first longest, cheapest list that was not pruned."""
+    ps, pt, dist, T, _ = _problem(5, n_in=30, n_out=30, n_false=6)
+    p = GMatchParams()
+    res = gmatch(ps, pt, dist, 1.0, p)
+    tr = res.trace
+    assert len(tr) > 10 and len({t.length for t in tr}) > 1  # not vacuous: lists of several lengths
+    for t in tr:
+        assert t.matches.shape == (t.length, 2)
+        np.testing.assert_array_equal(t.matches[:3], t.start)
+        assert len(np.unique(t.matches[:, 0])) == t.length == len(np.unique(t.matches[:, 1]))
+        ls = np.linalg.norm(ps[t.matches[:, 0], None] - ps[None, t.matches[:, 0]], axis=-1)
+        lt = np.linalg.norm(pt[t.matches[:, 1], None] - pt[None, t.matches[:, 1]], axis=-1)
+        iu = np.triu_indices(t.length, 1)
+        assert (np.abs(ls - lt)[iu] / ls[iu]).max() <= t.cost + 1e-9
+    done = [t for t in tr if not t.pruned]
+    win = min(done, key=lambda t: (-t.length, t.cost))
+    np.testing.assert_array_equal(win.matches, res.matches)
