@@ -99,7 +99,7 @@ def cmd_pairs(args) -> None:
     from gscan.register import METHODS, RegisterParams, register_features
 
     gaps = [float(g) for g in args.gaps.split(",")]
-    methods = args.methods.split(",") if args.methods else list(METHODS)
+    methods = args.methods.split(",") if args.methods else ["gmatch", "gmatch-longest"] + list(METHODS[1:])
     ok = {(m, g): [] for m in methods for g in gaps}
     ms = {(m, g): [] for m in methods for g in gaps}
     fp = FeatureParams(kind="rootsift")
@@ -113,7 +113,10 @@ def cmd_pairs(args) -> None:
             T_gt = inv_T(views[gi + 1][1]) @ views[0][1]
             for m in methods:
                 t0 = time.process_time()
-                r = register_features(feats[0], feats[gi + 1], RegisterParams(method=m, icp=False, gmatch=gp))
+                # gmatch-longest: GMatch's own pick (the longest list) without the support check of other lists
+                rp = (RegisterParams(icp=False, gmatch=gp, verify=0) if m == "gmatch-longest"
+                      else RegisterParams(method=m, icp=False, gmatch=gp))
+                r = register_features(feats[0], feats[gi + 1], rp)
                 ms[(m, g)].append((time.process_time() - t0) * 1e3)
                 e = pose_error(r.T_tgt_src, T_gt) if r.T_tgt_src is not None else (np.inf, np.inf)
                 ok[(m, g)].append(e[0] < 5.0 and e[1] < 0.02)
@@ -199,7 +202,8 @@ def main() -> None:
     a = sub.add_parser("pairs")
     a.add_argument("--meshes", type=int, default=None)
     a.add_argument("--gaps", default="20,60,120")
-    a.add_argument("--methods", default=None, help="comma list (default: gmatch and every baseline)")
+    a.add_argument("--methods", default=None,
+                   help="comma list (default: gmatch, gmatch-longest (no support check) and every baseline)")
     a.add_argument("--eps-f", type=float, default=None, help="GMatch eps_f (default: the descriptor's default)")
     a.add_argument("--masks", action="store_true", help="keypoints on the object's pixels only (moving-object mode)")
     a.add_argument("--table", default="newspaper", choices=("newspaper", "wood", "fabric"),

@@ -9,13 +9,16 @@ import pytest
 from gscan.camera import Intrinsics, RGBDFrame
 from gscan.features import Features, FeatureParams, extract_features
 from gscan.geometry import inv_T, look_at, make_T, pose_error, rotation_angle_deg, rotvec_to_R, transform_points
-from gscan.register import METHODS, PairResult, RegisterParams, frame_cloud, register_features, relative_pose
+from gscan.gmatch import Candidates, GMatchResult
+from gscan.register import (METHODS, PairResult, RegisterParams, frame_cloud, lists_to_verify, pose_by_support,
+                            register_features, relative_pose)
 
 N_MESHES = 10
 AZIMUTHS = (0.0, 15.0, 30.0, 45.0)  # 4 views per mesh -> pairs at 15, 30 and 45 deg: 6 per mesh, 60 in all
 
 
-def _render_views(mesh_dir: Path, seed: int) -> list[tuple[RGBDFrame, np.ndarray]]:
+def _render_views(mesh_dir: Path, seed: int, azimuths=AZIMUTHS, table_kind: str = "newspaper"
+                  ) -> list[tuple[RGBDFrame, np.ndarray]]:
     """(frame, T_world_cam) per azimuth: the mesh rests on a textured table, camera at 40/45 deg elevation
     looking at its centre from gscan.synth's default distance, 640x480 with noisy depth."""
     from gscan.synth import DEFAULT_INTRINSICS, SynthScene, default_distance, load_textured_mesh, rest_on_table
@@ -23,10 +26,10 @@ def _render_views(mesh_dir: Path, seed: int) -> list[tuple[RGBDFrame, np.ndarray
     mesh = load_textured_mesh(mesh_dir / "model_0.obj")
     T_world_obj = rest_on_table(mesh)
     c = transform_points(T_world_obj, mesh.center[None])[0]
-    scene = SynthScene([(mesh, T_world_obj)], table=True, seed=seed)
+    scene = SynthScene([(mesh, T_world_obj)], table=True, seed=seed, table_kind=table_kind)
     r = default_distance(mesh)
     out = []
-    for k, az in enumerate(AZIMUTHS):
+    for k, az in enumerate(azimuths):
         el, a = np.radians(40.0 + 5.0 * (k % 2)), np.radians(az)
         T = look_at(c + r * np.array([np.cos(el) * np.cos(a), np.cos(el) * np.sin(a), np.sin(el)]), c)
         f = scene.render(T, DEFAULT_INTRINSICS, rng=np.random.default_rng([seed, k]))
@@ -110,6 +113,65 @@ def test_rejection_rules():
     with pytest.raises(ValueError):
         RegisterParams(method="magic")
     assert set(METHODS) == {"gmatch", "ratio", "mutual", "ransac", "lo-ransac", "fgr"}
+
+
+def _padded(lists: list[list[tuple[int, int]]], L: int = 6) -> np.ndarray:
+    out = np.full((len(lists), L, 2), -1, np.int32)
+    for h, m in enumerate(lists):
+        out[h, : len(m)] = m
+    return out
+
+
+def test_lists_to_verify_order_dedupe_and_min_len():
+    a = [(0, 0), (1, 1), (2, 2), (3, 3), (4, 4)]
+    b = [(5, 5), (6, 6), (7, 7), (8, 8)]
+    c = [(9, 9), (6, 6), (7, 7), (8, 8)]
+    hyps = [a, b, b[::-1], [(0, 1), (1, 2), (2, 3)], a, c]  # b reversed: the same pairs; one list of 3
+    res = GMatchResult(np.array(a, np.int32), 0.05, hyp_start=_padded(hyps)[:, :3],
+                       hyp_length=np.array([len(m) for m in hyps]), hyp_cost=np.array([0.05, 0.03, 0.02, 0.0, 0.05, 0.03]),
+                       hyp_pruned=np.zeros(len(hyps), bool), hyp_matches=_padded(hyps))
+    lists, costs = lists_to_verify(res, 16, 4)
+    # the winner, then by length, cost, search order: b reversed (0.02) before b (its duplicate) and c (0.03)
+    assert [m.tolist() for m in lists] == [[list(p) for p in x] for x in (a, b[::-1], c)]
+    assert costs == [0.05, 0.02, 0.03]
+    assert len(lists_to_verify(res, 1, 4)[0]) == 2 and len(lists_to_verify(res, 0, 4)[0]) == 1
+    assert len(lists_to_verify(res, 16, 5)[0]) == 1  # nothing else has 5 pairs
+    assert len(lists_to_verify(res, 16, 3)[0]) == 4  # the 3-pair list joins
+
+
+def test_pose_by_support_replaces_a_weakly_supported_winner():
+    """GMatch's pick: 5 pairs consistent under a wrong motion, nothing else agrees with it. A 4-pair list under
+    the true motion, with which n_true candidate pairs agree in all: it wins only with >= 1.5 x the support."""
+    rng = np.random.default_rng(0)
+    T, W = make_T(rotvec_to_R([0.2, -0.1, 0.3]), [0.03, 0.0, 0.01]), make_T(rotvec_to_R([0.0, 1.2, 0.0]), [0.1, 0, 0])
+    ps = np.array([0.0, 0.0, 0.6]) + rng.uniform(-0.1, 0.1, (20, 3))
+    pt = transform_points(T, ps)
+    pt[15:] = transform_points(W, ps[15:])  # pairs (15..19): the wrong motion's
+    wrong = np.stack([np.arange(15, 20)] * 2, 1).astype(np.int32)
+    true4 = np.stack([np.arange(4)] * 2, 1).astype(np.int32)
+    for n_true, chosen in ((12, 1), (7, 0)):  # 12 >= 1.5 x 5 replaces the pick; 7 < 7.5 does not
+        idx = np.r_[np.arange(n_true), np.arange(15, 20)].astype(np.int32)
+        cand = Candidates(idx, idx, np.zeros(len(idx), np.float32))
+        k, T_est, kept, refined = pose_by_support(ps, pt, cand, [wrong, true4], RegisterParams())
+        assert k == chosen
+        deg, m = pose_error(T_est, (W, T)[chosen])
+        assert deg < 1e-6 and m < 1e-9
+        assert len(refined) == (5, n_true)[chosen] and len(kept) == (5, 4)[chosen]
+    # GMatch's pick alone (verify = 0 lists one list): kept whatever the support elsewhere
+    assert pose_by_support(ps, pt, cand, [wrong], RegisterParams())[0] == 0
+
+
+def test_support_check_fixes_a_rendered_pair(meshes_dir):
+    """Object pixels only, a 60 deg view change of the fondant box on the wood table: GMatch's longest list is
+    wrong (158 deg off), another hypothesis list has 1.5 x its support and is right."""
+    d = meshes_dir / "ReadytoUse_Rolled_Fondant_Pure_White_24_oz_box"
+    views = _render_views(d, seed=16, azimuths=(0.0, 60.0), table_kind="wood")
+    fs, ft = [extract_features(v[0], FeatureParams(kind="rootsift"), mask=v[0].mask) for v in views]
+    T_gt = relative_pose(views[0][1], views[1][1])
+    deg, m = pose_error(register_features(fs, ft, RegisterParams(icp=False)).T_tgt_src, T_gt)
+    assert deg < 5.0 and m < 0.02
+    deg, m = pose_error(register_features(fs, ft, RegisterParams(icp=False, verify=0)).T_tgt_src, T_gt)
+    assert deg > 90.0  # the paper's pick alone
 
 
 # ---------------------------------------------------------------------------------------------- real
