@@ -12,6 +12,8 @@ a gscan.synth.table_texture kind; newspaper is rich in keypoints, wood and fabri
 rendered by gscan.synth at 640x480 (noisy depth) from cameras at 40 deg elevation, at azimuth 0 and
 at each gap; each (0, gap) pair is registered on whole-frame RootSIFT keypoints (the same keypoints
 for every method), matches only (no ICP). Success: rotation error < 5 deg and translation < 2 cm.
+Rows: "gmatch" = registration's default (GMatch + the support check of its runner-up lists),
+"gmatch-longest" = the paper's pick alone (RegisterParams(verify=0)), then every baseline.
 speed: /work/shared/bench_inputs/make_synthetic.py inputs (generated into --inputs when missing);
 GMatch with T = L = 24, eps_f 0.65, eps_c 0.1, eta 0.01 m (no depth growth) -- the reference
 parameters -- timed as CPU time, median of --repeats, candidate extraction timed separately; in the

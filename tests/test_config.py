@@ -47,3 +47,14 @@ def test_bad_config_names_the_file_and_the_key(tmp_path, text, words):
     with pytest.raises(InputError) as e:
         load_config(path)
     assert "bad.yaml" in str(e.value) and words in str(e.value)
+
+
+def test_every_registration_key_reaches_the_registration_parameters():
+    from gscan.capture_mode import MOVING_OBJECT
+    from gscan.scan import _register_params
+
+    base = ScanConfig()
+    for key, value in base.registration.model_dump().items():
+        new = (not value) if isinstance(value, bool) else value + 1
+        cfg = base.model_copy(update={"registration": base.registration.model_copy(update={key: new})})
+        assert getattr(_register_params(cfg, MOVING_OBJECT), key) == new, key
