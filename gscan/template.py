@@ -20,6 +20,7 @@ the stored points so this stays true. Edge `matches` index the stored keypoints 
 """
 from __future__ import annotations
 
+import functools
 import io
 import json
 import logging
@@ -164,8 +165,35 @@ def _arr(a: np.ndarray | None) -> bytes | None:
     return buf.getvalue()
 
 
+class _BadBlob(Exception):
+    """A stored value that does not decode (raised by the decoders, turned into InputError by `_decodes`)."""
+
+
 def _unarr(b: bytes | None) -> np.ndarray | None:
-    return None if b is None else np.load(io.BytesIO(b), allow_pickle=False)
+    if b is None:
+        return None
+    try:
+        return np.load(io.BytesIO(b), allow_pickle=False)
+    except (ValueError, EOFError, OSError, TypeError) as e:
+        raise _BadBlob(f"undecodable array blob: {e}") from None
+
+
+def _json(text: str) -> Any:
+    try:
+        return json.loads(text)
+    except (ValueError, TypeError) as e:
+        raise _BadBlob(f"undecodable JSON value: {e}") from None
+
+
+def _decodes(method):
+    """TemplateDB reads: a stored value that does not decode is a corrupt database, an InputError naming it."""
+    @functools.wraps(method)
+    def wrapper(self, *args, **kwargs):
+        try:
+            return method(self, *args, **kwargs)
+        except _BadBlob as e:
+            raise InputError(self.path, f"corrupt template database ({e})") from None
+    return wrapper
 
 
 def _enc_color(rgb: np.ndarray, codec: str) -> bytes:
@@ -197,7 +225,7 @@ def _enc_mask(mask: np.ndarray) -> bytes:
 def _dec(b: bytes) -> np.ndarray:
     img = cv2.imdecode(np.frombuffer(b, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
     if img is None:
-        raise GscanError("corrupt image blob in template database")
+        raise _BadBlob("undecodable image blob")
     return img
 
 
@@ -377,9 +405,10 @@ class TemplateDB:
         return InputError(self.path, f"corrupt template database ({e.__class__.__name__}: {e})")
 
     # -- meta ------------------------------------------------------------------------------------
+    @_decodes
     def get_meta(self, key: str, default: Any = None) -> Any:
         rows = self._q("SELECT value FROM meta WHERE key=?", (key,))
-        return json.loads(rows[0][0]) if rows else default
+        return _json(rows[0][0]) if rows else default
 
     def set_meta(self, key: str, value: Any) -> None:
         """Set one meta key to a JSON-serialisable value ("schema" is not settable)."""
@@ -388,8 +417,9 @@ class TemplateDB:
         with self._tx() as c:
             c.execute("INSERT OR REPLACE INTO meta(key, value) VALUES (?, ?)", (key, json.dumps(value, sort_keys=True)))
 
+    @_decodes
     def meta(self) -> dict:
-        return {k: json.loads(v) for k, v in self._q("SELECT key, value FROM meta ORDER BY key")}
+        return {k: _json(v) for k, v in self._q("SELECT key, value FROM meta ORDER BY key")}
 
     @property
     def status(self) -> str:
@@ -432,12 +462,14 @@ class TemplateDB:
                 self._put_features(c, vid, features)
         return int(vid)
 
+    @_decodes
     def _view_id(self, c: sqlite3.Connection, name: str) -> tuple[int, np.ndarray | None]:
         row = c.execute("SELECT id, T_obj_cam FROM views WHERE name=?", (name,)).fetchone()
         if row is None:
             raise KeyError(f"no view named {name!r} in {self.path}")
         return int(row[0]), _T(row[1])
 
+    @_decodes
     def update_pose(self, name: str, T_obj_cam: np.ndarray | None, move_features: bool = True) -> None:
         """Set (or clear, None) a view's pose. With `move_features` its stored keypoint points are
         re-expressed: p_new = T_new @ inv(T_old) @ p_old (identity stands for a missing pose)."""
@@ -460,9 +492,14 @@ class TemplateDB:
         """All view names in input order (input_index, then insertion)."""
         return [r[0] for r in self._q("SELECT name FROM views ORDER BY input_index IS NULL, input_index, id")]
 
+    @_decodes
     def _row_to_view(self, r: tuple, load_images: bool) -> View:
         name, idx, intr, T, color, codec, depth, mask, kf, q = r
-        v = View(name=name, intrinsics=Intrinsics.from_dict(json.loads(intr)), T_obj_cam=_T(T), keyframe=bool(kf),
+        try:
+            K = Intrinsics.from_dict(_json(intr))
+        except (KeyError, TypeError, ValueError) as e:
+            raise _BadBlob(f"view {name!r}: bad intrinsics {e}") from None
+        v = View(name=name, intrinsics=K, T_obj_cam=_T(T), keyframe=bool(kf),
                  quality=q, input_index=idx)
         if load_images:
             v.color = None if color is None else np.ascontiguousarray(cv2.cvtColor(_dec(color), cv2.COLOR_BGR2RGB))
@@ -516,6 +553,7 @@ class TemplateDB:
             vid, _ = self._view_id(c, view_name)
             self._put_features(c, vid, f, role)
 
+    @_decodes
     def features(self, view_name: str, role: str = "registration") -> ViewFeatures | None:
         """The view's keypoints of a role (unpacks as (pixels, points_obj, descriptors, kind)); None if
         it has none."""
@@ -540,6 +578,7 @@ class TemplateDB:
                       (edge.src, edge.tgt, _arr(_check_T(edge.T_tgt_src)), _arr(m), f(edge.cost), f(edge.rmse),
                        f(edge.fitness), edge.kind, int(bool(edge.accepted)), edge.reason))
 
+    @_decodes
     def edges(self, accepted_only: bool = False) -> list[Edge]:
         where = " WHERE accepted=1" if accepted_only else ""
         rows = self._q("SELECT src, tgt, T_tgt_src, matches, cost, rmse, fitness, kind, accepted, reason FROM edges"
@@ -558,6 +597,7 @@ class TemplateDB:
             c.execute("INSERT OR REPLACE INTO mesh(id, vertices, triangles, colors) VALUES (1,?,?,?)",
                       (_arr(V), _arr(F), _arr(C)))
 
+    @_decodes
     def mesh(self) -> MeshData | None:
         rows = self._q("SELECT vertices, triangles, colors FROM mesh WHERE id=1")
         return None if not rows else MeshData(*(_unarr(b) for b in rows[0]))
@@ -571,6 +611,7 @@ class TemplateDB:
         with self._tx() as c:
             c.execute("INSERT OR REPLACE INTO cloud(id, points, colors) VALUES (1,?,?)", (_arr(P), _arr(C)))
 
+    @_decodes
     def cloud(self) -> tuple[np.ndarray, np.ndarray | None] | None:
         rows = self._q("SELECT points, colors FROM cloud WHERE id=1")
         return None if not rows else (_unarr(rows[0][0]), _unarr(rows[0][1]))
@@ -587,6 +628,7 @@ class TemplateDB:
             if c.execute("DELETE FROM grasps WHERE name=?", (name,)).rowcount == 0:
                 raise KeyError(f"no grasp named {name!r} in {self.path}")
 
+    @_decodes
     def grasps(self) -> dict[str, np.ndarray]:
         return {n: _T(b) for n, b in self._q("SELECT name, T_obj_grasp FROM grasps ORDER BY name")}
 
@@ -600,6 +642,7 @@ class TemplateDB:
         rows = self._q("SELECT kind FROM features ORDER BY view_id LIMIT 1")
         return rows[0][0] if rows else None
 
+    @_decodes
     def extent(self) -> np.ndarray:
         """[3] axis-aligned size (m) in the object frame of the mesh, else the cloud, else the keypoints."""
         m = self.mesh()

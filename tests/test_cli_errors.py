@@ -473,6 +473,23 @@ def _corrupt_views_table(ctx: Ctx, work: Path) -> Path:
     return db
 
 
+def _garbled_blobs(ctx: Ctx, work: Path) -> Path:
+    """A template whose pages are sound but whose stored arrays and images do not decode (one byte of each
+    blob's header flipped, as a bit flip on disk would): poses, keypoints, mesh vertices, colour images."""
+    db = _template_copy(ctx, work, "garbled.gscan")
+    with sqlite3.connect(db) as c:
+        for table, col in (("views", "T_obj_cam"), ("views", "color"), ("features", "points"), ("mesh", "vertices")):
+            for rowid, blob in c.execute(f"SELECT rowid, {col} FROM {table} WHERE {col} IS NOT NULL").fetchall():
+                b = bytearray(blob)
+                b[1] ^= 0x40
+                c.execute(f"UPDATE {table} SET {col}=? WHERE rowid=?", (bytes(b), rowid))
+    c.close()
+    return db
+
+
+for _cmd in ("info", "estimate", "export", "poses", "view"):
+    case(f"{_cmd}-garbled-blobs")(lambda ctx, work, c=_cmd: _template_command(c, _garbled_blobs(ctx, work), ctx, work))
+
 for _cmd in ("info", "estimate", "export", "poses"):
     case(f"{_cmd}-damaged-pages")(
         lambda ctx, work, c=_cmd: _template_command(c, _corrupt_views_table(ctx, work), ctx, work))
