@@ -12,7 +12,8 @@ scan's last transaction (`mark_complete`) makes it "complete". Consumers (`estim
 
 Arrays are stored with `np.save` (dtype and shape included, bit-exact). Colour is JPEG q90 or
 PNG (`color_codec`), depth a 16-bit PNG in millimetres (0 = invalid, sub-millimetre detail and
-depths beyond 65.535 m are lost), masks an 8-bit PNG (0/255).
+depths beyond 65.535 m are lost), masks an 8-bit PNG (0/255); `gscan.template_codec` encodes them. A
+value that does not decode makes the read an InputError naming the database.
 
 Keypoint frame rule: a view's keypoint points are in the object frame when the view has a pose;
 for an unregistered view (`T_obj_cam` None) they are in its camera frame. `update_pose` re-expresses
@@ -21,7 +22,6 @@ the stored points so this stays true. Edge `matches` index the stored keypoints 
 from __future__ import annotations
 
 import functools
-import io
 import json
 import logging
 import os
@@ -37,6 +37,8 @@ import numpy as np
 
 from gscan.camera import Intrinsics
 from gscan.errors import GscanError, InputError
+from gscan.template_codec import (BadBlob, check_T, decode_array, decode_image, decode_json, decode_T, encode_array,
+                                  encode_color, encode_depth, encode_mask, to_u8_colors)
 
 log = logging.getLogger(__name__)
 
@@ -156,100 +158,16 @@ class Template:
     extent_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
 
-# ----------------------------------------------------------------------------------------- encoding
-def _arr(a: np.ndarray | None) -> bytes | None:
-    if a is None:
-        return None
-    buf = io.BytesIO()
-    np.save(buf, np.ascontiguousarray(a), allow_pickle=False)
-    return buf.getvalue()
-
-
-class _BadBlob(Exception):
-    """A stored value that does not decode (raised by the decoders, turned into InputError by `_decodes`)."""
-
-
-def _unarr(b: bytes | None) -> np.ndarray | None:
-    if b is None:
-        return None
-    try:
-        return np.load(io.BytesIO(b), allow_pickle=False)
-    except (ValueError, EOFError, OSError, TypeError) as e:
-        raise _BadBlob(f"undecodable array blob: {e}") from None
-
-
-def _json(text: str) -> Any:
-    try:
-        return json.loads(text)
-    except (ValueError, TypeError) as e:
-        raise _BadBlob(f"undecodable JSON value: {e}") from None
-
-
+# ------------------------------------------------------------------------------------------ helpers
 def _decodes(method):
     """TemplateDB reads: a stored value that does not decode is a corrupt database, an InputError naming it."""
     @functools.wraps(method)
     def wrapper(self, *args, **kwargs):
         try:
             return method(self, *args, **kwargs)
-        except _BadBlob as e:
+        except BadBlob as e:
             raise InputError(self.path, f"corrupt template database ({e})") from None
     return wrapper
-
-
-def _enc_color(rgb: np.ndarray, codec: str) -> bytes:
-    rgb = np.asarray(rgb)
-    if rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] != 3:
-        raise ValueError(f"colour must be [H x W x 3] uint8, got {rgb.dtype} {rgb.shape}")
-    params = [cv2.IMWRITE_JPEG_QUALITY, 90] if codec == "jpg" else []
-    ok, buf = cv2.imencode("." + codec, cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), params)
-    if not ok:
-        raise GscanError(f"cannot encode colour as {codec}")
-    return buf.tobytes()
-
-
-def depth_to_mm_u16(depth: np.ndarray) -> np.ndarray:
-    """[H x W] float metres -> [H x W] uint16 millimetres (0 invalid, out of range -> 0)."""
-    mm = np.rint(np.nan_to_num(np.asarray(depth, dtype=np.float64), nan=0.0) * 1000.0)
-    mm[(mm < 0) | (mm > 65535)] = 0
-    return mm.astype(np.uint16)
-
-
-def _enc_depth(depth: np.ndarray) -> bytes:
-    return cv2.imencode(".png", depth_to_mm_u16(depth))[1].tobytes()
-
-
-def _enc_mask(mask: np.ndarray) -> bytes:
-    return cv2.imencode(".png", np.where(np.asarray(mask, dtype=bool), 255, 0).astype(np.uint8))[1].tobytes()
-
-
-def _dec(b: bytes) -> np.ndarray:
-    img = cv2.imdecode(np.frombuffer(b, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise _BadBlob("undecodable image blob")
-    return img
-
-
-def _to_u8_colors(c: np.ndarray | None) -> np.ndarray | None:
-    """[N x 3|4] colours, uint8 or float in [0, 1] -> [N x 3] uint8."""
-    if c is None:
-        return None
-    c = np.asarray(c)[:, :3]
-    if c.dtype == np.uint8:
-        return np.ascontiguousarray(c)
-    return np.clip(np.rint(c.astype(np.float64) * 255.0), 0, 255).astype(np.uint8)
-
-
-def _T(b: bytes | None) -> np.ndarray | None:
-    return None if b is None else _unarr(b).astype(np.float64)
-
-
-def _check_T(T: np.ndarray | None) -> np.ndarray | None:
-    if T is None:
-        return None
-    T = np.asarray(T, dtype=np.float64)
-    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-        raise ValueError(f"transform must be a finite [4 x 4] matrix, got shape {T.shape}")
-    return T
 
 
 def _apply(T: np.ndarray, pts: np.ndarray) -> np.ndarray:
@@ -408,7 +326,7 @@ class TemplateDB:
     @_decodes
     def get_meta(self, key: str, default: Any = None) -> Any:
         rows = self._q("SELECT value FROM meta WHERE key=?", (key,))
-        return _json(rows[0][0]) if rows else default
+        return decode_json(rows[0][0]) if rows else default
 
     def set_meta(self, key: str, value: Any) -> None:
         """Set one meta key to a JSON-serialisable value ("schema" is not settable)."""
@@ -419,7 +337,7 @@ class TemplateDB:
 
     @_decodes
     def meta(self) -> dict:
-        return {k: _json(v) for k, v in self._q("SELECT key, value FROM meta ORDER BY key")}
+        return {k: decode_json(v) for k, v in self._q("SELECT key, value FROM meta ORDER BY key")}
 
     @property
     def status(self) -> str:
@@ -442,12 +360,12 @@ class TemplateDB:
         """
         if color_codec not in ("jpg", "png"):
             raise ValueError(f"color_codec must be 'jpg' or 'png', not {color_codec!r}")
-        T = _check_T(view.T_obj_cam)
-        row = (view.name, view.input_index, json.dumps(view.intrinsics.to_dict(), sort_keys=True), _arr(T),
-               None if view.color is None else _enc_color(view.color, color_codec),
+        T = check_T(view.T_obj_cam)
+        row = (view.name, view.input_index, json.dumps(view.intrinsics.to_dict(), sort_keys=True), encode_array(T),
+               None if view.color is None else encode_color(view.color, color_codec),
                None if view.color is None else color_codec,
-               None if view.depth is None else _enc_depth(view.depth),
-               None if view.mask is None else _enc_mask(view.mask),
+               None if view.depth is None else encode_depth(view.depth),
+               None if view.mask is None else encode_mask(view.mask),
                int(bool(view.keyframe)), None if view.quality is None else float(view.quality))
         with self._tx() as c:
             old = c.execute("SELECT id FROM views WHERE name=?", (view.name,)).fetchone()
@@ -467,21 +385,21 @@ class TemplateDB:
         row = c.execute("SELECT id, T_obj_cam FROM views WHERE name=?", (name,)).fetchone()
         if row is None:
             raise KeyError(f"no view named {name!r} in {self.path}")
-        return int(row[0]), _T(row[1])
+        return int(row[0]), decode_T(row[1])
 
     @_decodes
     def update_pose(self, name: str, T_obj_cam: np.ndarray | None, move_features: bool = True) -> None:
         """Set (or clear, None) a view's pose. With `move_features` its stored keypoint points are
         re-expressed: p_new = T_new @ inv(T_old) @ p_old (identity stands for a missing pose)."""
-        T_new = _check_T(T_obj_cam)
+        T_new = check_T(T_obj_cam)
         with self._tx() as c:
             vid, T_old = self._view_id(c, name)
-            c.execute("UPDATE views SET T_obj_cam=? WHERE id=?", (_arr(T_new), vid))
+            c.execute("UPDATE views SET T_obj_cam=? WHERE id=?", (encode_array(T_new), vid))
             A = (np.eye(4) if T_new is None else T_new) @ np.linalg.inv(np.eye(4) if T_old is None else T_old)
             rows = c.execute("SELECT role, points FROM features WHERE view_id=?", (vid,)).fetchall()
             for role, pts in rows if move_features else []:
                 c.execute("UPDATE features SET points=? WHERE view_id=? AND role=?",
-                          (_arr(_apply(A, _unarr(pts))), vid, role))
+                          (encode_array(_apply(A, decode_array(pts))), vid, role))
 
     def set_keyframe(self, name: str, keyframe: bool) -> None:
         with self._tx() as c:
@@ -496,15 +414,15 @@ class TemplateDB:
     def _row_to_view(self, r: tuple, load_images: bool) -> View:
         name, idx, intr, T, color, codec, depth, mask, kf, q = r
         try:
-            K = Intrinsics.from_dict(_json(intr))
+            K = Intrinsics.from_dict(decode_json(intr))
         except (KeyError, TypeError, ValueError) as e:
-            raise _BadBlob(f"view {name!r}: bad intrinsics {e}") from None
-        v = View(name=name, intrinsics=K, T_obj_cam=_T(T), keyframe=bool(kf),
+            raise BadBlob(f"view {name!r}: bad intrinsics {e}") from None
+        v = View(name=name, intrinsics=K, T_obj_cam=decode_T(T), keyframe=bool(kf),
                  quality=q, input_index=idx)
         if load_images:
-            v.color = None if color is None else np.ascontiguousarray(cv2.cvtColor(_dec(color), cv2.COLOR_BGR2RGB))
-            v.depth = None if depth is None else _dec(depth).astype(np.float32) / np.float32(1000.0)
-            v.mask = None if mask is None else _dec(mask) > 127
+            v.color = None if color is None else np.ascontiguousarray(cv2.cvtColor(decode_image(color), cv2.COLOR_BGR2RGB))
+            v.depth = None if depth is None else decode_image(depth).astype(np.float32) / np.float32(1000.0)
+            v.mask = None if mask is None else decode_image(mask) > 127
         return v
 
     _VIEW_COLS = "name, input_index, intrinsics, T_obj_cam, {img}, color_codec, {img2}, {img3}, keyframe, quality"
@@ -540,7 +458,7 @@ class TemplateDB:
             raise ValueError(f"keypoint arrays disagree: {len(px)} pixels, {len(pts)} points, {len(desc)} descriptors")
         c.execute("INSERT OR REPLACE INTO features(view_id, role, kind, n, pixels, points, descriptors, scales) "
                   "VALUES (?,?,?,?,?,?,?,?)",
-                  (vid, role, str(f.kind), len(px), _arr(px), _arr(pts), _arr(desc), _arr(sc)))
+                  (vid, role, str(f.kind), len(px), encode_array(px), encode_array(pts), encode_array(desc), encode_array(sc)))
 
     def add_features(self, view_name: str, pixels: np.ndarray | ViewFeatures, points_obj: np.ndarray | None = None,
                      descriptors: np.ndarray | None = None, kind: str | None = None,
@@ -562,7 +480,7 @@ class TemplateDB:
         if not rows:
             return None
         px, pts, desc, kind, sc = rows[0]
-        return ViewFeatures(_unarr(px), _unarr(pts), _unarr(desc), kind, _unarr(sc))
+        return ViewFeatures(decode_array(px), decode_array(pts), decode_array(desc), kind, decode_array(sc))
 
     # -- edges -----------------------------------------------------------------------------------
     def add_edge(self, edge: Edge) -> None:
@@ -575,7 +493,7 @@ class TemplateDB:
             c.execute("DELETE FROM edges WHERE src=? AND tgt=?", (edge.src, edge.tgt))
             c.execute("INSERT INTO edges(src, tgt, T_tgt_src, matches, cost, rmse, fitness, kind, accepted, reason) "
                       "VALUES (?,?,?,?,?,?,?,?,?,?)",
-                      (edge.src, edge.tgt, _arr(_check_T(edge.T_tgt_src)), _arr(m), f(edge.cost), f(edge.rmse),
+                      (edge.src, edge.tgt, encode_array(check_T(edge.T_tgt_src)), encode_array(m), f(edge.cost), f(edge.rmse),
                        f(edge.fitness), edge.kind, int(bool(edge.accepted)), edge.reason))
 
     @_decodes
@@ -583,45 +501,45 @@ class TemplateDB:
         where = " WHERE accepted=1" if accepted_only else ""
         rows = self._q("SELECT src, tgt, T_tgt_src, matches, cost, rmse, fitness, kind, accepted, reason FROM edges"
                        + where + " ORDER BY id")
-        return [Edge(s, t, _T(T), _unarr(m), co, r, fi, k, bool(a), re) for s, t, T, m, co, r, fi, k, a, re in rows]
+        return [Edge(s, t, decode_T(T), decode_array(m), co, r, fi, k, bool(a), re) for s, t, T, m, co, r, fi, k, a, re in rows]
 
     # -- geometry and grasps ---------------------------------------------------------------------
     def set_mesh(self, vertices: np.ndarray, triangles: np.ndarray, vertex_colors: np.ndarray | None = None) -> None:
         """vertices [V x 3] (m, object frame), triangles [F x 3], vertex_colors [V x 3] uint8 or float in [0, 1]."""
         V = np.asarray(vertices).reshape(-1, 3)
         F = np.asarray(triangles).reshape(-1, 3)
-        C = _to_u8_colors(vertex_colors)
+        C = to_u8_colors(vertex_colors)
         if C is not None and len(C) != len(V):
             raise ValueError(f"{len(C)} vertex colours for {len(V)} vertices")
         with self._tx() as c:
             c.execute("INSERT OR REPLACE INTO mesh(id, vertices, triangles, colors) VALUES (1,?,?,?)",
-                      (_arr(V), _arr(F), _arr(C)))
+                      (encode_array(V), encode_array(F), encode_array(C)))
 
     @_decodes
     def mesh(self) -> MeshData | None:
         rows = self._q("SELECT vertices, triangles, colors FROM mesh WHERE id=1")
-        return None if not rows else MeshData(*(_unarr(b) for b in rows[0]))
+        return None if not rows else MeshData(*(decode_array(b) for b in rows[0]))
 
     def set_cloud(self, points: np.ndarray, colors: np.ndarray | None = None) -> None:
         """points [N x 3] (m, object frame), colors [N x 3] uint8 or float in [0, 1]."""
         P = np.asarray(points).reshape(-1, 3)
-        C = _to_u8_colors(colors)
+        C = to_u8_colors(colors)
         if C is not None and len(C) != len(P):
             raise ValueError(f"{len(C)} colours for {len(P)} points")
         with self._tx() as c:
-            c.execute("INSERT OR REPLACE INTO cloud(id, points, colors) VALUES (1,?,?)", (_arr(P), _arr(C)))
+            c.execute("INSERT OR REPLACE INTO cloud(id, points, colors) VALUES (1,?,?)", (encode_array(P), encode_array(C)))
 
     @_decodes
     def cloud(self) -> tuple[np.ndarray, np.ndarray | None] | None:
         rows = self._q("SELECT points, colors FROM cloud WHERE id=1")
-        return None if not rows else (_unarr(rows[0][0]), _unarr(rows[0][1]))
+        return None if not rows else (decode_array(rows[0][0]), decode_array(rows[0][1]))
 
     def add_grasp(self, name: str, T_obj_grasp: np.ndarray, replace: bool = False) -> None:
-        T = _check_T(T_obj_grasp)
+        T = check_T(T_obj_grasp)
         with self._tx() as c:
             if not replace and c.execute("SELECT 1 FROM grasps WHERE name=?", (name,)).fetchone():
                 raise InputError(self.path, f"grasp {name!r} already exists")
-            c.execute("INSERT OR REPLACE INTO grasps(name, T_obj_grasp) VALUES (?,?)", (name, _arr(T)))
+            c.execute("INSERT OR REPLACE INTO grasps(name, T_obj_grasp) VALUES (?,?)", (name, encode_array(T)))
 
     def remove_grasp(self, name: str) -> None:
         with self._tx() as c:
@@ -630,7 +548,7 @@ class TemplateDB:
 
     @_decodes
     def grasps(self) -> dict[str, np.ndarray]:
-        return {n: _T(b) for n, b in self._q("SELECT name, T_obj_grasp FROM grasps ORDER BY name")}
+        return {n: decode_T(b) for n, b in self._q("SELECT name, T_obj_grasp FROM grasps ORDER BY name")}
 
     # -- summaries -------------------------------------------------------------------------------
     def descriptor_kind(self) -> str | None:
@@ -653,7 +571,7 @@ class TemplateDB:
         if pts is None:
             rows = self._q("SELECT f.points FROM features f JOIN views v ON v.id=f.view_id "
                            "WHERE v.T_obj_cam IS NOT NULL AND f.n > 0")
-            pts = np.concatenate([_unarr(r[0]) for r in rows]) if rows else None
+            pts = np.concatenate([decode_array(r[0]) for r in rows]) if rows else None
         if pts is None or len(pts) == 0:
             return np.zeros(3)
         pts = np.asarray(pts, dtype=np.float64)

@@ -35,7 +35,8 @@ from gscan.errors import InputError
 from gscan.export.common import MeshRaycaster, bbox_xywh, imwrite, posed_views
 from gscan.geometry import inv_T
 from gscan.metrics import diameter
-from gscan.template import MeshData, TemplateDB, depth_to_mm_u16
+from gscan.template import MeshData, TemplateDB
+from gscan.template_codec import depth_to_mm_u16
 
 log = logging.getLogger(__name__)
 

@@ -1,0 +1,99 @@
+"""Encoding of the template database's stored values (gscan.template): arrays by `np.save` (dtype and
+shape kept, bit-exact), colour as JPEG q90 or PNG, depth as a 16-bit PNG in millimetres, masks as an 8-bit
+PNG, poses as [4 x 4] float64 arrays, meta values as JSON. A stored value that does not decode raises
+`BadBlob` (the database turns it into an InputError naming its file).
+"""
+from __future__ import annotations
+
+import io
+import json
+from typing import Any
+
+import cv2
+import numpy as np
+
+from gscan.errors import GscanError
+
+
+def encode_array(a: np.ndarray | None) -> bytes | None:
+    if a is None:
+        return None
+    buf = io.BytesIO()
+    np.save(buf, np.ascontiguousarray(a), allow_pickle=False)
+    return buf.getvalue()
+
+
+class BadBlob(Exception):
+    """A stored value that does not decode (the database's reads turn it into an InputError naming the file)."""
+
+
+def decode_array(b: bytes | None) -> np.ndarray | None:
+    if b is None:
+        return None
+    try:
+        return np.load(io.BytesIO(b), allow_pickle=False)
+    except (ValueError, EOFError, OSError, TypeError) as e:
+        raise BadBlob(f"undecodable array blob: {e}") from None
+
+
+def decode_json(text: str) -> Any:
+    try:
+        return json.loads(text)
+    except (ValueError, TypeError) as e:
+        raise BadBlob(f"undecodable JSON value: {e}") from None
+
+
+def encode_color(rgb: np.ndarray, codec: str) -> bytes:
+    rgb = np.asarray(rgb)
+    if rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] != 3:
+        raise ValueError(f"colour must be [H x W x 3] uint8, got {rgb.dtype} {rgb.shape}")
+    params = [cv2.IMWRITE_JPEG_QUALITY, 90] if codec == "jpg" else []
+    ok, buf = cv2.imencode("." + codec, cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), params)
+    if not ok:
+        raise GscanError(f"cannot encode colour as {codec}")
+    return buf.tobytes()
+
+
+def depth_to_mm_u16(depth: np.ndarray) -> np.ndarray:
+    """[H x W] float metres -> [H x W] uint16 millimetres (0 invalid, out of range -> 0)."""
+    mm = np.rint(np.nan_to_num(np.asarray(depth, dtype=np.float64), nan=0.0) * 1000.0)
+    mm[(mm < 0) | (mm > 65535)] = 0
+    return mm.astype(np.uint16)
+
+
+def encode_depth(depth: np.ndarray) -> bytes:
+    return cv2.imencode(".png", depth_to_mm_u16(depth))[1].tobytes()
+
+
+def encode_mask(mask: np.ndarray) -> bytes:
+    return cv2.imencode(".png", np.where(np.asarray(mask, dtype=bool), 255, 0).astype(np.uint8))[1].tobytes()
+
+
+def decode_image(b: bytes) -> np.ndarray:
+    img = cv2.imdecode(np.frombuffer(b, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise BadBlob("undecodable image blob")
+    return img
+
+
+def to_u8_colors(c: np.ndarray | None) -> np.ndarray | None:
+    """[N x 3|4] colours, uint8 or float in [0, 1] -> [N x 3] uint8."""
+    if c is None:
+        return None
+    c = np.asarray(c)[:, :3]
+    if c.dtype == np.uint8:
+        return np.ascontiguousarray(c)
+    return np.clip(np.rint(c.astype(np.float64) * 255.0), 0, 255).astype(np.uint8)
+
+
+def decode_T(b: bytes | None) -> np.ndarray | None:
+    return None if b is None else decode_array(b).astype(np.float64)
+
+
+def check_T(T: np.ndarray | None) -> np.ndarray | None:
+    if T is None:
+        return None
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise ValueError(f"transform must be a finite [4 x 4] matrix, got shape {T.shape}")
+    return T
