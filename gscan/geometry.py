@@ -105,6 +105,8 @@ def leave_one_out_residuals(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     [N x 3], N >= 4): the N fits in one batched SVD, each from the totals less the pair left out."""
     src = np.asarray(src, dtype=np.float64)
     dst = np.asarray(dst, dtype=np.float64)
+    if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3 or len(src) < 4:
+        raise ValueError(f"need two [N x 3] arrays with N >= 4, got {src.shape} and {dst.shape}")
     m = len(src) - 1
     mu_s = (src.sum(0) - src) / m  # [N x 3] centroids without pair k
     mu_d = (dst.sum(0) - dst) / m

@@ -138,6 +138,9 @@ def refine_pose(pts_s: np.ndarray, pts_t: np.ndarray, cand: Candidates, T: np.nd
     return T, best
 
 
+_SAME_POSE_DEG, _SAME_POSE_M = 2.0, 0.01  # a list posed this close to one already checked is skipped
+
+
 def _pair_keys(m: np.ndarray) -> np.ndarray:
     """[M] int64 keys of pairs m [M x 2] (source << 32 | target)."""
     return (m[:, 0].astype(np.int64) << 32) | m[:, 1]
@@ -156,8 +159,9 @@ def lists_to_verify(res: GMatchResult, n_other: int, min_len: int) -> tuple[list
         if len(out) > n_other or n < min_len:
             break
         m = res.hyp_matches[h, :n]
-        if key(m) not in seen:
-            seen.add(key(m))
+        k = key(m)
+        if k not in seen:
+            seen.add(k)
             out.append(m)
             costs.append(float(res.hyp_cost[h]))
     return out, costs
@@ -171,18 +175,23 @@ def pose_by_support(pts_s: np.ndarray, pts_t: np.ndarray, cand: Candidates, list
     (the kept pairs when no round reached the list's length). lists[0] (GMatch's pick) is replaced by the best
     supported other list (first on ties) only if that has at least `verify_ratio` times its support. A list
     whose pairs all lie within trim_tau under a pose already checked, or whose pose lies within 2 deg / 1 cm
-    of one, is skipped (it would refine to the same).
+    of one, is skipped (it would refine to the same). Supports of lists of different lengths compare as they
+    are: a list's refinement must keep at least its own length, else its support is its kept pairs.
     T is the refined pose when params.refine, else the list's own pose.
     """
+    if not lists:
+        raise ValueError("pose_by_support needs at least GMatch's own list")
     best, verified = None, []
     for k, m in enumerate(lists):
         src, dst = pts_s[m[:, 0]], pts_t[m[:, 1]]
         if any(np.linalg.norm(transform_points(V, src) - dst, axis=1).max() < params.trim_tau for V in verified):
             continue  # every pair agrees with a pose already checked
         T, keep = kabsch_trimmed(src, dst, params.trim_tau)
-        if any(e[0] < 2.0 and e[1] < 0.01 for e in (pose_error(T, V) for V in verified)):
+        if any(e[0] < _SAME_POSE_DEG and e[1] < _SAME_POSE_M for e in (pose_error(T, V) for V in verified)):
             continue
         verified.append(T)
+        if len(lists) == 1 and not params.refine:  # nothing to compare, nothing to refine
+            return 0, T, m[keep], np.zeros((0, 2), np.int32)
         T_ref, refined = refine_pose(pts_s, pts_t, cand, T, params.refine_taus, len(m))
         support = len(refined) if len(refined) else int(keep.sum())
         choice = (k, T_ref if params.refine and len(refined) else T, m[keep], refined)

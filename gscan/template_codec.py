@@ -70,7 +70,7 @@ def encode_mask(mask: np.ndarray) -> bytes:
 
 
 def decode_image(b: bytes) -> np.ndarray:
-    img = cv2.imdecode(np.frombuffer(b, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    img = cv2.imdecode(np.frombuffer(b, dtype=np.uint8), cv2.IMREAD_UNCHANGED) if b else None  # b"" asserts in cv2
     if img is None:
         raise BadBlob("undecodable image blob")
     return img
@@ -87,7 +87,13 @@ def to_u8_colors(c: np.ndarray | None) -> np.ndarray | None:
 
 
 def decode_T(b: bytes | None) -> np.ndarray | None:
-    return None if b is None else decode_array(b).astype(np.float64)
+    """A stored [4 x 4] transform (None stays None)."""
+    if b is None:
+        return None
+    T = decode_array(b)
+    if T.shape != (4, 4) or not np.issubdtype(T.dtype, np.number):
+        raise BadBlob(f"stored transform is {T.dtype} {T.shape}, not a [4 x 4] matrix")
+    return T.astype(np.float64)
 
 
 def check_T(T: np.ndarray | None) -> np.ndarray | None:

@@ -173,6 +173,8 @@ def test_leave_one_out_residuals_equal_n_separate_fits(seed, n):
     ref = [np.linalg.norm(transform_points(kabsch(np.delete(src, k, 0), np.delete(dst, k, 0)), src[k][None])[0]
                           - dst[k]) for k in range(n)]
     np.testing.assert_allclose(leave_one_out_residuals(src, dst), ref, atol=1e-9)
+    with pytest.raises(ValueError):  # fewer than 4 pairs leaves fits of fewer than 3
+        leave_one_out_residuals(src[:3], dst[:3])
 
 
 def test_kabsch_trimmed_keeps_all_when_no_majority_agrees():

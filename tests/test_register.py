@@ -157,21 +157,39 @@ def test_pose_by_support_replaces_a_weakly_supported_winner():
         deg, m = pose_error(T_est, (W, T)[chosen])
         assert deg < 1e-6 and m < 1e-9
         assert len(refined) == (5, n_true)[chosen] and len(kept) == (5, 4)[chosen]
-    # GMatch's pick alone (verify = 0 lists one list): kept whatever the support elsewhere
-    assert pose_by_support(ps, pt, cand, [wrong], RegisterParams())[0] == 0
+    with pytest.raises(ValueError):
+        pose_by_support(ps, pt, cand, [], RegisterParams())
 
 
 def test_support_check_fixes_a_rendered_pair(meshes_dir):
     """Object pixels only, a 60 deg view change of the fondant box on the wood table: GMatch's longest list is
-    wrong (158 deg off), another hypothesis list has 1.5 x its support and is right."""
+    wrong (158 deg off), another hypothesis list has 1.5 x its support and is right. The pose choice is what is
+    tested: both lists are shorter than min_matches, so rule 1 rejects the edge either way."""
+    from gscan.features import descriptor_distances
+    from gscan.geometry import kabsch_trimmed
+    from gscan.gmatch import gmatch
+    from gscan.register import refine_pose
+
     d = meshes_dir / "ReadytoUse_Rolled_Fondant_Pure_White_24_oz_box"
     views = _render_views(d, seed=16, azimuths=(0.0, 60.0), table_kind="wood")
     fs, ft = [extract_features(v[0], FeatureParams(kind="rootsift"), mask=v[0].mask) for v in views]
     T_gt = relative_pose(views[0][1], views[1][1])
-    deg, m = pose_error(register_features(fs, ft, RegisterParams(icp=False)).T_tgt_src, T_gt)
+    res = gmatch(fs.points, ft.points, descriptor_distances(fs.descriptors, ft.descriptors, fs.kind), 0.6)
+    r = register_features(fs, ft, RegisterParams(icp=False))
+    deg, m = pose_error(r.T_tgt_src, T_gt)
     assert deg < 5.0 and m < 0.02
-    deg, m = pose_error(register_features(fs, ft, RegisterParams(icp=False, verify=0)).T_tgt_src, T_gt)
-    assert deg > 90.0  # the paper's pick alone
+    # the result is a runner-up list of the trace, reported consistently
+    assert not np.array_equal(r.matches, res.matches) and r.n_matches == len(r.matches)
+    assert any(np.array_equal(r.matches, t.matches) and r.cost == t.cost for t in res.trace)
+    assert r.reason.startswith("too few matches")
+    # verify = 0: GMatch's own list, posed by kabsch_trimmed then refined, as before the support check
+    r0 = register_features(fs, ft, RegisterParams(icp=False, verify=0))
+    np.testing.assert_array_equal(r0.matches, res.matches)
+    ps, pt = fs.points.astype(np.float64), ft.points.astype(np.float64)
+    T0, _ = kabsch_trimmed(ps[res.matches[:, 0]], pt[res.matches[:, 1]], 0.008)
+    T0, inl0 = refine_pose(ps, pt, res.candidates, T0, RegisterParams().refine_taus, len(res.matches))
+    np.testing.assert_allclose(r0.T_tgt_src, T0, atol=1e-12)
+    assert pose_error(r0.T_tgt_src, T_gt)[0] > 90.0  # the paper's pick alone is wrong here
 
 
 # ---------------------------------------------------------------------------------------------- real

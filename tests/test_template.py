@@ -298,3 +298,56 @@ def test_object_keypoints_are_what_the_estimator_loads(db_path: Path) -> None:
             np.testing.assert_allclose(moved, f.points_obj @ A[:3, :3].T + A[:3, 3], atol=1e-5)
         db.add_view(_view("a", rng, T, 0), reg, replace=True)
         assert db.features("a", "object") is None
+
+
+# every stored column and the read that decodes it; a bad value there must be an InputError naming the file
+_READS = {
+    ("views", "T_obj_cam"): lambda db: db.views(),
+    ("views", "color"): lambda db: db.view("a"),
+    ("views", "depth"): lambda db: db.views(load_images=True),
+    ("views", "mask"): lambda db: db.view("a"),
+    ("views", "intrinsics"): lambda db: db.views(),
+    ("features", "points"): lambda db: db.features("a"),
+    ("features", "descriptors"): lambda db: db.features("a"),
+    ("edges", "T_tgt_src"): lambda db: db.edges(),
+    ("edges", "matches"): lambda db: db.edges(),
+    ("mesh", "vertices"): lambda db: db.mesh(),
+    ("cloud", "points"): lambda db: db.cloud(),
+    ("grasps", "T_obj_grasp"): lambda db: db.grasps(),
+    ("meta", "value"): lambda db: db.meta(),
+}
+
+
+@pytest.mark.parametrize("table, column", sorted(_READS))
+@pytest.mark.parametrize("damage", ["bit-flip", "empty", "wrong-shape"])
+def test_undecodable_stored_value_is_input_error(tmp_path: Path, table: str, column: str, damage: str) -> None:
+    rng = np.random.default_rng(4)
+    path = tmp_path / "obj.gscan"
+    with TemplateDB.create(path) as db:
+        db.add_view(_view("a", rng, _pose(rng), 0), _feats(rng, 20), color_codec="png")
+        db.add_edge(Edge("a", "a", _pose(rng), np.zeros((3, 2), np.int32), 0.0, 0.0, 1.0, "loop"))
+        db.set_mesh(rng.normal(size=(5, 3)), np.array([[0, 1, 2]]))
+        db.set_cloud(rng.normal(size=(5, 3)))
+        db.add_grasp("g", _pose(rng))
+        db.mark_complete()
+    with sqlite3.connect(path) as c:
+        where = " WHERE key = 'units'" if table == "meta" else ""
+        (blob,) = c.execute(f"SELECT {column} FROM {table}{where}").fetchone()
+        bad = {"bit-flip": bytes([blob[0], blob[1] ^ 0x40]) + bytes(blob[2:]) if isinstance(blob, bytes)
+               else "{" + blob, "empty": b"" if isinstance(blob, bytes) else "",
+               "wrong-shape": _encoded(np.zeros(3)) if isinstance(blob, bytes) else "[1, 2"}[damage]
+        c.execute(f"UPDATE {table} SET {column} = ?{where}", (bad,))
+    c.close()
+    with TemplateDB.open(path) as db:
+        try:
+            _READS[(table, column)](db)
+        except InputError as e:
+            assert "obj.gscan" in str(e) and "corrupt template database" in str(e)
+        else:  # only a stored array that is not a transform may decode, where its shape is not checked
+            assert damage == "wrong-shape" and column not in ("T_obj_cam", "T_tgt_src", "T_obj_grasp")
+
+
+def _encoded(a: np.ndarray) -> bytes:
+    from gscan.template_codec import encode_array
+
+    return encode_array(a)
