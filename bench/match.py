@@ -103,6 +103,7 @@ def cmd_pairs(args) -> None:
     gaps = [float(g) for g in args.gaps.split(",")]
     methods = args.methods.split(",") if args.methods else ["gmatch", "gmatch-longest"] + list(METHODS[1:])
     ok = {(m, g): [] for m in methods for g in gaps}
+    acc = {(m, g): [] for m in methods for g in gaps}  # accepted by registration's rules (gscan.register)
     ms = {(m, g): [] for m in methods for g in gaps}
     fp = FeatureParams(kind="rootsift")
     over = gmatch_overrides(args.gmatch)
@@ -122,6 +123,7 @@ def cmd_pairs(args) -> None:
                 ms[(m, g)].append((time.process_time() - t0) * 1e3)
                 e = pose_error(r.T_tgt_src, T_gt) if r.T_tgt_src is not None else (np.inf, np.inf)
                 ok[(m, g)].append(e[0] < 5.0 and e[1] < 0.02)
+                acc[(m, g)].append(r.accepted)
             line.append(f"{g:.0f}:" + "".join("+" if ok[(m, g)][-1] else "." for m in methods))
         print(f"{md.name[:40]:40s} kp {len(feats[0]):4d}  " + "  ".join(line), file=sys.stderr, flush=True)
     n_meshes = len(ok[(methods[0], gaps[0])])
@@ -137,6 +139,13 @@ def cmd_pairs(args) -> None:
         rates = [f"{100 * np.mean(ok[(m, g)]):.0f} %" for g in gaps]
         times = [f"{np.median(ms[(m, g)]):.0f}" for g in gaps]
         print(f"| {m} | " + " | ".join(rates) + " | " + " | ".join(times) + " |")
+    print("\naccepted by registration's rules (min_matches 6, Kabsch residual): correct / wrong, % of pairs")
+    print("| method | " + " | ".join(f"{g:.0f} deg" for g in gaps) + " |")
+    print("|---" * (1 + len(gaps)) + "|")
+    for m in methods:
+        cells = [f"{100 * np.mean(np.logical_and(acc[(m, g)], ok[(m, g)])):.0f} / "
+                 f"{100 * np.mean(np.logical_and(acc[(m, g)], np.logical_not(ok[(m, g)]))):.0f}" for g in gaps]
+        print(f"| {m} | " + " | ".join(cells) + " |")
 
 
 def cmd_sweep(args) -> None:
