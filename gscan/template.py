@@ -399,7 +399,7 @@ class TemplateDB:
             rows = c.execute("SELECT role, points FROM features WHERE view_id=?", (vid,)).fetchall()
             for role, pts in rows if move_features else []:
                 c.execute("UPDATE features SET points=? WHERE view_id=? AND role=?",
-                          (encode_array(_apply(A, decode_array(pts))), vid, role))
+                          (encode_array(_apply(A, decode_array(pts, (None, 3)))), vid, role))
 
     def set_keyframe(self, name: str, keyframe: bool) -> None:
         with self._tx() as c:
@@ -420,7 +420,8 @@ class TemplateDB:
         v = View(name=name, intrinsics=K, T_obj_cam=decode_T(T), keyframe=bool(kf),
                  quality=q, input_index=idx)
         if load_images:
-            v.color = None if color is None else np.ascontiguousarray(cv2.cvtColor(decode_image(color), cv2.COLOR_BGR2RGB))
+            v.color = (None if color is None
+                       else np.ascontiguousarray(cv2.cvtColor(decode_image(color), cv2.COLOR_BGR2RGB)))
             v.depth = None if depth is None else decode_image(depth).astype(np.float32) / np.float32(1000.0)
             v.mask = None if mask is None else decode_image(mask) > 127
         return v
@@ -458,7 +459,8 @@ class TemplateDB:
             raise ValueError(f"keypoint arrays disagree: {len(px)} pixels, {len(pts)} points, {len(desc)} descriptors")
         c.execute("INSERT OR REPLACE INTO features(view_id, role, kind, n, pixels, points, descriptors, scales) "
                   "VALUES (?,?,?,?,?,?,?,?)",
-                  (vid, role, str(f.kind), len(px), encode_array(px), encode_array(pts), encode_array(desc), encode_array(sc)))
+                  (vid, role, str(f.kind), len(px), encode_array(px), encode_array(pts), encode_array(desc),
+                   encode_array(sc)))
 
     def add_features(self, view_name: str, pixels: np.ndarray | ViewFeatures, points_obj: np.ndarray | None = None,
                      descriptors: np.ndarray | None = None, kind: str | None = None,
@@ -480,7 +482,12 @@ class TemplateDB:
         if not rows:
             return None
         px, pts, desc, kind, sc = rows[0]
-        return ViewFeatures(decode_array(px), decode_array(pts), decode_array(desc), kind, decode_array(sc))
+        f = ViewFeatures(decode_array(px, (None, 2)), decode_array(pts, (None, 3)), decode_array(desc, (None, None)),
+                         kind, decode_array(sc, (None,)))
+        lengths = {len(f.pixels), len(f.points_obj), len(f.descriptors)}
+        if len(lengths | ({len(f.scales)} if f.scales is not None else set())) > 1:
+            raise BadBlob(f"view {view_name!r}: keypoint arrays of different lengths")
+        return f
 
     # -- edges -----------------------------------------------------------------------------------
     def add_edge(self, edge: Edge) -> None:
@@ -493,15 +500,16 @@ class TemplateDB:
             c.execute("DELETE FROM edges WHERE src=? AND tgt=?", (edge.src, edge.tgt))
             c.execute("INSERT INTO edges(src, tgt, T_tgt_src, matches, cost, rmse, fitness, kind, accepted, reason) "
                       "VALUES (?,?,?,?,?,?,?,?,?,?)",
-                      (edge.src, edge.tgt, encode_array(check_T(edge.T_tgt_src)), encode_array(m), f(edge.cost), f(edge.rmse),
-                       f(edge.fitness), edge.kind, int(bool(edge.accepted)), edge.reason))
+                      (edge.src, edge.tgt, encode_array(check_T(edge.T_tgt_src)), encode_array(m), f(edge.cost),
+                       f(edge.rmse), f(edge.fitness), edge.kind, int(bool(edge.accepted)), edge.reason))
 
     @_decodes
     def edges(self, accepted_only: bool = False) -> list[Edge]:
         where = " WHERE accepted=1" if accepted_only else ""
         rows = self._q("SELECT src, tgt, T_tgt_src, matches, cost, rmse, fitness, kind, accepted, reason FROM edges"
                        + where + " ORDER BY id")
-        return [Edge(s, t, decode_T(T), decode_array(m), co, r, fi, k, bool(a), re) for s, t, T, m, co, r, fi, k, a, re in rows]
+        return [Edge(s, t, decode_T(T), decode_array(m, (None, 2)), co, r, fi, k, bool(a), re)
+                for s, t, T, m, co, r, fi, k, a, re in rows]
 
     # -- geometry and grasps ---------------------------------------------------------------------
     def set_mesh(self, vertices: np.ndarray, triangles: np.ndarray, vertex_colors: np.ndarray | None = None) -> None:
@@ -518,7 +526,7 @@ class TemplateDB:
     @_decodes
     def mesh(self) -> MeshData | None:
         rows = self._q("SELECT vertices, triangles, colors FROM mesh WHERE id=1")
-        return None if not rows else MeshData(*(decode_array(b) for b in rows[0]))
+        return None if not rows else MeshData(*(decode_array(b, (None, 3)) for b in rows[0]))
 
     def set_cloud(self, points: np.ndarray, colors: np.ndarray | None = None) -> None:
         """points [N x 3] (m, object frame), colors [N x 3] uint8 or float in [0, 1]."""
@@ -527,12 +535,13 @@ class TemplateDB:
         if C is not None and len(C) != len(P):
             raise ValueError(f"{len(C)} colours for {len(P)} points")
         with self._tx() as c:
-            c.execute("INSERT OR REPLACE INTO cloud(id, points, colors) VALUES (1,?,?)", (encode_array(P), encode_array(C)))
+            c.execute("INSERT OR REPLACE INTO cloud(id, points, colors) VALUES (1,?,?)",
+                      (encode_array(P), encode_array(C)))
 
     @_decodes
     def cloud(self) -> tuple[np.ndarray, np.ndarray | None] | None:
         rows = self._q("SELECT points, colors FROM cloud WHERE id=1")
-        return None if not rows else (decode_array(rows[0][0]), decode_array(rows[0][1]))
+        return None if not rows else (decode_array(rows[0][0], (None, 3)), decode_array(rows[0][1], (None, 3)))
 
     def add_grasp(self, name: str, T_obj_grasp: np.ndarray, replace: bool = False) -> None:
         T = check_T(T_obj_grasp)
@@ -571,7 +580,7 @@ class TemplateDB:
         if pts is None:
             rows = self._q("SELECT f.points FROM features f JOIN views v ON v.id=f.view_id "
                            "WHERE v.T_obj_cam IS NOT NULL AND f.n > 0")
-            pts = np.concatenate([decode_array(r[0]) for r in rows]) if rows else None
+            pts = np.concatenate([decode_array(r[0], (None, 3)) for r in rows]) if rows else None
         if pts is None or len(pts) == 0:
             return np.zeros(3)
         pts = np.asarray(pts, dtype=np.float64)

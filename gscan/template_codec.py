@@ -27,13 +27,18 @@ class BadBlob(Exception):
     """A stored value that does not decode (the database's reads turn it into an InputError naming the file)."""
 
 
-def decode_array(b: bytes | None) -> np.ndarray | None:
+def decode_array(b: bytes | None, shape: tuple[int | None, ...] | None = None) -> np.ndarray | None:
+    """A stored array (None stays None); `shape` (None = any size along that axis) is checked when given."""
     if b is None:
         return None
     try:
-        return np.load(io.BytesIO(b), allow_pickle=False)
+        a = np.load(io.BytesIO(b), allow_pickle=False)
     except (ValueError, EOFError, OSError, TypeError) as e:
         raise BadBlob(f"undecodable array blob: {e}") from None
+    if shape is not None and (a.ndim != len(shape) or any(s is not None and s != n for s, n in zip(shape, a.shape))):
+        want = " x ".join("N" if s is None else str(s) for s in shape)
+        raise BadBlob(f"stored array is {a.dtype} {a.shape}, expected [{want}]")
+    return a
 
 
 def decode_json(text: str) -> Any:
@@ -90,9 +95,9 @@ def decode_T(b: bytes | None) -> np.ndarray | None:
     """A stored [4 x 4] transform (None stays None)."""
     if b is None:
         return None
-    T = decode_array(b)
-    if T.shape != (4, 4) or not np.issubdtype(T.dtype, np.number):
-        raise BadBlob(f"stored transform is {T.dtype} {T.shape}, not a [4 x 4] matrix")
+    T = decode_array(b, (4, 4))
+    if not np.issubdtype(T.dtype, np.number):
+        raise BadBlob(f"stored transform is {T.dtype}, not numbers")
     return T.astype(np.float64)
 
 
