@@ -22,8 +22,8 @@ from gscan.camera import RGBDFrame
 from gscan.errors import InputError
 from gscan.geometry import look_at
 from gscan.template import TemplateDB
-from gscan.viewer import (PortInUseError, check_port, draw_matches, edge_color, quality_color, scale_pixels, serve,
-                          thumbnail)
+from gscan.viewer import PortInUseError, check_port, serve
+from gscan.viewer_draw import draw_matches, edge_color, quality_color, scale_pixels, thumbnail
 
 ROOT = Path(__file__).resolve().parents[1]
 
