@@ -141,17 +141,12 @@ def refine_pose(pts_s: np.ndarray, pts_t: np.ndarray, cand: Candidates, T: np.nd
 _SAME_POSE_DEG, _SAME_POSE_M = 2.0, 0.01  # a list posed this close to one already checked is skipped
 
 
-def _pair_keys(m: np.ndarray) -> np.ndarray:
-    """[M] int64 keys of pairs m [M x 2] (source << 32 | target)."""
-    return (m[:, 0].astype(np.int64) << 32) | m[:, 1]
-
-
 def lists_to_verify(res: GMatchResult, n_other: int, min_len: int) -> tuple[list[np.ndarray], list[float]]:
     """(lists, costs): the GMatch winner's list, then up to n_other other distinct hypothesis lists ([M x 2]
     int32 each) of at least min_len pairs, by (length descending, cost, search order), with their costs.
     Lists holding the same pairs are one."""
-    def key(m: np.ndarray) -> bytes:
-        return np.sort(_pair_keys(m)).tobytes()
+    def key(m: np.ndarray) -> bytes:  # the list's pairs as a set: sorted (source << 32 | target)
+        return np.sort((m[:, 0].astype(np.int64) << 32) | m[:, 1]).tobytes()
 
     out, costs, seen = [res.matches], [res.cost], {key(res.matches)}
     for h in np.lexsort((np.arange(len(res.hyp_length)), res.hyp_cost, -res.hyp_length)):
