@@ -126,6 +126,16 @@ def wait_scene_drawn(page, min_std: float, timeout_s: float = 30.0) -> tuple[np.
         page.wait_for_timeout(500)
 
 
+def wait_until(done, timeout_s: float, every_s: float = 0.2) -> bool:
+    """Call done() until it is true or timeout_s passed (a loaded machine answers late); its last answer."""
+    t0 = time.perf_counter()
+    while not done():
+        if time.perf_counter() - t0 > timeout_s:
+            return False
+        time.sleep(every_s)
+    return True
+
+
 def wait_image_changed(locator, before: bytes, timeout_s: float = 10.0) -> bytes:
     """Screenshot `locator` until it differs from the PNG `before`; returns the new PNG (or the last one)."""
     t0 = time.perf_counter()
