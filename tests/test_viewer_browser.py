@@ -198,6 +198,7 @@ def test_viewer_in_browser(template, tmp_path):
                 page.keyboard.press("ArrowRight")
                 after = vp.wait_image_changed(img, before)
                 assert after != before
+                page.get_by_text("000001 (2/6)").wait_for(timeout=10_000)
                 assert page.get_by_text("000001 (2/6)").count() == 1
                 # Choosing an edge opens the match panel with its numbers.
                 assert page.get_by_text("matches:").count() == 0
@@ -249,6 +250,7 @@ def test_frustum_click_and_go_to_view(template):
                     if vp.wait_until(lambda: app._current == "000002", 3.0):  # a loaded machine answers late
                         break
                 assert app._current == "000002"
+                page.get_by_text("000002 (3/6)").wait_for(timeout=10_000)  # the GUI text follows the server
                 assert page.get_by_text("000002 (3/6)").count() == 1
                 before = vp.canvas_region(vp.png_array(page.screenshot()))
                 app.select_view("000003")
@@ -300,6 +302,7 @@ def test_gscan_view_on_the_bundled_sample(sample_template, tmp_path):
                 vp.gui_slider(page, "View #").focus()
                 page.keyboard.press("ArrowRight")
                 assert vp.wait_image_changed(img, before) != before
+                page.get_by_text(f"{names[1]} (2/{len(names)})").wait_for(timeout=10_000)
                 assert page.get_by_text(f"{names[1]} (2/{len(names)})").count() == 1
                 vp.select_option(page, "Edge", f"{first_edge.src} → {first_edge.tgt} ({first_edge.kind})")
                 page.get_by_text("matches:").first.wait_for(timeout=10_000)
