@@ -31,7 +31,7 @@ def test_icp_point_to_plane_recovers_a_small_motion(seed):
     tgt = transform_points(T, _box_surface(3000, rng)[0])  # other samples of the same surface
     T_est, fitness = icp_point_to_plane(src, normals, tgt, np.eye(4), max_dist=0.015, iterations=30)
     deg, m = pose_error(T_est, T)
-    assert deg < 0.3 and m < 0.001 and fitness > 0.9
+    assert deg < 0.3 and m < 0.002 and fitness > 0.9  # 300 seeds: <= 0.13 deg, <= 1.4 mm (two samplings)
     T_again, _ = icp_point_to_plane(src, normals, tgt, np.eye(4), max_dist=0.015, iterations=30)
     np.testing.assert_array_equal(T_est, T_again)  # deterministic
 
