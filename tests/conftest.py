@@ -1,9 +1,19 @@
-"""Shared fixtures. Tests that need ../shared/data fail (never skip) when it is missing."""
+"""Shared fixtures. Tests that need ../shared/data fail (never skip) when it is missing.
+
+Hypothesis runs derandomized by default: every run draws the same examples, so a red CI is a reproducible
+failure, not an unlucky draw. `HYPOTHESIS_PROFILE=explore python -m pytest` draws new examples each run.
+"""
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
+from hypothesis import settings
+
+settings.register_profile("deterministic", derandomize=True)
+settings.register_profile("explore", derandomize=False)
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "deterministic"))
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED_DATA = ROOT.parent / "shared" / "data"
