@@ -139,7 +139,8 @@ def cmd_pairs(args) -> None:
         rates = [f"{100 * np.mean(ok[(m, g)]):.0f} %" for g in gaps]
         times = [f"{np.median(ms[(m, g)]):.0f}" for g in gaps]
         print(f"| {m} | " + " | ".join(rates) + " | " + " | ".join(times) + " |")
-    print("\naccepted by registration's rules (min_matches 6, Kabsch residual): correct / wrong, % of pairs")
+    print(f"\naccepted by registration's rules (min_matches {RegisterParams().min_matches}, Kabsch residual): "
+          "correct / wrong, % of pairs")
     print("| method | " + " | ".join(f"{g:.0f} deg" for g in gaps) + " |")
     print("|---" * (1 + len(gaps)) + "|")
     for m in methods:

@@ -29,6 +29,7 @@ from gscan.errors import InputError
 from gscan.estimate import EstimateParams
 from gscan.features import FeatureParams, extract_features
 from gscan.geometry import look_at, transform_points
+from gscan.pointcloud import voxel_mean
 from gscan.progress import NullProgress, Progress
 from gscan.synth import DEFAULT_INTRINSICS, SynthScene, TexturedMesh, load_textured_mesh, sample_bilinear
 from gscan.template import TemplateDB, View
@@ -99,18 +100,9 @@ def vertex_colors(mesh: TexturedMesh) -> np.ndarray:
 
 def _voxel_cloud(points: np.ndarray, colors: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
     """Voxel-grid mean of [N x 3] points and [N x 3] uint8 colours -> ([M x 3] float32, [M x 3] uint8)."""
-    if len(points) == 0:
-        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8)
-    keys = np.floor(points / voxel).astype(np.int64)
-    _, inv, cnt = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
-    inv = inv.reshape(-1)
-    P = np.zeros((len(cnt), 3))
-    C = np.zeros((len(cnt), 3))
-    np.add.at(P, inv, points)
-    np.add.at(C, inv, colors.astype(np.float64))
-    P /= cnt[:, None]
-    C /= cnt[:, None]
-    return P.astype(np.float32), np.clip(np.rint(C), 0, 255).astype(np.uint8)
+    M = voxel_mean(np.hstack([np.asarray(points, np.float64).reshape(-1, 3),
+                              np.asarray(colors, np.float64).reshape(-1, 3)]), voxel)
+    return M[:, :3].astype(np.float32), np.clip(np.rint(M[:, 3:]), 0, 255).astype(np.uint8)
 
 
 def build_template_from_mesh(mesh_path: str | Path, output: str | Path, n_views: int = 36, scale: float = 1.0,

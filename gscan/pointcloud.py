@@ -73,12 +73,14 @@ def coincident_groups(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def voxel_mean(pts: np.ndarray, voxel: float) -> np.ndarray:
-    """[N x 3] -> [M x 3] mean point of every occupied voxel (ordered by voxel key); deterministic."""
+    """[N x D] rows, xyz first (then any per-point values, e.g. colours) -> [M x D] mean row of every voxel
+    occupied by the xyz (ordered by voxel key); deterministic."""
     pts = np.asarray(pts, dtype=np.float64)
     if voxel <= 0 or len(pts) == 0:
         return pts
-    _, inv, cnt = np.unique(np.floor(pts / voxel).astype(np.int64), axis=0, return_inverse=True, return_counts=True)
-    out = np.zeros((len(cnt), 3))
+    keys = np.floor(pts[:, :3] / voxel).astype(np.int64)
+    _, inv, cnt = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    out = np.zeros((len(cnt), pts.shape[1]))
     np.add.at(out, inv.reshape(-1), pts)
     return out / cnt[:, None]
 
