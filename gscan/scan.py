@@ -34,7 +34,7 @@ from gscan.capture_mode import MOVING_OBJECT, STATIC_OBJECT, detect_mode, moving
 from gscan.config import ScanConfig
 from gscan.errors import InputError
 from gscan.features import OBJECT_FEATURES, FeatureParams, Features, extract_features, extract_features_in_mask
-from gscan.geometry import inv_T, transform_points
+from gscan.geometry import transform_points
 from gscan.progress import Progress, StageTimer
 from gscan.register import RegisterParams, register_features
 from gscan.template import Edge, TemplateDB, View, ViewFeatures
@@ -136,7 +136,6 @@ def run_scan(opts: ScanOptions, progress: Progress | None = None) -> ScanResult:
     from gscan.io import open_sequence
 
     timer = StageTimer(progress)
-    cfg = opts.config
     seq = open_sequence(opts.input_dir, format=opts.fmt, intrinsics=opts.intrinsics, depth_scale=opts.depth_scale)
     if opts.output.exists() and not (opts.force or opts.resume):
         raise InputError(opts.output, "exists; pass --force to replace it or --resume to continue it")

@@ -1,8 +1,8 @@
-"""Web viewer of a template database (viser): the only gscan module that imports viser.
+"""Web viewer of a template database (viser): the server, its GUI and the command `python -m gscan.viewer`.
 
-`serve(db_path, ...)` loads a complete template (`TemplateDB.open(require_complete=True)`), starts a viser
-server bound to `host:port` (127.0.0.1 by default; a port in use raises `PortInUseError`, never a silent
-move to another port) and populates the scene, all in the template (object) frame:
+`serve(db_path, ...)` loads a complete template (`gscan.viewer_data`, `TemplateDB.open(require_complete=True)`),
+starts a viser server bound to `host:port` (127.0.0.1 by default; a port in use raises `PortInUseError`, never a
+silent move to another port) and populates the scene (`gscan.viewer_scene`), all in the template (object) frame:
 
 - the fused mesh (vertex colours) and point cloud; the template's axes;
 - one camera frustum per registered view carrying its downscaled snapshot, coloured by registration
@@ -15,10 +15,7 @@ move to another port) and populates the scene, all in the template (object) fram
 GUI: layer toggles, point / frustum size sliders, a view slider + dropdown (or click a frustum) showing the
 view's image with its keypoints and its edges, "Go to view" (moves every browser's camera to the view's
 pose), and the "Match panel": for a chosen edge, both images side by side with the matched keypoint pairs
-joined by lines and the edge's numbers.
-
-View quality: `View.quality` when the database stores one (read as a score in [0, 1], 1 = best), else
-derived from the view's accepted edges: 1 - median RMSE / `ViewerOptions.rmse_red_m` (0 without any).
+joined by lines and the edge's numbers. Only the viewer_* modules import viser.
 """
 from __future__ import annotations
 
@@ -27,24 +24,21 @@ import contextlib
 import errno
 import io
 import logging
-import os
 import socket
 import sys
 import threading
 import time
-from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
-from gscan.camera import Intrinsics, RGBDFrame, point_cloud
+from gscan.camera import RGBDFrame
 from gscan.errors import InputError
-from gscan.geometry import inv_T, transform_points
-from gscan.template import Edge, MeshData, TemplateDB, View, read_pose_file
-from gscan.viewer_draw import (draw_keypoints, draw_matches, edge_color, hue_colors, image_wh, quality_color,
-                               thumbnail)
+from gscan.template import Edge, View, read_pose_file
+from gscan.viewer_data import ViewerData, ViewerOptions, load_viewer_data
+from gscan.viewer_draw import draw_keypoints, draw_matches, legend_html
+from gscan.viewer_scene import build_scene
 
 log = logging.getLogger(__name__)
 
@@ -57,18 +51,6 @@ class PortInUseError(InputError):
     def __init__(self, host: str, port: int, detail: str = "already in use"):
         self.host, self.port = host, int(port)
         super().__init__(None, f"cannot serve the viewer on {host}:{port}: {detail}; choose another --port")
-
-
-@dataclass(frozen=True)
-class ViewerOptions:
-    thumb_px: int = 320            # longest side of the view / match images sent to the browser (JPEG)
-    frustum_px: int = 160          # longest side of the snapshot shown on each frustum
-    jpeg_quality: int = 80
-    rmse_red_m: float = 0.01       # edge RMSE drawn fully red (and view quality 0)
-    max_cloud_points: int = 200_000
-    max_keypoints: int = 60_000
-    scene_stride: int = 2          # pixel stride of the query frame's cloud
-    max_match_lines: int = 150     # matched pairs drawn in the match panel
 
 
 # ------------------------------------------------------------------------------------------ helpers
@@ -87,95 +69,6 @@ def check_port(host: str, port: int) -> None:
             except OSError as e:
                 detail = "already in use" if e.errno == errno.EADDRINUSE else (e.strerror or str(e))
                 raise PortInUseError(host, port, detail) from None
-
-
-def _quat_wxyz(R: np.ndarray) -> np.ndarray:
-    import viser.transforms as vtf
-
-    return np.asarray(vtf.SO3.from_matrix(np.asarray(R, dtype=np.float64)).wxyz)
-
-
-# ------------------------------------------------------------------------------------------ loaded data
-@dataclass
-class ViewerData:
-    """A template loaded for display (numpy only). thumbs[name]: downscaled RGB uint8 image; image_wh[name]:
-    (width, height) of the stored image; keypoints[name] = (pixels [N x 2], points [N x 3])."""
-
-    path: Path
-    meta: dict
-    views: list[View]  # images dropped (None) once downscaled into `thumbs`
-    thumbs: dict[str, np.ndarray]
-    image_wh: dict[str, tuple[int, int]]
-    keypoints: dict[str, tuple[np.ndarray, np.ndarray]]
-    edges: list[Edge]
-    mesh: MeshData | None
-    cloud: tuple[np.ndarray, np.ndarray | None] | None
-    grasps: dict[str, np.ndarray]
-    quality: dict[str, float | None] = field(default_factory=dict)
-    center: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    size: float = 0.1  # largest side of the object's bounding box (m)
-
-    @property
-    def registered(self) -> list[View]:
-        return [v for v in self.views if v.T_obj_cam is not None]
-
-
-def load_viewer_data(db_path: str | Path, options: ViewerOptions = ViewerOptions()) -> ViewerData:
-    """Read a complete template database (InputError for a partial, missing or foreign one)."""
-    with TemplateDB.open(db_path, require_complete=True) as db:
-        meta, edges = db.meta(), db.edges()
-        mesh, cloud, grasps = db.mesh(), db.cloud(), db.grasps()
-        names = db.view_names()
-        # Image decoding (OpenCV releases the GIL) dominates opening a large template: one view per task.
-        with ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 1)) as pool:
-            views = list(pool.map(lambda n: db.view(n, load_images=True), names))
-        feats = {v.name: db.features(v.name) for v in views}
-    thumbs, sizes, kps = {}, {}, {}
-    for v in views:
-        img = v.color if v.color is not None else np.full((v.intrinsics.height, v.intrinsics.width, 3), 90, np.uint8)
-        thumbs[v.name], sizes[v.name] = thumbnail(img, options.thumb_px), image_wh(img)
-        v.color = v.depth = v.mask = None  # only the thumbnail is shown: free the memory
-        f = feats[v.name]
-        kps[v.name] = ((np.zeros((0, 2), np.float32), np.zeros((0, 3), np.float32)) if f is None
-                       else (np.asarray(f.pixels, np.float32), np.asarray(f.points_obj, np.float32)))
-    data = ViewerData(Path(db_path), meta, views, thumbs, sizes, kps, edges, mesh, cloud, grasps)
-    data.quality = _view_quality(views, edges, options.rmse_red_m)
-    data.center, data.size = _object_box(data)
-    return data
-
-
-def _view_quality(views: list[View], edges: list[Edge], rmse_red_m: float) -> dict[str, float | None]:
-    rm: dict[str, list[float]] = {v.name: [] for v in views}
-    for e in edges:
-        if e.accepted and e.rmse is not None and np.isfinite(e.rmse):
-            for n in (e.src, e.tgt):
-                rm.setdefault(n, []).append(float(e.rmse))
-    out: dict[str, float | None] = {}
-    for v in views:
-        if v.T_obj_cam is None:
-            out[v.name] = None
-        elif v.quality is not None and np.isfinite(v.quality):
-            out[v.name] = float(np.clip(v.quality, 0.0, 1.0))
-        else:
-            out[v.name] = float(np.clip(1.0 - np.median(rm[v.name]) / rmse_red_m, 0, 1)) if rm[v.name] else 0.0
-    return out
-
-
-def _object_box(d: ViewerData) -> tuple[np.ndarray, float]:
-    """Centre [3] and largest side (m) of the mesh, else cloud, else registered keypoints, else cameras."""
-    cands = [None if d.mesh is None else d.mesh.vertices, None if d.cloud is None else d.cloud[0]]
-    reg = d.registered
-    kp = [d.keypoints[v.name][1] for v in reg if len(d.keypoints[v.name][1])]
-    cands.append(np.concatenate(kp) if kp else None)
-    cands.append(np.array([v.T_obj_cam[:3, 3] for v in reg]) if len(reg) >= 2 else None)
-    for pts in cands:
-        if pts is not None and len(pts):
-            pts = np.asarray(pts, dtype=np.float64)
-            lo, hi = np.percentile(pts, 1, axis=0), np.percentile(pts, 99, axis=0)
-            size = float(np.max(hi - lo))
-            if size > 1e-6:
-                return (lo + hi) / 2, size
-    return np.zeros(3), 0.1
 
 
 # ------------------------------------------------------------------------------------------ the app
@@ -334,7 +227,7 @@ def serve(db_path: str | Path, host: str = "127.0.0.1", port: int = 8080, scene_
         raise PortInUseError(host, port)
     app = ViewerApp(server, data, host, port, options)
     try:
-        _build_scene(app, scene_frame, T_cam_obj, {**data.grasps, **(grasps or {})})
+        build_scene(app, scene_frame, T_cam_obj, {**data.grasps, **(grasps or {})})
         _build_gui(app, scene_frame is not None, T_cam_obj)
         if data.views:
             app.select_view(data.views[0].name)
@@ -342,87 +235,6 @@ def serve(db_path: str | Path, host: str = "127.0.0.1", port: int = 8080, scene_
         app.stop()
         raise
     return app
-
-
-def _build_scene(app: ViewerApp, frame: RGBDFrame | None, T_cam_obj: np.ndarray | None,
-                 grasps: dict[str, np.ndarray]) -> None:
-    sc, d, o = app.server.scene, app.data, app.options
-    s = d.size
-    reg = d.registered
-    # Scene up: the nearest axis to the cameras' mean image-up direction (-y of each camera).
-    ups = np.array([-v.T_obj_cam[:3, 1] for v in reg]) if reg else np.array([[0.0, 0.0, 1.0]])
-    up = ups.mean(0) / max(np.linalg.norm(ups.mean(0)), 1e-9)
-    axis = int(np.argmax(np.abs(up)))
-    sc.set_up_direction(("+" if up[axis] > 0 else "-") + "xyz"[axis])
-    if reg:  # beyond the first view's camera, raised along "up", far enough to see every frustum
-        cams = np.array([v.T_obj_cam[:3, 3] for v in reg])
-        dist = float(np.median(np.linalg.norm(cams - d.center, axis=1)))
-        d0 = cams[0] - d.center
-        d0 = d0 - (d0 @ up) * up
-        d0 = d0 / np.linalg.norm(d0) if np.linalg.norm(d0) > 1e-9 else np.cross(up, [1.0, 0.0, 0.0])
-        direction = d0 + 1.6 * up  # above the cameras: the first frustum does not hide the object
-        eye = d.center + direction / np.linalg.norm(direction) * max(1.9 * dist, 2.0 * s)
-    else:
-        eye = d.center + np.array([1.0, 1.0, 1.0]) * 1.5 * s
-    # Frustum size: a quarter of the object, less where cameras are dense (half the median spacing).
-    app.frustum_scale = 0.25 * s
-    if len(reg) >= 2:
-        from scipy.spatial import cKDTree
-
-        cams = np.array([v.T_obj_cam[:3, 3] for v in reg])
-        spacing = float(np.median(cKDTree(cams).query(cams, k=2)[0][:, 1]))
-        if spacing > 1e-6:
-            app.frustum_scale = min(app.frustum_scale, 0.5 * spacing)
-    app.server.initial_camera.position = eye
-    app.server.initial_camera.look_at = d.center
-    app.server.initial_camera.near = 0.01 * s
-    app.server.initial_camera.far = 1000.0 * s
-
-    layers: dict[str, list] = {k: [] for k in ("mesh", "cloud", "frustums", "edges", "rejected", "keypoints",
-                                               "scene", "grasps")}
-    sc.add_frame("/template", axes_length=0.3 * s, axes_radius=0.008 * s, origin_radius=0.015 * s)
-    pt = 0.004 * s
-    if d.mesh is not None and len(d.mesh.triangles):
-        layers["mesh"].append(_add_mesh(sc, d.mesh))
-    if d.cloud is not None and len(d.cloud[0]):
-        pts, cols = d.cloud
-        step = max(1, int(np.ceil(len(pts) / o.max_cloud_points)))
-        cols = np.full((len(pts), 3), 200, np.uint8) if cols is None else cols
-        layers["cloud"].append(sc.add_point_cloud("/cloud", np.asarray(pts[::step], np.float32), cols[::step],
-                                                  point_size=pt, visible=not layers["mesh"]))
-    kp = [(d.keypoints[v.name][1], i) for i, v in enumerate(reg) if len(d.keypoints[v.name][1])]
-    if kp:
-        pts = np.concatenate([p for p, _ in kp])
-        hues = hue_colors(len(reg))
-        cols = np.concatenate([np.repeat(hues[i][None], len(p), 0) for p, i in kp])
-        step = max(1, int(np.ceil(len(pts) / o.max_keypoints)))
-        layers["keypoints"].append(sc.add_point_cloud("/keypoints", pts[::step], cols[::step], point_size=1.5 * pt,
-                                                      visible=False))
-    for v in reg:
-        layers["frustums"].append(_add_frustum(app, f"/views/{_node(v.name)}", v.intrinsics, v.T_obj_cam,
-                                               d.thumbs[v.name], quality_color(d.quality[v.name]), v.name))
-    centres = {v.name: v.T_obj_cam[:3, 3] for v in reg}
-    for key, accepted, width in (("edges", True, 3.0), ("rejected", False, 1.5)):
-        es = [e for e in d.edges if e.accepted == accepted and e.src in centres and e.tgt in centres]
-        if es:
-            seg = np.array([[centres[e.src], centres[e.tgt]] for e in es], np.float32)
-            col = np.array([[edge_color(e, o.rmse_red_m)] * 2 for e in es], np.uint8)
-            layers[key].append(sc.add_line_segments(f"/{key}", seg, col, thickness=width, thickness_units="screen",
-                                                    visible=accepted))
-    for name, T in grasps.items():
-        layers["grasps"].append(sc.add_frame(f"/grasps/{_node(name)}", axes_length=0.15 * s, axes_radius=0.006 * s,
-                                             wxyz=_quat_wxyz(T[:3, :3]), position=T[:3, 3]))
-        layers["grasps"].append(sc.add_label(f"/grasps/{_node(name)}/label", name))
-    if frame is not None and T_cam_obj is not None:
-        T_obj_cam = inv_T(np.asarray(T_cam_obj, dtype=np.float64))
-        pts_cam, cols = point_cloud(frame, stride=o.scene_stride)
-        app.scene_points_obj = transform_points(T_obj_cam, pts_cam).astype(np.float32)
-        layers["scene"].append(sc.add_point_cloud("/scene/cloud", app.scene_points_obj,
-                                                  (cols * 255).astype(np.uint8), point_size=pt))
-        thumb = thumbnail(frame.color, o.frustum_px)
-        layers["scene"].append(_add_frustum(app, "/scene/camera", frame.intrinsics, T_obj_cam, thumb,
-                                            (40, 120, 255), None))
-    app.layers = layers
 
 
 class _DropHandshakeNoise(logging.Filter):
@@ -437,35 +249,6 @@ def _quiet_websockets() -> None:
     lg = logging.getLogger("websockets.server")
     if not any(isinstance(f, _DropHandshakeNoise) for f in lg.filters):
         lg.addFilter(_DropHandshakeNoise())
-
-
-def _node(name: str) -> str:
-    return "".join(c if c.isalnum() or c in "-_." else "_" for c in name)
-
-
-def _add_mesh(sc, mesh: MeshData):
-    V = np.asarray(mesh.vertices, np.float64)
-    F = np.asarray(mesh.triangles, np.int64)
-    if mesh.vertex_colors is None:
-        return sc.add_mesh_simple("/mesh", V.astype(np.float32), F.astype(np.uint32), color=(200, 170, 120),
-                                  side="double")
-    import trimesh  # only for vertex colours (sent as GLB)
-
-    tm = trimesh.Trimesh(V, F, vertex_colors=np.asarray(mesh.vertex_colors, np.uint8), process=False)
-    return sc.add_mesh_trimesh("/mesh", tm)
-
-
-def _add_frustum(app: ViewerApp, node: str, intr: Intrinsics, T_obj_cam: np.ndarray, image: np.ndarray,
-                 color: tuple[int, int, int], view_name: str | None):
-    o = app.options
-    img = thumbnail(image, o.frustum_px)
-    h = app.server.scene.add_camera_frustum(
-        node, fov=float(2.0 * np.arctan2(intr.height / 2.0, intr.fy)), aspect=intr.width / intr.height,
-        scale=app.frustum_scale, thickness=1.5, thickness_units="screen", color=color, image=img, format="jpeg",
-        jpeg_quality=o.jpeg_quality, wxyz=_quat_wxyz(T_obj_cam[:3, :3]), position=T_obj_cam[:3, 3])
-    if view_name is not None:
-        h.on_click(lambda _ev, n=view_name: app.select_view(n))
-    return h
 
 
 def _build_gui(app: ViewerApp, has_frame: bool, T_cam_obj: np.ndarray | None) -> None:
@@ -534,25 +317,7 @@ def _build_gui(app: ViewerApp, has_frame: bool, T_cam_obj: np.ndarray | None) ->
                                  if ev.target.value == _SELECT_EDGE or ev.target.value in app._edge_labels else None)
 
     with gui.add_folder("Legend", expand_by_default=False):
-        gui.add_html(_legend_html(o.rmse_red_m))
-
-
-def _legend_html(red_m: float) -> str:
-    def sw(c: tuple[int, int, int]) -> str:
-        return (f'<span style="display:inline-block;width:10px;height:10px;margin:0 2px;'
-                f'background:rgb{tuple(c)}"></span>')
-
-    seq = "".join(sw(edge_color(Edge("a", "b", None, np.zeros((0, 2)), rmse=r, kind="sequential"), red_m))
-                  for r in np.linspace(0, red_m, 5))
-    loop = "".join(sw(edge_color(Edge("a", "b", None, np.zeros((0, 2)), rmse=r, kind="loop"), red_m))
-                   for r in np.linspace(0, red_m, 5))
-    q = "".join(sw(quality_color(x)) for x in np.linspace(1, 0, 5))
-    return (f'<div style="font-size:12px;line-height:1.7">'
-            f"frustums, quality 1 → 0: {q}<br>"
-            f"sequential edges, RMSE 0 → {red_m * 1000:.0f} mm: {seq}<br>"
-            f"loop closures, RMSE 0 → {red_m * 1000:.0f} mm: {loop}<br>"
-            f"rejected edges: {sw((160, 160, 160))}<br>"
-            f"query camera: {sw((40, 120, 255))}</div>")
+        gui.add_html(legend_html(o.rmse_red_m))
 
 
 def run_viewer(db_path: str | Path, host: str = "127.0.0.1", port: int = 8080, scene_frame: RGBDFrame | None = None,

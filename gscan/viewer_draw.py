@@ -8,6 +8,8 @@ import numpy as np
 
 from gscan.template import Edge
 
+QUERY_CAMERA_COLOR = (40, 120, 255)  # the frustum of a query frame placed by an estimated pose
+
 
 def quality_color(q: float | None) -> tuple[int, int, int]:
     """Quality in [0, 1] (1 best) -> RGB: green (1) .. yellow (0.5) .. red (0); grey when None."""
@@ -96,3 +98,23 @@ def draw_matches(img_s: np.ndarray, px_s: np.ndarray, wh_s: tuple[int, int], img
         cv2.circle(out, p_, 2, c, -1, cv2.LINE_AA)
         cv2.circle(out, q_, 2, c, -1, cv2.LINE_AA)
     return out
+
+
+def legend_html(red_m: float) -> str:
+    """HTML legend of the colour scales: view quality, edge RMSE (sequential, loop), rejected edges, query camera."""
+
+    def sw(c: tuple[int, int, int]) -> str:
+        return (f'<span style="display:inline-block;width:10px;height:10px;margin:0 2px;'
+                f'background:rgb{tuple(c)}"></span>')
+
+    seq = "".join(sw(edge_color(Edge("a", "b", None, np.zeros((0, 2)), rmse=r, kind="sequential"), red_m))
+                  for r in np.linspace(0, red_m, 5))
+    loop = "".join(sw(edge_color(Edge("a", "b", None, np.zeros((0, 2)), rmse=r, kind="loop"), red_m))
+                   for r in np.linspace(0, red_m, 5))
+    q = "".join(sw(quality_color(x)) for x in np.linspace(1, 0, 5))
+    return (f'<div style="font-size:12px;line-height:1.7">'
+            f"frustums, quality 1 → 0: {q}<br>"
+            f"sequential edges, RMSE 0 → {red_m * 1000:.0f} mm: {seq}<br>"
+            f"loop closures, RMSE 0 → {red_m * 1000:.0f} mm: {loop}<br>"
+            f"rejected edges: {sw((160, 160, 160))}<br>"
+            f"query camera: {sw(QUERY_CAMERA_COLOR)}</div>")

@@ -8,7 +8,7 @@ from hypothesis import given, settings, strategies as st
 from gscan.camera import RGBDFrame
 from gscan.errors import InputError
 from gscan.geometry import inv_T, make_T, rotvec_to_R, transform_points
-from gscan.segment import (Plane, SegmentParams, WorkingVolume, estimate_working_volume, fit_support_plane,
+from gscan.segment import (Plane, WorkingVolume, estimate_working_volume, fit_support_plane,
                            segment_frame, segment_sequence)
 from gscan.synth import (DEFAULT_INTRINSICS, DepthNoise, SynthScene, box_mesh, orbit_poses, procedural_box_texture,
                          rest_on_table)

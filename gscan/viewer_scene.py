@@ -1,0 +1,140 @@
+"""The viewer's 3D scene (viser), in the template (object) frame: the template's axes, the fused mesh and
+cloud, one camera frustum per registered view with its snapshot (coloured by quality, click selects the
+view), pose-graph edges between camera centres, the views' 3D keypoints, grasp frames, and optionally a
+query frame's cloud placed by an estimated pose. Each layer's handles are kept in `app.layers`.
+"""
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from gscan.camera import Intrinsics, RGBDFrame, point_cloud
+from gscan.geometry import inv_T, transform_points
+from gscan.template import MeshData
+from gscan.viewer_draw import QUERY_CAMERA_COLOR, edge_color, hue_colors, quality_color, thumbnail
+
+if TYPE_CHECKING:
+    from gscan.viewer import ViewerApp
+
+LAYERS = ("mesh", "cloud", "frustums", "edges", "rejected", "keypoints", "scene", "grasps")
+
+
+def build_scene(app: ViewerApp, frame: RGBDFrame | None, T_cam_obj: np.ndarray | None,
+                grasps: dict[str, np.ndarray]) -> None:
+    """Populate `app.server.scene`, set the initial camera and `app.frustum_scale`, and fill `app.layers`.
+
+    frame / T_cam_obj [4 x 4]: a query frame and the object's pose in it (its cloud is drawn when both are given).
+    grasps: {name: T_obj_grasp [4 x 4]}.
+    """
+    sc, d, o = app.server.scene, app.data, app.options
+    s = d.size
+    reg = d.registered
+    # Scene up: the nearest axis to the cameras' mean image-up direction (-y of each camera).
+    ups = np.array([-v.T_obj_cam[:3, 1] for v in reg]) if reg else np.array([[0.0, 0.0, 1.0]])
+    up = ups.mean(0) / max(np.linalg.norm(ups.mean(0)), 1e-9)
+    axis = int(np.argmax(np.abs(up)))
+    sc.set_up_direction(("+" if up[axis] > 0 else "-") + "xyz"[axis])
+    if reg:  # beyond the first view's camera, raised along "up", far enough to see every frustum
+        cams = np.array([v.T_obj_cam[:3, 3] for v in reg])
+        dist = float(np.median(np.linalg.norm(cams - d.center, axis=1)))
+        d0 = cams[0] - d.center
+        d0 = d0 - (d0 @ up) * up
+        d0 = d0 / np.linalg.norm(d0) if np.linalg.norm(d0) > 1e-9 else np.cross(up, [1.0, 0.0, 0.0])
+        direction = d0 + 1.6 * up  # above the cameras: the first frustum does not hide the object
+        eye = d.center + direction / np.linalg.norm(direction) * max(1.9 * dist, 2.0 * s)
+    else:
+        eye = d.center + np.array([1.0, 1.0, 1.0]) * 1.5 * s
+    # Frustum size: a quarter of the object, less where cameras are dense (half the median spacing).
+    app.frustum_scale = 0.25 * s
+    if len(reg) >= 2:
+        from scipy.spatial import cKDTree
+
+        cams = np.array([v.T_obj_cam[:3, 3] for v in reg])
+        spacing = float(np.median(cKDTree(cams).query(cams, k=2)[0][:, 1]))
+        if spacing > 1e-6:
+            app.frustum_scale = min(app.frustum_scale, 0.5 * spacing)
+    app.server.initial_camera.position = eye
+    app.server.initial_camera.look_at = d.center
+    app.server.initial_camera.near = 0.01 * s
+    app.server.initial_camera.far = 1000.0 * s
+
+    layers: dict[str, list] = {k: [] for k in LAYERS}
+    sc.add_frame("/template", axes_length=0.3 * s, axes_radius=0.008 * s, origin_radius=0.015 * s)
+    pt = 0.004 * s
+    if d.mesh is not None and len(d.mesh.triangles):
+        layers["mesh"].append(_add_mesh(sc, d.mesh))
+    if d.cloud is not None and len(d.cloud[0]):
+        pts, cols = d.cloud
+        step = max(1, int(np.ceil(len(pts) / o.max_cloud_points)))
+        cols = np.full((len(pts), 3), 200, np.uint8) if cols is None else cols
+        layers["cloud"].append(sc.add_point_cloud("/cloud", np.asarray(pts[::step], np.float32), cols[::step],
+                                                  point_size=pt, visible=not layers["mesh"]))
+    kp = [(d.keypoints[v.name][1], i) for i, v in enumerate(reg) if len(d.keypoints[v.name][1])]
+    if kp:
+        pts = np.concatenate([p for p, _ in kp])
+        hues = hue_colors(len(reg))
+        cols = np.concatenate([np.repeat(hues[i][None], len(p), 0) for p, i in kp])
+        step = max(1, int(np.ceil(len(pts) / o.max_keypoints)))
+        layers["keypoints"].append(sc.add_point_cloud("/keypoints", pts[::step], cols[::step], point_size=1.5 * pt,
+                                                      visible=False))
+    for v in reg:
+        layers["frustums"].append(_add_frustum(app, f"/views/{_node(v.name)}", v.intrinsics, v.T_obj_cam,
+                                               d.thumbs[v.name], quality_color(d.quality[v.name]), v.name))
+    centres = {v.name: v.T_obj_cam[:3, 3] for v in reg}
+    for key, accepted, width in (("edges", True, 3.0), ("rejected", False, 1.5)):
+        es = [e for e in d.edges if e.accepted == accepted and e.src in centres and e.tgt in centres]
+        if es:
+            seg = np.array([[centres[e.src], centres[e.tgt]] for e in es], np.float32)
+            col = np.array([[edge_color(e, o.rmse_red_m)] * 2 for e in es], np.uint8)
+            layers[key].append(sc.add_line_segments(f"/{key}", seg, col, thickness=width, thickness_units="screen",
+                                                    visible=accepted))
+    for name, T in grasps.items():
+        layers["grasps"].append(sc.add_frame(f"/grasps/{_node(name)}", axes_length=0.15 * s, axes_radius=0.006 * s,
+                                             wxyz=_quat_wxyz(T[:3, :3]), position=T[:3, 3]))
+        layers["grasps"].append(sc.add_label(f"/grasps/{_node(name)}/label", name))
+    if frame is not None and T_cam_obj is not None:
+        T_obj_cam = inv_T(np.asarray(T_cam_obj, dtype=np.float64))
+        pts_cam, cols = point_cloud(frame, stride=o.scene_stride)
+        app.scene_points_obj = transform_points(T_obj_cam, pts_cam).astype(np.float32)
+        layers["scene"].append(sc.add_point_cloud("/scene/cloud", app.scene_points_obj,
+                                                  (cols * 255).astype(np.uint8), point_size=pt))
+        thumb = thumbnail(frame.color, o.frustum_px)
+        layers["scene"].append(_add_frustum(app, "/scene/camera", frame.intrinsics, T_obj_cam, thumb,
+                                            QUERY_CAMERA_COLOR, None))
+    app.layers = layers
+
+
+def _node(name: str) -> str:
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in name)
+
+
+def _add_mesh(sc, mesh: MeshData):
+    V = np.asarray(mesh.vertices, np.float64)
+    F = np.asarray(mesh.triangles, np.int64)
+    if mesh.vertex_colors is None:
+        return sc.add_mesh_simple("/mesh", V.astype(np.float32), F.astype(np.uint32), color=(200, 170, 120),
+                                  side="double")
+    import trimesh  # only for vertex colours (sent as GLB)
+
+    tm = trimesh.Trimesh(V, F, vertex_colors=np.asarray(mesh.vertex_colors, np.uint8), process=False)
+    return sc.add_mesh_trimesh("/mesh", tm)
+
+
+def _add_frustum(app: ViewerApp, node: str, intr: Intrinsics, T_obj_cam: np.ndarray, image: np.ndarray,
+                 color: tuple[int, int, int], view_name: str | None):
+    o = app.options
+    img = thumbnail(image, o.frustum_px)
+    h = app.server.scene.add_camera_frustum(
+        node, fov=float(2.0 * np.arctan2(intr.height / 2.0, intr.fy)), aspect=intr.width / intr.height,
+        scale=app.frustum_scale, thickness=1.5, thickness_units="screen", color=color, image=img, format="jpeg",
+        jpeg_quality=o.jpeg_quality, wxyz=_quat_wxyz(T_obj_cam[:3, :3]), position=T_obj_cam[:3, 3])
+    if view_name is not None:
+        h.on_click(lambda _ev, n=view_name: app.select_view(n))
+    return h
+
+
+def _quat_wxyz(R: np.ndarray) -> np.ndarray:
+    import viser.transforms as vtf
+
+    return np.asarray(vtf.SO3.from_matrix(np.asarray(R, dtype=np.float64)).wxyz)
