@@ -292,7 +292,8 @@ def grasp_add(
     pose: Path = typer.Option(..., "--pose", help='JSON file: {"T": 4x4} or a bare 4x4 list (object frame, metres)'),
 ) -> None:
     """Store a named grasp pose T_obj_grasp in the template."""
-    from gscan.template import TemplateDB, read_pose_file
+    from gscan.io import read_pose_file
+    from gscan.template import TemplateDB
 
     T = read_pose_file(pose)
     with TemplateDB.open(template, require_complete=True, writable=True) as db:

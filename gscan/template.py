@@ -28,7 +28,6 @@ import os
 import sqlite3
 import threading
 from contextlib import contextmanager, suppress
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -39,6 +38,8 @@ from gscan.camera import Intrinsics
 from gscan.errors import GscanError, InputError
 from gscan.template_codec import (BadBlob, check_T, decode_array, decode_image, decode_json, decode_T, encode_array,
                                   encode_color, encode_depth, encode_mask, to_u8_colors)
+# the records live in gscan.template_records; they are imported from here as well
+from gscan.template_records import Edge, MeshData, Template, View, ViewFeatures
 
 log = logging.getLogger(__name__)
 
@@ -68,94 +69,6 @@ CREATE TABLE mesh (id INTEGER PRIMARY KEY CHECK (id = 1), vertices BLOB NOT NULL
 CREATE TABLE cloud (id INTEGER PRIMARY KEY CHECK (id = 1), points BLOB NOT NULL, colors BLOB);
 CREATE TABLE grasps (name TEXT PRIMARY KEY, T_obj_grasp BLOB NOT NULL);
 """
-
-
-# ----------------------------------------------------------------------------------------- records
-@dataclass
-class View:
-    """One input view. color [H x W x 3] uint8 RGB, depth [H x W] float32 m (0 invalid), mask [H x W]
-    bool; images may be None (not stored, or not loaded). T_obj_cam [4 x 4] or None = unregistered."""
-
-    name: str
-    intrinsics: Intrinsics
-    T_obj_cam: np.ndarray | None = None
-    color: np.ndarray | None = None
-    depth: np.ndarray | None = None
-    mask: np.ndarray | None = None
-    keyframe: bool = True
-    quality: float | None = None
-    input_index: int | None = None
-
-
-@dataclass
-class ViewFeatures:
-    """Keypoints of one view: pixels [N x 2] float32 (u, v), points_obj [N x 3] float32 (object frame,
-    camera frame while the view is unregistered), descriptors [N x D] (float32 or uint8), kind, scales [N]."""
-
-    pixels: np.ndarray
-    points_obj: np.ndarray
-    descriptors: np.ndarray
-    kind: str
-    scales: np.ndarray | None = None
-
-    def __iter__(self) -> Iterator[Any]:  # `pixels, points_obj, descriptors, kind = db.features(name)`
-        return iter((self.pixels, self.points_obj, self.descriptors, self.kind))
-
-
-@dataclass
-class Edge:
-    """A registration between two views: T_tgt_src [4 x 4] (None if none was found), matches [M x 2]
-    int32 (src keypoint index, tgt keypoint index), quality numbers, kind "sequential" | "loop"."""
-
-    src: str
-    tgt: str
-    T_tgt_src: np.ndarray | None
-    matches: np.ndarray
-    cost: float | None = None
-    rmse: float | None = None
-    fitness: float | None = None
-    kind: str = "sequential"
-    accepted: bool = True
-    reason: str | None = None
-
-
-@dataclass
-class MeshData:
-    """vertices [V x 3] float (m, object frame), triangles [F x 3] int, vertex_colors [V x 3] uint8 | None."""
-
-    vertices: np.ndarray
-    triangles: np.ndarray
-    vertex_colors: np.ndarray | None
-
-    def __iter__(self) -> Iterator[Any]:  # `V, F, C = db.mesh()`
-        return iter((self.vertices, self.triangles, self.vertex_colors))
-
-
-@dataclass
-class Template:
-    """In-memory template for the estimator: the registered (key)frame views and their stacked keypoints.
-
-    T_obj_cam [V x 4 x 4]; kp_view [N] int32 index into `view_names`; pixels [N x 2] float32;
-    points_obj [N x 3] float32; descriptors [N x D]; view_offsets [V + 1] (keypoints of view i are
-    rows view_offsets[i]:view_offsets[i+1]); cloud points [P x 3] / colors [P x 3] uint8; extent_m [3].
-    """
-
-    path: Path
-    meta: dict
-    kind: str | None
-    view_names: list[str]
-    intrinsics: list[Intrinsics]
-    T_obj_cam: np.ndarray
-    kp_view: np.ndarray
-    pixels: np.ndarray
-    points_obj: np.ndarray
-    descriptors: np.ndarray
-    view_offsets: np.ndarray
-    cloud_points: np.ndarray | None
-    cloud_colors: np.ndarray | None
-    mesh: MeshData | None
-    grasps: dict[str, np.ndarray] = field(default_factory=dict)
-    extent_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
 
 # ------------------------------------------------------------------------------------------ helpers
@@ -634,29 +547,6 @@ class TemplateDB:
             view_offsets=np.array(offs, dtype=np.int64),
             cloud_points=None if cl is None else cl[0], cloud_colors=None if cl is None else cl[1],
             mesh=self.mesh(), grasps=self.grasps(), extent_m=self.extent())
-
-
-def read_pose_file(path: str | Path) -> np.ndarray:
-    """Read a pose file (`{"T": [[4x4]]}` or a bare 4x4 list, metres) -> [4 x 4] rigid transform.
-    InputError naming the file when it is missing, malformed or not a rigid transform."""
-    path = Path(path)
-    try:
-        d = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise InputError(path, "pose file not found") from None
-    except (OSError, UnicodeDecodeError, ValueError) as e:
-        raise InputError(path, f"malformed pose JSON ({e.__class__.__name__})") from None
-    try:
-        T = np.asarray(d["T"] if isinstance(d, dict) else d, dtype=np.float64)
-    except (KeyError, TypeError, ValueError):
-        raise InputError(path, 'expected {"T": [[4x4]]} or a bare 4x4 list') from None
-    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-        raise InputError(path, f"expected a finite 4x4 matrix, got shape {T.shape}")
-    R = T[:3, :3]
-    if not np.allclose(T[3], [0, 0, 0, 1], atol=1e-6) or not np.allclose(R @ R.T, np.eye(3), atol=1e-4) \
-            or np.linalg.det(R) < 0:
-        raise InputError(path, "not a rigid transform (rotation not orthonormal or last row not 0 0 0 1)")
-    return T
 
 
 def open_template(path: str | Path) -> Template:

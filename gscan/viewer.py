@@ -35,7 +35,8 @@ import numpy as np
 
 from gscan.camera import RGBDFrame
 from gscan.errors import InputError
-from gscan.template import Edge, View, read_pose_file
+from gscan.io import read_pose_file
+from gscan.template import Edge, View
 from gscan.viewer_data import ViewerData, ViewerOptions, load_viewer_data
 from gscan.viewer_draw import draw_keypoints, draw_matches, legend_html
 from gscan.viewer_scene import build_scene

@@ -20,6 +20,8 @@ from gscan.io import (
     read_image_rgb,
     read_mask,
     read_nyu_depth,
+    read_pose_file,
+    read_pose_txt,
     read_sun_depth,
     read_ycbv_meta,
 )
@@ -364,6 +366,35 @@ def test_natural_order(tmp_path: Path):
     seq = open_sequence(root)
     assert seq.names == ["frame1", "frame2", "frame10", "frame 3"]
     assert sorted(["a10", "a9", "b1", "a09"], key=natural_key) == ["a09", "a9", "a10", "b1"]
+
+
+def test_pose_files_share_one_rigidity_rule(tmp_path: Path):
+    """A rotation written with 4 decimals reads from a JSON and a text pose file alike; a 1 % shear, a
+    mirror or a bad last row is refused by both, naming the file."""
+    from scipy.spatial.transform import Rotation
+
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec([0.3, -1.1, 0.7]).as_matrix()
+    T[:3, 3] = [0.1, -0.2, 0.5]
+    T4 = np.round(T, 4)
+    assert not np.array_equal(T4, T)
+
+    def write(name: str, M: np.ndarray) -> tuple[Path, Path]:
+        (tmp_path / f"{name}.json").write_text(json.dumps({"T": M.tolist()}))
+        (tmp_path / f"{name}.txt").write_text("\n".join(" ".join(repr(float(x)) for x in row) for row in M))
+        return tmp_path / f"{name}.json", tmp_path / f"{name}.txt"
+
+    for path, read in zip(write("rounded", T4), (read_pose_file, read_pose_txt)):
+        assert np.array_equal(read(path), T4)
+    shear, mirror, last = T.copy(), T.copy(), T.copy()
+    shear[0, 1] += 0.01
+    mirror[:3, 0] *= -1
+    last[3, 0] = 0.1
+    for name, M in (("shear", shear), ("mirror", mirror), ("last", last)):
+        for path, read in zip(write(name, M), (read_pose_file, read_pose_txt)):
+            with pytest.raises(InputError, match="not a rigid transform") as ei:
+                read(path)
+            assert path.name in str(ei.value)
 
 
 def test_associate_greedy():

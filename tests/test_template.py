@@ -257,7 +257,7 @@ def test_sigkill_mid_write_leaves_consistent_partial_db(db_path: Path) -> None:
 
 
 def test_read_pose_file(tmp_path: Path) -> None:
-    from gscan.template import read_pose_file
+    from gscan.io import read_pose_file
 
     T = _pose(np.random.default_rng(5))
     (tmp_path / "a.json").write_text(json.dumps({"T": T.tolist()}))

@@ -3,6 +3,7 @@
     open_sequence(path, format="auto", intrinsics=None, depth_scale=None, obj_id=None) -> Sequence
     load_frame(color, depth, intrinsics, depth_scale=0.001, mask_path=None, name=None) -> RGBDFrame
     read_image_rgb / read_depth / read_mask / read_sun_depth / read_nyu_depth / read_ycbv_meta
+    read_pose_file (JSON) / read_pose_txt / read_open3d_log -> rigid [4 x 4] poses
 
 Bad input raises gscan.errors.InputError naming the offending file.
 """
@@ -20,11 +21,13 @@ from gscan.io.images import (
     read_sun_depth,
     read_ycbv_meta,
 )
-from gscan.io.layouts import FORMATS, FrameSpec, associate, detect_format, natural_key, read_open3d_log
+from gscan.io.layouts import FORMATS, FrameSpec, associate, detect_format, natural_key
+from gscan.io.poses import check_rigid, read_open3d_log, read_pose_file, read_pose_txt
 from gscan.io.sequence import Sequence, open_sequence
 
 __all__ = [
     "DEPTH_RANGE_M", "FORMATS", "FrameSpec", "Sequence", "YcbvMeta", "associate", "check_depth_range", "check_depth_scale",
+    "check_rigid", "read_pose_file", "read_pose_txt",
     "detect_format", "load_frame", "natural_key", "open_sequence", "read_depth", "read_depth_raw",
     "read_image_rgb", "read_mask", "read_nyu_depth", "read_open3d_log", "read_sun_depth", "read_ycbv_meta",
 ]

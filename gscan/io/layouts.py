@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from gscan.errors import InputError
+from gscan.io.poses import check_rigid, read_open3d_log, read_pose_txt, tum_pose
 
 log = logging.getLogger(__name__)
 
@@ -98,27 +99,6 @@ def _pair(colors: dict[str, Path], depths: dict[str, Path], masks: dict[str, Pat
     return frames, problems
 
 
-def read_pose_txt(path: Path) -> np.ndarray:
-    """[4 x 4] pose from a text file of 4 (or 3) rows of 4 numbers."""
-    try:
-        T = np.array([[float(x) for x in line.replace(",", " ").split()]
-                      for line in path.read_text(encoding="utf-8").splitlines() if line.strip()], dtype=np.float64)
-    except (ValueError, OSError, UnicodeDecodeError) as e:
-        raise InputError(path, f"malformed pose file ({e.__class__.__name__}): expected a 4x4 matrix") from None
-    if T.shape == (3, 4):
-        T = np.vstack([T, [0.0, 0.0, 0.0, 1.0]])
-    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-        raise InputError(path, f"malformed pose file: expected a 4x4 matrix of numbers, got shape {T.shape}")
-    _check_rigid(T, path)
-    return T
-
-
-def _check_rigid(T: np.ndarray, path: Path) -> None:
-    R = T[:3, :3]
-    if not np.allclose(R.T @ R, np.eye(3), atol=1e-3) or np.linalg.det(R) < 0 or not np.allclose(T[3], [0, 0, 0, 1]):
-        raise InputError(path, "pose is not a rigid transform (rotation not orthonormal or bad last row)")
-
-
 def _color_and_depth(root: Path, color_dir: str) -> tuple[dict[str, Path], dict[str, Path]]:
     """The colour images of root/color_dir (at least one, else InputError) and the depth images of root/depth."""
     _require_dir(root / color_dir, f"{color_dir}/")
@@ -144,28 +124,6 @@ def discover_capture(root: Path) -> Layout:
     camk = root / "cam_K.txt"
     return Layout("capture", root, frames, 0.001, camk if camk.is_file() else None, "cam_K.txt",
                   gt_T_cam_obj=gt, problems=problems)
-
-
-def read_open3d_log(path: Path) -> list[tuple[int, np.ndarray]]:
-    """Open3D trajectory .log: per entry a line "i j n" then 4 rows of a 4x4 pose -> [(i, T [4 x 4])]."""
-    try:
-        lines = [ln.split() for ln in path.read_text(encoding="utf-8").splitlines() if ln.strip()]
-    except (OSError, UnicodeDecodeError) as e:
-        raise InputError(path, f"cannot read trajectory log ({e.__class__.__name__})") from None
-    if len(lines) % 5:
-        raise InputError(path, f"malformed Open3D log: {len(lines)} non-empty lines is not a multiple of 5")
-    out = []
-    for k in range(0, len(lines), 5):
-        try:
-            idx = int(lines[k][0])
-            T = np.array([[float(x) for x in row] for row in lines[k + 1:k + 5]], dtype=np.float64)
-        except (ValueError, IndexError):
-            raise InputError(path, f"malformed Open3D log entry at line {k + 1}") from None
-        if len(lines[k]) != 3 or T.shape != (4, 4) or not np.all(np.isfinite(T)):
-            raise InputError(path, f"malformed Open3D log entry at line {k + 1}: expected 'i j n' and a 4x4 matrix")
-        _check_rigid(T, path)
-        out.append((idx, T))
-    return out
 
 
 def discover_open3d(root: Path) -> Layout:
@@ -233,21 +191,6 @@ def associate(t_a: np.ndarray, t_b: np.ndarray, max_dt: float = TUM_MAX_DT) -> d
     return out
 
 
-def _quat_T(vals: list[str], path: Path) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
-    try:
-        tx, ty, tz, qx, qy, qz, qw = (float(v) for v in vals[:7])
-        if len(vals) < 7:
-            raise ValueError
-        T = np.eye(4)
-        T[:3, :3] = Rotation.from_quat([qx, qy, qz, qw]).as_matrix()
-    except ValueError:
-        raise InputError(path, "malformed ground truth line: expected 'timestamp tx ty tz qx qy qz qw'") from None
-    T[:3, 3] = (tx, ty, tz)
-    return T
-
-
 def discover_tum(root: Path) -> Layout:
     """TUM RGB-D layout: rgb.txt and depth.txt associated by timestamp, depth factor 5000, groundtruth.txt."""
     rgb_list = _read_tum_list(root / "rgb.txt")
@@ -281,7 +224,7 @@ def discover_tum(root: Path) -> Layout:
             for f in frames:
                 j = int(np.argmin(np.abs(t_gt - name_t[f.name])))
                 if abs(t_gt[j] - name_t[f.name]) <= TUM_MAX_DT:
-                    gt[f.name] = _quat_T(gt_list[j][1], gt_path)
+                    gt[f.name] = tum_pose(gt_list[j][1], gt_path)
     return Layout("tum", root, frames, 1.0 / 5000.0, None,
                   "intrinsics (the TUM layout carries none; pass --intrinsics cam_K.txt or an Open3D camera JSON)",
                   gt_T_world_cam=gt, problems=problems)
@@ -343,7 +286,7 @@ def discover_bop(root: Path, obj_id: int | None = None) -> Layout:
                     T[:3, 3] = np.asarray(e["cam_t_m2c"], dtype=np.float64).reshape(3) / 1000.0
                     if not np.all(np.isfinite(T)):
                         raise ValueError("non-finite pose")
-                    _check_rigid(T, gt_path)
+                    check_rigid(T, gt_path)
                     gt[f.name] = T
                     if mask_dir is not None:
                         m = mask_dir / f"{im_id:06d}_{k:06d}.png"
