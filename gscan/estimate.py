@@ -5,8 +5,8 @@ Pipeline of `Estimator.estimate` (every stage timed, `EstimateResult.timings_ms`
 1. features: RootSIFT keypoints of the query, lifted with the query depth into the camera frame,
    inside `mask` when given (the frame is then cropped to the mask's bounding box before detection,
    which is where most of the time goes); without a mask, inside the pixels standing off the
-   dominant plane (`off_plane_region`: the table top, whose texture would otherwise take most of the
-   keypoints), or the whole frame when there is no such plane.
+   dominant plane (`gscan.segment.off_plane_region`: the table top, whose texture would otherwise
+   take most of the keypoints), or the whole frame when there is no such plane.
 2. retrieval: one GEMM of the query descriptors against the template's stacked descriptors
    (normalised once at load); every query keypoint whose nearest template descriptor is closer than
    `retrieval_dist` votes for that descriptor's view; the top-`top_k` views by votes are kept.
@@ -50,6 +50,7 @@ from gscan.features import (OBJECT_FEATURES, FeatureParams, Features, descriptor
 from gscan.geometry import inv_T, kabsch_trimmed, transform_points
 from gscan.gmatch import GMatchParams, default_eps_f, gmatch
 from gscan.pointcloud import coincident_groups, icp_point_to_plane, pca_normals, voxel_down_indices, voxel_mean
+from gscan.segment import off_plane_region
 from gscan.template import Template, open_template
 
 log = logging.getLogger(__name__)
@@ -185,7 +186,7 @@ class Estimator:
         t = time.perf_counter()
         off_plane = None
         if mask is None and not use_pnp and self.params.remove_plane:
-            off_plane = off_plane_region(frame, self.params)
+            off_plane = off_plane_region(frame, self.params.plane_min_frac, self.params.plane_iterations)
         search = mask if mask is not None else off_plane
         feats = self._features(frame, search, lift=not use_pnp)
         tm["features"] = _ms(t)
@@ -405,49 +406,6 @@ class Estimator:
         tm["total"] = _ms(t_all)
         log.info("not found: %s", reason)
         return EstimateResult(None, float(score), int(n), view, reason, {}, tm, method)
-
-
-def off_plane_region(frame: RGBDFrame, params: EstimateParams = EstimateParams(), stride: int = 6) -> np.ndarray | None:
-    """[H x W] bool: valid-depth pixels in front of the frame's dominant plane (a table top), or None
-    when no plane holds `plane_min_frac` of the valid depth. RANSAC on every `stride`-th pixel
-    (seeded, deterministic) over hypotheses with at most 5 % of the points behind them (so a large
-    object face seen head-on is never taken for the table), least-squares refit on the inliers; a pixel
-    is off the plane when it lies on the camera's side by more than 8 mm + 0.5 % of its depth."""
-    depth = frame.depth
-    P = backproject(depth, frame.intrinsics)
-    sub = P[::stride, ::stride].reshape(-1, 3).astype(np.float64)
-    sub = sub[sub[:, 2] > 0]
-    if len(sub) < 100:
-        return None
-    rng = np.random.default_rng(0)
-    tri = rng.integers(0, len(sub), size=(params.plane_iterations, 3))
-    a, b, c = sub[tri[:, 0]], sub[tri[:, 1]], sub[tri[:, 2]]
-    n = np.cross(b - a, c - a)
-    nn = np.linalg.norm(n, axis=1)
-    ok = nn > 1e-9
-    n, a = n[ok] / nn[ok, None], a[ok]
-    if len(n) == 0:
-        return None
-    n = np.where((np.einsum("ij,ij->i", n, a) > 0)[:, None], -n, n)  # normals towards the camera (origin)
-    thr = (0.006 + 0.005 * sub[:, 2])[:, None]
-    h = sub @ n.T - np.einsum("ij,ij->i", n, a)[None, :]  # [S x H] signed heights, camera side > 0
-    counts = (np.abs(h) < thr).sum(axis=0)
-    # a support plane has (almost) nothing behind it; a large object face seen head-on does
-    counts[(h < -thr).sum(axis=0) > 0.05 * len(sub)] = 0
-    k = int(np.argmax(counts))
-    if counts[k] < params.plane_min_frac * len(sub):
-        return None
-    inl = np.abs(h[:, k]) < thr[:, 0]
-    cen = sub[inl].mean(0)
-    normal = np.linalg.svd(sub[inl] - cen, full_matrices=False)[2][2]
-    if normal @ cen > 0:  # orient the normal towards the camera (origin)
-        normal = -normal
-    hp = (P.reshape(-1, 3).astype(np.float64) - cen) @ normal  # signed height above the plane, camera side > 0
-    z = depth.reshape(-1)
-    region = (z > 0) & (hp > 0.008 + 0.005 * z)
-    if region.mean() < 0.002:  # nothing stands on the plane
-        return None
-    return region.reshape(depth.shape)
 
 
 def _ms(t0: float) -> float:

@@ -12,6 +12,9 @@ in the world frame from several frames, the object cluster above it (DBSCAN) def
 cylindrical working volume (axis along the plane normal), and every frame is segmented by
 that volume, so all masks agree with each other.
 
+Pose estimation's search region (`off_plane_region`): the pixels in front of a query frame's dominant
+plane, by a faster RANSAC on a strided cloud. Both plane finders share `ransac_plane`.
+
 Planes: `height(p) = normal . p + offset`, normal pointing up (towards the cameras).
 """
 from __future__ import annotations
@@ -103,16 +106,50 @@ class WorkingVolume:
         return (along >= height_min) & (along <= self.height) & (radial2 <= self.radius ** 2)
 
 
+def ransac_plane(S: np.ndarray, iterations: int, rng: np.random.Generator, dist: float | np.ndarray,
+                 viewpoint: np.ndarray, max_behind: float | None = None) -> tuple[Plane, np.ndarray] | None:
+    """Best of `iterations` random-triplet planes through [N x 3] points S, by inlier count.
+
+    A point is an inlier when |height| < dist (a scalar, or one value per point [N]). Normals point
+    towards `viewpoint` [3]. With `max_behind`, a plane with more than that fraction of S farther than
+    dist behind it scores 0: a support plane has (almost) nothing behind it, a large object face seen
+    head-on does. Triplets are drawn from `rng` in batches of 100; the first best plane wins. Returns
+    (plane, inlier mask [N] bool), or None when every triplet is degenerate.
+    """
+    vp = np.asarray(viewpoint, dtype=np.float64)
+    d = np.asarray(dist, dtype=np.float64).reshape(-1, 1) if np.ndim(dist) else float(dist)
+    best, best_count, best_inl = None, -1, None
+    for start in range(0, iterations, 100):
+        m = min(100, iterations - start)
+        tri = S[rng.integers(0, len(S), size=(m, 3))]
+        nrm = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        length = np.linalg.norm(nrm, axis=1)
+        ok = length > 1e-12
+        nrm = nrm[ok] / length[ok, None]
+        off = -np.einsum("ij,ij->i", nrm, tri[ok, 0])
+        flip = np.where(nrm @ vp + off < 0, -1.0, 1.0)
+        nrm, off = nrm * flip[:, None], off * flip
+        h = S @ nrm.T + off  # [N x m] signed heights, viewpoint side > 0
+        inl = np.abs(h) < d
+        counts = inl.sum(0)
+        if max_behind is not None:
+            counts[(h < -d).sum(0) > max_behind * len(S)] = 0
+        if len(counts) and counts.max() > best_count:
+            k = int(np.argmax(counts))
+            best_count, best, best_inl = int(counts[k]), Plane(nrm[k], float(off[k])), inl[:, k]
+    return None if best is None else (best, best_inl)
+
+
 def fit_support_plane(points: np.ndarray, viewpoint: np.ndarray,
                       params: SegmentParams = SegmentParams()) -> Plane | None:
     """Dominant plane of [N x 3] points by seeded RANSAC, normal oriented towards `viewpoint` [3].
 
-    The points are voxel-downsampled (`plane_voxel`) and sorted, then `plane_iterations` random
-    triplets (numpy generator seeded by `params.seed`; open3d's `segment_plane` is not repeatable
-    across runs because of its threading) are scored by inlier count within `plane_distance` on at
-    most `plane_max_points` points; the best plane is refined by least squares on all its inliers
-    (twice). Returns None when the plane
-    holds fewer than `min_plane_fraction` of the downsampled points.
+    The points are voxel-downsampled (`plane_voxel`) and sorted, then `ransac_plane` scores
+    `plane_iterations` random triplets (numpy generator seeded by `params.seed`; open3d's
+    `segment_plane` is not repeatable across runs because of its threading) by inlier count within
+    `plane_distance` on at most `plane_max_points` points; the best plane is refined by least squares
+    on all its inliers (twice). Returns None when the plane holds fewer than `min_plane_fraction` of
+    the downsampled points.
     """
     import open3d as o3d
 
@@ -124,23 +161,12 @@ def fit_support_plane(points: np.ndarray, viewpoint: np.ndarray,
         return None
     rng = np.random.default_rng(params.seed)
     S = P if n <= params.plane_max_points else P[np.sort(rng.choice(n, params.plane_max_points, replace=False))]
-    best_n, best_count = None, -1
-    for start in range(0, params.plane_iterations, 100):
-        m = min(100, params.plane_iterations - start)
-        tri = S[rng.integers(0, len(S), size=(m, 3))]
-        nrm = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-        length = np.linalg.norm(nrm, axis=1)
-        ok = length > 1e-12
-        nrm = nrm[ok] / length[ok, None]
-        off = -np.einsum("ij,ij->i", nrm, tri[ok, 0])
-        counts = (np.abs(S @ nrm.T + off) < params.plane_distance).sum(0)
-        if len(counts) and counts.max() > best_count:
-            k = int(np.argmax(counts))
-            best_count, best_n = int(counts[k]), np.append(nrm[k], off[k])
-    if best_n is None or best_count < params.min_plane_fraction * len(S):
-        log.debug("support plane: %d of %d points, below %.2f", max(best_count, 0), len(S), params.min_plane_fraction)
+    found = ransac_plane(S, params.plane_iterations, rng, params.plane_distance, viewpoint)
+    best_count = 0 if found is None else int(found[1].sum())
+    if found is None or best_count < params.min_plane_fraction * len(S):
+        log.debug("support plane: %d of %d points, below %.2f", best_count, len(S), params.min_plane_fraction)
         return None
-    normal, offset = best_n[:3], best_n[3]
+    normal, offset = found[0].normal, found[0].offset
     for _ in range(2):  # least-squares refinement on the inliers
         inl = P[np.abs(P @ normal + offset) < params.plane_distance]
         if len(inl) < 3:
@@ -153,6 +179,37 @@ def fit_support_plane(points: np.ndarray, viewpoint: np.ndarray,
     if plane.height(np.asarray(viewpoint, dtype=np.float64)[None])[0] < 0:
         plane = Plane(-plane.normal, -plane.offset)
     return plane
+
+
+def off_plane_region(frame: RGBDFrame, min_frac: float = 0.3, iterations: int = 64, stride: int = 6
+                     ) -> np.ndarray | None:
+    """[H x W] bool: valid-depth pixels in front of the frame's dominant plane (a table top), or None
+    when no plane holds `min_frac` of the valid depth. For pose estimation, where it must be fast:
+    `ransac_plane` on every `stride`-th pixel (seeded, deterministic; inliers within 6 mm + 0.5 % of
+    the depth) over `iterations` hypotheses with at most 5 % of the points behind them (so a large
+    object face seen head-on is never taken for the table), least-squares refit on the inliers; a
+    pixel is off the plane when it lies on the camera's side by more than 8 mm + 0.5 % of its depth."""
+    depth = frame.depth
+    P = backproject(depth, frame.intrinsics)
+    sub = P[::stride, ::stride].reshape(-1, 3).astype(np.float64)
+    sub = sub[sub[:, 2] > 0]
+    if len(sub) < 100:
+        return None
+    found = ransac_plane(sub, iterations, np.random.default_rng(0), 0.006 + 0.005 * sub[:, 2], np.zeros(3),
+                         max_behind=0.05)
+    if found is None or found[1].sum() < min_frac * len(sub):
+        return None
+    inl = found[1]
+    cen = sub[inl].mean(0)
+    normal = np.linalg.svd(sub[inl] - cen, full_matrices=False)[2][2]
+    if normal @ cen > 0:  # orient the normal towards the camera (origin)
+        normal = -normal
+    hp = (P.reshape(-1, 3).astype(np.float64) - cen) @ normal  # signed height above the plane, camera side > 0
+    z = depth.reshape(-1)
+    region = (z > 0) & (hp > 0.008 + 0.005 * z)
+    if region.mean() < 0.002:  # nothing stands on the plane
+        return None
+    return region.reshape(depth.shape)
 
 
 def _depth_edges(depth: np.ndarray, rel: float) -> np.ndarray:

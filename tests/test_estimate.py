@@ -11,7 +11,7 @@ import pytest
 from gscan.camera import RGBDFrame
 from gscan.cadtemplate import build_template_from_mesh
 from gscan.errors import InputError
-from gscan.estimate import STAGES, Estimator, off_plane_region
+from gscan.estimate import STAGES, Estimator
 from gscan.geometry import look_at, make_T, pose_error, rotvec_to_R, transform_points
 from gscan.metrics import add
 from gscan.synth import (DEFAULT_INTRINSICS, SynthScene, default_distance, load_textured_mesh, place_distractors,
@@ -156,6 +156,8 @@ def test_mask_of_wrong_size_is_refused(meshes, estimator):
 
 def test_off_plane_region_removes_the_table(meshes):
     r, _ = render_scene(meshes[0], meshes[1:], 0)
+    from gscan.segment import off_plane_region
+
     region = off_plane_region(as_frame(r))
     assert region is not None
     table = (r.labels < 0) & (r.depth > 0)

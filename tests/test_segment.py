@@ -8,7 +8,7 @@ from hypothesis import given, settings, strategies as st
 from gscan.camera import RGBDFrame
 from gscan.errors import InputError
 from gscan.geometry import inv_T, make_T, rotvec_to_R, transform_points
-from gscan.segment import (Plane, WorkingVolume, estimate_working_volume, fit_support_plane,
+from gscan.segment import (Plane, WorkingVolume, estimate_working_volume, fit_support_plane, ransac_plane,
                            segment_frame, segment_sequence)
 from gscan.synth import (DEFAULT_INTRINSICS, DepthNoise, SynthScene, box_mesh, orbit_poses, procedural_box_texture,
                          rest_on_table)
@@ -126,6 +126,24 @@ def test_fit_support_plane_rejects_clutter():
     plane = fit_support_plane(pts, np.zeros(3))
     np.testing.assert_allclose(plane.normal, [0, 0, -1], atol=1e-6)  # towards the viewpoint
     assert plane.offset == pytest.approx(0.8, abs=1e-6)
+
+
+def test_ransac_plane_skips_a_face_with_points_behind_it():
+    """A face seen head-on (600 points at z 0.5) outnumbers the table behind it (400 points at z 1.0):
+    without `max_behind` the face wins, with it the table does (40 % of the points lie behind the face,
+    none behind the table). Normals point to the viewpoint; inliers are exact; per-point distances work."""
+    rng = np.random.default_rng(1)
+    face = np.c_[rng.uniform(-0.05, 0.05, (600, 2)), np.full(600, 0.5)]
+    table = np.c_[rng.uniform(-0.4, 0.4, (400, 2)), np.full(400, 1.0)]
+    S = np.vstack([face, table])
+    plane, inl = ransac_plane(S, 200, np.random.default_rng(0), 0.004, np.zeros(3))
+    np.testing.assert_allclose(plane.normal, [0, 0, -1], atol=1e-9)
+    assert plane.offset == pytest.approx(0.5) and np.array_equal(inl, np.arange(1000) < 600)
+    plane, inl = ransac_plane(S, 200, np.random.default_rng(0), np.full(1000, 0.004), np.zeros(3), max_behind=0.05)
+    np.testing.assert_allclose(plane.normal, [0, 0, -1], atol=1e-9)
+    assert plane.offset == pytest.approx(1.0) and np.array_equal(inl, np.arange(1000) >= 600)
+    line = np.c_[np.linspace(0, 1, 50), np.zeros(50), np.ones(50)]  # every triplet degenerate
+    assert ransac_plane(line, 100, np.random.default_rng(0), 0.004, np.zeros(3)) is None
 
 
 @settings(deadline=None, max_examples=30)
