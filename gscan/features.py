@@ -31,6 +31,7 @@ log = logging.getLogger(__name__)
 KINDS = ("sift", "rootsift", "orb")
 _DIMS = {"sift": 128, "rootsift": 128, "orb": 32}
 _DTYPES = {"sift": np.float32, "rootsift": np.float32, "orb": np.uint8}
+DESCRIPTOR_KINDS = {k: (_DIMS[k], _DTYPES[k]) for k in KINDS}  # kind -> (descriptor length, dtype)
 
 
 @dataclass

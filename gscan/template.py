@@ -36,6 +36,7 @@ import numpy as np
 
 from gscan.camera import Intrinsics
 from gscan.errors import GscanError, InputError
+from gscan.features import DESCRIPTOR_KINDS
 from gscan.template_codec import (BadBlob, check_T, decode_array, decode_image, decode_json, decode_T, encode_array,
                                   encode_color, encode_depth, encode_mask, to_u8_colors)
 # the records live in gscan.template_records; they are imported from here as well
@@ -83,6 +84,11 @@ def _decodes(method):
     return wrapper
 
 
+def _check_colors(colors: np.ndarray | None, n: int, what: str) -> None:
+    if colors is not None and (colors.dtype != np.uint8 or len(colors) != n):
+        raise BadBlob(f"{what} colours are {colors.dtype} x {len(colors)}, expected uint8 x {n}")
+
+
 def _apply(T: np.ndarray, pts: np.ndarray) -> np.ndarray:
     return (pts.astype(np.float64) @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
 
@@ -120,28 +126,40 @@ class TemplateDB:
             raise InputError(path, "output is a folder, expected a .gscan file path")
         if path.exists() and not force:
             raise InputError(path, "already exists; use --force to overwrite (or scan --resume to continue)")
-        path.parent.mkdir(parents=True, exist_ok=True)
+        made = [d for d in (path.parent, *path.parent.parents) if not d.exists()]  # deepest first
         # the schema is written to a temporary sibling and renamed into place, so a crash never
         # leaves an empty or schema-less file at `path` (an existing one is replaced atomically)
         tmp = path.with_name(f".{path.name}.creating")
-        for p in (tmp, Path(f"{tmp}-journal"), Path(f"{path}-journal"), Path(f"{path}-wal"), Path(f"{path}-shm")):
-            p.unlink(missing_ok=True)
         base = {"schema": SCHEMA_VERSION, "status": "partial", "units": "m", "source": "scan"}
         base.update(meta or {})
         base["schema"], base["status"] = SCHEMA_VERSION, "partial"
-        setup = cls(tmp, cls._connect(tmp), writable=True)
         try:
-            with setup._tx() as c:
-                c.execute(f"PRAGMA application_id={APPLICATION_ID}")
-                c.execute(f"PRAGMA user_version={SCHEMA_VERSION}")
-                for stmt in _SCHEMA.strip().split(";"):
-                    if stmt.strip():
-                        c.execute(stmt)
-                c.executemany("INSERT INTO meta(key, value) VALUES (?, ?)",
-                              [(k, json.dumps(v, sort_keys=True)) for k, v in base.items()])
-        finally:
-            setup.close()
-        os.replace(tmp, path)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            for p in (tmp, Path(f"{tmp}-journal"), Path(f"{path}-journal"), Path(f"{path}-wal"), Path(f"{path}-shm")):
+                p.unlink(missing_ok=True)
+            setup = cls(tmp, cls._connect(tmp), writable=True)
+            try:
+                with setup._tx() as c:
+                    c.execute(f"PRAGMA application_id={APPLICATION_ID}")
+                    c.execute(f"PRAGMA user_version={SCHEMA_VERSION}")
+                    for stmt in _SCHEMA.strip().split(";"):
+                        if stmt.strip():
+                            c.execute(stmt)
+                    c.executemany("INSERT INTO meta(key, value) VALUES (?, ?)",
+                                  [(k, json.dumps(v, sort_keys=True)) for k, v in base.items()])
+            finally:
+                setup.close()
+            os.replace(tmp, path)
+        except BaseException as e:
+            for p in (tmp, Path(f"{tmp}-journal")):
+                with suppress(OSError):
+                    p.unlink(missing_ok=True)
+            for d in made:
+                with suppress(OSError):
+                    d.rmdir()
+            if isinstance(e, (OSError, sqlite3.Error)):  # a folder that cannot be made or written
+                raise InputError(path, f"cannot create the database ({getattr(e, 'strerror', None) or e})") from None
+            raise
         db = cls(path, cls._connect(path), writable=True)
         log.info("created template database %s", path)
         return db
@@ -333,10 +351,12 @@ class TemplateDB:
         v = View(name=name, intrinsics=K, T_obj_cam=decode_T(T), keyframe=bool(kf),
                  quality=q, input_index=idx)
         if load_images:
+            wh = (K.width, K.height)
             v.color = (None if color is None
-                       else np.ascontiguousarray(cv2.cvtColor(decode_image(color), cv2.COLOR_BGR2RGB)))
-            v.depth = None if depth is None else decode_image(depth).astype(np.float32) / np.float32(1000.0)
-            v.mask = None if mask is None else decode_image(mask) > 127
+                       else np.ascontiguousarray(cv2.cvtColor(decode_image(color, np.uint8, 3, wh), cv2.COLOR_BGR2RGB)))
+            v.depth = (None if depth is None
+                       else decode_image(depth, np.uint16, 1, wh).astype(np.float32) / np.float32(1000.0))
+            v.mask = None if mask is None else decode_image(mask, np.uint8, 1, wh) > 127
         return v
 
     _VIEW_COLS = "name, input_index, intrinsics, T_obj_cam, {img}, color_codec, {img2}, {img3}, keyframe, quality"
@@ -400,6 +420,12 @@ class TemplateDB:
         lengths = {len(f.pixels), len(f.points_obj), len(f.descriptors)}
         if len(lengths | ({len(f.scales)} if f.scales is not None else set())) > 1:
             raise BadBlob(f"view {view_name!r}: keypoint arrays of different lengths")
+        if kind not in DESCRIPTOR_KINDS:
+            raise BadBlob(f"view {view_name!r}: unknown descriptor kind {kind!r}")
+        dim, dtype = DESCRIPTOR_KINDS[kind]
+        if f.descriptors.shape[1] != dim or f.descriptors.dtype != dtype:
+            raise BadBlob(f"view {view_name!r}: {kind} descriptors are {f.descriptors.dtype} x {f.descriptors.shape[1]}, "
+                          f"expected {np.dtype(dtype)} x {dim}")
         return f
 
     # -- edges -----------------------------------------------------------------------------------
@@ -439,7 +465,14 @@ class TemplateDB:
     @_decodes
     def mesh(self) -> MeshData | None:
         rows = self._q("SELECT vertices, triangles, colors FROM mesh WHERE id=1")
-        return None if not rows else MeshData(*(decode_array(b, (None, 3)) for b in rows[0]))
+        if not rows:
+            return None
+        m = MeshData(*(decode_array(b, (None, 3)) for b in rows[0]))
+        if m.triangles.dtype.kind not in "iu" or (m.triangles.size and (m.triangles.min() < 0
+                                                                       or m.triangles.max() >= len(m.vertices))):
+            raise BadBlob(f"mesh triangles index outside its {len(m.vertices)} vertices")
+        _check_colors(m.vertex_colors, len(m.vertices), "mesh")
+        return m
 
     def set_cloud(self, points: np.ndarray, colors: np.ndarray | None = None) -> None:
         """points [N x 3] (m, object frame), colors [N x 3] uint8 or float in [0, 1]."""
@@ -454,10 +487,20 @@ class TemplateDB:
     @_decodes
     def cloud(self) -> tuple[np.ndarray, np.ndarray | None] | None:
         rows = self._q("SELECT points, colors FROM cloud WHERE id=1")
-        return None if not rows else (decode_array(rows[0][0], (None, 3)), decode_array(rows[0][1], (None, 3)))
+        if not rows:
+            return None
+        P, C = decode_array(rows[0][0], (None, 3)), decode_array(rows[0][1], (None, 3))
+        _check_colors(C, len(P), "cloud")
+        return P, C
 
     def add_grasp(self, name: str, T_obj_grasp: np.ndarray, replace: bool = False) -> None:
         T = check_T(T_obj_grasp)
+        try:
+            name.encode("utf-8")
+        except UnicodeEncodeError:
+            raise InputError(self.path, f"grasp name {name!r} is not UTF-8 text") from None
+        if not name.strip():
+            raise InputError(self.path, "grasp name is empty")
         with self._tx() as c:
             if not replace and c.execute("SELECT 1 FROM grasps WHERE name=?", (name,)).fetchone():
                 raise InputError(self.path, f"grasp {name!r} already exists")

@@ -38,6 +38,10 @@ def decode_array(b: bytes | None, shape: tuple[int | None, ...] | None = None) -
     if shape is not None and (a.ndim != len(shape) or any(s is not None and s != n for s, n in zip(shape, a.shape))):
         want = " x ".join("N" if s is None else str(s) for s in shape)
         raise BadBlob(f"stored array is {a.dtype} {a.shape}, expected [{want}]")
+    if a.dtype.kind not in "iuf":
+        raise BadBlob(f"stored array is {a.dtype}, not numbers")
+    if a.dtype.kind == "f" and not np.all(np.isfinite(a)):
+        raise BadBlob(f"stored {a.shape} array holds NaN or infinite values")
     return a
 
 
@@ -74,10 +78,14 @@ def encode_mask(mask: np.ndarray) -> bytes:
     return cv2.imencode(".png", np.where(np.asarray(mask, dtype=bool), 255, 0).astype(np.uint8))[1].tobytes()
 
 
-def decode_image(b: bytes) -> np.ndarray:
+def decode_image(b: bytes, dtype: type, channels: int, size_wh: tuple[int, int]) -> np.ndarray:
+    """A stored image, which must be `dtype` with `channels` channels (1: [H x W]) and `size_wh` pixels."""
     img = cv2.imdecode(np.frombuffer(b, dtype=np.uint8), cv2.IMREAD_UNCHANGED) if b else None  # b"" asserts in cv2
     if img is None:
         raise BadBlob("undecodable image blob")
+    shape = (size_wh[1], size_wh[0]) + (() if channels == 1 else (channels,))
+    if img.dtype != dtype or img.shape != shape:
+        raise BadBlob(f"stored image is {img.dtype} {img.shape}, expected {np.dtype(dtype)} {shape}")
     return img
 
 

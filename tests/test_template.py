@@ -11,6 +11,7 @@ import textwrap
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -321,15 +322,7 @@ _READS = {
 @pytest.mark.parametrize("table, column", sorted(_READS))
 @pytest.mark.parametrize("damage", ["bit-flip", "empty", "wrong-shape"])
 def test_undecodable_stored_value_is_input_error(tmp_path: Path, table: str, column: str, damage: str) -> None:
-    rng = np.random.default_rng(4)
-    path = tmp_path / "obj.gscan"
-    with TemplateDB.create(path) as db:
-        db.add_view(_view("a", rng, _pose(rng), 0), _feats(rng, 20), color_codec="png")
-        db.add_edge(Edge("a", "a", _pose(rng), np.zeros((3, 2), np.int32), 0.0, 0.0, 1.0, "loop"))
-        db.set_mesh(rng.normal(size=(5, 3)), np.array([[0, 1, 2]]))
-        db.set_cloud(rng.normal(size=(5, 3)))
-        db.add_grasp("g", _pose(rng))
-        db.mark_complete()
+    path = _every_column_db(tmp_path / "obj.gscan")
     with sqlite3.connect(path) as c:
         where = " WHERE key = 'units'" if table == "meta" else ""
         (blob,) = c.execute(f"SELECT {column} FROM {table}{where}").fetchone()
@@ -345,6 +338,66 @@ def test_undecodable_stored_value_is_input_error(tmp_path: Path, table: str, col
             assert "obj.gscan" in str(e) and "corrupt template database" in str(e)
         else:
             raise AssertionError(f"{table}.{column} damaged ({damage}) was read without an error")
+
+
+def _every_column_db(path: Path) -> Path:
+    """A complete database with a value in every stored column (one view "a", png colour)."""
+    rng = np.random.default_rng(4)
+    with TemplateDB.create(path) as db:
+        db.add_view(_view("a", rng, _pose(rng), 0), _feats(rng, 20), color_codec="png")
+        db.add_edge(Edge("a", "a", _pose(rng), np.zeros((3, 2), np.int32), 0.0, 0.0, 1.0, "loop"))
+        db.set_mesh(rng.normal(size=(5, 3)), np.array([[0, 1, 2]]), np.full((5, 3), 200, np.uint8))
+        db.set_cloud(rng.normal(size=(5, 3)))
+        db.add_grasp("g", _pose(rng))
+        db.mark_complete()
+    return path
+
+
+def _png(img: np.ndarray) -> bytes:
+    return cv2.imencode(".png", img)[1].tobytes()
+
+
+# values that decode but cannot be right: (table, column, stored value, the read, words of the error)
+_IMPOSSIBLE = {
+    "nan-points": ("features", "points", lambda: np.full((20, 3), np.nan, np.float32), lambda db: db.features("a"),
+                   "NaN"),
+    "inf-pose": ("views", "T_obj_cam", lambda: np.full((4, 4), np.inf), lambda db: db.views(), "infinite"),
+    "nan-grasp": ("grasps", "T_obj_grasp", lambda: np.full((4, 4), np.nan), lambda db: db.grasps(), "NaN"),
+    "text-pixels": ("features", "pixels", lambda: np.full((20, 2), "x"), lambda db: db.features("a"), "not numbers"),
+    "short-descriptors": ("features", "descriptors", lambda: np.zeros((20, 64), np.float32),
+                          lambda db: db.features("a"), "x 64"),
+    "unknown-kind": ("features", "kind", lambda: "surf", lambda db: db.features("a"), "surf"),
+    "triangle-out-of-range": ("mesh", "triangles", lambda: np.array([[0, 1, 10**8]]), lambda db: db.mesh(),
+                              "triangles"),
+    "negative-triangle": ("mesh", "triangles", lambda: np.array([[0, 1, -1]]), lambda db: db.mesh(), "triangles"),
+    "float-triangles": ("mesh", "triangles", lambda: np.array([[0.0, 1.0, 2.0]]), lambda db: db.mesh(),
+                        "triangles"),
+    "short-mesh-colours": ("mesh", "colors", lambda: np.zeros((3, 3), np.uint8), lambda db: db.mesh(), "colours"),
+    "float-cloud-colours": ("cloud", "colors", lambda: np.zeros((5, 3), np.float32), lambda db: db.cloud(),
+                            "colours"),
+    "colour-depth": ("views", "depth", lambda: _png(np.zeros((48, 64, 3), np.uint8)),
+                     lambda db: db.view("a"), "uint16"),
+    "grey-colour": ("views", "color", lambda: _png(np.zeros((48, 64), np.uint8)), lambda db: db.view("a"), "uint8"),
+    "mask-of-another-size": ("views", "mask", lambda: _png(np.zeros((10, 10), np.uint8)), lambda db: db.view("a"),
+                             "(10, 10)"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(_IMPOSSIBLE))
+def test_impossible_stored_value_is_input_error(tmp_path: Path, case: str) -> None:
+    """A value that decodes but cannot be a template's (NaN, an index past the mesh, a descriptor of the
+    wrong length, an image of the wrong type or size) is refused like an undecodable one: an InputError
+    naming the file, before it reaches the estimator, an export or a JSON output."""
+    table, column, value, read, words = _IMPOSSIBLE[case]
+    path = _every_column_db(tmp_path / "obj.gscan")
+    v = value()
+    with sqlite3.connect(path) as c:
+        c.execute(f"UPDATE {table} SET {column} = ?", (_encoded(v) if isinstance(v, np.ndarray) else v,))
+    c.close()
+    with TemplateDB.open(path) as db:
+        with pytest.raises(InputError, match="corrupt template database") as ei:
+            read(db)
+    assert "obj.gscan" in str(ei.value) and words in str(ei.value)
 
 
 def _encoded(a: np.ndarray) -> bytes:
