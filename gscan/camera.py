@@ -60,6 +60,20 @@ def _bad(path: Path, reason: str) -> InputError:
     return InputError(path, reason)
 
 
+MAX_FOCAL_PX = 1e5  # about 170x a RealSense's focal length at 640x480
+
+
+def implausible_intrinsics(K: np.ndarray, width: int, height: int) -> str | None:
+    """Why a [3 x 3] calibration cannot be one of width x height images (None when it can): focal lengths
+    outside 1-1e5 px, or a principal point beyond twice the image size."""
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    if not (1.0 <= fx <= MAX_FOCAL_PX and 1.0 <= fy <= MAX_FOCAL_PX):
+        return f"implausible focal length fx={fx:g} fy={fy:g} px (expected 1-{MAX_FOCAL_PX:g})"
+    if cx > 2 * width or cy > 2 * height:
+        return f"principal point ({cx:g}, {cy:g}) lies far outside the {width}x{height} image"
+    return None
+
+
 def load_intrinsics(path: str | Path, width: int | None = None, height: int | None = None) -> Intrinsics:
     """Read intrinsics from `cam_K.txt` (3x3 text) or an Open3D `PinholeCameraIntrinsic` JSON.
 
@@ -87,7 +101,7 @@ def load_intrinsics(path: str | Path, width: int | None = None, height: int | No
                 w, h = int(d.get("width", width or 0)), int(d.get("height", height or 0))
             else:
                 raise ValueError("no intrinsic_matrix, cam_K or fx/fy/cx/cy key")
-        except (ValueError, TypeError, KeyError) as e:
+        except (ValueError, TypeError, KeyError, OverflowError) as e:
             raise _bad(path, f"malformed intrinsics JSON: {e}") from None
     else:
         try:
@@ -104,6 +118,9 @@ def load_intrinsics(path: str | Path, width: int | None = None, height: int | No
         raise _bad(path, "not a pinhole calibration matrix: expected [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]")
     if w <= 0 or h <= 0:
         raise _bad(path, "intrinsics carry no image size and none was given")
+    why = implausible_intrinsics(K, w, h)
+    if why:
+        raise _bad(path, why)
     return Intrinsics.from_matrix(K, w, h)
 
 

@@ -16,7 +16,7 @@ from gscan.errors import InputError
 
 
 class _Section(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
 class FeaturesConfig(_Section):
@@ -86,6 +86,8 @@ def load_config(path: str | Path | None) -> ScanConfig:
         data = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
     except OSError as e:
         raise InputError(path, f"cannot read config ({e.strerror or e})") from None
+    except UnicodeDecodeError:
+        raise InputError(path, "cannot read config (not UTF-8 text)") from None
     except yaml.YAMLError as e:
         raise InputError(path, f"malformed YAML: {str(e).splitlines()[0]}") from None
     if not isinstance(data, dict):

@@ -397,6 +397,34 @@ def test_pose_files_share_one_rigidity_rule(tmp_path: Path):
             assert path.name in str(ei.value)
 
 
+def test_bop_frame_with_bad_calibration_is_left_out(tmp_path: Path):
+    """Per-image calibrations are checked per image: a NaN or implausible cam_K (or depth_scale) of the
+    FIRST image leaves that frame out, named, and the others open."""
+    root = make_bop(tmp_path / "bop", n=4)
+    cams = json.loads((root / "scene_camera.json").read_text())
+    cams["0"]["cam_K"][0] = float("nan")
+    cams["1"]["cam_K"][0] = 1e-300
+    cams["2"]["depth_scale"] = 1e300
+    (root / "scene_camera.json").write_text(json.dumps(cams))
+    seq = open_sequence(root)
+    assert seq.names == ["000003"] and seq[0].intrinsics.fx == pytest.approx(63.0)
+    assert sorted(seq.problems) == ["000000", "000001", "000002"]
+    assert "focal" in seq.problems["000001"] and "depth_scale" in seq.problems["000002"]
+
+
+def test_frame_names_that_are_not_utf8(tmp_path: Path):
+    """A file name with bytes that are not UTF-8 still makes a frame; its name shows them as \\xNN."""
+    import os
+
+    root = make_capture(tmp_path / "cap", names=["a", "b"], masks=False, poses=False)
+    for sub, ext in (("rgb", ".png"), ("depth", ".png")):
+        os.rename(root / sub / f"b{ext}", os.fsdecode(bytes(root / sub) + b"/b\xff" + ext.encode()))
+    seq = open_sequence(root)
+    assert seq.names == ["a", "b\\xff"]
+    assert seq["b\\xff"].name == "b\\xff"
+    "".join(seq.names).encode("utf-8")  # storable in the template database
+
+
 def test_associate_greedy():
     t_rgb = np.array([0.0, 0.033, 0.066, 0.5])
     t_dep = np.array([0.001, 0.030, 0.040, 0.07])

@@ -15,6 +15,7 @@ import numpy as np
 
 from gscan.camera import Intrinsics, RGBDFrame, load_intrinsics
 from gscan.errors import InputError
+from gscan.io.layouts import frame_name
 
 log = logging.getLogger(__name__)
 
@@ -157,9 +158,16 @@ def read_nyu_depth(path: str | Path, max_depth: float = 7.0) -> np.ndarray:
     return depth
 
 
+MAX_DEPTH_SCALE = 1000.0  # keeps raw * scale far inside float32 (16-bit raw depth)
+
+
 def check_depth_scale(depth_scale: float, path: str | Path | None) -> None:
-    if not (isinstance(depth_scale, (int, float, np.floating)) and np.isfinite(depth_scale) and depth_scale > 0):
-        raise InputError(path, f"invalid depth scale {depth_scale!r}: must be a positive number (metres per raw unit)")
+    """InputError unless 0 < depth_scale <= MAX_DEPTH_SCALE (metres per raw unit). Scales that are merely
+    wrong (10 for 0.001) are left to `check_depth_range`, whose message suggests the right one."""
+    if not (isinstance(depth_scale, (int, float, np.floating)) and np.isfinite(depth_scale)
+            and 0 < depth_scale <= MAX_DEPTH_SCALE):
+        raise InputError(path, f"invalid depth scale {depth_scale!r}: must be a positive number up to "
+                         f"{MAX_DEPTH_SCALE:g} (metres per raw unit)")
 
 
 def check_depth_range(depth: np.ndarray, depth_scale: float, path: str | Path) -> float:
@@ -227,7 +235,7 @@ def load_frame(color_path: str | Path, depth_path: str | Path, intrinsics: Intri
         mask = read_mask(mask_path)
         if mask.shape != (h, w):
             raise InputError(mask_path, f"mask is {mask.shape[1]}x{mask.shape[0]} but the frame is {w}x{h}")
-    return RGBDFrame(name=name if name is not None else color_path.stem, color=color, depth=depth,
+    return RGBDFrame(name=name if name is not None else frame_name(color_path), color=color, depth=depth,
                      intrinsics=intr, mask=mask, source=color_path)
 
 

@@ -61,8 +61,14 @@ def natural_key(s: str) -> tuple:
     return parts, s
 
 
+def frame_name(path: Path | str) -> str:
+    """A frame's name: the file's stem, with bytes that are not UTF-8 (Python's surrogate escapes in
+    file names) written as \\xNN so that the name can be stored and printed."""
+    return Path(path).stem.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+
+
 def list_images(folder: Path, exts: tuple[str, ...]) -> dict[str, Path]:
-    """Files of `folder` with one of `exts` (case-insensitive) keyed by stem, in natural order.
+    """Files of `folder` with one of `exts` (case-insensitive) keyed by `frame_name`, in natural order.
 
     Raises InputError naming the second file when two files share a stem (000001.png, 000001.jpg).
     """
@@ -76,9 +82,10 @@ def list_images(folder: Path, exts: tuple[str, ...]) -> dict[str, Path]:
     for p in entries:
         if p.name.startswith(".") or p.suffix.lower() not in exts:
             continue
-        if p.stem in out:
-            raise InputError(p, f"duplicate frame name '{p.stem}': {out[p.stem].name} has the same stem")
-        out[p.stem] = p
+        name = frame_name(p)
+        if name in out:
+            raise InputError(p, f"duplicate frame name '{name}': {out[name].name} has the same stem")
+        out[name] = p
     return dict(sorted(out.items(), key=lambda kv: natural_key(kv[0])))
 
 
@@ -203,7 +210,7 @@ def discover_tum(root: Path) -> Layout:
     frames, problems, seen = [], {}, {}
     for i, (t, vals) in enumerate(rgb_list):
         c = root / vals[0]
-        name = Path(vals[0]).stem
+        name = frame_name(vals[0])
         if name in seen:
             raise InputError(root / "rgb.txt", f"duplicate frame name '{name}' ({seen[name]} and {vals[0]})")
         seen[name] = vals[0]
@@ -211,14 +218,14 @@ def discover_tum(root: Path) -> Layout:
             problems[name] = f"{c.name}: no depth within {TUM_MAX_DT} s in depth.txt"
             continue
         frames.append(FrameSpec(name, c, root / depth_list[pairs[i]][1][0]))
-    order = {Path(v[0]).stem: t for t, v in rgb_list}
+    order = {frame_name(v[0]): t for t, v in rgb_list}
     frames.sort(key=lambda f: (order[f.name], natural_key(f.name)))  # TUM frames are in time order
     gt = None
     gt_path = root / "groundtruth.txt"
     if gt_path.is_file():
         gt_list = _read_tum_list(gt_path)
         t_gt = np.array([t for t, _ in gt_list])
-        name_t = {Path(v[0]).stem: t for t, v in rgb_list}
+        name_t = {frame_name(v[0]): t for t, v in rgb_list}
         gt = {}
         if len(t_gt):
             for f in frames:
@@ -270,7 +277,7 @@ def discover_bop(root: Path, obj_id: int | None = None) -> Layout:
         try:
             f.K = np.asarray(cam["cam_K"], dtype=np.float64).reshape(3, 3)
             f.depth_scale = float(cam.get("depth_scale", 1.0)) / 1000.0
-        except (TypeError, KeyError, ValueError, AttributeError):
+        except (TypeError, KeyError, ValueError, AttributeError, OverflowError):
             problems[f.name] = f"{f.color.name}: no valid cam_K for image {im_id} in {cam_path.name}"
             continue
         if scene_gt is not None:
@@ -291,7 +298,7 @@ def discover_bop(root: Path, obj_id: int | None = None) -> Layout:
                     if mask_dir is not None:
                         m = mask_dir / f"{im_id:06d}_{k:06d}.png"
                         f.mask = m if m.is_file() else None
-            except (TypeError, KeyError, ValueError, AttributeError) as e:
+            except (TypeError, KeyError, ValueError, AttributeError, OverflowError) as e:
                 raise InputError(gt_path, f"malformed entry for image {im_id} ({e.__class__.__name__})") from None
         kept.append(f)
     return Layout("bop", root, kept, 0.001, None, "scene_camera.json", per_frame_K=True,

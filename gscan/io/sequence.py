@@ -13,9 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
-from gscan.camera import Intrinsics, RGBDFrame, load_intrinsics
+from gscan.camera import Intrinsics, RGBDFrame, implausible_intrinsics, load_intrinsics
 from gscan.errors import InputError
-from gscan.io.images import check_depth_scale, check_depth_range, load_frame, read_depth
+from gscan.io.images import MAX_DEPTH_SCALE, check_depth_range, check_depth_scale, load_frame, read_depth
 from gscan.io.layouts import FrameSpec, Layout, discover
 
 log = logging.getLogger(__name__)
@@ -124,19 +124,14 @@ class Sequence:
                 log.warning("skipping frame %s: %s", name, e)
 
 
-def _resolve_intrinsics(layout: Layout, override: Intrinsics | str | Path | None, w: int, h: int,
-                        first: FrameSpec) -> Intrinsics:
+def _resolve_intrinsics(layout: Layout, override: Intrinsics | str | Path | None, w: int, h: int) -> Intrinsics:
+    """The sequence-wide intrinsics (not for per-frame calibrations, which each frame checks itself)."""
     if isinstance(override, Intrinsics):
         return override
     if override is not None:
         return load_intrinsics(Path(override), w, h)
     if layout.intrinsics_file is not None:
         return load_intrinsics(layout.intrinsics_file, w, h)
-    if layout.per_frame_K and first.K is not None:
-        try:
-            return Intrinsics.from_matrix(first.K, w, h)
-        except ValueError as e:
-            raise InputError(layout.root / "scene_camera.json", f"image {first.name}: {e}") from None
     if layout.format == "tum":
         raise InputError(layout.root, f"no {layout.intrinsics_expected}")
     raise InputError(layout.root / layout.intrinsics_expected,
@@ -185,15 +180,21 @@ def open_sequence(path: str | Path, format: str = "auto", intrinsics: Intrinsics
         detail = f"; first: {first[0]}: {first[1]}" if first else ""
         raise InputError(root, f"no usable RGB-D frame ({len(problems)} unusable){detail}")
 
-    first = next(iter(specs.values()))
-    intr = _resolve_intrinsics(layout, intrinsics, *sizes[first.name], first)
+    per_frame = layout.per_frame_K and intrinsics is None
+    intr = None if per_frame else _resolve_intrinsics(layout, intrinsics, *sizes[next(iter(specs))])
     frame_intr: dict[str, Intrinsics] = {}
     frame_scales: dict[str, float] = {}
     for name, f in list(specs.items()):
         w, h = sizes[name]
-        if layout.per_frame_K and intrinsics is None:
+        if per_frame:
             try:
-                frame_intr[name] = Intrinsics.from_matrix(f.K, w, h)
+                if f.K is None:
+                    raise ValueError("no cam_K")
+                K = np.asarray(f.K, dtype=float).reshape(3, 3)
+                frame_intr[name] = Intrinsics.from_matrix(K, w, h)
+                why = implausible_intrinsics(K, w, h)
+                if why:
+                    raise ValueError(why)
             except ValueError as e:
                 problems[name] = f"{f.color.name}: invalid cam_K in scene_camera.json ({e})"
                 del specs[name]
@@ -203,7 +204,7 @@ def open_sequence(path: str | Path, format: str = "auto", intrinsics: Intrinsics
             del specs[name]
             continue
         if depth_scale is None and f.depth_scale is not None:
-            if not (np.isfinite(f.depth_scale) and f.depth_scale > 0):
+            if not (np.isfinite(f.depth_scale) and 0 < f.depth_scale <= MAX_DEPTH_SCALE):
                 problems[name] = f"{f.color.name}: invalid depth_scale in scene_camera.json"
                 del specs[name]
                 continue
@@ -227,7 +228,7 @@ def open_sequence(path: str | Path, format: str = "auto", intrinsics: Intrinsics
     if not specs:
         first_p = next(iter(problems.items()))
         raise InputError(root, f"no usable RGB-D frame ({len(problems)} unusable); first: {first_p[0]}: {first_p[1]}")
-    if layout.per_frame_K and intrinsics is None:
+    if per_frame:
         intr = frame_intr[next(iter(specs))]
     for name, reason in problems.items():
         log.warning("%s: frame %s left out: %s", root, name, reason)

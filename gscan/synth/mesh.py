@@ -83,6 +83,8 @@ class TexturedMesh:
         return np.sqrt(area_t / np.maximum(area3, 1e-12))
 
 
+MESH_EXTENT_M = (1e-3, 10.0)  # largest side of a mesh that can be an object to scan or grasp (m)
+
 def load_textured_mesh(path_obj: str | Path, scale: float = 1.0) -> TexturedMesh:
     """Load a textured mesh (OBJ + MTL + image) with trimesh; `scale` converts its units to metres.
 
@@ -104,6 +106,12 @@ def load_textured_mesh(path_obj: str | Path, scale: float = 1.0) -> TexturedMesh
         raise InputError(path, f"invalid scale {scale}")
     faces = np.asarray(tm.faces, dtype=np.int32)
     verts = np.asarray(tm.vertices, dtype=np.float64) * float(scale)
+    if not np.all(np.isfinite(verts)):
+        raise InputError(path, "vertices hold NaN or infinite values")
+    extent = float(np.max(verts.max(0) - verts.min(0)))
+    if not MESH_EXTENT_M[0] <= extent <= MESH_EXTENT_M[1]:
+        raise InputError(path, f"the mesh spans {extent:g} m at scale {scale:g}; an object spans "
+                         f"{MESH_EXTENT_M[0]:g}-{MESH_EXTENT_M[1]:g} m (the scale converts its units to metres)")
     uv_v = getattr(tm.visual, "uv", None)
     material = getattr(tm.visual, "material", None)
     image = getattr(material, "image", None) if material is not None else None
