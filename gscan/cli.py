@@ -402,6 +402,8 @@ def demo(
 
 def main() -> None:
     """Console entry point: maps errors to exit codes (2 bad input, 1 internal)."""
+    if sys.stdout is None:  # started with stdout closed (`gscan ... >&-`): what it prints goes nowhere
+        sys.stdout = open(os.devnull, "w")  # noqa: SIM115 - lives as long as the process
     try:
         rc = app(standalone_mode=False)
         sys.exit(rc if isinstance(rc, int) else 0)

@@ -18,6 +18,7 @@ reads; BOP models in millimetres are detected by a diameter above 10 units and s
 """
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import time
@@ -29,7 +30,7 @@ import numpy as np
 from gscan.errors import InputError
 from gscan.estimate import Estimator
 from gscan.geometry import mean_pose
-from gscan.io import open_sequence
+from gscan.io import check_output_path, open_sequence
 from gscan.io.layouts import detect_format
 from gscan.metrics import adds as adds_err, add as add_err, ar_mspd, ar_mssd, auc, diameter, mspd, mssd
 from gscan.template import TemplateDB
@@ -119,6 +120,8 @@ def load_model_points(model_path: Path | None, estimator: Estimator) -> np.ndarr
             raise InputError(model_path, f"cannot load model ({e.__class__.__name__}: {e})") from None
         if len(pts) == 0:
             raise InputError(model_path, "model holds no vertices")
+        if not np.all(np.isfinite(pts)):
+            raise InputError(model_path, "model vertices hold NaN or infinite values")
         d = diameter(pts)
         if d > MM_DIAMETER_LIMIT:
             log.info("%s: diameter %.1f units, taken as millimetres", model_path, d)
@@ -155,6 +158,7 @@ def evaluate(template: str | Path, scenes: str | Path, output_csv: str | Path, o
         raise InputError(output_csv, "output is a folder, expected a .csv file path")
     if output_csv.exists() and not force:
         raise InputError(output_csv, "already exists; use --force to overwrite")
+    check_output_path(output_csv)
     estimator = Estimator.from_path(template)
     pts = load_model_points(None if model_path is None else Path(model_path), estimator)
     diam = diameter(pts)
@@ -194,13 +198,16 @@ def evaluate(template: str | Path, scenes: str | Path, output_csv: str | Path, o
             log.info("scene %d image %d: %s", scene_id, im_id, "found" if res.found else f"not found ({res.reason})")
     if not rows:
         raise InputError(Path(scenes), "no image to evaluate")
-    output_csv.parent.mkdir(parents=True, exist_ok=True)
     tmp = output_csv.with_name(f".{output_csv.name}.tmp-{os.getpid()}")
     try:
+        output_csv.parent.mkdir(parents=True, exist_ok=True)
         tmp.write_text("\n".join(lines) + "\n", encoding="utf-8")
         os.replace(tmp, output_csv)
+    except OSError as e:
+        raise InputError(output_csv, f"cannot write the results ({e.strerror or e})") from None
     finally:
-        tmp.unlink(missing_ok=True)
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)
     return EvalReport(output_csv, len(rows), sum(r.found for r in rows), _metrics(rows, diam, width), rows)
 
 

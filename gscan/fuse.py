@@ -12,6 +12,7 @@ axes of the object's points projected on the plane; otherwise the axes of the fi
 from __future__ import annotations
 
 import logging
+import re
 from dataclasses import dataclass
 
 import numpy as np
@@ -113,17 +114,20 @@ def fuse_tsdf(frames: list[RGBDFrame], T_world_cam: list[np.ndarray | None],
                                         attr_dtypes=(o3c.float32, o3c.float32, o3c.float32),
                                         attr_channels=((1,), (1,), (3,)), voxel_size=voxel,
                                         block_resolution=params.block_resolution, block_count=4000, device=dev)
-    for k in use:
-        f = frames[k]
-        K = o3c.Tensor(f.intrinsics.K, o3c.float64)
-        extr = o3c.Tensor(inv_T(np.asarray(T_world_cam[k], dtype=np.float64)), o3c.float64)  # T_cam_world
-        depth = o3d.t.geometry.Image(o3c.Tensor(depths[k][..., None]))
-        color = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(f.color, dtype=np.float32) / 255.0))
-        blocks = vbg.compute_unique_block_coordinates(depth, K, extr, 1.0, depth_max, params.trunc_voxels)
-        vbg.integrate(blocks, depth, color, K, extr, 1.0, depth_max, params.trunc_voxels)
     wt = min(params.weight_threshold, max(len(use) - 0.5, 0.5))  # a single frame still gives a surface
-    mesh = vbg.extract_triangle_mesh(weight_threshold=wt).to_legacy()
-    pcd = vbg.extract_point_cloud(weight_threshold=wt)
+    try:
+        for k in use:
+            f = frames[k]
+            K = o3c.Tensor(f.intrinsics.K, o3c.float64)
+            extr = o3c.Tensor(inv_T(np.asarray(T_world_cam[k], dtype=np.float64)), o3c.float64)  # T_cam_world
+            depth = o3d.t.geometry.Image(o3c.Tensor(depths[k][..., None]))
+            color = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(f.color, dtype=np.float32) / 255.0))
+            blocks = vbg.compute_unique_block_coordinates(depth, K, extr, 1.0, depth_max, params.trunc_voxels)
+            vbg.integrate(blocks, depth, color, K, extr, 1.0, depth_max, params.trunc_voxels)
+        mesh = vbg.extract_triangle_mesh(weight_threshold=wt).to_legacy()
+        pcd = vbg.extract_point_cloud(weight_threshold=wt)
+    except RuntimeError as e:  # open3d's own checks, e.g. "No block is touched in TSDF volume" (a few pixels)
+        raise ValueError(f"TSDF fusion failed: {open3d_message(e)}") from None
     V, F, C = _mesh_arrays(mesh)
     V, F, C = remove_small_components(V, F, C, params.min_component_fraction, params.keep_largest_only)
     P = pcd.point.positions.numpy().astype(np.float64) if "positions" in pcd.point else np.zeros((0, 3))
@@ -139,6 +143,14 @@ def fuse_tsdf(frames: list[RGBDFrame], T_world_cam: list[np.ndarray | None],
              len(use), voxel * 1000, trunc * 1000, len(V), len(F), len(P))
     return FusedModel(V, F, np.clip(C, 0.0, 1.0).astype(np.float32), P, np.clip(PC, 0.0, 1.0), voxel)
 
+
+
+def open3d_message(e: Exception) -> str:
+    """The sentence of an open3d error without its colour codes and C++ signature ("[Open3D Error] (void
+    ...) file.cpp:186: No block is touched ..." -> "No block is touched ...")."""
+    text = " ".join(re.sub(r"\x1b\[[0-9;]*m", "", str(e)).split())
+    m = re.search(r"\.(?:cpp|h):\d+: (.*)$", text)
+    return m.group(1) if m else text
 
 def _mesh_arrays(mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(V [V x 3] float64, F [F x 3] int32, C [V x 3] float32) of a legacy open3d TriangleMesh."""

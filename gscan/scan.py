@@ -113,63 +113,79 @@ def _register_params(cfg: ScanConfig, mode: str) -> RegisterParams:
                           max_icp_shift_m=r.max_icp_shift_m)
 
 
-def _open_output(opts: ScanOptions) -> tuple[TemplateDB, bool]:
-    """(database, resumed). A resumed database must come from the same input and configuration."""
-    meta = {"source": "scan", "input": str(opts.input_dir.resolve()), "format": opts.fmt,
+def _scan_meta(opts: ScanOptions) -> dict:
+    return {"source": "scan", "input": str(opts.input_dir.resolve()), "format": opts.fmt,
             "config": opts.config.model_dump(), "mode_option": opts.mode, "segment": opts.segment,
             "descriptor": opts.config.features.kind, "units": "m"}
-    if opts.resume and opts.output.exists():
-        db = TemplateDB.open(opts.output, require_complete=False, writable=True)
-        stored = {k: db.get_meta(k) for k in ("input", "config", "mode_option", "segment")}
-        wanted = {k: json.loads(json.dumps(meta[k])) for k in stored}
-        if stored != wanted:
-            db.close()
-            raise InputError(opts.output, "was written from another input or configuration; "
-                             "use --force to start over")
-        db.mark_partial()
-        return db, True
-    return TemplateDB.create(opts.output, force=opts.force, meta=meta), False
+
+
+def _open_resumed(opts: ScanOptions) -> TemplateDB:
+    """The interrupted scan's database; it must come from the same input and configuration."""
+    meta = _scan_meta(opts)
+    db = TemplateDB.open(opts.output, require_complete=False, writable=True)
+    stored = {k: db.get_meta(k) for k in ("input", "config", "mode_option", "segment")}
+    wanted = {k: json.loads(json.dumps(meta[k])) for k in stored}
+    if stored != wanted:
+        db.close()
+        raise InputError(opts.output, "was written from another input or configuration; use --force to start over")
+    return db
 
 
 def run_scan(opts: ScanOptions, progress: Progress | None = None) -> ScanResult:
-    """Run the whole pipeline (see the module docstring). Raises InputError for bad input."""
-    from gscan.io import open_sequence
+    """Run the whole pipeline (see the module docstring). Raises InputError for bad input.
 
-    timer = StageTimer(progress)
-    seq = open_sequence(opts.input_dir, format=opts.fmt, intrinsics=opts.intrinsics, depth_scale=opts.depth_scale)
+    The output is checked before any frame is read (so a bad output fails on one line); a new database
+    is created only once the input holds a usable frame (`--force` keeps the old file until then).
+    """
+    from gscan.io import check_output_path, open_sequence
+
+    if opts.output.is_dir():
+        raise InputError(opts.output, "output is a folder, expected a .gscan file path")
     if opts.output.exists() and not (opts.force or opts.resume):
         raise InputError(opts.output, "exists; pass --force to replace it or --resume to continue it")
-    frames: list[_Frame] = []
-    failed: list[tuple[str, InputError]] = []
-    with timer.stage("load", total=len(seq)) as advance:
-        for name in seq.names:
-            try:
-                frames.append(_Frame(seq[name]))
-            except InputError as e:
-                failed.append((name, e))
-            advance(1)
-    problems = dict(seq.problems)
-    if not frames:  # one line (the CLI contract), no per-frame warnings before it
-        first = next(iter(problems.items()), ("?", "?"))
-        raise InputError(opts.input_dir, f"no usable frame ({len(problems)} unusable); first: {first[0]}: {first[1]}")
+    check_output_path(opts.output)
+    resumed = opts.resume and opts.output.exists()
+    db = _open_resumed(opts) if resumed else None
+    timer = StageTimer(progress)
+    try:
+        seq = open_sequence(opts.input_dir, format=opts.fmt, intrinsics=opts.intrinsics,
+                            depth_scale=opts.depth_scale)
+        frames: list[_Frame] = []
+        failed: list[tuple[str, InputError]] = []
+        with timer.stage("load", total=len(seq)) as advance:
+            for name in seq.names:
+                try:
+                    frames.append(_Frame(seq[name]))
+                except InputError as e:
+                    failed.append((name, e))
+                advance(1)
+        problems = dict(seq.problems)
+        if not frames:  # one line (the CLI contract), no per-frame warnings before it
+            first = next(iter(problems.items()), ("?", "?"))
+            raise InputError(opts.input_dir, f"no usable frame ({len(problems)} unusable); first: {first[0]}: {first[1]}")
+    except BaseException:
+        if db is not None:
+            db.close()
+        raise
     for name, e in failed:
         log.warning("skipping frame %s: %s", name, e)
 
-    created = not (opts.resume and opts.output.exists())
     made = [d for d in (opts.output.parent, *opts.output.parent.parents) if not d.exists()]  # deepest first
-    db, resumed = _open_output(opts)
+    if db is None:
+        db = TemplateDB.create(opts.output, force=opts.force, meta=_scan_meta(opts))
+    else:
+        db.mark_partial()
     try:
         result = _scan_frames(frames, opts, db, resumed, timer, problems)
-    except InputError:
+    except BaseException as e:
         db.close()
-        if created:  # bad input leaves no output behind: neither the file nor folders made for it
+        # a failed scan leaves no output behind: neither the file nor folders made for it; Ctrl+C
+        # keeps the partial file for --resume (as a killed scan does)
+        if not resumed and not isinstance(e, KeyboardInterrupt):
             opts.output.unlink(missing_ok=True)
             for d in made:
                 if d.is_dir() and not any(d.iterdir()):
                     d.rmdir()
-        raise
-    except BaseException:
-        db.close()
         raise
     db.close()
     return result

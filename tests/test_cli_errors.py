@@ -649,6 +649,136 @@ def _(ctx: Ctx, work: Path) -> Run:
     return Run(_cli("template-from-mesh", bad, "-o", out / "m.gscan", "--views", "4"), ["broken.ply"], out)
 
 
+# -- values that parse but cannot be right (found by an adversarial pass over every command)
+
+
+@case("scan-intrinsics-infinite-width")
+def _(ctx: Ctx, work: Path) -> Run:
+    cap = _copy_capture(ctx, work)
+    k = work / "inf_width.json"
+    k.write_text('{"width": 1e999, "height": 240, "intrinsic_matrix": [307.5, 0, 0, 0, 307.5, 0, 159.5, 119.5, 1]}')
+    return _scan_case(work, cap, k.name, extra=("--intrinsics", str(k)))
+
+
+@case("scan-implausible-focal-length")
+def _(ctx: Ctx, work: Path) -> Run:
+    cap = _copy_capture(ctx, work)
+    (cap / "cam_K.txt").write_text("1e-300 0 159.5\n0 1e-300 119.5\n0 0 1\n")
+    return _scan_case(work, cap, "cam_K.txt", "focal")
+
+
+@case("estimate-principal-point-far-outside")
+def _(ctx: Ctx, work: Path) -> Run:
+    c, d, k = _query_files(ctx, work)
+    k.write_text("307.5 0 1e300\n0 307.5 1e300\n0 0 1\n")
+    run = _estimate(ctx, work, c, d, k)
+    run.names += [k.name, "principal point"]
+    return run
+
+
+@case("scan-depth-scale-beyond-float")
+def _(ctx: Ctx, work: Path) -> Run:
+    cap = _copy_capture(ctx, work)
+    return _scan_case(work, cap, "1e+300", extra=("--depth-scale", "1e300"))
+
+
+@case("scan-config-not-utf8")
+def _(ctx: Ctx, work: Path) -> Run:
+    cap = _copy_capture(ctx, work)
+    (work / "binary.yaml").write_bytes(b"\xff\xfe\x00match")
+    return _scan_case(work, cap, "binary.yaml", extra=("--config", str(work / "binary.yaml")))
+
+
+@case("scan-config-infinite-value")
+def _(ctx: Ctx, work: Path) -> Run:
+    cap = _copy_capture(ctx, work)
+    (work / "inf.yaml").write_text("fusion:\n  voxel: .inf\n")
+    return _scan_case(work, cap, "inf.yaml", "fusion.voxel", extra=("--config", str(work / "inf.yaml")))
+
+
+def _under_a_file(work: Path) -> tuple[Path, Path]:
+    """A file where the output's folder should be: (that file, an output path under it)."""
+    f = work / "not_a_folder"
+    f.write_text("a file\n")
+    return f, f / "deeper" / "x"
+
+
+@case("scan-output-under-a-file")
+def _(ctx: Ctx, work: Path) -> Run:
+    f, out = _under_a_file(work)
+    return Run(_cli("scan", _copy_capture(ctx, work), "-o", out.with_suffix(".gscan"), "--json"), [f.name],
+               unchanged=[f])
+
+
+@case("export-output-under-a-file")
+def _(ctx: Ctx, work: Path) -> Run:
+    f, out = _under_a_file(work)
+    return Run(_cli("export", ctx.template, "--format", "bop", "-o", out), [f.name], unchanged=[f, ctx.template])
+
+
+@case("mesh-output-under-a-file")
+def _(ctx: Ctx, work: Path) -> Run:
+    f, out = _under_a_file(work)
+    return Run(_cli("template-from-mesh", ctx.mesh, "-o", out.with_suffix(".gscan"), "--views", "4"), [f.name],
+               unchanged=[f])
+
+
+@case("scan-output-in-read-only-folder")
+def _(ctx: Ctx, work: Path) -> Run:
+    ro = work / "read_only"
+    ro.mkdir()
+    ro.chmod(0o555)
+    return Run(_cli("scan", _copy_capture(ctx, work), "-o", ro / "x.gscan", "--json"), ["read_only"], out_dir=ro,
+               unreadable=True)
+
+
+@case("export-into-the-folder-holding-the-template")
+def _(ctx: Ctx, work: Path) -> Run:
+    folder = work / "project"
+    folder.mkdir()
+    db = _template_copy(ctx, folder, "obj.gscan")
+    return Run(_cli("export", db, "--format", "bop", "-o", folder, "--force"), ["project", "obj.gscan"],
+               unchanged=[folder])
+
+
+@case("mesh-nan-vertex")
+def _(ctx: Ctx, work: Path) -> Run:
+    out = work / "out"
+    out.mkdir()
+    bad = work / "nan.obj"
+    bad.write_text("v nan 0 0\nv 0.1 0 0\nv 0 0.1 0\nf 1 2 3\n")
+    return Run(_cli("template-from-mesh", bad, "-o", out / "m.gscan", "--views", "4"), ["nan.obj"], out)
+
+
+def _store(db: Path, sql: str, a: np.ndarray) -> None:
+    import io
+
+    buf = io.BytesIO()
+    np.save(buf, a)
+    with sqlite3.connect(db) as c:
+        c.execute(sql, (buf.getvalue(),))
+    c.close()
+
+
+@case("estimate-template-nan-keypoints")
+def _(ctx: Ctx, work: Path) -> Run:
+    db = _template_copy(ctx, work, "nan_points.gscan")
+    with sqlite3.connect(db) as c:
+        n = c.execute("SELECT n FROM features LIMIT 1").fetchone()[0]
+    c.close()
+    _store(db, "UPDATE features SET points=?", np.full((n, 3), np.nan, np.float32))
+    return _template_command("estimate", db, ctx, work)
+
+
+@case("export-template-triangle-out-of-range")
+def _(ctx: Ctx, work: Path) -> Run:
+    db = _template_copy(ctx, work, "bad_triangles.gscan")
+    _store(db, "UPDATE mesh SET triangles=?", np.array([[0, 1, 10**8]], np.int64))
+    out = work / "out"
+    out.mkdir()
+    return Run(_cli("export", db, "--format", "ply", "-o", out / "m.ply"), [db.name, "triangles"], out)
+
+
 
 
 # A capture with one corrupt frame among good ones is NOT bad input: exit 0, the frame is reported.

@@ -160,3 +160,15 @@ def test_template_frame_is_equivariant(g):
     A = template_frame(P, plane, cam0)
     B = template_frame(transform_points(G, P), plane.transformed(G), G @ cam0)
     np.testing.assert_allclose(B, A @ inv_T(G), atol=1e-7)
+
+
+def test_open3d_refusal_is_a_value_error():
+    """open3d aborts a TSDF integration that touches no block (a 1-pixel frame); fuse_tsdf turns it into
+    the ValueError that scan reports as "nothing could be fused", with open3d's sentence alone."""
+    from gscan.camera import Intrinsics
+
+    f = RGBDFrame("tiny", np.zeros((1, 1, 3), np.uint8), np.full((1, 1), 0.5, np.float32),
+                  Intrinsics(615.0, 615.0, 0.0, 0.0, 1, 1))
+    with pytest.raises(ValueError, match=r"^TSDF fusion failed: No block is touched") as ei:
+        fuse_tsdf([f], [np.eye(4)])
+    assert "\x1b" not in str(ei.value) and "open3d::" not in str(ei.value)

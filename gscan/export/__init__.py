@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Callable
 
 from gscan.errors import InputError
+from gscan.io import check_output_path
 from gscan.template import TemplateDB
 
 log = logging.getLogger(__name__)
@@ -78,26 +79,31 @@ def export(db_path: str | Path, fmt: str, out: str | Path, force: bool = False) 
         raise InputError(out, f"unknown export format {fmt!r}; expected one of {', '.join(FORMATS)}")
     if _occupied(out) and not force:
         raise InputError(out, "output already exists; use --force to overwrite")
+    check_output_path(out)
     if out.resolve() == db_path.resolve():
         raise InputError(out, "output would overwrite the template database itself")
+    if out.resolve() in db_path.resolve().parents:
+        raise InputError(out, f"output folder holds the template database {db_path.name}; replacing it would delete it")
     tmp = out.parent / f".{out.name}.tmp-{os.getpid()}"
     with TemplateDB.open(db_path, require_complete=True) as db:
         # parent folders are made only once the database is known good, and removed on failure
         made = [d for d in (out.parent, *out.parent.parents) if not d.exists()]
-        out.parent.mkdir(parents=True, exist_ok=True)
-        _remove(tmp)
         try:
+            out.parent.mkdir(parents=True, exist_ok=True)
+            _remove(tmp)
             if fmt not in _FILE_FORMATS:
                 tmp.mkdir()
             n_views = _writer(fmt)(db, tmp)
-        except BaseException:
+            files = sum(len(f) for _, _, f in os.walk(tmp)) if tmp.is_dir() else 1
+            _replace(tmp, out)
+        except BaseException as e:
             _remove(tmp)
             for d in made:  # deepest first
                 if d.is_dir() and not any(d.iterdir()):
                     d.rmdir()
+            if isinstance(e, OSError):  # a folder that cannot be made or written: the output's problem
+                raise InputError(out, f"cannot write the export ({e.strerror or e})") from None
             raise
-    files = sum(len(f) for _, _, f in os.walk(tmp)) if tmp.is_dir() else 1
-    _replace(tmp, out)
     log.info("exported %s as %s to %s (%d views, %d files)", db_path, fmt, out, n_views, files)
     return ExportResult(fmt, out, n_views, files)
 
