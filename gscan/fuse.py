@@ -144,13 +144,13 @@ def fuse_tsdf(frames: list[RGBDFrame], T_world_cam: list[np.ndarray | None],
     return FusedModel(V, F, np.clip(C, 0.0, 1.0).astype(np.float32), P, np.clip(PC, 0.0, 1.0), voxel)
 
 
-
 def open3d_message(e: Exception) -> str:
     """The sentence of an open3d error without its colour codes and C++ signature ("[Open3D Error] (void
     ...) file.cpp:186: No block is touched ..." -> "No block is touched ...")."""
     text = " ".join(re.sub(r"\x1b\[[0-9;]*m", "", str(e)).split())
     m = re.search(r"\.(?:cpp|h):\d+: (.*)$", text)
     return m.group(1) if m else text
+
 
 def _mesh_arrays(mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(V [V x 3] float64, F [F x 3] int32, C [V x 3] float32) of a legacy open3d TriangleMesh."""

@@ -191,10 +191,11 @@ def open_sequence(path: str | Path, format: str = "auto", intrinsics: Intrinsics
                 if f.K is None:
                     raise ValueError("no cam_K")
                 K = np.asarray(f.K, dtype=float).reshape(3, 3)
-                frame_intr[name] = Intrinsics.from_matrix(K, w, h)
+                intr_f = Intrinsics.from_matrix(K, w, h)
                 why = implausible_intrinsics(K, w, h)
                 if why:
                     raise ValueError(why)
+                frame_intr[name] = intr_f
             except ValueError as e:
                 problems[name] = f"{f.color.name}: invalid cam_K in scene_camera.json ({e})"
                 del specs[name]

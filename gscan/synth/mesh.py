@@ -85,6 +85,7 @@ class TexturedMesh:
 
 MESH_EXTENT_M = (1e-3, 10.0)  # largest side of a mesh that can be an object to scan or grasp (m)
 
+
 def load_textured_mesh(path_obj: str | Path, scale: float = 1.0) -> TexturedMesh:
     """Load a textured mesh (OBJ + MTL + image) with trimesh; `scale` converts its units to metres.
 
