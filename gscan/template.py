@@ -36,9 +36,9 @@ import numpy as np
 
 from gscan.camera import Intrinsics
 from gscan.errors import GscanError, InputError
-from gscan.features import DESCRIPTOR_KINDS
-from gscan.template_codec import (BadBlob, check_T, decode_array, decode_image, decode_json, decode_T, encode_array,
-                                  encode_color, encode_depth, encode_mask, to_u8_colors)
+from gscan.template_codec import (BadBlob, check_colors, check_keypoints, check_mesh, check_T, decode_array,
+                                  decode_image, decode_json, decode_T, encode_array, encode_color, encode_depth,
+                                  encode_mask, to_u8_colors)
 # the records live in gscan.template_records; they are imported from here as well
 from gscan.template_records import Edge, MeshData, Template, View, ViewFeatures
 
@@ -82,11 +82,6 @@ def _decodes(method):
         except BadBlob as e:
             raise InputError(self.path, f"corrupt template database ({e})") from None
     return wrapper
-
-
-def _check_colors(colors: np.ndarray | None, n: int, what: str) -> None:
-    if colors is not None and (colors.dtype != np.uint8 or len(colors) != n):
-        raise BadBlob(f"{what} colours are {colors.dtype} x {len(colors)}, expected uint8 x {n}")
 
 
 def _apply(T: np.ndarray, pts: np.ndarray) -> np.ndarray:
@@ -417,15 +412,7 @@ class TemplateDB:
         px, pts, desc, kind, sc = rows[0]
         f = ViewFeatures(decode_array(px, (None, 2)), decode_array(pts, (None, 3)), decode_array(desc, (None, None)),
                          kind, decode_array(sc, (None,)))
-        lengths = {len(f.pixels), len(f.points_obj), len(f.descriptors)}
-        if len(lengths | ({len(f.scales)} if f.scales is not None else set())) > 1:
-            raise BadBlob(f"view {view_name!r}: keypoint arrays of different lengths")
-        if kind not in DESCRIPTOR_KINDS:
-            raise BadBlob(f"view {view_name!r}: unknown descriptor kind {kind!r}")
-        dim, dtype = DESCRIPTOR_KINDS[kind]
-        if f.descriptors.shape[1] != dim or f.descriptors.dtype != dtype:
-            raise BadBlob(f"view {view_name!r}: {kind} descriptors are {f.descriptors.dtype} x {f.descriptors.shape[1]}, "
-                          f"expected {np.dtype(dtype)} x {dim}")
+        check_keypoints(f.pixels, f.points_obj, f.descriptors, f.scales, kind, f"view {view_name!r}")
         return f
 
     # -- edges -----------------------------------------------------------------------------------
@@ -468,10 +455,7 @@ class TemplateDB:
         if not rows:
             return None
         m = MeshData(*(decode_array(b, (None, 3)) for b in rows[0]))
-        if m.triangles.dtype.kind not in "iu" or (m.triangles.size and (m.triangles.min() < 0
-                                                                       or m.triangles.max() >= len(m.vertices))):
-            raise BadBlob(f"mesh triangles index outside its {len(m.vertices)} vertices")
-        _check_colors(m.vertex_colors, len(m.vertices), "mesh")
+        check_mesh(m.vertices, m.triangles, m.vertex_colors)
         return m
 
     def set_cloud(self, points: np.ndarray, colors: np.ndarray | None = None) -> None:
@@ -490,7 +474,7 @@ class TemplateDB:
         if not rows:
             return None
         P, C = decode_array(rows[0][0], (None, 3)), decode_array(rows[0][1], (None, 3))
-        _check_colors(C, len(P), "cloud")
+        check_colors(C, len(P), "cloud")
         return P, C
 
     def add_grasp(self, name: str, T_obj_grasp: np.ndarray, replace: bool = False) -> None:

@@ -13,6 +13,7 @@ import cv2
 import numpy as np
 
 from gscan.errors import GscanError
+from gscan.features import DESCRIPTOR_KINDS
 
 
 def encode_array(a: np.ndarray | None) -> bytes | None:
@@ -116,3 +117,30 @@ def check_T(T: np.ndarray | None) -> np.ndarray | None:
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
         raise ValueError(f"transform must be a finite [4 x 4] matrix, got shape {T.shape}")
     return T
+
+
+# -- decoded records that cannot be a template's (each raises BadBlob)
+def check_keypoints(pixels: np.ndarray, points: np.ndarray, descriptors: np.ndarray, scales: np.ndarray | None,
+                    kind: str, what: str) -> None:
+    """One view's keypoint arrays: equal lengths, a known descriptor kind with its length and dtype."""
+    if len({len(pixels), len(points), len(descriptors)} | ({len(scales)} if scales is not None else set())) > 1:
+        raise BadBlob(f"{what}: keypoint arrays of different lengths")
+    if kind not in DESCRIPTOR_KINDS:
+        raise BadBlob(f"{what}: unknown descriptor kind {kind!r}")
+    dim, dtype = DESCRIPTOR_KINDS[kind]
+    if descriptors.shape[1] != dim or descriptors.dtype != dtype:
+        raise BadBlob(f"{what}: {kind} descriptors are {descriptors.dtype} x {descriptors.shape[1]}, "
+                      f"expected {np.dtype(dtype)} x {dim}")
+
+
+def check_mesh(vertices: np.ndarray, triangles: np.ndarray, colors: np.ndarray | None) -> None:
+    """Integer triangles indexing the vertices, one uint8 colour per vertex (or none)."""
+    if triangles.dtype.kind not in "iu" or (triangles.size and (triangles.min() < 0
+                                                                or triangles.max() >= len(vertices))):
+        raise BadBlob(f"mesh triangles index outside its {len(vertices)} vertices")
+    check_colors(colors, len(vertices), "mesh")
+
+
+def check_colors(colors: np.ndarray | None, n: int, what: str) -> None:
+    if colors is not None and (colors.dtype != np.uint8 or len(colors) != n):
+        raise BadBlob(f"{what} colours are {colors.dtype} x {len(colors)}, expected uint8 x {n}")
