@@ -30,7 +30,19 @@ config_app = typer.Typer(no_args_is_help=True, help="Scan configuration.")
 app.add_typer(grasp_app, name="grasp")
 app.add_typer(config_app, name="config")
 
-err = Console(stderr=True, highlight=False)
+# no markup or emoji codes: file and frame names ("[x]", ":smile:") are printed as they are; styles go
+# through `_say`
+err = Console(stderr=True, highlight=False, markup=False, emoji=False)
+
+
+def _say(*parts: str | tuple[str, str]) -> None:
+    """One line on stderr; a (text, style) part is styled, a str part printed as it is."""
+    from rich.text import Text
+
+    line = Text()
+    for p in parts:
+        line.append(*p) if isinstance(p, tuple) else line.append(p)
+    err.print(line)
 
 
 class UsageError(InputError):
@@ -117,14 +129,14 @@ def _print_scan_summary(result: Any) -> None:
     for stage, sec in result.timings_s.items():
         table.add_row(stage, f"{sec:.2f}")
     err.print(table)
-    err.print(f"[bold]{result.output}[/bold]: {result.registered}/{result.frames} frames registered "
+    _say((str(result.output), "bold"), f": {result.registered}/{result.frames} frames registered "
               f"({result.mode}), edges {result.edges_accepted} accepted / {result.edges_rejected} rejected, "
               f"mesh {result.mesh_vertices} vertices / {result.mesh_triangles} triangles, "
               f"{result.keyframes} template views")
     if result.unregistered:
-        err.print(f"[yellow]unregistered frames:[/yellow] {', '.join(result.unregistered)}")
+        _say(("unregistered frames:", "yellow"), f" {', '.join(result.unregistered)}")
     for name, reason in result.problems.items():
-        err.print(f"[yellow]skipped frame {name}:[/yellow] {reason}")
+        _say((f"skipped frame {name}:", "yellow"), f" {reason}")
 
 
 # ------------------------------------------------------------------------------------- template-from-mesh
@@ -150,7 +162,7 @@ def template_from_mesh(
     if json_out:
         _print_json(summary)
     else:
-        err.print(f"[bold]{output}[/bold]: {summary['views']} views rendered from {mesh}")
+        _say((str(output), "bold"), f": {summary['views']} views rendered from {mesh}")
 
 
 # ------------------------------------------------------------------------------------------- estimate
@@ -184,7 +196,7 @@ def estimate(
         _print_json(out)
         return
     if result.T_cam_obj is None:
-        err.print(f"[yellow]object not found[/yellow]: {result.reason}")
+        _say(("object not found", "yellow"), f": {result.reason}")
     else:
         err.print(f"found: view {result.view}, {result.n_matches} matches, score {result.score:.3f}")
         err.print("T_cam_obj =\n" + _format_matrix(out["T_cam_obj"]))
@@ -259,7 +271,7 @@ def export(
 def view(
     template: Path = typer.Argument(..., help="template database"),
     host: str = typer.Option("127.0.0.1", "--host", help="address to bind"),
-    port: int = typer.Option(8080, "--port", help="port to serve on"),
+    port: int = typer.Option(8080, "--port", min=1, max=65535, help="port to serve on"),
     color: Optional[Path] = typer.Option(None, "--color", help="show this frame with the estimated pose"),
     depth: Optional[Path] = typer.Option(None, "--depth", help="depth of --color"),
     intrinsics: Optional[Path] = typer.Option(None, "--intrinsics", help="intrinsics of --color"),
@@ -279,7 +291,7 @@ def view(
         T_cam_obj = result.T_cam_obj
         err.print(f"estimate: {'not found (' + str(result.reason) + ')' if T_cam_obj is None else 'view ' + str(result.view)}")
     run_viewer(template, host=host, port=port, scene_frame=frame, T_cam_obj=T_cam_obj,
-               on_ready=lambda url: err.print(f"viewer ready at [bold]{url}[/bold] (Ctrl+C to stop)"))
+               on_ready=lambda url: _say("viewer ready at ", (url, "bold"), " (Ctrl+C to stop)"))
 
 
 # ------------------------------------------------------------------------------------------- grasp
@@ -328,7 +340,7 @@ def eval_cmd(
     template: Path = typer.Argument(..., help="template database of the object"),
     scenes: Path = typer.Argument(..., help="BOP scene folder, or a folder of rendered scenes (capture layout)"),
     output: Path = typer.Option(..., "-o", "--output", help="BOP19 results CSV to write"),
-    obj_id: int = typer.Option(1, "--obj-id", help="object id in scene_gt.json and in the CSV"),
+    obj_id: int = typer.Option(1, "--obj-id", min=1, max=2**31 - 1, help="object id in scene_gt.json and in the CSV"),
     model: Optional[Path] = typer.Option(None, "--model", help="object model for ADD/ADD-S/MSSD/MSPD (default: template mesh)"),
     no_icp: bool = typer.Option(False, "--no-icp", help="skip the ICP refinement"),
     force: bool = typer.Option(False, "--force", help="replace an existing output"),
@@ -370,19 +382,22 @@ def config_dump() -> None:
 def demo(
     no_view: bool = typer.Option(False, "--no-view", help="do not open the viewer at the end"),
     output: Path = typer.Option(Path("demo-output"), "-o", "--output", help="folder for the demo's template"),
-    port: int = typer.Option(8080, "--port", help="viewer port"),
+    port: int = typer.Option(8080, "--port", min=1, max=65535, help="viewer port"),
 ) -> None:
     """Scan the bundled sample, estimate its held-back frames, then open the viewer."""
     from rich.table import Table
 
     from gscan.demo import SAMPLES, evaluate_sample, scan_sample
+    from gscan.io import check_output_path
     from gscan.progress import RichProgress
 
-    err.print(f"[bold]1/3 scanning[/bold] {SAMPLES / 'capture'} -> {output / 'sample.gscan'}")
+    check_output_path(output / "sample.gscan")  # before the first step is announced
+
+    _say(("1/3 scanning", "bold"), f" {SAMPLES / 'capture'} -> {output / 'sample.gscan'}")
     with RichProgress(err) as progress:
         result = scan_sample(output, progress)
     _print_scan_summary(result)
-    err.print("[bold]2/3 estimating[/bold] the held-back frames")
+    _say(("2/3 estimating", "bold"), " the held-back frames")
     table = Table(title="pose estimation on held-back frames (errors against ground truth)")
     for col in ("frame", "found", "rot err (deg)", "trans err (mm)", "ADD (mm)", "matches", "time (ms)"):
         table.add_column(col, justify="right")
@@ -391,13 +406,13 @@ def demo(
                       f"{r.add_mm:.1f}", str(r.n_matches), f"{r.total_ms:.0f}")
     err.print(table)
     if no_view:
-        err.print(f"[bold]3/3[/bold] viewer skipped; run `gscan view {result.output}`")
+        _say(("3/3", "bold"), f" viewer skipped; run `gscan view {result.output}`")
         return
     from gscan.viewer import run_viewer
 
-    err.print("[bold]3/3 viewer[/bold]")
+    _say(("3/3 viewer", "bold"))
     run_viewer(result.output, port=port,
-               on_ready=lambda url: err.print(f"viewer ready at [bold]{url}[/bold] (Ctrl+C to stop)"))
+               on_ready=lambda url: _say("viewer ready at ", (url, "bold"), " (Ctrl+C to stop)"))
 
 
 def main() -> None:

@@ -70,7 +70,7 @@ def scan_sample(output: Path, progress=None):
 
     if not (SAMPLES / "capture").is_dir():
         raise InputError(SAMPLES / "capture", "bundled sample not found (run from a source checkout)")
-    output.mkdir(parents=True, exist_ok=True)
+    # run_scan checks the output path before any work and makes the missing folders
     return run_scan(ScanOptions(input_dir=SAMPLES / "capture", output=output / "sample.gscan", force=True),
                     progress=progress)
 

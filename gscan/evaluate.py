@@ -165,9 +165,11 @@ def evaluate(template: str | Path, scenes: str | Path, output_csv: str | Path, o
     rows: list[EvalRow] = []
     lines = [CSV_HEADER]
     width = 640
+    bop_gt = False  # some scene has a scene_gt.json
     for scene_id, folder in _scene_dirs(Path(scenes)):
         seq = open_sequence(folder, format="auto", obj_id=obj_id)
         gt = seq.gt_T_cam_obj or {}
+        bop_gt |= seq.format == "bop" and seq.gt_T_cam_obj is not None
         for name in seq.names:
             try:
                 frame = seq[name]
@@ -198,6 +200,8 @@ def evaluate(template: str | Path, scenes: str | Path, output_csv: str | Path, o
             log.info("scene %d image %d: %s", scene_id, im_id, "found" if res.found else f"not found ({res.reason})")
     if not rows:
         raise InputError(Path(scenes), "no image to evaluate")
+    if bop_gt and all(np.isnan(r.add) for r in rows):  # the metrics would silently be left out
+        raise InputError(Path(scenes), f"scene_gt.json holds no pose of object {obj_id} (--obj-id)")
     tmp = output_csv.with_name(f".{output_csv.name}.tmp-{os.getpid()}")
     try:
         output_csv.parent.mkdir(parents=True, exist_ok=True)

@@ -18,6 +18,21 @@ def make_T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     return T
 
 
+RIGID_ATOL = 1e-3  # tolerance on R^T R = I: poses written with 4-5 decimals still count as rigid
+MAX_TRANSLATION_M = 1e4  # a camera or object pose 10 km away is a unit or parsing error
+
+
+def is_rigid(T: np.ndarray, atol: float = RIGID_ATOL, max_translation: float = MAX_TRANSLATION_M) -> bool:
+    """T [4 x 4] is finite, its rotation orthonormal (to `atol`) with det +1, its last row 0 0 0 1 and
+    its translation within `max_translation` (metres) on every axis."""
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        return False
+    R = T[:3, :3]
+    return bool(np.allclose(R.T @ R, np.eye(3), atol=atol) and np.linalg.det(R) > 0
+                and np.allclose(T[3], [0, 0, 0, 1], atol=1e-6) and np.abs(T[:3, 3]).max() <= max_translation)
+
+
 def inv_T(T: np.ndarray) -> np.ndarray:
     """Inverse of a rigid [4 x 4] transform."""
     R, t = T[:3, :3], T[:3, 3]

@@ -113,17 +113,33 @@ def _register_params(cfg: ScanConfig, mode: str) -> RegisterParams:
                           max_icp_shift_m=r.max_icp_shift_m)
 
 
+RESUME_KEYS = ("input", "format", "intrinsics_option", "depth_scale_option", "config", "mode_option", "segment")
+
+
 def _scan_meta(opts: ScanOptions) -> dict:
+    """The database's meta; a resumed scan must agree on every RESUME_KEYS value (what changes its result)."""
     return {"source": "scan", "input": str(opts.input_dir.resolve()), "format": opts.fmt,
-            "config": opts.config.model_dump(), "mode_option": opts.mode, "segment": opts.segment,
-            "descriptor": opts.config.features.kind, "units": "m"}
+            "intrinsics_option": None if opts.intrinsics is None else _file_identity(Path(opts.intrinsics)),
+            "depth_scale_option": opts.depth_scale, "config": opts.config.model_dump(), "mode_option": opts.mode,
+            "segment": opts.segment, "descriptor": opts.config.features.kind, "units": "m"}
+
+
+def _file_identity(path: Path) -> dict:
+    """A file's resolved path and content hash (a resume must read the same intrinsics)."""
+    import hashlib
+
+    try:
+        digest = hashlib.sha256(path.read_bytes()).hexdigest()
+    except OSError:
+        digest = None  # a missing file is reported by the sequence reader, naming it
+    return {"path": str(path.resolve()), "sha256": digest}
 
 
 def _open_resumed(opts: ScanOptions) -> TemplateDB:
     """The interrupted scan's database; it must come from the same input and configuration."""
     meta = _scan_meta(opts)
     db = TemplateDB.open(opts.output, require_complete=False, writable=True)
-    stored = {k: db.get_meta(k) for k in ("input", "config", "mode_option", "segment")}
+    stored = {k: db.get_meta(k) for k in RESUME_KEYS}
     wanted = {k: json.loads(json.dumps(meta[k])) for k in stored}
     if stored != wanted:
         db.close()
@@ -240,6 +256,9 @@ def _scan_frames(frames: list[_Frame], opts: ScanOptions, db: TemplateDB, resume
                 f.feats = feats
                 advance(1)
 
+    if not any(len(f.feats) for f in frames):  # every frame dark, textureless or without depth: nothing to scan
+        raise InputError(opts.input_dir, f"no keypoint with depth in any of the {len(frames)} frames "
+                         "(dark or textureless images, or no valid depth)")
     rparams = _register_params(cfg, mode)
     done = {(e.src, e.tgt): e for e in db.edges()} if resumed else {}
     restored: set[tuple[str, str]] = set()  # stored as pruned, accepted again until the pose graph says
@@ -313,9 +332,10 @@ def _scan_frames(frames: list[_Frame], opts: ScanOptions, db: TemplateDB, resume
         except ValueError as e:  # no registered frame has object depth within fusion.depth_max
             raise InputError(opts.input_dir, f"nothing could be fused: {e} (fusion.depth_max); "
                              "check --depth-scale") from None
+        if len(model.triangles) == 0 or len(model.vertices) < 3:
+            raise InputError(opts.input_dir, "nothing could be fused: no surface in the object depth of the "
+                             f"{len(registered)} registered frame(s)")
         obj_pts = model.points if len(model.points) >= 3 else model.vertices
-        if len(obj_pts) < 3:
-            raise InputError(opts.input_dir, "nothing could be fused: no object depth in the registered frames")
         T_obj_world = template_frame(obj_pts, plane_world, T_world_cam[registered[0]])
         advance(1)
 

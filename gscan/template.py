@@ -36,6 +36,7 @@ import numpy as np
 
 from gscan.camera import Intrinsics
 from gscan.errors import GscanError, InputError
+from gscan.geometry import is_rigid
 from gscan.template_codec import (BadBlob, check_colors, check_keypoints, check_mesh, check_T, decode_array,
                                   decode_image, decode_json, decode_T, encode_array, encode_color, encode_depth,
                                   encode_mask, to_u8_colors)
@@ -479,12 +480,14 @@ class TemplateDB:
 
     def add_grasp(self, name: str, T_obj_grasp: np.ndarray, replace: bool = False) -> None:
         T = check_T(T_obj_grasp)
+        if not is_rigid(T):
+            raise ValueError("a grasp pose must be a rigid transform within 10 km")
         try:
             name.encode("utf-8")
         except UnicodeEncodeError:
             raise InputError(self.path, f"grasp name {name!r} is not UTF-8 text") from None
-        if not name.strip():
-            raise InputError(self.path, "grasp name is empty")
+        if not name.strip() or not name.isprintable() or len(name) > 200:
+            raise InputError(self.path, f"grasp name {name[:40]!r} must be 1-200 printable characters")
         with self._tx() as c:
             if not replace and c.execute("SELECT 1 FROM grasps WHERE name=?", (name,)).fetchone():
                 raise InputError(self.path, f"grasp {name!r} already exists")

@@ -14,6 +14,7 @@ import numpy as np
 
 from gscan.errors import GscanError
 from gscan.features import DESCRIPTOR_KINDS
+from gscan.geometry import MAX_TRANSLATION_M, is_rigid
 
 
 def encode_array(a: np.ndarray | None) -> bytes | None:
@@ -104,10 +105,10 @@ def decode_T(b: bytes | None) -> np.ndarray | None:
     """A stored [4 x 4] transform (None stays None)."""
     if b is None:
         return None
-    T = decode_array(b, (4, 4))
-    if not np.issubdtype(T.dtype, np.number):
-        raise BadBlob(f"stored transform is {T.dtype}, not numbers")
-    return T.astype(np.float64)
+    T = decode_array(b, (4, 4)).astype(np.float64)
+    if not is_rigid(T):
+        raise BadBlob(f"stored transform is not a rigid pose within {MAX_TRANSLATION_M:g} m")
+    return T
 
 
 def check_T(T: np.ndarray | None) -> np.ndarray | None:

@@ -57,6 +57,8 @@ class PortInUseError(InputError):
 # ------------------------------------------------------------------------------------------ helpers
 def check_port(host: str, port: int) -> None:
     """Raise PortInUseError when `host:port` cannot be bound (viser would silently move to another port)."""
+    if not 1 <= port <= 65535:
+        raise InputError(None, f"--port must be 1-65535, not {port}")
     try:
         infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
     except socket.gaierror as e:
@@ -79,7 +81,7 @@ class ViewerApp:
 
     def __init__(self, server, data: ViewerData, host: str, port: int, options: ViewerOptions):
         self.server, self.data, self.host, self.port, self.options = server, data, host, port, options
-        self.url = f"http://{host}:{port}"
+        self.url = f"http://[{host}]:{port}" if ":" in host else f"http://{host}:{port}"  # IPv6 in brackets
         self.scene_points_obj: np.ndarray | None = None  # [N x 3] query-frame cloud drawn (template frame)
         self.frustum_scale = 0.25 * data.size  # frustum depth (m) at "Frustum size" 1
         self._lock = threading.RLock()
@@ -215,8 +217,8 @@ def serve(db_path: str | Path, host: str = "127.0.0.1", port: int = 8080, scene_
     """
     import viser
 
+    data = load_viewer_data(db_path, options)  # a bad template is named before any port is tried
     check_port(host, port)
-    data = load_viewer_data(db_path, options)
     _quiet_websockets()
     with contextlib.redirect_stdout(io.StringIO()) as banner:  # viser prints a banner; library code never prints
         server = viser.ViserServer(host=host, port=port, label=f"gscan · {Path(db_path).name}", verbose=False)
@@ -341,9 +343,10 @@ def main(argv: list[str] | None = None) -> int:
     """`python -m gscan.viewer DB [--host H] [--port P] [--color C --depth D --intrinsics K [--pose T.json]]`.
 
     --pose gives T_cam_obj of the query frame directly (the CLI `gscan view` estimates it instead).
-    Logs "viewer ready at URL" on stderr once the scene is populated. Exit 2 on bad input.
+    Logs "viewer ready at URL" on stderr once the scene is populated. Bad input or usage: one line
+    `error: ...` on stderr and exit 2, as the `gscan` CLI does.
     """
-    ap = argparse.ArgumentParser(prog="python -m gscan.viewer", description=__doc__.splitlines()[0])
+    ap = _OneLineErrors(prog="python -m gscan.viewer", description=__doc__.splitlines()[0])
     ap.add_argument("db", type=Path)
     ap.add_argument("--host", default="127.0.0.1")
     ap.add_argument("--port", type=int, default=8080)
@@ -364,13 +367,23 @@ def main(argv: list[str] | None = None) -> int:
 
             frame = load_frame(a.color, a.depth, a.intrinsics, depth_scale=a.depth_scale)
         if a.pose is not None:
+            if frame is None:
+                raise InputError(a.pose, "--pose places a query frame: it needs --color, --depth and --intrinsics")
             T = read_pose_file(a.pose)
         run_viewer(a.db, a.host, a.port, scene_frame=frame, T_cam_obj=T,
                    on_ready=lambda url: log.info("viewer ready at %s", url))
     except InputError as e:
-        log.error("%s", e)
+        sys.stderr.write(f"error: {e}\n")
         return 2
     return 0
+
+
+class _OneLineErrors(argparse.ArgumentParser):
+    """Usage errors as one line, `error: ...`, exit 2 (argparse prints the whole usage first)."""
+
+    def error(self, message: str):
+        sys.stderr.write(f"error: {self.prog}: {message} (see --help)\n")
+        sys.exit(2)
 
 
 if __name__ == "__main__":

@@ -121,6 +121,14 @@ def _query_files(ctx: Ctx, work: Path) -> tuple[Path, Path, Path]:
     return q / "rgb.png", q / "depth.png", q / "cam_K.txt"
 
 
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
 def _template_command(cmd: str, db: Path, ctx: Ctx, work: Path) -> Run:
     """`cmd` run on template `db`; commands that write get an empty out/ folder to keep empty."""
     out = work / "out"
@@ -131,7 +139,7 @@ def _template_command(cmd: str, db: Path, ctx: Ctx, work: Path) -> Run:
     if cmd == "export":
         return Run(_cli("export", db, "--format", "json", "-o", out / "x.json"), [db.name], out)
     if cmd == "view":
-        return Run(_cli("view", db, "--port", "0"), [db.name], out)
+        return Run(_cli("view", db, "--port", str(_free_port())), [db.name], out)
     if cmd in ("info", "poses"):
         return Run(_cli(cmd, db, "--json"), [db.name], out)
     raise ValueError(cmd)
@@ -625,6 +633,55 @@ def _(ctx: Ctx, work: Path) -> Run:
     return _grasp(ctx, work, json.dumps({"T": [[2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0.1], [0, 0, 0, 1]]}))
 
 
+@case("grasp-add-translation-beyond-10-km")
+def _(ctx: Ctx, work: Path) -> Run:
+    return _grasp(ctx, work, json.dumps({"T": [[1, 0, 0, 1.7e308], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}))
+
+
+@case("grasp-add-integer-beyond-float")
+def _(ctx: Ctx, work: Path) -> Run:
+    return _grasp(ctx, work, '{"T": [[' + "1" + "0" * 400 + ', 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}')
+
+
+@case("grasp-add-deeply-nested-json")
+def _(ctx: Ctx, work: Path) -> Run:
+    return _grasp(ctx, work, "[" * 100_000 + "]" * 100_000)
+
+
+@case("grasp-add-name-with-newline")
+def _(ctx: Ctx, work: Path) -> Run:
+    db = _template_copy(ctx, work)
+    pose = work / "grasp_pose.json"
+    pose.write_text(json.dumps(np.eye(4).tolist()))
+    return Run(_cli("grasp", "add", db, "--name", "top\nbottom", "--pose", pose), [db.name, "printable"],
+               unchanged=[db])
+
+
+@case("view-port-out-of-range")
+def _(ctx: Ctx, work: Path) -> Run:
+    return Run(_cli("view", ctx.template, "--port", "70000"), ["--port"])
+
+
+@case("info-file-name-with-emoji-code")
+def _(ctx: Ctx, work: Path) -> Run:
+    db = work / "bad:smile:.gscan"
+    db.write_bytes(b"garbage\n")
+    return Run(_cli("info", db), ["bad:smile:.gscan"])
+
+
+@case("demo-output-under-a-file")
+def _(ctx: Ctx, work: Path) -> Run:
+    f, out = _under_a_file(work)
+    return Run(_cli("demo", "--no-view", "-o", out), [f.name], unchanged=[f])
+
+
+@case("scan-every-frame-dark")
+def _(ctx: Ctx, work: Path) -> Run:
+    cap = _copy_capture(ctx, work, "lens_cap_on")
+    _for_each(cap / "rgb", "*.png", lambda p: cv2.imwrite(str(p), np.zeros((INTR.height, INTR.width, 3), np.uint8)))
+    return _scan_case(work, cap, "lens_cap_on", "keypoint")
+
+
 @case("grasp-add-missing-pose-file")
 def _(ctx: Ctx, work: Path) -> Run:
     run = _grasp(ctx, work, "{}")
@@ -916,3 +973,19 @@ def test_frame_without_keypoints_is_scanned(results):
     out = json.loads(proc.stdout)
     assert out["frames"] == 3 and out["registered"] >= 1
     assert "000001" in out["unregistered"]
+
+
+def test_names_are_printed_as_they_are(ctx: Ctx, tmp_path: Path):
+    """The human summary prints frame and file names verbatim: "[red]" is no markup tag (rich coloured the
+    rest of the line and dropped it; a closing tag such as "[/b]" in a path made it raise), ":smile:" no
+    emoji code."""
+    cap = _copy_capture(ctx, tmp_path, "cap :smile:")
+    for sub in ("rgb", "depth", "masks", "annotated_poses"):
+        for p in (cap / sub).glob("000005.*") if (cap / sub).is_dir() else ():
+            p.rename(p.with_name("[red]x" + p.suffix))
+    bad = cap / "rgb" / "[red]x.png"
+    bad.write_bytes(bad.read_bytes()[:300])
+    r = subprocess.run(_cli("scan", cap, "-o", tmp_path / "obj.gscan"), capture_output=True, text=True,
+                       timeout=TIMEOUT_S, cwd=ROOT, env=dict(os.environ, COLUMNS="300"))
+    assert r.returncode == 0, r.stderr
+    assert "skipped frame [red]x:" in r.stderr and "cap :smile:" in r.stderr, r.stderr

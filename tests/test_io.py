@@ -425,6 +425,16 @@ def test_frame_names_that_are_not_utf8(tmp_path: Path):
     "".join(seq.names).encode("utf-8")  # storable in the template database
 
 
+@pytest.mark.parametrize("dtype, on", [(np.uint8, 1), (np.uint8, 255), (np.uint16, 1), (np.uint16, 65535)])
+def test_masks_0_1_and_full_range(tmp_path: Path, dtype, on: int):
+    """Masks written as 0/1 (any integer type) and as 0/max both read as the object where non-zero."""
+    m = np.zeros((H, W), dtype)
+    m[5:20, 10:30] = on
+    write_img(tmp_path / "m.png", m)
+    got = read_mask(tmp_path / "m.png")
+    assert got.dtype == bool and np.array_equal(got, m > 0)
+
+
 def test_associate_greedy():
     t_rgb = np.array([0.0, 0.033, 0.066, 0.5])
     t_dep = np.array([0.001, 0.030, 0.040, 0.07])

@@ -198,3 +198,28 @@ def test_resume_refuses_another_input(capture: Path, reference, tmp_path: Path):
     line = r.stderr.strip().splitlines()[-1]
     assert line.startswith("error: ") and db.name in line, line
     assert db.read_bytes() == before
+
+
+def test_resume_refuses_other_intrinsics_or_depth_scale(capture: Path, reference, tmp_path: Path):
+    """A different --depth-scale or --intrinsics file would mix two calibrations in one template: --resume
+    refuses them (and leaves the database untouched); the same options resume."""
+    import shutil
+    import sqlite3
+
+    db = tmp_path / "partial.gscan"
+    shutil.copy(capture.parent / "reference.gscan", db)
+    with sqlite3.connect(db) as c:
+        c.execute("UPDATE meta SET value='\"partial\"' WHERE key='status'")
+    c.close()
+    k700 = tmp_path / "K700.txt"
+    k700.write_text((capture / "cam_K.txt").read_text().replace("307.5", "350.0", 1))
+    same_k = tmp_path / "same_K.txt"
+    same_k.write_bytes((capture / "cam_K.txt").read_bytes())
+    before = db.read_bytes()
+    for extra in (("--depth-scale", "0.0009"), ("--intrinsics", k700), ("--intrinsics", same_k)):
+        r = _gscan("scan", capture, "-o", db, "--resume", "--json", *extra)
+        assert r.returncode == 2, (extra, r.stderr)
+        assert "another input or configuration" in r.stderr.strip().splitlines()[-1], r.stderr
+        assert db.read_bytes() == before
+    out = _resume(capture, db)
+    assert out["registered"] == reference[0]["registered"]

@@ -257,6 +257,16 @@ def test_sigkill_mid_write_leaves_consistent_partial_db(db_path: Path) -> None:
         TemplateDB.open(db_path)
 
 
+def test_grasp_names_are_printable_text(db_path: Path) -> None:
+    TemplateDB.create(db_path).close()
+    with TemplateDB.open(db_path, require_complete=False, writable=True) as db:
+        for bad in ("", "  ", "a\nb", "\x1b[31mred", "x" * 201, "caf\udce9"):
+            with pytest.raises(InputError, match="grasp name"):
+                db.add_grasp(bad, np.eye(4))
+        db.add_grasp("top grasp (é)", np.eye(4))
+        assert list(db.grasps()) == ["top grasp (é)"]
+
+
 def test_read_pose_file(tmp_path: Path) -> None:
     from gscan.io import read_pose_file
 
@@ -363,6 +373,10 @@ _IMPOSSIBLE = {
                    "NaN"),
     "inf-pose": ("views", "T_obj_cam", lambda: np.full((4, 4), np.inf), lambda db: db.views(), "infinite"),
     "nan-grasp": ("grasps", "T_obj_grasp", lambda: np.full((4, 4), np.nan), lambda db: db.grasps(), "NaN"),
+    "grasp-1e6-m-away": ("grasps", "T_obj_grasp", lambda: np.array([[1.0, 0, 0, 1e6], [0, 1, 0, 0], [0, 0, 1, 0],
+                                                                     [0, 0, 0, 1]]), lambda db: db.grasps(), "10000 m"),
+    "zero-pose": ("views", "T_obj_cam", lambda: np.zeros((4, 4)), lambda db: db.views(), "not a rigid pose"),
+    "scaled-edge": ("edges", "T_tgt_src", lambda: 2 * np.eye(4), lambda db: db.edges(), "not a rigid pose"),
     "text-pixels": ("features", "pixels", lambda: np.full((20, 2), "x"), lambda db: db.features("a"), "not numbers"),
     "short-descriptors": ("features", "descriptors", lambda: np.zeros((20, 64), np.float32),
                           lambda db: db.features("a"), "x 64"),

@@ -10,17 +10,18 @@ from pathlib import Path
 import numpy as np
 
 from gscan.errors import InputError
+from gscan.geometry import MAX_TRANSLATION_M, is_rigid
 
-RIGID_ATOL = 1e-3  # tolerance on R^T R = I: poses written with 4-5 decimals still read
 
 
 def check_rigid(T: np.ndarray, path: Path) -> None:
-    """InputError naming `path` unless T [4 x 4] is finite, its rotation orthonormal with det +1 and its last
-    row 0 0 0 1."""
-    R = T[:3, :3]
-    if not np.all(np.isfinite(T)) or not np.allclose(R.T @ R, np.eye(3), atol=RIGID_ATOL) \
-            or np.linalg.det(R) < 0 or not np.allclose(T[3], [0, 0, 0, 1], atol=1e-6):
+    """InputError naming `path` unless T [4 x 4] is finite, its rotation orthonormal with det +1, its last
+    row 0 0 0 1 and its translation within MAX_TRANSLATION_M."""
+    if not is_rigid(T, max_translation=np.inf):
         raise InputError(path, "pose is not a rigid transform (rotation not orthonormal or last row not 0 0 0 1)")
+    if np.abs(T[:3, 3]).max() > MAX_TRANSLATION_M:
+        raise InputError(path, f"pose translation {np.abs(T[:3, 3]).max():g} m is beyond {MAX_TRANSLATION_M:g} m "
+                         "(poses are in metres)")
 
 
 def read_pose_txt(path: Path) -> np.ndarray:
@@ -45,11 +46,11 @@ def read_pose_file(path: str | Path) -> np.ndarray:
         d = json.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise InputError(path, "pose file not found") from None
-    except (OSError, UnicodeDecodeError, ValueError) as e:
+    except (OSError, UnicodeDecodeError, ValueError, RecursionError) as e:
         raise InputError(path, f"malformed pose JSON ({e.__class__.__name__})") from None
     try:
         T = np.asarray(d["T"] if isinstance(d, dict) else d, dtype=np.float64)
-    except (KeyError, TypeError, ValueError):
+    except (KeyError, TypeError, ValueError, OverflowError):
         raise InputError(path, 'expected {"T": [[4x4]]} or a bare 4x4 list') from None
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
         raise InputError(path, f"expected a finite 4x4 matrix, got shape {T.shape}")
