@@ -419,6 +419,9 @@ def main() -> None:
     """Console entry point: maps errors to exit codes (2 bad input, 1 internal)."""
     if sys.stdout is None:  # started with stdout closed (`gscan ... >&-`): what it prints goes nowhere
         sys.stdout = open(os.devnull, "w")  # noqa: SIM115 - lives as long as the process
+    # OpenCV's own log lines ("[ERROR:0@0.1] global grfmt_png.cpp ... readHeader") would precede the one
+    # error line gscan prints for an undecodable image; it is read before cv2 is first imported
+    os.environ.setdefault("OPENCV_LOG_LEVEL", "SILENT")
     try:
         rc = app(standalone_mode=False)
         sys.exit(rc if isinstance(rc, int) else 0)
