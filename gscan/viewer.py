@@ -24,7 +24,6 @@ import contextlib
 import errno
 import io
 import logging
-import os
 import socket
 import sys
 import threading
@@ -347,7 +346,9 @@ def main(argv: list[str] | None = None) -> int:
     Logs "viewer ready at URL" on stderr once the scene is populated. Bad input or usage: one line
     `error: ...` on stderr and exit 2, as the `gscan` CLI does.
     """
-    os.environ.setdefault("OPENCV_LOG_LEVEL", "SILENT")  # as the gscan CLI: no OpenCV lines before the error
+    import cv2  # already imported (viewer_draw): its log level is set directly, as the CLI's environment does
+
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
     ap = _OneLineErrors(prog="python -m gscan.viewer", description=__doc__.splitlines()[0])
     ap.add_argument("db", type=Path)
     ap.add_argument("--host", default="127.0.0.1")
