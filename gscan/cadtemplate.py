@@ -29,7 +29,7 @@ from gscan.errors import InputError
 from gscan.estimate import EstimateParams
 from gscan.features import FeatureParams, extract_features
 from gscan.geometry import look_at, transform_points
-from gscan.io import check_output_path
+from gscan.io import check_output_path, missing_folders, remove_empty_folders
 from gscan.pointcloud import voxel_mean
 from gscan.progress import NullProgress, Progress
 from gscan.synth import DEFAULT_INTRINSICS, SynthScene, TexturedMesh, load_textured_mesh, sample_bilinear
@@ -128,6 +128,7 @@ def build_template_from_mesh(mesh_path: str | Path, output: str | Path, n_views:
     if output.exists() and not force:
         raise InputError(output, "already exists; use --force to overwrite")
     check_output_path(output)
+    made = missing_folders(output)
     db = TemplateDB.create(output, force=force, meta={
         "source": "mesh", "descriptor": {"kind": feature_params.kind, "max_keypoints": feature_params.max_keypoints,
                                          "sift_contrast_threshold": feature_params.sift_contrast_threshold},
@@ -168,6 +169,7 @@ def build_template_from_mesh(mesh_path: str | Path, output: str | Path, n_views:
         db.close()
         for p in (output, Path(f"{output}-journal")):
             p.unlink(missing_ok=True)
+        remove_empty_folders(made)
         raise
     db.close()
     return summary

@@ -101,8 +101,8 @@ def load_intrinsics(path: str | Path, width: int | None = None, height: int | No
                 w, h = int(d.get("width", width or 0)), int(d.get("height", height or 0))
             else:
                 raise ValueError("no intrinsic_matrix, cam_K or fx/fy/cx/cy key")
-        except (ValueError, TypeError, KeyError, OverflowError) as e:
-            raise _bad(path, f"malformed intrinsics JSON: {e}") from None
+        except (ValueError, TypeError, KeyError, OverflowError, RecursionError) as e:
+            raise _bad(path, f"malformed intrinsics JSON: {e.__class__.__name__}: {e}"[:300]) from None
     else:
         try:
             K = np.array([[float(x) for x in line.replace(",", " ").split()] for line in text.splitlines() if line.strip()])

@@ -88,6 +88,8 @@ def load_config(path: str | Path | None) -> ScanConfig:
         raise InputError(path, f"cannot read config ({e.strerror or e})") from None
     except UnicodeDecodeError:
         raise InputError(path, "cannot read config (not UTF-8 text)") from None
+    except RecursionError:
+        raise InputError(path, "malformed YAML: nested too deeply") from None
     except yaml.YAMLError as e:
         raise InputError(path, f"malformed YAML: {str(e).splitlines()[0]}") from None
     if not isinstance(data, dict):

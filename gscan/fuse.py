@@ -126,7 +126,9 @@ def fuse_tsdf(frames: list[RGBDFrame], T_world_cam: list[np.ndarray | None],
             vbg.integrate(blocks, depth, color, K, extr, 1.0, depth_max, params.trunc_voxels)
         mesh = vbg.extract_triangle_mesh(weight_threshold=wt).to_legacy()
         pcd = vbg.extract_point_cloud(weight_threshold=wt)
-    except RuntimeError as e:  # open3d's own checks, e.g. "No block is touched in TSDF volume" (a few pixels)
+    except RuntimeError as e:  # open3d's check that the depth touched the volume (a few pixels, far depth)
+        if "No block is touched" not in str(e):
+            raise  # memory, capacity: internal, not the input's fault
         raise ValueError(f"TSDF fusion failed: {open3d_message(e)}") from None
     V, F, C = _mesh_arrays(mesh)
     V, F, C = remove_small_components(V, F, C, params.min_component_fraction, params.keep_largest_only)

@@ -113,37 +113,43 @@ def _register_params(cfg: ScanConfig, mode: str) -> RegisterParams:
                           max_icp_shift_m=r.max_icp_shift_m)
 
 
-RESUME_KEYS = ("input", "format", "intrinsics_option", "depth_scale_option", "config", "mode_option", "segment")
+RESUME_KEYS = ("input", "format", "intrinsics_sha256", "depth_scale_option", "config", "mode_option", "segment")
 
 
 def _scan_meta(opts: ScanOptions) -> dict:
-    """The database's meta; a resumed scan must agree on every RESUME_KEYS value (what changes its result)."""
-    return {"source": "scan", "input": str(opts.input_dir.resolve()), "format": opts.fmt,
-            "intrinsics_option": None if opts.intrinsics is None else _file_identity(Path(opts.intrinsics)),
+    """The database's meta; a resumed scan must agree on every RESUME_KEYS value (what changes its result):
+    the layout as detected (`--format auto` and the named layout agree), the --intrinsics file's content."""
+    from gscan.io import detect_format
+
+    return {"source": "scan", "input": str(opts.input_dir.resolve()),
+            "format": detect_format(opts.input_dir) if opts.fmt == "auto" else opts.fmt,
+            "intrinsics_sha256": None if opts.intrinsics is None else _sha256(Path(opts.intrinsics)),
             "depth_scale_option": opts.depth_scale, "config": opts.config.model_dump(), "mode_option": opts.mode,
             "segment": opts.segment, "descriptor": opts.config.features.kind, "units": "m"}
 
 
-def _file_identity(path: Path) -> dict:
-    """A file's resolved path and content hash (a resume must read the same intrinsics)."""
+def _sha256(path: Path) -> str:
     import hashlib
 
     try:
-        digest = hashlib.sha256(path.read_bytes()).hexdigest()
-    except OSError:
-        digest = None  # a missing file is reported by the sequence reader, naming it
-    return {"path": str(path.resolve()), "sha256": digest}
+        return hashlib.sha256(path.read_bytes()).hexdigest()
+    except OSError as e:
+        raise InputError(path, f"cannot read the intrinsics file ({e.strerror or e})") from None
 
 
 def _open_resumed(opts: ScanOptions) -> TemplateDB:
-    """The interrupted scan's database; it must come from the same input and configuration."""
+    """The interrupted scan's database, marked partial again; it must come from the same input and
+    configuration."""
     meta = _scan_meta(opts)
     db = TemplateDB.open(opts.output, require_complete=False, writable=True)
-    stored = {k: db.get_meta(k) for k in RESUME_KEYS}
-    wanted = {k: json.loads(json.dumps(meta[k])) for k in stored}
-    if stored != wanted:
+    try:
+        stored = {k: db.get_meta(k) for k in RESUME_KEYS}
+        if stored != {k: json.loads(json.dumps(meta[k])) for k in stored}:
+            raise InputError(opts.output, "was written from another input or configuration; use --force to start over")
+        db.mark_partial()
+    except BaseException:
         db.close()
-        raise InputError(opts.output, "was written from another input or configuration; use --force to start over")
+        raise
     return db
 
 
@@ -153,7 +159,7 @@ def run_scan(opts: ScanOptions, progress: Progress | None = None) -> ScanResult:
     The output is checked before any frame is read (so a bad output fails on one line); a new database
     is created only once the input holds a usable frame (`--force` keeps the old file until then).
     """
-    from gscan.io import check_output_path, open_sequence
+    from gscan.io import check_output_path, missing_folders, open_sequence, remove_empty_folders
 
     if opts.output.is_dir():
         raise InputError(opts.output, "output is a folder, expected a .gscan file path")
@@ -186,11 +192,9 @@ def run_scan(opts: ScanOptions, progress: Progress | None = None) -> ScanResult:
     for name, e in failed:
         log.warning("skipping frame %s: %s", name, e)
 
-    made = [d for d in (opts.output.parent, *opts.output.parent.parents) if not d.exists()]  # deepest first
+    made = missing_folders(opts.output)
     if db is None:
         db = TemplateDB.create(opts.output, force=opts.force, meta=_scan_meta(opts))
-    else:
-        db.mark_partial()
     try:
         result = _scan_frames(frames, opts, db, resumed, timer, problems)
     except BaseException as e:
@@ -199,9 +203,7 @@ def run_scan(opts: ScanOptions, progress: Progress | None = None) -> ScanResult:
         # keeps the partial file for --resume (as a killed scan does)
         if not resumed and not isinstance(e, KeyboardInterrupt):
             opts.output.unlink(missing_ok=True)
-            for d in made:
-                if d.is_dir() and not any(d.iterdir()):
-                    d.rmdir()
+            remove_empty_folders(made)
         raise
     db.close()
     return result

@@ -114,7 +114,7 @@ def ransac_plane(S: np.ndarray, iterations: int, rng: np.random.Generator, dist:
     towards `viewpoint` [3]. With `max_behind`, a plane with more than that fraction of S farther than
     dist behind it scores 0: a support plane has (almost) nothing behind it, a large object face seen
     head-on does. Triplets are drawn from `rng` in batches of 100; the first best plane wins. Returns
-    (plane, inlier mask [N] bool), or None when every triplet is degenerate.
+    (plane, inlier mask [N] bool), or None when every triplet is degenerate or disqualified.
     """
     vp = np.asarray(viewpoint, dtype=np.float64)
     d = np.asarray(dist, dtype=np.float64).reshape(-1, 1) if np.ndim(dist) else float(dist)
@@ -134,7 +134,7 @@ def ransac_plane(S: np.ndarray, iterations: int, rng: np.random.Generator, dist:
         counts = inl.sum(0)
         if max_behind is not None:
             counts[(h < -d).sum(0) > max_behind * len(S)] = 0
-        if len(counts) and counts.max() > best_count:
+        if len(counts) and counts.max() > max(best_count, 0):  # a score of 0 (disqualified) never wins
             k = int(np.argmax(counts))
             best_count, best, best_inl = int(counts[k]), Plane(nrm[k], float(off[k])), inl[:, k]
     return None if best is None else (best, best_inl)

@@ -37,6 +37,7 @@ import numpy as np
 from gscan.camera import Intrinsics
 from gscan.errors import GscanError, InputError
 from gscan.geometry import is_rigid
+from gscan.io.output import missing_folders, remove_empty_folders
 from gscan.template_codec import (BadBlob, check_colors, check_keypoints, check_mesh, check_T, decode_array,
                                   decode_image, decode_json, decode_T, encode_array, encode_color, encode_depth,
                                   encode_mask, to_u8_colors)
@@ -122,7 +123,7 @@ class TemplateDB:
             raise InputError(path, "output is a folder, expected a .gscan file path")
         if path.exists() and not force:
             raise InputError(path, "already exists; use --force to overwrite (or scan --resume to continue)")
-        made = [d for d in (path.parent, *path.parent.parents) if not d.exists()]  # deepest first
+        made = missing_folders(path)
         # the schema is written to a temporary sibling and renamed into place, so a crash never
         # leaves an empty or schema-less file at `path` (an existing one is replaced atomically)
         tmp = path.with_name(f".{path.name}.creating")
@@ -150,9 +151,7 @@ class TemplateDB:
             for p in (tmp, Path(f"{tmp}-journal")):
                 with suppress(OSError):
                     p.unlink(missing_ok=True)
-            for d in made:
-                with suppress(OSError):
-                    d.rmdir()
+            remove_empty_folders(made)
             if isinstance(e, (OSError, sqlite3.Error)):  # a folder that cannot be made or written
                 raise InputError(path, f"cannot create the database ({getattr(e, 'strerror', None) or e})") from None
             raise
@@ -185,10 +184,10 @@ class TemplateDB:
             schema = json.loads(row[0]) if row else None
             row = conn.execute("SELECT value FROM meta WHERE key='status'").fetchone()
             status = json.loads(row[0]) if row else None
-        except (sqlite3.DatabaseError, ValueError) as e:
+        except (sqlite3.DatabaseError, ValueError, RecursionError) as e:
             if conn is not None:
                 conn.close()
-            raise InputError(path, f"corrupt or unreadable template database ({e.__class__.__name__}: {e})") from None
+            raise InputError(path, f"corrupt or unreadable template database ({e.__class__.__name__}: {e})"[:300]) from None
         except InputError:
             conn.close()
             raise
@@ -247,6 +246,8 @@ class TemplateDB:
     def _corrupt(self, e: sqlite3.DatabaseError) -> InputError:
         """Corruption SQLite detects only while reading or writing pages (past open()'s checks) is bad
         input naming the database, not an internal error."""
+        if "readonly" in str(e):
+            return InputError(self.path, "cannot write the template database (a read-only file or folder)")
         return InputError(self.path, f"corrupt template database ({e.__class__.__name__}: {e})")
 
     # -- meta ------------------------------------------------------------------------------------

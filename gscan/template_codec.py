@@ -50,8 +50,8 @@ def decode_array(b: bytes | None, shape: tuple[int | None, ...] | None = None) -
 def decode_json(text: str) -> Any:
     try:
         return json.loads(text)
-    except (ValueError, TypeError) as e:
-        raise BadBlob(f"undecodable JSON value: {e}") from None
+    except (ValueError, TypeError, RecursionError) as e:
+        raise BadBlob(f"undecodable JSON value: {e.__class__.__name__}") from None
 
 
 def encode_color(rgb: np.ndarray, codec: str) -> bytes:

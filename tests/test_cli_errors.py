@@ -747,6 +747,23 @@ def _(ctx: Ctx, work: Path) -> Run:
     return _scan_case(work, cap, "binary.yaml", extra=("--config", str(work / "binary.yaml")))
 
 
+@case("scan-config-nested-too-deeply")
+def _(ctx: Ctx, work: Path) -> Run:
+    cap = _copy_capture(ctx, work)
+    (work / "deep.yaml").write_text("[" * 5000 + "]" * 5000 + "\n")
+    return _scan_case(work, cap, "deep.yaml", extra=("--config", str(work / "deep.yaml")))
+
+
+@case("estimate-intrinsics-nested-too-deeply")
+def _(ctx: Ctx, work: Path) -> Run:
+    c, d, k = _query_files(ctx, work)
+    deep = k.with_name("deep.json")
+    deep.write_text("[" * 100_000 + "]" * 100_000)
+    run = _estimate(ctx, work, c, d, deep)
+    run.names.append(deep.name)
+    return run
+
+
 @case("scan-config-infinite-value")
 def _(ctx: Ctx, work: Path) -> Run:
     cap = _copy_capture(ctx, work)

@@ -425,9 +425,11 @@ def test_frame_names_that_are_not_utf8(tmp_path: Path):
     "".join(seq.names).encode("utf-8")  # storable in the template database
 
 
-@pytest.mark.parametrize("dtype, on", [(np.uint8, 1), (np.uint8, 255), (np.uint16, 1), (np.uint16, 65535)])
+@pytest.mark.parametrize("dtype, on", [(np.uint8, 1), (np.uint8, 2), (np.uint8, 255), (np.uint16, 1), (np.uint16, 255),
+                                       (np.uint16, 65535)])
 def test_masks_0_1_and_full_range(tmp_path: Path, dtype, on: int):
-    """Masks written as 0/1 (any integer type) and as 0/max both read as the object where non-zero."""
+    """Two-valued masks read as the object where non-zero, whatever the value and type (0/1, 0/2 labels,
+    0/255 in 8 or 16 bits, 0/65535)."""
     m = np.zeros((H, W), dtype)
     m[5:20, 10:30] = on
     write_img(tmp_path / "m.png", m)

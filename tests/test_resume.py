@@ -202,7 +202,8 @@ def test_resume_refuses_another_input(capture: Path, reference, tmp_path: Path):
 
 def test_resume_refuses_other_intrinsics_or_depth_scale(capture: Path, reference, tmp_path: Path):
     """A different --depth-scale or --intrinsics file would mix two calibrations in one template: --resume
-    refuses them (and leaves the database untouched); the same options resume."""
+    refuses them (and leaves the database untouched); the same options resume, naming the layout that
+    `--format auto` detected included."""
     import shutil
     import sqlite3
 
@@ -221,5 +222,6 @@ def test_resume_refuses_other_intrinsics_or_depth_scale(capture: Path, reference
         assert r.returncode == 2, (extra, r.stderr)
         assert "another input or configuration" in r.stderr.strip().splitlines()[-1], r.stderr
         assert db.read_bytes() == before
-    out = _resume(capture, db)
-    assert out["registered"] == reference[0]["registered"]
+    r = _gscan("scan", capture, "-o", db, "--resume", "--json", "--format", "capture")  # what auto detected
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["registered"] == reference[0]["registered"]

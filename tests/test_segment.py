@@ -144,6 +144,13 @@ def test_ransac_plane_skips_a_face_with_points_behind_it():
     assert plane.offset == pytest.approx(1.0) and np.array_equal(inl, np.arange(1000) >= 600)
     line = np.c_[np.linspace(0, 1, 50), np.zeros(50), np.ones(50)]  # every triplet degenerate
     assert ransac_plane(line, 100, np.random.default_rng(0), 0.004, np.zeros(3)) is None
+    # a convex ridge pointing at the camera: each face has more than 5 % of the points (the other face)
+    # behind its plane, so no hypothesis qualifies and there is no plane (not the first one drawn)
+    r = np.random.default_rng(0)
+    x = np.r_[r.uniform(-0.3, 0.0, 700), r.uniform(0.0, 0.1, 300)]
+    ridge = np.c_[x, r.uniform(-0.2, 0.2, 1000), 0.8 + 0.5 * np.abs(x)]
+    assert ransac_plane(ridge, 64, np.random.default_rng(0), 0.006, np.zeros(3), max_behind=0.05) is None
+    assert ransac_plane(ridge, 64, np.random.default_rng(0), 0.006, np.zeros(3)) is not None
 
 
 @settings(deadline=None, max_examples=30)

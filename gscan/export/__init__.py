@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Callable
 
 from gscan.errors import InputError
-from gscan.io import check_output_path
+from gscan.io import check_output_path, missing_folders, remove_empty_folders
 from gscan.template import TemplateDB
 
 log = logging.getLogger(__name__)
@@ -87,7 +87,7 @@ def export(db_path: str | Path, fmt: str, out: str | Path, force: bool = False) 
     tmp = out.parent / f".{out.name}.tmp-{os.getpid()}"
     with TemplateDB.open(db_path, require_complete=True) as db:
         # parent folders are made only once the database is known good, and removed on failure
-        made = [d for d in (out.parent, *out.parent.parents) if not d.exists()]
+        made = missing_folders(out)
         try:
             out.parent.mkdir(parents=True, exist_ok=True)
             _remove(tmp)
@@ -98,9 +98,7 @@ def export(db_path: str | Path, fmt: str, out: str | Path, force: bool = False) 
             _replace(tmp, out)
         except BaseException as e:
             _remove(tmp)
-            for d in made:  # deepest first
-                if d.is_dir() and not any(d.iterdir()):
-                    d.rmdir()
+            remove_empty_folders(made)
             if isinstance(e, OSError):  # a folder that cannot be made or written: the output's problem
                 raise InputError(out, f"cannot write the export ({e.strerror or e})") from None
             raise

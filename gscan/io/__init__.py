@@ -22,13 +22,13 @@ from gscan.io.images import (
     read_ycbv_meta,
 )
 from gscan.io.layouts import FORMATS, FrameSpec, associate, detect_format, natural_key
-from gscan.io.output import check_output_path
+from gscan.io.output import check_output_path, missing_folders, remove_empty_folders
 from gscan.io.poses import check_rigid, read_open3d_log, read_pose_file, read_pose_txt
 from gscan.io.sequence import Sequence, open_sequence
 
 __all__ = [
     "DEPTH_RANGE_M", "FORMATS", "FrameSpec", "Sequence", "YcbvMeta", "associate", "check_depth_range", "check_depth_scale",
-    "check_output_path", "check_rigid", "read_pose_file", "read_pose_txt",
+    "check_output_path", "check_rigid", "missing_folders", "remove_empty_folders", "read_pose_file", "read_pose_txt",
     "detect_format", "load_frame", "natural_key", "open_sequence", "read_depth", "read_depth_raw",
     "read_image_rgb", "read_mask", "read_nyu_depth", "read_open3d_log", "read_sun_depth", "read_ycbv_meta",
 ]

@@ -108,17 +108,14 @@ def read_depth(path: str | Path, depth_scale: float = 0.001) -> np.ndarray:
 
 
 def read_mask(path: str | Path) -> np.ndarray:
-    """Mask image -> [H x W] bool: above half the type's range (127 for 8-bit), or above 0 for a 0/1 mask of
-    any type. Colour masks are converted to grey first."""
+    """Mask image -> [H x W] bool: above half the mask's own maximum (so 0/255, 0/1 and 0/65535 masks of any
+    type all read; a mask of zeros is empty). Colour masks are converted to grey first."""
     img = decode_image(path, cv2.IMREAD_UNCHANGED)
     if img.ndim == 3 and img.shape[2] in (3, 4):
         img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
     if img.ndim != 2:
         raise InputError(path, f"unexpected mask layout {img.shape}")
-    if img.max() <= 1:
-        return img > 0
-    half = np.iinfo(img.dtype).max // 2 if np.issubdtype(img.dtype, np.integer) else 0.5
-    return img > half
+    return img > img.max() / 2
 
 
 def read_sun_depth(path: str | Path, max_depth: float = 7.0) -> np.ndarray:

@@ -240,8 +240,8 @@ def discover_tum(root: Path) -> Layout:
 def _read_json(path: Path) -> dict:
     try:
         d = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, ValueError) as e:
-        raise InputError(path, f"malformed JSON ({e.__class__.__name__}: {e})") from None
+    except (OSError, UnicodeDecodeError, ValueError, RecursionError) as e:
+        raise InputError(path, f"malformed JSON ({e.__class__.__name__}: {e})"[:300]) from None
     if not isinstance(d, dict):
         raise InputError(path, "malformed JSON: expected an object keyed by image id")
     return d

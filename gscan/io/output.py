@@ -25,3 +25,19 @@ def check_output_path(path: str | Path) -> None:
             except OSError as e:
                 raise InputError(path, f"cannot be created: folder {d} takes no new file ({e.strerror or e})") from None
             return
+
+
+def missing_folders(path: str | Path) -> list[Path]:
+    """The folders on `path`'s way that do not exist yet, deepest first: what a failed writer removes."""
+    p = Path(path)
+    return [d for d in (p.parent, *p.parent.parents) if not d.exists()]
+
+
+def remove_empty_folders(folders: list[Path]) -> None:
+    """Remove those of `folders` (deepest first) that exist and are empty; never raises."""
+    for d in folders:
+        try:
+            if d.is_dir() and not any(d.iterdir()):
+                d.rmdir()
+        except OSError:
+            pass
