@@ -138,15 +138,13 @@ def _sha256(path: Path) -> str:
 
 
 def _open_resumed(opts: ScanOptions) -> TemplateDB:
-    """The interrupted scan's database, marked partial again; it must come from the same input and
-    configuration."""
+    """The interrupted scan's database; it must come from the same input and configuration."""
     meta = _scan_meta(opts)
     db = TemplateDB.open(opts.output, require_complete=False, writable=True)
     try:
         stored = {k: db.get_meta(k) for k in RESUME_KEYS}
         if stored != {k: json.loads(json.dumps(meta[k])) for k in stored}:
             raise InputError(opts.output, "was written from another input or configuration; use --force to start over")
-        db.mark_partial()
     except BaseException:
         db.close()
         raise
@@ -196,6 +194,8 @@ def run_scan(opts: ScanOptions, progress: Progress | None = None) -> ScanResult:
     if db is None:
         db = TemplateDB.create(opts.output, force=opts.force, meta=_scan_meta(opts))
     try:
+        if resumed:  # only once the input is known to hold frames: a complete database stays complete
+            db.mark_partial()
         result = _scan_frames(frames, opts, db, resumed, timer, problems)
     except BaseException as e:
         db.close()
