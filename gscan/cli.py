@@ -41,7 +41,8 @@ def _say(*parts: str | tuple[str, str]) -> None:
 
     line = Text()
     for p in parts:
-        line.append(*p) if isinstance(p, tuple) else line.append(p)
+        text, style = p if isinstance(p, tuple) else (p, None)
+        line.append(text, style)
     err.print(line)
 
 
