@@ -13,7 +13,6 @@ from gscan.errors import InputError
 from gscan.geometry import MAX_TRANSLATION_M, is_rigid
 
 
-
 def check_rigid(T: np.ndarray, path: Path) -> None:
     """InputError naming `path` unless T [4 x 4] is finite, its rotation orthonormal with det +1, its last
     row 0 0 0 1 and its translation within MAX_TRANSLATION_M."""
