@@ -15,11 +15,15 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 
 from gscan.camera import RGBDFrame
+
+if TYPE_CHECKING:
+    from gscan.segment import Plane
 
 log = logging.getLogger(__name__)
 
@@ -67,8 +71,10 @@ def detect_mode(frames: list[RGBDFrame], static_fraction: float = 0.65) -> ModeD
     return ModeDecision(mode, med, len(fracs))
 
 
-def moving_object_masks(frames: list[RGBDFrame], min_offset: float = 0.01, min_area: int = 400) -> list[np.ndarray]:
-    """Object masks for a static camera without given masks. Returns [H x W] bool per frame.
+def moving_object_masks(frames: list[RGBDFrame], min_offset: float = 0.01,
+                        min_area: int = 400) -> tuple[list[np.ndarray], list[Plane | None]]:
+    """Object masks for a static camera without given masks. Returns ([H x W] bool per frame, the
+    support plane found in each frame, camera frame, or None).
 
     Each frame is segmented on its own by the support plane and the component above it
     (`gscan.segment.segment_frame`). A frame without a support plane (object in hand) falls back
@@ -80,8 +86,9 @@ def moving_object_masks(frames: list[RGBDFrame], min_offset: float = 0.01, min_a
     from gscan.segment import segment_frame
 
     segs = [segment_frame(RGBDFrame(f.name, f.color, f.depth, f.intrinsics)) for f in frames]
-    if all(s.plane_cam is not None for s in segs):
-        return [s.mask for s in segs]
+    planes = [s.plane_cam for s in segs]
+    if all(p is not None for p in planes):
+        return [s.mask for s in segs], planes
     stack = np.stack([f.depth for f in frames]).astype(np.float32)
     stack[stack <= 0] = np.nan
     import warnings
@@ -105,7 +112,7 @@ def moving_object_masks(frames: list[RGBDFrame], min_offset: float = 0.01, min_a
             keep[1:] = areas >= min_area
             keep[1 + int(np.argmax(areas))] = True
         out.append(keep[lab])
-    return out
+    return out, planes
 
 
 def select_keyframes(view_dirs: dict[int, np.ndarray], min_angle_deg: float, max_views: int) -> list[int]:

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import json
 import logging
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -37,6 +38,7 @@ from gscan.features import OBJECT_FEATURES, FeatureParams, Features, extract_fea
 from gscan.geometry import transform_points
 from gscan.progress import Progress, StageTimer
 from gscan.register import RegisterParams, register_features
+from gscan.segment import Plane
 from gscan.template import Edge, TemplateDB, View, ViewFeatures
 
 log = logging.getLogger(__name__)
@@ -97,6 +99,7 @@ class _Frame:
     feats: Features | None = None  # camera frame
     cloud: np.ndarray | None = None  # [P x 3] camera-frame points for ICP
     mask: np.ndarray | None = None  # [H x W] bool object mask (given or computed)
+    plane_cam: Plane | None = None  # support plane found while computing a moving object's mask
 
 
 def _register_params(cfg: ScanConfig, mode: str) -> RegisterParams:
@@ -212,110 +215,23 @@ def run_scan(opts: ScanOptions, progress: Progress | None = None) -> ScanResult:
 def _scan_frames(frames: list[_Frame], opts: ScanOptions, db: TemplateDB, resumed: bool, timer: StageTimer,
                  problems: dict[str, str]) -> ScanResult:
     cfg = opts.config
-    names = [f.frame.name for f in frames]
     with timer.stage("mode", total=1) as advance:
-        if opts.mode == "auto":
-            mode = detect_mode([f.frame for f in frames]).mode
-        else:
-            mode = opts.mode
-        given_masks = all(f.frame.mask is not None for f in frames)
-        if given_masks:
-            for f in frames:
-                f.mask = f.frame.mask
-        elif mode == MOVING_OBJECT:
-            for f, m in zip(frames, moving_object_masks([f.frame for f in frames])):
-                f.mask = m
+        mode, given_masks = _mode_and_masks(frames, opts.mode)
         advance(1)
     db.set_meta("mode", mode)
     log.info("%s capture, %d frames%s", mode, len(frames), ", masks given" if given_masks else "")
 
-    fparams = FeatureParams(kind=cfg.features.kind, max_keypoints=cfg.features.max_keypoints)
-    stored = set(db.view_names()) if resumed else set()
     with timer.stage("features", total=len(frames)) as advance:
-        def frame_work(k: int) -> tuple[Features | None, np.ndarray]:
-            f = frames[k]
-            reg_mask = f.mask if mode == MOVING_OBJECT else None
-            reuse = f.frame.name in stored and db_poses.get(f.frame.name, 1) is None
-            feats = None if reuse else extract_features(f.frame, fparams, mask=reg_mask)
-            return feats, _icp_cloud(f.frame, reg_mask, cfg.registration.icp_voxel) if cfg.registration.icp else None
-
-        db_poses = {v.name: v.T_obj_cam for v in db.views()} if stored else {}
-        # OpenCV and open3d release the GIL: two threads use both cores; results are per frame
-        # and written in input order, so the output does not depend on the scheduling
-        with ThreadPoolExecutor(max_workers=WORKERS) as pool:
-            for k, (feats, cloud) in enumerate(pool.map(frame_work, range(len(frames)))):
-                f = frames[k]
-                f.cloud = cloud
-                if feats is None:  # stored by the interrupted run, still in the camera frame
-                    vf = db.features(f.frame.name)
-                    feats = Features(vf.pixels, vf.points_obj, vf.descriptors, vf.kind,
-                                     vf.scales if vf.scales is not None else np.ones(len(vf.pixels), np.float32))
-                else:
-                    view = View(f.frame.name, f.frame.intrinsics, None, f.frame.color, f.frame.depth, f.frame.mask,
-                                keyframe=False, input_index=k)
-                    db.add_view(view, ViewFeatures(feats.pixels, feats.points, feats.descriptors, feats.kind,
-                                                   feats.scales), replace=f.frame.name in stored)
-                f.feats = feats
-                advance(1)
-
+        _extract(frames, mode, cfg, db, resumed, advance)
     if not any(len(f.feats) for f in frames):  # every frame dark, textureless or without depth: nothing to scan
         raise InputError(opts.input_dir, f"no keypoint with depth in any of the {len(frames)} frames "
                          "(dark or textureless images, or no valid depth)")
-    rparams = _register_params(cfg, mode)
-    done = {(e.src, e.tgt): e for e in db.edges()} if resumed else {}
-    restored: set[tuple[str, str]] = set()  # stored as pruned, accepted again until the pose graph says
-    edges: list[Edge] = []
-
-    def pair_work(pair: tuple[int, int]):
-        i, j = pair
-        if (names[i], names[j]) in done:
-            return None
-        return register_features(frames[i].feats, frames[j].feats, rparams, clouds=(frames[i].cloud, frames[j].cloud))
-
-    def register_all(pairs: list[tuple[int, int]], kind: str, pool: ThreadPoolExecutor) -> list[Edge]:
-        """Edges of `pairs`, computed on the pool (numba and OpenCV release the GIL), stored in order."""
-        out = []
-        for (i, j), r in zip(pairs, pool.map(pair_work, pairs)):
-            if r is None:  # stored by the interrupted run
-                e = done[(names[i], names[j])]
-                if e.reason and e.reason.startswith(PRUNED):  # restore the registration verdict
-                    e.accepted, e.reason = True, None
-                    restored.add((e.src, e.tgt))
-            else:
-                # the edge keeps the correspondences its pose was solved from (GMatch's list grown by
-                # the guided refinement of gscan.register), which also weigh it in the pose graph
-                used = r.inliers if r.inliers is not None and len(r.inliers) else r.matches
-                e = Edge(names[i], names[j], r.T_tgt_src, used, r.cost, r.rmse, r.fitness, kind, r.accepted, r.reason)
-                db.add_edge(e)
-            out.append(e)
-        return out
 
     n = len(frames)
-    index = {nm: k for k, nm in enumerate(names)}
-    with timer.stage("register", total=max(1, n - 1)) as advance, ThreadPoolExecutor(max_workers=WORKERS) as pool:
-        # each frame against its predecessor; a frame that fails is tried against earlier ones
-        for e in register_all([(j - 1, j) for j in range(1, n)], "sequential", pool):
-            edges.append(e)
-            j = index[e.tgt]
-            for i in range(j - 2, max(-1, j - 1 - MAX_SKIP), -1):
-                if edges[-1].accepted:
-                    break
-                edges += register_all([(i, j)], "sequential", pool)
-            advance(1)
-        from gscan.posegraph import GraphEdge, LoopParams, select_loop_candidates, spanning_poses
+    with timer.stage("register", total=max(1, n - 1)) as advance:
+        edges, restored = _register_edges(frames, _register_params(cfg, mode), cfg, db, resumed, advance)
 
-        seq_graph = [GraphEdge(index[e.src], index[e.tgt], e.T_tgt_src) for e in edges if e.accepted]
-        T_init = spanning_poses(n, seq_graph)
-        existing = [(index[e.src], index[e.tgt]) for e in edges]
-        lp = LoopParams(max_per_node=cfg.posegraph.loop_candidates, max_angle_deg=cfg.posegraph.max_view_angle_deg)
-        # frames without any keypoint (textureless, dark) take no part: bag-of-words needs descriptors
-        kp = [k for k in range(n) if len(frames[k].feats.descriptors)]
-        sub = {k: s for s, k in enumerate(kp)}
-        cands = [] if len(kp) < 2 else select_loop_candidates(
-            [T_init[k] for k in kp], [frames[k].feats.descriptors for k in kp],
-            [(sub[a], sub[b]) for a, b in existing if a in sub and b in sub], lp)
-        edges += register_all([(kp[c.i], kp[c.j]) for c in cands], "loop", pool)
-
+    index = {f.frame.name: k for k, f in enumerate(frames)}
     with timer.stage("posegraph", total=1) as advance:
         T_world_cam, quality = _optimise(n, edges, index, frames, cfg)
         advance(1)
@@ -343,37 +259,14 @@ def _scan_frames(frames: list[_Frame], opts: ScanOptions, db: TemplateDB, resume
 
     with timer.stage("database", total=n + 1) as advance:
         T_obj_cam = [None if T is None else T_obj_world @ T for T in T_world_cam]
-        dirs = {k: T_obj_cam[k][:3, 2] for k in registered}
-        keyframes = set(select_keyframes(dirs, cfg.keyframes.min_angle_deg, cfg.keyframes.max_views))
-        # keyframes also keep keypoints on the object alone, detected inside the object mask with the
-        # estimator's settings: the template's keypoints for pose estimation (registration keypoints
-        # of a static object are mostly on the table)
-        oparams = replace(OBJECT_FEATURES, kind=cfg.features.kind, max_keypoints=cfg.features.max_keypoints)
-
-        def object_feats(k: int) -> Features | None:
-            m = masks[k]
-            return extract_features_in_mask(frames[k].frame, m, oparams) if k in keyframes and m is not None else None
-
-        with ThreadPoolExecutor(max_workers=WORKERS) as pool:
-            for k, obj in enumerate(pool.map(object_feats, range(n))):
-                f, T = frames[k], T_obj_cam[k]
-                pts = f.feats.points if T is None else transform_points(T, f.feats.points).astype(np.float32)
-                view = View(f.frame.name, f.frame.intrinsics, T, f.frame.color, f.frame.depth,
-                            masks[k] if T is not None else f.frame.mask, keyframe=k in keyframes,
-                            quality=quality.get(k), input_index=k)
-                db.add_view(view, ViewFeatures(f.feats.pixels, pts, f.feats.descriptors, f.feats.kind,
-                                               f.feats.scales), replace=True)
-                if obj is not None:
-                    db.add_features(f.frame.name, ViewFeatures(obj.pixels, transform_points(T, obj.points).astype(
-                        np.float32), obj.descriptors, obj.kind, obj.scales), role="object")
-                advance(1)
+        keyframes = _store_views(frames, T_obj_cam, masks, quality, cfg, db, advance)
         for e in edges:  # the pose graph's verdicts, also where a resumed run reaches another one
             if (e.reason and e.reason.startswith(PRUNED)) or (e.src, e.tgt) in restored:
                 db.add_edge(e)
         V = transform_points(T_obj_world, model.vertices)
         db.set_mesh(V, model.triangles, model.vertex_colors)
         db.set_cloud(transform_points(T_obj_world, model.points), model.point_colors)
-        unregistered = [names[k] for k in range(n) if T_world_cam[k] is None]
+        unregistered = [f.frame.name for f, T in zip(frames, T_world_cam) if T is None]
         db.set_meta("unregistered", unregistered)
         db.set_meta("skipped", problems)
         db.set_meta("voxel_size", model.voxel_size)
@@ -387,6 +280,152 @@ def _scan_frames(frames: list[_Frame], opts: ScanOptions, db: TemplateDB, resume
     return ScanResult(opts.output, len(frames) + len(problems), len(registered), unregistered + sorted(problems),
                       accepted, total_edges - accepted, mode, len(V), len(model.triangles), dict(timer.timings),
                       problems, len(keyframes))
+
+
+def _mode_and_masks(frames: list[_Frame], mode_option: str) -> tuple[str, bool]:
+    """(capture mode, whether every frame came with a mask); sets each frame's object mask: the given
+    one, or for a moving object one from background subtraction."""
+    mode = detect_mode([f.frame for f in frames]).mode if mode_option == "auto" else mode_option
+    given_masks = all(f.frame.mask is not None for f in frames)
+    if given_masks:
+        for f in frames:
+            f.mask = f.frame.mask
+    elif mode == MOVING_OBJECT:
+        masks, planes = moving_object_masks([f.frame for f in frames])
+        for f, m, p in zip(frames, masks, planes):
+            f.mask, f.plane_cam = m, p
+    return mode, given_masks
+
+
+def _extract(frames: list[_Frame], mode: str, cfg: ScanConfig, db: TemplateDB, resumed: bool,
+             advance: Callable[[int], None]) -> None:
+    """Sets each frame's registration keypoints (camera frame) and ICP cloud, and stores the keypoints
+    at once; a resumed scan reuses the keypoints of views stored without a pose."""
+    fparams = FeatureParams(kind=cfg.features.kind, max_keypoints=cfg.features.max_keypoints)
+    stored = set(db.view_names()) if resumed else set()
+    db_poses = {v.name: v.T_obj_cam for v in db.views()} if stored else {}
+
+    def frame_work(k: int) -> tuple[Features | None, np.ndarray]:
+        f = frames[k]
+        reg_mask = f.mask if mode == MOVING_OBJECT else None
+        reuse = f.frame.name in stored and db_poses.get(f.frame.name, 1) is None
+        feats = None if reuse else extract_features(f.frame, fparams, mask=reg_mask)
+        return feats, _icp_cloud(f.frame, reg_mask, cfg.registration.icp_voxel) if cfg.registration.icp else None
+
+    # OpenCV and open3d release the GIL: two threads use both cores; results are per frame
+    # and written in input order, so the output does not depend on the scheduling
+    with ThreadPoolExecutor(max_workers=WORKERS) as pool:
+        for k, (feats, cloud) in enumerate(pool.map(frame_work, range(len(frames)))):
+            f = frames[k]
+            f.cloud = cloud
+            if feats is None:  # stored by the interrupted run, still in the camera frame
+                vf = db.features(f.frame.name)
+                feats = Features(vf.pixels, vf.points_obj, vf.descriptors, vf.kind,
+                                 vf.scales if vf.scales is not None else np.ones(len(vf.pixels), np.float32))
+            else:
+                view = View(f.frame.name, f.frame.intrinsics, None, f.frame.color, f.frame.depth, f.frame.mask,
+                            keyframe=False, input_index=k)
+                db.add_view(view, ViewFeatures(feats.pixels, feats.points, feats.descriptors, feats.kind,
+                                               feats.scales), replace=f.frame.name in stored)
+            f.feats = feats
+            advance(1)
+
+
+def _register_edges(frames: list[_Frame], rparams: RegisterParams, cfg: ScanConfig, db: TemplateDB, resumed: bool,
+                    advance: Callable[[int], None]) -> tuple[list[Edge], set[tuple[str, str]]]:
+    """Sequential edges (with fall-back to earlier frames), then loop closures; each stored as computed.
+
+    Returns the edges in order and the stored edges a resumed scan accepted again (pruned by the
+    interrupted run's pose graph, left for this run's pose graph to judge)."""
+    from gscan.posegraph import GraphEdge, LoopParams, select_loop_candidates, spanning_poses
+
+    names = [f.frame.name for f in frames]
+    done = {(e.src, e.tgt): e for e in db.edges()} if resumed else {}
+    restored: set[tuple[str, str]] = set()
+
+    def pair_work(pair: tuple[int, int]):
+        i, j = pair
+        if (names[i], names[j]) in done:
+            return None
+        return register_features(frames[i].feats, frames[j].feats, rparams, clouds=(frames[i].cloud, frames[j].cloud))
+
+    def register_all(pairs: list[tuple[int, int]], kind: str, pool: ThreadPoolExecutor) -> list[Edge]:
+        """Edges of `pairs`, computed on the pool (numba and OpenCV release the GIL), stored in order."""
+        out = []
+        for (i, j), r in zip(pairs, pool.map(pair_work, pairs)):
+            if r is None:  # stored by the interrupted run
+                e = done[(names[i], names[j])]
+                if e.reason and e.reason.startswith(PRUNED):  # restore the registration verdict
+                    e.accepted, e.reason = True, None
+                    restored.add((e.src, e.tgt))
+            else:
+                # the edge keeps the correspondences its pose was solved from (GMatch's list grown by
+                # the guided refinement of gscan.register), which also weigh it in the pose graph
+                used = r.inliers if r.inliers is not None and len(r.inliers) else r.matches
+                e = Edge(names[i], names[j], r.T_tgt_src, used, r.cost, r.rmse, r.fitness, kind, r.accepted, r.reason)
+                db.add_edge(e)
+            out.append(e)
+        return out
+
+    n = len(frames)
+    index = {nm: k for k, nm in enumerate(names)}
+    edges: list[Edge] = []
+    with ThreadPoolExecutor(max_workers=WORKERS) as pool:
+        # each frame against its predecessor; a frame that fails is tried against earlier ones
+        for e in register_all([(j - 1, j) for j in range(1, n)], "sequential", pool):
+            edges.append(e)
+            j = index[e.tgt]
+            for i in range(j - 2, max(-1, j - 1 - MAX_SKIP), -1):
+                if edges[-1].accepted:
+                    break
+                edges += register_all([(i, j)], "sequential", pool)
+            advance(1)
+
+        seq_graph = [GraphEdge(index[e.src], index[e.tgt], e.T_tgt_src) for e in edges if e.accepted]
+        T_init = spanning_poses(n, seq_graph)
+        existing = [(index[e.src], index[e.tgt]) for e in edges]
+        lp = LoopParams(max_per_node=cfg.posegraph.loop_candidates, max_angle_deg=cfg.posegraph.max_view_angle_deg)
+        # frames without any keypoint (textureless, dark) take no part: bag-of-words needs descriptors
+        kp = [k for k in range(n) if len(frames[k].feats.descriptors)]
+        sub = {k: s for s, k in enumerate(kp)}
+        cands = [] if len(kp) < 2 else select_loop_candidates(
+            [T_init[k] for k in kp], [frames[k].feats.descriptors for k in kp],
+            [(sub[a], sub[b]) for a, b in existing if a in sub and b in sub], lp)
+        edges += register_all([(kp[c.i], kp[c.j]) for c in cands], "loop", pool)
+    return edges, restored
+
+
+def _store_views(frames: list[_Frame], T_obj_cam: list[np.ndarray | None], masks: list[np.ndarray | None],
+                 quality: dict[int, float], cfg: ScanConfig, db: TemplateDB,
+                 advance: Callable[[int], None]) -> set[int]:
+    """Writes every view with its pose, mask and keypoints in the object frame; chooses the keyframes
+    and returns their indices.
+
+    Keyframes also keep keypoints on the object alone, detected inside the object mask with the
+    estimator's settings: the template's keypoints for pose estimation (registration keypoints of a
+    static object are mostly on the table)."""
+    dirs = {k: T[:3, 2] for k, T in enumerate(T_obj_cam) if T is not None}
+    keyframes = set(select_keyframes(dirs, cfg.keyframes.min_angle_deg, cfg.keyframes.max_views))
+    oparams = replace(OBJECT_FEATURES, kind=cfg.features.kind, max_keypoints=cfg.features.max_keypoints)
+
+    def object_feats(k: int) -> Features | None:
+        m = masks[k]
+        return extract_features_in_mask(frames[k].frame, m, oparams) if k in keyframes and m is not None else None
+
+    with ThreadPoolExecutor(max_workers=WORKERS) as pool:
+        for k, obj in enumerate(pool.map(object_feats, range(len(frames)))):
+            f, T = frames[k], T_obj_cam[k]
+            pts = f.feats.points if T is None else transform_points(T, f.feats.points).astype(np.float32)
+            view = View(f.frame.name, f.frame.intrinsics, T, f.frame.color, f.frame.depth,
+                        masks[k] if T is not None else f.frame.mask, keyframe=k in keyframes,
+                        quality=quality.get(k), input_index=k)
+            db.add_view(view, ViewFeatures(f.feats.pixels, pts, f.feats.descriptors, f.feats.kind,
+                                           f.feats.scales), replace=True)
+            if obj is not None:
+                db.add_features(f.frame.name, ViewFeatures(obj.pixels, transform_points(T, obj.points).astype(
+                    np.float32), obj.descriptors, obj.kind, obj.scales), role="object")
+            advance(1)
+    return keyframes
 
 
 def _icp_cloud(frame: RGBDFrame, mask: np.ndarray | None, voxel: float) -> np.ndarray:
@@ -454,8 +493,9 @@ def _segment(frames: list[_Frame], T_world_cam: list[np.ndarray | None], mode: s
         return [None] * len(frames), None
     reg = [k for k, T in enumerate(T_world_cam) if T is not None]
     if mode == MOVING_OBJECT:
-        ref = frames[reg[0]].frame
-        plane_cam = segment_frame(RGBDFrame(ref.name, ref.color, ref.depth, ref.intrinsics)).plane_cam
+        ref = frames[reg[0]]
+        plane_cam = ref.plane_cam if ref.plane_cam is not None else segment_frame(
+            RGBDFrame(ref.frame.name, ref.frame.color, ref.frame.depth, ref.frame.intrinsics)).plane_cam
         plane = None if plane_cam is None else plane_cam.transformed(T_world_cam[reg[0]])
         return [f.mask for f in frames], plane
     segs, vol = segment_sequence([f.frame for f in frames], T_world_cam)  # given masks win

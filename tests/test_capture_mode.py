@@ -31,7 +31,8 @@ def test_static_and_turntable_are_told_apart(box, masks):
 
 def test_moving_object_masks_find_the_turning_object(box):
     turn = render_capture(box, None, 10, mode="turntable", seed=2)
-    masks = moving_object_masks(_frames(turn, False))
+    masks, planes = moving_object_masks(_frames(turn, False))
+    assert all(p is not None and abs(p.normal[1]) > 0.5 for p in planes), planes  # the turntable, below the object
     ious = [(m & r.mask).sum() / (m | r.mask).sum() for m, r in zip(masks, turn)]
     assert min(ious) > 0.8, ious
 
