@@ -343,6 +343,9 @@ def eval_cmd(
     output: Path = typer.Option(..., "-o", "--output", help="BOP19 results CSV to write"),
     obj_id: int = typer.Option(1, "--obj-id", min=1, max=2**31 - 1, help="object id in scene_gt.json and in the CSV"),
     model: Optional[Path] = typer.Option(None, "--model", help="object model for ADD/ADD-S/MSSD/MSPD (default: template mesh)"),
+    gt_capture: Optional[Path] = typer.Option(
+        None, "--gt-capture", help="capture a scanned template came from, with ground-truth poses, to relate its "
+        "frame to the ground truth's (default: the template's own input folder)"),
     no_icp: bool = typer.Option(False, "--no-icp", help="skip the ICP refinement"),
     force: bool = typer.Option(False, "--force", help="replace an existing output"),
     json_out: bool = typer.Option(False, "--json", help="print one JSON object on stdout"),
@@ -350,7 +353,8 @@ def eval_cmd(
     """Run estimation over scenes, write BOP19 results CSV and print a metrics table."""
     from gscan.evaluate import evaluate
 
-    report = evaluate(template, scenes, output, obj_id=obj_id, model_path=model, refine=not no_icp, force=force)
+    report = evaluate(template, scenes, output, obj_id=obj_id, model_path=model, refine=not no_icp, force=force,
+                      gt_capture=gt_capture)
     if json_out:
         _print_json(report.to_json())
         return

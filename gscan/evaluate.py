@@ -14,7 +14,14 @@ Metrics over all images with ground truth (a not-found pose counts as an infinit
 "AUC ADD" / "AUC ADD-S" (YCB-Video AUC, 0-10 cm, percent), "AR MSSD" / "AR MSPD" (BOP average
 recall, percent), "AR" (their mean), "found" (percent of images with a pose), "mean time ms".
 Model points: the template's mesh vertices (else its cloud), or `model_path` (any mesh trimesh
-reads; BOP models in millimetres are detected by a diameter above 10 units and scaled to metres).
+reads, in the ground truth's object frame; BOP models in millimetres are detected by a diameter above
+10 units and scaled to metres).
+
+Frames: a CAD template keeps its mesh's frame, which is the ground truth's. A scanned template has
+its own frame (DESIGN.md "Frames of reference"); its poses are mapped to the ground truth's object
+frame by `template_to_gt` over the ground-truth poses of the capture it was scanned from (its stored
+input folder, or `gt_capture`), so the CSV and the metrics are about the ground-truth model. Scoring a
+scanned template against ground truth without such a capture is refused.
 """
 from __future__ import annotations
 
@@ -29,9 +36,9 @@ import numpy as np
 
 from gscan.errors import InputError
 from gscan.estimate import Estimator
-from gscan.geometry import mean_pose
+from gscan.geometry import inv_T, mean_pose, transform_points
 from gscan.io import check_output_path, open_sequence
-from gscan.io.layouts import detect_format
+from gscan.io.layouts import detect_format, discover
 from gscan.metrics import adds as adds_err, add as add_err, ar_mspd, ar_mssd, auc, diameter, mspd, mssd
 from gscan.template import TemplateDB
 
@@ -44,7 +51,8 @@ MAX_MODEL_POINTS = 4000  # model points used by the metrics (deterministic subsa
 
 @dataclass
 class EvalRow:
-    """One image: ids, pose (None = not found), errors (inf when not found / no ground truth: nan)."""
+    """One image: ids, pose of the ground truth's object frame (None = not found), errors (inf when not
+    found; nan without ground truth)."""
 
     scene_id: int
     im_id: int
@@ -148,26 +156,79 @@ def _csv_row(scene_id: int, im_id: int, obj_id: int, score: float, T: np.ndarray
     return f"{scene_id},{im_id},{obj_id},{score:.6f},{R},{t},{time_s:.6f}"
 
 
+def scanned_to_gt(template: Path, gt_capture: Path | None, obj_id: int) -> np.ndarray | None:
+    """T_obj_gt [4 x 4] that maps the ground truth's object frame into `template`'s frame: identity for a
+    CAD template; for a scanned one, `template_to_gt` over the ground truth of `gt_capture` (default: the
+    capture the template was scanned from, when it is still there). None when no ground truth relates them."""
+    with TemplateDB.open(template, require_complete=True) as db:
+        source, stored_input, stored_format = db.get_meta("source"), db.get_meta("input"), db.get_meta("format")
+    if source != "scan":
+        if gt_capture is not None:
+            raise InputError(gt_capture, f"--gt-capture is for scanned templates; {template} is a CAD template, "
+                             "already in its mesh's frame")
+        return np.eye(4)
+    if gt_capture is None:
+        capture = Path(stored_input) if isinstance(stored_input, str) else None
+        if capture is None or not capture.is_dir():
+            return None
+        fmt = stored_format if stored_format in ("capture", "open3d", "tum", "bop") else "auto"
+    else:
+        capture, fmt = Path(gt_capture), "auto"
+        if not capture.is_dir():
+            raise InputError(capture, "ground-truth capture folder not found")
+    try:
+        gt = discover(capture, fmt, obj_id=obj_id).gt_T_cam_obj
+    except InputError:
+        if gt_capture is not None:
+            raise
+        return None
+    if not gt:
+        if gt_capture is not None:
+            raise InputError(capture, f"holds no ground-truth object poses (annotated_poses/, or scene_gt.json "
+                             f"with object {obj_id})")
+        return None
+    try:
+        return template_to_gt(template, gt)
+    except InputError:
+        if gt_capture is not None:
+            raise InputError(capture, f"none of its ground-truth frames is a registered view of {template}") from None
+        return None
+
+
 def evaluate(template: str | Path, scenes: str | Path, output_csv: str | Path, obj_id: int = 1,
-             model_path: str | Path | None = None, refine: bool = True, force: bool = False) -> EvalReport:
+             model_path: str | Path | None = None, refine: bool = True, force: bool = False,
+             gt_capture: str | Path | None = None) -> EvalReport:
     """Estimate the pose of the template's object in every image under `scenes`, write BOP19 CSV
-    `output_csv` and return the metrics. InputError for an existing output without `force`, a missing
-    or partial template, unreadable scenes or model."""
+    `output_csv` and return the metrics (poses in the ground truth's object frame, see the module
+    docstring). InputError for an existing output without `force`, a missing or partial template,
+    unreadable scenes or model, or a scanned template scored against ground truth that no
+    ground-truth capture (`gt_capture`, else the template's own input) relates to its frame."""
     output_csv = Path(output_csv)
     if output_csv.is_dir():
         raise InputError(output_csv, "output is a folder, expected a .csv file path")
     if output_csv.exists() and not force:
         raise InputError(output_csv, "already exists; use --force to overwrite")
     check_output_path(output_csv)
+    template = Path(template)
     estimator = Estimator.from_path(template)
+    seqs = [(scene_id, open_sequence(folder, format="auto", obj_id=obj_id))
+            for scene_id, folder in _scene_dirs(Path(scenes))]
+    T_obj_gt = scanned_to_gt(template, None if gt_capture is None else Path(gt_capture), obj_id)
+    if T_obj_gt is None:
+        if any(seq.gt_T_cam_obj for _, seq in seqs):
+            raise InputError(template, "is a scanned template, in its own frame, and the capture it was scanned "
+                             "from is gone or holds no ground truth; pass --gt-capture with the capture "
+                             "(rgb/, depth/, annotated_poses/ or scene_gt.json) to relate it to the ground truth")
+        T_obj_gt = np.eye(4)  # no ground truth anywhere: poses of the template's own frame
     pts = load_model_points(None if model_path is None else Path(model_path), estimator)
+    if model_path is None:  # the template's mesh, in the ground truth's object frame
+        pts = transform_points(inv_T(T_obj_gt), pts)
     diam = diameter(pts)
     rows: list[EvalRow] = []
     lines = [CSV_HEADER]
     width = 640
     bop_gt = False  # some scene has a scene_gt.json
-    for scene_id, folder in _scene_dirs(Path(scenes)):
-        seq = open_sequence(folder, format="auto", obj_id=obj_id)
+    for scene_id, seq in seqs:
         gt = seq.gt_T_cam_obj or {}
         bop_gt |= seq.format == "bop" and seq.gt_T_cam_obj is not None
         for name in seq.names:
@@ -181,21 +242,22 @@ def evaluate(template: str | Path, scenes: str | Path, output_csv: str | Path, o
             t0 = time.perf_counter()
             res = estimator.estimate(frame, mask=None, refine=refine)
             dt = time.perf_counter() - t0
-            row = EvalRow(scene_id, im_id, res.found, res.score, dt, res.T_cam_obj, reason=res.reason)
+            T_est = None if res.T_cam_obj is None else res.T_cam_obj @ T_obj_gt  # the ground-truth model's pose
+            row = EvalRow(scene_id, im_id, res.found, res.score, dt, T_est, reason=res.reason)
             T_gt = gt.get(name)
             if T_gt is not None:
                 if res.found:
-                    row.add = add_err(pts, res.T_cam_obj, T_gt)
-                    row.adds = adds_err(pts, res.T_cam_obj, T_gt)
-                    row.mssd = mssd(pts, res.T_cam_obj, T_gt)
+                    row.add = add_err(pts, T_est, T_gt)
+                    row.adds = adds_err(pts, T_est, T_gt)
+                    row.mssd = mssd(pts, T_est, T_gt)
                     try:
-                        row.mspd = mspd(pts, res.T_cam_obj, T_gt, frame.intrinsics)
+                        row.mspd = mspd(pts, T_est, T_gt, frame.intrinsics)
                     except ValueError:  # estimated model partly behind the camera
                         row.mspd = float("inf")
                 else:
                     row.add = row.adds = row.mssd = row.mspd = float("inf")
             if res.found:
-                lines.append(_csv_row(scene_id, im_id, obj_id, res.score, res.T_cam_obj, dt))
+                lines.append(_csv_row(scene_id, im_id, obj_id, res.score, T_est, dt))
             rows.append(row)
             log.info("scene %d image %d: %s", scene_id, im_id, "found" if res.found else f"not found ({res.reason})")
     if not rows:

@@ -136,3 +136,44 @@ def test_unreadable_image_is_left_out(setup, tmp_path):
     (cap / "rgb" / "000001.png").write_bytes(b"\x89PNG\r\n\x1a\n truncated")
     rep = evaluate(tpl, cap, tmp_path / "r.csv", refine=False)
     assert rep.n_images == 2 and [r.im_id for r in rep.rows] == [0, 2]
+
+
+def test_scanned_template_is_scored_in_the_ground_truth_frame(sample_template, setup, tmp_path):
+    """A scanned template has its own frame (here a half turn away from the ground truth's): eval maps its
+    poses to the ground-truth model through the capture it was scanned from (its stored input folder, or
+    gt_capture), in the metrics and in the CSV; with no such capture it refuses to score."""
+    import shutil
+
+    from gscan.geometry import pose_error
+    from gscan.io import open_sequence
+    from gscan.template import TemplateDB
+
+    root = Path(__file__).resolve().parents[1] / "samples"
+    held = root / "heldout"
+    rep = evaluate(sample_template, held, tmp_path / "own.csv")
+    assert rep.n_found == rep.n_images == len(open_sequence(held).names)
+    assert rep.metrics["AUC ADD"] > 95 and rep.metrics["AR"] > 95, rep.metrics
+    gt = {int(n): T for n, T in open_sequence(held).gt_T_cam_obj.items()}
+    for row in _read_csv(tmp_path / "own.csv"):
+        T = np.eye(4)
+        T[:3, :3] = np.array(row[4].split(), dtype=float).reshape(3, 3)
+        T[:3, 3] = np.array(row[5].split(), dtype=float) / 1000.0
+        rot, trans = pose_error(T, gt[int(row[1])])
+        assert rot < 2.0 and trans < 0.01, (row[1], rot, trans)
+
+    moved = tmp_path / "moved.gscan"  # the capture it was scanned from is gone
+    shutil.copy(sample_template, moved)
+    with TemplateDB.open(moved, writable=True) as db:
+        db.set_meta("input", str(tmp_path / "gone"))
+    with pytest.raises(InputError, match="--gt-capture"):
+        evaluate(moved, held, tmp_path / "refused.csv")
+    assert not (tmp_path / "refused.csv").exists()
+    again = evaluate(moved, held, tmp_path / "given.csv", gt_capture=root / "capture")
+    keys = ("found", "AUC ADD", "AUC ADD-S", "AR")
+    assert [again.metrics[k] for k in keys] == pytest.approx([rep.metrics[k] for k in keys])
+    with pytest.raises(InputError, match="no ground-truth"):  # a capture without ground truth relates nothing
+        no_gt = tmp_path / "no_gt"
+        shutil.copytree(root / "capture", no_gt, ignore=shutil.ignore_patterns("annotated_poses"))
+        evaluate(moved, held, tmp_path / "x.csv", gt_capture=no_gt)
+    with pytest.raises(InputError, match="CAD template"):
+        evaluate(setup[1], held, tmp_path / "y.csv", gt_capture=root / "capture")
