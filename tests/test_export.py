@@ -115,7 +115,7 @@ def test_bop_export(synth: tuple[Path, dict], tmp_path: Path) -> None:
         assert not (visib & ~full).any() and 0.95 <= g["visib_fract"] <= 1.0  # unoccluded synthetic views
         assert g["px_count_valid"] == (full & (raw > 0)).sum()
         ys, xs = np.nonzero(visib)
-        assert g["bbox_visib"] == [xs.min(), ys.min(), xs.max() - xs.min() + 1, ys.max() - ys.min() + 1]
+        assert g["bbox_visib"] == [xs.min(), ys.min(), xs.max() - xs.min(), ys.max() - ys.min()]  # calc_2d_bbox
     models_info = json.loads((out / "models" / "models_info.json").read_text())["1"]
     assert models_info["diameter"] == pytest.approx(1000 * np.linalg.norm(BOX), rel=1e-6)
     assert [models_info[k] for k in ("size_x", "size_y", "size_z")] == pytest.approx([1000 * s for s in BOX])
@@ -139,6 +139,30 @@ def _check_with_gscan_io(scene: Path, Ts: list[np.ndarray]) -> None:
     assert len(seq) == len(Ts) and seq.gt_T_cam_obj is not None
     for name, T_obj_cam in zip(seq.names, Ts):
         assert np.abs(seq.gt_T_cam_obj[name] - inv_T(T_obj_cam)).max() < 1e-6
+
+
+def test_bop_visibility_rule(tmp_path: Path) -> None:
+    """mask_visib follows the BOP toolkit's bop19 rule: a pixel is hidden only where the measured depth is
+    more than 15 mm in front of the model (an occluder); a measurement behind the model, or none, is visible."""
+    db_path = tmp_path / "box.gscan"
+    _build_db(db_path)
+    with TemplateDB.open(db_path, writable=True) as db:
+        v = db.view("frame 00 é")
+        depth = v.depth.copy()
+        ys, xs = np.nonzero(v.mask)
+        behind = (ys < np.percentile(ys, 30)) & v.mask[ys, xs]
+        front = ys > np.percentile(ys, 70)
+        depth[ys[behind], xs[behind]] += 0.05
+        depth[ys[front], xs[front]] -= 0.05
+        db.add_view(View(v.name, v.intrinsics, v.T_obj_cam, v.color, depth, v.mask, True, 0.9, 0),
+                    features=db.features(v.name), color_codec="png", replace=True)
+    export(db_path, "bop", tmp_path / "bop")
+    visib = cv2.imread(str(tmp_path / "bop" / "test" / "000001" / "mask_visib" / "000000_000000.png"),
+                       cv2.IMREAD_UNCHANGED) > 0
+    assert visib[ys[behind], xs[behind]].all()
+    assert not visib[ys[front], xs[front]].any()
+    middle = ~behind & ~front
+    assert visib[ys[middle], xs[middle]].mean() > 0.99
 
 
 def test_foundationpose_export(synth: tuple[Path, dict], tmp_path: Path) -> None:

@@ -16,8 +16,9 @@ Layout (BOP toolkit conventions, docs/bop_datasets_format.md; millimetres, row-m
     gscan_views.json                  {im_id: template view name} (gscan's own addition)
 
 Masks and counts: with a mesh, `mask` is the mesh silhouette ray-cast from the view's pose and
-`mask_visib` the silhouette pixels whose measured depth is missing or within 15 mm of the rendered
-depth (the BOP toolkit's "bop19" visibility rule, delta 15 mm), intersected with the view's stored
+`mask_visib` the silhouette pixels whose measured depth is missing or is not more than 15 mm in front
+of the rendered depth (the BOP toolkit's "bop19" visibility rule, delta 15 mm, on depth rather than
+distance along the ray; a measurement behind the model counts as visible), intersected with the view's stored
 object mask when it has one; bbox_obj and px_count_all are clipped to the image (the toolkit renders
 a larger canvas for objects that leave the image). Without a mesh both are the stored mask (views
 without one are skipped).
@@ -117,7 +118,7 @@ def write_bop(db: TemplateDB, out: Path) -> int:
             ren_mm = caster.depth(v.intrinsics, v.T_obj_cam).astype(np.float64) * 1000.0
             mask_all = ren_mm > 0
             meas = depth_mm.astype(np.float64)
-            visib = mask_all & ((meas == 0) | (np.abs(meas - ren_mm) <= VISIB_DELTA_MM))
+            visib = mask_all & ((meas == 0) | (ren_mm - meas <= VISIB_DELTA_MM))
             if v.mask is not None:
                 visib &= v.mask
         else:

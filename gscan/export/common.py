@@ -76,9 +76,12 @@ def render_depth(mesh: MeshData, intr: Intrinsics, T_obj_cam: np.ndarray) -> np.
 
 
 def bbox_xywh(mask: np.ndarray) -> list[int]:
-    """BOP bounding box [x, y, width, height] of a [H x W] bool mask; [-1, -1, -1, -1] if empty."""
+    """BOP bounding box [x, y, width, height] of a [H x W] bool mask; [-1, -1, -1, -1] if empty.
+
+    As the BOP toolkit's `calc_2d_bbox`: width and height are max - min of the pixel coordinates (a
+    one-pixel mask has width 0)."""
     ys, xs = np.nonzero(mask)
     if len(xs) == 0:
         return [-1, -1, -1, -1]
     x0, y0 = int(xs.min()), int(ys.min())
-    return [x0, y0, int(xs.max()) - x0 + 1, int(ys.max()) - y0 + 1]
+    return [x0, y0, int(xs.max()) - x0, int(ys.max()) - y0]
