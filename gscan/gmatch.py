@@ -21,13 +21,22 @@ Definitions (DESIGN.md "GMatch, as we implement it"):
 * g(matches, q) = max over p in matches of delta(p, q); a pair is consistent if g <= eps_c.
 * flip-over test of a pair q against the last two matches m1 = matches[-1], m2 = matches[-2]:
   n_s = (ps_m1 - ps_m2) x (ps_m1 - ps_q), likewise n_t; with z_s = n_s . view_s / |n_s| and
-  z_t = n_t . view_t / |n_t|, q flips over iff z_s * z_t < 0 and |z_s - z_t| > flip_margin.
-  Near-collinear triples (|n| < collinear_sin * |e1| * |e2| on either side) are not tested.
+  z_t = n_t . view_t / |n_t|, q flips over iff z_s * z_t < 0 (the paper's sign test) and
+  |z_s - z_t| > flip_margin. The margin is for triples that are not on one surface: the camera may
+  cross such a triangle's plane, and a view change of theta flips the sign of triangles with
+  |z_s| + |z_t| up to about 2 sin(theta / 2) (0.62 at 36 deg). With flip_margin 0 a scan with 36 deg
+  between views registered wrong edges (ATE 77 mm instead of 0.4 mm, tests/test_scan.py wide
+  spacing); on the rendered pairs 0 and 0.8 differ by one pair either way (BENCHMARKS.md). The cost:
+  a plane seen from behind at more than ~66 deg from the view, and a mirror image of a deep 3D
+  layout, are not rejected by it (the "triple" set rejects mirror images). Near-collinear triples
+  (sine of the angle at the first vertex, |n| / (|e1| |e2|), below collinear_sin on either side)
+  are not tested.
 * "triple" constraint set (instead of flip-over): the hypothesis' start triangle (a, b, c)
   fixes a plane on each side (unit normals from the same ordered triangle, so a mirror image
   has the opposite sign); a pair q gets the extra cost |h_s - h_t| / |ps_q - ps_a| if
   |h_s - h_t| < eta_aq else 1, h = signed off-plane distance (the triple product
-  (b - a) x (c - a) . (q - a) divided by |(b - a) x (c - a)|). Bounded in [0, 1] like delta.
+  (b - a) x (c - a) . (q - a) divided by |(b - a) x (c - a)|); like delta, a cost above eps_c
+  rejects the pair.
   With pairwise distances this is the paper's complete characterisation up to rigid motion.
 * "distance": pairwise distances only (ablation; cannot tell a mirror image apart).
 
@@ -38,7 +47,7 @@ Search (bounded; every bound is a parameter):
    Level 2: the first K2 members b of A_s; A_b = members of A_s consistent with b.
    Level 3: per b, the first K3 members c of A_b (one-to-one, g({s, b}, c) <= eps) whose triangle
    (s, b, c) is non-degenerate (sine of the angle at s >= collinear_sin on both sides) and, in flip
-   mode, does not flip over. At most T * K2 * K3 hypotheses of length 3; start cost = max of the
+   mode, does not flip over (tested at the same corner s, so every start triangle is flip-tested). At most T * K2 * K3 hypotheses of length 3; start cost = max of the
    three deltas. Each hypothesis is grown as soon as it is generated (seed, b, c order).
 3. growth (Algorithm 1 `Step`, up to length L): the hypothesis keeps its survivors (members of
    A_b consistent with every match so far) with their running max cost g, updated with the newest
@@ -49,8 +58,10 @@ Search (bounded; every bound is a parameter):
    the trace: `gscan.register` checks the support of the runners-up). Bound: g never decreases as
    a list grows, so once a full-length (L) list of cost c* exists nothing containing a pair with
    g >= c* can win; eps tightens from eps_c to min(eps_c, c*) for everything generated afterwards
-   (A_s is compacted), and a hypothesis is abandoned ("pruned") once its cost reaches c* or its
-   length + #survivors falls below the best length.
+   (A_s is compacted, so from then on the first K2 / K3 members of levels 2 and 3 are counted among
+   the pairs left: the hypotheses tried depend on the tightening, deterministically and still at
+   most T * K2 * K3), and a hypothesis is abandoned ("pruned") once its cost reaches c* or its
+   length + #survivors falls below the best length; its trace entry keeps the shorter list.
 
 The search runs in a numba kernel (`gscan.gmatch_kernel`, compiled with `cache=True`); candidate
 extraction is a separate function.

@@ -188,7 +188,9 @@ def search(ps, pt, ci, cj, cf, fsrc, ft_max, view_s, view_t, T, L, K2, K3, eps_c
     xg = np.empty(0)
     tg = np.empty(0)
     tok = np.empty(0, np.bool_)
-    eps_e = eps_c  # effective tolerance: min(eps_c, best cost) once a full-length list exists (exact bound)
+    # effective tolerance: min(eps_c, best cost) once a full-length list exists; no list it cuts could win,
+    # but the compacted member sets change which K2 / K3 members later levels try (see gmatch.py)
+    eps_e = eps_c
     for s in range(n_seed):
         si = ci[s]
         sj = cj[s]
@@ -277,7 +279,7 @@ def search(ps, pt, ci, cj, cf, fsrc, ft_max, view_s, view_t, T, L, K2, K3, eps_c
                     continue  # degenerate triangle
                 if not _normal_z(pt, sj, bj, jc, view_t, collinear_sin)[1]:
                     continue
-                if mode == 1 and flips(ps, pt, bi, si, ic, bj, sj, jc, view_s, view_t, flip_margin,
+                if mode == 1 and flips(ps, pt, si, bi, ic, sj, bj, jc, view_s, view_t, flip_margin,
                                         collinear_sin):
                     continue
                 n3 += 1

@@ -283,6 +283,29 @@ def test_mirrored_3d_layout_resolved_by_triple_product():
     assert _rate(make, GMatchParams(constraint="distance"), n=20) <= 0.1
 
 
+@pytest.mark.parametrize("tilt_deg", [0.0, 45.0, 60.0, 75.0])
+def test_plane_seen_from_behind(tilt_deg):
+    """A textured plane turned 180 deg about an axis in the plane keeps every pairwise distance (a rigid
+    motion) but shows its back to the camera. The flip-over test rejects it up to ~66 deg of tilt from the
+    view, where |z_s| + |z_t| passes the 0.8 margin (before, the start triangle was flip-tested at another
+    corner than its degeneracy test and a face-on plane kept 14 matches); beyond, only the paper's plain
+    sign test (flip_margin 0) rejects it."""
+    rng = np.random.default_rng(0)
+    t = np.radians(tilt_deg)
+    u, v = np.array([0.0, 1.0, 0.0]), np.array([np.cos(t), 0.0, -np.sin(t)])  # plane normal (sin t, 0, cos t)
+    c = np.array([0.0, 0.0, 0.6])
+    ab = rng.uniform(-0.1, 0.1, (30, 2))
+    ps = c + ab[:, :1] * u + ab[:, 1:] * v
+    pt = (ps - c) @ np.diag([-1.0, 1.0, -1.0]).T + c  # 180 deg about u through c
+    dist = np.full((30, 30), 1.0, np.float32)
+    dist[np.arange(30), np.arange(30)] = 0.1
+    assert len(gmatch(ps, pt, dist, 0.5, GMatchParams(constraint="distance")).matches) == 24  # congruent
+    for order in ("ratio", "distance"):
+        n = len(gmatch(ps, pt, dist, 0.5, GMatchParams(order=order)).matches)
+        assert n == (24 if tilt_deg > 66 else 0), n
+        assert len(gmatch(ps, pt, dist, 0.5, GMatchParams(order=order, flip_margin=0.0)).matches) == 0
+
+
 @settings(max_examples=15, deadline=None)
 @given(seed=st.integers(0, 10_000), constraint=st.sampled_from(["flip", "triple", "distance"]))
 def test_deterministic_and_consistent(seed, constraint):
