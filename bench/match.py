@@ -105,7 +105,7 @@ def cmd_pairs(args) -> None:
     ok = {(m, g): [] for m in methods for g in gaps}
     acc = {(m, g): [] for m in methods for g in gaps}  # accepted by registration's rules (gscan.register)
     ms = {(m, g): [] for m in methods for g in gaps}
-    fp = FeatureParams(kind="rootsift")
+    fp = FeatureParams(kind="rootsift", sift_contrast_threshold=args.contrast)
     over = gmatch_overrides(args.gmatch)
     gp = GMatchParams(eps_f=args.eps_f, **over)
     for mi, md in enumerate(_meshes(args.meshes)):
@@ -217,6 +217,8 @@ def main() -> None:
     a.add_argument("--methods", default=None,
                    help="comma list (default: gmatch, gmatch-longest (no support check) and every baseline)")
     a.add_argument("--eps-f", type=float, default=None, help="GMatch eps_f (default: the descriptor's default)")
+    a.add_argument("--contrast", type=float, default=0.04,
+                   help="SIFT contrast threshold of the keypoints all methods share (OpenCV default 0.04)")
     a.add_argument("--masks", action="store_true", help="keypoints on the object's pixels only (moving-object mode)")
     a.add_argument("--table", default="newspaper", choices=("newspaper", "wood", "fabric"),
                    help="table-top texture (gscan.synth.table_texture kind)")
