@@ -158,8 +158,9 @@ def _csv_row(scene_id: int, im_id: int, obj_id: int, score: float, T: np.ndarray
 
 def scanned_to_gt(template: Path, gt_capture: Path | None, obj_id: int) -> np.ndarray | None:
     """T_obj_gt [4 x 4] that maps the ground truth's object frame into `template`'s frame: identity for a
-    CAD template; for a scanned one, `template_to_gt` over the ground truth of `gt_capture` (default: the
-    capture the template was scanned from, when it is still there). None when no ground truth relates them."""
+    CAD template; for a scanned one, `template_to_gt` over the ground truth of `gt_capture` (InputError
+    when it cannot relate them) or, without it, of the capture the template was scanned from (None when
+    that is gone or holds no ground truth)."""
     with TemplateDB.open(template, require_complete=True) as db:
         source, stored_input, stored_format = db.get_meta("source"), db.get_meta("input"), db.get_meta("format")
     if source != "scan":
@@ -167,32 +168,29 @@ def scanned_to_gt(template: Path, gt_capture: Path | None, obj_id: int) -> np.nd
             raise InputError(gt_capture, f"--gt-capture is for scanned templates; {template} is a CAD template, "
                              "already in its mesh's frame")
         return np.eye(4)
-    if gt_capture is None:
-        capture = Path(stored_input) if isinstance(stored_input, str) else None
-        if capture is None or not capture.is_dir():
-            return None
-        fmt = stored_format if stored_format in ("capture", "open3d", "tum", "bop") else "auto"
-    else:
-        capture, fmt = Path(gt_capture), "auto"
-        if not capture.is_dir():
-            raise InputError(capture, "ground-truth capture folder not found")
+    if gt_capture is not None:
+        return _capture_to_gt(template, gt_capture, "auto", obj_id)
+    if not isinstance(stored_input, str) or not Path(stored_input).is_dir():
+        return None
+    fmt = stored_format if stored_format in ("capture", "open3d", "tum", "bop") else "auto"
     try:
-        gt = discover(capture, fmt, obj_id=obj_id).gt_T_cam_obj
+        return _capture_to_gt(template, Path(stored_input), fmt, obj_id)
     except InputError:
-        if gt_capture is not None:
-            raise
         return None
+
+
+def _capture_to_gt(template: Path, capture: Path, fmt: str, obj_id: int) -> np.ndarray:
+    """`template_to_gt` over `capture`'s ground truth; InputError naming `capture` when it cannot."""
+    if not capture.is_dir():
+        raise InputError(capture, "ground-truth capture folder not found")
+    gt = discover(capture, fmt, obj_id=obj_id).gt_T_cam_obj
     if not gt:
-        if gt_capture is not None:
-            raise InputError(capture, f"holds no ground-truth object poses (annotated_poses/, or scene_gt.json "
-                             f"with object {obj_id})")
-        return None
+        raise InputError(capture, f"holds no ground-truth object poses (annotated_poses/, or scene_gt.json "
+                         f"with object {obj_id})")
     try:
         return template_to_gt(template, gt)
     except InputError:
-        if gt_capture is not None:
-            raise InputError(capture, f"none of its ground-truth frames is a registered view of {template}") from None
-        return None
+        raise InputError(capture, f"none of its ground-truth frames is a registered view of {template}") from None
 
 
 def evaluate(template: str | Path, scenes: str | Path, output_csv: str | Path, obj_id: int = 1,
