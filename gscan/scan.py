@@ -35,6 +35,7 @@ from gscan.capture_mode import MOVING_OBJECT, STATIC_OBJECT, detect_mode, moving
 from gscan.config import ScanConfig
 from gscan.errors import InputError
 from gscan.features import OBJECT_FEATURES, FeatureParams, Features, extract_features, extract_features_in_mask
+from gscan.fuse import FusedModel, FusionParams, fuse_tsdf, template_frame
 from gscan.geometry import transform_points
 from gscan.progress import Progress, StageTimer
 from gscan.register import RegisterParams, register_features
@@ -242,19 +243,7 @@ def _scan_frames(frames: list[_Frame], opts: ScanOptions, db: TemplateDB, resume
         advance(1)
 
     with timer.stage("fuse", total=1) as advance:
-        from gscan.fuse import FusionParams, fuse_tsdf, template_frame
-
-        fparams_tsdf = FusionParams(voxel_size=cfg.fusion.voxel, depth_max=cfg.fusion.depth_max)
-        try:
-            model = fuse_tsdf([f.frame for f in frames], T_world_cam, masks, fparams_tsdf)
-        except ValueError as e:  # no registered frame has object depth within fusion.depth_max
-            raise InputError(opts.input_dir, f"nothing could be fused: {e} (fusion.depth_max); "
-                             "check --depth-scale") from None
-        if len(model.triangles) == 0 or len(model.vertices) < 3:
-            raise InputError(opts.input_dir, "nothing could be fused: no surface in the object depth of the "
-                             f"{len(registered)} registered frame(s)")
-        obj_pts = model.points if len(model.points) >= 3 else model.vertices
-        T_obj_world = template_frame(obj_pts, plane_world, T_world_cam[registered[0]])
+        model, T_obj_world = _fuse(frames, T_world_cam, masks, plane_world, cfg, opts.input_dir)
         advance(1)
 
     with timer.stage("database", total=n + 1) as advance:
@@ -280,6 +269,23 @@ def _scan_frames(frames: list[_Frame], opts: ScanOptions, db: TemplateDB, resume
     return ScanResult(opts.output, len(frames) + len(problems), len(registered), unregistered + sorted(problems),
                       accepted, total_edges - accepted, mode, len(V), len(model.triangles), dict(timer.timings),
                       problems, len(keyframes))
+
+
+def _fuse(frames: list[_Frame], T_world_cam: list[np.ndarray | None], masks: list[np.ndarray | None],
+          plane_world: Plane | None, cfg: ScanConfig, input_dir: Path) -> tuple[FusedModel, np.ndarray]:
+    """(TSDF model in the world frame, T_obj_world [4 x 4] of the template frame); InputError when
+    nothing could be fused."""
+    params = FusionParams(voxel_size=cfg.fusion.voxel, depth_max=cfg.fusion.depth_max)
+    try:
+        model = fuse_tsdf([f.frame for f in frames], T_world_cam, masks, params)
+    except ValueError as e:  # no registered frame has object depth within fusion.depth_max
+        raise InputError(input_dir, f"nothing could be fused: {e} (fusion.depth_max); check --depth-scale") from None
+    registered = [k for k, T in enumerate(T_world_cam) if T is not None]
+    if len(model.triangles) == 0 or len(model.vertices) < 3:
+        raise InputError(input_dir, "nothing could be fused: no surface in the object depth of the "
+                         f"{len(registered)} registered frame(s)")
+    obj_pts = model.points if len(model.points) >= 3 else model.vertices
+    return model, template_frame(obj_pts, plane_world, T_world_cam[registered[0]])
 
 
 def _mode_and_masks(frames: list[_Frame], mode_option: str) -> tuple[str, bool]:
@@ -480,7 +486,7 @@ def _optimise(n: int, edges: list[Edge], index: dict[str, int], frames: list[_Fr
 
 
 def _segment(frames: list[_Frame], T_world_cam: list[np.ndarray | None], mode: str,
-             segment: bool) -> tuple[list[np.ndarray | None], object]:
+             segment: bool) -> tuple[list[np.ndarray | None], Plane | None]:
     """Per-frame object masks for fusion and the support plane in the world frame (or None).
 
     The plane defines the template frame's z axis even when masks are given: for a static object
