@@ -9,7 +9,8 @@ Pipeline of `Estimator.estimate` (every stage timed, `EstimateResult.timings_ms`
    take most of the keypoints), or the whole frame when there is no such plane.
 2. retrieval: one GEMM of the query descriptors against the template's stacked descriptors
    (normalised once at load); every query keypoint whose nearest template descriptor is closer than
-   `retrieval_dist` votes for that descriptor's view; the top-`top_k` views by votes are kept.
+   `retrieval_dist` (unit descriptors, RootSIFT; `eps_f` for SIFT and ORB) votes for that descriptor's
+   view; the top-`top_k` views by votes are kept.
 3. match: GMatch (gscan.gmatch) of each retrieved view's keypoints, expressed in THAT view's camera
    frame (view direction +z), against the query keypoints (+z); descriptor distances are sliced
    from the retrieval GEMM, never recomputed.
