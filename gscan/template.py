@@ -539,14 +539,17 @@ class TemplateDB:
                 "grasps": sorted(self.grasps())}
 
     def poses(self) -> dict:
-        """The dict `gscan poses --json` prints: {"frames": {name: T_obj_cam}, "unregistered": [names]}."""
+        """The dict `gscan poses --json` prints: {"frames": {name: T_obj_cam}, "unregistered": [names]};
+        unregistered as in `scan --json`: the views without a pose, then the input frames the scan could
+        not read (its "skipped" meta)."""
         frames, unreg = {}, []
         for v in self.views():
             if v.T_obj_cam is None:
                 unreg.append(v.name)
             else:
                 frames[v.name] = v.T_obj_cam.tolist()
-        return {"frames": frames, "unregistered": unreg}
+        skipped = self.get_meta("skipped")
+        return {"frames": frames, "unregistered": unreg + sorted(skipped if isinstance(skipped, dict) else {})}
 
     def load_template(self, keyframes_only: bool = True) -> Template:
         """Everything the estimator needs, loaded once: registered (key)frame views with their keypoints

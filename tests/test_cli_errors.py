@@ -982,6 +982,8 @@ def test_partially_bad_capture_is_scanned(results):
     assert "000005" not in names and len(names) == N_VIEWS - 1
     info = subprocess.run(_cli("info", db, "--json"), capture_output=True, text=True, timeout=TIMEOUT_S)
     assert info.returncode == 0 and json.loads(info.stdout)["status"] == "complete"
+    poses = subprocess.run(_cli("poses", db, "--json"), capture_output=True, text=True, timeout=TIMEOUT_S)
+    assert json.loads(poses.stdout)["unregistered"] == out["unregistered"]  # the unreadable frame too
 
 
 def test_frame_without_keypoints_is_scanned(results):
