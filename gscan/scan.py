@@ -5,8 +5,8 @@ Stages (each timed, each reported through a `Progress`):
   mode      static-object vs moving-object (`gscan.capture_mode`); object masks for a static camera
   features  keypoints + descriptors lifted to 3D; whole frame for a static object, object only for a
             moving one; stored at once in the database (camera frame, pose unknown)
-  register  pairwise edges: each frame against the previous one (falling back to up to
-            `MAX_SKIP` earlier frames when that fails), then loop closures chosen by view overlap
+  register  pairwise edges: each frame against the previous one, falling back to the next earlier
+            ones (`MAX_SKIP` frames in all), then loop closures chosen by view overlap
             and bag-of-words votes; each edge = GMatch -> Kabsch -> guided refinement (-> ICP when
             configured), accepted by the rules of `gscan.register`; stored as it is computed
   posegraph robust global optimisation (open3d, line process) with pruning of inconsistent edges;
@@ -44,7 +44,7 @@ from gscan.template import Edge, TemplateDB, View, ViewFeatures
 
 log = logging.getLogger(__name__)
 
-MAX_SKIP = 3  # a frame that fails against its predecessor is tried against up to this many earlier frames
+MAX_SKIP = 3  # a frame is tried against up to this many preceding frames, its predecessor first, until one is accepted
 ICP_VOXEL_STRIDE = 2  # pixel stride of the clouds kept for ICP before voxel downsampling
 # eps_f for whole-frame registration (static object) when the config leaves it unset: on rendered
 # whole-frame pairs RootSIFT 0.5 is as accurate as the object-only default 0.6 (100 % at every
