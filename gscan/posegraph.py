@@ -413,12 +413,14 @@ def _drop_ambiguous_leaves(T_out: list[np.ndarray | None], edges: list[GraphEdge
     """Unregister (in place) every node held by a single uncertain edge while another of its edges was
     rejected: two measurements disagree and no cycle decides between them (a turntable's first frame
     had a right 21-inlier edge and a 180-deg-wrong 22-inlier one; keeping the survivor fused it flipped).
-    The reference node too: the world frame is only the frame of the initial poses."""
+    The reference node too: the world frame is only the frame of the initial poses. Only the rejections
+    of the optimisation count, not the edges of nodes dropped here."""
+    rejected = set(reasons)
     for k, T in enumerate(T_out):
         if T is None:
             continue
         inc = [e for e, ed in enumerate(edges) if k in (ed.src, ed.tgt)]
-        held = [e for e in inc if e not in reasons]
+        held = [e for e in inc if e not in rejected]
         if len(held) == 1 and edges[held[0]].uncertain and len(held) < len(inc):
             T_out[k] = None
             reasons[held[0]] = "the only edge left to its frame, contradicted by another one of that frame's edges"
