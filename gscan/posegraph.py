@@ -18,7 +18,8 @@ rotation / translation thresholds are rejected (all offending loop closures, els
 odometry edge) and the graph is re-optimised until every accepted edge is consistent; edges
 dropped on the way that agree with the final poses are re-admitted once. Nodes that are no
 longer connected to the reference node through accepted edges are reported as unregistered
-and get no pose. Information matrices follow open3d's scale (per correspondence, translation
+and get no pose, and so is a node held by a single uncertain edge while another of its edges was
+rejected (two measurements disagree, no cycle decides). Information matrices follow open3d's scale (per correspondence, translation
 block = number of correspondences), which the line process relies on.
 
 Loop-closure candidates (`select_loop_candidates`) live in `gscan.loops` and are re-exported.
