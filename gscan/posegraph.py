@@ -414,17 +414,34 @@ def _drop_ambiguous_leaves(T_out: list[np.ndarray | None], edges: list[GraphEdge
     """Unregister (in place) every node held by a single uncertain edge while another of its edges was
     rejected: two measurements disagree and no cycle decides between them (a turntable's first frame
     had a right 21-inlier edge and a 180-deg-wrong 22-inlier one; keeping the survivor fused it flipped).
-    The reference node too: the world frame is only the frame of the initial poses. Only the rejections
-    of the optimisation count, not the edges of nodes dropped here."""
+    Only the optimisation's rejections count. Nodes left without an edge to a registered node are
+    unregistered too; when nothing would be left registered, nothing changes (a lone cycle of three
+    with one inconsistent edge keeps its nodes). The reference node may go: the world frame is only the
+    frame of the initial poses."""
     rejected = set(reasons)
+    inc: list[list[int]] = [[] for _ in T_out]
+    for e, ed in enumerate(edges):
+        inc[ed.src].append(e)
+        inc[ed.tgt].append(e)
+    held = [[e for e in inc[k] if e not in rejected] for k in range(len(T_out))]
+    drop = {k for k, T in enumerate(T_out)
+            if T is not None and len(held[k]) == 1 and edges[held[k][0]].uncertain and len(inc[k]) > 1}
+    if not drop:
+        return
+    keep = {k for k, T in enumerate(T_out) if T is not None and k not in drop}
+    while True:  # nodes whose every held edge led to a dropped node
+        alone = {k for k in keep if not any((edges[e].src if edges[e].tgt == k else edges[e].tgt) in keep
+                                            for e in held[k])}
+        if not alone:
+            break
+        keep -= alone
+    if not keep:
+        return
+    for k in drop:
+        reasons[held[k][0]] = "the only edge left to its frame, contradicted by another one of that frame's edges"
     for k, T in enumerate(T_out):
-        if T is None:
-            continue
-        inc = [e for e, ed in enumerate(edges) if k in (ed.src, ed.tgt)]
-        held = [e for e in inc if e not in rejected]
-        if len(held) == 1 and edges[held[0]].uncertain and len(held) < len(inc):
+        if T is not None and k not in keep:
             T_out[k] = None
-            reasons[held[0]] = "the only edge left to its frame, contradicted by another one of that frame's edges"
 
 
 def chain_odometry(n_nodes: int, edges: list[GraphEdge]) -> list[np.ndarray | None]:

@@ -9,7 +9,7 @@ from gscan.geometry import inv_T, look_at, make_T, pose_error, rotvec_to_R
 from gscan.posegraph import (GraphEdge, LoopParams, PoseGraphParams, bow_vectors, chain_odometry, edge_residual,
                              information_matrix,
                              information_from_count, information_from_points, optimize_pose_graph,
-                             select_loop_candidates)
+                             select_loop_candidates, spanning_poses)
 
 
 def ring_poses(n: int = 12, radius: float = 0.4, height: float = 0.3) -> list[np.ndarray]:
@@ -100,6 +100,32 @@ def test_disconnected_node_unregistered_and_wrong_only_link_cut():
     assert all(not r.accepted and r.reason for r in reps13), reps13
     assert any(r.reason.startswith("the only edge left") for r in reps13)
     assert 13 in res.unregistered and res.registered == list(range(12))
+
+
+def test_ambiguous_frames_are_dropped_only_when_something_is_left():
+    """A lone cycle of three with one wrong edge keeps its three nodes (before the fix its two ends were dropped
+    and the middle node stayed with no accepted edge); a graph whose every node would be dropped keeps them."""
+    gt = ring_poses(12)
+    rng = np.random.default_rng(1)
+
+    def rel(i, j, deg=0.2, m=0.001):
+        return perturb(inv_T(gt[j]) @ gt[i], rng, deg, m)
+
+    tri = [GraphEdge(0, 1, rel(0, 1), information_from_count(30), True),
+           GraphEdge(1, 2, rel(1, 2), information_from_count(30), True),
+           GraphEdge(0, 2, rel(0, 2, 60.0, 0.2), information_from_count(25), True)]
+    res = optimize_pose_graph(3, tri, spanning_poses(3, tri, [30, 30, 25]))
+    assert res.registered == [0, 1, 2] and [r.accepted for r in res.edges] == [True, True, False]
+    quad = [GraphEdge(0, 1, rel(0, 1), information_from_count(30), True),
+            GraphEdge(2, 3, rel(2, 3), information_from_count(200), False),
+            GraphEdge(1, 2, rel(1, 2, 60.0, 0.3), information_from_count(30), True),
+            GraphEdge(0, 3, rel(0, 3, 60.0, 0.3), information_from_count(30), True)]
+    for w in (30, 60, 100):
+        quad[0].information = information_from_count(w)
+        res = optimize_pose_graph(4, quad, spanning_poses(4, quad, [w, 200, 30, 30]))
+        assert res.registered, [(r.src, r.tgt, r.reason) for r in res.edges]
+        for k in res.registered:  # every registered node keeps an accepted edge to another registered one
+            assert any(r.accepted and k in (r.src, r.tgt) for r in res.edges), (w, k)
 
 
 def test_deterministic():
