@@ -217,6 +217,8 @@ def evaluate(template: str | Path, scenes: str | Path, output_csv: str | Path, o
             raise InputError(template, "is a scanned template, in its own frame, and the capture it was scanned "
                              "from is gone or holds no ground truth; pass --gt-capture with the capture "
                              "(rgb/, depth/, annotated_poses/ or scene_gt.json) to relate it to the ground truth")
+        log.warning("%s: no ground-truth capture relates the scanned template's frame to the ground truth's; "
+                    "the CSV holds poses of the template's own frame (pass --gt-capture for the other)", template)
         T_obj_gt = np.eye(4)  # no ground truth anywhere: poses of the template's own frame
     pts = load_model_points(None if model_path is None else Path(model_path), estimator)
     if model_path is None:  # the template's mesh, in the ground truth's object frame

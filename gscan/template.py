@@ -549,7 +549,8 @@ class TemplateDB:
             else:
                 frames[v.name] = v.T_obj_cam.tolist()
         skipped = self.get_meta("skipped")
-        return {"frames": frames, "unregistered": unreg + sorted(skipped if isinstance(skipped, dict) else {})}
+        skipped = sorted(n for n in (skipped if isinstance(skipped, dict) else {}) if n not in unreg)
+        return {"frames": frames, "unregistered": unreg + skipped}
 
     def load_template(self, keyframes_only: bool = True) -> Template:
         """Everything the estimator needs, loaded once: registered (key)frame views with their keypoints
