@@ -19,8 +19,9 @@ odometry edge) and the graph is re-optimised until every accepted edge is consis
 dropped on the way that agree with the final poses are re-admitted once. Nodes that are no
 longer connected to the reference node through accepted edges are reported as unregistered
 and get no pose, and so is a node held by a single uncertain edge while another of its edges was
-rejected (two measurements disagree, no cycle decides). Information matrices follow open3d's scale (per correspondence, translation
-block = number of correspondences), which the line process relies on.
+rejected (two measurements disagree, no cycle decides). Information matrices follow open3d's scale
+(per correspondence, translation block = number of correspondences), which the line process
+relies on.
 
 Loop-closure candidates (`select_loop_candidates`) live in `gscan.loops` and are re-exported.
 """
@@ -147,7 +148,8 @@ class PoseGraphResult:
         return [i for i, T in enumerate(self.T_world_node) if T is None]
 
     def T_ref_node(self, i: int) -> np.ndarray | None:
-        """[4 x 4] pose of node i in the reference node's frame (None when unregistered)."""
+        """[4 x 4] pose of node i in the reference node's frame (None when node i or the reference node
+        is unregistered: the reference node can be left out as ambiguous, see `optimize_pose_graph`)."""
         T, R = self.T_world_node[i], self.T_world_node[self.reference_node]
         return None if T is None or R is None else inv_T(R) @ T
 

@@ -237,7 +237,7 @@ def _scan_frames(frames: list[_Frame], opts: ScanOptions, db: TemplateDB, resume
         T_world_cam, quality = _optimise(n, edges, index, frames, cfg)
         advance(1)
     registered = [k for k in range(n) if T_world_cam[k] is not None]
-    if not registered:  # the pose graph keeps at least its reference frame; a guard, not an expected path
+    if not registered:  # the pose graph always leaves a frame registered; a guard, not an expected path
         raise InputError(opts.input_dir, "no frame could be registered")
 
     with timer.stage("segment", total=1) as advance:
