@@ -101,10 +101,11 @@ def scan(
     """Register every view of an RGB-D capture into one object frame and write a template database."""
     _setup_logging(verbose)
     from gscan.config import load_config
+    from gscan.io.layouts import FORMATS
     from gscan.progress import RichProgress
     from gscan.scan import ScanOptions, run_scan
 
-    if format not in ("auto", "capture", "open3d", "tum", "bop"):
+    if format not in ("auto",) + FORMATS:
         raise UsageError(None, f"--format must be auto, capture, open3d, tum or bop, not {format!r}")
     if mode not in ("auto", "static-object", "moving-object"):
         raise UsageError(None, f"--mode must be auto, static-object or moving-object, not {mode!r}")

@@ -38,7 +38,7 @@ from gscan.errors import InputError
 from gscan.estimate import Estimator
 from gscan.geometry import inv_T, mean_pose, transform_points
 from gscan.io import check_output_path, open_sequence
-from gscan.io.layouts import detect_format, discover
+from gscan.io.layouts import FORMATS, detect_format, discover
 from gscan.metrics import adds as adds_err, add as add_err, ar_mspd, ar_mssd, auc, diameter, mspd, mssd
 from gscan.template import TemplateDB
 
@@ -172,7 +172,7 @@ def scanned_to_gt(template: Path, gt_capture: Path | None, obj_id: int) -> np.nd
         return _capture_to_gt(template, gt_capture, "auto", obj_id)
     if not isinstance(stored_input, str) or not Path(stored_input).is_dir():
         return None
-    fmt = stored_format if stored_format in ("capture", "open3d", "tum", "bop") else "auto"
+    fmt = stored_format if stored_format in FORMATS else "auto"
     try:
         return _capture_to_gt(template, Path(stored_input), fmt, obj_id)
     except InputError:
