@@ -95,6 +95,8 @@ def scan(
     resume: bool = typer.Option(False, "--resume", help="continue an interrupted scan into OUTPUT"),
     force: bool = typer.Option(False, "--force", help="replace an existing OUTPUT"),
     config: Optional[Path] = typer.Option(None, "--config", help="YAML configuration (see `gscan config dump`)"),
+    obj_id: Optional[int] = typer.Option(None, "--obj-id", min=1, max=2**31 - 1,
+                                         help="BOP folder: the object to scan (default: the first in scene_gt.json)"),
     json_out: bool = typer.Option(False, "--json", help="print one JSON object on stdout"),
     verbose: bool = typer.Option(False, "-v", "--verbose", help="log progress details to stderr"),
 ) -> None:
@@ -113,7 +115,7 @@ def scan(
         raise UsageError(output, "--resume and --force exclude each other")
     opts = ScanOptions(input_dir=input_dir, output=output, fmt=format, intrinsics=intrinsics,
                        depth_scale=depth_scale, mode=mode, segment=not no_segment, resume=resume,
-                       force=force, config=load_config(config))
+                       force=force, config=load_config(config), obj_id=obj_id)
     with RichProgress(err, enabled=not json_out or sys.stderr.isatty()) as progress:
         result = run_scan(opts, progress=progress)
     if json_out:

@@ -159,10 +159,11 @@ def _csv_row(scene_id: int, im_id: int, obj_id: int, score: float, T: np.ndarray
 def scanned_to_gt(template: Path, gt_capture: Path | None, obj_id: int) -> np.ndarray | None:
     """T_obj_gt [4 x 4] that maps the ground truth's object frame into `template`'s frame: identity for a
     CAD template; for a scanned one, `template_to_gt` over the ground truth of `gt_capture` (InputError
-    when it cannot relate them) or, without it, of the capture the template was scanned from (None when
-    that is gone or holds no ground truth)."""
+    when it cannot relate them, read for object `obj_id`) or, without it, of the capture the template was
+    scanned from, for the BOP object the scan followed (None when that is gone or holds no ground truth)."""
     with TemplateDB.open(template, require_complete=True) as db:
         source, stored_input, stored_format = db.get_meta("source"), db.get_meta("input"), db.get_meta("format")
+        stored_obj_id = db.get_meta("obj_id")
     if source != "scan":
         if gt_capture is not None:
             raise InputError(gt_capture, f"--gt-capture is for scanned templates; {template} is a CAD template, "
@@ -173,6 +174,8 @@ def scanned_to_gt(template: Path, gt_capture: Path | None, obj_id: int) -> np.nd
     if not isinstance(stored_input, str) or not Path(stored_input).is_dir():
         return None
     fmt = stored_format if stored_format in FORMATS else "auto"
+    if isinstance(stored_obj_id, int):  # the object the scan followed (scenes may number it otherwise)
+        obj_id = stored_obj_id
     try:
         return _capture_to_gt(template, Path(stored_input), fmt, obj_id)
     except InputError:

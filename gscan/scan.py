@@ -67,6 +67,7 @@ class ScanOptions:
     resume: bool = False
     force: bool = False
     config: ScanConfig = field(default_factory=ScanConfig)
+    obj_id: int | None = None  # BOP: the object to scan (its masks, ground truth); None: the first one listed
 
 
 @dataclass
@@ -117,7 +118,8 @@ def _register_params(cfg: ScanConfig, mode: str) -> RegisterParams:
                           max_icp_shift_m=r.max_icp_shift_m)
 
 
-RESUME_KEYS = ("input", "format", "intrinsics_sha256", "depth_scale_option", "config", "mode_option", "segment")
+RESUME_KEYS = ("input", "format", "intrinsics_sha256", "depth_scale_option", "config", "mode_option", "segment",
+               "obj_id_option")
 
 
 def _scan_meta(opts: ScanOptions) -> dict:
@@ -129,7 +131,8 @@ def _scan_meta(opts: ScanOptions) -> dict:
             "format": detect_format(opts.input_dir) if opts.fmt == "auto" else opts.fmt,
             "intrinsics_sha256": None if opts.intrinsics is None else _sha256(Path(opts.intrinsics)),
             "depth_scale_option": opts.depth_scale, "config": opts.config.model_dump(), "mode_option": opts.mode,
-            "segment": opts.segment, "descriptor": opts.config.features.kind, "units": "m"}
+            "segment": opts.segment, "obj_id_option": opts.obj_id, "descriptor": opts.config.features.kind,
+            "units": "m"}
 
 
 def _sha256(path: Path) -> str:
@@ -173,7 +176,11 @@ def run_scan(opts: ScanOptions, progress: Progress | None = None) -> ScanResult:
     timer = StageTimer(progress)
     try:
         seq = open_sequence(opts.input_dir, format=opts.fmt, intrinsics=opts.intrinsics,
-                            depth_scale=opts.depth_scale)
+                            depth_scale=opts.depth_scale, obj_id=opts.obj_id)
+        if opts.obj_id is not None and seq.format != "bop":
+            raise InputError(opts.input_dir, f"--obj-id is for BOP scene folders, this is a {seq.format} folder")
+        if opts.obj_id is not None and not seq.gt_T_cam_obj:
+            raise InputError(opts.input_dir / "scene_gt.json", f"holds no pose of object {opts.obj_id} (--obj-id)")
         frames: list[_Frame] = []
         failed: list[tuple[str, InputError]] = []
         with timer.stage("load", total=len(seq)) as advance:
@@ -196,7 +203,8 @@ def run_scan(opts: ScanOptions, progress: Progress | None = None) -> ScanResult:
 
     made = missing_folders(opts.output)
     if db is None:
-        db = TemplateDB.create(opts.output, force=opts.force, meta=_scan_meta(opts))
+        # obj_id: the BOP object the scan followed (its ground truth and masks), for `gscan eval`
+        db = TemplateDB.create(opts.output, force=opts.force, meta=_scan_meta(opts) | {"obj_id": seq.obj_id})
     try:
         if resumed:  # only once the input is known to hold frames: a complete database stays complete
             db.mark_partial()

@@ -177,3 +177,52 @@ def test_scanned_template_is_scored_in_the_ground_truth_frame(sample_template, s
         evaluate(moved, held, tmp_path / "x.csv", gt_capture=no_gt)
     with pytest.raises(InputError, match="CAD template"):
         evaluate(setup[1], held, tmp_path / "y.csv", gt_capture=root / "capture")
+
+
+def _capture_as_bop(capture: Path, folder: Path, obj_id: int, every: int = 1) -> Path:
+    """The capture layout `capture` as a BOP scene folder in which the object is `obj_id`, listed after a
+    decoy object 2 that stays put 0.9 m ahead (so "the first object" is the wrong one)."""
+    import shutil
+
+    from gscan.io import open_sequence
+
+    seq = open_sequence(capture)
+    for d in ("rgb", "depth", "mask"):
+        (folder / d).mkdir(parents=True)
+    cams, gts = {}, {}
+    for name in seq.names[::every]:
+        i = int(name)
+        shutil.copy(capture / "rgb" / f"{name}.jpg", folder / "rgb" / f"{i:06d}.jpg")
+        shutil.copy(capture / "depth" / f"{name}.png", folder / "depth" / f"{i:06d}.png")
+        shutil.copy(capture / "masks" / f"{name}.png", folder / "mask" / f"{i:06d}_000001.png")
+        T = seq.gt_T_cam_obj[name]
+        cams[str(i)] = {"cam_K": seq.intrinsics.K.reshape(-1).tolist(), "depth_scale": 1.0}
+        gts[str(i)] = [{"obj_id": 2, "cam_R_m2c": np.eye(3).reshape(-1).tolist(), "cam_t_m2c": [0, 0, 900]},
+                       {"obj_id": obj_id, "cam_R_m2c": T[:3, :3].reshape(-1).tolist(),
+                        "cam_t_m2c": (T[:3, 3] * 1000).tolist()}]
+    (folder / "scene_camera.json").write_text(json.dumps(cams))
+    (folder / "scene_gt.json").write_text(json.dumps(gts))
+    return folder
+
+
+def test_bop_scan_follows_its_object_and_eval_scores_through_it(tmp_path):
+    """`scan --obj-id` scans one object of a BOP scene of several and the template remembers it; eval relates
+    the template to the ground truth through that object, whatever --obj-id numbers it in the scored scenes.
+    --obj-id is refused for an object scene_gt.json does not hold and for other layouts."""
+    from gscan.scan import ScanOptions, run_scan
+    from gscan.template import TemplateDB
+
+    root = Path(__file__).resolve().parents[1] / "samples"
+    bop = _capture_as_bop(root / "capture", tmp_path / "000003", obj_id=5, every=3)
+    tpl = tmp_path / "obj5.gscan"
+    res = run_scan(ScanOptions(input_dir=bop, output=tpl, obj_id=5))
+    assert res.registered == res.frames == 10
+    with TemplateDB.open(tpl) as db:
+        assert db.get_meta("obj_id") == 5
+    rep = evaluate(tpl, root / "heldout", tmp_path / "r.csv")  # the held-out frames; --obj-id left at 1
+    assert rep.metrics["AUC ADD"] > 95, rep.metrics
+    with pytest.raises(InputError, match="scene_gt.json: holds no pose of object 9"):
+        run_scan(ScanOptions(input_dir=bop, output=tmp_path / "o9.gscan", obj_id=9))
+    with pytest.raises(InputError, match="--obj-id is for BOP"):
+        run_scan(ScanOptions(input_dir=root / "capture", output=tmp_path / "c.gscan", obj_id=5))
+    assert not (tmp_path / "o9.gscan").exists() and not (tmp_path / "c.gscan").exists()

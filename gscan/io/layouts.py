@@ -53,6 +53,7 @@ class Layout:
     gt_T_cam_obj: dict[str, np.ndarray] | None = None
     gt_T_world_cam: dict[str, np.ndarray] | None = None
     problems: dict[str, str] = field(default_factory=dict)
+    obj_id: int | None = None                  # BOP: the object whose scene_gt pose / mask is used
 
 
 def natural_key(s: str) -> tuple:
@@ -302,7 +303,7 @@ def discover_bop(root: Path, obj_id: int | None = None) -> Layout:
                 raise InputError(gt_path, f"malformed entry for image {im_id} ({e.__class__.__name__})") from None
         kept.append(f)
     return Layout("bop", root, kept, 0.001, None, "scene_camera.json", per_frame_K=True,
-                  gt_T_cam_obj=gt, problems=problems)
+                  gt_T_cam_obj=gt, problems=problems, obj_id=obj_id)
 
 
 def detect_format(root: Path) -> str:

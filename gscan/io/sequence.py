@@ -55,7 +55,8 @@ class Sequence:
     Attributes: name (folder name), format ("capture"|"open3d"|"tum"|"bop"), root, names (usable
     frame names in order), intrinsics (sequence / first frame), depth_scale (metres per raw unit),
     gt_T_cam_obj / gt_T_world_cam (name -> [4 x 4], or None when the layout has none),
-    has_masks, problems (name -> reason, frames left out or that failed to load).
+    has_masks, problems (name -> reason, frames left out or that failed to load), obj_id (BOP: the object
+    whose ground truth and masks are used, None for the other layouts or a BOP folder without scene_gt).
     """
 
     def __init__(self, layout: Layout, specs: dict[str, FrameSpec], intrinsics: Intrinsics,
@@ -77,6 +78,7 @@ class Sequence:
             {n: T for n, T in layout.gt_T_world_cam.items() if n in keep}
         self.has_masks: bool = any(s.mask is not None for s in specs.values())
         self.problems: dict[str, str] = problems
+        self.obj_id: int | None = layout.obj_id
 
     def __len__(self) -> int:
         return len(self.names)
