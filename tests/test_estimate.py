@@ -113,6 +113,34 @@ def test_mask_that_clips_the_object_does_not_bias_icp(meshes, estimator):
         assert deg < 1.0 and dist < 0.001, (deg, dist)
 
 
+def test_occluder_leaning_on_the_target(meshes, estimator):
+    """A box standing 3 mm in front of the target (as if leaning on it) hides a third of it: the answer stays
+    within 1 deg and 2 mm, with the visible part's mask and without (no occluder point enters ICP's 5 mm
+    reach but the strips of its sides that touch the target, and they do not pull the pose)."""
+    target, occluder = meshes[0], meshes[2]
+    T_world_tgt = rest_on_table(target, rotvec_to_R([0.0, 0.0, 0.4]))
+    c = transform_points(T_world_tgt, target.center[None])[0]
+    el, az = np.radians(35), np.radians(88)  # facing the target's large printed side
+    eye = c + default_distance(target, fill=0.45) * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az),
+                                                               np.sin(el)])
+    fwd = np.array([c[0] - eye[0], c[1] - eye[1], 0.0])
+    fwd /= np.linalg.norm(fwd)
+    gap = 0.5 * (np.ptp(target.vertices[:, 1]) + np.ptp(occluder.vertices[:, 1])) + 0.003  # thin axes are y
+    xy = c - gap * fwd
+    T_world_occ = rest_on_table(occluder, rotvec_to_R([0.0, 0.0, np.arctan2(fwd[1], fwd[0]) - np.pi / 2]),
+                                xy=(xy[0], xy[1]))
+    T_world_cam = look_at(eye, c)
+    r = SynthScene([(target, T_world_tgt), (occluder, T_world_occ)], seed=5).render(
+        T_world_cam, DEFAULT_INTRINSICS, rng=np.random.default_rng(5))
+    whole = SynthScene([(target, T_world_tgt)], seed=5).render(T_world_cam, DEFAULT_INTRINSICS).mask
+    assert 0.55 < r.mask.sum() / whole.sum() < 0.75
+    for m in (None, r.mask):
+        res = estimator.estimate(as_frame(r), mask=m)
+        assert res.found, res.reason
+        deg, dist = pose_error(res.T_cam_obj, r.T_cam_obj)
+        assert deg < 1.0 and dist < 0.002, (deg, dist)
+
+
 def test_pnp_fallback_without_depth(meshes, estimator):
     r, T_gt = render_scene(meshes[0], meshes[1:], 3)
     frame = as_frame(r, depth=np.zeros_like(r.depth))
