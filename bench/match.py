@@ -2,13 +2,14 @@
 
 Usage (from the repository root):
     python bench/match.py pairs  [--meshes N] [--gaps 20,60,120] [--masks] [--methods M,..] [--eps-f E]
-                                 [--table newspaper|wood|fabric] [--gmatch T=64,eps_c=0.05,..]
+                                 [--table newspaper|wood|fabric|plain] [--gmatch T=64,eps_c=0.05,..]
                                                                       # success rate + time per pair
     python bench/match.py speed  [--inputs DIR] [--repeats 20]        # GMatch search time vs the C++ figures
     python bench/match.py sweep  [--meshes N] [--gap 60] [--kinds rootsift,sift,orb]   # eps_f sweep
 
 pairs: every shared mesh (/work/shared/data/meshes/*/model_0.obj) rests on a textured table (--table:
-a gscan.synth.table_texture kind; newspaper is rich in keypoints, wood and fabric are sparser) and is
+a gscan.synth.table_texture kind; newspaper is rich in keypoints, wood and fabric are sparser, plain has
+almost none, like a lab bench) and is
 rendered by gscan.synth at 640x480 (noisy depth) from cameras at 40 deg elevation, at azimuth 0 and
 at each gap; each (0, gap) pair is registered on whole-frame RootSIFT keypoints (the same keypoints
 for every method), matches only (no ICP). Success: rotation error < 5 deg and translation < 2 cm.
@@ -38,7 +39,7 @@ def render_views(mesh_dir: Path, azimuths_deg: list[float], seed: int, elevation
                  table_kind: str = "newspaper"):
     """[(RGBDFrame, T_world_cam)] of the mesh resting on a table, one per azimuth (640x480, noisy depth).
 
-    table_kind: the table top's texture (gscan.synth.table_texture kind: "newspaper", "wood", "fabric").
+    table_kind: the table top's texture (gscan.synth.table_texture kind: "newspaper", "wood", "fabric", "plain").
     The depth noise of each view depends on (seed, azimuth) only.
     """
     from gscan.camera import RGBDFrame
@@ -220,7 +221,7 @@ def main() -> None:
     a.add_argument("--contrast", type=float, default=0.04,
                    help="SIFT contrast threshold of the keypoints all methods share (OpenCV default 0.04)")
     a.add_argument("--masks", action="store_true", help="keypoints on the object's pixels only (moving-object mode)")
-    a.add_argument("--table", default="newspaper", choices=("newspaper", "wood", "fabric"),
+    a.add_argument("--table", default="newspaper", choices=("newspaper", "wood", "fabric", "plain"),
                    help="table-top texture (gscan.synth.table_texture kind)")
     a.add_argument("--gmatch", default=None, metavar="KEY=VALUE,..",
                    help="GMatchParams overrides for the gmatch method, e.g. T=64,eps_c=0.05")

@@ -1,7 +1,9 @@
-"""Procedural textures: printed product boxes and table surfaces (wood, fabric, newspaper).
+"""Procedural textures: printed product boxes and table surfaces (wood, fabric, newspaper, plain).
 
-Every texture is a deterministic function of its seed and size, rich in non-repeating
-structure so that SIFT finds many distinctive keypoints.
+Every texture is a deterministic function of its seed and size. The prints and the wood, fabric and
+newspaper tables are rich in non-repeating structure so that SIFT finds many distinctive keypoints; the
+plain table (a lab bench's laminate) is nearly featureless, so that a whole frame's keypoints are the
+object's.
 """
 from __future__ import annotations
 
@@ -13,7 +15,7 @@ import numpy as np
 FONTS = (cv2.FONT_HERSHEY_SIMPLEX, cv2.FONT_HERSHEY_PLAIN, cv2.FONT_HERSHEY_DUPLEX, cv2.FONT_HERSHEY_COMPLEX,
          cv2.FONT_HERSHEY_TRIPLEX, cv2.FONT_HERSHEY_COMPLEX_SMALL, cv2.FONT_HERSHEY_SCRIPT_SIMPLEX,
          cv2.FONT_HERSHEY_SCRIPT_COMPLEX)
-TABLE_KINDS = ("newspaper", "wood", "fabric")
+TABLE_KINDS = ("newspaper", "wood", "fabric", "plain")
 _CONSONANTS = "BCDFGHJKLMNPRSTVWXZ"
 _VOWELS = "AEIOUY"
 
@@ -240,16 +242,22 @@ def _fabric(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
     return out
 
 
+def _plain(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
+    base = np.array([196, 196, 190], np.float32) * rng.uniform(0.9, 1.05)  # grey-beige laminate
+    mottle = 1 + 0.03 * smooth_noise(rng, (h, w), 150, 3) + 0.01 * rng.standard_normal((h, w)).astype(np.float32)
+    return np.clip(base * mottle[..., None], 0, 255).astype(np.uint8)
+
+
 @lru_cache(maxsize=8)
 def _table_texture_cached(kind: str, seed: int, size: int) -> np.ndarray:
     rng = np.random.default_rng([seed, 0x7AB1E, TABLE_KINDS.index(kind)])
-    img = {"newspaper": _newspaper, "wood": _wood, "fabric": _fabric}[kind](rng, size, size)
+    img = {"newspaper": _newspaper, "wood": _wood, "fabric": _fabric, "plain": _plain}[kind](rng, size, size)
     img.setflags(write=False)
     return img
 
 
 def table_texture(kind: str = "newspaper", seed: int = 0, size: int = 2048) -> np.ndarray:
-    """[size x size x 3] uint8 RGB table-top texture of `kind` ("newspaper", "wood", "fabric"); read-only, cached."""
+    """[size x size x 3] uint8 RGB table-top texture of `kind` (TABLE_KINDS); read-only, cached."""
     if kind not in TABLE_KINDS:
         raise ValueError(f"unknown table texture {kind!r}; choose one of {TABLE_KINDS}")
     return _table_texture_cached(kind, int(seed), int(size))
