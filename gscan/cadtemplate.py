@@ -80,10 +80,16 @@ def _load_mesh(path: Path, scale: float) -> TexturedMesh:
     if vc is None or len(vc) != len(mesh.vertices):
         return mesh
     face_rgb = np.asarray(vc, dtype=np.float64)[:, :3][mesh.triangles].mean(axis=1)
+    # one texel per face on a square grid (an image side stays far below OpenCV's 32767-pixel limit); all
+    # three corners of a face map to its texel's centre, so it renders flat at the exact colour
     F = len(mesh.triangles)
-    texture = np.clip(np.rint(face_rgb), 0, 255).astype(np.uint8)[None, :, :]  # [1 x F x 3]
-    u = (np.arange(F, dtype=np.float64) + 0.5) / F
-    uv = np.stack([np.repeat(u[:, None], 3, axis=1), np.full((F, 3), 0.5)], axis=-1)  # [F x 3 x 2]
+    side = int(np.ceil(np.sqrt(F)))
+    texture = np.zeros((side * side, 3), np.uint8)
+    texture[:F] = np.clip(np.rint(face_rgb), 0, 255)
+    col, row = np.arange(F) % side, np.arange(F) // side
+    u, v = (col + 0.5) / side, 1.0 - (row + 0.5) / side  # OBJ convention: v = 0 at the image's bottom row
+    uv = np.repeat(np.stack([u, v], axis=1)[:, None, :], 3, axis=1)  # [F x 3 x 2]
+    texture = texture.reshape(side, side, 3)
     log.info("%s: per-vertex colours rendered as flat face colours", path)
     return TexturedMesh(mesh.vertices, mesh.triangles, uv, np.ascontiguousarray(texture), name=mesh.name)
 

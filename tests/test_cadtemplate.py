@@ -89,6 +89,29 @@ def test_vertex_coloured_ply(tmp_path):
         assert v.color[v.mask].std() > 20  # rendered with its colours, not grey
 
 
+def test_template_from_a_scanned_mesh(sample_template, tmp_path, caplog):
+    """A scan's exported PLY (vertex colours, 30k+ faces: more than OpenCV's 32767-pixel image side, which a
+    one-row face-colour texture exceeded) becomes a CAD template that finds the held-out frame's pose as the
+    scanned template does, with no warning about missing colours."""
+    from gscan.estimate import Estimator
+    from gscan.export import export
+    from gscan.geometry import pose_error
+    from gscan.io import load_frame
+
+    ply = tmp_path / "scan.ply"
+    export(sample_template, "ply", ply)
+    out = tmp_path / "from_scan.gscan"
+    with caplog.at_level("WARNING"):
+        build_template_from_mesh(ply, out, n_views=24)
+    assert not [r for r in caplog.records if "flat colour" in r.getMessage()]
+    held = Path(__file__).resolve().parents[1] / "samples" / "heldout"
+    frame = load_frame(held / "rgb" / "000000.jpg", held / "depth" / "000000.png", held / "cam_K.txt", depth_scale=0.001)
+    a, b = Estimator.from_path(out).estimate(frame), Estimator.from_path(sample_template).estimate(frame)
+    assert a.found and b.found, (a.reason, b.reason)
+    deg, m = pose_error(a.T_cam_obj, b.T_cam_obj)
+    assert deg < 1.0 and m < 0.002, (deg, m)
+
+
 @pytest.mark.parametrize("content", [None, b"", b"v 0 0 0\nf 1 2 3\n", b"\x00\x01garbage"])
 def test_bad_mesh_refused_and_nothing_written(tmp_path, content):
     mesh = tmp_path / "bad.obj"

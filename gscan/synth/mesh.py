@@ -124,7 +124,9 @@ def load_textured_mesh(path_obj: str | Path, scale: float = 1.0) -> TexturedMesh
         main = getattr(material, "main_color", None) if material is not None else None
         if main is not None:
             color = np.asarray(main[:3], dtype=np.uint8)
-        log.warning("%s: no texture coordinates or texture image; using a flat colour %s", path, color.tolist())
+        vertex_coloured = getattr(tm.visual, "kind", None) == "vertex"  # callers may render those colours
+        (log.debug if vertex_coloured else log.warning)(
+            "%s: no texture coordinates or texture image; using a flat colour %s", path, color.tolist())
         texture = np.broadcast_to(color, (1, 1, 3)).copy()
         uv = np.full((len(faces), 3, 2), 0.5)
     name = path.parent.name if path.stem.startswith("model") else path.stem
