@@ -264,6 +264,14 @@ def test_output_rules(synth: tuple[Path, dict], tmp_path: Path) -> None:
     export(db_path, "foundationpose", tmp_path / "empty2")
     with pytest.raises(InputError, match="unknown export format"):
         export(db_path, "stl", tmp_path / "x.stl")
+    (out / "keep.txt").write_text("mine")  # a file format aimed at a folder is refused, even with --force
+    for fmt in ("ply", "obj", "glb", "json"):
+        with pytest.raises(InputError, match="output is a folder"):
+            export(db_path, fmt, out, force=True)
+    assert (out / "keep.txt").read_text() == "mine"
+    with pytest.raises(InputError, match="name the file .ply"):  # PLY bytes in a .obj file
+        export(db_path, "ply", tmp_path / "m.obj")
+    assert not (tmp_path / "m.obj").exists()
     assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []  # no temp leftovers
 
 

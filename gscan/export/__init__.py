@@ -77,6 +77,10 @@ def export(db_path: str | Path, fmt: str, out: str | Path, force: bool = False) 
     db_path, out = Path(db_path), Path(out)
     if fmt not in FORMATS:
         raise InputError(out, f"unknown export format {fmt!r}; expected one of {', '.join(FORMATS)}")
+    if fmt in _FILE_FORMATS and out.is_dir():
+        raise InputError(out, f"output is a folder, expected a .{fmt} file path")
+    if fmt in _FILE_FORMATS and out.suffix.lower() in {f".{f}" for f in _FILE_FORMATS} - {f".{fmt}"}:
+        raise InputError(out, f"a {out.suffix} name for {fmt} content; name the file .{fmt}")
     if _occupied(out) and not force:
         raise InputError(out, "output already exists; use --force to overwrite")
     check_output_path(out)
