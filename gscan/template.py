@@ -91,6 +91,13 @@ def _apply(T: np.ndarray, pts: np.ndarray) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------------------- database
+def unregistered_names(views: list[View], skipped: Any) -> list[str]:
+    """The frames a scan could not register, as `scan --json` lists them: the views without a pose (in
+    order), then the input frames it could not read (the "skipped" meta, {name: reason}), each once."""
+    unreg = [v.name for v in views if v.T_obj_cam is None]
+    return unreg + sorted(n for n in (skipped if isinstance(skipped, dict) else {}) if n not in set(unreg))
+
+
 class TemplateDB:
     """A template database file. Use `create` or `open`, never the constructor; close it (or use `with`).
 
@@ -542,15 +549,9 @@ class TemplateDB:
         """The dict `gscan poses --json` prints: {"frames": {name: T_obj_cam}, "unregistered": [names]};
         unregistered as in `scan --json`: the views without a pose, then the input frames the scan could
         not read (its "skipped" meta)."""
-        frames, unreg = {}, []
-        for v in self.views():
-            if v.T_obj_cam is None:
-                unreg.append(v.name)
-            else:
-                frames[v.name] = v.T_obj_cam.tolist()
-        skipped = self.get_meta("skipped")
-        skipped = sorted(n for n in (skipped if isinstance(skipped, dict) else {}) if n not in unreg)
-        return {"frames": frames, "unregistered": unreg + skipped}
+        views = self.views()
+        frames = {v.name: v.T_obj_cam.tolist() for v in views if v.T_obj_cam is not None}
+        return {"frames": frames, "unregistered": unregistered_names(views, self.get_meta("skipped"))}
 
     def load_template(self, keyframes_only: bool = True) -> Template:
         """Everything the estimator needs, loaded once: registered (key)frame views with their keypoints

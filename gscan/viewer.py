@@ -36,7 +36,7 @@ import numpy as np
 from gscan.camera import RGBDFrame
 from gscan.errors import InputError
 from gscan.io import read_pose_file
-from gscan.template import Edge, View
+from gscan.template import Edge, View, unregistered_names
 from gscan.viewer_data import ViewerData, ViewerOptions, load_viewer_data
 from gscan.viewer_draw import draw_keypoints, draw_matches, legend_html
 from gscan.viewer_scene import build_scene
@@ -49,9 +49,9 @@ _SELECT_EDGE = "(select an edge)"
 class PortInUseError(InputError):
     """The viewer's port cannot be bound (exit code 2 in the CLI)."""
 
-    def __init__(self, host: str, port: int, detail: str = "already in use"):
+    def __init__(self, host: str, port: int, detail: str = "already in use", option: str = "--port"):
         self.host, self.port = host, int(port)
-        super().__init__(None, f"cannot serve the viewer on {host}:{port}: {detail}; choose another --port")
+        super().__init__(None, f"cannot serve the viewer on {host}:{port}: {detail}; choose another {option}")
 
 
 # ------------------------------------------------------------------------------------------ helpers
@@ -62,7 +62,7 @@ def check_port(host: str, port: int) -> None:
     try:
         infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
     except socket.gaierror as e:
-        raise PortInUseError(host, port, f"unknown host ({e.strerror})") from None
+        raise PortInUseError(host, port, f"unknown host ({e.strerror})", option="--host") from None
     for family, stype, proto, _, addr in infos[:1]:
         with socket.socket(family, stype, proto) as s:
             s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as asyncio's server does
@@ -257,7 +257,7 @@ def _quiet_websockets() -> None:
 def _build_gui(app: ViewerApp, has_frame: bool, T_cam_obj: np.ndarray | None) -> None:
     gui, d, o = app.server.gui, app.data, app.options
     reg = d.registered
-    unreg = [v.name for v in d.views if v.T_obj_cam is None]
+    unreg = unregistered_names(d.views, d.meta.get("skipped"))  # as `gscan poses` lists them
     acc = sum(e.accepted for e in d.edges)
     loops = sum(e.accepted and e.kind == "loop" for e in d.edges)
     summary = [f"**{d.path.name}** · {d.meta.get('source', 'scan')}  ",

@@ -40,9 +40,10 @@ def build_scene(app: ViewerApp, frame: RGBDFrame | None, T_cam_obj: np.ndarray |
         dist = float(np.median(np.linalg.norm(cams - d.center, axis=1)))
         d0 = cams[0] - d.center
         d0 = d0 - (d0 @ up) * up
-        d0 = d0 / np.linalg.norm(d0) if np.linalg.norm(d0) > 1e-9 else np.cross(up, [1.0, 0.0, 0.0])
-        direction = d0 + 1.6 * up  # above the cameras: the first frustum does not hide the object
-        eye = d.center + direction / np.linalg.norm(direction) * max(1.9 * dist, 2.0 * s)
+        if np.linalg.norm(d0) < 1e-9:  # the first camera straight above: any horizontal direction
+            d0 = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
+        d0 = d0 / np.linalg.norm(d0)
+        eye = d.center + _clear_direction(d0, up, cams - d.center) * max(1.9 * dist, 2.0 * s)
     else:
         eye = d.center + np.array([1.0, 1.0, 1.0]) * 1.5 * s
     # Frustum size: a quarter of the object, less where cameras are dense (half the median spacing).
@@ -134,7 +135,28 @@ def _add_frustum(app: ViewerApp, node: str, intr: Intrinsics, T_obj_cam: np.ndar
     return h
 
 
-def _quat_wxyz(R: np.ndarray) -> np.ndarray:
-    import viser.transforms as vtf
+def _clear_direction(d0: np.ndarray, up: np.ndarray, cam_dirs: np.ndarray) -> np.ndarray:
+    """Unit direction from the object to the start camera: 58 deg above the horizon beyond the first view's
+    camera (horizontal unit d0), unless a view's camera (cam_dirs [N x 3]) lies within 20 deg of it; then the
+    first candidate turned about `up` and tilted that clears every view by 20 deg, or the one clearing them
+    most, so that no frustum and its snapshot hide the object (a CAD template's views cover the sphere)."""
+    side = np.cross(up, d0)
+    cams = cam_dirs / np.maximum(np.linalg.norm(cam_dirs, axis=1, keepdims=True), 1e-12)
+    best, best_gap = None, -1.0
+    for el in np.radians([58.0, 45.0, 70.0, 35.0]):
+        for az in np.radians([0.0, 15.0, -15.0, 30.0, -30.0, 45.0, -45.0, 90.0, -90.0, 135.0, -135.0, 180.0]):
+            c = np.cos(el) * (np.cos(az) * d0 + np.sin(az) * side) + np.sin(el) * up
+            gap = float(np.arccos(np.clip(cams @ c, -1.0, 1.0)).min())
+            if gap >= np.radians(20.0):
+                return c
+            if gap > best_gap:
+                best, best_gap = c, gap
+    return best
 
-    return np.asarray(vtf.SO3.from_matrix(np.asarray(R, dtype=np.float64)).wxyz)
+
+def _quat_wxyz(R: np.ndarray) -> np.ndarray:
+    """Rotation matrix [3 x 3] -> unit quaternion (w, x, y, z), as viser takes it."""
+    from scipy.spatial.transform import Rotation
+
+    x, y, z, w = Rotation.from_matrix(np.asarray(R, dtype=np.float64)).as_quat()
+    return np.array([w, x, y, z])
