@@ -36,7 +36,7 @@ import numpy as np
 
 from gscan.errors import InputError
 from gscan.estimate import Estimator
-from gscan.geometry import inv_T, mean_pose, transform_points
+from gscan.geometry import inv_T, mean_pose, pose_error, transform_points
 from gscan.io import check_output_path, open_sequence
 from gscan.io.layouts import FORMATS, detect_format, discover
 from gscan.metrics import adds as adds_err, add as add_err, ar_mspd, ar_mssd, auc, diameter, mspd, mssd
@@ -139,15 +139,29 @@ def load_model_points(model_path: Path | None, estimator: Estimator) -> np.ndarr
     return np.asarray(pts, dtype=np.float64)
 
 
+GT_AGREEMENT = (3.0, 0.02)  # deg, m: median disagreement of the per-frame template-to-ground-truth transforms
+
+
 def template_to_gt(db_path: Path, gt_T_cam_obj: dict[str, np.ndarray]) -> np.ndarray:
     """T_obj_gt [4 x 4]: the scanned template frame <- ground-truth object frame (DESIGN.md), the mean
-    over the capture's registered frames of T_obj_cam[f] @ T_cam_gt[f]; never from test frames."""
+    over the capture's registered frames of T_obj_cam[f] @ T_cam_gt[f]; never from test frames.
+    InputError when fewer than two frames relate them or when those transforms disagree (median beyond
+    GT_AGREEMENT): the ground truth is not that of the capture the template was scanned from."""
     with TemplateDB.open(db_path, require_complete=True) as db:
         frames = db.poses()["frames"]
     Ts = [np.asarray(frames[n]) @ gt_T_cam_obj[n] for n in frames if n in gt_T_cam_obj]
     if not Ts:
         raise InputError(db_path, "no registered frame has ground truth")
-    return mean_pose(Ts)
+    if len(Ts) < 2:
+        raise InputError(db_path, "only one registered frame has ground truth: too few to check that the ground "
+                         "truth belongs to the capture it was scanned from")
+    T = mean_pose(Ts)
+    errs = np.array([pose_error(Ti, T) for Ti in Ts])
+    deg, m = np.median(errs[:, 0]), np.median(errs[:, 1])
+    if deg > GT_AGREEMENT[0] or m > GT_AGREEMENT[1]:  # frames named alike in another capture
+        raise InputError(db_path, f"its poses disagree with the ground truth (median {deg:.1f} deg / {m * 100:.1f} cm "
+                         f"off over {len(Ts)} frames): not the capture it was scanned from")
+    return T
 
 
 def _csv_row(scene_id: int, im_id: int, obj_id: int, score: float, T: np.ndarray, time_s: float) -> str:
@@ -192,8 +206,10 @@ def _capture_to_gt(template: Path, capture: Path, fmt: str, obj_id: int) -> np.n
                          f"with object {obj_id})")
     try:
         return template_to_gt(template, gt)
-    except InputError:
-        raise InputError(capture, f"none of its ground-truth frames is a registered view of {template}") from None
+    except InputError as e:
+        if e.reason.startswith("no registered frame"):
+            raise InputError(capture, f"none of its ground-truth frames is a registered view of {template}") from None
+        raise InputError(capture, f"as ground truth of {template.name}: {e.reason}") from None
 
 
 def evaluate(template: str | Path, scenes: str | Path, output_csv: str | Path, obj_id: int = 1,

@@ -177,6 +177,8 @@ def test_scanned_template_is_scored_in_the_ground_truth_frame(sample_template, s
         evaluate(moved, held, tmp_path / "x.csv", gt_capture=no_gt)
     with pytest.raises(InputError, match="CAD template"):
         evaluate(setup[1], held, tmp_path / "y.csv", gt_capture=root / "capture")
+    with pytest.raises(InputError, match="disagree with the ground truth"):  # another capture, frames named alike
+        evaluate(moved, held, tmp_path / "z.csv", gt_capture=held)
 
 
 def _capture_as_bop(capture: Path, folder: Path, obj_id: int, every: int = 1) -> Path:
