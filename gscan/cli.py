@@ -116,8 +116,14 @@ def scan(
     opts = ScanOptions(input_dir=input_dir, output=output, fmt=format, intrinsics=intrinsics,
                        depth_scale=depth_scale, mode=mode, segment=not no_segment, resume=resume,
                        force=force, config=load_config(config), obj_id=obj_id)
-    with RichProgress(err, enabled=not json_out or sys.stderr.isatty()) as progress:
-        result = run_scan(opts, progress=progress)
+    try:
+        with RichProgress(err, enabled=not json_out or sys.stderr.isatty()) as progress:
+            result = run_scan(opts, progress=progress)
+    except KeyboardInterrupt:  # Ctrl+C: the partial database is kept for --resume (typer exits 130)
+        resumable = output.exists() and output.stat().st_size > 0
+        _say_interrupted(f"interrupted: {output} keeps the work done so far; run the same command with --resume "
+                         "to continue it" if resumable else "interrupted")
+        raise
     if json_out:
         _print_json(result.to_json())
     else:
@@ -136,7 +142,7 @@ def _print_scan_summary(result: Any) -> None:
     _say((str(result.output), "bold"), f": {result.registered}/{result.frames} frames registered "
               f"({result.mode}), edges {result.edges_accepted} accepted / {result.edges_rejected} rejected, "
               f"mesh {result.mesh_vertices} vertices / {result.mesh_triangles} triangles, "
-              f"{result.keyframes} template views")
+              f"{result.keyframes} keyframes (the views estimate matches)")
     if result.unregistered:
         _say(("unregistered frames:", "yellow"), f" {', '.join(result.unregistered)}")
     for name, reason in result.problems.items():
@@ -423,6 +429,15 @@ def demo(
                on_ready=lambda url: _say("viewer ready at ", (url, "bold"), " (Ctrl+C to stop)"))
 
 
+_interrupt_said = False
+
+
+def _say_interrupted(line: str) -> None:
+    global _interrupt_said
+    err.print(line, markup=False, highlight=False, soft_wrap=True)
+    _interrupt_said = True
+
+
 def main() -> None:
     """Console entry point: maps errors to exit codes (2 bad input, 1 internal)."""
     if sys.stdout is None:  # started with stdout closed (`gscan ... >&-`): what it prints goes nowhere
@@ -432,6 +447,8 @@ def main() -> None:
     os.environ.setdefault("OPENCV_LOG_LEVEL", "SILENT")
     try:
         rc = app(standalone_mode=False)
+        if rc == 130 and not _interrupt_said:  # typer turns Ctrl+C into exit code 130 without a word
+            err.print("interrupted")
         sys.exit(rc if isinstance(rc, int) else 0)
     except _cx.NoArgsIsHelpError as e:  # bare `gscan` or a bare group: show the help
         sys.stdout.write(e.ctx.get_help() + "\n" if e.ctx else "")

@@ -82,15 +82,17 @@ def _count(db: Path, table: str) -> int | None:
         return None
 
 
-def _scan_and_kill(capture: Path, db: Path, ready, resume: bool = False) -> None:
-    """Start `gscan scan capture -o db [--resume]`, SIGKILL it as soon as `ready(db)` holds."""
+def _scan_and_kill(capture: Path, db: Path, ready, resume: bool = False,
+                   sig: int = signal.SIGKILL) -> tuple[int, str, str]:
+    """Start `gscan scan capture -o db [--resume]`, send it `sig` as soon as `ready(db)` holds.
+    Returns (exit code, stdout, stderr); with SIGKILL the scan must have been killed by it."""
     argv = _cli("scan", capture, "-o", db, "--json", *(["--resume"] if resume else []))
     proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     t0 = time.monotonic()
     try:
         while proc.poll() is None and time.monotonic() - t0 < TIMEOUT_S:
             if ready(db):
-                os.kill(proc.pid, signal.SIGKILL)
+                os.kill(proc.pid, sig)
                 break
             time.sleep(0.005)
         proc.wait(timeout=TIMEOUT_S)
@@ -99,7 +101,9 @@ def _scan_and_kill(capture: Path, db: Path, ready, resume: bool = False) -> None
             proc.kill()
             proc.wait()
     out, err = proc.communicate()
-    assert proc.returncode == -signal.SIGKILL, f"the scan ended before it was killed (rc {proc.returncode}): {err!r}"
+    if sig == signal.SIGKILL:
+        assert proc.returncode == -signal.SIGKILL, f"the scan ended before it was killed (rc {proc.returncode}): {err!r}"
+    return proc.returncode, out.decode(), err.decode()
 
 
 def _check_partial(db: Path, capture: Path) -> None:
@@ -180,6 +184,20 @@ def test_kill_before_any_view_then_during_registration_then_resume(capture: Path
     _assert_same(_state(db), ref_state)
     info = _gscan("info", db, "--json")
     assert info.returncode == 0 and json.loads(info.stdout)["status"] == "complete"
+
+
+def test_ctrl_c_keeps_the_partial_scan_and_says_how_to_resume(capture: Path, reference, tmp_path: Path):
+    """Ctrl+C (SIGINT) in the middle of registration: exit 130, nothing on stdout (--json), one last stderr line
+    saying that the work is kept and how to continue; the resumed scan ends as the uninterrupted one."""
+    db = tmp_path / "interrupted.gscan"
+    rc, out, err = _scan_and_kill(capture, db, lambda p: (_count(p, "edges") or 0) >= 2, sig=signal.SIGINT)
+    assert rc == 130 and out == "", (rc, out, err)
+    last = err.strip().splitlines()[-1]
+    assert last.startswith(f"interrupted: {db}") and "--resume" in last and "Traceback" not in err, err
+    _check_partial(db, capture)
+    res = _resume(capture, db)
+    assert res["registered"] == reference[0]["registered"] and res["edges"] == reference[0]["edges"]
+    _assert_same(_state(db), reference[1])
 
 
 def test_resume_refuses_another_input(capture: Path, reference, tmp_path: Path):
