@@ -107,6 +107,11 @@ def _scene_dirs(scenes: Path) -> list[tuple[int, Path]]:
             continue
         out.append((int(p.name) if p.name.isdigit() else i, p))
     if not out:
+        splits = [p.name for p in subs if p.name.startswith(("test", "val", "train")) and any(
+            (q / "scene_camera.json").is_file() for q in p.iterdir() if q.is_dir())]
+        if splits:  # a BOP dataset root: which split is scored is the user's choice
+            raise InputError(scenes, f"a BOP dataset, not a folder of scenes: pass one split's folder "
+                             f"({', '.join(str(scenes / n) for n in splits)})")
         raise InputError(scenes, "neither an RGB-D scene (BOP or capture layout) nor a folder of scenes")
     return out
 

@@ -124,7 +124,12 @@ def test_bad_inputs(setup, tmp_path):
         evaluate(tpl, tmp_path / "empty", tmp_path / "b.csv")
     with pytest.raises(InputError, match="nomodel.ply"):
         evaluate(tpl, capture, tmp_path / "c.csv", model_path=tmp_path / "nomodel.ply")
-    assert not (tmp_path / "a.csv").exists() and not (tmp_path / "c.csv").exists()
+    root = tmp_path / "bop_dataset"  # a BOP dataset root: the split to score is named in the message
+    _write_bop(root / "test" / "000001", setup[4][:1], obj_id=1)
+    (root / "models").mkdir()
+    with pytest.raises(InputError, match=r"a BOP dataset.*bop_dataset/test\)"):
+        evaluate(tpl, root, tmp_path / "d.csv")
+    assert not any((tmp_path / n).exists() for n in ("a.csv", "c.csv", "d.csv"))
 
 
 def test_unreadable_image_is_left_out(setup, tmp_path):
