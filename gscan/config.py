@@ -40,6 +40,7 @@ class MatchConfig(_Section):
 class RegisterConfig(_Section):
     min_matches: int = Field(8, ge=3, description="an edge needs at least this many geometric matches")
     verify: int = Field(16, ge=0, le=256, description="other GMatch hypothesis lists whose support is checked against the longest's (0 = the paper's pick)")
+    support_eps_scale: float = Field(1.5, ge=1, le=4, description="the support of those lists counts pairs with descriptor distance below this x eps_f (1 = GMatch's candidates)")
     icp: bool = Field(False, description="refine each edge by point-to-plane ICP (off: on textured planar scenes ICP slides; GMatch + Kabsch is measured more accurate)")
     icp_max_dist: float = Field(0.01, gt=0, description="ICP correspondence distance (m)")
     icp_voxel: float = Field(0.004, ge=0, description="voxel size for ICP clouds (m), 0 = no downsampling")

@@ -112,7 +112,8 @@ def _register_params(cfg: ScanConfig, mode: str) -> RegisterParams:
     if eps_f is None and mode == STATIC_OBJECT:
         eps_f = WHOLE_FRAME_EPS_F.get(cfg.features.kind)
     gm = GMatchParams(eps_f=eps_f, eps_c=m.eps_c, eta=m.eta, T=m.T, L=m.L, constraint=m.constraint, order=m.order)
-    return RegisterParams(method=m.method, gmatch=gm, min_matches=r.min_matches, verify=r.verify, icp=r.icp,
+    return RegisterParams(method=m.method, gmatch=gm, min_matches=r.min_matches, verify=r.verify,
+                          support_eps_scale=r.support_eps_scale, icp=r.icp,
                           icp_max_dist=r.icp_max_dist, icp_voxel=r.icp_voxel, min_fitness=r.min_fitness,
                           max_rmse=r.max_rmse, max_icp_shift_deg=r.max_icp_shift_deg,
                           max_icp_shift_m=r.max_icp_shift_m)

@@ -9,9 +9,9 @@ import pytest
 from gscan.camera import Intrinsics, RGBDFrame
 from gscan.features import Features, FeatureParams, extract_features
 from gscan.geometry import inv_T, look_at, make_T, pose_error, rotation_angle_deg, rotvec_to_R, transform_points
-from gscan.gmatch import Candidates, GMatchResult
-from gscan.register import (METHODS, PairResult, RegisterParams, frame_cloud, lists_to_verify, pose_by_support,
-                            register_features, relative_pose)
+from gscan.gmatch import GMatchResult
+from gscan.register import (METHODS, GuidedPool, PairResult, RegisterParams, frame_cloud, lists_to_verify,
+                            pose_by_support, register_features, relative_pose)
 
 N_MESHES = 10
 AZIMUTHS = (0.0, 15.0, 30.0, 45.0)  # 4 views per mesh -> pairs at 15, 30 and 45 deg: 6 per mesh, 60 in all
@@ -151,14 +151,38 @@ def test_pose_by_support_replaces_a_weakly_supported_winner():
     true4 = np.stack([np.arange(4)] * 2, 1).astype(np.int32)
     for n_true, chosen in ((12, 1), (7, 0)):  # 12 >= 1.5 x 5 replaces the pick; 7 < 7.5 does not
         idx = np.r_[np.arange(n_true), np.arange(15, 20)].astype(np.int32)
-        cand = Candidates(idx, idx, np.zeros(len(idx), np.float32))
-        k, T_est, kept, refined = pose_by_support(ps, pt, cand, [wrong, true4], RegisterParams())
+        dist = np.ones((20, 20))
+        dist[idx, idx] = 0.0  # the pool: these pairs alone
+        pool = GuidedPool(pt, dist, 0.5)
+        k, T_est, kept, refined = pose_by_support(ps, pt, pool, pool, [wrong, true4], RegisterParams())
         assert k == chosen
         deg, m = pose_error(T_est, (W, T)[chosen])
         assert deg < 1e-6 and m < 1e-9
         assert len(refined) == (5, n_true)[chosen] and len(kept) == (5, 4)[chosen]
     with pytest.raises(ValueError):
-        pose_by_support(ps, pt, cand, [], RegisterParams())
+        pose_by_support(ps, pt, pool, pool, [], RegisterParams())
+
+
+def test_support_counts_look_alike_pairs_but_inliers_stay_candidates():
+    """The support check counts pairs up to support_eps_scale x eps_f: the true 4-pair list has 4 candidate pairs
+    (distance 0.1) and 8 more seen less alike (0.8, beyond eps_f 0.6), so it outsupports the wrong 5-pair pick
+    (12 >= 1.5 x 5) only with the looser bound; its refined inliers are still the 4 candidate pairs."""
+    rng = np.random.default_rng(1)
+    T, W = make_T(rotvec_to_R([0.1, 0.2, -0.3]), [0.02, 0.01, 0.0]), make_T(rotvec_to_R([1.0, 0.0, 0.2]), [0, 0.1, 0])
+    ps = np.array([0.0, 0.0, 0.6]) + rng.uniform(-0.1, 0.1, (20, 3))
+    pt = transform_points(T, ps)
+    pt[15:] = transform_points(W, ps[15:])
+    dist = np.ones((20, 20))
+    dist[np.arange(4), np.arange(4)] = 0.1
+    dist[np.arange(4, 12), np.arange(4, 12)] = 0.8
+    dist[np.arange(15, 20), np.arange(15, 20)] = 0.1
+    wrong = np.stack([np.arange(15, 20)] * 2, 1).astype(np.int32)
+    true4 = np.stack([np.arange(4)] * 2, 1).astype(np.int32)
+    strict, loose = GuidedPool(pt, dist, 0.6), GuidedPool(pt, dist, 0.9)
+    assert pose_by_support(ps, pt, strict, strict, [wrong, true4], RegisterParams())[0] == 0
+    k, T_est, kept, refined = pose_by_support(ps, pt, loose, strict, [wrong, true4], RegisterParams())
+    assert k == 1 and pose_error(T_est, T)[0] < 1e-4
+    np.testing.assert_array_equal(np.sort(refined, axis=0), true4)  # (in residual order)
 
 
 def test_support_check_fixes_a_rendered_pair(meshes_dir):
@@ -174,7 +198,8 @@ def test_support_check_fixes_a_rendered_pair(meshes_dir):
     views = _render_views(d, seed=16, azimuths=(0.0, 60.0), table_kind="wood")
     fs, ft = [extract_features(v[0], FeatureParams(kind="rootsift"), mask=v[0].mask) for v in views]
     T_gt = relative_pose(views[0][1], views[1][1])
-    res = gmatch(fs.points, ft.points, descriptor_distances(fs.descriptors, ft.descriptors, fs.kind), 0.6)
+    dist = descriptor_distances(fs.descriptors, ft.descriptors, fs.kind)
+    res = gmatch(fs.points, ft.points, dist, 0.6)
     r = register_features(fs, ft, RegisterParams(icp=False))
     deg, m = pose_error(r.T_tgt_src, T_gt)
     assert deg < 5.0 and m < 0.02
@@ -187,7 +212,8 @@ def test_support_check_fixes_a_rendered_pair(meshes_dir):
     np.testing.assert_array_equal(r0.matches, res.matches)
     ps, pt = fs.points.astype(np.float64), ft.points.astype(np.float64)
     T0, _ = kabsch_trimmed(ps[res.matches[:, 0]], pt[res.matches[:, 1]], 0.008)
-    T0, inl0 = refine_pose(ps, pt, res.candidates, T0, RegisterParams().refine_taus, len(res.matches))
+    pool = GuidedPool(pt, dist, 0.6)  # guided refinement: GMatch's candidates
+    T0, inl0 = refine_pose(ps, pt, pool, T0, RegisterParams().refine_taus, len(res.matches))
     np.testing.assert_allclose(r0.T_tgt_src, T0, atol=1e-12)
     assert pose_error(r0.T_tgt_src, T_gt)[0] > 90.0  # the paper's pick alone is wrong here
 
