@@ -32,13 +32,21 @@ Pipeline of `Estimator.estimate` (every stage timed, `EstimateResult.timings_ms`
    query depth in front, count for neither). Not found (T_cam_obj None, `reason`) when the best
    list has fewer than `min_matches` matches, the score is below `min_score`, or too few visible
    points are confirmed by the depth.
+7. support plane: when the frame has a dominant plane (`gscan.segment.support_plane`), a pose that puts
+   more than `max_below_frac` of the template's points deeper than `below_tol` into it is not found
+   (an object rests on the table; such a pose fits the object's print to the table's texture, its face
+   flush with the table top, and the depth agrees). Applies to the PnP poses below too.
 
 Without usable query depth (valid fraction of the search region < `min_depth_frac`) the pose is
 solved 2D-3D: the query keypoints are detected without depth lifting, matched by descriptor
 (nearest + ratio test within each retrieved view; a keypoint matched in several views keeps its
 closest match, so inliers count distinct keypoints) to the template's object-frame points, and the
 pose is estimated by LO-RANSAC PnP + refinement (pycolmap `estimate_and_refine_absolute_pose`);
-score = inlier fraction. No ICP in that mode.
+score = inlier fraction. No ICP in that mode. The same 2D-3D solve is tried after a failed 3D-3D
+estimate on the search region's pixels without depth (`pnp_in_holes`), when they are at least
+`hole_min_frac` of it: a dark, shiny or transparent object leaves a hole in otherwise good depth, its
+keypoints cannot be lifted, and GMatch sees only the background (held-out sample frames with the
+object's depth erased: found in 4 of 4, <= 0.5 deg / 0.6 mm from the full-depth pose).
 """
 from __future__ import annotations
 
@@ -47,6 +55,7 @@ import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from gscan.camera import Intrinsics, RGBDFrame, backproject
@@ -56,7 +65,7 @@ from gscan.features import (OBJECT_FEATURES, FeatureParams, Features, descriptor
 from gscan.geometry import inv_T, kabsch_trimmed, transform_points
 from gscan.gmatch import GMatchParams, default_eps_f, gmatch
 from gscan.pointcloud import coincident_groups, icp_point_to_plane, pca_normals, voxel_down_indices, voxel_mean
-from gscan.segment import off_plane_region
+from gscan.segment import Plane, in_front_of, support_plane
 from gscan.template import Template, open_template
 
 log = logging.getLogger(__name__)
@@ -91,9 +100,14 @@ class EstimateParams:
     pnp_max_error_px: float = 4.0  # RANSAC reprojection threshold
     pnp_min_inliers: int = 12
     pnp_min_inlier_ratio: float = 0.25  # PnP inliers / 2D-3D matches below this -> not found
+    pnp_in_holes: bool = True  # after a failed 3D-3D estimate, try PnP on the pixels without depth
+    hole_min_frac: float = 0.02  # ... when at least this fraction of the search region lacks depth
+    hole_dilate_px: int = 4  # ... grown by this many pixels (keypoints at a hole's border)
     remove_plane: bool = True  # without a mask: leave out the dominant plane (table) from the search region
     plane_min_frac: float = 0.3  # a plane counts as dominant when it holds this fraction of the valid depth
     plane_iterations: int = 64  # RANSAC plane hypotheses (seeded)
+    below_tol: float = 0.015  # m: a template point this far behind the support plane is inside it ...
+    max_below_frac: float = 0.2  # ... and a pose with more such points is not found
 
 
 @dataclass
@@ -115,13 +129,14 @@ class EstimateResult:
         return self.T_cam_obj is not None
 
     def to_json(self) -> dict:
-        """The `gscan estimate --json` object (DESIGN.md); matrices as nested lists, metres."""
+        """The `gscan estimate --json` object (DESIGN.md, plus "method": "gmatch" | "pnp"); matrices as nested
+        lists, metres."""
         def mat(T: np.ndarray | None) -> list[list[float]] | None:
             return None if T is None else [[float(x) for x in row] for row in np.asarray(T)]
 
         return {"T_cam_obj": mat(self.T_cam_obj), "score": float(self.score), "n_matches": int(self.n_matches),
                 "view": self.view, "reason": self.reason, "grasps": {k: mat(v) for k, v in self.grasps.items()},
-                "timings_ms": {k: float(self.timings_ms.get(k, 0.0)) for k in STAGES}}
+                "timings_ms": {k: float(self.timings_ms.get(k, 0.0)) for k in STAGES}, "method": self.method}
 
 
 class Estimator:
@@ -190,9 +205,11 @@ class Estimator:
         use_pnp = depth_frac < self.params.min_depth_frac
 
         t = time.perf_counter()
-        off_plane = None
-        if mask is None and not use_pnp and self.params.remove_plane:
-            off_plane = off_plane_region(frame, self.params.plane_min_frac, self.params.plane_iterations)
+        plane = off_plane = None
+        if not use_pnp and self.params.remove_plane:
+            plane = support_plane(frame, self.params.plane_min_frac, self.params.plane_iterations)
+            if mask is None and plane is not None:
+                off_plane = in_front_of(frame, plane)
         search = mask if mask is not None else off_plane
         feats = self._features(frame, search, lift=not use_pnp)
         tm["features"] = _ms(t)
@@ -203,8 +220,31 @@ class Estimator:
         S, views = self._retrieve(feats.descriptors)
         tm["retrieval"] = _ms(t)
         if use_pnp:
-            return self._estimate_pnp(frame, feats, S, views, tm, t_all)
+            res = self._estimate_pnp(frame, feats, S, views, tm, t_all)
+            if not res.found:
+                res.reason += " (query depth unusable)"
+            return res
+        res = self._estimate_gmatch(frame, feats, S, views, off_plane, refine, tm, t_all)
+        if not res.found:
+            res = self._pnp_without_depth(frame, region, res, tm, t_all)
+        return self._above(plane, res, tm, t_all)
 
+    def _above(self, plane: Plane | None, res: EstimateResult, tm: dict[str, float], t_all: float) -> EstimateResult:
+        """`res`, or not found when its pose sinks more than `max_below_frac` of the template's points deeper
+        than `below_tol` into the frame's support plane (camera frame): an object rests on the table, and a
+        pose that puts it inside matched the table's texture (a flat print of the object, look-alike print)."""
+        if not res.found or plane is None:
+            return res
+        below = float(np.mean(plane.height(transform_points(res.T_cam_obj, self.cloud_icp)) < -self.params.below_tol))
+        if below <= self.params.max_below_frac:
+            return res
+        return self._fail(tm, t_all, f"pose puts {below:.0%} of the object inside the support plane", res.n_matches,
+                          res.view, res.score, res.method)
+
+    def _estimate_gmatch(self, frame: RGBDFrame, feats: Features, S: np.ndarray, views: list[int],
+                         off_plane: np.ndarray | None, refine: bool, tm: dict[str, float],
+                         t_all: float) -> EstimateResult:
+        """Stages 3-6 (module docstring) on the lifted query keypoints."""
         t = time.perf_counter()
         best = None  # (n, -cost, view, matches)
         q_groups = coincident_groups(feats.points)
@@ -356,6 +396,39 @@ class Estimator:
         n_c, n_b = int(consistent.sum()), int(behind.sum())
         return n_c / max(1, n_c + n_b), n_c / len(pc)
 
+    def _pnp_without_depth(self, frame: RGBDFrame, region: np.ndarray, failed: EstimateResult,
+                           tm: dict[str, float], t_all: float) -> EstimateResult:
+        """After a failed 3D-3D estimate: 2D-3D PnP on the search region's pixels without depth (dilated by
+        `hole_dilate_px`), where a dark, shiny or transparent object leaves holes in otherwise good depth and its
+        keypoints were dropped unlifted. Returns the PnP result when it finds the object, else `failed` with
+        PnP's reason appended. Skipped when less than `hole_min_frac` of the region lacks depth."""
+        p = self.params
+        holes = (frame.depth <= 0) & region
+        frac = float(holes.sum()) / max(1, int(region.sum()))
+        if not p.pnp_in_holes or frac < p.hole_min_frac:
+            return failed
+        k = 2 * p.hole_dilate_px + 1
+        holes = cv2.dilate(holes.astype(np.uint8), np.ones((k, k), np.uint8)).astype(bool) & region
+        t = time.perf_counter()
+        feats = self._features(frame, holes, lift=False)
+        tm["features"] += _ms(t)
+        pnp_tm = {key: 0.0 for key in STAGES}
+        if len(feats) >= 3:
+            t = time.perf_counter()
+            S, views = self._retrieve(feats.descriptors)
+            tm["retrieval"] += _ms(t)
+            res = self._estimate_pnp(frame, feats, S, views, pnp_tm, t_all)
+        else:
+            res = self._fail(pnp_tm, t_all, "too few keypoints", method="pnp")
+        for key in ("match", "solve"):
+            tm[key] += pnp_tm[key]
+        tm["total"] = _ms(t_all)
+        res.timings_ms = tm
+        if res.found:
+            return res
+        failed.reason = f"{failed.reason}; PnP on the {frac:.0%} of pixels without depth: {res.reason}"
+        return failed
+
     # ------------------------------------------------------------------------------------------------
     def _estimate_pnp(self, frame: RGBDFrame, feats: Features, S: np.ndarray, views: list[int],
                       tm: dict[str, float], t_all: float) -> EstimateResult:
@@ -387,7 +460,7 @@ class Estimator:
             qi, ti = qi[keep], ti[keep]
         tm["match"] = _ms(t)
         if not q_idx or len(qi) < p.pnp_min_inliers:
-            return self._fail(tm, t_all, "too few 2D-3D matches for PnP (query depth unusable)", method="pnp")
+            return self._fail(tm, t_all, "too few 2D-3D matches for PnP", method="pnp")
         t = time.perf_counter()
         intr = frame.intrinsics
         cam = pycolmap.Camera(model="PINHOLE", width=intr.width, height=intr.height,

@@ -13,7 +13,7 @@ cylindrical working volume (axis along the plane normal), and every frame is seg
 that volume, so all masks agree with each other.
 
 Pose estimation's search region (`off_plane_region`): the pixels in front of a query frame's dominant
-plane, by a faster RANSAC on a strided cloud. Both plane finders share `ransac_plane`.
+plane (`support_plane`, a faster RANSAC on a strided cloud). Both plane finders share `ransac_plane`.
 
 Planes: `height(p) = normal . p + offset`, normal pointing up (towards the cameras).
 """
@@ -181,17 +181,13 @@ def fit_support_plane(points: np.ndarray, viewpoint: np.ndarray,
     return plane
 
 
-def off_plane_region(frame: RGBDFrame, min_frac: float = 0.3, iterations: int = 64, stride: int = 6
-                     ) -> np.ndarray | None:
-    """[H x W] bool: valid-depth pixels in front of the frame's dominant plane (a table top), or None
-    when no plane holds `min_frac` of the valid depth. For pose estimation, where it must be fast:
-    `ransac_plane` on every `stride`-th pixel (seeded, deterministic; inliers within 6 mm + 0.5 % of
-    the depth) over `iterations` hypotheses with at most 5 % of the points behind them (so a large
-    object face seen head-on is never taken for the table), least-squares refit on the inliers; a
-    pixel is off the plane when it lies on the camera's side by more than 8 mm + 0.5 % of its depth."""
-    depth = frame.depth
-    P = backproject(depth, frame.intrinsics)
-    sub = P[::stride, ::stride].reshape(-1, 3).astype(np.float64)
+def support_plane(frame: RGBDFrame, min_frac: float = 0.3, iterations: int = 64, stride: int = 6) -> Plane | None:
+    """The frame's dominant plane (a table top) in its camera frame, normal towards the camera, or None when
+    no plane holds `min_frac` of the valid depth. For pose estimation, where it must be fast: `ransac_plane`
+    on every `stride`-th pixel (seeded, deterministic; inliers within 6 mm + 0.5 % of the depth) over
+    `iterations` hypotheses with at most 5 % of the points behind them (so a large object face seen head-on
+    is never taken for the table), least-squares refit on the inliers."""
+    sub = backproject(frame.depth, frame.intrinsics)[::stride, ::stride].reshape(-1, 3).astype(np.float64)
     sub = sub[sub[:, 2] > 0]
     if len(sub) < 100:
         return None
@@ -204,12 +200,27 @@ def off_plane_region(frame: RGBDFrame, min_frac: float = 0.3, iterations: int = 
     normal = np.linalg.svd(sub[inl] - cen, full_matrices=False)[2][2]
     if normal @ cen > 0:  # orient the normal towards the camera (origin)
         normal = -normal
-    hp = (P.reshape(-1, 3).astype(np.float64) - cen) @ normal  # signed height above the plane, camera side > 0
+    return Plane(normal, float(-normal @ cen))
+
+
+def in_front_of(frame: RGBDFrame, plane: Plane) -> np.ndarray | None:
+    """[H x W] bool: valid-depth pixels on the camera's side of `plane` (camera frame) by more than 8 mm +
+    0.5 % of their depth, or None when they are fewer than 0.2 % of the frame (nothing stands on it)."""
+    depth = frame.depth
+    hp = plane.height(backproject(depth, frame.intrinsics).reshape(-1, 3))
     z = depth.reshape(-1)
     region = (z > 0) & (hp > 0.008 + 0.005 * z)
-    if region.mean() < 0.002:  # nothing stands on the plane
+    if region.mean() < 0.002:
         return None
     return region.reshape(depth.shape)
+
+
+def off_plane_region(frame: RGBDFrame, min_frac: float = 0.3, iterations: int = 64, stride: int = 6
+                     ) -> np.ndarray | None:
+    """`in_front_of` the frame's `support_plane`: the pixels standing off the table, or None without a plane
+    or with nothing on it."""
+    plane = support_plane(frame, min_frac, iterations, stride)
+    return None if plane is None else in_front_of(frame, plane)
 
 
 def _depth_edges(depth: np.ndarray, rel: float) -> np.ndarray:

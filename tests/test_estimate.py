@@ -141,6 +141,68 @@ def test_occluder_leaning_on_the_target(meshes, estimator):
         assert deg < 1.0 and dist < 0.002, (deg, dist)
 
 
+def test_object_without_depth_in_a_frame_with_depth(meshes, estimator, template):
+    """A dark or shiny object leaves a hole in good depth: its keypoints cannot be lifted and GMatch sees only
+    the background. PnP on the pixels without depth finds it (method "pnp"); switched off, the reason says what
+    was tried. In a scene without the target, holes punched into the distractors' depth find nothing."""
+    r, T_gt = render_scene(meshes[0], meshes[1:], 0)
+    depth = r.depth.copy()
+    depth[r.mask] = 0.0
+    res = estimator.estimate(as_frame(r, depth))
+    assert res.found and res.method == "pnp", res.reason
+    deg, dist = pose_error(res.T_cam_obj, T_gt)
+    assert deg < 2.0 and dist < 0.01, (deg, dist)
+    from gscan.estimate import EstimateParams
+
+    off = Estimator.from_path(template, EstimateParams(pnp_in_holes=False)).estimate(as_frame(r, depth))
+    assert not off.found and "PnP" not in off.reason
+    r0, _ = render_scene(meshes[0], meshes[1:], 1, with_target=False)  # holes in a scene without the target
+    depth0 = r0.depth.copy()
+    depth0[r0.labels >= 0] = 0.0
+    assert not estimator.estimate(as_frame(r0, depth0)).found
+
+
+def test_pose_inside_the_support_plane_is_refused(meshes, estimator, template):
+    """No target, and no depth on the distractors: nothing stands on the table, so the whole frame is searched,
+    and GMatch fits the box's flat print to the newspaper table, its face flush with the table top (the depth
+    agrees: score 1.0). An object rests on the table; this pose puts half of it inside, and is refused."""
+    from gscan.estimate import EstimateParams
+
+    r0, _ = render_scene(meshes[0], meshes[1:], 0, with_target=False)
+    depth0 = r0.depth.copy()
+    depth0[r0.labels >= 0] = 0.0
+    res = estimator.estimate(as_frame(r0, depth0))
+    assert not res.found and "inside the support plane" in res.reason, res.reason
+    lax = Estimator.from_path(template, EstimateParams(max_below_frac=1.0)).estimate(as_frame(r0, depth0))
+    assert lax.found and lax.score > 0.9  # what the rule refuses
+
+
+def test_flat_printout_of_the_object_is_not_found(meshes, estimator, template):
+    """A 1 mm thick print of the target lying on the table is not the object: its print matches and the depth
+    agrees with the box's face flush with the table, but the box would sink into the table (these three views
+    were found with score 1.0 before the support-plane rule)."""
+    from gscan.estimate import EstimateParams
+    from gscan.synth.mesh import TexturedMesh
+
+    v = meshes[0].vertices.copy()
+    v[:, 1] = v[:, 1].mean() + 0.02 * (v[:, 1] - v[:, 1].mean())  # the box's thin axis (y) squashed to 1 mm
+    flat = TexturedMesh(v, meshes[0].triangles, meshes[0].uv, meshes[0].texture, name="printout")
+    lax = Estimator.from_path(template, EstimateParams(max_below_frac=1.0))
+    for seed in (0, 3, 4):
+        rng = np.random.default_rng(seed)
+        lying = rotvec_to_R([0, 0, rng.uniform(0, 2 * np.pi)]) @ rotvec_to_R([np.pi / 2, 0, 0])  # print face up
+        T_world_flat = rest_on_table(flat, lying)
+        c = transform_points(T_world_flat, flat.center[None])[0]
+        el, az = np.radians(rng.uniform(35, 70)), rng.uniform(0, 2 * np.pi)
+        eye = c + default_distance(meshes[0], fill=0.45) * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az),
+                                                                     np.sin(el)])
+        r = SynthScene([(flat, T_world_flat)], seed=seed).render(look_at(eye, c), DEFAULT_INTRINSICS,
+                                                                 rng=np.random.default_rng(seed))
+        res = estimator.estimate(as_frame(r))
+        assert not res.found and "inside the support plane" in res.reason, (seed, res.reason)
+        assert lax.estimate(as_frame(r)).found
+
+
 def test_pnp_fallback_without_depth(meshes, estimator):
     r, T_gt = render_scene(meshes[0], meshes[1:], 3)
     frame = as_frame(r, depth=np.zeros_like(r.depth))
@@ -169,7 +231,7 @@ def test_grasps_json_contract(meshes, template, tmp_path):
     np.testing.assert_allclose(res.grasps["top"], res.T_cam_obj @ T_obj_grasp, atol=1e-12)
     np.testing.assert_allclose(res.grasps["side"], res.T_cam_obj, atol=1e-12)
     out = json.loads(json.dumps(res.to_json()))
-    assert list(out) == ["T_cam_obj", "score", "n_matches", "view", "reason", "grasps", "timings_ms"]
+    assert list(out) == ["T_cam_obj", "score", "n_matches", "view", "reason", "grasps", "timings_ms", "method"]
     assert np.asarray(out["T_cam_obj"]).shape == (4, 4) and out["reason"] is None
     assert isinstance(out["score"], float) and isinstance(out["n_matches"], int) and isinstance(out["view"], str)
     assert {k: np.asarray(v).shape for k, v in out["grasps"].items()} == {"top": (4, 4), "side": (4, 4)}
