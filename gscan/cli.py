@@ -120,14 +120,27 @@ def scan(
         with RichProgress(err, enabled=not json_out or sys.stderr.isatty()) as progress:
             result = run_scan(opts, progress=progress)
     except KeyboardInterrupt:  # Ctrl+C: the partial database is kept for --resume (typer exits 130)
-        resumable = output.exists() and output.stat().st_size > 0
-        _say_interrupted(f"interrupted: {output} keeps the work done so far; run the same command with --resume "
-                         "to continue it" if resumable else "interrupted")
+        _say_interrupted(_interrupted_scan_line(output, force))
         raise
     if json_out:
         _print_json(result.to_json())
     else:
         _print_scan_summary(result)
+
+
+def _interrupted_scan_line(output: Path, force: bool) -> str:
+    """What an interrupted scan left: a partial database to resume, or the output as it was."""
+    from gscan.template import TemplateDB
+
+    try:
+        with TemplateDB.open(output, require_complete=False) as db:
+            partial = db.status == "partial"
+    except Exception:  # noqa: BLE001 - no database (yet), or an unreadable one: nothing to resume
+        partial = False
+    if partial:
+        how = "--resume instead of --force" if force else "--resume"
+        return f"interrupted: {output} keeps the work done so far; run the command again with {how} to continue it"
+    return f"interrupted: {output} was left as it was" if output.exists() else "interrupted: nothing was written"
 
 
 def _print_scan_summary(result: Any) -> None:

@@ -32,10 +32,11 @@ Pipeline of `Estimator.estimate` (every stage timed, `EstimateResult.timings_ms`
    query depth in front, count for neither). Not found (T_cam_obj None, `reason`) when the best
    list has fewer than `min_matches` matches, the score is below `min_score`, or too few visible
    points are confirmed by the depth.
-7. support plane: when the frame has a dominant plane (`gscan.segment.support_plane`), a pose that puts
-   more than `max_below_frac` of the template's points deeper than `below_tol` into it is not found
-   (an object rests on the table; such a pose fits the object's print to the table's texture, its face
-   flush with the table top, and the depth agrees). Applies to the PnP poses below too.
+7. support plane (without a mask): when the frame has a dominant plane (`gscan.segment.support_plane`),
+   a pose that puts more than `max_below_frac` of the template's points deeper than `below_tol` into it
+   is not found (an object rests on the table; such a pose fits the object's print to the table's
+   texture, its face flush with the table top, and the depth agrees), unless most of the plane lies
+   inside the pose's silhouette (then the plane is the object's own face). Applies to PnP poses too.
 
 Without usable query depth (valid fraction of the search region < `min_depth_frac`) the pose is
 solved 2D-3D: the query keypoints are detected without depth lifting, matched by descriptor
@@ -43,10 +44,11 @@ solved 2D-3D: the query keypoints are detected without depth lifting, matched by
 closest match, so inliers count distinct keypoints) to the template's object-frame points, and the
 pose is estimated by LO-RANSAC PnP + refinement (pycolmap `estimate_and_refine_absolute_pose`);
 score = inlier fraction. No ICP in that mode. The same 2D-3D solve is tried after a failed 3D-3D
-estimate on the search region's pixels without depth (`pnp_in_holes`), when they are at least
-`hole_min_frac` of it: a dark, shiny or transparent object leaves a hole in otherwise good depth, its
-keypoints cannot be lifted, and GMatch sees only the background (held-out sample frames with the
-object's depth erased: found in 4 of 4, <= 0.5 deg / 0.6 mm from the full-depth pose).
+estimate on the search region's holes in the depth (`pnp_in_holes`; holes a 15 px square fits in, at least
+`hole_min_frac` of the region): a dark, shiny or transparent object leaves a hole in otherwise good depth,
+its keypoints cannot be lifted, and GMatch sees only the background (held-out sample frames with the
+object's depth erased: found in 4 of 4, <= 0.5 deg / 0.6 mm from the full-depth pose). Such a pose is
+refused when the measured depth would be seen through more than `max_see_through` of the object.
 """
 from __future__ import annotations
 
@@ -101,8 +103,10 @@ class EstimateParams:
     pnp_min_inliers: int = 12
     pnp_min_inlier_ratio: float = 0.25  # PnP inliers / 2D-3D matches below this -> not found
     pnp_in_holes: bool = True  # after a failed 3D-3D estimate, try PnP on the pixels without depth
-    hole_min_frac: float = 0.02  # ... when at least this fraction of the search region lacks depth
+    hole_min_frac: float = 0.01  # ... when at least this fraction of the search region lacks depth
+    hole_open_px: int = 7  # ... counting holes that a (2r+1)-pixel square fits in (no speckle, no shadow band)
     hole_dilate_px: int = 4  # ... grown by this many pixels (keypoints at a hole's border)
+    max_see_through: float = 0.2  # ... and its pose refused when the depth shows through more of the object
     remove_plane: bool = True  # without a mask: leave out the dominant plane (table) from the search region
     plane_min_frac: float = 0.3  # a plane counts as dominant when it holds this fraction of the valid depth
     plane_iterations: int = 64  # RANSAC plane hypotheses (seeded)
@@ -206,37 +210,50 @@ class Estimator:
 
         t = time.perf_counter()
         plane = off_plane = None
-        if not use_pnp and self.params.remove_plane:
+        if mask is None and not use_pnp and self.params.remove_plane:  # a given mask is the search region
             plane = support_plane(frame, self.params.plane_min_frac, self.params.plane_iterations)
-            if mask is None and plane is not None:
-                off_plane = in_front_of(frame, plane)
+            off_plane = None if plane is None else in_front_of(frame, plane)
         search = mask if mask is not None else off_plane
         feats = self._features(frame, search, lift=not use_pnp)
         tm["features"] = _ms(t)
         if len(feats) < 3:
-            return self._fail(tm, t_all, "too few keypoints in the query frame" + (" mask" if mask is not None else ""))
-
-        t = time.perf_counter()
-        S, views = self._retrieve(feats.descriptors)
-        tm["retrieval"] = _ms(t)
-        if use_pnp:
+            res = self._fail(tm, t_all, "too few keypoints in the query frame" + (" mask" if mask is not None else ""))
+        elif use_pnp:
+            t = time.perf_counter()
+            S, views = self._retrieve(feats.descriptors)
+            tm["retrieval"] = _ms(t)
             res = self._estimate_pnp(frame, feats, S, views, tm, t_all)
             if not res.found:
                 res.reason += " (query depth unusable)"
             return res
-        res = self._estimate_gmatch(frame, feats, S, views, off_plane, refine, tm, t_all)
-        if not res.found:
+        else:
+            t = time.perf_counter()
+            S, views = self._retrieve(feats.descriptors)
+            tm["retrieval"] = _ms(t)
+            res = self._estimate_gmatch(frame, feats, S, views, off_plane, refine, tm, t_all)
+        if not res.found and not use_pnp:
             res = self._pnp_without_depth(frame, region, res, tm, t_all)
-        return self._above(plane, res, tm, t_all)
+        return self._above(frame, plane, res, tm, t_all)
 
-    def _above(self, plane: Plane | None, res: EstimateResult, tm: dict[str, float], t_all: float) -> EstimateResult:
+    def _above(self, frame: RGBDFrame, plane: Plane | None, res: EstimateResult, tm: dict[str, float],
+               t_all: float) -> EstimateResult:
         """`res`, or not found when its pose sinks more than `max_below_frac` of the template's points deeper
         than `below_tol` into the frame's support plane (camera frame): an object rests on the table, and a
-        pose that puts it inside matched the table's texture (a flat print of the object, look-alike print)."""
+        pose that puts it inside matched the table's texture (a flat print of the object, look-alike print).
+        Not applied when most of the plane's pixels lie inside the object's predicted silhouette: then the
+        "plane" is the object's own face (a close-up)."""
         if not res.found or plane is None:
             return res
         below = float(np.mean(plane.height(transform_points(res.T_cam_obj, self.cloud_icp)) < -self.params.below_tol))
         if below <= self.params.max_below_frac:
+            return res
+        _, _, uv = self._visible(res.T_cam_obj, frame.intrinsics, self.cloud_icp)
+        sil = np.zeros(frame.depth.shape, np.uint8)
+        if len(uv) >= 3:
+            cv2.fillConvexPoly(sil, cv2.convexHull(uv.astype(np.int32)), 1)
+        P = backproject(frame.depth, frame.intrinsics)
+        on_plane = (frame.depth > 0) & (np.abs(plane.height(P.reshape(-1, 3))).reshape(frame.depth.shape) < 0.01)
+        if (on_plane & (sil > 0)).sum() > 0.5 * on_plane.sum():
             return res
         return self._fail(tm, t_all, f"pose puts {below:.0%} of the object inside the support plane", res.n_matches,
                           res.view, res.score, res.method)
@@ -382,9 +399,17 @@ class Estimator:
         """(score, confirmed) of the visible template cloud at T_cam_obj: score = consistent /
         (consistent + see-through), confirmed = consistent / visible. With `region` ([H x W] bool, the
         off-plane pixels) a point only counts as consistent inside it."""
+        n_c, n_b, n = self._depth_votes(frame, T_cam_obj, region)
+        return n_c / max(1, n_c + n_b), n_c / max(1, n)
+
+    def _depth_votes(self, frame: RGBDFrame, T_cam_obj: np.ndarray, region: np.ndarray | None = None
+                     ) -> tuple[int, int, int]:
+        """(consistent, see-through, visible) counts of the template cloud's points visible at T_cam_obj:
+        consistent when the query depth agrees within the tolerance, see-through when the query surface lies
+        behind the predicted object (a point over a pixel without depth counts for neither)."""
         _, pc, uv = self._visible(T_cam_obj, frame.intrinsics, self.cloud_icp)
         if len(pc) == 0:
-            return 0.0, 0.0
+            return 0, 0, 0
         zq = frame.depth[uv[:, 1], uv[:, 0]].astype(np.float64)
         z = pc[:, 2]
         tol = self.params.depth_tol + 0.02 * np.maximum(z - 0.5, 0.0)
@@ -393,8 +418,7 @@ class Estimator:
         if region is not None:
             consistent &= region[uv[:, 1], uv[:, 0]]
         behind = has & (zq > z + tol)
-        n_c, n_b = int(consistent.sum()), int(behind.sum())
-        return n_c / max(1, n_c + n_b), n_c / len(pc)
+        return int(consistent.sum()), int(behind.sum()), len(pc)
 
     def _pnp_without_depth(self, frame: RGBDFrame, region: np.ndarray, failed: EstimateResult,
                            tm: dict[str, float], t_all: float) -> EstimateResult:
@@ -403,12 +427,17 @@ class Estimator:
         keypoints were dropped unlifted. Returns the PnP result when it finds the object, else `failed` with
         PnP's reason appended. Skipped when less than `hole_min_frac` of the region lacks depth."""
         p = self.params
-        holes = (frame.depth <= 0) & region
+        if not p.pnp_in_holes:
+            return failed
+        # holes an object could leave: opening drops speckle and the thin bands of stereo shadows
+        k = 2 * p.hole_open_px + 1
+        holes = cv2.morphologyEx(((frame.depth <= 0) & region).astype(np.uint8), cv2.MORPH_OPEN,
+                                 np.ones((k, k), np.uint8))
         frac = float(holes.sum()) / max(1, int(region.sum()))
-        if not p.pnp_in_holes or frac < p.hole_min_frac:
+        if frac < p.hole_min_frac:
             return failed
         k = 2 * p.hole_dilate_px + 1
-        holes = cv2.dilate(holes.astype(np.uint8), np.ones((k, k), np.uint8)).astype(bool) & region
+        holes = cv2.dilate(holes, np.ones((k, k), np.uint8)).astype(bool) & region
         t = time.perf_counter()
         feats = self._features(frame, holes, lift=False)
         tm["features"] += _ms(t)
@@ -422,6 +451,11 @@ class Estimator:
             res = self._fail(pnp_tm, t_all, "too few keypoints", method="pnp")
         for key in ("match", "solve"):
             tm[key] += pnp_tm[key]
+        if res.found:  # the object has no depth, but the depth around it must not be seen through it
+            _, n_b, n = self._depth_votes(frame, res.T_cam_obj)
+            if n_b > p.max_see_through * n:
+                res = self._fail(pnp_tm, t_all, f"its pose would let the depth be seen through "
+                                 f"{n_b / max(1, n):.0%} of the object", method="pnp")
         tm["total"] = _ms(t_all)
         res.timings_ms = tm
         if res.found:

@@ -144,14 +144,16 @@ def load_model_points(model_path: Path | None, estimator: Estimator) -> np.ndarr
     return np.asarray(pts, dtype=np.float64)
 
 
+_DISAGREE = "as ground truth of"  # reason prefix of a capture whose ground truth contradicts the template
 GT_AGREEMENT = (3.0, 0.02)  # deg, m: median disagreement of the per-frame template-to-ground-truth transforms
 
 
 def template_to_gt(db_path: Path, gt_T_cam_obj: dict[str, np.ndarray]) -> np.ndarray:
     """T_obj_gt [4 x 4]: the scanned template frame <- ground-truth object frame (DESIGN.md), the mean
-    over the capture's registered frames of T_obj_cam[f] @ T_cam_gt[f]; never from test frames.
-    InputError when fewer than two frames relate them or when those transforms disagree (median beyond
-    GT_AGREEMENT): the ground truth is not that of the capture the template was scanned from."""
+    over the capture's registered frames of T_obj_cam[f] @ T_cam_gt[f]; never from test frames. Only the
+    frames whose transform agrees (GT_AGREEMENT) with the one most others agree with are averaged.
+    InputError when fewer than two frames relate them, or fewer than half of them (and two) agree: the
+    ground truth is not that of the capture the template was scanned from."""
     with TemplateDB.open(db_path, require_complete=True) as db:
         frames = db.poses()["frames"]
     Ts = [np.asarray(frames[n]) @ gt_T_cam_obj[n] for n in frames if n in gt_T_cam_obj]
@@ -160,13 +162,16 @@ def template_to_gt(db_path: Path, gt_T_cam_obj: dict[str, np.ndarray]) -> np.nda
     if len(Ts) < 2:
         raise InputError(db_path, "only one registered frame has ground truth: too few to check that the ground "
                          "truth belongs to the capture it was scanned from")
-    T = mean_pose(Ts)
-    errs = np.array([pose_error(Ti, T) for Ti in Ts])
-    deg, m = np.median(errs[:, 0]), np.median(errs[:, 1])
-    if deg > GT_AGREEMENT[0] or m > GT_AGREEMENT[1]:  # frames named alike in another capture
-        raise InputError(db_path, f"its poses disagree with the ground truth (median {deg:.1f} deg / {m * 100:.1f} cm "
-                         f"off over {len(Ts)} frames): not the capture it was scanned from")
-    return T
+    # the frames that agree with the medoid (a badly registered frame does not pull the others off)
+    E = np.array([[pose_error(A, B) for B in Ts] for A in Ts])  # [n x n x 2] (deg, m)
+    close = (E[..., 0] <= GT_AGREEMENT[0]) & (E[..., 1] <= GT_AGREEMENT[1])
+    medoid = int(np.argmax(close.sum(1)))
+    agree = np.flatnonzero(close[medoid])
+    if len(agree) < max(2, 0.5 * len(Ts)):  # frames named alike in another capture
+        raise InputError(db_path, f"its poses disagree with the ground truth (only {len(agree)} of {len(Ts)} frames "
+                         f"agree within {GT_AGREEMENT[0]:g} deg / {GT_AGREEMENT[1] * 100:g} cm): "
+                         "not the capture it was scanned from")
+    return mean_pose([Ts[i] for i in agree])
 
 
 def _csv_row(scene_id: int, im_id: int, obj_id: int, score: float, T: np.ndarray, time_s: float) -> str:
@@ -197,7 +202,9 @@ def scanned_to_gt(template: Path, gt_capture: Path | None, obj_id: int) -> np.nd
         obj_id = stored_obj_id
     try:
         return _capture_to_gt(template, Path(stored_input), fmt, obj_id)
-    except InputError:
+    except InputError as e:
+        if e.reason.startswith(_DISAGREE):  # the capture is there, with ground truth, and contradicts the scan
+            raise
         return None
 
 
@@ -214,7 +221,7 @@ def _capture_to_gt(template: Path, capture: Path, fmt: str, obj_id: int) -> np.n
     except InputError as e:
         if e.reason.startswith("no registered frame"):
             raise InputError(capture, f"none of its ground-truth frames is a registered view of {template}") from None
-        raise InputError(capture, f"as ground truth of {template.name}: {e.reason}") from None
+        raise InputError(capture, f"{_DISAGREE} {template.name}: {e.reason}") from None
 
 
 def evaluate(template: str | Path, scenes: str | Path, output_csv: str | Path, obj_id: int = 1,

@@ -93,8 +93,8 @@ class RegisterParams:
             raise ValueError(f"unknown registration method {self.method!r}; expected one of {METHODS}")
         if self.min_matches < 3:
             raise ValueError("min_matches must be >= 3")
-        if self.verify < 0 or self.verify_min_len < 3 or self.verify_ratio < 1:
-            raise ValueError("need verify >= 0, verify_min_len >= 3 and verify_ratio >= 1")
+        if self.verify < 0 or self.verify_min_len < 3 or self.verify_ratio < 1 or self.support_eps_scale < 1:
+            raise ValueError("need verify >= 0, verify_min_len >= 3, verify_ratio >= 1 and support_eps_scale >= 1")
 
 
 @dataclass

@@ -95,7 +95,8 @@ def unregistered_names(views: list[View], skipped: Any) -> list[str]:
     """The frames a scan could not register, as `scan --json` lists them: the views without a pose (in
     order), then the input frames it could not read (the "skipped" meta, {name: reason}), each once."""
     unreg = [v.name for v in views if v.T_obj_cam is None]
-    return unreg + sorted(n for n in (skipped if isinstance(skipped, dict) else {}) if n not in set(unreg))
+    known = set(unreg)
+    return unreg + sorted(n for n in (skipped if isinstance(skipped, dict) else {}) if n not in known)
 
 
 class TemplateDB:

@@ -154,12 +154,52 @@ def test_object_without_depth_in_a_frame_with_depth(meshes, estimator, template)
     assert deg < 2.0 and dist < 0.01, (deg, dist)
     from gscan.estimate import EstimateParams
 
+    raised = depth.copy()  # a featureless block 6 cm tall on the table: no 3D keypoint at all to match
+    ys, xs = np.nonzero((r.labels < 0) & (r.depth > 0))
+    y, x = ys[len(ys) // 2], xs[len(xs) // 2]
+    raised[y - 15:y + 15, x - 15:x + 15] -= 0.06
+    res2 = estimator.estimate(as_frame(r, raised))
+    assert res2.found and res2.method == "pnp", res2.reason
     off = Estimator.from_path(template, EstimateParams(pnp_in_holes=False)).estimate(as_frame(r, depth))
     assert not off.found and "PnP" not in off.reason
     r0, _ = render_scene(meshes[0], meshes[1:], 1, with_target=False)  # holes in a scene without the target
     depth0 = r0.depth.copy()
     depth0[r0.labels >= 0] = 0.0
     assert not estimator.estimate(as_frame(r0, depth0)).found
+
+
+def test_pnp_pose_the_depth_sees_through_is_refused(meshes, estimator, template):
+    """The depth of most of the target is missing, but over its left part the sensor measured a surface 30 cm
+    behind it: a PnP pose there would let the depth be seen through the object, and is refused."""
+    from gscan.estimate import EstimateParams
+
+    r, _ = render_scene(meshes[0], meshes[1:], 0)
+    xs = np.nonzero(r.mask)[1]
+    left = r.mask & (np.arange(r.mask.shape[1])[None] < np.percentile(xs, 30))
+    depth = r.depth.copy()
+    depth[r.mask] = 0.0
+    depth[left] = r.depth[left] + 0.3
+    res = estimator.estimate(as_frame(r, depth))
+    assert not res.found and "seen through" in res.reason, res.reason
+    assert Estimator.from_path(template, EstimateParams(max_see_through=1.0)).estimate(as_frame(r, depth)).found
+
+
+def test_close_up_face_is_not_taken_for_the_table(meshes, estimator):
+    """Seen from 15 deg off straight above and close, the lying box fills the frame and its own face is the
+    frame's dominant plane: the support-plane rule must not refuse it (with the mask and without)."""
+    lying = rotvec_to_R([0, 0, 0.3]) @ rotvec_to_R([np.pi / 2, 0, 0])
+    T_world_obj = rest_on_table(meshes[0], lying)
+    c = transform_points(T_world_obj, meshes[0].center[None])[0]
+    el, az = np.radians(75.0), 0.4
+    eye = c + default_distance(meshes[0], fill=1.35) * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az),
+                                                                 np.sin(el)])
+    r = SynthScene([(meshes[0], T_world_obj)], seed=1).render(look_at(eye, c), DEFAULT_INTRINSICS,
+                                                              rng=np.random.default_rng(1))
+    assert r.mask.mean() > 0.95
+    for m in (None, r.mask):
+        res = estimator.estimate(as_frame(r), mask=m)
+        assert res.found, res.reason
+        assert pose_error(res.T_cam_obj, r.T_cam_obj)[0] < 2.0
 
 
 def test_pose_inside_the_support_plane_is_refused(meshes, estimator, template):

@@ -233,3 +233,32 @@ def test_bop_scan_follows_its_object_and_eval_scores_through_it(tmp_path):
     with pytest.raises(InputError, match="--obj-id is for BOP"):
         run_scan(ScanOptions(input_dir=root / "capture", output=tmp_path / "c.gscan", obj_id=5))
     assert not (tmp_path / "o9.gscan").exists() and not (tmp_path / "c.gscan").exists()
+
+
+def test_template_to_gt_keeps_the_frames_that_agree(sample_template, tmp_path):
+    """A few badly registered frames (their ground truth turned here by 30 deg) do not pull the mapping off:
+    only the frames that agree with the most agreed-with one are averaged. A capture whose ground truth
+    contradicts the template's stored input is reported as such, not as a missing capture."""
+    import shutil
+
+    from gscan.evaluate import template_to_gt
+    from gscan.geometry import make_T, pose_error
+    from gscan.io import open_sequence
+    from gscan.template import TemplateDB
+
+    root = Path(__file__).resolve().parents[1] / "samples"
+    gt = open_sequence(root / "capture").gt_T_cam_obj
+    clean = template_to_gt(sample_template, gt)
+    bad = dict(gt)
+    for n in sorted(gt)[:4]:
+        bad[n] = gt[n] @ make_T(rotvec_to_R(np.radians(30.0) * np.array([0.6, 0.8, 0.0])), np.zeros(3))
+    deg, m = pose_error(template_to_gt(sample_template, bad), clean)
+    assert deg < 0.05 and m < 1e-4, (deg, m)
+    with pytest.raises(InputError, match="only 1 of 2 frames agree"):
+        template_to_gt(sample_template, {n: bad[n] for n in sorted(gt)[3:5]})
+    wrong = tmp_path / "wrong.gscan"  # its stored input is another capture with frames named alike
+    shutil.copy(sample_template, wrong)
+    with TemplateDB.open(wrong, writable=True) as db:
+        db.set_meta("input", str(root / "heldout"))
+    with pytest.raises(InputError, match="as ground truth of wrong.gscan"):
+        evaluate(wrong, root / "heldout", tmp_path / "w.csv")

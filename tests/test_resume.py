@@ -200,6 +200,19 @@ def test_ctrl_c_keeps_the_partial_scan_and_says_how_to_resume(capture: Path, ref
     _assert_same(_state(db), reference[1])
 
 
+def test_resume_accepts_a_scan_from_before_a_setting_existed(capture: Path, reference, tmp_path: Path):
+    """A partial scan written before a configuration key was added (its stored config lacks it) resumes: the
+    new key takes its default, and the scan ends as the uninterrupted one."""
+    db = tmp_path / "older.gscan"
+    _scan_and_kill(capture, db, lambda p: (_count(p, "edges") or 0) >= 2)
+    with TemplateDB.open(db, require_complete=False, writable=True) as part:
+        cfg = part.get_meta("config")
+        del cfg["registration"]["support_eps_scale"]
+        part.set_meta("config", cfg)
+    out = _resume(capture, db)
+    assert out["registered"] == reference[0]["registered"] and out["edges"] == reference[0]["edges"]
+
+
 def test_resume_refuses_another_input(capture: Path, reference, tmp_path: Path):
     """--resume into a database written from another capture is bad input, and leaves it untouched."""
     other = tmp_path / "other"
