@@ -30,18 +30,20 @@ posed (kabsch_trimmed) and refined as below, but on the pairs with descriptor di
 (median over rendered pairs), beyond eps_f 0.6, so the GMatch candidates undercount a right pose's
 support. The refined inlier count is the list's support. Another list replaces the winner only with
 >= `verify_ratio` (1.5) times its support (`pose_by_support`); a list whose pose is within 2 deg / 1 cm
-of one already checked is skipped. The chosen list is then refined on the candidates alone: its inliers
-(what the pose graph weighs an edge by) stay the strict ones, since on a repetitive table a wrong pose
-that maps the table plane onto itself collects hundreds of look-alike pairs under the looser bound.
+of one already checked is skipped. The chosen list's pose is that refinement's. Its inliers (what rule 2
+and the pose graph weigh an edge by) are the candidates alone that agree with it (`consistent_pairs`):
+on a repetitive table a wrong pose that maps the table plane onto itself collects hundreds of
+look-alike pairs under the looser bound, and weighed by those, wrong edges outvoted right ones.
 Measured on rendered pairs, object pixels, 60 deg (BENCHMARKS.md): newspaper / wood / fabric tables
-67 / 76 / 76 % with the candidates' support, 71 / 76 / 86 % with the looser one; whole frames unchanged.
+67 / 76 / 76 % with the candidates alone, 71 / 86 / 86 % now; whole frames unchanged.
 `verify=0` is the paper's pick alone.
 
 Guided refinement (GMatch only, `refine`): GMatch stops at L (24) matches, and a pose from 24
-points is limited by their depth noise. From the Kabsch pose, every candidate pair (descriptor
-distance < eps_f) whose transformed source point lies within tau of its target point is
-collected, made one-to-one by residual (each source its closest target, then each target its
-closest source), and the pose re-solved by Kabsch on all of them; tau shrinks over `refine_taus`.
+points is limited by their depth noise. From the Kabsch pose, every pair with descriptor distance
+< support_eps_scale x eps_f (eps_f, the candidates' bound, when that is 1) whose transformed source
+point lies within tau of its target point is collected, made one-to-one by residual (each source its
+closest target, then each target its closest source), and the pose re-solved by Kabsch on all of them;
+tau shrinks over `refine_taus`.
 A round that keeps fewer pairs than the GMatch list (trimmed pairs included) stops the refinement.
 Measured on rendered captures: mean rotation error per edge 0.44 -> 0.28 deg (turntable, object
 only) and 0.074 -> 0.029 deg (static object, whole frame).
@@ -158,17 +160,30 @@ def refine_pose(pts_s: np.ndarray, pts_t: np.ndarray, pool: GuidedPool, T: np.nd
     r = np.linalg.norm(transform_points(T, ps[ii]) - pt[jj], axis=1)
     best = np.zeros((0, 2), np.int32)
     for tau in taus:
-        ok = np.flatnonzero(r < tau)
-        ok = ok[np.lexsort((jj[ok], ii[ok], r[ok]))]  # by residual, ties by index: deterministic
-        # one-to-one: each source keeps its closest target, then each target its closest source
-        ok = ok[np.sort(np.unique(ii[ok], return_index=True)[1])]
-        ok = ok[np.sort(np.unique(jj[ok], return_index=True)[1])]
+        ok = _one_to_one(ii, jj, r, tau)
         if len(ok) < min_pairs:
             break
         best = np.stack([ii[ok], jj[ok]], axis=1).astype(np.int32)
         T = kabsch(ps[best[:, 0]], pt[best[:, 1]])
         r = np.linalg.norm(transform_points(T, ps[ii]) - pt[jj], axis=1)
     return T, best
+
+
+def consistent_pairs(pts_s: np.ndarray, pts_t: np.ndarray, pool: GuidedPool, T: np.ndarray, tau: float) -> np.ndarray:
+    """[K x 2] int32 pairs of `pool` (source, target) within tau of each other under T_tgt_src, one-to-one."""
+    ps, pt = np.asarray(pts_s, np.float64), np.asarray(pts_t, np.float64)
+    ii, jj = pool.near(transform_points(T, ps), tau)
+    ok = _one_to_one(ii, jj, np.linalg.norm(transform_points(T, ps[ii]) - pt[jj], axis=1), tau)
+    return np.stack([ii[ok], jj[ok]], axis=1).astype(np.int32)
+
+
+def _one_to_one(ii: np.ndarray, jj: np.ndarray, r: np.ndarray, tau: float) -> np.ndarray:
+    """Indices of the pairs (ii, jj) with residual r < tau kept one-to-one: each source its closest target,
+    then each target its closest source (ties by index: deterministic)."""
+    ok = np.flatnonzero(r < tau)
+    ok = ok[np.lexsort((jj[ok], ii[ok], r[ok]))]
+    ok = ok[np.sort(np.unique(ii[ok], return_index=True)[1])]
+    return ok[np.sort(np.unique(jj[ok], return_index=True)[1])]
 
 
 _SAME_POSE_DEG, _SAME_POSE_M = 2.0, 0.01  # a list posed this close to one already checked is skipped
@@ -205,8 +220,9 @@ def pose_by_support(pts_s: np.ndarray, pts_t: np.ndarray, support_pool: GuidedPo
     A list whose pairs all lie within trim_tau under a pose already checked, or whose pose lies within 2 deg /
     1 cm of one, is skipped (it would refine to the same). Supports of lists of different lengths compare as
     they are: a list's refinement must keep at least its own length, else its support is its kept pairs.
-    The chosen list's pose is then refined on `refine_pool` (the returned inliers); T is that refined pose
-    when params.refine, else the list's own pose.
+    With params.refine, T is the chosen list's pose refined on `support_pool`, and the returned inliers are
+    the `refine_pool` pairs consistent with it within the last refinement radius (empty, as when no round
+    kept the list's length, if they are fewer than the list); else T is the list's own pose.
     """
     if not lists:
         raise ValueError("pose_by_support needs at least GMatch's own list")
@@ -230,8 +246,12 @@ def pose_by_support(pts_s: np.ndarray, pts_t: np.ndarray, support_pool: GuidedPo
     k, T, keep = (0, T, keep) if len(lists) == 1 else first if best is None else best[1]
     if not params.refine:
         return k, T, lists[k][keep], np.zeros((0, 2), np.int32)
-    T_ref, refined = refine_pose(pts_s, pts_t, refine_pool, T, params.refine_taus, len(lists[k]))
-    return k, (T_ref if len(refined) else T), lists[k][keep], refined
+    T_ref, refined = refine_pose(pts_s, pts_t, support_pool, T, params.refine_taus, len(lists[k]))
+    if not len(refined):
+        return k, T, lists[k][keep], refined
+    # the inliers (what the pose graph weighs an edge by): the candidates alone that agree with the pose
+    inliers = consistent_pairs(pts_s, pts_t, refine_pool, T_ref, params.refine_taus[-1])
+    return k, T_ref, lists[k][keep], (inliers if len(inliers) >= len(lists[k]) else np.zeros((0, 2), np.int32))
 
 
 def register_points(pts_s: np.ndarray, pts_t: np.ndarray, desc_s: np.ndarray, desc_t: np.ndarray, kind: str,

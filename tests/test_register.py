@@ -212,7 +212,7 @@ def test_support_check_fixes_a_rendered_pair(meshes_dir):
     np.testing.assert_array_equal(r0.matches, res.matches)
     ps, pt = fs.points.astype(np.float64), ft.points.astype(np.float64)
     T0, _ = kabsch_trimmed(ps[res.matches[:, 0]], pt[res.matches[:, 1]], 0.008)
-    pool = GuidedPool(pt, dist, 0.6)  # guided refinement: GMatch's candidates
+    pool = GuidedPool(pt, dist, RegisterParams().support_eps_scale * 0.6)  # refined on look-alike pairs too
     T0, inl0 = refine_pose(ps, pt, pool, T0, RegisterParams().refine_taus, len(res.matches))
     np.testing.assert_allclose(r0.T_tgt_src, T0, atol=1e-12)
     assert pose_error(r0.T_tgt_src, T_gt)[0] > 90.0  # the paper's pick alone is wrong here
