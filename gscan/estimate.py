@@ -218,18 +218,15 @@ class Estimator:
         tm["features"] = _ms(t)
         if len(feats) < 3:
             res = self._fail(tm, t_all, "too few keypoints in the query frame" + (" mask" if mask is not None else ""))
-        elif use_pnp:
-            t = time.perf_counter()
-            S, views = self._retrieve(feats.descriptors)
-            tm["retrieval"] = _ms(t)
-            res = self._estimate_pnp(frame, feats, S, views, tm, t_all)
-            if not res.found:
-                res.reason += " (query depth unusable)"
-            return res
         else:
             t = time.perf_counter()
             S, views = self._retrieve(feats.descriptors)
             tm["retrieval"] = _ms(t)
+            if use_pnp:
+                res = self._estimate_pnp(frame, feats, S, views, tm, t_all)
+                if not res.found:
+                    res.reason += " (query depth unusable)"
+                return res
             res = self._estimate_gmatch(frame, feats, S, views, off_plane, refine, tm, t_all)
         if not res.found and not use_pnp:
             res = self._pnp_without_depth(frame, region, res, tm, t_all)

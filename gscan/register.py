@@ -235,18 +235,17 @@ def pose_by_support(pts_s: np.ndarray, pts_t: np.ndarray, support_pool: GuidedPo
         if any(e[0] < _SAME_POSE_DEG and e[1] < _SAME_POSE_M for e in (pose_error(T, V) for V in verified)):
             continue
         verified.append(T)
-        if len(lists) == 1:  # nothing to compare
-            break
-        refined = refine_pose(pts_s, pts_t, support_pool, T, params.refine_taus, len(m))[1]
+        if len(lists) == 1 and not params.refine:  # nothing to compare, nothing to refine
+            return 0, T, m[keep], np.zeros((0, 2), np.int32)
+        T_ref, refined = refine_pose(pts_s, pts_t, support_pool, T, params.refine_taus, len(m))
         support = len(refined) if len(refined) else int(keep.sum())
         if k == 0:
-            first, support_0 = (k, T, keep), support
+            first, support_0 = (k, T, keep, T_ref, refined), support
         elif support >= params.verify_ratio * support_0 and (best is None or support > best[0]):
-            best = (support, (k, T, keep))
-    k, T, keep = (0, T, keep) if len(lists) == 1 else first if best is None else best[1]
+            best = (support, (k, T, keep, T_ref, refined))
+    k, T, keep, T_ref, refined = first if best is None else best[1]
     if not params.refine:
         return k, T, lists[k][keep], np.zeros((0, 2), np.int32)
-    T_ref, refined = refine_pose(pts_s, pts_t, support_pool, T, params.refine_taus, len(lists[k]))
     if not len(refined):
         return k, T, lists[k][keep], refined
     # the inliers (what the pose graph weighs an edge by): the candidates alone that agree with the pose
