@@ -201,8 +201,14 @@ def test_colmap_export(synth: tuple[Path, dict], tmp_path: Path) -> None:
     assert cam.model.name == "PINHOLE" and np.allclose(cam.params, [K.fx, K.fy, K.cx + 0.5, K.cy + 0.5])
     by_name = {im.name: im for im in rec.images.values()}
     for i, T_obj_cam in enumerate(gt["Ts"]):
-        im = by_name[f"frame {i:02d} é"]
+        im = by_name[f"frame {i:02d} é.png"]  # the image file in images/ (COLMAP's image_path)
         assert np.abs(im.cam_from_world().matrix() - inv_T(T_obj_cam)[:3]).max() < 1e-9
+        png = cv2.imread(str(out / "images" / im.name))
+        assert png is not None and png.shape[:2] == (cam.height, cam.width)
+    with TemplateDB.open(db_path) as db:  # the pixels are the stored view's, colour order kept
+        view = db.view("frame 00 é", load_images=True)
+    assert np.array_equal(cv2.cvtColor(cv2.imread(str(out / "images" / "frame 00 é.png")), cv2.COLOR_BGR2RGB),
+                          view.color)
     # tracks: edges link consecutive views only, so a surface point gives one track per run of
     # consecutive views that saw it
     all_ids = np.concatenate(gt["kp_ids"])

@@ -1,4 +1,5 @@
-"""COLMAP sparse model export through pycolmap (4.x: cameras, trivial rigs and frames, images, points).
+"""COLMAP sparse model export through pycolmap (4.x: cameras, trivial rigs and frames, images, points),
+with the views' colour images in images/ (PNG, named as the model's images).
 
 World frame = the template's object frame, so each image's `cam_from_world` is inv(T_obj_cam).
 Cameras are PINHOLE, one per distinct intrinsics. COLMAP puts the centre of the top-left pixel at
@@ -17,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from gscan.export.common import posed_views
+from gscan.export.common import imwrite, posed_views
 from gscan.geometry import inv_T
 from gscan.template import TemplateDB
 
@@ -42,8 +43,10 @@ class _UnionFind:
             self.parent[max(ra, rb)] = min(ra, rb)  # smallest index is the root: deterministic
 
 
-def build_reconstruction(db: TemplateDB) -> pycolmap.Reconstruction:
-    """The template as a pycolmap Reconstruction (registered views only)."""
+def build_reconstruction(db: TemplateDB, images_dir: Path | None = None) -> pycolmap.Reconstruction:
+    """The template as a pycolmap Reconstruction (registered views only). With `images_dir`, each view's colour
+    image is written there as `<view name>.png` and the COLMAP image takes that file name (image_path =
+    images_dir); a view without a stored colour image keeps its bare name."""
     views = posed_views(db, need_images=False)
     rec = pycolmap.Reconstruction()
     cam_ids: dict = {}
@@ -59,10 +62,15 @@ def build_reconstruction(db: TemplateDB) -> pycolmap.Reconstruction:
         px = np.zeros((0, 2)) if f is None else f.pixels.astype(np.float64) + 0.5
         feats.append(f)
         offsets.append(offsets[-1] + len(px))
-        image = pycolmap.Image(name=v.name, keypoints=px, camera_id=cam_ids[k], image_id=img_id)
+        color = db.view(v.name, load_images=True).color
+        name = v.name
+        if images_dir is not None and color is not None:
+            name = f"{v.name}.png"
+            imwrite(images_dir / name, color, rgb=True)
+        image = pycolmap.Image(name=name, keypoints=px, camera_id=cam_ids[k], image_id=img_id)
         T_cam_obj = inv_T(v.T_obj_cam)
         rec.add_image_with_trivial_frame(image, pycolmap.Rigid3d(T_cam_obj[:3, :4]))
-        colors.append(_keypoint_colors(db, v.name, f))
+        colors.append(_keypoint_colors(color, f))
     n = offsets[-1]
     index = {v.name: i for i, v in enumerate(views)}
     uf = _UnionFind(n)
@@ -99,11 +107,10 @@ def build_reconstruction(db: TemplateDB) -> pycolmap.Reconstruction:
     return rec
 
 
-def _keypoint_colors(db: TemplateDB, name: str, f) -> np.ndarray:
-    """[N x 3] uint8 colour under each keypoint (grey when the view stores no colour)."""
+def _keypoint_colors(color: np.ndarray | None, f) -> np.ndarray:
+    """[N x 3] uint8 colour under each keypoint of view features `f` in its colour image (grey without one)."""
     if f is None or len(f.pixels) == 0:
         return np.zeros((0, 3), np.uint8)
-    color = db.view(name, load_images=True).color
     if color is None:
         return np.full((len(f.pixels), 3), 128, np.uint8)
     h, w = color.shape[:2]
@@ -113,8 +120,10 @@ def _keypoint_colors(db: TemplateDB, name: str, f) -> np.ndarray:
 
 
 def write_colmap(db: TemplateDB, out: Path) -> int:
-    """Write the binary COLMAP model (cameras/images/points3D/rigs/frames .bin) into `out`."""
-    rec = build_reconstruction(db)
+    """Write the binary COLMAP model (cameras/images/points3D/rigs/frames .bin) into `out` and the views'
+    colour images into `out`/images (COLMAP's image_path)."""
+    (out / "images").mkdir()
+    rec = build_reconstruction(db, out / "images")
     rec.write(str(out))
     log.info("COLMAP model: %d images, %d points, mean track length %.2f", rec.num_images(), rec.num_points3D(),
              rec.compute_mean_track_length() if rec.num_points3D() else 0.0)
