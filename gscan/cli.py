@@ -277,6 +277,7 @@ def export(
     format: str = typer.Option(..., "--format", help="bop|foundationpose|colmap|ply|obj|glb|json"),
     output: Path = typer.Option(..., "-o", "--output", help="output file or folder"),
     force: bool = typer.Option(False, "--force", help="replace an existing output"),
+    json_out: bool = typer.Option(False, "--json", help="print one JSON object on stdout"),
 ) -> None:
     """Export a template for other tools."""
     from gscan.export import FORMATS, export as do_export
@@ -284,7 +285,11 @@ def export(
     if format not in FORMATS:
         raise UsageError(None, f"--format must be one of {', '.join(FORMATS)}, not {format!r}")
     written = do_export(template, format, output, force=force)
-    err.print(f"wrote {written}")
+    if json_out:
+        _print_json({"output": str(written.path), "format": written.format, "views": written.views,
+                     "files": written.files})
+    else:
+        err.print(f"wrote {written}")
 
 
 # -------------------------------------------------------------------------------------------- view

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import cv2
@@ -312,3 +313,18 @@ def test_foundationpose_masks_from_mesh_when_views_have_none(tmp_path: Path) -> 
         with pytest.raises(InputError, match="neither"):
             export(tmp_path / "bare.gscan", fmt, tmp_path / fmt)
         assert not (tmp_path / fmt).exists()
+
+
+def test_cli_export_json(synth: tuple[Path, dict], tmp_path: Path) -> None:
+    """`gscan export --json` prints one JSON object on stdout: what was written, as the other commands do."""
+    import subprocess
+    import sys
+
+    db_path, _ = synth
+    out = tmp_path / "colmap"
+    proc = subprocess.run([sys.executable, "-m", "gscan.cli", "export", str(db_path), "--format", "colmap",
+                           "-o", str(out), "--json"], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    doc = json.loads(proc.stdout)
+    assert doc == {"output": str(out), "format": "colmap", "views": 4, "files": 9}
+    assert sum(len(f) for _, _, f in os.walk(out)) == 9  # 5 model files and the 4 images
