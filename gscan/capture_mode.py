@@ -23,7 +23,7 @@ import numpy as np
 from gscan.camera import RGBDFrame
 
 if TYPE_CHECKING:
-    from gscan.segment import Plane
+    from gscan.segment import Plane, SegmentParams
 
 log = logging.getLogger(__name__)
 
@@ -71,21 +71,22 @@ def detect_mode(frames: list[RGBDFrame], static_fraction: float = 0.65) -> ModeD
     return ModeDecision(mode, med, len(fracs))
 
 
-def moving_object_masks(frames: list[RGBDFrame], min_offset: float = 0.01,
-                        min_area: int = 400) -> tuple[list[np.ndarray], list[Plane | None]]:
+def moving_object_masks(frames: list[RGBDFrame], min_offset: float = 0.01, min_area: int = 400,
+                        params: SegmentParams | None = None) -> tuple[list[np.ndarray], list[Plane | None]]:
     """Object masks for a static camera without given masks. Returns ([H x W] bool per frame, the
     support plane found in each frame, camera frame, or None).
 
     Each frame is segmented on its own by the support plane and the component above it
-    (`gscan.segment.segment_frame`). A frame without a support plane (object in hand) falls back
+    (`gscan.segment.segment_frame` with `params`). A frame without a support plane (object in hand) falls back
     to background subtraction: the background depth is the per-pixel 90th percentile of the
     valid depths over the sequence (the farthest surface seen there), and the object is where
     the frame is closer than that by max(`min_offset`, 2 %), cleaned by an opening and kept as
     the connected components of at least `min_area` pixels (the largest always kept).
     """
-    from gscan.segment import segment_frame
+    from gscan.segment import SegmentParams, segment_frame
 
-    segs = [segment_frame(RGBDFrame(f.name, f.color, f.depth, f.intrinsics)) for f in frames]
+    params = params if params is not None else SegmentParams()
+    segs = [segment_frame(RGBDFrame(f.name, f.color, f.depth, f.intrinsics), params) for f in frames]
     planes = [s.plane_cam for s in segs]
     if all(p is not None for p in planes):
         return [s.mask for s in segs], planes

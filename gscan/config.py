@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from gscan.errors import InputError
 
@@ -64,6 +64,18 @@ class FusionConfig(_Section):
     depth_max: float = Field(2.0, gt=0, description="depth beyond this is ignored when fusing (m)")
 
 
+class SegmentationConfig(_Section):
+    depth_min: float = Field(0.1, gt=0, description="the object is looked for at depths from this (m) ...")
+    depth_max: float = Field(1.5, gt=0, description="... to this (m); raise it (and fusion.depth_max) for a far camera")
+    height_max: float = Field(0.5, gt=0, description="the object stands at most this high above its support plane (m)")
+
+    @model_validator(mode="after")
+    def _range(self) -> "SegmentationConfig":
+        if self.depth_max <= self.depth_min:
+            raise ValueError("depth_max must be greater than depth_min")
+        return self
+
+
 class KeyframeConfig(_Section):
     min_angle_deg: float = Field(12.0, ge=0, description="a new keyframe views the object at least this far from all others")
     max_views: int = Field(120, ge=1, description="at most this many template views")
@@ -74,6 +86,7 @@ class ScanConfig(_Section):
     match: MatchConfig = MatchConfig()
     registration: RegisterConfig = RegisterConfig()
     posegraph: PoseGraphConfig = PoseGraphConfig()
+    segmentation: SegmentationConfig = SegmentationConfig()
     fusion: FusionConfig = FusionConfig()
     keyframes: KeyframeConfig = KeyframeConfig()
 

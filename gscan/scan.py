@@ -39,7 +39,7 @@ from gscan.fuse import FusedModel, FusionParams, fuse_tsdf, template_frame
 from gscan.geometry import transform_points
 from gscan.progress import Progress, StageTimer
 from gscan.register import RegisterParams, register_features
-from gscan.segment import Plane
+from gscan.segment import Plane, SegmentParams
 from gscan.template import Edge, TemplateDB, View, ViewFeatures
 
 log = logging.getLogger(__name__)
@@ -230,7 +230,7 @@ def _scan_frames(frames: list[_Frame], opts: ScanOptions, db: TemplateDB, resume
                  problems: dict[str, str]) -> ScanResult:
     cfg = opts.config
     with timer.stage("mode", total=1) as advance:
-        mode, given_masks = _mode_and_masks(frames, opts.mode)
+        mode, given_masks = _mode_and_masks(frames, opts.mode, _segment_params(opts.config))
         advance(1)
     db.set_meta("mode", mode)
     log.info("%s capture, %d frames%s", mode, len(frames), ", masks given" if given_masks else "")
@@ -254,7 +254,7 @@ def _scan_frames(frames: list[_Frame], opts: ScanOptions, db: TemplateDB, resume
         raise InputError(opts.input_dir, "no frame could be registered")
 
     with timer.stage("segment", total=1) as advance:
-        masks, plane_world = _segment(frames, T_world_cam, mode, opts.segment)
+        masks, plane_world = _segment(frames, T_world_cam, mode, opts.segment, _segment_params(opts.config))
         advance(1)
 
     with timer.stage("fuse", total=1) as advance:
@@ -303,7 +303,12 @@ def _fuse(frames: list[_Frame], T_world_cam: list[np.ndarray | None], masks: lis
     return model, template_frame(obj_pts, plane_world, T_world_cam[registered[0]])
 
 
-def _mode_and_masks(frames: list[_Frame], mode_option: str) -> tuple[str, bool]:
+def _segment_params(cfg: ScanConfig) -> SegmentParams:
+    s = cfg.segmentation
+    return SegmentParams(depth_min=s.depth_min, depth_max=s.depth_max, height_max=s.height_max)
+
+
+def _mode_and_masks(frames: list[_Frame], mode_option: str, seg: SegmentParams) -> tuple[str, bool]:
     """(capture mode, whether every frame came with a mask); sets each frame's object mask: the given
     one, or for a moving object one from background subtraction."""
     mode = detect_mode([f.frame for f in frames]).mode if mode_option == "auto" else mode_option
@@ -312,7 +317,7 @@ def _mode_and_masks(frames: list[_Frame], mode_option: str) -> tuple[str, bool]:
         for f in frames:
             f.mask = f.frame.mask
     elif mode == MOVING_OBJECT:
-        masks, planes = moving_object_masks([f.frame for f in frames])
+        masks, planes = moving_object_masks([f.frame for f in frames], params=seg)
         for f, m, p in zip(frames, masks, planes):
             f.mask, f.plane_cam = m, p
     return mode, given_masks
@@ -500,8 +505,8 @@ def _optimise(n: int, edges: list[Edge], index: dict[str, int], frames: list[_Fr
     return res.T_world_node, quality
 
 
-def _segment(frames: list[_Frame], T_world_cam: list[np.ndarray | None], mode: str,
-             segment: bool) -> tuple[list[np.ndarray | None], Plane | None]:
+def _segment(frames: list[_Frame], T_world_cam: list[np.ndarray | None], mode: str, segment: bool,
+             seg: SegmentParams) -> tuple[list[np.ndarray | None], Plane | None]:
     """Per-frame object masks for fusion and the support plane in the world frame (or None).
 
     The plane defines the template frame's z axis even when masks are given: for a static object
@@ -516,8 +521,8 @@ def _segment(frames: list[_Frame], T_world_cam: list[np.ndarray | None], mode: s
     if mode == MOVING_OBJECT:
         ref = frames[reg[0]]
         plane_cam = ref.plane_cam if ref.plane_cam is not None else segment_frame(
-            RGBDFrame(ref.frame.name, ref.frame.color, ref.frame.depth, ref.frame.intrinsics)).plane_cam
+            RGBDFrame(ref.frame.name, ref.frame.color, ref.frame.depth, ref.frame.intrinsics), seg).plane_cam
         plane = None if plane_cam is None else plane_cam.transformed(T_world_cam[reg[0]])
         return [f.mask for f in frames], plane
-    segs, vol = segment_sequence([f.frame for f in frames], T_world_cam)  # given masks win
+    segs, vol = segment_sequence([f.frame for f in frames], T_world_cam, seg)  # given masks win
     return [s.mask for s in segs], (vol.plane_world if vol is not None else None)

@@ -40,6 +40,7 @@ def test_an_edited_value_is_used(tmp_path):
     ("features:\n  colour: 3\n", "features.colour"),
     ("match:\n  eps_c: 2.0\n", "match.eps_c"),
     ("- a list\n", "mapping"),
+    ("segmentation:\n  depth_min: 2.0\n  depth_max: 1.0\n", "segmentation"),
 ])
 def test_bad_config_names_the_file_and_the_key(tmp_path, text, words):
     path = tmp_path / "bad.yaml"
@@ -58,3 +59,25 @@ def test_every_registration_key_reaches_the_registration_parameters():
         new = (not value) if isinstance(value, bool) else value + 1
         cfg = base.model_copy(update={"registration": base.registration.model_copy(update={key: new})})
         assert getattr(_register_params(cfg, MOVING_OBJECT), key) == new, key
+
+
+def test_segmentation_keys_reach_the_segmentation_and_a_far_object_is_found(meshes_dir):
+    """The object 1.9 m away lies beyond the default working depth (1.5 m): segmentation misses it (it takes the
+    whole near scene, IoU 0); with `segmentation.depth_max: 2.5` it finds the object on its table."""
+    from gscan.camera import RGBDFrame
+    from gscan.scan import _segment_params
+    from gscan.segment import segment_frame
+    from gscan.synth import load_textured_mesh, render_capture
+
+    base = ScanConfig()
+    for key, value in base.segmentation.model_dump().items():
+        cfg = base.model_copy(update={"segmentation": base.segmentation.model_copy(update={key: value + 0.5})})
+        assert getattr(_segment_params(cfg), key) == value + 0.5, key
+    mesh = load_textured_mesh(meshes_dir / "Crayola_Bonus_64_Crayons" / "model_0.obj")
+    fr = render_capture(mesh, None, 1, distance=1.9, elevations_deg=(40.0,))[0]
+    frame = RGBDFrame("far", fr.color, fr.depth, fr.intrinsics)
+    far = ScanConfig.model_validate({"segmentation": {"depth_max": 2.5}})
+    for cfg, min_iou, max_iou in ((base, 0.0, 0.1), (far, 0.6, 1.0)):
+        m = segment_frame(frame, _segment_params(cfg)).mask
+        iou = (m & fr.mask).sum() / max(1, (m | fr.mask).sum())
+        assert min_iou <= iou <= max_iou, (cfg.segmentation.depth_max, iou)
