@@ -65,9 +65,9 @@ class FusionConfig(_Section):
 
 
 class SegmentationConfig(_Section):
-    depth_min: float = Field(0.1, gt=0, description="the object is looked for at depths from this (m) ...")
-    depth_max: float = Field(1.5, gt=0, description="... to this (m); raise it (and fusion.depth_max) for a far camera")
-    height_max: float = Field(0.5, gt=0, description="the object stands at most this high above its support plane (m)")
+    depth_min: float = Field(0.1, ge=0.05, le=20, description="the object is looked for at depths from this (m) ...")
+    depth_max: float = Field(1.5, gt=0.05, le=20, description="... to this (m); raise it (and fusion.depth_max) for a far camera")
+    height_max: float = Field(0.5, ge=0.01, le=5, description="the object stands at most this high above its support plane (m)")
 
     @model_validator(mode="after")
     def _range(self) -> "SegmentationConfig":
@@ -89,6 +89,12 @@ class ScanConfig(_Section):
     segmentation: SegmentationConfig = SegmentationConfig()
     fusion: FusionConfig = FusionConfig()
     keyframes: KeyframeConfig = KeyframeConfig()
+
+    @model_validator(mode="after")
+    def _segment_within_fusion(self) -> "ScanConfig":
+        if self.segmentation.depth_min >= self.fusion.depth_max:
+            raise ValueError("segmentation.depth_min must be below fusion.depth_max (nothing could be fused)")
+        return self
 
 
 def load_config(path: str | Path | None) -> ScanConfig:
@@ -113,7 +119,8 @@ def load_config(path: str | Path | None) -> ScanConfig:
     except ValidationError as e:
         err = e.errors()[0]
         where = ".".join(str(x) for x in err["loc"])
-        raise InputError(path, f"invalid config key {where}: {err['msg']}") from None
+        msg = err["msg"].removeprefix("Value error, ")
+        raise InputError(path, f"invalid config key {where}: {msg}" if where else f"invalid config: {msg}") from None
 
 
 def dump_defaults() -> str:

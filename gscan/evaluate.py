@@ -203,7 +203,9 @@ def scanned_to_gt(template: Path, gt_capture: Path | None, obj_id: int) -> np.nd
     try:
         return _capture_to_gt(template, Path(stored_input), fmt, obj_id)
     except InputError as e:
-        if e.reason.startswith(_DISAGREE):  # the capture is there, with ground truth, and contradicts the scan
+        # a capture whose ground truth contradicts the scan, or one of its files that is malformed, is named;
+        # a capture that is gone, unreadable as a whole or without ground truth leaves --gt-capture to the user
+        if e.reason.startswith(_DISAGREE) or (e.path is not None and e.path != Path(stored_input)):
             raise
         return None
 

@@ -184,6 +184,8 @@ def run_scan(opts: ScanOptions, progress: Progress | None = None) -> ScanResult:
                             depth_scale=opts.depth_scale, obj_id=opts.obj_id)
         if opts.obj_id is not None and seq.format != "bop":
             raise InputError(opts.input_dir, f"--obj-id is for BOP scene folders, this is a {seq.format} folder")
+        if opts.obj_id is not None and seq.gt_T_cam_obj is None:
+            raise InputError(opts.input_dir / "scene_gt.json", "not found (--obj-id picks an object of its poses)")
         if opts.obj_id is not None and not seq.gt_T_cam_obj:
             raise InputError(opts.input_dir / "scene_gt.json", f"holds no pose of object {opts.obj_id} (--obj-id)")
         frames: list[_Frame] = []

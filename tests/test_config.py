@@ -41,6 +41,9 @@ def test_an_edited_value_is_used(tmp_path):
     ("match:\n  eps_c: 2.0\n", "match.eps_c"),
     ("- a list\n", "mapping"),
     ("segmentation:\n  depth_min: 2.0\n  depth_max: 1.0\n", "segmentation"),
+    ("segmentation:\n  height_max: 0.001\n", "segmentation.height_max"),
+    ("segmentation:\n  depth_max: 1.0e+300\n", "segmentation.depth_max"),
+    ("segmentation:\n  depth_min: 5\n  depth_max: 10\n", "segmentation.depth_min must be below fusion.depth_max"),
 ])
 def test_bad_config_names_the_file_and_the_key(tmp_path, text, words):
     path = tmp_path / "bad.yaml"

@@ -233,6 +233,16 @@ def test_bop_scan_follows_its_object_and_eval_scores_through_it(tmp_path):
     with pytest.raises(InputError, match="--obj-id is for BOP"):
         run_scan(ScanOptions(input_dir=root / "capture", output=tmp_path / "c.gscan", obj_id=5))
     assert not (tmp_path / "o9.gscan").exists() and not (tmp_path / "c.gscan").exists()
+    gt_file = bop / "scene_gt.json"
+    gt_text = gt_file.read_text()
+    gt = json.loads(gt_text)
+    gt["3"][1]["cam_R_m2c"] = "broken"  # the followed object's entry in the template's own capture
+    gt_file.write_text(json.dumps(gt))
+    with pytest.raises(InputError, match=r"scene_gt.json: malformed entry for image 3"):  # named, not the template
+        evaluate(tpl, root / "heldout", tmp_path / "r2.csv")
+    gt_file.unlink()
+    with pytest.raises(InputError, match=r"scene_gt.json: not found \(--obj-id"):
+        run_scan(ScanOptions(input_dir=bop, output=tmp_path / "n.gscan", obj_id=5))
 
 
 def test_template_to_gt_keeps_the_frames_that_agree(sample_template, tmp_path):

@@ -315,6 +315,30 @@ def test_foundationpose_masks_from_mesh_when_views_have_none(tmp_path: Path) -> 
         assert not (tmp_path / fmt).exists()
 
 
+def test_colmap_leaves_out_views_without_a_colour_image(synth: tuple[Path, dict], tmp_path: Path, caplog) -> None:
+    """A registered view that stores no colour image is left out of the COLMAP model (it would name an image
+    file that is nowhere), named in one warning; with none left the export is refused."""
+    import shutil
+    import sqlite3
+
+    db_path, _ = synth
+    db = tmp_path / "nocolour.gscan"
+    shutil.copy(db_path, db)
+    with sqlite3.connect(db) as conn:
+        conn.execute("UPDATE views SET color = NULL WHERE name = ?", ("frame 01 é",))
+    with caplog.at_level("WARNING"):
+        assert export(db, "colmap", tmp_path / "c").views == 3
+    assert [r.getMessage() for r in caplog.records if "not exported" in r.getMessage()] == [
+        "1 view(s) store no colour image and are not exported: frame 01 é"]
+    rec = pycolmap.Reconstruction(str(tmp_path / "c"))
+    assert sorted(im.name for im in rec.images.values()) == sorted(p.name for p in (tmp_path / "c" / "images").iterdir())
+    with sqlite3.connect(db) as conn:
+        conn.execute("UPDATE views SET color = NULL")
+    with pytest.raises(InputError, match="no registered view with a colour image"):
+        export(db, "colmap", tmp_path / "d")
+    assert not (tmp_path / "d").exists()
+
+
 def test_cli_export_json(synth: tuple[Path, dict], tmp_path: Path) -> None:
     """`gscan export --json` prints one JSON object on stdout: what was written, as the other commands do."""
     import subprocess

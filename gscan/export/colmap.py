@@ -1,5 +1,6 @@
 """COLMAP sparse model export through pycolmap (4.x: cameras, trivial rigs and frames, images, points),
-with the views' colour images in images/ (PNG, named as the model's images).
+with the views' colour images in images/ (PNG, named as the model's images); a registered view without a
+stored colour image is left out (named in a warning).
 
 World frame = the template's object frame, so each image's `cam_from_world` is inv(T_obj_cam).
 Cameras are PINHOLE, one per distinct intrinsics. COLMAP puts the centre of the top-left pixel at
@@ -43,11 +44,10 @@ class _UnionFind:
             self.parent[max(ra, rb)] = min(ra, rb)  # smallest index is the root: deterministic
 
 
-def build_reconstruction(db: TemplateDB, images_dir: Path | None = None) -> pycolmap.Reconstruction:
-    """The template as a pycolmap Reconstruction (registered views only). With `images_dir`, each view's colour
-    image is written there as `<view name>.png` and the COLMAP image takes that file name (image_path =
-    images_dir); a view without a stored colour image keeps its bare name."""
-    views = posed_views(db, need_images=False)
+def build_reconstruction(db: TemplateDB, images_dir: Path) -> pycolmap.Reconstruction:
+    """The template as a pycolmap Reconstruction: the registered views that store a colour image, each written
+    to `images_dir` as `<view name>.png`, the name the model's image takes (COLMAP's image_path)."""
+    views = posed_views(db, need_images=True, need_depth=False)
     rec = pycolmap.Reconstruction()
     cam_ids: dict = {}
     feats, offsets, colors = [], [0], []
@@ -62,15 +62,12 @@ def build_reconstruction(db: TemplateDB, images_dir: Path | None = None) -> pyco
         px = np.zeros((0, 2)) if f is None else f.pixels.astype(np.float64) + 0.5
         feats.append(f)
         offsets.append(offsets[-1] + len(px))
-        color = db.view(v.name, load_images=True).color
-        name = v.name
-        if images_dir is not None and color is not None:
-            name = f"{v.name}.png"
-            imwrite(images_dir / name, color, rgb=True)
+        name = f"{v.name}.png"
+        imwrite(images_dir / name, v.color, rgb=True)
         image = pycolmap.Image(name=name, keypoints=px, camera_id=cam_ids[k], image_id=img_id)
         T_cam_obj = inv_T(v.T_obj_cam)
         rec.add_image_with_trivial_frame(image, pycolmap.Rigid3d(T_cam_obj[:3, :4]))
-        colors.append(_keypoint_colors(color, f))
+        colors.append(_keypoint_colors(v.color, f))
     n = offsets[-1]
     index = {v.name: i for i, v in enumerate(views)}
     uf = _UnionFind(n)
@@ -107,12 +104,10 @@ def build_reconstruction(db: TemplateDB, images_dir: Path | None = None) -> pyco
     return rec
 
 
-def _keypoint_colors(color: np.ndarray | None, f) -> np.ndarray:
-    """[N x 3] uint8 colour under each keypoint of view features `f` in its colour image (grey without one)."""
+def _keypoint_colors(color: np.ndarray, f) -> np.ndarray:
+    """[N x 3] uint8 colour under each keypoint of view features `f` in its colour image."""
     if f is None or len(f.pixels) == 0:
         return np.zeros((0, 3), np.uint8)
-    if color is None:
-        return np.full((len(f.pixels), 3), 128, np.uint8)
     h, w = color.shape[:2]
     u = np.clip(np.rint(f.pixels[:, 0]).astype(int), 0, w - 1)
     v = np.clip(np.rint(f.pixels[:, 1]).astype(int), 0, h - 1)

@@ -14,22 +14,26 @@ from gscan.template import MeshData, TemplateDB, View
 log = logging.getLogger(__name__)
 
 
-def posed_views(db: TemplateDB, need_images: bool = True) -> list[View]:
-    """Registered views in input order (images decoded); with `need_images`, only views that store
-    colour and depth. InputError naming the database when none is left."""
-    out = []
+def posed_views(db: TemplateDB, need_images: bool = True, need_depth: bool = True) -> list[View]:
+    """Registered views in input order; with `need_images` their images decoded and only the views that store
+    colour (and depth, with `need_depth`). InputError naming the database when none is left; otherwise the
+    views left out are named in one warning."""
+    out, missing = [], []
     for v in db.views(load_images=False):
         if v.T_obj_cam is None:
             continue
         if need_images:
             v = db.view(v.name, load_images=True)
-            if v.color is None or v.depth is None:
-                log.warning("view %s stores no colour/depth image: not exported", v.name)
+            if v.color is None or (need_depth and v.depth is None):
+                missing.append(v.name)
                 continue
         out.append(v)
+    what = "colour and depth images" if need_depth else "colour image"
     if not out:
-        raise InputError(db.path, "no registered view with colour and depth images to export" if need_images
+        raise InputError(db.path, f"no registered view with {'a ' * (not need_depth)}{what} to export" if need_images
                          else "no registered view to export")
+    if missing:
+        log.warning("%d view(s) store no %s and are not exported: %s", len(missing), what, ", ".join(missing))
     return out
 
 
