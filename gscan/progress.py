@@ -52,18 +52,19 @@ class RichProgress:
 
             self._progress = RP(TextColumn("{task.description:<12}"), BarColumn(), MofNCompleteColumn(),
                                 TimeElapsedColumn(), console=self.console, transient=False)
-            self._progress.start()
         return self
 
     def __exit__(self, *exc) -> None:
-        if self._progress is not None:
-            self._progress.stop()
+        if self._progress is not None and self._progress.tasks:  # started by the first stage (a progress that
+            self._progress.stop()  # never showed one would leave a blank line, e.g. before an error line)
 
     @contextlib.contextmanager
     def stage(self, name: str, total: int | None = None) -> Iterator[Callable[[int], None]]:
         if self._progress is None:
             yield lambda n=1: None
             return
+        if not self._progress.tasks:
+            self._progress.start()
         task = self._progress.add_task(name, total=total if total else 1)
         yield lambda n=1: self._progress.advance(task, n)
         self._progress.update(task, completed=total if total else 1)

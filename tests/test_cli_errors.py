@@ -165,6 +165,14 @@ def _(ctx: Ctx, work: Path) -> Run:
     return _scan_case(work, work / "empty capture", "empty capture")
 
 
+@case("scan-empty-folder-without-json")  # the progress display is on: it must not leave a blank line first
+def _(ctx: Ctx, work: Path) -> Run:
+    (work / "empty capture").mkdir()
+    out = work / "out"
+    out.mkdir()
+    return Run(_cli("scan", work / "empty capture", "-o", out / "obj.gscan"), ["empty capture"], out_dir=out)
+
+
 @case("scan-missing-folder")
 def _(ctx: Ctx, work: Path) -> Run:
     return _scan_case(work, work / "no_such_capture", "no_such_capture")
@@ -951,6 +959,7 @@ def test_bad_input(name: str, results):
     assert "Traceback" not in proc.stderr, detail
     assert proc.stdout == "", detail  # a failing --json command prints no half JSON object
     lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert not proc.stderr.startswith("\n"), detail  # no blank line before the error line
     line = _error_line(proc.stderr)
     assert line.startswith("error: "), detail
     assert sum(ln.startswith("error: ") for ln in lines) == 1, detail
