@@ -145,7 +145,7 @@ def load_model_points(model_path: Path | None, estimator: Estimator) -> np.ndarr
 
 
 _DISAGREE = "as ground truth of"  # reason prefix of a capture whose ground truth contradicts the template
-GT_AGREEMENT = (3.0, 0.02)  # deg, m: median disagreement of the per-frame template-to-ground-truth transforms
+GT_AGREEMENT = (3.0, 0.02)  # deg, m: two frames' template-to-ground-truth transforms within this agree
 
 
 def template_to_gt(db_path: Path, gt_T_cam_obj: dict[str, np.ndarray]) -> np.ndarray:

@@ -151,7 +151,7 @@ def _open_resumed(opts: ScanOptions) -> TemplateDB:
     db = TemplateDB.open(opts.output, require_complete=False, writable=True)
     try:
         stored = {k: db.get_meta(k) for k in RESUME_KEYS}
-        try:  # settings added since the scan started take their defaults (what that scan ran with)
+        try:  # settings added to the configuration since the scan started take their defaults
             stored["config"] = json.loads(json.dumps(ScanConfig.model_validate(stored["config"]).model_dump()))
         except (ValueError, TypeError):
             pass  # not a configuration this version reads: it differs

@@ -30,8 +30,8 @@ def posed_views(db: TemplateDB, need_images: bool = True, need_depth: bool = Tru
         out.append(v)
     what = "colour and depth images" if need_depth else "colour image"
     if not out:
-        raise InputError(db.path, f"no registered view with {'a ' * (not need_depth)}{what} to export" if need_images
-                         else "no registered view to export")
+        with_images = " with colour and depth images" if need_depth else " with a colour image"
+        raise InputError(db.path, f"no registered view{with_images if need_images else ''} to export")
     if missing:
         log.warning("%d view(s) store no %s and are not exported: %s", len(missing), what, ", ".join(missing))
     return out
