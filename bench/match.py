@@ -3,6 +3,7 @@
 Usage (from the repository root):
     python bench/match.py pairs  [--meshes N] [--gaps 20,60,120] [--masks] [--methods M,..] [--eps-f E]
                                  [--table newspaper|wood|fabric|plain] [--gmatch T=64,eps_c=0.05,..]
+                                 [--starts 0,90,180,270]
                                                                       # success rate + time per pair
     python bench/match.py speed  [--inputs DIR] [--repeats 20]        # GMatch search time vs the C++ figures
     python bench/match.py sweep  [--meshes N] [--gap 60] [--kinds rootsift,sift,orb]   # eps_f sweep
@@ -10,8 +11,9 @@ Usage (from the repository root):
 pairs: every shared mesh (/work/shared/data/meshes/*/model_0.obj) rests on a textured table (--table:
 a gscan.synth.table_texture kind; newspaper is rich in keypoints, wood and fabric are sparser, plain has
 almost none, like a lab bench) and is
-rendered by gscan.synth at 640x480 (noisy depth) from cameras at 40 deg elevation, at azimuth 0 and
-at each gap; each (0, gap) pair is registered on whole-frame RootSIFT keypoints (the same keypoints
+rendered by gscan.synth at 640x480 (noisy depth) from cameras at 40 deg elevation, at azimuth s and
+s + each gap, for each start azimuth s of --starts (default 0: one pair per mesh and gap; more starts, more
+pairs, a smaller sampling error); each (s, s + gap) pair is registered on whole-frame RootSIFT keypoints (the same keypoints
 for every method), matches only (no ICP). Success: rotation error < 5 deg and translation < 2 cm.
 Rows: "gmatch" = registration's default (GMatch + the support check of its runner-up lists),
 "gmatch-longest" = the paper's pick alone (RegisterParams(verify=0)), then every baseline.
@@ -24,6 +26,7 @@ Prints tables; writes nothing in the repository.
 from __future__ import annotations
 
 import argparse
+import itertools
 import subprocess
 import sys
 import time
@@ -109,8 +112,9 @@ def cmd_pairs(args) -> None:
     fp = FeatureParams(kind="rootsift", sift_contrast_threshold=args.contrast)
     over = gmatch_overrides(args.gmatch)
     gp = GMatchParams(eps_f=args.eps_f, **over)
-    for mi, md in enumerate(_meshes(args.meshes)):
-        views = render_views(md, [0.0] + gaps, seed=mi, table_kind=args.table)
+    starts = [float(a) for a in args.starts.split(",")]
+    for (mi, md), s0 in itertools.product(enumerate(_meshes(args.meshes)), starts):
+        views = render_views(md, [s0] + [s0 + g for g in gaps], seed=mi, table_kind=args.table)
         feats = [extract_features(v[0], fp, mask=v[0].mask if args.masks else None) for v in views]
         line = []
         for gi, g in enumerate(gaps):
@@ -126,12 +130,13 @@ def cmd_pairs(args) -> None:
                 ok[(m, g)].append(e[0] < 5.0 and e[1] < 0.02)
                 acc[(m, g)].append(r.accepted)
             line.append(f"{g:.0f}:" + "".join("+" if ok[(m, g)][-1] else "." for m in methods))
-        print(f"{md.name[:40]:40s} kp {len(feats[0]):4d}  " + "  ".join(line), file=sys.stderr, flush=True)
-    n_meshes = len(ok[(methods[0], gaps[0])])
+        print(f"{md.name[:34]:34s} {s0:3.0f} kp {len(feats[0]):4d}  " + "  ".join(line), file=sys.stderr, flush=True)
+    n_pairs = len(ok[(methods[0], gaps[0])])
     tuned = "".join(f", {k} {v}" for k, v in over.items())
     eps_f = f"eps_f {args.eps_f:g}" if args.eps_f is not None else "default eps_f"
     print(f"\n{'object pixels only' if args.masks else 'whole frame'}, {args.table} table "
-          f"(gmatch: {eps_f}{tuned}): success rate (rot < 5 deg, trans < 2 cm) over {n_meshes} meshes; "
+          f"(gmatch: {eps_f}{tuned}): success rate (rot < 5 deg, trans < 2 cm) over {n_pairs} pairs "
+          f"({n_pairs // len(starts)} meshes x {len(starts)} start azimuths); "
           "median CPU ms per pair (distances + match + Kabsch)")
     print("| method | " + " | ".join(f"{g:.0f} deg" for g in gaps) + " | "
           + " | ".join(f"ms @{g:.0f}" for g in gaps) + " |")
@@ -223,6 +228,8 @@ def main() -> None:
     a.add_argument("--masks", action="store_true", help="keypoints on the object's pixels only (moving-object mode)")
     a.add_argument("--table", default="newspaper", choices=("newspaper", "wood", "fabric", "plain"),
                    help="table-top texture (gscan.synth.table_texture kind)")
+    a.add_argument("--starts", default="0", metavar="AZ,..",
+                   help="start azimuths (deg) of the pairs: one pair per mesh, gap and start")
     a.add_argument("--gmatch", default=None, metavar="KEY=VALUE,..",
                    help="GMatchParams overrides for the gmatch method, e.g. T=64,eps_c=0.05")
     b = sub.add_parser("speed")
