@@ -13,8 +13,8 @@ a gscan.synth.table_texture kind; newspaper is rich in keypoints, wood and fabri
 almost none, like a lab bench) and is
 rendered by gscan.synth at 640x480 (noisy depth) from cameras at 40 deg elevation, at azimuth s and
 s + each gap, for each start azimuth s of --starts (default 0: one pair per mesh and gap; more starts, more
-pairs, a smaller sampling error); each (s, s + gap) pair is registered on whole-frame RootSIFT keypoints (the same keypoints
-for every method), matches only (no ICP). Success: rotation error < 5 deg and translation < 2 cm.
+pairs, a smaller sampling error); each (s, s + gap) pair is registered on whole-frame RootSIFT keypoints
+(the same keypoints for every method), matches only (no ICP). Success: rotation error < 5 deg and translation < 2 cm.
 Rows: "gmatch" = registration's default (GMatch + the support check of its runner-up lists),
 "gmatch-longest" = the paper's pick alone (RegisterParams(verify=0)), then every baseline.
 speed: /work/shared/bench_inputs/make_synthetic.py inputs (generated into --inputs when missing);
