@@ -108,7 +108,7 @@ def scan(
     from gscan.scan import ScanOptions, run_scan
 
     if format not in ("auto",) + FORMATS:
-        raise UsageError(None, f"--format must be auto, capture, open3d, tum or bop, not {format!r}")
+        raise UsageError(None, f"--format must be one of {', '.join(('auto',) + FORMATS)}, not {format!r}")
     if mode not in ("auto", "static-object", "moving-object"):
         raise UsageError(None, f"--mode must be auto, static-object or moving-object, not {mode!r}")
     if resume and force:

@@ -156,8 +156,9 @@ def refine_pose(pts_s: np.ndarray, pts_t: np.ndarray, pool: GuidedPool, T: np.nd
     """
     ps, pt = np.asarray(pts_s, np.float64), np.asarray(pts_t, np.float64)
     # pairs far from consistent under the starting pose never come back: keep the loosest band
-    ii, jj = pool.near(transform_points(T, ps), max(taus))
-    r = np.linalg.norm(transform_points(T, ps[ii]) - pt[jj], axis=1)
+    q = transform_points(T, ps)
+    ii, jj = pool.near(q, max(taus))
+    r = np.linalg.norm(q[ii] - pt[jj], axis=1)
     best = np.zeros((0, 2), np.int32)
     for tau in taus:
         ok = _one_to_one(ii, jj, r, tau)
@@ -172,8 +173,9 @@ def refine_pose(pts_s: np.ndarray, pts_t: np.ndarray, pool: GuidedPool, T: np.nd
 def consistent_pairs(pts_s: np.ndarray, pts_t: np.ndarray, pool: GuidedPool, T: np.ndarray, tau: float) -> np.ndarray:
     """[K x 2] int32 pairs of `pool` (source, target) within tau of each other under T_tgt_src, one-to-one."""
     ps, pt = np.asarray(pts_s, np.float64), np.asarray(pts_t, np.float64)
-    ii, jj = pool.near(transform_points(T, ps), tau)
-    ok = _one_to_one(ii, jj, np.linalg.norm(transform_points(T, ps[ii]) - pt[jj], axis=1), tau)
+    q = transform_points(T, ps)
+    ii, jj = pool.near(q, tau)
+    ok = _one_to_one(ii, jj, np.linalg.norm(q[ii] - pt[jj], axis=1), tau)
     return np.stack([ii[ok], jj[ok]], axis=1).astype(np.int32)
 
 

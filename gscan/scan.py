@@ -231,8 +231,9 @@ def run_scan(opts: ScanOptions, progress: Progress | None = None) -> ScanResult:
 def _scan_frames(frames: list[_Frame], opts: ScanOptions, db: TemplateDB, resumed: bool, timer: StageTimer,
                  problems: dict[str, str]) -> ScanResult:
     cfg = opts.config
+    seg = _segment_params(cfg)
     with timer.stage("mode", total=1) as advance:
-        mode, given_masks = _mode_and_masks(frames, opts.mode, _segment_params(opts.config))
+        mode, given_masks = _mode_and_masks(frames, opts.mode, seg)
         advance(1)
     db.set_meta("mode", mode)
     log.info("%s capture, %d frames%s", mode, len(frames), ", masks given" if given_masks else "")
@@ -256,7 +257,7 @@ def _scan_frames(frames: list[_Frame], opts: ScanOptions, db: TemplateDB, resume
         raise InputError(opts.input_dir, "no frame could be registered")
 
     with timer.stage("segment", total=1) as advance:
-        masks, plane_world = _segment(frames, T_world_cam, mode, opts.segment, _segment_params(opts.config))
+        masks, plane_world = _segment(frames, T_world_cam, mode, opts.segment, seg)
         advance(1)
 
     with timer.stage("fuse", total=1) as advance:
