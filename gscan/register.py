@@ -13,13 +13,14 @@ Acceptance rules, applied in this order (the first failing one is the `reason`):
    A rejected ICP leaves the match pose in T_tgt_src; an accepted one replaces it.
 Without ICP, rmse is the Kabsch residual and fitness is None.
 
-Pose from a GMatch list: `geometry.kabsch_trimmed` with `trim_tau`: Kabsch, then the worst pair is
-dropped while it lies more than trim_tau off, first by plain then by leave-one-out residuals, never
-below half of the list (a list with no consistent majority keeps plain Kabsch). Pairwise distances
-cannot tell a point from its mirror image across a plane holding the other matches, so on a flat,
-self-similar table a 24-pair list can carry one pair 40 cm off (plain Kabsch: 24 deg error, trimmed:
-0.3); one distant pair with a bad depth next to a clustered list tilts plain Kabsch by 6 deg. The
-trimmed pairs are not inliers and do not count for rule 1.
+Pose from a GMatch list: `geometry.kabsch_trimmed` with `trim_tau`: plain Kabsch when every pair fits
+within trim_tau, else the pairs within trim_tau of the best-scoring triple's pose (a consensus over every
+triple of the list), re-solved; then the worst pair by leave-one-out residual is dropped while it lies
+more than trim_tau off, never below half of the list. Pairwise distances cannot tell a point from its
+mirror image across a plane holding the other matches, so on a flat, self-similar table a 24-pair list can
+carry one pair 40 cm off (plain Kabsch: 24 deg error, trimmed: 0.3); the depth-grown eta lets a background
+pair 36 cm off join a whole-frame list; one distant pair with a bad depth next to a clustered list tilts
+plain Kabsch by 6 deg. The trimmed pairs are not inliers and do not count for rule 1.
 
 Support check (GMatch only, `verify`): the longest list is not always the right one. On object pixels
 at a 60 deg view change a wrong 5-8 pair list that happens to be consistent can outgrow the true lists
