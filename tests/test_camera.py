@@ -207,6 +207,36 @@ def test_kabsch_trimmed_survives_a_distant_pair_far_off(seed):
     assert deg < 2.0 and m < 0.03  # m: at the camera origin, 1 m from the points
 
 
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(4, 32), st.integers(1, 3))
+def test_consensus_kernel_poses_a_clean_triple_exactly(seed, n, n_out):
+    """Noise-free pairs under a rigid motion plus n_out pairs moved 5-40 cm: the best triple is a triple of
+    inliers and its triad pose is the motion itself."""
+    from gscan.consensus_kernel import best_triple
+
+    rng = np.random.default_rng(seed)
+    T = _rigid(rng)
+    src = rng.uniform(-0.1, 0.1, size=(n, 3))
+    dst = transform_points(T, src)
+    bad = rng.choice(n, min(n_out, n - 3), replace=False)
+    away = rng.normal(size=(len(bad), 3))
+    dst[bad] += away / np.linalg.norm(away, axis=1, keepdims=True) * rng.uniform(0.05, 0.4, (len(bad), 1))
+    i, j, k, T_tri = best_triple(src, dst, n, 0.008, 0.1)
+    assert not {i, j, k} & set(bad.tolist())
+    np.testing.assert_allclose(T_tri, T, atol=1e-9)
+
+
+def test_kabsch_trimmed_with_only_collinear_triples_is_plain_kabsch():
+    rng = np.random.default_rng(5)
+    # four pairs on a line (too few for the leave-one-out step): every triple is degenerate, one pair is off
+    src = np.outer(np.linspace(0.0, 0.2, 4), [1.0, 0.5, 0.2])
+    dst = transform_points(_rigid(rng), src)
+    dst[2] += 0.1
+    T_est, keep = kabsch_trimmed(src, dst, 0.008)
+    assert keep.all()
+    np.testing.assert_allclose(T_est, kabsch(src, dst), atol=1e-12)
+
+
 def test_kabsch_trimmed_on_the_rendered_whole_frame_list():
     """GMatch's 15-pair list on a rendered pair (Diet Pepsi, plain table, start azimuth 270, 60 deg; mm,
     rounded): pair 10 lies on the background, 36 cm off; the others within 7 mm. Worst-first trimming
