@@ -102,6 +102,7 @@ def scan(
 ) -> None:
     """Register every view of an RGB-D capture into one object frame and write a template database."""
     _setup_logging(verbose)
+    _import_holding_ctrl_c("gscan.scan", "open3d")
     from gscan.config import load_config
     from gscan.io.layouts import FORMATS
     from gscan.progress import RichProgress
@@ -126,6 +127,27 @@ def scan(
         _print_json(result.to_json())
     else:
         _print_scan_summary(result)
+
+
+def _import_holding_ctrl_c(*modules: str) -> None:
+    """Import `modules` with Ctrl+C held: a SIGINT that comes meanwhile is raised as KeyboardInterrupt after.
+
+    Ctrl+C inside a C extension's initialisation turns into "ImportError: initialization failed" (open3d's
+    takes about 0.5 s; the scan imported it lazily at its pose-graph stage, so a Ctrl+C there was reported as
+    an internal error). The handler is swapped, not the signal blocked: a blocked signal goes to another
+    thread (numpy's BLAS pool) and interrupts the import all the same. Main thread only."""
+    import importlib
+    import signal
+
+    caught: list[int] = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: caught.append(signum))
+    try:
+        for m in modules:
+            importlib.import_module(m)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if caught:
+        raise KeyboardInterrupt
 
 
 def _interrupted_scan_line(output: Path, force: bool) -> str:

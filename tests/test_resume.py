@@ -256,3 +256,20 @@ def test_resume_refuses_other_intrinsics_or_depth_scale(capture: Path, reference
     r = _gscan("scan", capture, "-o", db, "--resume", "--json", "--format", "capture")  # what auto detected
     assert r.returncode == 0, r.stderr
     assert json.loads(r.stdout)["registered"] == reference[0]["registered"]
+
+
+def test_ctrl_c_during_a_slow_import_arrives_after_it(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
+    """The scan imports open3d (about 0.5 s of C initialisation) with SIGINT held: a Ctrl+C in that window
+    turned into "ImportError: initialization failed", reported as an internal error (exit 1) instead of an
+    interruption. Here a module sends itself SIGINT in its body: the import completes, then the
+    KeyboardInterrupt arrives."""
+    from gscan.cli import _import_holding_ctrl_c
+
+    (tmp_path / "gscan_test_slow_import.py").write_text(
+        "import os, signal, time\nos.kill(os.getpid(), signal.SIGINT)\ntime.sleep(0.05)\nDONE = True\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.delitem(sys.modules, "gscan_test_slow_import", raising=False)
+    with pytest.raises(KeyboardInterrupt):
+        _import_holding_ctrl_c("gscan_test_slow_import")
+    assert sys.modules["gscan_test_slow_import"].DONE
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # Ctrl+C interrupts again
