@@ -102,7 +102,7 @@ def scan(
 ) -> None:
     """Register every view of an RGB-D capture into one object frame and write a template database."""
     _setup_logging(verbose)
-    _import_holding_ctrl_c("gscan.scan", "open3d")
+    _import_holding_ctrl_c("gscan.scan", "open3d", "scipy.spatial")  # the scan's lazy C-extension imports
     from gscan.config import load_config
     from gscan.io.layouts import FORMATS
     from gscan.progress import RichProgress
