@@ -130,7 +130,7 @@ def scan(
 
 
 def _import_holding_ctrl_c(*modules: str) -> None:
-    """Import `modules` with Ctrl+C held: a SIGINT that comes meanwhile is raised as KeyboardInterrupt after.
+    """Import `modules` with Ctrl+C held: a SIGINT that comes meanwhile is delivered again after them.
 
     Ctrl+C inside a C extension's initialisation turns into "ImportError: initialization failed" (open3d's
     takes about 0.5 s; the scan imported it lazily at its pose-graph stage, so a Ctrl+C there was reported as
@@ -146,8 +146,8 @@ def _import_holding_ctrl_c(*modules: str) -> None:
             importlib.import_module(m)
     finally:
         signal.signal(signal.SIGINT, previous)
-    if caught:
-        raise KeyboardInterrupt
+    if caught:  # again, to the handler it would have met (KeyboardInterrupt, or nothing where it is ignored)
+        signal.raise_signal(signal.SIGINT)
 
 
 def _interrupted_scan_line(output: Path, force: bool) -> str:
