@@ -102,7 +102,7 @@ def scan(
 ) -> None:
     """Register every view of an RGB-D capture into one object frame and write a template database."""
     _setup_logging(verbose)
-    _import_holding_ctrl_c("gscan.scan", "open3d", "scipy.spatial")  # the scan's lazy C-extension imports
+    _import_holding_ctrl_c(*_SCAN_IMPORTS)
     from gscan.config import load_config
     from gscan.io.layouts import FORMATS
     from gscan.progress import RichProgress
@@ -127,6 +127,9 @@ def scan(
         _print_json(result.to_json())
     else:
         _print_scan_summary(result)
+
+
+_SCAN_IMPORTS = ("gscan.scan", "open3d", "scipy.spatial")  # with the scan's lazy C-extension imports
 
 
 def _import_holding_ctrl_c(*modules: str) -> None:
@@ -439,6 +442,7 @@ def demo(
     port: int = typer.Option(8080, "--port", min=1, max=65535, help="viewer port"),
 ) -> None:
     """Scan the bundled sample, estimate its held-back frames, then open the viewer."""
+    _import_holding_ctrl_c(*_SCAN_IMPORTS)
     from rich.table import Table
 
     from gscan.demo import SAMPLES, evaluate_sample, scan_sample
