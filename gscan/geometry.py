@@ -170,9 +170,10 @@ def kabsch_trimmed(src: np.ndarray, dst: np.ndarray, tau: float, min_sin: float 
                 T = kabsch(src[keep], dst[keep])
                 again = np.linalg.norm(transform_points(T, src) - dst, axis=1) < tau
                 if again.sum() < 3 or (again == keep).all():
-                    break
+                    break  # T is the selection's pose
                 keep = again
-            T = kabsch(src[keep], dst[keep])
+            else:  # the third re-selection changed it
+                T = kabsch(src[keep], dst[keep])
     floor = max(3, (n + 1) // 2)
     while keep.sum() >= 5 and keep.sum() - 1 >= floor:  # 3. leave-one-out residuals
         idx = np.flatnonzero(keep)
