@@ -1,4 +1,4 @@
-"""Benchmark of pose estimation (gscan.estimate) on cluttered rendered scenes, against a baseline.
+"""Benchmark of pose estimation (gscan.estimate.estimator) on cluttered rendered scenes, against a baseline.
 
 For every shared mesh (or --meshes): a CAD template (`build_template_from_mesh`, --views views,
 cached under --work), then --scenes scenes: the target resting on a textured table in a random
@@ -10,10 +10,10 @@ target past a distractor from low (elevation 15-35 deg), so the distractor partl
 Methods, same templates, same query features, same retrieval, same ICP / scoring / acceptance:
 - gscan: `Estimator` (GMatch per retrieved view), full frame, ICP on.
 - gscan-mask-noicp: the same with the ground-truth mask as --mask and no ICP (speed target).
-- gscan-scanned (--scanned N): the first N meshes also scanned (gscan.scan) from a rendered 24-frame
+- gscan-scanned (--scanned N): the first N meshes also scanned (gscan.scan.pipeline) from a rendered 24-frame
   capture on a table; the scanned template's frame is mapped to the ground truth by the mean of
   T_obj_cam[f] @ T_cam_gt[f] over the capture frames (DESIGN.md); full frame, ICP on.
-- baseline: gscan.baselines "ratio" per retrieved view (nearest neighbour + Lowe ratio 0.75, then
+- baseline: gscan.matching.baselines "ratio" per retrieved view (nearest neighbour + Lowe ratio 0.75, then
   open3d correspondence RANSAC with a 1 cm inlier distance, seeded), the view with the most inliers,
   then the same Kabsch / ICP / score / acceptance as gscan.
 
@@ -34,13 +34,13 @@ from pathlib import Path
 
 import numpy as np
 
-from gscan.baselines import run_baseline
-from gscan.cadtemplate import build_template_from_mesh
-from gscan.camera import RGBDFrame
-from gscan.estimate import STAGES, EstimateParams, Estimator
+from gscan.matching.baselines import run_baseline
+from gscan.scan.cad import build_template_from_mesh
+from gscan.io.camera import RGBDFrame
+from gscan.estimate.estimator import STAGES, EstimateParams, Estimator
 from gscan.features import Features
-from gscan.geometry import look_at, rotvec_to_R, transform_points
-from gscan.metrics import add, adds, auc
+from gscan.geometry.transforms import look_at, rotvec_to_R, transform_points
+from gscan.evaluate.metrics import add, adds, auc
 from gscan.synth import (DEFAULT_INTRINSICS, SynthScene, default_distance, load_textured_mesh, place_distractors,
                          rest_on_table)
 
@@ -49,7 +49,7 @@ MESHES = ROOT.parent / "shared" / "data" / "meshes"
 
 
 class RatioRansacEstimator(Estimator):
-    """Baseline: gscan.baselines "ratio" (NN + Lowe ratio 0.75 -> open3d correspondence RANSAC, 1 cm,
+    """Baseline: gscan.matching.baselines "ratio" (NN + Lowe ratio 0.75 -> open3d correspondence RANSAC, 1 cm,
     seeded) in place of GMatch; everything else (features, retrieval, Kabsch, ICP, score) is shared."""
 
     def _match_view(self, v: int, S: np.ndarray, feats: Features,
@@ -95,12 +95,12 @@ def make_scene(target, distractors, seed: int, occlude: bool, min_visible: float
 
 
 def scanned_template(name: str, mesh, work: Path, n_frames: int) -> tuple[Path, np.ndarray]:
-    """Scan a rendered capture of `mesh` (gscan.scan, static object on a textured table) into a template;
+    """Scan a rendered capture of `mesh` (gscan.scan.pipeline, static object on a textured table) into a template;
     returns (template path, T_obj_gt [4 x 4]): the template->ground-truth alignment, the mean of
     T_obj_cam[f] @ T_cam_gt[f] over the capture frames (DESIGN.md), never from the test scenes."""
-    from gscan.evaluate import template_to_gt
+    from gscan.evaluate.bop19 import template_to_gt
     from gscan.io import open_sequence
-    from gscan.scan import ScanOptions, run_scan
+    from gscan.scan.pipeline import ScanOptions, run_scan
     from gscan.synth import render_capture
 
     cap, tpl = work / f"{name}_capture{n_frames}", work / f"{name}_scan{n_frames}.gscan"
@@ -190,7 +190,7 @@ def main() -> None:
     ap.add_argument("--scenes", type=int, default=4, help="scenes per mesh")
     ap.add_argument("--views", type=int, default=36, help="template views")
     ap.add_argument("--scanned", type=int, default=0, help="also scan a rendered capture of the first N meshes "
-                    "(gscan.scan) and estimate the same scenes with that template")
+                    "(gscan.scan.pipeline) and estimate the same scenes with that template")
     ap.add_argument("--scan-frames", type=int, default=24, help="frames of each scanned capture")
     ap.add_argument("--work", default="/tmp/gscan-bench-estimate", help="template cache folder")
     ap.add_argument("--json", default=None, help="write the full results here")

@@ -45,8 +45,8 @@ def render_views(mesh_dir: Path, azimuths_deg: list[float], seed: int, elevation
     table_kind: the table top's texture (gscan.synth.table_texture kind: "newspaper", "wood", "fabric", "plain").
     The depth noise of each view depends on (seed, azimuth) only.
     """
-    from gscan.camera import RGBDFrame
-    from gscan.geometry import look_at, transform_points
+    from gscan.io.camera import RGBDFrame
+    from gscan.geometry.transforms import look_at, transform_points
     from gscan.synth import DEFAULT_INTRINSICS, SynthScene, default_distance, load_textured_mesh, rest_on_table
 
     mesh = load_textured_mesh(mesh_dir / "model_0.obj")
@@ -75,7 +75,7 @@ def gmatch_overrides(spec: str | None) -> dict:
     """GMatchParams fields from "KEY=VALUE,KEY=VALUE" (values cast to the field's default type)."""
     from dataclasses import fields
 
-    from gscan.gmatch import GMatchParams
+    from gscan.matching.gmatch import GMatchParams
 
     if not spec:
         return {}
@@ -100,14 +100,14 @@ def gmatch_overrides(spec: str | None) -> dict:
 
 def cmd_pairs(args) -> None:
     from gscan.features import FeatureParams, extract_features
-    from gscan.geometry import inv_T, pose_error
-    from gscan.gmatch import GMatchParams
-    from gscan.register import METHODS, RegisterParams, register_features
+    from gscan.geometry.transforms import inv_T, pose_error
+    from gscan.matching.gmatch import GMatchParams
+    from gscan.registration.pairwise import METHODS, RegisterParams, register_features
 
     gaps = [float(g) for g in args.gaps.split(",")]
     methods = args.methods.split(",") if args.methods else ["gmatch", "gmatch-longest"] + list(METHODS[1:])
     ok = {(m, g): [] for m in methods for g in gaps}
-    acc = {(m, g): [] for m in methods for g in gaps}  # accepted by registration's rules (gscan.register)
+    acc = {(m, g): [] for m in methods for g in gaps}  # accepted by registration's rules (gscan.registration.pairwise)
     ms = {(m, g): [] for m in methods for g in gaps}
     fp = FeatureParams(kind="rootsift", sift_contrast_threshold=args.contrast)
     over = gmatch_overrides(args.gmatch)
@@ -157,9 +157,9 @@ def cmd_pairs(args) -> None:
 
 def cmd_sweep(args) -> None:
     from gscan.features import FeatureParams, extract_features
-    from gscan.geometry import inv_T, pose_error
-    from gscan.gmatch import GMatchParams
-    from gscan.register import RegisterParams, register_features
+    from gscan.geometry.transforms import inv_T, pose_error
+    from gscan.matching.gmatch import GMatchParams
+    from gscan.registration.pairwise import RegisterParams, register_features
 
     grid = {"rootsift": [0.4, 0.45, 0.5, 0.55, 0.6, 0.65, 0.7, 0.75, 0.8], "sift": [100.0, 150.0, 200.0, 250.0, 300.0],
             "orb": [40.0, 50.0, 64.0, 80.0, 96.0]}
@@ -182,7 +182,7 @@ def cmd_sweep(args) -> None:
 
 
 def cmd_speed(args) -> None:
-    from gscan.gmatch import GMatchParams, extract_candidates, search_candidates
+    from gscan.matching.gmatch import GMatchParams, extract_candidates, search_candidates
 
     inputs = Path(args.inputs)
     if not (inputs / "synth_N2000.npz").is_file():

@@ -1,11 +1,11 @@
-"""Benchmark of the scan pipeline (gscan.scan) on rendered captures of the shared meshes, against peers.
+"""Benchmark of the scan pipeline (gscan.scan.pipeline) on rendered captures of the shared meshes, against peers.
 
 1. Accuracy: for every shared mesh (or the first --meshes), a static capture of --views views
    (gscan.synth.render_capture, mode "static", two orbit rings at 30 and 55 degrees elevation,
    ordered ring by ring: the first half of the frames on the 30-degree ring), scanned with the
    rendered masks and again without them (masks/ removed: gscan segments on its own). Reports
    registered frames, ATE of the camera positions (rigid Umeyama alignment of the scanned
-   T_obj_cam positions onto the ground-truth inv(T_cam_obj) ones, gscan.metrics.ate; over the
+   T_obj_cam positions onto the ground-truth inv(T_cam_obj) ones, gscan.evaluate.metrics.ate; over the
    registered frames) and seconds per frame (wall time of run_scan / frames).
 2. Peers on the same captures (bench/peers.py, whole frames): open3d RGB-D odometry chain and
    FPFH + RANSAC + point-to-plane ICP chain; registered / failed frames and ATE. Their depth_max
@@ -42,12 +42,12 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
 
-from gscan.geometry import inv_T  # noqa: E402
+from gscan.geometry.transforms import inv_T  # noqa: E402
 from gscan.io import open_sequence  # noqa: E402
-from gscan.metrics import ate  # noqa: E402
-from gscan.scan import ScanOptions, run_scan  # noqa: E402
+from gscan.evaluate.metrics import ate  # noqa: E402
+from gscan.scan.pipeline import ScanOptions, run_scan  # noqa: E402
 from gscan.synth import default_distance, load_textured_mesh, render_capture  # noqa: E402
-from gscan.template import TemplateDB  # noqa: E402
+from gscan.template.db import TemplateDB  # noqa: E402
 
 MESHES = ROOT.parent / "shared" / "data" / "meshes"
 OUT = ROOT / "bench" / "out"

@@ -32,7 +32,7 @@ app.add_typer(config_app, name="config")
 
 # no markup or emoji codes: file and frame names ("[x]", ":smile:") are printed as they are; styles go
 # through `_say`
-err = Console(stderr=True, highlight=False, markup=False, emoji=False)
+err = Console(stderr=True, highlight=False, markup=False, emoji=False, soft_wrap=True)
 
 
 def _say(*parts: str | tuple[str, str]) -> None:
@@ -103,10 +103,10 @@ def scan(
     """Register every view of an RGB-D capture into one object frame and write a template database."""
     _setup_logging(verbose)
     _import_holding_ctrl_c(*_SCAN_IMPORTS)
-    from gscan.config import load_config
+    from gscan.scan.config import load_config
     from gscan.io.layouts import FORMATS
     from gscan.progress import RichProgress
-    from gscan.scan import ScanOptions, run_scan
+    from gscan.scan.pipeline import ScanOptions, run_scan
 
     if format not in ("auto",) + FORMATS:
         raise UsageError(None, f"--format must be one of {', '.join(('auto',) + FORMATS)}, not {format!r}")
@@ -129,7 +129,7 @@ def scan(
         _print_scan_summary(result)
 
 
-_SCAN_IMPORTS = ("gscan.scan", "open3d", "scipy.spatial")  # with the scan's lazy C-extension imports
+_SCAN_IMPORTS = ("gscan.scan.pipeline", "open3d", "scipy.spatial")  # with the scan's lazy C-extension imports
 
 
 def _import_holding_ctrl_c(*modules: str) -> None:
@@ -155,7 +155,7 @@ def _import_holding_ctrl_c(*modules: str) -> None:
 
 def _interrupted_scan_line(output: Path, force: bool) -> str:
     """What an interrupted scan left: a partial database to resume, or the output as it was."""
-    from gscan.template import TemplateDB
+    from gscan.template.db import TemplateDB
 
     try:
         with TemplateDB.open(output, require_complete=False) as db:
@@ -200,7 +200,7 @@ def template_from_mesh(
     json_out: bool = typer.Option(False, "--json", help="print one JSON object on stdout"),
 ) -> None:
     """Render snapshots around a CAD mesh into a template database (mesh frame kept)."""
-    from gscan.cadtemplate import build_template_from_mesh
+    from gscan.scan.cad import build_template_from_mesh
     from gscan.progress import RichProgress
 
     if scale <= 0:
@@ -234,7 +234,7 @@ def estimate(
     json_out: bool = typer.Option(False, "--json", help="print one JSON object on stdout"),
 ) -> None:
     """Estimate the object's pose T_cam_obj in a new RGB-D frame."""
-    from gscan.estimate import Estimator
+    from gscan.estimate.estimator import Estimator
 
     estimator = Estimator.from_path(template)
     frame = _load_query_frame(color, depth, intrinsics, depth_scale, mask)
@@ -262,7 +262,7 @@ def poses(
     json_out: bool = typer.Option(False, "--json", help="print one JSON object on stdout"),
 ) -> None:
     """Camera pose T_obj_cam of every registered input frame in the template frame."""
-    from gscan.template import TemplateDB
+    from gscan.template.db import TemplateDB
 
     with TemplateDB.open(template, require_complete=True) as db:
         out = db.poses()
@@ -282,7 +282,7 @@ def info(
     json_out: bool = typer.Option(False, "--json", help="print one JSON object on stdout"),
 ) -> None:
     """Summary of a template database (works on partial ones too)."""
-    from gscan.template import TemplateDB
+    from gscan.template.db import TemplateDB
 
     with TemplateDB.open(template, require_complete=False) as db:
         out = db.summary()
@@ -331,13 +331,13 @@ def view(
     depth_scale: float = typer.Option(0.001, "--depth-scale", help="metres per raw depth unit"),
 ) -> None:
     """Browse a template (views, matches, pose graph) in the web browser."""
-    from gscan.viewer import run_viewer
+    from gscan.viewer.app import run_viewer
 
     frame = T_cam_obj = None
     if color is not None or depth is not None or intrinsics is not None:
         if color is None or depth is None or intrinsics is None:
             raise UsageError(None, "--color, --depth and --intrinsics go together")
-        from gscan.estimate import Estimator
+        from gscan.estimate.estimator import Estimator
 
         frame = _load_query_frame(color, depth, intrinsics, depth_scale, None)
         result = Estimator.from_path(template).estimate(frame)
@@ -358,7 +358,7 @@ def grasp_add(
 ) -> None:
     """Store a named grasp pose T_obj_grasp in the template."""
     from gscan.io import read_pose_file
-    from gscan.template import TemplateDB
+    from gscan.template.db import TemplateDB
 
     T = read_pose_file(pose)
     with TemplateDB.open(template, require_complete=True, writable=True) as db:
@@ -372,7 +372,7 @@ def grasp_list(
     json_out: bool = typer.Option(False, "--json", help="print one JSON object on stdout"),
 ) -> None:
     """List the grasp poses stored in a template."""
-    from gscan.template import TemplateDB
+    from gscan.template.db import TemplateDB
 
     with TemplateDB.open(template, require_complete=False) as db:
         grasps = db.grasps()
@@ -403,7 +403,7 @@ def eval_cmd(
     json_out: bool = typer.Option(False, "--json", help="print one JSON object on stdout"),
 ) -> None:
     """Run estimation over scenes, write BOP19 results CSV and print a metrics table."""
-    from gscan.evaluate import evaluate
+    from gscan.evaluate.bop19 import evaluate
 
     report = evaluate(template, scenes, output, obj_id=obj_id, model_path=model, refine=not no_icp, force=force,
                       gt_capture=gt_capture)
@@ -427,7 +427,7 @@ def eval_cmd(
 @config_app.command("dump")
 def config_dump() -> None:
     """Print the default scan configuration as commented YAML."""
-    from gscan.config import dump_defaults
+    from gscan.scan.config import dump_defaults
 
     sys.stdout.write(dump_defaults())
 
@@ -466,7 +466,7 @@ def demo(
     if no_view:
         _say(("3/3", "bold"), f" viewer skipped; run `gscan view {result.output}`")
         return
-    from gscan.viewer import run_viewer
+    from gscan.viewer.app import run_viewer
 
     _say(("3/3 viewer", "bold"))
     run_viewer(result.output, port=port,

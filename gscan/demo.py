@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 
 from gscan.errors import InputError
-from gscan.evaluate import template_to_gt
-from gscan.geometry import pose_error
+from gscan.evaluate.bop19 import template_to_gt
+from gscan.geometry.transforms import pose_error
 
 SAMPLES = Path(__file__).resolve().parents[1] / "samples"
 
@@ -33,9 +33,9 @@ class HeldOutResult:
 
 def evaluate_heldout(db_path: Path, heldout_dir: Path, model_points: np.ndarray) -> list[HeldOutResult]:
     """Estimate every held-back frame and compare with its ground truth (errors in the GT frame)."""
-    from gscan.estimate import Estimator
+    from gscan.estimate.estimator import Estimator
     from gscan.io import open_sequence
-    from gscan.metrics import add
+    from gscan.evaluate.metrics import add
 
     capture = open_sequence(SAMPLES / "capture")
     T_obj_gt = template_to_gt(db_path, capture.gt_T_cam_obj or {})
@@ -66,7 +66,7 @@ def _model_points() -> np.ndarray:
 
 def scan_sample(output: Path, progress=None):
     """Scan samples/capture into OUTPUT/sample.gscan (replacing it); returns the ScanResult."""
-    from gscan.scan import ScanOptions, run_scan
+    from gscan.scan.pipeline import ScanOptions, run_scan
 
     if not (SAMPLES / "capture").is_dir():
         raise InputError(SAMPLES / "capture", "bundled sample not found (run from a source checkout)")

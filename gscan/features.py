@@ -1,7 +1,7 @@
 """Keypoint descriptors (SIFT, RootSIFT, ORB) lifted to 3D with the frame's depth.
 
 Backends are OpenCV's `SIFT_create` / `ORB_create`. Every returned keypoint has a valid,
-discontinuity-free depth (see `gscan.camera.lift_keypoints`) and a 3D point in the camera
+discontinuity-free depth (see `gscan.io.camera.lift_keypoints`) and a 3D point in the camera
 frame. Output order is by decreasing detector response; ties are broken by (y, x, angle),
 so the result does not depend on the order in which OpenCV's worker threads emit
 keypoints: the same image always gives identical arrays. Measured with OpenCV 5.0: the raw
@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from gscan.camera import RGBDFrame, lift_keypoints
+from gscan.io.camera import RGBDFrame, lift_keypoints
 
 log = logging.getLogger(__name__)
 
@@ -278,7 +278,7 @@ def extract_features_in_mask(frame: RGBDFrame, mask: np.ndarray, params: Feature
     """Features of `frame` inside `mask` [H x W] bool, detected on the mask's bounding box (+ `margin`
     px) only, which is faster than a masked full-frame detection; pixels in full-frame coordinates,
     points in the camera frame. An empty mask gives no features."""
-    from gscan.camera import Intrinsics
+    from gscan.io.camera import Intrinsics
 
     if not mask.any():
         return empty_features(params.kind)

@@ -1,4 +1,4 @@
-"""Templates rendered from CAD meshes (gscan.cadtemplate)."""
+"""Templates rendered from CAD meshes (gscan.scan.cad)."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -6,12 +6,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gscan.cadtemplate import build_template_from_mesh, fibonacci_directions, view_poses
-from gscan.camera import project
+from gscan.scan.cad import build_template_from_mesh, fibonacci_directions, view_poses
+from gscan.io.camera import project
 from gscan.errors import InputError
-from gscan.geometry import inv_T, transform_points
+from gscan.geometry.transforms import inv_T, transform_points
 from gscan.synth import DEFAULT_INTRINSICS, load_textured_mesh
-from gscan.template import TemplateDB
+from gscan.template.db import TemplateDB
 
 MESH = "Vans_Cereal_Honey_Nut_Crunch_11_oz_box"
 
@@ -93,9 +93,9 @@ def test_template_from_a_scanned_mesh(sample_template, tmp_path, caplog):
     """A scan's exported PLY (vertex colours, 30k+ faces: more than OpenCV's 32767-pixel image side, which a
     one-row face-colour texture exceeded) becomes a CAD template that finds the held-out frame's pose as the
     scanned template does, with no warning about missing colours."""
-    from gscan.estimate import Estimator
+    from gscan.estimate.estimator import Estimator
     from gscan.export import export
-    from gscan.geometry import pose_error
+    from gscan.geometry.transforms import pose_error
     from gscan.io import load_frame
 
     ply = tmp_path / "scan.ply"
@@ -132,7 +132,7 @@ def test_existing_output_refused_without_force(built, meshes_dir, tmp_path):
 
 
 def test_failure_midway_removes_output(meshes_dir, tmp_path, monkeypatch):
-    import gscan.cadtemplate as cad
+    import gscan.scan.cad as cad
 
     def boom(*a, **k):
         raise RuntimeError("disk full")

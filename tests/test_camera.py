@@ -1,5 +1,5 @@
-"""gscan.camera (pinhole model, back-projection, keypoint lifting, intrinsics files) and
-gscan.geometry (SE(3) helpers, Kabsch, look_at)."""
+"""gscan.io.camera (pinhole model, back-projection, keypoint lifting, intrinsics files) and
+gscan.geometry.transforms (SE(3) helpers, Kabsch, look_at)."""
 from __future__ import annotations
 
 import json
@@ -11,12 +11,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from gscan.camera import (
+from gscan.io.camera import (
     Intrinsics, RGBDFrame, backproject, backproject_pixels, lift_keypoints, load_intrinsics, pixel_rays,
     point_cloud, project,
 )
 from gscan.errors import InputError
-from gscan.geometry import inv_T, kabsch, kabsch_trimmed, leave_one_out_residuals, look_at, make_T, pose_error, rotvec_to_R, transform_points
+from gscan.geometry.transforms import inv_T, kabsch, kabsch_trimmed, leave_one_out_residuals, look_at, make_T, pose_error, rotvec_to_R, transform_points
 
 finite = dict(allow_nan=False, allow_infinity=False)
 
@@ -212,7 +212,7 @@ def test_kabsch_trimmed_survives_a_distant_pair_far_off(seed):
 def test_consensus_kernel_poses_a_clean_triple_exactly(seed, n, n_out):
     """Noise-free pairs under a rigid motion plus n_out pairs moved 5-40 cm: the best triple is a triple of
     inliers and its triad pose is the motion itself."""
-    from gscan.consensus_kernel import best_triple
+    from gscan.geometry.consensus_kernel import best_triple
 
     rng = np.random.default_rng(seed)
     T = _rigid(rng)

@@ -4,8 +4,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gscan.camera import RGBDFrame
-from gscan.capture_mode import MOVING_OBJECT, STATIC_OBJECT, moving_object_masks, detect_mode, select_keyframes
+from gscan.io.camera import RGBDFrame
+from gscan.scan.capture_mode import MOVING_OBJECT, STATIC_OBJECT, moving_object_masks, detect_mode, select_keyframes
 from gscan.synth import DEFAULT_INTRINSICS, box_mesh, procedural_box_texture, render_capture
 
 

@@ -7,7 +7,7 @@ import sys
 import pytest
 import yaml
 
-from gscan.config import ScanConfig, dump_defaults, load_config
+from gscan.scan.config import ScanConfig, dump_defaults, load_config
 from gscan.errors import InputError
 
 
@@ -54,8 +54,8 @@ def test_bad_config_names_the_file_and_the_key(tmp_path, text, words):
 
 
 def test_every_registration_key_reaches_the_registration_parameters():
-    from gscan.capture_mode import MOVING_OBJECT
-    from gscan.scan import _register_params
+    from gscan.scan.capture_mode import MOVING_OBJECT
+    from gscan.scan.pipeline import _register_params
 
     base = ScanConfig()
     for key, value in base.registration.model_dump().items():
@@ -67,9 +67,9 @@ def test_every_registration_key_reaches_the_registration_parameters():
 def test_segmentation_keys_reach_the_segmentation_and_a_far_object_is_found(meshes_dir):
     """The object 1.9 m away lies beyond the default working depth (1.5 m): segmentation misses it (it takes the
     whole near scene, IoU 0); with `segmentation.depth_max: 2.5` it finds the object on its table."""
-    from gscan.camera import RGBDFrame
-    from gscan.scan import _segment_params
-    from gscan.segment import segment_frame
+    from gscan.io.camera import RGBDFrame
+    from gscan.scan.pipeline import _segment_params
+    from gscan.scan.segment import segment_frame
     from gscan.synth import load_textured_mesh, render_capture
 
     base = ScanConfig()

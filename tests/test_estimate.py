@@ -1,4 +1,4 @@
-"""Pose estimation against a CAD template in cluttered rendered scenes (gscan.estimate)."""
+"""Pose estimation against a CAD template in cluttered rendered scenes (gscan.estimate.estimator)."""
 from __future__ import annotations
 
 import json
@@ -8,15 +8,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gscan.camera import RGBDFrame
-from gscan.cadtemplate import build_template_from_mesh
+from gscan.io.camera import RGBDFrame
+from gscan.scan.cad import build_template_from_mesh
 from gscan.errors import InputError
-from gscan.estimate import STAGES, Estimator
-from gscan.geometry import look_at, make_T, pose_error, rotvec_to_R, transform_points
-from gscan.metrics import add
+from gscan.estimate.estimator import STAGES, Estimator
+from gscan.geometry.transforms import look_at, make_T, pose_error, rotvec_to_R, transform_points
+from gscan.evaluate.metrics import add
 from gscan.synth import (DEFAULT_INTRINSICS, SynthScene, default_distance, load_textured_mesh, place_distractors,
                          rest_on_table)
-from gscan.template import TemplateDB, View
+from gscan.template.db import TemplateDB, View
 
 TARGET = "Frozen_Scrabble_Jr"
 DISTRACTORS = ("Crayola_Bonus_64_Crayons", "Little_Debbie_Cloud_Cakes_10_ct")
@@ -152,7 +152,7 @@ def test_object_without_depth_in_a_frame_with_depth(meshes, estimator, template)
     assert res.found and res.method == "pnp", res.reason
     deg, dist = pose_error(res.T_cam_obj, T_gt)
     assert deg < 2.0 and dist < 0.01, (deg, dist)
-    from gscan.estimate import EstimateParams
+    from gscan.estimate.estimator import EstimateParams
 
     raised = depth.copy()  # a featureless block 6 cm tall on the table: no 3D keypoint at all to match
     ys, xs = np.nonzero((r.labels < 0) & (r.depth > 0))
@@ -171,7 +171,7 @@ def test_object_without_depth_in_a_frame_with_depth(meshes, estimator, template)
 def test_pnp_pose_the_depth_sees_through_is_refused(meshes, estimator, template):
     """The depth of most of the target is missing, but over its left part the sensor measured a surface 30 cm
     behind it: a PnP pose there would let the depth be seen through the object, and is refused."""
-    from gscan.estimate import EstimateParams
+    from gscan.estimate.estimator import EstimateParams
 
     r, _ = render_scene(meshes[0], meshes[1:], 0)
     xs = np.nonzero(r.mask)[1]
@@ -206,7 +206,7 @@ def test_pose_inside_the_support_plane_is_refused(meshes, estimator, template):
     """No target, and no depth on the distractors: nothing stands on the table, so the whole frame is searched,
     and GMatch fits the box's flat print to the newspaper table, its face flush with the table top (the depth
     agrees: score 1.0). An object rests on the table; this pose puts half of it inside, and is refused."""
-    from gscan.estimate import EstimateParams
+    from gscan.estimate.estimator import EstimateParams
 
     r0, _ = render_scene(meshes[0], meshes[1:], 0, with_target=False)
     depth0 = r0.depth.copy()
@@ -221,7 +221,7 @@ def test_flat_printout_of_the_object_is_not_found(meshes, estimator, template):
     """A 1 mm thick print of the target lying on the table is not the object: its print matches and the depth
     agrees with the box's face flush with the table, but the box would sink into the table (these three views
     were found with score 1.0 before the support-plane rule)."""
-    from gscan.estimate import EstimateParams
+    from gscan.estimate.estimator import EstimateParams
     from gscan.synth.mesh import TexturedMesh
 
     v = meshes[0].vertices.copy()
@@ -302,7 +302,7 @@ def test_mask_of_wrong_size_is_refused(meshes, estimator):
 
 def test_off_plane_region_removes_the_table(meshes):
     r, _ = render_scene(meshes[0], meshes[1:], 0)
-    from gscan.segment import off_plane_region
+    from gscan.scan.segment import off_plane_region
 
     region = off_plane_region(as_frame(r))
     assert region is not None
@@ -313,11 +313,11 @@ def test_off_plane_region_removes_the_table(meshes):
 
 @pytest.fixture(scope="module")
 def scanned(meshes, tmp_path_factory):
-    """A template scanned (gscan.scan) from a rendered 12-frame capture of the target on a table, and its
+    """A template scanned (gscan.scan.pipeline) from a rendered 12-frame capture of the target on a table, and its
     template->ground-truth alignment: the mean of T_obj_cam[f] @ T_cam_gt[f] over the capture frames."""
-    from gscan.evaluate import template_to_gt
+    from gscan.evaluate.bop19 import template_to_gt
     from gscan.io import open_sequence
-    from gscan.scan import ScanOptions, run_scan
+    from gscan.scan.pipeline import ScanOptions, run_scan
     from gscan.synth import render_capture
 
     root = tmp_path_factory.mktemp("scanned")

@@ -1,4 +1,4 @@
-"""BOP19 results and metrics over rendered scenes (gscan.evaluate)."""
+"""BOP19 results and metrics over rendered scenes (gscan.evaluate.bop19)."""
 from __future__ import annotations
 
 import json
@@ -8,10 +8,10 @@ import cv2
 import numpy as np
 import pytest
 
-from gscan.cadtemplate import build_template_from_mesh
+from gscan.scan.cad import build_template_from_mesh
 from gscan.errors import InputError
-from gscan.evaluate import CSV_HEADER, evaluate
-from gscan.geometry import look_at, rotvec_to_R, transform_points
+from gscan.evaluate.bop19 import CSV_HEADER, evaluate
+from gscan.geometry.transforms import look_at, rotvec_to_R, transform_points
 from gscan.synth import (DEFAULT_INTRINSICS, SynthScene, default_distance, load_textured_mesh, rest_on_table,
                          write_capture)
 
@@ -149,9 +149,9 @@ def test_scanned_template_is_scored_in_the_ground_truth_frame(sample_template, s
     gt_capture), in the metrics and in the CSV; with no such capture it refuses to score."""
     import shutil
 
-    from gscan.geometry import pose_error
+    from gscan.geometry.transforms import pose_error
     from gscan.io import open_sequence
-    from gscan.template import TemplateDB
+    from gscan.template.db import TemplateDB
 
     root = Path(__file__).resolve().parents[1] / "samples"
     held = root / "heldout"
@@ -216,8 +216,8 @@ def test_bop_scan_follows_its_object_and_eval_scores_through_it(tmp_path):
     """`scan --obj-id` scans one object of a BOP scene of several and the template remembers it; eval relates
     the template to the ground truth through that object, whatever --obj-id numbers it in the scored scenes.
     --obj-id is refused for an object scene_gt.json does not hold and for other layouts."""
-    from gscan.scan import ScanOptions, run_scan
-    from gscan.template import TemplateDB
+    from gscan.scan.pipeline import ScanOptions, run_scan
+    from gscan.template.db import TemplateDB
 
     root = Path(__file__).resolve().parents[1] / "samples"
     bop = _capture_as_bop(root / "capture", tmp_path / "000003", obj_id=5, every=3)
@@ -251,10 +251,10 @@ def test_template_to_gt_keeps_the_frames_that_agree(sample_template, tmp_path):
     contradicts the template's stored input is reported as such, not as a missing capture."""
     import shutil
 
-    from gscan.evaluate import template_to_gt
-    from gscan.geometry import make_T, pose_error
+    from gscan.evaluate.bop19 import template_to_gt
+    from gscan.geometry.transforms import make_T, pose_error
     from gscan.io import open_sequence
-    from gscan.template import TemplateDB
+    from gscan.template.db import TemplateDB
 
     root = Path(__file__).resolve().parents[1] / "samples"
     gt = open_sequence(root / "capture").gt_T_cam_obj

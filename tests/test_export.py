@@ -12,12 +12,12 @@ import pytest
 import trimesh
 import yaml
 
-from gscan.camera import Intrinsics, backproject_pixels, project
+from gscan.io.camera import Intrinsics, backproject_pixels, project
 from gscan.errors import InputError
 from gscan.export import export
 from gscan.export.common import render_depth
-from gscan.geometry import inv_T, look_at, transform_points
-from gscan.template import Edge, MeshData, TemplateDB, View, ViewFeatures
+from gscan.geometry.transforms import inv_T, look_at, transform_points
+from gscan.template.db import Edge, MeshData, TemplateDB, View, ViewFeatures
 
 K = Intrinsics(150.0, 152.0, 79.5, 59.5, 160, 120)
 BOX = (0.10, 0.15, 0.20)

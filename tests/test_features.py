@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from gscan.camera import Intrinsics, RGBDFrame, lift_keypoints, load_intrinsics, project
+from gscan.io.camera import Intrinsics, RGBDFrame, lift_keypoints, load_intrinsics, project
 from gscan.features import (
     KINDS, FeatureParams, Features, descriptor_distances, empty_features, extract_features,
 )

@@ -6,10 +6,10 @@ import open3d as o3d
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from gscan.camera import RGBDFrame
-from gscan.fuse import FusionParams, auto_voxel_size, fuse_tsdf, remove_small_components, template_frame
-from gscan.geometry import inv_T, make_T, rotvec_to_R, transform_points
-from gscan.segment import Plane, segment_sequence
+from gscan.io.camera import RGBDFrame
+from gscan.scan.fuse import FusionParams, auto_voxel_size, fuse_tsdf, remove_small_components, template_frame
+from gscan.geometry.transforms import inv_T, make_T, rotvec_to_R, transform_points
+from gscan.scan.segment import Plane, segment_sequence
 from gscan.synth import (DEFAULT_INTRINSICS, DepthNoise, SynthScene, load_textured_mesh, orbit_poses,
                          rest_on_table)
 
@@ -165,7 +165,7 @@ def test_template_frame_is_equivariant(g):
 def test_open3d_refusal_is_a_value_error():
     """open3d aborts a TSDF integration that touches no block (a 1-pixel frame); fuse_tsdf turns it into
     the ValueError that scan reports as "nothing could be fused", with open3d's sentence alone."""
-    from gscan.camera import Intrinsics
+    from gscan.io.camera import Intrinsics
 
     f = RGBDFrame("tiny", np.zeros((1, 1, 3), np.uint8), np.full((1, 1), 0.5, np.float32),
                   Intrinsics(615.0, 615.0, 0.0, 0.0, 1, 1))

@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from gscan.geometry import kabsch, make_T, pose_error, rotvec_to_R, transform_points
-from gscan.gmatch import (Candidates, GMatchParams, default_eps_f, extract_candidates, gmatch, search_candidates,
+from gscan.geometry.transforms import kabsch, make_T, pose_error, rotvec_to_R, transform_points
+from gscan.matching.gmatch import (Candidates, GMatchParams, default_eps_f, extract_candidates, gmatch, search_candidates,
                           step)
-from gscan.gmatch_kernel import flips, keep_consistent
+from gscan.matching.kernel import flips, keep_consistent
 
 Z = np.array([0.0, 0.0, 1.0])
 

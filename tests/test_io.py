@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from gscan.camera import Intrinsics, backproject
+from gscan.io.camera import Intrinsics, backproject
 from gscan.errors import InputError
 from gscan.io import (
     associate,

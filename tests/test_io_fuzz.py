@@ -10,7 +10,7 @@ import numpy as np
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from gscan.camera import Intrinsics, RGBDFrame
+from gscan.io.camera import Intrinsics, RGBDFrame
 from gscan.errors import InputError
 from gscan.io import load_frame, open_sequence, read_mask, read_nyu_depth, read_sun_depth, read_ycbv_meta
 

@@ -1,4 +1,4 @@
-"""Hand-computed checks of gscan.metrics (ADD/ADD-S/AUC, ATE, MSSD/MSPD, BOP recall)."""
+"""Hand-computed checks of gscan.evaluate.metrics (ADD/ADD-S/AUC, ATE, MSSD/MSPD, BOP recall)."""
 from __future__ import annotations
 
 import numpy as np
@@ -6,9 +6,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from gscan.camera import Intrinsics
-from gscan.geometry import make_T, rotvec_to_R
-from gscan.metrics import (
+from gscan.io.camera import Intrinsics
+from gscan.geometry.transforms import make_T, rotvec_to_R
+from gscan.evaluate.metrics import (
     add, adds, ar_mspd, ar_mssd, ate, ate_rmse, auc, average_recall, mspd, mspd_thresholds, mssd, mssd_thresholds,
     recall_at, rotation_error_deg, translation_error,
 )
@@ -171,7 +171,7 @@ def test_bop_recall():
 
 
 def test_diameter_is_the_largest_pairwise_distance():
-    from gscan.metrics import diameter
+    from gscan.evaluate.metrics import diameter
 
     rng = np.random.default_rng(3)
     pts = rng.normal(size=(700, 3))

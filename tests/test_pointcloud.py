@@ -1,12 +1,12 @@
-"""Point-set helpers of pose estimation (gscan.pointcloud): exact on constructed inputs, deterministic."""
+"""Point-set helpers of pose estimation (gscan.geometry.pointset): exact on constructed inputs, deterministic."""
 from __future__ import annotations
 
 import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from gscan.geometry import make_T, pose_error, rotvec_to_R, transform_points
-from gscan.pointcloud import coincident_groups, icp_point_to_plane, pca_normals, voxel_down_indices, voxel_mean
+from gscan.geometry.transforms import make_T, pose_error, rotvec_to_R, transform_points
+from gscan.geometry.pointset import coincident_groups, icp_point_to_plane, pca_normals, voxel_down_indices, voxel_mean
 
 
 def _box_surface(n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:

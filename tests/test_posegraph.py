@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from gscan.geometry import inv_T, look_at, make_T, pose_error, rotvec_to_R
-from gscan.posegraph import (GraphEdge, LoopParams, PoseGraphParams, bow_vectors, chain_odometry, edge_residual,
+from gscan.geometry.transforms import inv_T, look_at, make_T, pose_error, rotvec_to_R
+from gscan.registration.posegraph import (GraphEdge, LoopParams, PoseGraphParams, bow_vectors, chain_odometry, edge_residual,
                              information_matrix,
                              information_from_count, information_from_points, optimize_pose_graph,
                              select_loop_candidates, spanning_poses)
@@ -153,7 +153,7 @@ def test_residual_convention_matches_open3d_edge_semantics():
 @settings(deadline=None, max_examples=15)
 @given(st.integers(0, 10_000))
 def test_information_from_points_matches_open3d(seed):
-    from gscan.posegraph import information_from_clouds
+    from gscan.registration.posegraph import information_from_clouds
     p = np.random.default_rng(seed).normal(size=(50, 3))
     np.testing.assert_allclose(information_from_points(p), information_from_clouds(p, p, np.eye(4), 1e-3),
                                rtol=1e-9, atol=1e-9)

@@ -1,4 +1,4 @@
-"""Pairwise registration (gscan.register) on rendered view pairs and on real RGB-D frames."""
+"""Pairwise registration (gscan.registration.pairwise) on rendered view pairs and on real RGB-D frames."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -6,11 +6,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gscan.camera import Intrinsics, RGBDFrame
+from gscan.io.camera import Intrinsics, RGBDFrame
 from gscan.features import Features, FeatureParams, extract_features
-from gscan.geometry import inv_T, look_at, make_T, pose_error, rotation_angle_deg, rotvec_to_R, transform_points
-from gscan.gmatch import GMatchResult
-from gscan.register import (METHODS, GuidedPool, PairResult, RegisterParams, frame_cloud, lists_to_verify,
+from gscan.geometry.transforms import inv_T, look_at, make_T, pose_error, rotation_angle_deg, rotvec_to_R, transform_points
+from gscan.matching.gmatch import GMatchResult
+from gscan.registration.pairwise import (METHODS, GuidedPool, PairResult, RegisterParams, frame_cloud, lists_to_verify,
                             pose_by_support, register_features, relative_pose)
 
 N_MESHES = 10
@@ -190,9 +190,9 @@ def test_support_check_fixes_a_rendered_pair(meshes_dir):
     wrong (158 deg off), another hypothesis list has 1.5 x its support and is right. The pose choice is what is
     tested: both lists are shorter than min_matches, so rule 1 rejects the edge either way."""
     from gscan.features import descriptor_distances
-    from gscan.geometry import kabsch_trimmed
-    from gscan.gmatch import gmatch
-    from gscan.register import refine_pose
+    from gscan.geometry.transforms import kabsch_trimmed
+    from gscan.matching.gmatch import gmatch
+    from gscan.registration.pairwise import refine_pose
 
     d = meshes_dir / "ReadytoUse_Rolled_Fondant_Pure_White_24_oz_box"
     views = _render_views(d, seed=16, azimuths=(0.0, 60.0), table_kind="wood")

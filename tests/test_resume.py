@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 
 from gscan import synth
-from gscan.template import TemplateDB
+from gscan.template.db import TemplateDB
 
 INTR = synth.DEFAULT_INTRINSICS.scaled(0.5)  # 320 x 240
 N_VIEWS = 6  # 60 degree steps on one ring

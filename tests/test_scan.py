@@ -15,12 +15,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gscan.geometry import inv_T, pose_error
+from gscan.geometry.transforms import inv_T, pose_error
 from gscan.io import open_sequence
-from gscan.metrics import ate_rmse
-from gscan.scan import ScanOptions, run_scan
+from gscan.evaluate.metrics import ate_rmse
+from gscan.scan.pipeline import ScanOptions, run_scan
 from gscan.synth import load_textured_mesh, render_capture
-from gscan.template import TemplateDB
+from gscan.template.db import TemplateDB
 
 MESHES = ["Crayola_Bonus_64_Crayons", "Frozen_Scrabble_Jr", "Mattel_SKIP_BO_Card_Game"]
 
@@ -110,7 +110,7 @@ def test_turntable_whose_print_repeats_on_opposite_faces(tmp_path, meshes_dir):
     cut, and 1 of 24 frames was registered; with a narrower first stage, frame 0 was fused 180 deg off (its
     right 21-inlier edge and a wrong 22-inlier loop closure disagree). Now most frames are registered, a frame
     held only by one of two disagreeing edges is left out, and none is off by more than 3 deg."""
-    from gscan.evaluate import template_to_gt
+    from gscan.evaluate.bop19 import template_to_gt
 
     mesh = load_textured_mesh(meshes_dir / "Mattel_SKIP_BO_Card_Game" / "model_0.obj")
     cap = tmp_path / "turntable"

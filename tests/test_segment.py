@@ -5,10 +5,10 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from gscan.camera import RGBDFrame
+from gscan.io.camera import RGBDFrame
 from gscan.errors import InputError
-from gscan.geometry import inv_T, make_T, rotvec_to_R, transform_points
-from gscan.segment import (Plane, WorkingVolume, estimate_working_volume, fit_support_plane, ransac_plane,
+from gscan.geometry.transforms import inv_T, make_T, rotvec_to_R, transform_points
+from gscan.scan.segment import (Plane, WorkingVolume, estimate_working_volume, fit_support_plane, ransac_plane,
                            segment_frame, segment_sequence)
 from gscan.synth import (DEFAULT_INTRINSICS, DepthNoise, SynthScene, box_mesh, orbit_poses, procedural_box_texture,
                          rest_on_table)
@@ -178,7 +178,7 @@ def test_real_ycbv_frame(real_dir, stem):
     depth = cv2.imread(str(d / f"{stem}-depth.png"), cv2.IMREAD_UNCHANGED).astype(np.float32) / 10000.0
     labels = cv2.imread(str(d / f"{stem}-label.png"), cv2.IMREAD_UNCHANGED)
     K = sio.loadmat(str(d / f"{stem}-meta.mat"))["intrinsic_matrix"]
-    from gscan.camera import Intrinsics
+    from gscan.io.camera import Intrinsics
 
     intr = Intrinsics.from_matrix(K, color.shape[1], color.shape[0])
     seg = segment_frame(RGBDFrame(stem, color, depth, intr))

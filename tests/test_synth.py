@@ -10,8 +10,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from gscan.camera import Intrinsics, backproject, load_intrinsics, project
-from gscan.geometry import inv_T, rotvec_to_R, transform_points
+from gscan.io.camera import Intrinsics, backproject, load_intrinsics, project
+from gscan.geometry.transforms import inv_T, rotvec_to_R, transform_points
 from gscan.synth import (DEFAULT_INTRINSICS, DepthNoise, SynthScene, TexturedMesh, apply_depth_noise, box_mesh,
                          default_distance, depth_sigma, load_textured_mesh, orbit_poses, place_distractors,
                          procedural_box_texture, render_capture, rest_on_table, save_textured_mesh,
@@ -300,7 +300,7 @@ def test_default_distance_fills_frame(box: TexturedMesh) -> None:
 def test_no_depth_holes_on_slanted_planes(dist, slant_deg, azimuth_deg) -> None:
     """Discontinuity detection marks depth jumps, never a smooth plane, however slanted."""
     from gscan.synth.noise import discontinuities
-    from gscan.camera import pixel_rays
+    from gscan.io.camera import pixel_rays
     s, a = np.radians(slant_deg), np.radians(azimuth_deg)
     n = np.array([np.sin(s) * np.cos(a), np.sin(s) * np.sin(a), -np.cos(s)])  # plane n.x = -dist, facing the camera
     z = (-dist / (pixel_rays(SMALL) @ n)).astype(np.float32)

@@ -17,10 +17,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from gscan.camera import Intrinsics
+from gscan.io.camera import Intrinsics
 from gscan.errors import InputError
-from gscan.geometry import make_T, rotvec_to_R
-from gscan.template import (SCHEMA_VERSION, Edge, TemplateDB, View, ViewFeatures, open_template)
+from gscan.geometry.transforms import make_T, rotvec_to_R
+from gscan.template.db import (SCHEMA_VERSION, Edge, TemplateDB, View, ViewFeatures, open_template)
 
 K = Intrinsics(520.0, 515.0, 31.5, 23.5, 64, 48)
 
@@ -217,8 +217,8 @@ def test_duplicate_view_and_read_only(db_path: Path) -> None:
 
 _WRITER = textwrap.dedent("""
     import sys, numpy as np
-    from gscan.camera import Intrinsics
-    from gscan.template import TemplateDB, View, ViewFeatures
+    from gscan.io.camera import Intrinsics
+    from gscan.template.db import TemplateDB, View, ViewFeatures
     db = TemplateDB.create(sys.argv[1])
     K = Intrinsics(500.0, 500.0, 160.0, 120.0, 320, 240)
     rng = np.random.default_rng(0)
@@ -415,6 +415,6 @@ def test_impossible_stored_value_is_input_error(tmp_path: Path, case: str) -> No
 
 
 def _encoded(a: np.ndarray) -> bytes:
-    from gscan.template_codec import encode_array
+    from gscan.template.codec import encode_array
 
     return encode_array(a)

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from gscan import synth
-from gscan.geometry import inv_T, pose_error
+from gscan.geometry.transforms import inv_T, pose_error
 
 INTR = synth.DEFAULT_INTRINSICS.scaled(0.5)  # 320 x 240
 N_VIEWS = 8  # 45 degree steps on one ring

@@ -1,4 +1,4 @@
-"""The web viewer (gscan.viewer): server-side checks, and headless Chromium driving the real page.
+"""The web viewer (gscan.viewer.app): server-side checks, and headless Chromium driving the real page.
 
 The template is rendered with gscan.synth and written with TemplateDB (web/synth_template.py) until the
 scan pipeline produces one. Browser tests use Debian's /usr/bin/chromium through Playwright (SwiftShader).
@@ -19,12 +19,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from gscan.camera import RGBDFrame
+from gscan.io.camera import RGBDFrame
 from gscan.errors import InputError
-from gscan.geometry import look_at
-from gscan.template import TemplateDB
-from gscan.viewer import PortInUseError, check_port, serve
-from gscan.viewer_draw import draw_matches, edge_color, quality_color, scale_pixels, thumbnail
+from gscan.geometry.transforms import look_at
+from gscan.template.db import TemplateDB
+from gscan.viewer.app import PortInUseError, check_port, serve
+from gscan.viewer.draw import draw_matches, edge_color, quality_color, scale_pixels, thumbnail
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -47,7 +47,7 @@ MIN_CANVAS_STD = 8.0  # an empty (white) 3D view has std ~0; the populated scene
 def template(tmp_path_factory):
     """6 rendered views of a textured box; view 000004 unregistered (its two edges rejected), and an input
     frame 000009 the scan could not read (the "skipped" meta)."""
-    from gscan.template import TemplateDB
+    from gscan.template.db import TemplateDB
 
     tpl = synth_template.build_synth_template(tmp_path_factory.mktemp("viewer") / "box.gscan", n_views=6,
                                               unregistered=(4,), max_keypoints=250)
@@ -83,7 +83,7 @@ def test_refuses_partial_template_and_busy_port(template, tmp_path):
 
 def test_port_range_and_module_errors_are_one_line(template, tmp_path):
     """Ports outside 1-65535 are refused before viser (whose server thread died and left the process
-    hanging on 70000); `python -m gscan.viewer` reports bad input and usage as one `error:` line, exit 2."""
+    hanging on 70000); `python -m gscan.viewer.app` reports bad input and usage as one `error:` line, exit 2."""
     for port in (0, 70000, -1):
         with pytest.raises(InputError, match="1-65535"):
             check_port("127.0.0.1", port)
@@ -91,7 +91,7 @@ def test_port_range_and_module_errors_are_one_line(template, tmp_path):
     pose.write_text(json.dumps(np.eye(4).tolist()))
     for args, named in (([tmp_path / "missing.gscan"], "missing.gscan"), ([], "required"),
                         ([template.path, "--port", "abc"], "--port"), ([template.path, "--pose", pose], "T.json")):
-        r = subprocess.run([sys.executable, "-m", "gscan.viewer", *map(str, args)], capture_output=True, text=True,
+        r = subprocess.run([sys.executable, "-m", "gscan.viewer.app", *map(str, args)], capture_output=True, text=True,
                            timeout=60)
         lines = r.stderr.strip().splitlines()
         assert r.returncode == 2 and len(lines) == 1 and lines[0].startswith("error: ") and named in lines[0], r.stderr
@@ -147,8 +147,8 @@ def test_start_camera_keeps_clear_of_the_frustums():
     """The browser's start camera looks at the object from a direction away from every view's camera: with a
     view right on the default direction (a CAD template's first view at 62 deg elevation, 3.7 deg from it) the
     start direction turns at least 20 deg away from all views; with nothing that near, the default stays."""
-    from gscan.cadtemplate import fibonacci_directions
-    from gscan.viewer_scene import _clear_direction
+    from gscan.scan.cad import fibonacci_directions
+    from gscan.viewer.scene import _clear_direction
 
     up, d0 = np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0])
     default = np.array([np.cos(np.radians(58)), 0.0, np.sin(np.radians(58))])
@@ -177,7 +177,7 @@ def test_colour_scales_and_match_drawing():
     g_minus_r = [quality_color(q)[1] - quality_color(q)[0] for q in np.linspace(1, 0, 11)]
     assert all(a > b for a, b in zip(g_minus_r, g_minus_r[1:]))  # greener is better
     assert quality_color(None) == quality_color(float("nan"))
-    from gscan.template import Edge
+    from gscan.template.db import Edge
 
     seq = Edge("a", "b", None, np.zeros((0, 2)), rmse=0.001, kind="sequential")
     loop = Edge("a", "b", None, np.zeros((0, 2)), rmse=0.001, kind="loop")

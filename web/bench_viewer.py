@@ -5,9 +5,9 @@
         --screenshot docs/viewer.png
 
 Builds the template with web/synth_template.py unless --db exists, then measures
-- serve_s: `gscan.viewer.serve()` in this process (load the database, downscale the images, start viser,
+- serve_s: `gscan.viewer.app.serve()` in this process (load the database, downscale the images, start viser,
   send every scene node and GUI element), median of --repeats;
-- subprocess_ready_s: `python -m gscan.viewer DB` until its "viewer ready" line (includes interpreter
+- subprocess_ready_s: `python -m gscan.viewer.app DB` until its "viewer ready" line (includes interpreter
   start and imports);
 - browser_gui_s / browser_scene_s: headless Chromium (SwiftShader) from navigation until the GUI's view
   image is shown / until the 3D view is drawn (pixel std above a threshold).
@@ -37,8 +37,8 @@ def main() -> None:
     ap.add_argument("--screenshot", type=Path, help="also save a screenshot with an edge's matches shown")
     a = ap.parse_args()
 
-    from gscan.template import TemplateDB
-    from gscan.viewer import serve
+    from gscan.template.db import TemplateDB
+    from gscan.viewer.app import serve
 
     res: dict = {"views": a.views}
     if not a.db.exists():

@@ -12,12 +12,12 @@ from pathlib import Path
 
 import numpy as np
 
-from gscan.camera import RGBDFrame, point_cloud
+from gscan.io.camera import RGBDFrame, point_cloud
 from gscan.features import FeatureParams, descriptor_distances, extract_features
-from gscan.geometry import inv_T, transform_points
+from gscan.geometry.transforms import inv_T, transform_points
 from gscan.synth import DEFAULT_INTRINSICS, SynthScene, box_mesh, default_distance, orbit_poses, \
     procedural_box_texture, rest_on_table
-from gscan.template import Edge, TemplateDB, View, ViewFeatures
+from gscan.template.db import Edge, TemplateDB, View, ViewFeatures
 
 BOX_SIZE = (0.16, 0.10, 0.07)  # m
 

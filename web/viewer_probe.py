@@ -34,7 +34,7 @@ def free_port() -> int:
 
 def start_viewer(db: Path, port: int, extra: list[str] | None = None, timeout: float = 60.0,
                  log_path: Path | None = None, cli: bool = False) -> tuple[subprocess.Popen, float]:
-    """Start `python -m gscan.viewer DB --port P` (or `gscan view DB --port P` with `cli`) and wait
+    """Start `python -m gscan.viewer.app DB --port P` (or `gscan view DB --port P` with `cli`) and wait
     for its ready line on stderr.
 
     Returns (process, seconds until ready). Raises RuntimeError (with the log) if it dies or times out.
@@ -43,7 +43,7 @@ def start_viewer(db: Path, port: int, extra: list[str] | None = None, timeout: f
     log_path = log_path or Path(db).with_suffix(".viewer.log")
     logf = open(log_path, "w")
     t0 = time.perf_counter()
-    entry = ["gscan.cli", "view"] if cli else ["gscan.viewer"]
+    entry = ["gscan.cli", "view"] if cli else ["gscan.viewer.app"]
     proc = subprocess.Popen([sys.executable, "-m", *entry, str(db), "--port", str(port), *(extra or [])],
                             stdout=subprocess.DEVNULL, stderr=logf, start_new_session=True)
     logf.close()

@@ -25,7 +25,7 @@ from typing import Callable
 
 from gscan.errors import InputError
 from gscan.io import check_output_path, missing_folders, remove_empty_folders
-from gscan.template import TemplateDB
+from gscan.template.db import TemplateDB
 
 log = logging.getLogger(__name__)
 

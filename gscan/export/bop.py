@@ -34,10 +34,10 @@ import numpy as np
 
 from gscan.errors import InputError
 from gscan.export.common import MeshRaycaster, bbox_xywh, imwrite, posed_views
-from gscan.geometry import inv_T
-from gscan.metrics import diameter
-from gscan.template import MeshData, TemplateDB
-from gscan.template_codec import depth_to_mm_u16
+from gscan.geometry.transforms import inv_T
+from gscan.evaluate.metrics import diameter
+from gscan.template.db import MeshData, TemplateDB
+from gscan.template.codec import depth_to_mm_u16
 
 log = logging.getLogger(__name__)
 

@@ -20,8 +20,8 @@ import numpy as np
 import pycolmap
 
 from gscan.export.common import imwrite, posed_views
-from gscan.geometry import inv_T
-from gscan.template import TemplateDB
+from gscan.geometry.transforms import inv_T
+from gscan.template.db import TemplateDB
 
 log = logging.getLogger(__name__)
 

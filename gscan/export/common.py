@@ -7,9 +7,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from gscan.camera import Intrinsics, pixel_rays
+from gscan.io.camera import Intrinsics, pixel_rays
 from gscan.errors import GscanError, InputError
-from gscan.template import MeshData, TemplateDB, View
+from gscan.template.db import MeshData, TemplateDB, View
 
 log = logging.getLogger(__name__)
 

@@ -32,8 +32,8 @@ import yaml
 
 from gscan.errors import InputError
 from gscan.export.common import MeshRaycaster, imwrite, posed_views
-from gscan.template import TemplateDB
-from gscan.template_codec import depth_to_mm_u16
+from gscan.template.db import TemplateDB
+from gscan.template.codec import depth_to_mm_u16
 
 log = logging.getLogger(__name__)
 

@@ -15,7 +15,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from gscan.template import TemplateDB
+from gscan.template.db import TemplateDB
 
 
 def template_json(db: TemplateDB) -> dict:

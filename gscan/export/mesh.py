@@ -8,7 +8,7 @@ import trimesh
 
 from gscan.errors import InputError
 from gscan.export.common import require_mesh
-from gscan.template import MeshData, TemplateDB
+from gscan.template.db import MeshData, TemplateDB
 
 
 def to_trimesh(mesh: MeshData, scale: float = 1.0) -> trimesh.Trimesh:

@@ -13,7 +13,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from gscan.camera import Intrinsics, RGBDFrame, load_intrinsics
+from gscan.io.camera import Intrinsics, RGBDFrame, load_intrinsics
 from gscan.errors import InputError
 from gscan.io.layouts import frame_name
 

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from gscan.errors import InputError
-from gscan.geometry import MAX_TRANSLATION_M, is_rigid
+from gscan.geometry.transforms import MAX_TRANSLATION_M, is_rigid
 
 
 def check_rigid(T: np.ndarray, path: Path) -> None:

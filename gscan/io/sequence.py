@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gscan.camera import Intrinsics, RGBDFrame, implausible_intrinsics, load_intrinsics
+from gscan.io.camera import Intrinsics, RGBDFrame, implausible_intrinsics, load_intrinsics
 from gscan.errors import InputError
 from gscan.io.images import MAX_DEPTH_SCALE, check_depth_range, check_depth_scale, load_frame, read_depth
 from gscan.io.layouts import FrameSpec, Layout, discover

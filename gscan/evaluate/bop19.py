@@ -1,0 +1,323 @@
+"""Evaluate pose estimation over RGB-D scenes with ground truth; write BOP19 results.
+
+`evaluate(template, scenes, output_csv)` runs `gscan.estimate.estimator.Estimator` on every image of
+- a BOP scene folder (rgb/, depth/, scene_camera.json, scene_gt.json; ground truth of `obj_id`),
+- a capture-layout folder (rgb/, depth/, cam_K.txt, annotated_poses/ = T_cam_obj per image), or
+- a folder whose sub-folders are such scenes (scene ids from numeric folder names, else their order).
+
+Results CSV (BOP19, https://bop.felk.cvut.cz/challenges/): header `scene_id,im_id,obj_id,score,R,t,time`,
+R = 9 numbers row-major, t = 3 numbers in millimetres, both space-separated; time = seconds spent on
+the image (the same for all rows of one image). Only found poses are written. The file is written
+to a temporary name and renamed, so it is never half-written.
+
+Metrics over all images with ground truth (a not-found pose counts as an infinite error):
+"AUC ADD" / "AUC ADD-S" (YCB-Video AUC, 0-10 cm, percent), "AR MSSD" / "AR MSPD" (BOP average
+recall, percent), "AR" (their mean), "found" (percent of images with a pose), "mean time ms".
+Model points: the template's mesh vertices (else its cloud), or `model_path` (any mesh trimesh
+reads, in the ground truth's object frame; BOP models in millimetres are detected by a diameter above
+10 units and scaled to metres).
+
+Frames: a CAD template keeps its mesh's frame, which is the ground truth's. A scanned template has
+its own frame (DESIGN.md "Frames of reference"); its poses are mapped to the ground truth's object
+frame by `template_to_gt` over the ground-truth poses of the capture it was scanned from (its stored
+input folder, or `gt_capture`), so the CSV and the metrics are about the ground-truth model. Scoring a
+scanned template against ground truth without such a capture is refused.
+"""
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from gscan.errors import InputError
+from gscan.estimate.estimator import Estimator
+from gscan.geometry.transforms import inv_T, mean_pose, pose_error, transform_points
+from gscan.io import check_output_path, open_sequence
+from gscan.io.layouts import FORMATS, detect_format, discover
+from gscan.evaluate.metrics import adds as adds_err, add as add_err, ar_mspd, ar_mssd, auc, diameter, mspd, mssd
+from gscan.template.db import TemplateDB
+
+log = logging.getLogger(__name__)
+
+CSV_HEADER = "scene_id,im_id,obj_id,score,R,t,time"
+MM_DIAMETER_LIMIT = 10.0  # a model whose diameter exceeds this many units is taken to be in millimetres
+MAX_MODEL_POINTS = 4000  # model points used by the metrics (deterministic subsample beyond)
+
+
+@dataclass
+class EvalRow:
+    """One image: ids, pose of the ground truth's object frame (None = not found), errors (inf when not
+    found; nan without ground truth)."""
+
+    scene_id: int
+    im_id: int
+    found: bool
+    score: float
+    time_s: float
+    T_cam_obj: np.ndarray | None
+    add: float = float("nan")
+    adds: float = float("nan")
+    mssd: float = float("nan")
+    mspd: float = float("nan")
+    reason: str | None = None
+
+    def to_json(self) -> dict:
+        f = (lambda x: None if not np.isfinite(x) else float(x))
+        return {"scene_id": self.scene_id, "im_id": self.im_id, "found": self.found, "score": float(self.score),
+                "time_s": float(self.time_s), "add_m": f(self.add), "adds_m": f(self.adds), "mssd_m": f(self.mssd),
+                "mspd_px": f(self.mspd), "reason": self.reason,
+                "T_cam_obj": None if self.T_cam_obj is None else np.asarray(self.T_cam_obj).tolist()}
+
+
+@dataclass
+class EvalReport:
+    """n_images evaluated, n_found with a pose, metrics {name: value} (see module docstring), rows."""
+
+    output: Path
+    n_images: int
+    n_found: int
+    metrics: dict[str, float]
+    rows: list[EvalRow] = field(default_factory=list)
+
+    def to_json(self) -> dict:
+        return {"output": str(self.output), "n_images": self.n_images, "n_found": self.n_found,
+                "metrics": {k: float(v) for k, v in self.metrics.items()}, "rows": [r.to_json() for r in self.rows]}
+
+
+def _scene_dirs(scenes: Path) -> list[tuple[int, Path]]:
+    """(scene_id, folder) of one scene folder or of every scene sub-folder."""
+    if not scenes.is_dir():
+        raise InputError(scenes, "scenes folder not found")
+    try:
+        detect_format(scenes)
+        return [(int(scenes.name) if scenes.name.isdigit() else 0, scenes)]
+    except InputError:
+        pass
+    subs = sorted(p for p in scenes.iterdir() if p.is_dir())
+    out = []
+    for i, p in enumerate(subs):
+        try:
+            detect_format(p)
+        except InputError:
+            continue
+        out.append((int(p.name) if p.name.isdigit() else i, p))
+    if not out:
+        splits = [p.name for p in subs if p.name.startswith(("test", "val", "train")) and any(
+            (q / "scene_camera.json").is_file() for q in p.iterdir() if q.is_dir())]
+        if splits:  # a BOP dataset root: which split is scored is the user's choice
+            raise InputError(scenes, f"a BOP dataset, not a folder of scenes: pass one split's folder "
+                             f"({', '.join(str(scenes / n) for n in splits)})")
+        raise InputError(scenes, "neither an RGB-D scene (BOP or capture layout) nor a folder of scenes")
+    return out
+
+
+def load_model_points(model_path: Path | None, estimator: Estimator) -> np.ndarray:
+    """[N x 3] model points in metres (object frame), at most MAX_MODEL_POINTS (seeded subsample)."""
+    if model_path is None:
+        pts = estimator.model_points
+    else:
+        import trimesh
+
+        model_path = Path(model_path)
+        if not model_path.is_file():
+            raise InputError(model_path, "model file not found")
+        try:
+            m = trimesh.load(str(model_path), force="mesh", process=False)
+            pts = np.asarray(m.vertices, dtype=np.float64)
+        except Exception as e:  # noqa: BLE001 - trimesh raises many types on malformed files
+            raise InputError(model_path, f"cannot load model ({e.__class__.__name__}: {e})") from None
+        if len(pts) == 0:
+            raise InputError(model_path, "model holds no vertices")
+        if not np.all(np.isfinite(pts)):
+            raise InputError(model_path, "model vertices hold NaN or infinite values")
+        d = diameter(pts)
+        if d > MM_DIAMETER_LIMIT:
+            log.info("%s: diameter %.1f units, taken as millimetres", model_path, d)
+            pts = pts * 1e-3
+    if len(pts) > MAX_MODEL_POINTS:
+        pts = pts[np.sort(np.random.default_rng(0).choice(len(pts), MAX_MODEL_POINTS, replace=False))]
+    return np.asarray(pts, dtype=np.float64)
+
+
+_DISAGREE = "as ground truth of"  # reason prefix of a capture whose ground truth contradicts the template
+GT_AGREEMENT = (3.0, 0.02)  # deg, m: two frames' template-to-ground-truth transforms within this agree
+
+
+def template_to_gt(db_path: Path, gt_T_cam_obj: dict[str, np.ndarray]) -> np.ndarray:
+    """T_obj_gt [4 x 4]: the scanned template frame <- ground-truth object frame (DESIGN.md), the mean
+    over the capture's registered frames of T_obj_cam[f] @ T_cam_gt[f]; never from test frames. Only the
+    frames whose transform agrees (GT_AGREEMENT) with the one most others agree with are averaged.
+    InputError when fewer than two frames relate them, or fewer than half of them (and two) agree: the
+    ground truth is not that of the capture the template was scanned from."""
+    with TemplateDB.open(db_path, require_complete=True) as db:
+        frames = db.poses()["frames"]
+    Ts = [np.asarray(frames[n]) @ gt_T_cam_obj[n] for n in frames if n in gt_T_cam_obj]
+    if not Ts:
+        raise InputError(db_path, "no registered frame has ground truth")
+    if len(Ts) < 2:
+        raise InputError(db_path, "only one registered frame has ground truth: too few to check that the ground "
+                         "truth belongs to the capture it was scanned from")
+    # the frames that agree with the medoid (a badly registered frame does not pull the others off)
+    E = np.array([[pose_error(A, B) for B in Ts] for A in Ts])  # [n x n x 2] (deg, m)
+    close = (E[..., 0] <= GT_AGREEMENT[0]) & (E[..., 1] <= GT_AGREEMENT[1])
+    medoid = int(np.argmax(close.sum(1)))
+    agree = np.flatnonzero(close[medoid])
+    if len(agree) < max(2, 0.5 * len(Ts)):  # frames named alike in another capture
+        raise InputError(db_path, f"its poses disagree with the ground truth (only {len(agree)} of {len(Ts)} frames "
+                         f"agree within {GT_AGREEMENT[0]:g} deg / {GT_AGREEMENT[1] * 100:g} cm): "
+                         "not the capture it was scanned from")
+    return mean_pose([Ts[i] for i in agree])
+
+
+def _csv_row(scene_id: int, im_id: int, obj_id: int, score: float, T: np.ndarray, time_s: float) -> str:
+    R = " ".join(f"{x:.9g}" for x in T[:3, :3].reshape(-1))
+    t = " ".join(f"{x:.6f}" for x in T[:3, 3] * 1000.0)
+    return f"{scene_id},{im_id},{obj_id},{score:.6f},{R},{t},{time_s:.6f}"
+
+
+def scanned_to_gt(template: Path, gt_capture: Path | None, obj_id: int) -> np.ndarray | None:
+    """T_obj_gt [4 x 4] that maps the ground truth's object frame into `template`'s frame: identity for a
+    CAD template; for a scanned one, `template_to_gt` over the ground truth of `gt_capture` (InputError
+    when it cannot relate them, read for object `obj_id`) or, without it, of the capture the template was
+    scanned from, for the BOP object the scan followed (None when that is gone or holds no ground truth)."""
+    with TemplateDB.open(template, require_complete=True) as db:
+        source, stored_input, stored_format = db.get_meta("source"), db.get_meta("input"), db.get_meta("format")
+        stored_obj_id = db.get_meta("obj_id")
+    if source != "scan":
+        if gt_capture is not None:
+            raise InputError(gt_capture, f"--gt-capture is for scanned templates; {template} is a CAD template, "
+                             "already in its mesh's frame")
+        return np.eye(4)
+    if gt_capture is not None:
+        return _capture_to_gt(template, gt_capture, "auto", obj_id)
+    if not isinstance(stored_input, str) or not Path(stored_input).is_dir():
+        return None
+    fmt = stored_format if stored_format in FORMATS else "auto"
+    if isinstance(stored_obj_id, int):  # the object the scan followed (scenes may number it otherwise)
+        obj_id = stored_obj_id
+    try:
+        return _capture_to_gt(template, Path(stored_input), fmt, obj_id)
+    except InputError as e:
+        # a capture whose ground truth contradicts the scan, or one of its files that is malformed, is named;
+        # a capture that is gone, unreadable as a whole or without ground truth leaves --gt-capture to the user
+        if e.reason.startswith(_DISAGREE) or (e.path is not None and e.path != Path(stored_input)):
+            raise
+        return None
+
+
+def _capture_to_gt(template: Path, capture: Path, fmt: str, obj_id: int) -> np.ndarray:
+    """`template_to_gt` over `capture`'s ground truth; InputError naming `capture` when it cannot."""
+    if not capture.is_dir():
+        raise InputError(capture, "ground-truth capture folder not found")
+    gt = discover(capture, fmt, obj_id=obj_id).gt_T_cam_obj
+    if not gt:
+        raise InputError(capture, f"holds no ground-truth object poses (annotated_poses/, or scene_gt.json "
+                         f"with object {obj_id})")
+    try:
+        return template_to_gt(template, gt)
+    except InputError as e:
+        if e.reason.startswith("no registered frame"):
+            raise InputError(capture, f"none of its ground-truth frames is a registered view of {template}") from None
+        raise InputError(capture, f"{_DISAGREE} {template.name}: {e.reason}") from None
+
+
+def evaluate(template: str | Path, scenes: str | Path, output_csv: str | Path, obj_id: int = 1,
+             model_path: str | Path | None = None, refine: bool = True, force: bool = False,
+             gt_capture: str | Path | None = None) -> EvalReport:
+    """Estimate the pose of the template's object in every image under `scenes`, write BOP19 CSV
+    `output_csv` and return the metrics (poses in the ground truth's object frame, see the module
+    docstring). InputError for an existing output without `force`, a missing or partial template,
+    unreadable scenes or model, or a scanned template scored against ground truth that no
+    ground-truth capture (`gt_capture`, else the template's own input) relates to its frame."""
+    output_csv = Path(output_csv)
+    if output_csv.is_dir():
+        raise InputError(output_csv, "output is a folder, expected a .csv file path")
+    if output_csv.exists() and not force:
+        raise InputError(output_csv, "already exists; use --force to overwrite")
+    check_output_path(output_csv)
+    template = Path(template)
+    estimator = Estimator.from_path(template)
+    seqs = [(scene_id, open_sequence(folder, format="auto", obj_id=obj_id))
+            for scene_id, folder in _scene_dirs(Path(scenes))]
+    T_obj_gt = scanned_to_gt(template, None if gt_capture is None else Path(gt_capture), obj_id)
+    if T_obj_gt is None:
+        if any(seq.gt_T_cam_obj for _, seq in seqs):
+            raise InputError(template, "is a scanned template, in its own frame, and the capture it was scanned "
+                             "from is gone or holds no ground truth; pass --gt-capture with the capture "
+                             "(rgb/, depth/, annotated_poses/ or scene_gt.json) to relate it to the ground truth")
+        log.warning("%s: no ground-truth capture relates the scanned template's frame to the ground truth's; "
+                    "the CSV holds poses of the template's own frame (pass --gt-capture for the other)", template)
+        T_obj_gt = np.eye(4)  # no ground truth anywhere: poses of the template's own frame
+    pts = load_model_points(None if model_path is None else Path(model_path), estimator)
+    if model_path is None:  # the template's mesh, in the ground truth's object frame
+        pts = transform_points(inv_T(T_obj_gt), pts)
+    diam = diameter(pts)
+    rows: list[EvalRow] = []
+    lines = [CSV_HEADER]
+    width = 640
+    bop_gt = False  # some scene has a scene_gt.json
+    for scene_id, seq in seqs:
+        gt = seq.gt_T_cam_obj or {}
+        bop_gt |= seq.format == "bop" and seq.gt_T_cam_obj is not None
+        for name in seq.names:
+            try:
+                frame = seq[name]
+            except InputError as e:  # an unreadable image is left out (and reported), not fatal
+                log.warning("scene %d: image %s left out: %s", scene_id, name, e)
+                continue
+            width = frame.intrinsics.width
+            im_id = int(name) if name.isdigit() else seq.names.index(name)
+            t0 = time.perf_counter()
+            res = estimator.estimate(frame, mask=None, refine=refine)
+            dt = time.perf_counter() - t0
+            T_est = None if res.T_cam_obj is None else res.T_cam_obj @ T_obj_gt  # the ground-truth model's pose
+            row = EvalRow(scene_id, im_id, res.found, res.score, dt, T_est, reason=res.reason)
+            T_gt = gt.get(name)
+            if T_gt is not None:
+                if res.found:
+                    row.add = add_err(pts, T_est, T_gt)
+                    row.adds = adds_err(pts, T_est, T_gt)
+                    row.mssd = mssd(pts, T_est, T_gt)
+                    try:
+                        row.mspd = mspd(pts, T_est, T_gt, frame.intrinsics)
+                    except ValueError:  # estimated model partly behind the camera
+                        row.mspd = float("inf")
+                else:
+                    row.add = row.adds = row.mssd = row.mspd = float("inf")
+            if res.found:
+                lines.append(_csv_row(scene_id, im_id, obj_id, res.score, T_est, dt))
+            rows.append(row)
+            log.info("scene %d image %d: %s", scene_id, im_id, "found" if res.found else f"not found ({res.reason})")
+    if not rows:
+        raise InputError(Path(scenes), "no image to evaluate")
+    if bop_gt and all(np.isnan(r.add) for r in rows):  # the metrics would silently be left out
+        raise InputError(Path(scenes), f"scene_gt.json holds no pose of object {obj_id} (--obj-id)")
+    tmp = output_csv.with_name(f".{output_csv.name}.tmp-{os.getpid()}")
+    try:
+        output_csv.parent.mkdir(parents=True, exist_ok=True)
+        tmp.write_text("\n".join(lines) + "\n", encoding="utf-8")
+        os.replace(tmp, output_csv)
+    except OSError as e:
+        raise InputError(output_csv, f"cannot write the results ({e.strerror or e})") from None
+    finally:
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)
+    return EvalReport(output_csv, len(rows), sum(r.found for r in rows), _metrics(rows, diam, width), rows)
+
+
+def _metrics(rows: list[EvalRow], diameter: float, width: int) -> dict[str, float]:
+    g = [r for r in rows if not np.isnan(r.add)]
+    m: dict[str, float] = {"found": 100.0 * sum(r.found for r in rows) / len(rows),
+                           "mean time ms": 1e3 * float(np.mean([r.time_s for r in rows]))}
+    if g:
+        m["AUC ADD"] = auc([r.add for r in g])
+        m["AUC ADD-S"] = auc([r.adds for r in g])
+        m["AR MSSD"] = 100.0 * ar_mssd([r.mssd for r in g], diameter)
+        m["AR MSPD"] = 100.0 * ar_mspd([r.mspd for r in g], width)
+        m["AR"] = 0.5 * (m["AR MSSD"] + m["AR MSPD"])
+    return m

@@ -1,0 +1,257 @@
+"""Pose and trajectory error metrics: rotation / translation error, ATE, ADD, ADD-S, AUC,
+MSSD, MSPD and BOP recall.
+
+Poses are [4 x 4] rigid transforms. For object metrics `T_est` / `T_gt` are T_cam_obj
+(model points `pts` [N x 3] in the object frame, metres); for ATE they are T_world_cam.
+
+References:
+- ADD / ADD-S: Hinterstoisser et al., ACCV 2012 (`add`, `adi` in bop_toolkit_lib/pose_error.py).
+- AUC: the YCB-Video toolbox of PoseCNN (Xiang et al., RSS 2018), `VOCap` in its MATLAB
+  evaluation scripts, reproduced exactly (see `auc`).
+- MSSD / MSPD and the recall thresholds: BOP Challenge 2019+ (bop_toolkit_lib/pose_error.py,
+  scripts/eval_bop19_pose.py): an error counts as correct when strictly below a threshold.
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from gscan.io.camera import Intrinsics
+from gscan.geometry.transforms import inv_T, rotation_angle_deg, transform_points, umeyama
+
+#: BOP MSSD thresholds, as fractions of the object diameter: 0.05, 0.10, ..., 0.50.
+MSSD_THRESHOLD_FRACTIONS = np.round(np.arange(0.05, 0.51, 0.05), 10)
+#: BOP MSPD thresholds in pixels for a 640-pixel-wide image: 5, 10, ..., 50.
+MSPD_THRESHOLDS_PX_640 = np.arange(5.0, 51.0, 5.0)
+
+
+def _as_T(T: np.ndarray, name: str) -> np.ndarray:
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise ValueError(f"{name} must be a finite [4 x 4] transform, got shape {T.shape}")
+    return T
+
+
+def _as_pts(pts: np.ndarray) -> np.ndarray:
+    pts = np.asarray(pts, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) == 0:
+        raise ValueError(f"model points must be a non-empty [N x 3] array, got shape {pts.shape}")
+    return pts
+
+
+def rotation_error_deg(T_est: np.ndarray, T_gt: np.ndarray) -> float:
+    """Angle of R_est R_gt^T in degrees, [0, 180]. Accepts [3 x 3] rotations or [4 x 4] poses."""
+    R_e = np.asarray(T_est, dtype=np.float64)[:3, :3]
+    R_g = np.asarray(T_gt, dtype=np.float64)[:3, :3]
+    return rotation_angle_deg(R_e @ R_g.T)
+
+
+def translation_error(T_est: np.ndarray, T_gt: np.ndarray) -> float:
+    """|t_est - t_gt| in metres for [4 x 4] poses."""
+    return float(np.linalg.norm(_as_T(T_est, "T_est")[:3, 3] - _as_T(T_gt, "T_gt")[:3, 3]))
+
+
+@dataclass
+class ATEResult:
+    """Absolute trajectory error after rigid alignment of the estimate onto the ground truth.
+
+    errors: [N] per-pose position errors (m); T_gt_est: [4 x 4] alignment applied to the
+    estimated positions (p_gt ~ T_gt_est @ p_est).
+    """
+
+    rmse: float
+    mean: float
+    median: float
+    max: float
+    errors: np.ndarray
+    T_gt_est: np.ndarray
+
+
+def ate(T_est_list: Sequence[np.ndarray], T_gt_list: Sequence[np.ndarray]) -> ATEResult:
+    """ATE of camera positions: rigid (no scale) Umeyama alignment of the estimated positions
+    onto the ground-truth ones, then per-pose Euclidean errors. Inputs: lists of [4 x 4]
+    T_world_cam in matching order (N >= 1; N = 1 and 2 are solved in closed form)."""
+    if len(T_est_list) != len(T_gt_list) or len(T_est_list) == 0:
+        raise ValueError(f"need two equally long non-empty pose lists, got {len(T_est_list)} and {len(T_gt_list)}")
+    p_est = np.array([_as_T(T, "T_est")[:3, 3] for T in T_est_list])
+    p_gt = np.array([_as_T(T, "T_gt")[:3, 3] for T in T_gt_list])
+    n = len(p_est)
+    if n >= 3:
+        T = umeyama(p_est, p_gt, with_scale=False)
+    else:  # translate centroids together; for two poses also turn the segment onto the other
+        R = np.eye(3)
+        if n == 2:
+            a, b = p_est[1] - p_est[0], p_gt[1] - p_gt[0]
+            if np.linalg.norm(a) > 1e-12 and np.linalg.norm(b) > 1e-12:
+                R = umeyama(np.stack([np.zeros(3), a, _perp(a)]), np.stack([np.zeros(3), b, _perp(b)]))[:3, :3]
+        T = np.eye(4)
+        T[:3, :3] = R
+        T[:3, 3] = p_gt.mean(0) - R @ p_est.mean(0)
+    err = np.linalg.norm(transform_points(T, p_est) - p_gt, axis=1)
+    return ATEResult(float(np.sqrt(np.mean(err ** 2))), float(err.mean()), float(np.median(err)), float(err.max()),
+                     err, T)
+
+
+def _perp(a: np.ndarray) -> np.ndarray:
+    """A vector perpendicular to [3] a, of the same length (deterministic choice)."""
+    e = np.eye(3)[int(np.argmin(np.abs(a)))]
+    p = np.cross(a, e)
+    return p / np.linalg.norm(p) * np.linalg.norm(a)
+
+
+def ate_rmse(T_est_list: Sequence[np.ndarray], T_gt_list: Sequence[np.ndarray]) -> float:
+    """RMSE (m) of `ate`."""
+    return ate(T_est_list, T_gt_list).rmse
+
+
+def add(pts: np.ndarray, T_est: np.ndarray, T_gt: np.ndarray) -> float:
+    """ADD: mean distance between model points [N x 3] moved by T_est and by T_gt (m)."""
+    pts = _as_pts(pts)
+    d = transform_points(_as_T(T_est, "T_est"), pts) - transform_points(_as_T(T_gt, "T_gt"), pts)
+    return float(np.linalg.norm(d, axis=1).mean())
+
+
+def adds(pts: np.ndarray, T_est: np.ndarray, T_gt: np.ndarray) -> float:
+    """ADD-S (ADI): mean over model points in the GT pose of the distance to the nearest
+    model point in the estimated pose (m). pts: [N x 3] object frame."""
+    pts = _as_pts(pts)
+    # |T_gt p - T_est q| = |T_est^-1 T_gt p - q|: search the model-frame cloud itself
+    query = transform_points(inv_T(_as_T(T_est, "T_est")) @ _as_T(T_gt, "T_gt"), pts)
+    d, _ = cKDTree(pts).query(query, k=1)
+    return float(np.mean(d))
+
+
+def auc(errors_m: Sequence[float] | np.ndarray, max_threshold: float = 0.1) -> float:
+    """Area under the accuracy-threshold curve of ADD / ADD-S errors, 0..100 (YCB-Video).
+
+    Reproduces `VOCap` of the PoseCNN YCB-Video toolbox: errors above `max_threshold` (and
+    NaN / inf, e.g. no pose returned) are failures; the finite errors are sorted to d_1..d_m
+    with cumulative accuracy a_k = k / n (n = all errors, failures included); the area is
+    sum_k (d_k - d_{k-1}) * a_k + (max_threshold - d_m) * a_m over distinct d (d_0 = 0),
+    normalised by max_threshold and scaled to 100. Note this right-endpoint rule exceeds
+    the exact integral of the empirical accuracy curve by 100 * d_m / (n * max_threshold)
+    (negligible for the thousands of poses of a benchmark, large for a handful).
+    """
+    e = np.asarray(errors_m, dtype=np.float64).reshape(-1)
+    if e.size == 0:
+        raise ValueError("auc needs at least one error")
+    if max_threshold <= 0:
+        raise ValueError(f"max_threshold must be > 0, got {max_threshold}")
+    n = e.size
+    e = np.where(np.isfinite(e) & (e <= max_threshold), e, np.inf)
+    d = np.sort(e)
+    acc = np.arange(1, n + 1, dtype=np.float64) / n
+    fin = np.isfinite(d)
+    if not fin.any():
+        return 0.0
+    d, acc = d[fin], acc[fin]
+    mrec = np.concatenate([[0.0], d, [max_threshold]])
+    mpre = np.concatenate([[0.0], acc, [acc[-1]]])
+    mpre = np.maximum.accumulate(mpre)
+    i = np.flatnonzero(mrec[1:] != mrec[:-1]) + 1
+    return float(np.sum((mrec[i] - mrec[i - 1]) * mpre[i]) / max_threshold * 100.0)
+
+
+def _sym_list(syms: Sequence[np.ndarray] | None) -> list[np.ndarray]:
+    """Identity followed by the given [4 x 4] symmetry transforms (object frame)."""
+    out = [np.eye(4)]
+    for k, S in enumerate(syms or []):
+        out.append(_as_T(S, f"symmetry {k}"))
+    return out
+
+
+def mssd(pts: np.ndarray, T_est: np.ndarray, T_gt: np.ndarray, syms: Sequence[np.ndarray] | None = None) -> float:
+    """Maximum Symmetry-aware Surface Distance (BOP), metres.
+
+    min over symmetries S (identity implied) of max_i |T_est p_i - T_gt S p_i|.
+    pts: [N x 3] model vertices (object frame); syms: [4 x 4] object-frame transforms S
+    under which the object looks the same (BOP `get_symmetry_transformations`).
+    """
+    pts = _as_pts(pts)
+    p_est = transform_points(_as_T(T_est, "T_est"), pts)
+    T_gt = _as_T(T_gt, "T_gt")
+    return float(min(np.linalg.norm(p_est - transform_points(T_gt @ S, pts), axis=1).max() for S in _sym_list(syms)))
+
+
+def _project_K(pts_cam: np.ndarray, K: np.ndarray) -> np.ndarray:
+    if np.any(pts_cam[:, 2] <= 0):
+        raise ValueError("mspd: a model point lies at or behind the camera plane (z <= 0)")
+    p = pts_cam @ K.T
+    return p[:, :2] / p[:, 2:3]
+
+
+def mspd(pts: np.ndarray, T_est: np.ndarray, T_gt: np.ndarray, K: np.ndarray | Intrinsics,
+         syms: Sequence[np.ndarray] | None = None) -> float:
+    """Maximum Symmetry-aware Projection Distance (BOP), pixels.
+
+    min over symmetries S (identity implied) of max_i |proj(K, T_est p_i) - proj(K, T_gt S p_i)|.
+    pts: [N x 3] model vertices; K: [3 x 3] or Intrinsics; poses are T_cam_obj.
+    """
+    pts = _as_pts(pts)
+    K = K.K if isinstance(K, Intrinsics) else np.asarray(K, dtype=np.float64).reshape(3, 3)
+    uv_est = _project_K(transform_points(_as_T(T_est, "T_est"), pts), K)
+    T_gt = _as_T(T_gt, "T_gt")
+    return float(min(np.linalg.norm(uv_est - _project_K(transform_points(T_gt @ S, pts), K), axis=1).max()
+                     for S in _sym_list(syms)))
+
+
+def mssd_thresholds(diameter: float) -> np.ndarray:
+    """[10] BOP MSSD correctness thresholds (m): 0.05..0.5 x object diameter."""
+    if not diameter > 0:
+        raise ValueError(f"object diameter must be > 0, got {diameter}")
+    return MSSD_THRESHOLD_FRACTIONS * float(diameter)
+
+
+def mspd_thresholds(image_width: int) -> np.ndarray:
+    """[10] BOP MSPD correctness thresholds (px): 5..50 scaled by image_width / 640."""
+    if not image_width > 0:
+        raise ValueError(f"image width must be > 0, got {image_width}")
+    return MSPD_THRESHOLDS_PX_640 * (float(image_width) / 640.0)
+
+
+def recall_at(errors: Sequence[float] | np.ndarray, thresholds: Sequence[float] | np.ndarray) -> np.ndarray:
+    """[T] fraction of errors strictly below each threshold (NaN / inf errors count as failures)."""
+    e = np.asarray(errors, dtype=np.float64).reshape(-1)
+    th = np.asarray(thresholds, dtype=np.float64).reshape(-1)
+    if e.size == 0:
+        raise ValueError("recall needs at least one error")
+    e = np.where(np.isfinite(e), e, np.inf)
+    return (e[:, None] < th[None, :]).mean(axis=0)
+
+
+def average_recall(errors: Sequence[float] | np.ndarray, thresholds: Sequence[float] | np.ndarray) -> float:
+    """Mean of `recall_at` over the thresholds, in [0, 1] (BOP AR of one error function)."""
+    return float(recall_at(errors, thresholds).mean())
+
+
+def ar_mssd(errors_m: Sequence[float] | np.ndarray, diameter: float) -> float:
+    """BOP AR_MSSD of MSSD errors (m) of one object with the given diameter (m)."""
+    return average_recall(errors_m, mssd_thresholds(diameter))
+
+
+def ar_mspd(errors_px: Sequence[float] | np.ndarray, image_width: int = 640) -> float:
+    """BOP AR_MSPD of MSPD errors (px) measured in images `image_width` pixels wide."""
+    return average_recall(errors_px, mspd_thresholds(image_width))
+
+
+def diameter(points: np.ndarray) -> float:
+    """Largest distance between two of the points [N x 3] (BOP's object diameter), exact: the
+    farthest pair lies on the convex hull, whose vertices are compared pairwise in chunks."""
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if len(p) < 2:
+        return 0.0
+    if len(p) > 4:
+        from scipy.spatial import ConvexHull, QhullError
+
+        try:
+            p = p[ConvexHull(p).vertices]
+        except (QhullError, ValueError):  # flat or degenerate: every point is a candidate
+            pass
+    best = 0.0
+    for i in range(0, len(p), 512):
+        d2 = ((p[i:i + 512, None, :] - p[None, :, :]) ** 2).sum(-1)
+        best = max(best, float(d2.max()))
+    return float(np.sqrt(best))

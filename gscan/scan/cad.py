@@ -1,0 +1,181 @@
+"""Template from a CAD mesh: render snapshots on a sphere around the object into a template database.
+
+This is the paper's own setting (GMatch matches a query against rendered snapshots of a CAD model).
+The mesh's own frame is kept (units scaled to metres by `scale`), so poses estimated against the
+template are poses of the CAD model, as BOP expects.
+
+Views: `n_views` cameras on a Fibonacci sphere (both hemispheres, poles avoided) about the centre of
+the mesh's bounding box, at the distance where the bounding sphere spans `FILL` of the image width
+of `gscan.synth.DEFAULT_INTRINSICS` (640 x 480), image "up" along the mesh's +z. Each view is rendered
+without table or background (black), with clean depth on the object only and mask = object. RootSIFT
+keypoints inside the mask (the estimator's query feature parameters) are lifted with the depth and
+stored in the OBJECT frame. The template
+cloud is the union of the views' back-projected depth (surfaces actually visible from outside),
+voxel-downsampled; the template mesh is the input mesh with per-vertex colours sampled from the texture.
+
+Textures: OBJ + MTL + image via `gscan.synth.load_textured_mesh`; meshes with per-vertex colours
+(PLY, GLB without texture) are rendered with flat per-face colours (the mean of the face's vertex
+colours); meshes with neither render grey.
+"""
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from gscan.io.camera import RGBDFrame, backproject
+from gscan.errors import InputError
+from gscan.estimate.estimator import EstimateParams
+from gscan.features import FeatureParams, extract_features
+from gscan.geometry.transforms import look_at, transform_points
+from gscan.io import check_output_path, missing_folders, remove_empty_folders
+from gscan.geometry.pointset import voxel_mean
+from gscan.progress import NullProgress, Progress
+from gscan.synth import DEFAULT_INTRINSICS, SynthScene, TexturedMesh, load_textured_mesh, sample_bilinear
+from gscan.template.db import TemplateDB, View
+
+log = logging.getLogger(__name__)
+
+FILL = 0.45  # fraction of the image width spanned by the object's bounding sphere
+CLOUD_VOXEL = 0.002  # m, voxel size of the template cloud (x radius / 15 cm for larger objects)
+CLOUD_STRIDE = 2  # pixel stride of the back-projection of each view into the cloud
+MAX_POLAR_COS = 0.97  # |cos| of the polar angle kept away from the poles (look_at up-vector degeneracy)
+
+
+def fibonacci_directions(n: int) -> np.ndarray:
+    """[n x 3] unit vectors spread evenly over the sphere (golden-angle spiral, poles avoided).
+
+    z runs from +MAX_POLAR_COS to -MAX_POLAR_COS, so both hemispheres are covered equally.
+    """
+    if n < 1:
+        raise ValueError("need at least one view")
+    i = np.arange(n, dtype=np.float64)
+    z = MAX_POLAR_COS * (1.0 - 2.0 * (i + 0.5) / n)
+    r = np.sqrt(1.0 - z * z)
+    phi = i * np.pi * (3.0 - np.sqrt(5.0))
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+
+
+def view_poses(mesh: TexturedMesh, n_views: int, fill: float = FILL) -> list[np.ndarray]:
+    """T_obj_cam [4 x 4] of `n_views` cameras looking at the mesh's bounding-box centre."""
+    intr = DEFAULT_INTRINSICS
+    dist = mesh.radius * intr.fx / (0.5 * fill * intr.width)
+    c = mesh.center
+    return [look_at(c + dist * d, c, np.array([0.0, 0.0, 1.0])) for d in fibonacci_directions(n_views)]
+
+
+def _load_mesh(path: Path, scale: float) -> TexturedMesh:
+    """Textured OBJ through gscan.synth; vertex-coloured meshes (PLY/GLB) get a per-face colour texture."""
+    mesh = load_textured_mesh(path, scale=scale)
+    if mesh.texture.shape[:2] != (1, 1):
+        return mesh
+    import trimesh
+
+    try:
+        tm = trimesh.load(str(path), force="mesh", process=False)
+        vc = getattr(tm.visual, "vertex_colors", None) if getattr(tm.visual, "kind", None) == "vertex" else None
+    except Exception:  # noqa: BLE001 - the mesh loaded once already; colours are optional
+        vc = None
+    if vc is None or len(vc) != len(mesh.vertices):
+        return mesh
+    face_rgb = np.asarray(vc, dtype=np.float64)[:, :3][mesh.triangles].mean(axis=1)
+    # one texel per face on a square grid (an image side stays far below OpenCV's 32767-pixel limit); all
+    # three corners of a face map to its texel's centre, so it renders flat at the exact colour
+    F = len(mesh.triangles)
+    side = int(np.ceil(np.sqrt(F)))
+    texture = np.zeros((side * side, 3), np.uint8)
+    texture[:F] = np.clip(np.rint(face_rgb), 0, 255)
+    col, row = np.arange(F) % side, np.arange(F) // side
+    u, v = (col + 0.5) / side, 1.0 - (row + 0.5) / side  # OBJ convention: v = 0 at the image's bottom row
+    uv = np.repeat(np.stack([u, v], axis=1)[:, None, :], 3, axis=1)  # [F x 3 x 2]
+    texture = texture.reshape(side, side, 3)
+    log.info("%s: per-vertex colours rendered as flat face colours", path)
+    return TexturedMesh(mesh.vertices, mesh.triangles, uv, np.ascontiguousarray(texture), name=mesh.name)
+
+
+def vertex_colors(mesh: TexturedMesh) -> np.ndarray:
+    """[V x 3] uint8 colour per vertex: the mean texture colour at its face corners."""
+    corner_rgb = sample_bilinear(mesh.texture, mesh.uv.reshape(-1, 2))  # [F*3 x 3]
+    acc = np.zeros((len(mesh.vertices), 3))
+    cnt = np.zeros(len(mesh.vertices))
+    np.add.at(acc, mesh.triangles.reshape(-1), corner_rgb)
+    np.add.at(cnt, mesh.triangles.reshape(-1), 1.0)
+    col = np.where(cnt[:, None] > 0, acc / np.maximum(cnt, 1.0)[:, None], 128.0)
+    return np.clip(np.rint(col), 0, 255).astype(np.uint8)
+
+
+def _voxel_cloud(points: np.ndarray, colors: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
+    """Voxel-grid mean of [N x 3] points and [N x 3] uint8 colours -> ([M x 3] float32, [M x 3] uint8)."""
+    M = voxel_mean(np.hstack([np.asarray(points, np.float64).reshape(-1, 3),
+                              np.asarray(colors, np.float64).reshape(-1, 3)]), voxel)
+    return M[:, :3].astype(np.float32), np.clip(np.rint(M[:, 3:]), 0, 255).astype(np.uint8)
+
+
+def build_template_from_mesh(mesh_path: str | Path, output: str | Path, n_views: int = 36, scale: float = 1.0,
+                             force: bool = False, progress: Progress | None = None,
+                             feature_params: FeatureParams | None = None) -> dict:
+    """Render `n_views` snapshots of the mesh at `mesh_path` into a new template database `output`.
+
+    Returns the `info --json`-style summary {"output", "views", "descriptor", "source": "mesh", "extent_m"}.
+    Raises InputError naming the file for a missing / unreadable mesh, an existing output without
+    `force`; on any error the partly written output is removed.
+    """
+    mesh_path, output = Path(mesh_path), Path(output)
+    if n_views < 1:
+        raise InputError(mesh_path, f"need at least one view, not {n_views}")
+    if not (np.isfinite(scale) and scale > 0):
+        raise InputError(mesh_path, f"scale must be positive, not {scale}")
+    progress = progress or NullProgress()
+    feature_params = feature_params or EstimateParams().features  # the estimator's query keypoints
+    mesh = _load_mesh(mesh_path, scale)
+    if mesh.radius <= 0:
+        raise InputError(mesh_path, "mesh is degenerate (all vertices coincide)")
+    if output.exists() and not force:
+        raise InputError(output, "already exists; use --force to overwrite")
+    check_output_path(output)
+    made = missing_folders(output)
+    db = TemplateDB.create(output, force=force, meta={
+        "source": "mesh", "descriptor": {"kind": feature_params.kind, "max_keypoints": feature_params.max_keypoints,
+                                         "sift_contrast_threshold": feature_params.sift_contrast_threshold},
+        "mesh_source": {"path": str(mesh_path), "scale": float(scale), "views": int(n_views), "fill": FILL}})
+    try:
+        intr = DEFAULT_INTRINSICS
+        scene = SynthScene([(mesh, np.eye(4))], table=False, shadows=False, background_rgb=(0, 0, 0), seed=0)
+        cloud_p, cloud_c = [], []
+        n_kp = 0
+        with progress.stage("render", total=n_views) as advance:
+            for i, T_obj_cam in enumerate(view_poses(mesh, n_views)):
+                r = scene.render(T_obj_cam, intr, noise=False)
+                name = f"view_{i:03d}"
+                frame = RGBDFrame(name, r.color, r.depth_clean, intr, mask=r.mask)
+                feats = extract_features(frame, feature_params, mask=r.mask)
+                db.add_view(View(name=name, intrinsics=intr, T_obj_cam=T_obj_cam, color=r.color,
+                                 depth=np.where(r.mask, r.depth_clean, 0.0).astype(np.float32), mask=r.mask,
+                                 keyframe=True, quality=float(len(feats)), input_index=i))
+                db.add_features(name, feats.pixels, transform_points(T_obj_cam, feats.points).astype(np.float32),
+                                feats.descriptors, feats.kind, feats.scales)
+                n_kp += len(feats)
+                sl = (slice(None, None, CLOUD_STRIDE),) * 2
+                sel = (r.mask & (r.depth_clean > 0))[sl]
+                cloud_p.append(transform_points(T_obj_cam, backproject(r.depth_clean, intr)[sl][sel]))
+                cloud_c.append(r.color[sl][sel])
+                advance(1)
+        with progress.stage("store", total=1) as advance:
+            voxel = CLOUD_VOXEL * max(1.0, mesh.radius / 0.15)  # ~same point count for large objects
+            P, C = _voxel_cloud(np.concatenate(cloud_p), np.concatenate(cloud_c), voxel)
+            db.set_cloud(P, C)
+            db.set_mesh(mesh.vertices, mesh.triangles, vertex_colors(mesh))
+            db.mark_complete()
+            summary = {"output": str(output), "views": int(n_views), "descriptor": feature_params.kind,
+                       "source": "mesh", "extent_m": [float(x) for x in db.extent()]}
+            advance(1)
+        log.info("%s: %d views, %d keypoints, cloud %d points", output, n_views, n_kp, len(P))
+    except BaseException:
+        db.close()
+        for p in (output, Path(f"{output}-journal")):
+            p.unlink(missing_ok=True)
+        remove_empty_folders(made)
+        raise
+    db.close()
+    return summary

@@ -1,0 +1,139 @@
+"""Capture mode detection and keyframe selection.
+
+Two capture modes (DESIGN.md): a static object scanned by a moving camera ("static-object":
+the whole frame moves rigidly with the object, so registration may use all of it), or a
+moving object in front of a static camera ("moving-object": turntable or object in hand,
+only the object's pixels may be registered, the background would pull every pose to identity).
+
+Detection rule (`detect_mode`): compare frame pairs spread over the capture. A pixel is
+*static* when both frames have valid depth there, the depths agree within
+max(4 mm, 1 % of the depth) and the grey levels within 12. Pixels inside a given object
+mask (dilated) are ignored. When the median static fraction over the pairs is at least
+`static_fraction` (0.65) the camera did not move: moving-object; otherwise static-object.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import cv2
+import numpy as np
+
+from gscan.io.camera import RGBDFrame
+
+if TYPE_CHECKING:
+    from gscan.scan.segment import Plane, SegmentParams
+
+log = logging.getLogger(__name__)
+
+STATIC_OBJECT = "static-object"
+MOVING_OBJECT = "moving-object"
+
+
+@dataclass
+class ModeDecision:
+    mode: str  # STATIC_OBJECT | MOVING_OBJECT
+    static_fraction: float  # median fraction of unchanged background pixels over the tested pairs
+    pairs: int  # how many frame pairs were compared
+
+
+def _static_fraction(a: RGBDFrame, b: RGBDFrame) -> float:
+    da, db = a.depth, b.depth
+    valid = (da > 0) & (db > 0)
+    ignore = np.zeros_like(valid)
+    for m in (a.mask, b.mask):
+        if m is not None:
+            ignore |= cv2.dilate(m.astype(np.uint8), np.ones((15, 15), np.uint8)).astype(bool)
+    valid &= ~ignore
+    if valid.sum() < 100:
+        return 0.0
+    ga = cv2.cvtColor(a.color, cv2.COLOR_RGB2GRAY).astype(np.int16)
+    gb = cv2.cvtColor(b.color, cv2.COLOR_RGB2GRAY).astype(np.int16)
+    same = (np.abs(da - db) <= np.maximum(0.004, 0.01 * da)) & (np.abs(ga - gb) <= 12)
+    return float((same & valid).sum() / valid.sum())
+
+
+def detect_mode(frames: list[RGBDFrame], static_fraction: float = 0.65) -> ModeDecision:
+    """Decide static-object vs moving-object from the frames (see module docstring).
+
+    The pairs compared are far apart in the sequence (first-last, first-middle, middle-last,
+    quarter-three quarters), so that a slowly moving hand-held camera has moved between them.
+    """
+    n = len(frames)
+    if n < 2:
+        return ModeDecision(STATIC_OBJECT, 0.0, 0)
+    pairs = sorted({(0, n - 1), (0, n // 2), (n // 2, n - 1), (n // 4, (3 * n) // 4)} - {(k, k) for k in range(n)})
+    fracs = [_static_fraction(frames[i], frames[j]) for i, j in pairs]
+    med = float(np.median(fracs))
+    mode = MOVING_OBJECT if med >= static_fraction else STATIC_OBJECT
+    log.info("capture mode %s (static background fraction %.2f over %d pairs)", mode, med, len(fracs))
+    return ModeDecision(mode, med, len(fracs))
+
+
+def moving_object_masks(frames: list[RGBDFrame], min_offset: float = 0.01, min_area: int = 400,
+                        params: SegmentParams | None = None) -> tuple[list[np.ndarray], list[Plane | None]]:
+    """Object masks for a static camera without given masks. Returns ([H x W] bool per frame, the
+    support plane found in each frame, camera frame, or None).
+
+    Each frame is segmented on its own by the support plane and the component above it
+    (`gscan.scan.segment.segment_frame` with `params`). A frame without a support plane (object in hand) falls back
+    to background subtraction: the background depth is the per-pixel 90th percentile of the
+    valid depths over the sequence (the farthest surface seen there), and the object is where
+    the frame is closer than that by max(`min_offset`, 2 %), cleaned by an opening and kept as
+    the connected components of at least `min_area` pixels (the largest always kept).
+    """
+    from gscan.scan.segment import SegmentParams, segment_frame
+
+    params = params if params is not None else SegmentParams()
+    segs = [segment_frame(RGBDFrame(f.name, f.color, f.depth, f.intrinsics), params) for f in frames]
+    planes = [s.plane_cam for s in segs]
+    if all(p is not None for p in planes):
+        return [s.mask for s in segs], planes
+    stack = np.stack([f.depth for f in frames]).astype(np.float32)
+    stack[stack <= 0] = np.nan
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        bg = np.nan_to_num(np.nanpercentile(stack, 90, axis=0), nan=np.inf)
+    out = []
+    kernel = np.ones((5, 5), np.uint8)
+    for f, s in zip(frames, segs):
+        if s.plane_cam is not None:
+            out.append(s.mask)
+            continue
+        d = f.depth
+        fg = (d > 0) & (d < bg - np.maximum(min_offset, 0.02 * np.where(np.isfinite(bg), bg, 0)))
+        fg = cv2.morphologyEx(fg.astype(np.uint8), cv2.MORPH_OPEN, kernel)
+        n, lab, stats, _ = cv2.connectedComponentsWithStats(fg, connectivity=8)
+        keep = np.zeros(n, dtype=bool)
+        if n > 1:
+            areas = stats[1:, cv2.CC_STAT_AREA]
+            keep[1:] = areas >= min_area
+            keep[1 + int(np.argmax(areas))] = True
+        out.append(keep[lab])
+    return out, planes
+
+
+def select_keyframes(view_dirs: dict[int, np.ndarray], min_angle_deg: float, max_views: int) -> list[int]:
+    """Keyframes that cover the object: greedy in input order.
+
+    view_dirs: frame index -> unit viewing direction in the object frame (camera z axis).
+    A frame becomes a keyframe when its direction is at least `min_angle_deg` from every
+    keyframe already chosen (the first registered frame always is). When more than `max_views`
+    qualify, the angle grows by 10 % until they fit. Returns sorted frame indices.
+    """
+    order = sorted(view_dirs)
+    if not order:
+        return []
+    angle = min_angle_deg
+    while True:
+        chosen: list[int] = []
+        for i in order:
+            d = view_dirs[i]
+            if all(np.degrees(np.arccos(np.clip(float(d @ view_dirs[j]), -1, 1))) >= angle for j in chosen):
+                chosen.append(i)
+        if len(chosen) <= max_views or angle >= 180:
+            return chosen
+        angle = max(angle * 1.1, angle + 0.5)

@@ -1,0 +1,243 @@
+"""TSDF fusion of segmented, registered RGB-D frames into a mesh, and the template frame.
+
+Fusion uses open3d's tensor `VoxelBlockGrid` on CPU:0 (the legacy ScalableTSDFVolume of open3d
+0.20 returns empty meshes). Only the masked depth of each frame is integrated (the object's
+pixels; the caller passes `frame.depth > 0` as the mask for a whole-scene scan). Small floating
+fragments are removed from the mesh; the point cloud keeps only points near the kept mesh.
+
+Template frame (DESIGN.md "Frames of reference"): origin at the centre of the object's bounding
+box, z along the support-plane normal (up) when a plane is known, x and y along the principal
+axes of the object's points projected on the plane; otherwise the axes of the first camera.
+"""
+from __future__ import annotations
+
+import logging
+import re
+from dataclasses import dataclass
+
+import numpy as np
+
+from gscan.io.camera import RGBDFrame, backproject
+from gscan.geometry.transforms import inv_T, make_T, transform_points
+from gscan.scan.segment import Plane
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class FusionParams:
+    voxel_size: float | None = None      # m; None: object extent / 150, clamped to [voxel_min, voxel_max]
+    voxel_min: float = 0.002
+    voxel_max: float = 0.01
+    trunc_voxels: float = 4.0            # truncation distance in voxels
+    block_resolution: int = 16
+    depth_max: float | None = None       # m; None: 1.05 x the largest masked depth
+    weight_threshold: float = 1.5        # voxels with less weight (~observations) are not surfaced (capped
+                                         # below the number of fused frames)
+    min_component_fraction: float = 0.1  # drop mesh components below this fraction of the largest one's triangles
+    keep_largest_only: bool = False      # keep just the largest connected component
+
+
+@dataclass
+class FusedModel:
+    """Fused surface in the world frame of the poses.
+
+    vertices [V x 3] float64 m; triangles [F x 3] int32; vertex_colors [V x 3] float32 in [0, 1];
+    points [P x 3] float64 and point_colors [P x 3] float32 (TSDF zero crossings); voxel_size m.
+    """
+
+    vertices: np.ndarray
+    triangles: np.ndarray
+    vertex_colors: np.ndarray
+    points: np.ndarray
+    point_colors: np.ndarray
+    voxel_size: float
+
+
+def auto_voxel_size(extent_m: float, params: FusionParams = FusionParams()) -> float:
+    """Voxel edge (m) for an object of largest extent `extent_m`: extent / 150 within the bounds."""
+    return float(np.clip(extent_m / 150.0, params.voxel_min, params.voxel_max))
+
+
+def _masked_depth(frame: RGBDFrame, mask: np.ndarray | None) -> np.ndarray:
+    d = np.ascontiguousarray(frame.depth, dtype=np.float32).copy()
+    if mask is not None:
+        if mask.shape != d.shape:
+            raise ValueError(f"mask {mask.shape} does not match depth {d.shape} of frame {frame.name}")
+        d[~mask] = 0.0
+    d[~np.isfinite(d)] = 0.0
+    return d
+
+
+def _extent_estimate(depths: list[np.ndarray], frames: list[RGBDFrame], T_world_cam: list[np.ndarray]) -> float:
+    """Largest extent (m) of the masked points of a few frames in the world frame (robust percentiles)."""
+    pts = []
+    for k in np.unique(np.linspace(0, len(frames) - 1, min(6, len(frames))).round().astype(int)):
+        d = depths[k]
+        p = backproject(d, frames[k].intrinsics)[::4, ::4][d[::4, ::4] > 0]
+        pts.append(transform_points(T_world_cam[k], p))
+    P = np.concatenate(pts) if pts else np.zeros((0, 3))
+    if len(P) < 10:
+        return 0.0
+    lo, hi = np.percentile(P, [1, 99], axis=0)
+    return float((hi - lo).max())
+
+
+def fuse_tsdf(frames: list[RGBDFrame], T_world_cam: list[np.ndarray | None],
+              masks: list[np.ndarray | None] | None = None, params: FusionParams = FusionParams()) -> FusedModel:
+    """Integrate the masked depth (and colour) of registered frames; extract mesh + point cloud.
+
+    frames: N RGB-D frames; T_world_cam: N [4 x 4] poses (None = unregistered, skipped);
+    masks: N [H x W] bool (None entry / None list: the whole valid depth).
+    Raises ValueError when nothing can be fused.
+    """
+    import open3d as o3d
+    import open3d.core as o3c
+
+    if masks is None:
+        masks = [None] * len(frames)
+    if not (len(frames) == len(T_world_cam) == len(masks)):
+        raise ValueError(f"{len(frames)} frames, {len(T_world_cam)} poses, {len(masks)} masks")
+    use = [k for k in range(len(frames)) if T_world_cam[k] is not None]
+    depths = {k: _masked_depth(frames[k], masks[k]) for k in use}
+    # frames with no masked depth in range are left out: open3d's integration aborts on them
+    use = [k for k in use if np.any((depths[k] > 0) & (depths[k] <= (params.depth_max or np.inf)))]
+    if not use:
+        raise ValueError("no registered frame with masked depth to fuse"
+                         + (f" within {params.depth_max} m" if params.depth_max else ""))
+    voxel = params.voxel_size or auto_voxel_size(
+        _extent_estimate([depths[k] for k in use], [frames[k] for k in use], [T_world_cam[k] for k in use]), params)
+    depth_max = params.depth_max or 1.05 * max(float(depths[k].max()) for k in use)
+    trunc = params.trunc_voxels * voxel
+    dev = o3c.Device("CPU:0")
+    vbg = o3d.t.geometry.VoxelBlockGrid(attr_names=("tsdf", "weight", "color"),
+                                        attr_dtypes=(o3c.float32, o3c.float32, o3c.float32),
+                                        attr_channels=((1,), (1,), (3,)), voxel_size=voxel,
+                                        block_resolution=params.block_resolution, block_count=4000, device=dev)
+    wt = min(params.weight_threshold, max(len(use) - 0.5, 0.5))  # a single frame still gives a surface
+    try:
+        for k in use:
+            f = frames[k]
+            K = o3c.Tensor(f.intrinsics.K, o3c.float64)
+            extr = o3c.Tensor(inv_T(np.asarray(T_world_cam[k], dtype=np.float64)), o3c.float64)  # T_cam_world
+            depth = o3d.t.geometry.Image(o3c.Tensor(depths[k][..., None]))
+            color = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(f.color, dtype=np.float32) / 255.0))
+            blocks = vbg.compute_unique_block_coordinates(depth, K, extr, 1.0, depth_max, params.trunc_voxels)
+            vbg.integrate(blocks, depth, color, K, extr, 1.0, depth_max, params.trunc_voxels)
+        mesh = vbg.extract_triangle_mesh(weight_threshold=wt).to_legacy()
+        pcd = vbg.extract_point_cloud(weight_threshold=wt)
+    except RuntimeError as e:  # open3d's check that the depth touched the volume (a few pixels, far depth)
+        if "No block is touched" not in str(e):
+            raise  # memory, capacity: internal, not the input's fault
+        raise ValueError(f"TSDF fusion failed: {open3d_message(e)}") from None
+    V, F, C = _mesh_arrays(mesh)
+    V, F, C = remove_small_components(V, F, C, params.min_component_fraction, params.keep_largest_only)
+    P = pcd.point.positions.numpy().astype(np.float64) if "positions" in pcd.point else np.zeros((0, 3))
+    PC = pcd.point.colors.numpy().astype(np.float32) if "colors" in pcd.point else np.zeros((len(P), 3), np.float32)
+    if len(V) and len(P):
+        from scipy.spatial import cKDTree
+
+        near = cKDTree(V).query(P, distance_upper_bound=2.0 * voxel)[0] < np.inf
+        P, PC = P[near], PC[near]
+    order = np.lexsort((P[:, 2], P[:, 1], P[:, 0]))  # independent of hash-map order
+    P, PC = P[order], PC[order]
+    log.info("fused %d frames at %.1f mm voxels (trunc %.1f mm): %d vertices, %d triangles, %d points",
+             len(use), voxel * 1000, trunc * 1000, len(V), len(F), len(P))
+    return FusedModel(V, F, np.clip(C, 0.0, 1.0).astype(np.float32), P, np.clip(PC, 0.0, 1.0), voxel)
+
+
+def open3d_message(e: Exception) -> str:
+    """The sentence of an open3d error without its colour codes and C++ signature ("[Open3D Error] (void
+    ...) file.cpp:186: No block is touched ..." -> "No block is touched ...")."""
+    text = " ".join(re.sub(r"\x1b\[[0-9;]*m", "", str(e)).split())
+    m = re.search(r"\.(?:cpp|h):\d+: (.*)$", text)
+    return m.group(1) if m else text
+
+
+def _mesh_arrays(mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(V [V x 3] float64, F [F x 3] int32, C [V x 3] float32) of a legacy open3d TriangleMesh."""
+    V = np.asarray(mesh.vertices, dtype=np.float64).reshape(-1, 3).copy()
+    F = np.asarray(mesh.triangles).astype(np.int32).reshape(-1, 3).copy()
+    C = np.asarray(mesh.vertex_colors).astype(np.float32).copy() if mesh.has_vertex_colors() \
+        else np.full((len(V), 3), 0.5, np.float32)
+    return V, F, C
+
+
+def remove_small_components(vertices: np.ndarray, triangles: np.ndarray, colors: np.ndarray | None = None,
+                            min_fraction: float = 0.1, keep_largest_only: bool = False
+                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Drop connected components (shared vertices, after merging duplicates) with fewer than
+    `min_fraction` of the largest component's triangles (or all but the largest).
+
+    vertices [V x 3], triangles [F x 3], colors [V x 3] | None -> (V', F' int32, C' float32).
+    """
+    import open3d as o3d
+
+    V = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
+    F = np.asarray(triangles).reshape(-1, 3)
+    if len(F) == 0:
+        return np.zeros((0, 3)), np.zeros((0, 3), np.int32), np.zeros((0, 3), np.float32)
+    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(V), o3d.utility.Vector3iVector(F.astype(np.int32)))
+    if colors is not None:
+        mesh.vertex_colors = o3d.utility.Vector3dVector(np.asarray(colors, dtype=np.float64).reshape(-1, 3))
+    mesh.remove_duplicated_vertices()
+    tri_clusters, n_tri, _ = mesh.cluster_connected_triangles()
+    tri_clusters, n_tri = np.asarray(tri_clusters), np.asarray(n_tri)
+    largest = int(np.argmax(n_tri))
+    if keep_largest_only:
+        keep = tri_clusters == largest
+    else:
+        keep = n_tri[tri_clusters] >= min_fraction * n_tri[largest]
+    mesh.remove_triangles_by_mask(~keep)
+    mesh.remove_unreferenced_vertices()
+    log.debug("mesh components: kept %d of %d", len(np.unique(tri_clusters[keep])), len(n_tri))
+    return canonical_order(*_mesh_arrays(mesh))
+
+
+def canonical_order(vertices: np.ndarray, triangles: np.ndarray, colors: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Sort vertices lexicographically (x, y, z) and triangles by their (rotated, winding-preserving)
+    indices, so that a mesh does not depend on hash-map / thread order. Shapes unchanged."""
+    V = np.asarray(vertices, dtype=np.float64)
+    order = np.lexsort((V[:, 2], V[:, 1], V[:, 0]))
+    rank = np.empty(len(order), dtype=np.int64)
+    rank[order] = np.arange(len(order))
+    F = rank[np.asarray(triangles, dtype=np.int64)]
+    if len(F):
+        shift = np.argmin(F, axis=1)
+        F = np.stack([F[np.arange(len(F)), (shift + k) % 3] for k in range(3)], axis=1)
+        F = F[np.lexsort((F[:, 2], F[:, 1], F[:, 0]))]
+    return V[order], F.astype(np.int32), np.asarray(colors, dtype=np.float32)[order]
+
+
+def template_frame(points_world: np.ndarray, plane_world: Plane | None, T_world_cam0: np.ndarray) -> np.ndarray:
+    """T_obj_world [4 x 4] of the template frame for object points [N x 3] in the world frame.
+
+    With a plane: z = plane normal (up); x = major principal axis of the points projected on the
+    plane, signed to point along the first camera's x axis (or, when nearly perpendicular to it,
+    away from the first camera); y = z x x. Without: the first camera's axes. The origin is the
+    centre of the points' bounding box in these axes. Deterministic.
+    """
+    P = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
+    if len(P) < 3:
+        raise ValueError(f"need at least 3 object points for the template frame, got {len(P)}")
+    R_wc = np.asarray(T_world_cam0, dtype=np.float64)[:3, :3]
+    if plane_world is None:
+        R = R_wc.copy()
+    else:
+        z = np.asarray(plane_world.normal, dtype=np.float64)
+        z = z / np.linalg.norm(z)
+        Q = P - np.outer(P @ z, z)
+        Q = Q - Q.mean(0)
+        basis = np.linalg.svd(np.eye(3) - np.outer(z, z))[0][:, :2]  # two in-plane directions
+        q2 = Q @ basis
+        w, v = np.linalg.eigh(q2.T @ q2 / len(q2))
+        x = basis @ v[:, np.argmax(w)]
+        cam_x, cam_z = R_wc[:, 0], R_wc[:, 2]
+        s = x @ cam_x if abs(x @ cam_x) > 0.1 else x @ cam_z
+        x = x if s >= 0 else -x
+        x /= np.linalg.norm(x)
+        R = np.stack([x, np.cross(z, x), z], axis=1)
+    local = P @ R  # coordinates along the axes
+    centre_local = 0.5 * (local.min(0) + local.max(0))
+    return inv_T(make_T(R, R @ centre_local))

@@ -1,0 +1,404 @@
+"""Object segmentation in RGB-D frames: support plane + working volume, single frame or whole sequence.
+
+Single frame (`segment_frame`): a given mask wins; otherwise the dominant support plane is
+found by a seeded RANSAC on a downsampled cloud, the points in a
+height band above it and inside the depth range are split into connected components on the
+image grid (depth discontinuities cut them), and the component nearest the image centre
+(weighted by its area) is the object. Without a plane, the same component choice runs on all
+valid pixels in the depth range.
+
+Sequence (`segment_sequence`): with registered poses T_world_cam the plane is estimated once
+in the world frame from several frames, the object cluster above it (DBSCAN) defines a
+cylindrical working volume (axis along the plane normal), and every frame is segmented by
+that volume, so all masks agree with each other.
+
+Pose estimation's search region (`off_plane_region`): the pixels in front of a query frame's dominant
+plane (`support_plane`, a faster RANSAC on a strided cloud). Both plane finders share `ransac_plane`.
+
+Planes: `height(p) = normal . p + offset`, normal pointing up (towards the cameras).
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from gscan.io.camera import RGBDFrame, backproject
+from gscan.errors import InputError
+from gscan.geometry.transforms import transform_points
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Plane:
+    """Plane {p : normal . p + offset = 0}; `height` is the signed distance along `normal`."""
+
+    normal: np.ndarray  # [3] unit
+    offset: float
+
+    def height(self, pts: np.ndarray) -> np.ndarray:
+        """[N x 3] (or [... x 3]) points -> [N] signed heights (m)."""
+        return np.asarray(pts, dtype=np.float64) @ self.normal + self.offset
+
+    def transformed(self, T_b_a: np.ndarray) -> "Plane":
+        """The same plane expressed in frame b, given this plane in frame a."""
+        n = T_b_a[:3, :3] @ self.normal
+        return Plane(n, float(self.offset - n @ T_b_a[:3, 3]))
+
+
+@dataclass(frozen=True)
+class SegmentParams:
+    depth_min: float = 0.1          # m, working depth range
+    depth_max: float = 1.5
+    plane_voxel: float = 0.005      # m, downsampling before RANSAC
+    plane_distance: float = 0.004   # m, RANSAC inlier threshold
+    plane_iterations: int = 1000
+    plane_max_points: int = 5000    # RANSAC scores hypotheses on at most this many (seeded subsample)
+    min_plane_fraction: float = 0.15  # plane must hold this fraction of the sampled points
+    height_min: float = 0.004       # m, band above the plane that may be object
+    height_max: float = 0.5
+    depth_edge_rel: float = 0.03    # neighbour depth jump (relative) that separates components
+    min_area_px: int = 150          # smallest component considered an object
+    cluster_eps: float = 0.015      # m, DBSCAN radius for the sequence working volume
+    volume_margin: float = 0.02     # m, added around the object cluster (radius and height)
+    volume_frames: int = 6          # frames (evenly spaced) used to build the working volume
+    seed: int = 0
+
+
+@dataclass
+class Segmentation:
+    mask: np.ndarray            # [H x W] bool
+    plane_cam: Plane | None     # support plane in the camera frame (None: not found / not estimated)
+    method: str                 # "given" | "plane" | "depth" | "volume"
+    reason: str | None = None   # note when a fallback was used
+
+
+@dataclass(frozen=True)
+class WorkingVolume:
+    """Vertical cylinder over the support plane: base centre on the plane, axis = plane normal."""
+
+    plane_world: Plane
+    center_world: np.ndarray    # [3] on the plane
+    radius: float               # m
+    height: float               # m above the plane
+
+    def contains(self, pts_world: np.ndarray, height_min: float = 0.0) -> np.ndarray:
+        """[N x 3] world points -> [N] bool inside the cylinder (heights in [height_min, height])."""
+        p = np.asarray(pts_world, dtype=np.float64)
+        h = self.plane_world.height(p)
+        h0 = self.plane_world.height(self.center_world[None])[0]
+        radial = p - self.center_world - (h - h0)[:, None] * self.plane_world.normal
+        return (h >= height_min) & (h <= self.height) & (np.linalg.norm(radial, axis=1) <= self.radius)
+
+
+    def contains_camera(self, pts_cam: np.ndarray, T_world_cam: np.ndarray, height_min: float = 0.0) -> np.ndarray:
+        """`contains` for camera-frame points [... x 3] of a camera at T_world_cam (float32 fast path)."""
+        T_cam_world = np.linalg.inv(np.asarray(T_world_cam, dtype=np.float64))
+        pl = self.plane_world.transformed(T_cam_world)
+        c = (T_cam_world[:3, :3] @ self.center_world + T_cam_world[:3, 3]).astype(np.float32)
+        n = pl.normal.astype(np.float32)
+        d = np.asarray(pts_cam, dtype=np.float32) - c
+        along = d @ n  # height above the base centre (the centre is on the plane)
+        radial2 = np.einsum("...i,...i->...", d, d) - along * along
+        return (along >= height_min) & (along <= self.height) & (radial2 <= self.radius ** 2)
+
+
+def ransac_plane(S: np.ndarray, iterations: int, rng: np.random.Generator, dist: float | np.ndarray,
+                 viewpoint: np.ndarray, max_behind: float | None = None) -> tuple[Plane, np.ndarray] | None:
+    """Best of `iterations` random-triplet planes through [N x 3] points S, by inlier count.
+
+    A point is an inlier when |height| < dist (a scalar, or one value per point [N]). Normals point
+    towards `viewpoint` [3]. With `max_behind`, a plane with more than that fraction of S farther than
+    dist behind it scores 0: a support plane has (almost) nothing behind it, a large object face seen
+    head-on does. Triplets are drawn from `rng` in batches of 100; the first best plane wins. Returns
+    (plane, inlier mask [N] bool), or None when every triplet is degenerate or disqualified.
+    """
+    vp = np.asarray(viewpoint, dtype=np.float64)
+    d = np.asarray(dist, dtype=np.float64).reshape(-1, 1) if np.ndim(dist) else float(dist)
+    best, best_count, best_inl = None, -1, None
+    for start in range(0, iterations, 100):
+        m = min(100, iterations - start)
+        tri = S[rng.integers(0, len(S), size=(m, 3))]
+        nrm = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        length = np.linalg.norm(nrm, axis=1)
+        ok = length > 1e-12
+        nrm = nrm[ok] / length[ok, None]
+        off = -np.einsum("ij,ij->i", nrm, tri[ok, 0])
+        flip = np.where(nrm @ vp + off < 0, -1.0, 1.0)
+        nrm, off = nrm * flip[:, None], off * flip
+        h = S @ nrm.T + off  # [N x m] signed heights, viewpoint side > 0
+        inl = np.abs(h) < d
+        counts = inl.sum(0)
+        if max_behind is not None:
+            counts[(h < -d).sum(0) > max_behind * len(S)] = 0
+        if len(counts) and counts.max() > max(best_count, 0):  # a score of 0 (disqualified) never wins
+            k = int(np.argmax(counts))
+            best_count, best, best_inl = int(counts[k]), Plane(nrm[k], float(off[k])), inl[:, k]
+    return None if best is None else (best, best_inl)
+
+
+def fit_support_plane(points: np.ndarray, viewpoint: np.ndarray,
+                      params: SegmentParams = SegmentParams()) -> Plane | None:
+    """Dominant plane of [N x 3] points by seeded RANSAC, normal oriented towards `viewpoint` [3].
+
+    The points are voxel-downsampled (`plane_voxel`) and sorted, then `ransac_plane` scores
+    `plane_iterations` random triplets (numpy generator seeded by `params.seed`; open3d's
+    `segment_plane` is not repeatable across runs because of its threading) by inlier count within
+    `plane_distance` on at most `plane_max_points` points; the best plane is refined by least squares
+    on all its inliers (twice). Returns None when the plane holds fewer than `min_plane_fraction` of
+    the downsampled points.
+    """
+    import open3d as o3d
+
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64)))
+    P = np.asarray(pc.voxel_down_sample(params.plane_voxel).points)
+    P = P[np.lexsort((P[:, 2], P[:, 1], P[:, 0]))]
+    n = len(P)
+    if n < 50:
+        return None
+    rng = np.random.default_rng(params.seed)
+    S = P if n <= params.plane_max_points else P[np.sort(rng.choice(n, params.plane_max_points, replace=False))]
+    found = ransac_plane(S, params.plane_iterations, rng, params.plane_distance, viewpoint)
+    best_count = 0 if found is None else int(found[1].sum())
+    if found is None or best_count < params.min_plane_fraction * len(S):
+        log.debug("support plane: %d of %d points, below %.2f", best_count, len(S), params.min_plane_fraction)
+        return None
+    normal, offset = found[0].normal, found[0].offset
+    for _ in range(2):  # least-squares refinement on the inliers
+        inl = P[np.abs(P @ normal + offset) < params.plane_distance]
+        if len(inl) < 3:
+            break
+        mu = inl.mean(0)
+        _, _, Vt = np.linalg.svd(inl - mu, full_matrices=False)
+        normal = Vt[2] * (1.0 if Vt[2] @ normal >= 0 else -1.0)
+        offset = float(-normal @ mu)
+    plane = Plane(normal, float(offset))
+    if plane.height(np.asarray(viewpoint, dtype=np.float64)[None])[0] < 0:
+        plane = Plane(-plane.normal, -plane.offset)
+    return plane
+
+
+def support_plane(frame: RGBDFrame, min_frac: float = 0.3, iterations: int = 64, stride: int = 6) -> Plane | None:
+    """The frame's dominant plane (a table top) in its camera frame, normal towards the camera, or None when
+    no plane holds `min_frac` of the valid depth. For pose estimation, where it must be fast: `ransac_plane`
+    on every `stride`-th pixel (seeded, deterministic; inliers within 6 mm + 0.5 % of the depth) over
+    `iterations` hypotheses with at most 5 % of the points behind them (so a large object face seen head-on
+    is never taken for the table), least-squares refit on the inliers."""
+    sub = backproject(frame.depth, frame.intrinsics)[::stride, ::stride].reshape(-1, 3).astype(np.float64)
+    sub = sub[sub[:, 2] > 0]
+    if len(sub) < 100:
+        return None
+    found = ransac_plane(sub, iterations, np.random.default_rng(0), 0.006 + 0.005 * sub[:, 2], np.zeros(3),
+                         max_behind=0.05)
+    if found is None or found[1].sum() < min_frac * len(sub):
+        return None
+    inl = found[1]
+    cen = sub[inl].mean(0)
+    normal = np.linalg.svd(sub[inl] - cen, full_matrices=False)[2][2]
+    if normal @ cen > 0:  # orient the normal towards the camera (origin)
+        normal = -normal
+    return Plane(normal, float(-normal @ cen))
+
+
+def in_front_of(frame: RGBDFrame, plane: Plane) -> np.ndarray | None:
+    """[H x W] bool: valid-depth pixels on the camera's side of `plane` (camera frame) by more than 8 mm +
+    0.5 % of their depth, or None when they are fewer than 0.2 % of the frame (nothing stands on it)."""
+    depth = frame.depth
+    hp = plane.height(backproject(depth, frame.intrinsics).reshape(-1, 3))
+    z = depth.reshape(-1)
+    region = (z > 0) & (hp > 0.008 + 0.005 * z)
+    if region.mean() < 0.002:
+        return None
+    return region.reshape(depth.shape)
+
+
+def off_plane_region(frame: RGBDFrame, min_frac: float = 0.3, iterations: int = 64, stride: int = 6
+                     ) -> np.ndarray | None:
+    """`in_front_of` the frame's `support_plane`: the pixels standing off the table, or None without a plane
+    or with nothing on it."""
+    plane = support_plane(frame, min_frac, iterations, stride)
+    return None if plane is None else in_front_of(frame, plane)
+
+
+def _depth_edges(depth: np.ndarray, rel: float) -> np.ndarray:
+    """[H x W] bool: pixels with a 4-neighbour whose depth differs by more than rel * depth."""
+    d = depth.astype(np.float32)
+    edge = np.zeros(d.shape, dtype=bool)
+    for dy, dx in ((0, 1), (1, 0)):
+        a, b = d[: d.shape[0] - dy, : d.shape[1] - dx], d[dy:, dx:]
+        jump = np.abs(a - b) > rel * np.maximum(a, b)
+        edge[: d.shape[0] - dy, : d.shape[1] - dx] |= jump
+        edge[dy:, dx:] |= jump
+    return edge
+
+
+def _fill_holes(mask: np.ndarray, allowed: np.ndarray) -> np.ndarray:
+    """Add enclosed holes of `mask` where `allowed` ([H x W] bool) is True."""
+    m = mask.astype(np.uint8)
+    padded = np.pad(1 - m, 1, constant_values=1)
+    ff = padded.copy()
+    cv2.floodFill(ff, None, (0, 0), 2)
+    holes = (ff[1:-1, 1:-1] == 1)
+    return mask | (holes & allowed)
+
+
+def pick_component(cand: np.ndarray, depth: np.ndarray, params: SegmentParams, keep_fraction: float = 0.0
+                   ) -> np.ndarray:
+    """Object mask from candidate pixels [H x W] bool: connected components cut at depth edges.
+
+    The chosen component maximises area / (1 + (distance of its centroid to the image centre
+    / (0.25 * image diagonal))^2); with keep_fraction > 0 every component of at least that
+    fraction of the chosen one's area is kept too. The result is grown back over the edge
+    pixels (2 px, within `cand`) and its enclosed holes without depth are filled.
+    """
+    H, W = cand.shape
+    core = cand & ~_depth_edges(depth, params.depth_edge_rel)
+    n, labels, stats, cents = cv2.connectedComponentsWithStats(core.astype(np.uint8), connectivity=8)
+    if n <= 1:
+        return np.zeros_like(cand)
+    areas = stats[1:, cv2.CC_STAT_AREA].astype(np.float64)
+    dist = np.linalg.norm(cents[1:] - np.array([(W - 1) / 2, (H - 1) / 2]), axis=1)
+    score = np.where(areas >= params.min_area_px, areas / (1.0 + (dist / (0.25 * np.hypot(W, H))) ** 2), -1.0)
+    best = int(np.argmax(score))
+    if score[best] < 0:
+        return np.zeros_like(cand)
+    keep = np.zeros(n, dtype=bool)
+    keep[best + 1] = True
+    if keep_fraction > 0:
+        keep[1:] |= (areas >= max(keep_fraction * areas[best], params.min_area_px))
+    mask = keep[labels]
+    grown = cv2.dilate(mask.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool) & cand
+    return _fill_holes(mask | grown, depth <= 0)
+
+
+def segment_frame(frame: RGBDFrame, params: SegmentParams = SegmentParams(),
+                  mask: np.ndarray | None = None) -> Segmentation:
+    """Object mask of one frame: `mask`, else `frame.mask` (returned as given), else automatic
+    (support plane + component; without a usable plane, the central component of the valid depth).
+
+    Raises InputError (naming the frame's file) when a given mask's size differs from the depth's.
+    """
+    given = mask if mask is not None else frame.mask
+    if given is not None:
+        given = np.asarray(given, dtype=bool)
+        if given.shape != frame.depth.shape:
+            raise InputError(frame.source, f"mask {given.shape[1::-1]} and depth {frame.depth.shape[1::-1]} "
+                             f"sizes differ (frame {frame.name})")
+        return Segmentation(given.copy(), None, "given")
+    depth = frame.depth
+    valid = (depth >= params.depth_min) & (depth <= params.depth_max)
+    pts = backproject(depth, frame.intrinsics)
+    plane = fit_support_plane(pts[::2, ::2][valid[::2, ::2]], np.zeros(3), params)
+    if plane is not None:
+        h = plane.height(pts)
+        cand = valid & (h > params.height_min) & (h < params.height_max)
+        m = pick_component(cand, depth, params)
+        if m.any():
+            return Segmentation(m, plane, "plane")
+        why = "nothing above the dominant plane (an object face?)"
+    else:
+        why = "no support plane found"
+    m = pick_component(valid, depth, params)
+    return Segmentation(m, None, "depth", f"{why}: component nearest the image centre")
+
+
+def _look_at_point(T_world_cam: list[np.ndarray], plane: Plane) -> np.ndarray:
+    """[3] point the cameras look at: least-squares meeting point of the optical axes when they
+    spread, else where the first optical axis meets the plane."""
+    A = np.zeros((3, 3))
+    b = np.zeros(3)
+    for T in T_world_cam:
+        z, c = T[:3, 2], T[:3, 3]
+        P = np.eye(3) - np.outer(z, z)
+        A += P
+        b += P @ c
+    if len(T_world_cam) >= 2 and np.linalg.cond(A) < 1e4:
+        return np.linalg.solve(A, b)
+    c, z = T_world_cam[0][:3, 3], T_world_cam[0][:3, 2]
+    denom = plane.normal @ z
+    t = -plane.height(c[None])[0] / denom if abs(denom) > 1e-6 else 0.5
+    return c + max(t, 0.0) * z
+
+
+def estimate_working_volume(frames: list[RGBDFrame], T_world_cam: list[np.ndarray],
+                            params: SegmentParams = SegmentParams()) -> WorkingVolume | None:
+    """Support plane (world frame) and a cylinder around the object cluster on it.
+
+    Uses `volume_frames` frames evenly spaced over the sequence (stride-4 points, depth range).
+    Returns None when no plane or no cluster above it is found.
+    """
+    import open3d as o3d
+
+    if not frames:
+        return None
+    idx = np.unique(np.linspace(0, len(frames) - 1, min(params.volume_frames, len(frames))).round().astype(int))
+    pts = []
+    for i in idx:
+        f = frames[i]
+        valid = (f.depth >= params.depth_min) & (f.depth <= params.depth_max)
+        p = backproject(f.depth, f.intrinsics)[::4, ::4][valid[::4, ::4]]
+        pts.append(transform_points(T_world_cam[i], p))
+    P = np.concatenate(pts)
+    cams = [T_world_cam[i] for i in idx]
+    plane = fit_support_plane(P, np.mean([T[:3, 3] for T in cams], axis=0), params)
+    if plane is None:
+        return None
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(P)).voxel_down_sample(params.plane_voxel)
+    Q = np.asarray(pc.points)
+    Q = Q[np.lexsort((Q[:, 2], Q[:, 1], Q[:, 0]))]  # order-independent clustering input
+    h = plane.height(Q)
+    Q = Q[(h > params.height_min) & (h < params.height_max)]
+    if len(Q) < 20:
+        return None
+    labels = np.asarray(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(Q)).cluster_dbscan(
+        params.cluster_eps, min_points=8))
+    target = _look_at_point(cams, plane)
+    best, best_score = -1, -np.inf
+    for lab in range(labels.max() + 1):
+        C = Q[labels == lab]
+        d = np.linalg.norm(C.mean(0) - target)
+        score = len(C) / (1.0 + (d / 0.1) ** 2)
+        if len(C) >= 20 and score > best_score:
+            best, best_score = lab, score
+    if best < 0:
+        return None
+    C = Q[labels == best]
+    hc = plane.height(C)
+    foot = C - hc[:, None] * plane.normal
+    centre = foot.mean(0)
+    radius = float(np.linalg.norm(foot - centre, axis=1).max()) + params.volume_margin
+    vol = WorkingVolume(plane, centre, radius, float(hc.max()) + params.volume_margin)
+    log.info("working volume: radius %.3f m, height %.3f m, %d cluster points", vol.radius, vol.height, len(C))
+    return vol
+
+
+def segment_sequence(frames: list[RGBDFrame], T_world_cam: list[np.ndarray],
+                     params: SegmentParams = SegmentParams()) -> tuple[list[Segmentation], WorkingVolume | None]:
+    """Masks of registered frames from one working volume; given masks win.
+
+    Frames whose pose is None get an empty mask. Without a volume (no plane or cluster found)
+    every frame falls back to `segment_frame`.
+    """
+    if len(frames) != len(T_world_cam):
+        raise ValueError(f"{len(frames)} frames but {len(T_world_cam)} poses")
+    reg = [(f, T) for f, T in zip(frames, T_world_cam) if T is not None]
+    vol = estimate_working_volume([f for f, _ in reg], [T for _, T in reg], params)
+    out = []
+    for f, T in zip(frames, T_world_cam):
+        if f.mask is not None:
+            out.append(segment_frame(f, params))
+        elif T is None:
+            out.append(Segmentation(np.zeros(f.depth.shape, dtype=bool), None, "volume", "frame not registered"))
+        elif vol is None:
+            s = segment_frame(f, params)
+            s.reason = (s.reason + "; " if s.reason else "") + "no working volume for the sequence"
+            out.append(s)
+        else:
+            valid = (f.depth >= params.depth_min) & (f.depth <= params.depth_max)
+            cand = valid & vol.contains_camera(backproject(f.depth, f.intrinsics), T, params.height_min)
+            m = pick_component(cand, f.depth, params, keep_fraction=0.05)
+            out.append(Segmentation(m, vol.plane_world.transformed(np.linalg.inv(T)), "volume"))
+    return out, vol

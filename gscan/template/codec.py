@@ -1,0 +1,147 @@
+"""Encoding of the template database's stored values (gscan.template.db): arrays by `np.save` (dtype and
+shape kept, bit-exact), colour as JPEG q90 or PNG, depth as a 16-bit PNG in millimetres, masks as an 8-bit
+PNG, poses as [4 x 4] float64 arrays, meta values as JSON. A stored value that does not decode raises
+`BadBlob` (the database turns it into an InputError naming its file).
+"""
+from __future__ import annotations
+
+import io
+import json
+from typing import Any
+
+import cv2
+import numpy as np
+
+from gscan.errors import GscanError
+from gscan.features import DESCRIPTOR_KINDS
+from gscan.geometry.transforms import MAX_TRANSLATION_M, is_rigid
+
+
+def encode_array(a: np.ndarray | None) -> bytes | None:
+    if a is None:
+        return None
+    buf = io.BytesIO()
+    np.save(buf, np.ascontiguousarray(a), allow_pickle=False)
+    return buf.getvalue()
+
+
+class BadBlob(Exception):
+    """A stored value that does not decode (the database's reads turn it into an InputError naming the file)."""
+
+
+def decode_array(b: bytes | None, shape: tuple[int | None, ...] | None = None) -> np.ndarray | None:
+    """A stored array (None stays None); `shape` (None = any size along that axis) is checked when given."""
+    if b is None:
+        return None
+    try:
+        a = np.load(io.BytesIO(b), allow_pickle=False)
+    except (ValueError, EOFError, OSError, TypeError) as e:
+        raise BadBlob(f"undecodable array blob: {e}") from None
+    if shape is not None and (a.ndim != len(shape) or any(s is not None and s != n for s, n in zip(shape, a.shape))):
+        want = " x ".join("N" if s is None else str(s) for s in shape)
+        raise BadBlob(f"stored array is {a.dtype} {a.shape}, expected [{want}]")
+    if a.dtype.kind not in "iuf":
+        raise BadBlob(f"stored array is {a.dtype}, not numbers")
+    if a.dtype.kind == "f" and not np.all(np.isfinite(a)):
+        raise BadBlob(f"stored {a.shape} array holds NaN or infinite values")
+    return a
+
+
+def decode_json(text: str) -> Any:
+    try:
+        return json.loads(text)
+    except (ValueError, TypeError, RecursionError) as e:
+        raise BadBlob(f"undecodable JSON value: {e.__class__.__name__}") from None
+
+
+def encode_color(rgb: np.ndarray, codec: str) -> bytes:
+    rgb = np.asarray(rgb)
+    if rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] != 3:
+        raise ValueError(f"colour must be [H x W x 3] uint8, got {rgb.dtype} {rgb.shape}")
+    params = [cv2.IMWRITE_JPEG_QUALITY, 90] if codec == "jpg" else []
+    ok, buf = cv2.imencode("." + codec, cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), params)
+    if not ok:
+        raise GscanError(f"cannot encode colour as {codec}")
+    return buf.tobytes()
+
+
+def depth_to_mm_u16(depth: np.ndarray) -> np.ndarray:
+    """[H x W] float metres -> [H x W] uint16 millimetres (0 invalid, out of range -> 0)."""
+    mm = np.rint(np.nan_to_num(np.asarray(depth, dtype=np.float64), nan=0.0) * 1000.0)
+    mm[(mm < 0) | (mm > 65535)] = 0
+    return mm.astype(np.uint16)
+
+
+def encode_depth(depth: np.ndarray) -> bytes:
+    return cv2.imencode(".png", depth_to_mm_u16(depth))[1].tobytes()
+
+
+def encode_mask(mask: np.ndarray) -> bytes:
+    return cv2.imencode(".png", np.where(np.asarray(mask, dtype=bool), 255, 0).astype(np.uint8))[1].tobytes()
+
+
+def decode_image(b: bytes, dtype: type, channels: int, size_wh: tuple[int, int]) -> np.ndarray:
+    """A stored image, which must be `dtype` with `channels` channels (1: [H x W]) and `size_wh` pixels."""
+    img = cv2.imdecode(np.frombuffer(b, dtype=np.uint8), cv2.IMREAD_UNCHANGED) if b else None  # b"" asserts in cv2
+    if img is None:
+        raise BadBlob("undecodable image blob")
+    shape = (size_wh[1], size_wh[0]) + (() if channels == 1 else (channels,))
+    if img.dtype != dtype or img.shape != shape:
+        raise BadBlob(f"stored image is {img.dtype} {img.shape}, expected {np.dtype(dtype)} {shape}")
+    return img
+
+
+def to_u8_colors(c: np.ndarray | None) -> np.ndarray | None:
+    """[N x 3|4] colours, uint8 or float in [0, 1] -> [N x 3] uint8."""
+    if c is None:
+        return None
+    c = np.asarray(c)[:, :3]
+    if c.dtype == np.uint8:
+        return np.ascontiguousarray(c)
+    return np.clip(np.rint(c.astype(np.float64) * 255.0), 0, 255).astype(np.uint8)
+
+
+def decode_T(b: bytes | None) -> np.ndarray | None:
+    """A stored [4 x 4] transform (None stays None)."""
+    if b is None:
+        return None
+    T = decode_array(b, (4, 4)).astype(np.float64)
+    if not is_rigid(T):
+        raise BadBlob(f"stored transform is not a rigid pose within {MAX_TRANSLATION_M:g} m")
+    return T
+
+
+def check_T(T: np.ndarray | None) -> np.ndarray | None:
+    if T is None:
+        return None
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise ValueError(f"transform must be a finite [4 x 4] matrix, got shape {T.shape}")
+    return T
+
+
+# -- decoded records that cannot be a template's (each raises BadBlob)
+def check_keypoints(pixels: np.ndarray, points: np.ndarray, descriptors: np.ndarray, scales: np.ndarray | None,
+                    kind: str, what: str) -> None:
+    """One view's keypoint arrays: equal lengths, a known descriptor kind with its length and dtype."""
+    if len({len(pixels), len(points), len(descriptors)} | ({len(scales)} if scales is not None else set())) > 1:
+        raise BadBlob(f"{what}: keypoint arrays of different lengths")
+    if kind not in DESCRIPTOR_KINDS:
+        raise BadBlob(f"{what}: unknown descriptor kind {kind!r}")
+    dim, dtype = DESCRIPTOR_KINDS[kind]
+    if descriptors.shape[1] != dim or descriptors.dtype != dtype:
+        raise BadBlob(f"{what}: {kind} descriptors are {descriptors.dtype} x {descriptors.shape[1]}, "
+                      f"expected {np.dtype(dtype)} x {dim}")
+
+
+def check_mesh(vertices: np.ndarray, triangles: np.ndarray, colors: np.ndarray | None) -> None:
+    """Integer triangles indexing the vertices, one uint8 colour per vertex (or none)."""
+    if triangles.dtype.kind not in "iu" or (triangles.size and (triangles.min() < 0
+                                                                or triangles.max() >= len(vertices))):
+        raise BadBlob(f"mesh triangles index outside its {len(vertices)} vertices")
+    check_colors(colors, len(vertices), "mesh")
+
+
+def check_colors(colors: np.ndarray | None, n: int, what: str) -> None:
+    if colors is not None and (colors.dtype != np.uint8 or len(colors) != n):
+        raise BadBlob(f"{what} colours are {colors.dtype} x {len(colors)}, expected uint8 x {n}")

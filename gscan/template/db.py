@@ -1,0 +1,592 @@
+"""The template database: one SQLite file (`*.gscan`) per scanned object, schema version 1.
+
+Like COLMAP's `database.db`, it keeps every input view (intrinsics, pose `T_obj_cam`, encoded
+colour / depth / mask), per-view keypoints (pixels + 3D points in the OBJECT frame) with their
+descriptors, the registration edges with their quality numbers, the fused mesh and cloud, grasps,
+and a `meta` table of JSON values (schema, status, descriptor config, units, source, config).
+
+Durability: rollback journal with `synchronous=FULL`; every write method is one transaction, so
+a crash loses at most the record being written. While a scan runs the status is "partial"; the
+scan's last transaction (`mark_complete`) makes it "complete". Consumers (`estimate`, `export`,
+`view`) open with `require_complete=True` and are refused a partial database.
+
+Arrays are stored with `np.save` (dtype and shape included, bit-exact). Colour is JPEG q90 or
+PNG (`color_codec`), depth a 16-bit PNG in millimetres (0 = invalid, sub-millimetre detail and
+depths beyond 65.535 m are lost), masks an 8-bit PNG (0/255); `gscan.template.codec` encodes them. A
+value that does not decode makes the read an InputError naming the database.
+
+Keypoint frame rule: a view's keypoint points are in the object frame when the view has a pose;
+for an unregistered view (`T_obj_cam` None) they are in its camera frame. `update_pose` re-expresses
+the stored points so this stays true. Edge `matches` index the stored keypoints of src and tgt.
+"""
+from __future__ import annotations
+
+import functools
+import json
+import logging
+import os
+import sqlite3
+import threading
+from contextlib import contextmanager, suppress
+from pathlib import Path
+from typing import Any, Iterator
+
+import cv2
+import numpy as np
+
+from gscan.io.camera import Intrinsics
+from gscan.errors import GscanError, InputError
+from gscan.geometry.transforms import is_rigid
+from gscan.io.output import missing_folders, remove_empty_folders
+from gscan.template.codec import (BadBlob, check_colors, check_keypoints, check_mesh, check_T, decode_array,
+                                  decode_image, decode_json, decode_T, encode_array, encode_color, encode_depth,
+                                  encode_mask, to_u8_colors)
+# the records live in gscan.template.records; they are imported from here as well
+from gscan.template.records import Edge, MeshData, Template, View, ViewFeatures
+
+log = logging.getLogger(__name__)
+
+SCHEMA_VERSION = 1
+# keypoint sets of a view: "registration" (what its edges' matches index; whole frame for a static
+# object) and "object" (on the object only, for pose estimation; a scan adds them to its keyframes)
+FEATURE_ROLES = ("registration", "object")
+APPLICATION_ID = 0x6753434E  # "gSCN", PRAGMA application_id of every gscan database
+_SQLITE_MAGIC = b"SQLite format 3\x00"
+
+_SCHEMA = """
+CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE views (
+    id INTEGER PRIMARY KEY, name TEXT NOT NULL UNIQUE, input_index INTEGER,
+    intrinsics TEXT NOT NULL, T_obj_cam BLOB, color BLOB, color_codec TEXT, depth BLOB, mask BLOB,
+    keyframe INTEGER NOT NULL, quality REAL);
+CREATE TABLE features (
+    view_id INTEGER NOT NULL REFERENCES views(id), role TEXT NOT NULL, kind TEXT NOT NULL, n INTEGER NOT NULL,
+    pixels BLOB NOT NULL, points BLOB NOT NULL, descriptors BLOB NOT NULL, scales BLOB,
+    PRIMARY KEY (view_id, role));
+CREATE TABLE edges (
+    id INTEGER PRIMARY KEY, src TEXT NOT NULL, tgt TEXT NOT NULL, T_tgt_src BLOB, matches BLOB NOT NULL,
+    cost REAL, rmse REAL, fitness REAL, kind TEXT NOT NULL, accepted INTEGER NOT NULL, reason TEXT,
+    UNIQUE (src, tgt));
+CREATE TABLE mesh (id INTEGER PRIMARY KEY CHECK (id = 1), vertices BLOB NOT NULL, triangles BLOB NOT NULL,
+    colors BLOB);
+CREATE TABLE cloud (id INTEGER PRIMARY KEY CHECK (id = 1), points BLOB NOT NULL, colors BLOB);
+CREATE TABLE grasps (name TEXT PRIMARY KEY, T_obj_grasp BLOB NOT NULL);
+"""
+
+
+# ------------------------------------------------------------------------------------------ helpers
+def _decodes(method):
+    """TemplateDB reads: a stored value that does not decode is a corrupt database, an InputError naming it."""
+    @functools.wraps(method)
+    def wrapper(self, *args, **kwargs):
+        try:
+            return method(self, *args, **kwargs)
+        except BadBlob as e:
+            raise InputError(self.path, f"corrupt template database ({e})") from None
+    return wrapper
+
+
+def _apply(T: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    return (pts.astype(np.float64) @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
+
+
+# ----------------------------------------------------------------------------------------- database
+def unregistered_names(views: list[View], skipped: Any) -> list[str]:
+    """The frames a scan could not register, as `scan --json` lists them: the views without a pose (in
+    order), then the input frames it could not read (the "skipped" meta, {name: reason}), each once."""
+    unreg = [v.name for v in views if v.T_obj_cam is None]
+    known = set(unreg)
+    return unreg + sorted(n for n in (skipped if isinstance(skipped, dict) else {}) if n not in known)
+
+
+class TemplateDB:
+    """A template database file. Use `create` or `open`, never the constructor; close it (or use `with`).
+
+    Thread-safe (one lock around the connection), so the viewer may read it from a server thread.
+    """
+
+    def __init__(self, path: Path, conn: sqlite3.Connection, writable: bool):
+        self.path = path
+        self._conn = conn
+        self._writable = writable
+        self._lock = threading.RLock()
+
+    # -- opening ---------------------------------------------------------------------------------
+    @staticmethod
+    def _connect(path: Path) -> sqlite3.Connection:
+        conn = sqlite3.connect(str(path), isolation_level=None, check_same_thread=False, timeout=30.0)
+        conn.execute("PRAGMA journal_mode=DELETE")
+        conn.execute("PRAGMA synchronous=FULL")
+        return conn
+
+    @classmethod
+    def create(cls, path: str | Path, force: bool = False, meta: dict | None = None) -> "TemplateDB":
+        """Create a new database at `path` with status "partial".
+
+        An existing `path` is refused (InputError) unless `force`, which replaces it. `meta` adds
+        meta keys (e.g. "source": "scan"|"mesh", "descriptor": {"kind": ...}, "config": {...}).
+        """
+        path = Path(path)
+        if path.is_dir():
+            raise InputError(path, "output is a folder, expected a .gscan file path")
+        if path.exists() and not force:
+            raise InputError(path, "already exists; use --force to overwrite (or scan --resume to continue)")
+        made = missing_folders(path)
+        # the schema is written to a temporary sibling and renamed into place, so a crash never
+        # leaves an empty or schema-less file at `path` (an existing one is replaced atomically)
+        tmp = path.with_name(f".{path.name}.creating")
+        base = {"schema": SCHEMA_VERSION, "status": "partial", "units": "m", "source": "scan"}
+        base.update(meta or {})
+        base["schema"], base["status"] = SCHEMA_VERSION, "partial"
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            for p in (tmp, Path(f"{tmp}-journal"), Path(f"{path}-journal"), Path(f"{path}-wal"), Path(f"{path}-shm")):
+                p.unlink(missing_ok=True)
+            setup = cls(tmp, cls._connect(tmp), writable=True)
+            try:
+                with setup._tx() as c:
+                    c.execute(f"PRAGMA application_id={APPLICATION_ID}")
+                    c.execute(f"PRAGMA user_version={SCHEMA_VERSION}")
+                    for stmt in _SCHEMA.strip().split(";"):
+                        if stmt.strip():
+                            c.execute(stmt)
+                    c.executemany("INSERT INTO meta(key, value) VALUES (?, ?)",
+                                  [(k, json.dumps(v, sort_keys=True)) for k, v in base.items()])
+            finally:
+                setup.close()
+            os.replace(tmp, path)
+        except BaseException as e:
+            for p in (tmp, Path(f"{tmp}-journal")):
+                with suppress(OSError):
+                    p.unlink(missing_ok=True)
+            remove_empty_folders(made)
+            if isinstance(e, (OSError, sqlite3.Error)):  # a folder that cannot be made or written
+                raise InputError(path, f"cannot create the database ({getattr(e, 'strerror', None) or e})") from None
+            raise
+        db = cls(path, cls._connect(path), writable=True)
+        log.info("created template database %s", path)
+        return db
+
+    @classmethod
+    def open(cls, path: str | Path, require_complete: bool = True, writable: bool = False) -> "TemplateDB":
+        """Open an existing database. InputError (one line naming the file) when the file is missing,
+        not SQLite, not a gscan database, of an unsupported schema, or partial while `require_complete`."""
+        path = Path(path)
+        if not path.is_file():
+            raise InputError(path, "template database not found")
+        try:
+            with open(path, "rb") as f:
+                head = f.read(len(_SQLITE_MAGIC))
+        except OSError as e:
+            raise InputError(path, f"cannot read template database ({e.__class__.__name__})") from None
+        if head != _SQLITE_MAGIC:
+            raise InputError(path, "not a gscan template database (not an SQLite file)")
+        conn = None
+        try:
+            conn = cls._connect(path)
+            app_id = conn.execute("PRAGMA application_id").fetchone()[0]
+            has_meta = conn.execute("SELECT 1 FROM sqlite_master WHERE type='table' AND name='meta'").fetchone()
+            if app_id != APPLICATION_ID or not has_meta:
+                raise InputError(path, "not a gscan template database (an SQLite file of another application)")
+            row = conn.execute("SELECT value FROM meta WHERE key='schema'").fetchone()
+            schema = json.loads(row[0]) if row else None
+            row = conn.execute("SELECT value FROM meta WHERE key='status'").fetchone()
+            status = json.loads(row[0]) if row else None
+        except (sqlite3.DatabaseError, ValueError, RecursionError) as e:
+            if conn is not None:
+                conn.close()
+            raise InputError(path, f"corrupt or unreadable template database ({e.__class__.__name__}: {e})"[:300]) from None
+        except InputError:
+            conn.close()
+            raise
+        if not isinstance(schema, int) or schema < 1:
+            conn.close()
+            raise InputError(path, f"unsupported old template schema {schema!r}; rebuild it with gscan scan")
+        if schema > SCHEMA_VERSION:
+            conn.close()
+            raise InputError(path, f"written by a newer gscan (schema {schema}, this gscan reads {SCHEMA_VERSION}); "
+                                   "upgrade gscan")
+        if require_complete and status != "complete":
+            conn.close()
+            raise InputError(path, "is a partial scan; run `gscan scan --resume` to finish it")
+        return cls(path, conn, writable)
+
+    def close(self) -> None:
+        with self._lock:
+            if self._conn is not None:
+                self._conn.close()
+                self._conn = None
+
+    def __enter__(self) -> "TemplateDB":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    @contextmanager
+    def _tx(self) -> Iterator[sqlite3.Connection]:
+        """One write transaction (BEGIN IMMEDIATE ... COMMIT, rolled back on any exception)."""
+        if not self._writable:
+            raise GscanError(f"{self.path}: opened read-only")
+        with self._lock:
+            c = self._conn
+            try:
+                c.execute("BEGIN IMMEDIATE")
+                try:
+                    yield c
+                except BaseException:
+                    with suppress(sqlite3.Error):
+                        c.execute("ROLLBACK")
+                    raise
+                c.execute("COMMIT")
+            except sqlite3.DatabaseError as e:
+                if isinstance(e, sqlite3.IntegrityError):
+                    raise
+                raise self._corrupt(e) from None
+
+    def _q(self, sql: str, args: tuple = ()) -> list[tuple]:
+        with self._lock:
+            try:
+                return self._conn.execute(sql, args).fetchall()
+            except sqlite3.DatabaseError as e:
+                raise self._corrupt(e) from None
+
+    def _corrupt(self, e: sqlite3.DatabaseError) -> InputError:
+        """Corruption SQLite detects only while reading or writing pages (past open()'s checks) is bad
+        input naming the database, not an internal error."""
+        if "readonly" in str(e):
+            return InputError(self.path, "cannot write the template database (a read-only file or folder)")
+        return InputError(self.path, f"corrupt template database ({e.__class__.__name__}: {e})")
+
+    # -- meta ------------------------------------------------------------------------------------
+    @_decodes
+    def get_meta(self, key: str, default: Any = None) -> Any:
+        rows = self._q("SELECT value FROM meta WHERE key=?", (key,))
+        return decode_json(rows[0][0]) if rows else default
+
+    def set_meta(self, key: str, value: Any) -> None:
+        """Set one meta key to a JSON-serialisable value ("schema" is not settable)."""
+        if key == "schema":
+            raise ValueError("the schema version is fixed at creation")
+        with self._tx() as c:
+            c.execute("INSERT OR REPLACE INTO meta(key, value) VALUES (?, ?)", (key, json.dumps(value, sort_keys=True)))
+
+    @_decodes
+    def meta(self) -> dict:
+        return {k: decode_json(v) for k, v in self._q("SELECT key, value FROM meta ORDER BY key")}
+
+    @property
+    def status(self) -> str:
+        return self.get_meta("status", "partial")
+
+    def mark_complete(self) -> None:
+        self.set_meta("status", "complete")
+
+    def mark_partial(self) -> None:
+        """Back to "partial" (a resumed scan calls this before writing)."""
+        self.set_meta("status", "partial")
+
+    # -- views -----------------------------------------------------------------------------------
+    def add_view(self, view: View, features: ViewFeatures | None = None, color_codec: str = "jpg",
+                 replace: bool = False) -> int:
+        """Store a view (and optionally its keypoints) in one transaction; returns its id.
+
+        color_codec: "jpg" (quality 90) or "png" (lossless). An existing name is an error unless
+        `replace` (which also drops the old view's keypoints).
+        """
+        if color_codec not in ("jpg", "png"):
+            raise ValueError(f"color_codec must be 'jpg' or 'png', not {color_codec!r}")
+        T = check_T(view.T_obj_cam)
+        row = (view.name, view.input_index, json.dumps(view.intrinsics.to_dict(), sort_keys=True), encode_array(T),
+               None if view.color is None else encode_color(view.color, color_codec),
+               None if view.color is None else color_codec,
+               None if view.depth is None else encode_depth(view.depth),
+               None if view.mask is None else encode_mask(view.mask),
+               int(bool(view.keyframe)), None if view.quality is None else float(view.quality))
+        with self._tx() as c:
+            old = c.execute("SELECT id FROM views WHERE name=?", (view.name,)).fetchone()
+            if old is not None:
+                if not replace:
+                    raise InputError(self.path, f"view {view.name!r} already exists")
+                c.execute("DELETE FROM features WHERE view_id=?", (old[0],))
+                c.execute("DELETE FROM views WHERE id=?", (old[0],))
+            vid = c.execute("INSERT INTO views(name, input_index, intrinsics, T_obj_cam, color, color_codec, depth, "
+                            "mask, keyframe, quality) VALUES (?,?,?,?,?,?,?,?,?,?)", row).lastrowid
+            if features is not None:
+                self._put_features(c, vid, features)
+        return int(vid)
+
+    @_decodes
+    def _view_id(self, c: sqlite3.Connection, name: str) -> tuple[int, np.ndarray | None]:
+        row = c.execute("SELECT id, T_obj_cam FROM views WHERE name=?", (name,)).fetchone()
+        if row is None:
+            raise KeyError(f"no view named {name!r} in {self.path}")
+        return int(row[0]), decode_T(row[1])
+
+    @_decodes
+    def update_pose(self, name: str, T_obj_cam: np.ndarray | None, move_features: bool = True) -> None:
+        """Set (or clear, None) a view's pose. With `move_features` its stored keypoint points are
+        re-expressed: p_new = T_new @ inv(T_old) @ p_old (identity stands for a missing pose)."""
+        T_new = check_T(T_obj_cam)
+        with self._tx() as c:
+            vid, T_old = self._view_id(c, name)
+            c.execute("UPDATE views SET T_obj_cam=? WHERE id=?", (encode_array(T_new), vid))
+            A = (np.eye(4) if T_new is None else T_new) @ np.linalg.inv(np.eye(4) if T_old is None else T_old)
+            rows = c.execute("SELECT role, points FROM features WHERE view_id=?", (vid,)).fetchall()
+            for role, pts in rows if move_features else []:
+                c.execute("UPDATE features SET points=? WHERE view_id=? AND role=?",
+                          (encode_array(_apply(A, decode_array(pts, (None, 3)))), vid, role))
+
+    def set_keyframe(self, name: str, keyframe: bool) -> None:
+        with self._tx() as c:
+            vid, _ = self._view_id(c, name)
+            c.execute("UPDATE views SET keyframe=? WHERE id=?", (int(bool(keyframe)), vid))
+
+    def view_names(self) -> list[str]:
+        """All view names in input order (input_index, then insertion)."""
+        return [r[0] for r in self._q("SELECT name FROM views ORDER BY input_index IS NULL, input_index, id")]
+
+    @_decodes
+    def _row_to_view(self, r: tuple, load_images: bool) -> View:
+        name, idx, intr, T, color, codec, depth, mask, kf, q = r
+        try:
+            K = Intrinsics.from_dict(decode_json(intr))
+        except (KeyError, TypeError, ValueError) as e:
+            raise BadBlob(f"view {name!r}: bad intrinsics {e}") from None
+        v = View(name=name, intrinsics=K, T_obj_cam=decode_T(T), keyframe=bool(kf),
+                 quality=q, input_index=idx)
+        if load_images:
+            wh = (K.width, K.height)
+            v.color = (None if color is None
+                       else np.ascontiguousarray(cv2.cvtColor(decode_image(color, np.uint8, 3, wh), cv2.COLOR_BGR2RGB)))
+            v.depth = (None if depth is None
+                       else decode_image(depth, np.uint16, 1, wh).astype(np.float32) / np.float32(1000.0))
+            v.mask = None if mask is None else decode_image(mask, np.uint8, 1, wh) > 127
+        return v
+
+    _VIEW_COLS = "name, input_index, intrinsics, T_obj_cam, {img}, color_codec, {img2}, {img3}, keyframe, quality"
+
+    def _view_sql(self, load_images: bool) -> str:
+        cols = self._VIEW_COLS.format(img="color" if load_images else "NULL", img2="depth" if load_images else "NULL",
+                                      img3="mask" if load_images else "NULL")
+        return f"SELECT {cols} FROM views"
+
+    def views(self, load_images: bool = False, keyframes_only: bool = False) -> list[View]:
+        """All views in input order; images decoded only with `load_images`."""
+        where = " WHERE keyframe=1" if keyframes_only else ""
+        rows = self._q(self._view_sql(load_images) + where + " ORDER BY input_index IS NULL, input_index, id")
+        return [self._row_to_view(r, load_images) for r in rows]
+
+    def view(self, name: str, load_images: bool = True) -> View:
+        rows = self._q(self._view_sql(load_images) + " WHERE name=?", (name,))
+        if not rows:
+            raise KeyError(f"no view named {name!r} in {self.path}")
+        return self._row_to_view(rows[0], load_images)
+
+    # -- features --------------------------------------------------------------------------------
+    def _put_features(self, c: sqlite3.Connection, vid: int, f: ViewFeatures, role: str = "registration") -> None:
+        if role not in FEATURE_ROLES:
+            raise ValueError(f"feature role must be one of {FEATURE_ROLES}, not {role!r}")
+        px = np.asarray(f.pixels, dtype=np.float32).reshape(-1, 2)
+        pts = np.asarray(f.points_obj, dtype=np.float32).reshape(-1, 3)
+        desc = np.asarray(f.descriptors)
+        if desc.ndim != 2:
+            desc = desc.reshape(len(px), -1) if len(px) else desc.reshape(0, 0)
+        sc = None if f.scales is None else np.asarray(f.scales, dtype=np.float32).reshape(-1)
+        if len(pts) != len(px) or len(desc) != len(px) or (sc is not None and len(sc) != len(px)):
+            raise ValueError(f"keypoint arrays disagree: {len(px)} pixels, {len(pts)} points, {len(desc)} descriptors")
+        c.execute("INSERT OR REPLACE INTO features(view_id, role, kind, n, pixels, points, descriptors, scales) "
+                  "VALUES (?,?,?,?,?,?,?,?)",
+                  (vid, role, str(f.kind), len(px), encode_array(px), encode_array(pts), encode_array(desc),
+                   encode_array(sc)))
+
+    def add_features(self, view_name: str, pixels: np.ndarray | ViewFeatures, points_obj: np.ndarray | None = None,
+                     descriptors: np.ndarray | None = None, kind: str | None = None,
+                     scales: np.ndarray | None = None, role: str = "registration") -> None:
+        """Store (replace) a view's keypoints of a role (FEATURE_ROLES): a ViewFeatures, or pixels
+        [N x 2], points_obj [N x 3] (object frame; camera frame while the view is unregistered),
+        descriptors [N x D], kind."""
+        f = pixels if isinstance(pixels, ViewFeatures) else ViewFeatures(pixels, points_obj, descriptors, kind, scales)
+        with self._tx() as c:
+            vid, _ = self._view_id(c, view_name)
+            self._put_features(c, vid, f, role)
+
+    @_decodes
+    def features(self, view_name: str, role: str = "registration") -> ViewFeatures | None:
+        """The view's keypoints of a role (unpacks as (pixels, points_obj, descriptors, kind)); None if
+        it has none."""
+        rows = self._q("SELECT f.pixels, f.points, f.descriptors, f.kind, f.scales FROM features f "
+                       "JOIN views v ON v.id = f.view_id WHERE v.name=? AND f.role=?", (view_name, role))
+        if not rows:
+            return None
+        px, pts, desc, kind, sc = rows[0]
+        f = ViewFeatures(decode_array(px, (None, 2)), decode_array(pts, (None, 3)), decode_array(desc, (None, None)),
+                         kind, decode_array(sc, (None,)))
+        check_keypoints(f.pixels, f.points_obj, f.descriptors, f.scales, kind, f"view {view_name!r}")
+        return f
+
+    # -- edges -----------------------------------------------------------------------------------
+    def add_edge(self, edge: Edge) -> None:
+        """Store (replace) the edge src -> tgt."""
+        if edge.kind not in ("sequential", "loop"):
+            raise ValueError(f"edge kind must be 'sequential' or 'loop', not {edge.kind!r}")
+        m = np.asarray(edge.matches, dtype=np.int32).reshape(-1, 2)
+        f = (lambda x: None if x is None else float(x))
+        with self._tx() as c:
+            c.execute("DELETE FROM edges WHERE src=? AND tgt=?", (edge.src, edge.tgt))
+            c.execute("INSERT INTO edges(src, tgt, T_tgt_src, matches, cost, rmse, fitness, kind, accepted, reason) "
+                      "VALUES (?,?,?,?,?,?,?,?,?,?)",
+                      (edge.src, edge.tgt, encode_array(check_T(edge.T_tgt_src)), encode_array(m), f(edge.cost),
+                       f(edge.rmse), f(edge.fitness), edge.kind, int(bool(edge.accepted)), edge.reason))
+
+    @_decodes
+    def edges(self, accepted_only: bool = False) -> list[Edge]:
+        where = " WHERE accepted=1" if accepted_only else ""
+        rows = self._q("SELECT src, tgt, T_tgt_src, matches, cost, rmse, fitness, kind, accepted, reason FROM edges"
+                       + where + " ORDER BY id")
+        return [Edge(s, t, decode_T(T), decode_array(m, (None, 2)), co, r, fi, k, bool(a), re)
+                for s, t, T, m, co, r, fi, k, a, re in rows]
+
+    # -- geometry and grasps ---------------------------------------------------------------------
+    def set_mesh(self, vertices: np.ndarray, triangles: np.ndarray, vertex_colors: np.ndarray | None = None) -> None:
+        """vertices [V x 3] (m, object frame), triangles [F x 3], vertex_colors [V x 3] uint8 or float in [0, 1]."""
+        V = np.asarray(vertices).reshape(-1, 3)
+        F = np.asarray(triangles).reshape(-1, 3)
+        C = to_u8_colors(vertex_colors)
+        if C is not None and len(C) != len(V):
+            raise ValueError(f"{len(C)} vertex colours for {len(V)} vertices")
+        with self._tx() as c:
+            c.execute("INSERT OR REPLACE INTO mesh(id, vertices, triangles, colors) VALUES (1,?,?,?)",
+                      (encode_array(V), encode_array(F), encode_array(C)))
+
+    @_decodes
+    def mesh(self) -> MeshData | None:
+        rows = self._q("SELECT vertices, triangles, colors FROM mesh WHERE id=1")
+        if not rows:
+            return None
+        m = MeshData(*(decode_array(b, (None, 3)) for b in rows[0]))
+        check_mesh(m.vertices, m.triangles, m.vertex_colors)
+        return m
+
+    def set_cloud(self, points: np.ndarray, colors: np.ndarray | None = None) -> None:
+        """points [N x 3] (m, object frame), colors [N x 3] uint8 or float in [0, 1]."""
+        P = np.asarray(points).reshape(-1, 3)
+        C = to_u8_colors(colors)
+        if C is not None and len(C) != len(P):
+            raise ValueError(f"{len(C)} colours for {len(P)} points")
+        with self._tx() as c:
+            c.execute("INSERT OR REPLACE INTO cloud(id, points, colors) VALUES (1,?,?)",
+                      (encode_array(P), encode_array(C)))
+
+    @_decodes
+    def cloud(self) -> tuple[np.ndarray, np.ndarray | None] | None:
+        rows = self._q("SELECT points, colors FROM cloud WHERE id=1")
+        if not rows:
+            return None
+        P, C = decode_array(rows[0][0], (None, 3)), decode_array(rows[0][1], (None, 3))
+        check_colors(C, len(P), "cloud")
+        return P, C
+
+    def add_grasp(self, name: str, T_obj_grasp: np.ndarray, replace: bool = False) -> None:
+        T = check_T(T_obj_grasp)
+        if not is_rigid(T):
+            raise ValueError("a grasp pose must be a rigid transform within 10 km")
+        try:
+            name.encode("utf-8")
+        except UnicodeEncodeError:
+            raise InputError(self.path, f"grasp name {name!r} is not UTF-8 text") from None
+        if not name.strip() or not name.isprintable() or len(name) > 200:
+            raise InputError(self.path, f"grasp name {name[:40]!r} must be 1-200 printable characters")
+        with self._tx() as c:
+            if not replace and c.execute("SELECT 1 FROM grasps WHERE name=?", (name,)).fetchone():
+                raise InputError(self.path, f"grasp {name!r} already exists")
+            c.execute("INSERT OR REPLACE INTO grasps(name, T_obj_grasp) VALUES (?,?)", (name, encode_array(T)))
+
+    def remove_grasp(self, name: str) -> None:
+        with self._tx() as c:
+            if c.execute("DELETE FROM grasps WHERE name=?", (name,)).rowcount == 0:
+                raise KeyError(f"no grasp named {name!r} in {self.path}")
+
+    @_decodes
+    def grasps(self) -> dict[str, np.ndarray]:
+        return {n: decode_T(b) for n, b in self._q("SELECT name, T_obj_grasp FROM grasps ORDER BY name")}
+
+    # -- summaries -------------------------------------------------------------------------------
+    def descriptor_kind(self) -> str | None:
+        d = self.get_meta("descriptor")
+        if isinstance(d, dict) and "kind" in d:
+            return str(d["kind"])
+        if isinstance(d, str):
+            return d
+        rows = self._q("SELECT kind FROM features ORDER BY view_id LIMIT 1")
+        return rows[0][0] if rows else None
+
+    @_decodes
+    def extent(self) -> np.ndarray:
+        """[3] axis-aligned size (m) in the object frame of the mesh, else the cloud, else the keypoints."""
+        m = self.mesh()
+        pts = m.vertices if m is not None and len(m.vertices) else None
+        if pts is None:
+            cl = self.cloud()
+            pts = cl[0] if cl is not None and len(cl[0]) else None
+        if pts is None:
+            rows = self._q("SELECT f.points FROM features f JOIN views v ON v.id=f.view_id "
+                           "WHERE v.T_obj_cam IS NOT NULL AND f.n > 0")
+            pts = np.concatenate([decode_array(r[0], (None, 3)) for r in rows]) if rows else None
+        if pts is None or len(pts) == 0:
+            return np.zeros(3)
+        pts = np.asarray(pts, dtype=np.float64)
+        return pts.max(axis=0) - pts.min(axis=0)
+
+    def summary(self) -> dict:
+        """The dict `gscan info --json` prints."""
+        n_views, n_reg, n_kf = self._q("SELECT COUNT(*), COUNT(T_obj_cam), COALESCE(SUM(keyframe), 0) FROM views")[0]
+        return {"schema": int(self.get_meta("schema")), "status": self.status, "views": int(n_views),
+                "registered": int(n_reg), "keyframes": int(n_kf), "descriptor": self.descriptor_kind(),
+                "source": self.get_meta("source", "scan"), "extent_m": [float(x) for x in self.extent()],
+                "grasps": sorted(self.grasps())}
+
+    def poses(self) -> dict:
+        """The dict `gscan poses --json` prints: {"frames": {name: T_obj_cam}, "unregistered": [names]};
+        unregistered as in `scan --json`: the views without a pose, then the input frames the scan could
+        not read (its "skipped" meta)."""
+        views = self.views()
+        frames = {v.name: v.T_obj_cam.tolist() for v in views if v.T_obj_cam is not None}
+        return {"frames": frames, "unregistered": unregistered_names(views, self.get_meta("skipped"))}
+
+    def load_template(self, keyframes_only: bool = True) -> Template:
+        """Everything the estimator needs, loaded once: registered (key)frame views with their keypoints
+        (a view's "object" keypoints where it has them, else its "registration" keypoints)."""
+        views = [v for v in self.views(keyframes_only=keyframes_only) if v.T_obj_cam is not None]
+        names, intr, Ts, px, pts, desc, kv, offs = [], [], [], [], [], [], [], [0]
+        kind = self.descriptor_kind()
+        for v in views:
+            f = self.features(v.name, "object") or self.features(v.name)
+            names.append(v.name)
+            intr.append(v.intrinsics)
+            Ts.append(v.T_obj_cam)
+            if f is not None and len(f.pixels):
+                px.append(f.pixels)
+                pts.append(f.points_obj)
+                desc.append(f.descriptors)
+                kv.append(np.full(len(f.pixels), len(names) - 1, dtype=np.int32))
+                kind = kind or f.kind
+            offs.append(offs[-1] + (0 if f is None else len(f.pixels)))
+        ddtype = np.uint8 if kind == "orb" else np.float32
+        cl = self.cloud()
+        return Template(
+            path=self.path, meta=self.meta(), kind=kind, view_names=names, intrinsics=intr,
+            T_obj_cam=np.array(Ts, dtype=np.float64).reshape(-1, 4, 4),
+            kp_view=np.concatenate(kv) if kv else np.zeros(0, np.int32),
+            pixels=np.concatenate(px) if px else np.zeros((0, 2), np.float32),
+            points_obj=np.concatenate(pts) if pts else np.zeros((0, 3), np.float32),
+            descriptors=np.concatenate(desc) if desc else np.zeros((0, 0), ddtype),
+            view_offsets=np.array(offs, dtype=np.int64),
+            cloud_points=None if cl is None else cl[0], cloud_colors=None if cl is None else cl[1],
+            mesh=self.mesh(), grasps=self.grasps(), extent_m=self.extent())
+
+
+def open_template(path: str | Path) -> Template:
+    """Open a complete database and load its Template (InputError as `TemplateDB.open`)."""
+    with TemplateDB.open(path, require_complete=True) as db:
+        return db.load_template()

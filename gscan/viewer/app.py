@@ -1,0 +1,393 @@
+"""Web viewer of a template database (viser): the server, its GUI and the command `python -m gscan.viewer.app`.
+
+`serve(db_path, ...)` loads a complete template (`gscan.viewer.data`, `TemplateDB.open(require_complete=True)`),
+starts a viser server bound to `host:port` (127.0.0.1 by default; a port in use raises `PortInUseError`, never a
+silent move to another port) and populates the scene (`gscan.viewer.scene`), all in the template (object) frame:
+
+- the fused mesh (vertex colours) and point cloud; the template's axes;
+- one camera frustum per registered view carrying its downscaled snapshot, coloured by registration
+  quality (green good .. red poor); unregistered views are listed in the GUI, not drawn;
+- pose-graph edges as line segments between camera centres: sequential edges green .. red by ICP RMSE,
+  loop closures cyan .. magenta by RMSE, rejected edges grey (own toggle); a legend explains the scales;
+- the views' 3D keypoints (hidden by default), grasp frames as axes;
+- optionally a query RGB-D frame's cloud placed in the template frame by an estimated `T_cam_obj`.
+
+GUI: layer toggles, point / frustum size sliders, a view slider + dropdown (or click a frustum) showing the
+view's image with its keypoints and its edges, "Go to view" (moves every browser's camera to the view's
+pose), and the "Match panel": for a chosen edge, both images side by side with the matched keypoint pairs
+joined by lines and the edge's numbers. Only the viewer_* modules import viser.
+"""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import errno
+import io
+import logging
+import socket
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from gscan.io.camera import RGBDFrame
+from gscan.errors import InputError
+from gscan.io import read_pose_file
+from gscan.template.db import Edge, View, unregistered_names
+from gscan.viewer.data import ViewerData, ViewerOptions, load_viewer_data
+from gscan.viewer.draw import draw_keypoints, draw_matches, legend_html
+from gscan.viewer.scene import build_scene
+
+log = logging.getLogger(__name__)
+
+_SELECT_EDGE = "(select an edge)"
+
+
+class PortInUseError(InputError):
+    """The viewer's port cannot be bound (exit code 2 in the CLI)."""
+
+    def __init__(self, host: str, port: int, detail: str = "already in use", option: str = "--port"):
+        self.host, self.port = host, int(port)
+        super().__init__(None, f"cannot serve the viewer on {host}:{port}: {detail}; choose another {option}")
+
+
+# ------------------------------------------------------------------------------------------ helpers
+def check_port(host: str, port: int) -> None:
+    """Raise PortInUseError when `host:port` cannot be bound (viser would silently move to another port)."""
+    if not 1 <= port <= 65535:
+        raise InputError(None, f"--port must be 1-65535, not {port}")
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except socket.gaierror as e:
+        raise PortInUseError(host, port, f"unknown host ({e.strerror})", option="--host") from None
+    for family, stype, proto, _, addr in infos[:1]:
+        with socket.socket(family, stype, proto) as s:
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as asyncio's server does
+            try:
+                s.bind(addr)
+                s.listen(1)
+            except OSError as e:
+                detail = "already in use" if e.errno == errno.EADDRINUSE else (e.strerror or str(e))
+                raise PortInUseError(host, port, detail) from None
+
+
+# ------------------------------------------------------------------------------------------ the app
+class ViewerApp:
+    """A running viewer: `server` (viser.ViserServer), `url`, `data`; select_view / select_edge / go_to_view
+    drive the GUI from Python (the browser drives the same functions); `stop()` shuts the server down."""
+
+    def __init__(self, server, data: ViewerData, host: str, port: int, options: ViewerOptions):
+        self.server, self.data, self.host, self.port, self.options = server, data, host, port, options
+        self.url = f"http://[{host}]:{port}" if ":" in host else f"http://{host}:{port}"  # IPv6 in brackets
+        self.scene_points_obj: np.ndarray | None = None  # [N x 3] query-frame cloud drawn (template frame)
+        self.frustum_scale = 0.25 * data.size  # frustum depth (m) at "Frustum size" 1
+        self._lock = threading.RLock()
+        self._names = [v.name for v in data.views]
+        self._by_name = {v.name: v for v in data.views}
+        self._current: str | None = None
+        self._edge_labels: dict[str, Edge] = {}
+        self.layers: dict[str, list] = {}  # layer key -> viser scene handles (toggled together)
+        # GUI handles, created by _build_gui
+        self._view_slider = self._view_dropdown = self._goto_button = self._view_image = self._view_md = None
+        self._edge_dropdown = self._match_image = self._match_md = None
+
+    # -- selection ---------------------------------------------------------------------------------
+    def select_view(self, name: str) -> None:
+        """Show view `name` in the Views folder and list its edges in the Match panel."""
+        with self._lock:
+            if name not in self._by_name:
+                raise KeyError(f"no view named {name!r}")
+            if name == self._current:
+                return
+            self._current = name
+            self._view_slider.value = self._names.index(name)
+            self._view_dropdown.value = name
+            v, d = self._by_name[name], self.data
+            px, _ = d.keypoints[name]
+            self._view_image.image = draw_keypoints(d.thumbs[name], px, d.image_wh[name])
+            self._view_md.content = self._view_markdown(v)
+            self._goto_button.disabled = v.T_obj_cam is None
+            edges = [e for e in d.edges if name in (e.src, e.tgt)]
+            self._edge_labels = {_edge_label(e): e for e in edges}
+            self._edge_dropdown.options = [_SELECT_EDGE, *self._edge_labels]
+            self._edge_dropdown.value = _SELECT_EDGE
+            self._show_edge(None)
+
+    def select_edge(self, label: str) -> None:
+        with self._lock:
+            if label != _SELECT_EDGE and label not in self._edge_labels:
+                raise KeyError(f"no edge {label!r} for the selected view")
+            self._edge_dropdown.value = label
+            self._show_edge(self._edge_labels.get(label))
+
+    def go_to_view(self, name: str | None = None) -> None:
+        """Move every connected browser's camera to the pose of view `name` (default: the selected one)."""
+        name = name or self._current
+        if name is None or self._by_name[name].T_obj_cam is None:
+            return
+        v = self._by_name[name]
+        R, t = v.T_obj_cam[:3, :3], v.T_obj_cam[:3, 3]
+        depth = max(float((self.data.center - t) @ R[:, 2]), 0.1 * self.data.size)
+        fov = 2.0 * np.arctan2(v.intrinsics.height / 2.0, v.intrinsics.fy)
+        for client in self.server.get_clients().values():
+            with client.atomic():
+                client.camera.position = t
+                client.camera.look_at = t + R[:, 2] * depth
+                client.camera.up_direction = -R[:, 1]
+                client.camera.fov = float(fov)
+
+    def stop(self) -> None:
+        with contextlib.redirect_stdout(io.StringIO()):
+            self.server.stop()
+
+    # -- panels ------------------------------------------------------------------------------------
+    def _view_markdown(self, v: View) -> str:
+        n_kp = len(self.data.keypoints[v.name][0])
+        q = self.data.quality.get(v.name)
+        lines = [f"**{v.name}** ({self._names.index(v.name) + 1}/{len(self._names)})  ",
+                 f"keypoints: {n_kp} · quality: {'-' if q is None else f'{q:.2f}'}"
+                 + ("" if v.keyframe else " · not a keyframe") + "  "]
+        if v.T_obj_cam is None:
+            lines.append("**unregistered** (not drawn)")
+        else:
+            lines.append("centre (m): " + ", ".join(f"{x:+.3f}" for x in v.T_obj_cam[:3, 3]))
+        edges = [e for e in self.data.edges if v.name in (e.src, e.tgt)]
+        if edges:
+            lines += ["", "| edge | kind | matches | mm | ok |", "|---|---|---|---|---|"]
+            for e in edges:
+                other = e.tgt if e.src == v.name else e.src
+                arrow = "→" if e.src == v.name else "←"
+                lines.append(f"| {arrow} {other} | {e.kind} | {len(e.matches)} | {_mm(e.rmse)} | "
+                             f"{'yes' if e.accepted else 'no'} |")
+        else:
+            lines.append("\nno edges")
+        return "\n".join(lines)
+
+    def _show_edge(self, e: Edge | None) -> None:
+        if e is None:
+            self._match_image.visible = False
+            self._match_md.visible = False
+            return
+        d = self.data
+        grey = np.full((240, 320, 3), 90, np.uint8)
+        side = {n: (d.thumbs.get(n, grey), d.keypoints[n][0] if n in d.keypoints else np.zeros((0, 2)),
+                    d.image_wh.get(n, (320, 240))) for n in (e.src, e.tgt)}
+        (img_s, px_s, wh_s), (img_t, px_t, wh_t) = side[e.src], side[e.tgt]
+        m = np.asarray(e.matches, dtype=np.int64).reshape(-1, 2)
+        ok = (m[:, 0] >= 0) & (m[:, 0] < len(px_s)) & (m[:, 1] >= 0) & (m[:, 1] < len(px_t))
+        self._match_image.image = draw_matches(img_s, px_s, wh_s, img_t, px_t, wh_t, m[ok],
+                                               self.options.max_match_lines)
+        txt = [f"**{e.src} → {e.tgt}**  ", f"kind: {e.kind} · accepted: {'yes' if e.accepted else 'no'}  ",
+               f"matches: {len(m)} · cost: {_num(e.cost, '.4f')}  ",
+               f"RMSE: {_mm(e.rmse)} mm · fitness: {_num(e.fitness, '.3f')}"]
+        if e.reason:
+            txt.append(f"  \nreason: {e.reason}")
+        if not ok.all():
+            txt.append(f"  \n{int((~ok).sum())} match indices out of range (not drawn)")
+        self._match_md.content = "\n".join(txt)
+        self._match_image.visible = True
+        self._match_md.visible = True
+
+
+def _edge_label(e: Edge) -> str:
+    return f"{e.src} → {e.tgt} ({e.kind}{'' if e.accepted else ', rejected'})"
+
+
+def _num(x: float | None, fmt: str) -> str:
+    return "-" if x is None or not np.isfinite(x) else format(x, fmt)
+
+
+def _mm(x: float | None) -> str:
+    return "-" if x is None or not np.isfinite(x) else f"{x * 1000:.2f}"
+
+
+# ------------------------------------------------------------------------------------------ building
+def serve(db_path: str | Path, host: str = "127.0.0.1", port: int = 8080, scene_frame: RGBDFrame | None = None,
+          T_cam_obj: np.ndarray | None = None, grasps: dict[str, np.ndarray] | None = None,
+          options: ViewerOptions = ViewerOptions()) -> ViewerApp:
+    """Load a complete template and serve it on http://host:port; returns once the scene is populated.
+
+    scene_frame / T_cam_obj [4 x 4]: a query frame and the object's estimated pose in it; the frame's cloud
+    is drawn in the template frame (inv(T_cam_obj) applied), or listed as "not found" when T_cam_obj is None.
+    grasps: {name: T_obj_grasp [4 x 4]} drawn as axes, added to the template's own grasps.
+    Raises InputError (partial / missing database) and PortInUseError.
+    """
+    import viser
+
+    data = load_viewer_data(db_path, options)  # a bad template is named before any port is tried
+    check_port(host, port)
+    _quiet_websockets()
+    with contextlib.redirect_stdout(io.StringIO()) as banner:  # viser prints a banner; library code never prints
+        server = viser.ViserServer(host=host, port=port, label=f"gscan · {Path(db_path).name}", verbose=False)
+    log.debug("viser: %s", banner.getvalue().strip())
+    bound = server.get_port()
+    if bound != port:  # lost a race for the port after check_port: viser moved on silently
+        with contextlib.redirect_stdout(io.StringIO()):
+            server.stop()
+        raise PortInUseError(host, port)
+    app = ViewerApp(server, data, host, port, options)
+    try:
+        build_scene(app, scene_frame, T_cam_obj, {**data.grasps, **(grasps or {})})
+        _build_gui(app, scene_frame is not None, T_cam_obj)
+        if data.views:
+            app.select_view(data.views[0].name)
+    except BaseException:
+        app.stop()
+        raise
+    return app
+
+
+class _DropHandshakeNoise(logging.Filter):
+    """websockets logs a traceback for every TCP connection that is not a WebSocket/HTTP request (port
+    probes, health checks); they are not errors of the viewer."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return "opening handshake failed" not in record.getMessage()
+
+
+def _quiet_websockets() -> None:
+    lg = logging.getLogger("websockets.server")
+    if not any(isinstance(f, _DropHandshakeNoise) for f in lg.filters):
+        lg.addFilter(_DropHandshakeNoise())
+
+
+def _build_gui(app: ViewerApp, has_frame: bool, T_cam_obj: np.ndarray | None) -> None:
+    gui, d, o = app.server.gui, app.data, app.options
+    reg = d.registered
+    unreg = unregistered_names(d.views, d.meta.get("skipped"))  # as `gscan poses` lists them
+    acc = sum(e.accepted for e in d.edges)
+    loops = sum(e.accepted and e.kind == "loop" for e in d.edges)
+    summary = [f"**{d.path.name}** · {d.meta.get('source', 'scan')}  ",
+               f"views: {len(d.views)} · registered: {len(reg)}  ",
+               f"edges: {acc} accepted ({loops} loop) · {len(d.edges) - acc} rejected  ",
+               f"size: {d.size * 100:.1f} cm"]
+    if unreg:
+        summary.append(f"  \n**unregistered ({len(unreg)}):** " + ", ".join(unreg))
+    if has_frame:
+        summary.append("  \n**query frame:** " + ("pose not found (cloud not placed)" if T_cam_obj is None
+                                                   else "cloud placed by the estimated pose"))
+    gui.add_markdown("\n".join(summary))
+
+    with gui.add_folder("Layers", expand_by_default=False):
+        toggles = [("Mesh", "mesh"), ("Cloud", "cloud"), ("Frustums", "frustums"), ("Edges", "edges"),
+                   ("Rejected edges", "rejected"), ("3D keypoints", "keypoints"), ("Grasps", "grasps"),
+                   ("Query frame", "scene")]
+        for label, key in toggles:
+            if app.layers.get(key):
+                cb = gui.add_checkbox(label, initial_value=all(h.visible for h in app.layers[key]))
+                cb.on_update(lambda ev, k=key: [setattr(h, "visible", ev.target.value) for h in app.layers[k]])
+        base = 0.004 * d.size * 1000.0
+        ps = gui.add_slider("Point size (mm)", min=0.1, max=round(max(4 * base, 1.0), 1), step=0.1,
+                            initial_value=round(base, 1))
+
+        @ps.on_update
+        def _(_ev) -> None:
+            for key, f in (("cloud", 1.0), ("scene", 1.0), ("keypoints", 1.5)):
+                for h in app.layers.get(key, []):
+                    h.point_size = f * ps.value / 1000.0
+
+        fs = gui.add_slider("Frustum size", min=0.25, max=3.0, step=0.05, initial_value=1.0)
+
+        @fs.on_update
+        def _(_ev) -> None:
+            for h in app.layers.get("frustums", []):
+                h.scale = app.frustum_scale * fs.value
+
+    with gui.add_folder("Views"):
+        n = max(len(d.views), 1)
+        app._view_slider = gui.add_slider("View #", min=0, max=max(n - 1, 1), step=1, initial_value=0,
+                                          disabled=len(d.views) < 2)
+        app._view_dropdown = gui.add_dropdown("View", [v.name for v in d.views] or ["(no views)"])
+        app._goto_button = gui.add_button("Go to view", icon=None)
+        app._view_image = gui.add_image(np.full((240, 320, 3), 90, np.uint8), label="View image",
+                                        format="jpeg", jpeg_quality=o.jpeg_quality)
+        app._view_md = gui.add_markdown("")
+    app._view_slider.on_update(lambda ev: app.select_view(app._names[int(ev.target.value)])
+                               if int(ev.target.value) < len(app._names) else None)
+    app._view_dropdown.on_update(lambda ev: app.select_view(ev.target.value) if ev.target.value in app._by_name
+                                 else None)
+    app._goto_button.on_click(lambda _ev: app.go_to_view())
+
+    with gui.add_folder("Match panel"):
+        app._edge_dropdown = gui.add_dropdown("Edge", [_SELECT_EDGE])
+        app._match_image = gui.add_image(np.full((240, 640, 3), 90, np.uint8), label="Matches", format="jpeg",
+                                         jpeg_quality=o.jpeg_quality, visible=False)
+        app._match_md = gui.add_markdown("", visible=False)
+    app._edge_dropdown.on_update(lambda ev: app.select_edge(ev.target.value)
+                                 if ev.target.value == _SELECT_EDGE or ev.target.value in app._edge_labels else None)
+
+    with gui.add_folder("Legend", expand_by_default=False):
+        gui.add_html(legend_html(o.rmse_red_m))
+
+
+def run_viewer(db_path: str | Path, host: str = "127.0.0.1", port: int = 8080, scene_frame: RGBDFrame | None = None,
+               T_cam_obj: np.ndarray | None = None, grasps: dict[str, np.ndarray] | None = None,
+               on_ready: Callable[[str], None] | None = None, options: ViewerOptions = ViewerOptions()) -> None:
+    """`serve` and block until interrupted (Ctrl+C); `on_ready(url)` is called once the scene is populated."""
+    app = serve(db_path, host, port, scene_frame=scene_frame, T_cam_obj=T_cam_obj, grasps=grasps, options=options)
+    try:
+        if on_ready is not None:
+            on_ready(app.url)
+        while True:
+            time.sleep(0.5)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        app.stop()
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`python -m gscan.viewer.app DB [--host H] [--port P] [--color C --depth D --intrinsics K [--pose T.json]]`.
+
+    --pose gives T_cam_obj of the query frame directly (the CLI `gscan view` estimates it instead).
+    Logs "viewer ready at URL" on stderr once the scene is populated. Bad input or usage: one line
+    `error: ...` on stderr and exit 2, as the `gscan` CLI does.
+    """
+    import cv2  # already imported (viewer_draw): its log level is set directly, as the CLI's environment does
+
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+    ap = _OneLineErrors(prog="python -m gscan.viewer.app", description=__doc__.splitlines()[0])
+    ap.add_argument("db", type=Path)
+    ap.add_argument("--host", default="127.0.0.1")
+    ap.add_argument("--port", type=int, default=8080)
+    ap.add_argument("--color", type=Path)
+    ap.add_argument("--depth", type=Path)
+    ap.add_argument("--intrinsics", type=Path)
+    ap.add_argument("--depth-scale", type=float, default=0.001)
+    ap.add_argument("--pose", type=Path, help='T_cam_obj of the query frame: {"T": 4x4} or a bare 4x4 list')
+    a = ap.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(levelname)s %(name)s: %(message)s")
+    logging.getLogger("websockets").setLevel(logging.WARNING)
+    try:
+        frame = T = None
+        if a.color or a.depth or a.intrinsics:
+            if not (a.color and a.depth and a.intrinsics):
+                raise InputError(None, "--color, --depth and --intrinsics go together")
+            from gscan.io import load_frame
+
+            frame = load_frame(a.color, a.depth, a.intrinsics, depth_scale=a.depth_scale)
+        if a.pose is not None:
+            if frame is None:
+                raise InputError(a.pose, "--pose places a query frame: it needs --color, --depth and --intrinsics")
+            T = read_pose_file(a.pose)
+        run_viewer(a.db, a.host, a.port, scene_frame=frame, T_cam_obj=T,
+                   on_ready=lambda url: log.info("viewer ready at %s", url))
+    except InputError as e:
+        sys.stderr.write(f"error: {e}\n")
+        return 2
+    return 0
+
+
+class _OneLineErrors(argparse.ArgumentParser):
+    """Usage errors as one line, `error: ...`, exit 2 (argparse prints the whole usage first)."""
+
+    def error(self, message: str):
+        sys.stderr.write(f"error: {self.prog}: {message} (see --help)\n")
+        sys.exit(2)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,162 @@
+"""The viewer's 3D scene (viser), in the template (object) frame: the template's axes, the fused mesh and
+cloud, one camera frustum per registered view with its snapshot (coloured by quality, click selects the
+view), pose-graph edges between camera centres, the views' 3D keypoints, grasp frames, and optionally a
+query frame's cloud placed by an estimated pose. Each layer's handles are kept in `app.layers`.
+"""
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from gscan.io.camera import Intrinsics, RGBDFrame, point_cloud
+from gscan.geometry.transforms import inv_T, transform_points
+from gscan.template.db import MeshData
+from gscan.viewer.draw import QUERY_CAMERA_COLOR, edge_color, hue_colors, quality_color, thumbnail
+
+if TYPE_CHECKING:
+    from gscan.viewer.app import ViewerApp
+
+LAYERS = ("mesh", "cloud", "frustums", "edges", "rejected", "keypoints", "scene", "grasps")
+
+
+def build_scene(app: ViewerApp, frame: RGBDFrame | None, T_cam_obj: np.ndarray | None,
+                grasps: dict[str, np.ndarray]) -> None:
+    """Populate `app.server.scene`, set the initial camera and `app.frustum_scale`, and fill `app.layers`.
+
+    frame / T_cam_obj [4 x 4]: a query frame and the object's pose in it (its cloud is drawn when both are given).
+    grasps: {name: T_obj_grasp [4 x 4]}.
+    """
+    sc, d, o = app.server.scene, app.data, app.options
+    s = d.size
+    reg = d.registered
+    # Scene up: the nearest axis to the cameras' mean image-up direction (-y of each camera).
+    ups = np.array([-v.T_obj_cam[:3, 1] for v in reg]) if reg else np.array([[0.0, 0.0, 1.0]])
+    up = ups.mean(0) / max(np.linalg.norm(ups.mean(0)), 1e-9)
+    axis = int(np.argmax(np.abs(up)))
+    sc.set_up_direction(("+" if up[axis] > 0 else "-") + "xyz"[axis])
+    if reg:  # beyond the first view's camera, raised along "up", far enough to see every frustum
+        cams = np.array([v.T_obj_cam[:3, 3] for v in reg])
+        dist = float(np.median(np.linalg.norm(cams - d.center, axis=1)))
+        d0 = cams[0] - d.center
+        d0 = d0 - (d0 @ up) * up
+        if np.linalg.norm(d0) < 1e-9:  # the first camera straight above: any horizontal direction
+            d0 = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
+        d0 = d0 / np.linalg.norm(d0)
+        eye = d.center + _clear_direction(d0, up, cams - d.center) * max(1.9 * dist, 2.0 * s)
+    else:
+        eye = d.center + np.array([1.0, 1.0, 1.0]) * 1.5 * s
+    # Frustum size: a quarter of the object, less where cameras are dense (half the median spacing).
+    app.frustum_scale = 0.25 * s
+    if len(reg) >= 2:
+        from scipy.spatial import cKDTree
+
+        cams = np.array([v.T_obj_cam[:3, 3] for v in reg])
+        spacing = float(np.median(cKDTree(cams).query(cams, k=2)[0][:, 1]))
+        if spacing > 1e-6:
+            app.frustum_scale = min(app.frustum_scale, 0.5 * spacing)
+    app.server.initial_camera.position = eye
+    app.server.initial_camera.look_at = d.center
+    app.server.initial_camera.near = 0.01 * s
+    app.server.initial_camera.far = 1000.0 * s
+
+    layers: dict[str, list] = {k: [] for k in LAYERS}
+    sc.add_frame("/template", axes_length=0.3 * s, axes_radius=0.008 * s, origin_radius=0.015 * s)
+    pt = 0.004 * s
+    if d.mesh is not None and len(d.mesh.triangles):
+        layers["mesh"].append(_add_mesh(sc, d.mesh))
+    if d.cloud is not None and len(d.cloud[0]):
+        pts, cols = d.cloud
+        step = max(1, int(np.ceil(len(pts) / o.max_cloud_points)))
+        cols = np.full((len(pts), 3), 200, np.uint8) if cols is None else cols
+        layers["cloud"].append(sc.add_point_cloud("/cloud", np.asarray(pts[::step], np.float32), cols[::step],
+                                                  point_size=pt, visible=not layers["mesh"]))
+    kp = [(d.keypoints[v.name][1], i) for i, v in enumerate(reg) if len(d.keypoints[v.name][1])]
+    if kp:
+        pts = np.concatenate([p for p, _ in kp])
+        hues = hue_colors(len(reg))
+        cols = np.concatenate([np.repeat(hues[i][None], len(p), 0) for p, i in kp])
+        step = max(1, int(np.ceil(len(pts) / o.max_keypoints)))
+        layers["keypoints"].append(sc.add_point_cloud("/keypoints", pts[::step], cols[::step], point_size=1.5 * pt,
+                                                      visible=False))
+    for v in reg:
+        layers["frustums"].append(_add_frustum(app, f"/views/{_node(v.name)}", v.intrinsics, v.T_obj_cam,
+                                               d.thumbs[v.name], quality_color(d.quality[v.name]), v.name))
+    centres = {v.name: v.T_obj_cam[:3, 3] for v in reg}
+    for key, accepted, width in (("edges", True, 3.0), ("rejected", False, 1.5)):
+        es = [e for e in d.edges if e.accepted == accepted and e.src in centres and e.tgt in centres]
+        if es:
+            seg = np.array([[centres[e.src], centres[e.tgt]] for e in es], np.float32)
+            col = np.array([[edge_color(e, o.rmse_red_m)] * 2 for e in es], np.uint8)
+            layers[key].append(sc.add_line_segments(f"/{key}", seg, col, thickness=width, thickness_units="screen",
+                                                    visible=accepted))
+    for name, T in grasps.items():
+        layers["grasps"].append(sc.add_frame(f"/grasps/{_node(name)}", axes_length=0.15 * s, axes_radius=0.006 * s,
+                                             wxyz=_quat_wxyz(T[:3, :3]), position=T[:3, 3]))
+        layers["grasps"].append(sc.add_label(f"/grasps/{_node(name)}/label", name))
+    if frame is not None and T_cam_obj is not None:
+        T_obj_cam = inv_T(np.asarray(T_cam_obj, dtype=np.float64))
+        pts_cam, cols = point_cloud(frame, stride=o.scene_stride)
+        app.scene_points_obj = transform_points(T_obj_cam, pts_cam).astype(np.float32)
+        layers["scene"].append(sc.add_point_cloud("/scene/cloud", app.scene_points_obj,
+                                                  (cols * 255).astype(np.uint8), point_size=pt))
+        thumb = thumbnail(frame.color, o.frustum_px)
+        layers["scene"].append(_add_frustum(app, "/scene/camera", frame.intrinsics, T_obj_cam, thumb,
+                                            QUERY_CAMERA_COLOR, None))
+    app.layers = layers
+
+
+def _node(name: str) -> str:
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in name)
+
+
+def _add_mesh(sc, mesh: MeshData):
+    V = np.asarray(mesh.vertices, np.float64)
+    F = np.asarray(mesh.triangles, np.int64)
+    if mesh.vertex_colors is None:
+        return sc.add_mesh_simple("/mesh", V.astype(np.float32), F.astype(np.uint32), color=(200, 170, 120),
+                                  side="double")
+    import trimesh  # only for vertex colours (sent as GLB)
+
+    tm = trimesh.Trimesh(V, F, vertex_colors=np.asarray(mesh.vertex_colors, np.uint8), process=False)
+    return sc.add_mesh_trimesh("/mesh", tm)
+
+
+def _add_frustum(app: ViewerApp, node: str, intr: Intrinsics, T_obj_cam: np.ndarray, image: np.ndarray,
+                 color: tuple[int, int, int], view_name: str | None):
+    o = app.options
+    img = thumbnail(image, o.frustum_px)
+    h = app.server.scene.add_camera_frustum(
+        node, fov=float(2.0 * np.arctan2(intr.height / 2.0, intr.fy)), aspect=intr.width / intr.height,
+        scale=app.frustum_scale, thickness=1.5, thickness_units="screen", color=color, image=img, format="jpeg",
+        jpeg_quality=o.jpeg_quality, wxyz=_quat_wxyz(T_obj_cam[:3, :3]), position=T_obj_cam[:3, 3])
+    if view_name is not None:
+        h.on_click(lambda _ev, n=view_name: app.select_view(n))
+    return h
+
+
+def _clear_direction(d0: np.ndarray, up: np.ndarray, cam_dirs: np.ndarray) -> np.ndarray:
+    """Unit direction from the object to the start camera: 58 deg above the horizon beyond the first view's
+    camera (horizontal unit d0), unless a view's camera (cam_dirs [N x 3]) lies within 20 deg of it; then the
+    first candidate turned about `up` and tilted that clears every view by 20 deg, or the one clearing them
+    most, so that no frustum and its snapshot hide the object (a CAD template's views cover the sphere)."""
+    side = np.cross(up, d0)
+    cams = cam_dirs / np.maximum(np.linalg.norm(cam_dirs, axis=1, keepdims=True), 1e-12)
+    best, best_gap = None, -1.0
+    for el in np.radians([58.0, 45.0, 70.0, 35.0]):
+        for az in np.radians([0.0, 15.0, -15.0, 30.0, -30.0, 45.0, -45.0, 90.0, -90.0, 135.0, -135.0, 180.0]):
+            c = np.cos(el) * (np.cos(az) * d0 + np.sin(az) * side) + np.sin(el) * up
+            gap = float(np.arccos(np.clip(cams @ c, -1.0, 1.0)).min())
+            if gap >= np.radians(20.0):
+                return c
+            if gap > best_gap:
+                best, best_gap = c, gap
+    return best
+
+
+def _quat_wxyz(R: np.ndarray) -> np.ndarray:
+    """Rotation matrix [3 x 3] -> unit quaternion (w, x, y, z), as viser takes it."""
+    from scipy.spatial.transform import Rotation
+
+    x, y, z, w = Rotation.from_matrix(np.asarray(R, dtype=np.float64)).as_quat()
+    return np.array([w, x, y, z])
