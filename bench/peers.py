@@ -134,3 +134,57 @@ def fpfh_ransac_icp_chain(frames: list[RGBDFrame], depth_max: float, seed: int =
         return np.asarray(icp.transformation), ""
 
     return _chain(frames, lambda f: _fpfh_cloud(f, depth_max), pair, "open3d FPFH+RANSAC+ICP")
+
+
+SIFT_RATIO = 0.75  # Lowe's ratio of the SIFT chain
+SIFT_RANSAC_DIST = 0.03  # m: the SIFT chain's 3-point RANSAC inlier distance (room-scale depth noise)
+SIFT_MIN_INLIERS = 10  # the SIFT chain's pair fails with fewer RANSAC inliers
+SIFT_ICP_VOXEL = 0.02  # m: the SIFT chain's ICP clouds (whole frames, depth <= depth_max)
+SIFT_ICP_DIST = 0.05  # m: the SIFT chain's ICP correspondence distance
+
+
+def sift_ransac_icp_chain(frames: list[RGBDFrame], depth_max: float = 4.0, seed: int = 0) -> PeerResult:
+    """The plain odometry front end: OpenCV SIFT keypoints lifted with the depth at their pixel, Lowe's
+    ratio test, open3d 3-point correspondence RANSAC, point-to-plane ICP on whole-frame clouds; consecutive
+    frames chained. A pair fails with fewer than SIFT_MIN_INLIERS RANSAC inliers or ICP fitness below
+    MIN_FITNESS. frames: >= 1."""
+    import cv2
+
+    from gscan.geometry.transforms import icp
+    from gscan.matching.baselines import BaselineParams, putative_ratio, ransac_correspondences
+
+    sift = cv2.SIFT_create()
+    params = BaselineParams(ratio=SIFT_RATIO, inlier_dist=SIFT_RANSAC_DIST, seed=seed)
+
+    def prepare(f: RGBDFrame):
+        gray = cv2.cvtColor(f.color, cv2.COLOR_RGB2GRAY)
+        kps, desc = sift.detectAndCompute(gray, None)
+        px = np.array([k.pt for k in kps], np.float64).reshape(-1, 2)
+        ui = np.clip(np.rint(px).astype(int), 0, [f.depth.shape[1] - 1, f.depth.shape[0] - 1])
+        z = f.depth[ui[:, 1], ui[:, 0]].astype(np.float64)
+        ok = (z > 0) & (z <= depth_max)
+        K = f.intrinsics
+        pts = np.stack([(px[:, 0] - K.cx) / K.fx * z, (px[:, 1] - K.cy) / K.fy * z, z], 1)[ok]
+        d = f.depth.copy()
+        d[d > depth_max] = 0
+        cloud = backproject(d, K)[::2, ::2][d[::2, ::2] > 0]
+        return pts, (desc if desc is not None else np.zeros((0, 128), np.float32))[ok], cloud
+
+    def pair(src, tgt):
+        (ps, ds, cs), (pt, dt, ct) = src, tgt
+        if len(ps) < 3 or len(pt) < 3:
+            return None, "too few keypoints with depth"
+        dist = np.sqrt(np.maximum((ds ** 2).sum(1)[:, None] + (dt ** 2).sum(1)[None] - 2 * ds @ dt.T, 0))
+        corr = putative_ratio(dist, params.ratio)
+        T = ransac_correspondences(ps, pt, corr, params)
+        if T is None:
+            return None, "RANSAC found nothing"
+        r = np.linalg.norm(ps[corr[:, 0]] @ T[:3, :3].T + T[:3, 3] - pt[corr[:, 1]], axis=1)
+        if (r < params.inlier_dist).sum() < SIFT_MIN_INLIERS:
+            return None, f"{int((r < params.inlier_dist).sum())} RANSAC inliers < {SIFT_MIN_INLIERS}"
+        res = icp(cs, ct, T, SIFT_ICP_DIST, SIFT_ICP_VOXEL, 30, True)
+        if res.fitness < MIN_FITNESS:
+            return None, f"ICP fitness {res.fitness:.2f} < {MIN_FITNESS}"
+        return res.T, ""
+
+    return _chain(frames, prepare, pair, "SIFT+ratio+RANSAC+ICP")

@@ -1,15 +1,19 @@
-"""Pose graph: drift removal on a synthetic ring, pruning of wrong loop closures, loop candidates."""
+"""Pose graph: drift removal on a synthetic ring, rejection of wrong edges, parts and thin evidence, loop
+candidates."""
 from __future__ import annotations
 
-import numpy as np
-import pytest
-from hypothesis import given, settings, strategies as st
+import itertools
 
-from gscan.geometry.transforms import inv_T, look_at, make_T, pose_error, rotvec_to_R
-from gscan.registration.posegraph import (GraphEdge, LoopParams, PoseGraphParams, bow_vectors, chain_odometry, edge_residual,
-                             information_matrix,
-                             information_from_count, information_from_points, optimize_pose_graph,
-                             select_loop_candidates, spanning_poses)
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from gscan.geometry.transforms import inv_T, look_at, make_T, pose_error, rotvec_to_R, transform_points
+from gscan.registration.posegraph import (GraphEdge, LoopParams, PoseGraphParams, bow_vectors, bridges, edge_chi2,
+                                          edge_residual, information_from_points, optimize_pose_graph,
+                                          select_loop_candidates, spanning_poses)
+
+SIGMA = 0.002  # m, per-axis noise of the synthetic matched points
 
 
 def ring_poses(n: int = 12, radius: float = 0.4, height: float = 0.3) -> list[np.ndarray]:
@@ -26,116 +30,162 @@ def perturb(T: np.ndarray, rng: np.random.Generator, rot_deg: float, trans_m: fl
     return make_T(dR, rng.normal(size=3) * trans_m) @ T
 
 
-def ate(T_est: list[np.ndarray | None], T_gt: list[np.ndarray]) -> float:
-    """RMSE of camera-centre errors after anchoring both trajectories at node 0."""
-    errs = []
-    for Te, Tg in zip(T_est, T_gt):
-        if Te is None:
-            continue
-        Ae, Ag = inv_T(T_est[0]) @ Te, inv_T(T_gt[0]) @ Tg
-        errs.append(np.linalg.norm(Ae[:3, 3] - Ag[:3, 3]))
+def points_info(n: int, rng: np.random.Generator, depth: float = 0.5) -> np.ndarray:
+    """Information of a pose from n matched points spread over an object at `depth` in the source camera."""
+    pts = np.array([0.0, 0.0, depth]) + rng.uniform(-0.1, 0.1, (n, 3))
+    return information_from_points(pts, np.full(n, SIGMA))
+
+
+def edge(gt: list[np.ndarray], i: int, j: int, rng: np.random.Generator, n: int, rot_deg: float = 0.05,
+         trans_m: float = 0.0005, strong: bool = True, bias: np.ndarray | None = None) -> GraphEdge:
+    T = perturb(inv_T(gt[j]) @ gt[i], rng, rot_deg, trans_m)
+    if bias is not None:
+        T = bias @ T
+    return GraphEdge(i, j, T, points_info(n, rng), strong=strong, weight=n)
+
+
+def ate(T_est: list[np.ndarray | None], T_gt: list[np.ndarray], ref: int = 0) -> float:
+    """RMSE of camera-centre errors after anchoring both trajectories at node `ref`."""
+    errs = [np.linalg.norm((inv_T(T_est[ref]) @ Te)[:3, 3] - (inv_T(T_gt[ref]) @ Tg)[:3, 3])
+            for Te, Tg in zip(T_est, T_gt) if Te is not None]
     return float(np.sqrt(np.mean(np.square(errs))))
 
 
-def make_graph(seed: int = 0, n: int = 12, n_wrong: int = 3):
-    """Noisy odometry (biased: drifts), correct loop closures, `n_wrong` wrong loop closures."""
+def make_ring(seed: int = 0, n: int = 12, n_wrong: int = 3) -> tuple[list[np.ndarray], list[GraphEdge], int]:
+    """Biased odometry (it drifts), right loop closures, `n_wrong` wrong ones (weaker, 25 deg / 8 cm off)."""
     rng = np.random.default_rng(seed)
     gt = ring_poses(n)
-    edges: list[GraphEdge] = []
-    bias = make_T(rotvec_to_R(np.radians([0.0, 0.6, 0.2])), [0.002, 0.0, 0.001])  # systematic drift
-    for i in range(n - 1):
-        T = bias @ perturb(inv_T(gt[i + 1]) @ gt[i], rng, 0.2, 0.001)  # T_{i+1}_i
-        edges.append(GraphEdge(i, i + 1, T, information_from_count(200), uncertain=False))
-    correct = [(0, 11), (0, 3), (3, 6), (6, 9), (9, 0), (2, 10), (1, 5), (4, 8)]
-    for i, j in correct:
-        T = perturb(inv_T(gt[j]) @ gt[i], rng, 0.2, 0.001)
-        edges.append(GraphEdge(i, j, T, information_from_count(100), uncertain=True))
-    wrong_pairs = [(2, 7), (5, 11), (1, 8)][:n_wrong]
-    for i, j in wrong_pairs:
-        T = perturb(inv_T(gt[j]) @ gt[i], rng, 25.0, 0.08)
-        edges.append(GraphEdge(i, j, T, information_from_count(100), uncertain=True))
+    bias = make_T(rotvec_to_R(np.radians([0.0, 0.3, 0.1])), [0.002, 0.0, 0.001])
+    edges = [edge(gt, i, i + 1, rng, 200, bias=bias) for i in range(n - 1)]
+    edges += [edge(gt, i, j, rng, 100) for i, j in [(0, 11), (0, 3), (3, 6), (6, 9), (9, 0), (2, 10), (1, 5), (4, 8)]]
+    edges += [edge(gt, i, j, rng, 40, 25.0, 0.08) for i, j in [(2, 7), (5, 11), (1, 8)][:n_wrong]]
     return gt, edges, len(edges) - n_wrong
 
 
-def test_ring_removes_drift_and_prunes_wrong_closures():
-    gt, edges, first_wrong = make_graph()
-    init = chain_odometry(12, edges)
-    assert all(T is not None for T in init)
+def test_ring_removes_drift_and_rejects_wrong_edges():
+    gt, edges, first_wrong = make_ring()
+    init = spanning_poses(12, [e for e in edges[:11]])  # the odometry chain alone: it drifts
     before = ate(init, gt)
-    res = optimize_pose_graph(12, edges, init, PoseGraphParams(max_correspondence_distance=0.02))
+    res = optimize_pose_graph(12, edges, init)
     after = ate(res.T_world_node, gt)
-    assert before > 0.025  # the odometry drifts by centimetres
-    assert after < 0.008 and after < before / 3
-    assert res.unregistered == []
+    assert before > 0.01 and after < before / 3
+    assert res.unregistered == [] and res.parts == []
     for k, rep in enumerate(res.edges):
         if k >= first_wrong:
-            assert not rep.accepted and rep.reason, f"wrong closure {rep.src}->{rep.tgt} accepted"
+            assert not rep.accepted and rep.reason.startswith("inconsistent"), f"wrong edge {rep.src}->{rep.tgt}"
         else:
             assert rep.accepted, f"good edge {rep.src}->{rep.tgt} rejected: {rep.reason}"
-            assert rep.residual_deg < 5.0 and rep.residual_m < 0.02
-    # reference node keeps its initial pose
-    np.testing.assert_allclose(res.T_world_node[0], init[0], atol=1e-9)
+    np.testing.assert_allclose(res.T_world_node[0], init[0], atol=1e-9)  # the reference keeps its pose
     for i in range(12):
         deg, m = pose_error(res.T_ref_node(i), inv_T(gt[0]) @ gt[i])
-        assert deg < 2.0 and m < 0.02
+        assert deg < 1.0 and m < 0.01
 
 
-def test_disconnected_node_unregistered_and_wrong_only_link_cut():
-    gt, edges, first_wrong = make_graph(seed=1, n_wrong=0)
-    gt = gt + [look_at(np.array([1.0, 1.0, 1.0]), np.zeros(3)), look_at(np.array([0.0, 0.5, 0.5]), np.zeros(3))]
-    # node 12: no edge at all; node 13: only linked by a wildly inconsistent pair of edges
+def test_a_strong_wrong_cluster_does_not_drag_the_right_edges_out():
+    """Four wrong edges that agree with each other (one node seen flipped 180 degrees) against right edges:
+    the re-weighted start keeps the poses where the right edges put them, and only the wrong ones go."""
+    rng = np.random.default_rng(2)
+    gt = ring_poses(8)
+    flip = make_T(rotvec_to_R([0.0, 0.0, np.pi]), [0.0, 0.0, 0.0])
+    gt_flipped = list(gt)
+    gt_flipped[4] = gt[4] @ flip
+    edges = [edge(gt, i, i + 1, rng, 300) for i in range(7)] + [edge(gt, 0, 7, rng, 300), edge(gt, 2, 6, rng, 150)]
+    n_right = len(edges)
+    edges += [edge(gt_flipped, i, 4, rng, 40) for i in (1, 2, 6, 7)]  # node 4 seen flipped: they agree
+    res = optimize_pose_graph(8, edges, spanning_poses(8, edges))
+    assert [r.accepted for r in res.edges] == [True] * n_right + [False] * 4
+    assert res.registered == list(range(8))
+
+
+def test_parts_and_thin_evidence():
+    """Two clusters joined by one edge: a weak bridge is cut (both parts reported, the larger registered, no
+    pose for the smaller); a strong one keeps them together. An isolated node gets no pose either."""
+    rng = np.random.default_rng(3)
+    gt = ring_poses(10)
+    a = [edge(gt, i, j, rng, 100) for i, j in [(0, 1), (1, 2), (2, 3), (0, 2), (1, 3), (3, 4), (2, 4)]]
+    b = [edge(gt, i, j, rng, 100) for i, j in [(6, 7), (7, 8), (6, 8)]]
+    for strong, registered in ((False, [0, 1, 2, 3, 4]), (True, [0, 1, 2, 3, 4, 6, 7, 8])):
+        link = edge(gt, 4, 6, rng, 8, strong=strong)
+        res = optimize_pose_graph(10, a + [link] + b, spanning_poses(10, a + [link] + b))
+        assert res.registered == registered
+        assert res.edges[len(a)].accepted == strong
+        if not strong:
+            assert res.edges[len(a)].reason.startswith("the only link")
+            assert res.parts == [[6, 7, 8]] and "separate part of 3 frames" in res.node_reasons[6]
+            assert all(not r.accepted for r in res.edges[len(a) + 1:])
+        else:
+            assert res.parts == []
+        assert res.T_world_node[5] is None and res.T_world_node[9] is None  # no edge at all
+
+
+def test_a_node_held_by_one_of_two_disagreeing_edges_is_left_out():
     rng = np.random.default_rng(5)
-    bad1 = perturb(inv_T(gt[13]) @ gt[3], rng, 40.0, 0.2)
-    bad2 = perturb(inv_T(gt[13]) @ gt[8], rng, 40.0, 0.2)
-    edges += [GraphEdge(3, 13, bad1, information_from_count(100), True),
-              GraphEdge(8, 13, bad2, information_from_count(100), True)]
-    init = chain_odometry(14, edges)
-    assert init[12] is None and init[13] is None
-    res = optimize_pose_graph(14, edges, init)
-    assert 12 in res.unregistered
-    assert res.T_world_node[12] is None and res.T_ref_node(12) is None
-    # the two edges to node 13 cannot both hold: one is rejected, and nothing tells whether the other is right,
-    # so node 13 is left unregistered rather than placed by it
-    reps13 = [r for r in res.edges if 13 in (r.src, r.tgt)]
-    assert all(not r.accepted and r.reason for r in reps13), reps13
-    assert any(r.reason.startswith("the only edge left") for r in reps13)
-    assert 13 in res.unregistered and res.registered == list(range(12))
+    gt = ring_poses(6) + [look_at(np.array([0.0, 0.5, 0.5]), np.zeros(3))]
+    edges = [edge(gt, i, j, rng, 100) for i, j in [(0, 1), (1, 2), (2, 3), (3, 4), (4, 5), (5, 0), (0, 3)]]
+    edges += [edge(gt, 1, 6, rng, 50, 40.0, 0.2), edge(gt, 4, 6, rng, 50, 40.0, 0.2)]
+    res = optimize_pose_graph(7, edges, spanning_poses(7, edges))
+    reps6 = [r for r in res.edges if 6 in (r.src, r.tgt)]
+    assert all(not r.accepted for r in reps6)
+    assert any(r.reason.startswith("the only edge left") for r in reps6)
+    assert res.registered == list(range(6))
 
 
-def test_ambiguous_frames_are_dropped_only_when_something_is_left():
-    """A lone cycle of three with one wrong edge keeps its three nodes (before the fix its two ends were dropped
-    and the middle node stayed with no accepted edge); a graph whose every node would be dropped keeps them."""
-    gt = ring_poses(12)
-    rng = np.random.default_rng(1)
+@settings(max_examples=40, deadline=None)
+@given(st.integers(2, 8), st.lists(st.tuples(st.integers(0, 7), st.integers(0, 7)), max_size=12))
+def test_bridges_match_brute_force(n, pairs):
+    pairs = [(a % n, b % n) for a, b in pairs if a % n != b % n]
 
-    def rel(i, j, deg=0.2, m=0.001):
-        return perturb(inv_T(gt[j]) @ gt[i], rng, deg, m)
+    def n_components(es):
+        parent = list(range(n))
 
-    tri = [GraphEdge(0, 1, rel(0, 1), information_from_count(30), True),
-           GraphEdge(1, 2, rel(1, 2), information_from_count(30), True),
-           GraphEdge(0, 2, rel(0, 2, 60.0, 0.2), information_from_count(25), True)]
-    res = optimize_pose_graph(3, tri, spanning_poses(3, tri, [30, 30, 25]))
-    assert res.registered == [0, 1, 2] and [r.accepted for r in res.edges] == [True, True, False]
-    quad = [GraphEdge(0, 1, rel(0, 1), information_from_count(30), True),
-            GraphEdge(2, 3, rel(2, 3), information_from_count(200), False),
-            GraphEdge(1, 2, rel(1, 2, 60.0, 0.3), information_from_count(30), True),
-            GraphEdge(0, 3, rel(0, 3, 60.0, 0.3), information_from_count(30), True)]
-    for w in (30, 60, 100):
-        quad[0].information = information_from_count(w)
-        res = optimize_pose_graph(4, quad, spanning_poses(4, quad, [w, 200, 30, 30]))
-        assert res.registered, [(r.src, r.tgt, r.reason) for r in res.edges]
-        for k in res.registered:  # every registered node keeps an accepted edge to another registered one
-            assert any(r.accepted and k in (r.src, r.tgt) for r in res.edges), (w, k)
+        def find(x):
+            while parent[x] != x:
+                x = parent[x]
+            return x
+        for a, b in es:
+            parent[find(a)] = find(b)
+        return len({find(x) for x in range(n)})
+
+    base = n_components(pairs)
+    brute = {k for k in range(len(pairs)) if n_components(pairs[:k] + pairs[k + 1:]) > base}
+    assert bridges(n, pairs) == brute
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 10_000))
+def test_chi2_is_the_points_misfit_in_the_source_frame(seed):
+    """For a small residual motion, e^T I e equals the sum of the squared misfits of the source points over
+    their variance (Gauss-Newton's cost), with I from the SOURCE points: the frame open3d's residual is in."""
+    rng = np.random.default_rng(seed)
+    pts_s = np.array([0.0, 0.0, 0.6]) + rng.uniform(-0.2, 0.2, (50, 3))
+    X = make_T(rotvec_to_R(rng.normal(size=3) * 0.3), rng.normal(size=3) * 0.2)  # measured T_tgt_src
+    delta = make_T(rotvec_to_R(rng.normal(size=3) * 1e-4), rng.normal(size=3) * 1e-4)
+    T_world_src = make_T(rotvec_to_R(rng.normal(size=3)), rng.normal(size=3))
+    T_world_tgt = T_world_src @ delta @ inv_T(X)  # the node poses see the source moved by delta
+    e = GraphEdge(0, 1, X, information_from_points(pts_s, np.full(50, SIGMA)))
+    cost = np.sum(np.square(transform_points(delta, pts_s) - pts_s)) / SIGMA ** 2
+    assert abs(edge_chi2(T_world_src, T_world_tgt, e) - cost) < 1e-3 * cost
+    deg, m = edge_residual(T_world_src, T_world_tgt, X)
+    assert deg < 0.05 and m < 1e-3
 
 
 def test_deterministic():
-    gt, edges, _ = make_graph(seed=3)
-    init = chain_odometry(12, edges)
+    gt, edges, _ = make_ring(seed=3)
+    init = spanning_poses(12, edges)
     a = optimize_pose_graph(12, edges, init)
     b = optimize_pose_graph(12, edges, init)
     for Ta, Tb in zip(a.T_world_node, b.T_world_node):
         np.testing.assert_array_equal(Ta, Tb)
     assert [(r.accepted, r.reason) for r in a.edges] == [(r.accepted, r.reason) for r in b.edges]
+
+
+def test_params_validated():
+    import pytest
+
+    for bad in ({"alpha": 0.0}, {"alpha": 1.0}, {"max_rounds": 0}):
+        with pytest.raises(ValueError):
+            PoseGraphParams(**bad)
+    assert list(itertools.islice(bridges(3, [(0, 1), (1, 2), (2, 0)]), 1)) == []
 
 
 def test_residual_convention_matches_open3d_edge_semantics():
@@ -145,7 +195,7 @@ def test_residual_convention_matches_open3d_edge_semantics():
     p0 = np.array([0.01, 0.02, 0.3])
     np.testing.assert_allclose(gt[1][:3, :3] @ (T_1_0[:3, :3] @ p0 + T_1_0[:3, 3]) + gt[1][:3, 3],
                                gt[0][:3, :3] @ p0 + gt[0][:3, 3], atol=1e-12)
-    assert edge_residual(gt[0], gt[1], T_1_0) == pytest.approx((0.0, 0.0), abs=1e-6)
+    assert edge_residual(gt[0], gt[1], T_1_0) == (0.0, 0.0) or max(edge_residual(gt[0], gt[1], T_1_0)) < 1e-9
     deg, m = edge_residual(gt[0], gt[1], inv_T(T_1_0))
     assert deg > 1.0
 
@@ -153,10 +203,15 @@ def test_residual_convention_matches_open3d_edge_semantics():
 @settings(deadline=None, max_examples=15)
 @given(st.integers(0, 10_000))
 def test_information_from_points_matches_open3d(seed):
-    from gscan.registration.posegraph import information_from_clouds
+    """Unweighted, it is open3d's get_information_matrix_from_point_clouds on the same points; weighted, each
+    point counts 1 / sigma^2."""
+    import open3d as o3d
+
     p = np.random.default_rng(seed).normal(size=(50, 3))
-    np.testing.assert_allclose(information_from_points(p), information_from_clouds(p, p, np.eye(4), 1e-3),
-                               rtol=1e-9, atol=1e-9)
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p))
+    ref = np.asarray(o3d.pipelines.registration.get_information_matrix_from_point_clouds(pc, pc, 1e-3, np.eye(4)))
+    np.testing.assert_allclose(information_from_points(p), ref, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(information_from_points(p, np.full(50, 0.5)), 4.0 * ref, rtol=1e-9, atol=1e-9)
 
 
 def test_loop_candidates_overlap_bounded_deterministic():
@@ -201,44 +256,19 @@ def test_loop_candidates_appearance():
 
 def test_subtle_wrong_closure_rejected():
     """A loop closure off by 12 deg about the optical axis (weakly constrained direction) is rejected."""
-    gt, edges, n_good = make_graph(seed=2, n_wrong=0)
+    gt, edges, _ = make_ring(seed=2, n_wrong=0)
+    rng = np.random.default_rng(9)
     edges.append(GraphEdge(2, 7, make_T(rotvec_to_R(np.radians([0, 0, 12.0])), [0, 0, 0]) @ inv_T(gt[7]) @ gt[2],
-                           information_from_count(100), True))
-    res = optimize_pose_graph(12, edges, chain_odometry(12, edges))
+                           points_info(100, rng), weight=100))
+    res = optimize_pose_graph(12, edges, spanning_poses(12, edges[:11]))
     rejected = [(r.src, r.tgt) for r in res.edges if not r.accepted]
     assert rejected == [(2, 7)], rejected
     assert res.edges[-1].residual_deg > 5.0
-    assert ate(res.T_world_node, gt) < 0.008
-
-
-def test_threshold_pruning_of_certain_edges():
-    """Without a line process on it, an inconsistent certain edge is cut by the residual thresholds."""
-    gt, edges, _ = make_graph(seed=4, n_wrong=0)
-    # all edges certain: the line process never applies, only the explicit thresholds can act
-    edges = [GraphEdge(e.src, e.tgt, e.T_tgt_src, e.information, False) for e in edges]
-    edges.append(GraphEdge(3, 9, make_T(rotvec_to_R(np.radians([0, 15.0, 0])), [0.05, 0, 0]) @ inv_T(gt[9]) @ gt[3],
-                           information_from_count(100), False))
-    res = optimize_pose_graph(12, edges, chain_odometry(12, edges))
-    bad = res.edges[-1]
-    assert not bad.accepted and bad.reason.startswith("residual")
-    assert sum(not r.accepted for r in res.edges) <= 2
     assert ate(res.T_world_node, gt) < 0.01
 
 
-def test_information_matrix_dispatch_and_trivial_graphs():
-    rng = np.random.default_rng(0)
-    src = rng.normal(size=(300, 3)) * 0.05 + [0, 0, 0.5]
-    T = make_T(rotvec_to_R([0, 0.1, 0]), [0.01, 0, 0])
-    tgt = src @ T[:3, :3].T + T[:3, 3]
-    info = information_matrix(T, 40, (src, tgt), 0.005)
-    assert info[5, 5] == pytest.approx(300)  # every source point has its correspondence
-    np.testing.assert_allclose(information_matrix(T, 40), information_from_count(40))
-    # clouds too far apart for any correspondence: fall back to the count
-    np.testing.assert_allclose(information_matrix(T, 40, (src, tgt + 1.0), 0.005), information_from_count(40))
-    # one node, no edges; two nodes, no edges
+def test_trivial_graphs():
     res = optimize_pose_graph(1, [], [np.eye(4)])
     assert res.registered == [0] and res.edges == []
     res = optimize_pose_graph(2, [], [np.eye(4), None])
-    assert res.unregistered == [1]
-    with pytest.raises(ValueError):
-        optimize_pose_graph(2, [GraphEdge(0, 2, np.eye(4))], [np.eye(4), np.eye(4)])
+    assert res.registered == [0] and res.unregistered == [1]

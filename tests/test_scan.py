@@ -17,7 +17,7 @@ import pytest
 
 from gscan.geometry.transforms import inv_T, pose_error
 from gscan.io import open_sequence
-from gscan.evaluate.metrics import ate_rmse
+from gscan.evaluate.metrics import ate_rmse, frame_errors
 from gscan.scan.pipeline import ScanOptions, run_scan
 from gscan.synth import load_textured_mesh, render_capture
 from gscan.template.db import TemplateDB
@@ -32,6 +32,15 @@ def _ate_to_gt(db_path: Path, capture: Path) -> tuple[float, int]:
     gt = open_sequence(capture).gt_T_cam_obj
     names = [n for n in poses if n in gt]
     return ate_rmse([np.asarray(poses[n]) for n in names], [inv_T(gt[n]) for n in names]), len(names)
+
+
+def _wrong_frames(db_path: Path, capture: Path, max_deg: float = 5.0, max_m: float = 0.02) -> list[str]:
+    """Registered frames whose pose is beyond max_deg / max_m of the ground truth (the rendered benchmark's
+    bound), relative to the other registered frames (`frame_errors`: free of the template's frame)."""
+    with TemplateDB.open(db_path) as db:
+        poses = {n: np.asarray(T) for n, T in db.poses()["frames"].items()}
+    gt = open_sequence(capture).gt_T_cam_obj
+    return frame_errors(poses, {n: inv_T(T) for n, T in gt.items()}).wrong(max_deg, max_m)
 
 
 @pytest.fixture(scope="module")
@@ -128,13 +137,18 @@ def test_turntable_whose_print_repeats_on_opposite_faces(tmp_path, meshes_dir):
 
 def test_wide_view_spacing_with_symmetric_print(tmp_path, meshes_dir):
     """36 degrees between views on three rings: the low ring sees the box's matching prints and the
-    repetitive table from opposite sides, so some pairs give consistent but 180-degree-wrong lists of
-    L matches (27-40 inliers). They must be outvoted by the well-supported edges (60-700 inliers):
-    before weak edges were made doubtful, this capture scanned with an ATE of 87 mm."""
+    repetitive table from opposite sides, so some pairs give consistent but 180-degree-wrong lists (9-33
+    inliers, and the depth of a box on a flat table is the same turned 180 degrees). They must be outvoted
+    by the well-supported edges (50-800 inliers). Frame 4's one right edge (49 pairs) is contradicted by four
+    flipped ones that agree with each other (65 pairs in all): no cycle decides, so it is left out with that
+    reason rather than fused at a guess. Before weak edges were made doubtful, this capture scanned with an
+    ATE of 87 mm."""
     mesh = load_textured_mesh(meshes_dir / MESHES[0] / "model_0.obj")
     cap = tmp_path / "wide"
     render_capture(mesh, cap, 30, mode="static", elevations_deg=(20.0, 40.0, 60.0), seed=0)
     res = run_scan(ScanOptions(input_dir=cap, output=tmp_path / "wide.gscan"))
-    assert res.registered == 30
+    assert res.registered >= 28, res.unregistered_reasons
+    assert all("contradicted" in r or "inconsistent" in r for r in res.unregistered_reasons.values())
     ate, n = _ate_to_gt(tmp_path / "wide.gscan", cap)
-    assert n == 30 and ate <= 0.005, f"ATE {ate * 1000:.2f} mm"
+    assert n == res.registered and ate <= 0.005, f"ATE {ate * 1000:.2f} mm"
+    assert not _wrong_frames(tmp_path / "wide.gscan", cap), "a frame registered at a wrong pose"

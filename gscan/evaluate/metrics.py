@@ -95,6 +95,44 @@ def ate(T_est_list: Sequence[np.ndarray], T_gt_list: Sequence[np.ndarray]) -> AT
                      err, T)
 
 
+@dataclass
+class FrameErrors:
+    """Per-frame pose errors of a registered trajectory, free of the choice of world frame.
+
+    rot_deg / trans_m: frame name -> the median, over the other frames, of the error of the relative pose
+    inv(T_est[other]) @ T_est[frame] against the ground truth's (a single wrong frame is wrong against
+    most others; a right frame against most others, whatever its neighbours).
+    """
+
+    rot_deg: dict[str, float]
+    trans_m: dict[str, float]
+
+    def wrong(self, max_deg: float, max_m: float) -> list[str]:
+        """Frames whose median error exceeds max_deg or max_m, in input order."""
+        return [n for n in self.rot_deg if self.rot_deg[n] > max_deg or self.trans_m[n] > max_m]
+
+
+def frame_errors(T_est: dict[str, np.ndarray], T_gt: dict[str, np.ndarray]) -> FrameErrors:
+    """`FrameErrors` of the frames in both dicts (name -> [4 x 4] camera pose, e.g. T_obj_cam against
+    T_world_cam: each is compared only with poses of its own dict). Needs two common frames; with one the
+    errors are 0."""
+    names = [n for n in T_est if n in T_gt]
+    E = [np.asarray(T_est[n], np.float64) for n in names]
+    G = [np.asarray(T_gt[n], np.float64) for n in names]
+    rot: dict[str, float] = {}
+    trans: dict[str, float] = {}
+    for k, n in enumerate(names):
+        r, t = [], []
+        for m in range(len(names)):
+            if m != k:
+                rel_e, rel_g = inv_T(E[m]) @ E[k], inv_T(G[m]) @ G[k]
+                r.append(rotation_error_deg(rel_e, rel_g))
+                t.append(float(np.linalg.norm(rel_e[:3, 3] - rel_g[:3, 3])))
+        rot[n] = float(np.median(r)) if r else 0.0
+        trans[n] = float(np.median(t)) if t else 0.0
+    return FrameErrors(rot, trans)
+
+
 def _perp(a: np.ndarray) -> np.ndarray:
     """A vector perpendicular to [3] a, of the same length (deterministic choice)."""
     e = np.eye(3)[int(np.argmin(np.abs(a)))]

@@ -1,7 +1,8 @@
 """The numba kernel of `gscan.geometry.transforms.kabsch_trimmed`'s consensus step (the specification is there).
 
 `best_triple(src, dst, n_enum, tau, min_sin)` poses every non-degenerate triple of the first n_enum pairs by
-its triad and scores every pair's residual under that pose, truncated at tau (MSAC); the lowest score wins,
+its triad and scores every pair's residual under that pose in units of its tau, truncated at 1 (MSAC); the
+lowest score wins,
 the first in (i, j, k) order on ties. A triple's scoring stops once it can no longer win. Compiled with
 `cache=True`, `nogil=True`; imported lazily so that `gscan.geometry.transforms` does not load numba.
 """
@@ -33,7 +34,7 @@ def _frame(P, i, j, k, min_sin, F):
 @njit(cache=True, nogil=True)
 def best_triple(src, dst, n_enum, tau, min_sin):
     """(i, j, k, T [4 x 4]) of the best-scoring triple (module docstring); i = -1 when every triple of the
-    first n_enum pairs is degenerate in src or dst. src, dst [N x 3] float64."""
+    first n_enum pairs is degenerate in src or dst. src, dst [N x 3] float64, tau [N] float64 > 0."""
     n = src.shape[0]
     Fs = np.empty((3, 3))
     Fd = np.empty((3, 3))
@@ -59,7 +60,7 @@ def best_triple(src, dst, n_enum, tau, min_sin):
                     dx = R[0, 0] * src[p, 0] + R[0, 1] * src[p, 1] + R[0, 2] * src[p, 2] + t[0] - dst[p, 0]
                     dy = R[1, 0] * src[p, 0] + R[1, 1] * src[p, 1] + R[1, 2] * src[p, 2] + t[1] - dst[p, 1]
                     dz = R[2, 0] * src[p, 0] + R[2, 1] * src[p, 1] + R[2, 2] * src[p, 2] + t[2] - dst[p, 2]
-                    score += min(np.sqrt(dx * dx + dy * dy + dz * dz), tau)
+                    score += min(np.sqrt(dx * dx + dy * dy + dz * dz) / tau[p], 1.0)
                     if score >= best_score:
                         break
                 if score < best_score:

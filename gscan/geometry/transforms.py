@@ -33,6 +33,16 @@ def is_rigid(T: np.ndarray, atol: float = RIGID_ATOL, max_translation: float = M
                 and np.allclose(T[3], [0, 0, 0, 1], atol=1e-6) and np.abs(T[:3, 3]).max() <= max_translation)
 
 
+def nearest_rigid(T: np.ndarray) -> np.ndarray:
+    """T [4 x 4] with its rotation block replaced by the nearest rotation (SVD, det +1) and the last row
+    0 0 0 1: a pose written with limited precision (or scaled, as KinectFusion's trajectories are: det
+    0.9997) otherwise reads as a rotation of about 1.4 deg when compared with an exact one."""
+    T = np.asarray(T, dtype=np.float64)
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    D = np.diag([1.0, 1.0, float(np.sign(np.linalg.det(U @ Vt)))])
+    return make_T(U @ D @ Vt, T[:3, 3])
+
+
 def inv_T(T: np.ndarray) -> np.ndarray:
     """Inverse of a rigid [4 x 4] transform."""
     R, t = T[:3, :3], T[:3, 3]
@@ -57,9 +67,12 @@ def rotvec_to_R(rotvec: np.ndarray) -> np.ndarray:
 
 
 def rotation_angle_deg(R: np.ndarray) -> float:
-    """Angle of a rotation matrix, degrees in [0, 180]."""
-    c = (np.trace(R[:3, :3]) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+    """Angle of a rotation matrix, degrees in [0, 180]: atan2(sin, cos) of the angle, from the skew part and
+    the trace (arccos of the trace alone loses half the digits near 0: a rounding of 1e-16 reads 1e-6 deg)."""
+    R = np.asarray(R, dtype=np.float64)[:3, :3]
+    c = (np.trace(R) - 1.0) / 2.0
+    s = 0.5 * np.linalg.norm([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    return float(np.degrees(np.arctan2(s, c)))
 
 
 def pose_error(T_est: np.ndarray, T_gt: np.ndarray) -> tuple[float, float]:
@@ -136,8 +149,11 @@ def leave_one_out_residuals(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
 CONSENSUS_MAX_PAIRS = 32  # kabsch_trimmed enumerates the triples of at most this many pairs (4960)
 
 
-def kabsch_trimmed(src: np.ndarray, dst: np.ndarray, tau: float, min_sin: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
+def kabsch_trimmed(src: np.ndarray, dst: np.ndarray, tau: float | np.ndarray, min_sin: float = 0.1
+                   ) -> tuple[np.ndarray, np.ndarray]:
     """Kabsch on matched points src, dst [N x 3] (N >= 3) with gross outliers trimmed: (T, keep [N] bool).
+    tau: the distance (m) beyond which a pair is off, one for all pairs or one per pair [N] (a pair's own
+    noise, `gscan.registration.noise`); residuals below are compared with it, scores sum them in its units.
 
     1. Plain Kabsch; when every pair lies within tau of its target under it, all pairs are kept.
     2. Otherwise consensus: every triple of pairs (of the first CONSENSUS_MAX_PAIRS, in list order) whose
@@ -156,13 +172,14 @@ def kabsch_trimmed(src: np.ndarray, dst: np.ndarray, tau: float, min_sin: float 
     src = np.asarray(src, dtype=np.float64)
     dst = np.asarray(dst, dtype=np.float64)
     n = len(src)
+    tau = np.broadcast_to(np.asarray(tau, dtype=np.float64), (n,)).copy()
     keep = np.ones(n, bool)
     T = kabsch(src, dst)
-    if n > 3 and np.linalg.norm(transform_points(T, src) - dst, axis=1).max() > tau:  # 2. consensus
+    if n > 3 and (np.linalg.norm(transform_points(T, src) - dst, axis=1) > tau).any():  # 2. consensus
         from gscan.geometry.consensus_kernel import best_triple
 
         i, j, k, T_tri = best_triple(np.ascontiguousarray(src), np.ascontiguousarray(dst),
-                                     min(n, CONSENSUS_MAX_PAIRS), float(tau), float(min_sin))
+                                     min(n, CONSENSUS_MAX_PAIRS), tau, float(min_sin))
         if i >= 0:
             keep = np.linalg.norm(transform_points(T_tri, src) - dst, axis=1) < tau
             keep[[i, j, k]] = True
@@ -177,9 +194,9 @@ def kabsch_trimmed(src: np.ndarray, dst: np.ndarray, tau: float, min_sin: float 
     floor = max(3, (n + 1) // 2)
     while keep.sum() >= 5 and keep.sum() - 1 >= floor:  # 3. leave-one-out residuals
         idx = np.flatnonzero(keep)
-        r = leave_one_out_residuals(src[idx], dst[idx])
+        r = leave_one_out_residuals(src[idx], dst[idx]) / tau[idx]
         worst = int(np.argmax(r))
-        if r[worst] <= tau:
+        if r[worst] <= 1.0:
             break
         keep[idx[worst]] = False
         T = kabsch(src[keep], dst[keep])

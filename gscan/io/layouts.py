@@ -294,8 +294,7 @@ def discover_bop(root: Path, obj_id: int | None = None) -> Layout:
                     T[:3, 3] = np.asarray(e["cam_t_m2c"], dtype=np.float64).reshape(3) / 1000.0
                     if not np.all(np.isfinite(T)):
                         raise ValueError("non-finite pose")
-                    check_rigid(T, gt_path)
-                    gt[f.name] = T
+                    gt[f.name] = check_rigid(T, gt_path)
                     if mask_dir is not None:
                         m = mask_dir / f"{im_id:06d}_{k:06d}.png"
                         f.mask = m if m.is_file() else None

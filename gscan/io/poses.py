@@ -10,17 +10,19 @@ from pathlib import Path
 import numpy as np
 
 from gscan.errors import InputError
-from gscan.geometry.transforms import MAX_TRANSLATION_M, is_rigid
+from gscan.geometry.transforms import MAX_TRANSLATION_M, is_rigid, nearest_rigid
 
 
-def check_rigid(T: np.ndarray, path: Path) -> None:
-    """InputError naming `path` unless T [4 x 4] is finite, its rotation orthonormal with det +1, its last
-    row 0 0 0 1 and its translation within MAX_TRANSLATION_M."""
+def check_rigid(T: np.ndarray, path: Path) -> np.ndarray:
+    """T [4 x 4] with its rotation projected onto the nearest rotation (`nearest_rigid`); InputError naming
+    `path` unless T is finite, its rotation orthonormal (to the tolerance of `is_rigid`) with det +1, its
+    last row 0 0 0 1 and its translation within MAX_TRANSLATION_M."""
     if not is_rigid(T, max_translation=np.inf):
         raise InputError(path, "pose is not a rigid transform (rotation not orthonormal or last row not 0 0 0 1)")
     if np.abs(T[:3, 3]).max() > MAX_TRANSLATION_M:
         raise InputError(path, f"pose translation {np.abs(T[:3, 3]).max():g} m is beyond {MAX_TRANSLATION_M:g} m "
                          "(poses are in metres)")
+    return nearest_rigid(T)
 
 
 def read_pose_txt(path: Path) -> np.ndarray:
@@ -34,8 +36,7 @@ def read_pose_txt(path: Path) -> np.ndarray:
         T = np.vstack([T, [0.0, 0.0, 0.0, 1.0]])
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
         raise InputError(path, f"malformed pose file: expected a 4x4 matrix of numbers, got shape {T.shape}")
-    check_rigid(T, path)
-    return T
+    return check_rigid(T, path)
 
 
 def read_pose_file(path: str | Path) -> np.ndarray:
@@ -53,8 +54,7 @@ def read_pose_file(path: str | Path) -> np.ndarray:
         raise InputError(path, 'expected {"T": [[4x4]]} or a bare 4x4 list') from None
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
         raise InputError(path, f"expected a finite 4x4 matrix, got shape {T.shape}")
-    check_rigid(T, path)
-    return T
+    return check_rigid(T, path)
 
 
 def read_open3d_log(path: Path) -> list[tuple[int, np.ndarray]]:
@@ -74,8 +74,7 @@ def read_open3d_log(path: Path) -> list[tuple[int, np.ndarray]]:
             raise InputError(path, f"malformed Open3D log entry at line {k + 1}") from None
         if len(lines[k]) != 3 or T.shape != (4, 4) or not np.all(np.isfinite(T)):
             raise InputError(path, f"malformed Open3D log entry at line {k + 1}: expected 'i j n' and a 4x4 matrix")
-        check_rigid(T, path)
-        out.append((idx, T))
+        out.append((idx, check_rigid(T, path)))
     return out
 
 

@@ -25,9 +25,9 @@ class LoopCandidate:
 
 @dataclass(frozen=True)
 class LoopParams:
-    max_per_node: int = 3          # each node takes part in at most this many candidates
+    max_per_node: int = 4          # each node takes part in at most this many candidates
     min_index_gap: int = 3         # skip near-sequential pairs (|i - j| < gap)
-    max_angle_deg: float = 45.0    # views overlap when viewing directions are within this angle ...
+    max_angle_deg: float = 75.0    # views overlap when viewing directions are within this angle ...
     max_distance_m: float = 0.5    # ... and the camera centres within this distance
     appearance_top_k: int = 2      # per node, the k most similar nodes by appearance are candidates
     min_similarity: float = 0.2    # ... if their similarity reaches this

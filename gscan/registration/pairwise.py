@@ -1,53 +1,58 @@
-"""Pairwise registration: features -> match (GMatch or a baseline) -> Kabsch -> ICP -> verdict.
+"""Pairwise registration: features -> match (GMatch or a baseline) -> pose -> verdict.
 
-`register_features(fs, ft, params, clouds)` registers two frames' keypoints; `match_frames(frame_s,
-frame_t)` also extracts the features and back-projects the ICP clouds (the one-call Python API).
-T_tgt_src maps source-camera points into the target camera (p_t = T_tgt_src @ p_s).
+`register_features(fs, ft, params, clouds, dense)` registers two frames' keypoints; `match_frames(frame_s,
+frame_t)` also extracts the features (the one-call Python API). T_tgt_src maps source-camera points into
+the target camera (p_t = T_tgt_src @ p_s).
+
+Every residual is measured in units of the depth noise (`gscan.registration.noise`): a pair of keypoints
+at depths z_s, z_t has the per-axis standard deviation s = params.noise.pair_sigma(z_s, z_t), so a gate of
+3.4 s keeps 99 % of the true pairs of a Kinect at 2 m (s about 12 mm) and of a render at 0.6 m (s about
+1.5 mm) alike.
 
 Acceptance rules, applied in this order (the first failing one is the `reason`):
-1. "too few matches": fewer than `min_matches` geometric matches (trimmed GMatch list / baseline inliers).
-2. "kabsch residual": RMS of |T p_s - p_t| over the pairs the pose rests on (`inliers`) above `max_kabsch_rmse`.
-3. with ICP (params.icp and both clouds given), point-to-plane ICP from the match pose, then
+1. "too few matches": fewer than `min_matches` geometric matches (the pairs the pose rests on).
+2. "keypoint residual": the RMS of |T p_s - p_t| / s over those pairs above `max_rms` (a right pose gives
+   about 1.7, the chi distribution of three axes truncated at the gate). With the depth samples (`dense`)
+   the pose is then refined on the pairs and the depth together (`gscan.registration.dense.refine_pose`).
+   "weak geometry": the pose's
+   standard deviation predicted by its information matrix (the pairs' noise and layout, and the depth's
+   when it took part: a few pairs on one face of a box pin it badly) beyond `max_sigma_deg` in rotation, or the RMS positional standard
+   deviation of its pairs' points beyond `max_sigma_rel` of their median depth (1 sigma; both a third or
+   less of the 5 deg / 2 cm at 0.6 m that a wrong pose is).
+3. "depth disagrees" (with `dense`, both frames' `DenseGeometry`): under the pose, more than
+   `max_see_through` of the overlap of the two depth images is seen through (`gscan.registration.dense`);
+   "too little depth overlap" when fewer than `min_overlap` samples land on the other frame's depth.
+4. with ICP (params.icp and both clouds given), point-to-plane ICP from the match pose, then
    "icp fitness" below `min_fitness`, "icp rmse" above `max_rmse`, or "icp shift": ICP moved the
    match pose by more than `max_icp_shift_deg` / `max_icp_shift_m` (a slide, not a refinement).
    A rejected ICP leaves the match pose in T_tgt_src; an accepted one replaces it.
-Without ICP, rmse is the Kabsch residual and fitness is None.
 
-Pose from a GMatch list: `geometry.kabsch_trimmed` with `trim_tau`: plain Kabsch when every pair fits
-within trim_tau, else the pairs within trim_tau of the best-scoring triple's pose (a consensus over every
+Pose from a GMatch list: `geometry.kabsch_trimmed` with each pair's tau = `trim_gate` s: plain Kabsch when
+every pair fits, else the pairs within tau of the best-scoring triple's pose (a consensus over every
 triple of the list), re-solved; then the worst pair by leave-one-out residual is dropped while it lies
-more than trim_tau off, never below half of the list. Pairwise distances cannot tell a point from its
-mirror image across a plane holding the other matches, so on a flat, self-similar table a 24-pair list can
-carry one pair 40 cm off (plain Kabsch: 24 deg error, trimmed: 0.3); the depth-grown eta lets a background
-pair 36 cm off join a whole-frame list; one distant pair with a bad depth next to a clustered list tilts
-plain Kabsch by 6 deg. The trimmed pairs are not inliers and do not count for rule 1.
+beyond its tau, never below half of the list. Pairwise distances cannot tell a point from its mirror
+image across a plane holding the other matches, and a background pair can join a whole-frame list
+through the depth-grown eta: one such pair tilts plain Kabsch by degrees. Trimmed pairs do not count for
+rule 1.
 
-Support check (GMatch only, `verify`): the longest list is not always the right one. On object pixels
-at a 60 deg view change a wrong 5-8 pair list that happens to be consistent can outgrow the true lists
-(noisy depth breaks eps_c on short true distances). The winner and up to `verify` other distinct lists
-of the search (`lists_to_verify`: by length, cost, search order; >= `verify_min_len` pairs) are each
-posed (kabsch_trimmed) and refined as below, but on the pairs with descriptor distance below
-`support_eps_scale` (1.5) x eps_f: a true pair seen 60 deg apart has a RootSIFT distance of 0.8
-(median over rendered pairs), beyond eps_f 0.6, so the GMatch candidates undercount a right pose's
-support. The refined inlier count is the list's support. Another list replaces the winner only with
->= `verify_ratio` (1.5) times its support (`pose_by_support`); a list whose pose is within 2 deg / 1 cm
-of one already checked is skipped. The chosen list's pose is that refinement's. Its inliers (what rule 2
-and the pose graph weigh an edge by) are the candidates alone that agree with it (`consistent_pairs`):
-on a repetitive table a wrong pose that maps the table plane onto itself collects hundreds of
-look-alike pairs under the looser bound, and weighed by those, wrong edges outvoted right ones.
-Measured on rendered pairs, object pixels, 60 deg (BENCHMARKS.md): newspaper / wood / fabric tables
-67 / 76 / 76 % with the candidates alone, 71 / 86 / 86 % now; whole frames unchanged.
-`verify=0` is the paper's pick alone.
+Support check (GMatch only, `verify`): the longest list is not always the right one (a short wrong list
+that happens to be consistent can outgrow the true lists when noisy depth breaks eps_c on short true
+distances). The winner and up to `verify` other distinct lists of the search (`lists_to_verify`) are each
+posed and refined as below on the pairs with descriptor distance below `support_eps_scale` x eps_f (a
+true pair seen 60 deg apart is often beyond eps_f); the refined inlier count is the list's support.
+Another list replaces the winner only with >= `verify_ratio` times its support (`pose_by_support`). The
+chosen pose's inliers (what rules 1-2 and the pose graph weigh an edge by) are the GMatch candidates
+alone that agree with it (`consistent_pairs`): on a repetitive table a wrong pose that maps the table
+plane onto itself collects hundreds of look-alike pairs under the looser bound. `verify=0` is the
+paper's pick alone.
 
-Guided refinement (GMatch only, `refine`): GMatch stops at L (24) matches, and a pose from 24
-points is limited by their depth noise. From the Kabsch pose, every pair with descriptor distance
-< support_eps_scale x eps_f (eps_f, the candidates' bound, when that is 1) whose transformed source
-point lies within tau of its target point is collected, made one-to-one by residual (each source its
-closest target, then each target its closest source), and the pose re-solved by Kabsch on all of them;
-tau shrinks over `refine_taus`.
-A round that keeps fewer pairs than the GMatch list (trimmed pairs included) stops the refinement.
-Measured on rendered captures: mean rotation error per edge 0.44 -> 0.28 deg (turntable, object
-only) and 0.074 -> 0.029 deg (static object, whole frame).
+Guided refinement (GMatch only, `refine`): GMatch stops at L (24) matches. From the list's pose, every
+pair of the pool whose transformed source point lies within gate x s of its target point is collected,
+made one-to-one by normalised residual, and the pose re-solved by Kabsch weighted by 1 / s^2; the gate
+shrinks over `refine_gates`. A round that keeps fewer pairs than the list stops the refinement.
+
+`PairResult.information` is the [6 x 6] information of the pose from its inlier pairs, each weighted by
+1 / s^2 (`information_from_points`): what the pose graph weighs the edge by.
 """
 from __future__ import annotations
 
@@ -57,9 +62,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from gscan.matching.baselines import BASELINES, BaselineParams, run_baseline
 from gscan.geometry.transforms import icp, inv_T, kabsch, kabsch_trimmed, pose_error, transform_points
+from gscan.matching.baselines import BASELINES, BaselineParams, run_baseline
 from gscan.matching.gmatch import GMatchParams, GMatchResult, default_eps_f, gmatch
+from gscan.registration.dense import DenseGeometry, DepthAgreement, depth_agreement
+from gscan.registration.dense import refine_pose as refine_with_depth
+from gscan.registration.noise import DepthNoise
+from gscan.registration.posegraph import information_from_points
 
 log = logging.getLogger(__name__)
 
@@ -71,25 +80,32 @@ class RegisterParams:
     method: str = "gmatch"  # "gmatch" or a baseline name (gscan.matching.baselines.BASELINES)
     gmatch: GMatchParams = GMatchParams()  # matcher parameters (eps_f None -> default of the descriptor)
     baseline: BaselineParams = BaselineParams()  # fixed baseline parameters
+    noise: DepthNoise = DepthNoise()  # the unit s of every keypoint residual below (gscan.registration.noise)
+    depth_noise: DepthNoise = DepthNoise()  # ... of a depth pixel: the depth check and the depth refinement
     min_matches: int = 6  # rule 1
-    max_kabsch_rmse: float = 0.01  # rule 2 (m)
+    max_rms: float = 2.5  # rule 2: RMS of the inliers' residuals in units of s
+    max_sigma_deg: float = 1.0  # rule 2: predicted rotation standard deviation of the pose (deg)
+    max_sigma_rel: float = 0.01  # rule 2: predicted RMS position standard deviation of the pairs' points / depth
     refine: bool = True  # guided refinement of the GMatch pose (module docstring); gmatch only
-    refine_taus: tuple[float, ...] = (0.008, 0.004, 0.003)  # its inlier distances per round (m)
-    trim_tau: float = 0.008  # GMatch list pairs off by more are trimmed from the pose (kabsch_trimmed, m)
+    refine_gates: tuple[float, ...] = (5.0, 4.0, 3.4)  # its inlier gate per round, in units of s
+    trim_gate: float = 4.0  # GMatch list pairs off by more s are trimmed from the pose (kabsch_trimmed)
     verify: int = 16  # other GMatch lists whose support is compared with the winner's (0: the paper's pick alone)
     verify_min_len: int = 4  # ... of at least this many pairs
     verify_ratio: float = 1.5  # ... one replaces the winner only with this many times its support
     support_eps_scale: float = 1.5  # ... support counted on pairs with descriptor distance < this x eps_f
-    # refine by point-to-plane ICP when clouds are given; off by default: on textured planar scenes and
-    # on the real Open3D pairs ICP slid away from the match pose (8.5 vs 0.34 mm ATE on the sample)
+    max_see_through: float = 0.15  # rule 3: share of the depth overlap seen through under the pose
+    dense_refine: bool = True  # with the depth samples, the pose is refined on keypoints and depth together
+    min_overlap: int = 50  # rule 3: depth samples that must land on the other frame to verify the pose
+    # refine by point-to-plane ICP when clouds are given; off by default: on textured planar scenes ICP
+    # slides along the plane, away from the match pose
     icp: bool = False
     icp_max_dist: float = 0.01  # ICP correspondence distance (m)
     icp_voxel: float = 0.004  # ICP voxel downsampling (m), 0 = none
     icp_iterations: int = 30
-    min_fitness: float = 0.3  # rule 3
-    max_rmse: float = 0.006  # rule 3 (m)
-    max_icp_shift_deg: float = 5.0  # rule 3
-    max_icp_shift_m: float = 0.02  # rule 3 (m)
+    min_fitness: float = 0.3  # rule 4
+    max_rmse: float = 0.006  # rule 4 (m)
+    max_icp_shift_deg: float = 5.0  # rule 4
+    max_icp_shift_m: float = 0.02  # rule 4 (m)
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -98,6 +114,10 @@ class RegisterParams:
             raise ValueError("min_matches must be >= 3")
         if self.verify < 0 or self.verify_min_len < 3 or self.verify_ratio < 1 or self.support_eps_scale < 1:
             raise ValueError("need verify >= 0, verify_min_len >= 3, verify_ratio >= 1 and support_eps_scale >= 1")
+        if not self.refine_gates or min(self.refine_gates) <= 0 or self.trim_gate <= 0 or self.max_rms <= 0:
+            raise ValueError("refine_gates, trim_gate and max_rms must be positive")
+        if not 0 <= self.max_see_through <= 1:
+            raise ValueError("max_see_through must lie in [0, 1]")
 
 
 @dataclass
@@ -106,18 +126,43 @@ class PairResult:
     matches: np.ndarray  # [M x 2] int32 (source keypoint, target keypoint)
     cost: float  # GMatch list cost; for baselines the Kabsch RMSE (m)
     n_matches: int
-    rmse: float | None  # ICP inlier RMSE (m) when ICP ran, else the Kabsch RMSE over the matches
+    rmse: float | None  # ICP inlier RMSE (m) when ICP ran, else the RMS keypoint residual over the inliers (m)
     fitness: float | None  # ICP fitness, None without ICP
     accepted: bool
     reason: str | None  # None when accepted, else the first failed rule (module docstring)
     method: str = "gmatch"
     T_match: np.ndarray | None = None  # [4 x 4] pose from the matches alone (before ICP)
     inliers: np.ndarray | None = None  # [K x 2] int32 correspondences the pose was solved from (refined)
+    information: np.ndarray | None = None  # [6 x 6] of the pose from the inliers (module docstring)
+    rms_sigma: float | None = None  # RMS of the inliers' residuals in units of s (rule 2)
+    sigma_deg: float | None = None  # predicted rotation standard deviation of the pose (rule 2)
+    sigma_m: float | None = None  # predicted RMS position standard deviation of its pairs' points (rule 2)
+    agreement: DepthAgreement | None = None  # the depth check of rule 3, when it ran
     timings_ms: dict[str, float] = field(default_factory=dict)
 
 
-def _kabsch_rmse(pts_s: np.ndarray, pts_t: np.ndarray, T: np.ndarray) -> float:
-    return float(np.sqrt(np.mean(np.sum((transform_points(T, pts_s) - pts_t) ** 2, axis=1))))
+def pose_sigma(information: np.ndarray, points: np.ndarray) -> tuple[float, float]:
+    """(largest rotation standard deviation in degrees, RMS positional standard deviation in metres of
+    `points` [N x 3] (target frame) moved by the pose) of a pose with [6 x 6] information (rotation first);
+    inf when it is singular. A rotation about an axis through the points barely moves them: what matters for
+    a registration is how far its pose can move the surface it was solved on (and, through the rotation, the
+    surface far from it)."""
+    try:
+        C = np.linalg.inv(information)
+    except np.linalg.LinAlgError:
+        return float("inf"), float("inf")
+    ev = np.linalg.eigvalsh(C)
+    if ev.min() < 0:  # numerically singular
+        return float("inf"), float("inf")
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    # displacement of p for a small motion (w, t): -[p]x w + t = G x; its covariance G C G^T, trace summed
+    x, y, z = p[:, 0], p[:, 1], p[:, 2]
+    zero, one = np.zeros(len(p)), np.ones(len(p))
+    var = 0.0
+    for G in (np.stack([zero, z, -y, one, zero, zero], 1), np.stack([-z, zero, x, zero, one, zero], 1),
+              np.stack([y, -x, zero, zero, zero, one], 1)):
+        var += float(np.einsum("ij,jk,ik->", G, C, G)) / max(1, len(p))
+    return float(np.degrees(np.sqrt(np.linalg.eigvalsh(C[:3, :3]).max()))), float(np.sqrt(var))
 
 
 class GuidedPool:
@@ -136,9 +181,10 @@ class GuidedPool:
         self.eps = float(eps)
         self._tree = cKDTree(self.pts_t) if len(self.pts_t) else None
 
-    def near(self, pts_s_in_t: np.ndarray, tau: float) -> tuple[np.ndarray, np.ndarray]:
+    def near(self, pts_s_in_t: np.ndarray, tau: float | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(source indices [K], target indices [K]) int64 of the pool's pairs whose source point, given in the
-        target frame ([Ns x 3]), lies within tau of the target point; in (source, target) order."""
+        target frame ([Ns x 3]), lies within tau (m; one for all or one per source point [Ns]) of the target
+        point; in (source, target) order."""
         if self._tree is None or len(pts_s_in_t) == 0:
             return np.zeros(0, np.int64), np.zeros(0, np.int64)
         hits = self._tree.query_ball_point(pts_s_in_t, tau, return_sorted=True)
@@ -148,43 +194,51 @@ class GuidedPool:
         return ii[ok], jj[ok]
 
 
-def refine_pose(pts_s: np.ndarray, pts_t: np.ndarray, pool: GuidedPool, T: np.ndarray, taus: tuple[float, ...],
-                min_pairs: int) -> tuple[np.ndarray, np.ndarray]:
+def _pairs_near(ps: np.ndarray, pt: np.ndarray, pool: GuidedPool, T: np.ndarray, gate: float, noise: DepthNoise
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Pool pairs within gate x s under T: (source idx [K], target idx [K], residual [K] m, s [K] m)."""
+    q = transform_points(T, ps)
+    # the lookup radius takes the target depth as the source point's own depth in the target frame; the
+    # exact s of each found pair (its two depths) decides below
+    ii, jj = pool.near(q, 1.5 * gate * noise.pair_sigma(q[:, 2], q[:, 2]))
+    r = np.linalg.norm(q[ii] - pt[jj], axis=1)
+    sg = noise.pair_sigma(ps[ii, 2], pt[jj, 2])
+    ok = r < gate * sg
+    return ii[ok], jj[ok], r[ok], sg[ok]
+
+
+def refine_pose(pts_s: np.ndarray, pts_t: np.ndarray, pool: GuidedPool, T: np.ndarray, gates: tuple[float, ...],
+                noise: DepthNoise, min_pairs: int) -> tuple[np.ndarray, np.ndarray]:
     """Guided refinement (module docstring): (T_tgt_src [4 x 4], inliers [K x 2] int32).
 
     pts_s [Ns x 3], pts_t [Nt x 3], pool the pairs it may use, T the starting pose.
     Returns the input pose and an empty inlier set when no round keeps `min_pairs` pairs.
     """
     ps, pt = np.asarray(pts_s, np.float64), np.asarray(pts_t, np.float64)
-    # pairs far from consistent under the starting pose never come back: keep the loosest band
-    q = transform_points(T, ps)
-    ii, jj = pool.near(q, max(taus))
-    r = np.linalg.norm(q[ii] - pt[jj], axis=1)
     best = np.zeros((0, 2), np.int32)
-    for tau in taus:
-        ok = _one_to_one(ii, jj, r, tau)
+    for gate in gates:
+        ii, jj, r, sg = _pairs_near(ps, pt, pool, T, gate, noise)
+        ok = _one_to_one(ii, jj, r / sg)
         if len(ok) < min_pairs:
             break
         best = np.stack([ii[ok], jj[ok]], axis=1).astype(np.int32)
-        T = kabsch(ps[best[:, 0]], pt[best[:, 1]])
-        r = np.linalg.norm(transform_points(T, ps[ii]) - pt[jj], axis=1)
+        T = kabsch(ps[best[:, 0]], pt[best[:, 1]], 1.0 / np.square(sg[ok]))
     return T, best
 
 
-def consistent_pairs(pts_s: np.ndarray, pts_t: np.ndarray, pool: GuidedPool, T: np.ndarray, tau: float) -> np.ndarray:
-    """[K x 2] int32 pairs of `pool` (source, target) within tau of each other under T_tgt_src, one-to-one."""
+def consistent_pairs(pts_s: np.ndarray, pts_t: np.ndarray, pool: GuidedPool, T: np.ndarray, gate: float,
+                     noise: DepthNoise) -> np.ndarray:
+    """[K x 2] int32 pairs of `pool` (source, target) within gate x s of each other under T_tgt_src, one-to-one."""
     ps, pt = np.asarray(pts_s, np.float64), np.asarray(pts_t, np.float64)
-    q = transform_points(T, ps)
-    ii, jj = pool.near(q, tau)
-    ok = _one_to_one(ii, jj, np.linalg.norm(q[ii] - pt[jj], axis=1), tau)
+    ii, jj, r, sg = _pairs_near(ps, pt, pool, T, gate, noise)
+    ok = _one_to_one(ii, jj, r / sg)
     return np.stack([ii[ok], jj[ok]], axis=1).astype(np.int32)
 
 
-def _one_to_one(ii: np.ndarray, jj: np.ndarray, r: np.ndarray, tau: float) -> np.ndarray:
-    """Indices of the pairs (ii, jj) with residual r < tau kept one-to-one: each source its closest target,
-    then each target its closest source (ties by index: deterministic)."""
-    ok = np.flatnonzero(r < tau)
-    ok = ok[np.lexsort((jj[ok], ii[ok], r[ok]))]
+def _one_to_one(ii: np.ndarray, jj: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """Indices of the pairs (ii, jj) kept one-to-one by residual r: each source its closest target, then each
+    target its closest source (ties by index: deterministic)."""
+    ok = np.lexsort((jj, ii, r))
     ok = ok[np.sort(np.unique(ii[ok], return_index=True)[1])]
     return ok[np.sort(np.unique(jj[ok], return_index=True)[1])]
 
@@ -220,27 +274,29 @@ def pose_by_support(pts_s: np.ndarray, pts_t: np.ndarray, support_pool: GuidedPo
     Each list's pose (kabsch_trimmed) is refined by `refine_pose` on `support_pool`; its support is the refined
     inlier count (the kept pairs when no round reached the list's length). lists[0] (GMatch's pick) is replaced
     by the best supported other list (first on ties) only if that has at least `verify_ratio` times its support.
-    A list whose pairs all lie within trim_tau under a pose already checked, or whose pose lies within 2 deg /
+    A list whose pairs all lie within their tau under a pose already checked, or whose pose lies within 2 deg /
     1 cm of one, is skipped (it would refine to the same). Supports of lists of different lengths compare as
     they are: a list's refinement must keep at least its own length, else its support is its kept pairs.
     With params.refine, T is the chosen list's pose refined on `support_pool`, and the returned inliers are
-    the `refine_pool` pairs consistent with it within the last refinement radius (empty, as when no round
+    the `refine_pool` pairs consistent with it within the last refinement gate (empty, as when no round
     kept the list's length, if they are fewer than the list); else T is the list's own pose.
     """
     if not lists:
         raise ValueError("pose_by_support needs at least GMatch's own list")
+    noise = params.noise
     best, verified = None, []
     for k, m in enumerate(lists):
         src, dst = pts_s[m[:, 0]], pts_t[m[:, 1]]
-        if any(np.linalg.norm(transform_points(V, src) - dst, axis=1).max() < params.trim_tau for V in verified):
+        tau = params.trim_gate * noise.pair_sigma(src[:, 2], dst[:, 2])
+        if any((np.linalg.norm(transform_points(V, src) - dst, axis=1) < tau).all() for V in verified):
             continue  # every pair agrees with a pose already checked
-        T, keep = kabsch_trimmed(src, dst, params.trim_tau)
+        T, keep = kabsch_trimmed(src, dst, tau)
         if any(e[0] < _SAME_POSE_DEG and e[1] < _SAME_POSE_M for e in (pose_error(T, V) for V in verified)):
             continue
         verified.append(T)
         if len(lists) == 1 and not params.refine:  # nothing to compare, nothing to refine
             return 0, T, m[keep], np.zeros((0, 2), np.int32)
-        T_ref, refined = refine_pose(pts_s, pts_t, support_pool, T, params.refine_taus, len(m))
+        T_ref, refined = refine_pose(pts_s, pts_t, support_pool, T, params.refine_gates, noise, len(m))
         support = len(refined) if len(refined) else int(keep.sum())
         if k == 0:
             first, support_0 = (k, T, keep, T_ref, refined), support
@@ -252,15 +308,17 @@ def pose_by_support(pts_s: np.ndarray, pts_t: np.ndarray, support_pool: GuidedPo
     if not len(refined):
         return k, T, lists[k][keep], refined
     # the inliers (what the pose graph weighs an edge by): the candidates alone that agree with the pose
-    inliers = consistent_pairs(pts_s, pts_t, refine_pool, T_ref, params.refine_taus[-1])
+    inliers = consistent_pairs(pts_s, pts_t, refine_pool, T_ref, params.refine_gates[-1], noise)
     return k, T_ref, lists[k][keep], (inliers if len(inliers) >= len(lists[k]) else np.zeros((0, 2), np.int32))
 
 
 def register_points(pts_s: np.ndarray, pts_t: np.ndarray, desc_s: np.ndarray, desc_t: np.ndarray, kind: str,
-                    params: RegisterParams = RegisterParams(), clouds: tuple | None = None) -> PairResult:
+                    params: RegisterParams = RegisterParams(), clouds: tuple | None = None,
+                    dense: tuple[DenseGeometry, DenseGeometry] | None = None) -> PairResult:
     """Register camera-frame keypoints pts_s [Ns x 3] -> pts_t [Nt x 3] (descriptors [N x D] of `kind`).
 
-    clouds: optional (src [P x 3], tgt [Q x 3]) camera-frame clouds for ICP.
+    clouds: optional (src [P x 3], tgt [Q x 3]) camera-frame clouds for ICP; dense: optional (source, target)
+    depth samples for rule 3.
     """
     from gscan.features import descriptor_distances
 
@@ -291,46 +349,77 @@ def register_points(pts_s: np.ndarray, pts_t: np.ndarray, desc_s: np.ndarray, de
         if k:
             log.debug("register: hypothesis list %d (%d pairs) outsupports GMatch's (%d pairs)", k, len(lists[k]), n)
             matches, n, cost = lists[k], len(lists[k]), costs[k]
-        n_kept = len(kept)
         inliers = refined if params.refine and len(refined) else kept
+        n_kept = len(inliers)
     elif T is None:
         T = kabsch(ps[matches[:, 0]], pt[matches[:, 1]])
-    krmse = _kabsch_rmse(ps[inliers[:, 0]], pt[inliers[:, 1]], T) if T is not None else float("inf")
-    if params.method != "gmatch":
-        cost = krmse
-    out = PairResult(T, matches, float(cost), n, krmse if n >= 3 else None, None, False, None, params.method,
+    out = PairResult(T, matches, float(cost), n, None, None, False, None, params.method,
                      T_match=None if T is None else T.copy(), inliers=inliers, timings_ms=tm)
+    if T is not None and len(inliers):
+        src, dst = ps[inliers[:, 0]], pt[inliers[:, 1]]
+        sg = params.noise.pair_sigma(src[:, 2], dst[:, 2])
+        r = np.linalg.norm(transform_points(T, src) - dst, axis=1)
+        out.rmse = float(np.sqrt(np.mean(r * r)))
+        out.rms_sigma = float(np.sqrt(np.mean(np.square(r / sg))))
+        out.information = information_from_points(dst, sg)
+        out.sigma_deg, out.sigma_m = pose_sigma(out.information, dst)
+        if params.method != "gmatch":
+            out.cost = out.rmse
     if n_kept < params.min_matches:
         out.reason = f"too few matches ({n_kept} < {params.min_matches})"
         return out
-    if krmse > params.max_kabsch_rmse:
-        out.reason = f"kabsch residual ({krmse:.4f} m > {params.max_kabsch_rmse} m)"
+    if out.rms_sigma is not None and out.rms_sigma > params.max_rms:
+        out.reason = f"keypoint residual ({out.rms_sigma:.2f} > {params.max_rms} noise sigmas)"
         return out
+    if dense is not None and params.dense_refine:
+        t0 = time.perf_counter()
+        T, out.information = refine_with_depth(dense[0], dense[1], src, dst, T, params.noise, params.depth_noise)
+        out.T_tgt_src = T
+        out.sigma_deg, out.sigma_m = pose_sigma(out.information, dst)
+        tm["refine"] = (time.perf_counter() - t0) * 1e3
+    depth = float(np.median(pt[inliers[:, 1], 2]))
+    if out.sigma_deg is not None and (out.sigma_deg > params.max_sigma_deg or out.sigma_m > params.max_sigma_rel * depth):
+        what = "pairs and the depth" if dense is not None and params.dense_refine else "pairs"
+        out.reason = (f"weak geometry (the {n_kept} {what} pin the pose to {out.sigma_deg:.1f} deg and the "
+                      f"pairs' points to {out.sigma_m * 1000:.1f} mm, beyond {params.max_sigma_deg:g} deg / "
+                      f"{params.max_sigma_rel * depth * 1000:.1f} mm)")
+        return out
+    if dense is not None:
+        t0 = time.perf_counter()
+        a = out.agreement = depth_agreement(dense[0], dense[1], T, params.depth_noise)
+        tm["dense"] = (time.perf_counter() - t0) * 1e3
+        if a.consistent + a.see_through < params.min_overlap:
+            out.reason = f"too little depth overlap to verify the pose ({a.consistent + a.see_through} samples)"
+            return out
+        if a.see_through_fraction > params.max_see_through:
+            out.reason = f"depth disagrees ({a.see_through_fraction:.0%} of the overlap seen through)"
+            return out
     if params.icp and clouds is not None and clouds[0] is not None and clouds[1] is not None:
         t0 = time.perf_counter()
-        r = icp(clouds[0], clouds[1], T, params.icp_max_dist, params.icp_voxel, params.icp_iterations, True)
+        r_icp = icp(clouds[0], clouds[1], T, params.icp_max_dist, params.icp_voxel, params.icp_iterations, True)
         tm["icp"] = (time.perf_counter() - t0) * 1e3
-        out.fitness, out.rmse = r.fitness, r.rmse
-        deg, m = pose_error(r.T, T)
-        if r.fitness < params.min_fitness:
-            out.reason = f"icp fitness ({r.fitness:.2f} < {params.min_fitness})"
-        elif r.rmse > params.max_rmse:
-            out.reason = f"icp rmse ({r.rmse:.4f} m > {params.max_rmse} m)"
+        out.fitness, out.rmse = r_icp.fitness, r_icp.rmse
+        deg, m = pose_error(r_icp.T, T)
+        if r_icp.fitness < params.min_fitness:
+            out.reason = f"icp fitness ({r_icp.fitness:.2f} < {params.min_fitness})"
+        elif r_icp.rmse > params.max_rmse:
+            out.reason = f"icp rmse ({r_icp.rmse:.4f} m > {params.max_rmse} m)"
         elif deg > params.max_icp_shift_deg or m > params.max_icp_shift_m:
             out.reason = f"icp shift ({deg:.1f} deg, {m:.3f} m)"
         else:
-            out.T_tgt_src = r.T
+            out.T_tgt_src = r_icp.T
             out.accepted = True
         return out
     out.accepted = True
     return out
 
 
-def register_features(fs, ft, params: RegisterParams = RegisterParams(), clouds: tuple | None = None) -> PairResult:
+def register_features(fs, ft, params: RegisterParams = RegisterParams(), clouds: tuple | None = None,
+                      dense: tuple[DenseGeometry, DenseGeometry] | None = None) -> PairResult:
     """Register two gscan.features.Features (camera-frame points, viewed along +z)."""
     if fs.kind != ft.kind:
         raise ValueError(f"descriptor kinds differ: {fs.kind} vs {ft.kind}")
-    return register_points(fs.points, ft.points, fs.descriptors, ft.descriptors, fs.kind, params, clouds)
+    return register_points(fs.points, ft.points, fs.descriptors, ft.descriptors, fs.kind, params, clouds, dense)
 
 
 def frame_cloud(frame, stride: int = 2, mask: np.ndarray | None = None) -> np.ndarray:
@@ -342,7 +431,8 @@ def frame_cloud(frame, stride: int = 2, mask: np.ndarray | None = None) -> np.nd
 
 def match_frames(frame_s, frame_t, params: RegisterParams = RegisterParams(), feature_params=None,
                  use_masks: bool = False, icp_stride: int = 2) -> PairResult:
-    """One call: features of both RGBDFrames -> match -> Kabsch -> ICP (whole frames unless use_masks)."""
+    """One call: features of both RGBDFrames -> match -> pose -> depth check -> ICP (whole frames unless
+    use_masks)."""
     from gscan.features import FeatureParams, extract_features
 
     fp = feature_params if feature_params is not None else FeatureParams()
@@ -353,7 +443,9 @@ def match_frames(frame_s, frame_t, params: RegisterParams = RegisterParams(), fe
     ft = extract_features(frame_t, fp, mask=mt)
     t_feat = (time.perf_counter() - t0) * 1e3
     clouds = (frame_cloud(frame_s, icp_stride, ms), frame_cloud(frame_t, icp_stride, mt)) if params.icp else None
-    out = register_features(fs, ft, params, clouds)
+    dense = (DenseGeometry.from_depth(frame_s.depth, frame_s.intrinsics, ms),
+             DenseGeometry.from_depth(frame_t.depth, frame_t.intrinsics, mt))
+    out = register_features(fs, ft, params, clouds, dense)
     out.timings_ms["features"] = t_feat
     return out
 

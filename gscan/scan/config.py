@@ -13,6 +13,8 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from gscan.errors import InputError
+from gscan.registration.pairwise import RegisterParams
+from gscan.registration.posegraph import LoopParams, PoseGraphParams
 
 
 class _Section(BaseModel):
@@ -37,26 +39,68 @@ class MatchConfig(_Section):
     constraint: Literal["flip", "triple"] = Field("flip", description="flip-over or scalar-triple-product constraint")
 
 
+class NoiseModelConfig(_Section):
+    c0: float = Field(ge=0, description="per-axis variance floor (m^2)")
+    c1: float = Field(ge=0, description="... growing with depth^2 (localisation: m^2 per m^2)")
+    c2: float = Field(ge=0, description="... growing with depth^4 (axial sensor noise: m^2 per m^4)")
+
+    @model_validator(mode="after")
+    def _positive(self) -> "NoiseModelConfig":
+        if self.c0 + self.c1 + self.c2 <= 0:
+            raise ValueError("a noise model needs a positive coefficient")
+        return self
+
+
+class NoiseConfig(_Section):
+    keypoint: NoiseModelConfig = Field(description="noise of a lifted keypoint (window median of the depth)")
+    depth: NoiseModelConfig = Field(description="noise of one depth pixel")
+
+
+_RP = RegisterParams()
+
+
 class RegisterConfig(_Section):
-    min_matches: int = Field(8, ge=3, description="an edge needs at least this many geometric matches")
-    verify: int = Field(16, ge=0, le=256, description="other GMatch hypothesis lists whose support is checked against the longest's (0 = the paper's pick)")
-    support_eps_scale: float = Field(1.5, ge=1, le=4, description="the support of those lists counts pairs with descriptor distance below this x eps_f (1 = GMatch's candidates)")
-    icp: bool = Field(False, description="refine each edge by point-to-plane ICP (off: on textured planar scenes ICP slides; GMatch + Kabsch is measured more accurate)")
-    icp_max_dist: float = Field(0.01, gt=0, description="ICP correspondence distance (m)")
-    icp_voxel: float = Field(0.004, ge=0, description="voxel size for ICP clouds (m), 0 = no downsampling")
-    min_fitness: float = Field(0.3, ge=0, le=1, description="an edge needs ICP fitness at least this")
-    max_rmse: float = Field(0.006, gt=0, description="an edge needs ICP inlier RMSE at most this (m)")
-    max_icp_shift_deg: float = Field(5.0, gt=0, description="reject an edge whose ICP moved the match pose more (deg)")
-    max_icp_shift_m: float = Field(0.02, gt=0, description="reject an edge whose ICP moved the match pose more (m)")
+    min_matches: int = Field(_RP.min_matches, ge=3, description="an edge needs at least this many geometric matches")
+    noise: NoiseConfig | None = Field(
+        None, description="noise of lifted keypoints and of depth pixels, sigma^2(z) = c0 + c1 z^2 + c2 z^4 per axis, "
+        "the unit of every residual threshold; null = estimated from the capture (a few sequential pairs)")
+    max_rms: float = Field(_RP.max_rms, gt=0, description="an edge's keypoint residual RMS may be at most this many "
+                           "noise sigmas")
+    max_sigma_deg: float = Field(_RP.max_sigma_deg, gt=0, description="an edge's pose, as its matched points pin it, "
+                                 "may be uncertain by at most this (deg, 1 sigma)")
+    max_sigma_rel: float = Field(_RP.max_sigma_rel, gt=0, description="... and by at most this share of its depth "
+                                 "(position, 1 sigma)")
+    max_see_through: float = Field(_RP.max_see_through, ge=0, le=1, description="an edge is rejected when its pose "
+                                   "lets one frame see through this share of the other frame's surfaces")
+    dense_refine: bool = Field(_RP.dense_refine, description="refine each edge's pose on its keypoints and both "
+                               "frames' depth together (point-to-plane)")
+    verify: int = Field(_RP.verify, ge=0, le=256, description="other GMatch hypothesis lists whose support is checked "
+                        "against the longest's (0 = the paper's pick)")
+    support_eps_scale: float = Field(_RP.support_eps_scale, ge=1, le=4, description="the support of those lists counts "
+                                     "pairs with descriptor distance below this x eps_f (1 = GMatch's candidates)")
+    icp: bool = Field(_RP.icp, description="refine each edge by point-to-plane ICP (off: on textured planar scenes "
+                      "ICP slides; GMatch + Kabsch is measured more accurate)")
+    icp_max_dist: float = Field(_RP.icp_max_dist, gt=0, description="ICP correspondence distance (m)")
+    icp_voxel: float = Field(_RP.icp_voxel, ge=0, description="voxel size for ICP clouds (m), 0 = no downsampling")
+    min_fitness: float = Field(_RP.min_fitness, ge=0, le=1, description="an edge needs ICP fitness at least this")
+    max_rmse: float = Field(_RP.max_rmse, gt=0, description="an edge needs ICP inlier RMSE at most this (m)")
+    max_icp_shift_deg: float = Field(_RP.max_icp_shift_deg, gt=0, description="reject an edge whose ICP moved the "
+                                     "match pose more (deg)")
+    max_icp_shift_m: float = Field(_RP.max_icp_shift_m, gt=0, description="reject an edge whose ICP moved the match "
+                                   "pose more (m)")
+
+
+_LP, _PG = LoopParams(), PoseGraphParams()
 
 
 class PoseGraphConfig(_Section):
-    loop_candidates: int = Field(4, ge=0, description="loop-closure candidates tried per frame")
-    certain_min_inliers: int = Field(48, ge=0, description="sequential edges with fewer inliers are treated like "
-                                     "loop closures (the pose graph may switch them off)")
-    max_view_angle_deg: float = Field(75.0, gt=0, le=180, description="loop candidates view the object within this angle")
-    prune_rot_deg: float = Field(2.0, gt=0, description="edges disagreeing with the optimised graph by more are pruned")
-    prune_trans_m: float = Field(0.01, gt=0, description="edges disagreeing with the optimised graph by more are pruned (m)")
+    loop_candidates: int = Field(_LP.max_per_node, ge=0, description="loop-closure candidates tried per frame")
+    max_view_angle_deg: float = Field(_LP.max_angle_deg, gt=0, le=180, description="loop candidates view the object "
+                                      "within this angle")
+    alpha: float = Field(_PG.alpha, gt=0, lt=1, description="an edge is inconsistent with the others when its "
+                         "chi^2 is beyond the (1 - alpha) quantile (6 degrees of freedom)")
+    bridge_min_matches: int = Field(2 * _RP.min_matches, ge=3, description="an edge that alone joins two parts of "
+                                    "the graph needs this many matches; weaker, it is cut and the parts reported")
 
 
 class FusionConfig(_Section):

@@ -38,7 +38,12 @@ from gscan.features import OBJECT_FEATURES, FeatureParams, Features, extract_fea
 from gscan.scan.fuse import FusedModel, FusionParams, fuse_tsdf, template_frame
 from gscan.geometry.transforms import transform_points
 from gscan.progress import Progress, StageTimer
+from gscan.registration.dense import DenseGeometry, plane_residuals
+from gscan.registration.noise import DepthNoise, estimate_noise
 from gscan.registration.pairwise import RegisterParams, register_features
+from gscan.registration.posegraph import (GraphEdge, LoopParams, PoseGraphParams, PoseGraphResult,
+                                          information_from_points, optimize_pose_graph, select_loop_candidates,
+                                          spanning_poses)
 from gscan.scan.segment import Plane, SegmentParams
 from gscan.template.db import Edge, TemplateDB, View, ViewFeatures
 
@@ -50,9 +55,11 @@ ICP_VOXEL_STRIDE = 2  # pixel stride of the clouds kept for ICP before voxel dow
 # whole-frame pairs RootSIFT 0.5 is as accurate as the object-only default 0.6 (100 % at every
 # threshold from 0.4 to 0.8, BENCHMARKS.md) and 7x faster (85 vs 640 ms a pair: fewer candidates)
 WHOLE_FRAME_EPS_F = {"rootsift": 0.5}
-QUALITY_RMSE = 0.01  # m: a view whose best accepted edge has this residual gets quality 0
+QUALITY_RMS_SIGMA = 3.4  # a view whose best accepted edge has this RMS keypoint residual (noise sigmas) gets quality 0
+PILOT_PAIRS = 8  # sequential pairs, spread over the capture, whose residuals fit the capture's depth noise
 WORKERS = 2  # threads for per-frame and per-edge work (the target machines have 2 cores)
 PRUNED = "pruned by the pose graph: "  # reason prefix of edges registration accepted and the pose graph rejected
+NO_KEYPOINTS = "no keypoint with depth (dark or textureless image, or no valid depth)"
 
 
 @dataclass
@@ -82,13 +89,18 @@ class ScanResult:
     mesh_vertices: int
     mesh_triangles: int
     timings_s: dict[str, float]
-    problems: dict[str, str]
+    problems: dict[str, str]  # frames that could not be read: name -> why
     keyframes: int = 0
+    unregistered_reasons: dict[str, str] = field(default_factory=dict)  # every unregistered frame -> why
+    parts: list[list[str]] = field(default_factory=list)  # frames of the parts not joined to the template's
+    noise: DepthNoise | None = None  # the noise model of lifted keypoints registration used
 
     def to_json(self) -> dict:
         """The `scan --json` object of the CLI contract."""
         return {"output": str(self.output), "frames": self.frames, "registered": self.registered,
                 "unregistered": list(self.unregistered),
+                "unregistered_reasons": {n: self.unregistered_reasons.get(n, "") for n in self.unregistered},
+                "parts": [list(p) for p in self.parts],
                 "edges": {"accepted": self.edges_accepted, "rejected": self.edges_rejected},
                 "mode": self.mode, "mesh": {"vertices": self.mesh_vertices, "triangles": self.mesh_triangles},
                 "timings_s": {k: round(v, 3) for k, v in self.timings_s.items()},
@@ -102,9 +114,12 @@ class _Frame:
     cloud: np.ndarray | None = None  # [P x 3] camera-frame points for ICP
     mask: np.ndarray | None = None  # [H x W] bool object mask (given or computed)
     plane_cam: Plane | None = None  # support plane found while computing a moving object's mask
+    dense: DenseGeometry | None = None  # depth samples for the edges' depth check (registration's pixels)
 
 
 def _register_params(cfg: ScanConfig, mode: str) -> RegisterParams:
+    """Registration's parameters from the config; the noise models are the configured ones, or the priors a
+    capture's own noise is estimated from (`_capture_noise`)."""
     from gscan.matching.gmatch import GMatchParams
 
     m, r = cfg.match, cfg.registration
@@ -112,11 +127,14 @@ def _register_params(cfg: ScanConfig, mode: str) -> RegisterParams:
     if eps_f is None and mode == STATIC_OBJECT:
         eps_f = WHOLE_FRAME_EPS_F.get(cfg.features.kind)
     gm = GMatchParams(eps_f=eps_f, eps_c=m.eps_c, eta=m.eta, T=m.T, L=m.L, constraint=m.constraint, order=m.order)
-    return RegisterParams(method=m.method, gmatch=gm, min_matches=r.min_matches, verify=r.verify,
-                          support_eps_scale=r.support_eps_scale, icp=r.icp,
-                          icp_max_dist=r.icp_max_dist, icp_voxel=r.icp_voxel, min_fitness=r.min_fitness,
-                          max_rmse=r.max_rmse, max_icp_shift_deg=r.max_icp_shift_deg,
-                          max_icp_shift_m=r.max_icp_shift_m)
+    noise = {} if r.noise is None else {"noise": DepthNoise(**r.noise.keypoint.model_dump()),
+                                        "depth_noise": DepthNoise(**r.noise.depth.model_dump())}
+    return RegisterParams(method=m.method, gmatch=gm, min_matches=r.min_matches, max_rms=r.max_rms,
+                          max_sigma_deg=r.max_sigma_deg, max_sigma_rel=r.max_sigma_rel,
+                          max_see_through=r.max_see_through, dense_refine=r.dense_refine, verify=r.verify,
+                          support_eps_scale=r.support_eps_scale, icp=r.icp, icp_max_dist=r.icp_max_dist,
+                          icp_voxel=r.icp_voxel, min_fitness=r.min_fitness, max_rmse=r.max_rmse,
+                          max_icp_shift_deg=r.max_icp_shift_deg, max_icp_shift_m=r.max_icp_shift_m, **noise)
 
 
 RESUME_KEYS = ("input", "format", "intrinsics_sha256", "depth_scale_option", "config", "mode_option", "segment",
@@ -245,16 +263,23 @@ def _scan_frames(frames: list[_Frame], opts: ScanOptions, db: TemplateDB, resume
                          "(dark or textureless images, or no valid depth)")
 
     n = len(frames)
+    rparams = _register_params(cfg, mode)
+    with timer.stage("noise", total=1) as advance:
+        if cfg.registration.noise is None:
+            kp_noise, depth_noise = _capture_noise(frames, rparams)
+            rparams = replace(rparams, noise=kp_noise, depth_noise=depth_noise)
+        db.set_meta("noise", {"keypoint": rparams.noise.to_dict(), "depth": rparams.depth_noise.to_dict()})
+        advance(1)
     with timer.stage("register", total=max(1, n - 1)) as advance:
-        edges, restored = _register_edges(frames, _register_params(cfg, mode), cfg, db, resumed, advance)
+        edges, restored = _register_edges(frames, rparams, cfg, db, resumed, advance)
 
     index = {f.frame.name: k for k, f in enumerate(frames)}
     with timer.stage("posegraph", total=1) as advance:
-        T_world_cam, quality = _optimise(n, edges, index, frames, cfg)
+        T_world_cam, quality, graph = _optimise(n, edges, index, frames, cfg, rparams)
         advance(1)
     registered = [k for k in range(n) if T_world_cam[k] is not None]
-    if not registered:  # the pose graph always leaves a frame registered; a guard, not an expected path
-        raise InputError(opts.input_dir, "no frame could be registered")
+    reasons = _unregistered_reasons(frames, edges, graph, index)
+    parts = [[frames[k].frame.name for k in part] for part in graph.parts]
 
     with timer.stage("segment", total=1) as advance:
         masks, plane_world = _segment(frames, T_world_cam, mode, opts.segment, seg)
@@ -275,6 +300,8 @@ def _scan_frames(frames: list[_Frame], opts: ScanOptions, db: TemplateDB, resume
         db.set_cloud(transform_points(T_obj_world, model.points), model.point_colors)
         unregistered = [f.frame.name for f, T in zip(frames, T_world_cam) if T is None]
         db.set_meta("unregistered", unregistered)
+        db.set_meta("unregistered_reasons", reasons)
+        db.set_meta("parts", parts)
         db.set_meta("skipped", problems)
         db.set_meta("voxel_size", model.voxel_size)
         db.set_meta("support_plane", plane_world is not None)
@@ -284,9 +311,12 @@ def _scan_frames(frames: list[_Frame], opts: ScanOptions, db: TemplateDB, resume
     stored_edges = db.edges()
     accepted = sum(1 for e in stored_edges if e.accepted)
     total_edges = len(stored_edges)
-    return ScanResult(opts.output, len(frames) + len(problems), len(registered), unregistered + sorted(problems),
-                      accepted, total_edges - accepted, mode, len(V), len(model.triangles), dict(timer.timings),
-                      problems, len(keyframes))
+    return ScanResult(output=opts.output, frames=len(frames) + len(problems), registered=len(registered),
+                      unregistered=unregistered + sorted(problems), edges_accepted=accepted,
+                      edges_rejected=total_edges - accepted, mode=mode, mesh_vertices=len(V),
+                      mesh_triangles=len(model.triangles), timings_s=dict(timer.timings), problems=problems,
+                      keyframes=len(keyframes), unregistered_reasons=reasons | problems, parts=parts,
+                      noise=rparams.noise)
 
 
 def _fuse(frames: list[_Frame], T_world_cam: list[np.ndarray | None], masks: list[np.ndarray | None],
@@ -334,19 +364,20 @@ def _extract(frames: list[_Frame], mode: str, cfg: ScanConfig, db: TemplateDB, r
     stored = set(db.view_names()) if resumed else set()
     db_poses = {v.name: v.T_obj_cam for v in db.views()} if stored else {}
 
-    def frame_work(k: int) -> tuple[Features | None, np.ndarray]:
+    def frame_work(k: int) -> tuple[Features | None, np.ndarray | None, DenseGeometry]:
         f = frames[k]
         reg_mask = f.mask if mode == MOVING_OBJECT else None
         reuse = f.frame.name in stored and db_poses.get(f.frame.name, 1) is None
         feats = None if reuse else extract_features(f.frame, fparams, mask=reg_mask)
-        return feats, _icp_cloud(f.frame, reg_mask, cfg.registration.icp_voxel) if cfg.registration.icp else None
+        cloud = _icp_cloud(f.frame, reg_mask, cfg.registration.icp_voxel) if cfg.registration.icp else None
+        return feats, cloud, DenseGeometry.from_depth(f.frame.depth, f.frame.intrinsics, reg_mask)
 
     # OpenCV and open3d release the GIL: two threads use both cores; results are per frame
     # and written in input order, so the output does not depend on the scheduling
     with ThreadPoolExecutor(max_workers=WORKERS) as pool:
-        for k, (feats, cloud) in enumerate(pool.map(frame_work, range(len(frames)))):
+        for k, (feats, cloud, dense) in enumerate(pool.map(frame_work, range(len(frames)))):
             f = frames[k]
-            f.cloud = cloud
+            f.cloud, f.dense = cloud, dense
             if feats is None:  # stored by the interrupted run, still in the camera frame
                 vf = db.features(f.frame.name)
                 feats = Features(vf.pixels, vf.points_obj, vf.descriptors, vf.kind,
@@ -360,14 +391,41 @@ def _extract(frames: list[_Frame], mode: str, cfg: ScanConfig, db: TemplateDB, r
             advance(1)
 
 
+def _capture_noise(frames: list[_Frame], params: RegisterParams) -> tuple[DepthNoise, DepthNoise]:
+    """The capture's noise, of a lifted keypoint and of a depth pixel (`gscan.registration.noise`): up to
+    PILOT_PAIRS sequential pairs spread evenly over the capture, registered under the priors of `params`;
+    the keypoint residuals of their inliers, and the distances of their depth samples to the other frame's
+    surface within 5 prior sigmas, are fitted. A prior stays when too few pairs are left."""
+    n = len(frames)
+    picks = sorted({int(j) for j in np.linspace(1, n - 1, min(PILOT_PAIRS, n - 1))}) if n > 1 else []
+
+    def pair(j: int) -> tuple[np.ndarray, ...]:
+        fs, ft = frames[j - 1], frames[j]
+        r = register_features(fs.feats, ft.feats, params, dense=(fs.dense, ft.dense))
+        if not r.accepted or r.inliers is None or not len(r.inliers):
+            return (np.zeros(0),) * 6
+        ps = fs.feats.points[r.inliers[:, 0]].astype(np.float64)
+        pt = ft.feats.points[r.inliers[:, 1]].astype(np.float64)
+        e, za, zb = plane_residuals(fs.dense, ft.dense, r.T_tgt_src)
+        near = np.abs(e) < 5.0 * params.depth_noise.pair_sigma(za, zb)
+        return (np.linalg.norm(transform_points(r.T_tgt_src, ps) - pt, axis=1), ps[:, 2], pt[:, 2],
+                e[near], za[near], zb[near])
+
+    with ThreadPoolExecutor(max_workers=WORKERS) as pool:
+        got = list(pool.map(pair, picks))
+    if not got:
+        return params.noise, params.depth_noise
+    r, za, zb, e, da, db = (np.concatenate(x) for x in zip(*got))
+    return (estimate_noise(r, za, zb, prior=params.noise),
+            estimate_noise(e, da, db, prior=params.depth_noise, dof=1))
+
+
 def _register_edges(frames: list[_Frame], rparams: RegisterParams, cfg: ScanConfig, db: TemplateDB, resumed: bool,
                     advance: Callable[[int], None]) -> tuple[list[Edge], set[tuple[str, str]]]:
     """Sequential edges (with fall-back to earlier frames), then loop closures; each stored as computed.
 
     Returns the edges in order and the stored edges a resumed scan accepted again (pruned by the
     interrupted run's pose graph, left for this run's pose graph to judge)."""
-    from gscan.registration.posegraph import GraphEdge, LoopParams, select_loop_candidates, spanning_poses
-
     names = [f.frame.name for f in frames]
     done = {(e.src, e.tgt): e for e in db.edges()} if resumed else {}
     restored: set[tuple[str, str]] = set()
@@ -376,7 +434,8 @@ def _register_edges(frames: list[_Frame], rparams: RegisterParams, cfg: ScanConf
         i, j = pair
         if (names[i], names[j]) in done:
             return None
-        return register_features(frames[i].feats, frames[j].feats, rparams, clouds=(frames[i].cloud, frames[j].cloud))
+        fi, fj = frames[i], frames[j]
+        return register_features(fi.feats, fj.feats, rparams, clouds=(fi.cloud, fj.cloud), dense=(fi.dense, fj.dense))
 
     def register_all(pairs: list[tuple[int, int]], kind: str, pool: ThreadPoolExecutor) -> list[Edge]:
         """Edges of `pairs`, computed on the pool (numba and OpenCV release the GIL), stored in order."""
@@ -410,7 +469,8 @@ def _register_edges(frames: list[_Frame], rparams: RegisterParams, cfg: ScanConf
                 edges += register_all([(i, j)], "sequential", pool)
             advance(1)
 
-        seq_graph = [GraphEdge(index[e.src], index[e.tgt], e.T_tgt_src) for e in edges if e.accepted]
+        seq_graph = [GraphEdge(index[e.src], index[e.tgt], e.T_tgt_src, weight=len(e.matches))
+                     for e in edges if e.accepted]
         T_init = spanning_poses(n, seq_graph)
         existing = [(index[e.src], index[e.tgt]) for e in edges]
         lp = LoopParams(max_per_node=cfg.posegraph.loop_candidates, max_angle_deg=cfg.posegraph.max_view_angle_deg)
@@ -472,40 +532,73 @@ def _icp_cloud(frame: RGBDFrame, mask: np.ndarray | None, voxel: float) -> np.nd
     return np.asarray(pc.points)
 
 
-def _optimise(n: int, edges: list[Edge], index: dict[str, int], frames: list[_Frame],
-              cfg: ScanConfig) -> tuple[list[np.ndarray | None], dict[int, float]]:
-    """Pose graph over accepted edges -> (T_world_cam per frame or None, quality in [0, 1] per frame)."""
-    from gscan.registration.posegraph import (GraphEdge, PoseGraphParams, information_from_points, optimize_pose_graph,
-                                 spanning_poses)
-
+def _optimise(n: int, edges: list[Edge], index: dict[str, int], frames: list[_Frame], cfg: ScanConfig,
+              rparams: RegisterParams) -> tuple[list[np.ndarray | None], dict[int, float], PoseGraphResult]:
+    """Pose graph over accepted edges -> (T_world_cam per frame or None, quality in [0, 1] per frame, the
+    pose graph's result with edge indices into the accepted edges)."""
     use = [e for e in edges if e.accepted and e.T_tgt_src is not None]
     graph = []
     for e in use:
         i, j = index[e.src], index[e.tgt]
-        pts_t = frames[j].feats.points[e.matches[:, 1]]  # accepted edges have >= min_matches matches
-        # loop closures and weakly supported edges may be switched off by the line process: a
-        # repetitive or symmetric texture can give a consistent but wrong list of L matches, which
-        # then explains few other candidates (measured: wrong edges 27-40, right ones 63-700)
-        doubtful = e.kind == "loop" or len(e.matches) < cfg.posegraph.certain_min_inliers
-        graph.append(GraphEdge(i, j, e.T_tgt_src, information_from_points(pts_t), uncertain=doubtful))
-    T0 = spanning_poses(n, graph, [len(e.matches) for e in use])
-    ref = next((k for k in range(n) if T0[k] is not None), 0)  # the first frame with an edge
-    params = PoseGraphParams(max_residual_deg=cfg.posegraph.prune_rot_deg,
-                             max_residual_m=cfg.posegraph.prune_trans_m,
-                             max_correspondence_distance=cfg.registration.icp_max_dist)
-    res = optimize_pose_graph(n, graph, T0, params, reference_node=ref)
-    best_rmse: dict[int, float] = {}
+        ps = frames[i].feats.points[e.matches[:, 0]].astype(np.float64)
+        pt = frames[j].feats.points[e.matches[:, 1]].astype(np.float64)
+        # weighed by its keypoint evidence alone (source frame: the pose graph's residual is in it): the depth refines and checks an edge, but is no evidence
+        # between look-alike poses (a box printed alike on opposite faces turned 180 degrees on a flat
+        # table has the same depth), and its thousands of samples would weigh a 10-pair edge like a
+        # 700-pair one
+        info = information_from_points(ps, rparams.noise.pair_sigma(ps[:, 2], pt[:, 2]))
+        # an edge may join two parts of the graph alone only on strong evidence: enough matches (its depth
+        # agreement is already a condition of every accepted edge)
+        graph.append(GraphEdge(i, j, e.T_tgt_src, info, strong=len(e.matches) >= cfg.posegraph.bridge_min_matches,
+                               weight=len(e.matches)))
+    res = optimize_pose_graph(n, graph, spanning_poses(n, graph), PoseGraphParams(alpha=cfg.posegraph.alpha))
+    best: dict[int, float] = {}
     for rep, e in zip(res.edges, use):
         # the pose graph's verdict joins the registration's: pruned edges are recorded as rejected
         if not rep.accepted:
             e.accepted = False
             e.reason = PRUNED + str(rep.reason)
-        for k in (rep.src, rep.tgt):
-            if rep.accepted and e.rmse is not None:
-                best_rmse[k] = min(best_rmse.get(k, np.inf), float(e.rmse))
-    # registration quality of a view in [0, 1] (1 = perfect): 1 - RMSE / QUALITY_RMSE of its best edge
-    quality = {k: float(np.clip(1.0 - r / QUALITY_RMSE, 0.0, 1.0)) for k, r in best_rmse.items()}
-    return res.T_world_node, quality
+            continue
+        i, j = index[e.src], index[e.tgt]
+        ps = frames[i].feats.points[e.matches[:, 0]].astype(np.float64)
+        pt = frames[j].feats.points[e.matches[:, 1]].astype(np.float64)
+        r = np.linalg.norm(transform_points(e.T_tgt_src, ps) - pt, axis=1) / rparams.noise.pair_sigma(ps[:, 2], pt[:, 2])
+        rms = float(np.sqrt(np.mean(r * r)))
+        for k in (i, j):
+            best[k] = min(best.get(k, np.inf), rms)
+    # registration quality of a view in [0, 1] (1 = perfect): 1 - RMS / QUALITY_RMS_SIGMA of its best edge
+    quality = {k: float(np.clip(1.0 - r / QUALITY_RMS_SIGMA, 0.0, 1.0)) for k, r in best.items()}
+    return res.T_world_node, quality, res
+
+
+def _unregistered_reasons(frames: list[_Frame], edges: list[Edge], graph: PoseGraphResult,
+                          index: dict[str, int]) -> dict[str, str]:
+    """Why each frame without a pose has none, in one line: no keypoints, no edge accepted (the reasons of
+    its edges, the nearest frame first), edges rejected by the pose graph, or a part of its own."""
+    out: dict[str, str] = {}
+    for k, f in enumerate(frames):
+        if graph.T_world_node[k] is not None:
+            continue
+        name = f.frame.name
+        if not len(f.feats):
+            out[name] = NO_KEYPOINTS
+            continue
+        if k in graph.node_reasons:
+            out[name] = graph.node_reasons[k]
+            continue
+        mine = sorted((e for e in edges if name in (e.src, e.tgt)),
+                      key=lambda e: (abs(index[e.src] - index[e.tgt]), e.src, e.tgt))
+        if not mine:
+            out[name] = "no other frame to register it to"
+            continue
+        pruned = [e for e in mine if e.reason and e.reason.startswith(PRUNED)]
+        shown = pruned if pruned else mine
+        detail = "; ".join(f"with {e.tgt if e.src == name else e.src}: "
+                           f"{(e.reason or 'accepted').removeprefix(PRUNED)}" for e in shown[:2])
+        more = f" (and {len(shown) - 2} more)" if len(shown) > 2 else ""
+        what = "its edges were rejected by the pose graph" if pruned else "no edge accepted"
+        out[name] = f"{what}: {detail}{more}"
+    return out
 
 
 def _segment(frames: list[_Frame], T_world_cam: list[np.ndarray | None], mode: str, segment: bool,

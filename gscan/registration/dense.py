@@ -1,0 +1,219 @@
+"""Dense evidence for an edge: do the two frames' depth images agree under its pose?
+
+Keypoints say which pixels match; the depth says where the surfaces are. Under a right pose every
+surface point of one frame that lands in the other frame's view is either seen there at the same depth
+(consistent) or hidden behind a nearer surface (occluded). A point that lands in front of the surface
+the other frame measured means that frame looked straight through the place where the first frame saw
+a surface (see-through): the pose is wrong, or the scene changed. A list of keypoints can be consistent
+and wrong (a repeated print, two identical objects, a mirror-symmetric layout); the depth of the whole
+overlap rarely is.
+
+`DenseGeometry` samples a frame's depth on a regular grid (about `samples` points, pixels next to depth
+discontinuities left out: a small pose error moves them across the edge) with the surface normal at each
+sample; `depth_agreement` projects the samples of one frame into the other with the edge's pose and
+measures each against the surface found there along its normal (on a slanted table a pixel's shift
+changes the depth a lot and the distance to the surface little), with the tolerance of the noise model
+(`gscan.registration.noise`): |n . (q - p)| <= k * s(z_q, z_p).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from gscan.geometry.transforms import inv_T, transform_points
+from gscan.io.camera import Intrinsics
+from gscan.registration.noise import DepthNoise
+
+EDGE_REL = 0.03  # a neighbour whose depth differs by more than this fraction marks a discontinuity
+
+
+@dataclass(frozen=True)
+class DenseGeometry:
+    """A frame's depth sampled every `stride` pixels (camera frame, metres).
+
+    depth [h x w] (0 = invalid or left out), grid [h x w x 3] the sampled points, normals [h x w x 3]
+    (unit, towards the camera), points [P x 3] of the kept samples; fx, fy, cx, cy the intrinsics of the
+    sampled grid.
+    """
+
+    depth: np.ndarray
+    grid: np.ndarray
+    normals: np.ndarray
+    points: np.ndarray
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+
+    @classmethod
+    def from_depth(cls, depth: np.ndarray, intr: Intrinsics, mask: np.ndarray | None = None,
+                   samples: int = 5000) -> "DenseGeometry":
+        """Samples of depth [H x W] (m) inside mask ([H x W] bool, optional), about `samples` of them."""
+        H, W = depth.shape
+        stride = max(1, int(np.sqrt(H * W / samples)))
+        off = stride // 2
+        h = max(1, stride // 2)  # neighbours at half the stride decide discontinuities
+        v = np.arange(off, H, stride)
+        u = np.arange(off, W, stride)
+        d = depth[np.ix_(v, u)].astype(np.float64)
+        good = d > 0
+        for dv, du in ((-h, 0), (h, 0), (0, -h), (0, h)):
+            n = depth[np.ix_(np.clip(v + dv, 0, H - 1), np.clip(u + du, 0, W - 1))].astype(np.float64)
+            good &= (n > 0) & (np.abs(n - d) <= EDGE_REL * np.maximum(n, d))
+        if mask is not None:
+            good &= mask[np.ix_(v, u)]
+        fx, fy = intr.fx / stride, intr.fy / stride
+        cx, cy = (intr.cx - off) / stride, (intr.cy - off) / stride
+        gu, gv = np.meshgrid(np.arange(len(u)), np.arange(len(v)))
+        grid = np.stack([(gu - cx) / fx * d, (gv - cy) / fy * d, d], axis=-1)
+        # normals from the neighbouring samples (central differences; one-sided at the border)
+        du = np.gradient(grid, axis=1) if len(u) > 1 else np.zeros_like(grid)
+        dv = np.gradient(grid, axis=0) if len(v) > 1 else np.zeros_like(grid)
+        n = np.cross(du, dv)
+        norm = np.linalg.norm(n, axis=-1, keepdims=True)
+        n = np.where(norm > 0, n / np.maximum(norm, 1e-12), 0.0)
+        n *= np.where(np.sum(n * grid, axis=-1, keepdims=True) > 0, -1.0, 1.0)
+        good &= norm[..., 0] > 0
+        d = np.where(good, d, 0.0)
+        return cls(d, grid, n, grid[good], fx, fy, cx, cy)
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+
+@dataclass(frozen=True)
+class DepthAgreement:
+    """Counts of one frame's depth samples projected into another frame (module docstring)."""
+
+    consistent: int
+    see_through: int
+    occluded: int
+    landed: int  # samples that landed on a sample of the other frame's depth
+    total: int  # samples of the projected frame
+
+    @property
+    def see_through_fraction(self) -> float:
+        """see-through / (consistent + see-through): how much of the visible overlap contradicts the pose."""
+        return self.see_through / max(1, self.consistent + self.see_through)
+
+    @property
+    def overlap(self) -> float:
+        """landed / total: the share of the frame seen by the other one."""
+        return self.landed / max(1, self.total)
+
+    def __add__(self, other: "DepthAgreement") -> "DepthAgreement":
+        return DepthAgreement(self.consistent + other.consistent, self.see_through + other.see_through,
+                              self.occluded + other.occluded, self.landed + other.landed, self.total + other.total)
+
+
+def _landing(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarray) -> tuple[np.ndarray, np.ndarray,
+                                                                                      np.ndarray]:
+    """src's samples that land on a valid sample of tgt under T_tgt_src: (their points in tgt's camera
+    frame [K x 3], the rows [K] and columns [K] of tgt's samples they land on)."""
+    q = transform_points(T_tgt_src, src.points)
+    z = q[:, 2]
+    front = z > 1e-3
+    zf = np.where(front, z, 1.0)
+    u = np.rint(q[:, 0] / zf * tgt.fx + tgt.cx).astype(np.int64)
+    v = np.rint(q[:, 1] / zf * tgt.fy + tgt.cy).astype(np.int64)
+    h, w = tgt.depth.shape
+    idx = np.flatnonzero(front & (u >= 0) & (u < w) & (v >= 0) & (v < h))
+    vi, ui = v[idx], u[idx]
+    has = tgt.depth[vi, ui] > 0
+    return q[idx[has]], vi[has], ui[has]
+
+
+def depth_agreement(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarray, noise: DepthNoise,
+                    k: float = 3.0) -> DepthAgreement:
+    """Agreement of src's depth with tgt's under T_tgt_src, in both directions (src into tgt, tgt into src);
+    `noise` is that of a depth pixel."""
+    out = DepthAgreement(0, 0, 0, 0, 0)
+    for a, b, T in ((src, tgt, T_tgt_src), (tgt, src, inv_T(T_tgt_src))):
+        e, z, zm = plane_residuals(a, b, T)
+        tol = k * noise.pair_sigma(z, zm)
+        out = out + DepthAgreement(int((np.abs(e) <= tol).sum()), int((e > tol).sum()), int((e < -tol).sum()),
+                                   len(z), len(a))
+    return out
+
+
+def refine_pose(src: DenseGeometry, tgt: DenseGeometry, kp_s: np.ndarray, kp_t: np.ndarray, T_tgt_src: np.ndarray,
+                kp_noise: DepthNoise, depth_noise: DepthNoise, gates: tuple[float, ...] = (8.0, 5.0, 3.0, 3.0, 3.0)
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """The pose that best explains both the keypoint pairs and the depth: Gauss-Newton on the keypoint
+    residuals T kp_s - kp_t ([M x 3] pairs, three axes each, sigma s of `kp_noise`) and the point-to-plane
+    distances of src's depth samples to tgt's surface (projective association, one per sample landing on
+    tgt's depth, sigma s of `depth_noise` at their two depths), Huber-weighted beyond HUBER sigmas. Depth samples farther than the round's
+    gate (sigmas) from the surface are left out; the gate shrinks over the rounds (one GN step each), so a
+    pose a few centimetres off is drawn in first. Depth pins what keypoints on a distant wall leave loose
+    (the near table); keypoints pin what depth leaves loose (sliding along a plane).
+
+    Returns (T_tgt_src [4 x 4], information [6 x 6] of the final pose, rotation first: `pose_information`).
+    """
+    from gscan.geometry.transforms import make_T, rotvec_to_R
+
+    T = np.asarray(T_tgt_src, dtype=np.float64).copy()
+    for gate in gates:
+        H, g = _normal_equations(src, tgt, kp_s, kp_t, T, kp_noise, depth_noise, gate)
+        try:
+            dx = -np.linalg.solve(H, g)
+        except np.linalg.LinAlgError:
+            break
+        T = make_T(rotvec_to_R(dx[:3]), dx[3:]) @ T
+    return T, pose_information(src, tgt, kp_s, kp_t, T, kp_noise, depth_noise, gates[-1])
+
+
+def pose_information(src: DenseGeometry, tgt: DenseGeometry, kp_s: np.ndarray, kp_t: np.ndarray,
+                     T_tgt_src: np.ndarray, kp_noise: DepthNoise, depth_noise: DepthNoise, gate: float = 3.0
+                     ) -> np.ndarray:
+    """[6 x 6] information (rotation first) of T_tgt_src from the keypoint pairs and the depth samples within
+    `gate` sigmas of the surface, as `refine_pose` weighs them."""
+    T = np.asarray(T_tgt_src, dtype=np.float64)
+    return _normal_equations(src, tgt, kp_s, kp_t, T, kp_noise, depth_noise, gate)[0]
+
+
+HUBER = 2.0  # residuals beyond this many sigmas weigh as the Huber loss does (linearly)
+
+
+def _normal_equations(src: DenseGeometry, tgt: DenseGeometry, kp_s: np.ndarray, kp_t: np.ndarray, T: np.ndarray,
+                      kp_noise: DepthNoise, depth_noise: DepthNoise, gate: float) -> tuple[np.ndarray, np.ndarray]:
+    """(J^T W J [6 x 6], J^T W r [6]) of `refine_pose`'s residuals at T, for a small motion (rotation vector,
+    translation) applied in tgt's frame."""
+    kp_s = np.asarray(kp_s, dtype=np.float64).reshape(-1, 3)
+    kp_t = np.asarray(kp_t, dtype=np.float64).reshape(-1, 3)
+    s_kp = kp_noise.pair_sigma(kp_s[:, 2], kp_t[:, 2])
+    H, g = np.zeros((6, 6)), np.zeros(6)
+    q = transform_points(T, kp_s)
+    r = q - kp_t
+    rn = np.linalg.norm(r, axis=1) / s_kp
+    w = np.where(rn <= HUBER, 1.0, HUBER / np.maximum(rn, 1e-12)) / np.square(s_kp)
+    for c in range(3):  # d(r_c)/d(omega) = (q x e_c), d(r_c)/d(tau) = e_c
+        J = np.zeros((len(q), 6))
+        J[:, :3] = np.cross(q, np.eye(3)[c])
+        J[:, 3 + c] = 1.0
+        H += (J * w[:, None]).T @ J
+        g += (J * w[:, None]).T @ r[:, c]
+    qd, n, e, sd = _plane_pairs(src, tgt, T, depth_noise)
+    ok = np.abs(e) <= gate * sd
+    qd, n, e, sd = qd[ok], n[ok], e[ok], sd[ok]
+    en = np.abs(e) / sd
+    wd = np.where(en <= HUBER, 1.0, HUBER / np.maximum(en, 1e-12)) / np.square(sd)
+    Jd = np.concatenate([np.cross(qd, n), n], axis=1)
+    return H + (Jd * wd[:, None]).T @ Jd, g + (Jd * wd[:, None]).T @ e
+
+
+def plane_residuals(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Signed point-to-plane distances [K] of src's samples landing on tgt's depth under T_tgt_src, with their
+    depth in tgt's camera [K] and tgt's measured depth there [K] (what the depth noise is estimated from)."""
+    q, vi, ui = _landing(src, tgt, T_tgt_src)
+    return np.sum(tgt.normals[vi, ui] * (q - tgt.grid[vi, ui]), axis=1), q[:, 2], tgt.depth[vi, ui]
+
+
+def _plane_pairs(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarray, noise: DepthNoise
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """src's samples in tgt's frame that land on tgt's depth: (points [K x 3], tgt's normals there [K x 3],
+    signed point-to-plane distances [K], their sigma [K])."""
+    q, vi, ui = _landing(src, tgt, T_tgt_src)
+    n = tgt.normals[vi, ui]
+    return q, n, np.sum(n * (q - tgt.grid[vi, ui]), axis=1), noise.pair_sigma(q[:, 2], tgt.depth[vi, ui])
