@@ -16,7 +16,8 @@ from gscan.io.camera import (
     point_cloud, project,
 )
 from gscan.errors import InputError
-from gscan.geometry.transforms import inv_T, kabsch, kabsch_trimmed, leave_one_out_residuals, look_at, make_T, pose_error, rotvec_to_R, transform_points
+from gscan.geometry.kabsch import kabsch, kabsch_trimmed, leave_one_out_residuals
+from gscan.geometry.transforms import inv_T, look_at, make_T, pose_error, rotvec_to_R, transform_points
 
 finite = dict(allow_nan=False, allow_infinity=False)
 

@@ -190,7 +190,7 @@ def test_support_check_fixes_a_rendered_pair(meshes_dir):
     wrong (158 deg off), another hypothesis list has 1.5 x its support and is right. The pose choice is what is
     tested: both lists are shorter than min_matches, so rule 1 rejects the edge either way."""
     from gscan.features import descriptor_distances
-    from gscan.geometry.transforms import kabsch_trimmed
+    from gscan.geometry.kabsch import kabsch_trimmed
     from gscan.matching.gmatch import gmatch
     from gscan.registration.pairwise import refine_pose
 

@@ -58,7 +58,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from gscan.matching.baselines import BASELINES, BaselineParams, run_baseline
-from gscan.geometry.transforms import icp, inv_T, kabsch, kabsch_trimmed, pose_error, transform_points
+from gscan.geometry.icp import icp
+from gscan.geometry.kabsch import kabsch, kabsch_trimmed
+from gscan.geometry.transforms import inv_T, pose_error, transform_points
 from gscan.matching.gmatch import GMatchParams, GMatchResult, default_eps_f, gmatch
 
 log = logging.getLogger(__name__)

@@ -23,7 +23,8 @@ import numpy as np
 from gscan.io.camera import RGBDFrame
 
 if TYPE_CHECKING:
-    from gscan.scan.segment import Plane, SegmentParams
+    from gscan.geometry.plane import Plane
+    from gscan.scan.segment import SegmentParams
 
 log = logging.getLogger(__name__)
 

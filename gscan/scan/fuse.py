@@ -19,7 +19,7 @@ import numpy as np
 
 from gscan.io.camera import RGBDFrame, backproject
 from gscan.geometry.transforms import inv_T, make_T, transform_points
-from gscan.scan.segment import Plane
+from gscan.geometry.plane import Plane
 
 log = logging.getLogger(__name__)
 

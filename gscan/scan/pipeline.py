@@ -39,7 +39,8 @@ from gscan.scan.fuse import FusedModel, FusionParams, fuse_tsdf, template_frame
 from gscan.geometry.transforms import transform_points
 from gscan.progress import Progress, StageTimer
 from gscan.registration.pairwise import RegisterParams, register_features
-from gscan.scan.segment import Plane, SegmentParams
+from gscan.geometry.plane import Plane
+from gscan.scan.segment import SegmentParams
 from gscan.template.db import Edge, TemplateDB, View, ViewFeatures
 
 log = logging.getLogger(__name__)
