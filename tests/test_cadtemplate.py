@@ -52,6 +52,16 @@ def test_summary_and_database(built, meshes_dir):
             assert v.mask[w, u].all()
 
 
+def test_template_keypoints_are_the_estimators_query_keypoints(built):
+    """A CAD template stores keypoints detected with the settings the estimator detects its queries with."""
+    from gscan.estimate.estimator import EstimateParams
+
+    q = EstimateParams().features
+    with TemplateDB.open(built[0]) as db:
+        assert db.get_meta("descriptor") == {"kind": q.kind, "max_keypoints": q.max_keypoints,
+                                             "sift_contrast_threshold": q.sift_contrast_threshold}
+
+
 def test_views_cover_both_hemispheres_at_fill_distance(meshes_dir):
     d = fibonacci_directions(36)
     np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1.0)

@@ -26,8 +26,7 @@ import numpy as np
 
 from gscan.io.camera import RGBDFrame, backproject
 from gscan.errors import InputError
-from gscan.estimate.estimator import EstimateParams
-from gscan.features import FeatureParams, extract_features
+from gscan.features import OBJECT_FEATURES, FeatureParams, extract_features
 from gscan.geometry.transforms import look_at, transform_points
 from gscan.io import check_output_path, missing_folders, remove_empty_folders
 from gscan.geometry.pointset import voxel_mean
@@ -127,7 +126,7 @@ def build_template_from_mesh(mesh_path: str | Path, output: str | Path, n_views:
     if not (np.isfinite(scale) and scale > 0):
         raise InputError(mesh_path, f"scale must be positive, not {scale}")
     progress = progress or NullProgress()
-    feature_params = feature_params or EstimateParams().features  # the estimator's query keypoints
+    feature_params = feature_params or OBJECT_FEATURES  # the estimator's query keypoints
     mesh = _load_mesh(mesh_path, scale)
     if mesh.radius <= 0:
         raise InputError(mesh_path, "mesh is degenerate (all vertices coincide)")

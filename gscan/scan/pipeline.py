@@ -31,7 +31,8 @@ from pathlib import Path
 import numpy as np
 
 from gscan.io.camera import RGBDFrame, backproject
-from gscan.scan.capture_mode import MOVING_OBJECT, STATIC_OBJECT, detect_mode, moving_object_masks, select_keyframes
+from gscan.scan.capture_mode import MOVING_OBJECT, STATIC_OBJECT, detect_mode, moving_object_masks
+from gscan.scan.keyframes import select_keyframes
 from gscan.scan.config import ScanConfig
 from gscan.errors import InputError
 from gscan.features import OBJECT_FEATURES, FeatureParams, Features, extract_features, extract_features_in_mask
