@@ -329,20 +329,29 @@ def view(
     depth: Optional[Path] = typer.Option(None, "--depth", help="depth of --color"),
     intrinsics: Optional[Path] = typer.Option(None, "--intrinsics", help="intrinsics of --color"),
     depth_scale: float = typer.Option(0.001, "--depth-scale", help="metres per raw depth unit"),
+    pose: Optional[Path] = typer.Option(
+        None, "--pose", help='T_cam_obj of --color\'s frame instead of estimating it: {"T": 4x4} or a bare 4x4 list'),
 ) -> None:
     """Browse a template (views, matches, pose graph) in the web browser."""
     from gscan.viewer.app import run_viewer
 
     frame = T_cam_obj = None
+    if pose is not None and color is None:
+        raise UsageError(pose, "--pose places a query frame: it needs --color, --depth and --intrinsics")
     if color is not None or depth is not None or intrinsics is not None:
         if color is None or depth is None or intrinsics is None:
             raise UsageError(None, "--color, --depth and --intrinsics go together")
-        from gscan.estimate.estimator import Estimator
-
         frame = _load_query_frame(color, depth, intrinsics, depth_scale, None)
-        result = Estimator.from_path(template).estimate(frame)
-        T_cam_obj = result.T_cam_obj
-        err.print(f"estimate: {'not found (' + str(result.reason) + ')' if T_cam_obj is None else 'view ' + str(result.view)}")
+        if pose is not None:
+            from gscan.io import read_pose_file
+
+            T_cam_obj = read_pose_file(pose)
+        else:
+            from gscan.estimate.estimator import Estimator
+
+            result = Estimator.from_path(template).estimate(frame)
+            T_cam_obj = result.T_cam_obj
+            err.print(f"estimate: {'not found (' + str(result.reason) + ')' if T_cam_obj is None else 'view ' + str(result.view)}")
     run_viewer(template, host=host, port=port, scene_frame=frame, T_cam_obj=T_cam_obj,
                on_ready=lambda url: _say("viewer ready at ", (url, "bold"), " (Ctrl+C to stop)"))
 
