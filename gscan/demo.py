@@ -14,8 +14,13 @@ from pathlib import Path
 import numpy as np
 
 from gscan.errors import InputError
+from gscan.estimate.estimator import Estimator
 from gscan.evaluate.bop19 import template_to_gt
+from gscan.evaluate.metrics import add
 from gscan.geometry.transforms import pose_error
+from gscan.io import open_sequence
+from gscan.progress import Progress
+from gscan.scan.pipeline import ScanOptions, ScanResult, run_scan
 
 SAMPLES = Path(__file__).resolve().parents[1] / "samples"
 
@@ -33,10 +38,6 @@ class HeldOutResult:
 
 def evaluate_heldout(db_path: Path, heldout_dir: Path, model_points: np.ndarray) -> list[HeldOutResult]:
     """Estimate every held-back frame and compare with its ground truth (errors in the GT frame)."""
-    from gscan.estimate.estimator import Estimator
-    from gscan.io import open_sequence
-    from gscan.evaluate.metrics import add
-
     capture = open_sequence(SAMPLES / "capture")
     T_obj_gt = template_to_gt(db_path, capture.gt_T_cam_obj or {})
     seq = open_sequence(heldout_dir)
@@ -64,10 +65,8 @@ def _model_points() -> np.ndarray:
     return np.asarray(trimesh.sample.sample_surface(mesh, 2000, seed=0)[0])
 
 
-def scan_sample(output: Path, progress=None):
+def scan_sample(output: Path, progress: Progress | None = None) -> ScanResult:
     """Scan samples/capture into OUTPUT/sample.gscan (replacing it); returns the ScanResult."""
-    from gscan.scan.pipeline import ScanOptions, run_scan
-
     if not (SAMPLES / "capture").is_dir():
         raise InputError(SAMPLES / "capture", "bundled sample not found (run from a source checkout)")
     # run_scan checks the output path before any work and makes the missing folders

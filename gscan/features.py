@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from gscan.io.camera import RGBDFrame, lift_keypoints
+from gscan.io.camera import Intrinsics, RGBDFrame, lift_keypoints
 
 log = logging.getLogger(__name__)
 
@@ -278,8 +278,6 @@ def extract_features_in_mask(frame: RGBDFrame, mask: np.ndarray, params: Feature
     """Features of `frame` inside `mask` [H x W] bool, detected on the mask's bounding box (+ `margin`
     px) only, which is faster than a masked full-frame detection; pixels in full-frame coordinates,
     points in the camera frame. An empty mask gives no features."""
-    from gscan.io.camera import Intrinsics
-
     if not mask.any():
         return empty_features(params.kind)
     H, W = mask.shape
