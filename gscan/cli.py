@@ -285,7 +285,11 @@ def info(
     from gscan.template.db import TemplateDB
 
     with TemplateDB.open(template, require_complete=False) as db:
-        out = db.summary()
+        s = db.summary()
+    # the `info --json` object of the CLI contract
+    out = {"schema": s.schema, "status": s.status, "views": s.views, "registered": s.registered,
+           "keyframes": s.keyframes, "descriptor": s.descriptor, "source": s.source, "extent_m": list(s.extent_m),
+           "grasps": list(s.grasps)}
     if json_out:
         _print_json(out)
         return

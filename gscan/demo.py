@@ -48,13 +48,14 @@ def evaluate_heldout(db_path: Path, heldout_dir: Path, model_points: np.ndarray)
         r = est.estimate(frame)
         T_gt = seq.gt_T_cam_obj[name]
         if r.T_cam_obj is None:
-            out.append(HeldOutResult(name, False, float("nan"), float("nan"), float("nan"), r.n_matches,
-                                     r.timings_ms["total"]))
+            out.append(HeldOutResult(name=name, found=False, rot_err_deg=float("nan"), trans_err_mm=float("nan"),
+                                     add_mm=float("nan"), n_matches=r.n_matches, total_ms=r.timings_ms["total"]))
             continue
         T_cam_gt_est = r.T_cam_obj @ T_obj_gt
         rot, trans = pose_error(T_cam_gt_est, T_gt)
-        out.append(HeldOutResult(name, True, rot, trans * 1000, add(model_points, T_cam_gt_est, T_gt) * 1000,
-                                 r.n_matches, r.timings_ms["total"]))
+        out.append(HeldOutResult(name=name, found=True, rot_err_deg=rot, trans_err_mm=trans * 1000,
+                                 add_mm=add(model_points, T_cam_gt_est, T_gt) * 1000, n_matches=r.n_matches,
+                                 total_ms=r.timings_ms["total"]))
     return out
 
 

@@ -31,8 +31,9 @@ def test_summary_and_database(built, meshes_dir):
     np.testing.assert_allclose(summary["extent_m"], mesh.extent, atol=1e-6)
     with TemplateDB.open(out, require_complete=True) as db:
         info = db.summary()
-        assert info["status"] == "complete" and info["source"] == "mesh" and info["views"] == 8
-        V, F, C = db.mesh()
+        assert info.status == "complete" and info.source == "mesh" and info.views == 8
+        m = db.mesh()
+        V, F, C = m.vertices, m.triangles, m.vertex_colors
         np.testing.assert_allclose(V, mesh.vertices)  # the mesh frame is kept
         assert F.shape == mesh.triangles.shape and C.shape == V.shape and C.dtype == np.uint8
         assert C.std() > 5  # colours come from the texture, not a flat grey
@@ -43,8 +44,9 @@ def test_summary_and_database(built, meshes_dir):
             assert v.T_obj_cam is not None and v.mask is not None and v.mask.any()
             assert not v.depth[~v.mask].any()  # depth only on the object
             assert np.percentile(v.color[~v.mask], 99) <= 8  # black background, no table (JPEG ringing at edges)
-            px, pts_obj, desc, kind = db.features(v.name)
-            assert kind == "rootsift" and len(px) > 10
+            f = db.features(v.name)
+            px, pts_obj = f.pixels, f.points
+            assert f.kind == "rootsift" and len(px) > 10
             # object-frame keypoints project back onto their pixels through the view pose
             uv = project(transform_points(inv_T(v.T_obj_cam), pts_obj), v.intrinsics)
             np.testing.assert_allclose(uv, px, atol=0.05)
@@ -142,12 +144,12 @@ def test_existing_output_refused_without_force(built, meshes_dir, tmp_path):
 
 
 def test_failure_midway_removes_output(meshes_dir, tmp_path, monkeypatch):
-    import gscan.scan.cad as cad
+    from gscan.synth import TexturedMesh
 
     def boom(*a, **k):
         raise RuntimeError("disk full")
 
-    monkeypatch.setattr(cad, "vertex_colors", boom)
+    monkeypatch.setattr(TexturedMesh, "to_mesh", boom)  # the last step before the database is complete
     out = tmp_path / "half.gscan"
     with pytest.raises(RuntimeError):
         build_template_from_mesh(meshes_dir / MESH / "model_0.obj", out, n_views=4)

@@ -63,7 +63,7 @@ def test_static_capture_registers_every_frame(captures, tmp_path, mesh, masks):
     with TemplateDB.open(tmp_path / "obj.gscan") as db:
         info = db.summary()
         V = db.mesh().vertices
-    assert info["status"] == "complete" and info["source"] == "scan"
+    assert info.status == "complete" and info.source == "scan"
     # the fused mesh is the object alone, not the table: its sorted extents match the true mesh's
     true_extent = np.sort(np.ptp(captures[mesh][2], axis=0))
     assert np.all(np.abs(np.sort(np.ptp(V, axis=0)) - true_extent) < 0.015), (np.ptp(V, axis=0), true_extent)

@@ -31,7 +31,7 @@ from gscan.geometry.transforms import look_at, transform_points
 from gscan.io import check_output_path, missing_folders, remove_empty_folders
 from gscan.geometry.pointset import voxel_mean
 from gscan.progress import NullProgress, Progress
-from gscan.synth import DEFAULT_INTRINSICS, SynthScene, TexturedMesh, load_textured_mesh, sample_bilinear
+from gscan.synth import DEFAULT_INTRINSICS, SynthScene, TexturedMesh, load_textured_mesh
 from gscan.template.db import TemplateDB, View
 
 log = logging.getLogger(__name__)
@@ -93,17 +93,6 @@ def _load_mesh(path: Path, scale: float) -> TexturedMesh:
     return TexturedMesh(mesh.vertices, mesh.triangles, uv, np.ascontiguousarray(texture), name=mesh.name)
 
 
-def vertex_colors(mesh: TexturedMesh) -> np.ndarray:
-    """[V x 3] uint8 colour per vertex: the mean texture colour at its face corners."""
-    corner_rgb = sample_bilinear(mesh.texture, mesh.uv.reshape(-1, 2))  # [F*3 x 3]
-    acc = np.zeros((len(mesh.vertices), 3))
-    cnt = np.zeros(len(mesh.vertices))
-    np.add.at(acc, mesh.triangles.reshape(-1), corner_rgb)
-    np.add.at(cnt, mesh.triangles.reshape(-1), 1.0)
-    col = np.where(cnt[:, None] > 0, acc / np.maximum(cnt, 1.0)[:, None], 128.0)
-    return np.clip(np.rint(col), 0, 255).astype(np.uint8)
-
-
 def _voxel_cloud(points: np.ndarray, colors: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
     """Voxel-grid mean of [N x 3] points and [N x 3] uint8 colours -> ([M x 3] float32, [M x 3] uint8)."""
     M = voxel_mean(np.hstack([np.asarray(points, np.float64).reshape(-1, 3),
@@ -147,13 +136,12 @@ def build_template_from_mesh(mesh_path: str | Path, output: str | Path, n_views:
             for i, T_obj_cam in enumerate(view_poses(mesh, n_views)):
                 r = scene.render(T_obj_cam, intr, noise=False)
                 name = f"view_{i:03d}"
-                frame = RGBDFrame(name, r.color, r.depth_clean, intr, mask=r.mask)
+                frame = RGBDFrame(name=name, color=r.color, depth=r.depth_clean, intrinsics=intr, mask=r.mask)
                 feats = extract_features(frame, feature_params, mask=r.mask)
                 db.add_view(View(name=name, intrinsics=intr, T_obj_cam=T_obj_cam, color=r.color,
                                  depth=np.where(r.mask, r.depth_clean, 0.0).astype(np.float32), mask=r.mask,
-                                 keyframe=True, quality=float(len(feats)), input_index=i))
-                db.add_features(name, feats.pixels, transform_points(T_obj_cam, feats.points).astype(np.float32),
-                                feats.descriptors, feats.kind, feats.scales)
+                                 keyframe=True, quality=float(len(feats)), input_index=i),
+                            feats.transformed(T_obj_cam))
                 n_kp += len(feats)
                 sl = (slice(None, None, CLOUD_STRIDE),) * 2
                 sel = (r.mask & (r.depth_clean > 0))[sl]
@@ -164,7 +152,7 @@ def build_template_from_mesh(mesh_path: str | Path, output: str | Path, n_views:
             voxel = CLOUD_VOXEL * max(1.0, mesh.radius / 0.15)  # ~same point count for large objects
             P, C = _voxel_cloud(np.concatenate(cloud_p), np.concatenate(cloud_c), voxel)
             db.set_cloud(P, C)
-            db.set_mesh(mesh.vertices, mesh.triangles, vertex_colors(mesh))
+            db.set_mesh(mesh.to_mesh())
             db.mark_complete()
             summary = {"output": str(output), "views": int(n_views), "descriptor": feature_params.kind,
                        "source": "mesh", "extent_m": [float(x) for x in db.extent()]}

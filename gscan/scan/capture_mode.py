@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import logging
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -83,7 +83,7 @@ def moving_object_masks(frames: list[RGBDFrame], min_offset: float = 0.01, min_a
     the connected components of at least `min_area` pixels (the largest always kept).
     """
     params = params if params is not None else SegmentParams()
-    segs = [segment_frame(RGBDFrame(f.name, f.color, f.depth, f.intrinsics), params) for f in frames]
+    segs = [segment_frame(replace(f, mask=None), params) for f in frames]
     planes = [s.plane_cam for s in segs]
     if all(p is not None for p in planes):
         return [s.mask for s in segs], planes

@@ -42,7 +42,7 @@ from gscan.progress import Progress, StageTimer
 from gscan.registration.pairwise import RegisterParams, register_features
 from gscan.geometry.plane import Plane
 from gscan.scan.segment import SegmentParams
-from gscan.template.db import Edge, TemplateDB, View, ViewFeatures
+from gscan.template.db import Edge, TemplateDB, View
 
 log = logging.getLogger(__name__)
 
@@ -272,8 +272,8 @@ def _scan_frames(frames: list[_Frame], opts: ScanOptions, db: TemplateDB, resume
         for e in edges:  # the pose graph's verdicts, also where a resumed run reaches another one
             if (e.reason and e.reason.startswith(PRUNED)) or (e.src, e.tgt) in restored:
                 db.add_edge(e)
-        V = transform_points(T_obj_world, model.vertices)
-        db.set_mesh(V, model.triangles, model.vertex_colors)
+        mesh = model.mesh.transformed(T_obj_world)
+        db.set_mesh(mesh)
         db.set_cloud(transform_points(T_obj_world, model.points), model.point_colors)
         unregistered = [f.frame.name for f, T in zip(frames, T_world_cam) if T is None]
         db.set_meta("unregistered", unregistered)
@@ -286,9 +286,11 @@ def _scan_frames(frames: list[_Frame], opts: ScanOptions, db: TemplateDB, resume
     stored_edges = db.edges()
     accepted = sum(1 for e in stored_edges if e.accepted)
     total_edges = len(stored_edges)
-    return ScanResult(opts.output, len(frames) + len(problems), len(registered), unregistered + sorted(problems),
-                      accepted, total_edges - accepted, mode, len(V), len(model.triangles), dict(timer.timings),
-                      problems, len(keyframes))
+    return ScanResult(output=opts.output, frames=len(frames) + len(problems), registered=len(registered),
+                      unregistered=unregistered + sorted(problems), edges_accepted=accepted,
+                      edges_rejected=total_edges - accepted, mode=mode, mesh_vertices=len(mesh.vertices),
+                      mesh_triangles=len(mesh.triangles), timings_s=dict(timer.timings), problems=problems,
+                      keyframes=len(keyframes))
 
 
 def _fuse(frames: list[_Frame], T_world_cam: list[np.ndarray | None], masks: list[np.ndarray | None],
@@ -301,10 +303,10 @@ def _fuse(frames: list[_Frame], T_world_cam: list[np.ndarray | None], masks: lis
     except ValueError as e:  # no registered frame has object depth within fusion.depth_max
         raise InputError(input_dir, f"nothing could be fused: {e} (fusion.depth_max); check --depth-scale") from None
     registered = [k for k, T in enumerate(T_world_cam) if T is not None]
-    if len(model.triangles) == 0 or len(model.vertices) < 3:
+    if len(model.mesh.triangles) == 0 or len(model.mesh.vertices) < 3:
         raise InputError(input_dir, "nothing could be fused: no surface in the object depth of the "
                          f"{len(registered)} registered frame(s)")
-    obj_pts = model.points if len(model.points) >= 3 else model.vertices
+    obj_pts = model.points if len(model.points) >= 3 else model.mesh.vertices
     return model, template_frame(obj_pts, plane_world, T_world_cam[registered[0]])
 
 
@@ -350,14 +352,10 @@ def _extract(frames: list[_Frame], mode: str, cfg: ScanConfig, db: TemplateDB, r
             f = frames[k]
             f.cloud = cloud
             if feats is None:  # stored by the interrupted run, still in the camera frame
-                vf = db.features(f.frame.name)
-                feats = Features(vf.pixels, vf.points_obj, vf.descriptors, vf.kind,
-                                 vf.scales if vf.scales is not None else np.ones(len(vf.pixels), np.float32))
+                feats = db.features(f.frame.name)
             else:
-                view = View(f.frame.name, f.frame.intrinsics, None, f.frame.color, f.frame.depth, f.frame.mask,
-                            keyframe=False, input_index=k)
-                db.add_view(view, ViewFeatures(feats.pixels, feats.points, feats.descriptors, feats.kind,
-                                               feats.scales), replace=f.frame.name in stored)
+                db.add_view(View.from_frame(f.frame, keyframe=False, input_index=k), feats,
+                            replace=f.frame.name in stored)
             f.feats = feats
             advance(1)
 
@@ -446,15 +444,11 @@ def _store_views(frames: list[_Frame], T_obj_cam: list[np.ndarray | None], masks
     with ThreadPoolExecutor(max_workers=WORKERS) as pool:
         for k, obj in enumerate(pool.map(object_feats, range(len(frames)))):
             f, T = frames[k], T_obj_cam[k]
-            pts = f.feats.points if T is None else transform_points(T, f.feats.points).astype(np.float32)
-            view = View(f.frame.name, f.frame.intrinsics, T, f.frame.color, f.frame.depth,
-                        masks[k] if T is not None else f.frame.mask, keyframe=k in keyframes,
-                        quality=quality.get(k), input_index=k)
-            db.add_view(view, ViewFeatures(f.feats.pixels, pts, f.feats.descriptors, f.feats.kind,
-                                           f.feats.scales), replace=True)
+            view = View.from_frame(f.frame, T_obj_cam=T, mask=masks[k] if T is not None else f.frame.mask,
+                                   keyframe=k in keyframes, quality=quality.get(k), input_index=k)
+            db.add_view(view, f.feats if T is None else f.feats.transformed(T), replace=True)
             if obj is not None:
-                db.add_features(f.frame.name, ViewFeatures(obj.pixels, transform_points(T, obj.points).astype(
-                    np.float32), obj.descriptors, obj.kind, obj.scales), role="object")
+                db.add_features(f.frame.name, obj.transformed(T), role="object")
             advance(1)
     return keyframes
 
@@ -526,7 +520,7 @@ def _segment(frames: list[_Frame], T_world_cam: list[np.ndarray | None], mode: s
     if mode == MOVING_OBJECT:
         ref = frames[reg[0]]
         plane_cam = ref.plane_cam if ref.plane_cam is not None else segment_frame(
-            RGBDFrame(ref.frame.name, ref.frame.color, ref.frame.depth, ref.frame.intrinsics), seg).plane_cam
+            replace(ref.frame, mask=None), seg).plane_cam
         plane = None if plane_cam is None else plane_cam.transformed(T_world_cam[reg[0]])
         return [f.mask for f in frames], plane
     segs, vol = segment_sequence([f.frame for f in frames], T_world_cam, seg)  # given masks win
