@@ -339,11 +339,6 @@ class TemplateDB:
                 c.execute("UPDATE features SET points=? WHERE view_id=? AND role=?",
                           (encode_array(_apply(A, decode_array(pts, (None, 3)))), vid, role))
 
-    def set_keyframe(self, name: str, keyframe: bool) -> None:
-        with self._tx() as c:
-            vid, _ = self._view_id(c, name)
-            c.execute("UPDATE views SET keyframe=? WHERE id=?", (int(bool(keyframe)), vid))
-
     def view_names(self) -> list[str]:
         """All view names in input order (input_index, then insertion)."""
         return [r[0] for r in self._q("SELECT name FROM views ORDER BY input_index IS NULL, input_index, id")]
@@ -502,11 +497,6 @@ class TemplateDB:
             if not replace and c.execute("SELECT 1 FROM grasps WHERE name=?", (name,)).fetchone():
                 raise InputError(self.path, f"grasp {name!r} already exists")
             c.execute("INSERT OR REPLACE INTO grasps(name, T_obj_grasp) VALUES (?,?)", (name, encode_array(T)))
-
-    def remove_grasp(self, name: str) -> None:
-        with self._tx() as c:
-            if c.execute("DELETE FROM grasps WHERE name=?", (name,)).rowcount == 0:
-                raise KeyError(f"no grasp named {name!r} in {self.path}")
 
     @_decodes
     def grasps(self) -> dict[str, np.ndarray]:
