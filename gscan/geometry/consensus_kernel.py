@@ -3,7 +3,7 @@
 `best_triple(src, dst, n_enum, tau, min_sin)` poses every non-degenerate triple of the first n_enum pairs by
 its triad and scores every pair's residual under that pose, truncated at tau (MSAC); the lowest score wins,
 the first in (i, j, k) order on ties. A triple's scoring stops once it can no longer win. Compiled with
-`cache=True`, `nogil=True`; a module of its own so that `gscan.geometry.transforms` does not load numba.
+`cache=True`, `nogil=True`; imported on first use, so that importing `gscan.geometry` does not load numba.
 """
 from __future__ import annotations
 

@@ -30,7 +30,7 @@ def icp(src_pts: np.ndarray, tgt_pts: np.ndarray, T_init: np.ndarray, max_dist: 
     """
     import open3d as o3d
 
-    def cloud(p: np.ndarray) -> "o3d.geometry.PointCloud":
+    def cloud(p: np.ndarray) -> o3d.geometry.PointCloud:
         pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(p, dtype=np.float64)))
         return pc.voxel_down_sample(voxel) if voxel > 0 else pc
 

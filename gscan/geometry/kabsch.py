@@ -1,11 +1,11 @@
 """Kabsch / Umeyama alignment of matched point sets, and the outlier-trimmed Kabsch of registration and
-pose estimation (its consensus step is the numba kernel `gscan.geometry.consensus_kernel`).
+pose estimation (its consensus step is the numba kernel `gscan.geometry.consensus_kernel`, imported on first
+use so that importing gscan.geometry does not load numba).
 """
 from __future__ import annotations
 
 import numpy as np
 
-from gscan.geometry.consensus_kernel import best_triple
 from gscan.geometry.transforms import make_T, transform_points
 
 
@@ -87,6 +87,8 @@ def kabsch_trimmed(src: np.ndarray, dst: np.ndarray, tau: float, min_sin: float 
     keep = np.ones(n, bool)
     T = kabsch(src, dst)
     if n > 3 and np.linalg.norm(transform_points(T, src) - dst, axis=1).max() > tau:  # 2. consensus
+        from gscan.geometry.consensus_kernel import best_triple  # numba, on first use
+
         i, j, k, T_tri = best_triple(np.ascontiguousarray(src), np.ascontiguousarray(dst),
                                      min(n, CONSENSUS_MAX_PAIRS), float(tau), float(min_sin))
         if i >= 0:

@@ -20,7 +20,7 @@ class Plane:
         """[N x 3] (or [... x 3]) points -> [N] signed heights (m)."""
         return np.asarray(pts, dtype=np.float64) @ self.normal + self.offset
 
-    def transformed(self, T_b_a: np.ndarray) -> "Plane":
+    def transformed(self, T_b_a: np.ndarray) -> Plane:
         """The same plane expressed in frame b, given this plane in frame a."""
         n = T_b_a[:3, :3] @ self.normal
         return Plane(n, float(self.offset - n @ T_b_a[:3, 3]))

@@ -94,7 +94,7 @@ def build_scene(server: Any, data: ViewerData, options: ViewerOptions, frame: RG
     for v in reg:
         layers["frustums"].append(_add_frustum(sc, o, frustum_scale, f"/views/{_node(v.name)}", v.intrinsics,
                                                v.T_obj_cam, d.thumbs[v.name], quality_color(d.quality[v.name]),
-                                               lambda _ev, n=v.name: on_select_view(n)))
+                                               _on_click(on_select_view, v.name)))
     centres = {v.name: v.T_obj_cam[:3, 3] for v in reg}
     for key, accepted, width in (("edges", True, 3.0), ("rejected", False, 1.5)):
         es = [e for e in d.edges if e.accepted == accepted and e.src in centres and e.tgt in centres]
@@ -134,6 +134,11 @@ def _add_mesh(sc: Any, mesh: MeshData) -> Any:
 
     tm = trimesh.Trimesh(V, F, vertex_colors=np.asarray(mesh.vertex_colors, np.uint8), process=False)
     return sc.add_mesh_trimesh("/mesh", tm)
+
+
+def _on_click(select: Callable[[str], None], name: str) -> Callable[[Any], None]:
+    """A frustum's click handler: select view `name`."""
+    return lambda _event: select(name)
 
 
 def _add_frustum(sc: Any, o: ViewerOptions, scale: float, node: str, intr: Intrinsics, T_obj_cam: np.ndarray,
