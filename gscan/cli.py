@@ -106,7 +106,7 @@ def scan(
     from gscan.scan.config import load_config
     from gscan.io.layouts import FORMATS
     from gscan.progress import RichProgress
-    from gscan.scan.pipeline import ScanOptions, run_scan
+    from gscan.scan.api import scan as scan_capture
 
     if format not in ("auto",) + FORMATS:
         raise UsageError(None, f"--format must be one of {', '.join(('auto',) + FORMATS)}, not {format!r}")
@@ -114,12 +114,12 @@ def scan(
         raise UsageError(None, f"--mode must be auto, static-object or moving-object, not {mode!r}")
     if resume and force:
         raise UsageError(output, "--resume and --force exclude each other")
-    opts = ScanOptions(input_dir=input_dir, output=output, fmt=format, intrinsics=intrinsics,
-                       depth_scale=depth_scale, mode=mode, segment=not no_segment, resume=resume,
-                       force=force, config=load_config(config), obj_id=obj_id)
+    cfg = load_config(config)
     try:
         with RichProgress(err, enabled=not json_out or sys.stderr.isatty()) as progress:
-            result = run_scan(opts, progress=progress)
+            result = scan_capture(input_dir, output, config=cfg, format=format, intrinsics=intrinsics,
+                                  depth_scale=depth_scale, mode=mode, segment=not no_segment, resume=resume,
+                                  force=force, obj_id=obj_id, progress=progress)
     except KeyboardInterrupt:  # Ctrl+C: the partial database is kept for --resume (typer exits 130)
         _say_interrupted(_interrupted_scan_line(output, force))
         raise
@@ -129,7 +129,7 @@ def scan(
         _print_scan_summary(result)
 
 
-_SCAN_IMPORTS = ("gscan.scan.pipeline", "open3d", "scipy.spatial")  # with the scan's lazy C-extension imports
+_SCAN_IMPORTS = ("gscan.scan.api", "open3d", "scipy.spatial")  # with the scan's lazy C-extension imports
 
 
 def _import_holding_ctrl_c(*modules: str) -> None:
@@ -200,17 +200,18 @@ def template_from_mesh(
     json_out: bool = typer.Option(False, "--json", help="print one JSON object on stdout"),
 ) -> None:
     """Render snapshots around a CAD mesh into a template database (mesh frame kept)."""
-    from gscan.scan.cad import build_template_from_mesh
+    from gscan.scan.cad import template_from_mesh as render_template
     from gscan.progress import RichProgress
 
     if scale <= 0:
         raise UsageError(mesh, f"--scale must be positive, not {scale}")
     with RichProgress(err, enabled=not json_out) as progress:
-        summary = build_template_from_mesh(mesh, output, n_views=views, scale=scale, force=force, progress=progress)
-    if json_out:
-        _print_json(summary)
+        result = render_template(mesh, output, n_views=views, scale=scale, force=force, progress=progress)
+    if json_out:  # the `template-from-mesh --json` object
+        _print_json({"output": str(result.output), "views": result.views, "descriptor": result.descriptor,
+                     "source": result.source, "extent_m": list(result.extent_m)})
     else:
-        _say((str(output), "bold"), f": {summary['views']} views rendered from {mesh}")
+        _say((str(output), "bold"), f": {result.views} views rendered from {mesh}")
 
 
 # ------------------------------------------------------------------------------------------- estimate

@@ -20,7 +20,8 @@ from gscan.evaluate.metrics import add
 from gscan.geometry.transforms import pose_error
 from gscan.io import open_sequence
 from gscan.progress import Progress
-from gscan.scan.pipeline import ScanOptions, ScanResult, run_scan
+from gscan.scan.api import scan
+from gscan.scan.pipeline import ScanResult
 
 SAMPLES = Path(__file__).resolve().parents[1] / "samples"
 
@@ -70,9 +71,8 @@ def scan_sample(output: Path, progress: Progress | None = None) -> ScanResult:
     """Scan samples/capture into OUTPUT/sample.gscan (replacing it); returns the ScanResult."""
     if not (SAMPLES / "capture").is_dir():
         raise InputError(SAMPLES / "capture", "bundled sample not found (run from a source checkout)")
-    # run_scan checks the output path before any work and makes the missing folders
-    return run_scan(ScanOptions(input_dir=SAMPLES / "capture", output=output / "sample.gscan", force=True),
-                    progress=progress)
+    # the scan checks the output path before any work and makes the missing folders
+    return scan(SAMPLES / "capture", output / "sample.gscan", force=True, progress=progress)
 
 
 def evaluate_sample(db_path: Path) -> list[HeldOutResult]:

@@ -169,12 +169,18 @@ def extract_features(frame: RGBDFrame, params: FeatureParams = FeatureParams(),
                      mask: np.ndarray | None = None) -> Features:
     """Detect, describe and lift keypoints of `frame`.
 
-    mask: optional [H x W] bool; detection is restricted to True pixels (a keypoint is kept
-    only if its rounded pixel lies in the mask). `frame.mask` is NOT applied implicitly:
-    pass `mask=frame.mask` to use it. Keypoints without a robust depth (invalid or
-    discontinuous window, see `lift_keypoints`) are dropped; of the rest the
-    `params.max_keypoints` strongest are kept, ordered by decreasing response with ties
-    broken by (y, x, angle). Deterministic.
+    Keypoints without a robust depth (invalid or discontinuous window, see `lift_keypoints`) are dropped; of
+    the rest the `params.max_keypoints` strongest are kept, ordered by decreasing response with ties broken by
+    (y, x, angle). Deterministic.
+
+    Args:
+        frame: the RGB-D frame.
+        params: detector, descriptor kind and depth lifting.
+        mask: optional [H x W] bool; detection is restricted to True pixels (a keypoint is kept only if its
+            rounded pixel lies in the mask). `frame.mask` is NOT applied implicitly: pass `mask=frame.mask`.
+
+    Returns:
+        Features: pixels [N x 2], camera-frame points [N x 3], descriptors [N x D], kind, scales [N].
     """
     gray = _to_gray(frame.color)
     H, W = gray.shape

@@ -94,11 +94,11 @@ def main() -> None:
     """Re-pin: scan the sample as `gscan demo` does and write tests/sample_pins.json."""
     import tempfile
 
-    from gscan.scan.pipeline import ScanOptions, run_scan
+    from gscan.scan.api import scan
 
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "sample.gscan"
-        run_scan(ScanOptions(input_dir=ROOT / "samples" / "capture", output=out))
+        scan(ROOT / "samples" / "capture", out)
         text = json.dumps(_sample_results(out), indent=1)
     # one matrix row a line
     text = re.sub(r"\[\s+([^\[\]{}]*?)\s+\]", lambda m: "[" + ", ".join(x.strip() for x in m.group(1).split(",")) + "]", text)

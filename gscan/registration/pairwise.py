@@ -1,6 +1,6 @@
 """Pairwise registration: features -> match (GMatch or a baseline) -> Kabsch -> ICP -> verdict.
 
-`register_features(fs, ft, params, clouds)` registers two frames' keypoints; `match_frames(frame_s,
+`register_features(fs, ft, params, clouds)` registers two frames' keypoints; `register_frames(frame_s,
 frame_t)` also extracts the features and back-projects the ICP clouds (the one-call Python API).
 T_tgt_src maps source-camera points into the target camera (p_t = T_tgt_src @ p_s).
 
@@ -57,10 +57,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from gscan.matching.baselines import BASELINES, BaselineParams, run_baseline
+from gscan.features import FeatureParams, Features, descriptor_distances, extract_features
 from gscan.geometry.icp import icp
 from gscan.geometry.kabsch import kabsch, kabsch_trimmed
 from gscan.geometry.transforms import inv_T, pose_error, transform_points
+from gscan.io.camera import RGBDFrame, point_cloud
+from gscan.matching.baselines import BASELINES, BaselineParams, run_baseline
 from gscan.matching.gmatch import GMatchParams, GMatchResult, default_eps_f, gmatch
 
 log = logging.getLogger(__name__)
@@ -264,8 +266,6 @@ def register_points(pts_s: np.ndarray, pts_t: np.ndarray, desc_s: np.ndarray, de
 
     clouds: optional (src [P x 3], tgt [Q x 3]) camera-frame clouds for ICP.
     """
-    from gscan.features import descriptor_distances
-
     tm: dict[str, float] = {}
     t0 = time.perf_counter()
     dist = descriptor_distances(desc_s, desc_t, kind)
@@ -328,25 +328,48 @@ def register_points(pts_s: np.ndarray, pts_t: np.ndarray, desc_s: np.ndarray, de
     return out
 
 
-def register_features(fs, ft, params: RegisterParams = RegisterParams(), clouds: tuple | None = None) -> PairResult:
-    """Register two gscan.features.Features (camera-frame points, viewed along +z)."""
+def register_features(fs: Features, ft: Features, params: RegisterParams = RegisterParams(),
+                      clouds: tuple[np.ndarray | None, np.ndarray | None] | None = None) -> PairResult:
+    """Register the keypoints of two frames (camera-frame points, viewed along +z): match, Kabsch, optional ICP,
+    verdict (module docstring).
+
+    Args:
+        fs, ft: the source and target frames' keypoints, of one descriptor kind.
+        params: matcher, pose and acceptance parameters.
+        clouds: (source [P x 3], target [Q x 3]) camera-frame clouds for ICP (used when params.icp).
+
+    Returns:
+        PairResult: T_tgt_src [4 x 4] (source camera -> target camera) or None, the matches [M x 2] (source,
+        target keypoint indices), the inliers the pose rests on [K x 2], quality numbers, and the verdict
+        (`accepted`, `reason`).
+    """
     if fs.kind != ft.kind:
         raise ValueError(f"descriptor kinds differ: {fs.kind} vs {ft.kind}")
     return register_points(fs.points, ft.points, fs.descriptors, ft.descriptors, fs.kind, params, clouds)
 
 
-def frame_cloud(frame, stride: int = 2, mask: np.ndarray | None = None) -> np.ndarray:
+def frame_cloud(frame: RGBDFrame, stride: int = 2, mask: np.ndarray | None = None) -> np.ndarray:
     """Camera-frame ICP cloud [P x 3] of an RGBDFrame (valid depth, every `stride`-th pixel, optional mask)."""
-    from gscan.io.camera import point_cloud
-
     return point_cloud(frame, mask, stride)[0]
 
 
-def match_frames(frame_s, frame_t, params: RegisterParams = RegisterParams(), feature_params=None,
-                 use_masks: bool = False, icp_stride: int = 2) -> PairResult:
-    """One call: features of both RGBDFrames -> match -> Kabsch -> ICP (whole frames unless use_masks)."""
-    from gscan.features import FeatureParams, extract_features
+def register_frames(frame_s: RGBDFrame, frame_t: RGBDFrame, params: RegisterParams = RegisterParams(), *,
+                    feature_params: FeatureParams | None = None, use_masks: bool = False,
+                    icp_stride: int = 2) -> PairResult:
+    """Register two RGB-D frames: keypoints of both, then `register_features` (ICP on their clouds when
+    params.icp).
 
+    Args:
+        frame_s, frame_t: the source and target frames.
+        params: matcher, pose and acceptance parameters.
+        feature_params: the keypoints extracted (default FeatureParams()).
+        use_masks: keypoints and ICP clouds inside the frames' masks only (whole frames by default).
+        icp_stride: pixel stride of the ICP clouds.
+
+    Returns:
+        PairResult as `register_features`; T_tgt_src [4 x 4] maps source-camera points into the target camera.
+        timings_ms["features"] is the extraction time.
+    """
     fp = feature_params if feature_params is not None else FeatureParams()
     ms = frame_s.mask if use_masks else None
     mt = frame_t.mask if use_masks else None

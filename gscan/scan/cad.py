@@ -20,6 +20,7 @@ colours); meshes with neither render grey.
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -100,14 +101,38 @@ def _voxel_cloud(points: np.ndarray, colors: np.ndarray, voxel: float) -> tuple[
     return M[:, :3].astype(np.float32), np.clip(np.rint(M[:, 3:]), 0, 255).astype(np.uint8)
 
 
-def build_template_from_mesh(mesh_path: str | Path, output: str | Path, n_views: int = 36, scale: float = 1.0,
-                             force: bool = False, progress: Progress | None = None,
-                             feature_params: FeatureParams | None = None) -> dict:
-    """Render `n_views` snapshots of the mesh at `mesh_path` into a new template database `output`.
+@dataclass(frozen=True)
+class TemplateResult:
+    """A template rendered from a mesh: the database written, its number of views, descriptor kind, source
+    ("mesh") and the object's extent [3] (m, mesh frame)."""
 
-    Returns the `info --json`-style summary {"output", "views", "descriptor", "source": "mesh", "extent_m"}.
-    Raises InputError naming the file for a missing / unreadable mesh, an existing output without
-    `force`; on any error the partly written output is removed.
+    output: Path
+    views: int
+    descriptor: str
+    source: str
+    extent_m: tuple[float, float, float]
+
+
+def template_from_mesh(mesh_path: str | Path, output: str | Path, *, n_views: int = 36, scale: float = 1.0,
+                       force: bool = False, progress: Progress | None = None,
+                       feature_params: FeatureParams | None = None) -> TemplateResult:
+    """Render `n_views` snapshots of a textured mesh into a new template database (the mesh's frame is kept).
+
+    Args:
+        mesh_path: a textured OBJ (with MTL and image), or a PLY / GLB with vertex colours.
+        output: the template database to write (`OBJ.gscan`).
+        n_views: snapshots rendered on a sphere around the mesh (module docstring).
+        scale: mesh units to metres (0.001 for millimetres).
+        force: replace an existing `output`.
+        progress: stage progress reporting, none by default.
+        feature_params: the keypoints stored (default: the estimator's query keypoints, OBJECT_FEATURES).
+
+    Returns:
+        TemplateResult: output, views, descriptor kind, source "mesh", extent_m [3].
+
+    Raises:
+        InputError: naming the file, for a missing / unreadable / degenerate mesh, a bad `n_views` or `scale`,
+            an existing output without `force`; on any error the partly written output is removed.
     """
     mesh_path, output = Path(mesh_path), Path(output)
     if n_views < 1:
@@ -154,8 +179,9 @@ def build_template_from_mesh(mesh_path: str | Path, output: str | Path, n_views:
             db.set_cloud(P, C)
             db.set_mesh(mesh.to_mesh())
             db.mark_complete()
-            summary = {"output": str(output), "views": int(n_views), "descriptor": feature_params.kind,
-                       "source": "mesh", "extent_m": [float(x) for x in db.extent()]}
+            x, y, z = (float(v) for v in db.extent())
+            result = TemplateResult(output=output, views=int(n_views), descriptor=feature_params.kind, source="mesh",
+                                    extent_m=(x, y, z))
             advance(1)
         log.info("%s: %d views, %d keypoints, cloud %d points", output, n_views, n_kp, len(P))
     except BaseException:
@@ -165,4 +191,4 @@ def build_template_from_mesh(mesh_path: str | Path, output: str | Path, n_views:
         remove_empty_folders(made)
         raise
     db.close()
-    return summary
+    return result
