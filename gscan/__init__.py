@@ -22,7 +22,6 @@ callable: `gscan.scan(...)` runs `gscan.scan.api.scan`, `gscan.export(...)` runs
 from __future__ import annotations
 
 import importlib
-import inspect
 import sys
 import types
 from typing import TYPE_CHECKING, Any
@@ -95,7 +94,9 @@ class _CallablePackage(types.ModuleType):
         return self._function()(*args, **kwargs)
 
     @property
-    def __signature__(self) -> inspect.Signature:  # inspect.signature / help show the function's
+    def __signature__(self) -> Any:  # inspect.signature / help show the function's
+        import inspect  # only when asked: `import gscan` stays light
+
         return inspect.signature(self._function())
 
 

@@ -6,6 +6,7 @@ import inspect
 import json
 import subprocess
 import sys
+import typing
 
 import numpy as np
 import pytest
@@ -109,8 +110,11 @@ def test_keypoints_gmatch_and_registration_of_two_sample_frames():
 
 
 def test_scan_refuses_bad_input_with_one_line(tmp_path):
+    from gscan.scan.api import scan as scan_function
+
+    assert typing.get_type_hints(scan_function)["return"] is gscan.ScanResult
     with pytest.raises(gscan.InputError, match="nowhere"):
-        gscan.scan(tmp_path / "nowhere", tmp_path / "o.gscan")
+        gscan.scan(tmp_path / "nowhere", tmp_path / "o.gscan", config=gscan.ScanConfig())
     bad = tmp_path / "bad.yaml"
     bad.write_text("registration: {min_matches: -4}\n")
     with pytest.raises(gscan.InputError, match="bad.yaml"):
@@ -131,7 +135,6 @@ def test_scan_result_template_db_estimator_and_export(sample_template, tmp_path)
     out = gscan.export(sample_template, "json", tmp_path / "sample.json")
     assert out.format == "json" and out.views == 30 and out.path == tmp_path / "sample.json"
     assert json.loads((tmp_path / "sample.json").read_text())["format"] == "gscan-template-json"
-    assert isinstance(gscan.ScanConfig(), gscan.ScanConfig)
 
 
 def test_template_from_mesh_returns_a_record(tmp_path):
