@@ -1,6 +1,6 @@
 """Benchmark of pose estimation (gscan.estimate.estimator) on cluttered rendered scenes, against a baseline.
 
-For every shared mesh (or --meshes): a CAD template (`build_template_from_mesh`, --views views,
+For every shared mesh (or --meshes): a CAD template (`template_from_mesh`, --views views,
 cached under --work), then --scenes scenes: the target resting on a textured table in a random
 orientation with two other shared meshes beside it as distractors, seen from a random viewpoint
 (elevation 20-65 deg, distance 0.95-1.3 x the 45 %-fill distance); every other scene looks at the
@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from gscan.matching.baselines import run_baseline
-from gscan.scan.cad import build_template_from_mesh
+from gscan.scan.cad import template_from_mesh
 from gscan.io.camera import RGBDFrame
 from gscan.estimate.estimator import STAGES, EstimateParams, Estimator
 from gscan.features import Features
@@ -100,14 +100,14 @@ def scanned_template(name: str, mesh, work: Path, n_frames: int) -> tuple[Path, 
     T_obj_cam[f] @ T_cam_gt[f] over the capture frames (DESIGN.md), never from the test scenes."""
     from gscan.evaluate.bop19 import template_to_gt
     from gscan.io import open_sequence
-    from gscan.scan.pipeline import ScanOptions, run_scan
+    from gscan.scan.api import scan
     from gscan.synth import render_capture
 
     cap, tpl = work / f"{name}_capture{n_frames}", work / f"{name}_scan{n_frames}.gscan"
     if not cap.exists():
         render_capture(mesh, cap, n_frames, seed=11)
     if not tpl.exists():
-        run_scan(ScanOptions(input_dir=cap, output=tpl))
+        scan(cap, tpl)
     T_obj_gt = template_to_gt(tpl, open_sequence(cap).gt_T_cam_obj)
     return tpl, T_obj_gt
 
@@ -128,7 +128,7 @@ def run(args: argparse.Namespace) -> dict:
         tpl = work / f"{name}_v{args.views}_c{ct:g}.gscan"
         if not tpl.exists():
             t0 = time.perf_counter()
-            build_template_from_mesh(MESHES / name / "model_0.obj", tpl, n_views=args.views)
+            template_from_mesh(MESHES / name / "model_0.obj", tpl, n_views=args.views)
             t_build.append(time.perf_counter() - t0)
         est = {"gscan": Estimator.from_path(tpl), "baseline": RatioRansacEstimator.from_path(tpl)}
         est["gscan-mask-noicp"] = est["gscan"]

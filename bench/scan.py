@@ -45,7 +45,7 @@ sys.path.insert(0, str(ROOT / "bench"))
 from gscan.geometry.transforms import inv_T  # noqa: E402
 from gscan.io import open_sequence  # noqa: E402
 from gscan.evaluate.metrics import ate  # noqa: E402
-from gscan.scan.pipeline import ScanOptions, run_scan  # noqa: E402
+from gscan.scan.api import scan  # noqa: E402
 from gscan.synth import default_distance, load_textured_mesh, render_capture  # noqa: E402
 from gscan.template.db import TemplateDB  # noqa: E402
 
@@ -100,7 +100,7 @@ def score(est: dict[str, np.ndarray | None], gt: dict[str, np.ndarray]) -> dict:
 
 def scan_once(cap: Path, gt: dict[str, np.ndarray], db_path: Path) -> dict:
     t = time.perf_counter()
-    res = run_scan(ScanOptions(input_dir=cap, output=db_path, force=True))
+    res = scan(cap, db_path, force=True)
     secs = time.perf_counter() - t
     with TemplateDB.open(db_path) as db:
         poses = {n: np.asarray(T) for n, T in db.poses()["frames"].items()}
@@ -270,7 +270,7 @@ def print_e2e(r: dict) -> None:
 
 def child_scan(cap: str, db: str, out: str) -> None:
     t = time.perf_counter()
-    res = run_scan(ScanOptions(input_dir=Path(cap), output=Path(db), force=True))
+    res = scan(Path(cap), Path(db), force=True)
     secs = time.perf_counter() - t
     with TemplateDB.open(db) as d:
         poses = d.poses()["frames"]

@@ -106,7 +106,7 @@ def scan(
     from gscan.scan.config import load_config
     from gscan.io.layouts import FORMATS
     from gscan.progress import RichProgress
-    from gscan.scan.pipeline import ScanOptions, run_scan
+    from gscan.scan.api import scan as scan_capture
 
     if format not in ("auto",) + FORMATS:
         raise UsageError(None, f"--format must be one of {', '.join(('auto',) + FORMATS)}, not {format!r}")
@@ -114,12 +114,12 @@ def scan(
         raise UsageError(None, f"--mode must be auto, static-object or moving-object, not {mode!r}")
     if resume and force:
         raise UsageError(output, "--resume and --force exclude each other")
-    opts = ScanOptions(input_dir=input_dir, output=output, fmt=format, intrinsics=intrinsics,
-                       depth_scale=depth_scale, mode=mode, segment=not no_segment, resume=resume,
-                       force=force, config=load_config(config), obj_id=obj_id)
+    cfg = load_config(config)
     try:
         with RichProgress(err, enabled=not json_out or sys.stderr.isatty()) as progress:
-            result = run_scan(opts, progress=progress)
+            result = scan_capture(input_dir, output, config=cfg, format=format, intrinsics=intrinsics,
+                                  depth_scale=depth_scale, mode=mode, segment=not no_segment, resume=resume,
+                                  force=force, obj_id=obj_id, progress=progress)
     except KeyboardInterrupt:  # Ctrl+C: the partial database is kept for --resume (typer exits 130)
         _say_interrupted(_interrupted_scan_line(output, force))
         raise
@@ -129,7 +129,7 @@ def scan(
         _print_scan_summary(result)
 
 
-_SCAN_IMPORTS = ("gscan.scan.pipeline", "open3d", "scipy.spatial")  # with the scan's lazy C-extension imports
+_SCAN_IMPORTS = ("gscan.scan.api", "open3d", "scipy.spatial")  # with the scan's lazy C-extension imports
 
 
 def _import_holding_ctrl_c(*modules: str) -> None:
@@ -200,17 +200,18 @@ def template_from_mesh(
     json_out: bool = typer.Option(False, "--json", help="print one JSON object on stdout"),
 ) -> None:
     """Render snapshots around a CAD mesh into a template database (mesh frame kept)."""
-    from gscan.scan.cad import build_template_from_mesh
+    from gscan.scan.cad import template_from_mesh as render_template
     from gscan.progress import RichProgress
 
     if scale <= 0:
         raise UsageError(mesh, f"--scale must be positive, not {scale}")
     with RichProgress(err, enabled=not json_out) as progress:
-        summary = build_template_from_mesh(mesh, output, n_views=views, scale=scale, force=force, progress=progress)
-    if json_out:
-        _print_json(summary)
+        result = render_template(mesh, output, n_views=views, scale=scale, force=force, progress=progress)
+    if json_out:  # the `template-from-mesh --json` object
+        _print_json({"output": str(result.output), "views": result.views, "descriptor": result.descriptor,
+                     "source": result.source, "extent_m": list(result.extent_m)})
     else:
-        _say((str(output), "bold"), f": {summary['views']} views rendered from {mesh}")
+        _say((str(output), "bold"), f": {result.views} views rendered from {mesh}")
 
 
 # ------------------------------------------------------------------------------------------- estimate
@@ -285,7 +286,11 @@ def info(
     from gscan.template.db import TemplateDB
 
     with TemplateDB.open(template, require_complete=False) as db:
-        out = db.summary()
+        s = db.summary()
+    # the `info --json` object of the CLI contract
+    out = {"schema": s.schema, "status": s.status, "views": s.views, "registered": s.registered,
+           "keyframes": s.keyframes, "descriptor": s.descriptor, "source": s.source, "extent_m": list(s.extent_m),
+           "grasps": list(s.grasps)}
     if json_out:
         _print_json(out)
         return
@@ -329,20 +334,29 @@ def view(
     depth: Optional[Path] = typer.Option(None, "--depth", help="depth of --color"),
     intrinsics: Optional[Path] = typer.Option(None, "--intrinsics", help="intrinsics of --color"),
     depth_scale: float = typer.Option(0.001, "--depth-scale", help="metres per raw depth unit"),
+    pose: Optional[Path] = typer.Option(
+        None, "--pose", help='T_cam_obj of --color\'s frame instead of estimating it: {"T": 4x4} or a bare 4x4 list'),
 ) -> None:
     """Browse a template (views, matches, pose graph) in the web browser."""
     from gscan.viewer.app import run_viewer
 
     frame = T_cam_obj = None
+    if pose is not None and color is None:
+        raise UsageError(pose, "--pose places a query frame: it needs --color, --depth and --intrinsics")
     if color is not None or depth is not None or intrinsics is not None:
         if color is None or depth is None or intrinsics is None:
             raise UsageError(None, "--color, --depth and --intrinsics go together")
-        from gscan.estimate.estimator import Estimator
-
         frame = _load_query_frame(color, depth, intrinsics, depth_scale, None)
-        result = Estimator.from_path(template).estimate(frame)
-        T_cam_obj = result.T_cam_obj
-        err.print(f"estimate: {'not found (' + str(result.reason) + ')' if T_cam_obj is None else 'view ' + str(result.view)}")
+        if pose is not None:
+            from gscan.io import read_pose_file
+
+            T_cam_obj = read_pose_file(pose)
+        else:
+            from gscan.estimate.estimator import Estimator
+
+            result = Estimator.from_path(template).estimate(frame)
+            T_cam_obj = result.T_cam_obj
+            err.print(f"estimate: {'not found (' + str(result.reason) + ')' if T_cam_obj is None else 'view ' + str(result.view)}")
     run_viewer(template, host=host, port=port, scene_frame=frame, T_cam_obj=T_cam_obj,
                on_ready=lambda url: _say("viewer ready at ", (url, "bold"), " (Ctrl+C to stop)"))
 

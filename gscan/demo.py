@@ -14,8 +14,14 @@ from pathlib import Path
 import numpy as np
 
 from gscan.errors import InputError
+from gscan.estimate.estimator import Estimator
 from gscan.evaluate.bop19 import template_to_gt
+from gscan.evaluate.metrics import add
 from gscan.geometry.transforms import pose_error
+from gscan.io import open_sequence
+from gscan.progress import Progress
+from gscan.scan.api import scan
+from gscan.scan.pipeline import ScanResult
 
 SAMPLES = Path(__file__).resolve().parents[1] / "samples"
 
@@ -33,10 +39,6 @@ class HeldOutResult:
 
 def evaluate_heldout(db_path: Path, heldout_dir: Path, model_points: np.ndarray) -> list[HeldOutResult]:
     """Estimate every held-back frame and compare with its ground truth (errors in the GT frame)."""
-    from gscan.estimate.estimator import Estimator
-    from gscan.io import open_sequence
-    from gscan.evaluate.metrics import add
-
     capture = open_sequence(SAMPLES / "capture")
     T_obj_gt = template_to_gt(db_path, capture.gt_T_cam_obj or {})
     seq = open_sequence(heldout_dir)
@@ -47,13 +49,14 @@ def evaluate_heldout(db_path: Path, heldout_dir: Path, model_points: np.ndarray)
         r = est.estimate(frame)
         T_gt = seq.gt_T_cam_obj[name]
         if r.T_cam_obj is None:
-            out.append(HeldOutResult(name, False, float("nan"), float("nan"), float("nan"), r.n_matches,
-                                     r.timings_ms["total"]))
+            out.append(HeldOutResult(name=name, found=False, rot_err_deg=float("nan"), trans_err_mm=float("nan"),
+                                     add_mm=float("nan"), n_matches=r.n_matches, total_ms=r.timings_ms["total"]))
             continue
         T_cam_gt_est = r.T_cam_obj @ T_obj_gt
         rot, trans = pose_error(T_cam_gt_est, T_gt)
-        out.append(HeldOutResult(name, True, rot, trans * 1000, add(model_points, T_cam_gt_est, T_gt) * 1000,
-                                 r.n_matches, r.timings_ms["total"]))
+        out.append(HeldOutResult(name=name, found=True, rot_err_deg=rot, trans_err_mm=trans * 1000,
+                                 add_mm=add(model_points, T_cam_gt_est, T_gt) * 1000, n_matches=r.n_matches,
+                                 total_ms=r.timings_ms["total"]))
     return out
 
 
@@ -64,15 +67,12 @@ def _model_points() -> np.ndarray:
     return np.asarray(trimesh.sample.sample_surface(mesh, 2000, seed=0)[0])
 
 
-def scan_sample(output: Path, progress=None):
+def scan_sample(output: Path, progress: Progress | None = None) -> ScanResult:
     """Scan samples/capture into OUTPUT/sample.gscan (replacing it); returns the ScanResult."""
-    from gscan.scan.pipeline import ScanOptions, run_scan
-
     if not (SAMPLES / "capture").is_dir():
         raise InputError(SAMPLES / "capture", "bundled sample not found (run from a source checkout)")
-    # run_scan checks the output path before any work and makes the missing folders
-    return run_scan(ScanOptions(input_dir=SAMPLES / "capture", output=output / "sample.gscan", force=True),
-                    progress=progress)
+    # the scan checks the output path before any work and makes the missing folders
+    return scan(SAMPLES / "capture", output / "sample.gscan", force=True, progress=progress)
 
 
 def evaluate_sample(db_path: Path) -> list[HeldOutResult]:

@@ -24,7 +24,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from gscan.io.camera import RGBDFrame, lift_keypoints
+from gscan.geometry.transforms import transform_points
+from gscan.io.camera import Intrinsics, RGBDFrame, lift_keypoints
 
 log = logging.getLogger(__name__)
 
@@ -36,26 +37,28 @@ DESCRIPTOR_KINDS = {k: (_DIMS[k], _DTYPES[k]) for k in KINDS}  # kind -> (descri
 
 @dataclass
 class Features:
-    """Keypoints of one frame with descriptors and camera-frame 3D points.
+    """Keypoints of one frame (or template view) with descriptors and 3D points.
 
-    pixels: [N x 2] float32 (u, v); points: [N x 3] float32 camera-frame metres;
+    pixels: [N x 2] float32 (u, v); points: [N x 3] float32 metres, in the camera frame as extracted (a
+    template database stores a registered view's points in the object frame: `transformed`);
     descriptors: [N x 128] float32 (sift, rootsift) or [N x 32] uint8 (orb);
-    kind: "sift" | "rootsift" | "orb"; scales: [N] float32 keypoint size (pixels).
+    kind: "sift" | "rootsift" | "orb"; scales: [N] float32 keypoint size (pixels), or None (not stored).
     """
 
     pixels: np.ndarray
     points: np.ndarray
     descriptors: np.ndarray
     kind: str
-    scales: np.ndarray
+    scales: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
             raise ValueError(f"unknown descriptor kind {self.kind!r}; expected one of {KINDS}")
         n = len(self.pixels)
-        if self.pixels.shape != (n, 2) or self.points.shape != (n, 3) or self.scales.shape != (n,):
+        if (self.pixels.shape != (n, 2) or self.points.shape != (n, 3)
+                or (self.scales is not None and self.scales.shape != (n,))):
             raise ValueError(f"inconsistent feature shapes: pixels {self.pixels.shape}, points {self.points.shape}, "
-                             f"scales {self.scales.shape}")
+                             f"scales {None if self.scales is None else self.scales.shape}")
         if self.descriptors.shape != (n, _DIMS[self.kind]):
             raise ValueError(f"{self.kind} descriptors must be [{n} x {_DIMS[self.kind]}], got {self.descriptors.shape}")
 
@@ -67,13 +70,20 @@ class Features:
         """Descriptor distance: "l2" (sift, rootsift) or "hamming" (orb)."""
         return metric_of(self.kind)
 
-    def subset(self, idx: np.ndarray) -> "Features":
+    def subset(self, idx: np.ndarray) -> Features:
         """Features at `idx` ([K] int indices or [N] bool mask), copied."""
         idx = np.asarray(idx)
         if idx.dtype != bool:
             idx = idx.astype(np.intp).reshape(-1)
-        return Features(self.pixels[idx].copy(), self.points[idx].copy(), self.descriptors[idx].copy(), self.kind,
-                        self.scales[idx].copy())
+        return Features(pixels=self.pixels[idx].copy(), points=self.points[idx].copy(),
+                        descriptors=self.descriptors[idx].copy(), kind=self.kind,
+                        scales=None if self.scales is None else self.scales[idx].copy())
+
+    def transformed(self, T_b_a: np.ndarray) -> Features:
+        """The same keypoints with their points mapped from frame a into frame b (float32); the other arrays
+        are shared, not copied."""
+        return Features(pixels=self.pixels, points=transform_points(T_b_a, self.points).astype(np.float32),
+                        descriptors=self.descriptors, kind=self.kind, scales=self.scales)
 
 
 @dataclass(frozen=True)
@@ -117,8 +127,8 @@ def empty_features(kind: str) -> Features:
     """A Features with N = 0 of the given kind (descriptor width and dtype set)."""
     if kind not in KINDS:
         raise ValueError(f"unknown descriptor kind {kind!r}; expected one of {KINDS}")
-    return Features(np.zeros((0, 2), np.float32), np.zeros((0, 3), np.float32),
-                    np.zeros((0, _DIMS[kind]), _DTYPES[kind]), kind, np.zeros(0, np.float32))
+    return Features(pixels=np.zeros((0, 2), np.float32), points=np.zeros((0, 3), np.float32),
+                    descriptors=np.zeros((0, _DIMS[kind]), _DTYPES[kind]), kind=kind, scales=np.zeros(0, np.float32))
 
 
 def _to_gray(color: np.ndarray) -> np.ndarray:
@@ -159,12 +169,18 @@ def extract_features(frame: RGBDFrame, params: FeatureParams = FeatureParams(),
                      mask: np.ndarray | None = None) -> Features:
     """Detect, describe and lift keypoints of `frame`.
 
-    mask: optional [H x W] bool; detection is restricted to True pixels (a keypoint is kept
-    only if its rounded pixel lies in the mask). `frame.mask` is NOT applied implicitly:
-    pass `mask=frame.mask` to use it. Keypoints without a robust depth (invalid or
-    discontinuous window, see `lift_keypoints`) are dropped; of the rest the
-    `params.max_keypoints` strongest are kept, ordered by decreasing response with ties
-    broken by (y, x, angle). Deterministic.
+    Keypoints without a robust depth (invalid or discontinuous window, see `lift_keypoints`) are dropped; of
+    the rest the `params.max_keypoints` strongest are kept, ordered by decreasing response with ties broken by
+    (y, x, angle). Deterministic.
+
+    Args:
+        frame: the RGB-D frame.
+        params: detector, descriptor kind and depth lifting.
+        mask: optional [H x W] bool; detection is restricted to True pixels (a keypoint is kept only if its
+            rounded pixel lies in the mask). `frame.mask` is NOT applied implicitly: pass `mask=frame.mask`.
+
+    Returns:
+        Features: pixels [N x 2], camera-frame points [N x 3], descriptors [N x D], kind, scales [N].
     """
     gray = _to_gray(frame.color)
     H, W = gray.shape
@@ -208,8 +224,8 @@ def extract_features(frame: RGBDFrame, params: FeatureParams = FeatureParams(),
         desc = np.ascontiguousarray(desc, dtype=np.uint8)
     log.debug("frame %s: %d %s keypoints detected, %d with depth, %d kept", frame.name, len(kps), params.kind,
               int(keep.sum()), len(idx))
-    return Features(px[idx].astype(np.float32), pts[idx].astype(np.float32), np.ascontiguousarray(desc),
-                    params.kind, size[idx])
+    return Features(pixels=px[idx].astype(np.float32), points=pts[idx].astype(np.float32),
+                    descriptors=np.ascontiguousarray(desc), kind=params.kind, scales=size[idx])
 
 
 _POPCOUNT8 = np.array([bin(i).count("1") for i in range(256)], dtype=np.uint8)
@@ -278,8 +294,6 @@ def extract_features_in_mask(frame: RGBDFrame, mask: np.ndarray, params: Feature
     """Features of `frame` inside `mask` [H x W] bool, detected on the mask's bounding box (+ `margin`
     px) only, which is faster than a masked full-frame detection; pixels in full-frame coordinates,
     points in the camera frame. An empty mask gives no features."""
-    from gscan.io.camera import Intrinsics
-
     if not mask.any():
         return empty_features(params.kind)
     H, W = mask.shape

@@ -38,10 +38,10 @@ def real_dir(shared_data: Path) -> Path:
 
 @pytest.fixture(scope="session")
 def sample_template(tmp_path_factory) -> Path:
-    """The bundled sample (samples/capture) scanned by the real pipeline, once per session."""
-    from gscan.scan.pipeline import ScanOptions, run_scan
+    """The bundled sample (samples/capture) scanned by the real pipeline (`gscan.scan`), once per session."""
+    import gscan
 
     out = tmp_path_factory.mktemp("sample") / "sample.gscan"
-    res = run_scan(ScanOptions(input_dir=ROOT / "samples" / "capture", output=out))
+    res = gscan.scan(ROOT / "samples" / "capture", out)
     assert res.registered == res.frames == 30
     return out

@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gscan.scan.cad import build_template_from_mesh, fibonacci_directions, view_poses
+from gscan.scan.cad import template_from_mesh, fibonacci_directions, view_poses
 from gscan.io.camera import project
 from gscan.errors import InputError
 from gscan.geometry.transforms import inv_T, transform_points
@@ -19,20 +19,21 @@ MESH = "Vans_Cereal_Honey_Nut_Crunch_11_oz_box"
 @pytest.fixture(scope="module")
 def built(meshes_dir: Path, tmp_path_factory) -> tuple[Path, dict]:
     out = tmp_path_factory.mktemp("cad") / "vans.gscan"
-    summary = build_template_from_mesh(meshes_dir / MESH / "model_0.obj", out, n_views=8, scale=1.0)
+    summary = template_from_mesh(meshes_dir / MESH / "model_0.obj", out, n_views=8, scale=1.0)
     return out, summary
 
 
 def test_summary_and_database(built, meshes_dir):
     out, summary = built
     mesh = load_textured_mesh(meshes_dir / MESH / "model_0.obj")
-    assert summary["output"] == str(out) and summary["views"] == 8 and summary["source"] == "mesh"
-    assert summary["descriptor"] == "rootsift"
-    np.testing.assert_allclose(summary["extent_m"], mesh.extent, atol=1e-6)
+    assert summary.output == out and summary.views == 8 and summary.source == "mesh"
+    assert summary.descriptor == "rootsift"
+    np.testing.assert_allclose(summary.extent_m, mesh.extent, atol=1e-6)
     with TemplateDB.open(out, require_complete=True) as db:
         info = db.summary()
-        assert info["status"] == "complete" and info["source"] == "mesh" and info["views"] == 8
-        V, F, C = db.mesh()
+        assert info.status == "complete" and info.source == "mesh" and info.views == 8
+        m = db.mesh()
+        V, F, C = m.vertices, m.triangles, m.vertex_colors
         np.testing.assert_allclose(V, mesh.vertices)  # the mesh frame is kept
         assert F.shape == mesh.triangles.shape and C.shape == V.shape and C.dtype == np.uint8
         assert C.std() > 5  # colours come from the texture, not a flat grey
@@ -43,13 +44,24 @@ def test_summary_and_database(built, meshes_dir):
             assert v.T_obj_cam is not None and v.mask is not None and v.mask.any()
             assert not v.depth[~v.mask].any()  # depth only on the object
             assert np.percentile(v.color[~v.mask], 99) <= 8  # black background, no table (JPEG ringing at edges)
-            px, pts_obj, desc, kind = db.features(v.name)
-            assert kind == "rootsift" and len(px) > 10
+            f = db.features(v.name)
+            px, pts_obj = f.pixels, f.points
+            assert f.kind == "rootsift" and len(px) > 10
             # object-frame keypoints project back onto their pixels through the view pose
             uv = project(transform_points(inv_T(v.T_obj_cam), pts_obj), v.intrinsics)
             np.testing.assert_allclose(uv, px, atol=0.05)
             u, w = np.rint(px).astype(int).T
             assert v.mask[w, u].all()
+
+
+def test_template_keypoints_are_the_estimators_query_keypoints(built):
+    """A CAD template stores keypoints detected with the settings the estimator detects its queries with."""
+    from gscan.estimate.estimator import EstimateParams
+
+    q = EstimateParams().features
+    with TemplateDB.open(built[0]) as db:
+        assert db.get_meta("descriptor") == {"kind": q.kind, "max_keypoints": q.max_keypoints,
+                                             "sift_contrast_threshold": q.sift_contrast_threshold}
 
 
 def test_views_cover_both_hemispheres_at_fill_distance(meshes_dir):
@@ -67,9 +79,9 @@ def test_views_cover_both_hemispheres_at_fill_distance(meshes_dir):
 
 def test_scale_converts_units(meshes_dir, tmp_path):
     out = tmp_path / "mm.gscan"
-    s = build_template_from_mesh(meshes_dir / MESH / "model_0.obj", out, n_views=4, scale=0.5)
+    s = template_from_mesh(meshes_dir / MESH / "model_0.obj", out, n_views=4, scale=0.5)
     mesh = load_textured_mesh(meshes_dir / MESH / "model_0.obj")
-    np.testing.assert_allclose(s["extent_m"], 0.5 * mesh.extent, atol=1e-6)
+    np.testing.assert_allclose(s.extent_m, 0.5 * mesh.extent, atol=1e-6)
 
 
 def test_vertex_coloured_ply(tmp_path):
@@ -82,8 +94,8 @@ def test_vertex_coloured_ply(tmp_path):
     ply = tmp_path / "box.ply"
     box.export(ply)
     out = tmp_path / "box.gscan"
-    s = build_template_from_mesh(ply, out, n_views=4)
-    assert s["views"] == 4
+    s = template_from_mesh(ply, out, n_views=4)
+    assert s.views == 4
     with TemplateDB.open(out) as db:
         v = db.views(load_images=True)[0]
         assert v.color[v.mask].std() > 20  # rendered with its colours, not grey
@@ -102,7 +114,7 @@ def test_template_from_a_scanned_mesh(sample_template, tmp_path, caplog):
     export(sample_template, "ply", ply)
     out = tmp_path / "from_scan.gscan"
     with caplog.at_level("WARNING"):
-        build_template_from_mesh(ply, out, n_views=24)
+        template_from_mesh(ply, out, n_views=24)
     assert not [r for r in caplog.records if "flat colour" in r.getMessage()]
     held = Path(__file__).resolve().parents[1] / "samples" / "heldout"
     frame = load_frame(held / "rgb" / "000000.jpg", held / "depth" / "000000.png", held / "cam_K.txt", depth_scale=0.001)
@@ -119,7 +131,7 @@ def test_bad_mesh_refused_and_nothing_written(tmp_path, content):
         mesh.write_bytes(content)
     out = tmp_path / "out.gscan"
     with pytest.raises(InputError, match="bad.obj"):
-        build_template_from_mesh(mesh, out, n_views=4)
+        template_from_mesh(mesh, out, n_views=4)
     assert not out.exists()
 
 
@@ -127,18 +139,18 @@ def test_existing_output_refused_without_force(built, meshes_dir, tmp_path):
     out = tmp_path / "exists.gscan"
     out.write_bytes(b"keep me")
     with pytest.raises(InputError, match="exists.gscan"):
-        build_template_from_mesh(meshes_dir / MESH / "model_0.obj", out, n_views=4)
+        template_from_mesh(meshes_dir / MESH / "model_0.obj", out, n_views=4)
     assert out.read_bytes() == b"keep me"
 
 
 def test_failure_midway_removes_output(meshes_dir, tmp_path, monkeypatch):
-    import gscan.scan.cad as cad
+    from gscan.synth import TexturedMesh
 
     def boom(*a, **k):
         raise RuntimeError("disk full")
 
-    monkeypatch.setattr(cad, "vertex_colors", boom)
+    monkeypatch.setattr(TexturedMesh, "to_mesh", boom)  # the last step before the database is complete
     out = tmp_path / "half.gscan"
     with pytest.raises(RuntimeError):
-        build_template_from_mesh(meshes_dir / MESH / "model_0.obj", out, n_views=4)
+        template_from_mesh(meshes_dir / MESH / "model_0.obj", out, n_views=4)
     assert not out.exists()

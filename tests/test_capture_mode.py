@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from gscan.io.camera import RGBDFrame
-from gscan.scan.capture_mode import MOVING_OBJECT, STATIC_OBJECT, moving_object_masks, detect_mode, select_keyframes
+from gscan.scan.capture_mode import MOVING_OBJECT, STATIC_OBJECT, detect_mode, moving_object_masks
+from gscan.scan.keyframes import select_keyframes
 from gscan.synth import DEFAULT_INTRINSICS, box_mesh, procedural_box_texture, render_capture
 
 

@@ -912,13 +912,13 @@ def _run(run: Run) -> subprocess.CompletedProcess:
 
 @pytest.fixture(scope="module")
 def ctx(tmp_path_factory: pytest.TempPathFactory) -> Ctx:
-    from gscan.scan.cad import build_template_from_mesh
+    from gscan.scan.cad import template_from_mesh
 
     base = tmp_path_factory.mktemp("inputs")
     mesh = synth.box_mesh((0.14, 0.09, 0.07), synth.procedural_box_texture(3, (512, 768)))
     synth.render_capture(mesh, base / "capture", N_VIEWS, mode="static", elevations_deg=(40.0,), intr=INTR)
     mesh_path = synth.save_textured_mesh(mesh, base / "box" / "box.obj")
-    build_template_from_mesh(mesh_path, base / "good.gscan", n_views=6)
+    template_from_mesh(mesh_path, base / "good.gscan", n_views=6)
     return Ctx(base / "capture", base / "good.gscan", mesh_path)
 
 

@@ -57,9 +57,19 @@ def test_every_registration_key_reaches_the_registration_parameters():
     from gscan.scan.capture_mode import MOVING_OBJECT
     from gscan.scan.pipeline import _register_params
 
+    from gscan.registration.noise import DepthNoise
+    from gscan.scan.config import NoiseConfig
+
     base = ScanConfig()
     for key, value in base.registration.model_dump().items():
-        new = (not value) if isinstance(value, bool) else value + 1
+        if key == "noise":  # null: the capture's own; given, both models reach the parameters
+            new = NoiseConfig.model_validate({"keypoint": {"c0": 1e-6, "c1": 0, "c2": 0},
+                                              "depth": {"c0": 2e-6, "c1": 0, "c2": 1e-6}})
+            cfg = base.model_copy(update={"registration": base.registration.model_copy(update={key: new})})
+            p = _register_params(cfg, MOVING_OBJECT)
+            assert (p.noise, p.depth_noise) == (DepthNoise(1e-6, 0, 0), DepthNoise(2e-6, 0, 1e-6))
+            continue
+        new = (not value) if isinstance(value, bool) else value / 2 if key == "max_see_through" else value + 1
         cfg = base.model_copy(update={"registration": base.registration.model_copy(update={key: new})})
         assert getattr(_register_params(cfg, MOVING_OBJECT), key) == new, key
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from gscan.io.camera import RGBDFrame
-from gscan.scan.cad import build_template_from_mesh
+from gscan.scan.cad import template_from_mesh
 from gscan.errors import InputError
 from gscan.estimate.estimator import STAGES, Estimator
 from gscan.geometry.transforms import look_at, make_T, pose_error, rotvec_to_R, transform_points
@@ -52,7 +52,7 @@ def meshes(meshes_dir: Path):
 @pytest.fixture(scope="module")
 def template(meshes_dir: Path, tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("estimate") / "target.gscan"
-    build_template_from_mesh(meshes_dir / TARGET / "model_0.obj", out, n_views=24)
+    template_from_mesh(meshes_dir / TARGET / "model_0.obj", out, n_views=24)
     return out
 
 
@@ -317,12 +317,12 @@ def scanned(meshes, tmp_path_factory):
     template->ground-truth alignment: the mean of T_obj_cam[f] @ T_cam_gt[f] over the capture frames."""
     from gscan.evaluate.bop19 import template_to_gt
     from gscan.io import open_sequence
-    from gscan.scan.pipeline import ScanOptions, run_scan
+    from gscan.scan.api import scan
     from gscan.synth import render_capture
 
     root = tmp_path_factory.mktemp("scanned")
     render_capture(meshes[0], root / "capture", 12, seed=5)
-    run_scan(ScanOptions(input_dir=root / "capture", output=root / "scanned.gscan"))
+    scan(root / "capture", root / "scanned.gscan")
     with TemplateDB.open(root / "scanned.gscan") as db:
         assert len(db.poses()["frames"]) >= 10
     T_obj_gt = template_to_gt(root / "scanned.gscan", open_sequence(root / "capture").gt_T_cam_obj)

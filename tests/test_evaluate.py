@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from gscan.scan.cad import build_template_from_mesh
+from gscan.scan.cad import template_from_mesh
 from gscan.errors import InputError
 from gscan.evaluate.bop19 import CSV_HEADER, evaluate
 from gscan.geometry.transforms import look_at, rotvec_to_R, transform_points
@@ -24,7 +24,7 @@ def setup(meshes_dir: Path, tmp_path_factory):
     root = tmp_path_factory.mktemp("evaluate")
     mesh = load_textured_mesh(meshes_dir / TARGET / "model_0.obj")
     tpl = root / "whey.gscan"
-    build_template_from_mesh(meshes_dir / TARGET / "model_0.obj", tpl, n_views=20)
+    template_from_mesh(meshes_dir / TARGET / "model_0.obj", tpl, n_views=20)
     T_wo = rest_on_table(mesh, rotvec_to_R([0, 0, 0.7]))
     scene = SynthScene([(mesh, T_wo)], seed=4)
     c = transform_points(T_wo, mesh.center[None])[0]
@@ -216,22 +216,22 @@ def test_bop_scan_follows_its_object_and_eval_scores_through_it(tmp_path):
     """`scan --obj-id` scans one object of a BOP scene of several and the template remembers it; eval relates
     the template to the ground truth through that object, whatever --obj-id numbers it in the scored scenes.
     --obj-id is refused for an object scene_gt.json does not hold and for other layouts."""
-    from gscan.scan.pipeline import ScanOptions, run_scan
+    from gscan.scan.api import scan
     from gscan.template.db import TemplateDB
 
     root = Path(__file__).resolve().parents[1] / "samples"
     bop = _capture_as_bop(root / "capture", tmp_path / "000003", obj_id=5, every=3)
     tpl = tmp_path / "obj5.gscan"
-    res = run_scan(ScanOptions(input_dir=bop, output=tpl, obj_id=5))
+    res = scan(bop, tpl, obj_id=5)
     assert res.registered == res.frames == 10
     with TemplateDB.open(tpl) as db:
         assert db.get_meta("obj_id") == 5
     rep = evaluate(tpl, root / "heldout", tmp_path / "r.csv")  # the held-out frames; --obj-id left at 1
     assert rep.metrics["AUC ADD"] > 95, rep.metrics
     with pytest.raises(InputError, match="scene_gt.json: holds no pose of object 9"):
-        run_scan(ScanOptions(input_dir=bop, output=tmp_path / "o9.gscan", obj_id=9))
+        scan(bop, tmp_path / "o9.gscan", obj_id=9)
     with pytest.raises(InputError, match="--obj-id is for BOP"):
-        run_scan(ScanOptions(input_dir=root / "capture", output=tmp_path / "c.gscan", obj_id=5))
+        scan(root / "capture", tmp_path / "c.gscan", obj_id=5)
     assert not (tmp_path / "o9.gscan").exists() and not (tmp_path / "c.gscan").exists()
     gt_file = bop / "scene_gt.json"
     gt_text = gt_file.read_text()
@@ -242,7 +242,7 @@ def test_bop_scan_follows_its_object_and_eval_scores_through_it(tmp_path):
         evaluate(tpl, root / "heldout", tmp_path / "r2.csv")
     gt_file.unlink()
     with pytest.raises(InputError, match=r"scene_gt.json: not found \(--obj-id"):
-        run_scan(ScanOptions(input_dir=bop, output=tmp_path / "n.gscan", obj_id=5))
+        scan(bop, tmp_path / "n.gscan", obj_id=5)
 
 
 def test_template_to_gt_keeps_the_frames_that_agree(sample_template, tmp_path):

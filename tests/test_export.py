@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import os
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -17,7 +18,9 @@ from gscan.errors import InputError
 from gscan.export import export
 from gscan.export.common import render_depth
 from gscan.geometry.transforms import inv_T, look_at, transform_points
-from gscan.template.db import Edge, MeshData, TemplateDB, View, ViewFeatures
+from gscan.features import Features
+from gscan.geometry.mesh import MeshData
+from gscan.template.db import Edge, TemplateDB, View
 
 K = Intrinsics(150.0, 152.0, 79.5, 59.5, 160, 120)
 BOX = (0.10, 0.15, 0.20)
@@ -27,8 +30,8 @@ def _box_mesh() -> MeshData:
     tm = trimesh.creation.box(BOX)
     tm = tm.subdivide()
     rng = np.random.default_rng(0)
-    return MeshData(np.asarray(tm.vertices), np.asarray(tm.faces, dtype=np.int32),
-                    rng.integers(0, 256, (len(tm.vertices), 3), dtype=np.uint8))
+    return MeshData(vertices=np.asarray(tm.vertices), triangles=np.asarray(tm.faces, dtype=np.int32),
+                    vertex_colors=rng.integers(0, 256, (len(tm.vertices), 3), dtype=np.uint8))
 
 
 def _build_db(path: Path, with_mesh: bool = True, complete: bool = True, with_masks: bool = True) -> dict:
@@ -53,10 +56,11 @@ def _build_db(path: Path, with_mesh: bool = True, complete: bool = True, with_ma
             vis = np.zeros(len(surf), bool)
             vis[inside] = np.abs(depth[v[inside], u[inside]] - p_cam[inside, 2]) < 0.003
             ids = np.flatnonzero(vis)
-            feats = ViewFeatures(px[ids].astype(np.float32), surf[ids].astype(np.float32),
-                                 rng.random((len(ids), 128), dtype=np.float32), "rootsift")
-            db.add_view(View(f"frame {i:02d} é", K, T_obj_cam, color, depth.astype(np.float32),
-                             mask if with_masks else None, True, 0.9, i),
+            feats = Features(pixels=px[ids].astype(np.float32), points=surf[ids].astype(np.float32),
+                             descriptors=rng.random((len(ids), 128), dtype=np.float32), kind="rootsift")
+            db.add_view(View(name=f"frame {i:02d} é", intrinsics=K, T_obj_cam=T_obj_cam, color=color,
+                             depth=depth.astype(np.float32), mask=mask if with_masks else None, keyframe=True,
+                             quality=0.9, input_index=i),
                         features=feats, color_codec="png")
             Ts.append(T_obj_cam)
             kp_ids.append(ids)
@@ -64,12 +68,12 @@ def _build_db(path: Path, with_mesh: bool = True, complete: bool = True, with_ma
         for i in range(3):
             common, a, b = np.intersect1d(kp_ids[i], kp_ids[i + 1], return_indices=True)
             T_tgt_src = inv_T(Ts[i + 1]) @ Ts[i]
-            db.add_edge(Edge(f"frame {i:02d} é", f"frame {i + 1:02d} é", T_tgt_src, np.stack([a, b], 1), 0.01,
-                             0.001, 0.95, "sequential", True, None))
-        db.add_edge(Edge("frame 00 é", "frame 03 é", None, np.zeros((0, 2), np.int32), None, None, None, "loop",
-                         False, "no overlap"))
+            db.add_edge(Edge(src=f"frame {i:02d} é", tgt=f"frame {i + 1:02d} é", T_tgt_src=T_tgt_src,
+                             matches=np.stack([a, b], 1), cost=0.01, rmse=0.001, fitness=0.95, kind="sequential"))
+        db.add_edge(Edge(src="frame 00 é", tgt="frame 03 é", T_tgt_src=None, matches=np.zeros((0, 2), np.int32),
+                         kind="loop", accepted=False, reason="no overlap"))
         if with_mesh:
-            db.set_mesh(*mesh)
+            db.set_mesh(mesh)
         db.add_grasp("pinch", np.eye(4))
         if complete:
             db.mark_complete()
@@ -155,8 +159,7 @@ def test_bop_visibility_rule(tmp_path: Path) -> None:
         front = ys > np.percentile(ys, 70)
         depth[ys[behind], xs[behind]] += 0.05
         depth[ys[front], xs[front]] -= 0.05
-        db.add_view(View(v.name, v.intrinsics, v.T_obj_cam, v.color, depth, v.mask, True, 0.9, 0),
-                    features=db.features(v.name), color_codec="png", replace=True)
+        db.add_view(replace(v, depth=depth), features=db.features(v.name), color_codec="png", replace=True)
     export(db_path, "bop", tmp_path / "bop")
     visib = cv2.imread(str(tmp_path / "bop" / "test" / "000001" / "mask_visib" / "000000_000000.png"),
                        cv2.IMREAD_UNCHANGED) > 0

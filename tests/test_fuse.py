@@ -9,7 +9,8 @@ from hypothesis import given, settings, strategies as st
 from gscan.io.camera import RGBDFrame
 from gscan.scan.fuse import FusionParams, auto_voxel_size, fuse_tsdf, remove_small_components, template_frame
 from gscan.geometry.transforms import inv_T, make_T, rotvec_to_R, transform_points
-from gscan.scan.segment import Plane, segment_sequence
+from gscan.geometry.plane import Plane
+from gscan.scan.segment import segment_sequence
 from gscan.synth import (DEFAULT_INTRINSICS, DepthNoise, SynthScene, load_textured_mesh, orbit_poses,
                          rest_on_table)
 
@@ -41,16 +42,16 @@ def test_fused_mesh_matches_ground_truth_surface(capture):
     mesh, T_world_obj, poses, renders, frames, gt = capture
     model = fuse_tsdf(frames, poses, [r.mask for r in renders])
     assert model.voxel_size == pytest.approx(0.002)
-    assert len(model.vertices) > 1000 and len(model.triangles) > 1000
-    assert model.triangles.max() < len(model.vertices) and model.triangles.dtype == np.int32
-    assert model.vertex_colors.shape == model.vertices.shape and 0 <= model.vertex_colors.min()
-    d = distances(gt, model.vertices)
+    assert len(model.mesh.vertices) > 1000 and len(model.mesh.triangles) > 1000
+    assert model.mesh.triangles.max() < len(model.mesh.vertices) and model.mesh.triangles.dtype == np.int32
+    assert model.mesh.vertex_colors.shape == model.mesh.vertices.shape and 0 <= model.mesh.vertex_colors.min()
+    d = distances(gt, model.mesh.vertices)
     assert np.median(d) < 0.0015, np.median(d)
     assert np.percentile(d, 95) < 0.003, np.percentile(d, 95)
     # completeness: the visible part of the true surface (above the table) is covered by the fused mesh
     fused = o3d.t.geometry.RaycastingScene()
-    fused.add_triangles(o3d.core.Tensor(model.vertices.astype(np.float32)),
-                        o3d.core.Tensor(model.triangles.astype(np.uint32)))
+    fused.add_triangles(o3d.core.Tensor(model.mesh.vertices.astype(np.float32)),
+                        o3d.core.Tensor(model.mesh.triangles.astype(np.uint32)))
     V_gt = transform_points(T_world_obj, mesh.vertices)
     V_gt = V_gt[V_gt[:, 2] > 0.01]
     assert np.mean(distances(fused, V_gt) < 0.004) > 0.9
@@ -69,13 +70,13 @@ def test_fusion_of_automatically_segmented_frames(capture):
             for s, r in zip(segs, renders)]
     assert min(ious) >= 0.9, ious
     model = fuse_tsdf(frames, poses, [s.mask for s in segs])
-    d = distances(gt, model.vertices)
+    d = distances(gt, model.mesh.vertices)
     assert np.median(d) < 0.0015 and np.percentile(d, 95) < 0.003, (np.median(d), np.percentile(d, 95))
     # template frame: z = table normal, origin at the bounding-box centre of the object
-    T_obj_world = template_frame(model.vertices, vol.plane_world, poses[0])
+    T_obj_world = template_frame(model.mesh.vertices, vol.plane_world, poses[0])
     R = T_obj_world[:3, :3]
     np.testing.assert_allclose(R[2], [0, 0, 1], atol=0.01)  # obj z expressed in world = up
-    V = transform_points(T_obj_world, model.vertices)
+    V = transform_points(T_obj_world, model.mesh.vertices)
     np.testing.assert_allclose(0.5 * (V.min(0) + V.max(0)), 0.0, atol=1e-9)
     bb_true = transform_points(T_world_obj, mesh.vertices)
     centre_true = 0.5 * (bb_true.min(0) + bb_true.max(0))  # axis-aligned in world; z-centre comparable
@@ -92,10 +93,10 @@ def test_skips_unregistered_and_rejects_empty(capture):
         fuse_tsdf(frames[:2], poses[:1])
     a = fuse_tsdf(frames[:3], [poses[0], None, poses[2]], [r.mask for r in renders[:3]])
     b = fuse_tsdf([frames[0], frames[2]], [poses[0], poses[2]], [renders[0].mask, renders[2].mask])
-    np.testing.assert_array_equal(a.vertices, b.vertices)  # also: deterministic
-    np.testing.assert_array_equal(a.triangles, b.triangles)
+    np.testing.assert_array_equal(a.mesh.vertices, b.mesh.vertices)  # also: deterministic
+    np.testing.assert_array_equal(a.mesh.triangles, b.mesh.triangles)
     one = fuse_tsdf(frames[:1], poses[:1], [renders[0].mask])  # a single view still gives a surface
-    assert len(one.triangles) > 100
+    assert len(one.mesh.triangles) > 100
 
 
 def test_remove_small_components():

@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from gscan.geometry.transforms import kabsch, make_T, pose_error, rotvec_to_R, transform_points
+from gscan.geometry.kabsch import kabsch
+from gscan.geometry.transforms import make_T, pose_error, rotvec_to_R, transform_points
 from gscan.matching.gmatch import (Candidates, GMatchParams, default_eps_f, extract_candidates, gmatch, search_candidates,
                           step)
 from gscan.matching.kernel import flips, keep_consistent

@@ -272,3 +272,17 @@ def test_trivial_graphs():
     assert res.registered == [0] and res.edges == []
     res = optimize_pose_graph(2, [], [np.eye(4), None])
     assert res.registered == [0] and res.unregistered == [1]
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 10_000))
+def test_information_moves_between_frames_by_the_adjoint(seed):
+    """The information of a pose from matched points, given in the target frame, turned into the source frame's
+    (`in_source_frame`), is the information from the same points in the source frame."""
+    from gscan.registration.dense import in_source_frame
+
+    rng = np.random.default_rng(seed)
+    pts_s = rng.normal(size=(30, 3))
+    T = make_T(rotvec_to_R(rng.normal(size=3)), rng.normal(size=3))
+    info_t = information_from_points(transform_points(T, pts_s))
+    np.testing.assert_allclose(in_source_frame(info_t, T), information_from_points(pts_s), rtol=1e-7, atol=1e-7)

@@ -198,7 +198,7 @@ def test_support_check_fixes_a_rendered_pair(meshes_dir):
     tested: the right list's 8 pairs on one face pin the pose to 2.8 deg / 2 cm only, so the edge is rejected
     as weak geometry (the pose is 3 deg / 2.5 cm off: a wrong pose by the rendered benchmark's bound)."""
     from gscan.features import descriptor_distances
-    from gscan.geometry.transforms import kabsch_trimmed
+    from gscan.geometry.kabsch import kabsch_trimmed
     from gscan.matching.gmatch import gmatch
     from gscan.registration.pairwise import refine_pose
 

@@ -18,7 +18,7 @@ import pytest
 from gscan.geometry.transforms import inv_T, pose_error
 from gscan.io import open_sequence
 from gscan.evaluate.metrics import ate_rmse, frame_errors
-from gscan.scan.pipeline import ScanOptions, run_scan
+from gscan.scan.api import scan
 from gscan.synth import load_textured_mesh, render_capture
 from gscan.template.db import TemplateDB
 
@@ -63,7 +63,7 @@ def captures(tmp_path_factory, meshes_dir):
 @pytest.mark.parametrize("masks", [False, True], ids=["auto-segment", "masks"])
 def test_static_capture_registers_every_frame(captures, tmp_path, mesh, masks):
     cap = captures[mesh][0 if masks else 1]
-    res = run_scan(ScanOptions(input_dir=cap, output=tmp_path / "obj.gscan"))
+    res = scan(cap, tmp_path / "obj.gscan")
     assert res.mode == "static-object"
     assert res.registered == 12 and res.unregistered == []
     ate, n = _ate_to_gt(tmp_path / "obj.gscan", captures[mesh][0])
@@ -72,7 +72,7 @@ def test_static_capture_registers_every_frame(captures, tmp_path, mesh, masks):
     with TemplateDB.open(tmp_path / "obj.gscan") as db:
         info = db.summary()
         V = db.mesh().vertices
-    assert info["status"] == "complete" and info["source"] == "scan"
+    assert info.status == "complete" and info.source == "scan"
     # the fused mesh is the object alone, not the table: its sorted extents match the true mesh's
     true_extent = np.sort(np.ptp(captures[mesh][2], axis=0))
     assert np.all(np.abs(np.sort(np.ptp(V, axis=0)) - true_extent) < 0.015), (np.ptp(V, axis=0), true_extent)
@@ -83,7 +83,7 @@ def test_turntable_capture_registers_on_the_object(tmp_path, meshes_dir):
     mesh = load_textured_mesh(meshes_dir / MESHES[1] / "model_0.obj")
     cap = tmp_path / "turntable"
     render_capture(mesh, cap, 24, mode="turntable", seed=5)
-    res = run_scan(ScanOptions(input_dir=cap, output=tmp_path / "tt.gscan"))
+    res = scan(cap, tmp_path / "tt.gscan")
     assert res.mode == "moving-object"
     assert res.registered == 24, res.unregistered
     ate, n = _ate_to_gt(tmp_path / "tt.gscan", cap)
@@ -125,7 +125,7 @@ def test_turntable_whose_print_repeats_on_opposite_faces(tmp_path, meshes_dir):
     cap = tmp_path / "turntable"
     render_capture(mesh, cap, 24, mode="turntable", seed=0, write_masks=False)
     out = tmp_path / "tt.gscan"
-    res = run_scan(ScanOptions(input_dir=cap, output=out))
+    res = scan(cap, out)
     assert res.mode == "moving-object" and res.registered >= 18, res.unregistered
     gt = open_sequence(cap).gt_T_cam_obj
     T_obj_gt = template_to_gt(out, gt)
@@ -146,7 +146,7 @@ def test_wide_view_spacing_with_symmetric_print(tmp_path, meshes_dir):
     mesh = load_textured_mesh(meshes_dir / MESHES[0] / "model_0.obj")
     cap = tmp_path / "wide"
     render_capture(mesh, cap, 30, mode="static", elevations_deg=(20.0, 40.0, 60.0), seed=0)
-    res = run_scan(ScanOptions(input_dir=cap, output=tmp_path / "wide.gscan"))
+    res = scan(cap, tmp_path / "wide.gscan")
     assert res.registered >= 28, res.unregistered_reasons
     assert all("contradicted" in r or "inconsistent" in r for r in res.unregistered_reasons.values())
     ate, n = _ate_to_gt(tmp_path / "wide.gscan", cap)

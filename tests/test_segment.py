@@ -8,8 +8,8 @@ from hypothesis import given, settings, strategies as st
 from gscan.io.camera import RGBDFrame
 from gscan.errors import InputError
 from gscan.geometry.transforms import inv_T, make_T, rotvec_to_R, transform_points
-from gscan.scan.segment import (Plane, WorkingVolume, estimate_working_volume, fit_support_plane, ransac_plane,
-                           segment_frame, segment_sequence)
+from gscan.geometry.plane import Plane, ransac_plane
+from gscan.scan.segment import estimate_working_volume, fit_support_plane, segment_frame, segment_sequence, WorkingVolume
 from gscan.synth import (DEFAULT_INTRINSICS, DepthNoise, SynthScene, box_mesh, orbit_poses, procedural_box_texture,
                          rest_on_table)
 

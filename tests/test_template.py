@@ -17,10 +17,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from gscan.io.camera import Intrinsics
+from gscan.io.camera import Intrinsics, RGBDFrame
 from gscan.errors import InputError
 from gscan.geometry.transforms import make_T, rotvec_to_R
-from gscan.template.db import (SCHEMA_VERSION, Edge, TemplateDB, View, ViewFeatures, open_template)
+from gscan.features import Features
+from gscan.geometry.mesh import MeshData
+from gscan.template.db import SCHEMA_VERSION, Edge, TemplateDB, View, open_template
 
 K = Intrinsics(520.0, 515.0, 31.5, 23.5, 64, 48)
 
@@ -33,13 +35,14 @@ def _view(name: str, rng: np.random.Generator, T: np.ndarray | None = None, idx:
     color = rng.integers(0, 256, (48, 64, 3), dtype=np.uint8)
     depth = (rng.integers(0, 4000, (48, 64)) / 1000.0).astype(np.float32)  # whole millimetres: exact in 16-bit PNG
     depth[rng.random((48, 64)) < 0.1] = 0.0
-    return View(name, K, T, color, depth, depth > 1.0, keyframe=True, quality=0.75, input_index=idx)
+    return View(name=name, intrinsics=K, T_obj_cam=T, color=color, depth=depth, mask=depth > 1.0, keyframe=True,
+                quality=0.75, input_index=idx)
 
 
-def _feats(rng: np.random.Generator, n: int, kind: str = "rootsift") -> ViewFeatures:
+def _feats(rng: np.random.Generator, n: int, kind: str = "rootsift") -> Features:
     desc = rng.integers(0, 256, (n, 32), dtype=np.uint8) if kind == "orb" else rng.random((n, 128), dtype=np.float32)
-    return ViewFeatures(rng.random((n, 2), dtype=np.float32) * 60, rng.normal(size=(n, 3)).astype(np.float32),
-                        desc, kind, rng.random(n, dtype=np.float32))
+    return Features(pixels=rng.random((n, 2), dtype=np.float32) * 60, points=rng.normal(size=(n, 3)).astype(np.float32),
+                    descriptors=desc, kind=kind, scales=rng.random(n, dtype=np.float32))
 
 
 @pytest.fixture()
@@ -67,7 +70,7 @@ def test_view_round_trip_png_exact_and_jpeg_close(db_path: Path) -> None:
 def test_depth_quantised_to_millimetres(db_path: Path) -> None:
     depth = np.array([[0.0, 0.0004, 0.5004, 1.2346, 70.0, np.nan]], dtype=np.float32)
     with TemplateDB.create(db_path) as db:
-        db.add_view(View("d", Intrinsics(1, 1, 0, 0, 6, 1), None, None, depth))
+        db.add_view(View(name="d", intrinsics=Intrinsics(1, 1, 0, 0, 6, 1), depth=depth))
         out = db.view("d").depth
     assert np.allclose(out, [0.0, 0.0, 0.5, 1.235, 0.0, 0.0], atol=1e-7)
 
@@ -81,10 +84,9 @@ def test_features_round_trip_bit_exact(tmp_path_factory: pytest.TempPathFactory,
     with TemplateDB.create(path) as db:
         db.add_view(View("v", K, _pose(rng)), features=f)
         g = db.features("v")
-        pixels, points, desc, k = g
-    for x, y in ((f.pixels, pixels), (f.points_obj, points), (f.descriptors, desc), (f.scales, g.scales)):
+    for x, y in ((f.pixels, g.pixels), (f.points, g.points), (f.descriptors, g.descriptors), (f.scales, g.scales)):
         assert x.dtype == y.dtype and x.shape == y.shape and x.tobytes() == y.tobytes()
-    assert k == kind
+    assert g.kind == kind
 
 
 def test_update_pose_moves_keypoints_into_the_new_object_frame(db_path: Path) -> None:
@@ -92,13 +94,13 @@ def test_update_pose_moves_keypoints_into_the_new_object_frame(db_path: Path) ->
     pts_cam = rng.normal(size=(20, 3)).astype(np.float32)
     T1, T2 = _pose(rng), _pose(rng)
     with TemplateDB.create(db_path) as db:
-        db.add_view(View("v", K))  # unregistered: keypoints in the camera frame
-        db.add_features("v", rng.random((20, 2), dtype=np.float32), pts_cam, rng.random((20, 128), dtype=np.float32),
-                        "rootsift")
+        db.add_view(View(name="v", intrinsics=K))  # unregistered: keypoints in the camera frame
+        db.add_features("v", Features(pixels=rng.random((20, 2), dtype=np.float32), points=pts_cam,
+                                      descriptors=rng.random((20, 128), dtype=np.float32), kind="rootsift"))
         db.update_pose("v", T1)
-        got1 = db.features("v").points_obj
+        got1 = db.features("v").points
         db.update_pose("v", T2)
-        got2 = db.features("v").points_obj
+        got2 = db.features("v").points
         assert np.array_equal(db.view("v", load_images=False).T_obj_cam, T2)
     ref = lambda T: pts_cam.astype(np.float64) @ T[:3, :3].T + T[:3, 3]  # noqa: E731
     assert np.allclose(got1, ref(T1), atol=1e-5) and np.allclose(got2, ref(T2), atol=1e-5)
@@ -106,8 +108,10 @@ def test_update_pose_moves_keypoints_into_the_new_object_frame(db_path: Path) ->
 
 def test_edges_mesh_cloud_grasps_meta_round_trip(db_path: Path) -> None:
     rng = np.random.default_rng(2)
-    e1 = Edge("a", "b", _pose(rng), rng.integers(0, 100, (30, 2)).astype(np.int32), 0.01, 0.002, 0.9, "sequential")
-    e2 = Edge("b", "c", None, np.zeros((0, 2), np.int32), None, None, None, "loop", False, "too few matches")
+    e1 = Edge(src="a", tgt="b", T_tgt_src=_pose(rng), matches=rng.integers(0, 100, (30, 2)).astype(np.int32),
+              cost=0.01, rmse=0.002, fitness=0.9, kind="sequential")
+    e2 = Edge(src="b", tgt="c", T_tgt_src=None, matches=np.zeros((0, 2), np.int32), kind="loop", accepted=False,
+              reason="too few matches")
     V = rng.normal(size=(50, 3))
     F = rng.integers(0, 50, (80, 3)).astype(np.int32)
     C = rng.integers(0, 256, (50, 3), dtype=np.uint8)
@@ -116,7 +120,7 @@ def test_edges_mesh_cloud_grasps_meta_round_trip(db_path: Path) -> None:
     with TemplateDB.create(db_path, meta={"source": "mesh", "descriptor": {"kind": "orb", "max_keypoints": 500}}) as db:
         db.add_edge(e1)
         db.add_edge(e2)
-        db.set_mesh(V, F, C)
+        db.set_mesh(MeshData(vertices=V, triangles=F, vertex_colors=C))
         db.set_cloud(P, rng.random((100, 3)))
         db.add_grasp("top grip ü", Tg)
         with pytest.raises(InputError, match="already exists"):
@@ -128,8 +132,8 @@ def test_edges_mesh_cloud_grasps_meta_round_trip(db_path: Path) -> None:
     assert (edges[0].cost, edges[0].rmse, edges[0].fitness, edges[0].kind, edges[0].accepted) == (0.01, 0.002, 0.9,
                                                                                                  "sequential", True)
     assert edges[1].T_tgt_src is None and edges[1].matches.shape == (0, 2) and edges[1].reason == "too few matches"
-    Vm, Fm, Cm = mesh
-    assert np.array_equal(Vm, V) and np.array_equal(Fm, F) and np.array_equal(Cm, C)
+    assert np.array_equal(mesh.vertices, V) and np.array_equal(mesh.triangles, F)
+    assert np.array_equal(mesh.vertex_colors, C)
     assert np.array_equal(cloud[0], P) and cloud[1].dtype == np.uint8
     assert np.array_equal(grasps["top grip ü"], Tg)
     assert meta["config"] == {"voxel": 0.002, "nested": [1, 2]} and meta["units"] == "m"
@@ -142,8 +146,9 @@ def test_status_summary_poses_and_template(db_path: Path) -> None:
     Ts = [_pose(rng), None, _pose(rng)]
     with TemplateDB.create(db_path, meta={"descriptor": {"kind": "rootsift"}}) as db:
         for i, (n, T) in enumerate(zip(names, Ts)):
-            db.add_view(View(n, K, T, input_index=i), features=_feats(rng, 5 + i))
-        db.set_mesh(np.array([[0, 0, 0], [0.1, 0.2, 0.3], [0.05, 0, 0]]), np.array([[0, 1, 2]]))
+            db.add_view(View(name=n, intrinsics=K, T_obj_cam=T, input_index=i), features=_feats(rng, 5 + i))
+        db.set_mesh(MeshData(vertices=np.array([[0, 0, 0], [0.1, 0.2, 0.3], [0.05, 0, 0]]),
+                             triangles=np.array([[0, 1, 2]])))
         db.add_grasp("g", np.eye(4))
         assert db.status == "partial"
     with pytest.raises(InputError, match=r"partial scan; run `gscan scan --resume`"):
@@ -153,9 +158,10 @@ def test_status_summary_poses_and_template(db_path: Path) -> None:
     with TemplateDB.open(db_path) as db:
         s, p = db.summary(), db.poses()
         t = db.load_template()
-    assert s["schema"] == 1 and s["status"] == "complete" and s["views"] == 3 and s["descriptor"] == "rootsift"
-    assert s["extent_m"] == pytest.approx([0.1, 0.2, 0.3]) and s["grasps"] == ["g"] and s["source"] == "scan"
-    json.dumps(s), json.dumps(p)
+    assert s.schema == 1 and s.status == "complete" and s.views == 3 and s.descriptor == "rootsift"
+    assert s.registered == 2 and s.keyframes == 3
+    assert s.extent_m == pytest.approx((0.1, 0.2, 0.3)) and s.grasps == ("g",) and s.source == "scan"
+    json.dumps(p)
     assert list(p["frames"]) == ["frame 0", "frame 2"] and p["unregistered"] == ["frame é 1"]
     assert np.allclose(p["frames"]["frame 2"], Ts[2])
     assert t.view_names == ["frame 0", "frame 2"] and t.T_obj_cam.shape == (2, 4, 4)
@@ -218,16 +224,18 @@ def test_duplicate_view_and_read_only(db_path: Path) -> None:
 _WRITER = textwrap.dedent("""
     import sys, numpy as np
     from gscan.io.camera import Intrinsics
-    from gscan.template.db import TemplateDB, View, ViewFeatures
+    from gscan.features import Features
+    from gscan.template.db import TemplateDB, View
     db = TemplateDB.create(sys.argv[1])
     K = Intrinsics(500.0, 500.0, 160.0, 120.0, 320, 240)
     rng = np.random.default_rng(0)
     for i in range(100000):
         c = rng.integers(0, 256, (240, 320, 3), dtype=np.uint8)
         d = rng.random((240, 320), dtype=np.float32)
-        f = ViewFeatures(rng.random((500, 2), dtype=np.float32), rng.random((500, 3), dtype=np.float32),
-                         rng.random((500, 128), dtype=np.float32), "rootsift")
-        db.add_view(View(f"view {i}", K, np.eye(4), c, d, d > 0.5, input_index=i), features=f, color_codec="png")
+        f = Features(pixels=rng.random((500, 2), dtype=np.float32), points=rng.random((500, 3), dtype=np.float32),
+                     descriptors=rng.random((500, 128), dtype=np.float32), kind="rootsift")
+        db.add_view(View(name=f"view {i}", intrinsics=K, T_obj_cam=np.eye(4), color=c, depth=d, mask=d > 0.5,
+                         input_index=i), features=f, color_codec="png")
         print(i, flush=True)
 """)
 
@@ -273,8 +281,9 @@ def test_read_pose_file(tmp_path: Path) -> None:
     T = _pose(np.random.default_rng(5))
     (tmp_path / "a.json").write_text(json.dumps({"T": T.tolist()}))
     (tmp_path / "b.json").write_text(json.dumps(T.tolist()))
-    assert np.array_equal(read_pose_file(tmp_path / "a.json"), T)
-    assert np.array_equal(read_pose_file(tmp_path / "b.json"), T)
+    # rotations are projected onto SO(3): exact ones come back to rounding (1e-15)
+    np.testing.assert_allclose(read_pose_file(tmp_path / "a.json"), T, atol=1e-12)
+    np.testing.assert_allclose(read_pose_file(tmp_path / "b.json"), T, atol=1e-12)
     bad = {"c.json": "{not json", "d.json": json.dumps({"R": 1}), "e.json": json.dumps(np.eye(3).tolist()),
            "f.json": json.dumps((2 * np.eye(4)).tolist()), "missing.json": None}
     for name, text in bad.items():
@@ -305,8 +314,8 @@ def test_object_keypoints_are_what_the_estimator_loads(db_path: Path) -> None:
         db.update_pose("a", T2)
         A = T2 @ np.linalg.inv(T)
         for role, f in (("registration", reg), ("object", obj)):
-            moved = db.features("a", role).points_obj
-            np.testing.assert_allclose(moved, f.points_obj @ A[:3, :3].T + A[:3, 3], atol=1e-5)
+            moved = db.features("a", role).points
+            np.testing.assert_allclose(moved, f.points @ A[:3, :3].T + A[:3, 3], atol=1e-5)
         db.add_view(_view("a", rng, T, 0), reg, replace=True)
         assert db.features("a", "object") is None
 
@@ -355,8 +364,10 @@ def _every_column_db(path: Path) -> Path:
     rng = np.random.default_rng(4)
     with TemplateDB.create(path) as db:
         db.add_view(_view("a", rng, _pose(rng), 0), _feats(rng, 20), color_codec="png")
-        db.add_edge(Edge("a", "a", _pose(rng), np.zeros((3, 2), np.int32), 0.0, 0.0, 1.0, "loop"))
-        db.set_mesh(rng.normal(size=(5, 3)), np.array([[0, 1, 2]]), np.full((5, 3), 200, np.uint8))
+        db.add_edge(Edge(src="a", tgt="a", T_tgt_src=_pose(rng), matches=np.zeros((3, 2), np.int32), cost=0.0, rmse=0.0,
+                         fitness=1.0, kind="loop"))
+        db.set_mesh(MeshData(vertices=rng.normal(size=(5, 3)), triangles=np.array([[0, 1, 2]]),
+                             vertex_colors=np.full((5, 3), 200, np.uint8)))
         db.set_cloud(rng.normal(size=(5, 3)))
         db.add_grasp("g", _pose(rng))
         db.mark_complete()
@@ -418,3 +429,41 @@ def _encoded(a: np.ndarray) -> bytes:
     from gscan.template.codec import encode_array
 
     return encode_array(a)
+
+
+def test_records_built_from_each_other() -> None:
+    """View.from_frame takes a frame's images (its own mask unless another, or None, is given);
+    Features.transformed and MeshData.transformed move points into another frame and share the rest."""
+    rng = np.random.default_rng(8)
+    color = rng.integers(0, 256, (48, 64, 3), dtype=np.uint8)
+    depth = rng.random((48, 64), dtype=np.float32)
+    frame = RGBDFrame(name="f", color=color, depth=depth, intrinsics=K, mask=depth > 0.5)
+    T = _pose(rng)
+    v = View.from_frame(frame, T_obj_cam=T, keyframe=False, quality=0.5, input_index=3)
+    assert (v.name, v.intrinsics, v.keyframe, v.quality, v.input_index) == ("f", K, False, 0.5, 3)
+    assert v.color is color and v.depth is depth and v.mask is frame.mask and v.T_obj_cam is T
+    assert View.from_frame(frame, mask=None).mask is None
+    other = depth > 0.9
+    assert View.from_frame(frame, mask=other).mask is other and View.from_frame(frame).T_obj_cam is None
+    f = _feats(rng, 10)
+    g = f.transformed(T)
+    assert g.points.dtype == np.float32 and g.descriptors is f.descriptors and g.pixels is f.pixels
+    np.testing.assert_allclose(g.points, f.points @ T[:3, :3].T + T[:3, 3], atol=1e-5)
+    m = MeshData(vertices=rng.normal(size=(4, 3)), triangles=np.array([[0, 1, 2], [1, 2, 3]]))
+    np.testing.assert_allclose(m.transformed(T).vertices, m.vertices @ T[:3, :3].T + T[:3, 3])
+    assert m.transformed(T).triangles is m.triangles and m.transformed(T).vertex_colors is None
+
+
+def test_info_json_keeps_its_keys(db_path: Path) -> None:
+    """`gscan info --json` (the CLI contract) is shaped by the CLI from TemplateDB.summary()."""
+    with TemplateDB.create(db_path, meta={"descriptor": {"kind": "rootsift"}}) as db:
+        db.add_view(View(name="a", intrinsics=K, T_obj_cam=np.eye(4)), _feats(np.random.default_rng(0), 5))
+        db.add_grasp("g", np.eye(4))
+    r = subprocess.run([sys.executable, "-m", "gscan.cli", "info", str(db_path), "--json"], capture_output=True,
+                       text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    assert list(out) == ["schema", "status", "views", "registered", "keyframes", "descriptor", "source", "extent_m",
+                         "grasps"]
+    assert out["status"] == "partial" and out["views"] == out["registered"] == 1 and out["grasps"] == ["g"]
+    assert isinstance(out["extent_m"], list) and len(out["extent_m"]) == 3

@@ -1,4 +1,4 @@
-"""The web viewer (gscan.viewer.app): server-side checks, and headless Chromium driving the real page.
+"""The web viewer (gscan.viewer.app, `gscan view`): server-side checks, and headless Chromium driving the real page.
 
 The template is rendered with gscan.synth and written with TemplateDB (web/synth_template.py) until the
 scan pipeline produces one. Browser tests use Debian's /usr/bin/chromium through Playwright (SwiftShader).
@@ -81,18 +81,25 @@ def test_refuses_partial_template_and_busy_port(template, tmp_path):
             check_port("127.0.0.1", port)
 
 
-def test_port_range_and_module_errors_are_one_line(template, tmp_path):
+def test_port_range_and_view_errors_are_one_line(template, tmp_path):
     """Ports outside 1-65535 are refused before viser (whose server thread died and left the process
-    hanging on 70000); `python -m gscan.viewer.app` reports bad input and usage as one `error:` line, exit 2."""
+    hanging on 70000); `gscan view` reports bad input and usage as one `error:` line, exit 2, --pose without
+    a query frame too."""
     for port in (0, 70000, -1):
         with pytest.raises(InputError, match="1-65535"):
             check_port("127.0.0.1", port)
     pose = tmp_path / "T.json"
     pose.write_text(json.dumps(np.eye(4).tolist()))
-    for args, named in (([tmp_path / "missing.gscan"], "missing.gscan"), ([], "required"),
-                        ([template.path, "--port", "abc"], "--port"), ([template.path, "--pose", pose], "T.json")):
-        r = subprocess.run([sys.executable, "-m", "gscan.viewer.app", *map(str, args)], capture_output=True, text=True,
-                           timeout=60)
+    bad_pose = tmp_path / "bad.json"
+    bad_pose.write_text(json.dumps([[1, 0], [0, 1]]))
+    frame = [str(ROOT / "samples" / "heldout" / sub / f"000000{ext}") for sub, ext in (("rgb", ".jpg"),
+                                                                                       ("depth", ".png"))]
+    query = ["--color", frame[0], "--depth", frame[1], "--intrinsics", str(ROOT / "samples" / "heldout" / "cam_K.txt")]
+    for args, named in (([tmp_path / "missing.gscan"], "missing.gscan"), ([], "Missing argument"),
+                        ([template.path, "--port", "abc"], "--port"), ([template.path, "--pose", pose], "T.json"),
+                        ([template.path, *query, "--pose", bad_pose], "bad.json")):
+        r = subprocess.run([sys.executable, "-m", "gscan.cli", "view", *map(str, args)], capture_output=True,
+                           text=True, timeout=60)
         lines = r.stderr.strip().splitlines()
         assert r.returncode == 2 and len(lines) == 1 and lines[0].startswith("error: ") and named in lines[0], r.stderr
 
@@ -211,7 +218,7 @@ def _open_drawn_page(browser, port: int, tmp_path: Path, name: str):
 def test_viewer_in_browser(template, tmp_path):
     from playwright.sync_api import sync_playwright
 
-    # A query frame on disk with its pose, as `gscan view --color --depth --intrinsics` would pass it.
+    # A query frame on disk with its pose: `gscan view --color --depth --intrinsics --pose`.
     from gscan.synth import write_capture
 
     T_world_obj = template.T_world_obj
@@ -335,7 +342,7 @@ def test_gscan_view_on_the_bundled_sample(sample_template, tmp_path):
         names = db.view_names()
         first_edge = next(e for e in db.edges() if e.accepted)
     port = vp.free_port()
-    proc, _ = vp.start_viewer(sample_template, port, log_path=tmp_path / "view.log", cli=True)
+    proc, _ = vp.start_viewer(sample_template, port, log_path=tmp_path / "view.log")
     try:
         with sync_playwright() as p:
             browser = vp.launch(p)

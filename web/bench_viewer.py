@@ -7,7 +7,7 @@
 Builds the template with web/synth_template.py unless --db exists, then measures
 - serve_s: `gscan.viewer.app.serve()` in this process (load the database, downscale the images, start viser,
   send every scene node and GUI element), median of --repeats;
-- subprocess_ready_s: `python -m gscan.viewer.app DB` until its "viewer ready" line (includes interpreter
+- subprocess_ready_s: `python3 -m gscan.cli view DB` until its "viewer ready" line (includes interpreter
   start and imports);
 - browser_gui_s / browser_scene_s: headless Chromium (SwiftShader) from navigation until the GUI's view
   image is shown / until the 3D view is drawn (pixel std above a threshold).

@@ -13,11 +13,12 @@ from pathlib import Path
 import numpy as np
 
 from gscan.io.camera import RGBDFrame, point_cloud
-from gscan.features import FeatureParams, descriptor_distances, extract_features
+from gscan.features import FeatureParams, Features, descriptor_distances, extract_features
+from gscan.geometry.mesh import MeshData
 from gscan.geometry.transforms import inv_T, transform_points
 from gscan.synth import DEFAULT_INTRINSICS, SynthScene, box_mesh, default_distance, orbit_poses, \
     procedural_box_texture, rest_on_table
-from gscan.template.db import Edge, TemplateDB, View, ViewFeatures
+from gscan.template.db import Edge, TemplateDB, View
 
 BOX_SIZE = (0.16, 0.10, 0.07)  # m
 
@@ -35,7 +36,7 @@ class SynthTemplate:
     T_world_obj: np.ndarray
 
 
-def _match(fs: ViewFeatures, ft: ViewFeatures, tol_m: float = 0.005):
+def _match(fs: Features, ft: Features, tol_m: float = 0.005):
     """Mutual nearest neighbours in descriptor space whose object-frame points (ground-truth poses) lie
     within tol_m of each other.
 
@@ -45,7 +46,7 @@ def _match(fs: ViewFeatures, ft: ViewFeatures, tol_m: float = 0.005):
     nn_st, nn_ts = D.argmin(1), D.argmin(0)
     i = np.flatnonzero(nn_ts[nn_st] == np.arange(len(nn_st)))
     j = nn_st[i]
-    ps, pt = fs.points_obj[i].astype(np.float64), ft.points_obj[j].astype(np.float64)
+    ps, pt = fs.points[i].astype(np.float64), ft.points[j].astype(np.float64)
     d = np.linalg.norm(ps - pt, axis=1)
     ok = d < tol_m
     m = np.stack([i[ok], j[ok]], 1).astype(np.int32)
@@ -84,12 +85,11 @@ def build_synth_template(path: str | Path, n_views: int = 6, elevations_deg: tup
             fr = scene.render(T_world_cam, intr, rng=rng)
             T = inv_T(T_world_obj) @ T_world_cam
             T_obj_cam[name] = T
-            frame = RGBDFrame(name, fr.color, fr.depth, intr, fr.mask)
+            frame = RGBDFrame(name=name, color=fr.color, depth=fr.depth, intrinsics=intr, mask=fr.mask)
             f = extract_features(frame, FeatureParams(kind="rootsift", max_keypoints=max_keypoints), mask=fr.mask)
             reg = i not in unregistered
-            pts = transform_points(T, f.points).astype(np.float32) if reg else f.points
-            feats[name] = ViewFeatures(f.pixels, pts, f.descriptors, f.kind, f.scales)
-            db.add_view(View(name, intr, T if reg else None, fr.color, fr.depth, fr.mask, True, None, i), feats[name])
+            feats[name] = f.transformed(T) if reg else f
+            db.add_view(View.from_frame(frame, T_obj_cam=T if reg else None, input_index=i), feats[name])
             if reg:
                 p, c = point_cloud(frame, mask=fr.mask, stride=3)
                 clouds.append((transform_points(T, p), c))
@@ -99,22 +99,21 @@ def build_synth_template(path: str | Path, n_views: int = 6, elevations_deg: tup
         for s, t, kind in pairs:
             ns, nt = names[s], names[t]
             if s in unregistered or t in unregistered:  # the matcher failed on this pair
-                db.add_edge(Edge(ns, nt, None, np.zeros((0, 2), np.int32), None, None, 0.0, kind, False,
-                                 "too few matches"))
+                db.add_edge(Edge(src=ns, tgt=nt, T_tgt_src=None, matches=np.zeros((0, 2), np.int32), fitness=0.0,
+                                 kind=kind, accepted=False, reason="too few matches"))
                 continue
             m, rmse, cost = _match(feats[ns], feats[nt])
             ok = len(m) >= 6
-            db.add_edge(Edge(ns, nt, inv_T(T_obj_cam[nt]) @ T_obj_cam[ns] if ok else None, m,
-                             cost if ok else None, rmse if ok else None,
-                             len(m) / max(1, min(len(feats[ns].pixels), len(feats[nt].pixels))), kind, ok,
-                             None if ok else "too few matches"))
+            db.add_edge(Edge(src=ns, tgt=nt, T_tgt_src=inv_T(T_obj_cam[nt]) @ T_obj_cam[ns] if ok else None, matches=m,
+                             cost=cost if ok else None, rmse=rmse if ok else None,
+                             fitness=len(m) / max(1, min(len(feats[ns].pixels), len(feats[nt].pixels))), kind=kind,
+                             accepted=ok, reason=None if ok else "too few matches"))
         pts = np.concatenate([p for p, _ in clouds])
         cols = np.concatenate([c for _, c in clouds])
         _, keep = np.unique(np.floor(pts / 0.002).astype(np.int64), axis=0, return_index=True)
         keep.sort()
         db.set_cloud(pts[keep].astype(np.float32), cols[keep])
-        V, F, C = _colored_box(pts[keep], cols[keep])
-        db.set_mesh(V, F, C)
+        db.set_mesh(_colored_box(pts[keep], cols[keep]))
         db.add_grasp("top", np.array([[1, 0, 0, 0], [0, -1, 0, 0], [0, 0, -1, BOX_SIZE[2] / 2], [0, 0, 0, 1.0]]))
         db.mark_complete()
     finally:
@@ -122,11 +121,12 @@ def build_synth_template(path: str | Path, n_views: int = 6, elevations_deg: tup
     return SynthTemplate(path, names, T_obj_cam, [names[i] for i in unregistered], scene, T_world_obj)
 
 
-def _colored_box(cloud: np.ndarray, colors: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _colored_box(cloud: np.ndarray, colors: np.ndarray) -> MeshData:
     """A subdivided box of BOX_SIZE (object frame) coloured by its nearest fused-cloud point."""
     import trimesh
     from scipy.spatial import cKDTree
 
     box = trimesh.creation.box(extents=BOX_SIZE).subdivide_to_size(0.004)
     _, idx = cKDTree(cloud).query(box.vertices)
-    return np.asarray(box.vertices), np.asarray(box.faces), (colors[idx] * 255).astype(np.uint8)
+    return MeshData(vertices=np.asarray(box.vertices), triangles=np.asarray(box.faces),
+                    vertex_colors=(colors[idx] * 255).astype(np.uint8))

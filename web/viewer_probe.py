@@ -33,9 +33,8 @@ def free_port() -> int:
 
 
 def start_viewer(db: Path, port: int, extra: list[str] | None = None, timeout: float = 60.0,
-                 log_path: Path | None = None, cli: bool = False) -> tuple[subprocess.Popen, float]:
-    """Start `python -m gscan.viewer.app DB --port P` (or `gscan view DB --port P` with `cli`) and wait
-    for its ready line on stderr.
+                 log_path: Path | None = None) -> tuple[subprocess.Popen, float]:
+    """Start `python3 -m gscan.cli view DB --port P` (`gscan view`) and wait for its ready line on stderr.
 
     Returns (process, seconds until ready). Raises RuntimeError (with the log) if it dies or times out.
     The caller must stop it (stop_viewer) in a finally.
@@ -43,8 +42,7 @@ def start_viewer(db: Path, port: int, extra: list[str] | None = None, timeout: f
     log_path = log_path or Path(db).with_suffix(".viewer.log")
     logf = open(log_path, "w")
     t0 = time.perf_counter()
-    entry = ["gscan.cli", "view"] if cli else ["gscan.viewer.app"]
-    proc = subprocess.Popen([sys.executable, "-m", *entry, str(db), "--port", str(port), *(extra or [])],
+    proc = subprocess.Popen([sys.executable, "-m", "gscan.cli", "view", str(db), "--port", str(port), *(extra or [])],
                             stdout=subprocess.DEVNULL, stderr=logf, start_new_session=True)
     logf.close()
     while time.perf_counter() - t0 < timeout:

@@ -64,10 +64,13 @@ from gscan.io.camera import Intrinsics, RGBDFrame, backproject
 from gscan.errors import InputError
 from gscan.features import (OBJECT_FEATURES, FeatureParams, Features, descriptor_distances, empty_features,
                             extract_features, extract_features_in_mask)
-from gscan.geometry.transforms import inv_T, kabsch_trimmed, transform_points
+from gscan.geometry.kabsch import kabsch_trimmed
+from gscan.geometry.transforms import inv_T, transform_points
 from gscan.matching.gmatch import GMatchParams, default_eps_f, gmatch
-from gscan.geometry.pointset import coincident_groups, icp_point_to_plane, pca_normals, voxel_down_indices, voxel_mean
-from gscan.scan.segment import Plane, in_front_of, support_plane
+from gscan.geometry.icp import icp_point_to_plane
+from gscan.geometry.pointset import coincident_groups, pca_normals, voxel_down_indices, voxel_mean
+from gscan.geometry.plane import Plane
+from gscan.scan.segment import in_front_of, support_plane
 from gscan.template.db import Template, open_template
 
 log = logging.getLogger(__name__)

@@ -84,7 +84,7 @@ def build_reconstruction(db: TemplateDB, images_dir: Path) -> pycolmap.Reconstru
             uf.union(offsets[i] + int(a), offsets[j] + int(b))
     view_of = np.repeat(np.arange(len(views)), np.diff(offsets))
     roots = np.array([uf.find(g) for g in range(n)], dtype=np.int64)
-    pts_all = (np.concatenate([f.points_obj for f in feats if f is not None and len(f.pixels)]) if n
+    pts_all = (np.concatenate([f.points for f in feats if f is not None and len(f.pixels)]) if n
                else np.zeros((0, 3)))
     col_all = np.concatenate([c for c in colors if len(c)]) if n else np.zeros((0, 3), np.uint8)
     order = np.argsort(roots, kind="stable")

@@ -1,10 +1,10 @@
-"""The numba kernel of `gscan.geometry.transforms.kabsch_trimmed`'s consensus step (the specification is there).
+"""The numba kernel of `gscan.geometry.kabsch.kabsch_trimmed`'s consensus step (the specification is there).
 
 `best_triple(src, dst, n_enum, tau, min_sin)` poses every non-degenerate triple of the first n_enum pairs by
 its triad and scores every pair's residual under that pose in units of its tau, truncated at 1 (MSAC); the
 lowest score wins,
 the first in (i, j, k) order on ties. A triple's scoring stops once it can no longer win. Compiled with
-`cache=True`, `nogil=True`; imported lazily so that `gscan.geometry.transforms` does not load numba.
+`cache=True`, `nogil=True`; imported on first use, so that importing `gscan.geometry` does not load numba.
 """
 from __future__ import annotations
 

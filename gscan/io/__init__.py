@@ -1,5 +1,7 @@
-"""RGB-D readers: sequences in four folder layouts, single frames, and odd depth formats.
+"""RGB-D input: the camera model and frames, sequences in four folder layouts, single frames, odd depth
+formats, pose files, and the checks of an output path.
 
+    Intrinsics, RGBDFrame, load_intrinsics, backproject, point_cloud, project (camera)
     open_sequence(path, format="auto", intrinsics=None, depth_scale=None, obj_id=None) -> Sequence
     load_frame(color, depth, intrinsics, depth_scale=0.001, mask_path=None, name=None) -> RGBDFrame
     read_image_rgb / read_depth / read_mask / read_sun_depth / read_nyu_depth / read_ycbv_meta
@@ -7,6 +9,7 @@
 
 Bad input raises gscan.errors.InputError naming the offending file.
 """
+from gscan.io.camera import Intrinsics, RGBDFrame, backproject, load_intrinsics, point_cloud, project
 from gscan.io.images import (
     DEPTH_RANGE_M,
     YcbvMeta,
@@ -27,8 +30,9 @@ from gscan.io.poses import check_rigid, read_open3d_log, read_pose_file, read_po
 from gscan.io.sequence import Sequence, open_sequence
 
 __all__ = [
-    "DEPTH_RANGE_M", "FORMATS", "FrameSpec", "Sequence", "YcbvMeta", "associate", "check_depth_range", "check_depth_scale",
-    "check_output_path", "check_rigid", "missing_folders", "remove_empty_folders", "read_pose_file", "read_pose_txt",
-    "detect_format", "load_frame", "natural_key", "open_sequence", "read_depth", "read_depth_raw",
-    "read_image_rgb", "read_mask", "read_nyu_depth", "read_open3d_log", "read_sun_depth", "read_ycbv_meta",
+    "DEPTH_RANGE_M", "FORMATS", "FrameSpec", "Intrinsics", "RGBDFrame", "Sequence", "YcbvMeta", "associate",
+    "backproject", "check_depth_range", "check_depth_scale", "check_output_path", "check_rigid", "detect_format",
+    "load_frame", "load_intrinsics", "missing_folders", "natural_key", "open_sequence", "point_cloud", "project",
+    "read_depth", "read_depth_raw", "read_image_rgb", "read_mask", "read_nyu_depth", "read_open3d_log",
+    "read_pose_file", "read_pose_txt", "read_sun_depth", "read_ycbv_meta", "remove_empty_folders",
 ]

@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from gscan.geometry.transforms import kabsch
+from gscan.geometry.kabsch import kabsch
 
 log = logging.getLogger(__name__)
 

@@ -140,7 +140,7 @@ class GMatchResult:
     matches: np.ndarray  # [M x 2] int32 (source index, target index), in match order
     cost: float  # max pairwise delta over the final list (1.0 when empty)
     n_candidates: int = 0
-    timings_ms: dict[str, float] = field(default_factory=dict)  # "candidates", "search" (+ "distances")
+    timings_ms: dict[str, float] = field(default_factory=dict)  # "candidates", "search"
     # per hypothesis: start [H x 3 x 2] int32, length [H], cost [H], pruned [H], list [H x L x 2] (see `trace`)
     hyp_start: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 2), np.int32))
     hyp_length: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
@@ -223,8 +223,9 @@ def _depth_factor(pts: np.ndarray, view: np.ndarray, params: GMatchParams, depth
 
 
 def search_candidates(pts_s: np.ndarray, pts_t: np.ndarray, cand: Candidates, params: GMatchParams = GMatchParams(),
-                      view_s=(0.0, 0.0, 1.0), view_t=(0.0, 0.0, 1.0), depth_s: np.ndarray | None = None,
-                      depth_t: np.ndarray | None = None) -> GMatchResult:
+                      view_s: tuple[float, float, float] | np.ndarray = (0.0, 0.0, 1.0),
+                      view_t: tuple[float, float, float] | np.ndarray = (0.0, 0.0, 1.0),
+                      depth_s: np.ndarray | None = None, depth_t: np.ndarray | None = None) -> GMatchResult:
     """GMatch search over precomputed candidates (see module docstring).
 
     pts_s [Ns x 3], pts_t [Nt x 3] metres; view_* [3] viewing direction in the frame of the points;
@@ -306,11 +307,22 @@ def step(pts_s: np.ndarray, pts_t: np.ndarray, cand: Candidates, matches: np.nda
 
 
 def gmatch(pts_s: np.ndarray, pts_t: np.ndarray, dist: np.ndarray, eps_f: float, params: GMatchParams = GMatchParams(),
-           view_s=(0.0, 0.0, 1.0), view_t=(0.0, 0.0, 1.0), depth_s: np.ndarray | None = None,
+           view_s: tuple[float, float, float] | np.ndarray = (0.0, 0.0, 1.0),
+           view_t: tuple[float, float, float] | np.ndarray = (0.0, 0.0, 1.0), depth_s: np.ndarray | None = None,
            depth_t: np.ndarray | None = None) -> GMatchResult:
-    """Match keypoints pts_s [Ns x 3] <-> pts_t [Nt x 3] given descriptor distances dist [Ns x Nt].
+    """GMatch: the longest geometrically consistent list of keypoint pairs (module docstring).
 
-    Returns GMatchResult with matches [M x 2] int32 (M <= L; empty when nothing consistent).
+    Args:
+        pts_s, pts_t: source [Ns x 3] and target [Nt x 3] keypoints, metres, each in its own camera (or view) frame.
+        dist: [Ns x Nt] descriptor distances (`gscan.features.descriptor_distances`).
+        eps_f: feature threshold: pairs closer than it are candidates (`default_eps_f(kind)`).
+        params: the search's bounds and tolerances.
+        view_s, view_t: [3] viewing direction of each side in the frame of its points (+z for camera frames).
+        depth_s, depth_t: optional [N] depths for the depth-grown eta (default: the points along the view).
+
+    Returns:
+        GMatchResult: matches [M x 2] int32 (source, target index; M <= params.L, empty when nothing is
+        consistent), its cost, the number of candidates, timings, and every hypothesis' list (`trace`).
     """
     dist = np.asarray(dist)
     if dist.shape != (len(pts_s), len(pts_t)):
@@ -323,22 +335,4 @@ def gmatch(pts_s: np.ndarray, pts_t: np.ndarray, dist: np.ndarray, eps_f: float,
     res.candidates = cand
     log.debug("gmatch: %d candidates, %d matches, cost %.4f, %s", res.n_candidates, len(res.matches), res.cost,
               res.timings_ms)
-    return res
-
-
-def match_features(fs, ft, params: GMatchParams = GMatchParams(), view_s=(0.0, 0.0, 1.0),
-                   view_t=(0.0, 0.0, 1.0)) -> GMatchResult:
-    """GMatch on two gscan.features.Features of the same descriptor kind."""
-    from gscan.features import descriptor_distances
-
-    if fs.kind != ft.kind:
-        raise ValueError(f"descriptor kinds differ: {fs.kind} vs {ft.kind}")
-    eps_f = params.eps_f if params.eps_f is not None else default_eps_f(fs.kind)
-    if len(fs.points) == 0 or len(ft.points) == 0:
-        return GMatchResult(np.zeros((0, 2), np.int32), 1.0, 0, {})
-    t0 = time.perf_counter()
-    dist = descriptor_distances(fs.descriptors, ft.descriptors, fs.kind)
-    t_dist = (time.perf_counter() - t0) * 1e3
-    res = gmatch(fs.points, ft.points, dist, eps_f, params, view_s, view_t)
-    res.timings_ms["distances"] = t_dist
     return res

@@ -167,9 +167,19 @@ def pose_information(src: DenseGeometry, tgt: DenseGeometry, kp_s: np.ndarray, k
                      T_tgt_src: np.ndarray, kp_noise: DepthNoise, depth_noise: DepthNoise, gate: float = 3.0
                      ) -> np.ndarray:
     """[6 x 6] information (rotation first) of T_tgt_src from the keypoint pairs and the depth samples within
-    `gate` sigmas of the surface, as `refine_pose` weighs them."""
+    `gate` sigmas of the surface, as `refine_pose` weighs them, for a small motion in the TARGET frame
+    (`in_source_frame` turns it into the source frame's)."""
     T = np.asarray(T_tgt_src, dtype=np.float64)
     return _normal_equations(src, tgt, kp_s, kp_t, T, kp_noise, depth_noise, gate)[0]
+
+
+def in_source_frame(information_tgt: np.ndarray, T_tgt_src: np.ndarray) -> np.ndarray:
+    """[6 x 6] information of a pose for a small motion applied in the source frame, from that in the target
+    frame: exp(d_t) T = T exp(d_s) gives d_t = Ad(T) d_s, Ad(T) = [[R, 0], [[t]x R, R]] (rotation first)."""
+    R, t = T_tgt_src[:3, :3], T_tgt_src[:3, 3]
+    tx = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+    Ad = np.block([[R, np.zeros((3, 3))], [tx @ R, R]])
+    return Ad.T @ np.asarray(information_tgt, dtype=np.float64) @ Ad
 
 
 HUBER = 2.0  # residuals beyond this many sigmas weigh as the Huber loss does (linearly)

@@ -1,8 +1,8 @@
 """Pairwise registration: features -> match (GMatch or a baseline) -> pose -> verdict.
 
-`register_features(fs, ft, params, clouds, dense)` registers two frames' keypoints; `match_frames(frame_s,
-frame_t)` also extracts the features (the one-call Python API). T_tgt_src maps source-camera points into
-the target camera (p_t = T_tgt_src @ p_s).
+`register_features(fs, ft, params, clouds, dense)` registers two frames' keypoints; `register_frames(frame_s,
+frame_t)` also extracts the features and samples the depth (the one-call Python API). T_tgt_src maps
+source-camera points into the target camera (p_t = T_tgt_src @ p_s).
 
 Every residual is measured in units of the depth noise (`gscan.registration.noise`): a pair of keypoints
 at depths z_s, z_t has the per-axis standard deviation s = params.noise.pair_sigma(z_s, z_t), so a gate of
@@ -62,7 +62,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from gscan.geometry.transforms import icp, inv_T, kabsch, kabsch_trimmed, pose_error, transform_points
+from gscan.features import FeatureParams, Features, descriptor_distances, extract_features
+from gscan.geometry.icp import icp
+from gscan.geometry.kabsch import kabsch, kabsch_trimmed
+from gscan.geometry.transforms import inv_T, pose_error, transform_points
+from gscan.io.camera import RGBDFrame, point_cloud
 from gscan.matching.baselines import BASELINES, BaselineParams, run_baseline
 from gscan.matching.gmatch import GMatchParams, GMatchResult, default_eps_f, gmatch
 from gscan.registration.dense import DenseGeometry, DepthAgreement, depth_agreement
@@ -320,8 +324,6 @@ def register_points(pts_s: np.ndarray, pts_t: np.ndarray, desc_s: np.ndarray, de
     clouds: optional (src [P x 3], tgt [Q x 3]) camera-frame clouds for ICP; dense: optional (source, target)
     depth samples for rule 3.
     """
-    from gscan.features import descriptor_distances
-
     tm: dict[str, float] = {}
     t0 = time.perf_counter()
     dist = descriptor_distances(desc_s, desc_t, kind)
@@ -414,27 +416,50 @@ def register_points(pts_s: np.ndarray, pts_t: np.ndarray, desc_s: np.ndarray, de
     return out
 
 
-def register_features(fs, ft, params: RegisterParams = RegisterParams(), clouds: tuple | None = None,
+def register_features(fs: Features, ft: Features, params: RegisterParams = RegisterParams(),
+                      clouds: tuple[np.ndarray | None, np.ndarray | None] | None = None,
                       dense: tuple[DenseGeometry, DenseGeometry] | None = None) -> PairResult:
-    """Register two gscan.features.Features (camera-frame points, viewed along +z)."""
+    """Register the keypoints of two frames (camera-frame points, viewed along +z): match, pose, depth check,
+    optional ICP, verdict (module docstring).
+
+    Args:
+        fs, ft: the source and target frames' keypoints, of one descriptor kind.
+        params: matcher, pose and acceptance parameters.
+        clouds: (source [P x 3], target [Q x 3]) camera-frame clouds for ICP (used when params.icp).
+        dense: (source, target) depth samples: the pose is refined on them and checked against them.
+
+    Returns:
+        PairResult: T_tgt_src [4 x 4] (source camera -> target camera) or None, the matches [M x 2] (source,
+        target keypoint indices), the inliers the pose rests on [K x 2], quality numbers, and the verdict
+        (`accepted`, `reason`).
+    """
     if fs.kind != ft.kind:
         raise ValueError(f"descriptor kinds differ: {fs.kind} vs {ft.kind}")
     return register_points(fs.points, ft.points, fs.descriptors, ft.descriptors, fs.kind, params, clouds, dense)
 
 
-def frame_cloud(frame, stride: int = 2, mask: np.ndarray | None = None) -> np.ndarray:
+def frame_cloud(frame: RGBDFrame, stride: int = 2, mask: np.ndarray | None = None) -> np.ndarray:
     """Camera-frame ICP cloud [P x 3] of an RGBDFrame (valid depth, every `stride`-th pixel, optional mask)."""
-    from gscan.io.camera import point_cloud
-
     return point_cloud(frame, mask, stride)[0]
 
 
-def match_frames(frame_s, frame_t, params: RegisterParams = RegisterParams(), feature_params=None,
-                 use_masks: bool = False, icp_stride: int = 2) -> PairResult:
-    """One call: features of both RGBDFrames -> match -> pose -> depth check -> ICP (whole frames unless
-    use_masks)."""
-    from gscan.features import FeatureParams, extract_features
+def register_frames(frame_s: RGBDFrame, frame_t: RGBDFrame, params: RegisterParams = RegisterParams(), *,
+                    feature_params: FeatureParams | None = None, use_masks: bool = False,
+                    icp_stride: int = 2) -> PairResult:
+    """Register two RGB-D frames: keypoints and depth samples of both, then `register_features` (ICP on their
+    clouds when params.icp).
 
+    Args:
+        frame_s, frame_t: the source and target frames.
+        params: matcher, pose and acceptance parameters.
+        feature_params: the keypoints extracted (default FeatureParams()).
+        use_masks: keypoints and ICP clouds inside the frames' masks only (whole frames by default).
+        icp_stride: pixel stride of the ICP clouds.
+
+    Returns:
+        PairResult as `register_features`; T_tgt_src [4 x 4] maps source-camera points into the target camera.
+        timings_ms["features"] is the extraction time.
+    """
     fp = feature_params if feature_params is not None else FeatureParams()
     ms = frame_s.mask if use_masks else None
     mt = frame_t.mask if use_masks else None

@@ -13,15 +13,20 @@ Conventions (open3d's `PoseGraphEdge(source, target, transformation)`):
 
 `optimize_pose_graph` starts from poses chained along a maximum spanning tree (strongest edges first),
 optimises each connected part of the graph (open3d Levenberg-Marquardt, no line process) a few times
-with the edges re-weighted by how much they disagree (Cauchy weights: a wrong edge cannot drag the
-others), then tests every edge: an edge is inconsistent when its chi^2, divided by the graph's variance
-factor, exceeds the chi^2 quantile of 6 degrees of freedom at `1 - alpha`. The variance factor
-(median chi^2 over the edges / the median of chi^2 with 6 degrees of freedom, at least 1) absorbs what the
-noise model leaves out (depth biases, a colour/depth offset): edges are judged against each other, not
-against an absolute constant. The most inconsistent edge is rejected, the poses are re-initialised on a
-maximum spanning tree of the remaining edges (a wrong edge can pull poses into a 180-degree minimum that
-LM does not leave), and the graph is optimised again until every edge is consistent; edges rejected on the
+with the edges re-weighted by how much they disagree (graduated Cauchy weights: a wrong edge cannot drag
+the others, and drift is spread over its cycle), then tests every edge: an edge is inconsistent when its
+chi^2 exceeds the chi^2 quantile of 6 degrees of freedom at `1 - alpha`. The most inconsistent edge is
+rejected and the re-weighted optimisation repeated, until every edge is consistent; edges rejected on the
 way that agree with the final poses are re-admitted once.
+
+An edge's information counts its matched points as independent; the errors they share (a depth bias, a
+colour/depth offset, an intrinsics error) do not average out, so an edge with 700 pairs is not 10 times
+better than one with 70. Every edge's covariance gets a floor: inv(information) + f^2 diag(1, 1, 1, d^2,
+d^2, d^2), f a rotation (rad) common to all edges, d the edge's median depth (a rotation error's lever on
+the position). f is fitted once, after the re-weighted start, so that the median chi^2 over all edges is
+the median of chi^2 with 6 degrees of freedom (0 when the noise alone explains them): edges are judged
+against each other, not against an absolute constant, and the strong ones do not make a weak wrong one
+look small.
 
 Then no frame hangs on thin evidence:
 - an edge that alone joins two parts of the graph (a bridge) must be `strong` (the caller decides: enough
@@ -51,7 +56,7 @@ __all__ = ["GraphEdge", "EdgeReport", "PoseGraphParams", "PoseGraphResult", "opt
 
 log = logging.getLogger(__name__)
 
-CHI2_6_MEDIAN = 5.3481  # median of the chi^2 distribution with 6 degrees of freedom
+CHI2_6_MEDIAN = 5.3481  # median of the chi^2 distribution with 6 degrees of freedom (the floor's target)
 ROBUST_SCALES = (100.0, 10.0, 1.0, 1.0)  # the graduated re-weighted optimisations (robust_start)
 
 
@@ -85,6 +90,7 @@ class GraphEdge:
     information: np.ndarray = field(default_factory=lambda: np.eye(6))  # [6 x 6], rotation first
     strong: bool = True                    # evidence enough to join two parts of the graph alone
     weight: float = 1.0                    # preference when poses are chained (spanning tree): e.g. inliers
+    depth: float = 1.0                     # m, median depth of its points in the source frame (the floor's lever)
 
 
 @dataclass
@@ -95,7 +101,7 @@ class EdgeReport:
     tgt: int
     residual_deg: float                    # nan when an end node is unregistered
     residual_m: float
-    chi2: float                            # its chi^2 over the graph's variance factor (nan: unregistered end)
+    chi2: float                            # its chi^2 with the floor (nan: an end node unregistered)
     accepted: bool
     reason: str | None                     # why it was rejected (None when accepted)
 
@@ -113,7 +119,7 @@ class PoseGraphResult:
     edges: list[EdgeReport]
     reference_node: int
     rounds: int
-    variance_factor: float
+    floor_deg: float  # the systematic error every edge was given beyond its noise (module docstring)
     parts: list[list[int]] = field(default_factory=list)
     node_reasons: dict[int, str] = field(default_factory=dict)  # why a node has no pose
 
@@ -276,9 +282,9 @@ def spanning_poses(n: int, graph_edges: list[GraphEdge], root: int | None = None
 
 
 def _optimize(poses: list[np.ndarray], edges: list[GraphEdge], active: list[int], nodes: list[int], ref: int,
-              params: PoseGraphParams, weights: dict[int, float] | None = None) -> dict[int, np.ndarray]:
-    """One open3d LM run (no line process) over the sub-graph `nodes` with edges `active` (information scaled by
-    `weights`, default 1), the reference node fixed. Returns the optimised T_world_node per node id."""
+              params: PoseGraphParams, infos: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
+    """One open3d LM run (no line process) over the sub-graph `nodes` with edges `active` weighed by `infos`
+    ([6 x 6] per edge), the reference node fixed. Returns the optimised T_world_node per node id."""
     import open3d as o3d
 
     reg = o3d.pipelines.registration
@@ -288,9 +294,8 @@ def _optimize(poses: list[np.ndarray], edges: list[GraphEdge], active: list[int]
         pg.nodes.append(reg.PoseGraphNode(np.asarray(poses[g], dtype=np.float64)))
     for e in active:
         ed = edges[e]
-        w = 1.0 if weights is None else weights[e]
         pg.edges.append(reg.PoseGraphEdge(local[ed.src], local[ed.tgt], np.asarray(ed.T_tgt_src, dtype=np.float64),
-                                          w * np.asarray(ed.information, dtype=np.float64), False, 1.0))
+                                          infos[e], False, 1.0))
     criteria = reg.GlobalOptimizationConvergenceCriteria()
     criteria.max_iteration = params.max_iterations
     option = reg.GlobalOptimizationOption(max_correspondence_distance=1.0, edge_prune_threshold=0.0,
@@ -301,56 +306,78 @@ def _optimize(poses: list[np.ndarray], edges: list[GraphEdge], active: list[int]
 
 
 class _Graph:
-    """The optimisation state of `optimize_pose_graph`."""
+    """The optimisation state of `optimize_pose_graph`: poses, and the floor of every edge's uncertainty."""
 
     def __init__(self, n: int, edges: list[GraphEdge], poses: list[np.ndarray], params: PoseGraphParams):
-        self.n, self.edges, self.params = n, edges, params
-        self.poses = poses
-        self.anchor = [T.copy() for T in poses]
         from scipy.stats import chi2
 
+        self.n, self.edges, self.params = n, edges, params
+        self.poses = poses
         self.limit = float(chi2.ppf(1.0 - params.alpha, 6))
-        self.factor = 1.0
+        self.floor = 0.0  # rad (module docstring)
         self.rounds = 0
+        self._cov = [np.linalg.pinv(np.asarray(ed.information, dtype=np.float64)) for ed in edges]
+        self._shape = [np.diag([1.0, 1.0, 1.0] + [ed.depth ** 2] * 3) for ed in edges]
+        self._info: dict[int, np.ndarray] = {}
+
+    def info(self, e: int) -> np.ndarray:
+        """Edge e's information with the current floor: inv(inv(information) + floor^2 diag(1, 1, 1, d, d, d)^2)."""
+        if self.floor == 0.0:
+            return np.asarray(self.edges[e].information, dtype=np.float64)
+        if e not in self._info:
+            self._info[e] = np.linalg.inv(self._cov[e] + self.floor ** 2 * self._shape[e])
+        return self._info[e]
+
+    def residual(self, e: int) -> np.ndarray:
+        ed = self.edges[e]
+        D = _residual_motion(self.poses[ed.src], self.poses[ed.tgt], ed.T_tgt_src)
+        return np.concatenate([_rotvec(D[:3, :3]), D[:3, 3]])
+
+    def chi2(self, e: int) -> float:
+        r = self.residual(e)
+        return float(r @ self.info(e) @ r)
+
+    def set_floor(self, floor: float) -> None:
+        self.floor, self._info = float(floor), {}
+
+    def update_floor(self, active: list[int]) -> None:
+        """The floor at which the median chi^2 of the active edges is the median of chi^2_6 (0 when the noise
+        alone explains them), by bisection on its logarithm over 1e-7..1 rad."""
+        if not active:
+            self.set_floor(0.0)
+            return
+        res = [(self.residual(e), e) for e in active]
+
+        def median_chi2(f: float) -> float:
+            return float(np.median([r @ np.linalg.solve(self._cov[e] + f * f * self._shape[e], r) for r, e in res]))
+
+        if median_chi2(0.0) <= CHI2_6_MEDIAN:
+            self.set_floor(0.0)
+            return
+        lo, hi = np.log(1e-7), np.log(1.0)
+        for _ in range(40):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if median_chi2(float(np.exp(mid))) > CHI2_6_MEDIAN else (lo, mid)
+        self.set_floor(float(np.exp(hi)))
 
     def optimise(self, active: list[int], weights: dict[int, float] | None = None) -> None:
         """Optimise every part of the active graph; each part's first node keeps its pose."""
+        infos = {e: (1.0 if weights is None else weights[e]) * self.info(e) for e in active}
         for comp in _components(self.n, [(self.edges[e].src, self.edges[e].tgt) for e in active]):
             sub = [e for e in active if self.edges[e].src in set(comp)]
             if not sub:
                 continue
             self.rounds += 1
-            for g, T in _optimize(self.poses, self.edges, sub, comp, comp[0], self.params, weights).items():
+            for g, T in _optimize(self.poses, self.edges, sub, comp, comp[0], self.params, infos).items():
                 self.poses[g] = T
 
-    def robust_start(self, active: list[int]) -> None:
-        """Graduated, iteratively re-weighted optimisation: Cauchy weights 1 / (1 + chi2 / (scale x factor x
-        limit)) with the scale shrinking over ROBUST_SCALES. A wrong edge pulls the least-squares poses towards
-        itself and can make right edges look worse than it; a drifting chain makes right loop closures look
-        wrong. At a large scale only gross disagreement is down-weighted (drift is spread over the cycle);
-        the scale then shrinks to the rejection limit, and the poses end where the agreeing edges put them."""
+    def robust_start(self, active: list[int], fit_floor: bool) -> None:
+        """Graduated, iteratively re-weighted optimisation: Cauchy weights 1 / (1 + chi2 / (scale x limit)) with
+        the scale shrinking over ROBUST_SCALES (the floor refitted at each when `fit_floor`)."""
         for scale in ROBUST_SCALES:
-            chi = {e: self.chi2(e) for e in active}
-            factor = max(1.0, float(np.median(list(chi.values()))) / CHI2_6_MEDIAN)
-            self.optimise(active, {e: 1.0 / (1.0 + c / (scale * factor * self.limit)) for e, c in chi.items()})
-
-    def chi2(self, e: int) -> float:
-        ed = self.edges[e]
-        return edge_chi2(self.poses[ed.src], self.poses[ed.tgt], ed)
-
-    def update_factor(self, active: list[int]) -> None:
-        """The variance factor: median chi^2 of the active edges over the median of chi^2_6, at least 1."""
-        self.factor = max(1.0, float(np.median([self.chi2(e) for e in active])) / CHI2_6_MEDIAN) if active else 1.0
-
-    def reinit(self, active: list[int]) -> None:
-        """Poses re-chained along a maximum spanning tree of the active edges, part by part, from each part's
-        first node at its initial pose."""
-        kept = [self.edges[e] for e in active]
-        for comp in _components(self.n, [(ed.src, ed.tgt) for ed in kept]):
-            tree = spanning_poses(self.n, kept, comp[0], self.anchor[comp[0]])
-            for k in comp:
-                if tree[k] is not None:
-                    self.poses[k] = tree[k]
+            if fit_floor:
+                self.update_floor(active)
+            self.optimise(active, {e: 1.0 / (1.0 + self.chi2(e) / (scale * self.limit)) for e in active})
 
 
 def optimize_pose_graph(n_nodes: int, edges: list[GraphEdge],
@@ -373,14 +400,13 @@ def optimize_pose_graph(n_nodes: int, edges: list[GraphEdge],
     reasons: dict[int, str] = {}
     active = list(range(len(edges)))
 
-    def reject_until_consistent() -> None:
-        first = True
+    def reject_until_consistent(fit_floor: bool) -> None:
         while active:
-            g.robust_start(active)  # poses where the agreeing edges put them, outliers down-weighted
-            if first:  # once, from all edges: the rejections must not talk it down
-                g.update_factor(active)
-                first = False
-            scores = [(g.chi2(e) / g.factor, e) for e in active]
+            # poses where the agreeing edges put them, outliers down-weighted; the floor is fitted once, with
+            # every edge there: the rejections must not talk it down
+            g.robust_start(active, fit_floor)
+            fit_floor = False
+            scores = [(g.chi2(e), e) for e in active]
             worst, e = max(scores, key=lambda s: (s[0], -s[1]))
             if worst <= g.limit:
                 return
@@ -392,17 +418,15 @@ def optimize_pose_graph(n_nodes: int, edges: list[GraphEdge],
                           f"chi2 {worst:.0f} > {g.limit:.0f})")
             active.remove(e)
 
-    reject_until_consistent()
-    factor = g.factor
+    reject_until_consistent(fit_floor=True)
     # re-admission: an edge rejected while the graph was still distorted by a wrong one
-    again = sorted(e for e in reasons if g.chi2(e) / g.factor <= g.limit)
+    again = sorted(e for e in reasons if g.chi2(e) <= g.limit)
     if again:
         log.debug("pose graph: re-admitting %d edges consistent with the optimised poses", len(again))
         for e in again:
             del reasons[e]
         active[:] = sorted(active + again)
-        reject_until_consistent()
-        g.factor = factor
+        reject_until_consistent(fit_floor=False)
 
     # thin evidence: weak bridges and contradicted leaves are cut (module docstring)
     while True:
@@ -437,12 +461,12 @@ def optimize_pose_graph(n_nodes: int, edges: list[GraphEdge],
                 reason = "not in the registered part of the graph"
         else:
             deg, m = edge_residual(Ts, Tt, ed.T_tgt_src)
-            c2 = g.chi2(k) / g.factor
+            c2 = g.chi2(k)
         reports.append(EdgeReport(ed.src, ed.tgt, deg, m, c2, reason is None, reason))
-    log.info("pose graph: %d nodes (%d registered, %d other parts), %d/%d edges accepted, variance factor %.1f, "
+    log.info("pose graph: %d nodes (%d registered, %d other parts), %d/%d edges accepted, floor %.3f deg, "
              "%d optimisations", n_nodes, len(main), len(parts), sum(r.accepted for r in reports), len(reports),
-             g.factor, g.rounds)
-    return PoseGraphResult(T_out, reports, ref, g.rounds, g.factor, parts, node_reasons)
+             np.degrees(g.floor), g.rounds)
+    return PoseGraphResult(T_out, reports, ref, g.rounds, float(np.degrees(g.floor)), parts, node_reasons)
 
 
 def _contradicted_leaves(n: int, edges: list[GraphEdge], active: list[int], reasons: dict[int, str]) -> list[int]:

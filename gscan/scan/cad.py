@@ -20,19 +20,19 @@ colours); meshes with neither render grey.
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from gscan.io.camera import RGBDFrame, backproject
 from gscan.errors import InputError
-from gscan.estimate.estimator import EstimateParams
-from gscan.features import FeatureParams, extract_features
+from gscan.features import OBJECT_FEATURES, FeatureParams, extract_features
 from gscan.geometry.transforms import look_at, transform_points
 from gscan.io import check_output_path, missing_folders, remove_empty_folders
 from gscan.geometry.pointset import voxel_mean
 from gscan.progress import NullProgress, Progress
-from gscan.synth import DEFAULT_INTRINSICS, SynthScene, TexturedMesh, load_textured_mesh, sample_bilinear
+from gscan.synth import DEFAULT_INTRINSICS, SynthScene, TexturedMesh, load_textured_mesh
 from gscan.template.db import TemplateDB, View
 
 log = logging.getLogger(__name__)
@@ -94,17 +94,6 @@ def _load_mesh(path: Path, scale: float) -> TexturedMesh:
     return TexturedMesh(mesh.vertices, mesh.triangles, uv, np.ascontiguousarray(texture), name=mesh.name)
 
 
-def vertex_colors(mesh: TexturedMesh) -> np.ndarray:
-    """[V x 3] uint8 colour per vertex: the mean texture colour at its face corners."""
-    corner_rgb = sample_bilinear(mesh.texture, mesh.uv.reshape(-1, 2))  # [F*3 x 3]
-    acc = np.zeros((len(mesh.vertices), 3))
-    cnt = np.zeros(len(mesh.vertices))
-    np.add.at(acc, mesh.triangles.reshape(-1), corner_rgb)
-    np.add.at(cnt, mesh.triangles.reshape(-1), 1.0)
-    col = np.where(cnt[:, None] > 0, acc / np.maximum(cnt, 1.0)[:, None], 128.0)
-    return np.clip(np.rint(col), 0, 255).astype(np.uint8)
-
-
 def _voxel_cloud(points: np.ndarray, colors: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
     """Voxel-grid mean of [N x 3] points and [N x 3] uint8 colours -> ([M x 3] float32, [M x 3] uint8)."""
     M = voxel_mean(np.hstack([np.asarray(points, np.float64).reshape(-1, 3),
@@ -112,14 +101,38 @@ def _voxel_cloud(points: np.ndarray, colors: np.ndarray, voxel: float) -> tuple[
     return M[:, :3].astype(np.float32), np.clip(np.rint(M[:, 3:]), 0, 255).astype(np.uint8)
 
 
-def build_template_from_mesh(mesh_path: str | Path, output: str | Path, n_views: int = 36, scale: float = 1.0,
-                             force: bool = False, progress: Progress | None = None,
-                             feature_params: FeatureParams | None = None) -> dict:
-    """Render `n_views` snapshots of the mesh at `mesh_path` into a new template database `output`.
+@dataclass(frozen=True)
+class TemplateResult:
+    """A template rendered from a mesh: the database written, its number of views, descriptor kind, source
+    ("mesh") and the object's extent [3] (m, mesh frame)."""
 
-    Returns the `info --json`-style summary {"output", "views", "descriptor", "source": "mesh", "extent_m"}.
-    Raises InputError naming the file for a missing / unreadable mesh, an existing output without
-    `force`; on any error the partly written output is removed.
+    output: Path
+    views: int
+    descriptor: str
+    source: str
+    extent_m: tuple[float, float, float]
+
+
+def template_from_mesh(mesh_path: str | Path, output: str | Path, *, n_views: int = 36, scale: float = 1.0,
+                       force: bool = False, progress: Progress | None = None,
+                       feature_params: FeatureParams | None = None) -> TemplateResult:
+    """Render `n_views` snapshots of a textured mesh into a new template database (the mesh's frame is kept).
+
+    Args:
+        mesh_path: a textured OBJ (with MTL and image), or a PLY / GLB with vertex colours.
+        output: the template database to write (`OBJ.gscan`).
+        n_views: snapshots rendered on a sphere around the mesh (module docstring).
+        scale: mesh units to metres (0.001 for millimetres).
+        force: replace an existing `output`.
+        progress: stage progress reporting, none by default.
+        feature_params: the keypoints stored (default: the estimator's query keypoints, OBJECT_FEATURES).
+
+    Returns:
+        TemplateResult: output, views, descriptor kind, source "mesh", extent_m [3].
+
+    Raises:
+        InputError: naming the file, for a missing / unreadable / degenerate mesh, a bad `n_views` or `scale`,
+            an existing output without `force`; on any error the partly written output is removed.
     """
     mesh_path, output = Path(mesh_path), Path(output)
     if n_views < 1:
@@ -127,7 +140,7 @@ def build_template_from_mesh(mesh_path: str | Path, output: str | Path, n_views:
     if not (np.isfinite(scale) and scale > 0):
         raise InputError(mesh_path, f"scale must be positive, not {scale}")
     progress = progress or NullProgress()
-    feature_params = feature_params or EstimateParams().features  # the estimator's query keypoints
+    feature_params = feature_params or OBJECT_FEATURES  # the estimator's query keypoints
     mesh = _load_mesh(mesh_path, scale)
     if mesh.radius <= 0:
         raise InputError(mesh_path, "mesh is degenerate (all vertices coincide)")
@@ -148,13 +161,12 @@ def build_template_from_mesh(mesh_path: str | Path, output: str | Path, n_views:
             for i, T_obj_cam in enumerate(view_poses(mesh, n_views)):
                 r = scene.render(T_obj_cam, intr, noise=False)
                 name = f"view_{i:03d}"
-                frame = RGBDFrame(name, r.color, r.depth_clean, intr, mask=r.mask)
+                frame = RGBDFrame(name=name, color=r.color, depth=r.depth_clean, intrinsics=intr, mask=r.mask)
                 feats = extract_features(frame, feature_params, mask=r.mask)
                 db.add_view(View(name=name, intrinsics=intr, T_obj_cam=T_obj_cam, color=r.color,
                                  depth=np.where(r.mask, r.depth_clean, 0.0).astype(np.float32), mask=r.mask,
-                                 keyframe=True, quality=float(len(feats)), input_index=i))
-                db.add_features(name, feats.pixels, transform_points(T_obj_cam, feats.points).astype(np.float32),
-                                feats.descriptors, feats.kind, feats.scales)
+                                 keyframe=True, quality=float(len(feats)), input_index=i),
+                            feats.transformed(T_obj_cam))
                 n_kp += len(feats)
                 sl = (slice(None, None, CLOUD_STRIDE),) * 2
                 sel = (r.mask & (r.depth_clean > 0))[sl]
@@ -165,10 +177,11 @@ def build_template_from_mesh(mesh_path: str | Path, output: str | Path, n_views:
             voxel = CLOUD_VOXEL * max(1.0, mesh.radius / 0.15)  # ~same point count for large objects
             P, C = _voxel_cloud(np.concatenate(cloud_p), np.concatenate(cloud_c), voxel)
             db.set_cloud(P, C)
-            db.set_mesh(mesh.vertices, mesh.triangles, vertex_colors(mesh))
+            db.set_mesh(mesh.to_mesh())
             db.mark_complete()
-            summary = {"output": str(output), "views": int(n_views), "descriptor": feature_params.kind,
-                       "source": "mesh", "extent_m": [float(x) for x in db.extent()]}
+            x, y, z = (float(v) for v in db.extent())
+            result = TemplateResult(output=output, views=int(n_views), descriptor=feature_params.kind, source="mesh",
+                                    extent_m=(x, y, z))
             advance(1)
         log.info("%s: %d views, %d keypoints, cloud %d points", output, n_views, n_kp, len(P))
     except BaseException:
@@ -178,4 +191,4 @@ def build_template_from_mesh(mesh_path: str | Path, output: str | Path, n_views:
         remove_empty_folders(made)
         raise
     db.close()
-    return summary
+    return result

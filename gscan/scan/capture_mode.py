@@ -1,4 +1,4 @@
-"""Capture mode detection and keyframe selection.
+"""Capture mode detection, and object masks for a static camera.
 
 Two capture modes (DESIGN.md): a static object scanned by a moving camera ("static-object":
 the whole frame moves rigidly with the object, so registration may use all of it), or a
@@ -14,16 +14,15 @@ mask (dilated) are ignored. When the median static fraction over the pairs is at
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
-from typing import TYPE_CHECKING
+import warnings
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
 
+from gscan.geometry.plane import Plane
 from gscan.io.camera import RGBDFrame
-
-if TYPE_CHECKING:
-    from gscan.scan.segment import Plane, SegmentParams
+from gscan.scan.segment import SegmentParams, segment_frame
 
 log = logging.getLogger(__name__)
 
@@ -83,17 +82,13 @@ def moving_object_masks(frames: list[RGBDFrame], min_offset: float = 0.01, min_a
     the frame is closer than that by max(`min_offset`, 2 %), cleaned by an opening and kept as
     the connected components of at least `min_area` pixels (the largest always kept).
     """
-    from gscan.scan.segment import SegmentParams, segment_frame
-
     params = params if params is not None else SegmentParams()
-    segs = [segment_frame(RGBDFrame(f.name, f.color, f.depth, f.intrinsics), params) for f in frames]
+    segs = [segment_frame(replace(f, mask=None), params) for f in frames]
     planes = [s.plane_cam for s in segs]
     if all(p is not None for p in planes):
         return [s.mask for s in segs], planes
     stack = np.stack([f.depth for f in frames]).astype(np.float32)
     stack[stack <= 0] = np.nan
-    import warnings
-
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         bg = np.nan_to_num(np.nanpercentile(stack, 90, axis=0), nan=np.inf)
@@ -114,26 +109,3 @@ def moving_object_masks(frames: list[RGBDFrame], min_offset: float = 0.01, min_a
             keep[1 + int(np.argmax(areas))] = True
         out.append(keep[lab])
     return out, planes
-
-
-def select_keyframes(view_dirs: dict[int, np.ndarray], min_angle_deg: float, max_views: int) -> list[int]:
-    """Keyframes that cover the object: greedy in input order.
-
-    view_dirs: frame index -> unit viewing direction in the object frame (camera z axis).
-    A frame becomes a keyframe when its direction is at least `min_angle_deg` from every
-    keyframe already chosen (the first registered frame always is). When more than `max_views`
-    qualify, the angle grows by 10 % until they fit. Returns sorted frame indices.
-    """
-    order = sorted(view_dirs)
-    if not order:
-        return []
-    angle = min_angle_deg
-    while True:
-        chosen: list[int] = []
-        for i in order:
-            d = view_dirs[i]
-            if all(np.degrees(np.arccos(np.clip(float(d @ view_dirs[j]), -1, 1))) >= angle for j in chosen):
-                chosen.append(i)
-        if len(chosen) <= max_views or angle >= 180:
-            return chosen
-        angle = max(angle * 1.1, angle + 0.5)

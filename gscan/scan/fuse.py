@@ -17,9 +17,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from gscan.io.camera import RGBDFrame, backproject
+from gscan.geometry.mesh import MeshData, to_u8_colors
+from gscan.geometry.plane import Plane
 from gscan.geometry.transforms import inv_T, make_T, transform_points
-from gscan.scan.segment import Plane
+from gscan.io.camera import RGBDFrame, backproject
 
 log = logging.getLogger(__name__)
 
@@ -42,13 +43,11 @@ class FusionParams:
 class FusedModel:
     """Fused surface in the world frame of the poses.
 
-    vertices [V x 3] float64 m; triangles [F x 3] int32; vertex_colors [V x 3] float32 in [0, 1];
-    points [P x 3] float64 and point_colors [P x 3] float32 (TSDF zero crossings); voxel_size m.
+    mesh: vertices [V x 3] float64 m, triangles [F x 3] int32, vertex_colors [V x 3] uint8;
+    points [P x 3] float64 and point_colors [P x 3] uint8 (TSDF zero crossings); voxel_size m.
     """
 
-    vertices: np.ndarray
-    triangles: np.ndarray
-    vertex_colors: np.ndarray
+    mesh: MeshData
     points: np.ndarray
     point_colors: np.ndarray
     voxel_size: float
@@ -143,7 +142,8 @@ def fuse_tsdf(frames: list[RGBDFrame], T_world_cam: list[np.ndarray | None],
     P, PC = P[order], PC[order]
     log.info("fused %d frames at %.1f mm voxels (trunc %.1f mm): %d vertices, %d triangles, %d points",
              len(use), voxel * 1000, trunc * 1000, len(V), len(F), len(P))
-    return FusedModel(V, F, np.clip(C, 0.0, 1.0).astype(np.float32), P, np.clip(PC, 0.0, 1.0), voxel)
+    mesh = MeshData(vertices=V, triangles=F, vertex_colors=to_u8_colors(np.clip(C, 0.0, 1.0).astype(np.float32)))
+    return FusedModel(mesh=mesh, points=P, point_colors=to_u8_colors(np.clip(PC, 0.0, 1.0)), voxel_size=voxel)
 
 
 def open3d_message(e: Exception) -> str:

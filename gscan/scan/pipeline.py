@@ -31,21 +31,23 @@ from pathlib import Path
 import numpy as np
 
 from gscan.io.camera import RGBDFrame, backproject
-from gscan.scan.capture_mode import MOVING_OBJECT, STATIC_OBJECT, detect_mode, moving_object_masks, select_keyframes
+from gscan.scan.capture_mode import MOVING_OBJECT, STATIC_OBJECT, detect_mode, moving_object_masks
+from gscan.scan.keyframes import select_keyframes
 from gscan.scan.config import ScanConfig
 from gscan.errors import InputError
 from gscan.features import OBJECT_FEATURES, FeatureParams, Features, extract_features, extract_features_in_mask
 from gscan.scan.fuse import FusedModel, FusionParams, fuse_tsdf, template_frame
 from gscan.geometry.transforms import transform_points
 from gscan.progress import Progress, StageTimer
-from gscan.registration.dense import DenseGeometry, plane_residuals
+from gscan.registration.dense import DenseGeometry, in_source_frame, plane_residuals, pose_information
 from gscan.registration.noise import DepthNoise, estimate_noise
 from gscan.registration.pairwise import RegisterParams, register_features
+from gscan.geometry.plane import Plane
 from gscan.registration.posegraph import (GraphEdge, LoopParams, PoseGraphParams, PoseGraphResult,
                                           information_from_points, optimize_pose_graph, select_loop_candidates,
                                           spanning_poses)
-from gscan.scan.segment import Plane, SegmentParams
-from gscan.template.db import Edge, TemplateDB, View, ViewFeatures
+from gscan.scan.segment import SegmentParams
+from gscan.template.db import Edge, TemplateDB, View
 
 log = logging.getLogger(__name__)
 
@@ -295,8 +297,8 @@ def _scan_frames(frames: list[_Frame], opts: ScanOptions, db: TemplateDB, resume
         for e in edges:  # the pose graph's verdicts, also where a resumed run reaches another one
             if (e.reason and e.reason.startswith(PRUNED)) or (e.src, e.tgt) in restored:
                 db.add_edge(e)
-        V = transform_points(T_obj_world, model.vertices)
-        db.set_mesh(V, model.triangles, model.vertex_colors)
+        mesh = model.mesh.transformed(T_obj_world)
+        db.set_mesh(mesh)
         db.set_cloud(transform_points(T_obj_world, model.points), model.point_colors)
         unregistered = [f.frame.name for f, T in zip(frames, T_world_cam) if T is None]
         db.set_meta("unregistered", unregistered)
@@ -313,8 +315,8 @@ def _scan_frames(frames: list[_Frame], opts: ScanOptions, db: TemplateDB, resume
     total_edges = len(stored_edges)
     return ScanResult(output=opts.output, frames=len(frames) + len(problems), registered=len(registered),
                       unregistered=unregistered + sorted(problems), edges_accepted=accepted,
-                      edges_rejected=total_edges - accepted, mode=mode, mesh_vertices=len(V),
-                      mesh_triangles=len(model.triangles), timings_s=dict(timer.timings), problems=problems,
+                      edges_rejected=total_edges - accepted, mode=mode, mesh_vertices=len(mesh.vertices),
+                      mesh_triangles=len(mesh.triangles), timings_s=dict(timer.timings), problems=problems,
                       keyframes=len(keyframes), unregistered_reasons=reasons | problems, parts=parts,
                       noise=rparams.noise)
 
@@ -329,10 +331,10 @@ def _fuse(frames: list[_Frame], T_world_cam: list[np.ndarray | None], masks: lis
     except ValueError as e:  # no registered frame has object depth within fusion.depth_max
         raise InputError(input_dir, f"nothing could be fused: {e} (fusion.depth_max); check --depth-scale") from None
     registered = [k for k, T in enumerate(T_world_cam) if T is not None]
-    if len(model.triangles) == 0 or len(model.vertices) < 3:
+    if len(model.mesh.triangles) == 0 or len(model.mesh.vertices) < 3:
         raise InputError(input_dir, "nothing could be fused: no surface in the object depth of the "
                          f"{len(registered)} registered frame(s)")
-    obj_pts = model.points if len(model.points) >= 3 else model.vertices
+    obj_pts = model.points if len(model.points) >= 3 else model.mesh.vertices
     return model, template_frame(obj_pts, plane_world, T_world_cam[registered[0]])
 
 
@@ -379,14 +381,10 @@ def _extract(frames: list[_Frame], mode: str, cfg: ScanConfig, db: TemplateDB, r
             f = frames[k]
             f.cloud, f.dense = cloud, dense
             if feats is None:  # stored by the interrupted run, still in the camera frame
-                vf = db.features(f.frame.name)
-                feats = Features(vf.pixels, vf.points_obj, vf.descriptors, vf.kind,
-                                 vf.scales if vf.scales is not None else np.ones(len(vf.pixels), np.float32))
+                feats = db.features(f.frame.name)
             else:
-                view = View(f.frame.name, f.frame.intrinsics, None, f.frame.color, f.frame.depth, f.frame.mask,
-                            keyframe=False, input_index=k)
-                db.add_view(view, ViewFeatures(feats.pixels, feats.points, feats.descriptors, feats.kind,
-                                               feats.scales), replace=f.frame.name in stored)
+                db.add_view(View.from_frame(f.frame, keyframe=False, input_index=k), feats,
+                            replace=f.frame.name in stored)
             f.feats = feats
             advance(1)
 
@@ -504,15 +502,11 @@ def _store_views(frames: list[_Frame], T_obj_cam: list[np.ndarray | None], masks
     with ThreadPoolExecutor(max_workers=WORKERS) as pool:
         for k, obj in enumerate(pool.map(object_feats, range(len(frames)))):
             f, T = frames[k], T_obj_cam[k]
-            pts = f.feats.points if T is None else transform_points(T, f.feats.points).astype(np.float32)
-            view = View(f.frame.name, f.frame.intrinsics, T, f.frame.color, f.frame.depth,
-                        masks[k] if T is not None else f.frame.mask, keyframe=k in keyframes,
-                        quality=quality.get(k), input_index=k)
-            db.add_view(view, ViewFeatures(f.feats.pixels, pts, f.feats.descriptors, f.feats.kind,
-                                           f.feats.scales), replace=True)
+            view = View.from_frame(f.frame, T_obj_cam=T, mask=masks[k] if T is not None else f.frame.mask,
+                                   keyframe=k in keyframes, quality=quality.get(k), input_index=k)
+            db.add_view(view, f.feats if T is None else f.feats.transformed(T), replace=True)
             if obj is not None:
-                db.add_features(f.frame.name, ViewFeatures(obj.pixels, transform_points(T, obj.points).astype(
-                    np.float32), obj.descriptors, obj.kind, obj.scales), role="object")
+                db.add_features(f.frame.name, obj.transformed(T), role="object")
             advance(1)
     return keyframes
 
@@ -542,15 +536,18 @@ def _optimise(n: int, edges: list[Edge], index: dict[str, int], frames: list[_Fr
         i, j = index[e.src], index[e.tgt]
         ps = frames[i].feats.points[e.matches[:, 0]].astype(np.float64)
         pt = frames[j].feats.points[e.matches[:, 1]].astype(np.float64)
-        # weighed by its keypoint evidence alone (source frame: the pose graph's residual is in it): the depth refines and checks an edge, but is no evidence
-        # between look-alike poses (a box printed alike on opposite faces turned 180 degrees on a flat
-        # table has the same depth), and its thousands of samples would weigh a 10-pair edge like a
-        # 700-pair one
-        info = information_from_points(ps, rparams.noise.pair_sigma(ps[:, 2], pt[:, 2]))
+        # the precision the edge claims, as registration solved it (keypoints, and the depth when it took part),
+        # in the source frame, the frame of the pose graph's residual: an edge whose pose the depth pins must
+        # agree with the others to that precision (the graph's floor keeps strong edges from dominating)
+        if rparams.dense_refine:
+            info = in_source_frame(pose_information(frames[i].dense, frames[j].dense, ps, pt, e.T_tgt_src,
+                                                    rparams.noise, rparams.depth_noise), e.T_tgt_src)
+        else:
+            info = information_from_points(ps, rparams.noise.pair_sigma(ps[:, 2], pt[:, 2]))
         # an edge may join two parts of the graph alone only on strong evidence: enough matches (its depth
         # agreement is already a condition of every accepted edge)
         graph.append(GraphEdge(i, j, e.T_tgt_src, info, strong=len(e.matches) >= cfg.posegraph.bridge_min_matches,
-                               weight=len(e.matches)))
+                               weight=len(e.matches), depth=float(np.median(ps[:, 2]))))
     res = optimize_pose_graph(n, graph, spanning_poses(n, graph), PoseGraphParams(alpha=cfg.posegraph.alpha))
     best: dict[int, float] = {}
     for rep, e in zip(res.edges, use):
@@ -617,7 +614,7 @@ def _segment(frames: list[_Frame], T_world_cam: list[np.ndarray | None], mode: s
     if mode == MOVING_OBJECT:
         ref = frames[reg[0]]
         plane_cam = ref.plane_cam if ref.plane_cam is not None else segment_frame(
-            RGBDFrame(ref.frame.name, ref.frame.color, ref.frame.depth, ref.frame.intrinsics), seg).plane_cam
+            replace(ref.frame, mask=None), seg).plane_cam
         plane = None if plane_cam is None else plane_cam.transformed(T_world_cam[reg[0]])
         return [f.mask for f in frames], plane
     segs, vol = segment_sequence([f.frame for f in frames], T_world_cam, seg)  # given masks win

@@ -27,26 +27,10 @@ import numpy as np
 
 from gscan.io.camera import RGBDFrame, backproject
 from gscan.errors import InputError
+from gscan.geometry.plane import Plane, ransac_plane
 from gscan.geometry.transforms import transform_points
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class Plane:
-    """Plane {p : normal . p + offset = 0}; `height` is the signed distance along `normal`."""
-
-    normal: np.ndarray  # [3] unit
-    offset: float
-
-    def height(self, pts: np.ndarray) -> np.ndarray:
-        """[N x 3] (or [... x 3]) points -> [N] signed heights (m)."""
-        return np.asarray(pts, dtype=np.float64) @ self.normal + self.offset
-
-    def transformed(self, T_b_a: np.ndarray) -> "Plane":
-        """The same plane expressed in frame b, given this plane in frame a."""
-        n = T_b_a[:3, :3] @ self.normal
-        return Plane(n, float(self.offset - n @ T_b_a[:3, 3]))
 
 
 @dataclass(frozen=True)
@@ -104,40 +88,6 @@ class WorkingVolume:
         along = d @ n  # height above the base centre (the centre is on the plane)
         radial2 = np.einsum("...i,...i->...", d, d) - along * along
         return (along >= height_min) & (along <= self.height) & (radial2 <= self.radius ** 2)
-
-
-def ransac_plane(S: np.ndarray, iterations: int, rng: np.random.Generator, dist: float | np.ndarray,
-                 viewpoint: np.ndarray, max_behind: float | None = None) -> tuple[Plane, np.ndarray] | None:
-    """Best of `iterations` random-triplet planes through [N x 3] points S, by inlier count.
-
-    A point is an inlier when |height| < dist (a scalar, or one value per point [N]). Normals point
-    towards `viewpoint` [3]. With `max_behind`, a plane with more than that fraction of S farther than
-    dist behind it scores 0: a support plane has (almost) nothing behind it, a large object face seen
-    head-on does. Triplets are drawn from `rng` in batches of 100; the first best plane wins. Returns
-    (plane, inlier mask [N] bool), or None when every triplet is degenerate or disqualified.
-    """
-    vp = np.asarray(viewpoint, dtype=np.float64)
-    d = np.asarray(dist, dtype=np.float64).reshape(-1, 1) if np.ndim(dist) else float(dist)
-    best, best_count, best_inl = None, -1, None
-    for start in range(0, iterations, 100):
-        m = min(100, iterations - start)
-        tri = S[rng.integers(0, len(S), size=(m, 3))]
-        nrm = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-        length = np.linalg.norm(nrm, axis=1)
-        ok = length > 1e-12
-        nrm = nrm[ok] / length[ok, None]
-        off = -np.einsum("ij,ij->i", nrm, tri[ok, 0])
-        flip = np.where(nrm @ vp + off < 0, -1.0, 1.0)
-        nrm, off = nrm * flip[:, None], off * flip
-        h = S @ nrm.T + off  # [N x m] signed heights, viewpoint side > 0
-        inl = np.abs(h) < d
-        counts = inl.sum(0)
-        if max_behind is not None:
-            counts[(h < -d).sum(0) > max_behind * len(S)] = 0
-        if len(counts) and counts.max() > max(best_count, 0):  # a score of 0 (disqualified) never wins
-            k = int(np.argmax(counts))
-            best_count, best, best_inl = int(counts[k]), Plane(nrm[k], float(off[k])), inl[:, k]
-    return None if best is None else (best, best_inl)
 
 
 def fit_support_plane(points: np.ndarray, viewpoint: np.ndarray,

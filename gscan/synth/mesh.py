@@ -14,6 +14,7 @@ import cv2
 import numpy as np
 
 from gscan.errors import InputError
+from gscan.geometry.mesh import MeshData
 
 log = logging.getLogger(__name__)
 
@@ -71,6 +72,18 @@ class TexturedMesh:
         if self._pyramid is None:
             self._pyramid = texture_pyramid(self.texture)
         return self._pyramid
+
+    def to_mesh(self) -> MeshData:
+        """The mesh with one colour per vertex instead of the texture: the mean texture colour at its face
+        corners ([V x 3] uint8; grey for a vertex of no face)."""
+        corner_rgb = sample_bilinear(self.texture, self.uv.reshape(-1, 2))  # [F*3 x 3]
+        acc = np.zeros((len(self.vertices), 3))
+        cnt = np.zeros(len(self.vertices))
+        np.add.at(acc, self.triangles.reshape(-1), corner_rgb)
+        np.add.at(cnt, self.triangles.reshape(-1), 1.0)
+        col = np.where(cnt[:, None] > 0, acc / np.maximum(cnt, 1.0)[:, None], 128.0)
+        return MeshData(vertices=self.vertices, triangles=self.triangles,
+                        vertex_colors=np.clip(np.rint(col), 0, 255).astype(np.uint8))
 
     def texels_per_metre(self) -> np.ndarray:
         """[F] texture-pixel density of every face (texels per metre, level 0)."""

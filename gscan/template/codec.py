@@ -91,16 +91,6 @@ def decode_image(b: bytes, dtype: type, channels: int, size_wh: tuple[int, int])
     return img
 
 
-def to_u8_colors(c: np.ndarray | None) -> np.ndarray | None:
-    """[N x 3|4] colours, uint8 or float in [0, 1] -> [N x 3] uint8."""
-    if c is None:
-        return None
-    c = np.asarray(c)[:, :3]
-    if c.dtype == np.uint8:
-        return np.ascontiguousarray(c)
-    return np.clip(np.rint(c.astype(np.float64) * 255.0), 0, 255).astype(np.uint8)
-
-
 def decode_T(b: bytes | None) -> np.ndarray | None:
     """A stored [4 x 4] transform (None stays None)."""
     if b is None:

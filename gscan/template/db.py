@@ -34,15 +34,17 @@ from typing import Any, Iterator
 import cv2
 import numpy as np
 
-from gscan.io.camera import Intrinsics
 from gscan.errors import GscanError, InputError
+from gscan.features import Features
+from gscan.geometry.mesh import MeshData, to_u8_colors
 from gscan.geometry.transforms import is_rigid
+from gscan.io.camera import Intrinsics
 from gscan.io.output import missing_folders, remove_empty_folders
 from gscan.template.codec import (BadBlob, check_colors, check_keypoints, check_mesh, check_T, decode_array,
                                   decode_image, decode_json, decode_T, encode_array, encode_color, encode_depth,
-                                  encode_mask, to_u8_colors)
+                                  encode_mask)
 # the records live in gscan.template.records; they are imported from here as well
-from gscan.template.records import Edge, MeshData, Template, View, ViewFeatures
+from gscan.template.records import Edge, Template, TemplateSummary, View
 
 log = logging.getLogger(__name__)
 
@@ -287,7 +289,7 @@ class TemplateDB:
         self.set_meta("status", "partial")
 
     # -- views -----------------------------------------------------------------------------------
-    def add_view(self, view: View, features: ViewFeatures | None = None, color_codec: str = "jpg",
+    def add_view(self, view: View, features: Features | None = None, color_codec: str = "jpg",
                  replace: bool = False) -> int:
         """Store a view (and optionally its keypoints) in one transaction; returns its id.
 
@@ -337,11 +339,6 @@ class TemplateDB:
                 c.execute("UPDATE features SET points=? WHERE view_id=? AND role=?",
                           (encode_array(_apply(A, decode_array(pts, (None, 3)))), vid, role))
 
-    def set_keyframe(self, name: str, keyframe: bool) -> None:
-        with self._tx() as c:
-            vid, _ = self._view_id(c, name)
-            c.execute("UPDATE views SET keyframe=? WHERE id=?", (int(bool(keyframe)), vid))
-
     def view_names(self) -> list[str]:
         """All view names in input order (input_index, then insertion)."""
         return [r[0] for r in self._q("SELECT name FROM views ORDER BY input_index IS NULL, input_index, id")]
@@ -384,11 +381,11 @@ class TemplateDB:
         return self._row_to_view(rows[0], load_images)
 
     # -- features --------------------------------------------------------------------------------
-    def _put_features(self, c: sqlite3.Connection, vid: int, f: ViewFeatures, role: str = "registration") -> None:
+    def _put_features(self, c: sqlite3.Connection, vid: int, f: Features, role: str = "registration") -> None:
         if role not in FEATURE_ROLES:
             raise ValueError(f"feature role must be one of {FEATURE_ROLES}, not {role!r}")
         px = np.asarray(f.pixels, dtype=np.float32).reshape(-1, 2)
-        pts = np.asarray(f.points_obj, dtype=np.float32).reshape(-1, 3)
+        pts = np.asarray(f.points, dtype=np.float32).reshape(-1, 3)
         desc = np.asarray(f.descriptors)
         if desc.ndim != 2:
             desc = desc.reshape(len(px), -1) if len(px) else desc.reshape(0, 0)
@@ -400,30 +397,27 @@ class TemplateDB:
                   (vid, role, str(f.kind), len(px), encode_array(px), encode_array(pts), encode_array(desc),
                    encode_array(sc)))
 
-    def add_features(self, view_name: str, pixels: np.ndarray | ViewFeatures, points_obj: np.ndarray | None = None,
-                     descriptors: np.ndarray | None = None, kind: str | None = None,
-                     scales: np.ndarray | None = None, role: str = "registration") -> None:
-        """Store (replace) a view's keypoints of a role (FEATURE_ROLES): a ViewFeatures, or pixels
-        [N x 2], points_obj [N x 3] (object frame; camera frame while the view is unregistered),
-        descriptors [N x D], kind."""
-        f = pixels if isinstance(pixels, ViewFeatures) else ViewFeatures(pixels, points_obj, descriptors, kind, scales)
+    def add_features(self, view_name: str, features: Features, role: str = "registration") -> None:
+        """Store (replace) a view's keypoints of a role (FEATURE_ROLES); their points in the object frame, in
+        the camera frame while the view is unregistered."""
+        f = features
         with self._tx() as c:
             vid, _ = self._view_id(c, view_name)
             self._put_features(c, vid, f, role)
 
     @_decodes
-    def features(self, view_name: str, role: str = "registration") -> ViewFeatures | None:
-        """The view's keypoints of a role (unpacks as (pixels, points_obj, descriptors, kind)); None if
-        it has none."""
+    def features(self, view_name: str, role: str = "registration") -> Features | None:
+        """The view's keypoints of a role (points in the object frame; camera frame for an unregistered view);
+        None if it has none."""
         rows = self._q("SELECT f.pixels, f.points, f.descriptors, f.kind, f.scales FROM features f "
                        "JOIN views v ON v.id = f.view_id WHERE v.name=? AND f.role=?", (view_name, role))
         if not rows:
             return None
         px, pts, desc, kind, sc = rows[0]
-        f = ViewFeatures(decode_array(px, (None, 2)), decode_array(pts, (None, 3)), decode_array(desc, (None, None)),
-                         kind, decode_array(sc, (None,)))
-        check_keypoints(f.pixels, f.points_obj, f.descriptors, f.scales, kind, f"view {view_name!r}")
-        return f
+        px, pts, desc, sc = (decode_array(px, (None, 2)), decode_array(pts, (None, 3)),
+                             decode_array(desc, (None, None)), decode_array(sc, (None,)))
+        check_keypoints(px, pts, desc, sc, kind, f"view {view_name!r}")
+        return Features(pixels=px, points=pts, descriptors=desc, kind=kind, scales=sc)
 
     # -- edges -----------------------------------------------------------------------------------
     def add_edge(self, edge: Edge) -> None:
@@ -444,15 +438,17 @@ class TemplateDB:
         where = " WHERE accepted=1" if accepted_only else ""
         rows = self._q("SELECT src, tgt, T_tgt_src, matches, cost, rmse, fitness, kind, accepted, reason FROM edges"
                        + where + " ORDER BY id")
-        return [Edge(s, t, decode_T(T), decode_array(m, (None, 2)), co, r, fi, k, bool(a), re)
+        return [Edge(src=s, tgt=t, T_tgt_src=decode_T(T), matches=decode_array(m, (None, 2)), cost=co, rmse=r,
+                     fitness=fi, kind=k, accepted=bool(a), reason=re)
                 for s, t, T, m, co, r, fi, k, a, re in rows]
 
     # -- geometry and grasps ---------------------------------------------------------------------
-    def set_mesh(self, vertices: np.ndarray, triangles: np.ndarray, vertex_colors: np.ndarray | None = None) -> None:
-        """vertices [V x 3] (m, object frame), triangles [F x 3], vertex_colors [V x 3] uint8 or float in [0, 1]."""
-        V = np.asarray(vertices).reshape(-1, 3)
-        F = np.asarray(triangles).reshape(-1, 3)
-        C = to_u8_colors(vertex_colors)
+    def set_mesh(self, mesh: MeshData) -> None:
+        """Store (replace) the mesh: vertices [V x 3] (m, object frame), triangles [F x 3], vertex colours
+        [V x 3] uint8 or float in [0, 1] (stored as uint8)."""
+        V = np.asarray(mesh.vertices).reshape(-1, 3)
+        F = np.asarray(mesh.triangles).reshape(-1, 3)
+        C = to_u8_colors(mesh.vertex_colors)
         if C is not None and len(C) != len(V):
             raise ValueError(f"{len(C)} vertex colours for {len(V)} vertices")
         with self._tx() as c:
@@ -464,9 +460,9 @@ class TemplateDB:
         rows = self._q("SELECT vertices, triangles, colors FROM mesh WHERE id=1")
         if not rows:
             return None
-        m = MeshData(*(decode_array(b, (None, 3)) for b in rows[0]))
-        check_mesh(m.vertices, m.triangles, m.vertex_colors)
-        return m
+        V, F, C = (decode_array(b, (None, 3)) for b in rows[0])
+        check_mesh(V, F, C)
+        return MeshData(vertices=V, triangles=F, vertex_colors=C)
 
     def set_cloud(self, points: np.ndarray, colors: np.ndarray | None = None) -> None:
         """points [N x 3] (m, object frame), colors [N x 3] uint8 or float in [0, 1]."""
@@ -502,11 +498,6 @@ class TemplateDB:
                 raise InputError(self.path, f"grasp {name!r} already exists")
             c.execute("INSERT OR REPLACE INTO grasps(name, T_obj_grasp) VALUES (?,?)", (name, encode_array(T)))
 
-    def remove_grasp(self, name: str) -> None:
-        with self._tx() as c:
-            if c.execute("DELETE FROM grasps WHERE name=?", (name,)).rowcount == 0:
-                raise KeyError(f"no grasp named {name!r} in {self.path}")
-
     @_decodes
     def grasps(self) -> dict[str, np.ndarray]:
         return {n: decode_T(b) for n, b in self._q("SELECT name, T_obj_grasp FROM grasps ORDER BY name")}
@@ -538,13 +529,14 @@ class TemplateDB:
         pts = np.asarray(pts, dtype=np.float64)
         return pts.max(axis=0) - pts.min(axis=0)
 
-    def summary(self) -> dict:
-        """The dict `gscan info --json` prints."""
+    def summary(self) -> TemplateSummary:
+        """What the database holds (works on a partial one too)."""
         n_views, n_reg, n_kf = self._q("SELECT COUNT(*), COUNT(T_obj_cam), COALESCE(SUM(keyframe), 0) FROM views")[0]
-        return {"schema": int(self.get_meta("schema")), "status": self.status, "views": int(n_views),
-                "registered": int(n_reg), "keyframes": int(n_kf), "descriptor": self.descriptor_kind(),
-                "source": self.get_meta("source", "scan"), "extent_m": [float(x) for x in self.extent()],
-                "grasps": sorted(self.grasps())}
+        x, y, z = (float(v) for v in self.extent())
+        return TemplateSummary(schema=int(self.get_meta("schema")), status=self.status, views=int(n_views),
+                               registered=int(n_reg), keyframes=int(n_kf), descriptor=self.descriptor_kind(),
+                               source=self.get_meta("source", "scan"), extent_m=(x, y, z),
+                               grasps=tuple(sorted(self.grasps())))
 
     def poses(self) -> dict:
         """The dict `gscan poses --json` prints: {"frames": {name: T_obj_cam}, "unregistered": [names]};
@@ -567,7 +559,7 @@ class TemplateDB:
             Ts.append(v.T_obj_cam)
             if f is not None and len(f.pixels):
                 px.append(f.pixels)
-                pts.append(f.points_obj)
+                pts.append(f.points)
                 desc.append(f.descriptors)
                 kv.append(np.full(len(f.pixels), len(names) - 1, dtype=np.int32))
                 kind = kind or f.kind

@@ -1,15 +1,19 @@
-"""The records a template database stores and returns: views, their keypoints, registration edges, the
-mesh, and the in-memory `Template` the estimator loads (numpy arrays; shapes in each docstring).
+"""The records a template database stores and returns: views, registration edges, a database's summary, and
+the in-memory `Template` the estimator loads (numpy arrays; shapes in each docstring). A view's keypoints are
+`gscan.features.Features`, the mesh `gscan.geometry.mesh.MeshData`.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import numpy as np
 
-from gscan.io.camera import Intrinsics
+from gscan.geometry.mesh import MeshData
+from gscan.io.camera import Intrinsics, RGBDFrame
+
+_FRAME_MASK: Any = object()  # View.from_frame: keep the frame's own mask
 
 
 @dataclass
@@ -27,20 +31,15 @@ class View:
     quality: float | None = None
     input_index: int | None = None
 
-
-@dataclass
-class ViewFeatures:
-    """Keypoints of one view: pixels [N x 2] float32 (u, v), points_obj [N x 3] float32 (object frame,
-    camera frame while the view is unregistered), descriptors [N x D] (float32 or uint8), kind, scales [N]."""
-
-    pixels: np.ndarray
-    points_obj: np.ndarray
-    descriptors: np.ndarray
-    kind: str
-    scales: np.ndarray | None = None
-
-    def __iter__(self) -> Iterator[Any]:  # `pixels, points_obj, descriptors, kind = db.features(name)`
-        return iter((self.pixels, self.points_obj, self.descriptors, self.kind))
+    @classmethod
+    def from_frame(cls, frame: RGBDFrame, *, T_obj_cam: np.ndarray | None = None,
+                   mask: np.ndarray | None = _FRAME_MASK, keyframe: bool = True, quality: float | None = None,
+                   input_index: int | None = None) -> View:
+        """The view of an RGB-D frame: its name, intrinsics and images; `mask` replaces the frame's own mask
+        (None: no mask), T_obj_cam [4 x 4] or None (unregistered)."""
+        return cls(name=frame.name, intrinsics=frame.intrinsics, T_obj_cam=T_obj_cam, color=frame.color,
+                   depth=frame.depth, mask=frame.mask if mask is _FRAME_MASK else mask, keyframe=keyframe,
+                   quality=quality, input_index=input_index)
 
 
 @dataclass
@@ -60,16 +59,21 @@ class Edge:
     reason: str | None = None
 
 
-@dataclass
-class MeshData:
-    """vertices [V x 3] float (m, object frame), triangles [F x 3] int, vertex_colors [V x 3] uint8 | None."""
+@dataclass(frozen=True)
+class TemplateSummary:
+    """What a template database holds (`TemplateDB.summary`): schema version, status ("complete" | "partial"),
+    number of views, registered views and keyframes, descriptor kind, source ("scan" | "mesh"), the object's
+    extent [3] (m, object frame) and the grasp names."""
 
-    vertices: np.ndarray
-    triangles: np.ndarray
-    vertex_colors: np.ndarray | None
-
-    def __iter__(self) -> Iterator[Any]:  # `V, F, C = db.mesh()`
-        return iter((self.vertices, self.triangles, self.vertex_colors))
+    schema: int
+    status: str
+    views: int
+    registered: int
+    keyframes: int
+    descriptor: str | None
+    source: str
+    extent_m: tuple[float, float, float]
+    grasps: tuple[str, ...]
 
 
 @dataclass

@@ -1,4 +1,4 @@
-"""Web viewer of a template database (viser): the server, its GUI and the command `python -m gscan.viewer.app`.
+"""Web viewer of a template database (viser): the server and the app that owns its scene and GUI (`gscan view`).
 
 `serve(db_path, ...)` loads a complete template (`gscan.viewer.data`, `TemplateDB.open(require_complete=True)`),
 starts a viser server bound to `host:port` (127.0.0.1 by default; a port in use raises `PortInUseError`, never a
@@ -15,27 +15,25 @@ silent move to another port) and populates the scene (`gscan.viewer.scene`), all
 GUI: layer toggles, point / frustum size sliders, a view slider + dropdown (or click a frustum) showing the
 view's image with its keypoints and its edges, "Go to view" (moves every browser's camera to the view's
 pose), and the "Match panel": for a chosen edge, both images side by side with the matched keypoint pairs
-joined by lines and the edge's numbers. Only the viewer_* modules import viser.
+joined by lines and the edge's numbers. Only gscan.viewer imports viser.
 """
 from __future__ import annotations
 
-import argparse
 import contextlib
 import errno
 import io
 import logging
 import socket
-import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
+from typing import Any
 
 import numpy as np
 
-from gscan.io.camera import RGBDFrame
 from gscan.errors import InputError
-from gscan.io import read_pose_file
+from gscan.io.camera import RGBDFrame
 from gscan.template.db import Edge, View, unregistered_names
 from gscan.viewer.data import ViewerData, ViewerOptions, load_viewer_data
 from gscan.viewer.draw import draw_keypoints, draw_matches, legend_html
@@ -76,23 +74,31 @@ def check_port(host: str, port: int) -> None:
 
 # ------------------------------------------------------------------------------------------ the app
 class ViewerApp:
-    """A running viewer: `server` (viser.ViserServer), `url`, `data`; select_view / select_edge / go_to_view
-    drive the GUI from Python (the browser drives the same functions); `stop()` shuts the server down."""
+    """A running viewer: `server` (viser.ViserServer), `url`, `data`; it builds its scene and GUI on the server
+    at construction. select_view / select_edge / go_to_view drive the GUI from Python (the browser drives the
+    same functions); `stop()` shuts the server down.
 
-    def __init__(self, server, data: ViewerData, host: str, port: int, options: ViewerOptions):
+    scene_frame / T_cam_obj [4 x 4]: a query frame and the object's pose in it (see `serve`); grasps:
+    {name: T_obj_grasp [4 x 4]} drawn as axes.
+    """
+
+    def __init__(self, server: Any, data: ViewerData, host: str, port: int, options: ViewerOptions,
+                 scene_frame: RGBDFrame | None = None, T_cam_obj: np.ndarray | None = None,
+                 grasps: dict[str, np.ndarray] | None = None):
         self.server, self.data, self.host, self.port, self.options = server, data, host, port, options
         self.url = f"http://[{host}]:{port}" if ":" in host else f"http://{host}:{port}"  # IPv6 in brackets
-        self.scene_points_obj: np.ndarray | None = None  # [N x 3] query-frame cloud drawn (template frame)
-        self.frustum_scale = 0.25 * data.size  # frustum depth (m) at "Frustum size" 1
         self._lock = threading.RLock()
         self._names = [v.name for v in data.views]
         self._by_name = {v.name: v for v in data.views}
         self._current: str | None = None
         self._edge_labels: dict[str, Edge] = {}
-        self.layers: dict[str, list] = {}  # layer key -> viser scene handles (toggled together)
-        # GUI handles, created by _build_gui
-        self._view_slider = self._view_dropdown = self._goto_button = self._view_image = self._view_md = None
-        self._edge_dropdown = self._match_image = self._match_md = None
+        scene = build_scene(server, data, options, scene_frame, T_cam_obj, grasps or {}, self.select_view)
+        self.layers: dict[str, list] = scene.layers  # layer key -> viser scene handles (toggled together)
+        self.frustum_scale = scene.frustum_scale  # frustum depth (m) at "Frustum size" 1
+        self.scene_points_obj = scene.scene_points_obj  # [N x 3] query-frame cloud drawn (template frame) or None
+        self._build_gui(scene_frame is not None, T_cam_obj)
+        if data.views:
+            self.select_view(data.views[0].name)
 
     # -- selection ---------------------------------------------------------------------------------
     def select_view(self, name: str) -> None:
@@ -142,6 +148,77 @@ class ViewerApp:
     def stop(self) -> None:
         with contextlib.redirect_stdout(io.StringIO()):
             self.server.stop()
+
+    # -- GUI ---------------------------------------------------------------------------------------
+    def _build_gui(self, has_frame: bool, T_cam_obj: np.ndarray | None) -> None:
+        """The GUI panel: summary, layer toggles and sizes, the Views folder, the Match panel, the legend."""
+        gui, d, o = self.server.gui, self.data, self.options
+        reg = d.registered
+        unreg = unregistered_names(d.views, d.meta.get("skipped"))  # as `gscan poses` lists them
+        acc = sum(e.accepted for e in d.edges)
+        loops = sum(e.accepted and e.kind == "loop" for e in d.edges)
+        summary = [f"**{d.path.name}** · {d.meta.get('source', 'scan')}  ",
+                   f"views: {len(d.views)} · registered: {len(reg)}  ",
+                   f"edges: {acc} accepted ({loops} loop) · {len(d.edges) - acc} rejected  ",
+                   f"size: {d.size * 100:.1f} cm"]
+        if unreg:
+            summary.append(f"  \n**unregistered ({len(unreg)}):** " + ", ".join(unreg))
+        if has_frame:
+            summary.append("  \n**query frame:** " + ("pose not found (cloud not placed)" if T_cam_obj is None
+                                                       else "cloud placed by the estimated pose"))
+        gui.add_markdown("\n".join(summary))
+
+        with gui.add_folder("Layers", expand_by_default=False):
+            toggles = [("Mesh", "mesh"), ("Cloud", "cloud"), ("Frustums", "frustums"), ("Edges", "edges"),
+                       ("Rejected edges", "rejected"), ("3D keypoints", "keypoints"), ("Grasps", "grasps"),
+                       ("Query frame", "scene")]
+            for label, key in toggles:
+                if self.layers.get(key):
+                    cb = gui.add_checkbox(label, initial_value=all(h.visible for h in self.layers[key]))
+                    cb.on_update(lambda ev, k=key: [setattr(h, "visible", ev.target.value) for h in self.layers[k]])
+            base = 0.004 * d.size * 1000.0
+            ps = gui.add_slider("Point size (mm)", min=0.1, max=round(max(4 * base, 1.0), 1), step=0.1,
+                                initial_value=round(base, 1))
+
+            @ps.on_update
+            def _(_ev) -> None:
+                for key, f in (("cloud", 1.0), ("scene", 1.0), ("keypoints", 1.5)):
+                    for h in self.layers.get(key, []):
+                        h.point_size = f * ps.value / 1000.0
+
+            fs = gui.add_slider("Frustum size", min=0.25, max=3.0, step=0.05, initial_value=1.0)
+
+            @fs.on_update
+            def _(_ev) -> None:
+                for h in self.layers.get("frustums", []):
+                    h.scale = self.frustum_scale * fs.value
+
+        with gui.add_folder("Views"):
+            n = max(len(d.views), 1)
+            self._view_slider = gui.add_slider("View #", min=0, max=max(n - 1, 1), step=1, initial_value=0,
+                                               disabled=len(d.views) < 2)
+            self._view_dropdown = gui.add_dropdown("View", [v.name for v in d.views] or ["(no views)"])
+            self._goto_button = gui.add_button("Go to view", icon=None)
+            self._view_image = gui.add_image(np.full((240, 320, 3), 90, np.uint8), label="View image",
+                                             format="jpeg", jpeg_quality=o.jpeg_quality)
+            self._view_md = gui.add_markdown("")
+        self._view_slider.on_update(lambda ev: self.select_view(self._names[int(ev.target.value)])
+                                    if int(ev.target.value) < len(self._names) else None)
+        self._view_dropdown.on_update(lambda ev: self.select_view(ev.target.value)
+                                      if ev.target.value in self._by_name else None)
+        self._goto_button.on_click(lambda _ev: self.go_to_view())
+
+        with gui.add_folder("Match panel"):
+            self._edge_dropdown = gui.add_dropdown("Edge", [_SELECT_EDGE])
+            self._match_image = gui.add_image(np.full((240, 640, 3), 90, np.uint8), label="Matches", format="jpeg",
+                                              jpeg_quality=o.jpeg_quality, visible=False)
+            self._match_md = gui.add_markdown("", visible=False)
+        self._edge_dropdown.on_update(lambda ev: self.select_edge(ev.target.value)
+                                      if ev.target.value == _SELECT_EDGE or ev.target.value in self._edge_labels
+                                      else None)
+
+        with gui.add_folder("Legend", expand_by_default=False):
+            gui.add_html(legend_html(o.rmse_red_m))
 
     # -- panels ------------------------------------------------------------------------------------
     def _view_markdown(self, v: View) -> str:
@@ -228,16 +305,12 @@ def serve(db_path: str | Path, host: str = "127.0.0.1", port: int = 8080, scene_
         with contextlib.redirect_stdout(io.StringIO()):
             server.stop()
         raise PortInUseError(host, port)
-    app = ViewerApp(server, data, host, port, options)
     try:
-        build_scene(app, scene_frame, T_cam_obj, {**data.grasps, **(grasps or {})})
-        _build_gui(app, scene_frame is not None, T_cam_obj)
-        if data.views:
-            app.select_view(data.views[0].name)
+        return ViewerApp(server, data, host, port, options, scene_frame, T_cam_obj, {**data.grasps, **(grasps or {})})
     except BaseException:
-        app.stop()
+        with contextlib.redirect_stdout(io.StringIO()):
+            server.stop()
         raise
-    return app
 
 
 class _DropHandshakeNoise(logging.Filter):
@@ -254,75 +327,6 @@ def _quiet_websockets() -> None:
         lg.addFilter(_DropHandshakeNoise())
 
 
-def _build_gui(app: ViewerApp, has_frame: bool, T_cam_obj: np.ndarray | None) -> None:
-    gui, d, o = app.server.gui, app.data, app.options
-    reg = d.registered
-    unreg = unregistered_names(d.views, d.meta.get("skipped"))  # as `gscan poses` lists them
-    acc = sum(e.accepted for e in d.edges)
-    loops = sum(e.accepted and e.kind == "loop" for e in d.edges)
-    summary = [f"**{d.path.name}** · {d.meta.get('source', 'scan')}  ",
-               f"views: {len(d.views)} · registered: {len(reg)}  ",
-               f"edges: {acc} accepted ({loops} loop) · {len(d.edges) - acc} rejected  ",
-               f"size: {d.size * 100:.1f} cm"]
-    if unreg:
-        summary.append(f"  \n**unregistered ({len(unreg)}):** " + ", ".join(unreg))
-    if has_frame:
-        summary.append("  \n**query frame:** " + ("pose not found (cloud not placed)" if T_cam_obj is None
-                                                   else "cloud placed by the estimated pose"))
-    gui.add_markdown("\n".join(summary))
-
-    with gui.add_folder("Layers", expand_by_default=False):
-        toggles = [("Mesh", "mesh"), ("Cloud", "cloud"), ("Frustums", "frustums"), ("Edges", "edges"),
-                   ("Rejected edges", "rejected"), ("3D keypoints", "keypoints"), ("Grasps", "grasps"),
-                   ("Query frame", "scene")]
-        for label, key in toggles:
-            if app.layers.get(key):
-                cb = gui.add_checkbox(label, initial_value=all(h.visible for h in app.layers[key]))
-                cb.on_update(lambda ev, k=key: [setattr(h, "visible", ev.target.value) for h in app.layers[k]])
-        base = 0.004 * d.size * 1000.0
-        ps = gui.add_slider("Point size (mm)", min=0.1, max=round(max(4 * base, 1.0), 1), step=0.1,
-                            initial_value=round(base, 1))
-
-        @ps.on_update
-        def _(_ev) -> None:
-            for key, f in (("cloud", 1.0), ("scene", 1.0), ("keypoints", 1.5)):
-                for h in app.layers.get(key, []):
-                    h.point_size = f * ps.value / 1000.0
-
-        fs = gui.add_slider("Frustum size", min=0.25, max=3.0, step=0.05, initial_value=1.0)
-
-        @fs.on_update
-        def _(_ev) -> None:
-            for h in app.layers.get("frustums", []):
-                h.scale = app.frustum_scale * fs.value
-
-    with gui.add_folder("Views"):
-        n = max(len(d.views), 1)
-        app._view_slider = gui.add_slider("View #", min=0, max=max(n - 1, 1), step=1, initial_value=0,
-                                          disabled=len(d.views) < 2)
-        app._view_dropdown = gui.add_dropdown("View", [v.name for v in d.views] or ["(no views)"])
-        app._goto_button = gui.add_button("Go to view", icon=None)
-        app._view_image = gui.add_image(np.full((240, 320, 3), 90, np.uint8), label="View image",
-                                        format="jpeg", jpeg_quality=o.jpeg_quality)
-        app._view_md = gui.add_markdown("")
-    app._view_slider.on_update(lambda ev: app.select_view(app._names[int(ev.target.value)])
-                               if int(ev.target.value) < len(app._names) else None)
-    app._view_dropdown.on_update(lambda ev: app.select_view(ev.target.value) if ev.target.value in app._by_name
-                                 else None)
-    app._goto_button.on_click(lambda _ev: app.go_to_view())
-
-    with gui.add_folder("Match panel"):
-        app._edge_dropdown = gui.add_dropdown("Edge", [_SELECT_EDGE])
-        app._match_image = gui.add_image(np.full((240, 640, 3), 90, np.uint8), label="Matches", format="jpeg",
-                                         jpeg_quality=o.jpeg_quality, visible=False)
-        app._match_md = gui.add_markdown("", visible=False)
-    app._edge_dropdown.on_update(lambda ev: app.select_edge(ev.target.value)
-                                 if ev.target.value == _SELECT_EDGE or ev.target.value in app._edge_labels else None)
-
-    with gui.add_folder("Legend", expand_by_default=False):
-        gui.add_html(legend_html(o.rmse_red_m))
-
-
 def run_viewer(db_path: str | Path, host: str = "127.0.0.1", port: int = 8080, scene_frame: RGBDFrame | None = None,
                T_cam_obj: np.ndarray | None = None, grasps: dict[str, np.ndarray] | None = None,
                on_ready: Callable[[str], None] | None = None, options: ViewerOptions = ViewerOptions()) -> None:
@@ -337,57 +341,3 @@ def run_viewer(db_path: str | Path, host: str = "127.0.0.1", port: int = 8080, s
         pass
     finally:
         app.stop()
-
-
-def main(argv: list[str] | None = None) -> int:
-    """`python -m gscan.viewer.app DB [--host H] [--port P] [--color C --depth D --intrinsics K [--pose T.json]]`.
-
-    --pose gives T_cam_obj of the query frame directly (the CLI `gscan view` estimates it instead).
-    Logs "viewer ready at URL" on stderr once the scene is populated. Bad input or usage: one line
-    `error: ...` on stderr and exit 2, as the `gscan` CLI does.
-    """
-    import cv2  # already imported (viewer_draw): its log level is set directly, as the CLI's environment does
-
-    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
-    ap = _OneLineErrors(prog="python -m gscan.viewer.app", description=__doc__.splitlines()[0])
-    ap.add_argument("db", type=Path)
-    ap.add_argument("--host", default="127.0.0.1")
-    ap.add_argument("--port", type=int, default=8080)
-    ap.add_argument("--color", type=Path)
-    ap.add_argument("--depth", type=Path)
-    ap.add_argument("--intrinsics", type=Path)
-    ap.add_argument("--depth-scale", type=float, default=0.001)
-    ap.add_argument("--pose", type=Path, help='T_cam_obj of the query frame: {"T": 4x4} or a bare 4x4 list')
-    a = ap.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(levelname)s %(name)s: %(message)s")
-    logging.getLogger("websockets").setLevel(logging.WARNING)
-    try:
-        frame = T = None
-        if a.color or a.depth or a.intrinsics:
-            if not (a.color and a.depth and a.intrinsics):
-                raise InputError(None, "--color, --depth and --intrinsics go together")
-            from gscan.io import load_frame
-
-            frame = load_frame(a.color, a.depth, a.intrinsics, depth_scale=a.depth_scale)
-        if a.pose is not None:
-            if frame is None:
-                raise InputError(a.pose, "--pose places a query frame: it needs --color, --depth and --intrinsics")
-            T = read_pose_file(a.pose)
-        run_viewer(a.db, a.host, a.port, scene_frame=frame, T_cam_obj=T,
-                   on_ready=lambda url: log.info("viewer ready at %s", url))
-    except InputError as e:
-        sys.stderr.write(f"error: {e}\n")
-        return 2
-    return 0
-
-
-class _OneLineErrors(argparse.ArgumentParser):
-    """Usage errors as one line, `error: ...`, exit 2 (argparse prints the whole usage first)."""
-
-    def error(self, message: str):
-        sys.stderr.write(f"error: {self.prog}: {message} (see --help)\n")
-        sys.exit(2)
-
-
-if __name__ == "__main__":
-    sys.exit(main())

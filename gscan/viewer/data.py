@@ -70,7 +70,7 @@ def load_viewer_data(db_path: str | Path, options: ViewerOptions = ViewerOptions
         v.color = v.depth = v.mask = None  # only the thumbnail is shown: free the memory
         f = feats[v.name]
         kps[v.name] = ((np.zeros((0, 2), np.float32), np.zeros((0, 3), np.float32)) if f is None
-                       else (np.asarray(f.pixels, np.float32), np.asarray(f.points_obj, np.float32)))
+                       else (np.asarray(f.pixels, np.float32), np.asarray(f.points, np.float32)))
     data = ViewerData(Path(db_path), meta, views, thumbs, sizes, kps, edges, mesh, cloud, grasps)
     data.quality = _view_quality(views, edges, options.rmse_red_m)
     data.center, data.size = _object_box(data)

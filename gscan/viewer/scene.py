@@ -1,33 +1,47 @@
 """The viewer's 3D scene (viser), in the template (object) frame: the template's axes, the fused mesh and
 cloud, one camera frustum per registered view with its snapshot (coloured by quality, click selects the
 view), pose-graph edges between camera centres, the views' 3D keypoints, grasp frames, and optionally a
-query frame's cloud placed by an estimated pose. Each layer's handles are kept in `app.layers`.
+query frame's cloud placed by an estimated pose. `build_scene` returns each layer's handles (`SceneLayers`);
+the viewer app (`gscan.viewer.app.ViewerApp`) holds them.
 """
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
-from gscan.io.camera import Intrinsics, RGBDFrame, point_cloud
 from gscan.geometry.transforms import inv_T, transform_points
+from gscan.io.camera import Intrinsics, RGBDFrame, point_cloud
 from gscan.template.db import MeshData
+from gscan.viewer.data import ViewerData, ViewerOptions
 from gscan.viewer.draw import QUERY_CAMERA_COLOR, edge_color, hue_colors, quality_color, thumbnail
-
-if TYPE_CHECKING:
-    from gscan.viewer.app import ViewerApp
 
 LAYERS = ("mesh", "cloud", "frustums", "edges", "rejected", "keypoints", "scene", "grasps")
 
 
-def build_scene(app: ViewerApp, frame: RGBDFrame | None, T_cam_obj: np.ndarray | None,
-                grasps: dict[str, np.ndarray]) -> None:
-    """Populate `app.server.scene`, set the initial camera and `app.frustum_scale`, and fill `app.layers`.
+@dataclass
+class SceneLayers:
+    """What `build_scene` drew: layer key -> viser scene handles (toggled together), the frustum depth (m) at
+    "Frustum size" 1, and the query frame's cloud as drawn [N x 3] (template frame) or None."""
+
+    layers: dict[str, list]
+    frustum_scale: float
+    scene_points_obj: np.ndarray | None
+
+
+def build_scene(server: Any, data: ViewerData, options: ViewerOptions, frame: RGBDFrame | None,
+                T_cam_obj: np.ndarray | None, grasps: dict[str, np.ndarray],
+                on_select_view: Callable[[str], None]) -> SceneLayers:
+    """Populate `server.scene` (a viser server) and set its initial camera.
 
     frame / T_cam_obj [4 x 4]: a query frame and the object's pose in it (its cloud is drawn when both are given).
-    grasps: {name: T_obj_grasp [4 x 4]}.
+    grasps: {name: T_obj_grasp [4 x 4]}. on_select_view(name) is called when a view's frustum is clicked.
     """
-    sc, d, o = app.server.scene, app.data, app.options
+    sc, d, o = server.scene, data, options
     s = d.size
     reg = d.registered
     # Scene up: the nearest axis to the cameras' mean image-up direction (-y of each camera).
@@ -47,18 +61,16 @@ def build_scene(app: ViewerApp, frame: RGBDFrame | None, T_cam_obj: np.ndarray |
     else:
         eye = d.center + np.array([1.0, 1.0, 1.0]) * 1.5 * s
     # Frustum size: a quarter of the object, less where cameras are dense (half the median spacing).
-    app.frustum_scale = 0.25 * s
+    frustum_scale = 0.25 * s
     if len(reg) >= 2:
-        from scipy.spatial import cKDTree
-
         cams = np.array([v.T_obj_cam[:3, 3] for v in reg])
         spacing = float(np.median(cKDTree(cams).query(cams, k=2)[0][:, 1]))
         if spacing > 1e-6:
-            app.frustum_scale = min(app.frustum_scale, 0.5 * spacing)
-    app.server.initial_camera.position = eye
-    app.server.initial_camera.look_at = d.center
-    app.server.initial_camera.near = 0.01 * s
-    app.server.initial_camera.far = 1000.0 * s
+            frustum_scale = min(frustum_scale, 0.5 * spacing)
+    server.initial_camera.position = eye
+    server.initial_camera.look_at = d.center
+    server.initial_camera.near = 0.01 * s
+    server.initial_camera.far = 1000.0 * s
 
     layers: dict[str, list] = {k: [] for k in LAYERS}
     sc.add_frame("/template", axes_length=0.3 * s, axes_radius=0.008 * s, origin_radius=0.015 * s)
@@ -80,8 +92,9 @@ def build_scene(app: ViewerApp, frame: RGBDFrame | None, T_cam_obj: np.ndarray |
         layers["keypoints"].append(sc.add_point_cloud("/keypoints", pts[::step], cols[::step], point_size=1.5 * pt,
                                                       visible=False))
     for v in reg:
-        layers["frustums"].append(_add_frustum(app, f"/views/{_node(v.name)}", v.intrinsics, v.T_obj_cam,
-                                               d.thumbs[v.name], quality_color(d.quality[v.name]), v.name))
+        layers["frustums"].append(_add_frustum(sc, o, frustum_scale, f"/views/{_node(v.name)}", v.intrinsics,
+                                               v.T_obj_cam, d.thumbs[v.name], quality_color(d.quality[v.name]),
+                                               _on_click(on_select_view, v.name)))
     centres = {v.name: v.T_obj_cam[:3, 3] for v in reg}
     for key, accepted, width in (("edges", True, 3.0), ("rejected", False, 1.5)):
         es = [e for e in d.edges if e.accepted == accepted and e.src in centres and e.tgt in centres]
@@ -94,23 +107,24 @@ def build_scene(app: ViewerApp, frame: RGBDFrame | None, T_cam_obj: np.ndarray |
         layers["grasps"].append(sc.add_frame(f"/grasps/{_node(name)}", axes_length=0.15 * s, axes_radius=0.006 * s,
                                              wxyz=_quat_wxyz(T[:3, :3]), position=T[:3, 3]))
         layers["grasps"].append(sc.add_label(f"/grasps/{_node(name)}/label", name))
+    scene_points_obj = None
     if frame is not None and T_cam_obj is not None:
         T_obj_cam = inv_T(np.asarray(T_cam_obj, dtype=np.float64))
         pts_cam, cols = point_cloud(frame, stride=o.scene_stride)
-        app.scene_points_obj = transform_points(T_obj_cam, pts_cam).astype(np.float32)
-        layers["scene"].append(sc.add_point_cloud("/scene/cloud", app.scene_points_obj,
+        scene_points_obj = transform_points(T_obj_cam, pts_cam).astype(np.float32)
+        layers["scene"].append(sc.add_point_cloud("/scene/cloud", scene_points_obj,
                                                   (cols * 255).astype(np.uint8), point_size=pt))
         thumb = thumbnail(frame.color, o.frustum_px)
-        layers["scene"].append(_add_frustum(app, "/scene/camera", frame.intrinsics, T_obj_cam, thumb,
-                                            QUERY_CAMERA_COLOR, None))
-    app.layers = layers
+        layers["scene"].append(_add_frustum(sc, o, frustum_scale, "/scene/camera", frame.intrinsics, T_obj_cam,
+                                            thumb, QUERY_CAMERA_COLOR, None))
+    return SceneLayers(layers, frustum_scale, scene_points_obj)
 
 
 def _node(name: str) -> str:
     return "".join(c if c.isalnum() or c in "-_." else "_" for c in name)
 
 
-def _add_mesh(sc, mesh: MeshData):
+def _add_mesh(sc: Any, mesh: MeshData) -> Any:
     V = np.asarray(mesh.vertices, np.float64)
     F = np.asarray(mesh.triangles, np.int64)
     if mesh.vertex_colors is None:
@@ -122,16 +136,20 @@ def _add_mesh(sc, mesh: MeshData):
     return sc.add_mesh_trimesh("/mesh", tm)
 
 
-def _add_frustum(app: ViewerApp, node: str, intr: Intrinsics, T_obj_cam: np.ndarray, image: np.ndarray,
-                 color: tuple[int, int, int], view_name: str | None):
-    o = app.options
+def _on_click(select: Callable[[str], None], name: str) -> Callable[[Any], None]:
+    """A frustum's click handler: select view `name`."""
+    return lambda _event: select(name)
+
+
+def _add_frustum(sc: Any, o: ViewerOptions, scale: float, node: str, intr: Intrinsics, T_obj_cam: np.ndarray,
+                 image: np.ndarray, color: tuple[int, int, int], on_click: Callable[[Any], None] | None) -> Any:
     img = thumbnail(image, o.frustum_px)
-    h = app.server.scene.add_camera_frustum(
+    h = sc.add_camera_frustum(
         node, fov=float(2.0 * np.arctan2(intr.height / 2.0, intr.fy)), aspect=intr.width / intr.height,
-        scale=app.frustum_scale, thickness=1.5, thickness_units="screen", color=color, image=img, format="jpeg",
+        scale=scale, thickness=1.5, thickness_units="screen", color=color, image=img, format="jpeg",
         jpeg_quality=o.jpeg_quality, wxyz=_quat_wxyz(T_obj_cam[:3, :3]), position=T_obj_cam[:3, 3])
-    if view_name is not None:
-        h.on_click(lambda _ev, n=view_name: app.select_view(n))
+    if on_click is not None:
+        h.on_click(on_click)
     return h
 
 
@@ -156,7 +174,5 @@ def _clear_direction(d0: np.ndarray, up: np.ndarray, cam_dirs: np.ndarray) -> np
 
 def _quat_wxyz(R: np.ndarray) -> np.ndarray:
     """Rotation matrix [3 x 3] -> unit quaternion (w, x, y, z), as viser takes it."""
-    from scipy.spatial.transform import Rotation
-
     x, y, z, w = Rotation.from_matrix(np.asarray(R, dtype=np.float64)).as_quat()
     return np.array([w, x, y, z])

@@ -1,0 +1,35 @@
+"""The triangle mesh record (vertex colours, no texture) that scans, CAD templates, the template database,
+the exporters and the viewer share, and the colour convention of meshes and clouds (uint8 RGB).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from gscan.geometry.transforms import transform_points
+
+
+def to_u8_colors(c: np.ndarray | None) -> np.ndarray | None:
+    """[N x 3|4] colours, uint8 or float in [0, 1] -> [N x 3] uint8."""
+    if c is None:
+        return None
+    c = np.asarray(c)[:, :3]
+    if c.dtype == np.uint8:
+        return np.ascontiguousarray(c)
+    return np.clip(np.rint(c.astype(np.float64) * 255.0), 0, 255).astype(np.uint8)
+
+
+@dataclass
+class MeshData:
+    """vertices [V x 3] float (m), triangles [F x 3] int, vertex_colors [V x 3] uint8 | None; the frame is the
+    holder's (object frame in a template database)."""
+
+    vertices: np.ndarray
+    triangles: np.ndarray
+    vertex_colors: np.ndarray | None = None
+
+    def transformed(self, T_b_a: np.ndarray) -> MeshData:
+        """The same mesh with its vertices mapped from frame a into frame b ([V x 3] float64)."""
+        return MeshData(vertices=transform_points(T_b_a, self.vertices), triangles=self.triangles,
+                        vertex_colors=self.vertex_colors)
