@@ -146,8 +146,9 @@ def test_status_summary_poses_and_template(db_path: Path) -> None:
         db.set_mesh(np.array([[0, 0, 0], [0.1, 0.2, 0.3], [0.05, 0, 0]]), np.array([[0, 1, 2]]))
         db.add_grasp("g", np.eye(4))
         assert db.status == "partial"
-    with pytest.raises(InputError, match=r"partial scan; run `gscan scan --resume`"):
+    with pytest.raises(InputError, match=r"partial scan") as ei:
         TemplateDB.open(db_path)
+    assert ei.value.fix == "finish"  # the CLI says `gscan scan --resume`
     with TemplateDB.open(db_path, require_complete=False, writable=True) as db:
         db.mark_complete()
     with TemplateDB.open(db_path) as db:

@@ -184,7 +184,7 @@ def check_depth_range(depth: np.ndarray, depth_scale: float, path: str | Path) -
         k = -round(float(np.log10(med)))
         hint = f"{depth_scale * 10.0 ** k:g} would put it at {med * 10.0 ** k:.3g} m"
         raise InputError(path, f"depth scale {depth_scale:g} puts the scene at {med:.3g} m "
-                         f"(expected {lo:g}-{hi:g} m; {hint}); pass --depth-scale")
+                         f"(expected {lo:g}-{hi:g} m; {hint})", fix="depth_scale")
     return med
 
 

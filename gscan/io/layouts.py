@@ -234,7 +234,7 @@ def discover_tum(root: Path) -> Layout:
                 if abs(t_gt[j] - name_t[f.name]) <= TUM_MAX_DT:
                     gt[f.name] = tum_pose(gt_list[j][1], gt_path)
     return Layout("tum", root, frames, 1.0 / 5000.0, None,
-                  "intrinsics (the TUM layout carries none; pass --intrinsics cam_K.txt or an Open3D camera JSON)",
+                  "intrinsics (the TUM layout carries none)",
                   gt_T_world_cam=gt, problems=problems)
 
 

@@ -94,6 +94,17 @@ class Sequence:
             raise KeyError(name)
         return self._specs[name]
 
+    def fingerprints(self) -> dict[str, dict[str, str] | None]:
+        """What the frames' files hold, cheaply: {name: {"color"|"depth"|"mask": "<bytes>:<blake2b-128 hex>"}}
+        for the usable frames, None for the frames left out (`problems`). A resumed scan compares them with
+        the ones its partial database was started from. InputError naming a file that cannot be read."""
+        out: dict[str, dict[str, str] | None] = {name: None for name in self.problems}
+        for name in self.names:
+            spec = self._specs[name]
+            out[name] = {role: _file_fingerprint(p) for role, p in (("color", spec.color), ("depth", spec.depth),
+                                                                     ("mask", spec.mask)) if p is not None}
+        return out
+
     def frame_intrinsics(self, key: int | str) -> Intrinsics:
         return self._frame_intrinsics.get(self.files(key).name, self.intrinsics)
 
@@ -126,6 +137,22 @@ class Sequence:
                 log.warning("skipping frame %s: %s", name, e)
 
 
+def _file_fingerprint(path: Path) -> str:
+    """"<size>:<blake2b-128 hex>" of a file's bytes (1 MiB reads)."""
+    import hashlib
+
+    h = hashlib.blake2b(digest_size=16)
+    size = 0
+    try:
+        with open(path, "rb") as f:
+            while chunk := f.read(1 << 20):
+                h.update(chunk)
+                size += len(chunk)
+    except OSError as e:
+        raise InputError(path, f"cannot read the file ({e.strerror or e})") from None
+    return f"{size}:{h.hexdigest()}"
+
+
 def _resolve_intrinsics(layout: Layout, override: Intrinsics | str | Path | None, w: int, h: int) -> Intrinsics:
     """The sequence-wide intrinsics (not for per-frame calibrations, which each frame checks itself)."""
     if isinstance(override, Intrinsics):
@@ -135,9 +162,9 @@ def _resolve_intrinsics(layout: Layout, override: Intrinsics | str | Path | None
     if layout.intrinsics_file is not None:
         return load_intrinsics(layout.intrinsics_file, w, h)
     if layout.format == "tum":
-        raise InputError(layout.root, f"no {layout.intrinsics_expected}")
-    raise InputError(layout.root / layout.intrinsics_expected,
-                     "intrinsics file not found (intrinsics are never guessed; pass --intrinsics)")
+        raise InputError(layout.root, f"no {layout.intrinsics_expected}", fix="intrinsics")
+    raise InputError(layout.root / layout.intrinsics_expected, "intrinsics file not found (intrinsics are never "
+                     "guessed)", fix="intrinsics")
 
 
 def open_sequence(path: str | Path, format: str = "auto", intrinsics: Intrinsics | str | Path | None = None,

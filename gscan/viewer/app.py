@@ -49,20 +49,20 @@ _SELECT_EDGE = "(select an edge)"
 class PortInUseError(InputError):
     """The viewer's port cannot be bound (exit code 2 in the CLI)."""
 
-    def __init__(self, host: str, port: int, detail: str = "already in use", option: str = "--port"):
+    def __init__(self, host: str, port: int, detail: str = "already in use", fix: str = "port"):
         self.host, self.port = host, int(port)
-        super().__init__(None, f"cannot serve the viewer on {host}:{port}: {detail}; choose another {option}")
+        super().__init__(None, f"cannot serve the viewer on {host}:{port}: {detail}", fix=fix)
 
 
 # ------------------------------------------------------------------------------------------ helpers
 def check_port(host: str, port: int) -> None:
     """Raise PortInUseError when `host:port` cannot be bound (viser would silently move to another port)."""
     if not 1 <= port <= 65535:
-        raise InputError(None, f"--port must be 1-65535, not {port}")
+        raise InputError(None, f"the port must be 1-65535, not {port}", fix="port")
     try:
         infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
     except socket.gaierror as e:
-        raise PortInUseError(host, port, f"unknown host ({e.strerror})", option="--host") from None
+        raise PortInUseError(host, port, f"unknown host ({e.strerror})", fix="host") from None
     for family, stype, proto, _, addr in infos[:1]:
         with socket.socket(family, stype, proto) as s:
             s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as asyncio's server does
