@@ -76,6 +76,7 @@ _FIXES = {
                   "it to the ground truth",
     "port": "choose another --port",
     "host": "choose another --host",
+    "output": "choose another output with -o",
 }
 
 
@@ -378,9 +379,18 @@ def view(
     depth: Optional[Path] = typer.Option(None, "--depth", help="depth of --color"),
     intrinsics: Optional[Path] = typer.Option(None, "--intrinsics", help="intrinsics of --color"),
     depth_scale: float = typer.Option(0.001, "--depth-scale", help="metres per raw depth unit"),
+    token: Optional[str] = typer.Option(None, "--token", help="serve only browsers that open the URL with "
+                                        "?token=TOKEN (1-256 of A-Z a-z 0-9 . _ ~ -)"),
 ) -> None:
     """Browse a template (views, matches, pose graph) in the web browser."""
+    from gscan.viewer.access import check_token, is_loopback
     from gscan.viewer.app import run_viewer
+
+    if token is not None:
+        check_token(token)
+    elif not is_loopback(host):
+        _say(("warning:", "yellow"), f" --host {host} is not a loopback address: every image of {template.name} "
+             "is served without authentication to anyone who can reach this port; pass --token to require one")
 
     frame = T_cam_obj = None
     if color is not None or depth is not None or intrinsics is not None:
@@ -392,7 +402,7 @@ def view(
         result = Estimator.from_path(template).estimate(frame)
         T_cam_obj = result.T_cam_obj
         _line(f"estimate: {'not found (' + str(result.reason) + ')' if T_cam_obj is None else 'view ' + str(result.view)}")
-    run_viewer(template, host=host, port=port, scene_frame=frame, T_cam_obj=T_cam_obj,
+    run_viewer(template, host=host, port=port, scene_frame=frame, T_cam_obj=T_cam_obj, token=token,
                on_ready=lambda url: _say("viewer ready at ", (url, "bold"), " (Ctrl+C to stop)"))
 
 
@@ -494,11 +504,10 @@ def demo(
     _import_holding_ctrl_c(*_SCAN_IMPORTS)
     from rich.table import Table
 
-    from gscan.demo import SAMPLES, evaluate_sample, scan_sample
-    from gscan.io import check_output_path
+    from gscan.demo import SAMPLES, check_demo_output, evaluate_sample, scan_sample
     from gscan.progress import RichProgress
 
-    check_output_path(output / "sample.gscan")  # before the first step is announced
+    check_demo_output(output)  # before the first step is announced: only the demo's own template is replaced
 
     _say(("1/3 scanning", "bold"), f" {SAMPLES / 'capture'} -> {output / 'sample.gscan'}")
     with RichProgress(err) as progress:

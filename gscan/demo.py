@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gscan.errors import InputError
+from gscan.errors import InputError, OutputExists
 from gscan.evaluate.bop19 import template_to_gt
 from gscan.geometry.transforms import pose_error
 
@@ -64,14 +64,38 @@ def _model_points() -> np.ndarray:
     return np.asarray(trimesh.sample.sample_surface(mesh, 2000, seed=0)[0])
 
 
+DEMO_MARK = {"written_by": "gscan demo"}  # meta of the templates the demo writes: the only ones it replaces
+
+
+def check_demo_output(output: Path) -> Path:
+    """The demo's template OUTPUT/sample.gscan; OutputExists when a file is there that the demo did not write
+    (a template without the demo's mark, or any other file), InputError when it cannot be written."""
+    from gscan.io.output import check_output, occupied
+    from gscan.template.db import TemplateDB
+
+    path = output / "sample.gscan"
+    if occupied(path) and not path.is_dir():
+        try:
+            with TemplateDB.open(path, require_complete=False) as db:
+                ours = all(db.get_meta(k) == v for k, v in DEMO_MARK.items())
+        except InputError:
+            ours = False
+        if not ours:
+            raise OutputExists(path, "already exists and was not written by gscan demo", fix="output")
+    check_output(path, force=True, kind=".gscan file path")
+    return path
+
+
 def scan_sample(output: Path, progress=None):
-    """Scan samples/capture into OUTPUT/sample.gscan (replacing it); returns the ScanResult."""
+    """Scan samples/capture into OUTPUT/sample.gscan (replacing only a template the demo wrote, see
+    `check_demo_output`); returns the ScanResult."""
     from gscan.scan.pipeline import ScanOptions, run_scan
 
     if not (SAMPLES / "capture").is_dir():
         raise InputError(SAMPLES / "capture", "bundled sample not found (run from a source checkout)")
-    # run_scan checks the output path before any work and makes the missing folders
-    return run_scan(ScanOptions(input_dir=SAMPLES / "capture", output=output / "sample.gscan", force=True),
+    path = check_demo_output(output)
+    # run_scan makes the missing folders; the mark is in the database from its first transaction
+    return run_scan(ScanOptions(input_dir=SAMPLES / "capture", output=path, force=True, meta=dict(DEMO_MARK)),
                     progress=progress)
 
 

@@ -20,6 +20,7 @@ FIXES = (
     "gt_capture",     # the ground-truth capture a scanned template is related to
     "port",           # the viewer's port
     "host",           # the viewer's address
+    "output",         # another output (an existing one that may not be replaced)
 )
 
 

@@ -72,6 +72,7 @@ class ScanOptions:
     force: bool = False
     config: ScanConfig = field(default_factory=ScanConfig)
     obj_id: int | None = None  # BOP: the object to scan (its masks, ground truth); None: the first one listed
+    meta: dict = field(default_factory=dict)  # more meta keys for the database (e.g. the demo marks its outputs)
 
 
 @dataclass
@@ -283,7 +284,8 @@ def run_scan(opts: ScanOptions, progress: Progress | None = None) -> ScanResult:
     made = missing_folders(opts.output)
     if db is None:
         # obj_id: the BOP object the scan followed (its ground truth and masks), for `gscan eval`
-        db, target = _create_output(opts, _scan_meta(opts) | {"obj_id": seq.obj_id, "input_frames": fingerprints})
+        db, target = _create_output(opts, opts.meta | _scan_meta(opts) | {"obj_id": seq.obj_id,
+                                                                          "input_frames": fingerprints})
     try:
         if resumed:  # only once the input is known to hold frames: a complete database stays complete
             db.mark_partial()
