@@ -394,7 +394,7 @@ _IMPOSSIBLE = {
                      lambda db: db.view("a"), "uint16"),
     "grey-colour": ("views", "color", lambda: _png(np.zeros((48, 64), np.uint8)), lambda db: db.view("a"), "uint8"),
     "mask-of-another-size": ("views", "mask", lambda: _png(np.zeros((10, 10), np.uint8)), lambda db: db.view("a"),
-                             "(10, 10)"),
+                             "10x10"),  # refused from its header, before decoding
 }
 
 

@@ -32,12 +32,12 @@ from pathlib import Path
 
 import numpy as np
 
-from gscan.errors import InputError
+from gscan.errors import InputError, not_a_file
 from gscan.estimate.estimator import Estimator
 from gscan.geometry.transforms import inv_T, mean_pose, pose_error, transform_points
 from gscan.io import open_sequence
 from gscan.io.output import Output, check_output
-from gscan.io.layouts import FORMATS, detect_format, discover
+from gscan.io.layouts import FORMATS, detect_format, discover, require_ground_truth
 from gscan.evaluate.metrics import adds as adds_err, add as add_err, ar_mspd, ar_mssd, auc, diameter, mspd, mssd
 from gscan.template.db import TemplateDB
 
@@ -124,7 +124,7 @@ def load_model_points(model_path: Path | None, estimator: Estimator) -> np.ndarr
 
         model_path = Path(model_path)
         if not model_path.is_file():
-            raise InputError(model_path, "model file not found")
+            raise not_a_file(model_path, "model file")
         try:
             m = trimesh.load(str(model_path), force="mesh", process=False)
             pts = np.asarray(m.vertices, dtype=np.float64)
@@ -213,7 +213,9 @@ def _capture_to_gt(template: Path, capture: Path, fmt: str, obj_id: int) -> np.n
     """`template_to_gt` over `capture`'s ground truth; InputError naming `capture` when it cannot."""
     if not capture.is_dir():
         raise InputError(capture, "ground-truth capture folder not found")
-    gt = discover(capture, fmt, obj_id=obj_id).gt_T_cam_obj
+    layout = discover(capture, fmt, obj_id=obj_id)
+    require_ground_truth(layout.gt_problems)
+    gt = layout.gt_T_cam_obj
     if not gt:
         raise InputError(capture, f"holds no ground-truth object poses (annotated_poses/, or scene_gt.json "
                          f"with object {obj_id})")
@@ -239,6 +241,8 @@ def evaluate(template: str | Path, scenes: str | Path, output_csv: str | Path, o
     estimator = Estimator.from_path(template)
     seqs = [(scene_id, open_sequence(folder, format="auto", obj_id=obj_id))
             for scene_id, folder in _scene_dirs(Path(scenes))]
+    for _, seq in seqs:  # the scores need every ground-truth pose
+        require_ground_truth(seq.gt_problems)
     T_obj_gt = scanned_to_gt(template, None if gt_capture is None else Path(gt_capture), obj_id)
     if T_obj_gt is None:
         if any(seq.gt_T_cam_obj for _, seq in seqs):

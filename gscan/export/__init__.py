@@ -78,11 +78,10 @@ def export(db_path: str | Path, fmt: str, out: str | Path, force: bool = False) 
         raise InputError(out, "output would overwrite the template database itself")
     if out.resolve() in db_path.resolve().parents:
         raise InputError(out, f"output folder holds the template database {db_path.name}; replacing it would delete it")
-    with TemplateDB.open(db_path, require_complete=True) as db:
-        # parent folders are made only once the database is known good, and removed on failure
-        with target:
-            n_views = _writer(fmt)(db, target.tmp)
-            files = sum(len(f) for _, _, f in os.walk(target.tmp)) if target.tmp.is_dir() else 1
+    # parent folders are made only once the database is known good, and removed on failure
+    with TemplateDB.open(db_path, require_complete=True) as db, target:
+        n_views = _writer(fmt)(db, target.tmp)
+        files = sum(len(f) for _, _, f in os.walk(target.tmp)) if target.tmp.is_dir() else 1
     log.info("exported %s as %s to %s (%d views, %d files)", db_path, fmt, out, n_views, files)
     return ExportResult(fmt, out, n_views, files)
 

@@ -14,8 +14,9 @@ from pathlib import Path
 import numpy as np
 
 from gscan.io.camera import Intrinsics, RGBDFrame, implausible_intrinsics, load_intrinsics
-from gscan.errors import InputError
-from gscan.io.images import MAX_DEPTH_SCALE, check_depth_range, check_depth_scale, load_frame, read_depth
+from gscan.errors import InputError, not_a_file
+from gscan.io.images import (MAX_DEPTH_SCALE, check_depth_range, check_depth_scale, image_size, load_frame,
+                             read_depth)
 from gscan.io.layouts import FrameSpec, Layout, discover
 
 log = logging.getLogger(__name__)
@@ -24,18 +25,17 @@ _EIGHT_BIT_MODES = {"1", "L", "P", "LA", "PA", "RGB", "RGBA", "RGBX", "CMYK", "Y
 
 
 def image_header(path: Path) -> tuple[int, int, str]:
-    """(width, height, PIL mode) read from the image header only; InputError naming the file."""
-    from PIL import Image
-
+    """(width, height, PIL mode) read from the image header only; InputError naming the file (also for an
+    OpenEXR image and one above the pixel limit, `gscan.io.images.image_size`)."""
     if not path.is_file():
-        raise InputError(path, "file not found" if not path.exists() else "not a regular file")
+        raise not_a_file(path, "image")
     try:
-        with Image.open(path) as im:
-            w, h = im.size
-            return int(w), int(h), str(im.mode)
+        return image_size(path)
     except PermissionError:
         raise InputError(path, "permission denied") from None
-    except Exception as e:  # PIL raises many types (UnidentifiedImageError, SyntaxError, DecompressionBomb...)
+    except ValueError as e:
+        raise InputError(path, str(e)) from None
+    except Exception as e:  # PIL raises many types (UnidentifiedImageError, SyntaxError, OSError...)
         raise InputError(path, f"corrupt or unrecognised image ({e.__class__.__name__})") from None
 
 
@@ -79,6 +79,7 @@ class Sequence:
         self.has_masks: bool = any(s.mask is not None for s in specs.values())
         self.problems: dict[str, str] = problems
         self.obj_id: int | None = layout.obj_id
+        self.gt_problems: dict[str, str] = dict(layout.gt_problems)  # unreadable ground-truth files, left out
 
     def __len__(self) -> int:
         return len(self.names)

@@ -34,10 +34,11 @@ import cv2
 import numpy as np
 
 from gscan.io.camera import Intrinsics
+from gscan.io.images import image_too_large
 from gscan.errors import GscanError, InputError, not_a_file
 from gscan.geometry.transforms import is_rigid
 from gscan.io.output import JOURNAL_SUFFIX, Output, write_failure_reason
-from gscan.template.codec import (BadBlob, check_colors, check_keypoints, check_mesh, check_T, decode_array,
+from gscan.template.codec import (BadBlob, TooLarge, check_colors, check_keypoints, check_mesh, check_T, decode_array,
                                   decode_image, decode_json, decode_T, encode_array, encode_color, encode_depth,
                                   encode_mask, to_u8_colors)
 # the records live in gscan.template.records; they are imported from here as well
@@ -81,6 +82,8 @@ def _decodes(method):
     def wrapper(self, *args, **kwargs):
         try:
             return method(self, *args, **kwargs)
+        except TooLarge as e:
+            raise InputError(self.path, str(e)) from None
         except BadBlob as e:
             raise InputError(self.path, f"corrupt template database ({e})") from None
     return wrapper
@@ -363,6 +366,12 @@ class TemplateDB:
             K = Intrinsics.from_dict(decode_json(intr))
         except (KeyError, TypeError, ValueError) as e:
             raise BadBlob(f"view {name!r}: bad intrinsics {e}") from None
+        try:
+            too_large = image_too_large(K.width, K.height)  # what the view's images and rays would take
+        except InputError as e:  # GSCAN_MAX_IMAGE_PIXELS itself is malformed
+            raise BadBlob(e.reason) from None
+        if too_large:
+            raise TooLarge(f"view {name!r}: its intrinsics are for images of {K.width}x{K.height}: {too_large}")
         v = View(name=name, intrinsics=K, T_obj_cam=decode_T(T), keyframe=bool(kf),
                  quality=q, input_index=idx)
         if load_images:
@@ -425,13 +434,14 @@ class TemplateDB:
     def features(self, view_name: str, role: str = "registration") -> ViewFeatures | None:
         """The view's keypoints of a role (unpacks as (pixels, points_obj, descriptors, kind)); None if
         it has none."""
-        rows = self._q("SELECT f.pixels, f.points, f.descriptors, f.kind, f.scales FROM features f "
+        rows = self._q("SELECT f.pixels, f.points, f.descriptors, f.kind, f.scales, f.n FROM features f "
                        "JOIN views v ON v.id = f.view_id WHERE v.name=? AND f.role=?", (view_name, role))
         if not rows:
             return None
-        px, pts, desc, kind, sc = rows[0]
-        f = ViewFeatures(decode_array(px, (None, 2)), decode_array(pts, (None, 3)), decode_array(desc, (None, None)),
-                         kind, decode_array(sc, (None,)))
+        px, pts, desc, kind, sc, n = rows[0]
+        n = n if isinstance(n, int) and n >= 0 else -1  # the stored count: every array must hold that many
+        f = ViewFeatures(decode_array(px, (n, 2)), decode_array(pts, (n, 3)), decode_array(desc, (n, None)),
+                         kind, decode_array(sc, (n,)))
         check_keypoints(f.pixels, f.points_obj, f.descriptors, f.scales, kind, f"view {view_name!r}")
         return f
 
