@@ -82,10 +82,10 @@ def image_too_large(width: int, height: int) -> str | None:
             f"({limit / 1e6:.1f} MP); set {MAX_IMAGE_PIXELS_ENV} to read larger images")
 
 
-def image_size(source: str | Path | bytes) -> tuple[int, int, str]:
+def image_size(source: str | Path | bytes, limit: bool = True) -> tuple[int, int, str]:
     """(width, height, PIL mode) of an image file or encoded bytes, read from its header only (nothing is
-    decoded). Raises ValueError with the reason for an OpenEXR image, an unreadable header, or an image
-    above `max_image_pixels`."""
+    decoded). Raises ValueError with the reason for an OpenEXR image, or (with `limit`) an image above
+    `max_image_pixels`; PIL's errors for a header it cannot read."""
     from PIL import Image
 
     head = source[:4] if isinstance(source, bytes) else _head(Path(source))
@@ -104,7 +104,7 @@ def image_size(source: str | Path | bytes) -> tuple[int, int, str]:
             raise ValueError(f"image of {n} pixels, above the limit of {max_image_pixels()} pixels; set "
                              f"{MAX_IMAGE_PIXELS_ENV} to read larger images") from None
         raise ValueError(f"image of {n} pixels: too large to read its header") from None
-    why = image_too_large(w, h)
+    why = image_too_large(w, h) if limit else None
     if why:
         raise ValueError(why)
     return w, h, mode

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from gscan.errors import InputError, not_a_file
+from gscan.io.output import describe_os_error
 from gscan.geometry.transforms import MAX_TRANSLATION_M, is_rigid
 
 
@@ -26,9 +27,15 @@ def check_rigid(T: np.ndarray, path: Path) -> None:
 def read_pose_txt(path: Path) -> np.ndarray:
     """[4 x 4] pose from a text file of 4 (or 3) rows of 4 numbers."""
     try:
+        text = path.read_text(encoding="utf-8-sig")
+    except OSError as e:
+        raise InputError(path, f"cannot read the pose file ({describe_os_error(e)})") from None
+    except UnicodeDecodeError:
+        raise InputError(path, "malformed pose file (not UTF-8 text): expected a 4x4 matrix") from None
+    try:
         T = np.array([[float(x) for x in line.replace(",", " ").split()]
-                      for line in path.read_text(encoding="utf-8-sig").splitlines() if line.strip()], dtype=np.float64)
-    except (ValueError, OSError, UnicodeDecodeError) as e:
+                      for line in text.splitlines() if line.strip()], dtype=np.float64)
+    except ValueError as e:
         raise InputError(path, f"malformed pose file ({e.__class__.__name__}): expected a 4x4 matrix") from None
     if T.shape == (3, 4):
         T = np.vstack([T, [0.0, 0.0, 0.0, 1.0]])

@@ -112,10 +112,11 @@ def encode_mask(mask: np.ndarray) -> bytes:
 
 def decode_image(b: bytes, dtype: type, channels: int, size_wh: tuple[int, int]) -> np.ndarray:
     """A stored image, which must be `dtype` with `channels` channels (1: [H x W]) and `size_wh` pixels; its
-    header is read first, so an image of another size (or above the pixel limit) is never decoded."""
+    header is read first, so an image of another size is never decoded (the database checks that `size_wh`,
+    its view's intrinsics, is within the pixel limit)."""
     if b:
         try:
-            w, h, _ = image_size(bytes(b))
+            w, h, _ = image_size(bytes(b), limit=False)
         except ValueError as e:
             raise TooLarge(f"stored image: {e}") from None
         except Exception:  # noqa: BLE001 - PIL raises many types for a header it cannot read
