@@ -7,7 +7,6 @@ through every export in test_safe_names.py.
 """
 from __future__ import annotations
 
-import errno
 import hashlib
 import json
 import os
@@ -55,7 +54,7 @@ def _gscan(*args: str | Path, env: dict | None = None, fsize: int | None = None,
             resource.setrlimit(resource.RLIMIT_FSIZE, (fsize, fsize))
 
     return subprocess.run(cmd, capture_output=True, text=True, timeout=TIMEOUT_S, cwd=ROOT,
-                          env={**os.environ, "COLUMNS": "300", **(env or {})}, preexec_fn=limit)
+                          env={**os.environ, "COLUMNS": "300", **(env or {})}, preexec_fn=limit, check=False)
 
 
 def _parallel(*calls):
@@ -209,7 +208,8 @@ def test_disk_full_is_named(ctx: Ctx, tmp_path: Path):
               "sys.argv = ['gscan'] + sys.argv[1:]\n"
               "from gscan.cli import main\nmain()\n")
     proc = subprocess.run([sys.executable, "-c", inject, "export", str(ctx.template), "--format", "json", "-o",
-                           str(old), "--force"], capture_output=True, text=True, timeout=TIMEOUT_S, cwd=ROOT)
+                           str(old), "--force"], capture_output=True, text=True, timeout=TIMEOUT_S, cwd=ROOT,
+                          check=False)
     assert "no space left on the device (disk full)" in _error(proc, "x.json")
     assert old.read_text() == "old" and _hidden(tmp_path) == []
 
@@ -358,7 +358,7 @@ def _max_rss(*args: str | Path, env: dict | None = None) -> tuple[subprocess.Com
             "sys.stderr.write('MAXRSS %d\\n' % resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)\n"
             "sys.exit(r.returncode)\n")
     proc = subprocess.run([sys.executable, "-c", wrap, *_cli(*args)], capture_output=True, text=True,
-                          timeout=TIMEOUT_S, cwd=ROOT, env={**os.environ, **(env or {})})
+                          timeout=TIMEOUT_S, cwd=ROOT, env={**os.environ, **(env or {})}, check=False)
     *rest, last = proc.stderr.rstrip("\n").split("\n")
     assert last.startswith("MAXRSS "), proc.stderr
     return subprocess.CompletedProcess(proc.args, proc.returncode, proc.stdout, "\n".join(rest) + "\n"), \

@@ -2,6 +2,7 @@
 output folder, file names made from names are unique and safe, and the names themselves round-trip as data."""
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import unicodedata
@@ -44,7 +45,7 @@ def _tiny_template(path: Path, names: list[str]) -> None:
             desc = rng.random((4, 128)).astype(np.float32)
             db.add_view(View(name, INTR, T, color, depth, mask, keyframe=True, quality=1.0, input_index=i),
                         ViewFeatures(px, pts, desc, "rootsift", np.ones(4, np.float32)))
-        for a, b in zip(names, names[1:]):
+        for a, b in itertools.pairwise(names):
             db.add_edge(Edge(a, b, np.eye(4), np.array([[0, 0], [1, 1]]), 0.1, 0.001, 0.9, "sequential", True))
         V = np.array([[0, 0, 0], [0.05, 0, 0], [0, 0.05, 0], [0, 0, 0.05]], float)
         db.set_mesh(V, np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]), np.full((4, 3), 200, np.uint8))

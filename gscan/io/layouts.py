@@ -161,7 +161,7 @@ def discover_open3d(root: Path) -> Layout:
         log.info("%s: colour and depth stems differ; pairing them in sorted order", root)
         depths = dict(zip(colors, depths.values()))
     frames, problems = _pair(colors, depths, None, root / "depth")
-    gt = None
+    gt: dict[str, np.ndarray] | None = None
     gt_problems: dict[str, str] = {}
     traj = root / "trajectory.log"
     if traj.is_file():
@@ -245,7 +245,7 @@ def discover_tum(root: Path) -> Layout:
         frames.append(FrameSpec(name, c, root / depth_list[pairs[i]][1][0]))
     order = {frame_name(v[0]): t for t, v in rgb_list}
     frames.sort(key=lambda f: (order[f.name], natural_key(f.name)))  # TUM frames are in time order
-    gt = None
+    gt: dict[str, np.ndarray] | None = None
     gt_problems: dict[str, str] = {}
     gt_path = root / "groundtruth.txt"
     if gt_path.is_file():
