@@ -173,6 +173,16 @@ def remove_empty_folders(folders: list[Path]) -> None:
             pass
 
 
+def file_identity(path: str | Path) -> tuple[int, int] | None:
+    """(device, inode) of the file at `path` (links not followed), None when there is none: tells whether the
+    file there is still the one this process created, or another process's since."""
+    try:
+        st = os.lstat(path)
+    except OSError:
+        return None
+    return st.st_dev, st.st_ino
+
+
 def remove(path: Path) -> None:
     """Remove a file, a link or a folder tree if it exists; never raises."""
     try:
@@ -292,7 +302,7 @@ class Output:
                                    fix=self.fix) from None
             os.replace(self.tmp, self.path)
             return
-        os.unlink(self.tmp)
+        remove(self.tmp)  # the output is in place: the second name goes (never raises)
 
     def _commit_folder(self) -> None:
         """Move the old folder (or file) aside, rename the new one into place, then delete the old one. A

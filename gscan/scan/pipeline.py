@@ -32,8 +32,8 @@ from pathlib import Path
 import numpy as np
 
 from gscan.io.camera import RGBDFrame, backproject
-from gscan.io.output import (JOURNAL_SUFFIX, Output, check_output, journal_fits, missing_folders, occupied,
-                             remove_empty_folders)
+from gscan.io.output import (JOURNAL_SUFFIX, Output, check_output, file_identity, journal_fits, missing_folders,
+                             occupied, remove_empty_folders)
 from gscan.io.sequence import Sequence
 from gscan.scan.capture_mode import MOVING_OBJECT, STATIC_OBJECT, detect_mode, moving_object_masks, select_keyframes
 from gscan.scan.config import ScanConfig
@@ -286,6 +286,7 @@ def run_scan(opts: ScanOptions, progress: Progress | None = None) -> ScanResult:
         # obj_id: the BOP object the scan followed (its ground truth and masks), for `gscan eval`
         db, target = _create_output(opts, opts.meta | _scan_meta(opts) | {"obj_id": seq.obj_id,
                                                                           "input_frames": fingerprints})
+    created = file_identity(opts.output)  # a new output in place: only this file is removed on failure
     try:
         if resumed:  # only once the input is known to hold frames: a complete database stays complete
             db.mark_partial()
@@ -297,9 +298,9 @@ def run_scan(opts: ScanOptions, progress: Progress | None = None) -> ScanResult:
             t = target.translate(e)
             if t is not e:
                 raise t from None
-        elif not resumed and not isinstance(e, KeyboardInterrupt):
-            # a failed scan leaves no output behind: neither the file nor folders made for it; Ctrl+C
-            # keeps the partial file for --resume (as a killed scan does)
+        elif not resumed and not isinstance(e, KeyboardInterrupt) and file_identity(opts.output) == created:
+            # a failed scan leaves no output behind: neither the file nor folders made for it (never a file
+            # another process put there since); Ctrl+C keeps the partial file for --resume (as a killed scan does)
             opts.output.unlink(missing_ok=True)
             Path(f"{opts.output}{JOURNAL_SUFFIX}").unlink(missing_ok=True)
             remove_empty_folders(made)

@@ -37,7 +37,7 @@ from gscan.io.camera import Intrinsics
 from gscan.io.images import image_too_large
 from gscan.errors import GscanError, InputError, not_a_file
 from gscan.geometry.transforms import is_rigid
-from gscan.io.output import JOURNAL_SUFFIX, Output, write_failure_reason
+from gscan.io.output import JOURNAL_SUFFIX, Output, file_identity, write_failure_reason
 from gscan.template.codec import (BadBlob, TooLarge, check_colors, check_keypoints, check_mesh, check_T, decode_array,
                                   decode_image, decode_json, decode_T, encode_array, encode_color, encode_depth,
                                   encode_mask, to_u8_colors)
@@ -152,6 +152,7 @@ class TemplateDB:
             finally:
                 setup.close()
             Path(f"{path}{JOURNAL_SUFFIX}").unlink(missing_ok=True)  # a stale journal must not meet the new file
+            created = file_identity(tmp)
             out.commit()
         except BaseException as e:
             out.discard()
@@ -162,6 +163,9 @@ class TemplateDB:
                 raise t from None
             raise
         db = cls(path, cls._connect(path), writable=True)
+        if file_identity(path) != created:  # replaced by another writer between the rename and the connection
+            db.close()
+            raise InputError(path, "was replaced by another process while this one created it")
         log.info("created template database %s", path)
         return db
 
