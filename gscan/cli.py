@@ -34,16 +34,57 @@ app.add_typer(config_app, name="config")
 # through `_say`
 err = Console(stderr=True, highlight=False, markup=False, emoji=False, soft_wrap=True)
 
+# characters that would act on the terminal instead of being shown (ANSI escape sequences, carriage returns,
+# line breaks, bidirectional overrides): names from files and templates are printed with these escaped
+_BIDI = "\u061c\u200e\u200f\u202a\u202b\u202c\u202d\u202e\u2066\u2067\u2068\u2069\u2028\u2029"
+_UNPRINTABLE = {c: f"\\x{c:02x}" for c in (*range(0x20), *range(0x7F, 0xA0))} | {
+    ord(c): f"\\u{ord(c):04x}" for c in _BIDI} | {ord("\n"): "\\n", ord("\r"): "\\r", ord("\t"): "\\t"}
+
+
+def printable(text: object) -> str:
+    """`text` as one line that shows what it holds: control characters written as \\x1b, \\n, \\u202e."""
+    return str(text).translate(_UNPRINTABLE)
+
 
 def _say(*parts: str | tuple[str, str]) -> None:
-    """One line on stderr; a (text, style) part is styled, a str part printed as it is."""
+    """One line on stderr; a (text, style) part is styled, a str part printed as it is (control characters
+    escaped: names come from files and templates)."""
     from rich.text import Text
 
     line = Text()
     for p in parts:
         text, style = p if isinstance(p, tuple) else (p, None)
-        line.append(text, style)
+        line.append(printable(text), style)
     err.print(line)
+
+
+def _line(text: object) -> None:
+    """One line of plain text on stderr, control characters escaped."""
+    err.print(printable(text))
+
+
+# the option or command that addresses an InputError's `fix` (gscan.errors.FIXES)
+_FIXES = {
+    "replace": "pass --force to replace it",
+    "resume": "pass --resume to continue it or --force to replace it",
+    "restart": "pass --force to start over",
+    "finish": "run `gscan scan --resume` to finish it",
+    "depth_scale": "pass --depth-scale",
+    "intrinsics": "pass --intrinsics (cam_K.txt or an Open3D camera JSON)",
+    "obj_id": "choose the object with --obj-id",
+    "gt_capture": "pass --gt-capture with the capture (rgb/, depth/, annotated_poses/ or scene_gt.json) to relate "
+                  "it to the ground truth",
+    "port": "choose another --port",
+    "host": "choose another --host",
+    "output": "choose another output with -o",
+}
+
+
+def error_line(e: BaseException) -> str:
+    """The one line an error is reported with: its message (control characters escaped) and, for an
+    InputError with a `fix`, the option of this CLI that addresses it."""
+    fix = _FIXES.get(getattr(e, "fix", None) or "")
+    return printable(f"error: {e}" + (f"; {fix}" if fix else ""))
 
 
 class UsageError(InputError):
@@ -75,9 +116,17 @@ def _format_matrix(T: list[list[float]]) -> str:
     return "\n".join("  [" + " ".join(f"{x:+.5f}" for x in row) + "]" for row in T)
 
 
+class _PrintableFormatter(logging.Formatter):
+    """Log lines with control characters escaped (frame and file names come from the input)."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        return printable(super().format(record))
+
+
 def _setup_logging(verbose: bool) -> None:
-    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, stream=sys.stderr,
-                        format="%(levelname)s %(name)s: %(message)s")
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(_PrintableFormatter("%(levelname)s %(name)s: %(message)s"))
+    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, handlers=[handler])
 
 
 # --------------------------------------------------------------------------------------------- scan
@@ -247,10 +296,11 @@ def estimate(
     if result.T_cam_obj is None:
         _say(("object not found", "yellow"), f": {result.reason}")
     else:
-        err.print(f"found: view {result.view}, {result.n_matches} matches, score {result.score:.3f}")
+        _line(f"found: view {result.view}, {result.n_matches} matches, score {result.score:.3f}")
         err.print("T_cam_obj =\n" + _format_matrix(out["T_cam_obj"]))
         for name, T in out["grasps"].items():
-            err.print(f"grasp {name}: T_cam_grasp =\n" + _format_matrix(T))
+            _line(f"grasp {name}: T_cam_grasp =")
+            err.print(_format_matrix(T))
     err.print("timings (ms): " + ", ".join(f"{k} {v:.1f}" for k, v in out["timings_ms"].items()))
 
 
@@ -272,9 +322,9 @@ def poses(
         return
     for name, T in out["frames"].items():
         t = [row[3] for row in T[:3]]
-        err.print(f"{name}: t = [{t[0]:+.4f}, {t[1]:+.4f}, {t[2]:+.4f}] m")
+        _line(f"{name}: t = [{t[0]:+.4f}, {t[1]:+.4f}, {t[2]:+.4f}] m")
     if out["unregistered"]:
-        err.print(f"unregistered: {', '.join(out['unregistered'])}")
+        _line(f"unregistered: {', '.join(out['unregistered'])}")
 
 
 @app.command()
@@ -295,7 +345,7 @@ def info(
         _print_json(out)
         return
     for k, v in out.items():
-        err.print(f"{k}: {v}")
+        _line(f"{k}: {v}")
 
 
 # ------------------------------------------------------------------------------------------ export
@@ -319,7 +369,7 @@ def export(
         _print_json({"output": str(written.path), "format": written.format, "views": written.views,
                      "files": written.files})
     else:
-        err.print(f"wrote {written}")
+        _line(f"wrote {written}")
 
 
 # -------------------------------------------------------------------------------------------- view
@@ -336,9 +386,18 @@ def view(
     depth_scale: float = typer.Option(0.001, "--depth-scale", help="metres per raw depth unit"),
     pose: Optional[Path] = typer.Option(
         None, "--pose", help='T_cam_obj of --color\'s frame instead of estimating it: {"T": 4x4} or a bare 4x4 list'),
+    token: Optional[str] = typer.Option(None, "--token", help="serve only browsers that open the URL with "
+                                        "?token=TOKEN (1-256 of A-Z a-z 0-9 . _ ~ -)"),
 ) -> None:
     """Browse a template (views, matches, pose graph) in the web browser."""
+    from gscan.viewer.access import check_token, is_loopback
     from gscan.viewer.app import run_viewer
+
+    if token is not None:
+        check_token(token)
+    elif not is_loopback(host):
+        _say(("warning:", "yellow"), f" --host {host} is not a loopback address: every image of {template.name} "
+             "is served without authentication to anyone who can reach this port; pass --token to require one")
 
     frame = T_cam_obj = None
     if pose is not None and color is None:
@@ -356,8 +415,8 @@ def view(
 
             result = Estimator.from_path(template).estimate(frame)
             T_cam_obj = result.T_cam_obj
-            err.print(f"estimate: {'not found (' + str(result.reason) + ')' if T_cam_obj is None else 'view ' + str(result.view)}")
-    run_viewer(template, host=host, port=port, scene_frame=frame, T_cam_obj=T_cam_obj,
+            _line(f"estimate: {'not found (' + str(result.reason) + ')' if T_cam_obj is None else 'view ' + str(result.view)}")
+    run_viewer(template, host=host, port=port, scene_frame=frame, T_cam_obj=T_cam_obj, token=token,
                on_ready=lambda url: _say("viewer ready at ", (url, "bold"), " (Ctrl+C to stop)"))
 
 
@@ -377,7 +436,7 @@ def grasp_add(
     T = read_pose_file(pose)
     with TemplateDB.open(template, require_complete=True, writable=True) as db:
         db.add_grasp(name, T)
-    err.print(f"grasp {name!r} stored in {template}")
+    _line(f"grasp {name!r} stored in {template}")
 
 
 @grasp_app.command("list")
@@ -396,7 +455,7 @@ def grasp_list(
     if not grasps:
         err.print("no grasps")
     for k, T in grasps.items():
-        err.print(f"{k}: t = {[round(float(x), 4) for x in T[:3, 3]]}")
+        _line(f"{k}: t = {[round(float(x), 4) for x in T[:3, 3]]}")
 
 
 # -------------------------------------------------------------------------------------------- eval
@@ -432,7 +491,7 @@ def eval_cmd(
     for k, v in report.metrics.items():
         table.add_row(k, f"{v:.2f}")
     err.print(table)
-    err.print(f"results written to {output}")
+    _line(f"results written to {output}")
 
 
 # ------------------------------------------------------------------------------------------ config
@@ -459,11 +518,10 @@ def demo(
     _import_holding_ctrl_c(*_SCAN_IMPORTS)
     from rich.table import Table
 
-    from gscan.demo import SAMPLES, evaluate_sample, scan_sample
-    from gscan.io import check_output_path
+    from gscan.demo import SAMPLES, check_demo_output, evaluate_sample, scan_sample
     from gscan.progress import RichProgress
 
-    check_output_path(output / "sample.gscan")  # before the first step is announced
+    check_demo_output(output)  # before the first step is announced: only the demo's own template is replaced
 
     _say(("1/3 scanning", "bold"), f" {SAMPLES / 'capture'} -> {output / 'sample.gscan'}")
     with RichProgress(err) as progress:
@@ -492,7 +550,7 @@ _interrupt_said = False
 
 def _say_interrupted(line: str) -> None:
     global _interrupt_said
-    err.print(line, markup=False, highlight=False, soft_wrap=True)
+    err.print(printable(line), markup=False, highlight=False, soft_wrap=True)
     _interrupt_said = True
 
 
@@ -513,14 +571,14 @@ def main() -> None:
         sys.exit(0)
     except _cx.UsageError as e:  # a wrong option value or a missing argument: one line, exit 2
         cmd = e.ctx.command_path if e.ctx else "gscan"
-        err.print(f"error: {cmd}: {e.format_message()} (see `{cmd} --help`)", markup=False, highlight=False,
-                  soft_wrap=True)
+        err.print(printable(f"error: {cmd}: {e.format_message()} (see `{cmd} --help`)"), markup=False,
+                  highlight=False, soft_wrap=True)
         sys.exit(2)
     except typer.Abort:
         err.print("aborted")
         sys.exit(130)
     except GscanError as e:  # InputError and the other deliberate errors: bad input
-        err.print(f"error: {e}", markup=False, highlight=False, soft_wrap=True)
+        err.print(error_line(e), markup=False, highlight=False, soft_wrap=True)
         sys.exit(2)
     except KeyboardInterrupt:
         err.print("interrupted")
@@ -529,7 +587,8 @@ def main() -> None:
         if os.environ.get("GSCAN_DEBUG"):
             raise
         msg = " ".join(f"{e.__class__.__name__}: {e}".split())
-        err.print(f"internal error: {msg} (set GSCAN_DEBUG=1 for the traceback)", markup=False, soft_wrap=True)
+        err.print(printable(f"internal error: {msg} (set GSCAN_DEBUG=1 for the traceback)"), markup=False,
+                  soft_wrap=True)
         sys.exit(1)
 
 

@@ -13,15 +13,17 @@ from pathlib import Path
 
 import numpy as np
 
-from gscan.errors import InputError
+from gscan.errors import InputError, OutputExists
 from gscan.estimate.estimator import Estimator
 from gscan.evaluate.bop19 import template_to_gt
 from gscan.evaluate.metrics import add
 from gscan.geometry.transforms import pose_error
 from gscan.io import open_sequence
+from gscan.io.output import check_output, occupied
 from gscan.progress import Progress
 from gscan.scan.api import scan
 from gscan.scan.pipeline import ScanResult
+from gscan.template.db import TemplateDB
 
 SAMPLES = Path(__file__).resolve().parents[1] / "samples"
 
@@ -67,12 +69,33 @@ def _model_points() -> np.ndarray:
     return np.asarray(trimesh.sample.sample_surface(mesh, 2000, seed=0)[0])
 
 
+DEMO_MARK = {"written_by": "gscan demo"}  # meta of the templates the demo writes: the only ones it replaces
+
+
+def check_demo_output(output: Path) -> Path:
+    """The demo's template OUTPUT/sample.gscan; OutputExists when a file is there that the demo did not write
+    (a template without the demo's mark, or any other file), InputError when it cannot be written."""
+    path = output / "sample.gscan"
+    if occupied(path) and not path.is_dir():
+        try:
+            with TemplateDB.open(path, require_complete=False) as db:
+                ours = all(db.get_meta(k) == v for k, v in DEMO_MARK.items())
+        except InputError:
+            ours = False
+        if not ours:
+            raise OutputExists(path, "already exists and was not written by gscan demo", fix="output")
+    check_output(path, force=True, kind=".gscan file path")
+    return path
+
+
 def scan_sample(output: Path, progress: Progress | None = None) -> ScanResult:
-    """Scan samples/capture into OUTPUT/sample.gscan (replacing it); returns the ScanResult."""
+    """Scan samples/capture into OUTPUT/sample.gscan (replacing only a template the demo wrote, see
+    `check_demo_output`); returns the ScanResult."""
     if not (SAMPLES / "capture").is_dir():
         raise InputError(SAMPLES / "capture", "bundled sample not found (run from a source checkout)")
-    # the scan checks the output path before any work and makes the missing folders
-    return scan(SAMPLES / "capture", output / "sample.gscan", force=True, progress=progress)
+    path = check_demo_output(output)
+    # the scan makes the missing folders; the mark is in the database from its first transaction
+    return scan(SAMPLES / "capture", path, force=True, progress=progress, meta=DEMO_MARK)
 
 
 def evaluate_sample(db_path: Path) -> list[HeldOutResult]:

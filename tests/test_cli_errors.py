@@ -263,19 +263,6 @@ def _(ctx: Ctx, work: Path) -> Run:
     return _scan_case(work, cap, "truncpng", "000000.png")
 
 
-@case("scan-open3d-malformed-trajectory")
-def _(ctx: Ctx, work: Path) -> Run:
-    cap = work / "redwood"
-    for sub in ("color", "depth"):
-        (cap / sub).mkdir(parents=True)
-        for k in range(2):
-            shutil.copy(ctx.capture / ("rgb" if sub == "color" else sub) / f"00000{k}.png", cap / sub / f"00000{k}.png")
-    (cap / "camera_intrinsic.json").write_text(json.dumps(
-        {"width": INTR.width, "height": INTR.height, "intrinsic_matrix": INTR.K.T.ravel().tolist()}))
-    (cap / "trajectory.log").write_text("0 0 1\n1 0 0 0\n")
-    return _scan_case(work, cap, "trajectory.log")
-
-
 @case("scan-tum-malformed-list")
 def _(ctx: Ctx, work: Path) -> Run:
     cap = work / "tum"

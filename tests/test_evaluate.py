@@ -170,8 +170,9 @@ def test_scanned_template_is_scored_in_the_ground_truth_frame(sample_template, s
     shutil.copy(sample_template, moved)
     with TemplateDB.open(moved, writable=True) as db:
         db.set_meta("input", str(tmp_path / "gone"))
-    with pytest.raises(InputError, match="--gt-capture"):
+    with pytest.raises(InputError, match="capture it was scanned from is gone") as ei:
         evaluate(moved, held, tmp_path / "refused.csv")
+    assert ei.value.fix == "gt_capture"  # the CLI names --gt-capture
     assert not (tmp_path / "refused.csv").exists()
     again = evaluate(moved, held, tmp_path / "given.csv", gt_capture=root / "capture")
     keys = ("found", "AUC ADD", "AUC ADD-S", "AR")
@@ -230,7 +231,7 @@ def test_bop_scan_follows_its_object_and_eval_scores_through_it(tmp_path):
     assert rep.metrics["AUC ADD"] > 95, rep.metrics
     with pytest.raises(InputError, match="scene_gt.json: holds no pose of object 9"):
         scan(bop, tmp_path / "o9.gscan", obj_id=9)
-    with pytest.raises(InputError, match="--obj-id is for BOP"):
+    with pytest.raises(InputError, match="object id is for BOP"):
         scan(root / "capture", tmp_path / "c.gscan", obj_id=5)
     assert not (tmp_path / "o9.gscan").exists() and not (tmp_path / "c.gscan").exists()
     gt_file = bop / "scene_gt.json"
@@ -241,8 +242,9 @@ def test_bop_scan_follows_its_object_and_eval_scores_through_it(tmp_path):
     with pytest.raises(InputError, match=r"scene_gt.json: malformed entry for image 3"):  # named, not the template
         evaluate(tpl, root / "heldout", tmp_path / "r2.csv")
     gt_file.unlink()
-    with pytest.raises(InputError, match=r"scene_gt.json: not found \(--obj-id"):
+    with pytest.raises(InputError, match=r"scene_gt.json: not found \(the object id") as ei:
         scan(bop, tmp_path / "n.gscan", obj_id=5)
+    assert ei.value.fix == "obj_id"  # the CLI names --obj-id
 
 
 def test_template_to_gt_keeps_the_frames_that_agree(sample_template, tmp_path):

@@ -608,10 +608,6 @@ def bad_intrinsics_size(tmp):
     return (lambda: open_sequence(root, intrinsics=p)), "cam_640.json"
 
 
-def bad_trajectory(tmp):
-    root = make_open3d(tmp / "o3d")
-    (root / "trajectory.log").write_text("0 0 1\n1 0 0 0\n0 1 0\n")
-    return (lambda: open_sequence(root)), "trajectory.log"
 
 
 def bad_scene_camera(tmp):
@@ -620,10 +616,6 @@ def bad_scene_camera(tmp):
     return (lambda: open_sequence(root)), "scene_camera.json"
 
 
-def bad_annotated_pose(tmp):
-    root = make_capture(tmp / "cap")
-    (root / "annotated_poses" / "000001.txt").write_text("1 0 0\nfoo\n")
-    return (lambda: open_sequence(root)), "000001.txt"
 
 
 def bad_ycbv_meta(tmp):
@@ -643,7 +635,7 @@ BAD_CASES = [bad_missing_folder, bad_empty_folder, bad_unknown_layout, bad_missi
              bad_nan_camk, bad_negative_camk, bad_zero_camk, bad_no_depth_at_all, bad_size_mismatch, bad_8bit_depth,
              bad_float_depth, bad_zero_depth, bad_corrupt_png, bad_truncated_png, bad_truncated_jpeg,
              bad_unreadable_depth, bad_missing_color, bad_depth_scale_sequence, bad_depth_scale_frame, bad_mask_size,
-             bad_duplicate_stems, bad_intrinsics_size, bad_trajectory, bad_scene_camera, bad_annotated_pose,
+             bad_duplicate_stems, bad_intrinsics_size, bad_scene_camera,
              bad_ycbv_meta, bad_all_frames_unusable]
 
 
@@ -655,6 +647,29 @@ def test_bad_input_names_file(tmp_path: Path, case):
     msg = str(ei.value)
     assert fname in msg, msg
     assert "\n" not in msg
+
+
+def test_unreadable_ground_truth_is_left_out_and_named(tmp_path: Path, caplog):
+    """Ground truth is optional for a scan: an unreadable annotated pose, trajectory.log or groundtruth.txt is
+    left out with a warning naming it (`gt_problems`), and the sequence opens; `require_ground_truth` (what
+    evaluation calls) refuses it by name."""
+    from gscan.io.layouts import require_ground_truth
+
+    cap = make_capture(tmp_path / "cap")
+    (cap / "annotated_poses" / "000001.txt").write_text("1 0 0\nfoo\n")
+    o3d = make_open3d(tmp_path / "o3d")
+    (o3d / "trajectory.log").write_text("0 0 1\n1 0 0 0\n0 1 0\n")
+    for root, bad in ((cap, "000001.txt"), (o3d, "trajectory.log")):
+        with caplog.at_level("WARNING"):
+            seq = open_sequence(root)
+        assert len(seq.names) >= 2
+        assert [Path(p).name for p in seq.gt_problems] == [bad]
+        assert bad in caplog.text
+        with pytest.raises(InputError, match=f"{bad}: unreadable ground truth"):
+            require_ground_truth(seq.gt_problems)
+    seq = open_sequence(cap)
+    assert "000001" not in seq.gt_T_cam_obj and len(seq.gt_T_cam_obj) == len(seq.names) - 1
+    assert open_sequence(o3d).gt_T_world_cam is None
 
 
 def test_unreadable_permissions(tmp_path: Path):
@@ -698,8 +713,9 @@ def test_unreadable_permissions(tmp_path: Path):
 
 def test_depth_scale_message(tmp_path: Path):
     call, _ = bad_depth_scale_sequence(tmp_path)
-    with pytest.raises(InputError, match=r"depth scale 1 puts the scene at 799 m.*0\.001 would put it at 0\.799 m.*--depth-scale"):
+    with pytest.raises(InputError, match=r"depth scale 1 puts the scene at 799 m.*0\.001 would put it at 0\.799 m") as ei:
         call()
+    assert ei.value.fix == "depth_scale"  # the CLI names --depth-scale
 
 
 def test_partial_bad_sequence(tmp_path: Path):

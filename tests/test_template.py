@@ -151,8 +151,9 @@ def test_status_summary_poses_and_template(db_path: Path) -> None:
                              triangles=np.array([[0, 1, 2]])))
         db.add_grasp("g", np.eye(4))
         assert db.status == "partial"
-    with pytest.raises(InputError, match=r"partial scan; run `gscan scan --resume`"):
+    with pytest.raises(InputError, match=r"partial scan") as ei:
         TemplateDB.open(db_path)
+    assert ei.value.fix == "finish"  # the CLI says `gscan scan --resume`
     with TemplateDB.open(db_path, require_complete=False, writable=True) as db:
         db.mark_complete()
     with TemplateDB.open(db_path) as db:
@@ -404,7 +405,7 @@ _IMPOSSIBLE = {
                      lambda db: db.view("a"), "uint16"),
     "grey-colour": ("views", "color", lambda: _png(np.zeros((48, 64), np.uint8)), lambda db: db.view("a"), "uint8"),
     "mask-of-another-size": ("views", "mask", lambda: _png(np.zeros((10, 10), np.uint8)), lambda db: db.view("a"),
-                             "(10, 10)"),
+                             "10x10"),  # refused from its header, before decoding
 }
 
 

@@ -25,20 +25,19 @@ scanned template against ground truth without such a capture is refused.
 """
 from __future__ import annotations
 
-import contextlib
 import logging
-import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from gscan.errors import InputError
+from gscan.errors import InputError, not_a_file
 from gscan.estimate.estimator import Estimator
 from gscan.geometry.transforms import inv_T, mean_pose, pose_error, transform_points
-from gscan.io import check_output_path, open_sequence
-from gscan.io.layouts import FORMATS, detect_format, discover
+from gscan.io import open_sequence
+from gscan.io.output import Output, check_output
+from gscan.io.layouts import FORMATS, detect_format, discover, require_ground_truth
 from gscan.evaluate.metrics import adds as adds_err, add as add_err, ar_mspd, ar_mssd, auc, diameter, mspd, mssd
 from gscan.template.db import TemplateDB
 
@@ -125,7 +124,7 @@ def load_model_points(model_path: Path | None, estimator: Estimator) -> np.ndarr
 
         model_path = Path(model_path)
         if not model_path.is_file():
-            raise InputError(model_path, "model file not found")
+            raise not_a_file(model_path, "model file")
         try:
             m = trimesh.load(str(model_path), force="mesh", process=False)
             pts = np.asarray(m.vertices, dtype=np.float64)
@@ -190,8 +189,8 @@ def scanned_to_gt(template: Path, gt_capture: Path | None, obj_id: int) -> np.nd
         stored_obj_id = db.get_meta("obj_id")
     if source != "scan":
         if gt_capture is not None:
-            raise InputError(gt_capture, f"--gt-capture is for scanned templates; {template} is a CAD template, "
-                             "already in its mesh's frame")
+            raise InputError(gt_capture, f"a ground-truth capture relates scanned templates; {template} is a CAD "
+                             "template, already in its mesh's frame")
         return np.eye(4)
     if gt_capture is not None:
         return _capture_to_gt(template, gt_capture, "auto", obj_id)
@@ -214,7 +213,9 @@ def _capture_to_gt(template: Path, capture: Path, fmt: str, obj_id: int) -> np.n
     """`template_to_gt` over `capture`'s ground truth; InputError naming `capture` when it cannot."""
     if not capture.is_dir():
         raise InputError(capture, "ground-truth capture folder not found")
-    gt = discover(capture, fmt, obj_id=obj_id).gt_T_cam_obj
+    layout = discover(capture, fmt, obj_id=obj_id)
+    require_ground_truth(layout.gt_problems)
+    gt = layout.gt_T_cam_obj
     if not gt:
         raise InputError(capture, f"holds no ground-truth object poses (annotated_poses/, or scene_gt.json "
                          f"with object {obj_id})")
@@ -235,23 +236,20 @@ def evaluate(template: str | Path, scenes: str | Path, output_csv: str | Path, o
     unreadable scenes or model, or a scanned template scored against ground truth that no
     ground-truth capture (`gt_capture`, else the template's own input) relates to its frame."""
     output_csv = Path(output_csv)
-    if output_csv.is_dir():
-        raise InputError(output_csv, "output is a folder, expected a .csv file path")
-    if output_csv.exists() and not force:
-        raise InputError(output_csv, "already exists; use --force to overwrite")
-    check_output_path(output_csv)
+    check_output(output_csv, force=force, kind=".csv file path")
     template = Path(template)
     estimator = Estimator.from_path(template)
     seqs = [(scene_id, open_sequence(folder, format="auto", obj_id=obj_id))
             for scene_id, folder in _scene_dirs(Path(scenes))]
+    for _, seq in seqs:  # the scores need every ground-truth pose
+        require_ground_truth(seq.gt_problems)
     T_obj_gt = scanned_to_gt(template, None if gt_capture is None else Path(gt_capture), obj_id)
     if T_obj_gt is None:
         if any(seq.gt_T_cam_obj for _, seq in seqs):
             raise InputError(template, "is a scanned template, in its own frame, and the capture it was scanned "
-                             "from is gone or holds no ground truth; pass --gt-capture with the capture "
-                             "(rgb/, depth/, annotated_poses/ or scene_gt.json) to relate it to the ground truth")
+                             "from is gone or holds no ground truth", fix="gt_capture")
         log.warning("%s: no ground-truth capture relates the scanned template's frame to the ground truth's; "
-                    "the CSV holds poses of the template's own frame (pass --gt-capture for the other)", template)
+                    "the CSV holds poses of the template's own frame (a ground-truth capture relates them)", template)
         T_obj_gt = np.eye(4)  # no ground truth anywhere: poses of the template's own frame
     pts = load_model_points(None if model_path is None else Path(model_path), estimator)
     if model_path is None:  # the template's mesh, in the ground truth's object frame
@@ -296,17 +294,9 @@ def evaluate(template: str | Path, scenes: str | Path, output_csv: str | Path, o
     if not rows:
         raise InputError(Path(scenes), "no image to evaluate")
     if bop_gt and all(np.isnan(r.add) for r in rows):  # the metrics would silently be left out
-        raise InputError(Path(scenes), f"scene_gt.json holds no pose of object {obj_id} (--obj-id)")
-    tmp = output_csv.with_name(f".{output_csv.name}.tmp-{os.getpid()}")
-    try:
-        output_csv.parent.mkdir(parents=True, exist_ok=True)
-        tmp.write_text("\n".join(lines) + "\n", encoding="utf-8")
-        os.replace(tmp, output_csv)
-    except OSError as e:
-        raise InputError(output_csv, f"cannot write the results ({e.strerror or e})") from None
-    finally:
-        with contextlib.suppress(OSError):
-            tmp.unlink(missing_ok=True)
+        raise InputError(Path(scenes), f"scene_gt.json holds no pose of object {obj_id}", fix="obj_id")
+    with Output(output_csv, force=force, kind=".csv file path") as out:
+        out.tmp.write_text("\n".join(lines) + "\n", encoding="utf-8")
     return EvalReport(output_csv, len(rows), sum(r.found for r in rows), _metrics(rows, diam, width), rows)
 
 

@@ -10,21 +10,21 @@
 | `ply`, `obj`, `glb` | the template mesh (metres, object frame, vertex colours) |
 | `json` | intrinsics, per-view poses, edges with their quality numbers, grasps |
 
-Outputs are never half-written: everything is written into a hidden temporary sibling of `out`
-and renamed into place at the end. An existing non-empty `out` is refused without `force`; a
-partial database is refused (InputError naming the file).
+Outputs are never half-written (`gscan.io.output.Output`): everything is written into a hidden temporary
+sibling of `out` and renamed into place at the end. An existing non-empty `out` is refused without `force`;
+a partial database is refused (InputError naming the file). File names derived from view names are made
+safe (`gscan.export.common.safe_file_names`): no separators, `..`, control characters or overlong names.
 """
 from __future__ import annotations
 
 import logging
 import os
-import shutil
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
 from gscan.errors import InputError
-from gscan.io import check_output_path, missing_folders, remove_empty_folders
+from gscan.io.output import Output
 from gscan.template.db import TemplateDB
 
 log = logging.getLogger(__name__)
@@ -44,12 +44,6 @@ class ExportResult:
 
     def __str__(self) -> str:
         return f"{self.format} export of {self.views} views ({self.files} files) at {self.path}"
-
-
-def _occupied(out: Path) -> bool:
-    if out.is_dir():
-        return any(out.iterdir())
-    return out.exists() or out.is_symlink()
 
 
 def _writer(fmt: str) -> Callable[[TemplateDB, Path], int]:
@@ -77,62 +71,19 @@ def export(db_path: str | Path, fmt: str, out: str | Path, force: bool = False) 
     db_path, out = Path(db_path), Path(out)
     if fmt not in FORMATS:
         raise InputError(out, f"unknown export format {fmt!r}; expected one of {', '.join(FORMATS)}")
-    if fmt in _FILE_FORMATS and out.is_dir():
-        raise InputError(out, f"output is a folder, expected a .{fmt} file path")
     if fmt in _FILE_FORMATS and out.suffix.lower() in {f".{f}" for f in _FILE_FORMATS} - {f".{fmt}"}:
         raise InputError(out, f"a {out.suffix} name for {fmt} content; name the file .{fmt}")
-    if _occupied(out) and not force:
-        raise InputError(out, "output already exists; use --force to overwrite")
-    check_output_path(out)
+    target = Output(out, force=force, folder=fmt not in _FILE_FORMATS, kind=f".{fmt} file path")
     if out.resolve() == db_path.resolve():
         raise InputError(out, "output would overwrite the template database itself")
     if out.resolve() in db_path.resolve().parents:
         raise InputError(out, f"output folder holds the template database {db_path.name}; replacing it would delete it")
-    tmp = out.parent / f".{out.name}.tmp-{os.getpid()}"
-    with TemplateDB.open(db_path, require_complete=True) as db:
-        # parent folders are made only once the database is known good, and removed on failure
-        made = missing_folders(out)
-        try:
-            out.parent.mkdir(parents=True, exist_ok=True)
-            _remove(tmp)
-            if fmt not in _FILE_FORMATS:
-                tmp.mkdir()
-            n_views = _writer(fmt)(db, tmp)
-            files = sum(len(f) for _, _, f in os.walk(tmp)) if tmp.is_dir() else 1
-            _replace(tmp, out)
-        except BaseException as e:
-            _remove(tmp)
-            remove_empty_folders(made)
-            if isinstance(e, OSError):  # a folder that cannot be made or written: the output's problem
-                raise InputError(out, f"cannot write the export ({e.strerror or e})") from None
-            raise
+    # parent folders are made only once the database is known good, and removed on failure
+    with TemplateDB.open(db_path, require_complete=True) as db, target:
+        n_views = _writer(fmt)(db, target.tmp)
+        files = sum(len(f) for _, _, f in os.walk(target.tmp)) if target.tmp.is_dir() else 1
     log.info("exported %s as %s to %s (%d views, %d files)", db_path, fmt, out, n_views, files)
     return ExportResult(fmt, out, n_views, files)
-
-
-def _remove(p: Path) -> None:
-    if p.is_dir() and not p.is_symlink():
-        shutil.rmtree(p)
-    elif p.exists() or p.is_symlink():
-        p.unlink()
-
-
-def _replace(tmp: Path, out: Path) -> None:
-    """Move `tmp` to `out`; an existing `out` is moved aside first and deleted only afterwards."""
-    old = None
-    if out.exists() or out.is_symlink():
-        old = out.parent / f".{out.name}.old-{os.getpid()}"
-        _remove(old)
-        os.replace(out, old)
-    try:
-        os.replace(tmp, out)
-    except BaseException:
-        if old is not None:
-            os.replace(old, out)
-        _remove(tmp)
-        raise
-    if old is not None:
-        _remove(old)
 
 
 __all__ = ["FORMATS", "ExportResult", "export"]

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from gscan.export.common import imwrite, posed_views
+from gscan.export.common import imwrite, posed_views, safe_file_names
 from gscan.geometry.transforms import inv_T
 from gscan.template.db import TemplateDB
 
@@ -46,8 +46,10 @@ class _UnionFind:
 
 def build_reconstruction(db: TemplateDB, images_dir: Path) -> pycolmap.Reconstruction:
     """The template as a pycolmap Reconstruction: the registered views that store a colour image, each written
-    to `images_dir` as `<view name>.png`, the name the model's image takes (COLMAP's image_path)."""
+    to `images_dir` as `<view name>.png` (the name made safe, `safe_file_names`), the name the model's image
+    takes (COLMAP's image_path)."""
     views = posed_views(db, need_images=True, need_depth=False)
+    file_names = [f"{stem}.png" for stem in safe_file_names([v.name for v in views])]  # names are data
     rec = pycolmap.Reconstruction()
     cam_ids: dict = {}
     feats, offsets, colors = [], [0], []
@@ -62,7 +64,7 @@ def build_reconstruction(db: TemplateDB, images_dir: Path) -> pycolmap.Reconstru
         px = np.zeros((0, 2)) if f is None else f.pixels.astype(np.float64) + 0.5
         feats.append(f)
         offsets.append(offsets[-1] + len(px))
-        name = f"{v.name}.png"
+        name = file_names[img_id - 1]
         imwrite(images_dir / name, v.color, rgb=True)
         image = pycolmap.Image(name=name, keypoints=px, camera_id=cam_ids[k], image_id=img_id)
         T_cam_obj = inv_T(v.T_obj_cam)

@@ -1,7 +1,9 @@
 """Helpers shared by the exporters: view selection, image writing, mesh rendering."""
 from __future__ import annotations
 
+import hashlib
 import logging
+import unicodedata
 from pathlib import Path
 
 import cv2
@@ -35,6 +37,71 @@ def posed_views(db: TemplateDB, need_images: bool = True, need_depth: bool = Tru
     if missing:
         log.warning("%d view(s) store no %s and are not exported: %s", len(missing), what, ", ".join(missing))
     return out
+
+
+MAX_STEM_BYTES = 200  # a file name made from a view name, before its extension (NAME_MAX is 255 bytes)
+# characters a file name made from a name never holds: separators, NUL, and those that act on a terminal
+_BIDI = set("\u061c\u200e\u200f\u202a\u202b\u202c\u202d\u202e\u2066\u2067\u2068\u2069")
+
+
+def _unsafe_char(c: str) -> bool:
+    return c in "/\\\0" or c in _BIDI or unicodedata.category(c) in ("Cc", "Cs", "Zl", "Zp")
+
+
+def _is_safe(name: str, max_bytes: int) -> bool:
+    try:
+        size = len(name.encode("utf-8"))
+    except UnicodeEncodeError:
+        return False
+    return (0 < size <= max_bytes and name not in (".", "..") and not name.startswith(".")
+            and not any(_unsafe_char(c) for c in name))
+
+
+def _fit(text: str, max_bytes: int) -> str:
+    """`text` cut (at a character) to at most `max_bytes` UTF-8 bytes."""
+    while len(text.encode("utf-8", "surrogatepass")) > max_bytes:
+        text = text[:-1]
+    return text
+
+
+def _key(stem: str) -> str:
+    """What two file names must not share: file systems that ignore case or Unicode normalisation would
+    take them for one file."""
+    return unicodedata.normalize("NFC", stem).casefold()
+
+
+def safe_file_names(names: list[str], max_bytes: int = MAX_STEM_BYTES) -> list[str]:
+    """A file-name stem for each of `names` (view names come from files and templates: data, never a path).
+
+    A name that is already safe is kept as it is (1 to `max_bytes` UTF-8 bytes, no separator, no NUL or
+    control character, not "." or "..", no leading dot), so existing exports do not change. Any other gets a
+    safe form: those characters replaced by "_", a leading dot by "_", cut to fit, then "-" and 8 hex digits
+    of the name's hash, so that it stays recognisable and distinct. The stems are unique, also where a file
+    system ignores case or Unicode normalisation: a later clash gets "-2", "-3", ...
+    """
+    out: list[str | None] = [None] * len(names)
+    taken: set[str] = set()
+    for i, name in enumerate(names):  # safe names first: they keep their name unless they clash
+        if _is_safe(name, max_bytes) and _key(name) not in taken:
+            out[i] = name
+            taken.add(_key(name))
+    for i, name in enumerate(names):
+        if out[i] is not None:
+            continue
+        digest = hashlib.blake2b(name.encode("utf-8", "surrogatepass"), digest_size=4).hexdigest()
+        if _is_safe(name, max_bytes):  # a clash with an earlier name
+            base = name
+        else:
+            base = "".join("_" if _unsafe_char(c) else c for c in name)
+            base = "_" + base[1:] if base.startswith(".") else base
+        base = f"{_fit(base, max_bytes - 9) or 'view'}-{digest}"
+        stem, k = base, 1
+        while _key(stem) in taken:
+            k += 1
+            stem = f"{_fit(base, max_bytes - len(f'-{k}'))}-{k}"
+        taken.add(_key(stem))
+        out[i] = stem
+    return [s for s in out if s is not None]
 
 
 def require_mesh(db: TemplateDB) -> MeshData:

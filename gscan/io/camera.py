@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gscan.errors import InputError
+from gscan.errors import InputError, not_a_file
 
 
 @dataclass(frozen=True)
@@ -82,9 +82,9 @@ def load_intrinsics(path: str | Path, width: int | None = None, height: int | No
     """
     path = Path(path)
     if not path.is_file():
-        raise _bad(path, "intrinsics file not found")
+        raise not_a_file(path, "intrinsics file")
     try:
-        text = path.read_text(encoding="utf-8")
+        text = path.read_text(encoding="utf-8-sig")  # a byte-order mark (Windows editors) is not a number
     except (OSError, UnicodeDecodeError) as e:
         raise _bad(path, f"cannot read intrinsics ({e.__class__.__name__})") from None
     if path.suffix.lower() == ".json" or text.lstrip().startswith("{"):

@@ -6,7 +6,11 @@ Depth is returned as [H x W] float32 metres with 0 = invalid.
 """
 from __future__ import annotations
 
+import io
 import logging
+import os
+import re
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -14,13 +18,24 @@ import cv2
 import numpy as np
 
 from gscan.io.camera import Intrinsics, RGBDFrame, load_intrinsics
-from gscan.errors import InputError
+from gscan.errors import InputError, not_a_file
 from gscan.io.layouts import frame_name
 
 log = logging.getLogger(__name__)
 
 #: Plausible median scene depth (metres); outside it the depth scale is almost surely wrong.
 DEPTH_RANGE_M = (0.05, 20.0)
+
+# Images larger than this many pixels are refused from their header, before they are decoded: a small
+# compressed file can declare a huge image (a 2.6 MB PNG of 30000 x 30000 decodes to 2.7 GB). The default is
+# 4096 x 4096 (16.8 MP): above every RGB-D camera's colour stream (Azure Kinect 4096 x 3072, Zivid 2+
+# 2448 x 2048, RealSense D4xx 1920 x 1080), since depth registered to colour has the colour image's size;
+# one such frame takes about 120 MB decoded (RGB and float depth). GSCAN_MAX_IMAGE_PIXELS raises it.
+DEFAULT_MAX_IMAGE_PIXELS = 4096 * 4096
+MAX_IMAGE_PIXELS_ENV = "GSCAN_MAX_IMAGE_PIXELS"
+_EXR_MAGIC = b"\x76\x2f\x31\x01"
+EXR_REASON = ("an OpenEXR (float) image, which gscan does not read; convert the depth to a 16-bit PNG in "
+              "millimetres (uint16(round(depth_m * 1000)), 0 where there is no depth) and use depth scale 0.001")
 
 _JPEG_SOI = b"\xff\xd8"
 _JPEG_EOI = b"\xff\xd9"
@@ -31,10 +46,8 @@ _CV2_MAJOR = int(cv2.__version__.split(".")[0])
 def read_bytes(path: str | Path) -> np.ndarray:
     """Raw bytes of a file as a [N] uint8 array; InputError when missing, empty or unreadable."""
     path = Path(path)
-    if not path.exists():
-        raise InputError(path, "file not found")
     if not path.is_file():
-        raise InputError(path, "not a regular file")
+        raise not_a_file(path, "file")
     try:
         data = np.fromfile(path, dtype=np.uint8)
     except PermissionError:
@@ -46,14 +59,77 @@ def read_bytes(path: str | Path) -> np.ndarray:
     return data
 
 
+def max_image_pixels() -> int:
+    """The largest image (width x height) gscan decodes: GSCAN_MAX_IMAGE_PIXELS, else DEFAULT_MAX_IMAGE_PIXELS."""
+    raw = os.environ.get(MAX_IMAGE_PIXELS_ENV, "").strip()
+    if not raw:
+        return DEFAULT_MAX_IMAGE_PIXELS
+    try:
+        value = int(raw.replace("_", ""))
+    except ValueError:
+        value = 0
+    if value <= 0:
+        raise InputError(None, f"{MAX_IMAGE_PIXELS_ENV} must be a positive whole number of pixels, not {raw!r}")
+    return value
+
+
+def image_too_large(width: int, height: int) -> str | None:
+    """Why an image of width x height is not decoded (above `max_image_pixels`), or None."""
+    limit = max_image_pixels()
+    if width * height <= limit:
+        return None
+    return (f"image is {width}x{height} ({width * height / 1e6:.1f} megapixels), above the limit of {limit} pixels "
+            f"({limit / 1e6:.1f} MP); set {MAX_IMAGE_PIXELS_ENV} to read larger images")
+
+
+def image_size(source: str | Path | bytes, limit: bool = True) -> tuple[int, int, str]:
+    """(width, height, PIL mode) of an image file or encoded bytes, read from its header only (nothing is
+    decoded). Raises ValueError with the reason for an OpenEXR image, or (with `limit`) an image above
+    `max_image_pixels`; PIL's errors for a header it cannot read."""
+    from PIL import Image
+
+    head = source[:4] if isinstance(source, bytes) else _head(Path(source))
+    if head == _EXR_MAGIC:
+        raise ValueError(EXR_REASON)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            with Image.open(io.BytesIO(source) if isinstance(source, bytes) else source) as im:
+                w, h = (int(x) for x in im.size)
+                mode = str(im.mode)
+    except Image.DecompressionBombError as e:  # PIL's own limit (179 MP): the size is in its message
+        m = re.search(r"\((\d+) pixels\)", str(e))
+        n = int(m.group(1)) if m else 0
+        if not m or n > max_image_pixels():
+            raise ValueError(f"image of {n} pixels, above the limit of {max_image_pixels()} pixels; set "
+                             f"{MAX_IMAGE_PIXELS_ENV} to read larger images") from None
+        raise ValueError(f"image of {n} pixels: too large to read its header") from None
+    why = image_too_large(w, h) if limit else None
+    if why:
+        raise ValueError(why)
+    return w, h, mode
+
+
+def _head(path: Path) -> bytes:
+    with open(path, "rb") as f:
+        return f.read(4)
+
+
 def decode_image(path: str | Path, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray:
     """Decode an image file with cv2 (bytes + imdecode, safe for non-ASCII paths).
 
     Returns the array as cv2 gives it (BGR order for colour). InputError when the file is not a
-    decodable image, or is a JPEG without its end-of-image marker (truncated).
+    decodable image, is larger than `max_image_pixels` (read from its header, before decoding), or is a
+    JPEG without its end-of-image marker (truncated).
     """
     path = Path(path)
     data = read_bytes(path)
+    try:
+        image_size(data.tobytes())
+    except ValueError as e:
+        raise InputError(path, str(e)) from None
+    except Exception:  # noqa: BLE001 - PIL raises many types for a header it cannot read
+        raise InputError(path, "corrupt or unrecognised image (cannot read its header)") from None
     try:
         img = cv2.imdecode(data, flags)
     except cv2.error:
@@ -184,7 +260,7 @@ def check_depth_range(depth: np.ndarray, depth_scale: float, path: str | Path) -
         k = -round(float(np.log10(med)))
         hint = f"{depth_scale * 10.0 ** k:g} would put it at {med * 10.0 ** k:.3g} m"
         raise InputError(path, f"depth scale {depth_scale:g} puts the scene at {med:.3g} m "
-                         f"(expected {lo:g}-{hi:g} m; {hint}); pass --depth-scale")
+                         f"(expected {lo:g}-{hi:g} m; {hint})", fix="depth_scale")
     return med
 
 

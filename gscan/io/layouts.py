@@ -54,6 +54,21 @@ class Layout:
     gt_T_world_cam: dict[str, np.ndarray] | None = None
     problems: dict[str, str] = field(default_factory=dict)
     obj_id: int | None = None                  # BOP: the object whose scene_gt pose / mask is used
+    # optional ground-truth files that could not be read (path -> reason): left out, reported as warnings;
+    # what needs the ground truth (evaluation) refuses them (`require_ground_truth`)
+    gt_problems: dict[str, str] = field(default_factory=dict)
+
+
+def require_ground_truth(gt_problems: dict[str, str]) -> None:
+    """InputError naming the first unreadable ground-truth file, for a consumer of the ground truth."""
+    for path, reason in gt_problems.items():
+        raise InputError(path, f"unreadable ground truth: {reason}")
+
+
+def _optional_gt_problem(problems: dict[str, str], e: InputError) -> None:
+    """Record an unreadable optional ground-truth file (a scan does not use it) and warn about it."""
+    problems[str(e.path)] = e.reason
+    log.warning("%s: ground truth left out: %s", e.path, e.reason)
 
 
 def natural_key(s: str) -> tuple:
@@ -123,15 +138,19 @@ def discover_capture(root: Path) -> Layout:
     masks = list_images(root / "masks", MASK_EXTS) if (root / "masks").is_dir() else None
     frames, problems = _pair(colors, depths, masks, root / "depth")
     gt = None
+    gt_problems: dict[str, str] = {}
     if (root / "annotated_poses").is_dir():
         gt = {}
         for f in frames:
             p = root / "annotated_poses" / f"{f.name}.txt"
             if p.is_file():
-                gt[f.name] = read_pose_txt(p)
+                try:
+                    gt[f.name] = read_pose_txt(p)
+                except InputError as e:
+                    _optional_gt_problem(gt_problems, e)
     camk = root / "cam_K.txt"
     return Layout("capture", root, frames, 0.001, camk if camk.is_file() else None, "cam_K.txt",
-                  gt_T_cam_obj=gt, problems=problems)
+                  gt_T_cam_obj=gt, problems=problems, gt_problems=gt_problems)
 
 
 def discover_open3d(root: Path) -> Layout:
@@ -142,18 +161,23 @@ def discover_open3d(root: Path) -> Layout:
         log.info("%s: colour and depth stems differ; pairing them in sorted order", root)
         depths = dict(zip(colors, depths.values()))
     frames, problems = _pair(colors, depths, None, root / "depth")
-    gt = None
+    gt: dict[str, np.ndarray] | None = None
+    gt_problems: dict[str, str] = {}
     traj = root / "trajectory.log"
     if traj.is_file():
         names = list(colors)
-        gt = {}
-        for idx, T in read_open3d_log(traj):
-            if not 0 <= idx < len(names):
-                raise InputError(traj, f"pose for frame index {idx} but there are {len(names)} colour images")
-            gt[names[idx]] = T
+        try:
+            gt = {}
+            for idx, T in read_open3d_log(traj):
+                if not 0 <= idx < len(names):
+                    raise InputError(traj, f"pose for frame index {idx} but there are {len(names)} colour images")
+                gt[names[idx]] = T
+        except InputError as e:
+            gt = None
+            _optional_gt_problem(gt_problems, e)
     cam = root / "camera_intrinsic.json"
     return Layout("open3d", root, frames, 0.001, cam if cam.is_file() else None, "camera_intrinsic.json",
-                  gt_T_world_cam=gt, problems=problems)
+                  gt_T_world_cam=gt, problems=problems, gt_problems=gt_problems)
 
 
 def _read_tum_list(path: Path) -> list[tuple[float, list[str]]]:
@@ -161,7 +185,7 @@ def _read_tum_list(path: Path) -> list[tuple[float, list[str]]]:
         raise InputError(path, "TUM list file not found")
     out = []
     try:
-        text = path.read_text(encoding="utf-8")
+        text = path.read_text(encoding="utf-8-sig")
     except (OSError, UnicodeDecodeError) as e:
         raise InputError(path, f"cannot read TUM list ({e.__class__.__name__})") from None
     for i, line in enumerate(text.splitlines()):
@@ -221,26 +245,31 @@ def discover_tum(root: Path) -> Layout:
         frames.append(FrameSpec(name, c, root / depth_list[pairs[i]][1][0]))
     order = {frame_name(v[0]): t for t, v in rgb_list}
     frames.sort(key=lambda f: (order[f.name], natural_key(f.name)))  # TUM frames are in time order
-    gt = None
+    gt: dict[str, np.ndarray] | None = None
+    gt_problems: dict[str, str] = {}
     gt_path = root / "groundtruth.txt"
     if gt_path.is_file():
-        gt_list = _read_tum_list(gt_path)
-        t_gt = np.array([t for t, _ in gt_list])
-        name_t = {frame_name(v[0]): t for t, v in rgb_list}
-        gt = {}
-        if len(t_gt):
-            for f in frames:
-                j = int(np.argmin(np.abs(t_gt - name_t[f.name])))
-                if abs(t_gt[j] - name_t[f.name]) <= TUM_MAX_DT:
-                    gt[f.name] = tum_pose(gt_list[j][1], gt_path)
+        try:
+            gt_list = _read_tum_list(gt_path)
+            t_gt = np.array([t for t, _ in gt_list])
+            name_t = {frame_name(v[0]): t for t, v in rgb_list}
+            gt = {}
+            if len(t_gt):
+                for f in frames:
+                    j = int(np.argmin(np.abs(t_gt - name_t[f.name])))
+                    if abs(t_gt[j] - name_t[f.name]) <= TUM_MAX_DT:
+                        gt[f.name] = tum_pose(gt_list[j][1], gt_path)
+        except InputError as e:
+            gt = None
+            _optional_gt_problem(gt_problems, e)
     return Layout("tum", root, frames, 1.0 / 5000.0, None,
-                  "intrinsics (the TUM layout carries none; pass --intrinsics cam_K.txt or an Open3D camera JSON)",
-                  gt_T_world_cam=gt, problems=problems)
+                  "intrinsics (the TUM layout carries none)",
+                  gt_T_world_cam=gt, problems=problems, gt_problems=gt_problems)
 
 
 def _read_json(path: Path) -> dict:
     try:
-        d = json.loads(path.read_text(encoding="utf-8"))
+        d = json.loads(path.read_text(encoding="utf-8-sig"))
     except (OSError, UnicodeDecodeError, ValueError, RecursionError) as e:
         raise InputError(path, f"malformed JSON ({e.__class__.__name__}: {e})"[:300]) from None
     if not isinstance(d, dict):

@@ -9,8 +9,9 @@ from pathlib import Path
 
 import numpy as np
 
-from gscan.errors import InputError
+from gscan.errors import InputError, not_a_file
 from gscan.geometry.transforms import MAX_TRANSLATION_M, is_rigid, nearest_rigid
+from gscan.io.output import describe_os_error
 
 
 def check_rigid(T: np.ndarray, path: Path) -> np.ndarray:
@@ -28,9 +29,15 @@ def check_rigid(T: np.ndarray, path: Path) -> np.ndarray:
 def read_pose_txt(path: Path) -> np.ndarray:
     """[4 x 4] pose from a text file of 4 (or 3) rows of 4 numbers."""
     try:
+        text = path.read_text(encoding="utf-8-sig")
+    except OSError as e:
+        raise InputError(path, f"cannot read the pose file ({describe_os_error(e)})") from None
+    except UnicodeDecodeError:
+        raise InputError(path, "malformed pose file (not UTF-8 text): expected a 4x4 matrix") from None
+    try:
         T = np.array([[float(x) for x in line.replace(",", " ").split()]
-                      for line in path.read_text(encoding="utf-8").splitlines() if line.strip()], dtype=np.float64)
-    except (ValueError, OSError, UnicodeDecodeError) as e:
+                      for line in text.splitlines() if line.strip()], dtype=np.float64)
+    except ValueError as e:
         raise InputError(path, f"malformed pose file ({e.__class__.__name__}): expected a 4x4 matrix") from None
     if T.shape == (3, 4):
         T = np.vstack([T, [0.0, 0.0, 0.0, 1.0]])
@@ -42,10 +49,10 @@ def read_pose_txt(path: Path) -> np.ndarray:
 def read_pose_file(path: str | Path) -> np.ndarray:
     """[4 x 4] pose from a JSON file: `{"T": [[4x4]]}` or a bare 4x4 list (metres)."""
     path = Path(path)
+    if not path.is_file():
+        raise not_a_file(path, "pose file")
     try:
-        d = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise InputError(path, "pose file not found") from None
+        d = json.loads(path.read_text(encoding="utf-8-sig"))
     except (OSError, UnicodeDecodeError, ValueError, RecursionError) as e:
         raise InputError(path, f"malformed pose JSON ({e.__class__.__name__})") from None
     try:
@@ -60,7 +67,7 @@ def read_pose_file(path: str | Path) -> np.ndarray:
 def read_open3d_log(path: Path) -> list[tuple[int, np.ndarray]]:
     """Open3D trajectory .log: per entry a line "i j n" then 4 rows of a 4x4 pose -> [(i, T [4 x 4])]."""
     try:
-        lines = [ln.split() for ln in path.read_text(encoding="utf-8").splitlines() if ln.strip()]
+        lines = [ln.split() for ln in path.read_text(encoding="utf-8-sig").splitlines() if ln.strip()]
     except (OSError, UnicodeDecodeError) as e:
         raise InputError(path, f"cannot read trajectory log ({e.__class__.__name__})") from None
     if len(lines) % 5:

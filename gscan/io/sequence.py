@@ -14,8 +14,9 @@ from pathlib import Path
 import numpy as np
 
 from gscan.io.camera import Intrinsics, RGBDFrame, implausible_intrinsics, load_intrinsics
-from gscan.errors import InputError
-from gscan.io.images import MAX_DEPTH_SCALE, check_depth_range, check_depth_scale, load_frame, read_depth
+from gscan.errors import InputError, not_a_file
+from gscan.io.images import (MAX_DEPTH_SCALE, check_depth_range, check_depth_scale, image_size, load_frame,
+                             read_depth)
 from gscan.io.layouts import FrameSpec, Layout, discover
 
 log = logging.getLogger(__name__)
@@ -24,18 +25,17 @@ _EIGHT_BIT_MODES = {"1", "L", "P", "LA", "PA", "RGB", "RGBA", "RGBX", "CMYK", "Y
 
 
 def image_header(path: Path) -> tuple[int, int, str]:
-    """(width, height, PIL mode) read from the image header only; InputError naming the file."""
-    from PIL import Image
-
+    """(width, height, PIL mode) read from the image header only; InputError naming the file (also for an
+    OpenEXR image and one above the pixel limit, `gscan.io.images.image_size`)."""
     if not path.is_file():
-        raise InputError(path, "file not found" if not path.exists() else "not a regular file")
+        raise not_a_file(path, "image")
     try:
-        with Image.open(path) as im:
-            w, h = im.size
-            return int(w), int(h), str(im.mode)
+        return image_size(path)
     except PermissionError:
         raise InputError(path, "permission denied") from None
-    except Exception as e:  # PIL raises many types (UnidentifiedImageError, SyntaxError, DecompressionBomb...)
+    except ValueError as e:
+        raise InputError(path, str(e)) from None
+    except Exception as e:  # PIL raises many types (UnidentifiedImageError, SyntaxError, OSError...)
         raise InputError(path, f"corrupt or unrecognised image ({e.__class__.__name__})") from None
 
 
@@ -79,6 +79,7 @@ class Sequence:
         self.has_masks: bool = any(s.mask is not None for s in specs.values())
         self.problems: dict[str, str] = problems
         self.obj_id: int | None = layout.obj_id
+        self.gt_problems: dict[str, str] = dict(layout.gt_problems)  # unreadable ground-truth files, left out
 
     def __len__(self) -> int:
         return len(self.names)
@@ -93,6 +94,17 @@ class Sequence:
         if name not in self._specs:
             raise KeyError(name)
         return self._specs[name]
+
+    def fingerprints(self) -> dict[str, dict[str, str] | None]:
+        """What the frames' files hold, cheaply: {name: {"color"|"depth"|"mask": "<bytes>:<blake2b-128 hex>"}}
+        for the usable frames, None for the frames left out (`problems`). A resumed scan compares them with
+        the ones its partial database was started from. InputError naming a file that cannot be read."""
+        out: dict[str, dict[str, str] | None] = {name: None for name in self.problems}
+        for name in self.names:
+            spec = self._specs[name]
+            out[name] = {role: _file_fingerprint(p) for role, p in (("color", spec.color), ("depth", spec.depth),
+                                                                     ("mask", spec.mask)) if p is not None}
+        return out
 
     def frame_intrinsics(self, key: int | str) -> Intrinsics:
         return self._frame_intrinsics.get(self.files(key).name, self.intrinsics)
@@ -126,6 +138,22 @@ class Sequence:
                 log.warning("skipping frame %s: %s", name, e)
 
 
+def _file_fingerprint(path: Path) -> str:
+    """"<size>:<blake2b-128 hex>" of a file's bytes (1 MiB reads)."""
+    import hashlib
+
+    h = hashlib.blake2b(digest_size=16)
+    size = 0
+    try:
+        with open(path, "rb") as f:
+            while chunk := f.read(1 << 20):
+                h.update(chunk)
+                size += len(chunk)
+    except OSError as e:
+        raise InputError(path, f"cannot read the file ({e.strerror or e})") from None
+    return f"{size}:{h.hexdigest()}"
+
+
 def _resolve_intrinsics(layout: Layout, override: Intrinsics | str | Path | None, w: int, h: int) -> Intrinsics:
     """The sequence-wide intrinsics (not for per-frame calibrations, which each frame checks itself)."""
     if isinstance(override, Intrinsics):
@@ -135,9 +163,9 @@ def _resolve_intrinsics(layout: Layout, override: Intrinsics | str | Path | None
     if layout.intrinsics_file is not None:
         return load_intrinsics(layout.intrinsics_file, w, h)
     if layout.format == "tum":
-        raise InputError(layout.root, f"no {layout.intrinsics_expected}")
-    raise InputError(layout.root / layout.intrinsics_expected,
-                     "intrinsics file not found (intrinsics are never guessed; pass --intrinsics)")
+        raise InputError(layout.root, f"no {layout.intrinsics_expected}", fix="intrinsics")
+    raise InputError(layout.root / layout.intrinsics_expected, "intrinsics file not found (intrinsics are never "
+                     "guessed)", fix="intrinsics")
 
 
 def open_sequence(path: str | Path, format: str = "auto", intrinsics: Intrinsics | str | Path | None = None,

@@ -15,7 +15,7 @@ MODES = ("auto", STATIC_OBJECT, MOVING_OBJECT)
 def scan(source: str | Path, output: str | Path, *, config: ScanConfig | str | Path | None = None,
          format: str = "auto", intrinsics: str | Path | None = None, depth_scale: float | None = None,
          mode: str = "auto", segment: bool = True, resume: bool = False, force: bool = False,
-         obj_id: int | None = None, progress: Progress | None = None) -> ScanResult:
+         obj_id: int | None = None, progress: Progress | None = None, meta: dict | None = None) -> ScanResult:
     """Register every view of an RGB-D capture into one object frame and write a template database.
 
     Args:
@@ -32,6 +32,7 @@ def scan(source: str | Path, output: str | Path, *, config: ScanConfig | str | P
         force: replace an existing `output`.
         obj_id: BOP folder: the object to scan (default: the first in scene_gt.json).
         progress: stage progress reporting (`gscan.progress.Progress`), none by default.
+        meta: more keys for the database's meta table (JSON values), e.g. a mark of the tool that wrote it.
 
     Returns:
         ScanResult: frames read and registered, the unregistered and skipped frames by name, edges accepted and
@@ -50,5 +51,6 @@ def scan(source: str | Path, output: str | Path, *, config: ScanConfig | str | P
     cfg = config if isinstance(config, ScanConfig) else load_config(config)
     opts = ScanOptions(input_dir=Path(source), output=Path(output), fmt=format,
                        intrinsics=None if intrinsics is None else Path(intrinsics), depth_scale=depth_scale,
-                       mode=mode, segment=segment, resume=resume, force=force, config=cfg, obj_id=obj_id)
+                       mode=mode, segment=segment, resume=resume, force=force, config=cfg, obj_id=obj_id,
+                       meta=dict(meta or {}))
     return run_scan(opts, progress=progress)

@@ -29,7 +29,7 @@ from gscan.io.camera import RGBDFrame, backproject
 from gscan.errors import InputError
 from gscan.features import OBJECT_FEATURES, FeatureParams, extract_features
 from gscan.geometry.transforms import look_at, transform_points
-from gscan.io import check_output_path, missing_folders, remove_empty_folders
+from gscan.io.output import Output
 from gscan.geometry.pointset import voxel_mean
 from gscan.progress import NullProgress, Progress
 from gscan.synth import DEFAULT_INTRINSICS, SynthScene, TexturedMesh, load_textured_mesh
@@ -144,15 +144,13 @@ def template_from_mesh(mesh_path: str | Path, output: str | Path, *, n_views: in
     mesh = _load_mesh(mesh_path, scale)
     if mesh.radius <= 0:
         raise InputError(mesh_path, "mesh is degenerate (all vertices coincide)")
-    if output.exists() and not force:
-        raise InputError(output, "already exists; use --force to overwrite")
-    check_output_path(output)
-    made = missing_folders(output)
-    db = TemplateDB.create(output, force=force, meta={
-        "source": "mesh", "descriptor": {"kind": feature_params.kind, "max_keypoints": feature_params.max_keypoints,
-                                         "sift_contrast_threshold": feature_params.sift_contrast_threshold},
-        "mesh_source": {"path": str(mesh_path), "scale": float(scale), "views": int(n_views), "fill": FILL}})
+    target = Output(output, force=force, kind=".gscan file path")  # checked before the mesh is rendered
+    db = None
     try:
+        db = TemplateDB.create(target.open(), force=True, meta={
+            "source": "mesh", "descriptor": {"kind": feature_params.kind, "max_keypoints": feature_params.max_keypoints,
+                                             "sift_contrast_threshold": feature_params.sift_contrast_threshold},
+            "mesh_source": {"path": str(mesh_path), "scale": float(scale), "views": int(n_views), "fill": FILL}})
         intr = DEFAULT_INTRINSICS
         scene = SynthScene([(mesh, np.eye(4))], table=False, shadows=False, background_rgb=(0, 0, 0), seed=0)
         cloud_p, cloud_c = [], []
@@ -184,11 +182,14 @@ def template_from_mesh(mesh_path: str | Path, output: str | Path, *, n_views: in
                                     extent_m=(x, y, z))
             advance(1)
         log.info("%s: %d views, %d keypoints, cloud %d points", output, n_views, n_kp, len(P))
-    except BaseException:
-        db.close()
-        for p in (output, Path(f"{output}-journal")):
-            p.unlink(missing_ok=True)
-        remove_empty_folders(made)
+    except BaseException as e:  # the sibling goes; an existing output stays as it was
+        if db is not None:
+            db.close()
+        target.discard()
+        t = target.translate(e)
+        if t is not e:
+            raise t from None
         raise
     db.close()
+    target.commit()
     return result

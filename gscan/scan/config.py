@@ -12,7 +12,7 @@ from typing import Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from gscan.errors import InputError
+from gscan.errors import InputError, not_a_file
 from gscan.registration.pairwise import RegisterParams
 from gscan.registration.posegraph import LoopParams, PoseGraphParams
 
@@ -146,8 +146,10 @@ def load_config(path: str | Path | None) -> ScanConfig:
     if path is None:
         return ScanConfig()
     path = Path(path)
+    if not path.is_file():
+        raise not_a_file(path, "configuration file")
     try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
+        data = yaml.safe_load(path.read_text(encoding="utf-8-sig")) or {}
     except OSError as e:
         raise InputError(path, f"cannot read config ({e.strerror or e})") from None
     except UnicodeDecodeError:

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import json
 import logging
+import shutil
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
@@ -31,10 +32,13 @@ from pathlib import Path
 import numpy as np
 
 from gscan.io.camera import RGBDFrame, backproject
+from gscan.io.output import (JOURNAL_SUFFIX, Output, check_output, file_identity, journal_fits, missing_folders,
+                             occupied, remove_empty_folders)
+from gscan.io.sequence import Sequence
 from gscan.scan.capture_mode import MOVING_OBJECT, STATIC_OBJECT, detect_mode, moving_object_masks
 from gscan.scan.keyframes import select_keyframes
 from gscan.scan.config import ScanConfig
-from gscan.errors import InputError
+from gscan.errors import InputError, OutputExists
 from gscan.features import OBJECT_FEATURES, FeatureParams, Features, extract_features, extract_features_in_mask
 from gscan.scan.fuse import FusedModel, FusionParams, fuse_tsdf, template_frame
 from gscan.geometry.transforms import transform_points
@@ -77,6 +81,7 @@ class ScanOptions:
     force: bool = False
     config: ScanConfig = field(default_factory=ScanConfig)
     obj_id: int | None = None  # BOP: the object to scan (its masks, ground truth); None: the first one listed
+    meta: dict = field(default_factory=dict)  # more meta keys for the database (e.g. the demo marks its outputs)
 
 
 @dataclass
@@ -165,8 +170,10 @@ def _sha256(path: Path) -> str:
         raise InputError(path, f"cannot read the intrinsics file ({e.strerror or e})") from None
 
 
-def _open_resumed(opts: ScanOptions) -> TemplateDB:
-    """The interrupted scan's database; it must come from the same input and configuration."""
+def _open_resumed(opts: ScanOptions, seq: Sequence, frames: dict) -> tuple[TemplateDB, Output | None]:
+    """The interrupted scan's database; it must come from the same input, configuration and input frames
+    (`frames`: `Sequence.fingerprints`). A complete database (or one whose journal would have too long a
+    name) is continued in a copy renamed over it at the end, so a failed run leaves it as it was."""
     meta = _scan_meta(opts)
     db = TemplateDB.open(opts.output, require_complete=False, writable=True)
     try:
@@ -176,38 +183,102 @@ def _open_resumed(opts: ScanOptions) -> TemplateDB:
         except (ValueError, TypeError):
             pass  # not a configuration this version reads: it differs
         if stored != {k: json.loads(json.dumps(meta[k])) for k in stored}:
-            raise InputError(opts.output, "was written from another input or configuration; use --force to start over")
+            raise InputError(opts.output, "was written from another input or configuration", fix="restart")
+        _check_frames(opts.output, db.get_meta("input_frames"), json.loads(json.dumps(frames)), seq)
+        in_place = db.status != "complete" and journal_fits(opts.output)
     except BaseException:
         db.close()
         raise
-    return db
+    if in_place:
+        return db, None
+    db.close()
+    target = Output(opts.output, force=True, kind=".gscan file path")
+    try:
+        shutil.copyfile(opts.output, target.open())
+        return TemplateDB.open(target.tmp, require_complete=False, writable=True), target
+    except BaseException as e:
+        target.discard()
+        t = target.translate(e)
+        if t is not e:
+            raise t from None
+        raise
+
+
+def _check_frames(output: Path, stored: object, frames: dict, seq: Sequence) -> None:
+    """InputError unless the input frames hold what they held when the partial scan `output` started (their
+    files' sizes and hashes): a scan resumed on other images would mix their keypoints and edges."""
+    if not isinstance(stored, dict):
+        raise InputError(output, "holds no record of the input frames it was started from (written by an older "
+                         "gscan); it cannot be resumed safely", fix="restart")
+    if stored == frames:
+        return
+    from gscan.io.layouts import natural_key
+
+    for name in sorted(set(stored) | set(frames), key=natural_key):
+        old, new = stored.get(name, "absent"), frames.get(name, "absent")
+        if old == new:
+            continue
+        if new == "absent":
+            what = f"frame {name} is no longer in the input"
+        elif old == "absent":
+            what = f"frame {name} was not in the input"
+        elif old is None or new is None:
+            what = f"frame {name} {'was unusable then' if old is None else 'is unusable now'}"
+        else:
+            role = next(r for r in ("color", "depth", "mask") if old.get(r) != new.get(r))
+            changed = getattr(seq.files(name), role) if role in new else None
+            what = f"{changed} changed" if changed is not None else f"frame {name} has no {role} image now"
+        raise InputError(output, f"the input frames are not the ones this partial scan was started from ({what})",
+                         fix="restart")
+
+
+def _create_output(opts: ScanOptions, meta: dict) -> tuple[TemplateDB, Output | None]:
+    """A new database: in place while nothing is at the output (an interrupted scan is then resumed from it),
+    else in a temporary sibling that replaces the old output once complete (`Output`)."""
+    if not occupied(opts.output) and journal_fits(opts.output):
+        try:
+            return TemplateDB.create(opts.output, meta=meta), None
+        except OutputExists as e:  # created by another process since the checks
+            if not opts.force:
+                raise OutputExists(opts.output, e.reason, fix="resume") from None
+    target = Output(opts.output, force=opts.force, kind=".gscan file path", fix="resume")
+    try:
+        return TemplateDB.create(target.open(), force=True, meta=meta), target
+    except BaseException as e:
+        target.discard()
+        t = target.translate(e)
+        if t is not e:
+            raise t from None
+        raise
 
 
 def run_scan(opts: ScanOptions, progress: Progress | None = None) -> ScanResult:
     """Run the whole pipeline (see the module docstring). Raises InputError for bad input.
 
-    The output is checked before any frame is read (so a bad output fails on one line); a new database
-    is created only once the input holds a usable frame (`--force` keeps the old file until then).
+    The output is checked before any frame is read (so a bad output fails on one line). A new output is
+    written in place (resumable); an existing one (`force`) is replaced only by a complete new database,
+    written beside it, so a failed or interrupted run leaves it as it was.
     """
-    from gscan.io import check_output_path, missing_folders, open_sequence, remove_empty_folders
+    from gscan.io import open_sequence
 
-    if opts.output.is_dir():
-        raise InputError(opts.output, "output is a folder, expected a .gscan file path")
-    if opts.output.exists() and not (opts.force or opts.resume):
-        raise InputError(opts.output, "exists; pass --force to replace it or --resume to continue it")
-    check_output_path(opts.output)
-    resumed = opts.resume and opts.output.exists()
-    db = _open_resumed(opts) if resumed else None
+    resumed = opts.resume and opts.output.is_file()
+    check_output(opts.output, force=opts.force or resumed, kind=".gscan file path", fix="resume")
     timer = StageTimer(progress)
+    db: TemplateDB | None = None
+    target: Output | None = None
     try:
         seq = open_sequence(opts.input_dir, format=opts.fmt, intrinsics=opts.intrinsics,
                             depth_scale=opts.depth_scale, obj_id=opts.obj_id)
         if opts.obj_id is not None and seq.format != "bop":
-            raise InputError(opts.input_dir, f"--obj-id is for BOP scene folders, this is a {seq.format} folder")
+            raise InputError(opts.input_dir, f"an object id is for BOP scene folders, this is a {seq.format} folder")
         if opts.obj_id is not None and seq.gt_T_cam_obj is None:
-            raise InputError(opts.input_dir / "scene_gt.json", "not found (--obj-id picks an object of its poses)")
+            raise InputError(opts.input_dir / "scene_gt.json", "not found (the object id picks an object of its "
+                             "poses)", fix="obj_id")
         if opts.obj_id is not None and not seq.gt_T_cam_obj:
-            raise InputError(opts.input_dir / "scene_gt.json", f"holds no pose of object {opts.obj_id} (--obj-id)")
+            raise InputError(opts.input_dir / "scene_gt.json", f"holds no pose of object {opts.obj_id}", fix="obj_id")
+        fingerprints = seq.fingerprints()
+        if resumed:
+            db, target = _open_resumed(opts, seq, fingerprints)
         frames: list[_Frame] = []
         failed: list[tuple[str, InputError]] = []
         with timer.stage("load", total=len(seq)) as advance:
@@ -224,6 +295,8 @@ def run_scan(opts: ScanOptions, progress: Progress | None = None) -> ScanResult:
     except BaseException:
         if db is not None:
             db.close()
+        if target is not None:
+            target.discard()
         raise
     for name, e in failed:
         log.warning("skipping frame %s: %s", name, e)
@@ -231,20 +304,30 @@ def run_scan(opts: ScanOptions, progress: Progress | None = None) -> ScanResult:
     made = missing_folders(opts.output)
     if db is None:
         # obj_id: the BOP object the scan followed (its ground truth and masks), for `gscan eval`
-        db = TemplateDB.create(opts.output, force=opts.force, meta=_scan_meta(opts) | {"obj_id": seq.obj_id})
+        db, target = _create_output(opts, opts.meta | _scan_meta(opts) | {"obj_id": seq.obj_id,
+                                                                          "input_frames": fingerprints})
+    created = file_identity(opts.output)  # a new output in place: only this file is removed on failure
     try:
         if resumed:  # only once the input is known to hold frames: a complete database stays complete
             db.mark_partial()
         result = _scan_frames(frames, opts, db, resumed, timer, problems)
     except BaseException as e:
         db.close()
-        # a failed scan leaves no output behind: neither the file nor folders made for it; Ctrl+C
-        # keeps the partial file for --resume (as a killed scan does)
-        if not resumed and not isinstance(e, KeyboardInterrupt):
+        if target is not None:  # the old output stays as it was
+            target.discard()
+            t = target.translate(e)
+            if t is not e:
+                raise t from None
+        elif not resumed and not isinstance(e, KeyboardInterrupt) and file_identity(opts.output) == created:
+            # a failed scan leaves no output behind: neither the file nor folders made for it (never a file
+            # another process put there since); Ctrl+C keeps the partial file for --resume (as a killed scan does)
             opts.output.unlink(missing_ok=True)
+            Path(f"{opts.output}{JOURNAL_SUFFIX}").unlink(missing_ok=True)
             remove_empty_folders(made)
         raise
     db.close()
+    if target is not None:
+        target.commit()
     return result
 
 
@@ -329,7 +412,8 @@ def _fuse(frames: list[_Frame], T_world_cam: list[np.ndarray | None], masks: lis
     try:
         model = fuse_tsdf([f.frame for f in frames], T_world_cam, masks, params)
     except ValueError as e:  # no registered frame has object depth within fusion.depth_max
-        raise InputError(input_dir, f"nothing could be fused: {e} (fusion.depth_max); check --depth-scale") from None
+        raise InputError(input_dir, f"nothing could be fused: {e} (fusion.depth_max); check the depth scale",
+                         fix="depth_scale") from None
     registered = [k for k, T in enumerate(T_world_cam) if T is not None]
     if len(model.mesh.triangles) == 0 or len(model.mesh.vertices) < 3:
         raise InputError(input_dir, "nothing could be fused: no surface in the object depth of the "

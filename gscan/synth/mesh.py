@@ -13,7 +13,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from gscan.errors import InputError
+from gscan.errors import InputError, not_a_file
 from gscan.geometry.mesh import MeshData
 
 log = logging.getLogger(__name__)
@@ -109,7 +109,7 @@ def load_textured_mesh(path_obj: str | Path, scale: float = 1.0) -> TexturedMesh
 
     path = Path(path_obj)
     if not path.is_file():
-        raise InputError(path, "mesh file not found")
+        raise not_a_file(path, "mesh file")
     try:
         tm = trimesh.load(str(path), force="mesh", process=False)
     except Exception as e:  # trimesh raises many exception types for malformed files

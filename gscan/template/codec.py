@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import io
 import json
+import math
 from typing import Any
 
 import cv2
@@ -15,6 +16,7 @@ import numpy as np
 from gscan.errors import GscanError
 from gscan.features import DESCRIPTOR_KINDS
 from gscan.geometry.transforms import MAX_TRANSLATION_M, is_rigid
+from gscan.io.images import image_size
 
 
 def encode_array(a: np.ndarray | None) -> bytes | None:
@@ -29,17 +31,45 @@ class BadBlob(Exception):
     """A stored value that does not decode (the database's reads turn it into an InputError naming the file)."""
 
 
+class TooLarge(BadBlob):
+    """A stored image above the pixel limit (`gscan.io.images.max_image_pixels`): refused before decoding."""
+
+
+def _shape_text(shape: tuple[int | None, ...]) -> str:
+    return "[" + " x ".join("N" if s is None else str(s) for s in shape) + "]"
+
+
 def decode_array(b: bytes | None, shape: tuple[int | None, ...] | None = None) -> np.ndarray | None:
-    """A stored array (None stays None); `shape` (None = any size along that axis) is checked when given."""
+    """A stored array (None stays None); `shape` (None = any size along that axis) is checked when given.
+
+    The `.npy` header is read first: its declared shape must be `shape` and its data exactly the rest of the
+    blob, so a header that declares a huge array is refused before anything is allocated."""
     if b is None:
         return None
+    f = io.BytesIO(b)
     try:
-        a = np.load(io.BytesIO(b), allow_pickle=False)
+        version = np.lib.format.read_magic(f)
+        if version == (1, 0):
+            dshape, _, dtype = np.lib.format.read_array_header_1_0(f)
+        elif version == (2, 0):
+            dshape, _, dtype = np.lib.format.read_array_header_2_0(f)
+        else:
+            raise ValueError(f"unsupported .npy version {version}")
+    except (ValueError, EOFError, OSError, TypeError, SyntaxError) as e:
+        raise BadBlob(f"undecodable array blob: {e}") from None
+    if dtype.hasobject or dtype.kind not in "iuf":
+        raise BadBlob(f"stored array is {dtype}, not numbers")
+    if shape is not None and (len(dshape) != len(shape)
+                              or any(s is not None and s != n for s, n in zip(shape, dshape))):
+        raise BadBlob(f"stored array is {dtype} {tuple(dshape)}, expected {_shape_text(shape)}")
+    declared = dtype.itemsize * math.prod(int(n) for n in dshape)  # Python ints: no overflow
+    if declared != len(b) - f.tell():
+        raise BadBlob(f"stored array declares {tuple(dshape)} {dtype} ({declared} bytes) but holds "
+                      f"{len(b) - f.tell()} bytes")
+    try:
+        a = np.load(io.BytesIO(b), allow_pickle=False)  # no larger than the blob itself now
     except (ValueError, EOFError, OSError, TypeError) as e:
         raise BadBlob(f"undecodable array blob: {e}") from None
-    if shape is not None and (a.ndim != len(shape) or any(s is not None and s != n for s, n in zip(shape, a.shape))):
-        want = " x ".join("N" if s is None else str(s) for s in shape)
-        raise BadBlob(f"stored array is {a.dtype} {a.shape}, expected [{want}]")
     if a.dtype.kind not in "iuf":
         raise BadBlob(f"stored array is {a.dtype}, not numbers")
     if a.dtype.kind == "f" and not np.all(np.isfinite(a)):
@@ -81,7 +111,18 @@ def encode_mask(mask: np.ndarray) -> bytes:
 
 
 def decode_image(b: bytes, dtype: type, channels: int, size_wh: tuple[int, int]) -> np.ndarray:
-    """A stored image, which must be `dtype` with `channels` channels (1: [H x W]) and `size_wh` pixels."""
+    """A stored image, which must be `dtype` with `channels` channels (1: [H x W]) and `size_wh` pixels; its
+    header is read first, so an image of another size is never decoded (the database checks that `size_wh`,
+    its view's intrinsics, is within the pixel limit)."""
+    if b:
+        try:
+            w, h, _ = image_size(bytes(b), limit=False)
+        except ValueError as e:
+            raise TooLarge(f"stored image: {e}") from None
+        except Exception:  # noqa: BLE001 - PIL raises many types for a header it cannot read
+            raise BadBlob("undecodable image blob (unreadable header)") from None
+        if (w, h) != tuple(size_wh):
+            raise BadBlob(f"stored image is {w}x{h}, expected {size_wh[0]}x{size_wh[1]} (its intrinsics)")
     img = cv2.imdecode(np.frombuffer(b, dtype=np.uint8), cv2.IMREAD_UNCHANGED) if b else None  # b"" asserts in cv2
     if img is None:
         raise BadBlob("undecodable image blob")

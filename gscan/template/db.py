@@ -24,7 +24,6 @@ from __future__ import annotations
 import functools
 import json
 import logging
-import os
 import sqlite3
 import threading
 from contextlib import contextmanager, suppress
@@ -34,13 +33,14 @@ from typing import Any, Iterator
 import cv2
 import numpy as np
 
-from gscan.errors import GscanError, InputError
+from gscan.errors import GscanError, InputError, not_a_file
 from gscan.features import Features
 from gscan.geometry.mesh import MeshData, to_u8_colors
 from gscan.geometry.transforms import is_rigid
 from gscan.io.camera import Intrinsics
-from gscan.io.output import missing_folders, remove_empty_folders
-from gscan.template.codec import (BadBlob, check_colors, check_keypoints, check_mesh, check_T, decode_array,
+from gscan.io.images import image_too_large
+from gscan.io.output import JOURNAL_SUFFIX, Output, file_identity, write_failure_reason
+from gscan.template.codec import (BadBlob, TooLarge, check_colors, check_keypoints, check_mesh, check_T, decode_array,
                                   decode_image, decode_json, decode_T, encode_array, encode_color, encode_depth,
                                   encode_mask)
 # the records live in gscan.template.records; they are imported from here as well
@@ -54,6 +54,7 @@ SCHEMA_VERSION = 1
 FEATURE_ROLES = ("registration", "object")
 APPLICATION_ID = 0x6753434E  # "gSCN", PRAGMA application_id of every gscan database
 _SQLITE_MAGIC = b"SQLite format 3\x00"
+_SQLITE_READONLY_DBMOVED = 1032  # SQLITE_READONLY | (4 << 8): the file was unlinked or renamed under the connection
 
 _SCHEMA = """
 CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
@@ -83,6 +84,8 @@ def _decodes(method):
     def wrapper(self, *args, **kwargs):
         try:
             return method(self, *args, **kwargs)
+        except TooLarge as e:
+            raise InputError(self.path, str(e)) from None
         except BadBlob as e:
             raise InputError(self.path, f"corrupt template database ({e})") from None
     return wrapper
@@ -125,25 +128,19 @@ class TemplateDB:
     def create(cls, path: str | Path, force: bool = False, meta: dict | None = None) -> "TemplateDB":
         """Create a new database at `path` with status "partial".
 
-        An existing `path` is refused (InputError) unless `force`, which replaces it. `meta` adds
-        meta keys (e.g. "source": "scan"|"mesh", "descriptor": {"kind": ...}, "config": {...}).
+        An existing `path` is refused (OutputExists) unless `force`, which replaces it; without `force`
+        the file is created only if nothing is there at that moment (a concurrent creator is refused).
+        `meta` adds meta keys (e.g. "source": "scan"|"mesh", "descriptor": {"kind": ...}, "config": {...}).
         """
         path = Path(path)
-        if path.is_dir():
-            raise InputError(path, "output is a folder, expected a .gscan file path")
-        if path.exists() and not force:
-            raise InputError(path, "already exists; use --force to overwrite (or scan --resume to continue)")
-        made = missing_folders(path)
-        # the schema is written to a temporary sibling and renamed into place, so a crash never
-        # leaves an empty or schema-less file at `path` (an existing one is replaced atomically)
-        tmp = path.with_name(f".{path.name}.creating")
+        # the schema is written to a temporary sibling and put in place at once, so a crash never leaves
+        # an empty or schema-less file at `path` (an existing one is replaced atomically)
         base = {"schema": SCHEMA_VERSION, "status": "partial", "units": "m", "source": "scan"}
         base.update(meta or {})
         base["schema"], base["status"] = SCHEMA_VERSION, "partial"
+        out = Output(path, force=force, kind=".gscan file path")
         try:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            for p in (tmp, Path(f"{tmp}-journal"), Path(f"{path}-journal"), Path(f"{path}-wal"), Path(f"{path}-shm")):
-                p.unlink(missing_ok=True)
+            tmp = out.open()
             setup = cls(tmp, cls._connect(tmp), writable=True)
             try:
                 with setup._tx() as c:
@@ -156,16 +153,21 @@ class TemplateDB:
                                   [(k, json.dumps(v, sort_keys=True)) for k, v in base.items()])
             finally:
                 setup.close()
-            os.replace(tmp, path)
+            Path(f"{path}{JOURNAL_SUFFIX}").unlink(missing_ok=True)  # a stale journal must not meet the new file
+            created = file_identity(tmp)
+            out.commit()
         except BaseException as e:
-            for p in (tmp, Path(f"{tmp}-journal")):
-                with suppress(OSError):
-                    p.unlink(missing_ok=True)
-            remove_empty_folders(made)
-            if isinstance(e, (OSError, sqlite3.Error)):  # a folder that cannot be made or written
-                raise InputError(path, f"cannot create the database ({getattr(e, 'strerror', None) or e})") from None
+            out.discard()
+            if isinstance(e, sqlite3.Error):  # a folder that cannot be written
+                raise InputError(path, f"cannot create the database ({e})") from None
+            t = out.translate(e)
+            if t is not e:
+                raise t from None
             raise
         db = cls(path, cls._connect(path), writable=True)
+        if file_identity(path) != created:  # replaced by another writer between the rename and the connection
+            db.close()
+            raise InputError(path, "was replaced by another process while this one created it")
         log.info("created template database %s", path)
         return db
 
@@ -175,7 +177,7 @@ class TemplateDB:
         not SQLite, not a gscan database, of an unsupported schema, or partial while `require_complete`."""
         path = Path(path)
         if not path.is_file():
-            raise InputError(path, "template database not found")
+            raise not_a_file(path, "template database")
         try:
             with open(path, "rb") as f:
                 head = f.read(len(_SQLITE_MAGIC))
@@ -210,7 +212,7 @@ class TemplateDB:
                                    "upgrade gscan")
         if require_complete and status != "complete":
             conn.close()
-            raise InputError(path, "is a partial scan; run `gscan scan --resume` to finish it")
+            raise InputError(path, "is a partial scan (interrupted before it completed)", fix="finish")
         return cls(path, conn, writable)
 
     def close(self) -> None:
@@ -254,10 +256,25 @@ class TemplateDB:
                 raise self._corrupt(e) from None
 
     def _corrupt(self, e: sqlite3.DatabaseError) -> InputError:
-        """Corruption SQLite detects only while reading or writing pages (past open()'s checks) is bad
-        input naming the database, not an internal error."""
-        if "readonly" in str(e):
+        """An error SQLite reports while reading or writing pages (past open()'s checks), named for what it
+        is: a full disk or the file size limit, a read-only file, a file replaced meanwhile, a lock held
+        too long, or else corruption. Bad input naming the database, not an internal error."""
+        code = getattr(e, "sqlite_errorcode", None)
+        primary = None if code is None else code & 0xFF
+        if primary == sqlite3.SQLITE_FULL:
+            return InputError(self.path, "cannot write the template database: no space left on the device (disk full)")
+        if primary == sqlite3.SQLITE_IOERR:
+            why = write_failure_reason(self.path) or f"an I/O error ({e})"
+            return InputError(self.path, f"cannot write the template database: {why}")
+        if code == _SQLITE_READONLY_DBMOVED:
+            return InputError(self.path, "cannot write the template database: the file was moved or replaced "
+                              "(by another process) while this one wrote it")
+        if primary == sqlite3.SQLITE_READONLY or "readonly" in str(e):
             return InputError(self.path, "cannot write the template database (a read-only file or folder)")
+        if primary in (sqlite3.SQLITE_BUSY, sqlite3.SQLITE_LOCKED):
+            return InputError(self.path, "the template database is locked by another process (waited 30 s)")
+        if primary == sqlite3.SQLITE_CANTOPEN:
+            return InputError(self.path, f"cannot open the template database or its journal beside it ({e})")
         return InputError(self.path, f"corrupt template database ({e.__class__.__name__}: {e})")
 
     # -- meta ------------------------------------------------------------------------------------
@@ -350,6 +367,9 @@ class TemplateDB:
             K = Intrinsics.from_dict(decode_json(intr))
         except (KeyError, TypeError, ValueError) as e:
             raise BadBlob(f"view {name!r}: bad intrinsics {e}") from None
+        too_large = image_too_large(K.width, K.height)  # what the view's images and rays would take
+        if too_large:
+            raise TooLarge(f"view {name!r}: its intrinsics are for images of {K.width}x{K.height}: {too_large}")
         v = View(name=name, intrinsics=K, T_obj_cam=decode_T(T), keyframe=bool(kf),
                  quality=q, input_index=idx)
         if load_images:
@@ -409,13 +429,14 @@ class TemplateDB:
     def features(self, view_name: str, role: str = "registration") -> Features | None:
         """The view's keypoints of a role (points in the object frame; camera frame for an unregistered view);
         None if it has none."""
-        rows = self._q("SELECT f.pixels, f.points, f.descriptors, f.kind, f.scales FROM features f "
+        rows = self._q("SELECT f.pixels, f.points, f.descriptors, f.kind, f.scales, f.n FROM features f "
                        "JOIN views v ON v.id = f.view_id WHERE v.name=? AND f.role=?", (view_name, role))
         if not rows:
             return None
-        px, pts, desc, kind, sc = rows[0]
-        px, pts, desc, sc = (decode_array(px, (None, 2)), decode_array(pts, (None, 3)),
-                             decode_array(desc, (None, None)), decode_array(sc, (None,)))
+        px, pts, desc, kind, sc, n = rows[0]
+        n = n if isinstance(n, int) and n >= 0 else -1  # the stored count: every array must hold that many
+        px, pts, desc, sc = (decode_array(px, (n, 2)), decode_array(pts, (n, 3)), decode_array(desc, (n, None)),
+                             decode_array(sc, (n,)))
         check_keypoints(px, pts, desc, sc, kind, f"view {view_name!r}")
         return Features(pixels=px, points=pts, descriptors=desc, kind=kind, scales=sc)
 

@@ -38,6 +38,8 @@ from gscan.template.db import Edge, View, unregistered_names
 from gscan.viewer.data import ViewerData, ViewerOptions, load_viewer_data
 from gscan.viewer.draw import draw_keypoints, draw_matches, legend_html
 from gscan.viewer.scene import build_scene
+from gscan.viewer.access import TokenGate, check_token
+from gscan.viewer.text import md_text
 
 log = logging.getLogger(__name__)
 
@@ -47,20 +49,20 @@ _SELECT_EDGE = "(select an edge)"
 class PortInUseError(InputError):
     """The viewer's port cannot be bound (exit code 2 in the CLI)."""
 
-    def __init__(self, host: str, port: int, detail: str = "already in use", option: str = "--port"):
+    def __init__(self, host: str, port: int, detail: str = "already in use", fix: str = "port"):
         self.host, self.port = host, int(port)
-        super().__init__(None, f"cannot serve the viewer on {host}:{port}: {detail}; choose another {option}")
+        super().__init__(None, f"cannot serve the viewer on {host}:{port}: {detail}", fix=fix)
 
 
 # ------------------------------------------------------------------------------------------ helpers
 def check_port(host: str, port: int) -> None:
     """Raise PortInUseError when `host:port` cannot be bound (viser would silently move to another port)."""
     if not 1 <= port <= 65535:
-        raise InputError(None, f"--port must be 1-65535, not {port}")
+        raise InputError(None, f"the port must be 1-65535, not {port}", fix="port")
     try:
         infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
     except socket.gaierror as e:
-        raise PortInUseError(host, port, f"unknown host ({e.strerror})", option="--host") from None
+        raise PortInUseError(host, port, f"unknown host ({e.strerror})", fix="host") from None
     for family, stype, proto, _, addr in infos[:1]:
         with socket.socket(family, stype, proto) as s:
             s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as asyncio's server does
@@ -79,14 +81,19 @@ class ViewerApp:
     same functions); `stop()` shuts the server down.
 
     scene_frame / T_cam_obj [4 x 4]: a query frame and the object's pose in it (see `serve`); grasps:
-    {name: T_obj_grasp [4 x 4]} drawn as axes.
+    {name: T_obj_grasp [4 x 4]} drawn as axes; gate / token: the token gate in front of viser (None: viser
+    serves host:port itself) and its token, which the url carries.
     """
 
     def __init__(self, server: Any, data: ViewerData, host: str, port: int, options: ViewerOptions,
                  scene_frame: RGBDFrame | None = None, T_cam_obj: np.ndarray | None = None,
-                 grasps: dict[str, np.ndarray] | None = None):
+                 grasps: dict[str, np.ndarray] | None = None, gate: TokenGate | None = None,
+                 token: str | None = None):
         self.server, self.data, self.host, self.port, self.options = server, data, host, port, options
+        self.gate = gate
         self.url = f"http://[{host}]:{port}" if ":" in host else f"http://{host}:{port}"  # IPv6 in brackets
+        if token is not None:
+            self.url += f"/?token={token}"
         self._lock = threading.RLock()
         self._names = [v.name for v in data.views]
         self._by_name = {v.name: v for v in data.views}
@@ -146,6 +153,8 @@ class ViewerApp:
                 client.camera.fov = float(fov)
 
     def stop(self) -> None:
+        if self.gate is not None:
+            self.gate.stop()
         with contextlib.redirect_stdout(io.StringIO()):
             self.server.stop()
 
@@ -157,12 +166,12 @@ class ViewerApp:
         unreg = unregistered_names(d.views, d.meta.get("skipped"))  # as `gscan poses` lists them
         acc = sum(e.accepted for e in d.edges)
         loops = sum(e.accepted and e.kind == "loop" for e in d.edges)
-        summary = [f"**{d.path.name}** · {d.meta.get('source', 'scan')}  ",
+        summary = [f"**{md_text(d.path.name)}** · {md_text(d.meta.get('source', 'scan'))}  ",
                    f"views: {len(d.views)} · registered: {len(reg)}  ",
                    f"edges: {acc} accepted ({loops} loop) · {len(d.edges) - acc} rejected  ",
                    f"size: {d.size * 100:.1f} cm"]
         if unreg:
-            summary.append(f"  \n**unregistered ({len(unreg)}):** " + ", ".join(unreg))
+            summary.append(f"  \n**unregistered ({len(unreg)}):** " + ", ".join(md_text(n) for n in unreg))
         if has_frame:
             summary.append("  \n**query frame:** " + ("pose not found (cloud not placed)" if T_cam_obj is None
                                                        else "cloud placed by the estimated pose"))
@@ -224,7 +233,7 @@ class ViewerApp:
     def _view_markdown(self, v: View) -> str:
         n_kp = len(self.data.keypoints[v.name][0])
         q = self.data.quality.get(v.name)
-        lines = [f"**{v.name}** ({self._names.index(v.name) + 1}/{len(self._names)})  ",
+        lines = [f"**{md_text(v.name)}** ({self._names.index(v.name) + 1}/{len(self._names)})  ",
                  f"keypoints: {n_kp} · quality: {'-' if q is None else f'{q:.2f}'}"
                  + ("" if v.keyframe else " · not a keyframe") + "  "]
         if v.T_obj_cam is None:
@@ -237,7 +246,7 @@ class ViewerApp:
             for e in edges:
                 other = e.tgt if e.src == v.name else e.src
                 arrow = "→" if e.src == v.name else "←"
-                lines.append(f"| {arrow} {other} | {e.kind} | {len(e.matches)} | {_mm(e.rmse)} | "
+                lines.append(f"| {arrow} {md_text(other)} | {md_text(e.kind)} | {len(e.matches)} | {_mm(e.rmse)} | "
                              f"{'yes' if e.accepted else 'no'} |")
         else:
             lines.append("\nno edges")
@@ -257,11 +266,12 @@ class ViewerApp:
         ok = (m[:, 0] >= 0) & (m[:, 0] < len(px_s)) & (m[:, 1] >= 0) & (m[:, 1] < len(px_t))
         self._match_image.image = draw_matches(img_s, px_s, wh_s, img_t, px_t, wh_t, m[ok],
                                                self.options.max_match_lines)
-        txt = [f"**{e.src} → {e.tgt}**  ", f"kind: {e.kind} · accepted: {'yes' if e.accepted else 'no'}  ",
+        txt = [f"**{md_text(e.src)} → {md_text(e.tgt)}**  ",
+               f"kind: {md_text(e.kind)} · accepted: {'yes' if e.accepted else 'no'}  ",
                f"matches: {len(m)} · cost: {_num(e.cost, '.4f')}  ",
                f"RMSE: {_mm(e.rmse)} mm · fitness: {_num(e.fitness, '.3f')}"]
         if e.reason:
-            txt.append(f"  \nreason: {e.reason}")
+            txt.append(f"  \nreason: {md_text(e.reason)}")
         if not ok.all():
             txt.append(f"  \n{int((~ok).sum())} match indices out of range (not drawn)")
         self._match_md.content = "\n".join(txt)
@@ -284,30 +294,47 @@ def _mm(x: float | None) -> str:
 # ------------------------------------------------------------------------------------------ building
 def serve(db_path: str | Path, host: str = "127.0.0.1", port: int = 8080, scene_frame: RGBDFrame | None = None,
           T_cam_obj: np.ndarray | None = None, grasps: dict[str, np.ndarray] | None = None,
-          options: ViewerOptions = ViewerOptions()) -> ViewerApp:
+          options: ViewerOptions = ViewerOptions(), token: str | None = None) -> ViewerApp:
     """Load a complete template and serve it on http://host:port; returns once the scene is populated.
 
     scene_frame / T_cam_obj [4 x 4]: a query frame and the object's estimated pose in it; the frame's cloud
     is drawn in the template frame (inv(T_cam_obj) applied), or listed as "not found" when T_cam_obj is None.
     grasps: {name: T_obj_grasp [4 x 4]} drawn as axes, added to the template's own grasps.
-    Raises InputError (partial / missing database) and PortInUseError.
+    token: serve only connections that carry it (`gscan.viewer.access.TokenGate`; viser then listens on
+    127.0.0.1 alone); the app's url carries it.
+    Raises InputError (partial / missing database, a token that cannot stand in a URL) and PortInUseError.
     """
     import viser
 
     data = load_viewer_data(db_path, options)  # a bad template is named before any port is tried
+    if token is not None:
+        check_token(token)
     check_port(host, port)
     _quiet_websockets()
     with contextlib.redirect_stdout(io.StringIO()) as banner:  # viser prints a banner; library code never prints
-        server = viser.ViserServer(host=host, port=port, label=f"gscan · {Path(db_path).name}", verbose=False)
+        server = viser.ViserServer(host="127.0.0.1" if token is not None else host, port=0 if token is not None
+                                   else port, label=f"gscan · {Path(db_path).name}", verbose=False)
     log.debug("viser: %s", banner.getvalue().strip())
     bound = server.get_port()
-    if bound != port:  # lost a race for the port after check_port: viser moved on silently
+    gate = None
+    try:
+        if token is not None:
+            gate = TokenGate(host, port, bound, token)
+            gate.start()
+        elif bound != port:  # lost a race for the port after check_port: viser moved on silently
+            raise PortInUseError(host, port)
+    except BaseException as e:
         with contextlib.redirect_stdout(io.StringIO()):
             server.stop()
-        raise PortInUseError(host, port)
+        if isinstance(e, OSError):  # the gate lost the race for the port
+            raise PortInUseError(host, port, e.strerror or str(e)) from None
+        raise
     try:
-        return ViewerApp(server, data, host, port, options, scene_frame, T_cam_obj, {**data.grasps, **(grasps or {})})
+        return ViewerApp(server, data, host, port, options, scene_frame, T_cam_obj, {**data.grasps, **(grasps or {})},
+                         gate=gate, token=token)
     except BaseException:
+        if gate is not None:
+            gate.stop()
         with contextlib.redirect_stdout(io.StringIO()):
             server.stop()
         raise
@@ -329,9 +356,11 @@ def _quiet_websockets() -> None:
 
 def run_viewer(db_path: str | Path, host: str = "127.0.0.1", port: int = 8080, scene_frame: RGBDFrame | None = None,
                T_cam_obj: np.ndarray | None = None, grasps: dict[str, np.ndarray] | None = None,
-               on_ready: Callable[[str], None] | None = None, options: ViewerOptions = ViewerOptions()) -> None:
+               on_ready: Callable[[str], None] | None = None, options: ViewerOptions = ViewerOptions(),
+               token: str | None = None) -> None:
     """`serve` and block until interrupted (Ctrl+C); `on_ready(url)` is called once the scene is populated."""
-    app = serve(db_path, host, port, scene_frame=scene_frame, T_cam_obj=T_cam_obj, grasps=grasps, options=options)
+    app = serve(db_path, host, port, scene_frame=scene_frame, T_cam_obj=T_cam_obj, grasps=grasps, options=options,
+                token=token)
     try:
         if on_ready is not None:
             on_ready(app.url)
