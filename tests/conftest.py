@@ -38,10 +38,11 @@ def real_dir(shared_data: Path) -> Path:
 
 @pytest.fixture(scope="session")
 def sample_template(tmp_path_factory) -> Path:
-    """The bundled sample (samples/capture) scanned by the real pipeline, once per session."""
+    """The bundled sample (gscan.demo.SAMPLES / "capture") scanned by the real pipeline, once per session."""
+    from gscan.demo import SAMPLES
     from gscan.scan.pipeline import ScanOptions, run_scan
 
     out = tmp_path_factory.mktemp("sample") / "sample.gscan"
-    res = run_scan(ScanOptions(input_dir=ROOT / "samples" / "capture", output=out))
+    res = run_scan(ScanOptions(input_dir=SAMPLES / "capture", output=out))
     assert res.registered == res.frames == 30
     return out

@@ -8,6 +8,7 @@ import pytest
 
 from gscan.scan.cad import build_template_from_mesh, fibonacci_directions, view_poses
 from gscan.io.camera import project
+from gscan.demo import SAMPLES
 from gscan.errors import InputError
 from gscan.geometry.transforms import inv_T, transform_points
 from gscan.synth import DEFAULT_INTRINSICS, load_textured_mesh
@@ -104,7 +105,7 @@ def test_template_from_a_scanned_mesh(sample_template, tmp_path, caplog):
     with caplog.at_level("WARNING"):
         build_template_from_mesh(ply, out, n_views=24)
     assert not [r for r in caplog.records if "flat colour" in r.getMessage()]
-    held = Path(__file__).resolve().parents[1] / "samples" / "heldout"
+    held = SAMPLES / "heldout"
     frame = load_frame(held / "rgb" / "000000.jpg", held / "depth" / "000000.png", held / "cam_K.txt", depth_scale=0.001)
     a, b = Estimator.from_path(out).estimate(frame), Estimator.from_path(sample_template).estimate(frame)
     assert a.found and b.found, (a.reason, b.reason)

@@ -6,18 +6,17 @@ import sys
 
 import numpy as np
 
-from gscan.demo import evaluate_sample
+from gscan.demo import SAMPLES, evaluate_sample
 from gscan.evaluate.bop19 import template_to_gt
 from gscan.geometry.transforms import inv_T, pose_error
 from gscan.io import open_sequence
-from tests.conftest import ROOT
 
 
 def test_sample_scan_matches_ground_truth(sample_template):
     """Every capture frame's registered pose agrees with the sample's ground truth (template frame mapped)."""
     from gscan.template.db import TemplateDB
 
-    gt = open_sequence(ROOT / "samples" / "capture").gt_T_cam_obj
+    gt = open_sequence(SAMPLES / "capture").gt_T_cam_obj
     T_obj_gt = template_to_gt(sample_template, gt)
     with TemplateDB.open(sample_template) as db:
         poses = db.poses()["frames"]

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from gscan.scan.cad import build_template_from_mesh
+from gscan.demo import SAMPLES
 from gscan.errors import InputError
 from gscan.evaluate.bop19 import CSV_HEADER, evaluate
 from gscan.geometry.transforms import look_at, rotvec_to_R, transform_points
@@ -153,7 +154,7 @@ def test_scanned_template_is_scored_in_the_ground_truth_frame(sample_template, s
     from gscan.io import open_sequence
     from gscan.template.db import TemplateDB
 
-    root = Path(__file__).resolve().parents[1] / "samples"
+    root = SAMPLES
     held = root / "heldout"
     rep = evaluate(sample_template, held, tmp_path / "own.csv")
     assert rep.n_found == rep.n_images == len(open_sequence(held).names)
@@ -219,7 +220,7 @@ def test_bop_scan_follows_its_object_and_eval_scores_through_it(tmp_path):
     from gscan.scan.pipeline import ScanOptions, run_scan
     from gscan.template.db import TemplateDB
 
-    root = Path(__file__).resolve().parents[1] / "samples"
+    root = SAMPLES
     bop = _capture_as_bop(root / "capture", tmp_path / "000003", obj_id=5, every=3)
     tpl = tmp_path / "obj5.gscan"
     res = run_scan(ScanOptions(input_dir=bop, output=tpl, obj_id=5))
@@ -256,7 +257,7 @@ def test_template_to_gt_keeps_the_frames_that_agree(sample_template, tmp_path):
     from gscan.io import open_sequence
     from gscan.template.db import TemplateDB
 
-    root = Path(__file__).resolve().parents[1] / "samples"
+    root = SAMPLES
     gt = open_sequence(root / "capture").gt_T_cam_obj
     clean = template_to_gt(sample_template, gt)
     bad = dict(gt)

@@ -329,12 +329,13 @@ def test_render_deterministic_and_seed_dependent(box: TexturedMesh) -> None:
     assert holes_1.any() and holes_g.any()
 
 
-SAMPLES = Path(__file__).resolve().parents[1] / "samples"
+SAMPLES = Path(__file__).resolve().parents[1] / "gscan" / "sample"  # the bundled sample (package data)
+MAKE_SAMPLE = Path(__file__).resolve().parents[1] / "samples" / "make_sample.py"
 
 
 def _load_make_sample():
     import importlib.util
-    spec = importlib.util.spec_from_file_location("make_sample", SAMPLES / "make_sample.py")
+    spec = importlib.util.spec_from_file_location("make_sample", MAKE_SAMPLE)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod
