@@ -37,9 +37,23 @@ def posed_views(db: TemplateDB, need_images: bool = True, need_depth: bool = Tru
     return out
 
 
-def require_mesh(db: TemplateDB) -> MeshData:
+def template_mesh(db: TemplateDB, close: bool = True) -> MeshData | None:
+    """The template's mesh for an export, closed into a watertight model with `close`
+    (`gscan.export.watertight`); None when the template has no mesh with triangles."""
     m = db.mesh()
     if m is None or len(m.vertices) == 0 or len(m.triangles) == 0:
+        return None
+    if close:
+        from gscan.export.watertight import closed_mesh
+
+        m = closed_mesh(db, m)
+    return m
+
+
+def require_mesh(db: TemplateDB, close: bool = True) -> MeshData:
+    """`template_mesh`, or InputError naming the database when it has no mesh."""
+    m = template_mesh(db, close)
+    if m is None:
         raise InputError(db.path, "the template has no mesh to export")
     return m
 
