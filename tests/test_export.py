@@ -124,6 +124,10 @@ def test_bop_export(synth: tuple[Path, dict], tmp_path: Path) -> None:
     assert np.allclose(ply.vertices, gt["mesh"].vertices * 1000, atol=1e-3)
     assert np.array_equal(ply.visual.vertex_colors[:, :3], gt["mesh"].vertex_colors)
     assert b"property float nx" in (out / "models" / "obj_000001.ply").read_bytes()[:600]
+    # the BOP toolkit's scorer reads models_eval/ (dataset_params: models_eval/obj_{obj_id:06d}.ply, in mm, and its
+    # models_info.json for the diameter): the same model as models/ here
+    for name in ("obj_000001.ply", "models_info.json"):
+        assert (out / "models_eval" / name).read_bytes() == (out / "models" / name).read_bytes()
     assert json.loads((out / "gscan_views.json").read_text())["2"] == "frame 02 é"
     targets = json.loads((out / "test_targets_bop19.json").read_text())
     assert targets[1] == {"im_id": 1, "inst_count": 1, "obj_id": 1, "scene_id": 1} and len(targets) == 4
