@@ -59,7 +59,7 @@ def test_baselines_recover_motion_with_70_percent_outliers(method):
 
 
 def test_ransac_counts_only_given_correspondences():
-    """STACK.md pitfall: inliers must come from the correspondences, not from a whole-cloud NN search."""
+    """A known pitfall: inliers must come from the correspondences, not from a whole-cloud NN search."""
     ps, pt, ds, dt, dist, T = _problem(3, inlier_frac=0.3)
     corr = putative_nn(dist)
     T_est = ransac_correspondences(ps, pt, corr)

@@ -1,4 +1,4 @@
-"""Bad input through the real command line (GitHub issue 7, DESIGN.md "Command line").
+"""Bad input through the real command line (GitHub issue 7; README, "Command line").
 
 The contract: bad input exits with code 2 and one line on stderr, `error: ...`, naming the
 offending file; never a traceback; never a half-written output. A capture in which only some

@@ -1,4 +1,4 @@
-"""Crash safety of `gscan scan` (GitHub issue 7; DESIGN.md "Template database").
+"""Crash safety of `gscan scan` (GitHub issue 7).
 
 A scan killed with SIGKILL leaves a consistent SQLite file whose status is `partial`; `info`
 shows it, `estimate` and `export` refuse it (exit 2, suggesting `scan --resume`), and
