@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import os
 import shutil
 import socket
 import subprocess
@@ -190,11 +191,13 @@ def test_colour_scales_and_match_drawing():
 
 # ------------------------------------------------------------------------------------ browser
 def _screenshot(page, tmp_path: Path, name: str) -> None:
-    """Screenshot into the test's folder, with a copy in test-output/ (gitignored) to look at."""
+    """Screenshot into the test's folder (kept when the test fails), and a copy into the folder the environment
+    variable GSCAN_SCREENSHOTS names, if any, to look at."""
     page.screenshot(path=str(tmp_path / name))
-    out = ROOT / "test-output"
-    out.mkdir(exist_ok=True)
-    shutil.copy(tmp_path / name, out / name)
+    if os.environ.get("GSCAN_SCREENSHOTS"):
+        out = Path(os.environ["GSCAN_SCREENSHOTS"])
+        out.mkdir(parents=True, exist_ok=True)
+        shutil.copy(tmp_path / name, out / name)
 
 
 def _open_drawn_page(browser, port: int, tmp_path: Path, name: str):
