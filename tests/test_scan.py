@@ -126,6 +126,7 @@ def test_turntable_whose_print_repeats_on_opposite_faces(tmp_path, meshes_dir):
     assert max(errs.values()) < 3.0, errs
 
 
+@pytest.mark.slow  # about 30 s: a 30-view scan
 def test_wide_view_spacing_with_symmetric_print(tmp_path, meshes_dir):
     """36 degrees between views on three rings: the low ring sees the box's matching prints and the
     repetitive table from opposite sides, so some pairs give consistent but 180-degree-wrong lists of
