@@ -92,6 +92,7 @@ def test_human_poses_print_rotation_and_translation(sample_template: Path):
     assert len(lines) == len(js) == 30
     for ln in lines:
         rot, trans = pose_error(_pose_from_line(ln), np.asarray(js[ln.split(":")[0]]))
+        # the printed pose: 0.1 mm translation, 0.01 deg angle and a 1e-3 axis (about 0.06 deg) of rounding
         assert rot < 0.2 and trans < 1e-4, (ln, rot, trans)
 
 
@@ -107,6 +108,7 @@ def test_grasp_list_prints_the_whole_pose(sample_template: Path, tmp_path: Path)
     assert _gscan("grasp", "add", str(db), "--name", "top", "--pose", str(tmp_path / "g.json")).returncode == 0
     line = next(ln for ln in _gscan("grasp", "list", str(db)).stderr.splitlines() if ln.startswith("top:"))
     rot, trans = pose_error(_pose_from_line(line), T)
+    # the printed pose: 0.1 mm translation, 0.01 deg angle and a 1e-3 axis (about 0.06 deg) of rounding
     assert "R = 90.00 deg" in line and rot < 0.2 and trans < 1e-4, line
 
 

@@ -99,7 +99,9 @@ def test_bop_export(synth: tuple[Path, dict], tmp_path: Path) -> None:
         T = np.eye(4)
         T[:3, :3] = np.reshape(e["cam_R_m2c"], (3, 3))
         T[:3, 3] = np.array(e["cam_t_m2c"]) / 1000.0
+        # written as JSON floats (17 digits) in mm and read back /1000: float64 rounding
         assert e["obj_id"] == 1 and np.abs(T - inv_T(T_obj_cam)).max() < 1e-6
+        # K written as JSON floats and read back: float64 rounding (np.allclose's atol 1e-8)
         assert np.allclose(np.reshape(scene_cam[str(i)]["cam_K"], (3, 3)), K.K)
         assert scene_cam[str(i)]["depth_scale"] == 1.0
         raw = cv2.imread(str(scene / "depth" / f"{i:06d}.png"), cv2.IMREAD_UNCHANGED)
@@ -118,9 +120,12 @@ def test_bop_export(synth: tuple[Path, dict], tmp_path: Path) -> None:
         ys, xs = np.nonzero(visib)
         assert g["bbox_visib"] == [xs.min(), ys.min(), xs.max() - xs.min(), ys.max() - ys.min()]  # calc_2d_bbox
     models_info = json.loads((out / "models" / "models_info.json").read_text())["1"]
+    # the exact diagonal of the box (float64); rel 1e-6 covers the PLY's float32 vertices (6e-8)
     assert models_info["diameter"] == pytest.approx(1000 * np.linalg.norm(BOX), rel=1e-6)
+    # the box's edges from float32 PLY vertices: within approx's rel 1e-6
     assert [models_info[k] for k in ("size_x", "size_y", "size_z")] == pytest.approx([1000 * s for s in BOX])
     ply = trimesh.load(out / "models" / "obj_000001.ply", process=False)
+    # float32 PLY vertices in mm: 0.1 m edges rounded to 1e-5 mm; 1e-3 mm leaves 100x
     assert np.allclose(ply.vertices, gt["mesh"].vertices * 1000, atol=1e-3)
     assert np.array_equal(ply.visual.vertex_colors[:, :3], gt["mesh"].vertex_colors)
     assert b"property float nx" in (out / "models" / "obj_000001.ply").read_bytes()[:600]
@@ -143,6 +148,7 @@ def _check_with_gscan_io(scene: Path, Ts: list[np.ndarray]) -> None:
     seq = open_sequence(scene, format="bop")
     assert len(seq) == len(Ts) and seq.gt_T_cam_obj is not None
     for name, T_obj_cam in zip(seq.names, Ts):
+        # JSON floats in mm read back by gscan.io: float64 rounding
         assert np.abs(seq.gt_T_cam_obj[name] - inv_T(T_obj_cam)).max() < 1e-6
 
 
@@ -175,7 +181,7 @@ def test_foundationpose_export(synth: tuple[Path, dict], tmp_path: Path) -> None
     out = tmp_path / "fp"
     assert export(db_path, "foundationpose", out).views == 4
     ob = out / "ob_0000001"
-    assert np.allclose(np.loadtxt(ob / "K.txt"), K.K)
+    assert np.allclose(np.loadtxt(ob / "K.txt"), K.K)  # K.txt written with 17 significant digits: float64 rounding
     selected = yaml.safe_load((ob / "select_frames.yml").read_text(encoding="utf-8"))
     assert selected == [f"frame {i:02d} é" for i in range(4)]
     color_files = sorted((ob / "rgb").glob("*.png"))  # FoundationPose's run_one_ob reading order
@@ -184,6 +190,7 @@ def test_foundationpose_export(synth: tuple[Path, dict], tmp_path: Path) -> None
         depth = cv2.imread(str(cf).replace("rgb", "depth_enhanced"), -1) / 1e3
         mask = cv2.imread(str(cf).replace("rgb", "mask"), -1)
         cam_in_ob = np.loadtxt(str(cf).replace("rgb", "cam_in_ob").replace(".png", ".txt")).reshape(4, 4)
+        # cam_in_ob written with 17 significant digits: parsing restores the float64 values
         assert np.abs(cam_in_ob - gt["Ts"][i]).max() < 1e-12
         assert set(np.unique(mask)) <= {0, 255} and (mask > 0).sum() > 100
         assert np.all((depth > 0) == (mask > 0))  # synthetic depth exists exactly on the object
@@ -203,10 +210,12 @@ def test_colmap_export(synth: tuple[Path, dict], tmp_path: Path) -> None:
     rec = pycolmap.Reconstruction(str(out))
     assert rec.num_images() == 4 and rec.num_reg_images() == 4 and rec.num_cameras() == 1
     cam = next(iter(rec.cameras.values()))
+    # the principal point shifted by +0.5 (COLMAP's pixel centres): float64 rounding
     assert cam.model.name == "PINHOLE" and np.allclose(cam.params, [K.fx, K.fy, K.cx + 0.5, K.cy + 0.5])
     by_name = {im.name: im for im in rec.images.values()}
     for i, T_obj_cam in enumerate(gt["Ts"]):
         im = by_name[f"frame {i:02d} é.png"]  # the image file in images/ (COLMAP's image_path)
+        # poses stored as float64 quaternion and translation: a conversion's rounding, ~1e-15
         assert np.abs(im.cam_from_world().matrix() - inv_T(T_obj_cam)[:3]).max() < 1e-9
         png = cv2.imread(str(out / "images" / im.name))
         assert png is not None and png.shape[:2] == (cam.height, cam.width)
@@ -226,6 +235,7 @@ def test_colmap_export(synth: tuple[Path, dict], tmp_path: Path) -> None:
         for el in p.track.elements:
             im = rec.images[el.image_id]
             uv = cam.img_from_cam(im.cam_from_world() * p.xyz)
+            # exact synthetic keypoints (float32 pixels and points): 1e-3 px covers the float32 rounding
             assert np.linalg.norm(uv - im.points2D[el.point2D_idx].xy) < 1e-3
 
 
@@ -238,6 +248,7 @@ def test_mesh_exports(synth: tuple[Path, dict], tmp_path: Path, fmt: str) -> Non
     if isinstance(loaded, trimesh.Scene):
         loaded = next(iter(loaded.geometry.values()))
     assert len(loaded.vertices) == len(gt["mesh"].vertices) and len(loaded.faces) == len(gt["mesh"].triangles)
+    # float64 (PLY, GLB: float32) vertices written and read back: 1e-6 m covers float32's 6e-8 relative
     assert np.allclose(np.sort(loaded.vertices, axis=0), np.sort(gt["mesh"].vertices, axis=0), atol=1e-6)
     cols = loaded.visual.vertex_colors[:, :3]
     order = np.lexsort(loaded.vertices.T)
@@ -253,6 +264,7 @@ def test_json_export_and_determinism(synth: tuple[Path, dict], tmp_path: Path) -
     doc = json.loads((tmp_path / "a.json").read_text(encoding="utf-8"))
     assert doc["intrinsics"] == K.to_dict() and doc["units"] == "m" and doc["descriptor"] == "rootsift"
     assert [v["name"] for v in doc["views"]][-1] == "lost frame" and doc["views"][-1]["T_obj_cam"] is None
+    # JSON floats: float64 rounding (np.allclose's atol 1e-8)
     assert np.allclose(doc["views"][1]["T_obj_cam"], gt["Ts"][1])
     assert len(doc["edges"]) == 4 and doc["edges"][3]["accepted"] is False and doc["edges"][3]["reason"] == "no overlap"
     assert doc["edges"][0]["n_matches"] == len(np.intersect1d(gt["kp_ids"][0], gt["kp_ids"][1]))
@@ -398,6 +410,7 @@ def test_sample_models_are_watertight_with_the_box_volume(sample_template: Path,
     for fmt in ("ply", "obj", "glb"):
         export(sample_template, fmt, tmp_path / f"m.{fmt}")
         m = trimesh.load(tmp_path / f"m.{fmt}", force="mesh")
+        # the same bound as the BOP model's (above): surface within a voxel, edges rounded
         assert m.is_watertight and abs(m.volume / SAMPLE_BOX_M3 - 1) < 0.05, (fmt, m.volume)
     fp = tmp_path / "fp"
     export(sample_template, "foundationpose", fp)

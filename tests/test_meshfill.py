@@ -1,4 +1,9 @@
-"""Closing a mesh's holes (gscan.geometry.meshfill): exact volumes of closed boxes and prisms, ear clipping."""
+"""Closing a mesh's holes (gscan.geometry.meshfill): exact volumes of closed boxes and prisms, ear clipping.
+
+Tolerances: the meshes are planar and their volumes and areas sums of a few thousand float64 products of
+centimetre-scale numbers, exact up to rounding (~1e-15 relative); rel 1e-9 leaves a millionfold margin, and a
+wrong cap or wall changes a volume by far more (0.01 m of a 0.07 m box is 14 %). Normals within 0.999 of -z
+mean flat caps facing down (a fold faces up)."""
 from __future__ import annotations
 
 import numpy as np

@@ -65,6 +65,7 @@ def test_ring_removes_drift_and_prunes_wrong_closures():
     res = optimize_pose_graph(12, edges, init, PoseGraphParams(max_correspondence_distance=0.02))
     after = ate(res.T_world_node, gt)
     assert before > 0.025  # the odometry drifts by centimetres
+    # pose-graph optimisation removes most of the centimetres of drift: below 8 mm and a third of the drift
     assert after < 0.008 and after < before / 3
     assert res.unregistered == []
     for k, rep in enumerate(res.edges):
@@ -72,11 +73,14 @@ def test_ring_removes_drift_and_prunes_wrong_closures():
             assert not rep.accepted and rep.reason, f"wrong closure {rep.src}->{rep.tgt} accepted"
         else:
             assert rep.accepted, f"good edge {rep.src}->{rep.tgt} rejected: {rep.reason}"
+            # an accepted edge agrees with the optimised poses to a few degrees / centimetres (the rejection rule's
+            # scale)
             assert rep.residual_deg < 5.0 and rep.residual_m < 0.02
     # reference node keeps its initial pose
     np.testing.assert_allclose(res.T_world_node[0], init[0], atol=1e-9)
     for i in range(12):
         deg, m = pose_error(res.T_ref_node(i), inv_T(gt[0]) @ gt[i])
+        # each optimised pose within 2 deg / 2 cm of the truth (the odometry drifted by centimetres)
         assert deg < 2.0 and m < 0.02
 
 
@@ -143,8 +147,11 @@ def test_residual_convention_matches_open3d_edge_semantics():
     gt = ring_poses(4)
     T_1_0 = inv_T(gt[1]) @ gt[0]
     p0 = np.array([0.01, 0.02, 0.3])
+    # a point moved through the relative transform: float64 rounding of O(1) products
     np.testing.assert_allclose(gt[1][:3, :3] @ (T_1_0[:3, :3] @ p0 + T_1_0[:3, 3]) + gt[1][:3, 3],
                                gt[0][:3, :3] @ p0 + gt[0][:3, 3], atol=1e-12)
+    # the edge's own transform: zero residual, read through arccos, whose resolution near 0 is 1.2e-6 deg per ulp of the
+    # trace; 1e-6 (deg and m) allows rounding to an ulp or so
     assert edge_residual(gt[0], gt[1], T_1_0) == pytest.approx((0.0, 0.0), abs=1e-6)
     deg, m = edge_residual(gt[0], gt[1], inv_T(T_1_0))
     assert deg > 1.0
@@ -155,6 +162,7 @@ def test_residual_convention_matches_open3d_edge_semantics():
 def test_information_from_points_matches_open3d(seed):
     from gscan.registration.posegraph import information_from_clouds
     p = np.random.default_rng(seed).normal(size=(50, 3))
+    # the same information matrix two ways: float64 sums of 50 outer products
     np.testing.assert_allclose(information_from_points(p), information_from_clouds(p, p, np.eye(4), 1e-3),
                                rtol=1e-9, atol=1e-9)
 
@@ -167,6 +175,7 @@ def test_loop_candidates_overlap_bounded_deterministic():
     counts = np.zeros(12, dtype=int)
     for c in cands:
         assert c.i < c.j and c.j - c.i >= 2 and (c.i, c.j) != (0, 11)
+        # the loop-candidate rule's own bounds: at most 70 deg and 0.5 m apart
         assert c.angle_deg <= 70.0 and c.distance_m <= 0.5 and c.reason == "overlap"
         counts[[c.i, c.j]] += 1
     assert counts.max() <= 2
@@ -188,6 +197,7 @@ def test_loop_candidates_appearance():
     far = [make_T(np.eye(3), [10.0 * k, 0, 0]) for k in range(10)]  # no geometric overlap at all
     H = bow_vectors(desc, vocabulary_size=16, seed=0)
     assert H.shape == (10, 16)
+    # L2-normalised float32 histograms: float32 rounding (6e-8) over 16 bins
     np.testing.assert_allclose(np.linalg.norm(H, axis=1), 1.0, atol=1e-5)
     cands = select_loop_candidates(far, desc, params=LoopParams(vocabulary_size=16, appearance_top_k=1,
                                                                 min_similarity=0.9))
@@ -208,6 +218,7 @@ def test_subtle_wrong_closure_rejected():
     rejected = [(r.src, r.tgt) for r in res.edges if not r.accepted]
     assert rejected == [(2, 7)], rejected
     assert res.edges[-1].residual_deg > 5.0
+    # the wrong loop edge rejected: the trajectory stays within 8 mm of the truth
     assert ate(res.T_world_node, gt) < 0.008
 
 
@@ -222,7 +233,7 @@ def test_threshold_pruning_of_certain_edges():
     bad = res.edges[-1]
     assert not bad.accepted and bad.reason.startswith("residual")
     assert sum(not r.accepted for r in res.edges) <= 2
-    assert ate(res.T_world_node, gt) < 0.01
+    assert ate(res.T_world_node, gt) < 0.01  # at most two edges pruned: the trajectory within 1 cm of the truth
 
 
 def test_information_matrix_dispatch_and_trivial_graphs():
@@ -232,6 +243,7 @@ def test_information_matrix_dispatch_and_trivial_graphs():
     tgt = src @ T[:3, :3].T + T[:3, 3]
     info = information_matrix(T, 40, (src, tgt), 0.005)
     assert info[5, 5] == pytest.approx(300)  # every source point has its correspondence
+    # the same function of the count: float64 arithmetic, assert_allclose's rtol 1e-7
     np.testing.assert_allclose(information_matrix(T, 40), information_from_count(40))
     # clouds too far apart for any correspondence: fall back to the count
     np.testing.assert_allclose(information_matrix(T, 40, (src, tgt + 1.0), 0.005), information_from_count(40))
