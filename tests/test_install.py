@@ -58,7 +58,7 @@ def _readme_commands() -> list[str]:
     """The shell commands of the README's two commands (the first two bash blocks of "Two commands")."""
     text = (ROOT / "README.md").read_text(encoding="utf-8")
     section = text.split("## Two commands", 1)[1].split("\n## ", 1)[0]
-    blocks = re.findall(r"```bash\n(.*?)```", section, flags=re.S)[:2]
+    blocks = re.findall(r"```bash\n(.*?)```", section, flags=re.DOTALL)[:2]
     return [ln.split("#")[0].strip() for b in blocks for ln in b.splitlines() if ln.strip() and not ln.startswith("#")]
 
 
@@ -117,7 +117,7 @@ def test_readme_quickstart_runs_without_the_repository(sample_template: Path, tm
     needs nothing beside the installed package: the bundled sample and no shared data."""
     text = (ROOT / "README.md").read_text(encoding="utf-8")
     section = text.split("## Python quick-start", 1)[1].split("\n## ", 1)[0]
-    code = re.findall(r"```python\n(.*?)```", section, flags=re.S)[0]
+    code = re.findall(r"```python\n(.*?)```", section, flags=re.DOTALL)[0]
     assert "shared" not in code
     (tmp_path / "demo-output").mkdir()
     shutil.copy(sample_template, tmp_path / "demo-output" / "sample.gscan")
