@@ -4,6 +4,7 @@
 #   bash scripts/setup.sh [DEMO ARGS]          system packages, a venv, gscan; then `gscan demo [DEMO ARGS]`
 #   bash scripts/setup.sh --test [PYTEST ARGS] the same with the test extra and Chromium; then
 #                                              `python -m pytest -q [PYTEST ARGS]` in the repository
+#   bash scripts/setup.sh --system [--test]    only the system packages (a container's build step, say)
 #
 # Works as root (apt-get directly) or as a user (apt-get through sudo, only when a package is missing);
 # Debian's own Python refuses a global pip install (PEP 668), hence the venv. Environment:
@@ -14,6 +15,8 @@ set -euo pipefail
 
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 test_mode=0
+system_only=0
+if [ "${1:-}" = "--system" ]; then system_only=1; shift; fi
 if [ "${1:-}" = "--test" ]; then test_mode=1; shift; fi
 venv="${GSCAN_VENV:-$root/.venv}"
 python="${PYTHON:-python3}"
@@ -33,19 +36,21 @@ if [ "${GSCAN_NO_APT:-0}" != 1 ]; then
   else
     missing=""
     for p in $pkgs; do
-      dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q '^install ok installed$' || missing="$missing $p"
+      status="$(dpkg-query -W -f='${Status}' "$p" 2>/dev/null || true)"
+      [ "$status" = "install ok installed" ] || missing="$missing $p"
     done
     if [ -n "$missing" ]; then
       if [ "$(id -u)" -eq 0 ]; then sudo=""
       elif command -v sudo >/dev/null 2>&1; then sudo="sudo"
       else die "missing system packages:$missing; install them as root (apt-get install$missing) and run again"; fi
       say "installing system packages:$missing"
-      export DEBIAN_FRONTEND=noninteractive
-      $sudo apt-get update -qq
-      $sudo apt-get install -y -qq --no-install-recommends $missing
+      # env, not export: sudo would drop the variable
+      $sudo env DEBIAN_FRONTEND=noninteractive apt-get update -qq
+      $sudo env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends $missing
     fi
   fi
 fi
+if [ "$system_only" = 1 ]; then exit 0; fi
 "$python" -c 'import sys; sys.exit(sys.version_info < (3, 10))' \
   || die "$("$python" --version 2>&1) is too old: gscan needs Python >= 3.10 (set PYTHON)"
 

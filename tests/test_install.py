@@ -127,3 +127,55 @@ def test_readme_quickstart_runs_without_the_repository(sample_template: Path, tm
     assert r.returncode == 0, r.stderr[-3000:]
     pose = r.stdout.split("]]")[-2]  # the last print: the held-back frame's T_cam_obj, then its reason
     assert "None" not in pose and r.stdout.split()[-1] == "None", r.stdout  # found: a pose and no reason
+
+
+def _fake_system(tmp_path: Path, uid: int, installed: set[str], sudo: bool) -> tuple[dict[str, str], Path]:
+    """A PATH of stand-ins for id, dpkg-query, apt-get and (optionally) sudo that log their calls, plus the few
+    real tools the script needs; no other program is reachable."""
+    bin_dir, log = tmp_path / "bin", tmp_path / "calls.log"
+    bin_dir.mkdir(parents=True)
+    for tool in ("bash", "dirname", "env"):
+        (bin_dir / tool).symlink_to(shutil.which(tool))
+    scripts = {
+        "id": f'[ "$1" = "-u" ] && echo {uid}',
+        "dpkg-query": 'for a; do p="$a"; done; case " $FAKE_INSTALLED " in *" $p "*) printf "install ok installed";; '
+                      '*) echo "dpkg-query: no packages found matching $p" >&2; exit 1;; esac',
+        "apt-get": f'echo "apt-get $*" >> {log}',
+    }
+    if sudo:
+        scripts["sudo"] = f'echo "sudo $1" >> {log}; exec "$@"'
+    for name, body in scripts.items():
+        (bin_dir / name).write_text(f"#!{shutil.which('bash')}\n{body}\n")
+        (bin_dir / name).chmod(0o755)
+    env = {"PATH": str(bin_dir), "FAKE_INSTALLED": " ".join(sorted(installed)), "PYTHON": sys.executable,
+           "HOME": str(tmp_path)}
+    return env, log
+
+
+SYSTEM_PACKAGES = {"libusb-1.0-0", "libgl1", "libegl1", "libx11-6", "libgomp1", "python3-venv"}
+
+
+@pytest.mark.parametrize("uid, sudo, expected", [
+    (0, False, ["apt-get update -qq", "apt-get install -y -qq --no-install-recommends libgl1 libgomp1"]),
+    (1000, True, ["sudo env", "apt-get update -qq", "sudo env",
+                  "apt-get install -y -qq --no-install-recommends libgl1 libgomp1"]),
+    (1000, False, None),
+])
+def test_setup_installs_missing_system_packages_with_sudo_only_when_not_root(tmp_path: Path, uid: int, sudo: bool,
+                                                                               expected: list[str] | None):
+    """scripts/setup.sh --system: as root apt-get runs itself; as a user through sudo; a user without sudo gets one
+    line naming the missing packages and exit 2. Only the missing packages are installed."""
+    env, log = _fake_system(tmp_path, uid, SYSTEM_PACKAGES - {"libgl1", "libgomp1"}, sudo)
+    r = subprocess.run(["bash", str(ROOT / "scripts" / "setup.sh"), "--system"], capture_output=True, text=True,
+                       timeout=60, env=env)
+    calls = log.read_text().splitlines() if log.exists() else []
+    if expected is None:
+        assert r.returncode == 2 and calls == [], (r.stderr, calls)
+        assert "missing system packages: libgl1 libgomp1" in r.stderr and "apt-get install libgl1 libgomp1" in r.stderr
+    else:
+        assert r.returncode == 0, r.stderr
+        assert calls == expected
+    env, log = _fake_system(tmp_path / "all", uid, SYSTEM_PACKAGES | {"chromium", "fonts-dejavu-core"}, sudo)
+    r = subprocess.run(["bash", str(ROOT / "scripts" / "setup.sh"), "--system", "--test"], capture_output=True,
+                       text=True, timeout=60, env=env)
+    assert r.returncode == 0 and not log.exists(), r.stderr  # nothing missing: no apt-get, no sudo
