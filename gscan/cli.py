@@ -531,8 +531,8 @@ def demo(
                       f"{r.add_mm:.1f}", str(r.n_matches), f"{r.total_ms:.0f}")
     err.print(table)
     found = [r for r in held if r.found]
-    worst = (f"; largest errors {max(r.rot_err_deg for r in found):.2f} deg, {max(r.trans_err_mm for r in found):.1f} mm, "
-             f"ADD {max(r.add_mm for r in found):.1f} mm" if found else "")
+    worst = "" if not found else (f"; largest errors {max(r.rot_err_deg for r in found):.2f} deg, "
+                                  f"{max(r.trans_err_mm for r in found):.1f} mm, ADD {max(r.add_mm for r in found):.1f} mm")
     _say(f"held-back frames: {len(found)}/{len(held)} found{worst}")
     if no_view:
         _say(("3/3", "bold"), f" viewer skipped; run `gscan view {result.output}`")
