@@ -12,7 +12,7 @@ Methods, same templates, same query features, same retrieval, same ICP / scoring
 - gscan-mask-noicp: the same with the ground-truth mask as --mask and no ICP (speed target).
 - gscan-scanned (--scanned N): the first N meshes also scanned (gscan.scan.pipeline) from a rendered 24-frame
   capture on a table; the scanned template's frame is mapped to the ground truth by the mean of
-  T_obj_cam[f] @ T_cam_gt[f] over the capture frames (DESIGN.md); full frame, ICP on.
+  T_obj_cam[f] @ T_cam_gt[f] over the capture frames; full frame, ICP on.
 - baseline: gscan.matching.baselines "ratio" per retrieved view (nearest neighbour + Lowe ratio 0.75, then
   open3d correspondence RANSAC with a 1 cm inlier distance, seeded), the view with the most inliers,
   then the same Kabsch / ICP / score / acceptance as gscan.
@@ -97,7 +97,7 @@ def make_scene(target, distractors, seed: int, occlude: bool, min_visible: float
 def scanned_template(name: str, mesh, work: Path, n_frames: int) -> tuple[Path, np.ndarray]:
     """Scan a rendered capture of `mesh` (gscan.scan.pipeline, static object on a textured table) into a template;
     returns (template path, T_obj_gt [4 x 4]): the template->ground-truth alignment, the mean of
-    T_obj_cam[f] @ T_cam_gt[f] over the capture frames (DESIGN.md), never from the test scenes."""
+    T_obj_cam[f] @ T_cam_gt[f] over the capture frames, never from the test scenes."""
     from gscan.evaluate.bop19 import template_to_gt
     from gscan.io import open_sequence
     from gscan.scan.api import scan

@@ -8,8 +8,8 @@ Usage (from the repository root):
     python bench/match.py speed  [--inputs DIR] [--repeats 20]        # GMatch search time vs the C++ figures
     python bench/match.py sweep  [--meshes N] [--gap 60] [--kinds rootsift,sift,orb]   # eps_f sweep
 
-pairs: every shared mesh (/work/shared/data/meshes/*/model_0.obj) rests on a textured table (--table:
-a gscan.synth.table_texture kind; newspaper is rich in keypoints, wood and fabric are sparser, plain has
+pairs: every mesh of the shared test data (README, "Test data": meshes/*/model_0.obj) rests on a textured
+table (--table: a gscan.synth.table_texture kind; newspaper is rich in keypoints, wood and fabric are sparser, plain has
 almost none, like a lab bench) and is
 rendered by gscan.synth at 640x480 (noisy depth) from cameras at 40 deg elevation, at azimuth s and
 s + each gap, for each start azimuth s of --starts (default 0: one pair per mesh and gap; more starts, more
@@ -17,7 +17,8 @@ pairs, a smaller sampling error); each (s, s + gap) pair is registered on whole-
 (the same keypoints for every method), matches only (no ICP). Success: rotation error < 5 deg and translation < 2 cm.
 Rows: "gmatch" = registration's default (GMatch + the support check of its runner-up lists),
 "gmatch-longest" = the paper's pick alone (RegisterParams(verify=0)), then every baseline.
-speed: /work/shared/bench_inputs/make_synthetic.py inputs (generated into --inputs when missing);
+speed: synthetic matching problems from the generator shipped beside the shared test data
+(bench_inputs/make_synthetic.py; written into --inputs when missing);
 GMatch with T = L = 24, eps_f 0.65, eps_c 0.1, eta 0.01 m (no depth growth) -- the reference
 parameters -- timed as CPU time, median of --repeats, candidate extraction timed separately; in the
 reference's candidate order (descriptor distance) and in gscan's default (Lowe ratio).

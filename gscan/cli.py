@@ -10,6 +10,7 @@ import json
 import logging
 import os
 import sys
+from enum import Enum
 from pathlib import Path
 from typing import Any, Optional
 
@@ -23,12 +24,56 @@ try:  # typer >= 0.2x vendors click as typer._click; older releases use click it
 except ImportError:  # pragma: no cover - depends on the installed typer
     import click.exceptions as _cx
 
-app = typer.Typer(add_completion=False, pretty_exceptions_enable=False, no_args_is_help=True,
+# rich_markup_mode=None: click's plain help, which wraps the help text and never cuts an option's name or its
+# choice list (typer's boxed layout cuts both in a narrow terminal)
+app = typer.Typer(add_completion=False, pretty_exceptions_enable=False, no_args_is_help=True, rich_markup_mode=None,
                   help="Scan objects with an RGB-D camera into GMatch templates; estimate their 6DoF pose on a CPU.")
 grasp_app = typer.Typer(no_args_is_help=True, help="Named grasp poses stored in a template (object frame).")
 config_app = typer.Typer(no_args_is_help=True, help="Scan configuration.")
 app.add_typer(grasp_app, name="grasp")
 app.add_typer(config_app, name="config")
+
+# Choice options: their values are the command-line contract (the tests check them against the library's lists).
+
+
+class ScanFormat(str, Enum):
+    auto = "auto"
+    capture = "capture"
+    open3d = "open3d"
+    tum = "tum"
+    bop = "bop"
+
+
+class ScanMode(str, Enum):
+    auto = "auto"
+    static_object = "static-object"
+    moving_object = "moving-object"
+
+
+class ExportFormat(str, Enum):
+    bop = "bop"
+    foundationpose = "foundationpose"
+    colmap = "colmap"
+    ply = "ply"
+    obj = "obj"
+    glb = "glb"
+    json = "json"
+
+
+def _version(value: bool) -> None:
+    if value:
+        import gscan
+
+        sys.stdout.write(f"gscan {gscan.__version__}\n")
+        raise typer.Exit()
+
+
+@app.callback()
+def _main_options(
+    version: bool = typer.Option(False, "--version", callback=_version, is_eager=True,
+                                 help="print the version and exit"),
+) -> None:
+    """Scan objects with an RGB-D camera into GMatch templates; estimate their 6DoF pose on a CPU."""
 
 # no markup or emoji codes: file and frame names ("[x]", ":smile:") are printed as they are; styles go
 # through `_say`
@@ -121,6 +166,19 @@ class _PrintableFormatter(logging.Formatter):
 
     def format(self, record: logging.LogRecord) -> str:
         return printable(super().format(record))
+def _format_pose(T: Any) -> str:
+    """One line: translation (m) and rotation as an angle (deg) about a unit axis, e.g.
+    `t = [+0.1000, -0.0200, +0.5000] m, R = 30.00 deg about [+0.000, +0.000, +1.000]`."""
+    import cv2
+    import numpy as np
+
+    T = np.asarray(T, dtype=np.float64)
+    rotvec = cv2.Rodrigues(T[:3, :3])[0].reshape(3)
+    angle = float(np.linalg.norm(rotvec))
+    axis = rotvec / angle if angle > 0 else np.array([0.0, 0.0, 1.0])
+    t = T[:3, 3]
+    return (f"t = [{t[0]:+.4f}, {t[1]:+.4f}, {t[2]:+.4f}] m, "
+            f"R = {np.degrees(angle):.2f} deg about [{axis[0]:+.3f}, {axis[1]:+.3f}, {axis[2]:+.3f}]")
 
 
 def _setup_logging(verbose: bool) -> None:
@@ -136,10 +194,10 @@ def _setup_logging(verbose: bool) -> None:
 def scan(
     input_dir: Path = typer.Argument(..., help="RGB-D folder (capture, Open3D, TUM or BOP layout)"),
     output: Path = typer.Option(..., "-o", "--output", help="template database to write (OBJ.gscan)"),
-    format: str = typer.Option("auto", "--format", help="auto|capture|open3d|tum|bop"),
+    format: ScanFormat = typer.Option("auto", "--format", help="input layout (auto: detected)"),
     intrinsics: Optional[Path] = typer.Option(None, "--intrinsics", help="cam_K.txt or Open3D intrinsics JSON"),
     depth_scale: Optional[float] = typer.Option(None, "--depth-scale", help="metres per raw depth unit"),
-    mode: str = typer.Option("auto", "--mode", help="auto|static-object|moving-object"),
+    mode: ScanMode = typer.Option("auto", "--mode", help="capture mode (auto: detected)"),
     no_segment: bool = typer.Option(False, "--no-segment", help="fuse the whole scene, not the object alone"),
     resume: bool = typer.Option(False, "--resume", help="continue an interrupted scan into OUTPUT"),
     force: bool = typer.Option(False, "--force", help="replace an existing OUTPUT"),
@@ -153,21 +211,16 @@ def scan(
     _setup_logging(verbose)
     _import_holding_ctrl_c(*_SCAN_IMPORTS)
     from gscan.scan.config import load_config
-    from gscan.io.layouts import FORMATS
     from gscan.progress import RichProgress
     from gscan.scan.api import scan as scan_capture
 
-    if format not in ("auto",) + FORMATS:
-        raise UsageError(None, f"--format must be one of {', '.join(('auto',) + FORMATS)}, not {format!r}")
-    if mode not in ("auto", "static-object", "moving-object"):
-        raise UsageError(None, f"--mode must be auto, static-object or moving-object, not {mode!r}")
     if resume and force:
         raise UsageError(output, "--resume and --force exclude each other")
     cfg = load_config(config)
     try:
         with RichProgress(err, enabled=not json_out or sys.stderr.isatty()) as progress:
-            result = scan_capture(input_dir, output, config=cfg, format=format, intrinsics=intrinsics,
-                                  depth_scale=depth_scale, mode=mode, segment=not no_segment, resume=resume,
+            result = scan_capture(input_dir, output, config=cfg, format=format.value, intrinsics=intrinsics,
+                                  depth_scale=depth_scale, mode=mode.value, segment=not no_segment, resume=resume,
                                   force=force, obj_id=obj_id, progress=progress)
     except KeyboardInterrupt:  # Ctrl+C: the partial database is kept for --resume (typer exits 130)
         _say_interrupted(_interrupted_scan_line(output, force))
@@ -296,7 +349,8 @@ def estimate(
     if result.T_cam_obj is None:
         _say(("object not found", "yellow"), f": {result.reason}")
     else:
-        _line(f"found: view {result.view}, {result.n_matches} matches, score {result.score:.3f}")
+        _line(f"found: view {result.view}, {result.n_matches} matched keypoint pairs (GMatch's list), "
+              f"score {result.score:.3f}")
         err.print("T_cam_obj =\n" + _format_matrix(out["T_cam_obj"]))
         for name, T in out["grasps"].items():
             _line(f"grasp {name}: T_cam_grasp =")
@@ -312,7 +366,8 @@ def poses(
     template: Path = typer.Argument(..., help="template database"),
     json_out: bool = typer.Option(False, "--json", help="print one JSON object on stdout"),
 ) -> None:
-    """Camera pose T_obj_cam of every registered input frame in the template frame."""
+    """Camera pose T_obj_cam of every registered input frame in the template frame (`--json`: the 4x4 matrices;
+    otherwise translation and rotation angle / axis, one line per frame)."""
     from gscan.template.db import TemplateDB
 
     with TemplateDB.open(template, require_complete=True) as db:
@@ -320,9 +375,9 @@ def poses(
     if json_out:
         _print_json(out)
         return
+    err.print("T_obj_cam (camera pose in the template frame) of each registered frame:")
     for name, T in out["frames"].items():
-        t = [row[3] for row in T[:3]]
-        _line(f"{name}: t = [{t[0]:+.4f}, {t[1]:+.4f}, {t[2]:+.4f}] m")
+        _line(f"{name}: {_format_pose(T)}")
     if out["unregistered"]:
         _line(f"unregistered: {', '.join(out['unregistered'])}")
 
@@ -332,19 +387,28 @@ def info(
     template: Path = typer.Argument(..., help="template database"),
     json_out: bool = typer.Option(False, "--json", help="print one JSON object on stdout"),
 ) -> None:
-    """Summary of a template database (works on partial ones too)."""
+    """Summary of a template database (works on partial ones too). `mesh` counts the stored mesh's vertices,
+    triangles and open (boundary) edges: a scanned mesh is open where the support plane cut it; the exports
+    close it unless `export --keep-holes`."""
+    from gscan.geometry.meshfill import boundary_edges
     from gscan.template.db import TemplateDB
 
     with TemplateDB.open(template, require_complete=False) as db:
         s = db.summary()
-    # the `info --json` object of the CLI contract
+        m = db.mesh()
+    # the `info --json` object of the CLI contract, and the mesh's size and open edges
     out = {"schema": s.schema, "status": s.status, "views": s.views, "registered": s.registered,
            "keyframes": s.keyframes, "descriptor": s.descriptor, "source": s.source, "extent_m": list(s.extent_m),
            "grasps": list(s.grasps)}
+    out["mesh"] = None if m is None else {"vertices": len(m.vertices), "triangles": len(m.triangles),
+                                          "open_edges": len(boundary_edges(m.triangles))}
     if json_out:
         _print_json(out)
         return
     for k, v in out.items():
+        if k == "mesh" and v is not None:
+            holes = " (export closes them; --keep-holes keeps them)" if v["open_edges"] else ", watertight"
+            v = f"{v['vertices']} vertices, {v['triangles']} triangles, {v['open_edges']} open edges{holes}"
         _line(f"{k}: {v}")
 
 
@@ -354,17 +418,17 @@ def info(
 @app.command()
 def export(
     template: Path = typer.Argument(..., help="template database"),
-    format: str = typer.Option(..., "--format", help="bop|foundationpose|colmap|ply|obj|glb|json"),
+    format: ExportFormat = typer.Option(..., "--format", help="what to write (see the README's Exports)"),
     output: Path = typer.Option(..., "-o", "--output", help="output file or folder"),
     force: bool = typer.Option(False, "--force", help="replace an existing output"),
+    keep_holes: bool = typer.Option(False, "--keep-holes", help="leave the mesh open where the scan saw no surface "
+                                    "(by default the bottom the support plane cut off is closed: a watertight model)"),
     json_out: bool = typer.Option(False, "--json", help="print one JSON object on stdout"),
 ) -> None:
     """Export a template for other tools."""
-    from gscan.export import FORMATS, export as do_export
+    from gscan.export import export as do_export
 
-    if format not in FORMATS:
-        raise UsageError(None, f"--format must be one of {', '.join(FORMATS)}, not {format!r}")
-    written = do_export(template, format, output, force=force)
+    written = do_export(template, format.value, output, force=force, close=not keep_holes)
     if json_out:
         _print_json({"output": str(written.path), "format": written.format, "views": written.views,
                      "files": written.files})
@@ -455,7 +519,7 @@ def grasp_list(
     if not grasps:
         err.print("no grasps")
     for k, T in grasps.items():
-        _line(f"{k}: t = {[round(float(x), 4) for x in T[:3, 3]]}")
+        _line(f"{k}: T_obj_grasp {_format_pose(T)}")
 
 
 # -------------------------------------------------------------------------------------------- eval
@@ -529,12 +593,17 @@ def demo(
     _print_scan_summary(result)
     _say(("2/3 estimating", "bold"), " the held-back frames")
     table = Table(title="pose estimation on held-back frames (errors against ground truth)")
-    for col in ("frame", "found", "rot err (deg)", "trans err (mm)", "ADD (mm)", "matches", "time (ms)"):
+    for col in ("frame", "found", "rot err (deg)", "trans err (mm)", "ADD (mm)", "GMatch pairs", "time (ms)"):
         table.add_column(col, justify="right")
-    for r in evaluate_sample(result.output):
+    held = evaluate_sample(result.output)
+    for r in held:
         table.add_row(r.name, "yes" if r.found else "no", f"{r.rot_err_deg:.2f}", f"{r.trans_err_mm:.1f}",
                       f"{r.add_mm:.1f}", str(r.n_matches), f"{r.total_ms:.0f}")
     err.print(table)
+    found = [r for r in held if r.found]
+    worst = "" if not found else (f"; largest errors {max(r.rot_err_deg for r in found):.2f} deg, "
+                                  f"{max(r.trans_err_mm for r in found):.1f} mm, ADD {max(r.add_mm for r in found):.1f} mm")
+    _say(f"held-back frames: {len(found)}/{len(held)} found{worst}")
     if no_view:
         _say(("3/3", "bold"), f" viewer skipped; run `gscan view {result.output}`")
         return

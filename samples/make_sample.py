@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
-"""Regenerate the bundled sample deterministically: `python samples/make_sample.py [--out samples]`.
+"""Regenerate the bundled sample deterministically: `python samples/make_sample.py [--out DIR]`.
 
-Writes (see samples/README.md):
+Writes into gscan/sample/ (the package data `gscan demo` reads; see samples/README.md) or DIR:
   object/box.obj, box.mtl, box_texture.png   the procedural printed box (metres, origin at its centre)
   capture/    30 frames, static box on a newspaper-covered table, camera on two orbit rings
   heldout/    4 frames of the same box in other poses / places, one with a distractor box
@@ -103,7 +103,8 @@ def make(out: Path) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--out", type=Path, default=Path(__file__).resolve().parent, help="output folder (default: samples/)")
+    ap.add_argument("--out", type=Path, default=Path(__file__).resolve().parents[1] / "gscan" / "sample",
+                    help="output folder (default: gscan/sample/, the package data)")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stderr)
     meta = make(args.out)

@@ -1,4 +1,15 @@
-"""Shared fixtures. Tests that need ../shared/data fail (never skip) when it is missing.
+"""Shared fixtures.
+
+Test data: the tests that render views of real scanned objects or read real RGB-D frames use the shared test
+data, a folder that is not part of the repository: `../shared/data` beside the repository root, or the folder
+named by the environment variable GSCAN_TEST_DATA. It holds `meshes/` (21 textured household objects from
+Google Scanned Objects, CC-BY 4.0, via a MuJoCo conversion) and `real/` (Open3D's RGB-D test frames, 7-Scenes
+"redkitchen" Kinect v1 frames with ground-truth camera poses, two YCB-Video frames with object poses); its
+README.md names each source and licence. Those tests fail (never skip) when it is missing. Everything else
+uses the bundled sample (gscan/sample/) or renders its own data.
+
+Files: every test writes into its pytest temporary folder only (kept for failed tests alone, see
+pyproject.toml); Hypothesis keeps its files there too.
 
 Hypothesis runs derandomized by default: every run draws the same examples, so a red CI is a reproducible
 failure, not an unlucky draw. `HYPOTHESIS_PROFILE=explore python -m pytest` draws new examples each run.
@@ -16,13 +27,27 @@ settings.register_profile("explore", derandomize=False)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "deterministic"))
 
 ROOT = Path(__file__).resolve().parents[1]
-SHARED_DATA = ROOT.parent / "shared" / "data"
+SHARED_DATA = Path(os.environ.get("GSCAN_TEST_DATA") or ROOT.parent / "shared" / "data")
+
+
+@pytest.hookimpl(trylast=True)  # after pytest's own tmpdir plugin has attached its factory to the config
+def pytest_configure(config: pytest.Config) -> None:
+    """Hypothesis's own files (its example database, the constants it caches while drawing examples) go into the
+    run's temporary folder, not into .hypothesis/ in the working directory: the `tmp_path_factory` fixture's
+    folder, reached through the config before any test runs."""
+    from hypothesis.configuration import set_hypothesis_home_dir
+
+    factory = getattr(config, "_tmp_path_factory", None)
+    if factory is not None:
+        set_hypothesis_home_dir(factory.getbasetemp() / "hypothesis")
 
 
 @pytest.fixture(scope="session")
 def shared_data() -> Path:
+    """The shared test data (see the module docstring): meshes/ and real/."""
     if not (SHARED_DATA / "meshes").is_dir():
-        pytest.fail(f"shared test data not found at {SHARED_DATA} (tests read ../shared/data beside the project)")
+        pytest.fail(f"shared test data not found at {SHARED_DATA}: the tests that use real objects and frames read "
+                    "../shared/data beside the repository, or the folder GSCAN_TEST_DATA names (README, Test data)")
     return SHARED_DATA
 
 
@@ -38,10 +63,12 @@ def real_dir(shared_data: Path) -> Path:
 
 @pytest.fixture(scope="session")
 def sample_template(tmp_path_factory) -> Path:
-    """The bundled sample (samples/capture) scanned by the real pipeline (`gscan.scan`), once per session."""
+    """The bundled sample (gscan.demo.SAMPLES / "capture") scanned by the real pipeline (`gscan.scan`), once per
+    session."""
     import gscan
+    from gscan.demo import SAMPLES
 
     out = tmp_path_factory.mktemp("sample") / "sample.gscan"
-    res = gscan.scan(ROOT / "samples" / "capture", out)
+    res = gscan.scan(SAMPLES / "capture", out)
     assert res.registered == res.frames == 30
     return out

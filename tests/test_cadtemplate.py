@@ -8,6 +8,7 @@ import pytest
 
 from gscan.scan.cad import template_from_mesh, fibonacci_directions, view_poses
 from gscan.io.camera import project
+from gscan.demo import SAMPLES
 from gscan.errors import InputError
 from gscan.geometry.transforms import inv_T, transform_points
 from gscan.synth import DEFAULT_INTRINSICS, load_textured_mesh
@@ -28,6 +29,7 @@ def test_summary_and_database(built, meshes_dir):
     mesh = load_textured_mesh(meshes_dir / MESH / "model_0.obj")
     assert summary.output == out and summary.views == 8 and summary.source == "mesh"
     assert summary.descriptor == "rootsift"
+    # the mesh's extent through the database's float storage: float32 rounding (6e-8 relative) of ~0.1 m
     np.testing.assert_allclose(summary.extent_m, mesh.extent, atol=1e-6)
     with TemplateDB.open(out, require_complete=True) as db:
         info = db.summary()
@@ -49,6 +51,8 @@ def test_summary_and_database(built, meshes_dir):
             assert f.kind == "rootsift" and len(px) > 10
             # object-frame keypoints project back onto their pixels through the view pose
             uv = project(transform_points(inv_T(v.T_obj_cam), pts_obj), v.intrinsics)
+            # keypoints lifted from rendered depth and projected back through the view pose: float32 depth and sub-pixel
+            # keypoints, a few hundredths of a pixel
             np.testing.assert_allclose(uv, px, atol=0.05)
             u, w = np.rint(px).astype(int).T
             assert v.mask[w, u].all()
@@ -66,14 +70,16 @@ def test_template_keypoints_are_the_estimators_query_keypoints(built):
 
 def test_views_cover_both_hemispheres_at_fill_distance(meshes_dir):
     d = fibonacci_directions(36)
-    np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1.0)
+    np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1.0)  # unit directions: float64 normalisation
     assert (d[:, 2] > 0.3).sum() >= 10 and (d[:, 2] < -0.3).sum() >= 10
     mesh = load_textured_mesh(meshes_dir / MESH / "model_0.obj")
     for T_obj_cam in view_poses(mesh, 12):
         c_cam = transform_points(inv_T(T_obj_cam), mesh.center[None])[0]
         uv = project(c_cam[None], DEFAULT_INTRINSICS)[0]
+        # every camera looks at the mesh's centre: float64 rounding, in pixels
         np.testing.assert_allclose(uv, [DEFAULT_INTRINSICS.cx, DEFAULT_INTRINSICS.cy], atol=1e-6)
         span = 2 * mesh.radius * DEFAULT_INTRINSICS.fx / c_cam[2] / DEFAULT_INTRINSICS.width
+        # the fill distance frames the object at 45 % of the width (0.4-0.5 allows its radius bound)
         assert 0.4 <= span <= 0.5
 
 
@@ -81,6 +87,7 @@ def test_scale_converts_units(meshes_dir, tmp_path):
     out = tmp_path / "mm.gscan"
     s = template_from_mesh(meshes_dir / MESH / "model_0.obj", out, n_views=4, scale=0.5)
     mesh = load_textured_mesh(meshes_dir / MESH / "model_0.obj")
+    # half the extent through float storage: float32 rounding of ~0.1 m
     np.testing.assert_allclose(s.extent_m, 0.5 * mesh.extent, atol=1e-6)
 
 
@@ -116,11 +123,12 @@ def test_template_from_a_scanned_mesh(sample_template, tmp_path, caplog):
     with caplog.at_level("WARNING"):
         template_from_mesh(ply, out, n_views=24)
     assert not [r for r in caplog.records if "flat colour" in r.getMessage()]
-    held = Path(__file__).resolve().parents[1] / "samples" / "heldout"
+    held = SAMPLES / "heldout"
     frame = load_frame(held / "rgb" / "000000.jpg", held / "depth" / "000000.png", held / "cam_K.txt", depth_scale=0.001)
     a, b = Estimator.from_path(out).estimate(frame), Estimator.from_path(sample_template).estimate(frame)
     assert a.found and b.found, (a.reason, b.reason)
     deg, m = pose_error(a.T_cam_obj, b.T_cam_obj)
+    # the template built from the scanned mesh finds the same pose as the scan's own template: within a degree and 2 mm
     assert deg < 1.0 and m < 0.002, (deg, m)
 
 

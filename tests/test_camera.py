@@ -47,6 +47,7 @@ def test_backproject_matches_open3d(o3d_root, idx):
     depth = depth_mm.astype(np.float32) / 1000.0
     ours = backproject(depth, intr)[depth > 0]  # row-major valid pixels, same order as open3d
     assert len(ref) == len(ours) > 100000
+    # float32 depth and rays: relative rounding 6e-8 at ~3 m depth is 2e-7 m; 1e-5 m leaves 50x
     assert np.abs(ours - ref).max() < 1e-5
     frame = RGBDFrame("f", np.zeros((*depth.shape, 3), np.uint8), depth, intr)
     pts, cols = point_cloud(frame)
@@ -61,6 +62,7 @@ def test_pixel_rays_convention():
     r = pixel_rays(intr)
     assert r.shape == (2, 4, 3)
     np.testing.assert_allclose(r[0, 0], [-1.5 / 100, -0.5 / 200, 1.0])  # centre of the top-left pixel is (0, 0)
+    # exact binary fractions except /100 and /200, within assert_allclose's rtol 1e-7
     np.testing.assert_allclose(r[1, 3], [1.5 / 100, 0.5 / 200, 1.0])
 
 
@@ -78,7 +80,9 @@ def test_project_backproject_round_trip(intr, seed):
     px = rng.uniform([0, 0], [intr.width, intr.height], size=(50, 2))
     z = rng.uniform(0.1, 10.0, size=50)
     P = backproject_pixels(px, z, intr)
+    # z copied through one product and division by 1 (rtol 1e-7 covers float64 rounding)
     np.testing.assert_allclose(P[:, 2], z)
+    # project(backproject(px)) in float64: ~1e-13 px of rounding at 10 m; 1e-8 px leaves 1e5x
     np.testing.assert_allclose(project(P, intr), px, atol=1e-8)
 
 
@@ -87,10 +91,12 @@ def test_project_backproject_round_trip(intr, seed):
 def test_intrinsics_scaled_round_trip(intr, s):
     back = intr.scaled(s).scaled(1.0 / s)
     for a in ("fx", "fy", "cx", "cy"):
+        # scaling by s then 1/s: two float64 roundings, ~1e-16 relative
         assert getattr(back, a) == pytest.approx(getattr(intr, a), rel=1e-12, abs=1e-9)
     # pixel-centre convention: the point at a scaled pixel centre projects to the matching location
     sc = intr.scaled(s)
     P = backproject_pixels(np.array([[3.0, 7.0]]), np.array([2.0]), intr)
+    # float64 products of numbers below 1e3: rounding ~1e-13 px
     np.testing.assert_allclose(project(P, sc), [[(3.0 + 0.5) * s - 0.5, (7.0 + 0.5) * s - 0.5]], atol=1e-9)
     if (intr.width * s).is_integer() and (intr.height * s).is_integer():
         assert (back.width, back.height) == (intr.width, intr.height)
@@ -118,12 +124,16 @@ def _rigid(rng: np.random.Generator) -> np.ndarray:
 def test_inv_T_and_kabsch_exact(seed):
     rng = np.random.default_rng(seed)
     T = _rigid(rng)
+    # 4x4 products of O(1) entries: float64 rounding ~1e-16; 1e-12 leaves 1e4x
     np.testing.assert_allclose(inv_T(T) @ T, np.eye(4), atol=1e-12)
     np.testing.assert_allclose(T @ inv_T(T), np.eye(4), atol=1e-12)
     src = rng.normal(size=(int(rng.integers(3, 60)), 3))
     dst = transform_points(T, src)
     T_est = kabsch(src, dst)
+    # Kabsch by SVD on exact data: rounding grows with the points' conditioning (>= 3 random points), ~1e-13; 1e-9
+    # leaves room for any BLAS or LAPACK
     np.testing.assert_allclose(T_est, T, atol=1e-9)
+    # det of a float64 rotation: ~1e-15 off 1; approx's default rel 1e-6
     assert np.linalg.det(T_est[:3, :3]) == pytest.approx(1.0)
 
 
@@ -140,8 +150,10 @@ def test_kabsch_trimmed_drops_a_minority_of_gross_outliers(seed, n_out):
     dst[bad] += away / np.linalg.norm(away, axis=1, keepdims=True) * rng.uniform(0.05, 0.4, (n_out, 1))
     T_est, keep = kabsch_trimmed(src, dst, 0.008)
     assert not keep[bad].any() and keep.sum() >= 24 - n_out - 1
+    # the same Kabsch on the same kept points: equal up to the order of float64 sums (~1e-15)
     np.testing.assert_allclose(T_est, kabsch(src[keep], dst[keep]), atol=1e-12)
     deg, m = pose_error(T_est, T)
+    # 1 mm noise on 24 points 0.2 m across: the fit is good to ~0.1 deg / 0.5 mm; 1 deg / 3 mm catch a wrong trim
     assert deg < 1.0 and m < 0.003
     if n_out == 0:  # nothing trimmed: plain Kabsch
         assert keep.all()
@@ -159,6 +171,7 @@ def test_kabsch_trimmed_catches_a_high_leverage_pair(seed):
     dst[23] += 0.014 * np.array([0.0, 0.0, 1.0]) @ T[:3, :3].T
     T_est, keep = kabsch_trimmed(src, dst, 0.008)
     assert not keep[23] and keep[:23].sum() >= 22
+    # the same Kabsch on the same kept points: equal up to the order of float64 sums (~1e-15)
     np.testing.assert_allclose(T_est, kabsch(src[keep], dst[keep]), atol=1e-12)
     assert pose_error(T_est, T)[0] < pose_error(kabsch(src, dst), T)[0] / 2
 
@@ -173,6 +186,7 @@ def test_leave_one_out_residuals_equal_n_separate_fits(seed, n):
     dst[: n // 3] = dst[: n // 3] * [1.0, 1.0, -1.0]  # a mirrored part: some fits need the reflection guard
     ref = [np.linalg.norm(transform_points(kabsch(np.delete(src, k, 0), np.delete(dst, k, 0)), src[k][None])[0]
                           - dst[k]) for k in range(n)]
+    # each residual from its own SVD on the same data: float64 rounding amplified by conditioning, ~1e-12
     np.testing.assert_allclose(leave_one_out_residuals(src, dst), ref, atol=1e-9)
     with pytest.raises(ValueError):  # fewer than 4 pairs leaves fits of fewer than 3
         leave_one_out_residuals(src[:3], dst[:3])
@@ -184,6 +198,7 @@ def test_kabsch_trimmed_keeps_only_a_consistent_subset_when_no_majority_agrees()
     dst = rng.uniform(-0.1, 0.1, size=(10, 3))  # unrelated: no consistent majority
     T_est, keep = kabsch_trimmed(src, dst, 0.008)
     assert keep.sum() == 3  # the winning triple alone: too few for registration's rule 1
+    # the same Kabsch on the same kept points: equal up to the order of float64 sums (~1e-15)
     np.testing.assert_allclose(T_est, kabsch(src[keep], dst[keep]), atol=1e-12)
 
 
@@ -224,6 +239,7 @@ def test_consensus_kernel_poses_a_clean_triple_exactly(seed, n, n_out):
     dst[bad] += away / np.linalg.norm(away, axis=1, keepdims=True) * rng.uniform(0.05, 0.4, (len(bad), 1))
     i, j, k, T_tri = best_triple(src, dst, n, np.full(n, 0.008), 0.1)
     assert not {i, j, k} & set(bad.tolist())
+    # a pose from three exact points: an SVD of a 3-point cross-covariance, ~1e-12; 1e-9 leaves 1000x
     np.testing.assert_allclose(T_tri, T, atol=1e-9)
 
 
@@ -235,6 +251,7 @@ def test_kabsch_trimmed_with_only_collinear_triples_is_plain_kabsch():
     dst[2] += 0.1
     T_est, keep = kabsch_trimmed(src, dst, 0.008)
     assert keep.all()
+    # the same Kabsch on the same points: equal up to the order of float64 sums (~1e-15)
     np.testing.assert_allclose(T_est, kabsch(src, dst), atol=1e-12)
 
 
@@ -253,6 +270,8 @@ def test_kabsch_trimmed_on_the_rendered_whole_frame_list():
     T_est, keep = kabsch_trimmed(src, dst, 0.008)
     assert not keep[10] and keep.sum() >= 13
     deg, m = pose_error(T_est, T_gt)
+    # the 14 true pairs lie within 7 mm of the true motion, so their fit is within tenths of a degree and a few
+    # millimetres; 0.5 deg / 1 cm catch a wrong trim (19 deg before)
     assert deg < 0.5 and m < 0.01
 
 
@@ -263,6 +282,7 @@ def test_kabsch_never_returns_a_reflection(seed):
     src = rng.normal(size=(20, 3))
     dst = transform_points(_rigid(rng), src * np.array([-1.0, 1.0, 1.0]))  # mirrored copy
     R = kabsch(src, dst)[:3, :3]
+    # an SVD's rotation is orthonormal to float64 rounding (~1e-15); 1e-9 for any LAPACK
     np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-9)
     assert np.linalg.det(R) == pytest.approx(1.0)
 
@@ -278,9 +298,11 @@ def test_look_at_is_a_proper_rotation_looking_at_the_target(eye, target):
     R = T[:3, :3]
     np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-9)
     assert np.linalg.det(R) == pytest.approx(1.0)
-    np.testing.assert_allclose(T[:3, 3], eye)
+    np.testing.assert_allclose(T[:3, 3], eye)  # eye copied into the translation: exact up to rtol 1e-7
     p_cam = transform_points(inv_T(T), target[None])[0]  # the target sits on the optical axis, in front
+    # distances of O(1) in float64: approx's default rel 1e-6 is far above their rounding
     assert p_cam[2] == pytest.approx(np.linalg.norm(target - eye))
+    # on the axis up to float64 rounding of the rotation (~1e-15 of the distance)
     np.testing.assert_allclose(p_cam[:2], 0.0, atol=1e-9)
     assert R[:, 1] @ np.array([0.0, 0.0, 1.0]) <= 1e-9  # image y (down) never points up in the world
 
@@ -303,8 +325,9 @@ def test_lift_rejects_invalid_depth():
     pts, ok = lift_keypoints(px, depth, INTR, window=2)
     # u=31: 3 of 5 columns valid (60 %) -> kept; u=33: 1 of 5 -> rejected
     np.testing.assert_array_equal(ok, [True, False, True, False, True])
-    np.testing.assert_allclose(pts[ok][:, 2], 1.5)
+    np.testing.assert_allclose(pts[ok][:, 2], 1.5)  # depth 1.5 copied from a float32 image in which 1.5 is exact
     np.testing.assert_array_equal(pts[~ok], 0.0)
+    # the same backprojection of the same depth: equal to float64 rounding (rtol 1e-7)
     np.testing.assert_allclose(pts[ok], backproject_pixels(px[ok], np.full(3, 1.5), INTR))
     _, ok = lift_keypoints(np.zeros((0, 2)), depth, INTR)
     assert ok.shape == (0,)
@@ -325,6 +348,7 @@ def test_lift_rejects_depth_discontinuities():
     pts, ok = lift_keypoints(px, depth, INTR, window=2)
     straddles = (u + 2 >= 32) & (u - 2 <= 31)
     np.testing.assert_array_equal(ok, ~straddles)
+    # float32 depths 1.0 and 1.3 (1.3 is rounded to 6e-8 relative): rtol 1e-6 = 16 float32 ulps
     np.testing.assert_allclose(pts[ok][:, 2], np.where(u[ok] < 32, 1.0, 1.3), rtol=1e-6)
     # a gentle slant (1 mm per pixel) is not a discontinuity
     slant = (1.0 + 0.001 * np.arange(64, dtype=np.float32))[None, :].repeat(48, 0)
@@ -342,6 +366,7 @@ def test_lift_takes_the_median_despite_corrupted_pixels():
     depth[v - 1, u - 1:u + 2] = 0.0  # three holes
     pts, ok = lift_keypoints(np.array([[u, v]], float), depth, INTR, window=2)
     assert ok[0]
+    # a median of float32 0.8 values: 0.8 to float32 rounding (1e-8), within approx's rel 1e-6
     assert pts[0, 2] == pytest.approx(0.8)
     # many spikes: the window straddles two surfaces and is rejected rather than guessed
     depth[v - 2:v + 3, u + 1:u + 3] = 3.0
@@ -359,7 +384,9 @@ def test_lift_on_real_depth_equals_window_median(o3d_root):
     for i in np.flatnonzero(ok):
         u, v = np.rint(px[i]).astype(int)
         win = depth[v - 2:v + 3, u - 2:u + 3]
+        # the median itself, read back through float32 (6e-8 m at 1 m); abs 1e-6 m leaves 16x
         assert pts[i, 2] == pytest.approx(np.median(win[win > 0]), abs=1e-6)
+    # project(lift(px)) at the keypoint's own pixel: float32 depth cancels in x/z, float64 rounding ~1e-12 px
     np.testing.assert_allclose(project(pts[ok], intr), px[ok], atol=1e-6)
 
 
@@ -376,6 +403,7 @@ def test_load_intrinsics_cam_k_txt_and_bop(tmp_path):
     p = tmp_path / "cam_K.txt"
     p.write_text("600.5 0 320.25\n0 601 239.75\n0 0 1\n")
     intr = load_intrinsics(p, 640, 480)
+    # parsed decimal text: 600.5, 320.25 and 239.75 are exact in binary
     np.testing.assert_allclose(intr.K, [[600.5, 0, 320.25], [0, 601, 239.75], [0, 0, 1]])
     assert (intr.width, intr.height) == (640, 480)
     with pytest.raises(InputError, match="no image size"):

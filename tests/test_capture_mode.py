@@ -26,6 +26,7 @@ def test_static_and_turntable_are_told_apart(box, masks):
     turn = render_capture(box, None, 8, mode="turntable", seed=1)
     d_static = detect_mode(_frames(static, masks))
     d_turn = detect_mode(_frames(turn, masks))
+    # a static object: the background moves with the camera, so few of its pixels stay unchanged
     assert d_static.mode == STATIC_OBJECT and d_static.static_fraction < 0.3
     assert d_turn.mode == MOVING_OBJECT and d_turn.static_fraction > 0.7
 
@@ -46,6 +47,7 @@ def test_keyframes_cover_directions_and_respect_the_cap():
     for a in kf:
         for b in kf:
             if a != b:
+                # keyframes at least 12 deg apart: arccos of float64 unit vectors, away from 0 (1e-9 deg for rounding)
                 assert np.degrees(np.arccos(np.clip(dirs[a] @ dirs[b], -1, 1))) >= 12.0 - 1e-9
     capped = select_keyframes(dirs, min_angle_deg=12.0, max_views=10)
     assert 1 < len(capped) <= 10

@@ -1,4 +1,4 @@
-"""Bad input through the real command line (GitHub issue 7, DESIGN.md "Command line").
+"""Bad input through the real command line (GitHub issue 7; README, "Command line").
 
 The contract: bad input exits with code 2 and one line on stderr, `error: ...`, naming the
 offending file; never a traceback; never a half-written output. A capture in which only some
@@ -892,7 +892,7 @@ def _run(run: Run) -> subprocess.CompletedProcess:
         if shutil.which("setpriv") is None:
             pytest.fail("running as root without util-linux setpriv: cannot drop the right to read any file")
         cmd = ["setpriv", "--bounding-set", "-dac_override,-dac_read_search"] + cmd
-    env = dict(os.environ, COLUMNS="300", GSCAN_DEBUG="")
+    env = dict(os.environ, GSCAN_DEBUG="")
     env.pop("GSCAN_DEBUG")
     return subprocess.run(cmd, capture_output=True, text=True, timeout=TIMEOUT_S, cwd=ROOT, env=env)
 
@@ -1002,6 +1002,6 @@ def test_names_are_printed_as_they_are(ctx: Ctx, tmp_path: Path):
     bad = cap / "rgb" / "[red]x.png"
     bad.write_bytes(bad.read_bytes()[:300])
     r = subprocess.run(_cli("scan", cap, "-o", tmp_path / "obj.gscan"), capture_output=True, text=True,
-                       timeout=TIMEOUT_S, cwd=ROOT, env=dict(os.environ, COLUMNS="300"))
+                       timeout=TIMEOUT_S, cwd=ROOT)
     assert r.returncode == 0, r.stderr
     assert "skipped frame [red]x:" in r.stderr and "cap :smile:" in r.stderr, r.stderr

@@ -67,12 +67,14 @@ def test_target_found_in_clutter(meshes, estimator, seed):
     res = estimator.estimate(as_frame(r))
     assert res.found, res.reason
     assert res.method == "gmatch"
+    # ADD within 1 cm (a few % of the object's size, the usual ADD success bound is 10 % of the diameter); a wrong pose
+    # is far off
     assert add(meshes[0].vertices, res.T_cam_obj, T_gt) < 0.01
     assert res.n_matches >= estimator.params.min_matches and 0.6 <= res.score <= 1.0
     assert res.view in estimator.view_names
     # with the target's mask the search is restricted and the answer agrees
     res_m = estimator.estimate(as_frame(r), mask=r.mask)
-    assert res_m.found and add(meshes[0].vertices, res_m.T_cam_obj, T_gt) < 0.01
+    assert res_m.found and add(meshes[0].vertices, res_m.T_cam_obj, T_gt) < 0.01  # ADD within 1 cm, as above
 
 
 def test_icp_refinement_does_not_hurt(meshes, estimator):
@@ -80,6 +82,7 @@ def test_icp_refinement_does_not_hurt(meshes, estimator):
     raw = estimator.estimate(as_frame(r), refine=False)
     ref = estimator.estimate(as_frame(r), refine=True)
     assert raw.found and ref.found
+    # ICP refinement does not make the pose worse than the match pose (1 mm of slack for ICP's own noise)
     assert add(meshes[0].vertices, ref.T_cam_obj, T_gt) <= add(meshes[0].vertices, raw.T_cam_obj, T_gt) + 1e-3
 
 
@@ -110,6 +113,7 @@ def test_mask_that_clips_the_object_does_not_bias_icp(meshes, estimator):
         res = estimator.estimate(as_frame(r), mask=m)
         assert res.found, res.reason
         deg, dist = pose_error(res.T_cam_obj, T_gt)
+        # clean rendered depth of the template's own views: the pose to well under a degree and a millimetre
         assert deg < 1.0 and dist < 0.001, (deg, dist)
 
 
@@ -133,11 +137,13 @@ def test_occluder_leaning_on_the_target(meshes, estimator):
     r = SynthScene([(target, T_world_tgt), (occluder, T_world_occ)], seed=5).render(
         T_world_cam, DEFAULT_INTRINSICS, rng=np.random.default_rng(5))
     whole = SynthScene([(target, T_world_tgt)], seed=5).render(T_world_cam, DEFAULT_INTRINSICS).mask
+    # the occluder hides 25-45 % of the target: the test's premise, not a precision
     assert 0.55 < r.mask.sum() / whole.sum() < 0.75
     for m in (None, r.mask):
         res = estimator.estimate(as_frame(r), mask=m)
         assert res.found, res.reason
         deg, dist = pose_error(res.T_cam_obj, r.T_cam_obj)
+        # occluded target: the pose still within a degree and 2 mm of the truth
         assert deg < 1.0 and dist < 0.002, (deg, dist)
 
 
@@ -151,6 +157,7 @@ def test_object_without_depth_in_a_frame_with_depth(meshes, estimator, template)
     res = estimator.estimate(as_frame(r, depth))
     assert res.found and res.method == "pnp", res.reason
     deg, dist = pose_error(res.T_cam_obj, T_gt)
+    # PnP without depth on 2D-3D matches: less accurate than the 3D path; 2 deg / 1 cm still tell a right pose
     assert deg < 2.0 and dist < 0.01, (deg, dist)
     from gscan.estimate.estimator import EstimateParams
 
@@ -199,6 +206,7 @@ def test_close_up_face_is_not_taken_for_the_table(meshes, estimator):
     for m in (None, r.mask):
         res = estimator.estimate(as_frame(r), mask=m)
         assert res.found, res.reason
+        # the same object seen again: its pose within 2 deg (a wrong pose is tens of degrees off)
         assert pose_error(res.T_cam_obj, r.T_cam_obj)[0] < 2.0
 
 
@@ -250,7 +258,7 @@ def test_pnp_fallback_without_depth(meshes, estimator):
     assert res.found, res.reason
     assert res.method == "pnp"
     deg, m = pose_error(res.T_cam_obj, T_gt)
-    assert deg < 3.0 and m < 0.03
+    assert deg < 3.0 and m < 0.03  # PnP on the pixels without depth: 3 deg / 3 cm tell a right pose from a wrong one
     assert res.timings_ms["refine"] == 0.0
     # inliers count distinct query keypoints (a keypoint matched in several views counted once per view: 701)
     assert res.n_matches <= len(estimator._features(frame, r.mask, lift=False))
@@ -268,8 +276,9 @@ def test_grasps_json_contract(meshes, template, tmp_path):
     res = est.estimate(as_frame(r))
     assert res.found
     assert set(res.grasps) == {"top", "side"}
+    # T_cam_obj @ T_obj_grasp computed once more: float64 rounding of one 4x4 product
     np.testing.assert_allclose(res.grasps["top"], res.T_cam_obj @ T_obj_grasp, atol=1e-12)
-    np.testing.assert_allclose(res.grasps["side"], res.T_cam_obj, atol=1e-12)
+    np.testing.assert_allclose(res.grasps["side"], res.T_cam_obj, atol=1e-12)  # T_cam_obj @ identity: float64 rounding
     out = json.loads(json.dumps(res.to_json()))
     assert list(out) == ["T_cam_obj", "score", "n_matches", "view", "reason", "grasps", "timings_ms", "method"]
     assert np.asarray(out["T_cam_obj"]).shape == (4, 4) and out["reason"] is None
@@ -334,6 +343,7 @@ def test_scanned_template_finds_target_in_clutter(meshes, scanned):
     r, T_gt = render_scene(meshes[0], meshes[1:], 0)
     res = est.estimate(as_frame(r))
     assert res.found, res.reason
+    # ADD within 1 cm in the ground truth's frame, through the template-to-ground-truth map
     assert add(meshes[0].vertices, res.T_cam_obj @ T_obj_gt, T_gt) < 0.01
     r, _ = render_scene(meshes[0], meshes[1:], 1, with_target=False)
     assert not est.estimate(as_frame(r)).found

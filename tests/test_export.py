@@ -103,7 +103,9 @@ def test_bop_export(synth: tuple[Path, dict], tmp_path: Path) -> None:
         T = np.eye(4)
         T[:3, :3] = np.reshape(e["cam_R_m2c"], (3, 3))
         T[:3, 3] = np.array(e["cam_t_m2c"]) / 1000.0
+        # written as JSON floats (17 digits) in mm and read back /1000: float64 rounding
         assert e["obj_id"] == 1 and np.abs(T - inv_T(T_obj_cam)).max() < 1e-6
+        # K written as JSON floats and read back: float64 rounding (np.allclose's atol 1e-8)
         assert np.allclose(np.reshape(scene_cam[str(i)]["cam_K"], (3, 3)), K.K)
         assert scene_cam[str(i)]["depth_scale"] == 1.0
         raw = cv2.imread(str(scene / "depth" / f"{i:06d}.png"), cv2.IMREAD_UNCHANGED)
@@ -122,12 +124,19 @@ def test_bop_export(synth: tuple[Path, dict], tmp_path: Path) -> None:
         ys, xs = np.nonzero(visib)
         assert g["bbox_visib"] == [xs.min(), ys.min(), xs.max() - xs.min(), ys.max() - ys.min()]  # calc_2d_bbox
     models_info = json.loads((out / "models" / "models_info.json").read_text())["1"]
+    # the exact diagonal of the box (float64); rel 1e-6 covers the PLY's float32 vertices (6e-8)
     assert models_info["diameter"] == pytest.approx(1000 * np.linalg.norm(BOX), rel=1e-6)
+    # the box's edges from float32 PLY vertices: within approx's rel 1e-6
     assert [models_info[k] for k in ("size_x", "size_y", "size_z")] == pytest.approx([1000 * s for s in BOX])
     ply = trimesh.load(out / "models" / "obj_000001.ply", process=False)
+    # float32 PLY vertices in mm: 0.1 m edges rounded to 1e-5 mm; 1e-3 mm leaves 100x
     assert np.allclose(ply.vertices, gt["mesh"].vertices * 1000, atol=1e-3)
     assert np.array_equal(ply.visual.vertex_colors[:, :3], gt["mesh"].vertex_colors)
     assert b"property float nx" in (out / "models" / "obj_000001.ply").read_bytes()[:600]
+    # the BOP toolkit's scorer reads models_eval/ (dataset_params: models_eval/obj_{obj_id:06d}.ply, in mm, and its
+    # models_info.json for the diameter): the same model as models/ here
+    for name in ("obj_000001.ply", "models_info.json"):
+        assert (out / "models_eval" / name).read_bytes() == (out / "models" / name).read_bytes()
     assert json.loads((out / "gscan_views.json").read_text())["2"] == "frame 02 é"
     targets = json.loads((out / "test_targets_bop19.json").read_text())
     assert targets[1] == {"im_id": 1, "inst_count": 1, "obj_id": 1, "scene_id": 1} and len(targets) == 4
@@ -143,6 +152,7 @@ def _check_with_gscan_io(scene: Path, Ts: list[np.ndarray]) -> None:
     seq = open_sequence(scene, format="bop")
     assert len(seq) == len(Ts) and seq.gt_T_cam_obj is not None
     for name, T_obj_cam in zip(seq.names, Ts):
+        # JSON floats in mm read back by gscan.io: float64 rounding
         assert np.abs(seq.gt_T_cam_obj[name] - inv_T(T_obj_cam)).max() < 1e-6
 
 
@@ -174,7 +184,7 @@ def test_foundationpose_export(synth: tuple[Path, dict], tmp_path: Path) -> None
     out = tmp_path / "fp"
     assert export(db_path, "foundationpose", out).views == 4
     ob = out / "ob_0000001"
-    assert np.allclose(np.loadtxt(ob / "K.txt"), K.K)
+    assert np.allclose(np.loadtxt(ob / "K.txt"), K.K)  # K.txt written with 17 significant digits: float64 rounding
     selected = yaml.safe_load((ob / "select_frames.yml").read_text(encoding="utf-8"))
     assert selected == [f"frame {i:02d} é" for i in range(4)]
     color_files = sorted((ob / "rgb").glob("*.png"))  # FoundationPose's run_one_ob reading order
@@ -183,6 +193,7 @@ def test_foundationpose_export(synth: tuple[Path, dict], tmp_path: Path) -> None
         depth = cv2.imread(str(cf).replace("rgb", "depth_enhanced"), -1) / 1e3
         mask = cv2.imread(str(cf).replace("rgb", "mask"), -1)
         cam_in_ob = np.loadtxt(str(cf).replace("rgb", "cam_in_ob").replace(".png", ".txt")).reshape(4, 4)
+        # cam_in_ob written with 17 significant digits: parsing restores the float64 values
         assert np.abs(cam_in_ob - gt["Ts"][i]).max() < 1e-12
         assert set(np.unique(mask)) <= {0, 255} and (mask > 0).sum() > 100
         assert np.all((depth > 0) == (mask > 0))  # synthetic depth exists exactly on the object
@@ -202,10 +213,12 @@ def test_colmap_export(synth: tuple[Path, dict], tmp_path: Path) -> None:
     rec = pycolmap.Reconstruction(str(out))
     assert rec.num_images() == 4 and rec.num_reg_images() == 4 and rec.num_cameras() == 1
     cam = next(iter(rec.cameras.values()))
+    # the principal point shifted by +0.5 (COLMAP's pixel centres): float64 rounding
     assert cam.model.name == "PINHOLE" and np.allclose(cam.params, [K.fx, K.fy, K.cx + 0.5, K.cy + 0.5])
     by_name = {im.name: im for im in rec.images.values()}
     for i, T_obj_cam in enumerate(gt["Ts"]):
         im = by_name[f"frame {i:02d} é.png"]  # the image file in images/ (COLMAP's image_path)
+        # poses stored as float64 quaternion and translation: a conversion's rounding, ~1e-15
         assert np.abs(im.cam_from_world().matrix() - inv_T(T_obj_cam)[:3]).max() < 1e-9
         png = cv2.imread(str(out / "images" / im.name))
         assert png is not None and png.shape[:2] == (cam.height, cam.width)
@@ -225,6 +238,7 @@ def test_colmap_export(synth: tuple[Path, dict], tmp_path: Path) -> None:
         for el in p.track.elements:
             im = rec.images[el.image_id]
             uv = cam.img_from_cam(im.cam_from_world() * p.xyz)
+            # exact synthetic keypoints (float32 pixels and points): 1e-3 px covers the float32 rounding
             assert np.linalg.norm(uv - im.points2D[el.point2D_idx].xy) < 1e-3
 
 
@@ -237,6 +251,7 @@ def test_mesh_exports(synth: tuple[Path, dict], tmp_path: Path, fmt: str) -> Non
     if isinstance(loaded, trimesh.Scene):
         loaded = next(iter(loaded.geometry.values()))
     assert len(loaded.vertices) == len(gt["mesh"].vertices) and len(loaded.faces) == len(gt["mesh"].triangles)
+    # float64 (PLY, GLB: float32) vertices written and read back: 1e-6 m covers float32's 6e-8 relative
     assert np.allclose(np.sort(loaded.vertices, axis=0), np.sort(gt["mesh"].vertices, axis=0), atol=1e-6)
     cols = loaded.visual.vertex_colors[:, :3]
     order = np.lexsort(loaded.vertices.T)
@@ -252,6 +267,7 @@ def test_json_export_and_determinism(synth: tuple[Path, dict], tmp_path: Path) -
     doc = json.loads((tmp_path / "a.json").read_text(encoding="utf-8"))
     assert doc["intrinsics"] == K.to_dict() and doc["units"] == "m" and doc["descriptor"] == "rootsift"
     assert [v["name"] for v in doc["views"]][-1] == "lost frame" and doc["views"][-1]["T_obj_cam"] is None
+    # JSON floats: float64 rounding (np.allclose's atol 1e-8)
     assert np.allclose(doc["views"][1]["T_obj_cam"], gt["Ts"][1])
     assert len(doc["edges"]) == 4 and doc["edges"][3]["accepted"] is False and doc["edges"][3]["reason"] == "no overlap"
     assert doc["edges"][0]["n_matches"] == len(np.intersect1d(gt["kp_ids"][0], gt["kp_ids"][1]))
@@ -355,3 +371,90 @@ def test_cli_export_json(synth: tuple[Path, dict], tmp_path: Path) -> None:
     doc = json.loads(proc.stdout)
     assert doc == {"output": str(out), "format": "colmap", "views": 4, "files": 9}
     assert sum(len(f) for _, _, f in os.walk(out)) == 9  # 5 model files and the 4 images
+
+
+def test_cli_export_says_what_it_wrote(synth: tuple[Path, dict], tmp_path: Path) -> None:
+    """The human line names what the file holds: a mesh's size and whether it is closed, not "views"."""
+    import subprocess
+    import sys
+
+    db_path, gt = synth
+    run = [sys.executable, "-m", "gscan.cli", "export", str(db_path)]
+    proc = subprocess.run(run + ["--format", "ply", "-o", str(tmp_path / "m.ply")], capture_output=True, text=True,
+                          timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    n_v, n_f = len(gt["mesh"].vertices), len(gt["mesh"].triangles)  # a closed box: nothing to close
+    assert f"mesh of {n_v} vertices / {n_f} triangles, watertight" in " ".join(proc.stderr.split())
+    assert "views" not in proc.stderr
+    proc = subprocess.run(run + ["--format", "bop", "-o", str(tmp_path / "bop")], capture_output=True, text=True,
+                          timeout=120)
+    assert proc.returncode == 0 and "a BOP dataset of 4 views" in " ".join(proc.stderr.split()), proc.stderr
+
+
+# The bundled sample is a rendered closed box (gscan/sample/sample.json: box_size_m); its scan never sees the
+# bottom, which stands on the table.
+SAMPLE_BOX_M3 = 0.16 * 0.10 * 0.07
+
+
+def test_sample_models_are_watertight_with_the_box_volume(sample_template: Path, tmp_path: Path) -> None:
+    """The exported models of the scanned sample are closed and hold the box's volume within 5 %: the fused
+    surface lies within about a voxel (1 mm) of the faces, 0.6 % of the volume per face pair, and TSDF rounds
+    the box's edges off; the cut bottom is walled down to the measured table plane."""
+    import subprocess
+    import sys
+
+    out = tmp_path / "bop"
+    export(sample_template, "bop", out)
+    for models in ("models", "models_eval"):
+        ply = trimesh.load(out / models / "obj_000001.ply")
+        assert ply.is_watertight and ply.is_winding_consistent, models
+        assert abs(ply.volume * 1e-9 / SAMPLE_BOX_M3 - 1) < 0.05, (models, ply.volume)  # mm^3 -> m^3
+    assert (out / "models" / "obj_000001.ply").read_bytes() == (out / "models_eval" / "obj_000001.ply").read_bytes()
+    for fmt in ("ply", "obj", "glb"):
+        export(sample_template, fmt, tmp_path / f"m.{fmt}")
+        m = trimesh.load(tmp_path / f"m.{fmt}", force="mesh")
+        # the same bound as the BOP model's (above): surface within a voxel, edges rounded
+        assert m.is_watertight and abs(m.volume / SAMPLE_BOX_M3 - 1) < 0.05, (fmt, m.volume)
+    fp = tmp_path / "fp"
+    export(sample_template, "foundationpose", fp)
+    assert trimesh.load(fp / "ob_0000001" / "model" / "model.obj", force="mesh").is_watertight
+    # --keep-holes: the stored mesh as fused, open at the bottom; `info` counts the same open edges
+    proc = subprocess.run([sys.executable, "-m", "gscan.cli", "export", str(sample_template), "--format", "ply",
+                           "-o", str(tmp_path / "open.ply"), "--keep-holes"], capture_output=True, text=True,
+                          timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    opened = trimesh.load(tmp_path / "open.ply", process=False)
+    assert not opened.is_watertight
+    info = subprocess.run([sys.executable, "-m", "gscan.cli", "info", str(sample_template), "--json"],
+                          capture_output=True, text=True, timeout=120)
+    mesh = json.loads(info.stdout)["mesh"]
+    assert mesh["open_edges"] > 0 and mesh["vertices"] == len(opened.vertices)
+    from gscan.geometry.meshfill import boundary_edges
+
+    assert mesh["open_edges"] == len(boundary_edges(opened.faces))
+    assert f"{mesh['open_edges']} open edges" in " ".join(proc.stderr.split())
+
+
+def test_sample_colmap_points_carry_their_reprojection_error(sample_template: Path, tmp_path: Path) -> None:
+    """Every 3D point's `error` is its track's mean reprojection error in pixels, recomputed here through
+    pycolmap's own camera model (COLMAP showed -1 for all of them, and a mean error of 0). Tracks hold
+    observations within 1 px of their point (gscan's poses are fixed, so farther ones are split off); the mean
+    over the sample, with its registered poses, is far below that (measured 0.05 px; 0.3 leaves room for
+    another platform's registration)."""
+    out = tmp_path / "colmap"
+    export(sample_template, "colmap", out)
+    rec = pycolmap.Reconstruction(str(out))
+    errors, recomputed = [], []
+    for p in rec.points3D.values():
+        d = []
+        for el in p.track.elements:
+            im = rec.images[el.image_id]
+            uv = rec.cameras[im.camera_id].img_from_cam(im.cam_from_world() * p.xyz)
+            d.append(np.linalg.norm(uv - im.points2D[el.point2D_idx].xy))
+        errors.append(p.error)
+        recomputed.append(np.mean(d))
+    errors, recomputed = np.array(errors), np.array(recomputed)
+    assert np.all(errors >= 0) and np.all(errors < 1.0), errors.max()
+    np.testing.assert_allclose(errors, recomputed, atol=1e-6)  # both in float64 from the same numbers
+    assert rec.compute_mean_reprojection_error() < 0.3
+    assert max(p.track.length() for p in rec.points3D.values()) > 5  # tracks still span many views

@@ -108,8 +108,10 @@ def test_sift_norm_and_rootsift_unit_norm(real_features):
     assert np.array_equal(sift.pixels, root.pixels)  # same keypoints, same order
     n = np.linalg.norm(sift.descriptors, axis=1)
     assert 490 < np.median(n) < 530  # OpenCV's SIFT scale (documented for eps_f)
+    # RootSIFT is L2-normalised in float32: rounding ~1e-7 over 128 values
     np.testing.assert_allclose(np.linalg.norm(root.descriptors, axis=1), 1.0, atol=1e-5)
     ref = np.sqrt(sift.descriptors / sift.descriptors.sum(axis=1, keepdims=True))
+    # the reference in float32: the same operations in another order, rounding ~1e-7
     np.testing.assert_allclose(root.descriptors, ref, atol=1e-5)
 
 
@@ -141,6 +143,7 @@ def test_points_consistent_with_depth(real_frame, real_features):
             win = depth[max(0, v[i] - 2):v[i] + 3, max(0, u[i] - 2):u[i] + 3]
             valid = win[win > 0]
             assert valid.size >= 0.5 * 25
+            # the median of float32 depths, read back: float32 rounding (6e-8 m at 1 m)
             assert f.points[i, 2] == pytest.approx(np.median(valid), abs=1e-6)
     # keypoints where the frame has no depth are dropped: blank out a band and re-extract
     blank = real_frame.depth.copy()
@@ -197,6 +200,8 @@ def test_l2_equals_bruteforce(real_features, kind):
     D = descriptor_distances(a, b, kind)
     assert D.dtype == np.float32 and D.shape == ref.shape
     scale = np.linalg.norm(a, axis=1).max()
+    # distances by a float32 BLAS product (|a|^2 + |b|^2 - 2ab) against a float64 reference: cancellation costs ~1e-4 of
+    # the descriptors' scale; 1e-3 leaves 10x
     np.testing.assert_allclose(D, ref, atol=1e-3 * scale, rtol=1e-5)
     assert np.all(D >= 0)
 

@@ -93,9 +93,10 @@ def test_keep_consistent_delta_is_the_relative_error_with_a_hard_margin():
     # |0.1 - 0.104| = 4 mm < eta = 1 cm -> 0.004 / 0.1; |0.3 - 0.32| = 2 cm >= eta -> never consistent;
     # a pair sharing a keypoint with the anchor is never combined; the anchor itself is not kept
     kept, g, arg = _keep(F, I, G, 0, 0.08, 0.01)
+    # a relative distance error of hand-built points: float64 rounding of O(0.1) values
     assert kept == [1] and g == pytest.approx([0.04], abs=1e-9) and arg == 0
     kept, g, _ = _keep(F, I, G, 0, 0.08, 0.03)  # eta 3 cm: 2 cm / 0.3 m passes
-    assert kept == [1, 2] and g == pytest.approx([0.04, 0.02 / 0.3], abs=1e-9)
+    assert kept == [1, 2] and g == pytest.approx([0.04, 0.02 / 0.3], abs=1e-9)  # 2 cm / 0.3 m: float64 rounding
     assert _keep(F, I, G, 0, 0.03, 0.03)[0] == []  # both relative errors above eps
     # the depth factor scales the margin: a 2 cm error passes eta 1 cm at factor 2.5
     F2, I2, G2 = _members(ps, pt, [(0, 0), (1, 1), (2, 2), (0, 1)], cf=np.array([1.0, 1.0, 2.5, 1.0]))
@@ -103,7 +104,7 @@ def test_keep_consistent_delta_is_the_relative_error_with_a_hard_margin():
     # g is the running max: a member's earlier cost is kept when larger; argmin picks the smaller g
     G2[1] = 0.07
     kept, g, arg = _keep(F2, I2, G2, 0, 0.08, 0.01)
-    assert g == pytest.approx([0.07, 0.02 / 0.3], abs=1e-9) and arg == 1
+    assert g == pytest.approx([0.07, 0.02 / 0.3], abs=1e-9) and arg == 1  # as above: float64 rounding
 
 
 def test_flip_test_mirror_and_collinear():
@@ -281,6 +282,7 @@ def test_mirrored_3d_layout_resolved_by_triple_product():
     def make(seed):
         return _mirror_problem(seed, thickness=0.1)
     assert _rate(make, GMatchParams(constraint="triple")) >= 0.9
+    # distances alone cannot tell a mirror image: the ablation fails nearly every mirrored problem
     assert _rate(make, GMatchParams(constraint="distance"), n=20) <= 0.1
 
 
@@ -318,14 +320,19 @@ def test_deterministic_and_consistent(seed, constraint):
     assert a.cost == b.cost
     # one-to-one, below the thresholds, list cost = max pairwise delta
     assert len(np.unique(a.matches[:, 0])) == len(a.matches) == len(np.unique(a.matches[:, 1]))
+    # candidate pairs only: their descriptor distance is below the threshold (1.0 here)
     assert np.all(dist[a.matches[:, 0], a.matches[:, 1]] < 1.0)
     if len(a.matches) >= 2:
         ls = np.linalg.norm(ps[a.matches[:, 0], None] - ps[None, a.matches[:, 0]], axis=-1)
         lt = np.linalg.norm(pt[a.matches[:, 1], None] - pt[None, a.matches[:, 1]], axis=-1)
         iu = np.triu_indices(len(a.matches), 1)
         worst = (np.abs(ls - lt)[iu] / ls[iu]).max()
+        # the list's cost is its largest pairwise delta, computed again here in float64 (1e-9: rounding of O(0.1)
+        # ratios)
         assert worst <= a.cost + 1e-9 <= p.eps_c + 1e-9
         if constraint != "triple":  # triple adds the off-plane term to the cost
+            # the same delta recomputed from float32 points: float32 rounding (6e-8 relative) of distances, 1e-6 allows
+            # it
             assert worst == pytest.approx(a.cost, abs=1e-6)
     assert len(a.matches) <= p.L
 
@@ -345,6 +352,7 @@ def test_trace_holds_each_hypothesis_list():
         ls = np.linalg.norm(ps[t.matches[:, 0], None] - ps[None, t.matches[:, 0]], axis=-1)
         lt = np.linalg.norm(pt[t.matches[:, 1], None] - pt[None, t.matches[:, 1]], axis=-1)
         iu = np.triu_indices(t.length, 1)
+        # every hypothesis's cost bounds its own pairwise deltas (float64 recomputation; 1e-9 for rounding)
         assert (np.abs(ls - lt)[iu] / ls[iu]).max() <= t.cost + 1e-9
     done = [t for t in tr if not t.pruned]
     win = min(done, key=lambda t: (-t.length, t.cost))

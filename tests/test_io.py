@@ -146,6 +146,7 @@ def test_open3d_sequence_real(real_dir: Path):
     assert seq.names == ["00000", "00001", "00002", "00003", "00004"]
     assert len(seq) == 5 and seq.problems == {}
     assert seq.intrinsics == PRIMESENSE
+    # a decimal scale parsed or derived in float64: approx's rel 1e-6 is far above its rounding
     assert seq.depth_scale == pytest.approx(0.001)
     for i in (0, 4):
         fr = seq[i]
@@ -153,6 +154,7 @@ def test_open3d_sequence_real(real_dir: Path):
         assert fr.depth.shape == (480, 640) and fr.depth.dtype == np.float32
         valid = fr.depth[fr.depth > 0]
         assert valid.size > 0.5 * fr.depth.size
+        # plausible real depth (the scenes are 0.8-3.5 m away): catches a wrong unit, not a precision
         assert 0.5 < np.median(valid) < 5.0 and valid.max() < 10.0
     # colour is RGB: identical to cv2's BGR reversed
     bgr = cv2.imread(str(base / "RGBD" / "color" / "00002.jpg"))
@@ -164,6 +166,7 @@ def test_open3d_sequence_real(real_dir: Path):
                          [0.0, -0.9994022291201125, -0.03457143950937459, 0.5963093994288613],
                          [-0.9630470785211782, -0.009311233346521649, 0.2691721112697053, 2.126036136362892],
                          [0.0, 0.0, 0.0, 1.0]])
+    # a pose parsed from text: float64 parsing is exact to 1e-16 on these O(1) entries
     np.testing.assert_allclose(gt["00001"], expected, atol=1e-12)
     assert seq.gt_T_cam_obj is None and not seq.has_masks
 
@@ -191,8 +194,10 @@ def test_tum_frame_matches_open3d(real_dir: Path):
     ref = _o3d_depth(o3d.io.read_image(str(d / "TUM_color.png")), o3d.io.read_image(str(d / "TUM_depth.png")), "tum")
     both = (ref > 0) & (fr.depth > 0)
     assert both.mean() > 0.5
+    # open3d's own reader gives the same float32 depths up to rounding (1e-7 m); a wrong scale or a shifted image is off
+    # by whole depth steps over many pixels
     assert np.abs(ref[both] - fr.depth[both]).max() < 1e-3
-    assert 0.5 < np.median(fr.depth[fr.depth > 0]) < 5.0
+    assert 0.5 < np.median(fr.depth[fr.depth > 0]) < 5.0  # plausible real depth: catches a wrong unit
 
 
 def test_sun_depth_matches_open3d(real_dir: Path):
@@ -203,6 +208,7 @@ def test_sun_depth_matches_open3d(real_dir: Path):
     ref = _o3d_depth(o3d.io.read_image(str(d / "SUN_color.jpg")), o3d.io.read_image(str(d / "SUN_depth.png")), "sun")
     valid = (ref > 0) | (fr.depth > 0)
     assert valid.mean() > 0.5
+    # open3d's own reader: the same float32 depths up to rounding (1e-7 m); a wrong scale or shift is off by whole steps
     assert np.abs(ref[valid] - fr.depth[valid]).max() < 1e-3
     np.testing.assert_array_equal(read_sun_depth(d / "SUN_depth.png"), fr.depth)
     # the raw file read as plain millimetres is not the same depth: the bit rotation matters
@@ -225,8 +231,9 @@ def test_nyu_depth_matches_open3d(real_dir: Path):
     ref = _o3d_depth(o3d.geometry.Image(col), o3d.geometry.Image(raw_be.copy()), "nyu")
     valid = (ref > 0) | (fr.depth > 0)
     assert valid.mean() > 0.5
+    # open3d's own reader: the same float32 depths up to rounding (1e-7 m); a wrong scale or shift is off by whole steps
     assert np.abs(ref[valid] - fr.depth[valid]).max() < 1e-3
-    assert 1.0 < np.median(fr.depth[fr.depth > 0]) < 7.0
+    assert 1.0 < np.median(fr.depth[fr.depth > 0]) < 7.0  # plausible real depth: catches a wrong unit
     np.testing.assert_array_equal(read_nyu_depth(d / "NYU_depth.pgm"), fr.depth)
     with pytest.raises(InputError, match="TUM_depth.png"):
         read_nyu_depth(d / "TUM_depth.png")
@@ -237,19 +244,22 @@ def test_ycbv_frames(real_dir: Path, idx: int):
     d = real_dir / "ycbv_frames" / "data"
     meta = read_ycbv_meta(d / f"{idx:06d}-meta.mat")
     K, depth_scale, poses = meta
-    assert depth_scale == pytest.approx(1e-4)
+    assert depth_scale == pytest.approx(1e-4)  # factor_depth 10000 read from the .mat file, inverted in float64
     intr = Intrinsics.from_matrix(K, 640, 480)
     fr = load_frame(d / f"{idx:06d}-color.png", d / f"{idx:06d}-depth.png", intr, depth_scale)
+    # plausible YCB-Video depth (objects on a table 0.5-1.5 m away): catches a wrong unit
     assert 0.3 < np.median(fr.depth[fr.depth > 0]) < 2.0
     label = cv2.imread(str(d / f"{idx:06d}-label.png"), cv2.IMREAD_UNCHANGED)
     assert set(poses) == set(np.unique(label)) - {0}
     pts = backproject(fr.depth, intr)
     for cls, T_cam_obj in poses.items():
-        assert np.allclose(T_cam_obj[3], [0, 0, 0, 1])
+        assert np.allclose(T_cam_obj[3], [0, 0, 0, 1])  # the bottom row written by the reader: exact
+        # the .mat stores the poses in float32-like precision; 1e-4 still tells a rotation from anything else
         np.testing.assert_allclose(T_cam_obj[:3, :3].T @ T_cam_obj[:3, :3], np.eye(3), atol=1e-4)
         sel = (label == cls) & (fr.depth > 0)
         assert sel.sum() > 1000
         centre = np.median(pts[sel], axis=0)
+        # the object's visible pixels centre within 10 cm of its pose's origin (YCB objects are under 25 cm)
         assert np.linalg.norm(centre - T_cam_obj[:3, 3]) < 0.10, cls
 
 
@@ -266,8 +276,10 @@ def test_capture_layout_roundtrip(tmp_path: Path):
         fr = seq[name]
         np.testing.assert_array_equal(fr.color, color_img(i)[:, :, ::-1])
         assert fr.color[0, 0, 0] == 250  # red first: RGB
+        # float32 depth scaled in float32: a few ulps (6e-8 each); rtol 1e-6 = 16 ulps
         np.testing.assert_allclose(fr.depth, depth_mm(i).astype(np.float32) * 0.001, rtol=1e-6)
         assert fr.mask.dtype == bool and fr.mask.sum() == 20 * 20 and fr.mask[20, 30]
+        # a pose parsed from text: float64 parsing is exact to 1e-16 on these O(1) entries
         np.testing.assert_allclose(seq.gt_T_cam_obj[name], pose(i), atol=1e-12)
     assert [f.name for f in seq] == seq.names
 
@@ -276,6 +288,7 @@ def test_capture_depth_scale_override_and_forced_intrinsics(tmp_path: Path):
     root = make_capture(tmp_path / "cap", masks=False, poses=False, jpg=True)
     seq = open_sequence(root, depth_scale=0.002, intrinsics=Intrinsics(70.0, 70.0, 32.0, 24.0, W, H))
     assert seq.depth_scale == 0.002 and seq.intrinsics.fx == 70.0
+    # float32 depth scaled in float32: a few ulps (6e-8 each); rtol 1e-6 = 16 ulps
     np.testing.assert_allclose(seq[0].depth, depth_mm(0).astype(np.float32) * 0.002, rtol=1e-6)
     assert not seq.has_masks and seq.gt_T_cam_obj is None
     # cam_K.txt given explicitly through the override
@@ -290,6 +303,7 @@ def test_open3d_layout_built(tmp_path: Path):
     assert seq.names == ["00000", "00001", "00002"]
     assert seq.intrinsics == Intrinsics.from_matrix(K_SMALL, W, H)
     for i, n in enumerate(seq.names):
+        # a pose parsed from text: float64 parsing is exact to 1e-16 on these O(1) entries
         np.testing.assert_allclose(seq.gt_T_world_cam[n], pose(10 + i), atol=1e-12)
     fr = seq[1]
     assert abs(int(fr.color[5, 5, 0]) - 250) < 30  # JPEG, red half
@@ -301,6 +315,7 @@ def test_open3d_layout_differently_numbered_folders(tmp_path: Path):
         (root / "depth" / f"{i:05d}.png").rename(root / "depth" / f"d{i + 1:06d}.png")
     seq = open_sequence(root)
     assert seq.names == ["00000", "00001", "00002"] and seq.problems == {}
+    # float32 depth scaled in float32: a few ulps (6e-8 each); rtol 1e-6 = 16 ulps
     np.testing.assert_allclose(seq[2].depth, depth_mm(2).astype(np.float32) * 0.001, rtol=1e-6)
     (root / "depth" / "d000003.png").unlink()  # counts differ now: no pairing by order
     with pytest.raises(InputError, match="00000.jpg"):
@@ -314,14 +329,18 @@ def test_tum_layout_built(tmp_path: Path):
         open_sequence(root)
     intr = Intrinsics.from_matrix(K_SMALL, W, H)
     seq = open_sequence(root, intrinsics=intr)
+    # 1/5000 in float64: approx's rel 1e-6 is far above its rounding
     assert seq.format == "tum" and seq.depth_scale == pytest.approx(1 / 5000)
     t2 = f"{1305031102.0 + 0.2:.6f}"
     assert t2 in seq.problems and "depth.txt" in seq.problems[t2] and t2 not in seq.names
     assert len(seq) == 3
     fr = seq[0]
+    # raw / 5000 against mm * 0.001, each rounded in float32 (6e-8): 1e-5 leaves 100x
     np.testing.assert_allclose(fr.depth, depth_mm(0).astype(np.float32) * 0.001, rtol=1e-5)
     T = seq.gt_T_world_cam[seq.names[1]]
+    # parsed from text: float64 parsing, within assert_allclose's rtol 1e-7
     np.testing.assert_allclose(T[:3, 3], [0.1, 0.2, 1.3])
+    # a quaternion turned into a matrix: float64 rounding ~1e-16
     np.testing.assert_allclose(T[:3, :3], [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-12)
 
 
@@ -330,14 +349,17 @@ def test_bop_layout_built(tmp_path: Path):
     assert detect_format(root) == "bop"
     seq = open_sequence(root)
     assert seq.format == "bop" and seq.names == ["000000", "000001", "000002"]
+    # depth_scale 0.1 mm: parsed, then converted to metres in float64
     assert seq.depth_scale == pytest.approx(1e-4) and seq.has_masks
     for i, n in enumerate(seq.names):
         fr = seq[n]
         assert fr.intrinsics.fx == pytest.approx(60.0 + i)  # per-image cam_K
+        # raw * 0.1 mm against mm * 0.001, each rounded in float32 (6e-8): 1e-5 leaves 100x
         np.testing.assert_allclose(fr.depth, depth_mm(i).astype(np.float32) * 0.001, rtol=1e-5)
         np.testing.assert_allclose(seq.gt_T_cam_obj[n], pose(500 + i), atol=1e-9)  # first obj_id = 5
         assert fr.mask[6, 6] and not fr.mask[16, 6]
     seq7 = open_sequence(root, obj_id=7)
+    # a pose from mm text converted to metres: float64 rounding ~1e-16 of O(1) values
     np.testing.assert_allclose(seq7.gt_T_cam_obj["000001"], pose(701), atol=1e-9)
     assert seq7[1].mask[16, 6] and not seq7[1].mask[6, 6]
 
@@ -410,7 +432,7 @@ def test_bop_frame_with_bad_calibration_is_left_out(tmp_path: Path):
     cams["2"]["depth_scale"] = 1e300
     (root / "scene_camera.json").write_text(json.dumps(cams))
     seq = open_sequence(root)
-    assert seq.names == ["000003"] and seq[0].intrinsics.fx == pytest.approx(63.0)
+    assert seq.names == ["000003"] and seq[0].intrinsics.fx == pytest.approx(63.0)  # 63 parsed from text: exact
     assert sorted(seq.problems) == ["000000", "000001", "000002"]
     assert "focal" in seq.problems["000001"] and "depth_scale" in seq.problems["000002"]
 

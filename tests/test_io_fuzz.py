@@ -7,6 +7,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -38,11 +39,18 @@ def _check_frame(fr: RGBDFrame, w: int, h: int) -> None:
     assert fr.mask is None or (fr.mask.shape == (h, w) and fr.mask.dtype == bool)
 
 
+@pytest.fixture(scope="module")
+def fuzz_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A folder in the run's temporary folder for the examples' files (each example makes and removes its own
+    sub-folder; Hypothesis runs many examples per test, so the function-scoped tmp_path does not fit)."""
+    return tmp_path_factory.mktemp("fuzz")
+
+
 @FUZZ
 @given(header=st.sampled_from(HEADERS), body=st.binary(min_size=0, max_size=600),
        which=st.sampled_from(["color", "depth", "mask", "sun", "nyu", "meta"]))
-def test_random_bytes(header: bytes, body: bytes, which: str):
-    tmp = Path(tempfile.mkdtemp(prefix="gscan_fuzz_"))
+def test_random_bytes(fuzz_dir: Path, header: bytes, body: bytes, which: str):
+    tmp = Path(tempfile.mkdtemp(prefix="gscan_fuzz_", dir=fuzz_dir))
     try:
         good_c, good_d, good_m = tmp / "c.png", tmp / "d.png", tmp / "m.png"
         rng = np.random.default_rng(0)
@@ -93,8 +101,8 @@ def images(draw):
 
 @FUZZ
 @given(color=images(), depth=images(), scale=st.sampled_from([1e-4, 1e-3, 1 / 5000, 1.0]), same_size=st.booleans())
-def test_random_images(color: np.ndarray, depth: np.ndarray, scale: float, same_size: bool):
-    tmp = Path(tempfile.mkdtemp(prefix="gscan_fuzz_"))
+def test_random_images(fuzz_dir: Path, color: np.ndarray, depth: np.ndarray, scale: float, same_size: bool):
+    tmp = Path(tempfile.mkdtemp(prefix="gscan_fuzz_", dir=fuzz_dir))
     if same_size:  # a plausible 16-bit depth of the colour's size, so that valid frames occur too
         mm = np.resize(depth.astype(np.float64).ravel(), color.shape[:2])
         depth = (300 + mm % 3000).astype(np.uint16)
@@ -111,6 +119,7 @@ def test_random_images(color: np.ndarray, depth: np.ndarray, scale: float, same_
             assert ("c." in str(e) or "d." in str(e)) and "\n" not in str(e)
             return
         _check_frame(fr, w, h)
+        # raw * scale in float32 against the same product: rounding, 1e-6 relative = 16 float32 ulps
         np.testing.assert_allclose(fr.depth, depth * np.float32(scale), rtol=1e-6)
         assert depth.dtype == np.uint16 and depth.ndim == 2 and depth.shape == (h, w)
         med = float(np.median(fr.depth[fr.depth > 0]))
@@ -124,8 +133,8 @@ def test_random_images(color: np.ndarray, depth: np.ndarray, scale: float, same_
        damage=st.lists(st.sampled_from(["none", "junk_color", "junk_depth", "drop_depth", "small_depth",
                                         "byte_depth", "junk_mask", "junk_pose", "junk_camk"]), min_size=4,
                        max_size=4))
-def test_random_capture_sequences(n: int, seed: int, damage: list[str]):
-    tmp = Path(tempfile.mkdtemp(prefix="gscan_fuzz_"))
+def test_random_capture_sequences(fuzz_dir: Path, n: int, seed: int, damage: list[str]):
+    tmp = Path(tempfile.mkdtemp(prefix="gscan_fuzz_", dir=fuzz_dir))
     try:
         rng = np.random.default_rng(seed)
         root = tmp / "seq"

@@ -1,4 +1,13 @@
-"""Hand-computed checks of gscan.evaluate.metrics (ADD/ADD-S/AUC, ATE, MSSD/MSPD, BOP recall)."""
+"""Hand-computed checks of gscan.evaluate.metrics (ADD/ADD-S/AUC, ATE, VSD, MSSD/MSPD, BOP recall).
+
+Tolerances: every expected value is worked out by hand and gscan computes it in float64 from a few operations,
+so the two agree to rounding (~1e-16 relative). `abs=1e-12` on values of order 0.01-100 and pytest.approx's
+default (rel 1e-6) leave many orders of magnitude; 1e-9 where an SVD (ATE's alignment), a k-d tree over moved
+points or a sum over a few hundred points comes in. VSD errors are ratios of pixel counts, exact up to one
+division (atol 0 or 1e-12). Angles come from arccos of a rotation's trace, well conditioned away from 0 and 180
+deg (at 30 deg an error e in the cosine moves the angle by 2e rad); at 180 deg one ulp of the trace reads as
+1.2e-6 deg, inside approx's 1.8e-4 deg there.
+"""
 from __future__ import annotations
 
 import numpy as np
@@ -182,3 +191,80 @@ def test_diameter_is_the_largest_pairwise_distance():
     flat = np.c_[rng.random((50, 2)), np.zeros(50)]  # coplanar: no 3D hull, still exact
     assert diameter(flat) == pytest.approx(np.sqrt(((flat[:, None] - flat[None]) ** 2).sum(-1)).max())
     assert diameter(pts[:1]) == 0.0
+
+
+# --------------------------------------------------------------------------------------------------- VSD
+# A square plate of half-side 0.1005 m facing a camera with f = 100 px, principal point (49.5, 49.5) in a 100 x 100
+# image: at 1.0 m it covers the 20 x 20 pixel centres with |u - 49.5| <= 9.5 (its edge at 10.05 px lies between
+# pixel centres), at 1.25 m the centred 16 x 16 (edge at 8.04 px). Every count below follows from that.
+VSD_K = np.array([[100.0, 0.0, 49.5], [0.0, 100.0, 49.5], [0.0, 0.0, 1.0]])
+HALF = 0.1005
+
+
+def _plate_depth(z: float) -> np.ndarray:
+    """[100 x 100] depth of the plate at distance z along the optical axis, 0 off the plate (analytic)."""
+    c = np.abs(np.arange(100) - 49.5) < 100.0 * HALF / z
+    return np.where(c[:, None] & c[None, :], z, 0.0)
+
+
+def test_vsd_of_a_plate_moved_along_the_optical_axis():
+    """The estimate 0.25 m behind the truth: its 16 x 16 pixels all lie 0.25 m (x the ray's length, at most
+    1.0056 at the 16 x 16's corners) off the truth's, and the truth's other 400 - 256 pixels are not matched."""
+    from gscan.evaluate.metrics import vsd
+
+    d_gt, d_est = _plate_depth(1.0), _plate_depth(1.25)
+    assert (d_gt > 0).sum() == 400 and (d_est > 0).sum() == 256
+    e = vsd(d_gt, d_est, d_gt, VSD_K, taus=[0.1, 0.25, 0.3])
+    # tau 0.1 and 0.25 <= every pixel's distance: nothing matches; tau 0.3 > all: the 256 match
+    np.testing.assert_allclose(e, [1.0, 1.0, (400 - 256) / 400], rtol=0, atol=1e-12)
+    # the exact pose: every visible pixel matches for any tau > 0
+    np.testing.assert_allclose(vsd(d_gt, d_gt, d_gt, VSD_K, taus=[1e-6, 0.1]), [0.0, 0.0], atol=0)
+    # no model in either pose: the error is 1 (nothing to compare)
+    none = np.zeros((100, 100))
+    np.testing.assert_allclose(vsd(d_gt, none, none, VSD_K, taus=[0.1]), [1.0], atol=0)
+
+
+def test_vsd_visibility_rules():
+    """BOP19 visibility: an occluder more than delta (15 mm) in front hides the model; a pixel without measured
+    depth counts as visible."""
+    from gscan.evaluate.metrics import VSD_DELTA_M, vsd
+
+    d_gt, d_est = _plate_depth(1.0), _plate_depth(1.25)
+    occluded = d_gt.copy()
+    occluded[:, :50] = np.where(d_gt[:, :50] > 0, 0.9, 0.0)  # the plate's left half (columns 40-49) hidden
+    # truth visible on its right half (200 px); the estimate's own pixels are all > delta behind the measured
+    # surface, so it is visible only where it covers the truth's visible pixels (16 rows x columns 50-57)
+    e = vsd(occluded, d_est, d_gt, VSD_K, taus=[0.1, 0.3])
+    np.testing.assert_allclose(e, [1.0, (200 - 128) / 200], atol=1e-12)
+    assert vsd(occluded, d_gt, d_gt, VSD_K, taus=[0.1])[0] == 0.0  # the exact pose is not blamed for the occluder
+    # an occluder just within delta in front does not hide the model
+    near = np.where(d_gt > 0, 1.0 - 0.9 * VSD_DELTA_M, 0.0)
+    np.testing.assert_allclose(vsd(near, d_est, d_gt, VSD_K, taus=[0.1, 0.3]), [1.0, (400 - 256) / 400], atol=1e-12)
+    # no measured depth anywhere: both surfaces count as visible, as with a measured plate
+    np.testing.assert_allclose(vsd(np.zeros((100, 100)), d_est, d_gt, VSD_K, taus=[0.1, 0.3]),
+                               [1.0, (400 - 256) / 400], atol=1e-12)
+
+
+def test_vsd_on_rendered_plate_and_recall():
+    """The plate ray-cast (geometry.raycast) gives the analytic depth images; BOP19's taus scale with the
+    diameter, and AR_VSD averages the recall over its thresholds (strictly below) and the taus."""
+    from gscan.evaluate.metrics import VSD_TAU_FRACTIONS, ar_vsd, vsd, vsd_taus
+    from gscan.geometry.raycast import MeshRaycaster
+
+    V = np.array([[-HALF, -HALF, 0], [HALF, -HALF, 0], [HALF, HALF, 0], [-HALF, HALF, 0]])
+    caster = MeshRaycaster(V, np.array([[0, 1, 2], [0, 2, 3]]))
+    cam = Intrinsics(100.0, 100.0, 49.5, 49.5, 100, 100)
+    for z in (1.0, 1.25):
+        T_obj_cam = make_T(np.eye(3), [0.0, 0.0, -z])  # the camera z metres in front of the plate, facing it
+        np.testing.assert_allclose(caster.depth(cam, T_obj_cam), _plate_depth(z), atol=1e-6)  # float32 depth
+    diam = 2 * np.sqrt(2) * HALF  # 0.2843 m: the plate's diagonal
+    taus = vsd_taus(diam)
+    np.testing.assert_allclose(taus, VSD_TAU_FRACTIONS * diam)
+    # 5 cm behind: the same 400 pixels (edge at 9.57 px), each 0.05 x its ray's length (<= 1.009) off, so
+    # 0.0500-0.0505 m: the taus 0.014, 0.028 and 0.043 m fail every pixel, the seven from 0.057 m on none
+    e = vsd(_plate_depth(1.0), _plate_depth(1.05), _plate_depth(1.0), cam, taus)
+    np.testing.assert_allclose(e, [1.0] * 3 + [0.0] * 7, atol=0)
+    assert ar_vsd([e]) == pytest.approx(0.7)  # an error of 0 is below every threshold, 1 below none
+    # 0.36 (the 1.25 m case) is below 3 of the 10 thresholds (0.40, 0.45, 0.50: strictly below)
+    assert ar_vsd(np.full((1, 10), 0.36)) == pytest.approx(0.3)
+    assert ar_vsd(np.zeros((2, 10))) == 1.0 and ar_vsd(np.full((2, 10), np.inf)) == 0.0

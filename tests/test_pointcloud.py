@@ -50,7 +50,7 @@ def test_pca_normals_of_box_faces():
     est = pca_normals(pts, k=8)
     face = np.abs(np.einsum("ij,ij->i", est, normals))
     assert np.median(face) > 0.99  # unoriented: |cos| to the true face normal
-    np.testing.assert_allclose(np.linalg.norm(est, axis=1), 1.0, atol=1e-9)
+    np.testing.assert_allclose(np.linalg.norm(est, axis=1), 1.0, atol=1e-9)  # unit normals: float64 normalisation
 
 
 def test_coincident_groups_and_voxels():
@@ -60,6 +60,7 @@ def test_coincident_groups_and_voxels():
     assert groups == [[0, 2], [1, 4], [3]]  # first-occurrence order, members in input order, 0.1 mm tolerance
     assert coincident_groups(np.zeros((0, 3)))[0].size == 0
     grid = np.array([[0.001, 0, 0], [0.003, 0, 0], [0.011, 0, 0], [0.0, 0.02, 0]])
+    # voxel means of exact values: float64 rounding (assert_allclose's rtol 1e-7)
     np.testing.assert_allclose(voxel_mean(grid, 0.01), [[0.002, 0, 0], [0.0, 0.02, 0], [0.011, 0, 0]])
     np.testing.assert_array_equal(voxel_down_indices(grid, 0.01), [0, 2, 3])
     np.testing.assert_array_equal(voxel_down_indices(grid, 0.0), np.arange(4))

@@ -193,6 +193,7 @@ def test_residual_convention_matches_open3d_edge_semantics():
     gt = ring_poses(4)
     T_1_0 = inv_T(gt[1]) @ gt[0]
     p0 = np.array([0.01, 0.02, 0.3])
+    # a point moved through the relative transform: float64 rounding of O(1) products
     np.testing.assert_allclose(gt[1][:3, :3] @ (T_1_0[:3, :3] @ p0 + T_1_0[:3, 3]) + gt[1][:3, 3],
                                gt[0][:3, :3] @ p0 + gt[0][:3, 3], atol=1e-12)
     assert edge_residual(gt[0], gt[1], T_1_0) == (0.0, 0.0) or max(edge_residual(gt[0], gt[1], T_1_0)) < 1e-9
@@ -222,6 +223,7 @@ def test_loop_candidates_overlap_bounded_deterministic():
     counts = np.zeros(12, dtype=int)
     for c in cands:
         assert c.i < c.j and c.j - c.i >= 2 and (c.i, c.j) != (0, 11)
+        # the loop-candidate rule's own bounds: at most 70 deg and 0.5 m apart
         assert c.angle_deg <= 70.0 and c.distance_m <= 0.5 and c.reason == "overlap"
         counts[[c.i, c.j]] += 1
     assert counts.max() <= 2
@@ -243,6 +245,7 @@ def test_loop_candidates_appearance():
     far = [make_T(np.eye(3), [10.0 * k, 0, 0]) for k in range(10)]  # no geometric overlap at all
     H = bow_vectors(desc, vocabulary_size=16, seed=0)
     assert H.shape == (10, 16)
+    # L2-normalised float32 histograms: float32 rounding (6e-8) over 16 bins
     np.testing.assert_allclose(np.linalg.norm(H, axis=1), 1.0, atol=1e-5)
     cands = select_loop_candidates(far, desc, params=LoopParams(vocabulary_size=16, appearance_top_k=1,
                                                                 min_similarity=0.9))

@@ -1,4 +1,4 @@
-"""Crash safety of `gscan scan` (GitHub issue 7; DESIGN.md "Template database").
+"""Crash safety of `gscan scan` (GitHub issue 7).
 
 A scan killed with SIGKILL leaves a consistent SQLite file whose status is `partial`; `info`
 shows it, `estimate` and `export` refuse it (exit 2, suggesting `scan --resume`), and
@@ -62,6 +62,8 @@ def _assert_same(a: ScanState, b: ScanState) -> None:
         U = b.T_obj_cam[name]
         assert (T is None) == (U is None), name
         if T is not None:
+            # a resumed scan redoes only float64 arithmetic in the same order: poses equal to rounding (1e-9 allows BLAS
+            # threading to reorder sums)
             assert np.max(np.abs(T - U)) <= 1e-9, (name, np.max(np.abs(T - U)))
     assert a.accepted == b.accepted
     assert a.n_edges == b.n_edges

@@ -49,7 +49,9 @@ def test_single_frame_plane_segmentation(scene):
         assert not np.any(seg.mask & (renders[k].labels == 1)), "distractor pixels in the mask"
         # plane: normal = world up in the camera frame, offset = camera height above the table
         up_cam = inv_T(poses[k])[:3, :3] @ np.array([0.0, 0.0, 1.0])
+        # a RANSAC plane fitted to the noisy table: its normal within a degree of the truth
         assert np.degrees(np.arccos(np.clip(seg.plane_cam.normal @ up_cam, -1, 1))) < 1.0
+        # its offset (the camera's height above the table) within 4 mm, a few times the depth noise
         assert seg.plane_cam.offset == pytest.approx(poses[k][2, 3], abs=0.004)
     # against the full ground-truth mask (depth holes included: the sensor model drops the silhouette
     # band and steep faces, no depth-based method can label those pixels) the IoU stays above 0.8
@@ -64,9 +66,12 @@ def test_sequence_segmentation_with_working_volume(scene):
     frames, poses, renders, T_t = scene
     segs, vol = segment_sequence(frames, poses)
     assert isinstance(vol, WorkingVolume)
+    # the sequence's plane: normal within 0.01 (0.6 deg) of up
     np.testing.assert_allclose(vol.plane_world.normal, [0, 0, 1], atol=0.01)
-    assert abs(vol.plane_world.offset) < 0.003
+    assert abs(vol.plane_world.offset) < 0.003  # and within 3 mm of the table's height
     centre_gt = T_t[:3, 3]
+    # the working volume's centre on the object's footprint centre within 1.5 cm (the volume is centimetres wider than
+    # the object)
     assert np.linalg.norm(vol.center_world[:2] - centre_gt[:2]) < 0.015
     half_diag = 0.5 * np.hypot(*TARGET_SIZE[:2])
     assert half_diag < vol.radius < half_diag + 0.04
@@ -75,6 +80,7 @@ def test_sequence_segmentation_with_working_volume(scene):
         assert seg.method == "volume"
         assert iou_valid(seg.mask, r) >= 0.9
         assert not np.any(seg.mask & (r.labels == 1))
+        # per frame, the plane's normal within 0.01 (0.6 deg) of up
         assert np.allclose(seg.plane_cam.normal, inv_T(r.T_world_cam)[:3, :3] @ [0, 0, 1], atol=0.01)
 
 
@@ -125,6 +131,7 @@ def test_fit_support_plane_rejects_clutter():
     pts = np.c_[rng.uniform(-0.3, 0.3, size=(4000, 2)), np.full(4000, 0.8)]
     plane = fit_support_plane(pts, np.zeros(3))
     np.testing.assert_allclose(plane.normal, [0, 0, -1], atol=1e-6)  # towards the viewpoint
+    # 4000 exact points on z = 0.8: a least-squares fit exact to float64 rounding
     assert plane.offset == pytest.approx(0.8, abs=1e-6)
 
 
@@ -137,10 +144,14 @@ def test_ransac_plane_skips_a_face_with_points_behind_it():
     table = np.c_[rng.uniform(-0.4, 0.4, (400, 2)), np.full(400, 1.0)]
     S = np.vstack([face, table])
     plane, inl = ransac_plane(S, 200, np.random.default_rng(0), 0.004, np.zeros(3))
+    # exact points on the planes: the fitted normal to float64 rounding
     np.testing.assert_allclose(plane.normal, [0, 0, -1], atol=1e-9)
+    # the 0.5 m face plane, exactly
     assert plane.offset == pytest.approx(0.5) and np.array_equal(inl, np.arange(1000) < 600)
     plane, inl = ransac_plane(S, 200, np.random.default_rng(0), np.full(1000, 0.004), np.zeros(3), max_behind=0.05)
+    # exact points on the planes: the fitted normal to float64 rounding
     np.testing.assert_allclose(plane.normal, [0, 0, -1], atol=1e-9)
+    # the 1.0 m table plane, exactly
     assert plane.offset == pytest.approx(1.0) and np.array_equal(inl, np.arange(1000) >= 600)
     line = np.c_[np.linspace(0, 1, 50), np.zeros(50), np.ones(50)]  # every triplet degenerate
     assert ransac_plane(line, 100, np.random.default_rng(0), 0.004, np.zeros(3)) is None
@@ -160,6 +171,7 @@ def test_plane_transform_preserves_heights(v, off):
     plane = Plane(n / np.linalg.norm(n), off)
     T_b_a = make_T(rotvec_to_R(np.array(v[:3])), v[3:])
     pts_a = np.random.default_rng(0).normal(size=(20, 3))
+    # heights kept by a rigid motion: float64 rounding of O(1) values
     np.testing.assert_allclose(plane.transformed(T_b_a).height(transform_points(T_b_a, pts_a)),
                                plane.height(pts_a), atol=1e-9)
     vol = WorkingVolume(plane, -plane.offset * plane.normal, 0.1, 0.2)

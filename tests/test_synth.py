@@ -47,6 +47,7 @@ def test_load_shared_mesh_has_corner_uvs_and_texture(shared_mesh: TexturedMesh) 
     m = shared_mesh
     assert m.uv.shape == (len(m.triangles), 3, 2)
     assert m.texture.shape == (256, 256, 3) and m.texture.dtype == np.uint8
+    # UV corners computed in float64 from float32 texture coordinates: 1e-6 covers their rounding
     assert np.all((m.uv >= -1e-6) & (m.uv <= 1 + 1e-6))
     assert 0.05 < m.radius < 0.5  # metres
 
@@ -125,6 +126,8 @@ def test_mask_matches_projected_silhouette_and_depth_lies_on_surface(shared_mesh
         pts_c = backproject(f.depth_clean, DEFAULT_INTRINSICS)[f.mask]
         pts_o = transform_points(inv_T(f.T_cam_obj), pts_c).astype(np.float32)
         dist = scene.compute_distance(o3d.core.Tensor(pts_o)).numpy()
+        # the clean rendered depth lifted back lies on the mesh: open3d ray-casts in float32 (1e-7 m at 1 m); 0.1 mm
+        # median and 1 mm at the 99.5th percentile allow grazing-angle pixels
         assert np.percentile(dist, 99.5) < 1e-3 and np.median(dist) < 1e-4, (np.median(dist), dist.max())
         table = (f.labels == -1) & (f.depth_clean > 0)
         z_world = transform_points(f.T_world_cam, backproject(f.depth_clean, DEFAULT_INTRINSICS)[table])[:, 2]
@@ -136,7 +139,9 @@ def test_object_rests_on_table(shared_mesh: TexturedMesh) -> None:
     R = rotvec_to_R(np.array([0.4, -0.2, 1.0]))
     T = rest_on_table(shared_mesh, R, (0.1, -0.05))
     v = transform_points(T, shared_mesh.vertices)
+    # resting on z = 0: a translation by the lowest vertex's height, exact up to float64 rounding (1e-17 m)
     assert abs(v[:, 2].min()) < 1e-12
+    # placed at (0.1, -0.05): float64 rounding of O(0.1) values
     np.testing.assert_allclose(0.5 * (v.min(0) + v.max(0))[:2], [0.1, -0.05], atol=1e-12)
 
 
@@ -160,21 +165,25 @@ def test_turntable_background_static_object_moves(box: TexturedMesh) -> None:
     bg = (f0.labels == -1) & (f1.labels == -1)
     assert bg.sum() > 0.5 * bg.size
     assert np.array_equal(f0.color[bg], f1.color[bg]) and np.array_equal(f0.depth[bg], f1.depth[bg])
-    np.testing.assert_allclose(f0.T_world_cam, f1.T_world_cam)
+    np.testing.assert_allclose(f0.T_world_cam, f1.T_world_cam)  # the same camera path: computed identically (rtol 1e-7)
     obj = f0.mask & f1.mask
     assert np.abs(f0.color[obj].astype(int) - f1.color[obj]).mean() > 10
     ang = np.degrees(np.arccos(np.clip((np.trace(f0.T_cam_obj[:3, :3].T @ f1.T_cam_obj[:3, :3]) - 1) / 2, -1, 1)))
+    # a turn of 90 deg read through arccos, well conditioned at 90 deg: float64 rounding ~1e-14 deg
     assert abs(ang - 90.0) < 1e-6
     # the spin axis is vertical through the object centre: the centre stays put
     c0 = transform_points(f0.T_world_objs[0], box.center[None])
     c1 = transform_points(f1.T_world_objs[0], box.center[None])
+    # a rotation about the vertical through the centre: float64 rounding of O(1) values
     np.testing.assert_allclose(c0, c1, atol=1e-12)
 
 
 def test_static_path_pose_consistency(box: TexturedMesh) -> None:
     frames = render_capture(box, None, 3, intr=SMALL, noise=True, distractors=1)
     for f in frames:
+        # two products of O(1) transforms: float64 rounding ~1e-16
         np.testing.assert_allclose(f.T_cam_obj, inv_T(f.T_world_cam) @ f.T_world_objs[0], atol=1e-12)
+        # the object does not move between frames: the same matrix (rtol 1e-7)
         np.testing.assert_allclose(f.T_world_objs[0], frames[0].T_world_objs[0])
         assert set(np.unique(f.labels)) <= {-1, 0, 1}
         assert np.array_equal(f.mask, f.labels == 0)
@@ -191,12 +200,15 @@ def test_orbit_poses_look_at_centre(radius, elevations, n, center) -> None:
     assert len(poses) == n * len(elevations)
     for i, T in enumerate(poses):
         R = T[:3, :3]
+        # look_at builds an orthonormal frame by cross products: float64 rounding ~1e-16; 1e-9 for any BLAS
         np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-9)
         assert np.linalg.det(R) > 0
+        # distances of ~0.5 m in float64: rounding ~1e-16 relative
         np.testing.assert_allclose(np.linalg.norm(T[:3, 3] - c), radius, rtol=1e-9)
         p_cam = transform_points(inv_T(T), c[None])[0]
         np.testing.assert_allclose(p_cam[:2], 0.0, atol=1e-9)  # centre on the optical axis
         el = elevations[i // n]
+        # float64 trigonometry on O(1) values: rounding ~1e-16
         np.testing.assert_allclose(T[2, 3] - c[2], radius * np.sin(np.radians(el)), atol=1e-9)
         if abs(el) < 80:
             assert R[2, 1] < 0  # image y (down) points against world z (up): upright images
@@ -213,6 +225,8 @@ def test_depth_noise_statistics_and_holes() -> None:
     ok = region > 0
     assert ok.mean() > 0.99
     std = region[ok].std()
+    # the sample's standard deviation over thousands of pixels is within about 1 % of the model's (1 / sqrt(2N)),
+    # the 1 mm quantisation adds about 1 %; 25 % catches a wrong model (e.g. the sigma of another depth)
     assert abs(std - depth_sigma(1.2)) < 0.25 * depth_sigma(1.2), (std, depth_sigma(1.2))
     assert np.allclose(np.round(d * 1000), d * 1000, atol=1e-3)  # 1 mm quantisation
     assert (d[:, 199] == 0).all() and (d[:, 200] == 0).all()  # both sides of the discontinuity dropped
@@ -231,13 +245,15 @@ def test_write_capture_layout_and_roundtrip(tmp_path: Path, box: TexturedMesh) -
     for sub, ext in (("rgb", ".jpg"), ("depth", ".png"), ("masks", ".png"), ("annotated_poses", ".txt")):
         assert sorted(p.name for p in (out / sub).iterdir()) == [f"00000{i}{ext}" for i in range(2)]
     intr = load_intrinsics(out / "cam_K.txt", SMALL.width, SMALL.height)
-    np.testing.assert_allclose(intr.K, SMALL.K)
+    np.testing.assert_allclose(intr.K, SMALL.K)  # K parsed back from cam_K.txt written with full precision
     for i, f in enumerate(frames):
         d = cv2.imread(str(out / "depth" / f"00000{i}.png"), cv2.IMREAD_UNCHANGED)
         assert d.dtype == np.uint16 and d.shape == (SMALL.height, SMALL.width)
+        # depth written as whole millimetres: at most half a millimetre of rounding, plus float32's 1e-6 m
         assert np.abs(d / 1000.0 - f.depth).max() <= 0.0005 + 1e-6
         m = cv2.imread(str(out / "masks" / f"00000{i}.png"), cv2.IMREAD_UNCHANGED)
         assert set(np.unique(m)) <= {0, 255} and np.array_equal(m == 255, f.mask)
+        # poses written with 17 significant digits: parsing restores them to float64 rounding
         np.testing.assert_allclose(np.loadtxt(out / "annotated_poses" / f"00000{i}.txt"), f.T_cam_obj, atol=1e-9)
         rgb = cv2.cvtColor(cv2.imread(str(out / "rgb" / f"00000{i}.jpg")), cv2.COLOR_BGR2RGB)
         assert np.abs(rgb.astype(int) - f.color).mean() < 6  # JPEG
@@ -254,12 +270,16 @@ def test_box_mesh_closed_and_textures_saved(tmp_path: Path, box: TexturedMesh) -
     assert len(box.vertices) == 8 and len(box.triangles) == 12
     tm = trimesh.Trimesh(box.vertices, box.triangles, process=False)
     assert tm.is_watertight and tm.is_winding_consistent and tm.volume > 0  # outward winding
+    # a closed box's volume in float64: rounding ~1e-16 relative
     np.testing.assert_allclose(tm.volume, 0.16 * 0.10 * 0.07, rtol=1e-9)
     obj = save_textured_mesh(box, tmp_path / "box.obj")
     back = load_textured_mesh(obj)
     assert back.texture.shape == box.texture.shape and np.array_equal(back.texture, box.texture)
+    # OBJ written with full float precision and read back: rounding ~1e-16
     np.testing.assert_allclose(back.bounds, box.bounds, atol=1e-9)
+    # OBJ written with full float precision and read back: rounding ~1e-16
     np.testing.assert_allclose(back.vertices[back.triangles], box.vertices[box.triangles], atol=1e-9)
+    # OBJ written with full float precision and read back: rounding ~1e-16
     np.testing.assert_allclose(back.uv, box.uv, atol=1e-9)
 
 
@@ -284,14 +304,17 @@ def test_distractors_do_not_overlap(box: TexturedMesh) -> None:
         for j in range(i + 1, len(circles)):
             assert np.linalg.norm(circles[i][0] - circles[j][0]) > circles[i][1] + circles[j][1]
     for m, T in zip(others, poses):
+        # resting on z = 0: a translation by the lowest vertex's height, exact up to float64 rounding (1e-17 m)
         assert abs(transform_points(T, m.vertices)[:, 2].min()) < 1e-12
 
 
 def test_default_distance_fills_frame(box: TexturedMesh) -> None:
     d = default_distance(box)
     f = render_capture(box, None, 1, noise=False)[0]
+    # a camera placed d away from the centre: float64 rounding of O(1) values
     np.testing.assert_allclose(np.linalg.norm(transform_points(f.T_cam_obj, box.center[None])), d, rtol=1e-9)
     xs = np.nonzero(f.mask.any(0))[0]
+    # default_distance frames the object at about a third of the width: a range around that, not a precision
     assert 0.2 * 640 < xs.max() - xs.min() < 0.5 * 640
 
 
@@ -329,12 +352,13 @@ def test_render_deterministic_and_seed_dependent(box: TexturedMesh) -> None:
     assert holes_1.any() and holes_g.any()
 
 
-SAMPLES = Path(__file__).resolve().parents[1] / "samples"
+SAMPLES = Path(__file__).resolve().parents[1] / "gscan" / "sample"  # the bundled sample (package data)
+MAKE_SAMPLE = Path(__file__).resolve().parents[1] / "samples" / "make_sample.py"
 
 
 def _load_make_sample():
     import importlib.util
-    spec = importlib.util.spec_from_file_location("make_sample", SAMPLES / "make_sample.py")
+    spec = importlib.util.spec_from_file_location("make_sample", MAKE_SAMPLE)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod
@@ -343,6 +367,7 @@ def _load_make_sample():
 def test_bundled_sample_consistent_with_ground_truth() -> None:
     """The committed sample: layout, masks = GT silhouettes of object/box.obj, depth on the box surface."""
     box = load_textured_mesh(SAMPLES / "object" / "box.obj")
+    # box.obj's vertices written with full precision: float64 rounding
     np.testing.assert_allclose(box.extent, [0.16, 0.10, 0.07], atol=1e-9)
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor(box.vertices.astype(np.float32)), o3d.core.Tensor(box.triangles.astype(np.uint32)))
@@ -376,6 +401,8 @@ def test_bundled_sample_regenerates() -> None:
         depth = cv2.imread(str(SAMPLES / "capture" / "depth" / f"{i:06d}.png"), cv2.IMREAD_UNCHANGED)
         assert np.mean(depth == np.rint(f.depth * 1000)) > 0.998
         rgb = cv2.cvtColor(cv2.imread(str(SAMPLES / "capture" / "rgb" / f"{i:06d}.jpg")), cv2.COLOR_BGR2RGB)
+        # the committed JPEG (quality 92) against a fresh render: compression and the few pixels that differ across
+        # CPUs stay well below a mean of 3 levels; another frame or a swapped channel order is far above
         assert np.abs(rgb.astype(int) - f.color).mean() < 3.0
 
 

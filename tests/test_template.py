@@ -72,6 +72,8 @@ def test_depth_quantised_to_millimetres(db_path: Path) -> None:
     with TemplateDB.create(db_path) as db:
         db.add_view(View(name="d", intrinsics=Intrinsics(1, 1, 0, 0, 6, 1), depth=depth))
         out = db.view("d").depth
+    # whole millimetres read back as float32 metres: 1.235 is rounded by 6e-8 at most; 1e-7 covers it (a wrong
+    # quantisation is off by 0.4 mm or more)
     assert np.allclose(out, [0.0, 0.0, 0.5, 1.235, 0.0, 0.0], atol=1e-7)
 
 
@@ -103,6 +105,7 @@ def test_update_pose_moves_keypoints_into_the_new_object_frame(db_path: Path) ->
         got2 = db.features("v").points
         assert np.array_equal(db.view("v", load_images=False).T_obj_cam, T2)
     ref = lambda T: pts_cam.astype(np.float64) @ T[:3, :3].T + T[:3, 3]  # noqa: E731
+    # points stored as float32 and moved in float64: float32 rounding (6e-8 relative) of ~1 m values
     assert np.allclose(got1, ref(T1), atol=1e-5) and np.allclose(got2, ref(T2), atol=1e-5)
 
 
@@ -161,10 +164,11 @@ def test_status_summary_poses_and_template(db_path: Path) -> None:
         t = db.load_template()
     assert s.schema == 1 and s.status == "complete" and s.views == 3 and s.descriptor == "rootsift"
     assert s.registered == 2 and s.keyframes == 3
+    # extent through float storage: approx's rel 1e-6 covers float32's 6e-8
     assert s.extent_m == pytest.approx((0.1, 0.2, 0.3)) and s.grasps == ("g",) and s.source == "scan"
     json.dumps(p)
     assert list(p["frames"]) == ["frame 0", "frame 2"] and p["unregistered"] == ["frame é 1"]
-    assert np.allclose(p["frames"]["frame 2"], Ts[2])
+    assert np.allclose(p["frames"]["frame 2"], Ts[2])  # poses stored as float64: exact (np.allclose's atol 1e-8)
     assert t.view_names == ["frame 0", "frame 2"] and t.T_obj_cam.shape == (2, 4, 4)
     assert len(t.pixels) == len(t.points_obj) == len(t.descriptors) == len(t.kp_view) == 5 + 7
     assert list(t.view_offsets) == [0, 5, 12] and list(np.bincount(t.kp_view)) == [5, 7]
@@ -316,6 +320,7 @@ def test_object_keypoints_are_what_the_estimator_loads(db_path: Path) -> None:
         A = T2 @ np.linalg.inv(T)
         for role, f in (("registration", reg), ("object", obj)):
             moved = db.features("a", role).points
+            # points stored as float32 and moved in float64: float32 rounding (6e-8 relative) of ~1 m values
             np.testing.assert_allclose(moved, f.points @ A[:3, :3].T + A[:3, 3], atol=1e-5)
         db.add_view(_view("a", rng, T, 0), reg, replace=True)
         assert db.features("a", "object") is None

@@ -62,6 +62,7 @@ def test_poses_and_info(scanned):
     T_a_b = inv_T(np.array(poses["frames"][a])) @ np.array(poses["frames"][b])
     T_a_b_gt = frames[ia].T_cam_obj @ inv_T(frames[ib].T_cam_obj)
     deg, m = pose_error(T_a_b, T_a_b_gt)
+    # a rendered pair registered through non-ASCII paths: within 2 deg / 1 cm (the path must not change the result)
     assert deg < 2.0 and m < 0.01, (deg, m)
     info = json.loads(_ok("info", db, "--json").stdout)
     assert info["status"] == "complete" and info["views"] == N_VIEWS
@@ -88,6 +89,7 @@ def test_estimate_with_non_ascii_query_paths(scanned, tmp_path: Path):
     poses = json.loads(_ok("poses", db, "--json").stdout)["frames"]
     if NAMES[k] in poses:
         deg, m = pose_error(np.array(out["T_cam_obj"]), inv_T(np.array(poses[NAMES[k]])))
+        # estimate through non-ASCII paths: within 3 deg / 1 cm of the template's own pose
         assert deg < 3.0 and m < 0.01, (deg, m)
     # a missing file under a non-ASCII path is named intact in the one-line error
     r = _gscan("estimate", db, "--color", q / "manquant ç.png", "--depth", depth, "--intrinsics", K)
@@ -126,5 +128,6 @@ def test_grasp_add_and_list(scanned, tmp_path: Path):
     _ok("grasp", "add", local, "--name", name, "--pose", pose)
     listed = json.loads(_ok("grasp", "list", local, "--json").stdout)["grasps"]
     assert list(listed) == [name]
+    # a grasp stored and listed as JSON floats: float64 round trip
     np.testing.assert_allclose(np.array(listed[name]), T, atol=1e-12)
     assert json.loads(_ok("info", local, "--json").stdout)["grasps"] == [name]

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import os
 import shutil
 import socket
 import subprocess
@@ -116,11 +117,14 @@ def test_query_frame_is_drawn_in_template_frame(template):
     try:
         pts = app.scene_points_obj
         assert pts is not None and len(pts) > 10_000
+        # the scene's points lie on the box or the table within 4 mm (depth noise and quantisation) for nearly all of
+        # them
         assert np.mean(_box_or_table_distance(pts) < 0.004) > 0.97
         assert app.layers["scene"] and len(app.layers["grasps"]) == 4  # "top" (database) + "side": axes + label
         # The inverse mistake (drawing by T_cam_obj instead of its inverse) would miss the box.
         wrong = (pts.astype(np.float64) @ fr.T_cam_obj[:3, :3].T + fr.T_cam_obj[:3, 3])
         wrong = wrong @ fr.T_cam_obj[:3, :3].T + fr.T_cam_obj[:3, 3]
+        # the same points moved by the pose twice: most of them off both surfaces
         assert np.mean(_box_or_table_distance(wrong) < 0.004) < 0.5
     finally:
         app.stop()
@@ -163,8 +167,10 @@ def test_start_camera_keeps_clear_of_the_frustums():
     cams = np.vstack([[np.cos(np.radians(62)), 0.0, np.sin(np.radians(62))], cams])
     c = _clear_direction(d0, up, cams)
     gap = np.degrees(np.arccos(np.clip(cams @ c, -1, 1)).min())
+    # a unit direction at least 20 deg from every camera; float64 normalisation
     assert gap > 20.0 and abs(np.linalg.norm(c) - 1) < 1e-9
     ring = np.array([[np.cos(a), np.sin(a), 0.3] for a in np.linspace(0, 2 * np.pi, 12, endpoint=False)])
+    # with no camera near, the default direction itself: float64 rounding
     np.testing.assert_allclose(_clear_direction(d0, up, ring), default, atol=1e-12)
 
 
@@ -177,6 +183,7 @@ def test_thumbnail_and_pixel_mapping(h, w, side):
     corners = scale_pixels(np.array([[0, 0], [w - 1, h - 1]]), (w, h), (th.shape[1], th.shape[0]))
     assert np.all(corners >= -0.5) and corners[1, 0] <= th.shape[1] - 0.5 and corners[1, 1] <= th.shape[0] - 0.5
     back = scale_pixels(corners, (th.shape[1], th.shape[0]), (w, h))
+    # pixel coordinates scaled to the thumbnail and back: float64 rounding (np.allclose's atol 1e-8)
     assert np.allclose(back, [[0, 0], [w - 1, h - 1]])
 
 
@@ -197,11 +204,13 @@ def test_colour_scales_and_match_drawing():
 
 # ------------------------------------------------------------------------------------ browser
 def _screenshot(page, tmp_path: Path, name: str) -> None:
-    """Screenshot into the test's folder, with a copy in test-output/ (gitignored) to look at."""
+    """Screenshot into the test's folder (kept when the test fails), and a copy into the folder the environment
+    variable GSCAN_SCREENSHOTS names, if any, to look at."""
     page.screenshot(path=str(tmp_path / name))
-    out = ROOT / "test-output"
-    out.mkdir(exist_ok=True)
-    shutil.copy(tmp_path / name, out / name)
+    if os.environ.get("GSCAN_SCREENSHOTS"):
+        out = Path(os.environ["GSCAN_SCREENSHOTS"])
+        out.mkdir(parents=True, exist_ok=True)
+        shutil.copy(tmp_path / name, out / name)
 
 
 def _open_drawn_page(browser, port: int, tmp_path: Path, name: str):
@@ -312,6 +321,7 @@ def test_frustum_click_and_go_to_view(template):
                 # the browser reports position and look-at in separate updates: both are awaited
                 vp.wait_until(lambda: np.allclose(client.camera.position, T[:3, 3], atol=1e-4) and looking() > 0.999,
                               10.0)
+                # the browser's camera position as the client reports it back: 0.1 mm, far below a misplaced camera
                 assert np.allclose(client.camera.position, T[:3, 3], atol=1e-4)
                 assert looking() > 0.999
                 def moved() -> float:

@@ -1,4 +1,4 @@
-"""Pose of a templated object in a new RGB-D frame (DESIGN.md `estimate`).
+"""Pose of a templated object in a new RGB-D frame (`gscan estimate`).
 
 Pipeline of `Estimator.estimate` (every stage timed, `EstimateResult.timings_ms`):
 
@@ -136,8 +136,8 @@ class EstimateResult:
         return self.T_cam_obj is not None
 
     def to_json(self) -> dict:
-        """The `gscan estimate --json` object (DESIGN.md, plus "method": "gmatch" | "pnp"); matrices as nested
-        lists, metres."""
+        """The `gscan estimate --json` object (the command-line contract's keys and "method": "gmatch" | "pnp");
+        matrices as nested lists, metres."""
         def mat(T: np.ndarray | None) -> list[list[float]] | None:
             return None if T is None else [[float(x) for x in row] for row in np.asarray(T)]
 

@@ -11,20 +11,27 @@ the image (the same for all rows of one image). Only found poses are written. Th
 to a temporary name and renamed, so it is never half-written.
 
 Metrics over all images with ground truth (a not-found pose counts as an infinite error):
-"AUC ADD" / "AUC ADD-S" (YCB-Video AUC, 0-10 cm, percent), "AR MSSD" / "AR MSPD" (BOP average
-recall, percent), "AR" (their mean), "found" (percent of images with a pose), "mean time ms".
-Model points: the template's mesh vertices (else its cloud), or `model_path` (any mesh trimesh
-reads, in the ground truth's object frame; BOP models in millimetres are detected by a diameter above
-10 units and scaled to metres).
+"AUC ADD" / "AUC ADD-S" (YCB-Video AUC, 0-10 cm, percent), "AR VSD" / "AR MSSD" / "AR MSPD" (BOP19
+average recalls, percent), "AR" (their mean: BOP19's AR, as the BOP toolkit's eval_bop19_pose.py computes
+it), "found" (percent of images with a pose), "mean time ms". VSD renders the model, so it needs a mesh;
+with a point cloud alone "AR VSD" and "AR" are left out. Objects are taken as asymmetric (no symmetry
+transformations). All model vertices are used (ADD-S's nearest neighbours exactly, by k-d tree).
+Model: the template's mesh (else its cloud), or `model_path` (any mesh trimesh reads, in the ground
+truth's object frame; BOP models in millimetres are detected by a diameter above 10 units and scaled to
+metres). To score as the BOP toolkit does on a gscan BOP export, pass its models_eval/obj_000001.ply.
 
 Frames: a CAD template keeps its mesh's frame, which is the ground truth's. A scanned template has
-its own frame (DESIGN.md "Frames of reference"); its poses are mapped to the ground truth's object
-frame by `template_to_gt` over the ground-truth poses of the capture it was scanned from (its stored
-input folder, or `gt_capture`), so the CSV and the metrics are about the ground-truth model. Scoring a
-scanned template against ground truth without such a capture is refused.
+its own frame (the centre of the object's bounding box, z up from the support plane); its poses are
+mapped to the ground truth's object frame by `template_to_gt` over the ground-truth poses of the capture
+it was scanned from (`gt_capture`, else its stored input folder), so the CSV and the metrics are about
+the ground-truth model. Scoring a scanned template against ground truth without such a capture is refused.
+A gscan BOP export (a scene folder whose dataset holds gscan_views.json) has its ground truth in the frame of
+the template it was exported from; that template is mapped through its own exported views, and any other
+template is refused.
 """
 from __future__ import annotations
 
+import json
 import logging
 import time
 from dataclasses import dataclass, field
@@ -34,18 +41,21 @@ import numpy as np
 
 from gscan.errors import InputError, not_a_file
 from gscan.estimate.estimator import Estimator
+from gscan.evaluate.metrics import add as add_err
+from gscan.evaluate.metrics import adds as adds_err
+from gscan.evaluate.metrics import ar_mspd, ar_mssd, ar_vsd, auc, diameter, mspd, mssd, vsd, vsd_taus
+from gscan.geometry.raycast import MeshRaycaster
 from gscan.geometry.transforms import inv_T, mean_pose, pose_error, transform_points
 from gscan.io import open_sequence
-from gscan.io.output import Output, check_output
 from gscan.io.layouts import FORMATS, detect_format, discover, require_ground_truth
-from gscan.evaluate.metrics import adds as adds_err, add as add_err, ar_mspd, ar_mssd, auc, diameter, mspd, mssd
+from gscan.io.output import Output, check_output
 from gscan.template.db import TemplateDB
 
 log = logging.getLogger(__name__)
 
 CSV_HEADER = "scene_id,im_id,obj_id,score,R,t,time"
 MM_DIAMETER_LIMIT = 10.0  # a model whose diameter exceeds this many units is taken to be in millimetres
-MAX_MODEL_POINTS = 4000  # model points used by the metrics (deterministic subsample beyond)
+GSCAN_VIEWS = "gscan_views.json"  # a gscan BOP export's map of image ids to the template's view names
 
 
 @dataclass
@@ -64,12 +74,14 @@ class EvalRow:
     mssd: float = float("nan")
     mspd: float = float("nan")
     reason: str | None = None
+    vsd: list[float] | None = None  # one error per BOP19 tau (metrics.VSD_TAU_FRACTIONS); None without a mesh
 
     def to_json(self) -> dict:
         f = (lambda x: None if not np.isfinite(x) else float(x))
         return {"scene_id": self.scene_id, "im_id": self.im_id, "found": self.found, "score": float(self.score),
                 "time_s": float(self.time_s), "add_m": f(self.add), "adds_m": f(self.adds), "mssd_m": f(self.mssd),
-                "mspd_px": f(self.mspd), "reason": self.reason,
+                "mspd_px": f(self.mspd), "vsd": None if self.vsd is None else [f(x) for x in self.vsd],
+                "reason": self.reason,
                 "T_cam_obj": None if self.T_cam_obj is None else np.asarray(self.T_cam_obj).tolist()}
 
 
@@ -115,32 +127,35 @@ def _scene_dirs(scenes: Path) -> list[tuple[int, Path]]:
     return out
 
 
-def load_model_points(model_path: Path | None, estimator: Estimator) -> np.ndarray:
-    """[N x 3] model points in metres (object frame), at most MAX_MODEL_POINTS (seeded subsample)."""
+def load_model(model_path: Path | None, template: Path, estimator: Estimator) -> tuple[np.ndarray, np.ndarray | None]:
+    """The model the metrics use: all its vertices [N x 3] in metres (object frame) and its triangles [F x 3]
+    (None for a point cloud): `model_path`, else the template's mesh (else its cloud)."""
     if model_path is None:
-        pts = estimator.model_points
-    else:
-        import trimesh
+        with TemplateDB.open(template, require_complete=True) as db:
+            mesh = db.mesh()
+        if mesh is not None and len(mesh.vertices) and len(mesh.triangles):
+            return np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.triangles, dtype=np.int64)
+        return np.asarray(estimator.model_points, dtype=np.float64), None
+    import trimesh
 
-        model_path = Path(model_path)
-        if not model_path.is_file():
-            raise not_a_file(model_path, "model file")
-        try:
-            m = trimesh.load(str(model_path), force="mesh", process=False)
-            pts = np.asarray(m.vertices, dtype=np.float64)
-        except Exception as e:  # noqa: BLE001 - trimesh raises many types on malformed files
-            raise InputError(model_path, f"cannot load model ({e.__class__.__name__}: {e})") from None
-        if len(pts) == 0:
-            raise InputError(model_path, "model holds no vertices")
-        if not np.all(np.isfinite(pts)):
-            raise InputError(model_path, "model vertices hold NaN or infinite values")
-        d = diameter(pts)
-        if d > MM_DIAMETER_LIMIT:
-            log.info("%s: diameter %.1f units, taken as millimetres", model_path, d)
-            pts = pts * 1e-3
-    if len(pts) > MAX_MODEL_POINTS:
-        pts = pts[np.sort(np.random.default_rng(0).choice(len(pts), MAX_MODEL_POINTS, replace=False))]
-    return np.asarray(pts, dtype=np.float64)
+    model_path = Path(model_path)
+    if not model_path.is_file():
+        raise not_a_file(model_path, "model file")
+    try:
+        m = trimesh.load(str(model_path), force="mesh", process=False)
+        pts = np.asarray(m.vertices, dtype=np.float64)
+        tris = np.asarray(m.faces, dtype=np.int64) if hasattr(m, "faces") else np.zeros((0, 3), np.int64)
+    except Exception as e:  # noqa: BLE001 - trimesh raises many types on malformed files
+        raise InputError(model_path, f"cannot load model ({e.__class__.__name__}: {e})") from None
+    if len(pts) == 0:
+        raise InputError(model_path, "model holds no vertices")
+    if not np.all(np.isfinite(pts)):
+        raise InputError(model_path, "model vertices hold NaN or infinite values")
+    d = diameter(pts)
+    if d > MM_DIAMETER_LIMIT:
+        log.info("%s: diameter %.1f units, taken as millimetres", model_path, d)
+        pts = pts * 1e-3
+    return pts, (tris if len(tris) else None)
 
 
 _DISAGREE = "as ground truth of"  # reason prefix of a capture whose ground truth contradicts the template
@@ -148,7 +163,7 @@ GT_AGREEMENT = (3.0, 0.02)  # deg, m: two frames' template-to-ground-truth trans
 
 
 def template_to_gt(db_path: Path, gt_T_cam_obj: dict[str, np.ndarray]) -> np.ndarray:
-    """T_obj_gt [4 x 4]: the scanned template frame <- ground-truth object frame (DESIGN.md), the mean
+    """T_obj_gt [4 x 4]: the scanned template frame <- ground-truth object frame, the mean
     over the capture's registered frames of T_obj_cam[f] @ T_cam_gt[f]; never from test frames. Only the
     frames whose transform agrees (GT_AGREEMENT) with the one most others agree with are averaged.
     InputError when fewer than two frames relate them, or fewer than half of them (and two) agree: the
@@ -227,23 +242,60 @@ def _capture_to_gt(template: Path, capture: Path, fmt: str, obj_id: int) -> np.n
         raise InputError(capture, f"{_DISAGREE} {template.name}: {e.reason}") from None
 
 
+def _exported_views(scene: Path) -> dict[str, str] | None:
+    """{image name: template view name} when `scene` is a scene of a gscan BOP export (its dataset root, two
+    folders up, holds gscan_views.json); else None."""
+    path = scene.parent.parent / GSCAN_VIEWS
+    if not (scene / "scene_gt.json").is_file() or not path.is_file():
+        return None
+    try:
+        views = json.loads(path.read_text(encoding="utf-8"))
+        return {f"{int(k):06d}": str(v) for k, v in views.items()}
+    except (OSError, ValueError, TypeError, AttributeError) as e:
+        raise InputError(path, f"unreadable ({e.__class__.__name__}: {e})") from None
+
+
+def _export_to_gt(template: Path, seqs: list, exported: dict[int, dict[str, str]]) -> np.ndarray:
+    """T_obj_gt of `template` for scenes of a gscan BOP export, whose ground truth is in the frame of the
+    template exported: `template_to_gt` over the exported views' ground truth, named as the template's views
+    (identity, up to float rounding, for the template itself). InputError when the template does not hold
+    those views at those poses: the export is another template's."""
+    gt = {}
+    for scene_id, seq in seqs:
+        names = exported.get(scene_id)
+        if names and seq.gt_T_cam_obj:
+            gt.update({names[n]: T for n, T in seq.gt_T_cam_obj.items() if n in names})
+    try:
+        return template_to_gt(template, gt)
+    except InputError as e:
+        scene = next(seq.root for scene_id, seq in seqs if scene_id in exported)
+        raise InputError(scene, f"is a gscan BOP export ({GSCAN_VIEWS}) whose ground truth is in the frame of the "
+                         f"template it was exported from, and {template.name} is not that template ({e.reason})",
+                         fix="gt_capture") from None
+
+
 def evaluate(template: str | Path, scenes: str | Path, output_csv: str | Path, obj_id: int = 1,
              model_path: str | Path | None = None, refine: bool = True, force: bool = False,
              gt_capture: str | Path | None = None) -> EvalReport:
     """Estimate the pose of the template's object in every image under `scenes`, write BOP19 CSV
     `output_csv` and return the metrics (poses in the ground truth's object frame, see the module
     docstring). InputError for an existing output without `force`, a missing or partial template,
-    unreadable scenes or model, or a scanned template scored against ground truth that no
-    ground-truth capture (`gt_capture`, else the template's own input) relates to its frame."""
+    unreadable scenes or model, a scanned template scored against ground truth that no ground-truth
+    capture (`gt_capture`, else the template's own input) relates to its frame, or a gscan BOP export of
+    another template scored without `gt_capture`."""
     output_csv = Path(output_csv)
     check_output(output_csv, force=force, kind=".csv file path")
     template = Path(template)
     estimator = Estimator.from_path(template)
-    seqs = [(scene_id, open_sequence(folder, format="auto", obj_id=obj_id))
-            for scene_id, folder in _scene_dirs(Path(scenes))]
+    folders = _scene_dirs(Path(scenes))
+    seqs = [(scene_id, open_sequence(folder, format="auto", obj_id=obj_id)) for scene_id, folder in folders]
     for _, seq in seqs:  # the scores need every ground-truth pose
         require_ground_truth(seq.gt_problems)
-    T_obj_gt = scanned_to_gt(template, None if gt_capture is None else Path(gt_capture), obj_id)
+    exported = {scene_id: v for scene_id, folder in folders if (v := _exported_views(folder)) is not None}
+    if exported and gt_capture is None:
+        T_obj_gt: np.ndarray | None = _export_to_gt(template, seqs, exported)
+    else:
+        T_obj_gt = scanned_to_gt(template, None if gt_capture is None else Path(gt_capture), obj_id)
     if T_obj_gt is None:
         if any(seq.gt_T_cam_obj for _, seq in seqs):
             raise InputError(template, "is a scanned template, in its own frame, and the capture it was scanned "
@@ -251,10 +303,14 @@ def evaluate(template: str | Path, scenes: str | Path, output_csv: str | Path, o
         log.warning("%s: no ground-truth capture relates the scanned template's frame to the ground truth's; "
                     "the CSV holds poses of the template's own frame (a ground-truth capture relates them)", template)
         T_obj_gt = np.eye(4)  # no ground truth anywhere: poses of the template's own frame
-    pts = load_model_points(None if model_path is None else Path(model_path), estimator)
+    pts, tris = load_model(None if model_path is None else Path(model_path), template, estimator)
     if model_path is None:  # the template's mesh, in the ground truth's object frame
         pts = transform_points(inv_T(T_obj_gt), pts)
     diam = diameter(pts)
+    taus = vsd_taus(diam)
+    caster = MeshRaycaster(pts, tris) if tris is not None else None
+    if caster is None:
+        log.warning("the model is a point cloud: no VSD, so no BOP AR (its MSSD and MSPD recalls are reported)")
     rows: list[EvalRow] = []
     lines = [CSV_HEADER]
     width = 640
@@ -285,8 +341,13 @@ def evaluate(template: str | Path, scenes: str | Path, output_csv: str | Path, o
                         row.mspd = mspd(pts, T_est, T_gt, frame.intrinsics)
                     except ValueError:  # estimated model partly behind the camera
                         row.mspd = float("inf")
+                    if caster is not None:
+                        d_est = caster.depth(frame.intrinsics, inv_T(T_est))
+                        d_gt = caster.depth(frame.intrinsics, inv_T(T_gt))
+                        row.vsd = vsd(frame.depth, d_est, d_gt, frame.intrinsics, taus).tolist()
                 else:
                     row.add = row.adds = row.mssd = row.mspd = float("inf")
+                    row.vsd = None if caster is None else [float("inf")] * len(taus)
             if res.found:
                 lines.append(_csv_row(scene_id, im_id, obj_id, res.score, T_est, dt))
             rows.append(row)
@@ -295,6 +356,10 @@ def evaluate(template: str | Path, scenes: str | Path, output_csv: str | Path, o
         raise InputError(Path(scenes), "no image to evaluate")
     if bop_gt and all(np.isnan(r.add) for r in rows):  # the metrics would silently be left out
         raise InputError(Path(scenes), f"scene_gt.json holds no pose of object {obj_id}", fix="obj_id")
+    found = [r for r in rows if r.found and np.isfinite(r.add)]
+    if found and all(r.add > diam for r in found):
+        log.warning("every pose found is more than the object's diameter (%.0f mm) from the ground truth: are the "
+                    "template and the ground truth in one frame (the ground-truth capture, the model)?", 1000 * diam)
     with Output(output_csv, force=force, kind=".csv file path") as out:
         out.tmp.write_text("\n".join(lines) + "\n", encoding="utf-8")
     return EvalReport(output_csv, len(rows), sum(r.found for r in rows), _metrics(rows, diam, width), rows)
@@ -307,7 +372,10 @@ def _metrics(rows: list[EvalRow], diameter: float, width: int) -> dict[str, floa
     if g:
         m["AUC ADD"] = auc([r.add for r in g])
         m["AUC ADD-S"] = auc([r.adds for r in g])
+        if all(r.vsd is not None for r in g):
+            m["AR VSD"] = 100.0 * ar_vsd([r.vsd for r in g])
         m["AR MSSD"] = 100.0 * ar_mssd([r.mssd for r in g], diameter)
         m["AR MSPD"] = 100.0 * ar_mspd([r.mspd for r in g], width)
-        m["AR"] = 0.5 * (m["AR MSSD"] + m["AR MSPD"])
+        if "AR VSD" in m:  # BOP19's AR: the mean of the three average recalls
+            m["AR"] = (m["AR VSD"] + m["AR MSSD"] + m["AR MSPD"]) / 3.0
     return m

@@ -1,5 +1,5 @@
 """Pose and trajectory error metrics: rotation / translation error, ATE, ADD, ADD-S, AUC,
-MSSD, MSPD and BOP recall.
+VSD, MSSD, MSPD and BOP recall.
 
 Poses are [4 x 4] rigid transforms. For object metrics `T_est` / `T_gt` are T_cam_obj
 (model points `pts` [N x 3] in the object frame, metres); for ATE they are T_world_cam.
@@ -10,6 +10,10 @@ References:
   evaluation scripts, reproduced exactly (see `auc`).
 - MSSD / MSPD and the recall thresholds: BOP Challenge 2019+ (bop_toolkit_lib/pose_error.py,
   scripts/eval_bop19_pose.py): an error counts as correct when strictly below a threshold.
+- VSD (Visible Surface Discrepancy): Hodan et al., "On Evaluation of 6D Object Pose Estimation", ECCVW 2016,
+  with the step cost of the SIXD / BOP challenges and BOP19's settings: visibility tolerance delta = 15 mm,
+  a pixel with no measured depth counts as visible ("bop19" visibility), misalignment tolerances
+  tau = 0.05..0.5 x the object diameter, correctness thresholds 0.05..0.5 on the error.
 """
 from __future__ import annotations
 
@@ -27,6 +31,12 @@ from gscan.geometry.transforms import inv_T, rotation_angle_deg, transform_point
 MSSD_THRESHOLD_FRACTIONS = np.round(np.arange(0.05, 0.51, 0.05), 10)
 #: BOP MSPD thresholds in pixels for a 640-pixel-wide image: 5, 10, ..., 50.
 MSPD_THRESHOLDS_PX_640 = np.arange(5.0, 51.0, 5.0)
+#: BOP19 VSD misalignment tolerances tau, as fractions of the object diameter: 0.05, 0.10, ..., 0.50.
+VSD_TAU_FRACTIONS = np.round(np.arange(0.05, 0.51, 0.05), 10)
+#: BOP19 VSD correctness thresholds on the error (a fraction of the visible surface): 0.05, ..., 0.50.
+VSD_THRESHOLDS = np.round(np.arange(0.05, 0.51, 0.05), 10)
+#: BOP19 VSD visibility tolerance (m): a model pixel more than this behind the measured surface is occluded.
+VSD_DELTA_M = 0.015
 
 
 def _as_T(T: np.ndarray, name: str) -> np.ndarray:
@@ -235,6 +245,64 @@ def mspd(pts: np.ndarray, T_est: np.ndarray, T_gt: np.ndarray, K: np.ndarray | I
     T_gt = _as_T(T_gt, "T_gt")
     return float(min(np.linalg.norm(uv_est - _project_K(transform_points(T_gt @ S, pts), K), axis=1).max()
                      for S in _sym_list(syms)))
+
+
+def depth_to_distance(depth: np.ndarray, K: np.ndarray | Intrinsics) -> np.ndarray:
+    """[H x W] depth along the optical axis -> distance from the camera centre along each pixel's ray (same
+    units; 0 stays 0). Pixel centres at integer coordinates, as gscan's and the BOP toolkit's intrinsics."""
+    K = K.K if isinstance(K, Intrinsics) else np.asarray(K, dtype=np.float64).reshape(3, 3)
+    d = np.asarray(depth, dtype=np.float64)
+    h, w = d.shape
+    u, v = np.meshgrid((np.arange(w) - K[0, 2]) / K[0, 0], (np.arange(h) - K[1, 2]) / K[1, 1])
+    return d * np.sqrt(u ** 2 + v ** 2 + 1.0)
+
+
+def visible_surface(dist_test: np.ndarray, dist_model: np.ndarray, delta: float = VSD_DELTA_M) -> np.ndarray:
+    """[H x W] bool: where the rendered model (distance image, 0 = none) is visible in the test image: not
+    more than `delta` behind the measured surface, or where nothing was measured (BOP19's rule, which
+    lets VSD score objects that depth sensors miss)."""
+    return (dist_model > 0) & ((dist_model - dist_test <= delta) | (dist_test == 0))
+
+
+def vsd(depth_test: np.ndarray, depth_est: np.ndarray, depth_gt: np.ndarray, K: np.ndarray | Intrinsics,
+        taus: Sequence[float] | np.ndarray, delta: float = VSD_DELTA_M) -> np.ndarray:
+    """Visible Surface Discrepancy (BOP19), one error in [0, 1] per misalignment tolerance in `taus`.
+
+    depth_test: [H x W] measured depth; depth_est / depth_gt: [H x W] depth of the model rendered in the
+    estimated / ground-truth pose (0 where the model is not), all along the optical axis in metres; K: [3 x 3]
+    or Intrinsics. The depths become distances along the rays; V_gt is the model's visible surface in the
+    ground-truth pose, V_est the estimate's, to which the ground truth's visible pixels it covers are added
+    (an estimate is not blamed for what occludes the object). The error is the fraction of V_gt | V_est
+    where the two surfaces are not both visible within tau of each other:
+    e = (#(V_gt ^ V_est) + #{p in V_gt & V_est : |D_gt(p) - D_est(p)| >= tau}) / #(V_gt | V_est),
+    1 when both are empty."""
+    dist_test, dist_est, dist_gt = (depth_to_distance(d, K) for d in (depth_test, depth_est, depth_gt))
+    visib_gt = visible_surface(dist_test, dist_gt, delta)
+    visib_est = visible_surface(dist_test, dist_est, delta) | (visib_gt & (dist_est > 0))
+    inter = visib_gt & visib_est
+    n_union = int((visib_gt | visib_est).sum())
+    taus = np.asarray(taus, dtype=np.float64).reshape(-1)
+    if n_union == 0:
+        return np.ones(len(taus))
+    d = np.abs(dist_gt[inter] - dist_est[inter])
+    n_only = n_union - int(inter.sum())
+    return np.array([(n_only + int((d >= tau).sum())) / n_union for tau in taus])
+
+
+def vsd_taus(diameter: float) -> np.ndarray:
+    """[10] BOP19 VSD misalignment tolerances (m): 0.05..0.5 x object diameter."""
+    if not diameter > 0:
+        raise ValueError(f"object diameter must be > 0, got {diameter}")
+    return VSD_TAU_FRACTIONS * float(diameter)
+
+
+def ar_vsd(errors: np.ndarray | Sequence[Sequence[float]]) -> float:
+    """BOP19 AR_VSD in [0, 1] of VSD errors [N x T] (one row per target, one column per tau; NaN / inf count as
+    failures): the recall at each threshold in VSD_THRESHOLDS, averaged over thresholds and taus."""
+    e = np.asarray(errors, dtype=np.float64)
+    if e.ndim != 2 or e.size == 0:
+        raise ValueError(f"VSD errors must be a non-empty [N x T] array, got shape {e.shape}")
+    return float(np.mean([recall_at(e[:, k], VSD_THRESHOLDS) for k in range(e.shape[1])]))
 
 
 def mssd_thresholds(diameter: float) -> np.ndarray:

@@ -4,11 +4,14 @@
 
 | format | output |
 |---|---|
-| `bop` | a BOP dataset folder (camera.json, models/, test/000001/ with GT poses and masks) |
+| `bop` | a BOP dataset folder (camera.json, models/, models_eval/, test/000001/ with GT poses and masks) |
 | `foundationpose` | FoundationPose model-free reference views (`ob_0000001/`) |
 | `colmap` | a COLMAP sparse model (pycolmap `Reconstruction.write`) |
 | `ply`, `obj`, `glb` | the template mesh (metres, object frame, vertex colours) |
 | `json` | intrinsics, per-view poses, edges with their quality numbers, grasps |
+
+The mesh of the bop, foundationpose, ply, obj and glb exports is closed (watertight, `export.watertight`)
+unless `close=False`: the scan's mesh is open where the support plane cut it.
 
 Outputs are never half-written (`gscan.io.output.Output`): everything is written into a hidden temporary
 sibling of `out` and renamed into place at the end. An existing non-empty `out` is refused without `force`;
@@ -33,27 +36,36 @@ FORMATS = ("bop", "foundationpose", "colmap", "ply", "obj", "glb", "json")
 _FILE_FORMATS = ("ply", "obj", "glb", "json")
 
 
+#: What each format holds, for the one-line report of an export.
+_CONTENT = {"bop": "a BOP dataset of {views} views", "foundationpose": "FoundationPose reference views ({views})",
+            "colmap": "a COLMAP model of {views} images", "json": "the template's metadata ({views} views)"}
+
+
 @dataclass
 class ExportResult:
-    """What an export wrote: `path` (folder or file), number of views and files written."""
+    """What an export wrote: `path` (folder or file), number of views and files written, and for the mesh
+    formats what the file holds (`content`, e.g. "mesh of 120 vertices / 236 triangles, watertight")."""
 
     format: str
     path: Path
     views: int
     files: int
+    content: str = ""
 
     def __str__(self) -> str:
-        return f"{self.format} export of {self.views} views ({self.files} files) at {self.path}"
+        what = self.content or _CONTENT.get(self.format, "{views} views").format(views=self.views)
+        files = f", {self.files} files" if self.files > 1 else ""
+        return f"{self.format} export at {self.path}: {what}{files}"
 
 
-def _writer(fmt: str) -> Callable[[TemplateDB, Path], int]:
-    """The format's writer: writer(db, tmp_out) -> number of views exported."""
+def _writer(fmt: str, close: bool) -> Callable[[TemplateDB, Path], int | tuple[int, str]]:
+    """The format's writer: writer(db, tmp_out) -> number of views exported (mesh formats: (0, content))."""
     if fmt == "bop":
         from gscan.export.bop import write_bop
-        return write_bop
+        return lambda db, path: write_bop(db, path, close=close)
     if fmt == "foundationpose":
         from gscan.export.foundationpose import write_foundationpose
-        return write_foundationpose
+        return lambda db, path: write_foundationpose(db, path, close=close)
     if fmt == "colmap":
         from gscan.export.colmap import write_colmap
         return write_colmap
@@ -61,13 +73,14 @@ def _writer(fmt: str) -> Callable[[TemplateDB, Path], int]:
         from gscan.export.jsonfmt import write_json
         return write_json
     from gscan.export.mesh import write_mesh
-    return lambda db, path: write_mesh(db, path, fmt)
+    return lambda db, path: write_mesh(db, path, fmt, close=close)
 
 
-def export(db_path: str | Path, fmt: str, out: str | Path, force: bool = False) -> ExportResult:
+def export(db_path: str | Path, fmt: str, out: str | Path, force: bool = False, close: bool = True) -> ExportResult:
     """Export the complete template database `db_path` as `fmt` to `out` (a folder, or a file for
-    ply/obj/glb/json). Raises InputError for an unknown format, an occupied `out` without `force`,
-    a partial / unreadable database, or a database lacking what the format needs."""
+    ply/obj/glb/json); `close`: close the mesh's holes (watertight model) in the formats that hold it.
+    Raises InputError for an unknown format, an occupied `out` without `force`, a partial / unreadable
+    database, or a database lacking what the format needs."""
     db_path, out = Path(db_path), Path(out)
     if fmt not in FORMATS:
         raise InputError(out, f"unknown export format {fmt!r}; expected one of {', '.join(FORMATS)}")
@@ -80,10 +93,11 @@ def export(db_path: str | Path, fmt: str, out: str | Path, force: bool = False) 
         raise InputError(out, f"output folder holds the template database {db_path.name}; replacing it would delete it")
     # parent folders are made only once the database is known good, and removed on failure
     with TemplateDB.open(db_path, require_complete=True) as db, target:
-        n_views = _writer(fmt)(db, target.tmp)
+        wrote = _writer(fmt, close)(db, target.tmp)
+        n_views, content = wrote if isinstance(wrote, tuple) else (wrote, "")
         files = sum(len(f) for _, _, f in os.walk(target.tmp)) if target.tmp.is_dir() else 1
     log.info("exported %s as %s to %s (%d views, %d files)", db_path, fmt, out, n_views, files)
-    return ExportResult(fmt, out, n_views, files)
+    return ExportResult(fmt, out, n_views, files, content)
 
 
 __all__ = ["FORMATS", "ExportResult", "export"]

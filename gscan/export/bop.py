@@ -5,6 +5,9 @@ Layout (BOP toolkit conventions, docs/bop_datasets_format.md; millimetres, row-m
     camera.json                       {cx, cy, fx, fy, width, height, depth_scale}
     models/obj_000001.ply             template mesh in mm with vertex normals and colours
     models/models_info.json           {"1": {diameter, min_x/y/z, size_x/y/z}} in mm
+    models_eval/obj_000001.ply        the same mesh, models_info.json the same: the models the BOP toolkit's
+    models_eval/models_info.json      scorer reads (BOP resamples its CAD models there for even vertex spacing;
+                                      a TSDF mesh's vertices already lie about one voxel apart)
     test/000001/rgb/IIIIII.png        colour
     test/000001/depth/IIIIII.png      uint16, depth_scale 1.0 (raw * 1.0 = millimetres)
     test/000001/mask/IIIIII_000000.png, mask_visib/IIIIII_000000.png   0/255
@@ -14,6 +17,9 @@ Layout (BOP toolkit conventions, docs/bop_datasets_format.md; millimetres, row-m
                                                 px_count_visib, visib_fract}]}
     test_targets_bop19.json           [{im_id, inst_count: 1, obj_id: 1, scene_id: 1}] (evaluation targets)
     gscan_views.json                  {im_id: template view name} (gscan's own addition)
+
+The mesh is closed into a watertight model (`close`, see `gscan.export.watertight`: the scan's mesh is
+open where the support plane cut it), which is what BOP's renderers and scorers expect.
 
 Masks and counts: with a mesh, `mask` is the mesh silhouette ray-cast from the view's pose and
 `mask_visib` the silhouette pixels whose measured depth is missing or is not more than 15 mm in front
@@ -33,7 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from gscan.errors import InputError
-from gscan.export.common import MeshRaycaster, bbox_xywh, imwrite, posed_views
+from gscan.export.common import MeshRaycaster, bbox_xywh, imwrite, posed_views, template_mesh
 from gscan.geometry.transforms import inv_T
 from gscan.evaluate.metrics import diameter
 from gscan.template.db import MeshData, TemplateDB
@@ -84,11 +90,10 @@ def models_info(mesh: MeshData) -> dict:
             "size_x": float(hi[0] - lo[0]), "size_y": float(hi[1] - lo[1]), "size_z": float(hi[2] - lo[2])}
 
 
-def write_bop(db: TemplateDB, out: Path) -> int:
-    """Write the BOP dataset into the (empty) folder `out`; returns the number of images."""
-    mesh = db.mesh()
-    if mesh is not None and (len(mesh.vertices) == 0 or len(mesh.triangles) == 0):
-        mesh = None
+def write_bop(db: TemplateDB, out: Path, close: bool = True) -> int:
+    """Write the BOP dataset into the (empty) folder `out`, its mesh closed with `close`; returns the number
+    of images."""
+    mesh = template_mesh(db, close)
     views = posed_views(db, need_images=True)
     if mesh is None:
         log.warning("%s has no mesh: BOP export without models/, masks from the stored object masks", db.path)
@@ -106,9 +111,11 @@ def write_bop(db: TemplateDB, out: Path) -> int:
            "height": intr0.height, "width": intr0.width}
     _dump(out / "camera.json", cam)
     if mesh is not None:
-        (out / "models").mkdir()
-        write_ply_mm(mesh, out / "models" / f"obj_{OBJ_ID:06d}.ply")
-        _dump(out / "models" / "models_info.json", {str(OBJ_ID): models_info(mesh)})
+        info = {str(OBJ_ID): models_info(mesh)}
+        for models in ("models", "models_eval"):
+            (out / models).mkdir()
+            write_ply_mm(mesh, out / models / f"obj_{OBJ_ID:06d}.ply")
+            _dump(out / models / "models_info.json", info)
     caster = MeshRaycaster(mesh) if mesh is not None else None
     scene_camera, scene_gt, scene_gt_info, names = {}, {}, {}, {}
     for im_id, v in enumerate(views):

@@ -9,8 +9,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from gscan.io.camera import Intrinsics, pixel_rays
 from gscan.errors import GscanError, InputError
+from gscan.geometry.raycast import MeshRaycaster as RaycasterBase
+from gscan.io.camera import Intrinsics
 from gscan.template.db import MeshData, TemplateDB, View
 
 log = logging.getLogger(__name__)
@@ -104,9 +105,23 @@ def safe_file_names(names: list[str], max_bytes: int = MAX_STEM_BYTES) -> list[s
     return [s for s in out if s is not None]
 
 
-def require_mesh(db: TemplateDB) -> MeshData:
+def template_mesh(db: TemplateDB, close: bool = True) -> MeshData | None:
+    """The template's mesh for an export, closed into a watertight model with `close`
+    (`gscan.export.watertight`); None when the template has no mesh with triangles."""
     m = db.mesh()
     if m is None or len(m.vertices) == 0 or len(m.triangles) == 0:
+        return None
+    if close:
+        from gscan.export.watertight import closed_mesh
+
+        m = closed_mesh(db, m)
+    return m
+
+
+def require_mesh(db: TemplateDB, close: bool = True) -> MeshData:
+    """`template_mesh`, or InputError naming the database when it has no mesh."""
+    m = template_mesh(db, close)
+    if m is None:
         raise InputError(db.path, "the template has no mesh to export")
     return m
 
@@ -120,25 +135,11 @@ def imwrite(path: Path, img: np.ndarray, rgb: bool = False) -> None:
     path.write_bytes(buf.tobytes())
 
 
-class MeshRaycaster:
-    """Ray-casts one mesh from many cameras (the BVH is built once)."""
+class MeshRaycaster(RaycasterBase):
+    """Ray-casts the template mesh from many cameras (`gscan.geometry.raycast.MeshRaycaster`)."""
 
     def __init__(self, mesh: MeshData):
-        import open3d as o3d
-
-        self._o3d = o3d
-        self.scene = o3d.t.geometry.RaycastingScene()
-        self.scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(mesh.vertices, dtype=np.float32)),
-                                 o3d.core.Tensor(np.ascontiguousarray(mesh.triangles, dtype=np.uint32)))
-
-    def depth(self, intr: Intrinsics, T_obj_cam: np.ndarray) -> np.ndarray:
-        """[H x W] float32 depth (m, along the optical axis) of the mesh seen from T_obj_cam, 0 = no hit."""
-        d_cam = pixel_rays(intr).reshape(-1, 3)  # z = 1, so the hit distance t is the depth
-        d_obj = d_cam @ T_obj_cam[:3, :3].T
-        o_obj = np.broadcast_to(T_obj_cam[:3, 3], d_obj.shape)
-        rays = np.concatenate([o_obj, d_obj], axis=1).astype(np.float32)
-        t = self.scene.cast_rays(self._o3d.core.Tensor(rays))["t_hit"].numpy().reshape(intr.height, intr.width)
-        return np.where(np.isfinite(t), t, 0.0).astype(np.float32)
+        super().__init__(mesh.vertices, mesh.triangles)
 
 
 def render_depth(mesh: MeshData, intr: Intrinsics, T_obj_cam: np.ndarray) -> np.ndarray:

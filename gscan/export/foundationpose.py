@@ -14,7 +14,8 @@ Matched against NVlabs/FoundationPose `bundlesdf/run_nerf.py::run_one_ob(base_di
 and `run_neural_object_field` right-multiplies `cam_in_ob` by `glcam_in_cvcam`, so `cam_in_ob` is the
 OpenCV camera's pose in the object frame: gscan's `T_obj_cam`. The reconstructed mesh is written to
 `{base_dir}/model/model.obj`, which `datareader.py` (`get_reconstructed_mesh`) loads; gscan writes its
-own template mesh there (vertex colours, metres), so FoundationPose can run without retraining.
+own template mesh there (vertex colours, metres, closed: `template_mesh`), so FoundationPose can run without
+retraining.
 
 `depth_enhanced/` holds the stored depth as captured (no hole filling).
 Written: `ob_0000001/{rgb,depth_enhanced,mask,cam_in_ob}/NNNNNNN.*`, `K.txt`, `select_frames.yml`
@@ -31,7 +32,7 @@ import numpy as np
 import yaml
 
 from gscan.errors import InputError
-from gscan.export.common import MeshRaycaster, imwrite, posed_views
+from gscan.export.common import MeshRaycaster, imwrite, posed_views, template_mesh
 from gscan.template.db import TemplateDB
 from gscan.template.codec import depth_to_mm_u16
 
@@ -40,11 +41,10 @@ log = logging.getLogger(__name__)
 OB_DIR = "ob_0000001"
 
 
-def write_foundationpose(db: TemplateDB, out: Path) -> int:
-    """Write the reference-view folder `out/ob_0000001/`; returns the number of views written."""
-    mesh = db.mesh()
-    if mesh is not None and (len(mesh.vertices) == 0 or len(mesh.triangles) == 0):
-        mesh = None
+def write_foundationpose(db: TemplateDB, out: Path, close: bool = True) -> int:
+    """Write the reference-view folder `out/ob_0000001/`; returns the number of views written. `close`: the
+    model's holes closed (`template_mesh`)."""
+    mesh = template_mesh(db, close)
     views = [v for v in posed_views(db, need_images=True) if v.keyframe]
     if not views:
         raise InputError(db.path, "no registered keyframe with colour and depth to export")

@@ -1,4 +1,4 @@
-"""Mesh exports (PLY / OBJ / GLB) through trimesh: metres, object frame, vertex colours."""
+"""Mesh exports (PLY / OBJ / GLB) through trimesh: metres, object frame, vertex colours, holes closed by default."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -7,6 +7,7 @@ import numpy as np
 import trimesh
 
 from gscan.errors import InputError
+from gscan.geometry.meshfill import boundary_edges, non_manifold_edges
 from gscan.export.common import require_mesh
 from gscan.template.db import MeshData, TemplateDB
 
@@ -21,15 +22,17 @@ def to_trimesh(mesh: MeshData, scale: float = 1.0) -> trimesh.Trimesh:
     return tm
 
 
-def write_mesh(db: TemplateDB, path: Path, fmt: str) -> int:
-    """Write the mesh as `fmt` ("ply" | "obj" | "glb") to the file `path`. A template without a mesh
-    but with a point cloud exports the cloud as PLY; OBJ/GLB need a mesh. Returns 0 (no views)."""
+def write_mesh(db: TemplateDB, path: Path, fmt: str, close: bool = True) -> tuple[int, str]:
+    """Write the mesh as `fmt` ("ply" | "obj" | "glb") to the file `path`, with its holes closed (`close`,
+    see `template_mesh`). A template without a mesh but with a point cloud exports the cloud as PLY;
+    OBJ/GLB need a mesh. Returns (0 views, what the file holds)."""
     if fmt == "ply" and db.mesh() is None and db.cloud() is not None:
         pts, cols = db.cloud()
         pc = trimesh.PointCloud(np.asarray(pts, dtype=np.float64), colors=cols)
         path.write_bytes(pc.export(file_type="ply"))
-        return 0
-    tm = to_trimesh(require_mesh(db))
+        return 0, f"point cloud of {len(pts)} points (the template has no mesh)"
+    mesh = require_mesh(db, close)
+    tm = to_trimesh(mesh)
     if fmt == "ply":
         data = trimesh.exchange.ply.export_ply(tm, encoding="binary", vertex_normal=True)
     elif fmt == "obj":
@@ -40,4 +43,7 @@ def write_mesh(db: TemplateDB, path: Path, fmt: str) -> int:
     else:
         raise InputError(path, f"not a mesh format: {fmt}")
     path.write_bytes(data)
-    return 0
+    open_edges = len(boundary_edges(mesh.triangles))
+    shape = "watertight" if open_edges == 0 and non_manifold_edges(mesh.triangles) == 0 else (
+        f"{open_edges} open edges" if open_edges else "closed, with edges shared by more than two triangles")
+    return 0, f"mesh of {len(mesh.vertices)} vertices / {len(mesh.triangles)} triangles, {shape}"

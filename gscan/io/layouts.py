@@ -1,4 +1,4 @@
-"""Discovery of the four folder layouts (DESIGN.md "Input layouts"): which files form which frame.
+"""Discovery of the four folder layouts (README, "Input layouts"): which files form which frame.
 
 Discovery only lists files and reads the small text/JSON side files (intrinsics, ground truth);
 images are checked by gscan.io.sequence. Every function raises InputError naming the file.

@@ -14,7 +14,7 @@ T_tgt_src). Parameters are fixed and stated (BaselineParams), never tuned per in
 
 RANSAC = open3d `registration_ransac_based_on_correspondence` (3-point samples, point-to-point,
 100000 iterations, confidence 0.999, inlier distance = GMatch's eta = 0.01 m), called with clouds that
-hold only the matched points (STACK.md pitfall: a whole keypoint cloud inflates the inlier count).
+hold only the matched points (a whole keypoint cloud would inflate the inlier count).
 Every method's final pose is the Kabsch fit over its inliers (inlier distance from its own estimate)
 among its putative correspondences (FGR: mutual nearest neighbours), then the inliers are recounted.
 Randomness is seeded (open3d / pycolmap seed 0), so results are repeatable.

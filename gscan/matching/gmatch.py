@@ -1,9 +1,11 @@
-"""GMatch: geometry-constrained keypoint matching (paper `gmatch.tex`, Method + Algorithm 1).
+"""GMatch: geometry-constrained keypoint matching (Method and Algorithm 1 of M. Yang and H. Li, "GMatch: A
+Lightweight, Geometry-Constrained Keypoint Matcher for Zero-Shot 6DoF Pose Estimation in Robotic Grasp Tasks",
+arXiv:2505.16144).
 
 Inputs per side: 3D keypoints [N x 3] (metres, in that side's camera frame), a descriptor
 distance matrix [Ns x Nt] and the viewing direction of each side in the frame of its points.
 
-Definitions (DESIGN.md "GMatch, as we implement it"):
+Definitions (GMatch as gscan implements it):
 
 * candidates: all pairs (i, j) with descriptor distance d_f(i, j) < eps_f, ordered by
   (key ascending, row-major index) -- this order is the "descriptor order" below (seeds, levels 2

@@ -1,6 +1,6 @@
 """Capture mode detection, and object masks for a static camera.
 
-Two capture modes (DESIGN.md): a static object scanned by a moving camera ("static-object":
+Two capture modes: a static object scanned by a moving camera ("static-object":
 the whole frame moves rigidly with the object, so registration may use all of it), or a
 moving object in front of a static camera ("moving-object": turntable or object in hand,
 only the object's pixels may be registered, the background would pull every pose to identity).

@@ -5,7 +5,7 @@ Fusion uses open3d's tensor `VoxelBlockGrid` on CPU:0 (the legacy ScalableTSDFVo
 pixels; the caller passes `frame.depth > 0` as the mask for a whole-scene scan). Small floating
 fragments are removed from the mesh; the point cloud keeps only points near the kept mesh.
 
-Template frame (DESIGN.md "Frames of reference"): origin at the centre of the object's bounding
+Template frame: origin at the centre of the object's bounding
 box, z along the support-plane normal (up) when a plane is known, x and y along the principal
 axes of the object's points projected on the plane; otherwise the axes of the first camera.
 """

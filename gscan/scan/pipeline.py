@@ -12,7 +12,7 @@ Stages (each timed, each reported through a `Progress`):
   posegraph robust global optimisation (open3d, line process) with pruning of inconsistent edges;
             frames not connected to the reference frame stay unregistered and are never fused
   segment   object masks (given, background subtraction, or support plane + working volume)
-  fuse      TSDF fusion of the object's depth; template frame (DESIGN.md "Frames of reference")
+  fuse      TSDF fusion of the object's depth; template frame (fuse.template_frame)
   database  poses, masks, keyframes and keypoints in the object frame, mesh, cloud; status complete
 
 Resume: the database is `partial` until the last transaction. `--resume` reuses the stored views'

@@ -1,6 +1,6 @@
 """Camera paths, object placement on the table, and writing synthetic captures to disk.
 
-Capture layout (DESIGN.md): rgb/NNNNNN.png|jpg, depth/NNNNNN.png (uint16 mm), masks/NNNNNN.png (0/255),
+Capture layout (README, "Input layouts"): rgb/NNNNNN.png|jpg, depth/NNNNNN.png (uint16 mm), masks/NNNNNN.png (0/255),
 cam_K.txt (3x3), annotated_poses/NNNNNN.txt (4x4 T_cam_obj, metres).
 """
 from __future__ import annotations

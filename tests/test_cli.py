@@ -1,0 +1,127 @@
+"""The command line's first contact: --version, --help that shows flags and whole choice lists at any terminal
+width, choice values that are the library's, and human output that says what it means."""
+from __future__ import annotations
+
+import json
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import gscan
+from gscan.cli import ExportFormat, ScanFormat, ScanMode
+from tests.conftest import ROOT
+
+
+def _gscan(*args: str, columns: int | None = None) -> subprocess.CompletedProcess:
+    env = dict(os.environ)
+    if columns is not None:
+        env["COLUMNS"] = str(columns)
+    return subprocess.run([sys.executable, "-m", "gscan.cli", *args], capture_output=True, text=True, timeout=300,
+                          cwd=ROOT, env=env)
+
+
+def test_version():
+    r = _gscan("--version")
+    assert r.returncode == 0 and r.stdout == f"gscan {gscan.__version__}\n"
+    assert re.fullmatch(r"\d+\.\d+\.\d+", gscan.__version__)
+
+
+def test_choice_values_are_the_librarys():
+    """The CLI's choice lists are the contract's; the library's own lists must be the same."""
+    from gscan.export import FORMATS as EXPORT_FORMATS
+    from gscan.io.layouts import FORMATS as INPUT_FORMATS
+    from gscan.scan.capture_mode import MOVING_OBJECT, STATIC_OBJECT
+
+    assert [f.value for f in ScanFormat] == ["auto", *INPUT_FORMATS]
+    assert [m.value for m in ScanMode] == ["auto", STATIC_OBJECT, MOVING_OBJECT]
+    assert [f.value for f in ExportFormat] == list(EXPORT_FORMATS)
+
+
+@pytest.mark.parametrize("columns", [40, 300])
+@pytest.mark.parametrize("command", ["scan", "export", "estimate", "eval", "demo"])
+def test_help_shows_flags_plainly_and_choice_lists_whole(command: str, columns: int):
+    """At 40 or 300 columns: every option named in full, flags without a value type (typer's boxed help wrote
+    `--force <bool>` and cut names and choice lists to the box)."""
+    r = _gscan(command, "--help", columns=columns)
+    assert r.returncode == 0, r.stderr
+    assert "<bool>" not in r.stdout and "…" not in r.stdout
+    words = set(r.stdout.split())
+    assert "--help" in words and ("--json" in words or command == "demo")
+    # the whole list as one word: <a|b> (typer >= 0.26) or [a|b]
+    choices = {w.strip("<>[]") for w in words if "|" in w}
+    if command == "scan":
+        assert {"--force", "--no-segment", "--resume", "--obj-id"} <= words
+        assert {"auto|capture|open3d|tum|bop", "auto|static-object|moving-object"} <= choices
+    if command == "export":
+        assert {"--force", "--keep-holes"} <= words and "bop|foundationpose|colmap|ply|obj|glb|json" in choices
+
+
+def test_a_wrong_choice_names_the_option_and_the_choices(tmp_path: Path):
+    r = _gscan("export", str(tmp_path / "x.gscan"), "--format", "stl", "-o", str(tmp_path / "x.stl"), columns=40)
+    assert r.returncode == 2 and r.stdout == ""
+    line = " ".join(r.stderr.split())
+    assert "--format" in line and "'stl'" in line and all(f"'{f.value}'" in line for f in ExportFormat)
+
+
+def _pose_from_line(line: str) -> np.ndarray:
+    """T from `t = [x, y, z] m, R = A deg about [ax, ay, az]` (the human poses / grasp list line)."""
+    import cv2
+
+    nums = [float(x) for x in re.findall(r"[-+]?\d+\.\d+", line.split(":", 1)[1])]
+    t, angle, axis = np.array(nums[:3]), np.radians(nums[3]), np.array(nums[4:7])
+    T = np.eye(4)
+    T[:3, :3] = cv2.Rodrigues(axis / np.linalg.norm(axis) * angle)[0]
+    T[:3, 3] = t
+    return T
+
+
+def test_human_poses_print_rotation_and_translation(sample_template: Path):
+    """Each line holds the whole pose: rebuilt from its printed numbers, it is the stored T_obj_cam to the
+    printed precision (0.1 mm; 0.01 deg and an axis to 1e-3, i.e. about 0.1 deg of rotation)."""
+    from gscan.geometry.transforms import pose_error
+
+    js = json.loads(_gscan("poses", str(sample_template), "--json").stdout)["frames"]
+    r = _gscan("poses", str(sample_template), columns=40)
+    assert r.returncode == 0, r.stderr
+    lines = [ln for ln in r.stderr.splitlines() if re.match(r"^\d{6}: t = ", ln)]
+    assert len(lines) == len(js) == 30
+    for ln in lines:
+        rot, trans = pose_error(_pose_from_line(ln), np.asarray(js[ln.split(":")[0]]))
+        # the printed pose: 0.1 mm translation, 0.01 deg angle and a 1e-3 axis (about 0.06 deg) of rounding
+        assert rot < 0.2 and trans < 1e-4, (ln, rot, trans)
+
+
+def test_grasp_list_prints_the_whole_pose(sample_template: Path, tmp_path: Path):
+    import shutil
+
+    from gscan.geometry.transforms import make_T, pose_error, rotvec_to_R
+
+    db = tmp_path / "g.gscan"
+    shutil.copy(sample_template, db)
+    T = make_T(rotvec_to_R(np.radians([0.0, 90.0, 0.0])), [0.01, -0.02, 0.05])
+    (tmp_path / "g.json").write_text(json.dumps({"T": T.tolist()}))
+    assert _gscan("grasp", "add", str(db), "--name", "top", "--pose", str(tmp_path / "g.json")).returncode == 0
+    line = next(ln for ln in _gscan("grasp", "list", str(db)).stderr.splitlines() if ln.startswith("top:"))
+    rot, trans = pose_error(_pose_from_line(line), T)
+    # the printed pose: 0.1 mm translation, 0.01 deg angle and a 1e-3 axis (about 0.06 deg) of rounding
+    assert "R = 90.00 deg" in line and rot < 0.2 and trans < 1e-4, line
+
+
+def test_estimate_names_its_match_count(sample_template: Path):
+    """The human line says what the number counts (the keypoint pairs of GMatch's list), which the viewer's
+    edge "matches" (refined inlier pairs, hundreds) are not."""
+    from gscan.demo import SAMPLES
+
+    held = SAMPLES / "heldout"
+    r = _gscan("estimate", str(sample_template), "--color", str(held / "rgb" / "000000.jpg"), "--depth",
+               str(held / "depth" / "000000.png"), "--intrinsics", str(held / "cam_K.txt"), columns=40)
+    assert r.returncode == 0, r.stderr
+    js = json.loads(_gscan("estimate", str(sample_template), "--color", str(held / "rgb" / "000000.jpg"), "--depth",
+                           str(held / "depth" / "000000.png"), "--intrinsics", str(held / "cam_K.txt"),
+                           "--json").stdout)
+    assert f"{js['n_matches']} matched keypoint pairs (GMatch's list)" in " ".join(r.stderr.split())
