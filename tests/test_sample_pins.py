@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gscan.demo import SAMPLES
 from tests.conftest import ROOT
 
 PINS = Path(__file__).with_name("sample_pins.json")
@@ -34,7 +35,7 @@ def _sample_results(db_path: Path) -> dict:
 
     with TemplateDB.open(db_path) as db:
         scan = db.poses()
-    seq = open_sequence(ROOT / "samples" / "heldout")
+    seq = open_sequence(SAMPLES / "heldout")
     est = Estimator.from_path(db_path)
     estimates = {}
     for name in seq.names:
@@ -98,7 +99,7 @@ def main() -> None:
 
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "sample.gscan"
-        scan(ROOT / "samples" / "capture", out)
+        scan(SAMPLES / "capture", out)
         text = json.dumps(_sample_results(out), indent=1)
     # one matrix row a line
     text = re.sub(r"\[\s+([^\[\]{}]*?)\s+\]", lambda m: "[" + ", ".join(x.strip() for x in m.group(1).split(",")) + "]", text)

@@ -470,6 +470,6 @@ def test_info_json_keeps_its_keys(db_path: Path) -> None:
     assert r.returncode == 0, r.stderr
     out = json.loads(r.stdout)
     assert list(out) == ["schema", "status", "views", "registered", "keyframes", "descriptor", "source", "extent_m",
-                         "grasps"]
+                         "grasps", "mesh"]
     assert out["status"] == "partial" and out["views"] == out["registered"] == 1 and out["grasps"] == ["g"]
     assert isinstance(out["extent_m"], list) and len(out["extent_m"]) == 3

@@ -25,6 +25,7 @@ from gscan.errors import InputError
 from gscan.geometry.transforms import look_at
 from gscan.template.db import TemplateDB
 from gscan.viewer.app import PortInUseError, check_port, serve
+from gscan.demo import SAMPLES
 from gscan.viewer.draw import draw_matches, edge_color, quality_color, scale_pixels, thumbnail
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -93,9 +94,9 @@ def test_port_range_and_view_errors_are_one_line(template, tmp_path):
     pose.write_text(json.dumps(np.eye(4).tolist()))
     bad_pose = tmp_path / "bad.json"
     bad_pose.write_text(json.dumps([[1, 0], [0, 1]]))
-    frame = [str(ROOT / "samples" / "heldout" / sub / f"000000{ext}") for sub, ext in (("rgb", ".jpg"),
+    frame = [str(SAMPLES / "heldout" / sub / f"000000{ext}") for sub, ext in (("rgb", ".jpg"),
                                                                                        ("depth", ".png"))]
-    query = ["--color", frame[0], "--depth", frame[1], "--intrinsics", str(ROOT / "samples" / "heldout" / "cam_K.txt")]
+    query = ["--color", frame[0], "--depth", frame[1], "--intrinsics", str(SAMPLES / "heldout" / "cam_K.txt")]
     for args, named in (([tmp_path / "missing.gscan"], "missing.gscan"), ([], "Missing argument"),
                         ([template.path, "--port", "abc"], "--port"), ([template.path, "--pose", pose], "T.json"),
                         ([template.path, *query, "--pose", bad_pose], "bad.json")):
