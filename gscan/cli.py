@@ -97,6 +97,10 @@ def scan(
     config: Optional[Path] = typer.Option(None, "--config", help="YAML configuration (see `gscan config dump`)"),
     obj_id: Optional[int] = typer.Option(None, "--obj-id", min=1, max=2**31 - 1,
                                          help="BOP folder: the object to scan (default: the first in scene_gt.json)"),
+    color_topic: Optional[str] = typer.Option(None, "--color-topic",
+                                              help="recording: the colour image topic (default: detected)"),
+    depth_topic: Optional[str] = typer.Option(None, "--depth-topic",
+                                              help="recording: the depth image topic (default: detected)"),
     json_out: bool = typer.Option(False, "--json", help="print one JSON object on stdout"),
     verbose: bool = typer.Option(False, "-v", "--verbose", help="log progress details to stderr"),
 ) -> None:
@@ -116,7 +120,8 @@ def scan(
         raise UsageError(output, "--resume and --force exclude each other")
     opts = ScanOptions(input_dir=input_dir, output=output, fmt=format, intrinsics=intrinsics,
                        depth_scale=depth_scale, mode=mode, segment=not no_segment, resume=resume,
-                       force=force, config=load_config(config), obj_id=obj_id)
+                       force=force, config=load_config(config), obj_id=obj_id, color_topic=color_topic,
+                       depth_topic=depth_topic)
     try:
         with RichProgress(err, enabled=not json_out or sys.stderr.isatty()) as progress:
             result = run_scan(opts, progress=progress)

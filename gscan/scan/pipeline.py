@@ -68,6 +68,8 @@ class ScanOptions:
     force: bool = False
     config: ScanConfig = field(default_factory=ScanConfig)
     obj_id: int | None = None  # BOP: the object to scan (its masks, ground truth); None: the first one listed
+    color_topic: str | None = None  # recordings: the colour / depth image topics (None: detected)
+    depth_topic: str | None = None
 
 
 @dataclass
@@ -120,7 +122,7 @@ def _register_params(cfg: ScanConfig, mode: str) -> RegisterParams:
 
 
 RESUME_KEYS = ("input", "format", "intrinsics_sha256", "depth_scale_option", "config", "mode_option", "segment",
-               "obj_id_option")
+               "obj_id_option", "topics_option")
 
 
 def _scan_meta(opts: ScanOptions) -> dict:
@@ -133,6 +135,8 @@ def _scan_meta(opts: ScanOptions) -> dict:
             "intrinsics_sha256": None if opts.intrinsics is None else _sha256(Path(opts.intrinsics)),
             "depth_scale_option": opts.depth_scale, "config": opts.config.model_dump(), "mode_option": opts.mode,
             "segment": opts.segment, "obj_id_option": opts.obj_id, "descriptor": opts.config.features.kind,
+            "topics_option": None if opts.color_topic is None and opts.depth_topic is None else
+            [opts.color_topic, opts.depth_topic],
             "units": "m"}
 
 
@@ -181,7 +185,8 @@ def run_scan(opts: ScanOptions, progress: Progress | None = None) -> ScanResult:
     timer = StageTimer(progress)
     try:
         seq = open_sequence(opts.input_dir, format=opts.fmt, intrinsics=opts.intrinsics,
-                            depth_scale=opts.depth_scale, obj_id=opts.obj_id)
+                            depth_scale=opts.depth_scale, obj_id=opts.obj_id, color_topic=opts.color_topic,
+                            depth_topic=opts.depth_topic)
         if opts.obj_id is not None and seq.format != "bop":
             raise InputError(opts.input_dir, f"--obj-id is for BOP scene folders, this is a {seq.format} folder")
         if opts.obj_id is not None and seq.gt_T_cam_obj is None:
