@@ -453,6 +453,7 @@ def capture(
                                      help="degrees the view of the object must turn for a frame to be kept"),
     max_frames: Optional[int] = typer.Option(None, "--max-frames", min=1, help="stop after keeping this many frames"),
     real_time: bool = typer.Option(False, "--real-time", help="--from: play at the recorded pace"),
+    align: str = typer.Option("gscan", "--align", help="depth-to-colour alignment: gscan|librealsense (rs.align)"),
     preview: Optional[bool] = typer.Option(None, "--preview/--no-preview",
                                            help="live preview in the browser (default: on live, off with --from)"),
     host: str = typer.Option("127.0.0.1", "--host", help="preview address to bind"),
@@ -472,8 +473,11 @@ def capture(
 
     if (width is None) != (height is None):
         raise UsageError(None, "--width and --height go together")
+    if align not in ("gscan", "librealsense"):
+        raise UsageError(None, f"--align must be gscan or librealsense, not {align!r}")
     opts = CaptureOptions(every=every, motion=replace(MotionParams(), min_angle_deg=min_motion), max_frames=max_frames)
-    camera = RealSenseCamera(from_file, CameraOptions(width=width, height=height, fps=fps, real_time=real_time))
+    camera = RealSenseCamera(from_file, CameraOptions(width=width, height=height, fps=fps, real_time=real_time,
+                                                      align=align))
     show = preview if preview is not None else from_file is None
     viewer = None
     if show:

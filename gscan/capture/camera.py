@@ -2,9 +2,16 @@
 
 Both go through one pyrealsense2 pipeline; only the device differs: a connected camera
 (`rs.config.enable_stream` with the chosen size and rate) or the playback device of a `.bag`
-(`rs.config.enable_device_from_file`, played as fast as it is read unless `real_time`). Each frameset is
-aligned to the colour stream by librealsense (`rs.align`), and depth is converted to millimetres with the
-device's depth scale, so frames come out as the capture layout stores them.
+(`rs.config.enable_device_from_file`, played as fast as it is read unless `real_time`). Depth is aligned to
+the colour camera with the device's intrinsics and depth-to-colour extrinsics, and converted to millimetres
+with its depth scale, so frames come out as the capture layout stores them.
+
+Alignment (`align`): "gscan" (default) reprojects depth with `gscan.io.recordings.align`, the same code that
+reads recordings, so a capture played from a .bag holds the depth `gscan scan REC.bag` reads (to the
+millimetre); "librealsense" uses `rs.align`, which keeps each point's depth-camera z instead of its z in the
+colour camera: off by the depth-to-colour rotation (on rendered views with a 2 degree rotation its depth was
+4.7 mm off the truth at the median, gscan's 0.7 mm; BENCHMARKS.md). Depth that comes registered to colour is
+taken as it is.
 """
 from __future__ import annotations
 
@@ -21,6 +28,8 @@ import numpy as np
 
 from gscan.errors import InputError
 from gscan.io.camera import Intrinsics
+from gscan.io.recordings.align import align_depth_to_color
+from gscan.io.recordings.streams import is_identity, same_intrinsics
 
 log = logging.getLogger(__name__)
 
@@ -31,13 +40,15 @@ LIVE_DEFAULT = (640, 480, 30)  # width, height, fps of a live capture when not c
 class CameraOptions:
     """width / height / fps: the streams to open (None: the recording's own; a live camera uses LIVE_DEFAULT);
     real_time: play a recording at its recorded pace (default: as fast as frames are consumed, none dropped);
-    timeout_s: how long a live camera may deliver nothing before it is given up."""
+    timeout_s: how long a live camera may deliver nothing before it is given up; align: "gscan" | "librealsense"
+    (see the module docstring)."""
 
     width: int | None = None
     height: int | None = None
     fps: int | None = None
     real_time: bool = False
     timeout_s: float = 5.0
+    align: str = "gscan"
 
 
 @dataclass
@@ -78,6 +89,8 @@ class RealSenseCamera:
         self.device = ""
         self.profile = ""
         self.registered = False  # depth comes registered to colour (then it is not re-aligned)
+        self.depth_intrinsics: Intrinsics | None = None
+        self.T_color_depth = np.eye(4)  # maps depth-camera points into the colour camera
         self._pipe: Any = None
         self._playback: Any = None
         self._align: Any = None
@@ -136,17 +149,21 @@ class RealSenseCamera:
             if not self.depth_scale > 0:
                 raise InputError(self._where(), "the depth sensor reports no depth scale (Depth Units)")
             di, ex = dp.get_intrinsics(), dp.get_extrinsics_to(cp)
-            same = [di.width, di.height, di.fx, di.fy, di.ppx, di.ppy] == [ci.width, ci.height, ci.fx, ci.fy, ci.ppx,
-                                                                           ci.ppy]
-            identity = np.allclose(np.asarray(ex.rotation), np.eye(3).ravel(), atol=1e-6) and \
-                np.allclose(ex.translation, 0.0, atol=1e-6)
-            self.registered = bool(same and identity)
+            self.depth_intrinsics = Intrinsics(float(di.fx), float(di.fy), float(di.ppx), float(di.ppy),
+                                               int(di.width), int(di.height))
+            self.T_color_depth = np.eye(4)
+            self.T_color_depth[:3, :3] = np.asarray(ex.rotation, dtype=np.float64).reshape(3, 3).T  # column-major
+            self.T_color_depth[:3, 3] = np.asarray(ex.translation, dtype=np.float64)
+            # depth registered to colour (one camera model, no offset) is taken as it is: rs.align would still
+            # splat every pixel over its neighbours (a one-pixel erosion towards the nearer surface)
+            self.registered = is_identity(self.T_color_depth) and same_intrinsics(self.depth_intrinsics,
+                                                                                  self.intrinsics)
         except BaseException:
             self.close()
             raise
-        # depth already registered to colour (one camera model, no offset) is taken as it is: rs.align would
-        # still splat every pixel over its neighbours (a one-pixel erosion towards the nearer surface)
-        self._align = None if self.registered else rs.align(rs.stream.color)
+        if o.align not in ("gscan", "librealsense"):
+            raise ValueError(f"align must be 'gscan' or 'librealsense', not {o.align!r}")
+        self._align = rs.align(rs.stream.color) if o.align == "librealsense" and not self.registered else None
         log.info("%s: %s", self.recording or self.device, self.profile)
         return self
 
@@ -198,10 +215,17 @@ class RealSenseCamera:
             last_number = number
             color = _to_rgb(np.asanyarray(c.get_data()), c.get_profile().format(), rs)
             raw = np.asanyarray(d.get_data())
-            if abs(factor - 1.0) < 1e-6:  # millimetre units already (D400 default)
-                mm = raw.astype(np.uint16, copy=True)
+            if self.registered or self._align is not None:
+                if abs(factor - 1.0) < 1e-6:  # millimetre units already (D400 default)
+                    mm = raw.astype(np.uint16, copy=True)
+                else:
+                    mm = np.clip(np.rint(raw.astype(np.float64) * factor), 0, 65535).astype(np.uint16)
             else:
-                mm = np.clip(np.rint(raw.astype(np.float64) * factor), 0, 65535).astype(np.uint16)
+                depth = raw.astype(np.float32)
+                depth *= np.float32(self.depth_scale)  # metres, as the recording reader computes them
+                assert self.intrinsics is not None and self.depth_intrinsics is not None
+                aligned = align_depth_to_color(depth, self.depth_intrinsics, self.intrinsics, self.T_color_depth)
+                mm = np.clip(np.rint(aligned.astype(np.float64) * 1000.0), 0, 65535).astype(np.uint16)
             yield CameraFrame(number, float(c.get_timestamp()), color, mm)
 
 

@@ -37,11 +37,15 @@ ROS_NS = "/camera/camera"
 
 @dataclass
 class RecordingFrame:
-    """color: [H x W x 3] uint8 RGB; depth: [Hd x Wd] uint16 raw depth; t_ns: capture time (ns since the epoch)."""
+    """color: [H x W x 3] uint8 RGB; depth: [Hd x Wd] uint16 raw depth; t_ns: capture time (ns since the epoch).
 
-    color: np.ndarray
-    depth: np.ndarray
+    color or depth None leaves that message out; depth_t_ns: the depth image's time when it differs from t_ns.
+    """
+
+    color: np.ndarray | None
+    depth: np.ndarray | None
     t_ns: int
+    depth_t_ns: int | None = None
 
 
 def depth_to_raw(depth_m: np.ndarray, depth_units: float = 0.001) -> np.ndarray:
@@ -113,12 +117,14 @@ class _Msgs:
 def write_realsense_bag(path: str | Path, frames: Iterable[RecordingFrame], color_intrinsics: Intrinsics,
                         depth_intrinsics: Intrinsics | None = None, T_color_depth: np.ndarray | None = None,
                         depth_units: float = 0.001, fps: int = 30, color_encoding: str = "rgb8",
-                        depth_units_option: bool = True, camera_info: bool = True, compress: bool = False) -> Path:
+                        depth_units_option: bool = True, camera_info: bool = True, compress: bool = False,
+                        streams: tuple[str, ...] = ("Depth", "Color")) -> Path:
     """A RealSense .bag of `frames` (see the module docstring); returns its path.
 
     T_color_depth [4 x 4] maps depth-camera points into the colour camera (identity: depth registered to colour).
     depth_units_option=False leaves out the Depth Units option (bad-input tests); camera_info=False the CameraInfo
-    topics; compress chunks the bag with LZ4 as the recorder's compression option does.
+    topics; streams the streams recorded ("Depth", "Color"); compress chunks the bag with LZ4 as the recorder's
+    compression option does.
     """
     from rosbags.rosbag1 import Writer
 
@@ -143,9 +149,11 @@ def write_realsense_bag(path: str | Path, frames: Iterable[RecordingFrame], colo
         for k, v in (("Name", "Intel RealSense D435"), ("Serial Number", "000000000000"),
                      ("Firmware Version", "5.13.0.50"), ("Product Id", "0B07"), ("Product Line", "D400")):
             put("/device_0/info", "diagnostic_msgs/msg/KeyValue", STATIC_NS, KV(key=k, value=v))
-        streams = (("/device_0/sensor_0", "Depth_0", "mono16", depth_intrinsics, np.eye(4), "Stereo Module"),
+        infos = (("/device_0/sensor_0", "Depth_0", "mono16", depth_intrinsics, np.eye(4), "Stereo Module"),
                    ("/device_0/sensor_1", "Color_0", color_encoding, color_intrinsics, T_cd, "RGB Camera"))
-        for sensor, stream, enc, intr, T_s_ref, sensor_name in streams:
+        for sensor, stream, enc, intr, T_s_ref, sensor_name in infos:
+            if stream.split("_")[0] not in streams:
+                continue
             put(f"{sensor}/info", "diagnostic_msgs/msg/KeyValue", STATIC_NS, KV(key="Name", value=sensor_name))
             put(f"{sensor}/{stream}/info", "realsense_msgs/msg/StreamInfo", STATIC_NS,
                 T["realsense_msgs/msg/StreamInfo"](fps=fps, encoding=enc, is_recommended=True))
@@ -162,14 +170,16 @@ def write_realsense_bag(path: str | Path, frames: Iterable[RecordingFrame], colo
         t0 = None
         for i, f in enumerate(frames):
             t0 = f.t_ns if t0 is None else t0
-            log_ns = f.t_ns - t0 + 1_000_000  # the recorder's clock starts with the recording
-            stamp_ms = f.t_ns / 1e6  # the frame timestamp (ms), which librealsense stores in the header stamp
-            stamp_ns = round(stamp_ms * 1e6)
-            for sensor, stream, enc, pixels, units in (
-                    ("/device_0/sensor_0", "Depth_0", "mono16", np.asarray(f.depth, dtype="<u2"), depth_units),
-                    ("/device_0/sensor_1", "Color_0", color_encoding, f.color, 0.0)):
+            for sensor, stream, enc, pixels, units, t_ns in (
+                    ("/device_0/sensor_0", "Depth_0", "mono16", f.depth, depth_units, f.depth_t_ns or f.t_ns),
+                    ("/device_0/sensor_1", "Color_0", color_encoding, f.color, 0.0, f.t_ns)):
+                if pixels is None or stream.split("_")[0] not in streams:
+                    continue
+                log_ns = t_ns - t0 + 1_000_000  # the recorder's clock starts with the recording
+                stamp_ms = t_ns / 1e6  # the frame timestamp (ms), which librealsense stores in the header stamp
                 # header version "1": librealsense's Image carries its depth units after the pixels
-                msg = m.image(m.header(stamp_ns, "1", seq=i), pixels, enc)
+                img = np.asarray(pixels, dtype="<u2") if enc == "mono16" else pixels
+                msg = m.image(m.header(round(stamp_ms * 1e6), "1", seq=i), img, enc)
                 put(f"{sensor}/{stream}/image/data", "sensor_msgs/msg/Image", log_ns, msg, struct.pack("<f", units))
                 md = f"{sensor}/{stream}/image/metadata"
                 put(md, "diagnostic_msgs/msg/KeyValue", log_ns, KV(key="system_time", value=f"{stamp_ms:.6f}"))
@@ -211,6 +221,7 @@ def _ros2_messages(frames: Iterable[RecordingFrame], color_intrinsics: Intrinsic
                                                                      rotation=R.T.ravel().copy(),
                                                                      translation=T_color_depth[:3, 3].copy()))
         for topic in topics:
+            t_ns = f.t_ns if topic == "color" else (f.depth_t_ns or f.t_ns)
             if topic == "color":
                 frame, intr, img, enc = cframe, color_intrinsics, f.color, "rgb8"
                 base = f"{ROS_NS}/color"
@@ -221,9 +232,11 @@ def _ros2_messages(frames: Iterable[RecordingFrame], color_intrinsics: Intrinsic
             else:  # "aligned": depth already registered to colour (f.depth must then be colour-sized)
                 frame, intr, img, enc = cframe, color_intrinsics, f.depth, "16UC1"
                 base, name = f"{ROS_NS}/aligned_depth_to_color", "image_raw"
-            hdr = m.header(f.t_ns, frame)
-            yield f"{base}/{name}", "sensor_msgs/msg/Image", f.t_ns, m.image(hdr, np.asarray(img), enc)
-            yield f"{base}/camera_info", "sensor_msgs/msg/CameraInfo", f.t_ns, m.camera_info(hdr, intr, "plumb_bob")
+            if img is None:
+                continue
+            hdr = m.header(t_ns, frame)
+            yield f"{base}/{name}", "sensor_msgs/msg/Image", t_ns, m.image(hdr, np.asarray(img), enc)
+            yield f"{base}/camera_info", "sensor_msgs/msg/CameraInfo", t_ns, m.camera_info(hdr, intr, "plumb_bob")
 
 
 def write_rosbag2(path: str | Path, frames: Iterable[RecordingFrame], color_intrinsics: Intrinsics,

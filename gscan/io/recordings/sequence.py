@@ -17,7 +17,6 @@ does not grow with the recording's length. Depth is reprojected into the colour 
 """
 from __future__ import annotations
 
-import contextlib
 import logging
 import threading
 from collections.abc import Iterator
@@ -135,9 +134,11 @@ class RecordingSequence:
         self.close()
 
     def __del__(self) -> None:
-        with contextlib.suppress(Exception):  # at interpreter shutdown the reader may be half torn down
+        try:  # not contextlib: at interpreter shutdown module globals may already be gone
             if self._src is not None:
                 self._src.close()
+        except Exception:  # noqa: BLE001, S110 - nothing to do about a reader torn down half-way
+            pass
 
     # ------------------------------------------------------------------ reading
     def _parse(self, data: bytes | memoryview) -> ImageMsg:
@@ -210,6 +211,22 @@ class RecordingSequence:
             except InputError as e:
                 self.problems[name] = str(e)
                 raise
+
+    def raw(self, key: int | str) -> tuple[np.ndarray, np.ndarray]:
+        """Frame `key` as recorded: ([H x W x 3] uint8 RGB colour, [Hd x Wd] float32 depth in metres in the depth
+        camera, before any reprojection)."""
+        name = self.names[key] if isinstance(key, (int, np.integer)) else key
+        if name not in self._pairs:
+            raise KeyError(name)
+        k, p = self._pairs[name]
+        with self._lock:
+            craw, draw = self._messages_of(k, p)
+            try:
+                dmsg = self._parse(draw)
+                scale = self.depth_scale if self._scale_override or not dmsg.depth_units > 0 else dmsg.depth_units
+                return color_pixels(self._parse(craw)), depth_metres(dmsg, scale)
+            except MessageError as e:
+                raise InputError(self.root, f"frame {p.name}: {e}") from None
 
     def __iter__(self) -> Iterator[RGBDFrame]:
         return self.iter_frames(skip_bad=False)
