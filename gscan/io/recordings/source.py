@@ -79,8 +79,11 @@ class RosbagsSource:
 
     def _reason(self, e: BaseException) -> str:
         text = _why(e)
-        if "not indexed" in text or "reindex" in text:
-            return f"truncated or not indexed ({text}; `rosbag reindex` repairs a bag whose recording was cut off)"
+        if "not indexed" in text or "reindex" in text or "index looks damaged" in text:
+            return ("truncated or damaged: its index cannot be read (`rosbag reindex` repairs a bag whose "
+                    "recording was cut off)")
+        if "magic" in text.lower():
+            return f"not a ROS bag ({text})"
         if "malformed" in text or "not a database" in text:
             return f"truncated or corrupt ({text})"
         return text
@@ -158,7 +161,7 @@ class McapSource:
         if not topics:
             return
         try:
-            for _schema, channel, msg in self._reader.iter_messages(topics=topics, start_time=start_ns,
+            for _schema, channel, msg in self._reader.iter_messages(topics=topics, starting_at=start_ns,
                                                                       log_time_order=True):
                 yield channel.topic, int(msg.log_time), msg.data
         except InputError:
