@@ -19,10 +19,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from _recordings import K_COLOR, K_DEPTH, PERIOD_NS, T0_NS, T_depth_offset, render_views
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from _recordings import K_COLOR, K_DEPTH, PERIOD_NS, T0_NS, T_depth_offset, render_views
 from gscan.evaluate.metrics import ate_rmse
 from gscan.geometry.transforms import inv_T
 from gscan.io import associate, open_sequence
