@@ -295,7 +295,7 @@ def test_scan_cli_on_a_bag_with_unpaired_frames(views, tmp_path):
     bag = write_realsense_bag(tmp_path / "gaps.bag", frames, K_COLOR)
     out = tmp_path / "gaps.gscan"
     r = subprocess.run([sys.executable, "-m", "gscan.cli", "scan", str(bag), "-o", str(out), "--json"],
-                       capture_output=True, text=True, cwd=ROOT, timeout=300)
+                       capture_output=True, text=True, cwd=ROOT, timeout=300, check=False)
     assert r.returncode == 0, r.stderr
     res = json.loads(r.stdout)
     assert res["frames"] == 12 and res["registered"] == 10
@@ -382,7 +382,7 @@ def test_bad_recording_exits_2_with_one_line(tmp_path, case):
     cmd = [sys.executable, "-m", "gscan.cli", "scan", str(rec), "-o", str(out)]
     if case == "wrong-depth-topic":
         cmd += ["--depth-topic", "/camera/depth"]
-    r = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, timeout=120)
+    r = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, timeout=120, check=False)
     assert r.returncode == 2, (r.returncode, r.stderr)
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error: ") and "Traceback" not in r.stderr, r.stderr
@@ -393,5 +393,5 @@ def test_bad_recording_exits_2_with_one_line(tmp_path, case):
 def test_topic_options_on_a_folder_are_refused(recs, tmp_path):
     r = subprocess.run([sys.executable, "-m", "gscan.cli", "scan", str(recs["folder"]), "-o", str(tmp_path / "o.gscan"),
                         "--color-topic", "/camera/color/image_raw"], capture_output=True, text=True, cwd=ROOT,
-                       timeout=120)
+                       timeout=120, check=False)
     assert r.returncode == 2 and "apply to recordings" in r.stderr and len(r.stderr.strip().splitlines()) == 1
