@@ -16,7 +16,9 @@ order (RGB + metres in the colour camera), as a ratio to the folder's rate measu
 peak of Python allocations while streaming (tracemalloc) against the file's size; the fastest of --passes
 reads (the benchmark machines are shared). Alignment: the time of
 `align_depth_to_color` on one frame (best of --repeat), in ms and as a ratio to reading one registered bag
-frame. For reference, pyrealsense2's playback of the same .bag (non-real-time, frames only) and rs.align.
+frame. For reference, pyrealsense2's playback of the same .bag (non-real-time, frames only) and rs.align. Accuracy:
+noise-free depth of the offset depth camera reprojected by gscan and by rs.align, against the colour camera's own
+noise-free depth (median and 90th percentile of the error over 4 views).
 
     python bench/recordings.py                      # 300 frames at 640x480
     python bench/recordings.py --frames 60 --size 320x240
@@ -138,6 +140,52 @@ def rs_playback(bag: Path, align: bool) -> dict:
     return {"frames": n, "fps": n / dt, "align_ms": 1000 * t_align / max(n, 1)}
 
 
+def alignment_accuracy(n_views: int, w: int, h: int, tmp: Path) -> dict:
+    """Depth error (mm, median and 90th percentile over pixels valid in both) of gscan's reprojection and of
+    rs.align, against the colour camera's own noise-free depth, for noise-free depth from the depth camera
+    offset by T_offset() (5 cm, 2 deg about y) and by its translation alone."""
+    import pyrealsense2 as rs
+
+    f = 615.0 * w / 640.0
+    Kc = Intrinsics(f, f, (w - 1) / 2, (h - 1) / 2, w, h)
+    Kd = Intrinsics(0.94 * f, 0.95 * f, w / 2 + 3.0, h / 2 - 2.0, w, h)
+    mesh = load_textured_mesh(MESHES / MESH / "model_0.obj")
+    T_wo = rest_on_table(mesh)
+    scene = SynthScene([(mesh, T_wo)], seed=0)
+    center = transform_points(T_wo, mesh.center[None])[0]
+    cams = orbit_poses(center, default_distance(mesh, Kc), [40.0], n_views)
+    out = {}
+    for label, T in (("5 cm + 2 deg", T_offset()), ("5 cm", np.block([[np.eye(3), T_offset()[:3, 3:]],
+                                                                       [np.zeros((1, 3)), np.ones((1, 1))]]))):
+        truth, fr = [], []
+        for i, T_wc in enumerate(cams):
+            c = scene.render(T_wc, Kc, noise=False)
+            d = scene.render(T_wc @ T, Kd, noise=False)
+            truth.append(c.depth_clean)
+            fr.append(RecordingFrame(c.color, depth_to_raw(d.depth_clean), T0_NS + i * PERIOD_NS))
+        bag = write_realsense_bag(tmp / f"acc{len(out)}.bag", fr, Kc, Kd, T)
+        seq = open_sequence(bag)
+        cfg = rs.config()
+        cfg.enable_device_from_file(str(bag), repeat_playback=False)
+        pipe = rs.pipeline()
+        cfg.resolve(rs.pipeline_wrapper(pipe)).get_device().as_playback().set_real_time(False)
+        pipe.start(cfg)
+        al = rs.align(rs.stream.color)
+        errs: dict[str, list] = {"gscan": [], "rs.align": []}
+        for k in range(len(cams)):
+            ok, fs = pipe.try_wait_for_frames(2000)
+            assert ok, "pyrealsense2 returned fewer frames than the bag holds"
+            ra = np.asanyarray(al.process(fs).get_depth_frame().get_data()).astype(np.float32) * np.float32(0.001)
+            for name, a in (("gscan", seq[k].depth), ("rs.align", ra)):
+                both = (a > 0) & (truth[k] > 0)
+                errs[name].append(np.abs(a - truth[k])[both])
+        pipe.stop()
+        seq.close()
+        out[label] = {name: {"median_mm": 1000 * float(np.median(np.concatenate(e))),
+                             "p90_mm": 1000 * float(np.percentile(np.concatenate(e), 90))} for name, e in errs.items()}
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=300)
@@ -176,6 +224,7 @@ def main() -> None:
         res["align"] = {"ms": align_ms, "x_bag_frame": align_ms / res["bag"]["ms_per_frame"]}
         res["pyrealsense2"] = {"bag": rs_playback(paths["bag"], False),
                                "bag-unaligned+rs.align": rs_playback(paths["bag-unaligned"], True)}
+        res["accuracy"] = alignment_accuracy(4, w, h, tmp)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     res["setup"] = {"frames": a.frames, "size": a.size, "views": a.views}
@@ -194,6 +243,10 @@ def main() -> None:
     p = res["pyrealsense2"]
     print(f"pyrealsense2 playback (non-real-time): {p['bag']['fps']:.1f} frames/s; rs.align "
           f"{p['bag-unaligned+rs.align']['align_ms']:.2f} ms a frame")
+    print("aligned depth against the colour camera's own (noise-free), mm median / p90:")
+    for label, r in res["accuracy"].items():
+        print(f"  depth camera {label}: gscan {r['gscan']['median_mm']:.2f} / {r['gscan']['p90_mm']:.2f}, "
+              f"rs.align {r['rs.align']['median_mm']:.2f} / {r['rs.align']['p90_mm']:.2f}")
 
 
 if __name__ == "__main__":

@@ -119,8 +119,9 @@ class MotionTracker:
                               self._ref_grey is not None)
             self._last = up
             return up
-        nxt, st, _ = cv2.calcOpticalFlowPyrLK(self._ref_grey, grey, self._ref_px, None, winSize=(21, 21), maxLevel=3)
-        back, st2, _ = cv2.calcOpticalFlowPyrLK(grey, self._ref_grey, nxt, None, winSize=(21, 21), maxLevel=3)
+        lk = {"winSize": (21, 21), "maxLevel": 3}
+        nxt, st, _ = cv2.calcOpticalFlowPyrLK(self._ref_grey, grey, self._ref_px, None, **lk)  # type: ignore[call-overload]
+        back, st2, _ = cv2.calcOpticalFlowPyrLK(grey, self._ref_grey, nxt, None, **lk)  # type: ignore[call-overload]
         ok = (st[:, 0] == 1) & (st2[:, 0] == 1) & (np.linalg.norm((back - self._ref_px)[:, 0], axis=1) < 1.0)
         px = nxt[:, 0]
         h, w = depth.shape

@@ -15,6 +15,7 @@ import io
 import logging
 import threading
 import time
+from typing import Any
 
 import cv2
 import numpy as np
@@ -76,8 +77,8 @@ class CapturePreview:
         self._color = gui.add_image(blank, label="Colour", format="jpeg", jpeg_quality=80)
         self._depth = gui.add_image(blank, label="Depth (0.2-2 m)", format="jpeg", jpeg_quality=80)
         self._center: np.ndarray | None = None  # object centre in the first kept camera (m)
-        self._cloud = None
-        self._current = None
+        self._cloud: Any = None  # viser handles of the coverage sphere and the current camera
+        self._current: Any = None
 
     def update(self, u: FrameUpdate) -> None:
         """Show frame `u` (images throttled, kept views and coverage at once)."""
