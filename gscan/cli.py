@@ -192,7 +192,8 @@ def _setup_logging(verbose: bool) -> None:
 
 @app.command()
 def scan(
-    input_dir: Path = typer.Argument(..., help="RGB-D folder (capture, Open3D, TUM or BOP layout)"),
+    input_dir: Path = typer.Argument(..., help="RGB-D folder (capture, Open3D, TUM or BOP layout) or recording "
+                                     "(.bag, .db3, .mcap, rosbag2 folder)"),
     output: Path = typer.Option(..., "-o", "--output", help="template database to write (OBJ.gscan)"),
     format: ScanFormat = typer.Option("auto", "--format", help="input layout (auto: detected)"),
     intrinsics: Optional[Path] = typer.Option(None, "--intrinsics", help="cam_K.txt or Open3D intrinsics JSON"),
@@ -204,6 +205,10 @@ def scan(
     config: Optional[Path] = typer.Option(None, "--config", help="YAML configuration (see `gscan config dump`)"),
     obj_id: Optional[int] = typer.Option(None, "--obj-id", min=1, max=2**31 - 1,
                                          help="BOP folder: the object to scan (default: the first in scene_gt.json)"),
+    color_topic: Optional[str] = typer.Option(None, "--color-topic",
+                                              help="recording: the colour image topic (default: detected)"),
+    depth_topic: Optional[str] = typer.Option(None, "--depth-topic",
+                                              help="recording: the depth image topic (default: detected)"),
     json_out: bool = typer.Option(False, "--json", help="print one JSON object on stdout"),
     verbose: bool = typer.Option(False, "-v", "--verbose", help="log progress details to stderr"),
 ) -> None:
@@ -221,7 +226,8 @@ def scan(
         with RichProgress(err, enabled=not json_out or sys.stderr.isatty()) as progress:
             result = scan_capture(input_dir, output, config=cfg, format=format.value, intrinsics=intrinsics,
                                   depth_scale=depth_scale, mode=mode.value, segment=not no_segment, resume=resume,
-                                  force=force, obj_id=obj_id, progress=progress)
+                                  force=force, obj_id=obj_id, color_topic=color_topic, depth_topic=depth_topic,
+                                  progress=progress)
     except KeyboardInterrupt:  # Ctrl+C: the partial database is kept for --resume (typer exits 130)
         _say_interrupted(_interrupted_scan_line(output, force))
         raise
@@ -567,6 +573,81 @@ def config_dump() -> None:
     from gscan.scan.config import dump_defaults
 
     sys.stdout.write(dump_defaults())
+
+
+# ----------------------------------------------------------------------------------------- capture
+
+
+@app.command()
+def capture(
+    output: Path = typer.Option(..., "-o", "--output", help="capture folder to write (rgb/, depth/, cam_K.txt)"),
+    from_file: Optional[Path] = typer.Option(None, "--from", help="play this RealSense .bag instead of a live camera"),
+    fps: Optional[int] = typer.Option(None, "--fps", min=1, max=1000,
+                                      help="stream rate (live: 30 by default; --from: the recording's)"),
+    every: Optional[int] = typer.Option(None, "--every", min=1, help="keep every Nth frame instead of the motion rule"),
+    width: Optional[int] = typer.Option(None, "--width", min=1, help="stream width (live: 640 by default)"),
+    height: Optional[int] = typer.Option(None, "--height", min=1, help="stream height (live: 480 by default)"),
+    min_motion: float = typer.Option(10.0, "--min-motion", min=0.1, max=90.0,
+                                     help="degrees the view of the object must turn for a frame to be kept"),
+    max_frames: Optional[int] = typer.Option(None, "--max-frames", min=1, help="stop after keeping this many frames"),
+    real_time: bool = typer.Option(False, "--real-time", help="--from: play at the recorded pace"),
+    align: str = typer.Option("gscan", "--align", help="depth-to-colour alignment: gscan|librealsense (rs.align)"),
+    preview: Optional[bool] = typer.Option(None, "--preview/--no-preview",
+                                           help="live preview in the browser (default: on live, off with --from)"),
+    host: str = typer.Option("127.0.0.1", "--host", help="preview address to bind"),
+    port: int = typer.Option(8080, "--port", min=1, max=65535, help="preview port"),
+    json_out: bool = typer.Option(False, "--json", help="print one JSON object on stdout"),
+    verbose: bool = typer.Option(False, "-v", "--verbose", help="log progress details to stderr"),
+) -> None:
+    """Record a capture folder from a RealSense camera (or a recording): the frames that moved enough, or every Nth.
+
+    Ctrl+C ends the capture; the folder then holds the frames kept so far, a capture `gscan scan` reads."""
+    import signal
+    import threading
+    from dataclasses import replace
+
+    _setup_logging(verbose)
+    from gscan.capture import CameraOptions, CaptureOptions, MotionParams, RealSenseCamera, run_capture
+
+    if (width is None) != (height is None):
+        raise UsageError(None, "--width and --height go together")
+    if align not in ("gscan", "librealsense"):
+        raise UsageError(None, f"--align must be gscan or librealsense, not {align!r}")
+    opts = CaptureOptions(every=every, motion=replace(MotionParams(), min_angle_deg=min_motion), max_frames=max_frames)
+    camera = RealSenseCamera(from_file, CameraOptions(width=width, height=height, fps=fps, real_time=real_time,
+                                                      align=align))
+    show = preview if preview is not None else from_file is None
+    viewer = None
+    if show:
+        from gscan.capture.record import check_capture_output
+        from gscan.viewer.capture_preview import CapturePreview
+
+        check_capture_output(output)  # a bad output or a missing camera is named before the preview starts
+        camera.check()
+        viewer = CapturePreview(host, port)
+        _say("preview at ", (viewer.url, "bold"))
+    stop = threading.Event()
+
+    def on_sigint(signum: int, frame: Any) -> None:  # the first Ctrl+C ends the capture; a second one aborts
+        stop.set()
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+    previous = signal.signal(signal.SIGINT, on_sigint)
+    try:
+        result = run_capture(camera, output, opts, stop=stop, on_frame=viewer.update if viewer else None)
+    except KeyboardInterrupt:
+        _say_interrupted("interrupted: nothing was written")
+        raise
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        if viewer is not None:
+            viewer.stop()
+    if json_out:
+        _print_json(result.to_json())
+        return
+    how = "stopped: " if result.interrupted else ""
+    _say(f"{how}captured {len(result.kept)} frames (of {result.seen} seen) into {result.output}; "
+         f"{result.covered} of {result.directions} viewing directions covered")
 
 
 # -------------------------------------------------------------------------------------------- demo

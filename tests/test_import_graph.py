@@ -19,6 +19,7 @@ STAGES: list[tuple[str, ...]] = [
     ("gscan.errors", "gscan.progress", "gscan._lazy"),
     ("gscan.geometry",),
     ("gscan.io",),
+    ("gscan.capture",),  # records captures from a camera or a recording (input, like io)
     ("gscan.features",),
     ("gscan.matching",),
     ("gscan.registration",),

@@ -335,7 +335,13 @@ def discover_bop(root: Path, obj_id: int | None = None) -> Layout:
 
 
 def detect_format(root: Path) -> str:
-    """Layout of folder `root`: "bop" | "tum" | "capture" | "open3d"; InputError when none fits."""
+    """Layout of folder `root`: "bop" | "tum" | "capture" | "open3d", or the kind of a recording
+    ("bag" | "db3" | "mcap" | "rosbag2", `gscan.io.recordings`); InputError when none fits."""
+    from gscan.io.recordings.kinds import recording_format
+
+    kind = recording_format(root)
+    if kind is not None:
+        return kind
     if not root.exists():
         raise InputError(root, "folder not found")
     if not root.is_dir():

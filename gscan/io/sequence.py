@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Iterator
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -18,6 +19,10 @@ from gscan.errors import InputError, not_a_file
 from gscan.io.images import (MAX_DEPTH_SCALE, check_depth_range, check_depth_scale, image_size, load_frame,
                              read_depth)
 from gscan.io.layouts import FrameSpec, Layout, discover
+from gscan.io.recordings.kinds import recording_format
+
+if TYPE_CHECKING:
+    from gscan.io.recordings.sequence import RecordingSequence
 
 log = logging.getLogger(__name__)
 
@@ -169,8 +174,10 @@ def _resolve_intrinsics(layout: Layout, override: Intrinsics | str | Path | None
 
 
 def open_sequence(path: str | Path, format: str = "auto", intrinsics: Intrinsics | str | Path | None = None,
-                  depth_scale: float | None = None, obj_id: int | None = None) -> Sequence:
-    """Open an RGB-D sequence folder.
+                  depth_scale: float | None = None, obj_id: int | None = None, color_topic: str | None = None,
+                  depth_topic: str | None = None) -> Sequence | RecordingSequence:
+    """Open an RGB-D sequence folder, or a recording (`.bag`, `.db3`, `.mcap`, rosbag2 folder; see
+    `gscan.io.recordings.open_recording`, which takes color_topic / depth_topic).
 
     format: "auto" (detected) or "capture" | "open3d" | "tum" | "bop".
     intrinsics: Intrinsics or a cam_K.txt / Open3D JSON file overriding the layout's own.
@@ -181,6 +188,15 @@ def open_sequence(path: str | Path, format: str = "auto", intrinsics: Intrinsics
     depth scale that puts the scene outside 0.05-20 m, or when no frame is usable.
     """
     root = Path(path)
+    kind = recording_format(root)
+    if kind is not None:
+        if format not in ("auto", kind):
+            raise InputError(root, f"is a recording ({kind}); --format {format} is for folders")
+        from gscan.io.recordings.sequence import open_recording
+
+        return open_recording(root, color_topic, depth_topic, intrinsics, depth_scale)
+    if color_topic is not None or depth_topic is not None:
+        raise InputError(root, "--color-topic / --depth-topic apply to recordings (.bag, .db3, .mcap), not folders")
     layout = discover(root, format, obj_id)
     if depth_scale is not None:
         check_depth_scale(depth_scale, root)

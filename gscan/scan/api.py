@@ -15,11 +15,13 @@ MODES = ("auto", STATIC_OBJECT, MOVING_OBJECT)
 def scan(source: str | Path, output: str | Path, *, config: ScanConfig | str | Path | None = None,
          format: str = "auto", intrinsics: str | Path | None = None, depth_scale: float | None = None,
          mode: str = "auto", segment: bool = True, resume: bool = False, force: bool = False,
-         obj_id: int | None = None, progress: Progress | None = None, meta: dict | None = None) -> ScanResult:
+         obj_id: int | None = None, color_topic: str | None = None, depth_topic: str | None = None,
+         progress: Progress | None = None, meta: dict | None = None) -> ScanResult:
     """Register every view of an RGB-D capture into one object frame and write a template database.
 
     Args:
-        source: the capture folder (capture, Open3D, TUM or BOP layout).
+        source: the capture folder (capture, Open3D, TUM or BOP layout), or a recording (a RealSense or ROS 1
+            .bag, a rosbag2 .db3 / .mcap or its folder).
         output: the template database to write (`OBJ.gscan`).
         config: the scan configuration: a ScanConfig, a YAML file (`gscan config dump` shows the keys), or None
             for the defaults.
@@ -31,6 +33,7 @@ def scan(source: str | Path, output: str | Path, *, config: ScanConfig | str | P
         resume: continue an interrupted scan into `output`.
         force: replace an existing `output`.
         obj_id: BOP folder: the object to scan (default: the first in scene_gt.json).
+        color_topic, depth_topic: a recording's image topics (default: detected when unambiguous).
         progress: stage progress reporting (`gscan.progress.Progress`), none by default.
         meta: more keys for the database's meta table (JSON values), e.g. a mark of the tool that wrote it.
 
@@ -52,5 +55,5 @@ def scan(source: str | Path, output: str | Path, *, config: ScanConfig | str | P
     opts = ScanOptions(input_dir=Path(source), output=Path(output), fmt=format,
                        intrinsics=None if intrinsics is None else Path(intrinsics), depth_scale=depth_scale,
                        mode=mode, segment=segment, resume=resume, force=force, config=cfg, obj_id=obj_id,
-                       meta=dict(meta or {}))
+                       color_topic=color_topic, depth_topic=depth_topic, meta=dict(meta or {}))
     return run_scan(opts, progress=progress)

@@ -82,6 +82,8 @@ class ScanOptions:
     config: ScanConfig = field(default_factory=ScanConfig)
     obj_id: int | None = None  # BOP: the object to scan (its masks, ground truth); None: the first one listed
     meta: dict = field(default_factory=dict)  # more meta keys for the database (e.g. the demo marks its outputs)
+    color_topic: str | None = None  # recordings: the colour / depth image topics (None: detected)
+    depth_topic: str | None = None
 
 
 @dataclass
@@ -145,7 +147,7 @@ def _register_params(cfg: ScanConfig, mode: str) -> RegisterParams:
 
 
 RESUME_KEYS = ("input", "format", "intrinsics_sha256", "depth_scale_option", "config", "mode_option", "segment",
-               "obj_id_option")
+               "obj_id_option", "topics_option")
 
 
 def _scan_meta(opts: ScanOptions) -> dict:
@@ -158,6 +160,8 @@ def _scan_meta(opts: ScanOptions) -> dict:
             "intrinsics_sha256": None if opts.intrinsics is None else _sha256(Path(opts.intrinsics)),
             "depth_scale_option": opts.depth_scale, "config": opts.config.model_dump(), "mode_option": opts.mode,
             "segment": opts.segment, "obj_id_option": opts.obj_id, "descriptor": opts.config.features.kind,
+            "topics_option": None if opts.color_topic is None and opts.depth_topic is None else
+            [opts.color_topic, opts.depth_topic],
             "units": "m"}
 
 
@@ -268,7 +272,8 @@ def run_scan(opts: ScanOptions, progress: Progress | None = None) -> ScanResult:
     target: Output | None = None
     try:
         seq = open_sequence(opts.input_dir, format=opts.fmt, intrinsics=opts.intrinsics,
-                            depth_scale=opts.depth_scale, obj_id=opts.obj_id)
+                            depth_scale=opts.depth_scale, obj_id=opts.obj_id, color_topic=opts.color_topic,
+                            depth_topic=opts.depth_topic)
         if opts.obj_id is not None and seq.format != "bop":
             raise InputError(opts.input_dir, f"an object id is for BOP scene folders, this is a {seq.format} folder")
         if opts.obj_id is not None and seq.gt_T_cam_obj is None:

@@ -310,7 +310,7 @@ def serve(db_path: str | Path, host: str = "127.0.0.1", port: int = 8080, scene_
     if token is not None:
         check_token(token)
     check_port(host, port)
-    _quiet_websockets()
+    quiet_websockets()
     with contextlib.redirect_stdout(io.StringIO()) as banner:  # viser prints a banner; library code never prints
         server = viser.ViserServer(host="127.0.0.1" if token is not None else host, port=0 if token is not None
                                    else port, label=f"gscan · {Path(db_path).name}", verbose=False)
@@ -348,7 +348,7 @@ class _DropHandshakeNoise(logging.Filter):
         return "opening handshake failed" not in record.getMessage()
 
 
-def _quiet_websockets() -> None:
+def quiet_websockets() -> None:
     lg = logging.getLogger("websockets.server")
     if not any(isinstance(f, _DropHandshakeNoise) for f in lg.filters):
         lg.addFilter(_DropHandshakeNoise())

@@ -105,7 +105,7 @@ def build_scene(server: Any, data: ViewerData, options: ViewerOptions, frame: RG
                                                     visible=accepted))
     for name, T in grasps.items():
         layers["grasps"].append(sc.add_frame(f"/grasps/{_node(name)}", axes_length=0.15 * s, axes_radius=0.006 * s,
-                                             wxyz=_quat_wxyz(T[:3, :3]), position=T[:3, 3]))
+                                             wxyz=quat_wxyz(T[:3, :3]), position=T[:3, 3]))
         layers["grasps"].append(sc.add_label(f"/grasps/{_node(name)}/label", name))
     scene_points_obj = None
     if frame is not None and T_cam_obj is not None:
@@ -147,7 +147,7 @@ def _add_frustum(sc: Any, o: ViewerOptions, scale: float, node: str, intr: Intri
     h = sc.add_camera_frustum(
         node, fov=float(2.0 * np.arctan2(intr.height / 2.0, intr.fy)), aspect=intr.width / intr.height,
         scale=scale, thickness=1.5, thickness_units="screen", color=color, image=img, format="jpeg",
-        jpeg_quality=o.jpeg_quality, wxyz=_quat_wxyz(T_obj_cam[:3, :3]), position=T_obj_cam[:3, 3])
+        jpeg_quality=o.jpeg_quality, wxyz=quat_wxyz(T_obj_cam[:3, :3]), position=T_obj_cam[:3, 3])
     if on_click is not None:
         h.on_click(on_click)
     return h
@@ -172,7 +172,7 @@ def _clear_direction(d0: np.ndarray, up: np.ndarray, cam_dirs: np.ndarray) -> np
     return best
 
 
-def _quat_wxyz(R: np.ndarray) -> np.ndarray:
+def quat_wxyz(R: np.ndarray) -> np.ndarray:
     """Rotation matrix [3 x 3] -> unit quaternion (w, x, y, z), as viser takes it."""
     x, y, z, w = Rotation.from_matrix(np.asarray(R, dtype=np.float64)).as_quat()
     return np.array([w, x, y, z])

@@ -1,0 +1,247 @@
+"""A RealSense camera, or a RealSense recording played back, as a stream of colour + aligned depth frames.
+
+Both go through one pyrealsense2 pipeline; only the device differs: a connected camera
+(`rs.config.enable_stream` with the chosen size and rate) or the playback device of a `.bag`
+(`rs.config.enable_device_from_file`, played as fast as it is read unless `real_time`). Depth is aligned to
+the colour camera with the device's intrinsics and depth-to-colour extrinsics, and converted to millimetres
+with its depth scale, so frames come out as the capture layout stores them.
+
+Alignment (`align`): "gscan" (default) reprojects depth with `gscan.io.recordings.align`, the same code that
+reads recordings, so a capture played from a .bag holds the depth `gscan scan REC.bag` reads (to the
+millimetre); "librealsense" uses `rs.align`, which keeps each point's depth-camera z instead of its z in the
+colour camera: off by the depth-to-colour rotation (on rendered views with a 2 degree rotation its depth was
+4.7 mm off the truth at the median, gscan's 0.7 mm; BENCHMARKS.md). Depth that comes registered to colour is
+taken as it is.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from types import TracebackType
+from typing import Any
+
+import cv2
+import numpy as np
+
+from gscan.errors import InputError
+from gscan.io.camera import Intrinsics
+from gscan.io.recordings.align import align_depth_to_color
+from gscan.io.recordings.streams import is_identity, same_intrinsics
+
+log = logging.getLogger(__name__)
+
+LIVE_DEFAULT = (640, 480, 30)  # width, height, fps of a live capture when not chosen
+
+
+@dataclass(frozen=True)
+class CameraOptions:
+    """width / height / fps: the streams to open (None: the recording's own; a live camera uses LIVE_DEFAULT);
+    real_time: play a recording at its recorded pace (default: as fast as frames are consumed, none dropped);
+    timeout_s: how long a live camera may deliver nothing before it is given up; align: "gscan" | "librealsense"
+    (see the module docstring)."""
+
+    width: int | None = None
+    height: int | None = None
+    fps: int | None = None
+    real_time: bool = False
+    timeout_s: float = 5.0
+    align: str = "gscan"
+
+
+@dataclass
+class CameraFrame:
+    """color: [H x W x 3] uint8 RGB; depth_mm: [H x W] uint16 millimetres aligned to colour (0 = invalid);
+    number: the colour frame's number from the device; timestamp_ms: its timestamp."""
+
+    number: int
+    timestamp_ms: float
+    color: np.ndarray
+    depth_mm: np.ndarray
+
+
+def _rs() -> Any:
+    try:
+        import pyrealsense2 as rs
+    except ImportError as e:  # pragma: no cover - pyrealsense2 is a dependency
+        raise InputError(None, f"pyrealsense2 is not installed ({e})") from None
+    return rs
+
+
+def _why(e: BaseException) -> str:
+    return " ".join(str(e).split()) or e.__class__.__name__
+
+
+class RealSenseCamera:
+    """`with RealSenseCamera(recording=None | path, options) as cam: for f in cam.frames(): ...`.
+
+    After entering: `intrinsics` (colour), `depth_scale` (metres per raw unit), `device` (name and serial),
+    `profile` (the streams), `registered` (depth already in the colour camera: not re-aligned).
+    """
+
+    def __init__(self, recording: str | Path | None = None, options: CameraOptions = CameraOptions()):
+        self.recording = None if recording is None else Path(recording)
+        self.options = options
+        self.intrinsics: Intrinsics | None = None
+        self.depth_scale = 0.0
+        self.device = ""
+        self.profile = ""
+        self.registered = False  # depth comes registered to colour (then it is not re-aligned)
+        self.depth_intrinsics: Intrinsics | None = None
+        self.T_color_depth = np.eye(4)  # maps depth-camera points into the colour camera
+        self._pipe: Any = None
+        self._playback: Any = None
+        self._align: Any = None
+
+    def _where(self) -> Path | None:
+        return self.recording
+
+    def check(self) -> None:
+        """InputError when there is nothing to stream: the recording is missing, or no camera is connected."""
+        if self.recording is not None:
+            if not self.recording.is_file():
+                raise InputError(self.recording, "recording not found" if not self.recording.exists()
+                                 else "not a file (a RealSense .bag)")
+        elif len(_rs().context().query_devices()) == 0:
+            raise InputError(None, "no RealSense camera connected (--from REC.bag plays a recording instead)")
+
+    def __enter__(self) -> RealSenseCamera:  # noqa: PYI034
+        rs = _rs()
+        o = self.options
+        self.check()
+        cfg = rs.config()
+        if self.recording is not None:
+            cfg.enable_device_from_file(str(self.recording), repeat_playback=False)
+            w, h, fps = o.width or 0, o.height or 0, o.fps or 0
+        else:
+            w, h, fps = o.width or LIVE_DEFAULT[0], o.height or LIVE_DEFAULT[1], o.fps or LIVE_DEFAULT[2]
+        cfg.enable_stream(rs.stream.depth, w, h, rs.format.z16, fps)
+        cfg.enable_stream(rs.stream.color, w, h, rs.format.any if self.recording else rs.format.rgb8, fps)
+        pipe = rs.pipeline()
+        try:
+            if self.recording is not None:
+                # the playback pace is set on the resolved device before streaming starts (pipe.start reuses it):
+                # set after start, the first framesets are played in real time and may be dropped meanwhile
+                cfg.resolve(rs.pipeline_wrapper(pipe)).get_device().as_playback().set_real_time(bool(o.real_time))
+            started = pipe.start(cfg)
+        except RuntimeError as e:
+            what = "the recording" if self.recording else "the camera"
+            size = (f" at {w}x{h}" if w else "") + (f"{',' if w else ' at'} {fps} fps" if fps else "")
+            raise InputError(self._where(), f"{what} cannot stream colour and depth{size} ({_why(e)})") from None
+        self._pipe = pipe
+        try:
+            dev = started.get_device()
+            if self.recording is not None:
+                self._playback = dev.as_playback()
+            self.depth_scale = float(dev.first_depth_sensor().get_depth_scale())
+            cp = started.get_stream(rs.stream.color).as_video_stream_profile()
+            dp = started.get_stream(rs.stream.depth).as_video_stream_profile()
+            ci = cp.get_intrinsics()
+            self.intrinsics = Intrinsics(float(ci.fx), float(ci.fy), float(ci.ppx), float(ci.ppy), int(ci.width),
+                                         int(ci.height))
+            name = dev.get_info(rs.camera_info.name) if dev.supports(rs.camera_info.name) else "RealSense"
+            serial = dev.get_info(rs.camera_info.serial_number) if dev.supports(rs.camera_info.serial_number) else ""
+            self.device = f"{name} {serial}".strip()
+            self.profile = (f"colour {ci.width}x{ci.height} {str(cp.format()).split('.')[-1]} @ {cp.fps()} fps, depth "
+                            f"{dp.width()}x{dp.height()} @ {dp.fps()} fps")
+            if not self.depth_scale > 0:
+                raise InputError(self._where(), "the depth sensor reports no depth scale (Depth Units)")
+            di, ex = dp.get_intrinsics(), dp.get_extrinsics_to(cp)
+            self.depth_intrinsics = Intrinsics(float(di.fx), float(di.fy), float(di.ppx), float(di.ppy),
+                                               int(di.width), int(di.height))
+            self.T_color_depth = np.eye(4)
+            self.T_color_depth[:3, :3] = np.asarray(ex.rotation, dtype=np.float64).reshape(3, 3).T  # column-major
+            self.T_color_depth[:3, 3] = np.asarray(ex.translation, dtype=np.float64)
+            # depth registered to colour (one camera model, no offset) is taken as it is: rs.align would still
+            # splat every pixel over its neighbours (a one-pixel erosion towards the nearer surface)
+            self.registered = is_identity(self.T_color_depth) and same_intrinsics(self.depth_intrinsics,
+                                                                                  self.intrinsics)
+        except BaseException:
+            self.close()
+            raise
+        if o.align not in ("gscan", "librealsense"):
+            raise ValueError(f"align must be 'gscan' or 'librealsense', not {o.align!r}")
+        self._align = rs.align(rs.stream.color) if o.align == "librealsense" and not self.registered else None
+        log.info("%s: %s", self.recording or self.device, self.profile)
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.close()
+
+    def close(self) -> None:
+        if self._pipe is not None:
+            try:
+                self._pipe.stop()
+            except RuntimeError as e:  # already stopped (end of a recording)
+                log.debug("pipeline stop: %s", e)
+            self._pipe = None
+
+    def _ended(self) -> bool:
+        rs = _rs()
+        return self._playback is not None and self._playback.current_status() == rs.playback_status.stopped
+
+    def frames(self) -> Iterator[CameraFrame]:
+        """Aligned framesets as they come, until the recording ends (a live camera streams until the caller stops)."""
+        rs = _rs()
+        assert self._pipe is not None, "enter the camera first"
+        last_number = None
+        waited = time.monotonic()
+        factor = self.depth_scale * 1000.0
+        while True:
+            try:
+                ok, fs = self._pipe.try_wait_for_frames(200)
+            except RuntimeError as e:
+                raise InputError(self._where(), f"streaming failed ({_why(e)})") from None
+            if not ok:
+                if self._ended():
+                    return
+                if time.monotonic() - waited > self.options.timeout_s:
+                    if self._playback is not None:
+                        return
+                    raise InputError(None, f"the camera delivered no frame for {self.options.timeout_s:g} s")
+                continue
+            waited = time.monotonic()
+            if self._align is not None:
+                fs = self._align.process(fs)
+            c, d = fs.get_color_frame(), fs.get_depth_frame()
+            if not c or not d:
+                continue
+            number = int(c.get_frame_number())
+            if number == last_number:  # the same colour frame delivered again with a newer depth frame
+                continue
+            last_number = number
+            color = _to_rgb(np.asanyarray(c.get_data()), c.get_profile().format(), rs)
+            raw = np.asanyarray(d.get_data())
+            if self.registered or self._align is not None:
+                if abs(factor - 1.0) < 1e-6:  # millimetre units already (D400 default)
+                    mm = raw.astype(np.uint16, copy=True)
+                else:
+                    mm = np.clip(np.rint(raw.astype(np.float64) * factor), 0, 65535).astype(np.uint16)
+            else:
+                depth = raw.astype(np.float32)
+                depth *= np.float32(self.depth_scale)  # metres, as the recording reader computes them
+                assert self.intrinsics is not None and self.depth_intrinsics is not None
+                aligned = align_depth_to_color(depth, self.depth_intrinsics, self.intrinsics, self.T_color_depth)
+                mm = np.clip(np.rint(aligned.astype(np.float64) * 1000.0), 0, 65535).astype(np.uint16)
+            yield CameraFrame(number, float(c.get_timestamp()), color, mm)
+
+
+def _to_rgb(px: np.ndarray, fmt: Any, rs: Any) -> np.ndarray:
+    if fmt == rs.format.rgb8:
+        return px.copy()
+    if fmt == rs.format.bgr8:
+        return cv2.cvtColor(px, cv2.COLOR_BGR2RGB)
+    if fmt == rs.format.rgba8:
+        return np.ascontiguousarray(px[:, :, :3])
+    if fmt == rs.format.bgra8:
+        return cv2.cvtColor(px, cv2.COLOR_BGRA2RGB)
+    if fmt == rs.format.yuyv:
+        return cv2.cvtColor(px.reshape(px.shape[0], -1, 2), cv2.COLOR_YUV2RGB_YUYV)
+    if fmt == rs.format.uyvy:
+        return cv2.cvtColor(px.reshape(px.shape[0], -1, 2), cv2.COLOR_YUV2RGB_UYVY)
+    if px.ndim == 2 and px.dtype == np.uint8:
+        return cv2.cvtColor(px, cv2.COLOR_GRAY2RGB)
+    raise InputError(None, f"colour stream format {fmt} is not supported")
