@@ -6,7 +6,7 @@ Pipeline of `Estimator.estimate` (every stage timed, `EstimateResult.timings_ms`
 1. features: RootSIFT keypoints of the query, lifted with the query depth into the camera frame, inside
    `mask` when given; without a mask inside the pixels standing off the dominant plane (the table top, whose
    texture would otherwise take most of the keypoints), or the whole frame when there is no such plane.
-   Detection runs on the search region's bounding box only.
+   Detection runs on the bounding boxes of the search region's blobs only (`region_boxes`).
 2. retrieval: one GEMM of the query descriptors against the template's stacked descriptors (normalised
    once at load); every query keypoint whose nearest template descriptor is closer than `retrieval_dist`
    votes for that descriptor's view. A view's neighbourhood (itself and the `joint_views` - 1 views whose
@@ -106,6 +106,7 @@ class EstimateParams:
     icp_max_points: int = 1500  # source (template) points used by ICP, evenly subsampled
     icp_anchor_weight: float = 0.1  # weight of a matched keypoint pair against one surface pair in ICP
     crop_margin: int = 16  # px around the search region's bounding box kept for detection
+    min_region_px: int = 150  # search-region blobs smaller than this are left out of the detection boxes
     depth_tol: float = 0.01  # m, depth agreement tolerance of the score (grows 2 % of depth beyond 0.5 m)
     min_depth_frac: float = 0.05  # valid-depth fraction of the search region below which PnP is used
     pnp_ratio: float = 0.8  # Lowe ratio of 2D-3D descriptor matches
@@ -427,19 +428,24 @@ class Estimator:
         return self._found(T_cam_obj, ev.score, c.longest, view, tm, t_all, "gmatch", ev)
 
     def evidence(self, q: QueryFrame, T_cam_obj: np.ndarray, feats: Features, S: np.ndarray,
-                 q_location: np.ndarray) -> Evidence:
+                 q_location: np.ndarray, kp_idx: np.ndarray | None = None,
+                 sim_cols: np.ndarray | None = None) -> Evidence:
         """Depth agreement and keypoint support of a pose (gscan.estimate.verify); n_matches, n_inliers and
-        spread_m are left to the caller."""
+        spread_m are left to the caller. S [M x C]: the query keypoints' similarity (unit descriptors) or
+        distance to template keypoints; kp_idx: the template keypoints offered (default: those of the views
+        near the pose's viewing direction) and sim_cols their columns in S (default: S holds every keypoint)."""
         p = self.params
         frame = q.frame
         n_c, n_b, n = depth_votes(frame.depth, frame.intrinsics, T_cam_obj, self.cloud_icp, p.depth_tol, q.off_plane)
         ev = Evidence(score=n_c / max(1, n_c + n_b), confirmed=n_c / max(1, n))
-        kp_idx = self._offered_keypoints(T_cam_obj)
+        if kp_idx is None:
+            kp_idx = self._offered_keypoints(T_cam_obj)
         z = float(transform_points(T_cam_obj, self.center[None])[0, 2])
         radius = p.support_radius + 0.01 * max(z - 0.5, 0.0)
         ev.support, ev.on_surface, ev.offer = keypoint_support(
-            T_cam_obj, self.points_obj, kp_idx, S if self.unit else -S, feats.points, q_location, self.cloud_icp,
-            frame.depth, frame.intrinsics, radius, self.support_sim, p.depth_tol)
+            T_cam_obj, self.points_obj, kp_idx, S if self.unit else -S, kp_idx if sim_cols is None else sim_cols,
+            feats.points, q_location, self.cloud_icp, frame.depth, frame.intrinsics, radius, self.support_sim,
+            p.depth_tol)
         return ev
 
     def _offered_keypoints(self, T_cam_obj: np.ndarray) -> np.ndarray:
@@ -455,8 +461,7 @@ class Estimator:
         order, starts = coincident_groups(feats.points)
         location = np.empty(len(feats), np.int64)
         location[order] = np.repeat(np.arange(len(starts)), np.diff(np.r_[starts, len(feats)]))
-        reduce = np.maximum if self.unit else np.minimum
-        grouped = reduce.reduceat(S[order], starts, axis=0) if len(starts) else S[:0]
+        grouped = _group_reduce(S, order, starts, 0, np.maximum if self.unit else np.minimum)
         return _QueryKeypoints(feats, S, location, grouped, order[starts])
 
     def _match_hypotheses(self, v: int, qk: _QueryKeypoints) -> list[tuple[np.ndarray, float]]:
@@ -469,7 +474,7 @@ class Estimator:
         idx = self.nb_idx[v]
         s_order, s_starts = self.nb_groups[v]
         reduce = np.maximum if self.unit else np.minimum
-        block = reduce.reduceat(qk.grouped[:, idx[s_order]], s_starts, axis=1)  # [G x Ns]
+        block = _group_reduce(qk.grouped, idx[s_order], s_starts, 1, reduce)  # [G x Ns]
         dist = np.ascontiguousarray(self._dist(block).T)  # [Ns x G] template neighbourhood -> query
         gs = idx[s_order[s_starts]]  # source row -> global template keypoint
         gq = qk.group_kp  # target column -> query keypoint
@@ -497,7 +502,17 @@ class Estimator:
             return extract_features(frame, fparams)
         if not mask.any():
             return empty_features(fparams.kind)
-        return extract_features_in_mask(frame, mask, fparams, self.params.crop_margin)
+        boxes = region_boxes(mask, self.params.crop_margin, self.params.min_region_px)
+        if len(boxes) <= 1:
+            return extract_features_in_mask(frame, mask, fparams, self.params.crop_margin)
+        parts = []
+        for x0, y0, x1, y1 in boxes:  # one detection per box: SIFT's cost follows the area it scans
+            sub = np.zeros_like(mask)
+            sub[y0:y1, x0:x1] = mask[y0:y1, x0:x1]
+            parts.append(extract_features_in_mask(frame, sub, fparams, self.params.crop_margin))
+        return Features(np.concatenate([f.pixels for f in parts]), np.concatenate([f.points for f in parts]),
+                        np.concatenate([f.descriptors for f in parts]), fparams.kind,
+                        np.concatenate([f.scales for f in parts]))
 
     def _retrieve(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Query descriptors [M x D] -> (similarity or distance matrix [M x N], votes per view [V])."""
@@ -567,3 +582,55 @@ class Estimator:
         tm["total"] = ms_since(t_all)
         log.info("not found: %s", reason)
         return EstimateResult(None, float(score), int(n), view, reason, {}, tm, method, evidence)
+
+
+def _group_reduce(A: np.ndarray, order: np.ndarray, starts: np.ndarray, axis: int, reduce: np.ufunc) -> np.ndarray:
+    """Rows (axis 0) or columns (axis 1) of A taken in `order` and reduced over each group
+    order[starts[g]:starts[g+1]] with `reduce` (np.maximum / np.minimum) -> one row or column per group.
+    Most groups hold one member: the first members are gathered at once and the k-th members of the larger
+    groups folded in, k = 2, 3, ... (a gather per rank instead of a reduceat over the whole matrix)."""
+    if len(starts) == 0:
+        return np.take(A, np.zeros(0, np.int64), axis=axis)
+    out = np.take(A, order[starts], axis=axis)
+    sizes = np.diff(np.r_[starts, len(order)])
+    for k in range(1, int(sizes.max())):
+        g = np.flatnonzero(sizes > k)
+        members = np.take(A, order[starts[g] + k], axis=axis)
+        if axis == 0:
+            out[g] = reduce(out[g], members)
+        else:
+            out[:, g] = reduce(out[:, g], members)
+    return out
+
+
+def region_boxes(mask: np.ndarray, margin: int, min_px: int, max_fill: float = 0.7) -> list[tuple[int, int, int, int]]:
+    """Detection boxes (x0, y0, x1, y1) of a search region [H x W] bool: the bounding boxes of its connected
+    blobs of at least min_px pixels, grown by `margin` and merged while they overlap. One box (the region's
+    bounding box) when the blobs' boxes cover more than `max_fill` of it, or none of them is large enough."""
+    import cv2
+
+    H, W = mask.shape
+    n, _, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
+    boxes = [[max(0, x - margin), max(0, y - margin), min(W, x + w + margin), min(H, y + h + margin)]
+             for x, y, w, h, a in stats[1:] if a >= min_px]
+    merged = True
+    while merged and len(boxes) > 1:
+        merged = False
+        for i in range(len(boxes)):
+            for j in range(i + 1, len(boxes)):
+                a, b = boxes[i], boxes[j]
+                if a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]:
+                    boxes[i] = [min(a[0], b[0]), min(a[1], b[1]), max(a[2], b[2]), max(a[3], b[3])]
+                    del boxes[j]
+                    merged = True
+                    break
+            if merged:
+                break
+    if len(boxes) <= 1:
+        return [tuple(b) for b in boxes]  # type: ignore[misc]
+    ys, xs = np.nonzero(mask)
+    union = (xs.max() - xs.min() + 1 + 2 * margin) * (ys.max() - ys.min() + 1 + 2 * margin)
+    if sum((b[2] - b[0]) * (b[3] - b[1]) for b in boxes) > max_fill * union:
+        return []
+    return sorted((int(b[0]), int(b[1]), int(b[2]), int(b[3])) for b in boxes)
+

@@ -67,7 +67,10 @@ class QueryFrame:
             return np.zeros((0, 3))
         y0, x0 = y0 + (-y0) % stride, x0 + (-x0) % stride  # the same pixel grid whatever the box
         sl = (slice(y0, y1, stride), slice(x0, x1, stride))
-        P = self.cloud[sl]
+        if self._cloud is not None:
+            P = self._cloud[sl]
+        else:  # only the box is back-projected (tracking never needs the whole frame)
+            P = (pixel_rays(intr)[sl] * self.frame.depth[sl][..., None]).astype(np.float32)
         ok = self.frame.depth[sl] > 0
         if region is not None:
             ok &= region[sl]

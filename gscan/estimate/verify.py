@@ -181,8 +181,9 @@ def depth_score(depth: np.ndarray, intr: Intrinsics, T_cam_obj: np.ndarray, clou
 
 
 def keypoint_support(T_cam_obj: np.ndarray, kp_points: np.ndarray, kp_idx: np.ndarray, sim: np.ndarray,
-                     q_points: np.ndarray, q_location: np.ndarray, surface_obj: np.ndarray, depth: np.ndarray,
-                     intr: Intrinsics, radius: float, min_sim: float, depth_tol: float) -> tuple[int, int, int]:
+                     sim_cols: np.ndarray, q_points: np.ndarray, q_location: np.ndarray, surface_obj: np.ndarray,
+                     depth: np.ndarray, intr: Intrinsics, radius: float, min_sim: float,
+                     depth_tol: float) -> tuple[int, int, int]:
     """(support, on_surface, offer) of a pose (Evidence).
 
     A query keypoint on the predicted visible surface supports the pose when its nearest template keypoint by
@@ -191,8 +192,8 @@ def keypoint_support(T_cam_obj: np.ndarray, kp_points: np.ndarray, kp_idx: np.nd
     millimetres.
 
     kp_points [N x 3]: object-frame points of every template keypoint; kp_idx [K]: those of the views near the
-    query direction; sim [M x N]: descriptor similarity of the M query keypoints to every template keypoint
-    (cosine of unit descriptors, or the negated distance); q_points [M x 3]: camera-frame query keypoints;
+    query direction; sim [M x C]: descriptor similarity of the M query keypoints to template keypoints (cosine
+    of unit descriptors, or the negated distance), sim_cols [K] the column of each of kp_idx; q_points [M x 3]: camera-frame query keypoints;
     q_location [M]: a location id per query keypoint (keypoints of one point with several orientations share
     it); surface_obj [P x 3]: the template cloud; radius: keypoint match distance (m)."""
     from scipy.spatial import cKDTree
@@ -210,11 +211,11 @@ def keypoint_support(T_cam_obj: np.ndarray, kp_points: np.ndarray, kp_idx: np.nd
     vis, kp_cam, uv = visible(T_cam_obj, intr, kp_points[kp_idx])
     zq = depth[uv[:, 1], uv[:, 0]].astype(np.float64)
     shown = (zq <= 0) | (kp_cam[:, 2] < zq + depth_tolerance(kp_cam[:, 2], depth_tol))
-    idx, kp_cam = kp_idx[vis[shown]], kp_cam[shown]
-    if len(idx) == 0 or len(on) == 0:
+    sel, kp_cam = vis[shown], kp_cam[shown]
+    if len(sel) == 0 or len(on) == 0:
         return 0, on_surface, 0
-    offer = len(np.unique(np.floor(kp_points[idx] / 0.002).astype(np.int64), axis=0))
-    block = sim[np.ix_(on, idx)]  # [on x offered]
+    offer = len(np.unique(np.floor(kp_points[kp_idx[sel]] / 0.002).astype(np.int64), axis=0))
+    block = sim[np.ix_(on, sim_cols[sel])]  # [on x offered]
     nn = np.argmax(block, axis=1)
     agree = block[np.arange(len(on)), nn] >= min_sim
     near = np.linalg.norm(kp_cam[nn] - q_points[on], axis=1) < radius
