@@ -610,7 +610,7 @@ def region_boxes(mask: np.ndarray, margin: int, min_px: int, max_fill: float = 0
     import cv2
 
     H, W = mask.shape
-    n, _, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
+    _, _, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
     boxes = [[max(0, x - margin), max(0, y - margin), min(W, x + w + margin), min(H, y + h + margin)]
              for x, y, w, h, a in stats[1:] if a >= min_px]
     merged = True

@@ -25,9 +25,9 @@ import os
 import shutil
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -168,7 +168,7 @@ class Tracker:
         location = np.empty(len(feats), np.int64)
         location[order] = np.repeat(np.arange(len(starts)), np.diff(np.r_[starts, len(feats)]))
         ev = est.evidence(q, T2, feats, S, location, kp_idx, np.arange(len(kp_idx)))
-        ev.n_matches = int(len(src))
+        ev.n_matches = len(src)
         ev.n_inliers = int(keep.sum())
         ev.spread_m = list_spread(src[keep])
         tm["refine"] = ms_since(t)
