@@ -10,7 +10,7 @@ Modules: `estimator` (features, retrieval, joint matching, solve), `query` (the 
 """
 from gscan.estimate.estimator import EstimateParams, Estimator
 from gscan.estimate.result import STAGES, EstimateResult
-from gscan.estimate.track import STATUSES, TrackParams, Tracker, TrackRun, TrackStep, track_sequence, write_poses
+from gscan.estimate.track import STATUSES, Tracker, TrackParams, TrackRun, TrackStep, track_sequence, write_poses
 from gscan.estimate.verify import AcceptParams, Evidence
 
 __all__ = ["STAGES", "STATUSES", "AcceptParams", "EstimateParams", "EstimateResult", "Estimator", "Evidence",
