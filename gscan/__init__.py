@@ -14,11 +14,13 @@ _EXPORTS = {
     "RGBDFrame": "gscan.io.camera",
     "GscanError": "gscan.errors",
     "InputError": "gscan.errors",
+    "serve": "gscan.serve",
 }
 
 if TYPE_CHECKING:
     from gscan.errors import GscanError, InputError
     from gscan.io.camera import Intrinsics, RGBDFrame
+    from gscan.serve import serve
 
 __all__ = sorted(_EXPORTS) + ["__version__"]
 

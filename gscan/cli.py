@@ -402,6 +402,27 @@ def view(
                on_ready=lambda url: _say("viewer ready at ", (url, "bold"), " (Ctrl+C to stop)"))
 
 
+# ------------------------------------------------------------------------------------------- serve
+
+
+@app.command()
+def serve(
+    templates: list[Path] = typer.Argument(..., metavar="OBJ.gscan...", help="template databases to serve"),
+    host: str = typer.Option("127.0.0.1", "--host", help="address to bind (0.0.0.0: every interface)"),
+    port: int = typer.Option(8765, "--port", min=0, max=65535, help="port to serve on (0: a free one)"),
+    verbose: bool = typer.Option(False, "-v", "--verbose", help="log requests' details to stderr"),
+) -> None:
+    """Serve pose estimation over HTTP with the templates kept warm (OpenAPI page at /docs)."""
+    _setup_logging(verbose)
+    from gscan.serve import serve as run_service
+
+    def ready(url: str) -> None:
+        _say("serving ", (", ".join(t.name for t in templates), "bold"), " at ", (url, "bold"),
+             f" (API at {url}/docs; Ctrl+C to stop)")
+
+    run_service(templates, host=host, port=port, on_ready=ready)
+
+
 # ------------------------------------------------------------------------------------------- grasp
 
 

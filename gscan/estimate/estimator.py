@@ -269,8 +269,14 @@ class Estimator:
             return nullcontext()
         return self._blas.limit(limits=self.params.blas_threads, user_api="blas")
 
+    def estimate_prepared(self, q: QueryFrame, refine: bool = True) -> EstimateResult:
+        """`estimate` on a frame `prepare` made (several templates estimated in one frame share it)."""
+        t_all = time.perf_counter()
+        with self._blas_limit():
+            return self.estimate_query(q, refine, t_all)
+
     def estimate_query(self, q: QueryFrame, refine: bool = True, t_all: float | None = None) -> EstimateResult:
-        """`estimate` on a prepared frame (`prepare`)."""
+        """`estimate` on a prepared frame (`prepare`), BLAS threads as they are."""
         t_all = time.perf_counter() if t_all is None else t_all
         tm: dict[str, float] = {k: 0.0 for k in STAGES}
         use_pnp = q.depth_frac < self.params.min_depth_frac

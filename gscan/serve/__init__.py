@@ -1,0 +1,24 @@
+"""The HTTP pose-estimation service (`gscan serve`): templates kept warm, frames posted as multipart.
+
+    serve(templates, host="127.0.0.1", port=8765, on_ready=None)   blocks until interrupted
+    load_service(templates) -> Service;  create_app(service) -> the FastAPI application (tests, embedding)
+
+The contract (endpoints, fields, errors) is in `gscan.serve.service`; `gscan.serve.api` is the HTTP layer
+(FastAPI, imported only when an application is made); `gscan.client` is the Python client.
+"""
+from typing import Any
+
+from gscan.serve.decode import RequestError, decode_frame
+from gscan.serve.server import load_service, serve, template_name
+from gscan.serve.service import ServeParams, Service
+
+
+def create_app(service: Service) -> Any:
+    """The ASGI application of a Service (gscan.serve.api.create_app)."""
+    from gscan.serve.api import create_app as _create_app
+
+    return _create_app(service)
+
+
+__all__ = ["RequestError", "ServeParams", "Service", "create_app", "decode_frame", "load_service", "serve",
+           "template_name"]
