@@ -9,9 +9,9 @@ Pipeline of `Estimator.estimate` (every stage timed, `EstimateResult.timings_ms`
    Detection runs on the bounding boxes of the search region's blobs only (`region_boxes`).
 2. retrieval: one GEMM of the query descriptors against the template's stacked descriptors (normalised
    once at load); every query keypoint whose nearest template descriptor is closer than `retrieval_dist`
-   votes for that descriptor's view. A view's neighbourhood (itself and the `joint_views` - 1 views whose
-   optical axes are nearest to its own, within `joint_deg`) collects its members' votes; the `top_k`
-   neighbourhoods with most votes are matched.
+   votes for that descriptor's view. A view's neighbourhood is itself and the `joint_views` - 1 views whose
+   optical axes are nearest to its own, within `joint_deg`; the views with most votes are taken as centres
+   (a view inside a neighbourhood already taken is skipped), up to `top_k`.
 3. match: GMatch (gscan.matching.gmatch) of each retrieved neighbourhood's keypoints jointly, all expressed
    in its central view's camera frame (view direction +z), against the query keypoints (+z): a pose between
    keyframes, or a face the scan saw from a steeper angle than the query, collects its matches from several
@@ -97,7 +97,7 @@ class EstimateParams:
     accept: AcceptParams = field(default_factory=AcceptParams)  # acceptance from the evidence (gscan.estimate.verify)
     support_dist: float | None = None  # descriptor distance at which a supporting keypoint agrees (None: eps_f)
     support_radius: float = 0.006  # m, query keypoint to template keypoint at the pose (grows 1 % of depth > 0.5 m)
-    support_views_deg: float = 60.0  # template views within this angle of the query direction offer keypoints
+    support_views_deg: float = 90.0  # template views within this angle of the query direction offer keypoints
     trim_tau: float = 0.008  # m, the match list's pose drops pairs off by more (gscan.geometry.transforms.kabsch_trimmed)
     icp_max_dist: float = 0.005  # m, ICP correspondence distance
     icp_voxel: float = 0.003  # m, template cloud downsampling (ICP source, score)
@@ -539,11 +539,19 @@ class Estimator:
         return [int(v) for v in order[: self.params.top_k] if votes[v] > 0]
 
     def _top_neighbourhoods(self, votes: np.ndarray) -> list[int]:
-        """Central views of the top_k neighbourhoods by their members' votes (ties by view order); a
-        neighbourhood without a vote is left out."""
-        nb_votes = np.array([votes[nb].sum() for nb in self.neighbours])
-        order = np.lexsort((np.arange(len(nb_votes)), -nb_votes))
-        return [int(v) for v in order[: self.params.top_k] if nb_votes[v] > 0]
+        """Central views of the neighbourhoods to match: views by their own votes (ties by view order), each
+        taken unless a neighbourhood already taken holds it, up to top_k; views without a vote are left out.
+        Clutter spreads votes over many views: taking a view's neighbours with it leaves room for a view of
+        another side of the object."""
+        chosen: list[int] = []
+        covered: set[int] = set()
+        for v in np.lexsort((np.arange(len(votes)), -votes)):
+            if votes[v] <= 0 or len(chosen) >= self.params.top_k:
+                break
+            if int(v) not in covered:
+                chosen.append(int(v))
+                covered.update(int(u) for u in self.neighbours[v])
+        return chosen
 
     def _dist(self, S: np.ndarray) -> np.ndarray:
         """Similarity block (unit descriptors) or distance block -> L2/Hamming distances."""
