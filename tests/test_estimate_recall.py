@@ -16,8 +16,16 @@ from gscan.geometry.transforms import look_at, pose_error, rotvec_to_R, transfor
 from gscan.io import open_sequence
 from gscan.io.camera import RGBDFrame
 from gscan.scan.pipeline import ScanOptions, run_scan
-from gscan.synth import (DEFAULT_INTRINSICS, SynthScene, box_mesh, load_textured_mesh, place_distractors,
-                         procedural_box_texture, render_capture, rest_on_table)
+from gscan.synth import (
+    DEFAULT_INTRINSICS,
+    SynthScene,
+    box_mesh,
+    load_textured_mesh,
+    place_distractors,
+    procedural_box_texture,
+    render_capture,
+    rest_on_table,
+)
 from gscan.synth.mesh import cylinder_mesh
 
 pytestmark = pytest.mark.slow
