@@ -86,7 +86,7 @@ class EstimateParams:
     # query keypoints (kind follows the template's), the same settings as the template's object keypoints
     features: FeatureParams = OBJECT_FEATURES
     gmatch: GMatchParams = field(default_factory=GMatchParams)  # matcher parameters (eps_f None -> default of the kind)
-    top_k: int = 4  # view neighbourhoods retrieved and matched
+    top_k: int = 3  # view neighbourhoods retrieved and matched
     joint_views: int = 3  # views matched jointly per neighbourhood (1: every view alone)
     joint_deg: float = 60.0  # ... whose optical axes lie within this angle of the central view's
     verify_lists: int = 2  # match lists whose poses are verified, best pre-score first, until one is accepted
@@ -386,16 +386,22 @@ class Estimator:
         order = sorted(cands, key=lambda c: (-c.support, -c.n, c.cost))
         merged: list[_Candidate] = []
         members: list[list[np.ndarray]] = []
-        cos_max = np.cos(np.radians(p.merge_deg))
-        for c in order:
-            for k, rep in enumerate(merged):
-                cos = 0.5 * (np.trace(rep.T[:3, :3].T @ c.T[:3, :3]) - 1.0)
-                if cos >= cos_max and np.linalg.norm(rep.T[:3, 3] - c.T[:3, 3]) <= p.merge_dist:
-                    members[k].append(c.matches)
-                    break
-            else:
-                merged.append(_Candidate(c.n, c.cost, c.view, c.matches, c.support, c.T, c.n))
-                members.append([c.matches])
+        if not order:
+            return merged
+        Ts = np.stack([c.T for c in order])
+        trace_min = 1.0 + 2.0 * np.cos(np.radians(p.merge_deg))
+        owner = np.full(len(order), -1)
+        for i, c in enumerate(order):  # each unowned list in order becomes a representative of those agreeing
+            if owner[i] >= 0:
+                members[owner[i]].append(c.matches)
+                continue
+            k = len(merged)
+            merged.append(_Candidate(c.n, c.cost, c.view, c.matches, c.support, c.T, c.n))
+            members.append([c.matches])
+            rest = np.flatnonzero(owner[i + 1:] < 0) + i + 1
+            tr = np.einsum("ij,nij->n", c.T[:3, :3], Ts[rest, :3, :3])  # trace(R_c^T R_n)
+            agree = (tr >= trace_min) & (np.linalg.norm(Ts[rest, :3, 3] - c.T[:3, 3], axis=1) <= p.merge_dist)
+            owner[rest[agree]] = k
         for rep, ms in zip(merged, members):
             rep.longest = max(len(m) for m in ms)
             if len(ms) > 1:
@@ -488,9 +494,11 @@ class Estimator:
         best = np.asarray(res.matches, dtype=np.int64).reshape(-1, 2)
         out = [(np.stack([gs[best[:, 0]], gq[best[:, 1]]], 1), float(res.cost))]
         n_min = max(self.params.accept.min_matches, len(best) - self.params.runner_up_margin)
-        for h in np.flatnonzero(res.hyp_length >= n_min):
-            m = res.hyp_matches[h, :res.hyp_length[h]].astype(np.int64)
-            out.append((np.stack([gs[m[:, 0]], gq[m[:, 1]]], 1), float(res.hyp_cost[h])))
+        hyps = np.flatnonzero(res.hyp_length >= n_min)
+        if len(hyps):
+            hm = res.hyp_matches[hyps].astype(np.int64)  # [H x L x 2], -1 past each length
+            g = np.stack([gs[np.maximum(hm[..., 0], 0)], gq[np.maximum(hm[..., 1], 0)]], -1)
+            out += [(g[i, :res.hyp_length[h]], float(res.hyp_cost[h])) for i, h in enumerate(hyps)]
         return out
 
     def _match_view(self, v: int, qk: _QueryKeypoints) -> tuple[np.ndarray, float]:
@@ -560,10 +568,12 @@ class Estimator:
         return S
 
     def refine(self, q: QueryFrame, T_cam_obj: np.ndarray, anchors: tuple[np.ndarray, np.ndarray] | None,
-               region: np.ndarray | None, max_dists: tuple[float, ...] | None = None) -> np.ndarray:
+               region: np.ndarray | None, max_dists: tuple[float, ...] | None = None,
+               max_points: int | None = None) -> np.ndarray:
         """ICP of the visible template cloud onto the query cloud cropped to `region` ([H x W] bool, or None) and
         to a sphere around the predicted object (module docstring, stage 5). max_dists: correspondence
-        distances, coarse to fine (default: icp_max_dist alone). Returns T_cam_obj unchanged when ICP has too
+        distances, coarse to fine (default: icp_max_dist alone); max_points: template points used (default:
+        icp_max_points). Returns T_cam_obj unchanged when ICP has too
         little to work with or moves the pose implausibly far."""
         p = self.params
         idx, _, _ = visible(T_cam_obj, q.frame.intrinsics, self.cloud_icp)
@@ -575,7 +585,7 @@ class Estimator:
         if len(tgt) < 30:
             return T_cam_obj
         tgt = voxel_mean(tgt, p.icp_target_voxel)  # averaging, not picking: depth noise shrinks
-        idx = idx[:: max(1, int(np.ceil(len(idx) / p.icp_max_points)))]
+        idx = idx[:: max(1, int(np.ceil(len(idx) / (max_points or p.icp_max_points))))]
         T, fitness = icp_anchored(self.cloud_icp[idx], self.normals_icp[idx], tgt, T_cam_obj, max_dists,
                                   p.icp_iterations, anchors, p.icp_anchor_weight)
         dR = T[:3, :3] @ T_cam_obj[:3, :3].T

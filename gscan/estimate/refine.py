@@ -53,7 +53,11 @@ def icp_anchored(src: np.ndarray, src_normals: np.ndarray, tgt: np.ndarray, T_in
                 return T, fitness
             p, q, n = p[ok], tgt[j[ok]], src_normals[ok] @ T[:3, :3].T
             r = np.einsum("ij,ij->i", p - q, n)
-            A = np.hstack([np.cross(p, n), n])  # [K x 6]: d(residual) / d(rotvec, translation)
+            A = np.empty((len(p), 6))  # d(residual) / d(rotvec, translation): [p x n, n]
+            A[:, 0] = p[:, 1] * n[:, 2] - p[:, 2] * n[:, 1]
+            A[:, 1] = p[:, 2] * n[:, 0] - p[:, 0] * n[:, 2]
+            A[:, 2] = p[:, 0] * n[:, 1] - p[:, 1] * n[:, 0]
+            A[:, 3:] = n
             H = A.T @ A + 1e-9 * np.eye(6)
             g = A.T @ r
             if anchors is not None and len(anchors[0]):

@@ -3,13 +3,16 @@
 Per frame (`Tracker.step`):
 
 1. local refinement, when the previous frame had a pose: the pose is predicted (the previous one, moved by
-   the last frame-to-frame motion when the two frames before both had poses), keypoints are detected only in
-   the predicted silhouette's bounding box (grown by `bbox_margin`), each is matched to the template
-   keypoint with the most similar descriptor among those predicted within `search_radius` of it, the pairs
-   give a trimmed Kabsch pose, and ICP refines it coarse to fine (`icp_max_dists`) with the pairs as anchors.
-   The result must pass the same acceptance as a full estimate (depth agreement, keypoint support,
-   gscan.estimate.verify), and its depth score must not drop more than `max_score_drop` below the last full
-   estimate's: otherwise the prior no longer holds.
+   the last frame-to-frame motion when the two frames before both had poses) and refined by ICP coarse to
+   fine (`icp_max_dists`) on the depth around it. Every `appearance_every`-th tracked frame, and whenever
+   ICP moved the prediction by more than `max_icp_shift` / `max_icp_turn_deg` or the depth no longer agrees,
+   the appearance is checked too: keypoints are detected only in the predicted silhouette's bounding box
+   (grown by `bbox_margin`), each is matched to the template keypoint with the most similar descriptor among
+   those predicted within `search_radius` of it, the pairs give a trimmed Kabsch pose, ICP refines it with
+   the pairs as anchors, and the result must pass the same acceptance as a full estimate (depth agreement,
+   keypoint support, gscan.estimate.verify). In every tracked frame the depth score must not drop more than
+   `max_score_drop` below the last full estimate's, and the pose must satisfy the depth rules of a full
+   estimate (score, confirmed surface): otherwise the prior no longer holds.
 2. otherwise a full estimate (`Estimator.estimate`).
 
 Each frame's status: "found" (a full estimate found it, the first time or right after a tracked frame whose
@@ -35,7 +38,7 @@ from gscan.errors import InputError
 from gscan.estimate.estimator import Estimator
 from gscan.estimate.query import QueryFrame
 from gscan.estimate.result import STAGES, EstimateResult, ms_since
-from gscan.estimate.verify import accept, list_spread, visible
+from gscan.estimate.verify import Evidence, accept, depth_votes, list_spread, visible
 from gscan.features import descriptor_distances, extract_features_in_mask
 from gscan.geometry.pointset import coincident_groups
 from gscan.geometry.transforms import inv_T, kabsch_trimmed, transform_points
@@ -49,11 +52,15 @@ STATUSES = ("found", "tracked", "refound", "lost")
 @dataclass(frozen=True)
 class TrackParams:
     icp_max_dists: tuple[float, ...] = (0.02, 0.01, 0.005)  # m, ICP correspondence distances, coarse to fine
-    icp_iterations: int = 8  # per distance
-    bbox_margin: float = 0.25  # the predicted silhouette's bounding box grows by this fraction on every side
+    icp_iterations: int = 6  # per distance
+    bbox_margin: float = 0.15  # the predicted silhouette's bounding box grows by this fraction on every side
     search_radius: float = 0.03  # m, a keypoint is matched among template keypoints predicted this close
     max_score_drop: float = 0.15  # a local pose whose depth score falls this far below the last full one's fails
     constant_velocity: bool = True  # predict with the last frame-to-frame motion
+    appearance_every: int = 3  # keypoints checked in every n-th tracked frame (1: every frame)
+    max_icp_shift: float = 0.01  # m: ICP moving the prediction further checks the keypoints in that frame ...
+    max_icp_turn_deg: float = 5.0  # ... as does turning it further
+    icp_max_points: int = 800  # template points ICP uses (evenly subsampled)
 
 
 @dataclass
@@ -84,6 +91,7 @@ class Tracker:
         self._ref_score = 0.0  # the last full estimate's depth score
         self._lost = False  # frames were lost since the last pose
         self._seen = False  # a pose was ever found
+        self._unchecked = 0  # tracked frames since the keypoints were last checked
 
     def skip(self) -> None:
         """A frame that could not be read: the motion model restarts (the prior pose is kept)."""
@@ -104,6 +112,7 @@ class Tracker:
             status = "lost" if res.T_cam_obj is None else ("refound" if self._lost and self._seen else "found")
             if res.T_cam_obj is not None:
                 self._ref_score = res.score
+                self._unchecked = 0
         if res.T_cam_obj is None:
             self._T = self._T_before = None
             self._lost = True
@@ -118,10 +127,39 @@ class Tracker:
         hold."""
         est, p = self.est, self.params
         with est._blas_limit():
-            return self._local_unlimited(frame, mask, T_pred, est, p)
+            if self._unchecked + 1 < p.appearance_every:
+                res = self._depth_only(frame, mask, T_pred, est, p)
+                if res is not None:
+                    self._unchecked += 1
+                    return res
+            res = self._with_keypoints(frame, mask, T_pred, est, p)
+            if res is not None:
+                self._unchecked = 0
+            return res
 
-    def _local_unlimited(self, frame: RGBDFrame, mask: np.ndarray | None, T_pred: np.ndarray, est: Estimator,
-                         p: TrackParams) -> EstimateResult | None:
+    def _depth_only(self, frame: RGBDFrame, mask: np.ndarray | None, T_pred: np.ndarray, est: Estimator,
+                    p: TrackParams) -> EstimateResult | None:
+        """ICP from the prediction and the depth rules alone; None when ICP had to move the prediction far (the
+        keypoints decide then) or the depth does not agree."""
+        t_all = time.perf_counter()
+        tm = {k: 0.0 for k in STAGES}
+        q = QueryFrame(frame, mask, 1.0)
+        T = est.refine(q, T_pred, None, None, p.icp_max_dists, p.icp_max_points)
+        dR = T[:3, :3] @ T_pred[:3, :3].T
+        turn = np.degrees(np.arccos(np.clip(0.5 * (np.trace(dR) - 1.0), -1.0, 1.0)))
+        if np.linalg.norm(T[:3, 3] - T_pred[:3, 3]) > p.max_icp_shift or turn > p.max_icp_turn_deg:
+            return None
+        n_c, n_b, n = depth_votes(frame.depth, frame.intrinsics, T, est.cloud_icp, est.params.depth_tol)
+        score, confirmed = n_c / max(1, n_c + n_b), n_c / max(1, n)
+        a = est.params.accept
+        tm["refine"] = ms_since(t_all)
+        if score < a.min_score or confirmed < a.min_confirmed or score < self._ref_score - p.max_score_drop:
+            return None
+        view = est.view_names[int(np.argmax(est.axes @ (T[:3, :3].T @ np.array([0.0, 0.0, 1.0]))))]
+        return est._found(T, score, 0, view, tm, t_all, "track", Evidence(score=score, confirmed=confirmed))
+
+    def _with_keypoints(self, frame: RGBDFrame, mask: np.ndarray | None, T_pred: np.ndarray, est: Estimator,
+                        p: TrackParams) -> EstimateResult | None:
         t_all = time.perf_counter()
         tm = {k: 0.0 for k in STAGES}
         intr = frame.intrinsics
@@ -145,6 +183,7 @@ class Tracker:
             return None
         t = time.perf_counter()
         kp_idx = est._offered_keypoints(T_pred)
+        kp_idx = kp_idx[visible(T_pred, intr, est.points_obj[kp_idx])[0]]  # the side the prediction shows
         if est.unit:
             S = np.matmul(feats.descriptors, est.descriptors[kp_idx].T)
         else:
@@ -163,7 +202,7 @@ class Tracker:
         t = time.perf_counter()
         q = QueryFrame(frame, mask, 1.0)
         anchors = (src[keep], dst[keep]) if keep.sum() >= 3 else None
-        T2 = est.refine(q, T1, anchors, None, p.icp_max_dists)
+        T2 = est.refine(q, T1, anchors, None, p.icp_max_dists, p.icp_max_points)
         order, starts = coincident_groups(feats.points)
         location = np.empty(len(feats), np.int64)
         location[order] = np.repeat(np.arange(len(starts)), np.diff(np.r_[starts, len(feats)]))
