@@ -20,7 +20,7 @@ _EXPORTS = {
 if TYPE_CHECKING:
     from gscan.errors import GscanError, InputError
     from gscan.io.camera import Intrinsics, RGBDFrame
-    from gscan.serve import serve
+    from gscan.serve.server import serve
 
 __all__ = sorted(_EXPORTS) + ["__version__"]
 

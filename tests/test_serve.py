@@ -206,3 +206,21 @@ def test_decode_frame_checks_before_decoding(meshes):
         decode_frame(c, d, K_TEXT, 0.001, mask=png(np.zeros((10, 10), np.uint8)))
     with pytest.raises(RequestError, match="^depth: all zero"):
         decode_frame(c, png(np.zeros((480, 640), np.uint16)), K_TEXT, 0.001)
+
+
+def test_serve_from_python(template: Path):
+    """gscan.serve (the public API's function, also the package's name) starts the service from Python."""
+    code = ("import sys, gscan; gscan.serve([sys.argv[1]], port=0, on_ready=lambda url: print(url, flush=True))")
+    proc = subprocess.Popen([sys.executable, "-c", code, str(template)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        url = proc.stdout.readline().strip()
+        assert url.startswith("http://127.0.0.1:"), proc.stderr.read() if proc.poll() is not None else url
+        assert GscanClient(url, timeout=60).health() == ["scrabble"]
+    finally:
+        proc.terminate()
+        proc.wait(30)
+    import gscan
+    import gscan.serve.api  # the package imported as well: the name still starts the service
+
+    assert callable(gscan.serve) and gscan.serve.create_app is not None
