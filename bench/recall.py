@@ -3,8 +3,10 @@
 Every object is scanned (gscan.scan.pipeline) from a rendered 16-frame capture of it standing on a newspaper
 table (orbit rings at 30 and 55 deg elevation); the template->ground-truth alignment is the mean of
 T_obj_cam[f] @ T_cam_gt[f] over the capture's frames (DESIGN.md), never from a test scene. Query scenes are
-rendered with the object among two shared meshes on another table (wood, fabric or plain), whole 640x480
-image, no mask, in poses the scan did not see:
+rendered with the object among two shared meshes on another table (wood, fabric, plain or newspaper), whole
+640x480 image, no mask, the camera 0.45 m or more from the object (the object spanning 25-45 % of the image
+width otherwise), viewpoints leaving less than 30 % of the object visible re-drawn, in poses the scan did
+not see:
 
 - thin: a flat printed box 2.5-3 cm thick (gscan.synth.box_mesh), lying flat, seen from 15-80 deg elevation;
 - side: an object lying on a side (turned 90 deg about a horizontal axis) relative to its scan;
