@@ -16,6 +16,7 @@ before and after: the machine is shared.
 
     python bench/speed.py                       # 24 frames, 10 CLI calls
     python bench/speed.py --frames 40 --cli 20 --json out.json
+    PYTHONPATH=OLD python bench/speed.py --modes cli,warm     # an older gscan (no tracker, no service)
 """
 from __future__ import annotations
 
@@ -95,8 +96,10 @@ def proc_cpu_s(pid: int) -> float:
 
 
 def run(args: argparse.Namespace) -> dict:
-    from gscan.estimate import Estimator, Tracker
+    from gscan.estimate.estimator import Estimator
     from gscan.io import open_sequence
+
+    modes = args.modes.split(",")
 
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
@@ -136,6 +139,10 @@ def run(args: argparse.Namespace) -> dict:
     out["warm"] = {"cpu_ms": stats(cpu), "wall_ms": stats(wall), "found": found}
     independent_cpu = cpu
 
+    if "track" not in modes:
+        return _ratios(out)
+    from gscan.estimate import Tracker
+
     # tracking on the same frames
     tracker = Tracker(est)
     cpu, wall, status = [], [], []
@@ -149,6 +156,8 @@ def run(args: argparse.Namespace) -> dict:
                     "status": {s: status.count(s) for s in sorted(set(status))},
                     "speedup_vs_independent_cpu": float(np.median(independent_cpu) / np.median(cpu))}
 
+    if "service" not in modes:
+        return _ratios(out)
     # the service, end to end
     from gscan.client import GscanClient
 
@@ -176,9 +185,14 @@ def run(args: argparse.Namespace) -> dict:
     finally:
         proc.terminate()
         proc.wait(30)
+    return _ratios(out)
+
+
+def _ratios(out: dict) -> dict:
     base = out["cli"]
     for mode in ("warm", "service", "track"):
-        out[mode]["cli_over_mode"] = {k: base[k]["median"] / out[mode][k]["median"] for k in ("cpu_ms", "wall_ms")}
+        if mode in out:
+            out[mode]["cli_over_mode"] = {k: base[k]["median"] / out[mode][k]["median"] for k in ("cpu_ms", "wall_ms")}
     out["load_after"] = load_average()
     return out
 
@@ -188,6 +202,8 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=24)
     ap.add_argument("--cli", type=int, default=10, help="frames estimated by the CLI (one process each)")
     ap.add_argument("--work", default="/tmp/gscan-bench-speed", help="cache of the scanned template")
+    ap.add_argument("--modes", default="cli,warm,track,service",
+                    help="what to measure besides cli and warm (track, service need this version's gscan)")
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
     out = run(args)
@@ -195,14 +211,16 @@ def main() -> None:
           f"(640x480, whole image)")
     print("| mode | CPU ms median | CPU ms p90 | wall ms median | wall ms p90 | CLI / mode (CPU, wall) |")
     print("|---|---|---|---|---|---|")
-    for mode in ("cli", "warm", "service", "track"):
+    for mode in [m for m in ("cli", "warm", "service", "track") if m in out]:
         v = out[mode]
         ratio = v.get("cli_over_mode")
         r = f"{ratio['cpu_ms']:.1f}x, {ratio['wall_ms']:.1f}x" if ratio else "1x"
         print(f"| {mode} | {v['cpu_ms']['median']:.0f} | {v['cpu_ms']['p90']:.0f} | {v['wall_ms']['median']:.0f} | "
               f"{v['wall_ms']['p90']:.0f} | {r} |")
-    print(f"\nwarm estimates found {out['warm']['found']}/{out['frames']}; tracking statuses {out['track']['status']}, "
-          f"{out['track']['speedup_vs_independent_cpu']:.1f}x less CPU per frame than independent estimates")
+    print(f"\nwarm estimates found {out['warm']['found']}/{out['frames']}")
+    if "track" in out:
+        print(f"tracking statuses {out['track']['status']}, {out['track']['speedup_vs_independent_cpu']:.1f}x less CPU "
+              "per frame than independent estimates")
     if args.json:
         Path(args.json).write_text(json.dumps(out, indent=1))
 

@@ -46,7 +46,7 @@ from pathlib import Path
 import numpy as np
 
 from gscan.errors import InputError
-from gscan.estimate.query import QueryFrame, plane_heights, prepare_query
+from gscan.estimate.query import QueryFrame, prepare_query
 from gscan.estimate.refine import icp_anchored
 from gscan.estimate.result import STAGES, EstimateResult, ms_since
 from gscan.estimate.verify import (
@@ -304,8 +304,9 @@ class Estimator:
         return self._above(q, res, tm, t_all)
 
     def _above(self, q: QueryFrame, res: EstimateResult, tm: dict[str, float], t_all: float) -> EstimateResult:
-        """`res`, or not found when its pose sinks the object into the frame's support plane (verify)."""
-        if res.T_cam_obj is None or q.plane is None:
+        """`res`, or not found when its pose sinks the object into the frame's support plane (verify). A 3D-3D
+        pose was checked when it was verified; this checks the 2D-3D ones."""
+        if res.T_cam_obj is None or q.plane is None or res.method == "gmatch":
             return res
         below = self._sinks(q, res.T_cam_obj)
         if below is None:
@@ -316,7 +317,8 @@ class Estimator:
     def _sinks(self, q: QueryFrame, T_cam_obj: np.ndarray) -> float | None:
         if q.plane is None:
             return None
-        return sinks_into_plane(T_cam_obj, self.cloud_icp, q.plane, plane_heights(q, q.plane), q.frame.depth,
+        assert q.heights is not None
+        return sinks_into_plane(T_cam_obj, self.cloud_icp, q.plane, q.heights, q.frame.depth,
                                 q.frame.intrinsics, self.params.below_tol, self.params.max_below_frac)
 
     def _estimate_gmatch(self, q: QueryFrame, feats: Features, S: np.ndarray, votes: np.ndarray, refine: bool,

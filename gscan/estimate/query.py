@@ -30,6 +30,14 @@ class QueryFrame:
     plane: Plane | None = None
     off_plane: np.ndarray | None = None
     _cloud: np.ndarray | None = field(default=None, repr=False)
+    _heights: np.ndarray | None = field(default=None, repr=False)
+
+    @property
+    def heights(self) -> np.ndarray | None:
+        """[H x W] float32 every pixel's height above the plane (None without a plane), computed once."""
+        if self.plane is not None and self._heights is None:
+            self._heights = plane_heights(self, self.plane)
+        return self._heights
 
     @property
     def search(self) -> np.ndarray | None:
@@ -130,7 +138,8 @@ def prepare_query(frame: RGBDFrame, mask: np.ndarray | None, remove_plane: bool,
     q = QueryFrame(frame, mask, n_valid / max(1, n_region))
     if mask is None and remove_plane and q.depth_frac >= min_depth_frac:
         q.plane = fit_plane(q, plane_min_frac, plane_iterations)
-        if q.plane is not None:
-            region = valid & (plane_heights(q, q.plane) > 0.008 + 0.005 * frame.depth)
+        heights = q.heights
+        if heights is not None:
+            region = valid & (heights > 0.008 + 0.005 * frame.depth)
             q.off_plane = region if region.mean() >= 0.002 else None
     return q
