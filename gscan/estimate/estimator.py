@@ -27,7 +27,7 @@ Pipeline of `Estimator.estimate` (every stage timed, `EstimateResult.timings_ms`
 6. verify (`gscan.estimate.verify`): the pose is accepted from the evidence (depth agreement, keypoint support
    relative to what the frame and the template show there, the list's geometry), never from the list length
    alone, and refused when it sinks the object into the support plane. When the best list's pose is refused,
-   the next `verify_lists` - 1 lists are tried.
+   the next `verify_lists` - 1 lists are tried, under the short lists' stricter rule.
 
 Without usable query depth (valid fraction of the search region < `min_depth_frac`) the pose is solved 2D-3D
 (`gscan.estimate.pnp`), and the same 2D-3D solve is tried after a failed 3D-3D estimate on the search region's
@@ -343,7 +343,7 @@ class Estimator:
             return self._fail(tm, t_all, "too few geometrically consistent matches (no list of 3)", 0)
         first: EstimateResult | None = None
         for c in [c for c in cands if c.n >= p.accept.min_matches][: max(1, p.verify_lists)]:
-            res = self._solve_verify(q, feats, S, q_location, c, refine, tm, t_all)
+            res = self._solve_verify(q, feats, S, q_location, c, refine, tm, t_all, best=c is cands[0])
             if res.found:
                 return res
             first = first or res
@@ -417,8 +417,8 @@ class Estimator:
         return merged
 
     def _solve_verify(self, q: QueryFrame, feats: Features, S: np.ndarray, q_location: np.ndarray, c: _Candidate,
-                      refine: bool, tm: dict[str, float], t_all: float) -> EstimateResult:
-        """Solve, refine and verify one match list."""
+                      refine: bool, tm: dict[str, float], t_all: float, best: bool = True) -> EstimateResult:
+        """Solve, refine and verify one match list (best: the frame's best-supported list, gscan.estimate.verify)."""
         p = self.params
         t = time.perf_counter()
         src = self.points_obj[c.matches[:, 0]]
@@ -435,7 +435,7 @@ class Estimator:
         tm["refine"] += ms_since(t)
         view = self.view_names[c.view]
         below = self._sinks(q, T_cam_obj)
-        why = accept(ev, self.radius, p.accept) if below is None else \
+        why = accept(ev, self.radius, p.accept, best) if below is None else \
             f"pose puts {below:.0%} of the object inside the support plane"
         if why is not None:
             return self._fail(tm, t_all, why, c.longest, view, ev.score, evidence=ev)

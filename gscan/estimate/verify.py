@@ -61,7 +61,7 @@ class Evidence:
 class AcceptParams:
     min_score: float = 0.6  # depth-consistency score below this -> not found
     min_confirmed: float = 0.15  # fraction of the visible template surface confirmed by the depth below this -> not found
-    strong_matches: int = 14  # a GMatch list this long (and as many inliers) is evidence enough with the depth ...
+    strong_matches: int = 14  # the best-supported list, this long (and as many inliers), is evidence enough ...
     strong_min_ratio: float = 0.1  # ... when at least this fraction of the keypoints there agree with the template
     min_matches: int = 5  # lists with fewer inliers are never accepted
     min_support: int = 10  # a shorter list needs this many supporting keypoint locations ...
@@ -69,15 +69,18 @@ class AcceptParams:
     min_spread: float = 0.05  # ... and inliers spread across this fraction of the object radius (not a line)
 
 
-def accept(ev: Evidence, radius: float, p: AcceptParams) -> str | None:
-    """None when the evidence is enough for the pose, else the reason it is not (one line)."""
+def accept(ev: Evidence, radius: float, p: AcceptParams, best: bool = True) -> str | None:
+    """None when the evidence is enough for the pose, else the reason it is not (one line). best: the pose is
+    the frame's best-supported hypothesis; a long list's relaxed support rule applies to it only (a runner-up
+    whose better-supported rival was refused must pass the short lists' rule: a box turned onto its twin face
+    keeps a long list and some support)."""
     if ev.score < p.min_score or ev.confirmed < p.min_confirmed:
         return (f"pose not confirmed by the depth (score {ev.score:.2f}, {ev.confirmed:.0%} of visible surface "
                 f"confirmed)")
     if ev.n_inliers < p.min_matches:
         return f"too few geometrically consistent matches ({ev.n_inliers} < {p.min_matches} after trimming)"
     shown = min(ev.on_surface, ev.offer)
-    if ev.n_matches >= p.strong_matches and ev.n_inliers >= p.strong_matches:
+    if best and ev.n_matches >= p.strong_matches and ev.n_inliers >= p.strong_matches:
         if ev.support_ratio >= p.strong_min_ratio:
             return None
         return f"the object's appearance does not agree ({ev.support} of {shown} keypoints on its surface match)"
