@@ -224,3 +224,24 @@ def test_serve_from_python(template: Path):
     import gscan.serve.api  # the package imported as well: the name still starts the service
 
     assert callable(gscan.serve) and gscan.serve.create_app is not None
+
+
+@pytest.mark.filterwarnings("ignore::DeprecationWarning")
+def test_body_limit_and_framework_errors(template: Path):
+    """A body over the limit gets 413 whether its size is announced (Content-Length) or not (chunked); the
+    framework's own errors (an unparsable body, an unknown path) get one line naming the request."""
+    from fastapi.testclient import TestClient
+
+    from gscan.serve import ServeParams, create_app, load_service
+
+    client = TestClient(create_app(load_service([template], ServeParams(max_request_bytes=10_000))))
+    form = {"content-type": "multipart/form-data; boundary=b"}
+    r = client.post("/estimate", content=b"x" * 20_000, headers=form)
+    assert r.status_code == 413 and r.json()["detail"].startswith("request: ")
+    r = client.post("/estimate", content=(b"x" * 1000 for _ in range(50)), headers=form)  # chunked
+    assert r.status_code == 413 and r.json()["detail"].startswith("request: ")
+    r = client.post("/estimate", content=b"x" * 100, headers=form)
+    assert r.status_code == 400 and r.json()["detail"].startswith("request: ")
+    r = client.get("/nowhere")
+    assert r.status_code == 404 and r.json()["detail"] == "request: Not Found"
+    assert client.get("/health").json() == {"templates": ["scrabble"]}

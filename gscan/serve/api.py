@@ -4,6 +4,7 @@ This module keeps its annotations evaluated (no `from __future__ import annotati
 route signatures and response models at run time to build the OpenAPI schema.
 """
 import logging
+import re
 from typing import Annotated, Any
 
 from fastapi import FastAPI, File, Form, Path, Request, UploadFile
@@ -67,10 +68,6 @@ def _one_line(text: Any) -> str:
     return " ".join(str(text).split())[:500]
 
 
-class _TooLarge(Exception):
-    pass
-
-
 class BodyLimit:
     """ASGI middleware: a request body larger than `limit` bytes gets 413 before it is read (by its
     Content-Length), or as soon as the count passes the limit (a chunked body)."""
@@ -90,27 +87,35 @@ class BodyLimit:
                              f"request: body larger than {self.limit} bytes")
             return
         seen = 0
-        started = False
+        started = exceeded = False
+        too_big = f"request: body larger than {self.limit} bytes"
 
         async def counted() -> dict:
-            nonlocal seen
+            nonlocal seen, exceeded
             msg = await receive()
             if msg.get("type") == "http.request":
                 seen += len(msg.get("body", b""))
                 if seen > self.limit:
-                    raise _TooLarge
+                    exceeded = True
+                    raise RequestError("request", f"body larger than {self.limit} bytes", 413)
             return msg
 
         async def tracked_send(msg: dict) -> None:
             nonlocal started
+            if exceeded:  # whatever the app answers to the aborted body (its form parser says 400), it is a 413
+                if msg.get("type") == "http.response.start" and not started:
+                    started = True
+                    await _send_json(send, 413, too_big)
+                return
             started = started or msg.get("type") == "http.response.start"
             await send(msg)
 
         try:
             await self.app(scope, counted, tracked_send)
-        except _TooLarge:
+        except RequestError as e:  # raised outside the routes' error handlers
             if not started:
-                await _send_json(send, 413, f"request: body larger than {self.limit} bytes")
+                started = True
+                await _send_json(send, e.status, _one_line(e.detail))
 
 
 async def _send_json(send: Any, status: int, detail: str) -> None:
@@ -144,7 +149,9 @@ def create_app(service: Service) -> Any:
 
     @app.exception_handler(StarletteHTTPException)
     async def _http_error(_: Request, e: StarletteHTTPException) -> JSONResponse:
-        return JSONResponse({"detail": _one_line(e.detail)}, status_code=e.status_code)
+        detail = _one_line(e.detail)  # the framework's own (an unparsable body, an unknown path): name the request
+        return JSONResponse({"detail": detail if re.match(r"^[\w.-]+: ", detail) else f"request: {detail}"},
+                            status_code=e.status_code)
 
     @app.exception_handler(Exception)
     async def _internal_error(_: Request, e: Exception) -> JSONResponse:
