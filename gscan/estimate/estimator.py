@@ -16,8 +16,11 @@ Pipeline of `Estimator.estimate` (every stage timed, `EstimateResult.timings_ms`
    in its central view's camera frame (view direction +z), against the query keypoints (+z): a pose between
    keyframes, or a face the scan saw from a steeper angle than the query, collects its matches from several
    views at once. Descriptor distances are sliced from the retrieval GEMM, never recomputed.
-4. solve: Kabsch with gross outliers trimmed (`kabsch_trimmed`) on a match list (object-frame template points
-   -> query camera points); lists are tried longest first (ties: lower GMatch cost).
+4. solve: every neighbourhood's best list and its GMatch runners-up (at most `runner_up_margin` shorter: in
+   clutter a hard view's correct list ties with the lists the background offers) are posed at once (batched
+   Kabsch) and pre-scored by the query keypoints their nearest template descriptor lands on at that pose;
+   lists whose poses agree are pooled; the best pre-scored list's pose is solved by Kabsch with gross outliers
+   trimmed (`kabsch_trimmed`, object-frame template points -> query camera points).
 5. refine: point-to-plane ICP (`gscan.estimate.refine`, template normals, the match list as weak anchors) of
    the template cloud's points visible from the predicted pose onto the query cloud cropped to a sphere of
    1.2 object radii around the predicted centre and, without a mask, to the off-plane pixels. A given mask
