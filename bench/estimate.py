@@ -38,7 +38,6 @@ from gscan.matching.baselines import run_baseline
 from gscan.scan.cad import template_from_mesh
 from gscan.io.camera import RGBDFrame
 from gscan.estimate.estimator import STAGES, EstimateParams, Estimator
-from gscan.features import Features
 from gscan.geometry.transforms import look_at, rotvec_to_R, transform_points
 from gscan.evaluate.metrics import add, adds, auc
 from gscan.synth import (DEFAULT_INTRINSICS, SynthScene, default_distance, load_textured_mesh, place_distractors,
@@ -50,21 +49,22 @@ MESHES = ROOT.parent / "shared" / "data" / "meshes"
 
 class RatioRansacEstimator(Estimator):
     """Baseline: gscan.matching.baselines "ratio" (NN + Lowe ratio 0.75 -> open3d correspondence RANSAC, 1 cm,
-    seeded) in place of GMatch; everything else (features, retrieval, Kabsch, ICP, score) is shared."""
+    seeded) in place of GMatch on each retrieved view neighbourhood; everything else (features, retrieval,
+    pre-scoring, Kabsch, ICP, verification) is shared."""
 
-    def _match_view(self, v: int, S: np.ndarray, feats: Features,
-                    q_groups: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, float]:
-        a, b = self.offsets[v], self.offsets[v + 1]
-        if b - a < 3 or len(feats) < 3:
-            return np.zeros((0, 2), np.int64), 1.0
-        dist = self._dist(S[:, a:b]).T  # [N_view x M_query]
-        res = run_baseline("ratio", self.points_cam[a:b], feats.points, dist)
+    def _match_hypotheses(self, v: int, qk) -> list[tuple[np.ndarray, float]]:
+        idx = self.nb_idx[v]
+        feats = qk.feats
+        if len(idx) < 3 or len(feats) < 3:
+            return [(np.zeros((0, 2), np.int64), 1.0)]
+        dist = self._dist(qk.S[:, idx]).T  # [N_neighbourhood x M_query]
+        res = run_baseline("ratio", self.nb_points[v], feats.points, dist)
         if res.T_tgt_src is None or len(res.matches) == 0:
-            return np.zeros((0, 2), np.int64), 1.0
+            return [(np.zeros((0, 2), np.int64), 1.0)]
         m = np.asarray(res.matches, dtype=np.int64)
-        r = np.linalg.norm(self.points_cam[a + m[:, 0]] @ res.T_tgt_src[:3, :3].T + res.T_tgt_src[:3, 3]
+        r = np.linalg.norm(self.nb_points[v][m[:, 0]] @ res.T_tgt_src[:3, :3].T + res.T_tgt_src[:3, 3]
                            - feats.points[m[:, 1]], axis=1)
-        return m, float(r.mean())
+        return [(np.stack([idx[m[:, 0]], m[:, 1]], 1), float(r.mean()))]
 
 
 def make_scene(target, distractors, seed: int, occlude: bool, min_visible: float = 0.3):

@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING, Any
 
 from gscan._lazy import lazy_exports
 
-__version__ = "0.2.0"
+from gscan._version import __version__
 
 _EXPORTS = {
     "open_sequence": "gscan.io.sequence",
@@ -53,6 +53,7 @@ _EXPORTS = {
     "EstimateResult": "gscan.estimate.estimator",
     "GscanError": "gscan.errors",
     "InputError": "gscan.errors",
+    "serve": "gscan.serve",
 }
 # public names that are also subpackages: (the function's module, its name)
 _CALLABLE_PACKAGES = {"scan": ("gscan.scan.api", "scan"), "export": ("gscan.export", "export")}
@@ -72,6 +73,7 @@ if TYPE_CHECKING:
     from gscan.scan.config import ScanConfig
     from gscan.scan.pipeline import ScanResult
     from gscan.template.db import TemplateDB
+    from gscan.serve.server import serve
 
 __all__ = [
     "EstimateParams", "EstimateResult", "Estimator", "FeatureParams", "Features", "GMatchParams", "GscanError",

@@ -62,9 +62,9 @@ class ExportFormat(str, Enum):
 
 def _version(value: bool) -> None:
     if value:
-        import gscan
+        from gscan._version import __version__
 
-        sys.stdout.write(f"gscan {gscan.__version__}\n")
+        sys.stdout.write(f"gscan {__version__}\n")
         raise typer.Exit()
 
 
@@ -364,6 +364,61 @@ def estimate(
     err.print("timings (ms): " + ", ".join(f"{k} {v:.1f}" for k, v in out["timings_ms"].items()))
 
 
+# ------------------------------------------------------------------------------------------- track
+
+
+@app.command()
+def track(
+    template: Path = typer.Argument(..., help="template database (OBJ.gscan)"),
+    input_path: Path = typer.Argument(..., metavar="INPUT", help="RGB-D sequence: a folder in any layout scan reads"),
+    output: Optional[Path] = typer.Option(None, "-o", "--output",
+                                          help="folder for one T_cam_obj per frame (ob_in_cam 4x4 text) + summary.json"),
+    format: str = typer.Option("auto", "--format", help="auto|capture|open3d|tum|bop"),
+    intrinsics: Optional[Path] = typer.Option(None, "--intrinsics", help="cam_K.txt or Open3D intrinsics JSON"),
+    depth_scale: Optional[float] = typer.Option(None, "--depth-scale", help="metres per raw depth unit"),
+    force: bool = typer.Option(False, "--force", help="replace an existing OUTPUT"),
+    json_out: bool = typer.Option(False, "--json", help="print one JSON object on stdout"),
+    verbose: bool = typer.Option(False, "-v", "--verbose", help="log progress details to stderr"),
+) -> None:
+    """Estimate the object's pose through an RGB-D sequence, the previous pose as a prior."""
+    _setup_logging(verbose)
+    from gscan.estimate import Estimator, track_sequence, write_poses
+    from gscan.io import check_output_path, open_sequence
+    from gscan.io.layouts import FORMATS
+
+    if format not in ("auto",) + FORMATS:
+        raise UsageError(None, f"--format must be one of {', '.join(('auto',) + FORMATS)}, not {format!r}")
+    if output is not None:  # refused before any work
+        if output.exists() and (not output.is_dir() or any(output.iterdir())) and not force:
+            raise UsageError(output, "exists and is not empty (pass --force to replace it)")
+        check_output_path(output)
+    estimator = Estimator.from_path(template)
+    seq = open_sequence(input_path, format, intrinsics=intrinsics, depth_scale=depth_scale)
+
+    def report(step) -> None:
+        if json_out:
+            return
+        res = step.result
+        what = f"score {res.score:.2f}" if res.T_cam_obj is not None else str(res.reason)
+        style = "yellow" if step.status in ("lost", "refound") else None
+        _say(f"{step.frame}: ", (step.status, style) if style else step.status,
+             f" ({what}, {res.timings_ms.get('total', 0.0):.0f} ms)")
+
+    run = track_sequence(estimator, seq, on_step=report)
+    written = write_poses(run, output, force=force) if output is not None else None
+    out = run.to_json(written)
+    if json_out:
+        _print_json(out)
+        return
+    st = out["status"]
+    _say((f"{out['with_pose']}/{out['frames']} frames with a pose", "bold"),
+         f": {st['found']} found, {st['tracked']} tracked, {st['refound']} re-found, {st['lost']} lost; "
+         f"median {out['timings_ms']['median']:.0f} ms per frame"
+         + (f"; poses written to {written}" if written is not None else ""))
+    for name, reason in out["unreadable"].items():
+        _say((f"skipped frame {name}:", "yellow"), f" {reason}")
+
+
 # ------------------------------------------------------------------------------------- poses / info
 
 
@@ -488,6 +543,27 @@ def view(
             _line(f"estimate: {'not found (' + str(result.reason) + ')' if T_cam_obj is None else 'view ' + str(result.view)}")
     run_viewer(template, host=host, port=port, scene_frame=frame, T_cam_obj=T_cam_obj, token=token,
                on_ready=lambda url: _say("viewer ready at ", (url, "bold"), " (Ctrl+C to stop)"))
+
+
+# ------------------------------------------------------------------------------------------- serve
+
+
+@app.command()
+def serve(
+    templates: list[Path] = typer.Argument(..., metavar="OBJ.gscan...", help="template databases to serve"),
+    host: str = typer.Option("127.0.0.1", "--host", help="address to bind (0.0.0.0: every interface)"),
+    port: int = typer.Option(8765, "--port", min=0, max=65535, help="port to serve on (0: a free one)"),
+    verbose: bool = typer.Option(False, "-v", "--verbose", help="log requests' details to stderr"),
+) -> None:
+    """Serve pose estimation over HTTP with the templates kept warm (OpenAPI page at /docs)."""
+    _setup_logging(verbose)
+    from gscan.serve import serve as run_service
+
+    def ready(url: str) -> None:
+        _say("serving ", (", ".join(t.name for t in templates), "bold"), " at ", (url, "bold"),
+             f" (API at {url}/docs; Ctrl+C to stop)")
+
+    run_service(templates, host=host, port=port, on_ready=ready)
 
 
 # ------------------------------------------------------------------------------------------- grasp

@@ -1,54 +1,43 @@
 """Pose of a templated object in a new RGB-D frame (`gscan estimate`).
 
-Pipeline of `Estimator.estimate` (every stage timed, `EstimateResult.timings_ms`):
+Pipeline of `Estimator.estimate` (every stage timed, `EstimateResult.timings_ms`); the frame's full-image work
+(back-projection, the support-plane fit, the search region) is done once (`gscan.estimate.query`):
 
-1. features: RootSIFT keypoints of the query, lifted with the query depth into the camera frame,
-   inside `mask` when given (the frame is then cropped to the mask's bounding box before detection,
-   which is where most of the time goes); without a mask, inside the pixels standing off the
-   dominant plane (`gscan.scan.segment.off_plane_region`: the table top, whose texture would otherwise
-   take most of the keypoints), or the whole frame when there is no such plane.
-2. retrieval: one GEMM of the query descriptors against the template's stacked descriptors
-   (normalised once at load); every query keypoint whose nearest template descriptor is closer than
-   `retrieval_dist` (unit descriptors, RootSIFT; `eps_f` for SIFT and ORB) votes for that descriptor's
-   view; the top-`top_k` views by votes are kept.
-3. match: GMatch (gscan.matching.gmatch) of each retrieved view's keypoints, expressed in THAT view's camera
-   frame (view direction +z), against the query keypoints (+z); descriptor distances are sliced
-   from the retrieval GEMM, never recomputed.
-4. solve: Kabsch on the best view's match list (object-frame template points -> query camera points);
-   the view with the most matches wins (ties: lower GMatch cost). Every retrieved view is matched:
-   stopping at the first full-length list saved ~40 % of the match time but let a look-alike
-   distractor win ties that the cost decides (BENCHMARKS.md).
-5. refine: point-to-plane ICP (`icp_point_to_plane`, deterministic, template normals) of the
-   template cloud's points visible from the predicted pose onto the query cloud cropped to a sphere
-   of 1.2 object radii around the predicted centre and, without a mask, to the off-plane pixels. A
-   given mask does not crop it: ICP pairs the template's whole visible surface with the query, and a
-   mask that clips the silhouette (eroded, or cut by an occluder) pulled the pose toward the cut
-   (held-out sample frames, true, eroded and half masks: 0.3-5.6 mm with the mask crop, 0.3-2.0 mm
-   without, BENCHMARKS.md).
-   A refinement that moves the pose by more than the object radius or 30 degrees is discarded.
-6. score: the visible template cloud is projected into the query depth; score = consistent /
-   (consistent + see-through) points, where "consistent" is |z_query - z_pred| < tol and
-   "see-through" means the query surface lies behind the predicted object (occluded points, with
-   query depth in front, count for neither). Not found (T_cam_obj None, `reason`) when the best
-   list has fewer than `min_matches` matches, the score is below `min_score`, or too few visible
-   points are confirmed by the depth.
-7. support plane (without a mask): when the frame has a dominant plane (`gscan.scan.segment.support_plane`),
-   a pose that puts more than `max_below_frac` of the template's points deeper than `below_tol` into it
-   is not found (an object rests on the table; such a pose fits the object's print to the table's
-   texture, its face flush with the table top, and the depth agrees), unless most of the plane lies
-   inside the pose's silhouette (then the plane is the object's own face). Applies to PnP poses too.
+1. features: RootSIFT keypoints of the query, lifted with the query depth into the camera frame, inside
+   `mask` when given; without a mask inside the pixels standing off the dominant plane (the table top, whose
+   texture would otherwise take most of the keypoints), or the whole frame when there is no such plane.
+   Detection runs on the bounding boxes of the search region's blobs only (`region_boxes`).
+2. retrieval: one GEMM of the query descriptors against the template's stacked descriptors (normalised
+   once at load); every query keypoint whose nearest template descriptor is closer than `retrieval_dist`
+   votes for that descriptor's view. A view's neighbourhood is itself and the `joint_views` - 1 views whose
+   optical axes are nearest to its own, within `joint_deg`; the views with most votes are taken as centres
+   (a view inside a neighbourhood already taken is skipped), up to `top_k`.
+3. match: GMatch (gscan.matching.gmatch) of each retrieved neighbourhood's keypoints jointly, all expressed
+   in its central view's camera frame (view direction +z), against the query keypoints (+z): a pose between
+   keyframes, or a face the scan saw from a steeper angle than the query, collects its matches from several
+   views at once. Descriptor distances are sliced from the retrieval GEMM, never recomputed.
+4. solve: every neighbourhood's best list and its GMatch runners-up (at most `runner_up_margin` shorter: in
+   clutter a hard view's correct list ties with the lists the background offers) are posed at once (batched
+   Kabsch) and pre-scored by the query keypoints their nearest template descriptor lands on at that pose;
+   lists whose poses agree are pooled; the best pre-scored list's pose is solved by Kabsch with gross outliers
+   trimmed (`kabsch_trimmed`, object-frame template points -> query camera points).
+5. refine: point-to-plane ICP (`gscan.estimate.refine`, template normals, the match list as weak anchors) of
+   the template cloud's points visible from the predicted pose onto the query cloud cropped to a sphere of
+   1.2 object radii around the predicted centre and, without a mask, to the off-plane pixels. A given mask
+   does not crop it: ICP pairs the template's whole visible surface with the query, and a mask that clips
+   the silhouette (eroded, or cut by an occluder) pulled the pose toward the cut. A refinement that moves the
+   pose by more than the object radius or 30 degrees is discarded.
+6. verify (`gscan.estimate.verify`): the pose is accepted from the evidence (depth agreement, keypoint support
+   relative to what the frame and the template show there, the list's geometry), never from the list length
+   alone, and refused when it sinks the object into the support plane. When the best list's pose is refused,
+   the next `verify_lists` - 1 lists are tried, under the short lists' stricter rule.
 
-Without usable query depth (valid fraction of the search region < `min_depth_frac`) the pose is
-solved 2D-3D: the query keypoints are detected without depth lifting, matched by descriptor
-(nearest + ratio test within each retrieved view; a keypoint matched in several views keeps its
-closest match, so inliers count distinct keypoints) to the template's object-frame points, and the
-pose is estimated by LO-RANSAC PnP + refinement (pycolmap `estimate_and_refine_absolute_pose`);
-score = inlier fraction. No ICP in that mode. The same 2D-3D solve is tried after a failed 3D-3D
-estimate on the search region's holes in the depth (`pnp_in_holes`; holes a 15 px square fits in, at least
-`hole_min_frac` of the region): a dark, shiny or transparent object leaves a hole in otherwise good depth,
-its keypoints cannot be lifted, and GMatch sees only the background (held-out sample frames with the
-object's depth erased: found in 4 of 4, <= 0.5 deg / 0.6 mm from the full-depth pose). Such a pose is
-refused when the measured depth would be seen through more than `max_see_through` of the object.
+Without usable query depth (valid fraction of the search region < `min_depth_frac`) the pose is solved 2D-3D
+(`gscan.estimate.pnp`), and the same 2D-3D solve is tried after a failed 3D-3D estimate on the search region's
+holes in the depth (a dark, shiny or transparent object leaves a hole in otherwise good depth).
+
+The estimator limits BLAS to one thread while it runs (threadpoolctl): its matrices are small, and a
+thread pool spinning up per call cost more CPU than it saved.
 """
 from __future__ import annotations
 
@@ -57,48 +46,71 @@ import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-import cv2
 import numpy as np
 
-from gscan.io.camera import Intrinsics, RGBDFrame, backproject
 from gscan.errors import InputError
-from gscan.features import (OBJECT_FEATURES, FeatureParams, Features, descriptor_distances, empty_features,
-                            extract_features, extract_features_in_mask)
+from gscan.estimate.query import QueryFrame, prepare_query
+from gscan.estimate.refine import icp_anchored
+from gscan.estimate.result import STAGES, EstimateResult, ms_since
+from gscan.estimate.verify import (
+    AcceptParams,
+    Evidence,
+    accept,
+    depth_votes,
+    kabsch_batch,
+    keypoint_support,
+    list_spread,
+    nn_support,
+    sinks_into_plane,
+    visible,
+)
+from gscan.features import (
+    OBJECT_FEATURES,
+    FeatureParams,
+    Features,
+    descriptor_distances,
+    empty_features,
+    extract_features,
+    extract_features_in_mask,
+)
+from gscan.geometry.pointset import coincident_groups, pca_normals, voxel_down_indices, voxel_mean
 from gscan.geometry.kabsch import kabsch_trimmed
 from gscan.geometry.transforms import inv_T, transform_points
+from gscan.io.camera import RGBDFrame
 from gscan.matching.gmatch import GMatchParams, default_eps_f, gmatch
-from gscan.geometry.icp import icp_point_to_plane
-from gscan.geometry.pointset import coincident_groups, pca_normals, voxel_down_indices, voxel_mean
-from gscan.geometry.plane import Plane
-from gscan.scan.segment import in_front_of, support_plane
 from gscan.template.db import Template, open_template
 
 log = logging.getLogger(__name__)
 
-STAGES = ("features", "retrieval", "match", "solve", "refine", "total")
+__all__ = ["STAGES", "EstimateParams", "EstimateResult", "Estimator"]
 
 
 @dataclass(frozen=True)
 class EstimateParams:
     # query keypoints (kind follows the template's), the same settings as the template's object keypoints
     features: FeatureParams = OBJECT_FEATURES
-    gmatch: GMatchParams = GMatchParams()  # matcher parameters (eps_f None -> default of the kind)
-    top_k: int = 4  # template views retrieved and matched
-    # stop matching retrieved views once one gives a full-length (L) GMatch list (only a lower-cost
-    # tie could replace it). Off: it saves 2-3 searches (masked 75 -> 45 ms on the sample) but took a
-    # near-identical distractor product in 1 of 84 benchmark scenes that the full search got right
-    stop_at_full_length: bool = False
+    gmatch: GMatchParams = field(default_factory=GMatchParams)  # matcher parameters (eps_f None -> default of the kind)
+    top_k: int = 3  # view neighbourhoods retrieved and matched
+    joint_views: int = 3  # views matched jointly per neighbourhood (1: every view alone)
+    joint_deg: float = 60.0  # ... whose optical axes lie within this angle of the central view's
+    verify_lists: int = 2  # match lists whose poses are verified, best pre-score first, until one is accepted
+    runner_up_margin: int = 2  # GMatch hypotheses this much shorter than a run's best list are pre-scored too
+    merge_deg: float = 10.0  # lists whose poses agree within this angle ...
+    merge_dist: float = 0.02  # ... and this distance (m) are pooled into one list
     retrieval_dist: float = 0.5  # descriptor distance under which a query keypoint votes for a view (RootSIFT L2)
-    min_matches: int = 14  # fewer GMatch matches -> not found (bench: correct lists >= 15, wrong ones <= 13)
-    min_score: float = 0.6  # depth-consistency score below this -> not found
-    min_confirmed: float = 0.15  # fraction of visible template points confirmed by depth below this -> not found
+    accept: AcceptParams = field(default_factory=AcceptParams)  # acceptance from the evidence (gscan.estimate.verify)
+    support_dist: float | None = None  # descriptor distance at which a supporting keypoint agrees (None: eps_f)
+    support_radius: float = 0.006  # m, query keypoint to template keypoint at the pose (grows 1 % of depth > 0.5 m)
+    support_views_deg: float = 90.0  # template views within this angle of the query direction offer keypoints
     trim_tau: float = 0.008  # m, the match list's pose drops pairs off by more (gscan.geometry.transforms.kabsch_trimmed)
     icp_max_dist: float = 0.005  # m, ICP correspondence distance
     icp_voxel: float = 0.003  # m, template cloud downsampling (ICP source, score)
     icp_target_voxel: float = 0.004  # m, query cloud voxel averaging (ICP target)
     icp_iterations: int = 20
     icp_max_points: int = 1500  # source (template) points used by ICP, evenly subsampled
-    crop_margin: int = 16  # px around the mask's bounding box kept for detection
+    icp_anchor_weight: float = 0.1  # weight of a matched keypoint pair against one surface pair in ICP
+    crop_margin: int = 16  # px around the search region's bounding box kept for detection
+    min_region_px: int = 150  # search-region blobs smaller than this are left out of the detection boxes
     depth_tol: float = 0.01  # m, depth agreement tolerance of the score (grows 2 % of depth beyond 0.5 m)
     min_depth_frac: float = 0.05  # valid-depth fraction of the search region below which PnP is used
     pnp_ratio: float = 0.8  # Lowe ratio of 2D-3D descriptor matches
@@ -115,35 +127,34 @@ class EstimateParams:
     plane_iterations: int = 64  # RANSAC plane hypotheses (seeded)
     below_tol: float = 0.015  # m: a template point this far behind the support plane is inside it ...
     max_below_frac: float = 0.2  # ... and a pose with more such points is not found
+    blas_threads: int | None = 1  # BLAS threads while estimating (threadpoolctl; None leaves them as they are)
 
 
 @dataclass
-class EstimateResult:
-    """Outcome of one estimate. T_cam_obj [4 x 4] or None (not found, see `reason`); grasps
-    {name: T_cam_grasp [4 x 4]} = T_cam_obj @ T_obj_grasp (empty when not found); timings_ms per stage."""
+class _Candidate:
+    """One neighbourhood's match list: matches [M x 2] (global template keypoint, query keypoint)."""
 
-    T_cam_obj: np.ndarray | None
-    score: float
-    n_matches: int
-    view: str | None
-    reason: str | None
-    grasps: dict[str, np.ndarray] = field(default_factory=dict)
-    timings_ms: dict[str, float] = field(default_factory=dict)
-    method: str = "gmatch"  # "gmatch" (3D-3D) | "pnp" (2D-3D, no usable depth)
+    n: int
+    cost: float
+    view: int
+    matches: np.ndarray = field(repr=False)
+    support: int = 0  # query keypoints whose nearest template descriptor lands on them at the list's pose
+    T: np.ndarray = field(default_factory=lambda: np.eye(4), repr=False)  # the list's plain Kabsch pose
+    longest: int = 0  # the longest single GMatch list among the lists merged into this one
 
-    @property
-    def found(self) -> bool:
-        return self.T_cam_obj is not None
 
-    def to_json(self) -> dict:
-        """The `gscan estimate --json` object (the command-line contract's keys and "method": "gmatch" | "pnp");
-        matrices as nested lists, metres."""
-        def mat(T: np.ndarray | None) -> list[list[float]] | None:
-            return None if T is None else [[float(x) for x in row] for row in np.asarray(T)]
+@dataclass
+class _QueryKeypoints:
+    """The query's lifted keypoints and their similarity to the template. S: the retrieval matrix
+    [M x N_template] (cosine similarity for unit descriptors, else distance); location [M]: a location id per
+    keypoint (orientations of one point share it); grouped [G x N_template]: S reduced over each location
+    (best value); group_kp [G]: a keypoint of each location."""
 
-        return {"T_cam_obj": mat(self.T_cam_obj), "score": float(self.score), "n_matches": int(self.n_matches),
-                "view": self.view, "reason": self.reason, "grasps": {k: mat(v) for k, v in self.grasps.items()},
-                "timings_ms": {k: float(self.timings_ms.get(k, 0.0)) for k in STAGES}, "method": self.method}
+    feats: Features
+    S: np.ndarray = field(repr=False)
+    location: np.ndarray = field(repr=False)
+    grouped: np.ndarray = field(repr=False)
+    group_kp: np.ndarray = field(repr=False)
 
 
 class Estimator:
@@ -157,9 +168,10 @@ class Estimator:
             params = replace(params, features=replace(params.features, kind=tpl.kind))
         self.params = params
         self.path = tpl.path
+        self.name = Path(tpl.path).stem if tpl.path is not None else "template"
         self.kind = tpl.kind
         self.view_names = list(tpl.view_names)
-        self.T_obj_cam = tpl.T_obj_cam  # [V x 4 x 4]
+        self.T_obj_cam = np.asarray(tpl.T_obj_cam, dtype=np.float64)  # [V x 4 x 4]
         self.points_obj = tpl.points_obj.astype(np.float64)
         desc = tpl.descriptors
         self.descriptors = np.ascontiguousarray(desc, dtype=np.float32 if self.kind != "orb" else np.uint8)
@@ -167,12 +179,8 @@ class Estimator:
         V = len(self.view_names)
         self.offsets = np.asarray(tpl.view_offsets, dtype=np.int64)  # keypoints of view v: offsets[v]:offsets[v+1]
         self.kp_view = np.asarray(tpl.kp_view, dtype=np.int64)
-        # view-camera-frame points of every keypoint (GMatch source side, view direction +z)
-        self.points_cam = np.empty_like(self.points_obj)
-        for v in range(V):
-            a, b = self.offsets[v], self.offsets[v + 1]
-            self.points_cam[a:b] = transform_points(inv_T(self.T_obj_cam[v]), self.points_obj[a:b])
-        self.groups = [coincident_groups(self.points_obj[self.offsets[v]:self.offsets[v + 1]]) for v in range(V)]
+        self.axes = self.T_obj_cam[:, :3, 2]  # [V x 3] optical axes in the object frame
+        self._build_neighbourhoods()
         cloud = tpl.cloud_points if tpl.cloud_points is not None and len(tpl.cloud_points) else None
         if cloud is None and tpl.mesh is not None and len(tpl.mesh.vertices):
             cloud = tpl.mesh.vertices
@@ -190,26 +198,56 @@ class Estimator:
         self.radius = float(np.linalg.norm(self.cloud - self.center, axis=1).max())
         self.grasps = dict(tpl.grasps)
         self.eps_f = params.gmatch.eps_f if params.gmatch.eps_f is not None else default_eps_f(self.kind)
+        sd = params.support_dist if params.support_dist is not None else self.eps_f
+        # similarity at which a supporting keypoint's descriptor agrees (cosine for unit descriptors)
+        self.support_sim = 1.0 - 0.5 * sd ** 2 if self.unit else -sd
+        self._blas = None
+        if params.blas_threads is not None:
+            from threadpoolctl import ThreadpoolController
+
+            self._blas = ThreadpoolController()
         self._warm_up()
+        if V:
+            log.debug("%s: %d views, %d keypoints, neighbourhoods of %s views", self.path, V, len(self.points_obj),
+                      [len(n) for n in self.neighbours])
+
+    def _build_neighbourhoods(self) -> None:
+        """Per view v: its neighbourhood (v first, then the nearest optical axes within joint_deg, at most
+        joint_views), the neighbourhood's global keypoint indices, their points in v's camera frame and the
+        groups of coincident points among them (keypoints of one location with several orientations)."""
+        p = self.params
+        V = len(self.view_names)
+        cos = np.clip(self.axes @ self.axes.T, -1.0, 1.0)
+        self.neighbours: list[np.ndarray] = []
+        self.nb_idx: list[np.ndarray] = []
+        self.nb_points: list[np.ndarray] = []
+        self.nb_groups: list[tuple[np.ndarray, np.ndarray]] = []
+        for v in range(V):
+            order = [u for u in np.lexsort((np.arange(V), -cos[v])) if u != v]
+            nb = [v] + [int(u) for u in order if cos[v, u] >= np.cos(np.radians(p.joint_deg))][: max(0, p.joint_views - 1)]
+            idx = np.concatenate([np.arange(self.offsets[u], self.offsets[u + 1]) for u in nb]).astype(np.int64)
+            self.neighbours.append(np.asarray(nb, np.int64))
+            self.nb_idx.append(idx)
+            self.nb_points.append(transform_points(inv_T(self.T_obj_cam[v]), self.points_obj[idx]))
+            self.nb_groups.append(coincident_groups(self.points_obj[idx]))
 
     def _warm_up(self) -> None:
         """Load the compiled kernels (numba's cache) now, on a few of the first view's keypoints matched to
-        themselves with the estimate's own array types: otherwise the first estimate paid it (GMatch's: about
-        170 ms on the sample, against 12 ms later; kabsch_trimmed's consensus, run with one pair moved 1 m
-        off: a few hundred ms the first time a list needs it)."""
+        themselves with the estimate's own array types: otherwise the first estimate paid it (GMatch's, and
+        kabsch_trimmed's consensus, run with one pair moved 1 m off)."""
         a, b = self.offsets[0], min(self.offsets[1], self.offsets[0] + 8)
         if b - a < 4:
             return
         q = self.descriptors[a:b]
         S = q.astype(np.float32) @ q.T.astype(np.float32) if self.unit else descriptor_distances(q, q, self.kind)
-        pts = self.points_cam[a:b]
+        pts = self.nb_points[0][:b - a]
         gmatch(pts, pts.astype(np.float32), self._dist(S), self.eps_f, self.params.gmatch)
         moved = np.array(pts, dtype=np.float64)
         moved[0] += 1.0
         kabsch_trimmed(pts, moved, self.params.trim_tau)
 
     @classmethod
-    def from_path(cls, path: str | Path, params: EstimateParams = EstimateParams()) -> "Estimator":
+    def from_path(cls, path: str | Path, params: EstimateParams = EstimateParams()) -> Estimator:
         """Open a complete template database (InputError for a missing / partial / foreign file)."""
         return cls(open_template(path), params)
 
@@ -217,116 +255,261 @@ class Estimator:
     def estimate(self, frame: RGBDFrame, mask: np.ndarray | None = None, refine: bool = True) -> EstimateResult:
         """Pose T_cam_obj of the template's object in `frame` (mask: optional [H x W] bool search region)."""
         t_all = time.perf_counter()
-        tm: dict[str, float] = {k: 0.0 for k in STAGES}
-        if mask is not None:
-            mask = np.asarray(mask, dtype=bool)
-            if mask.shape != frame.depth.shape:
-                raise InputError(frame.source, f"mask is {mask.shape[1]}x{mask.shape[0]} but the frame is "
-                                               f"{frame.depth.shape[1]}x{frame.depth.shape[0]}")
-        region = mask if mask is not None else np.ones(frame.depth.shape, bool)
-        n_region = int(region.sum())
-        depth_frac = float(((frame.depth > 0) & region).sum()) / max(1, n_region)
-        use_pnp = depth_frac < self.params.min_depth_frac
+        q = self.prepare(frame, mask)
+        with self._blas_limit():
+            return self.estimate_query(q, refine, t_all)
 
+    def prepare(self, frame: RGBDFrame, mask: np.ndarray | None = None) -> QueryFrame:
+        """The frame's full-image work (back-projection, support plane, search region), done once; several
+        templates estimated in one frame share it (`estimate_query`)."""
+        p = self.params
+        with self._blas_limit():
+            return prepare_query(frame, mask, p.remove_plane, p.min_depth_frac, p.plane_min_frac, p.plane_iterations)
+
+    def _blas_limit(self):
+        if self._blas is None:
+            from contextlib import nullcontext
+
+            return nullcontext()
+        return self._blas.limit(limits=self.params.blas_threads, user_api="blas")
+
+    def estimate_prepared(self, q: QueryFrame, refine: bool = True) -> EstimateResult:
+        """`estimate` on a frame `prepare` made (several templates estimated in one frame share it)."""
+        t_all = time.perf_counter()
+        with self._blas_limit():
+            return self.estimate_query(q, refine, t_all)
+
+    def estimate_query(self, q: QueryFrame, refine: bool = True, t_all: float | None = None) -> EstimateResult:
+        """`estimate` on a prepared frame (`prepare`), BLAS threads as they are."""
+        t_all = time.perf_counter() if t_all is None else t_all
+        tm: dict[str, float] = {k: 0.0 for k in STAGES}
+        use_pnp = q.depth_frac < self.params.min_depth_frac
         t = time.perf_counter()
-        plane = off_plane = None
-        if mask is None and not use_pnp and self.params.remove_plane:  # a given mask is the search region
-            plane = support_plane(frame, self.params.plane_min_frac, self.params.plane_iterations)
-            off_plane = None if plane is None else in_front_of(frame, plane)
-        search = mask if mask is not None else off_plane
-        feats = self._features(frame, search, lift=not use_pnp)
-        tm["features"] = _ms(t)
+        feats = self._features(q.frame, q.search, lift=not use_pnp)
+        tm["features"] = ms_since(t)
         if len(feats) < 3:
-            res = self._fail(tm, t_all, "too few keypoints in the query frame" + (" mask" if mask is not None else ""))
+            res = self._fail(tm, t_all, "too few keypoints in the query frame" + (" mask" if q.mask is not None else ""))
         else:
             t = time.perf_counter()
-            S, views = self._retrieve(feats.descriptors)
-            tm["retrieval"] = _ms(t)
+            S, votes = self._retrieve(feats.descriptors)
+            tm["retrieval"] = ms_since(t)
             if use_pnp:
-                res = self._estimate_pnp(frame, feats, S, views, tm, t_all)
-                if not res.found:
-                    res.reason += " (query depth unusable)"
-                return res
-            res = self._estimate_gmatch(frame, feats, S, views, off_plane, refine, tm, t_all)
-        if not res.found and not use_pnp:
-            res = self._pnp_without_depth(frame, region, res, tm, t_all)
-        return self._above(frame, plane, res, tm, t_all)
+                from gscan.estimate.pnp import estimate_pnp
 
-    def _above(self, frame: RGBDFrame, plane: Plane | None, res: EstimateResult, tm: dict[str, float],
-               t_all: float) -> EstimateResult:
-        """`res`, or not found when its pose sinks more than `max_below_frac` of the template's points deeper
-        than `below_tol` into the frame's support plane (camera frame): an object rests on the table, and a
-        pose that puts it inside matched the table's texture (a flat print of the object, look-alike print).
-        Not applied when most of the plane's pixels lie inside the object's predicted silhouette: then the
-        "plane" is the object's own face (a close-up)."""
-        if not res.found or plane is None:
+                res = estimate_pnp(self, q.frame, feats, S, self._top_views(votes), tm, t_all)
+                if not res.found:
+                    res.reason = f"{res.reason} (query depth unusable)"
+                return res
+            res = self._estimate_gmatch(q, feats, S, votes, refine, tm, t_all)
+        if not res.found and not use_pnp:
+            from gscan.estimate.pnp import pnp_without_depth
+
+            res = pnp_without_depth(self, q, res, tm, t_all)
+        return self._above(q, res, tm, t_all)
+
+    def _above(self, q: QueryFrame, res: EstimateResult, tm: dict[str, float], t_all: float) -> EstimateResult:
+        """`res`, or not found when its pose sinks the object into the frame's support plane (verify). A 3D-3D
+        pose was checked when it was verified; this checks the 2D-3D ones."""
+        if res.T_cam_obj is None or q.plane is None or res.method == "gmatch":
             return res
-        below = float(np.mean(plane.height(transform_points(res.T_cam_obj, self.cloud_icp)) < -self.params.below_tol))
-        if below <= self.params.max_below_frac:
-            return res
-        _, _, uv = self._visible(res.T_cam_obj, frame.intrinsics, self.cloud_icp)
-        sil = np.zeros(frame.depth.shape, np.uint8)
-        if len(uv) >= 3:
-            cv2.fillConvexPoly(sil, cv2.convexHull(uv.astype(np.int32)), 1)
-        P = backproject(frame.depth, frame.intrinsics)
-        on_plane = (frame.depth > 0) & (np.abs(plane.height(P.reshape(-1, 3))).reshape(frame.depth.shape) < 0.01)
-        if (on_plane & (sil > 0)).sum() > 0.5 * on_plane.sum():
+        below = self._sinks(q, res.T_cam_obj)
+        if below is None:
             return res
         return self._fail(tm, t_all, f"pose puts {below:.0%} of the object inside the support plane", res.n_matches,
-                          res.view, res.score, res.method)
+                          res.view, res.score, res.method, res.evidence)
 
-    def _estimate_gmatch(self, frame: RGBDFrame, feats: Features, S: np.ndarray, views: list[int],
-                         off_plane: np.ndarray | None, refine: bool, tm: dict[str, float],
-                         t_all: float) -> EstimateResult:
+    def _sinks(self, q: QueryFrame, T_cam_obj: np.ndarray) -> float | None:
+        if q.plane is None:
+            return None
+        assert q.heights is not None
+        return sinks_into_plane(T_cam_obj, self.cloud_icp, q.plane, q.heights, q.frame.depth,
+                                q.frame.intrinsics, self.params.below_tol, self.params.max_below_frac)
+
+    def _estimate_gmatch(self, q: QueryFrame, feats: Features, S: np.ndarray, votes: np.ndarray, refine: bool,
+                         tm: dict[str, float], t_all: float) -> EstimateResult:
         """Stages 3-6 (module docstring) on the lifted query keypoints."""
+        p = self.params
         t = time.perf_counter()
-        best = None  # (n, -cost, view, matches)
-        q_groups = coincident_groups(feats.points)
-        for v in views:
-            m, cost = self._match_view(int(v), S, feats, q_groups)
-            n = len(m)
-            if n >= 3 and (best is None or (n, -cost) > (best[0], best[1])):
-                best = (n, -cost, int(v), m)
-            if self.params.stop_at_full_length and n >= self.params.gmatch.L:
-                break  # a full-length list: no later view can be longer (views in retrieval order)
-        tm["match"] = _ms(t)
-        if best is None or best[0] < self.params.min_matches:
-            n = 0 if best is None else best[0]
-            return self._fail(tm, t_all, f"too few geometrically consistent matches ({n} < {self.params.min_matches})",
-                              n, None if best is None else self.view_names[best[2]])
-        n, _, v, m = best
-        a = self.offsets[v]
-        t = time.perf_counter()
-        T_cam_obj, _ = kabsch_trimmed(self.points_obj[a + m[:, 0]], feats.points[m[:, 1]].astype(np.float64),
-                                      self.params.trim_tau)
-        tm["solve"] = _ms(t)
+        qk = self._query_keypoints(feats, S)
+        q_location = qk.location
+        cands: list[_Candidate] = []
+        seen: set[bytes] = set()
+        for v in self._top_neighbourhoods(votes):
+            for m, cost in self._match_hypotheses(v, qk):
+                key = np.ascontiguousarray(m[np.lexsort((m[:, 1], m[:, 0]))]).tobytes()
+                if len(m) >= 3 and key not in seen:
+                    seen.add(key)
+                    cands.append(_Candidate(len(m), cost, v, m))
+        self._prescore(cands, feats, S)
+        cands = self._merge_agreeing(cands, feats.points)
+        tm["match"] = ms_since(t)
+        if not cands:
+            return self._fail(tm, t_all, "too few geometrically consistent matches (no list of 3)", 0)
+        first: EstimateResult | None = None
+        for c in [c for c in cands if c.n >= p.accept.min_matches][: max(1, p.verify_lists)]:
+            res = self._solve_verify(q, feats, S, q_location, c, refine, tm, t_all, best=c is cands[0])
+            if res.found:
+                return res
+            first = first or res
+        if first is None:
+            n = max(c.n for c in cands)
+            return self._fail(tm, t_all, f"too few geometrically consistent matches ({n} < {p.accept.min_matches})", n,
+                              self.view_names[cands[0].view])
+        return first
 
+    def _prescore(self, cands: list[_Candidate], feats: Features, S: np.ndarray) -> None:
+        """Set every candidate's `support`: the query keypoints whose nearest template keypoint by descriptor
+        lands on them under the list's plain Kabsch pose (`nn_support`), all lists at once."""
+        if not cands:
+            return
+        L = max(c.n for c in cands)
+        src = np.zeros((len(cands), L, 3))
+        dst = np.zeros((len(cands), L, 3))
+        w = np.zeros((len(cands), L))
+        for h, c in enumerate(cands):
+            src[h, :c.n] = self.points_obj[c.matches[:, 0]]
+            dst[h, :c.n] = feats.points[c.matches[:, 1]]
+            w[h, :c.n] = 1.0
+        T = kabsch_batch(src, dst, w)
+        if self.unit:
+            nn = np.argmax(S, axis=1)
+            agree = S[np.arange(len(S)), nn] >= self.support_sim
+        else:
+            nn = np.argmin(S, axis=1)
+            agree = S[np.arange(len(S)), nn] <= -self.support_sim
+        q_pts = feats.points[agree].astype(np.float64)
+        z = np.median(q_pts[:, 2]) if len(q_pts) else 0.5
+        support = nn_support(T, self.points_obj[nn[agree]], q_pts, self.params.support_radius
+                             + 0.01 * max(float(z) - 0.5, 0.0))
+        for c, n, T_h in zip(cands, support, T):
+            c.support, c.T = int(n), T_h
+
+    def _merge_agreeing(self, cands: list[_Candidate], feats_points: np.ndarray) -> list[_Candidate]:
+        """Lists whose poses agree (within merge_deg and merge_dist of the best-supported one's) are one list:
+        their pairs are pooled (a pair once), so several short lists of one pose make one long one. Returns
+        the merged lists, best pre-score support first (ties: longer, then lower cost)."""
+        p = self.params
+        order = sorted(cands, key=lambda c: (-c.support, -c.n, c.cost))
+        merged: list[_Candidate] = []
+        members: list[list[np.ndarray]] = []
+        if not order:
+            return merged
+        Ts = np.stack([c.T for c in order])
+        trace_min = 1.0 + 2.0 * np.cos(np.radians(p.merge_deg))
+        owner = np.full(len(order), -1)
+        for i, c in enumerate(order):  # each unowned list in order becomes a representative of those agreeing
+            if owner[i] >= 0:
+                members[owner[i]].append(c.matches)
+                continue
+            k = len(merged)
+            merged.append(_Candidate(c.n, c.cost, c.view, c.matches, c.support, c.T, c.n))
+            members.append([c.matches])
+            rest = np.flatnonzero(owner[i + 1:] < 0) + i + 1
+            tr = np.einsum("ij,nij->n", c.T[:3, :3], Ts[rest, :3, :3])  # trace(R_c^T R_n)
+            agree = (tr >= trace_min) & (np.linalg.norm(Ts[rest, :3, 3] - c.T[:3, 3], axis=1) <= p.merge_dist)
+            owner[rest[agree]] = k
+        for rep, ms in zip(merged, members):
+            rep.longest = max(len(m) for m in ms)
+            if len(ms) > 1:
+                m = np.concatenate(ms)
+                _, first = np.unique(m, axis=0, return_index=True)
+                m = m[np.sort(first)]  # the best list's pairs first, in order
+                # pooled pairs off the representative's pose by more than twice the trim distance are left out
+                r = np.linalg.norm(transform_points(rep.T, self.points_obj[m[:, 0]]) - feats_points[m[:, 1]], axis=1)
+                rep.matches = m[(r < 2 * p.trim_tau) | (np.arange(len(m)) < len(ms[0]))]
+                rep.n = len(rep.matches)
+        return merged
+
+    def _solve_verify(self, q: QueryFrame, feats: Features, S: np.ndarray, q_location: np.ndarray, c: _Candidate,
+                      refine: bool, tm: dict[str, float], t_all: float, best: bool = True) -> EstimateResult:
+        """Solve, refine and verify one match list (best: the frame's best-supported list, gscan.estimate.verify)."""
+        p = self.params
+        t = time.perf_counter()
+        src = self.points_obj[c.matches[:, 0]]
+        dst = feats.points[c.matches[:, 1]].astype(np.float64)
+        T_cam_obj, keep = kabsch_trimmed(src, dst, p.trim_tau)
+        tm["solve"] += ms_since(t)
         t = time.perf_counter()
         if refine:  # the ICP target is not cut by a given mask: a mask that clips the silhouette pulls ICP to the cut
-            T_cam_obj = self._refine(frame, off_plane, T_cam_obj)
-        score, confirmed = self._score(frame, T_cam_obj, off_plane)
-        tm["refine"] = _ms(t)
-        view = self.view_names[v]
-        if score < self.params.min_score or confirmed < self.params.min_confirmed:
-            return self._fail(tm, t_all, f"pose not confirmed by the depth (score {score:.2f}, "
-                                         f"{confirmed:.0%} of visible surface confirmed)", n, view, score)
-        return self._found(T_cam_obj, score, n, view, tm, t_all, "gmatch")
+            T_cam_obj = self.refine(q, T_cam_obj, (src[keep], dst[keep]), q.off_plane)
+        ev = self.evidence(q, T_cam_obj, feats, S, q_location)
+        # inliers count query keypoint locations (pooled lists pair one keypoint with several template views)
+        ev.n_matches, ev.n_inliers = c.longest, len(np.unique(q_location[c.matches[keep, 1]]))
+        ev.spread_m = list_spread(src[keep])
+        tm["refine"] += ms_since(t)
+        view = self.view_names[c.view]
+        below = self._sinks(q, T_cam_obj)
+        why = accept(ev, self.radius, p.accept, best) if below is None else \
+            f"pose puts {below:.0%} of the object inside the support plane"
+        if why is not None:
+            return self._fail(tm, t_all, why, c.longest, view, ev.score, evidence=ev)
+        return self._found(T_cam_obj, ev.score, c.longest, view, tm, t_all, "gmatch", ev)
+
+    def evidence(self, q: QueryFrame, T_cam_obj: np.ndarray, feats: Features, S: np.ndarray,
+                 q_location: np.ndarray, kp_idx: np.ndarray | None = None,
+                 sim_cols: np.ndarray | None = None) -> Evidence:
+        """Depth agreement and keypoint support of a pose (gscan.estimate.verify); n_matches, n_inliers and
+        spread_m are left to the caller. S [M x C]: the query keypoints' similarity (unit descriptors) or
+        distance to template keypoints; kp_idx: the template keypoints offered (default: those of the views
+        near the pose's viewing direction) and sim_cols their columns in S (default: S holds every keypoint)."""
+        p = self.params
+        frame = q.frame
+        n_c, n_b, n = depth_votes(frame.depth, frame.intrinsics, T_cam_obj, self.cloud_icp, p.depth_tol, q.off_plane)
+        ev = Evidence(score=n_c / max(1, n_c + n_b), confirmed=n_c / max(1, n))
+        if kp_idx is None:
+            kp_idx = self._offered_keypoints(T_cam_obj)
+        z = float(transform_points(T_cam_obj, self.center[None])[0, 2])
+        radius = p.support_radius + 0.01 * max(z - 0.5, 0.0)
+        ev.support, ev.on_surface, ev.offer = keypoint_support(
+            T_cam_obj, self.points_obj, kp_idx, S if self.unit else -S, kp_idx if sim_cols is None else sim_cols,
+            feats.points, q_location, self.cloud_icp, frame.depth, frame.intrinsics, radius, self.support_sim,
+            p.depth_tol)
+        return ev
+
+    def _offered_keypoints(self, T_cam_obj: np.ndarray) -> np.ndarray:
+        """Global indices of the keypoints of the views within support_views_deg of the query's optical axis."""
+        axis = T_cam_obj[:3, :3].T @ np.array([0.0, 0.0, 1.0])  # the query camera's axis in the object frame
+        views = np.flatnonzero(self.axes @ axis >= np.cos(np.radians(self.params.support_views_deg)))
+        if len(views) == 0:
+            views = np.array([int(np.argmax(self.axes @ axis))])
+        return np.concatenate([np.arange(self.offsets[v], self.offsets[v + 1]) for v in views]).astype(np.int64)
 
     # ------------------------------------------------------------------------------------------------
-    def _match_view(self, v: int, S: np.ndarray, feats: Features,
-                    q_groups: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, float]:
-        """GMatch of template view `v` against the query: (matches [M x 2] (keypoint row within the view,
-        query keypoint index), cost). S: the retrieval matrix [M_query x N_template]."""
-        a, b = self.offsets[v], self.offsets[v + 1]
-        s_order, s_starts = self.groups[v]
-        q_order, q_starts = q_groups
-        dist = self._dist(S[:, a:b]).T  # [Ns x Nt] template view -> query
-        # keypoints sharing a 3D point (SIFT orientations of one location) are merged: min distance
-        dist = np.minimum.reduceat(np.minimum.reduceat(dist[s_order][:, q_order], s_starts, axis=0), q_starts, axis=1)
-        res = gmatch(self.points_cam[a + s_order[s_starts]], feats.points[q_order[q_starts]], dist, self.eps_f,
-                     self.params.gmatch)
-        m = np.stack([s_order[s_starts[res.matches[:, 0]]], q_order[q_starts[res.matches[:, 1]]]], 1)
-        return m.reshape(-1, 2), float(res.cost)
+    def _query_keypoints(self, feats: Features, S: np.ndarray) -> _QueryKeypoints:
+        order, starts = coincident_groups(feats.points)
+        location = np.empty(len(feats), np.int64)
+        location[order] = np.repeat(np.arange(len(starts)), np.diff(np.r_[starts, len(feats)]))
+        grouped = _group_reduce(S, order, starts, 0, np.maximum if self.unit else np.minimum)
+        return _QueryKeypoints(feats, S, location, grouped, order[starts])
+
+    def _match_hypotheses(self, v: int, qk: _QueryKeypoints) -> list[tuple[np.ndarray, float]]:
+        """GMatch of view v's neighbourhood (its keypoints and its neighbours', in v's camera frame) against the
+        query: its best list first, then the hypotheses at most `runner_up_margin` shorter (and at least
+        `accept.min_matches` long): a short correct list ties with the lists clutter offers, and the evidence
+        decides between them. Each as (matches [M x 2] (global template keypoint, query keypoint), cost).
+        Keypoints sharing a 3D point (SIFT orientations of one location) are matched as one, by their closest
+        descriptors."""
+        idx = self.nb_idx[v]
+        s_order, s_starts = self.nb_groups[v]
+        reduce = np.maximum if self.unit else np.minimum
+        block = _group_reduce(qk.grouped, idx[s_order], s_starts, 1, reduce)  # [G x Ns]
+        dist = np.ascontiguousarray(self._dist(block).T)  # [Ns x G] template neighbourhood -> query
+        gs = idx[s_order[s_starts]]  # source row -> global template keypoint
+        gq = qk.group_kp  # target column -> query keypoint
+        res = gmatch(self.nb_points[v][s_order[s_starts]], qk.feats.points[gq], dist, self.eps_f, self.params.gmatch)
+        best = np.asarray(res.matches, dtype=np.int64).reshape(-1, 2)
+        out = [(np.stack([gs[best[:, 0]], gq[best[:, 1]]], 1), float(res.cost))]
+        n_min = max(self.params.accept.min_matches, len(best) - self.params.runner_up_margin)
+        hyps = np.flatnonzero(res.hyp_length >= n_min)
+        if len(hyps):
+            hm = res.hyp_matches[hyps].astype(np.int64)  # [H x L x 2], -1 past each length
+            g = np.stack([gs[np.maximum(hm[..., 0], 0)], gq[np.maximum(hm[..., 1], 0)]], -1)
+            out += [(g[i, :res.hyp_length[h]], float(res.hyp_cost[h])) for i, h in enumerate(hyps)]
+        return out
+
+    def _match_view(self, v: int, qk: _QueryKeypoints) -> tuple[np.ndarray, float]:
+        """The best GMatch list of view v's neighbourhood (see `_match_hypotheses`)."""
+        return self._match_hypotheses(v, qk)[0]
 
     def _features(self, frame: RGBDFrame, mask: np.ndarray | None, lift: bool) -> Features:
         """Query keypoints; with a mask, detection runs on the mask's bounding box (+ margin) only.
@@ -339,12 +522,22 @@ class Estimator:
             return extract_features(frame, fparams)
         if not mask.any():
             return empty_features(fparams.kind)
-        return extract_features_in_mask(frame, mask, fparams, self.params.crop_margin)
+        boxes = region_boxes(mask, self.params.crop_margin, self.params.min_region_px)
+        if len(boxes) <= 1:
+            return extract_features_in_mask(frame, mask, fparams, self.params.crop_margin)
+        parts = []
+        for x0, y0, x1, y1 in boxes:  # one detection per box: SIFT's cost follows the area it scans
+            sub = np.zeros_like(mask)
+            sub[y0:y1, x0:x1] = mask[y0:y1, x0:x1]
+            parts.append(extract_features_in_mask(frame, sub, fparams, self.params.crop_margin))
+        return Features(np.concatenate([f.pixels for f in parts]), np.concatenate([f.points for f in parts]),
+                        np.concatenate([f.descriptors for f in parts]), fparams.kind,
+                        np.concatenate([f.scales for f in parts]))
 
-    def _retrieve(self, q: np.ndarray) -> tuple[np.ndarray, list[int]]:
-        """Query descriptors [M x D] -> (similarity or distance matrix [M x N], top-k view indices)."""
+    def _retrieve(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Query descriptors [M x D] -> (similarity or distance matrix [M x N], votes per view [V])."""
         if self.unit:
-            S = q.astype(np.float32) @ self.descriptors.T  # cosine similarity of unit vectors
+            S = np.matmul(q.astype(np.float32), self.descriptors.T)  # cosine similarity of unit vectors
             nn = np.argmax(S, axis=1)
             ok = S[np.arange(len(S)), nn] >= 1.0 - 0.5 * self.params.retrieval_dist ** 2
         else:
@@ -352,10 +545,27 @@ class Estimator:
             nn = np.argmin(S, axis=1)
             ok = S[np.arange(len(S)), nn] < self.eps_f
         # each query keypoint votes for the view holding its nearest template descriptor
-        votes = np.bincount(self.kp_view[nn[ok]], minlength=len(self.view_names))
-        order = np.lexsort((np.arange(len(votes)), -votes))  # most votes first, ties by view order
-        views = [int(v) for v in order[: self.params.top_k] if votes[v] > 0]
-        return S, views
+        return S, np.bincount(self.kp_view[nn[ok]], minlength=len(self.view_names))
+
+    def _top_views(self, votes: np.ndarray) -> list[int]:
+        """The top_k views by votes (ties by view order), views without a vote left out."""
+        order = np.lexsort((np.arange(len(votes)), -votes))
+        return [int(v) for v in order[: self.params.top_k] if votes[v] > 0]
+
+    def _top_neighbourhoods(self, votes: np.ndarray) -> list[int]:
+        """Central views of the neighbourhoods to match: views by their own votes (ties by view order), each
+        taken unless a neighbourhood already taken holds it, up to top_k; views without a vote are left out.
+        Clutter spreads votes over many views: taking a view's neighbours with it leaves room for a view of
+        another side of the object."""
+        chosen: list[int] = []
+        covered: set[int] = set()
+        for v in np.lexsort((np.arange(len(votes)), -votes)):
+            if votes[v] <= 0 or len(chosen) >= self.params.top_k:
+                break
+            if int(v) not in covered:
+                chosen.append(int(v))
+                covered.update(int(u) for u in self.neighbours[v])
+        return chosen
 
     def _dist(self, S: np.ndarray) -> np.ndarray:
         """Similarity block (unit descriptors) or distance block -> L2/Hamming distances."""
@@ -363,48 +573,27 @@ class Estimator:
             return np.sqrt(np.maximum(2.0 - 2.0 * S, 0.0))
         return S
 
-    def _visible(self, T_cam_obj: np.ndarray, intr: Intrinsics, pts: np.ndarray, cell: int = 4,
-                 tol: float = 0.01) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Template points [P x 3] visible from the camera at T_cam_obj (coarse z-buffer of `cell` px).
-        Returns (indices [K], camera points [K x 3], integer pixels [K x 2])."""
-        pc = transform_points(T_cam_obj, pts)
-        z = pc[:, 2]
-        ok = z > 1e-3
-        u = np.full(len(pc), -1.0)
-        v = np.full(len(pc), -1.0)
-        u[ok] = pc[ok, 0] / z[ok] * intr.fx + intr.cx
-        v[ok] = pc[ok, 1] / z[ok] * intr.fy + intr.cy
-        ui, vi = np.rint(u).astype(np.int64), np.rint(v).astype(np.int64)
-        ok &= (ui >= 0) & (ui < intr.width) & (vi >= 0) & (vi < intr.height)
-        idx = np.flatnonzero(ok)
-        gw, gh = (intr.width + cell - 1) // cell, (intr.height + cell - 1) // cell
-        cid = (vi[idx] // cell) * gw + ui[idx] // cell
-        zbuf = np.full(gw * gh, np.inf)
-        np.minimum.at(zbuf, cid, z[idx])
-        vis = z[idx] <= zbuf[cid] + tol + 0.01 * z[idx]
-        idx = idx[vis]
-        return idx, pc[idx], np.stack([ui[idx], vi[idx]], 1)
-
-    def _refine(self, frame: RGBDFrame, region: np.ndarray | None, T_cam_obj: np.ndarray) -> np.ndarray:
-        """Point-to-plane ICP of the visible template cloud onto the query cloud cropped to `region`
-        ([H x W] bool, or None) and to a sphere around the predicted object."""
+    def refine(self, q: QueryFrame, T_cam_obj: np.ndarray, anchors: tuple[np.ndarray, np.ndarray] | None,
+               region: np.ndarray | None, max_dists: tuple[float, ...] | None = None,
+               max_points: int | None = None) -> np.ndarray:
+        """ICP of the visible template cloud onto the query cloud cropped to `region` ([H x W] bool, or None) and
+        to a sphere around the predicted object (module docstring, stage 5). max_dists: correspondence
+        distances, coarse to fine (default: icp_max_dist alone); max_points: template points used (default:
+        icp_max_points). Returns T_cam_obj unchanged when ICP has too
+        little to work with or moves the pose implausibly far."""
         p = self.params
-        idx, _, _ = self._visible(T_cam_obj, frame.intrinsics, self.cloud_icp)
+        idx, _, _ = visible(T_cam_obj, q.frame.intrinsics, self.cloud_icp)
         if len(idx) < 30:
             return T_cam_obj
-        st = (slice(None, None, 2), slice(None, None, 2))  # every 2nd pixel: ~2 mm spacing at 0.6 m, ample for ICP
-        valid = frame.depth[st] > 0
-        if region is not None:
-            valid &= region[st]
-        tgt = backproject(frame.depth, frame.intrinsics)[st][valid]
+        max_dists = (p.icp_max_dist,) if max_dists is None else max_dists
         c = transform_points(T_cam_obj, self.center[None])[0]
-        tgt = tgt[np.linalg.norm(tgt - c, axis=1) < 1.2 * self.radius + p.icp_max_dist]
+        tgt = q.points_near(c, 1.2 * self.radius + max(max_dists), region)
         if len(tgt) < 30:
             return T_cam_obj
         tgt = voxel_mean(tgt, p.icp_target_voxel)  # averaging, not picking: depth noise shrinks
-        idx = idx[:: max(1, int(np.ceil(len(idx) / p.icp_max_points)))]
-        T, fitness = icp_point_to_plane(self.cloud_icp[idx], self.normals_icp[idx], tgt, T_cam_obj, p.icp_max_dist,
-                                        p.icp_iterations)
+        idx = idx[:: max(1, int(np.ceil(len(idx) / (max_points or p.icp_max_points))))]
+        T, fitness = icp_anchored(self.cloud_icp[idx], self.normals_icp[idx], tgt, T_cam_obj, max_dists,
+                                  p.icp_iterations, anchors, p.icp_anchor_weight)
         dR = T[:3, :3] @ T_cam_obj[:3, :3].T
         moved = np.linalg.norm(T[:3, 3] - T_cam_obj[:3, 3])
         if fitness <= 0 or moved > self.radius or np.trace(dR) < 1.0 + 2.0 * np.cos(np.radians(30)):
@@ -412,139 +601,66 @@ class Estimator:
             return T_cam_obj
         return T
 
-    def _score(self, frame: RGBDFrame, T_cam_obj: np.ndarray, region: np.ndarray | None = None) -> tuple[float, float]:
-        """(score, confirmed) of the visible template cloud at T_cam_obj: score = consistent /
-        (consistent + see-through), confirmed = consistent / visible. With `region` ([H x W] bool, the
-        off-plane pixels) a point only counts as consistent inside it."""
-        n_c, n_b, n = self._depth_votes(frame, T_cam_obj, region)
-        return n_c / max(1, n_c + n_b), n_c / max(1, n)
-
-    def _depth_votes(self, frame: RGBDFrame, T_cam_obj: np.ndarray, region: np.ndarray | None = None
-                     ) -> tuple[int, int, int]:
-        """(consistent, see-through, visible) counts of the template cloud's points visible at T_cam_obj:
-        consistent when the query depth agrees within the tolerance, see-through when the query surface lies
-        behind the predicted object (a point over a pixel without depth counts for neither)."""
-        _, pc, uv = self._visible(T_cam_obj, frame.intrinsics, self.cloud_icp)
-        if len(pc) == 0:
-            return 0, 0, 0
-        zq = frame.depth[uv[:, 1], uv[:, 0]].astype(np.float64)
-        z = pc[:, 2]
-        tol = self.params.depth_tol + 0.02 * np.maximum(z - 0.5, 0.0)
-        has = zq > 0
-        consistent = has & (np.abs(zq - z) < tol)
-        if region is not None:
-            consistent &= region[uv[:, 1], uv[:, 0]]
-        behind = has & (zq > z + tol)
-        return int(consistent.sum()), int(behind.sum()), len(pc)
-
-    def _pnp_without_depth(self, frame: RGBDFrame, region: np.ndarray, failed: EstimateResult,
-                           tm: dict[str, float], t_all: float) -> EstimateResult:
-        """After a failed 3D-3D estimate: 2D-3D PnP on the search region's pixels without depth (dilated by
-        `hole_dilate_px`), where a dark, shiny or transparent object leaves holes in otherwise good depth and its
-        keypoints were dropped unlifted. Returns the PnP result when it finds the object, else `failed` with
-        PnP's reason appended. Skipped when less than `hole_min_frac` of the region lacks depth."""
-        p = self.params
-        if not p.pnp_in_holes:
-            return failed
-        # holes an object could leave: opening drops speckle and the thin bands of stereo shadows
-        k = 2 * p.hole_open_px + 1
-        holes = cv2.morphologyEx(((frame.depth <= 0) & region).astype(np.uint8), cv2.MORPH_OPEN,
-                                 np.ones((k, k), np.uint8))
-        frac = float(holes.sum()) / max(1, int(region.sum()))
-        if frac < p.hole_min_frac:
-            return failed
-        k = 2 * p.hole_dilate_px + 1
-        holes = cv2.dilate(holes, np.ones((k, k), np.uint8)).astype(bool) & region
-        t = time.perf_counter()
-        feats = self._features(frame, holes, lift=False)
-        tm["features"] += _ms(t)
-        pnp_tm = {key: 0.0 for key in STAGES}
-        if len(feats) >= 3:
-            t = time.perf_counter()
-            S, views = self._retrieve(feats.descriptors)
-            tm["retrieval"] += _ms(t)
-            res = self._estimate_pnp(frame, feats, S, views, pnp_tm, t_all)
-        else:
-            res = self._fail(pnp_tm, t_all, "too few keypoints", method="pnp")
-        for key in ("match", "solve"):
-            tm[key] += pnp_tm[key]
-        if res.found:  # the object has no depth, but the depth around it must not be seen through it
-            _, n_b, n = self._depth_votes(frame, res.T_cam_obj)
-            if n_b > p.max_see_through * n:
-                res = self._fail(pnp_tm, t_all, f"its pose would let the depth be seen through "
-                                 f"{n_b / max(1, n):.0%} of the object", method="pnp")
-        tm["total"] = _ms(t_all)
-        res.timings_ms = tm
-        if res.found:
-            return res
-        failed.reason = f"{failed.reason}; PnP on the {frac:.0%} of pixels without depth: {res.reason}"
-        return failed
-
-    # ------------------------------------------------------------------------------------------------
-    def _estimate_pnp(self, frame: RGBDFrame, feats: Features, S: np.ndarray, views: list[int],
-                      tm: dict[str, float], t_all: float) -> EstimateResult:
-        import pycolmap
-
-        p = self.params
-        t = time.perf_counter()
-        q_idx, t_idx, d_best = [], [], []
-        for v in views:
-            a, b = self.offsets[v], self.offsets[v + 1]
-            if b - a < 2:
-                continue
-            D = self._dist(S[:, a:b])  # [M x Nv]
-            two = np.argpartition(D, 1, axis=1)[:, :2]
-            d2 = np.take_along_axis(D, two, axis=1)
-            o = np.argsort(d2, axis=1)
-            d1, dn = np.take_along_axis(d2, o, 1)[:, 0], np.take_along_axis(d2, o, 1)[:, 1]
-            j = np.take_along_axis(two, o, 1)[:, 0]
-            ok = (d1 < p.pnp_ratio * dn) & (d1 < self.eps_f)
-            q_idx.append(np.flatnonzero(ok))
-            t_idx.append(a + j[ok])
-            d_best.append(d1[ok])
-        if q_idx:  # one 2D-3D match per query keypoint (its closest over the views), so inliers count keypoints
-            qi, ti, d = np.concatenate(q_idx), np.concatenate(t_idx), np.concatenate(d_best)
-            o = np.lexsort((np.arange(len(qi)), d, qi))
-            first = np.ones(len(o), bool)
-            first[1:] = qi[o][1:] != qi[o][:-1]
-            keep = np.sort(o[first])
-            qi, ti = qi[keep], ti[keep]
-        tm["match"] = _ms(t)
-        if not q_idx or len(qi) < p.pnp_min_inliers:
-            return self._fail(tm, t_all, "too few 2D-3D matches for PnP", method="pnp")
-        t = time.perf_counter()
-        intr = frame.intrinsics
-        cam = pycolmap.Camera(model="PINHOLE", width=intr.width, height=intr.height,
-                              params=[intr.fx, intr.fy, intr.cx, intr.cy])
-        opts = pycolmap.AbsolutePoseEstimationOptions()
-        opts.ransac.max_error = p.pnp_max_error_px
-        opts.ransac.random_seed = 0
-        res = pycolmap.estimate_and_refine_absolute_pose(feats.pixels[qi].astype(np.float64),
-                                                        self.points_obj[ti], cam, opts)
-        tm["solve"] = _ms(t)
-        n = 0 if res is None else int(res["num_inliers"])
-        if n < p.pnp_min_inliers or n < p.pnp_min_inlier_ratio * len(qi):
-            return self._fail(tm, t_all, f"PnP found too few inliers ({n} of {len(qi)} 2D-3D matches)", n,
-                              score=n / len(qi), method="pnp")
-        T = np.eye(4)
-        T[:3, :] = np.asarray(res["cam_from_world"].matrix())
-        inl = np.asarray(res["inlier_mask"], bool)
-        n = int(inl.sum())
-        votes = np.bincount(self.kp_view[ti[inl]], minlength=len(self.view_names))
-        return self._found(T, n / len(qi), n, self.view_names[int(np.argmax(votes))], tm, t_all, "pnp")
-
     def _found(self, T: np.ndarray, score: float, n: int, view: str, tm: dict[str, float], t_all: float,
-               method: str) -> EstimateResult:
-        tm["total"] = _ms(t_all)
+               method: str, evidence: Evidence | None = None) -> EstimateResult:
+        tm["total"] = ms_since(t_all)
         grasps = {k: T @ G for k, G in self.grasps.items()}
-        return EstimateResult(T, float(score), int(n), view, None, grasps, tm, method)
+        return EstimateResult(T, float(score), int(n), view, None, grasps, tm, method, evidence)
 
     def _fail(self, tm: dict[str, float], t_all: float, reason: str, n: int = 0, view: str | None = None,
-              score: float = 0.0, method: str = "gmatch") -> EstimateResult:
-        tm["total"] = _ms(t_all)
+              score: float = 0.0, method: str = "gmatch", evidence: Evidence | None = None) -> EstimateResult:
+        tm["total"] = ms_since(t_all)
         log.info("not found: %s", reason)
-        return EstimateResult(None, float(score), int(n), view, reason, {}, tm, method)
+        return EstimateResult(None, float(score), int(n), view, reason, {}, tm, method, evidence)
 
 
-def _ms(t0: float) -> float:
-    return (time.perf_counter() - t0) * 1e3
+def _group_reduce(A: np.ndarray, order: np.ndarray, starts: np.ndarray, axis: int, reduce: np.ufunc) -> np.ndarray:
+    """Rows (axis 0) or columns (axis 1) of A taken in `order` and reduced over each group
+    order[starts[g]:starts[g+1]] with `reduce` (np.maximum / np.minimum) -> one row or column per group.
+    Most groups hold one member: the first members are gathered at once and the k-th members of the larger
+    groups folded in, k = 2, 3, ... (a gather per rank instead of a reduceat over the whole matrix)."""
+    if len(starts) == 0:
+        return np.take(A, np.zeros(0, np.int64), axis=axis)
+    out = np.take(A, order[starts], axis=axis)
+    sizes = np.diff(np.r_[starts, len(order)])
+    for k in range(1, int(sizes.max())):
+        g = np.flatnonzero(sizes > k)
+        members = np.take(A, order[starts[g] + k], axis=axis)
+        if axis == 0:
+            out[g] = reduce(out[g], members)
+        else:
+            out[:, g] = reduce(out[:, g], members)
+    return out
+
+
+def region_boxes(mask: np.ndarray, margin: int, min_px: int, max_fill: float = 0.7) -> list[tuple[int, int, int, int]]:
+    """Detection boxes (x0, y0, x1, y1) of a search region [H x W] bool: the bounding boxes of its connected
+    blobs of at least min_px pixels, grown by `margin` and merged while they overlap. One box (the region's
+    bounding box) when the blobs' boxes cover more than `max_fill` of it, or none of them is large enough."""
+    import cv2
+
+    H, W = mask.shape
+    _, _, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
+    boxes = [[max(0, x - margin), max(0, y - margin), min(W, x + w + margin), min(H, y + h + margin)]
+             for x, y, w, h, a in stats[1:] if a >= min_px]
+    merged = True
+    while merged and len(boxes) > 1:
+        merged = False
+        for i in range(len(boxes)):
+            for j in range(i + 1, len(boxes)):
+                a, b = boxes[i], boxes[j]
+                if a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]:
+                    boxes[i] = [min(a[0], b[0]), min(a[1], b[1]), max(a[2], b[2]), max(a[3], b[3])]
+                    del boxes[j]
+                    merged = True
+                    break
+            if merged:
+                break
+    if len(boxes) <= 1:
+        return [tuple(b) for b in boxes]  # type: ignore[misc]
+    ys, xs = np.nonzero(mask)
+    union = (xs.max() - xs.min() + 1 + 2 * margin) * (ys.max() - ys.min() + 1 + 2 * margin)
+    if sum((b[2] - b[0]) * (b[3] - b[1]) for b in boxes) > max_fill * union:
+        return []
+    return sorted((int(b[0]), int(b[1]), int(b[2]), int(b[3])) for b in boxes)
+

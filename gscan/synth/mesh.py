@@ -197,6 +197,42 @@ def box_mesh(size_xyz: tuple[float, float, float] | np.ndarray, texture: np.ndar
     return TexturedMesh(verts, inverse.reshape(-1, 3).astype(np.int32), np.asarray(uvs), texture, name=name)
 
 
+def cylinder_mesh(radius: float, height: float, texture: np.ndarray, name: str = "cylinder",
+                  segments: int = 64) -> TexturedMesh:
+    """Closed upright cylinder (axis z, centred at the origin) with a wrapped label: the side shows the
+    texture's lower three quarters once around (u along the circumference, v up), each cap a disc cut from the
+    top quarter. `segments` flat facets approximate the curve. A can or a bottle with a curved label."""
+    if radius <= 0 or height <= 0 or segments < 8:
+        raise ValueError(f"need radius, height > 0 and segments >= 8, got {radius}, {height}, {segments}")
+    texture = np.ascontiguousarray(texture, dtype=np.uint8)
+    a = 2 * np.pi * np.arange(segments + 1) / segments
+    ring = np.stack([radius * np.cos(a), radius * np.sin(a)], 1)  # [S+1 x 2], last = first
+    lo, hi = -0.5 * height, 0.5 * height
+    verts, tris, uvs = [], [], []
+
+    def face(p0, p1, p2, t0, t1, t2) -> None:
+        k = len(verts)
+        verts.extend([p0, p1, p2])
+        tris.append([k, k + 1, k + 2])
+        uvs.append([t0, t1, t2])
+
+    side_v = 0.75  # the side's share of the texture (bottom part, v in [0, 0.75])
+    for i in range(segments):
+        (x0, y0), (x1, y1) = ring[i], ring[i + 1]
+        u0, u1 = i / segments, (i + 1) / segments
+        face((x0, y0, lo), (x1, y1, lo), (x1, y1, hi), (u0, 0.0), (u1, 0.0), (u1, side_v))
+        face((x0, y0, lo), (x1, y1, hi), (x0, y0, hi), (u0, 0.0), (u1, side_v), (u0, side_v))
+        for z, cu, sgn in ((hi, 0.25, 1), (lo, 0.75, -1)):  # caps: discs in the top quarter, outward winding
+            c = (cu, 0.875)
+            t0 = (cu + 0.12 * np.cos(a[i]), 0.875 + 0.12 * np.sin(a[i]))
+            t1 = (cu + 0.12 * np.cos(a[i + 1]), 0.875 + 0.12 * np.sin(a[i + 1]))
+            if sgn > 0:
+                face((0.0, 0.0, z), (x0, y0, z), (x1, y1, z), c, t0, t1)
+            else:
+                face((0.0, 0.0, z), (x1, y1, z), (x0, y0, z), c, t1, t0)
+    return TexturedMesh(np.asarray(verts), np.asarray(tris), np.asarray(uvs), texture, name=name)
+
+
 def save_textured_mesh(mesh: TexturedMesh, obj_path: str | Path) -> Path:
     """Write `mesh` as OBJ + MTL + PNG texture beside it (texture `<stem>_texture.png`). Returns the OBJ path."""
     obj_path = Path(obj_path)

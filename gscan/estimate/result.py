@@ -1,0 +1,48 @@
+"""The outcome of one pose estimate, and its `gscan estimate --json` object (the command-line contract)."""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from gscan.estimate.verify import Evidence
+
+STAGES = ("features", "retrieval", "match", "solve", "refine", "total")
+
+
+@dataclass
+class EstimateResult:
+    """Outcome of one estimate. T_cam_obj [4 x 4] or None (not found, see `reason`); grasps
+    {name: T_cam_grasp [4 x 4]} = T_cam_obj @ T_obj_grasp (empty when not found); timings_ms per stage;
+    evidence: what the accepted or refused pose rested on (None when no pose was solved)."""
+
+    T_cam_obj: np.ndarray | None
+    score: float
+    n_matches: int
+    view: str | None
+    reason: str | None
+    grasps: dict[str, np.ndarray] = field(default_factory=dict)
+    timings_ms: dict[str, float] = field(default_factory=dict)
+    method: str = "gmatch"  # "gmatch" (3D-3D) | "pnp" (2D-3D, no usable depth) | "track" (refined from a prior)
+    evidence: Evidence | None = None
+
+    @property
+    def found(self) -> bool:
+        return self.T_cam_obj is not None
+
+    def to_json(self) -> dict:
+        """The `gscan estimate --json` object (the command-line contract's keys, plus "method"); matrices as nested lists, metres."""
+        return {"T_cam_obj": matrix_json(self.T_cam_obj), "score": float(self.score), "n_matches": int(self.n_matches),
+                "view": self.view, "reason": self.reason, "grasps": {k: matrix_json(v) for k, v in self.grasps.items()},
+                "timings_ms": {k: float(self.timings_ms.get(k, 0.0)) for k in STAGES}, "method": self.method}
+
+
+def matrix_json(T: np.ndarray | None) -> list[list[float]] | None:
+    """[4 x 4] -> nested lists of floats (None stays None)."""
+    return None if T is None else [[float(x) for x in row] for row in np.asarray(T)]
+
+
+def ms_since(t0: float) -> float:
+    """Milliseconds of wall time since perf_counter() returned t0."""
+    return (time.perf_counter() - t0) * 1e3

@@ -1,0 +1,243 @@
+"""Evidence for and against a pose hypothesis, and the rule that accepts it.
+
+A pose is accepted from what the frame shows, not from a fixed match count:
+
+- depth: the template's surface visible at the pose is projected into the query depth. `score` = consistent /
+  (consistent + see-through) points, `confirmed` = consistent / visible ("see-through": the measured surface
+  lies behind the predicted object; a point over a pixel without depth, or occluded, counts for neither).
+- keypoint support (appearance): of the query keypoints lying on the predicted surface, how many find their
+  nearest template keypoint by descriptor within a few millimetres at the pose. The template keypoints
+  considered are those of the views that saw the object from about the query's direction ("what the
+  template can offer in that view"). A pose fitted to a look-alike shape (a box of the same size with
+  another print, the table) has its surface confirmed by the depth but finds no appearance support.
+- the list's geometry: the matched template points must span an area (not a line or a cluster), and the
+  pose must keep enough of the list within the Kabsch tolerance.
+- support plane: a pose that sinks the object into the frame's dominant plane is refused (an object rests on
+  the table; such a pose fits the object's print to the table's texture), unless most of the plane lies
+  inside the pose's silhouette (then the plane is the object's own face).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from gscan.geometry.transforms import transform_points
+from gscan.io.camera import Intrinsics
+from gscan.geometry.plane import Plane
+
+
+@dataclass
+class Evidence:
+    """What a pose hypothesis rests on (see the module docstring). n_matches: the match list's length;
+    n_inliers: pairs within the Kabsch tolerance; spread_m: square root of the second principal variance of
+    the inliers' template points (m, 0 for a line); score, confirmed: depth agreement; support: distinct query
+    keypoint locations on the predicted surface with an agreeing template keypoint; on_surface: distinct query
+    keypoint locations on the predicted surface; offer: distinct template keypoint locations the views near the
+    query direction show at the pose, inside the image and not hidden by the measured depth."""
+
+    n_matches: int = 0
+    n_inliers: int = 0
+    spread_m: float = 0.0
+    score: float = 0.0
+    confirmed: float = 0.0
+    support: int = 0
+    on_surface: int = 0
+    offer: int = 0
+
+    @property
+    def support_ratio(self) -> float:
+        """support over what the frame and the template can both show there (0 when nothing)."""
+        return self.support / max(1, min(self.on_surface, self.offer))
+
+    def to_json(self) -> dict:
+        return {"n_matches": self.n_matches, "n_inliers": self.n_inliers, "spread_m": round(self.spread_m, 5),
+                "score": round(self.score, 4), "confirmed": round(self.confirmed, 4), "support": self.support,
+                "on_surface": self.on_surface, "offer": self.offer, "support_ratio": round(self.support_ratio, 4)}
+
+
+@dataclass(frozen=True)
+class AcceptParams:
+    min_score: float = 0.6  # depth-consistency score below this -> not found
+    min_confirmed: float = 0.15  # fraction of the visible template surface confirmed by the depth below this -> not found
+    strong_matches: int = 14  # the best-supported list, this long (and as many inliers), is evidence enough ...
+    strong_min_ratio: float = 0.1  # ... when at least this fraction of the keypoints there agree with the template
+    min_matches: int = 5  # lists with fewer inliers are never accepted
+    min_support: int = 10  # a shorter list needs this many supporting keypoint locations ...
+    min_support_ratio: float = 0.2  # ... and this fraction of what the frame and the template show there ...
+    min_spread: float = 0.05  # ... and inliers spread across this fraction of the object radius (not a line)
+
+
+def accept(ev: Evidence, radius: float, p: AcceptParams, best: bool = True) -> str | None:
+    """None when the evidence is enough for the pose, else the reason it is not (one line). best: the pose is
+    the frame's best-supported hypothesis; a long list's relaxed support rule applies to it only (a runner-up
+    whose better-supported rival was refused must pass the short lists' rule: a box turned onto its twin face
+    keeps a long list and some support)."""
+    if ev.score < p.min_score or ev.confirmed < p.min_confirmed:
+        return (f"pose not confirmed by the depth (score {ev.score:.2f}, {ev.confirmed:.0%} of visible surface "
+                f"confirmed)")
+    if ev.n_inliers < p.min_matches:
+        return f"too few geometrically consistent matches ({ev.n_inliers} < {p.min_matches} after trimming)"
+    shown = min(ev.on_surface, ev.offer)
+    if best and ev.n_matches >= p.strong_matches and ev.n_inliers >= p.strong_matches:
+        if ev.support_ratio >= p.strong_min_ratio:
+            return None
+        return f"the object's appearance does not agree ({ev.support} of {shown} keypoints on its surface match)"
+    if ev.spread_m < p.min_spread * radius:
+        return f"the {ev.n_inliers} matches lie on a line ({ev.spread_m * 1000:.1f} mm across)"
+    if ev.support >= p.min_support and ev.support_ratio >= p.min_support_ratio:
+        return None
+    return (f"too little evidence: {ev.support} of {shown} keypoints on the object's surface agree with the template "
+            f"(need {p.min_support} and {p.min_support_ratio:.0%}), {ev.n_inliers} consistent matches (or a list of "
+            f"{p.strong_matches})")
+
+
+def list_spread(points: np.ndarray) -> float:
+    """Square root of the second-largest principal variance of [N x 3] points (m); 0 for fewer than 3."""
+    if len(points) < 3:
+        return 0.0
+    c = np.asarray(points, dtype=np.float64) - np.mean(points, axis=0)
+    ev = np.linalg.eigvalsh(c.T @ c / len(c))
+    return float(np.sqrt(max(ev[1], 0.0)))
+
+
+def kabsch_batch(src: np.ndarray, dst: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Rigid poses of many match lists at once: src, dst [H x L x 3] (lists padded to L), w [H x L] 1 for a
+    pair, 0 for padding -> T [H x 4 x 4] minimising each list's sum |T src - dst|^2 (no reflection)."""
+    n = np.maximum(w.sum(1), 1.0)[:, None]
+    mu_s = np.einsum("hl,hlk->hk", w, src) / n
+    mu_d = np.einsum("hl,hlk->hk", w, dst) / n
+    C = np.einsum("hl,hli,hlj->hij", w, dst - mu_d[:, None], src - mu_s[:, None])
+    U, _, Vt = np.linalg.svd(C)
+    d = np.sign(np.linalg.det(U) * np.linalg.det(Vt))
+    U[:, :, 2] *= np.where(d == 0, 1.0, d)[:, None]
+    R = U @ Vt
+    T = np.zeros((len(src), 4, 4))
+    T[:, :3, :3] = R
+    T[:, :3, 3] = mu_d - np.einsum("hij,hj->hi", R, mu_s)
+    T[:, 3, 3] = 1.0
+    return T
+
+
+def nn_support(T: np.ndarray, nn_points: np.ndarray, q_points: np.ndarray, radius: float) -> np.ndarray:
+    """[H] number of query keypoints whose nearest template keypoint by descriptor (object-frame point
+    nn_points [M x 3], NaN where the nearest does not agree) lies within `radius` of the keypoint q_points
+    [M x 3] under each pose T [H x 4 x 4]: a cheap appearance check of many poses."""
+    d = np.matmul(nn_points[None], T[:, :3, :3].transpose(0, 2, 1))  # [H x M x 3]
+    d += T[:, None, :3, 3] - q_points[None]
+    d *= d
+    return np.count_nonzero(d.sum(axis=2) < radius * radius, axis=1)
+
+
+def visible(T_cam_obj: np.ndarray, intr: Intrinsics, pts: np.ndarray, cell: int = 4,
+            tol: float = 0.01) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Points [P x 3] (object frame) visible from the camera at T_cam_obj, by a coarse z-buffer of `cell` px.
+    Returns (indices [K], camera points [K x 3], integer pixels [K x 2])."""
+    pc = transform_points(T_cam_obj, pts)
+    z = pc[:, 2]
+    ok = z > 1e-3
+    zs = np.where(ok, z, 1.0)
+    ui = np.rint(pc[:, 0] / zs * intr.fx + intr.cx)
+    vi = np.rint(pc[:, 1] / zs * intr.fy + intr.cy)
+    ok &= (ui >= 0) & (ui < intr.width) & (vi >= 0) & (vi < intr.height)
+    idx = np.flatnonzero(ok)
+    ui, vi = ui[idx].astype(np.int64), vi[idx].astype(np.int64)
+    gw, gh = (intr.width + cell - 1) // cell, (intr.height + cell - 1) // cell
+    cid = (vi // cell) * gw + ui // cell
+    zbuf = np.full(gw * gh, np.inf)
+    np.minimum.at(zbuf, cid, z[idx])
+    vis = z[idx] <= zbuf[cid] + tol + 0.01 * z[idx]
+    return idx[vis], pc[idx[vis]], np.stack([ui[vis], vi[vis]], 1)
+
+
+def depth_tolerance(z: np.ndarray, depth_tol: float) -> np.ndarray:
+    """Depth agreement tolerance (m) at depth z: depth_tol, growing 2 % of the depth beyond 0.5 m."""
+    return depth_tol + 0.02 * np.maximum(z - 0.5, 0.0)
+
+
+def depth_votes(depth: np.ndarray, intr: Intrinsics, T_cam_obj: np.ndarray, cloud: np.ndarray, depth_tol: float,
+                region: np.ndarray | None = None) -> tuple[int, int, int]:
+    """(consistent, see-through, visible) counts of the template cloud's points [P x 3] visible at T_cam_obj:
+    consistent when the query depth [H x W] agrees within the tolerance (and, with `region` [H x W] bool, the
+    pixel lies in it), see-through when the query surface lies behind the predicted object (a point over a pixel
+    without depth counts for neither)."""
+    _, pc, uv = visible(T_cam_obj, intr, cloud)
+    if len(pc) == 0:
+        return 0, 0, 0
+    zq = depth[uv[:, 1], uv[:, 0]].astype(np.float64)
+    z = pc[:, 2]
+    tol = depth_tolerance(z, depth_tol)
+    has = zq > 0
+    consistent = has & (np.abs(zq - z) < tol)
+    if region is not None:
+        consistent &= region[uv[:, 1], uv[:, 0]]
+    behind = has & (zq > z + tol)
+    return int(consistent.sum()), int(behind.sum()), len(pc)
+
+
+def depth_score(depth: np.ndarray, intr: Intrinsics, T_cam_obj: np.ndarray, cloud: np.ndarray, depth_tol: float,
+                region: np.ndarray | None = None) -> tuple[float, float]:
+    """(score, confirmed) of `depth_votes`: consistent / (consistent + see-through), consistent / visible."""
+    n_c, n_b, n = depth_votes(depth, intr, T_cam_obj, cloud, depth_tol, region)
+    return n_c / max(1, n_c + n_b), n_c / max(1, n)
+
+
+def keypoint_support(T_cam_obj: np.ndarray, kp_points: np.ndarray, kp_idx: np.ndarray, sim: np.ndarray,
+                     sim_cols: np.ndarray, q_points: np.ndarray, q_location: np.ndarray, surface_obj: np.ndarray,
+                     depth: np.ndarray, intr: Intrinsics, radius: float, min_sim: float,
+                     depth_tol: float) -> tuple[int, int, int]:
+    """(support, on_surface, offer) of a pose (Evidence).
+
+    A query keypoint on the predicted visible surface supports the pose when its nearest template keypoint by
+    descriptor, among those the template offers there, lies within `radius` of it at the pose (and agrees
+    within `min_sim`): a chance agreement needs the one nearest descriptor of hundreds to fall within a few
+    millimetres.
+
+    kp_points [N x 3]: object-frame points of every template keypoint; kp_idx [K]: those of the views near the
+    query direction; sim [M x C]: descriptor similarity of the M query keypoints to template keypoints (cosine
+    of unit descriptors, or the negated distance), sim_cols [K] the column of each of kp_idx; q_points [M x 3]: camera-frame query keypoints;
+    q_location [M]: a location id per query keypoint (keypoints of one point with several orientations share
+    it); surface_obj [P x 3]: the template cloud; radius: keypoint match distance (m)."""
+    from scipy.spatial import cKDTree
+
+    if len(q_points) == 0:
+        return 0, 0, 0
+    # query keypoints on the predicted visible surface
+    _, surf_cam, _ = visible(T_cam_obj, intr, surface_obj)
+    if len(surf_cam) == 0:
+        return 0, 0, 0
+    d, _ = cKDTree(surf_cam).query(np.asarray(q_points, dtype=np.float64), distance_upper_bound=radius)
+    on = np.flatnonzero(np.isfinite(d))
+    on_surface = len(np.unique(q_location[on]))
+    # template keypoints the frame can show: inside the image, in front of (or at) the measured depth
+    vis, kp_cam, uv = visible(T_cam_obj, intr, kp_points[kp_idx])
+    zq = depth[uv[:, 1], uv[:, 0]].astype(np.float64)
+    shown = (zq <= 0) | (kp_cam[:, 2] < zq + depth_tolerance(kp_cam[:, 2], depth_tol))
+    sel, kp_cam = vis[shown], kp_cam[shown]
+    if len(sel) == 0 or len(on) == 0:
+        return 0, on_surface, 0
+    offer = len(np.unique(np.floor(kp_points[kp_idx[sel]] / 0.002).astype(np.int64), axis=0))
+    block = sim[np.ix_(on, sim_cols[sel])]  # [on x offered]
+    nn = np.argmax(block, axis=1)
+    agree = block[np.arange(len(on)), nn] >= min_sim
+    near = np.linalg.norm(kp_cam[nn] - q_points[on], axis=1) < radius
+    return len(np.unique(q_location[on[agree & near]])), on_surface, offer
+
+
+def sinks_into_plane(T_cam_obj: np.ndarray, cloud: np.ndarray, plane: Plane, heights: np.ndarray, depth: np.ndarray,
+                     intr: Intrinsics, below_tol: float, max_below_frac: float) -> float | None:
+    """The fraction of the template cloud's points [P x 3] more than `below_tol` behind the support plane at
+    T_cam_obj when above `max_below_frac` and most of the plane's pixels lie outside the pose's silhouette, else
+    None. heights: [H x W] every pixel's height above the plane (the query's, computed once)."""
+    below = float(np.mean(plane.height(transform_points(T_cam_obj, cloud)) < -below_tol))
+    if below <= max_below_frac:
+        return None
+    _, _, uv = visible(T_cam_obj, intr, cloud)
+    sil = np.zeros(depth.shape, np.uint8)
+    if len(uv) >= 3:
+        cv2.fillConvexPoly(sil, cv2.convexHull(uv.astype(np.int32)), 1)
+    on_plane = (depth > 0) & (np.abs(heights) < 0.01)
+    if (on_plane & (sil > 0)).sum() > 0.5 * on_plane.sum():
+        return None
+    return below

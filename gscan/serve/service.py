@@ -1,0 +1,131 @@
+"""The estimation service's state and work (`gscan serve`), independent of the HTTP layer (gscan.serve.api):
+templates loaded once and kept warm.
+
+    GET    /health              -> {"templates": [names]}
+    POST   /estimate            multipart: color, depth, intrinsics, [depth_scale], [mask], [templates]
+                                -> {"results": {name: <the estimate --json object>}, "timings_ms": {"total": ...}}
+    POST   /track/{session}     multipart: color, depth, intrinsics, [depth_scale], [mask], [template]
+                                -> {"session", "template", "frame", "status", "result", "timings_ms"}
+    DELETE /track/{session}     -> {"session", "frames"}
+    GET    /docs                the OpenAPI page
+
+A bad request gets HTTP 4xx and {"detail": "one line naming the field"}; an error inside the estimator gets
+500 with one line; neither stops the server. Requests are decoded and estimated one at a time (a lock): the
+estimator is tuned for one thread, and a second concurrent frame would only slow both. A tracking session (a
+client-chosen id) keeps a `gscan.estimate.Tracker`, the same as `gscan track` frame by frame; sessions idle
+for `session_ttl_s` are dropped, and at most `max_sessions` are kept (the least recently used goes first).
+"""
+from __future__ import annotations
+
+import logging
+import re
+import threading
+import time
+from collections import OrderedDict
+from dataclasses import dataclass
+from typing import Any
+
+from gscan.estimate import Estimator, Tracker
+from gscan.serve.decode import MAX_PIXELS, RequestError, decode_frame
+
+log = logging.getLogger(__name__)
+
+SESSION_ID = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
+
+
+@dataclass(frozen=True)
+class ServeParams:
+    max_request_bytes: int = 64 << 20  # a larger request body is refused (413) before it is read
+    max_pixels: int = MAX_PIXELS  # per image, checked on the header before decoding
+    max_sessions: int = 32  # tracking sessions kept (least recently used dropped first)
+    session_ttl_s: float = 600.0  # a session idle this long is dropped
+
+
+class _Session:
+    def __init__(self, name: str, tracker: Tracker):
+        self.template = name
+        self.tracker = tracker
+        self.frames = 0
+        self.used = time.monotonic()
+
+
+class Service:
+    """The service's state: the warm estimators, the tracking sessions and the lock that serialises work."""
+
+    def __init__(self, estimators: dict[str, Estimator], params: ServeParams | None = None):
+        if not estimators:
+            raise ValueError("the service needs at least one template")
+        self.estimators = dict(estimators)
+        self.params = params or ServeParams()
+        self.lock = threading.Lock()
+        self.sessions: OrderedDict[str, _Session] = OrderedDict()
+
+    def names(self, field: str, text: str | None) -> list[str]:
+        """Template names of a comma-separated field (None or empty: all)."""
+        if text is None or not text.strip():
+            return list(self.estimators)
+        names = [t.strip() for t in text.split(",") if t.strip()]
+        unknown = [n for n in names if n not in self.estimators]
+        if unknown:
+            raise RequestError(field, f"unknown template {unknown[0]!r} (serving: {', '.join(self.estimators)})", 404)
+        return list(dict.fromkeys(names))
+
+    def estimate(self, color: bytes, depth: bytes, intrinsics: str, depth_scale: float, mask: bytes | None,
+                 templates: str | None) -> dict[str, Any]:
+        t0 = time.perf_counter()
+        names = self.names("templates", templates)
+        with self.lock:
+            frame = decode_frame(color, depth, intrinsics, depth_scale, mask, max_pixels=self.params.max_pixels)
+            first = self.estimators[names[0]]
+            q = first.prepare(frame, frame.mask)  # the frame's full-image work, shared by the templates
+            results = {}
+            for n in names:
+                est = self.estimators[n]
+                same = est.params == first.params
+                results[n] = (est.estimate_prepared(q) if same else est.estimate(frame, frame.mask)).to_json()
+        return {"results": results, "timings_ms": {"total": (time.perf_counter() - t0) * 1e3}}
+
+    def track(self, session: str, color: bytes, depth: bytes, intrinsics: str, depth_scale: float,
+              mask: bytes | None, template: str | None) -> dict[str, Any]:
+        t0 = time.perf_counter()
+        if not SESSION_ID.match(session):
+            raise RequestError("session", "1-64 letters, digits, '.', '_' or '-'", 400)
+        with self.lock:
+            self._expire()
+            s = self.sessions.get(session)
+            if s is None:
+                if template is None or not template.strip():
+                    if len(self.estimators) > 1:
+                        raise RequestError("template", f"required to start a session when serving several "
+                                                       f"templates ({', '.join(self.estimators)})", 422)
+                    template = next(iter(self.estimators))
+                name = self.names("template", template)
+                if len(name) != 1:
+                    raise RequestError("template", "one template per session")
+                s = _Session(name[0], Tracker(self.estimators[name[0]]))
+            elif template is not None and template.strip() and template.strip() != s.template:
+                raise RequestError("template", f"session {session!r} tracks {s.template!r}, not {template.strip()!r}",
+                                   409)
+            frame = decode_frame(color, depth, intrinsics, depth_scale, mask, name=f"{session}:{s.frames}",
+                                 max_pixels=self.params.max_pixels)
+            step = s.tracker.step(frame, frame.mask)
+            s.frames += 1
+            s.used = time.monotonic()
+            self.sessions[session] = s
+            self.sessions.move_to_end(session)
+            while len(self.sessions) > self.params.max_sessions:
+                self.sessions.popitem(last=False)
+            return {"session": session, "template": s.template, "frame": s.frames - 1, "status": step.status,
+                    "result": step.result.to_json(), "timings_ms": {"total": (time.perf_counter() - t0) * 1e3}}
+
+    def end_track(self, session: str) -> dict[str, Any]:
+        with self.lock:
+            s = self.sessions.pop(session, None)
+        if s is None:
+            raise RequestError("session", f"no tracking session {session!r}", 404)
+        return {"session": session, "frames": s.frames}
+
+    def _expire(self) -> None:
+        now = time.monotonic()
+        for k in [k for k, s in self.sessions.items() if now - s.used > self.params.session_ttl_s]:
+            del self.sessions[k]
