@@ -289,10 +289,12 @@ def _print_scan_summary(result: Any) -> None:
               f"({result.mode}), edges {result.edges_accepted} accepted / {result.edges_rejected} rejected, "
               f"mesh {result.mesh_vertices} vertices / {result.mesh_triangles} triangles, "
               f"{result.keyframes} keyframes (the views estimate matches)")
-    if result.unregistered:
-        _say(("unregistered frames:", "yellow"), f" {', '.join(result.unregistered)}")
-    for name, reason in result.problems.items():
-        _say((f"skipped frame {name}:", "yellow"), f" {reason}")
+    for name in result.unregistered:  # each with its reason (a frame that could not be read: why)
+        what = "skipped frame" if name in result.problems else "unregistered frame"
+        _say((f"{what} {name}:", "yellow"), f" {result.unregistered_reasons.get(name, '')}")
+    for k, part in enumerate(result.parts, 1):
+        _say((f"separate part {k}:", "yellow"), f" {len(part)} frames ({', '.join(part)}), not joined to the "
+             "template's frames with confidence: scanned again with views between them, they can be")
 
 
 # ------------------------------------------------------------------------------------- template-from-mesh
@@ -439,8 +441,8 @@ def poses(
     err.print("T_obj_cam (camera pose in the template frame) of each registered frame:")
     for name, T in out["frames"].items():
         _line(f"{name}: {_format_pose(T)}")
-    if out["unregistered"]:
-        _line(f"unregistered: {', '.join(out['unregistered'])}")
+    for name in out["unregistered"]:
+        _line(f"{name}: unregistered: {out['unregistered_reasons'][name]}")
 
 
 @app.command()
@@ -460,13 +462,17 @@ def info(
     # the `info --json` object of the CLI contract, and the mesh's size and open edges
     out = {"schema": s.schema, "status": s.status, "views": s.views, "registered": s.registered,
            "keyframes": s.keyframes, "descriptor": s.descriptor, "source": s.source, "extent_m": list(s.extent_m),
-           "grasps": list(s.grasps)}
+           "grasps": list(s.grasps), "unregistered_reasons": dict(s.unregistered_reasons)}
     out["mesh"] = None if m is None else {"vertices": len(m.vertices), "triangles": len(m.triangles),
                                           "open_edges": len(boundary_edges(m.triangles))}
     if json_out:
         _print_json(out)
         return
     for k, v in out.items():
+        if k == "unregistered_reasons":
+            for name, reason in v.items():
+                _line(f"unregistered {name}: {reason}")
+            continue
         if k == "mesh" and v is not None:
             holes = " (export closes them; --keep-holes keeps them)" if v["open_edges"] else ", watertight"
             v = f"{v['vertices']} vertices, {v['triangles']} triangles, {v['open_edges']} open edges{holes}"

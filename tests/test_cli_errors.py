@@ -980,6 +980,8 @@ def test_partially_bad_capture_is_scanned(results):
     assert info.returncode == 0 and json.loads(info.stdout)["status"] == "complete"
     poses = subprocess.run(_cli("poses", db, "--json"), capture_output=True, text=True, timeout=TIMEOUT_S)
     assert json.loads(poses.stdout)["unregistered"] == out["unregistered"]  # the unreadable frame too
+    assert json.loads(poses.stdout)["unregistered_reasons"] == out["unregistered_reasons"]  # and why
+    assert "000005.png" in out["unregistered_reasons"]["000005"]
 
 
 def test_frame_without_keypoints_is_scanned(results):

@@ -464,12 +464,15 @@ def test_info_json_keeps_its_keys(db_path: Path) -> None:
     """`gscan info --json` (the CLI contract) is shaped by the CLI from TemplateDB.summary()."""
     with TemplateDB.create(db_path, meta={"descriptor": {"kind": "rootsift"}}) as db:
         db.add_view(View(name="a", intrinsics=K, T_obj_cam=np.eye(4)), _feats(np.random.default_rng(0), 5))
+        db.add_view(View(name="b", intrinsics=K), _feats(np.random.default_rng(1), 5))
         db.add_grasp("g", np.eye(4))
+        db.set_meta("unregistered_reasons", {"b": "no accepted edge"})
     r = subprocess.run([sys.executable, "-m", "gscan.cli", "info", str(db_path), "--json"], capture_output=True,
                        text=True, timeout=120)
     assert r.returncode == 0, r.stderr
     out = json.loads(r.stdout)
     assert list(out) == ["schema", "status", "views", "registered", "keyframes", "descriptor", "source", "extent_m",
-                         "grasps", "mesh"]
-    assert out["status"] == "partial" and out["views"] == out["registered"] == 1 and out["grasps"] == ["g"]
+                         "grasps", "unregistered_reasons", "mesh"]
+    assert out["status"] == "partial" and out["views"] == 2 and out["registered"] == 1 and out["grasps"] == ["g"]
+    assert out["unregistered_reasons"] == {"b": "no accepted edge"}
     assert isinstance(out["extent_m"], list) and len(out["extent_m"]) == 3

@@ -104,6 +104,14 @@ def unregistered_names(views: list[View], skipped: Any) -> list[str]:
     return unreg + sorted(n for n in (skipped if isinstance(skipped, dict) else {}) if n not in known)
 
 
+def unregistered_reasons(names: list[str], reasons: Any, skipped: Any) -> dict[str, str]:
+    """Why each of `names` has no pose: the scan's "unregistered_reasons" meta, else why it could not be read
+    (its "skipped" meta); a name neither explains (a template written before reasons were kept) reads
+    "not registered"."""
+    known = {**(skipped if isinstance(skipped, dict) else {}), **(reasons if isinstance(reasons, dict) else {})}
+    return {n: str(known.get(n, "not registered")) for n in names}
+
+
 class TemplateDB:
     """A template database file. Use `create` or `open`, never the constructor; close it (or use `with`).
 
@@ -554,18 +562,24 @@ class TemplateDB:
         """What the database holds (works on a partial one too)."""
         n_views, n_reg, n_kf = self._q("SELECT COUNT(*), COUNT(T_obj_cam), COALESCE(SUM(keyframe), 0) FROM views")[0]
         x, y, z = (float(v) for v in self.extent())
+        unreg = unregistered_names(self.views(), self.get_meta("skipped"))
         return TemplateSummary(schema=int(self.get_meta("schema")), status=self.status, views=int(n_views),
                                registered=int(n_reg), keyframes=int(n_kf), descriptor=self.descriptor_kind(),
                                source=self.get_meta("source", "scan"), extent_m=(x, y, z),
-                               grasps=tuple(sorted(self.grasps())))
+                               grasps=tuple(sorted(self.grasps())),
+                               unregistered_reasons=unregistered_reasons(unreg, self.get_meta("unregistered_reasons"),
+                                                                         self.get_meta("skipped")))
 
     def poses(self) -> dict:
-        """The dict `gscan poses --json` prints: {"frames": {name: T_obj_cam}, "unregistered": [names]};
-        unregistered as in `scan --json`: the views without a pose, then the input frames the scan could
-        not read (its "skipped" meta)."""
+        """The dict `gscan poses --json` prints: {"frames": {name: T_obj_cam}, "unregistered": [names],
+        "unregistered_reasons": {name: reason}}; unregistered as in `scan --json`: the views without a pose,
+        then the input frames the scan could not read (its "skipped" meta)."""
         views = self.views()
         frames = {v.name: v.T_obj_cam.tolist() for v in views if v.T_obj_cam is not None}
-        return {"frames": frames, "unregistered": unregistered_names(views, self.get_meta("skipped"))}
+        unreg = unregistered_names(views, self.get_meta("skipped"))
+        return {"frames": frames, "unregistered": unreg,
+                "unregistered_reasons": unregistered_reasons(unreg, self.get_meta("unregistered_reasons"),
+                                                             self.get_meta("skipped"))}
 
     def load_template(self, keyframes_only: bool = True) -> Template:
         """Everything the estimator needs, loaded once: registered (key)frame views with their keypoints

@@ -63,7 +63,7 @@ class Edge:
 class TemplateSummary:
     """What a template database holds (`TemplateDB.summary`): schema version, status ("complete" | "partial"),
     number of views, registered views and keyframes, descriptor kind, source ("scan" | "mesh"), the object's
-    extent [3] (m, object frame) and the grasp names."""
+    extent [3] (m, object frame), the grasp names, and why each unregistered frame is (name -> reason)."""
 
     schema: int
     status: str
@@ -74,6 +74,7 @@ class TemplateSummary:
     source: str
     extent_m: tuple[float, float, float]
     grasps: tuple[str, ...]
+    unregistered_reasons: dict[str, str] = field(default_factory=dict)
 
 
 @dataclass
