@@ -150,7 +150,7 @@ def sift_ransac_icp_chain(frames: list[RGBDFrame], depth_max: float = 4.0, seed:
     MIN_FITNESS. frames: >= 1."""
     import cv2
 
-    from gscan.geometry.transforms import icp
+    from gscan.geometry.icp import icp
     from gscan.matching.baselines import BaselineParams, putative_ratio, ransac_correspondences
 
     sift = cv2.SIFT_create()

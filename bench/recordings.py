@@ -42,7 +42,7 @@ sys.path.insert(0, str(ROOT))
 from gscan.geometry.transforms import transform_points
 from gscan.io import open_sequence
 from gscan.io.camera import Intrinsics
-from gscan.io.recordings.align import align_depth_to_color
+from gscan.io.align import align_depth_to_color
 from gscan.synth import (
     SynthScene,
     default_distance,

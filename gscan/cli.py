@@ -189,6 +189,11 @@ def _setup_logging(verbose: bool) -> None:
 
 # --------------------------------------------------------------------------------------------- scan
 
+DEPTH_INTRINSICS_HELP = ("depth not registered to colour: the depth camera's cam_K.txt or Open3D intrinsics JSON "
+                         "(the depth is reprojected into the colour camera)")
+DEPTH_TO_COLOR_HELP = ("with --depth-intrinsics: T_color_depth, the depth camera's pose in the colour camera "
+                       "(4x4 text or JSON matrix, metres; default: the same centre and axes)")
+
 
 @app.command()
 def scan(
@@ -209,6 +214,8 @@ def scan(
                                               help="recording: the colour image topic (default: detected)"),
     depth_topic: Optional[str] = typer.Option(None, "--depth-topic",
                                               help="recording: the depth image topic (default: detected)"),
+    depth_intrinsics: Optional[Path] = typer.Option(None, "--depth-intrinsics", help=DEPTH_INTRINSICS_HELP),
+    depth_to_color: Optional[Path] = typer.Option(None, "--depth-to-color", help=DEPTH_TO_COLOR_HELP),
     json_out: bool = typer.Option(False, "--json", help="print one JSON object on stdout"),
     verbose: bool = typer.Option(False, "-v", "--verbose", help="log progress details to stderr"),
 ) -> None:
@@ -227,6 +234,7 @@ def scan(
             result = scan_capture(input_dir, output, config=cfg, format=format.value, intrinsics=intrinsics,
                                   depth_scale=depth_scale, mode=mode.value, segment=not no_segment, resume=resume,
                                   force=force, obj_id=obj_id, color_topic=color_topic, depth_topic=depth_topic,
+                                  depth_intrinsics=depth_intrinsics, depth_to_color=depth_to_color,
                                   progress=progress)
     except KeyboardInterrupt:  # Ctrl+C: the partial database is kept for --resume (typer exits 130)
         _say_interrupted(_interrupted_scan_line(output, force))
@@ -327,10 +335,21 @@ def template_from_mesh(
 # ------------------------------------------------------------------------------------------- estimate
 
 
-def _load_query_frame(color: Path, depth: Path, intrinsics: Path, depth_scale: float, mask: Optional[Path]):
+def _load_query_frame(color: Path, depth: Path, intrinsics: Path, depth_scale: float, mask: Optional[Path],
+                      depth_intrinsics: Optional[Path] = None, depth_to_color: Optional[Path] = None):
     from gscan.io import load_frame
+    from gscan.io.images import image_size, resolve_depth_camera
 
-    return load_frame(color, depth, intrinsics, depth_scale=depth_scale, mask_path=mask)
+    cam = None
+    if depth_to_color is not None and depth_intrinsics is None:
+        raise UsageError(depth_to_color, "--depth-to-color needs the depth camera's --depth-intrinsics")
+    if depth_intrinsics is not None:
+        try:
+            w, h, _ = image_size(depth)
+        except (OSError, ValueError) as e:
+            raise InputError(depth, f"cannot read the depth image ({e})") from None
+        cam = resolve_depth_camera(depth_intrinsics, depth_to_color, w, h)
+    return load_frame(color, depth, intrinsics, depth_scale=depth_scale, mask_path=mask, depth_camera=cam)
 
 
 @app.command()
@@ -342,13 +361,15 @@ def estimate(
     depth_scale: float = typer.Option(0.001, "--depth-scale", help="metres per raw depth unit"),
     mask: Optional[Path] = typer.Option(None, "--mask", help="restrict the search to this mask"),
     no_icp: bool = typer.Option(False, "--no-icp", help="skip the ICP refinement"),
+    depth_intrinsics: Optional[Path] = typer.Option(None, "--depth-intrinsics", help=DEPTH_INTRINSICS_HELP),
+    depth_to_color: Optional[Path] = typer.Option(None, "--depth-to-color", help=DEPTH_TO_COLOR_HELP),
     json_out: bool = typer.Option(False, "--json", help="print one JSON object on stdout"),
 ) -> None:
     """Estimate the object's pose T_cam_obj in a new RGB-D frame."""
     from gscan.estimate.estimator import Estimator
 
     estimator = Estimator.from_path(template)
-    frame = _load_query_frame(color, depth, intrinsics, depth_scale, mask)
+    frame = _load_query_frame(color, depth, intrinsics, depth_scale, mask, depth_intrinsics, depth_to_color)
     result = estimator.estimate(frame, mask=frame.mask, refine=not no_icp)
     out = result.to_json()
     if json_out:
@@ -378,6 +399,8 @@ def track(
     format: str = typer.Option("auto", "--format", help="auto|capture|open3d|tum|bop"),
     intrinsics: Optional[Path] = typer.Option(None, "--intrinsics", help="cam_K.txt or Open3D intrinsics JSON"),
     depth_scale: Optional[float] = typer.Option(None, "--depth-scale", help="metres per raw depth unit"),
+    depth_intrinsics: Optional[Path] = typer.Option(None, "--depth-intrinsics", help=DEPTH_INTRINSICS_HELP),
+    depth_to_color: Optional[Path] = typer.Option(None, "--depth-to-color", help=DEPTH_TO_COLOR_HELP),
     force: bool = typer.Option(False, "--force", help="replace an existing OUTPUT"),
     json_out: bool = typer.Option(False, "--json", help="print one JSON object on stdout"),
     verbose: bool = typer.Option(False, "-v", "--verbose", help="log progress details to stderr"),
@@ -395,7 +418,8 @@ def track(
             raise UsageError(output, "exists and is not empty (pass --force to replace it)")
         check_output_path(output)
     estimator = Estimator.from_path(template)
-    seq = open_sequence(input_path, format, intrinsics=intrinsics, depth_scale=depth_scale)
+    seq = open_sequence(input_path, format, intrinsics=intrinsics, depth_scale=depth_scale,
+                        depth_intrinsics=depth_intrinsics, T_color_depth=depth_to_color)
 
     def report(step) -> None:
         if json_out:

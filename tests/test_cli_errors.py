@@ -201,6 +201,31 @@ def _(ctx: Ctx, work: Path) -> Run:
     return _scan_case(work, cap, "mismatch", "000000")
 
 
+@case("scan-depth-to-color-without-depth-intrinsics")
+def _(ctx: Ctx, work: Path) -> Run:
+    cap = _copy_capture(ctx, work)
+    np.savetxt(work / "T_color_depth.txt", np.eye(4))
+    return _scan_case(work, cap, "T_color_depth.txt", "--depth-intrinsics",
+                      extra=("--depth-to-color", str(work / "T_color_depth.txt")))
+
+
+@case("scan-depth-intrinsics-for-the-wrong-size")  # every frame's depth is 320x240, the depth camera's 640x480
+def _(ctx: Ctx, work: Path) -> Run:
+    cap = _copy_capture(ctx, work)
+    (work / "depth_K.json").write_text(json.dumps({"fx": 500.0, "fy": 500.0, "cx": 319.5, "cy": 239.5,
+                                                   "width": 640, "height": 480}))
+    return _scan_case(work, cap, "depth_K.json", "640x480", "320x240", extra=("--depth-intrinsics", str(work / "depth_K.json")))
+
+
+@case("scan-not-rigid-depth-to-color")
+def _(ctx: Ctx, work: Path) -> Run:
+    cap = _copy_capture(ctx, work)
+    np.savetxt(work / "depth_K.txt", np.loadtxt(cap / "cam_K.txt"))
+    np.savetxt(work / "skewed.txt", np.diag([1.0, 2.0, 1.0, 1.0]))
+    return _scan_case(work, cap, "skewed.txt", extra=("--depth-intrinsics", str(work / "depth_K.txt"),
+                                                      "--depth-to-color", str(work / "skewed.txt")))
+
+
 @case("scan-8bit-depth")
 def _(ctx: Ctx, work: Path) -> Run:
     cap = _copy_capture(ctx, work, "depth8")
@@ -550,6 +575,16 @@ def _(ctx: Ctx, work: Path) -> Run:
     c, d, k = _query_files(ctx, work)
     run = _estimate(ctx, work, work / "missing_color.png", d, k)
     run.names.append("missing_color.png")
+    return run
+
+
+@case("estimate-depth-intrinsics-unreadable")
+def _(ctx: Ctx, work: Path) -> Run:
+    c, d, k = _query_files(ctx, work)
+    (work / "depth_K.txt").write_text("not a matrix\n")
+    run = _estimate(ctx, work, c, d, k)
+    run.argv += ["--depth-intrinsics", str(work / "depth_K.txt")]
+    run.names.append("depth_K.txt")
     return run
 
 

@@ -296,6 +296,63 @@ def test_capture_depth_scale_override_and_forced_intrinsics(tmp_path: Path):
     assert seq2.intrinsics == Intrinsics.from_matrix(K_SMALL, W, H)
 
 
+def _unregistered_capture(root: Path) -> tuple[Path, Path, np.ndarray]:
+    """A capture whose depth images (80 x 60) come from their own camera, 2.5 cm beside the colour camera:
+    the layout, the depth camera's cam_K.txt and T_color_depth."""
+    names = ("000000", "000001")
+    make_capture(root, names=names, masks=False, poses=False)
+    for i, n in enumerate(names):
+        write_img(root / "depth" / f"{n}.png", depth_mm(i, 80, 60, z_m=0.9))
+    K_depth = np.array([[70.0, 0.0, 39.5], [0.0, 70.0, 29.5], [0.0, 0.0, 1.0]])
+    np.savetxt(root.parent / "depth_K.txt", K_depth)
+    T = np.eye(4)
+    T[:3, 3] = [-0.025, 0.0, 0.002]
+    return root, root.parent / "depth_K.txt", T
+
+
+def test_unregistered_depth_is_reprojected_into_the_colour_camera(tmp_path: Path):
+    from gscan.io.align import align_depth_to_color
+
+    root, depth_K, T = _unregistered_capture(tmp_path / "cap")
+    np.savetxt(tmp_path / "T_color_depth.txt", T)
+    # read as registered, the depth's size gives it away: every frame is reported, none read
+    with pytest.raises(InputError, match="no usable RGB-D frame.*80x60"):
+        open_sequence(root)
+    seq = open_sequence(root, depth_intrinsics=depth_K, T_color_depth=tmp_path / "T_color_depth.txt")
+    assert seq.problems == {} and seq.depth_camera.intrinsics == Intrinsics(70.0, 70.0, 39.5, 29.5, 80, 60)
+    for i, name in enumerate(seq.names):
+        raw = depth_mm(i, 80, 60, z_m=0.9).astype(np.float32) * np.float32(0.001)
+        f = seq[name]
+        assert f.depth.shape == (H, W) and f.intrinsics == seq.intrinsics
+        np.testing.assert_array_equal(f.depth, align_depth_to_color(raw, seq.depth_camera.intrinsics,
+                                                                       seq.intrinsics, T))
+        # a flat scene 0.9 m away stays 0.9 m away (+ the 2 mm the depth camera sits behind), seen through the
+        # colour camera's own pixels
+        assert abs(float(np.median(f.depth[f.depth > 0])) - 0.902) < 0.01 and (f.depth > 0).mean() > 0.8
+    # the same as a JSON matrix; without the pose, the depth camera shares the colour camera's centre and axes
+    (tmp_path / "T.json").write_text(json.dumps({"T": T.tolist()}))
+    js = open_sequence(root, depth_intrinsics=depth_K, T_color_depth=tmp_path / "T.json")
+    np.testing.assert_array_equal(js[0].depth, seq[0].depth)
+    assert np.array_equal(open_sequence(root, depth_intrinsics=depth_K).depth_camera.T_color_depth, np.eye(4))
+
+
+def test_unregistered_depth_bad_calibration_names_the_file(tmp_path: Path):
+    root, depth_K, T = _unregistered_capture(tmp_path / "cap")
+    T[0, 0] = 2.0  # not a rotation
+    np.savetxt(tmp_path / "bad_T.txt", T)
+    with pytest.raises(InputError, match="not a rigid transform") as e:
+        open_sequence(root, depth_intrinsics=depth_K, T_color_depth=tmp_path / "bad_T.txt")
+    assert e.value.path == tmp_path / "bad_T.txt"
+    np.savetxt(tmp_path / "ok_T.txt", np.eye(4))
+    with pytest.raises(InputError, match="needs the depth camera's intrinsics") as e:
+        open_sequence(root, T_color_depth=tmp_path / "ok_T.txt")
+    assert e.value.path == tmp_path / "ok_T.txt"
+    (tmp_path / "bad_K.txt").write_text("70 0 39.5\n0 70\n")
+    with pytest.raises(InputError, match="malformed cam_K.txt") as e:
+        open_sequence(root, depth_intrinsics=tmp_path / "bad_K.txt")
+    assert e.value.path == tmp_path / "bad_K.txt"
+
+
 def test_open3d_layout_built(tmp_path: Path):
     root = make_open3d(tmp_path / "o3d")
     assert detect_format(root) == "open3d"

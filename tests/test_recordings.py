@@ -26,8 +26,9 @@ from hypothesis import strategies as st
 from gscan.evaluate.metrics import ate_rmse
 from gscan.geometry.transforms import inv_T
 from gscan.io import associate, open_sequence
+from gscan.errors import InputError
 from gscan.io.camera import Intrinsics
-from gscan.io.recordings.align import align_depth_reference, align_depth_to_color
+from gscan.io.align import align_depth_reference, align_depth_to_color
 from gscan.io.recordings.pairing import pair_frames, pair_tolerance
 from gscan.scan.pipeline import ScanOptions, run_scan
 from gscan.synth.recordings import RecordingFrame, write_mcap, write_realsense_bag, write_rosbag2
@@ -159,6 +160,13 @@ def test_unaligned_depth_is_reprojected_identically_by_every_kind(recs, kind):
         for name in ("000000", "000007"):
             assert np.array_equal(seq[name].color, ref[name].color)
             assert np.array_equal(seq[name].depth, ref[name].depth)
+
+
+def test_a_recording_refuses_an_outside_depth_calibration(recs):
+    """A recording carries its own depth camera: --depth-intrinsics (for folders) is refused, naming it."""
+    with pytest.raises(InputError, match="carries its own depth calibration") as e:
+        open_sequence(recs["bag_unaligned"], depth_intrinsics=K_DEPTH)
+    assert e.value.path == recs["bag_unaligned"]
 
 
 # --------------------------------------------------------------------------------------- alignment

@@ -6,7 +6,7 @@ Both go through one pyrealsense2 pipeline; only the device differs: a connected 
 the colour camera with the device's intrinsics and depth-to-colour extrinsics, and converted to millimetres
 with its depth scale, so frames come out as the capture layout stores them.
 
-Alignment (`align`): "gscan" (default) reprojects depth with `gscan.io.recordings.align`, the same code that
+Alignment (`align`): "gscan" (default) reprojects depth with `gscan.io.align`, the same code that
 reads recordings, so a capture played from a .bag holds the depth `gscan scan REC.bag` reads (to the
 millimetre); "librealsense" uses `rs.align`, which keeps each point's depth-camera z instead of its z in the
 colour camera: off by the depth-to-colour rotation (on rendered views with a 2 degree rotation its depth was
@@ -28,7 +28,7 @@ import numpy as np
 
 from gscan.errors import InputError
 from gscan.io.camera import Intrinsics
-from gscan.io.recordings.align import align_depth_to_color
+from gscan.io.align import align_depth_to_color
 from gscan.io.recordings.streams import is_identity, same_intrinsics
 
 log = logging.getLogger(__name__)

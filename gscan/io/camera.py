@@ -124,6 +124,20 @@ def load_intrinsics(path: str | Path, width: int | None = None, height: int | No
     return Intrinsics.from_matrix(K, w, h)
 
 
+@dataclass(frozen=True)
+class DepthCamera:
+    """The depth camera of a sensor whose depth images are not registered to its colour images (a Kinect v1,
+    a RealSense recorded without alignment): its own intrinsics (the depth images' size) and T_color_depth
+    [4 x 4], which maps depth-camera points into the colour camera (metres). Frames read with one have their
+    depth reprojected into the colour camera (`gscan.io.align.align_depth_to_color`)."""
+
+    intrinsics: Intrinsics
+    T_color_depth: np.ndarray = field(default_factory=lambda: np.eye(4))
+
+    def to_dict(self) -> dict:
+        return {"intrinsics": self.intrinsics.to_dict(), "T_color_depth": np.asarray(self.T_color_depth).tolist()}
+
+
 @dataclass
 class RGBDFrame:
     """One RGB-D image.

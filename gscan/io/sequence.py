@@ -14,10 +14,10 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from gscan.io.camera import Intrinsics, RGBDFrame, implausible_intrinsics, load_intrinsics
+from gscan.io.camera import DepthCamera, Intrinsics, RGBDFrame, implausible_intrinsics, load_intrinsics
 from gscan.errors import InputError, not_a_file
 from gscan.io.images import (MAX_DEPTH_SCALE, check_depth_range, check_depth_scale, image_size, load_frame,
-                             read_depth)
+                             read_depth, resolve_depth_camera)
 from gscan.io.layouts import FrameSpec, Layout, discover
 from gscan.io.recordings.kinds import recording_format
 
@@ -66,7 +66,7 @@ class Sequence:
 
     def __init__(self, layout: Layout, specs: dict[str, FrameSpec], intrinsics: Intrinsics,
                  frame_intrinsics: dict[str, Intrinsics], depth_scale: float, frame_scales: dict[str, float],
-                 problems: dict[str, str]):
+                 problems: dict[str, str], depth_camera: DepthCamera | None = None):
         self.root: Path = layout.root
         self.name: str = layout.root.name
         self.format: str = layout.format
@@ -85,6 +85,7 @@ class Sequence:
         self.problems: dict[str, str] = problems
         self.obj_id: int | None = layout.obj_id
         self.gt_problems: dict[str, str] = dict(layout.gt_problems)  # unreadable ground-truth files, left out
+        self.depth_camera = depth_camera  # unregistered depth's own camera (frames reproject it), or None
 
     def __len__(self) -> int:
         return len(self.names)
@@ -123,7 +124,7 @@ class Sequence:
         try:
             return load_frame(spec.color, spec.depth, self.frame_intrinsics(spec.name),
                               self._frame_scales.get(spec.name, self.depth_scale), spec.mask, spec.name,
-                              check_range=False)
+                              check_range=False, depth_camera=self.depth_camera)
         except InputError as e:
             self.problems[spec.name] = str(e)
             raise
@@ -173,9 +174,23 @@ def _resolve_intrinsics(layout: Layout, override: Intrinsics | str | Path | None
                      "guessed)", fix="intrinsics")
 
 
+def _depth_camera(layout: Layout, intrinsics: Intrinsics | str | Path, T_color_depth: np.ndarray | str | Path | None
+                  ) -> DepthCamera:
+    """`resolve_depth_camera` for the layout's depth images, a cam_K.txt sized by the first one that reads."""
+    size = (0, 0)
+    for f in layout.frames:
+        try:
+            size = image_header(f.depth)[:2]
+            break
+        except InputError:
+            continue
+    return resolve_depth_camera(intrinsics, T_color_depth, *size)
+
+
 def open_sequence(path: str | Path, format: str = "auto", intrinsics: Intrinsics | str | Path | None = None,
                   depth_scale: float | None = None, obj_id: int | None = None, color_topic: str | None = None,
-                  depth_topic: str | None = None) -> Sequence | RecordingSequence:
+                  depth_topic: str | None = None, depth_intrinsics: Intrinsics | str | Path | None = None,
+                  T_color_depth: np.ndarray | str | Path | None = None) -> Sequence | RecordingSequence:
     """Open an RGB-D sequence folder, or a recording (`.bag`, `.db3`, `.mcap`, rosbag2 folder; see
     `gscan.io.recordings.open_recording`, which takes color_topic / depth_topic).
 
@@ -184,12 +199,18 @@ def open_sequence(path: str | Path, format: str = "auto", intrinsics: Intrinsics
     depth_scale: metres per raw depth unit overriding the layout's (capture/Open3D 0.001, TUM 1/5000,
     BOP scene_camera depth_scale / 1000). obj_id: BOP object whose scene_gt pose / mask is used
     (default: the first object of the first image).
+    depth_intrinsics / T_color_depth: for depth images not registered to the colour images, the depth
+    camera's intrinsics (object or file) and its pose in the colour camera (`resolve_depth_camera`); each
+    frame's depth is then reprojected into the colour camera. Recordings carry their own.
     Raises InputError naming the file for a missing/unrecognised folder, missing intrinsics, a
     depth scale that puts the scene outside 0.05-20 m, or when no frame is usable.
     """
     root = Path(path)
     kind = recording_format(root)
     if kind is not None:
+        if depth_intrinsics is not None or T_color_depth is not None:
+            raise InputError(root, f"is a recording ({kind}), which carries its own depth calibration; "
+                             "--depth-intrinsics / --depth-to-color are for folders")
         if format not in ("auto", kind):
             raise InputError(root, f"is a recording ({kind}); --format {format} is for folders")
         from gscan.io.recordings.sequence import open_recording
@@ -197,12 +218,16 @@ def open_sequence(path: str | Path, format: str = "auto", intrinsics: Intrinsics
         return open_recording(root, color_topic, depth_topic, intrinsics, depth_scale)
     if color_topic is not None or depth_topic is not None:
         raise InputError(root, "--color-topic / --depth-topic apply to recordings (.bag, .db3, .mcap), not folders")
+    if T_color_depth is not None and depth_intrinsics is None:
+        raise InputError(Path(T_color_depth) if isinstance(T_color_depth, (str, Path)) else root,
+                         "a depth-to-colour pose needs the depth camera's intrinsics too (--depth-intrinsics)")
     layout = discover(root, format, obj_id)
     if depth_scale is not None:
         check_depth_scale(depth_scale, root)
     problems = dict(layout.problems)
     specs: dict[str, FrameSpec] = {}
     sizes: dict[str, tuple[int, int]] = {}
+    depth_cam = None if depth_intrinsics is None else _depth_camera(layout, depth_intrinsics, T_color_depth)
     for f in layout.frames:
         try:
             cw, ch, _ = image_header(f.color)
@@ -210,7 +235,10 @@ def open_sequence(path: str | Path, format: str = "auto", intrinsics: Intrinsics
             bad = _depth_mode_problem(mode)
             if bad:
                 raise InputError(f.depth, bad)
-            if (dw, dh) != (cw, ch):
+            if depth_cam is not None and (dw, dh) != (depth_cam.intrinsics.width, depth_cam.intrinsics.height):
+                raise InputError(f.depth, f"depth is {dw}x{dh} but the depth camera's intrinsics are for "
+                                 f"{depth_cam.intrinsics.width}x{depth_cam.intrinsics.height} images")
+            if depth_cam is None and (dw, dh) != (cw, ch):
                 raise InputError(f.depth, f"depth is {dw}x{dh} but colour image {f.color.name} is {cw}x{ch}")
             if f.mask is not None:
                 mw, mh, _ = image_header(f.mask)
@@ -279,4 +307,4 @@ def open_sequence(path: str | Path, format: str = "auto", intrinsics: Intrinsics
         intr = frame_intr[next(iter(specs))]
     for name, reason in problems.items():
         log.warning("%s: frame %s left out: %s", root, name, reason)
-    return Sequence(layout, specs, intr, frame_intr, scale, frame_scales, problems)
+    return Sequence(layout, specs, intr, frame_intr, scale, frame_scales, problems, depth_cam)

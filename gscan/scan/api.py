@@ -16,6 +16,7 @@ def scan(source: str | Path, output: str | Path, *, config: ScanConfig | str | P
          format: str = "auto", intrinsics: str | Path | None = None, depth_scale: float | None = None,
          mode: str = "auto", segment: bool = True, resume: bool = False, force: bool = False,
          obj_id: int | None = None, color_topic: str | None = None, depth_topic: str | None = None,
+         depth_intrinsics: str | Path | None = None, depth_to_color: str | Path | None = None,
          progress: Progress | None = None, meta: dict | None = None) -> ScanResult:
     """Register every view of an RGB-D capture into one object frame and write a template database.
 
@@ -34,6 +35,10 @@ def scan(source: str | Path, output: str | Path, *, config: ScanConfig | str | P
         force: replace an existing `output`.
         obj_id: BOP folder: the object to scan (default: the first in scene_gt.json).
         color_topic, depth_topic: a recording's image topics (default: detected when unambiguous).
+        depth_intrinsics, depth_to_color: for depth images not registered to the colour images (a Kinect v1):
+            the depth camera's intrinsics (cam_K.txt / Open3D JSON) and its pose in the colour camera
+            (T_color_depth, a 4 x 4 text or JSON matrix in metres; None: the same centre and axes); the depth
+            is reprojected into the colour camera.
         progress: stage progress reporting (`gscan.progress.Progress`), none by default.
         meta: more keys for the database's meta table (JSON values), e.g. a mark of the tool that wrote it.
 
@@ -55,5 +60,7 @@ def scan(source: str | Path, output: str | Path, *, config: ScanConfig | str | P
     opts = ScanOptions(input_dir=Path(source), output=Path(output), fmt=format,
                        intrinsics=None if intrinsics is None else Path(intrinsics), depth_scale=depth_scale,
                        mode=mode, segment=segment, resume=resume, force=force, config=cfg, obj_id=obj_id,
-                       color_topic=color_topic, depth_topic=depth_topic, meta=dict(meta or {}))
+                       color_topic=color_topic, depth_topic=depth_topic, meta=dict(meta or {}),
+                       depth_intrinsics=None if depth_intrinsics is None else Path(depth_intrinsics),
+                       depth_to_color=None if depth_to_color is None else Path(depth_to_color))
     return run_scan(opts, progress=progress)

@@ -84,6 +84,8 @@ class ScanOptions:
     meta: dict = field(default_factory=dict)  # more meta keys for the database (e.g. the demo marks its outputs)
     color_topic: str | None = None  # recordings: the colour / depth image topics (None: detected)
     depth_topic: str | None = None
+    depth_intrinsics: Path | None = None  # depth not registered to colour: the depth camera's intrinsics ...
+    depth_to_color: Path | None = None  # ... and its pose in the colour camera, T_color_depth (None: identity)
 
 
 @dataclass
@@ -147,12 +149,12 @@ def _register_params(cfg: ScanConfig, mode: str) -> RegisterParams:
 
 
 RESUME_KEYS = ("input", "format", "intrinsics_sha256", "depth_scale_option", "config", "mode_option", "segment",
-               "obj_id_option", "topics_option")
+               "obj_id_option", "topics_option", "depth_camera_sha256")
 
 
 def _scan_meta(opts: ScanOptions) -> dict:
     """The database's meta; a resumed scan must agree on every RESUME_KEYS value (what changes its result):
-    the layout as detected (`--format auto` and the named layout agree), the --intrinsics file's content."""
+    the layout as detected (`--format auto` and the named layout agree), the calibration files' contents."""
     from gscan.io import detect_format
 
     return {"source": "scan", "input": str(opts.input_dir.resolve()),
@@ -162,6 +164,8 @@ def _scan_meta(opts: ScanOptions) -> dict:
             "segment": opts.segment, "obj_id_option": opts.obj_id, "descriptor": opts.config.features.kind,
             "topics_option": None if opts.color_topic is None and opts.depth_topic is None else
             [opts.color_topic, opts.depth_topic],
+            "depth_camera_sha256": None if opts.depth_intrinsics is None else
+            [_sha256(Path(p)) if p is not None else None for p in (opts.depth_intrinsics, opts.depth_to_color)],
             "units": "m"}
 
 
@@ -171,7 +175,7 @@ def _sha256(path: Path) -> str:
     try:
         return hashlib.sha256(path.read_bytes()).hexdigest()
     except OSError as e:
-        raise InputError(path, f"cannot read the intrinsics file ({e.strerror or e})") from None
+        raise InputError(path, f"cannot read the calibration file ({e.strerror or e})") from None
 
 
 def _open_resumed(opts: ScanOptions, seq: Sequence, frames: dict) -> tuple[TemplateDB, Output | None]:
@@ -273,7 +277,8 @@ def run_scan(opts: ScanOptions, progress: Progress | None = None) -> ScanResult:
     try:
         seq = open_sequence(opts.input_dir, format=opts.fmt, intrinsics=opts.intrinsics,
                             depth_scale=opts.depth_scale, obj_id=opts.obj_id, color_topic=opts.color_topic,
-                            depth_topic=opts.depth_topic)
+                            depth_topic=opts.depth_topic, depth_intrinsics=opts.depth_intrinsics,
+                            T_color_depth=opts.depth_to_color)
         if opts.obj_id is not None and seq.format != "bop":
             raise InputError(opts.input_dir, f"an object id is for BOP scene folders, this is a {seq.format} folder")
         if opts.obj_id is not None and seq.gt_T_cam_obj is None:

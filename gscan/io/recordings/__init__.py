@@ -2,11 +2,11 @@
 
     open_recording(path, color_topic=None, depth_topic=None, intrinsics=None, depth_scale=None) -> RecordingSequence
     recording_format(path) -> "bag" | "db3" | "mcap" | "rosbag2" | None
-    align_depth_to_color(depth, depth_intr, color_intr, T_color_depth) -> depth in the colour camera
 
 `gscan.io.sequence.open_sequence` opens a recording path through `open_recording`. Modules: `source` (one
 interface over rosbags and mcap), `messages` (Image parsing), `realsense` / `ros` (which topics, intrinsics,
-depth scale, extrinsics), `pairing` (timestamps), `align` (depth reprojection), `sequence` (streaming frames).
+depth scale, extrinsics), `pairing` (timestamps), `sequence` (streaming frames; depth reprojected into the colour
+camera by `gscan.io.align`).
 Names are imported on first use, so that asking whether a path is a recording loads neither numba nor rosbags.
 """
 from __future__ import annotations
@@ -17,10 +17,9 @@ from typing import Any
 _NAMES = {
     "RECORDING_FORMATS": "kinds", "recording_format": "kinds",
     "RecordingSequence": "sequence", "open_recording": "sequence",
-    "StreamSetup": "streams", "align_depth_to_color": "align",
+    "StreamSetup": "streams",
 }
-__all__ = ["RECORDING_FORMATS", "RecordingSequence", "StreamSetup", "align_depth_to_color", "open_recording",
-           "recording_format"]
+__all__ = ["RECORDING_FORMATS", "RecordingSequence", "StreamSetup", "open_recording", "recording_format"]
 
 
 def __getattr__(name: str) -> Any:

@@ -13,7 +13,7 @@ Frames are read on demand: indexing by name continues a stream through the file 
 in order (the common case, one pass), and restarts it from the frame's time otherwise (the formats are
 indexed by time). At most the messages between a frame's colour and depth message are buffered, so memory
 does not grow with the recording's length. Depth is reprojected into the colour camera
-(`gscan.io.recordings.align`) unless the recording's depth is registered to colour already.
+(`gscan.io.align`) unless the recording's depth is registered to colour already.
 """
 from __future__ import annotations
 
@@ -29,7 +29,7 @@ import numpy as np
 from gscan.errors import InputError
 from gscan.io.camera import Intrinsics, RGBDFrame, load_intrinsics
 from gscan.io.images import check_depth_range, check_depth_scale
-from gscan.io.recordings.align import align_depth_to_color
+from gscan.io.align import align_depth_to_color
 from gscan.io.recordings.kinds import recording_format
 from gscan.io.recordings.messages import (
     COLOR_ENCODINGS,
