@@ -6,6 +6,7 @@ Heavy modules are imported inside the commands so `gscan --help` stays fast.
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -668,6 +669,145 @@ def eval_cmd(
         table.add_row(k, f"{v:.2f}")
     err.print(table)
     _line(f"results written to {output}")
+
+
+# ------------------------------------------------------------------------------------------- batch
+
+# the options of `batch` / `batch-eval` that address a failed job's InputError `fix`
+_BATCH_FIXES = {"replace": "pass --force to scan it again", "restart": "pass --force to scan it again",
+                "resume": "pass --force to scan it again", "finish": "run `gscan batch` on its captures to finish it"}
+
+
+def _job_error_line(name: str, error: str | None, fix: str | None) -> str:
+    hint = _BATCH_FIXES.get(fix or "")
+    return printable(f"{name}: {error or 'failed'}" + (f"; {hint}" if hint else ""))
+
+
+@app.command()
+def batch(
+    captures_dir: Path = typer.Argument(..., help="folder of capture folders and recordings (.bag, .db3, .mcap, "
+                                        "rosbag2 folders)"),
+    output: Path = typer.Option(..., "-o", "--output", help="folder of the templates (NAME.gscan) and of the report "
+                                "(batch.json, batch.csv)"),
+    config: Optional[Path] = typer.Option(None, "--config", help="YAML configuration of every scan"),
+    address: Optional[str] = typer.Option(None, "--address", help="Ray cluster to run on: auto (the one started on "
+                                          "this machine) or ray://HOST:PORT (default: a local Ray runtime)"),
+    workers: Optional[int] = typer.Option(None, "--workers", min=1, help="local runtime: its CPUs (default: all); "
+                                          "cluster: at most this many scans at once"),
+    force: bool = typer.Option(False, "--force", help="scan every capture again, replacing complete templates"),
+    json_out: bool = typer.Option(False, "--json", help="print one JSON object on stdout"),
+    verbose: bool = typer.Option(False, "-v", "--verbose", help="log details to stderr"),
+) -> None:
+    """Scan every capture under CAPTURES_DIR into OUTPUT/NAME.gscan, one Ray task per capture.
+
+    A complete template is skipped, a partial one resumed; a failing capture does not stop the others.
+    Exit code 0 when every capture succeeded, 2 when some had bad input, 1 otherwise."""
+    _setup_logging(verbose)
+    from gscan.batch.runtime import require_ray
+
+    require_ray()
+    from gscan.batch.display import RichBatchMonitor
+    from gscan.batch.scan import run_batch
+
+    try:
+        with contextlib.redirect_stdout(sys.stderr):  # Ray's own messages (a worker died, ...) are not the JSON
+            with RichBatchMonitor(err, live=err.is_terminal, escape=printable, noun="captures") as monitor:
+                report = run_batch(captures_dir, output, config=config, address=address, workers=workers,
+                                   force=force, monitor=monitor if err.is_terminal or not json_out else None)
+    except KeyboardInterrupt:
+        _say_interrupted("interrupted: the templates finished are kept; run the command again to resume the others")
+        raise
+    if json_out:
+        _print_json(report.to_json())
+    else:
+        _print_batch_table(report)
+    for row in report.rows:
+        if row.status == "failed":
+            _say(("failed ", "red"), _job_error_line(row.name, row.error, row.fix))
+    s = report.summary()
+    _say((f"{s['captures']} captures", "bold"), f": {s['scanned']} scanned, {s['resumed']} resumed, "
+         f"{s['skipped']} skipped, {s['failed']} failed in {report.seconds:.1f} s"
+         + (f" on {report.runtime} ({report.capacity} CPUs)" if report.runtime else "")
+         + f"; report in {output / 'batch.json'} and batch.csv")
+    if report.exit_code:
+        raise typer.Exit(report.exit_code)
+
+
+def _print_batch_table(report: Any) -> None:
+    from rich.table import Table
+    from rich.text import Text
+
+    if len(report.rows) > 60:  # a catalogue: the failures are listed below, the rest is in batch.csv
+        return
+    table = Table(show_edge=False)
+    for col in ("capture", "status", "registered", "keyframes", "s", "MiB", "ATE mm", "wrong"):
+        table.add_column(col, justify="left" if col in ("capture", "status") else "right", no_wrap=col != "capture")
+    for r in report.rows:
+        gt = r.ground_truth or {}
+        ate = gt.get("ate_rmse_m")
+        table.add_row(Text(printable(r.name)), r.status,
+                      "" if r.registered is None else f"{r.registered}/{r.frames}", str(r.keyframes or ""),
+                      f"{r.seconds:.1f}" if r.status in ("scanned", "resumed") else "",
+                      f"{r.peak_rss_bytes / 2**20:.0f}" if r.peak_rss_bytes else "",
+                      "" if ate is None else f"{1000 * ate:.1f}", str(len(gt.get("wrong_frames", []))) if gt else "")
+    err.print(table)
+
+
+@app.command("batch-eval")
+def batch_eval(
+    templates_dir: Optional[Path] = typer.Argument(None, help="folder of templates (NAME.gscan)"),
+    scenes_dir: Optional[Path] = typer.Argument(None, help="folder of scene folders, one per template (NAME/)"),
+    output: Path = typer.Option(..., "-o", "--output", help="BOP19 results CSV to write (the metrics per object go "
+                                "beside it: STEM.objects.json and STEM.objects.csv)"),
+    manifest: Optional[Path] = typer.Option(None, "--manifest", help="CSV of the pairs instead of the two folders: "
+                                            "template,scenes[,obj_id,model,gt_capture,name]"),
+    no_icp: bool = typer.Option(False, "--no-icp", help="skip the ICP refinement"),
+    address: Optional[str] = typer.Option(None, "--address", help="Ray cluster to run on: auto or ray://HOST:PORT "
+                                          "(default: a local Ray runtime)"),
+    workers: Optional[int] = typer.Option(None, "--workers", min=1, help="local runtime: its CPUs (default: all); "
+                                          "cluster: at most this many evaluations at once"),
+    force: bool = typer.Option(False, "--force", help="replace existing outputs"),
+    json_out: bool = typer.Option(False, "--json", help="print one JSON object on stdout"),
+    verbose: bool = typer.Option(False, "-v", "--verbose", help="log details to stderr"),
+) -> None:
+    """Score many templates against their scenes as `gscan eval` does, one Ray task per pair, into one BOP19 CSV.
+
+    Pairs: NAME.gscan in TEMPLATES_DIR with SCENES_DIR/NAME, or the rows of --manifest.
+    Exit code 0 when every pair was evaluated, 2 when some had bad input, 1 otherwise."""
+    _setup_logging(verbose)
+    from gscan.batch.runtime import require_ray
+
+    require_ray()
+    if manifest is not None and (templates_dir is not None or scenes_dir is not None):
+        raise UsageError(manifest, "--manifest names the pairs: leave out TEMPLATES_DIR and SCENES_DIR")
+    if manifest is None and (templates_dir is None or scenes_dir is None):
+        raise UsageError(None, "give TEMPLATES_DIR and SCENES_DIR, or --manifest")
+    from gscan.batch.display import RichBatchMonitor
+    from gscan.batch.evaluate import objects_paths, run_batch_eval
+
+    with contextlib.redirect_stdout(sys.stderr):  # Ray's own messages (a worker died, ...) are not the JSON
+        with RichBatchMonitor(err, live=err.is_terminal, escape=printable, noun="pairs") as monitor:
+            report = run_batch_eval(output, templates_dir=templates_dir, scenes_dir=scenes_dir, manifest=manifest,
+                                    refine=not no_icp, address=address, workers=workers, force=force,
+                                    monitor=monitor if err.is_terminal or not json_out else None)
+    if json_out:
+        _print_json(report.to_json())
+    s = report.summary()
+    for row in report.rows:
+        if row.status == "failed":
+            _say(("failed ", "red"), _job_error_line(row.name, row.error, row.fix))
+    for w in s["warnings"]:
+        _say(("warning: ", "yellow"), w)
+    if s["unpaired_templates"] or s["unpaired_scenes"]:
+        _say(("not paired: ", "yellow"), f"{len(s['unpaired_templates'])} templates without scenes, "
+             f"{len(s['unpaired_scenes'])} scene folders without a template (see the objects report)")
+    ar = s["pooled"]["AR"]
+    _say((f"{s['pairs']} pairs", "bold"), f": {s['evaluated']} evaluated, {s['failed']} failed; {s['found']}/"
+         f"{s['images']} poses found, {s['wrong_accepted']} wrong accepted"
+         + (f", AR {ar:.1f}" if ar is not None else "") + f" in {report.seconds:.1f} s; results in {output}, "
+         f"metrics per object in {objects_paths(output)[0].name} and .csv")
+    if report.exit_code:
+        raise typer.Exit(report.exit_code)
 
 
 # ------------------------------------------------------------------------------------------ config

@@ -94,6 +94,7 @@ class EvalReport:
     n_found: int
     metrics: dict[str, float]
     rows: list[EvalRow] = field(default_factory=list)
+    diameter_m: float = float("nan")  # the model's diameter, the scale of the metrics' thresholds
 
     def to_json(self) -> dict:
         return {"output": str(self.output), "n_images": self.n_images, "n_found": self.n_found,
@@ -362,7 +363,7 @@ def evaluate(template: str | Path, scenes: str | Path, output_csv: str | Path, o
                     "template and the ground truth in one frame (the ground-truth capture, the model)?", 1000 * diam)
     with Output(output_csv, force=force, kind=".csv file path") as out:
         out.tmp.write_text("\n".join(lines) + "\n", encoding="utf-8")
-    return EvalReport(output_csv, len(rows), sum(r.found for r in rows), _metrics(rows, diam, width), rows)
+    return EvalReport(output_csv, len(rows), sum(r.found for r in rows), _metrics(rows, diam, width), rows, diam)
 
 
 def _metrics(rows: list[EvalRow], diameter: float, width: int) -> dict[str, float]:
