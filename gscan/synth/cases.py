@@ -15,7 +15,9 @@ annotated_poses/) and which show something else:
 - `inserted_frame_capture`: one frame of another object on another table in the middle of a capture;
 - `twin_objects_capture`: copies of the same object side by side (a print repeated on the table);
 - `two_scenes_capture`: a capture of one object followed by a few frames of another scene, two parts
-  that no correct registration joins.
+  that no correct registration joins;
+- `gap_orbit_capture`: two arcs of an orbit with a gap between them, low over a plain table: two parts of
+  one scene that share no surface.
 """
 from __future__ import annotations
 
@@ -160,3 +162,18 @@ def two_scenes_capture(mesh: TexturedMesh, other: TexturedMesh, out_dir: str | P
                           view_angles_deg=[(35.0, 20.0 * k) for k in range(n_other)])
     names = _names(n_views + n_other)
     return Case(_write(out_dir, frames + more, intr, names), names, names[:n_views], names[n_views:], mesh=mesh)
+
+
+def gap_orbit_capture(mesh: TexturedMesh, out_dir: str | Path, n_first: int = 6, n_second: int = 4,
+                      step_deg: float = 20.0, gap_deg: float = 120.0, elevation_deg: float = 10.0,
+                      table_kind: str = "plain", seed: int = 0, intr: Intrinsics = DEFAULT_INTRINSICS) -> Case:
+    """Two arcs of views `step_deg` apart on one ring, `n_first` then `n_second` views, the second starting
+    `gap_deg` after the first ends: two halves of an orbit. Low (10 degrees) over a plain table, the halves see
+    different faces of the object and nothing else in common: no correct registration joins them."""
+    first = [(elevation_deg, k * step_deg) for k in range(n_first)]
+    start = first[-1][1] + gap_deg
+    angles = first + [(elevation_deg, start + k * step_deg) for k in range(n_second)]
+    frames = render_capture(mesh, None, len(angles), mode="static", intr=intr, seed=seed, view_angles_deg=angles,
+                            table_kind=table_kind)
+    names = _names(len(frames))
+    return Case(_write(out_dir, frames, intr), names, names, mesh=mesh)
