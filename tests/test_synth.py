@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from gscan.io.camera import Intrinsics, backproject, load_intrinsics, project
-from gscan.geometry.transforms import inv_T, rotvec_to_R, transform_points
+from gscan.geometry.transforms import inv_T, look_at, rotvec_to_R, transform_points
 from gscan.synth import (DEFAULT_INTRINSICS, DepthNoise, SynthScene, TexturedMesh, apply_depth_noise, box_mesh,
                          default_distance, depth_sigma, load_textured_mesh, orbit_poses, place_distractors,
                          procedural_box_texture, render_capture, rest_on_table, save_textured_mesh,
@@ -421,3 +421,67 @@ def test_stereo_occlusion_band_left_of_objects(box: TexturedMesh) -> None:
     assert len(rows) > 20
     right_of = [f1.mask[r, c + 1:c + 12].any() for r, c in zip(rows, cols)]
     assert all(right_of)  # every dropped table pixel lies just left of the box
+
+
+def test_glossy_highlight_at_the_mirror_direction_loses_depth(box: TexturedMesh) -> None:
+    """A glossy box seen along the light's mirror direction off its top face shows a saturated highlight at the top's
+    centre, where the depth is lost; seen from another side the highlight is gone (it moves with the viewpoint).
+    Everything else renders as without gloss, and a gloss naming no object changes nothing."""
+    from gscan.synth import Gloss
+
+    T_wo = rest_on_table(box)
+    top = transform_points(T_wo, box.center[None])[0] + np.array([0.0, 0.0, 0.5 * box.extent[2]])
+    light = np.array([0.35, -0.3, 1.0]) / np.linalg.norm([0.35, -0.3, 1.0])
+    mirror = np.array([-light[0], -light[1], light[2]])  # the light reflected by the top face (normal +z)
+    quiet = DepthNoise(clusters_mean=0.0, edge_band_px=0, baseline=0.0)
+    matte = SynthScene([(box, T_wo)], seed=1, table_texture_size=512)
+    shiny = SynthScene([(box, T_wo)], seed=1, table_texture_size=512, gloss=Gloss())
+    nobody = SynthScene([(box, T_wo)], seed=1, table_texture_size=512, gloss=Gloss(objects=()))
+    T_wc = look_at(top + 0.5 * mirror, top)
+    u, v = np.rint(project(transform_points(inv_T(T_wc), top[None]), SMALL)[0]).astype(int)
+    a, b, c = (s.render(T_wc, SMALL, noise_params=quiet) for s in (matte, shiny, nobody))
+    assert np.array_equal(a.color, c.color) and np.array_equal(a.depth, c.depth)
+    assert a.mask[v, u] and a.depth[v, u] > 0 and a.color[v, u].min() < 240
+    assert b.color[v, u].min() >= 250 and b.depth[v, u] == 0
+    spot = (b.depth == 0) & (a.depth > 0)
+    assert 5 <= spot.sum() and spot[~a.mask].sum() == 0  # lost depth on the glossy object only
+    away = cv2.dilate(a.mask.astype(np.uint8), np.ones((7, 7), np.uint8)) == 0  # beyond the colour blur's reach
+    assert np.array_equal(a.color[away], b.color[away]) and np.array_equal(a.depth[~spot], b.depth[~spot])
+    side = transform_points(T_wo, box.center[None])[0] + 0.5 * np.array([-mirror[0], -mirror[1], mirror[2]])
+    T_other = look_at(side, top)  # the mirror direction turned 180 degrees about the vertical
+    u2, v2 = np.rint(project(transform_points(inv_T(T_other), top[None]), SMALL)[0]).astype(int)
+    a2, b2 = matte.render(T_other, SMALL, noise_params=quiet), shiny.render(T_other, SMALL, noise_params=quiet)
+    # the highlight's tail there: 255 (n.h)^40 with n.h = cos(the light's angle from the vertical), 3.3 levels
+    assert a2.mask[v2, u2] and np.abs(a2.color[v2, u2].astype(int) - b2.color[v2, u2]).max() <= 5
+    assert np.array_equal(a2.depth, b2.depth)
+
+
+def test_render_capture_view_angles_match_the_rings(box: TexturedMesh) -> None:
+    """Views given by (elevation, azimuth) are the rings' cameras at those angles."""
+    ring = render_capture(box, None, 3, elevations_deg=(30.0,), intr=SMALL, noise=False, table=False)
+    own = render_capture(box, None, 3, elevations_deg=(30.0,), intr=SMALL, noise=False, table=False,
+                         view_angles_deg=[(30.0, 0.0), (30.0, 120.0), (30.0, 240.0)])
+    for f, g in zip(ring, own):
+        np.testing.assert_allclose(f.T_world_cam, g.T_world_cam, atol=1e-12)
+        assert np.array_equal(f.color, g.color)
+    with pytest.raises(ValueError):
+        render_capture(box, None, 2, intr=SMALL, view_angles_deg=[(30.0, 0.0)])
+
+
+def test_hard_case_builders() -> None:
+    """The hard captures' parts: a depth image shifted with an empty border, two rings of 20-degree steps joined
+    by one 25-degree jump."""
+    from gscan.synth.cases import ring_jump_angles, shift_image
+
+    img = np.arange(1.0, 13.0).reshape(3, 4)
+    s = shift_image(img, 2, -1)
+    assert np.array_equal(s[:2, 2:], img[1:, :2]) and not s[:, :2].any() and not s[2].any()
+    assert np.array_equal(shift_image(shift_image(img, -1, 1), 1, -1)[:2, 1:], img[:2, 1:])
+    ang = np.radians(np.array(ring_jump_angles(20.0, 25.0, 20.0)))
+    d = np.stack([np.cos(ang[:, 0]) * np.cos(ang[:, 1]), np.cos(ang[:, 0]) * np.sin(ang[:, 1]), np.sin(ang[:, 0])], 1)
+    steps = np.degrees(np.arccos(np.clip((d[1:] * d[:-1]).sum(1), -1, 1)))
+    assert len(d) == 36 and steps.argmax() == 17
+    np.testing.assert_allclose(steps[17], 25.0, atol=1e-6)
+    low, high = np.delete(steps, 17)[:17], np.delete(steps, 17)[17:]
+    # 20 degrees of azimuth: the view turns 20 * cos(elevation)-ish degrees on each ring
+    assert np.all(low > 18.0) and np.all(high > 14.0) and np.all(np.delete(steps, 17) < 20.0 + 1e-9)

@@ -1,9 +1,9 @@
 """Synthetic RGB-D renderer with exact ground truth (open3d RaycastingScene on the CPU).
 
 Public API (import from `gscan.synth`):
-- meshes: `TexturedMesh`, `load_textured_mesh`, `box_mesh`, `save_textured_mesh`
+- meshes: `TexturedMesh`, `load_textured_mesh`, `box_mesh`, `cylinder_mesh`, `save_textured_mesh`
 - textures: `procedural_box_texture`, `table_texture`
-- rendering: `SynthScene`, `RenderedFrame`, `DEFAULT_INTRINSICS`, `DepthNoise`, `apply_depth_noise`
+- rendering: `SynthScene`, `RenderedFrame`, `Gloss`, `DEFAULT_INTRINSICS`, `DepthNoise`, `apply_depth_noise`
 - capture: `orbit_poses`, `turntable_poses`, `rest_on_table`, `place_distractors`, `default_distance`,
   `write_capture`, `render_capture`
 """
@@ -11,15 +11,16 @@ from __future__ import annotations
 
 from gscan.synth.capture import (default_distance, footprint_radius, orbit_poses, place_distractors,
                                  render_capture, rest_on_table, turntable_poses, write_capture)
-from gscan.synth.mesh import (TexturedMesh, box_mesh, load_textured_mesh, sample_bilinear, sample_mip,
-                              save_textured_mesh, texture_pyramid)
+from gscan.synth.mesh import (TexturedMesh, box_mesh, cylinder_mesh, load_textured_mesh, sample_bilinear,
+                              sample_mip, save_textured_mesh, texture_pyramid)
 from gscan.synth.noise import DepthNoise, apply_depth_noise, depth_sigma
-from gscan.synth.render import DEFAULT_INTRINSICS, RenderedFrame, SynthScene
+from gscan.synth.render import DEFAULT_INTRINSICS, Gloss, RenderedFrame, SynthScene
 from gscan.synth.textures import procedural_box_texture, table_texture
 
 __all__ = [
-    "DEFAULT_INTRINSICS", "DepthNoise", "RenderedFrame", "SynthScene", "TexturedMesh", "apply_depth_noise",
-    "box_mesh", "default_distance", "depth_sigma", "footprint_radius", "load_textured_mesh", "orbit_poses",
-    "place_distractors", "procedural_box_texture", "render_capture", "rest_on_table", "sample_bilinear",
-    "sample_mip", "save_textured_mesh", "table_texture", "texture_pyramid", "turntable_poses", "write_capture",
+    "DEFAULT_INTRINSICS", "DepthNoise", "Gloss", "RenderedFrame", "SynthScene", "TexturedMesh", "apply_depth_noise",
+    "box_mesh", "cylinder_mesh", "default_distance", "depth_sigma", "footprint_radius", "load_textured_mesh",
+    "orbit_poses", "place_distractors", "procedural_box_texture", "render_capture", "rest_on_table",
+    "sample_bilinear", "sample_mip", "save_textured_mesh", "table_texture", "texture_pyramid", "turntable_poses",
+    "write_capture",
 ]

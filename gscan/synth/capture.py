@@ -14,7 +14,7 @@ import numpy as np
 from gscan.io.camera import Intrinsics
 from gscan.geometry.transforms import look_at, make_T, rotvec_to_R, transform_points
 from gscan.synth.mesh import TexturedMesh, box_mesh
-from gscan.synth.render import DEFAULT_INTRINSICS, RenderedFrame, SynthScene
+from gscan.synth.render import DEFAULT_INTRINSICS, DEFAULT_LIGHT_DIR, Gloss, RenderedFrame, SynthScene
 from gscan.synth.textures import procedural_box_texture
 
 log = logging.getLogger(__name__)
@@ -138,7 +138,9 @@ def render_capture(mesh: TexturedMesh, out_dir: str | Path | None, n_views: int,
                    elevations_deg: tuple[float, ...] = (30.0, 55.0), table_kind: str = "newspaper",
                    noise: bool = True, shadows: bool = True, jpeg: bool = False, write_masks: bool = True,
                    R_world_obj: np.ndarray | None = None, table: bool = True,
-                   wall_y: float | None = None) -> list[RenderedFrame]:
+                   wall_y: float | None = None, gloss: Gloss | None = None,
+                   light_dir: tuple[float, float, float] = DEFAULT_LIGHT_DIR,
+                   view_angles_deg: list[tuple[float, float]] | None = None) -> list[RenderedFrame]:
     """Render (and, when out_dir is given, write) a capture of `mesh` resting on a textured table.
 
     mode "static": object fixed, cameras on orbit rings at `elevations_deg` (views spread evenly over
@@ -147,12 +149,17 @@ def render_capture(mesh: TexturedMesh, out_dir: str | Path | None, n_views: int,
     distance defaults to `default_distance` (object ~40% of the frame). Distractors are
     `distractor_meshes` or procedural boxes, placed around the target without overlap.
     R_world_obj turns the object before it is put on the table; table=False renders it floating
-    over an empty background; wall_y adds a textured back wall in the plane y = wall_y.
+    over an empty background; wall_y adds a textured back wall in the plane y = wall_y. gloss makes the
+    target (or the objects it names) glossy (`Gloss`); light_dir is the direction towards the light (world).
+    view_angles_deg (static mode): the cameras' own (elevation, azimuth) pairs in degrees, one per view,
+    instead of the rings (n_views must match).
     """
     if mode not in ("static", "turntable"):
         raise ValueError(f"mode must be 'static' or 'turntable', got {mode!r}")
     if n_views < 1:
         raise ValueError("n_views must be >= 1")
+    if view_angles_deg is not None and (mode != "static" or len(view_angles_deg) != n_views):
+        raise ValueError("view_angles_deg: one (elevation, azimuth) per view, in static mode")
     rng = np.random.default_rng([seed, 0xCA9])
     T_world_obj = rest_on_table(mesh, R_world_obj)
     if distractor_meshes is None:
@@ -162,14 +169,16 @@ def render_capture(mesh: TexturedMesh, out_dir: str | Path | None, n_views: int,
         distractor_meshes = list(distractor_meshes)[:distractors]
     d_poses = place_distractors(mesh, T_world_obj, distractor_meshes, rng)
     scene = SynthScene([(mesh, T_world_obj)] + list(zip(distractor_meshes, d_poses)), seed=seed,
-                       table_kind=table_kind, shadows=shadows, table=table, wall_y=wall_y)
+                       table_kind=table_kind, shadows=shadows, table=table, wall_y=wall_y, gloss=gloss,
+                       light_dir=light_dir)
     center = transform_points(T_world_obj, mesh.center[None])[0]
     dist = default_distance(mesh, intr) if distance is None else float(distance)
     frames = []
     if mode == "static":
         n_rings = len(elevations_deg)
         per = int(np.ceil(n_views / n_rings))
-        cams = orbit_poses(center, dist, elevations_deg, per)[:n_views]  # ring by ring
+        cams = (orbit_poses(center, dist, elevations_deg, per)[:n_views] if view_angles_deg is None  # ring by ring
+                else [orbit_poses(center, dist, [el], 1, azimuth0_deg=az)[0] for el, az in view_angles_deg])
         for i, T_wc in enumerate(cams):
             frames.append(scene.render(T_wc, intr, noise=noise, rng=np.random.default_rng([seed, i])))
     else:

@@ -24,6 +24,7 @@ from gscan.synth.textures import table_texture
 log = logging.getLogger(__name__)
 
 DEFAULT_INTRINSICS = Intrinsics(fx=615.0, fy=615.0, cx=319.5, cy=239.5, width=640, height=480)
+DEFAULT_LIGHT_DIR = (0.35, -0.3, 1.0)  # towards the light (world): from above, slightly to one side
 _SURF_NONE, _SURF_TABLE, _SURF_WALL, _SURF_OBJ = 0, 1, 2, 3
 
 
@@ -49,6 +50,23 @@ def _pixel_rays_cached(intr: Intrinsics) -> np.ndarray:
     r = pixel_rays(intr).reshape(-1, 3).astype(np.float32)
     r.setflags(write=False)
     return r
+
+
+@dataclass(frozen=True)
+class Gloss:
+    """Specular highlights on glossy objects, and the depth a sensor loses on them.
+
+    A glossy surface adds a Blinn-Phong highlight, strength * max(0, n.h)^shininess (h: the half vector
+    between the light and the viewer), where the light reaches it; the highlight moves over the surface with
+    the viewpoint and saturates the colour. Where its term (0..1) exceeds `dropout`, the depth is lost (with
+    noise on): the mirror-like reflection sends the projector's pattern away from the sensor, which then sees
+    no texture to match. objects: indices of the glossy objects (0 = the target).
+    """
+
+    strength: float = 255.0
+    shininess: float = 40.0
+    dropout: float = 0.35
+    objects: tuple[int, ...] = (0,)
 
 
 @dataclass
@@ -80,14 +98,15 @@ class SynthScene:
     table: draw a square table top of half side `table_half_extent` m (texture `table_kind`).
     wall_y: if given, a vertical textured wall in the plane y = wall_y facing -y.
     light_dir: direction towards the light (world); ambient + diffuse * max(0, n.l) * visibility.
+    gloss: specular highlights and their depth dropouts on some objects (`Gloss`); None: every surface matte.
     """
 
     def __init__(self, objects: list[tuple[TexturedMesh, np.ndarray]], table: bool = True, seed: int = 0,
                  table_kind: str = "newspaper", table_half_extent: float = 0.75, table_texture_size: int = 2048,
                  wall_y: float | None = None, wall_kind: str = "wood",
-                 light_dir: tuple[float, float, float] = (0.35, -0.3, 1.0), ambient: float = 0.5,
+                 light_dir: tuple[float, float, float] = DEFAULT_LIGHT_DIR, ambient: float = 0.5,
                  diffuse: float = 0.6, shadows: bool = True,
-                 background_rgb: tuple[int, int, int] = (58, 60, 66)) -> None:
+                 background_rgb: tuple[int, int, int] = (58, 60, 66), gloss: Gloss | None = None) -> None:
         if not objects:
             raise ValueError("a scene needs at least one object (object 0 is the target)")
         self.meshes = [m for m, _ in objects]
@@ -99,6 +118,7 @@ class SynthScene:
         light = np.asarray(light_dir, dtype=np.float64)
         self.light_dir = light / np.linalg.norm(light)
         self.background_rgb = np.asarray(background_rgb, dtype=np.float32)
+        self.gloss = gloss
         self._scenes = []
         for m in self.meshes:
             sc = o3d.t.geometry.RaycastingScene()
@@ -179,6 +199,23 @@ class SynthScene:
             occ[cand] |= sc.test_occlusions(rays, tnear=1e-4, tfar=tfar).numpy().astype(bool)
         return occ
 
+    def _highlight(self, hit_idx: np.ndarray, label: np.ndarray, n_hit: np.ndarray, d_hit: np.ndarray,
+                   lam: np.ndarray) -> np.ndarray:
+        """[len(hit_idx)] Blinn-Phong highlight term in [0, 1] of the hit pixels: nonzero on the glossy objects
+        where the light reaches them (lam > 0: lit and not in shadow); n_hit [N x 3] faces the camera, d_hit
+        [N x 3] are the rays' world directions."""
+        g = self.gloss
+        assert g is not None
+        glossy = np.isin(label[hit_idx], np.asarray(g.objects, np.int16)) & (lam > 0)
+        spec = np.zeros(len(hit_idx), np.float32)
+        sel = np.flatnonzero(glossy)
+        if len(sel):
+            v = -d_hit[sel] / np.linalg.norm(d_hit[sel], axis=1, keepdims=True)
+            h = v + self.light_dir.astype(np.float32)
+            h /= np.linalg.norm(h, axis=1, keepdims=True)
+            spec[sel] = np.clip(np.einsum("ij,ij->i", n_hit[sel], h), 0.0, 1.0) ** np.float32(g.shininess)
+        return spec
+
     # ------------------------------------------------------------------ rendering
     def render(self, T_world_cam: np.ndarray, intr: Intrinsics = DEFAULT_INTRINSICS, noise: bool = True,
                rng: np.random.Generator | None = None, T_world_obj_override: np.ndarray | list | None = None,
@@ -250,6 +287,7 @@ class SynthScene:
                 rgb[sel] = sample_mip_pixels(pyr, plane_uv[sel], np.log2(np.maximum(footprint[sel] * dens, 1e-6)),
                                              sel // W, sel % W)
 
+        spec: np.ndarray | None = None  # [len(hit_idx)] highlight term of the glossy objects
         if shading:
             lam = np.clip(_dot(n_hit, self.light_dir.astype(np.float32)), 0.0, None)
             if self.shadows:
@@ -257,6 +295,9 @@ class SynthScene:
                 pts = origin + t[hit_idx[cand], None].astype(np.float64) * d_hit[cand] + 5e-4 * n_hit[cand]
                 lam[cand[self._occluded(pts, T_wo)]] = 0.0
             rgb[hit_idx] *= (self.ambient + self.diffuse * lam)[:, None]
+            if self.gloss is not None:
+                spec = self._highlight(hit_idx, label, n_hit, d_hit, lam)
+                rgb[hit_idx] += np.float32(self.gloss.strength) * spec[:, None]
 
         depth_clean = np.where(np.isfinite(t), t, 0.0).reshape(H, W).astype(np.float32)
         depth_clean[depth_clean < 0] = 0.0
@@ -264,13 +305,17 @@ class SynthScene:
         if noise:
             if rng is None:  # deterministic per (scene seed, camera pose, object poses), independent of call order
                 rng = np.random.default_rng([self.seed, zlib.crc32(T_world_cam.tobytes() + T_wo.tobytes())])
-            invalid = None
+            invalid: np.ndarray | None = None
             if noise_params.baseline > 0:  # stereo / projector occlusion: points the second imager cannot see
                 T_w2 = T_world_cam[:3, :3] @ np.array([noise_params.baseline, 0.0, 0.0]) + origin
                 pts = origin + t[hit_idx, None].astype(np.float64) * d_hit + 5e-4 * n_hit
                 invalid = np.zeros(H * W, bool)
                 invalid[hit_idx[self._occluded(pts, T_wo, towards=T_w2)]] = True
                 invalid = invalid.reshape(H, W)
+            if spec is not None and self.gloss is not None:  # glossy spots lose their depth
+                lost = np.zeros(H * W, bool)
+                lost[hit_idx[spec > self.gloss.dropout]] = True
+                invalid = lost.reshape(H, W) if invalid is None else invalid | lost.reshape(H, W)
             depth = apply_depth_noise(depth_clean, labels, cos_view.reshape(H, W), rng, noise_params, invalid)
             if noise_params.color_blur_sigma > 0:
                 rgb = cv2.GaussianBlur(rgb.reshape(H, W, 3), (0, 0), noise_params.color_blur_sigma).reshape(-1, 3)

@@ -1,0 +1,179 @@
+"""Rendered captures built to resemble the ones scanners get wrong, with exact ground truth.
+
+Each builder writes a capture in the capture layout (`write_capture`; no masks: a hand-held capture has
+none) and returns a `Case` saying which frames show the scanned object (their ground truth is in
+annotated_poses/) and which show something else:
+
+- `far_capture`: the object 1.5-2.5 m from the camera, where the depth noise grows with the square of the
+  distance and the object fills a small part of the frame;
+- `glossy_can_capture`: a can with a wrapped label lying on the table (curved), glossy: specular highlights
+  that move with the viewpoint and lose the depth where they shine (`Gloss`);
+- `ring_jump_capture`: 20-degree steps around two rings, the second 25 degrees higher than the first, joined
+  by one 25-degree jump;
+- `shifted_depth_capture`: the depth image shifted a few pixels against the colour image, as a sensor
+  whose depth is not registered to its colour camera gives it;
+- `inserted_frame_capture`: one frame of another object on another table in the middle of a capture;
+- `twin_objects_capture`: copies of the same object side by side (a print repeated on the table);
+- `two_scenes_capture`: a capture of one object followed by a few frames of another scene, two parts
+  that no correct registration joins;
+- `gap_orbit_capture`: two arcs of an orbit with a gap between them, low over a plain table: two parts of
+  one scene that share no surface.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from gscan.geometry.transforms import rotvec_to_R
+from gscan.io.camera import Intrinsics
+from gscan.synth.capture import render_capture, write_capture
+from gscan.synth.mesh import TexturedMesh, cylinder_mesh
+from gscan.synth.render import DEFAULT_INTRINSICS, Gloss, RenderedFrame
+from gscan.synth.textures import procedural_box_texture
+
+
+@dataclass
+class Case:
+    """A written capture. frames: every frame name in order; object_frames: the frames of the scanned object
+    (ground truth T_cam_obj in annotated_poses/); other_frames: frames of another scene (their annotated pose
+    is that of another object, not comparable), which must stay unregistered or form a part of their own."""
+
+    path: Path
+    frames: list[str]
+    object_frames: list[str]
+    other_frames: list[str] = field(default_factory=list)
+    mesh: TexturedMesh | None = None  # the scanned object
+
+
+def _names(n: int) -> list[str]:
+    return [f"{i:06d}" for i in range(n)]
+
+
+def _write(out_dir: str | Path, frames: list[RenderedFrame], intr: Intrinsics, names: list[str] | None = None) -> Path:
+    return write_capture(out_dir, frames, intr, names=names, write_masks=False)
+
+
+def far_capture(mesh: TexturedMesh, out_dir: str | Path, distance: float, n_views: int = 10,
+                elevation_deg: float = 30.0, table_kind: str = "newspaper", seed: int = 0,
+                intr: Intrinsics = DEFAULT_INTRINSICS) -> Case:
+    """n_views on one ring at `elevation_deg`, `distance` metres from the object's centre."""
+    frames = render_capture(mesh, None, n_views, mode="static", intr=intr, seed=seed, distance=distance,
+                            elevations_deg=(elevation_deg,), table_kind=table_kind)
+    names = _names(len(frames))
+    return Case(_write(out_dir, frames, intr), names, names, mesh=mesh)
+
+
+def glossy_can(seed: int = 3, radius: float = 0.04, height: float = 0.2) -> TexturedMesh:
+    """A can (closed cylinder) with a printed label wrapped around it."""
+    return cylinder_mesh(radius, height, procedural_box_texture(seed, (1024, 768)), name="glossy_can")
+
+
+def glossy_can_capture(out_dir: str | Path, n_views: int = 24, mode: str = "turntable", seed: int = 0,
+                       gloss: Gloss = Gloss(), table_kind: str = "newspaper",
+                       intr: Intrinsics = DEFAULT_INTRINSICS) -> Case:
+    """A glossy can lying on its side (its curved label faces the camera and the light, so highlights show):
+    a turntable (the can turns under a static camera and light, the highlight stays while the label moves)
+    or a static orbit (two rings)."""
+    mesh = glossy_can()
+    R_lying = rotvec_to_R(np.array([np.pi / 2, 0.0, 0.0]))
+    frames = render_capture(mesh, None, n_views, mode=mode, intr=intr, seed=seed, R_world_obj=R_lying,
+                            gloss=gloss, elevations_deg=(30.0,) if mode == "turntable" else (30.0, 55.0),
+                            table_kind=table_kind)
+    names = _names(len(frames))
+    return Case(_write(out_dir, frames, intr), names, names, mesh=mesh)
+
+
+def ring_jump_angles(step_deg: float = 20.0, jump_deg: float = 25.0, elevation_deg: float = 20.0,
+                     ) -> list[tuple[float, float]]:
+    """(elevation, azimuth) of views every `step_deg` around a ring at `elevation_deg`, then every `step_deg`
+    around a ring `jump_deg` higher that starts above the first ring's last view (one jump of jump_deg)."""
+    n = int(round(360.0 / step_deg))
+    first = [(elevation_deg, k * step_deg) for k in range(n)]
+    last_az = first[-1][1]
+    return first + [(elevation_deg + jump_deg, last_az + k * step_deg) for k in range(n)]
+
+
+def ring_jump_capture(mesh: TexturedMesh, out_dir: str | Path, step_deg: float = 20.0, jump_deg: float = 25.0,
+                      elevation_deg: float = 20.0, table_kind: str = "newspaper", seed: int = 0,
+                      intr: Intrinsics = DEFAULT_INTRINSICS) -> Case:
+    """Two rings of `step_deg` steps joined by one `jump_deg` jump (`ring_jump_angles`)."""
+    angles = ring_jump_angles(step_deg, jump_deg, elevation_deg)
+    frames = render_capture(mesh, None, len(angles), mode="static", intr=intr, seed=seed, view_angles_deg=angles,
+                            table_kind=table_kind)
+    names = _names(len(frames))
+    return Case(_write(out_dir, frames, intr), names, names, mesh=mesh)
+
+
+def shift_image(img: np.ndarray, dx: int, dy: int) -> np.ndarray:
+    """[H x W] image moved by (dx, dy) pixels (right, down); the uncovered border is 0 (no depth)."""
+    out = np.zeros_like(img)
+    H, W = img.shape[:2]
+    ys, yd = (slice(0, H - dy), slice(dy, H)) if dy >= 0 else (slice(-dy, H), slice(0, H + dy))
+    xs, xd = (slice(0, W - dx), slice(dx, W)) if dx >= 0 else (slice(-dx, W), slice(0, W + dx))
+    out[yd, xd] = img[ys, xs]
+    return out
+
+
+def shifted_depth_capture(mesh: TexturedMesh, out_dir: str | Path, shift_px: tuple[int, int] = (5, 0),
+                          n_views: int = 12, table_kind: str = "newspaper", seed: int = 0,
+                          intr: Intrinsics = DEFAULT_INTRINSICS) -> Case:
+    """A static capture (two rings) whose depth images are all shifted by `shift_px` (dx, dy) against the
+    colour images: the error of a depth sensor used without registering its depth to its colour camera."""
+    frames = render_capture(mesh, None, n_views, mode="static", intr=intr, seed=seed, table_kind=table_kind)
+    for f in frames:
+        f.depth = shift_image(f.depth, *shift_px)
+    names = _names(len(frames))
+    return Case(_write(out_dir, frames, intr), names, names, mesh=mesh)
+
+
+def inserted_frame_capture(mesh: TexturedMesh, other: TexturedMesh, out_dir: str | Path, n_views: int = 10,
+                           at: int | None = None, seed: int = 0, intr: Intrinsics = DEFAULT_INTRINSICS) -> Case:
+    """A static capture of `mesh` on the newspaper table (one ring) with one frame of `other` on a wooden
+    table inserted after frame `at` (default: the middle); the names sort in that order."""
+    frames = render_capture(mesh, None, n_views, mode="static", intr=intr, seed=seed, elevations_deg=(35.0,))
+    odd = render_capture(other, None, 1, mode="static", intr=intr, seed=seed + 1, table_kind="wood",
+                         elevations_deg=(35.0,))[0]
+    k = n_views // 2 if at is None else at
+    names = _names(n_views + 1)
+    ordered = frames[:k] + [odd] + frames[k:]
+    return Case(_write(out_dir, ordered, intr, names), names, names[:k] + names[k + 1:], [names[k]], mesh=mesh)
+
+
+def twin_objects_capture(mesh: TexturedMesh, out_dir: str | Path, copies: int = 1, n_views: int = 12,
+                         elevations_deg: tuple[float, ...] = (30.0, 55.0), table_kind: str = "newspaper",
+                         seed: int = 0, intr: Intrinsics = DEFAULT_INTRINSICS) -> Case:
+    """A static capture of `mesh` with `copies` identical copies of it standing around it on the table (the
+    camera orbits the first)."""
+    frames = render_capture(mesh, None, n_views, mode="static", intr=intr, seed=seed, distractors=copies,
+                            distractor_meshes=[mesh] * copies, elevations_deg=elevations_deg,
+                            table_kind=table_kind)
+    names = _names(len(frames))
+    return Case(_write(out_dir, frames, intr), names, names, mesh=mesh)
+
+
+def two_scenes_capture(mesh: TexturedMesh, other: TexturedMesh, out_dir: str | Path, n_views: int = 8,
+                       n_other: int = 4, seed: int = 0, intr: Intrinsics = DEFAULT_INTRINSICS) -> Case:
+    """`n_views` of `mesh` on the newspaper table (a ring at 35 degrees), then `n_other` of `other` on a wooden
+    table (20-degree steps at 35 degrees): two parts that share nothing."""
+    frames = render_capture(mesh, None, n_views, mode="static", intr=intr, seed=seed, elevations_deg=(35.0,))
+    more = render_capture(other, None, n_other, mode="static", intr=intr, seed=seed + 1, table_kind="wood",
+                          view_angles_deg=[(35.0, 20.0 * k) for k in range(n_other)])
+    names = _names(n_views + n_other)
+    return Case(_write(out_dir, frames + more, intr, names), names, names[:n_views], names[n_views:], mesh=mesh)
+
+
+def gap_orbit_capture(mesh: TexturedMesh, out_dir: str | Path, n_first: int = 6, n_second: int = 4,
+                      step_deg: float = 20.0, gap_deg: float = 120.0, elevation_deg: float = 10.0,
+                      table_kind: str = "plain", seed: int = 0, intr: Intrinsics = DEFAULT_INTRINSICS) -> Case:
+    """Two arcs of views `step_deg` apart on one ring, `n_first` then `n_second` views, the second starting
+    `gap_deg` after the first ends: two halves of an orbit. Low (10 degrees) over a plain table, the halves see
+    different faces of the object and nothing else in common: no correct registration joins them."""
+    first = [(elevation_deg, k * step_deg) for k in range(n_first)]
+    start = first[-1][1] + gap_deg
+    angles = first + [(elevation_deg, start + k * step_deg) for k in range(n_second)]
+    frames = render_capture(mesh, None, len(angles), mode="static", intr=intr, seed=seed, view_angles_deg=angles,
+                            table_kind=table_kind)
+    names = _names(len(frames))
+    return Case(_write(out_dir, frames, intr), names, names, mesh=mesh)
