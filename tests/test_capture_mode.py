@@ -6,7 +6,7 @@ import pytest
 
 from gscan.io.camera import RGBDFrame
 from gscan.scan.capture_mode import MOVING_OBJECT, STATIC_OBJECT, detect_mode, moving_object_masks
-from gscan.scan.keyframes import select_keyframes
+from gscan.scan.keyframes import select_keyframes, view_direction
 from gscan.synth import DEFAULT_INTRINSICS, box_mesh, procedural_box_texture, render_capture
 
 
@@ -51,3 +51,28 @@ def test_keyframes_cover_directions_and_respect_the_cap():
                 assert np.degrees(np.arccos(np.clip(dirs[a] @ dirs[b], -1, 1))) >= 12.0 - 1e-9
     capped = select_keyframes(dirs, min_angle_deg=12.0, max_views=10)
     assert 1 < len(capped) <= 10
+
+
+def test_keyframes_of_a_short_sweep_are_the_views_with_object_keypoints():
+    """A sideways sweep (optical axis fixed, 60 frames over 1.2 m at 1.8 m from the object: 37 deg of view
+    direction) keeps at least min_views keyframes, each among the views with enough object keypoints; the
+    optical axis alone would see one direction."""
+    from gscan.geometry.transforms import look_at
+
+    T_obj_cam = []
+    for x in np.linspace(-0.6, 0.6, 60):
+        T = look_at(np.array([x, -1.8, 0.5]), np.array([x, 0.0, 0.0]))  # every camera looks straight ahead
+        T_obj_cam.append(T)
+    assert all(np.allclose(T[:3, 2], T_obj_cam[0][:3, 2]) for T in T_obj_cam)
+    dirs = {k: view_direction(T) for k, T in enumerate(T_obj_cam)}
+    spread = np.degrees(np.arccos(np.clip(dirs[0] @ dirs[59], -1, 1)))
+    assert 35 < spread < 40
+    counts = {k: (5 if k % 3 == 0 else 100 + k) for k in dirs}  # every third view sees the object badly
+    kf = select_keyframes(dirs, 12.0, 120, counts, min_keypoints=24, min_views=8)
+    assert len(kf) >= 8 and all(counts[k] >= 24 for k in kf), kf
+    assert select_keyframes(dirs, 12.0, 120, counts, min_keypoints=24, min_views=1) == sorted(
+        select_keyframes(dirs, 12.0, 120, counts, min_keypoints=24, min_views=1))
+    assert len(select_keyframes(dirs, 12.0, 120, counts, min_keypoints=24, min_views=1)) == 3  # 37 deg / 12 deg
+    none_rich = {k: 3 if k > 1 else 30 for k in dirs}  # 2 views have enough, fewer than 8: all are candidates
+    assert len(select_keyframes(dirs, 12.0, 120, none_rich, min_keypoints=24, min_views=8)) >= 8
+    assert len(select_keyframes(dirs, 12.0, 5, counts, min_keypoints=24, min_views=8)) == 5  # the cap wins

@@ -43,7 +43,8 @@ def test_an_edited_value_is_used(tmp_path):
     ("segmentation:\n  depth_min: 2.0\n  depth_max: 1.0\n", "segmentation"),
     ("segmentation:\n  height_max: 0.001\n", "segmentation.height_max"),
     ("segmentation:\n  depth_max: 1.0e+300\n", "segmentation.depth_max"),
-    ("segmentation:\n  depth_min: 5\n  depth_max: 10\n", "segmentation.depth_min must be below fusion.depth_max"),
+    ("segmentation:\n  depth_min: 5\n  depth_max: 10\nfusion:\n  depth_max: 2\n",
+     "segmentation.depth_min must be below fusion.depth_max"),
 ])
 def test_bad_config_names_the_file_and_the_key(tmp_path, text, words):
     path = tmp_path / "bad.yaml"
@@ -75,8 +76,8 @@ def test_every_registration_key_reaches_the_registration_parameters():
 
 
 def test_segmentation_keys_reach_the_segmentation_and_a_far_object_is_found(meshes_dir):
-    """The object 1.9 m away lies beyond the default working depth (1.5 m): segmentation misses it (it takes the
-    whole near scene, IoU 0); with `segmentation.depth_max: 2.5` it finds the object on its table."""
+    """The object 1.9 m away: the default working depth, from the depth at the image centre, finds it on its table;
+    a fixed `segmentation.depth_max: 1.5` misses it (it takes the whole near scene, IoU 0), 2.5 finds it."""
     from gscan.io.camera import RGBDFrame
     from gscan.scan.pipeline import _segment_params
     from gscan.scan.segment import segment_frame
@@ -84,13 +85,15 @@ def test_segmentation_keys_reach_the_segmentation_and_a_far_object_is_found(mesh
 
     base = ScanConfig()
     for key, value in base.segmentation.model_dump().items():
+        value = 1.0 if value is None else value
         cfg = base.model_copy(update={"segmentation": base.segmentation.model_copy(update={key: value + 0.5})})
         assert getattr(_segment_params(cfg), key) == value + 0.5, key
     mesh = load_textured_mesh(meshes_dir / "Crayola_Bonus_64_Crayons" / "model_0.obj")
     fr = render_capture(mesh, None, 1, distance=1.9, elevations_deg=(40.0,))[0]
     frame = RGBDFrame("far", fr.color, fr.depth, fr.intrinsics)
+    near = ScanConfig.model_validate({"segmentation": {"depth_max": 1.5}})
     far = ScanConfig.model_validate({"segmentation": {"depth_max": 2.5}})
-    for cfg, min_iou, max_iou in ((base, 0.0, 0.1), (far, 0.6, 1.0)):
+    for cfg, min_iou, max_iou in ((base, 0.6, 1.0), (near, 0.0, 0.1), (far, 0.6, 1.0)):
         m = segment_frame(frame, _segment_params(cfg)).mask
         iou = (m & fr.mask).sum() / max(1, (m | fr.mask).sum())
         assert min_iou <= iou <= max_iou, (cfg.segmentation.depth_max, iou)

@@ -46,7 +46,7 @@ def far_scans(tmp_path_factory, box):
             cap = root / f"{table}_{distance:g}"
             case = C.far_capture(box, cap, distance, n_views=10, table_kind=table, seed=0)
             try:
-                done[key] = scan_case(case, cap.with_suffix(".gscan"))
+                done[key] = scan_case(case, root / f"{table}_{distance:g}.gscan")  # not with_suffix: 2.5 -> 2.gscan
             except Exception as e:  # noqa: BLE001 - the test reports what the scan raised
                 done[key] = e
         got = done[key]
@@ -76,7 +76,7 @@ _FLIP = ("three loop edges between views 180 deg apart (0-5, 2-7, 3-8; 15-19 mat
 
 @pytest.mark.parametrize("distance, table", [
     (1.5, "newspaper"), (2.0, "newspaper"),
-    pytest.param(2.5, "newspaper", marks=pytest.mark.xfail(strict=True, reason=_WORKING_VOLUME)),
+    (2.5, "newspaper"),
     pytest.param(1.5, "wood", marks=pytest.mark.xfail(strict=True, reason=_FLIP)),
     pytest.param(2.0, "wood", marks=pytest.mark.xfail(strict=True, reason=_MODE)),
 ])
@@ -88,9 +88,8 @@ def test_far_object_every_frame_registered_none_wrong(far_scans, distance, table
 
 @pytest.mark.parametrize("distance", [
     1.5,
-    pytest.param(2.0, marks=pytest.mark.xfail(strict=True, reason="the template is the table: the object lies "
-                                              "beyond the fixed 1.5 m working volume (issue 17, item 5)")),
-    pytest.param(2.5, marks=pytest.mark.xfail(strict=True, reason=_WORKING_VOLUME)),
+    2.0,
+    2.5,
 ])
 def test_far_object_template_is_the_object(far_scans, box, distance):
     """The template of a far capture is the object, found without editing the working volume: 95 % of its vertices

@@ -72,8 +72,9 @@ class RegisterConfig(_Section):
                                  "(position, 1 sigma)")
     max_see_through: float = Field(_RP.max_see_through, ge=0, le=1, description="an edge is rejected when its pose "
                                    "lets one frame see through this share of the other frame's surfaces")
-    dense_refine: bool = Field(_RP.dense_refine, description="refine each edge's pose on its keypoints and both "
-                               "frames' depth together (point-to-plane)")
+    dense_refine: bool | None = Field(None, description="refine each edge's pose on its keypoints and both frames' "
+                                      "depth together (point-to-plane); null = for a moving object only (a static "
+                                      "scene's depth drifts from the truth where the camera moves fast)")
     verify: int = Field(_RP.verify, ge=0, le=256, description="other GMatch hypothesis lists whose support is checked "
                         "against the longest's (0 = the paper's pick)")
     support_eps_scale: float = Field(_RP.support_eps_scale, ge=1, le=4, description="the support of those lists counts "
@@ -105,17 +106,19 @@ class PoseGraphConfig(_Section):
 
 class FusionConfig(_Section):
     voxel: float | None = Field(None, gt=0, description="TSDF voxel size (m); null = object extent / 150 within 2-10 mm")
-    depth_max: float = Field(2.0, gt=0, description="depth beyond this is ignored when fusing (m)")
+    depth_max: float | None = Field(None, gt=0, description="depth beyond this is ignored when fusing (m); null = "
+                                    "just beyond the farthest object pixel")
 
 
 class SegmentationConfig(_Section):
     depth_min: float = Field(0.1, ge=0.05, le=20, description="the object is looked for at depths from this (m) ...")
-    depth_max: float = Field(1.5, gt=0.05, le=20, description="... to this (m); raise it (and fusion.depth_max) for a far camera")
+    depth_max: float | None = Field(None, gt=0.05, le=20, description="... to this (m); null = 1.5 x the depth at "
+                                    "the image centre, where a scan keeps the object")
     height_max: float = Field(0.5, ge=0.01, le=5, description="the object stands at most this high above its support plane (m)")
 
     @model_validator(mode="after")
     def _range(self) -> "SegmentationConfig":
-        if self.depth_max <= self.depth_min:
+        if self.depth_max is not None and self.depth_max <= self.depth_min:
             raise ValueError("depth_max must be greater than depth_min")
         return self
 
@@ -123,6 +126,10 @@ class SegmentationConfig(_Section):
 class KeyframeConfig(_Section):
     min_angle_deg: float = Field(12.0, ge=0, description="a new keyframe views the object at least this far from all others")
     max_views: int = Field(120, ge=1, description="at most this many template views")
+    min_views: int = Field(8, ge=1, description="at least this many template views when the capture has them (the "
+                           "angle shrinks for a short sweep)")
+    min_object_keypoints: int = Field(24, ge=0, description="keyframes are views with at least this many keypoints "
+                                      "on the object (when any has)")
 
 
 class ScanConfig(_Section):
@@ -136,7 +143,7 @@ class ScanConfig(_Section):
 
     @model_validator(mode="after")
     def _segment_within_fusion(self) -> "ScanConfig":
-        if self.segmentation.depth_min >= self.fusion.depth_max:
+        if self.fusion.depth_max is not None and self.segmentation.depth_min >= self.fusion.depth_max:
             raise ValueError("segmentation.depth_min must be below fusion.depth_max (nothing could be fused)")
         return self
 

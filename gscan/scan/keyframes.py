@@ -1,29 +1,52 @@
 """Keyframe selection: the registered views a template keeps for pose estimation, spread over the
-viewing directions.
+directions the object was seen from, each holding enough keypoints on the object to be matched.
 """
 from __future__ import annotations
 
 import numpy as np
 
 
-def select_keyframes(view_dirs: dict[int, np.ndarray], min_angle_deg: float, max_views: int) -> list[int]:
-    """Keyframes that cover the object: greedy in input order.
+def view_direction(T_obj_cam: np.ndarray) -> np.ndarray:
+    """[3] unit direction from the camera centre to the object frame's origin (the object's centre), in the
+    object frame: what the camera sees of the object, also for a sideways sweep that keeps its optical axis."""
+    c = np.asarray(T_obj_cam, dtype=np.float64)[:3, 3]
+    n = np.linalg.norm(c)
+    return -c / n if n > 0 else np.asarray(T_obj_cam, dtype=np.float64)[:3, 2]
 
-    view_dirs: frame index -> unit viewing direction in the object frame (camera z axis).
-    A frame becomes a keyframe when its direction is at least `min_angle_deg` from every
-    keyframe already chosen (the first registered frame always is). When more than `max_views`
-    qualify, the angle grows by 10 % until they fit. Returns sorted frame indices.
+
+def _greedy(order: list[int], dirs: dict[int, np.ndarray], angle: float) -> list[int]:
+    chosen: list[int] = []
+    for i in order:
+        if all(np.degrees(np.arccos(np.clip(float(dirs[i] @ dirs[j]), -1, 1))) >= angle for j in chosen):
+            chosen.append(i)
+    return chosen
+
+
+def select_keyframes(view_dirs: dict[int, np.ndarray], min_angle_deg: float, max_views: int,
+                     object_keypoints: dict[int, int] | None = None, min_keypoints: int = 0,
+                     min_views: int = 1) -> list[int]:
+    """Keyframes that cover the object: greedy, best-supplied views first.
+
+    view_dirs: frame index -> unit viewing direction in the object frame (`view_direction`);
+    object_keypoints: frame index -> keypoints with depth on the object (None: all equal).
+    Frames with at least `min_keypoints` object keypoints are candidates (all frames when fewer than
+    `min_views` have that many), taken in order of decreasing count (then index): a frame becomes a keyframe when its direction
+    is at least the angle from every keyframe already chosen. The angle starts at `min_angle_deg`; it
+    grows by 10 % while more than `max_views` qualify and shrinks by 20 % (down to 0.5 deg) while fewer than
+    `min_views` do, so a short sweep over a few degrees still keeps several views. Returns sorted indices.
     """
-    order = sorted(view_dirs)
-    if not order:
+    if not view_dirs:
         return []
+    counts = object_keypoints or {}
+    order = sorted(view_dirs, key=lambda i: (-counts.get(i, 0), i))
+    rich = [i for i in order if counts.get(i, 0) >= min_keypoints]
+    order = rich if len(rich) >= min(min_views, len(order)) else order
     angle = min_angle_deg
-    while True:
-        chosen: list[int] = []
-        for i in order:
-            d = view_dirs[i]
-            if all(np.degrees(np.arccos(np.clip(float(d @ view_dirs[j]), -1, 1))) >= angle for j in chosen):
-                chosen.append(i)
-        if len(chosen) <= max_views or angle >= 180:
-            return chosen
+    chosen = _greedy(order, view_dirs, angle)
+    while len(chosen) > max_views and angle < 180:
         angle = max(angle * 1.1, angle + 0.5)
+        chosen = _greedy(order, view_dirs, angle)
+    while len(chosen) < min(min_views, max_views, len(order)) and angle > 0.5:
+        angle = max(angle * 0.8, 0.5)
+        chosen = _greedy(order, view_dirs, angle)
+    return sorted(chosen[:max_views])

@@ -12,6 +12,14 @@ in the world frame from several frames, the object cluster above it (DBSCAN) def
 cylindrical working volume (axis along the plane normal), and every frame is segmented by
 that volume, so all masks agree with each other.
 
+The working range comes from the capture, not from a fixed distance: a scan keeps the object in the
+middle of the image, so the depth at the image centre (median over a central window) says how far the
+object is. Depth beyond `CENTRE_DEPTH_FACTOR` times that is background; the plane and the cluster are
+looked for within `SUPPORT_RADII` image half-widths of the point the frames keep centred, among what most
+frames have in view (`SEEN_BY`); the RANSAC
+band, the height that counts as off the table and the clustering radius grow with the depth noise
+(`params.depth_noise`, the capture's own model) and the pixel spacing at that depth.
+
 Pose estimation's search region (`off_plane_region`): the pixels in front of a query frame's dominant
 plane (`support_plane`, a faster RANSAC on a strided cloud). Both plane finders share `ransac_plane`.
 
@@ -20,7 +28,7 @@ Planes: `height(p) = normal . p + offset`, normal pointing up (towards the camer
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -29,14 +37,21 @@ from gscan.io.camera import RGBDFrame, backproject
 from gscan.errors import InputError
 from gscan.geometry.plane import Plane, ransac_plane
 from gscan.geometry.transforms import transform_points
+from gscan.registration.noise import DepthNoise
 
 log = logging.getLogger(__name__)
+
+CENTRE_WINDOW = 0.2        # the central window is this fraction of the image's width and height
+CENTRE_DEPTH_FACTOR = 1.5  # an automatic working range ends at this multiple of the centre depth
+SUPPORT_RADII = 2.0        # plane and cluster within this many image half-widths (at the centre depth) of the centre
+NOISE_SIGMAS = 3.0         # a point is off the plane when it is this many depth sigmas above it
+SEEN_BY = 0.8              # the object is inside the image of at least this share of the frames
 
 
 @dataclass(frozen=True)
 class SegmentParams:
     depth_min: float = 0.1          # m, working depth range
-    depth_max: float = 1.5
+    depth_max: float | None = None  # m; None: CENTRE_DEPTH_FACTOR x each frame's centre depth
     plane_voxel: float = 0.005      # m, downsampling before RANSAC
     plane_distance: float = 0.004   # m, RANSAC inlier threshold
     plane_iterations: int = 1000
@@ -50,6 +65,38 @@ class SegmentParams:
     volume_margin: float = 0.02     # m, added around the object cluster (radius and height)
     volume_frames: int = 6          # frames (evenly spaced) used to build the working volume
     seed: int = 0
+    depth_noise: DepthNoise = DepthNoise()  # the capture's depth noise: widens the bands above at depth
+
+
+def centre_depth(frame: RGBDFrame) -> float | None:
+    """Median depth (m) of the valid pixels in the central window (`CENTRE_WINDOW` of each image side): how far
+    the camera keeps the object. None when that window has no depth."""
+    H, W = frame.depth.shape
+    h, w = max(1, round(H * CENTRE_WINDOW / 2)), max(1, round(W * CENTRE_WINDOW / 2))
+    win = frame.depth[H // 2 - h: H // 2 + h, W // 2 - w: W // 2 + w]
+    z = win[win > 0]
+    return float(np.median(z)) if len(z) else None
+
+
+def depth_range(frame: RGBDFrame, params: SegmentParams) -> tuple[float, float]:
+    """(min, max) depth (m) where the object is looked for in `frame`: `params.depth_max` when set, else
+    `CENTRE_DEPTH_FACTOR` x its centre depth (all depth when the centre has none)."""
+    if params.depth_max is not None:
+        return params.depth_min, params.depth_max
+    z = centre_depth(frame)
+    return params.depth_min, (np.inf if z is None else max(CENTRE_DEPTH_FACTOR * z, params.depth_min + 0.05))
+
+
+def at_depth(params: SegmentParams, z: float | None, focal_px: float, stride: int = 1) -> SegmentParams:
+    """`params` with the plane band, the off-plane height and the clustering radius widened to the depth noise
+    (`NOISE_SIGMAS` sigma) and the spacing of every `stride`-th pixel at depth z (m); unchanged without z."""
+    if z is None:
+        return params
+    sigma = float(params.depth_noise.sigma(z))
+    spacing = stride * z / focal_px
+    return replace(params, plane_distance=max(params.plane_distance, 2.5 * sigma),
+                   height_min=max(params.height_min, NOISE_SIGMAS * sigma),
+                   cluster_eps=max(params.cluster_eps, 1.5 * spacing, NOISE_SIGMAS * sigma))
 
 
 @dataclass
@@ -68,6 +115,7 @@ class WorkingVolume:
     center_world: np.ndarray    # [3] on the plane
     radius: float               # m
     height: float               # m above the plane
+    height_min: float = 0.0     # m: nearer the plane is the plane (its depth noise)
 
     def contains(self, pts_world: np.ndarray, height_min: float = 0.0) -> np.ndarray:
         """[N x 3] world points -> [N] bool inside the cylinder (heights in [height_min, height])."""
@@ -239,7 +287,9 @@ def segment_frame(frame: RGBDFrame, params: SegmentParams = SegmentParams(),
                              f"sizes differ (frame {frame.name})")
         return Segmentation(given.copy(), None, "given")
     depth = frame.depth
-    valid = (depth >= params.depth_min) & (depth <= params.depth_max)
+    lo, hi = depth_range(frame, params)
+    params = at_depth(params, centre_depth(frame), frame.intrinsics.fx, 2)
+    valid = (depth >= lo) & (depth <= hi)
     pts = backproject(depth, frame.intrinsics)
     plane = fit_support_plane(pts[::2, ::2][valid[::2, ::2]], np.zeros(3), params)
     if plane is not None:
@@ -273,44 +323,87 @@ def _look_at_point(T_world_cam: list[np.ndarray], plane: Plane) -> np.ndarray:
     return c + max(t, 0.0) * z
 
 
+def _centre_point(frames: list[RGBDFrame], T_world_cam: list[np.ndarray]) -> np.ndarray | None:
+    """[3] world point the frames keep in the middle of the image: per frame the point on the optical axis at
+    its `centre_depth`, then the coordinate-wise median over the frames (robust to a few frames that look
+    elsewhere). Unlike the axes' meeting point it needs no spread of viewing directions (a hand-held sweep
+    looks along nearly parallel axes). None when no frame has centre depth."""
+    pts = []
+    for f, T in zip(frames, T_world_cam):
+        z = centre_depth(f)
+        if z is not None:
+            K = f.intrinsics
+            H, W = f.depth.shape
+            ray = np.array([((W - 1) / 2 - K.cx) / K.fx, ((H - 1) / 2 - K.cy) / K.fy, 1.0])
+            pts.append(T[:3, :3] @ (z * ray) + T[:3, 3])
+    return np.median(np.asarray(pts), axis=0) if pts else None
+
+
+def _seen_by_most(points_world: np.ndarray, frames: list[RGBDFrame], T_world_cam: list[np.ndarray]) -> np.ndarray:
+    """[N] bool: the points [N x 3] inside the image of at least `SEEN_BY` of the frames: a scan keeps its
+    object in view, so what most frames leave out (the far end of a room a sweep passes) is not the object."""
+    seen = np.zeros(len(points_world), dtype=int)
+    for f, T in zip(frames, T_world_cam):
+        p = transform_points(np.linalg.inv(T), points_world)
+        K = f.intrinsics
+        z = np.where(p[:, 2] > 1e-6, p[:, 2], np.nan)
+        u, v = K.fx * p[:, 0] / z + K.cx, K.fy * p[:, 1] / z + K.cy
+        seen += (u >= 0) & (u <= K.width - 1) & (v >= 0) & (v <= K.height - 1)
+    return seen >= SEEN_BY * len(frames)
+
+
 def estimate_working_volume(frames: list[RGBDFrame], T_world_cam: list[np.ndarray],
                             params: SegmentParams = SegmentParams()) -> WorkingVolume | None:
     """Support plane (world frame) and a cylinder around the object cluster on it.
 
-    Uses `volume_frames` frames evenly spaced over the sequence (stride-4 points, depth range).
-    Returns None when no plane or no cluster above it is found.
+    Uses `volume_frames` frames evenly spaced over the sequence (stride-4 points in each frame's
+    `depth_range`) within `SUPPORT_RADII` image half-widths of the point they keep centred; the bands follow
+    the noise at the median centre depth (`at_depth`). The cluster nearest that point (by size and distance)
+    is the object. Returns None when no plane or no cluster above it is found.
     """
     import open3d as o3d
 
     if not frames:
         return None
     idx = np.unique(np.linspace(0, len(frames) - 1, min(params.volume_frames, len(frames))).round().astype(int))
-    pts = []
-    for i in idx:
-        f = frames[i]
-        valid = (f.depth >= params.depth_min) & (f.depth <= params.depth_max)
-        p = backproject(f.depth, f.intrinsics)[::4, ::4][valid[::4, ::4]]
-        pts.append(transform_points(T_world_cam[i], p))
-    P = np.concatenate(pts)
+    used = [frames[i] for i in idx]
     cams = [T_world_cam[i] for i in idx]
-    plane = fit_support_plane(P, np.mean([T[:3, 3] for T in cams], axis=0), params)
+    depths = [z for z in (centre_depth(f) for f in used) if z is not None]
+    z_c = float(np.median(depths)) if depths else None
+    K = used[0].intrinsics
+    par = at_depth(params, z_c, K.fx, 4)
+    pts = []
+    for f, T in zip(used, cams):
+        lo, hi = depth_range(f, params)
+        valid = (f.depth >= lo) & (f.depth <= hi)
+        p = backproject(f.depth, f.intrinsics)[::4, ::4][valid[::4, ::4]]
+        pts.append(transform_points(T, p))
+    P = np.concatenate(pts)
+    centre = _centre_point(used, cams)
+    reach = np.inf
+    if centre is not None and z_c is not None:
+        reach = SUPPORT_RADII * z_c * min(K.width / K.fx, K.height / K.fy) / 2
+        P = P[np.linalg.norm(P - centre, axis=1) <= reach]
+    plane = fit_support_plane(P, np.mean([T[:3, 3] for T in cams], axis=0), par)
     if plane is None:
         return None
-    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(P)).voxel_down_sample(params.plane_voxel)
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(P)).voxel_down_sample(par.plane_voxel)
     Q = np.asarray(pc.points)
     Q = Q[np.lexsort((Q[:, 2], Q[:, 1], Q[:, 0]))]  # order-independent clustering input
     h = plane.height(Q)
-    Q = Q[(h > params.height_min) & (h < params.height_max)]
+    Q = Q[(h > par.height_min) & (h < par.height_max)]
+    Q = Q[_seen_by_most(Q, used, cams)]
     if len(Q) < 20:
         return None
     labels = np.asarray(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(Q)).cluster_dbscan(
-        params.cluster_eps, min_points=8))
-    target = _look_at_point(cams, plane)
+        par.cluster_eps, min_points=8))
+    target = centre if centre is not None else _look_at_point(cams, plane)
+    scale = max(0.1, reach / 8) if np.isfinite(reach) else 0.1
     best, best_score = -1, -np.inf
     for lab in range(labels.max() + 1):
         C = Q[labels == lab]
         d = np.linalg.norm(C.mean(0) - target)
-        score = len(C) / (1.0 + (d / 0.1) ** 2)
+        score = len(C) / (1.0 + (d / scale) ** 2)
         if len(C) >= 20 and score > best_score:
             best, best_score = lab, score
     if best < 0:
@@ -320,8 +413,9 @@ def estimate_working_volume(frames: list[RGBDFrame], T_world_cam: list[np.ndarra
     foot = C - hc[:, None] * plane.normal
     centre = foot.mean(0)
     radius = float(np.linalg.norm(foot - centre, axis=1).max()) + params.volume_margin
-    vol = WorkingVolume(plane, centre, radius, float(hc.max()) + params.volume_margin)
-    log.info("working volume: radius %.3f m, height %.3f m, %d cluster points", vol.radius, vol.height, len(C))
+    vol = WorkingVolume(plane, centre, radius, float(hc.max()) + params.volume_margin, par.height_min)
+    log.info("working volume: radius %.3f m, height %.3f m, %d cluster points (centre depth %s m)", vol.radius,
+             vol.height, len(C), "?" if z_c is None else f"{z_c:.2f}")
     return vol
 
 
@@ -347,8 +441,9 @@ def segment_sequence(frames: list[RGBDFrame], T_world_cam: list[np.ndarray],
             s.reason = (s.reason + "; " if s.reason else "") + "no working volume for the sequence"
             out.append(s)
         else:
-            valid = (f.depth >= params.depth_min) & (f.depth <= params.depth_max)
-            cand = valid & vol.contains_camera(backproject(f.depth, f.intrinsics), T, params.height_min)
+            lo, hi = depth_range(f, params)
+            valid = (f.depth >= lo) & (f.depth <= hi)
+            cand = valid & vol.contains_camera(backproject(f.depth, f.intrinsics), T, vol.height_min)
             m = pick_component(cand, f.depth, params, keep_fraction=0.05)
             out.append(Segmentation(m, vol.plane_world.transformed(np.linalg.inv(T)), "volume"))
     return out, vol
