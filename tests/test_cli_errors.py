@@ -358,7 +358,9 @@ def _(ctx: Ctx, work: Path) -> Run:
 
 @case("scan-depth-beyond-fusion-range")
 def _(ctx: Ctx, work: Path) -> Run:
-    # a plausible scene depth (8 m) that registers, but lies beyond fusion.depth_max: nothing to fuse
+    # a plausible scene depth (8 m) that registers, but lies beyond a configured fusion.depth_max: nothing to fuse
+    # (the default range follows the capture's depth)
+    (work / "near.yaml").write_text("fusion:\n  depth_max: 2.0\n")
     cap = work / "far"
     for sub in ("rgb", "depth"):
         (cap / sub).mkdir(parents=True)
@@ -367,7 +369,8 @@ def _(ctx: Ctx, work: Path) -> Run:
     shutil.copy(ctx.capture / "cam_K.txt", cap / "cam_K.txt")
     out = work / "out"
     out.mkdir()
-    return Run(_cli("scan", cap, "-o", out / "deeper" / "obj.gscan", "--depth-scale", "0.02", "--json"),
+    return Run(_cli("scan", cap, "-o", out / "deeper" / "obj.gscan", "--depth-scale", "0.02", "--json", "--config",
+                    work / "near.yaml"),
                ["far", "depth_max"], out_dir=out)
 
 

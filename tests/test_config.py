@@ -55,7 +55,7 @@ def test_bad_config_names_the_file_and_the_key(tmp_path, text, words):
 
 
 def test_every_registration_key_reaches_the_registration_parameters():
-    from gscan.scan.capture_mode import MOVING_OBJECT
+    from gscan.scan.capture_mode import MOVING_OBJECT, STATIC_OBJECT
     from gscan.scan.pipeline import _register_params
 
     from gscan.registration.noise import DepthNoise
@@ -69,6 +69,15 @@ def test_every_registration_key_reaches_the_registration_parameters():
             cfg = base.model_copy(update={"registration": base.registration.model_copy(update={key: new})})
             p = _register_params(cfg, MOVING_OBJECT)
             assert (p.noise, p.depth_noise) == (DepthNoise(1e-6, 0, 0), DepthNoise(2e-6, 0, 1e-6))
+            continue
+        if key == "dense_refine":  # null: on for a moving object, off for a static scene; given, it reaches both
+            assert value is None
+            assert _register_params(base, MOVING_OBJECT).dense_refine and not _register_params(base, STATIC_OBJECT
+                                                                                            ).dense_refine
+            for new in (True, False):
+                cfg = base.model_copy(update={"registration": base.registration.model_copy(update={key: new})})
+                assert _register_params(cfg, STATIC_OBJECT).dense_refine is new
+                assert _register_params(cfg, MOVING_OBJECT).dense_refine is new
             continue
         new = (not value) if isinstance(value, bool) else value / 2 if key == "max_see_through" else value + 1
         cfg = base.model_copy(update={"registration": base.registration.model_copy(update={key: new})})
