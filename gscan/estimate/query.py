@@ -11,7 +11,7 @@ import numpy as np
 
 from gscan.errors import InputError
 from gscan.io.camera import RGBDFrame, pixel_rays
-from gscan.geometry.plane import Plane, ransac_plane
+from gscan.geometry.plane import Plane, dominant_plane
 
 
 @dataclass
@@ -95,25 +95,8 @@ def backproject32(frame: RGBDFrame) -> np.ndarray:
 
 
 def fit_plane(q: QueryFrame, min_frac: float, iterations: int, stride: int = 6) -> Plane | None:
-    """The frame's dominant plane (a table top) in its camera frame, normal towards the camera, or None when
-    no plane holds `min_frac` of the valid depth: `ransac_plane` on every `stride`-th pixel of the cached
-    cloud (seeded; inliers within 6 mm + 0.5 % of the depth) over `iterations` hypotheses with at most 5 % of
-    the points behind them (a large object face seen head-on is never taken for the table), least-squares
-    refit on the inliers."""
-    sub = q.cloud[::stride, ::stride].reshape(-1, 3).astype(np.float64)
-    sub = sub[sub[:, 2] > 0]
-    if len(sub) < 100:
-        return None
-    found = ransac_plane(sub, iterations, np.random.default_rng(0), 0.006 + 0.005 * sub[:, 2], np.zeros(3),
-                         max_behind=0.05)
-    if found is None or found[1].sum() < min_frac * len(sub):
-        return None
-    inl = found[1]
-    cen = sub[inl].mean(0)
-    normal = np.linalg.svd(sub[inl] - cen, full_matrices=False)[2][2]
-    if normal @ cen > 0:  # towards the camera (origin)
-        normal = -normal
-    return Plane(normal, float(-normal @ cen))
+    """`dominant_plane` of the query's cached cloud."""
+    return dominant_plane(q.cloud, min_frac, iterations, stride)
 
 
 def plane_heights(q: QueryFrame, plane: Plane) -> np.ndarray:

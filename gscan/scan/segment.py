@@ -35,7 +35,7 @@ import numpy as np
 
 from gscan.io.camera import RGBDFrame, backproject
 from gscan.errors import InputError
-from gscan.geometry.plane import Plane, ransac_plane
+from gscan.geometry.plane import Plane, dominant_plane, ransac_plane
 from gscan.geometry.transforms import transform_points
 from gscan.registration.noise import DepthNoise
 
@@ -78,12 +78,11 @@ def centre_depth(frame: RGBDFrame) -> float | None:
     return float(np.median(z)) if len(z) else None
 
 
-def depth_range(frame: RGBDFrame, params: SegmentParams) -> tuple[float, float]:
-    """(min, max) depth (m) where the object is looked for in `frame`: `params.depth_max` when set, else
-    `CENTRE_DEPTH_FACTOR` x its centre depth (all depth when the centre has none)."""
+def depth_range(params: SegmentParams, z: float | None) -> tuple[float, float]:
+    """(min, max) depth (m) where the object is looked for in a frame of `centre_depth` z: `params.depth_max` when
+    set, else `CENTRE_DEPTH_FACTOR` x z (all depth when the centre has none)."""
     if params.depth_max is not None:
         return params.depth_min, params.depth_max
-    z = centre_depth(frame)
     return params.depth_min, (np.inf if z is None else max(CENTRE_DEPTH_FACTOR * z, params.depth_min + 0.05))
 
 
@@ -181,24 +180,9 @@ def fit_support_plane(points: np.ndarray, viewpoint: np.ndarray,
 
 def support_plane(frame: RGBDFrame, min_frac: float = 0.3, iterations: int = 64, stride: int = 6) -> Plane | None:
     """The frame's dominant plane (a table top) in its camera frame, normal towards the camera, or None when
-    no plane holds `min_frac` of the valid depth. For pose estimation, where it must be fast: `ransac_plane`
-    on every `stride`-th pixel (seeded, deterministic; inliers within 6 mm + 0.5 % of the depth) over
-    `iterations` hypotheses with at most 5 % of the points behind them (so a large object face seen head-on
-    is never taken for the table), least-squares refit on the inliers."""
-    sub = backproject(frame.depth, frame.intrinsics)[::stride, ::stride].reshape(-1, 3).astype(np.float64)
-    sub = sub[sub[:, 2] > 0]
-    if len(sub) < 100:
-        return None
-    found = ransac_plane(sub, iterations, np.random.default_rng(0), 0.006 + 0.005 * sub[:, 2], np.zeros(3),
-                         max_behind=0.05)
-    if found is None or found[1].sum() < min_frac * len(sub):
-        return None
-    inl = found[1]
-    cen = sub[inl].mean(0)
-    normal = np.linalg.svd(sub[inl] - cen, full_matrices=False)[2][2]
-    if normal @ cen > 0:  # orient the normal towards the camera (origin)
-        normal = -normal
-    return Plane(normal, float(-normal @ cen))
+    no plane holds `min_frac` of the valid depth: `dominant_plane` of its cloud, the fast finder pose estimation
+    uses."""
+    return dominant_plane(backproject(frame.depth, frame.intrinsics), min_frac, iterations, stride)
 
 
 def in_front_of(frame: RGBDFrame, plane: Plane) -> np.ndarray | None:
@@ -287,8 +271,9 @@ def segment_frame(frame: RGBDFrame, params: SegmentParams = SegmentParams(),
                              f"sizes differ (frame {frame.name})")
         return Segmentation(given.copy(), None, "given")
     depth = frame.depth
-    lo, hi = depth_range(frame, params)
-    params = at_depth(params, centre_depth(frame), frame.intrinsics.fx, 2)
+    z = centre_depth(frame)
+    lo, hi = depth_range(params, z)
+    params = at_depth(params, z, frame.intrinsics.fx, 2)
     valid = (depth >= lo) & (depth <= hi)
     pts = backproject(depth, frame.intrinsics)
     plane = fit_support_plane(pts[::2, ::2][valid[::2, ::2]], np.zeros(3), params)
@@ -323,14 +308,14 @@ def _look_at_point(T_world_cam: list[np.ndarray], plane: Plane) -> np.ndarray:
     return c + max(t, 0.0) * z
 
 
-def _centre_point(frames: list[RGBDFrame], T_world_cam: list[np.ndarray]) -> np.ndarray | None:
+def _centre_point(frames: list[RGBDFrame], T_world_cam: list[np.ndarray], depths: list[float | None]
+                  ) -> np.ndarray | None:
     """[3] world point the frames keep in the middle of the image: per frame the point on the optical axis at
-    its `centre_depth`, then the coordinate-wise median over the frames (robust to a few frames that look
+    its `centre_depth` (`depths`, one per frame), then the coordinate-wise median over the frames (robust to a few frames that look
     elsewhere). Unlike the axes' meeting point it needs no spread of viewing directions (a hand-held sweep
     looks along nearly parallel axes). None when no frame has centre depth."""
     pts = []
-    for f, T in zip(frames, T_world_cam):
-        z = centre_depth(f)
+    for f, T, z in zip(frames, T_world_cam, depths):
         if z is not None:
             K = f.intrinsics
             H, W = f.depth.shape
@@ -368,18 +353,19 @@ def estimate_working_volume(frames: list[RGBDFrame], T_world_cam: list[np.ndarra
     idx = np.unique(np.linspace(0, len(frames) - 1, min(params.volume_frames, len(frames))).round().astype(int))
     used = [frames[i] for i in idx]
     cams = [T_world_cam[i] for i in idx]
-    depths = [z for z in (centre_depth(f) for f in used) if z is not None]
-    z_c = float(np.median(depths)) if depths else None
+    depths = [centre_depth(f) for f in used]
+    known = [z for z in depths if z is not None]
+    z_c = float(np.median(known)) if known else None
     K = used[0].intrinsics
     par = at_depth(params, z_c, K.fx, 4)
     pts = []
-    for f, T in zip(used, cams):
-        lo, hi = depth_range(f, params)
+    for f, T, z in zip(used, cams, depths):
+        lo, hi = depth_range(params, z)
         valid = (f.depth >= lo) & (f.depth <= hi)
         p = backproject(f.depth, f.intrinsics)[::4, ::4][valid[::4, ::4]]
         pts.append(transform_points(T, p))
     P = np.concatenate(pts)
-    centre = _centre_point(used, cams)
+    centre = _centre_point(used, cams, depths)
     reach = np.inf
     if centre is not None and z_c is not None:
         reach = SUPPORT_RADII * z_c * min(K.width / K.fx, K.height / K.fy) / 2
@@ -441,7 +427,7 @@ def segment_sequence(frames: list[RGBDFrame], T_world_cam: list[np.ndarray],
             s.reason = (s.reason + "; " if s.reason else "") + "no working volume for the sequence"
             out.append(s)
         else:
-            lo, hi = depth_range(f, params)
+            lo, hi = depth_range(params, centre_depth(f))
             valid = (f.depth >= lo) & (f.depth <= hi)
             cand = valid & vol.contains_camera(backproject(f.depth, f.intrinsics), T, vol.height_min)
             m = pick_component(cand, f.depth, params, keep_fraction=0.05)
