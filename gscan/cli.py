@@ -339,17 +339,9 @@ def template_from_mesh(
 def _load_query_frame(color: Path, depth: Path, intrinsics: Path, depth_scale: float, mask: Optional[Path],
                       depth_intrinsics: Optional[Path] = None, depth_to_color: Optional[Path] = None):
     from gscan.io import load_frame
-    from gscan.io.images import image_size, resolve_depth_camera
+    from gscan.io.sequence import depth_camera_for
 
-    cam = None
-    if depth_to_color is not None and depth_intrinsics is None:
-        raise UsageError(depth_to_color, "--depth-to-color needs the depth camera's --depth-intrinsics")
-    if depth_intrinsics is not None:
-        try:
-            w, h, _ = image_size(depth)
-        except (OSError, ValueError) as e:
-            raise InputError(depth, f"cannot read the depth image ({e})") from None
-        cam = resolve_depth_camera(depth_intrinsics, depth_to_color, w, h)
+    cam = depth_camera_for(depth_intrinsics, depth_to_color, [depth], depth)
     return load_frame(color, depth, intrinsics, depth_scale=depth_scale, mask_path=mask, depth_camera=cam)
 
 

@@ -6,6 +6,9 @@ camera frame x right, y down, z forward (OpenCV); depth in metres, 0 = invalid.
 from __future__ import annotations
 
 import json
+import logging
+from abc import ABC, abstractmethod
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
@@ -13,6 +16,8 @@ from pathlib import Path
 import numpy as np
 
 from gscan.errors import InputError, not_a_file
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -264,3 +269,27 @@ def lift_keypoints(pixels: np.ndarray, depth: np.ndarray, intr: Intrinsics, wind
     ok &= np.where(ok, (hi - lo) <= max_rel_spread * np.where(ok, med, 1.0), False)
     pts[ok] = backproject_pixels(pixels[ok], med[ok], intr)
     return pts, ok
+
+
+class FrameIteration(ABC):
+    """Iteration of a sequence of named frames (folders and recordings): over `names`, by `self[name]`, which
+    raises InputError for an unusable frame (and records it in the sequence's problems)."""
+
+    names: list[str]
+
+    @abstractmethod
+    def __getitem__(self, name: str) -> RGBDFrame: ...
+
+    def __iter__(self) -> Iterator[RGBDFrame]:
+        """Every frame in order; raises InputError on the first unusable one (see iter_frames)."""
+        return self.iter_frames(skip_bad=False)
+
+    def iter_frames(self, skip_bad: bool = True) -> Iterator[RGBDFrame]:
+        """Frames in order; with skip_bad, unusable frames are logged, recorded in problems and skipped."""
+        for name in self.names:
+            try:
+                yield self[name]
+            except InputError as e:
+                if not skip_bad:
+                    raise
+                log.warning("skipping frame %s: %s", name, e)

@@ -8,13 +8,14 @@ a sequence with no usable frame, or a sequence-wide problem (intrinsics, depth s
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from gscan.io.camera import DepthCamera, Intrinsics, RGBDFrame, implausible_intrinsics, load_intrinsics
+from gscan.io.camera import (DepthCamera, FrameIteration, Intrinsics, RGBDFrame, implausible_intrinsics,
+                             load_intrinsics)
 from gscan.errors import InputError, not_a_file
 from gscan.io.images import (MAX_DEPTH_SCALE, check_depth_range, check_depth_scale, image_size, load_frame,
                              read_depth, resolve_depth_camera)
@@ -54,7 +55,7 @@ def _depth_mode_problem(mode: str) -> str | None:
     return f"depth is not a single-channel 16-bit image (mode {mode})"
 
 
-class Sequence:
+class Sequence(FrameIteration):
     """An opened RGB-D sequence (see open_sequence). Indexing loads a frame from disk.
 
     Attributes: name (folder name), format ("capture"|"open3d"|"tum"|"bop"), root, names (usable
@@ -129,19 +130,6 @@ class Sequence:
             self.problems[spec.name] = str(e)
             raise
 
-    def __iter__(self) -> Iterator[RGBDFrame]:
-        """Every frame in order; raises InputError on the first unusable one (see iter_frames)."""
-        return self.iter_frames(skip_bad=False)
-
-    def iter_frames(self, skip_bad: bool = True) -> Iterator[RGBDFrame]:
-        """Frames in order; with skip_bad, unusable frames are logged, recorded in problems and skipped."""
-        for name in self.names:
-            try:
-                yield self[name]
-            except InputError as e:
-                if not skip_bad:
-                    raise
-                log.warning("skipping frame %s: %s", name, e)
 
 
 def _file_fingerprint(path: Path) -> str:
@@ -174,13 +162,20 @@ def _resolve_intrinsics(layout: Layout, override: Intrinsics | str | Path | None
                      "guessed)", fix="intrinsics")
 
 
-def _depth_camera(layout: Layout, intrinsics: Intrinsics | str | Path, T_color_depth: np.ndarray | str | Path | None
-                  ) -> DepthCamera:
-    """`resolve_depth_camera` for the layout's depth images, a cam_K.txt sized by the first one that reads."""
+def depth_camera_for(intrinsics: Intrinsics | str | Path | None, T_color_depth: np.ndarray | str | Path | None,
+                     depth_images: Iterable[Path], where: Path) -> DepthCamera | None:
+    """The depth camera of depth images not registered to colour (`resolve_depth_camera`), a cam_K.txt sized by
+    the first of `depth_images` whose header reads; None without intrinsics. InputError for a depth-to-colour
+    pose without intrinsics (naming its file, else `where`)."""
+    if intrinsics is None:
+        if T_color_depth is not None:
+            raise InputError(Path(T_color_depth) if isinstance(T_color_depth, (str, Path)) else where,
+                             "a depth-to-colour pose needs the depth camera's intrinsics too (--depth-intrinsics)")
+        return None
     size = (0, 0)
-    for f in layout.frames:
+    for path in depth_images:
         try:
-            size = image_header(f.depth)[:2]
+            size = image_header(path)[:2]
             break
         except InputError:
             continue
@@ -218,16 +213,13 @@ def open_sequence(path: str | Path, format: str = "auto", intrinsics: Intrinsics
         return open_recording(root, color_topic, depth_topic, intrinsics, depth_scale)
     if color_topic is not None or depth_topic is not None:
         raise InputError(root, "--color-topic / --depth-topic apply to recordings (.bag, .db3, .mcap), not folders")
-    if T_color_depth is not None and depth_intrinsics is None:
-        raise InputError(Path(T_color_depth) if isinstance(T_color_depth, (str, Path)) else root,
-                         "a depth-to-colour pose needs the depth camera's intrinsics too (--depth-intrinsics)")
     layout = discover(root, format, obj_id)
     if depth_scale is not None:
         check_depth_scale(depth_scale, root)
     problems = dict(layout.problems)
     specs: dict[str, FrameSpec] = {}
     sizes: dict[str, tuple[int, int]] = {}
-    depth_cam = None if depth_intrinsics is None else _depth_camera(layout, depth_intrinsics, T_color_depth)
+    depth_cam = depth_camera_for(depth_intrinsics, T_color_depth, (f.depth for f in layout.frames), root)
     for f in layout.frames:
         try:
             cw, ch, _ = image_header(f.color)

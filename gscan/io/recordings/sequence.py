@@ -27,7 +27,7 @@ from types import TracebackType
 import numpy as np
 
 from gscan.errors import InputError
-from gscan.io.camera import Intrinsics, RGBDFrame, load_intrinsics
+from gscan.io.camera import FrameIteration, Intrinsics, RGBDFrame, load_intrinsics
 from gscan.io.images import check_depth_range, check_depth_scale
 from gscan.io.align import align_depth_to_color
 from gscan.io.recordings.kinds import recording_format
@@ -68,7 +68,7 @@ def _size_problem(msg: ImageMsg, intr: Intrinsics, info_topic_of: str) -> str | 
     return None
 
 
-class RecordingSequence:
+class RecordingSequence(FrameIteration):
     """An opened recording (see the module docstring); the same attributes and indexing as
     `gscan.io.sequence.Sequence`, plus `timestamps` (name -> colour timestamp, s), `setup` (the streams),
     `aligned` (depth is reprojected into the colour camera) and `pair_tolerance_s`.
@@ -240,18 +240,6 @@ class RecordingSequence:
             except MessageError as e:
                 raise InputError(self.root, f"frame {p.name}: {e}") from None
 
-    def __iter__(self) -> Iterator[RGBDFrame]:
-        return self.iter_frames(skip_bad=False)
-
-    def iter_frames(self, skip_bad: bool = True) -> Iterator[RGBDFrame]:
-        """Frames in order, streamed; with skip_bad, unusable frames are logged, recorded in problems and skipped."""
-        for name in self.names:
-            try:
-                yield self[name]
-            except InputError as e:
-                if not skip_bad:
-                    raise
-                log.warning("skipping frame %s: %s", name, e)
 
 
 @dataclass
