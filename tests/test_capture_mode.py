@@ -76,3 +76,17 @@ def test_keyframes_of_a_short_sweep_are_the_views_with_object_keypoints():
     none_rich = {k: 3 if k > 1 else 30 for k in dirs}  # 2 views have enough, fewer than 8: all are candidates
     assert len(select_keyframes(dirs, 12.0, 120, none_rich, min_keypoints=24, min_views=8)) >= 8
     assert len(select_keyframes(dirs, 12.0, 5, counts, min_keypoints=24, min_views=8)) == 5  # the cap wins
+
+
+def test_frames_without_the_object_are_no_keyframe_candidates():
+    """A registered frame whose object mask is empty (a sweep that starts elsewhere) offers no keyframe: its stored
+    object keypoints would be none, and the template its background; unregistered frames neither. With no frame
+    showing the object, every registered frame is a candidate."""
+    from gscan.scan.pipeline import _keyframe_candidates
+
+    T = np.eye(4)
+    T[:3, 3] = [0.0, 0.0, -1.0]
+    empty, full = np.zeros((4, 4), bool), np.ones((4, 4), bool)
+    assert sorted(_keyframe_candidates([T, T, None, T, T], [empty, full, full, None, empty])) == [1, 3]
+    assert sorted(_keyframe_candidates([T, None, T], [empty, full, empty])) == [0, 2]
+    np.testing.assert_allclose(_keyframe_candidates([T], [full])[0], [0.0, 0.0, 1.0])

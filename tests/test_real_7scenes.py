@@ -5,8 +5,9 @@ the scan never saw, with no wrong pose returned.
 
 7-Scenes records colour and depth with two cameras; the scan gets the calibration published for the data through
 --intrinsics, --depth-intrinsics and --depth-to-color (bench/real.py: the values and their source, and the rows
-these tests assert). The ground truth (KinectFusion) is good to about 1 cm / 1 deg by the data's README, and less
-where the camera moves fast.
+these tests assert). The capture sweeps a kitchen corner rather than keeping one object in view, so the template is
+the scene's (--no-segment). The ground truth (KinectFusion) is good to about 1 cm / 1 deg by the data's README, and
+less where the camera moves fast.
 """
 from __future__ import annotations
 
@@ -16,28 +17,29 @@ from pathlib import Path
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
-from real import ground_truth, published_calibration, scan_with_cli, score_queries, score_trajectory, template_poses  # noqa: E402
+from real import ground_truth, published_calibration, scan_with_cli, score_queries, score_trajectory, template_poses  # noqa: E402,I001
 
 pytestmark = pytest.mark.slow
 
 
 @pytest.fixture(scope="module")
 def kitchen(real_dir: Path, tmp_path_factory) -> dict:
-    """`gscan scan` of scan/ with the published calibration: its JSON summary, the template, the calibration and
-    the ground truth in the colour camera."""
+    """`gscan scan --no-segment` of scan/ with the published calibration: its JSON summary, the template, the
+    calibration and the ground truth in the colour camera."""
     root = real_dir / "7scenes_redkitchen"
     work = tmp_path_factory.mktemp("kitchen")
     calib = published_calibration(work)
     out = work / "kitchen.gscan"
-    summary = scan_with_cli(root, out, calib)
+    summary = scan_with_cli(root, out, calib, "--no-segment")
     return {"summary": summary, "template": out, "calib": calib, "root": root, "gt": ground_truth(root, calib)}
 
 
 def test_real_kinect_scan_registers_every_frame_and_beats_the_odometry_chain(kitchen):
-    """60 of 60 frames registered, at least 8 keyframes; at most one frame beyond 10 deg / 10 cm of the ground
-    truth (frame 000010, 12 cm when measured: the first 14 frames move fastest, 3.6-7.8 cm between frames, where
-    the ground truth itself is weakest); ATE below 5 cm and below the SIFT + RANSAC + ICP chain's on the same
-    frames (3.1 cm against 7.0 cm when measured)."""
+    """60 of 60 frames registered, at least 8 keyframes; at most one frame whose median relative-pose error against
+    the other registered frames is beyond 5 deg / 10 cm (frame 000010 at 10.5 cm when measured: the first 14
+    frames move fastest, 3.6-7.8 cm between frames, where the ground truth itself is weakest; the depth of that
+    frame's pairs agrees with the scan's poses as well as with the ground truth's); ATE below 5 cm and below the
+    SIFT + RANSAC + ICP chain's on the same frames (3.1 cm against 7.0 cm when measured)."""
     from peers import sift_ransac_icp_chain
 
     from gscan.io import open_sequence
@@ -53,8 +55,8 @@ def test_real_kinect_scan_registers_every_frame_and_beats_the_odometry_chain(kit
 
 
 def test_real_kinect_queries_are_found_and_never_wrong(kitchen):
-    """Pose estimation against the real template on 30 query frames the scan never saw: at least 8 found within
-    5 deg / 5 cm of the truth (8 when measured), and no pose returned beyond 10 deg / 10 cm."""
+    """Pose estimation against the real template on 30 query frames the scan never saw: at least 20 found within
+    5 deg / 5 cm of the truth (27 when measured), and no pose returned beyond 10 deg / 10 cm."""
     q = score_queries(kitchen["template"], kitchen["root"], kitchen["calib"], kitchen["gt"])
     assert not q.wrong, q.wrong
-    assert len(q.found) >= 8, q
+    assert len(q.found) >= 20, q

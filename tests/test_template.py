@@ -322,6 +322,10 @@ def test_object_keypoints_are_what_the_estimator_loads(db_path: Path) -> None:
             moved = db.features("a", role).points
             # points stored as float32 and moved in float64: float32 rounding (6e-8 relative) of ~1 m values
             np.testing.assert_allclose(moved, f.points @ A[:3, :3].T + A[:3, 3], atol=1e-5)
+        # a keyframe whose object mask held no keypoint offers none: not its registration keypoints (the whole
+        # frame, background included)
+        db.add_features("b", _feats(rng, 0), role="object")
+        assert list(db.load_template().view_offsets) == [0, 12, 12]
         db.add_view(_view("a", rng, T, 0), reg, replace=True)
         assert db.features("a", "object") is None
 

@@ -590,7 +590,7 @@ def _store_views(frames: list[_Frame], T_obj_cam: list[np.ndarray | None], masks
     Keyframes also keep keypoints on the object alone, detected inside the object mask with the
     estimator's settings: the template's keypoints for pose estimation (registration keypoints of a
     static object are mostly on the table)."""
-    dirs = {k: view_direction(T) for k, T in enumerate(T_obj_cam) if T is not None}
+    dirs = _keyframe_candidates(T_obj_cam, masks)
     kc = cfg.keyframes
     keyframes = set(select_keyframes(dirs, kc.min_angle_deg, kc.max_views, {k: _object_keypoints(frames[k], masks[k])
                                      for k in dirs}, kc.min_object_keypoints, kc.min_views))
@@ -610,6 +610,15 @@ def _store_views(frames: list[_Frame], T_obj_cam: list[np.ndarray | None], masks
                 db.add_features(f.frame.name, obj.transformed(T), role="object")
             advance(1)
     return keyframes
+
+
+def _keyframe_candidates(T_obj_cam: list[np.ndarray | None], masks: list[np.ndarray | None]) -> dict[int, np.ndarray]:
+    """Frame index -> viewing direction (`view_direction`) of the registered frames that show the object: a
+    frame whose object mask is empty (a sweep that starts elsewhere) would give the template its background as
+    the object's keypoints. All registered frames when none shows it."""
+    reg = {k: T for k, T in enumerate(T_obj_cam) if T is not None}
+    showing = {k: T for k, T in reg.items() if masks[k] is None or masks[k].any()}
+    return {k: view_direction(T) for k, T in (showing or reg).items()}
 
 
 def _object_keypoints(f: _Frame, mask: np.ndarray | None) -> int:

@@ -583,12 +583,14 @@ class TemplateDB:
 
     def load_template(self, keyframes_only: bool = True) -> Template:
         """Everything the estimator needs, loaded once: registered (key)frame views with their keypoints
-        (a view's "object" keypoints where it has them, else its "registration" keypoints)."""
+        (a view's "object" keypoints where they were stored, else its "registration" keypoints)."""
         views = [v for v in self.views(keyframes_only=keyframes_only) if v.T_obj_cam is not None]
         names, intr, Ts, px, pts, desc, kv, offs = [], [], [], [], [], [], [], [0]
         kind = self.descriptor_kind()
         for v in views:
-            f = self.features(v.name, "object") or self.features(v.name)
+            f = self.features(v.name, "object")
+            if f is None:  # no object keypoints stored (an unsegmented scan): the view's own; an empty set stays empty
+                f = self.features(v.name)
             names.append(v.name)
             intr.append(v.intrinsics)
             Ts.append(v.T_obj_cam)
