@@ -23,7 +23,10 @@ import shutil
 import tempfile
 from pathlib import Path
 from types import TracebackType
-from typing import Self
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # typing.Self is Python 3.11's; annotations are not evaluated at run time
+    from typing import Self
 
 from gscan.errors import InputError, OutputExists
 
