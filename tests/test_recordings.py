@@ -403,3 +403,18 @@ def test_topic_options_on_a_folder_are_refused(recs, tmp_path):
                         "--color-topic", "/camera/color/image_raw"], capture_output=True, text=True, cwd=ROOT,
                        timeout=120, check=False)
     assert r.returncode == 2 and "apply to recordings" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+
+
+def test_recording_frames_above_the_pixel_limit_are_refused_from_their_header(recs, monkeypatch, tmp_path):
+    """The pixel limit every image file is held to (GSCAN_MAX_IMAGE_PIXELS) holds for a recording's image messages,
+    checked on their headers: a recording whose images are all over it is bad input (exit 2, one line naming the
+    file and the limit), and nothing is written."""
+    monkeypatch.setenv("GSCAN_MAX_IMAGE_PIXELS", str(320 * 240 - 1))
+    with pytest.raises(InputError, match="above the limit of 76799 pixels"):
+        open_sequence(recs["mcap"])
+    out = tmp_path / "t.gscan"
+    r = subprocess.run([sys.executable, "-m", "gscan.cli", "scan", str(recs["bag"]), "-o", str(out)],
+                       capture_output=True, text=True, cwd=ROOT, timeout=120, check=False)
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and len(lines) == 1 and str(recs["bag"]) in lines[0], r.stderr
+    assert "above the limit of 76799 pixels" in lines[0] and not out.exists()

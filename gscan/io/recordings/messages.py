@@ -22,6 +22,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from gscan.io.images import image_too_large
+
 #: Colour encodings read, with their channel count (sensor_msgs/image_encodings, librealsense's names).
 COLOR_ENCODINGS = {"rgb8": 3, "bgr8": 3, "rgba8": 4, "bgra8": 4, "8uc3": 3, "yuyv": 2, "yuv422_yuy2": 2,
                    "uyvy": 2, "yuv422": 2}
@@ -54,6 +56,9 @@ class ImageMsg:
         """Why the pixels cannot be read as width x height pixels of `channels_bytes` bytes each (None when they can)."""
         if self.height <= 0 or self.width <= 0:
             return f"image is {self.width}x{self.height}"
+        too_large = image_too_large(self.width, self.height)  # the limit every image gscan reads is held to
+        if too_large:
+            return too_large
         if self.step < self.width * channels_bytes:
             return f"row step {self.step} is shorter than {self.width} pixels of {channels_bytes} bytes"
         if len(self.data) < self.step * self.height:
