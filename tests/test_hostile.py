@@ -474,6 +474,14 @@ def test_resume_refuses_frames_that_changed(ctx: Ctx, tmp_path: Path):
     for sub in ("rgb", "depth", "masks", "annotated_poses"):
         for p in moved.glob(f"{sub}.*"):
             shutil.move(p, cap / sub / f"000005{p.suffix}")
+    added = [cap / sub / f"000099{p.suffix}" for sub in ("rgb", "depth", "masks", "annotated_poses")
+             for p in (cap / sub).glob("000005.*")]
+    for p in added:
+        shutil.copy(p.parent / f"000005{p.suffix}", p)
+    assert "frame 000099 was not in the input" in _error(_gscan("scan", cap, "-o", db, "--resume"), "partial")
+    assert _sha(db) == before
+    for p in added:
+        p.unlink()
     out = json.loads(_ok(_gscan("scan", cap, "-o", db, "--resume", "--json")).stdout)
     assert out["registered"] == N_VIEWS
 
