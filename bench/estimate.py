@@ -34,14 +34,20 @@ from pathlib import Path
 
 import numpy as np
 
+from gscan.estimate.estimator import STAGES, EstimateParams, Estimator
+from gscan.evaluate.metrics import add, adds, auc
+from gscan.geometry.transforms import look_at, rotvec_to_R, transform_points
+from gscan.io.camera import RGBDFrame
 from gscan.matching.baselines import run_baseline
 from gscan.scan.cad import template_from_mesh
-from gscan.io.camera import RGBDFrame
-from gscan.estimate.estimator import STAGES, EstimateParams, Estimator
-from gscan.geometry.transforms import look_at, rotvec_to_R, transform_points
-from gscan.evaluate.metrics import add, adds, auc
-from gscan.synth import (DEFAULT_INTRINSICS, SynthScene, default_distance, load_textured_mesh, place_distractors,
-                         rest_on_table)
+from gscan.synth import (
+    DEFAULT_INTRINSICS,
+    SynthScene,
+    default_distance,
+    load_textured_mesh,
+    place_distractors,
+    rest_on_table,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 MESHES = ROOT.parent / "shared" / "data" / "meshes"

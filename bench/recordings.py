@@ -41,8 +41,8 @@ sys.path.insert(0, str(ROOT))
 
 from gscan.geometry.transforms import transform_points
 from gscan.io import open_sequence
-from gscan.io.camera import Intrinsics
 from gscan.io.align import align_depth_to_color
+from gscan.io.camera import Intrinsics
 from gscan.synth import (
     SynthScene,
     default_distance,

@@ -24,8 +24,7 @@ import pytest
 
 import gscan
 from gscan import synth
-from gscan.batch.evaluate import (BatchEvalReport, Pair, PairRow, assign_obj_ids, combined_csv, find_pairs,
-                                  read_manifest)
+from gscan.batch.evaluate import BatchEvalReport, Pair, PairRow, assign_obj_ids, combined_csv, find_pairs, read_manifest
 from gscan.batch.scan import BatchReport, CaptureRow, _plan, find_captures
 from gscan.errors import InputError
 from gscan.scan.config import ScanConfig

@@ -7,8 +7,8 @@ import sys
 import pytest
 import yaml
 
-from gscan.scan.config import ScanConfig, dump_defaults, load_config
 from gscan.errors import InputError
+from gscan.scan.config import ScanConfig, dump_defaults, load_config
 
 
 def test_dump_has_a_comment_per_key_and_loads_back_as_the_defaults(tmp_path):
@@ -55,11 +55,10 @@ def test_bad_config_names_the_file_and_the_key(tmp_path, text, words):
 
 
 def test_every_registration_key_reaches_the_registration_parameters():
-    from gscan.scan.capture_mode import MOVING_OBJECT, STATIC_OBJECT
-    from gscan.scan.pipeline import _register_params
-
     from gscan.registration.noise import DepthNoise
+    from gscan.scan.capture_mode import MOVING_OBJECT, STATIC_OBJECT
     from gscan.scan.config import NoiseConfig
+    from gscan.scan.pipeline import _register_params
 
     base = ScanConfig()
     for key, value in base.registration.model_dump().items():

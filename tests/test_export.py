@@ -13,13 +13,13 @@ import pytest
 import trimesh
 import yaml
 
-from gscan.io.camera import Intrinsics, backproject_pixels, project
 from gscan.errors import InputError
 from gscan.export import export
 from gscan.export.common import render_depth
-from gscan.geometry.transforms import inv_T, look_at, transform_points
 from gscan.features import Features
 from gscan.geometry.mesh import MeshData
+from gscan.geometry.transforms import inv_T, look_at, transform_points
+from gscan.io.camera import Intrinsics, backproject_pixels, project
 from gscan.template.db import Edge, TemplateDB, View
 
 K = Intrinsics(150.0, 152.0, 79.5, 59.5, 160, 120)

@@ -8,7 +8,6 @@ import cv2
 import numpy as np
 import pytest
 
-from gscan.io.camera import Intrinsics, backproject
 from gscan.errors import InputError
 from gscan.io import (
     associate,
@@ -25,6 +24,7 @@ from gscan.io import (
     read_sun_depth,
     read_ycbv_meta,
 )
+from gscan.io.camera import Intrinsics, backproject
 
 PRIMESENSE = Intrinsics(525.0, 525.0, 319.5, 239.5, 640, 480)
 W, H = 64, 48

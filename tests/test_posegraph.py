@@ -9,9 +9,19 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from gscan.geometry.transforms import inv_T, look_at, make_T, pose_error, rotvec_to_R, transform_points
-from gscan.registration.posegraph import (GraphEdge, LoopParams, PoseGraphParams, bow_vectors, bridges, edge_chi2,
-                                          edge_residual, information_from_points, optimize_pose_graph,
-                                          select_loop_candidates, spanning_poses)
+from gscan.registration.posegraph import (
+    GraphEdge,
+    LoopParams,
+    PoseGraphParams,
+    bow_vectors,
+    bridges,
+    edge_chi2,
+    edge_residual,
+    information_from_points,
+    optimize_pose_graph,
+    select_loop_candidates,
+    spanning_poses,
+)
 
 SIGMA = 0.002  # m, per-axis noise of the synthetic matched points
 

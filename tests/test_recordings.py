@@ -23,12 +23,12 @@ from _recordings import K_COLOR, K_DEPTH, PERIOD_NS, T0_NS, T_depth_offset, rend
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from gscan.errors import InputError
 from gscan.evaluate.metrics import ate_rmse
 from gscan.geometry.transforms import inv_T
 from gscan.io import associate, open_sequence
-from gscan.errors import InputError
-from gscan.io.camera import Intrinsics
 from gscan.io.align import align_depth_reference, align_depth_to_color
+from gscan.io.camera import Intrinsics
 from gscan.io.recordings.pairing import pair_frames, pair_tolerance
 from gscan.scan.pipeline import ScanOptions, run_scan
 from gscan.synth.recordings import RecordingFrame, write_mcap, write_realsense_bag, write_rosbag2

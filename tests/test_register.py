@@ -6,13 +6,30 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from gscan.features import FeatureParams, Features, extract_features
+from gscan.geometry.transforms import (
+    inv_T,
+    look_at,
+    make_T,
+    pose_error,
+    rotation_angle_deg,
+    rotvec_to_R,
+    transform_points,
+)
 from gscan.io.camera import Intrinsics, RGBDFrame
-from gscan.features import Features, FeatureParams, extract_features
-from gscan.geometry.transforms import inv_T, look_at, make_T, pose_error, rotation_angle_deg, rotvec_to_R, transform_points
 from gscan.matching.gmatch import GMatchResult
 from gscan.registration.noise import DepthNoise
-from gscan.registration.pairwise import (METHODS, GuidedPool, PairResult, RegisterParams, frame_cloud, lists_to_verify,
-                                         pose_by_support, register_features, relative_pose)
+from gscan.registration.pairwise import (
+    METHODS,
+    GuidedPool,
+    PairResult,
+    RegisterParams,
+    frame_cloud,
+    lists_to_verify,
+    pose_by_support,
+    register_features,
+    relative_pose,
+)
 
 N_MESHES = 10
 AZIMUTHS = (0.0, 15.0, 30.0, 45.0)  # 4 views per mesh -> pairs at 15, 30 and 45 deg: 6 per mesh, 60 in all

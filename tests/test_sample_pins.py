@@ -20,7 +20,6 @@ from pathlib import Path
 import numpy as np
 
 from gscan.demo import SAMPLES
-from tests.conftest import ROOT
 
 PINS = Path(__file__).with_name("sample_pins.json")
 TOL_M = 1e-6  # translation, metres

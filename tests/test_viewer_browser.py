@@ -20,12 +20,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from gscan.io.camera import RGBDFrame
+from gscan.demo import SAMPLES
 from gscan.errors import InputError
 from gscan.geometry.transforms import look_at
+from gscan.io.camera import RGBDFrame
 from gscan.template.db import TemplateDB
 from gscan.viewer.app import PortInUseError, check_port, serve
-from gscan.demo import SAMPLES
 from gscan.viewer.draw import draw_matches, edge_color, quality_color, scale_pixels, thumbnail
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -73,8 +73,8 @@ from gscan.features import (
     extract_features,
     extract_features_in_mask,
 )
-from gscan.geometry.pointset import coincident_groups, pca_normals, voxel_down_indices, voxel_mean
 from gscan.geometry.kabsch import kabsch_trimmed
+from gscan.geometry.pointset import coincident_groups, pca_normals, voxel_down_indices, voxel_mean
 from gscan.geometry.transforms import inv_T, transform_points
 from gscan.io.camera import RGBDFrame
 from gscan.matching.gmatch import GMatchParams, default_eps_f, gmatch
@@ -282,7 +282,7 @@ class Estimator:
     def estimate_query(self, q: QueryFrame, refine: bool = True, t_all: float | None = None) -> EstimateResult:
         """`estimate` on a prepared frame (`prepare`), BLAS threads as they are."""
         t_all = time.perf_counter() if t_all is None else t_all
-        tm: dict[str, float] = {k: 0.0 for k in STAGES}
+        tm: dict[str, float] = dict.fromkeys(STAGES, 0.0)
         use_pnp = q.depth_frac < self.params.min_depth_frac
         t = time.perf_counter()
         feats = self._features(q.frame, q.search, lift=not use_pnp)

@@ -23,9 +23,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from gscan.geometry.plane import Plane
 from gscan.geometry.transforms import transform_points
 from gscan.io.camera import Intrinsics
-from gscan.geometry.plane import Plane
 
 
 @dataclass

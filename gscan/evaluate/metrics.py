@@ -23,9 +23,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from gscan.io.camera import Intrinsics
 from gscan.geometry.kabsch import umeyama
 from gscan.geometry.transforms import inv_T, rotation_angle_deg, transform_points
+from gscan.io.camera import Intrinsics
 
 #: BOP MSSD thresholds, as fractions of the object diameter: 0.05, 0.10, ..., 0.50.
 MSSD_THRESHOLD_FRACTIONS = np.round(np.arange(0.05, 0.51, 0.05), 10)

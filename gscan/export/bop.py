@@ -39,11 +39,11 @@ from pathlib import Path
 import numpy as np
 
 from gscan.errors import InputError
+from gscan.evaluate.metrics import diameter
 from gscan.export.common import MeshRaycaster, bbox_xywh, imwrite, posed_views, template_mesh
 from gscan.geometry.transforms import inv_T
-from gscan.evaluate.metrics import diameter
-from gscan.template.db import MeshData, TemplateDB
 from gscan.template.codec import depth_to_mm_u16
+from gscan.template.db import MeshData, TemplateDB
 
 log = logging.getLogger(__name__)
 

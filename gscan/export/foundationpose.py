@@ -33,8 +33,8 @@ import yaml
 
 from gscan.errors import InputError
 from gscan.export.common import MeshRaycaster, imwrite, posed_views, template_mesh
-from gscan.template.db import TemplateDB
 from gscan.template.codec import depth_to_mm_u16
+from gscan.template.db import TemplateDB
 
 log = logging.getLogger(__name__)
 
@@ -75,8 +75,9 @@ def write_foundationpose(db: TemplateDB, out: Path, close: bool = True) -> int:
     (ob / "select_frames.yml").write_text(yaml.safe_dump([v.name for v in kept], allow_unicode=True),
                                           encoding="utf-8")
     if mesh is not None:
-        from gscan.export.mesh import to_trimesh
         import trimesh
+
+        from gscan.export.mesh import to_trimesh
 
         (ob / "model").mkdir()
         text = trimesh.exchange.obj.export_obj(to_trimesh(mesh), include_color=True, include_normals=True,

@@ -17,8 +17,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from gscan.io.camera import DepthCamera, Intrinsics, RGBDFrame, load_intrinsics
 from gscan.errors import InputError, not_a_file
+from gscan.io.camera import DepthCamera, Intrinsics, RGBDFrame, load_intrinsics
 from gscan.io.layouts import frame_name
 from gscan.io.poses import read_pose_file, read_pose_txt
 

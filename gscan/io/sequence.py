@@ -8,17 +8,23 @@ a sequence with no usable frame, or a sequence-wide problem (intrinsics, depth s
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from gscan.io.camera import (DepthCamera, FrameIteration, Intrinsics, RGBDFrame, implausible_intrinsics,
-                             load_intrinsics)
 from gscan.errors import InputError, not_a_file
-from gscan.io.images import (MAX_DEPTH_SCALE, check_depth_range, check_depth_scale, image_size, load_frame,
-                             read_depth, resolve_depth_camera)
+from gscan.io.camera import DepthCamera, FrameIteration, Intrinsics, RGBDFrame, implausible_intrinsics, load_intrinsics
+from gscan.io.images import (
+    MAX_DEPTH_SCALE,
+    check_depth_range,
+    check_depth_scale,
+    image_size,
+    load_frame,
+    read_depth,
+    resolve_depth_camera,
+)
 from gscan.io.layouts import FrameSpec, Layout, discover
 from gscan.io.recordings.kinds import recording_format
 
@@ -106,7 +112,7 @@ class Sequence(FrameIteration):
         """What the frames' files hold, cheaply: {name: {"color"|"depth"|"mask": "<bytes>:<blake2b-128 hex>"}}
         for the usable frames, None for the frames left out (`problems`). A resumed scan compares them with
         the ones its partial database was started from. InputError naming a file that cannot be read."""
-        out: dict[str, dict[str, str] | None] = {name: None for name in self.problems}
+        out: dict[str, dict[str, str] | None] = dict.fromkeys(self.problems)
         for name in self.names:
             spec = self._specs[name]
             out[name] = {role: _file_fingerprint(p) for role, p in (("color", spec.color), ("depth", spec.depth),

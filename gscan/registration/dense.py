@@ -48,7 +48,7 @@ class DenseGeometry:
 
     @classmethod
     def from_depth(cls, depth: np.ndarray, intr: Intrinsics, mask: np.ndarray | None = None,
-                   samples: int = 5000) -> "DenseGeometry":
+                   samples: int = 5000) -> DenseGeometry:
         """Samples of depth [H x W] (m) inside mask ([H x W] bool, optional), about `samples` of them."""
         H, W = depth.shape
         stride = max(1, int(np.sqrt(H * W / samples)))
@@ -102,7 +102,7 @@ class DepthAgreement:
         """landed / total: the share of the frame seen by the other one."""
         return self.landed / max(1, self.total)
 
-    def __add__(self, other: "DepthAgreement") -> "DepthAgreement":
+    def __add__(self, other: DepthAgreement) -> DepthAgreement:
         return DepthAgreement(self.consistent + other.consistent, self.see_through + other.see_through,
                               self.occluded + other.occluded, self.landed + other.landed, self.total + other.total)
 

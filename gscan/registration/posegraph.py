@@ -50,9 +50,22 @@ import numpy as np
 from gscan.geometry.transforms import inv_T, rotation_angle_deg
 from gscan.registration.loops import LoopCandidate, LoopParams, bow_vectors, select_loop_candidates
 
-__all__ = ["GraphEdge", "EdgeReport", "PoseGraphParams", "PoseGraphResult", "optimize_pose_graph",
-           "edge_residual", "edge_chi2", "information_from_points", "spanning_poses", "bridges",
-           "LoopCandidate", "LoopParams", "bow_vectors", "select_loop_candidates"]
+__all__ = [
+    "EdgeReport",
+    "GraphEdge",
+    "LoopCandidate",
+    "LoopParams",
+    "PoseGraphParams",
+    "PoseGraphResult",
+    "bow_vectors",
+    "bridges",
+    "edge_chi2",
+    "edge_residual",
+    "information_from_points",
+    "optimize_pose_graph",
+    "select_loop_candidates",
+    "spanning_poses",
+]
 
 log = logging.getLogger(__name__)
 

@@ -25,12 +25,12 @@ from pathlib import Path
 
 import numpy as np
 
-from gscan.io.camera import RGBDFrame, backproject
 from gscan.errors import InputError
 from gscan.features import OBJECT_FEATURES, FeatureParams, extract_features
-from gscan.geometry.transforms import look_at, transform_points
-from gscan.io.output import Output
 from gscan.geometry.pointset import voxel_mean
+from gscan.geometry.transforms import look_at, transform_points
+from gscan.io.camera import RGBDFrame, backproject
+from gscan.io.output import Output
 from gscan.progress import NullProgress, Progress
 from gscan.synth import DEFAULT_INTRINSICS, SynthScene, TexturedMesh, load_textured_mesh
 from gscan.template.db import TemplateDB, View

@@ -45,7 +45,7 @@ class NoiseModelConfig(_Section):
     c2: float = Field(ge=0, description="... growing with depth^4 (axial sensor noise: m^2 per m^4)")
 
     @model_validator(mode="after")
-    def _positive(self) -> "NoiseModelConfig":
+    def _positive(self) -> NoiseModelConfig:
         if self.c0 + self.c1 + self.c2 <= 0:
             raise ValueError("a noise model needs a positive coefficient")
         return self
@@ -117,7 +117,7 @@ class SegmentationConfig(_Section):
     height_max: float = Field(0.5, ge=0.01, le=5, description="the object stands at most this high above its support plane (m)")
 
     @model_validator(mode="after")
-    def _range(self) -> "SegmentationConfig":
+    def _range(self) -> SegmentationConfig:
         if self.depth_max is not None and self.depth_max <= self.depth_min:
             raise ValueError("depth_max must be greater than depth_min")
         return self
@@ -142,7 +142,7 @@ class ScanConfig(_Section):
     keyframes: KeyframeConfig = KeyframeConfig()
 
     @model_validator(mode="after")
-    def _segment_within_fusion(self) -> "ScanConfig":
+    def _segment_within_fusion(self) -> ScanConfig:
         if self.fusion.depth_max is not None and self.segmentation.depth_min >= self.fusion.depth_max:
             raise ValueError("segmentation.depth_min must be below fusion.depth_max (nothing could be fused)")
         return self

@@ -31,25 +31,40 @@ from pathlib import Path
 
 import numpy as np
 
-from gscan.io.camera import RGBDFrame, backproject
-from gscan.io.output import (JOURNAL_SUFFIX, Output, check_output, file_identity, journal_fits, missing_folders,
-                             occupied, remove_empty_folders)
-from gscan.io.sequence import Sequence
-from gscan.scan.capture_mode import MOVING_OBJECT, STATIC_OBJECT, detect_mode, moving_object_masks
-from gscan.scan.keyframes import select_keyframes, view_direction
-from gscan.scan.config import ScanConfig
 from gscan.errors import InputError, OutputExists
 from gscan.features import OBJECT_FEATURES, FeatureParams, Features, extract_features, extract_features_in_mask
-from gscan.scan.fuse import FusedModel, FusionParams, fuse_tsdf, template_frame
+from gscan.geometry.plane import Plane
 from gscan.geometry.transforms import transform_points
+from gscan.io.camera import RGBDFrame, backproject
+from gscan.io.output import (
+    JOURNAL_SUFFIX,
+    Output,
+    check_output,
+    file_identity,
+    journal_fits,
+    missing_folders,
+    occupied,
+    remove_empty_folders,
+)
+from gscan.io.sequence import Sequence
 from gscan.progress import Progress, StageTimer
 from gscan.registration.dense import DenseGeometry, in_source_frame, plane_residuals, pose_information
 from gscan.registration.noise import DepthNoise, estimate_noise
 from gscan.registration.pairwise import RegisterParams, register_features
-from gscan.geometry.plane import Plane
-from gscan.registration.posegraph import (GraphEdge, LoopParams, PoseGraphParams, PoseGraphResult,
-                                          information_from_points, optimize_pose_graph, select_loop_candidates,
-                                          spanning_poses)
+from gscan.registration.posegraph import (
+    GraphEdge,
+    LoopParams,
+    PoseGraphParams,
+    PoseGraphResult,
+    information_from_points,
+    optimize_pose_graph,
+    select_loop_candidates,
+    spanning_poses,
+)
+from gscan.scan.capture_mode import MOVING_OBJECT, STATIC_OBJECT, detect_mode, moving_object_masks
+from gscan.scan.config import ScanConfig
+from gscan.scan.fuse import FusedModel, FusionParams, fuse_tsdf, template_frame
+from gscan.scan.keyframes import select_keyframes, view_direction
 from gscan.scan.segment import SegmentParams
 from gscan.template.db import Edge, TemplateDB, View
 

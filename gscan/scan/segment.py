@@ -33,10 +33,10 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
-from gscan.io.camera import RGBDFrame, backproject
 from gscan.errors import InputError
 from gscan.geometry.plane import Plane, dominant_plane, ransac_plane
 from gscan.geometry.transforms import transform_points
+from gscan.io.camera import RGBDFrame, backproject
 from gscan.registration.noise import DepthNoise
 
 log = logging.getLogger(__name__)

@@ -11,8 +11,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from gscan.io.camera import Intrinsics
 from gscan.geometry.transforms import look_at, make_T, rotvec_to_R, transform_points
+from gscan.io.camera import Intrinsics
 from gscan.synth.mesh import TexturedMesh, box_mesh
 from gscan.synth.render import DEFAULT_INTRINSICS, DEFAULT_LIGHT_DIR, Gloss, RenderedFrame, SynthScene
 from gscan.synth.textures import procedural_box_texture

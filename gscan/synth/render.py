@@ -15,8 +15,8 @@ import cv2
 import numpy as np
 import open3d as o3d
 
-from gscan.io.camera import Intrinsics, pixel_rays
 from gscan.geometry.transforms import inv_T
+from gscan.io.camera import Intrinsics, pixel_rays
 from gscan.synth.mesh import TexturedMesh, sample_mip_pixels, texture_pyramid
 from gscan.synth.noise import DepthNoise, apply_depth_noise
 from gscan.synth.textures import table_texture

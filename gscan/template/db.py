@@ -26,9 +26,10 @@ import json
 import logging
 import sqlite3
 import threading
+from collections.abc import Iterator
 from contextlib import contextmanager, suppress
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import cv2
 import numpy as np
@@ -40,9 +41,23 @@ from gscan.geometry.transforms import is_rigid
 from gscan.io.camera import Intrinsics
 from gscan.io.images import image_too_large
 from gscan.io.output import JOURNAL_SUFFIX, Output, file_identity, write_failure_reason
-from gscan.template.codec import (BadBlob, TooLarge, check_colors, check_keypoints, check_mesh, check_T, decode_array,
-                                  decode_image, decode_json, decode_T, encode_array, encode_color, encode_depth,
-                                  encode_mask)
+from gscan.template.codec import (
+    BadBlob,
+    TooLarge,
+    check_colors,
+    check_keypoints,
+    check_mesh,
+    check_T,
+    decode_array,
+    decode_image,
+    decode_json,
+    decode_T,
+    encode_array,
+    encode_color,
+    encode_depth,
+    encode_mask,
+)
+
 # the records live in gscan.template.records; they are imported from here as well
 from gscan.template.records import Edge, Template, TemplateSummary, View
 
@@ -133,7 +148,7 @@ class TemplateDB:
         return conn
 
     @classmethod
-    def create(cls, path: str | Path, force: bool = False, meta: dict | None = None) -> "TemplateDB":
+    def create(cls, path: str | Path, force: bool = False, meta: dict | None = None) -> TemplateDB:
         """Create a new database at `path` with status "partial".
 
         An existing `path` is refused (OutputExists) unless `force`, which replaces it; without `force`
@@ -180,7 +195,7 @@ class TemplateDB:
         return db
 
     @classmethod
-    def open(cls, path: str | Path, require_complete: bool = True, writable: bool = False) -> "TemplateDB":
+    def open(cls, path: str | Path, require_complete: bool = True, writable: bool = False) -> TemplateDB:
         """Open an existing database. InputError (one line naming the file) when the file is missing,
         not SQLite, not a gscan database, of an unsupported schema, or partial while `require_complete`."""
         path = Path(path)
@@ -229,7 +244,7 @@ class TemplateDB:
                 self._conn.close()
                 self._conn = None
 
-    def __enter__(self) -> "TemplateDB":
+    def __enter__(self) -> TemplateDB:
         return self
 
     def __exit__(self, *exc: object) -> None:

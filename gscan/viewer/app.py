@@ -35,10 +35,10 @@ import numpy as np
 from gscan.errors import InputError
 from gscan.io.camera import RGBDFrame
 from gscan.template.db import Edge, View, unregistered_names
+from gscan.viewer.access import TokenGate, check_token
 from gscan.viewer.data import ViewerData, ViewerOptions, load_viewer_data
 from gscan.viewer.draw import draw_keypoints, draw_matches, legend_html
 from gscan.viewer.scene import build_scene
-from gscan.viewer.access import TokenGate, check_token
 from gscan.viewer.text import md_text
 
 log = logging.getLogger(__name__)

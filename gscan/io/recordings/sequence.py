@@ -27,9 +27,9 @@ from types import TracebackType
 import numpy as np
 
 from gscan.errors import InputError
+from gscan.io.align import align_depth_to_color
 from gscan.io.camera import FrameIteration, Intrinsics, RGBDFrame, load_intrinsics
 from gscan.io.images import check_depth_range, check_depth_scale
-from gscan.io.align import align_depth_to_color
 from gscan.io.recordings.kinds import recording_format
 from gscan.io.recordings.messages import (
     COLOR_ENCODINGS,
@@ -118,7 +118,7 @@ class RecordingSequence(FrameIteration):
         times; the pixels themselves are not read."""
         files = sorted(self.root.rglob("*")) if self.root.is_dir() else [self.root]
         size = sum(f.stat().st_size for f in files if f.is_file())
-        out: dict[str, dict[str, str] | None] = {name: None for name in self.problems}
+        out: dict[str, dict[str, str] | None] = dict.fromkeys(self.problems)
         for name, (_, p) in self._pairs.items():
             out[name] = {"recording": f"{size}:{p.color[0]}.{p.color[1]}/{p.depth[0]}.{p.depth[1]}/{p.stamp_ns}"}
         return out
@@ -138,7 +138,7 @@ class RecordingSequence(FrameIteration):
                 self._src.close()
                 self._src = None
 
-    def __enter__(self) -> RecordingSequence:  # noqa: PYI034
+    def __enter__(self) -> RecordingSequence:
         return self
 
     def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
@@ -149,7 +149,7 @@ class RecordingSequence(FrameIteration):
         try:  # not contextlib: at interpreter shutdown module globals may already be gone
             if self._src is not None:
                 self._src.close()
-        except Exception:  # noqa: BLE001, S110 - nothing to do about a reader torn down half-way
+        except Exception:  # noqa: BLE001 - nothing to do about a reader torn down half-way
             pass
 
     # ------------------------------------------------------------------ reading
