@@ -121,7 +121,8 @@ def scanned_template(name: str, mesh, work: Path, n_frames: int) -> tuple[Path, 
 def run(args: argparse.Namespace) -> dict:
     names = sorted(p.name for p in MESHES.iterdir() if (p / "model_0.obj").is_file())
     if args.meshes:
-        names = names[: int(args.meshes)] if args.meshes.isdigit() else [n for n in names if n in args.meshes.split(",")]
+        wanted = args.meshes.split(",")
+        names = names[: int(args.meshes)] if args.meshes.isdigit() else [n for n in names if n in wanted]
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
     all_meshes = {n: load_textured_mesh(MESHES / n / "model_0.obj") for n in sorted(p.name for p in MESHES.iterdir()
@@ -205,7 +206,8 @@ def main() -> None:
     out = run(args)
     s = out["summary"]
     print(f"\n{len(out['meshes'])} meshes x {out['scenes_per_mesh']} scenes, {out['views']}-view CAD templates"
-          + (f"; gscan-scanned: the first {args.scanned} meshes, {args.scan_frames}-frame scans" if args.scanned else ""))
+          + (f"; gscan-scanned: the first {args.scanned} meshes, {args.scan_frames}-frame scans"
+             if args.scanned else ""))
     print("| method | found % | AUC ADD | AUC ADD-S | ADD<0.1d % | wrong % |")
     print("|---|---|---|---|---|---|")
     for m, v in s.items():

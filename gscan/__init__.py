@@ -71,7 +71,7 @@ if TYPE_CHECKING:
     from gscan.scan.cad import TemplateResult, template_from_mesh
     from gscan.scan.config import ScanConfig
     from gscan.scan.pipeline import ScanResult
-    from gscan.serve.server import serve
+    from gscan.serve.server import serve as serve
     from gscan.template.db import TemplateDB
 
 __all__ = [

@@ -387,8 +387,8 @@ def estimate(
 def track(
     template: Path = typer.Argument(..., help="template database (OBJ.gscan)"),
     input_path: Path = typer.Argument(..., metavar="INPUT", help="RGB-D sequence: a folder in any layout scan reads"),
-    output: Path | None = typer.Option(None, "-o", "--output",
-                                          help="folder for one T_cam_obj per frame (ob_in_cam 4x4 text) + summary.json"),
+    output: Path | None = typer.Option(
+        None, "-o", "--output", help="folder for one T_cam_obj per frame (ob_in_cam 4x4 text) + summary.json"),
     format: str = typer.Option("auto", "--format", help="auto|capture|open3d|tum|bop"),
     intrinsics: Path | None = typer.Option(None, "--intrinsics", help="cam_K.txt or Open3D intrinsics JSON"),
     depth_scale: float | None = typer.Option(None, "--depth-scale", help="metres per raw depth unit"),
@@ -563,7 +563,8 @@ def view(
 
             result = Estimator.from_path(template).estimate(frame)
             T_cam_obj = result.T_cam_obj
-            _line(f"estimate: {'not found (' + str(result.reason) + ')' if T_cam_obj is None else 'view ' + str(result.view)}")
+            found = f"view {result.view}" if T_cam_obj is not None else f"not found ({result.reason})"
+            _line(f"estimate: {found}")
     run_viewer(template, host=host, port=port, scene_frame=frame, T_cam_obj=T_cam_obj, token=token,
                on_ready=lambda url: _say("viewer ready at ", (url, "bold"), " (Ctrl+C to stop)"))
 
@@ -636,7 +637,8 @@ def eval_cmd(
     scenes: Path = typer.Argument(..., help="BOP scene folder, or a folder of rendered scenes (capture layout)"),
     output: Path = typer.Option(..., "-o", "--output", help="BOP19 results CSV to write"),
     obj_id: int = typer.Option(1, "--obj-id", min=1, max=2**31 - 1, help="object id in scene_gt.json and in the CSV"),
-    model: Path | None = typer.Option(None, "--model", help="object model for ADD/ADD-S/MSSD/MSPD (default: template mesh)"),
+    model: Path | None = typer.Option(None, "--model",
+                                      help="object model for ADD/ADD-S/MSSD/MSPD (default: template mesh)"),
     gt_capture: Path | None = typer.Option(
         None, "--gt-capture", help="capture a scanned template came from, with ground-truth poses, to relate its "
         "frame to the ground truth's (default: the template's own input folder)"),
@@ -702,10 +704,10 @@ def batch(
     from gscan.batch.scan import run_batch
 
     try:
-        with contextlib.redirect_stdout(sys.stderr):  # Ray's own messages (a worker died, ...) are not the JSON
-            with RichBatchMonitor(err, live=err.is_terminal, escape=printable, noun="captures") as monitor:
-                report = run_batch(captures_dir, output, config=config, address=address, workers=workers,
-                                   force=force, monitor=monitor if err.is_terminal or not json_out else None)
+        with (contextlib.redirect_stdout(sys.stderr),  # Ray's own messages (a worker died, ...) are not the JSON
+              RichBatchMonitor(err, live=err.is_terminal, escape=printable, noun="captures") as monitor):
+            report = run_batch(captures_dir, output, config=config, address=address, workers=workers,
+                               force=force, monitor=monitor if err.is_terminal or not json_out else None)
     except KeyboardInterrupt:
         _say_interrupted("interrupted: the templates finished are kept; run the command again to resume the others")
         raise
@@ -777,11 +779,11 @@ def batch_eval(
     from gscan.batch.display import RichBatchMonitor
     from gscan.batch.evaluate import objects_paths, run_batch_eval
 
-    with contextlib.redirect_stdout(sys.stderr):  # Ray's own messages (a worker died, ...) are not the JSON
-        with RichBatchMonitor(err, live=err.is_terminal, escape=printable, noun="pairs") as monitor:
-            report = run_batch_eval(output, templates_dir=templates_dir, scenes_dir=scenes_dir, manifest=manifest,
-                                    refine=not no_icp, address=address, workers=workers, force=force,
-                                    monitor=monitor if err.is_terminal or not json_out else None)
+    with (contextlib.redirect_stdout(sys.stderr),  # Ray's own messages (a worker died, ...) are not the JSON
+          RichBatchMonitor(err, live=err.is_terminal, escape=printable, noun="pairs") as monitor):
+        report = run_batch_eval(output, templates_dir=templates_dir, scenes_dir=scenes_dir, manifest=manifest,
+                                refine=not no_icp, address=address, workers=workers, force=force,
+                                monitor=monitor if err.is_terminal or not json_out else None)
     if json_out:
         _print_json(report.to_json())
     s = report.summary()
@@ -921,7 +923,8 @@ def demo(
     err.print(table)
     found = [r for r in held if r.found]
     worst = "" if not found else (f"; largest errors {max(r.rot_err_deg for r in found):.2f} deg, "
-                                  f"{max(r.trans_err_mm for r in found):.1f} mm, ADD {max(r.add_mm for r in found):.1f} mm")
+                                  f"{max(r.trans_err_mm for r in found):.1f} mm, "
+                                  f"ADD {max(r.add_mm for r in found):.1f} mm")
     _say(f"held-back frames: {len(found)}/{len(held)} found{worst}")
     if no_view:
         _say(("3/3", "bold"), f" viewer skipped; run `gscan view {result.output}`")

@@ -91,8 +91,8 @@ def check_demo_output(output: Path) -> Path:
 
 
 def scan_sample(output: Path, progress: Progress | None = None) -> ScanResult:
-    """Scan the bundled capture (SAMPLES/capture) into OUTPUT/sample.gscan (replacing only a template the demo wrote, see
-    `check_demo_output`); returns the ScanResult."""
+    """Scan the bundled capture (SAMPLES/capture) into OUTPUT/sample.gscan (replacing only a template the demo
+    wrote, see `check_demo_output`); returns the ScanResult."""
     if not (SAMPLES / "capture").is_dir():
         raise InputError(SAMPLES / "capture", "bundled sample not found (an incomplete installation: reinstall gscan)")
     path = check_demo_output(output)

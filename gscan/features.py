@@ -60,7 +60,8 @@ class Features:
             raise ValueError(f"inconsistent feature shapes: pixels {self.pixels.shape}, points {self.points.shape}, "
                              f"scales {None if self.scales is None else self.scales.shape}")
         if self.descriptors.shape != (n, _DIMS[self.kind]):
-            raise ValueError(f"{self.kind} descriptors must be [{n} x {_DIMS[self.kind]}], got {self.descriptors.shape}")
+            raise ValueError(f"{self.kind} descriptors must be [{n} x {_DIMS[self.kind]}], "
+                             f"got {self.descriptors.shape}")
 
     def __len__(self) -> int:
         return len(self.pixels)

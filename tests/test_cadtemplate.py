@@ -124,7 +124,8 @@ def test_template_from_a_scanned_mesh(sample_template, tmp_path, caplog):
         template_from_mesh(ply, out, n_views=24)
     assert not [r for r in caplog.records if "flat colour" in r.getMessage()]
     held = SAMPLES / "heldout"
-    frame = load_frame(held / "rgb" / "000000.jpg", held / "depth" / "000000.png", held / "cam_K.txt", depth_scale=0.001)
+    frame = load_frame(held / "rgb" / "000000.jpg", held / "depth" / "000000.png", held / "cam_K.txt",
+                       depth_scale=0.001)
     a, b = Estimator.from_path(out).estimate(frame), Estimator.from_path(sample_template).estimate(frame)
     assert a.found and b.found, (a.reason, b.reason)
     deg, m = pose_error(a.T_cam_obj, b.T_cam_obj)

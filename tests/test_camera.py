@@ -26,7 +26,7 @@ from gscan.io.camera import (
     project,
 )
 
-finite = dict(allow_nan=False, allow_infinity=False)
+finite = {"allow_nan": False, "allow_infinity": False}
 
 
 @pytest.fixture(scope="module")

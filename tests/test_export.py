@@ -350,7 +350,8 @@ def test_colmap_leaves_out_views_without_a_colour_image(synth: tuple[Path, dict]
     assert [r.getMessage() for r in caplog.records if "not exported" in r.getMessage()] == [
         "1 view(s) store no colour image and are not exported: frame 01 é"]
     rec = pycolmap.Reconstruction(str(tmp_path / "c"))
-    assert sorted(im.name for im in rec.images.values()) == sorted(p.name for p in (tmp_path / "c" / "images").iterdir())
+    images = sorted(p.name for p in (tmp_path / "c" / "images").iterdir())
+    assert sorted(im.name for im in rec.images.values()) == images
     with sqlite3.connect(db) as conn:
         conn.execute("UPDATE views SET color = NULL")
     with pytest.raises(InputError, match="no registered view with a colour image"):

@@ -103,7 +103,8 @@ def test_wheel_install_runs_the_demo_from_another_folder(tmp_path: Path):
                            cwd=elsewhere, capture_output=True, text=True, timeout=120, env=_env())
     module, samples = where.stdout.split()
     assert Path(module).is_relative_to(tmp_path / "venv") and Path(samples).is_relative_to(tmp_path / "venv")
-    assert (Path(samples) / "capture" / "cam_K.txt").is_file() and len(list((Path(samples) / "heldout" / "rgb").iterdir())) == 4
+    assert (Path(samples) / "capture" / "cam_K.txt").is_file()
+    assert len(list((Path(samples) / "heldout" / "rgb").iterdir())) == 4
     r = subprocess.run([str(tmp_path / "venv" / "bin" / "gscan"), "demo", "--no-view", "-o", "out"], cwd=elsewhere,
                        capture_output=True, text=True, timeout=900, env=_env())
     assert r.returncode == 0, r.stderr[-3000:]

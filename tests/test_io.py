@@ -792,7 +792,8 @@ def test_unreadable_permissions(tmp_path: Path):
 
 def test_depth_scale_message(tmp_path: Path):
     call, _ = bad_depth_scale_sequence(tmp_path)
-    with pytest.raises(InputError, match=r"depth scale 1 puts the scene at 799 m.*0\.001 would put it at 0\.799 m") as ei:
+    with pytest.raises(InputError,
+                       match=r"depth scale 1 puts the scene at 799 m.*0\.001 would put it at 0\.799 m") as ei:
         call()
     assert ei.value.fix == "depth_scale"  # the CLI names --depth-scale
 

@@ -107,7 +107,8 @@ def _scan_and_kill(capture: Path, db: Path, ready, resume: bool = False,
             proc.wait()
     out, err = proc.communicate()
     if sig == signal.SIGKILL:
-        assert proc.returncode == -signal.SIGKILL, f"the scan ended before it was killed (rc {proc.returncode}): {err!r}"
+        assert proc.returncode == -signal.SIGKILL, (f"the scan ended before it was killed (rc {proc.returncode}): "
+                                                    f"{err!r}")
     return proc.returncode, out.decode(), err.decode()
 
 
@@ -122,8 +123,8 @@ def _check_partial(db: Path, capture: Path) -> None:
     assert info.returncode == 0, info.stderr
     assert json.loads(info.stdout)["status"] == "partial"
     out = db.parent / "export_out"
-    for argv in (("estimate", db, "--color", capture / "rgb" / "000001.png", "--depth", capture / "depth" / "000001.png",
-                  "--intrinsics", capture / "cam_K.txt", "--json"),
+    for argv in (("estimate", db, "--color", capture / "rgb" / "000001.png",
+                  "--depth", capture / "depth" / "000001.png", "--intrinsics", capture / "cam_K.txt", "--json"),
                  ("export", db, "--format", "json", "-o", out)):
         r = _gscan(*argv)
         assert r.returncode == 2, (argv[0], r.stdout, r.stderr)

@@ -101,7 +101,8 @@ def main() -> None:
         scan(SAMPLES / "capture", out)
         text = json.dumps(_sample_results(out), indent=1)
     # one matrix row a line
-    text = re.sub(r"\[\s+([^\[\]{}]*?)\s+\]", lambda m: "[" + ", ".join(x.strip() for x in m.group(1).split(",")) + "]", text)
+    text = re.sub(r"\[\s+([^\[\]{}]*?)\s+\]",
+                  lambda m: "[" + ", ".join(x.strip() for x in m.group(1).split(",")) + "]", text)
     PINS.write_text(text + "\n")
     print(f"wrote {PINS}")
 

@@ -299,7 +299,7 @@ def test_box_mesh_closed_and_textures_saved(tmp_path: Path, box: TexturedMesh) -
 
 
 def test_textures_deterministic_and_distinct() -> None:
-    a, b, c = procedural_box_texture(5, (256, 384)), procedural_box_texture(5, (256, 384)), procedural_box_texture(6, (256, 384))
+    a, b, c = (procedural_box_texture(seed, (256, 384)) for seed in (5, 5, 6))
     assert np.array_equal(a, b) and not np.array_equal(a, c)
     for kind in ("newspaper", "wood", "fabric"):
         t = table_texture(kind, 2, 512)
@@ -385,7 +385,8 @@ def test_bundled_sample_consistent_with_ground_truth() -> None:
     # box.obj's vertices written with full precision: float64 rounding
     np.testing.assert_allclose(box.extent, [0.16, 0.10, 0.07], atol=1e-9)
     scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(box.vertices.astype(np.float32)), o3d.core.Tensor(box.triangles.astype(np.uint32)))
+    scene.add_triangles(o3d.core.Tensor(box.vertices.astype(np.float32)),
+                        o3d.core.Tensor(box.triangles.astype(np.uint32)))
     for sub, n in (("capture", 30), ("heldout", 4)):
         d = SAMPLES / sub
         names = sorted(p.stem for p in (d / "rgb").glob("*.jpg"))
@@ -427,7 +428,7 @@ def test_stereo_occlusion_band_left_of_objects(box: TexturedMesh) -> None:
     T_wo = rest_on_table(box)
     sc = SynthScene([(box, T_wo)], table_texture_size=512)
     T_wc = orbit_poses(transform_points(T_wo, box.center[None])[0], 0.5, [25.0], 1, azimuth0_deg=-60)[0]
-    quiet = dict(clusters_mean=0.0, edge_band_px=0, sigma_0=0.0, sigma_2=0.0)
+    quiet = {"clusters_mean": 0.0, "edge_band_px": 0, "sigma_0": 0.0, "sigma_2": 0.0}
     f0 = sc.render(T_wc, SMALL, noise_params=DepthNoise(baseline=0.0, **quiet))
     f1 = sc.render(T_wc, SMALL, noise_params=DepthNoise(baseline=0.05, **quiet))
     extra = (f1.depth == 0) & (f0.depth > 0)

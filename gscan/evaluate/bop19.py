@@ -77,7 +77,9 @@ class EvalRow:
     vsd: list[float] | None = None  # one error per BOP19 tau (metrics.VSD_TAU_FRACTIONS); None without a mesh
 
     def to_json(self) -> dict:
-        f = (lambda x: None if not np.isfinite(x) else float(x))
+        def f(x: float) -> float | None:
+            return None if not np.isfinite(x) else float(x)
+
         return {"scene_id": self.scene_id, "im_id": self.im_id, "found": self.found, "score": float(self.score),
                 "time_s": float(self.time_s), "add_m": f(self.add), "adds_m": f(self.adds), "mssd_m": f(self.mssd),
                 "mspd_px": f(self.mspd), "vsd": None if self.vsd is None else [f(x) for x in self.vsd],

@@ -17,6 +17,7 @@ References:
 """
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -353,10 +354,8 @@ def diameter(points: np.ndarray) -> float:
     if len(p) > 4:
         from scipy.spatial import ConvexHull, QhullError
 
-        try:
+        with contextlib.suppress(QhullError, ValueError):  # flat or degenerate: every point is a candidate
             p = p[ConvexHull(p).vertices]
-        except (QhullError, ValueError):  # flat or degenerate: every point is a candidate
-            pass
     best = 0.0
     for i in range(0, len(p), 512):
         d2 = ((p[i:i + 512, None, :] - p[None, :, :]) ** 2).sum(-1)

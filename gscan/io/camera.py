@@ -110,7 +110,8 @@ def load_intrinsics(path: str | Path, width: int | None = None, height: int | No
             raise _bad(path, f"malformed intrinsics JSON: {e.__class__.__name__}: {e}"[:300]) from None
     else:
         try:
-            K = np.array([[float(x) for x in line.replace(",", " ").split()] for line in text.splitlines() if line.strip()])
+            K = np.array([[float(x) for x in line.replace(",", " ").split()]
+                          for line in text.splitlines() if line.strip()])
             K = K.reshape(3, 3)
         except ValueError:
             raise _bad(path, "malformed cam_K.txt: expected a 3x3 matrix of numbers") from None
@@ -161,7 +162,8 @@ class RGBDFrame:
     def __post_init__(self) -> None:
         h, w = self.depth.shape[:2]
         if self.color.shape[:2] != (h, w):
-            raise InputError(self.source, f"colour {self.color.shape[1]}x{self.color.shape[0]} and depth {w}x{h} sizes differ")
+            raise InputError(self.source, f"colour {self.color.shape[1]}x{self.color.shape[0]} and depth {w}x{h} "
+                             "sizes differ")
         if (self.intrinsics.width, self.intrinsics.height) != (w, h):
             raise InputError(self.source, f"intrinsics are for {self.intrinsics.width}x{self.intrinsics.height} "
                              f"but the frame is {w}x{h}")

@@ -233,7 +233,7 @@ def discover_tum(root: Path) -> Layout:
     t_dep = np.array([t for t, _ in depth_list])
     pairs = associate(t_rgb, t_dep)
     frames, problems, seen = [], {}, {}
-    for i, (t, vals) in enumerate(rgb_list):
+    for i, (_t, vals) in enumerate(rgb_list):
         c = root / vals[0]
         name = frame_name(vals[0])
         if name in seen:

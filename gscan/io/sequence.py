@@ -47,7 +47,7 @@ def image_header(path: Path) -> tuple[int, int, str]:
         raise InputError(path, "permission denied") from None
     except ValueError as e:
         raise InputError(path, str(e)) from None
-    except Exception as e:  # PIL raises many types (UnidentifiedImageError, SyntaxError, OSError...)
+    except Exception as e:  # noqa: BLE001 - PIL raises many types (UnidentifiedImageError, SyntaxError, OSError...)
         raise InputError(path, f"corrupt or unrecognised image ({e.__class__.__name__})") from None
 
 

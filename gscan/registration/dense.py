@@ -143,10 +143,10 @@ def refine_pose(src: DenseGeometry, tgt: DenseGeometry, kp_s: np.ndarray, kp_t: 
     """The pose that best explains both the keypoint pairs and the depth: Gauss-Newton on the keypoint
     residuals T kp_s - kp_t ([M x 3] pairs, three axes each, sigma s of `kp_noise`) and the point-to-plane
     distances of src's depth samples to tgt's surface (projective association, one per sample landing on
-    tgt's depth, sigma s of `depth_noise` at their two depths), Huber-weighted beyond HUBER sigmas. Depth samples farther than the round's
-    gate (sigmas) from the surface are left out; the gate shrinks over the rounds (one GN step each), so a
-    pose a few centimetres off is drawn in first. Depth pins what keypoints on a distant wall leave loose
-    (the near table); keypoints pin what depth leaves loose (sliding along a plane).
+    tgt's depth, sigma s of `depth_noise` at their two depths), Huber-weighted beyond HUBER sigmas. Depth samples
+    farther than the round's gate (sigmas) from the surface are left out; the gate shrinks over the rounds (one
+    GN step each), so a pose a few centimetres off is drawn in first. Depth pins what keypoints on a distant
+    wall leave loose (the near table); keypoints pin what depth leaves loose (sliding along a plane).
 
     Returns (T_tgt_src [4 x 4], information [6 x 6] of the final pose, rotation first: `pose_information`).
     """

@@ -29,11 +29,13 @@ class FeaturesConfig(_Section):
 class MatchConfig(_Section):
     method: Literal["gmatch", "ratio", "mutual", "ransac", "lo-ransac", "fgr"] = Field(
         "gmatch", description="pairwise matcher: GMatch or a baseline (for comparison)")
-    eps_f: float | None = Field(None, gt=0, description="descriptor distance threshold; null = the descriptor's default")
+    eps_f: float | None = Field(None, gt=0,
+                                description="descriptor distance threshold; null = the descriptor's default")
     eps_c: float = Field(0.08, gt=0, lt=1, description="GMatch relative pairwise-distance tolerance")
     eta: float = Field(0.01, gt=0, description="GMatch absolute distance margin at 0.5 m depth (m), grows with depth^2")
     order: Literal["ratio", "distance"] = Field(
-        "ratio", description="GMatch candidate order: Lowe ratio (distinctive first) or descriptor distance (the paper's)")
+        "ratio",
+        description="GMatch candidate order: Lowe ratio (distinctive first) or descriptor distance (the paper's)")
     T: int = Field(24, ge=1, le=256, description="GMatch seeds (the first T candidates in that order)")
     L: int = Field(24, ge=3, le=256, description="GMatch maximum match-list length")
     constraint: Literal["flip", "triple"] = Field("flip", description="flip-over or scalar-triple-product constraint")
@@ -105,7 +107,8 @@ class PoseGraphConfig(_Section):
 
 
 class FusionConfig(_Section):
-    voxel: float | None = Field(None, gt=0, description="TSDF voxel size (m); null = object extent / 150 within 2-10 mm")
+    voxel: float | None = Field(None, gt=0,
+                                description="TSDF voxel size (m); null = object extent / 150 within 2-10 mm")
     depth_max: float | None = Field(None, gt=0, description="depth beyond this is ignored when fusing (m); null = "
                                     "just beyond the farthest object pixel")
 
@@ -114,7 +117,8 @@ class SegmentationConfig(_Section):
     depth_min: float = Field(0.1, ge=0.05, le=20, description="the object is looked for at depths from this (m) ...")
     depth_max: float | None = Field(None, gt=0.05, le=20, description="... to this (m); null = 1.5 x the depth at "
                                     "the image centre, where a scan keeps the object")
-    height_max: float = Field(0.5, ge=0.01, le=5, description="the object stands at most this high above its support plane (m)")
+    height_max: float = Field(0.5, ge=0.01, le=5,
+                              description="the object stands at most this high above its support plane (m)")
 
     @model_validator(mode="after")
     def _range(self) -> SegmentationConfig:
@@ -124,7 +128,8 @@ class SegmentationConfig(_Section):
 
 
 class KeyframeConfig(_Section):
-    min_angle_deg: float = Field(12.0, ge=0, description="a new keyframe views the object at least this far from all others")
+    min_angle_deg: float = Field(12.0, ge=0,
+                                 description="a new keyframe views the object at least this far from all others")
     max_views: int = Field(120, ge=1, description="at most this many template views")
     min_views: int = Field(8, ge=1, description="at least this many template views when the capture has them (the "
                            "angle shrinks for a short sweep)")

@@ -184,10 +184,7 @@ def remove_small_components(vertices: np.ndarray, triangles: np.ndarray, colors:
     tri_clusters, n_tri, _ = mesh.cluster_connected_triangles()
     tri_clusters, n_tri = np.asarray(tri_clusters), np.asarray(n_tri)
     largest = int(np.argmax(n_tri))
-    if keep_largest_only:
-        keep = tri_clusters == largest
-    else:
-        keep = n_tri[tri_clusters] >= min_fraction * n_tri[largest]
+    keep = tri_clusters == largest if keep_largest_only else n_tri[tri_clusters] >= min_fraction * n_tri[largest]
     mesh.remove_triangles_by_mask(~keep)
     mesh.remove_unreferenced_vertices()
     log.debug("mesh components: kept %d of %d", len(np.unique(tri_clusters[keep])), len(n_tri))

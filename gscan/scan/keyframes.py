@@ -30,8 +30,8 @@ def select_keyframes(view_dirs: dict[int, np.ndarray], min_angle_deg: float, max
     view_dirs: frame index -> unit viewing direction in the object frame (`view_direction`);
     object_keypoints: frame index -> keypoints with depth on the object (None: all equal).
     Frames with at least `min_keypoints` object keypoints are candidates (all frames when fewer than
-    `min_views` have that many), taken in order of decreasing count (then index): a frame becomes a keyframe when its direction
-    is at least the angle from every keyframe already chosen. The angle starts at `min_angle_deg`; it
+    `min_views` have that many), taken in order of decreasing count (then index): a frame becomes a keyframe when
+    its direction is at least the angle from every keyframe already chosen. The angle starts at `min_angle_deg`; it
     grows by 10 % while more than `max_views` qualify and shrinks by 20 % (down to 0.5 deg) while fewer than
     `min_views` do, so a short sweep over a few degrees still keeps several views. Returns sorted indices.
     """

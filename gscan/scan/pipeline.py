@@ -21,6 +21,7 @@ deterministic, so an interrupted scan resumes to the same result as an uninterru
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import shutil
@@ -205,10 +206,10 @@ def _open_resumed(opts: ScanOptions, seq: Sequence, frames: dict) -> tuple[Templ
     db = TemplateDB.open(opts.output, require_complete=False, writable=True)
     try:
         stored = {k: db.get_meta(k) for k in RESUME_KEYS}
-        try:  # settings added to the configuration since the scan started take their defaults
+        # settings added to the configuration since the scan started take their defaults; a configuration this
+        # version does not read differs
+        with contextlib.suppress(ValueError, TypeError):
             stored["config"] = json.loads(json.dumps(ScanConfig.model_validate(stored["config"]).model_dump()))
-        except (ValueError, TypeError):
-            pass  # not a configuration this version reads: it differs
         if stored != {k: json.loads(json.dumps(meta[k])) for k in stored}:
             raise InputError(opts.output, "was written from another input or configuration", fix="restart")
         _check_frames(opts.output, db.get_meta("input_frames"), json.loads(json.dumps(frames)), seq)
@@ -320,7 +321,8 @@ def run_scan(opts: ScanOptions, progress: Progress | None = None) -> ScanResult:
         problems = dict(seq.problems)
         if not frames:  # one line (the CLI contract), no per-frame warnings before it
             first = next(iter(problems.items()), ("?", "?"))
-            raise InputError(opts.input_dir, f"no usable frame ({len(problems)} unusable); first: {first[0]}: {first[1]}")
+            raise InputError(opts.input_dir,
+                             f"no usable frame ({len(problems)} unusable); first: {first[0]}: {first[1]}")
     except BaseException:
         if db is not None:
             db.close()
@@ -685,7 +687,8 @@ def _optimise(n: int, edges: list[Edge], index: dict[str, int], frames: list[_Fr
         i, j = index[e.src], index[e.tgt]
         ps = frames[i].feats.points[e.matches[:, 0]].astype(np.float64)
         pt = frames[j].feats.points[e.matches[:, 1]].astype(np.float64)
-        r = np.linalg.norm(transform_points(e.T_tgt_src, ps) - pt, axis=1) / rparams.noise.pair_sigma(ps[:, 2], pt[:, 2])
+        r = (np.linalg.norm(transform_points(e.T_tgt_src, ps) - pt, axis=1)
+             / rparams.noise.pair_sigma(ps[:, 2], pt[:, 2]))
         rms = float(np.sqrt(np.mean(r * r)))
         for k in (i, j):
             best[k] = min(best.get(k, np.inf), rms)

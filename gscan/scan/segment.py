@@ -311,9 +311,9 @@ def _look_at_point(T_world_cam: list[np.ndarray], plane: Plane) -> np.ndarray:
 def _centre_point(frames: list[RGBDFrame], T_world_cam: list[np.ndarray], depths: list[float | None]
                   ) -> np.ndarray | None:
     """[3] world point the frames keep in the middle of the image: per frame the point on the optical axis at
-    its `centre_depth` (`depths`, one per frame), then the coordinate-wise median over the frames (robust to a few frames that look
-    elsewhere). Unlike the axes' meeting point it needs no spread of viewing directions (a hand-held sweep
-    looks along nearly parallel axes). None when no frame has centre depth."""
+    its `centre_depth` (`depths`, one per frame), then the coordinate-wise median over the frames (robust to a
+    few frames that look elsewhere). Unlike the axes' meeting point it needs no spread of viewing directions (a
+    hand-held sweep looks along nearly parallel axes). None when no frame has centre depth."""
     pts = []
     for f, T, z in zip(frames, T_world_cam, depths):
         if z is not None:

@@ -112,7 +112,7 @@ def load_textured_mesh(path_obj: str | Path, scale: float = 1.0) -> TexturedMesh
         raise not_a_file(path, "mesh file")
     try:
         tm = trimesh.load(str(path), force="mesh", process=False)
-    except Exception as e:  # trimesh raises many exception types for malformed files
+    except Exception as e:  # noqa: BLE001 - trimesh raises many exception types for malformed files
         raise InputError(path, f"cannot load mesh ({e.__class__.__name__}: {e})") from None
     if not isinstance(tm, trimesh.Trimesh) or len(tm.faces) == 0:
         raise InputError(path, "file holds no triangles")
@@ -266,7 +266,8 @@ def texture_pyramid(texture: np.ndarray, min_size: int = 4) -> list[np.ndarray]:
 
 
 def sample_bilinear(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Bilinear lookup of [h x w x C] `image` at [N x 2] OBJ UVs (v up; outside [0, 1] wraps). Returns [N x C] float32."""
+    """Bilinear lookup of [h x w x C] `image` at [N x 2] OBJ UVs (v up; outside [0, 1] wraps). Returns [N x C]
+    float32."""
     uv = np.asarray(uv, dtype=np.float64)
     u, v = uv[:, 0], uv[:, 1]
     u = np.where((u < 0) | (u > 1), u - np.floor(u), u)

@@ -122,7 +122,8 @@ class SynthScene:
         self._scenes = []
         for m in self.meshes:
             sc = o3d.t.geometry.RaycastingScene()
-            sc.add_triangles(o3d.core.Tensor(m.vertices.astype(np.float32)), o3d.core.Tensor(m.triangles.astype(np.uint32)))
+            sc.add_triangles(o3d.core.Tensor(m.vertices.astype(np.float32)),
+                             o3d.core.Tensor(m.triangles.astype(np.uint32)))
             self._scenes.append(sc)
         self._density = [m.texels_per_metre() for m in self.meshes]
         self._pyramids = [m.pyramid() for m in self.meshes]

@@ -222,7 +222,8 @@ class TemplateDB:
         except (sqlite3.DatabaseError, ValueError, RecursionError) as e:
             if conn is not None:
                 conn.close()
-            raise InputError(path, f"corrupt or unreadable template database ({e.__class__.__name__}: {e})"[:300]) from None
+            raise InputError(path, f"corrupt or unreadable template database ({e.__class__.__name__}: {e})"[:300]
+                             ) from None
         except InputError:
             conn.close()
             raise
@@ -385,7 +386,7 @@ class TemplateDB:
 
     @_decodes
     def _row_to_view(self, r: tuple, load_images: bool) -> View:
-        name, idx, intr, T, color, codec, depth, mask, kf, q = r
+        name, idx, intr, T, color, _codec, depth, mask, kf, q = r
         try:
             K = Intrinsics.from_dict(decode_json(intr))
         except (KeyError, TypeError, ValueError) as e:
@@ -469,7 +470,10 @@ class TemplateDB:
         if edge.kind not in ("sequential", "loop"):
             raise ValueError(f"edge kind must be 'sequential' or 'loop', not {edge.kind!r}")
         m = np.asarray(edge.matches, dtype=np.int32).reshape(-1, 2)
-        f = (lambda x: None if x is None else float(x))
+
+        def f(x: float | None) -> float | None:
+            return None if x is None else float(x)
+
         with self._tx() as c:
             c.execute("DELETE FROM edges WHERE src=? AND tgt=?", (edge.src, edge.tgt))
             c.execute("INSERT INTO edges(src, tgt, T_tgt_src, matches, cost, rmse, fitness, kind, accepted, reason) "

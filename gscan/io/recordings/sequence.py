@@ -64,7 +64,8 @@ class _Pair:
 
 def _size_problem(msg: ImageMsg, intr: Intrinsics, info_topic_of: str) -> str | None:
     if (msg.width, msg.height) != (intr.width, intr.height):
-        return f"image is {msg.width}x{msg.height} but the CameraInfo of {info_topic_of} is for {intr.width}x{intr.height}"
+        return (f"image is {msg.width}x{msg.height} but the CameraInfo of {info_topic_of} is for "
+                f"{intr.width}x{intr.height}")
     return None
 
 
@@ -403,7 +404,8 @@ def _open(path: Path, fmt: str, src: MessageSource, color_topic: str | None, dep
         break
     if not seq.names:
         first_p = next(iter(seq.problems.items()))
-        raise InputError(path, f"no usable RGB-D frame ({len(seq.problems)} unusable); first: {first_p[0]}: {first_p[1]}")
+        raise InputError(path, f"no usable RGB-D frame ({len(seq.problems)} unusable); "
+                         f"first: {first_p[0]}: {first_p[1]}")
     seq._it = None  # the scan starts again from its first frame
     for name, reason in problems.items():
         log.warning("%s: frame %s left out: %s", path, name, reason)
