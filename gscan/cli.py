@@ -23,7 +23,7 @@ from gscan.errors import GscanError, InputError
 try:  # typer >= 0.2x vendors click as typer._click; older releases use click itself
     from typer._click import exceptions as _cx
 except ImportError:  # pragma: no cover - depends on the installed typer
-    import click.exceptions as _cx
+    import click.exceptions as _cx  # type: ignore[no-redef]
 
 # rich_markup_mode=None: click's plain help, which wraps the help text and never cuts an option's name or its
 # choice list (typer's boxed layout cuts both in a narrow terminal)
@@ -477,9 +477,10 @@ def info(
         s = db.summary()
         m = db.mesh()
     # the `info --json` object of the CLI contract, and the mesh's size and open edges
-    out = {"schema": s.schema, "status": s.status, "views": s.views, "registered": s.registered,
-           "keyframes": s.keyframes, "descriptor": s.descriptor, "source": s.source, "extent_m": list(s.extent_m),
-           "grasps": list(s.grasps), "unregistered_reasons": dict(s.unregistered_reasons)}
+    out: dict[str, Any] = {
+        "schema": s.schema, "status": s.status, "views": s.views, "registered": s.registered,
+        "keyframes": s.keyframes, "descriptor": s.descriptor, "source": s.source, "extent_m": list(s.extent_m),
+        "grasps": list(s.grasps), "unregistered_reasons": dict(s.unregistered_reasons)}
     out["mesh"] = None if m is None else {"vertices": len(m.vertices), "triangles": len(m.triangles),
                                           "open_edges": len(boundary_edges(m.triangles))}
     if json_out:
@@ -581,7 +582,7 @@ def serve(
 ) -> None:
     """Serve pose estimation over HTTP with the templates kept warm (OpenAPI page at /docs)."""
     _setup_logging(verbose)
-    from gscan.serve import serve as run_service
+    from gscan.serve.server import serve as run_service
 
     def ready(url: str) -> None:
         _say("serving ", (", ".join(t.name for t in templates), "bold"), " at ", (url, "bold"),

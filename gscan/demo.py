@@ -46,6 +46,8 @@ def evaluate_heldout(db_path: Path, heldout_dir: Path, model_points: np.ndarray)
     capture = open_sequence(SAMPLES / "capture")
     T_obj_gt = template_to_gt(db_path, capture.gt_T_cam_obj or {})
     seq = open_sequence(heldout_dir)
+    if seq.gt_T_cam_obj is None:
+        raise InputError(heldout_dir, "holds no ground-truth poses (scene_gt.json) to compare with")
     est = Estimator.from_path(db_path)
     out = []
     for name in seq.names:

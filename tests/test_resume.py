@@ -237,6 +237,25 @@ def test_resume_refuses_another_input(capture: Path, reference, tmp_path: Path):
     assert db.read_bytes() == before
 
 
+def test_resume_refuses_a_stored_view_without_keypoints(capture: Path, reference, tmp_path: Path):
+    """A partial database whose unregistered view lost its keypoints (written by another tool, or damaged) cannot
+    be resumed from: one line naming the database, not an internal error."""
+    import shutil
+
+    db = tmp_path / "damaged.gscan"
+    shutil.copy(capture.parent / "reference.gscan", db)
+    with sqlite3.connect(db) as c:
+        c.execute("UPDATE meta SET value='\"partial\"' WHERE key='status'")
+        c.execute("UPDATE views SET T_obj_cam=NULL WHERE name='000000'")
+        c.execute("DELETE FROM features WHERE view_id=(SELECT id FROM views WHERE name='000000')")
+    c.close()
+    r = _gscan("scan", capture, "-o", db, "--resume", "--json")
+    assert r.returncode == 2, r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert lines[-1].startswith(f"error: {db}") and "'000000' is stored without its keypoints" in lines[-1], lines
+    assert "internal error" not in r.stderr and r.stdout == ""
+
+
 def test_resume_refuses_other_intrinsics_or_depth_scale(capture: Path, reference, tmp_path: Path):
     """A different --depth-scale or --intrinsics file would mix two calibrations in one template: --resume
     refuses them (and leaves the database untouched); the same options resume, naming the layout that

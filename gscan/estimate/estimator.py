@@ -659,7 +659,7 @@ def region_boxes(mask: np.ndarray, margin: int, min_px: int, max_fill: float = 0
             if merged:
                 break
     if len(boxes) <= 1:
-        return [tuple(b) for b in boxes]  # type: ignore[misc]
+        return [tuple(b) for b in boxes]
     ys, xs = np.nonzero(mask)
     union = (xs.max() - xs.min() + 1 + 2 * margin) * (ys.max() - ys.min() + 1 + 2 * margin)
     if sum((b[2] - b[0]) * (b[3] - b[1]) for b in boxes) > max_fill * union:

@@ -66,7 +66,12 @@ def write_foundationpose(db: TemplateDB, out: Path, close: bool = True) -> int:
         (ob / sub).mkdir(parents=True)
     for i, v in enumerate(kept):
         stem = f"{i:07d}"
-        mask = v.mask if v.mask is not None else caster.depth(v.intrinsics, v.T_obj_cam) > 0
+        assert v.T_obj_cam is not None and v.color is not None and v.depth is not None  # posed_views
+        if v.mask is not None:
+            mask = v.mask
+        else:
+            assert caster is not None  # a view is kept with a mask, or with the mesh to render one
+            mask = caster.depth(v.intrinsics, v.T_obj_cam) > 0
         imwrite(ob / "rgb" / f"{stem}.png", v.color, rgb=True)
         imwrite(ob / "depth_enhanced" / f"{stem}.png", depth_to_mm_u16(v.depth))
         imwrite(ob / "mask" / f"{stem}.png", np.where(mask, 255, 0).astype(np.uint8))

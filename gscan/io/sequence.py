@@ -272,7 +272,7 @@ def open_sequence(path: str | Path, format: str = "auto", intrinsics: Intrinsics
                 problems[name] = f"{f.color.name}: invalid cam_K in scene_camera.json ({e})"
                 del specs[name]
                 continue
-        elif (intr.width, intr.height) != (w, h):
+        elif intr is not None and (intr.width, intr.height) != (w, h):  # intr: set unless per_frame
             problems[name] = f"{f.color.name} is {w}x{h} but the intrinsics are for {intr.width}x{intr.height}"
             del specs[name]
             continue
@@ -301,7 +301,7 @@ def open_sequence(path: str | Path, format: str = "auto", intrinsics: Intrinsics
     if not specs:
         first_p = next(iter(problems.items()))
         raise InputError(root, f"no usable RGB-D frame ({len(problems)} unusable); first: {first_p[0]}: {first_p[1]}")
-    if per_frame:
+    if per_frame or intr is None:
         intr = frame_intr[next(iter(specs))]
     for name, reason in problems.items():
         log.warning("%s: frame %s left out: %s", root, name, reason)

@@ -58,8 +58,8 @@ class DenseGeometry:
         u = np.arange(off, W, stride)
         d = depth[np.ix_(v, u)].astype(np.float64)
         good = d > 0
-        for dv, du in ((-h, 0), (h, 0), (0, -h), (0, h)):
-            n = depth[np.ix_(np.clip(v + dv, 0, H - 1), np.clip(u + du, 0, W - 1))].astype(np.float64)
+        for sv, su in ((-h, 0), (h, 0), (0, -h), (0, h)):
+            n = depth[np.ix_(np.clip(v + sv, 0, H - 1), np.clip(u + su, 0, W - 1))].astype(np.float64)
             good &= (n > 0) & (np.abs(n - d) <= EDGE_REL * np.maximum(n, d))
         if mask is not None:
             good &= mask[np.ix_(v, u)]

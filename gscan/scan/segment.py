@@ -389,7 +389,7 @@ def estimate_working_volume(frames: list[RGBDFrame], T_world_cam: list[np.ndarra
     for lab in range(labels.max() + 1):
         C = Q[labels == lab]
         d = np.linalg.norm(C.mean(0) - target)
-        score = len(C) / (1.0 + (d / scale) ** 2)
+        score = float(len(C) / (1.0 + (d / scale) ** 2))
         if len(C) >= 20 and score > best_score:
             best, best_score = lab, score
     if best < 0:
@@ -405,7 +405,7 @@ def estimate_working_volume(frames: list[RGBDFrame], T_world_cam: list[np.ndarra
     return vol
 
 
-def segment_sequence(frames: list[RGBDFrame], T_world_cam: list[np.ndarray],
+def segment_sequence(frames: list[RGBDFrame], T_world_cam: list[np.ndarray | None],
                      params: SegmentParams = SegmentParams()) -> tuple[list[Segmentation], WorkingVolume | None]:
     """Masks of registered frames from one working volume; given masks win.
 

@@ -26,10 +26,10 @@ import json
 import logging
 import sqlite3
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager, suppress
 from pathlib import Path
-from typing import Any
+from typing import Any, Concatenate, ParamSpec, TypeVar
 
 import cv2
 import numpy as np
@@ -69,6 +69,8 @@ SCHEMA_VERSION = 1
 FEATURE_ROLES = ("registration", "object")
 APPLICATION_ID = 0x6753434E  # "gSCN", PRAGMA application_id of every gscan database
 _SQLITE_MAGIC = b"SQLite format 3\x00"
+# SQLite's primary result codes (the sqlite3 module names them only from Python 3.11; the values are SQLite's)
+_SQLITE_BUSY, _SQLITE_LOCKED, _SQLITE_READONLY, _SQLITE_IOERR, _SQLITE_FULL, _SQLITE_CANTOPEN = 5, 6, 8, 10, 13, 14
 _SQLITE_READONLY_DBMOVED = 1032  # SQLITE_READONLY | (4 << 8): the file was unlinked or renamed under the connection
 
 _SCHEMA = """
@@ -93,10 +95,14 @@ CREATE TABLE grasps (name TEXT PRIMARY KEY, T_obj_grasp BLOB NOT NULL);
 
 
 # ------------------------------------------------------------------------------------------ helpers
-def _decodes(method):
+P = ParamSpec("P")
+R = TypeVar("R")
+
+
+def _decodes(method: Callable[Concatenate[TemplateDB, P], R]) -> Callable[Concatenate[TemplateDB, P], R]:
     """TemplateDB reads: a stored value that does not decode is a corrupt database, an InputError naming it."""
     @functools.wraps(method)
-    def wrapper(self, *args, **kwargs):
+    def wrapper(self: TemplateDB, *args: P.args, **kwargs: P.kwargs) -> R:
         try:
             return method(self, *args, **kwargs)
         except TooLarge as e:
@@ -135,7 +141,7 @@ class TemplateDB:
 
     def __init__(self, path: Path, conn: sqlite3.Connection, writable: bool):
         self.path = path
-        self._conn = conn
+        self._conn: sqlite3.Connection | None = conn
         self._writable = writable
         self._lock = threading.RLock()
 
@@ -225,7 +231,8 @@ class TemplateDB:
             raise InputError(path, f"corrupt or unreadable template database ({e.__class__.__name__}: {e})"[:300]
                              ) from None
         except InputError:
-            conn.close()
+            if conn is not None:
+                conn.close()
             raise
         if not isinstance(schema, int) or schema < 1:
             conn.close()
@@ -257,7 +264,7 @@ class TemplateDB:
         if not self._writable:
             raise GscanError(f"{self.path}: opened read-only")
         with self._lock:
-            c = self._conn
+            c = self._live()
             try:
                 c.execute("BEGIN IMMEDIATE")
                 try:
@@ -272,10 +279,15 @@ class TemplateDB:
                     raise
                 raise self._corrupt(e) from None
 
+    def _live(self) -> sqlite3.Connection:
+        if self._conn is None:
+            raise GscanError(f"{self.path}: the template database is closed")
+        return self._conn
+
     def _q(self, sql: str, args: tuple = ()) -> list[tuple]:
         with self._lock:
             try:
-                return self._conn.execute(sql, args).fetchall()
+                return self._live().execute(sql, args).fetchall()
             except sqlite3.DatabaseError as e:
                 raise self._corrupt(e) from None
 
@@ -285,19 +297,19 @@ class TemplateDB:
         too long, or else corruption. Bad input naming the database, not an internal error."""
         code = getattr(e, "sqlite_errorcode", None)
         primary = None if code is None else code & 0xFF
-        if primary == sqlite3.SQLITE_FULL:
+        if primary == _SQLITE_FULL:
             return InputError(self.path, "cannot write the template database: no space left on the device (disk full)")
-        if primary == sqlite3.SQLITE_IOERR:
+        if primary == _SQLITE_IOERR:
             why = write_failure_reason(self.path) or f"an I/O error ({e})"
             return InputError(self.path, f"cannot write the template database: {why}")
         if code == _SQLITE_READONLY_DBMOVED:
             return InputError(self.path, "cannot write the template database: the file was moved or replaced "
                               "(by another process) while this one wrote it")
-        if primary == sqlite3.SQLITE_READONLY or "readonly" in str(e):
+        if primary == _SQLITE_READONLY or "readonly" in str(e):
             return InputError(self.path, "cannot write the template database (a read-only file or folder)")
-        if primary in (sqlite3.SQLITE_BUSY, sqlite3.SQLITE_LOCKED):
+        if primary in (_SQLITE_BUSY, _SQLITE_LOCKED):
             return InputError(self.path, "the template database is locked by another process (waited 30 s)")
-        if primary == sqlite3.SQLITE_CANTOPEN:
+        if primary == _SQLITE_CANTOPEN:
             return InputError(self.path, f"cannot open the template database or its journal beside it ({e})")
         return InputError(self.path, f"corrupt template database ({e.__class__.__name__}: {e})")
 
@@ -355,6 +367,7 @@ class TemplateDB:
                 c.execute("DELETE FROM views WHERE id=?", (old[0],))
             vid = c.execute("INSERT INTO views(name, input_index, intrinsics, T_obj_cam, color, color_codec, depth, "
                             "mask, keyframe, quality) VALUES (?,?,?,?,?,?,?,?,?,?)", row).lastrowid
+            assert vid is not None  # the id of the row just inserted
             if features is not None:
                 self._put_features(c, vid, features)
         return int(vid)
