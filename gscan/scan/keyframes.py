@@ -3,7 +3,19 @@ directions the object was seen from, each holding enough keypoints on the object
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
+
+
+@dataclass(frozen=True)
+class KeyframeParams:
+    """What a scan passes to `select_keyframes` (the `keyframes` section of the scan configuration)."""
+
+    min_angle_deg: float = 12.0  # a new keyframe views the object at least this far from all others
+    max_views: int = 120  # at most this many keyframes
+    min_views: int = 8  # at least this many when the capture has them (the angle shrinks for a short sweep)
+    min_object_keypoints: int = 24  # keyframes hold at least this many keypoints on the object (when any has)
 
 
 def view_direction(T_obj_cam: np.ndarray) -> np.ndarray:
