@@ -41,7 +41,8 @@ class MatchConfig(_Section):
     method: Literal["gmatch", "ratio", "mutual", "ransac", "lo-ransac", "fgr"] = Field(
         "gmatch", description="pairwise matcher: GMatch or a baseline (for comparison)")
     eps_f: float | None = Field(_GM.eps_f, gt=0,
-                                description="descriptor distance threshold; null = the descriptor's default")
+                                description="descriptor distance threshold; null = the descriptor's default, "
+                                "tighter for rootsift on a static scene's whole frames")
     eps_c: float = Field(_GM.eps_c, gt=0, lt=1, description="GMatch relative pairwise-distance tolerance")
     eta: float = Field(_GM.eta, gt=0,
                        description="GMatch absolute distance margin at 0.5 m depth (m), grows with depth^2")
