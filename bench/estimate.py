@@ -34,14 +34,20 @@ from pathlib import Path
 
 import numpy as np
 
+from gscan.estimate.estimator import STAGES, EstimateParams, Estimator
+from gscan.evaluate.metrics import add, adds, auc
+from gscan.geometry.transforms import look_at, rotvec_to_R, transform_points
+from gscan.io.camera import RGBDFrame
 from gscan.matching.baselines import run_baseline
 from gscan.scan.cad import template_from_mesh
-from gscan.io.camera import RGBDFrame
-from gscan.estimate.estimator import STAGES, EstimateParams, Estimator
-from gscan.geometry.transforms import look_at, rotvec_to_R, transform_points
-from gscan.evaluate.metrics import add, adds, auc
-from gscan.synth import (DEFAULT_INTRINSICS, SynthScene, default_distance, load_textured_mesh, place_distractors,
-                         rest_on_table)
+from gscan.synth import (
+    DEFAULT_INTRINSICS,
+    SynthScene,
+    default_distance,
+    load_textured_mesh,
+    place_distractors,
+    rest_on_table,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 MESHES = ROOT.parent / "shared" / "data" / "meshes"
@@ -115,7 +121,8 @@ def scanned_template(name: str, mesh, work: Path, n_frames: int) -> tuple[Path, 
 def run(args: argparse.Namespace) -> dict:
     names = sorted(p.name for p in MESHES.iterdir() if (p / "model_0.obj").is_file())
     if args.meshes:
-        names = names[: int(args.meshes)] if args.meshes.isdigit() else [n for n in names if n in args.meshes.split(",")]
+        wanted = args.meshes.split(",")
+        names = names[: int(args.meshes)] if args.meshes.isdigit() else [n for n in names if n in wanted]
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
     all_meshes = {n: load_textured_mesh(MESHES / n / "model_0.obj") for n in sorted(p.name for p in MESHES.iterdir()
@@ -199,7 +206,8 @@ def main() -> None:
     out = run(args)
     s = out["summary"]
     print(f"\n{len(out['meshes'])} meshes x {out['scenes_per_mesh']} scenes, {out['views']}-view CAD templates"
-          + (f"; gscan-scanned: the first {args.scanned} meshes, {args.scan_frames}-frame scans" if args.scanned else ""))
+          + (f"; gscan-scanned: the first {args.scanned} meshes, {args.scan_frames}-frame scans"
+             if args.scanned else ""))
     print("| method | found % | AUC ADD | AUC ADD-S | ADD<0.1d % | wrong % |")
     print("|---|---|---|---|---|---|")
     for m, v in s.items():

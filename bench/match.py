@@ -46,8 +46,8 @@ def render_views(mesh_dir: Path, azimuths_deg: list[float], seed: int, elevation
     table_kind: the table top's texture (gscan.synth.table_texture kind: "newspaper", "wood", "fabric", "plain").
     The depth noise of each view depends on (seed, azimuth) only.
     """
-    from gscan.io.camera import RGBDFrame
     from gscan.geometry.transforms import look_at, transform_points
+    from gscan.io.camera import RGBDFrame
     from gscan.synth import DEFAULT_INTRINSICS, SynthScene, default_distance, load_textured_mesh, rest_on_table
 
     mesh = load_textured_mesh(mesh_dir / "model_0.obj")

@@ -25,8 +25,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import open3d as o3d
 
-from gscan.io.camera import RGBDFrame, backproject
 from gscan.geometry.transforms import inv_T
+from gscan.io.camera import RGBDFrame, backproject
 
 FPFH_VOXEL = 0.005  # m
 FPFH_STRIDE = 2  # pixel stride of the whole-frame clouds before voxel downsampling

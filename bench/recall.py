@@ -57,7 +57,8 @@ ROOT = Path(__file__).resolve().parents[1]
 MESHES = ROOT.parent / "shared" / "data" / "meshes"
 DISTRACTOR_POOL = ("Apples_to_Apples_Kids_Edition", "Crunch_Girl_Scouts_Candy_Bars_Peanut_Butter_Creme_78_oz_box",
                    "Diet_Pepsi_Soda_Cola12_Pack_12_oz_Cans", "Nestle_Carnation_Cinnamon_Coffeecake_Kit_1913OZ",
-                   "The_Coffee_Bean_Tea_Leaf_KCup_Packs_Jasmine_Green_Tea_16_count", "Whey_Protein_Chocolate_12_Packets",
+                   "The_Coffee_Bean_Tea_Leaf_KCup_Packs_Jasmine_Green_Tea_16_count",
+                   "Whey_Protein_Chocolate_12_Packets",
                    "Vans_Cereal_Honey_Nut_Crunch_11_oz_box", "ReadytoUse_Rolled_Fondant_Pure_White_24_oz_box")
 QUERY_TABLES = ("wood", "fabric", "plain", "newspaper")
 MIN_DISTANCE = 0.45  # m, camera to object centre (a RealSense sees nothing nearer than about 0.3 m)

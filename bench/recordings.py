@@ -39,11 +39,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from gscan.geometry.transforms import transform_points
-from gscan.io import open_sequence
-from gscan.io.camera import Intrinsics
-from gscan.io.align import align_depth_to_color
-from gscan.synth import (
+from gscan.geometry.transforms import transform_points  # noqa: E402
+from gscan.io import open_sequence  # noqa: E402
+from gscan.io.align import align_depth_to_color  # noqa: E402
+from gscan.io.camera import Intrinsics  # noqa: E402
+from gscan.synth import (  # noqa: E402
     SynthScene,
     default_distance,
     load_textured_mesh,
@@ -51,7 +51,13 @@ from gscan.synth import (
     rest_on_table,
     write_capture,
 )
-from gscan.synth.recordings import RecordingFrame, depth_to_raw, write_mcap, write_realsense_bag, write_rosbag2
+from gscan.synth.recordings import (  # noqa: E402
+    RecordingFrame,
+    depth_to_raw,
+    write_mcap,
+    write_realsense_bag,
+    write_rosbag2,
+)
 
 MESHES = ROOT.parent / "shared" / "data" / "meshes"
 MESH = "Crayola_Bonus_64_Crayons"

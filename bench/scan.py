@@ -42,9 +42,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
 
+from gscan.evaluate.metrics import ate  # noqa: E402
 from gscan.geometry.transforms import inv_T  # noqa: E402
 from gscan.io import open_sequence  # noqa: E402
-from gscan.evaluate.metrics import ate  # noqa: E402
 from gscan.scan.api import scan  # noqa: E402
 from gscan.synth import default_distance, load_textured_mesh, render_capture  # noqa: E402
 from gscan.template.db import TemplateDB  # noqa: E402

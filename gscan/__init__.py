@@ -27,7 +27,6 @@ import types
 from typing import TYPE_CHECKING, Any
 
 from gscan._lazy import lazy_exports
-
 from gscan._version import __version__
 
 _EXPORTS = {
@@ -72,8 +71,8 @@ if TYPE_CHECKING:
     from gscan.scan.cad import TemplateResult, template_from_mesh
     from gscan.scan.config import ScanConfig
     from gscan.scan.pipeline import ScanResult
+    from gscan.serve.server import serve as serve
     from gscan.template.db import TemplateDB
-    from gscan.serve.server import serve
 
 __all__ = [
     "EstimateParams", "EstimateResult", "Estimator", "FeatureParams", "Features", "GMatchParams", "GscanError",

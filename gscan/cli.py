@@ -13,7 +13,7 @@ import os
 import sys
 from enum import Enum
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any
 
 import typer
 from rich.console import Console
@@ -23,7 +23,7 @@ from gscan.errors import GscanError, InputError
 try:  # typer >= 0.2x vendors click as typer._click; older releases use click itself
     from typer._click import exceptions as _cx
 except ImportError:  # pragma: no cover - depends on the installed typer
-    import click.exceptions as _cx
+    import click.exceptions as _cx  # type: ignore[no-redef]
 
 # rich_markup_mode=None: click's plain help, which wraps the help text and never cuts an option's name or its
 # choice list (typer's boxed layout cuts both in a narrow terminal)
@@ -202,30 +202,30 @@ def scan(
                                      "(.bag, .db3, .mcap, rosbag2 folder)"),
     output: Path = typer.Option(..., "-o", "--output", help="template database to write (OBJ.gscan)"),
     format: ScanFormat = typer.Option("auto", "--format", help="input layout (auto: detected)"),
-    intrinsics: Optional[Path] = typer.Option(None, "--intrinsics", help="cam_K.txt or Open3D intrinsics JSON"),
-    depth_scale: Optional[float] = typer.Option(None, "--depth-scale", help="metres per raw depth unit"),
+    intrinsics: Path | None = typer.Option(None, "--intrinsics", help="cam_K.txt or Open3D intrinsics JSON"),
+    depth_scale: float | None = typer.Option(None, "--depth-scale", help="metres per raw depth unit"),
     mode: ScanMode = typer.Option("auto", "--mode", help="capture mode (auto: detected)"),
     no_segment: bool = typer.Option(False, "--no-segment", help="fuse the whole scene, not the object alone"),
     resume: bool = typer.Option(False, "--resume", help="continue an interrupted scan into OUTPUT"),
     force: bool = typer.Option(False, "--force", help="replace an existing OUTPUT"),
-    config: Optional[Path] = typer.Option(None, "--config", help="YAML configuration (see `gscan config dump`)"),
-    obj_id: Optional[int] = typer.Option(None, "--obj-id", min=1, max=2**31 - 1,
+    config: Path | None = typer.Option(None, "--config", help="YAML configuration (see `gscan config dump`)"),
+    obj_id: int | None = typer.Option(None, "--obj-id", min=1, max=2**31 - 1,
                                          help="BOP folder: the object to scan (default: the first in scene_gt.json)"),
-    color_topic: Optional[str] = typer.Option(None, "--color-topic",
+    color_topic: str | None = typer.Option(None, "--color-topic",
                                               help="recording: the colour image topic (default: detected)"),
-    depth_topic: Optional[str] = typer.Option(None, "--depth-topic",
+    depth_topic: str | None = typer.Option(None, "--depth-topic",
                                               help="recording: the depth image topic (default: detected)"),
-    depth_intrinsics: Optional[Path] = typer.Option(None, "--depth-intrinsics", help=DEPTH_INTRINSICS_HELP),
-    depth_to_color: Optional[Path] = typer.Option(None, "--depth-to-color", help=DEPTH_TO_COLOR_HELP),
+    depth_intrinsics: Path | None = typer.Option(None, "--depth-intrinsics", help=DEPTH_INTRINSICS_HELP),
+    depth_to_color: Path | None = typer.Option(None, "--depth-to-color", help=DEPTH_TO_COLOR_HELP),
     json_out: bool = typer.Option(False, "--json", help="print one JSON object on stdout"),
     verbose: bool = typer.Option(False, "-v", "--verbose", help="log progress details to stderr"),
 ) -> None:
     """Register every view of an RGB-D capture into one object frame and write a template database."""
     _setup_logging(verbose)
     _import_holding_ctrl_c(*_SCAN_IMPORTS)
-    from gscan.scan.config import load_config
     from gscan.progress import RichProgress
     from gscan.scan.api import scan as scan_capture
+    from gscan.scan.config import load_config
 
     if resume and force:
         raise UsageError(output, "--resume and --force exclude each other")
@@ -319,8 +319,8 @@ def template_from_mesh(
     json_out: bool = typer.Option(False, "--json", help="print one JSON object on stdout"),
 ) -> None:
     """Render snapshots around a CAD mesh into a template database (mesh frame kept)."""
-    from gscan.scan.cad import template_from_mesh as render_template
     from gscan.progress import RichProgress
+    from gscan.scan.cad import template_from_mesh as render_template
 
     if scale <= 0:
         raise UsageError(mesh, f"--scale must be positive, not {scale}")
@@ -336,8 +336,8 @@ def template_from_mesh(
 # ------------------------------------------------------------------------------------------- estimate
 
 
-def _load_query_frame(color: Path, depth: Path, intrinsics: Path, depth_scale: float, mask: Optional[Path],
-                      depth_intrinsics: Optional[Path] = None, depth_to_color: Optional[Path] = None):
+def _load_query_frame(color: Path, depth: Path, intrinsics: Path, depth_scale: float, mask: Path | None,
+                      depth_intrinsics: Path | None = None, depth_to_color: Path | None = None):
     from gscan.io import load_frame
     from gscan.io.sequence import depth_camera_for
 
@@ -352,10 +352,10 @@ def estimate(
     depth: Path = typer.Option(..., "--depth", help="16-bit depth image"),
     intrinsics: Path = typer.Option(..., "--intrinsics", help="cam_K.txt or Open3D intrinsics JSON"),
     depth_scale: float = typer.Option(0.001, "--depth-scale", help="metres per raw depth unit"),
-    mask: Optional[Path] = typer.Option(None, "--mask", help="restrict the search to this mask"),
+    mask: Path | None = typer.Option(None, "--mask", help="restrict the search to this mask"),
     no_icp: bool = typer.Option(False, "--no-icp", help="skip the ICP refinement"),
-    depth_intrinsics: Optional[Path] = typer.Option(None, "--depth-intrinsics", help=DEPTH_INTRINSICS_HELP),
-    depth_to_color: Optional[Path] = typer.Option(None, "--depth-to-color", help=DEPTH_TO_COLOR_HELP),
+    depth_intrinsics: Path | None = typer.Option(None, "--depth-intrinsics", help=DEPTH_INTRINSICS_HELP),
+    depth_to_color: Path | None = typer.Option(None, "--depth-to-color", help=DEPTH_TO_COLOR_HELP),
     json_out: bool = typer.Option(False, "--json", help="print one JSON object on stdout"),
 ) -> None:
     """Estimate the object's pose T_cam_obj in a new RGB-D frame."""
@@ -387,13 +387,13 @@ def estimate(
 def track(
     template: Path = typer.Argument(..., help="template database (OBJ.gscan)"),
     input_path: Path = typer.Argument(..., metavar="INPUT", help="RGB-D sequence: a folder in any layout scan reads"),
-    output: Optional[Path] = typer.Option(None, "-o", "--output",
-                                          help="folder for one T_cam_obj per frame (ob_in_cam 4x4 text) + summary.json"),
+    output: Path | None = typer.Option(
+        None, "-o", "--output", help="folder for one T_cam_obj per frame (ob_in_cam 4x4 text) + summary.json"),
     format: str = typer.Option("auto", "--format", help="auto|capture|open3d|tum|bop"),
-    intrinsics: Optional[Path] = typer.Option(None, "--intrinsics", help="cam_K.txt or Open3D intrinsics JSON"),
-    depth_scale: Optional[float] = typer.Option(None, "--depth-scale", help="metres per raw depth unit"),
-    depth_intrinsics: Optional[Path] = typer.Option(None, "--depth-intrinsics", help=DEPTH_INTRINSICS_HELP),
-    depth_to_color: Optional[Path] = typer.Option(None, "--depth-to-color", help=DEPTH_TO_COLOR_HELP),
+    intrinsics: Path | None = typer.Option(None, "--intrinsics", help="cam_K.txt or Open3D intrinsics JSON"),
+    depth_scale: float | None = typer.Option(None, "--depth-scale", help="metres per raw depth unit"),
+    depth_intrinsics: Path | None = typer.Option(None, "--depth-intrinsics", help=DEPTH_INTRINSICS_HELP),
+    depth_to_color: Path | None = typer.Option(None, "--depth-to-color", help=DEPTH_TO_COLOR_HELP),
     force: bool = typer.Option(False, "--force", help="replace an existing OUTPUT"),
     json_out: bool = typer.Option(False, "--json", help="print one JSON object on stdout"),
     verbose: bool = typer.Option(False, "-v", "--verbose", help="log progress details to stderr"),
@@ -477,9 +477,10 @@ def info(
         s = db.summary()
         m = db.mesh()
     # the `info --json` object of the CLI contract, and the mesh's size and open edges
-    out = {"schema": s.schema, "status": s.status, "views": s.views, "registered": s.registered,
-           "keyframes": s.keyframes, "descriptor": s.descriptor, "source": s.source, "extent_m": list(s.extent_m),
-           "grasps": list(s.grasps), "unregistered_reasons": dict(s.unregistered_reasons)}
+    out: dict[str, Any] = {
+        "schema": s.schema, "status": s.status, "views": s.views, "registered": s.registered,
+        "keyframes": s.keyframes, "descriptor": s.descriptor, "source": s.source, "extent_m": list(s.extent_m),
+        "grasps": list(s.grasps), "unregistered_reasons": dict(s.unregistered_reasons)}
     out["mesh"] = None if m is None else {"vertices": len(m.vertices), "triangles": len(m.triangles),
                                           "open_edges": len(boundary_edges(m.triangles))}
     if json_out:
@@ -528,13 +529,13 @@ def view(
     template: Path = typer.Argument(..., help="template database"),
     host: str = typer.Option("127.0.0.1", "--host", help="address to bind"),
     port: int = typer.Option(8080, "--port", min=1, max=65535, help="port to serve on"),
-    color: Optional[Path] = typer.Option(None, "--color", help="show this frame with the estimated pose"),
-    depth: Optional[Path] = typer.Option(None, "--depth", help="depth of --color"),
-    intrinsics: Optional[Path] = typer.Option(None, "--intrinsics", help="intrinsics of --color"),
+    color: Path | None = typer.Option(None, "--color", help="show this frame with the estimated pose"),
+    depth: Path | None = typer.Option(None, "--depth", help="depth of --color"),
+    intrinsics: Path | None = typer.Option(None, "--intrinsics", help="intrinsics of --color"),
     depth_scale: float = typer.Option(0.001, "--depth-scale", help="metres per raw depth unit"),
-    pose: Optional[Path] = typer.Option(
+    pose: Path | None = typer.Option(
         None, "--pose", help='T_cam_obj of --color\'s frame instead of estimating it: {"T": 4x4} or a bare 4x4 list'),
-    token: Optional[str] = typer.Option(None, "--token", help="serve only browsers that open the URL with "
+    token: str | None = typer.Option(None, "--token", help="serve only browsers that open the URL with "
                                         "?token=TOKEN (1-256 of A-Z a-z 0-9 . _ ~ -)"),
 ) -> None:
     """Browse a template (views, matches, pose graph) in the web browser."""
@@ -563,7 +564,8 @@ def view(
 
             result = Estimator.from_path(template).estimate(frame)
             T_cam_obj = result.T_cam_obj
-            _line(f"estimate: {'not found (' + str(result.reason) + ')' if T_cam_obj is None else 'view ' + str(result.view)}")
+            found = f"view {result.view}" if T_cam_obj is not None else f"not found ({result.reason})"
+            _line(f"estimate: {found}")
     run_viewer(template, host=host, port=port, scene_frame=frame, T_cam_obj=T_cam_obj, token=token,
                on_ready=lambda url: _say("viewer ready at ", (url, "bold"), " (Ctrl+C to stop)"))
 
@@ -580,7 +582,7 @@ def serve(
 ) -> None:
     """Serve pose estimation over HTTP with the templates kept warm (OpenAPI page at /docs)."""
     _setup_logging(verbose)
-    from gscan.serve import serve as run_service
+    from gscan.serve.server import serve as run_service
 
     def ready(url: str) -> None:
         _say("serving ", (", ".join(t.name for t in templates), "bold"), " at ", (url, "bold"),
@@ -636,8 +638,9 @@ def eval_cmd(
     scenes: Path = typer.Argument(..., help="BOP scene folder, or a folder of rendered scenes (capture layout)"),
     output: Path = typer.Option(..., "-o", "--output", help="BOP19 results CSV to write"),
     obj_id: int = typer.Option(1, "--obj-id", min=1, max=2**31 - 1, help="object id in scene_gt.json and in the CSV"),
-    model: Optional[Path] = typer.Option(None, "--model", help="object model for ADD/ADD-S/MSSD/MSPD (default: template mesh)"),
-    gt_capture: Optional[Path] = typer.Option(
+    model: Path | None = typer.Option(None, "--model",
+                                      help="object model for ADD/ADD-S/MSSD/MSPD (default: template mesh)"),
+    gt_capture: Path | None = typer.Option(
         None, "--gt-capture", help="capture a scanned template came from, with ground-truth poses, to relate its "
         "frame to the ground truth's (default: the template's own input folder)"),
     no_icp: bool = typer.Option(False, "--no-icp", help="skip the ICP refinement"),
@@ -681,10 +684,10 @@ def batch(
                                         "rosbag2 folders)"),
     output: Path = typer.Option(..., "-o", "--output", help="folder of the templates (NAME.gscan) and of the report "
                                 "(batch.json, batch.csv)"),
-    config: Optional[Path] = typer.Option(None, "--config", help="YAML configuration of every scan"),
-    address: Optional[str] = typer.Option(None, "--address", help="Ray cluster to run on: auto (the one started on "
+    config: Path | None = typer.Option(None, "--config", help="YAML configuration of every scan"),
+    address: str | None = typer.Option(None, "--address", help="Ray cluster to run on: auto (the one started on "
                                           "this machine) or ray://HOST:PORT (default: a local Ray runtime)"),
-    workers: Optional[int] = typer.Option(None, "--workers", min=1, help="local runtime: its CPUs (default: all); "
+    workers: int | None = typer.Option(None, "--workers", min=1, help="local runtime: its CPUs (default: all); "
                                           "cluster: at most this many scans at once"),
     force: bool = typer.Option(False, "--force", help="scan every capture again, replacing complete templates"),
     json_out: bool = typer.Option(False, "--json", help="print one JSON object on stdout"),
@@ -702,10 +705,10 @@ def batch(
     from gscan.batch.scan import run_batch
 
     try:
-        with contextlib.redirect_stdout(sys.stderr):  # Ray's own messages (a worker died, ...) are not the JSON
-            with RichBatchMonitor(err, live=err.is_terminal, escape=printable, noun="captures") as monitor:
-                report = run_batch(captures_dir, output, config=config, address=address, workers=workers,
-                                   force=force, monitor=monitor if err.is_terminal or not json_out else None)
+        with (contextlib.redirect_stdout(sys.stderr),  # Ray's own messages (a worker died, ...) are not the JSON
+              RichBatchMonitor(err, live=err.is_terminal, escape=printable, noun="captures") as monitor):
+            report = run_batch(captures_dir, output, config=config, address=address, workers=workers,
+                               force=force, monitor=monitor if err.is_terminal or not json_out else None)
     except KeyboardInterrupt:
         _say_interrupted("interrupted: the templates finished are kept; run the command again to resume the others")
         raise
@@ -747,16 +750,16 @@ def _print_batch_table(report: Any) -> None:
 
 @app.command("batch-eval")
 def batch_eval(
-    templates_dir: Optional[Path] = typer.Argument(None, help="folder of templates (NAME.gscan)"),
-    scenes_dir: Optional[Path] = typer.Argument(None, help="folder of scene folders, one per template (NAME/)"),
+    templates_dir: Path | None = typer.Argument(None, help="folder of templates (NAME.gscan)"),
+    scenes_dir: Path | None = typer.Argument(None, help="folder of scene folders, one per template (NAME/)"),
     output: Path = typer.Option(..., "-o", "--output", help="BOP19 results CSV to write (the metrics per object go "
                                 "beside it: STEM.objects.json and STEM.objects.csv)"),
-    manifest: Optional[Path] = typer.Option(None, "--manifest", help="CSV of the pairs instead of the two folders: "
+    manifest: Path | None = typer.Option(None, "--manifest", help="CSV of the pairs instead of the two folders: "
                                             "template,scenes[,obj_id,model,gt_capture,name]"),
     no_icp: bool = typer.Option(False, "--no-icp", help="skip the ICP refinement"),
-    address: Optional[str] = typer.Option(None, "--address", help="Ray cluster to run on: auto or ray://HOST:PORT "
+    address: str | None = typer.Option(None, "--address", help="Ray cluster to run on: auto or ray://HOST:PORT "
                                           "(default: a local Ray runtime)"),
-    workers: Optional[int] = typer.Option(None, "--workers", min=1, help="local runtime: its CPUs (default: all); "
+    workers: int | None = typer.Option(None, "--workers", min=1, help="local runtime: its CPUs (default: all); "
                                           "cluster: at most this many evaluations at once"),
     force: bool = typer.Option(False, "--force", help="replace existing outputs"),
     json_out: bool = typer.Option(False, "--json", help="print one JSON object on stdout"),
@@ -777,11 +780,11 @@ def batch_eval(
     from gscan.batch.display import RichBatchMonitor
     from gscan.batch.evaluate import objects_paths, run_batch_eval
 
-    with contextlib.redirect_stdout(sys.stderr):  # Ray's own messages (a worker died, ...) are not the JSON
-        with RichBatchMonitor(err, live=err.is_terminal, escape=printable, noun="pairs") as monitor:
-            report = run_batch_eval(output, templates_dir=templates_dir, scenes_dir=scenes_dir, manifest=manifest,
-                                    refine=not no_icp, address=address, workers=workers, force=force,
-                                    monitor=monitor if err.is_terminal or not json_out else None)
+    with (contextlib.redirect_stdout(sys.stderr),  # Ray's own messages (a worker died, ...) are not the JSON
+          RichBatchMonitor(err, live=err.is_terminal, escape=printable, noun="pairs") as monitor):
+        report = run_batch_eval(output, templates_dir=templates_dir, scenes_dir=scenes_dir, manifest=manifest,
+                                refine=not no_icp, address=address, workers=workers, force=force,
+                                monitor=monitor if err.is_terminal or not json_out else None)
     if json_out:
         _print_json(report.to_json())
     s = report.summary()
@@ -819,18 +822,18 @@ def config_dump() -> None:
 @app.command()
 def capture(
     output: Path = typer.Option(..., "-o", "--output", help="capture folder to write (rgb/, depth/, cam_K.txt)"),
-    from_file: Optional[Path] = typer.Option(None, "--from", help="play this RealSense .bag instead of a live camera"),
-    fps: Optional[int] = typer.Option(None, "--fps", min=1, max=1000,
+    from_file: Path | None = typer.Option(None, "--from", help="play this RealSense .bag instead of a live camera"),
+    fps: int | None = typer.Option(None, "--fps", min=1, max=1000,
                                       help="stream rate (live: 30 by default; --from: the recording's)"),
-    every: Optional[int] = typer.Option(None, "--every", min=1, help="keep every Nth frame instead of the motion rule"),
-    width: Optional[int] = typer.Option(None, "--width", min=1, help="stream width (live: 640 by default)"),
-    height: Optional[int] = typer.Option(None, "--height", min=1, help="stream height (live: 480 by default)"),
+    every: int | None = typer.Option(None, "--every", min=1, help="keep every Nth frame instead of the motion rule"),
+    width: int | None = typer.Option(None, "--width", min=1, help="stream width (live: 640 by default)"),
+    height: int | None = typer.Option(None, "--height", min=1, help="stream height (live: 480 by default)"),
     min_motion: float = typer.Option(10.0, "--min-motion", min=0.1, max=90.0,
                                      help="degrees the view of the object must turn for a frame to be kept"),
-    max_frames: Optional[int] = typer.Option(None, "--max-frames", min=1, help="stop after keeping this many frames"),
+    max_frames: int | None = typer.Option(None, "--max-frames", min=1, help="stop after keeping this many frames"),
     real_time: bool = typer.Option(False, "--real-time", help="--from: play at the recorded pace"),
     align: str = typer.Option("gscan", "--align", help="depth-to-colour alignment: gscan|librealsense (rs.align)"),
-    preview: Optional[bool] = typer.Option(None, "--preview/--no-preview",
+    preview: bool | None = typer.Option(None, "--preview/--no-preview",
                                            help="live preview in the browser (default: on live, off with --from)"),
     host: str = typer.Option("127.0.0.1", "--host", help="preview address to bind"),
     port: int = typer.Option(8080, "--port", min=1, max=65535, help="preview port"),
@@ -921,7 +924,8 @@ def demo(
     err.print(table)
     found = [r for r in held if r.found]
     worst = "" if not found else (f"; largest errors {max(r.rot_err_deg for r in found):.2f} deg, "
-                                  f"{max(r.trans_err_mm for r in found):.1f} mm, ADD {max(r.add_mm for r in found):.1f} mm")
+                                  f"{max(r.trans_err_mm for r in found):.1f} mm, "
+                                  f"ADD {max(r.add_mm for r in found):.1f} mm")
     _say(f"held-back frames: {len(found)}/{len(held)} found{worst}")
     if no_view:
         _say(("3/3", "bold"), f" viewer skipped; run `gscan view {result.output}`")
@@ -971,7 +975,7 @@ def main() -> None:
     except KeyboardInterrupt:
         err.print("interrupted")
         sys.exit(130)
-    except Exception as e:  # noqa: BLE001 - the CLI is the boundary
+    except Exception as e:
         if os.environ.get("GSCAN_DEBUG"):
             raise
         msg = " ".join(f"{e.__class__.__name__}: {e}".split())

@@ -46,6 +46,8 @@ def evaluate_heldout(db_path: Path, heldout_dir: Path, model_points: np.ndarray)
     capture = open_sequence(SAMPLES / "capture")
     T_obj_gt = template_to_gt(db_path, capture.gt_T_cam_obj or {})
     seq = open_sequence(heldout_dir)
+    if seq.gt_T_cam_obj is None:
+        raise InputError(heldout_dir, "holds no ground-truth poses (scene_gt.json) to compare with")
     est = Estimator.from_path(db_path)
     out = []
     for name in seq.names:
@@ -91,8 +93,8 @@ def check_demo_output(output: Path) -> Path:
 
 
 def scan_sample(output: Path, progress: Progress | None = None) -> ScanResult:
-    """Scan the bundled capture (SAMPLES/capture) into OUTPUT/sample.gscan (replacing only a template the demo wrote, see
-    `check_demo_output`); returns the ScanResult."""
+    """Scan the bundled capture (SAMPLES/capture) into OUTPUT/sample.gscan (replacing only a template the demo
+    wrote, see `check_demo_output`); returns the ScanResult."""
     if not (SAMPLES / "capture").is_dir():
         raise InputError(SAMPLES / "capture", "bundled sample not found (an incomplete installation: reinstall gscan)")
     path = check_demo_output(output)

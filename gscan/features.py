@@ -60,7 +60,8 @@ class Features:
             raise ValueError(f"inconsistent feature shapes: pixels {self.pixels.shape}, points {self.points.shape}, "
                              f"scales {None if self.scales is None else self.scales.shape}")
         if self.descriptors.shape != (n, _DIMS[self.kind]):
-            raise ValueError(f"{self.kind} descriptors must be [{n} x {_DIMS[self.kind]}], got {self.descriptors.shape}")
+            raise ValueError(f"{self.kind} descriptors must be [{n} x {_DIMS[self.kind]}], "
+                             f"got {self.descriptors.shape}")
 
     def __len__(self) -> int:
         return len(self.pixels)
@@ -145,12 +146,13 @@ def _to_gray(color: np.ndarray) -> np.ndarray:
 
 
 def _detect(gray: np.ndarray, mask_u8: np.ndarray | None, params: FeatureParams) -> tuple[list, np.ndarray | None]:
+    det: cv2.Feature2D
     if params.kind == "orb":
         n = max(params.max_keypoints, int(round(params.max_keypoints * params.orb_detect_factor)))
-        det = cv2.ORB_create(nfeatures=n, scaleFactor=params.orb_scale_factor, nlevels=params.orb_n_levels,
+        det = cv2.ORB.create(nfeatures=n, scaleFactor=params.orb_scale_factor, nlevels=params.orb_n_levels,
                              fastThreshold=params.orb_fast_threshold)
     else:
-        det = cv2.SIFT_create(nfeatures=0, nOctaveLayers=params.sift_n_octave_layers,
+        det = cv2.SIFT.create(nfeatures=0, nOctaveLayers=params.sift_n_octave_layers,
                               contrastThreshold=params.sift_contrast_threshold,
                               edgeThreshold=params.sift_edge_threshold, sigma=params.sift_sigma)
     kps, desc = det.detectAndCompute(gray, mask_u8)

@@ -7,7 +7,11 @@ from __future__ import annotations
 
 import contextlib
 import time
-from typing import Callable, Iterator, Protocol
+from collections.abc import Callable, Iterator
+from typing import TYPE_CHECKING, Protocol
+
+if TYPE_CHECKING:
+    import rich.progress
 
 
 class Progress(Protocol):
@@ -15,12 +19,16 @@ class Progress(Protocol):
         ...
 
 
+def _no_advance(n: int = 1) -> None:
+    """An `advance` that reports nothing."""
+
+
 class NullProgress:
     """Progress that reports nothing (library default)."""
 
     @contextlib.contextmanager
     def stage(self, name: str, total: int | None = None) -> Iterator[Callable[[int], None]]:
-        yield lambda n=1: None
+        yield _no_advance
 
 
 class StageTimer:
@@ -44,11 +52,12 @@ class RichProgress:
     def __init__(self, console, enabled: bool = True):
         self.console = console
         self.enabled = enabled
-        self._progress = None
+        self._progress: rich.progress.Progress | None = None  # made on __enter__ (rich imported only then)
 
-    def __enter__(self) -> "RichProgress":
+    def __enter__(self) -> RichProgress:
         if self.enabled:
-            from rich.progress import BarColumn, MofNCompleteColumn, Progress as RP, TextColumn, TimeElapsedColumn
+            from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeElapsedColumn
+            from rich.progress import Progress as RP
 
             self._progress = RP(TextColumn("{task.description:<12}"), BarColumn(), MofNCompleteColumn(),
                                 TimeElapsedColumn(), console=self.console, transient=False)
@@ -60,11 +69,16 @@ class RichProgress:
 
     @contextlib.contextmanager
     def stage(self, name: str, total: int | None = None) -> Iterator[Callable[[int], None]]:
-        if self._progress is None:
-            yield lambda n=1: None
+        bar = self._progress
+        if bar is None:
+            yield _no_advance
             return
-        if not self._progress.tasks:
-            self._progress.start()
-        task = self._progress.add_task(name, total=total if total else 1)
-        yield lambda n=1: self._progress.advance(task, n)
-        self._progress.update(task, completed=total if total else 1)
+        if not bar.tasks:
+            bar.start()
+        task = bar.add_task(name, total=total if total else 1)
+
+        def advance(n: int = 1) -> None:
+            bar.advance(task, n)
+
+        yield advance
+        bar.update(task, completed=total if total else 1)

@@ -17,8 +17,18 @@ from pathlib import Path
 import numpy as np
 
 from gscan.geometry.transforms import look_at, rotvec_to_R, transform_points
-from gscan.synth import (DEFAULT_INTRINSICS, RenderedFrame, SynthScene, TexturedMesh, box_mesh, place_distractors,
-                         procedural_box_texture, rest_on_table, save_textured_mesh, write_capture)
+from gscan.synth import (
+    DEFAULT_INTRINSICS,
+    RenderedFrame,
+    SynthScene,
+    TexturedMesh,
+    box_mesh,
+    place_distractors,
+    procedural_box_texture,
+    rest_on_table,
+    save_textured_mesh,
+    write_capture,
+)
 
 BOX_SIZE = (0.16, 0.10, 0.07)
 BOX_SEED = 7

@@ -2,8 +2,9 @@
 # Install gscan on Debian / Ubuntu into a virtual environment, then run it (the README's two commands):
 #
 #   bash scripts/setup.sh [DEMO ARGS]          system packages, a venv, gscan; then `gscan demo [DEMO ARGS]`
-#   bash scripts/setup.sh --test [PYTEST ARGS] the same with the test extra and Chromium; then
-#                                              `python -m pytest -q [PYTEST ARGS]` in the repository
+#   bash scripts/setup.sh --test [PYTEST ARGS] the same with the test extra and Chromium; then `ruff check` and
+#                                              `mypy` (configured in pyproject.toml; either failing fails the
+#                                              run) and `python -m pytest -q [PYTEST ARGS]` in the repository
 #   bash scripts/setup.sh --system [--test]    only the system packages (a container's build step, say)
 #
 # Works as root (apt-get directly) or as a user (apt-get through sudo, only when a package is missing);
@@ -66,6 +67,10 @@ say "installing gscan$extra into $venv (first time: about 2 GB of wheels)"
 
 if [ "$test_mode" = 1 ]; then
   cd "$root"
+  say "ruff check (lint)"
+  "$venv/bin/python" -m ruff check --no-cache || { echo "setup: error: ruff check failed" >&2; exit 1; }
+  say "mypy (types: gscan)"
+  "$venv/bin/python" -m mypy --cache-dir /dev/null || { echo "setup: error: mypy failed" >&2; exit 1; }
   exec "$venv/bin/python" -m pytest -q "$@"
 fi
 exec "$venv/bin/gscan" demo "$@"

@@ -12,12 +12,12 @@ import numpy as np
 import pytest
 
 import gscan
+from gscan.demo import SAMPLES
 from gscan.features import descriptor_distances
 from gscan.geometry.transforms import inv_T, pose_error
 from gscan.matching.gmatch import default_eps_f
 from gscan.template.db import TemplateDB
 from tests.conftest import ROOT
-from gscan.demo import SAMPLES
 
 CAPTURE = SAMPLES / "capture"
 HELDOUT = SAMPLES / "heldout"

@@ -5,9 +5,17 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gscan.matching.baselines import (BASELINES, BaselineParams, lo_ransac_correspondences, putative_mutual, putative_nn,
-                             putative_ratio, ransac_correspondences, run_baseline)
 from gscan.geometry.transforms import make_T, pose_error, rotvec_to_R, transform_points
+from gscan.matching.baselines import (
+    BASELINES,
+    BaselineParams,
+    lo_ransac_correspondences,
+    putative_mutual,
+    putative_nn,
+    putative_ratio,
+    ransac_correspondences,
+    run_baseline,
+)
 
 
 def test_putative_rules_hand_made():

@@ -24,8 +24,7 @@ import pytest
 
 import gscan
 from gscan import synth
-from gscan.batch.evaluate import (BatchEvalReport, Pair, PairRow, assign_obj_ids, combined_csv, find_pairs,
-                                  read_manifest)
+from gscan.batch.evaluate import BatchEvalReport, Pair, PairRow, assign_obj_ids, combined_csv, find_pairs, read_manifest
 from gscan.batch.scan import BatchReport, CaptureRow, _plan, find_captures
 from gscan.errors import InputError
 from gscan.scan.config import ScanConfig
@@ -436,7 +435,8 @@ def test_joined_csv_gives_each_image_the_time_of_every_object_scored_in_it(tmp_p
              Pair("c", tmp_path / "c.gscan", scene, 3)]
     R = "1 0 0 0 1 0 0 0 1"
     results = {
-        "a": {"ok": True, "csv_lines": [f"48,1,1,0.9,{R},0 0 500,0.100000"], "image_times": [[48, 1, 0.1], [48, 2, 0.3]]},
+        "a": {"ok": True, "csv_lines": [f"48,1,1,0.9,{R},0 0 500,0.100000"],
+              "image_times": [[48, 1, 0.1], [48, 2, 0.3]]},
         "b": {"ok": True, "csv_lines": [f"48,1,2,0.8,{R},0 0 400,0.200000", f"48,2,2,0.7,{R},1 2 3,0.050000"],
               "image_times": [[48, 1, 0.2], [48, 2, 0.05]]},
         "c": {"ok": False, "error": "failed"},

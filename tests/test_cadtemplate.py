@@ -6,11 +6,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gscan.scan.cad import template_from_mesh, fibonacci_directions, view_poses
-from gscan.io.camera import project
 from gscan.demo import SAMPLES
 from gscan.errors import InputError
 from gscan.geometry.transforms import inv_T, transform_points
+from gscan.io.camera import project
+from gscan.scan.cad import fibonacci_directions, template_from_mesh, view_poses
 from gscan.synth import DEFAULT_INTRINSICS, load_textured_mesh
 from gscan.template.db import TemplateDB
 
@@ -41,7 +41,7 @@ def test_summary_and_database(built, meshes_dir):
         assert C.std() > 5  # colours come from the texture, not a flat grey
         P, _ = db.cloud()
         lo, hi = mesh.bounds
-        assert len(P) > 1000 and np.all(P >= lo - 2e-3) and np.all(P <= hi + 2e-3)
+        assert len(P) > 1000 and np.all(lo - 2e-3 <= P) and np.all(hi + 2e-3 >= P)
         for v in db.views(load_images=True):
             assert v.T_obj_cam is not None and v.mask is not None and v.mask.any()
             assert not v.depth[~v.mask].any()  # depth only on the object
@@ -124,7 +124,8 @@ def test_template_from_a_scanned_mesh(sample_template, tmp_path, caplog):
         template_from_mesh(ply, out, n_views=24)
     assert not [r for r in caplog.records if "flat colour" in r.getMessage()]
     held = SAMPLES / "heldout"
-    frame = load_frame(held / "rgb" / "000000.jpg", held / "depth" / "000000.png", held / "cam_K.txt", depth_scale=0.001)
+    frame = load_frame(held / "rgb" / "000000.jpg", held / "depth" / "000000.png", held / "cam_K.txt",
+                       depth_scale=0.001)
     a, b = Estimator.from_path(out).estimate(frame), Estimator.from_path(sample_template).estimate(frame)
     assert a.found and b.found, (a.reason, b.reason)
     deg, m = pose_error(a.T_cam_obj, b.T_cam_obj)

@@ -11,15 +11,22 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from gscan.io.camera import (
-    Intrinsics, RGBDFrame, backproject, backproject_pixels, lift_keypoints, load_intrinsics, pixel_rays,
-    point_cloud, project,
-)
 from gscan.errors import InputError
 from gscan.geometry.kabsch import kabsch, kabsch_trimmed, leave_one_out_residuals
 from gscan.geometry.transforms import inv_T, look_at, make_T, pose_error, rotvec_to_R, transform_points
+from gscan.io.camera import (
+    Intrinsics,
+    RGBDFrame,
+    backproject,
+    backproject_pixels,
+    lift_keypoints,
+    load_intrinsics,
+    pixel_rays,
+    point_cloud,
+    project,
+)
 
-finite = dict(allow_nan=False, allow_infinity=False)
+finite = {"allow_nan": False, "allow_infinity": False}
 
 
 @pytest.fixture(scope="module")

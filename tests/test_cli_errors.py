@@ -18,10 +18,10 @@ import shutil
 import sqlite3
 import subprocess
 import sys
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import cv2
 import numpy as np
@@ -197,7 +197,8 @@ def _(ctx: Ctx, work: Path) -> Run:
 @case("scan-size-mismatch-all-frames")
 def _(ctx: Ctx, work: Path) -> Run:
     cap = _copy_capture(ctx, work, "mismatch")
-    _for_each(cap / "depth", "*.png", _rewrite_depth(lambda d: cv2.resize(d, (160, 120), interpolation=cv2.INTER_NEAREST)))
+    _for_each(cap / "depth", "*.png",
+              _rewrite_depth(lambda d: cv2.resize(d, (160, 120), interpolation=cv2.INTER_NEAREST)))
     return _scan_case(work, cap, "mismatch", "000000")
 
 
@@ -214,7 +215,8 @@ def _(ctx: Ctx, work: Path) -> Run:
     cap = _copy_capture(ctx, work)
     (work / "depth_K.json").write_text(json.dumps({"fx": 500.0, "fy": 500.0, "cx": 319.5, "cy": 239.5,
                                                    "width": 640, "height": 480}))
-    return _scan_case(work, cap, "depth_K.json", "640x480", "320x240", extra=("--depth-intrinsics", str(work / "depth_K.json")))
+    return _scan_case(work, cap, "depth_K.json", "640x480", "320x240",
+                      extra=("--depth-intrinsics", str(work / "depth_K.json")))
 
 
 @case("scan-not-rigid-depth-to-color")
@@ -728,7 +730,8 @@ def _(ctx: Ctx, work: Path) -> Run:
 def _(ctx: Ctx, work: Path) -> Run:
     out = work / "out"
     out.mkdir()
-    return Run(_cli("template-from-mesh", work / "ghost.obj", "-o", out / "m.gscan", "--views", "4"), ["ghost.obj"], out)
+    return Run(_cli("template-from-mesh", work / "ghost.obj", "-o", out / "m.gscan", "--views", "4"), ["ghost.obj"],
+               out)
 
 
 @case("mesh-corrupt")
@@ -948,7 +951,8 @@ def ctx(tmp_path_factory: pytest.TempPathFactory) -> Ctx:
 
 
 @pytest.fixture(scope="module")
-def results(ctx: Ctx, tmp_path_factory: pytest.TempPathFactory) -> dict[str, tuple[Run, dict, subprocess.CompletedProcess]]:
+def results(ctx: Ctx, tmp_path_factory: pytest.TempPathFactory
+            ) -> dict[str, tuple[Run, dict, subprocess.CompletedProcess]]:
     """Build every case, then run them all concurrently: name -> (run, snapshots before, process)."""
     runs: dict[str, tuple[Run, dict]] = {}
     for name, build in CASES.items():

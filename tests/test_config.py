@@ -1,14 +1,22 @@
 """Scan configuration: `gscan config dump` round-trips through --config; edits take effect; bad files refused."""
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 
 import pytest
 import yaml
 
-from gscan.scan.config import ScanConfig, dump_defaults, load_config
 from gscan.errors import InputError
+from gscan.features import FeatureParams
+from gscan.matching.gmatch import GMatchParams
+from gscan.registration.pairwise import RegisterParams
+from gscan.registration.posegraph import LoopParams, PoseGraphParams
+from gscan.scan.config import ScanConfig, dump_defaults, load_config
+from gscan.scan.fuse import FusionParams
+from gscan.scan.keyframes import KeyframeParams
+from gscan.scan.segment import SegmentParams
 
 
 def test_dump_has_a_comment_per_key_and_loads_back_as_the_defaults(tmp_path):
@@ -55,11 +63,10 @@ def test_bad_config_names_the_file_and_the_key(tmp_path, text, words):
 
 
 def test_every_registration_key_reaches_the_registration_parameters():
-    from gscan.scan.capture_mode import MOVING_OBJECT, STATIC_OBJECT
-    from gscan.scan.pipeline import _register_params
-
     from gscan.registration.noise import DepthNoise
+    from gscan.scan.capture_mode import MOVING_OBJECT, STATIC_OBJECT
     from gscan.scan.config import NoiseConfig
+    from gscan.scan.pipeline import _register_params
 
     base = ScanConfig()
     for key, value in base.registration.model_dump().items():
@@ -106,3 +113,66 @@ def test_segmentation_keys_reach_the_segmentation_and_a_far_object_is_found(mesh
         m = segment_frame(frame, _segment_params(cfg)).mask
         iou = (m & fr.mask).sum() / max(1, (m | fr.mask).sum())
         assert min_iou <= iou <= max_iou, (cfg.segmentation.depth_max, iou)
+
+
+# every key of `gscan config dump`: the stage parameter (class, field) whose default it is ...
+STAGE_DEFAULTS = {
+    "features.kind": (FeatureParams, "kind"), "features.max_keypoints": (FeatureParams, "max_keypoints"),
+    "match.method": (RegisterParams, "method"),
+    **{f"match.{k}": (GMatchParams, k) for k in ("eps_f", "eps_c", "eta", "order", "T", "L", "constraint")},
+    **{f"registration.{k}": (RegisterParams, k) for k in (
+        "min_matches", "max_rms", "max_sigma_deg", "max_sigma_rel", "max_see_through", "verify", "support_eps_scale",
+        "icp", "icp_max_dist", "icp_voxel", "min_fitness", "max_rmse", "max_icp_shift_deg", "max_icp_shift_m")},
+    "posegraph.loop_candidates": (LoopParams, "max_per_node"),
+    "posegraph.max_view_angle_deg": (LoopParams, "max_angle_deg"),
+    "posegraph.alpha": (PoseGraphParams, "alpha"),
+    **{f"segmentation.{k}": (SegmentParams, k) for k in ("depth_min", "depth_max", "height_max")},
+    "fusion.voxel": (FusionParams, "voxel_size"), "fusion.depth_max": (FusionParams, "depth_max"),
+    **{f"keyframes.{k}": (KeyframeParams, k) for k in ("min_angle_deg", "max_views", "min_views",
+                                                       "min_object_keypoints")},
+}
+# ... or null, decided per capture (the stage's own default is what a caller without a capture gets) ...
+FROM_THE_CAPTURE = {
+    "registration.noise": (RegisterParams, "noise"),  # estimated from the capture, starting from this prior
+    "registration.dense_refine": (RegisterParams, "dense_refine"),  # on for a moving object, off for a static scene
+}
+# ... or derived from another stage default
+DERIVED = {"posegraph.bridge_min_matches": 2 * RegisterParams().min_matches}
+
+
+def test_config_dump_holds_the_stage_parameter_defaults_key_by_key():
+    """One source of defaults: each value `gscan config dump` prints is the default of the stage parameter it
+    configures (a key missing from the lists above fails: a new key must name its source)."""
+    text = subprocess.run([sys.executable, "-m", "gscan.cli", "config", "dump"], capture_output=True, text=True,
+                          check=True).stdout
+    dumped = {f"{section}.{key}": value
+              for section, keys in yaml.safe_load(text).items() for key, value in keys.items()}
+    assert set(dumped) == set(STAGE_DEFAULTS) | set(FROM_THE_CAPTURE) | set(DERIVED)
+    for key, (params, name) in STAGE_DEFAULTS.items():
+        assert dumped[key] == getattr(params(), name), key
+    for key, (params, name) in FROM_THE_CAPTURE.items():
+        assert dumped[key] is None and getattr(params(), name) is not None, key
+    for key, value in DERIVED.items():
+        assert dumped[key] == value, key
+
+
+def test_python_scan_without_a_config_writes_the_poses_of_the_command_line(tmp_path):
+    """`gscan.scan(capture, out)` with no configuration and `gscan scan capture -o out` on a small rendered capture
+    (5 views, 320 x 240): the same result and the same poses, bit for bit."""
+    import gscan
+    from gscan import synth
+    from gscan.template.db import TemplateDB
+
+    capture = tmp_path / "capture"
+    mesh = synth.box_mesh((0.14, 0.09, 0.07), synth.procedural_box_texture(3, (512, 768)))
+    synth.render_capture(mesh, capture, 5, mode="static", elevations_deg=(40.0,),
+                         intr=synth.DEFAULT_INTRINSICS.scaled(0.5))
+    res = gscan.scan(capture, tmp_path / "python.gscan")
+    r = subprocess.run([sys.executable, "-m", "gscan.cli", "scan", str(capture), "-o", str(tmp_path / "cli.gscan"),
+                        "--json"], capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    cli = json.loads(r.stdout)
+    assert res.registered >= 4 and cli["registered"] == res.registered
+    assert (cli["edges"], cli["mesh"]) == (res.to_json()["edges"], res.to_json()["mesh"])
+    with TemplateDB.open(tmp_path / "python.gscan") as a, TemplateDB.open(tmp_path / "cli.gscan") as b:
+        assert a.poses() == b.poses()

@@ -8,15 +8,21 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gscan.io.camera import RGBDFrame
-from gscan.scan.cad import template_from_mesh
 from gscan.errors import InputError
 from gscan.estimate.estimator import STAGES, Estimator
 from gscan.estimate.verify import AcceptParams
-from gscan.geometry.transforms import look_at, make_T, pose_error, rotvec_to_R, transform_points
 from gscan.evaluate.metrics import add
-from gscan.synth import (DEFAULT_INTRINSICS, SynthScene, default_distance, load_textured_mesh, place_distractors,
-                         rest_on_table)
+from gscan.geometry.transforms import look_at, make_T, pose_error, rotvec_to_R, transform_points
+from gscan.io.camera import RGBDFrame
+from gscan.scan.cad import template_from_mesh
+from gscan.synth import (
+    DEFAULT_INTRINSICS,
+    SynthScene,
+    default_distance,
+    load_textured_mesh,
+    place_distractors,
+    rest_on_table,
+)
 from gscan.template.db import TemplateDB, View
 
 TARGET = "Frozen_Scrabble_Jr"

@@ -9,12 +9,18 @@ import numpy as np
 import pytest
 
 from gscan.demo import SAMPLES
-from gscan.scan.cad import template_from_mesh
 from gscan.errors import InputError
 from gscan.evaluate.bop19 import CSV_HEADER, evaluate
 from gscan.geometry.transforms import look_at, rotvec_to_R, transform_points
-from gscan.synth import (DEFAULT_INTRINSICS, SynthScene, default_distance, load_textured_mesh, rest_on_table,
-                         write_capture)
+from gscan.scan.cad import template_from_mesh
+from gscan.synth import (
+    DEFAULT_INTRINSICS,
+    SynthScene,
+    default_distance,
+    load_textured_mesh,
+    rest_on_table,
+    write_capture,
+)
 
 TARGET = "Whey_Protein_Chocolate_12_Packets"
 

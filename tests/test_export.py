@@ -13,13 +13,13 @@ import pytest
 import trimesh
 import yaml
 
-from gscan.io.camera import Intrinsics, backproject_pixels, project
 from gscan.errors import InputError
 from gscan.export import export
 from gscan.export.common import render_depth
-from gscan.geometry.transforms import inv_T, look_at, transform_points
 from gscan.features import Features
 from gscan.geometry.mesh import MeshData
+from gscan.geometry.transforms import inv_T, look_at, transform_points
+from gscan.io.camera import Intrinsics, backproject_pixels, project
 from gscan.template.db import Edge, TemplateDB, View
 
 K = Intrinsics(150.0, 152.0, 79.5, 59.5, 160, 120)
@@ -350,7 +350,8 @@ def test_colmap_leaves_out_views_without_a_colour_image(synth: tuple[Path, dict]
     assert [r.getMessage() for r in caplog.records if "not exported" in r.getMessage()] == [
         "1 view(s) store no colour image and are not exported: frame 01 é"]
     rec = pycolmap.Reconstruction(str(tmp_path / "c"))
-    assert sorted(im.name for im in rec.images.values()) == sorted(p.name for p in (tmp_path / "c" / "images").iterdir())
+    images = sorted(p.name for p in (tmp_path / "c" / "images").iterdir())
+    assert sorted(im.name for im in rec.images.values()) == images
     with sqlite3.connect(db) as conn:
         conn.execute("UPDATE views SET color = NULL")
     with pytest.raises(InputError, match="no registered view with a colour image"):

@@ -9,10 +9,15 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from gscan.io.camera import Intrinsics, RGBDFrame, lift_keypoints, load_intrinsics, project
 from gscan.features import (
-    KINDS, FeatureParams, Features, descriptor_distances, empty_features, extract_features,
+    KINDS,
+    FeatureParams,
+    Features,
+    descriptor_distances,
+    empty_features,
+    extract_features,
 )
+from gscan.io.camera import Intrinsics, RGBDFrame, lift_keypoints, load_intrinsics, project
 
 
 def _load_real(real_dir: Path, idx: int) -> RGBDFrame:

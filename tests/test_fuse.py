@@ -4,15 +4,15 @@ from __future__ import annotations
 import numpy as np
 import open3d as o3d
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
+from gscan.geometry.plane import Plane
+from gscan.geometry.transforms import inv_T, make_T, rotvec_to_R, transform_points
 from gscan.io.camera import RGBDFrame
 from gscan.scan.fuse import FusionParams, auto_voxel_size, fuse_tsdf, remove_small_components, template_frame
-from gscan.geometry.transforms import inv_T, make_T, rotvec_to_R, transform_points
-from gscan.geometry.plane import Plane
 from gscan.scan.segment import segment_sequence
-from gscan.synth import (DEFAULT_INTRINSICS, DepthNoise, SynthScene, load_textured_mesh, orbit_poses,
-                         rest_on_table)
+from gscan.synth import DEFAULT_INTRINSICS, DepthNoise, SynthScene, load_textured_mesh, orbit_poses, rest_on_table
 
 INTR = DEFAULT_INTRINSICS.scaled(0.5)
 NOISE = DepthNoise(edge_jump=0.04)  # half resolution: see tests/test_segment.py
@@ -45,7 +45,7 @@ def test_fused_mesh_matches_ground_truth_surface(capture):
     assert model.voxel_size == pytest.approx(0.002)
     assert len(model.mesh.vertices) > 1000 and len(model.mesh.triangles) > 1000
     assert model.mesh.triangles.max() < len(model.mesh.vertices) and model.mesh.triangles.dtype == np.int32
-    assert model.mesh.vertex_colors.shape == model.mesh.vertices.shape and 0 <= model.mesh.vertex_colors.min()
+    assert model.mesh.vertex_colors.shape == model.mesh.vertices.shape and model.mesh.vertex_colors.min() >= 0
     d = distances(gt, model.mesh.vertices)
     # TSDF at 2 mm voxels on noisy rendered depth: the surface within about half a voxel; 1.5 mm median and 3 mm at the
     # 95th percentile allow depth noise, not a misregistered view (centimetres)

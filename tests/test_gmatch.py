@@ -10,12 +10,20 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from gscan.geometry.kabsch import kabsch
 from gscan.geometry.transforms import make_T, pose_error, rotvec_to_R, transform_points
-from gscan.matching.gmatch import (Candidates, GMatchParams, default_eps_f, extract_candidates, gmatch, search_candidates,
-                          step)
+from gscan.matching.gmatch import (
+    Candidates,
+    GMatchParams,
+    default_eps_f,
+    extract_candidates,
+    gmatch,
+    search_candidates,
+    step,
+)
 from gscan.matching.kernel import flips, keep_consistent
 
 Z = np.array([0.0, 0.0, 1.0])

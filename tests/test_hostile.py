@@ -271,8 +271,7 @@ def test_demo_replaces_only_its_own_template(ctx: Ctx, tmp_path: Path):
     other.parent.mkdir()
     other.write_text("my notes")
     before = {p: _sha(p) for p in (mine, other)}
-    for proc, p in zip(_parallel(*[lambda p=p: _gscan("demo", "--no-view", "-o", p.parent) for p in (mine, other)]),
-                       (mine, other)):
+    for proc in _parallel(*[lambda p=p: _gscan("demo", "--no-view", "-o", p.parent) for p in (mine, other)]):
         line = _error(proc, "sample.gscan")
         assert "not written by gscan demo" in line and "-o" in line
     assert {p: _sha(p) for p in (mine, other)} == before
@@ -308,12 +307,12 @@ def test_exports_write_inside_their_output_only(ctx: Ctx, tmp_path: Path):
     work = tmp_path / "w" / "x"
     work.mkdir(parents=True)
     db = _renamed_template(ctx, work / "t.gscan", names)
-    before = {p for p in tmp_path.rglob("*")}
+    before = set(tmp_path.rglob("*"))
     runs = _parallel(*[lambda f=f: _gscan("export", db, "--format", f, "-o", work / "out" / f)
                        for f in ("colmap", "bop", "foundationpose", "json")])
     for proc in runs:
         _ok(proc)
-    after = {p for p in tmp_path.rglob("*")} - before
+    after = set(tmp_path.rglob("*")) - before
     assert all(p.is_relative_to(work / "out") for p in after), sorted(map(str, after))
     assert not escaped.exists() and not (absolute.parent / "owned.png").exists()
     import pycolmap

@@ -52,7 +52,8 @@ def hostile(tmp_path_factory) -> tuple[Path, list[str]]:
             c.execute("UPDATE edges SET src=? WHERE src=?", (b, a))
             c.execute("UPDATE edges SET tgt=? WHERE tgt=?", (b, a))
         c.execute("UPDATE edges SET reason=? WHERE id=(SELECT min(id) FROM edges)", (IMG_NAME,))
-        c.execute("INSERT OR REPLACE INTO meta(key, value) VALUES ('skipped', ?)", (json.dumps({IMG_NAME + "x": "bad"}),))
+        c.execute("INSERT OR REPLACE INTO meta(key, value) VALUES ('skipped', ?)",
+                  (json.dumps({IMG_NAME + "x": "bad"}),))
     c.close()
     path = folder / FILE_NAME
     tpl.path.rename(path)
@@ -73,7 +74,8 @@ def _injected(page) -> dict:
     return page.evaluate("() => ({title: document.title, pwned: window.__pwned === undefined ? null : window.__pwned,"
                          " body: document.body.getAttribute('data-pwned'),"
                          " iframes: document.querySelectorAll('iframe').length,"
-                         " imgs: [...document.querySelectorAll('img')].filter(i => i.getAttribute('src') === 'x').length})")
+                         " imgs: [...document.querySelectorAll('img')]"
+                         ".filter(i => i.getAttribute('src') === 'x').length})")
 
 
 @pytest.mark.browser

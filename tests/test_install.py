@@ -103,7 +103,8 @@ def test_wheel_install_runs_the_demo_from_another_folder(tmp_path: Path):
                            cwd=elsewhere, capture_output=True, text=True, timeout=120, env=_env())
     module, samples = where.stdout.split()
     assert Path(module).is_relative_to(tmp_path / "venv") and Path(samples).is_relative_to(tmp_path / "venv")
-    assert (Path(samples) / "capture" / "cam_K.txt").is_file() and len(list((Path(samples) / "heldout" / "rgb").iterdir())) == 4
+    assert (Path(samples) / "capture" / "cam_K.txt").is_file()
+    assert len(list((Path(samples) / "heldout" / "rgb").iterdir())) == 4
     r = subprocess.run([str(tmp_path / "venv" / "bin" / "gscan"), "demo", "--no-view", "-o", "out"], cwd=elsewhere,
                        capture_output=True, text=True, timeout=900, env=_env())
     assert r.returncode == 0, r.stderr[-3000:]
@@ -179,3 +180,28 @@ def test_setup_installs_missing_system_packages_with_sudo_only_when_not_root(tmp
     r = subprocess.run(["bash", str(ROOT / "scripts" / "setup.sh"), "--system", "--test"], capture_output=True,
                        text=True, timeout=60, env=env)
     assert r.returncode == 0 and not log.exists(), r.stderr  # nothing missing: no apt-get, no sudo
+
+
+@pytest.mark.parametrize("failing", [None, "ruff", "mypy"])
+def test_setup_test_runs_ruff_and_mypy_before_the_tests_and_stops_when_one_fails(tmp_path: Path,
+                                                                                   failing: str | None):
+    """scripts/setup.sh --test (what .ci/run runs) lints with ruff, type-checks with mypy, then runs pytest with
+    the given arguments; a failing check fails the run (non-zero exit, one line naming it) before the tests. The
+    venv's interpreter is a stand-in that logs its calls and fails as `failing` says."""
+    venv, log = tmp_path / "venv", tmp_path / "calls.log"
+    (venv / "bin").mkdir(parents=True)
+    stub = venv / "bin" / "python"
+    stub.write_text(f'#!{shutil.which("bash")}\necho "$*" >> {log}\n[ "$2" = "{failing}" ] && exit 1\nexit 0\n')
+    stub.chmod(0o755)
+    r = subprocess.run(["bash", str(ROOT / "scripts" / "setup.sh"), "--test", "-x", "tests/test_config.py"],
+                       capture_output=True, text=True, timeout=60,
+                       env=_env(GSCAN_NO_APT="1", GSCAN_VENV=str(venv), PYTHON=sys.executable))
+    calls = [c.split()[:2] for c in log.read_text().splitlines()]
+    ran = [["-m", "pip"], ["-m", "ruff"], ["-m", "mypy"], ["-m", "pytest"]]
+    if failing is None:
+        assert r.returncode == 0, r.stderr
+        assert calls == ran and log.read_text().splitlines()[-1] == "-m pytest -q -x tests/test_config.py"
+    else:
+        last = r.stderr.strip().splitlines()[-1]
+        assert r.returncode == 1 and last.startswith(f"setup: error: {failing}") and "failed" in last, r.stderr
+        assert calls == ran[: ran.index(["-m", failing]) + 1]  # nothing after the failing check

@@ -8,7 +8,6 @@ import cv2
 import numpy as np
 import pytest
 
-from gscan.io.camera import Intrinsics, backproject
 from gscan.errors import InputError
 from gscan.io import (
     associate,
@@ -25,6 +24,7 @@ from gscan.io import (
     read_sun_depth,
     read_ycbv_meta,
 )
+from gscan.io.camera import Intrinsics, backproject
 
 PRIMESENSE = Intrinsics(525.0, 525.0, 319.5, 239.5, 640, 480)
 W, H = 64, 48
@@ -792,7 +792,8 @@ def test_unreadable_permissions(tmp_path: Path):
 
 def test_depth_scale_message(tmp_path: Path):
     call, _ = bad_depth_scale_sequence(tmp_path)
-    with pytest.raises(InputError, match=r"depth scale 1 puts the scene at 799 m.*0\.001 would put it at 0\.799 m") as ei:
+    with pytest.raises(InputError,
+                       match=r"depth scale 1 puts the scene at 799 m.*0\.001 would put it at 0\.799 m") as ei:
         call()
     assert ei.value.fix == "depth_scale"  # the CLI names --depth-scale
 

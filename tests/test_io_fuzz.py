@@ -11,9 +11,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from gscan.io.camera import Intrinsics, RGBDFrame
 from gscan.errors import InputError
 from gscan.io import load_frame, open_sequence, read_mask, read_nyu_depth, read_sun_depth, read_ycbv_meta
+from gscan.io.camera import Intrinsics, RGBDFrame
 
 FUZZ = settings(max_examples=25, deadline=None, derandomize=True,
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])

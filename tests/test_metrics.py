@@ -15,12 +15,25 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from gscan.io.camera import Intrinsics
-from gscan.geometry.transforms import make_T, rotvec_to_R
 from gscan.evaluate.metrics import (
-    add, adds, ar_mspd, ar_mssd, ate, ate_rmse, auc, average_recall, mspd, mspd_thresholds, mssd, mssd_thresholds,
-    recall_at, rotation_error_deg, translation_error,
+    add,
+    adds,
+    ar_mspd,
+    ar_mssd,
+    ate,
+    ate_rmse,
+    auc,
+    average_recall,
+    mspd,
+    mspd_thresholds,
+    mssd,
+    mssd_thresholds,
+    recall_at,
+    rotation_error_deg,
+    translation_error,
 )
+from gscan.geometry.transforms import make_T, rotvec_to_R
+from gscan.io.camera import Intrinsics
 
 RZ180 = make_T(rotvec_to_R([0.0, 0.0, np.pi]), np.zeros(3))
 RX180 = make_T(rotvec_to_R([np.pi, 0.0, 0.0]), np.zeros(3))

@@ -5,9 +5,9 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from gscan.geometry.transforms import make_T, pose_error, rotvec_to_R, transform_points
 from gscan.geometry.icp import icp_point_to_plane
 from gscan.geometry.pointset import coincident_groups, pca_normals, voxel_down_indices, voxel_mean
+from gscan.geometry.transforms import make_T, pose_error, rotvec_to_R, transform_points
 
 
 def _box_surface(n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:

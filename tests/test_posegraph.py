@@ -9,9 +9,19 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from gscan.geometry.transforms import inv_T, look_at, make_T, pose_error, rotvec_to_R, transform_points
-from gscan.registration.posegraph import (GraphEdge, LoopParams, PoseGraphParams, bow_vectors, bridges, edge_chi2,
-                                          edge_residual, information_from_points, optimize_pose_graph,
-                                          select_loop_candidates, spanning_poses)
+from gscan.registration.posegraph import (
+    GraphEdge,
+    LoopParams,
+    PoseGraphParams,
+    bow_vectors,
+    bridges,
+    edge_chi2,
+    edge_residual,
+    information_from_points,
+    optimize_pose_graph,
+    select_loop_candidates,
+    spanning_poses,
+)
 
 SIGMA = 0.002  # m, per-axis noise of the synthetic matched points
 
@@ -64,7 +74,7 @@ def make_ring(seed: int = 0, n: int = 12, n_wrong: int = 3) -> tuple[list[np.nda
 
 def test_ring_removes_drift_and_rejects_wrong_edges():
     gt, edges, first_wrong = make_ring()
-    init = spanning_poses(12, [e for e in edges[:11]])  # the odometry chain alone: it drifts
+    init = spanning_poses(12, list(edges[:11]))  # the odometry chain alone: it drifts
     before = ate(init, gt)
     res = optimize_pose_graph(12, edges, init)
     after = ate(res.T_world_node, gt)

@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
-from real import ground_truth, published_calibration, scan_with_cli, score_queries, score_trajectory, template_poses  # noqa: E402,I001
+from real import ground_truth, published_calibration, scan_with_cli, score_queries, score_trajectory, template_poses
 
 pytestmark = pytest.mark.slow
 

@@ -23,12 +23,12 @@ from _recordings import K_COLOR, K_DEPTH, PERIOD_NS, T0_NS, T_depth_offset, rend
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from gscan.errors import InputError
 from gscan.evaluate.metrics import ate_rmse
 from gscan.geometry.transforms import inv_T
 from gscan.io import associate, open_sequence
-from gscan.errors import InputError
-from gscan.io.camera import Intrinsics
 from gscan.io.align import align_depth_reference, align_depth_to_color
+from gscan.io.camera import Intrinsics
 from gscan.io.recordings.pairing import pair_frames, pair_tolerance
 from gscan.scan.pipeline import ScanOptions, run_scan
 from gscan.synth.recordings import RecordingFrame, write_mcap, write_realsense_bag, write_rosbag2
@@ -326,6 +326,39 @@ def test_unaligned_recording_scans_as_accurately_as_the_aligned_capture(recs, vi
 
     aligned, unaligned = ate(folder_scan), ate(out)
     assert unaligned <= max(2.0 * aligned, aligned + 0.001) and unaligned < 0.005, (aligned, unaligned)
+
+
+def _cli_json(*args: str | Path) -> dict:
+    r = subprocess.run([sys.executable, "-m", "gscan.cli", *map(str, args), "--json"], capture_output=True,
+                       text=True, cwd=ROOT, timeout=300, check=False)
+    assert r.returncode == 0, r.stderr
+    return json.loads(r.stdout)
+
+
+def test_eval_of_a_recording_scores_the_frames_of_the_folder(recs, folder_scan, tmp_path):
+    """`gscan eval` on a rosbag2 folder (a recording carries no ground truth) estimates every frame, as on the
+    capture folder it was written from: the same estimated poses, bit for bit."""
+    rec = _cli_json("eval", folder_scan, recs["rosbag2"], "-o", tmp_path / "rec.csv")
+    ref = _cli_json("eval", folder_scan, recs["folder"], "-o", tmp_path / "folder.csv")
+    assert rec["n_images"] == ref["n_images"] == 12 and rec["n_found"] == ref["n_found"] > 0
+    assert [r["T_cam_obj"] for r in rec["rows"]] == [r["T_cam_obj"] for r in ref["rows"]]
+
+
+def test_resume_refuses_a_recording_that_changed(views, tmp_path):
+    """A scan of a recording resumed after the recording changed (here its folder gained a file) is refused with
+    one line naming the database, and the database is left as it was."""
+    bag = write_rosbag2(tmp_path / "four", views.frames()[:4], K_COLOR).parent
+    out = tmp_path / "four.gscan"
+    res = _cli_json("scan", bag, "-o", out)
+    assert res["registered"] >= 2
+    (bag / "notes.txt").write_text("calibrated again\n")
+    before = out.read_bytes()
+    r = subprocess.run([sys.executable, "-m", "gscan.cli", "scan", str(bag), "-o", str(out), "--resume"],
+                       capture_output=True, text=True, cwd=ROOT, timeout=300, check=False)
+    assert r.returncode == 2, r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"error: {out}") and "frame 000000 changed" in lines[0], lines
+    assert out.read_bytes() == before
 
 
 # --------------------------------------------------------------------------------------- bad input

@@ -6,13 +6,30 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from gscan.features import FeatureParams, Features, extract_features
+from gscan.geometry.transforms import (
+    inv_T,
+    look_at,
+    make_T,
+    pose_error,
+    rotation_angle_deg,
+    rotvec_to_R,
+    transform_points,
+)
 from gscan.io.camera import Intrinsics, RGBDFrame
-from gscan.features import Features, FeatureParams, extract_features
-from gscan.geometry.transforms import inv_T, look_at, make_T, pose_error, rotation_angle_deg, rotvec_to_R, transform_points
 from gscan.matching.gmatch import GMatchResult
 from gscan.registration.noise import DepthNoise
-from gscan.registration.pairwise import (METHODS, GuidedPool, PairResult, RegisterParams, frame_cloud, lists_to_verify,
-                                         pose_by_support, register_features, relative_pose)
+from gscan.registration.pairwise import (
+    METHODS,
+    GuidedPool,
+    PairResult,
+    RegisterParams,
+    frame_cloud,
+    lists_to_verify,
+    pose_by_support,
+    register_features,
+    relative_pose,
+)
 
 N_MESHES = 10
 AZIMUTHS = (0.0, 15.0, 30.0, 45.0)  # 4 views per mesh -> pairs at 15, 30 and 45 deg: 6 per mesh, 60 in all
@@ -140,7 +157,8 @@ def test_lists_to_verify_order_dedupe_and_min_len():
     c = [(9, 9), (6, 6), (7, 7), (8, 8)]
     hyps = [a, b, b[::-1], [(0, 1), (1, 2), (2, 3)], a, c]  # b reversed: the same pairs; one list of 3
     res = GMatchResult(np.array(a, np.int32), 0.05, hyp_start=_padded(hyps)[:, :3],
-                       hyp_length=np.array([len(m) for m in hyps]), hyp_cost=np.array([0.05, 0.03, 0.02, 0.0, 0.05, 0.03]),
+                       hyp_length=np.array([len(m) for m in hyps]),
+                       hyp_cost=np.array([0.05, 0.03, 0.02, 0.0, 0.05, 0.03]),
                        hyp_pruned=np.zeros(len(hyps), bool), hyp_matches=_padded(hyps))
     lists, costs = lists_to_verify(res, 16, 4)
     # the winner, then by length, cost, search order: b reversed (0.02) before b (its duplicate) and c (0.03)

@@ -107,7 +107,8 @@ def _scan_and_kill(capture: Path, db: Path, ready, resume: bool = False,
             proc.wait()
     out, err = proc.communicate()
     if sig == signal.SIGKILL:
-        assert proc.returncode == -signal.SIGKILL, f"the scan ended before it was killed (rc {proc.returncode}): {err!r}"
+        assert proc.returncode == -signal.SIGKILL, (f"the scan ended before it was killed (rc {proc.returncode}): "
+                                                    f"{err!r}")
     return proc.returncode, out.decode(), err.decode()
 
 
@@ -122,8 +123,8 @@ def _check_partial(db: Path, capture: Path) -> None:
     assert info.returncode == 0, info.stderr
     assert json.loads(info.stdout)["status"] == "partial"
     out = db.parent / "export_out"
-    for argv in (("estimate", db, "--color", capture / "rgb" / "000001.png", "--depth", capture / "depth" / "000001.png",
-                  "--intrinsics", capture / "cam_K.txt", "--json"),
+    for argv in (("estimate", db, "--color", capture / "rgb" / "000001.png",
+                  "--depth", capture / "depth" / "000001.png", "--intrinsics", capture / "cam_K.txt", "--json"),
                  ("export", db, "--format", "json", "-o", out)):
         r = _gscan(*argv)
         assert r.returncode == 2, (argv[0], r.stdout, r.stderr)
@@ -234,6 +235,25 @@ def test_resume_refuses_another_input(capture: Path, reference, tmp_path: Path):
     line = r.stderr.strip().splitlines()[-1]
     assert line.startswith("error: ") and db.name in line, line
     assert db.read_bytes() == before
+
+
+def test_resume_refuses_a_stored_view_without_keypoints(capture: Path, reference, tmp_path: Path):
+    """A partial database whose unregistered view lost its keypoints (written by another tool, or damaged) cannot
+    be resumed from: one line naming the database, not an internal error."""
+    import shutil
+
+    db = tmp_path / "damaged.gscan"
+    shutil.copy(capture.parent / "reference.gscan", db)
+    with sqlite3.connect(db) as c:
+        c.execute("UPDATE meta SET value='\"partial\"' WHERE key='status'")
+        c.execute("UPDATE views SET T_obj_cam=NULL WHERE name='000000'")
+        c.execute("DELETE FROM features WHERE view_id=(SELECT id FROM views WHERE name='000000')")
+    c.close()
+    r = _gscan("scan", capture, "-o", db, "--resume", "--json")
+    assert r.returncode == 2, r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert lines[-1].startswith(f"error: {db}") and "'000000' is stored without its keypoints" in lines[-1], lines
+    assert "internal error" not in r.stderr and r.stdout == ""
 
 
 def test_resume_refuses_other_intrinsics_or_depth_scale(capture: Path, reference, tmp_path: Path):

@@ -16,9 +16,9 @@ from hypothesis import strategies as st
 
 from gscan.export import FORMATS, export
 from gscan.export.common import MAX_STEM_BYTES, safe_file_names
-from gscan.io.camera import Intrinsics
 from gscan.features import Features
 from gscan.geometry.mesh import MeshData
+from gscan.io.camera import Intrinsics
 from gscan.template.db import Edge, TemplateDB, View
 
 INTR = Intrinsics(40.0, 40.0, 15.5, 11.5, 32, 24)

@@ -20,7 +20,6 @@ from pathlib import Path
 import numpy as np
 
 from gscan.demo import SAMPLES
-from tests.conftest import ROOT
 
 PINS = Path(__file__).with_name("sample_pins.json")
 TOL_M = 1e-6  # translation, metres
@@ -102,7 +101,8 @@ def main() -> None:
         scan(SAMPLES / "capture", out)
         text = json.dumps(_sample_results(out), indent=1)
     # one matrix row a line
-    text = re.sub(r"\[\s+([^\[\]{}]*?)\s+\]", lambda m: "[" + ", ".join(x.strip() for x in m.group(1).split(",")) + "]", text)
+    text = re.sub(r"\[\s+([^\[\]{}]*?)\s+\]",
+                  lambda m: "[" + ", ".join(x.strip() for x in m.group(1).split(",")) + "]", text)
     PINS.write_text(text + "\n")
     print(f"wrote {PINS}")
 

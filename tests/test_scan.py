@@ -15,9 +15,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from gscan.evaluate.metrics import ate_rmse, frame_errors
 from gscan.geometry.transforms import inv_T, pose_error
 from gscan.io import open_sequence
-from gscan.evaluate.metrics import ate_rmse, frame_errors
 from gscan.scan.api import scan
 from gscan.synth import load_textured_mesh, render_capture
 from gscan.template.db import TemplateDB

@@ -19,8 +19,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gscan.synth import load_textured_mesh
 from gscan.synth import cases as C
+from gscan.synth import load_textured_mesh
 from gscan.template.db import TemplateDB
 from tests._scan_checks import Outcome, scan_case, template_surface_distances
 

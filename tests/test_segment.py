@@ -3,15 +3,29 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
-from gscan.io.camera import RGBDFrame
 from gscan.errors import InputError
-from gscan.geometry.transforms import inv_T, make_T, rotvec_to_R, transform_points
 from gscan.geometry.plane import Plane, ransac_plane
-from gscan.scan.segment import estimate_working_volume, fit_support_plane, segment_frame, segment_sequence, WorkingVolume
-from gscan.synth import (DEFAULT_INTRINSICS, DepthNoise, SynthScene, box_mesh, orbit_poses, procedural_box_texture,
-                         rest_on_table)
+from gscan.geometry.transforms import inv_T, make_T, rotvec_to_R, transform_points
+from gscan.io.camera import RGBDFrame
+from gscan.scan.segment import (
+    WorkingVolume,
+    estimate_working_volume,
+    fit_support_plane,
+    segment_frame,
+    segment_sequence,
+)
+from gscan.synth import (
+    DEFAULT_INTRINSICS,
+    DepthNoise,
+    SynthScene,
+    box_mesh,
+    orbit_poses,
+    procedural_box_texture,
+    rest_on_table,
+)
 
 INTR = DEFAULT_INTRINSICS.scaled(0.5)  # 320 x 240 keeps the test fast
 # the synth's discontinuity test looks at 3x3 pixels: at half resolution the depth step across an

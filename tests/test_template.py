@@ -17,11 +17,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from gscan.io.camera import Intrinsics, RGBDFrame
 from gscan.errors import InputError
-from gscan.geometry.transforms import make_T, rotvec_to_R
 from gscan.features import Features
 from gscan.geometry.mesh import MeshData
+from gscan.geometry.transforms import make_T, rotvec_to_R
+from gscan.io.camera import Intrinsics, RGBDFrame
 from gscan.template.db import SCHEMA_VERSION, Edge, TemplateDB, View, open_template
 
 K = Intrinsics(520.0, 515.0, 31.5, 23.5, 64, 48)
@@ -429,9 +429,8 @@ def test_impossible_stored_value_is_input_error(tmp_path: Path, case: str) -> No
     with sqlite3.connect(path) as c:
         c.execute(f"UPDATE {table} SET {column} = ?", (_encoded(v) if isinstance(v, np.ndarray) else v,))
     c.close()
-    with TemplateDB.open(path) as db:
-        with pytest.raises(InputError, match="corrupt template database") as ei:
-            read(db)
+    with TemplateDB.open(path) as db, pytest.raises(InputError, match="corrupt template database") as ei:
+        read(db)
     assert "obj.gscan" in str(ei.value) and words in str(ei.value)
 
 

@@ -18,7 +18,7 @@ from gscan.geometry.transforms import inv_T, pose_error
 
 INTR = synth.DEFAULT_INTRINSICS.scaled(0.5)  # 320 x 240
 N_VIEWS = 8  # 45 degree steps on one ring
-NAMES = [f"vue été {k:02d} – 視点" for k in range(N_VIEWS)]  # frame stems: spaces, accents, dash, CJK
+NAMES = [f"vue été {k:02d} – 視点" for k in range(N_VIEWS)]  # noqa: RUF001 - frame stems: spaces, accents, dash, CJK
 TIMEOUT_S = 300
 
 

@@ -6,6 +6,7 @@ scan pipeline produces one. Browser tests use Debian's /usr/bin/chromium through
 from __future__ import annotations
 
 import importlib.util
+import itertools
 import json
 import os
 import shutil
@@ -20,12 +21,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from gscan.io.camera import RGBDFrame
+from gscan.demo import SAMPLES
 from gscan.errors import InputError
 from gscan.geometry.transforms import look_at
+from gscan.io.camera import RGBDFrame
 from gscan.template.db import TemplateDB
 from gscan.viewer.app import PortInUseError, check_port, serve
-from gscan.demo import SAMPLES
 from gscan.viewer.draw import draw_matches, edge_color, quality_color, scale_pixels, thumbnail
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -190,7 +191,7 @@ def test_thumbnail_and_pixel_mapping(h, w, side):
 
 def test_colour_scales_and_match_drawing():
     g_minus_r = [quality_color(q)[1] - quality_color(q)[0] for q in np.linspace(1, 0, 11)]
-    assert all(a > b for a, b in zip(g_minus_r, g_minus_r[1:]))  # greener is better
+    assert all(a > b for a, b in itertools.pairwise(g_minus_r))  # greener is better
     assert quality_color(None) == quality_color(float("nan"))
     from gscan.template.db import Edge
 

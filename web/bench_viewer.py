@@ -24,8 +24,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-import viewer_probe as vp  # noqa: E402
-from synth_template import build_synth_template  # noqa: E402
+import viewer_probe as vp
+from synth_template import build_synth_template
 
 
 def main() -> None:

@@ -12,12 +12,19 @@ from pathlib import Path
 
 import numpy as np
 
-from gscan.io.camera import RGBDFrame, point_cloud
 from gscan.features import FeatureParams, Features, descriptor_distances, extract_features
 from gscan.geometry.mesh import MeshData
 from gscan.geometry.transforms import inv_T, transform_points
-from gscan.synth import DEFAULT_INTRINSICS, SynthScene, box_mesh, default_distance, orbit_poses, \
-    procedural_box_texture, rest_on_table
+from gscan.io.camera import RGBDFrame, point_cloud
+from gscan.synth import (
+    DEFAULT_INTRINSICS,
+    SynthScene,
+    box_mesh,
+    default_distance,
+    orbit_poses,
+    procedural_box_texture,
+    rest_on_table,
+)
 from gscan.template.db import Edge, TemplateDB, View
 
 BOX_SIZE = (0.16, 0.10, 0.07)  # m

@@ -40,11 +40,10 @@ def start_viewer(db: Path, port: int, extra: list[str] | None = None, timeout: f
     The caller must stop it (stop_viewer) in a finally.
     """
     log_path = log_path or Path(db).with_suffix(".viewer.log")
-    logf = open(log_path, "w")
     t0 = time.perf_counter()
-    proc = subprocess.Popen([sys.executable, "-m", "gscan.cli", "view", str(db), "--port", str(port), *(extra or [])],
-                            stdout=subprocess.DEVNULL, stderr=logf, start_new_session=True)
-    logf.close()
+    with open(log_path, "w") as logf:  # the child holds its own copy of the descriptor
+        proc = subprocess.Popen([sys.executable, "-m", "gscan.cli", "view", str(db), "--port", str(port),
+                                 *(extra or [])], stdout=subprocess.DEVNULL, stderr=logf, start_new_session=True)
     while time.perf_counter() - t0 < timeout:
         text = log_path.read_text()
         if READY_LINE in text:

@@ -12,8 +12,8 @@ from collections import deque
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
-if TYPE_CHECKING:  # typing.Self is Python 3.11's; annotations are not evaluated at run time
-    from typing import Self
+if TYPE_CHECKING:
+    from typing_extensions import Self  # typing.Self from Python 3.11
 
 from gscan.batch.driver import BatchState
 

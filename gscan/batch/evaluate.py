@@ -90,8 +90,13 @@ class PairRow:
 
     def csv_row(self) -> list[Any]:
         m = self.metrics
-        blank = (lambda x: "" if x is None else x)
-        num = (lambda k: f"{m[k]:.2f}" if k in m else "")
+
+        def blank(x: Any) -> Any:
+            return "" if x is None else x
+
+        def num(k: str) -> str:
+            return f"{m[k]:.2f}" if k in m else ""
+
         return [self.name, self.obj_id, self.status, blank(self.images), blank(self.found), blank(self.gt_images),
                 blank(self.wrong_accepted), *(num(k) for k in AR_KEYS), num("AUC ADD"), num("AUC ADD-S"),
                 num("mean time ms"), f"{self.seconds:.2f}",

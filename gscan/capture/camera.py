@@ -27,8 +27,8 @@ import cv2
 import numpy as np
 
 from gscan.errors import InputError
-from gscan.io.camera import Intrinsics
 from gscan.io.align import align_depth_to_color
+from gscan.io.camera import Intrinsics
 from gscan.io.recordings.streams import is_identity, same_intrinsics
 
 log = logging.getLogger(__name__)
@@ -107,7 +107,7 @@ class RealSenseCamera:
         elif len(_rs().context().query_devices()) == 0:
             raise InputError(None, "no RealSense camera connected (--from REC.bag plays a recording instead)")
 
-    def __enter__(self) -> RealSenseCamera:  # noqa: PYI034
+    def __enter__(self) -> RealSenseCamera:
         rs = _rs()
         o = self.options
         self.check()

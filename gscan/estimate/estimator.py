@@ -73,8 +73,8 @@ from gscan.features import (
     extract_features,
     extract_features_in_mask,
 )
-from gscan.geometry.pointset import coincident_groups, pca_normals, voxel_down_indices, voxel_mean
 from gscan.geometry.kabsch import kabsch_trimmed
+from gscan.geometry.pointset import coincident_groups, pca_normals, voxel_down_indices, voxel_mean
 from gscan.geometry.transforms import inv_T, transform_points
 from gscan.io.camera import RGBDFrame
 from gscan.matching.gmatch import GMatchParams, default_eps_f, gmatch
@@ -102,7 +102,7 @@ class EstimateParams:
     support_dist: float | None = None  # descriptor distance at which a supporting keypoint agrees (None: eps_f)
     support_radius: float = 0.006  # m, query keypoint to template keypoint at the pose (grows 1 % of depth > 0.5 m)
     support_views_deg: float = 90.0  # template views within this angle of the query direction offer keypoints
-    trim_tau: float = 0.008  # m, the match list's pose drops pairs off by more (gscan.geometry.transforms.kabsch_trimmed)
+    trim_tau: float = 0.008  # m, the match list's pose drops pairs off by more (geometry.transforms.kabsch_trimmed)
     icp_max_dist: float = 0.005  # m, ICP correspondence distance
     icp_voxel: float = 0.003  # m, template cloud downsampling (ICP source, score)
     icp_target_voxel: float = 0.004  # m, query cloud voxel averaging (ICP target)
@@ -224,7 +224,8 @@ class Estimator:
         self.nb_groups: list[tuple[np.ndarray, np.ndarray]] = []
         for v in range(V):
             order = [u for u in np.lexsort((np.arange(V), -cos[v])) if u != v]
-            nb = [v] + [int(u) for u in order if cos[v, u] >= np.cos(np.radians(p.joint_deg))][: max(0, p.joint_views - 1)]
+            near = [int(u) for u in order if cos[v, u] >= np.cos(np.radians(p.joint_deg))]
+            nb = [v] + near[: max(0, p.joint_views - 1)]
             idx = np.concatenate([np.arange(self.offsets[u], self.offsets[u + 1]) for u in nb]).astype(np.int64)
             self.neighbours.append(np.asarray(nb, np.int64))
             self.nb_idx.append(idx)
@@ -282,13 +283,14 @@ class Estimator:
     def estimate_query(self, q: QueryFrame, refine: bool = True, t_all: float | None = None) -> EstimateResult:
         """`estimate` on a prepared frame (`prepare`), BLAS threads as they are."""
         t_all = time.perf_counter() if t_all is None else t_all
-        tm: dict[str, float] = {k: 0.0 for k in STAGES}
+        tm: dict[str, float] = dict.fromkeys(STAGES, 0.0)
         use_pnp = q.depth_frac < self.params.min_depth_frac
         t = time.perf_counter()
         feats = self._features(q.frame, q.search, lift=not use_pnp)
         tm["features"] = ms_since(t)
         if len(feats) < 3:
-            res = self._fail(tm, t_all, "too few keypoints in the query frame" + (" mask" if q.mask is not None else ""))
+            where = "the query frame" + (" mask" if q.mask is not None else "")
+            res = self._fail(tm, t_all, f"too few keypoints in {where}")
         else:
             t = time.perf_counter()
             S, votes = self._retrieve(feats.descriptors)
@@ -657,7 +659,7 @@ def region_boxes(mask: np.ndarray, margin: int, min_px: int, max_fill: float = 0
             if merged:
                 break
     if len(boxes) <= 1:
-        return [tuple(b) for b in boxes]  # type: ignore[misc]
+        return [tuple(b) for b in boxes]
     ys, xs = np.nonzero(mask)
     union = (xs.max() - xs.min() + 1 + 2 * margin) * (ys.max() - ys.min() + 1 + 2 * margin)
     if sum((b[2] - b[0]) * (b[3] - b[1]) for b in boxes) > max_fill * union:

@@ -25,6 +25,7 @@ from gscan.estimate.verify import depth_votes
 from gscan.features import Features
 from gscan.io.camera import RGBDFrame
 
+
 class Estimator(Protocol):
     """What the fallback uses of `gscan.estimate.estimator.Estimator` (which calls it: the estimator imports
     this module, not the other way round)."""
@@ -68,7 +69,7 @@ def pnp_without_depth(est: Estimator, q: QueryFrame, failed: EstimateResult, tm:
     t = time.perf_counter()
     feats = est._features(frame, holes, lift=False)
     tm["features"] += ms_since(t)
-    pnp_tm = {key: 0.0 for key in STAGES}
+    pnp_tm = dict.fromkeys(STAGES, 0.0)
     if len(feats) >= 3:
         t = time.perf_counter()
         S, votes = est._retrieve(feats.descriptors)

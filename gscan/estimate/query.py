@@ -10,8 +10,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from gscan.errors import InputError
-from gscan.io.camera import RGBDFrame, pixel_rays
 from gscan.geometry.plane import Plane, dominant_plane
+from gscan.io.camera import RGBDFrame, pixel_rays
 
 
 @dataclass

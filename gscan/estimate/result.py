@@ -32,7 +32,8 @@ class EstimateResult:
         return self.T_cam_obj is not None
 
     def to_json(self) -> dict:
-        """The `gscan estimate --json` object (the command-line contract's keys, plus "method"); matrices as nested lists, metres."""
+        """The `gscan estimate --json` object (the command-line contract's keys, plus "method"); matrices as nested
+        lists, metres."""
         return {"T_cam_obj": matrix_json(self.T_cam_obj), "score": float(self.score), "n_matches": int(self.n_matches),
                 "view": self.view, "reason": self.reason, "grasps": {k: matrix_json(v) for k, v in self.grasps.items()},
                 "timings_ms": {k: float(self.timings_ms.get(k, 0.0)) for k in STAGES}, "method": self.method}

@@ -40,8 +40,8 @@ from gscan.estimate.query import QueryFrame
 from gscan.estimate.result import STAGES, EstimateResult, ms_since
 from gscan.estimate.verify import Evidence, accept, depth_votes, list_spread, visible
 from gscan.features import descriptor_distances, extract_features_in_mask
-from gscan.geometry.pointset import coincident_groups
 from gscan.geometry.kabsch import kabsch_trimmed
+from gscan.geometry.pointset import coincident_groups
 from gscan.geometry.transforms import inv_T, transform_points
 from gscan.io.camera import RGBDFrame
 
@@ -143,7 +143,7 @@ class Tracker:
         """ICP from the prediction and the depth rules alone; None when ICP had to move the prediction far (the
         keypoints decide then) or the depth does not agree."""
         t_all = time.perf_counter()
-        tm = {k: 0.0 for k in STAGES}
+        tm = dict.fromkeys(STAGES, 0.0)
         q = QueryFrame(frame, mask, 1.0)
         T = est.refine(q, T_pred, None, None, p.icp_max_dists, p.icp_max_points)
         dR = T[:3, :3] @ T_pred[:3, :3].T
@@ -162,7 +162,7 @@ class Tracker:
     def _with_keypoints(self, frame: RGBDFrame, mask: np.ndarray | None, T_pred: np.ndarray, est: Estimator,
                         p: TrackParams) -> EstimateResult | None:
         t_all = time.perf_counter()
-        tm = {k: 0.0 for k in STAGES}
+        tm = dict.fromkeys(STAGES, 0.0)
         intr = frame.intrinsics
         t = time.perf_counter()
         _, _, uv = visible(T_pred, intr, est.cloud_icp)

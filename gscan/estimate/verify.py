@@ -23,9 +23,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from gscan.geometry.plane import Plane
 from gscan.geometry.transforms import transform_points
 from gscan.io.camera import Intrinsics
-from gscan.geometry.plane import Plane
 
 
 @dataclass
@@ -60,7 +60,7 @@ class Evidence:
 @dataclass(frozen=True)
 class AcceptParams:
     min_score: float = 0.6  # depth-consistency score below this -> not found
-    min_confirmed: float = 0.15  # fraction of the visible template surface confirmed by the depth below this -> not found
+    min_confirmed: float = 0.15  # share of the visible template surface the depth confirms below this -> not found
     strong_matches: int = 14  # the best-supported list, this long (and as many inliers), is evidence enough ...
     strong_min_ratio: float = 0.1  # ... when at least this fraction of the keypoints there agree with the template
     min_matches: int = 5  # lists with fewer inliers are never accepted
@@ -196,7 +196,8 @@ def keypoint_support(T_cam_obj: np.ndarray, kp_points: np.ndarray, kp_idx: np.nd
 
     kp_points [N x 3]: object-frame points of every template keypoint; kp_idx [K]: those of the views near the
     query direction; sim [M x C]: descriptor similarity of the M query keypoints to template keypoints (cosine
-    of unit descriptors, or the negated distance), sim_cols [K] the column of each of kp_idx; q_points [M x 3]: camera-frame query keypoints;
+    of unit descriptors, or the negated distance), sim_cols [K] the column of each of kp_idx; q_points [M x 3]:
+    camera-frame query keypoints;
     q_location [M]: a location id per query keypoint (keypoints of one point with several orientations share
     it); surface_obj [P x 3]: the template cloud; radius: keypoint match distance (m)."""
     from scipy.spatial import cKDTree

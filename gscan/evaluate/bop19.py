@@ -36,6 +36,7 @@ import logging
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -77,7 +78,9 @@ class EvalRow:
     vsd: list[float] | None = None  # one error per BOP19 tau (metrics.VSD_TAU_FRACTIONS); None without a mesh
 
     def to_json(self) -> dict:
-        f = (lambda x: None if not np.isfinite(x) else float(x))
+        def f(x: float) -> float | None:
+            return None if not np.isfinite(x) else float(x)
+
         return {"scene_id": self.scene_id, "im_id": self.im_id, "found": self.found, "score": float(self.score),
                 "time_s": float(self.time_s), "add_m": f(self.add), "adds_m": f(self.adds), "mssd_m": f(self.mssd),
                 "mspd_px": f(self.mspd), "vsd": None if self.vsd is None else [f(x) for x in self.vsd],
@@ -143,7 +146,7 @@ def load_model(model_path: Path | None, template: Path, estimator: Estimator) ->
     if not model_path.is_file():
         raise not_a_file(model_path, "model file")
     try:
-        m = trimesh.load(str(model_path), force="mesh", process=False)
+        m: Any = trimesh.load(str(model_path), force="mesh", process=False)  # a Trimesh, or a PointCloud, ...
         pts = np.asarray(m.vertices, dtype=np.float64)
         tris = np.asarray(m.faces, dtype=np.int64) if hasattr(m, "faces") else np.zeros((0, 3), np.int64)
     except Exception as e:  # noqa: BLE001 - trimesh raises many types on malformed files
@@ -334,7 +337,7 @@ def evaluate(template: str | Path, scenes: str | Path, output_csv: str | Path, o
             row = EvalRow(scene_id, im_id, res.found, res.score, dt, T_est, reason=res.reason)
             T_gt = gt.get(name)
             if T_gt is not None:
-                if res.found:
+                if T_est is not None:  # found
                     row.add = add_err(pts, T_est, T_gt)
                     row.adds = adds_err(pts, T_est, T_gt)
                     row.mssd = mssd(pts, T_est, T_gt)
@@ -349,7 +352,7 @@ def evaluate(template: str | Path, scenes: str | Path, output_csv: str | Path, o
                 else:
                     row.add = row.adds = row.mssd = row.mspd = float("inf")
                     row.vsd = None if caster is None else [float("inf")] * len(taus)
-            if res.found:
+            if T_est is not None:  # found
                 lines.append(_csv_row(scene_id, im_id, obj_id, res.score, T_est, dt))
             rows.append(row)
             log.info("scene %d image %d: %s", scene_id, im_id, "found" if res.found else f"not found ({res.reason})")
@@ -373,8 +376,9 @@ def _metrics(rows: list[EvalRow], diameter: float, width: int) -> dict[str, floa
     if g:
         m["AUC ADD"] = auc([r.add for r in g])
         m["AUC ADD-S"] = auc([r.adds for r in g])
-        if all(r.vsd is not None for r in g):
-            m["AR VSD"] = 100.0 * ar_vsd([r.vsd for r in g])
+        vsds = [r.vsd for r in g if r.vsd is not None]
+        if len(vsds) == len(g):
+            m["AR VSD"] = 100.0 * ar_vsd(vsds)
         m["AR MSSD"] = 100.0 * ar_mssd([r.mssd for r in g], diameter)
         m["AR MSPD"] = 100.0 * ar_mspd([r.mspd for r in g], width)
         if "AR VSD" in m:  # BOP19's AR: the mean of the three average recalls

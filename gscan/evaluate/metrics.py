@@ -17,15 +17,16 @@ References:
 """
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
 
-from gscan.io.camera import Intrinsics
 from gscan.geometry.kabsch import umeyama
 from gscan.geometry.transforms import inv_T, rotation_angle_deg, transform_points
+from gscan.io.camera import Intrinsics
 
 #: BOP MSSD thresholds, as fractions of the object diameter: 0.05, 0.10, ..., 0.50.
 MSSD_THRESHOLD_FRACTIONS = np.round(np.arange(0.05, 0.51, 0.05), 10)
@@ -353,10 +354,8 @@ def diameter(points: np.ndarray) -> float:
     if len(p) > 4:
         from scipy.spatial import ConvexHull, QhullError
 
-        try:
+        with contextlib.suppress(QhullError, ValueError):  # flat or degenerate: every point is a candidate
             p = p[ConvexHull(p).vertices]
-        except (QhullError, ValueError):  # flat or degenerate: every point is a candidate
-            pass
     best = 0.0
     for i in range(0, len(p), 512):
         d2 = ((p[i:i + 512, None, :] - p[None, :, :]) ** 2).sum(-1)

@@ -22,9 +22,9 @@ from __future__ import annotations
 
 import logging
 import os
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 from gscan.errors import InputError
 from gscan.io.output import Output

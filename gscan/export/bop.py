@@ -39,11 +39,11 @@ from pathlib import Path
 import numpy as np
 
 from gscan.errors import InputError
+from gscan.evaluate.metrics import diameter
 from gscan.export.common import MeshRaycaster, bbox_xywh, imwrite, posed_views, template_mesh
 from gscan.geometry.transforms import inv_T
-from gscan.evaluate.metrics import diameter
-from gscan.template.db import MeshData, TemplateDB
 from gscan.template.codec import depth_to_mm_u16
+from gscan.template.db import MeshData, TemplateDB
 
 log = logging.getLogger(__name__)
 
@@ -119,9 +119,10 @@ def write_bop(db: TemplateDB, out: Path, close: bool = True) -> int:
     caster = MeshRaycaster(mesh) if mesh is not None else None
     scene_camera, scene_gt, scene_gt_info, names = {}, {}, {}, {}
     for im_id, v in enumerate(views):
+        assert v.T_obj_cam is not None and v.color is not None and v.depth is not None  # posed_views
         T_cam_obj = inv_T(v.T_obj_cam)
         depth_mm = depth_to_mm_u16(v.depth)
-        if mesh is not None:
+        if caster is not None:  # the mesh
             ren_mm = caster.depth(v.intrinsics, v.T_obj_cam).astype(np.float64) * 1000.0
             mask_all = ren_mm > 0
             meas = depth_mm.astype(np.float64)
@@ -129,6 +130,7 @@ def write_bop(db: TemplateDB, out: Path, close: bool = True) -> int:
             if v.mask is not None:
                 visib &= v.mask
         else:
+            assert v.mask is not None  # without a mesh only views with a mask are exported
             mask_all = visib = v.mask
         key = str(im_id)
         stem = f"{im_id:06d}"

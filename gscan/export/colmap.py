@@ -64,6 +64,7 @@ def build_reconstruction(db: TemplateDB, images_dir: Path) -> pycolmap.Reconstru
     cam_ids: dict = {}
     feats, offsets, colors = [], [0], []
     for img_id, v in enumerate(views, start=1):
+        assert v.T_obj_cam is not None and v.color is not None  # posed_views
         k = v.intrinsics
         if k not in cam_ids:
             cam_ids[k] = len(cam_ids) + 1

@@ -33,8 +33,8 @@ import yaml
 
 from gscan.errors import InputError
 from gscan.export.common import MeshRaycaster, imwrite, posed_views, template_mesh
-from gscan.template.db import TemplateDB
 from gscan.template.codec import depth_to_mm_u16
+from gscan.template.db import TemplateDB
 
 log = logging.getLogger(__name__)
 
@@ -66,7 +66,12 @@ def write_foundationpose(db: TemplateDB, out: Path, close: bool = True) -> int:
         (ob / sub).mkdir(parents=True)
     for i, v in enumerate(kept):
         stem = f"{i:07d}"
-        mask = v.mask if v.mask is not None else caster.depth(v.intrinsics, v.T_obj_cam) > 0
+        assert v.T_obj_cam is not None and v.color is not None and v.depth is not None  # posed_views
+        if v.mask is not None:
+            mask = v.mask
+        else:
+            assert caster is not None  # a view is kept with a mask, or with the mesh to render one
+            mask = caster.depth(v.intrinsics, v.T_obj_cam) > 0
         imwrite(ob / "rgb" / f"{stem}.png", v.color, rgb=True)
         imwrite(ob / "depth_enhanced" / f"{stem}.png", depth_to_mm_u16(v.depth))
         imwrite(ob / "mask" / f"{stem}.png", np.where(mask, 255, 0).astype(np.uint8))
@@ -75,8 +80,9 @@ def write_foundationpose(db: TemplateDB, out: Path, close: bool = True) -> int:
     (ob / "select_frames.yml").write_text(yaml.safe_dump([v.name for v in kept], allow_unicode=True),
                                           encoding="utf-8")
     if mesh is not None:
-        from gscan.export.mesh import to_trimesh
         import trimesh
+
+        from gscan.export.mesh import to_trimesh
 
         (ob / "model").mkdir()
         text = trimesh.exchange.obj.export_obj(to_trimesh(mesh), include_color=True, include_normals=True,

@@ -7,8 +7,8 @@ import numpy as np
 import trimesh
 
 from gscan.errors import InputError
-from gscan.geometry.meshfill import boundary_edges, non_manifold_edges
 from gscan.export.common import require_mesh
+from gscan.geometry.meshfill import boundary_edges, non_manifold_edges
 from gscan.template.db import MeshData, TemplateDB
 
 
@@ -26,8 +26,9 @@ def write_mesh(db: TemplateDB, path: Path, fmt: str, close: bool = True) -> tupl
     """Write the mesh as `fmt` ("ply" | "obj" | "glb") to the file `path`, with its holes closed (`close`,
     see `template_mesh`). A template without a mesh but with a point cloud exports the cloud as PLY;
     OBJ/GLB need a mesh. Returns (0 views, what the file holds)."""
-    if fmt == "ply" and db.mesh() is None and db.cloud() is not None:
-        pts, cols = db.cloud()
+    cloud = db.cloud() if fmt == "ply" and db.mesh() is None else None
+    if cloud is not None:
+        pts, cols = cloud
         pc = trimesh.PointCloud(np.asarray(pts, dtype=np.float64), colors=cols)
         path.write_bytes(pc.export(file_type="ply"))
         return 0, f"point cloud of {len(pts)} points (the template has no mesh)"

@@ -15,8 +15,19 @@ from gscan.geometry.kabsch import kabsch, kabsch_trimmed, leave_one_out_residual
 from gscan.geometry.mesh import MeshData, to_u8_colors
 from gscan.geometry.plane import Plane, ransac_plane
 from gscan.geometry.pointset import coincident_groups, pca_normals, voxel_down_indices, voxel_mean
-from gscan.geometry.transforms import (MAX_TRANSLATION_M, RIGID_ATOL, inv_T, is_rigid, look_at, make_T, mean_pose,
-                                       pose_error, rotation_angle_deg, rotvec_to_R, transform_points)
+from gscan.geometry.transforms import (
+                                       MAX_TRANSLATION_M,
+                                       RIGID_ATOL,
+                                       inv_T,
+                                       is_rigid,
+                                       look_at,
+                                       make_T,
+                                       mean_pose,
+                                       pose_error,
+                                       rotation_angle_deg,
+                                       rotvec_to_R,
+                                       transform_points,
+)
 
 __all__ = [
     "MAX_TRANSLATION_M", "RIGID_ATOL", "ICPResult", "MeshData", "Plane", "coincident_groups", "icp",

@@ -38,6 +38,7 @@ def icp(src_pts: np.ndarray, tgt_pts: np.ndarray, T_init: np.ndarray, max_dist: 
     if len(src.points) < 10 or len(tgt.points) < 10:
         return ICPResult(np.asarray(T_init, dtype=float).copy(), 0.0, float("inf"))
     radius = 3 * (voxel if voxel > 0 else max_dist)
+    est: o3d.pipelines.registration.TransformationEstimation
     if point_to_plane:
         tgt.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=30))
         est = o3d.pipelines.registration.TransformationEstimationPointToPlane()

@@ -87,20 +87,20 @@ def kabsch_trimmed(src: np.ndarray, dst: np.ndarray, tau: float | np.ndarray, mi
     src = np.asarray(src, dtype=np.float64)
     dst = np.asarray(dst, dtype=np.float64)
     n = len(src)
-    tau = np.broadcast_to(np.asarray(tau, dtype=np.float64), (n,)).copy()
+    taus = np.broadcast_to(np.asarray(tau, dtype=np.float64), (n,)).copy()  # [N]
     keep = np.ones(n, bool)
     T = kabsch(src, dst)
-    if n > 3 and (np.linalg.norm(transform_points(T, src) - dst, axis=1) > tau).any():  # 2. consensus
+    if n > 3 and (np.linalg.norm(transform_points(T, src) - dst, axis=1) > taus).any():  # 2. consensus
         from gscan.geometry.consensus_kernel import best_triple  # numba, on first use
 
         i, j, k, T_tri = best_triple(np.ascontiguousarray(src), np.ascontiguousarray(dst),
-                                     min(n, CONSENSUS_MAX_PAIRS), tau, float(min_sin))
+                                     min(n, CONSENSUS_MAX_PAIRS), taus, float(min_sin))
         if i >= 0:
-            keep = np.linalg.norm(transform_points(T_tri, src) - dst, axis=1) < tau
+            keep = np.linalg.norm(transform_points(T_tri, src) - dst, axis=1) < taus
             keep[[i, j, k]] = True
             for _ in range(3):
                 T = kabsch(src[keep], dst[keep])
-                again = np.linalg.norm(transform_points(T, src) - dst, axis=1) < tau
+                again = np.linalg.norm(transform_points(T, src) - dst, axis=1) < taus
                 if again.sum() < 3 or (again == keep).all():
                     break  # T is the selection's pose
                 keep = again
@@ -109,7 +109,7 @@ def kabsch_trimmed(src: np.ndarray, dst: np.ndarray, tau: float | np.ndarray, mi
     floor = max(3, (n + 1) // 2)
     while keep.sum() >= 5 and keep.sum() - 1 >= floor:  # 3. leave-one-out residuals
         idx = np.flatnonzero(keep)
-        r = leave_one_out_residuals(src[idx], dst[idx]) / tau[idx]
+        r = leave_one_out_residuals(src[idx], dst[idx]) / taus[idx]
         worst = int(np.argmax(r))
         if r[worst] <= 1.0:
             break

@@ -4,12 +4,19 @@ the exporters and the viewer share, and the colour convention of meshes and clou
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import overload
 
 import numpy as np
 
 from gscan.geometry.transforms import transform_points
 
 
+@overload
+def to_u8_colors(c: np.ndarray) -> np.ndarray: ...
+@overload
+def to_u8_colors(c: None) -> None: ...
+@overload
+def to_u8_colors(c: np.ndarray | None) -> np.ndarray | None: ...
 def to_u8_colors(c: np.ndarray | None) -> np.ndarray | None:
     """[N x 3|4] colours, uint8 or float in [0, 1] -> [N x 3] uint8."""
     if c is None:

@@ -57,7 +57,7 @@ def ransac_plane(S: np.ndarray, iterations: int, rng: np.random.Generator, dist:
         if len(counts) and counts.max() > max(best_count, 0):  # a score of 0 (disqualified) never wins
             k = int(np.argmax(counts))
             best_count, best, best_inl = int(counts[k]), Plane(nrm[k], float(off[k])), inl[:, k]
-    return None if best is None else (best, best_inl)
+    return None if best is None or best_inl is None else (best, best_inl)
 
 
 def dominant_plane(cloud: np.ndarray, min_frac: float, iterations: int, stride: int = 6) -> Plane | None:

@@ -10,12 +10,18 @@ class PinholeCamera(Protocol):
     """What a ray-cast needs of a camera (`gscan.io.camera.Intrinsics` has it): pixels, focal lengths and the
     principal point (pixel centres at integer coordinates)."""
 
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    width: int
-    height: int
+    @property
+    def fx(self) -> float: ...
+    @property
+    def fy(self) -> float: ...
+    @property
+    def cx(self) -> float: ...
+    @property
+    def cy(self) -> float: ...
+    @property
+    def width(self) -> int: ...
+    @property
+    def height(self) -> int: ...
 
 
 class MeshRaycaster:

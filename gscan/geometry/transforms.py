@@ -79,7 +79,8 @@ def pose_error(T_est: np.ndarray, T_gt: np.ndarray) -> tuple[float, float]:
     return rotation_angle_deg(dR), float(np.linalg.norm(T_est[:3, 3] - T_gt[:3, 3]))
 
 
-def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0, 0.0, 1.0])) -> np.ndarray:
+def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray | tuple[float, float, float] = (0.0, 0.0, 1.0)
+            ) -> np.ndarray:
     """T_world_cam of an OpenCV camera at `eye` looking at `target` (x right, y down, z forward)."""
     eye, target, up = (np.asarray(a, dtype=float) for a in (eye, target, up))
     z = target - eye

@@ -25,7 +25,8 @@ from numba import njit
 from gscan.io.camera import Intrinsics
 
 MARGIN_PX = 0.25  # growth of each projected footprint (colour pixels); < 0.5 keeps the identity mapping 1:1
-MAX_FOOTPRINT_PX = 64  # a depth pixel spanning more colour pixels (a point almost in the colour camera's plane) is dropped
+# a depth pixel spanning more colour pixels (a point almost in the colour camera's plane) is dropped
+MAX_FOOTPRINT_PX = 64
 _CORNERS = ((-0.5, -0.5), (0.5, -0.5), (-0.5, 0.5), (0.5, 0.5))
 
 

@@ -44,11 +44,11 @@ class Intrinsics:
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
 
     @classmethod
-    def from_matrix(cls, K: np.ndarray, width: int, height: int) -> "Intrinsics":
+    def from_matrix(cls, K: np.ndarray, width: int, height: int) -> Intrinsics:
         K = np.asarray(K, dtype=float).reshape(3, 3)
         return cls(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), int(width), int(height))
 
-    def scaled(self, s: float) -> "Intrinsics":
+    def scaled(self, s: float) -> Intrinsics:
         """Intrinsics of the image resized by factor `s` (pixel-centre convention)."""
         return Intrinsics(self.fx * s, self.fy * s, (self.cx + 0.5) * s - 0.5, (self.cy + 0.5) * s - 0.5,
                           max(1, round(self.width * s)), max(1, round(self.height * s)))
@@ -57,7 +57,7 @@ class Intrinsics:
         return {"fx": self.fx, "fy": self.fy, "cx": self.cx, "cy": self.cy, "width": self.width, "height": self.height}
 
     @classmethod
-    def from_dict(cls, d: dict) -> "Intrinsics":
+    def from_dict(cls, d: dict) -> Intrinsics:
         return cls(float(d["fx"]), float(d["fy"]), float(d["cx"]), float(d["cy"]), int(d["width"]), int(d["height"]))
 
 
@@ -110,12 +110,13 @@ def load_intrinsics(path: str | Path, width: int | None = None, height: int | No
             raise _bad(path, f"malformed intrinsics JSON: {e.__class__.__name__}: {e}"[:300]) from None
     else:
         try:
-            K = np.array([[float(x) for x in line.replace(",", " ").split()] for line in text.splitlines() if line.strip()])
+            K = np.array([[float(x) for x in line.replace(",", " ").split()]
+                          for line in text.splitlines() if line.strip()])
             K = K.reshape(3, 3)
         except ValueError:
             raise _bad(path, "malformed cam_K.txt: expected a 3x3 matrix of numbers") from None
         w, h = int(width or 0), int(height or 0)
-    if width and w and width != w or height and h and height != h:
+    if (width and w and width != w) or (height and h and height != h):
         raise _bad(path, f"intrinsics are for {w}x{h} images but the images are {width}x{height}")
     if not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0 or K[0, 2] < 0 or K[1, 2] < 0:
         raise _bad(path, f"invalid intrinsics values fx={K[0, 0]} fy={K[1, 1]} cx={K[0, 2]} cy={K[1, 2]}")
@@ -161,7 +162,8 @@ class RGBDFrame:
     def __post_init__(self) -> None:
         h, w = self.depth.shape[:2]
         if self.color.shape[:2] != (h, w):
-            raise InputError(self.source, f"colour {self.color.shape[1]}x{self.color.shape[0]} and depth {w}x{h} sizes differ")
+            raise InputError(self.source, f"colour {self.color.shape[1]}x{self.color.shape[0]} and depth {w}x{h} "
+                             "sizes differ")
         if (self.intrinsics.width, self.intrinsics.height) != (w, h):
             raise InputError(self.source, f"intrinsics are for {self.intrinsics.width}x{self.intrinsics.height} "
                              f"but the frame is {w}x{h}")

@@ -17,8 +17,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from gscan.io.camera import DepthCamera, Intrinsics, RGBDFrame, load_intrinsics
 from gscan.errors import InputError, not_a_file
+from gscan.io.camera import DepthCamera, Intrinsics, RGBDFrame, load_intrinsics
 from gscan.io.layouts import frame_name
 from gscan.io.poses import read_pose_file, read_pose_txt
 
@@ -374,7 +374,7 @@ def read_ycbv_meta(path: str | Path) -> YcbvMeta:
         factor = float(np.asarray(m["factor_depth"]).ravel()[0])
         cls = np.asarray(m["cls_indexes"]).ravel().astype(int)
         P = np.asarray(m["poses"], dtype=np.float64)
-    except Exception as e:  # loadmat raises many types on garbage (MatReadError, ValueError, zlib.error...)
+    except Exception as e:  # noqa: BLE001 - loadmat raises many types on garbage (MatReadError, ValueError, ...)
         raise InputError(path, f"not a YCB-Video meta file ({e.__class__.__name__}: {e})") from None
     if P.ndim == 2:
         P = P[:, :, None]

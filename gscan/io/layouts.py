@@ -33,7 +33,7 @@ class FrameSpec:
 
     name: str
     color: Path
-    depth: Path | None
+    depth: Path
     mask: Path | None = None
     K: np.ndarray | None = None          # [3 x 3] per-frame calibration (BOP), size taken from the image
     depth_scale: float | None = None     # metres per raw unit, per frame (BOP)
@@ -232,8 +232,10 @@ def discover_tum(root: Path) -> Layout:
     t_rgb = np.array([t for t, _ in rgb_list])
     t_dep = np.array([t for t, _ in depth_list])
     pairs = associate(t_rgb, t_dep)
-    frames, problems, seen = [], {}, {}
-    for i, (t, vals) in enumerate(rgb_list):
+    frames: list[FrameSpec] = []
+    problems: dict[str, str] = {}
+    seen: dict[str, str] = {}
+    for i, (_t, vals) in enumerate(rgb_list):
         c = root / vals[0]
         name = frame_name(vals[0])
         if name in seen:
@@ -296,14 +298,15 @@ def discover_bop(root: Path, obj_id: int | None = None) -> Layout:
     scene_gt = _read_json(gt_path) if gt_path.is_file() else None
     mask_dir = next((root / m for m in ("mask_visib", "mask") if (root / m).is_dir()), None)
     frames, problems = _pair(colors, depths, None, root / "depth")
-    kept, gt = [], ({} if scene_gt is not None else None)
+    kept: list[FrameSpec] = []
+    gt: dict[str, np.ndarray] = {}
     for f in frames:
         try:
             im_id = int(f.name)
         except ValueError:
             problems[f.name] = f"{f.color.name}: BOP image names must be integer ids"
             continue
-        cam = cams.get(str(im_id))
+        cam = cams.get(str(im_id)) or {}  # none: no cam_K
         try:
             f.K = np.asarray(cam["cam_K"], dtype=np.float64).reshape(3, 3)
             f.depth_scale = float(cam.get("depth_scale", 1.0)) / 1000.0
@@ -331,7 +334,7 @@ def discover_bop(root: Path, obj_id: int | None = None) -> Layout:
                 raise InputError(gt_path, f"malformed entry for image {im_id} ({e.__class__.__name__})") from None
         kept.append(f)
     return Layout("bop", root, kept, 0.001, None, "scene_camera.json", per_frame_K=True,
-                  gt_T_cam_obj=gt, problems=problems, obj_id=obj_id)
+                  gt_T_cam_obj=gt if scene_gt is not None else None, problems=problems, obj_id=obj_id)
 
 
 def detect_format(root: Path) -> str:

@@ -25,8 +25,8 @@ from pathlib import Path
 from types import TracebackType
 from typing import TYPE_CHECKING
 
-if TYPE_CHECKING:  # typing.Self is Python 3.11's; annotations are not evaluated at run time
-    from typing import Self
+if TYPE_CHECKING:
+    from typing_extensions import Self  # typing.Self from Python 3.11
 
 from gscan.errors import InputError, OutputExists
 

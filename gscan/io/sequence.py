@@ -8,17 +8,23 @@ a sequence with no usable frame, or a sequence-wide problem (intrinsics, depth s
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from gscan.io.camera import (DepthCamera, FrameIteration, Intrinsics, RGBDFrame, implausible_intrinsics,
-                             load_intrinsics)
 from gscan.errors import InputError, not_a_file
-from gscan.io.images import (MAX_DEPTH_SCALE, check_depth_range, check_depth_scale, image_size, load_frame,
-                             read_depth, resolve_depth_camera)
+from gscan.io.camera import DepthCamera, FrameIteration, Intrinsics, RGBDFrame, implausible_intrinsics, load_intrinsics
+from gscan.io.images import (
+    MAX_DEPTH_SCALE,
+    check_depth_range,
+    check_depth_scale,
+    image_size,
+    load_frame,
+    read_depth,
+    resolve_depth_camera,
+)
 from gscan.io.layouts import FrameSpec, Layout, discover
 from gscan.io.recordings.kinds import recording_format
 
@@ -41,7 +47,7 @@ def image_header(path: Path) -> tuple[int, int, str]:
         raise InputError(path, "permission denied") from None
     except ValueError as e:
         raise InputError(path, str(e)) from None
-    except Exception as e:  # PIL raises many types (UnidentifiedImageError, SyntaxError, OSError...)
+    except Exception as e:  # noqa: BLE001 - PIL raises many types (UnidentifiedImageError, SyntaxError, OSError...)
         raise InputError(path, f"corrupt or unrecognised image ({e.__class__.__name__})") from None
 
 
@@ -106,7 +112,7 @@ class Sequence(FrameIteration):
         """What the frames' files hold, cheaply: {name: {"color"|"depth"|"mask": "<bytes>:<blake2b-128 hex>"}}
         for the usable frames, None for the frames left out (`problems`). A resumed scan compares them with
         the ones its partial database was started from. InputError naming a file that cannot be read."""
-        out: dict[str, dict[str, str] | None] = {name: None for name in self.problems}
+        out: dict[str, dict[str, str] | None] = dict.fromkeys(self.problems)
         for name in self.names:
             spec = self._specs[name]
             out[name] = {role: _file_fingerprint(p) for role, p in (("color", spec.color), ("depth", spec.depth),
@@ -266,7 +272,7 @@ def open_sequence(path: str | Path, format: str = "auto", intrinsics: Intrinsics
                 problems[name] = f"{f.color.name}: invalid cam_K in scene_camera.json ({e})"
                 del specs[name]
                 continue
-        elif (intr.width, intr.height) != (w, h):
+        elif intr is not None and (intr.width, intr.height) != (w, h):  # intr: set unless per_frame
             problems[name] = f"{f.color.name} is {w}x{h} but the intrinsics are for {intr.width}x{intr.height}"
             del specs[name]
             continue
@@ -295,7 +301,7 @@ def open_sequence(path: str | Path, format: str = "auto", intrinsics: Intrinsics
     if not specs:
         first_p = next(iter(problems.items()))
         raise InputError(root, f"no usable RGB-D frame ({len(problems)} unusable); first: {first_p[0]}: {first_p[1]}")
-    if per_frame:
+    if per_frame or intr is None:
         intr = frame_intr[next(iter(specs))]
     for name, reason in problems.items():
         log.warning("%s: frame %s left out: %s", root, name, reason)

@@ -49,8 +49,9 @@ Search (bounded; every bound is a parameter):
    Level 2: the first K2 members b of A_s; A_b = members of A_s consistent with b.
    Level 3: per b, the first K3 members c of A_b (one-to-one, g({s, b}, c) <= eps) whose triangle
    (s, b, c) is non-degenerate (sine of the angle at s >= collinear_sin on both sides) and, in flip
-   mode, does not flip over (tested at the same corner s, so every start triangle is flip-tested). At most T * K2 * K3 hypotheses of length 3; start cost = max of the
-   three deltas. Each hypothesis is grown as soon as it is generated (seed, b, c order).
+   mode, does not flip over (tested at the same corner s, so every start triangle is flip-tested). At most
+   T * K2 * K3 hypotheses of length 3; start cost = max of the three deltas. Each hypothesis is grown as
+   soon as it is generated (seed, b, c order).
 3. growth (Algorithm 1 `Step`, up to length L): the hypothesis keeps its survivors (members of
    A_b consistent with every match so far) with their running max cost g, updated with the newest
    match only, so a Step is O(#survivors). Each Step removes survivors with g > eps or sharing a
@@ -148,7 +149,8 @@ class GMatchResult:
     hyp_length: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     hyp_cost: np.ndarray = field(default_factory=lambda: np.zeros(0))
     hyp_pruned: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
-    hyp_matches: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 2), np.int32))  # [H x L x 2], -1 past length
+    # [H x L x 2], -1 past length
+    hyp_matches: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 2), np.int32))
     candidates: Candidates | None = None  # the candidate pairs searched (set by `gmatch`)
 
     @property

@@ -10,10 +10,23 @@ pose graph that turns the accepted edges into one camera pose per frame.
 from __future__ import annotations
 
 from gscan.registration.loops import LoopCandidate, LoopParams, select_loop_candidates
-from gscan.registration.pairwise import (METHODS, PairResult, RegisterParams, frame_cloud, register_features,
-                                         register_frames, relative_pose)
-from gscan.registration.posegraph import (GraphEdge, PoseGraphParams, PoseGraphResult, information_from_points,
-                                          optimize_pose_graph, spanning_poses)
+from gscan.registration.pairwise import (
+                                         METHODS,
+                                         PairResult,
+                                         RegisterParams,
+                                         frame_cloud,
+                                         register_features,
+                                         register_frames,
+                                         relative_pose,
+)
+from gscan.registration.posegraph import (
+                                         GraphEdge,
+                                         PoseGraphParams,
+                                         PoseGraphResult,
+                                         information_from_points,
+                                         optimize_pose_graph,
+                                         spanning_poses,
+)
 
 __all__ = [
     "METHODS", "GraphEdge", "LoopCandidate", "LoopParams", "PairResult", "PoseGraphParams", "PoseGraphResult",

@@ -48,7 +48,7 @@ class DenseGeometry:
 
     @classmethod
     def from_depth(cls, depth: np.ndarray, intr: Intrinsics, mask: np.ndarray | None = None,
-                   samples: int = 5000) -> "DenseGeometry":
+                   samples: int = 5000) -> DenseGeometry:
         """Samples of depth [H x W] (m) inside mask ([H x W] bool, optional), about `samples` of them."""
         H, W = depth.shape
         stride = max(1, int(np.sqrt(H * W / samples)))
@@ -58,8 +58,8 @@ class DenseGeometry:
         u = np.arange(off, W, stride)
         d = depth[np.ix_(v, u)].astype(np.float64)
         good = d > 0
-        for dv, du in ((-h, 0), (h, 0), (0, -h), (0, h)):
-            n = depth[np.ix_(np.clip(v + dv, 0, H - 1), np.clip(u + du, 0, W - 1))].astype(np.float64)
+        for sv, su in ((-h, 0), (h, 0), (0, -h), (0, h)):
+            n = depth[np.ix_(np.clip(v + sv, 0, H - 1), np.clip(u + su, 0, W - 1))].astype(np.float64)
             good &= (n > 0) & (np.abs(n - d) <= EDGE_REL * np.maximum(n, d))
         if mask is not None:
             good &= mask[np.ix_(v, u)]
@@ -102,7 +102,7 @@ class DepthAgreement:
         """landed / total: the share of the frame seen by the other one."""
         return self.landed / max(1, self.total)
 
-    def __add__(self, other: "DepthAgreement") -> "DepthAgreement":
+    def __add__(self, other: DepthAgreement) -> DepthAgreement:
         return DepthAgreement(self.consistent + other.consistent, self.see_through + other.see_through,
                               self.occluded + other.occluded, self.landed + other.landed, self.total + other.total)
 
@@ -143,10 +143,10 @@ def refine_pose(src: DenseGeometry, tgt: DenseGeometry, kp_s: np.ndarray, kp_t: 
     """The pose that best explains both the keypoint pairs and the depth: Gauss-Newton on the keypoint
     residuals T kp_s - kp_t ([M x 3] pairs, three axes each, sigma s of `kp_noise`) and the point-to-plane
     distances of src's depth samples to tgt's surface (projective association, one per sample landing on
-    tgt's depth, sigma s of `depth_noise` at their two depths), Huber-weighted beyond HUBER sigmas. Depth samples farther than the round's
-    gate (sigmas) from the surface are left out; the gate shrinks over the rounds (one GN step each), so a
-    pose a few centimetres off is drawn in first. Depth pins what keypoints on a distant wall leave loose
-    (the near table); keypoints pin what depth leaves loose (sliding along a plane).
+    tgt's depth, sigma s of `depth_noise` at their two depths), Huber-weighted beyond HUBER sigmas. Depth samples
+    farther than the round's gate (sigmas) from the surface are left out; the gate shrinks over the rounds (one
+    GN step each), so a pose a few centimetres off is drawn in first. Depth pins what keypoints on a distant
+    wall leave loose (the near table); keypoints pin what depth leaves loose (sliding along a plane).
 
     Returns (T_tgt_src [4 x 4], information [6 x 6] of the final pose, rotation first: `pose_information`).
     """

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+
 @dataclass
 class LoopCandidate:
     """A pair of nodes worth registering: i < j."""

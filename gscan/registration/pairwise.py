@@ -16,9 +16,9 @@ Acceptance rules, applied in this order (the first failing one is the `reason`):
    the pose is then refined on the pairs and the depth together (`gscan.registration.dense.refine_pose`).
    "weak geometry": the pose's
    standard deviation predicted by its information matrix (the pairs' noise and layout, and the depth's
-   when it took part: a few pairs on one face of a box pin it badly) beyond `max_sigma_deg` in rotation, or the RMS positional standard
-   deviation of its pairs' points beyond `max_sigma_rel` of their median depth (1 sigma; both a third or
-   less of the 5 deg / 2 cm at 0.6 m that a wrong pose is).
+   when it took part: a few pairs on one face of a box pin it badly) beyond `max_sigma_deg` in rotation, or the
+   RMS positional standard deviation of its pairs' points beyond `max_sigma_rel` of their median depth
+   (1 sigma; both a third or less of the 5 deg / 2 cm at 0.6 m that a wrong pose is).
 3. "depth disagrees" (with `dense`, both frames' `DenseGeometry`): under the pose, more than
    `max_see_through` of the overlap of the two depth images is seen through (`gscan.registration.dense`);
    "too little depth overlap" when fewer than `min_overlap` samples land on the other frame's depth.
@@ -288,7 +288,8 @@ def pose_by_support(pts_s: np.ndarray, pts_t: np.ndarray, support_pool: GuidedPo
     if not lists:
         raise ValueError("pose_by_support needs at least GMatch's own list")
     noise = params.noise
-    best, verified = None, []
+    best = None
+    verified: list[np.ndarray] = []
     for k, m in enumerate(lists):
         src, dst = pts_s[m[:, 0]], pts_t[m[:, 1]]
         tau = params.trim_gate * noise.pair_sigma(src[:, 2], dst[:, 2])
@@ -370,6 +371,7 @@ def register_points(pts_s: np.ndarray, pts_t: np.ndarray, desc_s: np.ndarray, de
     if n_kept < params.min_matches:
         out.reason = f"too few matches ({n_kept} < {params.min_matches})"
         return out
+    assert T is not None  # at least min_matches >= 3 pairs: a pose
     if out.rms_sigma is not None and out.rms_sigma > params.max_rms:
         out.reason = f"keypoint residual ({out.rms_sigma:.2f} > {params.max_rms} noise sigmas)"
         return out
@@ -380,7 +382,8 @@ def register_points(pts_s: np.ndarray, pts_t: np.ndarray, desc_s: np.ndarray, de
         out.sigma_deg, out.sigma_m = pose_sigma(out.information, dst)
         tm["refine"] = (time.perf_counter() - t0) * 1e3
     depth = float(np.median(pt[inliers[:, 1], 2]))
-    if out.sigma_deg is not None and (out.sigma_deg > params.max_sigma_deg or out.sigma_m > params.max_sigma_rel * depth):
+    if out.sigma_deg is not None and out.sigma_m is not None and (out.sigma_deg > params.max_sigma_deg
+                                                                  or out.sigma_m > params.max_sigma_rel * depth):
         what = "pairs and the depth" if dense is not None and params.dense_refine else "pairs"
         out.reason = (f"weak geometry (the {n_kept} {what} pin the pose to {out.sigma_deg:.1f} deg and the "
                       f"pairs' points to {out.sigma_m * 1000:.1f} mm, beyond {params.max_sigma_deg:g} deg / "

@@ -50,9 +50,22 @@ import numpy as np
 from gscan.geometry.transforms import inv_T, rotation_angle_deg
 from gscan.registration.loops import LoopCandidate, LoopParams, bow_vectors, select_loop_candidates
 
-__all__ = ["GraphEdge", "EdgeReport", "PoseGraphParams", "PoseGraphResult", "optimize_pose_graph",
-           "edge_residual", "edge_chi2", "information_from_points", "spanning_poses", "bridges",
-           "LoopCandidate", "LoopParams", "bow_vectors", "select_loop_candidates"]
+__all__ = [
+    "EdgeReport",
+    "GraphEdge",
+    "LoopCandidate",
+    "LoopParams",
+    "PoseGraphParams",
+    "PoseGraphResult",
+    "bow_vectors",
+    "bridges",
+    "edge_chi2",
+    "edge_residual",
+    "information_from_points",
+    "optimize_pose_graph",
+    "select_loop_candidates",
+    "spanning_poses",
+]
 
 log = logging.getLogger(__name__)
 
@@ -390,12 +403,12 @@ def optimize_pose_graph(n_nodes: int, edges: list[GraphEdge],
     """
     if len(T_world_node_init) != n_nodes:
         raise ValueError(f"{len(T_world_node_init)} initial poses for {n_nodes} nodes")
-    for e in edges:
-        if not (0 <= e.src < n_nodes and 0 <= e.tgt < n_nodes) or e.src == e.tgt:
-            raise ValueError(f"invalid edge {e.src} -> {e.tgt} for {n_nodes} nodes")
+    for edge in edges:
+        if not (0 <= edge.src < n_nodes and 0 <= edge.tgt < n_nodes) or edge.src == edge.tgt:
+            raise ValueError(f"invalid edge {edge.src} -> {edge.tgt} for {n_nodes} nodes")
     init = [None if T is None else np.asarray(T, dtype=np.float64).reshape(4, 4).copy() for T in T_world_node_init]
     filled = spanning_poses(n_nodes, edges)
-    poses = [T if T is not None else (filled[k] if filled[k] is not None else np.eye(4)) for k, T in enumerate(init)]
+    poses = [T if T is not None else (S if S is not None else np.eye(4)) for T, S in zip(init, filled)]
     g = _Graph(n_nodes, edges, poses, params)
     reasons: dict[int, str] = {}
     active = list(range(len(edges)))

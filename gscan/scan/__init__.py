@@ -5,7 +5,7 @@
 - pipeline: the stages (load, mode, features, register, posegraph, segment, fuse, database), `ScanResult`
 - config: `ScanConfig` (the YAML configuration), `load_config`, `dump_defaults`
 - capture_mode: `detect_mode` (static object or moving object), `moving_object_masks`
-- keyframes: `select_keyframes`
+- keyframes: `select_keyframes`, `KeyframeParams`
 - segment: `segment_frame`, `segment_sequence`, `support_plane`, `SegmentParams`
 - fuse: `fuse_tsdf -> FusedModel`, `template_frame`, `FusionParams`
 - cad: `template_from_mesh(mesh, output) -> TemplateResult` (rendered snapshots of a CAD mesh)
@@ -25,7 +25,7 @@ _EXPORTS = {
     "ScanConfig": "gscan.scan.config", "load_config": "gscan.scan.config", "dump_defaults": "gscan.scan.config",
     "detect_mode": "gscan.scan.capture_mode", "moving_object_masks": "gscan.scan.capture_mode",
     "STATIC_OBJECT": "gscan.scan.capture_mode", "MOVING_OBJECT": "gscan.scan.capture_mode",
-    "select_keyframes": "gscan.scan.keyframes",
+    "select_keyframes": "gscan.scan.keyframes", "KeyframeParams": "gscan.scan.keyframes",
     "SegmentParams": "gscan.scan.segment", "segment_frame": "gscan.scan.segment",
     "segment_sequence": "gscan.scan.segment", "support_plane": "gscan.scan.segment",
     "FusedModel": "gscan.scan.fuse", "FusionParams": "gscan.scan.fuse", "fuse_tsdf": "gscan.scan.fuse",
@@ -39,12 +39,13 @@ if TYPE_CHECKING:
     from gscan.scan.capture_mode import MOVING_OBJECT, STATIC_OBJECT, detect_mode, moving_object_masks
     from gscan.scan.config import ScanConfig, dump_defaults, load_config
     from gscan.scan.fuse import FusedModel, FusionParams, fuse_tsdf, template_frame
-    from gscan.scan.keyframes import select_keyframes
+    from gscan.scan.keyframes import KeyframeParams, select_keyframes
     from gscan.scan.pipeline import ScanResult
     from gscan.scan.segment import SegmentParams, segment_frame, segment_sequence, support_plane
 
 __all__ = [
-    "MOVING_OBJECT", "STATIC_OBJECT", "FusedModel", "FusionParams", "ScanConfig", "ScanResult", "SegmentParams",
+    "MOVING_OBJECT", "STATIC_OBJECT", "FusedModel", "FusionParams", "KeyframeParams", "ScanConfig", "ScanResult",
+    "SegmentParams",
     "TemplateResult", "detect_mode", "dump_defaults", "fuse_tsdf", "load_config", "moving_object_masks", "scan",
     "segment_frame", "segment_sequence", "select_keyframes", "support_plane", "template_frame", "template_from_mesh",
 ]

@@ -22,15 +22,16 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from gscan.io.camera import RGBDFrame, backproject
 from gscan.errors import InputError
 from gscan.features import OBJECT_FEATURES, FeatureParams, extract_features
-from gscan.geometry.transforms import look_at, transform_points
-from gscan.io.output import Output
 from gscan.geometry.pointset import voxel_mean
+from gscan.geometry.transforms import look_at, transform_points
+from gscan.io.camera import RGBDFrame, backproject
+from gscan.io.output import Output
 from gscan.progress import NullProgress, Progress
 from gscan.synth import DEFAULT_INTRINSICS, SynthScene, TexturedMesh, load_textured_mesh
 from gscan.template.db import TemplateDB, View
@@ -73,7 +74,7 @@ def _load_mesh(path: Path, scale: float) -> TexturedMesh:
     import trimesh
 
     try:
-        tm = trimesh.load(str(path), force="mesh", process=False)
+        tm: Any = trimesh.load(str(path), force="mesh", process=False)  # a Trimesh, or a PointCloud, ...
         vc = getattr(tm.visual, "vertex_colors", None) if getattr(tm.visual, "kind", None) == "vertex" else None
     except Exception:  # noqa: BLE001 - the mesh loaded once already; colours are optional
         vc = None
@@ -84,12 +85,12 @@ def _load_mesh(path: Path, scale: float) -> TexturedMesh:
     # three corners of a face map to its texel's centre, so it renders flat at the exact colour
     F = len(mesh.triangles)
     side = int(np.ceil(np.sqrt(F)))
-    texture = np.zeros((side * side, 3), np.uint8)
-    texture[:F] = np.clip(np.rint(face_rgb), 0, 255)
+    texels = np.zeros((side * side, 3), np.uint8)
+    texels[:F] = np.clip(np.rint(face_rgb), 0, 255)
     col, row = np.arange(F) % side, np.arange(F) // side
     u, v = (col + 0.5) / side, 1.0 - (row + 0.5) / side  # OBJ convention: v = 0 at the image's bottom row
     uv = np.repeat(np.stack([u, v], axis=1)[:, None, :], 3, axis=1)  # [F x 3 x 2]
-    texture = texture.reshape(side, side, 3)
+    texture = texels.reshape(side, side, 3)
     log.info("%s: per-vertex colours rendered as flat face colours", path)
     return TexturedMesh(mesh.vertices, mesh.triangles, uv, np.ascontiguousarray(texture), name=mesh.name)
 

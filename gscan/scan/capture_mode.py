@@ -100,8 +100,8 @@ def moving_object_masks(frames: list[RGBDFrame], min_offset: float = 0.01, min_a
             continue
         d = f.depth
         fg = (d > 0) & (d < bg - np.maximum(min_offset, 0.02 * np.where(np.isfinite(bg), bg, 0)))
-        fg = cv2.morphologyEx(fg.astype(np.uint8), cv2.MORPH_OPEN, kernel)
-        n, lab, stats, _ = cv2.connectedComponentsWithStats(fg, connectivity=8)
+        fg_u8 = cv2.morphologyEx(fg.astype(np.uint8), cv2.MORPH_OPEN, kernel)
+        n, lab, stats, _ = cv2.connectedComponentsWithStats(fg_u8, connectivity=8)
         keep = np.zeros(n, dtype=bool)
         if n > 1:
             areas = stats[1:, cv2.CC_STAT_AREA]

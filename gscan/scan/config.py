@@ -13,29 +13,44 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from gscan.errors import InputError, not_a_file
+from gscan.features import FeatureParams
+from gscan.matching.gmatch import GMatchParams
 from gscan.registration.pairwise import RegisterParams
 from gscan.registration.posegraph import LoopParams, PoseGraphParams
+from gscan.scan.fuse import FusionParams
+from gscan.scan.keyframes import KeyframeParams
+from gscan.scan.segment import SegmentParams
 
 
 class _Section(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
+# each section's defaults are its stage's parameter defaults, read from them; the named choices (typed as
+# Literal for validation) are written out; tests/test_config.py checks that every key equals its stage's default
+_FP, _GM, _RP, _SP, _FU, _KP = (FeatureParams(), GMatchParams(), RegisterParams(), SegmentParams(), FusionParams(),
+                                KeyframeParams())
+
+
 class FeaturesConfig(_Section):
     kind: Literal["sift", "rootsift", "orb"] = Field("rootsift", description="keypoint descriptor")
-    max_keypoints: int = Field(2000, ge=50, le=20000, description="strongest keypoints kept per frame")
+    max_keypoints: int = Field(_FP.max_keypoints, ge=50, le=20000, description="strongest keypoints kept per frame")
 
 
 class MatchConfig(_Section):
     method: Literal["gmatch", "ratio", "mutual", "ransac", "lo-ransac", "fgr"] = Field(
         "gmatch", description="pairwise matcher: GMatch or a baseline (for comparison)")
-    eps_f: float | None = Field(None, gt=0, description="descriptor distance threshold; null = the descriptor's default")
-    eps_c: float = Field(0.08, gt=0, lt=1, description="GMatch relative pairwise-distance tolerance")
-    eta: float = Field(0.01, gt=0, description="GMatch absolute distance margin at 0.5 m depth (m), grows with depth^2")
+    eps_f: float | None = Field(_GM.eps_f, gt=0,
+                                description="descriptor distance threshold; null = the descriptor's default, "
+                                "tighter for rootsift on a static scene's whole frames")
+    eps_c: float = Field(_GM.eps_c, gt=0, lt=1, description="GMatch relative pairwise-distance tolerance")
+    eta: float = Field(_GM.eta, gt=0,
+                       description="GMatch absolute distance margin at 0.5 m depth (m), grows with depth^2")
     order: Literal["ratio", "distance"] = Field(
-        "ratio", description="GMatch candidate order: Lowe ratio (distinctive first) or descriptor distance (the paper's)")
-    T: int = Field(24, ge=1, le=256, description="GMatch seeds (the first T candidates in that order)")
-    L: int = Field(24, ge=3, le=256, description="GMatch maximum match-list length")
+        "ratio",
+        description="GMatch candidate order: Lowe ratio (distinctive first) or descriptor distance (the paper's)")
+    T: int = Field(_GM.T, ge=1, le=256, description="GMatch seeds (the first T candidates in that order)")
+    L: int = Field(_GM.L, ge=3, le=256, description="GMatch maximum match-list length")
     constraint: Literal["flip", "triple"] = Field("flip", description="flip-over or scalar-triple-product constraint")
 
 
@@ -45,7 +60,7 @@ class NoiseModelConfig(_Section):
     c2: float = Field(ge=0, description="... growing with depth^4 (axial sensor noise: m^2 per m^4)")
 
     @model_validator(mode="after")
-    def _positive(self) -> "NoiseModelConfig":
+    def _positive(self) -> NoiseModelConfig:
         if self.c0 + self.c1 + self.c2 <= 0:
             raise ValueError("a noise model needs a positive coefficient")
         return self
@@ -54,9 +69,6 @@ class NoiseModelConfig(_Section):
 class NoiseConfig(_Section):
     keypoint: NoiseModelConfig = Field(description="noise of a lifted keypoint (window median of the depth)")
     depth: NoiseModelConfig = Field(description="noise of one depth pixel")
-
-
-_RP = RegisterParams()
 
 
 class RegisterConfig(_Section):
@@ -105,31 +117,35 @@ class PoseGraphConfig(_Section):
 
 
 class FusionConfig(_Section):
-    voxel: float | None = Field(None, gt=0, description="TSDF voxel size (m); null = object extent / 150 within 2-10 mm")
-    depth_max: float | None = Field(None, gt=0, description="depth beyond this is ignored when fusing (m); null = "
-                                    "just beyond the farthest object pixel")
+    voxel: float | None = Field(_FU.voxel_size, gt=0,
+                                description="TSDF voxel size (m); null = object extent / 150 within 2-10 mm")
+    depth_max: float | None = Field(_FU.depth_max, gt=0, description="depth beyond this is ignored when fusing (m); "
+                                    "null = just beyond the farthest object pixel")
 
 
 class SegmentationConfig(_Section):
-    depth_min: float = Field(0.1, ge=0.05, le=20, description="the object is looked for at depths from this (m) ...")
-    depth_max: float | None = Field(None, gt=0.05, le=20, description="... to this (m); null = 1.5 x the depth at "
-                                    "the image centre, where a scan keeps the object")
-    height_max: float = Field(0.5, ge=0.01, le=5, description="the object stands at most this high above its support plane (m)")
+    depth_min: float = Field(_SP.depth_min, ge=0.05, le=20,
+                             description="the object is looked for at depths from this (m) ...")
+    depth_max: float | None = Field(_SP.depth_max, gt=0.05, le=20, description="... to this (m); null = 1.5 x the "
+                                    "depth at the image centre, where a scan keeps the object")
+    height_max: float = Field(_SP.height_max, ge=0.01, le=5,
+                              description="the object stands at most this high above its support plane (m)")
 
     @model_validator(mode="after")
-    def _range(self) -> "SegmentationConfig":
+    def _range(self) -> SegmentationConfig:
         if self.depth_max is not None and self.depth_max <= self.depth_min:
             raise ValueError("depth_max must be greater than depth_min")
         return self
 
 
 class KeyframeConfig(_Section):
-    min_angle_deg: float = Field(12.0, ge=0, description="a new keyframe views the object at least this far from all others")
-    max_views: int = Field(120, ge=1, description="at most this many template views")
-    min_views: int = Field(8, ge=1, description="at least this many template views when the capture has them (the "
-                           "angle shrinks for a short sweep)")
-    min_object_keypoints: int = Field(24, ge=0, description="keyframes are views with at least this many keypoints "
-                                      "on the object (when any has)")
+    min_angle_deg: float = Field(_KP.min_angle_deg, ge=0,
+                                 description="a new keyframe views the object at least this far from all others")
+    max_views: int = Field(_KP.max_views, ge=1, description="at most this many template views")
+    min_views: int = Field(_KP.min_views, ge=1, description="at least this many template views when the capture has "
+                           "them (the angle shrinks for a short sweep)")
+    min_object_keypoints: int = Field(_KP.min_object_keypoints, ge=0, description="keyframes are views with at least "
+                                      "this many keypoints on the object (when any has)")
 
 
 class ScanConfig(_Section):
@@ -142,7 +158,7 @@ class ScanConfig(_Section):
     keyframes: KeyframeConfig = KeyframeConfig()
 
     @model_validator(mode="after")
-    def _segment_within_fusion(self) -> "ScanConfig":
+    def _segment_within_fusion(self) -> ScanConfig:
         if self.fusion.depth_max is not None and self.segmentation.depth_min >= self.fusion.depth_max:
             raise ValueError("segmentation.depth_min must be below fusion.depth_max (nothing could be fused)")
         return self

@@ -97,7 +97,8 @@ def fuse_tsdf(frames: list[RGBDFrame], T_world_cam: list[np.ndarray | None],
         masks = [None] * len(frames)
     if not (len(frames) == len(T_world_cam) == len(masks)):
         raise ValueError(f"{len(frames)} frames, {len(T_world_cam)} poses, {len(masks)} masks")
-    use = [k for k in range(len(frames)) if T_world_cam[k] is not None]
+    registered = {k: T for k, T in enumerate(T_world_cam) if T is not None}
+    use = list(registered)
     depths = {k: _masked_depth(frames[k], masks[k]) for k in use}
     # frames with no masked depth in range are left out: open3d's integration aborts on them
     use = [k for k in use if np.any((depths[k] > 0) & (depths[k] <= (params.depth_max or np.inf)))]
@@ -105,31 +106,33 @@ def fuse_tsdf(frames: list[RGBDFrame], T_world_cam: list[np.ndarray | None],
         raise ValueError("no registered frame with masked depth to fuse"
                          + (f" within {params.depth_max} m" if params.depth_max else ""))
     voxel = params.voxel_size or auto_voxel_size(
-        _extent_estimate([depths[k] for k in use], [frames[k] for k in use], [T_world_cam[k] for k in use]), params)
+        _extent_estimate([depths[k] for k in use], [frames[k] for k in use], [registered[k] for k in use]), params)
     depth_max = params.depth_max or 1.05 * max(float(depths[k].max()) for k in use)
     trunc = params.trunc_voxels * voxel
     dev = o3c.Device("CPU:0")
     vbg = o3d.t.geometry.VoxelBlockGrid(attr_names=("tsdf", "weight", "color"),
                                         attr_dtypes=(o3c.float32, o3c.float32, o3c.float32),
-                                        attr_channels=((1,), (1,), (3,)), voxel_size=voxel,
+                                        attr_channels=[o3c.SizeVector([1]), o3c.SizeVector([1]), o3c.SizeVector([3])],
+                                        voxel_size=voxel,
                                         block_resolution=params.block_resolution, block_count=4000, device=dev)
     wt = min(params.weight_threshold, max(len(use) - 0.5, 0.5))  # a single frame still gives a surface
     try:
         for k in use:
             f = frames[k]
-            K = o3c.Tensor(f.intrinsics.K, o3c.float64)
-            extr = o3c.Tensor(inv_T(np.asarray(T_world_cam[k], dtype=np.float64)), o3c.float64)  # T_cam_world
-            depth = o3d.t.geometry.Image(o3c.Tensor(depths[k][..., None]))
-            color = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(f.color, dtype=np.float32) / 255.0))
+            K = o3c.Tensor(f.intrinsics.K, o3c.float64, dev)
+            extr = o3c.Tensor(inv_T(np.asarray(T_world_cam[k], dtype=np.float64)), o3c.float64, dev)  # T_cam_world
+            depth = o3d.t.geometry.Image(o3c.Tensor(depths[k][..., None], o3c.float32, dev))
+            color = o3d.t.geometry.Image(
+                o3c.Tensor(np.ascontiguousarray(f.color, dtype=np.float32) / 255.0, o3c.float32, dev))
             blocks = vbg.compute_unique_block_coordinates(depth, K, extr, 1.0, depth_max, params.trunc_voxels)
             vbg.integrate(blocks, depth, color, K, extr, 1.0, depth_max, params.trunc_voxels)
-        mesh = vbg.extract_triangle_mesh(weight_threshold=wt).to_legacy()
+        o3d_mesh = vbg.extract_triangle_mesh(weight_threshold=wt).to_legacy()
         pcd = vbg.extract_point_cloud(weight_threshold=wt)
     except RuntimeError as e:  # open3d's check that the depth touched the volume (a few pixels, far depth)
         if "No block is touched" not in str(e):
             raise  # memory, capacity: internal, not the input's fault
         raise ValueError(f"TSDF fusion failed: {open3d_message(e)}") from None
-    V, F, C = _mesh_arrays(mesh)
+    V, F, C = _mesh_arrays(o3d_mesh)
     V, F, C = remove_small_components(V, F, C, params.min_component_fraction, params.keep_largest_only)
     P = pcd.point.positions.numpy().astype(np.float64) if "positions" in pcd.point else np.zeros((0, 3))
     PC = pcd.point.colors.numpy().astype(np.float32) if "colors" in pcd.point else np.zeros((len(P), 3), np.float32)
@@ -181,13 +184,10 @@ def remove_small_components(vertices: np.ndarray, triangles: np.ndarray, colors:
     if colors is not None:
         mesh.vertex_colors = o3d.utility.Vector3dVector(np.asarray(colors, dtype=np.float64).reshape(-1, 3))
     mesh.remove_duplicated_vertices()
-    tri_clusters, n_tri, _ = mesh.cluster_connected_triangles()
-    tri_clusters, n_tri = np.asarray(tri_clusters), np.asarray(n_tri)
+    clusters, counts, _ = mesh.cluster_connected_triangles()
+    tri_clusters, n_tri = np.asarray(clusters), np.asarray(counts)
     largest = int(np.argmax(n_tri))
-    if keep_largest_only:
-        keep = tri_clusters == largest
-    else:
-        keep = n_tri[tri_clusters] >= min_fraction * n_tri[largest]
+    keep = tri_clusters == largest if keep_largest_only else n_tri[tri_clusters] >= min_fraction * n_tri[largest]
     mesh.remove_triangles_by_mask(~keep)
     mesh.remove_unreferenced_vertices()
     log.debug("mesh components: kept %d of %d", len(np.unique(tri_clusters[keep])), len(n_tri))

@@ -3,7 +3,19 @@ directions the object was seen from, each holding enough keypoints on the object
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
+
+
+@dataclass(frozen=True)
+class KeyframeParams:
+    """What a scan passes to `select_keyframes` (the `keyframes` section of the scan configuration)."""
+
+    min_angle_deg: float = 12.0  # a new keyframe views the object at least this far from all others
+    max_views: int = 120  # at most this many keyframes
+    min_views: int = 8  # at least this many when the capture has them (the angle shrinks for a short sweep)
+    min_object_keypoints: int = 24  # keyframes hold at least this many keypoints on the object (when any has)
 
 
 def view_direction(T_obj_cam: np.ndarray) -> np.ndarray:
@@ -30,8 +42,8 @@ def select_keyframes(view_dirs: dict[int, np.ndarray], min_angle_deg: float, max
     view_dirs: frame index -> unit viewing direction in the object frame (`view_direction`);
     object_keypoints: frame index -> keypoints with depth on the object (None: all equal).
     Frames with at least `min_keypoints` object keypoints are candidates (all frames when fewer than
-    `min_views` have that many), taken in order of decreasing count (then index): a frame becomes a keyframe when its direction
-    is at least the angle from every keyframe already chosen. The angle starts at `min_angle_deg`; it
+    `min_views` have that many), taken in order of decreasing count (then index): a frame becomes a keyframe when
+    its direction is at least the angle from every keyframe already chosen. The angle starts at `min_angle_deg`; it
     grows by 10 % while more than `max_views` qualify and shrinks by 20 % (down to 0.5 deg) while fewer than
     `min_views` do, so a short sweep over a few degrees still keeps several views. Returns sorted indices.
     """

@@ -21,6 +21,7 @@ deterministic, so an interrupted scan resumes to the same result as an uninterru
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import shutil
@@ -28,30 +29,49 @@ from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from gscan.io.camera import RGBDFrame, backproject
-from gscan.io.output import (JOURNAL_SUFFIX, Output, check_output, file_identity, journal_fits, missing_folders,
-                             occupied, remove_empty_folders)
-from gscan.io.sequence import Sequence
-from gscan.scan.capture_mode import MOVING_OBJECT, STATIC_OBJECT, detect_mode, moving_object_masks
-from gscan.scan.keyframes import select_keyframes, view_direction
-from gscan.scan.config import ScanConfig
 from gscan.errors import InputError, OutputExists
 from gscan.features import OBJECT_FEATURES, FeatureParams, Features, extract_features, extract_features_in_mask
-from gscan.scan.fuse import FusedModel, FusionParams, fuse_tsdf, template_frame
+from gscan.geometry.plane import Plane
 from gscan.geometry.transforms import transform_points
+from gscan.io.camera import RGBDFrame, backproject
+from gscan.io.output import (
+    JOURNAL_SUFFIX,
+    Output,
+    check_output,
+    file_identity,
+    journal_fits,
+    missing_folders,
+    occupied,
+    remove_empty_folders,
+)
+from gscan.io.sequence import Sequence
 from gscan.progress import Progress, StageTimer
 from gscan.registration.dense import DenseGeometry, in_source_frame, plane_residuals, pose_information
 from gscan.registration.noise import DepthNoise, estimate_noise
 from gscan.registration.pairwise import RegisterParams, register_features
-from gscan.geometry.plane import Plane
-from gscan.registration.posegraph import (GraphEdge, LoopParams, PoseGraphParams, PoseGraphResult,
-                                          information_from_points, optimize_pose_graph, select_loop_candidates,
-                                          spanning_poses)
+from gscan.registration.posegraph import (
+    GraphEdge,
+    LoopParams,
+    PoseGraphParams,
+    PoseGraphResult,
+    information_from_points,
+    optimize_pose_graph,
+    select_loop_candidates,
+    spanning_poses,
+)
+from gscan.scan.capture_mode import MOVING_OBJECT, STATIC_OBJECT, detect_mode, moving_object_masks
+from gscan.scan.config import ScanConfig
+from gscan.scan.fuse import FusedModel, FusionParams, fuse_tsdf, template_frame
+from gscan.scan.keyframes import select_keyframes, view_direction
 from gscan.scan.segment import SegmentParams
 from gscan.template.db import Edge, TemplateDB, View
+
+if TYPE_CHECKING:
+    from gscan.io.recordings.sequence import RecordingSequence
 
 log = logging.getLogger(__name__)
 
@@ -121,11 +141,11 @@ class ScanResult:
 @dataclass
 class _Frame:
     frame: RGBDFrame
-    feats: Features | None = None  # camera frame
+    feats: Features = field(init=False)  # camera frame (set by _extract)
     cloud: np.ndarray | None = None  # [P x 3] camera-frame points for ICP
     mask: np.ndarray | None = None  # [H x W] bool object mask (given or computed)
     plane_cam: Plane | None = None  # support plane found while computing a moving object's mask
-    dense: DenseGeometry | None = None  # depth samples for the edges' depth check (registration's pixels)
+    dense: DenseGeometry = field(init=False)  # depth samples for the edges' depth check (set by _extract)
 
 
 def _register_params(cfg: ScanConfig, mode: str) -> RegisterParams:
@@ -142,14 +162,16 @@ def _register_params(cfg: ScanConfig, mode: str) -> RegisterParams:
     # the truth where the camera moves fast (7-Scenes: 5-11 frames beyond 10 cm with it, 1 without)
     dense = r.dense_refine if r.dense_refine is not None else mode == MOVING_OBJECT
     gm = GMatchParams(eps_f=eps_f, eps_c=m.eps_c, eta=m.eta, T=m.T, L=m.L, constraint=m.constraint, order=m.order)
-    noise = {} if r.noise is None else {"noise": DepthNoise(**r.noise.keypoint.model_dump()),
-                                        "depth_noise": DepthNoise(**r.noise.depth.model_dump())}
-    return RegisterParams(method=m.method, gmatch=gm, min_matches=r.min_matches, max_rms=r.max_rms,
-                          max_sigma_deg=r.max_sigma_deg, max_sigma_rel=r.max_sigma_rel,
-                          max_see_through=r.max_see_through, dense_refine=dense, verify=r.verify,
-                          support_eps_scale=r.support_eps_scale, icp=r.icp, icp_max_dist=r.icp_max_dist,
-                          icp_voxel=r.icp_voxel, min_fitness=r.min_fitness, max_rmse=r.max_rmse,
-                          max_icp_shift_deg=r.max_icp_shift_deg, max_icp_shift_m=r.max_icp_shift_m, **noise)
+    params = RegisterParams(method=m.method, gmatch=gm, min_matches=r.min_matches, max_rms=r.max_rms,
+                            max_sigma_deg=r.max_sigma_deg, max_sigma_rel=r.max_sigma_rel,
+                            max_see_through=r.max_see_through, dense_refine=dense, verify=r.verify,
+                            support_eps_scale=r.support_eps_scale, icp=r.icp, icp_max_dist=r.icp_max_dist,
+                            icp_voxel=r.icp_voxel, min_fitness=r.min_fitness, max_rmse=r.max_rmse,
+                            max_icp_shift_deg=r.max_icp_shift_deg, max_icp_shift_m=r.max_icp_shift_m)
+    if r.noise is None:
+        return params
+    return replace(params, noise=DepthNoise(**r.noise.keypoint.model_dump()),
+                   depth_noise=DepthNoise(**r.noise.depth.model_dump()))
 
 
 RESUME_KEYS = ("input", "format", "intrinsics_sha256", "depth_scale_option", "config", "mode_option", "segment",
@@ -182,7 +204,8 @@ def _sha256(path: Path) -> str:
         raise InputError(path, f"cannot read the calibration file ({e.strerror or e})") from None
 
 
-def _open_resumed(opts: ScanOptions, seq: Sequence, frames: dict) -> tuple[TemplateDB, Output | None]:
+def _open_resumed(opts: ScanOptions, seq: Sequence | RecordingSequence, frames: dict
+                  ) -> tuple[TemplateDB, Output | None]:
     """The interrupted scan's database; it must come from the same input, configuration and input frames
     (`frames`: `Sequence.fingerprints`). A complete database (or one whose journal would have too long a
     name) is continued in a copy renamed over it at the end, so a failed run leaves it as it was."""
@@ -190,10 +213,10 @@ def _open_resumed(opts: ScanOptions, seq: Sequence, frames: dict) -> tuple[Templ
     db = TemplateDB.open(opts.output, require_complete=False, writable=True)
     try:
         stored = {k: db.get_meta(k) for k in RESUME_KEYS}
-        try:  # settings added to the configuration since the scan started take their defaults
+        # settings added to the configuration since the scan started take their defaults; a configuration this
+        # version does not read differs
+        with contextlib.suppress(ValueError, TypeError):
             stored["config"] = json.loads(json.dumps(ScanConfig.model_validate(stored["config"]).model_dump()))
-        except (ValueError, TypeError):
-            pass  # not a configuration this version reads: it differs
         if stored != {k: json.loads(json.dumps(meta[k])) for k in stored}:
             raise InputError(opts.output, "was written from another input or configuration", fix="restart")
         _check_frames(opts.output, db.get_meta("input_frames"), json.loads(json.dumps(frames)), seq)
@@ -216,7 +239,7 @@ def _open_resumed(opts: ScanOptions, seq: Sequence, frames: dict) -> tuple[Templ
         raise
 
 
-def _check_frames(output: Path, stored: object, frames: dict, seq: Sequence) -> None:
+def _check_frames(output: Path, stored: object, frames: dict, seq: Sequence | RecordingSequence) -> None:
     """InputError unless the input frames hold what they held when the partial scan `output` started (their
     files' sizes and hashes): a scan resumed on other images would mix their keypoints and edges."""
     if not isinstance(stored, dict):
@@ -237,9 +260,12 @@ def _check_frames(output: Path, stored: object, frames: dict, seq: Sequence) -> 
         elif old is None or new is None:
             what = f"frame {name} {'was unusable then' if old is None else 'is unusable now'}"
         else:
-            role = next(r for r in ("color", "depth", "mask") if old.get(r) != new.get(r))
-            changed = getattr(seq.files(name), role) if role in new else None
-            what = f"{changed} changed" if changed is not None else f"frame {name} has no {role} image now"
+            role = next((r for r in ("color", "depth", "mask") if old.get(r) != new.get(r)), None)
+            if role is None or not isinstance(seq, Sequence):  # a recording: one fingerprint of the frame's messages
+                what = f"frame {name} changed"
+            else:
+                changed = getattr(seq.files(name), role) if role in new else None
+                what = f"{changed} changed" if changed is not None else f"frame {name} has no {role} image now"
         raise InputError(output, f"the input frames are not the ones this partial scan was started from ({what})",
                          fix="restart")
 
@@ -305,15 +331,16 @@ def run_scan(opts: ScanOptions, progress: Progress | None = None) -> ScanResult:
         problems = dict(seq.problems)
         if not frames:  # one line (the CLI contract), no per-frame warnings before it
             first = next(iter(problems.items()), ("?", "?"))
-            raise InputError(opts.input_dir, f"no usable frame ({len(problems)} unusable); first: {first[0]}: {first[1]}")
+            raise InputError(opts.input_dir,
+                             f"no usable frame ({len(problems)} unusable); first: {first[0]}: {first[1]}")
     except BaseException:
         if db is not None:
             db.close()
         if target is not None:
             target.discard()
         raise
-    for name, e in failed:
-        log.warning("skipping frame %s: %s", name, e)
+    for name, err in failed:
+        log.warning("skipping frame %s: %s", name, err)
 
     made = missing_folders(opts.output)
     if db is None:
@@ -434,7 +461,9 @@ def _fuse(frames: list[_Frame], T_world_cam: list[np.ndarray | None], masks: lis
         raise InputError(input_dir, "nothing could be fused: no surface in the object depth of the "
                          f"{len(registered)} registered frame(s)")
     obj_pts = model.points if len(model.points) >= 3 else model.mesh.vertices
-    return model, template_frame(obj_pts, plane_world, T_world_cam[registered[0]])
+    T_world_cam0 = T_world_cam[registered[0]]
+    assert T_world_cam0 is not None
+    return model, template_frame(obj_pts, plane_world, T_world_cam0)
 
 
 def _segment_params(cfg: ScanConfig) -> SegmentParams:
@@ -481,6 +510,9 @@ def _extract(frames: list[_Frame], mode: str, cfg: ScanConfig, db: TemplateDB, r
             f.cloud, f.dense = cloud, dense
             if feats is None:  # stored by the interrupted run, still in the camera frame
                 feats = db.features(f.frame.name)
+                if feats is None:
+                    raise InputError(db.path, f"view {f.frame.name!r} is stored without its keypoints",
+                                     fix="restart")
             else:
                 db.add_view(View.from_frame(f.frame, keyframe=False, input_index=k), feats,
                             replace=f.frame.name in stored)
@@ -499,7 +531,7 @@ def _capture_noise(frames: list[_Frame], params: RegisterParams) -> tuple[DepthN
     def pair(j: int) -> tuple[np.ndarray, ...]:
         fs, ft = frames[j - 1], frames[j]
         r = register_features(fs.feats, ft.feats, params, dense=(fs.dense, ft.dense))
-        if not r.accepted or r.inliers is None or not len(r.inliers):
+        if not r.accepted or r.T_tgt_src is None or r.inliers is None or not len(r.inliers):
             return (np.zeros(0),) * 6
         ps = fs.feats.points[r.inliers[:, 0]].astype(np.float64)
         pt = ft.feats.points[r.inliers[:, 1]].astype(np.float64)
@@ -567,7 +599,7 @@ def _register_edges(frames: list[_Frame], rparams: RegisterParams, cfg: ScanConf
             advance(1)
 
         seq_graph = [GraphEdge(index[e.src], index[e.tgt], e.T_tgt_src, weight=len(e.matches))
-                     for e in edges if e.accepted]
+                     for e in edges if e.accepted and e.T_tgt_src is not None]
         T_init = spanning_poses(n, seq_graph)
         existing = [(index[e.src], index[e.tgt]) for e in edges]
         lp = LoopParams(max_per_node=cfg.posegraph.loop_candidates, max_angle_deg=cfg.posegraph.max_view_angle_deg)
@@ -606,7 +638,7 @@ def _store_views(frames: list[_Frame], T_obj_cam: list[np.ndarray | None], masks
             view = View.from_frame(f.frame, T_obj_cam=T, mask=masks[k] if T is not None else f.frame.mask,
                                    keyframe=k in keyframes, quality=quality.get(k), input_index=k)
             db.add_view(view, f.feats if T is None else f.feats.transformed(T), replace=True)
-            if obj is not None:
+            if obj is not None and T is not None:  # object keypoints: of keyframes, which are registered
                 db.add_features(f.frame.name, obj.transformed(T), role="object")
             advance(1)
     return keyframes
@@ -616,9 +648,9 @@ def _keyframe_candidates(T_obj_cam: list[np.ndarray | None], masks: list[np.ndar
     """Frame index -> viewing direction (`view_direction`) of the registered frames that show the object: a
     frame whose object mask is empty (a sweep that starts elsewhere) would give the template its background as
     the object's keypoints. All registered frames when none shows it."""
-    reg = {k: T for k, T in enumerate(T_obj_cam) if T is not None}
-    showing = {k: T for k, T in reg.items() if masks[k] is None or masks[k].any()}
-    return {k: view_direction(T) for k, T in (showing or reg).items()}
+    reg = {k: (T, m) for k, (T, m) in enumerate(zip(T_obj_cam, masks)) if T is not None}
+    showing = {k: Tm for k, Tm in reg.items() if Tm[1] is None or Tm[1].any()}
+    return {k: view_direction(T) for k, (T, _) in (showing or reg).items()}
 
 
 def _object_keypoints(f: _Frame, mask: np.ndarray | None) -> int:
@@ -653,6 +685,7 @@ def _optimise(n: int, edges: list[Edge], index: dict[str, int], frames: list[_Fr
     use = [e for e in edges if e.accepted and e.T_tgt_src is not None]
     graph = []
     for e in use:
+        assert e.T_tgt_src is not None  # use: accepted edges with a pose
         i, j = index[e.src], index[e.tgt]
         ps = frames[i].feats.points[e.matches[:, 0]].astype(np.float64)
         pt = frames[j].feats.points[e.matches[:, 1]].astype(np.float64)
@@ -676,10 +709,12 @@ def _optimise(n: int, edges: list[Edge], index: dict[str, int], frames: list[_Fr
             e.accepted = False
             e.reason = PRUNED + str(rep.reason)
             continue
+        assert e.T_tgt_src is not None  # use: accepted edges with a pose
         i, j = index[e.src], index[e.tgt]
         ps = frames[i].feats.points[e.matches[:, 0]].astype(np.float64)
         pt = frames[j].feats.points[e.matches[:, 1]].astype(np.float64)
-        r = np.linalg.norm(transform_points(e.T_tgt_src, ps) - pt, axis=1) / rparams.noise.pair_sigma(ps[:, 2], pt[:, 2])
+        r = (np.linalg.norm(transform_points(e.T_tgt_src, ps) - pt, axis=1)
+             / rparams.noise.pair_sigma(ps[:, 2], pt[:, 2]))
         rms = float(np.sqrt(np.mean(r * r)))
         for k in (i, j):
             best[k] = min(best.get(k, np.inf), rms)
@@ -735,7 +770,8 @@ def _segment(frames: list[_Frame], T_world_cam: list[np.ndarray | None], mode: s
         ref = frames[reg[0]]
         plane_cam = ref.plane_cam if ref.plane_cam is not None else segment_frame(
             replace(ref.frame, mask=None), seg).plane_cam
-        plane = None if plane_cam is None else plane_cam.transformed(T_world_cam[reg[0]])
+        T_world_ref = T_world_cam[reg[0]]
+        plane = None if plane_cam is None or T_world_ref is None else plane_cam.transformed(T_world_ref)
         return [f.mask for f in frames], plane
     segs, vol = segment_sequence([f.frame for f in frames], T_world_cam, seg)  # given masks win
     return [s.mask for s in segs], (vol.plane_world if vol is not None else None)

@@ -33,10 +33,10 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
-from gscan.io.camera import RGBDFrame, backproject
 from gscan.errors import InputError
 from gscan.geometry.plane import Plane, dominant_plane, ransac_plane
 from gscan.geometry.transforms import transform_points
+from gscan.io.camera import RGBDFrame, backproject
 from gscan.registration.noise import DepthNoise
 
 log = logging.getLogger(__name__)
@@ -311,9 +311,9 @@ def _look_at_point(T_world_cam: list[np.ndarray], plane: Plane) -> np.ndarray:
 def _centre_point(frames: list[RGBDFrame], T_world_cam: list[np.ndarray], depths: list[float | None]
                   ) -> np.ndarray | None:
     """[3] world point the frames keep in the middle of the image: per frame the point on the optical axis at
-    its `centre_depth` (`depths`, one per frame), then the coordinate-wise median over the frames (robust to a few frames that look
-    elsewhere). Unlike the axes' meeting point it needs no spread of viewing directions (a hand-held sweep
-    looks along nearly parallel axes). None when no frame has centre depth."""
+    its `centre_depth` (`depths`, one per frame), then the coordinate-wise median over the frames (robust to a
+    few frames that look elsewhere). Unlike the axes' meeting point it needs no spread of viewing directions (a
+    hand-held sweep looks along nearly parallel axes). None when no frame has centre depth."""
     pts = []
     for f, T, z in zip(frames, T_world_cam, depths):
         if z is not None:
@@ -389,7 +389,7 @@ def estimate_working_volume(frames: list[RGBDFrame], T_world_cam: list[np.ndarra
     for lab in range(labels.max() + 1):
         C = Q[labels == lab]
         d = np.linalg.norm(C.mean(0) - target)
-        score = len(C) / (1.0 + (d / scale) ** 2)
+        score = float(len(C) / (1.0 + (d / scale) ** 2))
         if len(C) >= 20 and score > best_score:
             best, best_score = lab, score
     if best < 0:
@@ -405,7 +405,7 @@ def estimate_working_volume(frames: list[RGBDFrame], T_world_cam: list[np.ndarra
     return vol
 
 
-def segment_sequence(frames: list[RGBDFrame], T_world_cam: list[np.ndarray],
+def segment_sequence(frames: list[RGBDFrame], T_world_cam: list[np.ndarray | None],
                      params: SegmentParams = SegmentParams()) -> tuple[list[Segmentation], WorkingVolume | None]:
     """Masks of registered frames from one working volume; given masks win.
 

@@ -179,7 +179,8 @@ def create_app(service: Service) -> Any:
         depth: Annotated[UploadFile, File(description="depth, 16-bit PNG, raw units (see depth_scale)")],
         intrinsics: Annotated[str, Form(description="the 3x3 calibration as cam_K.txt holds it")],
         depth_scale: Annotated[float, Form(description="metres per raw depth unit")] = 0.001,
-        mask: Annotated[UploadFile | None, File(description="optional search mask (PNG or JPEG, object > half)")] = None,
+        mask: Annotated[UploadFile | None,
+                        File(description="optional search mask (PNG or JPEG, object > half)")] = None,
         templates: Annotated[str | None, Form(description="comma-separated template names (default: all)")] = None,
     ) -> dict[str, Any]:
         """The pose of every requested template's object in one RGB-D frame."""

@@ -9,10 +9,26 @@ Public API (import from `gscan.synth`):
 """
 from __future__ import annotations
 
-from gscan.synth.capture import (default_distance, footprint_radius, orbit_poses, place_distractors,
-                                 render_capture, rest_on_table, turntable_poses, write_capture)
-from gscan.synth.mesh import (TexturedMesh, box_mesh, cylinder_mesh, load_textured_mesh, sample_bilinear,
-                              sample_mip, save_textured_mesh, texture_pyramid)
+from gscan.synth.capture import (
+                                 default_distance,
+                                 footprint_radius,
+                                 orbit_poses,
+                                 place_distractors,
+                                 render_capture,
+                                 rest_on_table,
+                                 turntable_poses,
+                                 write_capture,
+)
+from gscan.synth.mesh import (
+                                 TexturedMesh,
+                                 box_mesh,
+                                 cylinder_mesh,
+                                 load_textured_mesh,
+                                 sample_bilinear,
+                                 sample_mip,
+                                 save_textured_mesh,
+                                 texture_pyramid,
+)
 from gscan.synth.noise import DepthNoise, apply_depth_noise, depth_sigma
 from gscan.synth.render import DEFAULT_INTRINSICS, Gloss, RenderedFrame, SynthScene
 from gscan.synth.textures import procedural_box_texture, table_texture

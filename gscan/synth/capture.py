@@ -11,8 +11,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from gscan.io.camera import Intrinsics
 from gscan.geometry.transforms import look_at, make_T, rotvec_to_R, transform_points
+from gscan.io.camera import Intrinsics
 from gscan.synth.mesh import TexturedMesh, box_mesh
 from gscan.synth.render import DEFAULT_INTRINSICS, DEFAULT_LIGHT_DIR, Gloss, RenderedFrame, SynthScene
 from gscan.synth.textures import procedural_box_texture
@@ -117,7 +117,8 @@ def write_capture(out_dir: str | Path, frames: list[RenderedFrame], intr: Intrin
     np.savetxt(out / "cam_K.txt", intr.K, fmt="%.10g")
     for name, f in zip(names, frames):
         if f.color.shape[:2] != (intr.height, intr.width):
-            raise ValueError(f"frame {name} is {f.color.shape[1]}x{f.color.shape[0]}, intrinsics {intr.width}x{intr.height}")
+            raise ValueError(f"frame {name} is {f.color.shape[1]}x{f.color.shape[0]}, "
+                             f"intrinsics {intr.width}x{intr.height}")
         bgr = cv2.cvtColor(f.color, cv2.COLOR_RGB2BGR)
         ok = (cv2.imwrite(str(out / "rgb" / f"{name}.jpg"), bgr, [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)])
               if jpeg else cv2.imwrite(str(out / "rgb" / f"{name}.png"), bgr))
@@ -163,8 +164,9 @@ def render_capture(mesh: TexturedMesh, out_dir: str | Path | None, n_views: int,
     rng = np.random.default_rng([seed, 0xCA9])
     T_world_obj = rest_on_table(mesh, R_world_obj)
     if distractor_meshes is None:
-        distractor_meshes = [box_mesh(rng.uniform(0.05, 0.12, 3), procedural_box_texture(seed * 100 + 17 + i, (512, 768)),
-                                      name=f"distractor_{i}") for i in range(distractors)]
+        distractor_meshes = [box_mesh(rng.uniform(0.05, 0.12, 3),
+                                      procedural_box_texture(seed * 100 + 17 + i, (512, 768)), name=f"distractor_{i}")
+                             for i in range(distractors)]
     else:
         distractor_meshes = list(distractor_meshes)[:distractors]
     d_poses = place_distractors(mesh, T_world_obj, distractor_meshes, rng)

@@ -112,7 +112,7 @@ def load_textured_mesh(path_obj: str | Path, scale: float = 1.0) -> TexturedMesh
         raise not_a_file(path, "mesh file")
     try:
         tm = trimesh.load(str(path), force="mesh", process=False)
-    except Exception as e:  # trimesh raises many exception types for malformed files
+    except Exception as e:  # noqa: BLE001 - trimesh raises many exception types for malformed files
         raise InputError(path, f"cannot load mesh ({e.__class__.__name__}: {e})") from None
     if not isinstance(tm, trimesh.Trimesh) or len(tm.faces) == 0:
         raise InputError(path, "file holds no triangles")
@@ -178,8 +178,8 @@ def box_mesh(size_xyz: tuple[float, float, float] | np.ndarray, texture: np.ndar
     dims = [(float(abs(np.dot(a, s))), float(abs(np.dot(b, s)))) for _, a, b in _BOX_FACES]
     k = min(min(cw / da, ch / db) for da, db in dims)  # texels per metre
     corners, uvs = [], []
-    for i, ((n, a, b), (da, db)) in enumerate(zip(_BOX_FACES, dims)):
-        n, a, b = (np.asarray(x, dtype=float) for x in (n, a, b))
+    for i, (face_axes, (da, db)) in enumerate(zip(_BOX_FACES, dims)):
+        n, a, b = (np.asarray(x, dtype=float) for x in face_axes)
         c0 = n * 0.5 * abs(np.dot(n, s))
         cx, cy = (i % cols) * w / cols + w / cols / 2, (i // cols) * h / rows + h / rows / 2
         pw, ph = da * k / 2, db * k / 2
@@ -208,7 +208,9 @@ def cylinder_mesh(radius: float, height: float, texture: np.ndarray, name: str =
     a = 2 * np.pi * np.arange(segments + 1) / segments
     ring = np.stack([radius * np.cos(a), radius * np.sin(a)], 1)  # [S+1 x 2], last = first
     lo, hi = -0.5 * height, 0.5 * height
-    verts, tris, uvs = [], [], []
+    verts: list[tuple[float, float, float]] = []
+    tris: list[list[int]] = []
+    uvs: list[list[tuple[float, float]]] = []
 
     def face(p0, p1, p2, t0, t1, t2) -> None:
         k = len(verts)
@@ -258,7 +260,7 @@ def save_textured_mesh(mesh: TexturedMesh, obj_path: str | Path) -> Path:
 
 def texture_pyramid(texture: np.ndarray, min_size: int = 4) -> list[np.ndarray]:
     """Mip-map pyramid: list of float32 images, each half the size of the previous (area filter)."""
-    levels = [texture.astype(np.float32)]
+    levels: list[np.ndarray] = [texture.astype(np.float32)]
     while min(levels[-1].shape[:2]) >= 2 * min_size:
         prev = levels[-1]
         levels.append(cv2.resize(prev, (prev.shape[1] // 2, prev.shape[0] // 2), interpolation=cv2.INTER_AREA))
@@ -266,7 +268,8 @@ def texture_pyramid(texture: np.ndarray, min_size: int = 4) -> list[np.ndarray]:
 
 
 def sample_bilinear(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Bilinear lookup of [h x w x C] `image` at [N x 2] OBJ UVs (v up; outside [0, 1] wraps). Returns [N x C] float32."""
+    """Bilinear lookup of [h x w x C] `image` at [N x 2] OBJ UVs (v up; outside [0, 1] wraps). Returns [N x C]
+    float32."""
     uv = np.asarray(uv, dtype=np.float64)
     u, v = uv[:, 0], uv[:, 1]
     u = np.where((u < 0) | (u > 1), u - np.floor(u), u)

@@ -15,8 +15,8 @@ import cv2
 import numpy as np
 import open3d as o3d
 
-from gscan.io.camera import Intrinsics, pixel_rays
 from gscan.geometry.transforms import inv_T
+from gscan.io.camera import Intrinsics, pixel_rays
 from gscan.synth.mesh import TexturedMesh, sample_mip_pixels, texture_pyramid
 from gscan.synth.noise import DepthNoise, apply_depth_noise
 from gscan.synth.textures import table_texture
@@ -122,7 +122,8 @@ class SynthScene:
         self._scenes = []
         for m in self.meshes:
             sc = o3d.t.geometry.RaycastingScene()
-            sc.add_triangles(o3d.core.Tensor(m.vertices.astype(np.float32)), o3d.core.Tensor(m.triangles.astype(np.uint32)))
+            sc.add_triangles(o3d.core.Tensor.from_numpy(m.vertices.astype(np.float32)),
+                             o3d.core.Tensor.from_numpy(m.triangles.astype(np.uint32)))
             self._scenes.append(sc)
         self._density = [m.texels_per_metre() for m in self.meshes]
         self._pyramids = [m.pyramid() for m in self.meshes]
@@ -150,7 +151,7 @@ class SynthScene:
     def _cast_objects(self, origin_w: np.ndarray, dirs_w: np.ndarray, T_wo: np.ndarray) -> dict[str, np.ndarray]:
         """First hits of rays (origin [3], dirs [N x 3] float32 world) over all objects."""
         n = len(dirs_w)
-        best = {"t": np.full(n, np.inf, np.float32), "label": np.full(n, -1, np.int16),
+        best: dict[str, np.ndarray] = {"t": np.full(n, np.inf, np.float32), "label": np.full(n, -1, np.int16),
                 "prim": np.zeros(n, np.int64), "bary": np.zeros((n, 2), np.float32),
                 "normal": np.zeros((n, 3), np.float32)}
         rays = np.empty((n, 6), np.float32)
@@ -195,7 +196,7 @@ class SynthScene:
             T_ow = inv_T(T_wo[k])
             o = _xform(pts_w[cand], T_ow[:3, :3], T_ow[:3, 3])
             d = _xform(np.ascontiguousarray(dirs[cand]), T_ow[:3, :3])
-            rays = o3d.core.Tensor(np.concatenate([o, d], axis=1).astype(np.float32))
+            rays = o3d.core.Tensor.from_numpy(np.concatenate([o, d], axis=1).astype(np.float32))
             occ[cand] |= sc.test_occlusions(rays, tnear=1e-4, tfar=tfar).numpy().astype(bool)
         return occ
 
@@ -268,7 +269,7 @@ class SynthScene:
         footprint = np.zeros(len(t), np.float32)
         footprint[hit_idx] = t[hit_idx] / intr.fx / np.sqrt(np.maximum(cos_view[hit_idx], 0.05))
 
-        rgb = np.empty((len(t), 3), np.float32)
+        rgb: np.ndarray = np.empty((len(t), 3), np.float32)
         rgb[:] = self.background_rgb
         for k in range(len(self.meshes)):
             sel = np.flatnonzero(label == k)
@@ -284,6 +285,7 @@ class SynthScene:
                                 (_SURF_WALL, self._wall_pyr, self._wall_density)):
             sel = np.flatnonzero(surf == code)
             if len(sel):
+                assert pyr is not None  # a surface code only where that surface was rendered
                 rgb[sel] = sample_mip_pixels(pyr, plane_uv[sel], np.log2(np.maximum(footprint[sel] * dens, 1e-6)),
                                              sel // W, sel % W)
 

@@ -44,12 +44,13 @@ def random_word(rng: np.random.Generator, n_min: int = 3, n_max: int = 9) -> str
 def _color(rng: np.random.Generator, dark: bool | None = None,
            palette: np.ndarray | None = None) -> tuple[int, int, int]:
     if palette is not None and dark is None:  # brand colour with slight jitter
-        c = palette[rng.integers(len(palette))] + rng.integers(-12, 13, 3)
-        return tuple(int(x) for x in np.clip(c, 0, 255))
-    if dark is None:
-        return tuple(int(c) for c in rng.integers(0, 256, 3))
-    lo, hi = (0, 110) if dark else (150, 256)
-    return tuple(int(c) for c in rng.integers(lo, hi, 3))
+        c = np.clip(palette[rng.integers(len(palette))] + rng.integers(-12, 13, 3), 0, 255)
+    elif dark is None:
+        c = rng.integers(0, 256, 3)
+    else:
+        lo, hi = (0, 110) if dark else (150, 256)
+        c = rng.integers(lo, hi, 3)
+    return (int(c[0]), int(c[1]), int(c[2]))
 
 
 def _put_text(img: np.ndarray, rng: np.random.Generator, text: str, org: tuple[int, int], height_px: float,

@@ -8,7 +8,7 @@ from __future__ import annotations
 import io
 import json
 import math
-from typing import Any
+from typing import Any, overload
 
 import cv2
 import numpy as np
@@ -39,6 +39,12 @@ def _shape_text(shape: tuple[int | None, ...]) -> str:
     return "[" + " x ".join("N" if s is None else str(s) for s in shape) + "]"
 
 
+@overload
+def decode_array(b: bytes, shape: tuple[int | None, ...] | None = None) -> np.ndarray: ...
+@overload
+def decode_array(b: None, shape: tuple[int | None, ...] | None = None) -> None: ...
+@overload
+def decode_array(b: bytes | None, shape: tuple[int | None, ...] | None = None) -> np.ndarray | None: ...
 def decode_array(b: bytes | None, shape: tuple[int | None, ...] | None = None) -> np.ndarray | None:
     """A stored array (None stays None); `shape` (None = any size along that axis) is checked when given.
 
@@ -132,6 +138,12 @@ def decode_image(b: bytes, dtype: type, channels: int, size_wh: tuple[int, int])
     return img
 
 
+@overload
+def decode_T(b: bytes) -> np.ndarray: ...
+@overload
+def decode_T(b: None) -> None: ...
+@overload
+def decode_T(b: bytes | None) -> np.ndarray | None: ...
 def decode_T(b: bytes | None) -> np.ndarray | None:
     """A stored [4 x 4] transform (None stays None)."""
     if b is None:
@@ -142,6 +154,12 @@ def decode_T(b: bytes | None) -> np.ndarray | None:
     return T
 
 
+@overload
+def check_T(T: np.ndarray) -> np.ndarray: ...
+@overload
+def check_T(T: None) -> None: ...
+@overload
+def check_T(T: np.ndarray | None) -> np.ndarray | None: ...
 def check_T(T: np.ndarray | None) -> np.ndarray | None:
     if T is None:
         return None

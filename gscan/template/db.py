@@ -26,9 +26,10 @@ import json
 import logging
 import sqlite3
 import threading
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager, suppress
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Concatenate, ParamSpec, TypeVar
 
 import cv2
 import numpy as np
@@ -40,9 +41,23 @@ from gscan.geometry.transforms import is_rigid
 from gscan.io.camera import Intrinsics
 from gscan.io.images import image_too_large
 from gscan.io.output import JOURNAL_SUFFIX, Output, file_identity, write_failure_reason
-from gscan.template.codec import (BadBlob, TooLarge, check_colors, check_keypoints, check_mesh, check_T, decode_array,
-                                  decode_image, decode_json, decode_T, encode_array, encode_color, encode_depth,
-                                  encode_mask)
+from gscan.template.codec import (
+    BadBlob,
+    TooLarge,
+    check_colors,
+    check_keypoints,
+    check_mesh,
+    check_T,
+    decode_array,
+    decode_image,
+    decode_json,
+    decode_T,
+    encode_array,
+    encode_color,
+    encode_depth,
+    encode_mask,
+)
+
 # the records live in gscan.template.records; they are imported from here as well
 from gscan.template.records import Edge, Template, TemplateSummary, View
 
@@ -54,6 +69,8 @@ SCHEMA_VERSION = 1
 FEATURE_ROLES = ("registration", "object")
 APPLICATION_ID = 0x6753434E  # "gSCN", PRAGMA application_id of every gscan database
 _SQLITE_MAGIC = b"SQLite format 3\x00"
+# SQLite's primary result codes (the sqlite3 module names them only from Python 3.11; the values are SQLite's)
+_SQLITE_BUSY, _SQLITE_LOCKED, _SQLITE_READONLY, _SQLITE_IOERR, _SQLITE_FULL, _SQLITE_CANTOPEN = 5, 6, 8, 10, 13, 14
 _SQLITE_READONLY_DBMOVED = 1032  # SQLITE_READONLY | (4 << 8): the file was unlinked or renamed under the connection
 
 _SCHEMA = """
@@ -78,10 +95,14 @@ CREATE TABLE grasps (name TEXT PRIMARY KEY, T_obj_grasp BLOB NOT NULL);
 
 
 # ------------------------------------------------------------------------------------------ helpers
-def _decodes(method):
+P = ParamSpec("P")
+R = TypeVar("R")
+
+
+def _decodes(method: Callable[Concatenate[TemplateDB, P], R]) -> Callable[Concatenate[TemplateDB, P], R]:
     """TemplateDB reads: a stored value that does not decode is a corrupt database, an InputError naming it."""
     @functools.wraps(method)
-    def wrapper(self, *args, **kwargs):
+    def wrapper(self: TemplateDB, *args: P.args, **kwargs: P.kwargs) -> R:
         try:
             return method(self, *args, **kwargs)
         except TooLarge as e:
@@ -120,7 +141,7 @@ class TemplateDB:
 
     def __init__(self, path: Path, conn: sqlite3.Connection, writable: bool):
         self.path = path
-        self._conn = conn
+        self._conn: sqlite3.Connection | None = conn
         self._writable = writable
         self._lock = threading.RLock()
 
@@ -133,7 +154,7 @@ class TemplateDB:
         return conn
 
     @classmethod
-    def create(cls, path: str | Path, force: bool = False, meta: dict | None = None) -> "TemplateDB":
+    def create(cls, path: str | Path, force: bool = False, meta: dict | None = None) -> TemplateDB:
         """Create a new database at `path` with status "partial".
 
         An existing `path` is refused (OutputExists) unless `force`, which replaces it; without `force`
@@ -180,7 +201,7 @@ class TemplateDB:
         return db
 
     @classmethod
-    def open(cls, path: str | Path, require_complete: bool = True, writable: bool = False) -> "TemplateDB":
+    def open(cls, path: str | Path, require_complete: bool = True, writable: bool = False) -> TemplateDB:
         """Open an existing database. InputError (one line naming the file) when the file is missing,
         not SQLite, not a gscan database, of an unsupported schema, or partial while `require_complete`."""
         path = Path(path)
@@ -207,9 +228,11 @@ class TemplateDB:
         except (sqlite3.DatabaseError, ValueError, RecursionError) as e:
             if conn is not None:
                 conn.close()
-            raise InputError(path, f"corrupt or unreadable template database ({e.__class__.__name__}: {e})"[:300]) from None
+            raise InputError(path, f"corrupt or unreadable template database ({e.__class__.__name__}: {e})"[:300]
+                             ) from None
         except InputError:
-            conn.close()
+            if conn is not None:
+                conn.close()
             raise
         if not isinstance(schema, int) or schema < 1:
             conn.close()
@@ -229,7 +252,7 @@ class TemplateDB:
                 self._conn.close()
                 self._conn = None
 
-    def __enter__(self) -> "TemplateDB":
+    def __enter__(self) -> TemplateDB:
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -241,7 +264,7 @@ class TemplateDB:
         if not self._writable:
             raise GscanError(f"{self.path}: opened read-only")
         with self._lock:
-            c = self._conn
+            c = self._live()
             try:
                 c.execute("BEGIN IMMEDIATE")
                 try:
@@ -256,10 +279,15 @@ class TemplateDB:
                     raise
                 raise self._corrupt(e) from None
 
+    def _live(self) -> sqlite3.Connection:
+        if self._conn is None:
+            raise GscanError(f"{self.path}: the template database is closed")
+        return self._conn
+
     def _q(self, sql: str, args: tuple = ()) -> list[tuple]:
         with self._lock:
             try:
-                return self._conn.execute(sql, args).fetchall()
+                return self._live().execute(sql, args).fetchall()
             except sqlite3.DatabaseError as e:
                 raise self._corrupt(e) from None
 
@@ -269,19 +297,19 @@ class TemplateDB:
         too long, or else corruption. Bad input naming the database, not an internal error."""
         code = getattr(e, "sqlite_errorcode", None)
         primary = None if code is None else code & 0xFF
-        if primary == sqlite3.SQLITE_FULL:
+        if primary == _SQLITE_FULL:
             return InputError(self.path, "cannot write the template database: no space left on the device (disk full)")
-        if primary == sqlite3.SQLITE_IOERR:
+        if primary == _SQLITE_IOERR:
             why = write_failure_reason(self.path) or f"an I/O error ({e})"
             return InputError(self.path, f"cannot write the template database: {why}")
         if code == _SQLITE_READONLY_DBMOVED:
             return InputError(self.path, "cannot write the template database: the file was moved or replaced "
                               "(by another process) while this one wrote it")
-        if primary == sqlite3.SQLITE_READONLY or "readonly" in str(e):
+        if primary == _SQLITE_READONLY or "readonly" in str(e):
             return InputError(self.path, "cannot write the template database (a read-only file or folder)")
-        if primary in (sqlite3.SQLITE_BUSY, sqlite3.SQLITE_LOCKED):
+        if primary in (_SQLITE_BUSY, _SQLITE_LOCKED):
             return InputError(self.path, "the template database is locked by another process (waited 30 s)")
-        if primary == sqlite3.SQLITE_CANTOPEN:
+        if primary == _SQLITE_CANTOPEN:
             return InputError(self.path, f"cannot open the template database or its journal beside it ({e})")
         return InputError(self.path, f"corrupt template database ({e.__class__.__name__}: {e})")
 
@@ -339,6 +367,7 @@ class TemplateDB:
                 c.execute("DELETE FROM views WHERE id=?", (old[0],))
             vid = c.execute("INSERT INTO views(name, input_index, intrinsics, T_obj_cam, color, color_codec, depth, "
                             "mask, keyframe, quality) VALUES (?,?,?,?,?,?,?,?,?,?)", row).lastrowid
+            assert vid is not None  # the id of the row just inserted
             if features is not None:
                 self._put_features(c, vid, features)
         return int(vid)
@@ -370,7 +399,7 @@ class TemplateDB:
 
     @_decodes
     def _row_to_view(self, r: tuple, load_images: bool) -> View:
-        name, idx, intr, T, color, codec, depth, mask, kf, q = r
+        name, idx, intr, T, color, _codec, depth, mask, kf, q = r
         try:
             K = Intrinsics.from_dict(decode_json(intr))
         except (KeyError, TypeError, ValueError) as e:
@@ -454,7 +483,10 @@ class TemplateDB:
         if edge.kind not in ("sequential", "loop"):
             raise ValueError(f"edge kind must be 'sequential' or 'loop', not {edge.kind!r}")
         m = np.asarray(edge.matches, dtype=np.int32).reshape(-1, 2)
-        f = (lambda x: None if x is None else float(x))
+
+        def f(x: float | None) -> float | None:
+            return None if x is None else float(x)
+
         with self._tx() as c:
             c.execute("DELETE FROM edges WHERE src=? AND tgt=?", (edge.src, edge.tgt))
             c.execute("INSERT INTO edges(src, tgt, T_tgt_src, matches, cost, rmse, fitness, kind, accepted, reason) "

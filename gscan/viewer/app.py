@@ -35,10 +35,10 @@ import numpy as np
 from gscan.errors import InputError
 from gscan.io.camera import RGBDFrame
 from gscan.template.db import Edge, View, unregistered_names
+from gscan.viewer.access import TokenGate, check_token
 from gscan.viewer.data import ViewerData, ViewerOptions, load_viewer_data
 from gscan.viewer.draw import draw_keypoints, draw_matches, legend_html
 from gscan.viewer.scene import build_scene
-from gscan.viewer.access import TokenGate, check_token
 from gscan.viewer.text import md_text
 
 log = logging.getLogger(__name__)
@@ -136,12 +136,18 @@ class ViewerApp:
             self._edge_dropdown.value = label
             self._show_edge(self._edge_labels.get(label))
 
+    def _show_layer(self, key: str, visible: bool) -> None:
+        for h in self.layers[key]:
+            h.visible = visible
+
     def go_to_view(self, name: str | None = None) -> None:
         """Move every connected browser's camera to the pose of view `name` (default: the selected one)."""
         name = name or self._current
-        if name is None or self._by_name[name].T_obj_cam is None:
+        if name is None:
             return
         v = self._by_name[name]
+        if v.T_obj_cam is None:
+            return
         R, t = v.T_obj_cam[:3, :3], v.T_obj_cam[:3, 3]
         depth = max(float((self.data.center - t) @ R[:, 2]), 0.1 * self.data.size)
         fov = 2.0 * np.arctan2(v.intrinsics.height / 2.0, v.intrinsics.fy)
@@ -184,7 +190,7 @@ class ViewerApp:
             for label, key in toggles:
                 if self.layers.get(key):
                     cb = gui.add_checkbox(label, initial_value=all(h.visible for h in self.layers[key]))
-                    cb.on_update(lambda ev, k=key: [setattr(h, "visible", ev.target.value) for h in self.layers[k]])
+                    cb.on_update(lambda ev, k=key: self._show_layer(k, ev.target.value))
             base = 0.004 * d.size * 1000.0
             ps = gui.add_slider("Point size (mm)", min=0.1, max=round(max(4 * base, 1.0), 1), step=0.1,
                                 initial_value=round(base, 1))

@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 
 from gscan.capture.record import FrameUpdate
-from gscan.viewer.app import PortInUseError, quiet_websockets, check_port
+from gscan.viewer.app import PortInUseError, check_port, quiet_websockets
 from gscan.viewer.draw import thumbnail
 from gscan.viewer.scene import quat_wxyz
 

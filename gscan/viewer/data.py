@@ -100,7 +100,7 @@ def _object_box(d: ViewerData) -> tuple[np.ndarray, float]:
     reg = d.registered
     kp = [d.keypoints[v.name][1] for v in reg if len(d.keypoints[v.name][1])]
     cands.append(np.concatenate(kp) if kp else None)
-    cands.append(np.array([v.T_obj_cam[:3, 3] for v in reg]) if len(reg) >= 2 else None)
+    cands.append(np.array([v.T_obj_cam[:3, 3] for v in reg if v.T_obj_cam is not None]) if len(reg) >= 2 else None)
     for pts in cands:
         if pts is not None and len(pts):
             pts = np.asarray(pts, dtype=np.float64)

@@ -11,6 +11,11 @@ from gscan.template.db import Edge
 QUERY_CAMERA_COLOR = (40, 120, 255)  # the frustum of a query frame placed by an estimated pose
 
 
+def _rgb(c: np.ndarray) -> tuple[int, int, int]:
+    """[3] colour components, rounded to integers."""
+    return (int(round(c[0])), int(round(c[1])), int(round(c[2])))
+
+
 def quality_color(q: float | None) -> tuple[int, int, int]:
     """Quality in [0, 1] (1 best) -> RGB: green (1) .. yellow (0.5) .. red (0); grey when None."""
     if q is None or not np.isfinite(q):
@@ -18,7 +23,7 @@ def quality_color(q: float | None) -> tuple[int, int, int]:
     q = float(np.clip(q, 0.0, 1.0))
     good, mid, bad = np.array([30, 190, 60]), np.array([240, 200, 0]), np.array([220, 30, 30])
     c = mid + (good - mid) * (q - 0.5) * 2 if q >= 0.5 else bad + (mid - bad) * q * 2
-    return tuple(int(round(x)) for x in c)
+    return _rgb(c)
 
 
 def edge_color(edge: Edge, rmse_red_m: float) -> tuple[int, int, int]:
@@ -30,7 +35,7 @@ def edge_color(edge: Edge, rmse_red_m: float) -> tuple[int, int, int]:
     t = float(np.clip(edge.rmse / rmse_red_m, 0.0, 1.0))
     if edge.kind == "loop":
         lo, hi = np.array([0, 200, 230]), np.array([230, 0, 200])
-        return tuple(int(round(x)) for x in lo + (hi - lo) * t)
+        return _rgb(lo + (hi - lo) * t)
     return quality_color(1.0 - t)
 
 

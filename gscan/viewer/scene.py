@@ -16,7 +16,7 @@ from scipy.spatial.transform import Rotation
 
 from gscan.geometry.transforms import inv_T, transform_points
 from gscan.io.camera import Intrinsics, RGBDFrame, point_cloud
-from gscan.template.db import MeshData
+from gscan.template.db import MeshData, View
 from gscan.viewer.data import ViewerData, ViewerOptions
 from gscan.viewer.draw import QUERY_CAMERA_COLOR, edge_color, hue_colors, quality_color, thumbnail
 
@@ -45,12 +45,12 @@ def build_scene(server: Any, data: ViewerData, options: ViewerOptions, frame: RG
     s = d.size
     reg = d.registered
     # Scene up: the nearest axis to the cameras' mean image-up direction (-y of each camera).
-    ups = np.array([-v.T_obj_cam[:3, 1] for v in reg]) if reg else np.array([[0.0, 0.0, 1.0]])
+    ups = np.array([-_pose(v)[:3, 1] for v in reg]) if reg else np.array([[0.0, 0.0, 1.0]])
     up = ups.mean(0) / max(np.linalg.norm(ups.mean(0)), 1e-9)
     axis = int(np.argmax(np.abs(up)))
     sc.set_up_direction(("+" if up[axis] > 0 else "-") + "xyz"[axis])
     if reg:  # beyond the first view's camera, raised along "up", far enough to see every frustum
-        cams = np.array([v.T_obj_cam[:3, 3] for v in reg])
+        cams = np.array([_pose(v)[:3, 3] for v in reg])
         dist = float(np.median(np.linalg.norm(cams - d.center, axis=1)))
         d0 = cams[0] - d.center
         d0 = d0 - (d0 @ up) * up
@@ -63,7 +63,7 @@ def build_scene(server: Any, data: ViewerData, options: ViewerOptions, frame: RG
     # Frustum size: a quarter of the object, less where cameras are dense (half the median spacing).
     frustum_scale = 0.25 * s
     if len(reg) >= 2:
-        cams = np.array([v.T_obj_cam[:3, 3] for v in reg])
+        cams = np.array([_pose(v)[:3, 3] for v in reg])
         spacing = float(np.median(cKDTree(cams).query(cams, k=2)[0][:, 1]))
         if spacing > 1e-6:
             frustum_scale = min(frustum_scale, 0.5 * spacing)
@@ -93,9 +93,9 @@ def build_scene(server: Any, data: ViewerData, options: ViewerOptions, frame: RG
                                                       visible=False))
     for v in reg:
         layers["frustums"].append(_add_frustum(sc, o, frustum_scale, f"/views/{_node(v.name)}", v.intrinsics,
-                                               v.T_obj_cam, d.thumbs[v.name], quality_color(d.quality[v.name]),
+                                               _pose(v), d.thumbs[v.name], quality_color(d.quality[v.name]),
                                                _on_click(on_select_view, v.name)))
-    centres = {v.name: v.T_obj_cam[:3, 3] for v in reg}
+    centres = {v.name: _pose(v)[:3, 3] for v in reg}
     for key, accepted, width in (("edges", True, 3.0), ("rejected", False, 1.5)):
         es = [e for e in d.edges if e.accepted == accepted and e.src in centres and e.tgt in centres]
         if es:
@@ -153,6 +153,12 @@ def _add_frustum(sc: Any, o: ViewerOptions, scale: float, node: str, intr: Intri
     return h
 
 
+def _pose(v: View) -> np.ndarray:
+    """T_obj_cam [4 x 4] of a registered view (`ViewerData.registered`)."""
+    assert v.T_obj_cam is not None
+    return v.T_obj_cam
+
+
 def _clear_direction(d0: np.ndarray, up: np.ndarray, cam_dirs: np.ndarray) -> np.ndarray:
     """Unit direction from the object to the start camera: 58 deg above the horizon beyond the first view's
     camera (horizontal unit d0), unless a view's camera (cam_dirs [N x 3]) lies within 20 deg of it; then the
@@ -160,7 +166,8 @@ def _clear_direction(d0: np.ndarray, up: np.ndarray, cam_dirs: np.ndarray) -> np
     most, so that no frustum and its snapshot hide the object (a CAD template's views cover the sphere)."""
     side = np.cross(up, d0)
     cams = cam_dirs / np.maximum(np.linalg.norm(cam_dirs, axis=1, keepdims=True), 1e-12)
-    best, best_gap = None, -1.0
+    best: np.ndarray | None = None
+    best_gap = -1.0
     for el in np.radians([58.0, 45.0, 70.0, 35.0]):
         for az in np.radians([0.0, 15.0, -15.0, 30.0, -30.0, 45.0, -45.0, 90.0, -90.0, 135.0, -135.0, 180.0]):
             c = np.cos(el) * (np.cos(az) * d0 + np.sin(az) * side) + np.sin(el) * up
@@ -169,7 +176,7 @@ def _clear_direction(d0: np.ndarray, up: np.ndarray, cam_dirs: np.ndarray) -> np
                 return c
             if gap > best_gap:
                 best, best_gap = c, gap
-    return best
+    return best if best is not None else d0  # d0: every gap undefined (degenerate directions)
 
 
 def quat_wxyz(R: np.ndarray) -> np.ndarray:

@@ -53,7 +53,8 @@ class ImageMsg:
     depth_units: float = 0.0
 
     def problem(self, channels_bytes: int) -> str | None:
-        """Why the pixels cannot be read as width x height pixels of `channels_bytes` bytes each (None when they can)."""
+        """Why the pixels cannot be read as width x height pixels of `channels_bytes` bytes each (None when they
+        can)."""
         if self.height <= 0 or self.width <= 0:
             return f"image is {self.width}x{self.height}"
         too_large = image_too_large(self.width, self.height)  # the limit every image gscan reads is held to

@@ -27,9 +27,9 @@ from types import TracebackType
 import numpy as np
 
 from gscan.errors import InputError
+from gscan.io.align import align_depth_to_color
 from gscan.io.camera import FrameIteration, Intrinsics, RGBDFrame, load_intrinsics
 from gscan.io.images import check_depth_range, check_depth_scale
-from gscan.io.align import align_depth_to_color
 from gscan.io.recordings.kinds import recording_format
 from gscan.io.recordings.messages import (
     COLOR_ENCODINGS,
@@ -64,7 +64,8 @@ class _Pair:
 
 def _size_problem(msg: ImageMsg, intr: Intrinsics, info_topic_of: str) -> str | None:
     if (msg.width, msg.height) != (intr.width, intr.height):
-        return f"image is {msg.width}x{msg.height} but the CameraInfo of {info_topic_of} is for {intr.width}x{intr.height}"
+        return (f"image is {msg.width}x{msg.height} but the CameraInfo of {info_topic_of} is for "
+                f"{intr.width}x{intr.height}")
     return None
 
 
@@ -93,6 +94,7 @@ class RecordingSequence(FrameIteration):
         self.aligned = not setup.registered  # registered depth takes the colour intrinsics (and an override) as is
         self.gt_T_cam_obj: dict[str, np.ndarray] | None = None
         self.gt_T_world_cam: dict[str, np.ndarray] | None = None
+        self.gt_problems: dict[str, str] = {}  # a recording carries no ground truth: none unreadable either
         self.has_masks = False
         self.obj_id: int | None = None
         self._src: MessageSource | None = src
@@ -118,7 +120,7 @@ class RecordingSequence(FrameIteration):
         times; the pixels themselves are not read."""
         files = sorted(self.root.rglob("*")) if self.root.is_dir() else [self.root]
         size = sum(f.stat().st_size for f in files if f.is_file())
-        out: dict[str, dict[str, str] | None] = {name: None for name in self.problems}
+        out: dict[str, dict[str, str] | None] = dict.fromkeys(self.problems)
         for name, (_, p) in self._pairs.items():
             out[name] = {"recording": f"{size}:{p.color[0]}.{p.color[1]}/{p.depth[0]}.{p.depth[1]}/{p.stamp_ns}"}
         return out
@@ -138,7 +140,7 @@ class RecordingSequence(FrameIteration):
                 self._src.close()
                 self._src = None
 
-    def __enter__(self) -> RecordingSequence:  # noqa: PYI034
+    def __enter__(self) -> RecordingSequence:
         return self
 
     def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
@@ -149,7 +151,7 @@ class RecordingSequence(FrameIteration):
         try:  # not contextlib: at interpreter shutdown module globals may already be gone
             if self._src is not None:
                 self._src.close()
-        except Exception:  # noqa: BLE001, S110 - nothing to do about a reader torn down half-way
+        except Exception:  # noqa: BLE001 - nothing to do about a reader torn down half-way
             pass
 
     # ------------------------------------------------------------------ reading
@@ -403,7 +405,8 @@ def _open(path: Path, fmt: str, src: MessageSource, color_topic: str | None, dep
         break
     if not seq.names:
         first_p = next(iter(seq.problems.items()))
-        raise InputError(path, f"no usable RGB-D frame ({len(seq.problems)} unusable); first: {first_p[0]}: {first_p[1]}")
+        raise InputError(path, f"no usable RGB-D frame ({len(seq.problems)} unusable); "
+                         f"first: {first_p[0]}: {first_p[1]}")
     seq._it = None  # the scan starts again from its first frame
     for name, reason in problems.items():
         log.warning("%s: frame %s left out: %s", path, name, reason)
