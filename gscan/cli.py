@@ -576,6 +576,10 @@ def serve(
     templates: list[Path] = typer.Argument(..., metavar="OBJ.gscan...", help="template databases to serve"),
     host: str = typer.Option("127.0.0.1", "--host", help="address to bind (0.0.0.0: every interface)"),
     port: int = typer.Option(8765, "--port", min=0, max=65535, help="port to serve on (0: a free one)"),
+    depth_intrinsics: Optional[Path] = typer.Option(
+        None, "--depth-intrinsics", help="depth not registered to colour: the depth camera's cam_K.txt or Open3D "
+        "intrinsics JSON, for the requests that name none (a request's depth_intrinsics field overrides it)"),
+    depth_to_color: Optional[Path] = typer.Option(None, "--depth-to-color", help=DEPTH_TO_COLOR_HELP),
     verbose: bool = typer.Option(False, "-v", "--verbose", help="log requests' details to stderr"),
 ) -> None:
     """Serve pose estimation over HTTP with the templates kept warm (OpenAPI page at /docs)."""
@@ -584,9 +588,11 @@ def serve(
 
     def ready(url: str) -> None:
         _say("serving ", (", ".join(t.name for t in templates), "bold"), " at ", (url, "bold"),
-             f" (API at {url}/docs; Ctrl+C to stop)")
+             f" (API at {url}/docs; Ctrl+C to stop)"
+             + (f"; depth camera {depth_intrinsics}" if depth_intrinsics is not None else ""))
 
-    run_service(templates, host=host, port=port, on_ready=ready)
+    run_service(templates, host=host, port=port, on_ready=ready, depth_intrinsics=depth_intrinsics,
+                depth_to_color=depth_to_color)
 
 
 # ------------------------------------------------------------------------------------------- grasp
