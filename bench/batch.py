@@ -11,12 +11,14 @@ An untimed scan of the first capture comes first (numba's on-disk cache is fille
 loaded), so neither mode pays a first compilation.
 Reported per pair: both wall times, their ratio (one after another / batch), and the load average (`uptime`)
 before and after each timed part; then the median ratio and its spread, the seconds of each capture in each
-mode, the peak resident memory of each batch task's scan process (ru_maxrss of that child, from wait4) and of
-this process, the Ray runtime's start-up and shutdown (measured alone), the bytes each capture reads and writes
-(capture folder, template), and whether every template equals the first sequential pass's (poses to 1e-9).
+mode (and the CPU seconds of each one after another), the wall and CPU seconds a task's process spends before
+its scan (interpreter and imports; measured alone, 3 times), the peak resident memory of each batch task's scan
+process (ru_maxrss of that child, from wait4) and of this process, the Ray runtime's start-up and shutdown
+(measured alone), the bytes each capture reads and writes (capture folder, template), and whether every template
+equals the first sequential pass's (poses to 1e-9).
 
-    GSCAN_TEST_DATA=../shared/data python bench/batch.py           # 8 captures x 16 views, 320 x 240, 2 workers
-    python bench/batch.py --views 24 --width 640 --repeats 3
+    python bench/batch.py --repeats 4      # 8 captures x 16 views, 320 x 240, 2 workers, 4 pairs
+    python bench/batch.py --views 24 --width 640
 The meshes are read from $GSCAN_TEST_DATA/meshes (default: ../shared/data beside the repository). Rendered
 captures are cached under bench/out/batch/captures/; raw results go to --json (bench/out/batch.json).
 """
@@ -27,6 +29,7 @@ import json
 import os
 import resource
 import shutil
+import subprocess
 import sys
 import time
 from collections.abc import Callable
@@ -39,6 +42,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from gscan.batch.jobs import child_env  # noqa: E402
 from gscan.batch.runtime import ray_runtime  # noqa: E402
 from gscan.batch.scan import run_batch  # noqa: E402
 from gscan.scan.api import scan  # noqa: E402
@@ -96,14 +100,32 @@ def timed(fn: Callable[[], T]) -> tuple[T, float, str, str]:
     return out, time.perf_counter() - t0, before, load()
 
 
-def sequential(caps: Path, names: list[str], out: Path) -> dict[str, float]:
-    """Scan every capture one after another in this process: seconds per capture."""
+def sequential(caps: Path, names: list[str], out: Path) -> tuple[dict[str, float], dict[str, float]]:
+    """Scan every capture one after another in this process: (wall seconds, CPU seconds) per capture."""
     seconds: dict[str, float] = {}
+    cpu: dict[str, float] = {}
     for n in names:
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         scan(caps / n, out / f"{n}.gscan")
-        seconds[n] = time.perf_counter() - t0
-    return seconds
+        seconds[n], cpu[n] = time.perf_counter() - t0, time.process_time() - c0
+    return seconds, cpu
+
+
+def task_start(repeats: int = 3) -> tuple[float, float]:
+    """(wall, CPU) seconds, medians, of what a batch task's process does before its scan: the interpreter and
+    the scan's imports with one thread per pool (`gscan.batch.child`), in the environment the task gets."""
+    walls, cpus = [], []
+    code = "from gscan.batch.child import _limit_threads; _limit_threads()"
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        proc = subprocess.Popen([sys.executable, "-c", code], env=child_env(), cwd=ROOT, stdout=subprocess.DEVNULL,
+                                stderr=subprocess.DEVNULL)
+        _, status, usage = os.wait4(proc.pid, 0)
+        if os.waitstatus_to_exitcode(status) != 0:
+            sys.exit("the task start-up probe failed")
+        walls.append(time.perf_counter() - t0)
+        cpus.append(usage.ru_utime + usage.ru_stime)
+    return float(np.median(walls)), float(np.median(cpus))
 
 
 def start_ray(workers: int) -> None:
@@ -139,18 +161,20 @@ def main() -> None:
     rss_before_ray = rss_mb()
     _, ray_start_s, *ray_load = timed(partial(start_ray, args.workers))
     rss_after_ray = rss_mb()
+    start_wall, start_cpu = task_start()
 
     pairs: list[dict[str, Any]] = []
     first_seq = OUT / "runs" / "sequential0"
     task_s: dict[str, list[float]] = {n: [] for n in names}
     seq_s: dict[str, list[float]] = {n: [] for n in names}
+    seq_cpu: dict[str, list[float]] = {n: [] for n in names}
     task_peak: dict[str, list[float]] = {n: [] for n in names}
     failed: set[str] = set()
     identical = True
     for r in range(args.repeats):
         b_out, s_out = OUT / "runs" / f"batch{r}", OUT / "runs" / f"sequential{r}"
         report, b_s, b_before, b_after = timed(partial(run_batch, caps, b_out, workers=args.workers))
-        seconds, s_s, s_before, s_after = timed(partial(sequential, caps, names, s_out))
+        (seconds, cpu), s_s, s_before, s_after = timed(partial(sequential, caps, names, s_out))
         rows = {row.name: row for row in report.rows}
         for n in names:
             if rows[n].status != "scanned":
@@ -158,6 +182,7 @@ def main() -> None:
                 continue
             task_s[n].append(rows[n].seconds)
             seq_s[n].append(seconds[n])
+            seq_cpu[n].append(cpu[n])
             task_peak[n].append((rows[n].peak_rss_bytes or 0) / 2**20)
             identical &= same(first_seq / f"{n}.gscan", b_out / f"{n}.gscan")
             identical &= same(first_seq / f"{n}.gscan", s_out / f"{n}.gscan")
@@ -169,6 +194,7 @@ def main() -> None:
     ratios = [p["ratio"] for p in pairs]
     all_task = [t for n in names for t in task_s[n]]
     all_seq = [t for n in names for t in seq_s[n]]
+    all_cpu = [t for n in names for t in seq_cpu[n]]
     peaks = [m for n in names for m in task_peak[n]]
     overhead = [a - b for n in names for a, b in zip(task_s[n], seq_s[n])]
     cap_bytes = [folder_bytes(caps / n) for n in names]
@@ -178,7 +204,8 @@ def main() -> None:
         "workers": args.workers, "cpus": os.cpu_count(), "repeats": args.repeats, "pairs": pairs,
         "ratio_median": float(np.median(ratios)), "ratio_min": min(ratios), "ratio_max": max(ratios),
         "ray_start_shutdown_s": ray_start_s, "ray_start_load": ray_load,
-        "per_capture_sequential_s": seq_s, "per_capture_task_s": task_s, "task_peak_rss_mb": task_peak,
+        "per_capture_sequential_s": seq_s, "per_capture_sequential_cpu_s": seq_cpu, "per_capture_task_s": task_s,
+        "task_peak_rss_mb": task_peak, "task_start_wall_s": start_wall, "task_start_cpu_s": start_cpu,
         "process_peak_rss_mb": {"after_warmup_scan": rss_before_ray, "after_ray_start": rss_after_ray,
                                 "after_all": seq_peak},
         "failed": sorted(failed), "identical_poses": identical,
@@ -198,8 +225,11 @@ def main() -> None:
               f"{p['ratio']:.2f} |")
     print(f"\nratio one after another / batch: median {np.median(ratios):.2f}, spread {min(ratios):.2f}-"
           f"{max(ratios):.2f} over {len(ratios)} pairs")
-    print(f"per capture s, median (min-max) over captures and pairs: one after another {spread(all_seq)}; batch "
-          f"task {spread(all_task)} (task minus the same capture one after another: {spread(overhead)})")
+    print(f"per capture s, median (min-max) over captures and pairs: one after another {spread(all_seq)} wall, "
+          f"{spread(all_cpu)} CPU; batch task {spread(all_task)} wall (task minus the same capture one after another: "
+          f"{spread(overhead)})")
+    print(f"a task's process before its scan (interpreter, imports, thread limits): {start_wall:.1f} s wall, "
+          f"{start_cpu:.1f} s CPU (median of 3)")
     print(f"peak memory per batch task (its scan process) MiB: median {np.median(peaks):.0f}, max {max(peaks):.0f}; "
           f"this process: {rss_before_ray:.0f} after the warm-up scan, {rss_after_ray:.0f} after a Ray start, "
           f"{seq_peak:.0f} at the end")
