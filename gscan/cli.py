@@ -578,6 +578,10 @@ def serve(
     templates: list[Path] = typer.Argument(..., metavar="OBJ.gscan...", help="template databases to serve"),
     host: str = typer.Option("127.0.0.1", "--host", help="address to bind (0.0.0.0: every interface)"),
     port: int = typer.Option(8765, "--port", min=0, max=65535, help="port to serve on (0: a free one)"),
+    depth_intrinsics: Path | None = typer.Option(
+        None, "--depth-intrinsics", help="depth not registered to colour: the depth camera's cam_K.txt or Open3D "
+        "intrinsics JSON, for the requests that name none (a request's depth_intrinsics field overrides it)"),
+    depth_to_color: Path | None = typer.Option(None, "--depth-to-color", help=DEPTH_TO_COLOR_HELP),
     verbose: bool = typer.Option(False, "-v", "--verbose", help="log requests' details to stderr"),
 ) -> None:
     """Serve pose estimation over HTTP with the templates kept warm (OpenAPI page at /docs)."""
@@ -586,9 +590,11 @@ def serve(
 
     def ready(url: str) -> None:
         _say("serving ", (", ".join(t.name for t in templates), "bold"), " at ", (url, "bold"),
-             f" (API at {url}/docs; Ctrl+C to stop)")
+             f" (API at {url}/docs; Ctrl+C to stop)"
+             + (f"; depth camera {depth_intrinsics}" if depth_intrinsics is not None else ""))
 
-    run_service(templates, host=host, port=port, on_ready=ready)
+    run_service(templates, host=host, port=port, on_ready=ready, depth_intrinsics=depth_intrinsics,
+                depth_to_color=depth_to_color)
 
 
 # ------------------------------------------------------------------------------------------- grasp
@@ -678,6 +684,37 @@ def _job_error_line(name: str, error: str | None, fix: str | None) -> str:
     return printable(f"{name}: {error or 'failed'}" + (f"; {hint}" if hint else ""))
 
 
+def _start_batch(verbose: bool) -> None:
+    """Logging as asked; exit 2 with the install command when Ray is missing."""
+    _setup_logging(verbose)
+    from gscan.batch.runtime import require_ray
+
+    require_ray()
+
+
+def _run_batch(noun: str, run: Any, json_out: bool, table: Any = None, interrupted: str | None = None) -> Any:
+    """The report of `run(monitor)` (a batch), run under the live progress table with Ray's own messages kept
+    off stdout; then its JSON (--json) or `table(report)`, and a line per failed job."""
+    from gscan.batch.display import RichBatchMonitor
+
+    try:
+        with (contextlib.redirect_stdout(sys.stderr),  # Ray's own messages (a worker died, ...) are not the JSON
+              RichBatchMonitor(err, live=err.is_terminal, escape=printable, noun=noun) as monitor):
+            report = run(monitor if err.is_terminal or not json_out else None)
+    except KeyboardInterrupt:
+        if interrupted:
+            _say_interrupted(interrupted)
+        raise
+    if json_out:
+        _print_json(report.to_json())
+    elif table is not None:
+        table(report)
+    for row in report.rows:
+        if row.status == "failed":
+            _say(("failed ", "red"), _job_error_line(row.name, row.error, row.fix))
+    return report
+
+
 @app.command()
 def batch(
     captures_dir: Path = typer.Argument(..., help="folder of capture folders and recordings (.bag, .db3, .mcap, "
@@ -697,28 +734,14 @@ def batch(
 
     A complete template is skipped, a partial one resumed; a failing capture does not stop the others.
     Exit code 0 when every capture succeeded, 2 when some had bad input, 1 otherwise."""
-    _setup_logging(verbose)
-    from gscan.batch.runtime import require_ray
-
-    require_ray()
-    from gscan.batch.display import RichBatchMonitor
+    _start_batch(verbose)
     from gscan.batch.scan import run_batch
 
-    try:
-        with (contextlib.redirect_stdout(sys.stderr),  # Ray's own messages (a worker died, ...) are not the JSON
-              RichBatchMonitor(err, live=err.is_terminal, escape=printable, noun="captures") as monitor):
-            report = run_batch(captures_dir, output, config=config, address=address, workers=workers,
-                               force=force, monitor=monitor if err.is_terminal or not json_out else None)
-    except KeyboardInterrupt:
-        _say_interrupted("interrupted: the templates finished are kept; run the command again to resume the others")
-        raise
-    if json_out:
-        _print_json(report.to_json())
-    else:
-        _print_batch_table(report)
-    for row in report.rows:
-        if row.status == "failed":
-            _say(("failed ", "red"), _job_error_line(row.name, row.error, row.fix))
+    report = _run_batch("captures", lambda monitor: run_batch(captures_dir, output, config=config, address=address,
+                                                              workers=workers, force=force, monitor=monitor),
+                        json_out, table=_print_batch_table,
+                        interrupted="interrupted: the templates finished are kept; run the command again to resume "
+                                    "the others")
     s = report.summary()
     _say((f"{s['captures']} captures", "bold"), f": {s['scanned']} scanned, {s['resumed']} resumed, "
          f"{s['skipped']} skipped, {s['failed']} failed in {report.seconds:.1f} s"
@@ -769,28 +792,17 @@ def batch_eval(
 
     Pairs: NAME.gscan in TEMPLATES_DIR with SCENES_DIR/NAME, or the rows of --manifest.
     Exit code 0 when every pair was evaluated, 2 when some had bad input, 1 otherwise."""
-    _setup_logging(verbose)
-    from gscan.batch.runtime import require_ray
-
-    require_ray()
+    _start_batch(verbose)
     if manifest is not None and (templates_dir is not None or scenes_dir is not None):
         raise UsageError(manifest, "--manifest names the pairs: leave out TEMPLATES_DIR and SCENES_DIR")
     if manifest is None and (templates_dir is None or scenes_dir is None):
         raise UsageError(None, "give TEMPLATES_DIR and SCENES_DIR, or --manifest")
-    from gscan.batch.display import RichBatchMonitor
     from gscan.batch.evaluate import objects_paths, run_batch_eval
 
-    with (contextlib.redirect_stdout(sys.stderr),  # Ray's own messages (a worker died, ...) are not the JSON
-          RichBatchMonitor(err, live=err.is_terminal, escape=printable, noun="pairs") as monitor):
-        report = run_batch_eval(output, templates_dir=templates_dir, scenes_dir=scenes_dir, manifest=manifest,
-                                refine=not no_icp, address=address, workers=workers, force=force,
-                                monitor=monitor if err.is_terminal or not json_out else None)
-    if json_out:
-        _print_json(report.to_json())
+    report = _run_batch("pairs", lambda monitor: run_batch_eval(
+        output, templates_dir=templates_dir, scenes_dir=scenes_dir, manifest=manifest, refine=not no_icp,
+        address=address, workers=workers, force=force, monitor=monitor), json_out)
     s = report.summary()
-    for row in report.rows:
-        if row.status == "failed":
-            _say(("failed ", "red"), _job_error_line(row.name, row.error, row.fix))
     for w in s["warnings"]:
         _say(("warning: ", "yellow"), w)
     if s["unpaired_templates"] or s["unpaired_scenes"]:

@@ -10,11 +10,16 @@
     step = client.track("arm-camera", color_png_bytes, depth_png_bytes, K, template="mug")
     step.status                                         # "found" | "tracked" | "refound" | "lost"
     client.end_track("arm-camera")
+    r = client.estimate(color, depth_from_the_stereo_module, K, depth_intrinsics=K_depth, depth_to_color=T_color_depth)
 
 Images are given as file paths or encoded bytes (colour PNG or JPEG, depth a 16-bit PNG); numpy arrays are
 encoded to PNG (colour RGB uint8, depth uint16 raw units), which needs OpenCV. Intrinsics: a cam_K.txt path,
-its text, or a 3x3 nested list / array. A refused request raises `ServiceError` with the HTTP status and the
-service's one-line detail; a service that cannot be reached raises `ServiceError` with status 0.
+its text, or a 3x3 nested list / array. Depth from a separate camera (not registered to colour): its intrinsics
+(`depth_intrinsics`, as `intrinsics`) and its pose in the colour camera (`depth_to_color`, T_color_depth: a 4x4
+nested list / array in metres, a pose .txt / .json path, or its text); without them the service's own depth
+camera applies (`gscan serve --depth-intrinsics`), else the depth is taken as registered. A refused request
+raises `ServiceError` with the HTTP status and the service's one-line detail; a service that cannot be reached
+raises `ServiceError` with status 0.
 """
 from __future__ import annotations
 
@@ -30,6 +35,7 @@ from typing import Any, Union
 
 ImageInput = Union[str, "os.PathLike[str]", bytes, Any]  # a path, encoded bytes, or a numpy array
 IntrinsicsInput = Union[str, "os.PathLike[str]", Any]  # a cam_K.txt path or text, or a 3x3 matrix
+PoseInput = Union[str, "os.PathLike[str]", Any]  # a pose .txt / .json path or text, or a 4x4 matrix
 
 
 class ServiceError(Exception):
@@ -95,19 +101,24 @@ class GscanClient:
         return list(self._request("GET", "/health")["templates"])
 
     def estimate(self, color: ImageInput, depth: ImageInput, intrinsics: IntrinsicsInput, depth_scale: float = 0.001,
-                 mask: ImageInput | None = None, templates: list[str] | None = None) -> EstimateResponse:
-        """The pose of every requested template's object (default: all) in one RGB-D frame."""
-        fields = self._frame_fields(color, depth, intrinsics, depth_scale, mask)
+                 mask: ImageInput | None = None, templates: list[str] | None = None,
+                 depth_intrinsics: IntrinsicsInput | None = None,
+                 depth_to_color: PoseInput | None = None) -> EstimateResponse:
+        """The pose of every requested template's object (default: all) in one RGB-D frame (depth from a
+        separate camera: `depth_intrinsics`, `depth_to_color`)."""
+        fields = self._frame_fields(color, depth, intrinsics, depth_scale, mask, depth_intrinsics, depth_to_color)
         if templates:
             fields.append(("templates", None, ",".join(templates).encode()))
         d = self._request("POST", "/estimate", fields)
         return EstimateResponse({k: Pose.from_json(v) for k, v in d["results"].items()}, dict(d["timings_ms"]))
 
     def track(self, session: str, color: ImageInput, depth: ImageInput, intrinsics: IntrinsicsInput,
-              depth_scale: float = 0.001, mask: ImageInput | None = None, template: str | None = None) -> TrackResponse:
+              depth_scale: float = 0.001, mask: ImageInput | None = None, template: str | None = None,
+              depth_intrinsics: IntrinsicsInput | None = None,
+              depth_to_color: PoseInput | None = None) -> TrackResponse:
         """The next frame of tracking session `session` (its first frame starts it; `template` is needed then
         when the service holds several)."""
-        fields = self._frame_fields(color, depth, intrinsics, depth_scale, mask)
+        fields = self._frame_fields(color, depth, intrinsics, depth_scale, mask, depth_intrinsics, depth_to_color)
         if template:
             fields.append(("template", None, template.encode()))
         d = self._request("POST", f"/track/{urllib.parse.quote(session, safe='')}", fields)
@@ -120,13 +131,18 @@ class GscanClient:
 
     # ---------------------------------------------------------------------------------------------
     def _frame_fields(self, color: ImageInput, depth: ImageInput, intrinsics: IntrinsicsInput, depth_scale: float,
-                      mask: ImageInput | None) -> list[tuple[str, str | None, bytes]]:
+                      mask: ImageInput | None, depth_intrinsics: IntrinsicsInput | None = None,
+                      depth_to_color: PoseInput | None = None) -> list[tuple[str, str | None, bytes]]:
         fields = [("color", "color.png", _image_bytes(color, depth=False)),
                   ("depth", "depth.png", _image_bytes(depth, depth=True)),
                   ("intrinsics", None, _intrinsics_text(intrinsics).encode()),
                   ("depth_scale", None, repr(float(depth_scale)).encode())]
         if mask is not None:
             fields.append(("mask", "mask.png", _image_bytes(mask, depth=False)))
+        if depth_intrinsics is not None:
+            fields.append(("depth_intrinsics", None, _intrinsics_text(depth_intrinsics).encode()))
+        if depth_to_color is not None:
+            fields.append(("depth_to_color", None, _matrix_text(depth_to_color, 4, "depth_to_color").encode()))
         return fields
 
     def _request(self, method: str, path: str, fields: list[tuple[str, str | None, bytes]] | None = None) -> Any:
@@ -188,11 +204,16 @@ def _image_bytes(img: ImageInput, depth: bool) -> bytes:
 
 
 def _intrinsics_text(K: IntrinsicsInput) -> str:
-    if isinstance(K, os.PathLike) or (isinstance(K, str) and "\n" not in K.strip() and Path(K).is_file()):
-        return Path(K).read_text(encoding="utf-8")
-    if isinstance(K, str):
-        return K
-    rows = [[float(x) for x in row] for row in K]
-    if len(rows) != 3 or any(len(r) != 3 for r in rows):
-        raise ValueError("intrinsics must be a 3x3 matrix")
+    return _matrix_text(K, 3, "intrinsics")
+
+
+def _matrix_text(M: Any, n: int, what: str) -> str:
+    """An n x n matrix field's text: a file's (a path), the text itself, or the rows of a nested list / array."""
+    if isinstance(M, os.PathLike) or (isinstance(M, str) and "\n" not in M.strip() and Path(M).is_file()):
+        return Path(M).read_text(encoding="utf-8")
+    if isinstance(M, str):
+        return M
+    rows = [[float(x) for x in row] for row in M]
+    if len(rows) != n or any(len(r) != n for r in rows):
+        raise ValueError(f"{what} must be a {n}x{n} matrix")
     return "\n".join(" ".join(repr(x) for x in r) for r in rows) + "\n"

@@ -698,6 +698,28 @@ def _(ctx: Ctx, work: Path) -> Run:
     return Run(_cli("view", ctx.template, "--port", "70000"), ["--port"])
 
 
+@case("serve-depth-to-color-without-depth-intrinsics")
+def _(ctx: Ctx, work: Path) -> Run:
+    np.savetxt(work / "T_color_depth.txt", np.eye(4))
+    return Run(_cli("serve", ctx.template, "--port", "0", "--depth-to-color", work / "T_color_depth.txt"),
+               ["T_color_depth.txt", "intrinsics"])
+
+
+@case("serve-depth-intrinsics-malformed")
+def _(ctx: Ctx, work: Path) -> Run:
+    (work / "depth_K.txt").write_text("1 0 2\n0 1\n")
+    return Run(_cli("serve", ctx.template, "--port", "0", "--depth-intrinsics", work / "depth_K.txt"),
+               ["depth_K.txt", "3x3"])
+
+
+@case("serve-depth-to-color-not-rigid")
+def _(ctx: Ctx, work: Path) -> Run:
+    np.savetxt(work / "depth_K.txt", synth.DEFAULT_INTRINSICS.K)
+    np.savetxt(work / "T_color_depth.txt", 2 * np.eye(4))
+    return Run(_cli("serve", ctx.template, "--port", "0", "--depth-intrinsics", work / "depth_K.txt",
+                    "--depth-to-color", work / "T_color_depth.txt"), ["T_color_depth.txt", "rigid"])
+
+
 @case("info-file-name-with-emoji-code")
 def _(ctx: Ctx, work: Path) -> Run:
     db = work / "bad:smile:.gscan"

@@ -1,5 +1,6 @@
 """The estimation service (`gscan serve`, gscan.serve) started as a subprocess on a free port, driven through
-gscan.client: 20 frames posted (the object present, absent, and bad requests), tracking sessions, and the
+gscan.client: 20 frames posted (the object present, absent, and bad requests), tracking sessions, depth from a
+separate camera (the request's or the service's, against `gscan estimate --depth-intrinsics`), and the
 request decoding on its own."""
 from __future__ import annotations
 
@@ -11,16 +12,22 @@ import subprocess
 import sys
 import time
 import zlib
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+from _recordings import T_depth_offset
 
 from gscan.client import GscanClient, ServiceError
+from gscan.errors import InputError
 from gscan.geometry.transforms import look_at, pose_error, rotvec_to_R, transform_points
+from gscan.io.camera import Intrinsics
 from gscan.scan.cad import template_from_mesh
-from gscan.serve.decode import RequestError, decode_frame
+from gscan.serve import load_depth_camera
+from gscan.serve.decode import RequestError, decode_frame, depth_camera_fields, parse_pose
 from gscan.synth import (
     DEFAULT_INTRINSICS,
     SynthScene,
@@ -33,6 +40,8 @@ from gscan.synth import (
 TARGET = "Frozen_Scrabble_Jr"
 DISTRACTORS = ("Crayola_Bonus_64_Crayons", "Little_Debbie_Cloud_Cakes_10_ct")
 K_TEXT = "\n".join(" ".join(f"{x:.10g}" for x in row) for row in DEFAULT_INTRINSICS.K) + "\n"
+# a separate depth camera (a stereo module beside the colour sensor): its own size and calibration
+K_DEPTH = Intrinsics(452.0, 453.0, 241.0, 178.5, 480, 360)
 
 
 def png(img: np.ndarray) -> bytes:
@@ -47,7 +56,8 @@ def frame_bytes(r) -> tuple[bytes, bytes]:
     return png(cv2.cvtColor(r.color, cv2.COLOR_RGB2BGR)), png(mm)
 
 
-def render(meshes, seed: int, with_target: bool = True):
+def scene_of(meshes, seed: int, with_target: bool = True) -> tuple[SynthScene, np.ndarray, np.ndarray]:
+    """(the scene, T_world_cam of the colour camera, T_cam_obj of the target) of a seeded random layout."""
     rng = np.random.default_rng(seed)
     target, distractors = meshes[0], meshes[1:]
     T_wt = rest_on_table(target, rotvec_to_R([0.0, 0.0, rng.uniform(0, 2 * np.pi)]))
@@ -58,8 +68,12 @@ def render(meshes, seed: int, with_target: bool = True):
     eye = c + default_distance(target, fill=0.45) * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az),
                                                                np.sin(el)])
     T_wc = look_at(eye, c)
-    r = SynthScene(objs, seed=seed, table_kind="wood").render(T_wc, DEFAULT_INTRINSICS, rng=np.random.default_rng(seed))
-    return r, np.linalg.inv(T_wc) @ T_wt
+    return SynthScene(objs, seed=seed, table_kind="wood"), T_wc, np.linalg.inv(T_wc) @ T_wt
+
+
+def render(meshes, seed: int, with_target: bool = True):
+    scene, T_wc, T_gt = scene_of(meshes, seed, with_target)
+    return scene.render(T_wc, DEFAULT_INTRINSICS, rng=np.random.default_rng(seed)), T_gt
 
 
 def huge_png_header(width: int, height: int) -> bytes:
@@ -86,9 +100,16 @@ def template(meshes_dir: Path, tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def service(template: Path):
-    """`gscan serve` on a free port (--port 0; the address read from its ready line); stopped after the module."""
+    """`gscan serve` on a free port; stopped after the module."""
+    with started_service(template) as running:
+        yield running
+
+
+@contextmanager
+def started_service(template: Path, *options: str) -> Iterator[tuple[subprocess.Popen, GscanClient]]:
+    """`gscan serve TEMPLATE --port 0 [options]` (the address read from its ready line), stopped at the end."""
     env = dict(os.environ, PYTHONUNBUFFERED="1")
-    proc = subprocess.Popen([sys.executable, "-m", "gscan.cli", "serve", str(template), "--port", "0"],
+    proc = subprocess.Popen([sys.executable, "-m", "gscan.cli", "serve", str(template), "--port", "0", *options],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     url = None
     t0 = time.monotonic()
@@ -103,12 +124,14 @@ def service(template: Path):
     if url is None:
         proc.kill()
         pytest.fail(f"the service did not start: {proc.stderr.read()}")
-    yield proc, GscanClient(url, timeout=120)
-    proc.terminate()
     try:
-        proc.wait(30)
-    except subprocess.TimeoutExpired:
-        proc.kill()
+        yield proc, GscanClient(url, timeout=120)
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
 
 
 def test_twenty_frames_found_not_found_and_bad(service, meshes):
@@ -246,3 +269,98 @@ def test_body_limit_and_framework_errors(template: Path):
     r = client.get("/nowhere")
     assert r.status_code == 404 and r.json()["detail"] == "request: Not Found"
     assert client.get("/health").json() == {"templates": ["scrabble"]}
+
+
+def test_depth_from_a_separate_camera(template: Path, meshes, tmp_path: Path):
+    """Depth from a camera 5 cm beside the colour camera, with its own size and calibration: the request's
+    depth_intrinsics / depth_to_color fields, or the service's own (--depth-intrinsics / --depth-to-color),
+    give the pose `gscan estimate --depth-intrinsics --depth-to-color` gives on the same files (the depth
+    aligned to colour the same way), within 5 deg / 1 cm of the truth; bad values get 4xx naming the field."""
+    T_cd = T_depth_offset()
+    scene, T_wc, T_gt = scene_of(meshes, 2)
+    r = scene.render(T_wc, DEFAULT_INTRINSICS, rng=np.random.default_rng(2))
+    rd = scene.render(T_wc @ T_cd, K_DEPTH, rng=np.random.default_rng([2, 1]))
+    c, d = frame_bytes(r)[0], png(np.clip(np.rint(rd.depth * 1000.0), 0, 65535).astype(np.uint16))
+    files = {"color.png": c, "depth.png": d, "cam_K.txt": K_TEXT.encode()}
+    for name, data in files.items():
+        (tmp_path / name).write_bytes(data)
+    np.savetxt(tmp_path / "depth_K.txt", K_DEPTH.K)
+    np.savetxt(tmp_path / "T_color_depth.txt", T_cd)
+    cli = subprocess.run([sys.executable, "-m", "gscan.cli", "estimate", str(template), "--color",
+                          str(tmp_path / "color.png"), "--depth", str(tmp_path / "depth.png"), "--intrinsics",
+                          str(tmp_path / "cam_K.txt"), "--depth-intrinsics", str(tmp_path / "depth_K.txt"),
+                          "--depth-to-color", str(tmp_path / "T_color_depth.txt"), "--json"],
+                         capture_output=True, text=True, timeout=300, check=False)
+    assert cli.returncode == 0, cli.stderr
+    T_cli = np.asarray(json.loads(cli.stdout)["T_cam_obj"])
+    deg, m = pose_error(T_cli, T_gt)
+    assert deg < 5.0 and m < 0.01, (deg, m)
+
+    with started_service(template, "--depth-intrinsics", str(tmp_path / "depth_K.txt"), "--depth-to-color",
+                         str(tmp_path / "T_color_depth.txt")) as (proc, client):
+        served = client.estimate(c, d, K_TEXT).results["scrabble"]  # the service's depth camera
+        own = client.estimate(c, d, K_TEXT, depth_intrinsics=K_DEPTH.K, depth_to_color=T_cd).results["scrabble"]
+        as_json = client.estimate(c, d, K_TEXT, depth_intrinsics=tmp_path / "depth_K.txt",
+                                  depth_to_color=json.dumps({"T": T_cd.tolist()})).results["scrabble"]
+        for pose in (served, own, as_json):
+            assert pose.found, pose.reason
+            np.testing.assert_allclose(np.asarray(pose.T_cam_obj), T_cli, atol=1e-9)
+        step = client.track("offset", c, d, K_TEXT, depth_intrinsics=K_DEPTH.K, depth_to_color=T_cd)
+        assert step.status == "found"
+        np.testing.assert_allclose(np.asarray(step.result.T_cam_obj), T_cli, atol=1e-9)
+        # the colour camera's own depth, named as a depth camera equal to the colour camera: found, at the truth
+        reg = client.estimate(c, frame_bytes(r)[1], K_TEXT, depth_intrinsics=K_TEXT).results["scrabble"]
+        assert reg.found and pose_error(np.asarray(reg.T_cam_obj), T_gt)[0] < 5.0
+        shifted = T_cd.copy()
+        shifted[0, 3] = 5.0  # metres: every depth pixel lands beside the colour image
+        skewed = T_cd.copy()
+        skewed[:3, :3] *= 1.2  # not a rotation
+        tiny = png(np.full((24, 32), 800, np.uint16))
+        bad = [  # (request's depth camera fields, depth image, status, field named)
+            ({"depth_to_color": T_cd}, d, 422, "depth_to_color"),  # without depth_intrinsics
+            ({"depth_intrinsics": "1 2 3"}, d, 400, "depth_intrinsics"),
+            ({"depth_intrinsics": K_DEPTH.K, "depth_to_color": "1 0 0"}, d, 400, "depth_to_color"),
+            ({"depth_intrinsics": K_DEPTH.K, "depth_to_color": skewed}, d, 400, "depth_to_color"),
+            ({"depth_intrinsics": K_DEPTH.K, "depth_to_color": shifted}, d, 400, "depth_to_color"),
+            ({"depth_intrinsics": K_DEPTH.K}, tiny, 400, "depth_intrinsics"),  # principal point far outside 32x24
+            ({}, tiny, 400, "depth"),  # the service's depth camera cannot be of a 32x24 image either
+        ]
+        for fields, depth_png, status, field in bad:
+            with pytest.raises(ServiceError) as e:
+                client.estimate(c, depth_png, K_TEXT, **fields)
+            assert e.value.status == status, (field, e.value)
+            assert e.value.detail.startswith(field + ":") and "\n" not in e.value.detail, e.value.detail
+        assert proc.poll() is None and client.estimate(c, d, K_TEXT).results["scrabble"].found
+
+
+def test_depth_camera_fields_and_poses(tmp_path: Path):
+    """A request's depth camera fields: a pose as 16 or 12 numbers or JSON, rigid and within range, and
+    depth_to_color only with depth_intrinsics; the service's own depth camera from its files (an Open3D JSON
+    keeps its size, a cam_K.txt fits any)."""
+    T = T_depth_offset()
+    rows = "\n".join(" ".join(repr(float(x)) for x in row) for row in T)
+    for text in (rows, "\n".join(rows.splitlines()[:3]), json.dumps({"T": T.tolist()}), json.dumps(T.tolist())):
+        np.testing.assert_allclose(parse_pose(text, "depth_to_color"), T, atol=1e-12)
+    for text, why in (("1 2 3", "16 numbers"), ('{"R": 1}', "16 numbers"), ("nan " * 16, "finite"),
+                      (" ".join(["2"] * 16), "not a rigid"), ("1 0 0 5e6 0 1 0 0 0 0 1 0 0 0 0 1", "beyond")):
+        with pytest.raises(RequestError, match=f"^depth_to_color: .*{why}"):
+            parse_pose(text, "depth_to_color")
+    assert depth_camera_fields(None, None) is None and depth_camera_fields(" ", "") is None
+    cam = depth_camera_fields(K_TEXT, None)
+    assert cam is not None and np.array_equal(cam.T_color_depth, np.eye(4)) and not cam.served
+    assert cam.intrinsics(640, 480) == DEFAULT_INTRINSICS
+    with pytest.raises(RequestError, match="^depth_to_color: given without depth_intrinsics") as e:
+        depth_camera_fields(None, rows)
+    assert e.value.status == 422
+    o3d = {"width": 480, "height": 360, "intrinsic_matrix": K_DEPTH.K.T.flatten().tolist()}
+    (tmp_path / "depth_K.json").write_text(json.dumps(o3d))
+    (tmp_path / "T.json").write_text(json.dumps({"T": T.tolist()}))
+    served = load_depth_camera(tmp_path / "depth_K.json", tmp_path / "T.json")
+    assert served.served and served.size == (480, 360) and served.intrinsics(480, 360) == K_DEPTH
+    np.testing.assert_allclose(served.T_color_depth, T, atol=1e-12)
+    with pytest.raises(RequestError, match="^depth: depth is 640x480 but the service's depth camera is calibrated "
+                                           "for 480x360"):
+        served.intrinsics(640, 480)
+    (tmp_path / "depth_K.txt").write_text("615 0 319.5\n0 615 239.5\n")
+    with pytest.raises(InputError, match="depth_K.txt: expected the 9 numbers"):
+        load_depth_camera(tmp_path / "depth_K.txt")

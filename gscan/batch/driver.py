@@ -8,6 +8,10 @@ what they wrote stays (a partial template is resumed by the next run).
 
 The ETA is the work left (queued jobs and the rest of the running ones, at the mean time of the jobs finished
 so far) spread over the CPUs the runtime offers.
+
+`run_on_ray(address, workers, jobs, ...)` does that on a runtime of its own (`ray_runtime`). The report rows of
+both batches (`CaptureRow`, `PairRow`) share what a job gives every row: `fill_row` copies a job's result
+onto its row, `job_row_json` is a row's JSON, `batch_exit_code` the CLI's exit code over the rows.
 """
 from __future__ import annotations
 
@@ -17,15 +21,16 @@ import io
 import json
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Protocol, TypeVar
 
 from gscan.batch.jobs import run_job
-from gscan.batch.runtime import MAX_RETRIES, Runtime
+from gscan.batch.runtime import MAX_RETRIES, Runtime, ray_runtime
 from gscan.io.output import Output
 
 POLL_S = 0.5
+R = TypeVar("R", bound="JobRow")
 
 
 @dataclass
@@ -129,6 +134,18 @@ def run_jobs(rt: Runtime, jobs: Sequence[dict[str, Any]], describe: Callable[[di
     return results
 
 
+def run_on_ray(address: str | None, workers: int | None, jobs: Sequence[dict[str, Any]],
+               describe: Callable[[dict, dict], tuple[str, str]], monitor: BatchMonitor | None,
+               announce: Callable[[int], None], total: int | None = None, done: int = 0,
+               failed: int = 0) -> tuple[dict[str, dict[str, Any]], str, int]:
+    """`run_jobs` on `ray_runtime(address, workers)`: (key -> result, where it ran, the CPUs it offered).
+    `announce(capacity)` runs once the runtime is up, before the first task (the monitor's first news)."""
+    with ray_runtime(address, workers) as rt:
+        announce(rt.capacity)
+        results = run_jobs(rt, jobs, describe, monitor, total=total, done=done, failed=failed)
+        return results, rt.where, rt.capacity
+
+
 def _snapshot(rt: Runtime) -> dict[str, Any]:
     try:
         return dict(rt.ray.get(rt.tracker.snapshot.remote(), timeout=5))
@@ -144,6 +161,58 @@ def _fill(state: BatchState, queue: list, pending: dict, snap: dict[str, Any], d
     state.queued = len(queue) + len(keys) - len(state.running)
     state.eta_s = _eta(state.queued, state.running, durations, state.capacity)
     state.elapsed_s = time.monotonic() - t0
+
+
+# ------------------------------------------------------------------------------------------ rows
+class JobRow(Protocol):
+    """What every report row holds about its job (`gscan.batch.jobs`): attempts, seconds, the peak memory of
+    its process, the node, and a failure's one-line error, its kind and the key of its fix."""
+
+    status: str
+    attempts: int
+    seconds: float
+    peak_rss_bytes: int | None
+    error: str | None
+    error_kind: str | None
+    fix: str | None
+    node: str | None
+
+
+def fill_row(row: R, res: dict[str, Any], ok_keys: Sequence[str]) -> R:
+    """`row` with its job's result `res`: attempts, seconds, peak memory and node, then the job's own
+    `ok_keys` when it succeeded, its error when it failed."""
+    row.attempts, row.seconds = int(res.get("attempts", 1)), float(res.get("seconds", 0.0))
+    row.peak_rss_bytes, row.node = res.get("peak_rss_bytes"), res.get("node")
+    if res.get("ok"):
+        for k in ok_keys:
+            setattr(row, k, res.get(k))
+    else:
+        row.error, row.error_kind, row.fix = res.get("error"), res.get("error_kind"), res.get("fix")
+    return row
+
+
+def job_row_json(row: Any) -> dict[str, Any]:
+    """A report row (a dataclass) as JSON: its fields, seconds rounded to the millisecond, the peak memory in
+    MiB too (`peak_rss_mb`)."""
+    d = asdict(row)
+    d["peak_rss_mb"] = None if row.peak_rss_bytes is None else round(row.peak_rss_bytes / 2**20, 1)
+    d["seconds"] = round(row.seconds, 3)
+    return d
+
+
+def batch_exit_code(rows: Sequence[JobRow]) -> int:
+    """0 when no job failed, 2 when every failure was bad input, 1 otherwise (as the CLI's)."""
+    failed = [r for r in rows if r.status == "failed"]
+    if not failed:
+        return 0
+    return 2 if all(r.error_kind == "input" for r in failed) else 1
+
+
+def gscan_version() -> str:
+    """The driver's gscan version, which every job carries (a node with another refuses it)."""
+    from gscan._version import __version__
+
+    return __version__
 
 
 # ------------------------------------------------------------------------------------------ reports

@@ -27,12 +27,22 @@ from __future__ import annotations
 import csv
 import re
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from gscan.batch.driver import BatchMonitor, BatchState, run_jobs, write_csv, write_json
-from gscan.batch.runtime import MAX_RETRIES, TASK_CPUS, ray_runtime, require_ray
+from gscan.batch.driver import (
+    BatchMonitor,
+    BatchState,
+    batch_exit_code,
+    fill_row,
+    gscan_version,
+    job_row_json,
+    run_on_ray,
+    write_csv,
+    write_json,
+)
+from gscan.batch.runtime import MAX_RETRIES, TASK_CPUS, require_ray
 from gscan.errors import InputError, not_a_file
 from gscan.evaluate.bop19 import CSV_HEADER
 from gscan.io.output import check_output
@@ -43,6 +53,8 @@ AR_KEYS = ("AR", "AR VSD", "AR MSSD", "AR MSPD")
 OBJECTS_HEADER = ("name", "obj_id", "status", "images", "found", "gt_images", "wrong_accepted", *AR_KEYS, "AUC ADD",
                   "AUC ADD-S", "mean time ms", "seconds", "peak_rss_mb", "error", "template", "scenes")
 _BOP_NAME = re.compile(r"^obj_0*(\d+)$")
+# what an evaluation job's result gives its row (`gscan.batch.child`)
+ROW_KEYS = ("images", "found", "gt_images", "wrong_accepted", "diameter_m", "metrics")
 
 
 @dataclass
@@ -83,10 +95,7 @@ class PairRow:
     node: str | None = None
 
     def to_json(self) -> dict[str, Any]:
-        d = asdict(self)
-        d["seconds"] = round(self.seconds, 3)
-        d["peak_rss_mb"] = None if self.peak_rss_bytes is None else round(self.peak_rss_bytes / 2**20, 1)
-        return d
+        return job_row_json(self)
 
     def csv_row(self) -> list[Any]:
         m = self.metrics
@@ -119,10 +128,7 @@ class BatchEvalReport:
 
     @property
     def exit_code(self) -> int:
-        failed = [r for r in self.rows if r.status == "failed"]
-        if not failed:
-            return 0
-        return 2 if all(r.error_kind == "input" for r in failed) else 1
+        return batch_exit_code(self.rows)
 
     def summary(self) -> dict[str, Any]:
         done = [r for r in self.rows if r.status == "evaluated"]
@@ -271,16 +277,8 @@ def _name_obj_id(name: str) -> int | None:
 # ------------------------------------------------------------------------------------------ the batch
 def _row(pair: Pair, res: dict[str, Any]) -> PairRow:
     assert pair.obj_id is not None
-    row = PairRow(pair.name, str(pair.template), str(pair.scenes), pair.obj_id,
-                  "evaluated" if res.get("ok") else "failed", attempts=int(res.get("attempts", 1)),
-                  seconds=float(res.get("seconds", 0.0)), peak_rss_bytes=res.get("peak_rss_bytes"),
-                  node=res.get("node"))
-    if res.get("ok"):
-        for k in ("images", "found", "gt_images", "wrong_accepted", "diameter_m", "metrics"):
-            setattr(row, k, res.get(k))
-    else:
-        row.error, row.error_kind, row.fix = res.get("error"), res.get("error_kind"), res.get("fix")
-    return row
+    status = "evaluated" if res.get("ok") else "failed"
+    return fill_row(PairRow(pair.name, str(pair.template), str(pair.scenes), pair.obj_id, status), res, ROW_KEYS)
 
 
 def describe_row(row: PairRow) -> str:
@@ -354,18 +352,18 @@ def run_batch_eval(output_csv: str | Path, *, templates_dir: str | Path | None =
     jobs = [{"kind": "eval", "key": p.name, "template": str(p.template), "scenes": str(p.scenes), "obj_id": p.obj_id,
              "model": None if p.model is None else str(p.model),
              "gt_capture": None if p.gt_capture is None else str(p.gt_capture), "refine": refine,
-             "version": _version()} for p in pairs]
+             "version": gscan_version()} for p in pairs]
     by_name = {p.name: p for p in pairs}
 
     def describe(job: dict, res: dict) -> tuple[str, str]:
         row = _row(by_name[job["key"]], res)
         return row.status, describe_row(row)
 
-    with ray_runtime(address, workers) as rt:
+    def announce(cpus: int) -> None:
         if monitor is not None:
-            monitor.update(BatchState(total=len(jobs), queued=len(jobs), capacity=rt.capacity))
-        results = run_jobs(rt, jobs, describe, monitor)
-        runtime, capacity = rt.where, rt.capacity
+            monitor.update(BatchState(total=len(jobs), queued=len(jobs), capacity=cpus))
+
+    results, runtime, capacity = run_on_ray(address, workers, jobs, describe, monitor, announce)
     rows = [_row(p, results[p.name]) for p in pairs]
     text, warnings = combined_csv(pairs, results)
     report = BatchEvalReport(output_csv, rows, lone_templates, lone_scenes, warnings, time.monotonic() - t0, runtime,
@@ -378,9 +376,3 @@ def run_batch_eval(output_csv: str | Path, *, templates_dir: str | Path | None =
     write_json(objects_json, report.to_json())
     write_csv(objects_csv, OBJECTS_HEADER, [r.csv_row() for r in rows])
     return report
-
-
-def _version() -> str:
-    from gscan._version import __version__
-
-    return __version__

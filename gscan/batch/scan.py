@@ -27,9 +27,19 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from gscan.batch.driver import BatchMonitor, BatchState, run_jobs, write_csv, write_json
+from gscan.batch.driver import (
+    BatchMonitor,
+    BatchState,
+    batch_exit_code,
+    fill_row,
+    gscan_version,
+    job_row_json,
+    run_on_ray,
+    write_csv,
+    write_json,
+)
 from gscan.batch.facts import ground_truth_check, template_facts
-from gscan.batch.runtime import MAX_RETRIES, TASK_CPUS, ray_runtime, require_ray
+from gscan.batch.runtime import MAX_RETRIES, TASK_CPUS, require_ray
 from gscan.errors import InputError
 from gscan.io.layouts import detect_format
 from gscan.io.output import check_output_path
@@ -41,6 +51,9 @@ log = logging.getLogger(__name__)
 
 REPORT_JSON, REPORT_CSV = "batch.json", "batch.csv"
 STATUSES = ("scanned", "resumed", "skipped", "failed")
+# what a scan job's result gives its row (`gscan.batch.child`)
+ROW_KEYS = ("frames", "registered", "unregistered", "unregistered_reasons", "keyframes", "mode", "ground_truth",
+            "threads")
 CSV_HEADER = ("name", "status", "attempts", "frames", "registered", "unregistered", "keyframes", "seconds",
               "peak_rss_mb", "gt_frames", "ate_rmse_mm", "wrong_frames", "error", "unregistered_reasons", "input")
 
@@ -85,10 +98,7 @@ class CaptureRow:
         return self.status != "failed"
 
     def to_json(self) -> dict[str, Any]:
-        d = asdict(self)
-        d["peak_rss_mb"] = None if self.peak_rss_bytes is None else round(self.peak_rss_bytes / 2**20, 1)
-        d["seconds"] = round(self.seconds, 3)
-        return d
+        return job_row_json(self)
 
     def csv_row(self) -> list[Any]:
         gt = self.ground_truth or {}
@@ -122,10 +132,7 @@ class BatchReport:
 
     @property
     def exit_code(self) -> int:
-        failed = [r for r in self.rows if r.status == "failed"]
-        if not failed:
-            return 0
-        return 2 if all(r.error_kind == "input" for r in failed) else 1
+        return batch_exit_code(self.rows)
 
     def summary(self) -> dict[str, Any]:
         done = [r for r in self.rows if r.status in ("scanned", "resumed")]
@@ -224,16 +231,8 @@ def _same_config(stored: Any, cfg: ScanConfig) -> bool:
 
 
 def _row(cap: Capture, res: dict[str, Any]) -> CaptureRow:
-    row = CaptureRow(cap.name, str(cap.source), str(cap.output), res.get("status", "failed") if res.get("ok") else
-                     "failed", attempts=int(res.get("attempts", 1)), seconds=float(res.get("seconds", 0.0)),
-                     peak_rss_bytes=res.get("peak_rss_bytes"), node=res.get("node"), threads=res.get("threads"))
-    if res.get("ok"):
-        for k in ("frames", "registered", "unregistered", "unregistered_reasons", "keyframes", "mode",
-                  "ground_truth"):
-            setattr(row, k, res.get(k))
-    else:
-        row.error, row.error_kind, row.fix = res.get("error"), res.get("error_kind"), res.get("fix")
-    return row
+    status = res.get("status", "failed") if res.get("ok") else "failed"
+    return fill_row(CaptureRow(cap.name, str(cap.source), str(cap.output), status), res, ROW_KEYS)
 
 
 def describe_row(row: CaptureRow) -> str:
@@ -300,18 +299,17 @@ def run_batch(captures_dir: str | Path, templates_dir: str | Path, *, config: Sc
     if todo:
         jobs = [{"kind": "scan", "key": c.name, "source": str(c.source), "output": str(c.output),
                  "config": cfg.model_dump(mode="json"), "force": force,
-                 "resume": not force, "version": _version()} for c in todo]
+                 "resume": not force, "version": gscan_version()} for c in todo]
         by_name = {c.name: c for c in todo}
 
         def describe(job: dict, res: dict) -> tuple[str, str]:
             row = _row(by_name[job["key"]], res)
             return row.status, describe_row(row)
 
-        with ray_runtime(address, workers) as rt:
-            runtime, capacity = rt.where, rt.capacity
-            _announce(monitor, rows, len(captures), len(todo), capacity)
-            results = run_jobs(rt, jobs, describe, monitor, total=len(captures), done=len(rows),
-                               failed=sum(not r.ok for r in rows.values()))
+        results, runtime, capacity = run_on_ray(
+            address, workers, jobs, describe, monitor, lambda cpus: _announce(monitor, rows, len(captures), len(todo),
+                                                                              cpus),
+            total=len(captures), done=len(rows), failed=sum(not r.ok for r in rows.values()))
         for name, res in results.items():
             rows[name] = _row(by_name[name], res)
     else:
@@ -334,9 +332,3 @@ def _announce(monitor: BatchMonitor | None, rows: dict[str, CaptureRow], total: 
         state.done += 1
         state.failed += not row.ok
         monitor.finished(name, row.status, describe_row(row), state)
-
-
-def _version() -> str:
-    from gscan._version import __version__
-
-    return __version__

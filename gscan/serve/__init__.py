@@ -2,6 +2,7 @@
 
     gscan.serve(templates, host="127.0.0.1", port=8765, on_ready=None)   blocks until interrupted
     load_service(templates) -> Service;  create_app(service) -> the FastAPI application (tests, embedding)
+    load_depth_camera(depth_K, T_color_depth) -> the service's depth camera (depth not registered to colour)
 
 `gscan.serve` is both this package and the function that starts the service (the package is callable, so the
 name means the same whichever of the two was imported first).
@@ -16,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from gscan.serve.decode import RequestError, decode_frame
-from gscan.serve.server import load_service, template_name
+from gscan.serve.server import load_depth_camera, load_service, template_name
 from gscan.serve.server import serve as _serve
 from gscan.serve.service import ServeParams, Service
 
@@ -28,16 +29,18 @@ def create_app(service: Service) -> Any:
     return _create_app(service)
 
 
-__all__ = ["RequestError", "ServeParams", "Service", "create_app", "decode_frame", "load_service", "serve",
-           "template_name"]
+__all__ = ["RequestError", "ServeParams", "Service", "create_app", "decode_frame", "load_depth_camera", "load_service",
+           "serve", "template_name"]
 
 
 class _ServeModule(types.ModuleType):
     """This package, callable: `gscan.serve(templates, ...)` starts the service (gscan.serve.server.serve)."""
 
     def __call__(self, templates: Sequence[str | Path], host: str = "127.0.0.1", port: int = 8765,
-                 on_ready: Callable[[str], None] | None = None, params: ServeParams | None = None) -> None:
-        _serve(templates, host=host, port=port, on_ready=on_ready, params=params)
+                 on_ready: Callable[[str], None] | None = None, params: ServeParams | None = None,
+                 depth_intrinsics: str | Path | None = None, depth_to_color: str | Path | None = None) -> None:
+        _serve(templates, host=host, port=port, on_ready=on_ready, params=params, depth_intrinsics=depth_intrinsics,
+               depth_to_color=depth_to_color)
 
 
 sys.modules[__name__].__class__ = _ServeModule

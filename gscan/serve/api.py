@@ -61,6 +61,12 @@ class Error(BaseModel):
     detail: str = Field(description="one line naming the field")
 
 
+DEPTH_INTRINSICS = ("depth from a separate camera, not registered to colour: that camera's 3x3 calibration as "
+                    "cam_K.txt holds it (the depth image has its size; it is reprojected into the colour camera). "
+                    "Default: the service's depth camera, else the depth is registered to colour")
+DEPTH_TO_COLOR = ("with depth_intrinsics: T_color_depth, the depth camera's pose in the colour camera: 16 numbers "
+                  "(a 4x4 in rows, metres) or JSON {\"T\": [[4x4]]}. Default: the colour camera's centre and axes")
+
 ERRORS: dict[Any, dict[str, Any]] = {c: {"model": Error} for c in (400, 404, 409, 413, 422, 500)}
 
 
@@ -131,7 +137,8 @@ def create_app(service: Service) -> Any:
     """The FastAPI application of a Service (routes in gscan.serve.service's docstring), wrapped in BodyLimit."""
     app = FastAPI(title="gscan pose estimation", version=__version__,
                   description="6DoF pose of scanned objects in RGB-D frames, templates kept warm. Colour: PNG or "
-                              "JPEG; depth: a 16-bit PNG; intrinsics: the 3x3 numbers of a cam_K.txt. A bad request "
+                              "JPEG; depth: a 16-bit PNG; intrinsics: the 3x3 numbers of a cam_K.txt; depth from a "
+                              "separate camera: depth_intrinsics and depth_to_color. A bad request "
                               "gets 4xx and {\"detail\": \"one line naming the field\"}.")
 
     @app.exception_handler(RequestError)
@@ -182,10 +189,13 @@ def create_app(service: Service) -> Any:
         mask: Annotated[UploadFile | None,
                         File(description="optional search mask (PNG or JPEG, object > half)")] = None,
         templates: Annotated[str | None, Form(description="comma-separated template names (default: all)")] = None,
+        depth_intrinsics: Annotated[str | None, Form(description=DEPTH_INTRINSICS)] = None,
+        depth_to_color: Annotated[str | None, Form(description=DEPTH_TO_COLOR)] = None,
     ) -> dict[str, Any]:
         """The pose of every requested template's object in one RGB-D frame."""
         c, d, m = await _read("color", color), await _read("depth", depth), await _read("mask", mask)
-        return await run_in_threadpool(service.estimate, c or b"", d or b"", intrinsics, depth_scale, m, templates)
+        return await run_in_threadpool(service.estimate, c or b"", d or b"", intrinsics, depth_scale, m, templates,
+                                       depth_intrinsics, depth_to_color)
 
     @app.post("/track/{session}", response_model=TrackResponse, responses=ERRORS)
     async def track(
@@ -197,12 +207,14 @@ def create_app(service: Service) -> Any:
         mask: Annotated[UploadFile | None, File(description="optional search mask")] = None,
         template: Annotated[str | None, Form(description="the template to track (needed to start a session when "
                                                          "several are served)")] = None,
+        depth_intrinsics: Annotated[str | None, Form(description=DEPTH_INTRINSICS)] = None,
+        depth_to_color: Annotated[str | None, Form(description=DEPTH_TO_COLOR)] = None,
     ) -> dict[str, Any]:
         """The next frame of a tracking session (its first frame starts it): the previous pose is the prior, as
         in `gscan track`."""
         c, d, m = await _read("color", color), await _read("depth", depth), await _read("mask", mask)
         return await run_in_threadpool(service.track, session, c or b"", d or b"", intrinsics, depth_scale, m,
-                                       template)
+                                       template, depth_intrinsics, depth_to_color)
 
     @app.delete("/track/{session}", response_model=EndResponse, responses=ERRORS)
     def end_track(session: str) -> dict[str, Any]:

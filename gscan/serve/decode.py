@@ -3,14 +3,22 @@
 
 Image sizes are read from the headers (PIL, without decoding) and checked against `max_pixels` before any
 pixel is decoded, so a small file that decodes to gigabytes is refused for the price of its header.
+
+Depth from a separate camera (not registered to colour): a `DepthCameraSpec` (the request's `depth_intrinsics`
+and `depth_to_color` fields, or the service's own) makes `decode_frame` reproject the depth into the colour
+camera (`gscan.io.align.align_depth_to_color`, as `gscan estimate --depth-intrinsics` does); the depth image
+then has the depth camera's size, which may differ from the colour image's.
 """
 from __future__ import annotations
 
 import io
-from dataclasses import dataclass
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
+from gscan.errors import InputError
 from gscan.io.camera import Intrinsics, RGBDFrame, implausible_intrinsics
 
 MAX_PIXELS = 4096 * 4096  # largest image a request may hold (pixels, per image)
@@ -23,6 +31,7 @@ class RequestError(Exception):
     def __init__(self, field: str, reason: str, status: int = 400):
         super().__init__(f"{field}: {reason}")
         self.field = field
+        self.reason = reason
         self.status = status
 
     @property
@@ -120,23 +129,109 @@ def decode_mask(data: bytes, field: str = "mask", max_pixels: int = MAX_PIXELS) 
     return img > img.max() / 2
 
 
-def parse_intrinsics(text: str, width: int, height: int, field: str = "intrinsics") -> Intrinsics:
-    """The 3x3 numbers of a cam_K.txt ([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], whitespace or commas) for
-    images of width x height."""
+def _numbers(text: str) -> list[float]:
+    """The numbers of a matrix written as text: whitespace, commas or brackets between them."""
+    return [float(x) for x in text.replace(",", " ").replace("[", " ").replace("]", " ").split()]
+
+
+def parse_K(text: str, field: str = "intrinsics") -> np.ndarray:
+    """[3 x 3] pinhole calibration from the 9 numbers of a cam_K.txt ([[fx, 0, cx], [0, fy, cy], [0, 0, 1]],
+    whitespace or commas)."""
     try:
-        rows = [[float(x) for x in line.replace(",", " ").replace("[", " ").replace("]", " ").split()]
-                for line in text.splitlines() if line.strip()]
-        K = np.array([x for row in rows for x in row], dtype=np.float64).reshape(3, 3)
+        K = np.array(_numbers(text), dtype=np.float64).reshape(3, 3)
     except (ValueError, OverflowError):
         raise RequestError(field, "expected the 9 numbers of a 3x3 matrix (as cam_K.txt holds them)") from None
     if not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0 or K[0, 2] < 0 or K[1, 2] < 0:
         raise RequestError(field, f"invalid values fx={K[0, 0]:g} fy={K[1, 1]:g} cx={K[0, 2]:g} cy={K[1, 2]:g}")
     if abs(K[0, 1]) > 1e-6 * K[0, 0] or K[1, 0] != 0 or not np.allclose(K[2], [0.0, 0.0, 1.0]):
         raise RequestError(field, "not a pinhole calibration matrix: expected [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]")
+    return K
+
+
+def sized_intrinsics(K: np.ndarray, width: int, height: int, field: str = "intrinsics") -> Intrinsics:
+    """Intrinsics of [3 x 3] K for images of width x height; RequestError when K cannot be of that size."""
     why = implausible_intrinsics(K, width, height)
     if why:
         raise RequestError(field, why)
     return Intrinsics.from_matrix(K, width, height)
+
+
+def parse_intrinsics(text: str, width: int, height: int, field: str = "intrinsics") -> Intrinsics:
+    """The 3x3 numbers of a cam_K.txt (`parse_K`) for images of width x height."""
+    return sized_intrinsics(parse_K(text, field), width, height, field)
+
+
+def parse_pose(text: str, field: str) -> np.ndarray:
+    """[4 x 4] rigid transform (metres) from text: 16 numbers (or 12, the last row 0 0 0 1 left out) as a pose
+    .txt holds them, or JSON `{"T": [[4x4]]}` / a bare 4x4 list, as a pose .json holds it."""
+    from gscan.io.poses import check_rigid
+
+    expected = 'expected a 4x4 matrix: 16 numbers (rows of 4), or JSON {"T": [[4x4]]}'
+    stripped = text.strip()
+    try:
+        if stripped.startswith("{"):
+            d = json.loads(stripped)
+            T = np.asarray(d["T"] if isinstance(d, dict) else d, dtype=np.float64)
+        else:
+            T = np.array(_numbers(stripped), dtype=np.float64)
+            T = T.reshape(-1, 4) if T.size in (12, 16) else T
+    except (ValueError, TypeError, KeyError, OverflowError, RecursionError):
+        raise RequestError(field, expected) from None
+    if T.shape == (3, 4):
+        T = np.vstack([T, [0.0, 0.0, 0.0, 1.0]])
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise RequestError(field, f"{expected}, got {T.size} {'numbers' if T.ndim == 1 else 'values'}"
+                           if T.shape != (4, 4) else "a matrix of finite numbers is needed")
+    try:
+        return check_rigid(T, Path(field))
+    except InputError as e:
+        raise RequestError(field, e.reason) from None
+
+
+@dataclass(frozen=True)
+class DepthCameraSpec:
+    """A depth camera not registered to colour: its calibration K [3 x 3], the image size it was calibrated
+    for (None: any, as a cam_K.txt), T_color_depth [4 x 4] (depth-camera points into the colour camera,
+    metres). `served`: the service's own (given when it started), whose misfits are the request's `depth`
+    field's; a request's own misfits name its `depth_intrinsics` and `depth_to_color` fields."""
+
+    K: np.ndarray
+    size: tuple[int, int] | None = None
+    T_color_depth: np.ndarray = field(default_factory=lambda: np.eye(4))
+    served: bool = False
+
+    def intrinsics(self, width: int, height: int) -> Intrinsics:
+        """Its intrinsics for depth images of width x height; RequestError when it cannot be of that size."""
+        if self.size is not None and self.size != (width, height):
+            raise RequestError("depth", f"depth is {width}x{height} but the service's depth camera is calibrated "
+                                        f"for {self.size[0]}x{self.size[1]} images")
+        why = implausible_intrinsics(self.K, width, height)
+        if why and self.served:
+            raise RequestError("depth", f"the service's depth camera does not fit this {width}x{height} depth "
+                                        f"image: {why}")
+        return sized_intrinsics(self.K, width, height, "depth_intrinsics")
+
+    def nothing_lands(self) -> RequestError:
+        """The error for a depth image none of whose pixels lands in the colour image."""
+        if self.served:
+            return RequestError("depth", "no pixel lands in the colour image through the service's depth camera")
+        return RequestError("depth_to_color", "no depth pixel lands in the colour image (is it T_color_depth, the "
+                                              "depth camera's pose in the colour camera, in metres?)")
+
+
+def depth_camera_fields(depth_intrinsics: str | None, depth_to_color: str | None) -> DepthCameraSpec | None:
+    """The depth camera a request names (None when it names none): `depth_intrinsics` (3x3 text) and
+    `depth_to_color` (T_color_depth; default the colour camera's own centre and axes). RequestError naming
+    the field: malformed values, or `depth_to_color` without `depth_intrinsics` (422)."""
+    if depth_intrinsics is None or not depth_intrinsics.strip():
+        if depth_to_color is not None and depth_to_color.strip():
+            raise RequestError("depth_to_color", "given without depth_intrinsics (the depth camera's 3x3 "
+                                                 "calibration, as cam_K.txt holds it)", 422)
+        return None
+    K = parse_K(depth_intrinsics, "depth_intrinsics")
+    T = np.eye(4) if depth_to_color is None or not depth_to_color.strip() else parse_pose(depth_to_color,
+                                                                                         "depth_to_color")
+    return DepthCameraSpec(K, None, T)
 
 
 def check_depth_scale(depth_scale: float, field: str = "depth_scale") -> None:
@@ -145,21 +240,30 @@ def check_depth_scale(depth_scale: float, field: str = "depth_scale") -> None:
 
 
 def decode_frame(color: bytes, depth: bytes, intrinsics: str, depth_scale: float, mask: bytes | None = None,
-                 name: str = "request", max_pixels: int = MAX_PIXELS) -> RGBDFrame:
+                 name: str = "request", max_pixels: int = MAX_PIXELS,
+                 depth_camera: DepthCameraSpec | None = None) -> RGBDFrame:
     """One RGB-D frame from a request's parts (sizes checked against each other; a median depth outside
-    DEPTH_RANGE_M is refused as a wrong depth scale)."""
+    DEPTH_RANGE_M is refused as a wrong depth scale). With `depth_camera` the depth is that camera's image
+    (of its own size), reprojected into the colour camera."""
     check_depth_scale(depth_scale)
     rgb = decode_color(color, "color", max_pixels)
     h, w = rgb.shape[:2]
     dh = image_header("depth", depth, ("PNG",), max_pixels)  # before decoding it
-    if (dh.width, dh.height) != (w, h):
+    if depth_camera is None and (dh.width, dh.height) != (w, h):
         raise RequestError("depth", f"depth is {dh.width}x{dh.height} but the colour image is {w}x{h}")
+    depth_intr = None if depth_camera is None else depth_camera.intrinsics(dh.width, dh.height)
     d = decode_depth(depth, depth_scale, "depth", max_pixels)
     med = float(np.median(d[d > 0]))
     lo, hi = DEPTH_RANGE_M
     if not lo <= med <= hi:
         raise RequestError("depth_scale", f"{depth_scale:g} puts the scene at {med:.3g} m (expected {lo:g}-{hi:g} m)")
     K = parse_intrinsics(intrinsics, w, h)
+    if depth_camera is not None and depth_intr is not None:
+        from gscan.io.align import align_depth_to_color  # numba: loaded only for unregistered depth
+
+        d = align_depth_to_color(d, depth_intr, K, depth_camera.T_color_depth)
+        if not d.any():
+            raise depth_camera.nothing_lands()
     m = None
     if mask is not None and len(mask):
         mh = image_header("mask", mask, ("PNG", "JPEG"), max_pixels)

@@ -2,12 +2,20 @@
 templates loaded once and kept warm.
 
     GET    /health              -> {"templates": [names]}
-    POST   /estimate            multipart: color, depth, intrinsics, [depth_scale], [mask], [templates]
+    POST   /estimate            multipart: color, depth, intrinsics, [depth_scale], [mask], [templates],
+                                [depth_intrinsics], [depth_to_color]
                                 -> {"results": {name: <the estimate --json object>}, "timings_ms": {"total": ...}}
-    POST   /track/{session}     multipart: color, depth, intrinsics, [depth_scale], [mask], [template]
+    POST   /track/{session}     multipart: color, depth, intrinsics, [depth_scale], [mask], [template],
+                                [depth_intrinsics], [depth_to_color]
                                 -> {"session", "template", "frame", "status", "result", "timings_ms"}
     DELETE /track/{session}     -> {"session", "frames"}
     GET    /docs                the OpenAPI page
+
+Depth not registered to colour (a separate depth camera): a request's `depth_intrinsics` (the depth camera's
+3x3, as cam_K.txt holds it) and optional `depth_to_color` (T_color_depth: 16 numbers or JSON, metres; default
+the colour camera's centre and axes) describe its depth camera, whose image is reprojected into the colour
+camera before estimation; a request without them uses the service's depth camera when it was started with
+one (`depth_camera`), else its depth is registered to colour. `depth_to_color` alone is refused (422).
 
 A bad request gets HTTP 4xx and {"detail": "one line naming the field"}; an error inside the estimator gets
 500 with one line; neither stops the server. Requests are decoded and estimated one at a time (a lock): the
@@ -26,7 +34,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from gscan.estimate import Estimator, Tracker
-from gscan.serve.decode import MAX_PIXELS, RequestError, decode_frame
+from gscan.serve.decode import MAX_PIXELS, DepthCameraSpec, RequestError, decode_frame, depth_camera_fields
 
 log = logging.getLogger(__name__)
 
@@ -52,11 +60,13 @@ class _Session:
 class Service:
     """The service's state: the warm estimators, the tracking sessions and the lock that serialises work."""
 
-    def __init__(self, estimators: dict[str, Estimator], params: ServeParams | None = None):
+    def __init__(self, estimators: dict[str, Estimator], params: ServeParams | None = None,
+                 depth_camera: DepthCameraSpec | None = None):
         if not estimators:
             raise ValueError("the service needs at least one template")
         self.estimators = dict(estimators)
         self.params = params or ServeParams()
+        self.depth_camera = depth_camera  # for requests that name none (None: their depth is registered)
         self.lock = threading.Lock()
         self.sessions: OrderedDict[str, _Session] = OrderedDict()
 
@@ -70,12 +80,19 @@ class Service:
             raise RequestError(field, f"unknown template {unknown[0]!r} (serving: {', '.join(self.estimators)})", 404)
         return list(dict.fromkeys(names))
 
+    def request_depth_camera(self, depth_intrinsics: str | None, depth_to_color: str | None) -> DepthCameraSpec | None:
+        """The depth camera of a request: its own fields', else the service's (None: registered depth)."""
+        return depth_camera_fields(depth_intrinsics, depth_to_color) or self.depth_camera
+
     def estimate(self, color: bytes, depth: bytes, intrinsics: str, depth_scale: float, mask: bytes | None,
-                 templates: str | None) -> dict[str, Any]:
+                 templates: str | None, depth_intrinsics: str | None = None,
+                 depth_to_color: str | None = None) -> dict[str, Any]:
         t0 = time.perf_counter()
         names = self.names("templates", templates)
+        cam = self.request_depth_camera(depth_intrinsics, depth_to_color)
         with self.lock:
-            frame = decode_frame(color, depth, intrinsics, depth_scale, mask, max_pixels=self.params.max_pixels)
+            frame = decode_frame(color, depth, intrinsics, depth_scale, mask, max_pixels=self.params.max_pixels,
+                                 depth_camera=cam)
             first = self.estimators[names[0]]
             q = first.prepare(frame, frame.mask)  # the frame's full-image work, shared by the templates
             results = {}
@@ -86,10 +103,12 @@ class Service:
         return {"results": results, "timings_ms": {"total": (time.perf_counter() - t0) * 1e3}}
 
     def track(self, session: str, color: bytes, depth: bytes, intrinsics: str, depth_scale: float,
-              mask: bytes | None, template: str | None) -> dict[str, Any]:
+              mask: bytes | None, template: str | None, depth_intrinsics: str | None = None,
+              depth_to_color: str | None = None) -> dict[str, Any]:
         t0 = time.perf_counter()
         if not SESSION_ID.match(session):
             raise RequestError("session", "1-64 letters, digits, '.', '_' or '-'", 400)
+        cam = self.request_depth_camera(depth_intrinsics, depth_to_color)
         with self.lock:
             self._expire()
             s = self.sessions.get(session)
@@ -107,7 +126,7 @@ class Service:
                 raise RequestError("template", f"session {session!r} tracks {s.template!r}, not {template.strip()!r}",
                                    409)
             frame = decode_frame(color, depth, intrinsics, depth_scale, mask, name=f"{session}:{s.frames}",
-                                 max_pixels=self.params.max_pixels)
+                                 max_pixels=self.params.max_pixels, depth_camera=cam)
             step = s.tracker.step(frame, frame.mask)
             s.frames += 1
             s.used = time.monotonic()
