@@ -6,8 +6,11 @@ to one of the two trees and a working directory outside both (so `-m` imports th
 each capture the two trees alternate (this, ref, ref, this, ...), `--repeats` times each, after one untimed
 warm-up scan per tree (numba compiles its kernels into a fresh tree's cache on the first run); medians are
 compared. Wall time per frame is the child's wall time over the capture's frame count; CPU is the child's user
-+ system time (getrusage). The environment is the same for both (no thread variable by default: each tree runs
-as a user would run it; `--one-thread` sets OPENBLAS_NUM_THREADS = OMP_NUM_THREADS = 1 for both).
++ system time (getrusage). Every scan's poses (each tree's own `gscan poses --json`) are compared with the
+capture's ground truth: "wrong" counts frames registered beyond 5 deg or 2 cm (relative poses,
+gscan.evaluate.metrics.frame_errors; the most of any repeat). The environment is the same for both (no thread
+variable by default: each tree runs as a user would run it; `--one-thread` sets OPENBLAS_NUM_THREADS =
+OMP_NUM_THREADS = 1 for both).
 
 Captures: the bundled sample (30 frames, 640x480) and, with `--render N`, a static capture of N views of a
 shared mesh rendered by this checkout's gscan.synth (640x480, two rings, newspaper table); or the folders given
@@ -34,6 +37,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+WRONG_DEG, WRONG_M = 5.0, 0.02  # rendered captures: a frame registered beyond either is at a wrong pose
 THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "GOTO_NUM_THREADS", "MKL_NUM_THREADS",
                "BLIS_NUM_THREADS", "VECLIB_MAXIMUM_THREADS", "NUMEXPR_NUM_THREADS", "NUMBA_NUM_THREADS")
 
@@ -54,9 +58,27 @@ def scan_once(tree: Path, capture: Path, out: Path, env: dict[str, str], cwd: Pa
     if p.returncode != 0:
         raise SystemExit(f"{tree}: scan of {capture} failed ({p.returncode}): {p.stderr.strip()[-800:]}")
     s = json.loads(p.stdout)
+    q = subprocess.run([sys.executable, "-m", "gscan.cli", "poses", str(out), "--json"], cwd=cwd,
+                       env=env | {"PYTHONPATH": str(tree)}, capture_output=True, text=True, check=True)
+    poses = {n: np.asarray(T, dtype=np.float64) for n, T in json.loads(q.stdout)["frames"].items()}
     out.unlink(missing_ok=True)
     return {"wall_s": wall, "cpu_s": (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime),
-            "registered": s.get("registered"), "frames": s.get("frames"), "timings_s": s.get("timings_s", {})}
+            "registered": s.get("registered"), "frames": s.get("frames"), "timings_s": s.get("timings_s", {}),
+            "wrong": wrong_frames(poses, capture)}
+
+
+def wrong_frames(T_obj_cam: dict[str, np.ndarray], capture: Path) -> list[str] | None:
+    """Registered frames beyond WRONG_DEG or WRONG_M of the capture's ground truth (relative poses,
+    gscan.evaluate.metrics.frame_errors); None without ground truth."""
+    from gscan.evaluate.metrics import frame_errors
+    from gscan.geometry.transforms import inv_T
+    from gscan.io import open_sequence
+
+    gt = {n: inv_T(T) for n, T in (open_sequence(capture).gt_T_cam_obj or {}).items()}
+    if not gt:
+        return None
+    names = [n for n in T_obj_cam if n in gt]
+    return frame_errors({n: T_obj_cam[n] for n in names}, {n: gt[n] for n in names}).wrong(WRONG_DEG, WRONG_M)
 
 
 def render(n: int, work: Path, data: Path) -> Path:
@@ -109,11 +131,13 @@ def main() -> None:
                     r = scan_once(trees[name], cap, work / f"{name}.gscan", env, cwd)
                     res[name].append(r)
                     print(f"{cap.name} {name}: {r['wall_s']:.2f} s wall, {r['cpu_s']:.2f} s CPU, "
-                          f"{r['registered']}/{r['frames']} registered", flush=True)
+                          f"{r['registered']}/{r['frames']} registered, wrong {r['wrong']}", flush=True)
             runs[str(cap)] = res
             row: dict[str, Any] = {"capture": cap.name, "frames": res["this"][0]["frames"]}
             for name in trees:
                 row[f"{name}_registered"] = res[name][0]["registered"]
+                wrong = [r["wrong"] for r in res[name]]
+                row[f"{name}_wrong"] = None if None in wrong else max(len(w) for w in wrong)
                 for k in ("wall_s", "cpu_s"):
                     row[f"{name}_{k}"] = float(np.median([r[k] for r in res[name]]))
                 stages = sorted({s for r in res[name] for s in r["timings_s"]})
@@ -133,11 +157,12 @@ def main() -> None:
 
     print(f"\nthis: {this}; ref: {args.ref} = {commit}; load average {load[0]:.1f} before, {load[1]:.1f} after; "
           f"medians of {args.repeats}{'; one BLAS/OpenMP thread for both' if args.one_thread else ''}")
-    print(f"| capture | frames | registered (this / {args.ref}) | this ms/frame | {args.ref} ms/frame | wall ratio | "
-          "CPU ratio |")
-    print("|---|---|---|---|---|---|---|")
+    print(f"| capture | frames | registered (this / {args.ref}) | registered at a wrong pose (this / {args.ref}) | "
+          f"this ms/frame | {args.ref} ms/frame | wall ratio | CPU ratio |")
+    print("|---|---|---|---|---|---|---|---|")
     for r in rows:
         print(f"| {r['capture']} | {r['frames']} | {r['this_registered']} / {r['ref_registered']} | "
+              f"{r['this_wrong']} / {r['ref_wrong']} | "
               f"{r['this_wall_ms_per_frame']:.0f} | {r['ref_wall_ms_per_frame']:.0f} | **{r['wall_ratio']:.2f}** | "
               f"{r['cpu_ratio']:.2f} |")
     for r in rows:
