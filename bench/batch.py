@@ -9,7 +9,9 @@ two rings at 30 and 55 degrees, --width x 3/4 pixels) are scanned twice in this 
 Reported: the wall times and their ratio, the seconds of each capture in each mode, the peak resident memory of
 each batch task's scan process (ru_maxrss of that child, from wait4) and of this process after the sequential
 scans, the Ray runtime's start-up (measured alone), the bytes each capture reads and writes (capture folder,
-template), and whether the batch's templates equal the sequential ones (poses to 1e-9). The load average
+template), whether the batch's templates equal the sequential ones (poses to 1e-9), and the frames registered and
+registered at a wrong pose (beyond 5 deg or 2 cm of the rendered ground truth, relative poses: the batch report's
+ground-truth check, gscan.batch.facts, applied to the sequential templates too). The load average
 (`uptime`) is recorded before and after: the machine is shared.
 
     python bench/batch.py                       # 8 captures x 16 views, 320 x 240, 2 workers
@@ -38,7 +40,7 @@ from gscan.scan.api import scan  # noqa: E402
 from gscan.synth import DEFAULT_INTRINSICS, load_textured_mesh, render_capture  # noqa: E402
 from gscan.template.db import TemplateDB  # noqa: E402
 
-MESHES = ROOT.parent / "shared" / "data" / "meshes"
+MESHES = Path(os.environ.get("GSCAN_TEST_DATA") or ROOT.parent / "shared" / "data") / "meshes"
 OUT = ROOT / "bench" / "out" / "batch"
 
 
@@ -78,6 +80,14 @@ def same(a: Path, b: Path) -> bool:
         if (T is None) != (U is None) or (T is not None and np.max(np.abs(T - U)) > 1e-9):
             return False
     return True
+
+
+def wrong_frames(capture: Path, template: Path) -> list[str] | None:
+    """Frames of `template` registered beyond 5 deg / 2 cm of `capture`'s ground truth (None: no ground truth)."""
+    from gscan.batch.facts import ground_truth_check, template_facts
+
+    check = ground_truth_check(capture, template_facts(template))
+    return None if check is None else check.wrong_frames
 
 
 def main() -> None:
@@ -133,6 +143,8 @@ def main() -> None:
         "sequential_process_peak_rss_mb": seq_peak / 2**20, "failed": failed, "identical_poses": identical,
         "capture_mb_mean": float(np.mean(cap_bytes)) / 2**20, "template_mb_mean": float(np.mean(tpl_bytes)) / 2**20,
         "registered": {n: f"{rows[n].registered}/{rows[n].frames}" for n in names},
+        "wrong_batch": {n: (rows[n].ground_truth or {}).get("wrong_frames") for n in names},
+        "wrong_sequential": {n: wrong_frames(caps / n, seq_out / f"{n}.gscan") for n in names},
     }
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps(out, indent=1))
@@ -151,6 +163,13 @@ def main() -> None:
           f"failed: {failed or 'none'}")
     print(f"per capture: {np.mean(cap_bytes) / 2**20:.1f} MiB read (capture), {np.mean(tpl_bytes) / 2**20:.1f} MiB "
           "written (template)")
+
+    def n_wrong(w: dict[str, list[str] | None]) -> str:
+        return "-" if any(v is None for v in w.values()) else str(sum(len(v or []) for v in w.values()))
+
+    reg = sum(rows[n].registered or 0 for n in names)
+    print(f"frames registered {reg}/{sum(rows[n].frames or 0 for n in names)}; registered at a wrong pose (5 deg / "
+          f"2 cm): {n_wrong(out['wrong_batch'])} batch, {n_wrong(out['wrong_sequential'])} one after another")
 
 
 if __name__ == "__main__":
