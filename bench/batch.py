@@ -211,6 +211,7 @@ def main() -> None:
         "failed": sorted(failed), "identical_poses": identical,
         "capture_mb_mean": float(np.mean(cap_bytes)) / 2**20, "template_mb_mean": float(np.mean(tpl_bytes)) / 2**20,
         "registered": {n: f"{rows[n].registered}/{rows[n].frames}" for n in names},
+        "wrong_batch": {n: (rows[n].ground_truth or {}).get("wrong_frames") for n in names},
     }
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps(out, indent=1))
@@ -238,6 +239,13 @@ def main() -> None:
           f"{sorted(failed) or 'none'}")
     print(f"per capture: {np.mean(cap_bytes) / 2**20:.1f} MiB read (capture), {np.mean(tpl_bytes) / 2**20:.1f} MiB "
           "written (template)")
+
+    def n_wrong(w: dict[str, list[str] | None]) -> str:
+        return "-" if any(v is None for v in w.values()) else str(sum(len(v or []) for v in w.values()))
+
+    reg = sum(rows[n].registered or 0 for n in names)
+    print(f"frames registered {reg}/{sum(rows[n].frames or 0 for n in names)}; registered at a wrong pose (5 deg / "
+          f"2 cm): {n_wrong(out['wrong_batch'])} batch, {n_wrong(out['wrong_sequential'])} one after another")
 
 
 if __name__ == "__main__":

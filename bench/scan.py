@@ -4,11 +4,13 @@
    (gscan.synth.render_capture, mode "static", two orbit rings at 30 and 55 degrees elevation,
    ordered ring by ring: the first half of the frames on the 30-degree ring), scanned with the
    rendered masks and again without them (masks/ removed: gscan segments on its own). Reports
-   registered frames, ATE of the camera positions (rigid Umeyama alignment of the scanned
-   T_obj_cam positions onto the ground-truth inv(T_cam_obj) ones, gscan.evaluate.metrics.ate; over the
-   registered frames) and seconds per frame (wall time of run_scan / frames).
+   registered frames, frames registered at a wrong pose (beyond 5 deg or 2 cm of the ground truth: the
+   median error of a frame's poses relative to the other registered frames, gscan.evaluate.metrics.frame_errors),
+   ATE of the camera positions (rigid Umeyama alignment of the scanned T_obj_cam positions onto the
+   ground-truth inv(T_cam_obj) ones, gscan.evaluate.metrics.ate; over the registered frames) and seconds per
+   frame (wall time of run_scan / frames).
 2. Peers on the same captures (bench/peers.py, whole frames): open3d RGB-D odometry chain and
-   FPFH + RANSAC + point-to-plane ICP chain; registered / failed frames and ATE. Their depth_max
+   FPFH + RANSAC + point-to-plane ICP chain; registered / failed frames, wrong frames and ATE. Their depth_max
    is the capture's camera distance plus two object radii (the object and the table around it).
    Both are run again on masked depth (depth outside the rendered mask set to 0; --no-masked-peers skips).
 3. End to end: one --e2e-views capture (640x480, three rings at 25/45/65 degrees) scanned in a
@@ -30,6 +32,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import resource
 import shutil
 import subprocess
@@ -42,20 +45,21 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
 
-from gscan.evaluate.metrics import ate  # noqa: E402
+from gscan.evaluate.metrics import ate, frame_errors  # noqa: E402
 from gscan.geometry.transforms import inv_T  # noqa: E402
 from gscan.io import open_sequence  # noqa: E402
 from gscan.scan.api import scan  # noqa: E402
 from gscan.synth import default_distance, load_textured_mesh, render_capture  # noqa: E402
 from gscan.template.db import TemplateDB  # noqa: E402
 
-MESHES = ROOT.parent / "shared" / "data" / "meshes"
+MESHES = Path(os.environ.get("GSCAN_TEST_DATA") or ROOT.parent / "shared" / "data") / "meshes"
 OUT = ROOT / "bench" / "out"
 ELEVATIONS = (30.0, 55.0)
 E2E_ELEVATIONS = (25.0, 45.0, 65.0)
 E2E_MESH = "Crayola_Bonus_64_Crayons"
 PEER_DEPTH_RADII = 2.0  # peers' depth_max = camera distance + this x object radius (object + table near it)
 TARGET_ATE_M = 0.005
+WRONG_DEG, WRONG_M = 5.0, 0.02  # a registered frame beyond either (rendered data) is at a wrong pose
 
 
 def mesh_names() -> list[str]:
@@ -86,9 +90,12 @@ def gt_T_world_cam(cap: Path) -> dict[str, np.ndarray]:
 
 
 def score(est: dict[str, np.ndarray | None], gt: dict[str, np.ndarray]) -> dict:
-    """Registered count and ATE (m) of the registered frames' positions against the ground truth."""
+    """Registered count, the frames registered at a wrong pose (beyond WRONG_DEG / WRONG_M, relative poses) and
+    ATE (m) of the registered frames' positions against the ground truth."""
     names = [n for n in gt if est.get(n) is not None]
-    out = {"frames": len(gt), "registered": len(names), "failed": sorted(set(gt) - set(names))}
+    out = {"frames": len(gt), "registered": len(names), "failed": sorted(set(gt) - set(names)),
+           "wrong": frame_errors({n: np.asarray(est[n]) for n in names}, {n: gt[n] for n in names}).wrong(
+               WRONG_DEG, WRONG_M)}
     if names:
         a = ate([np.asarray(est[n]) for n in names], [gt[n] for n in names])
         out.update(ate_rmse=a.rmse, ate_median=a.median, ate_max=a.max,
@@ -142,6 +149,11 @@ def _mm(x: float) -> str:
     return "  -  " if not np.isfinite(x) else f"{1000 * x:6.2f}"
 
 
+def _wrong(rs: list[dict]) -> str:
+    """Frames registered at a wrong pose over rows `rs` ("-" when a row was scored before they were counted)."""
+    return "-" if any("wrong" not in r for r in rs) else str(sum(len(r["wrong"]) for r in rs))
+
+
 def wait_for_capture(name: str, views: int, seed: int, timeout_s: float = 3600.0) -> None:
     """Block until another process has rendered this capture (a split run renders each once)."""
     tag = f"{name}_v{views}_e{'-'.join(f'{e:g}' for e in ELEVATIONS)}_s{seed}"
@@ -175,7 +187,8 @@ def accuracy(names: list[str], views: int, what: set[str], result: dict, json_pa
         if "peers_masked" in what:
             row.update(run_peers(cap, gt, peer_depth_max(name), masked=True))
         rows[name] = row
-        line = "  ".join(f"{m}: {r['registered']}/{r['frames']} ATE {_mm(r['ate_rmse']).strip()} mm "
+        line = "  ".join(f"{m}: {r['registered']}/{r['frames']} wrong {len(r['wrong'])} "
+                         f"ATE {_mm(r['ate_rmse']).strip()} mm "
                          f"({r['s_per_frame']:.2f} s/f)" for m, r in row.items() if isinstance(r, dict))
         print("   " + line, flush=True)
         write_json(result, json_path)
@@ -189,14 +202,15 @@ def print_accuracy(rows: dict, views: int) -> None:
              "fpfh": "o3d FPFH+ICP", "odometry_masked": "o3d odometry masked",
              "fpfh_masked": "o3d FPFH+ICP masked"}
     print(f"\nATE RMSE (mm) (registered frames of {views}), per mesh")
-    print(f"{'mesh':40s}" + "".join(f"{label[m]:>21s}" for m in methods))
+    print(f"{'mesh':40s}" + "".join(f"{label[m]:>27s}" for m in methods) + "   (w: frames at a wrong pose)")
     for name, r in sorted(rows.items()):
-        cells = [(f"{_mm(r[m]['ate_rmse'])} ({r[m]['registered']:2d}/{r[m]['frames']})" if m in r else "")
-                 for m in methods]
-        print(f"{name[:40]:40s}" + "".join(c.rjust(21) for c in cells))
+        cells = [(f"{_mm(r[m]['ate_rmse'])} ({r[m]['registered']:2d}/{r[m]['frames']}, w {_wrong([r[m]])})"
+                  if m in r else "") for m in methods]
+        print(f"{name[:40]:40s}" + "".join(c.rjust(27) for c in cells))
     print("\nsummary")
     print(f"{'method':20s} {'meshes':>6s} {'median ATE mm':>14s} {'mean ATE mm':>12s} {'max ATE mm':>11s} "
-          f"{'all frames reg.':>16s} {'frames reg.':>12s} {'ATE<=5mm & all reg.':>20s} {'s/frame median':>15s}")
+          f"{'all frames reg.':>16s} {'frames reg.':>12s} {'wrong':>6s} {'ATE<=5mm & all reg.':>20s} "
+          f"{'s/frame median':>15s}")
     for m in methods:
         rs = [r[m] for r in rows.values() if m in r]
         a = np.array([x["ate_rmse"] for x in rs])
@@ -205,7 +219,8 @@ def print_accuracy(rows: dict, views: int) -> None:
         reg = sum(x["registered"] for x in rs)
         tot = sum(x["frames"] for x in rs)
         print(f"{label[m]:20s} {len(rs):6d} {_mm(np.nanmedian(a)):>14s} {_mm(np.nanmean(a)):>12s} "
-              f"{_mm(np.nanmax(a)):>11s} {full:>13d}/{len(rs):<2d} {reg:>7d}/{tot:<4d} {ok:>17d}/{len(rs):<2d} "
+              f"{_mm(np.nanmax(a)):>11s} {full:>13d}/{len(rs):<2d} {reg:>7d}/{tot:<4d} {_wrong(rs):>6s} "
+              f"{ok:>17d}/{len(rs):<2d} "
               f"{np.median([x['s_per_frame'] for x in rs]):>15.2f}")
 
 
@@ -218,19 +233,21 @@ def markdown_accuracy(rows: dict) -> str:
              "fpfh_masked": "o3d FPFH+RANSAC+ICP, masked depth"}
     out = ["| mesh | " + " | ".join(label[m] for m in methods) + " |", "|---" * (len(methods) + 1) + "|"]
     for name, r in sorted(rows.items()):
-        cells = [(f"{1000 * r[m]['ate_rmse']:.2f} ({r[m]['registered']}/{r[m]['frames']})" if m in r else "")
-                 for m in methods]
+        cells = [(f"{1000 * r[m]['ate_rmse']:.2f} ({r[m]['registered']}/{r[m]['frames']}, {_wrong([r[m]])} wrong)"
+                  if m in r else "") for m in methods]
         out.append(f"| {name} | " + " | ".join(cells) + " |")
     out += ["", "| method | meshes | median ATE (mm) | mean ATE (mm) | max ATE (mm) | meshes with every frame "
-            "registered | frames registered | meshes ATE <= 5 mm and all registered | s/frame (median) |",
-            "|---|---|---|---|---|---|---|---|---|"]
+            "registered | frames registered | registered at a wrong pose | meshes ATE <= 5 mm and all registered | "
+            "s/frame (median) |",
+            "|---|---|---|---|---|---|---|---|---|---|"]
     for m in methods:
         rs = [r[m] for r in rows.values() if m in r]
         a = 1000 * np.array([x["ate_rmse"] for x in rs])
         ok = sum(x["registered"] == x["frames"] and x["ate_rmse"] <= TARGET_ATE_M for x in rs)
         out.append(f"| {label[m]} | {len(rs)} | {np.nanmedian(a):.2f} | {np.nanmean(a):.2f} | {np.nanmax(a):.2f} | "
                    f"{sum(x['registered'] == x['frames'] for x in rs)}/{len(rs)} | "
-                   f"{sum(x['registered'] for x in rs)}/{sum(x['frames'] for x in rs)} | {ok}/{len(rs)} | "
+                   f"{sum(x['registered'] for x in rs)}/{sum(x['frames'] for x in rs)} | {_wrong(rs)} | "
+                   f"{ok}/{len(rs)} | "
                    f"{np.median([x['s_per_frame'] for x in rs]):.2f} |")
     return "\n".join(out)
 
@@ -264,7 +281,8 @@ def print_e2e(r: dict) -> None:
     print(f"  run_scan {r['run_scan_s']:.1f} s ({r['run_scan_s'] / r['views']:.2f} s/frame), child wall "
           f"{r['child_wall_s']:.1f} s (interpreter start and imports included), peak RSS {r['peak_rss_mib']:.0f} MiB")
     print("  stages: " + ", ".join(f"{k} {v:.1f} s" for k, v in r["timings_s"].items()))
-    print(f"  registered {r['registered']}/{r['frames']}, ATE RMSE {_mm(r['ate_rmse']).strip()} mm, "
+    print(f"  registered {r['registered']}/{r['frames']}, at a wrong pose {_wrong([r])}, "
+          f"ATE RMSE {_mm(r['ate_rmse']).strip()} mm, "
           f"edges {r['edges_accepted']} accepted / {r['edges_rejected']} rejected, {r['keyframes']} keyframes")
 
 

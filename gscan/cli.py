@@ -75,6 +75,12 @@ def _main_options(
                                  help="print the version and exit"),
 ) -> None:
     """Scan objects with an RGB-D camera into GMatch templates; estimate their 6DoF pose on a CPU."""
+    # every command is a process gscan owns: one BLAS / OpenMP thread unless the environment names a count
+    # (the rule and its reasons: gscan.threads), set before a command imports numpy
+    from gscan.threads import one_blas_thread
+
+    one_blas_thread()
+
 
 # no markup or emoji codes: file and frame names ("[x]", ":smile:") are printed as they are; styles go
 # through `_say`

@@ -145,18 +145,36 @@ def _to_gray(color: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(gray)
 
 
-def _detect(gray: np.ndarray, mask_u8: np.ndarray | None, params: FeatureParams) -> tuple[list, np.ndarray | None]:
+# SIFT on a whole frame describes only its strongest DESCRIBE_MARGIN * max_keypoints / (fraction of pixels with
+# depth) keypoints (OpenCV's `nfeatures`): the cap keeps fewer, and the rest would be described for nothing
+DESCRIBE_MARGIN = 1.5
+
+
+def _detect(gray: np.ndarray, mask_u8: np.ndarray | None, params: FeatureParams,
+            n_best: int = 0) -> tuple[list, np.ndarray | None]:
+    """OpenCV's keypoints and descriptors; n_best > 0 (SIFT): only the n_best strongest responses (and those
+    equal to the n_best-th) are described and returned."""
     det: cv2.Feature2D
     if params.kind == "orb":
         n = max(params.max_keypoints, int(round(params.max_keypoints * params.orb_detect_factor)))
         det = cv2.ORB.create(nfeatures=n, scaleFactor=params.orb_scale_factor, nlevels=params.orb_n_levels,
                              fastThreshold=params.orb_fast_threshold)
     else:
-        det = cv2.SIFT.create(nfeatures=0, nOctaveLayers=params.sift_n_octave_layers,
+        det = cv2.SIFT.create(nfeatures=n_best, nOctaveLayers=params.sift_n_octave_layers,
                               contrastThreshold=params.sift_contrast_threshold,
                               edgeThreshold=params.sift_edge_threshold, sigma=params.sift_sigma)
     kps, desc = det.detectAndCompute(gray, mask_u8)
     return list(kps), desc
+
+
+def _n_best(depth: np.ndarray, mask: np.ndarray | None, params: FeatureParams) -> int:
+    """How many of the strongest SIFT keypoints to describe (0: all). A mask is applied by OpenCV after its
+    strongest-n cut, so a masked detection describes every keypoint in the mask (0)."""
+    if params.kind == "orb" or mask is not None:
+        return 0
+    frac = np.count_nonzero(depth > 0) / max(depth.size, 1)
+    n = DESCRIBE_MARGIN * params.max_keypoints / max(frac, 1e-3)
+    return int(np.ceil(n)) if n < 1e7 else 0
 
 
 def _rootsift(desc: np.ndarray) -> np.ndarray:
@@ -173,7 +191,9 @@ def extract_features(frame: RGBDFrame, params: FeatureParams = FeatureParams(),
 
     Keypoints without a robust depth (invalid or discontinuous window, see `lift_keypoints`) are dropped; of
     the rest the `params.max_keypoints` strongest are kept, ordered by decreasing response with ties broken by
-    (y, x, angle). Deterministic.
+    (y, x, angle, size). Deterministic. SIFT describes only the keypoints that can be kept: those in the mask,
+    and on a whole frame the strongest (`DESCRIBE_MARGIN`); the result is the one describing every keypoint
+    gives.
 
     Args:
         frame: the RGB-D frame.
@@ -196,26 +216,35 @@ def extract_features(frame: RGBDFrame, params: FeatureParams = FeatureParams(),
         if not mask.any():
             return empty_features(params.kind)
         mask_u8 = mask.astype(np.uint8) * 255
-    kps, desc = _detect(gray, mask_u8, params)
-    if not kps or desc is None:
-        log.debug("frame %s: no keypoints", frame.name)
-        return empty_features(params.kind)
-    px = np.array([k.pt for k in kps], dtype=np.float64).reshape(-1, 2)
+    n_best = _n_best(frame.depth, mask, params)
+    while True:
+        kps, desc = _detect(gray, mask_u8, params, n_best)
+        if not kps or desc is None:
+            log.debug("frame %s: no keypoints", frame.name)
+            return empty_features(params.kind)
+        px = np.array([k.pt for k in kps], dtype=np.float64).reshape(-1, 2)
+        keep = np.ones(len(kps), dtype=bool)
+        if mask is not None:
+            u = np.clip(np.rint(px[:, 0]).astype(int), 0, W - 1)
+            v = np.clip(np.rint(px[:, 1]).astype(int), 0, H - 1)
+            keep &= mask[v, u]
+        pts, valid = lift_keypoints(px, frame.depth, frame.intrinsics, window=params.lift_window,
+                                    max_rel_spread=params.lift_max_rel_spread,
+                                    min_valid_frac=params.lift_min_valid_frac)
+        keep &= valid
+        # the strongest n_best hold the max_keypoints strongest with depth, unless OpenCV cut keypoints (it
+        # returns at least n_best then) and fewer than max_keypoints of those have depth: describe them all
+        if n_best == 0 or len(kps) < n_best or np.count_nonzero(keep) >= params.max_keypoints:
+            break
+        log.debug("frame %s: %d of the %d strongest keypoints have depth; describing all", frame.name,
+                  int(keep.sum()), len(kps))
+        n_best = 0
     resp = np.array([k.response for k in kps], dtype=np.float64)
     angle = np.array([k.angle for k in kps], dtype=np.float64)
     size = np.array([k.size for k in kps], dtype=np.float32)
-    keep = np.ones(len(kps), dtype=bool)
-    if mask is not None:
-        u = np.clip(np.rint(px[:, 0]).astype(int), 0, W - 1)
-        v = np.clip(np.rint(px[:, 1]).astype(int), 0, H - 1)
-        keep &= mask[v, u]
-    pts, valid = lift_keypoints(px, frame.depth, frame.intrinsics, window=params.lift_window,
-                                max_rel_spread=params.lift_max_rel_spread,
-                                min_valid_frac=params.lift_min_valid_frac)
-    keep &= valid
     idx = np.flatnonzero(keep)
-    # strongest first; ties by (y, x, angle); lexsort's primary key is the last one
-    order = np.lexsort((angle[idx], px[idx, 0], px[idx, 1], -resp[idx]))
+    # strongest first; ties by (y, x, angle, size); lexsort's primary key is the last one
+    order = np.lexsort((size[idx], angle[idx], px[idx, 0], px[idx, 1], -resp[idx]))
     idx = idx[order][: params.max_keypoints]
     desc = desc[idx]
     if params.kind == "rootsift":

@@ -108,6 +108,67 @@ def test_cap_matches_opencv_reference(real_frame):
     assert {tuple(p) for p in capped.pixels.tolist()} == ref
 
 
+def _describe_all(frame: RGBDFrame, params: FeatureParams, mask: np.ndarray | None) -> tuple[np.ndarray, ...]:
+    """The reference: every keypoint described (detectAndCompute, no strongest-n cut), then the same filter,
+    order and cap as extract_features. Returns (pixels, descriptors)."""
+    gray = cv2.cvtColor(frame.color, cv2.COLOR_RGB2GRAY)
+    det = cv2.SIFT_create(nfeatures=0, nOctaveLayers=params.sift_n_octave_layers,
+                          contrastThreshold=params.sift_contrast_threshold,
+                          edgeThreshold=params.sift_edge_threshold, sigma=params.sift_sigma)
+    kps, desc = det.detectAndCompute(gray, None if mask is None else mask.astype(np.uint8) * 255)
+    px = np.array([k.pt for k in kps], dtype=np.float64)
+    resp, angle = np.array([k.response for k in kps]), np.array([k.angle for k in kps])
+    size = np.array([k.size for k in kps], dtype=np.float32)
+    _, keep = lift_keypoints(px, frame.depth, frame.intrinsics, window=params.lift_window,
+                             max_rel_spread=params.lift_max_rel_spread, min_valid_frac=params.lift_min_valid_frac)
+    if mask is not None:
+        keep &= mask[np.rint(px[:, 1]).astype(int).clip(0, mask.shape[0] - 1),
+                     np.rint(px[:, 0]).astype(int).clip(0, mask.shape[1] - 1)]
+    idx = np.flatnonzero(keep)
+    idx = idx[np.lexsort((size[idx], angle[idx], px[idx, 0], px[idx, 1], -resp[idx]))][: params.max_keypoints]
+    return px[idx].astype(np.float32), desc[idx]
+
+
+@pytest.mark.parametrize("source,cap", [("sample", 2000), ("real", 50), ("real", 3)])
+def test_sift_describing_the_strongest_gives_what_describing_all_gives(real_frame, source, cap, monkeypatch):
+    """SIFT on a whole frame describes only its strongest keypoints: the kept keypoints, their order and their
+    descriptors are those of describing every keypoint; also masked (every keypoint in the mask described),
+    and when the strongest keypoints lack depth (the depth under them erased), which describes all of them in a
+    second detection."""
+    import gscan.features as features
+    from gscan.demo import SAMPLES
+    from gscan.io import open_sequence
+
+    frame = real_frame if source == "real" else open_sequence(SAMPLES / "capture")[0]
+    described: list[int] = []  # keypoints OpenCV described, per detection
+    detect = features._detect
+
+    def counted(*a, **k):
+        out = detect(*a, **k)
+        described.append(len(out[0]))
+        return out
+
+    monkeypatch.setattr(features, "_detect", counted)
+    H, W = frame.depth.shape
+    box = np.zeros((H, W), bool)
+    box[H // 5:H * 4 // 5, W // 4:W * 3 // 4] = True
+    every = extract_features(frame, FeatureParams(kind="sift", max_keypoints=100000))  # all with depth
+    holes = frame.depth.copy()
+    for u, v in np.rint(every.pixels[: cap + 40]).astype(int):  # no depth under the strongest cap + 40
+        holes[max(0, v - 3):v + 4, max(0, u - 3):u + 4] = 0.0
+    no_depth = RGBDFrame(frame.name, frame.color, holes, frame.intrinsics)
+    params = FeatureParams(kind="sift", max_keypoints=cap)
+    for f, mask, detections in ((frame, None, 1), (frame, box, 1), (no_depth, None, 2)):
+        described.clear()
+        got = extract_features(f, params, mask=mask)
+        want_px, want_desc = _describe_all(f, params, mask)
+        assert len(got) == len(want_px) >= min(cap, 50)
+        assert np.array_equal(got.pixels, want_px) and np.array_equal(got.descriptors, want_desc)
+        assert len(described) == detections, (mask is not None, described)
+        if mask is None:  # the first detection described fewer keypoints than the frame has
+            assert described[0] < len(every), (described, len(every))
+
+
 def test_sift_norm_and_rootsift_unit_norm(real_features):
     sift, root = real_features["sift"], real_features["rootsift"]
     assert np.array_equal(sift.pixels, root.pixels)  # same keypoints, same order

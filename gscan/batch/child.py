@@ -5,7 +5,7 @@ check) or one template to evaluate over scenes (`gscan.evaluate.bop19.evaluate`,
 Running it in a fresh process gives the task its own peak memory (the parent reads it from the process's
 resource usage when it ends), returns every byte to the system afterwards, and keeps a crash of a C library
 (a segmentation fault) to that job. The process runs with one thread in every pool: the parent sets the
-environment variables (`gscan.batch.runtime.THREAD_ENV`) and the child limits the libraries it loaded
+environment variables (`gscan.threads.THREAD_ENV`) and the child limits the libraries it loaded
 (threadpoolctl, OpenCV, numba) and reports the thread counts it ended with.
 
 The child dies with its parent (the Ray worker): on Linux the kernel sends it SIGKILL when the parent goes

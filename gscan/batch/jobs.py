@@ -24,7 +24,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from gscan.batch.runtime import THREAD_ENV, with_package_path
+from gscan.batch.runtime import with_package_path
+from gscan.threads import THREAD_ENV
 
 LOG_TAIL = 300  # characters of the child's last log line kept in a failure's message
 

@@ -40,10 +40,6 @@ OBJECT_STORE_BYTES = 128 * 1024 * 1024  # results are small JSON rows: Ray's flo
 # a unix socket path (Ray's plasma store, in its session folder) must stay within 107 bytes
 _MAX_TEMP_ROOT = 48
 
-# one thread for every thread pool a scan could start: BLAS (OpenBLAS, MKL, BLIS, Accelerate), OpenMP (open3d),
-# numba and numexpr; read by those libraries when they load, so they are set before the child process starts
-THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "BLIS_NUM_THREADS": "1",
-              "VECLIB_MAXIMUM_THREADS": "1", "NUMEXPR_NUM_THREADS": "1", "NUMBA_NUM_THREADS": "1"}
 
 
 class RayMissing(GscanError):
