@@ -15,7 +15,8 @@ Pipeline of `Estimator.estimate` (every stage timed, `EstimateResult.timings_ms`
 3. match: GMatch (gscan.matching.gmatch) of each retrieved neighbourhood's keypoints jointly, all expressed
    in its central view's camera frame (view direction +z), against the query keypoints (+z): a pose between
    keyframes, or a face the scan saw from a steeper angle than the query, collects its matches from several
-   views at once. Descriptor distances are sliced from the retrieval GEMM, never recomputed.
+   views at once. GMatch's candidates are read from the retrieval GEMM's matrix by one kernel pass per
+   neighbourhood (`gscan.estimate.candidates`), never recomputed or copied into a distance block.
 4. solve: every neighbourhood's best list and its GMatch runners-up (at most `runner_up_margin` shorter: in
    clutter a hard view's correct list ties with the lists the background offers) are posed at once (batched
    Kabsch) and pre-scored by the query keypoints their nearest template descriptor lands on at that pose;
@@ -49,6 +50,7 @@ from pathlib import Path
 import numpy as np
 
 from gscan.errors import InputError
+from gscan.estimate.candidates import TemplateGroups, neighbourhood_candidates
 from gscan.estimate.query import QueryFrame, prepare_query
 from gscan.estimate.refine import icp_anchored
 from gscan.estimate.result import STAGES, EstimateResult, ms_since
@@ -77,7 +79,7 @@ from gscan.geometry.pointset import coincident_groups, pca_normals, voxel_down_i
 from gscan.geometry.kabsch import kabsch_trimmed
 from gscan.geometry.transforms import inv_T, transform_points
 from gscan.io.camera import RGBDFrame
-from gscan.matching.gmatch import GMatchParams, default_eps_f, gmatch
+from gscan.matching.gmatch import GMatchParams, default_eps_f, search_candidates
 from gscan.template.db import Template, open_template
 
 log = logging.getLogger(__name__)
@@ -147,13 +149,15 @@ class _Candidate:
 class _QueryKeypoints:
     """The query's lifted keypoints and their similarity to the template. S: the retrieval matrix
     [M x N_template] (cosine similarity for unit descriptors, else distance); location [M]: a location id per
-    keypoint (orientations of one point share it); grouped [G x N_template]: S reduced over each location
-    (best value); group_kp [G]: a keypoint of each location."""
+    keypoint (orientations of one point share it); order [M], starts [G]: the locations' keypoints
+    (order[starts[g]:starts[g+1]], gscan.geometry.pointset.coincident_groups); group_kp [G]: a keypoint of
+    each location."""
 
     feats: Features
     S: np.ndarray = field(repr=False)
     location: np.ndarray = field(repr=False)
-    grouped: np.ndarray = field(repr=False)
+    order: np.ndarray = field(repr=False)
+    starts: np.ndarray = field(repr=False)
     group_kp: np.ndarray = field(repr=False)
 
 
@@ -222,6 +226,7 @@ class Estimator:
         self.nb_idx: list[np.ndarray] = []
         self.nb_points: list[np.ndarray] = []
         self.nb_groups: list[tuple[np.ndarray, np.ndarray]] = []
+        self.nb_tgroups: list[TemplateGroups] = []
         for v in range(V):
             order = [u for u in np.lexsort((np.arange(V), -cos[v])) if u != v]
             nb = [v] + [int(u) for u in order if cos[v, u] >= np.cos(np.radians(p.joint_deg))][: max(0, p.joint_views - 1)]
@@ -230,6 +235,7 @@ class Estimator:
             self.nb_idx.append(idx)
             self.nb_points.append(transform_points(inv_T(self.T_obj_cam[v]), self.points_obj[idx]))
             self.nb_groups.append(coincident_groups(self.points_obj[idx]))
+            self.nb_tgroups.append(TemplateGroups(idx, *self.nb_groups[-1]))
 
     def _warm_up(self) -> None:
         """Load the compiled kernels (numba's cache) now, on a few of the first view's keypoints matched to
@@ -241,7 +247,10 @@ class Estimator:
         q = self.descriptors[a:b]
         S = q.astype(np.float32) @ q.T.astype(np.float32) if self.unit else descriptor_distances(q, q, self.kind)
         pts = self.nb_points[0][:b - a]
-        gmatch(pts, pts.astype(np.float32), self._dist(S), self.eps_f, self.params.gmatch)
+        groups = coincident_groups(pts)
+        cand = neighbourhood_candidates(S, self.unit, *groups, TemplateGroups(np.arange(b - a), *groups), self.eps_f,
+                                        self.params.gmatch.order)
+        search_candidates(pts, pts.astype(np.float32), cand, self.params.gmatch)
         moved = np.array(pts, dtype=np.float64)
         moved[0] += 1.0
         kabsch_trimmed(pts, moved, self.params.trim_tau)
@@ -479,8 +488,7 @@ class Estimator:
         order, starts = coincident_groups(feats.points)
         location = np.empty(len(feats), np.int64)
         location[order] = np.repeat(np.arange(len(starts)), np.diff(np.r_[starts, len(feats)]))
-        grouped = _group_reduce(S, order, starts, 0, np.maximum if self.unit else np.minimum)
-        return _QueryKeypoints(feats, S, location, grouped, order[starts])
+        return _QueryKeypoints(feats, S, location, order, starts, order[starts])
 
     def _match_hypotheses(self, v: int, qk: _QueryKeypoints) -> list[tuple[np.ndarray, float]]:
         """GMatch of view v's neighbourhood (its keypoints and its neighbours', in v's camera frame) against the
@@ -491,12 +499,12 @@ class Estimator:
         descriptors."""
         idx = self.nb_idx[v]
         s_order, s_starts = self.nb_groups[v]
-        reduce = np.maximum if self.unit else np.minimum
-        block = _group_reduce(qk.grouped, idx[s_order], s_starts, 1, reduce)  # [G x Ns]
-        dist = np.ascontiguousarray(self._dist(block).T)  # [Ns x G] template neighbourhood -> query
         gs = idx[s_order[s_starts]]  # source row -> global template keypoint
         gq = qk.group_kp  # target column -> query keypoint
-        res = gmatch(self.nb_points[v][s_order[s_starts]], qk.feats.points[gq], dist, self.eps_f, self.params.gmatch)
+        # the candidates of the [Ns x G] group distance block, read from S without building the block
+        cand = neighbourhood_candidates(qk.S, self.unit, qk.order, qk.starts, self.nb_tgroups[v], self.eps_f,
+                                        self.params.gmatch.order)
+        res = search_candidates(self.nb_points[v][s_order[s_starts]], qk.feats.points[gq], cand, self.params.gmatch)
         best = np.asarray(res.matches, dtype=np.int64).reshape(-1, 2)
         out = [(np.stack([gs[best[:, 0]], gq[best[:, 1]]], 1), float(res.cost))]
         n_min = max(self.params.accept.min_matches, len(best) - self.params.runner_up_margin)
