@@ -16,7 +16,7 @@ Pipeline of `Estimator.estimate` (every stage timed, `EstimateResult.timings_ms`
    in its central view's camera frame (view direction +z), against the query keypoints (+z): a pose between
    keyframes, or a face the scan saw from a steeper angle than the query, collects its matches from several
    views at once. GMatch's candidates are read from the retrieval GEMM's matrix by one kernel pass per
-   neighbourhood (`gscan.estimate.candidates`), never recomputed or copied into a distance block.
+   neighbourhood (`gscan.estimate.similarity`), never recomputed or copied into a distance block.
 4. solve: every neighbourhood's best list and its GMatch runners-up (at most `runner_up_margin` shorter: in
    clutter a hard view's correct list ties with the lists the background offers) are posed at once (batched
    Kabsch) and pre-scored by the query keypoints their nearest template descriptor lands on at that pose;
@@ -50,7 +50,7 @@ from pathlib import Path
 import numpy as np
 
 from gscan.errors import InputError
-from gscan.estimate.candidates import TemplateGroups, neighbourhood_candidates
+from gscan.estimate.similarity import TemplateGroups, best_columns, neighbourhood_candidates
 from gscan.estimate.query import QueryFrame, prepare_query
 from gscan.estimate.refine import icp_anchored
 from gscan.estimate.result import STAGES, EstimateResult, ms_since
@@ -239,8 +239,8 @@ class Estimator:
 
     def _warm_up(self) -> None:
         """Load the compiled kernels (numba's cache) now, on a few of the first view's keypoints matched to
-        themselves with the estimate's own array types: otherwise the first estimate paid it (GMatch's, and
-        kabsch_trimmed's consensus, run with one pair moved 1 m off)."""
+        themselves with the estimate's own array types: otherwise the first estimate paid it (the retrieval
+        matrix's kernels, GMatch's, and kabsch_trimmed's consensus, run with one pair moved 1 m off)."""
         a, b = self.offsets[0], min(self.offsets[1], self.offsets[0] + 8)
         if b - a < 4:
             return
@@ -251,6 +251,7 @@ class Estimator:
         cand = neighbourhood_candidates(S, self.unit, *groups, TemplateGroups(np.arange(b - a), *groups), self.eps_f,
                                         self.params.gmatch.order)
         search_candidates(pts, pts.astype(np.float32), cand, self.params.gmatch)
+        best_columns(S, np.arange(b - a), np.arange(b - a), 1.0 if self.unit else -1.0)
         moved = np.array(pts, dtype=np.float64)
         moved[0] += 1.0
         kabsch_trimmed(pts, moved, self.params.trim_tau)
@@ -470,9 +471,9 @@ class Estimator:
         z = float(transform_points(T_cam_obj, self.center[None])[0, 2])
         radius = p.support_radius + 0.01 * max(z - 0.5, 0.0)
         ev.support, ev.on_surface, ev.offer = keypoint_support(
-            T_cam_obj, self.points_obj, kp_idx, S if self.unit else -S, kp_idx if sim_cols is None else sim_cols,
-            feats.points, q_location, self.cloud_icp, frame.depth, frame.intrinsics, radius, self.support_sim,
-            p.depth_tol)
+            T_cam_obj, self.points_obj, kp_idx, S, kp_idx if sim_cols is None else sim_cols, feats.points, q_location,
+            self.cloud_icp, frame.depth, frame.intrinsics, radius, self.support_sim, p.depth_tol,
+            1.0 if self.unit else -1.0)
         return ev
 
     def _offered_keypoints(self, T_cam_obj: np.ndarray) -> np.ndarray:

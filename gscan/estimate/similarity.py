@@ -1,11 +1,15 @@
-"""GMatch candidates of one view neighbourhood, read straight from the retrieval matrix.
+"""Numba kernels over the retrieval matrix S [M query keypoints x N template keypoints] (cosine similarities
+of unit descriptors, or distances), which read the entries they need instead of copying blocks out of it.
 
-The estimator matches a neighbourhood's template keypoints against the query keypoints, each side grouped by
-location (SIFT orientations of one point share it; a group's similarity is the best of its members'). GMatch
-needs only the pairs under the feature threshold and, for its ratio order, every template row's
-second-smallest distance (`gscan.matching.gmatch.extract_candidates`). The numba kernel here computes both in
-one pass over the retrieval matrix's rows, without building the grouped [rows x groups] distance block: the
-result is the same candidate list, in the same order, as `extract_candidates` on that block.
+- `neighbourhood_candidates`: GMatch candidates of one view neighbourhood. The estimator matches a
+  neighbourhood's template keypoints against the query keypoints, each side grouped by location (SIFT
+  orientations of one point share it; a group's value is the best of its members'). GMatch needs only the
+  pairs under the feature threshold and, for its ratio order, every template row's second-smallest distance
+  (`gscan.matching.gmatch.extract_candidates`). One pass over S's rows computes both without building the
+  grouped [rows x groups] distance block: the same candidate list, in the same order, as `extract_candidates`
+  on that block.
+- `best_columns`: per chosen row, the best of chosen columns (first on ties) and its value, as np.argmax
+  over S[np.ix_(rows, cols)] (the keypoint support of a pose, gscan.estimate.verify).
 """
 from __future__ import annotations
 
@@ -139,3 +143,33 @@ def neighbourhood_candidates(S: np.ndarray, unit: bool, q_order: np.ndarray, q_s
     else:
         d2 = -top2
     return order_candidates(flat, d, d2 if G >= 2 else None, (R, G), eps_f, order)
+
+
+@njit(cache=True, nogil=True)
+def _best_columns(S, sign, rows, cols, idx, val):
+    for i in range(rows.shape[0]):
+        row = S[rows[i]]
+        best = sign * row[cols[0]]
+        arg = 0
+        for j in range(1, cols.shape[0]):
+            w = sign * row[cols[j]]
+            if w > best:
+                best = w
+                arg = j
+        idx[i] = arg
+        val[i] = best
+
+
+def best_columns(S: np.ndarray, rows: np.ndarray, cols: np.ndarray, sign: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """(j [R] int64, value [R]) for rows [R] and cols [K] (K >= 1) of S [M x N]: j the first position in cols of
+    the largest sign * S[row, col] (sign -1: the smallest distance), value = sign * S[row, cols[j]] (S's dtype).
+    Equal to np.argmax over (sign * S)[np.ix_(rows, cols)] along axis 1, without copying the block."""
+    rows = np.ascontiguousarray(rows, dtype=np.int64)
+    cols = np.ascontiguousarray(cols, dtype=np.int64)
+    if len(cols) == 0:
+        raise ValueError("best_columns needs at least one column")
+    S = np.ascontiguousarray(S)
+    idx = np.empty(len(rows), np.int64)
+    val = np.empty(len(rows), S.dtype)
+    _best_columns(S, S.dtype.type(sign), rows, cols, idx, val)
+    return idx, val

@@ -1,7 +1,8 @@
-"""The estimator's GMatch candidates read straight from the retrieval matrix (gscan.estimate.candidates) are
-exactly those `extract_candidates` gives on the explicitly built group distance block: same pairs, same
-order, same distances (ties, coincident keypoint groups, values at the threshold, both orders, both kinds of
-retrieval matrix)."""
+"""The kernels over the retrieval matrix (gscan.estimate.similarity) give exactly what the plain numpy
+computation gives: the estimator's GMatch candidates are those `extract_candidates` gives on the explicitly
+built group distance block (same pairs, same order, same distances; ties, coincident keypoint groups, values
+at the threshold, both orders, both kinds of retrieval matrix), and the best offered column of each row is
+np.argmax's (first on ties)."""
 from __future__ import annotations
 
 import numpy as np
@@ -9,7 +10,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from gscan.estimate.candidates import TemplateGroups, _unit_distance, _unit_threshold, neighbourhood_candidates
+from gscan.estimate.similarity import (
+    TemplateGroups,
+    _unit_distance,
+    _unit_threshold,
+    best_columns,
+    neighbourhood_candidates,
+)
+from gscan.estimate.verify import count_unique_rows
 from gscan.matching.gmatch import extract_candidates
 
 
@@ -85,3 +93,27 @@ def test_unit_threshold_separates_the_distances(eps):
     e = np.float32(eps)
     t = _unit_threshold(e)
     assert _unit_distance(t) >= e > _unit_distance(np.nextafter(t, np.float32(2.0)))
+
+
+@given(seed=st.integers(0, 10_000), sign=st.sampled_from([1.0, -1.0]))
+@settings(max_examples=60, deadline=None)
+def test_best_columns_is_argmax_of_the_block(seed, sign):
+    rng = np.random.default_rng(seed)
+    S = (rng.integers(0, 6, (int(rng.integers(1, 20)), int(rng.integers(1, 40)))) / 5.0).astype(np.float32)  # ties
+    rows = rng.integers(0, len(S), int(rng.integers(0, 25)))
+    cols = rng.choice(S.shape[1], int(rng.integers(1, S.shape[1] + 1)), replace=False)
+    block = (S if sign > 0 else -S)[np.ix_(rows, cols)]
+    j, v = best_columns(S, rows, cols, sign)
+    np.testing.assert_array_equal(j, np.argmax(block, axis=1))
+    np.testing.assert_array_equal(v, block[np.arange(len(rows)), np.argmax(block, axis=1)])
+    assert v.dtype == np.float32
+
+
+@given(seed=st.integers(0, 10_000), spread=st.sampled_from([2, 50, 2**40]))
+@settings(max_examples=40, deadline=None)
+def test_count_unique_rows_is_numpys(seed, spread):
+    rng = np.random.default_rng(seed)
+    keys = rng.integers(-spread, spread, (int(rng.integers(0, 60)), 3))
+    if len(keys) > 4:
+        keys[: len(keys) // 3] = keys[-(len(keys) // 3):]  # repeated rows
+    assert count_unique_rows(keys) == len(np.unique(keys, axis=0))
