@@ -64,3 +64,35 @@ def test_coincident_groups_and_voxels():
     np.testing.assert_allclose(voxel_mean(grid, 0.01), [[0.002, 0, 0], [0.0, 0.02, 0], [0.011, 0, 0]])
     np.testing.assert_array_equal(voxel_down_indices(grid, 0.01), [0, 2, 3])
     np.testing.assert_array_equal(voxel_down_indices(grid, 0.0), np.arange(4))
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.sampled_from([0.01, 0.5, 1e7]))
+def test_voxels_and_groups_equal_their_definition(seed, scale):
+    """Voxel means (rows ordered by voxel key, per-voxel sums in input order), one index per voxel and the
+    coincident groups, against a plain per-point loop: bit-identical, also for coordinates whose voxel keys do
+    not fit the integer code (scale 1e7)."""
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(1, 300))
+    pts = (rng.random((n, 3)) - 0.4) * scale
+    pts[rng.random(n) < 0.3] = pts[0]  # repeated points
+    rows = np.hstack([pts, rng.random((n, 2))])  # xyz and two per-point values
+    voxel = scale / 20
+    sums: dict[tuple, list] = {}
+    for r in rows:
+        key = tuple(np.floor(r[:3] / voxel).astype(np.int64))
+        acc = sums.setdefault(key, [np.zeros(rows.shape[1]), 0])
+        acc[0] = acc[0] + r
+        acc[1] += 1
+    want = np.array([sums[k][0] / sums[k][1] for k in sorted(sums)])
+    np.testing.assert_array_equal(voxel_mean(rows, voxel), want)
+    first: dict[tuple, int] = {}
+    for i, p in enumerate(pts):
+        first.setdefault(tuple(np.floor(p / voxel).astype(np.int64)), i)
+    np.testing.assert_array_equal(voxel_down_indices(pts, voxel), sorted(first.values()))
+    groups: dict[tuple, list] = {}
+    for i, p in enumerate(pts):
+        groups.setdefault(tuple(np.rint(p * 1e4).astype(np.int64)), []).append(i)
+    order, starts = coincident_groups(pts)
+    got = [order[a:b].tolist() for a, b in zip(starts, list(starts[1:]) + [n])]
+    assert got == list(groups.values())
