@@ -354,3 +354,24 @@ def test_scanned_template_finds_target_in_clutter(meshes, scanned):
     assert add(meshes[0].vertices, res.T_cam_obj @ T_obj_gt, T_gt) < 0.01
     r, _ = render_scene(meshes[0], meshes[1:], 1, with_target=False)
     assert not est.estimate(as_frame(r)).found
+
+
+def test_region_boxes_of_constructed_blobs():
+    """Detection boxes: each blob of at least min_px pixels grown by the margin (clipped to the frame), overlapping
+    boxes merged, small blobs left out (though inside the region's bounds), no boxes when they would cover
+    most of the region's bounding box anyway."""
+    from gscan.estimate.estimator import region_boxes
+
+    m = np.zeros((100, 200), bool)
+    m[10:20, 5:25] = True  # 200 px
+    m[60:80, 150:170] = True  # 400 px
+    m[50:52, 100:102] = True  # 4 px: too small
+    assert region_boxes(m, 3, 50) == [(2, 7, 28, 23), (147, 57, 173, 83)]
+    m[0:10, 190:200] = True  # 100 px at the corner: clipped
+    m[22:30, 5:25] = True  # 160 px, 2 rows below the first blob: merged with it by the margin
+    assert region_boxes(m, 3, 50) == [(2, 7, 28, 33), (147, 57, 173, 83), (187, 0, 200, 13)]
+    assert region_boxes(m, 3, 50, max_fill=0.05) == []  # the boxes cover more than 5 % of the bounds
+    only = np.zeros((100, 200), bool)
+    only[40:60, 40:60] = True
+    assert region_boxes(only, 3, 50) == [(37, 37, 63, 63)]
+    assert region_boxes(np.zeros((100, 200), bool), 3, 50) == []

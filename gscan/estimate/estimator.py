@@ -649,7 +649,14 @@ def region_boxes(mask: np.ndarray, margin: int, min_px: int, max_fill: float = 0
     import cv2
 
     H, W = mask.shape
-    _, _, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    if len(rows) == 0:
+        return []
+    # the blobs of the region's bounding box (a crop: the labelling's cost follows the pixels it scans)
+    crop = mask[rows[0]:rows[-1] + 1, cols[0]:cols[-1] + 1].astype(np.uint8)
+    _, _, stats, _ = cv2.connectedComponentsWithStats(crop, connectivity=8)
+    stats[:, 0] += cols[0]
+    stats[:, 1] += rows[0]
     boxes = [[max(0, x - margin), max(0, y - margin), min(W, x + w + margin), min(H, y + h + margin)]
              for x, y, w, h, a in stats[1:] if a >= min_px]
     merged = True
@@ -667,8 +674,7 @@ def region_boxes(mask: np.ndarray, margin: int, min_px: int, max_fill: float = 0
                 break
     if len(boxes) <= 1:
         return [tuple(b) for b in boxes]  # type: ignore[misc]
-    ys, xs = np.nonzero(mask)
-    union = (xs.max() - xs.min() + 1 + 2 * margin) * (ys.max() - ys.min() + 1 + 2 * margin)
+    union = (cols[-1] - cols[0] + 1 + 2 * margin) * (rows[-1] - rows[0] + 1 + 2 * margin)
     if sum((b[2] - b[0]) * (b[3] - b[1]) for b in boxes) > max_fill * union:
         return []
     return sorted((int(b[0]), int(b[1]), int(b[2]), int(b[3])) for b in boxes)
