@@ -301,7 +301,7 @@ class Estimator:
             res = self._fail(tm, t_all, "too few keypoints in the query frame" + (" mask" if q.mask is not None else ""))
         else:
             t = time.perf_counter()
-            S, votes = self._retrieve(feats.descriptors)
+            S, votes, nearest = self._retrieve_nearest(feats.descriptors)
             tm["retrieval"] = ms_since(t)
             if use_pnp:
                 from gscan.estimate.pnp import estimate_pnp
@@ -310,7 +310,7 @@ class Estimator:
                 if not res.found:
                     res.reason = f"{res.reason} (query depth unusable)"
                 return res
-            res = self._estimate_gmatch(q, feats, S, votes, refine, tm, t_all)
+            res = self._estimate_gmatch(q, feats, S, votes, refine, tm, t_all, nearest)
         if not res.found and not use_pnp:
             from gscan.estimate.pnp import pnp_without_depth
 
@@ -336,8 +336,9 @@ class Estimator:
                                 q.frame.intrinsics, self.params.below_tol, self.params.max_below_frac)
 
     def _estimate_gmatch(self, q: QueryFrame, feats: Features, S: np.ndarray, votes: np.ndarray, refine: bool,
-                         tm: dict[str, float], t_all: float) -> EstimateResult:
-        """Stages 3-6 (module docstring) on the lifted query keypoints."""
+                         tm: dict[str, float], t_all: float,
+                         nearest: tuple[np.ndarray, np.ndarray] | None = None) -> EstimateResult:
+        """Stages 3-6 (module docstring) on the lifted query keypoints (nearest: `_retrieve_nearest`'s)."""
         p = self.params
         t = time.perf_counter()
         qk = self._query_keypoints(feats, S)
@@ -350,7 +351,7 @@ class Estimator:
                 if len(m) >= 3 and key not in seen:
                     seen.add(key)
                     cands.append(_Candidate(len(m), cost, v, m))
-        self._prescore(cands, feats, S)
+        self._prescore(cands, feats, S, nearest)
         cands = self._merge_agreeing(cands, feats.points)
         tm["match"] = ms_since(t)
         if not cands:
@@ -367,9 +368,11 @@ class Estimator:
                               self.view_names[cands[0].view])
         return first
 
-    def _prescore(self, cands: list[_Candidate], feats: Features, S: np.ndarray) -> None:
+    def _prescore(self, cands: list[_Candidate], feats: Features, S: np.ndarray,
+                  nearest: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         """Set every candidate's `support`: the query keypoints whose nearest template keypoint by descriptor
-        lands on them under the list's plain Kabsch pose (`nn_support`), all lists at once."""
+        lands on them under the list's plain Kabsch pose (`nn_support`), all lists at once. nearest: each query
+        keypoint's nearest template keypoint and its value in S (`_retrieve_nearest`), else found in S."""
         if not cands:
             return
         L = max(c.n for c in cands)
@@ -381,12 +384,8 @@ class Estimator:
             dst[h, :c.n] = feats.points[c.matches[:, 1]]
             w[h, :c.n] = 1.0
         T = kabsch_batch(src, dst, w)
-        if self.unit:
-            nn = np.argmax(S, axis=1)
-            agree = S[np.arange(len(S)), nn] >= self.support_sim
-        else:
-            nn = np.argmin(S, axis=1)
-            agree = S[np.arange(len(S)), nn] <= -self.support_sim
+        nn, best = self._nearest(S) if nearest is None else nearest
+        agree = best >= self.support_sim if self.unit else best <= -self.support_sim
         q_pts = feats.points[agree].astype(np.float64)
         z = np.median(q_pts[:, 2]) if len(q_pts) else 0.5
         support = nn_support(T, self.points_obj[nn[agree]], q_pts, self.params.support_radius
@@ -545,16 +544,23 @@ class Estimator:
 
     def _retrieve(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Query descriptors [M x D] -> (similarity or distance matrix [M x N], votes per view [V])."""
+        return self._retrieve_nearest(q)[:2]
+
+    def _retrieve_nearest(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray]]:
+        """`_retrieve`, and each query keypoint's nearest template keypoint [M] with its value in S [M]."""
         if self.unit:
             S = np.matmul(q.astype(np.float32), self.descriptors.T)  # cosine similarity of unit vectors
-            nn = np.argmax(S, axis=1)
-            ok = S[np.arange(len(S)), nn] >= 1.0 - 0.5 * self.params.retrieval_dist ** 2
         else:
             S = descriptor_distances(q, self.descriptors, self.kind)
-            nn = np.argmin(S, axis=1)
-            ok = S[np.arange(len(S)), nn] < self.eps_f
+        nn, best = self._nearest(S)
+        ok = best >= 1.0 - 0.5 * self.params.retrieval_dist ** 2 if self.unit else best < self.eps_f
         # each query keypoint votes for the view holding its nearest template descriptor
-        return S, np.bincount(self.kp_view[nn[ok]], minlength=len(self.view_names))
+        return S, np.bincount(self.kp_view[nn[ok]], minlength=len(self.view_names)), (nn, best)
+
+    def _nearest(self, S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Each row's nearest template keypoint in S [M x N] (first on ties) and its value: ([M], [M])."""
+        nn = np.argmax(S, axis=1) if self.unit else np.argmin(S, axis=1)
+        return nn, S[np.arange(len(S)), nn]
 
     def _top_views(self, votes: np.ndarray) -> list[int]:
         """The top_k views by votes (ties by view order), views without a vote left out."""
