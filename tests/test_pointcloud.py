@@ -96,3 +96,39 @@ def test_voxels_and_groups_equal_their_definition(seed, scale):
     order, starts = coincident_groups(pts)
     got = [order[a:b].tolist() for a, b in zip(starts, list(starts[1:]) + [n])]
     assert got == list(groups.values())
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.sampled_from([0.002, 0.005, 0.03]), st.booleans())
+def test_nearest_grid_equals_brute_force(seed, radius, coarse):
+    """The grid's nearest point within the radius is the brute-force one (squared distances summed as
+    (dx^2 + dy^2) + dz^2, strictly below radius^2; ties to the lower index), also for queries outside the
+    points' bounds and with points on a coarse lattice (many exact ties)."""
+    from gscan.geometry.grid_kernel import NearestGrid
+
+    rng = np.random.default_rng(seed)
+    P = rng.random((int(rng.integers(1, 400)), 3)) * 0.1 + [0.0, 0.0, 0.5]
+    Q = rng.random((int(rng.integers(1, 300)), 3)) * 0.14 + [-0.02, -0.02, 0.48]
+    if coarse:
+        P, Q = np.round(P / radius) * radius, np.round(Q / radius * 2) * radius / 2
+    Q[: len(Q) // 3] = P[rng.integers(0, len(P), len(Q) // 3)]  # exact hits
+    grid = NearestGrid.build(P, radius)
+    assert grid is not None
+    found, nearest = grid.query(Q)
+    D = Q[:, None, :] - P[None, :, :]
+    d2 = (D[..., 0] * D[..., 0] + D[..., 1] * D[..., 1]) + D[..., 2] * D[..., 2]
+    want = np.argmin(d2, axis=1)  # first on ties
+    ok = d2[np.arange(len(Q)), want] < radius * radius
+    np.testing.assert_array_equal(found, ok)
+    np.testing.assert_array_equal(nearest, np.where(ok, want, -1))
+    assert ok.any()
+
+
+def test_nearest_grid_refuses_points_spread_too_wide():
+    from gscan.geometry.grid_kernel import NearestGrid
+
+    assert NearestGrid.build(np.array([[0.0, 0, 0], [100.0, 100, 100]]), 0.001) is None
+    one = NearestGrid.build(np.array([[0.0, 0, 1]]), 0.01)
+    assert one is not None
+    found, nearest = one.query(np.array([[0.0, 0, 1.005], [0.0, 0, 1.02], [1e9, -1e9, 0]]))
+    assert found.tolist() == [True, False, False] and nearest.tolist() == [0, -1, -1]

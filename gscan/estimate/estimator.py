@@ -75,6 +75,7 @@ from gscan.features import (
     extract_features,
     extract_features_in_mask,
 )
+from gscan.geometry.grid_kernel import NearestGrid
 from gscan.geometry.pointset import coincident_groups, pca_normals, voxel_down_indices, voxel_mean
 from gscan.geometry.kabsch import kabsch_trimmed
 from gscan.geometry.transforms import inv_T, transform_points
@@ -240,7 +241,8 @@ class Estimator:
     def _warm_up(self) -> None:
         """Load the compiled kernels (numba's cache) now, on a few of the first view's keypoints matched to
         themselves with the estimate's own array types: otherwise the first estimate paid it (the retrieval
-        matrix's kernels, GMatch's, and kabsch_trimmed's consensus, run with one pair moved 1 m off)."""
+        matrix's kernels, GMatch's, the neighbour grid of ICP and of the keypoint support, and kabsch_trimmed's
+        consensus, run with one pair moved 1 m off)."""
         a, b = self.offsets[0], min(self.offsets[1], self.offsets[0] + 8)
         if b - a < 4:
             return
@@ -252,6 +254,9 @@ class Estimator:
                                         self.params.gmatch.order)
         search_candidates(pts, pts.astype(np.float32), cand, self.params.gmatch)
         best_columns(S, np.arange(b - a), np.arange(b - a), 1.0 if self.unit else -1.0)
+        grid = NearestGrid.build(pts, 0.005)
+        if grid is not None:
+            grid.query(pts)
         moved = np.array(pts, dtype=np.float64)
         moved[0] += 1.0
         kabsch_trimmed(pts, moved, self.params.trim_tau)

@@ -203,16 +203,21 @@ def keypoint_support(T_cam_obj: np.ndarray, kp_points: np.ndarray, kp_idx: np.nd
     it); surface_obj [P x 3]: the template cloud; radius: keypoint match distance (m)."""
     from scipy.spatial import cKDTree
 
+    from gscan.geometry.grid_kernel import NearestGrid
+
     if len(q_points) == 0:
         return 0, 0, 0
     # query keypoints on the predicted visible surface
     _, surf_cam, _ = visible(T_cam_obj, intr, surface_obj)
     if len(surf_cam) == 0:
         return 0, 0, 0
-    # (an exact search: the unbalanced tree builds faster and finds the same distances)
-    tree = cKDTree(surf_cam, balanced_tree=False, compact_nodes=False)
-    d, _ = tree.query(np.asarray(q_points, dtype=np.float64), distance_upper_bound=radius)
-    on = np.flatnonzero(np.isfinite(d))
+    grid = NearestGrid.build(surf_cam, radius)
+    if grid is not None:
+        on = np.flatnonzero(grid.query(q_points)[0])
+    else:  # (an exact search: the unbalanced tree builds faster and finds the same distances)
+        tree = cKDTree(surf_cam, balanced_tree=False, compact_nodes=False)
+        d, _ = tree.query(np.asarray(q_points, dtype=np.float64), distance_upper_bound=radius)
+        on = np.flatnonzero(np.isfinite(d))
     on_surface = len(np.unique(q_location[on]))
     # template keypoints the frame can show: inside the image, in front of (or at) the measured depth
     vis, kp_cam, uv = visible(T_cam_obj, intr, kp_points[kp_idx])
