@@ -16,6 +16,7 @@ from gscan.estimate.similarity import (
     _unit_threshold,
     best_columns,
     neighbourhood_candidates,
+    neighbourhoods_candidates,
 )
 from gscan.estimate.verify import count_unique_rows
 from gscan.matching.gmatch import extract_candidates
@@ -71,6 +72,24 @@ def test_candidates_equal_extract_candidates_on_the_group_block(seed, unit, orde
     n_cols = int(rng.integers(1, N + 1))
     cols = rng.choice(N, n_cols, replace=False).astype(np.int64)  # the neighbourhood's template columns
     _check(S, unit, _groups(rng, M, 3), cols, _groups(rng, n_cols, 3), eps_f, order)
+
+
+@given(seed=st.integers(0, 10_000), unit=st.booleans())
+@settings(max_examples=30, deadline=None)
+def test_several_neighbourhoods_in_one_pass_equal_one_by_one(seed, unit):
+    rng = np.random.default_rng(seed)
+    M, N = int(rng.integers(1, 25)), int(rng.integers(2, 50))
+    S = rng.random((M, N)).astype(np.float32) if unit else (rng.integers(0, 12, (M, N)) / 10.0).astype(np.float32)
+    q = _groups(rng, M, 3)
+    tgs = []
+    for _ in range(int(rng.integers(1, 4))):
+        cols = rng.choice(N, int(rng.integers(0, N + 1)), replace=False).astype(np.int64)  # maybe none
+        tgs.append(TemplateGroups(cols, *(_groups(rng, len(cols), 3) if len(cols) else (cols, cols))))
+    together = neighbourhoods_candidates(S, unit, *q, tgs, 0.6, "ratio", capacity=int(rng.integers(1, 50)))
+    for tg, got in zip(tgs, together, strict=True):
+        want = neighbourhood_candidates(S, unit, *q, tg, 0.6, "ratio")
+        for a, b in zip((got.src, got.tgt, got.dist), (want.src, want.tgt, want.dist)):
+            np.testing.assert_array_equal(a, b)
 
 
 def test_candidates_at_the_threshold_and_beyond_the_first_buffer():

@@ -50,7 +50,12 @@ from pathlib import Path
 import numpy as np
 
 from gscan.errors import InputError
-from gscan.estimate.similarity import TemplateGroups, best_columns, neighbourhood_candidates
+from gscan.estimate.similarity import (
+    TemplateGroups,
+    best_columns,
+    neighbourhood_candidates,
+    neighbourhoods_candidates,
+)
 from gscan.estimate.query import QueryFrame, prepare_query
 from gscan.estimate.refine import icp_anchored
 from gscan.estimate.result import STAGES, EstimateResult, ms_since
@@ -80,7 +85,7 @@ from gscan.geometry.pointset import coincident_groups, pca_normals, voxel_down_i
 from gscan.geometry.kabsch import kabsch_trimmed
 from gscan.geometry.transforms import inv_T, transform_points
 from gscan.io.camera import RGBDFrame
-from gscan.matching.gmatch import GMatchParams, default_eps_f, search_candidates
+from gscan.matching.gmatch import Candidates, GMatchParams, default_eps_f, search_candidates
 from gscan.template.db import Template, open_template
 
 log = logging.getLogger(__name__)
@@ -152,7 +157,7 @@ class _QueryKeypoints:
     [M x N_template] (cosine similarity for unit descriptors, else distance); location [M]: a location id per
     keypoint (orientations of one point share it); order [M], starts [G]: the locations' keypoints
     (order[starts[g]:starts[g+1]], gscan.geometry.pointset.coincident_groups); group_kp [G]: a keypoint of
-    each location."""
+    each location; candidates: the GMatch candidates of the neighbourhoods to match, found together."""
 
     feats: Features
     S: np.ndarray = field(repr=False)
@@ -160,6 +165,7 @@ class _QueryKeypoints:
     order: np.ndarray = field(repr=False)
     starts: np.ndarray = field(repr=False)
     group_kp: np.ndarray = field(repr=False)
+    candidates: dict[int, Candidates] = field(default_factory=dict, repr=False)  # view -> its neighbourhood's
 
 
 class Estimator:
@@ -350,7 +356,11 @@ class Estimator:
         q_location = qk.location
         cands: list[_Candidate] = []
         seen: set[bytes] = set()
-        for v in self._top_neighbourhoods(votes):
+        views = self._top_neighbourhoods(votes)
+        qk.candidates = dict(zip(views, neighbourhoods_candidates(
+            S, self.unit, qk.order, qk.starts, [self.nb_tgroups[v] for v in views], self.eps_f,
+            self.params.gmatch.order)))
+        for v in views:
             for m, cost in self._match_hypotheses(v, qk):
                 key = np.ascontiguousarray(m[np.lexsort((m[:, 1], m[:, 0]))]).tobytes()
                 if len(m) >= 3 and key not in seen:
@@ -507,8 +517,10 @@ class Estimator:
         gs = idx[s_order[s_starts]]  # source row -> global template keypoint
         gq = qk.group_kp  # target column -> query keypoint
         # the candidates of the [Ns x G] group distance block, read from S without building the block
-        cand = neighbourhood_candidates(qk.S, self.unit, qk.order, qk.starts, self.nb_tgroups[v], self.eps_f,
-                                        self.params.gmatch.order)
+        cand = qk.candidates.get(v)
+        if cand is None:
+            cand = neighbourhood_candidates(qk.S, self.unit, qk.order, qk.starts, self.nb_tgroups[v], self.eps_f,
+                                            self.params.gmatch.order)
         res = search_candidates(self.nb_points[v][s_order[s_starts]], qk.feats.points[gq], cand, self.params.gmatch)
         best = np.asarray(res.matches, dtype=np.int64).reshape(-1, 2)
         out = [(np.stack([gs[best[:, 0]], gq[best[:, 1]]], 1), float(res.cost))]

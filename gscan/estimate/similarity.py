@@ -121,15 +121,28 @@ def neighbourhood_candidates(S: np.ndarray, unit: bool, q_order: np.ndarray, q_s
     the best-agreeing member pair. S [M x N] float32: cosine similarities of unit descriptors (`unit`;
     distance sqrt(2 - 2 s)) or distances. capacity: candidates the first pass has room for (a second pass
     follows when there are more)."""
-    G, R = len(q_starts), len(tg)
-    if G == 0 or R == 0:
-        return order_candidates(np.zeros(0, np.int64), np.zeros(0, np.float32), None, (R, G), eps_f, order)
+    return neighbourhoods_candidates(S, unit, q_order, q_starts, [tg], eps_f, order, capacity)[0]
+
+
+def neighbourhoods_candidates(S: np.ndarray, unit: bool, q_order: np.ndarray, q_starts: np.ndarray,
+                              tgs: list[TemplateGroups], eps_f: float, order: str,
+                              capacity: int = 1 << 16) -> list[Candidates]:
+    """`neighbourhood_candidates` of several neighbourhoods in one pass over S's rows (each row is read once
+    for all of them)."""
+    G = len(q_starts)
+    off = np.cumsum([0] + [len(tg) for tg in tgs])
+    if G == 0 or off[-1] == 0:
+        return [order_candidates(np.zeros(0, np.int64), np.zeros(0, np.float32), None, (len(tg), G), eps_f, order)
+                for tg in tgs]
     eps32 = np.float32(eps_f)
     lo = _unit_threshold(eps32) if unit else -eps32
     qs = np.r_[q_starts, len(q_order)].astype(np.int64)
-    args = (S, np.float32(1.0 if unit else -1.0), np.asarray(q_order, np.int64), qs, tg.first, tg.extra_row,
-            tg.extra_col, lo, unit, eps32)
-    top2 = np.empty(R, np.float32)
+    first = np.concatenate([tg.first for tg in tgs])
+    extra_row = np.concatenate([tg.extra_row + o for tg, o in zip(tgs, off)])
+    extra_col = np.concatenate([tg.extra_col for tg in tgs])
+    args = (S, np.float32(1.0 if unit else -1.0), np.asarray(q_order, np.int64), qs, first, extra_row, extra_col,
+            lo, unit, eps32)
+    top2 = np.empty(off[-1], np.float32)
     cap = max(1, capacity)
     while True:
         flat, d = np.empty(cap, np.int64), np.empty(cap, np.float32)
@@ -137,12 +150,18 @@ def neighbourhood_candidates(S: np.ndarray, unit: bool, q_order: np.ndarray, q_s
         if n <= cap:
             break
         cap = n
-    flat, d = flat[:n], d[:n]
+    row = flat[:n] // G  # rows of all the neighbourhoods, one after the other
+    which = np.searchsorted(off, row, side="right") - 1
     if unit:
         d2 = np.sqrt(np.maximum(2.0 - 2.0 * top2, 0.0))
     else:
         d2 = -top2
-    return order_candidates(flat, d, d2 if G >= 2 else None, (R, G), eps_f, order)
+    out = []
+    for k, tg in enumerate(tgs):
+        sel = np.flatnonzero(which == k)
+        out.append(order_candidates(flat[sel] - off[k] * G, d[sel], d2[off[k]:off[k + 1]] if G >= 2 else None,
+                                    (len(tg), G), eps_f, order))
+    return out
 
 
 @njit(cache=True, nogil=True)
