@@ -132,3 +132,32 @@ def test_nearest_grid_refuses_points_spread_too_wide():
     assert one is not None
     found, nearest = one.query(np.array([[0.0, 0, 1.005], [0.0, 0, 1.02], [1e9, -1e9, 0]]))
     assert found.tolist() == [True, False, False] and nearest.tolist() == [0, -1, -1]
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.booleans())
+def test_plane_kernel_counts_the_heights(seed, per_point):
+    """The RANSAC scoring kernel counts inliers (|h| < d) and points behind (h < -d) of the heights
+    h = n . p + offset, and its inlier mask is the plane's: checked against the heights from a matrix product,
+    away from the tolerance (the kernel's fused multiply-adds may round the last bit differently)."""
+    from gscan.geometry.plane_kernel import plane_counts, plane_inliers
+
+    rng = np.random.default_rng(seed)
+    S = rng.normal(0.0, 0.2, (int(rng.integers(1, 500)), 3)) + [0.0, 0.0, 1.0]
+    S[: len(S) // 2, 2] = 1.0 + rng.normal(0.0, 0.002, len(S) // 2)  # half on a plane z = 1
+    normals = rng.normal(size=(int(rng.integers(1, 40)), 3))
+    normals[0] = [0.0, 0.0, -1.0]
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    offsets = rng.normal(0.0, 0.5, len(normals))
+    offsets[0] = 1.0
+    d = 0.004 + 0.004 * rng.random(len(S)) if per_point else np.full(len(S), 0.005)
+    h = S @ normals.T + offsets
+    clear = np.abs(np.abs(h) - d[:, None]) > 1e-12
+    inl, behind = plane_counts(S, normals, offsets, d)
+    assert np.all(np.abs(inl - (np.abs(h) < d[:, None]).sum(0)) <= (~clear).sum(0))
+    assert np.all(np.abs(behind - (h < -d[:, None]).sum(0)) <= (~clear).sum(0))
+    for j in range(len(normals)):
+        mask = plane_inliers(S, normals, offsets, j, d)
+        assert mask.sum() == inl[j]
+        np.testing.assert_array_equal(mask[clear[:, j]], (np.abs(h[:, j]) < d)[clear[:, j]])
+    assert inl[0] >= len(S) // 3  # the plane z = 1 holds most of its half

@@ -81,6 +81,7 @@ from gscan.features import (
     extract_features_in_mask,
 )
 from gscan.geometry.grid_kernel import NearestGrid
+from gscan.geometry.plane import ransac_plane
 from gscan.geometry.pointset import coincident_groups, pca_normals, voxel_down_indices, voxel_mean
 from gscan.geometry.kabsch import kabsch_trimmed
 from gscan.geometry.transforms import inv_T, transform_points
@@ -247,8 +248,8 @@ class Estimator:
     def _warm_up(self) -> None:
         """Load the compiled kernels (numba's cache) now, on a few of the first view's keypoints matched to
         themselves with the estimate's own array types: otherwise the first estimate paid it (the retrieval
-        matrix's kernels, GMatch's, the neighbour grid of ICP and of the keypoint support, and kabsch_trimmed's
-        consensus, run with one pair moved 1 m off)."""
+        matrix's kernels, GMatch's, the neighbour grid of ICP and of the keypoint support, the plane RANSAC's
+        scoring, and kabsch_trimmed's consensus, run with one pair moved 1 m off)."""
         a, b = self.offsets[0], min(self.offsets[1], self.offsets[0] + 8)
         if b - a < 4:
             return
@@ -263,6 +264,7 @@ class Estimator:
         grid = NearestGrid.build(pts, 0.005)
         if grid is not None:
             grid.query(pts)
+        ransac_plane(pts, 1, np.random.default_rng(0), 0.01, np.zeros(3))
         moved = np.array(pts, dtype=np.float64)
         moved[0] += 1.0
         kabsch_trimmed(pts, moved, self.params.trim_tau)
