@@ -161,3 +161,24 @@ def test_plane_kernel_counts_the_heights(seed, per_point):
         assert mask.sum() == inl[j]
         np.testing.assert_array_equal(mask[clear[:, j]], (np.abs(h[:, j]) < d)[clear[:, j]])
     assert inl[0] >= len(S) // 3  # the plane z = 1 holds most of its half
+
+
+def test_ransac_plane_same_with_and_without_the_fma_kernel(monkeypatch):
+    """ransac_plane scores with the kernel where the CPU has fused multiply-adds, with a matrix product
+    elsewhere: the same plane and inliers on a table with boxes on it."""
+    import gscan.geometry.plane_kernel as kernel
+    from gscan.geometry.plane import ransac_plane
+
+    rng = np.random.default_rng(5)
+    table = np.c_[rng.uniform(-0.5, 0.5, (3000, 2)), rng.normal(0.0, 0.001, 3000)]
+    boxes = rng.uniform([-0.1, -0.1, -0.15], [0.1, 0.1, -0.02], (800, 3))  # towards the camera
+    S = np.vstack([table, boxes]) + [0.0, 0.0, 1.0]
+    runs = []
+    for fma in (True, False):
+        monkeypatch.setattr(kernel, "HAS_FMA", fma)
+        runs.append(ransac_plane(S, 150, np.random.default_rng(0), 0.004, np.zeros(3), max_behind=0.05))
+    (p1, m1), (p2, m2) = runs
+    np.testing.assert_array_equal(p1.normal, p2.normal)
+    assert p1.offset == p2.offset
+    np.testing.assert_array_equal(m1, m2)
+    assert abs(p1.normal[2]) > 0.99 and m1[:3000].mean() > 0.9 and m1[3000:].mean() < 0.1

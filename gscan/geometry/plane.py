@@ -36,7 +36,7 @@ def ransac_plane(S: np.ndarray, iterations: int, rng: np.random.Generator, dist:
     head-on does. Triplets are drawn from `rng` in batches of 100; the first best plane wins. Returns
     (plane, inlier mask [N] bool), or None when every triplet is degenerate or disqualified.
     """
-    from gscan.geometry.plane_kernel import plane_counts, plane_inliers  # numba, on first use
+    from gscan.geometry.plane_kernel import HAS_FMA, plane_counts, plane_inliers  # numba, on first use
 
     vp = np.asarray(viewpoint, dtype=np.float64)
     S = np.ascontiguousarray(S, dtype=np.float64)
@@ -54,13 +54,21 @@ def ransac_plane(S: np.ndarray, iterations: int, rng: np.random.Generator, dist:
         nrm, off = nrm * flip[:, None], off * flip
         nrm, off = np.ascontiguousarray(nrm), np.ascontiguousarray(off)
         # signed heights (viewpoint side > 0) of every point above every plane, counted (plane_kernel)
-        counts, behind = plane_counts(S, nrm, off, d)
+        if HAS_FMA:
+            counts, behind = plane_counts(S, nrm, off, d)
+        else:
+            h = S @ nrm.T + off  # [N x m]
+            counts, behind = (np.abs(h) < d[:, None]).sum(0), (h < -d[:, None]).sum(0)
         if max_behind is not None:
             counts[behind > max_behind * len(S)] = 0
         if len(counts) and counts.max() > max(best_count, 0):  # a score of 0 (disqualified) never wins
             k = int(np.argmax(counts))
             best_count, best, best_nrm, best_off, best_k = int(counts[k]), Plane(nrm[k], float(off[k])), nrm, off, k
-    return None if best is None else (best, plane_inliers(S, best_nrm, best_off, best_k, d))
+    if best is None:
+        return None
+    if HAS_FMA:
+        return best, plane_inliers(S, best_nrm, best_off, best_k, d)
+    return best, np.abs(S @ best_nrm.T + best_off)[:, best_k] < d
 
 
 def dominant_plane(cloud: np.ndarray, min_frac: float, iterations: int, stride: int = 6) -> Plane | None:

@@ -4,16 +4,23 @@ without the [N x m] height matrix.
 
 A height is n . p + offset with the dot product as fused multiply-adds in coordinate order,
 fma(p_z, n_z, fma(p_y, n_y, p_x n_x)) + offset: deterministic whatever the BLAS, and the value x86-64
-OpenBLAS's matrix product gives (the plane RANSAC scored with `S @ normals.T + offset` before). Compiled with
-`cache=True`, `nogil=True`; imported on first use, so that importing `gscan.geometry` does not load numba.
+OpenBLAS's matrix product gives (the plane RANSAC scored with `S @ normals.T + offset` before). On a CPU
+without fused multiply-add instructions (HAS_FMA False) the RANSAC keeps the matrix product: emulated, the
+kernel would be slower than it. Compiled with `cache=True`, `nogil=True`; imported on first use, so that
+importing `gscan.geometry` does not load numba.
 """
 from __future__ import annotations
 
+import platform
+
 import numpy as np
-from llvmlite import ir
+from llvmlite import binding, ir
 from numba import njit
 from numba.core import cgutils, types
 from numba.extending import intrinsic
+
+HAS_FMA = platform.machine().lower() in ("aarch64", "arm64") or \
+    "+fma" in binding.get_host_cpu_features().flatten().split(",")
 
 
 @intrinsic
