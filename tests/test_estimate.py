@@ -375,3 +375,19 @@ def test_region_boxes_of_constructed_blobs():
     only[40:60, 40:60] = True
     assert region_boxes(only, 3, 50) == [(37, 37, 63, 63)]
     assert region_boxes(np.zeros((100, 200), bool), 3, 50) == []
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_backprojection_is_rays_times_depth_rounded_once(dtype):
+    """The query cloud: every pixel's ray times its depth in float64, rounded to float32, bit for bit (zeros and
+    their signs included) as the broadcast product; an odd-sized frame and a depth that is not contiguous."""
+    from gscan.estimate.query import backproject32
+    from gscan.io.camera import Intrinsics, pixel_rays
+
+    rng = np.random.default_rng(3)
+    intr = Intrinsics(611.3, 612.9, 318.77, 241.05, 97, 61)
+    depth = (rng.uniform(0.2, 3.0, (61, 2 * 97)) * (rng.random((61, 2 * 97)) > 0.2)).astype(dtype)[:, ::2]
+    frame = RGBDFrame("f", np.zeros((61, 97, 3), np.uint8), depth, intr)
+    want = np.empty((61, 97, 3), np.float32)
+    np.multiply(pixel_rays(intr), depth[..., None], out=want, casting="unsafe")
+    np.testing.assert_array_equal(backproject32(frame).view(np.uint32), want.view(np.uint32))

@@ -56,7 +56,7 @@ from gscan.estimate.similarity import (
     neighbourhood_candidates,
     neighbourhoods_candidates,
 )
-from gscan.estimate.query import QueryFrame, prepare_query
+from gscan.estimate.query import QueryFrame, backproject32, prepare_query
 from gscan.estimate.refine import icp_anchored
 from gscan.estimate.result import STAGES, EstimateResult, ms_since
 from gscan.estimate.verify import (
@@ -85,7 +85,7 @@ from gscan.geometry.plane import ransac_plane
 from gscan.geometry.pointset import coincident_groups, pca_normals, voxel_down_indices, voxel_mean
 from gscan.geometry.kabsch import kabsch_trimmed
 from gscan.geometry.transforms import inv_T, transform_points
-from gscan.io.camera import RGBDFrame
+from gscan.io.camera import Intrinsics, RGBDFrame
 from gscan.matching.gmatch import Candidates, GMatchParams, default_eps_f, search_candidates
 from gscan.template.db import Template, open_template
 
@@ -249,7 +249,7 @@ class Estimator:
         """Load the compiled kernels (numba's cache) now, on a few of the first view's keypoints matched to
         themselves with the estimate's own array types: otherwise the first estimate paid it (the retrieval
         matrix's kernels, GMatch's, the neighbour grid of ICP and of the keypoint support, the plane RANSAC's
-        scoring, and kabsch_trimmed's consensus, run with one pair moved 1 m off)."""
+        scoring, the back-projection, and kabsch_trimmed's consensus, run with one pair moved 1 m off)."""
         a, b = self.offsets[0], min(self.offsets[1], self.offsets[0] + 8)
         if b - a < 4:
             return
@@ -265,6 +265,8 @@ class Estimator:
         if grid is not None:
             grid.query(pts)
         ransac_plane(pts, 1, np.random.default_rng(0), 0.01, np.zeros(3))
+        tiny = Intrinsics(1.0, 1.0, 0.5, 0.5, 2, 2)
+        backproject32(RGBDFrame("warm-up", np.zeros((2, 2, 3), np.uint8), np.ones((2, 2), np.float32), tiny))
         moved = np.array(pts, dtype=np.float64)
         moved[0] += 1.0
         kabsch_trimmed(pts, moved, self.params.trim_tau)
