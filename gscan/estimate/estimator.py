@@ -482,7 +482,9 @@ class Estimator:
         near the pose's viewing direction) and sim_cols their columns in S (default: S holds every keypoint)."""
         p = self.params
         frame = q.frame
-        n_c, n_b, n = depth_votes(frame.depth, frame.intrinsics, T_cam_obj, self.cloud_icp, p.depth_tol, q.off_plane)
+        seen = visible(T_cam_obj, frame.intrinsics, self.cloud_icp)  # the template surface the pose shows
+        n_c, n_b, n = depth_votes(frame.depth, frame.intrinsics, T_cam_obj, self.cloud_icp, p.depth_tol, q.off_plane,
+                                  seen)
         ev = Evidence(score=n_c / max(1, n_c + n_b), confirmed=n_c / max(1, n))
         if kp_idx is None:
             kp_idx = self._offered_keypoints(T_cam_obj)
@@ -491,7 +493,7 @@ class Estimator:
         ev.support, ev.on_surface, ev.offer = keypoint_support(
             T_cam_obj, self.points_obj, kp_idx, S, kp_idx if sim_cols is None else sim_cols, feats.points, q_location,
             self.cloud_icp, frame.depth, frame.intrinsics, radius, self.support_sim, p.depth_tol,
-            1.0 if self.unit else -1.0)
+            1.0 if self.unit else -1.0, seen[1])
         return ev
 
     def _offered_keypoints(self, T_cam_obj: np.ndarray) -> np.ndarray:

@@ -158,12 +158,13 @@ def depth_tolerance(z: np.ndarray, depth_tol: float) -> np.ndarray:
 
 
 def depth_votes(depth: np.ndarray, intr: Intrinsics, T_cam_obj: np.ndarray, cloud: np.ndarray, depth_tol: float,
-                region: np.ndarray | None = None) -> tuple[int, int, int]:
+                region: np.ndarray | None = None,
+                seen: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> tuple[int, int, int]:
     """(consistent, see-through, visible) counts of the template cloud's points [P x 3] visible at T_cam_obj:
     consistent when the query depth [H x W] agrees within the tolerance (and, with `region` [H x W] bool, the
     pixel lies in it), see-through when the query surface lies behind the predicted object (a point over a pixel
-    without depth counts for neither)."""
-    _, pc, uv = visible(T_cam_obj, intr, cloud)
+    without depth counts for neither). seen: `visible(T_cam_obj, intr, cloud)` when the caller has it."""
+    _, pc, uv = visible(T_cam_obj, intr, cloud) if seen is None else seen
     if len(pc) == 0:
         return 0, 0, 0
     zq = depth[uv[:, 1], uv[:, 0]].astype(np.float64)
@@ -187,7 +188,8 @@ def depth_score(depth: np.ndarray, intr: Intrinsics, T_cam_obj: np.ndarray, clou
 def keypoint_support(T_cam_obj: np.ndarray, kp_points: np.ndarray, kp_idx: np.ndarray, sim: np.ndarray,
                      sim_cols: np.ndarray, q_points: np.ndarray, q_location: np.ndarray, surface_obj: np.ndarray,
                      depth: np.ndarray, intr: Intrinsics, radius: float, min_sim: float,
-                     depth_tol: float, sign: float = 1.0) -> tuple[int, int, int]:
+                     depth_tol: float, sign: float = 1.0,
+                     surface_cam: np.ndarray | None = None) -> tuple[int, int, int]:
     """(support, on_surface, offer) of a pose (Evidence).
 
     A query keypoint on the predicted visible surface supports the pose when its nearest template keypoint by
@@ -200,7 +202,8 @@ def keypoint_support(T_cam_obj: np.ndarray, kp_points: np.ndarray, kp_idx: np.nd
     of unit descriptors, or the distance with sign -1: the similarity is sign * sim), sim_cols [K] the column of
     each of kp_idx; q_points [M x 3]: camera-frame query keypoints;
     q_location [M]: a location id per query keypoint (keypoints of one point with several orientations share
-    it); surface_obj [P x 3]: the template cloud; radius: keypoint match distance (m)."""
+    it); surface_obj [P x 3]: the template cloud, surface_cam its points visible at the pose (camera frame,
+    `visible`'s) when the caller has them; radius: keypoint match distance (m)."""
     from scipy.spatial import cKDTree
 
     from gscan.geometry.grid_kernel import NearestGrid
@@ -208,7 +211,7 @@ def keypoint_support(T_cam_obj: np.ndarray, kp_points: np.ndarray, kp_idx: np.nd
     if len(q_points) == 0:
         return 0, 0, 0
     # query keypoints on the predicted visible surface
-    _, surf_cam, _ = visible(T_cam_obj, intr, surface_obj)
+    surf_cam = visible(T_cam_obj, intr, surface_obj)[1] if surface_cam is None else surface_cam
     if len(surf_cam) == 0:
         return 0, 0, 0
     grid = NearestGrid.build(surf_cam, radius)
