@@ -391,3 +391,40 @@ def test_backprojection_is_rays_times_depth_rounded_once(dtype):
     want = np.empty((61, 97, 3), np.float32)
     np.multiply(pixel_rays(intr), depth[..., None], out=want, casting="unsafe")
     np.testing.assert_array_equal(backproject32(frame).view(np.uint32), want.view(np.uint32))
+
+
+@pytest.mark.parametrize("cv_threads", [1, None])
+def test_opencv_threads_limited_while_estimating_and_restored(sample_template, cv_threads, monkeypatch):
+    """SIFT runs with cv_threads OpenCV threads inside an estimate (None: as the caller set them); the caller's
+    setting is back afterwards, also when the estimate raises."""
+    import cv2
+
+    from gscan.demo import SAMPLES
+    from gscan.estimate.estimator import EstimateParams
+    from gscan.io import open_sequence
+
+    seq = open_sequence(SAMPLES / "heldout")
+    est = Estimator.from_path(sample_template, EstimateParams(cv_threads=cv_threads))
+    seen = []
+    features = Estimator._features
+
+    def spy(self, *args, **kwargs):
+        seen.append(cv2.getNumThreads())
+        return features(self, *args, **kwargs)
+
+    monkeypatch.setattr(Estimator, "_features", spy)
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(3)
+    try:
+        est.estimate(seq[seq.names[0]])
+        assert seen == [1 if cv_threads == 1 else 3] and cv2.getNumThreads() == 3
+
+        def boom(self, *args, **kwargs):
+            raise RuntimeError("boom")
+
+        monkeypatch.setattr(Estimator, "_features", boom)
+        with pytest.raises(RuntimeError):
+            est.estimate(seq[seq.names[0]])
+        assert cv2.getNumThreads() == 3
+    finally:
+        cv2.setNumThreads(before)

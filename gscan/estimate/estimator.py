@@ -37,13 +37,15 @@ Without usable query depth (valid fraction of the search region < `min_depth_fra
 (`gscan.estimate.pnp`), and the same 2D-3D solve is tried after a failed 3D-3D estimate on the search region's
 holes in the depth (a dark, shiny or transparent object leaves a hole in otherwise good depth).
 
-The estimator limits BLAS to one thread while it runs (threadpoolctl): its matrices are small, and a
-thread pool spinning up per call cost more CPU than it saved.
+The estimator limits BLAS (threadpoolctl) and OpenCV to one thread each while it runs: its matrices and
+detection boxes are small, and a thread pool spinning up per call cost more CPU than it saved.
 """
 from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Iterator
+from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -137,6 +139,7 @@ class EstimateParams:
     below_tol: float = 0.015  # m: a template point this far behind the support plane is inside it ...
     max_below_frac: float = 0.2  # ... and a pose with more such points is not found
     blas_threads: int | None = 1  # BLAS threads while estimating (threadpoolctl; None leaves them as they are)
+    cv_threads: int | None = 1  # OpenCV threads (SIFT) while estimating (None leaves them as they are)
 
 
 @dataclass
@@ -291,12 +294,19 @@ class Estimator:
         with self._blas_limit():
             return prepare_query(frame, mask, p.remove_plane, p.min_depth_frac, p.plane_min_frac, p.plane_iterations)
 
-    def _blas_limit(self):
-        if self._blas is None:
-            from contextlib import nullcontext
+    @contextmanager
+    def _blas_limit(self) -> Iterator[None]:
+        """BLAS threads limited to blas_threads and OpenCV's to cv_threads while estimating (None: as they are)."""
+        with ExitStack() as stack:
+            if self._blas is not None:
+                stack.enter_context(self._blas.limit(limits=self.params.blas_threads, user_api="blas"))
+            if self.params.cv_threads is not None:
+                import cv2
 
-            return nullcontext()
-        return self._blas.limit(limits=self.params.blas_threads, user_api="blas")
+                n = cv2.getNumThreads()
+                cv2.setNumThreads(self.params.cv_threads)
+                stack.callback(cv2.setNumThreads, n)
+            yield
 
     def estimate_prepared(self, q: QueryFrame, refine: bool = True) -> EstimateResult:
         """`estimate` on a frame `prepare` made (several templates estimated in one frame share it)."""
