@@ -53,27 +53,29 @@ def _build(P, lo, cell, dims):
 
 
 @njit(cache=True, nogil=True)
-def _query(Q, P, starts, members, lo, cell, dims, r2, found, nearest):
+def _query(Q, SP, starts, members, lo, cell, dims, r2, found, nearest):
+    """SP [N x 3]: the points in members' order (cell by cell), so that the three cells along z around a
+    query are one run of memory."""
     for k in range(Q.shape[0]):
         qx, qy, qz = Q[k, 0], Q[k, 1], Q[k, 2]
         ix = _cell_of(qx, lo[0], cell, dims[0])
         iy = _cell_of(qy, lo[1], cell, dims[1])
         iz = _cell_of(qz, lo[2], cell, dims[2])
+        c0, c1 = max(iz - 1, 0), min(iz + 1, dims[2] - 1)
         best = r2
         arg = -1
-        for a in range(max(ix - 1, 0), min(ix + 1, dims[0] - 1) + 1):
-            for b in range(max(iy - 1, 0), min(iy + 1, dims[1] - 1) + 1):
-                base = (a * dims[1] + b) * dims[2]
-                for c in range(max(iz - 1, 0), min(iz + 1, dims[2] - 1) + 1):
-                    for s in range(starts[base + c], starts[base + c + 1]):
-                        i = members[s]
-                        dx = qx - P[i, 0]
-                        dy = qy - P[i, 1]
-                        dz = qz - P[i, 2]
+        if c0 <= c1:
+            for a in range(max(ix - 1, 0), min(ix + 1, dims[0] - 1) + 1):
+                for b in range(max(iy - 1, 0), min(iy + 1, dims[1] - 1) + 1):
+                    base = (a * dims[1] + b) * dims[2]
+                    for s in range(starts[base + c0], starts[base + c1 + 1]):
+                        dx = qx - SP[s, 0]
+                        dy = qy - SP[s, 1]
+                        dz = qz - SP[s, 2]
                         d2 = dx * dx + dy * dy + dz * dz
-                        if d2 < best or (d2 == best and arg >= 0 and i < arg):
+                        if d2 < best or (d2 == best and arg >= 0 and members[s] < arg):
                             best = d2
-                            arg = i
+                            arg = members[s]
         found[k] = arg >= 0
         nearest[k] = arg
 
@@ -88,6 +90,7 @@ class NearestGrid:
         self.cell = 1.001 * self.radius
         self.dims = dims
         self.starts, self.members = _build(points, lo, self.cell, dims)
+        self.sorted = np.ascontiguousarray(points[self.members])
 
     @classmethod
     def build(cls, points: np.ndarray, radius: float, max_cells: int = MAX_CELLS) -> NearestGrid | None:
@@ -106,6 +109,6 @@ class NearestGrid:
         q = np.ascontiguousarray(q, dtype=np.float64)
         found = np.empty(len(q), np.bool_)
         nearest = np.empty(len(q), np.int64)
-        _query(q, self.points, self.starts, self.members, self.lo, self.cell, self.dims,
+        _query(q, self.sorted, self.starts, self.members, self.lo, self.cell, self.dims,
                self.radius * self.radius, found, nearest)
         return found, nearest
