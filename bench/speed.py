@@ -9,9 +9,9 @@ no mask), as ratios against one `gscan estimate` command measured in the same ru
 - track: `Tracker.step` per frame through the sequence (the previous pose as a prior), and, on the same frames,
   independent warm estimates (the tracking speed-up).
 
-With --compare DIR, the warm estimator of another gscan tree (DIR holds its `gscan` package: a checkout of an
-older commit) is measured in the same run, in a child process, its passes interleaved with this tree's
-(--rounds passes each), so that both see the same load.
+With --compare DIR, another gscan tree (DIR holds its `gscan` package: a checkout of an older commit) is
+measured in the same run: its CLI call after this tree's on every CLI frame, and its warm estimator in a child
+process whose passes alternate with this tree's (--rounds passes each), so that both see the same load.
 
 Wrong results accepted: a returned pose whose ADD exceeds 10 % of the object's diameter (bench/estimate.py's
 and bench/recall.py's rule), the template's frame mapped to the mesh's by the scan's ground truth
@@ -179,20 +179,26 @@ def run(args: argparse.Namespace) -> dict:
                  "gscan": str(Path(gscan.__file__).parent)}
     env = dict(os.environ, PYTHONPATH=str(Path(gscan.__file__).resolve().parents[1]))  # the gscan measured here
 
-    # cli: one process per frame
-    cpu, wall, poses = [], [], []
+    # cli: one process per frame (with --compare, the other tree's command on the same frame after each)
+    trees = {"cli": env} | ({"cli_compare": dict(os.environ, PYTHONPATH=args.compare)} if args.compare else {})
+    runs: dict[str, dict[str, list]] = {k: {"cpu": [], "wall": [], "poses": []} for k in trees}
     for c, d in files[: args.cli]:
-        r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
-        t0 = time.perf_counter()
-        p = subprocess.run([sys.executable, "-m", "gscan.cli", "estimate", str(tpl), "--color", str(c), "--depth",
-                            str(d), "--intrinsics", str(K), "--json"], capture_output=True, env=env, check=False)
-        wall.append((time.perf_counter() - t0) * 1e3)
-        r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
-        cpu.append((r1.ru_utime - r0.ru_utime + r1.ru_stime - r0.ru_stime) * 1e3)
-        if p.returncode != 0:
-            raise RuntimeError(p.stderr.decode())
-        poses.append(json.loads(p.stdout)["T_cam_obj"])
-    out["cli"] = {"cpu_ms": stats(cpu), "wall_ms": stats(wall), **truth.count(poses)}
+        for key, tree_env in trees.items():
+            r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+            t0 = time.perf_counter()
+            p = subprocess.run([sys.executable, "-m", "gscan.cli", "estimate", str(tpl), "--color", str(c), "--depth",
+                                str(d), "--intrinsics", str(K), "--json"], capture_output=True, env=tree_env,
+                               check=False)
+            runs[key]["wall"].append((time.perf_counter() - t0) * 1e3)
+            r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+            runs[key]["cpu"].append((r1.ru_utime - r0.ru_utime + r1.ru_stime - r0.ru_stime) * 1e3)
+            if p.returncode != 0:
+                raise RuntimeError(p.stderr.decode())
+            runs[key]["poses"].append(json.loads(p.stdout)["T_cam_obj"])
+    for key, r in runs.items():
+        out[key] = {"cpu_ms": stats(r["cpu"]), "wall_ms": stats(r["wall"]), **truth.count(r["poses"])}
+    if args.compare:
+        out["cli_compare"]["tree"] = args.compare
 
     # warm estimator (and, with --compare, another tree's, interleaved pass by pass)
     child = None
@@ -278,7 +284,7 @@ def measure_service(tpl: Path, files: list, K: Path, env: dict, truth: Truth) ->
 
 def _ratios(out: dict) -> dict:
     base = out["cli"]
-    for mode in ("warm", "warm_compare", "service", "track"):
+    for mode in ("cli_compare", "warm", "warm_compare", "service", "track"):
         if mode in out:
             out[mode]["cli_over_mode"] = {k: base[k]["median"] / out[mode][k]["median"] for k in ("cpu_ms", "wall_ms")}
     out["load_after"] = load_average()
@@ -306,17 +312,17 @@ def main() -> None:
           f"(640x480, whole image); gscan from {out['gscan']}")
     print("| mode | CPU ms median | CPU ms p90 | wall ms median | wall ms p90 | CLI / mode (CPU, wall) | found | wrong |")
     print("|---|---|---|---|---|---|---|---|")
-    for mode in [m for m in ("cli", "warm", "warm_compare", "service", "track") if m in out]:
+    for mode in [m for m in ("cli", "cli_compare", "warm", "warm_compare", "service", "track") if m in out]:
         v = out[mode]
         ratio = v.get("cli_over_mode")
         r = f"{ratio['cpu_ms']:.1f}x, {ratio['wall_ms']:.1f}x" if ratio else "1x"
-        name = f"warm ({v['tree']})" if mode == "warm_compare" else mode
-        n = args.cli if mode == "cli" else out["frames"]
+        name = f"{mode.split('_')[0]} ({v['tree']})" if "tree" in v else mode
+        n = args.cli if mode.startswith("cli") else out["frames"]
         print(f"| {name} | {v['cpu_ms']['median']:.0f} | {v['cpu_ms']['p90']:.0f} | {v['wall_ms']['median']:.0f} | "
               f"{v['wall_ms']['p90']:.0f} | {r} | {v['found']}/{n} | {v['wrong']} |")
     print("\nwrong: ADD above 10 % of the diameter; largest ADD of a returned pose (mm): "
-          + ", ".join(f"{m} {out[m]['max_add_mm']:.1f}" for m in ("cli", "warm", "warm_compare", "service", "track")
-                      if m in out))
+          + ", ".join(f"{m} {out[m]['max_add_mm']:.1f}" for m in ("cli", "cli_compare", "warm", "warm_compare",
+                                                                   "service", "track") if m in out))
     if "track" in out:
         print(f"tracking statuses {out['track']['status']}, {out['track']['speedup_vs_independent_cpu']:.1f}x less CPU "
               "per frame than independent estimates")
