@@ -428,3 +428,37 @@ def test_opencv_threads_limited_while_estimating_and_restored(sample_template, c
         assert cv2.getNumThreads() == 3
     finally:
         cv2.setNumThreads(before)
+
+
+def test_first_estimate_compiles_no_kernel(sample_template):
+    """The estimator's warm-up loads every numba kernel the estimate runs, with the estimate's own argument
+    types: in a fresh process, the first estimate after construction adds no signature to any kernel (each
+    new one is a compilation or a cache load, tens of milliseconds)."""
+    import subprocess
+    import sys
+
+    from tests.conftest import ROOT
+
+    script = """
+import json, sys
+from gscan.demo import SAMPLES
+from gscan.estimate.estimator import Estimator
+from gscan.estimate import query, similarity
+from gscan.geometry import consensus_kernel, grid_kernel, plane_kernel
+from gscan.io import open_sequence
+from gscan.matching import kernel
+est = Estimator.from_path(sys.argv[1])
+kernels = [similarity._scan, similarity._best_columns, grid_kernel._build, grid_kernel._query, query._backproject,
+           kernel.search, consensus_kernel.best_triple]
+if plane_kernel.HAS_FMA:
+    kernels += [plane_kernel.plane_counts, plane_kernel.plane_inliers]
+before = [len(k.signatures) for k in kernels]
+seq = open_sequence(SAMPLES / "heldout")
+res = est.estimate(seq[seq.names[0]])
+print(json.dumps({"found": res.found, "warmed": min(before),
+                  "new": [k.py_func.__name__ for k, n in zip(kernels, before) if len(k.signatures) != n]}))
+"""
+    p = subprocess.run([sys.executable, "-c", script, str(sample_template)], capture_output=True, text=True,
+                       cwd=ROOT, check=True)
+    out = json.loads(p.stdout.strip().splitlines()[-1])
+    assert out["found"] and out["warmed"] >= 1 and out["new"] == [], out

@@ -267,7 +267,7 @@ class Estimator:
         grid = NearestGrid.build(pts, 0.005)
         if grid is not None:
             grid.query(pts)
-        ransac_plane(pts, 1, np.random.default_rng(0), 0.01, np.zeros(3))
+        ransac_plane(pts, 20, np.random.default_rng(0), 0.01, np.zeros(3))  # (a plane found: both kernels)
         tiny = Intrinsics(1.0, 1.0, 0.5, 0.5, 2, 2)
         backproject32(RGBDFrame("warm-up", np.zeros((2, 2, 3), np.uint8), np.ones((2, 2), np.float32), tiny))
         moved = np.array(pts, dtype=np.float64)

@@ -40,7 +40,7 @@ def ransac_plane(S: np.ndarray, iterations: int, rng: np.random.Generator, dist:
 
     vp = np.asarray(viewpoint, dtype=np.float64)
     S = np.ascontiguousarray(S, dtype=np.float64)
-    d = np.ascontiguousarray(np.broadcast_to(np.asarray(dist, dtype=np.float64).reshape(-1), (len(S),)))
+    d = np.array(np.broadcast_to(np.asarray(dist, dtype=np.float64).reshape(-1), (len(S),)))  # (writable: one kernel type)
     best, best_count, best_nrm, best_off, best_k = None, -1, None, None, -1
     for start in range(0, iterations, 100):
         m = min(100, iterations - start)
