@@ -360,3 +360,111 @@ def test_scanned_template_finds_target_in_clutter(meshes, scanned):
     assert add(meshes[0].vertices, res.T_cam_obj @ T_obj_gt, T_gt) < 0.01
     r, _ = render_scene(meshes[0], meshes[1:], 1, with_target=False)
     assert not est.estimate(as_frame(r)).found
+
+
+def test_region_boxes_of_constructed_blobs():
+    """Detection boxes: each blob of at least min_px pixels grown by the margin (clipped to the frame), overlapping
+    boxes merged, small blobs left out (though inside the region's bounds), no boxes when they would cover
+    most of the region's bounding box anyway."""
+    from gscan.estimate.estimator import region_boxes
+
+    m = np.zeros((100, 200), bool)
+    m[10:20, 5:25] = True  # 200 px
+    m[60:80, 150:170] = True  # 400 px
+    m[50:52, 100:102] = True  # 4 px: too small
+    assert region_boxes(m, 3, 50) == [(2, 7, 28, 23), (147, 57, 173, 83)]
+    m[0:10, 190:200] = True  # 100 px at the corner: clipped
+    m[22:30, 5:25] = True  # 160 px, 2 rows below the first blob: merged with it by the margin
+    assert region_boxes(m, 3, 50) == [(2, 7, 28, 33), (147, 57, 173, 83), (187, 0, 200, 13)]
+    assert region_boxes(m, 3, 50, max_fill=0.05) == []  # the boxes cover more than 5 % of the bounds
+    only = np.zeros((100, 200), bool)
+    only[40:60, 40:60] = True
+    assert region_boxes(only, 3, 50) == [(37, 37, 63, 63)]
+    assert region_boxes(np.zeros((100, 200), bool), 3, 50) == []
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_backprojection_is_rays_times_depth_rounded_once(dtype):
+    """The query cloud: every pixel's ray times its depth in float64, rounded to float32, bit for bit (zeros and
+    their signs included) as the broadcast product; an odd-sized frame and a depth that is not contiguous."""
+    from gscan.estimate.query import backproject32
+    from gscan.io.camera import Intrinsics, pixel_rays
+
+    rng = np.random.default_rng(3)
+    intr = Intrinsics(611.3, 612.9, 318.77, 241.05, 97, 61)
+    depth = (rng.uniform(0.2, 3.0, (61, 2 * 97)) * (rng.random((61, 2 * 97)) > 0.2)).astype(dtype)[:, ::2]
+    frame = RGBDFrame("f", np.zeros((61, 97, 3), np.uint8), depth, intr)
+    want = np.empty((61, 97, 3), np.float32)
+    np.multiply(pixel_rays(intr), depth[..., None], out=want, casting="unsafe")
+    np.testing.assert_array_equal(backproject32(frame).view(np.uint32), want.view(np.uint32))
+
+
+@pytest.mark.parametrize("cv_threads", [1, None])
+def test_opencv_threads_limited_while_estimating_and_restored(sample_template, cv_threads, monkeypatch):
+    """SIFT runs with cv_threads OpenCV threads inside an estimate (None: as the caller set them); the caller's
+    setting is back afterwards, also when the estimate raises."""
+    import cv2
+
+    from gscan.demo import SAMPLES
+    from gscan.estimate.estimator import EstimateParams
+    from gscan.io import open_sequence
+
+    seq = open_sequence(SAMPLES / "heldout")
+    est = Estimator.from_path(sample_template, EstimateParams(cv_threads=cv_threads))
+    seen = []
+    features = Estimator._features
+
+    def spy(self, *args, **kwargs):
+        seen.append(cv2.getNumThreads())
+        return features(self, *args, **kwargs)
+
+    monkeypatch.setattr(Estimator, "_features", spy)
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(3)
+    try:
+        est.estimate(seq[seq.names[0]])
+        assert seen == [1 if cv_threads == 1 else 3] and cv2.getNumThreads() == 3
+
+        def boom(self, *args, **kwargs):
+            raise RuntimeError("boom")
+
+        monkeypatch.setattr(Estimator, "_features", boom)
+        with pytest.raises(RuntimeError):
+            est.estimate(seq[seq.names[0]])
+        assert cv2.getNumThreads() == 3
+    finally:
+        cv2.setNumThreads(before)
+
+
+def test_first_estimate_compiles_no_kernel(sample_template):
+    """The estimator's warm-up loads every numba kernel the estimate runs, with the estimate's own argument
+    types: in a fresh process, the first estimate after construction adds no signature to any kernel (each
+    new one is a compilation or a cache load, tens of milliseconds)."""
+    import subprocess
+    import sys
+
+    from tests.conftest import ROOT
+
+    script = """
+import json, sys
+from gscan.demo import SAMPLES
+from gscan.estimate.estimator import Estimator
+from gscan.estimate import query, similarity
+from gscan.geometry import consensus_kernel, grid_kernel, plane_kernel
+from gscan.io import open_sequence
+from gscan.matching import kernel
+est = Estimator.from_path(sys.argv[1])
+kernels = [similarity._scan, similarity._best_columns, grid_kernel._build, grid_kernel._query, query._backproject,
+           kernel.search, consensus_kernel.best_triple]
+if plane_kernel.HAS_FMA:
+    kernels += [plane_kernel.plane_counts, plane_kernel.plane_inliers]
+before = [len(k.signatures) for k in kernels]
+seq = open_sequence(SAMPLES / "heldout")
+res = est.estimate(seq[seq.names[0]])
+print(json.dumps({"found": res.found, "warmed": min(before),
+                  "new": [k.py_func.__name__ for k, n in zip(kernels, before) if len(k.signatures) != n]}))
+"""
+    p = subprocess.run([sys.executable, "-c", script, str(sample_template)], capture_output=True, text=True,
+                       cwd=ROOT, check=True)
+    out = json.loads(p.stdout.strip().splitlines()[-1])
+    assert out["found"] and out["warmed"] >= 1 and out["new"] == [], out

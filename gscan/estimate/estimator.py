@@ -15,7 +15,8 @@ Pipeline of `Estimator.estimate` (every stage timed, `EstimateResult.timings_ms`
 3. match: GMatch (gscan.matching.gmatch) of each retrieved neighbourhood's keypoints jointly, all expressed
    in its central view's camera frame (view direction +z), against the query keypoints (+z): a pose between
    keyframes, or a face the scan saw from a steeper angle than the query, collects its matches from several
-   views at once. Descriptor distances are sliced from the retrieval GEMM, never recomputed.
+   views at once. GMatch's candidates are read from the retrieval GEMM's matrix by one kernel pass per
+   neighbourhood (`gscan.estimate.similarity`), never recomputed or copied into a distance block.
 4. solve: every neighbourhood's best list and its GMatch runners-up (at most `runner_up_margin` shorter: in
    clutter a hard view's correct list ties with the lists the background offers) are posed at once (batched
    Kabsch) and pre-scored by the query keypoints their nearest template descriptor lands on at that pose;
@@ -36,22 +37,30 @@ Without usable query depth (valid fraction of the search region < `min_depth_fra
 (`gscan.estimate.pnp`), and the same 2D-3D solve is tried after a failed 3D-3D estimate on the search region's
 holes in the depth (a dark, shiny or transparent object leaves a hole in otherwise good depth).
 
-The estimator limits BLAS to one thread while it runs (threadpoolctl): its matrices are small, and a
-thread pool spinning up per call cost more CPU than it saved.
+The estimator limits BLAS (threadpoolctl) and OpenCV to one thread each while it runs: its matrices and
+detection boxes are small, and a thread pool spinning up per call cost more CPU than it saved.
 """
 from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Iterator
+from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
 from gscan.errors import InputError
-from gscan.estimate.query import QueryFrame, prepare_query
+from gscan.estimate.query import QueryFrame, backproject32, prepare_query
 from gscan.estimate.refine import icp_anchored
 from gscan.estimate.result import STAGES, EstimateResult, ms_since
+from gscan.estimate.similarity import (
+    TemplateGroups,
+    best_columns,
+    neighbourhood_candidates,
+    neighbourhoods_candidates,
+)
 from gscan.estimate.verify import (
     AcceptParams,
     Evidence,
@@ -73,11 +82,13 @@ from gscan.features import (
     extract_features,
     extract_features_in_mask,
 )
+from gscan.geometry.grid_kernel import NearestGrid
 from gscan.geometry.kabsch import kabsch_trimmed
+from gscan.geometry.plane import ransac_plane
 from gscan.geometry.pointset import coincident_groups, pca_normals, voxel_down_indices, voxel_mean
 from gscan.geometry.transforms import inv_T, transform_points
-from gscan.io.camera import RGBDFrame
-from gscan.matching.gmatch import GMatchParams, default_eps_f, gmatch
+from gscan.io.camera import Intrinsics, RGBDFrame
+from gscan.matching.gmatch import Candidates, GMatchParams, default_eps_f, search_candidates
 from gscan.template.db import Template, open_template
 
 log = logging.getLogger(__name__)
@@ -128,6 +139,7 @@ class EstimateParams:
     below_tol: float = 0.015  # m: a template point this far behind the support plane is inside it ...
     max_below_frac: float = 0.2  # ... and a pose with more such points is not found
     blas_threads: int | None = 1  # BLAS threads while estimating (threadpoolctl; None leaves them as they are)
+    cv_threads: int | None = 1  # OpenCV threads (SIFT) while estimating (None leaves them as they are)
 
 
 @dataclass
@@ -147,14 +159,17 @@ class _Candidate:
 class _QueryKeypoints:
     """The query's lifted keypoints and their similarity to the template. S: the retrieval matrix
     [M x N_template] (cosine similarity for unit descriptors, else distance); location [M]: a location id per
-    keypoint (orientations of one point share it); grouped [G x N_template]: S reduced over each location
-    (best value); group_kp [G]: a keypoint of each location."""
+    keypoint (orientations of one point share it); order [M], starts [G]: the locations' keypoints
+    (order[starts[g]:starts[g+1]], gscan.geometry.pointset.coincident_groups); group_kp [G]: a keypoint of
+    each location; candidates: the GMatch candidates of the neighbourhoods to match, found together."""
 
     feats: Features
     S: np.ndarray = field(repr=False)
     location: np.ndarray = field(repr=False)
-    grouped: np.ndarray = field(repr=False)
+    order: np.ndarray = field(repr=False)
+    starts: np.ndarray = field(repr=False)
     group_kp: np.ndarray = field(repr=False)
+    candidates: dict[int, Candidates] = field(default_factory=dict, repr=False)  # view -> its neighbourhood's
 
 
 class Estimator:
@@ -222,6 +237,7 @@ class Estimator:
         self.nb_idx: list[np.ndarray] = []
         self.nb_points: list[np.ndarray] = []
         self.nb_groups: list[tuple[np.ndarray, np.ndarray]] = []
+        self.nb_tgroups: list[TemplateGroups] = []
         for v in range(V):
             order = [u for u in np.lexsort((np.arange(V), -cos[v])) if u != v]
             near = [int(u) for u in order if cos[v, u] >= np.cos(np.radians(p.joint_deg))]
@@ -231,18 +247,30 @@ class Estimator:
             self.nb_idx.append(idx)
             self.nb_points.append(transform_points(inv_T(self.T_obj_cam[v]), self.points_obj[idx]))
             self.nb_groups.append(coincident_groups(self.points_obj[idx]))
+            self.nb_tgroups.append(TemplateGroups(idx, *self.nb_groups[-1]))
 
     def _warm_up(self) -> None:
         """Load the compiled kernels (numba's cache) now, on a few of the first view's keypoints matched to
-        themselves with the estimate's own array types: otherwise the first estimate paid it (GMatch's, and
-        kabsch_trimmed's consensus, run with one pair moved 1 m off)."""
+        themselves with the estimate's own array types: otherwise the first estimate paid it (the retrieval
+        matrix's kernels, GMatch's, the neighbour grid of ICP and of the keypoint support, the plane RANSAC's
+        scoring, the back-projection, and kabsch_trimmed's consensus, run with one pair moved 1 m off)."""
         a, b = self.offsets[0], min(self.offsets[1], self.offsets[0] + 8)
         if b - a < 4:
             return
         q = self.descriptors[a:b]
         S = q.astype(np.float32) @ q.T.astype(np.float32) if self.unit else descriptor_distances(q, q, self.kind)
         pts = self.nb_points[0][:b - a]
-        gmatch(pts, pts.astype(np.float32), self._dist(S), self.eps_f, self.params.gmatch)
+        groups = coincident_groups(pts)
+        cand = neighbourhood_candidates(S, self.unit, *groups, TemplateGroups(np.arange(b - a), *groups), self.eps_f,
+                                        self.params.gmatch.order)
+        search_candidates(pts, pts.astype(np.float32), cand, self.params.gmatch)
+        best_columns(S, np.arange(b - a), np.arange(b - a), 1.0 if self.unit else -1.0)
+        grid = NearestGrid.build(pts, 0.005)
+        if grid is not None:
+            grid.query(pts)
+        ransac_plane(pts, 20, np.random.default_rng(0), 0.01, np.zeros(3))  # (a plane found: both kernels)
+        tiny = Intrinsics(1.0, 1.0, 0.5, 0.5, 2, 2)
+        backproject32(RGBDFrame("warm-up", np.zeros((2, 2, 3), np.uint8), np.ones((2, 2), np.float32), tiny))
         moved = np.array(pts, dtype=np.float64)
         moved[0] += 1.0
         kabsch_trimmed(pts, moved, self.params.trim_tau)
@@ -267,12 +295,19 @@ class Estimator:
         with self._blas_limit():
             return prepare_query(frame, mask, p.remove_plane, p.min_depth_frac, p.plane_min_frac, p.plane_iterations)
 
-    def _blas_limit(self):
-        if self._blas is None:
-            from contextlib import nullcontext
+    @contextmanager
+    def _blas_limit(self) -> Iterator[None]:
+        """BLAS threads limited to blas_threads and OpenCV's to cv_threads while estimating (None: as they are)."""
+        with ExitStack() as stack:
+            if self._blas is not None:
+                stack.enter_context(self._blas.limit(limits=self.params.blas_threads, user_api="blas"))
+            if self.params.cv_threads is not None:
+                import cv2
 
-            return nullcontext()
-        return self._blas.limit(limits=self.params.blas_threads, user_api="blas")
+                n = cv2.getNumThreads()
+                cv2.setNumThreads(self.params.cv_threads)
+                stack.callback(cv2.setNumThreads, n)
+            yield
 
     def estimate_prepared(self, q: QueryFrame, refine: bool = True) -> EstimateResult:
         """`estimate` on a frame `prepare` made (several templates estimated in one frame share it)."""
@@ -293,7 +328,7 @@ class Estimator:
             res = self._fail(tm, t_all, f"too few keypoints in {where}")
         else:
             t = time.perf_counter()
-            S, votes = self._retrieve(feats.descriptors)
+            S, votes, nearest = self._retrieve_nearest(feats.descriptors)
             tm["retrieval"] = ms_since(t)
             if use_pnp:
                 from gscan.estimate.pnp import estimate_pnp
@@ -302,7 +337,7 @@ class Estimator:
                 if not res.found:
                     res.reason = f"{res.reason} (query depth unusable)"
                 return res
-            res = self._estimate_gmatch(q, feats, S, votes, refine, tm, t_all)
+            res = self._estimate_gmatch(q, feats, S, votes, refine, tm, t_all, nearest)
         if not res.found and not use_pnp:
             from gscan.estimate.pnp import pnp_without_depth
 
@@ -328,21 +363,26 @@ class Estimator:
                                 q.frame.intrinsics, self.params.below_tol, self.params.max_below_frac)
 
     def _estimate_gmatch(self, q: QueryFrame, feats: Features, S: np.ndarray, votes: np.ndarray, refine: bool,
-                         tm: dict[str, float], t_all: float) -> EstimateResult:
-        """Stages 3-6 (module docstring) on the lifted query keypoints."""
+                         tm: dict[str, float], t_all: float,
+                         nearest: tuple[np.ndarray, np.ndarray] | None = None) -> EstimateResult:
+        """Stages 3-6 (module docstring) on the lifted query keypoints (nearest: `_retrieve_nearest`'s)."""
         p = self.params
         t = time.perf_counter()
         qk = self._query_keypoints(feats, S)
         q_location = qk.location
         cands: list[_Candidate] = []
         seen: set[bytes] = set()
-        for v in self._top_neighbourhoods(votes):
+        views = self._top_neighbourhoods(votes)
+        qk.candidates = dict(zip(views, neighbourhoods_candidates(
+            S, self.unit, qk.order, qk.starts, [self.nb_tgroups[v] for v in views], self.eps_f,
+            self.params.gmatch.order)))
+        for v in views:
             for m, cost in self._match_hypotheses(v, qk):
                 key = np.ascontiguousarray(m[np.lexsort((m[:, 1], m[:, 0]))]).tobytes()
                 if len(m) >= 3 and key not in seen:
                     seen.add(key)
                     cands.append(_Candidate(len(m), cost, v, m))
-        self._prescore(cands, feats, S)
+        self._prescore(cands, feats, S, nearest)
         cands = self._merge_agreeing(cands, feats.points)
         tm["match"] = ms_since(t)
         if not cands:
@@ -359,9 +399,11 @@ class Estimator:
                               self.view_names[cands[0].view])
         return first
 
-    def _prescore(self, cands: list[_Candidate], feats: Features, S: np.ndarray) -> None:
+    def _prescore(self, cands: list[_Candidate], feats: Features, S: np.ndarray,
+                  nearest: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         """Set every candidate's `support`: the query keypoints whose nearest template keypoint by descriptor
-        lands on them under the list's plain Kabsch pose (`nn_support`), all lists at once."""
+        lands on them under the list's plain Kabsch pose (`nn_support`), all lists at once. nearest: each query
+        keypoint's nearest template keypoint and its value in S (`_retrieve_nearest`), else found in S."""
         if not cands:
             return
         L = max(c.n for c in cands)
@@ -373,12 +415,8 @@ class Estimator:
             dst[h, :c.n] = feats.points[c.matches[:, 1]]
             w[h, :c.n] = 1.0
         T = kabsch_batch(src, dst, w)
-        if self.unit:
-            nn = np.argmax(S, axis=1)
-            agree = S[np.arange(len(S)), nn] >= self.support_sim
-        else:
-            nn = np.argmin(S, axis=1)
-            agree = S[np.arange(len(S)), nn] <= -self.support_sim
+        nn, best = self._nearest(S) if nearest is None else nearest
+        agree = best >= self.support_sim if self.unit else best <= -self.support_sim
         q_pts = feats.points[agree].astype(np.float64)
         z = np.median(q_pts[:, 2]) if len(q_pts) else 0.5
         support = nn_support(T, self.points_obj[nn[agree]], q_pts, self.params.support_radius
@@ -456,16 +494,18 @@ class Estimator:
         near the pose's viewing direction) and sim_cols their columns in S (default: S holds every keypoint)."""
         p = self.params
         frame = q.frame
-        n_c, n_b, n = depth_votes(frame.depth, frame.intrinsics, T_cam_obj, self.cloud_icp, p.depth_tol, q.off_plane)
+        seen = visible(T_cam_obj, frame.intrinsics, self.cloud_icp)  # the template surface the pose shows
+        n_c, n_b, n = depth_votes(frame.depth, frame.intrinsics, T_cam_obj, self.cloud_icp, p.depth_tol, q.off_plane,
+                                  seen)
         ev = Evidence(score=n_c / max(1, n_c + n_b), confirmed=n_c / max(1, n))
         if kp_idx is None:
             kp_idx = self._offered_keypoints(T_cam_obj)
         z = float(transform_points(T_cam_obj, self.center[None])[0, 2])
         radius = p.support_radius + 0.01 * max(z - 0.5, 0.0)
         ev.support, ev.on_surface, ev.offer = keypoint_support(
-            T_cam_obj, self.points_obj, kp_idx, S if self.unit else -S, kp_idx if sim_cols is None else sim_cols,
-            feats.points, q_location, self.cloud_icp, frame.depth, frame.intrinsics, radius, self.support_sim,
-            p.depth_tol)
+            T_cam_obj, self.points_obj, kp_idx, S, kp_idx if sim_cols is None else sim_cols, feats.points, q_location,
+            self.cloud_icp, frame.depth, frame.intrinsics, radius, self.support_sim, p.depth_tol,
+            1.0 if self.unit else -1.0, seen[1])
         return ev
 
     def _offered_keypoints(self, T_cam_obj: np.ndarray) -> np.ndarray:
@@ -481,8 +521,7 @@ class Estimator:
         order, starts = coincident_groups(feats.points)
         location = np.empty(len(feats), np.int64)
         location[order] = np.repeat(np.arange(len(starts)), np.diff(np.r_[starts, len(feats)]))
-        grouped = _group_reduce(S, order, starts, 0, np.maximum if self.unit else np.minimum)
-        return _QueryKeypoints(feats, S, location, grouped, order[starts])
+        return _QueryKeypoints(feats, S, location, order, starts, order[starts])
 
     def _match_hypotheses(self, v: int, qk: _QueryKeypoints) -> list[tuple[np.ndarray, float]]:
         """GMatch of view v's neighbourhood (its keypoints and its neighbours', in v's camera frame) against the
@@ -493,12 +532,14 @@ class Estimator:
         descriptors."""
         idx = self.nb_idx[v]
         s_order, s_starts = self.nb_groups[v]
-        reduce = np.maximum if self.unit else np.minimum
-        block = _group_reduce(qk.grouped, idx[s_order], s_starts, 1, reduce)  # [G x Ns]
-        dist = np.ascontiguousarray(self._dist(block).T)  # [Ns x G] template neighbourhood -> query
         gs = idx[s_order[s_starts]]  # source row -> global template keypoint
         gq = qk.group_kp  # target column -> query keypoint
-        res = gmatch(self.nb_points[v][s_order[s_starts]], qk.feats.points[gq], dist, self.eps_f, self.params.gmatch)
+        # the candidates of the [Ns x G] group distance block, read from S without building the block
+        cand = qk.candidates.get(v)
+        if cand is None:
+            cand = neighbourhood_candidates(qk.S, self.unit, qk.order, qk.starts, self.nb_tgroups[v], self.eps_f,
+                                            self.params.gmatch.order)
+        res = search_candidates(self.nb_points[v][s_order[s_starts]], qk.feats.points[gq], cand, self.params.gmatch)
         best = np.asarray(res.matches, dtype=np.int64).reshape(-1, 2)
         out = [(np.stack([gs[best[:, 0]], gq[best[:, 1]]], 1), float(res.cost))]
         n_min = max(self.params.accept.min_matches, len(best) - self.params.runner_up_margin)
@@ -538,16 +579,23 @@ class Estimator:
 
     def _retrieve(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Query descriptors [M x D] -> (similarity or distance matrix [M x N], votes per view [V])."""
+        return self._retrieve_nearest(q)[:2]
+
+    def _retrieve_nearest(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray]]:
+        """`_retrieve`, and each query keypoint's nearest template keypoint [M] with its value in S [M]."""
         if self.unit:
             S = np.matmul(q.astype(np.float32), self.descriptors.T)  # cosine similarity of unit vectors
-            nn = np.argmax(S, axis=1)
-            ok = S[np.arange(len(S)), nn] >= 1.0 - 0.5 * self.params.retrieval_dist ** 2
         else:
             S = descriptor_distances(q, self.descriptors, self.kind)
-            nn = np.argmin(S, axis=1)
-            ok = S[np.arange(len(S)), nn] < self.eps_f
+        nn, best = self._nearest(S)
+        ok = best >= 1.0 - 0.5 * self.params.retrieval_dist ** 2 if self.unit else best < self.eps_f
         # each query keypoint votes for the view holding its nearest template descriptor
-        return S, np.bincount(self.kp_view[nn[ok]], minlength=len(self.view_names))
+        return S, np.bincount(self.kp_view[nn[ok]], minlength=len(self.view_names)), (nn, best)
+
+    def _nearest(self, S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Each row's nearest template keypoint in S [M x N] (first on ties) and its value: ([M], [M])."""
+        nn = np.argmax(S, axis=1) if self.unit else np.argmin(S, axis=1)
+        return nn, S[np.arange(len(S)), nn]
 
     def _top_views(self, votes: np.ndarray) -> list[int]:
         """The top_k views by votes (ties by view order), views without a vote left out."""
@@ -642,7 +690,14 @@ def region_boxes(mask: np.ndarray, margin: int, min_px: int, max_fill: float = 0
     import cv2
 
     H, W = mask.shape
-    _, _, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    if len(rows) == 0:
+        return []
+    # the blobs of the region's bounding box (a crop: the labelling's cost follows the pixels it scans)
+    crop = mask[rows[0]:rows[-1] + 1, cols[0]:cols[-1] + 1].astype(np.uint8)
+    _, _, stats, _ = cv2.connectedComponentsWithStats(crop, connectivity=8)
+    stats[:, 0] += cols[0]
+    stats[:, 1] += rows[0]
     boxes = [[max(0, x - margin), max(0, y - margin), min(W, x + w + margin), min(H, y + h + margin)]
              for x, y, w, h, a in stats[1:] if a >= min_px]
     merged = True
@@ -660,8 +715,7 @@ def region_boxes(mask: np.ndarray, margin: int, min_px: int, max_fill: float = 0
                 break
     if len(boxes) <= 1:
         return [tuple(b) for b in boxes]
-    ys, xs = np.nonzero(mask)
-    union = (xs.max() - xs.min() + 1 + 2 * margin) * (ys.max() - ys.min() + 1 + 2 * margin)
+    union = (cols[-1] - cols[0] + 1 + 2 * margin) * (rows[-1] - rows[0] + 1 + 2 * margin)
     if sum((b[2] - b[0]) * (b[3] - b[1]) for b in boxes) > max_fill * union:
         return []
     return sorted((int(b[0]), int(b[1]), int(b[2]), int(b[3])) for b in boxes)

@@ -8,6 +8,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from numba import njit
 
 from gscan.errors import InputError
 from gscan.geometry.plane import Plane, dominant_plane
@@ -87,11 +88,29 @@ class QueryFrame:
 
 
 def backproject32(frame: RGBDFrame) -> np.ndarray:
-    """[H x W x 3] float32 camera-frame points (zeros where the depth is 0)."""
+    """[H x W x 3] float32 camera-frame points (zeros where the depth is 0): each pixel's ray (`pixel_rays`)
+    times its depth in float64, rounded to float32 once (one pass, no float64 [H x W x 3] intermediate)."""
     rays = pixel_rays(frame.intrinsics)
+    depth = np.ascontiguousarray(frame.depth)
+    if depth.dtype not in (np.float32, np.float64) or rays.shape[:2] != depth.shape:
+        out = np.empty(rays.shape, np.float32)
+        np.multiply(rays, depth[..., None], out=out, casting="unsafe")
+        return out
     out = np.empty(rays.shape, np.float32)
-    np.multiply(rays, frame.depth[..., None], out=out, casting="unsafe")
+    _backproject(depth, np.ascontiguousarray(rays[0, :, 0]), np.ascontiguousarray(rays[:, 0, 1]), out)
     return out
+
+
+@njit(cache=True, nogil=True)
+def _backproject(depth, rx, ry, out):
+    """out[v, u] = (rx[u] z, ry[v] z, z), z = depth[v, u], products in float64, stored as float32."""
+    for v in range(depth.shape[0]):
+        y = ry[v]
+        for u in range(depth.shape[1]):
+            z = np.float64(depth[v, u])
+            out[v, u, 0] = rx[u] * z
+            out[v, u, 1] = y * z
+            out[v, u, 2] = z
 
 
 def fit_plane(q: QueryFrame, min_frac: float, iterations: int, stride: int = 6) -> Plane | None:

@@ -35,19 +35,30 @@ def icp_anchored(src: np.ndarray, src_normals: np.ndarray, tgt: np.ndarray, T_in
     [K x 3]) of the match list, each pair weighted `anchor_weight` against one surface pair."""
     from scipy.spatial import cKDTree
 
+    from gscan.geometry.grid_kernel import NearestGrid
+
     src = np.asarray(src, dtype=np.float64)
     tgt = np.asarray(tgt, dtype=np.float64)
     T = np.asarray(T_init, dtype=np.float64).copy()
     if len(src) < 10 or len(tgt) < 10:
         return T, 0.0
-    tree = cKDTree(tgt)
+    tree = None
     JtJ_a = Jtr_a = None
     fitness = 0.0
     for max_dist in max_dists:
+        # the nearest target point within max_dist: a grid of that cell size (a kd-tree when the target is too
+        # wide for one), the same pairs
+        grid = NearestGrid.build(tgt, max_dist)
+        if grid is None and tree is None:
+            tree = cKDTree(tgt)
         for _ in range(iterations):
             p = src @ T[:3, :3].T + T[:3, 3]
-            d, j = tree.query(p, distance_upper_bound=max_dist, workers=1)
-            ok = np.isfinite(d)
+            if grid is not None:
+                ok, j = grid.query(p)
+            else:
+                assert tree is not None
+                d, j = tree.query(p, distance_upper_bound=max_dist, workers=1)
+                ok = np.isfinite(d)
             fitness = float(ok.mean())
             if ok.sum() < 10:
                 return T, fitness

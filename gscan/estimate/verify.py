@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from gscan.estimate.similarity import best_columns
 from gscan.geometry.plane import Plane
 from gscan.geometry.transforms import transform_points
 from gscan.io.camera import Intrinsics
@@ -157,12 +158,13 @@ def depth_tolerance(z: np.ndarray, depth_tol: float) -> np.ndarray:
 
 
 def depth_votes(depth: np.ndarray, intr: Intrinsics, T_cam_obj: np.ndarray, cloud: np.ndarray, depth_tol: float,
-                region: np.ndarray | None = None) -> tuple[int, int, int]:
+                region: np.ndarray | None = None,
+                seen: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> tuple[int, int, int]:
     """(consistent, see-through, visible) counts of the template cloud's points [P x 3] visible at T_cam_obj:
     consistent when the query depth [H x W] agrees within the tolerance (and, with `region` [H x W] bool, the
     pixel lies in it), see-through when the query surface lies behind the predicted object (a point over a pixel
-    without depth counts for neither)."""
-    _, pc, uv = visible(T_cam_obj, intr, cloud)
+    without depth counts for neither). seen: `visible(T_cam_obj, intr, cloud)` when the caller has it."""
+    _, pc, uv = visible(T_cam_obj, intr, cloud) if seen is None else seen
     if len(pc) == 0:
         return 0, 0, 0
     zq = depth[uv[:, 1], uv[:, 0]].astype(np.float64)
@@ -186,7 +188,8 @@ def depth_score(depth: np.ndarray, intr: Intrinsics, T_cam_obj: np.ndarray, clou
 def keypoint_support(T_cam_obj: np.ndarray, kp_points: np.ndarray, kp_idx: np.ndarray, sim: np.ndarray,
                      sim_cols: np.ndarray, q_points: np.ndarray, q_location: np.ndarray, surface_obj: np.ndarray,
                      depth: np.ndarray, intr: Intrinsics, radius: float, min_sim: float,
-                     depth_tol: float) -> tuple[int, int, int]:
+                     depth_tol: float, sign: float = 1.0,
+                     surface_cam: np.ndarray | None = None) -> tuple[int, int, int]:
     """(support, on_surface, offer) of a pose (Evidence).
 
     A query keypoint on the predicted visible surface supports the pose when its nearest template keypoint by
@@ -196,20 +199,28 @@ def keypoint_support(T_cam_obj: np.ndarray, kp_points: np.ndarray, kp_idx: np.nd
 
     kp_points [N x 3]: object-frame points of every template keypoint; kp_idx [K]: those of the views near the
     query direction; sim [M x C]: descriptor similarity of the M query keypoints to template keypoints (cosine
-    of unit descriptors, or the negated distance), sim_cols [K] the column of each of kp_idx; q_points [M x 3]:
-    camera-frame query keypoints;
+    of unit descriptors, or the distance with sign -1: the similarity is sign * sim), sim_cols [K] the column of
+    each of kp_idx; q_points [M x 3]: camera-frame query keypoints;
     q_location [M]: a location id per query keypoint (keypoints of one point with several orientations share
-    it); surface_obj [P x 3]: the template cloud; radius: keypoint match distance (m)."""
+    it); surface_obj [P x 3]: the template cloud, surface_cam its points visible at the pose (camera frame,
+    `visible`'s) when the caller has them; radius: keypoint match distance (m)."""
     from scipy.spatial import cKDTree
+
+    from gscan.geometry.grid_kernel import NearestGrid
 
     if len(q_points) == 0:
         return 0, 0, 0
     # query keypoints on the predicted visible surface
-    _, surf_cam, _ = visible(T_cam_obj, intr, surface_obj)
+    surf_cam = visible(T_cam_obj, intr, surface_obj)[1] if surface_cam is None else surface_cam
     if len(surf_cam) == 0:
         return 0, 0, 0
-    d, _ = cKDTree(surf_cam).query(np.asarray(q_points, dtype=np.float64), distance_upper_bound=radius)
-    on = np.flatnonzero(np.isfinite(d))
+    grid = NearestGrid.build(surf_cam, radius)
+    if grid is not None:
+        on = np.flatnonzero(grid.query(q_points)[0])
+    else:  # (an exact search: the unbalanced tree builds faster and finds the same distances)
+        tree = cKDTree(surf_cam, balanced_tree=False, compact_nodes=False)
+        d, _ = tree.query(np.asarray(q_points, dtype=np.float64), distance_upper_bound=radius)
+        on = np.flatnonzero(np.isfinite(d))
     on_surface = len(np.unique(q_location[on]))
     # template keypoints the frame can show: inside the image, in front of (or at) the measured depth
     vis, kp_cam, uv = visible(T_cam_obj, intr, kp_points[kp_idx])
@@ -218,12 +229,24 @@ def keypoint_support(T_cam_obj: np.ndarray, kp_points: np.ndarray, kp_idx: np.nd
     sel, kp_cam = vis[shown], kp_cam[shown]
     if len(sel) == 0 or len(on) == 0:
         return 0, on_surface, 0
-    offer = len(np.unique(np.floor(kp_points[kp_idx[sel]] / 0.002).astype(np.int64), axis=0))
-    block = sim[np.ix_(on, sim_cols[sel])]  # [on x offered]
-    nn = np.argmax(block, axis=1)
-    agree = block[np.arange(len(on)), nn] >= min_sim
+    offer = count_unique_rows(np.floor(kp_points[kp_idx[sel]] / 0.002).astype(np.int64))
+    nn, best = best_columns(sim, on, sim_cols[sel], sign)  # the best offered keypoint of each query keypoint on
+    agree = best >= min_sim
     near = np.linalg.norm(kp_cam[nn] - q_points[on], axis=1) < radius
     return len(np.unique(q_location[on[agree & near]])), on_surface, offer
+
+
+def count_unique_rows(keys: np.ndarray) -> int:
+    """Number of distinct rows of integer keys [K x 3] (np.unique(keys, axis=0), counted through one integer
+    code per row when the keys' ranges allow it, which is faster than sorting rows)."""
+    if len(keys) == 0:
+        return 0
+    lo = keys.min(axis=0)
+    span = keys.max(axis=0) - lo + 1
+    if float(np.prod(span.astype(np.float64))) >= 2.0 ** 62:
+        return len(np.unique(keys, axis=0))
+    k = keys - lo
+    return len(np.unique((k[:, 0] * span[1] + k[:, 1]) * span[2] + k[:, 2]))
 
 
 def sinks_into_plane(T_cam_obj: np.ndarray, cloud: np.ndarray, plane: Plane, heights: np.ndarray, depth: np.ndarray,

@@ -36,9 +36,13 @@ def ransac_plane(S: np.ndarray, iterations: int, rng: np.random.Generator, dist:
     head-on does. Triplets are drawn from `rng` in batches of 100; the first best plane wins. Returns
     (plane, inlier mask [N] bool), or None when every triplet is degenerate or disqualified.
     """
+    from gscan.geometry.plane_kernel import HAS_FMA, plane_counts, plane_inliers  # numba, on first use
+
     vp = np.asarray(viewpoint, dtype=np.float64)
-    d = np.asarray(dist, dtype=np.float64).reshape(-1, 1) if np.ndim(dist) else float(dist)
-    best, best_count, best_inl = None, -1, None
+    S = np.ascontiguousarray(S, dtype=np.float64)
+    # writable: the kernel is compiled for one array type
+    d = np.array(np.broadcast_to(np.asarray(dist, dtype=np.float64).reshape(-1), (len(S),)))
+    best, best_count, best_nrm, best_off, best_k = None, -1, None, None, -1
     for start in range(0, iterations, 100):
         m = min(100, iterations - start)
         tri = S[rng.integers(0, len(S), size=(m, 3))]
@@ -49,15 +53,23 @@ def ransac_plane(S: np.ndarray, iterations: int, rng: np.random.Generator, dist:
         off = -np.einsum("ij,ij->i", nrm, tri[ok, 0])
         flip = np.where(nrm @ vp + off < 0, -1.0, 1.0)
         nrm, off = nrm * flip[:, None], off * flip
-        h = S @ nrm.T + off  # [N x m] signed heights, viewpoint side > 0
-        inl = np.abs(h) < d
-        counts = inl.sum(0)
+        nrm, off = np.ascontiguousarray(nrm), np.ascontiguousarray(off)
+        # signed heights (viewpoint side > 0) of every point above every plane, counted (plane_kernel)
+        if HAS_FMA:
+            counts, behind = plane_counts(S, nrm, off, d)
+        else:
+            h = S @ nrm.T + off  # [N x m]
+            counts, behind = (np.abs(h) < d[:, None]).sum(0), (h < -d[:, None]).sum(0)
         if max_behind is not None:
-            counts[(h < -d).sum(0) > max_behind * len(S)] = 0
+            counts[behind > max_behind * len(S)] = 0
         if len(counts) and counts.max() > max(best_count, 0):  # a score of 0 (disqualified) never wins
             k = int(np.argmax(counts))
-            best_count, best, best_inl = int(counts[k]), Plane(nrm[k], float(off[k])), inl[:, k]
-    return None if best is None or best_inl is None else (best, best_inl)
+            best_count, best, best_nrm, best_off, best_k = int(counts[k]), Plane(nrm[k], float(off[k])), nrm, off, k
+    if best is None or best_nrm is None or best_off is None:
+        return None
+    if HAS_FMA:
+        return best, plane_inliers(S, best_nrm, best_off, best_k, d)
+    return best, np.abs(S @ best_nrm.T + best_off)[:, best_k] < d
 
 
 def dominant_plane(cloud: np.ndarray, min_frac: float, iterations: int, stride: int = 6) -> Plane | None:

@@ -178,23 +178,33 @@ def extract_candidates(dist: np.ndarray, eps_f: float, order: str) -> Candidates
     if dist.ndim != 2:
         raise ValueError(f"distance matrix must be [Ns x Nt], got shape {dist.shape}")
     flat = np.flatnonzero(dist < eps_f)
-    d = dist.reshape(-1)[flat].astype(np.float32) + np.float32(0.0)  # (-0 -> +0)
-    nt = dist.shape[1]
-    key = d
-    if order == "ratio" and len(d):
-        d2 = second_smallest_per_row(np.ascontiguousarray(dist, dtype=np.float32)) if nt >= 2 else None
-        d2 = np.full(len(dist), eps_f, np.float32) if d2 is None else d2
-        key = (d / np.maximum(d2[flat // nt], np.float32(1e-30))).astype(np.float32)
-    if dist.size < 2**32 and (len(key) == 0 or key.min() >= 0):
-        # one sort of 64-bit keys (float32 bits, monotone for non-negative values | flat index): 3-4x faster
-        # than a stable argsort, same order
-        packed = (key.view(np.uint32).astype(np.uint64) << np.uint64(32)) | flat.astype(np.uint64)
-        packed.sort()
-        flat = (packed & np.uint64(0xFFFFFFFF)).astype(np.int64)
+    d = dist.reshape(-1)[flat].astype(np.float32)
+    d2 = None
+    if order == "ratio" and len(d) and dist.shape[1] >= 2:
+        d2 = second_smallest_per_row(np.ascontiguousarray(dist, dtype=np.float32))
+    return order_candidates(flat, d, d2, dist.shape, eps_f, order)
+
+
+def order_candidates(flat: np.ndarray, d: np.ndarray, d2: np.ndarray | None, shape: tuple[int, int], eps_f: float,
+                     order: str) -> Candidates:
+    """The candidates of `extract_candidates` from their pairs: flat [C] row-major indices into the
+    [Ns x Nt] distance matrix `shape` (any order), d [C] float32 their distances, d2 [Ns] float32 every row's
+    second-smallest distance (None: Nt < 2, eps_f is used; needed for "ratio" only)."""
+    if order not in ORDERS:
+        raise ValueError(f"order must be one of {ORDERS}, got {order!r}")
+    nt = shape[1]
+    key = d.astype(np.float32) + np.float32(0.0)  # (-0 -> +0)
+    if order == "ratio" and len(key):
+        d2 = np.full(shape[0], eps_f, np.float32) if d2 is None else d2
+        key = (key / np.maximum(d2[flat // nt], np.float32(1e-30))).astype(np.float32)
+    if shape[0] * nt < 2**32 and (len(key) == 0 or key.min() >= 0):
+        # one sort of unique 64-bit keys (float32 bits, monotone for non-negative values | flat index): faster
+        # than sorting by two keys, same order
+        o = np.argsort((key.view(np.uint32).astype(np.uint64) << np.uint64(32)) | flat.astype(np.uint64))
     else:
-        flat = flat[np.argsort(key, kind="stable")]
-    return Candidates((flat // nt).astype(np.int32), (flat % nt).astype(np.int32),
-                      dist.reshape(-1)[flat].astype(np.float32))
+        o = np.lexsort((flat, key))
+    flat = flat[o]
+    return Candidates((flat // nt).astype(np.int32), (flat % nt).astype(np.int32), d[o].astype(np.float32))
 
 
 # ----------------------------------------------------------------------------------------------
