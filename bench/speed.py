@@ -143,7 +143,9 @@ class Truth:
         mesh = load_textured_mesh(MESHES / TARGET / "model_0.obj")
         self.points = np.asarray(mesh.vertices, dtype=np.float64)
         self.diameter = float(np.linalg.norm(mesh.extent))
-        self.T_obj_gt = template_to_gt(tpl, open_sequence(work / "capture").gt_T_cam_obj)
+        gt = open_sequence(work / "capture").gt_T_cam_obj
+        assert gt is not None, "the rendered capture has ground truth"
+        self.T_obj_gt = template_to_gt(tpl, gt)
         self.gt = [seq.gt_T_cam_obj[n] for n in seq.names]
 
     def add(self, i: int, T_cam_obj) -> float:
@@ -211,6 +213,7 @@ def run(args: argparse.Namespace) -> dict:
     passes, old_passes = [], []
     for _ in range(args.rounds):
         if child is not None:
+            assert child.stdin is not None and child.stdout is not None
             child.stdin.write("\n")
             child.stdin.flush()
             line = child.stdout.readline()
@@ -219,6 +222,7 @@ def run(args: argparse.Namespace) -> dict:
             old_passes.append(json.loads(line))
         passes.append(warm_pass(est, frames))
     if child is not None:
+        assert child.stdin is not None
         child.stdin.close()
         child.wait(60)
         old = {k: [x for q in old_passes for x in q[k]] for k in ("cpu", "wall")}
@@ -259,6 +263,7 @@ def measure_service(tpl: Path, files: list, K: Path, env: dict, truth: Truth) ->
                             stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True, env=env)
     try:
         url = None
+        assert proc.stderr is not None
         while url is None:
             line = proc.stderr.readline()
             if not line:
@@ -304,7 +309,7 @@ def main() -> None:
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
     if args.warm_child:  # the gscan of PYTHONPATH (--compare)
-        warm_child(*args.warm_child, args.rounds)
+        warm_child(args.warm_child[0], args.warm_child[1], args.rounds)
         return
     sys.path.insert(0, str(ROOT))  # this tree's gscan, not an installed one
     out = run(args)

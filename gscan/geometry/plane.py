@@ -67,6 +67,7 @@ def ransac_plane(S: np.ndarray, iterations: int, rng: np.random.Generator, dist:
             best_count, best, best_nrm, best_off, best_k = int(counts[k]), Plane(nrm[k], float(off[k])), nrm, off, k
     if best is None or best_nrm is None or best_off is None:
         return None
+    assert best_nrm is not None and best_off is not None
     if HAS_FMA:
         return best, plane_inliers(S, best_nrm, best_off, best_k, d)
     return best, np.abs(S @ best_nrm.T + best_off)[:, best_k] < d
