@@ -32,8 +32,8 @@ from pathlib import Path
 import numpy as np
 
 from gscan.io.camera import RGBDFrame, backproject
-from gscan.io.output import (JOURNAL_SUFFIX, Output, check_output, file_identity, journal_fits, missing_folders,
-                             occupied, remove_empty_folders)
+from gscan.io.output import (Output, check_output, file_identity, journal_fits, missing_folders, occupied,
+                             remove_empty_folders, remove_sqlite_sidecars)
 from gscan.io.sequence import Sequence
 from gscan.scan.capture_mode import MOVING_OBJECT, STATIC_OBJECT, detect_mode, moving_object_masks
 from gscan.scan.keyframes import select_keyframes, view_direction
@@ -64,6 +64,7 @@ WHOLE_FRAME_EPS_F = {"rootsift": 0.5}
 QUALITY_RMS_SIGMA = 3.4  # a view whose best accepted edge has this RMS keypoint residual (noise sigmas) gets quality 0
 PILOT_PAIRS = 8  # sequential pairs, spread over the capture, whose residuals fit the capture's depth noise
 WORKERS = 2  # threads for per-frame and per-edge work (the target machines have 2 cores)
+COMMIT_ROWS = 64  # a stage's database writes are committed in chunks of this many views or edges (and at its end)
 PRUNED = "pruned by the pose graph: "  # reason prefix of edges registration accepted and the pose graph rejected
 NO_KEYPOINTS = "no keypoint with depth (dark or textureless image, or no valid depth)"
 
@@ -187,7 +188,7 @@ def _open_resumed(opts: ScanOptions, seq: Sequence, frames: dict) -> tuple[Templ
     (`frames`: `Sequence.fingerprints`). A complete database (or one whose journal would have too long a
     name) is continued in a copy renamed over it at the end, so a failed run leaves it as it was."""
     meta = _scan_meta(opts)
-    db = TemplateDB.open(opts.output, require_complete=False, writable=True)
+    db = TemplateDB.open(opts.output, require_complete=False)  # read only until it is known to be continued
     try:
         stored = {k: db.get_meta(k) for k in RESUME_KEYS}
         try:  # settings added to the configuration since the scan started take their defaults
@@ -201,13 +202,13 @@ def _open_resumed(opts: ScanOptions, seq: Sequence, frames: dict) -> tuple[Templ
     except BaseException:
         db.close()
         raise
-    if in_place:
-        return db, None
     db.close()
+    if in_place:
+        return TemplateDB.open(opts.output, require_complete=False, writable=True, wal=True), None
     target = Output(opts.output, force=True, kind=".gscan file path")
     try:
         shutil.copyfile(opts.output, target.open())
-        return TemplateDB.open(target.tmp, require_complete=False, writable=True), target
+        return TemplateDB.open(target.tmp, require_complete=False, writable=True, wal=True), target
     except BaseException as e:
         target.discard()
         t = target.translate(e)
@@ -249,13 +250,13 @@ def _create_output(opts: ScanOptions, meta: dict) -> tuple[TemplateDB, Output | 
     else in a temporary sibling that replaces the old output once complete (`Output`)."""
     if not occupied(opts.output) and journal_fits(opts.output):
         try:
-            return TemplateDB.create(opts.output, meta=meta), None
+            return TemplateDB.create(opts.output, meta=meta, wal=True), None
         except OutputExists as e:  # created by another process since the checks
             if not opts.force:
                 raise OutputExists(opts.output, e.reason, fix="resume") from None
     target = Output(opts.output, force=opts.force, kind=".gscan file path", fix="resume")
     try:
-        return TemplateDB.create(target.open(), force=True, meta=meta), target
+        return TemplateDB.create(target.open(), force=True, meta=meta, wal=True), target
     except BaseException as e:
         target.discard()
         t = target.translate(e)
@@ -336,11 +337,12 @@ def run_scan(opts: ScanOptions, progress: Progress | None = None) -> ScanResult:
             # a failed scan leaves no output behind: neither the file nor folders made for it (never a file
             # another process put there since); Ctrl+C keeps the partial file for --resume (as a killed scan does)
             opts.output.unlink(missing_ok=True)
-            Path(f"{opts.output}{JOURNAL_SUFFIX}").unlink(missing_ok=True)
+            remove_sqlite_sidecars(opts.output)
             remove_empty_folders(made)
         raise
     db.close()
     if target is not None:
+        remove_sqlite_sidecars(opts.output)  # a killed writer's journal or log there would be replayed into ours
         target.commit()
     return result
 
@@ -352,10 +354,11 @@ def _scan_frames(frames: list[_Frame], opts: ScanOptions, db: TemplateDB, resume
     with timer.stage("mode", total=1) as advance:
         mode, given_masks = _mode_and_masks(frames, opts.mode, seg)
         advance(1)
-    db.set_meta("mode", mode)
     log.info("%s capture, %d frames%s", mode, len(frames), ", masks given" if given_masks else "")
 
-    with timer.stage("features", total=len(frames)) as advance:
+    # each stage's writes are batched: one commit per stage, or per COMMIT_ROWS records in a long one
+    with timer.stage("features", total=len(frames)) as advance, db.batch():
+        db.set_meta("mode", mode)
         _extract(frames, mode, cfg, db, resumed, advance)
     if not any(len(f.feats) for f in frames):  # every frame dark, textureless or without depth: nothing to scan
         raise InputError(opts.input_dir, f"no keypoint with depth in any of the {len(frames)} frames "
@@ -363,13 +366,13 @@ def _scan_frames(frames: list[_Frame], opts: ScanOptions, db: TemplateDB, resume
 
     n = len(frames)
     rparams = _register_params(cfg, mode)
-    with timer.stage("noise", total=1) as advance:
+    with timer.stage("noise", total=1) as advance, db.batch():
         if cfg.registration.noise is None:
             kp_noise, depth_noise = _capture_noise(frames, rparams)
             rparams = replace(rparams, noise=kp_noise, depth_noise=depth_noise)
         db.set_meta("noise", {"keypoint": rparams.noise.to_dict(), "depth": rparams.depth_noise.to_dict()})
         advance(1)
-    with timer.stage("register", total=max(1, n - 1)) as advance:
+    with timer.stage("register", total=max(1, n - 1)) as advance, db.batch():
         edges, restored = _register_edges(frames, rparams, cfg, db, resumed, advance)
 
     index = {f.frame.name: k for k, f in enumerate(frames)}
@@ -389,7 +392,7 @@ def _scan_frames(frames: list[_Frame], opts: ScanOptions, db: TemplateDB, resume
         model, T_obj_world = _fuse(frames, T_world_cam, masks, plane_world, cfg, opts.input_dir)
         advance(1)
 
-    with timer.stage("database", total=n + 1) as advance:
+    with timer.stage("database", total=n + 1) as advance, db.batch():
         T_obj_cam = [None if T is None else T_obj_world @ T for T in T_world_cam]
         keyframes = _store_views(frames, T_obj_cam, masks, quality, cfg, db, advance)
         for e in edges:  # the pose graph's verdicts, also where a resumed run reaches another one
@@ -484,6 +487,8 @@ def _extract(frames: list[_Frame], mode: str, cfg: ScanConfig, db: TemplateDB, r
             else:
                 db.add_view(View.from_frame(f.frame, keyframe=False, input_index=k), feats,
                             replace=f.frame.name in stored)
+                if (k + 1) % COMMIT_ROWS == 0:
+                    db.commit()
             f.feats = feats
             advance(1)
 
@@ -526,6 +531,7 @@ def _register_edges(frames: list[_Frame], rparams: RegisterParams, cfg: ScanConf
     names = [f.frame.name for f in frames]
     done = {(e.src, e.tgt): e for e in db.edges()} if resumed else {}
     restored: set[tuple[str, str]] = set()
+    written = [0]  # edges stored so far (committed every COMMIT_ROWS)
 
     def pair_work(pair: tuple[int, int]):
         i, j = pair
@@ -549,6 +555,9 @@ def _register_edges(frames: list[_Frame], rparams: RegisterParams, cfg: ScanConf
                 used = r.inliers if r.inliers is not None and len(r.inliers) else r.matches
                 e = Edge(names[i], names[j], r.T_tgt_src, used, r.cost, r.rmse, r.fitness, kind, r.accepted, r.reason)
                 db.add_edge(e)
+                written[0] += 1
+                if written[0] % COMMIT_ROWS == 0:
+                    db.commit()
             out.append(e)
         return out
 
@@ -565,6 +574,7 @@ def _register_edges(frames: list[_Frame], rparams: RegisterParams, cfg: ScanConf
                     break
                 edges += register_all([(i, j)], "sequential", pool)
             advance(1)
+        db.commit()  # the sequential edges, before the loop closures
 
         seq_graph = [GraphEdge(index[e.src], index[e.tgt], e.T_tgt_src, weight=len(e.matches))
                      for e in edges if e.accepted]
@@ -603,9 +613,10 @@ def _store_views(frames: list[_Frame], T_obj_cam: list[np.ndarray | None], masks
     with ThreadPoolExecutor(max_workers=WORKERS) as pool:
         for k, obj in enumerate(pool.map(object_feats, range(len(frames)))):
             f, T = frames[k], T_obj_cam[k]
-            view = View.from_frame(f.frame, T_obj_cam=T, mask=masks[k] if T is not None else f.frame.mask,
-                                   keyframe=k in keyframes, quality=quality.get(k), input_index=k)
-            db.add_view(view, f.feats if T is None else f.feats.transformed(T), replace=True)
+            # the view's images and keypoints were stored at the features stage: its pose (the keypoints follow
+            # it into the object frame), mask, keyframe flag and quality complete it
+            db.update_view(f.frame.name, T_obj_cam=T, mask=masks[k] if T is not None else f.frame.mask,
+                           keyframe=k in keyframes, quality=quality.get(k))
             if obj is not None:
                 db.add_features(f.frame.name, obj.transformed(T), role="object")
             advance(1)
