@@ -117,6 +117,17 @@ def unregistered_reasons(names: list[str], reasons: Any, skipped: Any) -> dict[s
     return {n: str(known.get(n, "not registered")) for n in names}
 
 
+def selection_summary(meta: Any) -> dict:
+    """A scan's frame selection as `scan --json` and `info` report it, from its "selection" meta: {"kept": int,
+    "skipped": int, "reasons": {why: frames}}; {} when the template has none (written before frames were
+    selected, or from a mesh)."""
+    if not isinstance(meta, dict):
+        return {}
+    reasons = meta.get("reasons")
+    return {"kept": int(meta.get("kept", 0)), "skipped": int(meta.get("skipped", 0)),
+            "reasons": {str(k): int(v) for k, v in reasons.items()} if isinstance(reasons, dict) else {}}
+
+
 class TemplateDB:
     """A template database file. Use `create` or `open`, never the constructor; close it (or use `with`).
 
@@ -453,6 +464,15 @@ class TemplateDB:
                       (encode_array(_apply(A, decode_array(pts, (None, 3)))), vid, role))
         return vid
 
+    def remove_view(self, name: str) -> None:
+        """Remove a view, its keypoints and the edges that join it to other views (nothing when there is none)."""
+        with self._tx() as c:
+            row = c.execute("SELECT id FROM views WHERE name=?", (name,)).fetchone()
+            if row is not None:
+                c.execute("DELETE FROM features WHERE view_id=?", (row[0],))
+                c.execute("DELETE FROM views WHERE id=?", (row[0],))
+            c.execute("DELETE FROM edges WHERE src=? OR tgt=?", (name, name))
+
     def view_names(self) -> list[str]:
         """All view names in input order (input_index, then insertion)."""
         return [r[0] for r in self._q("SELECT name FROM views ORDER BY input_index IS NULL, input_index, id")]
@@ -657,18 +677,24 @@ class TemplateDB:
                                source=self.get_meta("source", "scan"), extent_m=(x, y, z),
                                grasps=tuple(sorted(self.grasps())),
                                unregistered_reasons=unregistered_reasons(unreg, self.get_meta("unregistered_reasons"),
-                                                                         self.get_meta("skipped")))
+                                                                         self.get_meta("skipped")),
+                               selection=selection_summary(self.get_meta("selection")))
 
     def poses(self) -> dict:
         """The dict `gscan poses --json` prints: {"frames": {name: T_obj_cam}, "unregistered": [names],
-        "unregistered_reasons": {name: reason}}; unregistered as in `scan --json`: the views without a pose,
-        then the input frames the scan could not read (its "skipped" meta)."""
+        "unregistered_reasons": {name: reason}, "skipped_by_selection": {name: reason}}; unregistered as in
+        `scan --json`: the views without a pose, then the input frames the scan could not read (its "skipped"
+        meta); skipped by selection: the input frames the scan's frame selection left out (not failures)."""
         views = self.views()
         frames = {v.name: v.T_obj_cam.tolist() for v in views if v.T_obj_cam is not None}
         unreg = unregistered_names(views, self.get_meta("skipped"))
+        sel = self.get_meta("selection")
+        skipped = sel.get("frames") if isinstance(sel, dict) else None
         return {"frames": frames, "unregistered": unreg,
                 "unregistered_reasons": unregistered_reasons(unreg, self.get_meta("unregistered_reasons"),
-                                                             self.get_meta("skipped"))}
+                                                             self.get_meta("skipped")),
+                "skipped_by_selection": {str(k): str(v) for k, v in skipped.items()} if isinstance(skipped, dict)
+                else {}}
 
     def load_template(self, keyframes_only: bool = True) -> Template:
         """Everything the estimator needs, loaded once: registered (key)frame views with their keypoints
