@@ -14,7 +14,9 @@ database's write pattern, each against the code before it, run from the same com
    --max-gb / --max-minutes is not run and says so.
 2. Database writes. A short capture (--db-views views, 640x480, one ring) scanned --repeats times by --before and by
    --db-rev (the write pattern alone: WAL, a commit per stage, each view written once), alternating, in child
-   processes; medians of the total and of the stages that write (features, register, database), and the ratio.
+   processes after a warm-up round; medians of the scan's time, of the stages that write (features, register,
+   database) and of the time spent inside the database's write calls (image encoding included), the commits a
+   scan makes, and the ratios after / before.
 
     python bench/stream.py                          # both, 200 / 1000 / 2000 frames
     python bench/stream.py --lengths 200 --no-db    # a quick check of part 1
@@ -47,10 +49,35 @@ BEFORE_GB = (0.8, 4.9e-3)  # issue 23: peak RSS of the scan before streaming, GB
 CHILD = r"""
 import json, resource, sys, time
 from gscan.scan.api import scan
+from gscan.template.db import TemplateDB
+# the time the scan spends in the database's write calls (encoding included), and its commits
+spent, depth, commits = [0.0], [0], [0]
+def timed(f):
+    def wrapper(*a, **k):
+        depth[0] += 1
+        t = time.perf_counter()
+        try:
+            return f(*a, **k)
+        finally:
+            depth[0] -= 1
+            if depth[0] == 0:
+                spent[0] += time.perf_counter() - t
+    return wrapper
+for m in ("add_view", "add_edge", "add_features", "set_meta", "set_mesh", "set_cloud", "update_pose", "update_view",
+          "remove_view", "_execute"):
+    if hasattr(TemplateDB, m):
+        setattr(TemplateDB, m, timed(getattr(TemplateDB, m)))
+connect = TemplateDB._connect
+def traced(*a, **k):
+    c = connect(*a, **k)
+    c.set_trace_callback(lambda sql: commits.__setitem__(0, commits[0] + sql.startswith("COMMIT")))
+    return c
+TemplateDB._connect = staticmethod(traced)
 t = time.perf_counter()
 r = scan(sys.argv[1], sys.argv[2], force=True)
 print(json.dumps({"seconds": time.perf_counter() - t, "frames": r.frames, "registered": r.registered,
                   "timings_s": r.timings_s, "selection": getattr(r, "selection", None) or {},
+                  "db_write_s": spent[0], "commits": commits[0],
                   "maxrss_kib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss}))
 """
 
@@ -209,15 +236,18 @@ def db_runs(args: argparse.Namespace, before: Path, db_tree: Path) -> dict:
             print(f"  database round {k}, {label}: {r['seconds']:.1f} s", flush=True)
             if k:
                 got[label].append(r)
-    out = {}
+    out: dict = {}
     for label, rs in got.items():
         stages = {s: statistics.median(r["timings_s"].get(s, 0.0) for r in rs)
                   for s in ("features", "register", "database")}
         out[label] = {"seconds": statistics.median(r["seconds"] for r in rs), "stages": stages,
+                      "db_write_s": statistics.median(r["db_write_s"] for r in rs), "commits": rs[0]["commits"],
                       "all": [r["seconds"] for r in rs]}
     out["ratio"] = out["after"]["seconds"] / out["before"]["seconds"]
-    print(f"  database writes: {out['before']['seconds']:.1f} s before, {out['after']['seconds']:.1f} s after "
-          f"(ratio {out['ratio']:.2f})", flush=True)
+    out["write_ratio"] = out["after"]["db_write_s"] / out["before"]["db_write_s"]
+    print(f"  database writes: scan {out['before']['seconds']:.1f} s before, {out['after']['seconds']:.1f} s after "
+          f"(ratio {out['ratio']:.2f}); writing {out['before']['db_write_s']:.2f} s, {out['after']['db_write_s']:.2f} s "
+          f"(ratio {out['write_ratio']:.2f}); commits {out['before']['commits']}, {out['after']['commits']}", flush=True)
     return out
 
 
@@ -235,12 +265,13 @@ def markdown(result: dict) -> str:
                          f"{r['read_fps']:.0f} |")
     if result.get("db"):
         d = result["db"]
-        lines += ["", "| code | scan s (median) | features s | register s | database s |", "|---|---|---|---|---|"]
+        head = "| code | scan s (median) | features s | register s | database s | in database writes s | commits |"
+        lines += ["", head, "|---|---|---|---|---|---|---|"]
         for label in ("before", "after"):
             s = d[label]["stages"]
             lines.append(f"| {label} | {d[label]['seconds']:.1f} | {s['features']:.1f} | {s['register']:.1f} | "
-                         f"{s['database']:.1f} |")
-        lines.append(f"\nratio after / before: {d['ratio']:.2f}")
+                         f"{s['database']:.1f} | {d[label]['db_write_s']:.2f} | {d[label]['commits']} |")
+        lines.append(f"\nratio after / before: scan {d['ratio']:.2f}, database writes {d['write_ratio']:.2f}")
     return "\n".join(lines)
 
 
