@@ -304,6 +304,11 @@ def _print_scan_summary(result: Any) -> None:
               f"({result.mode}), edges {result.edges_accepted} accepted / {result.edges_rejected} rejected, "
               f"mesh {result.mesh_vertices} vertices / {result.mesh_triangles} triangles, "
               f"{result.keyframes} keyframes (the views estimate matches)")
+    sel = result.selection
+    if sel.get("skipped"):  # frame selection: not failures, counted by reason
+        why = "; ".join(f"{k} frames {w}" for w, k in sel["reasons"].items())
+        _say(("frame selection:", "bold"), f" {sel['kept']} frames kept, {sel['skipped']} skipped ({why}); "
+             "`gscan poses --json` lists each")
     for name in result.unregistered:  # each with its reason (a frame that could not be read: why)
         what = "skipped frame" if name in result.problems else "unregistered frame"
         _say((f"{what} {name}:", "yellow"), f" {result.unregistered_reasons.get(name, '')}")
@@ -466,6 +471,8 @@ def poses(
         _line(f"{name}: {_format_pose(T)}")
     for name in out["unregistered"]:
         _line(f"{name}: unregistered: {out['unregistered_reasons'][name]}")
+    for name, why in out["skipped_by_selection"].items():
+        _line(f"{name}: skipped by frame selection: {why}")
 
 
 @app.command()
@@ -486,7 +493,8 @@ def info(
     out: dict[str, Any] = {
         "schema": s.schema, "status": s.status, "views": s.views, "registered": s.registered,
         "keyframes": s.keyframes, "descriptor": s.descriptor, "source": s.source, "extent_m": list(s.extent_m),
-        "grasps": list(s.grasps), "unregistered_reasons": dict(s.unregistered_reasons)}
+        "grasps": list(s.grasps), "unregistered_reasons": dict(s.unregistered_reasons),
+        "selection": dict(s.selection)}
     out["mesh"] = None if m is None else {"vertices": len(m.vertices), "triangles": len(m.triangles),
                                           "open_edges": len(boundary_edges(m.triangles))}
     if json_out:
@@ -496,6 +504,11 @@ def info(
         if k == "unregistered_reasons":
             for name, reason in v.items():
                 _line(f"unregistered {name}: {reason}")
+            continue
+        if k == "selection":
+            if v.get("skipped"):
+                why = "; ".join(f"{n} frames {w}" for w, n in v["reasons"].items())
+                _line(f"frame selection: {v['kept']} frames kept, {v['skipped']} skipped ({why})")
             continue
         if k == "mesh" and v is not None:
             holes = " (export closes them; --keep-holes keeps them)" if v["open_edges"] else ", watertight"

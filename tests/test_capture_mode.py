@@ -87,6 +87,9 @@ def test_frames_without_the_object_are_no_keyframe_candidates():
     T = np.eye(4)
     T[:3, 3] = [0.0, 0.0, -1.0]
     empty, full = np.zeros((4, 4), bool), np.ones((4, 4), bool)
-    assert sorted(_keyframe_candidates([T, T, None, T, T], [empty, full, full, None, empty])) == [1, 3]
-    assert sorted(_keyframe_candidates([T, None, T], [empty, full, empty])) == [0, 2]
-    np.testing.assert_allclose(_keyframe_candidates([T], [full])[0], [0.0, 0.0, 1.0])
+    def shows(masks):
+        return lambda k: masks[k] is None or bool(masks[k].any())
+
+    assert sorted(_keyframe_candidates([T, T, None, T, T], shows([empty, full, full, None, empty]))) == [1, 3]
+    assert sorted(_keyframe_candidates([T, None, T], shows([empty, full, empty]))) == [0, 2]
+    np.testing.assert_allclose(_keyframe_candidates([T], shows([full]))[0], [0.0, 0.0, 1.0])

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import sqlite3
 import subprocess
@@ -475,7 +476,109 @@ def test_info_json_keeps_its_keys(db_path: Path) -> None:
     assert r.returncode == 0, r.stderr
     out = json.loads(r.stdout)
     assert list(out) == ["schema", "status", "views", "registered", "keyframes", "descriptor", "source", "extent_m",
-                         "grasps", "unregistered_reasons", "mesh"]
+                         "grasps", "unregistered_reasons", "selection", "mesh"]
+    assert out["selection"] == {}  # written without frame selection
     assert out["status"] == "partial" and out["views"] == 2 and out["registered"] == 1 and out["grasps"] == ["g"]
     assert out["unregistered_reasons"] == {"b": "no accepted edge"}
     assert isinstance(out["extent_m"], list) and len(out["extent_m"]) == 3
+
+
+def _header_journal(path: Path) -> tuple[int, int]:
+    """The file format's write / read version bytes of an SQLite file: (1, 1) rollback journal, (2, 2) WAL."""
+    head = path.read_bytes()[:20]
+    return head[18], head[19]
+
+
+def test_batch_commits_once_and_a_failed_write_leaves_none_of_its_rows(db_path: Path) -> None:
+    """A batch is one transaction: its rows appear to other connections only at its commit (or at `commit()`
+    inside it); a write that fails inside it leaves none of its rows; an exception out of it rolls the
+    uncommitted rows back."""
+    rng = np.random.default_rng(3)
+    commits: list[str] = []
+    with TemplateDB.create(db_path, wal=True) as db:
+        db._conn.set_trace_callback(lambda sql: commits.append(sql) if sql.startswith("COMMIT") else None)
+
+        def others() -> list[str]:
+            with sqlite3.connect(db_path) as c:
+                return [r[0] for r in c.execute("SELECT name FROM views ORDER BY id")]
+
+        with db.batch():
+            db.add_view(_view("a", rng), _feats(rng, 5))
+            db.add_view(_view("b", rng), _feats(rng, 5))
+            with pytest.raises(ValueError, match="disagree"):  # the view row goes with its bad keypoints
+                bad = _feats(rng, 5)
+                object.__setattr__(bad, "points", bad.points[:3])  # past the record's own check
+                db.add_view(_view("c", rng), bad)
+            assert others() == [] and db.view_names() == ["a", "b"]
+            db.commit()
+            assert others() == ["a", "b"]
+            db.add_view(_view("d", rng), _feats(rng, 5))
+        assert others() == ["a", "b", "d"] and len(commits) == 2
+        with pytest.raises(KeyboardInterrupt), db.batch():
+            db.add_view(_view("e", rng), _feats(rng, 5))
+            raise KeyboardInterrupt
+        assert db.view_names() == ["a", "b", "d"]
+        db.add_view(_view("f", rng), _feats(rng, 5))  # outside a batch: a transaction of its own again
+    assert others() == ["a", "b", "d", "f"]
+
+
+def test_a_wal_writer_leaves_a_rollback_journal_file(db_path: Path) -> None:
+    """A database written through a write-ahead log is, once closed, an ordinary rollback-journal file with
+    nothing beside it (a reader needs no -wal / -shm file, nor write access to the folder); a file written
+    before (rollback journal from the start) opens and reads as it did."""
+    rng = np.random.default_rng(4)
+    with TemplateDB.create(db_path, wal=True) as db:
+        db.add_view(_view("a", rng, T=np.eye(4)), _feats(rng, 5))
+        assert _header_journal(db_path) == (2, 2)
+        db.mark_complete()
+    assert _header_journal(db_path) == (1, 1)
+    assert sorted(p.name for p in db_path.parent.iterdir()) == [db_path.name]
+    old = db_path.with_name("old.gscan")
+    with TemplateDB.create(old) as db:  # what every earlier gscan wrote
+        db.add_view(_view("a", rng, T=np.eye(4)), _feats(rng, 5))
+        db.mark_complete()
+    for p in (db_path, old):
+        assert _header_journal(p) == (1, 1)
+        with TemplateDB.open(p) as db:
+            assert db.view_names() == ["a"] and db.status == "complete"
+
+
+_WAL_KILLED = textwrap.dedent("""
+    import os, sys, numpy as np
+    from gscan.io.camera import Intrinsics
+    from gscan.template.db import TemplateDB, View
+    db = TemplateDB.create(sys.argv[1], wal=True, meta={"note": "killed"})
+    K = Intrinsics(500.0, 500.0, 32.0, 24.0, 64, 48)
+    for i in range(5):
+        with db.batch():
+            db.add_view(View(name=f"old {i}", intrinsics=K, color=np.full((48, 64, 3), i, np.uint8)))
+    os._exit(0)  # killed: the committed rows are in the log beside the file, not in it
+""")
+
+
+def test_a_new_database_never_meets_a_killed_writers_log(db_path: Path) -> None:
+    """A killed WAL writer leaves its log beside the file; the log holds committed rows (the file reopened with
+    it reads them). A new database created at that name, in place or replacing it, must not have the old log
+    replayed into it: it reads as written, and intact."""
+    for replace in (False, True):
+        for p in db_path.parent.iterdir():
+            p.unlink()
+        subprocess.run([sys.executable, "-c", _WAL_KILLED, str(db_path)], check=True, timeout=120)
+        assert Path(f"{db_path}-wal").stat().st_size > 0
+        if replace:
+            copy = db_path.with_name("copy.gscan")  # the file with its log holds the killed writer's rows
+            shutil.copy(db_path, copy)
+            shutil.copy(f"{db_path}-wal", f"{copy}-wal")
+            with TemplateDB.open(copy, require_complete=False) as db:
+                assert len(db.view_names()) == 5
+        else:
+            shutil.copy(f"{db_path}-wal", db_path.with_name("saved-wal"))
+            db_path.unlink()  # the user removed the file, not its log
+            os.replace(db_path.with_name("saved-wal"), f"{db_path}-wal")
+        rng = np.random.default_rng(5)
+        with TemplateDB.create(db_path, force=replace) as db:
+            db.add_view(_view("new", rng), _feats(rng, 5))
+        with TemplateDB.open(db_path, require_complete=False) as db:
+            assert db.view_names() == ["new"] and db.get_meta("note") is None
+        with sqlite3.connect(db_path) as c:
+            assert c.execute("PRAGMA integrity_check").fetchone()[0] == "ok"

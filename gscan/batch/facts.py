@@ -30,7 +30,8 @@ WRONG_DEG, WRONG_M = 5.0, 0.02  # a registered frame off by more than this again
 
 @dataclass
 class TemplateFacts:
-    """A complete template's scan: `frames` read (registered, unregistered and unreadable), the unregistered
+    """A complete template's scan: `frames` read (registered, unregistered, unreadable, and skipped by the scan's
+    frame selection), the unregistered
     ones by name with their reasons, keyframes, capture mode, the stored input, layout and BOP object, and
     the registered views' poses T_obj_cam [4 x 4] by frame name."""
 
@@ -70,7 +71,8 @@ def template_facts(path: str | Path) -> TemplateFacts:
         mode, stored_input, fmt, obj_id = (db.get_meta(k) for k in ("mode", "input", "format", "obj_id"))
     unregistered = list(poses["unregistered"])
     reasons = {str(k): str(v) for k, v in {**reasons, **skipped}.items()}
-    return TemplateFacts(frames=len(views) + len(skipped), registered=summary.registered, unregistered=unregistered,
+    return TemplateFacts(frames=len(views) + len(skipped) + summary.selection.get("skipped", 0),
+                         registered=summary.registered, unregistered=unregistered,
                          unregistered_reasons={n: reasons.get(n, "") for n in unregistered},
                          keyframes=summary.keyframes, mode=mode if isinstance(mode, str) else None,
                          input=stored_input if isinstance(stored_input, str) else None,

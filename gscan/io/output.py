@@ -32,6 +32,9 @@ from gscan.errors import InputError, OutputExists
 
 NAME_MAX = 255  # bytes of one file name (Linux, macOS)
 JOURNAL_SUFFIX = "-journal"  # SQLite's rollback journal beside a database file
+# every file SQLite keeps beside a database: the rollback journal, the write-ahead log and its index (shorter
+# names than the journal's, so JOURNAL_SUFFIX sets the room left for them)
+SQLITE_SIDECARS = (JOURNAL_SUFFIX, "-wal", "-shm")
 _FREE_BYTES_FULL = 1 << 20  # a file system with less free space than this counts as full
 
 
@@ -135,7 +138,7 @@ def write_failure_reason(path: str | Path) -> str | None:
         return None
     if soft == resource.RLIM_INFINITY:
         return None
-    sizes = [p.stat().st_size for p in (path, Path(f"{path}{JOURNAL_SUFFIX}")) if p.is_file()]
+    sizes = [p.stat().st_size for p in (path, *(Path(f"{path}{x}") for x in SQLITE_SIDECARS)) if p.is_file()]
     if sizes and max(sizes) + _FREE_BYTES_FULL >= soft:
         return f"file too large: {file_size_limit_text()}"
     return None
@@ -160,6 +163,14 @@ def temp_sibling(path: str | Path, tag: str = "tmp") -> Path:
 
 
 # ------------------------------------------------------------------------------------------ removal
+def remove_sqlite_sidecars(path: str | Path) -> None:
+    """Remove SQLite's journal and write-ahead log beside the database `path` (`SQLITE_SIDECARS`), left by a
+    writer that was killed: SQLite would replay them into whatever database next has that name, so a new file
+    put there must not meet them. Never raises."""
+    for x in SQLITE_SIDECARS:
+        remove(Path(f"{path}{x}"))
+
+
 def missing_folders(path: str | Path) -> list[Path]:
     """The folders on `path`'s way that do not exist yet, deepest first: what a failed writer removes."""
     p = Path(path)
@@ -257,9 +268,9 @@ class Output:
         self._open = False
 
     def discard(self) -> None:
-        """Remove the sibling (and SQLite's journal beside it) and the folders made for it; never raises."""
+        """Remove the sibling (and SQLite's journal and log beside it) and the folders made for it; never raises."""
         remove(self.tmp)
-        remove(Path(f"{self.tmp}{JOURNAL_SUFFIX}"))
+        remove_sqlite_sidecars(self.tmp)
         remove_empty_folders(self._made)
         self._open = False
 

@@ -6,6 +6,7 @@ seeded k-means over the sequence's own descriptors), at most a few per frame, de
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -36,13 +37,14 @@ class LoopParams:
     seed: int = 0
 
 
-def bow_vectors(descriptors: list[np.ndarray], vocabulary_size: int = 64, seed: int = 0,
+def bow_vectors(descriptors: Sequence[np.ndarray], vocabulary_size: int = 64, seed: int = 0,
                 max_train: int = 20000, iterations: int = 10) -> np.ndarray:
     """[N x K] L2-normalised tf-idf bag-of-visual-words vectors, one per frame.
 
     descriptors: per frame [n_i x D] float (SIFT/RootSIFT) or uint8 [n_i x 32] binary (ORB,
-    unpacked to bits so that squared L2 equals Hamming distance). The vocabulary is a k-means
-    (seeded k-means++ init, `iterations` Lloyd steps) on at most `max_train` descriptors.
+    unpacked to bits so that squared L2 equals Hamming distance); any sequence, read frame by frame (a lazy
+    one holds one frame's descriptors at a time). The vocabulary is a k-means (seeded k-means++ init,
+    `iterations` Lloyd steps) on at most `max_train` descriptors drawn from all frames.
     """
     def as_float(d: np.ndarray) -> np.ndarray:
         d = np.asarray(d)
@@ -50,14 +52,25 @@ def bow_vectors(descriptors: list[np.ndarray], vocabulary_size: int = 64, seed: 
             return np.unpackbits(d, axis=1).astype(np.float32)
         return d.astype(np.float32)
 
-    feats = [as_float(d).reshape(len(d), -1) for d in descriptors]
-    dim = next((f.shape[1] for f in feats if len(f)), 0)
-    n = len(feats)
+    n = len(descriptors)
+    sizes, dim = [], 0
+    for i in range(n):
+        f = as_float(descriptors[i]).reshape(len(descriptors[i]), -1)
+        sizes.append(len(f))
+        dim = dim or (f.shape[1] if len(f) else 0)
     if dim == 0:
         return np.zeros((n, vocabulary_size), dtype=np.float32)
-    allf = np.concatenate([f for f in feats if len(f)])
+    starts = np.concatenate([[0], np.cumsum(sizes)])
+    total = int(starts[-1])
     rng = np.random.default_rng(seed)
-    train = allf[np.sort(rng.choice(len(allf), min(max_train, len(allf)), replace=False))]
+    # the training rows: the same draw over all frames' descriptors stacked in order, gathered frame by frame
+    pick = np.sort(rng.choice(total, min(max_train, total), replace=False))
+    rows = []
+    for i in range(n):
+        lo, hi = np.searchsorted(pick, [starts[i], starts[i + 1]])
+        if hi > lo:
+            rows.append(as_float(descriptors[i]).reshape(sizes[i], -1)[pick[lo:hi] - starts[i]])
+    train = np.concatenate(rows)
     k = min(vocabulary_size, len(train))
     centres = [train[rng.integers(len(train))]]
     d2 = ((train - centres[0]) ** 2).sum(1)
@@ -76,9 +89,9 @@ def bow_vectors(descriptors: list[np.ndarray], vocabulary_size: int = 64, seed: 
             if np.any(a == c):
                 C[c] = train[a == c].mean(0)
     H = np.zeros((n, vocabulary_size), dtype=np.float64)
-    for i, f in enumerate(feats):
-        if len(f):
-            H[i, :k] = np.bincount(assign(f), minlength=k)
+    for i in range(n):
+        if sizes[i]:
+            H[i, :k] = np.bincount(assign(as_float(descriptors[i]).reshape(sizes[i], -1)), minlength=k)
     df = (H > 0).sum(0)
     idf = np.log((n + 1.0) / (df + 1.0)) + 1.0
     H = H / np.maximum(H.sum(1, keepdims=True), 1.0) * idf
@@ -86,7 +99,7 @@ def bow_vectors(descriptors: list[np.ndarray], vocabulary_size: int = 64, seed: 
     return H.astype(np.float32)
 
 
-def select_loop_candidates(T_world_node: list[np.ndarray | None], descriptors: list[np.ndarray] | None = None,
+def select_loop_candidates(T_world_node: list[np.ndarray | None], descriptors: Sequence[np.ndarray] | None = None,
                            existing: list[tuple[int, int]] | None = None,
                            params: LoopParams = LoopParams()) -> list[LoopCandidate]:
     """Pairs of nodes to try as loop closures, best first, at most `max_per_node` per node.
@@ -99,7 +112,7 @@ def select_loop_candidates(T_world_node: list[np.ndarray | None], descriptors: l
     overlapping, plus the similarity. Greedy by score (ties by (i, j)): deterministic.
 
     T_world_node: per node [4 x 4] camera pose (OpenCV camera, z = viewing direction) or None.
-    descriptors: per node [n_i x D] descriptors, or None for geometry only.
+    descriptors: per node [n_i x D] descriptors (any sequence: read node by node), or None for geometry only.
     """
     n = len(T_world_node)
     have = np.array([T is not None for T in T_world_node])

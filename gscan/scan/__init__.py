@@ -2,7 +2,9 @@
 `scan` (the package is callable, see gscan/__init__.py).
 
 - api: `scan(source, output, *, config=..., ...) -> ScanResult` (what `gscan scan` runs)
-- pipeline: the stages (load, mode, features, register, posegraph, segment, fuse, database), `ScanResult`
+- pipeline: the stages (mode, load, features, register, posegraph, segment, fuse, database), `ScanResult`
+- select: frame selection (`FrameSelector`: the frames a scan keeps, by motion and sharpness)
+- store: `FrameStore` (the kept frames' images on disk while a scan runs)
 - config: `ScanConfig` (the YAML configuration), `load_config`, `dump_defaults`
 - capture_mode: `detect_mode` (static object or moving object), `moving_object_masks`
 - keyframes: `select_keyframes`, `KeyframeParams`

@@ -31,7 +31,7 @@ from gscan.features import OBJECT_FEATURES, FeatureParams, extract_features
 from gscan.geometry.pointset import voxel_mean
 from gscan.geometry.transforms import look_at, transform_points
 from gscan.io.camera import RGBDFrame, backproject
-from gscan.io.output import Output
+from gscan.io.output import Output, remove_sqlite_sidecars
 from gscan.progress import NullProgress, Progress
 from gscan.synth import DEFAULT_INTRINSICS, SynthScene, TexturedMesh, load_textured_mesh
 from gscan.template.db import TemplateDB, View
@@ -192,5 +192,6 @@ def template_from_mesh(mesh_path: str | Path, output: str | Path, *, n_views: in
             raise t from None
         raise
     db.close()
+    remove_sqlite_sidecars(output)  # a killed writer's journal or log there would be replayed into the new file
     target.commit()
     return result

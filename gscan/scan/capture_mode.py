@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import logging
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
 import cv2
@@ -53,8 +54,9 @@ def _static_fraction(a: RGBDFrame, b: RGBDFrame) -> float:
     return float((same & valid).sum() / valid.sum())
 
 
-def detect_mode(frames: list[RGBDFrame], static_fraction: float = 0.65) -> ModeDecision:
-    """Decide static-object vs moving-object from the frames (see module docstring).
+def detect_mode(frames: Sequence[RGBDFrame], static_fraction: float = 0.65) -> ModeDecision:
+    """Decide static-object vs moving-object from the frames (see module docstring); `frames` may be a lazy
+    sequence: only the frames compared are read.
 
     The pairs compared are far apart in the sequence (first-last, first-middle, middle-last,
     quarter-three quarters), so that a slowly moving hand-held camera has moved between them.
@@ -77,35 +79,38 @@ def moving_object_masks(frames: list[RGBDFrame], min_offset: float = 0.01, min_a
 
     Each frame is segmented on its own by the support plane and the component above it
     (`gscan.scan.segment.segment_frame` with `params`). A frame without a support plane (object in hand) falls back
-    to background subtraction: the background depth is the per-pixel 90th percentile of the
-    valid depths over the sequence (the farthest surface seen there), and the object is where
-    the frame is closer than that by max(`min_offset`, 2 %), cleaned by an opening and kept as
-    the connected components of at least `min_area` pixels (the largest always kept).
+    to background subtraction (`background_depth` over the sequence, `foreground_mask`).
     """
     params = params if params is not None else SegmentParams()
     segs = [segment_frame(replace(f, mask=None), params) for f in frames]
     planes = [s.plane_cam for s in segs]
     if all(p is not None for p in planes):
         return [s.mask for s in segs], planes
-    stack = np.stack([f.depth for f in frames]).astype(np.float32)
+    bg = background_depth([f.depth for f in frames])
+    return [s.mask if s.plane_cam is not None else foreground_mask(f.depth, bg, min_offset, min_area)
+            for f, s in zip(frames, segs)], planes
+
+
+def background_depth(depths: list[np.ndarray]) -> np.ndarray:
+    """[H x W] the background a static camera sees: per pixel the 90th percentile of the valid depths [H x W] (m)
+    of `depths` (the farthest surface seen there), inf where none is valid."""
+    stack = np.stack(depths).astype(np.float32)
     stack[stack <= 0] = np.nan
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        bg = np.nan_to_num(np.nanpercentile(stack, 90, axis=0), nan=np.inf)
-    out = []
-    kernel = np.ones((5, 5), np.uint8)
-    for f, s in zip(frames, segs):
-        if s.plane_cam is not None:
-            out.append(s.mask)
-            continue
-        d = f.depth
-        fg = (d > 0) & (d < bg - np.maximum(min_offset, 0.02 * np.where(np.isfinite(bg), bg, 0)))
-        fg_u8 = cv2.morphologyEx(fg.astype(np.uint8), cv2.MORPH_OPEN, kernel)
-        n, lab, stats, _ = cv2.connectedComponentsWithStats(fg_u8, connectivity=8)
-        keep = np.zeros(n, dtype=bool)
-        if n > 1:
-            areas = stats[1:, cv2.CC_STAT_AREA]
-            keep[1:] = areas >= min_area
-            keep[1 + int(np.argmax(areas))] = True
-        out.append(keep[lab])
-    return out, planes
+        return np.nan_to_num(np.nanpercentile(stack, 90, axis=0), nan=np.inf)
+
+
+def foreground_mask(depth: np.ndarray, bg: np.ndarray, min_offset: float = 0.01, min_area: int = 400) -> np.ndarray:
+    """[H x W] bool: where depth [H x W] (m) is closer than the background `bg` by max(`min_offset`, 2 %), cleaned
+    by an opening and kept as the connected components of at least `min_area` pixels (the largest always kept)."""
+    d = depth
+    fg = (d > 0) & (d < bg - np.maximum(min_offset, 0.02 * np.where(np.isfinite(bg), bg, 0)))
+    fg_u8 = cv2.morphologyEx(fg.astype(np.uint8), cv2.MORPH_OPEN, np.ones((5, 5), np.uint8))
+    n, lab, stats, _ = cv2.connectedComponentsWithStats(fg_u8, connectivity=8)
+    keep = np.zeros(n, dtype=bool)
+    if n > 1:
+        areas = stats[1:, cv2.CC_STAT_AREA]
+        keep[1:] = areas >= min_area
+        keep[1 + int(np.argmax(areas))] = True
+    return keep[lab]

@@ -148,7 +148,17 @@ class KeyframeConfig(_Section):
                                       "this many keypoints on the object (when any has)")
 
 
+class SelectionConfig(_Section):
+    min_motion_deg: float = Field(0.5, ge=0, le=90, description="a frame is kept once the view moved this much since "
+                                  "the last kept frame (rotation, or translation as an angle at the scene's depth); "
+                                  "0 keeps every frame")
+    blur_ratio: float = Field(0.5, ge=0, lt=1, description="a frame less sharp than this share of the frames before "
+                              "it is passed over for a sharper one (until the view moved twice min_motion_deg); "
+                              "0 never")
+
+
 class ScanConfig(_Section):
+    selection: SelectionConfig = SelectionConfig()
     features: FeaturesConfig = FeaturesConfig()
     match: MatchConfig = MatchConfig()
     registration: RegisterConfig = RegisterConfig()

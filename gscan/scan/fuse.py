@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import logging
 import re
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -68,12 +69,16 @@ def _masked_depth(frame: RGBDFrame, mask: np.ndarray | None) -> np.ndarray:
     return d
 
 
-def _extent_estimate(depths: list[np.ndarray], frames: list[RGBDFrame], T_world_cam: list[np.ndarray]) -> float:
-    """Largest extent (m) of the masked points of a few frames in the world frame (robust percentiles)."""
+def _extent_estimate(use: list[int], frames: Sequence[RGBDFrame], masks: Sequence[np.ndarray | None],
+                     T_world_cam: list[np.ndarray | None]) -> float:
+    """Largest extent (m) of the masked points of a few of the frames `use` in the world frame (robust
+    percentiles)."""
     pts = []
-    for k in np.unique(np.linspace(0, len(frames) - 1, min(6, len(frames))).round().astype(int)):
-        d = depths[k]
-        p = backproject(d, frames[k].intrinsics)[::4, ::4][d[::4, ::4] > 0]
+    for i in np.unique(np.linspace(0, len(use) - 1, min(6, len(use))).round().astype(int)):
+        k = use[i]
+        f = frames[k]
+        d = _masked_depth(f, masks[k])
+        p = backproject(d, f.intrinsics)[::4, ::4][d[::4, ::4] > 0]
         pts.append(transform_points(T_world_cam[k], p))
     P = np.concatenate(pts) if pts else np.zeros((0, 3))
     if len(P) < 10:
@@ -82,12 +87,13 @@ def _extent_estimate(depths: list[np.ndarray], frames: list[RGBDFrame], T_world_
     return float((hi - lo).max())
 
 
-def fuse_tsdf(frames: list[RGBDFrame], T_world_cam: list[np.ndarray | None],
-              masks: list[np.ndarray | None] | None = None, params: FusionParams = FusionParams()) -> FusedModel:
+def fuse_tsdf(frames: Sequence[RGBDFrame], T_world_cam: list[np.ndarray | None],
+              masks: Sequence[np.ndarray | None] | None = None, params: FusionParams = FusionParams()) -> FusedModel:
     """Integrate the masked depth (and colour) of registered frames; extract mesh + point cloud.
 
     frames: N RGB-D frames; T_world_cam: N [4 x 4] poses (None = unregistered, skipped);
-    masks: N [H x W] bool (None entry / None list: the whole valid depth).
+    masks: N [H x W] bool (None entry / None list: the whole valid depth). Frames and masks may be lazy sequences:
+    they are read one at a time (twice each: the depth range, then the integration).
     Raises ValueError when nothing can be fused.
     """
     import open3d as o3d
@@ -97,17 +103,21 @@ def fuse_tsdf(frames: list[RGBDFrame], T_world_cam: list[np.ndarray | None],
         masks = [None] * len(frames)
     if not (len(frames) == len(T_world_cam) == len(masks)):
         raise ValueError(f"{len(frames)} frames, {len(T_world_cam)} poses, {len(masks)} masks")
-    registered = {k: T for k, T in enumerate(T_world_cam) if T is not None}
-    use = list(registered)
-    depths = {k: _masked_depth(frames[k], masks[k]) for k in use}
-    # frames with no masked depth in range are left out: open3d's integration aborts on them
-    use = [k for k in use if np.any((depths[k] > 0) & (depths[k] <= (params.depth_max or np.inf)))]
+    use: list[int] = []
+    farthest = 0.0
+    for k in range(len(frames)):
+        if T_world_cam[k] is None:
+            continue
+        d = _masked_depth(frames[k], masks[k])
+        # frames with no masked depth in range are left out: open3d's integration aborts on them
+        if np.any((d > 0) & (d <= (params.depth_max or np.inf))):
+            use.append(k)
+            farthest = max(farthest, float(d.max()))
     if not use:
         raise ValueError("no registered frame with masked depth to fuse"
                          + (f" within {params.depth_max} m" if params.depth_max else ""))
-    voxel = params.voxel_size or auto_voxel_size(
-        _extent_estimate([depths[k] for k in use], [frames[k] for k in use], [registered[k] for k in use]), params)
-    depth_max = params.depth_max or 1.05 * max(float(depths[k].max()) for k in use)
+    voxel = params.voxel_size or auto_voxel_size(_extent_estimate(use, frames, masks, T_world_cam), params)
+    depth_max = params.depth_max or 1.05 * farthest
     trunc = params.trunc_voxels * voxel
     dev = o3c.Device("CPU:0")
     vbg = o3d.t.geometry.VoxelBlockGrid(attr_names=("tsdf", "weight", "color"),
@@ -121,7 +131,7 @@ def fuse_tsdf(frames: list[RGBDFrame], T_world_cam: list[np.ndarray | None],
             f = frames[k]
             K = o3c.Tensor(f.intrinsics.K, o3c.float64, dev)
             extr = o3c.Tensor(inv_T(np.asarray(T_world_cam[k], dtype=np.float64)), o3c.float64, dev)  # T_cam_world
-            depth = o3d.t.geometry.Image(o3c.Tensor(depths[k][..., None], o3c.float32, dev))
+            depth = o3d.t.geometry.Image(o3c.Tensor(_masked_depth(f, masks[k])[..., None], o3c.float32, dev))
             color = o3d.t.geometry.Image(
                 o3c.Tensor(np.ascontiguousarray(f.color, dtype=np.float32) / 255.0, o3c.float32, dev))
             blocks = vbg.compute_unique_block_coordinates(depth, K, extr, 1.0, depth_max, params.trunc_voxels)

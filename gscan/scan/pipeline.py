@@ -1,10 +1,13 @@
 """The scan pipeline: an RGB-D folder to registered views, pose graph, fused mesh and template database.
 
 Stages (each timed, each reported through a `Progress`):
-  load      read every frame (unusable ones are reported by name and left out)
-  mode      static-object vs moving-object (`gscan.scan.capture_mode`); object masks for a static camera
+  mode      static-object vs moving-object (`gscan.scan.capture_mode`), from a few frames spread over the input
+  load      read every frame once, in order (unusable ones are reported by name and left out); frame selection
+            (`gscan.scan.select`) keeps the frames the view moved enough to, the sharper where frames blur, and
+            reports the others as skipped (not failures); a kept frame's images go to the scan's frame store
+            (`gscan.scan.store`, an anonymous file beside the output), with a moving object's mask
   features  keypoints + descriptors lifted to 3D; whole frame for a static object, object only for a
-            moving one; stored at once in the database (camera frame, pose unknown)
+            moving one; stored at once in the database with the view's images (camera frame, pose unknown)
   register  pairwise edges: each frame against the previous one, falling back to the next earlier
             ones (`MAX_SKIP` frames in all), then loop closures chosen by view overlap
             and bag-of-words votes; each edge = GMatch -> Kabsch -> guided refinement (-> ICP when
@@ -15,21 +18,32 @@ Stages (each timed, each reported through a `Progress`):
   fuse      TSDF fusion of the object's depth; template frame (fuse.template_frame)
   database  poses, masks, keyframes and keypoints in the object frame, mesh, cloud; status complete
 
+Memory does not grow with the capture: after the load a stage holds a few frames at a time, reading their
+images back from the frame store and their keypoints from the database (`_FrameData`); what stays in memory
+per kept frame is its name, counts and pose, and per edge its matches and pose-graph evidence.
+
+Database writes: one transaction per stage (per COMMIT_ROWS views or edges in a long one) on a write-ahead log,
+each view's images written once (`gscan.template.db`).
+
 Resume: the database is `partial` until the last transaction. `--resume` reuses the stored views'
 keypoints and every stored edge (the expensive parts) and recomputes the rest, which is
 deterministic, so an interrupted scan resumes to the same result as an uninterrupted one.
 """
 from __future__ import annotations
 
+import collections.abc
 import contextlib
+import itertools
 import json
 import logging
 import shutil
-from collections.abc import Callable
+import threading
+from collections import OrderedDict, deque
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, TypeVar
 
 import numpy as np
 
@@ -37,9 +51,8 @@ from gscan.errors import InputError, OutputExists
 from gscan.features import OBJECT_FEATURES, FeatureParams, Features, extract_features, extract_features_in_mask
 from gscan.geometry.plane import Plane
 from gscan.geometry.transforms import transform_points
-from gscan.io.camera import RGBDFrame, backproject
+from gscan.io.camera import Intrinsics, RGBDFrame, backproject
 from gscan.io.output import (
-    JOURNAL_SUFFIX,
     Output,
     check_output,
     file_identity,
@@ -47,6 +60,7 @@ from gscan.io.output import (
     missing_folders,
     occupied,
     remove_empty_folders,
+    remove_sqlite_sidecars,
 )
 from gscan.io.sequence import Sequence
 from gscan.progress import Progress, StageTimer
@@ -63,11 +77,19 @@ from gscan.registration.posegraph import (
     select_loop_candidates,
     spanning_poses,
 )
-from gscan.scan.capture_mode import MOVING_OBJECT, STATIC_OBJECT, detect_mode, moving_object_masks
+from gscan.scan.capture_mode import (
+    MOVING_OBJECT,
+    STATIC_OBJECT,
+    background_depth,
+    detect_mode,
+    foreground_mask,
+)
 from gscan.scan.config import ScanConfig
 from gscan.scan.fuse import FusedModel, FusionParams, fuse_tsdf, template_frame
 from gscan.scan.keyframes import select_keyframes, view_direction
-from gscan.scan.segment import SegmentParams
+from gscan.scan.segment import SegmentParams, segment_frame
+from gscan.scan.select import FrameSelector, Selection, SelectionParams
+from gscan.scan.store import FrameStore, LazyList, StoredFrame
 from gscan.template.db import Edge, TemplateDB, View
 
 if TYPE_CHECKING:
@@ -84,6 +106,11 @@ WHOLE_FRAME_EPS_F = {"rootsift": 0.5}
 QUALITY_RMS_SIGMA = 3.4  # a view whose best accepted edge has this RMS keypoint residual (noise sigmas) gets quality 0
 PILOT_PAIRS = 8  # sequential pairs, spread over the capture, whose residuals fit the capture's depth noise
 WORKERS = 2  # threads for per-frame and per-edge work (the target machines have 2 cores)
+COMMIT_ROWS = 64  # a stage's database writes are committed in chunks of this many views or edges (and at its end)
+REG_CACHE = 8  # frames whose registration data (keypoints, depth samples) stays loaded: the sequential window
+BACKGROUND_FRAMES = 30  # kept frames (evenly spaced) a static camera's background depth is taken from
+T_in = TypeVar("T_in")
+T_out = TypeVar("T_out")
 PRUNED = "pruned by the pose graph: "  # reason prefix of edges registration accepted and the pose graph rejected
 NO_KEYPOINTS = "no keypoint with depth (dark or textureless image, or no valid depth)"
 
@@ -125,6 +152,8 @@ class ScanResult:
     unregistered_reasons: dict[str, str] = field(default_factory=dict)  # every unregistered frame -> why
     parts: list[list[str]] = field(default_factory=list)  # frames of the parts not joined to the template's
     noise: DepthNoise | None = None  # the noise model of lifted keypoints registration used
+    # frame selection: {"kept": int, "skipped": int, "reasons": {why: frames}}; skipped frames are not failures
+    selection: dict = field(default_factory=dict)
 
     def to_json(self) -> dict:
         """The `scan --json` object of the CLI contract."""
@@ -135,17 +164,7 @@ class ScanResult:
                 "edges": {"accepted": self.edges_accepted, "rejected": self.edges_rejected},
                 "mode": self.mode, "mesh": {"vertices": self.mesh_vertices, "triangles": self.mesh_triangles},
                 "timings_s": {k: round(v, 3) for k, v in self.timings_s.items()},
-                "skipped": dict(self.problems), "keyframes": self.keyframes}
-
-
-@dataclass
-class _Frame:
-    frame: RGBDFrame
-    feats: Features = field(init=False)  # camera frame (set by _extract)
-    cloud: np.ndarray | None = None  # [P x 3] camera-frame points for ICP
-    mask: np.ndarray | None = None  # [H x W] bool object mask (given or computed)
-    plane_cam: Plane | None = None  # support plane found while computing a moving object's mask
-    dense: DenseGeometry = field(init=False)  # depth samples for the edges' depth check (set by _extract)
+                "skipped": dict(self.problems), "keyframes": self.keyframes, "selection": dict(self.selection)}
 
 
 def _register_params(cfg: ScanConfig, mode: str) -> RegisterParams:
@@ -210,7 +229,7 @@ def _open_resumed(opts: ScanOptions, seq: Sequence | RecordingSequence, frames: 
     (`frames`: `Sequence.fingerprints`). A complete database (or one whose journal would have too long a
     name) is continued in a copy renamed over it at the end, so a failed run leaves it as it was."""
     meta = _scan_meta(opts)
-    db = TemplateDB.open(opts.output, require_complete=False, writable=True)
+    db = TemplateDB.open(opts.output, require_complete=False)  # read only until it is known to be continued
     try:
         stored = {k: db.get_meta(k) for k in RESUME_KEYS}
         # settings added to the configuration since the scan started take their defaults; a configuration this
@@ -224,13 +243,13 @@ def _open_resumed(opts: ScanOptions, seq: Sequence | RecordingSequence, frames: 
     except BaseException:
         db.close()
         raise
-    if in_place:
-        return db, None
     db.close()
+    if in_place:
+        return TemplateDB.open(opts.output, require_complete=False, writable=True, wal=True), None
     target = Output(opts.output, force=True, kind=".gscan file path")
     try:
         shutil.copyfile(opts.output, target.open())
-        return TemplateDB.open(target.tmp, require_complete=False, writable=True), target
+        return TemplateDB.open(target.tmp, require_complete=False, writable=True, wal=True), target
     except BaseException as e:
         target.discard()
         t = target.translate(e)
@@ -275,13 +294,13 @@ def _create_output(opts: ScanOptions, meta: dict) -> tuple[TemplateDB, Output | 
     else in a temporary sibling that replaces the old output once complete (`Output`)."""
     if not occupied(opts.output) and journal_fits(opts.output):
         try:
-            return TemplateDB.create(opts.output, meta=meta), None
+            return TemplateDB.create(opts.output, meta=meta, wal=True), None
         except OutputExists as e:  # created by another process since the checks
             if not opts.force:
                 raise OutputExists(opts.output, e.reason, fix="resume") from None
     target = Output(opts.output, force=opts.force, kind=".gscan file path", fix="resume")
     try:
-        return TemplateDB.create(target.open(), force=True, meta=meta), target
+        return TemplateDB.create(target.open(), force=True, meta=meta, wal=True), target
     except BaseException as e:
         target.discard()
         t = target.translate(e)
@@ -295,7 +314,8 @@ def run_scan(opts: ScanOptions, progress: Progress | None = None) -> ScanResult:
 
     The output is checked before any frame is read (so a bad output fails on one line). A new output is
     written in place (resumable); an existing one (`force`) is replaced only by a complete new database,
-    written beside it, so a failed or interrupted run leaves it as it was.
+    written beside it, so a failed or interrupted run leaves it as it was. The kept frames' images wait in a
+    `FrameStore` beside the output while the scan runs (gone when it ends, however it ends).
     """
     from gscan.io import open_sequence
 
@@ -304,6 +324,7 @@ def run_scan(opts: ScanOptions, progress: Progress | None = None) -> ScanResult:
     timer = StageTimer(progress)
     db: TemplateDB | None = None
     target: Output | None = None
+    store: FrameStore | None = None
     try:
         seq = open_sequence(opts.input_dir, format=opts.fmt, intrinsics=opts.intrinsics,
                             depth_scale=opts.depth_scale, obj_id=opts.obj_id, color_topic=opts.color_topic,
@@ -319,21 +340,21 @@ def run_scan(opts: ScanOptions, progress: Progress | None = None) -> ScanResult:
         fingerprints = seq.fingerprints()
         if resumed:
             db, target = _open_resumed(opts, seq, fingerprints)
-        frames: list[_Frame] = []
-        failed: list[tuple[str, InputError]] = []
+        store = FrameStore(opts.output)
+        seg = _segment_params(opts.config)
+        with timer.stage("mode", total=1) as advance:
+            mode, masks_given = _detect_mode(seq, opts.mode)
+            advance(1)
         with timer.stage("load", total=len(seq)) as advance:
-            for name in seq.names:
-                try:
-                    frames.append(_Frame(seq[name]))
-                except InputError as e:
-                    failed.append((name, e))
-                advance(1)
+            frames, failed, selection = _load(seq, mode, masks_given, opts.config, seg, store, advance)
         problems = dict(seq.problems)
         if not frames:  # one line (the CLI contract), no per-frame warnings before it
             first = next(iter(problems.items()), ("?", "?"))
             raise InputError(opts.input_dir,
                              f"no usable frame ({len(problems)} unusable); first: {first[0]}: {first[1]}")
     except BaseException:
+        if store is not None:
+            store.close()
         if db is not None:
             db.close()
         if target is not None:
@@ -343,89 +364,288 @@ def run_scan(opts: ScanOptions, progress: Progress | None = None) -> ScanResult:
         log.warning("skipping frame %s: %s", name, err)
 
     made = missing_folders(opts.output)
-    if db is None:
-        # obj_id: the BOP object the scan followed (its ground truth and masks), for `gscan eval`
-        db, target = _create_output(opts, opts.meta | _scan_meta(opts) | {"obj_id": seq.obj_id,
-                                                                          "input_frames": fingerprints})
-    created = file_identity(opts.output)  # a new output in place: only this file is removed on failure
+    created = None
     try:
+        if db is None:
+            # obj_id: the BOP object the scan followed (its ground truth and masks), for `gscan eval`
+            db, target = _create_output(opts, opts.meta | _scan_meta(opts) | {"obj_id": seq.obj_id,
+                                                                              "input_frames": fingerprints})
+        created = file_identity(opts.output)  # a new output in place: only this file is removed on failure
         if resumed:  # only once the input is known to hold frames: a complete database stays complete
             db.mark_partial()
-        result = _scan_frames(frames, opts, db, resumed, timer, problems)
+        data = _FrameData(frames, store, db, mode, masks_given, opts.config)
+        result = _scan_frames(data, opts, db, resumed, timer, problems, selection)
     except BaseException as e:
-        db.close()
+        store.close()
+        if db is not None:
+            db.close()
         if target is not None:  # the old output stays as it was
             target.discard()
             t = target.translate(e)
             if t is not e:
                 raise t from None
-        elif not resumed and not isinstance(e, KeyboardInterrupt) and file_identity(opts.output) == created:
+        elif (db is not None and not resumed and not isinstance(e, KeyboardInterrupt)
+              and file_identity(opts.output) == created):
             # a failed scan leaves no output behind: neither the file nor folders made for it (never a file
             # another process put there since); Ctrl+C keeps the partial file for --resume (as a killed scan does)
             opts.output.unlink(missing_ok=True)
-            Path(f"{opts.output}{JOURNAL_SUFFIX}").unlink(missing_ok=True)
+            remove_sqlite_sidecars(opts.output)
             remove_empty_folders(made)
         raise
+    store.close()
     db.close()
     if target is not None:
+        remove_sqlite_sidecars(opts.output)  # a killed writer's journal or log there would be replayed into ours
         target.commit()
     return result
 
 
-def _scan_frames(frames: list[_Frame], opts: ScanOptions, db: TemplateDB, resumed: bool, timer: StageTimer,
-                 problems: dict[str, str]) -> ScanResult:
+# ------------------------------------------------------------------------------------------ the frames
+@dataclass
+class _Frame:
+    """A kept frame, as the stages after the load hold it: its images are in the scan's `FrameStore` ("color",
+    "depth", "given_mask"; "object_mask" of a moving object when computed; "mask" once segmented), its keypoints in
+    the database (camera frame until the last stage); `_FrameData` loads them on demand."""
+
+    stored: StoredFrame
+    n_keypoints: int = 0  # registration keypoints with depth
+    plane_cam: Plane | None = None  # support plane found while computing a moving object's mask
+    object_keypoints: int = 0  # registration keypoints inside its object mask (set at the segment stage)
+
+    @property
+    def name(self) -> str:
+        return self.stored.name
+
+
+@dataclass
+class _RegData:
+    """What registration uses of a frame: keypoints (camera frame), ICP cloud [P x 3] (or None), depth samples."""
+
+    feats: Features
+    cloud: np.ndarray | None
+    dense: DenseGeometry
+
+
+class _FrameData:
+    """The kept frames' images, masks and registration data, loaded on demand: images from the store, keypoints
+    from the database. Registration data of the last `REG_CACHE` frames used is kept (the sequential pairs and the
+    workers' frames), so memory does not grow with the capture. Thread-safe."""
+
+    def __init__(self, frames: list[_Frame], store: FrameStore, db: TemplateDB, mode: str, masks_given: bool,
+                 cfg: ScanConfig):
+        self.frames, self.store, self.db, self.mode, self.masks_given, self.cfg = (frames, store, db, mode,
+                                                                                    masks_given, cfg)
+        self._cache: OrderedDict[int, _RegData] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def frame(self, k: int) -> RGBDFrame:
+        """Frame k as read (colour, depth, given mask)."""
+        return self.frames[k].stored.load(self.store)
+
+    def object_mask(self, k: int) -> np.ndarray | None:
+        """A moving object's mask [H x W] bool in frame k (given, or computed at the load), or None."""
+        if self.mode != MOVING_OBJECT:
+            return None
+        name = self.frames[k].name
+        return self.store.get(name, "given_mask" if self.masks_given else "object_mask")
+
+    def descriptors(self, k: int) -> np.ndarray:
+        """Frame k's registration descriptors [N x D] (from the database)."""
+        feats = self.db.features(self.frames[k].name)
+        assert feats is not None, self.frames[k].name
+        return feats.descriptors
+
+    def reg(self, k: int) -> _RegData:
+        """Registration data of frame k (cached)."""
+        with self._lock:
+            if k in self._cache:
+                self._cache.move_to_end(k)
+                return self._cache[k]
+        f = self.frames[k].stored
+        feats = self.db.features(f.name)
+        assert feats is not None, f.name
+        depth = self.store.need(f.name, "depth")
+        reg_mask = self.object_mask(k)
+        r = self.cfg.registration
+        cloud = _icp_cloud(depth, f.intrinsics, reg_mask, r.icp_voxel) if r.icp else None
+        data = _RegData(feats, cloud, DenseGeometry.from_depth(depth, f.intrinsics, reg_mask))
+        with self._lock:
+            self._cache[k] = data
+            while len(self._cache) > REG_CACHE:
+                self._cache.popitem(last=False)
+        return data
+
+
+def _bounded_map(pool: ThreadPoolExecutor, fn: Callable[[T_in], T_out], items: Iterable[T_in],
+                 ahead: int = 2 * WORKERS) -> Iterator[T_out]:
+    """pool.map(fn, items) in order, with at most `ahead` items submitted and not yet consumed: the results of
+    per-frame work (images, keypoints) do not pile up when the consumer is slower than the workers."""
+    it = iter(items)
+    pending = deque(pool.submit(fn, x) for x in itertools.islice(it, ahead))
+    try:
+        while pending:
+            fut = pending.popleft()
+            for x in itertools.islice(it, 1):
+                pending.append(pool.submit(fn, x))
+            yield fut.result()
+    finally:
+        for fut in pending:
+            fut.cancel()
+
+
+class _InputFrames(collections.abc.Sequence):
+    """The input's frames as a lazy sequence (what `detect_mode` reads a few of): frame i, or the next usable one
+    after it (before it at the end) when it cannot be read."""
+
+    def __init__(self, seq: Sequence | RecordingSequence):
+        self.seq = seq
+        self._read: dict[int, RGBDFrame] = {}  # the few frames read (detect_mode reads each twice)
+
+    def __len__(self) -> int:
+        return len(self.seq.names)
+
+    def __getitem__(self, i):
+        names = self.seq.names
+        for j in [*range(i, len(names)), *range(i - 1, -1, -1)]:
+            if j not in self._read:
+                try:
+                    self._read[j] = self.seq[names[j]]
+                except InputError:
+                    continue
+            return self._read[j]
+        raise _NoUsableFrame
+
+
+class _NoUsableFrame(Exception):
+    pass
+
+
+def _detect_mode(seq: Sequence | RecordingSequence, mode_option: str) -> tuple[str, bool]:
+    """(capture mode, whether every frame comes with an object mask): the mode from a few frames spread over the
+    input (`detect_mode`) unless given."""
+    names = seq.names
+    given = isinstance(seq, Sequence) and seq.has_masks and all(seq.files(n).mask is not None for n in names)
+    if mode_option != "auto":
+        return mode_option, given
+    try:
+        return detect_mode(_InputFrames(seq)).mode, given
+    except _NoUsableFrame:  # the load says so, on one line
+        return STATIC_OBJECT, given
+
+
+def _load(seq: Sequence | RecordingSequence, mode: str, masks_given: bool, cfg: ScanConfig, seg: SegmentParams,
+          store: FrameStore, advance: Callable[[int], None]) -> tuple[list[_Frame], list[tuple[str, InputError]],
+                                                                     Selection]:
+    """Reads the input once, in order, keeping the frames frame selection keeps (`gscan.scan.select`): their images
+    go to the store, with a moving object's mask (`moving_object_masks`: the support plane and the object on it,
+    else the difference from the background). Returns (kept frames, frames that could not be read, selection)."""
+    s = cfg.selection
+    params = SelectionParams(min_motion_deg=s.min_motion_deg, blur_ratio=s.blur_ratio)
+    moving = mode == MOVING_OBJECT
+    selector = FrameSelector(params, mask_needed=moving)
+    selection = Selection(params)
+    frames: list[_Frame] = []
+    failed: list[tuple[str, InputError]] = []
+    for name, frame in _read_ahead(seq):
+        advance(1)
+        if isinstance(frame, InputError):
+            failed.append((name, frame))
+            continue
+        why = selector.consider(frame)
+        if why is not None:
+            selection.skipped[name] = why
+            continue
+        f = _Frame(StoredFrame.put(store, frame))
+        selection.kept.append(name)
+        mask = frame.mask
+        if moving and not masks_given:
+            s_ = segment_frame(replace(frame, mask=None), seg)
+            f.plane_cam = s_.plane_cam
+            mask = s_.mask if s_.plane_cam is not None else None
+            store.put(name, object_mask=mask)
+        selector.keep(frame, mask if moving else None)
+        frames.append(f)
+    if moving and not masks_given and any(f.plane_cam is None for f in frames):
+        # without a support plane (an object in hand) the object is what stands out of the background
+        picks = np.unique(np.linspace(0, len(frames) - 1, min(BACKGROUND_FRAMES, len(frames))).round().astype(int))
+        bg = background_depth([store.need(frames[k].name, "depth") for k in picks])
+        for f in frames:
+            if f.plane_cam is None:
+                store.put(f.name, object_mask=foreground_mask(store.need(f.name, "depth"), bg))
+    return frames, failed, selection
+
+
+def _read_ahead(seq: Sequence | RecordingSequence) -> Iterator[tuple[str, RGBDFrame | InputError]]:
+    """(name, frame or why it could not be read) for every input frame in order, the next one decoded in a thread
+    meanwhile (decoding releases the GIL)."""
+    def read(name: str) -> RGBDFrame | InputError:
+        try:
+            return seq[name]
+        except InputError as e:
+            return e
+
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        yield from zip(seq.names, _bounded_map(pool, read, seq.names, ahead=2))
+
+
+# ------------------------------------------------------------------------------------------ the stages
+def _scan_frames(data: _FrameData, opts: ScanOptions, db: TemplateDB, resumed: bool, timer: StageTimer,
+                 problems: dict[str, str], selection: Selection) -> ScanResult:
     cfg = opts.config
     seg = _segment_params(cfg)
-    with timer.stage("mode", total=1) as advance:
-        mode, given_masks = _mode_and_masks(frames, opts.mode, seg)
-        advance(1)
-    db.set_meta("mode", mode)
-    log.info("%s capture, %d frames%s", mode, len(frames), ", masks given" if given_masks else "")
+    frames, mode = data.frames, data.mode
+    log.info("%s capture, %d of %d frames kept%s", mode, len(frames), len(frames) + len(selection.skipped),
+             ", masks given" if data.masks_given else "")
 
-    with timer.stage("features", total=len(frames)) as advance:
-        _extract(frames, mode, cfg, db, resumed, advance)
-    if not any(len(f.feats) for f in frames):  # every frame dark, textureless or without depth: nothing to scan
+    # each stage's writes are batched: one commit per stage, or per COMMIT_ROWS records in a long one
+    with timer.stage("features", total=len(frames)) as advance, db.batch():
+        db.set_meta("mode", mode)
+        db.set_meta("selection", selection.to_meta())
+        _extract(data, db, resumed, advance)
+    if not any(f.n_keypoints for f in frames):  # every frame dark, textureless or without depth: nothing to scan
         raise InputError(opts.input_dir, f"no keypoint with depth in any of the {len(frames)} frames "
                          "(dark or textureless images, or no valid depth)")
 
     n = len(frames)
     rparams = _register_params(cfg, mode)
-    with timer.stage("noise", total=1) as advance:
+    with timer.stage("noise", total=1) as advance, db.batch():
         if cfg.registration.noise is None:
-            kp_noise, depth_noise = _capture_noise(frames, rparams)
+            kp_noise, depth_noise = _capture_noise(data, rparams)
             rparams = replace(rparams, noise=kp_noise, depth_noise=depth_noise)
         db.set_meta("noise", {"keypoint": rparams.noise.to_dict(), "depth": rparams.depth_noise.to_dict()})
         advance(1)
-    with timer.stage("register", total=max(1, n - 1)) as advance:
-        edges, restored = _register_edges(frames, rparams, cfg, db, resumed, advance)
+    with timer.stage("register", total=max(1, n - 1)) as advance, db.batch():
+        edges, restored, evidence = _register_edges(data, rparams, cfg, db, resumed, advance)
 
-    index = {f.frame.name: k for k, f in enumerate(frames)}
+    index = {f.name: k for k, f in enumerate(frames)}
     with timer.stage("posegraph", total=1) as advance:
-        T_world_cam, quality, graph = _optimise(n, edges, index, frames, cfg, rparams)
+        T_world_cam, quality, graph = _optimise(n, edges, index, data, evidence, cfg, rparams)
         advance(1)
     registered = [k for k in range(n) if T_world_cam[k] is not None]
     reasons = _unregistered_reasons(frames, edges, graph, index)
-    parts = [[frames[k].frame.name for k in part] for part in graph.parts]
+    parts = [[frames[k].name for k in part] for part in graph.parts]
 
-    with timer.stage("segment", total=1) as advance:
-        masks, plane_world = _segment(frames, T_world_cam, mode, opts.segment,
-                                      replace(seg, depth_noise=rparams.depth_noise))
-        advance(1)
+    with timer.stage("segment", total=n) as advance:
+        mask_of, plane_world = _segment(data, T_world_cam, opts.segment, replace(seg, depth_noise=rparams.depth_noise),
+                                        advance)
 
     with timer.stage("fuse", total=1) as advance:
-        model, T_obj_world = _fuse(frames, T_world_cam, masks, plane_world, cfg, opts.input_dir)
+        model, T_obj_world = _fuse(data, T_world_cam, mask_of, plane_world, cfg, opts.input_dir)
         advance(1)
 
-    with timer.stage("database", total=n + 1) as advance:
+    with timer.stage("database", total=n + 1) as advance, db.batch():
         T_obj_cam = [None if T is None else T_obj_world @ T for T in T_world_cam]
-        keyframes = _store_views(frames, T_obj_cam, masks, quality, cfg, db, advance)
+        keyframes = _store_views(data, T_obj_cam, mask_of, quality, cfg, db, advance)
         for e in edges:  # the pose graph's verdicts, also where a resumed run reaches another one
             if (e.reason and e.reason.startswith(PRUNED)) or (e.src, e.tgt) in restored:
                 db.add_edge(e)
         mesh = model.mesh.transformed(T_obj_world)
         db.set_mesh(mesh)
         db.set_cloud(transform_points(T_obj_world, model.points), model.point_colors)
-        unregistered = [f.frame.name for f, T in zip(frames, T_world_cam) if T is None]
+        unregistered = [f.name for f, T in zip(frames, T_world_cam) if T is None]
         db.set_meta("unregistered", unregistered)
         db.set_meta("unregistered_reasons", reasons)
         db.set_meta("parts", parts)
@@ -438,21 +658,23 @@ def _scan_frames(frames: list[_Frame], opts: ScanOptions, db: TemplateDB, resume
     stored_edges = db.edges()
     accepted = sum(1 for e in stored_edges if e.accepted)
     total_edges = len(stored_edges)
-    return ScanResult(output=opts.output, frames=len(frames) + len(problems), registered=len(registered),
-                      unregistered=unregistered + sorted(problems), edges_accepted=accepted,
-                      edges_rejected=total_edges - accepted, mode=mode, mesh_vertices=len(mesh.vertices),
-                      mesh_triangles=len(mesh.triangles), timings_s=dict(timer.timings), problems=problems,
-                      keyframes=len(keyframes), unregistered_reasons=reasons | problems, parts=parts,
-                      noise=rparams.noise)
+    return ScanResult(output=opts.output, frames=n + len(selection.skipped) + len(problems),
+                      registered=len(registered), unregistered=unregistered + sorted(problems),
+                      edges_accepted=accepted, edges_rejected=total_edges - accepted, mode=mode,
+                      mesh_vertices=len(mesh.vertices), mesh_triangles=len(mesh.triangles),
+                      timings_s=dict(timer.timings), problems=problems, keyframes=len(keyframes),
+                      unregistered_reasons=reasons | problems, parts=parts, noise=rparams.noise,
+                      selection=selection.summary())
 
 
-def _fuse(frames: list[_Frame], T_world_cam: list[np.ndarray | None], masks: list[np.ndarray | None],
+def _fuse(data: _FrameData, T_world_cam: list[np.ndarray | None], mask_of: Callable[[int], np.ndarray | None],
           plane_world: Plane | None, cfg: ScanConfig, input_dir: Path) -> tuple[FusedModel, np.ndarray]:
     """(TSDF model in the world frame, T_obj_world [4 x 4] of the template frame); InputError when
     nothing could be fused."""
     params = FusionParams(voxel_size=cfg.fusion.voxel, depth_max=cfg.fusion.depth_max)
+    n = len(data)
     try:
-        model = fuse_tsdf([f.frame for f in frames], T_world_cam, masks, params)
+        model = fuse_tsdf(LazyList(n, data.frame), T_world_cam, LazyList(n, mask_of), params)
     except ValueError as e:  # no registered frame has object depth within fusion.depth_max
         raise InputError(input_dir, f"nothing could be fused: {e} (fusion.depth_max); check the depth scale",
                          fix="depth_scale") from None
@@ -471,65 +693,49 @@ def _segment_params(cfg: ScanConfig) -> SegmentParams:
     return SegmentParams(depth_min=s.depth_min, depth_max=s.depth_max, height_max=s.height_max)
 
 
-def _mode_and_masks(frames: list[_Frame], mode_option: str, seg: SegmentParams) -> tuple[str, bool]:
-    """(capture mode, whether every frame came with a mask); sets each frame's object mask: the given
-    one, or for a moving object one from background subtraction."""
-    mode = detect_mode([f.frame for f in frames]).mode if mode_option == "auto" else mode_option
-    given_masks = all(f.frame.mask is not None for f in frames)
-    if given_masks:
-        for f in frames:
-            f.mask = f.frame.mask
-    elif mode == MOVING_OBJECT:
-        masks, planes = moving_object_masks([f.frame for f in frames], params=seg)
-        for f, m, p in zip(frames, masks, planes):
-            f.mask, f.plane_cam = m, p
-    return mode, given_masks
-
-
-def _extract(frames: list[_Frame], mode: str, cfg: ScanConfig, db: TemplateDB, resumed: bool,
-             advance: Callable[[int], None]) -> None:
-    """Sets each frame's registration keypoints (camera frame) and ICP cloud, and stores the keypoints
-    at once; a resumed scan reuses the keypoints of views stored without a pose."""
+def _extract(data: _FrameData, db: TemplateDB, resumed: bool, advance: Callable[[int], None]) -> None:
+    """Each frame's registration keypoints (camera frame; a moving object's only), stored at once with the view's
+    images: the one write of those. A resumed scan reuses the keypoints of views stored without a pose."""
+    cfg, frames = data.cfg, data.frames
     fparams = FeatureParams(kind=cfg.features.kind, max_keypoints=cfg.features.max_keypoints)
     stored = set(db.view_names()) if resumed else set()
     db_poses = {v.name: v.T_obj_cam for v in db.views()} if stored else {}
+    for name in stored - {f.name for f in frames}:  # a view of a frame this scan does not keep
+        db.remove_view(name)
 
-    def frame_work(k: int) -> tuple[Features | None, np.ndarray | None, DenseGeometry]:
-        f = frames[k]
-        reg_mask = f.mask if mode == MOVING_OBJECT else None
-        reuse = f.frame.name in stored and db_poses.get(f.frame.name, 1) is None
-        feats = None if reuse else extract_features(f.frame, fparams, mask=reg_mask)
-        cloud = _icp_cloud(f.frame, reg_mask, cfg.registration.icp_voxel) if cfg.registration.icp else None
-        return feats, cloud, DenseGeometry.from_depth(f.frame.depth, f.frame.intrinsics, reg_mask)
+    def frame_work(k: int) -> tuple[RGBDFrame | None, Features | None]:
+        name = frames[k].name
+        if name in stored and db_poses.get(name, 1) is None:
+            return None, None  # stored by the interrupted run, still in the camera frame
+        frame = data.frame(k)
+        return frame, extract_features(frame, fparams, mask=data.object_mask(k))
 
-    # OpenCV and open3d release the GIL: two threads use both cores; results are per frame
-    # and written in input order, so the output does not depend on the scheduling
+    # OpenCV releases the GIL: two threads use both cores; results are per frame and written in input order,
+    # so the output does not depend on the scheduling
     with ThreadPoolExecutor(max_workers=WORKERS) as pool:
-        for k, (feats, cloud, dense) in enumerate(pool.map(frame_work, range(len(frames)))):
+        for k, (frame, feats) in enumerate(_bounded_map(pool, frame_work, range(len(frames)))):
             f = frames[k]
-            f.cloud, f.dense = cloud, dense
-            if feats is None:  # stored by the interrupted run, still in the camera frame
-                feats = db.features(f.frame.name)
-                if feats is None:
-                    raise InputError(db.path, f"view {f.frame.name!r} is stored without its keypoints",
-                                     fix="restart")
+            if frame is None or feats is None:
+                stored_feats = db.features(f.name)
+                f.n_keypoints = 0 if stored_feats is None else len(stored_feats)
             else:
-                db.add_view(View.from_frame(f.frame, keyframe=False, input_index=k), feats,
-                            replace=f.frame.name in stored)
-            f.feats = feats
+                db.add_view(View.from_frame(frame, keyframe=False, input_index=k), feats, replace=f.name in stored)
+                f.n_keypoints = len(feats)
+                if (k + 1) % COMMIT_ROWS == 0:
+                    db.commit()
             advance(1)
 
 
-def _capture_noise(frames: list[_Frame], params: RegisterParams) -> tuple[DepthNoise, DepthNoise]:
+def _capture_noise(data: _FrameData, params: RegisterParams) -> tuple[DepthNoise, DepthNoise]:
     """The capture's noise, of a lifted keypoint and of a depth pixel (`gscan.registration.noise`): up to
     PILOT_PAIRS sequential pairs spread evenly over the capture, registered under the priors of `params`;
     the keypoint residuals of their inliers, and the distances of their depth samples to the other frame's
     surface within 5 prior sigmas, are fitted. A prior stays when too few pairs are left."""
-    n = len(frames)
+    n = len(data)
     picks = sorted({int(j) for j in np.linspace(1, n - 1, min(PILOT_PAIRS, n - 1))}) if n > 1 else []
 
     def pair(j: int) -> tuple[np.ndarray, ...]:
-        fs, ft = frames[j - 1], frames[j]
+        fs, ft = data.reg(j - 1), data.reg(j)
         r = register_features(fs.feats, ft.feats, params, dense=(fs.dense, ft.dense))
         if not r.accepted or r.T_tgt_src is None or r.inliers is None or not len(r.inliers):
             return (np.zeros(0),) * 6
@@ -549,38 +755,78 @@ def _capture_noise(frames: list[_Frame], params: RegisterParams) -> tuple[DepthN
             estimate_noise(e, da, db, prior=params.depth_noise, dof=1))
 
 
-def _register_edges(frames: list[_Frame], rparams: RegisterParams, cfg: ScanConfig, db: TemplateDB, resumed: bool,
-                    advance: Callable[[int], None]) -> tuple[list[Edge], set[tuple[str, str]]]:
+@dataclass(frozen=True)
+class _Evidence:
+    """What the pose graph uses of an accepted edge: its information matrix [6 x 6] (source frame), the median
+    depth of its source points, and its RMS keypoint residual in noise sigmas."""
+
+    info: np.ndarray
+    depth: float
+    rms: float
+
+
+def _edge_evidence(e: Edge, a: _RegData, b: _RegData, rparams: RegisterParams) -> _Evidence:
+    """The evidence of the accepted edge e from frame a to frame b (their registration data)."""
+    assert e.T_tgt_src is not None  # an accepted edge has a pose
+    ps = a.feats.points[e.matches[:, 0]].astype(np.float64)
+    pt = b.feats.points[e.matches[:, 1]].astype(np.float64)
+    # the precision the edge claims, as registration solved it (keypoints, and the depth when it took part),
+    # in the source frame, the frame of the pose graph's residual: an edge whose pose the depth pins must
+    # agree with the others to that precision (the graph's floor keeps strong edges from dominating)
+    if rparams.dense_refine:
+        info = in_source_frame(pose_information(a.dense, b.dense, ps, pt, e.T_tgt_src, rparams.noise,
+                                                rparams.depth_noise), e.T_tgt_src)
+    else:
+        info = information_from_points(ps, rparams.noise.pair_sigma(ps[:, 2], pt[:, 2]))
+    r = np.linalg.norm(transform_points(e.T_tgt_src, ps) - pt, axis=1) / rparams.noise.pair_sigma(ps[:, 2], pt[:, 2])
+    return _Evidence(info, float(np.median(ps[:, 2])), float(np.sqrt(np.mean(r * r))))
+
+
+def _register_edges(data: _FrameData, rparams: RegisterParams, cfg: ScanConfig, db: TemplateDB, resumed: bool,
+                    advance: Callable[[int], None]
+                    ) -> tuple[list[Edge], set[tuple[str, str]], dict[tuple[str, str], _Evidence]]:
     """Sequential edges (with fall-back to earlier frames), then loop closures; each stored as computed.
 
-    Returns the edges in order and the stored edges a resumed scan accepted again (pruned by the
-    interrupted run's pose graph, left for this run's pose graph to judge)."""
-    names = [f.frame.name for f in frames]
+    Returns the edges in order, the stored edges a resumed scan accepted again (pruned by the interrupted run's
+    pose graph, left for this run's pose graph to judge), and the evidence of the accepted edges computed here
+    (`_optimise` computes that of stored ones)."""
+    frames = data.frames
+    names = [f.name for f in frames]
     done = {(e.src, e.tgt): e for e in db.edges()} if resumed else {}
     restored: set[tuple[str, str]] = set()
+    evidence: dict[tuple[str, str], _Evidence] = {}
+    written = [0]  # edges stored so far (committed every COMMIT_ROWS)
 
-    def pair_work(pair: tuple[int, int]):
+    def pair_work(pair: tuple[int, int]) -> tuple[Edge, _Evidence | None] | None:
         i, j = pair
         if (names[i], names[j]) in done:
             return None
-        fi, fj = frames[i], frames[j]
-        return register_features(fi.feats, fj.feats, rparams, clouds=(fi.cloud, fj.cloud), dense=(fi.dense, fj.dense))
+        a, b = data.reg(i), data.reg(j)
+        r = register_features(a.feats, b.feats, rparams, clouds=(a.cloud, b.cloud), dense=(a.dense, b.dense))
+        # the edge keeps the correspondences its pose was solved from (GMatch's list grown by the guided
+        # refinement of gscan.registration.pairwise), which also weigh it in the pose graph
+        used = r.inliers if r.inliers is not None and len(r.inliers) else r.matches
+        e = Edge(names[i], names[j], r.T_tgt_src, used, r.cost, r.rmse, r.fitness, "sequential", r.accepted, r.reason)
+        return e, (_edge_evidence(e, a, b, rparams) if e.accepted and e.T_tgt_src is not None else None)
 
     def register_all(pairs: list[tuple[int, int]], kind: str, pool: ThreadPoolExecutor) -> list[Edge]:
         """Edges of `pairs`, computed on the pool (numba and OpenCV release the GIL), stored in order."""
         out = []
-        for (i, j), r in zip(pairs, pool.map(pair_work, pairs)):
-            if r is None:  # stored by the interrupted run
+        for (i, j), got in zip(pairs, _bounded_map(pool, pair_work, pairs)):
+            if got is None:  # stored by the interrupted run
                 e = done[(names[i], names[j])]
                 if e.reason and e.reason.startswith(PRUNED):  # restore the registration verdict
                     e.accepted, e.reason = True, None
                     restored.add((e.src, e.tgt))
             else:
-                # the edge keeps the correspondences its pose was solved from (GMatch's list grown by
-                # the guided refinement of gscan.registration.pairwise), which also weigh it in the pose graph
-                used = r.inliers if r.inliers is not None and len(r.inliers) else r.matches
-                e = Edge(names[i], names[j], r.T_tgt_src, used, r.cost, r.rmse, r.fitness, kind, r.accepted, r.reason)
+                e, ev = got
+                e.kind = kind
+                if ev is not None:
+                    evidence[(e.src, e.tgt)] = ev
                 db.add_edge(e)
+                written[0] += 1
+                if written[0] % COMMIT_ROWS == 0:
+                    db.commit()
             out.append(e)
         return out
 
@@ -597,6 +843,7 @@ def _register_edges(frames: list[_Frame], rparams: RegisterParams, cfg: ScanConf
                     break
                 edges += register_all([(i, j)], "sequential", pool)
             advance(1)
+        db.commit()  # the sequential edges, before the loop closures
 
         seq_graph = [GraphEdge(index[e.src], index[e.tgt], e.T_tgt_src, weight=len(e.matches))
                      for e in edges if e.accepted and e.T_tgt_src is not None]
@@ -604,120 +851,121 @@ def _register_edges(frames: list[_Frame], rparams: RegisterParams, cfg: ScanConf
         existing = [(index[e.src], index[e.tgt]) for e in edges]
         lp = LoopParams(max_per_node=cfg.posegraph.loop_candidates, max_angle_deg=cfg.posegraph.max_view_angle_deg)
         # frames without any keypoint (textureless, dark) take no part: bag-of-words needs descriptors
-        kp = [k for k in range(n) if len(frames[k].feats.descriptors)]
+        kp = [k for k in range(n) if frames[k].n_keypoints]
         sub = {k: s for s, k in enumerate(kp)}
         cands = [] if len(kp) < 2 else select_loop_candidates(
-            [T_init[k] for k in kp], [frames[k].feats.descriptors for k in kp],
+            [T_init[k] for k in kp], LazyList(len(kp), lambda s: data.descriptors(kp[s])),
             [(sub[a], sub[b]) for a, b in existing if a in sub and b in sub], lp)
         edges += register_all([(kp[c.i], kp[c.j]) for c in cands], "loop", pool)
-    return edges, restored
+    return edges, restored, evidence
 
 
-def _store_views(frames: list[_Frame], T_obj_cam: list[np.ndarray | None], masks: list[np.ndarray | None],
+def _store_views(data: _FrameData, T_obj_cam: list[np.ndarray | None], mask_of: Callable[[int], np.ndarray | None],
                  quality: dict[int, float], cfg: ScanConfig, db: TemplateDB,
                  advance: Callable[[int], None]) -> set[int]:
-    """Writes every view with its pose, mask and keypoints in the object frame; chooses the keyframes
-    and returns their indices.
+    """Completes every view with its pose (its keypoints follow into the object frame), mask, keyframe flag and
+    quality; chooses the keyframes and returns their indices.
 
     Keyframes also keep keypoints on the object alone, detected inside the object mask with the
     estimator's settings: the template's keypoints for pose estimation (registration keypoints of a
     static object are mostly on the table)."""
-    dirs = _keyframe_candidates(T_obj_cam, masks)
+    frames = data.frames
+
+    def shows(k: int) -> bool:
+        m = mask_of(k)
+        return m is None or bool(m.any())
+
+    dirs = _keyframe_candidates(T_obj_cam, shows)
     kc = cfg.keyframes
-    keyframes = set(select_keyframes(dirs, kc.min_angle_deg, kc.max_views, {k: _object_keypoints(frames[k], masks[k])
-                                     for k in dirs}, kc.min_object_keypoints, kc.min_views))
+    keyframes = set(select_keyframes(dirs, kc.min_angle_deg, kc.max_views,
+                                     {k: frames[k].object_keypoints for k in dirs}, kc.min_object_keypoints,
+                                     kc.min_views))
     oparams = replace(OBJECT_FEATURES, kind=cfg.features.kind, max_keypoints=cfg.features.max_keypoints)
 
-    def object_feats(k: int) -> Features | None:
-        m = masks[k]
-        return extract_features_in_mask(frames[k].frame, m, oparams) if k in keyframes and m is not None else None
+    def view_work(k: int) -> tuple[np.ndarray | None, Features | None]:
+        f = frames[k].stored
+        if T_obj_cam[k] is None:  # an unregistered view keeps the mask it came with
+            return (data.store.get(f.name, "given_mask") if f.has_mask else None), None
+        m = mask_of(k)
+        obj = extract_features_in_mask(data.frame(k), m, oparams) if k in keyframes and m is not None else None
+        return m, obj
 
     with ThreadPoolExecutor(max_workers=WORKERS) as pool:
-        for k, obj in enumerate(pool.map(object_feats, range(len(frames)))):
-            f, T = frames[k], T_obj_cam[k]
-            view = View.from_frame(f.frame, T_obj_cam=T, mask=masks[k] if T is not None else f.frame.mask,
-                                   keyframe=k in keyframes, quality=quality.get(k), input_index=k)
-            db.add_view(view, f.feats if T is None else f.feats.transformed(T), replace=True)
-            if obj is not None and T is not None:  # object keypoints: of keyframes, which are registered
-                db.add_features(f.frame.name, obj.transformed(T), role="object")
+        for k, (m, obj) in enumerate(_bounded_map(pool, view_work, range(len(frames)))):
+            T = T_obj_cam[k]
+            # the view's images and keypoints were stored at the features stage: its pose (the keypoints follow
+            # it into the object frame), mask, keyframe flag and quality complete it
+            db.update_view(frames[k].name, T_obj_cam=T, mask=m, keyframe=k in keyframes, quality=quality.get(k))
+            if obj is not None and T is not None:
+                db.add_features(frames[k].name, obj.transformed(T), role="object")
             advance(1)
     return keyframes
 
 
-def _keyframe_candidates(T_obj_cam: list[np.ndarray | None], masks: list[np.ndarray | None]) -> dict[int, np.ndarray]:
-    """Frame index -> viewing direction (`view_direction`) of the registered frames that show the object: a
-    frame whose object mask is empty (a sweep that starts elsewhere) would give the template its background as
-    the object's keypoints. All registered frames when none shows it."""
-    reg = {k: (T, m) for k, (T, m) in enumerate(zip(T_obj_cam, masks)) if T is not None}
-    showing = {k: Tm for k, Tm in reg.items() if Tm[1] is None or Tm[1].any()}
-    return {k: view_direction(T) for k, (T, _) in (showing or reg).items()}
+def _keyframe_candidates(T_obj_cam: list[np.ndarray | None], shows: Callable[[int], bool]) -> dict[int, np.ndarray]:
+    """Frame index -> viewing direction (`view_direction`) of the registered frames that show the object
+    (`shows(k)`: its object mask is not empty): a frame without it (a sweep that starts elsewhere) would give
+    the template its background as the object's keypoints. All registered frames when none shows it."""
+    reg = {k: T for k, T in enumerate(T_obj_cam) if T is not None}
+    showing = {k: T for k, T in reg.items() if shows(k)}
+    return {k: view_direction(T) for k, T in (showing or reg).items()}
 
 
-def _object_keypoints(f: _Frame, mask: np.ndarray | None) -> int:
-    """Registration keypoints (with depth) of a frame that lie in its object mask (all without a mask)."""
+def _object_keypoints(pixels: np.ndarray, mask: np.ndarray | None) -> int:
+    """Registration keypoints (with depth; their pixels [N x 2]) of a frame that lie in its object mask (all
+    without a mask)."""
     if mask is None:
-        return len(f.feats)
-    uv = np.round(f.feats.pixels).astype(int)
+        return len(pixels)
+    uv = np.round(pixels).astype(int)
     H, W = mask.shape
     inside = (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
     return int(mask[uv[inside, 1], uv[inside, 0]].sum())
 
 
-def _icp_cloud(frame: RGBDFrame, mask: np.ndarray | None, voxel: float) -> np.ndarray:
+def _icp_cloud(depth: np.ndarray, intrinsics: Intrinsics, mask: np.ndarray | None, voxel: float) -> np.ndarray:
     """[P x 3] camera-frame points for ICP: valid depth (inside `mask`), pixel stride, voxel grid."""
     import open3d as o3d
 
     s = ICP_VOXEL_STRIDE
-    valid = frame.depth > 0
+    valid = depth > 0
     if mask is not None:
         valid &= mask
-    pts = backproject(frame.depth, frame.intrinsics)[::s, ::s][valid[::s, ::s]]
+    pts = backproject(depth, intrinsics)[::s, ::s][valid[::s, ::s]]
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts.astype(np.float64)))
     if voxel > 0:
         pc = pc.voxel_down_sample(voxel)
     return np.asarray(pc.points)
 
 
-def _optimise(n: int, edges: list[Edge], index: dict[str, int], frames: list[_Frame], cfg: ScanConfig,
-              rparams: RegisterParams) -> tuple[list[np.ndarray | None], dict[int, float], PoseGraphResult]:
+def _optimise(n: int, edges: list[Edge], index: dict[str, int], data: _FrameData,
+              evidence: dict[tuple[str, str], _Evidence], cfg: ScanConfig, rparams: RegisterParams
+              ) -> tuple[list[np.ndarray | None], dict[int, float], PoseGraphResult]:
     """Pose graph over accepted edges -> (T_world_cam per frame or None, quality in [0, 1] per frame, the
     pose graph's result with edge indices into the accepted edges)."""
     use = [e for e in edges if e.accepted and e.T_tgt_src is not None]
     graph = []
+    found = []
     for e in use:
         assert e.T_tgt_src is not None  # use: accepted edges with a pose
         i, j = index[e.src], index[e.tgt]
-        ps = frames[i].feats.points[e.matches[:, 0]].astype(np.float64)
-        pt = frames[j].feats.points[e.matches[:, 1]].astype(np.float64)
-        # the precision the edge claims, as registration solved it (keypoints, and the depth when it took part),
-        # in the source frame, the frame of the pose graph's residual: an edge whose pose the depth pins must
-        # agree with the others to that precision (the graph's floor keeps strong edges from dominating)
-        if rparams.dense_refine:
-            info = in_source_frame(pose_information(frames[i].dense, frames[j].dense, ps, pt, e.T_tgt_src,
-                                                    rparams.noise, rparams.depth_noise), e.T_tgt_src)
-        else:
-            info = information_from_points(ps, rparams.noise.pair_sigma(ps[:, 2], pt[:, 2]))
+        ev = evidence.get((e.src, e.tgt))
+        if ev is None:  # an edge a resumed scan took from the database
+            ev = _edge_evidence(e, data.reg(i), data.reg(j), rparams)
+        found.append(ev)
         # an edge may join two parts of the graph alone only on strong evidence: enough matches (its depth
         # agreement is already a condition of every accepted edge)
-        graph.append(GraphEdge(i, j, e.T_tgt_src, info, strong=len(e.matches) >= cfg.posegraph.bridge_min_matches,
-                               weight=len(e.matches), depth=float(np.median(ps[:, 2]))))
+        graph.append(GraphEdge(i, j, e.T_tgt_src, ev.info, strong=len(e.matches) >= cfg.posegraph.bridge_min_matches,
+                               weight=len(e.matches), depth=ev.depth))
     res = optimize_pose_graph(n, graph, spanning_poses(n, graph), PoseGraphParams(alpha=cfg.posegraph.alpha))
     best: dict[int, float] = {}
-    for rep, e in zip(res.edges, use):
+    for rep, e, ev in zip(res.edges, use, found):
         # the pose graph's verdict joins the registration's: pruned edges are recorded as rejected
         if not rep.accepted:
             e.accepted = False
             e.reason = PRUNED + str(rep.reason)
             continue
-        assert e.T_tgt_src is not None  # use: accepted edges with a pose
-        i, j = index[e.src], index[e.tgt]
-        ps = frames[i].feats.points[e.matches[:, 0]].astype(np.float64)
-        pt = frames[j].feats.points[e.matches[:, 1]].astype(np.float64)
-        r = (np.linalg.norm(transform_points(e.T_tgt_src, ps) - pt, axis=1)
-             / rparams.noise.pair_sigma(ps[:, 2], pt[:, 2]))
-        rms = float(np.sqrt(np.mean(r * r)))
-        for k in (i, j):
-            best[k] = min(best.get(k, np.inf), rms)
+        for k in (index[e.src], index[e.tgt]):
+            best[k] = min(best.get(k, np.inf), ev.rms)
     # registration quality of a view in [0, 1] (1 = perfect): 1 - RMS / QUALITY_RMS_SIGMA of its best edge
     quality = {k: float(np.clip(1.0 - r / QUALITY_RMS_SIGMA, 0.0, 1.0)) for k, r in best.items()}
     return res.T_world_node, quality, res
@@ -731,8 +979,8 @@ def _unregistered_reasons(frames: list[_Frame], edges: list[Edge], graph: PoseGr
     for k, f in enumerate(frames):
         if graph.T_world_node[k] is not None:
             continue
-        name = f.frame.name
-        if not len(f.feats):
+        name = f.name
+        if not f.n_keypoints:
             out[name] = NO_KEYPOINTS
             continue
         if k in graph.node_reasons:
@@ -753,25 +1001,44 @@ def _unregistered_reasons(frames: list[_Frame], edges: list[Edge], graph: PoseGr
     return out
 
 
-def _segment(frames: list[_Frame], T_world_cam: list[np.ndarray | None], mode: str, segment: bool,
-             seg: SegmentParams) -> tuple[list[np.ndarray | None], Plane | None]:
-    """Per-frame object masks for fusion and the support plane in the world frame (or None).
+def _segment(data: _FrameData, T_world_cam: list[np.ndarray | None], segment: bool, seg: SegmentParams,
+             advance: Callable[[int], None]) -> tuple[Callable[[int], np.ndarray | None], Plane | None]:
+    """Per-frame object masks for fusion (a function of the frame index, the masks being in the store) and the
+    support plane in the world frame (or None); sets each frame's count of keypoints inside its mask.
 
     The plane defines the template frame's z axis even when masks are given: for a static object
     it comes from the working volume over the registered frames; for a moving object from the
     reference frame alone (a turntable's plane moves with the object; an object in hand has none).
     """
-    from gscan.scan.segment import segment_frame, segment_sequence
+    from gscan.scan.segment import estimate_working_volume, segment_frame, segment_in_volume
 
-    if not segment:
-        return [None] * len(frames), None
+    frames = data.frames
+    n = len(frames)
     reg = [k for k, T in enumerate(T_world_cam) if T is not None]
-    if mode == MOVING_OBJECT:
+    plane: Plane | None = None
+    if not segment:
+        def mask_of(k: int) -> np.ndarray | None:
+            return None
+    elif data.mode == MOVING_OBJECT:
         ref = frames[reg[0]]
         plane_cam = ref.plane_cam if ref.plane_cam is not None else segment_frame(
-            replace(ref.frame, mask=None), seg).plane_cam
+            replace(data.frame(reg[0]), mask=None), seg).plane_cam
         T_world_ref = T_world_cam[reg[0]]
         plane = None if plane_cam is None or T_world_ref is None else plane_cam.transformed(T_world_ref)
-        return [f.mask for f in frames], plane
-    segs, vol = segment_sequence([f.frame for f in frames], T_world_cam, seg)  # given masks win
-    return [s.mask for s in segs], (vol.plane_world if vol is not None else None)
+        mask_of = data.object_mask
+    else:  # given masks win
+        vol = estimate_working_volume(LazyList(len(reg), lambda i: data.frame(reg[i])),
+                                      [T for T in (T_world_cam[k] for k in reg) if T is not None], seg)
+        for k in range(n):
+            data.store.put(frames[k].name, mask=segment_in_volume(data.frame(k), T_world_cam[k], vol, seg).mask)
+        plane = vol.plane_world if vol is not None else None
+
+        def mask_of(k: int) -> np.ndarray | None:
+            return data.store.get(frames[k].name, "mask")
+    for k in range(n):  # what the keyframes are chosen by
+        f = frames[k]
+        if T_world_cam[k] is not None:
+            feats = data.db.features(f.name)
+            f.object_keypoints = 0 if feats is None else _object_keypoints(feats.pixels, mask_of(k))
+        advance(1)
+    return mask_of, plane

@@ -28,6 +28,7 @@ Planes: `height(p) = normal . p + offset`, normal pointing up (towards the camer
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
 import cv2
@@ -337,9 +338,10 @@ def _seen_by_most(points_world: np.ndarray, frames: list[RGBDFrame], T_world_cam
     return seen >= SEEN_BY * len(frames)
 
 
-def estimate_working_volume(frames: list[RGBDFrame], T_world_cam: list[np.ndarray],
+def estimate_working_volume(frames: Sequence[RGBDFrame], T_world_cam: list[np.ndarray],
                             params: SegmentParams = SegmentParams()) -> WorkingVolume | None:
-    """Support plane (world frame) and a cylinder around the object cluster on it.
+    """Support plane (world frame) and a cylinder around the object cluster on it (`frames`: any sequence,
+    only the frames used are read).
 
     Uses `volume_frames` frames evenly spaced over the sequence (stride-4 points in each frame's
     `depth_range`) within `SUPPORT_RADII` image half-widths of the point they keep centred; the bands follow
@@ -410,26 +412,30 @@ def segment_sequence(frames: list[RGBDFrame], T_world_cam: list[np.ndarray | Non
     """Masks of registered frames from one working volume; given masks win.
 
     Frames whose pose is None get an empty mask. Without a volume (no plane or cluster found)
-    every frame falls back to `segment_frame`.
+    every frame falls back to `segment_frame`. `segment_in_volume` segments one frame the same way.
     """
     if len(frames) != len(T_world_cam):
         raise ValueError(f"{len(frames)} frames but {len(T_world_cam)} poses")
     reg = [(f, T) for f, T in zip(frames, T_world_cam) if T is not None]
     vol = estimate_working_volume([f for f, _ in reg], [T for _, T in reg], params)
-    out = []
-    for f, T in zip(frames, T_world_cam):
-        if f.mask is not None:
-            out.append(segment_frame(f, params))
-        elif T is None:
-            out.append(Segmentation(np.zeros(f.depth.shape, dtype=bool), None, "volume", "frame not registered"))
-        elif vol is None:
-            s = segment_frame(f, params)
-            s.reason = (s.reason + "; " if s.reason else "") + "no working volume for the sequence"
-            out.append(s)
-        else:
-            lo, hi = depth_range(params, centre_depth(f))
-            valid = (f.depth >= lo) & (f.depth <= hi)
-            cand = valid & vol.contains_camera(backproject(f.depth, f.intrinsics), T, vol.height_min)
-            m = pick_component(cand, f.depth, params, keep_fraction=0.05)
-            out.append(Segmentation(m, vol.plane_world.transformed(np.linalg.inv(T)), "volume"))
-    return out, vol
+    return [segment_in_volume(f, T, vol, params) for f, T in zip(frames, T_world_cam)], vol
+
+
+def segment_in_volume(frame: RGBDFrame, T_world_cam: np.ndarray | None, vol: WorkingVolume | None,
+                      params: SegmentParams = SegmentParams()) -> Segmentation:
+    """One frame of `segment_sequence`: its given mask, an empty mask when it has no pose, the component inside
+    the working volume `vol`, or without a volume `segment_frame`."""
+    f, T = frame, T_world_cam
+    if f.mask is not None:
+        return segment_frame(f, params)
+    if T is None:
+        return Segmentation(np.zeros(f.depth.shape, dtype=bool), None, "volume", "frame not registered")
+    if vol is None:
+        s = segment_frame(f, params)
+        s.reason = (s.reason + "; " if s.reason else "") + "no working volume for the sequence"
+        return s
+    lo, hi = depth_range(params, centre_depth(f))
+    valid = (f.depth >= lo) & (f.depth <= hi)
+    cand = valid & vol.contains_camera(backproject(f.depth, f.intrinsics), T, vol.height_min)
+    m = pick_component(cand, f.depth, params, keep_fraction=0.05)
+    return Segmentation(m, vol.plane_world.transformed(np.linalg.inv(T)), "volume")

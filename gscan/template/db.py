@@ -6,7 +6,12 @@ descriptors, the registration edges with their quality numbers, the fused mesh a
 and a `meta` table of JSON values (schema, status, descriptor config, units, source, config).
 
 Durability: rollback journal with `synchronous=FULL`; every write method is one transaction, so
-a crash loses at most the record being written. While a scan runs the status is "partial"; the
+a crash loses at most the record being written. A writer of many records (the scan) opens the file with
+`wal=True` (write-ahead log, `synchronous=NORMAL`: a commit costs no fsync) and groups its writes in
+`batch()` transactions, one per stage or chunk of a stage: a crash loses at most the uncommitted batch, never
+the file's consistency. Closing a WAL writer turns the file back into a rollback-journal database, so a
+finished template is one self-contained file that any SQLite reader opens, also from a read-only folder.
+Readers leave the journal mode as they find it. While a scan runs the status is "partial"; the
 scan's last transaction (`mark_complete`) makes it "complete". Consumers (`estimate`, `export`,
 `view`) open with `require_complete=True` and are refused a partial database.
 
@@ -40,7 +45,7 @@ from gscan.geometry.mesh import MeshData, to_u8_colors
 from gscan.geometry.transforms import is_rigid
 from gscan.io.camera import Intrinsics
 from gscan.io.images import image_too_large
-from gscan.io.output import JOURNAL_SUFFIX, Output, file_identity, write_failure_reason
+from gscan.io.output import Output, file_identity, remove_sqlite_sidecars, write_failure_reason
 from gscan.template.codec import (
     BadBlob,
     TooLarge,
@@ -133,33 +138,57 @@ def unregistered_reasons(names: list[str], reasons: Any, skipped: Any) -> dict[s
     return {n: str(known.get(n, "not registered")) for n in names}
 
 
+def selection_summary(meta: Any) -> dict:
+    """A scan's frame selection as `scan --json` and `info` report it, from its "selection" meta: {"kept": int,
+    "skipped": int, "reasons": {why: frames}}; {} when the template has none (written before frames were
+    selected, or from a mesh)."""
+    if not isinstance(meta, dict):
+        return {}
+    reasons = meta.get("reasons")
+    return {"kept": int(meta.get("kept", 0)), "skipped": int(meta.get("skipped", 0)),
+            "reasons": {str(k): int(v) for k, v in reasons.items()} if isinstance(reasons, dict) else {}}
+
+
 class TemplateDB:
     """A template database file. Use `create` or `open`, never the constructor; close it (or use `with`).
 
     Thread-safe (one lock around the connection), so the viewer may read it from a server thread.
     """
 
-    def __init__(self, path: Path, conn: sqlite3.Connection, writable: bool):
+    def __init__(self, path: Path, conn: sqlite3.Connection, writable: bool, wal: bool = False):
         self.path = path
         self._conn: sqlite3.Connection | None = conn
         self._writable = writable
+        self._wal = wal and writable and str(conn.execute("PRAGMA journal_mode").fetchone()[0]).lower() == "wal"
         self._lock = threading.RLock()
+        self._batch = False  # a batch() transaction is open
 
     # -- opening ---------------------------------------------------------------------------------
     @staticmethod
-    def _connect(path: Path) -> sqlite3.Connection:
+    def _connect(path: Path, writable: bool = True, wal: bool = False) -> sqlite3.Connection:
+        """A connection; a writer sets the journal (WAL with synchronous=NORMAL, else a rollback journal with
+        synchronous=FULL), a reader keeps the file's (changing it needs every other connection gone: a reader of
+        a scan under way would wait for it)."""
         conn = sqlite3.connect(str(path), isolation_level=None, check_same_thread=False, timeout=30.0)
-        conn.execute("PRAGMA journal_mode=DELETE")
-        conn.execute("PRAGMA synchronous=FULL")
+        if writable:
+            mode = "delete"
+            if wal:  # not every file system gives SQLite the shared memory a log needs: then a journal
+                with suppress(sqlite3.OperationalError):
+                    mode = str(conn.execute("PRAGMA journal_mode=WAL").fetchone()[0]).lower()
+            if mode != "wal":
+                conn.execute("PRAGMA journal_mode=DELETE")
+            conn.execute(f"PRAGMA synchronous={'NORMAL' if mode == 'wal' else 'FULL'}")
         return conn
 
     @classmethod
-    def create(cls, path: str | Path, force: bool = False, meta: dict | None = None) -> TemplateDB:
+    def create(cls, path: str | Path, force: bool = False, meta: dict | None = None,
+               wal: bool = False) -> TemplateDB:
         """Create a new database at `path` with status "partial".
 
         An existing `path` is refused (OutputExists) unless `force`, which replaces it; without `force`
         the file is created only if nothing is there at that moment (a concurrent creator is refused).
         `meta` adds meta keys (e.g. "source": "scan"|"mesh", "descriptor": {"kind": ...}, "config": {...}).
+        `wal`: write through a write-ahead log (a writer of many records; see the module docstring).
         """
         path = Path(path)
         # the schema is written to a temporary sibling and put in place at once, so a crash never leaves
@@ -182,7 +211,7 @@ class TemplateDB:
                                   [(k, json.dumps(v, sort_keys=True)) for k, v in base.items()])
             finally:
                 setup.close()
-            Path(f"{path}{JOURNAL_SUFFIX}").unlink(missing_ok=True)  # a stale journal must not meet the new file
+            remove_sqlite_sidecars(path)  # a stale journal or log must not meet the new file
             created = file_identity(tmp)
             out.commit()
         except BaseException as e:
@@ -193,7 +222,7 @@ class TemplateDB:
             if t is not e:
                 raise t from None
             raise
-        db = cls(path, cls._connect(path), writable=True)
+        db = cls(path, cls._connect(path, wal=wal), writable=True, wal=wal)
         if file_identity(path) != created:  # replaced by another writer between the rename and the connection
             db.close()
             raise InputError(path, "was replaced by another process while this one created it")
@@ -201,9 +230,11 @@ class TemplateDB:
         return db
 
     @classmethod
-    def open(cls, path: str | Path, require_complete: bool = True, writable: bool = False) -> TemplateDB:
+    def open(cls, path: str | Path, require_complete: bool = True, writable: bool = False,
+             wal: bool = False) -> TemplateDB:
         """Open an existing database. InputError (one line naming the file) when the file is missing,
-        not SQLite, not a gscan database, of an unsupported schema, or partial while `require_complete`."""
+        not SQLite, not a gscan database, of an unsupported schema, or partial while `require_complete`.
+        `wal` (with `writable`): write through a write-ahead log, as `create`."""
         path = Path(path)
         if not path.is_file():
             raise not_a_file(path, "template database")
@@ -216,7 +247,7 @@ class TemplateDB:
             raise InputError(path, "not a gscan template database (not an SQLite file)")
         conn = None
         try:
-            conn = cls._connect(path)
+            conn = cls._connect(path, writable=writable, wal=wal and writable)
             app_id = conn.execute("PRAGMA application_id").fetchone()[0]
             has_meta = conn.execute("SELECT 1 FROM sqlite_master WHERE type='table' AND name='meta'").fetchone()
             if app_id != APPLICATION_ID or not has_meta:
@@ -244,11 +275,17 @@ class TemplateDB:
         if require_complete and status != "complete":
             conn.close()
             raise InputError(path, "is a partial scan (interrupted before it completed)", fix="finish")
-        return cls(path, conn, writable)
+        return cls(path, conn, writable, wal=wal and writable)
 
     def close(self) -> None:
+        """Close the connection; a WAL writer first moves the log into the file and returns it to a rollback
+        journal (left in WAL mode while another connection holds the file: still valid, its log goes at its
+        last close)."""
         with self._lock:
             if self._conn is not None:
+                if self._wal:
+                    with suppress(sqlite3.Error):
+                        self._conn.execute("PRAGMA journal_mode=DELETE")
                 self._conn.close()
                 self._conn = None
 
@@ -260,20 +297,25 @@ class TemplateDB:
 
     @contextmanager
     def _tx(self) -> Iterator[sqlite3.Connection]:
-        """One write transaction (BEGIN IMMEDIATE ... COMMIT, rolled back on any exception)."""
+        """One write transaction (BEGIN IMMEDIATE ... COMMIT, rolled back on any exception); inside a `batch`
+        a savepoint of its transaction, so a write that fails leaves none of its rows in the batch."""
         if not self._writable:
             raise GscanError(f"{self.path}: opened read-only")
         with self._lock:
             c = self._live()
+            begin, commit, rollback = (("SAVEPOINT w", "RELEASE w", "ROLLBACK TO w") if self._batch else
+                                       ("BEGIN IMMEDIATE", "COMMIT", "ROLLBACK"))
             try:
-                c.execute("BEGIN IMMEDIATE")
+                c.execute(begin)
                 try:
                     yield c
                 except BaseException:
                     with suppress(sqlite3.Error):
-                        c.execute("ROLLBACK")
+                        c.execute(rollback)
+                        if self._batch:
+                            c.execute(commit)
                     raise
-                c.execute("COMMIT")
+                c.execute(commit)
             except sqlite3.DatabaseError as e:
                 if isinstance(e, sqlite3.IntegrityError):
                     raise
@@ -283,6 +325,43 @@ class TemplateDB:
         if self._conn is None:
             raise GscanError(f"{self.path}: the template database is closed")
         return self._conn
+    @contextmanager
+    def batch(self) -> Iterator[None]:
+        """The writes inside are one transaction, committed at the end (or at each `commit()` inside), rolled
+        back on an exception: one commit for many records. Other threads may read meanwhile (they see the batch's
+        rows); only the thread that opened the batch writes. Not nested."""
+        if not self._writable:
+            raise GscanError(f"{self.path}: opened read-only")
+        with self._lock:
+            if self._batch:
+                raise GscanError(f"{self.path}: a batch is open already")
+            self._execute("BEGIN IMMEDIATE")
+            self._batch = True
+        try:
+            yield
+        except BaseException:
+            with self._lock:
+                self._batch = False
+                with suppress(sqlite3.Error):
+                    self._live().execute("ROLLBACK")
+            raise
+        with self._lock:
+            self._batch = False
+            self._execute("COMMIT")
+
+    def commit(self) -> None:
+        """Inside a `batch`: commit what it wrote so far and go on in a new transaction (a long stage commits
+        in chunks, so a crash loses at most the last one); outside one, nothing to do."""
+        with self._lock:
+            if self._batch:
+                self._execute("COMMIT")
+                self._execute("BEGIN IMMEDIATE")
+
+    def _execute(self, sql: str) -> None:
+        try:
+            self._live().execute(sql)
+        except sqlite3.DatabaseError as e:
+            raise self._corrupt(e) from None
 
     def _q(self, sql: str, args: tuple = ()) -> list[tuple]:
         with self._lock:
@@ -385,13 +464,42 @@ class TemplateDB:
         re-expressed: p_new = T_new @ inv(T_old) @ p_old (identity stands for a missing pose)."""
         T_new = check_T(T_obj_cam)
         with self._tx() as c:
-            vid, T_old = self._view_id(c, name)
-            c.execute("UPDATE views SET T_obj_cam=? WHERE id=?", (encode_array(T_new), vid))
-            A = (np.eye(4) if T_new is None else T_new) @ np.linalg.inv(np.eye(4) if T_old is None else T_old)
-            rows = c.execute("SELECT role, points FROM features WHERE view_id=?", (vid,)).fetchall()
-            for role, pts in rows if move_features else []:
-                c.execute("UPDATE features SET points=? WHERE view_id=? AND role=?",
-                          (encode_array(_apply(A, decode_array(pts, (None, 3)))), vid, role))
+            self._set_pose(c, name, T_new, move_features)
+
+    @_decodes
+    def update_view(self, name: str, *, T_obj_cam: np.ndarray | None, mask: np.ndarray | None, keyframe: bool,
+                    quality: float | None) -> None:
+        """Set a stored view's pose (its keypoints re-expressed, as `update_pose`), mask [H x W] bool (None: none),
+        keyframe flag and quality, in one transaction; its images stay as stored (a scan writes them once)."""
+        T_new = check_T(T_obj_cam)
+        m = None if mask is None else encode_mask(mask)
+        with self._tx() as c:
+            vid = self._set_pose(c, name, T_new, True)
+            c.execute("UPDATE views SET mask=?, keyframe=?, quality=? WHERE id=?",
+                      (m, int(bool(keyframe)), None if quality is None else float(quality), vid))
+
+    def _set_pose(self, c: sqlite3.Connection, name: str, T_new: np.ndarray | None, move_features: bool) -> int:
+        vid, T_old = self._view_id(c, name)
+        c.execute("UPDATE views SET T_obj_cam=? WHERE id=?", (encode_array(T_new), vid))
+        A = (np.eye(4) if T_new is None else T_new) @ np.linalg.inv(np.eye(4) if T_old is None else T_old)
+        if T_old is None and T_new is not None:
+            A = T_new  # camera frame to object frame: the points exactly as Features.transformed maps them
+        if T_old is None and T_new is None:
+            move_features = False  # still in the camera frame
+        rows = c.execute("SELECT role, points FROM features WHERE view_id=?", (vid,)).fetchall()
+        for role, pts in rows if move_features else []:
+            c.execute("UPDATE features SET points=? WHERE view_id=? AND role=?",
+                      (encode_array(_apply(A, decode_array(pts, (None, 3)))), vid, role))
+        return vid
+
+    def remove_view(self, name: str) -> None:
+        """Remove a view, its keypoints and the edges that join it to other views (nothing when there is none)."""
+        with self._tx() as c:
+            row = c.execute("SELECT id FROM views WHERE name=?", (name,)).fetchone()
+            if row is not None:
+                c.execute("DELETE FROM features WHERE view_id=?", (row[0],))
+                c.execute("DELETE FROM views WHERE id=?", (row[0],))
+            c.execute("DELETE FROM edges WHERE src=? OR tgt=?", (name, name))
 
     def view_names(self) -> list[str]:
         """All view names in input order (input_index, then insertion)."""
@@ -600,18 +708,24 @@ class TemplateDB:
                                source=self.get_meta("source", "scan"), extent_m=(x, y, z),
                                grasps=tuple(sorted(self.grasps())),
                                unregistered_reasons=unregistered_reasons(unreg, self.get_meta("unregistered_reasons"),
-                                                                         self.get_meta("skipped")))
+                                                                         self.get_meta("skipped")),
+                               selection=selection_summary(self.get_meta("selection")))
 
     def poses(self) -> dict:
         """The dict `gscan poses --json` prints: {"frames": {name: T_obj_cam}, "unregistered": [names],
-        "unregistered_reasons": {name: reason}}; unregistered as in `scan --json`: the views without a pose,
-        then the input frames the scan could not read (its "skipped" meta)."""
+        "unregistered_reasons": {name: reason}, "skipped_by_selection": {name: reason}}; unregistered as in
+        `scan --json`: the views without a pose, then the input frames the scan could not read (its "skipped"
+        meta); skipped by selection: the input frames the scan's frame selection left out (not failures)."""
         views = self.views()
         frames = {v.name: v.T_obj_cam.tolist() for v in views if v.T_obj_cam is not None}
         unreg = unregistered_names(views, self.get_meta("skipped"))
+        sel = self.get_meta("selection")
+        skipped = sel.get("frames") if isinstance(sel, dict) else None
         return {"frames": frames, "unregistered": unreg,
                 "unregistered_reasons": unregistered_reasons(unreg, self.get_meta("unregistered_reasons"),
-                                                             self.get_meta("skipped"))}
+                                                             self.get_meta("skipped")),
+                "skipped_by_selection": {str(k): str(v) for k, v in skipped.items()} if isinstance(skipped, dict)
+                else {}}
 
     def load_template(self, keyframes_only: bool = True) -> Template:
         """Everything the estimator needs, loaded once: registered (key)frame views with their keypoints

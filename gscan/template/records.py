@@ -63,7 +63,9 @@ class Edge:
 class TemplateSummary:
     """What a template database holds (`TemplateDB.summary`): schema version, status ("complete" | "partial"),
     number of views, registered views and keyframes, descriptor kind, source ("scan" | "mesh"), the object's
-    extent [3] (m, object frame), the grasp names, and why each unregistered frame is (name -> reason)."""
+    extent [3] (m, object frame), the grasp names, why each unregistered frame is (name -> reason), and the scan's
+    frame selection: {"kept": int, "skipped": int, "reasons": {why: frames}} (empty for a template written
+    before frames were selected, or from a mesh)."""
 
     schema: int
     status: str
@@ -75,6 +77,7 @@ class TemplateSummary:
     extent_m: tuple[float, float, float]
     grasps: tuple[str, ...]
     unregistered_reasons: dict[str, str] = field(default_factory=dict)
+    selection: dict = field(default_factory=dict)
 
 
 @dataclass
