@@ -17,6 +17,7 @@ from gscan.scan.config import ScanConfig, dump_defaults, load_config
 from gscan.scan.fuse import FusionParams
 from gscan.scan.keyframes import KeyframeParams
 from gscan.scan.segment import SegmentParams
+from gscan.scan.select import SelectionParams
 
 
 def test_dump_has_a_comment_per_key_and_loads_back_as_the_defaults(tmp_path):
@@ -130,6 +131,7 @@ STAGE_DEFAULTS = {
     "fusion.voxel": (FusionParams, "voxel_size"), "fusion.depth_max": (FusionParams, "depth_max"),
     **{f"keyframes.{k}": (KeyframeParams, k) for k in ("min_angle_deg", "max_views", "min_views",
                                                        "min_object_keypoints")},
+    **{f"selection.{k}": (SelectionParams, k) for k in ("min_motion_deg", "blur_ratio")},
 }
 # ... or null, decided per capture (the stage's own default is what a caller without a capture gets) ...
 FROM_THE_CAPTURE = {

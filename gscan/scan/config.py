@@ -20,6 +20,7 @@ from gscan.registration.posegraph import LoopParams, PoseGraphParams
 from gscan.scan.fuse import FusionParams
 from gscan.scan.keyframes import KeyframeParams
 from gscan.scan.segment import SegmentParams
+from gscan.scan.select import SelectionParams
 
 
 class _Section(BaseModel):
@@ -28,8 +29,8 @@ class _Section(BaseModel):
 
 # each section's defaults are its stage's parameter defaults, read from them; the named choices (typed as
 # Literal for validation) are written out; tests/test_config.py checks that every key equals its stage's default
-_FP, _GM, _RP, _SP, _FU, _KP = (FeatureParams(), GMatchParams(), RegisterParams(), SegmentParams(), FusionParams(),
-                                KeyframeParams())
+_FP, _GM, _RP, _SP, _FU, _KP, _SEL = (FeatureParams(), GMatchParams(), RegisterParams(), SegmentParams(),
+                                      FusionParams(), KeyframeParams(), SelectionParams())
 
 
 class FeaturesConfig(_Section):
@@ -149,10 +150,10 @@ class KeyframeConfig(_Section):
 
 
 class SelectionConfig(_Section):
-    min_motion_deg: float = Field(0.5, ge=0, le=90, description="a frame is kept once the view moved this much since "
+    min_motion_deg: float = Field(_SEL.min_motion_deg, ge=0, le=90, description="a frame is kept once the view moved this much since "
                                   "the last kept frame (rotation, or translation as an angle at the scene's depth); "
                                   "0 keeps every frame")
-    blur_ratio: float = Field(0.5, ge=0, lt=1, description="a frame less sharp than this share of the frames before "
+    blur_ratio: float = Field(_SEL.blur_ratio, ge=0, lt=1, description="a frame less sharp than this share of the frames before "
                               "it is passed over for a sharper one (until the view moved twice min_motion_deg); "
                               "0 never")
 
