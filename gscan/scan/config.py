@@ -150,12 +150,13 @@ class KeyframeConfig(_Section):
 
 
 class SelectionConfig(_Section):
-    min_motion_deg: float = Field(_SEL.min_motion_deg, ge=0, le=90, description="a frame is kept once the view moved this much since "
-                                  "the last kept frame (rotation, or translation as an angle at the scene's depth); "
-                                  "0 keeps every frame")
-    blur_ratio: float = Field(_SEL.blur_ratio, ge=0, lt=1, description="a frame less sharp than this share of the frames before "
-                              "it is passed over for a sharper one (until the view moved twice min_motion_deg); "
-                              "0 never")
+    min_motion_deg: float = Field(_SEL.min_motion_deg, ge=0, le=90,
+                                  description="a frame is kept once the view moved this much since the last kept "
+                                  "frame (rotation, or translation as an angle at the scene's depth); 0 keeps every "
+                                  "frame")
+    blur_ratio: float = Field(_SEL.blur_ratio, ge=0, lt=1,
+                              description="a frame less sharp than this share of the frames before it is passed over "
+                              "for a sharper one (until the view moved twice min_motion_deg); 0 never")
 
 
 class ScanConfig(_Section):
