@@ -715,9 +715,11 @@ def _extract(data: _FrameData, db: TemplateDB, resumed: bool, advance: Callable[
     with ThreadPoolExecutor(max_workers=WORKERS) as pool:
         for k, (frame, feats) in enumerate(_bounded_map(pool, frame_work, range(len(frames)))):
             f = frames[k]
-            if frame is None or feats is None:
+            if frame is None or feats is None:  # stored by the interrupted run, still in the camera frame
                 stored_feats = db.features(f.name)
-                f.n_keypoints = 0 if stored_feats is None else len(stored_feats)
+                if stored_feats is None:
+                    raise InputError(db.path, f"view {f.name!r} is stored without its keypoints", fix="restart")
+                f.n_keypoints = len(stored_feats)
             else:
                 db.add_view(View.from_frame(frame, keyframe=False, input_index=k), feats, replace=f.name in stored)
                 f.n_keypoints = len(feats)
