@@ -87,7 +87,7 @@ def test_every_registration_key_reaches_the_registration_parameters():
                 assert _register_params(cfg, STATIC_OBJECT).dense_refine is new
                 assert _register_params(cfg, MOVING_OBJECT).dense_refine is new
             continue
-        new = (not value) if isinstance(value, bool) else value / 2 if key == "max_see_through" else value + 1
+        new = (not value) if isinstance(value, bool) else value / 2 if key in ("max_see_through", "min_colour_agreement") else value + 1
         cfg = base.model_copy(update={"registration": base.registration.model_copy(update={key: new})})
         assert getattr(_register_params(cfg, MOVING_OBJECT), key) == new, key
 
@@ -122,7 +122,8 @@ STAGE_DEFAULTS = {
     "match.method": (RegisterParams, "method"),
     **{f"match.{k}": (GMatchParams, k) for k in ("eps_f", "eps_c", "eta", "order", "T", "L", "constraint")},
     **{f"registration.{k}": (RegisterParams, k) for k in (
-        "min_matches", "max_rms", "max_sigma_deg", "max_sigma_rel", "max_see_through", "verify", "support_eps_scale",
+        "min_matches", "max_rms", "max_sigma_deg", "max_sigma_rel", "max_see_through", "min_colour_agreement",
+        "verify", "support_eps_scale",
         "icp", "icp_max_dist", "icp_voxel", "min_fitness", "max_rmse", "max_icp_shift_deg", "max_icp_shift_m")},
     "posegraph.loop_candidates": (LoopParams, "max_per_node"),
     "posegraph.max_view_angle_deg": (LoopParams, "max_angle_deg"),

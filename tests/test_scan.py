@@ -146,16 +146,17 @@ def test_wide_view_spacing_with_symmetric_print(tmp_path, meshes_dir):
     """36 degrees between views on three rings: the low ring sees the box's matching prints and the
     repetitive table from opposite sides, so some pairs give consistent but 180-degree-wrong lists (9-33
     inliers, and the depth of a box on a flat table is the same turned 180 degrees). They must be outvoted
-    by the well-supported edges (50-800 inliers). Frame 4's one right edge (49 pairs) is contradicted by four
-    flipped ones that agree with each other (65 pairs in all): no cycle decides, so it is left out with that
-    reason rather than fused at a guess. Before weak edges were made doubtful, this capture scanned with an
-    ATE of 87 mm."""
+    by the well-supported edges (50-800 inliers) or refuted by the texture around the box. Frame 4's edges are
+    such flipped lists (the texture lines up in 7-25 % of the overlap, against 58-92 % for right edges here): it
+    is left out with that reason rather than fused at a guess. Before weak edges were made doubtful, this capture
+    scanned with an ATE of 87 mm."""
     mesh = load_textured_mesh(meshes_dir / MESHES[0] / "model_0.obj")
     cap = tmp_path / "wide"
     render_capture(mesh, cap, 30, mode="static", elevations_deg=(20.0, 40.0, 60.0), seed=0)
     res = scan(cap, tmp_path / "wide.gscan")
     assert res.registered >= 28, res.unregistered_reasons
-    assert all("contradicted" in r or "inconsistent" in r for r in res.unregistered_reasons.values())
+    assert all(any(why in r for why in ("contradicted", "inconsistent", "colour disagrees"))
+               for r in res.unregistered_reasons.values()), res.unregistered_reasons
     ate, n = _ate_to_gt(tmp_path / "wide.gscan", cap)
     # trajectory within 5 mm of the truth (it was 87 mm before weak edges were made doubtful), no frame wrong
     assert n == res.registered and ate <= 0.005, f"ATE {ate * 1000:.2f} mm"

@@ -23,6 +23,16 @@ import numpy as np
 
 from gscan.geometry.transforms import inv_T, transform_points
 from gscan.io.camera import Intrinsics
+from gscan.registration.colour import (
+    MIN_TEXTURE,
+    TEXTURE_SNR,
+    TILE,
+    ColourAgreement,
+    grey_image,
+    image_noise,
+    texture_image,
+    tile_agreement,
+)
 from gscan.registration.noise import DepthNoise
 
 EDGE_REL = 0.03  # a neighbour whose depth differs by more than this fraction marks a discontinuity
@@ -34,7 +44,9 @@ class DenseGeometry:
 
     depth [h x w] (0 = invalid or left out), grid [h x w x 3] the sampled points, normals [h x w x 3]
     (unit, towards the camera), points [P x 3] of the kept samples; fx, fy, cx, cy the intrinsics of the
-    sampled grid.
+    sampled grid. With the frame's grey image: pixels [P x 2] (u, v) of the kept samples in the image,
+    full_intrinsics (fx, fy, cx, cy) of the image, texture [H x W] its band-passed grey levels and
+    texture_noise the image's noise (`gscan.registration.colour`).
     """
 
     depth: np.ndarray
@@ -45,11 +57,17 @@ class DenseGeometry:
     fy: float
     cx: float
     cy: float
+    pixels: np.ndarray | None = None
+    full_intrinsics: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
+    texture: np.ndarray | None = None
+    texture_noise: float = 0.0
 
     @classmethod
     def from_depth(cls, depth: np.ndarray, intr: Intrinsics, mask: np.ndarray | None = None,
-                   samples: int = 5000) -> DenseGeometry:
-        """Samples of depth [H x W] (m) inside mask ([H x W] bool, optional), about `samples` of them."""
+                   samples: int = 5000, image: np.ndarray | None = None) -> DenseGeometry:
+        """Samples of depth [H x W] (m) inside mask ([H x W] bool, optional), about `samples` of them; with the
+        frame's image ([H x W x 3] RGB or [H x W] grey, registered to the depth), its texture for
+        `gscan.registration.colour`."""
         H, W = depth.shape
         stride = max(1, int(np.sqrt(H * W / samples)))
         off = stride // 2
@@ -76,7 +94,14 @@ class DenseGeometry:
         n *= np.where(np.sum(n * grid, axis=-1, keepdims=True) > 0, -1.0, 1.0)
         good &= norm[..., 0] > 0
         d = np.where(good, d, 0.0)
-        return cls(d, grid, n, grid[good], fx, fy, cx, cy)
+        texture = pixels = None
+        noise = 0.0
+        if image is not None and image.shape[:2] == depth.shape:
+            grey = grey_image(image)
+            texture, noise = texture_image(grey), image_noise(grey)
+            pixels = np.stack([u[gu[good]], v[gv[good]]], axis=1)
+        return cls(d, grid, n, grid[good], fx, fy, cx, cy, pixels, (intr.fx, intr.fy, intr.cx, intr.cy), texture,
+                   noise)
 
     def __len__(self) -> int:
         return len(self.points)
@@ -107,10 +132,11 @@ class DepthAgreement:
                               self.occluded + other.occluded, self.landed + other.landed, self.total + other.total)
 
 
-def _landing(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarray) -> tuple[np.ndarray, np.ndarray,
-                                                                                      np.ndarray]:
+def landing(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarray
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """src's samples that land on a valid sample of tgt under T_tgt_src: (their points in tgt's camera
-    frame [K x 3], the rows [K] and columns [K] of tgt's samples they land on)."""
+    frame [K x 3], the rows [K] and columns [K] of tgt's samples they land on, their indices [K] in
+    src.points)."""
     q = transform_points(T_tgt_src, src.points)
     z = q[:, 2]
     front = z > 1e-3
@@ -121,7 +147,7 @@ def _landing(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarray) -> t
     idx = np.flatnonzero(front & (u >= 0) & (u < w) & (v >= 0) & (v < h))
     vi, ui = v[idx], u[idx]
     has = tgt.depth[vi, ui] > 0
-    return q[idx[has]], vi[has], ui[has]
+    return q[idx[has]], vi[has], ui[has], idx[has]
 
 
 def depth_agreement(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarray, noise: DepthNoise,
@@ -134,6 +160,29 @@ def depth_agreement(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarra
         tol = k * noise.pair_sigma(z, zm)
         out = out + DepthAgreement(int((np.abs(e) <= tol).sum()), int((e > tol).sum()), int((e < -tol).sum()),
                                    len(z), len(a))
+    return out
+
+
+def colour_agreement(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarray, noise: DepthNoise,
+                     k: float = 3.0) -> ColourAgreement:
+    """Colour agreement of two frames' `DenseGeometry` (each with its texture) under T_tgt_src, in both
+    directions, over the samples whose depth agrees within k sigmas of `noise` (`gscan.registration.colour`);
+    nothing is informative when a frame has no texture."""
+    out = ColourAgreement(0, 0)
+    for a, b, T in ((src, tgt, T_tgt_src), (tgt, src, inv_T(T_tgt_src))):
+        if a.texture is None or b.texture is None or a.pixels is None:
+            return ColourAgreement(0, 0)
+        q, vi, ui, idx = landing(a, b, T)
+        e = np.sum(b.normals[vi, ui] * (q - b.grid[vi, ui]), axis=1)
+        ok = np.abs(e) <= k * noise.pair_sigma(q[:, 2], b.depth[vi, ui])
+        q, idx = q[ok], idx[ok]
+        fx, fy, cx, cy = b.full_intrinsics
+        u = q[:, 0] / q[:, 2] * fx + cx
+        v = q[:, 1] / q[:, 2] * fy + cy
+        pu, pv = a.pixels[idx, 0], a.pixels[idx, 1]
+        Ia = a.texture[pv, pu].astype(np.float64)
+        tiles = (pv // TILE) * (a.texture.shape[1] // TILE + 1) + pu // TILE
+        out = out + tile_agreement(Ia, tiles, b.texture, u, v, max(TEXTURE_SNR * a.texture_noise, MIN_TEXTURE))
     return out
 
 
@@ -216,7 +265,7 @@ def plane_residuals(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarra
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Signed point-to-plane distances [K] of src's samples landing on tgt's depth under T_tgt_src, with their
     depth in tgt's camera [K] and tgt's measured depth there [K] (what the depth noise is estimated from)."""
-    q, vi, ui = _landing(src, tgt, T_tgt_src)
+    q, vi, ui, _ = landing(src, tgt, T_tgt_src)
     return np.sum(tgt.normals[vi, ui] * (q - tgt.grid[vi, ui]), axis=1), q[:, 2], tgt.depth[vi, ui]
 
 
@@ -224,6 +273,6 @@ def _plane_pairs(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarray, 
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """src's samples in tgt's frame that land on tgt's depth: (points [K x 3], tgt's normals there [K x 3],
     signed point-to-plane distances [K], their sigma [K])."""
-    q, vi, ui = _landing(src, tgt, T_tgt_src)
+    q, vi, ui, _ = landing(src, tgt, T_tgt_src)
     n = tgt.normals[vi, ui]
     return q, n, np.sum(n * (q - tgt.grid[vi, ui]), axis=1), noise.pair_sigma(q[:, 2], tgt.depth[vi, ui])

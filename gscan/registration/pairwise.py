@@ -22,6 +22,10 @@ Acceptance rules, applied in this order (the first failing one is the `reason`):
 3. "depth disagrees" (with `dense`, both frames' `DenseGeometry`): under the pose, more than
    `max_see_through` of the overlap of the two depth images is seen through (`gscan.registration.dense`);
    "too little depth overlap" when fewer than `min_overlap` samples land on the other frame's depth.
+   "colour disagrees" (with the frames' texture in `dense`): of the overlap's textured tiles, fewer than
+   `min_colour_agreement` line up under the pose (`gscan.registration.colour`: depth cannot tell a pose
+   from its mirror on a symmetric object, the texture around it can); no verdict with fewer than
+   `min_colour_tiles` textured tiles.
 4. with ICP (params.icp and both clouds given), point-to-plane ICP from the match pose, then
    "icp fitness" below `min_fitness`, "icp rmse" above `max_rmse`, or "icp shift": ICP moved the
    match pose by more than `max_icp_shift_deg` / `max_icp_shift_m` (a slide, not a refinement).
@@ -69,7 +73,8 @@ from gscan.geometry.transforms import inv_T, pose_error, transform_points
 from gscan.io.camera import RGBDFrame, point_cloud
 from gscan.matching.baselines import BASELINES, BaselineParams, run_baseline
 from gscan.matching.gmatch import GMatchParams, GMatchResult, default_eps_f, gmatch
-from gscan.registration.dense import DenseGeometry, DepthAgreement, depth_agreement
+from gscan.registration.colour import ColourAgreement
+from gscan.registration.dense import DenseGeometry, DepthAgreement, colour_agreement, depth_agreement
 from gscan.registration.dense import refine_pose as refine_with_depth
 from gscan.registration.noise import DepthNoise
 from gscan.registration.posegraph import information_from_points
@@ -98,6 +103,8 @@ class RegisterParams:
     verify_ratio: float = 1.5  # ... one replaces the winner only with this many times its support
     support_eps_scale: float = 1.5  # ... support counted on pairs with descriptor distance < this x eps_f
     max_see_through: float = 0.15  # rule 3: share of the depth overlap seen through under the pose
+    min_colour_agreement: float = 1 / 3  # rule 3: share of the textured tiles lining up (chance: 1 in 17)
+    min_colour_tiles: int = 8  # rule 3: textured tiles the colour verdict needs
     dense_refine: bool = True  # with the depth samples, the pose is refined on keypoints and depth together
     min_overlap: int = 50  # rule 3: depth samples that must land on the other frame to verify the pose
     # refine by point-to-plane ICP when clouds are given; off by default: on textured planar scenes ICP
@@ -120,8 +127,8 @@ class RegisterParams:
             raise ValueError("need verify >= 0, verify_min_len >= 3, verify_ratio >= 1 and support_eps_scale >= 1")
         if not self.refine_gates or min(self.refine_gates) <= 0 or self.trim_gate <= 0 or self.max_rms <= 0:
             raise ValueError("refine_gates, trim_gate and max_rms must be positive")
-        if not 0 <= self.max_see_through <= 1:
-            raise ValueError("max_see_through must lie in [0, 1]")
+        if not 0 <= self.max_see_through <= 1 or not 0 <= self.min_colour_agreement <= 1:
+            raise ValueError("max_see_through and min_colour_agreement must lie in [0, 1]")
 
 
 @dataclass
@@ -142,6 +149,7 @@ class PairResult:
     sigma_deg: float | None = None  # predicted rotation standard deviation of the pose (rule 2)
     sigma_m: float | None = None  # predicted RMS position standard deviation of its pairs' points (rule 2)
     agreement: DepthAgreement | None = None  # the depth check of rule 3, when it ran
+    colour: ColourAgreement | None = None  # the colour check of rule 3, when it ran
     timings_ms: dict[str, float] = field(default_factory=dict)
 
 
@@ -399,6 +407,13 @@ def register_points(pts_s: np.ndarray, pts_t: np.ndarray, desc_s: np.ndarray, de
         if a.see_through_fraction > params.max_see_through:
             out.reason = f"depth disagrees ({a.see_through_fraction:.0%} of the overlap seen through)"
             return out
+        t0 = time.perf_counter()
+        c = out.colour = colour_agreement(dense[0], dense[1], T, params.depth_noise)
+        tm["colour"] = (time.perf_counter() - t0) * 1e3
+        if c.informative >= params.min_colour_tiles and c.agreeing_fraction < params.min_colour_agreement:
+            out.reason = (f"colour disagrees (the texture lines up in {c.agreeing} of {c.informative} tiles of the "
+                          f"overlap under the pose)")
+            return out
     if params.icp and clouds is not None and clouds[0] is not None and clouds[1] is not None:
         t0 = time.perf_counter()
         r_icp = icp(clouds[0], clouds[1], T, params.icp_max_dist, params.icp_voxel, params.icp_iterations, True)
@@ -471,8 +486,8 @@ def register_frames(frame_s: RGBDFrame, frame_t: RGBDFrame, params: RegisterPara
     ft = extract_features(frame_t, fp, mask=mt)
     t_feat = (time.perf_counter() - t0) * 1e3
     clouds = (frame_cloud(frame_s, icp_stride, ms), frame_cloud(frame_t, icp_stride, mt)) if params.icp else None
-    dense = (DenseGeometry.from_depth(frame_s.depth, frame_s.intrinsics, ms),
-             DenseGeometry.from_depth(frame_t.depth, frame_t.intrinsics, mt))
+    dense = (DenseGeometry.from_depth(frame_s.depth, frame_s.intrinsics, ms, image=frame_s.color),
+             DenseGeometry.from_depth(frame_t.depth, frame_t.intrinsics, mt, image=frame_t.color))
     out = register_features(fs, ft, params, clouds, dense)
     out.timings_ms["features"] = t_feat
     return out

@@ -85,6 +85,9 @@ class RegisterConfig(_Section):
                                  "(position, 1 sigma)")
     max_see_through: float = Field(_RP.max_see_through, ge=0, le=1, description="an edge is rejected when its pose "
                                    "lets one frame see through this share of the other frame's surfaces")
+    min_colour_agreement: float = Field(_RP.min_colour_agreement, ge=0, le=1, description="an edge is rejected when "
+                                        "the texture of fewer than this share of the overlap's textured tiles lines "
+                                        "up under its pose (unrelated texture: about 1 in 17)")
     dense_refine: bool | None = Field(None, description="refine each edge's pose on its keypoints and both frames' "
                                       "depth together (point-to-plane); null = for a moving object only (a static "
                                       "scene's depth drifts from the truth where the camera moves fast)")

@@ -183,7 +183,8 @@ def _register_params(cfg: ScanConfig, mode: str) -> RegisterParams:
     gm = GMatchParams(eps_f=eps_f, eps_c=m.eps_c, eta=m.eta, T=m.T, L=m.L, constraint=m.constraint, order=m.order)
     params = RegisterParams(method=m.method, gmatch=gm, min_matches=r.min_matches, max_rms=r.max_rms,
                             max_sigma_deg=r.max_sigma_deg, max_sigma_rel=r.max_sigma_rel,
-                            max_see_through=r.max_see_through, dense_refine=dense, verify=r.verify,
+                            max_see_through=r.max_see_through, min_colour_agreement=r.min_colour_agreement,
+                            dense_refine=dense, verify=r.verify,
                             support_eps_scale=r.support_eps_scale, icp=r.icp, icp_max_dist=r.icp_max_dist,
                             icp_voxel=r.icp_voxel, min_fitness=r.min_fitness, max_rmse=r.max_rmse,
                             max_icp_shift_deg=r.max_icp_shift_deg, max_icp_shift_m=r.max_icp_shift_m)
@@ -471,7 +472,8 @@ class _FrameData:
         reg_mask = self.object_mask(k)
         r = self.cfg.registration
         cloud = _icp_cloud(depth, f.intrinsics, reg_mask, r.icp_voxel) if r.icp else None
-        data = _RegData(feats, cloud, DenseGeometry.from_depth(depth, f.intrinsics, reg_mask))
+        data = _RegData(feats, cloud, DenseGeometry.from_depth(depth, f.intrinsics, reg_mask,
+                                                               image=self.store.need(f.name, "color")))
         with self._lock:
             self._cache[k] = data
             while len(self._cache) > REG_CACHE:

@@ -1,0 +1,129 @@
+"""Colour evidence for an edge: does the texture of one frame line up with the other's under its pose?
+
+Depth cannot tell a pose from its mirror when the geometry is symmetric: a box on a table turned 180 deg
+about its vertical axis puts every surface back on a surface, and the depth check passes it. The texture
+tells them apart: under a right pose the table's grain, the print and the shadows of one frame land on the
+same texture in the other; under a wrong one on unrelated texture, however alike the keypoints are.
+
+`texture_image` band-passes a grey image (minus its Gaussian blur at `BAND_SIGMA` px): exposure and shading
+differences between the views go, the texture stays. `gscan.registration.dense.colour_agreement` samples,
+for the depth samples of one frame that land on the other's surface, the other frame's texture where they
+land, and groups them in tiles of `TILE` px of the first frame (`tile_agreement`). A tile is informative
+when its texture varies beyond the image noise (`image_noise`, estimated from the image itself). The whole
+overlap is first shifted by the one image displacement within `SEARCH` that correlates best (a right
+pose is good to a few pixels); a tile then agrees when its normalised cross-correlation there beats each
+of its correlations at the `len(FAR)` displacements `FAR_RADIUS` px around it, its own baseline. Unrelated
+texture passes that rank test in about 1 tile of 17; a right pose in most tiles, fewer where the views
+differ (highlights, a steep change of viewpoint).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+BAND_SIGMA = 4.5  # px: the blur subtracted by `texture_image` (texture finer than this is kept)
+TILE = 48  # px: the side of a tile of the source image
+MIN_TILE_SAMPLES = 16  # samples a tile needs to correlate
+TEXTURE_SNR = 3.0  # a tile is informative when its texture's std is this many times the image noise ...
+MIN_TEXTURE = 1.0  # ... and at least this many grey levels (8-bit quantisation and compression floor)
+SEARCH = tuple((dx, dy) for dx in range(-6, 7, 3) for dy in range(-6, 7, 3))  # px: where the pose's alignment is sought
+FAR_RADIUS = 15.0  # px: the baseline's displacements, beyond the band-pass's reach
+FAR = tuple((round(FAR_RADIUS * np.cos(a)), round(FAR_RADIUS * np.sin(a))) for a in np.arange(16) * np.pi / 8)
+
+
+def grey_image(image: np.ndarray) -> np.ndarray:
+    """[H x W] float32 grey levels of an [H x W x 3] RGB or [H x W] grey image."""
+    import cv2
+
+    img = np.asarray(image)
+    if img.ndim == 3:
+        img = cv2.cvtColor(np.ascontiguousarray(img), cv2.COLOR_RGB2GRAY)
+    return img.astype(np.float32)
+
+
+def texture_image(grey: np.ndarray) -> np.ndarray:
+    """[H x W] float32: grey [H x W] (any range) minus its Gaussian blur at BAND_SIGMA px."""
+    import cv2
+
+    g = np.asarray(grey, dtype=np.float32)
+    return g - cv2.GaussianBlur(g, (0, 0), BAND_SIGMA)
+
+
+def image_noise(grey: np.ndarray) -> float:
+    """Standard deviation (grey levels) of an image's pixel noise, by Immerkaer's Laplacian-difference estimator
+    (Fast noise variance estimation, CVIU 1996): texture mostly cancels in the mask, noise does not."""
+    g = np.asarray(grey, dtype=np.float64)
+    if min(g.shape) < 3:
+        return 0.0
+    n = (g[:-2, :-2] - 2 * g[:-2, 1:-1] + g[:-2, 2:] - 2 * g[1:-1, :-2] + 4 * g[1:-1, 1:-1] - 2 * g[1:-1, 2:]
+         + g[2:, :-2] - 2 * g[2:, 1:-1] + g[2:, 2:])
+    return float(np.sqrt(np.pi / 2) * np.mean(np.abs(n)) / 6.0)
+
+
+@dataclass(frozen=True)
+class ColourAgreement:
+    """Tiles of the overlap (both directions): informative ones, and those whose texture lines up."""
+
+    informative: int
+    agreeing: int
+
+    @property
+    def agreeing_fraction(self) -> float:
+        return self.agreeing / max(1, self.informative)
+
+    def __add__(self, other: ColourAgreement) -> ColourAgreement:
+        return ColourAgreement(self.informative + other.informative, self.agreeing + other.agreeing)
+
+
+def _bilinear(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """img [H x W] at the sub-pixel positions (x [K], y [K]), which must lie within [0, W-1) x [0, H-1)."""
+    x0 = np.floor(x).astype(np.int64)
+    y0 = np.floor(y).astype(np.int64)
+    fx, fy = x - x0, y - y0
+    return (img[y0, x0] * (1 - fx) * (1 - fy) + img[y0, x0 + 1] * fx * (1 - fy)
+            + img[y0 + 1, x0] * (1 - fx) * fy + img[y0 + 1, x0 + 1] * fx * fy)
+
+
+def _tile_zncc(Ia: np.ndarray, t: np.ndarray, n_tiles: int, tgt_texture: np.ndarray, u: np.ndarray,
+               v: np.ndarray, shifts: tuple[tuple[int, int], ...]) -> np.ndarray:
+    """[len(shifts) x n_tiles] normalised cross-correlation per tile (ids t [K]) of Ia [K] with the target's
+    texture at (u + dx, v + dy)."""
+    n = np.maximum(np.bincount(t, minlength=n_tiles), 1).astype(np.float64)
+    sa = np.bincount(t, Ia, n_tiles)
+    var_a = np.bincount(t, Ia * Ia, n_tiles) - sa * sa / n
+    out = np.empty((len(shifts), n_tiles))
+    for i, (dx, dy) in enumerate(shifts):
+        Ib = _bilinear(tgt_texture, u + dx, v + dy)
+        sb = np.bincount(t, Ib, n_tiles)
+        var_b = np.bincount(t, Ib * Ib, n_tiles) - sb * sb / n
+        cov = np.bincount(t, Ia * Ib, n_tiles) - sa * sb / n
+        out[i] = cov / np.sqrt(np.maximum(var_a * var_b, 1e-12))
+    return out
+
+
+def tile_agreement(Ia: np.ndarray, tiles: np.ndarray, tgt_texture: np.ndarray, u: np.ndarray, v: np.ndarray,
+                   min_std: float) -> ColourAgreement:
+    """The rank test of the module docstring. Ia [K]: the source samples' texture; tiles [K]: their tile ids;
+    (u [K], v [K]): where they land in the target image (pixels); min_std: an informative tile's texture."""
+    H, W = tgt_texture.shape
+    m = max(abs(c) for s in SEARCH + FAR for c in s) * 2 + 1
+    keep = (u >= m) & (u < W - 1 - m) & (v >= m) & (v < H - 1 - m)
+    Ia, tiles, u, v = Ia[keep], tiles[keep], u[keep], v[keep]
+    if not len(Ia):
+        return ColourAgreement(0, 0)
+    ids, t = np.unique(tiles, return_inverse=True)
+    n = np.bincount(t, minlength=len(ids))
+    dev = Ia - (np.bincount(t, Ia, len(ids)) / np.maximum(n, 1))[t]
+    std = np.sqrt(np.bincount(t, dev * dev, len(ids)) / np.maximum(n - 1, 1))
+    informative = (n >= MIN_TILE_SAMPLES) & (std >= min_std)
+    if not informative.any():
+        return ColourAgreement(0, 0)
+    # one image shift for the whole overlap (the pose's own error, a few pixels), then each tile against
+    # its own baseline around that shift
+    near = _tile_zncc(Ia, t, len(ids), tgt_texture, u, v, SEARCH)
+    bx, by = SEARCH[int(np.argmax(near[:, informative].sum(axis=1)))]
+    at = near[SEARCH.index((bx, by))]
+    far = _tile_zncc(Ia, t, len(ids), tgt_texture, u, v, tuple((bx + dx, by + dy) for dx, dy in FAR)).max(axis=0)
+    agree = informative & (at > far) & (at > 0)
+    return ColourAgreement(int(informative.sum()), int(agree.sum()))
