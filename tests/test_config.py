@@ -87,7 +87,8 @@ def test_every_registration_key_reaches_the_registration_parameters():
                 assert _register_params(cfg, STATIC_OBJECT).dense_refine is new
                 assert _register_params(cfg, MOVING_OBJECT).dense_refine is new
             continue
-        new = (not value) if isinstance(value, bool) else value / 2 if key in ("max_see_through", "min_colour_agreement") else value + 1
+        shares = ("max_see_through", "min_colour_agreement")  # in [0, 1]
+        new = (not value) if isinstance(value, bool) else value / 2 if key in shares else value + 1
         cfg = base.model_copy(update={"registration": base.registration.model_copy(update={key: new})})
         assert getattr(_register_params(cfg, MOVING_OBJECT), key) == new, key
 

@@ -102,28 +102,35 @@ def _tile_zncc(Ia: np.ndarray, t: np.ndarray, n_tiles: int, tgt_texture: np.ndar
     return out
 
 
-def tile_agreement(Ia: np.ndarray, tiles: np.ndarray, tgt_texture: np.ndarray, u: np.ndarray, v: np.ndarray,
-                   min_std: float) -> ColourAgreement:
-    """The rank test of the module docstring. Ia [K]: the source samples' texture; tiles [K]: their tile ids;
-    (u [K], v [K]): where they land in the target image (pixels); min_std: an informative tile's texture."""
+def tile_scores(Ia: np.ndarray, tiles: np.ndarray, tgt_texture: np.ndarray, u: np.ndarray, v: np.ndarray,
+                min_std: float, search: tuple[tuple[int, int], ...] = SEARCH
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The rank test of the module docstring, per tile. Ia [K]: the source samples' texture; tiles [K]: their
+    tile ids; (u [K], v [K]): where they land in the target image (pixels); min_std: an informative tile's
+    texture; search: the image displacements tried for the whole overlap. Returns (tile ids [T], informative [T]
+    bool, agreeing [T] bool)."""
     H, W = tgt_texture.shape
-    m = max(abs(c) for s in SEARCH + FAR for c in s) * 2 + 1
+    m = max(abs(c) for s in search + FAR for c in s) * 2 + 1
     keep = (u >= m) & (u < W - 1 - m) & (v >= m) & (v < H - 1 - m)
     Ia, tiles, u, v = Ia[keep], tiles[keep], u[keep], v[keep]
-    if not len(Ia):
-        return ColourAgreement(0, 0)
     ids, t = np.unique(tiles, return_inverse=True)
     n = np.bincount(t, minlength=len(ids))
     dev = Ia - (np.bincount(t, Ia, len(ids)) / np.maximum(n, 1))[t]
     std = np.sqrt(np.bincount(t, dev * dev, len(ids)) / np.maximum(n - 1, 1))
     informative = (n >= MIN_TILE_SAMPLES) & (std >= min_std)
     if not informative.any():
-        return ColourAgreement(0, 0)
+        return ids, informative, informative.copy()
     # one image shift for the whole overlap (the pose's own error, a few pixels), then each tile against
     # its own baseline around that shift
-    near = _tile_zncc(Ia, t, len(ids), tgt_texture, u, v, SEARCH)
-    bx, by = SEARCH[int(np.argmax(near[:, informative].sum(axis=1)))]
-    at = near[SEARCH.index((bx, by))]
+    near = _tile_zncc(Ia, t, len(ids), tgt_texture, u, v, search)
+    best = int(np.argmax(near[:, informative].sum(axis=1)))
+    bx, by = search[best]
     far = _tile_zncc(Ia, t, len(ids), tgt_texture, u, v, tuple((bx + dx, by + dy) for dx, dy in FAR)).max(axis=0)
-    agree = informative & (at > far) & (at > 0)
+    return ids, informative, informative & (near[best] > far) & (near[best] > 0)
+
+
+def tile_agreement(Ia: np.ndarray, tiles: np.ndarray, tgt_texture: np.ndarray, u: np.ndarray, v: np.ndarray,
+                   min_std: float) -> ColourAgreement:
+    """`tile_scores` counted: informative tiles, and those agreeing."""
+    _, informative, agree = tile_scores(Ia, tiles, tgt_texture, u, v, min_std)
     return ColourAgreement(int(informative.sum()), int(agree.sum()))

@@ -7,8 +7,10 @@ only the object's pixels may be registered, the background would pull every pose
 
 Detection rule (`detect_mode`): compare frame pairs spread over the capture. A pixel is
 *static* when both frames have valid depth there, the depths agree within
-max(4 mm, 1 % of the depth) and the grey levels within 12. Pixels inside a given object
-mask (dilated) are ignored. When the median static fraction over the pairs is at least
+max(4 mm, 1 % of the depth) and the grey levels within 12, and its tile's texture lines up
+at the same pixels (a camera circling a low-contrast table keeps the table's depth and grey
+levels at every pixel; only its texture moves). Pixels inside a given object mask (dilated)
+are ignored. When the median static fraction over the pairs is at least
 `static_fraction` (0.65) the camera did not move: moving-object; otherwise static-object.
 """
 from __future__ import annotations
@@ -23,6 +25,7 @@ import numpy as np
 
 from gscan.geometry.plane import Plane
 from gscan.io.camera import RGBDFrame
+from gscan.registration.colour import MIN_TEXTURE, TEXTURE_SNR, TILE, image_noise, texture_image, tile_scores
 from gscan.scan.segment import SegmentParams, segment_frame
 
 log = logging.getLogger(__name__)
@@ -51,7 +54,25 @@ def _static_fraction(a: RGBDFrame, b: RGBDFrame) -> float:
     ga = cv2.cvtColor(a.color, cv2.COLOR_RGB2GRAY).astype(np.int16)
     gb = cv2.cvtColor(b.color, cv2.COLOR_RGB2GRAY).astype(np.int16)
     same = (np.abs(da - db) <= np.maximum(0.004, 0.01 * da)) & (np.abs(ga - gb) <= 12)
+    same &= ~_texture_moved(ga, gb, valid)
     return float((same & valid).sum() / valid.sum())
+
+
+def _texture_moved(ga: np.ndarray, gb: np.ndarray, valid: np.ndarray, step: int = 4) -> np.ndarray:
+    """[H x W] bool: pixels of the tiles whose texture does not line up between two grey images [H x W] at the
+    same pixels (`gscan.registration.colour`'s rank test with no displacement). A camera circling a low-contrast
+    table keeps its depth and grey levels at every pixel; only its texture moves."""
+    H, W = ga.shape
+    vv, uu = np.mgrid[step // 2:H:step, step // 2:W:step]
+    sel = valid[vv, uu]
+    v, u = vv[sel], uu[sel]
+    cols = W // TILE + 1
+    ta, tb = texture_image(ga), texture_image(gb)
+    ids, informative, agree = tile_scores(ta[v, u].astype(np.float64), (v // TILE) * cols + u // TILE, tb,
+                                          u.astype(np.float64), v.astype(np.float64),
+                                          max(TEXTURE_SNR * image_noise(ga), MIN_TEXTURE), search=((0, 0),))
+    rows, cs = np.mgrid[0:H, 0:W]
+    return np.isin((rows // TILE) * cols + cs // TILE, ids[informative & ~agree])
 
 
 def detect_mode(frames: Sequence[RGBDFrame], static_fraction: float = 0.65) -> ModeDecision:
