@@ -158,7 +158,7 @@ class GMatchResult:
         """Per hypothesis, in search order: seed pair, 3-pair start, its list, final length, cost, pruned."""
         return [HypothesisTrace((int(h[0, 0]), int(h[0, 1])), h, m[:n], int(n), float(c), bool(p))
                 for h, m, n, c, p in zip(self.hyp_start, self.hyp_matches, self.hyp_length, self.hyp_cost,
-                                         self.hyp_pruned)]
+                                         self.hyp_pruned, strict=True)]
 
 
 @dataclass(frozen=True)

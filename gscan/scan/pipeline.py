@@ -588,7 +588,7 @@ def _read_ahead(seq: Sequence | RecordingSequence) -> Iterator[tuple[str, RGBDFr
             return e
 
     with ThreadPoolExecutor(max_workers=1) as pool:
-        yield from zip(seq.names, _bounded_map(pool, read, seq.names, ahead=2))
+        yield from zip(seq.names, _bounded_map(pool, read, seq.names, ahead=2), strict=True)
 
 
 # ------------------------------------------------------------------------------------------ the stages
@@ -645,7 +645,7 @@ def _scan_frames(data: _FrameData, opts: ScanOptions, db: TemplateDB, resumed: b
         mesh = model.mesh.transformed(T_obj_world)
         db.set_mesh(mesh)
         db.set_cloud(transform_points(T_obj_world, model.points), model.point_colors)
-        unregistered = [f.name for f, T in zip(frames, T_world_cam) if T is None]
+        unregistered = [f.name for f, T in zip(frames, T_world_cam, strict=True) if T is None]
         db.set_meta("unregistered", unregistered)
         db.set_meta("unregistered_reasons", reasons)
         db.set_meta("parts", parts)
@@ -752,7 +752,7 @@ def _capture_noise(data: _FrameData, params: RegisterParams) -> tuple[DepthNoise
         got = list(pool.map(pair, picks))
     if not got:
         return params.noise, params.depth_noise
-    r, za, zb, e, da, db = (np.concatenate(x) for x in zip(*got))
+    r, za, zb, e, da, db = (np.concatenate(x) for x in zip(*got, strict=True))
     return (estimate_noise(r, za, zb, prior=params.noise),
             estimate_noise(e, da, db, prior=params.depth_noise, dof=1))
 
@@ -814,7 +814,7 @@ def _register_edges(data: _FrameData, rparams: RegisterParams, cfg: ScanConfig, 
     def register_all(pairs: list[tuple[int, int]], kind: str, pool: ThreadPoolExecutor) -> list[Edge]:
         """Edges of `pairs`, computed on the pool (numba and OpenCV release the GIL), stored in order."""
         out = []
-        for (i, j), got in zip(pairs, _bounded_map(pool, pair_work, pairs)):
+        for (i, j), got in zip(pairs, _bounded_map(pool, pair_work, pairs), strict=True):
             if got is None:  # stored by the interrupted run
                 e = done[(names[i], names[j])]
                 if e.reason and e.reason.startswith(PRUNED):  # restore the registration verdict
@@ -960,7 +960,7 @@ def _optimise(n: int, edges: list[Edge], index: dict[str, int], data: _FrameData
                                weight=len(e.matches), depth=ev.depth))
     res = optimize_pose_graph(n, graph, spanning_poses(n, graph), PoseGraphParams(alpha=cfg.posegraph.alpha))
     best: dict[int, float] = {}
-    for rep, e, ev in zip(res.edges, use, found):
+    for rep, e, ev in zip(res.edges, use, found, strict=True):
         # the pose graph's verdict joins the registration's: pruned edges are recorded as rejected
         if not rep.accepted:
             e.accepted = False
