@@ -1,4 +1,4 @@
-"""Recall of pose estimation with templates gscan scanned itself, on the failure kinds of issue 18.
+"""Recall of pose estimation with templates gscan scanned itself, on hard cases (thin, lying, small, curved, unseen).
 
 Every object is scanned (gscan.scan.pipeline) from a rendered 16-frame capture of it standing on a newspaper
 table (orbit rings at 30 and 55 deg elevation); the template->ground-truth alignment is the mean of

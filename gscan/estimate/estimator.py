@@ -26,7 +26,7 @@ Pipeline of `Estimator.estimate` (every stage timed, `EstimateResult.timings_ms`
    the template cloud's points visible from the predicted pose onto the query cloud cropped to a sphere of
    1.2 object radii around the predicted centre and, without a mask, to the off-plane pixels. A given mask
    does not crop it: ICP pairs the template's whole visible surface with the query, and a mask that clips
-   the silhouette (eroded, or cut by an occluder) pulled the pose toward the cut. A refinement that moves the
+   the silhouette (eroded, or cut by an occluder) would pull the pose toward the cut. A refinement that moves the
    pose by more than the object radius or 30 degrees is discarded.
 6. verify (`gscan.estimate.verify`): the pose is accepted from the evidence (depth agreement, keypoint support
    relative to what the frame and the template show there, the list's geometry), never from the list length
@@ -38,7 +38,7 @@ Without usable query depth (valid fraction of the search region < `min_depth_fra
 holes in the depth (a dark, shiny or transparent object leaves a hole in otherwise good depth).
 
 The estimator limits BLAS (threadpoolctl) and OpenCV to one thread each while it runs: its matrices and
-detection boxes are small, and a thread pool spinning up per call cost more CPU than it saved.
+detection boxes are small, and a thread pool spinning up per call costs more CPU than it saves.
 """
 from __future__ import annotations
 
