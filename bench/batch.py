@@ -196,7 +196,7 @@ def main() -> None:
     all_seq = [t for n in names for t in seq_s[n]]
     all_cpu = [t for n in names for t in seq_cpu[n]]
     peaks = [m for n in names for m in task_peak[n]]
-    overhead = [a - b for n in names for a, b in zip(task_s[n], seq_s[n])]
+    overhead = [a - b for n in names for a, b in zip(task_s[n], seq_s[n], strict=True)]
     cap_bytes = [folder_bytes(caps / n) for n in names]
     tpl_bytes = [(first_seq / f"{n}.gscan").stat().st_size for n in names if (first_seq / f"{n}.gscan").is_file()]
     out = {

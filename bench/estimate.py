@@ -81,7 +81,7 @@ def make_scene(target, distractors, seed: int, occlude: bool, min_visible: float
     rng = np.random.default_rng([seed, 0xE57])
     T_wt = rest_on_table(target, rotvec_to_R([0.0, 0.0, rng.uniform(0, 2 * np.pi)]))
     d_poses = place_distractors(target, T_wt, distractors, rng)
-    scene = SynthScene([(target, T_wt)] + list(zip(distractors, d_poses)), seed=seed)
+    scene = SynthScene([(target, T_wt)] + list(zip(distractors, d_poses, strict=True)), seed=seed)
     alone = SynthScene([(target, T_wt)], table=False, seed=seed)
     c = transform_points(T_wt, target.center[None])[0]
     for _ in range(20):

@@ -1,4 +1,4 @@
-"""Recall of pose estimation with templates gscan scanned itself, on the failure kinds of issue 18.
+"""Recall of pose estimation with templates gscan scanned itself, on hard cases (thin, lying, small, curved, unseen).
 
 Every object is scanned (gscan.scan.pipeline) from a rendered 16-frame capture of it standing on a newspaper
 table (orbit rings at 30 and 55 deg elevation); the template->ground-truth alignment is the mean of
@@ -149,7 +149,7 @@ def render_query(target: TexturedMesh, R_world_obj: np.ndarray, el: float, az: f
     T_wt = rest_on_table(target, R_world_obj)
     d_poses = place_distractors(target, T_wt, distractors, rng)
     first = replace_target if replace_target is not None else target
-    objs = ([(first, T_wt)] if with_target else []) + list(zip(distractors, d_poses))
+    objs = ([(first, T_wt)] if with_target else []) + list(zip(distractors, d_poses, strict=True))
     scene = SynthScene(objs, seed=seed, table_kind=table_kind)
     alone = SynthScene([(target, T_wt)], table=False, seed=seed)
     c = transform_points(T_wt, target.center[None])[0]

@@ -82,9 +82,8 @@ def render_sequence(n: int, out: Path):
     target = load_textured_mesh(MESHES / TARGET / "model_0.obj")
     others = [load_textured_mesh(MESHES / d / "model_0.obj") for d in DISTRACTORS]
     T0 = rest_on_table(target, rotvec_to_R([0.0, 0.0, 0.3]))
-    scene = SynthScene([(target, T0)] + list(zip(others, place_distractors(target, T0, others,
-                                                                          np.random.default_rng(0), gap=0.06))),
-                       seed=3, table_kind="wood")
+    d_poses = place_distractors(target, T0, others, np.random.default_rng(0), gap=0.06)
+    scene = SynthScene([(target, T0)] + list(zip(others, d_poses, strict=True)), seed=3, table_kind="wood")
     c = transform_points(T0, target.center[None])[0]
     el, az = 0.8, -1.2
     T_wc = look_at(c + 0.6 * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)]), c)

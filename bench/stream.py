@@ -11,7 +11,7 @@ database's write pattern, each against the code before it, run from the same com
    (ru_maxrss), wall
    time, frames kept / registered, ATE of the registered frames against the rendered poses, and frames read per
    second (the load stage: frames read, selected and stored, over its seconds). A "before" run whose memory
-   (0.8 GB + 4.9 MB a frame, issue 23) or time (extrapolated linearly from its 200-frame run) would pass
+   (`BEFORE_GB`: 0.8 GB + 4.9 MB a frame) or time (extrapolated linearly from its 200-frame run) would pass
    --max-gb / --max-minutes is not run and says so.
 2. Database writes. A short capture (--db-views views, 640x480, one ring) scanned --repeats times by --before and by
    --db-rev (the write pattern alone: WAL, a commit per stage, each view written once), alternating, in child

@@ -8,7 +8,8 @@ the camera frame, [4 x 4] float64, metres):
   `register_frames(frame_s, frame_t) -> PairResult`
 - templates: `scan(source, output) -> ScanResult`, `template_from_mesh(mesh, output) -> TemplateResult`,
   `TemplateDB`, `export(db, format, out) -> ExportResult`
-- pose estimation: `Estimator.from_path(db).estimate(frame) -> EstimateResult`
+- pose estimation: `Estimator.from_path(db).estimate(frame) -> EstimateResult`; `serve(templates)` (the HTTP
+  service of `gscan serve`)
 - parameters: `FeatureParams`, `GMatchParams`, `RegisterParams`, `ScanConfig`, `EstimateParams`
 - errors: `GscanError`, `InputError` (bad input, naming the file)
 
@@ -17,7 +18,8 @@ Names are imported on first use (PEP 562), so `import gscan` and the command lin
 `scan` and `export` are also the names of the stage subpackages `gscan.scan` and `gscan.export`; Python binds a
 subpackage to its name in `gscan` when it is first imported, so those two names are the subpackages, made
 callable: `gscan.scan(...)` runs `gscan.scan.api.scan`, `gscan.export(...)` runs `gscan.export.export`, and
-`gscan.scan.pipeline` stays a module path. Type checkers see the functions.
+`gscan.scan.pipeline` stays a module path. `serve` is the subpackage `gscan.serve` too, which makes itself callable
+(`gscan.serve(...)` starts the service). Type checkers see the functions.
 """
 from __future__ import annotations
 
@@ -78,7 +80,7 @@ __all__ = [
     "EstimateParams", "EstimateResult", "Estimator", "FeatureParams", "Features", "GMatchParams", "GscanError",
     "InputError", "Intrinsics", "PairResult", "RGBDFrame", "RegisterParams", "ScanConfig", "ScanResult", "TemplateDB",
     "TemplateResult", "__version__", "export", "extract_features", "gmatch", "load_frame", "open_sequence",
-    "register_frames", "scan", "template_from_mesh",
+    "register_frames", "scan", "serve", "template_from_mesh",
 ]
 
 _lazy_getattr, _lazy_dir = lazy_exports(__name__, _EXPORTS)

@@ -258,9 +258,9 @@ _SCAN_IMPORTS = ("gscan.scan.api", "open3d", "scipy.spatial")  # with the scan's
 def _import_holding_ctrl_c(*modules: str) -> None:
     """Import `modules` with Ctrl+C held: a SIGINT that comes meanwhile is delivered again after them.
 
-    Ctrl+C inside a C extension's initialisation turns into "ImportError: initialization failed" (open3d's
-    takes about 0.5 s; the scan imported it lazily at its pose-graph stage, so a Ctrl+C there was reported as
-    an internal error). The handler is swapped, not the signal blocked: a blocked signal goes to another
+    Ctrl+C inside a C extension's initialisation turns into "ImportError: initialization failed", which would be
+    reported as an internal error (open3d's initialisation is long enough to be hit, and the scan imports it
+    lazily). The handler is swapped, not the signal blocked: a blocked signal goes to another
     thread (numpy's BLAS pool) and interrupts the import all the same. Main thread only."""
     import importlib
     import signal

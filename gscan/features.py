@@ -4,10 +4,9 @@ Backends are OpenCV's `SIFT_create` / `ORB_create`. Every returned keypoint has 
 discontinuity-free depth (see `gscan.io.camera.lift_keypoints`) and a 3D point in the camera
 frame. Output order is by decreasing detector response; ties are broken by (y, x, angle),
 so the result does not depend on the order in which OpenCV's worker threads emit
-keypoints: the same image always gives identical arrays. Measured with OpenCV 5.0: the raw
-SIFT output was already identical over repeated runs with 1, 2 and 8 threads, and the tests
-compare extraction under `cv2.setNumThreads(1)` with the default; this module therefore
-never changes OpenCV's global thread count.
+keypoints: the same image always gives identical arrays, whatever OpenCV's thread count (the
+tests compare extraction under `cv2.setNumThreads(1)` with the default), so this module never
+changes OpenCV's global thread count.
 
 Descriptor scales (they matter to GMatch's feature threshold `eps_f`):
 - "sift": OpenCV's raw float32 vectors, 128-d, integer-valued in [0, 255], L2 norm ~512
@@ -112,8 +111,8 @@ class FeatureParams:
 
 
 # keypoints on an object for pose estimation (template object keypoints and query frames): SIFT
-# contrast threshold halved from OpenCV's 0.04 finds 2-3x more keypoints on weakly textured
-# packaging (bench/estimate.py: found 84.5 -> 95.2 %, BENCHMARKS.md)
+# contrast threshold halved from OpenCV's 0.04, which finds more keypoints on weakly textured
+# packaging (see BENCHMARKS.md, section Parameter studies)
 OBJECT_FEATURES = FeatureParams(sift_contrast_threshold=0.02)
 
 

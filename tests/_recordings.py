@@ -50,7 +50,7 @@ class Views:
         depths = self.offset_depths if unaligned else self.depths
         assert depths is not None
         return [RecordingFrame(c if color else None, depth_to_raw(d, depth_units), T0_NS + i * period_ns)
-                for i, (c, d) in enumerate(zip(self.colors, depths))]
+                for i, (c, d) in enumerate(zip(self.colors, depths, strict=True))]
 
     def write_folder(self, out: Path) -> Path:
         """The aligned capture (colour camera depth) as a capture folder without masks."""

@@ -26,14 +26,17 @@ PUBLIC = {
     "__version__", "open_sequence", "load_frame", "Intrinsics", "RGBDFrame", "extract_features", "Features",
     "FeatureParams", "gmatch", "GMatchParams", "register_frames", "RegisterParams", "PairResult", "scan",
     "ScanConfig", "ScanResult", "template_from_mesh", "TemplateResult", "TemplateDB", "Estimator", "EstimateParams",
-    "EstimateResult", "export", "GscanError", "InputError",
+    "EstimateResult", "export", "serve", "GscanError", "InputError",
 }
 FUNCTIONS = ("open_sequence", "load_frame", "extract_features", "gmatch", "register_frames", "scan",
-             "template_from_mesh", "export")
+             "template_from_mesh", "export", "serve")
 
 
 def test_the_public_names_are_typed_and_documented():
     assert set(gscan.__all__) == PUBLIC and set(dir(gscan)) == PUBLIC
+    # __all__ names exactly what the package resolves lazily: every export, the callable subpackages, the version
+    lazy = set(gscan._EXPORTS) | set(gscan._CALLABLE_PACKAGES) | {"__version__"}
+    assert set(gscan.__all__) == lazy, sorted(set(gscan.__all__) ^ lazy)
     assert isinstance(gscan.__version__, str) and len(gscan.__version__.split(".")) == 3
     for name in PUBLIC - {"__version__"}:
         obj = getattr(gscan, name)

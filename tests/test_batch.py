@@ -303,7 +303,7 @@ def test_batch_eval_joins_the_pairs_as_eval_scores_them(captures: Path, first_ru
         own = [ln.split(",") for ln in (tmp_path / f"{name}.csv").read_text().splitlines()[1:]]
         mine = [c for c in csv_rows if int(c[2]) == row["obj_id"]]
         assert len(mine) == len(own) and len(own) == single.n_found
-        for a, b in zip(mine, own):
+        for a, b in zip(mine, own, strict=True):
             assert a[:3] == b[:3]
             np.testing.assert_allclose([float(x) for x in a[4].split() + a[5].split()],
                                        [float(x) for x in b[4].split() + b[5].split()], atol=1e-6)
@@ -408,7 +408,9 @@ def test_manifest_pairs_names_and_object_ids(tmp_path: Path) -> None:
     assert [p.obj_id for p in pairs] == [7, 7, 4, 1]  # given; the template's; a BOP name; the first free id
     for text, what in (("template,scene\na,b\n", "header"), ("template,scenes\na\n", "1 cells"),
                        ("template,scenes,obj_id\na,b,x\n", "positive integer"), ("template,scenes\n", "no pair"),
-                       ("template,scenes\na,b\na,b\n", "two pairs")):
+                       ("template,scenes\na,b\na,b\n", "two pairs"),
+                       # an unclosed quote is refused on its own line, never joined with the lines after it
+                       ('template,scenes\na,"b\nc,d\n', "line 2: not a CSV row")):
         (tmp_path / "bad.csv").write_text(text)
         with pytest.raises(InputError, match=what):
             read_manifest(tmp_path / "bad.csv")

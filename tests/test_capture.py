@@ -77,7 +77,7 @@ def test_capture_aligns_unaligned_depth(bags, tmp_path, align):
     assert r.returncode == 0, r.stderr
     cap, rec = open_sequence(out), open_sequence(bags["unaligned"])
     assert cap.names == ["000000", "000001", "000002"]
-    for name, src in zip(cap.names, ("000000", "000004", "000008")):
+    for name, src in zip(cap.names, ("000000", "000004", "000008"), strict=True):
         a, b = cap[name].depth, rec[src].depth
         assert np.array_equal(cap[name].color, rec[src].color)
         both = (a > 0) & (b > 0)

@@ -35,7 +35,7 @@ def test_moving_object_masks_find_the_turning_object(box):
     turn = render_capture(box, None, 10, mode="turntable", seed=2)
     masks, planes = moving_object_masks(_frames(turn, False))
     assert all(p is not None and abs(p.normal[1]) > 0.5 for p in planes), planes  # the turntable, below the object
-    ious = [(m & r.mask).sum() / (m | r.mask).sum() for m, r in zip(masks, turn)]
+    ious = [(m & r.mask).sum() / (m | r.mask).sum() for m, r in zip(masks, turn, strict=True)]
     assert min(ious) > 0.8, ious
 
 

@@ -983,7 +983,7 @@ def results(ctx: Ctx, tmp_path_factory: pytest.TempPathFactory
     slow = [PARTIAL, DARK, "scan-depth-beyond-fusion-range"]  # cases that register frames: started first
     order = slow + [n for n in runs if n not in slow]
     with ThreadPoolExecutor(max_workers=4) as pool:
-        procs = dict(zip(order, pool.map(lambda n: _run(runs[n][0]), order)))
+        procs = dict(zip(order, pool.map(lambda n: _run(runs[n][0]), order), strict=True))
     return {n: (runs[n][0], runs[n][1], procs[n]) for n in runs}
 
 

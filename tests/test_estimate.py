@@ -37,7 +37,7 @@ def render_scene(target, distractors, seed: int, with_target: bool = True, eleva
     rng = np.random.default_rng(seed)
     T_world_tgt = rest_on_table(target, rotvec_to_R([0.0, 0.0, rng.uniform(0, 2 * np.pi)]))
     d_poses = place_distractors(target, T_world_tgt, list(distractors), rng)
-    objs = ([(target, T_world_tgt)] if with_target else []) + list(zip(distractors, d_poses))
+    objs = ([(target, T_world_tgt)] if with_target else []) + list(zip(distractors, d_poses, strict=True))
     scene = SynthScene(objs, seed=seed)
     c = transform_points(T_world_tgt, target.center[None])[0]
     el = np.radians(rng.uniform(25, 60) if elevation is None else elevation)

@@ -72,7 +72,7 @@ def render_scene(obj, scene, distractors, with_target: bool = True, stand_in=Non
     c = transform_points(T_wo, obj.center[None])[0]
     e, a = np.radians(el), np.radians(az)
     T_wc = look_at(c + dist * np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)]), c)
-    r = SynthScene(first + list(zip(distractors, d_poses)), seed=seed, table_kind=table).render(
+    r = SynthScene(first + list(zip(distractors, d_poses, strict=True)), seed=seed, table_kind=table).render(
         T_wc, DEFAULT_INTRINSICS, rng=np.random.default_rng([seed, 1]))
     return RGBDFrame(f"scene{seed}", r.color, r.depth, DEFAULT_INTRINSICS), np.linalg.inv(T_wc) @ T_wo
 

@@ -88,7 +88,7 @@ def test_several_neighbourhoods_in_one_pass_equal_one_by_one(seed, unit):
     together = neighbourhoods_candidates(S, unit, *q, tgs, 0.6, "ratio", capacity=int(rng.integers(1, 50)))
     for tg, got in zip(tgs, together, strict=True):
         want = neighbourhood_candidates(S, unit, *q, tg, 0.6, "ratio")
-        for a, b in zip((got.src, got.tgt, got.dist), (want.src, want.tgt, want.dist)):
+        for a, b in zip((got.src, got.tgt, got.dist), (want.src, want.tgt, want.dist), strict=True):
             np.testing.assert_array_equal(a, b)
 
 

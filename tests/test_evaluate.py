@@ -78,7 +78,7 @@ def test_capture_layout_csv_and_metrics(setup, tmp_path):
     assert rep.n_images == 3 and rep.n_found == 2
     rows = _read_csv(out)
     assert len(rows) == 2  # only found poses are written
-    for row, f in zip(rows, frames[:2]):
+    for row, f in zip(rows, frames[:2], strict=True):
         scene_id, im_id, obj_id, score, R, t, time_s = row
         assert (int(scene_id), int(obj_id)) == (0, 3) and 0 < float(score) <= 1 and float(time_s) > 0
         R = np.array(R.split(), dtype=float).reshape(3, 3)

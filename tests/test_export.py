@@ -151,7 +151,7 @@ def _check_with_gscan_io(scene: Path, Ts: list[np.ndarray]) -> None:
         return  # gscan.io not landed yet: the JSON checks above cover the format
     seq = open_sequence(scene, format="bop")
     assert len(seq) == len(Ts) and seq.gt_T_cam_obj is not None
-    for name, T_obj_cam in zip(seq.names, Ts):
+    for name, T_obj_cam in zip(seq.names, Ts, strict=True):
         # JSON floats in mm read back by gscan.io: float64 rounding
         assert np.abs(seq.gt_T_cam_obj[name] - inv_T(T_obj_cam)).max() < 1e-6
 

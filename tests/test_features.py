@@ -63,7 +63,7 @@ def test_deterministic_and_thread_independent(real_frame, real_features, kind):
     a = real_features[kind]
     b = extract_features(real_frame, FeatureParams(kind=kind, max_keypoints=100000))
     assert len(a) > 200
-    for x, y in zip(_arrays(a), _arrays(b)):
+    for x, y in zip(_arrays(a), _arrays(b), strict=True):
         assert np.array_equal(x, y)
     n_threads = cv2.getNumThreads()
     try:
@@ -71,7 +71,7 @@ def test_deterministic_and_thread_independent(real_frame, real_features, kind):
         c = extract_features(real_frame, FeatureParams(kind=kind, max_keypoints=100000))
     finally:
         cv2.setNumThreads(n_threads)
-    for x, y in zip(_arrays(a), _arrays(c)):
+    for x, y in zip(_arrays(a), _arrays(c), strict=True):
         assert np.array_equal(x, y)
 
 
@@ -91,7 +91,7 @@ def test_cap_keeps_the_strongest_prefix(real_frame, real_features, kind):
     capped = extract_features(real_frame, FeatureParams(kind=kind, max_keypoints=50))
     assert len(capped) == 50
     if kind == "sift":  # SIFT detects everything; the cap only truncates the strength-sorted list
-        for x, y in zip(_arrays(capped), _arrays(full.subset(np.arange(50)))):
+        for x, y in zip(_arrays(capped), _arrays(full.subset(np.arange(50))), strict=True):
             assert np.array_equal(x, y)
 
 

@@ -75,7 +75,7 @@ def test_fusion_of_automatically_segmented_frames(capture):
     segs, vol = segment_sequence(frames, poses)
     assert vol is not None
     ious = [(s.mask & r.mask & (r.depth > 0)).sum() / (s.mask | (r.mask & (r.depth > 0))).sum()
-            for s, r in zip(segs, renders)]
+            for s, r in zip(segs, renders, strict=True)]
     assert min(ious) >= 0.9, ious
     model = fuse_tsdf(frames, poses, [s.mask for s in segs])
     d = distances(gt, model.mesh.vertices)

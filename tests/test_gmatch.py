@@ -180,7 +180,7 @@ def test_kernel_growth_equals_repeated_step(constraint, order, eta_depth):
 def test_extract_candidates_order_and_threshold():
     d = np.array([[0.5, 0.1, 0.9], [0.1, 0.95, 0.3]], np.float32)
     c = extract_candidates(d, 0.6, "distance")
-    assert list(zip(c.src, c.tgt)) == [(0, 1), (1, 0), (1, 2), (0, 0)]  # ties by row-major index
+    assert list(zip(c.src, c.tgt, strict=True)) == [(0, 1), (1, 0), (1, 2), (0, 0)]  # ties by row-major index
     assert np.all(np.diff(c.dist) >= 0)
 
 
@@ -189,11 +189,11 @@ def test_extract_candidates_ratio_order_puts_distinctive_pairs_first():
     d = np.array([[0.10, 0.11, 0.9], [0.2, 0.9, 0.95]], np.float32)
     by_dist = extract_candidates(d, 0.5, "distance")
     by_ratio = extract_candidates(d, 0.5, "ratio")
-    assert list(zip(by_dist.src, by_dist.tgt)) == [(0, 0), (0, 1), (1, 0)]
-    assert list(zip(by_ratio.src, by_ratio.tgt)) == [(1, 0), (0, 0), (0, 1)]
+    assert list(zip(by_dist.src, by_dist.tgt, strict=True)) == [(0, 0), (0, 1), (1, 0)]
+    assert list(zip(by_ratio.src, by_ratio.tgt, strict=True)) == [(1, 0), (0, 0), (0, 1)]
     np.testing.assert_array_equal(by_ratio.dist, np.float32([0.2, 0.10, 0.11]))  # distances travel along
     one = extract_candidates(d[:, :1], 0.5, "ratio")  # a single target: rows keyed by d / eps_f
-    assert list(zip(one.src, one.tgt)) == [(0, 0), (1, 0)]
+    assert list(zip(one.src, one.tgt, strict=True)) == [(0, 0), (1, 0)]
     with pytest.raises(ValueError):
         extract_candidates(d, 0.5, "nope")
 

@@ -188,7 +188,7 @@ def test_failed_force_writers_keep_old_outputs_and_name_the_file_size_limit(ctx:
         lambda: _gscan("export", ctx.template, "--format", "colmap", "-o", colmap, "--force", fsize=60_000),
         lambda: _gscan("eval", ctx.cad, ctx.capture, "-o", outs["r.csv"], "--force", "--no-icp", fsize=100),
     )
-    for proc, target in zip(runs, [outs["scan"], outs["mesh"], outs["x.json"], colmap, outs["r.csv"]]):
+    for proc, target in zip(runs, [outs["scan"], outs["mesh"], outs["x.json"], colmap, outs["r.csv"]], strict=True):
         line = _error(proc, target.name)
         assert "file size limit" in line and "ulimit -f" in line, line
     assert {k: _sha(p) for k, p in {**outs, "colmap": colmap}.items()} == before
@@ -289,7 +289,7 @@ def _renamed_template(ctx: Ctx, path: Path, names: list[str]) -> Path:
     shutil.copy(ctx.template, path)
     with sqlite3.connect(path) as c:
         old = [r[0] for r in c.execute("SELECT name FROM views ORDER BY input_index")]
-        for a, b in zip(old, names):
+        for a, b in zip(old, names, strict=False):  # the first len(names) views are renamed, the others kept
             c.execute("UPDATE views SET name=? WHERE name=?", (b, a))
             c.execute("UPDATE edges SET src=? WHERE src=?", (b, a))
             c.execute("UPDATE edges SET tgt=? WHERE tgt=?", (b, a))

@@ -47,7 +47,7 @@ def hostile(tmp_path_factory) -> tuple[Path, list[str]]:
     names = [IFRAME_NAME, IMG_NAME, MD_NAME, ESC_NAME]
     with sqlite3.connect(tpl.path) as c:
         old = [r[0] for r in c.execute("SELECT name FROM views ORDER BY input_index")]
-        for a, b in zip(old, names):
+        for a, b in zip(old, names, strict=True):
             c.execute("UPDATE views SET name=? WHERE name=?", (b, a))
             c.execute("UPDATE edges SET src=? WHERE src=?", (b, a))
             c.execute("UPDATE edges SET tgt=? WHERE tgt=?", (b, a))

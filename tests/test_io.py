@@ -464,7 +464,7 @@ def test_pose_files_share_one_rigidity_rule(tmp_path: Path):
         (tmp_path / f"{name}.txt").write_text("\n".join(" ".join(repr(float(x)) for x in row) for row in M))
         return tmp_path / f"{name}.json", tmp_path / f"{name}.txt"
 
-    for path, read in zip(write("rounded", T4), (read_pose_file, read_pose_txt)):
+    for path, read in zip(write("rounded", T4), (read_pose_file, read_pose_txt), strict=True):
         got = read(path)
         np.testing.assert_allclose(got, T4, atol=1e-4)
         np.testing.assert_allclose(got[:3, :3].T @ got[:3, :3], np.eye(3), atol=1e-12)
@@ -473,7 +473,7 @@ def test_pose_files_share_one_rigidity_rule(tmp_path: Path):
     mirror[:3, 0] *= -1
     last[3, 0] = 0.1
     for name, M in (("shear", shear), ("mirror", mirror), ("last", last)):
-        for path, read in zip(write(name, M), (read_pose_file, read_pose_txt)):
+        for path, read in zip(write(name, M), (read_pose_file, read_pose_txt), strict=True):
             with pytest.raises(InputError, match="not a rigid transform") as ei:
                 read(path)
             assert path.name in str(ei.value)

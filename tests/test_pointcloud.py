@@ -56,7 +56,7 @@ def test_pca_normals_of_box_faces():
 def test_coincident_groups_and_voxels():
     pts = np.array([[0.0, 0, 0], [1, 1, 1], [0, 0, 0.00001], [2, 2, 2], [1, 1, 1]])
     order, starts = coincident_groups(pts)
-    groups = [order[a:b].tolist() for a, b in zip(starts, list(starts[1:]) + [len(order)])]
+    groups = [order[a:b].tolist() for a, b in zip(starts, list(starts[1:]) + [len(order)], strict=True)]
     assert groups == [[0, 2], [1, 4], [3]]  # first-occurrence order, members in input order, 0.1 mm tolerance
     assert coincident_groups(np.zeros((0, 3)))[0].size == 0
     grid = np.array([[0.001, 0, 0], [0.003, 0, 0], [0.011, 0, 0], [0.0, 0.02, 0]])
@@ -94,7 +94,7 @@ def test_voxels_and_groups_equal_their_definition(seed, scale):
     for i, p in enumerate(pts):
         groups.setdefault(tuple(np.rint(p * 1e4).astype(np.int64)), []).append(i)
     order, starts = coincident_groups(pts)
-    got = [order[a:b].tolist() for a, b in zip(starts, list(starts[1:]) + [n])]
+    got = [order[a:b].tolist() for a, b in zip(starts, list(starts[1:]) + [n], strict=True)]
     assert got == list(groups.values())
 
 

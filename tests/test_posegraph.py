@@ -57,7 +57,7 @@ def edge(gt: list[np.ndarray], i: int, j: int, rng: np.random.Generator, n: int,
 def ate(T_est: list[np.ndarray | None], T_gt: list[np.ndarray], ref: int = 0) -> float:
     """RMSE of camera-centre errors after anchoring both trajectories at node `ref`."""
     errs = [np.linalg.norm((inv_T(T_est[ref]) @ Te)[:3, 3] - (inv_T(T_gt[ref]) @ Tg)[:3, 3])
-            for Te, Tg in zip(T_est, T_gt) if Te is not None]
+            for Te, Tg in zip(T_est, T_gt, strict=True) if Te is not None]
     return float(np.sqrt(np.mean(np.square(errs))))
 
 
@@ -184,7 +184,7 @@ def test_deterministic():
     init = spanning_poses(12, edges)
     a = optimize_pose_graph(12, edges, init)
     b = optimize_pose_graph(12, edges, init)
-    for Ta, Tb in zip(a.T_world_node, b.T_world_node):
+    for Ta, Tb in zip(a.T_world_node, b.T_world_node, strict=True):
         np.testing.assert_array_equal(Ta, Tb)
     assert [(r.accepted, r.reason) for r in a.edges] == [(r.accepted, r.reason) for r in b.edges]
 

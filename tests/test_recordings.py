@@ -137,7 +137,7 @@ def test_pyrealsense2_playback_returns_the_frames_gscan_reads(recs, kind):
         assert _same_intrinsics(info["color"], seq.setup.color_intrinsics)
         assert _same_intrinsics(info["depth"], seq.setup.depth_intrinsics)
         np.testing.assert_allclose(info["T_color_depth"], seq.setup.T_color_depth, atol=1e-6)
-        for name, (color, raw) in zip(seq.names, frames):
+        for name, (color, raw) in zip(seq.names, frames, strict=True):
             c, d = seq.raw(name)
             assert np.array_equal(color, c), name
             assert np.array_equal(raw.astype(np.float32) * np.float32(seq.depth_scale), d), name
@@ -176,7 +176,7 @@ def test_alignment_puts_depth_where_the_colour_camera_sees_it(meshes_dir):
     """Noise-free depth from the offset depth camera, reprojected: within a millimetre of the colour camera's own
     depth at the median (the footprint splat is piecewise constant over a pixel), a few mm at the 90th percentile."""
     v = render_views(meshes_dir, 2, of_ring=12, T_color_depth=T_depth_offset(), clean=True)
-    for d_depth, d_color in zip(v.offset_depths, v.depths):
+    for d_depth, d_color in zip(v.offset_depths, v.depths, strict=True):
         a = align_depth_to_color(d_depth, K_DEPTH, K_COLOR, T_depth_offset())
         both = (a > 0) & (d_color > 0)
         err = np.abs(a - d_color)[both]

@@ -271,7 +271,7 @@ def test_real_open3d_sequence_all_pairs(real_dir):
     colors, depths = sorted((d / "color").iterdir()), sorted((d / "depth").iterdir())
     Ts = _trajectory(d / "trajectory.log")
     assert len(colors) == len(depths) == len(Ts) == 5
-    frames = [load_frame(c, dp, intr, depth_scale=0.001) for c, dp in zip(colors, depths)]
+    frames = [load_frame(c, dp, intr, depth_scale=0.001) for c, dp in zip(colors, depths, strict=True)]
     feats = [extract_features(f) for f in frames]
     for i in range(5):
         for j in range(i + 1, 5):

@@ -89,7 +89,7 @@ def _check_exports(tmp: Path, names: list[str]) -> None:
         assert "/" not in s and "\\" not in s and "\x00" not in s and s not in (".", "..") and not s.startswith(".")
         assert len(s.encode("utf-8")) <= MAX_STEM_BYTES
         assert not any(unicodedata.category(c) in ("Cc", "Cs", "Zl", "Zp") or c in BIDI for c in s), s
-    for name, s in zip(names, stems):  # a name already safe is kept
+    for name, s in zip(names, stems, strict=True):  # a name already safe is kept
         if (name and name.isprintable() and not name.startswith(".") and "/" not in name and "\\" not in name
                 and len(name.encode()) <= MAX_STEM_BYTES and _key(name) not in {_key(n) for n in names if n != name}):
             assert s == name

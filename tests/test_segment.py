@@ -90,7 +90,7 @@ def test_sequence_segmentation_with_working_volume(scene):
     half_diag = 0.5 * np.hypot(*TARGET_SIZE[:2])
     assert half_diag < vol.radius < half_diag + 0.04
     assert TARGET_SIZE[2] < vol.height < TARGET_SIZE[2] + 0.04
-    for seg, r in zip(segs, renders):
+    for seg, r in zip(segs, renders, strict=True):
         assert seg.method == "volume"
         assert iou_valid(seg.mask, r) >= 0.9
         assert not np.any(seg.mask & (r.labels == 1))
@@ -250,6 +250,6 @@ def test_turntable_sequence_in_object_frame():
     T_obj_cam = [inv_T(r.T_cam_obj) for r in renders]
     segs, vol = segment_sequence(frames, T_obj_cam)
     assert vol is not None
-    for seg, r in zip(segs, renders):
+    for seg, r in zip(segs, renders, strict=True):
         assert iou_valid(seg.mask, r) >= 0.9
         assert not np.any(seg.mask & (r.labels == 1))

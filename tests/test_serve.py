@@ -62,7 +62,7 @@ def scene_of(meshes, seed: int, with_target: bool = True) -> tuple[SynthScene, n
     target, distractors = meshes[0], meshes[1:]
     T_wt = rest_on_table(target, rotvec_to_R([0.0, 0.0, rng.uniform(0, 2 * np.pi)]))
     d_poses = place_distractors(target, T_wt, list(distractors), rng)
-    objs = ([(target, T_wt)] if with_target else []) + list(zip(distractors, d_poses))
+    objs = ([(target, T_wt)] if with_target else []) + list(zip(distractors, d_poses, strict=True))
     c = transform_points(T_wt, target.center[None])[0]
     el, az = np.radians(rng.uniform(30, 55)), rng.uniform(0, 2 * np.pi)
     eye = c + default_distance(target, fill=0.45) * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az),

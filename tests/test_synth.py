@@ -314,11 +314,11 @@ def test_distractors_do_not_overlap(box: TexturedMesh) -> None:
     others = [box_mesh((0.08, 0.06, 0.1), procedural_box_texture(i, (128, 192))) for i in range(3)]
     poses = place_distractors(box, T_t, others, rng)
     from gscan.synth import footprint_radius
-    circles = [footprint_radius(box, T_t)] + [footprint_radius(m, T) for m, T in zip(others, poses)]
+    circles = [footprint_radius(box, T_t)] + [footprint_radius(m, T) for m, T in zip(others, poses, strict=True)]
     for i in range(len(circles)):
         for j in range(i + 1, len(circles)):
             assert np.linalg.norm(circles[i][0] - circles[j][0]) > circles[i][1] + circles[j][1]
-    for m, T in zip(others, poses):
+    for m, T in zip(others, poses, strict=True):
         # resting on z = 0: a translation by the lowest vertex's height, exact up to float64 rounding (1e-17 m)
         assert abs(transform_points(T, m.vertices)[:, 2].min()) < 1e-12
 
@@ -435,7 +435,7 @@ def test_stereo_occlusion_band_left_of_objects(box: TexturedMesh) -> None:
     assert not ((f0.depth == 0) & (f1.depth > 0)).any()
     rows, cols = np.nonzero(extra & (f1.labels == -1))
     assert len(rows) > 20
-    right_of = [f1.mask[r, c + 1:c + 12].any() for r, c in zip(rows, cols)]
+    right_of = [f1.mask[r, c + 1:c + 12].any() for r, c in zip(rows, cols, strict=True)]
     assert all(right_of)  # every dropped table pixel lies just left of the box
 
 
@@ -477,7 +477,7 @@ def test_render_capture_view_angles_match_the_rings(box: TexturedMesh) -> None:
     ring = render_capture(box, None, 3, elevations_deg=(30.0,), intr=SMALL, noise=False, table=False)
     own = render_capture(box, None, 3, elevations_deg=(30.0,), intr=SMALL, noise=False, table=False,
                          view_angles_deg=[(30.0, 0.0), (30.0, 120.0), (30.0, 240.0)])
-    for f, g in zip(ring, own):
+    for f, g in zip(ring, own, strict=True):
         np.testing.assert_allclose(f.T_world_cam, g.T_world_cam, atol=1e-12)
         assert np.array_equal(f.color, g.color)
     with pytest.raises(ValueError):

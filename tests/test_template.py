@@ -149,7 +149,7 @@ def test_status_summary_poses_and_template(db_path: Path) -> None:
     names = ["frame 0", "frame é 1", "frame 2"]
     Ts = [_pose(rng), None, _pose(rng)]
     with TemplateDB.create(db_path, meta={"descriptor": {"kind": "rootsift"}}) as db:
-        for i, (n, T) in enumerate(zip(names, Ts)):
+        for i, (n, T) in enumerate(zip(names, Ts, strict=True)):
             db.add_view(View(name=n, intrinsics=K, T_obj_cam=T, input_index=i), features=_feats(rng, 5 + i))
         db.set_mesh(MeshData(vertices=np.array([[0, 0, 0], [0.1, 0.2, 0.3], [0.05, 0, 0]]),
                              triangles=np.array([[0, 1, 2]])))

@@ -47,7 +47,7 @@ def sequence(meshes_dir: Path, tmp_path_factory) -> Path:
     T0 = rest_on_table(target, rotvec_to_R([0.0, 0.0, 0.4]))
     d_poses = [make_T(np.eye(3), [0.0, 0.0, 0.0]) @ T
                for T in place_distractors(target, T0, distractors, rng, gap=0.12)]
-    scene = SynthScene([(target, T0)] + list(zip(distractors, d_poses)), seed=4, table_kind="wood")
+    scene = SynthScene([(target, T0)] + list(zip(distractors, d_poses, strict=True)), seed=4, table_kind="wood")
     c = transform_points(T0, target.center[None])[0]
     el, az = np.radians(40.0), np.radians(-70.0)
     eye = c + 0.75 * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])

@@ -88,7 +88,7 @@ def build_synth_template(path: str | Path, n_views: int = 6, elevations_deg: tup
     T_obj_cam, feats, clouds = {}, {}, []
     db = TemplateDB.create(path, force=True, meta={"source": "scan", "descriptor": {"kind": "rootsift"}})
     try:
-        for i, (name, T_world_cam) in enumerate(zip(names, poses)):
+        for i, (name, T_world_cam) in enumerate(zip(names, poses, strict=True)):
             fr = scene.render(T_world_cam, intr, rng=rng)
             T = inv_T(T_world_obj) @ T_world_cam
             T_obj_cam[name] = T

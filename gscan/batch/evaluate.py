@@ -187,7 +187,12 @@ def read_manifest(path: str | Path) -> list[Pair]:
     lines = [(n, ln) for n, ln in enumerate(text.splitlines(), 1) if ln.strip() and not ln.lstrip().startswith("#")]
     if not lines:
         raise InputError(path, "the manifest is empty (expected a header row `template,scenes[,obj_id,...]`)")
-    rows = list(csv.reader([ln for _, ln in lines]))
+    rows = []
+    for n, ln in lines:  # each line on its own: an unclosed quote never swallows the lines after it
+        try:
+            rows.append(next(csv.reader([ln], strict=True)))
+        except csv.Error as e:
+            raise InputError(path, f"line {n}: not a CSV row ({e})") from None
     header = [h.strip().lower() for h in rows[0]]
     unknown = [h for h in header if h not in MANIFEST_COLUMNS]
     if unknown or "template" not in header or "scenes" not in header or len(set(header)) != len(header):
@@ -195,10 +200,10 @@ def read_manifest(path: str | Path) -> list[Pair]:
                          f"may name {', '.join(MANIFEST_COLUMNS[2:])} (got {','.join(rows[0])})")
     base = path.parent
     pairs: list[Pair] = []
-    for (n, _), row in zip(lines[1:], rows[1:]):
+    for (n, _), row in zip(lines[1:], rows[1:], strict=True):
         if len(row) != len(header):
             raise InputError(path, f"line {n}: {len(row)} cells for {len(header)} columns")
-        cell = {h: v.strip() for h, v in zip(header, row)}
+        cell = {h: v.strip() for h, v in zip(header, row, strict=True)}
         if not cell["template"] or not cell["scenes"]:
             raise InputError(path, f"line {n}: a template and a scenes folder are needed")
         obj_id = None

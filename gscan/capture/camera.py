@@ -9,9 +9,8 @@ with its depth scale, so frames come out as the capture layout stores them.
 Alignment (`align`): "gscan" (default) reprojects depth with `gscan.io.align`, the same code that
 reads recordings, so a capture played from a .bag holds the depth `gscan scan REC.bag` reads (to the
 millimetre); "librealsense" uses `rs.align`, which keeps each point's depth-camera z instead of its z in the
-colour camera: off by the depth-to-colour rotation (on rendered views with a 2 degree rotation its depth was
-4.7 mm off the truth at the median, gscan's 0.7 mm; BENCHMARKS.md). Depth that comes registered to colour is
-taken as it is.
+colour camera: off by the depth-to-colour rotation (see BENCHMARKS.md, section Recordings). Depth that comes
+registered to colour is taken as it is.
 """
 from __future__ import annotations
 

@@ -26,7 +26,7 @@ Pipeline of `Estimator.estimate` (every stage timed, `EstimateResult.timings_ms`
    the template cloud's points visible from the predicted pose onto the query cloud cropped to a sphere of
    1.2 object radii around the predicted centre and, without a mask, to the off-plane pixels. A given mask
    does not crop it: ICP pairs the template's whole visible surface with the query, and a mask that clips
-   the silhouette (eroded, or cut by an occluder) pulled the pose toward the cut. A refinement that moves the
+   the silhouette (eroded, or cut by an occluder) would pull the pose toward the cut. A refinement that moves the
    pose by more than the object radius or 30 degrees is discarded.
 6. verify (`gscan.estimate.verify`): the pose is accepted from the evidence (depth agreement, keypoint support
    relative to what the frame and the template show there, the list's geometry), never from the list length
@@ -38,7 +38,7 @@ Without usable query depth (valid fraction of the search region < `min_depth_fra
 holes in the depth (a dark, shiny or transparent object leaves a hole in otherwise good depth).
 
 The estimator limits BLAS (threadpoolctl) and OpenCV to one thread each while it runs: its matrices and
-detection boxes are small, and a thread pool spinning up per call cost more CPU than it saved.
+detection boxes are small, and a thread pool spinning up per call costs more CPU than it saves.
 """
 from __future__ import annotations
 
@@ -375,7 +375,7 @@ class Estimator:
         views = self._top_neighbourhoods(votes)
         qk.candidates = dict(zip(views, neighbourhoods_candidates(
             S, self.unit, qk.order, qk.starts, [self.nb_tgroups[v] for v in views], self.eps_f,
-            self.params.gmatch.order)))
+            self.params.gmatch.order), strict=True))
         for v in views:
             for m, cost in self._match_hypotheses(v, qk):
                 key = np.ascontiguousarray(m[np.lexsort((m[:, 1], m[:, 0]))]).tobytes()
@@ -421,7 +421,7 @@ class Estimator:
         z = np.median(q_pts[:, 2]) if len(q_pts) else 0.5
         support = nn_support(T, self.points_obj[nn[agree]], q_pts, self.params.support_radius
                              + 0.01 * max(float(z) - 0.5, 0.0))
-        for c, n, T_h in zip(cands, support, T):
+        for c, n, T_h in zip(cands, support, T, strict=True):
             c.support, c.T = int(n), T_h
 
     def _merge_agreeing(self, cands: list[_Candidate], feats_points: np.ndarray) -> list[_Candidate]:
@@ -448,7 +448,7 @@ class Estimator:
             tr = np.einsum("ij,nij->n", c.T[:3, :3], Ts[rest, :3, :3])  # trace(R_c^T R_n)
             agree = (tr >= trace_min) & (np.linalg.norm(Ts[rest, :3, 3] - c.T[:3, 3], axis=1) <= p.merge_dist)
             owner[rest[agree]] = k
-        for rep, ms in zip(merged, members):
+        for rep, ms in zip(merged, members, strict=True):
             rep.longest = max(len(m) for m in ms)
             if len(ms) > 1:
                 m = np.concatenate(ms)

@@ -138,7 +138,7 @@ def neighbourhoods_candidates(S: np.ndarray, unit: bool, q_order: np.ndarray, q_
     lo = _unit_threshold(eps32) if unit else -eps32
     qs = np.r_[q_starts, len(q_order)].astype(np.int64)
     first = np.concatenate([tg.first for tg in tgs])
-    extra_row = np.concatenate([tg.extra_row + o for tg, o in zip(tgs, off)])
+    extra_row = np.concatenate([tg.extra_row + o for tg, o in zip(tgs, off[:-1], strict=True)])
     extra_col = np.concatenate([tg.extra_col for tg in tgs])
     args = (S, np.float32(1.0 if unit else -1.0), np.asarray(q_order, np.int64), qs, first, extra_row, extra_col,
             lo, unit, eps32)

@@ -105,7 +105,7 @@ def build_reconstruction(db: TemplateDB, images_dir: Path) -> pycolmap.Reconstru
     order = np.argsort(roots, kind="stable")
     starts = np.flatnonzero(np.r_[True, roots[order][1:] != roots[order][:-1]]) if n else np.zeros(0, int)
     tracks = []
-    for s, e in zip(starts, np.r_[starts[1:], n]):
+    for s, e in zip(starts, np.r_[starts[1:], n], strict=True):
         members, seen = [], set()
         for g in order[s:e]:
             if view_of[g] not in seen:  # one observation per image
@@ -114,7 +114,7 @@ def build_reconstruction(db: TemplateDB, images_dir: Path) -> pycolmap.Reconstru
         tracks.append(members)
     cams = _Cameras.of(views)
     tracks, xyz_all = _triangulate(tracks, pts_all, px_all, view_of, cams)
-    for members, xyz in zip(tracks, xyz_all):
+    for members, xyz in zip(tracks, xyz_all, strict=True):
         track = pycolmap.Track()
         for g in members:
             track.add_element(int(view_of[g]) + 1, g - offsets[view_of[g]])

@@ -54,10 +54,10 @@ def icp_point_to_plane(src: np.ndarray, src_normals: np.ndarray, tgt: np.ndarray
     """Point-to-plane ICP of src [N x 3] (normals src_normals [N x 3]) onto tgt [M x 3] from T_init
     (tgt <- src) -> (T [4 x 4], fitness).
 
-    The planes are the SOURCE's (the template's clean surface), not normals estimated on the noisy
-    query depth, which measurably drag the pose (BENCHMARKS.md). Each iteration pairs every moved
-    source point with its nearest target point within `max_dist` and solves the linearised 6-DoF
-    step. Deterministic (bit-identical output for identical input), unlike open3d's threaded
+    The planes are the SOURCE's (the template's clean surface), not normals estimated on the noisy query
+    depth, which drag the pose (see BENCHMARKS.md, section Masks, ICP, the first call and frames without
+    depth). Each iteration pairs every moved source point with its nearest target point within `max_dist` and
+    solves the linearised 6-DoF step. Deterministic (bit-identical output for identical input), unlike open3d's threaded
     reductions; fitness = fraction of source points paired in the last iteration.
     """
     from scipy.spatial import cKDTree

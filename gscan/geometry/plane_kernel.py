@@ -4,10 +4,10 @@ without the [N x m] height matrix.
 
 A height is n . p + offset with the dot product as fused multiply-adds in coordinate order,
 fma(p_z, n_z, fma(p_y, n_y, p_x n_x)) + offset: deterministic whatever the BLAS, and the value x86-64
-OpenBLAS's matrix product gives (the plane RANSAC scored with `S @ normals.T + offset` before). On a CPU
-without fused multiply-add instructions (HAS_FMA False) the RANSAC keeps the matrix product: emulated, the
-kernel would be slower than it. Compiled with `cache=True`, `nogil=True`; imported on first use, so that
-importing `gscan.geometry` does not load numba.
+OpenBLAS's matrix product `S @ normals.T + offset` gives. On a CPU without fused multiply-add instructions
+(HAS_FMA False) the RANSAC scores with that matrix product: emulated, the kernel would be slower than it.
+Compiled with `cache=True`, `nogil=True`; imported on first use, so that importing `gscan.geometry` does not
+load numba.
 """
 from __future__ import annotations
 

@@ -120,7 +120,7 @@ def align_depth_reference(depth: np.ndarray, depth_intr: Intrinsics, color_intr:
     def cam_point(u: float, v: float, z: float) -> np.ndarray:  # depth pixel at depth z -> colour camera
         return R @ np.array([(u - d.cx) / d.fx * z, (v - d.cy) / d.fy * z, z]) + t
 
-    for v, u in zip(*np.nonzero(np.isfinite(depth) & (depth > 0))):
+    for v, u in zip(*np.nonzero(np.isfinite(depth) & (depth > 0)), strict=True):
         z = float(depth[v, u])
         zc = cam_point(u, v, z)[2]
         if not zc > 0:

@@ -159,7 +159,7 @@ def discover_open3d(root: Path) -> Layout:
     if not set(colors) & set(depths) and len(colors) == len(depths):
         # Redwood-style numbering that differs between the folders: pair in sorted order.
         log.info("%s: colour and depth stems differ; pairing them in sorted order", root)
-        depths = dict(zip(colors, depths.values()))
+        depths = dict(zip(colors, depths.values(), strict=True))
     frames, problems = _pair(colors, depths, None, root / "depth")
     gt: dict[str, np.ndarray] | None = None
     gt_problems: dict[str, str] = {}

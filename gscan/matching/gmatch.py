@@ -13,8 +13,8 @@ Definitions (GMatch as gscan implements it):
   key: "ratio" (default) d_f(i, j) / d_2(i), d_2(i) the second-smallest distance of source i's row
   (Lowe's ratio: the most distinctive pairs first), or "distance" d_f itself (the paper's "top-T
   most similar"). On repetitive textures (newspaper glyphs, wood grain) the most similar pairs are
-  copies of one pattern: the first true candidate was at rank 69 / 302 by distance and at rank
-  <= 10 / 5 by ratio, so no seed of the T = 24 was true by distance (BENCHMARKS.md, Matcher).
+  copies of one pattern, so the first T candidates by distance may hold no true pair; by ratio the
+  true pairs come first (see BENCHMARKS.md, section Parameter studies).
 * delta(p, q) for two pairs p = (i1, j1), q = (i2, j2): with l_s = |ps_i1 - ps_i2| and
   l_t = |pt_j1 - pt_j2|, delta = |l_s - l_t| / l_s if |l_s - l_t| < eta_pq, else 1.
   eta_pq = eta * max(f(p), f(q)) with f(i, j) = max(1, (z / eta_ref_depth)^2) over the
@@ -26,9 +26,8 @@ Definitions (GMatch as gscan implements it):
   z_t = n_t . view_t / |n_t|, q flips over iff z_s * z_t < 0 (the paper's sign test) and
   |z_s - z_t| > flip_margin. The margin is for triples that are not on one surface: the camera may
   cross such a triangle's plane, and a view change of theta flips the sign of triangles with
-  |z_s| + |z_t| up to about 2 sin(theta / 2) (0.62 at 36 deg). With flip_margin 0 a scan with 36 deg
-  between views registered wrong edges (ATE 77 mm instead of 0.4 mm, tests/test_scan.py wide
-  spacing); on the rendered pairs 0 and 0.8 differ by one pair either way (BENCHMARKS.md). The cost:
+  |z_s| + |z_t| up to about 2 sin(theta / 2) (0.62 at 36 deg): without a margin a scan with 36 deg
+  between views registers wrong edges (see BENCHMARKS.md, section Parameter studies). The cost:
   a plane seen from behind at more than ~66 deg from the view, and a mirror image of a deep 3D
   layout, are not rejected by it (the "triple" set rejects mirror images). Near-collinear triples
   (sine of the angle at the first vertex, |n| / (|e1| |e2|), below collinear_sin on either side)
@@ -86,10 +85,10 @@ ORDERS = ("ratio", "distance")
 
 # Default feature thresholds per descriptor kind (distance metric of gscan.features.descriptor_distances:
 # L2 on unit-norm RootSIFT vectors, L2 on raw OpenCV SIFT vectors (norm ~512), Hamming bits for ORB).
-# Chosen by the sweeps recorded in BENCHMARKS.md (Matcher section): RootSIFT 0.6 has the best success on
-# object-pixel keypoints at 60 / 120 deg view changes (0.5 loses 19 / 23 points there; whole frames are
-# at 95-100 % for every value 0.4-0.8 but search ~7x faster at 0.5). SIFT / ORB: the smallest value at
-# the best whole-frame rate of their sweeps.
+# Chosen by the sweeps in BENCHMARKS.md, section Parameter studies: RootSIFT 0.6 has the best success on
+# object-pixel keypoints at wide view changes (whole frames succeed at every value, and a scan of a static
+# object uses a lower one there: fewer candidates, a faster search). SIFT / ORB: the smallest value at the
+# best whole-frame rate of their sweeps.
 _DEFAULT_EPS_F = {"rootsift": 0.6, "sift": 150.0, "orb": 64.0}
 
 
@@ -158,7 +157,7 @@ class GMatchResult:
         """Per hypothesis, in search order: seed pair, 3-pair start, its list, final length, cost, pruned."""
         return [HypothesisTrace((int(h[0, 0]), int(h[0, 1])), h, m[:n], int(n), float(c), bool(p))
                 for h, m, n, c, p in zip(self.hyp_start, self.hyp_matches, self.hyp_length, self.hyp_cost,
-                                         self.hyp_pruned)]
+                                         self.hyp_pruned, strict=True)]
 
 
 @dataclass(frozen=True)

@@ -408,7 +408,7 @@ def optimize_pose_graph(n_nodes: int, edges: list[GraphEdge],
             raise ValueError(f"invalid edge {edge.src} -> {edge.tgt} for {n_nodes} nodes")
     init = [None if T is None else np.asarray(T, dtype=np.float64).reshape(4, 4).copy() for T in T_world_node_init]
     filled = spanning_poses(n_nodes, edges)
-    poses = [T if T is not None else (S if S is not None else np.eye(4)) for T, S in zip(init, filled)]
+    poses = [T if T is not None else (S if S is not None else np.eye(4)) for T, S in zip(init, filled, strict=True)]
     g = _Graph(n_nodes, edges, poses, params)
     reasons: dict[int, str] = {}
     active = list(range(len(edges)))

@@ -109,7 +109,7 @@ def moving_object_masks(frames: list[RGBDFrame], min_offset: float = 0.01, min_a
         return [s.mask for s in segs], planes
     bg = background_depth([f.depth for f in frames])
     return [s.mask if s.plane_cam is not None else foreground_mask(f.depth, bg, min_offset, min_area)
-            for f, s in zip(frames, segs)], planes
+            for f, s in zip(frames, segs, strict=True)], planes
 
 
 def background_depth(depths: list[np.ndarray]) -> np.ndarray:

@@ -12,7 +12,7 @@ Stages (each timed, each reported through a `Progress`):
             ones (`MAX_SKIP` frames in all), then loop closures chosen by view overlap
             and bag-of-words votes; each edge = GMatch -> Kabsch -> guided refinement (-> ICP when
             configured), accepted by the rules of `gscan.registration.pairwise`; stored as it is computed
-  posegraph robust global optimisation (open3d, line process) with pruning of inconsistent edges;
+  posegraph robust global optimisation (`gscan.registration.posegraph`) with pruning of inconsistent edges;
             frames not connected to the reference frame stay unregistered and are never fused
   segment   object masks (given, background subtraction, or support plane + working volume)
   fuse      TSDF fusion of the object's depth; template frame (fuse.template_frame)
@@ -99,9 +99,9 @@ log = logging.getLogger(__name__)
 
 MAX_SKIP = 3  # a frame is tried against up to this many preceding frames, its predecessor first, until one is accepted
 ICP_VOXEL_STRIDE = 2  # pixel stride of the clouds kept for ICP before voxel downsampling
-# eps_f for whole-frame registration (static object) when the config leaves it unset: on rendered
-# whole-frame pairs RootSIFT 0.5 is as accurate as the object-only default 0.6 (100 % at every
-# threshold from 0.4 to 0.8, BENCHMARKS.md) and 7x faster (85 vs 640 ms a pair: fewer candidates)
+# eps_f for whole-frame registration (static object) when the config leaves it unset: on whole frames
+# RootSIFT 0.5 is as accurate as the object-only default 0.6 and gives far fewer candidates, so the search is
+# faster (see BENCHMARKS.md, section Parameter studies)
 WHOLE_FRAME_EPS_F = {"rootsift": 0.5}
 QUALITY_RMS_SIGMA = 3.4  # a view whose best accepted edge has this RMS keypoint residual (noise sigmas) gets quality 0
 PILOT_PAIRS = 8  # sequential pairs, spread over the capture, whose residuals fit the capture's depth noise
@@ -176,9 +176,9 @@ def _register_params(cfg: ScanConfig, mode: str) -> RegisterParams:
     eps_f = m.eps_f
     if eps_f is None and mode == STATIC_OBJECT:
         eps_f = WHOLE_FRAME_EPS_F.get(cfg.features.kind)
-    # the depth refines edges of a moving object, whose masked views hold few keypoints (a turntable: 13 of 24
-    # frames registered without it, 24 with it); a static scene's whole-frame depth pulls real Kinect edges off
-    # the truth where the camera moves fast (7-Scenes: 5-11 frames beyond 10 cm with it, 1 without)
+    # the depth refines edges of a moving object, whose masked views hold few keypoints; a static scene's
+    # whole-frame depth pulls real Kinect edges off the truth where the camera moves fast (see BENCHMARKS.md,
+    # section Real Kinect frames)
     dense = r.dense_refine if r.dense_refine is not None else mode == MOVING_OBJECT
     gm = GMatchParams(eps_f=eps_f, eps_c=m.eps_c, eta=m.eta, T=m.T, L=m.L, constraint=m.constraint, order=m.order)
     params = RegisterParams(method=m.method, gmatch=gm, min_matches=r.min_matches, max_rms=r.max_rms,
@@ -590,7 +590,7 @@ def _read_ahead(seq: Sequence | RecordingSequence) -> Iterator[tuple[str, RGBDFr
             return e
 
     with ThreadPoolExecutor(max_workers=1) as pool:
-        yield from zip(seq.names, _bounded_map(pool, read, seq.names, ahead=2))
+        yield from zip(seq.names, _bounded_map(pool, read, seq.names, ahead=2), strict=True)
 
 
 # ------------------------------------------------------------------------------------------ the stages
@@ -647,7 +647,7 @@ def _scan_frames(data: _FrameData, opts: ScanOptions, db: TemplateDB, resumed: b
         mesh = model.mesh.transformed(T_obj_world)
         db.set_mesh(mesh)
         db.set_cloud(transform_points(T_obj_world, model.points), model.point_colors)
-        unregistered = [f.name for f, T in zip(frames, T_world_cam) if T is None]
+        unregistered = [f.name for f, T in zip(frames, T_world_cam, strict=True) if T is None]
         db.set_meta("unregistered", unregistered)
         db.set_meta("unregistered_reasons", reasons)
         db.set_meta("parts", parts)
@@ -754,7 +754,7 @@ def _capture_noise(data: _FrameData, params: RegisterParams) -> tuple[DepthNoise
         got = list(pool.map(pair, picks))
     if not got:
         return params.noise, params.depth_noise
-    r, za, zb, e, da, db = (np.concatenate(x) for x in zip(*got))
+    r, za, zb, e, da, db = (np.concatenate(x) for x in zip(*got, strict=True))
     return (estimate_noise(r, za, zb, prior=params.noise),
             estimate_noise(e, da, db, prior=params.depth_noise, dof=1))
 
@@ -816,7 +816,7 @@ def _register_edges(data: _FrameData, rparams: RegisterParams, cfg: ScanConfig, 
     def register_all(pairs: list[tuple[int, int]], kind: str, pool: ThreadPoolExecutor) -> list[Edge]:
         """Edges of `pairs`, computed on the pool (numba and OpenCV release the GIL), stored in order."""
         out = []
-        for (i, j), got in zip(pairs, _bounded_map(pool, pair_work, pairs)):
+        for (i, j), got in zip(pairs, _bounded_map(pool, pair_work, pairs), strict=True):
             if got is None:  # stored by the interrupted run
                 e = done[(names[i], names[j])]
                 if e.reason and e.reason.startswith(PRUNED):  # restore the registration verdict
@@ -962,7 +962,7 @@ def _optimise(n: int, edges: list[Edge], index: dict[str, int], data: _FrameData
                                weight=len(e.matches), depth=ev.depth))
     res = optimize_pose_graph(n, graph, spanning_poses(n, graph), PoseGraphParams(alpha=cfg.posegraph.alpha))
     best: dict[int, float] = {}
-    for rep, e, ev in zip(res.edges, use, found):
+    for rep, e, ev in zip(res.edges, use, found, strict=True):
         # the pose graph's verdict joins the registration's: pruned edges are recorded as rejected
         if not rep.accepted:
             e.accepted = False

@@ -316,7 +316,7 @@ def _centre_point(frames: list[RGBDFrame], T_world_cam: list[np.ndarray], depths
     few frames that look elsewhere). Unlike the axes' meeting point it needs no spread of viewing directions (a
     hand-held sweep looks along nearly parallel axes). None when no frame has centre depth."""
     pts = []
-    for f, T, z in zip(frames, T_world_cam, depths):
+    for f, T, z in zip(frames, T_world_cam, depths, strict=True):
         if z is not None:
             K = f.intrinsics
             H, W = f.depth.shape
@@ -329,7 +329,7 @@ def _seen_by_most(points_world: np.ndarray, frames: list[RGBDFrame], T_world_cam
     """[N] bool: the points [N x 3] inside the image of at least `SEEN_BY` of the frames: a scan keeps its
     object in view, so what most frames leave out (the far end of a room a sweep passes) is not the object."""
     seen = np.zeros(len(points_world), dtype=int)
-    for f, T in zip(frames, T_world_cam):
+    for f, T in zip(frames, T_world_cam, strict=True):
         p = transform_points(np.linalg.inv(T), points_world)
         K = f.intrinsics
         z = np.where(p[:, 2] > 1e-6, p[:, 2], np.nan)
@@ -361,7 +361,7 @@ def estimate_working_volume(frames: Sequence[RGBDFrame], T_world_cam: list[np.nd
     K = used[0].intrinsics
     par = at_depth(params, z_c, K.fx, 4)
     pts = []
-    for f, T, z in zip(used, cams, depths):
+    for f, T, z in zip(used, cams, depths, strict=True):
         lo, hi = depth_range(params, z)
         valid = (f.depth >= lo) & (f.depth <= hi)
         p = backproject(f.depth, f.intrinsics)[::4, ::4][valid[::4, ::4]]
@@ -416,9 +416,9 @@ def segment_sequence(frames: list[RGBDFrame], T_world_cam: list[np.ndarray | Non
     """
     if len(frames) != len(T_world_cam):
         raise ValueError(f"{len(frames)} frames but {len(T_world_cam)} poses")
-    reg = [(f, T) for f, T in zip(frames, T_world_cam) if T is not None]
+    reg = [(f, T) for f, T in zip(frames, T_world_cam, strict=True) if T is not None]
     vol = estimate_working_volume([f for f, _ in reg], [T for _, T in reg], params)
-    return [segment_in_volume(f, T, vol, params) for f, T in zip(frames, T_world_cam)], vol
+    return [segment_in_volume(f, T, vol, params) for f, T in zip(frames, T_world_cam, strict=True)], vol
 
 
 def segment_in_volume(frame: RGBDFrame, T_world_cam: np.ndarray | None, vol: WorkingVolume | None,

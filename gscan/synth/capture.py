@@ -115,7 +115,7 @@ def write_capture(out_dir: str | Path, frames: list[RenderedFrame], intr: Intrin
     for d in subdirs:
         (out / d).mkdir(parents=True, exist_ok=True)
     np.savetxt(out / "cam_K.txt", intr.K, fmt="%.10g")
-    for name, f in zip(names, frames):
+    for name, f in zip(names, frames, strict=True):
         if f.color.shape[:2] != (intr.height, intr.width):
             raise ValueError(f"frame {name} is {f.color.shape[1]}x{f.color.shape[0]}, "
                              f"intrinsics {intr.width}x{intr.height}")
@@ -170,7 +170,7 @@ def render_capture(mesh: TexturedMesh, out_dir: str | Path | None, n_views: int,
     else:
         distractor_meshes = list(distractor_meshes)[:distractors]
     d_poses = place_distractors(mesh, T_world_obj, distractor_meshes, rng)
-    scene = SynthScene([(mesh, T_world_obj)] + list(zip(distractor_meshes, d_poses)), seed=seed,
+    scene = SynthScene([(mesh, T_world_obj)] + list(zip(distractor_meshes, d_poses, strict=True)), seed=seed,
                        table_kind=table_kind, shadows=shadows, table=table, wall_y=wall_y, gloss=gloss,
                        light_dir=light_dir)
     center = transform_points(T_world_obj, mesh.center[None])[0]

@@ -178,7 +178,7 @@ def box_mesh(size_xyz: tuple[float, float, float] | np.ndarray, texture: np.ndar
     dims = [(float(abs(np.dot(a, s))), float(abs(np.dot(b, s)))) for _, a, b in _BOX_FACES]
     k = min(min(cw / da, ch / db) for da, db in dims)  # texels per metre
     corners, uvs = [], []
-    for i, (face_axes, (da, db)) in enumerate(zip(_BOX_FACES, dims)):
+    for i, (face_axes, (da, db)) in enumerate(zip(_BOX_FACES, dims, strict=True)):
         n, a, b = (np.asarray(x, dtype=float) for x in face_axes)
         c0 = n * 0.5 * abs(np.dot(n, s))
         cx, cy = (i % cols) * w / cols + w / cols / 2, (i // cols) * h / rows + h / rows / 2

@@ -31,7 +31,7 @@ _SURF_NONE, _SURF_TABLE, _SURF_WALL, _SURF_OBJ = 0, 1, 2, 3
 def _xform(pts: np.ndarray, R: np.ndarray, t: np.ndarray | None = None) -> np.ndarray:
     """[N x 3] points (or directions when t is None) mapped by R [3 x 3] (+ t [3]); keeps the dtype.
 
-    cv2.transform is used because numpy's matmul with a tiny right-hand matrix is ~50x slower here."""
+    cv2.transform is used because numpy's matmul with a tiny right-hand matrix is much slower on tall inputs."""
     M = np.zeros((3, 4), pts.dtype)
     M[:, :3] = R
     if t is not None:

@@ -150,7 +150,7 @@ def procedural_box_texture(seed: int = 0, size: tuple[int, int] = (1024, 1536)) 
         x0, y0, n = int(rng.integers(0, w)), int(rng.integers(0, h)), int(rng.integers(15, 45))
         pts = np.array([x0, y0]) + rng.uniform(0, 90, (n, 2))
         col = _color(rng, palette=palette)
-        for p, r in zip(pts.astype(int), rng.integers(2, 7, n)):
+        for p, r in zip(pts.astype(int), rng.integers(2, 7, n), strict=True):
             cv2.circle(img, (int(p[0]), int(p[1])), int(r), col, -1, cv2.LINE_AA)
     for _ in range(int(3 * area)):  # titles
         _put_text(img, rng, random_word(rng, 4, 9), (int(rng.integers(-20, w - 100)), int(rng.integers(40, h))),

@@ -66,7 +66,7 @@ def decode_array(b: bytes | None, shape: tuple[int | None, ...] | None = None) -
     if dtype.hasobject or dtype.kind not in "iuf":
         raise BadBlob(f"stored array is {dtype}, not numbers")
     if shape is not None and (len(dshape) != len(shape)
-                              or any(s is not None and s != n for s, n in zip(shape, dshape))):
+                              or any(s is not None and s != n for s, n in zip(shape, dshape, strict=True))):
         raise BadBlob(f"stored array is {dtype} {tuple(dshape)}, expected {_shape_text(shape)}")
     declared = dtype.itemsize * math.prod(int(n) for n in dshape)  # Python ints: no overflow
     if declared != len(b) - f.tell():

@@ -94,7 +94,7 @@ def draw_matches(img_s: np.ndarray, px_s: np.ndarray, wh_s: tuple[int, int], img
     if len(m) > max_lines:
         m = m[np.linspace(0, len(m) - 1, max_lines).round().astype(int)]
     cols = hue_colors(len(m))
-    for (i, j), c in zip(m, cols):
+    for (i, j), c in zip(m, cols, strict=True):
         p = scale_pixels(px_s[i], wh_s, image_wh(a))[0]
         q = scale_pixels(px_t[j], wh_t, image_wh(b))[0] + np.array([a.shape[1], 0.0])
         c = tuple(int(x) for x in c)
