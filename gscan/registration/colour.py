@@ -53,12 +53,14 @@ def texture_image(grey: np.ndarray) -> np.ndarray:
 def image_noise(grey: np.ndarray) -> float:
     """Standard deviation (grey levels) of an image's pixel noise, by Immerkaer's Laplacian-difference estimator
     (Fast noise variance estimation, CVIU 1996): texture mostly cancels in the mask, noise does not."""
-    g = np.asarray(grey, dtype=np.float64)
+    import cv2
+
+    g = np.asarray(grey, dtype=np.float32)
     if min(g.shape) < 3:
         return 0.0
-    n = (g[:-2, :-2] - 2 * g[:-2, 1:-1] + g[:-2, 2:] - 2 * g[1:-1, :-2] + 4 * g[1:-1, 1:-1] - 2 * g[1:-1, 2:]
-         + g[2:, :-2] - 2 * g[2:, 1:-1] + g[2:, 2:])
-    return float(np.sqrt(np.pi / 2) * np.mean(np.abs(n)) / 6.0)
+    mask = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
+    n = cv2.filter2D(g, cv2.CV_32F, mask, borderType=cv2.BORDER_REPLICATE)[1:-1, 1:-1]
+    return float(np.sqrt(np.pi / 2) * np.mean(np.abs(n), dtype=np.float64) / 6.0)
 
 
 @dataclass(frozen=True)
@@ -76,30 +78,29 @@ class ColourAgreement:
         return ColourAgreement(self.informative + other.informative, self.agreeing + other.agreeing)
 
 
-def _bilinear(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """img [H x W] at the sub-pixel positions (x [K], y [K]), which must lie within [0, W-1) x [0, H-1)."""
-    x0 = np.floor(x).astype(np.int64)
-    y0 = np.floor(y).astype(np.int64)
-    fx, fy = x - x0, y - y0
-    return (img[y0, x0] * (1 - fx) * (1 - fy) + img[y0, x0 + 1] * fx * (1 - fy)
-            + img[y0 + 1, x0] * (1 - fx) * fy + img[y0 + 1, x0 + 1] * fx * fy)
-
-
 def _tile_zncc(Ia: np.ndarray, t: np.ndarray, n_tiles: int, tgt_texture: np.ndarray, u: np.ndarray,
                v: np.ndarray, shifts: tuple[tuple[int, int], ...]) -> np.ndarray:
-    """[len(shifts) x n_tiles] normalised cross-correlation per tile (ids t [K]) of Ia [K] with the target's
-    texture at (u + dx, v + dy)."""
-    n = np.maximum(np.bincount(t, minlength=n_tiles), 1).astype(np.float64)
-    sa = np.bincount(t, Ia, n_tiles)
-    var_a = np.bincount(t, Ia * Ia, n_tiles) - sa * sa / n
-    out = np.empty((len(shifts), n_tiles))
-    for i, (dx, dy) in enumerate(shifts):
-        Ib = _bilinear(tgt_texture, u + dx, v + dy)
-        sb = np.bincount(t, Ib, n_tiles)
-        var_b = np.bincount(t, Ib * Ib, n_tiles) - sb * sb / n
-        cov = np.bincount(t, Ia * Ib, n_tiles) - sa * sb / n
-        out[i] = cov / np.sqrt(np.maximum(var_a * var_b, 1e-12))
-    return out
+    """[len(shifts) x n_tiles] normalised cross-correlation per tile (ids t [K], each of 0..n_tiles-1 present)
+    of Ia [K] with the target's texture, bilinearly interpolated, at (u + dx, v + dy) [K]; the positions must
+    keep one pixel inside the image at every shift. The shifts are whole pixels, so the interpolation weights
+    are those of (u, v) for all of them."""
+    order = np.argsort(t, kind="stable")
+    t, Ia, u, v = t[order], Ia[order], u[order], v[order]
+    starts = np.flatnonzero(np.r_[True, t[1:] != t[:-1]])
+    W = tgt_texture.shape[1]
+    x0, y0 = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
+    fx, fy = u - x0, v - y0
+    flat = tgt_texture.ravel()
+    at = (y0 * W + x0)[None, :] + np.array([dy * W + dx for dx, dy in shifts], dtype=np.int64)[:, None]
+    Ib = ((flat[at] * (1 - fx) + flat[at + 1] * fx) * (1 - fy)
+          + (flat[at + W] * (1 - fx) + flat[at + W + 1] * fx) * fy)  # [S x K]
+    n = np.diff(np.r_[starts, len(t)]).astype(np.float64)
+    sa = np.add.reduceat(Ia, starts)
+    var_a = np.add.reduceat(Ia * Ia, starts) - sa * sa / n
+    sb = np.add.reduceat(Ib, starts, axis=1)
+    var_b = np.add.reduceat(Ib * Ib, starts, axis=1) - sb * sb / n
+    cov = np.add.reduceat(Ib * Ia, starts, axis=1) - sa * sb / n
+    return cov / np.sqrt(np.maximum(var_a * var_b, 1e-12))
 
 
 def tile_scores(Ia: np.ndarray, tiles: np.ndarray, tgt_texture: np.ndarray, u: np.ndarray, v: np.ndarray,
