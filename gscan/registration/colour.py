@@ -20,6 +20,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 BAND_SIGMA = 4.5  # px: the blur subtracted by `texture_image` (texture finer than this is kept)
@@ -34,8 +35,6 @@ FAR = tuple((round(FAR_RADIUS * np.cos(a)), round(FAR_RADIUS * np.sin(a))) for a
 
 def grey_image(image: np.ndarray) -> np.ndarray:
     """[H x W] float32 grey levels of an [H x W x 3] RGB or [H x W] grey image."""
-    import cv2
-
     img = np.asarray(image)
     if img.ndim == 3:
         img = cv2.cvtColor(np.ascontiguousarray(img), cv2.COLOR_RGB2GRAY)
@@ -44,8 +43,6 @@ def grey_image(image: np.ndarray) -> np.ndarray:
 
 def texture_image(grey: np.ndarray) -> np.ndarray:
     """[H x W] float32: grey [H x W] (any range) minus its Gaussian blur at BAND_SIGMA px."""
-    import cv2
-
     g = np.asarray(grey, dtype=np.float32)
     return g - cv2.GaussianBlur(g, (0, 0), BAND_SIGMA)
 
@@ -53,8 +50,6 @@ def texture_image(grey: np.ndarray) -> np.ndarray:
 def image_noise(grey: np.ndarray) -> float:
     """Standard deviation (grey levels) of an image's pixel noise, by Immerkaer's Laplacian-difference estimator
     (Fast noise variance estimation, CVIU 1996): texture mostly cancels in the mask, noise does not."""
-    import cv2
-
     g = np.asarray(grey, dtype=np.float32)
     if min(g.shape) < 3:
         return 0.0
