@@ -10,7 +10,7 @@ import pytest
 
 from gscan.demo import SAMPLES
 from gscan.errors import InputError
-from gscan.evaluate.bop19 import CSV_HEADER, evaluate
+from gscan.evaluate.bop19 import CSV_HEADER, evaluate, score_results
 from gscan.geometry.transforms import look_at, rotvec_to_R, transform_points
 from gscan.scan.cad import template_from_mesh
 from gscan.synth import (
@@ -330,3 +330,58 @@ def test_eval_on_the_templates_own_bop_export(sample_template, setup, tmp_path):
     with pytest.raises(InputError, match="gscan BOP export"):  # a CAD template of another object
         evaluate(setup[1], scene, tmp_path / "cad.csv")
     assert not (tmp_path / "cad.csv").exists()
+
+    # the CSV scored without estimating gives evaluate's errors: its poses are the CSV's rounding (R to 9
+    # significant digits, t to 1e-6 mm) of the same poses, so every error agrees to far below a micrometre or
+    # a pixel; AR counts errors under thresholds that none of them lies within 1e-6 of
+    model = tmp_path / "small" / "models_eval" / "obj_000001.ply"
+    again = score_results(tmp_path / "closed.csv", scene, model)
+    assert (again.n_images, again.n_found) == (closed.n_images, closed.n_found)
+    for a, b in zip(again.rows, closed.rows, strict=True):
+        assert (a.im_id, a.found) == (b.im_id, b.found)
+        np.testing.assert_allclose([a.add, a.adds, a.mssd], [b.add, b.adds, b.mssd], rtol=0, atol=1e-6)  # m
+        np.testing.assert_allclose(a.mspd, b.mspd, rtol=0, atol=1e-4)  # px
+        np.testing.assert_allclose(a.vsd, b.vsd, rtol=0, atol=1e-3)  # fraction of ~10^4 pixels: a few may flip
+    for k in ("AR", "AR VSD", "AR MSSD", "AR MSPD"):
+        assert again.metrics[k] == pytest.approx(closed.metrics[k], abs=0.01), k
+    # an estimate moved by 0.6 model diameters fails every MSSD threshold (0.05-0.5 diameters); one image missing
+    # from the CSV counts as not found
+    shift = 0.6 * closed.diameter_m
+    lines = (tmp_path / "closed.csv").read_text().splitlines()
+    moved = lines[1].split(",")
+    moved[5] = " ".join(f"{float(x) + (1000 * shift if i == 0 else 0.0):.6f}" for i, x in enumerate(moved[5].split()))
+    (tmp_path / "moved.csv").write_text("\n".join([lines[0], ",".join(moved), *lines[3:]]) + "\n")
+    worse = score_results(tmp_path / "moved.csv", scene, model)
+    assert [r.found for r in worse.rows] == [True, False, True, True]
+    assert worse.rows[0].mssd > 0.5 * closed.diameter_m and np.isinf(worse.rows[1].mssd)
+    assert worse.metrics["AR MSSD"] == pytest.approx(50.0)  # 2 of 4 images within every threshold, in float64
+
+
+def test_score_results_refuses_a_malformed_csv(setup, tmp_path):
+    """A results CSV that is not BOP19's is refused naming the file and the line; a CSV of another object scores
+    every image as not found; scenes without ground truth of the object are refused."""
+    mesh, _, capture, bop, frames = setup
+    model = tmp_path / "model.ply"
+    import trimesh
+
+    trimesh.Trimesh(mesh.vertices, mesh.triangles, process=False).export(model)
+    R = " ".join(f"{x:.9g}" for x in frames[0].T_cam_obj[:3, :3].reshape(-1))
+    t = " ".join(f"{x:.6f}" for x in frames[0].T_cam_obj[:3, 3] * 1000)
+    cases = {"7,0,5,0.9,1 0 0,0 0 500,0.1": "line 2: R holds 3 numbers", "7,0,5,0.9,{R},0 0 nan,0.1": "NaN",
+             "7,0,5,0.9,2 0 0 0 1 0 0 0 1,0 0 500,0.1": "line 2: R is not a rotation", "7,0,5,x,{R},{t},0.1": "line 2",
+             "7,0,5,0.9,{R},{t}": "line 2: 6 comma-separated fields"}
+    for k, (row, msg) in enumerate(cases.items()):
+        path = tmp_path / f"bad{k}.csv"
+        path.write_text(f"{CSV_HEADER}\n{row.format(R=R, t=t)}\n")
+        with pytest.raises(InputError, match=msg) as e:
+            score_results(path, bop, model, obj_id=5)
+        assert e.value.path == path
+    with pytest.raises(InputError, match="nothing.csv"):
+        score_results(tmp_path / "nothing.csv", bop, model, obj_id=5)
+    good = tmp_path / "good.csv"
+    good.write_text(f"{CSV_HEADER}\n7,0,5,0.9,{R},{t},0.1\n7,0,5,0.1,1 0 0 0 1 0 0 0 1,0 0 900,0.1\n")
+    rep = score_results(good, bop, model, obj_id=5)  # the higher-scoring estimate of image 0: its ground truth
+    assert [r.found for r in rep.rows] == [True, False, False] and rep.rows[0].add == pytest.approx(0, abs=1e-6)
+    assert score_results(good, bop, model, obj_id=2).n_found == 0  # object 2's ground truth, no estimate of it
+    with pytest.raises(InputError, match="object 9"):
+        score_results(good, bop, model, obj_id=9)

@@ -8,7 +8,8 @@
 Results CSV (BOP19, https://bop.felk.cvut.cz/challenges/): header `scene_id,im_id,obj_id,score,R,t,time`,
 R = 9 numbers row-major, t = 3 numbers in millimetres, both space-separated; time = seconds spent on
 the image (the same for all rows of one image). Only found poses are written. The file is written
-to a temporary name and renamed, so it is never half-written.
+to a temporary name and renamed, so it is never half-written. `score_results(results_csv, scenes, model_path)`
+scores such a CSV (any method's) with the same errors and metrics, without estimating.
 
 Metrics over all images with ground truth (a not-found pose counts as an infinite error):
 "AUC ADD" / "AUC ADD-S" (YCB-Video AUC, 0-10 cm, percent), "AR VSD" / "AR MSSD" / "AR MSPD" (BOP19
@@ -48,6 +49,7 @@ from gscan.evaluate.metrics import ar_mspd, ar_mssd, ar_vsd, auc, diameter, mspd
 from gscan.geometry.raycast import MeshRaycaster
 from gscan.geometry.transforms import inv_T, mean_pose, pose_error, transform_points
 from gscan.io import open_sequence
+from gscan.io.camera import RGBDFrame
 from gscan.io.layouts import FORMATS, detect_format, discover, require_ground_truth
 from gscan.io.output import Output, check_output
 from gscan.template.db import TemplateDB
@@ -140,9 +142,14 @@ def load_model(model_path: Path | None, template: Path, estimator: Estimator) ->
         if mesh is not None and len(mesh.vertices) and len(mesh.triangles):
             return np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.triangles, dtype=np.int64)
         return np.asarray(estimator.model_points, dtype=np.float64), None
+    return load_model_file(Path(model_path))
+
+
+def load_model_file(model_path: Path) -> tuple[np.ndarray, np.ndarray | None]:
+    """The vertices [N x 3] in metres and triangles [F x 3] (None for a point cloud) of the model file
+    `model_path` (any format trimesh reads; a diameter above MM_DIAMETER_LIMIT units is taken as millimetres)."""
     import trimesh
 
-    model_path = Path(model_path)
     if not model_path.is_file():
         raise not_a_file(model_path, "model file")
     try:
@@ -337,21 +344,7 @@ def evaluate(template: str | Path, scenes: str | Path, output_csv: str | Path, o
             row = EvalRow(scene_id, im_id, res.found, res.score, dt, T_est, reason=res.reason)
             T_gt = gt.get(name)
             if T_gt is not None:
-                if T_est is not None:  # found
-                    row.add = add_err(pts, T_est, T_gt)
-                    row.adds = adds_err(pts, T_est, T_gt)
-                    row.mssd = mssd(pts, T_est, T_gt)
-                    try:
-                        row.mspd = mspd(pts, T_est, T_gt, frame.intrinsics)
-                    except ValueError:  # estimated model partly behind the camera
-                        row.mspd = float("inf")
-                    if caster is not None:
-                        d_est = caster.depth(frame.intrinsics, inv_T(T_est))
-                        d_gt = caster.depth(frame.intrinsics, inv_T(T_gt))
-                        row.vsd = vsd(frame.depth, d_est, d_gt, frame.intrinsics, taus).tolist()
-                else:
-                    row.add = row.adds = row.mssd = row.mspd = float("inf")
-                    row.vsd = None if caster is None else [float("inf")] * len(taus)
+                _errors(row, T_gt, frame, pts, caster, taus)
             if T_est is not None:  # found
                 lines.append(_csv_row(scene_id, im_id, obj_id, res.score, T_est, dt))
             rows.append(row)
@@ -367,6 +360,114 @@ def evaluate(template: str | Path, scenes: str | Path, output_csv: str | Path, o
     with Output(output_csv, force=force, kind=".csv file path") as out:
         out.tmp.write_text("\n".join(lines) + "\n", encoding="utf-8")
     return EvalReport(output_csv, len(rows), sum(r.found for r in rows), _metrics(rows, diam, width), rows, diam)
+
+
+def _errors(row: EvalRow, T_gt: np.ndarray, frame: RGBDFrame, pts: np.ndarray, caster: MeshRaycaster | None,
+            taus: np.ndarray) -> None:
+    """Set `row`'s errors of its pose against the ground truth T_cam_obj `T_gt` [4 x 4] in `frame`, on the model's
+    vertices `pts` [N x 3] (VSD with its mesh `caster`, at the tolerances `taus`); infinite when not found."""
+    T_est = row.T_cam_obj
+    if T_est is None:
+        row.add = row.adds = row.mssd = row.mspd = float("inf")
+        row.vsd = None if caster is None else [float("inf")] * len(taus)
+        return
+    row.add = add_err(pts, T_est, T_gt)
+    row.adds = adds_err(pts, T_est, T_gt)
+    row.mssd = mssd(pts, T_est, T_gt)
+    try:
+        row.mspd = mspd(pts, T_est, T_gt, frame.intrinsics)
+    except ValueError:  # estimated model partly behind the camera
+        row.mspd = float("inf")
+    if caster is not None:
+        d_est = caster.depth(frame.intrinsics, inv_T(T_est))
+        d_gt = caster.depth(frame.intrinsics, inv_T(T_gt))
+        row.vsd = vsd(frame.depth, d_est, d_gt, frame.intrinsics, taus).tolist()
+
+
+ROTATION_TOL = 1e-3  # max |R R^T - I| of a results CSV's rotation (9 significant digits, float32 rounding pass)
+
+
+def read_results(path: Path, obj_id: int) -> dict[tuple[int, int], tuple[float, np.ndarray, float]]:
+    """{(scene_id, im_id): (score, T_cam_obj [4 x 4] in metres, time s)} of object `obj_id` in the BOP19 results
+    CSV `path` (the module docstring's format; the header line is optional), the highest-scoring estimate of each
+    image. InputError naming the file and the line for a malformed row (not 7 fields, R not a rotation, a value
+    that is not a finite number)."""
+    if not path.is_file():
+        raise not_a_file(path, "results CSV")
+    try:
+        lines = path.read_text(encoding="utf-8").splitlines()
+    except (OSError, UnicodeDecodeError) as e:
+        raise InputError(path, f"unreadable ({e.__class__.__name__}: {e})") from None
+    best: dict[tuple[int, int], tuple[float, np.ndarray, float]] = {}
+    for n, line in enumerate(lines, 1):
+        if not line.strip() or (n == 1 and line.startswith("scene_id")):
+            continue
+        fields = line.split(",")
+        if len(fields) != 7:
+            raise InputError(path, f"line {n}: {len(fields)} comma-separated fields, not 7 ({CSV_HEADER})")
+        try:
+            scene_id, im_id, oid = (int(f) for f in fields[:3])
+            score, time_s = float(fields[3]), float(fields[6])
+            R = np.array(fields[4].split(), dtype=np.float64)
+            t = np.array(fields[5].split(), dtype=np.float64)
+        except ValueError as e:
+            raise InputError(path, f"line {n}: {e}") from None
+        if R.size != 9 or t.size != 3:
+            raise InputError(path, f"line {n}: R holds {R.size} numbers (9) and t {t.size} (3)")
+        if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t)) and np.isfinite(score) and np.isfinite(time_s)):
+            raise InputError(path, f"line {n}: a value is NaN or infinite")
+        R = R.reshape(3, 3)
+        if np.abs(R @ R.T - np.eye(3)).max() > ROTATION_TOL or np.linalg.det(R) < 0:
+            raise InputError(path, f"line {n}: R is not a rotation matrix")
+        if oid != obj_id or ((scene_id, im_id) in best and best[(scene_id, im_id)][0] >= score):
+            continue
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R, t / 1000.0
+        best[(scene_id, im_id)] = (score, T, time_s)
+    return best
+
+
+def score_results(results_csv: str | Path, scenes: str | Path, model_path: str | Path,
+                  obj_id: int = 1) -> EvalReport:
+    """Score the BOP19 results CSV `results_csv` (any method's; `evaluate` writes one) against the ground truth of
+    object `obj_id` in `scenes`, with the errors and metrics `evaluate` reports, without estimating: per image the
+    estimate with the highest score (BOP19's rule for one instance of the object per image; an image without
+    one counts as not found), its time the CSV's. `model_path`: the object model in the ground truth's frame (a
+    BOP model in millimetres is scaled; a gscan BOP export's is models_eval/obj_000001.ply). Only images with
+    ground truth are scored. InputError for a missing or malformed CSV, unreadable scenes or model, or scenes
+    without ground truth of `obj_id`."""
+    results_csv = Path(results_csv)
+    estimates = read_results(results_csv, obj_id)
+    folders = _scene_dirs(Path(scenes))
+    seqs = [(scene_id, open_sequence(folder, format="auto", obj_id=obj_id)) for scene_id, folder in folders]
+    for _, seq in seqs:
+        require_ground_truth(seq.gt_problems)
+    pts, tris = load_model_file(Path(model_path))
+    diam = diameter(pts)
+    taus = vsd_taus(diam)
+    caster = MeshRaycaster(pts, tris) if tris is not None else None
+    rows: list[EvalRow] = []
+    width = 640
+    for scene_id, seq in seqs:
+        gt = seq.gt_T_cam_obj or {}
+        for name in seq.names:
+            if name not in gt:
+                continue
+            try:
+                frame = seq[name]
+            except InputError as e:  # an unreadable image is left out (and reported), as evaluate does
+                log.warning("scene %d: image %s left out: %s", scene_id, name, e)
+                continue
+            width = frame.intrinsics.width
+            im_id = int(name) if name.isdigit() else seq.names.index(name)
+            est = estimates.get((scene_id, im_id))
+            row = (EvalRow(scene_id, im_id, True, est[0], est[2], est[1]) if est is not None else
+                   EvalRow(scene_id, im_id, False, 0.0, 0.0, None, reason="no estimate in the results"))
+            _errors(row, gt[name], frame, pts, caster, taus)
+            rows.append(row)
+    if not rows:
+        raise InputError(Path(scenes), f"holds no image with a ground-truth pose of object {obj_id}", fix="obj_id")
+    return EvalReport(results_csv, len(rows), sum(r.found for r in rows), _metrics(rows, diam, width), rows, diam)
 
 
 def _metrics(rows: list[EvalRow], diameter: float, width: int) -> dict[str, float]:
