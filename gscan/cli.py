@@ -7,13 +7,14 @@ Heavy modules are imported inside the commands so `gscan --help` stays fast.
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import logging
 import os
 import sys
 from enum import Enum
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import typer
 from rich.console import Console
@@ -1006,13 +1007,32 @@ def main() -> None:
     except KeyboardInterrupt:
         err.print("interrupted")
         sys.exit(130)
-    except Exception as e:
-        if os.environ.get("GSCAN_DEBUG"):
-            raise
-        msg = " ".join(f"{e.__class__.__name__}: {e}".split())
-        err.print(printable(f"internal error: {msg} (set GSCAN_DEBUG=1 for the traceback)"), markup=False,
-                  soft_wrap=True)
-        sys.exit(1)
+    except OSError as e:
+        # the file system refused a write the library does not own (numba's kernel cache on first use, a
+        # temporary file): disk full, quota, file size limit or a read-only file system, named as the writers
+        # name it; any other OSError is an internal error
+        if e.errno not in _RESOURCE_ERRNOS or os.environ.get("GSCAN_DEBUG"):
+            _internal_error(e)
+        from gscan.io.output import describe_os_error  # on this path only: the CLI starts without gscan.io
+
+        err.print(printable(f"error: {e.filename or 'writing a file'}: {describe_os_error(e)}"), markup=False,
+                  highlight=False, soft_wrap=True)
+        sys.exit(2)
+    except Exception as e:  # noqa: BLE001 - the last resort: one line, exit 1
+        _internal_error(e)
+
+
+_RESOURCE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS)
+
+
+def _internal_error(e: Exception) -> NoReturn:
+    """Exit 1 with one line naming the unexpected error (its traceback with GSCAN_DEBUG=1)."""
+    if os.environ.get("GSCAN_DEBUG"):
+        raise e
+    msg = " ".join(f"{e.__class__.__name__}: {e}".split())
+    err.print(printable(f"internal error: {msg} (set GSCAN_DEBUG=1 for the traceback)"), markup=False,
+              soft_wrap=True)
+    sys.exit(1)
 
 
 if __name__ == "__main__":

@@ -200,6 +200,21 @@ def test_failed_force_writers_keep_old_outputs_and_name_the_file_size_limit(ctx:
     assert _hidden(out) == []
 
 
+def test_a_cold_kernel_cache_under_the_file_size_limit_is_named(ctx: Ctx, tmp_path: Path):
+    """eval with an empty numba cache (a fresh install) under a file size limit: the first file it writes is
+    numba's compiled kernel, which the limit stops (numba writes through a file object: the error names no
+    file). One line naming the limit, exit 2, the old output kept (it was "internal error: OSError: [Errno 27]
+    File too large", exit 1)."""
+    old = tmp_path / "r.csv"
+    old.write_text("old")
+    proc = _gscan("eval", ctx.cad, ctx.capture, "-o", old, "--force", "--no-icp", fsize=100,
+                  env={"NUMBA_CACHE_DIR": str(tmp_path / "numba")})
+    assert proc.returncode == 2, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: ") and "file size limit" in lines[0], proc.stderr
+    assert old.read_text() == "old"
+
+
 def test_disk_full_is_named(ctx: Ctx, tmp_path: Path):
     """ENOSPC met while an export writes (injected at Python's file writes, the exporters' normal path) is
     named "no space left on the device (disk full)", and the old output stays; SQLite's SQLITE_FULL (what it
