@@ -119,10 +119,8 @@ def test_real_open3d_sequence_matches_trajectory_log(real_dir, tmp_path):
 
 
 def test_turntable_whose_print_repeats_on_opposite_faces(tmp_path, meshes_dir):
-    """A 24-frame turntable of a card box printed alike on opposite faces. Before: the line process's first
-    stage (16 x the correspondence distance) pruned right edges, the reference frame's only edges were then
-    cut, and 1 of 24 frames was registered; with a narrower first stage, frame 0 was fused 180 deg off (its
-    right 21-inlier edge and a wrong 22-inlier loop closure disagree). Now most frames are registered, a frame
+    """A 24-frame turntable of a card box printed alike on opposite faces: a right edge and a wrong loop closure
+    of about the same length (21 and 22 inliers) disagree about frame 0. Most frames are registered, a frame
     held only by one of two disagreeing edges is left out, and none is off by more than 3 deg."""
     from gscan.evaluate.bop19 import template_to_gt
 
