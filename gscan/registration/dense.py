@@ -172,9 +172,8 @@ def colour_agreement(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarr
     for a, b, T in ((src, tgt, T_tgt_src), (tgt, src, inv_T(T_tgt_src))):
         if a.texture is None or b.texture is None or a.pixels is None:
             return ColourAgreement(0, 0)
-        q, vi, ui, idx = landing(a, b, T)
-        e = np.sum(b.normals[vi, ui] * (q - b.grid[vi, ui]), axis=1)
-        ok = np.abs(e) <= k * noise.pair_sigma(q[:, 2], b.depth[vi, ui])
+        q, _, e, sd, idx = _plane_pairs(a, b, T, noise)
+        ok = np.abs(e) <= k * sd
         q, idx = q[ok], idx[ok]
         fx, fy, cx, cy = b.full_intrinsics
         u = q[:, 0] / q[:, 2] * fx + cx
@@ -252,7 +251,7 @@ def _normal_equations(src: DenseGeometry, tgt: DenseGeometry, kp_s: np.ndarray, 
         J[:, 3 + c] = 1.0
         H += (J * w[:, None]).T @ J
         g += (J * w[:, None]).T @ r[:, c]
-    qd, n, e, sd = _plane_pairs(src, tgt, T, depth_noise)
+    qd, n, e, sd, _ = _plane_pairs(src, tgt, T, depth_noise)
     ok = np.abs(e) <= gate * sd
     qd, n, e, sd = qd[ok], n[ok], e[ok], sd[ok]
     en = np.abs(e) / sd
@@ -270,9 +269,9 @@ def plane_residuals(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarra
 
 
 def _plane_pairs(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarray, noise: DepthNoise
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """src's samples in tgt's frame that land on tgt's depth: (points [K x 3], tgt's normals there [K x 3],
-    signed point-to-plane distances [K], their sigma [K])."""
-    q, vi, ui, _ = landing(src, tgt, T_tgt_src)
+    signed point-to-plane distances [K], their sigma [K], their indices [K] in src.points)."""
+    q, vi, ui, idx = landing(src, tgt, T_tgt_src)
     n = tgt.normals[vi, ui]
-    return q, n, np.sum(n * (q - tgt.grid[vi, ui]), axis=1), noise.pair_sigma(q[:, 2], tgt.depth[vi, ui])
+    return q, n, np.sum(n * (q - tgt.grid[vi, ui]), axis=1), noise.pair_sigma(q[:, 2], tgt.depth[vi, ui]), idx
