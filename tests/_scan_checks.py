@@ -10,10 +10,12 @@ from pathlib import Path
 
 import numpy as np
 
+from gscan import synth
 from gscan.evaluate.bop19 import template_to_gt
 from gscan.evaluate.metrics import ate, frame_errors
 from gscan.geometry.transforms import inv_T, transform_points
 from gscan.io import open_sequence
+from gscan.io.camera import Intrinsics
 from gscan.scan.api import scan
 from gscan.scan.pipeline import ScanResult
 from gscan.synth.cases import Case
@@ -97,3 +99,11 @@ def template_surface_distances(out: Outcome, mesh: TexturedMesh) -> np.ndarray:
     rc.add_triangles(o3d.core.Tensor(mesh.vertices.astype(np.float32)),
                      o3d.core.Tensor(mesh.triangles.astype(np.uint32)))
     return rc.compute_distance(o3d.core.Tensor(pts.astype(np.float32))).numpy()
+
+
+def box_ring_capture(root: Path, n_views: int, intr: Intrinsics) -> Path:
+    """`root`: a static capture of a small printed box (14 x 9 x 7 cm) from `n_views` cameras on one ring at
+    40 deg elevation."""
+    mesh = synth.box_mesh((0.14, 0.09, 0.07), synth.procedural_box_texture(3, (512, 768)))
+    synth.render_capture(mesh, root, n_views, mode="static", elevations_deg=(40.0,), intr=intr)
+    return root

@@ -11,6 +11,7 @@ import pytest
 from gscan import synth
 from gscan.scan.api import scan
 from gscan.template.db import TemplateDB
+from tests._scan_checks import box_ring_capture
 
 INTR = synth.DEFAULT_INTRINSICS.scaled(0.5)  # 320 x 240
 N_VIEWS = 6  # 60 degree steps on one ring
@@ -18,10 +19,7 @@ N_VIEWS = 6  # 60 degree steps on one ring
 
 @pytest.fixture(scope="module")
 def capture(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    root = tmp_path_factory.mktemp("stream") / "capture"
-    mesh = synth.box_mesh((0.14, 0.09, 0.07), synth.procedural_box_texture(3, (512, 768)))
-    synth.render_capture(mesh, root, N_VIEWS, mode="static", elevations_deg=(40.0,), intr=INTR)
-    return root
+    return box_ring_capture(tmp_path_factory.mktemp("stream") / "capture", N_VIEWS, INTR)
 
 
 def test_scan_commits_per_stage_and_writes_each_view_once(capture: Path, tmp_path: Path,
