@@ -320,20 +320,27 @@ def descriptor_distances(d_s: np.ndarray, d_t: np.ndarray, kind: str,
 
 
 def extract_features_in_mask(frame: RGBDFrame, mask: np.ndarray, params: FeatureParams = FeatureParams(),
-                             margin: int = 16) -> Features:
+                             margin: int = 16, within: tuple[int, int, int, int] | None = None) -> Features:
     """Features of `frame` inside `mask` [H x W] bool, detected on the mask's bounding box (+ `margin`
     px) only, which is faster than a masked full-frame detection; pixels in full-frame coordinates,
-    points in the camera frame. An empty mask gives no features."""
-    if not mask.any():
-        return empty_features(params.kind)
+    points in the camera frame. within: a box (x0, y0, x1, y1) outside which the mask's pixels are left out
+    (the same as clearing them, without a full-frame copy). An empty mask gives no features."""
     H, W = mask.shape
-    ys, xs = np.nonzero(mask)
-    x0, x1 = max(0, xs.min() - margin), min(W, xs.max() + margin + 1)
-    y0, y1 = max(0, ys.min() - margin), min(H, ys.max() + margin + 1)
+    bx0, by0, bx1, by1 = (0, 0, W, H) if within is None else within
+    ys, xs = np.nonzero(mask[by0:by1, bx0:bx1])
+    if len(ys) == 0:
+        return empty_features(params.kind)
+    x0, x1 = max(0, bx0 + xs.min() - margin), min(W, bx0 + xs.max() + margin + 1)
+    y0, y1 = max(0, by0 + ys.min() - margin), min(H, by0 + ys.max() + margin + 1)
+    crop_mask = mask[y0:y1, x0:x1]
+    if within is not None:
+        crop_mask = np.zeros((y1 - y0, x1 - x0), bool)
+        iy0, iy1, ix0, ix1 = max(by0, y0), min(by1, y1), max(bx0, x0), min(bx1, x1)
+        crop_mask[iy0 - y0:iy1 - y0, ix0 - x0:ix1 - x0] = mask[iy0:iy1, ix0:ix1]
     intr = frame.intrinsics
     sub = RGBDFrame(frame.name, np.ascontiguousarray(frame.color[y0:y1, x0:x1]),
                     np.ascontiguousarray(frame.depth[y0:y1, x0:x1]),
                     Intrinsics(intr.fx, intr.fy, intr.cx - x0, intr.cy - y0, x1 - x0, y1 - y0))
-    f = extract_features(sub, params, mask=mask[y0:y1, x0:x1])
+    f = extract_features(sub, params, mask=crop_mask)
     f.pixels = f.pixels + np.array([x0, y0], np.float32)
     return f

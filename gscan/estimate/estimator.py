@@ -569,10 +569,8 @@ class Estimator:
         if len(boxes) <= 1:
             return extract_features_in_mask(frame, mask, fparams, self.params.crop_margin)
         parts = []
-        for x0, y0, x1, y1 in boxes:  # one detection per box: SIFT's cost follows the area it scans
-            sub = np.zeros_like(mask)
-            sub[y0:y1, x0:x1] = mask[y0:y1, x0:x1]
-            parts.append(extract_features_in_mask(frame, sub, fparams, self.params.crop_margin))
+        for box in boxes:  # one detection per box: SIFT's cost follows the area it scans
+            parts.append(extract_features_in_mask(frame, mask, fparams, self.params.crop_margin, within=box))
         return Features(np.concatenate([f.pixels for f in parts]), np.concatenate([f.points for f in parts]),
                         np.concatenate([f.descriptors for f in parts]), fparams.kind,
                         np.concatenate([f.scales for f in parts]))
