@@ -32,6 +32,13 @@ Pipeline of `Estimator.estimate` (every stage timed, `EstimateResult.timings_ms`
    relative to what the frame and the template show there, the list's geometry), never from the list length
    alone, and refused when it sinks the object into the support plane. When the best list's pose is refused,
    the next `verify_lists` - 1 lists are tried, under the short lists' stricter rule.
+7. rivals: a box printed alike on two faces fits a pose turned onto its twin face as well as the right one,
+   in shape and in most keypoints. The next `rivals` lists whose pre-score support reaches `rival_support` of
+   the accepted list's, and whose poses lie beyond the refinement's reach of the accepted pose (a list within
+   it is the same pose sharpened), are solved, refined and verified too. A rival accepted at another pose is
+   compared with the accepted pose on the query keypoints that support one pose and not the other (a sign
+   test at level `rival_p`): the pose they significantly favour is returned; when neither is favoured the
+   view is ambiguous and no pose is returned (nor sought by PnP in the depth's holes).
 
 Without usable query depth (valid fraction of the search region < `min_depth_frac`) the pose is solved 2D-3D
 (`gscan.estimate.pnp`), and the same 2D-3D solve is tried after a failed 3D-3D estimate on the search region's
@@ -70,6 +77,7 @@ from gscan.estimate.verify import (
     keypoint_support,
     list_spread,
     nn_support,
+    sign_test,
     sinks_into_plane,
     visible,
 )
@@ -86,7 +94,7 @@ from gscan.geometry.grid_kernel import NearestGrid
 from gscan.geometry.kabsch import kabsch_trimmed
 from gscan.geometry.plane import ransac_plane
 from gscan.geometry.pointset import coincident_groups, pca_normals, voxel_down_indices, voxel_mean
-from gscan.geometry.transforms import inv_T, transform_points
+from gscan.geometry.transforms import inv_T, pose_error, transform_points
 from gscan.io.camera import Intrinsics, RGBDFrame
 from gscan.matching.gmatch import Candidates, GMatchParams, default_eps_f, search_candidates
 from gscan.template.db import Template, open_template
@@ -94,6 +102,9 @@ from gscan.template.db import Template, open_template
 log = logging.getLogger(__name__)
 
 __all__ = ["STAGES", "EstimateParams", "EstimateResult", "Estimator"]
+
+MAX_REFINE_DEG = 30.0  # a refinement turning the pose further is discarded (`Estimator.refine`)
+AMBIGUOUS = "ambiguous view"  # the reason's start when two poses explain the frame alike (stage 7)
 
 
 @dataclass(frozen=True)
@@ -105,6 +116,9 @@ class EstimateParams:
     joint_views: int = 3  # views matched jointly per neighbourhood (1: every view alone)
     joint_deg: float = 60.0  # ... whose optical axes lie within this angle of the central view's
     verify_lists: int = 2  # match lists whose poses are verified, best pre-score first, until one is accepted
+    rivals: int = 2  # lists after the accepted one verified as its rivals (module docstring, stage 7) ...
+    rival_support: float = 0.4  # ... when their pre-score support reaches this fraction of the accepted list's
+    rival_p: float = 0.05  # one-sided level of the sign test that lets one of two accepted poses win
     runner_up_margin: int = 2  # GMatch hypotheses this much shorter than a run's best list are pre-scored too
     merge_deg: float = 10.0  # lists whose poses agree within this angle ...
     merge_dist: float = 0.02  # ... and this distance (m) are pooled into one list
@@ -338,7 +352,8 @@ class Estimator:
                     res.reason = f"{res.reason} (query depth unusable)"
                 return res
             res = self._estimate_gmatch(q, feats, S, votes, refine, tm, t_all, nearest)
-        if not res.found and not use_pnp:
+        if not res.found and not use_pnp and not (res.reason or "").startswith(AMBIGUOUS):
+            # (an ambiguous view stays ambiguous to 2D-3D matching in its holes, on less evidence)
             from gscan.estimate.pnp import pnp_without_depth
 
             res = pnp_without_depth(self, q, res, tm, t_all)
@@ -388,16 +403,53 @@ class Estimator:
         if not cands:
             return self._fail(tm, t_all, "too few geometrically consistent matches (no list of 3)", 0)
         first: EstimateResult | None = None
-        for c in [c for c in cands if c.n >= p.accept.min_matches][: max(1, p.verify_lists)]:
+        listed = [c for c in cands if c.n >= p.accept.min_matches]
+        for i, c in enumerate(listed[: max(1, p.verify_lists)]):
             res = self._solve_verify(q, feats, S, q_location, c, refine, tm, t_all, best=c is cands[0])
             if res.found:
-                return res
+                rivals = [r for r in listed[i + 1:] if r.support >= p.rival_support * c.support]
+                return self._against_rivals(q, feats, S, q_location, res, rivals, refine, tm, t_all)
             first = first or res
         if first is None:
             n = max(c.n for c in cands)
             return self._fail(tm, t_all, f"too few geometrically consistent matches ({n} < {p.accept.min_matches})", n,
                               self.view_names[cands[0].view])
         return first
+
+    def _against_rivals(self, q: QueryFrame, feats: Features, S: np.ndarray, q_location: np.ndarray,
+                        res: EstimateResult, rivals: list[_Candidate], refine: bool, tm: dict[str, float],
+                        t_all: float) -> EstimateResult:
+        """The accepted `res` against its rival lists (module docstring, stage 7): the pose the keypoints
+        significantly favour, or not found when the view cannot tell them apart."""
+        p = self.params
+        checked = 0
+        for r in rivals:
+            assert res.T_cam_obj is not None and res.evidence is not None
+            deg, dist = pose_error(r.T, res.T_cam_obj)
+            if checked >= p.rivals:
+                break
+            if deg <= MAX_REFINE_DEG and dist <= self.radius:
+                continue
+            checked += 1
+            alt = self._solve_verify(q, feats, S, q_location, r, refine, tm, t_all)
+            if alt.T_cam_obj is None or alt.evidence is None:
+                continue
+            deg, dist = pose_error(alt.T_cam_obj, res.T_cam_obj)
+            if deg <= p.merge_deg and dist <= p.merge_dist:  # the same pose: corroboration, not a rival
+                continue
+            a, b = res.evidence.supporters, alt.evidence.supporters
+            only_res, only_alt = len(np.setdiff1d(a, b)), len(np.setdiff1d(b, a))
+            if sign_test(only_res, only_alt) < p.rival_p:
+                continue
+            if sign_test(only_alt, only_res) < p.rival_p:
+                log.debug("a rival pose wins (%d keypoints for it alone, %d against)", only_alt, only_res)
+                res = alt
+                continue
+            return self._fail(tm, t_all, f"{AMBIGUOUS}: a pose {deg:.0f} deg / {dist * 1000:.0f} mm away explains it "
+                              f"as well ({only_res} keypoints agree with one pose only, {only_alt} with the other)",
+                              res.n_matches, res.view, res.score, evidence=res.evidence)
+        tm["total"] = ms_since(t_all)
+        return res
 
     def _prescore(self, cands: list[_Candidate], feats: Features, S: np.ndarray,
                   nearest: tuple[np.ndarray, np.ndarray] | None = None) -> None:
@@ -502,10 +554,11 @@ class Estimator:
             kp_idx = self._offered_keypoints(T_cam_obj)
         z = float(transform_points(T_cam_obj, self.center[None])[0, 2])
         radius = p.support_radius + 0.01 * max(z - 0.5, 0.0)
-        ev.support, ev.on_surface, ev.offer = keypoint_support(
+        ev.supporters, ev.on_surface, ev.offer = keypoint_support(
             T_cam_obj, self.points_obj, kp_idx, S, kp_idx if sim_cols is None else sim_cols, feats.points, q_location,
             self.cloud_icp, frame.depth, frame.intrinsics, radius, self.support_sim, p.depth_tol,
             1.0 if self.unit else -1.0, seen[1])
+        ev.support = len(ev.supporters)
         return ev
 
     def _offered_keypoints(self, T_cam_obj: np.ndarray) -> np.ndarray:
@@ -644,7 +697,7 @@ class Estimator:
                                   p.icp_iterations, anchors, p.icp_anchor_weight)
         dR = T[:3, :3] @ T_cam_obj[:3, :3].T
         moved = np.linalg.norm(T[:3, 3] - T_cam_obj[:3, 3])
-        if fitness <= 0 or moved > self.radius or np.trace(dR) < 1.0 + 2.0 * np.cos(np.radians(30)):
+        if fitness <= 0 or moved > self.radius or np.trace(dR) < 1.0 + 2.0 * np.cos(np.radians(MAX_REFINE_DEG)):
             log.debug("ICP rejected (fitness %.2f, moved %.3f m)", fitness, moved)
             return T_cam_obj
         return T

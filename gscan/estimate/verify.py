@@ -12,13 +12,16 @@ A pose is accepted from what the frame shows, not from a fixed match count:
   another print, the table) has its surface confirmed by the depth but finds no appearance support.
 - the list's geometry: the matched template points must span an area (not a line or a cluster), and the
   pose must keep enough of the list within the Kabsch tolerance.
+- rivals: two accepted poses of one frame are told apart by the query keypoints that support one and not the
+  other (`sign_test`); a box printed alike on two faces leaves few such keypoints, all on what differs.
 - support plane: a pose that sinks the object into the frame's dominant plane is refused (an object rests on
   the table; such a pose fits the object's print to the table's texture), unless most of the plane lies
   inside the pose's silhouette (then the plane is the object's own face).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -46,6 +49,7 @@ class Evidence:
     support: int = 0
     on_surface: int = 0
     offer: int = 0
+    supporters: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64), repr=False)  # [support] location ids
 
     @property
     def support_ratio(self) -> float:
@@ -92,6 +96,13 @@ def accept(ev: Evidence, radius: float, p: AcceptParams, best: bool = True) -> s
     return (f"too little evidence: {ev.support} of {shown} keypoints on the object's surface agree with the template "
             f"(need {p.min_support} and {p.min_support_ratio:.0%}), {ev.n_inliers} consistent matches (or a list of "
             f"{p.strong_matches})")
+
+
+def sign_test(k: int, m: int) -> float:
+    """One-sided p-value of a sign test: the chance that at least k of k + m discordant keypoints side with one
+    of two equally good poses (binomial, 1/2 each); 1 when there are none."""
+    n = k + m
+    return sum(math.comb(n, i) for i in range(k, n + 1)) / 2.0 ** n if n else 1.0
 
 
 def list_spread(points: np.ndarray) -> float:
@@ -189,8 +200,9 @@ def keypoint_support(T_cam_obj: np.ndarray, kp_points: np.ndarray, kp_idx: np.nd
                      sim_cols: np.ndarray, q_points: np.ndarray, q_location: np.ndarray, surface_obj: np.ndarray,
                      depth: np.ndarray, intr: Intrinsics, radius: float, min_sim: float,
                      depth_tol: float, sign: float = 1.0,
-                     surface_cam: np.ndarray | None = None) -> tuple[int, int, int]:
-    """(support, on_surface, offer) of a pose (Evidence).
+                     surface_cam: np.ndarray | None = None) -> tuple[np.ndarray, int, int]:
+    """(supporters, on_surface, offer) of a pose (Evidence): the location ids [support] of the supporting query
+    keypoints, sorted.
 
     A query keypoint on the predicted visible surface supports the pose when its nearest template keypoint by
     descriptor, among those the template offers there, lies within `radius` of it at the pose (and agrees
@@ -208,12 +220,13 @@ def keypoint_support(T_cam_obj: np.ndarray, kp_points: np.ndarray, kp_idx: np.nd
 
     from gscan.geometry.grid_kernel import NearestGrid
 
+    none = np.zeros(0, np.int64)
     if len(q_points) == 0:
-        return 0, 0, 0
+        return none, 0, 0
     # query keypoints on the predicted visible surface
     surf_cam = visible(T_cam_obj, intr, surface_obj)[1] if surface_cam is None else surface_cam
     if len(surf_cam) == 0:
-        return 0, 0, 0
+        return none, 0, 0
     grid = NearestGrid.build(surf_cam, radius)
     if grid is not None:
         on = np.flatnonzero(grid.query(q_points)[0])
@@ -228,12 +241,12 @@ def keypoint_support(T_cam_obj: np.ndarray, kp_points: np.ndarray, kp_idx: np.nd
     shown = (zq <= 0) | (kp_cam[:, 2] < zq + depth_tolerance(kp_cam[:, 2], depth_tol))
     sel, kp_cam = vis[shown], kp_cam[shown]
     if len(sel) == 0 or len(on) == 0:
-        return 0, on_surface, 0
+        return none, on_surface, 0
     offer = count_unique_rows(np.floor(kp_points[kp_idx[sel]] / 0.002).astype(np.int64))
     nn, best = best_columns(sim, on, sim_cols[sel], sign)  # the best offered keypoint of each query keypoint on
     agree = best >= min_sim
     near = np.linalg.norm(kp_cam[nn] - q_points[on], axis=1) < radius
-    return len(np.unique(q_location[on[agree & near]])), on_surface, offer
+    return np.unique(q_location[on[agree & near]]).astype(np.int64), on_surface, offer
 
 
 def count_unique_rows(keys: np.ndarray) -> int:
