@@ -10,9 +10,9 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from gscan.estimate.estimator import EstimateParams, Estimator
-from gscan.estimate.verify import sign_test
 from gscan.geometry.transforms import look_at, pose_error, rotvec_to_R, transform_points
 from gscan.io.camera import RGBDFrame
+from gscan.registration.noise import sign_test
 from gscan.scan.cad import template_from_mesh
 from gscan.synth import DEFAULT_INTRINSICS, SynthScene, load_textured_mesh, rest_on_table
 

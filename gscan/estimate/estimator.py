@@ -77,7 +77,6 @@ from gscan.estimate.verify import (
     keypoint_support,
     list_spread,
     nn_support,
-    sign_test,
     sinks_into_plane,
     visible,
 )
@@ -97,6 +96,7 @@ from gscan.geometry.pointset import coincident_groups, pca_normals, voxel_down_i
 from gscan.geometry.transforms import inv_T, pose_error, transform_points
 from gscan.io.camera import Intrinsics, RGBDFrame
 from gscan.matching.gmatch import Candidates, GMatchParams, default_eps_f, search_candidates
+from gscan.registration.noise import sign_test
 from gscan.template.db import Template, open_template
 
 log = logging.getLogger(__name__)

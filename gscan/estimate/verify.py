@@ -20,7 +20,6 @@ A pose is accepted from what the frame shows, not from a fixed match count:
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import cv2
@@ -96,13 +95,6 @@ def accept(ev: Evidence, radius: float, p: AcceptParams, best: bool = True) -> s
     return (f"too little evidence: {ev.support} of {shown} keypoints on the object's surface agree with the template "
             f"(need {p.min_support} and {p.min_support_ratio:.0%}), {ev.n_inliers} consistent matches (or a list of "
             f"{p.strong_matches})")
-
-
-def sign_test(k: int, m: int) -> float:
-    """One-sided p-value of a sign test: the chance that at least k of k + m discordant keypoints side with one
-    of two equally good poses (binomial, 1/2 each); 1 when there are none."""
-    n = k + m
-    return sum(math.comb(n, i) for i in range(k, n + 1)) / 2.0 ** n if n else 1.0
 
 
 def list_spread(points: np.ndarray) -> float:

@@ -23,6 +23,7 @@ clean render) instead of a constant.
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -110,3 +111,11 @@ def estimate_noise(residuals: np.ndarray, z_a: np.ndarray, z_b: np.ndarray, prio
     log.info("noise fitted on %d pairs: sigma %.1f / %.1f / %.1f mm at 0.5 / 1 / 2 m", len(r2),
              *(1000 * noise.sigma(np.array([0.5, 1.0, 2.0]))))
     return noise
+
+
+def sign_test(k: int, m: int) -> float:
+    """One-sided p-value of a sign test: the chance that at least k of k + m discordant observations side with one
+    of two equally good hypotheses (binomial, 1/2 each; a keypoint supporting one of two poses only, a frame pair
+    lining up better under one of two camera models); 1 when there are none."""
+    n = k + m
+    return sum(math.comb(n, i) for i in range(k, n + 1)) / 2.0 ** n if n else 1.0
