@@ -305,6 +305,13 @@ def _print_scan_summary(result: Any) -> None:
               f"({result.mode}), edges {result.edges_accepted} accepted / {result.edges_rejected} rejected, "
               f"mesh {result.mesh_vertices} vertices / {result.mesh_triangles} triangles, "
               f"{result.keyframes} keyframes (the views estimate matches)")
+    cam = result.camera
+    if cam is not None and cam["corrected"]:
+        given, used = cam["given_focal_px"][0], cam["colour_focal_px"][0]
+        _say(("colour camera:", "yellow"), f" the depth did not line up with the colour at the given focal length "
+             f"{given:g} px; the texture lines up at {used:g} px ({cam['texture_agreement']['used']:.0%} of textured "
+             f"tiles against {cam['texture_agreement']['given']:.0%}), used with the given intrinsics as the depth "
+             "camera's. --intrinsics and --depth-intrinsics set both cameras")
     sel = result.selection
     if sel.get("skipped"):  # frame selection: not failures, counted by reason
         why = "; ".join(f"{k} frames {w}" for w, k in sel["reasons"].items())
@@ -490,6 +497,7 @@ def info(
     with TemplateDB.open(template, require_complete=False) as db:
         s = db.summary()
         m = db.mesh()
+        camera = db.get_meta("camera")  # the scan's colour camera check (gscan.scan.calibration), None: not run
     # the `info --json` object of the CLI contract, and the mesh's size and open edges
     out: dict[str, Any] = {
         "schema": s.schema, "status": s.status, "views": s.views, "registered": s.registered,
@@ -498,6 +506,7 @@ def info(
         "selection": dict(s.selection)}
     out["mesh"] = None if m is None else {"vertices": len(m.vertices), "triangles": len(m.triangles),
                                           "open_edges": len(boundary_edges(m.triangles))}
+    out["camera"] = camera
     if json_out:
         _print_json(out)
         return
@@ -510,6 +519,12 @@ def info(
             if v.get("skipped"):
                 why = "; ".join(f"{n} frames {w}" for w, n in v["reasons"].items())
                 _line(f"frame selection: {v['kept']} frames kept, {v['skipped']} skipped ({why})")
+            continue
+        if k == "camera":
+            if v is not None:
+                used = "used" if v["corrected"] else "checked, kept"
+                _line(f"colour camera: focal length given {v['given_focal_px'][0]:g} px, {used} "
+                      f"{v['colour_focal_px'][0]:g} px (from the texture of {v['pairs']} frame pairs)")
             continue
         if k == "mesh" and v is not None:
             holes = " (export closes them; --keep-holes keeps them)" if v["open_edges"] else ", watertight"

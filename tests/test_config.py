@@ -13,6 +13,7 @@ from gscan.features import FeatureParams
 from gscan.matching.gmatch import GMatchParams
 from gscan.registration.pairwise import RegisterParams
 from gscan.registration.posegraph import LoopParams, PoseGraphParams
+from gscan.scan.calibration import FocalCheckParams
 from gscan.scan.config import ScanConfig, dump_defaults, load_config
 from gscan.scan.fuse import FusionParams
 from gscan.scan.keyframes import KeyframeParams
@@ -119,6 +120,7 @@ def test_segmentation_keys_reach_the_segmentation_and_a_far_object_is_found(mesh
 
 # every key of `gscan config dump`: the stage parameter (class, field) whose default it is ...
 STAGE_DEFAULTS = {
+    "camera.check_colour_focal": (FocalCheckParams, "enabled"),
     "features.kind": (FeatureParams, "kind"), "features.max_keypoints": (FeatureParams, "max_keypoints"),
     "match.method": (RegisterParams, "method"),
     **{f"match.{k}": (GMatchParams, k) for k in ("eps_f", "eps_c", "eta", "order", "T", "L", "constraint")},

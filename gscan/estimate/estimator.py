@@ -94,6 +94,7 @@ from gscan.geometry.kabsch import kabsch_trimmed
 from gscan.geometry.plane import ransac_plane
 from gscan.geometry.pointset import coincident_groups, pca_normals, voxel_down_indices, voxel_mean
 from gscan.geometry.transforms import inv_T, pose_error, transform_points
+from gscan.io.align import align_depth_to_color
 from gscan.io.camera import Intrinsics, RGBDFrame
 from gscan.matching.gmatch import Candidates, GMatchParams, default_eps_f, search_candidates
 from gscan.registration.noise import sign_test
@@ -226,6 +227,13 @@ class Estimator:
         self.center = 0.5 * (lo + hi)
         self.radius = float(np.linalg.norm(self.cloud - self.center, axis=1).max())
         self.grasps = dict(tpl.grasps)
+        # the scan found the capture's depth off its colour at the given intrinsics (gscan.scan.calibration): a
+        # frame read with those same intrinsics is read as the scan read the capture
+        cam = tpl.meta.get("camera") if isinstance(tpl.meta, dict) else None
+        self.camera_fix: tuple[Intrinsics, Intrinsics] | None = None  # (given, the colour camera's)
+        if isinstance(cam, dict) and cam.get("corrected"):
+            given, colour = cam["given_intrinsics"], cam["colour_intrinsics"]
+            self.camera_fix = Intrinsics.from_dict(given), Intrinsics.from_dict(colour)
         self.eps_f = params.gmatch.eps_f if params.gmatch.eps_f is not None else default_eps_f(self.kind)
         sd = params.support_dist if params.support_dist is not None else self.eps_f
         # similarity at which a supporting keypoint's descriptor agrees (cosine for unit descriptors)
@@ -307,7 +315,19 @@ class Estimator:
         templates estimated in one frame share it (`estimate_query`)."""
         p = self.params
         with self._blas_limit():
-            return prepare_query(frame, mask, p.remove_plane, p.min_depth_frac, p.plane_min_frac, p.plane_iterations)
+            return prepare_query(self.as_scanned(frame), mask, p.remove_plane, p.min_depth_frac, p.plane_min_frac,
+                                 p.plane_iterations)
+
+    def as_scanned(self, frame: RGBDFrame) -> RGBDFrame:
+        """`frame`, or, when it comes with the intrinsics the scan found its capture's colour camera not to have
+        (`camera_fix`), its depth reprojected into the colour camera the scan used, with that camera's
+        intrinsics."""
+        if self.camera_fix is None or frame.intrinsics != self.camera_fix[0]:
+            return frame
+        given, colour = self.camera_fix
+        log.debug("frame %s: read with the colour camera the scan found (focal length %.1f px)", frame.name, colour.fx)
+        return RGBDFrame(frame.name, frame.color, align_depth_to_color(frame.depth, given, colour, np.eye(4)), colour,
+                         frame.mask)
 
     @contextmanager
     def _blas_limit(self) -> Iterator[None]:

@@ -100,6 +100,7 @@ class Tracker:
 
     def step(self, frame: RGBDFrame, mask: np.ndarray | None = None) -> TrackStep:
         """The object's pose in `frame` (mask: optional [H x W] bool search region)."""
+        frame = self.est.as_scanned(frame)
         res = None
         if self._T is not None:
             T_pred = self._T

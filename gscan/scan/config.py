@@ -17,6 +17,7 @@ from gscan.features import FeatureParams
 from gscan.matching.gmatch import GMatchParams
 from gscan.registration.pairwise import RegisterParams
 from gscan.registration.posegraph import LoopParams, PoseGraphParams
+from gscan.scan.calibration import FocalCheckParams
 from gscan.scan.fuse import FusionParams
 from gscan.scan.keyframes import KeyframeParams
 from gscan.scan.segment import SegmentParams
@@ -29,8 +30,8 @@ class _Section(BaseModel):
 
 # each section's defaults are its stage's parameter defaults, read from them; the named choices (typed as
 # Literal for validation) are written out; tests/test_config.py checks that every key equals its stage's default
-_FP, _GM, _RP, _SP, _FU, _KP, _SEL = (FeatureParams(), GMatchParams(), RegisterParams(), SegmentParams(),
-                                      FusionParams(), KeyframeParams(), SelectionParams())
+_FP, _GM, _RP, _SP, _FU, _KP, _SEL, _FC = (FeatureParams(), GMatchParams(), RegisterParams(), SegmentParams(),
+                                           FusionParams(), KeyframeParams(), SelectionParams(), FocalCheckParams())
 
 
 class FeaturesConfig(_Section):
@@ -110,6 +111,12 @@ class RegisterConfig(_Section):
 _LP, _PG = LoopParams(), PoseGraphParams()
 
 
+class CameraConfig(_Section):
+    check_colour_focal: bool = Field(_FC.enabled, description="a folder capture with one set of intrinsics: check "
+                                     "that its depth lines up with its colour, and when the texture says the colour "
+                                     "camera's focal length differs, scan with the one the data give")
+
+
 class PoseGraphConfig(_Section):
     loop_candidates: int = Field(_LP.max_per_node, ge=0, description="loop-closure candidates tried per frame")
     max_view_angle_deg: float = Field(_LP.max_angle_deg, gt=0, le=180, description="loop candidates view the object "
@@ -163,6 +170,7 @@ class SelectionConfig(_Section):
 
 
 class ScanConfig(_Section):
+    camera: CameraConfig = CameraConfig()
     selection: SelectionConfig = SelectionConfig()
     features: FeaturesConfig = FeaturesConfig()
     match: MatchConfig = MatchConfig()

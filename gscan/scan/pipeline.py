@@ -94,6 +94,7 @@ from gscan.template.db import Edge, TemplateDB, View
 
 if TYPE_CHECKING:
     from gscan.io.recordings.sequence import RecordingSequence
+    from gscan.io.sequence import Sequence
 
 log = logging.getLogger(__name__)
 
@@ -154,6 +155,8 @@ class ScanResult:
     noise: DepthNoise | None = None  # the noise model of lifted keypoints registration used
     # frame selection: {"kept": int, "skipped": int, "reasons": {why: frames}}; skipped frames are not failures
     selection: dict = field(default_factory=dict)
+    # the colour camera's check (`_check_camera`): given and used focal lengths, texture agreement; None: not run
+    camera: dict | None = None
 
     def to_json(self) -> dict:
         """The `scan --json` object of the CLI contract."""
@@ -164,7 +167,8 @@ class ScanResult:
                 "edges": {"accepted": self.edges_accepted, "rejected": self.edges_rejected},
                 "mode": self.mode, "mesh": {"vertices": self.mesh_vertices, "triangles": self.mesh_triangles},
                 "timings_s": {k: round(v, 3) for k, v in self.timings_s.items()},
-                "skipped": dict(self.problems), "keyframes": self.keyframes, "selection": dict(self.selection)}
+                "skipped": dict(self.problems), "keyframes": self.keyframes, "selection": dict(self.selection),
+                "camera": self.camera}
 
 
 def _register_params(cfg: ScanConfig, mode: str) -> RegisterParams:
@@ -310,6 +314,50 @@ def _create_output(opts: ScanOptions, meta: dict) -> tuple[TemplateDB, Output | 
         raise
 
 
+def _check_camera(seq: Sequence | RecordingSequence, opts: ScanOptions
+                  ) -> tuple[Sequence | RecordingSequence, dict | None]:
+    """A folder capture read with one set of intrinsics (no --depth-intrinsics, one K for every frame): the
+    colour camera's focal length checked against the data (gscan.scan.calibration). When the texture rejects
+    the given one, the capture is read again with the given intrinsics as the depth camera's and the focal
+    length the data give as the colour camera's. Returns (the sequence to scan, the check's report or None)."""
+    from gscan.io import open_sequence
+    from gscan.io.sequence import Sequence
+    from gscan.scan.calibration import check_colour_focal
+
+    cfg = opts.config
+    if (not cfg.camera.check_colour_focal or opts.depth_intrinsics is not None or not isinstance(seq, Sequence)
+            or seq.depth_camera is not None or any(seq.frame_intrinsics(n) != seq.intrinsics for n in seq.names)):
+        return seq, None
+
+    def read(i: int) -> RGBDFrame | None:
+        try:
+            return seq[seq.names[i]]
+        except InputError:
+            return None
+
+    fparams = FeatureParams(kind=cfg.features.kind, max_keypoints=cfg.features.max_keypoints)
+    check = check_colour_focal(read, len(seq.names), _register_params(cfg, STATIC_OBJECT), fparams)
+    if check is None:
+        return seq, None
+    K = seq.intrinsics
+    Kc = check.colour_intrinsics(K)
+    # (the intrinsics themselves: `gscan.estimate` reads frames of this camera the same way)
+    report = {"given_focal_px": [K.fx, K.fy], "colour_focal_px": [round(Kc.fx, 1), round(Kc.fy, 1)],
+              "corrected": check.significant, "pairs": check.pairs,
+              "texture_agreement": {"given": round(check.agreement[1.0], 3),
+                                    "used": round(check.agreement[check.scale], 3)},
+              "given_intrinsics": K.to_dict(), "colour_intrinsics": Kc.to_dict()}
+    if not check.significant:
+        return seq, report
+    log.warning("the depth does not line up with the colour under the given intrinsics: the texture of %d frame "
+                "pairs lines up best with a colour focal length of %.1f px (%.0f %% of textured tiles, %.0f %% at the "
+                "given %.1f px); scanning with it, the given intrinsics taken as the depth camera's", check.pairs,
+                Kc.fx, 100 * check.agreement[check.scale], 100 * check.agreement[1.0], K.fx)
+    seq = open_sequence(opts.input_dir, format=opts.fmt, intrinsics=Kc, depth_scale=opts.depth_scale,
+                        obj_id=opts.obj_id, depth_intrinsics=K)
+    return seq, report
+
+
 def run_scan(opts: ScanOptions, progress: Progress | None = None) -> ScanResult:
     """Run the whole pipeline (see the module docstring). Raises InputError for bad input.
 
@@ -338,6 +386,7 @@ def run_scan(opts: ScanOptions, progress: Progress | None = None) -> ScanResult:
                              "poses)", fix="obj_id")
         if opts.obj_id is not None and not seq.gt_T_cam_obj:
             raise InputError(opts.input_dir / "scene_gt.json", f"holds no pose of object {opts.obj_id}", fix="obj_id")
+        seq, camera = _check_camera(seq, opts)
         fingerprints = seq.fingerprints()
         if resumed:
             db, target = _open_resumed(opts, seq, fingerprints)
@@ -370,12 +419,14 @@ def run_scan(opts: ScanOptions, progress: Progress | None = None) -> ScanResult:
         if db is None:
             # obj_id: the BOP object the scan followed (its ground truth and masks), for `gscan eval`
             db, target = _create_output(opts, opts.meta | _scan_meta(opts) | {"obj_id": seq.obj_id,
-                                                                              "input_frames": fingerprints})
+                                                                              "input_frames": fingerprints,
+                                                                              "camera": camera})
         created = file_identity(opts.output)  # a new output in place: only this file is removed on failure
         if resumed:  # only once the input is known to hold frames: a complete database stays complete
             db.mark_partial()
         data = _FrameData(frames, store, db, mode, masks_given, opts.config)
         result = _scan_frames(data, opts, db, resumed, timer, problems, selection)
+        result.camera = camera
     except BaseException as e:
         store.close()
         if db is not None:

@@ -12,6 +12,8 @@ annotated_poses/) and which show something else:
   by one 25-degree jump;
 - `shifted_depth_capture`: the depth image shifted a few pixels against the colour image, as a sensor
   whose depth is not registered to its colour camera gives it;
+- `two_camera_capture`: colour and depth from two cameras of different focal lengths, written with the depth
+  camera's intrinsics only (a capture whose README gives one focal length for both);
 - `inserted_frame_capture`: one frame of another object on another table in the middle of a capture;
 - `twin_objects_capture`: copies of the same object side by side (a print repeated on the table);
 - `two_scenes_capture`: a capture of one object followed by a few frames of another scene, two parts
@@ -28,7 +30,7 @@ import numpy as np
 
 from gscan.geometry.transforms import rotvec_to_R
 from gscan.io.camera import Intrinsics
-from gscan.synth.capture import render_capture, write_capture
+from gscan.synth.capture import default_distance, render_capture, write_capture
 from gscan.synth.mesh import TexturedMesh, cylinder_mesh
 from gscan.synth.render import DEFAULT_INTRINSICS, Gloss, RenderedFrame
 from gscan.synth.textures import procedural_box_texture
@@ -124,6 +126,23 @@ def shifted_depth_capture(mesh: TexturedMesh, out_dir: str | Path, shift_px: tup
     frames = render_capture(mesh, None, n_views, mode="static", intr=intr, seed=seed, table_kind=table_kind)
     for f in frames:
         f.depth = shift_image(f.depth, *shift_px)
+    names = _names(len(frames))
+    return Case(_write(out_dir, frames, intr), names, names, mesh=mesh)
+
+
+def two_camera_capture(mesh: TexturedMesh, out_dir: str | Path, colour_scale: float = 0.9, n_views: int = 12,
+                       table_kind: str = "newspaper", seed: int = 0, intr: Intrinsics = DEFAULT_INTRINSICS) -> Case:
+    """A static capture (two rings) whose colour camera's focal length is `colour_scale` times its depth camera's
+    (same pose and principal point), written with the depth camera's intrinsics as the only ones: 7-Scenes' README
+    gives one focal length for a depth camera of 585 px and a colour camera of about 525 px."""
+    colour_intr = Intrinsics(intr.fx * colour_scale, intr.fy * colour_scale, intr.cx, intr.cy, intr.width, intr.height)
+    dist = default_distance(mesh, intr)
+    frames = render_capture(mesh, None, n_views, mode="static", intr=colour_intr, seed=seed, table_kind=table_kind,
+                            distance=dist)
+    depths = render_capture(mesh, None, n_views, mode="static", intr=intr, seed=seed, table_kind=table_kind,
+                            distance=dist)
+    for f, d in zip(frames, depths, strict=True):
+        f.depth = d.depth
     names = _names(len(frames))
     return Case(_write(out_dir, frames, intr), names, names, mesh=mesh)
 

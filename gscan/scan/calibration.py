@@ -1,0 +1,186 @@
+"""Does the depth line up with the colour under the given intrinsics? The colour camera's focal length, from the data.
+
+Many RGB-D captures record colour and depth with two cameras. A folder that holds one set of intrinsics says
+the depth is registered to the colour; when it is not (7-Scenes gives one focal length, 585 px, for a depth
+camera of 585 px and a colour camera of about 525 px), every keypoint is lifted with the depth of another
+pixel and a ray of the wrong angle. The frames' geometry bends by about 10 %, and whole stretches of a scan
+are registered wrongly while each edge looks fine.
+
+The texture tells (gscan.registration.colour): under a right pose and a right camera model, a frame's
+texture, carried through its depth into a neighbouring frame, lands on the same texture there. The check
+treats the given intrinsics as the depth camera's and tries colour cameras of focal length s times the
+given one (same principal point, no baseline: a baseline of a few centimetres shifts every point alike and
+is absorbed by the poses and the colour check's shift search). For each s, pairs of frames one and two apart
+are registered with the scan's own rules, and each pair's share of textured tiles lining up is averaged over
+the pairs (a pair that fails to register counts 0):
+- s = 1 and its neighbours in `SCALES` first: when s = 1 lines up the most, the given intrinsics stand;
+- else a coarse sweep over `SCALES`, then the vertex of a parabola through the best value and its neighbours (the
+  estimate: single evaluations are noisy to about 0.01 near the peak);
+- that s is used when it lines up more tiles than s = 1 in significantly more pairs than not (a sign test at
+  level `alpha`) and by at least `min_gain` on average; otherwise the given intrinsics stand.
+
+With depth registered to the colour (a rendered capture, a RealSense aligned stream), any s other than 1
+moves the depth off its colour pixels and the sweep peaks at 1.
+"""
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from gscan.features import FeatureParams, Features, extract_features
+from gscan.io.align import align_depth_to_color
+from gscan.io.camera import Intrinsics, RGBDFrame, lift_keypoints
+from gscan.registration.dense import DenseGeometry
+from gscan.registration.noise import sign_test
+from gscan.registration.pairwise import RegisterParams, register_features
+
+log = logging.getLogger(__name__)
+
+SCALES = (0.8, 0.85, 0.9, 0.95, 1.0, 1.05, 1.1, 1.15, 1.2)  # colour focal length / given, the coarse sweep
+
+
+@dataclass(frozen=True)
+class FocalCheckParams:
+    """The check's settings (module docstring): enabled (the scan runs it on folder captures with one set of
+    intrinsics); steps: pairs (i, i + step); groups: first frames i spread over the capture; keypoints: the
+    strongest kept per frame (enough to register neighbours, and fast); alpha: the sign test's level;
+    min_gain: the least gain in the mean share of textured tiles lining up."""
+
+    enabled: bool = True
+    steps: tuple[int, ...] = (1, 2)
+    groups: int = 8
+    keypoints: int = 800
+    alpha: float = 0.05
+    min_gain: float = 0.03
+
+
+@dataclass(frozen=True)
+class FocalCheck:
+    """scale: the colour camera's focal length over the given one that lines the texture up best (1.0 when
+    the given intrinsics stand); agreement: mean share of textured tiles lining up, per scale tried;
+    pairs: frame pairs compared; better_pairs: pairs lining up more tiles at `scale` than at 1; p_value:
+    the sign test's; significant: the data reject the given intrinsics for the colour camera."""
+
+    scale: float
+    agreement: dict[float, float]
+    pairs: int
+    better_pairs: int
+    p_value: float
+    significant: bool
+
+    def colour_intrinsics(self, given: Intrinsics) -> Intrinsics:
+        """The colour camera's intrinsics: the given ones with the focal length scaled."""
+        return replace(given, fx=given.fx * self.scale, fy=given.fy * self.scale)
+
+
+def _keypoints(frame: RGBDFrame, fparams: FeatureParams) -> Features:
+    """Frame's keypoints and descriptors before lifting (pixels, descriptors; points meaningless)."""
+    flat = RGBDFrame(frame.name, frame.color, np.ones_like(frame.depth), frame.intrinsics)
+    return extract_features(flat, replace(fparams, lift_window=0))
+
+
+def _geometry(f: RGBDFrame, kp: Features, s: float, fparams: FeatureParams) -> tuple[Features, DenseGeometry]:
+    """Frame f read with a colour camera of s times its focal length (its depth reprojected into it): its
+    keypoints kp lifted there, and its dense geometry with texture."""
+    K = f.intrinsics
+    Kc = replace(K, fx=K.fx * s, fy=K.fy * s)
+    depth = f.depth if s == 1.0 else align_depth_to_color(f.depth, K, Kc, np.eye(4))
+    pts, ok = lift_keypoints(kp.pixels.astype(np.float64), depth, Kc, fparams.lift_window,
+                             fparams.lift_max_rel_spread, fparams.lift_min_valid_frac)
+    lifted = kp.subset(np.flatnonzero(ok))
+    lifted.points = pts[ok].astype(np.float32)
+    return lifted, DenseGeometry.from_depth(depth, Kc, image=f.color)
+
+
+def _starts(n: int, span: int, count: int) -> list[int]:
+    """At most `count` first frames of groups of span + 1 consecutive frames, spread evenly over n frames."""
+    if n <= span:
+        return []
+    return [int(i) for i in np.unique(np.linspace(0, n - span - 1, min(count, n - span)).astype(int))]
+
+
+def check_colour_focal(read: Callable[[int], RGBDFrame | None], n: int, params: RegisterParams,
+                       fparams: FeatureParams, check: FocalCheckParams = FocalCheckParams()) -> FocalCheck | None:
+    """The check of the module docstring on a capture of n frames, frame i read by read(i) (None: unusable), its
+    depth registered to its colour as given. Pairs (i, i + step) for each of `check.steps` (neighbours move
+    little, the next ones more) from `check.groups` first frames i spread over the capture, every other group
+    only while s = 1 and its neighbours are tried (registered depth peaks sharply at 1); each group's frames are
+    read when its pairs are registered and let go after (a few frames in memory at a time; keypoints, at most
+    `check.keypoints` a frame, are kept). None when fewer than 4 pairs register at any scale tried."""
+    steps = check.steps
+    starts = _starts(n, max(steps), check.groups)
+    pairs = [(i, i + step) for i in starts for step in steps]
+    fparams = replace(fparams, max_keypoints=min(fparams.max_keypoints, check.keypoints))
+    kps: dict[int, Features] = {}
+    unusable: set[int] = set()
+    per_pair: dict[float, np.ndarray] = {}  # scale -> each pair's share of textured tiles lining up (0: failed,
+    ran: dict[float, np.ndarray] = {}  # NaN: not tried); scale -> the pairs whose colour check ran
+
+    def evaluate(scales: tuple[float, ...] | list[float], groups: list[int]) -> None:
+        """The pairs of `groups` registered at each scale with the scan's rules, and their texture compared under
+        that pose (a pose re-solved from one scale's matches is not precise enough: the peak moves by 5 %)."""
+        for s in scales:
+            per_pair.setdefault(s, np.full(len(pairs), np.nan))
+            ran.setdefault(s, np.zeros(len(pairs), bool))
+        for i in groups:
+            todo = [(k, s) for s in scales for k, (a, _) in enumerate(pairs) if a == i and np.isnan(per_pair[s][k])]
+            if not todo:
+                continue
+            frames = {}
+            for j in range(i, i + max(steps) + 1):
+                f = None if j in unusable else read(j)
+                if f is None:
+                    unusable.add(j)
+                    continue
+                frames[j] = f
+                if j not in kps:
+                    kps[j] = _keypoints(f, fparams)
+            for s in sorted({s for _, s in todo}):
+                geo = {j: _geometry(f, kps[j], s, fparams) for j, f in frames.items()}
+                for k, s_k in todo:
+                    if s_k != s:
+                        continue
+                    a, b = pairs[k]
+                    per_pair[s][k] = 0.0
+                    if a in geo and b in geo:
+                        (fa, da), (fb, db) = geo[a], geo[b]
+                        c = register_features(fa, fb, params, dense=(da, db)).colour
+                        if c is not None and c.informative >= params.min_colour_tiles:
+                            per_pair[s][k], ran[s][k] = c.agreeing_fraction, True
+
+    def means(tried: np.ndarray) -> tuple[np.ndarray, dict[float, float]]:
+        """The live pairs (among `tried`, registered at some scale) and each scale's mean share over them."""
+        live = tried & np.logical_or.reduce(list(ran.values()))
+        return live, {s: float(v[live].mean()) if live.any() else 0.0 for s, v in per_pair.items()}
+
+    if not pairs:
+        return None
+    near = SCALES[SCALES.index(1.0) - 1:SCALES.index(1.0) + 2]
+    evaluate(near, starts[::2])
+    live, mean = means(~np.isnan(per_pair[1.0]))
+    if live.sum() >= 4 and mean[1.0] >= max(mean.values()):  # the texture peaks at the given focal length
+        return FocalCheck(1.0, dict(sorted(mean.items())), int(live.sum()), 0, 1.0, False)
+    evaluate(SCALES, starts)
+    live, mean = means(np.ones(len(pairs), bool))
+    if live.sum() < 4:
+        return None
+    k = int(np.argmax([mean[s] for s in SCALES]))
+    best = SCALES[k]
+    if 0 < k < len(SCALES) - 1:  # the vertex of the parabola through the best and its neighbours (less noisy)
+        x = np.array(SCALES[k - 1:k + 2])
+        a, b, _ = np.polyfit(x, np.array([mean[s] for s in x]), 2)
+        if a < 0:
+            best = round(float(np.clip(-b / (2 * a), x[0], x[2])), 4)
+            evaluate([best], starts)
+            live, mean = means(np.ones(len(pairs), bool))
+    for s in sorted(mean):
+        log.debug("colour focal x%.3f: %.3f of the textured tiles line up", s, mean[s])
+    d = per_pair[best][live] - per_pair[1.0][live]
+    better, worse = int(np.sum(d > 0)), int(np.sum(d < 0))
+    p = sign_test(better, worse)
+    significant = best != 1.0 and p < check.alpha and mean[best] - mean[1.0] >= check.min_gain
+    return FocalCheck(best if significant else 1.0, dict(sorted(mean.items())), int(live.sum()), better, p,
+                      significant)

@@ -1,0 +1,54 @@
+"""The colour camera's focal length from the texture (gscan.scan.calibration): a capture whose depth is registered to
+its colour keeps its intrinsics; one whose colour camera has another focal length gets that one back."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from gscan.features import FeatureParams
+from gscan.io import open_sequence
+from gscan.scan.calibration import check_colour_focal
+from gscan.scan.config import ScanConfig
+from gscan.scan.pipeline import STATIC_OBJECT, _register_params
+from gscan.synth import cases as C
+from gscan.synth import load_textured_mesh
+
+pytestmark = pytest.mark.slow
+
+CFG = ScanConfig()
+PARAMS = _register_params(CFG, STATIC_OBJECT)
+FEATURES = FeatureParams(kind=CFG.features.kind, max_keypoints=CFG.features.max_keypoints)
+
+
+@pytest.fixture(scope="module")
+def box(meshes_dir: Path):
+    return load_textured_mesh(meshes_dir / "Whey_Protein_Chocolate_12_Packets" / "model_0.obj")
+
+
+def check(path: Path, n: int | None = None):
+    seq = open_sequence(path)
+    names = seq.names[:n]
+    return check_colour_focal(lambda i: seq[names[i]], len(names), PARAMS, FEATURES)
+
+
+def test_registered_depth_keeps_the_given_intrinsics(tmp_path, box):
+    """Rendered depth lies on its colour pixels: the texture lines up best at the given focal length, and the
+    check stops after s = 1 and its two neighbours."""
+    got = check(C.two_camera_capture(box, tmp_path / "one", colour_scale=1.0, n_views=8).path)
+    assert got is not None and got.scale == 1.0 and not got.significant, got
+    assert sorted(got.agreement) == [0.95, 1.0, 1.05] and got.agreement[1.0] > max(got.agreement[0.95],
+                                                                                   got.agreement[1.05]) + 0.1
+
+
+@pytest.mark.parametrize("scale", [0.88, 1.12])
+def test_a_colour_camera_of_another_focal_length_is_found(tmp_path, box, scale):
+    """Colour from a camera of `scale` times the given focal length: found within 2 %, significantly better."""
+    got = check(C.two_camera_capture(box, tmp_path / "two", colour_scale=scale, n_views=8).path)
+    assert got is not None and got.significant and abs(got.scale / scale - 1) < 0.02, got
+    assert got.agreement[got.scale] > got.agreement[1.0] + 0.2 and got.p_value < 0.05, got
+
+
+def test_too_few_frames_say_nothing(tmp_path, box):
+    """Three frames make two pairs at most: no verdict."""
+    assert check(C.two_camera_capture(box, tmp_path / "few", colour_scale=0.9, n_views=8).path, n=3) is None
