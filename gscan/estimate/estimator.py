@@ -40,6 +40,9 @@ Pipeline of `Estimator.estimate` (every stage timed, `EstimateResult.timings_ms`
    test at level `rival_p`): the pose they significantly favour is returned; when neither is favoured the
    view is ambiguous and no pose is returned (nor sought by PnP in the depth's holes).
 
+A frame that comes with the intrinsics the template's scan found its capture's colour camera not to have
+(gscan.scan.calibration) is first read as the scan read the capture (`as_scanned`).
+
 Without usable query depth (valid fraction of the search region < `min_depth_frac`) the pose is solved 2D-3D
 (`gscan.estimate.pnp`), and the same 2D-3D solve is tried after a failed 3D-3D estimate on the search region's
 holes in the depth (a dark, shiny or transparent object leaves a hole in otherwise good depth).
@@ -445,9 +448,9 @@ class Estimator:
         checked = 0
         for r in rivals:
             assert res.T_cam_obj is not None and res.evidence is not None
-            deg, dist = pose_error(r.T, res.T_cam_obj)
             if checked >= p.rivals:
                 break
+            deg, dist = pose_error(r.T, res.T_cam_obj)
             if deg <= MAX_REFINE_DEG and dist <= self.radius:
                 continue
             checked += 1

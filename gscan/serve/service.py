@@ -98,7 +98,7 @@ class Service:
             results = {}
             for n in names:
                 est = self.estimators[n]
-                same = est.params == first.params
+                same = est.params == first.params and est.camera_fix == first.camera_fix
                 results[n] = (est.estimate_prepared(q) if same else est.estimate(frame, frame.mask)).to_json()
         return {"results": results, "timings_ms": {"total": (time.perf_counter() - t0) * 1e3}}
 
