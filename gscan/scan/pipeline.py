@@ -386,12 +386,12 @@ def run_scan(opts: ScanOptions, progress: Progress | None = None) -> ScanResult:
                              "poses)", fix="obj_id")
         if opts.obj_id is not None and not seq.gt_T_cam_obj:
             raise InputError(opts.input_dir / "scene_gt.json", f"holds no pose of object {opts.obj_id}", fix="obj_id")
-        with timer.stage("camera", total=1) as advance:
-            seq, camera = _check_camera(seq, opts)
-            advance(1)
         fingerprints = seq.fingerprints()
         if resumed:
             db, target = _open_resumed(opts, seq, fingerprints)
+        with timer.stage("camera", total=1) as advance:  # (after the checks that refuse the input in one line)
+            seq, camera = _check_camera(seq, opts)
+            advance(1)
         store = FrameStore(opts.output)
         seg = _segment_params(opts.config)
         with timer.stage("mode", total=1) as advance:
