@@ -581,7 +581,6 @@ class Estimator:
             T_cam_obj, self.points_obj, kp_idx, S, kp_idx if sim_cols is None else sim_cols, feats.points, q_location,
             self.cloud_icp, frame.depth, frame.intrinsics, radius, self.support_sim, p.depth_tol,
             1.0 if self.unit else -1.0, seen[1])
-        ev.support = len(ev.supporters)
         return ev
 
     def _offered_keypoints(self, T_cam_obj: np.ndarray) -> np.ndarray:

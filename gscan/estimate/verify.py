@@ -35,8 +35,9 @@ from gscan.io.camera import Intrinsics
 class Evidence:
     """What a pose hypothesis rests on (see the module docstring). n_matches: the match list's length;
     n_inliers: pairs within the Kabsch tolerance; spread_m: square root of the second principal variance of
-    the inliers' template points (m, 0 for a line); score, confirmed: depth agreement; support: distinct query
-    keypoint locations on the predicted surface with an agreeing template keypoint; on_surface: distinct query
+    the inliers' template points (m, 0 for a line); score, confirmed: depth agreement; supporters: the distinct
+    query keypoint locations on the predicted surface with an agreeing template keypoint (ids, sorted), support
+    their number; on_surface: distinct query
     keypoint locations on the predicted surface; offer: distinct template keypoint locations the views near the
     query direction show at the pose, inside the image and not hidden by the measured depth."""
 
@@ -45,10 +46,13 @@ class Evidence:
     spread_m: float = 0.0
     score: float = 0.0
     confirmed: float = 0.0
-    support: int = 0
     on_surface: int = 0
     offer: int = 0
-    supporters: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64), repr=False)  # [support] location ids
+    supporters: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64), repr=False)
+
+    @property
+    def support(self) -> int:
+        return len(self.supporters)
 
     @property
     def support_ratio(self) -> float:
