@@ -132,7 +132,7 @@ class DepthAgreement:
                               self.occluded + other.occluded, self.landed + other.landed, self.total + other.total)
 
 
-def landing(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarray
+def _landing(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarray
             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """src's samples that land on a valid sample of tgt under T_tgt_src: (their points in tgt's camera
     frame [K x 3], the rows [K] and columns [K] of tgt's samples they land on, their indices [K] in
@@ -264,7 +264,7 @@ def plane_residuals(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarra
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Signed point-to-plane distances [K] of src's samples landing on tgt's depth under T_tgt_src, with their
     depth in tgt's camera [K] and tgt's measured depth there [K] (what the depth noise is estimated from)."""
-    q, vi, ui, _ = landing(src, tgt, T_tgt_src)
+    q, vi, ui, _ = _landing(src, tgt, T_tgt_src)
     return np.sum(tgt.normals[vi, ui] * (q - tgt.grid[vi, ui]), axis=1), q[:, 2], tgt.depth[vi, ui]
 
 
@@ -272,6 +272,6 @@ def _plane_pairs(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarray, 
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """src's samples in tgt's frame that land on tgt's depth: (points [K x 3], tgt's normals there [K x 3],
     signed point-to-plane distances [K], their sigma [K], their indices [K] in src.points)."""
-    q, vi, ui, idx = landing(src, tgt, T_tgt_src)
+    q, vi, ui, idx = _landing(src, tgt, T_tgt_src)
     n = tgt.normals[vi, ui]
     return q, n, np.sum(n * (q - tgt.grid[vi, ui]), axis=1), noise.pair_sigma(q[:, 2], tgt.depth[vi, ui]), idx
