@@ -58,6 +58,16 @@ def image_noise(grey: np.ndarray) -> float:
     return float(np.sqrt(np.pi / 2) * np.mean(np.abs(n), dtype=np.float64) / 6.0)
 
 
+def tile_ids(u: np.ndarray, v: np.ndarray, width: int) -> np.ndarray:
+    """[K] the TILE x TILE tile of each integer pixel (u [K], v [K]) of an image `width` pixels wide."""
+    return (v // TILE) * (width // TILE + 1) + u // TILE
+
+
+def min_texture_std(noise: float) -> float:
+    """The texture's standard deviation (grey levels) that makes a tile informative in an image of `noise`."""
+    return max(TEXTURE_SNR * noise, MIN_TEXTURE)
+
+
 @dataclass(frozen=True)
 class ColourAgreement:
     """Tiles of the overlap (both directions): informative ones, and those whose texture lines up."""

@@ -24,14 +24,13 @@ import numpy as np
 from gscan.geometry.transforms import inv_T, transform_points
 from gscan.io.camera import Intrinsics
 from gscan.registration.colour import (
-    MIN_TEXTURE,
-    TEXTURE_SNR,
-    TILE,
     ColourAgreement,
     grey_image,
     image_noise,
+    min_texture_std,
     texture_image,
     tile_agreement,
+    tile_ids,
 )
 from gscan.registration.noise import DepthNoise
 
@@ -179,9 +178,8 @@ def colour_agreement(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarr
         u = q[:, 0] / q[:, 2] * fx + cx
         v = q[:, 1] / q[:, 2] * fy + cy
         pu, pv = a.pixels[idx, 0], a.pixels[idx, 1]
-        Ia = a.texture[pv, pu].astype(np.float64)
-        tiles = (pv // TILE) * (a.texture.shape[1] // TILE + 1) + pu // TILE
-        out = out + tile_agreement(Ia, tiles, b.texture, u, v, max(TEXTURE_SNR * a.texture_noise, MIN_TEXTURE))
+        out = out + tile_agreement(a.texture[pv, pu].astype(np.float64), tile_ids(pu, pv, a.texture.shape[1]),
+                                   b.texture, u, v, min_texture_std(a.texture_noise))
     return out
 
 

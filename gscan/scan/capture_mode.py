@@ -25,7 +25,7 @@ import numpy as np
 
 from gscan.geometry.plane import Plane
 from gscan.io.camera import RGBDFrame
-from gscan.registration.colour import MIN_TEXTURE, TEXTURE_SNR, TILE, image_noise, texture_image, tile_scores
+from gscan.registration.colour import image_noise, min_texture_std, texture_image, tile_ids, tile_scores
 from gscan.scan.segment import SegmentParams, segment_frame
 
 log = logging.getLogger(__name__)
@@ -66,13 +66,11 @@ def _texture_moved(ga: np.ndarray, gb: np.ndarray, valid: np.ndarray, step: int 
     vv, uu = np.mgrid[step // 2:H:step, step // 2:W:step]
     sel = valid[vv, uu]
     v, u = vv[sel], uu[sel]
-    cols = W // TILE + 1
     ta, tb = texture_image(ga), texture_image(gb)
-    ids, informative, agree = tile_scores(ta[v, u].astype(np.float64), (v // TILE) * cols + u // TILE, tb,
-                                          u.astype(np.float64), v.astype(np.float64),
-                                          max(TEXTURE_SNR * image_noise(ga), MIN_TEXTURE), search=((0, 0),))
+    ids, informative, agree = tile_scores(ta[v, u].astype(np.float64), tile_ids(u, v, W), tb, u.astype(np.float64),
+                                          v.astype(np.float64), min_texture_std(image_noise(ga)), search=((0, 0),))
     rows, cs = np.mgrid[0:H, 0:W]
-    return np.isin((rows // TILE) * cols + cs // TILE, ids[informative & ~agree])
+    return np.isin(tile_ids(cs, rows, W), ids[informative & ~agree])
 
 
 def detect_mode(frames: Sequence[RGBDFrame], static_fraction: float = 0.65) -> ModeDecision:
