@@ -6,11 +6,10 @@ from pathlib import Path
 
 import pytest
 
-from gscan.features import FeatureParams
 from gscan.io import open_sequence
 from gscan.scan.calibration import check_colour_focal
 from gscan.scan.config import ScanConfig
-from gscan.scan.pipeline import STATIC_OBJECT, _register_params
+from gscan.scan.pipeline import STATIC_OBJECT, _feature_params, _register_params
 from gscan.synth import cases as C
 from gscan.synth import load_textured_mesh
 
@@ -18,7 +17,7 @@ pytestmark = pytest.mark.slow
 
 CFG = ScanConfig()
 PARAMS = _register_params(CFG, STATIC_OBJECT)
-FEATURES = FeatureParams(kind=CFG.features.kind, max_keypoints=CFG.features.max_keypoints)
+FEATURES = _feature_params(CFG)
 
 
 @pytest.fixture(scope="module")

@@ -171,6 +171,11 @@ class ScanResult:
                 "camera": self.camera}
 
 
+def _feature_params(cfg: ScanConfig) -> FeatureParams:
+    """The registration keypoints' parameters from the config."""
+    return FeatureParams(kind=cfg.features.kind, max_keypoints=cfg.features.max_keypoints)
+
+
 def _register_params(cfg: ScanConfig, mode: str) -> RegisterParams:
     """Registration's parameters from the config; the noise models are the configured ones, or the priors a
     capture's own noise is estimated from (`_capture_noise`)."""
@@ -335,8 +340,7 @@ def _check_camera(seq: Sequence | RecordingSequence, opts: ScanOptions
         except InputError:
             return None
 
-    fparams = FeatureParams(kind=cfg.features.kind, max_keypoints=cfg.features.max_keypoints)
-    check = check_colour_focal(read, len(seq.names), _register_params(cfg, STATIC_OBJECT), fparams)
+    check = check_colour_focal(read, len(seq.names), _register_params(cfg, STATIC_OBJECT), _feature_params(cfg))
     if check is None:
         return seq, None
     K = seq.intrinsics
@@ -752,7 +756,7 @@ def _extract(data: _FrameData, db: TemplateDB, resumed: bool, advance: Callable[
     """Each frame's registration keypoints (camera frame; a moving object's only), stored at once with the view's
     images: the one write of those. A resumed scan reuses the keypoints of views stored without a pose."""
     cfg, frames = data.cfg, data.frames
-    fparams = FeatureParams(kind=cfg.features.kind, max_keypoints=cfg.features.max_keypoints)
+    fparams = _feature_params(cfg)
     stored = set(db.view_names()) if resumed else set()
     db_poses = {v.name: v.T_obj_cam for v in db.views()} if stored else {}
     for name in stored - {f.name for f in frames}:  # a view of a frame this scan does not keep
