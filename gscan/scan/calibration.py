@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -103,13 +104,15 @@ def _starts(n: int, span: int, count: int) -> list[int]:
 
 
 def check_colour_focal(read: Callable[[int], RGBDFrame | None], n: int, params: RegisterParams,
-                       fparams: FeatureParams, check: FocalCheckParams = FocalCheckParams()) -> FocalCheck | None:
+                       fparams: FeatureParams, check: FocalCheckParams = FocalCheckParams(),
+                       workers: int = 1) -> FocalCheck | None:
     """The check of the module docstring on a capture of n frames, frame i read by read(i) (None: unusable), its
     depth registered to its colour as given. Pairs (i, i + step) for each of `check.steps` (neighbours move
     little, the next ones more) from `check.groups` first frames i spread over the capture, every other group
     only while s = 1 and its neighbours are tried (registered depth peaks sharply at 1); each group's frames are
     read when its pairs are registered and let go after (a few frames in memory at a time; keypoints, at most
-    `check.keypoints` a frame, are kept). None when fewer than 4 pairs register at any scale tried."""
+    `check.keypoints` a frame, are kept); `workers` groups at a time, on threads. None when fewer than 4 pairs
+    register at any scale tried."""
     steps = check.steps
     starts = _starts(n, max(steps), check.groups)
     pairs = [(i, i + step) for i in starts for step in steps]
@@ -125,10 +128,10 @@ def check_colour_focal(read: Callable[[int], RGBDFrame | None], n: int, params: 
         for s in scales:
             per_pair.setdefault(s, np.full(len(pairs), np.nan))
             ran.setdefault(s, np.zeros(len(pairs), bool))
-        for i in groups:
+        def group(i: int) -> None:
             todo = [(k, s) for s in scales for k, (a, _) in enumerate(pairs) if a == i and np.isnan(per_pair[s][k])]
             if not todo:
-                continue
+                return
             frames = {}
             for j in range(i, i + max(steps) + 1):
                 f = None if j in unusable else read(j)
@@ -150,6 +153,10 @@ def check_colour_focal(read: Callable[[int], RGBDFrame | None], n: int, params: 
                         c = register_features(fa, fb, params, dense=(da, db)).colour
                         if c is not None and c.informative >= params.min_colour_tiles:
                             per_pair[s][k], ran[s][k] = c.agreeing_fraction, True
+
+        # groups share no pair (each result lands in its own slot): the same values in any order
+        with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
+            list(pool.map(group, groups))
 
     def means(tried: np.ndarray) -> tuple[np.ndarray, dict[float, float]]:
         """The live pairs (among `tried`, registered at some scale) and each scale's mean share over them."""

@@ -340,7 +340,8 @@ def _check_camera(seq: Sequence | RecordingSequence, opts: ScanOptions
         except InputError:
             return None
 
-    check = check_colour_focal(read, len(seq.names), _register_params(cfg, STATIC_OBJECT), _feature_params(cfg))
+    check = check_colour_focal(read, len(seq.names), _register_params(cfg, STATIC_OBJECT), _feature_params(cfg),
+                               workers=WORKERS)
     if check is None:
         return seq, None
     K = seq.intrinsics
