@@ -25,10 +25,10 @@ def box(meshes_dir: Path):
     return load_textured_mesh(meshes_dir / "Whey_Protein_Chocolate_12_Packets" / "model_0.obj")
 
 
-def check(path: Path, n: int | None = None):
+def check(path: Path, n: int | None = None, workers: int = 1):
     seq = open_sequence(path)
     names = seq.names[:n]
-    return check_colour_focal(lambda i: seq[names[i]], len(names), PARAMS, FEATURES)
+    return check_colour_focal(lambda i: seq[names[i]], len(names), PARAMS, FEATURES, workers=workers)
 
 
 def test_registered_depth_keeps_the_given_intrinsics(tmp_path, box):
@@ -51,3 +51,11 @@ def test_a_colour_camera_of_another_focal_length_is_found(tmp_path, box, scale):
 def test_too_few_frames_say_nothing(tmp_path, box):
     """Three frames make two pairs at most: no verdict."""
     assert check(C.two_camera_capture(box, tmp_path / "few", colour_scale=0.9, n_views=8).path, n=3) is None
+
+
+def test_two_threads_give_the_same_check(tmp_path, box):
+    """The scan runs the check's frame groups on two threads: every figure is the one a single thread gives (the
+    whole sweep, on a capture whose colour camera differs)."""
+    path = C.two_camera_capture(box, tmp_path / "threads", colour_scale=0.9, n_views=8).path
+    one, two = check(path), check(path, workers=2)
+    assert one is not None and len(one.agreement) > 3 and one == two, (one, two)
