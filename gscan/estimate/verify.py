@@ -37,9 +37,9 @@ class Evidence:
     n_inliers: pairs within the Kabsch tolerance; spread_m: square root of the second principal variance of
     the inliers' template points (m, 0 for a line); score, confirmed: depth agreement; supporters: the distinct
     query keypoint locations on the predicted surface with an agreeing template keypoint (ids, sorted), support
-    their number; on_surface: distinct query
-    keypoint locations on the predicted surface; offer: distinct template keypoint locations the views near the
-    query direction show at the pose, inside the image and not hidden by the measured depth."""
+    their number; on_surface: distinct query keypoint locations on the predicted surface; offer: distinct
+    template keypoint locations the views near the query direction show at the pose, inside the image and not
+    hidden by the measured depth."""
 
     n_matches: int = 0
     n_inliers: int = 0
