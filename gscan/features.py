@@ -332,8 +332,9 @@ def extract_features_in_mask(frame: RGBDFrame, mask: np.ndarray, params: Feature
         return empty_features(params.kind)
     x0, x1 = max(0, bx0 + xs.min() - margin), min(W, bx0 + xs.max() + margin + 1)
     y0, y1 = max(0, by0 + ys.min() - margin), min(H, by0 + ys.max() + margin + 1)
-    crop_mask = mask[y0:y1, x0:x1]
-    if within is not None:
+    if within is None:
+        crop_mask = mask[y0:y1, x0:x1]
+    else:  # the margin may reach past the box: only the box's part of the mask
         crop_mask = np.zeros((y1 - y0, x1 - x0), bool)
         iy0, iy1, ix0, ix1 = max(by0, y0), min(by1, y1), max(bx0, x0), min(bx1, x1)
         crop_mask[iy0 - y0:iy1 - y0, ix0 - x0:ix1 - x0] = mask[iy0:iy1, ix0:ix1]
