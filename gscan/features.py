@@ -149,8 +149,36 @@ def _to_gray(color: np.ndarray) -> np.ndarray:
 DESCRIBE_MARGIN = 1.5
 
 
-def _detect(gray: np.ndarray, mask_u8: np.ndarray | None, params: FeatureParams,
-            n_best: int = 0) -> tuple[list, np.ndarray | None]:
+@dataclass
+class Detection:
+    """A frame's keypoints as OpenCV detected and described them, before any depth test: pixels [N x 2] float64,
+    OpenCV's descriptors [N x D], response and angle [N] float64, size [N] float32; n_best: the strongest-n cut
+    they were detected with (0: none); detector: the detector's settings (`_detector`). `extract_features` can
+    start from one (`detect`)."""
+
+    pixels: np.ndarray
+    descriptors: np.ndarray | None
+    response: np.ndarray
+    angle: np.ndarray
+    size: np.ndarray
+    n_best: int
+    detector: tuple
+
+    def __len__(self) -> int:
+        return len(self.pixels)
+
+
+def _detector(params: FeatureParams) -> tuple:
+    """The settings a detection depends on besides the image and the strongest-n cut (SIFT and RootSIFT share
+    OpenCV's SIFT; ORB's keypoint count follows max_keypoints)."""
+    if params.kind == "orb":
+        return ("orb", params.max_keypoints, params.orb_detect_factor, params.orb_scale_factor, params.orb_n_levels,
+                params.orb_fast_threshold)
+    return ("sift", params.sift_n_octave_layers, params.sift_contrast_threshold, params.sift_edge_threshold,
+            params.sift_sigma)
+
+
+def _detect(gray: np.ndarray, mask_u8: np.ndarray | None, params: FeatureParams, n_best: int = 0) -> Detection:
     """OpenCV's keypoints and descriptors; n_best > 0 (SIFT): only the n_best strongest responses (and those
     equal to the n_best-th) are described and returned."""
     det: cv2.Feature2D
@@ -163,7 +191,18 @@ def _detect(gray: np.ndarray, mask_u8: np.ndarray | None, params: FeatureParams,
                               contrastThreshold=params.sift_contrast_threshold,
                               edgeThreshold=params.sift_edge_threshold, sigma=params.sift_sigma)
     kps, desc = det.detectAndCompute(gray, mask_u8)
-    return list(kps), desc
+    return Detection(np.array([k.pt for k in kps], dtype=np.float64).reshape(-1, 2), desc,
+                     np.array([k.response for k in kps], dtype=np.float64),
+                     np.array([k.angle for k in kps], dtype=np.float64),
+                     np.array([k.size for k in kps], dtype=np.float32), n_best, _detector(params))
+
+
+def detect(frame: RGBDFrame, params: FeatureParams = FeatureParams()) -> Detection:
+    """The whole-frame detection `extract_features(frame, params)` starts from. Another extraction of the same
+    colour image (other depth, intrinsics or `max_keypoints`, SIFT kinds) can start from it too, with the result
+    it would get alone: of a SIFT detection only the strongest-n cut depends on those, and `extract_features`
+    detects again when the cut left too few keypoints. ORB's detection depends on `max_keypoints`."""
+    return _detect(_to_gray(frame.color), None, params, _n_best(frame.depth, None, params))
 
 
 def _n_best(depth: np.ndarray, mask: np.ndarray | None, params: FeatureParams) -> int:
@@ -185,7 +224,7 @@ def _rootsift(desc: np.ndarray) -> np.ndarray:
 
 
 def extract_features(frame: RGBDFrame, params: FeatureParams = FeatureParams(),
-                     mask: np.ndarray | None = None) -> Features:
+                     mask: np.ndarray | None = None, detection: Detection | None = None) -> Features:
     """Detect, describe and lift keypoints of `frame`.
 
     Keypoints without a robust depth (invalid or discontinuous window, see `lift_keypoints`) are dropped; of
@@ -199,6 +238,7 @@ def extract_features(frame: RGBDFrame, params: FeatureParams = FeatureParams(),
         params: detector, descriptor kind and depth lifting.
         mask: optional [H x W] bool; detection is restricted to True pixels (a keypoint is kept only if its
             rounded pixel lies in the mask). `frame.mask` is NOT applied implicitly: pass `mask=frame.mask`.
+        detection: the frame's colour image already detected (`detect`), used without a mask.
 
     Returns:
         Features: pixels [N x 2], camera-frame points [N x 3], descriptors [N x D], kind, scales [N].
@@ -215,14 +255,19 @@ def extract_features(frame: RGBDFrame, params: FeatureParams = FeatureParams(),
         if not mask.any():
             return empty_features(params.kind)
         mask_u8 = mask.astype(np.uint8) * 255
+    if detection is not None and detection.detector != _detector(params):
+        raise ValueError(f"frame {frame.name!r}: a detection of other detector settings ({detection.detector}) "
+                         f"than {_detector(params)}")
     n_best = _n_best(frame.depth, mask, params)
+    det = detection if mask is None else None
     while True:
-        kps, desc = _detect(gray, mask_u8, params, n_best)
-        if not kps or desc is None:
+        if det is None:
+            det = _detect(gray, mask_u8, params, n_best)
+        if len(det) == 0 or det.descriptors is None:
             log.debug("frame %s: no keypoints", frame.name)
             return empty_features(params.kind)
-        px = np.array([k.pt for k in kps], dtype=np.float64).reshape(-1, 2)
-        keep = np.ones(len(kps), dtype=bool)
+        px = det.pixels
+        keep = np.ones(len(det), dtype=bool)
         if mask is not None:
             u = np.clip(np.rint(px[:, 0]).astype(int), 0, W - 1)
             v = np.clip(np.rint(px[:, 1]).astype(int), 0, H - 1)
@@ -233,26 +278,24 @@ def extract_features(frame: RGBDFrame, params: FeatureParams = FeatureParams(),
         keep &= valid
         # the strongest n_best hold the max_keypoints strongest with depth, unless OpenCV cut keypoints (it
         # returns at least n_best then) and fewer than max_keypoints of those have depth: describe them all
-        if n_best == 0 or len(kps) < n_best or np.count_nonzero(keep) >= params.max_keypoints:
+        if det.n_best == 0 or len(det) < det.n_best or np.count_nonzero(keep) >= params.max_keypoints:
             break
         log.debug("frame %s: %d of the %d strongest keypoints have depth; describing all", frame.name,
-                  int(keep.sum()), len(kps))
-        n_best = 0
-    resp = np.array([k.response for k in kps], dtype=np.float64)
-    angle = np.array([k.angle for k in kps], dtype=np.float64)
-    size = np.array([k.size for k in kps], dtype=np.float32)
+                  int(keep.sum()), len(det))
+        det, n_best = None, 0
+    resp, angle, size = det.response, det.angle, det.size
     idx = np.flatnonzero(keep)
     # strongest first; ties by (y, x, angle, size); lexsort's primary key is the last one
     order = np.lexsort((size[idx], angle[idx], px[idx, 0], px[idx, 1], -resp[idx]))
     idx = idx[order][: params.max_keypoints]
-    desc = desc[idx]
+    desc = det.descriptors[idx]
     if params.kind == "rootsift":
         desc = _rootsift(desc)
     elif params.kind == "sift":
         desc = desc.astype(np.float32)
     else:
         desc = np.ascontiguousarray(desc, dtype=np.uint8)
-    log.debug("frame %s: %d %s keypoints detected, %d with depth, %d kept", frame.name, len(kps), params.kind,
+    log.debug("frame %s: %d %s keypoints detected, %d with depth, %d kept", frame.name, len(det), params.kind,
               int(keep.sum()), len(idx))
     return Features(pixels=px[idx].astype(np.float32), points=pts[idx].astype(np.float32),
                     descriptors=np.ascontiguousarray(desc), kind=params.kind, scales=size[idx])

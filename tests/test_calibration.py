@@ -59,3 +59,26 @@ def test_two_threads_give_the_same_check(tmp_path, box):
     path = C.two_camera_capture(box, tmp_path / "threads", colour_scale=0.9, n_views=8).path
     one, two = check(path), check(path, workers=2)
     assert one is not None and len(one.agreement) > 3 and one == two, (one, two)
+
+
+def test_the_scan_detects_each_frame_once(tmp_path, box, monkeypatch):
+    """The check's keypoints come from the detection the scan's features stage makes, and that stage starts from
+    it: on a capture whose colour camera the check corrects (the sequence read again with other intrinsics),
+    every frame's whole image is detected once, and every frame is registered."""
+    import gscan.features as features
+    from gscan.scan.api import scan
+
+    path = C.two_camera_capture(box, tmp_path / "cap", colour_scale=0.88, n_views=8).path
+    shape = open_sequence(path)[0].depth.shape
+    whole: list[int] = []
+    detect = features._detect
+
+    def counted(gray, mask_u8, params, n_best=0):
+        if mask_u8 is None and gray.shape == shape:
+            whole.append(1)
+        return detect(gray, mask_u8, params, n_best)
+
+    monkeypatch.setattr(features, "_detect", counted)
+    res = scan(path, tmp_path / "cap.gscan")
+    assert res.camera is not None and res.camera["corrected"], res.camera
+    assert len(whole) == 8 and res.registered == 8, (len(whole), res.registered)

@@ -145,7 +145,7 @@ def test_sift_describing_the_strongest_gives_what_describing_all_gives(real_fram
 
     def counted(*a, **k):
         out = detect(*a, **k)
-        described.append(len(out[0]))
+        described.append(len(out))
         return out
 
     monkeypatch.setattr(features, "_detect", counted)
@@ -167,6 +167,53 @@ def test_sift_describing_the_strongest_gives_what_describing_all_gives(real_fram
         assert len(described) == detections, (mask is not None, described)
         if mask is None:  # the first detection described fewer keypoints than the frame has
             assert described[0] < len(every), (described, len(every))
+
+
+@pytest.mark.parametrize("source, scan_cap, check_cap", [("sample", 2000, 800), ("real", 150, 60)])
+def test_an_extraction_started_from_another_ones_detection_gets_its_own_result(real_frame, source, scan_cap,
+                                                                              check_cap, monkeypatch):
+    """A whole-frame detection (`detect`) made for one extraction serves another of the same colour image: the
+    scan's camera check takes its 800 strongest keypoints on a flat depth from the detection the features stage
+    makes, and the features stage then starts from it. Each gets exactly what it gets detecting alone (what
+    describing every keypoint gives), without detecting again, unless the detection's cut leaves too few
+    keypoints with depth (the depth under the strongest erased): then it detects again, with the same result."""
+    import gscan.features as features
+    from gscan.demo import SAMPLES
+    from gscan.io import open_sequence
+
+    frame = real_frame if source == "real" else open_sequence(SAMPLES / "capture")[0]
+    scan_params = FeatureParams(kind="rootsift", max_keypoints=scan_cap)
+    check_params = FeatureParams(kind="rootsift", max_keypoints=check_cap, lift_window=0)
+    flat = RGBDFrame(frame.name, frame.color, np.ones_like(frame.depth), frame.intrinsics)
+    every = extract_features(frame, FeatureParams(kind="sift", max_keypoints=100000))
+    n_all = len(features._detect(cv2.cvtColor(frame.color, cv2.COLOR_RGB2GRAY), None, scan_params))
+    holes = frame.depth.copy()
+    for u, v in np.rint(every.pixels[: scan_cap + 200]).astype(int):  # no depth under the strongest
+        holes[max(0, v - 3):v + 4, max(0, u - 3):u + 4] = 0.0
+    no_depth = RGBDFrame(frame.name, frame.color, holes, frame.intrinsics)
+    calls: list[int] = []
+    detect = features._detect
+
+    def counted(*a, **k):
+        calls.append(1)
+        return detect(*a, **k)
+
+    for f, params, again in ((flat, check_params, 0), (frame, scan_params, 0), (no_depth, scan_params, 1)):
+        want = extract_features(f, params)
+        det = features.detect(frame, scan_params)
+        assert 0 < det.n_best <= len(det) < n_all  # a cut: fewer keypoints described than the frame has
+        monkeypatch.setattr(features, "_detect", counted)
+        calls.clear()
+        got = extract_features(f, params, detection=det)
+        monkeypatch.setattr(features, "_detect", detect)
+        assert len(calls) == again
+        assert len(got) == len(want) > 0
+        for a, b in ((got.pixels, want.pixels), (got.points, want.points), (got.descriptors, want.descriptors),
+                     (got.scales, want.scales)):
+            assert np.array_equal(a, b)
+    with pytest.raises(ValueError, match="other detector settings"):  # ORB's detection follows max_keypoints
+        extract_features(frame, FeatureParams(kind="orb", max_keypoints=100),
+                         detection=features.detect(frame, FeatureParams(kind="orb", max_keypoints=500)))
 
 
 def test_sift_norm_and_rootsift_unit_norm(real_features):

@@ -25,13 +25,14 @@ moves the depth off its colour pixels and the sweep peaks at 1.
 from __future__ import annotations
 
 import logging
+import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 
 import numpy as np
 
-from gscan.features import FeatureParams, Features, extract_features
+from gscan.features import Detection, FeatureParams, Features, detect, extract_features
 from gscan.io.align import align_depth_to_color
 from gscan.io.camera import Intrinsics, RGBDFrame, lift_keypoints
 from gscan.registration.dense import DenseGeometry
@@ -77,10 +78,11 @@ class FocalCheck:
         return replace(given, fx=given.fx * self.scale, fy=given.fy * self.scale)
 
 
-def _keypoints(frame: RGBDFrame, fparams: FeatureParams) -> Features:
-    """Frame's keypoints and descriptors before lifting (pixels, descriptors; points meaningless)."""
+def _keypoints(frame: RGBDFrame, fparams: FeatureParams, detection: Detection | None) -> Features:
+    """Frame's keypoints and descriptors before lifting (pixels, descriptors; points meaningless), from
+    `detection` when given (the same colour image)."""
     flat = RGBDFrame(frame.name, frame.color, np.ones_like(frame.depth), frame.intrinsics)
-    return extract_features(flat, replace(fparams, lift_window=0))
+    return extract_features(flat, replace(fparams, lift_window=0), detection=detection)
 
 
 def _geometry(f: RGBDFrame, kp: Features, s: float, fparams: FeatureParams) -> tuple[Features, DenseGeometry]:
@@ -105,19 +107,26 @@ def _starts(n: int, span: int, count: int) -> list[int]:
 
 def check_colour_focal(read: Callable[[int], RGBDFrame | None], n: int, params: RegisterParams,
                        fparams: FeatureParams, check: FocalCheckParams = FocalCheckParams(),
-                       workers: int = 1) -> FocalCheck | None:
+                       workers: int = 1, detections: dict[str, Detection] | None = None) -> FocalCheck | None:
     """The check of the module docstring on a capture of n frames, frame i read by read(i) (None: unusable), its
     depth registered to its colour as given. Pairs (i, i + step) for each of `check.steps` (neighbours move
     little, the next ones more) from `check.groups` first frames i spread over the capture, every other group
     only while s = 1 and its neighbours are tried (registered depth peaks sharply at 1); each group's frames are
     read when its pairs are registered and let go after (a few frames in memory at a time; keypoints, at most
-    `check.keypoints` a frame, are kept); `workers` groups at a time, on threads. None when fewer than 4 pairs
-    register at any scale tried."""
+    `check.keypoints` a frame, are kept); `workers` groups at a time, on threads. detections: when given (SIFT
+    kinds), each frame read is detected as `extract_features(frame, fparams)` detects it (`detect`), its
+    keypoints taken from that, and the detection left there by frame name, for the scan's features stage to
+    start from (one detection of those frames, not two). None when fewer than 4 pairs register at any scale
+    tried."""
     steps = check.steps
     starts = _starts(n, max(steps), check.groups)
     pairs = [(i, i + step) for i in starts for step in steps]
+    keep_detections = detections is not None and fparams.kind != "orb"
+    scan_fparams = fparams
     fparams = replace(fparams, max_keypoints=min(fparams.max_keypoints, check.keypoints))
     kps: dict[int, Features] = {}
+    claimed: dict[int, threading.Event] = {}  # frames a thread is detecting or has detected (set when done)
+    claim_lock = threading.Lock()
     unusable: set[int] = set()
     per_pair: dict[float, np.ndarray] = {}  # scale -> each pair's share of textured tiles lining up (0: failed,
     ran: dict[float, np.ndarray] = {}  # NaN: not tried); scale -> the pairs whose colour check ran
@@ -128,6 +137,23 @@ def check_colour_focal(read: Callable[[int], RGBDFrame | None], n: int, params: 
         for s in scales:
             per_pair.setdefault(s, np.full(len(pairs), np.nan))
             ran.setdefault(s, np.zeros(len(pairs), bool))
+        def keypoints(j: int, f: RGBDFrame) -> None:
+            """kps[j], detected once: a frame two groups hold is detected by the first thread to reach it."""
+            with claim_lock:
+                done = claimed.get(j)
+                if done is None:
+                    claimed[j] = threading.Event()
+            if done is not None:
+                done.wait()
+                return
+            try:
+                det = detect(f, scan_fparams) if keep_detections else None
+                kps[j] = _keypoints(f, fparams, det)
+                if det is not None and detections is not None:
+                    detections[f.name] = det
+            finally:
+                claimed[j].set()
+
         def group(i: int) -> None:
             todo = [(k, s) for s in scales for k, (a, _) in enumerate(pairs) if a == i and np.isnan(per_pair[s][k])]
             if not todo:
@@ -139,8 +165,7 @@ def check_colour_focal(read: Callable[[int], RGBDFrame | None], n: int, params: 
                     unusable.add(j)
                     continue
                 frames[j] = f
-                if j not in kps:
-                    kps[j] = _keypoints(f, fparams)
+                keypoints(j, f)
             for s in sorted({s for _, s in todo}):
                 geo = {j: _geometry(f, kps[j], s, fparams) for j, f in frames.items()}
                 for k, s_k in todo:

@@ -48,7 +48,14 @@ from typing import TYPE_CHECKING, TypeVar
 import numpy as np
 
 from gscan.errors import InputError, OutputExists
-from gscan.features import OBJECT_FEATURES, FeatureParams, Features, extract_features, extract_features_in_mask
+from gscan.features import (
+    OBJECT_FEATURES,
+    Detection,
+    FeatureParams,
+    Features,
+    extract_features,
+    extract_features_in_mask,
+)
 from gscan.geometry.plane import Plane
 from gscan.geometry.transforms import transform_points
 from gscan.io.camera import Intrinsics, RGBDFrame, backproject
@@ -319,12 +326,13 @@ def _create_output(opts: ScanOptions, meta: dict) -> tuple[TemplateDB, Output | 
         raise
 
 
-def _check_camera(seq: Sequence | RecordingSequence, opts: ScanOptions
+def _check_camera(seq: Sequence | RecordingSequence, opts: ScanOptions, detections: dict[str, Detection]
                   ) -> tuple[Sequence | RecordingSequence, dict | None]:
     """A folder capture read with one set of intrinsics (no --depth-intrinsics, one K for every frame): the
     colour camera's focal length checked against the data (gscan.scan.calibration). When the texture rejects
     the given one, the capture is read again with the given intrinsics as the depth camera's and the focal
-    length the data give as the colour camera's. Returns (the sequence to scan, the check's report or None)."""
+    length the data give as the colour camera's. Returns (the sequence to scan, the check's report or None);
+    the frames the check detected keypoints in are left in `detections` for the features stage."""
     from gscan.io import open_sequence
     from gscan.io.sequence import Sequence
     from gscan.scan.calibration import check_colour_focal
@@ -341,7 +349,7 @@ def _check_camera(seq: Sequence | RecordingSequence, opts: ScanOptions
             return None
 
     check = check_colour_focal(read, len(seq.names), _register_params(cfg, STATIC_OBJECT), _feature_params(cfg),
-                               workers=WORKERS)
+                               workers=WORKERS, detections=detections)
     if check is None:
         return seq, None
     K = seq.intrinsics
@@ -394,8 +402,9 @@ def run_scan(opts: ScanOptions, progress: Progress | None = None) -> ScanResult:
         fingerprints = seq.fingerprints()
         if resumed:
             db, target = _open_resumed(opts, seq, fingerprints)
+        detections: dict[str, Detection] = {}
         with timer.stage("camera", total=1) as advance:  # (after the checks that refuse the input in one line)
-            seq, camera = _check_camera(seq, opts)
+            seq, camera = _check_camera(seq, opts, detections)
             advance(1)
         store = FrameStore(opts.output)
         seg = _segment_params(opts.config)
@@ -431,7 +440,7 @@ def run_scan(opts: ScanOptions, progress: Progress | None = None) -> ScanResult:
         created = file_identity(opts.output)  # a new output in place: only this file is removed on failure
         if resumed:  # only once the input is known to hold frames: a complete database stays complete
             db.mark_partial()
-        data = _FrameData(frames, store, db, mode, masks_given, opts.config)
+        data = _FrameData(frames, store, db, mode, masks_given, opts.config, detections)
         result = _scan_frames(data, opts, db, resumed, timer, problems, selection)
         result.camera = camera
     except BaseException as e:
@@ -488,12 +497,14 @@ class _RegData:
 class _FrameData:
     """The kept frames' images, masks and registration data, loaded on demand: images from the store, keypoints
     from the database. Registration data of the last `REG_CACHE` frames used is kept (the sequential pairs and the
-    workers' frames), so memory does not grow with the capture. Thread-safe."""
+    workers' frames), so memory does not grow with the capture. detections: frames' whole-frame detections made
+    before the features stage (the camera check's), by name, each taken by that stage. Thread-safe."""
 
     def __init__(self, frames: list[_Frame], store: FrameStore, db: TemplateDB, mode: str, masks_given: bool,
-                 cfg: ScanConfig):
+                 cfg: ScanConfig, detections: dict[str, Detection] | None = None):
         self.frames, self.store, self.db, self.mode, self.masks_given, self.cfg = (frames, store, db, mode,
                                                                                     masks_given, cfg)
+        self.detections = {} if detections is None else detections
         self._cache: OrderedDict[int, _RegData] = OrderedDict()
         self._lock = threading.Lock()
 
@@ -768,7 +779,8 @@ def _extract(data: _FrameData, db: TemplateDB, resumed: bool, advance: Callable[
         if name in stored and db_poses.get(name, 1) is None:
             return None, None  # stored by the interrupted run, still in the camera frame
         frame = data.frame(k)
-        return frame, extract_features(frame, fparams, mask=data.object_mask(k))
+        return frame, extract_features(frame, fparams, mask=data.object_mask(k),
+                                       detection=data.detections.pop(name, None))
 
     # OpenCV releases the GIL: two threads use both cores; results are per frame and written in input order,
     # so the output does not depend on the scheduling
@@ -786,6 +798,7 @@ def _extract(data: _FrameData, db: TemplateDB, resumed: bool, advance: Callable[
                 if (k + 1) % COMMIT_ROWS == 0:
                     db.commit()
             advance(1)
+    data.detections.clear()  # frames the scan does not keep
 
 
 def _capture_noise(data: _FrameData, params: RegisterParams) -> tuple[DepthNoise, DepthNoise]:
