@@ -131,29 +131,29 @@ def check_colour_focal(read: Callable[[int], RGBDFrame | None], n: int, params: 
     per_pair: dict[float, np.ndarray] = {}  # scale -> each pair's share of textured tiles lining up (0: failed,
     ran: dict[float, np.ndarray] = {}  # NaN: not tried); scale -> the pairs whose colour check ran
 
+    def keypoints(j: int, f: RGBDFrame) -> None:
+        """kps[j], detected once: a frame two groups hold is detected by the first thread to reach it."""
+        with claim_lock:
+            done = claimed.get(j)
+            if done is None:
+                claimed[j] = threading.Event()
+        if done is not None:
+            done.wait()
+            return
+        try:
+            det = detect(f, scan_fparams) if keep_detections else None
+            kps[j] = _keypoints(f, fparams, det)
+            if det is not None and detections is not None:
+                detections[f.name] = det
+        finally:
+            claimed[j].set()
+
     def evaluate(scales: tuple[float, ...] | list[float], groups: list[int]) -> None:
         """The pairs of `groups` registered at each scale with the scan's rules, and their texture compared under
         that pose (a pose re-solved from one scale's matches is not precise enough: the peak moves by 5 %)."""
         for s in scales:
             per_pair.setdefault(s, np.full(len(pairs), np.nan))
             ran.setdefault(s, np.zeros(len(pairs), bool))
-        def keypoints(j: int, f: RGBDFrame) -> None:
-            """kps[j], detected once: a frame two groups hold is detected by the first thread to reach it."""
-            with claim_lock:
-                done = claimed.get(j)
-                if done is None:
-                    claimed[j] = threading.Event()
-            if done is not None:
-                done.wait()
-                return
-            try:
-                det = detect(f, scan_fparams) if keep_detections else None
-                kps[j] = _keypoints(f, fparams, det)
-                if det is not None and detections is not None:
-                    detections[f.name] = det
-            finally:
-                claimed[j].set()
-
         def group(i: int) -> None:
             todo = [(k, s) for s in scales for k, (a, _) in enumerate(pairs) if a == i and np.isnan(per_pair[s][k])]
             if not todo:
