@@ -159,3 +159,27 @@ def test_wide_view_spacing_with_symmetric_print(tmp_path, meshes_dir):
     # trajectory within 5 mm of the truth (it was 87 mm before weak edges were made doubtful), no frame wrong
     assert n == res.registered and ate <= 0.005, f"ATE {ate * 1000:.2f} mm"
     assert not _wrong_frames(tmp_path / "wide.gscan", cap), "a frame registered at a wrong pose"
+
+
+def test_unusable_frames_are_named_in_input_order(tmp_path, monkeypatch):
+    """The colour camera's check reads frames on two threads, so unreadable frames fail in any order. With every
+    colour image truncated, the one-line error names the first frame in input order, whatever order they failed
+    in (here the check reads them last to first)."""
+    import gscan.scan.pipeline as pipeline
+    from gscan.demo import SAMPLES
+    from gscan.errors import InputError
+
+    cap = tmp_path / "cap"
+    shutil.copytree(SAMPLES / "capture", cap)
+    for p in sorted((cap / "rgb").glob("*.jpg")):
+        p.write_bytes(p.read_bytes()[: p.stat().st_size // 2])  # the header reads, the image does not decode
+
+    def backwards(seq, opts, detections):
+        for name in reversed(seq.names):
+            with pytest.raises(InputError):
+                seq[name]
+        return seq, None
+
+    monkeypatch.setattr(pipeline, "_check_camera", backwards)
+    with pytest.raises(InputError, match=r"no usable frame \(30 unusable\); first: 000000: .*000000\.jpg"):
+        scan(cap, tmp_path / "out.gscan")

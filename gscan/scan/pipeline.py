@@ -413,7 +413,10 @@ def run_scan(opts: ScanOptions, progress: Progress | None = None) -> ScanResult:
             advance(1)
         with timer.stage("load", total=len(seq)) as advance:
             frames, failed, selection = _load(seq, mode, masks_given, opts.config, seg, store, advance)
-        problems = dict(seq.problems)
+        # in input order (the camera check reads frames on two threads): the listing problems first, as found,
+        # then unreadable frames in the order of their names
+        index = {name: i for i, name in enumerate(seq.names)}
+        problems = dict(sorted(seq.problems.items(), key=lambda kv: index.get(kv[0], -1)))
         if not frames:  # one line (the CLI contract), no per-frame warnings before it
             first = next(iter(problems.items()), ("?", "?"))
             raise InputError(opts.input_dir,
