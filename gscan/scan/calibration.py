@@ -13,9 +13,12 @@ given one (same principal point, no baseline: a baseline of a few centimetres sh
 is absorbed by the poses and the colour check's shift search). For each s, pairs of frames one and two apart
 are registered with the scan's own rules, and each pair's share of textured tiles lining up is averaged over
 the pairs (a pair that fails to register counts 0):
-- s = 1 and its neighbours in `SCALES` first: when s = 1 lines up the most, the given intrinsics stand;
-- else a coarse sweep over `SCALES`, then the vertex of a parabola through the best value and its neighbours (the
-  estimate: single evaluations are noisy to about 0.01 near the peak);
+- s = 1 and its neighbours in `SCALES` first, on every other group: when s = 1 lines up the most, the given
+  intrinsics stand;
+- else a walk over `SCALES` on those groups, away from 1 towards the better neighbour, until two scales in a row
+  line up less than the best so far (registered texture has one peak; the far side of 1 lines up less than 1);
+  then the best scale, its neighbours and s = 1 on every group, and the vertex of the parabola through the best
+  value and its neighbours (the estimate: single evaluations are noisy to about 0.01 near the peak);
 - that s is used when it lines up more tiles than s = 1 in significantly more pairs than not (a sign test at
   level `alpha`) and by at least `min_gain` on average; otherwise the given intrinsics stand.
 
@@ -62,7 +65,8 @@ class FocalCheckParams:
 @dataclass(frozen=True)
 class FocalCheck:
     """scale: the colour camera's focal length over the given one that lines the texture up best (1.0 when
-    the given intrinsics stand); agreement: mean share of textured tiles lining up, per scale tried;
+    the given intrinsics stand); agreement: mean share of textured tiles lining up, per scale tried (over the
+    pairs tried at that scale);
     pairs: frame pairs compared; better_pairs: pairs lining up more tiles at `scale` than at 1; p_value:
     the sign test's; significant: the data reject the given intrinsics for the colour camera."""
 
@@ -111,12 +115,12 @@ def check_colour_focal(read: Callable[[int], RGBDFrame | None], n: int, params: 
     """The check of the module docstring on a capture of n frames, frame i read by read(i) (None: unusable), its
     depth registered to its colour as given. Pairs (i, i + step) for each of `check.steps` (neighbours move
     little, the next ones more) from `check.groups` first frames i spread over the capture, every other group
-    only while s = 1 and its neighbours are tried (registered depth peaks sharply at 1); each group's frames are
-    read when its pairs are registered and let go after (a few frames in memory at a time; keypoints, at most
-    `check.keypoints` a frame, are kept); `workers` groups at a time, on threads. detections: when given (SIFT
-    kinds), each frame read is detected as `extract_features(frame, fparams)` detects it (`detect`), its
-    keypoints taken from that, and the detection left there by frame name, for the scan's features stage to
-    start from (one detection of those frames, not two). None when fewer than 4 pairs register at any scale
+    only while s = 1 and its neighbours are tried (registered depth peaks sharply at 1) and while the walk runs;
+    each group's frames are read when its pairs are registered and let go after (a few frames in memory at a time;
+    keypoints, at most `check.keypoints` a frame, are kept); `workers` groups at a time, on threads. detections:
+    when given (SIFT kinds), each frame read is detected as `extract_features(frame, fparams)` detects it
+    (`detect`), its keypoints taken from that, and the detection left there by frame name, for the scan's features
+    stage to start from (one detection of those frames, not two). None when fewer than 4 pairs register at any scale
     tried."""
     steps = check.steps
     starts = _starts(n, max(steps), check.groups)
@@ -184,22 +188,39 @@ def check_colour_focal(read: Callable[[int], RGBDFrame | None], n: int, params: 
             list(pool.map(group, groups))
 
     def means(tried: np.ndarray) -> tuple[np.ndarray, dict[float, float]]:
-        """The live pairs (among `tried`, registered at some scale) and each scale's mean share over them."""
+        """The live pairs (among `tried`, registered at some scale) and each scale's mean share over those of
+        them tried at that scale."""
         live = tried & np.logical_or.reduce(list(ran.values()))
-        return live, {s: float(v[live].mean()) if live.any() else 0.0 for s, v in per_pair.items()}
+        out = {}
+        for s, v in per_pair.items():
+            at = live & ~np.isnan(v)
+            out[s] = float(v[at].mean()) if at.any() else 0.0
+        return live, out
 
     if not pairs:
         return None
-    near = SCALES[SCALES.index(1.0) - 1:SCALES.index(1.0) + 2]
-    evaluate(near, starts[::2])
-    live, mean = means(~np.isnan(per_pair[1.0]))
+    one = SCALES.index(1.0)
+    half = starts[::2]
+    evaluate(SCALES[one - 1:one + 2], half)
+    in_half = ~np.isnan(per_pair[1.0])
+    live, mean = means(in_half)
     if live.sum() >= 4 and mean[1.0] >= max(mean.values()):  # the texture peaks at the given focal length
         return FocalCheck(1.0, dict(sorted(mean.items())), int(live.sum()), 0, 1.0, False)
-    evaluate(SCALES, starts)
+    step = 1 if mean[SCALES[one + 1]] > mean[SCALES[one - 1]] else -1  # towards the better neighbour
+    walked = [one + step]
+
+    def best_walked() -> int:
+        return max(walked, key=lambda i: (mean[SCALES[i]], -abs(i - one)))  # ties: the nearer to 1
+
+    while abs(walked[-1] - best_walked()) < 2 and 0 <= walked[-1] + step < len(SCALES):
+        walked.append(walked[-1] + step)
+        evaluate([SCALES[walked[-1]]], half)
+        live, mean = means(in_half)
+    k = best_walked()
+    evaluate(sorted({1.0, *SCALES[max(0, k - 1):k + 2]}), starts)
     live, mean = means(np.ones(len(pairs), bool))
     if live.sum() < 4:
         return None
-    k = int(np.argmax([mean[s] for s in SCALES]))
     best = SCALES[k]
     if 0 < k < len(SCALES) - 1:  # the vertex of the parabola through the best and its neighbours (less noisy)
         x = np.array(SCALES[k - 1:k + 2])
