@@ -2,8 +2,10 @@
 its colour keeps its intrinsics; one whose colour camera has another focal length gets that one back."""
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from gscan.io import open_sequence
@@ -82,3 +84,19 @@ def test_the_scan_detects_each_frame_once(tmp_path, box, monkeypatch):
     res = scan(path, tmp_path / "cap.gscan")
     assert res.camera is not None and res.camera["corrected"], res.camera
     assert len(whole) == 8 and res.registered == 8, (len(whole), res.registered)
+
+
+def test_a_frame_that_cannot_be_detected_raises_its_error_in_every_thread(tmp_path, box):
+    """Two groups share a frame whose colour image SIFT refuses: the thread that detects it raises the error, and
+    so does the thread that waited for it (not a missing-keypoints KeyError), whichever raises first."""
+    seq = open_sequence(C.two_camera_capture(box, tmp_path / "bad", colour_scale=1.0, n_views=5).path)
+    names = seq.names
+
+    def read(i):
+        f = seq[names[i]]
+        if i == 2:  # groups (0, 1, 2) and (2, 3, 4) share it
+            f = replace(f, color=f.color.astype(np.float32))
+        return f
+
+    with pytest.raises(ValueError, match="uint8"):
+        check_colour_focal(read, len(names), PARAMS, FEATURES, workers=2, detections={})

@@ -131,24 +131,31 @@ def check_colour_focal(read: Callable[[int], RGBDFrame | None], n: int, params: 
     kps: dict[int, Features] = {}
     claimed: dict[int, threading.Event] = {}  # frames a thread is detecting or has detected (set when done)
     claim_lock = threading.Lock()
+    failed: dict[int, Exception] = {}  # frames whose detection raised, with its error
     unusable: set[int] = set()
     per_pair: dict[float, np.ndarray] = {}  # scale -> each pair's share of textured tiles lining up (0: failed,
     ran: dict[float, np.ndarray] = {}  # NaN: not tried); scale -> the pairs whose colour check ran
 
     def keypoints(j: int, f: RGBDFrame) -> None:
-        """kps[j], detected once: a frame two groups hold is detected by the first thread to reach it."""
+        """kps[j], detected once: a frame two groups hold is detected by the first thread to reach it (a thread
+        waiting for it raises the error the detection raised)."""
         with claim_lock:
             done = claimed.get(j)
             if done is None:
                 claimed[j] = threading.Event()
         if done is not None:
             done.wait()
+            if j in failed:
+                raise failed[j]
             return
         try:
             det = detect(f, scan_fparams) if keep_detections else None
             kps[j] = _keypoints(f, fparams, det)
             if det is not None and detections is not None:
                 detections[f.name] = det
+        except Exception as e:
+            failed[j] = e
+            raise
         finally:
             claimed[j].set()
 
