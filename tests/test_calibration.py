@@ -50,6 +50,16 @@ def test_a_colour_camera_of_another_focal_length_is_found(tmp_path, box, scale):
     assert got.agreement[got.scale] > got.agreement[1.0] + 0.2 and got.p_value < 0.05, got
 
 
+def test_the_peak_is_sought_on_every_group_when_half_of_them_say_nothing(tmp_path, box):
+    """The frames of every other group unreadable (their pairs never register): the check seeks the texture's
+    peak on the other groups, and finds a colour camera of 1.12 times the focal length there."""
+    seq = open_sequence(C.two_camera_capture(box, tmp_path / "half", colour_scale=1.12, n_views=12).path)
+    names = seq.names
+    gone = {0, 2, 5, 7}  # the first frames of groups 0, 2, 5 and 7 (the check's first half) and of the pairs on them
+    got = check_colour_focal(lambda i: None if i in gone else seq[names[i]], len(names), PARAMS, FEATURES)
+    assert got is not None and got.significant and abs(got.scale / 1.12 - 1) < 0.02, got
+
+
 def test_too_few_frames_say_nothing(tmp_path, box):
     """Three frames make two pairs at most: no verdict."""
     assert check(C.two_camera_capture(box, tmp_path / "few", colour_scale=0.9, n_views=8).path, n=3) is None

@@ -13,8 +13,8 @@ given one (same principal point, no baseline: a baseline of a few centimetres sh
 is absorbed by the poses and the colour check's shift search). For each s, pairs of frames one and two apart
 are registered with the scan's own rules, and each pair's share of textured tiles lining up is averaged over
 the pairs (a pair that fails to register counts 0):
-- s = 1 and its neighbours in `SCALES` first, on every other group: when s = 1 lines up the most, the given
-  intrinsics stand;
+- s = 1 and its neighbours in `SCALES` first, on every other group (on all when those register fewer than 4
+  pairs): when s = 1 lines up the most, the given intrinsics stand;
 - else a walk over `SCALES` on those groups, away from 1 towards the better neighbour, until two scales in a row
   line up less than the best so far (registered texture has one peak; the far side of 1 lines up less than 1);
   then the best scale, its neighbours and s = 1 on every group, and the vertex of the parabola through the best
@@ -207,12 +207,17 @@ def check_colour_focal(read: Callable[[int], RGBDFrame | None], n: int, params: 
     if not pairs:
         return None
     one = SCALES.index(1.0)
-    half = starts[::2]
-    evaluate(SCALES[one - 1:one + 2], half)
-    in_half = ~np.isnan(per_pair[1.0])
-    live, mean = means(in_half)
+    near = SCALES[one - 1:one + 2]
+    walk = starts[::2]  # the groups the texture's peak is sought on
+    evaluate(near, walk)
+    live, mean = means(~np.isnan(per_pair[1.0]))
+    if live.sum() < 4:  # too few pairs on half the groups to tell where the texture peaks: every group
+        walk = starts
+        evaluate(near, walk)
+        live, mean = means(~np.isnan(per_pair[1.0]))
     if live.sum() >= 4 and mean[1.0] >= max(mean.values()):  # the texture peaks at the given focal length
         return FocalCheck(1.0, dict(sorted(mean.items())), int(live.sum()), 0, 1.0, False)
+    tried = ~np.isnan(per_pair[1.0])
     step = 1 if mean[SCALES[one + 1]] > mean[SCALES[one - 1]] else -1  # towards the better neighbour
     walked = [one + step]
 
@@ -221,8 +226,8 @@ def check_colour_focal(read: Callable[[int], RGBDFrame | None], n: int, params: 
 
     while abs(walked[-1] - best_walked()) < 2 and 0 <= walked[-1] + step < len(SCALES):
         walked.append(walked[-1] + step)
-        evaluate([SCALES[walked[-1]]], half)
-        live, mean = means(in_half)
+        evaluate([SCALES[walked[-1]]], walk)
+        live, mean = means(tried)
     k = best_walked()
     evaluate(sorted({1.0, *SCALES[max(0, k - 1):k + 2]}), starts)
     live, mean = means(np.ones(len(pairs), bool))
