@@ -67,7 +67,7 @@ def test_too_few_frames_say_nothing(tmp_path, box):
 
 def test_two_threads_give_the_same_check(tmp_path, box):
     """The scan runs the check's frame groups on two threads: every figure is the one a single thread gives (the
-    whole sweep, on a capture whose colour camera differs)."""
+    walk and the vertex, on a capture whose colour camera differs)."""
     path = C.two_camera_capture(box, tmp_path / "threads", colour_scale=0.9, n_views=8).path
     one, two = check(path), check(path, workers=2)
     assert one is not None and len(one.agreement) > 3 and one == two, (one, two)

@@ -44,7 +44,7 @@ from gscan.registration.pairwise import RegisterParams, register_features
 
 log = logging.getLogger(__name__)
 
-SCALES = (0.8, 0.85, 0.9, 0.95, 1.0, 1.05, 1.1, 1.15, 1.2)  # colour focal length / given, the coarse sweep
+SCALES = (0.8, 0.85, 0.9, 0.95, 1.0, 1.05, 1.1, 1.15, 1.2)  # colour focal length / given: the grid the check walks
 
 
 @dataclass(frozen=True)
