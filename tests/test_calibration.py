@@ -51,13 +51,17 @@ def test_a_colour_camera_of_another_focal_length_is_found(tmp_path, box, scale):
 
 
 def test_the_peak_is_sought_on_every_group_when_half_of_them_say_nothing(tmp_path, box):
-    """The frames of every other group unreadable (their pairs never register): the check seeks the texture's
-    peak on the other groups, and finds a colour camera of 1.12 times the focal length there."""
-    seq = open_sequence(C.two_camera_capture(box, tmp_path / "half", colour_scale=1.12, n_views=12).path)
+    """The first frame of every other group unreadable (its two pairs never register): the walk on those groups
+    has nothing to go on, and the check finds a colour camera of 1.12 times the focal length on the others."""
+    from gscan.scan.calibration import _starts
+
+    seq = open_sequence(C.two_camera_capture(box, tmp_path / "half", colour_scale=1.12, n_views=24).path)
     names = seq.names
-    gone = {0, 2, 5, 7}  # the first frames of groups 0, 2, 5 and 7 (the check's first half) and of the pairs on them
+    starts = _starts(len(names), 2, 8)
+    gone = set(starts[::2])  # the walk's groups (every other one) lose both their pairs
+    assert not gone & {j for i in starts[1::2] for j in (i, i + 1, i + 2)}  # the other groups keep theirs
     got = check_colour_focal(lambda i: None if i in gone else seq[names[i]], len(names), PARAMS, FEATURES)
-    assert got is not None and got.significant and abs(got.scale / 1.12 - 1) < 0.02, got
+    assert got is not None and got.pairs == 8 and got.significant and abs(got.scale / 1.12 - 1) < 0.02, got
 
 
 def test_too_few_frames_say_nothing(tmp_path, box):

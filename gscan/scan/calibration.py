@@ -13,23 +13,24 @@ given one (same principal point, no baseline: a baseline of a few centimetres sh
 is absorbed by the poses and the colour check's shift search). For each s, pairs of frames one and two apart
 are registered with the scan's own rules, and each pair's share of textured tiles lining up is averaged over
 the pairs (a pair that fails to register counts 0):
-- s = 1 and its neighbours in `SCALES` first, on every other group (on all when those register fewer than 4
-  pairs): when s = 1 lines up the most, the given intrinsics stand;
+- s = 1 and its neighbours in `SCALES` first, on every other group: when s = 1 lines up the most, the given
+  intrinsics stand;
 - else a walk over `SCALES` on those groups, away from 1 towards the better neighbour, until two scales in a row
-  line up less than the best so far (registered texture has one peak; the far side of 1 lines up less than 1);
-  then the best scale, its neighbours and s = 1 on every group, and the vertex of the parabola through the best
-  value and its neighbours (the estimate: single evaluations are noisy to about 0.01 near the peak);
+  line up no more than the best so far (registered texture has one peak; the far side of 1 lines up less than 1);
+  then the best scale, its neighbours and s = 1 on every group, moving on while a neighbour lines up more there
+  (the walk's groups may say little: their pairs may fail to register), and the vertex of the parabola through
+  the best value and its neighbours (the estimate: single evaluations are noisy to about 0.01 near the peak);
 - that s is used when it lines up more tiles than s = 1 in significantly more pairs than not (a sign test at
   level `alpha`) and by at least `min_gain` on average; otherwise the given intrinsics stand.
 
 With depth registered to the colour (a rendered capture, a RealSense aligned stream), any s other than 1
-moves the depth off its colour pixels and the sweep peaks at 1.
+moves the depth off its colour pixels and the texture lines up best at 1.
 """
 from __future__ import annotations
 
 import logging
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 
@@ -208,29 +209,30 @@ def check_colour_focal(read: Callable[[int], RGBDFrame | None], n: int, params: 
         return None
     one = SCALES.index(1.0)
     near = SCALES[one - 1:one + 2]
-    walk = starts[::2]  # the groups the texture's peak is sought on
+    walk = starts[::2]  # the groups the walk seeks the texture's peak on
     evaluate(near, walk)
-    live, mean = means(~np.isnan(per_pair[1.0]))
-    if live.sum() < 4:  # too few pairs on half the groups to tell where the texture peaks: every group
-        walk = starts
-        evaluate(near, walk)
-        live, mean = means(~np.isnan(per_pair[1.0]))
+    tried = ~np.isnan(per_pair[1.0])
+    live, mean = means(tried)
     if live.sum() >= 4 and mean[1.0] >= max(mean.values()):  # the texture peaks at the given focal length
         return FocalCheck(1.0, dict(sorted(mean.items())), int(live.sum()), 0, 1.0, False)
-    tried = ~np.isnan(per_pair[1.0])
     step = 1 if mean[SCALES[one + 1]] > mean[SCALES[one - 1]] else -1  # towards the better neighbour
     walked = [one + step]
 
-    def best_walked() -> int:
-        return max(walked, key=lambda i: (mean[SCALES[i]], -abs(i - one)))  # ties: the nearer to 1
+    def best_of(indices: Iterable[int]) -> int:
+        return max(indices, key=lambda i: (mean[SCALES[i]], -abs(i - one)))  # ties: the nearer to 1
 
-    while abs(walked[-1] - best_walked()) < 2 and 0 <= walked[-1] + step < len(SCALES):
+    while abs(walked[-1] - best_of(walked)) < 2 and 0 <= walked[-1] + step < len(SCALES):
         walked.append(walked[-1] + step)
         evaluate([SCALES[walked[-1]]], walk)
         live, mean = means(tried)
-    k = best_walked()
-    evaluate(sorted({1.0, *SCALES[max(0, k - 1):k + 2]}), starts)
-    live, mean = means(np.ones(len(pairs), bool))
+    k = best_of(walked)
+    while True:  # the best and its neighbours on every group; a neighbour better there becomes the best
+        evaluate(sorted({1.0, *SCALES[max(0, k - 1):k + 2]}), starts)
+        live, mean = means(np.ones(len(pairs), bool))
+        top = best_of(range(max(0, k - 1), min(len(SCALES), k + 2)))
+        if top == k:
+            break
+        k = top
     if live.sum() < 4:
         return None
     best = SCALES[k]
