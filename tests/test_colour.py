@@ -63,3 +63,41 @@ def test_image_noise_is_estimated_from_the_image(sigma):
     rng = np.random.default_rng(3)
     ramp = np.add.outer(np.linspace(0, 60, H), np.linspace(0, 90, W))
     assert image_noise(ramp + rng.normal(0, sigma, (H, W))) == pytest.approx(sigma, rel=0.05)
+
+
+def _tile_zncc_numpy(Ia, t, tgt_texture, u, v, shifts):
+    """The correlation of `colour._tile_zncc` in plain numpy ([shifts x samples] arrays, np.add.reduceat)."""
+    order = np.argsort(t, kind="stable")
+    t, Ia, u, v = t[order], Ia[order], u[order], v[order]
+    starts = np.flatnonzero(np.r_[True, t[1:] != t[:-1]])
+    W = tgt_texture.shape[1]
+    x0, y0 = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
+    fx, fy = u - x0, v - y0
+    flat = tgt_texture.ravel()
+    at = (y0 * W + x0)[None, :] + np.array([dy * W + dx for dx, dy in shifts], dtype=np.int64)[:, None]
+    Ib = ((flat[at] * (1 - fx) + flat[at + 1] * fx) * (1 - fy) + (flat[at + W] * (1 - fx) + flat[at + W + 1] * fx) * fy)
+    n = np.diff(np.r_[starts, len(t)]).astype(np.float64)
+    sa = np.add.reduceat(Ia, starts)
+    var_a = np.add.reduceat(Ia * Ia, starts) - sa * sa / n
+    sb = np.add.reduceat(Ib, starts, axis=1)
+    var_b = np.add.reduceat(Ib * Ib, starts, axis=1) - sb * sb / n
+    cov = np.add.reduceat(Ib * Ia, starts, axis=1) - sa * sb / n
+    return cov / np.sqrt(np.maximum(var_a * var_b, 1e-12))
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_the_correlation_kernel_is_numpys_to_the_bit(seed):
+    """`_tile_zncc` (a numba kernel) gives what numpy's arrays and np.add.reduceat give, bit for bit, on tiles of
+    1 to 300 samples (numpy's pairwise sum: sequential below 8 values, blocks of 8 up to 128, halves beyond)."""
+    from gscan.registration.colour import FAR, SEARCH, _tile_zncc, texture_image
+
+    rng = np.random.default_rng(seed)
+    tex = texture_image(_texture(seed)[..., 0].astype(np.float32))
+    sizes = np.r_[1, 2, 7, 8, 9, 15, 16, 17, 127, 128, 129, 130, 200, 300, rng.integers(1, 60, 20)]
+    t = rng.permutation(np.repeat(np.arange(len(sizes)), sizes))
+    u = rng.uniform(40, W - 41, len(t))
+    v = rng.uniform(40, H - 41, len(t))
+    Ia = rng.normal(0, 20, len(t))
+    for shifts in (SEARCH, FAR):
+        got = _tile_zncc(Ia, t, len(sizes), tex, u, v, shifts)
+        assert np.array_equal(got, _tile_zncc_numpy(Ia, t, tex, u, v, shifts))

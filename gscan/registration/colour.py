@@ -23,6 +23,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from gscan.registration.colour_kernel import shifted_sums
+
 BAND_SIGMA = 4.5  # px: the blur subtracted by `texture_image` (texture finer than this is kept)
 TILE = 48  # px: the side of a tile of the source image
 MIN_TILE_SAMPLES = 16  # samples a tile needs to correlate
@@ -90,21 +92,21 @@ def _tile_zncc(Ia: np.ndarray, t: np.ndarray, n_tiles: int, tgt_texture: np.ndar
     keep one pixel inside the image at every shift. The shifts are whole pixels, so the interpolation weights
     are those of (u, v) for all of them."""
     order = np.argsort(t, kind="stable")
-    t, Ia, u, v = t[order], Ia[order], u[order], v[order]
+    t, Ia, u, v = t[order], np.ascontiguousarray(Ia[order], np.float64), u[order], v[order]
     starts = np.flatnonzero(np.r_[True, t[1:] != t[:-1]])
     W = tgt_texture.shape[1]
     x0, y0 = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
     fx, fy = u - x0, v - y0
-    flat = tgt_texture.ravel()
-    at = (y0 * W + x0)[None, :] + np.array([dy * W + dx for dx, dy in shifts], dtype=np.int64)[:, None]
-    Ib = ((flat[at] * (1 - fx) + flat[at + 1] * fx) * (1 - fy)
-          + (flat[at + W] * (1 - fx) + flat[at + W + 1] * fx) * fy)  # [S x K]
+    flat = np.ascontiguousarray(tgt_texture).ravel()
+    offsets = np.array([dy * W + dx for dx, dy in shifts], dtype=np.int64)
+    sb, sbb, sab = (np.empty((len(shifts), len(starts))) for _ in range(3))
+    shifted_sums(Ia, np.r_[starts, len(t)].astype(np.int64), flat, W, y0 * W + x0, np.asarray(fx, np.float64),
+                 np.asarray(fy, np.float64), offsets, sb, sbb, sab)
     n = np.diff(np.r_[starts, len(t)]).astype(np.float64)
     sa = np.add.reduceat(Ia, starts)
     var_a = np.add.reduceat(Ia * Ia, starts) - sa * sa / n
-    sb = np.add.reduceat(Ib, starts, axis=1)
-    var_b = np.add.reduceat(Ib * Ib, starts, axis=1) - sb * sb / n
-    cov = np.add.reduceat(Ib * Ia, starts, axis=1) - sa * sb / n
+    var_b = sbb - sb * sb / n
+    cov = sab - sa * sb / n
     return cov / np.sqrt(np.maximum(var_a * var_b, 1e-12))
 
 
