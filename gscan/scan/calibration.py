@@ -215,13 +215,14 @@ def check_colour_focal(read: Callable[[int], RGBDFrame | None], n: int, params: 
     live, mean = means(tried)
     if live.sum() >= 4 and mean[1.0] >= max(mean.values()):  # the texture peaks at the given focal length
         return FocalCheck(1.0, dict(sorted(mean.items())), int(live.sum()), 0, 1.0, False)
-    step = 1 if mean[SCALES[one + 1]] > mean[SCALES[one - 1]] else -1  # towards the better neighbour
+    # towards the better neighbour (no walk when no pair registered on the walk's groups: the step below decides)
+    step = 1 if mean[SCALES[one + 1]] > mean[SCALES[one - 1]] else -1
     walked = [one + step]
 
     def best_of(indices: Iterable[int]) -> int:
         return max(indices, key=lambda i: (mean[SCALES[i]], -abs(i - one)))  # ties: the nearer to 1
 
-    while abs(walked[-1] - best_of(walked)) < 2 and 0 <= walked[-1] + step < len(SCALES):
+    while live.any() and abs(walked[-1] - best_of(walked)) < 2 and 0 <= walked[-1] + step < len(SCALES):
         walked.append(walked[-1] + step)
         evaluate([SCALES[walked[-1]]], walk)
         live, mean = means(tried)
