@@ -100,9 +100,10 @@ def _tile_zncc(Ia: np.ndarray, t: np.ndarray, n_tiles: int, tgt_texture: np.ndar
     flat = np.ascontiguousarray(tgt_texture).ravel()
     offsets = np.array([dy * W + dx for dx, dy in shifts], dtype=np.int64)
     sb, sbb, sab = (np.empty((len(shifts), len(starts))) for _ in range(3))
-    shifted_sums(Ia, np.r_[starts, len(t)].astype(np.int64), flat, W, y0 * W + x0, np.asarray(fx, np.float64),
-                 np.asarray(fy, np.float64), offsets, sb, sbb, sab)
-    n = np.diff(np.r_[starts, len(t)]).astype(np.float64)
+    bounds = np.r_[starts, len(t)].astype(np.int64)  # tile g holds samples bounds[g]:bounds[g + 1]
+    shifted_sums(Ia, bounds, flat, W, y0 * W + x0, np.asarray(fx, np.float64), np.asarray(fy, np.float64), offsets,
+                 sb, sbb, sab)
+    n = np.diff(bounds).astype(np.float64)
     sa = np.add.reduceat(Ia, starts)
     var_a = np.add.reduceat(Ia * Ia, starts) - sa * sa / n
     var_b = sbb - sb * sb / n
