@@ -218,6 +218,37 @@ def test_support_counts_look_alike_pairs_but_inliers_stay_candidates():
     np.testing.assert_array_equal(np.sort(refined, axis=0), true4)  # (in residual order)
 
 
+@pytest.mark.parametrize("seed", range(4))
+def test_the_pool_lookup_is_a_ball_query_filtered_by_descriptors(seed):
+    """GuidedPool.near returns what a k-d tree ball query over the target points, then the descriptor filter,
+    returns, in the same order: per-point and shared radii, float32 and float64 distances, empty rows, and points
+    exactly at the radius (kept: the test is <=, exact here in binary fractions)."""
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(seed)
+    ns, nt = int(rng.integers(1, 60)), int(rng.integers(1, 80))
+    pt = np.round(rng.uniform(-1, 1, (nt, 3)) * 8) / 8  # eighths: many exact distances
+    q = np.round(rng.uniform(-1, 1, (ns, 3)) * 8) / 8
+    dist = rng.uniform(0, 1, (ns, nt)).astype(np.float32 if seed % 2 else np.float64)
+    dist[rng.uniform(size=ns) < 0.2] = 2.0  # rows with no pair under eps
+    eps = 0.7 + 1e-9  # between two float32 values: compared in dist's type, as numpy does
+    dist.flat[::7] = dist.dtype.type(eps)  # in float32, not under eps
+    tree = cKDTree(pt)
+    for tau in (0.5, np.round(rng.uniform(0.1, 1.2, ns) * 8) / 8):
+        hits = tree.query_ball_point(q, tau, return_sorted=True)
+        ii = np.repeat(np.arange(ns), [len(h) for h in hits])
+        jj = np.array([j for h in hits for j in h], np.int64)
+        ok = dist[ii, jj] < eps
+        got = GuidedPool(pt, dist, eps).near(q, tau)
+        np.testing.assert_array_equal(got[0], ii[ok])
+        np.testing.assert_array_equal(got[1], jj[ok])
+    # a 3-4-5 triangle in eighths: exactly at the radius, kept
+    edge = GuidedPool(np.array([[0.375, 0.5, 0.0]]), np.zeros((1, 1), np.float32), eps).near(np.zeros((1, 3)), 0.625)
+    assert [list(a) for a in edge] == [[0], [0]]
+    empty = GuidedPool(np.zeros((0, 3)), np.zeros((ns, 0)), eps).near(q, 0.5)
+    assert len(empty[0]) == len(empty[1]) == 0
+
+
 def test_support_check_fixes_a_rendered_pair(meshes_dir):
     """Object pixels only, a 60 deg view change of the fondant box on the wood table: GMatch's longest list is
     wrong (158 deg off), another hypothesis list has 1.5 x its support and is right. The pose choice is what is

@@ -77,6 +77,7 @@ from gscan.registration.colour import ColourAgreement
 from gscan.registration.dense import DenseGeometry, DepthAgreement, colour_agreement, depth_agreement
 from gscan.registration.dense import refine_pose as refine_with_depth
 from gscan.registration.noise import DepthNoise
+from gscan.registration.pool_kernel import near_pairs, pool_rows
 from gscan.registration.posegraph import information_from_points
 
 log = logging.getLogger(__name__)
@@ -178,32 +179,28 @@ def pose_sigma(information: np.ndarray, points: np.ndarray) -> tuple[float, floa
 
 
 class GuidedPool:
-    """Keypoint pairs with descriptor distance below `eps`, looked up near a pose (a k-d tree of the target
-    points): what guided refinement (eps = eps_f, GMatch's candidates) and the support check (a looser
-    bound: under a pose, geometry does the filtering) may use.
+    """Keypoint pairs with descriptor distance below `eps`, looked up near a pose: what guided refinement
+    (eps = eps_f, GMatch's candidates) and the support check (a looser bound: under a pose, geometry does the
+    filtering) may use. The pairs are held per source keypoint (`pool_kernel`), a few to a few hundred each.
 
     pts_t [Nt x 3] target points, dist [Ns x Nt] descriptor distances.
     """
 
     def __init__(self, pts_t: np.ndarray, dist: np.ndarray, eps: float):
-        from scipy.spatial import cKDTree
-
-        self.pts_t = np.asarray(pts_t, np.float64)
-        self.dist = dist
-        self.eps = float(eps)
-        self._tree = cKDTree(self.pts_t) if len(self.pts_t) else None
+        self.pts_t = np.ascontiguousarray(pts_t, np.float64)
+        dist = np.ascontiguousarray(dist)
+        # compared in dist's own type, as numpy compares an array with a Python float
+        self._start, self._targets = pool_rows(dist, dist.dtype.type(eps))
 
     def near(self, pts_s_in_t: np.ndarray, tau: float | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(source indices [K], target indices [K]) int64 of the pool's pairs whose source point, given in the
         target frame ([Ns x 3]), lies within tau (m; one for all or one per source point [Ns]) of the target
         point; in (source, target) order."""
-        if self._tree is None or len(pts_s_in_t) == 0:
+        q = np.ascontiguousarray(pts_s_in_t, np.float64)
+        if len(self.pts_t) == 0 or len(q) == 0:
             return np.zeros(0, np.int64), np.zeros(0, np.int64)
-        hits = self._tree.query_ball_point(pts_s_in_t, tau, return_sorted=True)
-        ii = np.repeat(np.arange(len(hits)), [len(h) for h in hits]).astype(np.int64)
-        jj = np.fromiter((j for h in hits for j in h), np.int64, count=len(ii))
-        ok = self.dist[ii, jj] < self.eps
-        return ii[ok], jj[ok]
+        tau = np.ascontiguousarray(np.broadcast_to(np.asarray(tau, np.float64), (len(q),)))
+        return near_pairs(self._start, self._targets, q, self.pts_t, tau)
 
 
 def _pairs_near(ps: np.ndarray, pt: np.ndarray, pool: GuidedPool, T: np.ndarray, gate: float, noise: DepthNoise
