@@ -888,9 +888,17 @@ def _register_edges(data: _FrameData, rparams: RegisterParams, cfg: ScanConfig, 
         return e, (_edge_evidence(e, a, b, rparams) if e.accepted and e.T_tgt_src is not None else None)
 
     def register_all(pairs: list[tuple[int, int]], kind: str, pool: ThreadPoolExecutor) -> list[Edge]:
-        """Edges of `pairs`, computed on the pool (numba and OpenCV release the GIL), stored in order."""
+        """Edges of `pairs`, computed on the pool (numba and OpenCV release the GIL) in the order of their frames
+        (a frame's registration data stays in the cache for its next edges), stored in the order given."""
+        order = sorted(range(len(pairs)), key=lambda k: pairs[k])
+        computed = zip(order, _bounded_map(pool, pair_work, [pairs[k] for k in order]), strict=True)
+        ready: dict[int, tuple[Edge, _Evidence | None] | None] = {}
         out = []
-        for (i, j), got in zip(pairs, _bounded_map(pool, pair_work, pairs), strict=True):
+        for k, (i, j) in enumerate(pairs):
+            while k not in ready:
+                m, g = next(computed)
+                ready[m] = g
+            got = ready.pop(k)
             if got is None:  # stored by the interrupted run
                 e = done[(names[i], names[j])]
                 if e.reason and e.reason.startswith(PRUNED):  # restore the registration verdict
