@@ -214,6 +214,20 @@ def test_alignment_kernel_matches_its_reference(seed, tx, ty, tz, ang, scale):
     assert np.array_equal(fast, ref)
 
 
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), scale=st.floats(0.7, 1.4), dc=st.floats(-3.0, 3.0))
+def test_alignment_kernel_between_cameras_of_one_centre_matches_its_reference(seed, scale, dc):
+    """T_color_depth = I (the colour camera's check, a colour camera of another focal length at the depth camera's
+    centre) takes the kernel's shorter branch: the reference's values to the bit."""
+    rng = np.random.default_rng(seed)
+    Kd = Intrinsics(40.0, 41.0, 15.2, 11.7, 32, 24)
+    Kc = Intrinsics(40.0 * scale, 41.0 * scale, 15.2 + dc, 11.7 - dc, 32, 24)
+    d = rng.uniform(0.2, 1.5, (24, 32)).astype(np.float32)
+    d[rng.random(d.shape) < 0.15] = 0
+    assert np.array_equal(align_depth_to_color(d, Kd, Kc, np.eye(4)), align_depth_reference(d, Kd, Kc, np.eye(4)))
+
+
 # ----------------------------------------------------------------------------------------- pairing
 
 

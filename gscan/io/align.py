@@ -32,7 +32,7 @@ _CORNERS = ((-0.5, -0.5), (0.5, -0.5), (-0.5, 0.5), (0.5, 0.5))
 
 @njit(cache=True, nogil=True)
 def _splat(depth: np.ndarray, kd: np.ndarray, R: np.ndarray, t: np.ndarray, kc: np.ndarray, out: np.ndarray,
-           margin: float, max_px: int) -> None:  # pragma: no cover - compiled
+           margin: float, max_px: int, same: bool) -> None:  # pragma: no cover - compiled
     Hd, Wd = depth.shape
     Hc, Wc = out.shape
     fxd, fyd, cxd, cyd = kd[0], kd[1], kd[2], kd[3]
@@ -45,32 +45,40 @@ def _splat(depth: np.ndarray, kd: np.ndarray, R: np.ndarray, t: np.ndarray, kc: 
             z = np.float64(depth[v, u])
             if not (z > 0.0) or not math.isfinite(z):
                 continue
-            x = (u - cxd) / fxd * z
-            y = (v - cyd) / fyd * z
-            zc = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z + t[2]
-            if not (zc > 0.0):
-                continue
-            umin, umax, vmin, vmax = np.inf, -np.inf, np.inf, -np.inf
-            ok = True
-            for k in range(4):
-                du = -0.5 if k % 2 == 0 else 0.5
-                dv = -0.5 if k < 2 else 0.5
-                xk = (u + du - cxd) / fxd * z
-                yk = (v + dv - cyd) / fyd * z
-                X = R[0, 0] * xk + R[0, 1] * yk + R[0, 2] * z + t[0]
-                Y = R[1, 0] * xk + R[1, 1] * yk + R[1, 2] * z + t[1]
-                Z = R[2, 0] * xk + R[2, 1] * yk + R[2, 2] * z + t[2]
-                if not (Z > 0.0):
-                    ok = False
-                    break
-                pu = fxc * X / Z + cxc
-                pv = fyc * Y / Z + cyc
-                umin = min(umin, pu)
-                umax = max(umax, pu)
-                vmin = min(vmin, pv)
-                vmax = max(vmax, pv)
-            if not ok:
-                continue
+            if same:  # R = I, t = 0: the general branch's values, a corner's u or v alone deciding each
+                zc = z
+                pu0 = fxc * ((u - 0.5 - cxd) / fxd * z) / z + cxc
+                pu1 = fxc * ((u + 0.5 - cxd) / fxd * z) / z + cxc
+                pv0 = fyc * ((v - 0.5 - cyd) / fyd * z) / z + cyc
+                pv1 = fyc * ((v + 0.5 - cyd) / fyd * z) / z + cyc
+                umin, umax, vmin, vmax = min(pu0, pu1), max(pu0, pu1), min(pv0, pv1), max(pv0, pv1)
+            else:
+                x = (u - cxd) / fxd * z
+                y = (v - cyd) / fyd * z
+                zc = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z + t[2]
+                if not (zc > 0.0):
+                    continue
+                umin, umax, vmin, vmax = np.inf, -np.inf, np.inf, -np.inf
+                ok = True
+                for k in range(4):
+                    du = -0.5 if k % 2 == 0 else 0.5
+                    dv = -0.5 if k < 2 else 0.5
+                    xk = (u + du - cxd) / fxd * z
+                    yk = (v + dv - cyd) / fyd * z
+                    X = R[0, 0] * xk + R[0, 1] * yk + R[0, 2] * z + t[0]
+                    Y = R[1, 0] * xk + R[1, 1] * yk + R[1, 2] * z + t[1]
+                    Z = R[2, 0] * xk + R[2, 1] * yk + R[2, 2] * z + t[2]
+                    if not (Z > 0.0):
+                        ok = False
+                        break
+                    pu = fxc * X / Z + cxc
+                    pv = fyc * Y / Z + cyc
+                    umin = min(umin, pu)
+                    umax = max(umax, pu)
+                    vmin = min(vmin, pv)
+                    vmax = max(vmax, pv)
+                if not ok:
+                    continue
             x0 = math.ceil(umin - margin)
             x1 = math.floor(umax + margin)
             y0 = math.ceil(vmin - margin)
@@ -105,7 +113,8 @@ def align_depth_to_color(depth: np.ndarray, depth_intr: Intrinsics, color_intr: 
     T = np.asarray(T_color_depth, dtype=np.float64)
     out = np.empty((color_intr.height, color_intr.width), dtype=np.float32)
     _splat(np.ascontiguousarray(depth, dtype=np.float32), _params(depth_intr), np.ascontiguousarray(T[:3, :3]),
-           np.ascontiguousarray(T[:3, 3]), _params(color_intr), out, MARGIN_PX, MAX_FOOTPRINT_PX)
+           np.ascontiguousarray(T[:3, 3]), _params(color_intr), out, MARGIN_PX, MAX_FOOTPRINT_PX,
+           bool(np.array_equal(T, np.eye(4))))
     return out
 
 
