@@ -218,11 +218,12 @@ def test_support_counts_look_alike_pairs_but_inliers_stay_candidates():
     np.testing.assert_array_equal(np.sort(refined, axis=0), true4)  # (in residual order)
 
 
+@pytest.mark.parametrize("lookup", ["rows", "tree", "auto"])
 @pytest.mark.parametrize("seed", range(4))
-def test_the_pool_lookup_is_a_ball_query_filtered_by_descriptors(seed):
-    """GuidedPool.near returns what a k-d tree ball query over the target points, then the descriptor filter,
-    returns, in the same order: per-point and shared radii, float32 and float64 distances, empty rows, and points
-    exactly at the radius (kept: the test is <=, exact here in binary fractions)."""
+def test_the_pool_lookup_is_a_ball_query_filtered_by_descriptors(seed, lookup):
+    """GuidedPool.near, by either lookup, returns what a k-d tree ball query over the target points, then the
+    descriptor filter, returns, in the same order: per-point and shared radii, float32 and float64 distances, empty
+    rows, and points exactly at the radius (kept: the test is <=, exact here in binary fractions)."""
     from scipy.spatial import cKDTree
 
     rng = np.random.default_rng(seed)
@@ -239,13 +240,14 @@ def test_the_pool_lookup_is_a_ball_query_filtered_by_descriptors(seed):
         ii = np.repeat(np.arange(ns), [len(h) for h in hits])
         jj = np.array([j for h in hits for j in h], np.int64)
         ok = dist[ii, jj] < eps
-        got = GuidedPool(pt, dist, eps).near(q, tau)
+        got = GuidedPool(pt, dist, eps, lookup).near(q, tau)
         np.testing.assert_array_equal(got[0], ii[ok])
         np.testing.assert_array_equal(got[1], jj[ok])
     # a 3-4-5 triangle in eighths: exactly at the radius, kept
-    edge = GuidedPool(np.array([[0.375, 0.5, 0.0]]), np.zeros((1, 1), np.float32), eps).near(np.zeros((1, 3)), 0.625)
+    edge = GuidedPool(np.array([[0.375, 0.5, 0.0]]), np.zeros((1, 1), np.float32), eps, lookup).near(np.zeros((1, 3)),
+                                                                                                     0.625)
     assert [list(a) for a in edge] == [[0], [0]]
-    empty = GuidedPool(np.zeros((0, 3)), np.zeros((ns, 0)), eps).near(q, 0.5)
+    empty = GuidedPool(np.zeros((0, 3)), np.zeros((ns, 0)), eps, lookup).near(q, 0.5)
     assert len(empty[0]) == len(empty[1]) == 0
 
 

@@ -60,6 +60,7 @@ shrinks over `refine_gates`. A round that keeps fewer pairs than the list stops 
 """
 from __future__ import annotations
 
+import itertools
 import logging
 import time
 from dataclasses import dataclass, field
@@ -178,19 +179,36 @@ def pose_sigma(information: np.ndarray, points: np.ndarray) -> tuple[float, floa
     return float(np.degrees(np.sqrt(np.linalg.eigvalsh(C[:3, :3]).max()))), float(np.sqrt(var))
 
 
+ROWS_MAX_PER_SOURCE = 300  # pool pairs per source keypoint up to which the pool is looked up by rows
+
+
 class GuidedPool:
     """Keypoint pairs with descriptor distance below `eps`, looked up near a pose: what guided refinement
     (eps = eps_f, GMatch's candidates) and the support check (a looser bound: under a pose, geometry does the
-    filtering) may use. The pairs are held per source keypoint (`pool_kernel`), a few to a few hundred each.
+    filtering) may use.
+
+    Two lookups give the same pairs in the same order: by rows (`pool_kernel`: each source keypoint's pairs,
+    checked one by one; it costs the pool's size a lookup and Ns x Nt to build) where the pool is sparse, as on
+    real frames (a few to a few hundred pairs a keypoint), and a k-d tree of the target points (a ball query, then
+    the descriptor filter; it costs about Ns a lookup) where look-alike texture makes the pool dense. `lookup`:
+    "auto" (by the pool's density, estimated on every 8th row), "rows" or "tree".
 
     pts_t [Nt x 3] target points, dist [Ns x Nt] descriptor distances.
     """
 
-    def __init__(self, pts_t: np.ndarray, dist: np.ndarray, eps: float):
+    def __init__(self, pts_t: np.ndarray, dist: np.ndarray, eps: float, lookup: str = "auto"):
         self.pts_t = np.ascontiguousarray(pts_t, np.float64)
-        dist = np.ascontiguousarray(dist)
-        # compared in dist's own type, as numpy compares an array with a Python float
-        self._start, self._targets = pool_rows(dist, dist.dtype.type(eps))
+        self.dist = np.ascontiguousarray(dist)
+        self.eps = self.dist.dtype.type(eps)  # compared in dist's own type, as numpy compares with a Python float
+        if lookup == "auto":
+            some = self.dist[::8] < self.eps
+            lookup = "rows" if np.count_nonzero(some) <= ROWS_MAX_PER_SOURCE * len(some) else "tree"
+        self._rows = pool_rows(self.dist, self.eps) if lookup == "rows" else None
+        self._tree = None
+        if lookup == "tree" and len(self.pts_t):
+            from scipy.spatial import cKDTree
+
+            self._tree = cKDTree(self.pts_t)
 
     def near(self, pts_s_in_t: np.ndarray, tau: float | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(source indices [K], target indices [K]) int64 of the pool's pairs whose source point, given in the
@@ -199,8 +217,17 @@ class GuidedPool:
         q = np.ascontiguousarray(pts_s_in_t, np.float64)
         if len(self.pts_t) == 0 or len(q) == 0:
             return np.zeros(0, np.int64), np.zeros(0, np.int64)
-        tau = np.ascontiguousarray(np.broadcast_to(np.asarray(tau, np.float64), (len(q),)))
-        return near_pairs(self._start, self._targets, q, self.pts_t, tau)
+        if self._rows is not None:
+            tau = np.ascontiguousarray(np.broadcast_to(np.asarray(tau, np.float64), (len(q),)))
+            start, targets = self._rows
+            return near_pairs(start, targets, q, self.pts_t, tau)
+        assert self._tree is not None
+        hits = self._tree.query_ball_point(q, tau, return_sorted=True)
+        n = np.fromiter(map(len, hits), np.int64, count=len(hits))
+        ii = np.repeat(np.arange(len(hits)), n)
+        jj = np.fromiter(itertools.chain.from_iterable(hits), np.int64, count=int(n.sum()))
+        ok = self.dist[ii, jj] < self.eps
+        return ii[ok], jj[ok]
 
 
 def _pairs_near(ps: np.ndarray, pt: np.ndarray, pool: GuidedPool, T: np.ndarray, gate: float, noise: DepthNoise
