@@ -39,7 +39,7 @@ import numpy as np
 from gscan.features import Detection, FeatureParams, Features, detect, extract_features
 from gscan.io.align import align_depth_to_color
 from gscan.io.camera import Intrinsics, RGBDFrame, lift_keypoints
-from gscan.registration.dense import DenseGeometry, image_texture
+from gscan.registration.dense import DenseGeometry
 from gscan.registration.noise import sign_test
 from gscan.registration.pairwise import RegisterParams, register_features
 
@@ -90,10 +90,9 @@ def _keypoints(frame: RGBDFrame, fparams: FeatureParams, detection: Detection | 
     return extract_features(flat, replace(fparams, lift_window=0), detection=detection)
 
 
-def _geometry(f: RGBDFrame, texture: tuple[np.ndarray, float], kp: Features, s: float, fparams: FeatureParams
-              ) -> tuple[Features, DenseGeometry]:
+def _geometry(f: RGBDFrame, kp: Features, s: float, fparams: FeatureParams) -> tuple[Features, DenseGeometry]:
     """Frame f read with a colour camera of s times its focal length (its depth reprojected into it): its
-    keypoints kp lifted there, and its dense geometry with texture (its colour image's `image_texture`)."""
+    keypoints kp lifted there, and its dense geometry with texture."""
     K = f.intrinsics
     Kc = replace(K, fx=K.fx * s, fy=K.fy * s)
     depth = f.depth if s == 1.0 else align_depth_to_color(f.depth, K, Kc, np.eye(4))
@@ -101,7 +100,7 @@ def _geometry(f: RGBDFrame, texture: tuple[np.ndarray, float], kp: Features, s: 
                              fparams.lift_max_rel_spread, fparams.lift_min_valid_frac)
     lifted = kp.subset(np.flatnonzero(ok))
     lifted.points = pts[ok].astype(np.float32)
-    return lifted, DenseGeometry.from_depth(depth, Kc, image=f.color, texture=texture)
+    return lifted, DenseGeometry.from_depth(depth, Kc, image=f.color)
 
 
 def _starts(n: int, span: int, count: int) -> list[int]:
@@ -118,9 +117,8 @@ def check_colour_focal(read: Callable[[int], RGBDFrame | None], n: int, params: 
     depth registered to its colour as given. Pairs (i, i + step) for each of `check.steps` (neighbours move
     little, the next ones more) from `check.groups` first frames i spread over the capture, every other group
     only while s = 1 and its neighbours are tried (registered depth peaks sharply at 1) and while the walk runs;
-    each group's frames are read when its pairs are first registered and kept with their texture until the check
-    ends (at most groups x (max(steps) + 1) frames: each group is visited at every step of the check), with their
-    keypoints (at most `check.keypoints` a frame); `workers` groups at a time, on threads. detections:
+    each group's frames are read when its pairs are registered and let go after (a few frames in memory at a time;
+    keypoints, at most `check.keypoints` a frame, are kept); `workers` groups at a time, on threads. detections:
     when given (SIFT kinds), each frame read is detected as `extract_features(frame, fparams)` detects it
     (`detect`), its keypoints taken from that, and the detection left there by frame name, for the scan's features
     stage to start from (one detection of those frames, not two). None when fewer than 4 pairs register at any scale
@@ -135,8 +133,7 @@ def check_colour_focal(read: Callable[[int], RGBDFrame | None], n: int, params: 
     claimed: dict[int, threading.Event] = {}  # frames a thread is detecting or has detected (set when done)
     claim_lock = threading.Lock()
     failed: dict[int, Exception] = {}  # frames whose detection raised, with its error
-    held: dict[int, tuple[RGBDFrame, tuple[np.ndarray, float]] | None] = {}  # frame -> it and its texture (None:
-    # unusable), read once and kept for the check (at most groups x (max(steps) + 1) frames)
+    unusable: set[int] = set()
     per_pair: dict[float, np.ndarray] = {}  # scale -> each pair's share of textured tiles lining up (0: failed,
     ran: dict[float, np.ndarray] = {}  # NaN: not tried); scale -> the pairs whose colour check ran
 
@@ -175,15 +172,14 @@ def check_colour_focal(read: Callable[[int], RGBDFrame | None], n: int, params: 
                 return
             frames = {}
             for j in range(i, i + max(steps) + 1):
-                if j not in held:
-                    f = read(j)
-                    held[j] = None if f is None else (f, image_texture(f.color))
-                got = held[j]
-                if got is not None:
-                    frames[j] = got
-                    keypoints(j, got[0])
+                f = None if j in unusable else read(j)
+                if f is None:
+                    unusable.add(j)
+                    continue
+                frames[j] = f
+                keypoints(j, f)
             for s in sorted({s for _, s in todo}):
-                geo = {j: _geometry(f, tex, kps[j], s, fparams) for j, (f, tex) in frames.items()}
+                geo = {j: _geometry(f, kps[j], s, fparams) for j, f in frames.items()}
                 for k, s_k in todo:
                     if s_k != s:
                         continue
