@@ -481,6 +481,8 @@ def poses(
         _line(f"{name}: unregistered: {out['unregistered_reasons'][name]}")
     for name, why in out["skipped_by_selection"].items():
         _line(f"{name}: skipped by frame selection: {why}")
+    for k, part in enumerate(out["parts"], 1):
+        _line(f"separate part {k}: {len(part)} frames ({', '.join(part)}), not joined to the registered ones")
 
 
 @app.command()
@@ -503,7 +505,7 @@ def info(
         "schema": s.schema, "status": s.status, "views": s.views, "registered": s.registered,
         "keyframes": s.keyframes, "descriptor": s.descriptor, "source": s.source, "extent_m": list(s.extent_m),
         "grasps": list(s.grasps), "unregistered_reasons": dict(s.unregistered_reasons),
-        "selection": dict(s.selection)}
+        "selection": dict(s.selection), "parts": [list(p) for p in s.parts]}
     out["mesh"] = None if m is None else {"vertices": len(m.vertices), "triangles": len(m.triangles),
                                           "open_edges": len(boundary_edges(m.triangles))}
     out["camera"] = camera
@@ -514,6 +516,10 @@ def info(
         if k == "unregistered_reasons":
             for name, reason in v.items():
                 _line(f"unregistered {name}: {reason}")
+            continue
+        if k == "parts":
+            for j, part in enumerate(v, 1):
+                _line(f"separate part {j}: {len(part)} frames ({', '.join(part)}), not joined to the registered ones")
             continue
         if k == "selection":
             if v.get("skipped"):

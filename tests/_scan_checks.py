@@ -24,6 +24,10 @@ from gscan.template.db import Edge, TemplateDB
 
 #: a rendered frame is registered at a wrong pose beyond this (deg, m) of the ground truth (issue 17's bound)
 WRONG_RENDERED = (5.0, 0.02)
+# m: the ATE of a correct registration of a capture at the rig's distance. 7 mm, not the 5 mm of the other scan
+# tests: a static scan does not refine its edges on the depth (registration.dense_refine, for real Kinect frames),
+# and the glossy can reads 6.3 mm and the shifted depth 5.1 mm without it, every frame within the wrong-pose bound
+ATE_NEAR = 0.007
 
 
 @dataclass

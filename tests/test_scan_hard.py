@@ -23,13 +23,9 @@ import pytest
 from gscan.synth import cases as C
 from gscan.synth import load_textured_mesh
 from gscan.template.db import TemplateDB
-from tests._scan_checks import Outcome, scan_case, template_surface_distances
+from tests._scan_checks import ATE_NEAR, Outcome, scan_case, template_surface_distances
 
 BOX = "Whey_Protein_Chocolate_12_Packets"  # 10 x 15 x 16 cm, printed on every side
-# m: a correct registration of a capture at the rig's distance. 7 mm, not the 5 mm of the other scan tests: a static
-# scan no longer refines its edges on the depth (registration.dense_refine, for real Kinect frames), and the glossy
-# can reads 6.3 mm and the shifted depth 5.1 mm without it, every frame within the wrong-pose bound
-ATE_NEAR = 0.007
 ATE_FAR = 0.010  # m: at 1.5-2.5 m (depth noise 4-10 mm a pixel): half the wrong-pose bound
 
 

@@ -709,11 +709,18 @@ class TemplateDB:
                                grasps=tuple(sorted(self.grasps())),
                                unregistered_reasons=unregistered_reasons(unreg, self.get_meta("unregistered_reasons"),
                                                                          self.get_meta("skipped")),
-                               selection=selection_summary(self.get_meta("selection")))
+                               selection=selection_summary(self.get_meta("selection")), parts=self.parts())
+
+    def parts(self) -> list[list[str]]:
+        """The frames of each part of the capture that no confident edge joins to the template's frames (largest
+        first; the scan's "parts" meta, empty when there is none or the scan predates it)."""
+        parts = self.get_meta("parts")
+        return [[str(n) for n in p] for p in parts if isinstance(p, list)] if isinstance(parts, list) else []
 
     def poses(self) -> dict:
         """The dict `gscan poses --json` prints: {"frames": {name: T_obj_cam}, "unregistered": [names],
-        "unregistered_reasons": {name: reason}, "skipped_by_selection": {name: reason}}; unregistered as in
+        "unregistered_reasons": {name: reason}, "skipped_by_selection": {name: reason}, "parts": [[names]]};
+        unregistered as in
         `scan --json`: the views without a pose, then the input frames the scan could not read (its "skipped"
         meta); skipped by selection: the input frames the scan's frame selection left out (not failures)."""
         views = self.views()
@@ -725,7 +732,7 @@ class TemplateDB:
                 "unregistered_reasons": unregistered_reasons(unreg, self.get_meta("unregistered_reasons"),
                                                              self.get_meta("skipped")),
                 "skipped_by_selection": {str(k): str(v) for k, v in skipped.items()} if isinstance(skipped, dict)
-                else {}}
+                else {}, "parts": self.parts()}
 
     def load_template(self, keyframes_only: bool = True) -> Template:
         """Everything the estimator needs, loaded once: registered (key)frame views with their keypoints

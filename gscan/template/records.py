@@ -63,9 +63,10 @@ class Edge:
 class TemplateSummary:
     """What a template database holds (`TemplateDB.summary`): schema version, status ("complete" | "partial"),
     number of views, registered views and keyframes, descriptor kind, source ("scan" | "mesh"), the object's
-    extent [3] (m, object frame), the grasp names, why each unregistered frame is (name -> reason), and the scan's
+    extent [3] (m, object frame), the grasp names, why each unregistered frame is (name -> reason), the scan's
     frame selection: {"kept": int, "skipped": int, "reasons": {why: frames}} (empty for a template written
-    before frames were selected, or from a mesh)."""
+    before frames were selected, or from a mesh), and the frames of each part of the capture that no confident
+    edge joins to the template's frames (largest first)."""
 
     schema: int
     status: str
@@ -78,6 +79,7 @@ class TemplateSummary:
     grasps: tuple[str, ...]
     unregistered_reasons: dict[str, str] = field(default_factory=dict)
     selection: dict = field(default_factory=dict)
+    parts: list[list[str]] = field(default_factory=list)
 
 
 @dataclass

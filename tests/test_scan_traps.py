@@ -1,0 +1,118 @@
+"""Traps (issue 17): captures in which a scanner that trusts long keypoint lists registers frames at wrong poses or
+fuses another scene into the template, scanned with the defaults a user runs (`gscan.scan`, no masks, no config).
+
+- one frame of another object on another table inserted in the middle of a capture: it stays unregistered, with its
+  reason, and the capture's own frames are all registered;
+- copies of the scanned object standing beside it (a print repeated on the table): every frame registered, none at
+  the pose that maps the object onto its twin, and the template is the one object;
+- a capture of one object followed by frames of another scene, and the two halves of an orbit that see nothing in
+  common: no correct registration joins them, so the scan reports the smaller half as a separate part (in its
+  summary, `poses --json` and `info --json`), builds the template from the larger one and fuses nothing from the
+  other.
+
+Wrong: a registered frame of the object beyond 5 deg / 2 cm of the ground truth relative to the other registered
+frames (`frame_errors`). Captures are built by `gscan.synth.cases` from the shared meshes (640x480, 10-12 frames).
+"""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gscan.synth import cases as C
+from gscan.synth import load_textured_mesh
+from gscan.template.db import TemplateDB
+from tests._scan_checks import ATE_NEAR, Outcome, scan_case, template_surface_distances
+
+BOX = "Whey_Protein_Chocolate_12_Packets"  # 10 x 15 x 16 cm, printed on every side
+OTHER = "Crayola_Bonus_64_Crayons"
+
+
+@pytest.fixture(scope="module")
+def box(meshes_dir: Path):
+    return load_textured_mesh(meshes_dir / BOX / "model_0.obj")
+
+
+@pytest.fixture(scope="module")
+def other(meshes_dir: Path):
+    return load_textured_mesh(meshes_dir / OTHER / "model_0.obj")
+
+
+def _object_only(out: Outcome, mesh) -> None:
+    """Every registered frame of the object at its pose, and the template the object alone: 95 % of its vertices
+    within 5 mm of the true surface and no wider than the object."""
+    assert not out.wrong, "frames registered at a wrong pose:\n" + out.describe()
+    assert out.ate_m <= ATE_NEAR, out.describe()
+    d = template_surface_distances(out, mesh)
+    assert np.percentile(d, 95) <= 0.005, f"95th percentile {1000 * np.percentile(d, 95):.1f} mm from the surface"
+    with TemplateDB.open(out.db) as t:
+        size = np.ptp(t.mesh().vertices, axis=0).max()
+    assert size <= 1.2 * np.ptp(mesh.vertices, axis=0).max(), f"template {size:.2f} m wide\n" + out.describe()
+
+
+def _cli_json(*args: str) -> dict:
+    r = subprocess.run([sys.executable, "-m", "gscan.cli", *args, "--json"], capture_output=True, text=True,
+                       timeout=300, check=False)
+    assert r.returncode == 0, r.stderr
+    return json.loads(r.stdout)
+
+
+def test_an_unrelated_frame_inserted_stays_unregistered_with_its_reason(tmp_path, box, other):
+    """A frame of another object on a wooden table between frames 4 and 5 of a 10-view ring: none of its edges
+    is accepted (it shares no surface with the capture, only look-alike keypoints), it is reported with its reason,
+    and the ten frames of the box around it are all registered."""
+    case = C.inserted_frame_capture(box, other, tmp_path / "cap", n_views=10, seed=0)
+    out = scan_case(case, tmp_path / "inserted.gscan")
+    out.check_reasons()
+    (odd,) = case.other_frames
+    assert odd not in out.poses and out.result.unregistered_reasons[odd].startswith("no edge accepted"), \
+        out.describe()
+    assert set(out.registered) == set(case.object_frames), out.describe()
+    _object_only(out, box)
+
+
+@pytest.mark.parametrize("copies", [1, 2])
+def test_identical_objects_side_by_side(tmp_path, box, copies):
+    """One or two copies of the box standing beside it, the camera orbiting the first on two rings: every frame
+    registered, none at the pose that puts the box onto a copy, and the template is one box (no copy fused)."""
+    case = C.twin_objects_capture(box, tmp_path / "cap", copies=copies, n_views=12, seed=0)
+    out = scan_case(case, tmp_path / "twins.gscan")
+    out.check_reasons()
+    assert set(out.registered) == set(case.frames), out.describe()
+    _object_only(out, box)
+
+
+def _parts_reported(out: Outcome, part: list[str], kept: list[str]) -> None:
+    """`part` is reported as the one separate part (scan summary, `poses --json`, `info --json`), each of its frames
+    with that reason, and `kept` are the registered frames."""
+    out.check_reasons()
+    assert out.result.parts == [part], out.describe()
+    assert sorted(out.registered) == sorted(kept), out.describe()
+    for name in part:
+        assert out.result.unregistered_reasons[name].startswith(f"in a separate part of {len(part)} frames"), \
+            out.describe()
+    assert _cli_json("poses", str(out.db))["parts"] == [part]
+    assert _cli_json("info", str(out.db))["parts"] == [part]
+
+
+def test_another_scene_after_the_capture_is_a_separate_part(tmp_path, box, other):
+    """Eight views of the box on the newspaper table, then four of another object on a wooden table: the four are
+    a separate part, the template is the box's (the larger part) and nothing of the other scene is fused."""
+    case = C.two_scenes_capture(box, other, tmp_path / "cap", n_views=8, n_other=4, seed=0)
+    out = scan_case(case, tmp_path / "two.gscan")
+    _parts_reported(out, case.other_frames, case.object_frames)
+    _object_only(out, box)
+
+
+def test_two_halves_of_an_orbit_that_share_nothing_are_two_parts(tmp_path, box):
+    """Six views 20 deg apart, a 120-deg gap, four more, low over a plain table: the halves see different faces
+    and nothing else in common. The four are a separate part, the template is made of the six."""
+    case = C.gap_orbit_capture(box, tmp_path / "cap", n_first=6, n_second=4, seed=0)
+    out = scan_case(case, tmp_path / "gap.gscan")
+    _parts_reported(out, case.frames[6:], case.frames[:6])
+    assert not out.wrong, out.describe()
+    assert out.ate_m <= ATE_NEAR, out.describe()
