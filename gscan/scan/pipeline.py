@@ -1115,8 +1115,14 @@ def _segment(data: _FrameData, T_world_cam: list[np.ndarray | None], segment: bo
     else:  # given masks win
         vol = estimate_working_volume(LazyList(len(reg), lambda i: data.frame(reg[i])),
                                       [T for T in (T_world_cam[k] for k in reg) if T is not None], seg)
-        for k in range(n):
-            data.store.put(frames[k].name, mask=segment_in_volume(data.frame(k), T_world_cam[k], vol, seg).mask)
+
+        def mask_at(k: int) -> np.ndarray | None:
+            return segment_in_volume(data.frame(k), T_world_cam[k], vol, seg).mask
+
+        # per frame, on both cores (reading and reprojecting the images release the GIL), stored in input order
+        with ThreadPoolExecutor(max_workers=WORKERS) as pool:
+            for k, mask in enumerate(_bounded_map(pool, mask_at, range(n))):
+                data.store.put(frames[k].name, mask=mask)
         plane = vol.plane_world if vol is not None else None
 
         def mask_of(k: int) -> np.ndarray | None:
