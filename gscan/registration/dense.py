@@ -37,6 +37,13 @@ from gscan.registration.noise import DepthNoise
 EDGE_REL = 0.03  # a neighbour whose depth differs by more than this fraction marks a discontinuity
 
 
+def image_texture(image: np.ndarray) -> tuple[np.ndarray, float]:
+    """An image's ([H x W x 3] RGB or [H x W] grey) texture for the colour check: (band-passed grey levels
+    [H x W], the image's noise)."""
+    grey = grey_image(image)
+    return texture_image(grey), image_noise(grey)
+
+
 @dataclass(frozen=True)
 class DenseGeometry:
     """A frame's depth sampled every `stride` pixels (camera frame, metres).
@@ -63,10 +70,12 @@ class DenseGeometry:
 
     @classmethod
     def from_depth(cls, depth: np.ndarray, intr: Intrinsics, mask: np.ndarray | None = None,
-                   samples: int = 5000, image: np.ndarray | None = None) -> DenseGeometry:
+                   samples: int = 5000, image: np.ndarray | None = None,
+                   texture: tuple[np.ndarray, float] | None = None) -> DenseGeometry:
         """Samples of depth [H x W] (m) inside mask ([H x W] bool, optional), about `samples` of them; with the
         frame's image ([H x W x 3] RGB or [H x W] grey, registered to the depth), its texture for
-        `gscan.registration.colour`."""
+        `gscan.registration.colour`: `image_texture(image)`, or `texture` when that was computed already (one
+        image read with several depth images)."""
         H, W = depth.shape
         stride = max(1, int(np.sqrt(H * W / samples)))
         off = stride // 2
@@ -93,14 +102,12 @@ class DenseGeometry:
         n *= np.where(np.sum(n * grid, axis=-1, keepdims=True) > 0, -1.0, 1.0)
         good &= norm[..., 0] > 0
         d = np.where(good, d, 0.0)
-        texture = pixels = None
+        tex = pixels = None
         noise = 0.0
         if image is not None and image.shape[:2] == depth.shape:
-            grey = grey_image(image)
-            texture, noise = texture_image(grey), image_noise(grey)
+            tex, noise = texture if texture is not None else image_texture(image)
             pixels = np.stack([u[gu[good]], v[gv[good]]], axis=1)
-        return cls(d, grid, n, grid[good], fx, fy, cx, cy, pixels, (intr.fx, intr.fy, intr.cx, intr.cy), texture,
-                   noise)
+        return cls(d, grid, n, grid[good], fx, fy, cx, cy, pixels, (intr.fx, intr.fy, intr.cx, intr.cy), tex, noise)
 
     def __len__(self) -> int:
         return len(self.points)

@@ -39,7 +39,7 @@ import numpy as np
 from gscan.features import Detection, FeatureParams, Features, detect, extract_features
 from gscan.io.align import align_depth_to_color
 from gscan.io.camera import Intrinsics, RGBDFrame, lift_keypoints
-from gscan.registration.dense import DenseGeometry
+from gscan.registration.dense import DenseGeometry, image_texture
 from gscan.registration.noise import sign_test
 from gscan.registration.pairwise import RegisterParams, register_features
 
@@ -90,9 +90,10 @@ def _keypoints(frame: RGBDFrame, fparams: FeatureParams, detection: Detection | 
     return extract_features(flat, replace(fparams, lift_window=0), detection=detection)
 
 
-def _geometry(f: RGBDFrame, kp: Features, s: float, fparams: FeatureParams) -> tuple[Features, DenseGeometry]:
+def _geometry(f: RGBDFrame, kp: Features, s: float, fparams: FeatureParams, texture: tuple[np.ndarray, float]
+              ) -> tuple[Features, DenseGeometry]:
     """Frame f read with a colour camera of s times its focal length (its depth reprojected into it): its
-    keypoints kp lifted there, and its dense geometry with texture."""
+    keypoints kp lifted there, and its dense geometry with texture (f's `image_texture`, the same at every s)."""
     K = f.intrinsics
     Kc = replace(K, fx=K.fx * s, fy=K.fy * s)
     depth = f.depth if s == 1.0 else align_depth_to_color(f.depth, K, Kc, np.eye(4))
@@ -100,7 +101,7 @@ def _geometry(f: RGBDFrame, kp: Features, s: float, fparams: FeatureParams) -> t
                              fparams.lift_max_rel_spread, fparams.lift_min_valid_frac)
     lifted = kp.subset(np.flatnonzero(ok))
     lifted.points = pts[ok].astype(np.float32)
-    return lifted, DenseGeometry.from_depth(depth, Kc, image=f.color)
+    return lifted, DenseGeometry.from_depth(depth, Kc, image=f.color, texture=texture)
 
 
 def _starts(n: int, span: int, count: int) -> list[int]:
@@ -178,8 +179,9 @@ def check_colour_focal(read: Callable[[int], RGBDFrame | None], n: int, params: 
                     continue
                 frames[j] = f
                 keypoints(j, f)
+            textures = {j: image_texture(f.color) for j, f in frames.items()}
             for s in sorted({s for _, s in todo}):
-                geo = {j: _geometry(f, kps[j], s, fparams) for j, f in frames.items()}
+                geo = {j: _geometry(f, kps[j], s, fparams, textures[j]) for j, f in frames.items()}
                 for k, s_k in todo:
                     if s_k != s:
                         continue
