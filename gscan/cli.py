@@ -481,7 +481,12 @@ def poses(
         _line(f"{name}: unregistered: {out['unregistered_reasons'][name]}")
     for name, why in out["skipped_by_selection"].items():
         _line(f"{name}: skipped by frame selection: {why}")
-    for k, part in enumerate(out["parts"], 1):
+    _part_lines(out["parts"])
+
+
+def _part_lines(parts: list[list[str]]) -> None:
+    """One line per separate part of a scanned capture (`poses`, `info`)."""
+    for k, part in enumerate(parts, 1):
         _line(f"separate part {k}: {len(part)} frames ({', '.join(part)}), not joined to the registered ones")
 
 
@@ -518,8 +523,7 @@ def info(
                 _line(f"unregistered {name}: {reason}")
             continue
         if k == "parts":
-            for j, part in enumerate(v, 1):
-                _line(f"separate part {j}: {len(part)} frames ({', '.join(part)}), not joined to the registered ones")
+            _part_lines(v)
             continue
         if k == "selection":
             if v.get("skipped"):

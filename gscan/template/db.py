@@ -720,9 +720,9 @@ class TemplateDB:
     def poses(self) -> dict:
         """The dict `gscan poses --json` prints: {"frames": {name: T_obj_cam}, "unregistered": [names],
         "unregistered_reasons": {name: reason}, "skipped_by_selection": {name: reason}, "parts": [[names]]};
-        unregistered as in
-        `scan --json`: the views without a pose, then the input frames the scan could not read (its "skipped"
-        meta); skipped by selection: the input frames the scan's frame selection left out (not failures)."""
+        unregistered as in `scan --json`: the views without a pose, then the input frames the scan could not read
+        (its "skipped" meta); skipped by selection: the input frames the scan's frame selection left out (not
+        failures); parts: `parts()`."""
         views = self.views()
         frames = {v.name: v.T_obj_cam.tolist() for v in views if v.T_obj_cam is not None}
         unreg = unregistered_names(views, self.get_meta("skipped"))
