@@ -105,6 +105,18 @@ def template_surface_distances(out: Outcome, mesh: TexturedMesh) -> np.ndarray:
     return rc.compute_distance(o3d.core.Tensor(pts.astype(np.float32))).numpy()
 
 
+def check_template_is_object(out: Outcome, mesh: TexturedMesh, max_p95_m: float, max_width_ratio: float) -> None:
+    """The template is the object alone: 95 % of its mesh vertices within max_p95_m of the true surface
+    (`template_surface_distances`), and its widest extent at most max_width_ratio times the object's (a template
+    that took in the table or a neighbour is wider)."""
+    d = template_surface_distances(out, mesh)
+    assert np.percentile(d, 95) <= max_p95_m, f"95th percentile {1000 * np.percentile(d, 95):.1f} mm from the surface"
+    with TemplateDB.open(out.db) as t:
+        size = np.ptp(t.mesh().vertices, axis=0).max()
+    assert size <= max_width_ratio * np.ptp(mesh.vertices, axis=0).max(), f"template {size:.2f} m wide\n" + \
+        out.describe()
+
+
 def box_ring_capture(root: Path, n_views: int, intr: Intrinsics) -> Path:
     """`root`: a static capture of a small printed box (14 x 9 x 7 cm) from `n_views` cameras on one ring at
     40 deg elevation."""

@@ -214,7 +214,6 @@ def test_alignment_kernel_matches_its_reference(seed, tx, ty, tz, ang, scale):
     assert np.array_equal(fast, ref)
 
 
-
 @settings(max_examples=25, deadline=None)
 @given(seed=st.integers(0, 2**31 - 1), scale=st.floats(0.7, 1.4), dc=st.floats(-3.0, 3.0))
 def test_alignment_kernel_between_cameras_of_one_centre_matches_its_reference(seed, scale, dc):

@@ -17,13 +17,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from gscan.synth import cases as C
 from gscan.synth import load_textured_mesh
-from gscan.template.db import TemplateDB
-from tests._scan_checks import ATE_NEAR, Outcome, scan_case, template_surface_distances
+from tests._scan_checks import ATE_NEAR, Outcome, check_template_is_object, scan_case
 
 BOX = "Whey_Protein_Chocolate_12_Packets"  # 10 x 15 x 16 cm, printed on every side
 ATE_FAR = 0.010  # m: at 1.5-2.5 m (depth noise 4-10 mm a pixel): half the wrong-pose bound
@@ -103,12 +101,7 @@ def test_far_object_on_wood_no_frame_is_turned(far_scans):
 def test_far_object_template_is_the_object(far_scans, box, distance):
     """The template of a far capture is the object, found without editing the working volume: 95 % of its vertices
     within 1 cm of the true surface, and no larger than the object (a template of the table is 1.5 m wide)."""
-    out = far_scans(distance, "newspaper")
-    d = template_surface_distances(out, box)
-    assert np.percentile(d, 95) <= 0.01, f"95th percentile {1000 * np.percentile(d, 95):.0f} mm from the surface"
-    with TemplateDB.open(out.db) as t:
-        size = np.ptp(t.mesh().vertices, axis=0).max()
-    assert size <= 1.5 * np.ptp(box.vertices, axis=0).max(), f"template {size:.2f} m wide"
+    check_template_is_object(far_scans(distance, "newspaper"), box, 0.01, 1.5)
 
 
 @pytest.mark.parametrize("mode, views, table", [("turntable", 24, "plain"), ("static", 16, "plain")])
