@@ -8,7 +8,9 @@ fuses another scene into the template, scanned with the defaults a user runs (`g
 - a capture of one object followed by frames of another scene, and the two halves of an orbit that see nothing in
   common: no correct registration joins them, so the scan reports the smaller half as a separate part (in its
   summary, `poses --json` and `info --json`), builds the template from the larger one and fuses nothing from the
-  other.
+  other;
+- an edge of the first frame measured a few degrees off: the pose graph rejects it, the frame's one other edge is
+  contradicted and no cycle decides, so the frame is registered to more frames and placed by those.
 
 Wrong: a registered frame of the object beyond 5 deg / 2 cm of the ground truth relative to the other registered
 frames (`frame_errors`). Captures are built by `gscan.synth.cases` from the shared meshes (640x480, 10-12 frames).
@@ -20,8 +22,11 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
+from gscan.geometry.transforms import rotvec_to_R
+from gscan.scan import pipeline
 from gscan.synth import cases as C
 from gscan.synth import load_textured_mesh
 from tests._scan_checks import ATE_NEAR, Outcome, check_template_is_object, scan_case
@@ -110,3 +115,38 @@ def test_two_halves_of_an_orbit_that_share_nothing_are_two_parts(tmp_path, box):
     _parts_reported(out, case.frames[6:], case.frames[:6])
     assert not out.wrong, out.describe()
     assert out.ate_m <= ATE_NEAR, out.describe()
+
+
+@pytest.mark.parametrize("second_opinions", [pipeline.SECOND_OPINIONS, 0])
+def test_a_frame_whose_edges_disagree_is_placed_by_more_edges(tmp_path, monkeypatch, box, second_opinions):
+    """A 10-view ring whose first frame is registered to its two ring neighbours; the edge to the next frame is
+    measured 3 deg off (the registration's result turned about the vertical, injected). The pose graph rejects it;
+    the frame's other edge alone would hold it, contradicted, so the frame is cut loose. It is then registered to
+    the two registered frames whose view is nearest the one its edges give it, and the graph, judged again,
+    places it there; the wrong edge stays rejected. Without those second opinions it stays unregistered."""
+    monkeypatch.setattr(pipeline, "SECOND_OPINIONS", second_opinions)
+    measured = pipeline._Registrar._pair
+    turn = np.eye(4)
+    turn[:3, :3] = rotvec_to_R(np.radians([0.0, 3.0, 0.0]))
+
+    def off(self, pair):
+        got = measured(self, pair)
+        if got is not None and pair == (0, 1):
+            got[0].T_tgt_src = turn @ got[0].T_tgt_src
+        return got
+
+    monkeypatch.setattr(pipeline._Registrar, "_pair", off)
+    case = C.far_capture(box, tmp_path / "cap", distance=0.6, n_views=10, seed=0)
+    out = scan_case(case, tmp_path / "off.gscan")
+    out.check_reasons()
+    first, second = case.frames[:2]
+    wrong_edge = next(e for e in out.edges if (e.src, e.tgt) == (first, second))
+    assert not wrong_edge.accepted and "inconsistent with the other edges" in str(wrong_edge.reason), out.describe()
+    assert not out.wrong, out.describe()
+    if second_opinions == 0:
+        assert sorted(out.registered) == case.frames[1:], out.describe()
+        assert "contradicted" in out.result.unregistered_reasons[first], out.describe()
+        return
+    assert sorted(out.registered) == case.frames and out.ate_m <= ATE_NEAR, out.describe()
+    mine = [e for e in out.edges if first in (e.src, e.tgt) and e.accepted]
+    assert len(mine) >= 2 and all(e.kind == "loop" for e in mine), out.describe()

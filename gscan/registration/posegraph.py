@@ -70,6 +70,7 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 CHI2_6_MEDIAN = 5.3481  # median of the chi^2 distribution with 6 degrees of freedom (the floor's target)
+INCONSISTENT = "inconsistent with the other edges"  # how the reason of an edge the others contradict begins
 ROBUST_SCALES = (100.0, 10.0, 1.0, 1.0)  # the graduated re-weighted optimisations (robust_start)
 
 
@@ -429,7 +430,7 @@ def optimize_pose_graph(n_nodes: int, edges: list[GraphEdge],
                 log.warning("pose graph: inconsistent edges left after %d rounds", g.rounds)
                 return
             deg, m = edge_residual(g.poses[edges[e].src], g.poses[edges[e].tgt], edges[e].T_tgt_src)
-            reasons[e] = (f"inconsistent with the other edges ({deg:.2f} deg / {m * 1000:.1f} mm off, "
+            reasons[e] = (f"{INCONSISTENT} ({deg:.2f} deg / {m * 1000:.1f} mm off, "
                           f"chi2 {worst:.0f} > {g.limit:.0f})")
             active.remove(e)
 
@@ -495,7 +496,7 @@ def _contradicted_leaves(n: int, edges: list[GraphEdge], active: list[int], reas
     out = []
     for k in range(n):
         held = [e for e in inc[k] if e in on]
-        contradicted = any(e in reasons and reasons[e].startswith("inconsistent") for e in inc[k])
+        contradicted = any(e in reasons and reasons[e].startswith(INCONSISTENT) for e in inc[k])
         if len(held) == 1 and contradicted and held[0] not in out:
             reasons[held[0]] = "the only edge left to its frame, contradicted by another one of that frame's edges"
             out.append(held[0])

@@ -13,6 +13,8 @@ Stages (each timed, each reported through a `Progress`):
             and bag-of-words votes; each edge = GMatch -> Kabsch -> guided refinement (-> ICP when
             configured), accepted by the rules of `gscan.registration.pairwise`; stored as it is computed
   posegraph robust global optimisation (`gscan.registration.posegraph`) with pruning of inconsistent edges;
+            a frame it cuts loose (its edges disagree and no cycle decides, or a weak edge alone held it) is
+            registered to `SECOND_OPINIONS` more frames and the graph optimised again with those edges;
             frames not connected to the reference frame stay unregistered and are never fused
   segment   object masks (given, background subtraction, or support plane + working volume)
   fuse      TSDF fusion of the object's depth; template frame (fuse.template_frame)
@@ -57,7 +59,7 @@ from gscan.features import (
     extract_features_in_mask,
 )
 from gscan.geometry.plane import Plane
-from gscan.geometry.transforms import transform_points
+from gscan.geometry.transforms import inv_T, rotation_angle_deg, transform_points
 from gscan.io.camera import Intrinsics, RGBDFrame, backproject
 from gscan.io.output import (
     Output,
@@ -75,6 +77,7 @@ from gscan.registration.dense import DenseGeometry, in_source_frame, plane_resid
 from gscan.registration.noise import DepthNoise, estimate_noise
 from gscan.registration.pairwise import RegisterParams, register_features
 from gscan.registration.posegraph import (
+    INCONSISTENT,
     GraphEdge,
     LoopParams,
     PoseGraphParams,
@@ -106,6 +109,7 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 MAX_SKIP = 3  # a frame is tried against up to this many preceding frames, its predecessor first, until one is accepted
+SECOND_OPINIONS = 2  # more frames a frame the pose graph cut loose is registered to (views nearest its own)
 ICP_VOXEL_STRIDE = 2  # pixel stride of the clouds kept for ICP before voxel downsampling
 # eps_f for whole-frame registration (static object) when the config leaves it unset: on whole frames
 # RootSIFT 0.5 is as accurate as the object-only default 0.6 and gives far fewer candidates, so the search is
@@ -691,13 +695,16 @@ def _scan_frames(data: _FrameData, opts: ScanOptions, db: TemplateDB, resumed: b
             rparams = replace(rparams, noise=kp_noise, depth_noise=depth_noise)
         db.set_meta("noise", {"keypoint": rparams.noise.to_dict(), "depth": rparams.depth_noise.to_dict()})
         advance(1)
-    with timer.stage("register", total=max(1, n - 1)) as advance, db.batch():
-        edges, restored, evidence = _register_edges(data, rparams, cfg, db, resumed, advance)
-
+    reg = _Registrar(data, rparams, db, resumed)
     index = {f.name: k for k, f in enumerate(frames)}
-    with timer.stage("posegraph", total=1) as advance:
-        T_world_cam, quality, graph = _optimise(n, edges, index, data, evidence, cfg, rparams)
-        advance(1)
+    with ThreadPoolExecutor(max_workers=WORKERS) as pool:
+        with timer.stage("register", total=max(1, n - 1)) as advance, db.batch():
+            edges = _register_edges(reg, cfg, pool, advance)
+
+        with timer.stage("posegraph", total=1) as advance, db.batch():
+            T_world_cam, quality, graph = _optimise_with_second_opinions(reg, pool, edges, index, cfg)
+            advance(1)
+    restored = reg.restored
     registered = [k for k in range(n) if T_world_cam[k] is not None]
     reasons = _unregistered_reasons(frames, edges, graph, index)
     parts = [[frames[k].name for k in part] for part in graph.parts]
@@ -860,38 +867,39 @@ def _edge_evidence(e: Edge, a: _RegData, b: _RegData, rparams: RegisterParams) -
     return _Evidence(info, float(np.median(ps[:, 2])), float(np.sqrt(np.mean(r * r))))
 
 
-def _register_edges(data: _FrameData, rparams: RegisterParams, cfg: ScanConfig, db: TemplateDB, resumed: bool,
-                    advance: Callable[[int], None]
-                    ) -> tuple[list[Edge], set[tuple[str, str]], dict[tuple[str, str], _Evidence]]:
-    """Sequential edges (with fall-back to earlier frames), then loop closures; each stored as computed.
+class _Registrar:
+    """Pairwise registration of frame pairs into stored edges, with the evidence the pose graph weighs them by.
 
-    Returns the edges in order, the stored edges a resumed scan accepted again (pruned by the interrupted run's
-    pose graph, left for this run's pose graph to judge), and the evidence of the accepted edges computed here
-    (`_optimise` computes that of stored ones)."""
-    frames = data.frames
-    names = [f.name for f in frames]
-    done = {(e.src, e.tgt): e for e in db.edges()} if resumed else {}
-    restored: set[tuple[str, str]] = set()
-    evidence: dict[tuple[str, str], _Evidence] = {}
-    written = [0]  # edges stored so far (committed every COMMIT_ROWS)
+    A resumed scan reuses the edges the interrupted run stored (`done`); `restored` holds those it had pruned by
+    the pose graph, put back for this run's pose graph to judge; `evidence` holds the accepted edges' computed
+    here (`_optimise` computes that of stored ones)."""
 
-    def pair_work(pair: tuple[int, int]) -> tuple[Edge, _Evidence | None] | None:
+    def __init__(self, data: _FrameData, rparams: RegisterParams, db: TemplateDB, resumed: bool):
+        self.data, self.rparams, self.db = data, rparams, db
+        self.names = [f.name for f in data.frames]
+        self.done = {(e.src, e.tgt): e for e in db.edges()} if resumed else {}
+        self.restored: set[tuple[str, str]] = set()
+        self.evidence: dict[tuple[str, str], _Evidence] = {}
+        self.written = 0  # edges stored so far (committed every COMMIT_ROWS)
+
+    def _pair(self, pair: tuple[int, int]) -> tuple[Edge, _Evidence | None] | None:
         i, j = pair
-        if (names[i], names[j]) in done:
+        if (self.names[i], self.names[j]) in self.done:
             return None
-        a, b = data.reg(i), data.reg(j)
-        r = register_features(a.feats, b.feats, rparams, clouds=(a.cloud, b.cloud), dense=(a.dense, b.dense))
+        a, b = self.data.reg(i), self.data.reg(j)
+        r = register_features(a.feats, b.feats, self.rparams, clouds=(a.cloud, b.cloud), dense=(a.dense, b.dense))
         # the edge keeps the correspondences its pose was solved from (GMatch's list grown by the guided
         # refinement of gscan.registration.pairwise), which also weigh it in the pose graph
         used = r.inliers if r.inliers is not None and len(r.inliers) else r.matches
-        e = Edge(names[i], names[j], r.T_tgt_src, used, r.cost, r.rmse, r.fitness, "sequential", r.accepted, r.reason)
-        return e, (_edge_evidence(e, a, b, rparams) if e.accepted and e.T_tgt_src is not None else None)
+        e = Edge(self.names[i], self.names[j], r.T_tgt_src, used, r.cost, r.rmse, r.fitness, "sequential",
+                 r.accepted, r.reason)
+        return e, (_edge_evidence(e, a, b, self.rparams) if e.accepted and e.T_tgt_src is not None else None)
 
-    def register_all(pairs: list[tuple[int, int]], kind: str, pool: ThreadPoolExecutor) -> list[Edge]:
+    def register(self, pairs: list[tuple[int, int]], kind: str, pool: ThreadPoolExecutor) -> list[Edge]:
         """Edges of `pairs`, computed on the pool (numba and OpenCV release the GIL) in the order of their frames
         (a frame's registration data stays in the cache for its next edges), stored in the order given."""
         order = sorted(range(len(pairs)), key=lambda k: pairs[k])
-        computed = zip(order, _bounded_map(pool, pair_work, [pairs[k] for k in order]), strict=True)
+        computed = zip(order, _bounded_map(pool, self._pair, [pairs[k] for k in order]), strict=True)
         ready: dict[int, tuple[Edge, _Evidence | None] | None] = {}
         out = []
         for k, (i, j) in enumerate(pairs):
@@ -900,50 +908,92 @@ def _register_edges(data: _FrameData, rparams: RegisterParams, cfg: ScanConfig, 
                 ready[m] = g
             got = ready.pop(k)
             if got is None:  # stored by the interrupted run
-                e = done[(names[i], names[j])]
+                e = self.done[(self.names[i], self.names[j])]
                 if e.reason and e.reason.startswith(PRUNED):  # restore the registration verdict
                     e.accepted, e.reason = True, None
-                    restored.add((e.src, e.tgt))
+                    self.restored.add((e.src, e.tgt))
             else:
                 e, ev = got
                 e.kind = kind
                 if ev is not None:
-                    evidence[(e.src, e.tgt)] = ev
-                db.add_edge(e)
-                written[0] += 1
-                if written[0] % COMMIT_ROWS == 0:
-                    db.commit()
+                    self.evidence[(e.src, e.tgt)] = ev
+                self.db.add_edge(e)
+                self.written += 1
+                if self.written % COMMIT_ROWS == 0:
+                    self.db.commit()
             out.append(e)
         return out
 
+
+def _register_edges(reg: _Registrar, cfg: ScanConfig, pool: ThreadPoolExecutor,
+                    advance: Callable[[int], None]) -> list[Edge]:
+    """Sequential edges (with fall-back to earlier frames), then loop closures; each stored as computed."""
+    data, db, names = reg.data, reg.db, reg.names
+    frames = data.frames
     n = len(frames)
     index = {nm: k for k, nm in enumerate(names)}
     edges: list[Edge] = []
-    with ThreadPoolExecutor(max_workers=WORKERS) as pool:
-        # each frame against its predecessor; a frame that fails is tried against earlier ones
-        for e in register_all([(j - 1, j) for j in range(1, n)], "sequential", pool):
-            edges.append(e)
-            j = index[e.tgt]
-            for i in range(j - 2, max(-1, j - 1 - MAX_SKIP), -1):
-                if edges[-1].accepted:
-                    break
-                edges += register_all([(i, j)], "sequential", pool)
-            advance(1)
-        db.commit()  # the sequential edges, before the loop closures
+    # each frame against its predecessor; a frame that fails is tried against earlier ones
+    for e in reg.register([(j - 1, j) for j in range(1, n)], "sequential", pool):
+        edges.append(e)
+        j = index[e.tgt]
+        for i in range(j - 2, max(-1, j - 1 - MAX_SKIP), -1):
+            if edges[-1].accepted:
+                break
+            edges += reg.register([(i, j)], "sequential", pool)
+        advance(1)
+    db.commit()  # the sequential edges, before the loop closures
 
-        seq_graph = [GraphEdge(index[e.src], index[e.tgt], e.T_tgt_src, weight=len(e.matches))
-                     for e in edges if e.accepted and e.T_tgt_src is not None]
-        T_init = spanning_poses(n, seq_graph)
-        existing = [(index[e.src], index[e.tgt]) for e in edges]
-        lp = LoopParams(max_per_node=cfg.posegraph.loop_candidates, max_angle_deg=cfg.posegraph.max_view_angle_deg)
-        # frames without any keypoint (textureless, dark) take no part: bag-of-words needs descriptors
-        kp = [k for k in range(n) if frames[k].n_keypoints]
-        sub = {k: s for s, k in enumerate(kp)}
-        cands = [] if len(kp) < 2 else select_loop_candidates(
-            [T_init[k] for k in kp], LazyList(len(kp), lambda s: data.descriptors(kp[s])),
-            [(sub[a], sub[b]) for a, b in existing if a in sub and b in sub], lp)
-        edges += register_all([(kp[c.i], kp[c.j]) for c in cands], "loop", pool)
-    return edges, restored, evidence
+    seq_graph = [GraphEdge(index[e.src], index[e.tgt], e.T_tgt_src, weight=len(e.matches))
+                 for e in edges if e.accepted and e.T_tgt_src is not None]
+    T_init = spanning_poses(n, seq_graph)
+    existing = [(index[e.src], index[e.tgt]) for e in edges]
+    lp = LoopParams(max_per_node=cfg.posegraph.loop_candidates, max_angle_deg=cfg.posegraph.max_view_angle_deg)
+    # frames without any keypoint (textureless, dark) take no part: bag-of-words needs descriptors
+    kp = [k for k in range(n) if frames[k].n_keypoints]
+    sub = {k: s for s, k in enumerate(kp)}
+    cands = [] if len(kp) < 2 else select_loop_candidates(
+        [T_init[k] for k in kp], LazyList(len(kp), lambda s: data.descriptors(kp[s])),
+        [(sub[a], sub[b]) for a, b in existing if a in sub and b in sub], lp)
+    edges += reg.register([(kp[c.i], kp[c.j]) for c in cands], "loop", pool)
+    return edges
+
+
+def _cut_frames(n: int, edges: list[Edge], index: dict[str, int], graph: PoseGraphResult) -> list[int]:
+    """Frames the pose graph left without a pose although registration accepted an edge of theirs, each on its
+    own (not in a separate part): their edges disagree with each other and no cycle decides, or a weak edge
+    alone held them."""
+    in_part = {k for part in graph.parts for k in part}
+    pruned = {index[x] for e in edges if e.reason and e.reason.startswith(PRUNED) for x in (e.src, e.tgt)}
+    return [k for k in range(n) if graph.T_world_node[k] is None and k in pruned and k not in in_part]
+
+
+def _second_opinions(cut: list[int], edges: list[Edge], index: dict[str, int],
+                     T_world: list[np.ndarray | None]) -> list[tuple[int, int]]:
+    """For each cut frame, pairs (earlier frame first) with the `SECOND_OPINIONS` registered frames it has no edge
+    with whose orientation is nearest the one its strongest pruned edge to a registered frame puts it at (a view
+    of the same surface): edges that close cycles through it, to decide between its edges."""
+    tried = {frozenset((index[e.src], index[e.tgt])) for e in edges}
+    pairs = []
+    for k in cut:
+        implied = []  # (matches, src, tgt, T_world_k) of its pruned edges to registered frames
+        for e in edges:
+            i, j = index[e.src], index[e.tgt]
+            T_i, T_j, T_ji = T_world[i], T_world[j], e.T_tgt_src
+            if not (e.reason and e.reason.startswith(PRUNED)) or T_ji is None:
+                continue
+            if i == k and T_j is not None:
+                implied.append((-len(e.matches), e.src, e.tgt, T_j @ T_ji))
+            elif j == k and T_i is not None:
+                implied.append((-len(e.matches), e.src, e.tgt, T_i @ inv_T(T_ji)))
+        if not implied:
+            continue
+        T_k = min(implied, key=lambda x: x[:3])[3]
+        R_k = T_k[:3, :3]
+        near = sorted((rotation_angle_deg(R_k.T @ T[:3, :3]), i) for i, T in enumerate(T_world)
+                      if T is not None and frozenset((i, k)) not in tried)
+        pairs += [(min(i, k), max(i, k)) for _, i in near[:SECOND_OPINIONS]]
+    return pairs
 
 
 def _store_views(data: _FrameData, T_obj_cam: list[np.ndarray | None], mask_of: Callable[[int], np.ndarray | None],
@@ -1036,7 +1086,7 @@ def _optimise(n: int, edges: list[Edge], index: dict[str, int], data: _FrameData
         i, j = index[e.src], index[e.tgt]
         ev = evidence.get((e.src, e.tgt))
         if ev is None:  # an edge a resumed scan took from the database
-            ev = _edge_evidence(e, data.reg(i), data.reg(j), rparams)
+            ev = evidence[(e.src, e.tgt)] = _edge_evidence(e, data.reg(i), data.reg(j), rparams)
         found.append(ev)
         # an edge may join two parts of the graph alone only on strong evidence: enough matches (its depth
         # agreement is already a condition of every accepted edge)
@@ -1055,6 +1105,56 @@ def _optimise(n: int, edges: list[Edge], index: dict[str, int], data: _FrameData
     # registration quality of a view in [0, 1] (1 = perfect): 1 - RMS / QUALITY_RMS_SIGMA of its best edge
     quality = {k: float(np.clip(1.0 - r / QUALITY_RMS_SIGMA, 0.0, 1.0)) for k, r in best.items()}
     return res.T_world_node, quality, res
+
+
+def _optimise_with_second_opinions(reg: _Registrar, pool: ThreadPoolExecutor, edges: list[Edge],
+                                   index: dict[str, int], cfg: ScanConfig
+                                   ) -> tuple[list[np.ndarray | None], dict[int, float], PoseGraphResult]:
+    """`_optimise`, and second opinions on the frames it cuts loose.
+
+    A cut frame is registered to more frames (`_second_opinions`, appended to `edges`); the edges that held it (cut
+    as thin evidence, not rejected as inconsistent) are put back beside the accepted new ones and the graph is
+    optimised again. New edges may only confirm: a frame the second optimisation places without one of its holding
+    edges (the new ones overturned them) is cut again, its new edges rejected, and the graph optimised a third
+    time without them."""
+    n, data, rparams = len(reg.names), reg.data, reg.rparams
+    first = _optimise(n, edges, index, data, reg.evidence, cfg, rparams)
+    cut = _cut_frames(n, edges, index, first[2])
+    if not cut:
+        return first
+    more = reg.register(_second_opinions(cut, edges, index, first[0]), "loop", pool)
+    edges += more
+    if not any(e.accepted for e in more):
+        return first
+    log.info("pose graph: %d frames cut loose, %d of %d more edges accepted; optimising again", len(cut),
+             sum(e.accepted for e in more), len(more))
+    held: dict[int, list[tuple[Edge, str]]] = {}  # cut frame -> its holding edges, with their first verdicts
+    for e in edges:
+        i, j = index[e.src], index[e.tgt]
+        why = e.reason
+        if not why or not why.startswith(PRUNED) or why.startswith(PRUNED + INCONSISTENT):
+            continue
+        for k, other in ((i, j), (j, i)):
+            if k in cut and first[0][other] is not None:
+                held.setdefault(k, []).append((e, why))
+                e.accepted, e.reason = True, None
+    judged = [e for e in edges if e.accepted]
+    second = _optimise(n, edges, index, data, reg.evidence, cfg, rparams)
+    overturned = [k for k in cut if second[0][k] is not None and not any(e.accepted for e, _ in held.get(k, []))]
+    if not overturned:
+        return second
+    names = {reg.names[k] for k in overturned}
+    log.info("pose graph: new edges overturn the edges of %s; cut again", ", ".join(sorted(names)))
+    for e in judged:  # the second optimisation's input, without the overturning edges
+        e.accepted, e.reason = True, None
+    for e in more:
+        if e.accepted and {e.src, e.tgt} & names:
+            e.accepted, e.reason = False, PRUNED + "a second opinion that overturns its frame's edges instead of " \
+                                                   "confirming them"
+    for k in overturned:
+        for e, why in held.get(k, []):
+            e.accepted, e.reason = False, why
+    return _optimise(n, edges, index, data, reg.evidence, cfg, rparams)
 
 
 def _unregistered_reasons(frames: list[_Frame], edges: list[Edge], graph: PoseGraphResult,
