@@ -701,7 +701,7 @@ def _scan_frames(data: _FrameData, opts: ScanOptions, db: TemplateDB, resumed: b
         with timer.stage("register", total=max(1, n - 1)) as advance, db.batch():
             edges = _register_edges(reg, cfg, pool, advance)
 
-        with timer.stage("posegraph", total=1) as advance, db.batch():
+        with timer.stage("posegraph", total=1) as advance:
             T_world_cam, quality, graph = _optimise_with_second_opinions(reg, pool, edges, index, cfg)
             advance(1)
     restored = reg.restored
@@ -1122,7 +1122,8 @@ def _optimise_with_second_opinions(reg: _Registrar, pool: ThreadPoolExecutor, ed
     cut = _cut_frames(n, edges, index, first[2])
     if not cut:
         return first
-    more = reg.register(_second_opinions(cut, edges, index, first[0]), "loop", pool)
+    with reg.db.batch():
+        more = reg.register(_second_opinions(cut, edges, index, first[0]), "loop", pool)
     edges += more
     if not any(e.accepted for e in more):
         return first
