@@ -299,3 +299,44 @@ def test_information_moves_between_frames_by_the_adjoint(seed):
     T = make_T(rotvec_to_R(rng.normal(size=3)), rng.normal(size=3))
     info_t = information_from_points(transform_points(T, pts_s))
     np.testing.assert_allclose(in_source_frame(info_t, T), information_from_points(pts_s), rtol=1e-7, atol=1e-7)
+
+
+@settings(deadline=None, max_examples=25)
+@given(st.integers(0, 10_000), st.sampled_from([None, 0.0, 1e-7, np.pi, np.pi - 1e-9]))
+def test_a_stack_of_edges_gives_each_edge_its_own_chi2(seed, angle):
+    """The graph's stacked chi^2 (rotation vectors, inverses and products over all edges at once) gives each edge
+    the bits `edge_chi2` gives it alone, and rotation vectors those of scipy's to 1e-9, at angles near 0 and 180
+    deg (angle: every edge's residual rotation, None: random)."""
+    from scipy.spatial.transform import Rotation
+
+    from gscan.registration.posegraph import _Graph, _rotvecs
+
+    rng = np.random.default_rng(seed)
+    n = 6
+    poses = [make_T(rotvec_to_R(rng.normal(size=3)), rng.normal(size=3)) for _ in range(n)]
+    edges = []
+    for i, j in [(0, 1), (1, 2), (2, 3), (3, 4), (4, 5), (5, 0), (0, 3)]:
+        axis = rng.normal(size=3)
+        axis /= np.linalg.norm(axis)
+        D = make_T(rotvec_to_R(axis * (rng.uniform(0, 3) if angle is None else angle)), rng.normal(size=3) * 0.01)
+        edges.append(GraphEdge(i, j, inv_T(poses[j]) @ poses[i] @ inv_T(D), points_info(30, rng),
+                               depth=rng.uniform(0.3, 2.0)))
+    g = _Graph(n, edges, poses, PoseGraphParams())
+    for floor in (0.0, 0.01):
+        g.set_floor(floor)
+        got = g.chi2s(list(range(len(edges))))
+        for k, ed in enumerate(edges):
+            one = _Graph(n, [ed], poses, PoseGraphParams())
+            one.set_floor(floor)
+            assert got[k] == one.chi2(0)
+            if floor == 0.0:
+                assert got[k] == edge_chi2(poses[ed.src], poses[ed.tgt], ed)
+    R = np.array([rotvec_to_R(rng.normal(size=3)) for _ in range(5)] + [np.eye(3)])
+    ref = Rotation.from_matrix(R).as_rotvec()
+    np.testing.assert_allclose(_rotvecs(R), ref, atol=1e-9)
+    half = np.array([rotvec_to_R(np.array([0.0, 0.0, np.pi])),
+                     rotvec_to_R(np.array([1.0, 1.0, 0.0]) / np.sqrt(2) * np.pi)])
+    got = _rotvecs(half)
+    assert np.allclose(np.linalg.norm(got, axis=1), np.pi)
+    for r, Rk in zip(got, half, strict=True):
+        np.testing.assert_allclose(rotvec_to_R(r), Rk, atol=1e-9)

@@ -162,25 +162,45 @@ class PoseGraphParams:
             raise ValueError("need 0 < alpha < 1, max_rounds >= 1 and max_iterations >= 1")
 
 
-def _rotvec(R: np.ndarray) -> np.ndarray:
-    """Rotation vector [3] of a [3 x 3] rotation (angle from atan2: exact near 0 and near 180 deg)."""
-    w = 0.5 * np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    s, c = np.linalg.norm(w), (np.trace(R) - 1.0) / 2.0
-    angle = np.arctan2(s, c)
-    if s < 1e-12:
-        if c > 0:
-            return np.zeros(3)
-        # 180 degrees: the axis from the symmetric part
-        M = (R + np.eye(3)) / 2.0
-        axis = M[:, int(np.argmax(np.diag(M)))]
-        return np.pi * axis / np.linalg.norm(axis)
-    return w / s * angle
+def _rotvecs(R: np.ndarray) -> np.ndarray:
+    """Rotation vectors [E x 3] of rotations R [E x 3 x 3] (angle from atan2: exact near 0 and near 180 deg).
+    The norms are stacked 1 x 3 products: each row has the bits a rotation's own `np.linalg.norm` gives it."""
+    R = np.asarray(R, dtype=np.float64)
+    w = 0.5 * np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], axis=1)
+    s = np.sqrt(np.matmul(w[:, None, :], w[:, :, None])[:, 0, 0])
+    c = (R[:, 0, 0] + R[:, 1, 1] + R[:, 2, 2] - 1.0) / 2.0
+    small = s < 1e-12
+    out = w / np.where(small, 1.0, s)[:, None] * np.arctan2(s, c)[:, None]
+    for k in np.flatnonzero(small):
+        if c[k] > 0:
+            out[k] = 0.0
+        else:  # 180 degrees: the axis from the symmetric part
+            M = (R[k] + np.eye(3)) / 2.0
+            axis = M[:, int(np.argmax(np.diag(M)))]
+            out[k] = np.pi * axis / np.linalg.norm(axis)
+    return out
+
+
+def _inv_Ts(T: np.ndarray) -> np.ndarray:
+    """Inverses [E x 4 x 4] of rigid transforms T [E x 4 x 4] (each as `inv_T` gives it)."""
+    Rt = T[:, :3, :3].transpose(0, 2, 1)
+    out = np.zeros_like(T)
+    out[:, :3, :3] = Rt
+    out[:, :3, 3] = -np.matmul(Rt, T[:, :3, 3, None])[..., 0]
+    out[:, 3, 3] = 1.0
+    return out
+
+
+def _residual_motions(T_world_src: np.ndarray, T_world_tgt: np.ndarray, T_tgt_src: np.ndarray) -> np.ndarray:
+    """[E x 4 x 4] inv(T_tgt_src) @ inv(T_world_tgt) @ T_world_src of [E x 4 x 4] stacks: the motion, in the source
+    frame, by which the node poses disagree with each edge (identity = consistent)."""
+    return _inv_Ts(T_tgt_src) @ _inv_Ts(T_world_tgt) @ T_world_src
 
 
 def _residual_motion(T_world_src: np.ndarray, T_world_tgt: np.ndarray, T_tgt_src: np.ndarray) -> np.ndarray:
-    """[4 x 4] inv(T_tgt_src) @ inv(T_world_tgt) @ T_world_src: the motion, in the source frame, by which the
-    node poses disagree with the edge (identity = consistent)."""
-    return inv_T(T_tgt_src) @ inv_T(T_world_tgt) @ T_world_src
+    """`_residual_motions` of one edge: [4 x 4]."""
+    return _residual_motions(*(np.asarray(T, dtype=np.float64)[None] for T in (T_world_src, T_world_tgt,
+                                                                               T_tgt_src)))[0]
 
 
 def edge_residual(T_world_src: np.ndarray, T_world_tgt: np.ndarray, T_tgt_src: np.ndarray) -> tuple[float, float]:
@@ -192,7 +212,7 @@ def edge_residual(T_world_src: np.ndarray, T_world_tgt: np.ndarray, T_tgt_src: n
 def edge_chi2(T_world_src: np.ndarray, T_world_tgt: np.ndarray, edge: GraphEdge) -> float:
     """chi^2 = e^T information e of the edge's residual e under the node poses."""
     D = _residual_motion(T_world_src, T_world_tgt, edge.T_tgt_src)
-    e = np.concatenate([_rotvec(D[:3, :3]), D[:3, 3]])
+    e = np.concatenate([_rotvecs(D[None, :3, :3])[0], D[:3, 3]])
     return float(e @ np.asarray(edge.information, dtype=np.float64) @ e)
 
 
@@ -320,7 +340,9 @@ def _optimize(poses: list[np.ndarray], edges: list[GraphEdge], active: list[int]
 
 
 class _Graph:
-    """The optimisation state of `optimize_pose_graph`: poses, and the floor of every edge's uncertainty."""
+    """The optimisation state of `optimize_pose_graph`: poses, and the floor of every edge's uncertainty. Edges'
+    residuals, information and chi^2 are computed for many edges at once (stacks indexed by edge), each edge's
+    value with the bits its own computation gives it."""
 
     def __init__(self, n: int, edges: list[GraphEdge], poses: list[np.ndarray], params: PoseGraphParams):
         from scipy.stats import chi2
@@ -330,29 +352,43 @@ class _Graph:
         self.limit = float(chi2.ppf(1.0 - params.alpha, 6))
         self.floor = 0.0  # rad (module docstring)
         self.rounds = 0
-        self._cov = [np.linalg.pinv(np.asarray(ed.information, dtype=np.float64)) for ed in edges]
-        self._shape = [np.diag([1.0, 1.0, 1.0] + [ed.depth ** 2] * 3) for ed in edges]
-        self._info: dict[int, np.ndarray] = {}
+        E = len(edges)
+        self._src = np.array([ed.src for ed in edges], dtype=np.int64)
+        self._tgt = np.array([ed.tgt for ed in edges], dtype=np.int64)
+        self._T = np.array([ed.T_tgt_src for ed in edges], dtype=np.float64).reshape(E, 4, 4)
+        self._info0 = np.array([ed.information for ed in edges], dtype=np.float64).reshape(E, 6, 6)
+        self._cov = np.linalg.pinv(self._info0) if E else self._info0.copy()
+        self._shape = np.array([np.diag([1.0, 1.0, 1.0] + [ed.depth ** 2] * 3) for ed in edges]).reshape(E, 6, 6)
+        self._info: np.ndarray | None = None  # every edge's information with the current floor (when not 0)
 
-    def info(self, e: int) -> np.ndarray:
-        """Edge e's information with the current floor: inv(inv(information) + floor^2 diag(1, 1, 1, d, d, d)^2)."""
+    def infos(self, es: list[int] | np.ndarray) -> np.ndarray:
+        """[E x 6 x 6] the edges' information with the current floor: inv(inv(information) + floor^2 diag(1, 1, 1,
+        d, d, d)^2)."""
         if self.floor == 0.0:
-            return np.asarray(self.edges[e].information, dtype=np.float64)
-        if e not in self._info:
-            self._info[e] = np.linalg.inv(self._cov[e] + self.floor ** 2 * self._shape[e])
-        return self._info[e]
+            return self._info0[es]
+        if self._info is None:
+            self._info = np.linalg.inv(self._cov + self.floor ** 2 * self._shape)
+        return self._info[es]
 
-    def residual(self, e: int) -> np.ndarray:
-        ed = self.edges[e]
-        D = _residual_motion(self.poses[ed.src], self.poses[ed.tgt], ed.T_tgt_src)
-        return np.concatenate([_rotvec(D[:3, :3]), D[:3, 3]])
+    def residuals(self, es: list[int] | np.ndarray) -> np.ndarray:
+        """[E x 6] the edges' residuals (rotation vector, translation) under the current poses."""
+        es = np.asarray(es, dtype=np.int64)
+        P = np.array(self.poses, dtype=np.float64)
+        D = _residual_motions(P[self._src[es]], P[self._tgt[es]], self._T[es])
+        return np.concatenate([_rotvecs(D[:, :3, :3]), D[:, :3, 3]], axis=1)
+
+    def chi2s(self, es: list[int] | np.ndarray) -> np.ndarray:
+        """[E] the edges' chi^2 under the current poses and floor."""
+        if len(es) == 0:
+            return np.zeros(0)
+        r = self.residuals(es)
+        return np.matmul(np.matmul(r[:, None, :], self.infos(es)), r[:, :, None])[:, 0, 0]
 
     def chi2(self, e: int) -> float:
-        r = self.residual(e)
-        return float(r @ self.info(e) @ r)
+        return float(self.chi2s([e])[0])
 
     def set_floor(self, floor: float) -> None:
-        self.floor, self._info = float(floor), {}
+        self.floor, self._info = float(floor), None
 
     def update_floor(self, active: list[int]) -> None:
         """The floor at which the median chi^2 of the active edges is the median of chi^2_6 (0 when the noise
@@ -360,8 +396,8 @@ class _Graph:
         if not active:
             self.set_floor(0.0)
             return
-        r = np.array([self.residual(e) for e in active])  # [E x 6]
-        cov, shape = np.array([self._cov[e] for e in active]), np.array([self._shape[e] for e in active])
+        r = self.residuals(active)  # [E x 6]
+        cov, shape = self._cov[active], self._shape[active]
 
         def median_chi2(f: float) -> float:  # one batched solve (each edge's value as its own solve gives it)
             x = np.linalg.solve(cov + f * f * shape, r[..., None])[..., 0]
@@ -378,7 +414,8 @@ class _Graph:
 
     def optimise(self, active: list[int], weights: dict[int, float] | None = None) -> None:
         """Optimise every part of the active graph; each part's first node keeps its pose."""
-        infos = {e: (1.0 if weights is None else weights[e]) * self.info(e) for e in active}
+        infos = dict(zip(active, self.infos(active), strict=True)) if weights is None else \
+            {e: weights[e] * info for e, info in zip(active, self.infos(active), strict=True)}
         for comp in _components(self.n, [(self.edges[e].src, self.edges[e].tgt) for e in active]):
             sub = [e for e in active if self.edges[e].src in set(comp)]
             if not sub:
@@ -393,7 +430,8 @@ class _Graph:
         for scale in ROBUST_SCALES:
             if fit_floor:
                 self.update_floor(active)
-            self.optimise(active, {e: 1.0 / (1.0 + self.chi2(e) / (scale * self.limit)) for e in active})
+            w = 1.0 / (1.0 + self.chi2s(active) / (scale * self.limit))
+            self.optimise(active, dict(zip(active, w, strict=True)))
 
 
 def optimize_pose_graph(n_nodes: int, edges: list[GraphEdge],
@@ -422,8 +460,9 @@ def optimize_pose_graph(n_nodes: int, edges: list[GraphEdge],
             # every edge there: the rejections must not talk it down
             g.robust_start(active, fit_floor)
             fit_floor = False
-            scores = [(g.chi2(e), e) for e in active]
-            worst, e = max(scores, key=lambda s: (s[0], -s[1]))
+            scores = g.chi2s(active)  # (active is sorted: the first largest is the lowest edge of the largest)
+            k = int(np.argmax(scores))
+            worst, e = float(scores[k]), active[k]
             if worst <= g.limit:
                 return
             if g.rounds >= params.max_rounds:
@@ -436,7 +475,8 @@ def optimize_pose_graph(n_nodes: int, edges: list[GraphEdge],
 
     reject_until_consistent(fit_floor=True)
     # re-admission: an edge rejected while the graph was still distorted by a wrong one
-    again = sorted(e for e in reasons if g.chi2(e) <= g.limit)
+    rejected = sorted(reasons)
+    again = [e for e, c in zip(rejected, g.chi2s(rejected), strict=True) if c <= g.limit]
     if again:
         log.debug("pose graph: re-admitting %d edges consistent with the optimised poses", len(again))
         for e in again:
