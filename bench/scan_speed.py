@@ -25,6 +25,7 @@ import argparse
 import json
 import os
 import resource
+import shlex
 import shutil
 import subprocess
 import sys
@@ -46,12 +47,13 @@ def git(*args: str) -> str:
     return subprocess.run(["git", *args], cwd=ROOT, check=True, capture_output=True, text=True).stdout.strip()
 
 
-def scan_once(tree: Path, capture: Path, out: Path, env: dict[str, str], cwd: Path) -> dict[str, Any]:
-    """One `gscan scan` of `capture` by the gscan in `tree`: wall s, CPU s, the summary's registered / frames
-    and its stage timings."""
+def scan_once(tree: Path, capture: Path, out: Path, env: dict[str, str], cwd: Path,
+              extra: tuple[str, ...] = ()) -> dict[str, Any]:
+    """One `gscan scan` of `capture` (with the options `extra`) by the gscan in `tree`: wall s, CPU s, the
+    summary's registered / frames and its stage timings."""
     r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
-    p = subprocess.run([sys.executable, "-m", "gscan.cli", "scan", str(capture), "-o", str(out), "--json"],
+    p = subprocess.run([sys.executable, "-m", "gscan.cli", "scan", str(capture), "-o", str(out), "--json", *extra],
                        cwd=cwd, env=env | {"PYTHONPATH": str(tree)}, capture_output=True, text=True, check=False)
     wall = time.perf_counter() - t0
     r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
@@ -100,8 +102,10 @@ def main() -> None:
                     default=Path(os.environ.get("GSCAN_TEST_DATA") or ROOT.parent / "shared" / "data"),
                     help="the shared test data (meshes/)")
     ap.add_argument("--one-thread", action="store_true", help="OPENBLAS/OMP_NUM_THREADS=1 for both trees")
+    ap.add_argument("--scan-args", default="", help="more options for both trees' `gscan scan` (one string)")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
+    extra = tuple(shlex.split(args.scan_args))
 
     from gscan.demo import SAMPLES
 
@@ -125,11 +129,11 @@ def main() -> None:
         cwd.mkdir()
         for cap in captures:
             for tree in trees.values():  # warm-up: numba's cache, the page cache
-                scan_once(tree, cap, work / "warm.gscan", env, cwd)
+                scan_once(tree, cap, work / "warm.gscan", env, cwd, extra)
             res: dict[str, list[dict[str, Any]]] = {"this": [], "ref": []}
             for rep in range(args.repeats):
                 for name in (("this", "ref") if rep % 2 == 0 else ("ref", "this")):
-                    r = scan_once(trees[name], cap, work / f"{name}.gscan", env, cwd)
+                    r = scan_once(trees[name], cap, work / f"{name}.gscan", env, cwd, extra)
                     res[name].append(r)
                     print(f"{cap.name} {name}: {r['wall_s']:.2f} s wall, {r['cpu_s']:.2f} s CPU, "
                           f"{r['registered']}/{r['frames']} registered, wrong {r['wrong']}", flush=True)
@@ -157,7 +161,8 @@ def main() -> None:
         shutil.rmtree(work, ignore_errors=True)
 
     print(f"\nthis: {this}; ref: {args.ref} = {commit}; load average {load[0]:.1f} before, {load[1]:.1f} after; "
-          f"medians of {args.repeats}{'; one BLAS/OpenMP thread for both' if args.one_thread else ''}")
+          f"medians of {args.repeats}{'; one BLAS/OpenMP thread for both' if args.one_thread else ''}"
+          f"{f'; scan options {args.scan_args}' if extra else ''}")
     print(f"| capture | frames | registered (this / {args.ref}) | registered at a wrong pose (this / {args.ref}) | "
           f"this ms/frame | {args.ref} ms/frame | wall ratio | CPU ratio |")
     print("|---|---|---|---|---|---|---|---|")
@@ -172,7 +177,8 @@ def main() -> None:
             print(f"{r['capture']} stages (s, median) {side}: {json.dumps(stages)}")
     if args.json:
         args.json.write_text(json.dumps({"this": this, "ref": args.ref, "commit": commit, "load": load,
-                                         "one_thread": args.one_thread, "rows": rows, "runs": runs}, indent=1))
+                                         "one_thread": args.one_thread, "scan_args": list(extra), "rows": rows,
+                                         "runs": runs}, indent=1))
 
 
 if __name__ == "__main__":
