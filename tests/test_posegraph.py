@@ -227,13 +227,13 @@ def test_information_from_points_matches_open3d(seed):
 
 def test_loop_candidates_overlap_bounded_deterministic():
     gt = ring_poses(12)
-    params = LoopParams(max_per_node=2, min_index_gap=2, max_angle_deg=70.0, max_distance_m=0.5)
+    params = LoopParams(max_per_node=2, min_index_gap=2, max_angle_deg=70.0, max_baseline=1.0)
     cands = select_loop_candidates(gt, None, existing=[(0, 11)], params=params)
     assert cands, "ring views overlap with their neighbours two steps away"
     counts = np.zeros(12, dtype=int)
     for c in cands:
         assert c.i < c.j and c.j - c.i >= 2 and (c.i, c.j) != (0, 11)
-        # the loop-candidate rule's own bounds: at most 70 deg and 0.5 m apart
+        # the loop-candidate rule's own bounds: at most 70 deg and 0.5 m apart (the default depth, 0.5 m)
         assert c.angle_deg <= 70.0 and c.distance_m <= 0.5 and c.reason == "overlap"
         counts[[c.i, c.j]] += 1
     assert counts.max() <= 2
@@ -241,6 +241,21 @@ def test_loop_candidates_overlap_bounded_deterministic():
     assert all(abs(c.i - c.j) != 6 for c in cands)
     again = select_loop_candidates(gt, None, existing=[(0, 11)], params=params)
     assert [(c.i, c.j, c.score) for c in cands] == [(c.i, c.j, c.score) for c in again]
+
+
+def test_loop_candidates_overlap_scales_with_the_depth_the_views_look_at():
+    """A ring of views around an object 1.5 m away overlaps as the same ring 0.5 m away does: its camera centres
+    are three times farther apart, and so is the depth the views look at. Given 0.5 m depths, the far ring's
+    neighbours (0.78 m apart) do not qualify."""
+    params = LoopParams(max_per_node=2, min_index_gap=2)
+    near = ring_poses(10, radius=0.5, height=0.3)
+    far = ring_poses(10, radius=1.5, height=0.9)
+    depth = float(np.hypot(0.5, 0.3))
+    a = select_loop_candidates(near, None, params=params, depths=[depth] * 10)
+    b = select_loop_candidates(far, None, params=params, depths=[3 * depth] * 10)
+    assert a and [(c.i, c.j) for c in a] == [(c.i, c.j) for c in b]
+    np.testing.assert_allclose([c.score for c in a], [c.score for c in b], atol=1e-12)
+    assert not select_loop_candidates(far, None, params=params, depths=[depth] * 10)
 
 
 def test_loop_candidates_appearance():

@@ -1,7 +1,7 @@
 """Loop-closure candidate selection for the pose graph (re-exported by `gscan.registration.posegraph`).
 
 Pairs of frames are proposed from view overlap under the current pose estimates (viewing
-directions and camera centres) and from appearance (tf-idf bag-of-visual-words built by a
+directions, and camera centres apart by less than the depth the views look at) and from appearance (tf-idf bag-of-visual-words built by a
 seeded k-means over the sequence's own descriptors), at most a few per frame, deterministically.
 """
 from __future__ import annotations
@@ -10,6 +10,9 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+
+
+DEFAULT_DEPTH_M = 0.5  # the depth a node looks at when it is not given (an object on a table at arm's length)
 
 
 @dataclass
@@ -30,7 +33,7 @@ class LoopParams:
     max_per_node: int = 4          # each node takes part in at most this many candidates
     min_index_gap: int = 3         # skip near-sequential pairs (|i - j| < gap)
     max_angle_deg: float = 75.0    # views overlap when viewing directions are within this angle ...
-    max_distance_m: float = 0.5    # ... and the camera centres within this distance
+    max_baseline: float = 1.0      # ... and the camera centres within this multiple of the depth they look at
     appearance_top_k: int = 2      # per node, the k most similar nodes by appearance are candidates
     min_similarity: float = 0.2    # ... if their similarity reaches this
     vocabulary_size: int = 64      # bag-of-words words (k-means on the descriptors)
@@ -101,11 +104,14 @@ def bow_vectors(descriptors: Sequence[np.ndarray], vocabulary_size: int = 64, se
 
 def select_loop_candidates(T_world_node: list[np.ndarray | None], descriptors: Sequence[np.ndarray] | None = None,
                            existing: list[tuple[int, int]] | None = None,
-                           params: LoopParams = LoopParams()) -> list[LoopCandidate]:
+                           params: LoopParams = LoopParams(),
+                           depths: Sequence[float | None] | None = None) -> list[LoopCandidate]:
     """Pairs of nodes to try as loop closures, best first, at most `max_per_node` per node.
 
     A pair qualifies by view overlap (current pose estimates: viewing directions within
-    `max_angle_deg` and camera centres within `max_distance_m`) or by appearance (one is among
+    `max_angle_deg` and camera centres within `max_baseline` times the mean depth of the two views: two views
+    of a scene at depth d overlap while their centres are less than about d apart, so a ring of views around an
+    object 1.5 m away overlaps as one 0.5 m away does) or by appearance (one is among
     the other's `appearance_top_k` most similar frames by bag-of-words, similarity >=
     `min_similarity`). Pairs closer than `min_index_gap` in index and pairs in `existing`
     (either order) are skipped. Score = overlap (1 - angle/max_angle)(1 - dist/max_dist) when
@@ -113,6 +119,7 @@ def select_loop_candidates(T_world_node: list[np.ndarray | None], descriptors: S
 
     T_world_node: per node [4 x 4] camera pose (OpenCV camera, z = viewing direction) or None.
     descriptors: per node [n_i x D] descriptors (any sequence: read node by node), or None for geometry only.
+    depths: per node the depth (m) it looks at (its keypoints' median, say), or None (`DEFAULT_DEPTH_M`).
     """
     n = len(T_world_node)
     have = np.array([T is not None for T in T_world_node])
@@ -120,8 +127,12 @@ def select_loop_candidates(T_world_node: list[np.ndarray | None], descriptors: S
     Z = np.array([T[:3, 2] if T is not None else np.zeros(3) for T in T_world_node]).reshape(n, 3)
     ang = np.degrees(np.arccos(np.clip(Z @ Z.T, -1.0, 1.0)))
     dist = np.linalg.norm(C[:, None] - C[None], axis=2)
-    overlap = have[:, None] & have[None] & (ang <= params.max_angle_deg) & (dist <= params.max_distance_m)
-    ov_score = np.where(overlap, (1 - ang / params.max_angle_deg) * (1 - dist / params.max_distance_m), 0.0)
+    z = np.array([DEFAULT_DEPTH_M if d is None else float(d) for d in (depths or [None] * n)])
+    if len(z) != n:
+        raise ValueError(f"{len(z)} depths for {n} nodes")
+    max_dist = params.max_baseline * 0.5 * (z[:, None] + z[None])
+    overlap = have[:, None] & have[None] & (ang <= params.max_angle_deg) & (dist <= max_dist)
+    ov_score = np.where(overlap, (1 - ang / params.max_angle_deg) * (1 - dist / max_dist), 0.0)
     sim = np.zeros((n, n))
     appear = np.zeros((n, n), dtype=bool)
     if descriptors is not None:

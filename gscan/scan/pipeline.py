@@ -484,6 +484,7 @@ class _Frame:
 
     stored: StoredFrame
     n_keypoints: int = 0  # registration keypoints with depth
+    depth_m: float | None = None  # their median depth (m): the depth the frame looks at
     plane_cam: Plane | None = None  # support plane found while computing a moving object's mask
     object_keypoints: int = 0  # registration keypoints inside its object mask (set at the segment stage)
 
@@ -801,14 +802,18 @@ def _extract(data: _FrameData, db: TemplateDB, resumed: bool, advance: Callable[
                 stored_feats = db.features(f.name)
                 if stored_feats is None:
                     raise InputError(db.path, f"view {f.name!r} is stored without its keypoints", fix="restart")
-                f.n_keypoints = len(stored_feats)
+                f.n_keypoints, f.depth_m = len(stored_feats), _median_depth(stored_feats)
             else:
                 db.add_view(View.from_frame(frame, keyframe=False, input_index=k), feats, replace=f.name in stored)
-                f.n_keypoints = len(feats)
+                f.n_keypoints, f.depth_m = len(feats), _median_depth(feats)
                 if (k + 1) % COMMIT_ROWS == 0:
                     db.commit()
             advance(1)
     data.detections.clear()  # frames the scan does not keep
+
+
+def _median_depth(feats: Features) -> float | None:
+    return float(np.median(feats.points[:, 2])) if len(feats) else None
 
 
 def _capture_noise(data: _FrameData, params: RegisterParams) -> tuple[DepthNoise, DepthNoise]:
@@ -954,7 +959,7 @@ def _register_edges(reg: _Registrar, cfg: ScanConfig, pool: ThreadPoolExecutor,
     sub = {k: s for s, k in enumerate(kp)}
     cands = [] if len(kp) < 2 else select_loop_candidates(
         [T_init[k] for k in kp], LazyList(len(kp), lambda s: data.descriptors(kp[s])),
-        [(sub[a], sub[b]) for a, b in existing if a in sub and b in sub], lp)
+        [(sub[a], sub[b]) for a, b in existing if a in sub and b in sub], lp, [frames[k].depth_m for k in kp])
     edges += reg.register([(kp[c.i], kp[c.j]) for c in cands], "loop", pool)
     return edges
 
