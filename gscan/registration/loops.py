@@ -1,8 +1,9 @@
 """Loop-closure candidate selection for the pose graph (re-exported by `gscan.registration.posegraph`).
 
 Pairs of frames are proposed from view overlap under the current pose estimates (viewing
-directions, and camera centres apart by less than the depth the views look at) and from appearance (tf-idf bag-of-visual-words built by a
-seeded k-means over the sequence's own descriptors), at most a few per frame, deterministically.
+directions, and camera centres apart by less than the depth the views look at) and from appearance
+(tf-idf bag-of-visual-words built by a seeded k-means over the sequence's own descriptors), at most a
+few per frame, deterministically.
 """
 from __future__ import annotations
 
@@ -10,7 +11,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-
 
 DEFAULT_DEPTH_M = 0.5  # the depth a node looks at when it is not given (an object on a table at arm's length)
 
