@@ -18,10 +18,12 @@ the pairs (a pair that fails to register counts 0):
 - else a walk over `SCALES` on those groups, away from 1 towards the better neighbour, until two scales in a row
   line up no more than the best so far (registered texture has one peak; the far side of 1 lines up less than 1);
   then the best scale, its neighbours and s = 1 on every group, moving on while a neighbour lines up more there
-  (the walk's groups may say little: their pairs may fail to register), and the vertex of the parabola through
-  the best value and its neighbours (the estimate: single evaluations are noisy to about 0.01 near the peak);
-- that s is used when it lines up more tiles than s = 1 in significantly more pairs than not (a sign test at
-  level `alpha`) and by at least `min_gain` on average; otherwise the given intrinsics stand.
+  (the walk's groups may say little: their pairs may fail to register);
+- the best scale is tested against s = 1: it must line up more tiles than s = 1 in significantly more pairs than
+  not (a sign test at level `alpha`) and by at least `min_gain` on average; otherwise the given intrinsics stand;
+- the estimate is the vertex of the parabola through the best value and its neighbours, and its share the
+  parabola's value there (single evaluations are noisy to about 0.01 near the peak: the fit is the better figure,
+  and one more evaluation at the vertex would add a noisy one).
 
 With depth registered to the colour (a rendered capture, a RealSense aligned stream), any s other than 1
 moves the depth off its colour pixels and the texture lines up best at 1.
@@ -67,9 +69,10 @@ class FocalCheckParams:
 class FocalCheck:
     """scale: the colour camera's focal length over the given one that lines the texture up best (1.0 when
     the given intrinsics stand); agreement: mean share of textured tiles lining up, per scale tried (over the
-    pairs tried at that scale);
-    pairs: frame pairs compared; better_pairs: pairs lining up more tiles at `scale` than at 1; p_value:
-    the sign test's; significant: the data reject the given intrinsics for the colour camera."""
+    pairs tried at that scale); peak: the share at `scale` (the parabola's value at its vertex, or the scale's
+    own mean when it was tried);
+    pairs: frame pairs compared; better_pairs: pairs lining up more tiles at the best scale tried than at 1;
+    p_value: the sign test's; significant: the data reject the given intrinsics for the colour camera."""
 
     scale: float
     agreement: dict[float, float]
@@ -77,6 +80,7 @@ class FocalCheck:
     better_pairs: int
     p_value: float
     significant: bool
+    peak: float
 
     def colour_intrinsics(self, given: Intrinsics) -> Intrinsics:
         """The colour camera's intrinsics: the given ones with the focal length scaled."""
@@ -216,7 +220,7 @@ def check_colour_focal(read: Callable[[int], RGBDFrame | None], n: int, params: 
     tried = ~np.isnan(per_pair[1.0])
     live, mean = means(tried)
     if live.sum() >= 4 and mean[1.0] >= max(mean.values()):  # the texture peaks at the given focal length
-        return FocalCheck(1.0, dict(sorted(mean.items())), int(live.sum()), 0, 1.0, False)
+        return FocalCheck(1.0, dict(sorted(mean.items())), int(live.sum()), 0, 1.0, False, mean[1.0])
     # towards the better neighbour (no walk when no pair registered on the walk's groups: the step below decides)
     step = 1 if mean[SCALES[one + 1]] > mean[SCALES[one - 1]] else -1
     walked = [one + step]
@@ -238,19 +242,18 @@ def check_colour_focal(read: Callable[[int], RGBDFrame | None], n: int, params: 
         k = top
     if live.sum() < 4:
         return None
-    best = SCALES[k]
+    best, vertex, peak = SCALES[k], SCALES[k], mean[SCALES[k]]
     if 0 < k < len(SCALES) - 1:  # the vertex of the parabola through the best and its neighbours (less noisy)
         x = np.array(SCALES[k - 1:k + 2])
-        a, b, _ = np.polyfit(x, np.array([mean[s] for s in x]), 2)
-        if a < 0:
-            best = round(float(np.clip(-b / (2 * a), x[0], x[2])), 4)
-            evaluate([best], starts)
-            live, mean = means(np.ones(len(pairs), bool))
+        fit = np.polyfit(x, np.array([mean[s] for s in x]), 2)
+        if fit[0] < 0:
+            vertex = round(float(np.clip(-fit[1] / (2 * fit[0]), x[0], x[2])), 4)
+            peak = float(np.polyval(fit, vertex))
     for s in sorted(mean):
         log.debug("colour focal x%.3f: %.3f of the textured tiles line up", s, mean[s])
     d = per_pair[best][live] - per_pair[1.0][live]
     better, worse = int(np.sum(d > 0)), int(np.sum(d < 0))
     p = sign_test(better, worse)
     significant = best != 1.0 and p < check.alpha and mean[best] - mean[1.0] >= check.min_gain
-    return FocalCheck(best if significant else 1.0, dict(sorted(mean.items())), int(live.sum()), better, p,
-                      significant)
+    return FocalCheck(vertex if significant else 1.0, dict(sorted(mean.items())), int(live.sum()), better, p,
+                      significant, peak if significant else mean[1.0])

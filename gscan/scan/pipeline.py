@@ -362,14 +362,14 @@ def _check_camera(seq: Sequence | RecordingSequence, opts: ScanOptions, detectio
     report = {"given_focal_px": [K.fx, K.fy], "colour_focal_px": [round(Kc.fx, 1), round(Kc.fy, 1)],
               "corrected": check.significant, "pairs": check.pairs,
               "texture_agreement": {"given": round(check.agreement[1.0], 3),
-                                    "used": round(check.agreement[check.scale], 3)},
+                                    "used": round(check.peak, 3)},
               "given_intrinsics": K.to_dict(), "colour_intrinsics": Kc.to_dict()}
     if not check.significant:
         return seq, report
     log.warning("the depth does not line up with the colour under the given intrinsics: the texture of %d frame "
                 "pairs lines up best with a colour focal length of %.1f px (%.0f %% of textured tiles, %.0f %% at the "
                 "given %.1f px); scanning with it, the given intrinsics taken as the depth camera's", check.pairs,
-                Kc.fx, 100 * check.agreement[check.scale], 100 * check.agreement[1.0], K.fx)
+                Kc.fx, 100 * check.peak, 100 * check.agreement[1.0], K.fx)
     seq = open_sequence(opts.input_dir, format=opts.fmt, intrinsics=Kc, depth_scale=opts.depth_scale,
                         obj_id=opts.obj_id, depth_intrinsics=K)
     return seq, report
