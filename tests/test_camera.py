@@ -460,3 +460,68 @@ def test_rgbd_frame_size_checks():
         RGBDFrame("x", np.zeros((48, 64, 3), np.uint8), np.zeros((48, 63), np.float32), INTR)
     with pytest.raises(InputError):
         RGBDFrame("x", np.zeros((24, 32, 3), np.uint8), np.zeros((24, 32), np.float32), INTR)
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(3, 300), st.booleans())
+def test_kabsch_kernel_against_the_quaternion_solution(seed, n, weighted):
+    """The numba Kabsch (weights, the reflection guard, the similarity's scale) against Horn's closed form: the
+    rotation is the top eigenvector of the 4 x 4 quaternion matrix of the weighted cross-covariance, the scale
+    the ratio of the rotated cross-covariance to the source's spread (numpy, an independent formulation)."""
+    from gscan.geometry.kabsch import umeyama
+
+    rng = np.random.default_rng(seed)
+    src = rng.normal(size=(n, 3)) * rng.uniform(0.01, 1.0, 3)
+    scale = rng.uniform(0.5, 2.0)
+    dst = scale * transform_points(_rigid(rng), src) + rng.normal(0, 0.01, size=src.shape)
+    w = rng.uniform(0.1, 10.0, n) if weighted else np.ones(n)
+    ws = w / w.sum()
+    xs, xd = src - ws @ src, dst - ws @ dst
+    S = (xs * ws[:, None]).T @ xd  # S[a, b] = sum w x_a y_b
+    N = np.array([[S[0, 0] + S[1, 1] + S[2, 2], S[1, 2] - S[2, 1], S[2, 0] - S[0, 2], S[0, 1] - S[1, 0]],
+                  [S[1, 2] - S[2, 1], S[0, 0] - S[1, 1] - S[2, 2], S[0, 1] + S[1, 0], S[2, 0] + S[0, 2]],
+                  [S[2, 0] - S[0, 2], S[0, 1] + S[1, 0], -S[0, 0] + S[1, 1] - S[2, 2], S[1, 2] + S[2, 1]],
+                  [S[0, 1] - S[1, 0], S[2, 0] + S[0, 2], S[1, 2] + S[2, 1], -S[0, 0] - S[1, 1] + S[2, 2]]])
+    evals, evecs = np.linalg.eigh(N)
+    q0, qx, qy, qz = evecs[:, -1]
+    R = np.array([[q0 * q0 + qx * qx - qy * qy - qz * qz, 2 * (qx * qy - q0 * qz), 2 * (qx * qz + q0 * qy)],
+                  [2 * (qy * qx + q0 * qz), q0 * q0 - qx * qx + qy * qy - qz * qz, 2 * (qy * qz - q0 * qx)],
+                  [2 * (qz * qx - q0 * qy), 2 * (qz * qy + q0 * qx), q0 * q0 - qx * qx - qy * qy + qz * qz]])
+    s = np.trace(R @ S) / np.sum(ws * (xs ** 2).sum(1))
+    for with_scale, k in ((False, 1.0), (True, s)):
+        T = umeyama(src, dst, w if weighted else None, with_scale=with_scale)
+        # the same least-squares optimum by two formulations: float64 rounding amplified by the eigen-gap, ~1e-12
+        np.testing.assert_allclose(T[:3, :3], k * R, atol=1e-8)
+        np.testing.assert_allclose(T[:3, 3], ws @ dst - k * R @ (ws @ src), atol=1e-8)
+
+
+def test_the_kabsch_kernels_load_from_numba_s_cache_in_a_new_process(tmp_path):
+    """Each kernel compiled into numba's cache by one process is loaded and run by the next (a recursive kernel
+    crashed there: numba's cache cannot hold one), with the results the first process got."""
+    import subprocess
+    import sys
+
+    script = ("import numpy as np, sys\n"
+              "from gscan.geometry.kabsch import kabsch, kabsch_trimmed, leave_one_out_residuals, umeyama\n"
+              "rng = np.random.default_rng(0)\n"
+              "src = rng.normal(size=(300, 3)); dst = src + 0.01 * rng.normal(size=(300, 3)); dst[:5] += 1.0\n"
+              "out = [kabsch(src, dst, rng.uniform(1, 2, 300)), umeyama(src, 2 * dst, with_scale=True),\n"
+              "       leave_one_out_residuals(src[:20], dst[:20]), *kabsch_trimmed(src[:40], dst[:40], 0.03)]\n"
+              "np.save(sys.argv[1], np.concatenate([np.ravel(a).astype(float) for a in out]))\n")
+    runs = [subprocess.run([sys.executable, "-c", script, str(tmp_path / f"{k}.npy")], capture_output=True,
+                           text=True, timeout=300) for k in range(2)]
+    for r in runs:
+        assert r.returncode == 0, r.stderr[-2000:]
+    np.testing.assert_array_equal(np.load(tmp_path / "0.npy"), np.load(tmp_path / "1.npy"))
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(0, 5000))
+def test_the_kernels_pairwise_sum_is_a_sum(seed, n):
+    """The kernels' pairwise sum (numpy's summation order, without recursion) against math.fsum's exact one."""
+    import math
+
+    from gscan.geometry.kabsch_kernel import _pairwise_sum
+
+    a = np.random.default_rng(seed).uniform(0.0, 1.0, n)
+    assert abs(_pairwise_sum(a) - math.fsum(a)) <= 1e-13 * max(1.0, math.fsum(a))

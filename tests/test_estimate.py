@@ -450,12 +450,12 @@ import json, sys
 from gscan.demo import SAMPLES
 from gscan.estimate.estimator import Estimator
 from gscan.estimate import query, similarity
-from gscan.geometry import consensus_kernel, grid_kernel, plane_kernel
+from gscan.geometry import grid_kernel, kabsch_kernel, plane_kernel
 from gscan.io import open_sequence
 from gscan.matching import kernel
 est = Estimator.from_path(sys.argv[1])
 kernels = [similarity._scan, similarity._best_columns, grid_kernel._build, grid_kernel._query, query._backproject,
-           kernel.search, consensus_kernel.best_triple]
+           kernel.search, kabsch_kernel.kabsch_trimmed]
 if plane_kernel.HAS_FMA:
     kernels += [plane_kernel.plane_counts, plane_kernel.plane_inliers]
 before = [len(k.signatures) for k in kernels]

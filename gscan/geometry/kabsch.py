@@ -1,12 +1,11 @@
 """Kabsch / Umeyama alignment of matched point sets, and the outlier-trimmed Kabsch of registration and
-pose estimation (its consensus step is the numba kernel `gscan.geometry.consensus_kernel`, imported on first
-use so that importing gscan.geometry does not load numba).
+pose estimation: the specifications and the checks of the input. Each is computed by a numba kernel
+(`gscan.geometry.kabsch_kernel`, the consensus step `gscan.geometry.consensus_kernel`), imported on first use so
+that importing gscan.geometry does not load numba.
 """
 from __future__ import annotations
 
 import numpy as np
-
-from gscan.geometry.transforms import make_T, transform_points
 
 
 def umeyama(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None,
@@ -17,25 +16,20 @@ def umeyama(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None,
     (the reflection guard flips the smallest singular direction). Returns [4 x 4];
     with_scale puts the scale into the rotation block.
     """
-    src = np.asarray(src, dtype=np.float64)
-    dst = np.asarray(dst, dtype=np.float64)
-    if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3 or len(src) < 3:
-        raise ValueError(f"need two [N x 3] arrays with N >= 3, got {src.shape} and {dst.shape}")
-    w = np.ones(len(src)) if weights is None else np.asarray(weights, dtype=np.float64)
-    w = w / w.sum()
-    mu_s, mu_d = w @ src, w @ dst
-    xs, xd = src - mu_s, dst - mu_d
-    C = (xd * w[:, None]).T @ xs
-    U, S, Vt = np.linalg.svd(C)
-    D = np.eye(3)
-    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
-        D[2, 2] = -1.0
-    R = U @ D @ Vt
-    s = 1.0
-    if with_scale:
-        var_s = (w * (xs ** 2).sum(1)).sum()
-        s = float(np.trace(np.diag(S) @ D) / var_s)
-    return make_T(s * R, mu_d - s * R @ mu_s)
+    from gscan.geometry.kabsch_kernel import umeyama as kernel  # numba, on first use
+
+    src, dst = _pairs(src, dst, 3)
+    w = np.ones(len(src)) if weights is None else np.ascontiguousarray(weights, dtype=np.float64).reshape(len(src))
+    return kernel(src, dst, w, with_scale)
+
+
+def _pairs(src: np.ndarray, dst: np.ndarray, n_min: int) -> tuple[np.ndarray, np.ndarray]:
+    """src, dst as C-contiguous float64 [N x 3] arrays of one shape, N >= n_min (ValueError otherwise)."""
+    src = np.ascontiguousarray(src, dtype=np.float64)
+    dst = np.ascontiguousarray(dst, dtype=np.float64)
+    if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3 or len(src) < n_min:
+        raise ValueError(f"need two [N x 3] arrays with N >= {n_min}, got {src.shape} and {dst.shape}")
+    return src, dst
 
 
 def kabsch(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
@@ -45,20 +39,10 @@ def kabsch(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) 
 
 def leave_one_out_residuals(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     """[N] residual |T_k src_k - dst_k| of each pair under T_k = kabsch of the other N - 1 pairs (src, dst
-    [N x 3], N >= 4): the N fits in one batched SVD, each from the totals less the pair left out."""
-    src = np.asarray(src, dtype=np.float64)
-    dst = np.asarray(dst, dtype=np.float64)
-    if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3 or len(src) < 4:
-        raise ValueError(f"need two [N x 3] arrays with N >= 4, got {src.shape} and {dst.shape}")
-    m = len(src) - 1
-    mu_s = (src.sum(0) - src) / m  # [N x 3] centroids without pair k
-    mu_d = (dst.sum(0) - dst) / m
-    C = dst.T @ src - dst[:, :, None] * src[:, None, :] - m * mu_d[:, :, None] * mu_s[:, None, :]  # [N x 3 x 3]
-    U, _, Vt = np.linalg.svd(C)
-    U[:, :, 2] *= np.where(np.linalg.det(U) * np.linalg.det(Vt) < 0, -1.0, 1.0)[:, None]  # reflection guard (umeyama)
-    R = U @ Vt
-    pred = np.einsum("kij,kj->ki", R, src - mu_s) + mu_d
-    return np.linalg.norm(pred - dst, axis=1)
+    [N x 3], N >= 4): the N fits each from the totals less the pair left out."""
+    from gscan.geometry.kabsch_kernel import leave_one_out_residuals as kernel  # numba, on first use
+
+    return kernel(*_pairs(src, dst, 4))
 
 
 CONSENSUS_MAX_PAIRS = 32  # kabsch_trimmed enumerates the triples of at most this many pairs (4960)
@@ -84,35 +68,9 @@ def kabsch_trimmed(src: np.ndarray, dst: np.ndarray, tau: float | np.ndarray, mi
        a far-off pair that tilts the fit towards itself (a clustered list plus one distant point).
     Without outliers this is plain Kabsch. The kept pairs may be a minority of the list.
     """
-    src = np.asarray(src, dtype=np.float64)
-    dst = np.asarray(dst, dtype=np.float64)
-    n = len(src)
-    taus = np.broadcast_to(np.asarray(tau, dtype=np.float64), (n,)).copy()  # [N]
-    keep = np.ones(n, bool)
-    T = kabsch(src, dst)
-    if n > 3 and (np.linalg.norm(transform_points(T, src) - dst, axis=1) > taus).any():  # 2. consensus
-        from gscan.geometry.consensus_kernel import best_triple  # numba, on first use
+    from gscan.geometry.kabsch_kernel import kabsch_trimmed as kernel  # numba, on first use
 
-        i, j, k, T_tri = best_triple(np.ascontiguousarray(src), np.ascontiguousarray(dst),
-                                     min(n, CONSENSUS_MAX_PAIRS), taus, float(min_sin))
-        if i >= 0:
-            keep = np.linalg.norm(transform_points(T_tri, src) - dst, axis=1) < taus
-            keep[[i, j, k]] = True
-            for _ in range(3):
-                T = kabsch(src[keep], dst[keep])
-                again = np.linalg.norm(transform_points(T, src) - dst, axis=1) < taus
-                if again.sum() < 3 or (again == keep).all():
-                    break  # T is the selection's pose
-                keep = again
-            else:  # the third re-selection changed it
-                T = kabsch(src[keep], dst[keep])
-    floor = max(3, (n + 1) // 2)
-    while keep.sum() >= 5 and keep.sum() - 1 >= floor:  # 3. leave-one-out residuals
-        idx = np.flatnonzero(keep)
-        r = leave_one_out_residuals(src[idx], dst[idx]) / taus[idx]
-        worst = int(np.argmax(r))
-        if r[worst] <= 1.0:
-            break
-        keep[idx[worst]] = False
-        T = kabsch(src[keep], dst[keep])
-    return T, keep
+    src, dst = _pairs(src, dst, 3)
+    n = len(src)
+    taus = np.ascontiguousarray(np.broadcast_to(np.asarray(tau, dtype=np.float64), (n,)))  # [N]
+    return kernel(src, dst, taus, float(min_sin), min(n, CONSENSUS_MAX_PAIRS))
