@@ -2,7 +2,8 @@
 
 1. Accuracy: for every shared mesh (or the first --meshes), a static capture of --views views
    (gscan.synth.render_capture, mode "static", two orbit rings at 30 and 55 degrees elevation,
-   ordered ring by ring: the first half of the frames on the 30-degree ring), scanned with the
+   ordered ring by ring: the first half of the frames on the 30-degree ring; with --mode turntable the
+   object turns 360 degrees in front of one camera at 30 degrees), scanned with the
    rendered masks and again without them (masks/ removed: gscan segments on its own). Reports
    registered frames, frames registered at a wrong pose (beyond 5 deg or 2 cm of the ground truth: the
    median error of a frame's poses relative to the other registered frames, gscan.evaluate.metrics.frame_errors),
@@ -25,6 +26,7 @@ Raw results go to --json (default bench/out/scan.json).
     python bench/scan.py --meshes 3       # quick end-to-end check of the script
     python bench/scan.py --quick          # 3 meshes, 24 views, 40-frame end-to-end run
     python bench/scan.py --meshes 0       # the end-to-end run alone
+    python bench/scan.py --mode turntable --views 24 --e2e-views 0   # turntable captures
     python bench/scan.py --tables bench/out/scan_a.json --merge bench/out/scan_b.json --markdown
 """
 from __future__ import annotations
@@ -66,15 +68,21 @@ def mesh_names() -> list[str]:
     return sorted(p.name for p in MESHES.iterdir() if (p / "model_0.obj").is_file())
 
 
-def capture(name: str, views: int, elevations: tuple[float, ...], seed: int) -> tuple[Path, Path]:
+def capture_tag(name: str, views: int, elevations: tuple[float, ...], seed: int, mode: str) -> str:
+    return f"{name}_v{views}_e{'-'.join(f'{e:g}' for e in elevations)}_s{seed}" + ("" if mode == "static" else
+                                                                                  f"_{mode}")
+
+
+def capture(name: str, views: int, elevations: tuple[float, ...], seed: int, mode: str = "static"
+            ) -> tuple[Path, Path]:
     """(capture folder with masks, copy without masks/), rendered once and cached."""
-    tag = f"{name}_v{views}_e{'-'.join(f'{e:g}' for e in elevations)}_s{seed}"
+    tag = capture_tag(name, views, elevations, seed, mode)
     cap, bare = OUT / "captures" / tag, OUT / "captures" / f"{tag}_nomask"
     if not (cap / ".done").exists():
         shutil.rmtree(cap, ignore_errors=True)
         t = time.perf_counter()
         mesh = load_textured_mesh(MESHES / name / "model_0.obj")
-        render_capture(mesh, cap, views, mode="static", elevations_deg=elevations, seed=seed)
+        render_capture(mesh, cap, views, mode=mode, elevations_deg=elevations, seed=seed)
         (cap / ".done").write_text("ok\n")
         print(f"  rendered {name}: {views} views in {time.perf_counter() - t:.0f} s", flush=True)
     if not (bare / ".done").exists():
@@ -154,9 +162,9 @@ def _wrong(rs: list[dict]) -> str:
     return "-" if any("wrong" not in r for r in rs) else str(sum(len(r["wrong"]) for r in rs))
 
 
-def wait_for_capture(name: str, views: int, seed: int, timeout_s: float = 3600.0) -> None:
+def wait_for_capture(name: str, views: int, seed: int, mode: str, timeout_s: float = 3600.0) -> None:
     """Block until another process has rendered this capture (a split run renders each once)."""
-    tag = f"{name}_v{views}_e{'-'.join(f'{e:g}' for e in ELEVATIONS)}_s{seed}"
+    tag = capture_tag(name, views, ELEVATIONS, seed, mode)
     t = time.perf_counter()
     while not (OUT / "captures" / f"{tag}_nomask" / ".done").exists():
         if time.perf_counter() - t > timeout_s:
@@ -165,7 +173,7 @@ def wait_for_capture(name: str, views: int, seed: int, timeout_s: float = 3600.0
 
 
 def accuracy(names: list[str], views: int, what: set[str], result: dict, json_path: Path,
-             wait: bool = False) -> dict:
+             wait: bool = False, mode: str = "static") -> dict:
     """Per-mesh rows of the methods in `what` ("scan", "peers", "peers_masked"); the raw results
     so far are rewritten to json_path after every mesh."""
     rows = result.setdefault("accuracy", {})
@@ -174,8 +182,8 @@ def accuracy(names: list[str], views: int, what: set[str], result: dict, json_pa
         print(f"[{k + 1}/{len(names)}] {name}", flush=True)
         seed = everything.index(name)  # index among all meshes: the same capture in a split run
         if wait:
-            wait_for_capture(name, views, seed)
-        cap, bare = capture(name, views, ELEVATIONS, seed=seed)
+            wait_for_capture(name, views, seed, mode)
+        cap, bare = capture(name, views, ELEVATIONS, seed=seed, mode=mode)
         gt = gt_T_world_cam(cap)
         row = {}
         if "scan" in what:
@@ -309,6 +317,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--offset", type=int, default=0, help="skip the first K meshes (to split a run)")
     ap.add_argument("--names", default=None, help="comma-separated mesh names (instead of --offset/--meshes)")
     ap.add_argument("--views", type=int, default=36, help="views per accuracy capture (two rings)")
+    ap.add_argument("--mode", choices=("static", "turntable"), default="static",
+                    help="accuracy captures: cameras on two rings around the object, or the object turning in "
+                         "front of one camera (30 deg elevation; no peers: they register whole frames)")
     ap.add_argument("--e2e-views", type=int, default=100, help="frames of the end-to-end run (0 = skip)")
     ap.add_argument("--no-peers", action="store_true", help="skip the open3d peers")
     ap.add_argument("--no-scan", action="store_true", help="skip the gscan scans (peers only)")
@@ -350,15 +361,15 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"unknown meshes: {', '.join(unknown)}")
     t0 = time.perf_counter()
     result: dict = {"date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "argv": sys.argv[1:],
-                    "views": a.views, "elevations_deg": ELEVATIONS}
+                    "views": a.views, "elevations_deg": ELEVATIONS, "mode": a.mode}
     if a.e2e_views > 0:  # first, so that RUSAGE_CHILDREN holds this child alone
         result["e2e"] = e2e(a.e2e_views)
         print_e2e(result["e2e"])
         write_json(result, a.json)
-    what = {w for w, off in (("scan", a.no_scan), ("peers", a.no_peers), ("peers_masked", a.no_masked_peers))
-            if not off}
+    what = {w for w, off in (("scan", a.no_scan), ("peers", a.no_peers or a.mode == "turntable"),
+                             ("peers_masked", a.no_masked_peers or a.mode == "turntable")) if not off}
     if names:  # --meshes 0: the end-to-end run alone
-        accuracy(names, a.views, what, result, a.json, wait=a.wait_captures)
+        accuracy(names, a.views, what, result, a.json, wait=a.wait_captures, mode=a.mode)
         print_accuracy(result["accuracy"], a.views)
     if "e2e" in result:
         print_e2e(result["e2e"])
