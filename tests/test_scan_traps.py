@@ -10,7 +10,9 @@ fuses another scene into the template, scanned with the defaults a user runs (`g
   summary, `poses --json` and `info --json`), builds the template from the larger one and fuses nothing from the
   other;
 - an edge of the first frame measured a few degrees off: the pose graph rejects it, the frame's one other edge is
-  contradicted and no cycle decides, so the frame is registered to more frames and placed by those.
+  contradicted and no cycle decides, so the frame is registered to more frames and placed by those;
+- a box printed alike front and back: loop edges that matched its two faces turn the view 180 deg and agree with
+  each other; the capture's odometry (its sequential edges) rejects them before they outvote the right ones.
 
 Wrong: a registered frame of the object beyond 5 deg / 2 cm of the ground truth relative to the other registered
 frames (`frame_errors`). Captures are built by `gscan.synth.cases` from the shared meshes (640x480, 10-12 frames).
@@ -25,10 +27,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gscan.geometry.transforms import rotvec_to_R
+from gscan.geometry.transforms import inv_T, look_at, rotvec_to_R
 from gscan.scan import pipeline
 from gscan.synth import cases as C
 from gscan.synth import load_textured_mesh
+from gscan.template.records import Edge
 from tests._scan_checks import ATE_NEAR, Outcome, check_template_is_object, scan_case
 
 BOX = "Whey_Protein_Chocolate_12_Packets"  # 10 x 15 x 16 cm, printed on every side
@@ -150,3 +153,34 @@ def test_a_frame_whose_edges_disagree_is_placed_by_more_edges(tmp_path, monkeypa
     assert sorted(out.registered) == case.frames and out.ate_m <= ATE_NEAR, out.describe()
     mine = [e for e in out.edges if first in (e.src, e.tgt) and e.accepted]
     assert len(mine) >= 2 and all(e.kind == "loop" for e in mine), out.describe()
+
+
+def test_edges_that_turn_the_view_against_the_odometry_are_rejected():
+    """A 24-view ring around an object, each sequential edge measured 0.5 deg off (the odometry drifts); loop edges
+    that matched the object's look-alike back face (the view turned 180 deg about the object's vertical axis) are
+    rejected with their reason, the right loop edges and one 40 deg off across 3 frames too, not one whose two
+    frames no chain of sequential edges joins (the pose graph judges that one), nor sequential edges."""
+    n, rng = 24, np.random.default_rng(0)
+    T_world = [look_at(0.6 * np.array([np.cos(a), np.sin(a), 0.5]), np.zeros(3))
+               for a in np.linspace(0.0, 2.0 * np.pi, n, endpoint=False)]
+    flip = np.eye(4)
+    flip[:3, :3] = rotvec_to_R(np.array([0.0, 0.0, np.pi]))
+
+    def edge(i: int, j: int, kind: str, T_extra: np.ndarray | None = None) -> Edge:
+        off = np.eye(4)
+        off[:3, :3] = rotvec_to_R(np.radians(0.5) * rng.normal(size=3) / np.sqrt(3.0))
+        T_tgt_src = off @ inv_T(T_world[j]) @ (np.eye(4) if T_extra is None else T_extra) @ T_world[i]
+        return Edge(f"{i:06d}", f"{j:06d}", T_tgt_src, np.zeros((30, 2), np.int32), kind=kind)
+
+    sequential = [edge(k, k + 1, "sequential") for k in range(n - 1) if k != 17]  # 17 -> 18 not registered
+    turn = np.eye(4)
+    turn[:3, :3] = rotvec_to_R(np.radians([0.0, 0.0, 40.0]))
+    right = [edge(0, 12, "loop"), edge(3, 15, "loop"), edge(0, 23, "loop"), edge(2, 16, "loop")]
+    flipped = [edge(1, 13, "loop", flip), edge(4, 17, "loop", flip), edge(5, 8, "loop", turn)]
+    across = [edge(10, 20, "loop", flip)]
+    edges = sequential + right + flipped + across
+    index = {f"{k:06d}": k for k in range(n)}
+    pipeline._against_odometry(n, edges, index, max_sigma_deg=1.0)
+    for e in flipped:
+        assert not e.accepted and str(e.reason).startswith(pipeline.PRUNED + pipeline.AGAINST_ODOMETRY), (e.src, e.tgt)
+    assert all(e.accepted and e.reason is None for e in sequential + right + across)

@@ -124,6 +124,8 @@ BACKGROUND_FRAMES = 30  # kept frames (evenly spaced) a static camera's backgrou
 T_in = TypeVar("T_in")
 T_out = TypeVar("T_out")
 PRUNED = "pruned by the pose graph: "  # reason prefix of edges registration accepted and the pose graph rejected
+AGAINST_ODOMETRY = "contradicts the capture's odometry"  # how the reason of such an edge begins (`_against_odometry`)
+ODOMETRY_SIGMAS = 5.0  # ... by more than this many of registration's largest accepted rotation sigmas per frame
 NO_KEYPOINTS = "no keypoint with depth (dark or textureless image, or no valid depth)"
 
 
@@ -985,7 +987,8 @@ def _second_opinions(cut: list[int], edges: list[Edge], index: dict[str, int],
         for e in edges:
             i, j = index[e.src], index[e.tgt]
             T_i, T_j, T_ji = T_world[i], T_world[j], e.T_tgt_src
-            if not (e.reason and e.reason.startswith(PRUNED)) or T_ji is None:
+            if not (e.reason and e.reason.startswith(PRUNED)) or e.reason.startswith(PRUNED + AGAINST_ODOMETRY) \
+                    or T_ji is None:
                 continue
             if i == k and T_j is not None:
                 implied.append((-len(e.matches), e.src, e.tgt, T_j @ T_ji))
@@ -1078,11 +1081,52 @@ def _icp_cloud(depth: np.ndarray, intrinsics: Intrinsics, mask: np.ndarray | Non
     return np.asarray(pc.points)
 
 
+def _odometry(n: int, edges: list[Edge], index: dict[str, int]) -> tuple[list[np.ndarray | None], np.ndarray]:
+    """The capture's odometry: T_world_cam chained along the accepted sequential edges (between frames adjacent
+    in the capture, or a frame and one of the few before it), per part of their chain ([n] poses or None; [n]
+    part ids, -1 for a frame none of them reaches)."""
+    seq = [GraphEdge(index[e.src], index[e.tgt], e.T_tgt_src, weight=len(e.matches)) for e in edges
+           if e.accepted and e.kind == "sequential" and e.T_tgt_src is not None]
+    T: list[np.ndarray | None] = [None] * n
+    part = np.full(n, -1)
+    for root in sorted({k for g in seq for k in (g.src, g.tgt)}):
+        if part[root] < 0:
+            for k, T_k in enumerate(spanning_poses(n, seq, root=root)):
+                if T_k is not None:
+                    T[k], part[k] = T_k, root
+    return T, part
+
+
+def _against_odometry(n: int, edges: list[Edge], index: dict[str, int], max_sigma_deg: float) -> None:
+    """Rejects the accepted edges between frames far apart in the capture whose rotation contradicts the
+    capture's odometry (`_odometry`) by more than its drift can: ODOMETRY_SIGMAS times registration's largest
+    accepted rotation sigma (`max_sigma_deg`) for every frame between the two. Such an edge matched look-alike
+    faces of the object (a box printed alike front and back, seen from opposite sides: 180 deg off), and several
+    of them agree with each other: they would outvote the right edges in the pose graph. Edges between parts
+    of the odometry are left to the pose graph."""
+    T, part = _odometry(n, edges, index)
+    for e in edges:
+        if not e.accepted or e.kind == "sequential" or e.T_tgt_src is None:
+            continue
+        i, j = index[e.src], index[e.tgt]
+        T_i, T_j = T[i], T[j]
+        if T_i is None or T_j is None or part[i] != part[j]:
+            continue
+        deg = rotation_angle_deg(e.T_tgt_src[:3, :3] @ T_i[:3, :3].T @ T_j[:3, :3])
+        bound = ODOMETRY_SIGMAS * max_sigma_deg * abs(j - i)
+        if deg > bound:
+            e.accepted = False
+            e.reason = (f"{PRUNED}{AGAINST_ODOMETRY} ({deg:.0f} deg from the pose the frames between its two give; "
+                        f"their drift reaches {bound:.0f} deg at most)")
+
+
 def _optimise(n: int, edges: list[Edge], index: dict[str, int], data: _FrameData,
               evidence: dict[tuple[str, str], _Evidence], cfg: ScanConfig, rparams: RegisterParams
               ) -> tuple[list[np.ndarray | None], dict[int, float], PoseGraphResult]:
-    """Pose graph over accepted edges -> (T_world_cam per frame or None, quality in [0, 1] per frame, the
-    pose graph's result with edge indices into the accepted edges)."""
+    """Pose graph over accepted edges (those that contradict the odometry rejected first, `_against_odometry`)
+    -> (T_world_cam per frame or None, quality in [0, 1] per frame, the pose graph's result with edge indices
+    into the accepted edges)."""
+    _against_odometry(n, edges, index, rparams.max_sigma_deg)
     use = [e for e in edges if e.accepted and e.T_tgt_src is not None]
     graph = []
     found = []
@@ -1138,7 +1182,7 @@ def _optimise_with_second_opinions(reg: _Registrar, pool: ThreadPoolExecutor, ed
     for e in edges:
         i, j = index[e.src], index[e.tgt]
         why = e.reason
-        if not why or not why.startswith(PRUNED) or why.startswith(PRUNED + INCONSISTENT):
+        if not why or not why.startswith(PRUNED) or why.startswith((PRUNED + INCONSISTENT, PRUNED + AGAINST_ODOMETRY)):
             continue
         for k, other in ((i, j), (j, i)):
             if k in cut and first[0][other] is not None:
