@@ -10,7 +10,8 @@ overlap rarely is.
 
 `DenseGeometry` samples a frame's depth on a regular grid (about `samples` points, pixels next to depth
 discontinuities left out: a small pose error moves them across the edge) with the surface normal at each
-sample; `depth_agreement` projects the samples of one frame into the other with the edge's pose and
+sample (from its neighbouring samples, or from nearer pixels where a neighbouring sample lies across a
+discontinuity); `depth_agreement` projects the samples of one frame into the other with the edge's pose and
 measures each against the surface found there along its normal (on a slanted table a pixel's shift
 changes the depth a lot and the distance to the surface little), with the tolerance of the noise model
 (`gscan.registration.noise`): |n . (q - p)| <= k * s(z_q, z_p).
@@ -93,9 +94,11 @@ class DenseGeometry:
         cx, cy = (intr.cx - off) / stride, (intr.cy - off) / stride
         gu, gv = np.meshgrid(np.arange(len(u)), np.arange(len(v)))
         grid = np.stack([(gu - cx) / fx * d, (gv - cy) / fy * d, d], axis=-1)
-        # normals from the neighbouring samples (central differences; one-sided at the border)
-        du = np.gradient(grid, axis=1) if len(u) > 1 else np.zeros_like(grid)
-        dv = np.gradient(grid, axis=0) if len(v) > 1 else np.zeros_like(grid)
+        # normals from the neighbouring samples (central differences; one-sided at the border); where a
+        # neighbouring sample lies across a discontinuity (a face a few samples wide: a box seen edge on), from
+        # the pixels at half the stride instead, which the test above found on the sample's surface
+        du = _across(grid, d, 1, _half_step(depth, intr, v, u, 0, h))
+        dv = _across(grid, d, 0, _half_step(depth, intr, v, u, h, 0))
         n = np.cross(du, dv)
         norm = np.linalg.norm(n, axis=-1, keepdims=True)
         n = np.where(norm > 0, n / np.maximum(norm, 1e-12), 0.0)
@@ -111,6 +114,32 @@ class DenseGeometry:
 
     def __len__(self) -> int:
         return len(self.points)
+
+
+def _half_step(depth: np.ndarray, intr: Intrinsics, v: np.ndarray, u: np.ndarray, dv: int, du: int) -> np.ndarray:
+    """[len(v) x len(u) x 3]: the point at pixel (v + dv, u + du) minus that at (v - dv, u - du), for the grid of
+    pixel rows v and columns u of depth [H x W] (clipped to the image)."""
+    H, W = depth.shape
+    out = []
+    for s in (1, -1):
+        vv, uu = np.clip(v + s * dv, 0, H - 1), np.clip(u + s * du, 0, W - 1)
+        z = depth[np.ix_(vv, uu)].astype(np.float64)
+        out.append(np.stack([(uu[None, :] - intr.cx) / intr.fx * z, (vv[:, None] - intr.cy) / intr.fy * z, z], -1))
+    return out[0] - out[1]
+
+
+def _across(grid: np.ndarray, d: np.ndarray, axis: int, near: np.ndarray) -> np.ndarray:
+    """The derivative of grid [h x w x 3] along axis by central differences over its neighbouring samples,
+    `near` [h x w x 3] where one of them is invalid or more than EDGE_REL away in depth (d [h x w])."""
+    if grid.shape[axis] < 2:
+        return np.zeros_like(grid)
+    out = np.gradient(grid, axis=axis)
+    pad = np.pad(d, [(1, 1) if a == axis else (0, 0) for a in range(2)], mode="edge")
+    lo, hi = (pad[:-2], pad[2:]) if axis == 0 else (pad[:, :-2], pad[:, 2:])
+    apart = np.zeros(d.shape, bool)
+    for nb in (lo, hi):
+        apart |= (nb <= 0) | (np.abs(nb - d) > EDGE_REL * np.maximum(nb, d))
+    return np.where(apart[..., None], near, out)
 
 
 @dataclass(frozen=True)
@@ -197,9 +226,10 @@ def refine_pose(src: DenseGeometry, tgt: DenseGeometry, kp_s: np.ndarray, kp_t: 
     residuals T kp_s - kp_t ([M x 3] pairs, three axes each, sigma s of `kp_noise`) and the point-to-plane
     distances of src's depth samples to tgt's surface (projective association, one per sample landing on
     tgt's depth, sigma s of `depth_noise` at their two depths), Huber-weighted beyond HUBER sigmas. Depth samples
-    farther than the round's gate (sigmas) from the surface are left out; the gate shrinks over the rounds (one
-    GN step each), so a pose a few centimetres off is drawn in first. Depth pins what keypoints on a distant
-    wall leave loose (the near table); keypoints pin what depth leaves loose (sliding along a plane).
+    farther than the round's gate (sigmas) from the surface, or facing away from it (MIN_NORMAL_COS), are left
+    out; the gate shrinks over the rounds (one GN step each), so a pose a few centimetres off is drawn in first.
+    Depth pins what keypoints on a distant wall leave loose (the near table); keypoints pin what depth leaves
+    loose (sliding along a plane).
 
     Returns (T_tgt_src [4 x 4], information [6 x 6] of the final pose, rotation first: `pose_information`).
     """
@@ -235,6 +265,7 @@ def in_source_frame(information_tgt: np.ndarray, T_tgt_src: np.ndarray) -> np.nd
     return Ad.T @ np.asarray(information_tgt, dtype=np.float64) @ Ad
 
 
+MIN_NORMAL_COS = float(np.cos(np.radians(45.0)))  # a depth sample and the surface it lands on face alike
 HUBER = 2.0  # residuals beyond this many sigmas weigh as the Huber loss does (linearly)
 
 
@@ -256,8 +287,11 @@ def _normal_equations(src: DenseGeometry, tgt: DenseGeometry, kp_s: np.ndarray, 
         J[:, 3 + c] = 1.0
         H += (J * w[:, None]).T @ J
         g += (J * w[:, None]).T @ r[:, c]
-    qd, n, e, sd, _ = _plane_pairs(src, tgt, T, depth_noise)
-    ok = np.abs(e) <= gate * sd
+    qd, n, e, sd, idx = _plane_pairs(src, tgt, T, depth_noise)
+    # a sample pairs with the surface it lands on only where the two face alike (a side of a box landing on its
+    # front near their common edge would pull the pose to hide that side)
+    n_src = src.normals[src.depth > 0][idx] @ T[:3, :3].T
+    ok = (np.abs(e) <= gate * sd) & (np.sum(n_src * n, axis=1) >= MIN_NORMAL_COS)
     qd, n, e, sd = qd[ok], n[ok], e[ok], sd[ok]
     en = np.abs(e) / sd
     wd = np.where(en <= HUBER, 1.0, HUBER / np.maximum(en, 1e-12)) / np.square(sd)
