@@ -119,11 +119,13 @@ def test_real_open3d_sequence_matches_trajectory_log(real_dir, tmp_path):
 
 
 def test_turntable_whose_print_repeats_on_opposite_faces(tmp_path, meshes_dir):
-    """A 24-frame turntable of a card box printed alike on opposite faces: a right edge and a wrong loop closure
-    of about the same length (21 and 22 inliers) disagree about frame 0. Most frames are registered, a frame
-    held only by one of two disagreeing edges is left out, and none is off by more than 3 deg. Frame 12 is such a
-    frame; its two second opinions agree with each other and put it 3.8 deg / 29 mm off, against its own edge:
-    they may confirm a frame's edges, never overturn them, so it stays out."""
+    """A 24-frame turntable of a card box 2.5 cm thick, printed alike on opposite faces; it turns edge on at frames 0
+    and 12. Loop closures between its two faces are 180 deg off, and the edge-on views pin their pairs' poses only
+    to 1.2-3.8 deg (its narrow side a few depth samples wide), beyond registration's 1 deg rule: nothing joins the
+    two halves of the turn with confidence. The larger half is registered, no frame of it wrong (5 deg / 2 cm
+    relative to the others) or beyond 3 deg of the truth; the other half is reported as a separate part, each frame
+    with its reason. Refined on depth normals taken across the box's edge, the edge-on pairs claimed 0.5 deg at 3-5
+    deg off, and frames were placed 2-3 deg / 2-3 cm off."""
     from gscan.evaluate.bop19 import template_to_gt
 
     mesh = load_textured_mesh(meshes_dir / "Mattel_SKIP_BO_Card_Game" / "model_0.obj")
@@ -131,13 +133,15 @@ def test_turntable_whose_print_repeats_on_opposite_faces(tmp_path, meshes_dir):
     render_capture(mesh, cap, 24, mode="turntable", seed=0, write_masks=False)
     out = tmp_path / "tt.gscan"
     res = scan(cap, out)
-    assert res.mode == "moving-object" and res.registered >= 18, res.unregistered
+    assert res.mode == "moving-object" and res.registered >= 12, res.unregistered
+    assert set(res.unregistered_reasons) == set(res.unregistered), res.unregistered_reasons
+    assert sorted(n for part in res.parts for n in part) == sorted(res.unregistered) and len(res.parts) == 1, res.parts
     gt = open_sequence(cap).gt_T_cam_obj
     T_obj_gt = template_to_gt(out, gt)
     with TemplateDB.open(out) as db:
-        poses = db.poses()["frames"]
-    errs = {n: pose_error(np.asarray(T), T_obj_gt @ inv_T(gt[n]))[0] for n, T in poses.items()}
-    # real Kinect v1 frames against KinectFusion ground truth, itself good to about 1 cm / 1 deg: 3 deg
+        poses = {n: np.asarray(T) for n, T in db.poses()["frames"].items()}
+    assert not frame_errors(poses, {n: inv_T(gt[n]) for n in poses}).wrong(5.0, 0.02)
+    errs = {n: pose_error(T, T_obj_gt @ inv_T(gt[n]))[0] for n, T in poses.items()}
     assert max(errs.values()) < 3.0, errs
 
 

@@ -28,6 +28,7 @@ import numpy as np
 import pytest
 
 from gscan.geometry.transforms import inv_T, look_at, rotvec_to_R
+from gscan.registration.pairwise import RegisterParams
 from gscan.scan import pipeline
 from gscan.synth import cases as C
 from gscan.synth import load_textured_mesh
@@ -180,7 +181,7 @@ def test_edges_that_turn_the_view_against_the_odometry_are_rejected():
     across = [edge(10, 20, "loop", flip)]
     edges = sequential + right + flipped + across
     index = {f"{k:06d}": k for k in range(n)}
-    pipeline._against_odometry(n, edges, index, max_sigma_deg=1.0)
+    pipeline._against_odometry(n, edges, index, RegisterParams().max_sigma_deg)
     for e in flipped:
         assert not e.accepted and str(e.reason).startswith(pipeline.PRUNED + pipeline.AGAINST_ODOMETRY), (e.src, e.tgt)
     assert all(e.accepted and e.reason is None for e in sequential + right + across)
