@@ -157,10 +157,10 @@ def test_a_frame_whose_edges_disagree_is_placed_by_more_edges(tmp_path, monkeypa
 
 
 def test_edges_that_turn_the_view_against_the_odometry_are_rejected():
-    """A 24-view ring around an object, each sequential edge measured 0.5 deg off (the odometry drifts); loop edges
-    that matched the object's look-alike back face (the view turned 180 deg about the object's vertical axis) are
-    rejected with their reason, the right loop edges and one 40 deg off across 3 frames too, not one whose two
-    frames no chain of sequential edges joins (the pose graph judges that one), nor sequential edges."""
+    """A 24-view ring around an object, each sequential edge measured 0.5 deg off (the odometry drifts): loop edges
+    that matched the object's look-alike back face (the view turned 180 deg about the object's vertical axis), and
+    one 40 deg off across 3 frames, are rejected with their reason; the right loop edges, a flipped one whose two
+    frames no chain of sequential edges joins (the pose graph judges that one) and the sequential edges are kept."""
     n, rng = 24, np.random.default_rng(0)
     T_world = [look_at(0.6 * np.array([np.cos(a), np.sin(a), 0.5]), np.zeros(3))
                for a in np.linspace(0.0, 2.0 * np.pi, n, endpoint=False)]
