@@ -381,6 +381,34 @@ def test_lift_takes_the_median_despite_corrupted_pixels():
     assert not ok[0]
 
 
+@given(seed=st.integers(0, 10_000), r=st.integers(0, 3))
+@settings(max_examples=60, deadline=None)
+def test_lift_window_statistics_are_numpys_percentiles(seed, r):
+    """The lift's window statistics (median, 10th and 90th percentiles of the valid depths around a pixel, and
+    their count) are numpy's linear percentiles of those depths, windows at the image border and with ties
+    included."""
+    from gscan.io.lift_kernel import window_stats
+
+    rng = np.random.default_rng(seed)
+    H, W = rng.integers(1, 12, 2)
+    depth = rng.uniform(0.3, 2.0, (H, W)).astype(np.float32)
+    if seed % 2:
+        depth = np.round(depth, 1)  # ties
+    depth[rng.random((H, W)) < rng.uniform(0.0, 0.8)] = 0.0
+    u, v = rng.integers(0, W, 40), rng.integers(0, H, 40)
+    med, lo, hi = np.empty(40), np.empty(40), np.empty(40)
+    count = np.empty(40, np.int64)
+    window_stats(depth, u, v, r, med, lo, hi, count)
+    for k in range(40):
+        win = depth[max(0, v[k] - r):v[k] + r + 1, max(0, u[k] - r):u[k] + r + 1].astype(np.float64)
+        vals = win[win > 0]
+        assert count[k] == len(vals)
+        if len(vals) == 0:
+            assert np.isnan(med[k]) and np.isnan(lo[k]) and np.isnan(hi[k])
+        else:
+            np.testing.assert_allclose([med[k], lo[k], hi[k]], np.percentile(vals, [50, 10, 90]), rtol=1e-12)
+
+
 def test_lift_on_real_depth_equals_window_median(o3d_root):
     intr = load_intrinsics(o3d_root / "camera_primesense.json")
     depth = cv2.imread(str(o3d_root / "RGBD" / "depth" / "00001.png"), cv2.IMREAD_UNCHANGED).astype(np.float32) / 1000

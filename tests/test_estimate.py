@@ -449,13 +449,13 @@ def test_first_estimate_compiles_no_kernel(sample_template):
 import json, sys
 from gscan.demo import SAMPLES
 from gscan.estimate.estimator import Estimator
-from gscan.estimate import query, similarity
+from gscan.estimate import query, refine, similarity
 from gscan.geometry import grid_kernel, kabsch_kernel, plane_kernel
-from gscan.io import open_sequence
+from gscan.io import lift_kernel, open_sequence
 from gscan.matching import kernel
 est = Estimator.from_path(sys.argv[1])
 kernels = [similarity._scan, similarity._best_columns, grid_kernel._build, grid_kernel._query, query._backproject,
-           kernel.search, kabsch_kernel.kabsch_trimmed]
+           kernel.search, kabsch_kernel.kabsch_trimmed, refine.normal_equations, lift_kernel.window_stats]
 if plane_kernel.HAS_FMA:
     kernels += [plane_kernel.plane_counts, plane_kernel.plane_inliers]
 before = [len(k.signatures) for k in kernels]

@@ -63,7 +63,7 @@ import numpy as np
 
 from gscan.errors import InputError
 from gscan.estimate.query import QueryFrame, backproject32, prepare_query
-from gscan.estimate.refine import icp_anchored
+from gscan.estimate.refine import icp_anchored, normal_equations
 from gscan.estimate.result import STAGES, EstimateResult, ms_since
 from gscan.estimate.similarity import (
     TemplateGroups,
@@ -98,7 +98,7 @@ from gscan.geometry.plane import ransac_plane
 from gscan.geometry.pointset import coincident_groups, pca_normals, voxel_down_indices, voxel_mean
 from gscan.geometry.transforms import inv_T, pose_error, transform_points
 from gscan.io.align import align_depth_to_color
-from gscan.io.camera import Intrinsics, RGBDFrame
+from gscan.io.camera import Intrinsics, RGBDFrame, lift_keypoints
 from gscan.matching.gmatch import Candidates, GMatchParams, default_eps_f, search_candidates
 from gscan.registration.noise import sign_test
 from gscan.template.db import Template, open_template
@@ -278,7 +278,8 @@ class Estimator:
         """Load the compiled kernels (numba's cache) now, on a few of the first view's keypoints matched to
         themselves with the estimate's own array types: otherwise the first estimate paid it (the retrieval
         matrix's kernels, GMatch's, the neighbour grid of ICP and of the keypoint support, the plane RANSAC's
-        scoring, the back-projection, and kabsch_trimmed's consensus, run with one pair moved 1 m off)."""
+        scoring, the back-projection, kabsch_trimmed's consensus, run with one pair moved 1 m off, ICP's normal
+        equations and the keypoint lift's window statistics)."""
         a, b = self.offsets[0], min(self.offsets[1], self.offsets[0] + 8)
         if b - a < 4:
             return
@@ -299,6 +300,9 @@ class Estimator:
         moved = np.array(pts, dtype=np.float64)
         moved[0] += 1.0
         kabsch_trimmed(pts, moved, self.params.trim_tau)
+        H, g = np.empty((6, 6)), np.empty(6)
+        normal_equations(moved, np.arange(len(pts)), moved, moved, np.eye(4)[:3, :3], moved, moved, 0.1, H, g)
+        lift_keypoints(np.zeros((1, 2)), np.ones((2, 2), np.float32), tiny)
 
     @classmethod
     def from_path(cls, path: str | Path, params: EstimateParams = EstimateParams()) -> Estimator:

@@ -10,18 +10,57 @@ input.
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 
 from gscan.geometry.transforms import make_T, rotvec_to_R
 
 
-def _skew_rows(p: np.ndarray) -> np.ndarray:
-    """[K x 3] points -> [K x 3 x 6] Jacobians of (omega x p + t) with respect to (omega, t)."""
-    J = np.zeros((len(p), 3, 6))
-    J[:, 0, 1], J[:, 0, 2] = p[:, 2], -p[:, 1]
-    J[:, 1, 0], J[:, 1, 2] = -p[:, 2], p[:, 0]
-    J[:, 2, 0], J[:, 2, 1] = p[:, 1], -p[:, 0]
-    J[:, 0, 3] = J[:, 1, 4] = J[:, 2, 5] = 1.0
-    return J
+@njit(cache=True, nogil=True)
+def normal_equations(p, j, tgt, nrm, R, anc_p, anc_q, anc_w, H, g):
+    """The point-to-plane step's 6 x 6 system in (rotation vector, translation), accumulated in H and g: every
+    pair (p[i], tgt[j[i]]) with j[i] >= 0 (p [N x 3] moved source points, nrm [N x 3] their object-frame normals
+    turned by R [3 x 3]) adds a a^T and a r, a = [p x n, n], r = (p - q) . n; every anchor (anc_p [K x 3] moved,
+    anc_q [K x 3]) adds anc_w J^T J and anc_w J^T (anc_p - anc_q), J the Jacobian of (omega x p + t). Returns
+    the number of pairs."""
+    H[:] = 0.0
+    g[:] = 0.0
+    a = np.empty(6)
+    n_pairs = 0
+    for i in range(p.shape[0]):
+        k = j[i]
+        if k < 0:
+            continue
+        n_pairs += 1
+        px, py, pz = p[i, 0], p[i, 1], p[i, 2]
+        nx = R[0, 0] * nrm[i, 0] + R[0, 1] * nrm[i, 1] + R[0, 2] * nrm[i, 2]
+        ny = R[1, 0] * nrm[i, 0] + R[1, 1] * nrm[i, 1] + R[1, 2] * nrm[i, 2]
+        nz = R[2, 0] * nrm[i, 0] + R[2, 1] * nrm[i, 1] + R[2, 2] * nrm[i, 2]
+        r = (px - tgt[k, 0]) * nx + (py - tgt[k, 1]) * ny + (pz - tgt[k, 2]) * nz
+        a[0] = py * nz - pz * ny
+        a[1] = pz * nx - px * nz
+        a[2] = px * ny - py * nx
+        a[3] = nx
+        a[4] = ny
+        a[5] = nz
+        for u in range(6):
+            g[u] += a[u] * r
+            for v in range(u, 6):
+                H[u, v] += a[u] * a[v]
+    for m in range(anc_p.shape[0]):  # J = [[0, z, -y, 1, 0, 0], [-z, 0, x, 0, 1, 0], [y, -x, 0, 0, 0, 1]]
+        x, y, z = anc_p[m, 0], anc_p[m, 1], anc_p[m, 2]
+        ex, ey, ez = x - anc_q[m, 0], y - anc_q[m, 1], z - anc_q[m, 2]
+        J = ((0.0, z, -y, 1.0, 0.0, 0.0), (-z, 0.0, x, 0.0, 1.0, 0.0), (y, -x, 0.0, 0.0, 0.0, 1.0))
+        e = (ex, ey, ez)
+        for c in range(3):
+            row = J[c]
+            for u in range(6):
+                g[u] += anc_w * row[u] * e[c]
+                for v in range(u, 6):
+                    H[u, v] += anc_w * row[u] * row[v]
+    for u in range(6):
+        for v in range(u):
+            H[u, v] = H[v, u]
+    return n_pairs
 
 
 def icp_anchored(src: np.ndarray, src_normals: np.ndarray, tgt: np.ndarray, T_init: np.ndarray,
@@ -43,8 +82,11 @@ def icp_anchored(src: np.ndarray, src_normals: np.ndarray, tgt: np.ndarray, T_in
     if len(src) < 10 or len(tgt) < 10:
         return T, 0.0
     tree = None
-    JtJ_a = Jtr_a = None
     fitness = 0.0
+    H, g = np.empty((6, 6)), np.empty(6)
+    src_normals = np.ascontiguousarray(src_normals, dtype=np.float64)
+    a_obj, a_cam = (np.zeros((0, 3)),) * 2 if anchors is None else \
+        (np.ascontiguousarray(a, dtype=np.float64).reshape(-1, 3) for a in anchors)
     for max_dist in max_dists:
         # the nearest target point within max_dist: a grid of that cell size (a kd-tree when the target is too
         # wide for one), the same pairs
@@ -60,24 +102,10 @@ def icp_anchored(src: np.ndarray, src_normals: np.ndarray, tgt: np.ndarray, T_in
                 d, j = tree.query(p, distance_upper_bound=max_dist, workers=1)
                 ok = np.isfinite(d)
             fitness = float(ok.mean())
-            if ok.sum() < 10:
+            if normal_equations(p, np.where(ok, j, -1), tgt, src_normals, T[:3, :3], a_obj @ T[:3, :3].T + T[:3, 3],
+                                 a_cam, anchor_weight, H, g) < 10:
                 return T, fitness
-            p, q, n = p[ok], tgt[j[ok]], src_normals[ok] @ T[:3, :3].T
-            r = np.einsum("ij,ij->i", p - q, n)
-            A = np.empty((len(p), 6))  # d(residual) / d(rotvec, translation): [p x n, n]
-            A[:, 0] = p[:, 1] * n[:, 2] - p[:, 2] * n[:, 1]
-            A[:, 1] = p[:, 2] * n[:, 0] - p[:, 0] * n[:, 2]
-            A[:, 2] = p[:, 0] * n[:, 1] - p[:, 1] * n[:, 0]
-            A[:, 3:] = n
-            H = A.T @ A + 1e-9 * np.eye(6)
-            g = A.T @ r
-            if anchors is not None and len(anchors[0]):
-                pa = anchors[0] @ T[:3, :3].T + T[:3, 3]
-                J = _skew_rows(pa)  # [K x 3 x 6]
-                JtJ_a = np.einsum("kai,kaj->ij", J, J)
-                Jtr_a = np.einsum("kai,ka->i", J, pa - anchors[1])
-                H += anchor_weight * JtJ_a
-                g += anchor_weight * Jtr_a
+            H += 1e-9 * np.eye(6)
             x = np.linalg.solve(H, -g)
             T = make_T(rotvec_to_R(x[:3]), x[3:]) @ T
             if np.linalg.norm(x[:3]) < 1e-5 and np.linalg.norm(x[3:]) < 1e-5:

@@ -212,26 +212,6 @@ def point_cloud(frame: RGBDFrame, mask: np.ndarray | None = None, stride: int = 
     return pts, cols
 
 
-def _valid_percentiles(values: np.ndarray, valid: np.ndarray, qs: tuple[float, ...]) -> list[np.ndarray]:
-    """Per-row percentiles of `values` [N x K] over its `valid` entries with linear interpolation
-    (numpy's default method, as np.nanpercentile, without its per-row overhead); NaN for rows
-    without a valid entry."""
-    s = np.sort(np.where(valid, values, np.inf), axis=1)
-    k = valid.sum(axis=1)
-    last = np.maximum(k - 1, 0)
-    rows = np.arange(len(s))
-    out = []
-    for q in qs:
-        pos = q / 100.0 * last
-        i0 = np.floor(pos).astype(int)
-        i1 = np.minimum(i0 + 1, last)
-        a, b = s[rows, i0], s[rows, i1]
-        with np.errstate(invalid="ignore"):  # rows without a valid entry hold inf; masked below
-            v = np.where(i1 == i0, a, a + (np.where(np.isfinite(b), b, a) - a) * (pos - i0))
-        out.append(np.where(k > 0, v, np.nan))
-    return out
-
-
 def lift_keypoints(pixels: np.ndarray, depth: np.ndarray, intr: Intrinsics, window: int = 2,
                    max_rel_spread: float = 0.03, min_valid_frac: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
     """Lift 2D keypoints to 3D with robust depth.
@@ -260,13 +240,12 @@ def lift_keypoints(pixels: np.ndarray, depth: np.ndarray, intr: Intrinsics, wind
     inside = finite & (ur >= 0) & (ur <= W - 1) & (vr >= 0) & (vr <= H - 1)
     u = np.clip(ur, 0, W - 1).astype(int)
     v = np.clip(vr, 0, H - 1).astype(int)
-    padded = np.pad(depth.astype(np.float64), r, mode="constant", constant_values=0.0)
-    offs = np.arange(-r, r + 1)
-    dv, du = np.meshgrid(offs, offs, indexing="ij")
-    patches = padded[(v[:, None] + r + dv.ravel()[None]), (u[:, None] + r + du.ravel()[None])]  # [N x w^2]
-    valid_px = patches > 0
-    frac = valid_px.mean(axis=1)
-    med, lo, hi = _valid_percentiles(patches, valid_px, (50.0, 10.0, 90.0))
+    from gscan.io.lift_kernel import window_stats
+
+    med, lo, hi = np.empty(n), np.empty(n), np.empty(n)
+    count = np.empty(n, np.int64)
+    window_stats(np.ascontiguousarray(depth), u, v, r, med, lo, hi, count)
+    frac = count / (2 * r + 1) ** 2
     ok = inside & (frac >= min_valid_frac) & np.isfinite(med) & (med > 0)
     ok &= np.where(ok, (hi - lo) <= max_rel_spread * np.where(ok, med, 1.0), False)
     pts[ok] = backproject_pixels(pixels[ok], med[ok], intr)
