@@ -22,8 +22,15 @@ the same size with another print, where the depth alone would confirm a pose).
 Reported per split: found %, within 5 deg / 1 cm %, AUC ADD and ADD-S (0-10 cm, YCB-Video), and the wrong
 poses accepted (found with ADD > 10 % of the diameter, or found at all in a negative scene).
 
+With --compare DIR, another gscan tree (DIR holds its `gscan` package: a checkout of an older commit) estimates
+every scene too, in a child process, each scene right after this tree's (both see the same load), with the same
+templates: its rows are scored alike, and the table gains the ratio of this tree's median CPU per frame to
+that tree's. Each estimator's first scene of an object is estimated once untimed before it is timed (the first
+call of an older tree may load compiled kernels); so is this tree's without --compare.
+
     python bench/recall.py                         # both splits
     python bench/recall.py --split tune --json out.json
+    git archive <commit> | tar -x -C /tmp/old; python bench/recall.py --compare /tmp/old
 """
 from __future__ import annotations
 
@@ -191,40 +198,53 @@ def scenes_of(spec: ObjectSpec, oi: int, mesh: TexturedMesh, pool: dict[str, Tex
                    None)
 
 
-def run(args: argparse.Namespace) -> dict:
-    from gscan.estimate.estimator import Estimator
+class Compare:
+    """The other tree's estimator (--compare), in a child process (bench/estimate_child.py): `estimate(tpl, frame,
+    warm)` -> its JSON line."""
 
-    work = Path(args.work)
-    work.mkdir(parents=True, exist_ok=True)
-    pool = {d: load_textured_mesh(MESHES / d / "model_0.obj") for d in DISTRACTOR_POOL}
-    recs: list[dict] = []
-    for oi, spec in enumerate(OBJECTS):
-        if args.split != "all" and spec.split != args.split:
-            continue
-        if args.objects and spec.name not in args.objects.split(","):
-            continue
-        mesh = build_mesh(spec)
-        tpl, T_obj_gt = scan_template(spec, mesh, work, args.scan_frames)
-        est = Estimator.from_path(tpl)
-        diameter = float(np.linalg.norm(mesh.extent))
-        for label, frame, T_gt in scenes_of(spec, oi, mesh, pool, args.scenes):
-            t0 = time.process_time()
-            res = est.estimate(frame)
-            cpu = (time.process_time() - t0) * 1e3
-            rec = {"scene": label, "split": spec.split, "kind": spec.kind, "positive": T_gt is not None,
-                   "found": res.found, "n_matches": res.n_matches, "score": res.score, "reason": res.reason,
-                   "cpu_ms": cpu, "diameter": diameter, "add": None, "adds": None, "deg": None, "cm": None}
-            if res.found and T_gt is not None:
-                T = res.T_cam_obj @ T_obj_gt
-                deg, m = pose_error(T, T_gt)
-                rec.update(add=add(mesh.vertices, T, T_gt), adds=adds(mesh.vertices, T, T_gt), deg=deg, cm=100 * m)
-            rec["wrong"] = bool(res.found and (T_gt is None or rec["add"] > 0.1 * diameter))
-            rec["within"] = bool(res.found and T_gt is not None and rec["deg"] <= 5.0 and rec["cm"] <= 1.0)
-            recs.append(rec)
-            err = ("not found: " + str(res.reason)) if not res.found else (
-                "FOUND (negative scene)" if T_gt is None else f"{rec['deg']:.1f} deg {rec['cm']:.2f} cm")
-            print(f"{label:26s} {spec.split:7s} n={res.n_matches:2d} score={res.score:.2f} {cpu:6.0f} ms  {err}",
-                  file=sys.stderr, flush=True)
+    def __init__(self, tree: str, work: Path):
+        import os
+        import subprocess
+
+        self.tmp = work / "compare-frames"
+        self.tmp.mkdir(parents=True, exist_ok=True)
+        self.proc = subprocess.Popen([sys.executable, str(Path(__file__).resolve().with_name("estimate_child.py"))],
+                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+                                     env=dict(os.environ, PYTHONPATH=tree))
+
+    def estimate(self, tpl: Path, frame: RGBDFrame, warm: bool) -> dict:
+        assert self.proc.stdin is not None and self.proc.stdout is not None
+        npz = self.tmp / f"{frame.name}.npz"
+        K = frame.intrinsics
+        np.savez(npz, color=frame.color, depth=frame.depth, K=np.array([K.fx, K.fy, K.cx, K.cy, K.width, K.height]))
+        self.proc.stdin.write(f"{tpl} {npz} {int(warm)}\n")
+        self.proc.stdin.flush()
+        line = self.proc.stdout.readline()
+        if not line:
+            raise RuntimeError("the compared tree's estimator failed")
+        return json.loads(line)
+
+    def close(self) -> None:
+        assert self.proc.stdin is not None
+        self.proc.stdin.close()
+        self.proc.wait(60)
+
+
+def score(rec: dict, T_cam_obj, T_obj_gt: np.ndarray, T_gt, mesh: TexturedMesh) -> dict:
+    """`rec` with the pose's errors (add, adds, deg, cm), `wrong` and `within` filled in."""
+    diameter = rec["diameter"]
+    rec.update(found=T_cam_obj is not None, add=None, adds=None, deg=None, cm=None)
+    if T_cam_obj is not None and T_gt is not None:
+        T = np.asarray(T_cam_obj) @ T_obj_gt
+        deg, m = pose_error(T, T_gt)
+        rec.update(add=add(mesh.vertices, T, T_gt), adds=adds(mesh.vertices, T, T_gt), deg=deg, cm=100 * m)
+    rec["wrong"] = bool(rec["found"] and (T_gt is None or rec["add"] > 0.1 * diameter))
+    rec["within"] = bool(rec["found"] and T_gt is not None and rec["deg"] <= 5.0 and rec["cm"] <= 1.0)
+    return rec
+
+
+def summarise(recs: list[dict]) -> dict:
+    """Per split: found %, within 5 deg / 1 cm %, AUC ADD / ADD-S, wrong accepted, median CPU ms."""
     summary = {}
     for split in ("tune", "heldout", "all"):
         rs = [r for r in recs if split == "all" or r["split"] == split]
@@ -241,7 +261,55 @@ def run(args: argparse.Namespace) -> dict:
             "wrong accepted": int(sum(r["wrong"] for r in rs)),
             "median cpu ms": float(np.median([r["cpu_ms"] for r in rs])),
         }
-    return {"summary": summary, "records": recs}
+    return summary
+
+
+def run(args: argparse.Namespace) -> dict:
+    from gscan.estimate.estimator import Estimator
+
+    work = Path(args.work)
+    work.mkdir(parents=True, exist_ok=True)
+    pool = {d: load_textured_mesh(MESHES / d / "model_0.obj") for d in DISTRACTOR_POOL}
+    recs: list[dict] = []
+    old_recs: list[dict] = []
+    compare = Compare(args.compare, work) if args.compare else None
+    for oi, spec in enumerate(OBJECTS):
+        if args.split != "all" and spec.split != args.split:
+            continue
+        if args.objects and spec.name not in args.objects.split(","):
+            continue
+        mesh = build_mesh(spec)
+        tpl, T_obj_gt = scan_template(spec, mesh, work, args.scan_frames)
+        est = Estimator.from_path(tpl)
+        diameter = float(np.linalg.norm(mesh.extent))
+        for k, (label, frame, T_gt) in enumerate(scenes_of(spec, oi, mesh, pool, args.scenes)):
+            if k == 0:
+                est.estimate(frame)  # untimed: the first call
+            t0 = time.process_time()
+            res = est.estimate(frame)
+            cpu = (time.process_time() - t0) * 1e3
+            base = {"scene": label, "split": spec.split, "kind": spec.kind, "positive": T_gt is not None,
+                    "diameter": diameter}
+            rec = score(dict(base, n_matches=res.n_matches, score=res.score, reason=res.reason, cpu_ms=cpu),
+                        res.T_cam_obj, T_obj_gt, T_gt, mesh)
+            recs.append(rec)
+            err = ("not found: " + str(res.reason)) if not res.found else (
+                "FOUND (negative scene)" if T_gt is None else f"{rec['deg']:.1f} deg {rec['cm']:.2f} cm")
+            print(f"{label:26s} {spec.split:7s} n={res.n_matches:2d} score={res.score:.2f} {cpu:6.0f} ms  {err}",
+                  file=sys.stderr, flush=True)
+            if compare is not None:
+                o = compare.estimate(tpl, frame, warm=k == 0)
+                old_recs.append(score(dict(base, n_matches=o["n_matches"], reason=o["reason"], cpu_ms=o["cpu_ms"]),
+                                      o["T_cam_obj"], T_obj_gt, T_gt, mesh))
+    if compare is not None:
+        compare.close()
+    summary = summarise(recs)
+    out: dict = {"summary": summary, "records": recs}
+    if compare is not None:
+        out.update(compare_tree=args.compare, compare_summary=summarise(old_recs), compare_records=old_recs)
+        for split, v in summary.items():
+            v["cpu / compare cpu"] = v["median cpu ms"] / out["compare_summary"][split]["median cpu ms"]
+    return out
 
 
 def main() -> None:
@@ -251,15 +319,21 @@ def main() -> None:
     ap.add_argument("--scenes", type=int, default=4, help="positive scenes per object")
     ap.add_argument("--scan-frames", type=int, default=16)
     ap.add_argument("--work", default="/tmp/gscan-bench-recall", help="cache of captures and scanned templates")
+    ap.add_argument("--compare", default=None, help="another gscan tree that estimates every scene too")
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
     out = run(args)
-    print("\n| split | scenes | found % | within 5 deg / 1 cm % | AUC ADD | AUC ADD-S | wrong accepted "
+    print("\n| tree | split | scenes | found % | within 5 deg / 1 cm % | AUC ADD | AUC ADD-S | wrong accepted "
           "(incl. negatives) | median CPU ms |")
-    print("|---|---|---|---|---|---|---|---|")
-    for split, v in out["summary"].items():
-        print(f"| {split} | {v['scenes']} + {v['negatives']} neg | {v['found %']:.1f} | {v['within 5deg/1cm %']:.1f} | "
-              f"{v['AUC ADD']:.1f} | {v['AUC ADD-S']:.1f} | {v['wrong accepted']} | {v['median cpu ms']:.0f} |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for tree, summary in (("this", out["summary"]), (args.compare, out.get("compare_summary", {}))):
+        for split, v in summary.items():
+            print(f"| {tree} | {split} | {v['scenes']} + {v['negatives']} neg | {v['found %']:.1f} | "
+                  f"{v['within 5deg/1cm %']:.1f} | {v['AUC ADD']:.1f} | {v['AUC ADD-S']:.1f} | {v['wrong accepted']} | "
+                  f"{v['median cpu ms']:.0f} |")
+    if args.compare:
+        print("\nmedian CPU per frame, this tree / " + args.compare + ": "
+              + ", ".join(f"{split} {v['cpu / compare cpu']:.2f}" for split, v in out["summary"].items()))
     if args.json:
         Path(args.json).write_text(json.dumps(out, indent=1))
 
