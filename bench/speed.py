@@ -11,7 +11,8 @@ no mask), as ratios against one `gscan estimate` command measured in the same ru
 
 With --compare DIR, another gscan tree (DIR holds its `gscan` package: a checkout of an older commit) is
 measured in the same run: its CLI call after this tree's on every CLI frame, and its warm estimator in a child
-process whose passes alternate with this tree's (--rounds passes each), so that both see the same load.
+process whose passes alternate with this tree's (--rounds passes each), so that both see the same load; the
+ratio of the two warm CPU medians is printed.
 
 Wrong results accepted: a returned pose whose ADD exceeds 10 % of the object's diameter (bench/estimate.py's
 and bench/recall.py's rule), the template's frame mapped to the mesh's by the scan's ground truth
@@ -25,7 +26,7 @@ folder GSCAN_TEST_DATA names.
 
     python bench/speed.py                       # 24 frames, 10 CLI calls
     python bench/speed.py --frames 40 --cli 20 --json out.json
-    git worktree add /tmp/old <commit>; python bench/speed.py --compare /tmp/old --rounds 3
+    git archive <commit> | tar -x -C /tmp/old; python bench/speed.py --compare /tmp/old --rounds 3
 """
 from __future__ import annotations
 
@@ -328,6 +329,9 @@ def main() -> None:
     print("\nwrong: ADD above 10 % of the diameter; largest ADD of a returned pose (mm): "
           + ", ".join(f"{m} {out[m]['max_add_mm']:.1f}" for m in ("cli", "cli_compare", "warm", "warm_compare",
                                                                    "service", "track") if m in out))
+    if "warm_compare" in out:
+        print(f"warm CPU median, this tree / {args.compare}: "
+              f"{out['warm']['cpu_ms']['median'] / out['warm_compare']['cpu_ms']['median']:.2f}")
     if "track" in out:
         print(f"tracking statuses {out['track']['status']}, {out['track']['speedup_vs_independent_cpu']:.1f}x less CPU "
               "per frame than independent estimates")
