@@ -85,8 +85,9 @@ def icp_anchored(src: np.ndarray, src_normals: np.ndarray, tgt: np.ndarray, T_in
     fitness = 0.0
     H, g = np.empty((6, 6)), np.empty(6)
     src_normals = np.ascontiguousarray(src_normals, dtype=np.float64)
-    a_obj, a_cam = (np.zeros((0, 3)),) * 2 if anchors is None else \
-        (np.ascontiguousarray(a, dtype=np.float64).reshape(-1, 3) for a in anchors)
+    a_obj = a_cam = np.zeros((0, 3))
+    if anchors is not None:
+        a_obj, a_cam = (np.ascontiguousarray(a, dtype=np.float64).reshape(-1, 3) for a in anchors)
     for max_dist in max_dists:
         # the nearest target point within max_dist: a grid of that cell size (a kd-tree when the target is too
         # wide for one), the same pairs

@@ -1,9 +1,10 @@
 """The window statistics of `gscan.io.camera.lift_keypoints` (numba): per keypoint, the median and the 10th and
 90th percentiles of the valid depths in the window around its pixel, and their count.
 
-Percentiles interpolate linearly between the sorted valid values (numpy's default method); one pass per keypoint
-over its window, instead of a padded copy of the depth, a gathered [N x window^2] block and a row sort. Compiled
-with `cache=True`, `nogil=True`; imported on first use, so that importing `gscan.io` does not load numba.
+Percentiles interpolate linearly between the two nearest ranks of the sorted valid values (numpy's default
+method, to rounding); one pass per keypoint over its window, instead of a padded copy of the depth, a gathered
+[N x window^2] block and a row sort. Compiled with `cache=True`, `nogil=True`; imported on first use, so that
+importing `gscan.io` does not load numba.
 """
 from __future__ import annotations
 
@@ -13,7 +14,8 @@ from numba import njit
 
 @njit(cache=True, nogil=True)
 def _percentile(s, k, q):
-    """The q-th percentile (q in [0, 100]) of the k sorted values s[:k] (k >= 1), numpy's linear method."""
+    """The q-th percentile (q in [0, 100]) of the k sorted values s[:k] (k >= 1): linear between the two nearest
+    ranks (a non-finite upper one counts as the lower)."""
     last = k - 1
     pos = q / 100.0 * last
     i0 = int(np.floor(pos))
