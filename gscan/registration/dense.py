@@ -19,6 +19,7 @@ changes the depth a lot and the distance to the surface little), with the tolera
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -114,6 +115,11 @@ class DenseGeometry:
 
     def __len__(self) -> int:
         return len(self.points)
+
+    @cached_property
+    def point_normals(self) -> np.ndarray:
+        """[P x 3] the normals of `points` (the kept samples), gathered once."""
+        return self.normals[self.depth > 0]
 
 
 def _half_step(depth: np.ndarray, intr: Intrinsics, v: np.ndarray, u: np.ndarray, dv: int, du: int) -> np.ndarray:
@@ -290,7 +296,7 @@ def _normal_equations(src: DenseGeometry, tgt: DenseGeometry, kp_s: np.ndarray, 
     qd, n, e, sd, idx = _plane_pairs(src, tgt, T, depth_noise)
     # a sample pairs with the surface it lands on only where the two face alike (a side of a box landing on its
     # front near their common edge would pull the pose to hide that side)
-    n_src = src.normals[src.depth > 0][idx] @ T[:3, :3].T
+    n_src = src.point_normals[idx] @ T[:3, :3].T
     ok = (np.abs(e) <= gate * sd) & (np.sum(n_src * n, axis=1) >= MIN_NORMAL_COS)
     qd, n, e, sd = qd[ok], n[ok], e[ok], sd[ok]
     en = np.abs(e) / sd
