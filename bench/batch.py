@@ -45,7 +45,7 @@ sys.path.insert(0, str(ROOT))
 from gscan.batch.jobs import child_env  # noqa: E402
 from gscan.batch.runtime import ray_runtime  # noqa: E402
 from gscan.batch.scan import run_batch  # noqa: E402
-from gscan.scan.api import scan  # noqa: E402
+from gscan.scanning.api import scan  # noqa: E402
 from gscan.synth import DEFAULT_INTRINSICS, load_textured_mesh, render_capture  # noqa: E402
 from gscan.template.db import TemplateDB  # noqa: E402
 

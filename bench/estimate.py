@@ -10,7 +10,7 @@ target past a distractor from low (elevation 15-35 deg), so the distractor partl
 Methods, same templates, same query features, same retrieval, same ICP / scoring / acceptance:
 - gscan: `Estimator` (GMatch per retrieved view), full frame, ICP on.
 - gscan-mask-noicp: the same with the ground-truth mask as --mask and no ICP (speed target).
-- gscan-scanned (--scanned N): the first N meshes also scanned (gscan.scan.pipeline) from a rendered 24-frame
+- gscan-scanned (--scanned N): the first N meshes also scanned (gscan.scanning.pipeline) from a rendered 24-frame
   capture on a table; the scanned template's frame is mapped to the ground truth by the mean of
   T_obj_cam[f] @ T_cam_gt[f] over the capture frames; full frame, ICP on.
 - baseline: gscan.matching.baselines "ratio" per retrieved view (nearest neighbour + Lowe ratio 0.75, then
@@ -41,7 +41,7 @@ from gscan.evaluate.metrics import add, adds, auc
 from gscan.geometry.transforms import look_at, rotvec_to_R, transform_points
 from gscan.io.camera import RGBDFrame
 from gscan.matching.baselines import run_baseline
-from gscan.scan.cad import template_from_mesh
+from gscan.scanning.cad import template_from_mesh
 from gscan.synth import (
     DEFAULT_INTRINSICS,
     SynthScene,
@@ -103,12 +103,12 @@ def make_scene(target, distractors, seed: int, occlude: bool, min_visible: float
 
 
 def scanned_template(name: str, mesh, work: Path, n_frames: int) -> tuple[Path, np.ndarray]:
-    """Scan a rendered capture of `mesh` (gscan.scan.pipeline, static object on a textured table) into a template;
+    """Scan a rendered capture of `mesh` (gscan.scanning.pipeline, static object on a textured table) into a template;
     returns (template path, T_obj_gt [4 x 4]): the template->ground-truth alignment, the mean of
     T_obj_cam[f] @ T_cam_gt[f] over the capture frames, never from the test scenes."""
     from gscan.evaluate.bop19 import template_to_gt
     from gscan.io import open_sequence
-    from gscan.scan.api import scan
+    from gscan.scanning.api import scan
     from gscan.synth import render_capture
 
     cap, tpl = work / f"{name}_capture{n_frames}", work / f"{name}_scan{n_frames}.gscan"
@@ -200,7 +200,7 @@ def main() -> None:
     ap.add_argument("--scenes", type=int, default=4, help="scenes per mesh")
     ap.add_argument("--views", type=int, default=36, help="template views")
     ap.add_argument("--scanned", type=int, default=0, help="also scan a rendered capture of the first N meshes "
-                    "(gscan.scan.pipeline) and estimate the same scenes with that template")
+                    "(gscan.scanning.pipeline) and estimate the same scenes with that template")
     ap.add_argument("--scan-frames", type=int, default=24, help="frames of each scanned capture")
     ap.add_argument("--work", default="/tmp/gscan-bench-estimate", help="template cache folder")
     ap.add_argument("--json", default=None, help="write the full results here")

@@ -1,7 +1,7 @@
-"""Feature extraction time of this checkout against gscan/features.py at a git ref, as a ratio in one process,
+"""Feature extraction time of this checkout against gscan/features/keypoints.py at a git ref, as a ratio in one process,
 with a check that both give the same keypoints, points and descriptors bit for bit.
 
-The ref's module is loaded from `git show REF:gscan/features.py` under another name (it imports the rest of
+The ref's module is loaded from `git show REF:gscan/features/keypoints.py` under another name (it imports the rest of
 this checkout's gscan: only the features module is compared). Frames: the bundled sample's 30 capture frames
 and the first `--real` frames of the shared 7-Scenes scan (real Kinect frames, 640x480), each extracted with the
 scan's whole-frame parameters (FeatureParams(), at most 2000 keypoints) and the object parameters
@@ -30,14 +30,14 @@ sys.path.insert(0, str(ROOT))
 
 
 def module_at(ref: str) -> ModuleType:
-    """gscan/features.py as it was at `ref`, loaded as the module `gscan_features_at_ref`."""
-    src = subprocess.run(["git", "show", f"{ref}:gscan/features.py"], cwd=ROOT, check=True, capture_output=True,
-                         text=True).stdout
+    """gscan/features/keypoints.py as it was at `ref`, loaded as the module `gscan_features_at_ref`."""
+    src = subprocess.run(["git", "show", f"{ref}:gscan/features/keypoints.py"], cwd=ROOT, check=True,
+                         capture_output=True, text=True).stdout
     spec = importlib.util.spec_from_loader("gscan_features_at_ref", loader=None)
     assert spec is not None
     mod = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = mod  # dataclasses look their module up
-    exec(compile(src, f"{ref}:gscan/features.py", "exec"), mod.__dict__)
+    exec(compile(src, f"{ref}:gscan/features/keypoints.py", "exec"), mod.__dict__)
     return mod
 
 
@@ -48,14 +48,14 @@ def same(a, b) -> bool:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--ref", required=True, help="git ref whose gscan/features.py is the baseline")
+    ap.add_argument("--ref", required=True, help="git ref whose gscan/features/keypoints.py is the baseline")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--real", type=int, default=20, help="7-Scenes scan frames to add (0: none)")
     ap.add_argument("--data", type=Path, default=ROOT.parent / "shared" / "data")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
 
-    import gscan.features as cur
+    import gscan.features.keypoints as cur
     from gscan.demo import SAMPLES
     from gscan.io import open_sequence
 

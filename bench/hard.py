@@ -98,7 +98,7 @@ def run_case(work: Path, name: str, mesh_name: str | None, builder: str, kw: dic
 
     from gscan.geometry.transforms import inv_T
     from gscan.io import open_sequence
-    from gscan.scan.api import scan
+    from gscan.scanning.api import scan
     from gscan.template.db import TemplateDB
 
     case = build(work / "capture", mesh_name, builder, kw)

@@ -4,7 +4,7 @@ accuracy, with the count of wrong results accepted beside every success count.
     python bench/real.py [--data ../shared/data] [--json out.json]
 
 Rows: gscan's default scan as a new user runs it (the README's one focal length for both cameras, which the scan
-checks against the images' texture and corrects for the colour camera: gscan.scan.calibration), the same
+checks against the images' texture and corrects for the colour camera: gscan.scanning.calibration), the same
 with 7-Scenes' published calibration (--intrinsics, --depth-intrinsics, --depth-to-color), and the plain
 SIFT + RANSAC + ICP odometry chain (bench/peers.py) on the same frames, each with frames registered, frames
 accepted at a wrong pose (the median over the other registered frames of the relative-pose error beyond

@@ -1,6 +1,6 @@
 """Recall of pose estimation with templates gscan scanned itself, on hard cases (thin, lying, small, curved, unseen).
 
-Every object is scanned (gscan.scan.pipeline) from a rendered 16-frame capture of it standing on a newspaper
+Every object is scanned (gscan.scanning.pipeline) from a rendered 16-frame capture of it standing on a newspaper
 table (orbit rings at 30 and 55 deg elevation); the template->ground-truth alignment is the mean of
 T_obj_cam[f] @ T_cam_gt[f] over the capture's frames, never from a test scene. Query scenes are
 rendered with the object among two shared meshes on another table (wood, fabric, plain or newspaper), whole
@@ -119,7 +119,7 @@ def scan_template(spec: ObjectSpec, mesh: TexturedMesh, work: Path, frames: int)
     """Scanned template of `mesh` (cached under `work`) and its T_obj_gt [4 x 4]."""
     from gscan.evaluate.bop19 import template_to_gt
     from gscan.io import open_sequence
-    from gscan.scan.api import scan
+    from gscan.scanning.api import scan
 
     cap, tpl = work / f"{spec.name}_cap{frames}", work / f"{spec.name}_scan{frames}.gscan"
     if not cap.exists():

@@ -1,4 +1,4 @@
-"""Benchmark of the scan pipeline (gscan.scan.pipeline) on rendered captures of the shared meshes, against peers.
+"""Benchmark of the scan pipeline (gscan.scanning.pipeline) on rendered captures of the shared meshes, against peers.
 
 1. Accuracy: for every shared mesh (or the first --meshes), a static capture of --views views
    (gscan.synth.render_capture, mode "static", two orbit rings at 30 and 55 degrees elevation,
@@ -50,7 +50,7 @@ sys.path.insert(0, str(ROOT / "bench"))
 from gscan.evaluate.metrics import ate, frame_errors  # noqa: E402
 from gscan.geometry.transforms import inv_T  # noqa: E402
 from gscan.io import open_sequence  # noqa: E402
-from gscan.scan.api import scan  # noqa: E402
+from gscan.scanning.api import scan  # noqa: E402
 from gscan.synth import default_distance, load_textured_mesh, render_capture  # noqa: E402
 from gscan.template.db import TemplateDB  # noqa: E402
 

@@ -18,7 +18,7 @@ Wrong results accepted: a returned pose whose ADD exceeds 10 % of the object's d
 and bench/recall.py's rule), the template's frame mapped to the mesh's by the scan's ground truth
 (gscan.evaluate.bop19.template_to_gt, from the capture the template was scanned from, never from these frames).
 
-The frames: a template scanned by gscan (gscan.scan.pipeline) from a rendered 16-frame capture of a shared mesh
+The frames: a template scanned by gscan (gscan.scanning.pipeline) from a rendered 16-frame capture of a shared mesh
 standing on a newspaper table; a sequence in which that object slides 6 mm and turns 2.3 deg per frame on a
 wood table between two other shared meshes, seen by a static camera. The load average (`uptime`) is recorded
 before and after: the machine is shared. The meshes are read from ../shared/data beside the repository, or the
@@ -58,7 +58,7 @@ def stats(xs: list[float]) -> dict[str, float]:
 
 
 def scanned_template(work: Path) -> Path:
-    from gscan.scan.api import scan
+    from gscan.scanning.api import scan
     from gscan.synth import load_textured_mesh, render_capture
 
     cap, tpl = work / "capture", work / "target.gscan"

@@ -49,7 +49,7 @@ BEFORE_GB = (0.8, 4.9e-3)  # issue 23: peak RSS of the scan before streaming, GB
 
 CHILD = r"""
 import json, resource, sys, time
-from gscan.scan.api import scan
+from gscan.scanning.api import scan
 from gscan.template.db import TemplateDB
 # the time the scan spends in the database's write calls (encoding included), and its commits
 spent, depth, commits = [0.0], [0], [0]

@@ -231,8 +231,8 @@ def scan(
     _setup_logging(verbose)
     _import_holding_ctrl_c(*_SCAN_IMPORTS)
     from gscan.progress import RichProgress
-    from gscan.scan.api import scan as scan_capture
-    from gscan.scan.config import load_config
+    from gscan.scanning.api import scan as scan_capture
+    from gscan.scanning.config import load_config
 
     if resume and force:
         raise UsageError(output, "--resume and --force exclude each other")
@@ -253,7 +253,7 @@ def scan(
         _print_scan_summary(result)
 
 
-_SCAN_IMPORTS = ("gscan.scan.api", "open3d", "scipy.spatial")  # with the scan's lazy C-extension imports
+_SCAN_IMPORTS = ("gscan.scanning.api", "open3d", "scipy.spatial")  # with the scan's lazy C-extension imports
 
 
 def _import_holding_ctrl_c(*modules: str) -> None:
@@ -339,7 +339,7 @@ def template_from_mesh(
 ) -> None:
     """Render snapshots around a CAD mesh into a template database (mesh frame kept)."""
     from gscan.progress import RichProgress
-    from gscan.scan.cad import template_from_mesh as render_template
+    from gscan.scanning.cad import template_from_mesh as render_template
 
     if scale <= 0:
         raise UsageError(mesh, f"--scale must be positive, not {scale}")
@@ -504,7 +504,7 @@ def info(
     with TemplateDB.open(template, require_complete=False) as db:
         s = db.summary()
         m = db.mesh()
-        camera = db.get_meta("camera")  # the scan's colour camera check (gscan.scan.calibration), None: not run
+        camera = db.get_meta("camera")  # the scan's colour camera check (gscan.scanning.calibration), None: not run
     # the `info --json` object of the CLI contract, and the mesh's size and open edges
     out: dict[str, Any] = {
         "schema": s.schema, "status": s.status, "views": s.views, "registered": s.registered,
@@ -556,7 +556,7 @@ def export(
     json_out: bool = typer.Option(False, "--json", help="print one JSON object on stdout"),
 ) -> None:
     """Export a template for other tools."""
-    from gscan.export import export as do_export
+    from gscan.exporters import export as do_export
 
     written = do_export(template, format.value, output, force=force, close=not keep_holes)
     if json_out:
@@ -631,7 +631,7 @@ def serve(
 ) -> None:
     """Serve pose estimation over HTTP with the templates kept warm (OpenAPI page at /docs)."""
     _setup_logging(verbose)
-    from gscan.serve.server import serve as run_service
+    from gscan.service.server import serve as run_service
 
     def ready(url: str) -> None:
         _say("serving ", (", ".join(t.name for t in templates), "bold"), " at ", (url, "bold"),
@@ -868,7 +868,7 @@ def batch_eval(
 @config_app.command("dump")
 def config_dump() -> None:
     """Print the default scan configuration as commented YAML."""
-    from gscan.scan.config import dump_defaults
+    from gscan.scanning.config import dump_defaults
 
     sys.stdout.write(dump_defaults())
 

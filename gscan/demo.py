@@ -22,8 +22,8 @@ from gscan.geometry.transforms import pose_error
 from gscan.io import open_sequence
 from gscan.io.output import check_output, occupied
 from gscan.progress import Progress
-from gscan.scan.api import scan
-from gscan.scan.pipeline import ScanResult
+from gscan.scanning.api import scan
+from gscan.scanning.pipeline import ScanResult
 from gscan.template.db import TemplateDB
 
 #: The bundled sample (package data): capture/, heldout/, object/box.obj, sample.json.

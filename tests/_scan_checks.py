@@ -16,8 +16,8 @@ from gscan.evaluate.metrics import ate, frame_errors
 from gscan.geometry.transforms import inv_T, transform_points
 from gscan.io import open_sequence
 from gscan.io.camera import Intrinsics
-from gscan.scan.api import scan
-from gscan.scan.pipeline import ScanResult
+from gscan.scanning.api import scan
+from gscan.scanning.pipeline import ScanResult
 from gscan.synth.cases import Case
 from gscan.synth.mesh import TexturedMesh
 from gscan.template.db import Edge, TemplateDB

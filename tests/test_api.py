@@ -26,7 +26,8 @@ PUBLIC = {
     "__version__", "open_sequence", "load_frame", "Intrinsics", "RGBDFrame", "extract_features", "Features",
     "FeatureParams", "gmatch", "GMatchParams", "register_frames", "RegisterParams", "PairResult", "scan",
     "ScanConfig", "ScanResult", "template_from_mesh", "TemplateResult", "TemplateDB", "Estimator", "EstimateParams",
-    "EstimateResult", "export", "serve", "GscanError", "InputError",
+    "EstimateResult", "export", "serve", "GscanError", "InputError", "DepthCamera", "ScanOptions", "Tracker",
+    "ExportResult",
 }
 FUNCTIONS = ("open_sequence", "load_frame", "extract_features", "gmatch", "register_frames", "scan",
              "template_from_mesh", "export", "serve")
@@ -34,8 +35,8 @@ FUNCTIONS = ("open_sequence", "load_frame", "extract_features", "gmatch", "regis
 
 def test_the_public_names_are_typed_and_documented():
     assert set(gscan.__all__) == PUBLIC and set(dir(gscan)) == PUBLIC
-    # __all__ names exactly what the package resolves lazily: every export, the callable subpackages, the version
-    lazy = set(gscan._EXPORTS) | set(gscan._CALLABLE_PACKAGES) | {"__version__"}
+    # __all__ names exactly what the package resolves lazily, and the version
+    lazy = set(gscan._EXPORTS) | {"__version__"}
     assert set(gscan.__all__) == lazy, sorted(set(gscan.__all__) ^ lazy)
     assert isinstance(gscan.__version__, str) and len(gscan.__version__.split(".")) == 3
     for name in PUBLIC - {"__version__"}:
@@ -49,24 +50,26 @@ def test_the_public_names_are_typed_and_documented():
         gscan.match_frames  # noqa: B018 - replaced by register_frames
 
 
-def test_scan_and_export_are_the_callable_subpackages():
-    """`gscan.scan` / `gscan.export` are the stage subpackages, callable as the functions: module paths below them
-    keep working, whatever was imported first."""
-    import gscan.export.jsonfmt as jsonfmt
-    import gscan.scan.pipeline as pipeline
-    from gscan import export, scan
+def test_scan_export_and_serve_are_plain_functions():
+    """`gscan.scan`, `gscan.export` and `gscan.serve` are functions (the stages are the subpackages `scanning`,
+    `exporters`, `service`), whatever was imported first; `scan` takes one `ScanOptions` value."""
+    import types
 
-    assert scan is gscan.scan and export is gscan.export
-    assert gscan.scan.pipeline is pipeline and gscan.export.jsonfmt is jsonfmt
-    assert callable(gscan.scan) and callable(gscan.export)
-    assert list(inspect.signature(gscan.scan).parameters)[:2] == ["source", "output"]
-    assert "config" in inspect.signature(gscan.scan).parameters
+    import gscan.exporters.jsonfmt as jsonfmt
+    import gscan.scanning.pipeline as pipeline
+    from gscan import export, scan, serve
+
+    assert scan is gscan.scan and export is gscan.export and serve is gscan.serve
+    assert gscan.scanning.pipeline is pipeline and gscan.exporters.jsonfmt is jsonfmt
+    assert all(isinstance(f, types.FunctionType) for f in (gscan.scan, gscan.export, gscan.serve))
+    assert list(inspect.signature(gscan.scan).parameters)[:3] == ["source", "output", "options"]
     assert list(inspect.signature(gscan.export).parameters)[:3] == ["db_path", "fmt", "out"]
-    # in a fresh interpreter the subpackage may be imported (by the estimator) before `gscan.scan` is looked up
-    code = ("from gscan.estimate.estimator import Estimator\nimport gscan\n"
-            "print(callable(gscan.scan), callable(gscan.export))")
+    # in a fresh interpreter the subpackages may be imported (by the estimator) before `gscan.scan` is looked up
+    code = ("from gscan.estimate.estimator import Estimator\nimport gscan.service, gscan.exporters\n"
+            "import gscan, types\n"
+            "print(*(isinstance(f, types.FunctionType) for f in (gscan.scan, gscan.export, gscan.serve)))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=ROOT)
-    assert out.stdout.split() == ["True", "True"], out.stderr
+    assert out.stdout.split() == ["True", "True", "True"], out.stderr
 
 
 def test_reading_frames():
@@ -116,7 +119,7 @@ def test_keypoints_gmatch_and_registration_of_two_sample_frames():
 
 
 def test_scan_refuses_bad_input_with_one_line(tmp_path):
-    from gscan.scan.api import scan as scan_function
+    from gscan.scanning.api import scan as scan_function
 
     assert typing.get_type_hints(scan_function)["return"] is gscan.ScanResult
     with pytest.raises(gscan.InputError, match="nowhere"):

@@ -27,7 +27,7 @@ from gscan import synth
 from gscan.batch.evaluate import BatchEvalReport, Pair, PairRow, assign_obj_ids, combined_csv, find_pairs, read_manifest
 from gscan.batch.scan import BatchReport, CaptureRow, _plan, find_captures
 from gscan.errors import InputError
-from gscan.scan.config import ScanConfig
+from gscan.scanning.config import ScanConfig
 from gscan.template.db import TemplateDB
 
 INTR = synth.DEFAULT_INTRINSICS.scaled(0.5)  # 320 x 240

@@ -1,4 +1,4 @@
-"""Templates rendered from CAD meshes (gscan.scan.cad)."""
+"""Templates rendered from CAD meshes (gscan.scanning.cad)."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -10,7 +10,7 @@ from gscan.demo import SAMPLES
 from gscan.errors import InputError
 from gscan.geometry.transforms import inv_T, transform_points
 from gscan.io.camera import project
-from gscan.scan.cad import fibonacci_directions, template_from_mesh, view_poses
+from gscan.scanning.cad import fibonacci_directions, template_from_mesh, view_poses
 from gscan.synth import DEFAULT_INTRINSICS, load_textured_mesh
 from gscan.template.db import TemplateDB
 
@@ -113,7 +113,7 @@ def test_template_from_a_scanned_mesh(sample_template, tmp_path, caplog):
     one-row face-colour texture exceeded) becomes a CAD template that finds the held-out frame's pose as the
     scanned template does, with no warning about missing colours."""
     from gscan.estimate.estimator import Estimator
-    from gscan.export import export
+    from gscan.exporters import export
     from gscan.geometry.transforms import pose_error
     from gscan.io import load_frame
 

@@ -1,5 +1,5 @@
-"""The colour camera's focal length from the texture (gscan.scan.calibration): a capture whose depth is registered to
-its colour keeps its intrinsics; one whose colour camera has another focal length gets that one back."""
+"""The colour camera's focal length from the texture (gscan.scanning.calibration): a capture whose depth is
+registered to its colour keeps its intrinsics; one whose colour camera has another focal length gets that one back."""
 from __future__ import annotations
 
 from dataclasses import replace
@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from gscan.io import open_sequence
-from gscan.scan.calibration import check_colour_focal
-from gscan.scan.config import ScanConfig
-from gscan.scan.pipeline import STATIC_OBJECT, _feature_params, _register_params
+from gscan.scanning.calibration import check_colour_focal
+from gscan.scanning.config import ScanConfig
+from gscan.scanning.pipeline import STATIC_OBJECT, _feature_params, _register_params
 from gscan.synth import cases as C
 from gscan.synth import load_textured_mesh
 
@@ -53,7 +53,7 @@ def test_a_colour_camera_of_another_focal_length_is_found(tmp_path, box, scale):
 def test_the_peak_is_sought_on_every_group_when_half_of_them_say_nothing(tmp_path, box):
     """The first frame of every other group unreadable (its two pairs never register): the walk on those groups
     has nothing to go on, and the check finds a colour camera of 1.12 times the focal length on the others."""
-    from gscan.scan.calibration import _starts
+    from gscan.scanning.calibration import _starts
 
     seq = open_sequence(C.two_camera_capture(box, tmp_path / "half", colour_scale=1.12, n_views=24).path)
     names = seq.names
@@ -81,8 +81,8 @@ def test_the_scan_detects_each_frame_once(tmp_path, box, monkeypatch):
     """The check's keypoints come from the detection the scan's features stage makes, and that stage starts from
     it: on a capture whose colour camera the check corrects (the sequence read again with other intrinsics),
     every frame's whole image is detected once, and every frame is registered."""
-    import gscan.features as features
-    from gscan.scan.api import scan
+    import gscan.features.keypoints as features
+    from gscan.scanning.api import scan
 
     path = C.two_camera_capture(box, tmp_path / "cap", colour_scale=0.88, n_views=8).path
     shape = open_sequence(path)[0].depth.shape

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from gscan.io.camera import RGBDFrame
-from gscan.scan.capture_mode import MOVING_OBJECT, STATIC_OBJECT, detect_mode, moving_object_masks
-from gscan.scan.keyframes import select_keyframes, view_direction
+from gscan.scanning.capture_mode import MOVING_OBJECT, STATIC_OBJECT, detect_mode, moving_object_masks
+from gscan.scanning.keyframes import select_keyframes, view_direction
 from gscan.synth import DEFAULT_INTRINSICS, box_mesh, procedural_box_texture, render_capture
 
 
@@ -82,7 +82,7 @@ def test_frames_without_the_object_are_no_keyframe_candidates():
     """A registered frame whose object mask is empty (a sweep that starts elsewhere) offers no keyframe: its stored
     object keypoints would be none, and the template its background; unregistered frames neither. With no frame
     showing the object, every registered frame is a candidate."""
-    from gscan.scan.pipeline import _keyframe_candidates
+    from gscan.scanning.pipeline import _keyframe_candidates
 
     T = np.eye(4)
     T[:3, 3] = [0.0, 0.0, -1.0]

@@ -33,9 +33,9 @@ def test_version():
 
 def test_choice_values_are_the_librarys():
     """The CLI's choice lists are the contract's; the library's own lists must be the same."""
-    from gscan.export import FORMATS as EXPORT_FORMATS
+    from gscan.exporters import FORMATS as EXPORT_FORMATS
     from gscan.io.layouts import FORMATS as INPUT_FORMATS
-    from gscan.scan.capture_mode import MOVING_OBJECT, STATIC_OBJECT
+    from gscan.scanning.capture_mode import MOVING_OBJECT, STATIC_OBJECT
 
     assert [f.value for f in ScanFormat] == ["auto", *INPUT_FORMATS]
     assert [m.value for m in ScanMode] == ["auto", STATIC_OBJECT, MOVING_OBJECT]

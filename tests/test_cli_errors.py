@@ -962,7 +962,7 @@ def _run(run: Run) -> subprocess.CompletedProcess:
 
 @pytest.fixture(scope="module")
 def ctx(tmp_path_factory: pytest.TempPathFactory) -> Ctx:
-    from gscan.scan.cad import template_from_mesh
+    from gscan.scanning.cad import template_from_mesh
 
     base = tmp_path_factory.mktemp("inputs")
     mesh = synth.box_mesh((0.14, 0.09, 0.07), synth.procedural_box_texture(3, (512, 768)))

@@ -13,12 +13,12 @@ from gscan.features import FeatureParams
 from gscan.matching.gmatch import GMatchParams
 from gscan.registration.pairwise import RegisterParams
 from gscan.registration.posegraph import LoopParams, PoseGraphParams
-from gscan.scan.calibration import FocalCheckParams
-from gscan.scan.config import ScanConfig, dump_defaults, load_config
-from gscan.scan.fuse import FusionParams
-from gscan.scan.keyframes import KeyframeParams
-from gscan.scan.segment import SegmentParams
-from gscan.scan.select import SelectionParams
+from gscan.scanning.calibration import FocalCheckParams
+from gscan.scanning.config import ScanConfig, dump_defaults, load_config
+from gscan.scanning.fuse import FusionParams
+from gscan.scanning.keyframes import KeyframeParams
+from gscan.scanning.segment import SegmentParams
+from gscan.scanning.select import SelectionParams
 
 
 def test_dump_has_a_comment_per_key_and_loads_back_as_the_defaults(tmp_path):
@@ -66,9 +66,9 @@ def test_bad_config_names_the_file_and_the_key(tmp_path, text, words):
 
 def test_every_registration_key_reaches_the_registration_parameters():
     from gscan.registration.noise import DepthNoise
-    from gscan.scan.capture_mode import MOVING_OBJECT, STATIC_OBJECT
-    from gscan.scan.config import NoiseConfig
-    from gscan.scan.pipeline import _register_params
+    from gscan.scanning.capture_mode import MOVING_OBJECT, STATIC_OBJECT
+    from gscan.scanning.config import NoiseConfig
+    from gscan.scanning.pipeline import _register_params
 
     base = ScanConfig()
     for key, value in base.registration.model_dump().items():
@@ -98,8 +98,8 @@ def test_segmentation_keys_reach_the_segmentation_and_a_far_object_is_found(mesh
     """The object 1.9 m away: the default working depth, from the depth at the image centre, finds it on its table;
     a fixed `segmentation.depth_max: 1.5` misses it (it takes the whole near scene, IoU 0), 2.5 finds it."""
     from gscan.io.camera import RGBDFrame
-    from gscan.scan.pipeline import _segment_params
-    from gscan.scan.segment import segment_frame
+    from gscan.scanning.pipeline import _segment_params
+    from gscan.scanning.segment import segment_frame
     from gscan.synth import load_textured_mesh, render_capture
 
     base = ScanConfig()

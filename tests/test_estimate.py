@@ -14,7 +14,7 @@ from gscan.estimate.verify import AcceptParams
 from gscan.evaluate.metrics import add
 from gscan.geometry.transforms import look_at, make_T, pose_error, rotvec_to_R, transform_points
 from gscan.io.camera import RGBDFrame
-from gscan.scan.cad import template_from_mesh
+from gscan.scanning.cad import template_from_mesh
 from gscan.synth import (
     DEFAULT_INTRINSICS,
     SynthScene,
@@ -324,7 +324,7 @@ def test_mask_of_wrong_size_is_refused(meshes, estimator):
 
 def test_off_plane_region_removes_the_table(meshes):
     r, _ = render_scene(meshes[0], meshes[1:], 0)
-    from gscan.scan.segment import off_plane_region
+    from gscan.scanning.segment import off_plane_region
 
     region = off_plane_region(as_frame(r))
     assert region is not None
@@ -335,11 +335,11 @@ def test_off_plane_region_removes_the_table(meshes):
 
 @pytest.fixture(scope="module")
 def scanned(meshes, tmp_path_factory):
-    """A template scanned (gscan.scan.pipeline) from a rendered 12-frame capture of the target on a table, and its
+    """A template scanned (gscan.scanning.pipeline) from a rendered 12-frame capture of the target on a table, and its
     template->ground-truth alignment: the mean of T_obj_cam[f] @ T_cam_gt[f] over the capture frames."""
     from gscan.evaluate.bop19 import template_to_gt
     from gscan.io import open_sequence
-    from gscan.scan.api import scan
+    from gscan.scanning.api import scan
     from gscan.synth import render_capture
 
     root = tmp_path_factory.mktemp("scanned")

@@ -17,7 +17,7 @@ from gscan.evaluate.metrics import add
 from gscan.geometry.transforms import look_at, pose_error, rotvec_to_R, transform_points
 from gscan.io import open_sequence
 from gscan.io.camera import RGBDFrame
-from gscan.scan.api import scan
+from gscan.scanning.api import scan
 from gscan.synth import (
     DEFAULT_INTRINSICS,
     SynthScene,

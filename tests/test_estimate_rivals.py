@@ -13,7 +13,7 @@ from gscan.estimate.estimator import EstimateParams, Estimator
 from gscan.geometry.transforms import look_at, pose_error, rotvec_to_R, transform_points
 from gscan.io.camera import RGBDFrame
 from gscan.registration.noise import sign_test
-from gscan.scan.cad import template_from_mesh
+from gscan.scanning.cad import template_from_mesh
 from gscan.synth import DEFAULT_INTRINSICS, SynthScene, load_textured_mesh, rest_on_table
 
 # the same print on both large faces, other prints on the ends (bench/estimate.py's one wrong pose before the

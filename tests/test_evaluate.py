@@ -12,7 +12,7 @@ from gscan.demo import SAMPLES
 from gscan.errors import InputError
 from gscan.evaluate.bop19 import CSV_HEADER, evaluate, score_results
 from gscan.geometry.transforms import look_at, rotvec_to_R, transform_points
-from gscan.scan.cad import template_from_mesh
+from gscan.scanning.cad import template_from_mesh
 from gscan.synth import (
     DEFAULT_INTRINSICS,
     SynthScene,
@@ -228,7 +228,7 @@ def test_bop_scan_follows_its_object_and_eval_scores_through_it(tmp_path):
     """`scan --obj-id` scans one object of a BOP scene of several and the template remembers it; eval relates
     the template to the ground truth through that object, whatever --obj-id numbers it in the scored scenes.
     --obj-id is refused for an object scene_gt.json does not hold and for other layouts."""
-    from gscan.scan.api import scan
+    from gscan.scanning.api import scan
     from gscan.template.db import TemplateDB
 
     root = SAMPLES
@@ -313,7 +313,7 @@ def test_eval_on_the_templates_own_bop_export(sample_template, setup, tmp_path):
     own exported views (named in gscan_views.json), not through the capture it was scanned from, whose
     ground truth is in the box mesh's frame (AUC ADD 0 and AR 0 before, without a word). A template that is
     not the exported one is refused. Its AR is BOP19's: the mean of the VSD, MSSD and MSPD recalls."""
-    from gscan.export import export
+    from gscan.exporters import export
 
     export(sample_template, "bop", tmp_path / "bop")
     scene = _trimmed_export(tmp_path / "bop", tmp_path / "small", keep=[0, 9, 17, 26])

@@ -14,8 +14,8 @@ import trimesh
 import yaml
 
 from gscan.errors import InputError
-from gscan.export import export
-from gscan.export.common import render_depth
+from gscan.exporters import export
+from gscan.exporters.common import render_depth
 from gscan.features import Features
 from gscan.geometry.mesh import MeshData
 from gscan.geometry.transforms import inv_T, look_at, transform_points

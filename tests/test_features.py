@@ -135,7 +135,7 @@ def test_sift_describing_the_strongest_gives_what_describing_all_gives(real_fram
     descriptors are those of describing every keypoint; also masked (every keypoint in the mask described),
     and when the strongest keypoints lack depth (the depth under them erased), which describes all of them in a
     second detection."""
-    import gscan.features as features
+    import gscan.features.keypoints as features
     from gscan.demo import SAMPLES
     from gscan.io import open_sequence
 
@@ -177,7 +177,7 @@ def test_an_extraction_started_from_another_ones_detection_gets_its_own_result(r
     makes, and the features stage then starts from it. Each gets exactly what it gets detecting alone (what
     describing every keypoint gives), without detecting again, unless the detection's cut leaves too few
     keypoints with depth (the depth under the strongest erased): then it detects again, with the same result."""
-    import gscan.features as features
+    import gscan.features.keypoints as features
     from gscan.demo import SAMPLES
     from gscan.io import open_sequence
 

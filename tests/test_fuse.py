@@ -10,8 +10,8 @@ from hypothesis import strategies as st
 from gscan.geometry.plane import Plane
 from gscan.geometry.transforms import inv_T, make_T, rotvec_to_R, transform_points
 from gscan.io.camera import RGBDFrame
-from gscan.scan.fuse import FusionParams, auto_voxel_size, fuse_tsdf, remove_small_components, template_frame
-from gscan.scan.segment import segment_sequence
+from gscan.scanning.fuse import FusionParams, auto_voxel_size, fuse_tsdf, remove_small_components, template_frame
+from gscan.scanning.segment import segment_sequence
 from gscan.synth import DEFAULT_INTRINSICS, DepthNoise, SynthScene, load_textured_mesh, orbit_poses, rest_on_table
 
 INTR = DEFAULT_INTRINSICS.scaled(0.5)

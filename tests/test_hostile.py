@@ -121,8 +121,8 @@ class Ctx:
 
 @pytest.fixture(scope="module")
 def ctx(tmp_path_factory: pytest.TempPathFactory) -> Ctx:
-    from gscan.scan.api import scan
-    from gscan.scan.cad import template_from_mesh
+    from gscan.scanning.api import scan
+    from gscan.scanning.cad import template_from_mesh
 
     base = tmp_path_factory.mktemp("hostile")
     mesh = synth.box_mesh((0.14, 0.09, 0.07), synth.procedural_box_texture(3, (512, 768)))

@@ -25,12 +25,12 @@ STAGES: list[tuple[str, ...]] = [
     ("gscan.registration",),
     ("gscan.template",),
     ("gscan.synth",),
-    ("gscan.scan",),
+    ("gscan.scanning",),
     ("gscan.estimate",),
     ("gscan.evaluate",),
-    ("gscan.export",),
+    ("gscan.exporters",),
     ("gscan.viewer",),
-    ("gscan.serve", "gscan.batch", "gscan.client", "gscan.demo"),
+    ("gscan.service", "gscan.batch", "gscan.client", "gscan.demo"),
     ("gscan.cli", "gscan"),  # the command line, and the package's public API (gscan/__init__.py)
 ]
 
@@ -147,10 +147,11 @@ def test_the_graph_walk_sees_what_it_must():
     """The walk finds imports inside functions and under TYPE_CHECKING, resolves `from pkg import module` and
     relative imports, and the checks fail on a later-stage import and on a cycle."""
     src = ("from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from gscan.viewer.app import ViewerApp\n"
-           "def f():\n    from gscan.export import bop\n    from . import camera\n    import gscan.scan.pipeline\n")
+           "def f():\n    from gscan.exporters import bop\n    from . import camera\n"
+           "    import gscan.scanning.pipeline\n")
     got = {t for t, _ in imports_of("gscan.io._graph_probe", src, False, all_modules())}
-    assert got == {"gscan.viewer.app", "gscan.export", "gscan.export.bop", "gscan.io", "gscan.io.camera",
-                   "gscan.scan.pipeline"}
+    assert got == {"gscan.viewer.app", "gscan.exporters", "gscan.exporters.bop", "gscan.io", "gscan.io.camera",
+                   "gscan.scanning.pipeline"}
     assert stage_of("gscan.io.camera") < stage_of("gscan.viewer.app")
     assert cycles({"a": [("b", 1)], "b": [("c", 1)], "c": [("a", 1)], "d": [("a", 1)]}) == [["a", "b", "c"]]
     assert cycles({"a": [("b", 1)], "b": []}) == []

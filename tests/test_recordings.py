@@ -30,7 +30,8 @@ from gscan.io import associate, open_sequence
 from gscan.io.align import align_depth_reference, align_depth_to_color
 from gscan.io.camera import Intrinsics
 from gscan.io.recordings.pairing import pair_frames, pair_tolerance
-from gscan.scan.pipeline import ScanOptions, run_scan
+from gscan.scanning.options import ScanOptions
+from gscan.scanning.pipeline import run_scan
 from gscan.synth.recordings import RecordingFrame, write_mcap, write_realsense_bag, write_rosbag2
 from gscan.template.db import TemplateDB
 
@@ -70,7 +71,7 @@ def _poses(db_path: Path) -> dict[str, np.ndarray]:
 @pytest.fixture(scope="module")
 def folder_scan(recs, tmp_path_factory):
     out = tmp_path_factory.mktemp("scan") / "folder.gscan"
-    res = run_scan(ScanOptions(input_dir=recs["folder"], output=out))
+    res = run_scan(recs["folder"], out, ScanOptions())
     assert res.registered == 12
     return out
 
@@ -300,7 +301,7 @@ def test_frames_stream_through_the_file_and_random_access_restarts(views, tmp_pa
 @pytest.mark.parametrize("kind", ["bag", "db3", "mcap"])
 def test_scan_of_a_recording_gives_the_folder_scan_poses(recs, folder_scan, tmp_path, kind):
     out = tmp_path / f"{kind}.gscan"
-    res = run_scan(ScanOptions(input_dir=recs[kind], output=out))
+    res = run_scan(recs[kind], out, ScanOptions())
     assert res.registered == 12 and res.problems == {}
     ref, got = _poses(folder_scan), _poses(out)
     assert sorted(got) == sorted(ref)
@@ -329,7 +330,7 @@ def test_unaligned_recording_scans_as_accurately_as_the_aligned_capture(recs, vi
     """Bound: the unaligned scan's ATE is within max(2 x, +1 mm) of the aligned capture's (measured: 1.2 vs
     0.5 mm), and under the 5 mm of the static-capture scan tests."""
     out = tmp_path / "unaligned.gscan"
-    res = run_scan(ScanOptions(input_dir=recs["bag_unaligned"], output=out))
+    res = run_scan(recs["bag_unaligned"], out, ScanOptions())
     assert res.registered == 12
 
     def ate(path: Path) -> float:

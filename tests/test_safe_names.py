@@ -14,8 +14,8 @@ import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from gscan.export import FORMATS, export
-from gscan.export.common import MAX_STEM_BYTES, safe_file_names
+from gscan.exporters import FORMATS, export
+from gscan.exporters.common import MAX_STEM_BYTES, safe_file_names
 from gscan.features import Features
 from gscan.geometry.mesh import MeshData
 from gscan.io.camera import Intrinsics

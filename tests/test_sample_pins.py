@@ -94,7 +94,7 @@ def main() -> None:
     """Re-pin: scan the sample as `gscan demo` does and write tests/sample_pins.json."""
     import tempfile
 
-    from gscan.scan.api import scan
+    from gscan.scanning.api import scan
 
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "sample.gscan"

@@ -18,7 +18,7 @@ import pytest
 from gscan.evaluate.metrics import ate_rmse, frame_errors
 from gscan.geometry.transforms import inv_T, pose_error
 from gscan.io import open_sequence
-from gscan.scan.api import scan
+from gscan.scanning.api import scan
 from gscan.synth import load_textured_mesh, render_capture
 from gscan.template.db import TemplateDB
 
@@ -171,7 +171,7 @@ def test_unusable_frames_are_named_in_input_order(tmp_path, monkeypatch):
     """The colour camera's check reads frames on two threads, so unreadable frames fail in any order. With every
     colour image truncated, the one-line error names the first frame in input order, whatever order they failed
     in (here the check reads them last to first)."""
-    import gscan.scan.pipeline as pipeline
+    import gscan.scanning.pipeline as pipeline
     from gscan.demo import SAMPLES
     from gscan.errors import InputError
 

@@ -123,8 +123,8 @@ def test_two_cameras_of_different_focal_lengths_found_from_the_texture(tmp_path,
     from gscan.geometry.transforms import pose_error
     from gscan.io import open_sequence
     from gscan.io.camera import RGBDFrame
-    from gscan.scan.api import scan
-    from gscan.scan.config import ScanConfig
+    from gscan.scanning.api import scan
+    from gscan.scanning.config import ScanConfig
     from gscan.synth.render import DEFAULT_INTRINSICS
 
     case = C.two_camera_capture(box, tmp_path / "two", colour_scale=0.9, n_views=12, seed=0)

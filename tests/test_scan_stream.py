@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from gscan import synth
-from gscan.scan.api import scan
+from gscan.scanning.api import scan
 from gscan.template.db import TemplateDB
 from tests._scan_checks import box_ring_capture
 
@@ -75,7 +75,7 @@ def test_selection_skips_still_and_blurred_frames_and_keeps_a_blurred_one_before
     than twice the step is kept (a blurred view beats a gap); a capture moving a degree a frame keeps every one."""
     import cv2
 
-    from gscan.scan.select import BLURRED, LITTLE_MOTION, FrameSelector, SelectionParams
+    from gscan.scanning.select import BLURRED, LITTLE_MOTION, FrameSelector, SelectionParams
 
     azimuths = [0.0, 0.0, 0.2, 0.8, 0.95, 1.05, 3.0, 3.0, 4.0, 5.0, 6.0]
     frames = _ring_frames(azimuths)
@@ -99,7 +99,7 @@ def test_selection_follows_a_turning_object_not_the_still_background() -> None:
     on its mask, so frames turning two degrees each are all kept though most of the image stands still, and frames
     where the object stops are skipped."""
     from gscan.io.camera import RGBDFrame
-    from gscan.scan.select import LITTLE_MOTION, FrameSelector, SelectionParams
+    from gscan.scanning.select import LITTLE_MOTION, FrameSelector, SelectionParams
     from gscan.synth.capture import default_distance, orbit_poses, rest_on_table, turntable_poses
     from gscan.synth.render import SynthScene
 

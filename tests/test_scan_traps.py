@@ -29,7 +29,7 @@ import pytest
 
 from gscan.geometry.transforms import inv_T, look_at, rotvec_to_R
 from gscan.registration.pairwise import RegisterParams
-from gscan.scan import pipeline
+from gscan.scanning import pipeline
 from gscan.synth import cases as C
 from gscan.synth import load_textured_mesh
 from gscan.template.records import Edge

@@ -10,7 +10,7 @@ from gscan.errors import InputError
 from gscan.geometry.plane import Plane, ransac_plane
 from gscan.geometry.transforms import inv_T, make_T, rotvec_to_R, transform_points
 from gscan.io.camera import RGBDFrame
-from gscan.scan.segment import (
+from gscan.scanning.segment import (
     WorkingVolume,
     estimate_working_volume,
     fit_support_plane,

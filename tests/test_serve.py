@@ -25,9 +25,9 @@ from gscan.client import GscanClient, ServiceError
 from gscan.errors import InputError
 from gscan.geometry.transforms import look_at, pose_error, rotvec_to_R, transform_points
 from gscan.io.camera import Intrinsics
-from gscan.scan.cad import template_from_mesh
-from gscan.serve import load_depth_camera
-from gscan.serve.decode import RequestError, decode_frame, depth_camera_fields, parse_pose
+from gscan.scanning.cad import template_from_mesh
+from gscan.service import load_depth_camera
+from gscan.service.decode import RequestError, decode_frame, depth_camera_fields, parse_pose
 from gscan.synth import (
     DEFAULT_INTRINSICS,
     SynthScene,
@@ -233,7 +233,7 @@ def test_decode_frame_checks_before_decoding(meshes):
 
 
 def test_serve_from_python(template: Path):
-    """gscan.serve (the public API's function, also the package's name) starts the service from Python."""
+    """gscan.serve (the public API's function) starts the service from Python."""
     code = ("import sys, gscan; gscan.serve([sys.argv[1]], port=0, on_ready=lambda url: print(url, flush=True))")
     proc = subprocess.Popen([sys.executable, "-c", code, str(template)], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
@@ -244,10 +244,6 @@ def test_serve_from_python(template: Path):
     finally:
         proc.terminate()
         proc.wait(30)
-    import gscan
-    import gscan.serve.api  # the package imported as well: the name still starts the service
-
-    assert callable(gscan.serve) and gscan.serve.create_app is not None
 
 
 @pytest.mark.filterwarnings("ignore::DeprecationWarning")
@@ -256,7 +252,7 @@ def test_body_limit_and_framework_errors(template: Path):
     framework's own errors (an unparsable body, an unknown path) get one line naming the request."""
     from fastapi.testclient import TestClient
 
-    from gscan.serve import ServeParams, create_app, load_service
+    from gscan.service import ServeParams, create_app, load_service
 
     client = TestClient(create_app(load_service([template], ServeParams(max_request_bytes=10_000))))
     form = {"content-type": "multipart/form-data; boundary=b"}

@@ -16,7 +16,7 @@ _PROBE = """
 import json, sys, threading
 if sys.argv[1] == "numpy-first":
     import numpy, cv2, scipy.linalg
-    import gscan.scan.api  # library code: must not touch the pools
+    import gscan.scanning.api  # library code: must not touch the pools
     from threadpoolctl import threadpool_info
     before = sorted(p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas")
 else:

@@ -14,7 +14,7 @@ from gscan.errors import InputError
 from gscan.estimate import Estimator, Tracker, track_sequence, write_poses
 from gscan.geometry.transforms import look_at, make_T, pose_error, rotvec_to_R, transform_points
 from gscan.io import open_sequence
-from gscan.scan.cad import template_from_mesh
+from gscan.scanning.cad import template_from_mesh
 from gscan.synth import (
     DEFAULT_INTRINSICS,
     SynthScene,

@@ -160,7 +160,7 @@ def test_start_camera_keeps_clear_of_the_frustums():
     """The browser's start camera looks at the object from a direction away from every view's camera: with a
     view right on the default direction (a CAD template's first view at 62 deg elevation, 3.7 deg from it) the
     start direction turns at least 20 deg away from all views; with nothing that near, the default stays."""
-    from gscan.scan.cad import fibonacci_directions
+    from gscan.scanning.cad import fibonacci_directions
     from gscan.viewer.scene import _clear_direction
 
     up, d0 = np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0])

@@ -27,7 +27,7 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
-_SCAN_IMPORTS = ("gscan.scan.api", "open3d", "scipy.spatial", "cv2")
+_SCAN_IMPORTS = ("gscan.scanning.api", "open3d", "scipy.spatial", "cv2")
 
 
 def _die_with_parent(parent: int) -> None:
@@ -87,8 +87,8 @@ def thread_counts() -> dict[str, int | None]:
 
 def _scan_job(req: dict[str, Any]) -> dict[str, Any]:
     from gscan.batch.facts import ground_truth_check, template_facts
-    from gscan.scan.api import scan
-    from gscan.scan.config import ScanConfig
+    from gscan.scanning.api import scan
+    from gscan.scanning.config import ScanConfig
     from gscan.template.db import TemplateDB
 
     output = Path(req["output"])

@@ -44,7 +44,7 @@ from gscan.errors import InputError
 from gscan.io.layouts import detect_format
 from gscan.io.output import check_output_path
 from gscan.io.recordings.kinds import SUFFIXES, recording_format
-from gscan.scan.config import ScanConfig, load_config
+from gscan.scanning.config import ScanConfig, load_config
 from gscan.template.db import TemplateDB
 
 log = logging.getLogger(__name__)

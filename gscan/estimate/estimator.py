@@ -41,7 +41,7 @@ Pipeline of `Estimator.estimate` (every stage timed, `EstimateResult.timings_ms`
    view is ambiguous and no pose is returned (nor sought by PnP in the depth's holes).
 
 A frame that comes with the intrinsics the template's scan found its capture's colour camera not to have
-(gscan.scan.calibration) is first read as the scan read the capture (`as_scanned`).
+(gscan.scanning.calibration) is first read as the scan read the capture (`as_scanned`).
 
 Without usable query depth (valid fraction of the search region < `min_depth_frac`) the pose is solved 2D-3D
 (`gscan.estimate.pnp`), and the same 2D-3D solve is tried after a failed 3D-3D estimate on the search region's
@@ -230,7 +230,7 @@ class Estimator:
         self.center = 0.5 * (lo + hi)
         self.radius = float(np.linalg.norm(self.cloud - self.center, axis=1).max())
         self.grasps = dict(tpl.grasps)
-        # the scan found the capture's depth off its colour at the given intrinsics (gscan.scan.calibration): a
+        # the scan found the capture's depth off its colour at the given intrinsics (gscan.scanning.calibration): a
         # frame read with those same intrinsics is read as the scan read the capture
         cam = tpl.meta.get("camera") if isinstance(tpl.meta, dict) else None
         self.camera_fix: tuple[Intrinsics, Intrinsics] | None = None  # (given, the colour camera's)

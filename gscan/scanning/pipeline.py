@@ -1,11 +1,11 @@
 """The scan pipeline: an RGB-D folder to registered views, pose graph, fused mesh and template database.
 
 Stages (each timed, each reported through a `Progress`):
-  mode      static-object vs moving-object (`gscan.scan.capture_mode`), from a few frames spread over the input
+  mode      static-object vs moving-object (`gscan.scanning.capture_mode`), from a few frames spread over the input
   load      read every frame once, in order (unusable ones are reported by name and left out); frame selection
-            (`gscan.scan.select`) keeps the frames the view moved enough to, the sharper where frames blur, and
+            (`gscan.scanning.select`) keeps the frames the view moved enough to, the sharper where frames blur, and
             reports the others as skipped (not failures); a kept frame's images go to the scan's frame store
-            (`gscan.scan.store`, an anonymous file beside the output), with a moving object's mask
+            (`gscan.scanning.store`, an anonymous file beside the output), with a moving object's mask
   features  keypoints + descriptors lifted to 3D; whole frame for a static object, object only for a
             moving one; stored at once in the database with the view's images (camera frame, pose unknown)
   register  pairwise edges: each frame against the previous one, falling back to the next earlier
@@ -87,19 +87,20 @@ from gscan.registration.posegraph import (
     select_loop_candidates,
     spanning_poses,
 )
-from gscan.scan.capture_mode import (
+from gscan.scanning.capture_mode import (
     MOVING_OBJECT,
     STATIC_OBJECT,
     background_depth,
     detect_mode,
     foreground_mask,
 )
-from gscan.scan.config import ScanConfig
-from gscan.scan.fuse import FusedModel, FusionParams, fuse_tsdf, template_frame
-from gscan.scan.keyframes import select_keyframes, view_direction
-from gscan.scan.segment import SegmentParams, segment_frame
-from gscan.scan.select import FrameSelector, Selection, SelectionParams
-from gscan.scan.store import FrameStore, LazyList, StoredFrame
+from gscan.scanning.config import ScanConfig
+from gscan.scanning.fuse import FusedModel, FusionParams, fuse_tsdf, template_frame
+from gscan.scanning.keyframes import select_keyframes, view_direction
+from gscan.scanning.options import ScanOptions
+from gscan.scanning.segment import SegmentParams, segment_frame
+from gscan.scanning.select import FrameSelector, Selection, SelectionParams
+from gscan.scanning.store import FrameStore, LazyList, StoredFrame
 from gscan.template.db import Edge, TemplateDB, View
 
 if TYPE_CHECKING:
@@ -127,26 +128,6 @@ PRUNED = "pruned by the pose graph: "  # reason prefix of edges registration acc
 AGAINST_ODOMETRY = "contradicts the capture's odometry"  # how the reason of such an edge begins (`_against_odometry`)
 ODOMETRY_SIGMAS = 5.0  # ... by more than this many of registration's largest accepted rotation sigmas per frame
 NO_KEYPOINTS = "no keypoint with depth (dark or textureless image, or no valid depth)"
-
-
-@dataclass
-class ScanOptions:
-    input_dir: Path
-    output: Path
-    fmt: str = "auto"
-    intrinsics: Path | None = None
-    depth_scale: float | None = None
-    mode: str = "auto"
-    segment: bool = True
-    resume: bool = False
-    force: bool = False
-    config: ScanConfig = field(default_factory=ScanConfig)
-    obj_id: int | None = None  # BOP: the object to scan (its masks, ground truth); None: the first one listed
-    meta: dict = field(default_factory=dict)  # more meta keys for the database (e.g. the demo marks its outputs)
-    color_topic: str | None = None  # recordings: the colour / depth image topics (None: detected)
-    depth_topic: str | None = None
-    depth_intrinsics: Path | None = None  # depth not registered to colour: the depth camera's intrinsics ...
-    depth_to_color: Path | None = None  # ... and its pose in the colour camera, T_color_depth (None: identity)
 
 
 @dataclass
@@ -220,13 +201,13 @@ RESUME_KEYS = ("input", "format", "intrinsics_sha256", "depth_scale_option", "co
                "obj_id_option", "topics_option", "depth_camera_sha256")
 
 
-def _scan_meta(opts: ScanOptions) -> dict:
+def _scan_meta(source: Path, opts: ScanOptions) -> dict:
     """The database's meta; a resumed scan must agree on every RESUME_KEYS value (what changes its result):
     the layout as detected (`--format auto` and the named layout agree), the calibration files' contents."""
     from gscan.io import detect_format
 
-    return {"source": "scan", "input": str(opts.input_dir.resolve()),
-            "format": detect_format(opts.input_dir) if opts.fmt == "auto" else opts.fmt,
+    return {"source": "scan", "input": str(source.resolve()),
+            "format": detect_format(source) if opts.format == "auto" else opts.format,
             "intrinsics_sha256": None if opts.intrinsics is None else _sha256(Path(opts.intrinsics)),
             "depth_scale_option": opts.depth_scale, "config": opts.config.model_dump(), "mode_option": opts.mode,
             "segment": opts.segment, "obj_id_option": opts.obj_id, "descriptor": opts.config.features.kind,
@@ -246,13 +227,13 @@ def _sha256(path: Path) -> str:
         raise InputError(path, f"cannot read the calibration file ({e.strerror or e})") from None
 
 
-def _open_resumed(opts: ScanOptions, seq: Sequence | RecordingSequence, frames: dict
+def _open_resumed(source: Path, output: Path, opts: ScanOptions, seq: Sequence | RecordingSequence, frames: dict
                   ) -> tuple[TemplateDB, Output | None]:
     """The interrupted scan's database; it must come from the same input, configuration and input frames
     (`frames`: `Sequence.fingerprints`). A complete database (or one whose journal would have too long a
     name) is continued in a copy renamed over it at the end, so a failed run leaves it as it was."""
-    meta = _scan_meta(opts)
-    db = TemplateDB.open(opts.output, require_complete=False)  # read only until it is known to be continued
+    meta = _scan_meta(source, opts)
+    db = TemplateDB.open(output, require_complete=False)  # read only until it is known to be continued
     try:
         stored = {k: db.get_meta(k) for k in RESUME_KEYS}
         # settings added to the configuration since the scan started take their defaults; a configuration this
@@ -260,18 +241,18 @@ def _open_resumed(opts: ScanOptions, seq: Sequence | RecordingSequence, frames: 
         with contextlib.suppress(ValueError, TypeError):
             stored["config"] = json.loads(json.dumps(ScanConfig.model_validate(stored["config"]).model_dump()))
         if stored != {k: json.loads(json.dumps(meta[k])) for k in stored}:
-            raise InputError(opts.output, "was written from another input or configuration", fix="restart")
-        _check_frames(opts.output, db.get_meta("input_frames"), json.loads(json.dumps(frames)), seq)
-        in_place = db.status != "complete" and journal_fits(opts.output)
+            raise InputError(output, "was written from another input or configuration", fix="restart")
+        _check_frames(output, db.get_meta("input_frames"), json.loads(json.dumps(frames)), seq)
+        in_place = db.status != "complete" and journal_fits(output)
     except BaseException:
         db.close()
         raise
     db.close()
     if in_place:
-        return TemplateDB.open(opts.output, require_complete=False, writable=True, wal=True), None
-    target = Output(opts.output, force=True, kind=".gscan file path")
+        return TemplateDB.open(output, require_complete=False, writable=True, wal=True), None
+    target = Output(output, force=True, kind=".gscan file path")
     try:
-        shutil.copyfile(opts.output, target.open())
+        shutil.copyfile(output, target.open())
         return TemplateDB.open(target.tmp, require_complete=False, writable=True, wal=True), target
     except BaseException as e:
         target.discard()
@@ -312,16 +293,16 @@ def _check_frames(output: Path, stored: object, frames: dict, seq: Sequence | Re
                          fix="restart")
 
 
-def _create_output(opts: ScanOptions, meta: dict) -> tuple[TemplateDB, Output | None]:
+def _create_output(output: Path, opts: ScanOptions, meta: dict) -> tuple[TemplateDB, Output | None]:
     """A new database: in place while nothing is at the output (an interrupted scan is then resumed from it),
     else in a temporary sibling that replaces the old output once complete (`Output`)."""
-    if not occupied(opts.output) and journal_fits(opts.output):
+    if not occupied(output) and journal_fits(output):
         try:
-            return TemplateDB.create(opts.output, meta=meta, wal=True), None
+            return TemplateDB.create(output, meta=meta, wal=True), None
         except OutputExists as e:  # created by another process since the checks
             if not opts.force:
-                raise OutputExists(opts.output, e.reason, fix="resume") from None
-    target = Output(opts.output, force=opts.force, kind=".gscan file path", fix="resume")
+                raise OutputExists(output, e.reason, fix="resume") from None
+    target = Output(output, force=opts.force, kind=".gscan file path", fix="resume")
     try:
         return TemplateDB.create(target.open(), force=True, meta=meta, wal=True), target
     except BaseException as e:
@@ -332,16 +313,16 @@ def _create_output(opts: ScanOptions, meta: dict) -> tuple[TemplateDB, Output | 
         raise
 
 
-def _check_camera(seq: Sequence | RecordingSequence, opts: ScanOptions, detections: dict[str, Detection]
+def _check_camera(source: Path, seq: Sequence | RecordingSequence, opts: ScanOptions, detections: dict[str, Detection]
                   ) -> tuple[Sequence | RecordingSequence, dict | None]:
     """A folder capture read with one set of intrinsics (no --depth-intrinsics, one K for every frame): the
-    colour camera's focal length checked against the data (gscan.scan.calibration). When the texture rejects
+    colour camera's focal length checked against the data (gscan.scanning.calibration). When the texture rejects
     the given one, the capture is read again with the given intrinsics as the depth camera's and the focal
     length the data give as the colour camera's. Returns (the sequence to scan, the check's report or None);
     the frames the check detected keypoints in are left in `detections` for the features stage."""
     from gscan.io import open_sequence
     from gscan.io.sequence import Sequence
-    from gscan.scan.calibration import check_colour_focal
+    from gscan.scanning.calibration import check_colour_focal
 
     cfg = opts.config
     if (not cfg.camera.check_colour_focal or opts.depth_intrinsics is not None or not isinstance(seq, Sequence)
@@ -372,12 +353,12 @@ def _check_camera(seq: Sequence | RecordingSequence, opts: ScanOptions, detectio
                 "pairs lines up best with a colour focal length of %.1f px (%.0f %% of textured tiles, %.0f %% at the "
                 "given %.1f px); scanning with it, the given intrinsics taken as the depth camera's", check.pairs,
                 Kc.fx, 100 * check.peak, 100 * check.agreement[1.0], K.fx)
-    seq = open_sequence(opts.input_dir, format=opts.fmt, intrinsics=Kc, depth_scale=opts.depth_scale,
+    seq = open_sequence(source, format=opts.format, intrinsics=Kc, depth_scale=opts.depth_scale,
                         obj_id=opts.obj_id, depth_intrinsics=K)
     return seq, report
 
 
-def run_scan(opts: ScanOptions, progress: Progress | None = None) -> ScanResult:
+def run_scan(source: Path, output: Path, opts: ScanOptions, progress: Progress | None = None) -> ScanResult:
     """Run the whole pipeline (see the module docstring). Raises InputError for bad input.
 
     The output is checked before any frame is read (so a bad output fails on one line). A new output is
@@ -387,32 +368,32 @@ def run_scan(opts: ScanOptions, progress: Progress | None = None) -> ScanResult:
     """
     from gscan.io import open_sequence
 
-    resumed = opts.resume and opts.output.is_file()
-    check_output(opts.output, force=opts.force or resumed, kind=".gscan file path", fix="resume")
+    resumed = opts.resume and output.is_file()
+    check_output(output, force=opts.force or resumed, kind=".gscan file path", fix="resume")
     timer = StageTimer(progress)
     db: TemplateDB | None = None
     target: Output | None = None
     store: FrameStore | None = None
     try:
-        seq = open_sequence(opts.input_dir, format=opts.fmt, intrinsics=opts.intrinsics,
+        seq = open_sequence(source, format=opts.format, intrinsics=opts.intrinsics,
                             depth_scale=opts.depth_scale, obj_id=opts.obj_id, color_topic=opts.color_topic,
                             depth_topic=opts.depth_topic, depth_intrinsics=opts.depth_intrinsics,
                             T_color_depth=opts.depth_to_color)
         if opts.obj_id is not None and seq.format != "bop":
-            raise InputError(opts.input_dir, f"an object id is for BOP scene folders, this is a {seq.format} folder")
+            raise InputError(source, f"an object id is for BOP scene folders, this is a {seq.format} folder")
         if opts.obj_id is not None and seq.gt_T_cam_obj is None:
-            raise InputError(opts.input_dir / "scene_gt.json", "not found (the object id picks an object of its "
+            raise InputError(source / "scene_gt.json", "not found (the object id picks an object of its "
                              "poses)", fix="obj_id")
         if opts.obj_id is not None and not seq.gt_T_cam_obj:
-            raise InputError(opts.input_dir / "scene_gt.json", f"holds no pose of object {opts.obj_id}", fix="obj_id")
+            raise InputError(source / "scene_gt.json", f"holds no pose of object {opts.obj_id}", fix="obj_id")
         fingerprints = seq.fingerprints()
         if resumed:
-            db, target = _open_resumed(opts, seq, fingerprints)
+            db, target = _open_resumed(source, output, opts, seq, fingerprints)
         detections: dict[str, Detection] = {}
         with timer.stage("camera", total=1) as advance:  # (after the checks that refuse the input in one line)
-            seq, camera = _check_camera(seq, opts, detections)
+            seq, camera = _check_camera(source, seq, opts, detections)
             advance(1)
-        store = FrameStore(opts.output)
+        store = FrameStore(output)
         seg = _segment_params(opts.config)
         with timer.stage("mode", total=1) as advance:
             mode, masks_given = _detect_mode(seq, opts.mode)
@@ -425,7 +406,7 @@ def run_scan(opts: ScanOptions, progress: Progress | None = None) -> ScanResult:
         problems = dict(sorted(seq.problems.items(), key=lambda kv: index.get(kv[0], -1)))
         if not frames:  # one line (the CLI contract), no per-frame warnings before it
             first = next(iter(problems.items()), ("?", "?"))
-            raise InputError(opts.input_dir,
+            raise InputError(source,
                              f"no usable frame ({len(problems)} unusable); first: {first[0]}: {first[1]}")
     except BaseException:
         if store is not None:
@@ -438,19 +419,18 @@ def run_scan(opts: ScanOptions, progress: Progress | None = None) -> ScanResult:
     for name, err in failed:
         log.warning("skipping frame %s: %s", name, err)
 
-    made = missing_folders(opts.output)
+    made = missing_folders(output)
     created = None
     try:
         if db is None:
             # obj_id: the BOP object the scan followed (its ground truth and masks), for `gscan eval`
-            db, target = _create_output(opts, opts.meta | _scan_meta(opts) | {"obj_id": seq.obj_id,
-                                                                              "input_frames": fingerprints,
-                                                                              "camera": camera})
-        created = file_identity(opts.output)  # a new output in place: only this file is removed on failure
+            db, target = _create_output(output, opts, dict(opts.meta) | _scan_meta(source, opts) | {
+                "obj_id": seq.obj_id, "input_frames": fingerprints, "camera": camera})
+        created = file_identity(output)  # a new output in place: only this file is removed on failure
         if resumed:  # only once the input is known to hold frames: a complete database stays complete
             db.mark_partial()
         data = _FrameData(frames, store, db, mode, masks_given, opts.config, detections)
-        result = _scan_frames(data, opts, db, resumed, timer, problems, selection)
+        result = _scan_frames(data, source, output, opts, db, resumed, timer, problems, selection)
         result.camera = camera
     except BaseException as e:
         store.close()
@@ -462,17 +442,17 @@ def run_scan(opts: ScanOptions, progress: Progress | None = None) -> ScanResult:
             if t is not e:
                 raise t from None
         elif (db is not None and not resumed and not isinstance(e, KeyboardInterrupt)
-              and file_identity(opts.output) == created):
+              and file_identity(output) == created):
             # a failed scan leaves no output behind: neither the file nor folders made for it (never a file
             # another process put there since); Ctrl+C keeps the partial file for --resume (as a killed scan does)
-            opts.output.unlink(missing_ok=True)
-            remove_sqlite_sidecars(opts.output)
+            output.unlink(missing_ok=True)
+            remove_sqlite_sidecars(output)
             remove_empty_folders(made)
         raise
     store.close()
     db.close()
     if target is not None:
-        remove_sqlite_sidecars(opts.output)  # a killed writer's journal or log there would be replayed into ours
+        remove_sqlite_sidecars(output)  # a killed writer's journal or log there would be replayed into ours
         target.commit()
     return result
 
@@ -620,7 +600,7 @@ def _detect_mode(seq: Sequence | RecordingSequence, mode_option: str) -> tuple[s
 def _load(seq: Sequence | RecordingSequence, mode: str, masks_given: bool, cfg: ScanConfig, seg: SegmentParams,
           store: FrameStore, advance: Callable[[int], None]) -> tuple[list[_Frame], list[tuple[str, InputError]],
                                                                      Selection]:
-    """Reads the input once, in order, keeping the frames frame selection keeps (`gscan.scan.select`): their images
+    """Reads the input once, in order, keeping the frames frame selection keeps (`gscan.scanning.select`): their images
     go to the store, with a moving object's mask (`moving_object_masks`: the support plane and the object on it,
     else the difference from the background). Returns (kept frames, frames that could not be read, selection)."""
     s = cfg.selection
@@ -673,8 +653,8 @@ def _read_ahead(seq: Sequence | RecordingSequence) -> Iterator[tuple[str, RGBDFr
 
 
 # ------------------------------------------------------------------------------------------ the stages
-def _scan_frames(data: _FrameData, opts: ScanOptions, db: TemplateDB, resumed: bool, timer: StageTimer,
-                 problems: dict[str, str], selection: Selection) -> ScanResult:
+def _scan_frames(data: _FrameData, source: Path, output: Path, opts: ScanOptions, db: TemplateDB, resumed: bool,
+                 timer: StageTimer, problems: dict[str, str], selection: Selection) -> ScanResult:
     cfg = opts.config
     seg = _segment_params(cfg)
     frames, mode = data.frames, data.mode
@@ -687,7 +667,7 @@ def _scan_frames(data: _FrameData, opts: ScanOptions, db: TemplateDB, resumed: b
         db.set_meta("selection", selection.to_meta())
         _extract(data, db, resumed, advance)
     if not any(f.n_keypoints for f in frames):  # every frame dark, textureless or without depth: nothing to scan
-        raise InputError(opts.input_dir, f"no keypoint with depth in any of the {len(frames)} frames "
+        raise InputError(source, f"no keypoint with depth in any of the {len(frames)} frames "
                          "(dark or textureless images, or no valid depth)")
 
     n = len(frames)
@@ -717,7 +697,7 @@ def _scan_frames(data: _FrameData, opts: ScanOptions, db: TemplateDB, resumed: b
                                         advance)
 
     with timer.stage("fuse", total=1) as advance:
-        model, T_obj_world = _fuse(data, T_world_cam, mask_of, plane_world, cfg, opts.input_dir)
+        model, T_obj_world = _fuse(data, T_world_cam, mask_of, plane_world, cfg, source)
         advance(1)
 
     with timer.stage("database", total=n + 1) as advance, db.batch():
@@ -742,7 +722,7 @@ def _scan_frames(data: _FrameData, opts: ScanOptions, db: TemplateDB, resumed: b
     stored_edges = db.edges()
     accepted = sum(1 for e in stored_edges if e.accepted)
     total_edges = len(stored_edges)
-    return ScanResult(output=opts.output, frames=n + len(selection.skipped) + len(problems),
+    return ScanResult(output=output, frames=n + len(selection.skipped) + len(problems),
                       registered=len(registered), unregistered=unregistered + sorted(problems),
                       edges_accepted=accepted, edges_rejected=total_edges - accepted, mode=mode,
                       mesh_vertices=len(mesh.vertices), mesh_triangles=len(mesh.triangles),
@@ -1246,7 +1226,7 @@ def _segment(data: _FrameData, T_world_cam: list[np.ndarray | None], segment: bo
     it comes from the working volume over the registered frames; for a moving object from the
     reference frame alone (a turntable's plane moves with the object; an object in hand has none).
     """
-    from gscan.scan.segment import estimate_working_volume, segment_frame, segment_in_volume
+    from gscan.scanning.segment import estimate_working_volume, segment_frame, segment_in_volume
 
     frames = data.frames
     n = len(frames)

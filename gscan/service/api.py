@@ -16,8 +16,8 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from gscan._version import __version__
 from gscan.errors import GscanError
-from gscan.serve.decode import RequestError
-from gscan.serve.service import Service
+from gscan.service.decode import RequestError
+from gscan.service.service import Service
 
 log = logging.getLogger(__name__)
 
@@ -134,7 +134,7 @@ async def _send_json(send: Any, status: int, detail: str) -> None:
 
 
 def create_app(service: Service) -> Any:
-    """The FastAPI application of a Service (routes in gscan.serve.service's docstring), wrapped in BodyLimit."""
+    """The FastAPI application of a Service (routes in gscan.service.service's docstring), wrapped in BodyLimit."""
     app = FastAPI(title="gscan pose estimation", version=__version__,
                   description="6DoF pose of scanned objects in RGB-D frames, templates kept warm. Colour: PNG or "
                               "JPEG; depth: a 16-bit PNG; intrinsics: the 3x3 numbers of a cam_K.txt; depth from a "

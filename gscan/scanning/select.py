@@ -30,7 +30,7 @@ import cv2
 import numpy as np
 
 from gscan.io.camera import Intrinsics, RGBDFrame, backproject_pixels
-from gscan.scan.segment import centre_depth
+from gscan.scanning.segment import centre_depth
 
 BLUR_WINDOW = 15  # frames whose median sharpness a frame is compared with
 BLUR_MIN_HISTORY = 3  # ... at least this many (the first frames are never called blurred)

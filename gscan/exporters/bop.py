@@ -18,7 +18,7 @@ Layout (BOP toolkit conventions, docs/bop_datasets_format.md; millimetres, row-m
     test_targets_bop19.json           [{im_id, inst_count: 1, obj_id: 1, scene_id: 1}] (evaluation targets)
     gscan_views.json                  {im_id: template view name} (gscan's own addition)
 
-The mesh is closed into a watertight model (`close`, see `gscan.export.watertight`: the scan's mesh is
+The mesh is closed into a watertight model (`close`, see `gscan.exporters.watertight`: the scan's mesh is
 open where the support plane cut it), which is what BOP's renderers and scorers expect.
 
 Masks and counts: with a mesh, `mask` is the mesh silhouette ray-cast from the view's pose and
@@ -40,7 +40,7 @@ import numpy as np
 
 from gscan.errors import InputError
 from gscan.evaluate.metrics import diameter
-from gscan.export.common import MeshRaycaster, bbox_xywh, imwrite, posed_views, template_mesh
+from gscan.exporters.common import MeshRaycaster, bbox_xywh, imwrite, posed_views, template_mesh
 from gscan.geometry.transforms import inv_T
 from gscan.template.codec import depth_to_mm_u16
 from gscan.template.db import MeshData, TemplateDB
@@ -56,7 +56,7 @@ VISIB_DELTA_MM = 15.0
 def write_ply_mm(mesh: MeshData, path: Path) -> None:
     """Binary little-endian PLY in millimetres: x y z nx ny nz (float32) red green blue (uchar) and
     `vertex_indices` faces (list uchar int) — the properties `bop_toolkit_lib.inout.load_ply` reads."""
-    from gscan.export.mesh import to_trimesh
+    from gscan.exporters.mesh import to_trimesh
 
     tm = to_trimesh(mesh)
     V = np.asarray(mesh.vertices, dtype=np.float64) * 1000.0

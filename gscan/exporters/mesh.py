@@ -7,7 +7,7 @@ import numpy as np
 import trimesh
 
 from gscan.errors import InputError
-from gscan.export.common import require_mesh
+from gscan.exporters.common import require_mesh
 from gscan.geometry.meshfill import boundary_edges, non_manifold_edges
 from gscan.template.db import MeshData, TemplateDB
 

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from gscan.export.common import imwrite, posed_views, safe_file_names
+from gscan.exporters.common import imwrite, posed_views, safe_file_names
 from gscan.geometry.transforms import inv_T
 from gscan.template.db import TemplateDB
 

@@ -16,7 +16,7 @@ unless `close=False`: the scan's mesh is open where the support plane cut it.
 Outputs are never half-written (`gscan.io.output.Output`): everything is written into a hidden temporary
 sibling of `out` and renamed into place at the end. An existing non-empty `out` is refused without `force`;
 a partial database is refused (InputError naming the file). File names derived from view names are made
-safe (`gscan.export.common.safe_file_names`): no separators, `..`, control characters or overlong names.
+safe (`gscan.exporters.common.safe_file_names`): no separators, `..`, control characters or overlong names.
 """
 from __future__ import annotations
 
@@ -61,18 +61,18 @@ class ExportResult:
 def _writer(fmt: str, close: bool) -> Callable[[TemplateDB, Path], int | tuple[int, str]]:
     """The format's writer: writer(db, tmp_out) -> number of views exported (mesh formats: (0, content))."""
     if fmt == "bop":
-        from gscan.export.bop import write_bop
+        from gscan.exporters.bop import write_bop
         return lambda db, path: write_bop(db, path, close=close)
     if fmt == "foundationpose":
-        from gscan.export.foundationpose import write_foundationpose
+        from gscan.exporters.foundationpose import write_foundationpose
         return lambda db, path: write_foundationpose(db, path, close=close)
     if fmt == "colmap":
-        from gscan.export.colmap import write_colmap
+        from gscan.exporters.colmap import write_colmap
         return write_colmap
     if fmt == "json":
-        from gscan.export.jsonfmt import write_json
+        from gscan.exporters.jsonfmt import write_json
         return write_json
-    from gscan.export.mesh import write_mesh
+    from gscan.exporters.mesh import write_mesh
     return lambda db, path: write_mesh(db, path, fmt, close=close)
 
 

@@ -32,7 +32,7 @@ import numpy as np
 import yaml
 
 from gscan.errors import InputError
-from gscan.export.common import MeshRaycaster, imwrite, posed_views, template_mesh
+from gscan.exporters.common import MeshRaycaster, imwrite, posed_views, template_mesh
 from gscan.template.codec import depth_to_mm_u16
 from gscan.template.db import TemplateDB
 
@@ -82,7 +82,7 @@ def write_foundationpose(db: TemplateDB, out: Path, close: bool = True) -> int:
     if mesh is not None:
         import trimesh
 
-        from gscan.export.mesh import to_trimesh
+        from gscan.exporters.mesh import to_trimesh
 
         (ob / "model").mkdir()
         text = trimesh.exchange.obj.export_obj(to_trimesh(mesh), include_color=True, include_normals=True,

@@ -1,4 +1,4 @@
-"""The estimation service's state and work (`gscan serve`), independent of the HTTP layer (gscan.serve.api):
+"""The estimation service's state and work (`gscan serve`), independent of the HTTP layer (gscan.service.api):
 templates loaded once and kept warm.
 
     GET    /health              -> {"templates": [names]}
@@ -34,7 +34,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from gscan.estimate import Estimator, Tracker
-from gscan.serve.decode import MAX_PIXELS, DepthCameraSpec, RequestError, decode_frame, depth_camera_fields
+from gscan.service.decode import MAX_PIXELS, DepthCameraSpec, RequestError, decode_frame, depth_camera_fields
 
 log = logging.getLogger(__name__)
 

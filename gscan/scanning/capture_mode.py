@@ -26,7 +26,7 @@ import numpy as np
 from gscan.geometry.plane import Plane
 from gscan.io.camera import RGBDFrame
 from gscan.registration.colour import image_noise, min_texture_std, texture_image, tile_ids, tile_scores
-from gscan.scan.segment import SegmentParams, segment_frame
+from gscan.scanning.segment import SegmentParams, segment_frame
 
 log = logging.getLogger(__name__)
 
@@ -97,7 +97,7 @@ def moving_object_masks(frames: list[RGBDFrame], min_offset: float = 0.01, min_a
     support plane found in each frame, camera frame, or None).
 
     Each frame is segmented on its own by the support plane and the component above it
-    (`gscan.scan.segment.segment_frame` with `params`). A frame without a support plane (object in hand) falls back
+    (`gscan.scanning.segment.segment_frame` with `params`). A frame without a support plane (object in hand) falls back
     to background subtraction (`background_depth` over the sequence, `foreground_mask`).
     """
     params = params if params is not None else SegmentParams()

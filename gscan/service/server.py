@@ -12,8 +12,8 @@ import numpy as np
 
 from gscan.errors import InputError, not_a_file
 from gscan.estimate import Estimator
-from gscan.serve.decode import DepthCameraSpec, RequestError, parse_K
-from gscan.serve.service import ServeParams, Service
+from gscan.service.decode import DepthCameraSpec, RequestError, parse_K
+from gscan.service.service import ServeParams, Service
 
 log = logging.getLogger(__name__)
 
@@ -90,7 +90,7 @@ def bind(host: str, port: int) -> socket.socket:
 def serve(templates: Sequence[str | Path], host: str = "127.0.0.1", port: int = 8765,
           on_ready: Callable[[str], None] | None = None, params: ServeParams | None = None,
           depth_intrinsics: str | Path | None = None, depth_to_color: str | Path | None = None) -> None:
-    """Serve pose estimation for `templates` over HTTP (gscan.serve.api) until interrupted (Ctrl+C / SIGTERM).
+    """Serve pose estimation for `templates` over HTTP (gscan.service.api) until interrupted (Ctrl+C / SIGTERM).
     Binds 127.0.0.1 by default: other machines reach it only when `host` says so. on_ready(url) is called
     once requests are accepted. depth_intrinsics / depth_to_color: files of the depth camera of requests that
     name none (`load_depth_camera`); a depth-to-colour pose needs the intrinsics too."""
@@ -101,7 +101,7 @@ def serve(templates: Sequence[str | Path], host: str = "127.0.0.1", port: int = 
     cam = None if depth_intrinsics is None else load_depth_camera(depth_intrinsics, depth_to_color)
     service = load_service(templates, params, cam)
     sock = bind(host, port)
-    from gscan.serve.api import create_app
+    from gscan.service.api import create_app
 
     app = create_app(service)
     h, p = sock.getsockname()[:2]

@@ -1,7 +1,7 @@
 """Typed configuration of the scan pipeline (pydantic), loaded from YAML by the CLI.
 
 Every key has a default and a one-line description; `gscan config dump` prints them as
-commented YAML. The algorithms never see this object: `gscan.scan.pipeline` turns each section into
+commented YAML. The algorithms never see this object: `gscan.scanning.pipeline` turns each section into
 the parameter dataclass of the module it configures.
 """
 from __future__ import annotations
@@ -17,11 +17,11 @@ from gscan.features import FeatureParams
 from gscan.matching.gmatch import GMatchParams
 from gscan.registration.pairwise import RegisterParams
 from gscan.registration.posegraph import LoopParams, PoseGraphParams
-from gscan.scan.calibration import FocalCheckParams
-from gscan.scan.fuse import FusionParams
-from gscan.scan.keyframes import KeyframeParams
-from gscan.scan.segment import SegmentParams
-from gscan.scan.select import SelectionParams
+from gscan.scanning.calibration import FocalCheckParams
+from gscan.scanning.fuse import FusionParams
+from gscan.scanning.keyframes import KeyframeParams
+from gscan.scanning.segment import SegmentParams
+from gscan.scanning.select import SelectionParams
 
 
 class _Section(BaseModel):

@@ -107,12 +107,12 @@ def safe_file_names(names: list[str], max_bytes: int = MAX_STEM_BYTES) -> list[s
 
 def template_mesh(db: TemplateDB, close: bool = True) -> MeshData | None:
     """The template's mesh for an export, closed into a watertight model with `close`
-    (`gscan.export.watertight`); None when the template has no mesh with triangles."""
+    (`gscan.exporters.watertight`); None when the template has no mesh with triangles."""
     m = db.mesh()
     if m is None or len(m.vertices) == 0 or len(m.triangles) == 0:
         return None
     if close:
-        from gscan.export.watertight import closed_mesh
+        from gscan.exporters.watertight import closed_mesh
 
         m = closed_mesh(db, m)
     return m

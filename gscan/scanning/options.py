@@ -1,0 +1,57 @@
+"""`ScanOptions`: every option of one scan (`gscan scan`, `gscan.scan`), one typed value passed from the command
+line through the API to the pipeline. The stages' settings are its `config` (`ScanConfig`)."""
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from gscan.io.layouts import FORMATS
+from gscan.scanning.capture_mode import MOVING_OBJECT, STATIC_OBJECT
+from gscan.scanning.config import ScanConfig
+
+#: the input layouts `format` may name ("auto": detected)
+FORMAT_CHOICES = ("auto", *FORMATS)
+#: the capture modes `mode` may name ("auto": detected from a few frames)
+MODE_CHOICES = ("auto", STATIC_OBJECT, MOVING_OBJECT)
+
+
+@dataclass(frozen=True)
+class ScanOptions:
+    """How one scan reads its input and writes its output (the source and the output are given beside it).
+
+    format: the input layout, one of FORMAT_CHOICES; intrinsics: a cam_K.txt / Open3D JSON overriding the layout's;
+    depth_scale: metres per raw depth unit overriding the layout's; mode: one of MODE_CHOICES; segment: fuse the
+    object alone (False: the whole scene); resume: continue an interrupted scan into the output; force: replace an
+    existing output; config: the stages' settings; obj_id: a BOP folder's object (None: the first in
+    scene_gt.json); color_topic, depth_topic: a recording's image topics (None: detected when unambiguous);
+    depth_intrinsics, depth_to_color: depth images not registered to colour (a Kinect v1): the depth camera's
+    intrinsics file and its pose in the colour camera (T_color_depth, a 4 x 4 text or JSON matrix, metres; None:
+    the colour camera's centre and axes); meta: more keys for the template's meta table (JSON values).
+    """
+
+    format: str = "auto"
+    intrinsics: Path | None = None
+    depth_scale: float | None = None
+    mode: str = "auto"
+    segment: bool = True
+    resume: bool = False
+    force: bool = False
+    config: ScanConfig = field(default_factory=ScanConfig)
+    obj_id: int | None = None
+    color_topic: str | None = None
+    depth_topic: str | None = None
+    depth_intrinsics: Path | None = None
+    depth_to_color: Path | None = None
+    meta: Mapping[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.format not in FORMAT_CHOICES:
+            raise ValueError(f"format must be one of {', '.join(FORMAT_CHOICES)}, not {self.format!r}")
+        if self.mode not in MODE_CHOICES:
+            raise ValueError(f"mode must be one of {', '.join(MODE_CHOICES)}, not {self.mode!r}")
+        for name in ("intrinsics", "depth_intrinsics", "depth_to_color"):
+            value = getattr(self, name)
+            if value is not None and not isinstance(value, Path):
+                object.__setattr__(self, name, Path(value))
