@@ -9,10 +9,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
-import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from gscan.errors import InputError, not_a_file
 from gscan.features import FeatureParams
 from gscan.matching.gmatch import GMatchParams
 from gscan.registration.pairwise import RegisterParams
@@ -22,6 +20,7 @@ from gscan.scanning.fuse import FusionParams
 from gscan.scanning.keyframes import KeyframeParams
 from gscan.scanning.segment import SegmentParams
 from gscan.scanning.select import SelectionParams
+from gscan.settings import dump_yaml, read_yaml, validate
 
 
 class _Section(BaseModel):
@@ -191,38 +190,9 @@ def load_config(path: str | Path | None) -> ScanConfig:
     """Read and validate a YAML config; None gives the defaults. Raises InputError naming the file."""
     if path is None:
         return ScanConfig()
-    path = Path(path)
-    if not path.is_file():
-        raise not_a_file(path, "configuration file")
-    try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8-sig")) or {}
-    except OSError as e:
-        raise InputError(path, f"cannot read config ({e.strerror or e})") from None
-    except UnicodeDecodeError:
-        raise InputError(path, "cannot read config (not UTF-8 text)") from None
-    except RecursionError:
-        raise InputError(path, "malformed YAML: nested too deeply") from None
-    except yaml.YAMLError as e:
-        raise InputError(path, f"malformed YAML: {str(e).splitlines()[0]}") from None
-    if not isinstance(data, dict):
-        raise InputError(path, "config must be a mapping of sections")
-    try:
-        return ScanConfig.model_validate(data)
-    except ValidationError as e:
-        err = e.errors()[0]
-        where = ".".join(str(x) for x in err["loc"])
-        msg = err["msg"].removeprefix("Value error, ")
-        raise InputError(path, f"invalid config key {where}: {msg}" if where else f"invalid config: {msg}") from None
+    return validate(ScanConfig, read_yaml(path), path)
 
 
 def dump_defaults() -> str:
     """The default configuration as YAML with a comment per key."""
-    lines = ["# gscan scan configuration (defaults). Pass an edited copy with --config."]
-    cfg = ScanConfig()
-    for section, model in cfg:
-        lines.append(f"{section}:")
-        for key, field in type(model).model_fields.items():
-            value = yaml.safe_dump(getattr(model, key), default_flow_style=True).strip().removesuffix("\n...")
-            value = value.removesuffix("...").strip()
-            lines.append(f"  {key}: {value}  # {field.description}")
-    return "\n".join(lines) + "\n"
+    return dump_yaml(ScanConfig(), "gscan scan configuration (defaults). Pass an edited copy with --config.")
