@@ -1,7 +1,8 @@
-"""Feature extraction time of this checkout against gscan/features/keypoints.py at a git ref, as a ratio in one process,
+"""Feature extraction time of this checkout against the features module at a git ref, as a ratio in one process,
 with a check that both give the same keypoints, points and descriptors bit for bit.
 
-The ref's module is loaded from `git show REF:gscan/features/keypoints.py` under another name (it imports the rest of
+The ref's module is loaded from `git show REF:gscan/features/keypoints.py` (gscan/features.py in a ref before the
+features package) under another name (it imports the rest of
 this checkout's gscan: only the features module is compared). Frames: the bundled sample's 30 capture frames
 and the first `--real` frames of the shared 7-Scenes scan (real Kinect frames, 640x480), each extracted with the
 scan's whole-frame parameters (FeatureParams(), at most 2000 keypoints) and the object parameters
@@ -29,15 +30,23 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 
+#: where the features module was: gscan/features/keypoints.py, and gscan/features.py before the features package
+PATHS = ("gscan/features/keypoints.py", "gscan/features.py")
+
+
 def module_at(ref: str) -> ModuleType:
-    """gscan/features/keypoints.py as it was at `ref`, loaded as the module `gscan_features_at_ref`."""
-    src = subprocess.run(["git", "show", f"{ref}:gscan/features/keypoints.py"], cwd=ROOT, check=True,
-                         capture_output=True, text=True).stdout
+    """The features module (PATHS) as it was at `ref`, loaded as the module `gscan_features_at_ref`."""
+    for path in PATHS:
+        got = subprocess.run(["git", "show", f"{ref}:{path}"], cwd=ROOT, capture_output=True, text=True)
+        if got.returncode == 0:
+            break
+    else:
+        raise SystemExit(f"{ref} holds none of {', '.join(PATHS)}: {got.stderr.strip()}")
     spec = importlib.util.spec_from_loader("gscan_features_at_ref", loader=None)
     assert spec is not None
     mod = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = mod  # dataclasses look their module up
-    exec(compile(src, f"{ref}:gscan/features/keypoints.py", "exec"), mod.__dict__)
+    exec(compile(got.stdout, f"{ref}:{path}", "exec"), mod.__dict__)
     return mod
 
 
