@@ -6,11 +6,20 @@ a source checkout regenerates it, samples/README.md describes it) is a capture o
 box on a table with ground truth, plus held-back frames of the box in other poses. The scanned template's
 frame is tied to the ground-truth object frame with the capture's own ground truth:
 T_obj_gt = mean over frames of T_obj_cam[f] @ T_cam_gt[f].
+
+The numeric kernels (numba, `cache=True`) are compiled on their first use and kept in numba's on-disk cache: the
+first demo spends about half a minute compiling them, most of it in the scan's first stage. `kernels_cached` says
+whether that cache already holds them; `scan_sample` logs FIRST_RUN (a warning) when it does not.
 """
 from __future__ import annotations
 
+import importlib
+import logging
+import re
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -28,6 +37,60 @@ from gscan.template.db import TemplateDB
 
 #: The bundled sample (package data): capture/, heldout/, object/box.obj, sample.json.
 SAMPLES = Path(__file__).resolve().parent / "sample"
+
+log = logging.getLogger(__name__)
+
+#: What the demo logs before a scan that will compile the numeric kernels (numba's cache does not hold them).
+FIRST_RUN = "first run: compiling the numeric kernels (about half a minute, once)"
+
+_PACKAGE = Path(__file__).resolve().parent
+_CACHED_KERNEL = re.compile(r"^\s*@(?:numba\.)?n?jit\(.*\bcache=True", re.MULTILINE)  # @njit(cache=True, ...)
+
+
+def kernel_modules() -> list[str]:
+    """The modules of gscan that define a numba kernel cached on disk (`@njit(cache=True)`), by name."""
+    names = []
+    for path in sorted(_PACKAGE.rglob("*.py")):
+        rel = path.relative_to(_PACKAGE.parent).with_suffix("")
+        if _CACHED_KERNEL.search(path.read_text(encoding="utf-8")):
+            names.append(".".join(rel.parts[:-1] if rel.name == "__init__" else rel.parts))
+    return names
+
+
+def _cached_dispatchers(module: Any) -> list[Any]:
+    """The numba dispatchers of `module` that cache on disk (a `Cache` with an index file, not a `NullCache`)."""
+    out = []
+    for obj in vars(module).values():
+        cache = getattr(obj, "_cache", None)
+        if getattr(obj, "__module__", None) == module.__name__ and hasattr(cache, "_cache_file"):
+            out.append(obj)
+    return out
+
+
+def _compiled_here(dispatcher: Any, magic: tuple) -> bool:
+    """numba's on-disk cache holds a compiled version of `dispatcher` for this source (its stamp: the file's time
+    and size), this numba and this CPU (the index keys' magic tuple)."""
+    try:
+        overloads = dispatcher._cache._cache_file._load_index()
+    except Exception:  # noqa: BLE001 - an unreadable or foreign index: numba compiles again
+        return False
+    return any(isinstance(key, tuple) and len(key) > 1 and key[1] == magic for key in overloads)
+
+
+def kernels_cached(modules: Iterable[str] | None = None) -> bool:
+    """Whether numba's on-disk cache (`__pycache__` beside the modules, or NUMBA_CACHE_DIR) already holds the
+    compiled kernels: each module of `modules` (default: `kernel_modules()`) that defines a cached kernel has at
+    least one of them compiled for this source, numba and CPU. False on a first run, after an upgrade that changed
+    a kernel's module, or with a new cache folder: the next scan or estimate compiles them (about half a minute
+    for all of gscan's)."""
+    from numba.core.registry import cpu_target
+
+    magic = cpu_target.target_context.codegen().magic_tuple()
+    for name in kernel_modules() if modules is None else modules:
+        kernels = _cached_dispatchers(importlib.import_module(name))
+        if kernels and not any(_compiled_here(k, magic) for k in kernels):
+            return False
+    return True
 
 
 @dataclass
@@ -94,10 +157,13 @@ def check_demo_output(output: Path) -> Path:
 
 def scan_sample(output: Path, progress: Progress | None = None) -> ScanResult:
     """Scan the bundled capture (SAMPLES/capture) into OUTPUT/sample.gscan (replacing only a template the demo
-    wrote, see `check_demo_output`); returns the ScanResult."""
+    wrote, see `check_demo_output`); returns the ScanResult. Logs FIRST_RUN (a warning) first when numba's cache
+    does not hold the numeric kernels yet (`kernels_cached`): the scan's first stage then takes half a minute more."""
     if not (SAMPLES / "capture").is_dir():
         raise InputError(SAMPLES / "capture", "bundled sample not found (an incomplete installation: reinstall gscan)")
     path = check_demo_output(output)
+    if not kernels_cached():
+        log.warning(FIRST_RUN)
     # the scan makes the missing folders; the mark is in the database from its first transaction
     return scan(SAMPLES / "capture", path, force=True, progress=progress, meta=DEMO_MARK)
 

@@ -1,13 +1,15 @@
 """The README's main job: `gscan demo` scans the bundled sample and estimates its held-back frames."""
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
+import textwrap
 
 import numpy as np
 import pytest
 
-from gscan.demo import SAMPLES, evaluate_sample
+from gscan.demo import FIRST_RUN, SAMPLES, evaluate_sample, kernel_modules
 from gscan.evaluate.bop19 import template_to_gt
 from gscan.geometry.transforms import inv_T, pose_error
 from gscan.io import open_sequence
@@ -47,3 +49,61 @@ def test_demo_command_runs_without_viewer(tmp_path):
     out = " ".join(proc.stderr.split())
     assert "30/30 frames registered" in out and "held-back frames: 4/4 found" in out, proc.stderr[-2000:]
     assert (tmp_path / "sample.gscan").is_file()
+
+
+def _python(code: str, cache: object, **env: str) -> subprocess.CompletedProcess:
+    """`code` in a fresh interpreter whose numba cache is the folder `cache`."""
+    return subprocess.run([sys.executable, "-c", textwrap.dedent(code)], capture_output=True, text=True, timeout=600,
+                          env={**os.environ, "NUMBA_CACHE_DIR": str(cache), **env}, check=False)
+
+
+def test_kernels_cached_says_whether_numba_compiled_them(tmp_path):
+    """`kernels_cached` on a module of one cached kernel: False in a new cache folder, True once compiled there, False
+    again when the module's source changes (numba compiles again); gscan's own kernels in a new cache: False."""
+    (tmp_path / "kernels_probe.py").write_text("from numba import njit\n\n\n@njit(cache=True)\n"
+                                               "def twice(x):\n    return 2 * x\n")
+    code = """
+        import sys
+        from gscan.demo import kernels_cached
+        before = kernels_cached(["kernels_probe"])
+        if sys.argv[-1] == "compile":
+            import kernels_probe
+            assert kernels_probe.twice(3) == 6
+        print(before, kernels_cached(["kernels_probe"]))
+        """
+    env = {"PYTHONPATH": os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")])}
+    cache = tmp_path / "cache"
+    out = _python(code + "\n", cache, **env)
+    assert out.stdout.split() == ["False", "False"], out.stderr[-2000:]
+    code_compiling = code.replace("sys.argv[-1]", '"compile"')
+    assert _python(code_compiling, cache, **env).stdout.split() == ["False", "True"]
+    assert _python(code, cache, **env).stdout.split() == ["True", "True"]  # another process reads the cache
+    with (tmp_path / "kernels_probe.py").open("a") as f:
+        f.write("# changed\n")
+    assert _python(code, cache, **env).stdout.split() == ["False", "False"]
+    # gscan's kernels are found (each kernel module of the scan and the estimator) and none is in a new cache
+    names = kernel_modules()
+    assert {"gscan.matching.kernel", "gscan.geometry.kabsch_kernel"} <= set(names), names
+    out = _python("from gscan.demo import kernels_cached; print(kernels_cached())", tmp_path / "new")
+    assert out.stdout.split() == ["False"], out.stderr[-2000:]
+
+
+@pytest.mark.slow
+def test_the_demo_says_when_it_compiles_the_kernels(tmp_path):
+    """The first demo scan in a new numba cache logs FIRST_RUN (a warning, for the command line's log handler) and
+    leaves every kernel module compiled: the next run says nothing."""
+    code = f"""
+        import logging
+        from pathlib import Path
+        from gscan.demo import kernels_cached, scan_sample, evaluate_sample
+        logging.basicConfig(format="LOG %(levelname)s %(message)s")
+        print("cached before", kernels_cached(), flush=True)
+        result = scan_sample(Path({str(tmp_path / "out")!r}))
+        evaluate_sample(result.output)
+        print("cached after", kernels_cached(), flush=True)
+        scan_sample(Path({str(tmp_path / "out")!r}))
+        """
+    out = _python(code, tmp_path / "cache")
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "cached before False" in out.stdout and "cached after True" in out.stdout, out.stdout
+    assert out.stderr.count(f"LOG WARNING {FIRST_RUN}") == 1, out.stderr[-2000:]
