@@ -2,6 +2,7 @@
 sample; `gscan.scan()` from Python writes the same poses as `gscan scan`."""
 from __future__ import annotations
 
+import ast
 import inspect
 import json
 import subprocess
@@ -50,6 +51,41 @@ def test_the_public_names_are_typed_and_documented():
         gscan.match_frames  # noqa: B018 - replaced by register_frames
 
 
+def public_names_used(source: str, skip: frozenset[str] = frozenset()) -> set[str]:
+    """The names `gscan.NAME` or `from gscan import NAME` in Python source, outside the functions named in skip."""
+    used: set[str] = set()
+
+    class Uses(ast.NodeVisitor):
+        def visit_FunctionDef(self, node: ast.FunctionDef) -> None:
+            if node.name not in skip:
+                self.generic_visit(node)
+
+        def visit_Attribute(self, node: ast.Attribute) -> None:
+            if isinstance(node.value, ast.Name) and node.value.id == "gscan":
+                used.add(node.attr)
+            self.generic_visit(node)
+
+        def visit_ImportFrom(self, node: ast.ImportFrom) -> None:
+            if node.module == "gscan" and node.level == 0:
+                used.update(alias.name for alias in node.names)
+
+    Uses().visit(ast.parse(source))
+    return used
+
+
+def test_every_public_name_is_used_by_a_test():
+    """Each name of `gscan.__all__` is used (`gscan.NAME`, `from gscan import NAME`) by some test or fixture in
+    tests/ other than the listing test above and this one."""
+    skip = frozenset({"test_the_public_names_are_typed_and_documented", "test_every_public_name_is_used_by_a_test"})
+    used: set[str] = set()
+    for path in sorted((ROOT / "tests").glob("*.py")):
+        used |= public_names_used(path.read_text(encoding="utf-8"), skip)
+    assert not set(gscan.__all__) - used, sorted(set(gscan.__all__) - used)
+    # the check itself: a name only the skipped functions use is not counted
+    probe = "import gscan\ndef f():\n    gscan.Tracker\nfrom gscan import scan\n"
+    assert public_names_used(probe) == {"Tracker", "scan"} and public_names_used(probe, frozenset({"f"})) == {"scan"}
+
+
 def test_scan_export_and_serve_are_plain_functions():
     """`gscan.scan`, `gscan.export` and `gscan.serve` are functions (the stages are the subpackages `scanning`,
     `exporters`, `service`), whatever was imported first; `scan` takes one `ScanOptions` value."""
@@ -84,6 +120,25 @@ def test_reading_frames():
     with pytest.raises(gscan.InputError, match="missing.png") as e:
         gscan.load_frame(CAPTURE / "rgb" / "000001.jpg", CAPTURE / "missing.png", CAPTURE / "cam_K.txt")
     assert isinstance(e.value, gscan.GscanError)
+
+
+def test_reading_a_frame_through_a_depth_camera():
+    """A `DepthCamera` at the colour camera's centre and axes, with its intrinsics: the depth reprojected into the
+    colour camera lands where it was (the sample's depth is registered to its colour)."""
+    K = gscan.Intrinsics(615.0, 615.0, 319.5, 239.5, 640, 480)
+    camera = gscan.DepthCamera(K, np.eye(4))
+    assert camera.to_dict()["intrinsics"] == K.to_dict()
+    rgb, depth = CAPTURE / "rgb" / "000001.jpg", CAPTURE / "depth" / "000001.png"
+    plain = gscan.load_frame(rgb, depth, K, depth_scale=0.001)
+    frame = gscan.load_frame(rgb, depth, K, depth_scale=0.001, depth_camera=camera)
+    assert frame.intrinsics == K and frame.depth.shape == plain.depth.shape
+    both = (frame.depth > 0) & (plain.depth > 0)
+    assert both.sum() > 0.9 * (plain.depth > 0).sum()
+    assert np.median(np.abs(frame.depth[both] - plain.depth[both])) < 1e-4
+    # depth images of another size than the depth camera's are refused, naming the file
+    small = gscan.DepthCamera(gscan.Intrinsics(300.0, 300.0, 159.5, 119.5, 320, 240))
+    with pytest.raises(gscan.InputError, match="000001.png"):
+        gscan.load_frame(rgb, depth, K, depth_scale=0.001, depth_camera=small)
 
 
 def test_keypoints_gmatch_and_registration_of_two_sample_frames():
@@ -133,6 +188,28 @@ def test_scan_refuses_bad_input_with_one_line(tmp_path):
     assert not (tmp_path / "o.gscan").exists()
 
 
+def test_scan_options_are_one_typed_value(tmp_path):
+    """`ScanOptions` carries a scan's options: validated when made, changed by name in `gscan.scan(..., **changes)`,
+    and taken as is by `gscan.scan(source, output, options)`."""
+    opts = gscan.ScanOptions(mode="static-object", intrinsics=str(CAPTURE / "cam_K.txt"))
+    assert opts.intrinsics == CAPTURE / "cam_K.txt" and isinstance(opts.config, gscan.ScanConfig)
+    assert opts.format == "auto" and opts.segment and not opts.force
+    with pytest.raises(ValueError, match="mode"):
+        gscan.ScanOptions(mode="sideways")
+    with pytest.raises(ValueError, match="format"):
+        gscan.ScanOptions(format="jpeg")
+    with pytest.raises(TypeError, match="colour"):
+        gscan.scan(CAPTURE, tmp_path / "o.gscan", opts, colour="red")
+    # an existing output is refused through the options' force = False, and replaced with force = True
+    out = tmp_path / "o.gscan"
+    out.write_bytes(b"not a template")
+    with pytest.raises(gscan.InputError, match="o.gscan"):
+        gscan.scan(CAPTURE, out, opts)
+    assert out.read_bytes() == b"not a template"
+    with pytest.raises(gscan.InputError, match="nowhere"):
+        gscan.scan(tmp_path / "nowhere", out, opts, force=True)
+
+
 def test_scan_result_template_db_estimator_and_export(sample_template, tmp_path):
     """The session's sample template comes from gscan.scan(); estimate a held-back frame, export as JSON."""
     with TemplateDB.open(sample_template) as db:
@@ -142,8 +219,26 @@ def test_scan_result_template_db_estimator_and_export(sample_template, tmp_path)
     r = est.estimate(gscan.open_sequence(HELDOUT)["000000"])
     assert isinstance(r, gscan.EstimateResult) and r.found and r.T_cam_obj.shape == (4, 4)
     out = gscan.export(sample_template, "json", tmp_path / "sample.json")
+    assert isinstance(out, gscan.ExportResult) and "30 views" in str(out)
     assert out.format == "json" and out.views == 30 and out.path == tmp_path / "sample.json"
     assert json.loads((tmp_path / "sample.json").read_text())["format"] == "gscan-template-json"
+
+
+def test_tracker_follows_the_sample_capture(sample_template):
+    """`Tracker`: a full estimate on the first frame, then each next frame refined from the last pose; every pose
+    agrees with the capture's ground truth mapped into the template's frame."""
+    from gscan.evaluate.bop19 import template_to_gt
+
+    seq = gscan.open_sequence(CAPTURE)
+    T_obj_gt = template_to_gt(sample_template, seq.gt_T_cam_obj)
+    tracker = gscan.Tracker(gscan.Estimator.from_path(sample_template))
+    steps = [tracker.step(seq[name]) for name in seq.names[:4]]
+    assert steps[0].status == "found" and all(s.status in ("found", "tracked") for s in steps[1:])
+    assert any(s.status == "tracked" for s in steps[1:])
+    for name, s in zip(seq.names[:4], steps, strict=True):
+        assert isinstance(s.result, gscan.EstimateResult) and s.frame == name
+        rot, trans = pose_error(s.result.T_cam_obj @ T_obj_gt, seq.gt_T_cam_obj[name])
+        assert rot < 1.0 and trans < 0.005, (name, s.status, rot, trans)
 
 
 def test_template_from_mesh_returns_a_record(tmp_path):
