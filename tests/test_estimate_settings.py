@@ -67,3 +67,15 @@ def test_an_edited_value_takes_effect_in_an_estimator(meshes_dir: Path, tmp_path
     coarse, fine = Estimator.from_path(tpl, params), Estimator.from_path(tpl)
     assert coarse.params.refine.voxel == 0.009 and len(coarse.model.samples) < len(fine.model.samples) / 4
     assert np.allclose(coarse.model.center, fine.model.center)
+
+
+def test_every_estimate_setting_is_described():
+    """Every key of the estimator's own sections carries its description into the dump (the features and gmatch
+    sections are the keypoint and matcher settings the scan shares)."""
+    section = None
+    for line in dump_estimate_defaults().splitlines()[1:]:
+        if not line.startswith("    "):
+            section = line.split(":")[0].strip()
+            assert "  # " in line, line
+        elif section not in ("features", "gmatch"):
+            assert "  # " in line, line
