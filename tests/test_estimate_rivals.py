@@ -1,4 +1,4 @@
-"""Rival poses (gscan.estimate.estimator, stage 7): a box printed alike on two faces fits a pose turned 180 deg
+"""Rival poses (gscan.estimate.rivals, stage 7): a box printed alike on two faces fits a pose turned 180 deg
 onto its twin face in shape and in most keypoints; only its ends tell the poses apart."""
 from __future__ import annotations
 
