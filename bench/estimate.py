@@ -37,6 +37,8 @@ from pathlib import Path
 import numpy as np
 
 from gscan.estimate.estimator import STAGES, EstimateParams, Estimator
+from gscan.estimate.hypotheses import QueryKeypoints
+from gscan.estimate.retrieval import TemplateIndex
 from gscan.evaluate.metrics import add, adds, auc
 from gscan.geometry.transforms import look_at, rotvec_to_R, transform_points
 from gscan.io.camera import RGBDFrame
@@ -55,24 +57,22 @@ ROOT = Path(__file__).resolve().parents[1]
 MESHES = Path(os.environ.get("GSCAN_TEST_DATA") or ROOT.parent / "shared" / "data") / "meshes"
 
 
-class RatioRansacEstimator(Estimator):
-    """Baseline: gscan.matching.baselines "ratio" (NN + Lowe ratio 0.75 -> open3d correspondence RANSAC, 1 cm,
-    seeded) in place of GMatch on each retrieved view neighbourhood; everything else (features, retrieval,
+def ratio_ransac_lists(index: TemplateIndex, v: int, qk: QueryKeypoints) -> list[tuple[np.ndarray, float]]:
+    """Baseline `Matcher`: gscan.matching.baselines "ratio" (NN + Lowe ratio 0.75 -> open3d correspondence RANSAC,
+    1 cm, seeded) in place of GMatch on each retrieved view neighbourhood; everything else (features, retrieval,
     pre-scoring, Kabsch, ICP, verification) is shared."""
-
-    def _match_hypotheses(self, v: int, qk) -> list[tuple[np.ndarray, float]]:
-        idx = self.nb_idx[v]
-        feats = qk.feats
-        if len(idx) < 3 or len(feats) < 3:
-            return [(np.zeros((0, 2), np.int64), 1.0)]
-        dist = self._dist(qk.S[:, idx]).T  # [N_neighbourhood x M_query]
-        res = run_baseline("ratio", self.nb_points[v], feats.points, dist)
-        if res.T_tgt_src is None or len(res.matches) == 0:
-            return [(np.zeros((0, 2), np.int64), 1.0)]
-        m = np.asarray(res.matches, dtype=np.int64)
-        r = np.linalg.norm(self.nb_points[v][m[:, 0]] @ res.T_tgt_src[:3, :3].T + res.T_tgt_src[:3, 3]
-                           - feats.points[m[:, 1]], axis=1)
-        return [(np.stack([idx[m[:, 0]], m[:, 1]], 1), float(r.mean()))]
+    nb = index.neighbourhoods[v]
+    feats = qk.feats
+    if len(nb.idx) < 3 or len(feats) < 3:
+        return [(np.zeros((0, 2), np.int64), 1.0)]
+    dist = index.distances(qk.S[:, nb.idx]).T  # [N_neighbourhood x M_query]
+    res = run_baseline("ratio", nb.points, feats.points, dist)
+    if res.T_tgt_src is None or len(res.matches) == 0:
+        return [(np.zeros((0, 2), np.int64), 1.0)]
+    m = np.asarray(res.matches, dtype=np.int64)
+    r = np.linalg.norm(nb.points[m[:, 0]] @ res.T_tgt_src[:3, :3].T + res.T_tgt_src[:3, 3]
+                       - feats.points[m[:, 1]], axis=1)
+    return [(np.stack([nb.idx[m[:, 0]], m[:, 1]], 1), float(r.mean()))]
 
 
 def make_scene(target, distractors, seed: int, occlude: bool, min_visible: float = 0.3):
@@ -139,7 +139,7 @@ def run(args: argparse.Namespace) -> dict:
             t0 = time.perf_counter()
             template_from_mesh(MESHES / name / "model_0.obj", tpl, n_views=args.views)
             t_build.append(time.perf_counter() - t0)
-        est = {"gscan": Estimator.from_path(tpl), "baseline": RatioRansacEstimator.from_path(tpl)}
+        est = {"gscan": Estimator.from_path(tpl), "baseline": Estimator.from_path(tpl, matcher=ratio_ransac_lists)}
         est["gscan-mask-noicp"] = est["gscan"]
         target = all_meshes[name]
         scanned = None

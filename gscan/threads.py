@@ -6,7 +6,7 @@ OpenMP pools with one thread, unless the environment names a thread count (any o
 library follows the environment. gscan's matrices are small (a few thousand rows): a pool's extra threads
 spin waiting for work more than they share it, and take cores from the machine's other processes. Library
 code (`gscan.scan`, `Estimator`, ... called from Python) leaves the pools of the caller's process as they
-are (an `Estimator` limits BLAS only while it estimates: `EstimateParams.blas_threads`). Batch tasks
+are (an `Estimator` limits BLAS only while it estimates: `EstimateParams.threads.blas`). Batch tasks
 (`gscan.batch`) always run with one thread in every pool (`THREAD_ENV`): each holds one CPU.
 """
 from __future__ import annotations

@@ -8,8 +8,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import gscan.estimate.estimator as estimator_module
 from gscan.errors import InputError
 from gscan.estimate.estimator import STAGES, Estimator
+from gscan.estimate.params import EstimateParams, HoleParams, RivalParams, ThreadParams, VerifyParams
+from gscan.estimate.query import query_features
 from gscan.estimate.verify import AcceptParams
 from gscan.evaluate.metrics import add
 from gscan.geometry.transforms import look_at, make_T, pose_error, rotvec_to_R, transform_points
@@ -169,7 +172,6 @@ def test_object_without_depth_in_a_frame_with_depth(meshes, estimator, template)
     deg, dist = pose_error(res.T_cam_obj, T_gt)
     # PnP without depth on 2D-3D matches: less accurate than the 3D path; 2 deg / 1 cm still tell a right pose
     assert deg < 2.0 and dist < 0.01, (deg, dist)
-    from gscan.estimate.estimator import EstimateParams
 
     raised = depth.copy()  # a featureless block 6 cm tall on the table: no 3D keypoint at all to match
     ys, xs = np.nonzero((r.labels < 0) & (r.depth > 0))
@@ -177,7 +179,7 @@ def test_object_without_depth_in_a_frame_with_depth(meshes, estimator, template)
     raised[y - 15:y + 15, x - 15:x + 15] -= 0.06
     res2 = estimator.estimate(as_frame(r, raised))
     assert res2.found and res2.method == "pnp", res2.reason
-    off = Estimator.from_path(template, EstimateParams(pnp_in_holes=False)).estimate(as_frame(r, depth))
+    off = Estimator.from_path(template, EstimateParams(holes=HoleParams(enabled=False))).estimate(as_frame(r, depth))
     assert not off.found and "PnP" not in off.reason
     r0, _ = render_scene(meshes[0], meshes[1:], 1, with_target=False)  # holes in a scene without the target
     depth0 = r0.depth.copy()
@@ -188,7 +190,6 @@ def test_object_without_depth_in_a_frame_with_depth(meshes, estimator, template)
 def test_pnp_pose_the_depth_sees_through_is_refused(meshes, estimator, template):
     """The depth of most of the target is missing, but over its left part the sensor measured a surface 30 cm
     behind it: a PnP pose there would let the depth be seen through the object, and is refused."""
-    from gscan.estimate.estimator import EstimateParams
 
     r, _ = render_scene(meshes[0], meshes[1:], 0)
     xs = np.nonzero(r.mask)[1]
@@ -198,7 +199,8 @@ def test_pnp_pose_the_depth_sees_through_is_refused(meshes, estimator, template)
     depth[left] = r.depth[left] + 0.3
     res = estimator.estimate(as_frame(r, depth))
     assert not res.found and "seen through" in res.reason, res.reason
-    assert Estimator.from_path(template, EstimateParams(max_see_through=1.0)).estimate(as_frame(r, depth)).found
+    lax = Estimator.from_path(template, EstimateParams(holes=HoleParams(max_see_through=1.0)))
+    assert lax.estimate(as_frame(r, depth)).found
 
 
 def test_close_up_face_is_not_taken_for_the_table(meshes, estimator):
@@ -224,17 +226,17 @@ def test_pose_inside_the_support_plane_is_refused(meshes, estimator, template):
     """No target, and no depth on the distractors: nothing stands on the table, so the whole frame is searched,
     and GMatch fits the box's flat print to the newspaper table, its face flush with the table top (the depth
     agrees: score 1.0). An object rests on the table; this pose puts half of it inside, and is refused."""
-    from gscan.estimate.estimator import EstimateParams
 
     r0, _ = render_scene(meshes[0], meshes[1:], 0, with_target=False)
     depth0 = r0.depth.copy()
     depth0[r0.labels >= 0] = 0.0
     res = estimator.estimate(as_frame(r0, depth0))
     assert not res.found and "inside the support plane" in res.reason, res.reason
-    lax = Estimator.from_path(template, EstimateParams(max_below_frac=1.0, accept=NO_APPEARANCE, rivals=0)).estimate(
-        as_frame(r0, depth0))
+    lax = Estimator.from_path(template, EstimateParams(verify=VerifyParams(max_below_frac=1.0), accept=NO_APPEARANCE,
+                                                       rivals=RivalParams(lists=0))).estimate(as_frame(r0, depth0))
     assert lax.found and lax.score > 0.9  # what the rule refuses (its print does not match the table: the
-    assert not Estimator.from_path(template, EstimateParams(max_below_frac=1.0)).estimate(as_frame(r0, depth0)).found
+    below = Estimator.from_path(template, EstimateParams(verify=VerifyParams(max_below_frac=1.0)))
+    assert not below.estimate(as_frame(r0, depth0)).found
     # appearance check refuses it too)
 
 
@@ -242,13 +244,12 @@ def test_flat_printout_of_the_object_is_not_found(meshes, estimator, template):
     """A 1 mm thick print of the target lying on the table is not the object: its print matches and the depth
     agrees with the box's face flush with the table, but the box would sink into the table (these three views
     were found with score 1.0 before the support-plane rule)."""
-    from gscan.estimate.estimator import EstimateParams
     from gscan.synth.mesh import TexturedMesh
 
     v = meshes[0].vertices.copy()
     v[:, 1] = v[:, 1].mean() + 0.02 * (v[:, 1] - v[:, 1].mean())  # the box's thin axis (y) squashed to 1 mm
     flat = TexturedMesh(v, meshes[0].triangles, meshes[0].uv, meshes[0].texture, name="printout")
-    lax = Estimator.from_path(template, EstimateParams(max_below_frac=1.0))
+    lax = Estimator.from_path(template, EstimateParams(verify=VerifyParams(max_below_frac=1.0)))
     for seed in (0, 3, 4):
         rng = np.random.default_rng(seed)
         lying = rotvec_to_R([0, 0, rng.uniform(0, 2 * np.pi)]) @ rotvec_to_R([np.pi / 2, 0, 0])  # print face up
@@ -274,7 +275,8 @@ def test_pnp_fallback_without_depth(meshes, estimator):
     assert deg < 3.0 and m < 0.03  # PnP on the pixels without depth: 3 deg / 3 cm tell a right pose from a wrong one
     assert res.timings_ms["refine"] == 0.0
     # inliers count distinct query keypoints (a keypoint matched in several views counted once per view: 701)
-    assert res.n_matches <= len(estimator._features(frame, r.mask, lift=False))
+    p = estimator.params
+    assert res.n_matches <= len(query_features(frame, r.mask, p.features, p.query, lift=False))
 
 
 def test_grasps_json_contract(meshes, template, tmp_path):
@@ -366,7 +368,7 @@ def test_region_boxes_of_constructed_blobs():
     """Detection boxes: each blob of at least min_px pixels grown by the margin (clipped to the frame), overlapping
     boxes merged, small blobs left out (though inside the region's bounds), no boxes when they would cover
     most of the region's bounding box anyway."""
-    from gscan.estimate.estimator import region_boxes
+    from gscan.estimate.query import region_boxes
 
     m = np.zeros((100, 200), bool)
     m[10:20, 5:25] = True  # 200 px
@@ -406,29 +408,27 @@ def test_opencv_threads_limited_while_estimating_and_restored(sample_template, c
     import cv2
 
     from gscan.demo import SAMPLES
-    from gscan.estimate.estimator import EstimateParams
     from gscan.io import open_sequence
 
     seq = open_sequence(SAMPLES / "heldout")
-    est = Estimator.from_path(sample_template, EstimateParams(cv_threads=cv_threads))
+    est = Estimator.from_path(sample_template, EstimateParams(threads=ThreadParams(cv=cv_threads)))
     seen = []
-    features = Estimator._features
 
-    def spy(self, *args, **kwargs):
+    def spy(*args, **kwargs):
         seen.append(cv2.getNumThreads())
-        return features(self, *args, **kwargs)
+        return query_features(*args, **kwargs)
 
-    monkeypatch.setattr(Estimator, "_features", spy)
+    monkeypatch.setattr(estimator_module, "query_features", spy)
     before = cv2.getNumThreads()
     cv2.setNumThreads(3)
     try:
         est.estimate(seq[seq.names[0]])
         assert seen == [1 if cv_threads == 1 else 3] and cv2.getNumThreads() == 3
 
-        def boom(self, *args, **kwargs):
+        def boom(*args, **kwargs):
             raise RuntimeError("boom")
 
-        monkeypatch.setattr(Estimator, "_features", boom)
+        monkeypatch.setattr(estimator_module, "query_features", boom)
         with pytest.raises(RuntimeError):
             est.estimate(seq[seq.names[0]])
         assert cv2.getNumThreads() == 3

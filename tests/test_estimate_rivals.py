@@ -1,4 +1,4 @@
-"""Rival poses (gscan.estimate.estimator, stage 7): a box printed alike on two faces fits a pose turned 180 deg
+"""Rival poses (gscan.estimate.rivals, stage 7): a box printed alike on two faces fits a pose turned 180 deg
 onto its twin face in shape and in most keypoints; only its ends tell the poses apart."""
 from __future__ import annotations
 
@@ -9,7 +9,8 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from gscan.estimate.estimator import EstimateParams, Estimator
+from gscan.estimate.estimator import Estimator
+from gscan.estimate.params import EstimateParams, RivalParams
 from gscan.geometry.transforms import look_at, pose_error, rotvec_to_R, transform_points
 from gscan.io.camera import RGBDFrame
 from gscan.registration.noise import sign_test
@@ -43,7 +44,7 @@ def test_the_twin_face_pose_loses_to_the_right_one(twin):
     """Without rivals the turned pose is returned (the trap is real); with them the right one, within 2 deg."""
     mesh, tpl = twin
     frame, T_gt = view(mesh, 150.2)
-    trapped = Estimator.from_path(tpl, EstimateParams(rivals=0)).estimate(frame)
+    trapped = Estimator.from_path(tpl, EstimateParams(rivals=RivalParams(lists=0))).estimate(frame)
     assert trapped.found and pose_error(trapped.T_cam_obj, T_gt)[0] > 170
     res = Estimator.from_path(tpl).estimate(frame)
     assert res.found, res.reason

@@ -4,14 +4,24 @@
     Tracker(estimator).step(frame) -> TrackStep;  track_sequence(estimator, sequence) -> TrackRun
     write_poses(run, out_dir, force=False): one `ob_in_cam` 4x4 text file per frame with a pose
 
-Modules: `estimator` (features, retrieval, joint matching, solve), `query` (the frame's full-image work, once),
-`verify` (the evidence a pose is accepted on), `refine` (anchored ICP), `pnp` (2D-3D fallback without depth),
-`track` (the previous pose as a prior), `result` (EstimateResult, the `estimate --json` object).
+    load_estimate_params(config) -> EstimateParams: the `estimate:` section of a YAML configuration file;
+    dump_estimate_defaults() -> str: its commented defaults
+
+Modules, in the order of the stages: `query` (the frame's full-image work, once; the query keypoints),
+`retrieval` (TemplateIndex: the template's stacked descriptors, view votes, neighbourhoods), `hypotheses`
+(GMatch lists of the neighbourhoods, pre-scored and pooled), `rivals` (solve, refine and verify the lists; rival
+poses), `refine` (anchored ICP), `verify` (the evidence a pose is accepted on), `pnp` (2D-3D fallback without
+depth), `estimator` (Estimator, the façade composing them), `track` (the previous pose as a prior), `model` (the
+object's surface), `params` (EstimateParams, a section per stage), `settings` (its YAML), `result`
+(EstimateResult, the `estimate --json` object).
 """
-from gscan.estimate.estimator import EstimateParams, Estimator
+from gscan.estimate.estimator import Estimator
+from gscan.estimate.params import EstimateParams
 from gscan.estimate.result import STAGES, EstimateResult
+from gscan.estimate.settings import dump_estimate_defaults, load_estimate_params
 from gscan.estimate.track import STATUSES, Tracker, TrackParams, TrackRun, TrackStep, track_sequence, write_poses
 from gscan.estimate.verify import AcceptParams, Evidence
 
 __all__ = ["STAGES", "STATUSES", "AcceptParams", "EstimateParams", "EstimateResult", "Estimator", "Evidence",
-           "TrackParams", "TrackRun", "TrackStep", "Tracker", "track_sequence", "write_poses"]
+           "TrackParams", "TrackRun", "TrackStep", "Tracker", "dump_estimate_defaults", "load_estimate_params",
+           "track_sequence", "write_poses"]

@@ -1,16 +1,20 @@
-"""The full-frame work of one query frame, done once: back-projection, support plane, search region.
+"""The full-frame work of one query frame, done once: back-projection, support plane, search region; and the
+query's keypoints (stage 1).
 
 Every later stage (features, ICP target, scores, the support-plane rule, tracking) reads these arrays
-instead of back-projecting the depth again or fitting the plane again.
+instead of back-projecting the depth again or fitting the plane again. Keypoints are detected on the bounding
+boxes of the search region's blobs only (`region_boxes`): SIFT's cost follows the area it scans.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numba import njit
 
 from gscan.errors import InputError
+from gscan.estimate.params import QueryParams
+from gscan.features import FeatureParams, Features, empty_features, extract_features, extract_features_in_mask
 from gscan.geometry.plane import Plane, dominant_plane
 from gscan.io.camera import RGBDFrame, pixel_rays
 
@@ -124,8 +128,7 @@ def plane_heights(q: QueryFrame, plane: Plane) -> np.ndarray:
     return q.cloud @ n + np.float32(plane.offset)
 
 
-def prepare_query(frame: RGBDFrame, mask: np.ndarray | None, remove_plane: bool, min_depth_frac: float,
-                  plane_min_frac: float, plane_iterations: int) -> QueryFrame:
+def prepare_query(frame: RGBDFrame, mask: np.ndarray | None, params: QueryParams) -> QueryFrame:
     """The frame's per-frame geometry: the valid-depth fraction of the search region and, without a mask (a
     given mask is the search region) and with usable depth, the dominant plane and the pixels in front of it
     by more than 8 mm + 0.5 % of their depth (None when they are fewer than 0.2 % of the frame)."""
@@ -138,10 +141,70 @@ def prepare_query(frame: RGBDFrame, mask: np.ndarray | None, remove_plane: bool,
     n_region = valid.size if mask is None else int(mask.sum())
     n_valid = int(valid.sum()) if mask is None else int((valid & mask).sum())
     q = QueryFrame(frame, mask, n_valid / max(1, n_region))
-    if mask is None and remove_plane and q.depth_frac >= min_depth_frac:
-        q.plane = fit_plane(q, plane_min_frac, plane_iterations)
+    if mask is None and params.remove_plane and q.depth_frac >= params.min_depth_frac:
+        q.plane = fit_plane(q, params.plane_min_frac, params.plane_iterations)
         heights = q.heights
         if heights is not None:
             region = valid & (heights > 0.008 + 0.005 * frame.depth)
             q.off_plane = region if region.mean() >= 0.002 else None
     return q
+
+
+def query_features(frame: RGBDFrame, mask: np.ndarray | None, features: FeatureParams, params: QueryParams,
+                   lift: bool = True) -> Features:
+    """The query keypoints (stage 1) inside `mask` ([H x W] bool; None: the whole frame), detected on the
+    mask's blobs' boxes (`region_boxes`). Without `lift` (PnP) every keypoint is kept: a unit placeholder depth
+    is lifted, so only pixels and descriptors are meaningful."""
+    fparams = features if lift else replace(features, lift_window=0)
+    if not lift:
+        frame = RGBDFrame(frame.name, frame.color, np.ones_like(frame.depth), frame.intrinsics)
+    if mask is None:
+        return extract_features(frame, fparams)
+    if not mask.any():
+        return empty_features(fparams.kind)
+    boxes = region_boxes(mask, params.crop_margin, params.min_region_px)
+    if len(boxes) <= 1:
+        return extract_features_in_mask(frame, mask, fparams, params.crop_margin)
+    parts = [extract_features_in_mask(frame, mask, fparams, params.crop_margin, within=box) for box in boxes]
+    return Features(np.concatenate([f.pixels for f in parts]), np.concatenate([f.points for f in parts]),
+                    np.concatenate([f.descriptors for f in parts]), fparams.kind,
+                    np.concatenate([f.scales for f in parts]))
+
+
+def region_boxes(mask: np.ndarray, margin: int, min_px: int, max_fill: float = 0.7) -> list[tuple[int, int, int, int]]:
+    """Detection boxes (x0, y0, x1, y1) of a search region [H x W] bool: the bounding boxes of its connected
+    blobs of at least min_px pixels, grown by `margin` and merged while they overlap. One box (the region's
+    bounding box) when the blobs' boxes cover more than `max_fill` of it, or none of them is large enough."""
+    import cv2
+
+    H, W = mask.shape
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    if len(rows) == 0:
+        return []
+    # the blobs of the region's bounding box (a crop: the labelling's cost follows the pixels it scans)
+    crop = mask[rows[0]:rows[-1] + 1, cols[0]:cols[-1] + 1].astype(np.uint8)
+    _, _, stats, _ = cv2.connectedComponentsWithStats(crop, connectivity=8)
+    stats[:, 0] += cols[0]
+    stats[:, 1] += rows[0]
+    boxes = [[max(0, x - margin), max(0, y - margin), min(W, x + w + margin), min(H, y + h + margin)]
+             for x, y, w, h, a in stats[1:] if a >= min_px]
+    merged = True
+    while merged and len(boxes) > 1:
+        merged = False
+        for i in range(len(boxes)):
+            for j in range(i + 1, len(boxes)):
+                a, b = boxes[i], boxes[j]
+                if a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]:
+                    boxes[i] = [min(a[0], b[0]), min(a[1], b[1]), max(a[2], b[2]), max(a[3], b[3])]
+                    del boxes[j]
+                    merged = True
+                    break
+            if merged:
+                break
+    if len(boxes) <= 1:
+        return [tuple(b) for b in boxes]
+    union = (cols[-1] - cols[0] + 1 + 2 * margin) * (rows[-1] - rows[0] + 1 + 2 * margin)
+    if sum((b[2] - b[0]) * (b[3] - b[1]) for b in boxes) > max_fill * union:
+        return []
+    return sorted((int(b[0]), int(b[1]), int(b[2]), int(b[3])) for b in boxes)
+

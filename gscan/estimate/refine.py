@@ -6,13 +6,27 @@ enter the same least-squares step as weak point-to-point terms: where the surfac
 free (a can turning about its axis, a flat face sliding in its plane) they hold the pose where the matches put
 it, and elsewhere the surface's many pairs outweigh them. Deterministic: bit-identical output for identical
 input.
+
+`refine_pose` is stage 5 of an estimate (and a tracked frame's refinement): the template's samples visible
+from the predicted pose onto the query cloud cropped to a sphere of `crop_radii` object radii around the
+predicted centre; a refinement that moves the pose by more than the object radius or `max_turn_deg` is
+discarded.
 """
 from __future__ import annotations
+
+import logging
 
 import numpy as np
 from numba import njit
 
-from gscan.geometry.transforms import make_T, rotvec_to_R
+from gscan.estimate.model import ObjectModel
+from gscan.estimate.params import RefineParams
+from gscan.estimate.query import QueryFrame
+from gscan.estimate.verify import visible
+from gscan.geometry.pointset import voxel_mean
+from gscan.geometry.transforms import make_T, rotvec_to_R, transform_points
+
+log = logging.getLogger(__name__)
 
 
 @njit(cache=True, nogil=True)
@@ -112,3 +126,31 @@ def icp_anchored(src: np.ndarray, src_normals: np.ndarray, tgt: np.ndarray, T_in
             if np.linalg.norm(x[:3]) < 1e-5 and np.linalg.norm(x[3:]) < 1e-5:
                 break
     return T, fitness
+
+
+def refine_pose(model: ObjectModel, q: QueryFrame, T_cam_obj: np.ndarray,
+                anchors: tuple[np.ndarray, np.ndarray] | None, region: np.ndarray | None, params: RefineParams,
+                max_dists: tuple[float, ...] | None = None, max_points: int | None = None) -> np.ndarray:
+    """ICP of the model's samples visible at T_cam_obj [4 x 4] onto the query cloud cropped to `region`
+    ([H x W] bool, or None) and to a sphere around the predicted object (module docstring). anchors: the match
+    list's (object-frame points [K x 3], camera-frame points [K x 3]); max_dists: correspondence distances,
+    coarse to fine (default: params.max_dist alone); max_points: samples used (default: params.max_points).
+    Returns T_cam_obj unchanged when ICP has too little to work with or moves the pose implausibly far."""
+    idx, _, _ = visible(T_cam_obj, q.frame.intrinsics, model.samples)
+    if len(idx) < 30:
+        return T_cam_obj
+    max_dists = (params.max_dist,) if max_dists is None else max_dists
+    c = transform_points(T_cam_obj, model.center[None])[0]
+    tgt = q.points_near(c, params.crop_radii * model.radius + max(max_dists), region)
+    if len(tgt) < 30:
+        return T_cam_obj
+    tgt = voxel_mean(tgt, params.target_voxel)  # averaging, not picking: depth noise shrinks
+    idx = idx[:: max(1, int(np.ceil(len(idx) / (max_points or params.max_points))))]
+    T, fitness = icp_anchored(model.samples[idx], model.normals[idx], tgt, T_cam_obj, max_dists, params.iterations,
+                              anchors, params.anchor_weight)
+    dR = T[:3, :3] @ T_cam_obj[:3, :3].T
+    moved = np.linalg.norm(T[:3, 3] - T_cam_obj[:3, 3])
+    if fitness <= 0 or moved > model.radius or np.trace(dR) < 1.0 + 2.0 * np.cos(np.radians(params.max_turn_deg)):
+        log.debug("ICP rejected (fitness %.2f, moved %.3f m)", fitness, moved)
+        return T_cam_obj
+    return T

@@ -1,4 +1,8 @@
-"""The outcome of one pose estimate, and its `gscan estimate --json` object (the command-line contract)."""
+"""The outcome of one pose estimate, and its `gscan estimate --json` object (the command-line contract).
+
+The stages are timed by a `gscan.progress.StageTimer` (seconds per stage name, the scan's timer); `timed`
+writes its STAGES into `EstimateResult.timings_ms` (milliseconds, every key present, 0 for a stage not run).
+"""
 from __future__ import annotations
 
 import time
@@ -7,6 +11,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from gscan.estimate.verify import Evidence
+from gscan.progress import StageTimer
 
 STAGES = ("features", "retrieval", "match", "solve", "refine", "total")
 
@@ -47,3 +52,22 @@ def matrix_json(T: np.ndarray | None) -> list[list[float]] | None:
 def ms_since(t0: float) -> float:
     """Milliseconds of wall time since perf_counter() returned t0."""
     return (time.perf_counter() - t0) * 1e3
+
+
+def found(T_cam_obj: np.ndarray, score: float, n: int, view: str | None, method: str,
+          evidence: Evidence | None = None) -> EstimateResult:
+    """A found pose T_cam_obj [4 x 4] (grasps and timings are the estimator's to add)."""
+    return EstimateResult(T_cam_obj, float(score), int(n), view, None, method=method, evidence=evidence)
+
+
+def not_found(reason: str, n: int = 0, view: str | None = None, score: float = 0.0, method: str = "gmatch",
+              evidence: Evidence | None = None) -> EstimateResult:
+    """No pose, for `reason` (one line)."""
+    return EstimateResult(None, float(score), int(n), view, reason, method=method, evidence=evidence)
+
+
+def timed(res: EstimateResult, timer: StageTimer, t0: float) -> EstimateResult:
+    """`res` with its timings_ms: the timer's STAGES in milliseconds, and "total" since perf_counter() gave t0."""
+    res.timings_ms = {k: 1e3 * timer.timings.get(k, 0.0) for k in STAGES if k != "total"}
+    res.timings_ms["total"] = ms_since(t0)
+    return res

@@ -31,19 +31,24 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
+from pydantic import Field
 
 from gscan.errors import InputError
 from gscan.estimate.estimator import Estimator
+from gscan.estimate.hypotheses import query_keypoints
 from gscan.estimate.query import QueryFrame
-from gscan.estimate.result import STAGES, EstimateResult, ms_since
+from gscan.estimate.refine import refine_pose
+from gscan.estimate.result import EstimateResult, found
 from gscan.estimate.verify import Evidence, accept, depth_votes, list_spread, visible
 from gscan.features import descriptor_distances, extract_features_in_mask
 from gscan.geometry.kabsch import kabsch_trimmed
-from gscan.geometry.pointset import coincident_groups
 from gscan.geometry.transforms import inv_T, transform_points
 from gscan.io.camera import RGBDFrame
+from gscan.progress import StageTimer
+from gscan.settings import SETTINGS
 
 log = logging.getLogger(__name__)
 
@@ -52,16 +57,26 @@ STATUSES = ("found", "tracked", "refound", "lost")
 
 @dataclass(frozen=True)
 class TrackParams:
-    icp_max_dists: tuple[float, ...] = (0.02, 0.01, 0.005)  # m, ICP correspondence distances, coarse to fine
-    icp_iterations: int = 6  # per distance
-    bbox_margin: float = 0.15  # the predicted silhouette's bounding box grows by this fraction on every side
-    search_radius: float = 0.03  # m, a keypoint is matched among template keypoints predicted this close
-    max_score_drop: float = 0.15  # a local pose whose depth score falls this far below the last full one's fails
-    constant_velocity: bool = True  # predict with the last frame-to-frame motion
-    appearance_every: int = 3  # keypoints checked in every n-th tracked frame (1: every frame)
-    max_icp_shift: float = 0.01  # m: ICP moving the prediction further checks the keypoints in that frame ...
-    max_icp_turn_deg: float = 5.0  # ... as does turning it further
-    icp_max_points: int = 800  # template points ICP uses (evenly subsampled)
+    """Tracking's settings (module docstring); the refinement's others are the estimator's (`EstimateParams`)."""
+
+    icp_max_dists: Annotated[tuple[float, ...], Field(description="m, ICP correspondence distances, coarse to fine",
+                                                      min_length=1)] = (0.02, 0.01, 0.005)
+    icp_iterations: Annotated[int, Field(description="not read: a tracked frame's ICP runs the estimator's "
+                                         "refine.iterations per distance", ge=1)] = 6
+    bbox_margin: Annotated[float, Field(description="the predicted silhouette's bounding box grows by this fraction "
+                                        "on every side", ge=0)] = 0.15
+    search_radius: Annotated[float, Field(description="m, a keypoint is matched among template keypoints predicted "
+                                          "this close", gt=0)] = 0.03
+    max_score_drop: Annotated[float, Field(description="a local pose whose depth score falls this far below the last "
+                                           "full one's fails", ge=0, le=1)] = 0.15
+    constant_velocity: Annotated[bool, Field(description="predict with the last frame-to-frame motion")] = True
+    appearance_every: Annotated[int, Field(description="keypoints checked in every n-th tracked frame (1: every "
+                                           "frame)", ge=1)] = 3
+    max_icp_shift: Annotated[float, Field(description="m: ICP moving the prediction further checks the keypoints in "
+                                          "that frame ...", ge=0)] = 0.01
+    max_icp_turn_deg: Annotated[float, Field(description="... as does turning it further (deg)", ge=0)] = 5.0
+    icp_max_points: Annotated[int, Field(description="template points ICP uses (evenly subsampled)", ge=10)] = 800
+    __pydantic_config__ = SETTINGS
 
 
 @dataclass
@@ -128,7 +143,7 @@ class Tracker:
         """The local refinement from the predicted pose (module docstring), or None when the prior does not
         hold."""
         est, p = self.est, self.params
-        with est._blas_limit():
+        with est.limit_threads():
             if self._unchecked + 1 < p.appearance_every:
                 res = self._depth_only(frame, mask, T_pred, est, p)
                 if res is not None:
@@ -143,84 +158,78 @@ class Tracker:
                     p: TrackParams) -> EstimateResult | None:
         """ICP from the prediction and the depth rules alone; None when ICP had to move the prediction far (the
         keypoints decide then) or the depth does not agree."""
-        t_all = time.perf_counter()
-        tm = dict.fromkeys(STAGES, 0.0)
-        q = QueryFrame(frame, mask, 1.0)
-        T = est.refine(q, T_pred, None, None, p.icp_max_dists, p.icp_max_points)
-        dR = T[:3, :3] @ T_pred[:3, :3].T
-        turn = np.degrees(np.arccos(np.clip(0.5 * (np.trace(dR) - 1.0), -1.0, 1.0)))
-        if np.linalg.norm(T[:3, 3] - T_pred[:3, 3]) > p.max_icp_shift or turn > p.max_icp_turn_deg:
-            return None
-        n_c, n_b, n = depth_votes(frame.depth, frame.intrinsics, T, est.cloud_icp, est.params.depth_tol)
-        score, confirmed = n_c / max(1, n_c + n_b), n_c / max(1, n)
+        t0 = time.perf_counter()
+        timer = StageTimer()
+        with timer.stage("refine"):
+            q = QueryFrame(frame, mask, 1.0)
+            T = refine_pose(est.model, q, T_pred, None, None, est.params.refine, p.icp_max_dists, p.icp_max_points)
+            dR = T[:3, :3] @ T_pred[:3, :3].T
+            turn = np.degrees(np.arccos(np.clip(0.5 * (np.trace(dR) - 1.0), -1.0, 1.0)))
+            if np.linalg.norm(T[:3, 3] - T_pred[:3, 3]) > p.max_icp_shift or turn > p.max_icp_turn_deg:
+                return None
+            n_c, n_b, n = depth_votes(frame.depth, frame.intrinsics, T, est.model.samples, est.params.verify.depth_tol)
+            score, confirmed = n_c / max(1, n_c + n_b), n_c / max(1, n)
         a = est.params.accept
-        tm["refine"] = ms_since(t_all)
         if score < a.min_score or confirmed < a.min_confirmed or score < self._ref_score - p.max_score_drop:
             return None
-        view = est.view_names[int(np.argmax(est.axes @ (T[:3, :3].T @ np.array([0.0, 0.0, 1.0]))))]
-        return est._found(T, score, 0, view, tm, t_all, "track", Evidence(score=score, confirmed=confirmed))
+        view = est.view_names[int(np.argmax(est.index.axes @ (T[:3, :3].T @ np.array([0.0, 0.0, 1.0]))))]
+        return est.result(found(T, score, 0, view, "track", Evidence(score=score, confirmed=confirmed)), timer, t0)
 
     def _with_keypoints(self, frame: RGBDFrame, mask: np.ndarray | None, T_pred: np.ndarray, est: Estimator,
                         p: TrackParams) -> EstimateResult | None:
-        t_all = time.perf_counter()
-        tm = dict.fromkeys(STAGES, 0.0)
+        t0 = time.perf_counter()
+        timer = StageTimer()
         intr = frame.intrinsics
-        t = time.perf_counter()
-        _, _, uv = visible(T_pred, intr, est.cloud_icp)
-        if len(uv) < 30:
-            log.debug("%s: the prior pose shows too little of the object", frame.name)
-            return None
-        lo, hi = uv.min(0), uv.max(0)
-        grow = p.bbox_margin * (hi - lo) + 8
-        x0, y0 = np.maximum(lo - grow, 0).astype(int)
-        x1, y1 = np.minimum(hi + grow + 1, [intr.width, intr.height]).astype(int)
-        region = np.zeros(frame.depth.shape, bool)
-        region[y0:y1, x0:x1] = True
-        if mask is not None:
-            region &= mask
-        feats = extract_features_in_mask(frame, region, est.params.features, est.params.crop_margin)
-        tm["features"] = ms_since(t)
+        ix = est.index
+        with timer.stage("features"):
+            _, _, uv = visible(T_pred, intr, est.model.samples)
+            if len(uv) < 30:
+                log.debug("%s: the prior pose shows too little of the object", frame.name)
+                return None
+            lo, hi = uv.min(0), uv.max(0)
+            grow = p.bbox_margin * (hi - lo) + 8
+            x0, y0 = np.maximum(lo - grow, 0).astype(int)
+            x1, y1 = np.minimum(hi + grow + 1, [intr.width, intr.height]).astype(int)
+            region = np.zeros(frame.depth.shape, bool)
+            region[y0:y1, x0:x1] = True
+            if mask is not None:
+                region &= mask
+            feats = extract_features_in_mask(frame, region, est.params.features, est.params.query.crop_margin)
         if len(feats) < 3:
             log.debug("%s: too few keypoints around the prior pose", frame.name)
             return None
-        t = time.perf_counter()
-        kp_idx = est._offered_keypoints(T_pred)
-        kp_idx = kp_idx[visible(T_pred, intr, est.points_obj[kp_idx])[0]]  # the side the prediction shows
-        if est.unit:
-            S = np.matmul(feats.descriptors, est.descriptors[kp_idx].T)
-        else:
-            S = descriptor_distances(feats.descriptors, est.descriptors[kp_idx], est.kind)
-        tm["retrieval"] = ms_since(t)
-        t = time.perf_counter()
-        src, dst = self._pairs(feats.points.astype(np.float64), S, kp_idx, T_pred)
-        tm["match"] = ms_since(t)
-        t = time.perf_counter()
-        T1, keep = T_pred, np.zeros(len(src), bool)
-        if len(src) >= 3:
-            T_k, keep = kabsch_trimmed(src, dst, est.params.trim_tau)
-            if keep.sum() >= 3:
-                T1 = T_k
-        tm["solve"] = ms_since(t)
-        t = time.perf_counter()
-        q = QueryFrame(frame, mask, 1.0)
-        anchors = (src[keep], dst[keep]) if keep.sum() >= 3 else None
-        T2 = est.refine(q, T1, anchors, None, p.icp_max_dists, p.icp_max_points)
-        order, starts = coincident_groups(feats.points)
-        location = np.empty(len(feats), np.int64)
-        location[order] = np.repeat(np.arange(len(starts)), np.diff(np.r_[starts, len(feats)]))
-        ev = est.evidence(q, T2, feats, S, location, kp_idx, np.arange(len(kp_idx)))
-        ev.n_matches = len(src)
-        ev.n_inliers = int(keep.sum())
-        ev.spread_m = list_spread(src[keep])
-        tm["refine"] = ms_since(t)
-        why = accept(ev, est.radius, est.params.accept)
+        with timer.stage("retrieval"):
+            kp_idx = ix.offered_keypoints(T_pred, est.params.verify.support_views_deg)
+            kp_idx = kp_idx[visible(T_pred, intr, ix.points_obj[kp_idx])[0]]  # the side the prediction shows
+            if ix.unit:
+                S = np.matmul(feats.descriptors, ix.descriptors[kp_idx].T)
+            else:
+                S = descriptor_distances(feats.descriptors, ix.descriptors[kp_idx], ix.kind)
+        with timer.stage("match"):
+            src, dst = self._pairs(feats.points.astype(np.float64), S, kp_idx, T_pred)
+        with timer.stage("solve"):
+            T1, keep = T_pred, np.zeros(len(src), bool)
+            if len(src) >= 3:
+                T_k, keep = kabsch_trimmed(src, dst, est.params.hypotheses.trim_tau)
+                if keep.sum() >= 3:
+                    T1 = T_k
+        with timer.stage("refine"):
+            q = QueryFrame(frame, mask, 1.0)
+            anchors = (src[keep], dst[keep]) if keep.sum() >= 3 else None
+            T2 = refine_pose(est.model, q, T1, anchors, None, est.params.refine, p.icp_max_dists, p.icp_max_points)
+            location = query_keypoints(feats, S).location
+            ev = est.verifier.evidence(q, T2, feats, S, location, kp_idx, np.arange(len(kp_idx)))
+            ev.n_matches = len(src)
+            ev.n_inliers = int(keep.sum())
+            ev.spread_m = list_spread(src[keep])
+        why = accept(ev, est.model.radius, est.params.accept)
         if why is None and ev.score < self._ref_score - p.max_score_drop:
             why = f"depth score dropped to {ev.score:.2f} from {self._ref_score:.2f}"
         if why is not None:
             log.debug("%s: the prior no longer holds: %s", frame.name, why)
             return None
-        view = est.view_names[int(np.argmax(est.axes @ (T2[:3, :3].T @ np.array([0.0, 0.0, 1.0]))))]
-        return est._found(T2, ev.score, ev.n_inliers, view, tm, t_all, "track", ev)
+        view = est.view_names[int(np.argmax(ix.axes @ (T2[:3, :3].T @ np.array([0.0, 0.0, 1.0]))))]
+        return est.result(found(T2, ev.score, ev.n_inliers, view, "track", ev), timer, t0)
 
     def _pairs(self, q_pts: np.ndarray, S: np.ndarray, kp_idx: np.ndarray,
                T_pred: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -230,7 +239,7 @@ class Tracker:
         from scipy.spatial import cKDTree
 
         est = self.est
-        kp_obj = est.points_obj[kp_idx]
+        kp_obj = est.index.points_obj[kp_idx]
         kp_cam = transform_points(T_pred, kp_obj)
         k = min(16, len(kp_cam))
         if k == 0:
@@ -239,10 +248,10 @@ class Tracker:
         d, j = d.reshape(len(q_pts), k), j.reshape(len(q_pts), k)
         near = np.isfinite(d)
         jj = np.where(near, j, 0)
-        sim = np.take_along_axis(S, jj, axis=1) if est.unit else -np.take_along_axis(S, jj, axis=1)
+        sim = np.take_along_axis(S, jj, axis=1) if est.index.unit else -np.take_along_axis(S, jj, axis=1)
         sim = np.where(near, sim, -np.inf)
         best = np.argmax(sim, axis=1)
-        ok = sim[np.arange(len(q_pts)), best] >= est.support_sim
+        ok = sim[np.arange(len(q_pts)), best] >= est.verifier.support_sim
         rows = np.flatnonzero(ok)
         return kp_obj[jj[rows, best[rows]]], q_pts[rows]
 

@@ -25,6 +25,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from gscan.estimate.params import AcceptParams, VerifyParams
+from gscan.estimate.query import QueryFrame
 from gscan.estimate.similarity import best_columns
 from gscan.geometry.plane import Plane
 from gscan.geometry.transforms import transform_points
@@ -63,18 +65,6 @@ class Evidence:
         return {"n_matches": self.n_matches, "n_inliers": self.n_inliers, "spread_m": round(self.spread_m, 5),
                 "score": round(self.score, 4), "confirmed": round(self.confirmed, 4), "support": self.support,
                 "on_surface": self.on_surface, "offer": self.offer, "support_ratio": round(self.support_ratio, 4)}
-
-
-@dataclass(frozen=True)
-class AcceptParams:
-    min_score: float = 0.6  # depth-consistency score below this -> not found
-    min_confirmed: float = 0.15  # share of the visible template surface the depth confirms below this -> not found
-    strong_matches: int = 14  # the best-supported list, this long (and as many inliers), is evidence enough ...
-    strong_min_ratio: float = 0.1  # ... when at least this fraction of the keypoints there agree with the template
-    min_matches: int = 5  # lists with fewer inliers are never accepted
-    min_support: int = 10  # a shorter list needs this many supporting keypoint locations ...
-    min_support_ratio: float = 0.2  # ... and this fraction of what the frame and the template show there ...
-    min_spread: float = 0.05  # ... and inliers spread across this fraction of the object radius (not a line)
 
 
 def accept(ev: Evidence, radius: float, p: AcceptParams, best: bool = True) -> str | None:
@@ -274,3 +264,34 @@ def sinks_into_plane(T_cam_obj: np.ndarray, cloud: np.ndarray, plane: Plane, hei
     if (on_plane & (sil > 0)).sum() > 0.5 * on_plane.sum():
         return None
     return below
+
+
+def pose_evidence(q: QueryFrame, T_cam_obj: np.ndarray, samples: np.ndarray, center: np.ndarray,
+                  kp_points: np.ndarray, kp_idx: np.ndarray, sim: np.ndarray, sim_cols: np.ndarray,
+                  q_points: np.ndarray, q_location: np.ndarray, params: VerifyParams, min_sim: float,
+                  sign: float) -> Evidence:
+    """Depth agreement and keypoint support of the pose T_cam_obj (module docstring); n_matches, n_inliers and
+    spread_m are left to the caller. samples [S x 3]: the template surface (object frame), center [3] its
+    centre; kp_points [N x 3]: template keypoints (object frame), kp_idx [K] those offered; sim [M x C]: the
+    query keypoints' similarity (sign 1) or distance (sign -1) to template keypoints, sim_cols [K] the offered
+    ones' columns; q_points [M x 3], q_location [M]: the query keypoints (camera frame) and their location ids;
+    min_sim: the similarity (or negated distance) at which a keypoint agrees."""
+    frame = q.frame
+    seen = visible(T_cam_obj, frame.intrinsics, samples)  # the template surface the pose shows
+    n_c, n_b, n = depth_votes(frame.depth, frame.intrinsics, T_cam_obj, samples, params.depth_tol, q.off_plane, seen)
+    ev = Evidence(score=n_c / max(1, n_c + n_b), confirmed=n_c / max(1, n))
+    z = float(transform_points(T_cam_obj, center[None])[0, 2])
+    radius = params.support_radius + 0.01 * max(z - 0.5, 0.0)
+    ev.supporters, ev.on_surface, ev.offer = keypoint_support(
+        T_cam_obj, kp_points, kp_idx, sim, sim_cols, q_points, q_location, samples, frame.depth, frame.intrinsics,
+        radius, min_sim, params.depth_tol, sign, seen[1])
+    return ev
+
+
+def query_sinks(q: QueryFrame, T_cam_obj: np.ndarray, samples: np.ndarray, params: VerifyParams) -> float | None:
+    """`sinks_into_plane` of the pose in the query frame (None when the frame has no support plane)."""
+    if q.plane is None:
+        return None
+    assert q.heights is not None
+    return sinks_into_plane(T_cam_obj, samples, q.plane, q.heights, q.frame.depth, q.frame.intrinsics,
+                            params.below_tol, params.max_below_frac)

@@ -1,0 +1,146 @@
+"""Stages 4-7 on the pooled match lists: solve, refine and verify each, and weigh an accepted pose against its
+rivals (`ListVerifier`).
+
+- solve: the list's pose by Kabsch with gross outliers trimmed (`kabsch_trimmed`, object-frame template points
+  -> query camera points); refine: `gscan.estimate.refine.refine_pose` with the list as weak anchors, on the
+  query cloud cut to the off-plane pixels (a given mask does not cut it: a mask that clips the silhouette
+  would pull the pose toward the cut).
+- verify (`gscan.estimate.verify`): accepted from the evidence, never from the list length alone, and refused
+  when it sinks the object into the support plane. When the best list's pose is refused, the next
+  `verify.lists` - 1 lists are tried, under the short lists' stricter rule.
+- rivals: a box printed alike on two faces fits a pose turned onto its twin face as well as the right one, in
+  shape and in most keypoints. The next `rivals.lists` lists whose pre-score support reaches
+  `rivals.min_support` of the accepted list's, and whose poses lie beyond the refinement's reach of the
+  accepted pose (a list within it is the same pose sharpened), are solved, refined and verified too. A rival
+  accepted at another pose is compared with the accepted pose on the query keypoints that support one pose and
+  not the other (a sign test at level `rivals.p`): the pose they significantly favour is returned; when neither
+  is favoured the view is ambiguous (the reason starts with `AMBIGUOUS`).
+"""
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from gscan.estimate.hypotheses import MatchList, QueryKeypoints
+from gscan.estimate.model import ObjectModel
+from gscan.estimate.params import EstimateParams
+from gscan.estimate.query import QueryFrame
+from gscan.estimate.refine import refine_pose
+from gscan.estimate.result import EstimateResult, found, not_found
+from gscan.estimate.retrieval import TemplateIndex
+from gscan.estimate.verify import Evidence, accept, list_spread, pose_evidence, query_sinks
+from gscan.features import Features
+from gscan.geometry.kabsch import kabsch_trimmed
+from gscan.geometry.transforms import pose_error
+from gscan.progress import StageTimer
+from gscan.registration.noise import sign_test
+
+log = logging.getLogger(__name__)
+
+AMBIGUOUS = "ambiguous view"  # the reason's start when two poses explain the frame alike
+
+
+class ListVerifier:
+    """Solves, refines and verifies match lists of one template (module docstring)."""
+
+    def __init__(self, index: TemplateIndex, model: ObjectModel, params: EstimateParams):
+        self.index, self.model, self.params = index, model, params
+        sd = params.verify.support_dist if params.verify.support_dist is not None else index.eps_f
+        # similarity at which a supporting keypoint's descriptor agrees (cosine for unit descriptors, else the
+        # negated distance)
+        self.support_sim = 1.0 - 0.5 * sd ** 2 if index.unit else -sd
+
+    def evidence(self, q: QueryFrame, T_cam_obj: np.ndarray, feats: Features, S: np.ndarray,
+                 q_location: np.ndarray, kp_idx: np.ndarray | None = None,
+                 sim_cols: np.ndarray | None = None) -> Evidence:
+        """Depth agreement and keypoint support of a pose (`gscan.estimate.verify.pose_evidence`). S [M x C]: the
+        query keypoints' similarity (unit descriptors) or distance to template keypoints; kp_idx: the template
+        keypoints offered (default: those of the views near the pose's viewing direction) and sim_cols their
+        columns in S (default: S holds every keypoint)."""
+        if kp_idx is None:
+            kp_idx = self.index.offered_keypoints(T_cam_obj, self.params.verify.support_views_deg)
+        return pose_evidence(q, T_cam_obj, self.model.samples, self.model.center, self.index.points_obj, kp_idx,
+                             S, kp_idx if sim_cols is None else sim_cols, feats.points, q_location,
+                             self.params.verify, self.support_sim, 1.0 if self.index.unit else -1.0)
+
+    def sinks(self, q: QueryFrame, T_cam_obj: np.ndarray) -> float | None:
+        """The fraction of the object the pose puts inside the frame's support plane when too large, else None."""
+        return query_sinks(q, T_cam_obj, self.model.samples, self.params.verify)
+
+    def verify_lists(self, q: QueryFrame, qk: QueryKeypoints, lists: list[MatchList], refine: bool,
+                     timer: StageTimer) -> EstimateResult:
+        """The pose of the pooled lists (best pre-score first): the first accepted of the `verify.lists` best,
+        weighed against its rivals, else the best list's refusal."""
+        p = self.params
+        if not lists:
+            return not_found("too few geometrically consistent matches (no list of 3)")
+        first: EstimateResult | None = None
+        listed = [c for c in lists if c.n >= p.accept.min_matches]
+        for i, c in enumerate(listed[: max(1, p.verify.lists)]):
+            res = self.verify_list(q, qk, c, refine, timer, best=c is lists[0])
+            if res.found:
+                rivals = [r for r in listed[i + 1:] if r.support >= p.rivals.min_support * c.support]
+                return self.against_rivals(q, qk, res, rivals, refine, timer)
+            first = first or res
+        if first is None:
+            n = max(c.n for c in lists)
+            return not_found(f"too few geometrically consistent matches ({n} < {p.accept.min_matches})", n,
+                             self.index.view_names[lists[0].view])
+        return first
+
+    def verify_list(self, q: QueryFrame, qk: QueryKeypoints, c: MatchList, refine: bool, timer: StageTimer,
+                    best: bool = True) -> EstimateResult:
+        """Solve, refine and verify one match list (best: the frame's best-supported list, `accept`)."""
+        p = self.params
+        with timer.stage("solve"):
+            src = self.index.points_obj[c.matches[:, 0]]
+            dst = qk.feats.points[c.matches[:, 1]].astype(np.float64)
+            T_cam_obj, keep = kabsch_trimmed(src, dst, p.hypotheses.trim_tau)
+        with timer.stage("refine"):
+            if refine:  # not cut by a given mask: a mask that clips the silhouette pulls ICP to the cut
+                T_cam_obj = refine_pose(self.model, q, T_cam_obj, (src[keep], dst[keep]), q.off_plane, p.refine)
+            ev = self.evidence(q, T_cam_obj, qk.feats, qk.S, qk.location)
+            # inliers count query keypoint locations (pooled lists pair one keypoint with several template views)
+            ev.n_matches, ev.n_inliers = c.longest, len(np.unique(qk.location[c.matches[keep, 1]]))
+            ev.spread_m = list_spread(src[keep])
+        view = self.index.view_names[c.view]
+        below = self.sinks(q, T_cam_obj)
+        why = accept(ev, self.model.radius, p.accept, best) if below is None else \
+            f"pose puts {below:.0%} of the object inside the support plane"
+        if why is not None:
+            return not_found(why, c.longest, view, ev.score, evidence=ev)
+        return found(T_cam_obj, ev.score, c.longest, view, "gmatch", ev)
+
+    def against_rivals(self, q: QueryFrame, qk: QueryKeypoints, res: EstimateResult, rivals: list[MatchList],
+                       refine: bool, timer: StageTimer) -> EstimateResult:
+        """The accepted `res` against its rival lists (module docstring): the pose the keypoints significantly
+        favour, or not found when the view cannot tell them apart."""
+        p = self.params
+        checked = 0
+        for r in rivals:
+            assert res.T_cam_obj is not None and res.evidence is not None
+            if checked >= p.rivals.lists:
+                break
+            deg, dist = pose_error(r.T, res.T_cam_obj)
+            if deg <= p.refine.max_turn_deg and dist <= self.model.radius:
+                continue
+            checked += 1
+            alt = self.verify_list(q, qk, r, refine, timer)
+            if alt.T_cam_obj is None or alt.evidence is None:
+                continue
+            deg, dist = pose_error(alt.T_cam_obj, res.T_cam_obj)
+            if deg <= p.hypotheses.merge_deg and dist <= p.hypotheses.merge_dist:  # the same pose: not a rival
+                continue
+            a, b = res.evidence.supporters, alt.evidence.supporters
+            only_res, only_alt = len(np.setdiff1d(a, b)), len(np.setdiff1d(b, a))
+            if sign_test(only_res, only_alt) < p.rivals.p:
+                continue
+            if sign_test(only_alt, only_res) < p.rivals.p:
+                log.debug("a rival pose wins (%d keypoints for it alone, %d against)", only_alt, only_res)
+                res = alt
+                continue
+            return not_found(f"{AMBIGUOUS}: a pose {deg:.0f} deg / {dist * 1000:.0f} mm away explains it as well "
+                             f"({only_res} keypoints agree with one pose only, {only_alt} with the other)",
+                             res.n_matches, res.view, res.score, evidence=res.evidence)
+        return res
