@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from gscan.errors import InputError, not_a_file
+from gscan.geometry.transforms import MAX_TRANSLATION_M, is_rigid
 
 log = logging.getLogger(__name__)
 
@@ -172,8 +173,6 @@ class DepthCamera:
 
     def __init__(self, intrinsics: Intrinsics | np.ndarray, T_color_depth: np.ndarray | None = None, *,
                  source: str | Path | None = None):
-        from gscan.geometry.transforms import MAX_TRANSLATION_M, is_rigid
-
         if isinstance(intrinsics, Intrinsics):
             K, size = intrinsics.K, (intrinsics.width, intrinsics.height)
         else:
@@ -184,10 +183,11 @@ class DepthCamera:
             if why:
                 raise ValueError(why)
         T = np.eye(4) if T_color_depth is None else np.asarray(T_color_depth, dtype=np.float64)
-        if T.shape != (4, 4) or not is_rigid(T, max_translation=MAX_TRANSLATION_M):
-            raise ValueError(f"T_color_depth must be a rigid 4x4 transform in metres (rotation orthonormal, last row "
-                             f"0 0 0 1, translation within {MAX_TRANSLATION_M:g} m), got shape {T.shape}"
-                             if T.shape == (4, 4) else f"T_color_depth must be a 4x4 matrix, not shape {T.shape}")
+        if T.shape != (4, 4):
+            raise ValueError(f"T_color_depth must be a 4x4 matrix, not shape {T.shape}")
+        if not is_rigid(T, max_translation=MAX_TRANSLATION_M):
+            raise ValueError(f"T_color_depth is not a rigid transform in metres (rotation orthonormal, last row "
+                             f"0 0 0 1, translation within {MAX_TRANSLATION_M:g} m)")
         for name, value in (("K", _frozen(K)), ("size", size), ("T_color_depth", _frozen(T)),
                             ("source", None if source is None else Path(source))):
             object.__setattr__(self, name, value)
@@ -240,6 +240,7 @@ class DepthCamera:
 
     @classmethod
     def from_dict(cls, d: dict) -> DepthCamera:
+        """The camera of `to_dict`'s values."""
         K = np.asarray(d["K"], dtype=np.float64)
         size = d.get("size")
         return cls(Intrinsics.from_matrix(K, int(size[0]), int(size[1])) if size else K, d.get("T_color_depth"))
