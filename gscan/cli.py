@@ -14,12 +14,15 @@ import os
 import sys
 from enum import Enum
 from pathlib import Path
-from typing import Any, NoReturn
+from typing import TYPE_CHECKING, Any, NoReturn
 
 import typer
 from rich.console import Console
 
 from gscan.errors import GscanError, InputError
+
+if TYPE_CHECKING:
+    from gscan.io.camera import DepthCamera
 
 try:  # typer >= 0.2x vendors click as typer._click; older releases use click itself
     from typer._click import exceptions as _cx
@@ -203,7 +206,7 @@ DEPTH_TO_COLOR_HELP = ("with --depth-intrinsics: T_color_depth, the depth camera
                        "(4x4 text or JSON matrix, metres; default: the same centre and axes)")
 
 
-def _depth_camera(depth_intrinsics: Path | None, depth_to_color: Path | None):
+def _depth_camera(depth_intrinsics: Path | None, depth_to_color: Path | None) -> DepthCamera | None:
     """The DepthCamera of the --depth-intrinsics / --depth-to-color options (None without them)."""
     from gscan.io.camera import load_depth_camera
 
