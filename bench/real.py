@@ -66,7 +66,10 @@ class Calibration:
     def sequence_kwargs(self) -> dict:
         if self.color_K is None:
             return {}
-        return {"intrinsics": self.color_K, "depth_intrinsics": self.depth_K, "T_color_depth": self.T_color_depth}
+        from gscan.io.camera import load_depth_camera
+
+        assert self.depth_K is not None
+        return {"intrinsics": self.color_K, "depth_camera": load_depth_camera(self.depth_K, self.T_color_depth)}
 
 
 def published_calibration(folder: Path) -> Calibration:

@@ -42,7 +42,7 @@ sys.path.insert(0, str(ROOT))
 from gscan.geometry.transforms import transform_points  # noqa: E402
 from gscan.io import open_sequence  # noqa: E402
 from gscan.io.align import align_depth_to_color  # noqa: E402
-from gscan.io.camera import Intrinsics  # noqa: E402
+from gscan.io.camera import DepthCamera, Intrinsics  # noqa: E402
 from gscan.synth import (  # noqa: E402
     SynthScene,
     default_distance,
@@ -169,7 +169,7 @@ def alignment_accuracy(n_views: int, w: int, h: int, tmp: Path) -> dict:
             d = scene.render(T_wc @ T, Kd, noise=False)
             truth.append(c.depth_clean)
             fr.append(RecordingFrame(c.color, depth_to_raw(d.depth_clean), T0_NS + i * PERIOD_NS))
-        bag = write_realsense_bag(tmp / f"acc{len(out)}.bag", fr, Kc, Kd, T)
+        bag = write_realsense_bag(tmp / f"acc{len(out)}.bag", fr, Kc, DepthCamera(Kd, T))
         seq = open_sequence(bag)
         cfg = rs.config()
         cfg.enable_device_from_file(str(bag), repeat_playback=False)
@@ -213,8 +213,8 @@ def main() -> None:
                                                compress=True)
         paths["db3"] = write_rosbag2(tmp / "ros2", frames(colors, depths, a.frames), Kc, topics=("color", "aligned"))
         paths["mcap"] = write_mcap(tmp / "ros2.mcap", frames(colors, depths, a.frames), Kc, topics=("color", "aligned"))
-        paths["bag-unaligned"] = write_realsense_bag(tmp / "unaligned.bag", frames(colors, offset, a.frames), Kc, Kd,
-                                                     T_offset())
+        paths["bag-unaligned"] = write_realsense_bag(tmp / "unaligned.bag", frames(colors, offset, a.frames), Kc,
+                                                     DepthCamera(Kd, T_offset()))
         open_sequence(paths["bag-unaligned"])[0]  # numba's compiled kernel loaded before timing
         res = {k: read_all(p, a.passes) for k, p in paths.items()}
         base = res["folder"]["fps"]
@@ -224,7 +224,7 @@ def main() -> None:
         times = []
         for _ in range(a.repeat):
             t0 = time.perf_counter()
-            align_depth_to_color(d, Kd, Kc, T_offset())
+            align_depth_to_color(d, DepthCamera(Kd, T_offset()), Kc)
             times.append(time.perf_counter() - t0)
         align_ms = 1000 * min(times)
         res["align"] = {"ms": align_ms, "x_bag_frame": align_ms / res["bag"]["ms_per_frame"]}

@@ -14,12 +14,15 @@ import os
 import sys
 from enum import Enum
 from pathlib import Path
-from typing import Any, NoReturn
+from typing import TYPE_CHECKING, Any, NoReturn
 
 import typer
 from rich.console import Console
 
 from gscan.errors import GscanError, InputError
+
+if TYPE_CHECKING:
+    from gscan.io.camera import DepthCamera
 
 try:  # typer >= 0.2x vendors click as typer._click; older releases use click itself
     from typer._click import exceptions as _cx
@@ -203,6 +206,18 @@ DEPTH_TO_COLOR_HELP = ("with --depth-intrinsics: T_color_depth, the depth camera
                        "(4x4 text or JSON matrix, metres; default: the same centre and axes)")
 
 
+def _depth_camera(depth_intrinsics: Path | None, depth_to_color: Path | None) -> DepthCamera | None:
+    """The DepthCamera of the --depth-intrinsics / --depth-to-color options (None without them)."""
+    from gscan.io.camera import load_depth_camera
+
+    if depth_intrinsics is None:
+        if depth_to_color is not None:
+            raise InputError(depth_to_color, "a depth-to-colour pose needs the depth camera's intrinsics too "
+                             "(--depth-intrinsics)")
+        return None
+    return load_depth_camera(depth_intrinsics, depth_to_color)
+
+
 @app.command()
 def scan(
     input_dir: Path = typer.Argument(..., help="RGB-D folder (capture, Open3D, TUM or BOP layout) or recording "
@@ -242,7 +257,7 @@ def scan(
             result = scan_capture(input_dir, output, config=cfg, format=format.value, intrinsics=intrinsics,
                                   depth_scale=depth_scale, mode=mode.value, segment=not no_segment, resume=resume,
                                   force=force, obj_id=obj_id, color_topic=color_topic, depth_topic=depth_topic,
-                                  depth_intrinsics=depth_intrinsics, depth_to_color=depth_to_color,
+                                  depth_camera=_depth_camera(depth_intrinsics, depth_to_color),
                                   progress=progress)
     except KeyboardInterrupt:  # Ctrl+C: the partial database is kept for --resume (typer exits 130)
         _say_interrupted(_interrupted_scan_line(output, force))
@@ -358,9 +373,8 @@ def template_from_mesh(
 def _load_query_frame(color: Path, depth: Path, intrinsics: Path, depth_scale: float, mask: Path | None,
                       depth_intrinsics: Path | None = None, depth_to_color: Path | None = None):
     from gscan.io import load_frame
-    from gscan.io.sequence import depth_camera_for
 
-    cam = depth_camera_for(depth_intrinsics, depth_to_color, [depth], depth)
+    cam = _depth_camera(depth_intrinsics, depth_to_color)
     return load_frame(color, depth, intrinsics, depth_scale=depth_scale, mask_path=mask, depth_camera=cam)
 
 
@@ -431,7 +445,7 @@ def track(
         check_output_path(output)
     estimator = Estimator.from_path(template)
     seq = open_sequence(input_path, format, intrinsics=intrinsics, depth_scale=depth_scale,
-                        depth_intrinsics=depth_intrinsics, T_color_depth=depth_to_color)
+                        depth_camera=_depth_camera(depth_intrinsics, depth_to_color))
 
     def report(step) -> None:
         if json_out:
@@ -638,8 +652,8 @@ def serve(
              f" (API at {url}/docs; Ctrl+C to stop)"
              + (f"; depth camera {depth_intrinsics}" if depth_intrinsics is not None else ""))
 
-    run_service(templates, host=host, port=port, on_ready=ready, depth_intrinsics=depth_intrinsics,
-                depth_to_color=depth_to_color)
+    run_service(templates, host=host, port=port, on_ready=ready,
+                depth_camera=_depth_camera(depth_intrinsics, depth_to_color))
 
 
 # ------------------------------------------------------------------------------------------- grasp

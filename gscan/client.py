@@ -10,14 +10,14 @@
     step = client.track("arm-camera", color_png_bytes, depth_png_bytes, K, template="mug")
     step.status                                         # "found" | "tracked" | "refound" | "lost"
     client.end_track("arm-camera")
-    r = client.estimate(color, depth_from_the_stereo_module, K, depth_intrinsics=K_depth, depth_to_color=T_color_depth)
+    r = client.estimate(color, depth_from_the_stereo_module, K, depth_camera=load_depth_camera("depth_K.txt", "T.txt"))
 
 Images are given as file paths or encoded bytes (colour PNG or JPEG, depth a 16-bit PNG); numpy arrays are
 encoded to PNG (colour RGB uint8, depth uint16 raw units), which needs OpenCV. Intrinsics: a cam_K.txt path,
-its text, or a 3x3 nested list / array. Depth from a separate camera (not registered to colour): its intrinsics
-(`depth_intrinsics`, as `intrinsics`) and its pose in the colour camera (`depth_to_color`, T_color_depth: a 4x4
-nested list / array in metres, a pose .txt / .json path, or its text); without them the service's own depth
-camera applies (`gscan serve --depth-intrinsics`), else the depth is taken as registered. A refused request
+its text, or a 3x3 nested list / array. Depth from a separate camera (not registered to colour): its
+`gscan.io.camera.DepthCamera` (`depth_camera`, e.g. from `gscan.io.camera.load_depth_camera`), sent as the
+request's `depth_intrinsics` (its K) and `depth_to_color` (its T_color_depth) fields; without one the service's
+own depth camera applies (`gscan serve --depth-intrinsics`), else the depth is taken as registered. A refused request
 raises `ServiceError` with the HTTP status and the service's one-line detail; a service that cannot be reached
 raises `ServiceError` with status 0.
 """
@@ -31,11 +31,13 @@ import urllib.request
 import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Union
+from typing import TYPE_CHECKING, Any, Union
+
+if TYPE_CHECKING:  # the client itself needs only the standard library
+    from gscan.io.camera import DepthCamera
 
 ImageInput = Union[str, "os.PathLike[str]", bytes, Any]  # a path, encoded bytes, or a numpy array
 IntrinsicsInput = Union[str, "os.PathLike[str]", Any]  # a cam_K.txt path or text, or a 3x3 matrix
-PoseInput = Union[str, "os.PathLike[str]", Any]  # a pose .txt / .json path or text, or a 4x4 matrix
 
 
 class ServiceError(Exception):
@@ -102,11 +104,10 @@ class GscanClient:
 
     def estimate(self, color: ImageInput, depth: ImageInput, intrinsics: IntrinsicsInput, depth_scale: float = 0.001,
                  mask: ImageInput | None = None, templates: list[str] | None = None,
-                 depth_intrinsics: IntrinsicsInput | None = None,
-                 depth_to_color: PoseInput | None = None) -> EstimateResponse:
+                 depth_camera: DepthCamera | None = None) -> EstimateResponse:
         """The pose of every requested template's object (default: all) in one RGB-D frame (depth from a
-        separate camera: `depth_intrinsics`, `depth_to_color`)."""
-        fields = self._frame_fields(color, depth, intrinsics, depth_scale, mask, depth_intrinsics, depth_to_color)
+        separate camera: `depth_camera`)."""
+        fields = self._frame_fields(color, depth, intrinsics, depth_scale, mask, depth_camera)
         if templates:
             fields.append(("templates", None, ",".join(templates).encode()))
         d = self._request("POST", "/estimate", fields)
@@ -114,11 +115,10 @@ class GscanClient:
 
     def track(self, session: str, color: ImageInput, depth: ImageInput, intrinsics: IntrinsicsInput,
               depth_scale: float = 0.001, mask: ImageInput | None = None, template: str | None = None,
-              depth_intrinsics: IntrinsicsInput | None = None,
-              depth_to_color: PoseInput | None = None) -> TrackResponse:
+              depth_camera: DepthCamera | None = None) -> TrackResponse:
         """The next frame of tracking session `session` (its first frame starts it; `template` is needed then
-        when the service holds several)."""
-        fields = self._frame_fields(color, depth, intrinsics, depth_scale, mask, depth_intrinsics, depth_to_color)
+        when the service holds several; depth from a separate camera: `depth_camera`)."""
+        fields = self._frame_fields(color, depth, intrinsics, depth_scale, mask, depth_camera)
         if template:
             fields.append(("template", None, template.encode()))
         d = self._request("POST", f"/track/{urllib.parse.quote(session, safe='')}", fields)
@@ -131,18 +131,18 @@ class GscanClient:
 
     # ---------------------------------------------------------------------------------------------
     def _frame_fields(self, color: ImageInput, depth: ImageInput, intrinsics: IntrinsicsInput, depth_scale: float,
-                      mask: ImageInput | None, depth_intrinsics: IntrinsicsInput | None = None,
-                      depth_to_color: PoseInput | None = None) -> list[tuple[str, str | None, bytes]]:
+                      mask: ImageInput | None,
+                      depth_camera: DepthCamera | None = None) -> list[tuple[str, str | None, bytes]]:
         fields = [("color", "color.png", _image_bytes(color, depth=False)),
                   ("depth", "depth.png", _image_bytes(depth, depth=True)),
                   ("intrinsics", None, _intrinsics_text(intrinsics).encode()),
                   ("depth_scale", None, repr(float(depth_scale)).encode())]
         if mask is not None:
             fields.append(("mask", "mask.png", _image_bytes(mask, depth=False)))
-        if depth_intrinsics is not None:
-            fields.append(("depth_intrinsics", None, _intrinsics_text(depth_intrinsics).encode()))
-        if depth_to_color is not None:
-            fields.append(("depth_to_color", None, _matrix_text(depth_to_color, 4, "depth_to_color").encode()))
+        if depth_camera is not None:  # its K (the service fits it to the depth image's size) and T_color_depth
+            fields.append(("depth_intrinsics", None, _matrix_text(depth_camera.K, 3, "depth_intrinsics").encode()))
+            fields.append(("depth_to_color", None,
+                           _matrix_text(depth_camera.T_color_depth, 4, "depth_to_color").encode()))
         return fields
 
     def _request(self, method: str, path: str, fields: list[tuple[str, str | None, bytes]] | None = None) -> Any:

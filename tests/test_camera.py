@@ -15,11 +15,13 @@ from gscan.errors import InputError
 from gscan.geometry.kabsch import kabsch, kabsch_trimmed, leave_one_out_residuals
 from gscan.geometry.transforms import inv_T, look_at, make_T, pose_error, rotvec_to_R, transform_points
 from gscan.io.camera import (
+    DepthCamera,
     Intrinsics,
     RGBDFrame,
     backproject,
     backproject_pixels,
     lift_keypoints,
+    load_depth_camera,
     load_intrinsics,
     pixel_rays,
     point_cloud,
@@ -481,6 +483,81 @@ def test_load_intrinsics_rejects_malformed(tmp_path, name, text):
 def test_load_intrinsics_missing_file(tmp_path):
     with pytest.raises(InputError, match="not found"):
         load_intrinsics(tmp_path / "nope.txt", 640, 480)
+
+
+DEPTH_K = np.array([[585.0, 0.0, 320.0], [0.0, 585.0, 240.0], [0.0, 0.0, 1.0]])
+
+
+def _T_color_depth() -> np.ndarray:
+    return make_T(rotvec_to_R(np.array([0.0, 0.03, 0.01])), np.array([-0.025, 0.001, 0.002]))
+
+
+def test_load_depth_camera_from_a_cam_k_txt_an_open3d_json_and_pose_files(tmp_path):
+    """load_depth_camera: a cam_K.txt fits depth images of any size, an Open3D JSON its own size alone; the pose
+    as 4x4 text or JSON (default the colour camera's centre and axes). The value is its numbers, not its files."""
+    np.savetxt(tmp_path / "depth_K.txt", DEPTH_K)
+    T = _T_color_depth()
+    np.savetxt(tmp_path / "T.txt", T)
+    (tmp_path / "T.json").write_text(json.dumps({"T": T.tolist()}))
+    cam = load_depth_camera(tmp_path / "depth_K.txt")
+    assert cam.size is None and np.array_equal(cam.K, DEPTH_K) and np.array_equal(cam.T_color_depth, np.eye(4))
+    assert cam.source == tmp_path / "depth_K.txt"
+    with pytest.raises(ValueError, match="any size"):
+        _ = cam.intrinsics
+    assert cam.for_size(640, 480) == Intrinsics(585.0, 585.0, 320.0, 240.0, 640, 480)
+    assert cam.for_size(320, 240) == Intrinsics(585.0, 585.0, 320.0, 240.0, 320, 240)
+    with pytest.raises(ValueError, match="principal point"):
+        cam.for_size(100, 100)
+    for pose in ("T.txt", "T.json"):
+        np.testing.assert_allclose(load_depth_camera(tmp_path / "depth_K.txt", tmp_path / pose).T_color_depth, T,
+                                   atol=1e-12)
+    o3d = {"width": 640, "height": 480, "intrinsic_matrix": DEPTH_K.T.flatten().tolist()}
+    (tmp_path / "depth_K.json").write_text(json.dumps(o3d))
+    js = load_depth_camera(tmp_path / "depth_K.json", tmp_path / "T.json")
+    assert js.size == (640, 480) and js.intrinsics == Intrinsics.from_matrix(DEPTH_K, 640, 480)
+    with pytest.raises(ValueError, match="depth is 320x240 but the depth camera's intrinsics are for 640x480"):
+        js.for_size(320, 240)
+    assert DepthCamera.from_dict(json.loads(json.dumps(js.to_dict()))) == js
+    assert DepthCamera.from_dict(json.loads(json.dumps(cam.to_dict()))) == cam
+    assert js != cam and js == DepthCamera(Intrinsics.from_matrix(DEPTH_K, 640, 480), js.T_color_depth)
+    assert cam.sized(640, 480) == DepthCamera(Intrinsics.from_matrix(DEPTH_K, 640, 480))
+    with pytest.raises(AttributeError):
+        cam.size = (1, 1)  # type: ignore[misc]
+    assert not cam.K.flags.writeable and not cam.T_color_depth.flags.writeable
+
+
+@pytest.mark.parametrize("files, named, why", [
+    ({"K.txt": "585 0 320\n0 585\n"}, "K.txt", "malformed cam_K.txt"),
+    ({"K.txt": "585 0.5 320\n0 585 240\n0 0 1\n"}, "K.txt", "not a pinhole"),
+    ({"K.json": "{not json"}, "K.json", "malformed intrinsics JSON"),
+    ({"K.json": json.dumps({"fx": 585, "fy": 585, "cx": 5000, "cy": 240, "width": 640, "height": 480})}, "K.json",
+     "principal point"),
+    ({}, "K.txt", "not found"),
+    ({"T.txt": "1 0 0 0\n0 2 0 0\n0 0 1 0\n0 0 0 1\n"}, "T.txt", "not a rigid transform"),
+    ({"T.txt": "1 2 3\n"}, "T.txt", "malformed pose file"),
+    ({"T.json": json.dumps({"R": 1})}, "T.json", "expected"),
+    ({"T.json": json.dumps({"T": (2 * np.eye(4)).tolist()})}, "T.json", "not a rigid transform"),
+])
+def test_load_depth_camera_names_the_bad_file(tmp_path, files, named, why):
+    np.savetxt(tmp_path / "good_K.txt", DEPTH_K)
+    for name, text in files.items():
+        (tmp_path / name).write_text(text)
+    K = tmp_path / (named if named.startswith("K") else "good_K.txt")
+    pose = tmp_path / named if named.startswith("T") else None
+    with pytest.raises(InputError, match=why) as e:
+        load_depth_camera(K, pose)
+    assert e.value.path == tmp_path / named
+
+
+def test_depth_camera_refuses_what_is_not_a_camera():
+    with pytest.raises(ValueError, match="rigid"):
+        DepthCamera(DEPTH_K, 2 * np.eye(4))
+    with pytest.raises(ValueError, match="4x4"):
+        DepthCamera(DEPTH_K, np.eye(3))
+    with pytest.raises(ValueError, match="3x3"):
+        DepthCamera(np.eye(2))
+    with pytest.raises(ValueError, match="pinhole"):
+        DepthCamera(np.array([[585.0, 0, 320], [0, 585, 240], [0, 0, 2]]))
 
 
 def test_rgbd_frame_size_checks():

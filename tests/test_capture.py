@@ -18,7 +18,7 @@ import pytest
 from _recordings import K_COLOR, K_DEPTH, MESH, T0_NS, T_depth_offset, render_views
 
 from gscan.geometry.transforms import inv_T
-from gscan.io import open_sequence
+from gscan.io import DepthCamera, open_sequence
 from gscan.synth import load_textured_mesh
 from gscan.synth.recordings import write_realsense_bag
 
@@ -39,8 +39,8 @@ def views(meshes_dir):
 def bags(views, tmp_path_factory):
     root = tmp_path_factory.mktemp("capture_bags")
     return {"registered": write_realsense_bag(root / "registered.bag", views.frames(), K_COLOR),
-            "unaligned": write_realsense_bag(root / "unaligned.bag", views.frames(unaligned=True), K_COLOR, K_DEPTH,
-                                             T_depth_offset()),
+            "unaligned": write_realsense_bag(root / "unaligned.bag", views.frames(unaligned=True), K_COLOR,
+                                             DepthCamera(K_DEPTH, T_depth_offset())),
             # 4 frames a second, for Ctrl+C and the preview at the recorded pace (3 s)
             "slow": write_realsense_bag(root / "slow.bag", views.frames(period_ns=250_000_000), K_COLOR),
             # 30 s at the recorded pace: the browser test ends it with Ctrl+C once the page shows it

@@ -24,7 +24,7 @@ from gscan.io import (
     read_sun_depth,
     read_ycbv_meta,
 )
-from gscan.io.camera import Intrinsics, backproject
+from gscan.io.camera import DepthCamera, Intrinsics, backproject, load_depth_camera
 
 PRIMESENSE = Intrinsics(525.0, 525.0, 319.5, 239.5, 640, 480)
 W, H = 64, 48
@@ -318,22 +318,22 @@ def test_unregistered_depth_is_reprojected_into_the_colour_camera(tmp_path: Path
     # read as registered, the depth's size gives it away: every frame is reported, none read
     with pytest.raises(InputError, match="no usable RGB-D frame.*80x60"):
         open_sequence(root)
-    seq = open_sequence(root, depth_intrinsics=depth_K, T_color_depth=tmp_path / "T_color_depth.txt")
+    seq = open_sequence(root, depth_camera=load_depth_camera(depth_K, tmp_path / "T_color_depth.txt"))
     assert seq.problems == {} and seq.depth_camera.intrinsics == Intrinsics(70.0, 70.0, 39.5, 29.5, 80, 60)
     for i, name in enumerate(seq.names):
         raw = depth_mm(i, 80, 60, z_m=0.9).astype(np.float32) * np.float32(0.001)
         f = seq[name]
         assert f.depth.shape == (H, W) and f.intrinsics == seq.intrinsics
-        np.testing.assert_array_equal(f.depth, align_depth_to_color(raw, seq.depth_camera.intrinsics,
-                                                                       seq.intrinsics, T))
+        np.testing.assert_array_equal(f.depth, align_depth_to_color(raw, seq.depth_camera, seq.intrinsics))
         # a flat scene 0.9 m away stays 0.9 m away (+ the 2 mm the depth camera sits behind), seen through the
         # colour camera's own pixels
         assert abs(float(np.median(f.depth[f.depth > 0])) - 0.902) < 0.01 and (f.depth > 0).mean() > 0.8
     # the same as a JSON matrix; without the pose, the depth camera shares the colour camera's centre and axes
     (tmp_path / "T.json").write_text(json.dumps({"T": T.tolist()}))
-    js = open_sequence(root, depth_intrinsics=depth_K, T_color_depth=tmp_path / "T.json")
+    js = open_sequence(root, depth_camera=load_depth_camera(depth_K, tmp_path / "T.json"))
     np.testing.assert_array_equal(js[0].depth, seq[0].depth)
-    assert np.array_equal(open_sequence(root, depth_intrinsics=depth_K).depth_camera.T_color_depth, np.eye(4))
+    assert np.array_equal(open_sequence(root, depth_camera=load_depth_camera(depth_K)).depth_camera.T_color_depth,
+                          np.eye(4))
 
 
 def test_unregistered_depth_bad_calibration_names_the_file(tmp_path: Path):
@@ -341,16 +341,50 @@ def test_unregistered_depth_bad_calibration_names_the_file(tmp_path: Path):
     T[0, 0] = 2.0  # not a rotation
     np.savetxt(tmp_path / "bad_T.txt", T)
     with pytest.raises(InputError, match="not a rigid transform") as e:
-        open_sequence(root, depth_intrinsics=depth_K, T_color_depth=tmp_path / "bad_T.txt")
+        load_depth_camera(depth_K, tmp_path / "bad_T.txt")
     assert e.value.path == tmp_path / "bad_T.txt"
-    np.savetxt(tmp_path / "ok_T.txt", np.eye(4))
-    with pytest.raises(InputError, match="needs the depth camera's intrinsics") as e:
-        open_sequence(root, T_color_depth=tmp_path / "ok_T.txt")
-    assert e.value.path == tmp_path / "ok_T.txt"
     (tmp_path / "bad_K.txt").write_text("70 0 39.5\n0 70\n")
     with pytest.raises(InputError, match="malformed cam_K.txt") as e:
-        open_sequence(root, depth_intrinsics=tmp_path / "bad_K.txt")
+        load_depth_camera(tmp_path / "bad_K.txt")
     assert e.value.path == tmp_path / "bad_K.txt"
+
+
+def test_a_depth_camera_from_a_cam_k_txt_fits_depth_images_of_any_size(tmp_path: Path):
+    """A cam_K.txt carries no image size: its depth camera reads depth images of two sizes, each reprojected with
+    the calibration at that size; an intrinsics JSON with a size refuses depth of another, naming the image."""
+    from gscan.io.align import align_depth_to_color
+
+    K_depth = np.array([[70.0, 0.0, 39.5], [0.0, 70.0, 29.5], [0.0, 0.0, 1.0]])
+    np.savetxt(tmp_path / "depth_K.txt", K_depth)
+    np.savetxt(tmp_path / "cam_K.txt", K_SMALL)
+    T = np.eye(4)
+    T[:3, 3] = [-0.025, 0.0, 0.002]
+    np.savetxt(tmp_path / "T.txt", T)
+    cam = load_depth_camera(tmp_path / "depth_K.txt", tmp_path / "T.txt")
+    assert cam.size is None
+    color = write_img(tmp_path / "color.png", color_img(0))
+    for w, h in ((80, 60), (40, 30)):
+        raw = depth_mm(1, w, h, z_m=0.9)
+        depth = write_img(tmp_path / f"depth_{w}x{h}.png", raw)
+        f = load_frame(color, depth, tmp_path / "cam_K.txt", depth_camera=cam)
+        assert f.depth.shape == (H, W) and f.intrinsics == Intrinsics.from_matrix(K_SMALL, W, H)
+        sized = DepthCamera(Intrinsics.from_matrix(K_depth, w, h), T)
+        np.testing.assert_array_equal(f.depth, align_depth_to_color(raw.astype(np.float32) * np.float32(0.001),
+                                                                     sized, f.intrinsics))
+        assert cam.sized(w, h) == sized and (f.depth > 0).mean() > 0.2
+    (tmp_path / "depth_K.json").write_text(json.dumps({"fx": 70.0, "fy": 70.0, "cx": 39.5, "cy": 29.5,
+                                                       "width": 80, "height": 60}))
+    only_80x60 = load_depth_camera(tmp_path / "depth_K.json", tmp_path / "T.txt")
+    assert only_80x60.size == (80, 60)
+    load_frame(color, tmp_path / "depth_80x60.png", tmp_path / "cam_K.txt", depth_camera=only_80x60)
+    with pytest.raises(InputError, match="depth is 40x30 but the depth camera's intrinsics are for 80x60") as e:
+        load_frame(color, tmp_path / "depth_40x30.png", tmp_path / "cam_K.txt", depth_camera=only_80x60)
+    assert e.value.path == tmp_path / "depth_40x30.png"
+    # a size the calibration cannot be of (its principal point far outside a 16x12 image) names the cam_K.txt
+    write_img(tmp_path / "depth_16x12.png", depth_mm(1, 16, 12, z_m=0.9))
+    with pytest.raises(InputError, match="principal point") as e:
+        load_frame(color, tmp_path / "depth_16x12.png", tmp_path / "cam_K.txt", depth_camera=cam)
+    assert e.value.path == tmp_path / "depth_K.txt"
 
 
 def test_open3d_layout_built(tmp_path: Path):

@@ -28,7 +28,7 @@ from gscan.evaluate.metrics import ate_rmse
 from gscan.geometry.transforms import inv_T
 from gscan.io import associate, open_sequence
 from gscan.io.align import align_depth_reference, align_depth_to_color
-from gscan.io.camera import Intrinsics
+from gscan.io.camera import DepthCamera, Intrinsics
 from gscan.io.recordings.pairing import pair_frames, pair_tolerance
 from gscan.scanning.options import ScanOptions
 from gscan.scanning.pipeline import run_scan
@@ -55,10 +55,10 @@ def recs(views, tmp_path_factory):
     out["mcap"] = write_mcap(root / "ros2.mcap", views.frames(), K_COLOR, topics=("color", "aligned"))
     # unaligned: depth from the depth camera, extrinsics from the stream tf, /tf_static, realsense2_camera's message
     T = T_depth_offset()
-    out["bag_unaligned"] = write_realsense_bag(root / "d435_unaligned.bag", views.frames(unaligned=True), K_COLOR,
-                                               K_DEPTH, T)
-    out["mcap_unaligned"] = write_mcap(root / "unaligned.mcap", views.frames(unaligned=True), K_COLOR, K_DEPTH, T)
-    out["db3_unaligned"] = write_rosbag2(root / "unaligned_db3", views.frames(unaligned=True), K_COLOR, K_DEPTH, T,
+    cam = DepthCamera(K_DEPTH, T)
+    out["bag_unaligned"] = write_realsense_bag(root / "d435_unaligned.bag", views.frames(unaligned=True), K_COLOR, cam)
+    out["mcap_unaligned"] = write_mcap(root / "unaligned.mcap", views.frames(unaligned=True), K_COLOR, cam)
+    out["db3_unaligned"] = write_rosbag2(root / "unaligned_db3", views.frames(unaligned=True), K_COLOR, cam,
                                          extrinsics="realsense")
     return out
 
@@ -136,8 +136,8 @@ def test_pyrealsense2_playback_returns_the_frames_gscan_reads(recs, kind):
         assert len(frames) == len(seq) == 12
         assert info["scale"] == pytest.approx(seq.depth_scale, rel=1e-6)
         assert _same_intrinsics(info["color"], seq.setup.color_intrinsics)
-        assert _same_intrinsics(info["depth"], seq.setup.depth_intrinsics)
-        np.testing.assert_allclose(info["T_color_depth"], seq.setup.T_color_depth, atol=1e-6)
+        assert _same_intrinsics(info["depth"], seq.setup.depth_camera.intrinsics)
+        np.testing.assert_allclose(info["T_color_depth"], seq.setup.depth_camera.T_color_depth, atol=1e-6)
         for name, (color, raw) in zip(seq.names, frames, strict=True):
             c, d = seq.raw(name)
             assert np.array_equal(color, c), name
@@ -156,8 +156,8 @@ def test_depth_units_come_from_the_frames_when_the_option_is_missing(views, tmp_
 @pytest.mark.parametrize("kind", ["bag_unaligned", "mcap_unaligned", "db3_unaligned"])
 def test_unaligned_depth_is_reprojected_identically_by_every_kind(recs, kind):
     with open_sequence(recs["bag_unaligned"]) as ref, open_sequence(recs[kind]) as seq:
-        assert seq.aligned and seq.setup.depth_intrinsics == K_DEPTH
-        np.testing.assert_allclose(seq.setup.T_color_depth, T_depth_offset(), atol=1e-9)
+        assert seq.aligned and seq.setup.depth_camera.intrinsics == K_DEPTH
+        np.testing.assert_allclose(seq.setup.depth_camera.T_color_depth, T_depth_offset(), atol=1e-9)
         for name in ("000000", "000007"):
             assert np.array_equal(seq[name].color, ref[name].color)
             assert np.array_equal(seq[name].depth, ref[name].depth)
@@ -166,7 +166,7 @@ def test_unaligned_depth_is_reprojected_identically_by_every_kind(recs, kind):
 def test_a_recording_refuses_an_outside_depth_calibration(recs):
     """A recording carries its own depth camera: --depth-intrinsics (for folders) is refused, naming it."""
     with pytest.raises(InputError, match="carries its own depth calibration") as e:
-        open_sequence(recs["bag_unaligned"], depth_intrinsics=K_DEPTH)
+        open_sequence(recs["bag_unaligned"], depth_camera=DepthCamera(K_DEPTH))
     assert e.value.path == recs["bag_unaligned"]
 
 
@@ -178,13 +178,13 @@ def test_alignment_puts_depth_where_the_colour_camera_sees_it(meshes_dir):
     depth at the median (the footprint splat is piecewise constant over a pixel), a few mm at the 90th percentile."""
     v = render_views(meshes_dir, 2, of_ring=12, T_color_depth=T_depth_offset(), clean=True)
     for d_depth, d_color in zip(v.offset_depths, v.depths, strict=True):
-        a = align_depth_to_color(d_depth, K_DEPTH, K_COLOR, T_depth_offset())
+        a = align_depth_to_color(d_depth, DepthCamera(K_DEPTH, T_depth_offset()), K_COLOR)
         both = (a > 0) & (d_color > 0)
         err = np.abs(a - d_color)[both]
         assert both.mean() > 0.85  # the rest: outside the depth camera's view, or hidden from it
         assert np.median(err) < 0.001 and np.percentile(err, 90) < 0.003, (np.median(err), np.percentile(err, 90))
         # a misplaced reprojection (extrinsics inverted) is off by centimetres
-        bad = align_depth_to_color(d_depth, K_DEPTH, K_COLOR, inv_T(T_depth_offset()))
+        bad = align_depth_to_color(d_depth, DepthCamera(K_DEPTH, inv_T(T_depth_offset())), K_COLOR)
         both = (bad > 0) & (d_color > 0)
         assert np.median(np.abs(bad - d_color)[both]) > 0.003
 
@@ -194,7 +194,7 @@ def test_alignment_with_identical_cameras_is_the_identity():
     d = rng.uniform(0.3, 2.0, (30, 40)).astype(np.float32)
     d[rng.random(d.shape) < 0.2] = 0
     K = Intrinsics(50.0, 52.0, 19.5, 14.5, 40, 30)
-    assert np.array_equal(align_depth_to_color(d, K, K, np.eye(4)), d)
+    assert np.array_equal(align_depth_to_color(d, DepthCamera(K), K), d)
 
 
 @settings(max_examples=25, deadline=None)
@@ -210,8 +210,8 @@ def test_alignment_kernel_matches_its_reference(seed, tx, ty, tz, ang, scale):
     T = np.eye(4)
     T[:3, :3] = [[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]]
     T[:3, 3] = [tx, ty, tz]
-    fast = align_depth_to_color(d, Kd, Kc, T)
-    ref = align_depth_reference(d, Kd, Kc, T)
+    fast = align_depth_to_color(d, DepthCamera(Kd, T), Kc)
+    ref = align_depth_reference(d, DepthCamera(Kd, T), Kc)
     assert np.array_equal(fast, ref)
 
 
@@ -225,7 +225,7 @@ def test_alignment_kernel_between_cameras_of_one_centre_matches_its_reference(se
     Kc = Intrinsics(40.0 * scale, 41.0 * scale, 15.2 + dc, 11.7 - dc, 32, 24)
     d = rng.uniform(0.2, 1.5, (24, 32)).astype(np.float32)
     d[rng.random(d.shape) < 0.15] = 0
-    assert np.array_equal(align_depth_to_color(d, Kd, Kc, np.eye(4)), align_depth_reference(d, Kd, Kc, np.eye(4)))
+    assert np.array_equal(align_depth_to_color(d, DepthCamera(Kd), Kc), align_depth_reference(d, DepthCamera(Kd), Kc))
 
 
 # ----------------------------------------------------------------------------------------- pairing
@@ -416,7 +416,8 @@ BAD = {
                           "no depth image topic"),
     "db3-truncated": (lambda p: _truncate(write_rosbag2(p / "x", _tiny(), K_TINY, topics=("color", "aligned"))),
                       "x.db3"),
-    "db3-no-extrinsics": (lambda p: write_rosbag2(p / "x", _tiny(), K_TINY, K_TINY, extrinsics="none"),
+    "db3-no-extrinsics": (lambda p: write_rosbag2(p / "x", _tiny(), K_TINY, DepthCamera(K_TINY),
+                                                         extrinsics="none"),
                           "no transform between them"),
     "mcap-without-colour": (lambda p: write_mcap(p / "x.mcap", _tiny(), K_TINY, topics=("depth",)),
                             "no colour image topic"),

@@ -21,13 +21,12 @@ import numpy as np
 import pytest
 from _recordings import T_depth_offset
 
-from gscan.client import GscanClient, ServiceError
+from gscan.client import GscanClient, Pose, ServiceError
 from gscan.errors import InputError
 from gscan.geometry.transforms import look_at, pose_error, rotvec_to_R, transform_points
-from gscan.io.camera import Intrinsics
+from gscan.io.camera import DepthCamera, Intrinsics, load_depth_camera
 from gscan.scanning.cad import template_from_mesh
-from gscan.service import load_depth_camera
-from gscan.service.decode import RequestError, decode_frame, depth_camera_fields, parse_pose
+from gscan.service.decode import RequestError, decode_frame, depth_camera_fields, depth_camera_intrinsics, parse_pose
 from gscan.synth import (
     DEFAULT_INTRINSICS,
     SynthScene,
@@ -267,6 +266,15 @@ def test_body_limit_and_framework_errors(template: Path):
     assert client.get("/health").json() == {"templates": ["scrabble"]}
 
 
+def _post_estimate(client: GscanClient, color: bytes, depth: bytes, **fields: object) -> dict:
+    """POST /estimate with the depth camera fields as given (text as it is, a matrix as rows of numbers), which
+    the client, sending a DepthCamera's values, cannot get wrong."""
+    extra = [(k, None, (v if isinstance(v, str) else "\n".join(" ".join(repr(float(x)) for x in row)
+                                                               for row in np.asarray(v))).encode())
+             for k, v in fields.items()]
+    return client._request("POST", "/estimate", client._frame_fields(color, depth, K_TEXT, 0.001, None) + extra)
+
+
 def test_depth_from_a_separate_camera(template: Path, meshes, tmp_path: Path):
     """Depth from a camera 5 cm beside the colour camera, with its own size and calibration: the request's
     depth_intrinsics / depth_to_color fields, or the service's own (--depth-intrinsics / --depth-to-color),
@@ -295,17 +303,19 @@ def test_depth_from_a_separate_camera(template: Path, meshes, tmp_path: Path):
     with started_service(template, "--depth-intrinsics", str(tmp_path / "depth_K.txt"), "--depth-to-color",
                          str(tmp_path / "T_color_depth.txt")) as (proc, client):
         served = client.estimate(c, d, K_TEXT).results["scrabble"]  # the service's depth camera
-        own = client.estimate(c, d, K_TEXT, depth_intrinsics=K_DEPTH.K, depth_to_color=T_cd).results["scrabble"]
-        as_json = client.estimate(c, d, K_TEXT, depth_intrinsics=tmp_path / "depth_K.txt",
-                                  depth_to_color=json.dumps({"T": T_cd.tolist()})).results["scrabble"]
+        own = client.estimate(c, d, K_TEXT, depth_camera=DepthCamera(K_DEPTH, T_cd)).results["scrabble"]
+        # the fields as a cam_K.txt and a pose .json hold them
+        as_json = Pose.from_json(_post_estimate(client, c, d, depth_intrinsics=(tmp_path / "depth_K.txt").read_text(),
+                                                depth_to_color=json.dumps({"T": T_cd.tolist()}))["results"]["scrabble"])
         for pose in (served, own, as_json):
             assert pose.found, pose.reason
             np.testing.assert_allclose(np.asarray(pose.T_cam_obj), T_cli, atol=1e-9)
-        step = client.track("offset", c, d, K_TEXT, depth_intrinsics=K_DEPTH.K, depth_to_color=T_cd)
+        step = client.track("offset", c, d, K_TEXT, depth_camera=DepthCamera(K_DEPTH.K, T_cd))
         assert step.status == "found"
         np.testing.assert_allclose(np.asarray(step.result.T_cam_obj), T_cli, atol=1e-9)
         # the colour camera's own depth, named as a depth camera equal to the colour camera: found, at the truth
-        reg = client.estimate(c, frame_bytes(r)[1], K_TEXT, depth_intrinsics=K_TEXT).results["scrabble"]
+        reg = client.estimate(c, frame_bytes(r)[1], K_TEXT,
+                              depth_camera=DepthCamera(DEFAULT_INTRINSICS)).results["scrabble"]
         assert reg.found and pose_error(np.asarray(reg.T_cam_obj), T_gt)[0] < 5.0
         shifted = T_cd.copy()
         shifted[0, 3] = 5.0  # metres: every depth pixel lands beside the colour image
@@ -323,7 +333,7 @@ def test_depth_from_a_separate_camera(template: Path, meshes, tmp_path: Path):
         ]
         for fields, depth_png, status, field in bad:
             with pytest.raises(ServiceError) as e:
-                client.estimate(c, depth_png, K_TEXT, **fields)
+                _post_estimate(client, c, depth_png, **fields)
             assert e.value.status == status, (field, e.value)
             assert e.value.detail.startswith(field + ":") and "\n" not in e.value.detail, e.value.detail
         assert proc.poll() is None and client.estimate(c, d, K_TEXT).results["scrabble"].found
@@ -343,8 +353,8 @@ def test_depth_camera_fields_and_poses(tmp_path: Path):
             parse_pose(text, "depth_to_color")
     assert depth_camera_fields(None, None) is None and depth_camera_fields(" ", "") is None
     cam = depth_camera_fields(K_TEXT, None)
-    assert cam is not None and np.array_equal(cam.T_color_depth, np.eye(4)) and not cam.served
-    assert cam.intrinsics(640, 480) == DEFAULT_INTRINSICS
+    assert cam is not None and np.array_equal(cam.T_color_depth, np.eye(4)) and cam.size is None
+    assert depth_camera_intrinsics(cam, 640, 480) == DEFAULT_INTRINSICS
     with pytest.raises(RequestError, match="^depth_to_color: given without depth_intrinsics") as e:
         depth_camera_fields(None, rows)
     assert e.value.status == 422
@@ -352,11 +362,11 @@ def test_depth_camera_fields_and_poses(tmp_path: Path):
     (tmp_path / "depth_K.json").write_text(json.dumps(o3d))
     (tmp_path / "T.json").write_text(json.dumps({"T": T.tolist()}))
     served = load_depth_camera(tmp_path / "depth_K.json", tmp_path / "T.json")
-    assert served.served and served.size == (480, 360) and served.intrinsics(480, 360) == K_DEPTH
+    assert served.size == (480, 360) and depth_camera_intrinsics(served, 480, 360, served=True) == K_DEPTH
     np.testing.assert_allclose(served.T_color_depth, T, atol=1e-12)
     with pytest.raises(RequestError, match="^depth: depth is 640x480 but the service's depth camera is calibrated "
                                            "for 480x360"):
-        served.intrinsics(640, 480)
+        depth_camera_intrinsics(served, 640, 480, served=True)
     (tmp_path / "depth_K.txt").write_text("615 0 319.5\n0 615 239.5\n")
-    with pytest.raises(InputError, match="depth_K.txt: expected the 9 numbers"):
+    with pytest.raises(InputError, match="depth_K.txt: malformed cam_K.txt: expected a 3x3 matrix"):
         load_depth_camera(tmp_path / "depth_K.txt")

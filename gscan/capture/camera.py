@@ -27,8 +27,8 @@ import numpy as np
 
 from gscan.errors import InputError
 from gscan.io.align import align_depth_to_color
-from gscan.io.camera import Intrinsics
-from gscan.io.recordings.streams import is_identity, same_intrinsics
+from gscan.io.camera import DepthCamera, Intrinsics
+from gscan.io.recordings.streams import is_identity, recorded_depth_camera, same_intrinsics
 
 log = logging.getLogger(__name__)
 
@@ -88,8 +88,7 @@ class RealSenseCamera:
         self.device = ""
         self.profile = ""
         self.registered = False  # depth comes registered to colour (then it is not re-aligned)
-        self.depth_intrinsics: Intrinsics | None = None
-        self.T_color_depth = np.eye(4)  # maps depth-camera points into the colour camera
+        self.depth_camera: DepthCamera | None = None  # the depth stream's camera (T_color_depth: its pose in colour)
         self._pipe: Any = None
         self._playback: Any = None
         self._align: Any = None
@@ -148,15 +147,15 @@ class RealSenseCamera:
             if not self.depth_scale > 0:
                 raise InputError(self._where(), "the depth sensor reports no depth scale (Depth Units)")
             di, ex = dp.get_intrinsics(), dp.get_extrinsics_to(cp)
-            self.depth_intrinsics = Intrinsics(float(di.fx), float(di.fy), float(di.ppx), float(di.ppy),
-                                               int(di.width), int(di.height))
-            self.T_color_depth = np.eye(4)
-            self.T_color_depth[:3, :3] = np.asarray(ex.rotation, dtype=np.float64).reshape(3, 3).T  # column-major
-            self.T_color_depth[:3, 3] = np.asarray(ex.translation, dtype=np.float64)
+            depth_intr = Intrinsics(float(di.fx), float(di.fy), float(di.ppx), float(di.ppy), int(di.width),
+                                    int(di.height))
+            T_color_depth = np.eye(4)
+            T_color_depth[:3, :3] = np.asarray(ex.rotation, dtype=np.float64).reshape(3, 3).T  # column-major
+            T_color_depth[:3, 3] = np.asarray(ex.translation, dtype=np.float64)
+            self.depth_camera = recorded_depth_camera(depth_intr, T_color_depth, self._where())
             # depth registered to colour (one camera model, no offset) is taken as it is: rs.align would still
             # splat every pixel over its neighbours (a one-pixel erosion towards the nearer surface)
-            self.registered = is_identity(self.T_color_depth) and same_intrinsics(self.depth_intrinsics,
-                                                                                  self.intrinsics)
+            self.registered = is_identity(T_color_depth) and same_intrinsics(depth_intr, self.intrinsics)
         except BaseException:
             self.close()
             raise
@@ -222,8 +221,8 @@ class RealSenseCamera:
             else:
                 depth = raw.astype(np.float32)
                 depth *= np.float32(self.depth_scale)  # metres, as the recording reader computes them
-                assert self.intrinsics is not None and self.depth_intrinsics is not None
-                aligned = align_depth_to_color(depth, self.depth_intrinsics, self.intrinsics, self.T_color_depth)
+                assert self.intrinsics is not None and self.depth_camera is not None
+                aligned = align_depth_to_color(depth, self.depth_camera, self.intrinsics)
                 mm = np.clip(np.rint(aligned.astype(np.float64) * 1000.0), 0, 65535).astype(np.uint16)
             yield CameraFrame(number, float(c.get_timestamp()), color, mm)
 

@@ -84,7 +84,7 @@ from gscan.geometry.kabsch import kabsch_trimmed
 from gscan.geometry.plane import ransac_plane
 from gscan.geometry.pointset import coincident_groups
 from gscan.io.align import align_depth_to_color
-from gscan.io.camera import Intrinsics, RGBDFrame, lift_keypoints
+from gscan.io.camera import DepthCamera, Intrinsics, RGBDFrame, lift_keypoints
 from gscan.matching.gmatch import search_candidates
 from gscan.progress import StageTimer
 from gscan.template.db import Template, open_template
@@ -196,7 +196,7 @@ class Estimator:
             return frame
         given, colour = self.camera_fix
         log.debug("frame %s: read with the colour camera the scan found (focal length %.1f px)", frame.name, colour.fx)
-        return RGBDFrame(frame.name, frame.color, align_depth_to_color(frame.depth, given, colour, np.eye(4)), colour,
+        return RGBDFrame(frame.name, frame.color, align_depth_to_color(frame.depth, DepthCamera(given), colour), colour,
                          frame.mask)
 
     @contextmanager

@@ -1,9 +1,9 @@
 """Depth registered to the colour camera: every depth pixel reprojected with the extrinsics and both intrinsics.
 
 A depth pixel (u, v) with depth z is a small square of the depth image; its four corners
-(u +- 0.5, v +- 0.5) at depth z are moved into the colour camera (T_color_depth) and projected with the
-colour intrinsics. Every colour pixel whose centre lies in the bounding box of the projected corners,
-grown by `MARGIN_PX` on each side, receives the point's depth in the colour camera (its z after the
+(u +- 0.5, v +- 0.5) at depth z are moved into the colour camera (the `DepthCamera`'s T_color_depth) and
+projected with the colour intrinsics. Every colour pixel whose centre lies in the bounding box of the projected
+corners, grown by `MARGIN_PX` on each side, receives the point's depth in the colour camera (its z after the
 transform, not the depth camera's z). Where several depth pixels land on one colour pixel the nearest wins
 (z-buffer); colour pixels that none reaches stay 0 (holes are not filled: occlusions stay empty).
 
@@ -22,7 +22,7 @@ import math
 import numpy as np
 from numba import njit
 
-from gscan.io.camera import Intrinsics
+from gscan.io.camera import DepthCamera, Intrinsics
 
 MARGIN_PX = 0.25  # growth of each projected footprint (colour pixels); < 0.5 keeps the identity mapping 1:1
 # a depth pixel spanning more colour pixels (a point almost in the colour camera's plane) is dropped
@@ -101,16 +101,14 @@ def _params(intr: Intrinsics) -> np.ndarray:
     return np.array([intr.fx, intr.fy, intr.cx, intr.cy], dtype=np.float64)
 
 
-def align_depth_to_color(depth: np.ndarray, depth_intr: Intrinsics, color_intr: Intrinsics,
-                         T_color_depth: np.ndarray) -> np.ndarray:
-    """[Hd x Wd] depth (m, 0 = invalid) of the depth camera -> [Hc x Wc] float32 depth (m) in the colour camera.
+def align_depth_to_color(depth: np.ndarray, depth_camera: DepthCamera, color_intr: Intrinsics) -> np.ndarray:
+    """[Hd x Wd] depth (m, 0 = invalid) of `depth_camera` -> [Hc x Wc] float32 depth (m) in the colour camera.
 
-    T_color_depth [4 x 4] maps depth-camera points into the colour camera (see the module docstring).
+    The depth camera's T_color_depth maps its points into the colour camera (see the module docstring); a camera of
+    no particular size takes the depth image's. ValueError when the camera cannot be of the depth image's size.
     """
-    if depth.shape != (depth_intr.height, depth_intr.width):
-        raise ValueError(f"depth is {depth.shape[1]}x{depth.shape[0]}, its intrinsics "
-                         f"{depth_intr.width}x{depth_intr.height}")
-    T = np.asarray(T_color_depth, dtype=np.float64)
+    depth_intr = depth_camera.for_size(depth.shape[1], depth.shape[0])
+    T = depth_camera.T_color_depth
     out = np.empty((color_intr.height, color_intr.width), dtype=np.float32)
     _splat(np.ascontiguousarray(depth, dtype=np.float32), _params(depth_intr), np.ascontiguousarray(T[:3, :3]),
            np.ascontiguousarray(T[:3, 3]), _params(color_intr), out, MARGIN_PX, MAX_FOOTPRINT_PX,
@@ -118,12 +116,11 @@ def align_depth_to_color(depth: np.ndarray, depth_intr: Intrinsics, color_intr: 
     return out
 
 
-def align_depth_reference(depth: np.ndarray, depth_intr: Intrinsics, color_intr: Intrinsics,
-                          T_color_depth: np.ndarray) -> np.ndarray:
+def align_depth_reference(depth: np.ndarray, depth_camera: DepthCamera, color_intr: Intrinsics) -> np.ndarray:
     """`align_depth_to_color` in plain Python and numpy (slow; the specification for tests)."""
-    T = np.asarray(T_color_depth, dtype=np.float64)
+    T = depth_camera.T_color_depth
     R, t = T[:3, :3], T[:3, 3]
-    d, c = depth_intr, color_intr
+    d, c = depth_camera.for_size(depth.shape[1], depth.shape[0]), color_intr
     out = np.full((c.height, c.width), np.inf, dtype=np.float32)
 
     def cam_point(u: float, v: float, z: float) -> np.ndarray:  # depth pixel at depth z -> colour camera

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from gscan.errors import InputError, not_a_file
+from gscan.geometry.transforms import MAX_TRANSLATION_M, is_rigid
 
 log = logging.getLogger(__name__)
 
@@ -79,13 +80,9 @@ def implausible_intrinsics(K: np.ndarray, width: int, height: int) -> str | None
     return None
 
 
-def load_intrinsics(path: str | Path, width: int | None = None, height: int | None = None) -> Intrinsics:
-    """Read intrinsics from `cam_K.txt` (3x3 text) or an Open3D `PinholeCameraIntrinsic` JSON.
-
-    A cam_K.txt carries no image size: `width`/`height` must then be given (readers pass the
-    size of the first colour image). Raises InputError naming the file on any problem.
-    """
-    path = Path(path)
+def _read_calibration(path: Path, width: int | None = None, height: int | None = None) -> tuple[np.ndarray, int, int]:
+    """[3 x 3] pinhole calibration of a cam_K.txt / intrinsics JSON and the image size it carries (0 x 0 for a
+    cam_K.txt without `width`/`height`), checked as a pinhole matrix; InputError naming the file."""
     if not path.is_file():
         raise not_a_file(path, "intrinsics file")
     try:
@@ -116,12 +113,31 @@ def load_intrinsics(path: str | Path, width: int | None = None, height: int | No
         except ValueError:
             raise _bad(path, "malformed cam_K.txt: expected a 3x3 matrix of numbers") from None
         w, h = int(width or 0), int(height or 0)
+    why = not_a_pinhole(K)
+    if why:
+        raise _bad(path, why)
+    return K, w, h
+
+
+def not_a_pinhole(K: np.ndarray) -> str | None:
+    """Why [3 x 3] K is not a pinhole calibration [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (None when it is)."""
+    if not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0 or K[0, 2] < 0 or K[1, 2] < 0:
+        return f"invalid intrinsics values fx={K[0, 0]} fy={K[1, 1]} cx={K[0, 2]} cy={K[1, 2]}"
+    if abs(K[0, 1]) > 1e-6 * K[0, 0] or np.any(K[1, 0] != 0) or not np.allclose(K[2], [0.0, 0.0, 1.0]):
+        return "not a pinhole calibration matrix: expected [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]"
+    return None
+
+
+def load_intrinsics(path: str | Path, width: int | None = None, height: int | None = None) -> Intrinsics:
+    """Read intrinsics from `cam_K.txt` (3x3 text) or an Open3D `PinholeCameraIntrinsic` JSON.
+
+    A cam_K.txt carries no image size: `width`/`height` must then be given (readers pass the
+    size of the first colour image). Raises InputError naming the file on any problem.
+    """
+    path = Path(path)
+    K, w, h = _read_calibration(path, width, height)
     if (width and w and width != w) or (height and h and height != h):
         raise _bad(path, f"intrinsics are for {w}x{h} images but the images are {width}x{height}")
-    if not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0 or K[0, 2] < 0 or K[1, 2] < 0:
-        raise _bad(path, f"invalid intrinsics values fx={K[0, 0]} fy={K[1, 1]} cx={K[0, 2]} cy={K[1, 2]}")
-    if abs(K[0, 1]) > 1e-6 * K[0, 0] or np.any(K[1, 0] != 0) or not np.allclose(K[2], [0.0, 0.0, 1.0]):
-        raise _bad(path, "not a pinhole calibration matrix: expected [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]")
     if w <= 0 or h <= 0:
         raise _bad(path, "intrinsics carry no image size and none was given")
     why = implausible_intrinsics(K, w, h)
@@ -130,18 +146,129 @@ def load_intrinsics(path: str | Path, width: int | None = None, height: int | No
     return Intrinsics.from_matrix(K, w, h)
 
 
-@dataclass(frozen=True)
+def _frozen(a: np.ndarray) -> np.ndarray:
+    a = np.array(a, dtype=np.float64)
+    a.setflags(write=False)
+    return a
+
+
 class DepthCamera:
     """The depth camera of a sensor whose depth images are not registered to its colour images (a Kinect v1,
-    a RealSense recorded without alignment): its own intrinsics (the depth images' size) and T_color_depth
-    [4 x 4], which maps depth-camera points into the colour camera (metres). Frames read with one have their
-    depth reprojected into the colour camera (`gscan.io.align.align_depth_to_color`)."""
+    a RealSense recorded without alignment): its calibration K [3 x 3], the depth image size it is for, and
+    T_color_depth [4 x 4], a rigid transform mapping depth-camera points into the colour camera (metres).
+    Frames read with one have their depth reprojected into the colour camera (`gscan.io.align`).
 
-    intrinsics: Intrinsics
-    T_color_depth: np.ndarray = field(default_factory=lambda: np.eye(4))
+    `DepthCamera(intrinsics, T_color_depth=None)`: intrinsics is an `Intrinsics` (depth images of its size), or
+    a bare [3 x 3] K, as a cam_K.txt holds it, which fits depth images of any size (`for_size` resolves it
+    against a depth image's size); T_color_depth None: the colour camera's centre and axes. `source`: the file
+    it was loaded from (`load_depth_camera`), named in errors; not part of its value. Immutable; ValueError for
+    a K that is not a pinhole calibration or a T_color_depth that is not a rigid 4 x 4 transform.
+    """
+
+    __slots__ = ("K", "T_color_depth", "size", "source")
+    K: np.ndarray
+    size: tuple[int, int] | None
+    T_color_depth: np.ndarray
+    source: Path | None
+
+    def __init__(self, intrinsics: Intrinsics | np.ndarray, T_color_depth: np.ndarray | None = None, *,
+                 source: str | Path | None = None):
+        if isinstance(intrinsics, Intrinsics):
+            K, size = intrinsics.K, (intrinsics.width, intrinsics.height)
+        else:
+            K, size = np.asarray(intrinsics, dtype=np.float64), None
+            if K.shape != (3, 3):
+                raise ValueError(f"depth camera intrinsics must be an Intrinsics or a 3x3 matrix, not shape {K.shape}")
+            why = not_a_pinhole(K)
+            if why:
+                raise ValueError(why)
+        T = np.eye(4) if T_color_depth is None else np.asarray(T_color_depth, dtype=np.float64)
+        if T.shape != (4, 4):
+            raise ValueError(f"T_color_depth must be a 4x4 matrix, not shape {T.shape}")
+        if not is_rigid(T, max_translation=MAX_TRANSLATION_M):
+            raise ValueError(f"T_color_depth is not a rigid transform in metres (rotation orthonormal, last row "
+                             f"0 0 0 1, translation within {MAX_TRANSLATION_M:g} m)")
+        for name, value in (("K", _frozen(K)), ("size", size), ("T_color_depth", _frozen(T)),
+                            ("source", None if source is None else Path(source))):
+            object.__setattr__(self, name, value)
+
+    def __setattr__(self, name: str, value: object) -> None:
+        raise AttributeError(f"DepthCamera is immutable (cannot set {name})")
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, DepthCamera):
+            return NotImplemented
+        return (self.size == other.size and np.array_equal(self.K, other.K)
+                and np.array_equal(self.T_color_depth, other.T_color_depth))
+
+    __hash__ = None  # type: ignore[assignment]  # arrays: equal by value, not hashable
+
+    def __repr__(self) -> str:
+        size = "any size" if self.size is None else f"{self.size[0]}x{self.size[1]}"
+        return (f"DepthCamera(fx={self.K[0, 0]:g}, fy={self.K[1, 1]:g}, cx={self.K[0, 2]:g}, cy={self.K[1, 2]:g}, "
+                f"{size}, t_color_depth={np.round(self.T_color_depth[:3, 3], 6).tolist()})")
+
+    @property
+    def intrinsics(self) -> Intrinsics:
+        """Its intrinsics; ValueError for a camera of no particular image size (use `for_size`)."""
+        if self.size is None:
+            raise ValueError("the depth camera fits depth images of any size: its intrinsics need one (for_size)")
+        return Intrinsics.from_matrix(self.K, *self.size)
+
+    def for_size(self, width: int, height: int) -> Intrinsics:
+        """Its intrinsics for depth images of width x height; ValueError (the reason) when it cannot be of that
+        size: calibrated for another size, or (of no particular size) a principal point or focal length
+        implausible for it (`implausible_intrinsics`)."""
+        if self.size is not None:
+            if self.size != (width, height):
+                raise ValueError(f"depth is {width}x{height} but the depth camera's intrinsics are for "
+                                 f"{self.size[0]}x{self.size[1]} images")
+            return self.intrinsics
+        why = implausible_intrinsics(self.K, width, height)
+        if why:
+            raise ValueError(why)
+        return Intrinsics.from_matrix(self.K, width, height)
+
+    def sized(self, width: int, height: int) -> DepthCamera:
+        """The same camera for depth images of width x height (`for_size`; ValueError when it cannot be)."""
+        return DepthCamera(self.for_size(width, height), self.T_color_depth, source=self.source)
 
     def to_dict(self) -> dict:
-        return {"intrinsics": self.intrinsics.to_dict(), "T_color_depth": np.asarray(self.T_color_depth).tolist()}
+        """Its values as JSON: {"K": 3x3, "size": [width, height] or None, "T_color_depth": 4x4}."""
+        return {"K": self.K.tolist(), "size": None if self.size is None else list(self.size),
+                "T_color_depth": self.T_color_depth.tolist()}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> DepthCamera:
+        """The camera of `to_dict`'s values."""
+        K = np.asarray(d["K"], dtype=np.float64)
+        size = d.get("size")
+        return cls(Intrinsics.from_matrix(K, int(size[0]), int(size[1])) if size else K, d.get("T_color_depth"))
+
+
+def load_depth_camera(intrinsics: str | Path, T_color_depth: str | Path | None = None) -> DepthCamera:
+    """The depth camera of depth images not registered to colour, from its files: `intrinsics`, a cam_K.txt (which
+    fits depth images of any size, resolved against each depth image's) or an intrinsics JSON (Open3D, BOP or
+    fx/fy/cx/cy; with width/height it is for images of that size alone), and `T_color_depth`, the depth camera's
+    pose in the colour camera (a `.json` `{"T": 4x4}` or bare 4x4 list, else 4 (or 3) rows of 4 numbers; metres;
+    None: the colour camera's centre and axes). InputError naming the file on any problem."""
+    from gscan.io.poses import read_pose_file, read_pose_txt
+
+    path = Path(intrinsics)
+    K, w, h = _read_calibration(path)
+    intr: Intrinsics | np.ndarray = K
+    if w > 0 and h > 0:
+        why = implausible_intrinsics(K, w, h)
+        if why:
+            raise _bad(path, why)
+        intr = Intrinsics.from_matrix(K, w, h)
+    T = None
+    if T_color_depth is not None:
+        pose = Path(T_color_depth)
+        if not pose.is_file():
+            raise not_a_file(pose, "pose file")
+        T = read_pose_file(pose) if pose.suffix.lower() == ".json" else read_pose_txt(pose)
+    return DepthCamera(intr, T, source=path)
 
 
 @dataclass

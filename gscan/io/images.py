@@ -20,7 +20,6 @@ import numpy as np
 from gscan.errors import InputError, not_a_file
 from gscan.io.camera import DepthCamera, Intrinsics, RGBDFrame, load_intrinsics
 from gscan.io.layouts import frame_name
-from gscan.io.poses import read_pose_file, read_pose_txt
 
 log = logging.getLogger(__name__)
 
@@ -274,19 +273,15 @@ def resolve_intrinsics(intrinsics: Intrinsics | str | Path, width: int, height: 
     raise InputError(None, f"intrinsics must be an Intrinsics or a file path, got {type(intrinsics).__name__}")
 
 
-def resolve_depth_camera(intrinsics: Intrinsics | str | Path, T_color_depth: np.ndarray | str | Path | None,
-                         width: int, height: int) -> DepthCamera:
-    """The depth camera of unregistered depth images of width x height: intrinsics (object or cam_K.txt / Open3D
-    JSON file) and T_color_depth ([4 x 4], or a file of a 4 x 4 text or JSON matrix in metres; None = the
-    colour camera's own centre and axes, only the intrinsics differ). InputError naming the file."""
-    if T_color_depth is None:
-        T = np.eye(4)
-    elif isinstance(T_color_depth, (str, Path)):
-        path = Path(T_color_depth)
-        T = read_pose_file(path) if path.suffix.lower() == ".json" else read_pose_txt(path)
-    else:
-        T = np.asarray(T_color_depth, dtype=np.float64)
-    return DepthCamera(resolve_intrinsics(intrinsics, width, height), T)
+def depth_camera_intrinsics(depth_camera: DepthCamera, shape: tuple[int, ...], depth_path: Path) -> Intrinsics:
+    """The depth camera's intrinsics for a depth image of `shape` ([H, W]); InputError naming the depth image when
+    the camera is calibrated for another size, or the camera's file when it cannot be of this size."""
+    h, w = int(shape[0]), int(shape[1])
+    try:
+        return depth_camera.for_size(w, h)
+    except ValueError as e:
+        raise InputError(depth_path if depth_camera.size is not None else depth_camera.source or depth_path,
+                         str(e)) from None
 
 
 DEPTH_FORMATS = ("uint16", "sun", "nyu")
@@ -305,7 +300,7 @@ def load_frame(color_path: str | Path, depth_path: str | Path, intrinsics: Intri
     (> 127 = object) of the same size. name defaults to the colour file stem.
     With check_range, a median depth outside 0.05-20 m is refused as a wrong depth scale.
     depth_camera: the depth images' own camera when they are not registered to the colour images; the depth
-    is then reprojected into the colour camera (its size must be the depth camera's).
+    is then reprojected into the colour camera (its size must be the depth camera's, when it has one).
     """
     color_path, depth_path = Path(color_path), Path(depth_path)
     if depth_format not in DEPTH_FORMATS:
@@ -318,23 +313,21 @@ def load_frame(color_path: str | Path, depth_path: str | Path, intrinsics: Intri
     else:
         depth = read_depth(depth_path, depth_scale)
     h, w = color.shape[:2]
-    dc = depth_camera
-    if dc is None and depth.shape != (h, w):
+    if depth_camera is None and depth.shape != (h, w):
         raise InputError(depth_path, f"depth is {depth.shape[1]}x{depth.shape[0]} but colour image "
                          f"{color_path.name} is {w}x{h}")
-    if dc is not None and depth.shape != (dc.intrinsics.height, dc.intrinsics.width):
-        raise InputError(depth_path, f"depth is {depth.shape[1]}x{depth.shape[0]} but the depth camera's "
-                         f"intrinsics are for {dc.intrinsics.width}x{dc.intrinsics.height} images")
+    if depth_camera is not None:
+        depth_camera_intrinsics(depth_camera, depth.shape, depth_path)  # before the work: InputError naming a file
     if check_range:
         check_depth_range(depth, depth_scale, depth_path)
     intr = resolve_intrinsics(intrinsics, w, h)
     if (intr.width, intr.height) != (w, h):
         src = intrinsics if isinstance(intrinsics, (str, Path)) else color_path
         raise InputError(src, f"intrinsics are for {intr.width}x{intr.height} images but {color_path.name} is {w}x{h}")
-    if dc is not None:
+    if depth_camera is not None:
         from gscan.io.align import align_depth_to_color  # numba: loaded only for unregistered depth
 
-        depth = align_depth_to_color(depth, dc.intrinsics, intr, dc.T_color_depth)
+        depth = align_depth_to_color(depth, depth_camera, intr)
     mask = None
     if mask_path is not None:
         mask_path = Path(mask_path)

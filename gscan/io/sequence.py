@@ -23,7 +23,6 @@ from gscan.io.images import (
     image_size,
     load_frame,
     read_depth,
-    resolve_depth_camera,
 )
 from gscan.io.layouts import FrameSpec, Layout, discover
 from gscan.io.recordings.kinds import recording_format
@@ -168,30 +167,28 @@ def _resolve_intrinsics(layout: Layout, override: Intrinsics | str | Path | None
                      "guessed)", fix="intrinsics")
 
 
-def depth_camera_for(intrinsics: Intrinsics | str | Path | None, T_color_depth: np.ndarray | str | Path | None,
-                     depth_images: Iterable[Path], where: Path) -> DepthCamera | None:
-    """The depth camera of depth images not registered to colour (`resolve_depth_camera`), a cam_K.txt sized by
-    the first of `depth_images` whose header reads; None without intrinsics. InputError for a depth-to-colour
-    pose without intrinsics (naming its file, else `where`)."""
-    if intrinsics is None:
-        if T_color_depth is not None:
-            raise InputError(Path(T_color_depth) if isinstance(T_color_depth, (str, Path)) else where,
-                             "a depth-to-colour pose needs the depth camera's intrinsics too (--depth-intrinsics)")
-        return None
-    size = (0, 0)
+def sized_depth_camera(depth_camera: DepthCamera, depth_images: Iterable[Path], where: Path) -> DepthCamera:
+    """The depth camera for the size of the first of `depth_images` whose header reads (as it is when none reads);
+    InputError naming the camera's file (else `where`) when it cannot be of that size."""
     for path in depth_images:
         try:
-            size = image_header(path)[:2]
-            break
+            w, h = image_header(path)[:2]
         except InputError:
             continue
-    return resolve_depth_camera(intrinsics, T_color_depth, *size)
+        if depth_camera.size is not None and depth_camera.size != (w, h):
+            raise InputError(depth_camera.source or where, f"intrinsics are for {depth_camera.size[0]}x"
+                             f"{depth_camera.size[1]} images but the images are {w}x{h}")
+        try:
+            return depth_camera.sized(w, h)
+        except ValueError as e:
+            raise InputError(depth_camera.source or where, str(e)) from None
+    return depth_camera
 
 
 def open_sequence(path: str | Path, format: str = "auto", intrinsics: Intrinsics | str | Path | None = None,
                   depth_scale: float | None = None, obj_id: int | None = None, color_topic: str | None = None,
-                  depth_topic: str | None = None, depth_intrinsics: Intrinsics | str | Path | None = None,
-                  T_color_depth: np.ndarray | str | Path | None = None) -> Sequence | RecordingSequence:
+                  depth_topic: str | None = None,
+                  depth_camera: DepthCamera | None = None) -> Sequence | RecordingSequence:
     """Open an RGB-D sequence folder, or a recording (`.bag`, `.db3`, `.mcap`, rosbag2 folder; see
     `gscan.io.recordings.open_recording`, which takes color_topic / depth_topic).
 
@@ -200,16 +197,16 @@ def open_sequence(path: str | Path, format: str = "auto", intrinsics: Intrinsics
     depth_scale: metres per raw depth unit overriding the layout's (capture/Open3D 0.001, TUM 1/5000,
     BOP scene_camera depth_scale / 1000). obj_id: BOP object whose scene_gt pose / mask is used
     (default: the first object of the first image).
-    depth_intrinsics / T_color_depth: for depth images not registered to the colour images, the depth
-    camera's intrinsics (object or file) and its pose in the colour camera (`resolve_depth_camera`); each
-    frame's depth is then reprojected into the colour camera. Recordings carry their own.
+    depth_camera: for depth images not registered to the colour images, their own camera (`DepthCamera`,
+    `load_depth_camera`; one of no particular size takes the first depth image's); each frame's depth is then
+    reprojected into the colour camera. Recordings carry their own.
     Raises InputError naming the file for a missing/unrecognised folder, missing intrinsics, a
     depth scale that puts the scene outside 0.05-20 m, or when no frame is usable.
     """
     root = Path(path)
     kind = recording_format(root)
     if kind is not None:
-        if depth_intrinsics is not None or T_color_depth is not None:
+        if depth_camera is not None:
             raise InputError(root, f"is a recording ({kind}), which carries its own depth calibration; "
                              "--depth-intrinsics / --depth-to-color are for folders")
         if format not in ("auto", kind):
@@ -225,7 +222,8 @@ def open_sequence(path: str | Path, format: str = "auto", intrinsics: Intrinsics
     problems = dict(layout.problems)
     specs: dict[str, FrameSpec] = {}
     sizes: dict[str, tuple[int, int]] = {}
-    depth_cam = depth_camera_for(depth_intrinsics, T_color_depth, (f.depth for f in layout.frames), root)
+    depth_cam = None if depth_camera is None else sized_depth_camera(depth_camera, (f.depth for f in layout.frames),
+                                                                     root)
     for f in layout.frames:
         try:
             cw, ch, _ = image_header(f.color)
@@ -233,9 +231,9 @@ def open_sequence(path: str | Path, format: str = "auto", intrinsics: Intrinsics
             bad = _depth_mode_problem(mode)
             if bad:
                 raise InputError(f.depth, bad)
-            if depth_cam is not None and (dw, dh) != (depth_cam.intrinsics.width, depth_cam.intrinsics.height):
+            if depth_cam is not None and depth_cam.size is not None and (dw, dh) != depth_cam.size:
                 raise InputError(f.depth, f"depth is {dw}x{dh} but the depth camera's intrinsics are for "
-                                 f"{depth_cam.intrinsics.width}x{depth_cam.intrinsics.height} images")
+                                 f"{depth_cam.size[0]}x{depth_cam.size[1]} images")
             if depth_cam is None and (dw, dh) != (cw, ch):
                 raise InputError(f.depth, f"depth is {dw}x{dh} but colour image {f.color.name} is {cw}x{ch}")
             if f.mask is not None:

@@ -40,7 +40,7 @@ import numpy as np
 
 from gscan.features import Detection, FeatureParams, Features, detect, extract_features
 from gscan.io.align import align_depth_to_color
-from gscan.io.camera import Intrinsics, RGBDFrame, lift_keypoints
+from gscan.io.camera import DepthCamera, Intrinsics, RGBDFrame, lift_keypoints
 from gscan.registration.dense import DenseGeometry, image_texture
 from gscan.registration.noise import sign_test
 from gscan.registration.pairwise import RegisterParams, register_features
@@ -100,7 +100,7 @@ def _geometry(f: RGBDFrame, kp: Features, s: float, fparams: FeatureParams, text
     keypoints kp lifted there, and its dense geometry with texture (f's `image_texture`, the same at every s)."""
     K = f.intrinsics
     Kc = replace(K, fx=K.fx * s, fy=K.fy * s)
-    depth = f.depth if s == 1.0 else align_depth_to_color(f.depth, K, Kc, np.eye(4))
+    depth = f.depth if s == 1.0 else align_depth_to_color(f.depth, DepthCamera(K), Kc)
     pts, ok = lift_keypoints(kp.pixels.astype(np.float64), depth, Kc, fparams.lift_window,
                              fparams.lift_max_rel_spread, fparams.lift_min_valid_frac)
     lifted = kp.subset(np.flatnonzero(ok))

@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from gscan.io.camera import DepthCamera
 from gscan.io.layouts import FORMATS
 from gscan.scanning.capture_mode import MOVING_OBJECT, STATIC_OBJECT
 from gscan.scanning.config import ScanConfig
@@ -26,9 +27,9 @@ class ScanOptions:
     object alone (False: the whole scene); resume: continue an interrupted scan into the output; force: replace an
     existing output; config: the stages' settings; obj_id: a BOP folder's object (None: the first in
     scene_gt.json); color_topic, depth_topic: a recording's image topics (None: detected when unambiguous);
-    depth_intrinsics, depth_to_color: depth images not registered to colour (a Kinect v1): the depth camera's
-    intrinsics file and its pose in the colour camera (T_color_depth, a 4 x 4 text or JSON matrix, metres; None:
-    the colour camera's centre and axes); meta: more keys for the template's meta table (JSON values).
+    depth_camera: depth images not registered to colour (a Kinect v1): their own camera, its intrinsics and its
+    pose in the colour camera (`gscan.io.camera.DepthCamera`, from `load_depth_camera(intrinsics, T_color_depth)`);
+    meta: more keys for the template's meta table (JSON values).
     """
 
     format: str = "auto"
@@ -42,8 +43,7 @@ class ScanOptions:
     obj_id: int | None = None
     color_topic: str | None = None
     depth_topic: str | None = None
-    depth_intrinsics: Path | None = None
-    depth_to_color: Path | None = None
+    depth_camera: DepthCamera | None = None
     meta: Mapping[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -51,7 +51,8 @@ class ScanOptions:
             raise ValueError(f"format must be one of {', '.join(FORMAT_CHOICES)}, not {self.format!r}")
         if self.mode not in MODE_CHOICES:
             raise ValueError(f"mode must be one of {', '.join(MODE_CHOICES)}, not {self.mode!r}")
-        for name in ("intrinsics", "depth_intrinsics", "depth_to_color"):
-            value = getattr(self, name)
-            if value is not None and not isinstance(value, Path):
-                object.__setattr__(self, name, Path(value))
+        if self.intrinsics is not None and not isinstance(self.intrinsics, Path):
+            object.__setattr__(self, "intrinsics", Path(self.intrinsics))
+        if self.depth_camera is not None and not isinstance(self.depth_camera, DepthCamera):
+            raise TypeError(f"depth_camera must be a DepthCamera (gscan.io.camera.load_depth_camera), not "
+                            f"{type(self.depth_camera).__name__}")

@@ -60,7 +60,7 @@ from gscan.features import (
 )
 from gscan.geometry.plane import Plane
 from gscan.geometry.transforms import inv_T, rotation_angle_deg, transform_points
-from gscan.io.camera import Intrinsics, RGBDFrame, backproject
+from gscan.io.camera import DepthCamera, Intrinsics, RGBDFrame, backproject
 from gscan.io.output import (
     Output,
     check_output,
@@ -198,7 +198,7 @@ def _register_params(cfg: ScanConfig, mode: str) -> RegisterParams:
 
 
 RESUME_KEYS = ("input", "format", "intrinsics_sha256", "depth_scale_option", "config", "mode_option", "segment",
-               "obj_id_option", "topics_option", "depth_camera_sha256")
+               "obj_id_option", "topics_option", "depth_camera")
 
 
 def _scan_meta(source: Path, opts: ScanOptions) -> dict:
@@ -213,8 +213,7 @@ def _scan_meta(source: Path, opts: ScanOptions) -> dict:
             "segment": opts.segment, "obj_id_option": opts.obj_id, "descriptor": opts.config.features.kind,
             "topics_option": None if opts.color_topic is None and opts.depth_topic is None else
             [opts.color_topic, opts.depth_topic],
-            "depth_camera_sha256": None if opts.depth_intrinsics is None else
-            [_sha256(Path(p)) if p is not None else None for p in (opts.depth_intrinsics, opts.depth_to_color)],
+            "depth_camera": None if opts.depth_camera is None else opts.depth_camera.to_dict(),
             "units": "m"}
 
 
@@ -325,7 +324,7 @@ def _check_camera(source: Path, seq: Sequence | RecordingSequence, opts: ScanOpt
     from gscan.scanning.calibration import check_colour_focal
 
     cfg = opts.config
-    if (not cfg.camera.check_colour_focal or opts.depth_intrinsics is not None or not isinstance(seq, Sequence)
+    if (not cfg.camera.check_colour_focal or opts.depth_camera is not None or not isinstance(seq, Sequence)
             or seq.depth_camera is not None or any(seq.frame_intrinsics(n) != seq.intrinsics for n in seq.names)):
         return seq, None
 
@@ -354,7 +353,7 @@ def _check_camera(source: Path, seq: Sequence | RecordingSequence, opts: ScanOpt
                 "given %.1f px); scanning with it, the given intrinsics taken as the depth camera's", check.pairs,
                 Kc.fx, 100 * check.peak, 100 * check.agreement[1.0], K.fx)
     seq = open_sequence(source, format=opts.format, intrinsics=Kc, depth_scale=opts.depth_scale,
-                        obj_id=opts.obj_id, depth_intrinsics=K)
+                        obj_id=opts.obj_id, depth_camera=DepthCamera(K))
     return seq, report
 
 
@@ -377,8 +376,7 @@ def run_scan(source: Path, output: Path, opts: ScanOptions, progress: Progress |
     try:
         seq = open_sequence(source, format=opts.format, intrinsics=opts.intrinsics,
                             depth_scale=opts.depth_scale, obj_id=opts.obj_id, color_topic=opts.color_topic,
-                            depth_topic=opts.depth_topic, depth_intrinsics=opts.depth_intrinsics,
-                            T_color_depth=opts.depth_to_color)
+                            depth_topic=opts.depth_topic, depth_camera=opts.depth_camera)
         if opts.obj_id is not None and seq.format != "bop":
             raise InputError(source, f"an object id is for BOP scene folders, this is a {seq.format} folder")
         if opts.obj_id is not None and seq.gt_T_cam_obj is None:

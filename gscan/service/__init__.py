@@ -2,7 +2,8 @@
 
     serve(templates, host="127.0.0.1", port=8765, on_ready=None)   blocks until interrupted (`gscan.serve`)
     load_service(templates) -> Service;  create_app(service) -> the FastAPI application (tests, embedding)
-    load_depth_camera(depth_K, T_color_depth) -> the service's depth camera (depth not registered to colour)
+    serve(..., depth_camera=load_depth_camera(depth_K, T_color_depth)): depth not registered to colour
+    (gscan.io.camera.load_depth_camera), for the requests that name no depth camera of their own
 
 The contract (endpoints, fields, errors) is in `gscan.service.service`; `gscan.service.api` is the HTTP layer
 (FastAPI, imported only when an application is made); `gscan.client` is the Python client.
@@ -10,7 +11,7 @@ The contract (endpoints, fields, errors) is in `gscan.service.service`; `gscan.s
 from typing import Any
 
 from gscan.service.decode import RequestError, decode_frame
-from gscan.service.server import load_depth_camera, load_service, serve, template_name
+from gscan.service.server import load_service, serve, template_name
 from gscan.service.service import ServeParams, Service
 
 
@@ -21,5 +22,5 @@ def create_app(service: Service) -> Any:
     return _create_app(service)
 
 
-__all__ = ["RequestError", "ServeParams", "Service", "create_app", "decode_frame", "load_depth_camera", "load_service",
-           "serve", "template_name"]
+__all__ = ["RequestError", "ServeParams", "Service", "create_app", "decode_frame", "load_service", "serve",
+           "template_name"]

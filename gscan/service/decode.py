@@ -4,22 +4,22 @@
 Image sizes are read from the headers (PIL, without decoding) and checked against `max_pixels` before any
 pixel is decoded, so a small file that decodes to gigabytes is refused for the price of its header.
 
-Depth from a separate camera (not registered to colour): a `DepthCameraSpec` (the request's `depth_intrinsics`
-and `depth_to_color` fields, or the service's own) makes `decode_frame` reproject the depth into the colour
-camera (`gscan.io.align.align_depth_to_color`, as `gscan estimate --depth-intrinsics` does); the depth image
-then has the depth camera's size, which may differ from the colour image's.
+Depth from a separate camera (not registered to colour): a `gscan.io.camera.DepthCamera` (the request's
+`depth_intrinsics` and `depth_to_color` fields, or the service's own) makes `decode_frame` reproject the depth
+into the colour camera (`gscan.io.align.align_depth_to_color`, as `gscan estimate --depth-intrinsics` does); the
+depth image then has the depth camera's size, which may differ from the colour image's.
 """
 from __future__ import annotations
 
 import io
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from gscan.errors import InputError
-from gscan.io.camera import Intrinsics, RGBDFrame, implausible_intrinsics
+from gscan.io.camera import DepthCamera, Intrinsics, RGBDFrame, implausible_intrinsics
 
 MAX_PIXELS = 4096 * 4096  # largest image a request may hold (pixels, per image)
 DEPTH_RANGE_M = (0.05, 20.0)  # plausible median depth: outside it the depth scale is wrong
@@ -188,50 +188,43 @@ def parse_pose(text: str, field: str) -> np.ndarray:
         raise RequestError(field, e.reason) from None
 
 
-@dataclass(frozen=True)
-class DepthCameraSpec:
-    """A depth camera not registered to colour: its calibration K [3 x 3], the image size it was calibrated
-    for (None: any, as a cam_K.txt), T_color_depth [4 x 4] (depth-camera points into the colour camera,
-    metres). `served`: the service's own (given when it started), whose misfits are the request's `depth`
-    field's; a request's own misfits name its `depth_intrinsics` and `depth_to_color` fields."""
-
-    K: np.ndarray
-    size: tuple[int, int] | None = None
-    T_color_depth: np.ndarray = field(default_factory=lambda: np.eye(4))
-    served: bool = False
-
-    def intrinsics(self, width: int, height: int) -> Intrinsics:
-        """Its intrinsics for depth images of width x height; RequestError when it cannot be of that size."""
-        if self.size is not None and self.size != (width, height):
-            raise RequestError("depth", f"depth is {width}x{height} but the service's depth camera is calibrated "
-                                        f"for {self.size[0]}x{self.size[1]} images")
-        why = implausible_intrinsics(self.K, width, height)
-        if why and self.served:
-            raise RequestError("depth", f"the service's depth camera does not fit this {width}x{height} depth "
-                                        f"image: {why}")
-        return sized_intrinsics(self.K, width, height, "depth_intrinsics")
-
-    def nothing_lands(self) -> RequestError:
-        """The error for a depth image none of whose pixels lands in the colour image."""
-        if self.served:
-            return RequestError("depth", "no pixel lands in the colour image through the service's depth camera")
-        return RequestError("depth_to_color", "no depth pixel lands in the colour image (is it T_color_depth, the "
-                                              "depth camera's pose in the colour camera, in metres?)")
-
-
-def depth_camera_fields(depth_intrinsics: str | None, depth_to_color: str | None) -> DepthCameraSpec | None:
-    """The depth camera a request names (None when it names none): `depth_intrinsics` (3x3 text) and
-    `depth_to_color` (T_color_depth; default the colour camera's own centre and axes). RequestError naming
-    the field: malformed values, or `depth_to_color` without `depth_intrinsics` (422)."""
+def depth_camera_fields(depth_intrinsics: str | None, depth_to_color: str | None) -> DepthCamera | None:
+    """The depth camera a request names (None when it names none): `depth_intrinsics` (3x3 text, fitting depth
+    images of any size) and `depth_to_color` (T_color_depth; default the colour camera's own centre and axes).
+    RequestError naming the field: malformed values, or `depth_to_color` without `depth_intrinsics` (422)."""
     if depth_intrinsics is None or not depth_intrinsics.strip():
         if depth_to_color is not None and depth_to_color.strip():
             raise RequestError("depth_to_color", "given without depth_intrinsics (the depth camera's 3x3 "
                                                  "calibration, as cam_K.txt holds it)", 422)
         return None
     K = parse_K(depth_intrinsics, "depth_intrinsics")
-    T = np.eye(4) if depth_to_color is None or not depth_to_color.strip() else parse_pose(depth_to_color,
-                                                                                         "depth_to_color")
-    return DepthCameraSpec(K, None, T)
+    T = None if depth_to_color is None or not depth_to_color.strip() else parse_pose(depth_to_color, "depth_to_color")
+    return DepthCamera(K, T)
+
+
+def depth_camera_intrinsics(depth_camera: DepthCamera, width: int, height: int, served: bool = False) -> Intrinsics:
+    """The depth camera's intrinsics for a depth image of width x height; RequestError when it cannot be of that
+    size. `served`: the camera is the service's own (given when it started), whose misfits are the request's
+    `depth` field's; a request's own misfits name its `depth_intrinsics` field."""
+    if served and depth_camera.size is not None and depth_camera.size != (width, height):
+        raise RequestError("depth", f"depth is {width}x{height} but the service's depth camera is calibrated "
+                                    f"for {depth_camera.size[0]}x{depth_camera.size[1]} images")
+    try:
+        return depth_camera.for_size(width, height)
+    except ValueError as e:
+        if served:
+            raise RequestError("depth", f"the service's depth camera does not fit this {width}x{height} depth "
+                                        f"image: {e}") from None
+        raise RequestError("depth" if depth_camera.size is not None else "depth_intrinsics", str(e)) from None
+
+
+def nothing_lands(served: bool) -> RequestError:
+    """The error for a depth image none of whose pixels lands in the colour image (`served`: through the
+    service's own depth camera)."""
+    if served:
+        return RequestError("depth", "no pixel lands in the colour image through the service's depth camera")
+    return RequestError("depth_to_color", "no depth pixel lands in the colour image (is it T_color_depth, the "
+                                          "depth camera's pose in the colour camera, in metres?)")
 
 
 def check_depth_scale(depth_scale: float, field: str = "depth_scale") -> None:
@@ -240,30 +233,32 @@ def check_depth_scale(depth_scale: float, field: str = "depth_scale") -> None:
 
 
 def decode_frame(color: bytes, depth: bytes, intrinsics: str, depth_scale: float, mask: bytes | None = None,
-                 name: str = "request", max_pixels: int = MAX_PIXELS,
-                 depth_camera: DepthCameraSpec | None = None) -> RGBDFrame:
+                 name: str = "request", max_pixels: int = MAX_PIXELS, depth_camera: DepthCamera | None = None,
+                 served: bool = False) -> RGBDFrame:
     """One RGB-D frame from a request's parts (sizes checked against each other; a median depth outside
     DEPTH_RANGE_M is refused as a wrong depth scale). With `depth_camera` the depth is that camera's image
-    (of its own size), reprojected into the colour camera."""
+    (of its own size), reprojected into the colour camera; `served`: it is the service's own, not the request's
+    (`depth_camera_intrinsics`)."""
     check_depth_scale(depth_scale)
     rgb = decode_color(color, "color", max_pixels)
     h, w = rgb.shape[:2]
     dh = image_header("depth", depth, ("PNG",), max_pixels)  # before decoding it
     if depth_camera is None and (dh.width, dh.height) != (w, h):
         raise RequestError("depth", f"depth is {dh.width}x{dh.height} but the colour image is {w}x{h}")
-    depth_intr = None if depth_camera is None else depth_camera.intrinsics(dh.width, dh.height)
+    if depth_camera is not None:  # before decoding the depth
+        depth_camera_intrinsics(depth_camera, dh.width, dh.height, served)
     d = decode_depth(depth, depth_scale, "depth", max_pixels)
     med = float(np.median(d[d > 0]))
     lo, hi = DEPTH_RANGE_M
     if not lo <= med <= hi:
         raise RequestError("depth_scale", f"{depth_scale:g} puts the scene at {med:.3g} m (expected {lo:g}-{hi:g} m)")
     K = parse_intrinsics(intrinsics, w, h)
-    if depth_camera is not None and depth_intr is not None:
+    if depth_camera is not None:
         from gscan.io.align import align_depth_to_color  # numba: loaded only for unregistered depth
 
-        d = align_depth_to_color(d, depth_intr, K, depth_camera.T_color_depth)
+        d = align_depth_to_color(d, depth_camera, K)
         if not d.any():
-            raise depth_camera.nothing_lands()
+            raise nothing_lands(served)
     m = None
     if mask is not None and len(mask):
         mh = image_header("mask", mask, ("PNG", "JPEG"), max_pixels)

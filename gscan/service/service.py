@@ -34,7 +34,8 @@ from dataclasses import dataclass
 from typing import Any
 
 from gscan.estimate import Estimator, Tracker
-from gscan.service.decode import MAX_PIXELS, DepthCameraSpec, RequestError, decode_frame, depth_camera_fields
+from gscan.io.camera import DepthCamera
+from gscan.service.decode import MAX_PIXELS, RequestError, decode_frame, depth_camera_fields
 
 log = logging.getLogger(__name__)
 
@@ -61,7 +62,7 @@ class Service:
     """The service's state: the warm estimators, the tracking sessions and the lock that serialises work."""
 
     def __init__(self, estimators: dict[str, Estimator], params: ServeParams | None = None,
-                 depth_camera: DepthCameraSpec | None = None):
+                 depth_camera: DepthCamera | None = None):
         if not estimators:
             raise ValueError("the service needs at least one template")
         self.estimators = dict(estimators)
@@ -80,19 +81,22 @@ class Service:
             raise RequestError(field, f"unknown template {unknown[0]!r} (serving: {', '.join(self.estimators)})", 404)
         return list(dict.fromkeys(names))
 
-    def request_depth_camera(self, depth_intrinsics: str | None, depth_to_color: str | None) -> DepthCameraSpec | None:
-        """The depth camera of a request: its own fields', else the service's (None: registered depth)."""
-        return depth_camera_fields(depth_intrinsics, depth_to_color) or self.depth_camera
+    def request_depth_camera(self, depth_intrinsics: str | None,
+                             depth_to_color: str | None) -> tuple[DepthCamera | None, bool]:
+        """The depth camera of a request: its own fields', else the service's (None: registered depth), and
+        whether it is the service's."""
+        own = depth_camera_fields(depth_intrinsics, depth_to_color)
+        return (own, False) if own is not None else (self.depth_camera, self.depth_camera is not None)
 
     def estimate(self, color: bytes, depth: bytes, intrinsics: str, depth_scale: float, mask: bytes | None,
                  templates: str | None, depth_intrinsics: str | None = None,
                  depth_to_color: str | None = None) -> dict[str, Any]:
         t0 = time.perf_counter()
         names = self.names("templates", templates)
-        cam = self.request_depth_camera(depth_intrinsics, depth_to_color)
+        cam, served = self.request_depth_camera(depth_intrinsics, depth_to_color)
         with self.lock:
             frame = decode_frame(color, depth, intrinsics, depth_scale, mask, max_pixels=self.params.max_pixels,
-                                 depth_camera=cam)
+                                 depth_camera=cam, served=served)
             first = self.estimators[names[0]]
             q = first.prepare(frame, frame.mask)  # the frame's full-image work, shared by the templates
             results = {}
@@ -108,7 +112,7 @@ class Service:
         t0 = time.perf_counter()
         if not SESSION_ID.match(session):
             raise RequestError("session", "1-64 letters, digits, '.', '_' or '-'", 400)
-        cam = self.request_depth_camera(depth_intrinsics, depth_to_color)
+        cam, served = self.request_depth_camera(depth_intrinsics, depth_to_color)
         with self.lock:
             self._expire()
             s = self.sessions.get(session)
@@ -126,7 +130,7 @@ class Service:
                 raise RequestError("template", f"session {session!r} tracks {s.template!r}, not {template.strip()!r}",
                                    409)
             frame = decode_frame(color, depth, intrinsics, depth_scale, mask, name=f"{session}:{s.frames}",
-                                 max_pixels=self.params.max_pixels, depth_camera=cam)
+                                 max_pixels=self.params.max_pixels, depth_camera=cam, served=served)
             step = s.tracker.step(frame, frame.mask)
             s.frames += 1
             s.used = time.monotonic()

@@ -11,7 +11,7 @@
 
 Frames are given as an iterable (written one by one, so long recordings need no memory): each a
 `RecordingFrame` with an RGB colour image, raw uint16 depth (units of `depth_units` metres) and a time.
-Depth may come from another camera than colour (`depth_intrinsics`, `T_color_depth`).
+Depth may come from another camera than colour (`depth_camera`: its intrinsics and T_color_depth).
 """
 from __future__ import annotations
 
@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from gscan.geometry.transforms import inv_T
-from gscan.io.camera import Intrinsics
+from gscan.io.camera import DepthCamera, Intrinsics
 
 REALSENSE_FILE_VERSION = 4
 STATIC_NS = 1  # librealsense writes its static messages at ros::TIME_MIN (0 s + 1 ns)
@@ -115,13 +115,13 @@ class _Msgs:
 
 
 def write_realsense_bag(path: str | Path, frames: Iterable[RecordingFrame], color_intrinsics: Intrinsics,
-                        depth_intrinsics: Intrinsics | None = None, T_color_depth: np.ndarray | None = None,
-                        depth_units: float = 0.001, fps: int = 30, color_encoding: str = "rgb8",
+                        depth_camera: DepthCamera | None = None, depth_units: float = 0.001, fps: int = 30,
+                        color_encoding: str = "rgb8",
                         depth_units_option: bool = True, camera_info: bool = True, compress: bool = False,
                         streams: tuple[str, ...] = ("Depth", "Color")) -> Path:
     """A RealSense .bag of `frames` (see the module docstring); returns its path.
 
-    T_color_depth [4 x 4] maps depth-camera points into the colour camera (identity: depth registered to colour).
+    depth_camera: the depth stream's camera, of the depth images' size (None: depth registered to colour).
     depth_units_option=False leaves out the Depth Units option (bad-input tests); camera_info=False the CameraInfo
     topics; streams the streams recorded ("Depth", "Color"); compress chunks the bag with LZ4 as the recorder's
     compression option does.
@@ -129,8 +129,8 @@ def write_realsense_bag(path: str | Path, frames: Iterable[RecordingFrame], colo
     from rosbags.rosbag1 import Writer
 
     path = Path(path)
-    depth_intrinsics = depth_intrinsics or color_intrinsics
-    T_cd = np.eye(4) if T_color_depth is None else np.asarray(T_color_depth, dtype=np.float64)
+    depth_camera = depth_camera or DepthCamera(color_intrinsics)
+    depth_intrinsics, T_cd = depth_camera.intrinsics, depth_camera.T_color_depth
     m = _Msgs(ros1=True)
     T = m.T
     w = Writer(path)
@@ -188,10 +188,11 @@ def write_realsense_bag(path: str | Path, frames: Iterable[RecordingFrame], colo
     return path
 
 
-def _ros2_messages(frames: Iterable[RecordingFrame], color_intrinsics: Intrinsics, depth_intrinsics: Intrinsics,
-                   T_color_depth: np.ndarray, topics: tuple[str, ...], extrinsics: str,
-                   m: _Msgs) -> Iterable[tuple[str, str, int, Any]]:
+def _ros2_messages(frames: Iterable[RecordingFrame], color_intrinsics: Intrinsics, depth_camera: DepthCamera | None,
+                   topics: tuple[str, ...], extrinsics: str, m: _Msgs) -> Iterable[tuple[str, str, int, Any]]:
     """(topic, type, log time, message) of a realsense2_camera recording, static ones first."""
+    depth_camera = depth_camera or DepthCamera(color_intrinsics)
+    depth_intrinsics, T_color_depth = depth_camera.intrinsics, depth_camera.T_color_depth
     cframe, dframe = "camera_color_optical_frame", "camera_depth_optical_frame"
     first = True
     for f in frames:
@@ -240,23 +241,22 @@ def _ros2_messages(frames: Iterable[RecordingFrame], color_intrinsics: Intrinsic
 
 
 def write_rosbag2(path: str | Path, frames: Iterable[RecordingFrame], color_intrinsics: Intrinsics,
-                  depth_intrinsics: Intrinsics | None = None, T_color_depth: np.ndarray | None = None,
-                  storage: str = "sqlite3", topics: tuple[str, ...] = ("color", "depth"),
+                  depth_camera: DepthCamera | None = None, storage: str = "sqlite3",
+                  topics: tuple[str, ...] = ("color", "depth"),
                   extrinsics: str = "tf_static") -> Path:
     """A rosbag2 folder (realsense2_camera topics) of `frames`; returns the path of its storage file
     (`<folder>/<folder name>.db3` or `.mcap`). topics: any of "color", "depth" (depth camera,
     image_rect_raw), "aligned" (depth registered to colour: aligned_depth_to_color). extrinsics:
-    "tf_static", "realsense" (extrinsics/depth_to_color) or "none"."""
+    "tf_static", "realsense" (extrinsics/depth_to_color) or "none". depth_camera: the depth topic's camera (None:
+    the colour camera's)."""
     from rosbags.rosbag2 import StoragePlugin, Writer
 
     path = Path(path)
     m = _Msgs(ros1=False)
-    T_cd = np.eye(4) if T_color_depth is None else np.asarray(T_color_depth, dtype=np.float64)
     plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
     conns: dict[str, Any] = {}
     with Writer(path, version=9, storage_plugin=plugin) as w:
-        for topic, typ, t_ns, msg in _ros2_messages(frames, color_intrinsics, depth_intrinsics or color_intrinsics,
-                                                    T_cd, topics, extrinsics, m):
+        for topic, typ, t_ns, msg in _ros2_messages(frames, color_intrinsics, depth_camera, topics, extrinsics, m):
             if topic not in conns:
                 conns[topic] = w.add_connection(topic, typ, typestore=m.ts)
             w.write(conns[topic], t_ns, m.serialize(msg, typ))
@@ -264,21 +264,19 @@ def write_rosbag2(path: str | Path, frames: Iterable[RecordingFrame], color_intr
 
 
 def write_mcap(path: str | Path, frames: Iterable[RecordingFrame], color_intrinsics: Intrinsics,
-               depth_intrinsics: Intrinsics | None = None, T_color_depth: np.ndarray | None = None,
-               topics: tuple[str, ...] = ("color", "depth"), extrinsics: str = "tf_static") -> Path:
+               depth_camera: DepthCamera | None = None, topics: tuple[str, ...] = ("color", "depth"),
+               extrinsics: str = "tf_static") -> Path:
     """A bare MCAP file of `frames` (the messages of `write_rosbag2`) written with the mcap package's writer."""
     from mcap.writer import Writer
 
     path = Path(path)
     m = _Msgs(ros1=False)
-    T_cd = np.eye(4) if T_color_depth is None else np.asarray(T_color_depth, dtype=np.float64)
     schemas: dict[str, int] = {}
     channels: dict[str, int] = {}
     with open(path, "wb") as fh:
         w = Writer(fh)
         w.start(profile="ros2", library="gscan.synth")
-        for topic, typ, t_ns, msg in _ros2_messages(frames, color_intrinsics, depth_intrinsics or color_intrinsics,
-                                                    T_cd, topics, extrinsics, m):
+        for topic, typ, t_ns, msg in _ros2_messages(frames, color_intrinsics, depth_camera, topics, extrinsics, m):
             if typ not in schemas:
                 text, _ = m.ts.generate_msgdef(typ, ros_version=2)
                 schemas[typ] = w.register_schema(name=typ, encoding="ros2msg", data=text.encode())

@@ -21,7 +21,7 @@ import numpy as np
 from gscan.errors import InputError
 from gscan.geometry.transforms import inv_T
 from gscan.io.recordings.source import MessageSource
-from gscan.io.recordings.streams import StreamSetup, camera_info_intrinsics, transform_msg_T
+from gscan.io.recordings.streams import StreamSetup, camera_info_intrinsics, recorded_depth_camera, transform_msg_T
 
 _DATA = re.compile(r"^/device_(\d+)/sensor_(\d+)/([A-Za-z]+)_(\d+)/image/data$")
 _TF = re.compile(r"^(?P<prefix>/device_\d+/sensor_\d+/[A-Za-z]+_\d+)/tf/(?P<group>\d+)$")
@@ -109,4 +109,5 @@ def realsense_setup(src: MessageSource, color_topic: str | None = None, depth_to
         intr[topic] = camera_info_intrinsics(_first(src, info), info, src.path)
     sensor = _prefix(depth).rsplit("/", 1)[0]
     T = _extrinsics(src, topics, _prefix(color), _prefix(depth))
-    return StreamSetup("RealSense bag", color, depth, intr[color], intr[depth], _depth_units(src, topics, sensor), T)
+    return StreamSetup("RealSense bag", color, depth, intr[color], recorded_depth_camera(intr[depth], T, src.path),
+                       _depth_units(src, topics, sensor))

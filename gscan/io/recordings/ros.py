@@ -33,7 +33,7 @@ from gscan.io.recordings.messages import (
     parse_ros1_image,
 )
 from gscan.io.recordings.source import MessageSource
-from gscan.io.recordings.streams import StreamSetup, camera_info_intrinsics, transform_msg_T
+from gscan.io.recordings.streams import StreamSetup, camera_info_intrinsics, recorded_depth_camera, transform_msg_T
 
 log = logging.getLogger(__name__)
 
@@ -210,4 +210,4 @@ def ros_setup(src: MessageSource, color_topic: str | None = None, depth_topic: s
                              "in different camera frames and the recording holds no transform between them "
                              "(/tf_static)")
         T = T_cd
-    return StreamSetup(kind, color, depth, intr[color], intr[depth], scale, T)
+    return StreamSetup(kind, color, depth, intr[color], recorded_depth_camera(intr[depth], T, src.path), scale)

@@ -206,7 +206,7 @@ class RecordingSequence(FrameIteration):
             raise InputError(self.root, f"frame {p.name}: colour is {color.shape[1]}x{color.shape[0]}, "
                              f"its intrinsics {self.intrinsics.width}x{self.intrinsics.height}")
         if self.aligned:
-            depth = align_depth_to_color(depth, self.setup.depth_intrinsics, self.intrinsics, self.setup.T_color_depth)
+            depth = align_depth_to_color(depth, self.setup.depth_camera, self.intrinsics)
         return RGBDFrame(p.name, color, depth, self.intrinsics, None, self.root)
 
     def __getitem__(self, key: int | str) -> RGBDFrame:
@@ -258,7 +258,7 @@ def _index(src: MessageSource, setup: StreamSetup, color_intr: Intrinsics) -> tu
     c, d = setup.color_topic, setup.depth_topic
     idx = {c: _Index([], [], [], [], []), d: _Index([], [], [], [], [])}
     expect = {c: ("color", "grey"), d: ("depth",)}
-    intr = {c: color_intr, d: setup.depth_intrinsics}
+    intr = {c: color_intr, d: setup.depth_camera.intrinsics}
     parse = parse_ros1_image if src.wire == "ros1" else parse_cdr_image
     last: dict[str, tuple[int, int]] = {}
     for topic, log_ns, data in src.messages([c, d]):

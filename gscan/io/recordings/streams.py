@@ -1,4 +1,4 @@
-"""What a recording's colour and depth streams are: topics, intrinsics, depth scale, depth-to-colour extrinsics."""
+"""What a recording's colour and depth streams are: topics, intrinsics, depth scale, the depth camera."""
 from __future__ import annotations
 
 import logging
@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 
 from gscan.errors import InputError
-from gscan.io.camera import Intrinsics, implausible_intrinsics
+from gscan.io.camera import DepthCamera, Intrinsics, implausible_intrinsics
 
 log = logging.getLogger(__name__)
 
@@ -20,23 +20,32 @@ IDENTITY_ATOL = 1e-6  # rotation entries and translation (m) below which an extr
 class StreamSetup:
     """The colour and depth streams a recording's frames are read from.
 
-    T_color_depth: [4 x 4] maps depth-camera points into the colour camera (identity when both topics
-    are in one optical frame); depth_scale: metres per raw unit of 16-bit depth (None when the
-    recording does not say; float depth is in metres). kind names the recording in messages.
+    depth_camera: the depth stream's camera (its intrinsics, and T_color_depth mapping its points into the colour
+    camera: identity when both topics are in one optical frame); depth_scale: metres per raw unit of 16-bit depth
+    (None when the recording does not say; float depth is in metres). kind names the recording in messages.
     """
 
     kind: str
     color_topic: str
     depth_topic: str
     color_intrinsics: Intrinsics
-    depth_intrinsics: Intrinsics
+    depth_camera: DepthCamera
     depth_scale: float | None
-    T_color_depth: np.ndarray
 
     @property
     def registered(self) -> bool:
         """Depth is already pixel-aligned with colour: identity extrinsics and the same intrinsics."""
-        return is_identity(self.T_color_depth) and same_intrinsics(self.color_intrinsics, self.depth_intrinsics)
+        return is_identity(self.depth_camera.T_color_depth) and same_intrinsics(self.color_intrinsics,
+                                                                               self.depth_camera.intrinsics)
+
+
+def recorded_depth_camera(intrinsics: Intrinsics, T_color_depth: np.ndarray, path: Path | None) -> DepthCamera:
+    """The depth camera a recording describes; InputError naming the recording when its depth-to-colour
+    extrinsics are not a rigid transform."""
+    try:
+        return DepthCamera(intrinsics, T_color_depth)
+    except ValueError as e:
+        raise InputError(path, f"depth-to-colour extrinsics: {e}") from None
 
 
 def is_identity(T: np.ndarray) -> bool:
