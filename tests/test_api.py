@@ -127,7 +127,7 @@ def test_reading_a_frame_through_a_depth_camera():
     colour camera lands where it was (the sample's depth is registered to its colour)."""
     K = gscan.Intrinsics(615.0, 615.0, 319.5, 239.5, 640, 480)
     camera = gscan.DepthCamera(K, np.eye(4))
-    assert camera.to_dict()["intrinsics"] == K.to_dict()
+    assert camera.intrinsics == K and gscan.DepthCamera.from_dict(camera.to_dict()) == camera
     rgb, depth = CAPTURE / "rgb" / "000001.jpg", CAPTURE / "depth" / "000001.png"
     plain = gscan.load_frame(rgb, depth, K, depth_scale=0.001)
     frame = gscan.load_frame(rgb, depth, K, depth_scale=0.001, depth_camera=camera)
