@@ -1,0 +1,37 @@
+"""gscan command line (typer). The only package that prints or exits.
+
+Exit codes: 0 ok, 2 bad input (one line naming the file), 1 internal error.
+`--json` prints exactly one JSON object on stdout, built by the library's result types (`to_json()`); progress
+and logs go to stderr.
+
+- entry: `main` (the `gscan` command): the process set up, then the application run, errors to exit codes
+- application: the typer `app`, its global options, every command registered
+- output: printing (`say`, `line`, `print_json`, `error_line`), poses as text
+- choices: the choice types, made from the library's lists
+- imports: the rule for imports in the command modules (heavy modules inside the command functions)
+- scan (scan, template-from-mesh, config dump), estimate (estimate, track), template (info, poses, grasp add /
+  list, export), view, service (serve), batch (eval, batch, batch-eval), capture, demo: the commands
+
+Importing this package loads only `main`: the commands' modules (with numpy, numba and OpenCV behind their choice
+lists) load when `main` has set the process up, or on first use of the names below (PEP 562).
+"""
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from gscan._lazy import lazy_exports
+from gscan.cli.entry import main
+
+_EXPORTS = {
+    "app": "gscan.cli.application", "ExportFormat": "gscan.cli.choices", "ScanFormat": "gscan.cli.choices",
+    "ScanMode": "gscan.cli.choices",
+    # the names tests/test_scan_stream.py and tests/test_resume.py import
+    "_print_scan_summary": "gscan.cli.scan", "_import_holding_ctrl_c": "gscan.cli.imports",
+}
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
+
+if TYPE_CHECKING:
+    from gscan.cli.application import app
+    from gscan.cli.choices import ExportFormat, ScanFormat, ScanMode
+
+__all__ = ["ExportFormat", "ScanFormat", "ScanMode", "app", "main"]
