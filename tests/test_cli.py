@@ -43,12 +43,19 @@ def test_choice_values_are_the_librarys():
     assert [f.value for f in ExportFormat] == list(EXPORT_FORMATS)
 
 
-def test_the_command_line_starts_without_the_library():
-    """`import gscan.cli` (what the console script does before `main`) loads no numpy, numba or OpenCV: `main`
-    sets the thread rule and OpenCV's log level before the commands' modules load them."""
-    code = "import sys, gscan.cli; print(sorted(m for m in ('numpy', 'numba', 'cv2', 'open3d') if m in sys.modules))"
+def test_help_starts_without_the_library():
+    """`gscan --help` (and `import gscan.cli`, what the console script does before `main`) loads no numpy, numba,
+    OpenCV or open3d: the choice lists load when a command that has them is parsed, after `main` set the thread
+    rule and OpenCV's log level. `track --help` names the library's input layouts."""
+    from gscan.scanning.options import FORMAT_CHOICES
+
+    code = ("import sys, gscan.cli\nheavy = ('numpy', 'numba', 'cv2', 'open3d')\n"
+            "print(sorted(m for m in heavy if m in sys.modules))\n"
+            "try:\n    gscan.cli.app(['--help'], standalone_mode=False)\nexcept SystemExit:\n    pass\n"
+            "print(sorted(m for m in heavy if m in sys.modules))")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=ROOT)
-    assert r.returncode == 0 and r.stdout.strip() == "[]", (r.stdout, r.stderr)
+    assert r.returncode == 0 and r.stdout.splitlines()[0] == r.stdout.splitlines()[-1] == "[]", (r.stdout, r.stderr)
+    assert "|".join(FORMAT_CHOICES) in _gscan("track", "--help", columns=300).stdout.split()
 
 
 @pytest.mark.parametrize("columns", [40, 300])

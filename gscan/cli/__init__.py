@@ -12,8 +12,8 @@ and logs go to stderr.
 - scan (scan, template-from-mesh, config dump), estimate (estimate, track), template (info, poses, grasp add /
   list, export), view, service (serve), batch (eval, batch, batch-eval), capture, demo: the commands
 
-Importing this package loads only `main`: the commands' modules (with numpy, numba and OpenCV behind their choice
-lists) load when `main` has set the process up, or on first use of the names below (PEP 562).
+Importing this package loads `main` alone: the application and its commands load when `main` has set the process
+up, or on first use of the names below (PEP 562); the library a command runs loads inside the command.
 """
 from __future__ import annotations
 

@@ -20,7 +20,7 @@ except ImportError:  # pragma: no cover - depends on the installed typer
 
 
 def _setup_process() -> None:
-    """What must hold before the command modules import numpy, numba and OpenCV (their choice lists do)."""
+    """What must hold before a command imports numpy, numba and OpenCV."""
     from gscan.threads import one_blas_thread
 
     if sys.stdout is None:  # started with stdout closed (`gscan ... >&-`): what it prints goes nowhere

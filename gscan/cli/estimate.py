@@ -6,7 +6,7 @@ from typing import Any
 
 import typer
 
-from gscan.cli.choices import FORMAT_CHOICES
+from gscan.cli.choices import format_choices
 from gscan.cli.output import UsageError, err, format_matrix, line, print_json, say, setup_logging
 from gscan.cli.texts import DEPTH_INTRINSICS_HELP, DEPTH_TO_COLOR_HELP, ESTIMATE_CONFIG_HELP, JSON_HELP
 
@@ -71,7 +71,7 @@ def track(
     input_path: Path = typer.Argument(..., metavar="INPUT", help="RGB-D sequence: a folder in any layout scan reads"),
     output: Path | None = typer.Option(
         None, "-o", "--output", help="folder for one T_cam_obj per frame (ob_in_cam 4x4 text) + summary.json"),
-    format: str = typer.Option("auto", "--format", help="|".join(FORMAT_CHOICES)),
+    format: str = typer.Option("auto", "--format", help="auto|capture|open3d|tum|bop"),
     intrinsics: Path | None = typer.Option(None, "--intrinsics", help="cam_K.txt or Open3D intrinsics JSON"),
     depth_scale: float | None = typer.Option(None, "--depth-scale", help="metres per raw depth unit"),
     depth_intrinsics: Path | None = typer.Option(None, "--depth-intrinsics", help=DEPTH_INTRINSICS_HELP),
@@ -85,8 +85,8 @@ def track(
     from gscan.estimate import Estimator, track_sequence, write_poses
     from gscan.io import check_output_path, open_sequence
 
-    if format not in FORMAT_CHOICES:
-        raise UsageError(None, f"--format must be one of {', '.join(FORMAT_CHOICES)}, not {format!r}")
+    if format not in format_choices():
+        raise UsageError(None, f"--format must be one of {', '.join(format_choices())}, not {format!r}")
     if output is not None:  # refused before any work
         if output.exists() and (not output.is_dir() or any(output.iterdir())) and not force:
             raise UsageError(output, "exists and is not empty (pass --force to replace it)")

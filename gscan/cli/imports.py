@@ -1,8 +1,8 @@
-"""The one rule for imports in the command modules: at module level only typer, rich, gscan.errors, gscan.cli's
-own modules and the library's choice lists (`gscan.cli.choices`); the library modules a command runs (open3d,
-the pipeline, the estimator, the service, Ray, ...) are imported at the top of the command's function, so that
-`gscan --help` and a bad option are answered without loading them. The scan imports its C extensions with
-Ctrl+C held (`import_holding_ctrl_c`)."""
+"""The one rule for imports in the command modules: at module level only typer, rich, gscan.errors and gscan.cli's
+own modules (the choice types read the library's lists when first used: `gscan.cli.choices`); the library
+modules a command runs (numpy, OpenCV, open3d, the pipeline, the estimator, the service, Ray, ...) are imported
+at the top of the command's function, so that `gscan --help` and a bad option are answered without loading them.
+The scan imports its C extensions with Ctrl+C held (`import_holding_ctrl_c`)."""
 from __future__ import annotations
 
 import importlib
