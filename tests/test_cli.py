@@ -32,14 +32,30 @@ def test_version():
 
 
 def test_choice_values_are_the_librarys():
-    """The CLI's choice lists are the contract's; the library's own lists must be the same."""
+    """The CLI's choice lists are the library's own (the contract's values)."""
     from gscan.exporters import FORMATS as EXPORT_FORMATS
     from gscan.io.layouts import FORMATS as INPUT_FORMATS
     from gscan.scanning.capture_mode import MOVING_OBJECT, STATIC_OBJECT
+    from gscan.scanning.options import FORMAT_CHOICES, MODE_CHOICES
 
-    assert [f.value for f in ScanFormat] == ["auto", *INPUT_FORMATS]
-    assert [m.value for m in ScanMode] == ["auto", STATIC_OBJECT, MOVING_OBJECT]
+    assert [f.value for f in ScanFormat] == list(FORMAT_CHOICES) == ["auto", *INPUT_FORMATS]
+    assert [m.value for m in ScanMode] == list(MODE_CHOICES) == ["auto", STATIC_OBJECT, MOVING_OBJECT]
     assert [f.value for f in ExportFormat] == list(EXPORT_FORMATS)
+
+
+def test_help_starts_without_the_library():
+    """`gscan --help` (and `import gscan.cli`, what the console script does before `main`) loads no numpy, numba,
+    OpenCV or open3d: the choice lists load when a command that has them is parsed, after `main` set the thread
+    rule and OpenCV's log level. `track --help` names the library's input layouts."""
+    from gscan.scanning.options import FORMAT_CHOICES
+
+    code = ("import sys, gscan.cli\nheavy = ('numpy', 'numba', 'cv2', 'open3d')\n"
+            "print(sorted(m for m in heavy if m in sys.modules))\n"
+            "try:\n    gscan.cli.app(['--help'], standalone_mode=False)\nexcept SystemExit:\n    pass\n"
+            "print(sorted(m for m in heavy if m in sys.modules))")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert r.returncode == 0 and r.stdout.splitlines()[0] == r.stdout.splitlines()[-1] == "[]", (r.stdout, r.stderr)
+    assert "|".join(FORMAT_CHOICES) in _gscan("track", "--help", columns=300).stdout.split()
 
 
 @pytest.mark.parametrize("columns", [40, 300])
@@ -125,3 +141,54 @@ def test_estimate_names_its_match_count(sample_template: Path):
                            str(held / "depth" / "000000.png"), "--intrinsics", str(held / "cam_K.txt"),
                            "--json").stdout)
     assert f"{js['n_matches']} matched keypoint pairs (GMatch's list)" in " ".join(r.stderr.split())
+
+
+def _estimate_args(template: Path) -> list[str]:
+    from gscan.demo import SAMPLES
+
+    held = SAMPLES / "heldout"
+    return ["estimate", str(template), "--color", str(held / "rgb" / "000000.jpg"), "--depth",
+            str(held / "depth" / "000000.png"), "--intrinsics", str(held / "cam_K.txt"), "--json"]
+
+
+def test_config_dump_loads_back_and_its_estimate_section_reaches_estimate(sample_template: Path, tmp_path: Path):
+    """`config dump` prints the scan's sections, then `estimate:`; the whole file loads back as the defaults of
+    both, and an edited `estimate:` value given to `estimate --config` changes the estimate."""
+    import yaml
+
+    from gscan.cli.scan import scan_config
+    from gscan.estimate.estimator import EstimateParams
+    from gscan.estimate.settings import load_estimate_params
+    from gscan.scanning.config import ScanConfig, dump_defaults
+
+    r = _gscan("config", "dump")
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.startswith(dump_defaults())
+    data = yaml.safe_load(r.stdout)
+    assert list(data)[-1] == "estimate" and set(data) - {"estimate"} == set(ScanConfig.model_fields)
+    path = tmp_path / "all.yaml"
+    path.write_text(r.stdout)
+    assert scan_config(path) == ScanConfig() and load_estimate_params(path) == EstimateParams()
+
+    plain = json.loads(_gscan(*_estimate_args(sample_template)).stdout)
+    same = _gscan(*_estimate_args(sample_template), "--config", str(path))
+    assert same.returncode == 0, same.stderr
+    assert json.loads(same.stdout)["T_cam_obj"] == plain["T_cam_obj"] and plain["T_cam_obj"] is not None
+    data["estimate"]["accept"]["min_matches"] = 1000  # no match list is that long: the object is not found
+    path.write_text(yaml.safe_dump(data))
+    edited = _gscan(*_estimate_args(sample_template), "--config", str(path))
+    assert edited.returncode == 0, edited.stderr
+    assert json.loads(edited.stdout)["T_cam_obj"] is None
+
+
+@pytest.mark.parametrize("command", ["estimate", "serve"])
+def test_a_bad_estimate_key_names_the_file_and_the_key(sample_template: Path, tmp_path: Path, command: str):
+    path = tmp_path / "bad.yaml"
+    path.write_text("estimate:\n  top_kk: 3\n")
+    args = _estimate_args(sample_template) if command == "estimate" else ["serve", str(sample_template), "--port", "0"]
+    r = _gscan(*args, "--config", str(path))
+    assert r.returncode == 2 and r.stdout == "", r.stderr
+    assert str(path) in r.stderr and "estimate.top_kk" in r.stderr
+    path.write_text("estimate:\n  top_k: many\n")  # a value of the wrong type: its key named too
+    r = _gscan(*args, "--config", str(path))
+    assert r.returncode == 2 and "estimate.top_k" in r.stderr, r.stderr

@@ -22,9 +22,12 @@ from gscan.scanning.select import SelectionParams
 
 
 def test_dump_has_a_comment_per_key_and_loads_back_as_the_defaults(tmp_path):
-    text = subprocess.run([sys.executable, "-m", "gscan.cli", "config", "dump"], capture_output=True, text=True,
-                          check=True).stdout
-    assert text == dump_defaults()
+    from gscan.estimate.settings import dump_estimate_defaults
+
+    whole = subprocess.run([sys.executable, "-m", "gscan.cli", "config", "dump"], capture_output=True, text=True,
+                           check=True).stdout
+    assert whole == dump_defaults() + "\n" + dump_estimate_defaults()  # the scan's sections, then `estimate:`
+    text = dump_defaults()
     keys = [line for line in text.splitlines() if line.startswith("  ")]
     assert keys and all("  # " in line for line in keys)
     n_fields = sum(len(type(section).model_fields) for _, section in ScanConfig())
@@ -152,7 +155,7 @@ def test_config_dump_holds_the_stage_parameter_defaults_key_by_key():
     text = subprocess.run([sys.executable, "-m", "gscan.cli", "config", "dump"], capture_output=True, text=True,
                           check=True).stdout
     dumped = {f"{section}.{key}": value
-              for section, keys in yaml.safe_load(text).items() for key, value in keys.items()}
+              for section, keys in yaml.safe_load(text).items() if section != "estimate" for key, value in keys.items()}
     assert set(dumped) == set(STAGE_DEFAULTS) | set(FROM_THE_CAPTURE) | set(DERIVED)
     for key, (params, name) in STAGE_DEFAULTS.items():
         assert dumped[key] == getattr(params(), name), key

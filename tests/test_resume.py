@@ -286,7 +286,7 @@ def test_ctrl_c_during_a_slow_import_arrives_after_it(tmp_path: Path, monkeypatc
     turned into "ImportError: initialization failed", reported as an internal error (exit 1) instead of an
     interruption. Here a module sends itself SIGINT in its body: the import completes, then the
     KeyboardInterrupt arrives."""
-    from gscan.cli import _import_holding_ctrl_c
+    from gscan.cli.imports import import_holding_ctrl_c
 
     (tmp_path / "gscan_test_slow_import.py").write_text(
         "import os, signal, time\nos.kill(os.getpid(), signal.SIGINT)\ntime.sleep(0.05)\nDONE = True\n")
@@ -295,7 +295,7 @@ def test_ctrl_c_during_a_slow_import_arrives_after_it(tmp_path: Path, monkeypatc
     outer = signal.signal(signal.SIGINT, signal.default_int_handler)  # as in a terminal (CI may ignore SIGINT)
     try:
         with pytest.raises(KeyboardInterrupt):
-            _import_holding_ctrl_c("gscan_test_slow_import")
+            import_holding_ctrl_c("gscan_test_slow_import")
         assert sys.modules["gscan_test_slow_import"].DONE
         assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # Ctrl+C interrupts again
     finally:

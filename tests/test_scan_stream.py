@@ -170,7 +170,7 @@ def test_still_frames_are_skipped_and_reported_not_failed(stops: dict, capsys: p
     import subprocess
     import sys
 
-    from gscan.cli import _print_scan_summary
+    from gscan.cli.scan import print_scan_summary
     from gscan.evaluate.metrics import ate_rmse, frame_errors
     from gscan.geometry.transforms import inv_T
     from gscan.io import open_sequence
@@ -183,7 +183,7 @@ def test_still_frames_are_skipped_and_reported_not_failed(stops: dict, capsys: p
     assert out["unregistered"] == [] and out["unregistered_reasons"] == {}
     assert out["selection"] == {"kept": len(names) - len(STILL), "skipped": len(STILL),
                                 "reasons": {"moved less than 0.5 deg since the last kept frame": len(STILL)}}
-    _print_scan_summary(res)
+    print_scan_summary(res)
     assert f"frame selection: {len(names) - len(STILL)} frames kept, {len(STILL)} skipped" in capsys.readouterr().err
 
     def cli(*args: str) -> subprocess.CompletedProcess:

@@ -25,6 +25,7 @@ import os
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from gscan.errors import InputError
 from gscan.io.output import Output
@@ -56,6 +57,10 @@ class ExportResult:
         what = self.content or _CONTENT.get(self.format, "{views} views").format(views=self.views)
         files = f", {self.files} files" if self.files > 1 else ""
         return f"{self.format} export at {self.path}: {what}{files}"
+
+    def to_json(self) -> dict[str, Any]:
+        """The `export --json` object."""
+        return {"output": str(self.path), "format": self.format, "views": self.views, "files": self.files}
 
 
 def _writer(fmt: str, close: bool) -> Callable[[TemplateDB, Path], int | tuple[int, str]]:

@@ -271,6 +271,18 @@ def load_depth_camera(intrinsics: str | Path, T_color_depth: str | Path | None =
     return DepthCamera(intr, T, source=path)
 
 
+def depth_camera_of(intrinsics: str | Path | None, T_color_depth: str | Path | None = None) -> DepthCamera | None:
+    """The depth camera the `--depth-intrinsics` / `--depth-to-color` options (or a request's fields) name:
+    `load_depth_camera`, or None without intrinsics (the depth is registered to colour); a pose alone is refused,
+    naming its file."""
+    if intrinsics is None:
+        if T_color_depth is not None:
+            raise InputError(T_color_depth, "a depth-to-colour pose needs the depth camera's intrinsics too "
+                             "(--depth-intrinsics)")
+        return None
+    return load_depth_camera(intrinsics, T_color_depth)
+
+
 @dataclass
 class RGBDFrame:
     """One RGB-D image.

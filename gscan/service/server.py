@@ -28,14 +28,15 @@ def load_service(templates: Sequence[str | Path], params: ServeParams | None = N
     service's own, for requests that name none (`gscan.io.camera.load_depth_camera`)."""
     if not templates:
         raise InputError(None, "no template given")
+    params = params or ServeParams()
     estimators: dict[str, Estimator] = {}
     for t in templates:
         name = template_name(t)
         if name in estimators:
             raise InputError(t, f"another template is already served as {name!r} (names are file names without "
                                 ".gscan)")
-        estimators[name] = Estimator.from_path(t)
-    return Service(estimators, params or ServeParams(), depth_camera)
+        estimators[name] = Estimator.from_path(t, params.estimate)
+    return Service(estimators, params, depth_camera)
 
 
 def bind(host: str, port: int) -> socket.socket:

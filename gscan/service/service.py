@@ -30,10 +30,10 @@ import re
 import threading
 import time
 from collections import OrderedDict
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
-from gscan.estimate import Estimator, Tracker
+from gscan.estimate import EstimateParams, Estimator, Tracker
 from gscan.io.camera import DepthCamera
 from gscan.service.decode import MAX_PIXELS, RequestError, decode_frame, depth_camera_fields
 
@@ -48,6 +48,7 @@ class ServeParams:
     max_pixels: int = MAX_PIXELS  # per image, checked on the header before decoding
     max_sessions: int = 32  # tracking sessions kept (least recently used dropped first)
     session_ttl_s: float = 600.0  # a session idle this long is dropped
+    estimate: EstimateParams = field(default_factory=EstimateParams)  # the estimators' settings (`--config`)
 
 
 class _Session:

@@ -4,6 +4,8 @@ mesh, cloud and grasps, and the in-memory `Template` the estimator loads.
 - db: `TemplateDB` (`create`, `open`), `open_template`, `SCHEMA_VERSION`
 - records: `View`, `Edge`, `TemplateSummary`, `Template` (keypoints are `gscan.features.Features`, the mesh
   `gscan.geometry.MeshData`)
+- reports: `template_info -> TemplateInfo`, `template_poses -> TemplatePoses`, `template_grasps -> GraspList`
+  (what `gscan info`, `poses` and `grasp list` print: their `to_json()`), `store_grasp`
 """
 from __future__ import annotations
 

@@ -1,0 +1,119 @@
+"""`gscan estimate` (one frame) and `gscan track` (a sequence, the previous pose as a prior)."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import typer
+
+from gscan.cli.choices import format_choices
+from gscan.cli.output import UsageError, err, format_matrix, line, print_json, say, setup_logging
+from gscan.cli.texts import DEPTH_INTRINSICS_HELP, DEPTH_TO_COLOR_HELP, ESTIMATE_CONFIG_HELP, JSON_HELP
+
+
+def load_query_frame(color: Path, depth: Path, intrinsics: Path, depth_scale: float, mask: Path | None,
+                     depth_intrinsics: Path | None = None, depth_to_color: Path | None = None) -> Any:
+    """The RGBDFrame of a query's files (`estimate`, `view --color`), its depth in the colour camera."""
+    from gscan.io import load_frame
+    from gscan.io.camera import depth_camera_of
+
+    return load_frame(color, depth, intrinsics, depth_scale=depth_scale, mask_path=mask,
+                      depth_camera=depth_camera_of(depth_intrinsics, depth_to_color))
+
+
+def estimate_params(config: Path | None) -> Any:
+    """The estimator's settings: the `estimate:` section of `config` (InputError naming the file and the key),
+    the defaults without a file."""
+    from gscan.estimate.settings import load_estimate_params
+
+    return load_estimate_params(config)
+
+
+def estimate(
+    template: Path = typer.Argument(..., help="template database (OBJ.gscan)"),
+    color: Path = typer.Option(..., "--color", help="colour image"),
+    depth: Path = typer.Option(..., "--depth", help="16-bit depth image"),
+    intrinsics: Path = typer.Option(..., "--intrinsics", help="cam_K.txt or Open3D intrinsics JSON"),
+    depth_scale: float = typer.Option(0.001, "--depth-scale", help="metres per raw depth unit"),
+    mask: Path | None = typer.Option(None, "--mask", help="restrict the search to this mask"),
+    no_icp: bool = typer.Option(False, "--no-icp", help="skip the ICP refinement"),
+    depth_intrinsics: Path | None = typer.Option(None, "--depth-intrinsics", help=DEPTH_INTRINSICS_HELP),
+    depth_to_color: Path | None = typer.Option(None, "--depth-to-color", help=DEPTH_TO_COLOR_HELP),
+    config: Path | None = typer.Option(None, "--config", help=ESTIMATE_CONFIG_HELP),
+    json_out: bool = typer.Option(False, "--json", help=JSON_HELP),
+) -> None:
+    """Estimate the object's pose T_cam_obj in a new RGB-D frame."""
+    from gscan.estimate.estimator import Estimator
+
+    params = estimate_params(config)
+    estimator = Estimator.from_path(template, params)
+    frame = load_query_frame(color, depth, intrinsics, depth_scale, mask, depth_intrinsics, depth_to_color)
+    result = estimator.estimate(frame, mask=frame.mask, refine=not no_icp)
+    out = result.to_json()
+    if json_out:
+        print_json(out)
+        return
+    if result.T_cam_obj is None:
+        say(("object not found", "yellow"), f": {result.reason}")
+    else:
+        line(f"found: view {result.view}, {result.n_matches} matched keypoint pairs (GMatch's list), "
+             f"score {result.score:.3f}")
+        err.print("T_cam_obj =\n" + format_matrix(out["T_cam_obj"]))
+        for name, T in out["grasps"].items():
+            line(f"grasp {name}: T_cam_grasp =")
+            err.print(format_matrix(T))
+    err.print("timings (ms): " + ", ".join(f"{k} {v:.1f}" for k, v in out["timings_ms"].items()))
+
+
+def track(
+    template: Path = typer.Argument(..., help="template database (OBJ.gscan)"),
+    input_path: Path = typer.Argument(..., metavar="INPUT", help="RGB-D sequence: a folder in any layout scan reads"),
+    output: Path | None = typer.Option(
+        None, "-o", "--output", help="folder for one T_cam_obj per frame (ob_in_cam 4x4 text) + summary.json"),
+    format: str = typer.Option("auto", "--format", help="auto|capture|open3d|tum|bop"),
+    intrinsics: Path | None = typer.Option(None, "--intrinsics", help="cam_K.txt or Open3D intrinsics JSON"),
+    depth_scale: float | None = typer.Option(None, "--depth-scale", help="metres per raw depth unit"),
+    depth_intrinsics: Path | None = typer.Option(None, "--depth-intrinsics", help=DEPTH_INTRINSICS_HELP),
+    depth_to_color: Path | None = typer.Option(None, "--depth-to-color", help=DEPTH_TO_COLOR_HELP),
+    force: bool = typer.Option(False, "--force", help="replace an existing OUTPUT"),
+    json_out: bool = typer.Option(False, "--json", help=JSON_HELP),
+    verbose: bool = typer.Option(False, "-v", "--verbose", help="log progress details to stderr"),
+) -> None:
+    """Estimate the object's pose through an RGB-D sequence, the previous pose as a prior."""
+    setup_logging(verbose)
+    from gscan.estimate import Estimator, track_sequence, write_poses
+    from gscan.io import check_output_path, open_sequence
+    from gscan.io.camera import depth_camera_of
+
+    if format not in format_choices():
+        raise UsageError(None, f"--format must be one of {', '.join(format_choices())}, not {format!r}")
+    if output is not None:  # refused before any work
+        if output.exists() and (not output.is_dir() or any(output.iterdir())) and not force:
+            raise UsageError(output, "exists and is not empty (pass --force to replace it)")
+        check_output_path(output)
+    estimator = Estimator.from_path(template)
+    seq = open_sequence(input_path, format, intrinsics=intrinsics, depth_scale=depth_scale,
+                        depth_camera=depth_camera_of(depth_intrinsics, depth_to_color))
+
+    def report(step: Any) -> None:
+        if json_out:
+            return
+        res = step.result
+        what = f"score {res.score:.2f}" if res.T_cam_obj is not None else str(res.reason)
+        style = "yellow" if step.status in ("lost", "refound") else None
+        say(f"{step.frame}: ", (step.status, style) if style else step.status,
+            f" ({what}, {res.timings_ms.get('total', 0.0):.0f} ms)")
+
+    run = track_sequence(estimator, seq, on_step=report)
+    written = write_poses(run, output, force=force) if output is not None else None
+    out = run.to_json(written)
+    if json_out:
+        print_json(out)
+        return
+    st = out["status"]
+    say((f"{out['with_pose']}/{out['frames']} frames with a pose", "bold"),
+        f": {st['found']} found, {st['tracked']} tracked, {st['refound']} re-found, {st['lost']} lost; "
+        f"median {out['timings_ms']['median']:.0f} ms per frame"
+        + (f"; poses written to {written}" if written is not None else ""))
+    for name, reason in out["unreadable"].items():
+        say((f"skipped frame {name}:", "yellow"), f" {reason}")

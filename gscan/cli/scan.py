@@ -1,0 +1,159 @@
+"""`gscan scan`, `gscan template-from-mesh` and `gscan config dump`: a template from a capture or a CAD mesh,
+and the configuration they (and the estimator) read."""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Any
+
+import typer
+
+from gscan.cli.choices import ScanFormat, ScanMode
+from gscan.cli.imports import SCAN_IMPORTS, import_holding_ctrl_c
+from gscan.cli.output import UsageError, err, print_json, say, say_interrupted, setup_logging
+from gscan.cli.texts import DEPTH_INTRINSICS_HELP, DEPTH_TO_COLOR_HELP, JSON_HELP
+
+
+def scan(
+    input_dir: Path = typer.Argument(..., help="RGB-D folder (capture, Open3D, TUM or BOP layout) or recording "
+                                     "(.bag, .db3, .mcap, rosbag2 folder)"),
+    output: Path = typer.Option(..., "-o", "--output", help="template database to write (OBJ.gscan)"),
+    format: ScanFormat = typer.Option("auto", "--format", help="input layout (auto: detected)"),
+    intrinsics: Path | None = typer.Option(None, "--intrinsics", help="cam_K.txt or Open3D intrinsics JSON"),
+    depth_scale: float | None = typer.Option(None, "--depth-scale", help="metres per raw depth unit"),
+    mode: ScanMode = typer.Option("auto", "--mode", help="capture mode (auto: detected)"),
+    no_segment: bool = typer.Option(False, "--no-segment", help="fuse the whole scene, not the object alone"),
+    resume: bool = typer.Option(False, "--resume", help="continue an interrupted scan into OUTPUT"),
+    force: bool = typer.Option(False, "--force", help="replace an existing OUTPUT"),
+    config: Path | None = typer.Option(None, "--config", help="YAML configuration (see `gscan config dump`)"),
+    obj_id: int | None = typer.Option(None, "--obj-id", min=1, max=2**31 - 1,
+                                      help="BOP folder: the object to scan (default: the first in scene_gt.json)"),
+    color_topic: str | None = typer.Option(None, "--color-topic",
+                                           help="recording: the colour image topic (default: detected)"),
+    depth_topic: str | None = typer.Option(None, "--depth-topic",
+                                           help="recording: the depth image topic (default: detected)"),
+    depth_intrinsics: Path | None = typer.Option(None, "--depth-intrinsics", help=DEPTH_INTRINSICS_HELP),
+    depth_to_color: Path | None = typer.Option(None, "--depth-to-color", help=DEPTH_TO_COLOR_HELP),
+    json_out: bool = typer.Option(False, "--json", help=JSON_HELP),
+    verbose: bool = typer.Option(False, "-v", "--verbose", help="log progress details to stderr"),
+) -> None:
+    """Register every view of an RGB-D capture into one object frame and write a template database."""
+    setup_logging(verbose)
+    import_holding_ctrl_c(*SCAN_IMPORTS)
+    from gscan.io.camera import depth_camera_of
+    from gscan.progress import RichProgress
+    from gscan.scanning.api import scan as scan_capture
+    from gscan.scanning.options import ScanOptions
+
+    if resume and force:
+        raise UsageError(output, "--resume and --force exclude each other")
+    options = ScanOptions(format=format.value, intrinsics=intrinsics, depth_scale=depth_scale, mode=mode.value,
+                          segment=not no_segment, resume=resume, force=force, config=scan_config(config),
+                          obj_id=obj_id, color_topic=color_topic, depth_topic=depth_topic,
+                          depth_camera=depth_camera_of(depth_intrinsics, depth_to_color))
+    try:
+        with RichProgress(err, enabled=not json_out or sys.stderr.isatty()) as progress:
+            result = scan_capture(input_dir, output, options, progress=progress)
+    except KeyboardInterrupt:  # Ctrl+C: the partial database is kept for --resume (typer exits 130)
+        say_interrupted(interrupted_scan_line(output, force))
+        raise
+    if json_out:
+        print_json(result.to_json())
+    else:
+        print_scan_summary(result)
+
+
+def scan_config(path: Path | None) -> Any:
+    """The scan's settings (`ScanConfig`) from the sections of a configuration file, its `estimate:` section
+    left to the estimator (`gscan config dump` prints both); the defaults without a file."""
+    from gscan.scanning.config import ScanConfig
+    from gscan.settings import read_yaml, validate
+
+    if path is None:
+        return ScanConfig()
+    data = read_yaml(path)
+    data.pop("estimate", None)
+    return validate(ScanConfig, data, path)
+
+
+def interrupted_scan_line(output: Path, force: bool) -> str:
+    """What an interrupted scan left: a partial database to resume, or the output as it was."""
+    from gscan.template.db import TemplateDB
+
+    try:
+        with TemplateDB.open(output, require_complete=False) as db:
+            partial = db.status == "partial"
+    except Exception:  # noqa: BLE001 - no database (yet), or an unreadable one: nothing to resume
+        partial = False
+    if partial:
+        how = "--resume instead of --force" if force else "--resume"
+        return f"interrupted: {output} keeps the work done so far; run the command again with {how} to continue it"
+    return f"interrupted: {output} was left as it was" if output.exists() else "interrupted: nothing was written"
+
+
+def print_scan_summary(result: Any) -> None:
+    """A scan's human summary on stderr: the stage timings table, then a line per finding (`ScanResult`)."""
+    from rich.table import Table
+
+    table = Table(title="stage timings", show_header=True)
+    table.add_column("stage")
+    table.add_column("seconds", justify="right")
+    for stage, sec in result.timings_s.items():
+        table.add_row(stage, f"{sec:.2f}")
+    err.print(table)
+    say((str(result.output), "bold"), f": {result.registered}/{result.frames} frames registered "
+        f"({result.mode}), edges {result.edges_accepted} accepted / {result.edges_rejected} rejected, "
+        f"mesh {result.mesh_vertices} vertices / {result.mesh_triangles} triangles, "
+        f"{result.keyframes} keyframes (the views estimate matches)")
+    cam = result.camera
+    if cam is not None and cam["corrected"]:
+        given, used = cam["given_focal_px"][0], cam["colour_focal_px"][0]
+        say(("colour camera:", "yellow"), f" the depth did not line up with the colour at the given focal length "
+            f"{given:g} px; the texture lines up at {used:g} px ({cam['texture_agreement']['used']:.0%} of textured "
+            f"tiles against {cam['texture_agreement']['given']:.0%}), used with the given intrinsics as the depth "
+            "camera's. --intrinsics and --depth-intrinsics set both cameras")
+    sel = result.selection
+    if sel.get("skipped"):  # frame selection: not failures, counted by reason
+        why = "; ".join(f"{k} frames {w}" for w, k in sel["reasons"].items())
+        say(("frame selection:", "bold"), f" {sel['kept']} frames kept, {sel['skipped']} skipped ({why}); "
+            "`gscan poses --json` lists each")
+    for name in result.unregistered:  # each with its reason (a frame that could not be read: why)
+        what = "skipped frame" if name in result.problems else "unregistered frame"
+        say((f"{what} {name}:", "yellow"), f" {result.unregistered_reasons.get(name, '')}")
+    for k, part in enumerate(result.parts, 1):
+        say((f"separate part {k}:", "yellow"), f" {len(part)} frames ({', '.join(part)}), not joined to the "
+            "template's frames with confidence: scanned again with views between them, they can be")
+
+
+def template_from_mesh(
+    mesh: Path = typer.Argument(..., help="textured mesh (OBJ with texture, PLY, GLB)"),
+    output: Path = typer.Option(..., "-o", "--output", help="template database to write"),
+    views: int = typer.Option(36, "--views", min=4, max=500, help="snapshots rendered around the mesh"),
+    scale: float = typer.Option(1.0, "--scale", help="mesh units to metres (0.001 for millimetres)"),
+    force: bool = typer.Option(False, "--force", help="replace an existing OUTPUT"),
+    json_out: bool = typer.Option(False, "--json", help=JSON_HELP),
+) -> None:
+    """Render snapshots around a CAD mesh into a template database (mesh frame kept)."""
+    from gscan.progress import RichProgress
+    from gscan.scanning.cad import template_from_mesh as render_template
+
+    if scale <= 0:
+        raise UsageError(mesh, f"--scale must be positive, not {scale}")
+    with RichProgress(err, enabled=not json_out) as progress:
+        result = render_template(mesh, output, n_views=views, scale=scale, force=force, progress=progress)
+    if json_out:  # the `template-from-mesh --json` object (TemplateResult has no to_json: gscan.scanning.cad)
+        print_json({"output": str(result.output), "views": result.views, "descriptor": result.descriptor,
+                    "source": result.source, "extent_m": list(result.extent_m)})
+    else:
+        say((str(output), "bold"), f": {result.views} views rendered from {mesh}")
+
+
+def config_dump() -> None:
+    """Print the default configuration as commented YAML (the scan's sections, then `estimate:`)."""
+    from gscan.estimate.settings import dump_estimate_defaults
+    from gscan.scanning.config import dump_defaults
+
+    sys.stdout.write(dump_defaults() + "\n" + dump_estimate_defaults())
+
+
+_print_scan_summary = print_scan_summary  # its name as `gscan.cli._print_scan_summary` (tests/test_scan_stream.py)
