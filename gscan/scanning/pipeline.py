@@ -35,17 +35,16 @@ from __future__ import annotations
 
 import collections.abc
 import contextlib
-import itertools
 import json
 import logging
 import shutil
 import threading
-from collections import OrderedDict, deque
-from collections.abc import Callable, Iterable, Iterator
+from collections import OrderedDict
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, TypeVar
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -59,8 +58,8 @@ from gscan.features import (
     extract_features_in_mask,
 )
 from gscan.geometry.plane import Plane
-from gscan.geometry.transforms import inv_T, rotation_angle_deg, transform_points
-from gscan.io.camera import Intrinsics, RGBDFrame, backproject
+from gscan.geometry.transforms import transform_points
+from gscan.io.camera import RGBDFrame
 from gscan.io.output import (
     Output,
     check_output,
@@ -73,20 +72,11 @@ from gscan.io.output import (
 )
 from gscan.io.sequence import Sequence
 from gscan.progress import Progress, StageTimer
-from gscan.registration.dense import DenseGeometry, in_source_frame, plane_residuals, pose_information
-from gscan.registration.noise import DepthNoise, estimate_noise
-from gscan.registration.pairwise import RegisterParams, register_features
-from gscan.registration.posegraph import (
-    INCONSISTENT,
-    GraphEdge,
-    LoopParams,
-    PoseGraphParams,
-    PoseGraphResult,
-    information_from_points,
-    optimize_pose_graph,
-    select_loop_candidates,
-    spanning_poses,
-)
+from gscan.registration.dense import DenseGeometry
+from gscan.registration.edges import EdgeSink, PairEdge, RegData, Registrar, bounded_map, icp_cloud
+from gscan.registration.noise import DepthNoise
+from gscan.registration.pairwise import RegisterParams
+from gscan.registration.sequence import SequenceParams, capture_noise, optimise_sequence, register_edges
 from gscan.scanning.capture_mode import (
     MOVING_OBJECT,
     STATIC_OBJECT,
@@ -109,25 +99,15 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-MAX_SKIP = 3  # a frame is tried against up to this many preceding frames, its predecessor first, until one is accepted
-SECOND_OPINIONS = 2  # more frames a frame the pose graph cut loose is registered to (views nearest its own)
-ICP_VOXEL_STRIDE = 2  # pixel stride of the clouds kept for ICP before voxel downsampling
 # eps_f for whole-frame registration (static object) when the config leaves it unset: on whole frames
 # RootSIFT 0.5 is as accurate as the object-only default 0.6 and gives far fewer candidates, so the search is
 # faster (see BENCHMARKS.md, section Parameter studies)
 WHOLE_FRAME_EPS_F = {"rootsift": 0.5}
-QUALITY_RMS_SIGMA = 3.4  # a view whose best accepted edge has this RMS keypoint residual (noise sigmas) gets quality 0
-PILOT_PAIRS = 8  # sequential pairs, spread over the capture, whose residuals fit the capture's depth noise
 WORKERS = 2  # threads for per-frame and per-edge work (the target machines have 2 cores)
 COMMIT_ROWS = 64  # a stage's database writes are committed in chunks of this many views or edges (and at its end)
 REG_CACHE = 8  # frames whose registration data (keypoints, depth samples) stays loaded: the sequential window
+AHEAD = 2 * WORKERS  # per-frame and per-edge work submitted to the pool and not yet consumed
 BACKGROUND_FRAMES = 30  # kept frames (evenly spaced) a static camera's background depth is taken from
-T_in = TypeVar("T_in")
-T_out = TypeVar("T_out")
-PRUNED = "pruned by the pose graph: "  # reason prefix of edges registration accepted and the pose graph rejected
-AGAINST_ODOMETRY = "contradicts the capture's odometry"  # how the reason of such an edge begins (`_against_odometry`)
-ODOMETRY_SIGMAS = 5.0  # ... by more than this many of registration's largest accepted rotation sigmas per frame
-NO_KEYPOINTS = "no keypoint with depth (dark or textureless image, or no valid depth)"
 
 
 @dataclass
@@ -172,7 +152,7 @@ def _feature_params(cfg: ScanConfig) -> FeatureParams:
 
 def _register_params(cfg: ScanConfig, mode: str) -> RegisterParams:
     """Registration's parameters from the config; the noise models are the configured ones, or the priors a
-    capture's own noise is estimated from (`_capture_noise`)."""
+    capture's own noise is estimated from (`capture_noise`)."""
     from gscan.matching.gmatch import GMatchParams
 
     m, r = cfg.match, cfg.registration
@@ -195,6 +175,39 @@ def _register_params(cfg: ScanConfig, mode: str) -> RegisterParams:
         return params
     return replace(params, noise=DepthNoise(**r.noise.keypoint.model_dump()),
                    depth_noise=DepthNoise(**r.noise.depth.model_dump()))
+
+
+def _sequence_params(cfg: ScanConfig) -> SequenceParams:
+    """The sequence registration's parameters from the config."""
+    p = cfg.posegraph
+    return SequenceParams(loop_candidates=p.loop_candidates, max_view_angle_deg=p.max_view_angle_deg, alpha=p.alpha,
+                          bridge_min_matches=p.bridge_min_matches)
+
+
+class _EdgeRecords(EdgeSink):
+    """The scan's database as the sink of a sequence's edges."""
+
+    def __init__(self, db: TemplateDB):
+        self.db = db
+
+    def add(self, edge: PairEdge) -> None:
+        self.db.add_edge(_record(edge))
+
+    def commit(self) -> None:
+        self.db.commit()
+
+    def batch(self) -> contextlib.AbstractContextManager[None]:
+        return self.db.batch()
+
+
+def _record(e: PairEdge) -> Edge:
+    """The database record of an edge."""
+    return Edge(e.src, e.tgt, e.T_tgt_src, e.matches, e.cost, e.rmse, e.fitness, e.kind, e.accepted, e.reason)
+
+
+def _pair_edge(e: Edge) -> PairEdge:
+    """An edge of the database as registration holds it."""
+    return PairEdge(e.src, e.tgt, e.T_tgt_src, e.matches, e.cost, e.rmse, e.fitness, e.kind, e.accepted, e.reason)
 
 
 RESUME_KEYS = ("input", "format", "intrinsics_sha256", "depth_scale_option", "config", "mode_option", "segment",
@@ -475,15 +488,6 @@ class _Frame:
         return self.stored.name
 
 
-@dataclass
-class _RegData:
-    """What registration uses of a frame: keypoints (camera frame), ICP cloud [P x 3] (or None), depth samples."""
-
-    feats: Features
-    cloud: np.ndarray | None
-    dense: DenseGeometry
-
-
 class _FrameData:
     """The kept frames' images, masks and registration data, loaded on demand: images from the store, keypoints
     from the database. Registration data of the last `REG_CACHE` frames used is kept (the sequential pairs and the
@@ -495,11 +499,21 @@ class _FrameData:
         self.frames, self.store, self.db, self.mode, self.masks_given, self.cfg = (frames, store, db, mode,
                                                                                     masks_given, cfg)
         self.detections = {} if detections is None else detections
-        self._cache: OrderedDict[int, _RegData] = OrderedDict()
+        self._cache: OrderedDict[int, RegData] = OrderedDict()
         self._lock = threading.Lock()
 
     def __len__(self) -> int:
         return len(self.frames)
+
+    @property
+    def names(self) -> list[str]:
+        return [f.name for f in self.frames]
+
+    def n_keypoints(self, k: int) -> int:
+        return self.frames[k].n_keypoints
+
+    def depth_m(self, k: int) -> float | None:
+        return self.frames[k].depth_m
 
     def frame(self, k: int) -> RGBDFrame:
         """Frame k as read (colour, depth, given mask)."""
@@ -518,7 +532,7 @@ class _FrameData:
         assert feats is not None, self.frames[k].name
         return feats.descriptors
 
-    def reg(self, k: int) -> _RegData:
+    def reg(self, k: int) -> RegData:
         """Registration data of frame k (cached)."""
         with self._lock:
             if k in self._cache:
@@ -530,31 +544,14 @@ class _FrameData:
         depth = self.store.need(f.name, "depth")
         reg_mask = self.object_mask(k)
         r = self.cfg.registration
-        cloud = _icp_cloud(depth, f.intrinsics, reg_mask, r.icp_voxel) if r.icp else None
-        data = _RegData(feats, cloud, DenseGeometry.from_depth(depth, f.intrinsics, reg_mask,
+        cloud = icp_cloud(depth, f.intrinsics, reg_mask, r.icp_voxel) if r.icp else None
+        data = RegData(feats, cloud, DenseGeometry.from_depth(depth, f.intrinsics, reg_mask,
                                                                image=self.store.need(f.name, "color")))
         with self._lock:
             self._cache[k] = data
             while len(self._cache) > REG_CACHE:
                 self._cache.popitem(last=False)
         return data
-
-
-def _bounded_map(pool: ThreadPoolExecutor, fn: Callable[[T_in], T_out], items: Iterable[T_in],
-                 ahead: int = 2 * WORKERS) -> Iterator[T_out]:
-    """pool.map(fn, items) in order, with at most `ahead` items submitted and not yet consumed: the results of
-    per-frame work (images, keypoints) do not pile up when the consumer is slower than the workers."""
-    it = iter(items)
-    pending = deque(pool.submit(fn, x) for x in itertools.islice(it, ahead))
-    try:
-        while pending:
-            fut = pending.popleft()
-            for x in itertools.islice(it, 1):
-                pending.append(pool.submit(fn, x))
-            yield fut.result()
-    finally:
-        for fut in pending:
-            fut.cancel()
 
 
 class _InputFrames(collections.abc.Sequence):
@@ -649,7 +646,7 @@ def _read_ahead(seq: Sequence | RecordingSequence) -> Iterator[tuple[str, RGBDFr
             return e
 
     with ThreadPoolExecutor(max_workers=1) as pool:
-        yield from zip(seq.names, _bounded_map(pool, read, seq.names, ahead=2), strict=True)
+        yield from zip(seq.names, bounded_map(pool, read, seq.names, 2), strict=True)
 
 
 # ------------------------------------------------------------------------------------------ the stages
@@ -672,25 +669,24 @@ def _scan_frames(data: _FrameData, source: Path, output: Path, opts: ScanOptions
 
     n = len(frames)
     rparams = _register_params(cfg, mode)
-    with timer.stage("noise", total=1) as advance, db.batch():
-        if cfg.registration.noise is None:
-            kp_noise, depth_noise = _capture_noise(data, rparams)
-            rparams = replace(rparams, noise=kp_noise, depth_noise=depth_noise)
-        db.set_meta("noise", {"keypoint": rparams.noise.to_dict(), "depth": rparams.depth_noise.to_dict()})
-        advance(1)
-    reg = _Registrar(data, rparams, db, resumed)
-    index = {f.name: k for k, f in enumerate(frames)}
+    sparams = _sequence_params(cfg)
     with ThreadPoolExecutor(max_workers=WORKERS) as pool:
-        with timer.stage("register", total=max(1, n - 1)) as advance, db.batch():
-            edges = _register_edges(reg, cfg, pool, advance)
-
-        with timer.stage("posegraph", total=1) as advance:
-            T_world_cam, quality, graph = _optimise_with_second_opinions(reg, pool, edges, index, cfg)
+        with timer.stage("noise", total=1) as advance, db.batch():
+            if cfg.registration.noise is None:
+                kp_noise, depth_noise = capture_noise(data, rparams, sparams.pilot_pairs, pool)
+                rparams = replace(rparams, noise=kp_noise, depth_noise=depth_noise)
+            db.set_meta("noise", {"keypoint": rparams.noise.to_dict(), "depth": rparams.depth_noise.to_dict()})
             advance(1)
-    restored = reg.restored
+        sink = _EdgeRecords(db)
+        reg = Registrar(data, rparams, sink, [_pair_edge(e) for e in db.edges()] if resumed else (), AHEAD)
+        with timer.stage("register", total=max(1, n - 1)) as advance, db.batch():
+            edges = register_edges(reg, sparams, pool, advance)
+        with timer.stage("posegraph", total=1) as advance:
+            res = optimise_sequence(reg, edges, sparams, pool)
+            advance(1)
+    edges, T_world_cam, quality = res.edges, res.T_world_cam, res.quality
     registered = [k for k in range(n) if T_world_cam[k] is not None]
-    reasons = _unregistered_reasons(frames, edges, graph, index)
-    parts = [[frames[k].name for k in part] for part in graph.parts]
+    reasons, parts = res.unregistered_reasons, res.parts
 
     with timer.stage("segment", total=n) as advance:
         mask_of, plane_world = _segment(data, T_world_cam, opts.segment, replace(seg, depth_noise=rparams.depth_noise),
@@ -704,8 +700,8 @@ def _scan_frames(data: _FrameData, source: Path, output: Path, opts: ScanOptions
         T_obj_cam = [None if T is None else T_obj_world @ T for T in T_world_cam]
         keyframes = _store_views(data, T_obj_cam, mask_of, quality, cfg, db, advance)
         for e in edges:  # the pose graph's verdicts, also where a resumed run reaches another one
-            if (e.reason and e.reason.startswith(PRUNED)) or (e.src, e.tgt) in restored:
-                db.add_edge(e)
+            if e.pruned or (e.src, e.tgt) in res.restored:
+                db.add_edge(_record(e))
         mesh = model.mesh.transformed(T_obj_world)
         db.set_mesh(mesh)
         db.set_cloud(transform_points(T_obj_world, model.points), model.point_colors)
@@ -778,7 +774,7 @@ def _extract(data: _FrameData, db: TemplateDB, resumed: bool, advance: Callable[
     # OpenCV releases the GIL: two threads use both cores; results are per frame and written in input order,
     # so the output does not depend on the scheduling
     with ThreadPoolExecutor(max_workers=WORKERS) as pool:
-        for k, (frame, feats) in enumerate(_bounded_map(pool, frame_work, range(len(frames)))):
+        for k, (frame, feats) in enumerate(bounded_map(pool, frame_work, range(len(frames)), AHEAD)):
             f = frames[k]
             if frame is None or feats is None:  # stored by the interrupted run, still in the camera frame
                 stored_feats = db.features(f.name)
@@ -796,192 +792,6 @@ def _extract(data: _FrameData, db: TemplateDB, resumed: bool, advance: Callable[
 
 def _median_depth(feats: Features) -> float | None:
     return float(np.median(feats.points[:, 2])) if len(feats) else None
-
-
-def _capture_noise(data: _FrameData, params: RegisterParams) -> tuple[DepthNoise, DepthNoise]:
-    """The capture's noise, of a lifted keypoint and of a depth pixel (`gscan.registration.noise`): up to
-    PILOT_PAIRS sequential pairs spread evenly over the capture, registered under the priors of `params`;
-    the keypoint residuals of their inliers, and the distances of their depth samples to the other frame's
-    surface within 5 prior sigmas, are fitted. A prior stays when too few pairs are left."""
-    n = len(data)
-    picks = sorted({int(j) for j in np.linspace(1, n - 1, min(PILOT_PAIRS, n - 1))}) if n > 1 else []
-
-    def pair(j: int) -> tuple[np.ndarray, ...]:
-        fs, ft = data.reg(j - 1), data.reg(j)
-        r = register_features(fs.feats, ft.feats, params, dense=(fs.dense, ft.dense))
-        if not r.accepted or r.T_tgt_src is None or r.inliers is None or not len(r.inliers):
-            return (np.zeros(0),) * 6
-        ps = fs.feats.points[r.inliers[:, 0]].astype(np.float64)
-        pt = ft.feats.points[r.inliers[:, 1]].astype(np.float64)
-        e, za, zb = plane_residuals(fs.dense, ft.dense, r.T_tgt_src)
-        near = np.abs(e) < 5.0 * params.depth_noise.pair_sigma(za, zb)
-        return (np.linalg.norm(transform_points(r.T_tgt_src, ps) - pt, axis=1), ps[:, 2], pt[:, 2],
-                e[near], za[near], zb[near])
-
-    with ThreadPoolExecutor(max_workers=WORKERS) as pool:
-        got = list(pool.map(pair, picks))
-    if not got:
-        return params.noise, params.depth_noise
-    r, za, zb, e, da, db = (np.concatenate(x) for x in zip(*got, strict=True))
-    return (estimate_noise(r, za, zb, prior=params.noise),
-            estimate_noise(e, da, db, prior=params.depth_noise, dof=1))
-
-
-@dataclass(frozen=True)
-class _Evidence:
-    """What the pose graph uses of an accepted edge: its information matrix [6 x 6] (source frame), the median
-    depth of its source points, and its RMS keypoint residual in noise sigmas."""
-
-    info: np.ndarray
-    depth: float
-    rms: float
-
-
-def _edge_evidence(e: Edge, a: _RegData, b: _RegData, rparams: RegisterParams) -> _Evidence:
-    """The evidence of the accepted edge e from frame a to frame b (their registration data)."""
-    assert e.T_tgt_src is not None  # an accepted edge has a pose
-    ps = a.feats.points[e.matches[:, 0]].astype(np.float64)
-    pt = b.feats.points[e.matches[:, 1]].astype(np.float64)
-    # the precision the edge claims, as registration solved it (keypoints, and the depth when it took part),
-    # in the source frame, the frame of the pose graph's residual: an edge whose pose the depth pins must
-    # agree with the others to that precision (the graph's floor keeps strong edges from dominating)
-    if rparams.dense_refine:
-        info = in_source_frame(pose_information(a.dense, b.dense, ps, pt, e.T_tgt_src, rparams.noise,
-                                                rparams.depth_noise), e.T_tgt_src)
-    else:
-        info = information_from_points(ps, rparams.noise.pair_sigma(ps[:, 2], pt[:, 2]))
-    r = np.linalg.norm(transform_points(e.T_tgt_src, ps) - pt, axis=1) / rparams.noise.pair_sigma(ps[:, 2], pt[:, 2])
-    return _Evidence(info, float(np.median(ps[:, 2])), float(np.sqrt(np.mean(r * r))))
-
-
-class _Registrar:
-    """Pairwise registration of frame pairs into stored edges, with the evidence the pose graph weighs them by.
-
-    A resumed scan reuses the edges the interrupted run stored (`done`); `restored` holds those it had pruned by
-    the pose graph, put back for this run's pose graph to judge; `evidence` holds the accepted edges' computed
-    here (`_optimise` computes that of stored ones)."""
-
-    def __init__(self, data: _FrameData, rparams: RegisterParams, db: TemplateDB, resumed: bool):
-        self.data, self.rparams, self.db = data, rparams, db
-        self.names = [f.name for f in data.frames]
-        self.done = {(e.src, e.tgt): e for e in db.edges()} if resumed else {}
-        self.restored: set[tuple[str, str]] = set()
-        self.evidence: dict[tuple[str, str], _Evidence] = {}
-        self.written = 0  # edges stored so far (committed every COMMIT_ROWS)
-
-    def _pair(self, pair: tuple[int, int]) -> tuple[Edge, _Evidence | None] | None:
-        i, j = pair
-        if (self.names[i], self.names[j]) in self.done:
-            return None
-        a, b = self.data.reg(i), self.data.reg(j)
-        r = register_features(a.feats, b.feats, self.rparams, clouds=(a.cloud, b.cloud), dense=(a.dense, b.dense))
-        # the edge keeps the correspondences its pose was solved from (GMatch's list grown by the guided
-        # refinement of gscan.registration.pairwise), which also weigh it in the pose graph
-        used = r.inliers if r.inliers is not None and len(r.inliers) else r.matches
-        e = Edge(self.names[i], self.names[j], r.T_tgt_src, used, r.cost, r.rmse, r.fitness, "sequential",
-                 r.accepted, r.reason)
-        return e, (_edge_evidence(e, a, b, self.rparams) if e.accepted and e.T_tgt_src is not None else None)
-
-    def register(self, pairs: list[tuple[int, int]], kind: str, pool: ThreadPoolExecutor) -> list[Edge]:
-        """Edges of `pairs`, computed on the pool (numba and OpenCV release the GIL) in the order of their frames
-        (a frame's registration data stays in the cache for its next edges), stored in the order given."""
-        order = sorted(range(len(pairs)), key=lambda k: pairs[k])
-        computed = zip(order, _bounded_map(pool, self._pair, [pairs[k] for k in order]), strict=True)
-        ready: dict[int, tuple[Edge, _Evidence | None] | None] = {}
-        out = []
-        for k, (i, j) in enumerate(pairs):
-            while k not in ready:
-                m, g = next(computed)
-                ready[m] = g
-            got = ready.pop(k)
-            if got is None:  # stored by the interrupted run
-                e = self.done[(self.names[i], self.names[j])]
-                if e.reason and e.reason.startswith(PRUNED):  # restore the registration verdict
-                    e.accepted, e.reason = True, None
-                    self.restored.add((e.src, e.tgt))
-            else:
-                e, ev = got
-                e.kind = kind
-                if ev is not None:
-                    self.evidence[(e.src, e.tgt)] = ev
-                self.db.add_edge(e)
-                self.written += 1
-                if self.written % COMMIT_ROWS == 0:
-                    self.db.commit()
-            out.append(e)
-        return out
-
-
-def _register_edges(reg: _Registrar, cfg: ScanConfig, pool: ThreadPoolExecutor,
-                    advance: Callable[[int], None]) -> list[Edge]:
-    """Sequential edges (with fall-back to earlier frames), then loop closures; each stored as computed."""
-    data, db, names = reg.data, reg.db, reg.names
-    frames = data.frames
-    n = len(frames)
-    index = {nm: k for k, nm in enumerate(names)}
-    edges: list[Edge] = []
-    # each frame against its predecessor; a frame that fails is tried against earlier ones
-    for e in reg.register([(j - 1, j) for j in range(1, n)], "sequential", pool):
-        edges.append(e)
-        j = index[e.tgt]
-        for i in range(j - 2, max(-1, j - 1 - MAX_SKIP), -1):
-            if edges[-1].accepted:
-                break
-            edges += reg.register([(i, j)], "sequential", pool)
-        advance(1)
-    db.commit()  # the sequential edges, before the loop closures
-
-    seq_graph = [GraphEdge(index[e.src], index[e.tgt], e.T_tgt_src, weight=len(e.matches))
-                 for e in edges if e.accepted and e.T_tgt_src is not None]
-    T_init = spanning_poses(n, seq_graph)
-    existing = [(index[e.src], index[e.tgt]) for e in edges]
-    lp = LoopParams(max_per_node=cfg.posegraph.loop_candidates, max_angle_deg=cfg.posegraph.max_view_angle_deg)
-    # frames without any keypoint (textureless, dark) take no part: bag-of-words needs descriptors
-    kp = [k for k in range(n) if frames[k].n_keypoints]
-    sub = {k: s for s, k in enumerate(kp)}
-    cands = [] if len(kp) < 2 else select_loop_candidates(
-        [T_init[k] for k in kp], LazyList(len(kp), lambda s: data.descriptors(kp[s])),
-        [(sub[a], sub[b]) for a, b in existing if a in sub and b in sub], lp, [frames[k].depth_m for k in kp])
-    edges += reg.register([(kp[c.i], kp[c.j]) for c in cands], "loop", pool)
-    return edges
-
-
-def _cut_frames(n: int, edges: list[Edge], index: dict[str, int], graph: PoseGraphResult) -> list[int]:
-    """Frames the pose graph left without a pose although registration accepted an edge of theirs, each on its
-    own (not in a separate part): their edges disagree with each other and no cycle decides, or a weak edge
-    alone held them."""
-    in_part = {k for part in graph.parts for k in part}
-    pruned = {index[x] for e in edges if e.reason and e.reason.startswith(PRUNED) for x in (e.src, e.tgt)}
-    return [k for k in range(n) if graph.T_world_node[k] is None and k in pruned and k not in in_part]
-
-
-def _second_opinions(cut: list[int], edges: list[Edge], index: dict[str, int],
-                     T_world: list[np.ndarray | None]) -> list[tuple[int, int]]:
-    """For each cut frame, pairs (earlier frame first) with the `SECOND_OPINIONS` registered frames it has no edge
-    with whose orientation is nearest the one its strongest pruned edge to a registered frame puts it at (a view
-    of the same surface): edges that close cycles through it, to decide between its edges."""
-    tried = {frozenset((index[e.src], index[e.tgt])) for e in edges}
-    pairs = []
-    for k in cut:
-        implied = []  # (matches, src, tgt, T_world_k) of its pruned edges to registered frames
-        for e in edges:
-            i, j = index[e.src], index[e.tgt]
-            T_i, T_j, T_ji = T_world[i], T_world[j], e.T_tgt_src
-            if not (e.reason and e.reason.startswith(PRUNED)) or e.reason.startswith(PRUNED + AGAINST_ODOMETRY) \
-                    or T_ji is None:
-                continue
-            if i == k and T_j is not None:
-                implied.append((-len(e.matches), e.src, e.tgt, T_j @ T_ji))
-            elif j == k and T_i is not None:
-                implied.append((-len(e.matches), e.src, e.tgt, T_i @ inv_T(T_ji)))
-        if not implied:
-            continue
-        T_k = min(implied, key=lambda x: x[:3])[3]
-        R_k = T_k[:3, :3]
-        near = sorted((rotation_angle_deg(R_k.T @ T[:3, :3]), i) for i, T in enumerate(T_world)
-                      if T is not None and frozenset((i, k)) not in tried)
-        pairs += [(min(i, k), max(i, k)) for _, i in near[:SECOND_OPINIONS]]
-    return pairs
 
 
 def _store_views(data: _FrameData, T_obj_cam: list[np.ndarray | None], mask_of: Callable[[int], np.ndarray | None],
@@ -1015,7 +825,7 @@ def _store_views(data: _FrameData, T_obj_cam: list[np.ndarray | None], mask_of: 
         return m, obj
 
     with ThreadPoolExecutor(max_workers=WORKERS) as pool:
-        for k, (m, obj) in enumerate(_bounded_map(pool, view_work, range(len(frames)))):
+        for k, (m, obj) in enumerate(bounded_map(pool, view_work, range(len(frames)), AHEAD)):
             T = T_obj_cam[k]
             # the view's images and keypoints were stored at the features stage: its pose (the keypoints follow
             # it into the object frame), mask, keyframe flag and quality complete it
@@ -1044,177 +854,6 @@ def _object_keypoints(pixels: np.ndarray, mask: np.ndarray | None) -> int:
     H, W = mask.shape
     inside = (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
     return int(mask[uv[inside, 1], uv[inside, 0]].sum())
-
-
-def _icp_cloud(depth: np.ndarray, intrinsics: Intrinsics, mask: np.ndarray | None, voxel: float) -> np.ndarray:
-    """[P x 3] camera-frame points for ICP: valid depth (inside `mask`), pixel stride, voxel grid."""
-    import open3d as o3d
-
-    s = ICP_VOXEL_STRIDE
-    valid = depth > 0
-    if mask is not None:
-        valid &= mask
-    pts = backproject(depth, intrinsics)[::s, ::s][valid[::s, ::s]]
-    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts.astype(np.float64)))
-    if voxel > 0:
-        pc = pc.voxel_down_sample(voxel)
-    return np.asarray(pc.points)
-
-
-def _odometry(n: int, edges: list[Edge], index: dict[str, int]) -> tuple[list[np.ndarray | None], np.ndarray]:
-    """The capture's odometry: T_world_cam chained along the accepted sequential edges (between frames adjacent
-    in the capture, or a frame and one of the few before it), per part of their chain ([n] poses or None; [n]
-    part ids, -1 for a frame none of them reaches)."""
-    seq = [GraphEdge(index[e.src], index[e.tgt], e.T_tgt_src, weight=len(e.matches)) for e in edges
-           if e.accepted and e.kind == "sequential" and e.T_tgt_src is not None]
-    T: list[np.ndarray | None] = [None] * n
-    part = np.full(n, -1)
-    for root in sorted({k for g in seq for k in (g.src, g.tgt)}):
-        if part[root] < 0:
-            for k, T_k in enumerate(spanning_poses(n, seq, root=root)):
-                if T_k is not None:
-                    T[k], part[k] = T_k, root
-    return T, part
-
-
-def _against_odometry(n: int, edges: list[Edge], index: dict[str, int], max_sigma_deg: float) -> None:
-    """Rejects the accepted edges between frames far apart in the capture whose rotation contradicts the
-    capture's odometry (`_odometry`) by more than its drift can: ODOMETRY_SIGMAS times registration's largest
-    accepted rotation sigma (`max_sigma_deg`) for every frame between the two. Such an edge matched look-alike
-    faces of the object (a box printed alike front and back, seen from opposite sides: 180 deg off), and several
-    of them agree with each other: they would outvote the right edges in the pose graph. Edges between parts
-    of the odometry are left to the pose graph."""
-    T, part = _odometry(n, edges, index)
-    for e in edges:
-        if not e.accepted or e.kind == "sequential" or e.T_tgt_src is None:
-            continue
-        i, j = index[e.src], index[e.tgt]
-        T_i, T_j = T[i], T[j]
-        if T_i is None or T_j is None or part[i] != part[j]:
-            continue
-        deg = rotation_angle_deg(e.T_tgt_src[:3, :3] @ T_i[:3, :3].T @ T_j[:3, :3])
-        bound = ODOMETRY_SIGMAS * max_sigma_deg * abs(j - i)
-        if deg > bound:
-            e.accepted = False
-            e.reason = (f"{PRUNED}{AGAINST_ODOMETRY} ({deg:.0f} deg from the pose the frames between its two give; "
-                        f"their drift reaches {bound:.0f} deg at most)")
-
-
-def _optimise(n: int, edges: list[Edge], index: dict[str, int], data: _FrameData,
-              evidence: dict[tuple[str, str], _Evidence], cfg: ScanConfig, rparams: RegisterParams
-              ) -> tuple[list[np.ndarray | None], dict[int, float], PoseGraphResult]:
-    """Pose graph over accepted edges (those that contradict the odometry rejected first, `_against_odometry`)
-    -> (T_world_cam per frame or None, quality in [0, 1] per frame, the pose graph's result with edge indices
-    into the accepted edges)."""
-    _against_odometry(n, edges, index, rparams.max_sigma_deg)
-    use = [e for e in edges if e.accepted and e.T_tgt_src is not None]
-    graph = []
-    found = []
-    for e in use:
-        assert e.T_tgt_src is not None  # use: accepted edges with a pose
-        i, j = index[e.src], index[e.tgt]
-        ev = evidence.get((e.src, e.tgt))
-        if ev is None:  # an edge a resumed scan took from the database
-            ev = evidence[(e.src, e.tgt)] = _edge_evidence(e, data.reg(i), data.reg(j), rparams)
-        found.append(ev)
-        # an edge may join two parts of the graph alone only on strong evidence: enough matches (its depth
-        # agreement is already a condition of every accepted edge)
-        graph.append(GraphEdge(i, j, e.T_tgt_src, ev.info, strong=len(e.matches) >= cfg.posegraph.bridge_min_matches,
-                               weight=len(e.matches), depth=ev.depth))
-    res = optimize_pose_graph(n, graph, spanning_poses(n, graph), PoseGraphParams(alpha=cfg.posegraph.alpha))
-    best: dict[int, float] = {}
-    for rep, e, ev in zip(res.edges, use, found, strict=True):
-        # the pose graph's verdict joins the registration's: pruned edges are recorded as rejected
-        if not rep.accepted:
-            e.accepted = False
-            e.reason = PRUNED + str(rep.reason)
-            continue
-        for k in (index[e.src], index[e.tgt]):
-            best[k] = min(best.get(k, np.inf), ev.rms)
-    # registration quality of a view in [0, 1] (1 = perfect): 1 - RMS / QUALITY_RMS_SIGMA of its best edge
-    quality = {k: float(np.clip(1.0 - r / QUALITY_RMS_SIGMA, 0.0, 1.0)) for k, r in best.items()}
-    return res.T_world_node, quality, res
-
-
-def _optimise_with_second_opinions(reg: _Registrar, pool: ThreadPoolExecutor, edges: list[Edge],
-                                   index: dict[str, int], cfg: ScanConfig
-                                   ) -> tuple[list[np.ndarray | None], dict[int, float], PoseGraphResult]:
-    """`_optimise`, and second opinions on the frames it cuts loose.
-
-    A cut frame is registered to more frames (`_second_opinions`, appended to `edges`); the edges that held it (cut
-    as thin evidence, not rejected as inconsistent) are put back beside the accepted new ones and the graph is
-    optimised again. New edges may only confirm: a frame the second optimisation places without one of its holding
-    edges (the new ones overturned them) is cut again, its new edges rejected, and the graph optimised a third
-    time without them."""
-    n, data, rparams = len(reg.names), reg.data, reg.rparams
-    first = _optimise(n, edges, index, data, reg.evidence, cfg, rparams)
-    cut = _cut_frames(n, edges, index, first[2])
-    if not cut:
-        return first
-    with reg.db.batch():
-        more = reg.register(_second_opinions(cut, edges, index, first[0]), "loop", pool)
-    edges += more
-    if not any(e.accepted for e in more):
-        return first
-    log.info("pose graph: %d frames cut loose, %d of %d more edges accepted; optimising again", len(cut),
-             sum(e.accepted for e in more), len(more))
-    held: dict[int, list[tuple[Edge, str]]] = {}  # cut frame -> its holding edges, with their first verdicts
-    for e in edges:
-        i, j = index[e.src], index[e.tgt]
-        why = e.reason
-        if not why or not why.startswith(PRUNED) or why.startswith((PRUNED + INCONSISTENT, PRUNED + AGAINST_ODOMETRY)):
-            continue
-        for k, other in ((i, j), (j, i)):
-            if k in cut and first[0][other] is not None:
-                held.setdefault(k, []).append((e, why))
-                e.accepted, e.reason = True, None
-    judged = [e for e in edges if e.accepted]
-    second = _optimise(n, edges, index, data, reg.evidence, cfg, rparams)
-    overturned = [k for k in cut if second[0][k] is not None and not any(e.accepted for e, _ in held.get(k, []))]
-    if not overturned:
-        return second
-    names = {reg.names[k] for k in overturned}
-    log.info("pose graph: new edges overturn the edges of %s; cut again", ", ".join(sorted(names)))
-    for e in judged:  # the second optimisation's input, without the overturning edges
-        e.accepted, e.reason = True, None
-    for e in more:
-        if e.accepted and {e.src, e.tgt} & names:
-            e.accepted, e.reason = False, PRUNED + "a second opinion that overturns its frame's edges instead of " \
-                                                   "confirming them"
-    for k in overturned:
-        for e, why in held.get(k, []):
-            e.accepted, e.reason = False, why
-    return _optimise(n, edges, index, data, reg.evidence, cfg, rparams)
-
-
-def _unregistered_reasons(frames: list[_Frame], edges: list[Edge], graph: PoseGraphResult,
-                          index: dict[str, int]) -> dict[str, str]:
-    """Why each frame without a pose has none, in one line: no keypoints, no edge accepted (the reasons of
-    its edges, the nearest frame first), edges rejected by the pose graph, or a part of its own."""
-    out: dict[str, str] = {}
-    for k, f in enumerate(frames):
-        if graph.T_world_node[k] is not None:
-            continue
-        name = f.name
-        if not f.n_keypoints:
-            out[name] = NO_KEYPOINTS
-            continue
-        if k in graph.node_reasons:
-            out[name] = graph.node_reasons[k]
-            continue
-        mine = sorted((e for e in edges if name in (e.src, e.tgt)),
-                      key=lambda e: (abs(index[e.src] - index[e.tgt]), e.src, e.tgt))
-        if not mine:
-            out[name] = "no other frame to register it to"
-            continue
-        pruned = [e for e in mine if e.reason and e.reason.startswith(PRUNED)]
-        shown = pruned if pruned else mine
-        detail = "; ".join(f"with {e.tgt if e.src == name else e.src}: "
-                           f"{(e.reason or 'accepted').removeprefix(PRUNED)}" for e in shown[:2])
-        more = f" (and {len(shown) - 2} more)" if len(shown) > 2 else ""
-        what = "its edges were rejected by the pose graph" if pruned else "no edge accepted"
-        out[name] = f"{what}: {detail}{more}"
-    return out
 
 
 def _segment(data: _FrameData, T_world_cam: list[np.ndarray | None], segment: bool, seg: SegmentParams,
@@ -1251,7 +890,7 @@ def _segment(data: _FrameData, T_world_cam: list[np.ndarray | None], segment: bo
 
         # per frame, on both cores (reading and reprojecting the images release the GIL), stored in input order
         with ThreadPoolExecutor(max_workers=WORKERS) as pool:
-            for k, mask in enumerate(_bounded_map(pool, mask_at, range(n))):
+            for k, mask in enumerate(bounded_map(pool, mask_at, range(n), AHEAD)):
                 data.store.put(frames[k].name, mask=mask)
         plane = vol.plane_world if vol is not None else None
 
