@@ -10,8 +10,10 @@ import pytest
 
 from gscan.io import open_sequence
 from gscan.scanning.calibration import check_colour_focal
+from gscan.scanning.capture_mode import STATIC_OBJECT
 from gscan.scanning.config import ScanConfig
-from gscan.scanning.pipeline import STATIC_OBJECT, _feature_params, _register_params
+from gscan.scanning.params import feature_params as _feature_params
+from gscan.scanning.params import register_params as _register_params
 from gscan.synth import cases as C
 from gscan.synth import load_textured_mesh
 

@@ -68,7 +68,7 @@ def test_every_registration_key_reaches_the_registration_parameters():
     from gscan.registration.noise import DepthNoise
     from gscan.scanning.capture_mode import MOVING_OBJECT, STATIC_OBJECT
     from gscan.scanning.config import NoiseConfig
-    from gscan.scanning.pipeline import _register_params
+    from gscan.scanning.params import register_params as _register_params
 
     base = ScanConfig()
     for key, value in base.registration.model_dump().items():
@@ -98,7 +98,7 @@ def test_segmentation_keys_reach_the_segmentation_and_a_far_object_is_found(mesh
     """The object 1.9 m away: the default working depth, from the depth at the image centre, finds it on its table;
     a fixed `segmentation.depth_max: 1.5` misses it (it takes the whole near scene, IoU 0), 2.5 finds it."""
     from gscan.io.camera import RGBDFrame
-    from gscan.scanning.pipeline import _segment_params
+    from gscan.scanning.params import segment_params as _segment_params
     from gscan.scanning.segment import segment_frame
     from gscan.synth import load_textured_mesh, render_capture
 

@@ -47,8 +47,10 @@ def test_a_thin_box_turned_edge_on_gives_no_edge_at_a_wrong_pose(meshes_dir):
     from gscan.geometry.transforms import inv_T, pose_error
     from gscan.io.camera import RGBDFrame
     from gscan.registration.pairwise import register_frames
+    from gscan.scanning.capture_mode import MOVING_OBJECT
     from gscan.scanning.config import ScanConfig
-    from gscan.scanning.pipeline import MOVING_OBJECT, _feature_params, _register_params
+    from gscan.scanning.params import feature_params as _feature_params
+    from gscan.scanning.params import register_params as _register_params
     from gscan.synth import load_textured_mesh, render_capture
 
     mesh = load_textured_mesh(meshes_dir / "Mattel_SKIP_BO_Card_Game" / "model_0.obj")

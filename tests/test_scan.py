@@ -186,6 +186,6 @@ def test_unusable_frames_are_named_in_input_order(tmp_path, monkeypatch):
                 seq[name]
         return seq, None
 
-    monkeypatch.setattr(pipeline, "_check_camera", backwards)
+    monkeypatch.setattr(pipeline, "check_camera", backwards)
     with pytest.raises(InputError, match=r"no usable frame \(30 unusable\); first: 000000: .*000000\.jpg"):
         scan(cap, tmp_path / "out.gscan")

@@ -29,13 +29,13 @@ import numpy as np
 import pytest
 
 from gscan.geometry.transforms import inv_T, look_at, rotvec_to_R
-from gscan.registration.pairwise import RegisterParams
 from gscan.registration import edges as reg_edges
 from gscan.registration import sequence
+from gscan.registration.edges import PairEdge
+from gscan.registration.pairwise import RegisterParams
 from gscan.scanning import pipeline
 from gscan.synth import cases as C
 from gscan.synth import load_textured_mesh
-from gscan.registration.edges import PairEdge
 from tests._scan_checks import ATE_NEAR, Outcome, check_template_is_object, scan_case
 
 BOX = "Whey_Protein_Chocolate_12_Packets"  # 10 x 15 x 16 cm, printed on every side
@@ -188,5 +188,6 @@ def test_edges_that_turn_the_view_against_the_odometry_are_rejected():
     index = {f"{k:06d}": k for k in range(n)}
     sequence.against_odometry(n, edges, index, RegisterParams().max_sigma_deg)
     for e in flipped:
-        assert not e.accepted and str(e.reason).startswith(reg_edges.PRUNED + reg_edges.AGAINST_ODOMETRY), (e.src, e.tgt)
+        why = str(e.reason)
+        assert not e.accepted and why.startswith(reg_edges.PRUNED + reg_edges.AGAINST_ODOMETRY), (e.src, e.tgt)
     assert all(e.accepted and e.reason is None for e in sequential + right + across)

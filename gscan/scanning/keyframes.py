@@ -3,6 +3,7 @@ directions the object was seen from, each holding enough keypoints on the object
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -62,3 +63,12 @@ def select_keyframes(view_dirs: dict[int, np.ndarray], min_angle_deg: float, max
         angle = max(angle * 0.8, 0.5)
         chosen = _greedy(order, view_dirs, angle)
     return sorted(chosen[:max_views])
+
+
+def keyframe_candidates(T_obj_cam: list[np.ndarray | None], shows: Callable[[int], bool]) -> dict[int, np.ndarray]:
+    """Frame index -> viewing direction (`view_direction`) of the registered frames that show the object
+    (`shows(k)`: its object mask is not empty): a frame without it (a sweep that starts elsewhere) would give
+    the template its background as the object's keypoints. All registered frames when none shows it."""
+    reg = {k: T for k, T in enumerate(T_obj_cam) if T is not None}
+    showing = {k: T for k, T in reg.items() if shows(k)}
+    return {k: view_direction(T) for k, T in (showing or reg).items()}
