@@ -11,17 +11,15 @@ import pytest
 from gscan.io import open_sequence
 from gscan.scanning.calibration import check_colour_focal
 from gscan.scanning.capture_mode import STATIC_OBJECT
-from gscan.scanning.config import ScanConfig
-from gscan.scanning.params import feature_params as _feature_params
-from gscan.scanning.params import register_params as _register_params
+from gscan.scanning.config import ScanConfig, for_capture
 from gscan.synth import cases as C
 from gscan.synth import load_textured_mesh
 
 pytestmark = pytest.mark.slow
 
-CFG = ScanConfig()
-PARAMS = _register_params(CFG, STATIC_OBJECT)
-FEATURES = _feature_params(CFG)
+CFG = for_capture(ScanConfig(), STATIC_OBJECT)
+PARAMS = CFG.registration
+FEATURES = CFG.features
 
 
 @pytest.fixture(scope="module")

@@ -31,7 +31,7 @@ from gscan.registration.posegraph import information_from_points
 PRUNED = "pruned by the pose graph: "  # reason prefix of edges registration accepted and the pose graph rejected
 AGAINST_ODOMETRY = "contradicts the capture's odometry"  # how the reason of such an edge begins (`against_odometry`)
 ICP_VOXEL_STRIDE = 2  # pixel stride of the clouds kept for ICP before voxel downsampling (a sampling internal)
-COMMIT_ROWS = 64  # edges are committed in chunks of this many (a transaction size, not a setting)
+COMMIT_ROWS = 64  # database writes are committed in chunks of this many edges or views (a transaction size)
 
 T_in = TypeVar("T_in")
 T_out = TypeVar("T_out")
@@ -157,7 +157,7 @@ def edge_evidence(e: PairEdge, a: RegData, b: RegData, rparams: RegisterParams) 
     # the precision the edge claims, as registration solved it (keypoints, and the depth when it took part),
     # in the source frame, the frame of the pose graph's residual: an edge whose pose the depth pins must
     # agree with the others to that precision (the graph's floor keeps strong edges from dominating)
-    if rparams.dense_refine:
+    if rparams.refines_on_depth:
         info = in_source_frame(pose_information(a.dense, b.dense, ps, pt, e.T_tgt_src, rparams.noise,
                                                 rparams.depth_noise), e.T_tgt_src)
     else:

@@ -73,10 +73,12 @@ class SequenceParams:
     second_opinions: Annotated[int, Field(ge=0, le=16, description="more frames a frame the pose graph cut loose is "
                                           "registered to (the views nearest its own); 0 = none")] = 2
     pilot_pairs: Annotated[int, Field(ge=0, le=256, description="sequential pairs, spread over the capture, whose "
-                                      "residuals fit the capture's noise (when registration.noise is null)")] = 8
+                                      "residuals fit the capture's noise (estimate_noise)")] = 8
     odometry_sigmas: Annotated[float, Field(gt=0, description="a loop edge is rejected when it turns the view "
                                             "against the capture's odometry by more than this many of registration's "
                                             "largest accepted rotation sigmas per frame between its two")] = 5.0
+    estimate_noise: Annotated[bool, Field(description="estimate the capture's noise (registration.noise and "
+                                          "depth_noise the priors); false = use those as given")] = True
     quality_rms_sigma: Annotated[float, Field(gt=0, description="a view whose best accepted edge has this RMS "
                                               "keypoint residual (noise sigmas) gets quality 0")] = 3.4
 

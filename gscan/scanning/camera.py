@@ -13,14 +13,14 @@ from gscan.io.camera import RGBDFrame
 from gscan.io.sequence import Sequence
 from gscan.scanning.calibration import check_colour_focal
 from gscan.scanning.capture_mode import STATIC_OBJECT
+from gscan.scanning.config import for_capture
+from gscan.scanning.frames import WORKERS
 from gscan.scanning.options import ScanOptions
-from gscan.scanning.params import feature_params, register_params
 
 if TYPE_CHECKING:
     from gscan.io.recordings.sequence import RecordingSequence
 
 log = logging.getLogger(__name__)
-WORKERS = 2  # threads the check reads and registers frames on (the target machines have 2 cores)
 
 
 def check_camera(source: Path, seq: Sequence | RecordingSequence, opts: ScanOptions, detections: dict[str, Detection]
@@ -41,7 +41,8 @@ def check_camera(source: Path, seq: Sequence | RecordingSequence, opts: ScanOpti
         except InputError:
             return None
 
-    check = check_colour_focal(read, len(seq.names), register_params(cfg, STATIC_OBJECT), feature_params(cfg),
+    static = for_capture(cfg, STATIC_OBJECT)
+    check = check_colour_focal(read, len(seq.names), static.registration, static.features, cfg.camera,
                                workers=WORKERS, detections=detections)
     if check is None:
         return seq, None

@@ -40,6 +40,8 @@ from gscan.template.db import TemplateDB
 if TYPE_CHECKING:
     from gscan.io.recordings.sequence import RecordingSequence
 
+# threads for per-frame and per-edge work: the target machines have 2 cores (the results do not depend on it)
+WORKERS = 2
 REG_CACHE = 8  # frames whose registration data (keypoints, depth samples) stays loaded: the sequential window
 BACKGROUND_FRAMES = 30  # kept frames (evenly spaced) a static camera's background depth is taken from
 

@@ -65,25 +65,17 @@ from gscan.io.output import (
     remove_sqlite_sidecars,
 )
 from gscan.progress import Progress, StageTimer
-from gscan.registration.edges import EdgeSink, PairEdge, Registrar, bounded_map
+from gscan.registration.edges import COMMIT_ROWS, EdgeSink, PairEdge, Registrar, bounded_map
 from gscan.registration.noise import DepthNoise
 from gscan.registration.sequence import capture_noise, optimise_sequence, register_edges
 from gscan.scanning.camera import check_camera
 from gscan.scanning.capture_mode import MOVING_OBJECT
-from gscan.scanning.config import ScanConfig
-from gscan.scanning.frames import FrameData, detect_capture_mode, load_frames
-from gscan.scanning.fuse import FusedModel, FusionParams, fuse_tsdf, template_frame
+from gscan.scanning.config import ScanConfig, for_capture
+from gscan.scanning.frames import WORKERS, FrameData, detect_capture_mode, load_frames
+from gscan.scanning.fuse import FusedModel, fuse_tsdf, template_frame
 from gscan.scanning.keyframes import keyframe_candidates, select_keyframes
 from gscan.scanning.options import ScanOptions
 from gscan.scanning.output import create_output, open_resumed, scan_meta
-from gscan.scanning.params import (
-    feature_params,
-    icp_voxel,
-    register_params,
-    segment_params,
-    selection_params,
-    sequence_params,
-)
 from gscan.scanning.segment import SegmentParams, segment_frame
 from gscan.scanning.select import Selection
 from gscan.scanning.store import FrameStore, LazyList
@@ -91,8 +83,6 @@ from gscan.template.db import Edge, TemplateDB, View
 
 log = logging.getLogger(__name__)
 
-WORKERS = 2  # threads for per-frame and per-edge work (the target machines have 2 cores)
-COMMIT_ROWS = 64  # a stage's database writes are committed in chunks of this many views or edges (and at its end)
 AHEAD = 2 * WORKERS  # per-frame and per-edge work submitted to the pool and not yet consumed
 
 
@@ -129,6 +119,11 @@ class ScanResult:
                 "timings_s": {k: round(v, 3) for k, v in self.timings_s.items()},
                 "skipped": dict(self.problems), "keyframes": self.keyframes, "selection": dict(self.selection),
                 "camera": self.camera}
+
+
+def _icp_voxel(cfg: ScanConfig) -> float | None:
+    """The voxel of the clouds ICP refines edges on (m); None without ICP."""
+    return cfg.registration.icp_voxel if cfg.registration.icp else None
 
 
 class _EdgeRecords(EdgeSink):
@@ -193,13 +188,12 @@ def run_scan(source: Path, output: Path, opts: ScanOptions, progress: Progress |
             seq, camera = check_camera(source, seq, opts, detections)
             advance(1)
         store = FrameStore(output)
-        seg = segment_params(opts.config)
         with timer.stage("mode", total=1) as advance:
             mode, masks_given = detect_capture_mode(seq, opts.mode)
             advance(1)
         with timer.stage("load", total=len(seq)) as advance:
-            frames, failed, selection = load_frames(seq, mode, masks_given, selection_params(opts.config), seg, store,
-                                                   advance)
+            frames, failed, selection = load_frames(seq, mode, masks_given, opts.config.selection,
+                                                   opts.config.segmentation, store, advance)
         # in input order (the camera check reads frames on two threads): the listing problems first, as found,
         # then unreadable frames in the order of their names
         index = {name: i for i, name in enumerate(seq.names)}
@@ -229,7 +223,7 @@ def run_scan(source: Path, output: Path, opts: ScanOptions, progress: Progress |
         created = file_identity(output)  # a new output in place: only this file is removed on failure
         if resumed:  # only once the input is known to hold frames: a complete database stays complete
             db.mark_partial()
-        data = FrameData(frames, store, db, mode, masks_given, icp_voxel(opts.config), detections)
+        data = FrameData(frames, store, db, mode, masks_given, _icp_voxel(opts.config), detections)
         result = _scan_frames(data, source, output, opts, db, resumed, timer, problems, selection)
         result.camera = camera
     except BaseException as e:
@@ -260,9 +254,8 @@ def run_scan(source: Path, output: Path, opts: ScanOptions, progress: Progress |
 # ------------------------------------------------------------------------------------------ the stages
 def _scan_frames(data: FrameData, source: Path, output: Path, opts: ScanOptions, db: TemplateDB, resumed: bool,
                  timer: StageTimer, problems: dict[str, str], selection: Selection) -> ScanResult:
-    cfg = opts.config
-    seg = segment_params(cfg)
     frames, mode = data.frames, data.mode
+    cfg = for_capture(opts.config, mode)
     log.info("%s capture, %d of %d frames kept%s", mode, len(frames), len(frames) + len(selection.skipped),
              ", masks given" if data.masks_given else "")
 
@@ -270,17 +263,16 @@ def _scan_frames(data: FrameData, source: Path, output: Path, opts: ScanOptions,
     with timer.stage("features", total=len(frames)) as advance, db.batch():
         db.set_meta("mode", mode)
         db.set_meta("selection", selection.to_meta())
-        _extract(data, feature_params(cfg), db, resumed, advance)
+        _extract(data, cfg.features, db, resumed, advance)
     if not any(f.n_keypoints for f in frames):  # every frame dark, textureless or without depth: nothing to scan
         raise InputError(source, f"no keypoint with depth in any of the {len(frames)} frames "
                          "(dark or textureless images, or no valid depth)")
 
     n = len(frames)
-    rparams = register_params(cfg, mode)
-    sparams = sequence_params(cfg)
+    rparams, sparams = cfg.registration, cfg.posegraph
     with ThreadPoolExecutor(max_workers=WORKERS) as pool:
         with timer.stage("noise", total=1) as advance, db.batch():
-            if cfg.registration.noise is None:
+            if sparams.estimate_noise:
                 kp_noise, depth_noise = capture_noise(data, rparams, sparams.pilot_pairs, pool)
                 rparams = replace(rparams, noise=kp_noise, depth_noise=depth_noise)
             db.set_meta("noise", {"keypoint": rparams.noise.to_dict(), "depth": rparams.depth_noise.to_dict()})
@@ -297,8 +289,8 @@ def _scan_frames(data: FrameData, source: Path, output: Path, opts: ScanOptions,
     reasons, parts = res.unregistered_reasons, res.parts
 
     with timer.stage("segment", total=n) as advance:
-        mask_of, plane_world = _segment(data, T_world_cam, opts.segment, replace(seg, depth_noise=rparams.depth_noise),
-                                        advance)
+        seg = replace(cfg.segmentation, depth_noise=rparams.depth_noise)  # the capture's own
+        mask_of, plane_world = _segment(data, T_world_cam, opts.segment, seg, advance)
 
     with timer.stage("fuse", total=1) as advance:
         model, T_obj_world = _fuse(data, T_world_cam, mask_of, plane_world, cfg, source)
@@ -339,10 +331,9 @@ def _fuse(data: FrameData, T_world_cam: list[np.ndarray | None], mask_of: Callab
           plane_world: Plane | None, cfg: ScanConfig, input_dir: Path) -> tuple[FusedModel, np.ndarray]:
     """(TSDF model in the world frame, T_obj_world [4 x 4] of the template frame); InputError when
     nothing could be fused."""
-    params = FusionParams(voxel_size=cfg.fusion.voxel, depth_max=cfg.fusion.depth_max)
     n = len(data)
     try:
-        model = fuse_tsdf(LazyList(n, data.frame), T_world_cam, LazyList(n, mask_of), params)
+        model = fuse_tsdf(LazyList(n, data.frame), T_world_cam, LazyList(n, mask_of), cfg.fusion)
     except ValueError as e:  # no registered frame has object depth within fusion.depth_max
         raise InputError(input_dir, f"nothing could be fused: {e} (fusion.depth_max); check the depth scale",
                          fix="depth_scale") from None

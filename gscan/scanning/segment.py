@@ -30,15 +30,18 @@ from __future__ import annotations
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
+from typing import Annotated
 
 import cv2
 import numpy as np
+from pydantic import Field
 
 from gscan.errors import InputError
 from gscan.geometry.plane import Plane, dominant_plane, ransac_plane
 from gscan.geometry.transforms import transform_points
 from gscan.io.camera import RGBDFrame, backproject
 from gscan.registration.noise import DepthNoise
+from gscan.settings import SETTINGS
 
 log = logging.getLogger(__name__)
 
@@ -51,22 +54,41 @@ SEEN_BY = 0.8              # the object is inside the image of at least this sha
 
 @dataclass(frozen=True)
 class SegmentParams:
-    depth_min: float = 0.1          # m, working depth range
-    depth_max: float | None = None  # m; None: CENTRE_DEPTH_FACTOR x each frame's centre depth
-    plane_voxel: float = 0.005      # m, downsampling before RANSAC
-    plane_distance: float = 0.004   # m, RANSAC inlier threshold
-    plane_iterations: int = 1000
-    plane_max_points: int = 5000    # RANSAC scores hypotheses on at most this many (seeded subsample)
-    min_plane_fraction: float = 0.15  # plane must hold this fraction of the sampled points
-    height_min: float = 0.004       # m, band above the plane that may be object
-    height_max: float = 0.5
-    depth_edge_rel: float = 0.03    # neighbour depth jump (relative) that separates components
-    min_area_px: int = 150          # smallest component considered an object
-    cluster_eps: float = 0.015      # m, DBSCAN radius for the sequence working volume
-    volume_margin: float = 0.02     # m, added around the object cluster (radius and height)
-    volume_frames: int = 6          # frames (evenly spaced) used to build the working volume
-    seed: int = 0
-    depth_noise: DepthNoise = DepthNoise()  # the capture's depth noise: widens the bands above at depth
+    """Where the object is looked for (working depths, support plane, working volume)."""
+
+    __pydantic_config__ = SETTINGS
+
+    depth_min: Annotated[float, Field(ge=0.05, le=20, description="the object is looked for at depths from this "
+                                      "(m) ...")] = 0.1
+    depth_max: Annotated[float | None, Field(gt=0.05, le=20, description="... to this (m); null = 1.5 x the depth at "
+                                             "the image centre, where a scan keeps the object")] = None
+    plane_voxel: Annotated[float, Field(gt=0, description="downsampling before the support plane's RANSAC (m)")] = 0.005
+    plane_distance: Annotated[float, Field(gt=0, description="RANSAC inlier threshold (m)")] = 0.004
+    plane_iterations: Annotated[int, Field(ge=1, description="RANSAC iterations")] = 1000
+    plane_max_points: Annotated[int, Field(ge=3, description="RANSAC scores hypotheses on at most this many points "
+                                           "(seeded subsample)")] = 5000
+    min_plane_fraction: Annotated[float, Field(gt=0, le=1, description="the plane must hold this share of the sampled "
+                                               "points")] = 0.15
+    height_min: Annotated[float, Field(ge=0, description="band above the plane that may be object, from (m) ...")] = (
+        0.004)
+    height_max: Annotated[float, Field(ge=0.01, le=5, description="... to: the object stands at most this high above "
+                                       "its support plane (m)")] = 0.5
+    depth_edge_rel: Annotated[float, Field(gt=0, description="neighbour depth jump (relative) that separates "
+                                           "components")] = 0.03
+    min_area_px: Annotated[int, Field(ge=1, description="smallest component considered an object (pixels)")] = 150
+    cluster_eps: Annotated[float, Field(gt=0, description="DBSCAN radius of the sequence's working volume (m)")] = 0.015
+    volume_margin: Annotated[float, Field(ge=0, description="added around the object cluster, radius and height "
+                                          "(m)")] = 0.02
+    volume_frames: Annotated[int, Field(ge=1, description="frames (evenly spaced) the working volume is built "
+                                        "from")] = 6
+    seed: Annotated[int, Field(ge=0, description="random seed")] = 0
+    depth_noise: Annotated[DepthNoise, Field(description="depth noise that widens the bands above at depth: the prior "
+                                             "a moving object's masks are found with at the load; a scan's segment "
+                                             "stage uses the capture's own")] = DepthNoise()
+
+    def __post_init__(self) -> None:
+        if self.depth_max is not None and self.depth_max <= self.depth_min:
+            raise ValueError("depth_max must be greater than depth_min")
 
 
 def centre_depth(frame: RGBDFrame) -> float | None:

@@ -25,12 +25,15 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass, field
+from typing import Annotated
 
 import cv2
 import numpy as np
+from pydantic import Field
 
 from gscan.io.camera import Intrinsics, RGBDFrame, backproject_pixels
 from gscan.scanning.segment import centre_depth
+from gscan.settings import SETTINGS
 
 BLUR_WINDOW = 15  # frames whose median sharpness a frame is compared with
 BLUR_MIN_HISTORY = 3  # ... at least this many (the first frames are never called blurred)
@@ -48,12 +51,16 @@ BLURRED = "blurred"
 
 @dataclass(frozen=True)
 class SelectionParams:
-    """min_motion_deg: a frame is kept once the view moved this much since the last kept frame (0: every frame
-    is kept); blur_ratio: a frame below this share of the recent frames' median sharpness is passed over (0:
-    never)."""
+    """Which input frames a scan keeps."""
 
-    min_motion_deg: float = 0.5
-    blur_ratio: float = 0.5
+    __pydantic_config__ = SETTINGS
+
+    min_motion_deg: Annotated[float, Field(ge=0, le=90, description="a frame is kept once the view moved this much "
+                                           "since the last kept frame (rotation, or translation as an angle at the "
+                                           "scene's depth); 0 keeps every frame")] = 0.5
+    blur_ratio: Annotated[float, Field(ge=0, lt=1, description="a frame less sharp than this share of the frames "
+                                       "before it is passed over for a sharper one (until the view moved twice "
+                                       "min_motion_deg); 0 never")] = 0.5
 
 
 @dataclass
