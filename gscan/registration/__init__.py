@@ -6,6 +6,10 @@ pose graph that turns the accepted edges into one camera pose per frame.
 - loops: `select_loop_candidates`, `LoopParams`, `LoopCandidate`
 - posegraph: `optimize_pose_graph -> PoseGraphResult`, `spanning_poses`, `GraphEdge`, `PoseGraphParams`,
   `information_from_points`
+- sequence: a sequence of frames registered (`SequenceParams`, `capture_noise`, `register_edges`,
+  `optimise_sequence -> SequenceResult`), its frames read through `edges.SequenceFrames` and its edges
+  (`edges.PairEdge`, made by `edges.Registrar`) stored through an `edges.EdgeSink`; never sees the scan's
+  configuration, options or database
 """
 from __future__ import annotations
 

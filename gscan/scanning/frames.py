@@ -43,7 +43,6 @@ if TYPE_CHECKING:
 # threads for per-frame and per-edge work: the target machines have 2 cores (the results do not depend on it)
 WORKERS = 2
 REG_CACHE = 8  # frames whose registration data (keypoints, depth samples) stays loaded: the sequential window
-BACKGROUND_FRAMES = 30  # kept frames (evenly spaced) a static camera's background depth is taken from
 
 
 @dataclass
@@ -201,7 +200,7 @@ def load_frames(seq: Sequence | RecordingSequence, mode: str, masks_given: bool,
         frames.append(f)
     if moving and not masks_given and any(f.plane_cam is None for f in frames):
         # without a support plane (an object in hand) the object is what stands out of the background
-        picks = np.unique(np.linspace(0, len(frames) - 1, min(BACKGROUND_FRAMES, len(frames))).round().astype(int))
+        picks = np.unique(np.linspace(0, len(frames) - 1, min(seg.background_frames, len(frames))).round().astype(int))
         bg = background_depth([store.need(frames[k].name, "depth") for k in picks])
         for f in frames:
             if f.plane_cam is None:

@@ -14,9 +14,9 @@ that volume, so all masks agree with each other.
 
 The working range comes from the capture, not from a fixed distance: a scan keeps the object in the
 middle of the image, so the depth at the image centre (median over a central window) says how far the
-object is. Depth beyond `CENTRE_DEPTH_FACTOR` times that is background; the plane and the cluster are
+object is. Depth beyond `centre_depth_factor` times that is background; the plane and the cluster are
 looked for within `SUPPORT_RADII` image half-widths of the point the frames keep centred, among what most
-frames have in view (`SEEN_BY`); the RANSAC
+frames have in view (`seen_by`); the RANSAC
 band, the height that counts as off the table and the clustering radius grow with the depth noise
 (`params.depth_noise`, the capture's own model) and the pixel spacing at that depth.
 
@@ -46,10 +46,7 @@ from gscan.settings import SETTINGS
 log = logging.getLogger(__name__)
 
 CENTRE_WINDOW = 0.2        # the central window is this fraction of the image's width and height
-CENTRE_DEPTH_FACTOR = 1.5  # an automatic working range ends at this multiple of the centre depth
 SUPPORT_RADII = 2.0        # plane and cluster within this many image half-widths (at the centre depth) of the centre
-NOISE_SIGMAS = 3.0         # a point is off the plane when it is this many depth sigmas above it
-SEEN_BY = 0.8              # the object is inside the image of at least this share of the frames
 
 
 @dataclass(frozen=True)
@@ -82,6 +79,15 @@ class SegmentParams:
     volume_frames: Annotated[int, Field(ge=1, description="frames (evenly spaced) the working volume is built "
                                         "from")] = 6
     seed: Annotated[int, Field(ge=0, description="random seed")] = 0
+    centre_depth_factor: Annotated[float, Field(gt=1, le=10, description="with depth_max null, the working range "
+                                                "ends at this multiple of the depth at the image centre")] = 1.5
+    noise_sigmas: Annotated[float, Field(gt=0, description="a point is off the plane when it is this many depth "
+                                         "sigmas above it (the bands widen with the depth noise)")] = 3.0
+    seen_by: Annotated[float, Field(gt=0, le=1, description="the object is inside the image of at least this share "
+                                    "of the frames (what most frames leave out is not the object)")] = 0.8
+    background_frames: Annotated[int, Field(ge=1, le=1000, description="a moving object without a support plane (in "
+                                            "hand) is what stands out of the background depth, taken from this many "
+                                            "kept frames (evenly spaced)")] = 30
     depth_noise: Annotated[DepthNoise, Field(description="depth noise that widens the bands above at depth: the prior "
                                              "a moving object's masks are found with at the load; a scan's segment "
                                              "stage uses the capture's own")] = DepthNoise()
@@ -103,22 +109,22 @@ def centre_depth(frame: RGBDFrame) -> float | None:
 
 def depth_range(params: SegmentParams, z: float | None) -> tuple[float, float]:
     """(min, max) depth (m) where the object is looked for in a frame of `centre_depth` z: `params.depth_max` when
-    set, else `CENTRE_DEPTH_FACTOR` x z (all depth when the centre has none)."""
+    set, else `centre_depth_factor` x z (all depth when the centre has none)."""
     if params.depth_max is not None:
         return params.depth_min, params.depth_max
-    return params.depth_min, (np.inf if z is None else max(CENTRE_DEPTH_FACTOR * z, params.depth_min + 0.05))
+    return params.depth_min, (np.inf if z is None else max(params.centre_depth_factor * z, params.depth_min + 0.05))
 
 
 def at_depth(params: SegmentParams, z: float | None, focal_px: float, stride: int = 1) -> SegmentParams:
     """`params` with the plane band, the off-plane height and the clustering radius widened to the depth noise
-    (`NOISE_SIGMAS` sigma) and the spacing of every `stride`-th pixel at depth z (m); unchanged without z."""
+    (`noise_sigmas` sigma) and the spacing of every `stride`-th pixel at depth z (m); unchanged without z."""
     if z is None:
         return params
     sigma = float(params.depth_noise.sigma(z))
     spacing = stride * z / focal_px
     return replace(params, plane_distance=max(params.plane_distance, 2.5 * sigma),
-                   height_min=max(params.height_min, NOISE_SIGMAS * sigma),
-                   cluster_eps=max(params.cluster_eps, 1.5 * spacing, NOISE_SIGMAS * sigma))
+                   height_min=max(params.height_min, params.noise_sigmas * sigma),
+                   cluster_eps=max(params.cluster_eps, 1.5 * spacing, params.noise_sigmas * sigma))
 
 
 @dataclass
@@ -347,8 +353,9 @@ def _centre_point(frames: list[RGBDFrame], T_world_cam: list[np.ndarray], depths
     return np.median(np.asarray(pts), axis=0) if pts else None
 
 
-def _seen_by_most(points_world: np.ndarray, frames: list[RGBDFrame], T_world_cam: list[np.ndarray]) -> np.ndarray:
-    """[N] bool: the points [N x 3] inside the image of at least `SEEN_BY` of the frames: a scan keeps its
+def _seen_by_most(points_world: np.ndarray, frames: list[RGBDFrame], T_world_cam: list[np.ndarray],
+                  seen_by: float) -> np.ndarray:
+    """[N] bool: the points [N x 3] inside the image of at least `seen_by` of the frames: a scan keeps its
     object in view, so what most frames leave out (the far end of a room a sweep passes) is not the object."""
     seen = np.zeros(len(points_world), dtype=int)
     for f, T in zip(frames, T_world_cam, strict=True):
@@ -357,7 +364,7 @@ def _seen_by_most(points_world: np.ndarray, frames: list[RGBDFrame], T_world_cam
         z = np.where(p[:, 2] > 1e-6, p[:, 2], np.nan)
         u, v = K.fx * p[:, 0] / z + K.cx, K.fy * p[:, 1] / z + K.cy
         seen += (u >= 0) & (u <= K.width - 1) & (v >= 0) & (v <= K.height - 1)
-    return seen >= SEEN_BY * len(frames)
+    return seen >= seen_by * len(frames)
 
 
 def estimate_working_volume(frames: Sequence[RGBDFrame], T_world_cam: list[np.ndarray],
@@ -402,7 +409,7 @@ def estimate_working_volume(frames: Sequence[RGBDFrame], T_world_cam: list[np.nd
     Q = Q[np.lexsort((Q[:, 2], Q[:, 1], Q[:, 0]))]  # order-independent clustering input
     h = plane.height(Q)
     Q = Q[(h > par.height_min) & (h < par.height_max)]
-    Q = Q[_seen_by_most(Q, used, cams)]
+    Q = Q[_seen_by_most(Q, used, cams, params.seen_by)]
     if len(Q) < 20:
         return None
     labels = np.asarray(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(Q)).cluster_dbscan(
