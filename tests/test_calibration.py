@@ -10,16 +10,16 @@ import pytest
 
 from gscan.io import open_sequence
 from gscan.scanning.calibration import check_colour_focal
-from gscan.scanning.config import ScanConfig
-from gscan.scanning.pipeline import STATIC_OBJECT, _feature_params, _register_params
+from gscan.scanning.capture_mode import STATIC_OBJECT
+from gscan.scanning.config import ScanConfig, for_capture
 from gscan.synth import cases as C
 from gscan.synth import load_textured_mesh
 
 pytestmark = pytest.mark.slow
 
-CFG = ScanConfig()
-PARAMS = _register_params(CFG, STATIC_OBJECT)
-FEATURES = _feature_params(CFG)
+CFG = for_capture(ScanConfig(), STATIC_OBJECT)
+PARAMS = CFG.registration
+FEATURES = CFG.features
 
 
 @pytest.fixture(scope="module")

@@ -78,11 +78,11 @@ def test_keyframes_of_a_short_sweep_are_the_views_with_object_keypoints():
     assert len(select_keyframes(dirs, 12.0, 5, counts, min_keypoints=24, min_views=8)) == 5  # the cap wins
 
 
-def test_frames_without_the_object_are_no_keyframe_candidates():
+def test_frames_without_the_object_are_nokeyframe_candidates():
     """A registered frame whose object mask is empty (a sweep that starts elsewhere) offers no keyframe: its stored
     object keypoints would be none, and the template its background; unregistered frames neither. With no frame
     showing the object, every registered frame is a candidate."""
-    from gscan.scanning.pipeline import _keyframe_candidates
+    from gscan.scanning.keyframes import keyframe_candidates
 
     T = np.eye(4)
     T[:3, 3] = [0.0, 0.0, -1.0]
@@ -90,6 +90,6 @@ def test_frames_without_the_object_are_no_keyframe_candidates():
     def shows(masks):
         return lambda k: masks[k] is None or bool(masks[k].any())
 
-    assert sorted(_keyframe_candidates([T, T, None, T, T], shows([empty, full, full, None, empty]))) == [1, 3]
-    assert sorted(_keyframe_candidates([T, None, T], shows([empty, full, empty]))) == [0, 2]
-    np.testing.assert_allclose(_keyframe_candidates([T], shows([full]))[0], [0.0, 0.0, 1.0])
+    assert sorted(keyframe_candidates([T, T, None, T, T], shows([empty, full, full, None, empty]))) == [1, 3]
+    assert sorted(keyframe_candidates([T, None, T], shows([empty, full, empty]))) == [0, 2]
+    np.testing.assert_allclose(keyframe_candidates([T], shows([full]))[0], [0.0, 0.0, 1.0])

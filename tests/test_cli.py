@@ -156,10 +156,9 @@ def test_config_dump_loads_back_and_its_estimate_section_reaches_estimate(sample
     both, and an edited `estimate:` value given to `estimate --config` changes the estimate."""
     import yaml
 
-    from gscan.cli.scan import scan_config
     from gscan.estimate.estimator import EstimateParams
     from gscan.estimate.settings import load_estimate_params
-    from gscan.scanning.config import ScanConfig, dump_defaults
+    from gscan.scanning.config import ScanConfig, dump_defaults, load_config
 
     r = _gscan("config", "dump")
     assert r.returncode == 0, r.stderr
@@ -168,7 +167,7 @@ def test_config_dump_loads_back_and_its_estimate_section_reaches_estimate(sample
     assert list(data)[-1] == "estimate" and set(data) - {"estimate"} == set(ScanConfig.model_fields)
     path = tmp_path / "all.yaml"
     path.write_text(r.stdout)
-    assert scan_config(path) == ScanConfig() and load_estimate_params(path) == EstimateParams()
+    assert load_config(path) == ScanConfig() and load_estimate_params(path) == EstimateParams()
 
     plain = json.loads(_gscan(*_estimate_args(sample_template)).stdout)
     same = _gscan(*_estimate_args(sample_template), "--config", str(path))

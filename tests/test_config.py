@@ -9,16 +9,20 @@ import pytest
 import yaml
 
 from gscan.errors import InputError
-from gscan.features import FeatureParams
-from gscan.matching.gmatch import GMatchParams
-from gscan.registration.pairwise import RegisterParams
-from gscan.registration.posegraph import LoopParams, PoseGraphParams
-from gscan.scanning.calibration import FocalCheckParams
-from gscan.scanning.config import ScanConfig, dump_defaults, load_config
-from gscan.scanning.fuse import FusionParams
-from gscan.scanning.keyframes import KeyframeParams
-from gscan.scanning.segment import SegmentParams
-from gscan.scanning.select import SelectionParams
+from gscan.scanning.capture_mode import MOVING_OBJECT, STATIC_OBJECT
+from gscan.scanning.config import FOREIGN_SECTIONS, ScanConfig, dump_defaults, for_capture, load_config
+from gscan.settings import to_data
+
+
+def _leaves(data: dict, prefix: str = "") -> dict:
+    """section.key -> value of every leaf of nested mappings."""
+    out = {}
+    for k, v in data.items():
+        if isinstance(v, dict):
+            out |= _leaves(v, f"{prefix}{k}.")
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
 
 
 def test_dump_has_a_comment_per_key_and_loads_back_as_the_defaults(tmp_path):
@@ -30,8 +34,8 @@ def test_dump_has_a_comment_per_key_and_loads_back_as_the_defaults(tmp_path):
     text = dump_defaults()
     keys = [line for line in text.splitlines() if line.startswith("  ")]
     assert keys and all("  # " in line for line in keys)
-    n_fields = sum(len(type(section).model_fields) for _, section in ScanConfig())
-    assert len(keys) == n_fields
+    # every field of every stage's settings class, nested sections included, is a key of the file
+    assert set(_leaves(yaml.safe_load(text))) == set(_leaves(to_data(ScanConfig())))
     path = tmp_path / "scan.yaml"
     path.write_text(text)
     assert load_config(path) == ScanConfig()
@@ -40,18 +44,48 @@ def test_dump_has_a_comment_per_key_and_loads_back_as_the_defaults(tmp_path):
 def test_an_edited_value_is_used(tmp_path):
     data = yaml.safe_load(dump_defaults())
     data["features"]["max_keypoints"] = 500
-    data["match"]["method"] = "lo-ransac"
+    data["registration"]["method"] = "lo-ransac"
+    data["registration"]["gmatch"]["T"] = 12
     path = tmp_path / "scan.yaml"
     path.write_text(yaml.safe_dump(data))
     cfg = load_config(path)
-    assert cfg.features.max_keypoints == 500 and cfg.match.method == "lo-ransac"
-    assert cfg.registration == ScanConfig().registration
+    assert cfg.features.max_keypoints == 500 and cfg.registration.method == "lo-ransac"
+    assert cfg.registration.gmatch.T == 12 and cfg.posegraph == ScanConfig().posegraph
+
+
+def test_a_file_of_the_earlier_keys_reads_the_same(tmp_path):
+    """The `match` section (now registration.gmatch, its method registration.method) and `registration.noise`
+    as two models used as given (now registration.noise and depth_noise, posegraph.estimate_noise false)."""
+    path = tmp_path / "old.yaml"
+    path.write_text("match:\n  method: lo-ransac\n  eps_c: 0.1\nregistration:\n  min_matches: 8\n  noise:\n"
+                    "    keypoint: {c0: 1.0e-6, c1: 0, c2: 0}\n    depth: {c0: 2.0e-6, c1: 0, c2: 1.0e-6}\n")
+    cfg = load_config(path)
+    r = cfg.registration
+    assert (r.method, r.gmatch.eps_c, r.min_matches) == ("lo-ransac", 0.1, 8)
+    assert (r.noise.c0, r.depth_noise.c0, r.depth_noise.c2) == (1e-6, 2e-6, 1e-6)
+    assert not cfg.posegraph.estimate_noise
+    path.write_text("registration:\n  noise: null\n")
+    assert load_config(path) == ScanConfig()
+
+
+def test_foreign_sections_are_ignored_and_others_refused(tmp_path):
+    """The estimator's section may share the file; any other unknown section is refused, named."""
+    path = tmp_path / "both.yaml"
+    path.write_text("estimate:\n  anything: 1\nfeatures:\n  max_keypoints: 700\n")
+    assert FOREIGN_SECTIONS == ("estimate",)
+    assert load_config(path).features.max_keypoints == 700
+    path.write_text("estimator:\n  anything: 1\n")
+    with pytest.raises(InputError, match="estimator"):
+        load_config(path)
 
 
 @pytest.mark.parametrize("text, words", [
     ("features: [1, 2\n", "malformed YAML"),
     ("features:\n  colour: 3\n", "features.colour"),
-    ("match:\n  eps_c: 2.0\n", "match.eps_c"),
+    ("match:\n  eps_c: 2.0\n", "registration.gmatch.eps_c"),
+    ("registration:\n  gmatch:\n    eps_c: 2.0\n", "registration.gmatch.eps_c"),
+    ("features:\n  kind: surf\n", "features.kind"),
+    ("posegraph:\n  max_skip: 0\n", "posegraph.max_skip"),
     ("- a list\n", "mapping"),
     ("segmentation:\n  depth_min: 2.0\n  depth_max: 1.0\n", "segmentation"),
     ("segmentation:\n  height_max: 0.001\n", "segmentation.height_max"),
@@ -67,102 +101,39 @@ def test_bad_config_names_the_file_and_the_key(tmp_path, text, words):
     assert "bad.yaml" in str(e.value) and words in str(e.value)
 
 
-def test_every_registration_key_reaches_the_registration_parameters():
-    from gscan.registration.noise import DepthNoise
-    from gscan.scanning.capture_mode import MOVING_OBJECT, STATIC_OBJECT
-    from gscan.scanning.config import NoiseConfig
-    from gscan.scanning.pipeline import _register_params
-
+def test_the_capture_decides_what_the_config_leaves_null():
+    """eps_f: tighter for rootsift on a static scene's whole frames, the descriptor's default otherwise; the depth
+    refinement: on for a moving object, off for a static scene. Given values win in both modes."""
     base = ScanConfig()
-    for key, value in base.registration.model_dump().items():
-        if key == "noise":  # null: the capture's own; given, both models reach the parameters
-            new = NoiseConfig.model_validate({"keypoint": {"c0": 1e-6, "c1": 0, "c2": 0},
-                                              "depth": {"c0": 2e-6, "c1": 0, "c2": 1e-6}})
-            cfg = base.model_copy(update={"registration": base.registration.model_copy(update={key: new})})
-            p = _register_params(cfg, MOVING_OBJECT)
-            assert (p.noise, p.depth_noise) == (DepthNoise(1e-6, 0, 0), DepthNoise(2e-6, 0, 1e-6))
-            continue
-        if key == "dense_refine":  # null: on for a moving object, off for a static scene; given, it reaches both
-            assert value is None
-            assert _register_params(base, MOVING_OBJECT).dense_refine and not _register_params(base, STATIC_OBJECT
-                                                                                            ).dense_refine
-            for new in (True, False):
-                cfg = base.model_copy(update={"registration": base.registration.model_copy(update={key: new})})
-                assert _register_params(cfg, STATIC_OBJECT).dense_refine is new
-                assert _register_params(cfg, MOVING_OBJECT).dense_refine is new
-            continue
-        shares = ("max_see_through", "min_colour_agreement")  # in [0, 1]
-        new = (not value) if isinstance(value, bool) else value / 2 if key in shares else value + 1
-        cfg = base.model_copy(update={"registration": base.registration.model_copy(update={key: new})})
-        assert getattr(_register_params(cfg, MOVING_OBJECT), key) == new, key
+    static, moving = for_capture(base, STATIC_OBJECT), for_capture(base, MOVING_OBJECT)
+    assert static.registration.gmatch.eps_f == 0.5 and moving.registration.gmatch.eps_f is None
+    assert moving.registration.dense_refine is True and static.registration.dense_refine is False
+    assert for_capture(ScanConfig.model_validate({"features": {"kind": "sift"}}), STATIC_OBJECT
+                       ).registration.gmatch.eps_f is None
+    given = ScanConfig.model_validate({"registration": {"dense_refine": True, "gmatch": {"eps_f": 0.7}}})
+    for mode in (STATIC_OBJECT, MOVING_OBJECT):
+        r = for_capture(given, mode).registration
+        assert r.dense_refine is True and r.gmatch.eps_f == 0.7
+    assert for_capture(base, STATIC_OBJECT).posegraph == base.posegraph and base.registration.dense_refine is None
 
 
 def test_segmentation_keys_reach_the_segmentation_and_a_far_object_is_found(meshes_dir):
     """The object 1.9 m away: the default working depth, from the depth at the image centre, finds it on its table;
     a fixed `segmentation.depth_max: 1.5` misses it (it takes the whole near scene, IoU 0), 2.5 finds it."""
     from gscan.io.camera import RGBDFrame
-    from gscan.scanning.pipeline import _segment_params
     from gscan.scanning.segment import segment_frame
     from gscan.synth import load_textured_mesh, render_capture
 
     base = ScanConfig()
-    for key, value in base.segmentation.model_dump().items():
-        value = 1.0 if value is None else value
-        cfg = base.model_copy(update={"segmentation": base.segmentation.model_copy(update={key: value + 0.5})})
-        assert getattr(_segment_params(cfg), key) == value + 0.5, key
     mesh = load_textured_mesh(meshes_dir / "Crayola_Bonus_64_Crayons" / "model_0.obj")
     fr = render_capture(mesh, None, 1, distance=1.9, elevations_deg=(40.0,))[0]
     frame = RGBDFrame("far", fr.color, fr.depth, fr.intrinsics)
     near = ScanConfig.model_validate({"segmentation": {"depth_max": 1.5}})
     far = ScanConfig.model_validate({"segmentation": {"depth_max": 2.5}})
     for cfg, min_iou, max_iou in ((base, 0.6, 1.0), (near, 0.0, 0.1), (far, 0.6, 1.0)):
-        m = segment_frame(frame, _segment_params(cfg)).mask
+        m = segment_frame(frame, cfg.segmentation).mask
         iou = (m & fr.mask).sum() / max(1, (m | fr.mask).sum())
         assert min_iou <= iou <= max_iou, (cfg.segmentation.depth_max, iou)
-
-
-# every key of `gscan config dump`: the stage parameter (class, field) whose default it is ...
-STAGE_DEFAULTS = {
-    "camera.check_colour_focal": (FocalCheckParams, "enabled"),
-    "features.kind": (FeatureParams, "kind"), "features.max_keypoints": (FeatureParams, "max_keypoints"),
-    "match.method": (RegisterParams, "method"),
-    **{f"match.{k}": (GMatchParams, k) for k in ("eps_f", "eps_c", "eta", "order", "T", "L", "constraint")},
-    **{f"registration.{k}": (RegisterParams, k) for k in (
-        "min_matches", "max_rms", "max_sigma_deg", "max_sigma_rel", "max_see_through", "min_colour_agreement",
-        "verify", "support_eps_scale",
-        "icp", "icp_max_dist", "icp_voxel", "min_fitness", "max_rmse", "max_icp_shift_deg", "max_icp_shift_m")},
-    "posegraph.loop_candidates": (LoopParams, "max_per_node"),
-    "posegraph.max_view_angle_deg": (LoopParams, "max_angle_deg"),
-    "posegraph.alpha": (PoseGraphParams, "alpha"),
-    **{f"segmentation.{k}": (SegmentParams, k) for k in ("depth_min", "depth_max", "height_max")},
-    "fusion.voxel": (FusionParams, "voxel_size"), "fusion.depth_max": (FusionParams, "depth_max"),
-    **{f"keyframes.{k}": (KeyframeParams, k) for k in ("min_angle_deg", "max_views", "min_views",
-                                                       "min_object_keypoints")},
-    **{f"selection.{k}": (SelectionParams, k) for k in ("min_motion_deg", "blur_ratio")},
-}
-# ... or null, decided per capture (the stage's own default is what a caller without a capture gets) ...
-FROM_THE_CAPTURE = {
-    "registration.noise": (RegisterParams, "noise"),  # estimated from the capture, starting from this prior
-    "registration.dense_refine": (RegisterParams, "dense_refine"),  # on for a moving object, off for a static scene
-}
-# ... or derived from another stage default
-DERIVED = {"posegraph.bridge_min_matches": 2 * RegisterParams().min_matches}
-
-
-def test_config_dump_holds_the_stage_parameter_defaults_key_by_key():
-    """One source of defaults: each value `gscan config dump` prints is the default of the stage parameter it
-    configures (a key missing from the lists above fails: a new key must name its source)."""
-    text = subprocess.run([sys.executable, "-m", "gscan.cli", "config", "dump"], capture_output=True, text=True,
-                          check=True).stdout
-    dumped = {f"{section}.{key}": value
-              for section, keys in yaml.safe_load(text).items() if section != "estimate" for key, value in keys.items()}
-    assert set(dumped) == set(STAGE_DEFAULTS) | set(FROM_THE_CAPTURE) | set(DERIVED)
-    for key, (params, name) in STAGE_DEFAULTS.items():
-        assert dumped[key] == getattr(params(), name), key
-    for key, (params, name) in FROM_THE_CAPTURE.items():
-        assert dumped[key] is None and getattr(params(), name) is not None, key
-    for key, value in DERIVED.items():
-        assert dumped[key] == value, key
 
 
 def test_python_scan_without_a_config_writes_the_poses_of_the_command_line(tmp_path):

@@ -47,8 +47,8 @@ def test_a_thin_box_turned_edge_on_gives_no_edge_at_a_wrong_pose(meshes_dir):
     from gscan.geometry.transforms import inv_T, pose_error
     from gscan.io.camera import RGBDFrame
     from gscan.registration.pairwise import register_frames
-    from gscan.scanning.config import ScanConfig
-    from gscan.scanning.pipeline import MOVING_OBJECT, _feature_params, _register_params
+    from gscan.scanning.capture_mode import MOVING_OBJECT
+    from gscan.scanning.config import ScanConfig, for_capture
     from gscan.synth import load_textured_mesh, render_capture
 
     mesh = load_textured_mesh(meshes_dir / "Mattel_SKIP_BO_Card_Game" / "model_0.obj")
@@ -58,8 +58,8 @@ def test_a_thin_box_turned_edge_on_gives_no_edge_at_a_wrong_pose(meshes_dir):
     frames = {k: RGBDFrame(str(k), v.color, v.depth, v.intrinsics, v.mask, None)
               for k, v in zip(steps, views, strict=True)}
     T_cam_obj = {k: v.T_cam_obj for k, v in zip(steps, views, strict=True)}
-    cfg = ScanConfig()
-    params, fp = _register_params(cfg, MOVING_OBJECT), _feature_params(cfg)
+    cfg = for_capture(ScanConfig(), MOVING_OBJECT)
+    params, fp = cfg.registration, cfg.features
     accepted = []
     for a, b in ((1, 2), (22, 23), (10, 11), (0, 1), (1, 23), (2, 23), (0, 23), (10, 12), (11, 12), (12, 13),
                  (11, 13), (10, 13)):

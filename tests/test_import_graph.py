@@ -155,3 +155,13 @@ def test_the_graph_walk_sees_what_it_must():
     assert stage_of("gscan.io.camera") < stage_of("gscan.viewer.app")
     assert cycles({"a": [("b", 1)], "b": [("c", 1)], "c": [("a", 1)], "d": [("a", 1)]}) == [["a", "b", "c"]]
     assert cycles({"a": [("b", 1)], "b": []}) == []
+
+
+def test_registration_sees_no_scan_template_or_command_line():
+    """Sequence registration takes its own settings and a small frame interface: no module of gscan.registration
+    imports gscan.scanning (ScanConfig, ScanOptions), gscan.template (TemplateDB) or gscan.cli, at any depth."""
+    banned = ("gscan.scanning", "gscan.template", "gscan.cli")
+    bad = [f"{all_modules()[m].relative_to(ROOT)}:{line}: {m} imports {t}"
+           for m, targets in import_graph().items() if m == "gscan.registration" or m.startswith("gscan.registration.")
+           for t, line in targets if any(t == b or t.startswith(b + ".") for b in banned)]
+    assert not bad, "\n".join(bad)

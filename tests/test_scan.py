@@ -180,12 +180,12 @@ def test_unusable_frames_are_named_in_input_order(tmp_path, monkeypatch):
     for p in sorted((cap / "rgb").glob("*.jpg")):
         p.write_bytes(p.read_bytes()[: p.stat().st_size // 2])  # the header reads, the image does not decode
 
-    def backwards(seq, opts, detections):
+    def backwards(source, seq, opts, detections):
         for name in reversed(seq.names):
             with pytest.raises(InputError):
                 seq[name]
         return seq, None
 
-    monkeypatch.setattr(pipeline, "_check_camera", backwards)
+    monkeypatch.setattr(pipeline, "check_camera", backwards)
     with pytest.raises(InputError, match=r"no usable frame \(30 unusable\); first: 000000: .*000000\.jpg"):
         scan(cap, tmp_path / "out.gscan")

@@ -12,6 +12,7 @@ Captures are built by `gscan.synth.cases` from the shared meshes, 640x480 (the m
 """
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import pytest
@@ -134,7 +135,7 @@ def test_two_cameras_of_different_focal_lengths_found_from_the_texture(tmp_path,
     assert abs(cam["colour_focal_px"][0] / (0.9 * DEFAULT_INTRINSICS.fx) - 1) < 0.01, cam
     _check(out, ATE_NEAR)
     cfg = ScanConfig()
-    off = cfg.model_copy(update={"camera": cfg.camera.model_copy(update={"check_colour_focal": False})})
+    off = cfg.model_copy(update={"camera": dataclasses.replace(cfg.camera, check_colour_focal=False)})
     assert scan(case.path, tmp_path / "off.gscan", config=off).registered <= 6
 
     # a query frame from the same cameras, given the same intrinsics (the template's frame tied to the ground truth

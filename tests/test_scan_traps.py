@@ -22,17 +22,20 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from gscan.geometry.transforms import inv_T, look_at, rotvec_to_R
+from gscan.registration import edges as reg_edges
+from gscan.registration import sequence
+from gscan.registration.edge import PRUNED, Edge
 from gscan.registration.pairwise import RegisterParams
 from gscan.scanning import pipeline
 from gscan.synth import cases as C
 from gscan.synth import load_textured_mesh
-from gscan.template.records import Edge
 from tests._scan_checks import ATE_NEAR, Outcome, check_template_is_object, scan_case
 
 BOX = "Whey_Protein_Chocolate_12_Packets"  # 10 x 15 x 16 cm, printed on every side
@@ -121,15 +124,17 @@ def test_two_halves_of_an_orbit_that_share_nothing_are_two_parts(tmp_path, box):
     assert out.ate_m <= ATE_NEAR, out.describe()
 
 
-@pytest.mark.parametrize("second_opinions", [pipeline.SECOND_OPINIONS, 0])
+@pytest.mark.parametrize("second_opinions", [sequence.SequenceParams().second_opinions, 0])
 def test_a_frame_whose_edges_disagree_is_placed_by_more_edges(tmp_path, monkeypatch, box, second_opinions):
     """A 10-view ring whose first frame is registered to its two ring neighbours; the edge to the next frame is
     measured 3 deg off (the registration's result turned about the vertical, injected). The pose graph rejects it;
     the frame's other edge alone would hold it, contradicted, so the frame is cut loose. It is then registered to
     the two registered frames whose view is nearest the one its edges give it, and the graph, judged again,
     places it there; the wrong edge stays rejected. Without those second opinions it stays unregistered."""
-    monkeypatch.setattr(pipeline, "SECOND_OPINIONS", second_opinions)
-    measured = pipeline._Registrar._pair
+    optimise = sequence.optimise_sequence
+    monkeypatch.setattr(pipeline, "optimise_sequence", lambda reg, edges, params, pool: optimise(
+        reg, edges, replace(params, second_opinions=second_opinions), pool))
+    measured = reg_edges.Registrar._pair
     turn = np.eye(4)
     turn[:3, :3] = rotvec_to_R(np.radians([0.0, 3.0, 0.0]))
 
@@ -139,7 +144,7 @@ def test_a_frame_whose_edges_disagree_is_placed_by_more_edges(tmp_path, monkeypa
             got[0].T_tgt_src = turn @ got[0].T_tgt_src
         return got
 
-    monkeypatch.setattr(pipeline._Registrar, "_pair", off)
+    monkeypatch.setattr(reg_edges.Registrar, "_pair", off)
     case = C.far_capture(box, tmp_path / "cap", distance=0.6, n_views=10, seed=0)
     out = scan_case(case, tmp_path / "off.gscan")
     out.check_reasons()
@@ -181,7 +186,8 @@ def test_edges_that_turn_the_view_against_the_odometry_are_rejected():
     across = [edge(10, 20, "loop", flip)]
     edges = sequential + right + flipped + across
     index = {f"{k:06d}": k for k in range(n)}
-    pipeline._against_odometry(n, edges, index, RegisterParams().max_sigma_deg)
+    sequence.against_odometry(n, edges, index, RegisterParams().max_sigma_deg)
     for e in flipped:
-        assert not e.accepted and str(e.reason).startswith(pipeline.PRUNED + pipeline.AGAINST_ODOMETRY), (e.src, e.tgt)
+        why = str(e.reason)
+        assert not e.accepted and why.startswith(PRUNED + reg_edges.AGAINST_ODOMETRY), (e.src, e.tgt)
     assert all(e.accepted and e.reason is None for e in sequential + right + across)

@@ -43,12 +43,13 @@ def scan(
     from gscan.io.camera import depth_camera_of
     from gscan.progress import RichProgress
     from gscan.scanning.api import scan as scan_capture
+    from gscan.scanning.config import load_config
     from gscan.scanning.options import ScanOptions
 
     if resume and force:
         raise UsageError(output, "--resume and --force exclude each other")
     options = ScanOptions(format=format.value, intrinsics=intrinsics, depth_scale=depth_scale, mode=mode.value,
-                          segment=not no_segment, resume=resume, force=force, config=scan_config(config),
+                          segment=not no_segment, resume=resume, force=force, config=load_config(config),
                           obj_id=obj_id, color_topic=color_topic, depth_topic=depth_topic,
                           depth_camera=depth_camera_of(depth_intrinsics, depth_to_color))
     try:
@@ -61,19 +62,6 @@ def scan(
         print_json(result.to_json())
     else:
         print_scan_summary(result)
-
-
-def scan_config(path: Path | None) -> Any:
-    """The scan's settings (`ScanConfig`) from the sections of a configuration file, its `estimate:` section
-    left to the estimator (`gscan config dump` prints both); the defaults without a file."""
-    from gscan.scanning.config import ScanConfig
-    from gscan.settings import read_yaml, validate
-
-    if path is None:
-        return ScanConfig()
-    data = read_yaml(path)
-    data.pop("estimate", None)
-    return validate(ScanConfig, data, path)
 
 
 def interrupted_scan_line(output: Path, force: bool) -> str:

@@ -19,12 +19,15 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from typing import Annotated
 
 import cv2
 import numpy as np
+from pydantic import Field
 
 from gscan.geometry.transforms import transform_points
 from gscan.io.camera import Intrinsics, RGBDFrame, lift_keypoints
+from gscan.settings import SETTINGS
 
 log = logging.getLogger(__name__)
 
@@ -88,19 +91,31 @@ class Features:
 
 @dataclass(frozen=True)
 class FeatureParams:
-    kind: str = "rootsift"  # "sift" | "rootsift" | "orb"
-    max_keypoints: int = 2000  # cap on returned (valid-depth) keypoints; strongest responses kept
-    lift_window: int = 2  # depth median over a (2w+1)^2 window around each keypoint
-    lift_max_rel_spread: float = 0.03  # reject windows whose 10-90% depth spread exceeds this * median
-    lift_min_valid_frac: float = 0.5  # reject windows with fewer valid depth pixels than this fraction
-    sift_contrast_threshold: float = 0.04  # OpenCV default; lower -> more keypoints on weak texture
-    sift_edge_threshold: float = 10.0  # OpenCV default
-    sift_n_octave_layers: int = 3  # OpenCV default
-    sift_sigma: float = 1.6  # OpenCV default
-    orb_detect_factor: float = 2.0  # ORB detects max_keypoints * factor before the depth filter
-    orb_scale_factor: float = 1.2  # OpenCV default
-    orb_n_levels: int = 8  # OpenCV default
-    orb_fast_threshold: int = 20  # OpenCV default
+    """Keypoints and descriptors of a frame, lifted to 3D by the depth around them."""
+
+    __pydantic_config__ = SETTINGS
+
+    # a str (a template's descriptor kind is read as one), its choices a pattern
+    kind: Annotated[str, Field(pattern="^(sift|rootsift|orb)$", description="keypoint descriptor: sift, rootsift "
+                               "or orb")] = "rootsift"
+    max_keypoints: Annotated[int, Field(ge=50, le=20000, description="strongest keypoints kept per frame (with "
+                                        "valid depth)")] = 2000
+    lift_window: Annotated[int, Field(ge=0, le=16, description="a keypoint's depth is the median over a (2w+1)^2 "
+                                      "window around it")] = 2
+    lift_max_rel_spread: Annotated[float, Field(gt=0, description="windows whose 10-90% depth spread exceeds this "
+                                                "share of their median are rejected")] = 0.03
+    lift_min_valid_frac: Annotated[float, Field(ge=0, le=1, description="windows with fewer valid depth pixels than "
+                                                "this share are rejected")] = 0.5
+    sift_contrast_threshold: Annotated[float, Field(gt=0, description="SIFT contrast threshold (OpenCV's default); "
+                                                    "lower finds more keypoints on weak texture")] = 0.04
+    sift_edge_threshold: Annotated[float, Field(gt=0, description="SIFT edge threshold (OpenCV's default)")] = 10.0
+    sift_n_octave_layers: Annotated[int, Field(ge=1, description="SIFT layers per octave (OpenCV's default)")] = 3
+    sift_sigma: Annotated[float, Field(gt=0, description="SIFT base Gaussian sigma (OpenCV's default)")] = 1.6
+    orb_detect_factor: Annotated[float, Field(ge=1, description="ORB detects max_keypoints x this before the depth "
+                                              "filter")] = 2.0
+    orb_scale_factor: Annotated[float, Field(gt=1, description="ORB pyramid scale factor (OpenCV's default)")] = 1.2
+    orb_n_levels: Annotated[int, Field(ge=1, description="ORB pyramid levels (OpenCV's default)")] = 8
+    orb_fast_threshold: Annotated[int, Field(ge=1, description="ORB FAST threshold (OpenCV's default)")] = 20
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:

@@ -24,10 +24,13 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field
+from typing import Annotated
 
 import numpy as np
+from pydantic import Field
 
 from gscan.geometry.kabsch import kabsch
+from gscan.settings import SETTINGS
 
 log = logging.getLogger(__name__)
 
@@ -36,12 +39,17 @@ BASELINES = ("ratio", "mutual", "ransac", "lo-ransac", "fgr")
 
 @dataclass(frozen=True)
 class BaselineParams:
-    ratio: float = 0.75  # Lowe's ratio
-    inlier_dist: float = 0.01  # m; RANSAC / LO-RANSAC inlier threshold (= GMatch eta)
-    iterations: int = 100_000  # RANSAC / LO-RANSAC maximum trials
-    confidence: float = 0.999
-    fgr_dist_factor: float = 2.5  # FGR final correspondence distance = factor * inlier_dist
-    seed: int = 0
+    """The baseline matchers' settings (for comparison with GMatch)."""
+
+    __pydantic_config__ = SETTINGS
+
+    ratio: Annotated[float, Field(gt=0, le=1, description="Lowe's ratio")] = 0.75
+    inlier_dist: Annotated[float, Field(gt=0, description="RANSAC / LO-RANSAC inlier threshold (m)")] = 0.01
+    iterations: Annotated[int, Field(ge=1, description="RANSAC / LO-RANSAC maximum trials")] = 100_000
+    confidence: Annotated[float, Field(gt=0, lt=1, description="RANSAC confidence")] = 0.999
+    fgr_dist_factor: Annotated[float, Field(gt=0, description="FGR's final correspondence distance, in "
+                                            "inlier_dist")] = 2.5
+    seed: Annotated[int, Field(ge=0, description="random seed")] = 0
 
 
 @dataclass

@@ -73,10 +73,13 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field
+from typing import Annotated, Literal
 
 import numpy as np
+from pydantic import Field
 
 from gscan.matching.kernel import flips, search, second_smallest_per_row
+from gscan.settings import SETTINGS
 
 log = logging.getLogger(__name__)
 
@@ -102,19 +105,30 @@ def default_eps_f(kind: str) -> float:
 
 @dataclass(frozen=True)
 class GMatchParams:
-    eps_f: float | None = None  # feature threshold; None -> default_eps_f(kind)
-    eps_c: float = 0.08  # geometric cost tolerance on the relative distance error
-    eta: float = 0.01  # absolute distance margin (m) at eta_ref_depth
-    eta_depth: bool = True  # eta grows with (z / eta_ref_depth)^2 beyond eta_ref_depth
-    eta_ref_depth: float = 0.5  # m
-    T: int = 24  # seeds
-    L: int = 24  # max match list length
-    constraint: str = "flip"  # "flip" | "triple" | "distance" (ablation)
-    K2: int = 8  # second pairs per seed (level 2 of the hypothesis search)
-    K3: int = 4  # third pairs per second pair (level 3)
-    flip_margin: float = 0.8  # |z_s - z_t| above which opposite-signed normals count as a flip-over
-    collinear_sin: float = 0.1  # triangles with a smaller sine are degenerate / not flip-tested
-    order: str = "ratio"  # search order of the candidates: "distance" | "ratio" (module docstring)
+    """GMatch's settings (module docstring)."""
+
+    __pydantic_config__ = SETTINGS
+
+    eps_f: Annotated[float | None, Field(gt=0, description="descriptor distance threshold; null = the descriptor's "
+                                         "default (a scan: tighter for rootsift on a static scene's whole "
+                                         "frames)")] = None
+    eps_c: Annotated[float, Field(gt=0, lt=1, description="relative pairwise-distance tolerance")] = 0.08
+    eta: Annotated[float, Field(gt=0, description="absolute distance margin at eta_ref_depth (m)")] = 0.01
+    eta_depth: Annotated[bool, Field(description="eta grows with (z / eta_ref_depth)^2 beyond eta_ref_depth")] = True
+    eta_ref_depth: Annotated[float, Field(gt=0, description="the depth eta holds at (m)")] = 0.5
+    T: Annotated[int, Field(ge=1, le=256, description="seeds (the first T candidates in the search order)")] = 24
+    L: Annotated[int, Field(ge=3, le=256, description="maximum match-list length")] = 24
+    constraint: Annotated[Literal["flip", "triple", "distance"], Field(
+        description="flip-over or scalar-triple-product constraint (distance: none, an ablation)")] = "flip"
+    K2: Annotated[int, Field(ge=1, le=256, description="second pairs per seed (level 2 of the hypothesis "
+                             "search)")] = 8
+    K3: Annotated[int, Field(ge=1, le=256, description="third pairs per second pair (level 3)")] = 4
+    flip_margin: Annotated[float, Field(ge=0, description="|z_s - z_t| above which opposite-signed normals count "
+                                        "as a flip-over")] = 0.8
+    collinear_sin: Annotated[float, Field(ge=0, lt=1, description="triangles with a smaller sine are degenerate "
+                                          "(not flip-tested)")] = 0.1
+    order: Annotated[Literal["ratio", "distance"], Field(
+        description="candidate order: Lowe ratio (distinctive first) or descriptor distance (the paper's)")] = "ratio"
 
     def __post_init__(self) -> None:
         if self.order not in ORDERS:

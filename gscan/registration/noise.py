@@ -25,8 +25,12 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
+from typing import Annotated
 
 import numpy as np
+from pydantic import Field
+
+from gscan.settings import SETTINGS
 
 log = logging.getLogger(__name__)
 
@@ -45,9 +49,12 @@ class DepthNoise:
     metre^2 (axial), about a Kinect v1 or a RealSense D435 (sigma 2.7 mm at 1 m, 8.7 mm at 2.2 m).
     """
 
-    c0: float = 0.001 ** 2
-    c1: float = 0.002 ** 2
-    c2: float = 0.0015 ** 2
+    __pydantic_config__ = SETTINGS
+
+    c0: Annotated[float, Field(ge=0, description="per-axis variance floor (m^2)")] = 0.001 ** 2
+    c1: Annotated[float, Field(ge=0, description="... growing with depth^2 (localisation: m^2 per m^2)")] = 0.002 ** 2
+    c2: Annotated[float, Field(ge=0, description="... growing with depth^4 (axial sensor noise: m^2 per m^4)")] = (
+        0.0015 ** 2)
 
     def __post_init__(self) -> None:
         if min(self.c0, self.c1, self.c2) < 0 or not np.isfinite([self.c0, self.c1, self.c2]).all():

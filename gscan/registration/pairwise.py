@@ -64,8 +64,10 @@ import itertools
 import logging
 import time
 from dataclasses import dataclass, field
+from typing import Annotated, Literal
 
 import numpy as np
+from pydantic import Field
 
 from gscan.features import FeatureParams, Features, descriptor_distances, extract_features
 from gscan.geometry.icp import icp
@@ -80,6 +82,7 @@ from gscan.registration.dense import refine_pose as refine_with_depth
 from gscan.registration.noise import DepthNoise
 from gscan.registration.pool_kernel import near_pairs, pool_rows
 from gscan.registration.posegraph import information_from_points
+from gscan.settings import SETTINGS
 
 log = logging.getLogger(__name__)
 
@@ -88,37 +91,65 @@ METHODS = ("gmatch",) + BASELINES
 
 @dataclass(frozen=True)
 class RegisterParams:
-    method: str = "gmatch"  # "gmatch" or a baseline name (gscan.matching.baselines.BASELINES)
-    gmatch: GMatchParams = GMatchParams()  # matcher parameters (eps_f None -> default of the descriptor)
-    baseline: BaselineParams = BaselineParams()  # fixed baseline parameters
-    noise: DepthNoise = DepthNoise()  # the unit s of every keypoint residual below (gscan.registration.noise)
-    depth_noise: DepthNoise = DepthNoise()  # ... of a depth pixel: the depth check and the depth refinement
-    min_matches: int = 6  # rule 1
-    max_rms: float = 2.5  # rule 2: RMS of the inliers' residuals in units of s
-    max_sigma_deg: float = 1.0  # rule 2: predicted rotation standard deviation of the pose (deg)
-    max_sigma_rel: float = 0.01  # rule 2: predicted RMS position standard deviation of the pairs' points / depth
-    refine: bool = True  # guided refinement of the GMatch pose (module docstring); gmatch only
-    refine_gates: tuple[float, ...] = (5.0, 4.0, 3.4)  # its inlier gate per round, in units of s
-    trim_gate: float = 4.0  # GMatch list pairs off by more s are trimmed from the pose (kabsch_trimmed)
-    verify: int = 16  # other GMatch lists whose support is compared with the winner's (0: the paper's pick alone)
-    verify_min_len: int = 4  # ... of at least this many pairs
-    verify_ratio: float = 1.5  # ... one replaces the winner only with this many times its support
-    support_eps_scale: float = 1.5  # ... support counted on pairs with descriptor distance < this x eps_f
-    max_see_through: float = 0.15  # rule 3: share of the depth overlap seen through under the pose
-    min_colour_agreement: float = 1 / 3  # rule 3: share of the textured tiles lining up (chance: 1 in 17)
-    min_colour_tiles: int = 8  # rule 3: textured tiles the colour verdict needs
-    dense_refine: bool = True  # with the depth samples, the pose is refined on keypoints and depth together
-    min_overlap: int = 50  # rule 3: depth samples that must land on the other frame to verify the pose
-    # refine by point-to-plane ICP when clouds are given; off by default: on textured planar scenes ICP
-    # slides along the plane, away from the match pose
-    icp: bool = False
-    icp_max_dist: float = 0.01  # ICP correspondence distance (m)
-    icp_voxel: float = 0.004  # ICP voxel downsampling (m), 0 = none
-    icp_iterations: int = 30
-    min_fitness: float = 0.3  # rule 4
-    max_rmse: float = 0.006  # rule 4 (m)
-    max_icp_shift_deg: float = 5.0  # rule 4
-    max_icp_shift_m: float = 0.02  # rule 4 (m)
+    """How a pair of frames is registered and when the edge is accepted (rules 1-4 of the module docstring)."""
+
+    __pydantic_config__ = SETTINGS
+
+    method: Annotated[Literal["gmatch", "ratio", "mutual", "ransac", "lo-ransac", "fgr"], Field(
+        description="pairwise matcher: GMatch or a baseline (for comparison)")] = "gmatch"
+    gmatch: Annotated[GMatchParams, Field(description="GMatch's settings")] = GMatchParams()
+    baseline: Annotated[BaselineParams, Field(description="the baselines' settings")] = BaselineParams()
+    noise: Annotated[DepthNoise, Field(description="noise of a lifted keypoint (window median of the depth), the unit "
+                                       "s of every keypoint residual threshold; a scan's prior, from which it "
+                                       "estimates its capture's own (posegraph.estimate_noise)")] = DepthNoise()
+    depth_noise: Annotated[DepthNoise, Field(description="noise of one depth pixel (the depth check and the depth "
+                                             "refinement); a scan's prior, like noise")] = DepthNoise()
+    min_matches: Annotated[int, Field(ge=3, description="rule 1: an edge needs at least this many geometric "
+                                      "matches")] = 6
+    max_rms: Annotated[float, Field(gt=0, description="rule 2: an edge's keypoint residual RMS may be at most this "
+                                    "many noise sigmas")] = 2.5
+    max_sigma_deg: Annotated[float, Field(gt=0, description="rule 2: an edge's pose, as its matched points pin it, "
+                                          "may be uncertain by at most this (deg, 1 sigma)")] = 1.0
+    max_sigma_rel: Annotated[float, Field(gt=0, description="rule 2: ... and by at most this share of its depth "
+                                          "(position, 1 sigma)")] = 0.01
+    refine: Annotated[bool, Field(description="guided refinement of the GMatch pose (gmatch only)")] = True
+    refine_gates: Annotated[tuple[float, ...], Field(min_length=1, description="the refinement's inlier gate per "
+                                                     "round, in noise sigmas")] = (5.0, 4.0, 3.4)
+    trim_gate: Annotated[float, Field(gt=0, description="GMatch list pairs off by more noise sigmas are trimmed from "
+                                      "the pose")] = 4.0
+    verify: Annotated[int, Field(ge=0, le=256, description="other GMatch hypothesis lists whose support is checked "
+                                 "against the longest's (0 = the paper's pick)")] = 16
+    verify_min_len: Annotated[int, Field(ge=3, description="... of at least this many pairs")] = 4
+    verify_ratio: Annotated[float, Field(ge=1, description="... one replaces the longest only with this many times "
+                                         "its support")] = 1.5
+    support_eps_scale: Annotated[float, Field(ge=1, le=4, description="the support of those lists counts pairs with "
+                                              "descriptor distance below this x eps_f (1 = GMatch's "
+                                              "candidates)")] = 1.5
+    max_see_through: Annotated[float, Field(ge=0, le=1, description="rule 3: an edge is rejected when its pose lets "
+                                            "one frame see through this share of the other frame's surfaces")] = 0.15
+    min_colour_agreement: Annotated[float, Field(ge=0, le=1, description="rule 3: an edge is rejected when the "
+                                                 "texture of fewer than this share of the overlap's textured tiles "
+                                                 "lines up under its pose (unrelated texture: about 1 in 17)")] = 1 / 3
+    min_colour_tiles: Annotated[int, Field(ge=1, description="rule 3: textured tiles the colour verdict needs")] = 8
+    dense_refine: Annotated[bool | None, Field(description="refine each edge's pose on its keypoints and both frames' "
+                                               "depth together (point-to-plane); null = on, and in a scan for a "
+                                               "moving object only (a static scene's depth drifts from the truth "
+                                               "where the camera moves fast)")] = None
+    min_overlap: Annotated[int, Field(ge=1, description="rule 3: depth samples that must land on the other frame to "
+                                      "verify the pose")] = 50
+    icp: Annotated[bool, Field(description="refine each edge by point-to-plane ICP (off: on textured planar scenes "
+                               "ICP slides; GMatch + Kabsch is measured more accurate)")] = False
+    icp_max_dist: Annotated[float, Field(gt=0, description="ICP correspondence distance (m)")] = 0.01
+    icp_voxel: Annotated[float, Field(ge=0, description="voxel size for ICP clouds (m), 0 = no downsampling")] = 0.004
+    icp_iterations: Annotated[int, Field(ge=1, description="ICP iterations")] = 30
+    min_fitness: Annotated[float, Field(ge=0, le=1, description="rule 4: an edge needs ICP fitness at least "
+                                        "this")] = 0.3
+    max_rmse: Annotated[float, Field(gt=0, description="rule 4: an edge needs ICP inlier RMSE at most this "
+                                     "(m)")] = 0.006
+    max_icp_shift_deg: Annotated[float, Field(gt=0, description="rule 4: reject an edge whose ICP moved the match pose "
+                                              "more (deg)")] = 5.0
+    max_icp_shift_m: Annotated[float, Field(gt=0, description="rule 4: reject an edge whose ICP moved the match pose "
+                                            "more (m)")] = 0.02
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -131,6 +162,11 @@ class RegisterParams:
             raise ValueError("refine_gates, trim_gate and max_rms must be positive")
         if not 0 <= self.max_see_through <= 1 or not 0 <= self.min_colour_agreement <= 1:
             raise ValueError("max_see_through and min_colour_agreement must lie in [0, 1]")
+
+    @property
+    def refines_on_depth(self) -> bool:
+        """Whether the pose is refined on keypoints and depth together (dense_refine; null: on)."""
+        return self.dense_refine is not False
 
 
 @dataclass
@@ -407,7 +443,7 @@ def register_points(pts_s: np.ndarray, pts_t: np.ndarray, desc_s: np.ndarray, de
     if out.rms_sigma is not None and out.rms_sigma > params.max_rms:
         out.reason = f"keypoint residual ({out.rms_sigma:.2f} > {params.max_rms} noise sigmas)"
         return out
-    if dense is not None and params.dense_refine:
+    if dense is not None and params.refines_on_depth:
         t0 = time.perf_counter()
         T, out.information = refine_with_depth(dense[0], dense[1], src, dst, T, params.noise, params.depth_noise)
         out.T_tgt_src = T
@@ -416,7 +452,7 @@ def register_points(pts_s: np.ndarray, pts_t: np.ndarray, desc_s: np.ndarray, de
     depth = float(np.median(pt[inliers[:, 1], 2]))
     if out.sigma_deg is not None and out.sigma_m is not None and (out.sigma_deg > params.max_sigma_deg
                                                                   or out.sigma_m > params.max_sigma_rel * depth):
-        what = "pairs and the depth" if dense is not None and params.dense_refine else "pairs"
+        what = "pairs and the depth" if dense is not None and params.refines_on_depth else "pairs"
         out.reason = (f"weak geometry (the {n_kept} {what} pin the pose to {out.sigma_deg:.1f} deg and the "
                       f"pairs' points to {out.sigma_m * 1000:.1f} mm, beyond {params.max_sigma_deg:g} deg / "
                       f"{params.max_sigma_rel * depth * 1000:.1f} mm)")

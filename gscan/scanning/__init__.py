@@ -2,10 +2,13 @@
 
 - api: `scan(source, output, options) -> ScanResult` (what `gscan scan` runs)
 - options: `ScanOptions` (every option of one scan, one typed value)
-- pipeline: the stages (mode, load, features, register, posegraph, segment, fuse, database), `ScanResult`
+- pipeline: the stages (camera, mode, load, features, noise, register, posegraph, segment, fuse, database),
+  `ScanResult`; frames: the input's frames loaded and read back; output: the database, new or resumed; camera:
+  the colour focal length checked before the scan
 - select: frame selection (`FrameSelector`: the frames a scan keeps, by motion and sharpness)
 - store: `FrameStore` (the kept frames' images on disk while a scan runs)
-- config: `ScanConfig` (the YAML configuration), `load_config`, `dump_defaults`
+- config: `ScanConfig` (the YAML configuration: a section per stage, that stage's settings class), `for_capture`,
+  `load_config`, `dump_defaults`
 - capture_mode: `detect_mode` (static object or moving object), `moving_object_masks`
 - keyframes: `select_keyframes`, `KeyframeParams`
 - segment: `segment_frame`, `segment_sequence`, `support_plane`, `SegmentParams`
@@ -25,7 +28,7 @@ _EXPORTS = {
     "scan": "gscan.scanning.api", "ScanOptions": "gscan.scanning.options",
     "ScanResult": "gscan.scanning.pipeline",
     "ScanConfig": "gscan.scanning.config", "load_config": "gscan.scanning.config",
-    "dump_defaults": "gscan.scanning.config",
+    "for_capture": "gscan.scanning.config", "dump_defaults": "gscan.scanning.config",
     "detect_mode": "gscan.scanning.capture_mode", "moving_object_masks": "gscan.scanning.capture_mode",
     "STATIC_OBJECT": "gscan.scanning.capture_mode", "MOVING_OBJECT": "gscan.scanning.capture_mode",
     "select_keyframes": "gscan.scanning.keyframes", "KeyframeParams": "gscan.scanning.keyframes",
@@ -40,7 +43,7 @@ if TYPE_CHECKING:
     from gscan.scanning.api import scan
     from gscan.scanning.cad import TemplateResult, template_from_mesh
     from gscan.scanning.capture_mode import MOVING_OBJECT, STATIC_OBJECT, detect_mode, moving_object_masks
-    from gscan.scanning.config import ScanConfig, dump_defaults, load_config
+    from gscan.scanning.config import ScanConfig, dump_defaults, for_capture, load_config
     from gscan.scanning.fuse import FusedModel, FusionParams, fuse_tsdf, template_frame
     from gscan.scanning.keyframes import KeyframeParams, select_keyframes
     from gscan.scanning.options import ScanOptions
@@ -50,7 +53,8 @@ if TYPE_CHECKING:
 __all__ = [
     "MOVING_OBJECT", "STATIC_OBJECT", "FusedModel", "FusionParams", "KeyframeParams", "ScanConfig", "ScanOptions",
     "ScanResult", "SegmentParams",
-    "TemplateResult", "detect_mode", "dump_defaults", "fuse_tsdf", "load_config", "moving_object_masks", "scan",
-    "segment_frame", "segment_sequence", "select_keyframes", "support_plane", "template_frame", "template_from_mesh",
+    "TemplateResult", "detect_mode", "dump_defaults", "for_capture", "fuse_tsdf", "load_config", "moving_object_masks",
+    "scan", "segment_frame", "segment_sequence", "select_keyframes", "support_plane", "template_frame",
+    "template_from_mesh",
 ]
 __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

@@ -35,8 +35,10 @@ import threading
 from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
+from typing import Annotated
 
 import numpy as np
+from pydantic import Field
 
 from gscan.features import Detection, FeatureParams, Features, detect, extract_features
 from gscan.io.align import align_depth_to_color
@@ -44,6 +46,7 @@ from gscan.io.camera import DepthCamera, Intrinsics, RGBDFrame, lift_keypoints
 from gscan.registration.dense import DenseGeometry, image_texture
 from gscan.registration.noise import sign_test
 from gscan.registration.pairwise import RegisterParams, register_features
+from gscan.settings import SETTINGS
 
 log = logging.getLogger(__name__)
 
@@ -52,17 +55,21 @@ SCALES = (0.8, 0.85, 0.9, 0.95, 1.0, 1.05, 1.1, 1.15, 1.2)  # colour focal lengt
 
 @dataclass(frozen=True)
 class FocalCheckParams:
-    """The check's settings (module docstring): enabled (the scan runs it on folder captures with one set of
-    intrinsics); steps: pairs (i, i + step); groups: first frames i spread over the capture; keypoints: the
-    strongest kept per frame (enough to register neighbours, and fast); alpha: the sign test's level;
-    min_gain: the least gain in the mean share of textured tiles lining up."""
+    """The check's settings (module docstring)."""
 
-    enabled: bool = True
-    steps: tuple[int, ...] = (1, 2)
-    groups: int = 8
-    keypoints: int = 800
-    alpha: float = 0.05
-    min_gain: float = 0.03
+    __pydantic_config__ = SETTINGS
+
+    check_colour_focal: Annotated[bool, Field(description="a folder capture with one set of intrinsics: check that "
+                                              "its depth lines up with its colour, and when the texture says the "
+                                              "colour camera's focal length differs, scan with the one the data "
+                                              "give")] = True
+    steps: Annotated[tuple[int, ...], Field(min_length=1, description="frame pairs (i, i + step) registered")] = (1, 2)
+    groups: Annotated[int, Field(ge=1, description="first frames i spread over the capture")] = 8
+    keypoints: Annotated[int, Field(ge=50, description="the strongest keypoints kept per frame (enough to register "
+                                    "neighbours, and fast)")] = 800
+    alpha: Annotated[float, Field(gt=0, lt=1, description="the sign test's level")] = 0.05
+    min_gain: Annotated[float, Field(ge=0, le=1, description="the least gain in the mean share of textured tiles "
+                                     "lining up")] = 0.03
 
 
 @dataclass(frozen=True)

@@ -15,29 +15,39 @@ import logging
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Annotated
 
 import numpy as np
+from pydantic import Field
 
 from gscan.geometry.mesh import MeshData, to_u8_colors
 from gscan.geometry.plane import Plane
 from gscan.geometry.transforms import inv_T, make_T, transform_points
 from gscan.io.camera import RGBDFrame, backproject
+from gscan.settings import SETTINGS
 
 log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
 class FusionParams:
-    voxel_size: float | None = None      # m; None: object extent / 150, clamped to [voxel_min, voxel_max]
-    voxel_min: float = 0.002
-    voxel_max: float = 0.01
-    trunc_voxels: float = 4.0            # truncation distance in voxels
-    block_resolution: int = 16
-    depth_max: float | None = None       # m; None: 1.05 x the largest masked depth
-    weight_threshold: float = 1.5        # voxels with less weight (~observations) are not surfaced (capped
-                                         # below the number of fused frames)
-    min_component_fraction: float = 0.1  # drop mesh components below this fraction of the largest one's triangles
-    keep_largest_only: bool = False      # keep just the largest connected component
+    """TSDF fusion of the object's depth and the mesh taken from it."""
+
+    __pydantic_config__ = SETTINGS
+
+    voxel: Annotated[float | None, Field(gt=0, description="TSDF voxel size (m); null = object extent / 150 within "
+                                         "voxel_min - voxel_max")] = None
+    voxel_min: Annotated[float, Field(gt=0, description="smallest automatic voxel (m)")] = 0.002
+    voxel_max: Annotated[float, Field(gt=0, description="largest automatic voxel (m)")] = 0.01
+    trunc_voxels: Annotated[float, Field(gt=0, description="truncation distance, in voxels")] = 4.0
+    block_resolution: Annotated[int, Field(ge=1, description="voxels per TSDF block side")] = 16
+    depth_max: Annotated[float | None, Field(gt=0, description="depth beyond this is ignored when fusing (m); null = "
+                                             "just beyond the farthest object pixel")] = None
+    weight_threshold: Annotated[float, Field(ge=0, description="voxels with less weight (about observations) are not "
+                                             "surfaced (capped below the number of fused frames)")] = 1.5
+    min_component_fraction: Annotated[float, Field(ge=0, le=1, description="mesh components below this share of the "
+                                                   "largest one's triangles are dropped")] = 0.1
+    keep_largest_only: Annotated[bool, Field(description="keep just the largest connected component")] = False
 
 
 @dataclass
@@ -116,7 +126,7 @@ def fuse_tsdf(frames: Sequence[RGBDFrame], T_world_cam: list[np.ndarray | None],
     if not use:
         raise ValueError("no registered frame with masked depth to fuse"
                          + (f" within {params.depth_max} m" if params.depth_max else ""))
-    voxel = params.voxel_size or auto_voxel_size(_extent_estimate(use, frames, masks, T_world_cam), params)
+    voxel = params.voxel or auto_voxel_size(_extent_estimate(use, frames, masks, T_world_cam), params)
     depth_max = params.depth_max or 1.05 * farthest
     trunc = params.trunc_voxels * voxel
     dev = o3c.Device("CPU:0")

@@ -3,19 +3,29 @@ directions the object was seen from, each holding enough keypoints on the object
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Annotated
 
 import numpy as np
+from pydantic import Field
+
+from gscan.settings import SETTINGS
 
 
 @dataclass(frozen=True)
 class KeyframeParams:
-    """What a scan passes to `select_keyframes` (the `keyframes` section of the scan configuration)."""
+    """Which registered views a template keeps as keyframes (`select_keyframes`)."""
 
-    min_angle_deg: float = 12.0  # a new keyframe views the object at least this far from all others
-    max_views: int = 120  # at most this many keyframes
-    min_views: int = 8  # at least this many when the capture has them (the angle shrinks for a short sweep)
-    min_object_keypoints: int = 24  # keyframes hold at least this many keypoints on the object (when any has)
+    __pydantic_config__ = SETTINGS
+
+    min_angle_deg: Annotated[float, Field(ge=0, description="a new keyframe views the object at least this far from "
+                                          "all others")] = 12.0
+    max_views: Annotated[int, Field(ge=1, description="at most this many template views")] = 120
+    min_views: Annotated[int, Field(ge=1, description="at least this many template views when the capture has them "
+                                    "(the angle shrinks for a short sweep)")] = 8
+    min_object_keypoints: Annotated[int, Field(ge=0, description="keyframes are views with at least this many "
+                                               "keypoints on the object (when any has)")] = 24
 
 
 def view_direction(T_obj_cam: np.ndarray) -> np.ndarray:
@@ -62,3 +72,12 @@ def select_keyframes(view_dirs: dict[int, np.ndarray], min_angle_deg: float, max
         angle = max(angle * 0.8, 0.5)
         chosen = _greedy(order, view_dirs, angle)
     return sorted(chosen[:max_views])
+
+
+def keyframe_candidates(T_obj_cam: list[np.ndarray | None], shows: Callable[[int], bool]) -> dict[int, np.ndarray]:
+    """Frame index -> viewing direction (`view_direction`) of the registered frames that show the object
+    (`shows(k)`: its object mask is not empty): a frame without it (a sweep that starts elsewhere) would give
+    the template its background as the object's keypoints. All registered frames when none shows it."""
+    reg = {k: T for k, T in enumerate(T_obj_cam) if T is not None}
+    showing = {k: T for k, T in reg.items() if shows(k)}
+    return {k: view_direction(T) for k, T in (showing or reg).items()}

@@ -1,6 +1,7 @@
 """The scan pipeline: an RGB-D folder to registered views, pose graph, fused mesh and template database.
 
 Stages (each timed, each reported through a `Progress`):
+  camera    a folder capture's colour focal length checked against its data (`gscan.scanning.camera`)
   mode      static-object vs moving-object (`gscan.scanning.capture_mode`), from a few frames spread over the input
   load      read every frame once, in order (unusable ones are reported by name and left out); frame selection
             (`gscan.scanning.select`) keeps the frames the view moved enough to, the sharper where frames blur, and
@@ -8,20 +9,20 @@ Stages (each timed, each reported through a `Progress`):
             (`gscan.scanning.store`, an anonymous file beside the output), with a moving object's mask
   features  keypoints + descriptors lifted to 3D; whole frame for a static object, object only for a
             moving one; stored at once in the database with the view's images (camera frame, pose unknown)
-  register  pairwise edges: each frame against the previous one, falling back to the next earlier
-            ones (`MAX_SKIP` frames in all), then loop closures chosen by view overlap
-            and bag-of-words votes; each edge = GMatch -> Kabsch -> guided refinement (-> ICP when
-            configured), accepted by the rules of `gscan.registration.pairwise`; stored as it is computed
-  posegraph robust global optimisation (`gscan.registration.posegraph`) with pruning of inconsistent edges;
-            a frame it cuts loose (its edges disagree and no cycle decides, or a weak edge alone held it) is
-            registered to `SECOND_OPINIONS` more frames and the graph optimised again with those edges;
-            frames not connected to the reference frame stay unregistered and are never fused
+  noise     the capture's keypoint and depth noise from a few sequential pairs (unless configured)
+  register  pairwise edges (`gscan.registration.sequence`): each frame against the previous one, falling back to
+            the next earlier ones, then loop closures chosen by view overlap and bag-of-words votes; each edge =
+            GMatch -> Kabsch -> guided refinement (-> ICP when configured), accepted by the rules of
+            `gscan.registration.pairwise`; stored as it is computed
+  posegraph robust global optimisation (`gscan.registration.sequence`, `.posegraph`) with pruning of inconsistent
+            edges and second opinions on the frames it cuts loose; frames not connected to the reference frame
+            stay unregistered and are never fused
   segment   object masks (given, background subtraction, or support plane + working volume)
   fuse      TSDF fusion of the object's depth; template frame (fuse.template_frame)
   database  poses, masks, keyframes and keypoints in the object frame, mesh, cloud; status complete
 
 Memory does not grow with the capture: after the load a stage holds a few frames at a time, reading their
-images back from the frame store and their keypoints from the database (`_FrameData`); what stays in memory
+images back from the frame store and their keypoints from the database (`FrameData`); what stays in memory
 per kept frame is its name, counts and pose, and per edge its matches and pose-graph evidence.
 
 Database writes: one transaction per stage (per COMMIT_ROWS views or edges in a long one) on a write-ahead log,
@@ -29,27 +30,21 @@ each view's images written once (`gscan.template.db`).
 
 Resume: the database is `partial` until the last transaction. `--resume` reuses the stored views'
 keypoints and every stored edge (the expensive parts) and recomputes the rest, which is
-deterministic, so an interrupted scan resumes to the same result as an uninterrupted one.
+deterministic, so an interrupted scan resumes to the same result as an uninterrupted one
+(`gscan.scanning.output`). The frames are loaded and read back by `gscan.scanning.frames`.
 """
 from __future__ import annotations
 
-import collections.abc
 import contextlib
-import itertools
-import json
 import logging
-import shutil
-import threading
-from collections import OrderedDict, deque
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, TypeVar
 
 import numpy as np
 
-from gscan.errors import InputError, OutputExists
+from gscan.errors import InputError
 from gscan.features import (
     OBJECT_FEATURES,
     Detection,
@@ -59,75 +54,36 @@ from gscan.features import (
     extract_features_in_mask,
 )
 from gscan.geometry.plane import Plane
-from gscan.geometry.transforms import inv_T, rotation_angle_deg, transform_points
-from gscan.io.camera import DepthCamera, Intrinsics, RGBDFrame, backproject
+from gscan.geometry.transforms import transform_points
+from gscan.io.camera import RGBDFrame
 from gscan.io.output import (
     Output,
     check_output,
     file_identity,
-    journal_fits,
     missing_folders,
-    occupied,
     remove_empty_folders,
     remove_sqlite_sidecars,
 )
-from gscan.io.sequence import Sequence
 from gscan.progress import Progress, StageTimer
-from gscan.registration.dense import DenseGeometry, in_source_frame, plane_residuals, pose_information
-from gscan.registration.noise import DepthNoise, estimate_noise
-from gscan.registration.pairwise import RegisterParams, register_features
-from gscan.registration.posegraph import (
-    INCONSISTENT,
-    GraphEdge,
-    LoopParams,
-    PoseGraphParams,
-    PoseGraphResult,
-    information_from_points,
-    optimize_pose_graph,
-    select_loop_candidates,
-    spanning_poses,
-)
-from gscan.scanning.capture_mode import (
-    MOVING_OBJECT,
-    STATIC_OBJECT,
-    background_depth,
-    detect_mode,
-    foreground_mask,
-)
-from gscan.scanning.config import ScanConfig
-from gscan.scanning.fuse import FusedModel, FusionParams, fuse_tsdf, template_frame
-from gscan.scanning.keyframes import select_keyframes, view_direction
+from gscan.registration.edges import COMMIT_ROWS, EdgeSink, Registrar, bounded_map
+from gscan.registration.noise import DepthNoise
+from gscan.registration.sequence import capture_noise, optimise_sequence, register_edges
+from gscan.scanning.camera import check_camera
+from gscan.scanning.capture_mode import MOVING_OBJECT
+from gscan.scanning.config import ScanConfig, for_capture
+from gscan.scanning.frames import WORKERS, FrameData, detect_capture_mode, load_frames
+from gscan.scanning.fuse import FusedModel, fuse_tsdf, template_frame
+from gscan.scanning.keyframes import keyframe_candidates, select_keyframes
 from gscan.scanning.options import ScanOptions
+from gscan.scanning.output import create_output, open_resumed, scan_meta
 from gscan.scanning.segment import SegmentParams, segment_frame
-from gscan.scanning.select import FrameSelector, Selection, SelectionParams
-from gscan.scanning.store import FrameStore, LazyList, StoredFrame
+from gscan.scanning.select import Selection
+from gscan.scanning.store import FrameStore, LazyList
 from gscan.template.db import Edge, TemplateDB, View
-
-if TYPE_CHECKING:
-    from gscan.io.recordings.sequence import RecordingSequence
-    from gscan.io.sequence import Sequence
 
 log = logging.getLogger(__name__)
 
-MAX_SKIP = 3  # a frame is tried against up to this many preceding frames, its predecessor first, until one is accepted
-SECOND_OPINIONS = 2  # more frames a frame the pose graph cut loose is registered to (views nearest its own)
-ICP_VOXEL_STRIDE = 2  # pixel stride of the clouds kept for ICP before voxel downsampling
-# eps_f for whole-frame registration (static object) when the config leaves it unset: on whole frames
-# RootSIFT 0.5 is as accurate as the object-only default 0.6 and gives far fewer candidates, so the search is
-# faster (see BENCHMARKS.md, section Parameter studies)
-WHOLE_FRAME_EPS_F = {"rootsift": 0.5}
-QUALITY_RMS_SIGMA = 3.4  # a view whose best accepted edge has this RMS keypoint residual (noise sigmas) gets quality 0
-PILOT_PAIRS = 8  # sequential pairs, spread over the capture, whose residuals fit the capture's depth noise
-WORKERS = 2  # threads for per-frame and per-edge work (the target machines have 2 cores)
-COMMIT_ROWS = 64  # a stage's database writes are committed in chunks of this many views or edges (and at its end)
-REG_CACHE = 8  # frames whose registration data (keypoints, depth samples) stays loaded: the sequential window
-BACKGROUND_FRAMES = 30  # kept frames (evenly spaced) a static camera's background depth is taken from
-T_in = TypeVar("T_in")
-T_out = TypeVar("T_out")
-PRUNED = "pruned by the pose graph: "  # reason prefix of edges registration accepted and the pose graph rejected
-AGAINST_ODOMETRY = "contradicts the capture's odometry"  # how the reason of such an edge begins (`_against_odometry`)
-ODOMETRY_SIGMAS = 5.0  # ... by more than this many of registration's largest accepted rotation sigmas per frame
-NO_KEYPOINTS = "no keypoint with depth (dark or textureless image, or no valid depth)"
+AHEAD = 2 * WORKERS  # per-frame and per-edge work submitted to the pool and not yet consumed
 
 
 @dataclass
@@ -149,7 +105,7 @@ class ScanResult:
     noise: DepthNoise | None = None  # the noise model of lifted keypoints registration used
     # frame selection: {"kept": int, "skipped": int, "reasons": {why: frames}}; skipped frames are not failures
     selection: dict = field(default_factory=dict)
-    # the colour camera's check (`_check_camera`): given and used focal lengths, texture agreement; None: not run
+    # the colour camera's check (`check_camera`): given and used focal lengths, texture agreement; None: not run
     camera: dict | None = None
 
     def to_json(self) -> dict:
@@ -165,196 +121,25 @@ class ScanResult:
                 "camera": self.camera}
 
 
-def _feature_params(cfg: ScanConfig) -> FeatureParams:
-    """The registration keypoints' parameters from the config."""
-    return FeatureParams(kind=cfg.features.kind, max_keypoints=cfg.features.max_keypoints)
+def _icp_voxel(cfg: ScanConfig) -> float | None:
+    """The voxel of the clouds ICP refines edges on (m); None without ICP."""
+    return cfg.registration.icp_voxel if cfg.registration.icp else None
 
 
-def _register_params(cfg: ScanConfig, mode: str) -> RegisterParams:
-    """Registration's parameters from the config; the noise models are the configured ones, or the priors a
-    capture's own noise is estimated from (`_capture_noise`)."""
-    from gscan.matching.gmatch import GMatchParams
+class _EdgeRecords(EdgeSink):
+    """The scan's database as the sink of a sequence's edges."""
 
-    m, r = cfg.match, cfg.registration
-    eps_f = m.eps_f
-    if eps_f is None and mode == STATIC_OBJECT:
-        eps_f = WHOLE_FRAME_EPS_F.get(cfg.features.kind)
-    # the depth refines edges of a moving object, whose masked views hold few keypoints; a static scene's
-    # whole-frame depth pulls real Kinect edges off the truth where the camera moves fast (see BENCHMARKS.md,
-    # section Real Kinect frames)
-    dense = r.dense_refine if r.dense_refine is not None else mode == MOVING_OBJECT
-    gm = GMatchParams(eps_f=eps_f, eps_c=m.eps_c, eta=m.eta, T=m.T, L=m.L, constraint=m.constraint, order=m.order)
-    params = RegisterParams(method=m.method, gmatch=gm, min_matches=r.min_matches, max_rms=r.max_rms,
-                            max_sigma_deg=r.max_sigma_deg, max_sigma_rel=r.max_sigma_rel,
-                            max_see_through=r.max_see_through, min_colour_agreement=r.min_colour_agreement,
-                            dense_refine=dense, verify=r.verify,
-                            support_eps_scale=r.support_eps_scale, icp=r.icp, icp_max_dist=r.icp_max_dist,
-                            icp_voxel=r.icp_voxel, min_fitness=r.min_fitness, max_rmse=r.max_rmse,
-                            max_icp_shift_deg=r.max_icp_shift_deg, max_icp_shift_m=r.max_icp_shift_m)
-    if r.noise is None:
-        return params
-    return replace(params, noise=DepthNoise(**r.noise.keypoint.model_dump()),
-                   depth_noise=DepthNoise(**r.noise.depth.model_dump()))
+    def __init__(self, db: TemplateDB):
+        self.db = db
 
+    def add(self, edge: Edge) -> None:
+        self.db.add_edge(edge)
 
-RESUME_KEYS = ("input", "format", "intrinsics_sha256", "depth_scale_option", "config", "mode_option", "segment",
-               "obj_id_option", "topics_option", "depth_camera")
+    def commit(self) -> None:
+        self.db.commit()
 
-
-def _scan_meta(source: Path, opts: ScanOptions) -> dict:
-    """The database's meta; a resumed scan must agree on every RESUME_KEYS value (what changes its result):
-    the layout as detected (`--format auto` and the named layout agree), the calibration files' contents."""
-    from gscan.io import detect_format
-
-    return {"source": "scan", "input": str(source.resolve()),
-            "format": detect_format(source) if opts.format == "auto" else opts.format,
-            "intrinsics_sha256": None if opts.intrinsics is None else _sha256(Path(opts.intrinsics)),
-            "depth_scale_option": opts.depth_scale, "config": opts.config.model_dump(), "mode_option": opts.mode,
-            "segment": opts.segment, "obj_id_option": opts.obj_id, "descriptor": opts.config.features.kind,
-            "topics_option": None if opts.color_topic is None and opts.depth_topic is None else
-            [opts.color_topic, opts.depth_topic],
-            "depth_camera": None if opts.depth_camera is None else opts.depth_camera.to_dict(),
-            "units": "m"}
-
-
-def _sha256(path: Path) -> str:
-    import hashlib
-
-    try:
-        return hashlib.sha256(path.read_bytes()).hexdigest()
-    except OSError as e:
-        raise InputError(path, f"cannot read the calibration file ({e.strerror or e})") from None
-
-
-def _open_resumed(source: Path, output: Path, opts: ScanOptions, seq: Sequence | RecordingSequence, frames: dict
-                  ) -> tuple[TemplateDB, Output | None]:
-    """The interrupted scan's database; it must come from the same input, configuration and input frames
-    (`frames`: `Sequence.fingerprints`). A complete database (or one whose journal would have too long a
-    name) is continued in a copy renamed over it at the end, so a failed run leaves it as it was."""
-    meta = _scan_meta(source, opts)
-    db = TemplateDB.open(output, require_complete=False)  # read only until it is known to be continued
-    try:
-        stored = {k: db.get_meta(k) for k in RESUME_KEYS}
-        # settings added to the configuration since the scan started take their defaults; a configuration this
-        # version does not read differs
-        with contextlib.suppress(ValueError, TypeError):
-            stored["config"] = json.loads(json.dumps(ScanConfig.model_validate(stored["config"]).model_dump()))
-        if stored != {k: json.loads(json.dumps(meta[k])) for k in stored}:
-            raise InputError(output, "was written from another input or configuration", fix="restart")
-        _check_frames(output, db.get_meta("input_frames"), json.loads(json.dumps(frames)), seq)
-        in_place = db.status != "complete" and journal_fits(output)
-    except BaseException:
-        db.close()
-        raise
-    db.close()
-    if in_place:
-        return TemplateDB.open(output, require_complete=False, writable=True, wal=True), None
-    target = Output(output, force=True, kind=".gscan file path")
-    try:
-        shutil.copyfile(output, target.open())
-        return TemplateDB.open(target.tmp, require_complete=False, writable=True, wal=True), target
-    except BaseException as e:
-        target.discard()
-        t = target.translate(e)
-        if t is not e:
-            raise t from None
-        raise
-
-
-def _check_frames(output: Path, stored: object, frames: dict, seq: Sequence | RecordingSequence) -> None:
-    """InputError unless the input frames hold what they held when the partial scan `output` started (their
-    files' sizes and hashes): a scan resumed on other images would mix their keypoints and edges."""
-    if not isinstance(stored, dict):
-        raise InputError(output, "holds no record of the input frames it was started from (written by an older "
-                         "gscan); it cannot be resumed safely", fix="restart")
-    if stored == frames:
-        return
-    from gscan.io.layouts import natural_key
-
-    for name in sorted(set(stored) | set(frames), key=natural_key):
-        old, new = stored.get(name, "absent"), frames.get(name, "absent")
-        if old == new:
-            continue
-        if new == "absent":
-            what = f"frame {name} is no longer in the input"
-        elif old == "absent":
-            what = f"frame {name} was not in the input"
-        elif old is None or new is None:
-            what = f"frame {name} {'was unusable then' if old is None else 'is unusable now'}"
-        else:
-            role = next((r for r in ("color", "depth", "mask") if old.get(r) != new.get(r)), None)
-            if role is None or not isinstance(seq, Sequence):  # a recording: one fingerprint of the frame's messages
-                what = f"frame {name} changed"
-            else:
-                changed = getattr(seq.files(name), role) if role in new else None
-                what = f"{changed} changed" if changed is not None else f"frame {name} has no {role} image now"
-        raise InputError(output, f"the input frames are not the ones this partial scan was started from ({what})",
-                         fix="restart")
-
-
-def _create_output(output: Path, opts: ScanOptions, meta: dict) -> tuple[TemplateDB, Output | None]:
-    """A new database: in place while nothing is at the output (an interrupted scan is then resumed from it),
-    else in a temporary sibling that replaces the old output once complete (`Output`)."""
-    if not occupied(output) and journal_fits(output):
-        try:
-            return TemplateDB.create(output, meta=meta, wal=True), None
-        except OutputExists as e:  # created by another process since the checks
-            if not opts.force:
-                raise OutputExists(output, e.reason, fix="resume") from None
-    target = Output(output, force=opts.force, kind=".gscan file path", fix="resume")
-    try:
-        return TemplateDB.create(target.open(), force=True, meta=meta, wal=True), target
-    except BaseException as e:
-        target.discard()
-        t = target.translate(e)
-        if t is not e:
-            raise t from None
-        raise
-
-
-def _check_camera(source: Path, seq: Sequence | RecordingSequence, opts: ScanOptions, detections: dict[str, Detection]
-                  ) -> tuple[Sequence | RecordingSequence, dict | None]:
-    """A folder capture read with one set of intrinsics (no --depth-intrinsics, one K for every frame): the
-    colour camera's focal length checked against the data (gscan.scanning.calibration). When the texture rejects
-    the given one, the capture is read again with the given intrinsics as the depth camera's and the focal
-    length the data give as the colour camera's. Returns (the sequence to scan, the check's report or None);
-    the frames the check detected keypoints in are left in `detections` for the features stage."""
-    from gscan.io import open_sequence
-    from gscan.io.sequence import Sequence
-    from gscan.scanning.calibration import check_colour_focal
-
-    cfg = opts.config
-    if (not cfg.camera.check_colour_focal or opts.depth_camera is not None or not isinstance(seq, Sequence)
-            or seq.depth_camera is not None or any(seq.frame_intrinsics(n) != seq.intrinsics for n in seq.names)):
-        return seq, None
-
-    def read(i: int) -> RGBDFrame | None:
-        try:
-            return seq[seq.names[i]]
-        except InputError:
-            return None
-
-    check = check_colour_focal(read, len(seq.names), _register_params(cfg, STATIC_OBJECT), _feature_params(cfg),
-                               workers=WORKERS, detections=detections)
-    if check is None:
-        return seq, None
-    K = seq.intrinsics
-    Kc = check.colour_intrinsics(K)
-    # (the intrinsics themselves: `gscan.estimate` reads frames of this camera the same way)
-    report = {"given_focal_px": [K.fx, K.fy], "colour_focal_px": [round(Kc.fx, 1), round(Kc.fy, 1)],
-              "corrected": check.significant, "pairs": check.pairs,
-              "texture_agreement": {"given": round(check.agreement[1.0], 3),
-                                    "used": round(check.peak, 3)},
-              "given_intrinsics": K.to_dict(), "colour_intrinsics": Kc.to_dict()}
-    if not check.significant:
-        return seq, report
-    log.warning("the depth does not line up with the colour under the given intrinsics: the texture of %d frame "
-                "pairs lines up best with a colour focal length of %.1f px (%.0f %% of textured tiles, %.0f %% at the "
-                "given %.1f px); scanning with it, the given intrinsics taken as the depth camera's", check.pairs,
-                Kc.fx, 100 * check.peak, 100 * check.agreement[1.0], K.fx)
-    seq = open_sequence(source, format=opts.format, intrinsics=Kc, depth_scale=opts.depth_scale,
-                        obj_id=opts.obj_id, depth_camera=DepthCamera(K))
-    return seq, report
+    def batch(self) -> contextlib.AbstractContextManager[None]:
+        return self.db.batch()
 
 
 def run_scan(source: Path, output: Path, opts: ScanOptions, progress: Progress | None = None) -> ScanResult:
@@ -386,18 +171,18 @@ def run_scan(source: Path, output: Path, opts: ScanOptions, progress: Progress |
             raise InputError(source / "scene_gt.json", f"holds no pose of object {opts.obj_id}", fix="obj_id")
         fingerprints = seq.fingerprints()
         if resumed:
-            db, target = _open_resumed(source, output, opts, seq, fingerprints)
+            db, target = open_resumed(source, output, opts, seq, fingerprints)
         detections: dict[str, Detection] = {}
         with timer.stage("camera", total=1) as advance:  # (after the checks that refuse the input in one line)
-            seq, camera = _check_camera(source, seq, opts, detections)
+            seq, camera = check_camera(source, seq, opts, detections)
             advance(1)
         store = FrameStore(output)
-        seg = _segment_params(opts.config)
         with timer.stage("mode", total=1) as advance:
-            mode, masks_given = _detect_mode(seq, opts.mode)
+            mode, masks_given = detect_capture_mode(seq, opts.mode)
             advance(1)
         with timer.stage("load", total=len(seq)) as advance:
-            frames, failed, selection = _load(seq, mode, masks_given, opts.config, seg, store, advance)
+            frames, failed, selection = load_frames(seq, mode, masks_given, opts.config.selection,
+                                                   opts.config.segmentation, store, advance)
         # in input order (the camera check reads frames on two threads): the listing problems first, as found,
         # then unreadable frames in the order of their names
         index = {name: i for i, name in enumerate(seq.names)}
@@ -422,12 +207,12 @@ def run_scan(source: Path, output: Path, opts: ScanOptions, progress: Progress |
     try:
         if db is None:
             # obj_id: the BOP object the scan followed (its ground truth and masks), for `gscan eval`
-            db, target = _create_output(output, opts, dict(opts.meta) | _scan_meta(source, opts) | {
+            db, target = create_output(output, opts, dict(opts.meta) | scan_meta(source, opts) | {
                 "obj_id": seq.obj_id, "input_frames": fingerprints, "camera": camera})
         created = file_identity(output)  # a new output in place: only this file is removed on failure
         if resumed:  # only once the input is known to hold frames: a complete database stays complete
             db.mark_partial()
-        data = _FrameData(frames, store, db, mode, masks_given, opts.config, detections)
+        data = FrameData(frames, store, db, mode, masks_given, _icp_voxel(opts.config), detections)
         result = _scan_frames(data, source, output, opts, db, resumed, timer, problems, selection)
         result.camera = camera
     except BaseException as e:
@@ -455,207 +240,11 @@ def run_scan(source: Path, output: Path, opts: ScanOptions, progress: Progress |
     return result
 
 
-# ------------------------------------------------------------------------------------------ the frames
-@dataclass
-class _Frame:
-    """A kept frame, as the stages after the load hold it: its images are in the scan's `FrameStore` ("color",
-    "depth", "given_mask"; "object_mask" of a moving object when computed; "mask" once segmented), its keypoints in
-    the database (camera frame until the last stage); `_FrameData` loads them on demand."""
-
-    stored: StoredFrame
-    n_keypoints: int = 0  # registration keypoints with depth
-    depth_m: float | None = None  # their median depth (m): the depth the frame looks at
-    plane_cam: Plane | None = None  # support plane found while computing a moving object's mask
-    object_keypoints: int = 0  # registration keypoints inside its object mask (set at the segment stage)
-
-    @property
-    def name(self) -> str:
-        return self.stored.name
-
-
-@dataclass
-class _RegData:
-    """What registration uses of a frame: keypoints (camera frame), ICP cloud [P x 3] (or None), depth samples."""
-
-    feats: Features
-    cloud: np.ndarray | None
-    dense: DenseGeometry
-
-
-class _FrameData:
-    """The kept frames' images, masks and registration data, loaded on demand: images from the store, keypoints
-    from the database. Registration data of the last `REG_CACHE` frames used is kept (the sequential pairs and the
-    workers' frames), so memory does not grow with the capture. detections: frames' whole-frame detections made
-    before the features stage (the camera check's), by name, each taken by that stage. Thread-safe."""
-
-    def __init__(self, frames: list[_Frame], store: FrameStore, db: TemplateDB, mode: str, masks_given: bool,
-                 cfg: ScanConfig, detections: dict[str, Detection] | None = None):
-        self.frames, self.store, self.db, self.mode, self.masks_given, self.cfg = (frames, store, db, mode,
-                                                                                    masks_given, cfg)
-        self.detections = {} if detections is None else detections
-        self._cache: OrderedDict[int, _RegData] = OrderedDict()
-        self._lock = threading.Lock()
-
-    def __len__(self) -> int:
-        return len(self.frames)
-
-    def frame(self, k: int) -> RGBDFrame:
-        """Frame k as read (colour, depth, given mask)."""
-        return self.frames[k].stored.load(self.store)
-
-    def object_mask(self, k: int) -> np.ndarray | None:
-        """A moving object's mask [H x W] bool in frame k (given, or computed at the load), or None."""
-        if self.mode != MOVING_OBJECT:
-            return None
-        name = self.frames[k].name
-        return self.store.get(name, "given_mask" if self.masks_given else "object_mask")
-
-    def descriptors(self, k: int) -> np.ndarray:
-        """Frame k's registration descriptors [N x D] (from the database)."""
-        feats = self.db.features(self.frames[k].name)
-        assert feats is not None, self.frames[k].name
-        return feats.descriptors
-
-    def reg(self, k: int) -> _RegData:
-        """Registration data of frame k (cached)."""
-        with self._lock:
-            if k in self._cache:
-                self._cache.move_to_end(k)
-                return self._cache[k]
-        f = self.frames[k].stored
-        feats = self.db.features(f.name)
-        assert feats is not None, f.name
-        depth = self.store.need(f.name, "depth")
-        reg_mask = self.object_mask(k)
-        r = self.cfg.registration
-        cloud = _icp_cloud(depth, f.intrinsics, reg_mask, r.icp_voxel) if r.icp else None
-        data = _RegData(feats, cloud, DenseGeometry.from_depth(depth, f.intrinsics, reg_mask,
-                                                               image=self.store.need(f.name, "color")))
-        with self._lock:
-            self._cache[k] = data
-            while len(self._cache) > REG_CACHE:
-                self._cache.popitem(last=False)
-        return data
-
-
-def _bounded_map(pool: ThreadPoolExecutor, fn: Callable[[T_in], T_out], items: Iterable[T_in],
-                 ahead: int = 2 * WORKERS) -> Iterator[T_out]:
-    """pool.map(fn, items) in order, with at most `ahead` items submitted and not yet consumed: the results of
-    per-frame work (images, keypoints) do not pile up when the consumer is slower than the workers."""
-    it = iter(items)
-    pending = deque(pool.submit(fn, x) for x in itertools.islice(it, ahead))
-    try:
-        while pending:
-            fut = pending.popleft()
-            for x in itertools.islice(it, 1):
-                pending.append(pool.submit(fn, x))
-            yield fut.result()
-    finally:
-        for fut in pending:
-            fut.cancel()
-
-
-class _InputFrames(collections.abc.Sequence):
-    """The input's frames as a lazy sequence (what `detect_mode` reads a few of): frame i, or the next usable one
-    after it (before it at the end) when it cannot be read."""
-
-    def __init__(self, seq: Sequence | RecordingSequence):
-        self.seq = seq
-        self._read: dict[int, RGBDFrame] = {}  # the few frames read (detect_mode reads each twice)
-
-    def __len__(self) -> int:
-        return len(self.seq.names)
-
-    def __getitem__(self, i):
-        names = self.seq.names
-        for j in [*range(i, len(names)), *range(i - 1, -1, -1)]:
-            if j not in self._read:
-                try:
-                    self._read[j] = self.seq[names[j]]
-                except InputError:
-                    continue
-            return self._read[j]
-        raise _NoUsableFrame
-
-
-class _NoUsableFrame(Exception):
-    pass
-
-
-def _detect_mode(seq: Sequence | RecordingSequence, mode_option: str) -> tuple[str, bool]:
-    """(capture mode, whether every frame comes with an object mask): the mode from a few frames spread over the
-    input (`detect_mode`) unless given."""
-    names = seq.names
-    given = isinstance(seq, Sequence) and seq.has_masks and all(seq.files(n).mask is not None for n in names)
-    if mode_option != "auto":
-        return mode_option, given
-    try:
-        return detect_mode(_InputFrames(seq)).mode, given
-    except _NoUsableFrame:  # the load says so, on one line
-        return STATIC_OBJECT, given
-
-
-def _load(seq: Sequence | RecordingSequence, mode: str, masks_given: bool, cfg: ScanConfig, seg: SegmentParams,
-          store: FrameStore, advance: Callable[[int], None]) -> tuple[list[_Frame], list[tuple[str, InputError]],
-                                                                     Selection]:
-    """Reads the input once, in order, keeping the frames frame selection keeps (`gscan.scanning.select`): their images
-    go to the store, with a moving object's mask (`moving_object_masks`: the support plane and the object on it,
-    else the difference from the background). Returns (kept frames, frames that could not be read, selection)."""
-    s = cfg.selection
-    params = SelectionParams(min_motion_deg=s.min_motion_deg, blur_ratio=s.blur_ratio)
-    moving = mode == MOVING_OBJECT
-    selector = FrameSelector(params, mask_needed=moving)
-    selection = Selection(params)
-    frames: list[_Frame] = []
-    failed: list[tuple[str, InputError]] = []
-    for name, frame in _read_ahead(seq):
-        advance(1)
-        if isinstance(frame, InputError):
-            failed.append((name, frame))
-            continue
-        why = selector.consider(frame)
-        if why is not None:
-            selection.skipped[name] = why
-            continue
-        f = _Frame(StoredFrame.put(store, frame))
-        selection.kept.append(name)
-        mask = frame.mask
-        if moving and not masks_given:
-            s_ = segment_frame(replace(frame, mask=None), seg)
-            f.plane_cam = s_.plane_cam
-            mask = s_.mask if s_.plane_cam is not None else None
-            store.put(name, object_mask=mask)
-        selector.keep(frame, mask if moving else None)
-        frames.append(f)
-    if moving and not masks_given and any(f.plane_cam is None for f in frames):
-        # without a support plane (an object in hand) the object is what stands out of the background
-        picks = np.unique(np.linspace(0, len(frames) - 1, min(BACKGROUND_FRAMES, len(frames))).round().astype(int))
-        bg = background_depth([store.need(frames[k].name, "depth") for k in picks])
-        for f in frames:
-            if f.plane_cam is None:
-                store.put(f.name, object_mask=foreground_mask(store.need(f.name, "depth"), bg))
-    return frames, failed, selection
-
-
-def _read_ahead(seq: Sequence | RecordingSequence) -> Iterator[tuple[str, RGBDFrame | InputError]]:
-    """(name, frame or why it could not be read) for every input frame in order, the next one decoded in a thread
-    meanwhile (decoding releases the GIL)."""
-    def read(name: str) -> RGBDFrame | InputError:
-        try:
-            return seq[name]
-        except InputError as e:
-            return e
-
-    with ThreadPoolExecutor(max_workers=1) as pool:
-        yield from zip(seq.names, _bounded_map(pool, read, seq.names, ahead=2), strict=True)
-
-
 # ------------------------------------------------------------------------------------------ the stages
-def _scan_frames(data: _FrameData, source: Path, output: Path, opts: ScanOptions, db: TemplateDB, resumed: bool,
+def _scan_frames(data: FrameData, source: Path, output: Path, opts: ScanOptions, db: TemplateDB, resumed: bool,
                  timer: StageTimer, problems: dict[str, str], selection: Selection) -> ScanResult:
-    cfg = opts.config
-    seg = _segment_params(cfg)
     frames, mode = data.frames, data.mode
+    cfg = for_capture(opts.config, mode)
     log.info("%s capture, %d of %d frames kept%s", mode, len(frames), len(frames) + len(selection.skipped),
              ", masks given" if data.masks_given else "")
 
@@ -663,36 +252,34 @@ def _scan_frames(data: _FrameData, source: Path, output: Path, opts: ScanOptions
     with timer.stage("features", total=len(frames)) as advance, db.batch():
         db.set_meta("mode", mode)
         db.set_meta("selection", selection.to_meta())
-        _extract(data, db, resumed, advance)
+        _extract(data, cfg.features, db, resumed, advance)
     if not any(f.n_keypoints for f in frames):  # every frame dark, textureless or without depth: nothing to scan
         raise InputError(source, f"no keypoint with depth in any of the {len(frames)} frames "
                          "(dark or textureless images, or no valid depth)")
 
     n = len(frames)
-    rparams = _register_params(cfg, mode)
-    with timer.stage("noise", total=1) as advance, db.batch():
-        if cfg.registration.noise is None:
-            kp_noise, depth_noise = _capture_noise(data, rparams)
-            rparams = replace(rparams, noise=kp_noise, depth_noise=depth_noise)
-        db.set_meta("noise", {"keypoint": rparams.noise.to_dict(), "depth": rparams.depth_noise.to_dict()})
-        advance(1)
-    reg = _Registrar(data, rparams, db, resumed)
-    index = {f.name: k for k, f in enumerate(frames)}
+    rparams, sparams = cfg.registration, cfg.posegraph
     with ThreadPoolExecutor(max_workers=WORKERS) as pool:
-        with timer.stage("register", total=max(1, n - 1)) as advance, db.batch():
-            edges = _register_edges(reg, cfg, pool, advance)
-
-        with timer.stage("posegraph", total=1) as advance:
-            T_world_cam, quality, graph = _optimise_with_second_opinions(reg, pool, edges, index, cfg)
+        with timer.stage("noise", total=1) as advance, db.batch():
+            if sparams.estimate_noise:
+                kp_noise, depth_noise = capture_noise(data, rparams, sparams.pilot_pairs, pool)
+                rparams = replace(rparams, noise=kp_noise, depth_noise=depth_noise)
+            db.set_meta("noise", {"keypoint": rparams.noise.to_dict(), "depth": rparams.depth_noise.to_dict()})
             advance(1)
-    restored = reg.restored
+        sink = _EdgeRecords(db)
+        reg = Registrar(data, rparams, sink, db.edges() if resumed else (), AHEAD)
+        with timer.stage("register", total=max(1, n - 1)) as advance, db.batch():
+            edges = register_edges(reg, sparams, pool, advance)
+        with timer.stage("posegraph", total=1) as advance:
+            res = optimise_sequence(reg, edges, sparams, pool)
+            advance(1)
+    edges, T_world_cam, quality = res.edges, res.T_world_cam, res.quality
     registered = [k for k in range(n) if T_world_cam[k] is not None]
-    reasons = _unregistered_reasons(frames, edges, graph, index)
-    parts = [[frames[k].name for k in part] for part in graph.parts]
+    reasons, parts = res.unregistered_reasons, res.parts
 
     with timer.stage("segment", total=n) as advance:
-        mask_of, plane_world = _segment(data, T_world_cam, opts.segment, replace(seg, depth_noise=rparams.depth_noise),
-                                        advance)
+        seg = replace(cfg.segmentation, depth_noise=rparams.depth_noise)  # the capture's own
+        mask_of, plane_world = _segment(data, T_world_cam, opts.segment, seg, advance)
 
     with timer.stage("fuse", total=1) as advance:
         model, T_obj_world = _fuse(data, T_world_cam, mask_of, plane_world, cfg, source)
@@ -702,7 +289,7 @@ def _scan_frames(data: _FrameData, source: Path, output: Path, opts: ScanOptions
         T_obj_cam = [None if T is None else T_obj_world @ T for T in T_world_cam]
         keyframes = _store_views(data, T_obj_cam, mask_of, quality, cfg, db, advance)
         for e in edges:  # the pose graph's verdicts, also where a resumed run reaches another one
-            if (e.reason and e.reason.startswith(PRUNED)) or (e.src, e.tgt) in restored:
+            if e.pruned or (e.src, e.tgt) in res.restored:
                 db.add_edge(e)
         mesh = model.mesh.transformed(T_obj_world)
         db.set_mesh(mesh)
@@ -729,14 +316,13 @@ def _scan_frames(data: _FrameData, source: Path, output: Path, opts: ScanOptions
                       selection=selection.summary())
 
 
-def _fuse(data: _FrameData, T_world_cam: list[np.ndarray | None], mask_of: Callable[[int], np.ndarray | None],
+def _fuse(data: FrameData, T_world_cam: list[np.ndarray | None], mask_of: Callable[[int], np.ndarray | None],
           plane_world: Plane | None, cfg: ScanConfig, input_dir: Path) -> tuple[FusedModel, np.ndarray]:
     """(TSDF model in the world frame, T_obj_world [4 x 4] of the template frame); InputError when
     nothing could be fused."""
-    params = FusionParams(voxel_size=cfg.fusion.voxel, depth_max=cfg.fusion.depth_max)
     n = len(data)
     try:
-        model = fuse_tsdf(LazyList(n, data.frame), T_world_cam, LazyList(n, mask_of), params)
+        model = fuse_tsdf(LazyList(n, data.frame), T_world_cam, LazyList(n, mask_of), cfg.fusion)
     except ValueError as e:  # no registered frame has object depth within fusion.depth_max
         raise InputError(input_dir, f"nothing could be fused: {e} (fusion.depth_max); check the depth scale",
                          fix="depth_scale") from None
@@ -750,16 +336,11 @@ def _fuse(data: _FrameData, T_world_cam: list[np.ndarray | None], mask_of: Calla
     return model, template_frame(obj_pts, plane_world, T_world_cam0)
 
 
-def _segment_params(cfg: ScanConfig) -> SegmentParams:
-    s = cfg.segmentation
-    return SegmentParams(depth_min=s.depth_min, depth_max=s.depth_max, height_max=s.height_max)
-
-
-def _extract(data: _FrameData, db: TemplateDB, resumed: bool, advance: Callable[[int], None]) -> None:
+def _extract(data: FrameData, fparams: FeatureParams, db: TemplateDB, resumed: bool,
+             advance: Callable[[int], None]) -> None:
     """Each frame's registration keypoints (camera frame; a moving object's only), stored at once with the view's
     images: the one write of those. A resumed scan reuses the keypoints of views stored without a pose."""
-    cfg, frames = data.cfg, data.frames
-    fparams = _feature_params(cfg)
+    frames = data.frames
     stored = set(db.view_names()) if resumed else set()
     db_poses = {v.name: v.T_obj_cam for v in db.views()} if stored else {}
     for name in stored - {f.name for f in frames}:  # a view of a frame this scan does not keep
@@ -776,7 +357,7 @@ def _extract(data: _FrameData, db: TemplateDB, resumed: bool, advance: Callable[
     # OpenCV releases the GIL: two threads use both cores; results are per frame and written in input order,
     # so the output does not depend on the scheduling
     with ThreadPoolExecutor(max_workers=WORKERS) as pool:
-        for k, (frame, feats) in enumerate(_bounded_map(pool, frame_work, range(len(frames)))):
+        for k, (frame, feats) in enumerate(bounded_map(pool, frame_work, range(len(frames)), AHEAD)):
             f = frames[k]
             if frame is None or feats is None:  # stored by the interrupted run, still in the camera frame
                 stored_feats = db.features(f.name)
@@ -796,193 +377,7 @@ def _median_depth(feats: Features) -> float | None:
     return float(np.median(feats.points[:, 2])) if len(feats) else None
 
 
-def _capture_noise(data: _FrameData, params: RegisterParams) -> tuple[DepthNoise, DepthNoise]:
-    """The capture's noise, of a lifted keypoint and of a depth pixel (`gscan.registration.noise`): up to
-    PILOT_PAIRS sequential pairs spread evenly over the capture, registered under the priors of `params`;
-    the keypoint residuals of their inliers, and the distances of their depth samples to the other frame's
-    surface within 5 prior sigmas, are fitted. A prior stays when too few pairs are left."""
-    n = len(data)
-    picks = sorted({int(j) for j in np.linspace(1, n - 1, min(PILOT_PAIRS, n - 1))}) if n > 1 else []
-
-    def pair(j: int) -> tuple[np.ndarray, ...]:
-        fs, ft = data.reg(j - 1), data.reg(j)
-        r = register_features(fs.feats, ft.feats, params, dense=(fs.dense, ft.dense))
-        if not r.accepted or r.T_tgt_src is None or r.inliers is None or not len(r.inliers):
-            return (np.zeros(0),) * 6
-        ps = fs.feats.points[r.inliers[:, 0]].astype(np.float64)
-        pt = ft.feats.points[r.inliers[:, 1]].astype(np.float64)
-        e, za, zb = plane_residuals(fs.dense, ft.dense, r.T_tgt_src)
-        near = np.abs(e) < 5.0 * params.depth_noise.pair_sigma(za, zb)
-        return (np.linalg.norm(transform_points(r.T_tgt_src, ps) - pt, axis=1), ps[:, 2], pt[:, 2],
-                e[near], za[near], zb[near])
-
-    with ThreadPoolExecutor(max_workers=WORKERS) as pool:
-        got = list(pool.map(pair, picks))
-    if not got:
-        return params.noise, params.depth_noise
-    r, za, zb, e, da, db = (np.concatenate(x) for x in zip(*got, strict=True))
-    return (estimate_noise(r, za, zb, prior=params.noise),
-            estimate_noise(e, da, db, prior=params.depth_noise, dof=1))
-
-
-@dataclass(frozen=True)
-class _Evidence:
-    """What the pose graph uses of an accepted edge: its information matrix [6 x 6] (source frame), the median
-    depth of its source points, and its RMS keypoint residual in noise sigmas."""
-
-    info: np.ndarray
-    depth: float
-    rms: float
-
-
-def _edge_evidence(e: Edge, a: _RegData, b: _RegData, rparams: RegisterParams) -> _Evidence:
-    """The evidence of the accepted edge e from frame a to frame b (their registration data)."""
-    assert e.T_tgt_src is not None  # an accepted edge has a pose
-    ps = a.feats.points[e.matches[:, 0]].astype(np.float64)
-    pt = b.feats.points[e.matches[:, 1]].astype(np.float64)
-    # the precision the edge claims, as registration solved it (keypoints, and the depth when it took part),
-    # in the source frame, the frame of the pose graph's residual: an edge whose pose the depth pins must
-    # agree with the others to that precision (the graph's floor keeps strong edges from dominating)
-    if rparams.dense_refine:
-        info = in_source_frame(pose_information(a.dense, b.dense, ps, pt, e.T_tgt_src, rparams.noise,
-                                                rparams.depth_noise), e.T_tgt_src)
-    else:
-        info = information_from_points(ps, rparams.noise.pair_sigma(ps[:, 2], pt[:, 2]))
-    r = np.linalg.norm(transform_points(e.T_tgt_src, ps) - pt, axis=1) / rparams.noise.pair_sigma(ps[:, 2], pt[:, 2])
-    return _Evidence(info, float(np.median(ps[:, 2])), float(np.sqrt(np.mean(r * r))))
-
-
-class _Registrar:
-    """Pairwise registration of frame pairs into stored edges, with the evidence the pose graph weighs them by.
-
-    A resumed scan reuses the edges the interrupted run stored (`done`); `restored` holds those it had pruned by
-    the pose graph, put back for this run's pose graph to judge; `evidence` holds the accepted edges' computed
-    here (`_optimise` computes that of stored ones)."""
-
-    def __init__(self, data: _FrameData, rparams: RegisterParams, db: TemplateDB, resumed: bool):
-        self.data, self.rparams, self.db = data, rparams, db
-        self.names = [f.name for f in data.frames]
-        self.done = {(e.src, e.tgt): e for e in db.edges()} if resumed else {}
-        self.restored: set[tuple[str, str]] = set()
-        self.evidence: dict[tuple[str, str], _Evidence] = {}
-        self.written = 0  # edges stored so far (committed every COMMIT_ROWS)
-
-    def _pair(self, pair: tuple[int, int]) -> tuple[Edge, _Evidence | None] | None:
-        i, j = pair
-        if (self.names[i], self.names[j]) in self.done:
-            return None
-        a, b = self.data.reg(i), self.data.reg(j)
-        r = register_features(a.feats, b.feats, self.rparams, clouds=(a.cloud, b.cloud), dense=(a.dense, b.dense))
-        # the edge keeps the correspondences its pose was solved from (GMatch's list grown by the guided
-        # refinement of gscan.registration.pairwise), which also weigh it in the pose graph
-        used = r.inliers if r.inliers is not None and len(r.inliers) else r.matches
-        e = Edge(self.names[i], self.names[j], r.T_tgt_src, used, r.cost, r.rmse, r.fitness, "sequential",
-                 r.accepted, r.reason)
-        return e, (_edge_evidence(e, a, b, self.rparams) if e.accepted and e.T_tgt_src is not None else None)
-
-    def register(self, pairs: list[tuple[int, int]], kind: str, pool: ThreadPoolExecutor) -> list[Edge]:
-        """Edges of `pairs`, computed on the pool (numba and OpenCV release the GIL) in the order of their frames
-        (a frame's registration data stays in the cache for its next edges), stored in the order given."""
-        order = sorted(range(len(pairs)), key=lambda k: pairs[k])
-        computed = zip(order, _bounded_map(pool, self._pair, [pairs[k] for k in order]), strict=True)
-        ready: dict[int, tuple[Edge, _Evidence | None] | None] = {}
-        out = []
-        for k, (i, j) in enumerate(pairs):
-            while k not in ready:
-                m, g = next(computed)
-                ready[m] = g
-            got = ready.pop(k)
-            if got is None:  # stored by the interrupted run
-                e = self.done[(self.names[i], self.names[j])]
-                if e.reason and e.reason.startswith(PRUNED):  # restore the registration verdict
-                    e.accepted, e.reason = True, None
-                    self.restored.add((e.src, e.tgt))
-            else:
-                e, ev = got
-                e.kind = kind
-                if ev is not None:
-                    self.evidence[(e.src, e.tgt)] = ev
-                self.db.add_edge(e)
-                self.written += 1
-                if self.written % COMMIT_ROWS == 0:
-                    self.db.commit()
-            out.append(e)
-        return out
-
-
-def _register_edges(reg: _Registrar, cfg: ScanConfig, pool: ThreadPoolExecutor,
-                    advance: Callable[[int], None]) -> list[Edge]:
-    """Sequential edges (with fall-back to earlier frames), then loop closures; each stored as computed."""
-    data, db, names = reg.data, reg.db, reg.names
-    frames = data.frames
-    n = len(frames)
-    index = {nm: k for k, nm in enumerate(names)}
-    edges: list[Edge] = []
-    # each frame against its predecessor; a frame that fails is tried against earlier ones
-    for e in reg.register([(j - 1, j) for j in range(1, n)], "sequential", pool):
-        edges.append(e)
-        j = index[e.tgt]
-        for i in range(j - 2, max(-1, j - 1 - MAX_SKIP), -1):
-            if edges[-1].accepted:
-                break
-            edges += reg.register([(i, j)], "sequential", pool)
-        advance(1)
-    db.commit()  # the sequential edges, before the loop closures
-
-    seq_graph = [GraphEdge(index[e.src], index[e.tgt], e.T_tgt_src, weight=len(e.matches))
-                 for e in edges if e.accepted and e.T_tgt_src is not None]
-    T_init = spanning_poses(n, seq_graph)
-    existing = [(index[e.src], index[e.tgt]) for e in edges]
-    lp = LoopParams(max_per_node=cfg.posegraph.loop_candidates, max_angle_deg=cfg.posegraph.max_view_angle_deg)
-    # frames without any keypoint (textureless, dark) take no part: bag-of-words needs descriptors
-    kp = [k for k in range(n) if frames[k].n_keypoints]
-    sub = {k: s for s, k in enumerate(kp)}
-    cands = [] if len(kp) < 2 else select_loop_candidates(
-        [T_init[k] for k in kp], LazyList(len(kp), lambda s: data.descriptors(kp[s])),
-        [(sub[a], sub[b]) for a, b in existing if a in sub and b in sub], lp, [frames[k].depth_m for k in kp])
-    edges += reg.register([(kp[c.i], kp[c.j]) for c in cands], "loop", pool)
-    return edges
-
-
-def _cut_frames(n: int, edges: list[Edge], index: dict[str, int], graph: PoseGraphResult) -> list[int]:
-    """Frames the pose graph left without a pose although registration accepted an edge of theirs, each on its
-    own (not in a separate part): their edges disagree with each other and no cycle decides, or a weak edge
-    alone held them."""
-    in_part = {k for part in graph.parts for k in part}
-    pruned = {index[x] for e in edges if e.reason and e.reason.startswith(PRUNED) for x in (e.src, e.tgt)}
-    return [k for k in range(n) if graph.T_world_node[k] is None and k in pruned and k not in in_part]
-
-
-def _second_opinions(cut: list[int], edges: list[Edge], index: dict[str, int],
-                     T_world: list[np.ndarray | None]) -> list[tuple[int, int]]:
-    """For each cut frame, pairs (earlier frame first) with the `SECOND_OPINIONS` registered frames it has no edge
-    with whose orientation is nearest the one its strongest pruned edge to a registered frame puts it at (a view
-    of the same surface): edges that close cycles through it, to decide between its edges."""
-    tried = {frozenset((index[e.src], index[e.tgt])) for e in edges}
-    pairs = []
-    for k in cut:
-        implied = []  # (matches, src, tgt, T_world_k) of its pruned edges to registered frames
-        for e in edges:
-            i, j = index[e.src], index[e.tgt]
-            T_i, T_j, T_ji = T_world[i], T_world[j], e.T_tgt_src
-            if not (e.reason and e.reason.startswith(PRUNED)) or e.reason.startswith(PRUNED + AGAINST_ODOMETRY) \
-                    or T_ji is None:
-                continue
-            if i == k and T_j is not None:
-                implied.append((-len(e.matches), e.src, e.tgt, T_j @ T_ji))
-            elif j == k and T_i is not None:
-                implied.append((-len(e.matches), e.src, e.tgt, T_i @ inv_T(T_ji)))
-        if not implied:
-            continue
-        T_k = min(implied, key=lambda x: x[:3])[3]
-        R_k = T_k[:3, :3]
-        near = sorted((rotation_angle_deg(R_k.T @ T[:3, :3]), i) for i, T in enumerate(T_world)
-                      if T is not None and frozenset((i, k)) not in tried)
-        pairs += [(min(i, k), max(i, k)) for _, i in near[:SECOND_OPINIONS]]
-    return pairs
-
-
-def _store_views(data: _FrameData, T_obj_cam: list[np.ndarray | None], mask_of: Callable[[int], np.ndarray | None],
+def _store_views(data: FrameData, T_obj_cam: list[np.ndarray | None], mask_of: Callable[[int], np.ndarray | None],
                  quality: dict[int, float], cfg: ScanConfig, db: TemplateDB,
                  advance: Callable[[int], None]) -> set[int]:
     """Completes every view with its pose (its keypoints follow into the object frame), mask, keyframe flag and
@@ -997,7 +392,7 @@ def _store_views(data: _FrameData, T_obj_cam: list[np.ndarray | None], mask_of: 
         m = mask_of(k)
         return m is None or bool(m.any())
 
-    dirs = _keyframe_candidates(T_obj_cam, shows)
+    dirs = keyframe_candidates(T_obj_cam, shows)
     kc = cfg.keyframes
     keyframes = set(select_keyframes(dirs, kc.min_angle_deg, kc.max_views,
                                      {k: frames[k].object_keypoints for k in dirs}, kc.min_object_keypoints,
@@ -1013,7 +408,7 @@ def _store_views(data: _FrameData, T_obj_cam: list[np.ndarray | None], mask_of: 
         return m, obj
 
     with ThreadPoolExecutor(max_workers=WORKERS) as pool:
-        for k, (m, obj) in enumerate(_bounded_map(pool, view_work, range(len(frames)))):
+        for k, (m, obj) in enumerate(bounded_map(pool, view_work, range(len(frames)), AHEAD)):
             T = T_obj_cam[k]
             # the view's images and keypoints were stored at the features stage: its pose (the keypoints follow
             # it into the object frame), mask, keyframe flag and quality complete it
@@ -1022,15 +417,6 @@ def _store_views(data: _FrameData, T_obj_cam: list[np.ndarray | None], mask_of: 
                 db.add_features(frames[k].name, obj.transformed(T), role="object")
             advance(1)
     return keyframes
-
-
-def _keyframe_candidates(T_obj_cam: list[np.ndarray | None], shows: Callable[[int], bool]) -> dict[int, np.ndarray]:
-    """Frame index -> viewing direction (`view_direction`) of the registered frames that show the object
-    (`shows(k)`: its object mask is not empty): a frame without it (a sweep that starts elsewhere) would give
-    the template its background as the object's keypoints. All registered frames when none shows it."""
-    reg = {k: T for k, T in enumerate(T_obj_cam) if T is not None}
-    showing = {k: T for k, T in reg.items() if shows(k)}
-    return {k: view_direction(T) for k, T in (showing or reg).items()}
 
 
 def _object_keypoints(pixels: np.ndarray, mask: np.ndarray | None) -> int:
@@ -1044,178 +430,7 @@ def _object_keypoints(pixels: np.ndarray, mask: np.ndarray | None) -> int:
     return int(mask[uv[inside, 1], uv[inside, 0]].sum())
 
 
-def _icp_cloud(depth: np.ndarray, intrinsics: Intrinsics, mask: np.ndarray | None, voxel: float) -> np.ndarray:
-    """[P x 3] camera-frame points for ICP: valid depth (inside `mask`), pixel stride, voxel grid."""
-    import open3d as o3d
-
-    s = ICP_VOXEL_STRIDE
-    valid = depth > 0
-    if mask is not None:
-        valid &= mask
-    pts = backproject(depth, intrinsics)[::s, ::s][valid[::s, ::s]]
-    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts.astype(np.float64)))
-    if voxel > 0:
-        pc = pc.voxel_down_sample(voxel)
-    return np.asarray(pc.points)
-
-
-def _odometry(n: int, edges: list[Edge], index: dict[str, int]) -> tuple[list[np.ndarray | None], np.ndarray]:
-    """The capture's odometry: T_world_cam chained along the accepted sequential edges (between frames adjacent
-    in the capture, or a frame and one of the few before it), per part of their chain ([n] poses or None; [n]
-    part ids, -1 for a frame none of them reaches)."""
-    seq = [GraphEdge(index[e.src], index[e.tgt], e.T_tgt_src, weight=len(e.matches)) for e in edges
-           if e.accepted and e.kind == "sequential" and e.T_tgt_src is not None]
-    T: list[np.ndarray | None] = [None] * n
-    part = np.full(n, -1)
-    for root in sorted({k for g in seq for k in (g.src, g.tgt)}):
-        if part[root] < 0:
-            for k, T_k in enumerate(spanning_poses(n, seq, root=root)):
-                if T_k is not None:
-                    T[k], part[k] = T_k, root
-    return T, part
-
-
-def _against_odometry(n: int, edges: list[Edge], index: dict[str, int], max_sigma_deg: float) -> None:
-    """Rejects the accepted edges between frames far apart in the capture whose rotation contradicts the
-    capture's odometry (`_odometry`) by more than its drift can: ODOMETRY_SIGMAS times registration's largest
-    accepted rotation sigma (`max_sigma_deg`) for every frame between the two. Such an edge matched look-alike
-    faces of the object (a box printed alike front and back, seen from opposite sides: 180 deg off), and several
-    of them agree with each other: they would outvote the right edges in the pose graph. Edges between parts
-    of the odometry are left to the pose graph."""
-    T, part = _odometry(n, edges, index)
-    for e in edges:
-        if not e.accepted or e.kind == "sequential" or e.T_tgt_src is None:
-            continue
-        i, j = index[e.src], index[e.tgt]
-        T_i, T_j = T[i], T[j]
-        if T_i is None or T_j is None or part[i] != part[j]:
-            continue
-        deg = rotation_angle_deg(e.T_tgt_src[:3, :3] @ T_i[:3, :3].T @ T_j[:3, :3])
-        bound = ODOMETRY_SIGMAS * max_sigma_deg * abs(j - i)
-        if deg > bound:
-            e.accepted = False
-            e.reason = (f"{PRUNED}{AGAINST_ODOMETRY} ({deg:.0f} deg from the pose the frames between its two give; "
-                        f"their drift reaches {bound:.0f} deg at most)")
-
-
-def _optimise(n: int, edges: list[Edge], index: dict[str, int], data: _FrameData,
-              evidence: dict[tuple[str, str], _Evidence], cfg: ScanConfig, rparams: RegisterParams
-              ) -> tuple[list[np.ndarray | None], dict[int, float], PoseGraphResult]:
-    """Pose graph over accepted edges (those that contradict the odometry rejected first, `_against_odometry`)
-    -> (T_world_cam per frame or None, quality in [0, 1] per frame, the pose graph's result with edge indices
-    into the accepted edges)."""
-    _against_odometry(n, edges, index, rparams.max_sigma_deg)
-    use = [e for e in edges if e.accepted and e.T_tgt_src is not None]
-    graph = []
-    found = []
-    for e in use:
-        assert e.T_tgt_src is not None  # use: accepted edges with a pose
-        i, j = index[e.src], index[e.tgt]
-        ev = evidence.get((e.src, e.tgt))
-        if ev is None:  # an edge a resumed scan took from the database
-            ev = evidence[(e.src, e.tgt)] = _edge_evidence(e, data.reg(i), data.reg(j), rparams)
-        found.append(ev)
-        # an edge may join two parts of the graph alone only on strong evidence: enough matches (its depth
-        # agreement is already a condition of every accepted edge)
-        graph.append(GraphEdge(i, j, e.T_tgt_src, ev.info, strong=len(e.matches) >= cfg.posegraph.bridge_min_matches,
-                               weight=len(e.matches), depth=ev.depth))
-    res = optimize_pose_graph(n, graph, spanning_poses(n, graph), PoseGraphParams(alpha=cfg.posegraph.alpha))
-    best: dict[int, float] = {}
-    for rep, e, ev in zip(res.edges, use, found, strict=True):
-        # the pose graph's verdict joins the registration's: pruned edges are recorded as rejected
-        if not rep.accepted:
-            e.accepted = False
-            e.reason = PRUNED + str(rep.reason)
-            continue
-        for k in (index[e.src], index[e.tgt]):
-            best[k] = min(best.get(k, np.inf), ev.rms)
-    # registration quality of a view in [0, 1] (1 = perfect): 1 - RMS / QUALITY_RMS_SIGMA of its best edge
-    quality = {k: float(np.clip(1.0 - r / QUALITY_RMS_SIGMA, 0.0, 1.0)) for k, r in best.items()}
-    return res.T_world_node, quality, res
-
-
-def _optimise_with_second_opinions(reg: _Registrar, pool: ThreadPoolExecutor, edges: list[Edge],
-                                   index: dict[str, int], cfg: ScanConfig
-                                   ) -> tuple[list[np.ndarray | None], dict[int, float], PoseGraphResult]:
-    """`_optimise`, and second opinions on the frames it cuts loose.
-
-    A cut frame is registered to more frames (`_second_opinions`, appended to `edges`); the edges that held it (cut
-    as thin evidence, not rejected as inconsistent) are put back beside the accepted new ones and the graph is
-    optimised again. New edges may only confirm: a frame the second optimisation places without one of its holding
-    edges (the new ones overturned them) is cut again, its new edges rejected, and the graph optimised a third
-    time without them."""
-    n, data, rparams = len(reg.names), reg.data, reg.rparams
-    first = _optimise(n, edges, index, data, reg.evidence, cfg, rparams)
-    cut = _cut_frames(n, edges, index, first[2])
-    if not cut:
-        return first
-    with reg.db.batch():
-        more = reg.register(_second_opinions(cut, edges, index, first[0]), "loop", pool)
-    edges += more
-    if not any(e.accepted for e in more):
-        return first
-    log.info("pose graph: %d frames cut loose, %d of %d more edges accepted; optimising again", len(cut),
-             sum(e.accepted for e in more), len(more))
-    held: dict[int, list[tuple[Edge, str]]] = {}  # cut frame -> its holding edges, with their first verdicts
-    for e in edges:
-        i, j = index[e.src], index[e.tgt]
-        why = e.reason
-        if not why or not why.startswith(PRUNED) or why.startswith((PRUNED + INCONSISTENT, PRUNED + AGAINST_ODOMETRY)):
-            continue
-        for k, other in ((i, j), (j, i)):
-            if k in cut and first[0][other] is not None:
-                held.setdefault(k, []).append((e, why))
-                e.accepted, e.reason = True, None
-    judged = [e for e in edges if e.accepted]
-    second = _optimise(n, edges, index, data, reg.evidence, cfg, rparams)
-    overturned = [k for k in cut if second[0][k] is not None and not any(e.accepted for e, _ in held.get(k, []))]
-    if not overturned:
-        return second
-    names = {reg.names[k] for k in overturned}
-    log.info("pose graph: new edges overturn the edges of %s; cut again", ", ".join(sorted(names)))
-    for e in judged:  # the second optimisation's input, without the overturning edges
-        e.accepted, e.reason = True, None
-    for e in more:
-        if e.accepted and {e.src, e.tgt} & names:
-            e.accepted, e.reason = False, PRUNED + "a second opinion that overturns its frame's edges instead of " \
-                                                   "confirming them"
-    for k in overturned:
-        for e, why in held.get(k, []):
-            e.accepted, e.reason = False, why
-    return _optimise(n, edges, index, data, reg.evidence, cfg, rparams)
-
-
-def _unregistered_reasons(frames: list[_Frame], edges: list[Edge], graph: PoseGraphResult,
-                          index: dict[str, int]) -> dict[str, str]:
-    """Why each frame without a pose has none, in one line: no keypoints, no edge accepted (the reasons of
-    its edges, the nearest frame first), edges rejected by the pose graph, or a part of its own."""
-    out: dict[str, str] = {}
-    for k, f in enumerate(frames):
-        if graph.T_world_node[k] is not None:
-            continue
-        name = f.name
-        if not f.n_keypoints:
-            out[name] = NO_KEYPOINTS
-            continue
-        if k in graph.node_reasons:
-            out[name] = graph.node_reasons[k]
-            continue
-        mine = sorted((e for e in edges if name in (e.src, e.tgt)),
-                      key=lambda e: (abs(index[e.src] - index[e.tgt]), e.src, e.tgt))
-        if not mine:
-            out[name] = "no other frame to register it to"
-            continue
-        pruned = [e for e in mine if e.reason and e.reason.startswith(PRUNED)]
-        shown = pruned if pruned else mine
-        detail = "; ".join(f"with {e.tgt if e.src == name else e.src}: "
-                           f"{(e.reason or 'accepted').removeprefix(PRUNED)}" for e in shown[:2])
-        more = f" (and {len(shown) - 2} more)" if len(shown) > 2 else ""
-        what = "its edges were rejected by the pose graph" if pruned else "no edge accepted"
-        out[name] = f"{what}: {detail}{more}"
-    return out
-
-
-def _segment(data: _FrameData, T_world_cam: list[np.ndarray | None], segment: bool, seg: SegmentParams,
+def _segment(data: FrameData, T_world_cam: list[np.ndarray | None], segment: bool, seg: SegmentParams,
              advance: Callable[[int], None]) -> tuple[Callable[[int], np.ndarray | None], Plane | None]:
     """Per-frame object masks for fusion (a function of the frame index, the masks being in the store) and the
     support plane in the world frame (or None); sets each frame's count of keypoints inside its mask.
@@ -1224,7 +439,7 @@ def _segment(data: _FrameData, T_world_cam: list[np.ndarray | None], segment: bo
     it comes from the working volume over the registered frames; for a moving object from the
     reference frame alone (a turntable's plane moves with the object; an object in hand has none).
     """
-    from gscan.scanning.segment import estimate_working_volume, segment_frame, segment_in_volume
+    from gscan.scanning.segment import estimate_working_volume, segment_in_volume
 
     frames = data.frames
     n = len(frames)
@@ -1249,7 +464,7 @@ def _segment(data: _FrameData, T_world_cam: list[np.ndarray | None], segment: bo
 
         # per frame, on both cores (reading and reprojecting the images release the GIL), stored in input order
         with ThreadPoolExecutor(max_workers=WORKERS) as pool:
-            for k, mask in enumerate(_bounded_map(pool, mask_at, range(n))):
+            for k, mask in enumerate(bounded_map(pool, mask_at, range(n), AHEAD)):
                 data.store.put(frames[k].name, mask=mask)
         plane = vol.plane_world if vol is not None else None
 

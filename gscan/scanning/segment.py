@@ -14,9 +14,9 @@ that volume, so all masks agree with each other.
 
 The working range comes from the capture, not from a fixed distance: a scan keeps the object in the
 middle of the image, so the depth at the image centre (median over a central window) says how far the
-object is. Depth beyond `CENTRE_DEPTH_FACTOR` times that is background; the plane and the cluster are
+object is. Depth beyond `centre_depth_factor` times that is background; the plane and the cluster are
 looked for within `SUPPORT_RADII` image half-widths of the point the frames keep centred, among what most
-frames have in view (`SEEN_BY`); the RANSAC
+frames have in view (`seen_by`); the RANSAC
 band, the height that counts as off the table and the clustering radius grow with the depth noise
 (`params.depth_noise`, the capture's own model) and the pixel spacing at that depth.
 
@@ -30,43 +30,71 @@ from __future__ import annotations
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
+from typing import Annotated
 
 import cv2
 import numpy as np
+from pydantic import Field
 
 from gscan.errors import InputError
 from gscan.geometry.plane import Plane, dominant_plane, ransac_plane
 from gscan.geometry.transforms import transform_points
 from gscan.io.camera import RGBDFrame, backproject
 from gscan.registration.noise import DepthNoise
+from gscan.settings import SETTINGS
 
 log = logging.getLogger(__name__)
 
 CENTRE_WINDOW = 0.2        # the central window is this fraction of the image's width and height
-CENTRE_DEPTH_FACTOR = 1.5  # an automatic working range ends at this multiple of the centre depth
 SUPPORT_RADII = 2.0        # plane and cluster within this many image half-widths (at the centre depth) of the centre
-NOISE_SIGMAS = 3.0         # a point is off the plane when it is this many depth sigmas above it
-SEEN_BY = 0.8              # the object is inside the image of at least this share of the frames
 
 
 @dataclass(frozen=True)
 class SegmentParams:
-    depth_min: float = 0.1          # m, working depth range
-    depth_max: float | None = None  # m; None: CENTRE_DEPTH_FACTOR x each frame's centre depth
-    plane_voxel: float = 0.005      # m, downsampling before RANSAC
-    plane_distance: float = 0.004   # m, RANSAC inlier threshold
-    plane_iterations: int = 1000
-    plane_max_points: int = 5000    # RANSAC scores hypotheses on at most this many (seeded subsample)
-    min_plane_fraction: float = 0.15  # plane must hold this fraction of the sampled points
-    height_min: float = 0.004       # m, band above the plane that may be object
-    height_max: float = 0.5
-    depth_edge_rel: float = 0.03    # neighbour depth jump (relative) that separates components
-    min_area_px: int = 150          # smallest component considered an object
-    cluster_eps: float = 0.015      # m, DBSCAN radius for the sequence working volume
-    volume_margin: float = 0.02     # m, added around the object cluster (radius and height)
-    volume_frames: int = 6          # frames (evenly spaced) used to build the working volume
-    seed: int = 0
-    depth_noise: DepthNoise = DepthNoise()  # the capture's depth noise: widens the bands above at depth
+    """Where the object is looked for (working depths, support plane, working volume)."""
+
+    __pydantic_config__ = SETTINGS
+
+    depth_min: Annotated[float, Field(ge=0.05, le=20, description="the object is looked for at depths from this "
+                                      "(m) ...")] = 0.1
+    depth_max: Annotated[float | None, Field(gt=0.05, le=20, description="... to this (m); null = 1.5 x the depth at "
+                                             "the image centre, where a scan keeps the object")] = None
+    plane_voxel: Annotated[float, Field(gt=0, description="downsampling before the support plane's RANSAC (m)")] = 0.005
+    plane_distance: Annotated[float, Field(gt=0, description="RANSAC inlier threshold (m)")] = 0.004
+    plane_iterations: Annotated[int, Field(ge=1, description="RANSAC iterations")] = 1000
+    plane_max_points: Annotated[int, Field(ge=3, description="RANSAC scores hypotheses on at most this many points "
+                                           "(seeded subsample)")] = 5000
+    min_plane_fraction: Annotated[float, Field(gt=0, le=1, description="the plane must hold this share of the sampled "
+                                               "points")] = 0.15
+    height_min: Annotated[float, Field(ge=0, description="band above the plane that may be object, from (m) ...")] = (
+        0.004)
+    height_max: Annotated[float, Field(ge=0.01, le=5, description="... to: the object stands at most this high above "
+                                       "its support plane (m)")] = 0.5
+    depth_edge_rel: Annotated[float, Field(gt=0, description="neighbour depth jump (relative) that separates "
+                                           "components")] = 0.03
+    min_area_px: Annotated[int, Field(ge=1, description="smallest component considered an object (pixels)")] = 150
+    cluster_eps: Annotated[float, Field(gt=0, description="DBSCAN radius of the sequence's working volume (m)")] = 0.015
+    volume_margin: Annotated[float, Field(ge=0, description="added around the object cluster, radius and height "
+                                          "(m)")] = 0.02
+    volume_frames: Annotated[int, Field(ge=1, description="frames (evenly spaced) the working volume is built "
+                                        "from")] = 6
+    seed: Annotated[int, Field(ge=0, description="random seed")] = 0
+    centre_depth_factor: Annotated[float, Field(gt=1, le=10, description="with depth_max null, the working range "
+                                                "ends at this multiple of the depth at the image centre")] = 1.5
+    noise_sigmas: Annotated[float, Field(gt=0, description="a point is off the plane when it is this many depth "
+                                         "sigmas above it (the bands widen with the depth noise)")] = 3.0
+    seen_by: Annotated[float, Field(gt=0, le=1, description="the object is inside the image of at least this share "
+                                    "of the frames (what most frames leave out is not the object)")] = 0.8
+    background_frames: Annotated[int, Field(ge=1, le=1000, description="a moving object without a support plane (in "
+                                            "hand) is what stands out of the background depth, taken from this many "
+                                            "kept frames (evenly spaced)")] = 30
+    depth_noise: Annotated[DepthNoise, Field(description="depth noise that widens the bands above at depth: the prior "
+                                             "a moving object's masks are found with at the load; a scan's segment "
+                                             "stage uses the capture's own")] = DepthNoise()
+
+    def __post_init__(self) -> None:
+        if self.depth_max is not None and self.depth_max <= self.depth_min:
+            raise ValueError("depth_max must be greater than depth_min")
 
 
 def centre_depth(frame: RGBDFrame) -> float | None:
@@ -81,22 +109,22 @@ def centre_depth(frame: RGBDFrame) -> float | None:
 
 def depth_range(params: SegmentParams, z: float | None) -> tuple[float, float]:
     """(min, max) depth (m) where the object is looked for in a frame of `centre_depth` z: `params.depth_max` when
-    set, else `CENTRE_DEPTH_FACTOR` x z (all depth when the centre has none)."""
+    set, else `centre_depth_factor` x z (all depth when the centre has none)."""
     if params.depth_max is not None:
         return params.depth_min, params.depth_max
-    return params.depth_min, (np.inf if z is None else max(CENTRE_DEPTH_FACTOR * z, params.depth_min + 0.05))
+    return params.depth_min, (np.inf if z is None else max(params.centre_depth_factor * z, params.depth_min + 0.05))
 
 
 def at_depth(params: SegmentParams, z: float | None, focal_px: float, stride: int = 1) -> SegmentParams:
     """`params` with the plane band, the off-plane height and the clustering radius widened to the depth noise
-    (`NOISE_SIGMAS` sigma) and the spacing of every `stride`-th pixel at depth z (m); unchanged without z."""
+    (`noise_sigmas` sigma) and the spacing of every `stride`-th pixel at depth z (m); unchanged without z."""
     if z is None:
         return params
     sigma = float(params.depth_noise.sigma(z))
     spacing = stride * z / focal_px
     return replace(params, plane_distance=max(params.plane_distance, 2.5 * sigma),
-                   height_min=max(params.height_min, NOISE_SIGMAS * sigma),
-                   cluster_eps=max(params.cluster_eps, 1.5 * spacing, NOISE_SIGMAS * sigma))
+                   height_min=max(params.height_min, params.noise_sigmas * sigma),
+                   cluster_eps=max(params.cluster_eps, 1.5 * spacing, params.noise_sigmas * sigma))
 
 
 @dataclass
@@ -325,8 +353,9 @@ def _centre_point(frames: list[RGBDFrame], T_world_cam: list[np.ndarray], depths
     return np.median(np.asarray(pts), axis=0) if pts else None
 
 
-def _seen_by_most(points_world: np.ndarray, frames: list[RGBDFrame], T_world_cam: list[np.ndarray]) -> np.ndarray:
-    """[N] bool: the points [N x 3] inside the image of at least `SEEN_BY` of the frames: a scan keeps its
+def _seen_by_most(points_world: np.ndarray, frames: list[RGBDFrame], T_world_cam: list[np.ndarray],
+                  seen_by: float) -> np.ndarray:
+    """[N] bool: the points [N x 3] inside the image of at least `seen_by` of the frames: a scan keeps its
     object in view, so what most frames leave out (the far end of a room a sweep passes) is not the object."""
     seen = np.zeros(len(points_world), dtype=int)
     for f, T in zip(frames, T_world_cam, strict=True):
@@ -335,7 +364,7 @@ def _seen_by_most(points_world: np.ndarray, frames: list[RGBDFrame], T_world_cam
         z = np.where(p[:, 2] > 1e-6, p[:, 2], np.nan)
         u, v = K.fx * p[:, 0] / z + K.cx, K.fy * p[:, 1] / z + K.cy
         seen += (u >= 0) & (u <= K.width - 1) & (v >= 0) & (v <= K.height - 1)
-    return seen >= SEEN_BY * len(frames)
+    return seen >= seen_by * len(frames)
 
 
 def estimate_working_volume(frames: Sequence[RGBDFrame], T_world_cam: list[np.ndarray],
@@ -380,7 +409,7 @@ def estimate_working_volume(frames: Sequence[RGBDFrame], T_world_cam: list[np.nd
     Q = Q[np.lexsort((Q[:, 2], Q[:, 1], Q[:, 0]))]  # order-independent clustering input
     h = plane.height(Q)
     Q = Q[(h > par.height_min) & (h < par.height_max)]
-    Q = Q[_seen_by_most(Q, used, cams)]
+    Q = Q[_seen_by_most(Q, used, cams, params.seen_by)]
     if len(Q) < 20:
         return None
     labels = np.asarray(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(Q)).cluster_dbscan(

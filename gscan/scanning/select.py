@@ -16,25 +16,26 @@ since the last kept frame, and a blurred frame is passed over for a sharper one 
   (fewer than `MIN_TRACKED` corners followed: a dark or textureless frame, a cut, a moving object without a
   mask to track it in), which keeps a capture the cue cannot follow as it was.
 - sharpness: the variance of the Laplacian of the grey image at half resolution. A frame that moved enough but
-  is below `blur_ratio` of the median sharpness of the `BLUR_WINDOW` frames before it is passed over while its
-  motion is below `BLUR_WAIT` times `min_motion_deg`; beyond that it is kept (a blurred view beats a gap).
+  is below `blur_ratio` of the median sharpness of the `blur_window` frames before it is passed over while its
+  motion is below `blur_wait` times `min_motion_deg`; beyond that it is kept (a blurred view beats a gap).
 
-A capture whose every frame moves at least `BLUR_WAIT x min_motion_deg` keeps every frame. Deterministic.
+A capture whose every frame moves at least `blur_wait x min_motion_deg` keeps every frame. Deterministic.
 """
 from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass, field
+from typing import Annotated
 
 import cv2
 import numpy as np
+from pydantic import Field
 
 from gscan.io.camera import Intrinsics, RGBDFrame, backproject_pixels
 from gscan.scanning.segment import centre_depth
+from gscan.settings import SETTINGS
 
-BLUR_WINDOW = 15  # frames whose median sharpness a frame is compared with
-BLUR_MIN_HISTORY = 3  # ... at least this many (the first frames are never called blurred)
-BLUR_WAIT = 2.0  # a blurred frame is passed over while it moved less than this many times min_motion_deg
+BLUR_MIN_HISTORY = 3  # the blur test needs this many frames before it (the first frames are never called blurred)
 CORNERS = 300  # corners tracked from a kept frame ...
 CORNER_REGION = 0.6  # ... taken in this central fraction of the image's width and height
 MIN_TRACKED = 20  # fewer corners followed (with depth, consistent with one motion): the motion is unknown
@@ -48,12 +49,20 @@ BLURRED = "blurred"
 
 @dataclass(frozen=True)
 class SelectionParams:
-    """min_motion_deg: a frame is kept once the view moved this much since the last kept frame (0: every frame
-    is kept); blur_ratio: a frame below this share of the recent frames' median sharpness is passed over (0:
-    never)."""
+    """Which input frames a scan keeps."""
 
-    min_motion_deg: float = 0.5
-    blur_ratio: float = 0.5
+    __pydantic_config__ = SETTINGS
+
+    min_motion_deg: Annotated[float, Field(ge=0, le=90, description="a frame is kept once the view moved this much "
+                                           "since the last kept frame (rotation, or translation as an angle at the "
+                                           "scene's depth); 0 keeps every frame")] = 0.5
+    blur_ratio: Annotated[float, Field(ge=0, lt=1, description="a frame less sharp than this share of the frames "
+                                       "before it is passed over for a sharper one (until the view moved twice "
+                                       "min_motion_deg); 0 never")] = 0.5
+    blur_window: Annotated[int, Field(ge=1, le=1000, description="frames whose median sharpness a frame is compared "
+                                      "with")] = 15
+    blur_wait: Annotated[float, Field(ge=1, description="a blurred frame is passed over while it moved less than "
+                                      "this many times min_motion_deg")] = 2.0
 
 
 @dataclass
@@ -173,7 +182,7 @@ class FrameSelector:
         self._ref_name: str | None = None
         self._intrinsics: Intrinsics | None = None
         self._depth = 1.0  # its centre depth (m)
-        self._sharpness: deque[float] = deque(maxlen=BLUR_WINDOW)
+        self._sharpness: deque[float] = deque(maxlen=params.blur_window)
         self._grey: np.ndarray | None = None  # the frame last considered
 
     def consider(self, frame: RGBDFrame) -> tuple[str, str] | None:
@@ -192,7 +201,7 @@ class FrameSelector:
         since = f"{moved:.2f} deg since frame {self._ref_name}"
         if moved < p.min_motion_deg:
             return LITTLE_MOTION, f"moved {since} (frames are kept every {p.min_motion_deg:g} deg)"
-        if (p.blur_ratio > 0 and len(recent) >= BLUR_MIN_HISTORY and moved < BLUR_WAIT * p.min_motion_deg
+        if (p.blur_ratio > 0 and len(recent) >= BLUR_MIN_HISTORY and moved < p.blur_wait * p.min_motion_deg
                 and s < p.blur_ratio * float(np.median(recent))):
             share = s / max(float(np.median(recent)), 1e-12)
             return BLURRED, (f"blurred: sharpness {share:.0%} of the median of the {len(recent)} frames before it "

@@ -9,8 +9,9 @@ mesh, cloud and grasps, and the in-memory `Template` the estimator loads.
 """
 from __future__ import annotations
 
+from gscan.registration.edge import Edge
 from gscan.template.db import SCHEMA_VERSION, TemplateDB, open_template, unregistered_names
-from gscan.template.records import Edge, Template, TemplateSummary, View
+from gscan.template.records import Template, TemplateSummary, View
 
 __all__ = ["SCHEMA_VERSION", "Edge", "Template", "TemplateDB", "TemplateSummary", "View", "open_template",
            "unregistered_names"]

@@ -46,6 +46,9 @@ from gscan.geometry.transforms import is_rigid
 from gscan.io.camera import Intrinsics
 from gscan.io.images import image_too_large
 from gscan.io.output import Output, file_identity, remove_sqlite_sidecars, write_failure_reason
+
+# the records live in gscan.template.records; they are imported from here as well
+from gscan.registration.edge import Edge
 from gscan.template.codec import (
     BadBlob,
     TooLarge,
@@ -62,9 +65,7 @@ from gscan.template.codec import (
     encode_depth,
     encode_mask,
 )
-
-# the records live in gscan.template.records; they are imported from here as well
-from gscan.template.records import Edge, Template, TemplateSummary, View
+from gscan.template.records import Template, TemplateSummary, View
 
 log = logging.getLogger(__name__)
 

@@ -42,23 +42,6 @@ class View:
                    quality=quality, input_index=input_index)
 
 
-@dataclass
-class Edge:
-    """A registration between two views: T_tgt_src [4 x 4] (None if none was found), matches [M x 2]
-    int32 (src keypoint index, tgt keypoint index), quality numbers, kind "sequential" | "loop"."""
-
-    src: str
-    tgt: str
-    T_tgt_src: np.ndarray | None
-    matches: np.ndarray
-    cost: float | None = None
-    rmse: float | None = None
-    fitness: float | None = None
-    kind: str = "sequential"
-    accepted: bool = True
-    reason: str | None = None
-
-
 @dataclass(frozen=True)
 class TemplateSummary:
     """What a template database holds (`TemplateDB.summary`): schema version, status ("complete" | "partial"),

@@ -1,0 +1,206 @@
+"""The edges of a sequence: frame pairs registered into edges (`Registrar`), and the evidence the pose graph weighs
+an accepted edge by (`edge_evidence`).
+
+What the sequence's registration sees of a scan's frames is the small `SequenceFrames` interface (names, the
+registration data of frame k, its descriptors, keypoint count and median depth); edges are handed to an
+`EdgeSink` as they are computed (the scan stores them in its database).
+
+- `Edge` (gscan.registration.edge): an edge between two frames of the sequence, as the template stores it
+- `RegData`, `icp_cloud`: what registration uses of a frame
+- `Registrar(frames, params, sink, stored)`: `.register(pairs, kind, pool) -> list[Edge]`
+"""
+from __future__ import annotations
+
+import contextlib
+from collections import deque
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from itertools import islice
+from typing import Protocol, TypeVar
+
+import numpy as np
+
+from gscan.features import Features
+from gscan.geometry.transforms import transform_points
+from gscan.io.camera import Intrinsics, backproject
+from gscan.registration.dense import DenseGeometry, in_source_frame, pose_information
+from gscan.registration.edge import Edge
+from gscan.registration.pairwise import RegisterParams, register_features
+from gscan.registration.posegraph import information_from_points
+
+AGAINST_ODOMETRY = "contradicts the capture's odometry"  # how the reason of such an edge begins (`against_odometry`)
+ICP_VOXEL_STRIDE = 2  # pixel stride of the clouds kept for ICP before voxel downsampling (a sampling internal)
+COMMIT_ROWS = 64  # database writes are committed in chunks of this many edges or views (a transaction size)
+
+T_in = TypeVar("T_in")
+T_out = TypeVar("T_out")
+
+
+@dataclass
+class RegData:
+    """What registration uses of a frame: keypoints (camera frame), ICP cloud [P x 3] (or None), depth samples."""
+
+    feats: Features
+    cloud: np.ndarray | None
+    dense: DenseGeometry
+
+
+class SequenceFrames(Protocol):
+    """The frames of a sequence as its registration reads them (frame k: 0 <= k < len). Thread-safe."""
+
+    @property
+    def names(self) -> Sequence[str]: ...
+
+    def __len__(self) -> int: ...
+
+    def reg(self, k: int) -> RegData:
+        """Registration data of frame k."""
+        ...
+
+    def descriptors(self, k: int) -> np.ndarray:
+        """Frame k's registration descriptors [N x D]."""
+        ...
+
+    def n_keypoints(self, k: int) -> int:
+        """Frame k's registration keypoints with depth."""
+        ...
+
+    def depth_m(self, k: int) -> float | None:
+        """The median depth of frame k's keypoints (m), None without keypoints."""
+        ...
+
+
+class EdgeSink(Protocol):
+    """Where edges go as they are computed (a scan's database)."""
+
+    def add(self, edge: Edge) -> None: ...
+
+    def commit(self) -> None:
+        """Commit what was added so far (inside a batch)."""
+        ...
+
+    def batch(self) -> contextlib.AbstractContextManager[None]:
+        """The adds inside are one transaction."""
+        ...
+
+
+def icp_cloud(depth: np.ndarray, intrinsics: Intrinsics, mask: np.ndarray | None, voxel: float) -> np.ndarray:
+    """[P x 3] camera-frame points for ICP: valid depth [H x W] (inside `mask`), pixel stride, voxel grid."""
+    import open3d as o3d
+
+    s = ICP_VOXEL_STRIDE
+    valid = depth > 0
+    if mask is not None:
+        valid &= mask
+    pts = backproject(depth, intrinsics)[::s, ::s][valid[::s, ::s]]
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts.astype(np.float64)))
+    if voxel > 0:
+        pc = pc.voxel_down_sample(voxel)
+    return np.asarray(pc.points)
+
+
+def bounded_map(pool: ThreadPoolExecutor, fn: Callable[[T_in], T_out], items: Iterable[T_in],
+                ahead: int) -> Iterator[T_out]:
+    """pool.map(fn, items) in order, with at most `ahead` items submitted and not yet consumed: the results of
+    per-frame work (images, keypoints) do not pile up when the consumer is slower than the workers."""
+    it = iter(items)
+    pending = deque(pool.submit(fn, x) for x in islice(it, ahead))
+    try:
+        while pending:
+            fut = pending.popleft()
+            for x in islice(it, 1):
+                pending.append(pool.submit(fn, x))
+            yield fut.result()
+    finally:
+        for fut in pending:
+            fut.cancel()
+
+
+@dataclass(frozen=True)
+class Evidence:
+    """What the pose graph uses of an accepted edge: its information matrix [6 x 6] (source frame), the median
+    depth of its source points, and its RMS keypoint residual in noise sigmas."""
+
+    info: np.ndarray
+    depth: float
+    rms: float
+
+
+def edge_evidence(e: Edge, a: RegData, b: RegData, rparams: RegisterParams) -> Evidence:
+    """The evidence of the accepted edge e from frame a to frame b (their registration data)."""
+    assert e.T_tgt_src is not None  # an accepted edge has a pose
+    ps = a.feats.points[e.matches[:, 0]].astype(np.float64)
+    pt = b.feats.points[e.matches[:, 1]].astype(np.float64)
+    # the precision the edge claims, as registration solved it (keypoints, and the depth when it took part),
+    # in the source frame, the frame of the pose graph's residual: an edge whose pose the depth pins must
+    # agree with the others to that precision (the graph's floor keeps strong edges from dominating)
+    if rparams.refines_on_depth:
+        info = in_source_frame(pose_information(a.dense, b.dense, ps, pt, e.T_tgt_src, rparams.noise,
+                                                rparams.depth_noise), e.T_tgt_src)
+    else:
+        info = information_from_points(ps, rparams.noise.pair_sigma(ps[:, 2], pt[:, 2]))
+    r = np.linalg.norm(transform_points(e.T_tgt_src, ps) - pt, axis=1) / rparams.noise.pair_sigma(ps[:, 2], pt[:, 2])
+    return Evidence(info, float(np.median(ps[:, 2])), float(np.sqrt(np.mean(r * r))))
+
+
+class Registrar:
+    """Pairwise registration of frame pairs into edges handed to `sink`, with the evidence the pose graph weighs
+    them by.
+
+    A resumed scan reuses the edges the interrupted run stored (`stored`, kept in `done`); `restored` holds those it
+    had pruned by the pose graph, put back for this run's pose graph to judge; `evidence` holds the accepted edges'
+    computed here (`optimise` computes that of stored ones). `ahead`: pairs submitted to the pool and not yet
+    consumed."""
+
+    def __init__(self, frames: SequenceFrames, rparams: RegisterParams, sink: EdgeSink,
+                 stored: Iterable[Edge] = (), ahead: int = 4):
+        self.frames, self.rparams, self.sink, self.ahead = frames, rparams, sink, ahead
+        self.names = list(frames.names)
+        self.done = {(e.src, e.tgt): e for e in stored}
+        self.restored: set[tuple[str, str]] = set()
+        self.evidence: dict[tuple[str, str], Evidence] = {}
+        self.written = 0  # edges handed to the sink so far (committed every COMMIT_ROWS)
+
+    def _pair(self, pair: tuple[int, int]) -> tuple[Edge, Evidence | None] | None:
+        i, j = pair
+        if (self.names[i], self.names[j]) in self.done:
+            return None
+        a, b = self.frames.reg(i), self.frames.reg(j)
+        r = register_features(a.feats, b.feats, self.rparams, clouds=(a.cloud, b.cloud), dense=(a.dense, b.dense))
+        # the edge keeps the correspondences its pose was solved from (GMatch's list grown by the guided
+        # refinement of gscan.registration.pairwise), which also weigh it in the pose graph
+        used = r.inliers if r.inliers is not None and len(r.inliers) else r.matches
+        e = Edge(self.names[i], self.names[j], r.T_tgt_src, used, r.cost, r.rmse, r.fitness, "sequential",
+                     r.accepted, r.reason)
+        return e, (edge_evidence(e, a, b, self.rparams) if e.accepted and e.T_tgt_src is not None else None)
+
+    def register(self, pairs: list[tuple[int, int]], kind: str, pool: ThreadPoolExecutor) -> list[Edge]:
+        """Edges of `pairs`, computed on the pool (numba and OpenCV release the GIL) in the order of their frames
+        (a frame's registration data stays in the cache for its next edges), handed to the sink in the order
+        given."""
+        order = sorted(range(len(pairs)), key=lambda k: pairs[k])
+        computed = zip(order, bounded_map(pool, self._pair, [pairs[k] for k in order], self.ahead), strict=True)
+        ready: dict[int, tuple[Edge, Evidence | None] | None] = {}
+        out = []
+        for k, (i, j) in enumerate(pairs):
+            while k not in ready:
+                m, g = next(computed)
+                ready[m] = g
+            got = ready.pop(k)
+            if got is None:  # stored by the interrupted run
+                e = self.done[(self.names[i], self.names[j])]
+                if e.pruned:  # restore the registration verdict
+                    e.accepted, e.reason = True, None
+                    self.restored.add((e.src, e.tgt))
+            else:
+                e, ev = got
+                e.kind = kind
+                if ev is not None:
+                    self.evidence[(e.src, e.tgt)] = ev
+                self.sink.add(e)
+                self.written += 1
+                if self.written % COMMIT_ROWS == 0:
+                    self.sink.commit()
+            out.append(e)
+        return out

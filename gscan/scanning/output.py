@@ -1,0 +1,137 @@
+"""A scan's output database: its meta (what a resumed scan must agree on), a new one, or the interrupted one resumed.
+
+- `scan_meta(source, options) -> dict`: the meta, `RESUME_KEYS` the values a resumed scan must agree on
+- `create_output(output, options, meta) -> (TemplateDB, Output | None)`: a new database
+- `open_resumed(source, output, options, seq, fingerprints) -> (TemplateDB, Output | None)`: the interrupted one
+"""
+from __future__ import annotations
+
+import contextlib
+import json
+import shutil
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from gscan.errors import InputError, OutputExists
+from gscan.io.output import Output, journal_fits, occupied
+from gscan.io.sequence import Sequence
+from gscan.scanning.config import ScanConfig
+from gscan.scanning.options import ScanOptions
+from gscan.template.db import TemplateDB
+
+if TYPE_CHECKING:
+    from gscan.io.recordings.sequence import RecordingSequence
+
+RESUME_KEYS = ("input", "format", "intrinsics_sha256", "depth_scale_option", "config", "mode_option", "segment",
+               "obj_id_option", "topics_option", "depth_camera")
+
+
+def scan_meta(source: Path, opts: ScanOptions) -> dict:
+    """The database's meta; a resumed scan must agree on every RESUME_KEYS value (what changes its result):
+    the layout as detected (`--format auto` and the named layout agree), the calibration files' contents."""
+    from gscan.io import detect_format
+
+    return {"source": "scan", "input": str(source.resolve()),
+            "format": detect_format(source) if opts.format == "auto" else opts.format,
+            "intrinsics_sha256": None if opts.intrinsics is None else _sha256(Path(opts.intrinsics)),
+            "depth_scale_option": opts.depth_scale, "config": opts.config.model_dump(), "mode_option": opts.mode,
+            "segment": opts.segment, "obj_id_option": opts.obj_id, "descriptor": opts.config.features.kind,
+            "topics_option": None if opts.color_topic is None and opts.depth_topic is None else
+            [opts.color_topic, opts.depth_topic],
+            "depth_camera": None if opts.depth_camera is None else opts.depth_camera.to_dict(),
+            "units": "m"}
+
+
+def _sha256(path: Path) -> str:
+    import hashlib
+
+    try:
+        return hashlib.sha256(path.read_bytes()).hexdigest()
+    except OSError as e:
+        raise InputError(path, f"cannot read the calibration file ({e.strerror or e})") from None
+
+
+def open_resumed(source: Path, output: Path, opts: ScanOptions, seq: Sequence | RecordingSequence, frames: dict
+                  ) -> tuple[TemplateDB, Output | None]:
+    """The interrupted scan's database; it must come from the same input, configuration and input frames
+    (`frames`: `Sequence.fingerprints`). A complete database (or one whose journal would have too long a
+    name) is continued in a copy renamed over it at the end, so a failed run leaves it as it was."""
+    meta = scan_meta(source, opts)
+    db = TemplateDB.open(output, require_complete=False)  # read only until it is known to be continued
+    try:
+        stored = {k: db.get_meta(k) for k in RESUME_KEYS}
+        # settings added to the configuration since the scan started take their defaults; a configuration this
+        # version does not read differs
+        with contextlib.suppress(ValueError, TypeError):
+            stored["config"] = json.loads(json.dumps(ScanConfig.model_validate(stored["config"]).model_dump()))
+        if stored != {k: json.loads(json.dumps(meta[k])) for k in stored}:
+            raise InputError(output, "was written from another input or configuration", fix="restart")
+        _check_frames(output, db.get_meta("input_frames"), json.loads(json.dumps(frames)), seq)
+        in_place = db.status != "complete" and journal_fits(output)
+    except BaseException:
+        db.close()
+        raise
+    db.close()
+    if in_place:
+        return TemplateDB.open(output, require_complete=False, writable=True, wal=True), None
+    target = Output(output, force=True, kind=".gscan file path")
+    try:
+        shutil.copyfile(output, target.open())
+        return TemplateDB.open(target.tmp, require_complete=False, writable=True, wal=True), target
+    except BaseException as e:
+        target.discard()
+        t = target.translate(e)
+        if t is not e:
+            raise t from None
+        raise
+
+
+def _check_frames(output: Path, stored: object, frames: dict, seq: Sequence | RecordingSequence) -> None:
+    """InputError unless the input frames hold what they held when the partial scan `output` started (their
+    files' sizes and hashes): a scan resumed on other images would mix their keypoints and edges."""
+    if not isinstance(stored, dict):
+        raise InputError(output, "holds no record of the input frames it was started from (written by an older "
+                         "gscan); it cannot be resumed safely", fix="restart")
+    if stored == frames:
+        return
+    from gscan.io.layouts import natural_key
+
+    for name in sorted(set(stored) | set(frames), key=natural_key):
+        old, new = stored.get(name, "absent"), frames.get(name, "absent")
+        if old == new:
+            continue
+        if new == "absent":
+            what = f"frame {name} is no longer in the input"
+        elif old == "absent":
+            what = f"frame {name} was not in the input"
+        elif old is None or new is None:
+            what = f"frame {name} {'was unusable then' if old is None else 'is unusable now'}"
+        else:
+            role = next((r for r in ("color", "depth", "mask") if old.get(r) != new.get(r)), None)
+            if role is None or not isinstance(seq, Sequence):  # a recording: one fingerprint of the frame's messages
+                what = f"frame {name} changed"
+            else:
+                changed = getattr(seq.files(name), role) if role in new else None
+                what = f"{changed} changed" if changed is not None else f"frame {name} has no {role} image now"
+        raise InputError(output, f"the input frames are not the ones this partial scan was started from ({what})",
+                         fix="restart")
+
+
+def create_output(output: Path, opts: ScanOptions, meta: dict) -> tuple[TemplateDB, Output | None]:
+    """A new database: in place while nothing is at the output (an interrupted scan is then resumed from it),
+    else in a temporary sibling that replaces the old output once complete (`Output`)."""
+    if not occupied(output) and journal_fits(output):
+        try:
+            return TemplateDB.create(output, meta=meta, wal=True), None
+        except OutputExists as e:  # created by another process since the checks
+            if not opts.force:
+                raise OutputExists(output, e.reason, fix="resume") from None
+    target = Output(output, force=opts.force, kind=".gscan file path", fix="resume")
+    try:
+        return TemplateDB.create(target.open(), force=True, meta=meta, wal=True), target
+    except BaseException as e:
+        target.discard()
+        t = target.translate(e)
+        if t is not e:
+            raise t from None
+        raise
