@@ -6,7 +6,7 @@ from pathlib import Path
 import typer
 
 from gscan.cli.imports import SCAN_IMPORTS, import_holding_ctrl_c
-from gscan.cli.output import err, say
+from gscan.cli.output import err, say, setup_logging
 from gscan.cli.scan import print_scan_summary
 
 
@@ -16,6 +16,7 @@ def demo(
     port: int = typer.Option(8080, "--port", min=1, max=65535, help="viewer port"),
 ) -> None:
     """Scan the bundled sample, estimate its held-back frames, then open the viewer."""
+    setup_logging(False)  # warnings on stderr, the first run's "compiling the numeric kernels" among them
     import_holding_ctrl_c(*SCAN_IMPORTS)
     from rich.table import Table
 
