@@ -72,7 +72,7 @@ from gscan.scanning.camera import check_camera
 from gscan.scanning.capture_mode import MOVING_OBJECT
 from gscan.scanning.config import ScanConfig, for_capture
 from gscan.scanning.frames import WORKERS, FrameData, detect_capture_mode, load_frames
-from gscan.scanning.fuse import FusedModel, fuse_tsdf, template_frame
+from gscan.scanning.fuse import FusedModel, FusionParams, fuse_tsdf, template_frame
 from gscan.scanning.keyframes import keyframe_candidates, select_keyframes
 from gscan.scanning.options import ScanOptions
 from gscan.scanning.output import create_output, open_resumed, scan_meta
@@ -282,7 +282,7 @@ def _scan_frames(data: FrameData, source: Path, output: Path, opts: ScanOptions,
         mask_of, plane_world = _segment(data, T_world_cam, opts.segment, seg, advance)
 
     with timer.stage("fuse", total=1) as advance:
-        model, T_obj_world = _fuse(data, T_world_cam, mask_of, plane_world, cfg, source)
+        model, T_obj_world = _fuse(data, T_world_cam, mask_of, plane_world, cfg.fusion, source)
         advance(1)
 
     with timer.stage("database", total=n + 1) as advance, db.batch():
@@ -317,12 +317,12 @@ def _scan_frames(data: FrameData, source: Path, output: Path, opts: ScanOptions,
 
 
 def _fuse(data: FrameData, T_world_cam: list[np.ndarray | None], mask_of: Callable[[int], np.ndarray | None],
-          plane_world: Plane | None, cfg: ScanConfig, input_dir: Path) -> tuple[FusedModel, np.ndarray]:
+          plane_world: Plane | None, params: FusionParams, input_dir: Path) -> tuple[FusedModel, np.ndarray]:
     """(TSDF model in the world frame, T_obj_world [4 x 4] of the template frame); InputError when
     nothing could be fused."""
     n = len(data)
     try:
-        model = fuse_tsdf(LazyList(n, data.frame), T_world_cam, LazyList(n, mask_of), cfg.fusion)
+        model = fuse_tsdf(LazyList(n, data.frame), T_world_cam, LazyList(n, mask_of), params)
     except ValueError as e:  # no registered frame has object depth within fusion.depth_max
         raise InputError(input_dir, f"nothing could be fused: {e} (fusion.depth_max); check the depth scale",
                          fix="depth_scale") from None
