@@ -179,3 +179,31 @@ def test_a_ragged_bottom_closes_without_crossing_triangles():
     # the kept observed triangles come first, then the added ones; filled ones lie in the box's bottom 15 mm
     assert not filled[: int((~filled).sum())].any()
     assert c.vertices[c.triangles[filled]][..., 2].max() <= -C / 2 + 0.015 + 0.01
+
+
+def test_torn_real_objects_close_watertight_with_their_volume(meshes_dir):
+    """The shared scanned objects (closed meshes, standing on z = 0), their bottom torn off raggedly up to 10 %
+    of their height, closed on z = 0: open3d's `is_watertight` holds on every one, and the volume is the
+    object's within 10 % (measured 0.4 to 2 %, 7.3 % for a package with sloped sides, which the walls below the
+    cut make vertical), within 2.5 % for the median object."""
+    from gscan.geometry.meshfill import close_holes_cleanly
+
+    errors = []
+    for obj in sorted(p for p in meshes_dir.iterdir() if (p / "model_0.obj").is_file()):
+        raw = trimesh.load(obj / "model_0.obj", force="mesh", process=False)
+        tm = trimesh.Trimesh(raw.vertices, raw.faces, process=True)  # texture seams merged
+        tm.merge_vertices(digits_vertex=6)
+        if not tm.is_watertight:
+            continue
+        V = np.asarray(tm.vertices) - [0, 0, tm.vertices[:, 2].min()]
+        F = np.asarray(tm.faces)
+        rng = np.random.default_rng(0)
+        keep = V[F][:, :, 2].mean(1) > rng.uniform(0, 0.1 * V[:, 2].max(), len(F))
+        adj = trimesh.Trimesh(V, F[keep], process=False).face_adjacency
+        _, part = connected_components(coo_matrix((np.ones(len(adj)), (adj[:, 0], adj[:, 1])),
+                                                  shape=(int(keep.sum()),) * 2), directed=False)
+        c, _ = close_holes_cleanly(V, F[keep][part == np.argmax(np.bincount(part))], floor_z=0.0)
+        m = _o3d(c.vertices, c.triangles)
+        assert m.is_watertight(), obj.name
+        errors.append(abs(m.get_volume() / tm.volume - 1))
+    assert len(errors) >= 10 and max(errors) < 0.10 and np.median(errors) < 0.025, errors

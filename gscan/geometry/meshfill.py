@@ -322,9 +322,10 @@ def _bottom_top(V: np.ndarray, F: np.ndarray, floor_z: float, bottom_band: float
     if c.bottom_loops == 0:
         return None
     added = c.triangles[len(F):]
-    low = np.any(c.vertices[added, 2] < V[:, 2].min(), axis=1)  # walls and caps reach below every input vertex
+    low = np.any(c.vertices[added, 2] < V[F, 2].min(), axis=1)  # walls and caps reach below every input vertex
     v = np.unique(added[low].ravel())
-    return float(V[v[v < len(V)], 2].max())
+    v = v[v < len(V)]
+    return float(V[v, 2].max()) if len(v) else None
 
 
 def close_holes_cleanly(vertices: np.ndarray, triangles: np.ndarray, vertex_colors: np.ndarray | None = None,
