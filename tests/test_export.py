@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 from dataclasses import replace
 from pathlib import Path
 
@@ -227,12 +228,13 @@ def test_colmap_export(synth: tuple[Path, dict], tmp_path: Path) -> None:
     assert np.array_equal(cv2.cvtColor(cv2.imread(str(out / "images" / "frame 00 é.png")), cv2.COLOR_BGR2RGB),
                           view.color)
     # tracks: edges link consecutive views only, so a surface point gives one track per run of
-    # consecutive views that saw it
+    # consecutive views that saw it; a run of one view (seen in one image only) is no 3D point
     all_ids = np.concatenate(gt["kp_ids"])
     seen = np.array([[g in set(ids) for ids in gt["kp_ids"]] for g in np.unique(all_ids)])
-    runs = int(seen[:, 0].sum() + (seen[:, 1:] & ~seen[:, :-1]).sum())
-    assert rec.num_points3D() == runs
-    assert rec.compute_num_observations() == len(all_ids)
+    run_lengths = [len(r) for row in seen for r in "".join("1" if x else "0" for x in row).split("0") if r]
+    assert rec.num_points3D() == sum(n >= 2 for n in run_lengths)
+    assert rec.compute_num_observations() == sum(n for n in run_lengths if n >= 2)
+    assert min(p.track.length() for p in rec.points3D.values()) == 2
     assert max(p.track.length() for p in rec.points3D.values()) == 4
     for p in rec.points3D.values():  # reprojection in COLMAP's pixel convention
         for el in p.track.elements:
@@ -440,7 +442,7 @@ def test_sample_colmap_points_carry_their_reprojection_error(sample_template: Pa
     """Every 3D point's `error` is its track's mean reprojection error in pixels, recomputed here through
     pycolmap's own camera model (COLMAP showed -1 for all of them, and a mean error of 0). Tracks hold
     observations within 1 px of their point (gscan's poses are fixed, so farther ones are split off); the mean
-    over the sample, with its registered poses, is far below that (measured 0.05 px; 0.3 leaves room for
+    over the sample, with its registered poses, is far below that (measured 0.16 px; 0.3 leaves room for
     another platform's registration)."""
     out = tmp_path / "colmap"
     export(sample_template, "colmap", out)
@@ -459,3 +461,41 @@ def test_sample_colmap_points_carry_their_reprojection_error(sample_template: Pa
     np.testing.assert_allclose(errors, recomputed, atol=1e-6)  # both in float64 from the same numbers
     assert rec.compute_mean_reprojection_error() < 0.3
     assert max(p.track.length() for p in rec.points3D.values()) > 5  # tracks still span many views
+
+
+def test_sample_colmap_points_are_seen_in_two_images_at_least(sample_template: Path, tmp_path: Path) -> None:
+    """Every 3D point of the sample's model is seen in at least two images (a point seen once has no
+    reprojection error to speak of: 70 % of the points were, and pulled the mean error from 0.159 to 0.048 px),
+    and the mean reprojection error gscan reports is pycolmap's own on the model read back (printed to 4
+    decimals). Measured: 10017 points, mean track length 3.63, 0.159 px."""
+    out = tmp_path / "colmap"
+    res = export(sample_template, "colmap", out)
+    rec = pycolmap.Reconstruction(str(out))
+    lengths = np.array([p.track.length() for p in rec.points3D.values()])
+    assert len(lengths) > 1000 and lengths.min() >= 2, (len(lengths), lengths.min())
+    match = re.search(r"([0-9]+) points seen in >= 2 images .* mean reprojection error ([0-9.]+) px", res.content)
+    assert match is not None, res.content
+    assert int(match[1]) == rec.num_points3D()
+    assert float(match[2]) == pytest.approx(rec.compute_mean_reprojection_error(), abs=5e-5)  # 4 decimals
+
+
+def test_sample_models_pass_open3d_watertight_checks(sample_template: Path, tmp_path: Path) -> None:
+    """open3d's checks on the exported models of the scanned sample (a rendered box of known size): watertight
+    (edge- and vertex-manifold, no two triangles crossing: the hole-closing's walls crossed in 52 pairs) and a
+    volume within 5 % of the box's (the bound above; measured -0.4 %). The PLY flags the triangles the closing
+    added (face property `filled`): a few % of the triangles, nearly all the cap and the walls in the box's bottom
+    quarter (measured 99 %: a fan closes the hole left where the fused surface folded through itself)."""
+    import open3d as o3d
+
+    for fmt in ("ply", "obj"):
+        export(sample_template, fmt, tmp_path / f"m.{fmt}")
+        m = o3d.io.read_triangle_mesh(str(tmp_path / f"m.{fmt}"))
+        assert not m.is_self_intersecting(), fmt
+        assert m.is_edge_manifold() and m.is_vertex_manifold() and m.is_watertight(), fmt
+        assert abs(m.get_volume() / SAMPLE_BOX_M3 - 1) < 0.05, (fmt, m.get_volume())
+    ply = trimesh.load(tmp_path / "m.ply", process=False)
+    filled = ply.metadata["_ply_raw"]["face"]["data"]["filled"].astype(bool)
+    assert filled.shape == (len(ply.faces),) and 0 < filled.mean() < 0.1, filled.mean()
+    z = ply.vertices[:, 2]
+    low = ply.vertices[ply.faces[filled]][..., 2].max(1) < z.min() + 0.25 * np.ptp(z)
+    assert low.mean() > 0.9, low.mean()

@@ -11,6 +11,8 @@ import pytest
 import trimesh
 from hypothesis import given
 from hypothesis import strategies as st
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
 from gscan.geometry.meshfill import FLOOR_GAP, boundary_edges, boundary_loops, close_holes, ear_clip, non_manifold_edges
 
@@ -134,3 +136,74 @@ def test_ear_clipping_covers_a_simple_polygon_exactly(P):
     # each polygon edge is used once, in the polygon's direction
     edges = {(int(i), int(j)) for t in tris for i, j in ((t[0], t[1]), (t[1], t[2]), (t[2], t[0]))}
     assert all((k, (k + 1) % n) in edges for k in range(n))
+
+
+def _o3d(V: np.ndarray, F: np.ndarray):
+    import open3d as o3d
+
+    return o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(np.asarray(V, np.float64)),
+                                     o3d.utility.Vector3iVector(np.asarray(F, np.int32)))
+
+
+def _ragged_box() -> trimesh.Trimesh:
+    """The sample's box (4 to 10 mm triangles) with its bottom torn off raggedly, as a fused scan's is: each triangle
+    whose centre lies below a random height (0 to 15 mm above the bottom) removed, then every piece but the
+    largest. The boundary zigzags up and down the vertical sides, where walls hung from it fold over each other."""
+    box = trimesh.creation.box((A, B, C))
+    for _ in range(4):
+        box = box.subdivide()
+    rng = np.random.default_rng(5)
+    keep = box.triangles_center[:, 2] > -C / 2 + rng.uniform(0.0, 0.015, len(box.faces))
+    torn = trimesh.Trimesh(box.vertices, box.faces[keep], process=False)
+    adj = torn.face_adjacency
+    _, part = connected_components(coo_matrix((np.ones(len(adj)), (adj[:, 0], adj[:, 1])),
+                                              shape=(len(torn.faces),) * 2), directed=False)
+    return trimesh.Trimesh(torn.vertices, torn.faces[part == np.argmax(np.bincount(part))], process=False)
+
+
+def test_a_ragged_bottom_closes_without_crossing_triangles():
+    """open3d's `is_watertight` (edge- and vertex-manifold, no two triangles crossing) holds on the closed ragged
+    box, and its volume is the box's: the mesh is cut flat above the torn edge and walled down from there, and a
+    box's sides are vertical, so the closed surface is the box itself up to float64 rounding (rel 1e-9, as above).
+    Walls hung straight down from the torn edge (`close_holes`) cross triangles (measured: 5926 pairs)."""
+    from gscan.geometry.meshfill import close_holes_cleanly
+
+    torn = _ragged_box()
+    plain = close_holes(torn.vertices, torn.faces, floor_z=-C / 2)
+    assert len(np.asarray(_o3d(plain.vertices, plain.triangles).get_self_intersecting_triangles())) > 0
+    c, filled = close_holes_cleanly(torn.vertices, torn.faces, floor_z=-C / 2)
+    m = _o3d(c.vertices, c.triangles)
+    assert m.is_edge_manifold() and m.is_vertex_manifold() and not m.is_self_intersecting() and m.is_watertight()
+    assert m.get_volume() == pytest.approx(A * B * C, rel=1e-9)
+    assert filled.shape == (len(c.triangles),) and 0 < filled.sum() < len(filled)
+    # the kept observed triangles come first, then the added ones; filled ones lie in the box's bottom 15 mm
+    assert not filled[: int((~filled).sum())].any()
+    assert c.vertices[c.triangles[filled]][..., 2].max() <= -C / 2 + 0.015 + 0.01
+
+
+def test_torn_real_objects_close_watertight_with_their_volume(meshes_dir):
+    """The shared scanned objects (closed meshes, standing on z = 0), their bottom torn off raggedly up to 10 %
+    of their height, closed on z = 0: open3d's `is_watertight` holds on every one, and the volume is the
+    object's within 10 % (measured 0.4 to 2 %, 7.3 % for a package with sloped sides, which the walls below the
+    cut make vertical), within 2.5 % for the median object."""
+    from gscan.geometry.meshfill import close_holes_cleanly
+
+    errors = []
+    for obj in sorted(p for p in meshes_dir.iterdir() if (p / "model_0.obj").is_file()):
+        raw = trimesh.load(obj / "model_0.obj", force="mesh", process=False)
+        tm = trimesh.Trimesh(raw.vertices, raw.faces, process=True)  # texture seams merged
+        tm.merge_vertices(digits_vertex=6)
+        if not tm.is_watertight:
+            continue
+        V = np.asarray(tm.vertices) - [0, 0, tm.vertices[:, 2].min()]
+        F = np.asarray(tm.faces)
+        rng = np.random.default_rng(0)
+        keep = V[F][:, :, 2].mean(1) > rng.uniform(0, 0.1 * V[:, 2].max(), len(F))
+        adj = trimesh.Trimesh(V, F[keep], process=False).face_adjacency
+        _, part = connected_components(coo_matrix((np.ones(len(adj)), (adj[:, 0], adj[:, 1])),
+                                                  shape=(int(keep.sum()),) * 2), directed=False)
+        c, _ = close_holes_cleanly(V, F[keep][part == np.argmax(np.bincount(part))], floor_z=0.0)
+        m = _o3d(c.vertices, c.triangles)
+        assert m.is_watertight(), obj.name
+        errors.append(abs(m.get_volume() / tm.volume - 1))
+    assert len(errors) >= 10 and max(errors) < 0.10 and np.median(errors) < 0.025, errors

@@ -64,7 +64,8 @@ class ExportResult:
 
 
 def _writer(fmt: str, close: bool) -> Callable[[TemplateDB, Path], int | tuple[int, str]]:
-    """The format's writer: writer(db, tmp_out) -> number of views exported (mesh formats: (0, content))."""
+    """The format's writer: writer(db, tmp_out) -> number of views exported, or (views, content): the mesh
+    formats (0 views) and colmap say what they wrote."""
     if fmt == "bop":
         from gscan.exporters.bop import write_bop
         return lambda db, path: write_bop(db, path, close=close)

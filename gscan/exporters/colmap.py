@@ -8,9 +8,12 @@ Cameras are PINHOLE, one per distinct intrinsics. COLMAP puts the centre of the 
 
 3D points come from the stored template keypoints (object-frame points). Keypoints linked by the
 matches of accepted edges are grouped into one track (union-find); a track keeps at most one
-keypoint per image (the first) and its position is the mean of its members' points. Keypoints in
-no accepted match become single-observation points. Each point's `error` is the mean reprojection error of
-its track in pixels (COLMAP's own definition, which its model statistics average).
+keypoint per image (the first) and its position is the mean of its members' points, refined on its
+reprojection errors. Only tracks of at least MIN_TRACK_LENGTH images become 3D points: a keypoint in no
+accepted match, or split off its track, is seen in one image only (it has no reprojection error to speak of,
+and COLMAP's own filters delete such points); its keypoint stays in its image, unlinked. Each point's `error`
+is the mean reprojection error of its track in pixels (COLMAP's own definition, which its model statistics
+average).
 """
 from __future__ import annotations
 
@@ -34,6 +37,7 @@ MAX_REPROJ_PX = 1.0
 MAX_SPLIT_ROUNDS = 10
 PRIOR_PX_PER_M = 100.0  # the pull towards the depth-lifted position: 1 px per cm
 REFINE_ITERATIONS = 8
+MIN_TRACK_LENGTH = 2  # images that see a 3D point: one alone neither places it nor measures its error
 
 
 class _UnionFind:
@@ -114,7 +118,10 @@ def build_reconstruction(db: TemplateDB, images_dir: Path) -> pycolmap.Reconstru
         tracks.append(members)
     cams = _Cameras.of(views)
     tracks, xyz_all = _triangulate(tracks, pts_all, px_all, view_of, cams)
-    for members, xyz in zip(tracks, xyz_all, strict=True):
+    kept = [p for p, t in enumerate(tracks) if len(t) >= MIN_TRACK_LENGTH]
+    log.debug("COLMAP model: %d of %d tracks seen in >= %d images kept", len(kept), len(tracks), MIN_TRACK_LENGTH)
+    for p in kept:
+        members, xyz = tracks[p], xyz_all[p]
         track = pycolmap.Track()
         for g in members:
             track.add_element(int(view_of[g]) + 1, g - offsets[view_of[g]])
@@ -220,13 +227,18 @@ def _keypoint_colors(color: np.ndarray, f) -> np.ndarray:
     return color[v, u]
 
 
-def write_colmap(db: TemplateDB, out: Path) -> int:
+def write_colmap(db: TemplateDB, out: Path) -> tuple[int, str]:
     """Write the binary COLMAP model (cameras/images/points3D/rigs/frames .bin) into `out` and the views'
-    colour images into `out`/images (COLMAP's image_path)."""
+    colour images into `out`/images (COLMAP's image_path). Returns (images, what the model holds: its points,
+    mean track length and mean reprojection error as pycolmap computes them)."""
     (out / "images").mkdir()
     rec = build_reconstruction(db, out / "images")
     rec.write(str(out))
+    n_points = rec.num_points3D()
+    track = rec.compute_mean_track_length() if n_points else 0.0
+    error = rec.compute_mean_reprojection_error() if n_points else 0.0
     log.info("COLMAP model: %d images, %d points, mean track length %.2f, mean reprojection error %.3f px",
-             rec.num_images(), rec.num_points3D(), rec.compute_mean_track_length() if rec.num_points3D() else 0.0,
-             rec.compute_mean_reprojection_error() if rec.num_points3D() else 0.0)
-    return rec.num_images()
+             rec.num_images(), n_points, track, error)
+    return rec.num_images(), (f"a COLMAP model of {rec.num_images()} images, {n_points} points seen in >= "
+                              f"{MIN_TRACK_LENGTH} images (mean track length {track:.2f}), mean reprojection error "
+                              f"{error:.4f} px")

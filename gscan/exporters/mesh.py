@@ -35,6 +35,8 @@ def write_mesh(db: TemplateDB, path: Path, fmt: str, close: bool = True) -> tupl
     mesh = require_mesh(db, close)
     tm = to_trimesh(mesh)
     if fmt == "ply":
+        if mesh.filled is not None:  # a face property: 1 where closing the holes added the triangle
+            tm.face_attributes["filled"] = np.asarray(mesh.filled, dtype=np.uint8)
         data = trimesh.exchange.ply.export_ply(tm, encoding="binary", vertex_normal=True)
     elif fmt == "obj":
         data = trimesh.exchange.obj.export_obj(tm, include_color=True, include_normals=True,

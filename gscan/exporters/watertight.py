@@ -2,8 +2,10 @@
 
 A scan never sees the object's bottom: the support plane cut it, and the fused mesh is open there. Model users
 (BOP's renderers and scorers, FoundationPose, physics and grasp planners) expect a closed surface, so the
-exports close it by default (`gscan.geometry.meshfill.close_holes`): the bottom loop gets walls down to the
-support plane and a flat cap on it; other holes are closed by fans.
+exports close it by default (`gscan.geometry.meshfill.close_holes_cleanly`): the mesh is cut flat just above
+its ragged bottom loop, which gets walls down to the support plane and a flat cap on it; other holes are closed
+by fans; no two triangles of the result cross (open3d's `is_watertight` holds). The triangles the closing added
+are flagged (`MeshData.filled`; the PLY export's face property `filled`).
 
 The support plane's height in the template frame (whose z axis is the plane's normal when the scan found a
 plane) is measured again from the stored views: the median height of the measured points on a ring around
@@ -16,7 +18,7 @@ import logging
 
 import numpy as np
 
-from gscan.geometry.meshfill import close_holes, non_manifold_edges
+from gscan.geometry.meshfill import close_holes_cleanly, non_manifold_edges
 from gscan.geometry.transforms import transform_points
 from gscan.io.camera import backproject
 from gscan.template.db import MeshData, TemplateDB
@@ -67,19 +69,20 @@ def support_floor_z(db: TemplateDB, mesh: MeshData) -> float | None:
 
 
 def closed_mesh(db: TemplateDB, mesh: MeshData) -> MeshData:
-    """`mesh` with its holes closed (module docstring); the input's vertices and triangles come first. Logs what
-    was closed, and warns when the result is still not watertight (edges shared by more than two triangles,
-    which no cap can mend)."""
+    """`mesh` with its holes closed (module docstring): the observed vertices and triangles kept come first, and
+    `filled` flags the added triangles. Logs what was closed, and warns when the result is still not watertight
+    (edges shared by more than two triangles, which no cap can mend)."""
     floor = support_floor_z(db, mesh)
     if floor is None and db.get_meta("support_plane"):
         floor = float(np.min(np.asarray(mesh.vertices)[:, 2]))  # the plane's normal is z: close at the lowest point
-    c = close_holes(mesh.vertices, mesh.triangles, mesh.vertex_colors, floor_z=floor)
+    c, filled = close_holes_cleanly(mesh.vertices, mesh.triangles, mesh.vertex_colors, floor_z=floor)
     if c.holes_closed:
-        log.info("%s: closed %d hole(s) of the mesh (%d cut bottom(s) walled down to z = %s m)", db.path,
-                 c.holes_closed, c.bottom_loops, "none" if floor is None else f"{floor:+.4f}")
+        log.info("%s: closed %d hole(s) of the mesh (%d cut bottom(s) walled down to z = %s m; %d of %d triangles "
+                 "filled)", db.path, c.holes_closed, c.bottom_loops, "none" if floor is None else f"{floor:+.4f}",
+                 int(filled.sum()), len(filled))
     shared = non_manifold_edges(c.triangles)
     if c.boundary_edges_left or shared:
         log.warning("%s: the exported mesh is not watertight: %d open edge(s), %d edge(s) shared by more than two "
                     "triangles", db.path, c.boundary_edges_left, shared)
     colors = None if c.vertex_colors is None else np.asarray(c.vertex_colors, dtype=np.uint8)
-    return MeshData(c.vertices, c.triangles, colors)
+    return MeshData(c.vertices, c.triangles, colors, filled=filled)

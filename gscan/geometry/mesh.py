@@ -30,13 +30,15 @@ def to_u8_colors(c: np.ndarray | None) -> np.ndarray | None:
 @dataclass
 class MeshData:
     """vertices [V x 3] float (m), triangles [F x 3] int, vertex_colors [V x 3] uint8 | None; the frame is the
-    holder's (object frame in a template database)."""
+    holder's (object frame in a template database). `filled` [F] bool | None: True for the triangles that closing
+    the mesh's holes added (no camera saw them; `gscan.exporters.watertight`), None for a mesh as fused."""
 
     vertices: np.ndarray
     triangles: np.ndarray
     vertex_colors: np.ndarray | None = None
+    filled: np.ndarray | None = None
 
     def transformed(self, T_b_a: np.ndarray) -> MeshData:
         """The same mesh with its vertices mapped from frame a into frame b ([V x 3] float64)."""
         return MeshData(vertices=transform_points(T_b_a, self.vertices), triangles=self.triangles,
-                        vertex_colors=self.vertex_colors)
+                        vertex_colors=self.vertex_colors, filled=self.filled)

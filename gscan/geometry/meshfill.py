@@ -5,14 +5,18 @@ support plane cut it. `close_holes` makes it watertight: a loop at the bottom ge
 plane (`floor_z`, in a frame whose z axis is the plane's normal, as the template frame's is) and a flat cap
 there, so the model stands on the plane with its full volume; any other loop is closed by a fan. Every added
 triangle runs the loop's edges the other way, so every edge ends up shared by exactly two triangles of
-consistent winding.
+consistent winding. `close_holes_cleanly` (the exports') first cuts a ragged bottom flat (`cut_below`) and
+repairs what still crosses (`self_intersecting_pairs`), so that no two triangles of the result cross either.
 """
 from __future__ import annotations
 
+import logging
 from collections import defaultdict
 from dataclasses import dataclass
 
 import numpy as np
+
+log = logging.getLogger(__name__)
 
 FLOOR_GAP = 1e-4  # m: the floor lies at least this far below a bottom loop's lowest vertex
 
@@ -185,3 +189,213 @@ def close_holes(vertices: np.ndarray, triangles: np.ndarray, vertex_colors: np.n
     out_C = None if C is None else (np.concatenate([C] + new_C) if new_C else C)
     left = len(boundary_edges(out_F))
     return ClosedMesh(out_V, out_F.astype(np.int32), out_C, len(loops), bottom, left)
+
+
+CHUNK_EDGES = 12.0  # the self-intersection test's cells: this many median edge lengths wide
+MAX_REPAIR_ROUNDS = 8
+
+
+def self_intersecting_pairs(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """[P x 2] sorted index pairs (i < j) of triangles [F x 3] that intersect while sharing no vertex, by open3d's
+    own test (`TriangleMesh.get_self_intersecting_triangles`, the one `is_watertight` makes). Open3d compares all
+    pairs (quadratic: 7 s for 34k triangles), so it runs here per cell of a grid: each triangle goes to every
+    cell its bounding box touches, and two triangles that intersect share a cell."""
+    import open3d as o3d
+
+    V = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
+    F = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    if len(F) < 2:
+        return np.zeros((0, 2), np.int64)
+    P = V[F]  # [F x 3 x 3]
+    edge = float(np.median(np.linalg.norm(P[:, 1] - P[:, 0], axis=1)))
+    lo = P.min(1).min(0)
+    cell = max(CHUNK_EDGES * edge, float(np.ptp(P.reshape(-1, 3), axis=0).max()) / 64, 1e-12)
+    c0 = np.floor((P.min(1) - lo) / cell).astype(np.int64)  # [F x 3] first and last cell of each box
+    c1 = np.floor((P.max(1) - lo) / cell).astype(np.int64)
+    span = c1 - c0 + 1
+    dims = c1.max(0) + 1
+    tri, key = [], []
+    for dx in range(int(span[:, 0].max())):  # boxes spanning several cells (long cap triangles) go to each
+        for dy in range(int(span[:, 1].max())):
+            for dz in range(int(span[:, 2].max())):
+                sel = np.flatnonzero((span[:, 0] > dx) & (span[:, 1] > dy) & (span[:, 2] > dz))
+                c = c0[sel] + [dx, dy, dz]
+                tri.append(sel)
+                key.append((c[:, 0] * dims[1] + c[:, 1]) * dims[2] + c[:, 2])
+    tri_all, key_all = np.concatenate(tri), np.concatenate(key)
+    order = np.argsort(key_all, kind="stable")
+    tri_all, key_all = tri_all[order], key_all[order]
+    starts = np.flatnonzero(np.r_[True, key_all[1:] != key_all[:-1]])
+    pairs = []
+    for s, e in zip(starts, np.r_[starts[1:], len(key_all)], strict=True):
+        if e - s < 2:
+            continue
+        members = tri_all[s:e]
+        used, local = np.unique(F[members], return_inverse=True)  # shared vertices stay shared
+        m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(V[used]),
+                                      o3d.utility.Vector3iVector(local.reshape(-1, 3).astype(np.int32)))
+        hit = np.asarray(m.get_self_intersecting_triangles(), dtype=np.int64).reshape(-1, 2)
+        if len(hit):
+            pairs.append(np.sort(members[hit], axis=1))
+    return np.unique(np.concatenate(pairs), axis=0) if pairs else np.zeros((0, 2), np.int64)
+
+
+def _vertex_fans(triangles: np.ndarray, n_vertices: int) -> np.ndarray:
+    """[V] number of edge-connected fans of the triangles [F x 3] around each vertex (1 on a manifold, 0 unused).
+    Open3d's `is_vertex_manifold` refuses a vertex of more than one (two holes touching there)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    F = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    fans = np.zeros(n_vertices, np.int64)
+    if len(F) == 0:
+        return fans
+    # nodes: (vertex, neighbour) pairs; the corner of a triangle at v joins its two other vertices' pairs
+    v, a, b = F.ravel(), F[:, [1, 2, 0]].ravel(), F[:, [2, 0, 1]].ravel()
+    keys = np.unique(np.concatenate([v * n_vertices + a, v * n_vertices + b]))
+    ia, ib = np.searchsorted(keys, v * n_vertices + a), np.searchsorted(keys, v * n_vertices + b)
+    graph = coo_matrix((np.ones(len(ia)), (ia, ib)), shape=(len(keys), len(keys)))
+    n_comp, comp = connected_components(graph, directed=False)
+    comp_owner = np.zeros(n_comp, np.int64)
+    comp_owner[comp] = keys // n_vertices
+    np.add.at(fans, comp_owner, 1)
+    return fans
+
+
+def cut_below(vertices: np.ndarray, triangles: np.ndarray, vertex_colors: np.ndarray | None,
+              z_cut: float) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """The mesh (vertices [V x 3], triangles [F x 3], colours [V x C] or None) with everything below the plane
+    z = z_cut removed: triangles the plane crosses are split along it (one new vertex per crossed edge, shared
+    by its two triangles, colour interpolated), so the cut leaves loops lying in the plane. Returns vertices
+    (the input's still used, in order, then the new ones), triangles (winding kept) and colours. No vertex may
+    lie on the plane (`close_holes_cleanly` moves it off)."""
+    V = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
+    F = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    above = V[:, 2] > z_cut
+    n_up = above[F].sum(1)
+    out_F = [F[n_up == 3]]
+    cross = F[(n_up == 1) | (n_up == 2)]
+    # rotate each crossed triangle so that its odd vertex (alone on its side) comes first, winding kept
+    odd_first = np.where(above[cross].sum(1, keepdims=True) == 1, above[cross], ~above[cross])
+    shift = np.argmax(odd_first, axis=1)
+    idx = (shift[:, None] + np.arange(3)) % 3
+    T = np.take_along_axis(cross, idx, axis=1)
+    edges = np.sort(np.concatenate([T[:, [0, 1]], T[:, [0, 2]]]), axis=1)
+    uniq, inv = np.unique(edges, axis=0, return_inverse=True)
+    inv = inv.reshape(-1)
+    za, zb = V[uniq[:, 0], 2], V[uniq[:, 1], 2]
+    w = ((z_cut - za) / (zb - za))[:, None]  # the plane between the two ends: 0 < w < 1
+    new_V = V[uniq[:, 0]] * (1 - w) + V[uniq[:, 1]] * w
+    new_V[:, 2] = z_cut
+    p01 = len(V) + inv[: len(T)]  # the new vertex on edge (odd, next)
+    p02 = len(V) + inv[len(T):]  # ... on edge (odd, previous)
+    up = above[T[:, 0]]
+    out_F.append(np.stack([T[up, 0], p01[up], p02[up]], axis=1))  # the odd vertex alone above: a triangle
+    dn = ~up  # the odd vertex alone below: the quad (next, previous, p02, p01) above, in two triangles
+    out_F.append(np.stack([T[dn, 1], T[dn, 2], p02[dn]], axis=1))
+    out_F.append(np.stack([T[dn, 1], p02[dn], p01[dn]], axis=1))
+    all_V = np.concatenate([V, new_V])
+    all_F = np.concatenate(out_F)
+    C = None
+    if vertex_colors is not None:
+        C0 = np.asarray(vertex_colors)
+        mixed = C0[uniq[:, 0]].astype(np.float64) * (1 - w) + C0[uniq[:, 1]].astype(np.float64) * w
+        C = np.concatenate([C0, np.rint(mixed).astype(C0.dtype) if C0.dtype.kind in "iu" else mixed.astype(C0.dtype)])
+    used = np.zeros(len(all_V), bool)
+    used[all_F.ravel()] = True
+    new_index = np.cumsum(used) - 1
+    return all_V[used], new_index[all_F], None if C is None else C[used]
+
+
+def _clear_plane(z: np.ndarray, z_min: float, edge: float) -> float:
+    """A height above z_min (within an edge length) as far as can be from every vertex height z [V]: the middle
+    of the widest gap between them. A plane passing close to a vertex would cut its edges next to it, into
+    vertices as close to each other, whose walls and cap then touch."""
+    zs = np.unique(np.concatenate([[z_min, z_min + edge], z[(z > z_min) & (z < z_min + edge)]]))
+    k = int(np.argmax(np.diff(zs)))
+    return float(zs[k] + zs[k + 1]) / 2
+
+
+def _bottom_top(V: np.ndarray, F: np.ndarray, floor_z: float, bottom_band: float) -> float | None:
+    """The highest vertex z of the mesh's bottom loops (`close_holes`'s rule), or None when it has none."""
+    c = close_holes(V, F, None, floor_z=floor_z, bottom_band=bottom_band)
+    if c.bottom_loops == 0:
+        return None
+    added = c.triangles[len(F):]
+    low = np.any(c.vertices[added, 2] < V[F, 2].min(), axis=1)  # walls and caps reach below every input vertex
+    v = np.unique(added[low].ravel())
+    v = v[v < len(V)]
+    return float(V[v, 2].max()) if len(v) else None
+
+
+def close_holes_cleanly(vertices: np.ndarray, triangles: np.ndarray, vertex_colors: np.ndarray | None = None,
+                        floor_z: float | None = None, bottom_band: float = 0.25) -> tuple[ClosedMesh, np.ndarray]:
+    """`close_holes` with no two triangles crossing (`self_intersecting_pairs`, open3d's test).
+
+    A cut bottom's boundary is ragged: walls hanging straight down from it fold over each other and through the
+    surface under its overhangs. So the mesh is first cut flat (`cut_below`) just above its bottom loops'
+    highest vertex (again, until the loops a cut leaves lie in its plane): walls down from a plane section of the
+    surface cross nothing. Then holes are closed, and the observed triangles of any crossing left (a fan through
+    the surface, the fused surface folded through itself), and those around the loop vertices of an added one
+    (one edge-ring more each round), are removed and the holes closed again, up to MAX_REPAIR_ROUNDS times.
+    Triangles at vertices with two separate fans (a hole touching itself) are removed too.
+
+    Returns the closed mesh (the observed vertices kept, in order, then the added ones; the observed triangles
+    kept, then the added ones) and `filled` [F] bool, True for the added triangles. Warns when crossings remain."""
+    V = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
+    F = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    C = None if vertex_colors is None else np.asarray(vertex_colors)
+    edge = float(np.median(np.linalg.norm(V[F[:, 1]] - V[F[:, 0]], axis=1))) if len(F) else 0.0
+    z_cut = None if floor_z is None or len(F) == 0 else _bottom_top(V, F, floor_z, bottom_band)
+    for _ in range(MAX_REPAIR_ROUNDS):
+        if z_cut is None:
+            break
+        z_cut = _clear_plane(V[:, 2], z_cut, edge)
+        V, F, C = cut_below(V, F, C, z_cut)
+        top = _bottom_top(V, F, floor_z, bottom_band)  # type: ignore[arg-type]
+        if top is None or top <= z_cut + 1e-6 * edge:
+            break
+        z_cut = top  # a hole reached down into the cut: cut above it
+    if z_cut is not None:
+        log.info("closing holes: the mesh cut flat at z = %+.4f m above its bottom", z_cut)
+    keep = np.ones(len(F), bool)
+    for rnd in range(MAX_REPAIR_ROUNDS + 1):
+        fans = _vertex_fans(F[keep], len(V))
+        while np.any(fans > 1):  # a vertex where the kept triangles form two fans: open it up
+            keep[np.flatnonzero(keep)[np.any(fans[F[keep]] > 1, axis=1)]] = False
+            fans = _vertex_fans(F[keep], len(V))
+        kept = np.flatnonzero(keep)
+        c = close_holes(V, F[kept], C, floor_z=floor_z, bottom_band=bottom_band)
+        pairs = self_intersecting_pairs(c.vertices, c.triangles)
+        if len(pairs) == 0 or rnd == MAX_REPAIR_ROUNDS:
+            break
+        involved = np.unique(pairs)
+        drop = np.zeros(len(F), bool)
+        drop[kept[involved[involved < len(kept)]]] = True
+        seeds = np.unique(c.triangles[involved[involved >= len(kept)]].ravel())
+        drop[kept[_ring(F[kept], seeds[seeds < len(V)], rnd + 1)]] = True
+        log.info("closing holes, round %d: %d pairs of crossing triangles; %d observed triangles removed", rnd + 1,
+                 len(pairs), int(drop.sum()))
+        keep &= ~drop
+    if len(pairs):
+        log.warning("the closed mesh still has %d pairs of crossing triangles", len(pairs))
+    used = np.zeros(len(c.vertices), bool)  # drop the observed vertices no triangle uses any more
+    used[c.triangles.ravel()] = True
+    used[len(V):] = True
+    new_index = np.cumsum(used) - 1
+    out = ClosedMesh(c.vertices[used], new_index[c.triangles].astype(np.int32),
+                     None if c.vertex_colors is None else c.vertex_colors[used], c.holes_closed, c.bottom_loops,
+                     c.boundary_edges_left)
+    return out, np.arange(len(c.triangles)) >= len(kept)
+
+
+def _ring(triangles: np.ndarray, seeds: np.ndarray, rings: int) -> np.ndarray:
+    """[F] bool: the triangles [F x 3] within `rings` edge-rings of the vertices `seeds`."""
+    F = np.asarray(triangles, dtype=np.int64)
+    near = np.zeros(int(F.max()) + 1 if len(F) else 0, bool)
+    near[seeds] = True
+    hit = np.zeros(len(F), bool)
+    for _ in range(rings if len(seeds) else 0):
+        hit = np.any(near[F], axis=1)
+        near[F[hit].ravel()] = True
+    return hit
