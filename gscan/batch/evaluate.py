@@ -45,7 +45,7 @@ from gscan.batch.driver import (
 from gscan.batch.runtime import MAX_RETRIES, TASK_CPUS, require_ray
 from gscan.errors import InputError, not_a_file
 from gscan.evaluate.bop19 import CSV_HEADER
-from gscan.io.output import check_output
+from gscan.io.output import check_not_input, check_output
 from gscan.template.db import TemplateDB
 
 MANIFEST_COLUMNS = ("template", "scenes", "obj_id", "model", "gt_capture", "name")
@@ -344,6 +344,8 @@ def run_batch_eval(output_csv: str | Path, *, templates_dir: str | Path | None =
     require_ray()
     t0 = time.monotonic()
     output_csv = Path(output_csv)
+    for path in (output_csv, *objects_paths(output_csv)):
+        check_not_input(path, [templates_dir, scenes_dir, manifest])
     for path, kind in ((output_csv, ".csv file path"), *((p, "file path") for p in objects_paths(output_csv))):
         check_output(path, force=force, kind=kind)
     if (manifest is None) == (templates_dir is None or scenes_dir is None):
