@@ -543,6 +543,16 @@ def test_bom_intrinsics_exr_depth_and_folders_for_files(ctx: Ctx, tmp_path: Path
         assert "a_folder: is a folder" in _error(proc, "a_folder")
 
 
+def test_intrinsics_file_that_is_a_folder_is_named_a_folder(ctx: Ctx, tmp_path: Path):
+    """A capture whose cam_K.txt is a folder: said to be a folder, not "intrinsics file not found"."""
+    cap = tmp_path / "cap"
+    shutil.copytree(ctx.capture, cap)
+    (cap / "cam_K.txt").unlink()
+    (cap / "cam_K.txt").mkdir()
+    line = _error(_gscan("scan", cap, "-o", tmp_path / "o.gscan"), "cam_K.txt")
+    assert "is a folder" in line and "not found" not in line and "--intrinsics" in line, line
+
+
 @pytest.mark.slow
 def test_long_output_names(ctx: Ctx, tmp_path: Path):
     """Legal 250-character output names work for every writer (the temporary sibling and SQLite's journal keep
