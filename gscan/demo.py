@@ -29,7 +29,7 @@ from gscan.evaluate.bop19 import template_to_gt
 from gscan.evaluate.metrics import add
 from gscan.geometry.transforms import pose_error
 from gscan.io import open_sequence
-from gscan.io.output import check_output, occupied
+from gscan.io.output import check_not_input, check_output, occupied
 from gscan.progress import Progress
 from gscan.scanning.api import scan
 from gscan.scanning.pipeline import ScanResult
@@ -143,6 +143,7 @@ def check_demo_output(output: Path) -> Path:
     """The demo's template OUTPUT/sample.gscan; OutputExists when a file is there that the demo did not write
     (a template without the demo's mark, or any other file), InputError when it cannot be written."""
     path = output / "sample.gscan"
+    check_not_input(path, [SAMPLES])
     if occupied(path) and not path.is_dir():
         try:
             with TemplateDB.open(path, require_complete=False) as db:

@@ -459,3 +459,50 @@ def test_pooled_recall_weights_the_pairs_by_their_targets() -> None:
                                                                                     "AR MSPD": 90.0})]
     s = BatchEvalReport(Path("r.csv"), rows, [], [], [], 1.0, "local", 2).summary()
     assert s["pooled"]["AR"] == pytest.approx(80.0) and s["pooled"]["AR MSSD"] == pytest.approx(90.0)
+
+
+# ------------------------------------------------------------------------------------------ loops of links
+def _loops(caps: Path) -> None:
+    """Three broken entries: a link to itself, two links to each other."""
+    os.symlink("loop", caps / "loop")
+    os.symlink("b", caps / "a")
+    os.symlink("a", caps / "b")
+
+
+def test_find_captures_reports_loops_of_links_as_failed_captures(tmp_path: Path) -> None:
+    caps = tmp_path / "caps"
+    (caps / "box").mkdir(parents=True)
+    _loops(caps)
+    os.symlink("missing", caps / "gone")
+    found = {c.name: c for c in find_captures(caps, tmp_path / "out")}
+    assert sorted(found) == ["a", "b", "box", "gone", "loop"]
+    assert found["box"].problem is None
+    for name in ("a", "b", "loop"):
+        assert "loop of symbolic links" in str(found[name].problem)
+    assert "does not exist" in str(found["gone"].problem)
+    assert find_captures(caps, caps / "loop") and find_captures(caps, caps / "a")  # an output on a loop: no crash
+
+
+def test_batch_scans_the_captures_beside_loops_of_links(tmp_path: Path) -> None:
+    """`gscan batch CAPS` with a link loop in CAPS once stopped with "internal error: RuntimeError: Symlink
+    loop" and scanned nothing: each loop is a failed capture with its reason, the other one is scanned."""
+    caps = tmp_path / "caps"
+    _render(caps / "box0", 0)
+    _loops(caps)
+    r = _gscan("batch", caps, "-o", tmp_path / "out", "--workers", "2", "--json")
+    assert r.returncode == 2, r.stderr  # bad input only
+    rows = {row["name"]: row for row in json.loads(r.stdout)["captures"]}
+    assert rows["box0"]["status"] == "scanned", rows["box0"]
+    for name in ("a", "b", "loop"):
+        assert rows[name]["status"] == "failed" and rows[name]["error_kind"] == "input"
+        assert "loop of symbolic links" in rows[name]["error"] and str(caps / name) in rows[name]["error"]
+    assert (tmp_path / "out" / "box0.gscan").is_file()
+
+
+def test_manifest_pairs_on_loops_of_links_get_object_ids(tmp_path: Path) -> None:
+    """A manifest's template that is a loop of links once stopped assign_obj_ids with RuntimeError (resolve()):
+    the pairs get their ids, the loop is left to fail as its pair's bad input."""
+    _loops(tmp_path)
+    pairs = [Pair("a", tmp_path / "a", tmp_path), Pair("loop", tmp_path / "loop", tmp_path)]
+    assign_obj_ids(pairs)
+    assert sorted(p.obj_id for p in pairs) == [1, 2]

@@ -543,6 +543,46 @@ def test_bom_intrinsics_exr_depth_and_folders_for_files(ctx: Ctx, tmp_path: Path
         assert "a_folder: is a folder" in _error(proc, "a_folder")
 
 
+def test_intrinsics_file_that_is_a_folder_is_named_a_folder(ctx: Ctx, tmp_path: Path):
+    """A capture whose cam_K.txt is a folder: said to be a folder, not "intrinsics file not found"."""
+    cap = tmp_path / "cap"
+    shutil.copytree(ctx.capture, cap)
+    (cap / "cam_K.txt").unlink()
+    (cap / "cam_K.txt").mkdir()
+    line = _error(_gscan("scan", cap, "-o", tmp_path / "o.gscan"), "cam_K.txt")
+    assert "is a folder" in line and "not found" not in line and "--intrinsics" in line, line
+
+
+def _hot_journal(template: Path, path: Path) -> Path:
+    """A copy of `template` left by a writer killed mid-transaction: its pages half written, the hot journal
+    beside it."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    shutil.copy(template, path)
+    code = ("import os, sqlite3, sys; c = sqlite3.connect(sys.argv[1], isolation_level=None); "
+            "c.execute('PRAGMA cache_size=1'); c.execute('BEGIN IMMEDIATE'); c.execute('CREATE TABLE zz(x)'); "
+            "[c.execute('INSERT INTO zz VALUES (randomblob(5000))') for _ in range(200)]; os._exit(0)")
+    subprocess.run([sys.executable, "-c", code, str(path)], check=True, timeout=TIMEOUT_S)
+    assert Path(f"{path}-journal").is_file()
+    return path
+
+
+@pytest.mark.parametrize("file_mode", [0o644, 0o444])
+def test_a_journal_in_a_read_only_folder_is_not_called_corruption(ctx: Ctx, tmp_path: Path, file_mode: int):
+    """`gscan info` of a sound template whose writer left a journal, in a read-only folder: said to be held by
+    the journal and the read-only folder, not corrupt (SQLite's "disk I/O error" / "attempt to write a
+    readonly database")."""
+    db = _hot_journal(ctx.cad, tmp_path / "ro" / "t.gscan")
+    db.chmod(file_mode)
+    db.parent.chmod(0o555)
+    try:
+        line = _error(_gscan("info", db, unreadable=True), "t.gscan")
+    finally:
+        db.parent.chmod(0o755)
+    assert "read-only" in line and "t.gscan-journal" in line and "not corrupt" in line, line
+    assert "corrupt or unreadable" not in line, line
+    _ok(_gscan("info", db))  # where it can be written, the journal is rolled back: the template reads
+
+
 @pytest.mark.slow
 def test_long_output_names(ctx: Ctx, tmp_path: Path):
     """Legal 250-character output names work for every writer (the temporary sibling and SQLite's journal keep

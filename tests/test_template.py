@@ -583,3 +583,21 @@ def test_a_new_database_never_meets_a_killed_writers_log(db_path: Path) -> None:
             assert db.view_names() == ["new"] and db.get_meta("note") is None
         with sqlite3.connect(db_path) as c:
             assert c.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
+
+
+def test_a_write_ahead_log_held_read_only_is_not_called_corruption(tmp_path: Path, monkeypatch) -> None:
+    """A template with SQLite's -wal beside it that SQLite may not write (simulated: the connection refuses
+    as it does in a read-only folder, which root's tests cannot make): named held, not corrupt."""
+    from gscan.template.db import TemplateDB
+
+    path = tmp_path / "t.gscan"
+    with TemplateDB.create(path):
+        pass
+    Path(f"{path}-wal").write_bytes(b"")
+
+    def refuse(*_a, **_k):
+        raise sqlite3.OperationalError("attempt to write a readonly database")
+
+    monkeypatch.setattr(TemplateDB, "_connect", staticmethod(refuse))
+    with pytest.raises(InputError, match=r"t\.gscan-wal beside it .* read-only; the template is not corrupt"):
+        TemplateDB.open(path, require_complete=False)

@@ -45,7 +45,7 @@ from gscan.batch.driver import (
 from gscan.batch.runtime import MAX_RETRIES, TASK_CPUS, require_ray
 from gscan.errors import InputError, not_a_file
 from gscan.evaluate.bop19 import CSV_HEADER
-from gscan.io.output import check_output
+from gscan.io.output import check_not_input, check_output, real_path
 from gscan.template.db import TemplateDB
 
 MANIFEST_COLUMNS = ("template", "scenes", "obj_id", "model", "gt_capture", "name")
@@ -241,9 +241,9 @@ def assign_obj_ids(pairs: list[Pair]) -> None:
     by_template: dict[Path, int] = {}
     for p in pairs:  # given ones first
         if p.obj_id is not None:
-            by_template.setdefault(p.template.resolve(), p.obj_id)
+            by_template.setdefault(real_path(p.template), p.obj_id)
     for p in pairs:  # then the template's own, then a BOP-style name
-        key = p.template.resolve()
+        key = real_path(p.template)
         if p.obj_id is None:
             p.obj_id = by_template.get(key) or _stored_obj_id(p.template) or _name_obj_id(p.template.stem)
         if p.obj_id is not None:
@@ -252,15 +252,15 @@ def assign_obj_ids(pairs: list[Pair]) -> None:
     free = (i for i in range(1, 2**31) if i not in taken)
     for p in pairs:
         if p.obj_id is None:
-            key = p.template.resolve()
+            key = real_path(p.template)
             if key not in by_template:
                 by_template[key] = next(free)
             p.obj_id = by_template[key]
     owner: dict[int, Path] = {}
     for p in pairs:
         assert p.obj_id is not None
-        other = owner.setdefault(p.obj_id, p.template.resolve())
-        if other != p.template.resolve():
+        other = owner.setdefault(p.obj_id, real_path(p.template))
+        if other != real_path(p.template):
             raise InputError(p.template, f"has object id {p.obj_id}, as {other} has: give each template its own "
                              "obj_id (a manifest's obj_id column)")
 
@@ -313,7 +313,7 @@ def combined_csv(pairs: list[Pair], results: dict[str, dict[str, Any]]) -> tuple
             continue
         for scene_id, im_id, t in res["image_times"]:
             totals[(int(scene_id), int(im_id))] = totals.get((int(scene_id), int(im_id)), 0.0) + float(t)
-            folders.setdefault(int(scene_id), set()).add(str(p.scenes.resolve()))
+            folders.setdefault(int(scene_id), set()).add(str(real_path(p.scenes)))
     lines = [CSV_HEADER]
     for p in pairs:
         res = results.get(p.name) or {}
@@ -344,6 +344,8 @@ def run_batch_eval(output_csv: str | Path, *, templates_dir: str | Path | None =
     require_ray()
     t0 = time.monotonic()
     output_csv = Path(output_csv)
+    for path in (output_csv, *objects_paths(output_csv)):
+        check_not_input(path, [templates_dir, scenes_dir, manifest])
     for path, kind in ((output_csv, ".csv file path"), *((p, "file path") for p in objects_paths(output_csv))):
         check_output(path, force=force, kind=kind)
     if (manifest is None) == (templates_dir is None or scenes_dir is None):

@@ -21,7 +21,9 @@ the scan's process, and with ground truth in the capture the ATE and the frames 
 """
 from __future__ import annotations
 
+import errno
 import logging
+import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -42,7 +44,7 @@ from gscan.batch.facts import ground_truth_check, template_facts
 from gscan.batch.runtime import MAX_RETRIES, TASK_CPUS, require_ray
 from gscan.errors import InputError
 from gscan.io.layouts import detect_format
-from gscan.io.output import check_output_path
+from gscan.io.output import check_not_input, check_output_path, describe_os_error, real_path
 from gscan.io.recordings.kinds import SUFFIXES, recording_format
 from gscan.scanning.config import ScanConfig, load_config
 from gscan.template.db import TemplateDB
@@ -65,6 +67,7 @@ class Capture:
     name: str
     source: Path
     output: Path
+    problem: str | None = None  # why the entry cannot be read (a loop of links): its row fails with it
 
 
 @dataclass
@@ -166,10 +169,14 @@ def find_captures(captures_dir: str | Path, templates_dir: str | Path) -> list[C
     if kind is not None:
         raise InputError(captures_dir, f"is a capture itself ({kind} layout), not a folder of captures: scan it "
                          "alone, or put it in a folder")
-    out_resolved = templates_dir.resolve()
+    out_resolved = real_path(templates_dir)
     found: dict[str, Capture] = {}
     for entry in sorted(captures_dir.iterdir(), key=lambda p: p.name):
-        if entry.name.startswith(".") or entry.resolve() == out_resolved:
+        if entry.name.startswith(".") or real_path(entry) == out_resolved:
+            continue
+        problem = broken_link(entry)
+        if problem is not None:  # reported as a failed capture, never followed
+            found[entry.name] = Capture(entry.name, entry, templates_dir / f"{entry.name}.gscan", problem)
             continue
         if entry.is_dir():
             name = entry.name
@@ -186,9 +193,50 @@ def find_captures(captures_dir: str | Path, templates_dir: str | Path) -> list[C
     return list(found.values())
 
 
+def broken_link(entry: Path) -> str | None:
+    """Why the link `entry` leads nowhere (a loop of links, a missing target); None for anything else."""
+    if not entry.is_symlink():
+        return None
+    try:
+        entry.stat()
+    except OSError as e:
+        if e.errno == errno.ELOOP:
+            return "is a loop of symbolic links (following it never ends)"
+        if e.errno == errno.ENOENT:
+            return f"is a symbolic link to {os.readlink(entry)}, which does not exist"
+        return f"is a symbolic link that cannot be followed ({describe_os_error(e)})"
+    return None
+
+
+def check_templates_dir(captures_dir: Path, templates_dir: Path) -> None:
+    """InputError naming both when the templates folder is, contains or lies inside the captures folder's
+    entry (`check_not_input`); a new folder directly in the captures folder is allowed (it is no capture and
+    the walk passes it), an existing capture there is not."""
+    check_not_input(templates_dir, [captures_dir], inside_ok=True)
+    caps, out = real_path(captures_dir), real_path(templates_dir)
+    if caps not in out.parents:
+        return
+    parts = out.relative_to(caps).parts
+    entry = caps / parts[0]
+    if len(parts) > 1 or (entry.exists() and (not entry.is_dir() or _is_capture(entry))):
+        check_not_input(templates_dir, [captures_dir / parts[0] if entry.exists() else captures_dir])
+
+
+def _is_capture(folder: Path) -> bool:
+    """Whether `folder` is in a layout `gscan scan` reads."""
+    try:
+        detect_format(folder)
+    except InputError:
+        return False
+    return True
+
+
 def _plan(cap: Capture, force: bool, cfg: ScanConfig) -> CaptureRow | None:
     """The row of a capture decided without a task (skipped, or refused); None when it is scanned."""
     row = CaptureRow(cap.name, str(cap.source), str(cap.output), "failed")
+    if cap.problem is not None:
+        row.error, row.error_kind, row.fix = str(InputError(cap.source, cap.problem)), "input", None
+        return row
     if force or not cap.output.exists():
         return None
     if not cap.output.is_file():
@@ -202,7 +250,7 @@ def _plan(cap: Capture, force: bool, cfg: ScanConfig) -> CaptureRow | None:
         return row
     if status != "complete":
         return None
-    if stored != str(cap.source.resolve()):
+    if stored != str(real_path(cap.source)):
         row.error, row.error_kind, row.fix = str(InputError(
             cap.output, f"is complete but was scanned from {stored}, not from {cap.source}")), "input", "replace"
         return row
@@ -281,6 +329,8 @@ def run_batch(captures_dir: str | Path, templates_dir: str | Path, *, config: Sc
     require_ray()
     t0 = time.monotonic()
     captures_dir, templates_dir = Path(captures_dir), Path(templates_dir)
+    check_templates_dir(captures_dir, templates_dir)
+    check_not_input(templates_dir, [config if isinstance(config, (str, Path)) else None])
     cfg = config if isinstance(config, ScanConfig) else load_config(config)
     if templates_dir.exists() and not templates_dir.is_dir():
         raise InputError(templates_dir, "is a file, expected the templates folder")

@@ -27,7 +27,7 @@ from gscan.capture.camera import CameraFrame, RealSenseCamera
 from gscan.capture.motion import Coverage, MotionParams, MotionTracker, MotionUpdate
 from gscan.errors import InputError
 from gscan.io.camera import Intrinsics
-from gscan.io.output import check_output_path, missing_folders, remove_empty_folders
+from gscan.io.output import check_not_input, check_output_path, missing_folders, remove_empty_folders
 
 log = logging.getLogger(__name__)
 
@@ -73,8 +73,10 @@ class CaptureResult:
                 "profile": self.profile, "coverage": {"covered": self.covered, "directions": self.directions}}
 
 
-def check_capture_output(output: Path) -> None:
-    """InputError naming `output` unless it is a new folder or an empty one that can be written."""
+def check_capture_output(output: Path, recording: Path | None = None) -> None:
+    """InputError naming `output` unless it is a new folder or an empty one that can be written, apart from
+    the `recording` played (`check_not_input`)."""
+    check_not_input(output, [recording])
     if output.exists():
         if not output.is_dir():
             raise InputError(output, "exists and is not a folder")
@@ -136,7 +138,7 @@ def run_capture(camera: RealSenseCamera, output: str | Path, options: CaptureOpt
     camera or recording that delivers no frame (nothing is left behind then).
     """
     output = Path(output)
-    check_capture_output(output)
+    check_capture_output(output, camera.recording)
     stop = stop or threading.Event()
     interrupted = False
     seen = 0

@@ -53,7 +53,7 @@ def capture(
         from gscan.capture.record import check_capture_output
         from gscan.viewer.capture_preview import CapturePreview
 
-        check_capture_output(output)  # a bad output or a missing camera is named before the preview starts
+        check_capture_output(output, from_file)  # a bad output or a missing camera is named before the preview starts
         camera.check()
         viewer = CapturePreview(host, port)
         say("preview at ", (viewer.url, "bold"))

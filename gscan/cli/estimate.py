@@ -84,10 +84,12 @@ def track(
     from gscan.estimate import Estimator, track_sequence, write_poses
     from gscan.io import check_output_path, open_sequence
     from gscan.io.camera import depth_camera_of
+    from gscan.io.output import check_not_input
 
     if format not in format_choices():
         raise UsageError(None, f"--format must be one of {', '.join(format_choices())}, not {format!r}")
-    if output is not None:  # refused before any work
+    if output is not None:  # refused before any work; never one of the inputs, whatever --force says
+        check_not_input(output, [template, input_path, intrinsics, depth_intrinsics, depth_to_color])
         if output.exists() and (not output.is_dir() or any(output.iterdir())) and not force:
             raise UsageError(output, "exists and is not empty (pass --force to replace it)")
         check_output_path(output)

@@ -41,6 +41,7 @@ def scan(
     setup_logging(verbose)
     import_holding_ctrl_c(*SCAN_IMPORTS)
     from gscan.io.camera import depth_camera_of
+    from gscan.io.output import check_not_input
     from gscan.progress import RichProgress
     from gscan.scanning.api import scan as scan_capture
     from gscan.scanning.config import load_config
@@ -48,6 +49,7 @@ def scan(
 
     if resume and force:
         raise UsageError(output, "--resume and --force exclude each other")
+    check_not_input(output, [input_dir, intrinsics, config, depth_intrinsics, depth_to_color])
     options = ScanOptions(format=format.value, intrinsics=intrinsics, depth_scale=depth_scale, mode=mode.value,
                           segment=not no_segment, resume=resume, force=force, config=load_config(config),
                           obj_id=obj_id, color_topic=color_topic, depth_topic=depth_topic,
@@ -122,11 +124,13 @@ def template_from_mesh(
     json_out: bool = typer.Option(False, "--json", help=JSON_HELP),
 ) -> None:
     """Render snapshots around a CAD mesh into a template database (mesh frame kept)."""
+    from gscan.io.output import check_not_input
     from gscan.progress import RichProgress
     from gscan.scanning.cad import template_from_mesh as render_template
 
     if scale <= 0:
         raise UsageError(mesh, f"--scale must be positive, not {scale}")
+    check_not_input(output, [mesh])
     with RichProgress(err, enabled=not json_out) as progress:
         result = render_template(mesh, output, n_views=views, scale=scale, force=force, progress=progress)
     if json_out:  # the `template-from-mesh --json` object (TemplateResult has no to_json: gscan.scanning.cad)

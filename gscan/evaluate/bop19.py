@@ -51,7 +51,7 @@ from gscan.geometry.transforms import inv_T, mean_pose, pose_error, transform_po
 from gscan.io import open_sequence
 from gscan.io.camera import RGBDFrame
 from gscan.io.layouts import FORMATS, detect_format, discover, require_ground_truth
-from gscan.io.output import Output, check_output
+from gscan.io.output import Output, check_not_input, check_output
 from gscan.template.db import TemplateDB
 
 log = logging.getLogger(__name__)
@@ -295,6 +295,7 @@ def evaluate(template: str | Path, scenes: str | Path, output_csv: str | Path, o
     capture (`gt_capture`, else the template's own input) relates to its frame, or a gscan BOP export of
     another template scored without `gt_capture`."""
     output_csv = Path(output_csv)
+    check_not_input(output_csv, [template, scenes, model_path, gt_capture])
     check_output(output_csv, force=force, kind=".csv file path")
     template = Path(template)
     estimator = Estimator.from_path(template)

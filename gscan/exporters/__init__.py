@@ -28,7 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from gscan.errors import InputError
-from gscan.io.output import Output
+from gscan.io.output import Output, check_not_input
 from gscan.template.db import TemplateDB
 
 log = logging.getLogger(__name__)
@@ -92,11 +92,8 @@ def export(db_path: str | Path, fmt: str, out: str | Path, force: bool = False, 
         raise InputError(out, f"unknown export format {fmt!r}; expected one of {', '.join(FORMATS)}")
     if fmt in _FILE_FORMATS and out.suffix.lower() in {f".{f}" for f in _FILE_FORMATS} - {f".{fmt}"}:
         raise InputError(out, f"a {out.suffix} name for {fmt} content; name the file .{fmt}")
+    check_not_input(out, [db_path])
     target = Output(out, force=force, folder=fmt not in _FILE_FORMATS, kind=f".{fmt} file path")
-    if out.resolve() == db_path.resolve():
-        raise InputError(out, "output would overwrite the template database itself")
-    if out.resolve() in db_path.resolve().parents:
-        raise InputError(out, f"output folder holds the template database {db_path.name}; replacing it would delete it")
     # parent folders are made only once the database is known good, and removed on failure
     with TemplateDB.open(db_path, require_complete=True) as db, target:
         wrote = _writer(fmt, close)(db, target.tmp)

@@ -11,6 +11,8 @@
   by another is refused (`OutputExists`).
 - Temporary names stay within NAME_MAX, with room for SQLite's journal beside them, so a long output
   name works.
+- An output never lands on an input of the same command (`check_not_input`): one that is, contains or lies
+  inside an input is refused whatever `force` says, so no input is replaced or written into.
 - An OSError of the file system is named for what it is (`write_error`): a full disk, a quota, the
   process's file size limit, a read-only file system.
 """
@@ -21,6 +23,7 @@ import os
 import secrets
 import shutil
 import tempfile
+from collections.abc import Iterable
 from pathlib import Path
 from types import TracebackType
 from typing import TYPE_CHECKING
@@ -56,6 +59,38 @@ def check_output_path(path: str | Path) -> None:
                 raise InputError(path, f"cannot be created: folder {d} takes no new file ({describe_os_error(e)})"
                                  ) from None
             return
+
+
+def real_path(path: str | Path) -> Path:
+    """`path` absolute with every link followed (the part that exists), a loop of links left where it is met:
+    what two paths are compared as."""
+    path = Path(path).absolute()
+    try:
+        return path.resolve()
+    except (OSError, RuntimeError):  # a loop of links (RuntimeError before Python 3.13)
+        return Path(os.path.realpath(path))
+
+
+def check_not_input(output: str | Path, inputs: Iterable[str | Path | None], *, inside_ok: bool = False) -> None:
+    """InputError naming `output` and the input when the output is, contains or lies inside one of `inputs`
+    (None entries skipped), compared with links followed: writing it would replace or change that input, so
+    it is refused whatever `force` says (no fix is offered). `inside_ok`: an output inside an input folder is
+    allowed (a batch's templates folder inside its captures folder, which it reads past)."""
+    out = real_path(output)
+    for inp in inputs:
+        if inp is None:
+            continue
+        real = real_path(inp)
+        if real == out:
+            how = "is the input"
+        elif out in real.parents:
+            how = "contains the input"
+        elif real in out.parents and not inside_ok:
+            how = "lies inside the input"
+        else:
+            continue
+        raise InputError(output, f"{how} {inp}: an output never replaces or goes into an input of the same "
+                         "command; choose another output path")
 
 
 def occupied(path: Path) -> bool:

@@ -163,8 +163,11 @@ def _resolve_intrinsics(layout: Layout, override: Intrinsics | str | Path | None
         return load_intrinsics(layout.intrinsics_file, w, h)
     if layout.format == "tum":
         raise InputError(layout.root, f"no {layout.intrinsics_expected}", fix="intrinsics")
-    raise InputError(layout.root / layout.intrinsics_expected, "intrinsics file not found (intrinsics are never "
-                     "guessed)", fix="intrinsics")
+    expected = layout.root / layout.intrinsics_expected
+    if expected.is_dir():  # found by name but not taken: say why, not that it is missing
+        raise InputError(expected, "is a folder, not the intrinsics file (a text file of the 3x3 camera matrix)",
+                         fix="intrinsics")
+    raise InputError(expected, "intrinsics file not found (intrinsics are never guessed)", fix="intrinsics")
 
 
 def sized_depth_camera(depth_camera: DepthCamera, depth_images: Iterable[Path], where: Path) -> DepthCamera:

@@ -189,7 +189,8 @@ def write_realsense_bag(path: str | Path, frames: Iterable[RecordingFrame], colo
 
 
 def _ros2_messages(frames: Iterable[RecordingFrame], color_intrinsics: Intrinsics, depth_camera: DepthCamera | None,
-                   topics: tuple[str, ...], extrinsics: str, m: _Msgs) -> Iterable[tuple[str, str, int, Any]]:
+                   topics: tuple[str, ...], extrinsics: str, m: _Msgs,
+                   color_encoding: str = "rgb8") -> Iterable[tuple[str, str, int, Any]]:
     """(topic, type, log time, message) of a realsense2_camera recording, static ones first."""
     depth_camera = depth_camera or DepthCamera(color_intrinsics)
     depth_intrinsics, T_color_depth = depth_camera.intrinsics, depth_camera.T_color_depth
@@ -224,7 +225,7 @@ def _ros2_messages(frames: Iterable[RecordingFrame], color_intrinsics: Intrinsic
         for topic in topics:
             t_ns = f.t_ns if topic == "color" else (f.depth_t_ns or f.t_ns)
             if topic == "color":
-                frame, intr, img, enc = cframe, color_intrinsics, f.color, "rgb8"
+                frame, intr, img, enc = cframe, color_intrinsics, f.color, color_encoding
                 base = f"{ROS_NS}/color"
                 name = "image_raw"
             elif topic == "depth":
@@ -243,12 +244,13 @@ def _ros2_messages(frames: Iterable[RecordingFrame], color_intrinsics: Intrinsic
 def write_rosbag2(path: str | Path, frames: Iterable[RecordingFrame], color_intrinsics: Intrinsics,
                   depth_camera: DepthCamera | None = None, storage: str = "sqlite3",
                   topics: tuple[str, ...] = ("color", "depth"),
-                  extrinsics: str = "tf_static") -> Path:
+                  extrinsics: str = "tf_static", color_encoding: str = "rgb8") -> Path:
     """A rosbag2 folder (realsense2_camera topics) of `frames`; returns the path of its storage file
     (`<folder>/<folder name>.db3` or `.mcap`). topics: any of "color", "depth" (depth camera,
     image_rect_raw), "aligned" (depth registered to colour: aligned_depth_to_color). extrinsics:
     "tf_static", "realsense" (extrinsics/depth_to_color) or "none". depth_camera: the depth topic's camera (None:
-    the colour camera's)."""
+    the colour camera's). color_encoding: the colour messages' encoding label (another one than rgb8 makes a
+    recording of an encoding gscan does not read; the RGB pixels are kept)."""
     from rosbags.rosbag2 import StoragePlugin, Writer
 
     path = Path(path)
@@ -256,7 +258,8 @@ def write_rosbag2(path: str | Path, frames: Iterable[RecordingFrame], color_intr
     plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
     conns: dict[str, Any] = {}
     with Writer(path, version=9, storage_plugin=plugin) as w:
-        for topic, typ, t_ns, msg in _ros2_messages(frames, color_intrinsics, depth_camera, topics, extrinsics, m):
+        for topic, typ, t_ns, msg in _ros2_messages(frames, color_intrinsics, depth_camera, topics, extrinsics, m,
+                                                      color_encoding):
             if topic not in conns:
                 conns[topic] = w.add_connection(topic, typ, typestore=m.ts)
             w.write(conns[topic], t_ns, m.serialize(msg, typ))
@@ -265,7 +268,7 @@ def write_rosbag2(path: str | Path, frames: Iterable[RecordingFrame], color_intr
 
 def write_mcap(path: str | Path, frames: Iterable[RecordingFrame], color_intrinsics: Intrinsics,
                depth_camera: DepthCamera | None = None, topics: tuple[str, ...] = ("color", "depth"),
-               extrinsics: str = "tf_static") -> Path:
+               extrinsics: str = "tf_static", color_encoding: str = "rgb8") -> Path:
     """A bare MCAP file of `frames` (the messages of `write_rosbag2`) written with the mcap package's writer."""
     from mcap.writer import Writer
 
@@ -276,7 +279,8 @@ def write_mcap(path: str | Path, frames: Iterable[RecordingFrame], color_intrins
     with open(path, "wb") as fh:
         w = Writer(fh)
         w.start(profile="ros2", library="gscan.synth")
-        for topic, typ, t_ns, msg in _ros2_messages(frames, color_intrinsics, depth_camera, topics, extrinsics, m):
+        for topic, typ, t_ns, msg in _ros2_messages(frames, color_intrinsics, depth_camera, topics, extrinsics, m,
+                                                      color_encoding):
             if typ not in schemas:
                 text, _ = m.ts.generate_msgdef(typ, ros_version=2)
                 schemas[typ] = w.register_schema(name=typ, encoding="ros2msg", data=text.encode())

@@ -29,6 +29,7 @@ from __future__ import annotations
 import functools
 import json
 import logging
+import os
 import sqlite3
 import threading
 from collections.abc import Callable, Iterator
@@ -45,9 +46,7 @@ from gscan.geometry.mesh import MeshData, to_u8_colors
 from gscan.geometry.transforms import is_rigid
 from gscan.io.camera import Intrinsics
 from gscan.io.images import image_too_large
-from gscan.io.output import Output, file_identity, remove_sqlite_sidecars, write_failure_reason
-
-# the records live in gscan.template.records; they are imported from here as well
+from gscan.io.output import SQLITE_SIDECARS, Output, file_identity, remove_sqlite_sidecars, write_failure_reason
 from gscan.registration.edge import Edge
 from gscan.template.codec import (
     BadBlob,
@@ -148,6 +147,29 @@ def selection_summary(meta: Any) -> dict:
     reasons = meta.get("reasons")
     return {"kept": int(meta.get("kept", 0)), "skipped": int(meta.get("skipped", 0)),
             "reasons": {str(k): int(v) for k, v in reasons.items()} if isinstance(reasons, dict) else {}}
+
+
+def _journal_held_read_only(path: Path, e: BaseException) -> InputError | None:
+    """The InputError for a database SQLite cannot open because a journal (or write-ahead log) left beside it by
+    a writer that stopped must be rolled back into it, and the folder or the file cannot be written: the file is
+    not corrupt, only held. None when no journal is there or the error is not a write refused."""
+    if not isinstance(e, sqlite3.OperationalError):
+        return None
+    journals = [Path(f"{path}{x}") for x in SQLITE_SIDECARS if Path(f"{path}{x}").is_file()]
+    if not journals:
+        return None
+    folder = path.parent.absolute()
+    if not os.access(folder, os.W_OK):
+        where = f"the folder {folder} is read-only"
+    elif not os.access(path, os.W_OK):
+        where = "the file is read-only"
+    elif "readonly" in str(e).lower():
+        where = "the folder or the file is read-only"
+    else:
+        return None
+    return InputError(path, f"cannot be opened here: SQLite's journal {journals[0].name} beside it (left by a "
+                      f"writer that stopped) must be rolled back into it, and {where}; the template is not "
+                      "corrupt: open it once where it can be written (or copy it with the journal elsewhere)")
 
 
 class TemplateDB:
@@ -260,6 +282,9 @@ class TemplateDB:
         except (sqlite3.DatabaseError, ValueError, RecursionError) as e:
             if conn is not None:
                 conn.close()
+            held = _journal_held_read_only(path, e)
+            if held is not None:
+                raise held from None
             raise InputError(path, f"corrupt or unreadable template database ({e.__class__.__name__}: {e})"[:300]
                              ) from None
         except InputError:

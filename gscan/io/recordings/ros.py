@@ -25,6 +25,7 @@ import numpy as np
 from gscan.errors import InputError
 from gscan.geometry.transforms import inv_T
 from gscan.io.recordings.messages import (
+    COLOR_ENCODINGS,
     FLOAT_DEPTH,
     ImageMsg,
     MessageError,
@@ -68,6 +69,18 @@ def _listing(topics: list[str]) -> str:
     return ", ".join(topics) if topics else "none"
 
 
+def _encodings_listing(firsts: dict[str, ImageMsg | None]) -> str:
+    """The Image topics with the encoding of their first message, an encoding gscan does not read said so."""
+    def one(topic: str) -> str:
+        msg = firsts[topic]
+        if msg is None:
+            return topic
+        kind = encoding_kind(msg.encoding)
+        return f"{topic} ({msg.encoding}{'' if kind else ': an encoding gscan does not read'})"
+
+    return _listing([one(t) for t in sorted(firsts)])
+
+
 def _narrow(cands: list[str], words: tuple[str, ...]) -> list[str]:
     named = [t for t in cands if any(w in t.lower() for w in words)]
     return named if named else cands
@@ -82,7 +95,8 @@ def _choose_color(path: Path, firsts: dict[str, ImageMsg | None], chosen: str | 
         return chosen
     cands = [t for t in images if firsts[t] is not None and encoding_kind(firsts[t].encoding) == "color"]  # type: ignore[union-attr]
     if not cands:
-        raise InputError(path, f"no colour image topic (Image topics: {_listing(images)}; "
+        raise InputError(path, f"no colour image topic (Image topics: {_encodings_listing(firsts)}; "
+                         f"colour encodings read: {', '.join(COLOR_ENCODINGS)}; "
                          "grey ones can be chosen with --color-topic)")
     cands = _narrow(cands, COLOR_WORDS)
     if len(cands) > 1:
