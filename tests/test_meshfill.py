@@ -207,3 +207,24 @@ def test_torn_real_objects_close_watertight_with_their_volume(meshes_dir):
         assert m.is_watertight(), obj.name
         errors.append(abs(m.get_volume() / tm.volume - 1))
     assert len(errors) >= 10 and max(errors) < 0.10 and np.median(errors) < 0.025, errors
+
+
+def test_a_mesh_with_a_vertex_per_face_corner_is_welded_not_capped():
+    """A closed box written with its own three vertices per triangle (a CAD model's texture seams; a CAD
+    template's mesh) has every edge on a boundary: it is welded back into the closed box, nothing filled; before
+    the weld the caps stacked over it crossed each other (453 pairs) or the repair removed every triangle."""
+    import open3d as o3d
+
+    from gscan.geometry.meshfill import close_holes_cleanly, self_intersecting_pairs
+
+    corners = np.array([[x, y, z] for x in (0.0, 0.14) for y in (0.0, 0.09) for z in (0.0, 0.07)])
+    box = o3d.geometry.TriangleMesh.create_box(0.14, 0.09, 0.07)
+    V = np.asarray(box.vertices)[np.asarray(box.triangles).ravel()]  # 36 vertices, 12 triangles
+    F = np.arange(len(V)).reshape(-1, 3)
+    closed, filled = close_holes_cleanly(V, F, np.tile([0.5, 0.5, 0.5], (len(V), 1)), floor_z=None)
+    assert len(closed.vertices) == 8 and len(closed.triangles) == 12 and not filled.any()
+    assert {tuple(v) for v in np.round(closed.vertices, 9)} == {tuple(c) for c in corners}
+    assert len(self_intersecting_pairs(closed.vertices, closed.triangles)) == 0
+    m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(closed.vertices),
+                                  o3d.utility.Vector3iVector(closed.triangles))
+    assert m.is_watertight() and abs(m.get_volume() - 0.14 * 0.09 * 0.07) < 1e-9

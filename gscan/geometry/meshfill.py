@@ -328,6 +328,22 @@ def _bottom_top(V: np.ndarray, F: np.ndarray, floor_z: float, bottom_band: float
     return float(V[v, 2].max()) if len(v) else None
 
 
+def weld_coincident(V: np.ndarray, F: np.ndarray, C: np.ndarray | None
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Vertices [N x 3] at the same place merged into their first occurrence (order kept), triangles [F x 3]
+    re-indexed, colours [N x k] of the kept vertices: a mesh written with a vertex per face corner (a CAD model's
+    texture seams) has every triangle's edges on a boundary, and closing those "holes" would stack caps over it.
+    A mesh without coincident vertices (a fused scan) comes back unchanged."""
+    _, first, inverse = np.unique(V, axis=0, return_index=True, return_inverse=True)
+    if len(first) == len(V):
+        return V, F, C
+    order = np.argsort(first)  # the kept vertices in the order of their first occurrence
+    rank = np.empty(len(first), np.int64)
+    rank[order] = np.arange(len(first))
+    keep = first[order]
+    return V[keep], rank[inverse.reshape(-1)][F], None if C is None else C[keep]
+
+
 def close_holes_cleanly(vertices: np.ndarray, triangles: np.ndarray, vertex_colors: np.ndarray | None = None,
                         floor_z: float | None = None, bottom_band: float = 0.25) -> tuple[ClosedMesh, np.ndarray]:
     """`close_holes` with no two triangles crossing (`self_intersecting_pairs`, open3d's test).
@@ -342,9 +358,9 @@ def close_holes_cleanly(vertices: np.ndarray, triangles: np.ndarray, vertex_colo
 
     Returns the closed mesh (the observed vertices kept, in order, then the added ones; the observed triangles
     kept, then the added ones) and `filled` [F] bool, True for the added triangles. Warns when crossings remain."""
-    V = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
-    F = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
-    C = None if vertex_colors is None else np.asarray(vertex_colors)
+    V, F, C = weld_coincident(np.asarray(vertices, dtype=np.float64).reshape(-1, 3),
+                              np.asarray(triangles, dtype=np.int64).reshape(-1, 3),
+                              None if vertex_colors is None else np.asarray(vertex_colors))
     edge = float(np.median(np.linalg.norm(V[F[:, 1]] - V[F[:, 0]], axis=1))) if len(F) else 0.0
     z_cut = None if floor_z is None or len(F) == 0 else _bottom_top(V, F, floor_z, bottom_band)
     for _ in range(MAX_REPAIR_ROUNDS):
