@@ -9,6 +9,7 @@ from __future__ import annotations
 import contextlib
 import json
 import shutil
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -74,10 +75,18 @@ def open_resumed(source: Path, output: Path, opts: ScanOptions, seq: Sequence | 
     db.close()
     if in_place:
         return TemplateDB.open(output, require_complete=False, writable=True, wal=True), None
-    target = Output(output, force=True, kind=".gscan file path")
-    try:
+    def continued(target: Output) -> TemplateDB:
         shutil.copyfile(output, target.open())
-        return TemplateDB.open(target.tmp, require_complete=False, writable=True, wal=True), target
+        return TemplateDB.open(target.tmp, require_complete=False, writable=True, wal=True)
+
+    return _beside(Output(output, force=True, kind=".gscan file path"), continued)
+
+
+def _beside(target: Output, make: Callable[[Output], TemplateDB]) -> tuple[TemplateDB, Output]:
+    """(the database `make` writes at the temporary sibling `target`, target); on failure the sibling is removed
+    and the error told as the output's (`Output.translate`)."""
+    try:
+        return make(target), target
     except BaseException as e:
         target.discard()
         t = target.translate(e)
@@ -126,12 +135,5 @@ def create_output(output: Path, opts: ScanOptions, meta: dict) -> tuple[Template
         except OutputExists as e:  # created by another process since the checks
             if not opts.force:
                 raise OutputExists(output, e.reason, fix="resume") from None
-    target = Output(output, force=opts.force, kind=".gscan file path", fix="resume")
-    try:
-        return TemplateDB.create(target.open(), force=True, meta=meta, wal=True), target
-    except BaseException as e:
-        target.discard()
-        t = target.translate(e)
-        if t is not e:
-            raise t from None
-        raise
+    return _beside(Output(output, force=opts.force, kind=".gscan file path", fix="resume"),
+                   lambda target: TemplateDB.create(target.open(), force=True, meta=meta, wal=True))
