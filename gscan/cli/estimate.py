@@ -21,14 +21,6 @@ def load_query_frame(color: Path, depth: Path, intrinsics: Path, depth_scale: fl
                       depth_camera=depth_camera_of(depth_intrinsics, depth_to_color))
 
 
-def estimate_params(config: Path | None) -> Any:
-    """The estimator's settings: the `estimate:` section of `config` (InputError naming the file and the key),
-    the defaults without a file."""
-    from gscan.estimate.settings import load_estimate_params
-
-    return load_estimate_params(config)
-
-
 def estimate(
     template: Path = typer.Argument(..., help="template database (OBJ.gscan)"),
     color: Path = typer.Option(..., "--color", help="colour image"),
@@ -44,8 +36,9 @@ def estimate(
 ) -> None:
     """Estimate the object's pose T_cam_obj in a new RGB-D frame."""
     from gscan.estimate.estimator import Estimator
+    from gscan.estimate.settings import load_estimate_params
 
-    params = estimate_params(config)
+    params = load_estimate_params(config)
     estimator = Estimator.from_path(template, params)
     frame = load_query_frame(color, depth, intrinsics, depth_scale, mask, depth_intrinsics, depth_to_color)
     result = estimator.estimate(frame, mask=frame.mask, refine=not no_icp)

@@ -22,13 +22,13 @@ def serve(
 ) -> None:
     """Serve pose estimation over HTTP with the templates kept warm (OpenAPI page at /docs)."""
     setup_logging(verbose)
-    from gscan.cli.estimate import estimate_params
+    from gscan.estimate.settings import load_estimate_params
     from gscan.io.camera import depth_camera_of
     from gscan.service import ServeParams
     from gscan.service.server import serve as run_service
 
     # the estimators' settings: the file's `estimate:` section (a bad key: exit 2 before any template loads)
-    params = ServeParams(estimate=estimate_params(config))
+    params = ServeParams(estimate=load_estimate_params(config))
     depth_camera = depth_camera_of(depth_intrinsics, depth_to_color)
 
     def ready(url: str) -> None:
