@@ -169,11 +169,12 @@ def detect_capture_mode(seq: Sequence | RecordingSequence, mode_option: str) -> 
 
 
 def load_frames(seq: Sequence | RecordingSequence, mode: str, masks_given: bool, params: SelectionParams,
-                seg: SegmentParams, store: FrameStore, advance: Callable[[int], None]
+                seg: SegmentParams, store: FrameStore, advance: Callable[[int], None], prefix: str = ""
                 ) -> tuple[list[Frame], list[tuple[str, InputError]], Selection]:
     """Reads the input once, in order, keeping the frames frame selection keeps (`gscan.scanning.select`): their images
     go to the store, with a moving object's mask (`moving_object_masks`: the support plane and the object on it,
-    else the difference from the background). Returns (kept frames, frames that could not be read, selection)."""
+    else the difference from the background). Returns (kept frames, frames that could not be read, selection), the
+    frames named `prefix` + their name in the input (a capture's name and "/" when a scan has several)."""
     moving = mode == MOVING_OBJECT
     selector = FrameSelector(params, mask_needed=moving)
     selection = Selection(params)
@@ -181,9 +182,12 @@ def load_frames(seq: Sequence | RecordingSequence, mode: str, masks_given: bool,
     failed: list[tuple[str, InputError]] = []
     for name, frame in read_ahead(seq):
         advance(1)
+        name = prefix + name
         if isinstance(frame, InputError):
             failed.append((name, frame))
             continue
+        if prefix:
+            frame = replace(frame, name=name)
         why = selector.consider(frame)
         if why is not None:
             selection.skipped[name] = why

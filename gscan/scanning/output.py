@@ -1,8 +1,8 @@
 """A scan's output database: its meta (what a resumed scan must agree on), a new one, or the interrupted one resumed.
 
-- `scan_meta(source, options) -> dict`: the meta, `RESUME_KEYS` the values a resumed scan must agree on
+- `scan_meta(sources, options) -> dict`: the meta, `RESUME_KEYS` the values a resumed scan must agree on
 - `create_output(output, options, meta) -> (TemplateDB, Output | None)`: a new database
-- `open_resumed(source, output, options, seq, fingerprints) -> (TemplateDB, Output | None)`: the interrupted one
+- `open_resumed(sources, output, options, seq, fingerprints) -> (TemplateDB, Output | None)`: the interrupted one
 """
 from __future__ import annotations
 
@@ -27,13 +27,19 @@ RESUME_KEYS = ("input", "format", "intrinsics_sha256", "depth_scale_option", "co
                "obj_id_option", "topics_option", "depth_camera")
 
 
-def scan_meta(source: Path, opts: ScanOptions) -> dict:
+def scan_meta(sources: list[Path], opts: ScanOptions) -> dict:
     """The database's meta; a resumed scan must agree on every RESUME_KEYS value (what changes its result):
-    the layout as detected (`--format auto` and the named layout agree), the calibration files' contents."""
+    the inputs (one path, or the list of a scan of several captures), the layout as detected (`--format auto` and
+    the named layout agree), the calibration files' contents."""
     from gscan.io import detect_format
 
-    return {"source": "scan", "input": str(source.resolve()),
-            "format": detect_format(source) if opts.format == "auto" else opts.format,
+    def fmt(source: Path) -> str:
+        return detect_format(source) if opts.format == "auto" else opts.format
+
+    one = len(sources) == 1
+    return {"source": "scan",
+            "input": str(sources[0].resolve()) if one else [str(s.resolve()) for s in sources],
+            "format": fmt(sources[0]) if one else [fmt(s) for s in sources],
             "intrinsics_sha256": None if opts.intrinsics is None else _sha256(Path(opts.intrinsics)),
             "depth_scale_option": opts.depth_scale, "config": opts.config.model_dump(), "mode_option": opts.mode,
             "segment": opts.segment, "obj_id_option": opts.obj_id, "descriptor": opts.config.features.kind,
@@ -52,12 +58,13 @@ def _sha256(path: Path) -> str:
         raise InputError(path, f"cannot read the calibration file ({e.strerror or e})") from None
 
 
-def open_resumed(source: Path, output: Path, opts: ScanOptions, seq: Sequence | RecordingSequence, frames: dict
-                  ) -> tuple[TemplateDB, Output | None]:
-    """The interrupted scan's database; it must come from the same input, configuration and input frames
-    (`frames`: `Sequence.fingerprints`). A complete database (or one whose journal would have too long a
+def open_resumed(sources: list[Path], output: Path, opts: ScanOptions, seq: Sequence | RecordingSequence | None,
+                 frames: dict) -> tuple[TemplateDB, Output | None]:
+    """The interrupted scan's database; it must come from the same inputs, configuration and input frames
+    (`frames`: `Sequence.fingerprints`, of every capture; `seq`: the one capture's frames, which name a changed
+    file, or None). A complete database (or one whose journal would have too long a
     name) is continued in a copy renamed over it at the end, so a failed run leaves it as it was."""
-    meta = scan_meta(source, opts)
+    meta = scan_meta(sources, opts)
     db = TemplateDB.open(output, require_complete=False)  # read only until it is known to be continued
     try:
         stored = {k: db.get_meta(k) for k in RESUME_KEYS}
@@ -95,7 +102,7 @@ def _beside(target: Output, make: Callable[[Output], TemplateDB]) -> tuple[Templ
         raise
 
 
-def _check_frames(output: Path, stored: object, frames: dict, seq: Sequence | RecordingSequence) -> None:
+def _check_frames(output: Path, stored: object, frames: dict, seq: Sequence | RecordingSequence | None) -> None:
     """InputError unless the input frames hold what they held when the partial scan `output` started (their
     files' sizes and hashes): a scan resumed on other images would mix their keypoints and edges."""
     if not isinstance(stored, dict):

@@ -37,10 +37,11 @@ from __future__ import annotations
 
 import contextlib
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -56,6 +57,7 @@ from gscan.features import (
 from gscan.geometry.plane import Plane
 from gscan.geometry.transforms import transform_points
 from gscan.io.camera import RGBDFrame
+from gscan.io.captures import CaptureInput, capture_inputs
 from gscan.io.output import (
     Output,
     check_output,
@@ -65,13 +67,16 @@ from gscan.io.output import (
     remove_sqlite_sidecars,
 )
 from gscan.progress import Progress, StageTimer
-from gscan.registration.edges import COMMIT_ROWS, EdgeSink, Registrar, bounded_map
+from gscan.registration.dense import DenseGeometry
+from gscan.registration.edges import COMMIT_ROWS, EdgeSink, RegData, Registrar, bounded_map, icp_cloud
+from gscan.registration.join import Join, JoinView, join_captures, spread
 from gscan.registration.noise import DepthNoise
+from gscan.registration.pairwise import RegisterParams
 from gscan.registration.sequence import capture_noise, optimise_sequence, register_edges
 from gscan.scanning.camera import check_camera
 from gscan.scanning.capture_mode import MOVING_OBJECT
 from gscan.scanning.config import ScanConfig, for_capture
-from gscan.scanning.frames import WORKERS, FrameData, detect_capture_mode, load_frames
+from gscan.scanning.frames import WORKERS, Frame, FrameData, detect_capture_mode, load_frames
 from gscan.scanning.fuse import FusedModel, FusionParams, fuse_tsdf, template_frame
 from gscan.scanning.keyframes import keyframe_candidates, select_keyframes
 from gscan.scanning.options import ScanOptions
@@ -80,6 +85,10 @@ from gscan.scanning.segment import SegmentParams, segment_frame
 from gscan.scanning.select import Selection
 from gscan.scanning.store import FrameStore, LazyList
 from gscan.template.db import Edge, TemplateDB, View
+
+if TYPE_CHECKING:
+    from gscan.io.recordings.sequence import RecordingSequence
+    from gscan.io.sequence import Sequence as FrameSequence
 
 log = logging.getLogger(__name__)
 
@@ -105,6 +114,9 @@ class ScanResult:
     noise: DepthNoise | None = None  # the noise model of lifted keypoints registration used
     # frame selection: {"kept": int, "skipped": int, "reasons": {why: frames}}; skipped frames are not failures
     selection: dict = field(default_factory=dict)
+    # a scan of several captures: each one's name, input, frames, registered, whether it was joined (and why not),
+    # seconds per stage (`_capture_summary`); empty for one capture
+    captures: list[dict] = field(default_factory=list)
     # the colour camera's check (`check_camera`): given and used focal lengths, texture agreement; None: not run
     camera: dict | None = None
 
@@ -118,7 +130,7 @@ class ScanResult:
                 "mode": self.mode, "mesh": {"vertices": self.mesh_vertices, "triangles": self.mesh_triangles},
                 "timings_s": {k: round(v, 3) for k, v in self.timings_s.items()},
                 "skipped": dict(self.problems), "keyframes": self.keyframes, "selection": dict(self.selection),
-                "camera": self.camera}
+                "camera": self.camera} | ({"captures": list(self.captures)} if self.captures else {})
 
 
 def _icp_voxel(cfg: ScanConfig) -> float | None:
@@ -142,16 +154,59 @@ class _EdgeRecords(EdgeSink):
         return self.db.batch()
 
 
-def run_scan(source: Path, output: Path, opts: ScanOptions, progress: Progress | None = None) -> ScanResult:
-    """Run the whole pipeline (see the module docstring). Raises InputError for bad input.
+@dataclass
+class _Capture:
+    """One capture of the scan as its stages fill it in: read and loaded (`_load`), then registered in its own
+    world (`_register_capture`), then joined to the first (`_join`)."""
+
+    input: CaptureInput
+    seq: FrameSequence | RecordingSequence
+    prefix: str  # of its frames' names: "CAPTURE/" when the scan has several, else ""
+    camera: dict | None = None
+    mode: str = ""
+    masks_given: bool = False
+    frames: list[Frame] = field(default_factory=list)
+    failed: list[tuple[str, InputError]] = field(default_factory=list)
+    selection: Selection | None = None
+    problems: dict[str, str] = field(default_factory=dict)  # unusable frames (prefixed names) -> why
+    detections: dict[str, Detection] = field(default_factory=dict)
+    data: FrameData | None = None
+    reg: _Registered | None = None
+    timings: dict[str, float] = field(default_factory=dict)  # seconds per stage spent on this capture
+    join: Join | None = None  # how it was joined to the captures before it (None: the first, or one capture)
+
+    @property
+    def source(self) -> Path:
+        return self.input.source
+
+
+@dataclass
+class _Registered:
+    """A capture registered in its own world: per kept frame T_world_cam (None: unregistered), object masks (a
+    function of the frame's index), the support plane, view qualities, the pose graph's outcome."""
+
+    T_world_cam: list[np.ndarray | None]
+    mask_of: Callable[[int], np.ndarray | None]
+    plane_world: Plane | None
+    quality: dict[int, float]
+    reasons: dict[str, str]
+    parts: list[list[str]]
+    edges: list[Edge]
+    restored: set[tuple[str, str]]
+    rparams: RegisterParams
+
+
+def run_scan(sources: Path | Sequence[Path], output: Path, opts: ScanOptions,
+             progress: Progress | None = None) -> ScanResult:
+    """Run the whole pipeline (see the module docstring) on one capture or several of one object. Raises
+    InputError for bad input.
 
     The output is checked before any frame is read (so a bad output fails on one line). A new output is
     written in place (resumable); an existing one (`force`) is replaced only by a complete new database,
     written beside it, so a failed or interrupted run leaves it as it was. The kept frames' images wait in a
     `FrameStore` beside the output while the scan runs (gone when it ends, however it ends).
     """
-    from gscan.io import open_sequence
-
+    sources = [sources] if isinstance(sources, Path) else [Path(s) for s in sources]
     resumed = opts.resume and output.is_file()
     check_output(output, force=opts.force or resumed, kind=".gscan file path", fix="resume")
     timer = StageTimer(progress)
@@ -159,38 +214,15 @@ def run_scan(source: Path, output: Path, opts: ScanOptions, progress: Progress |
     target: Output | None = None
     store: FrameStore | None = None
     try:
-        seq = open_sequence(source, format=opts.format, intrinsics=opts.intrinsics,
-                            depth_scale=opts.depth_scale, obj_id=opts.obj_id, color_topic=opts.color_topic,
-                            depth_topic=opts.depth_topic, depth_camera=opts.depth_camera)
-        if opts.obj_id is not None and seq.format != "bop":
-            raise InputError(source, f"an object id is for BOP scene folders, this is a {seq.format} folder")
-        if opts.obj_id is not None and seq.gt_T_cam_obj is None:
-            raise InputError(source / "scene_gt.json", "not found (the object id picks an object of its "
-                             "poses)", fix="obj_id")
-        if opts.obj_id is not None and not seq.gt_T_cam_obj:
-            raise InputError(source / "scene_gt.json", f"holds no pose of object {opts.obj_id}", fix="obj_id")
-        fingerprints = seq.fingerprints()
+        inputs = capture_inputs(sources, opts.obj_id)
+        several = len(inputs) > 1
+        caps = [_Capture(c, _open(c, opts), f"{c.name}/" if several else "") for c in inputs]
+        fingerprints = {cap.prefix + n: fp for cap in caps for n, fp in cap.seq.fingerprints().items()}
         if resumed:
-            db, target = open_resumed(source, output, opts, seq, fingerprints)
-        detections: dict[str, Detection] = {}
-        with timer.stage("camera", total=1) as advance:  # (after the checks that refuse the input in one line)
-            seq, camera = check_camera(source, seq, opts, detections)
-            advance(1)
+            db, target = open_resumed(sources, output, opts, None if several else caps[0].seq, fingerprints)
         store = FrameStore(output)
-        with timer.stage("mode", total=1) as advance:
-            mode, masks_given = detect_capture_mode(seq, opts.mode)
-            advance(1)
-        with timer.stage("load", total=len(seq)) as advance:
-            frames, failed, selection = load_frames(seq, mode, masks_given, opts.config.selection,
-                                                   opts.config.segmentation, store, advance)
-        # in input order (the camera check reads frames on two threads): the listing problems first, as found,
-        # then unreadable frames in the order of their names
-        index = {name: i for i, name in enumerate(seq.names)}
-        problems = dict(sorted(seq.problems.items(), key=lambda kv: index.get(kv[0], -1)))
-        if not frames:  # one line (the CLI contract), no per-frame warnings before it
-            first = next(iter(problems.items()), ("?", "?"))
-            raise InputError(source,
-                             f"no usable frame ({len(problems)} unusable); first: {first[0]}: {first[1]}")
+        for cap in caps:
+            _load(cap, opts, timer, store)
     except BaseException:
         if store is not None:
             store.close()
@@ -199,22 +231,22 @@ def run_scan(source: Path, output: Path, opts: ScanOptions, progress: Progress |
         if target is not None:
             target.discard()
         raise
-    for name, err in failed:
-        log.warning("skipping frame %s: %s", name, err)
+    for cap in caps:
+        for name, err in cap.failed:
+            log.warning("skipping frame %s: %s", name, err)
 
     made = missing_folders(output)
     created = None
     try:
         if db is None:
             # obj_id: the BOP object the scan followed (its ground truth and masks), for `gscan eval`
-            db, target = create_output(output, opts, dict(opts.meta) | scan_meta(source, opts) | {
-                "obj_id": seq.obj_id, "input_frames": fingerprints, "camera": camera})
+            db, target = create_output(output, opts, dict(opts.meta) | scan_meta(sources, opts) | {
+                "obj_id": caps[0].seq.obj_id, "input_frames": fingerprints, "camera": caps[0].camera})
         created = file_identity(output)  # a new output in place: only this file is removed on failure
         if resumed:  # only once the input is known to hold frames: a complete database stays complete
             db.mark_partial()
-        data = FrameData(frames, store, db, mode, masks_given, _icp_voxel(opts.config), detections)
-        result = _scan_frames(data, source, output, opts, db, resumed, timer, problems, selection)
-        result.camera = camera
+        result = _scan_frames(caps, output, opts, db, store, resumed, timer)
+        result.camera = caps[0].camera
     except BaseException as e:
         store.close()
         if db is not None:
@@ -240,67 +272,129 @@ def run_scan(source: Path, output: Path, opts: ScanOptions, progress: Progress |
     return result
 
 
+def _open(c: CaptureInput, opts: ScanOptions) -> FrameSequence | RecordingSequence:
+    """A capture's frames, opened (its layout and calibration read; no frame yet). InputError naming it."""
+    from gscan.io import open_sequence
+
+    obj_id = opts.obj_id if c.obj_id is None else c.obj_id
+    seq = open_sequence(c.source, format=c.format or opts.format, intrinsics=opts.intrinsics,
+                        depth_scale=opts.depth_scale, obj_id=obj_id, color_topic=opts.color_topic,
+                        depth_topic=opts.depth_topic, depth_camera=opts.depth_camera)
+    if obj_id is not None and seq.format != "bop":
+        raise InputError(c.source, f"an object id is for BOP scene folders, this is a {seq.format} folder")
+    if obj_id is not None and seq.gt_T_cam_obj is None:
+        raise InputError(c.source / "scene_gt.json", "not found (the object id picks an object of its "
+                         "poses)", fix="obj_id")
+    if obj_id is not None and not seq.gt_T_cam_obj:
+        raise InputError(c.source / "scene_gt.json", f"holds no pose of object {obj_id}", fix="obj_id")
+    return seq
+
+
+def _load(cap: _Capture, opts: ScanOptions, timer: StageTimer, store: FrameStore) -> None:
+    """The camera check, the capture mode and the load of one capture (frames named with its prefix)."""
+    before = dict(timer.timings)
+    detections: dict[str, Detection] = {}
+    with timer.stage("camera", total=1) as advance:  # (after the checks that refuse the input in one line)
+        cap.seq, cap.camera = check_camera(cap.source, cap.seq, opts, detections)
+        advance(1)
+    cap.detections = {cap.prefix + n: d for n, d in detections.items()}
+    with timer.stage("mode", total=1) as advance:
+        cap.mode, cap.masks_given = detect_capture_mode(cap.seq, opts.mode)
+        advance(1)
+    seq = cap.seq
+    with timer.stage("load", total=len(seq)) as advance:
+        cap.frames, cap.failed, cap.selection = load_frames(seq, cap.mode, cap.masks_given, opts.config.selection,
+                                                            opts.config.segmentation, store, advance, cap.prefix)
+    # in input order (the camera check reads frames on two threads): the listing problems first, as found,
+    # then unreadable frames in the order of their names
+    index = {name: i for i, name in enumerate(seq.names)}
+    cap.problems = {cap.prefix + n: why for n, why in sorted(seq.problems.items(),
+                                                              key=lambda kv: index.get(kv[0], -1))}
+    if not cap.frames:  # one line (the CLI contract), no per-frame warnings before it
+        first = next(iter(seq.problems.items()), ("?", "?"))
+        raise InputError(cap.source,
+                         f"no usable frame ({len(cap.problems)} unusable); first: {first[0]}: {first[1]}")
+    _add_timings(cap, before, timer)
+
+
+def _add_timings(cap: _Capture, before: dict[str, float], timer: StageTimer) -> None:
+    for k, v in timer.timings.items():
+        if v - before.get(k, 0.0) > 0:
+            cap.timings[k] = cap.timings.get(k, 0.0) + v - before.get(k, 0.0)
+
+
 # ------------------------------------------------------------------------------------------ the stages
-def _scan_frames(data: FrameData, source: Path, output: Path, opts: ScanOptions, db: TemplateDB, resumed: bool,
-                 timer: StageTimer, problems: dict[str, str], selection: Selection) -> ScanResult:
-    frames, mode = data.frames, data.mode
-    cfg = for_capture(opts.config, mode)
-    log.info("%s capture, %d of %d frames kept%s", mode, len(frames), len(frames) + len(selection.skipped),
-             ", masks given" if data.masks_given else "")
-
-    # each stage's writes are batched: one commit per stage, or per COMMIT_ROWS records in a long one
-    with timer.stage("features", total=len(frames)) as advance, db.batch():
-        db.set_meta("mode", mode)
-        db.set_meta("selection", selection.to_meta())
-        _extract(data, cfg.features, db, resumed, advance)
-    if not any(f.n_keypoints for f in frames):  # every frame dark, textureless or without depth: nothing to scan
-        raise InputError(source, f"no keypoint with depth in any of the {len(frames)} frames "
-                         "(dark or textureless images, or no valid depth)")
-
-    n = len(frames)
-    rparams, sparams = cfg.registration, cfg.posegraph
+def _scan_frames(caps: list[_Capture], output: Path, opts: ScanOptions, db: TemplateDB, store: FrameStore,
+                 resumed: bool, timer: StageTimer) -> ScanResult:
     with ThreadPoolExecutor(max_workers=WORKERS) as pool:
-        with timer.stage("noise", total=1) as advance, db.batch():
-            if sparams.estimate_noise:
-                kp_noise, depth_noise = capture_noise(data, rparams, sparams.pilot_pairs, pool)
-                rparams = replace(rparams, noise=kp_noise, depth_noise=depth_noise)
-            db.set_meta("noise", {"keypoint": rparams.noise.to_dict(), "depth": rparams.depth_noise.to_dict()})
-            advance(1)
-        sink = _EdgeRecords(db)
-        reg = Registrar(data, rparams, sink, db.edges() if resumed else (), AHEAD)
-        with timer.stage("register", total=max(1, n - 1)) as advance, db.batch():
-            edges = register_edges(reg, sparams, pool, advance)
-        with timer.stage("posegraph", total=1) as advance:
-            res = optimise_sequence(reg, edges, sparams, pool)
-            advance(1)
-    edges, T_world_cam, quality = res.edges, res.T_world_cam, res.quality
-    registered = [k for k in range(n) if T_world_cam[k] is not None]
-    reasons, parts = res.unregistered_reasons, res.parts
+        for cap in caps:
+            before = dict(timer.timings)
+            _register_capture(cap, opts, db, store, resumed, timer, pool)
+            _add_timings(cap, before, timer)
+        if len(caps) > 1:
+            _join(caps, opts.config, timer, pool)
 
-    with timer.stage("segment", total=n) as advance:
-        seg = replace(cfg.segmentation, depth_noise=rparams.depth_noise)  # the capture's own
-        mask_of, plane_world = _segment(data, T_world_cam, opts.segment, seg, advance)
+    # the captures' frames as one sequence in the first capture's world (a capture not joined: unregistered)
+    frames = [f for cap in caps for f in cap.frames]
+    n = len(frames)
+    offsets = np.cumsum([0] + [len(cap.frames) for cap in caps])
+    T_world_cam: list[np.ndarray | None] = []
+    quality: dict[int, float] = {}
+    reasons: dict[str, str] = {}
+    parts: list[list[str]] = []
+    for cap, off in zip(caps, offsets, strict=False):
+        r = cap.reg
+        assert r is not None
+        T_join = np.eye(4) if cap.join is None else cap.join.T_a_b
+        if T_join is None:  # its own part, never fused at a guessed pose
+            why = f"capture {cap.input.name} was not joined to the others: {cap.join.reason}"  # type: ignore[union-attr]
+            reasons |= {f.name: why for f, T in zip(cap.frames, r.T_world_cam, strict=True) if T is not None}
+            parts.append([f.name for f, T in zip(cap.frames, r.T_world_cam, strict=True) if T is not None])
+            T_world_cam += [None] * len(cap.frames)
+        else:
+            T_world_cam += [None if T is None else T_join @ T for T in r.T_world_cam]
+            quality |= {off + k: q for k, q in r.quality.items()}
+        reasons |= r.reasons
+        parts += r.parts
+    registered = [k for k in range(n) if T_world_cam[k] is not None]
+    first = caps[0]
+    assert first.reg is not None and first.data is not None
+    data = FrameData(frames, store, db, first.mode, first.masks_given, _icp_voxel(opts.config))
+
+    def mask_of(g: int) -> np.ndarray | None:
+        c = int(np.searchsorted(offsets, g, side="right")) - 1
+        return caps[c].reg.mask_of(g - int(offsets[c]))  # type: ignore[union-attr]
 
     with timer.stage("fuse", total=1) as advance:
-        model, T_obj_world = _fuse(data, T_world_cam, mask_of, plane_world, cfg.fusion, source)
+        model, T_obj_world = _fuse(data, T_world_cam, mask_of, first.reg.plane_world, opts.config.fusion,
+                                   first.source)
         advance(1)
 
+    cfg = for_capture(opts.config, first.mode)
+    problems = {n_: why for cap in caps for n_, why in cap.problems.items()}
+    selection = _merged_selection(caps)
     with timer.stage("database", total=n + 1) as advance, db.batch():
         T_obj_cam = [None if T is None else T_obj_world @ T for T in T_world_cam]
         keyframes = _store_views(data, T_obj_cam, mask_of, quality, cfg, db, advance)
-        for e in edges:  # the pose graph's verdicts, also where a resumed run reaches another one
-            if e.pruned or (e.src, e.tgt) in res.restored:
-                db.add_edge(e)
+        for cap in caps:
+            for e in cap.reg.edges:  # type: ignore[union-attr]  # the pose graph's verdicts, also where a
+                if e.pruned or (e.src, e.tgt) in cap.reg.restored:  # type: ignore[union-attr]  # resumed run
+                    db.add_edge(e)  # reaches another one
         mesh = model.mesh.transformed(T_obj_world)
         db.set_mesh(mesh)
         db.set_cloud(transform_points(T_obj_world, model.points), model.point_colors)
         unregistered = [f.name for f, T in zip(frames, T_world_cam, strict=True) if T is None]
+        db.set_meta("mode", first.mode)
+        noise = first.reg.rparams
+        db.set_meta("noise", {"keypoint": noise.noise.to_dict(), "depth": noise.depth_noise.to_dict()})
         db.set_meta("unregistered", unregistered)
         db.set_meta("unregistered_reasons", reasons)
         db.set_meta("parts", parts)
         db.set_meta("skipped", problems)
+        db.set_meta("selection", selection.to_meta())
+        db.set_meta("captures", [_capture_meta(cap, T_obj_world) for cap in caps] if len(caps) > 1 else [])
         db.set_meta("voxel_size", model.voxel_size)
-        db.set_meta("support_plane", plane_world is not None)
+        db.set_meta("support_plane", first.reg.plane_world is not None)
         db.set_meta("timings_s", timer.timings)
         db.mark_complete()
         advance(1)
@@ -309,11 +403,129 @@ def _scan_frames(data: FrameData, source: Path, output: Path, opts: ScanOptions,
     total_edges = len(stored_edges)
     return ScanResult(output=output, frames=n + len(selection.skipped) + len(problems),
                       registered=len(registered), unregistered=unregistered + sorted(problems),
-                      edges_accepted=accepted, edges_rejected=total_edges - accepted, mode=mode,
+                      edges_accepted=accepted, edges_rejected=total_edges - accepted, mode=first.mode,
                       mesh_vertices=len(mesh.vertices), mesh_triangles=len(mesh.triangles),
                       timings_s=dict(timer.timings), problems=problems, keyframes=len(keyframes),
-                      unregistered_reasons=reasons | problems, parts=parts, noise=rparams.noise,
-                      selection=selection.summary())
+                      unregistered_reasons=reasons | problems, parts=parts, noise=first.reg.rparams.noise,
+                      selection=selection.summary(),
+                      captures=[_capture_summary(cap) for cap in caps] if len(caps) > 1 else [])
+
+
+def _register_capture(cap: _Capture, opts: ScanOptions, db: TemplateDB, store: FrameStore, resumed: bool,
+                      timer: StageTimer, pool: ThreadPoolExecutor) -> None:
+    """Features, noise, pairwise registration, pose graph and segmentation of one capture, in its own world."""
+    frames, mode = cap.frames, cap.mode
+    cfg = for_capture(opts.config, mode)
+    data = cap.data = FrameData(frames, store, db, mode, cap.masks_given, _icp_voxel(opts.config), cap.detections)
+    assert cap.selection is not None
+    log.info("%s%s capture, %d of %d frames kept%s", f"{cap.input.name}: " if cap.prefix else "", mode,
+             len(frames), len(frames) + len(cap.selection.skipped), ", masks given" if data.masks_given else "")
+
+    # each stage's writes are batched: one commit per stage, or per COMMIT_ROWS records in a long one
+    with timer.stage("features", total=len(frames)) as advance, db.batch():
+        _extract(data, cfg.features, db, resumed, advance)
+    if not any(f.n_keypoints for f in frames):  # every frame dark, textureless or without depth: nothing to scan
+        raise InputError(cap.source, f"no keypoint with depth in any of the {len(frames)} frames "
+                         "(dark or textureless images, or no valid depth)")
+
+    n = len(frames)
+    rparams, sparams = cfg.registration, cfg.posegraph
+    with timer.stage("noise", total=1) as advance:
+        if sparams.estimate_noise:
+            kp_noise, depth_noise = capture_noise(data, rparams, sparams.pilot_pairs, pool)
+            rparams = replace(rparams, noise=kp_noise, depth_noise=depth_noise)
+        advance(1)
+    sink = _EdgeRecords(db)
+    reg = Registrar(data, rparams, sink, db.edges() if resumed else (), AHEAD)
+    with timer.stage("register", total=max(1, n - 1)) as advance, db.batch():
+        edges = register_edges(reg, sparams, pool, advance)
+    with timer.stage("posegraph", total=1) as advance:
+        res = optimise_sequence(reg, edges, sparams, pool)
+        advance(1)
+
+    with timer.stage("segment", total=n) as advance:
+        seg = replace(cfg.segmentation, depth_noise=rparams.depth_noise)  # the capture's own
+        mask_of, plane_world = _segment(data, res.T_world_cam, opts.segment, seg, advance)
+    cap.reg = _Registered(res.T_world_cam, mask_of, plane_world, res.quality, res.unregistered_reasons, res.parts,
+                          res.edges, res.restored, rparams)
+
+
+def _join(caps: list[_Capture], config: ScanConfig, timer: StageTimer, pool: ThreadPoolExecutor) -> None:
+    """Joins each capture after the first to those joined before it (`gscan.registration.join`), on the object's
+    own keypoints and depth (the object moved against the table between captures)."""
+    params = config.join
+    # object-only registration (a moving object's settings), with the first capture's noise
+    first = caps[0].reg
+    assert first is not None
+    moving = for_capture(config, MOVING_OBJECT).registration
+    rparams = replace(moving, noise=first.rparams.noise, depth_noise=first.rparams.depth_noise)
+    oparams = replace(OBJECT_FEATURES, kind=config.features.kind, max_keypoints=config.features.max_keypoints)
+    with timer.stage("join", total=len(caps) - 1) as advance:
+        joined = _join_views(caps[0], params.views, oparams, _icp_voxel(config), pool)
+        for cap in caps[1:]:
+            views = _join_views(cap, params.views, oparams, _icp_voxel(config), pool)
+            cap.join = join_captures(joined, views, rparams, params, pool)
+            if cap.join.T_a_b is not None:
+                T = cap.join.T_a_b
+                joined += [JoinView(v.name, v.reg, T @ v.T_world_cam) for v in views]
+                log.info("capture %s joined to the others (%d of %d view pairs agree)", cap.input.name,
+                         len(cap.join.agreeing), cap.join.tried)
+            else:
+                log.warning("capture %s is not joined to the others: %s", cap.input.name, cap.join.reason)
+            advance(1)
+
+
+def _join_views(cap: _Capture, k: int, oparams: FeatureParams, icp_voxel: float | None,
+                pool: ThreadPoolExecutor) -> list[JoinView]:
+    """Up to k registered views of a capture, spread over it, with the object in view: keypoints detected in the
+    object mask, depth samples and ICP cloud inside it (camera frame), pose in the capture's world."""
+    r, data = cap.reg, cap.data
+    assert r is not None and data is not None
+    reg = [i for i, T in enumerate(r.T_world_cam) if T is not None]
+
+    def view(i: int) -> JoinView | None:
+        mask, T = r.mask_of(i), r.T_world_cam[i]
+        if mask is None or not mask.any() or T is None:
+            return None
+        frame = data.frame(i)
+        feats = extract_features_in_mask(frame, mask, oparams)
+        cloud = None if icp_voxel is None else icp_cloud(frame.depth, frame.intrinsics, mask, icp_voxel)
+        dense = DenseGeometry.from_depth(frame.depth, frame.intrinsics, mask, image=frame.color)
+        return JoinView(frame.name, RegData(feats, cloud, dense), T)
+
+    return [v for v in pool.map(view, [reg[j] for j in spread(len(reg), k)]) if v is not None]
+
+
+def _merged_selection(caps: list[_Capture]) -> Selection:
+    out = Selection(caps[0].selection.params)  # type: ignore[union-attr]
+    for cap in caps:
+        assert cap.selection is not None
+        out.kept += cap.selection.kept
+        out.skipped |= cap.selection.skipped
+    return out
+
+
+def _capture_summary(cap: _Capture) -> dict:
+    """A capture of a scan of several, in `scan --json`'s "captures"."""
+    r = cap.reg
+    assert r is not None
+    return {"name": cap.input.name, "input": str(cap.source), "mode": cap.mode, "frames": len(cap.frames),
+            "registered": sum(T is not None for T in r.T_world_cam),
+            "joined": cap.join is None or cap.join.T_a_b is not None,
+            "reason": None if cap.join is None else cap.join.reason,
+            "timings_s": {k: round(v, 3) for k, v in cap.timings.items()}}
+
+
+def _capture_meta(cap: _Capture, T_obj_world: np.ndarray) -> dict:
+    """A capture's record in the template's "captures" meta: its summary, the noise its registration used, how it
+    was joined and T_obj_world [4 x 4] of its world (None: not joined)."""
+    r = cap.reg
+    assert r is not None
+    T = np.eye(4) if cap.join is None else cap.join.T_a_b
+    return _capture_summary(cap) | {
+        "noise": {"keypoint": r.rparams.noise.to_dict(), "depth": r.rparams.depth_noise.to_dict()},
+        "join": None if cap.join is None else cap.join.to_meta(),
+        "T_obj_world": None if T is None else (T_obj_world @ T).tolist()}
 
 
 def _fuse(data: FrameData, T_world_cam: list[np.ndarray | None], mask_of: Callable[[int], np.ndarray | None],
