@@ -55,9 +55,10 @@ def onboarding_objects(root: Path) -> dict[int, list[Path]]:
     return {k: [p for _, p in sorted(v)] for k, v in sorted(found.items())}
 
 
-def capture_inputs(sources: Sequence[Path], obj_id: int | None) -> list[CaptureInput]:
-    """The captures of a scan (module docstring). InputError: a BOP onboarding folder given with others, or
-    without the capture of the object asked for (or, without `obj_id`, holding several objects)."""
+def capture_inputs(sources: Sequence[Path], obj_id: int | None, taken: Sequence[str] = ()) -> list[CaptureInput]:
+    """The captures of a scan (module docstring), their names unique among themselves and `taken` (the captures of
+    a template they are appended to). InputError: a BOP onboarding folder given with others, or without the
+    capture of the object asked for (or, without `obj_id`, holding several objects)."""
     sources = [Path(s) for s in sources]
     if not sources:
         raise ValueError("a scan needs at least one capture")
@@ -77,13 +78,16 @@ def capture_inputs(sources: Sequence[Path], obj_id: int | None) -> list[CaptureI
         if obj_id not in objects:
             raise InputError(root, f"holds no onboarding capture of object {obj_id} (objects: "
                              f"{', '.join(map(str, objects))})", fix="obj_id")
-        return [CaptureInput(p.name, p, obj_id, "bop") for p in objects[obj_id]]
+        return [CaptureInput(_unique(p.name, taken), p, obj_id, "bop") for p in objects[obj_id]]
     names: list[str] = []
     for s in sources:
-        base = (s.stem if s.is_file() else s.resolve().name) or "capture"
-        name, k = base, 1
-        while name in names:
-            k += 1
-            name = f"{base}-{k}"
-        names.append(name)
+        names.append(_unique((s.stem if s.is_file() else s.resolve().name) or "capture", [*taken, *names]))
     return [CaptureInput(n, s, obj_id) for n, s in zip(names, sources, strict=True)]
+
+
+def _unique(base: str, taken: Sequence[str]) -> str:
+    name, k = base, 1
+    while name in taken:
+        k += 1
+        name = f"{base}-{k}"
+    return name

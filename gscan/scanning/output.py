@@ -3,6 +3,7 @@
 - `scan_meta(sources, options) -> dict`: the meta, `RESUME_KEYS` the values a resumed scan must agree on
 - `create_output(output, options, meta) -> (TemplateDB, Output | None)`: a new database
 - `open_resumed(sources, output, options, seq, fingerprints) -> (TemplateDB, Output | None)`: the interrupted one
+- `open_appended(output, options) -> (TemplateDB, Output)`: a finished template, copied to be appended to
 """
 from __future__ import annotations
 
@@ -85,6 +86,30 @@ def open_resumed(sources: list[Path], output: Path, opts: ScanOptions, seq: Sequ
     def continued(target: Output) -> TemplateDB:
         shutil.copyfile(output, target.open())
         return TemplateDB.open(target.tmp, require_complete=False, writable=True, wal=True)
+
+    return _beside(Output(output, force=True, kind=".gscan file path"), continued)
+
+
+def open_appended(output: Path, opts: ScanOptions) -> tuple[TemplateDB, Output]:
+    """The scanned template at `output`, copied beside it for captures to be appended to (`--append`); the copy
+    replaces it once complete, so a failed or refused append leaves it as it was. InputError: no complete scanned
+    template there, or one scanned with another configuration or segmentation (its views and the new ones would
+    not be alike)."""
+    if not output.is_file():
+        raise InputError(output, "no template to append to (scan the first capture without --append)")
+    with TemplateDB.open(output) as db:
+        if db.get_meta("source") != "scan":
+            raise InputError(output, "is not a scanned template: captures are appended to a scan's template only")
+        config = db.get_meta("config")
+        with contextlib.suppress(ValueError, TypeError):
+            config = json.loads(json.dumps(ScanConfig.model_validate(config).model_dump()))
+        if [config, db.get_meta("segment")] != json.loads(json.dumps([opts.config.model_dump(), opts.segment])):
+            raise InputError(output, "was scanned with another configuration or segmentation: captures appended to "
+                             "it must be scanned alike (--config, --no-segment as then)")
+
+    def continued(target: Output) -> TemplateDB:
+        shutil.copyfile(output, target.open())
+        return TemplateDB.open(target.tmp, writable=True, wal=True)
 
     return _beside(Output(output, force=True, kind=".gscan file path"), continued)
 

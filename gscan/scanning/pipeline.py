@@ -74,16 +74,16 @@ from gscan.registration.noise import DepthNoise
 from gscan.registration.pairwise import RegisterParams
 from gscan.registration.sequence import capture_noise, optimise_sequence, register_edges
 from gscan.scanning.camera import check_camera
-from gscan.scanning.capture_mode import MOVING_OBJECT
+from gscan.scanning.capture_mode import MOVING_OBJECT, STATIC_OBJECT
 from gscan.scanning.config import ScanConfig, for_capture
 from gscan.scanning.frames import WORKERS, Frame, FrameData, detect_capture_mode, load_frames
 from gscan.scanning.fuse import FusedModel, FusionParams, fuse_tsdf, template_frame
 from gscan.scanning.keyframes import keyframe_candidates, select_keyframes
 from gscan.scanning.options import ScanOptions
-from gscan.scanning.output import create_output, open_resumed, scan_meta
+from gscan.scanning.output import create_output, open_appended, open_resumed, scan_meta
 from gscan.scanning.segment import SegmentParams, segment_frame
 from gscan.scanning.select import Selection
-from gscan.scanning.store import FrameStore, LazyList
+from gscan.scanning.store import FrameStore, LazyList, StoredFrame
 from gscan.template.db import Edge, TemplateDB, View
 
 if TYPE_CHECKING:
@@ -160,7 +160,7 @@ class _Capture:
     world (`_register_capture`), then joined to the first (`_join`)."""
 
     input: CaptureInput
-    seq: FrameSequence | RecordingSequence
+    seq: FrameSequence | RecordingSequence | None  # None: the views of the template appended to
     prefix: str  # of its frames' names: "CAPTURE/" when the scan has several, else ""
     camera: dict | None = None
     mode: str = ""
@@ -208,19 +208,28 @@ def run_scan(sources: Path | Sequence[Path], output: Path, opts: ScanOptions,
     """
     sources = [sources] if isinstance(sources, Path) else [Path(s) for s in sources]
     resumed = opts.resume and output.is_file()
-    check_output(output, force=opts.force or resumed, kind=".gscan file path", fix="resume")
+    check_output(output, force=opts.force or resumed or opts.append, kind=".gscan file path", fix="resume")
     timer = StageTimer(progress)
     db: TemplateDB | None = None
     target: Output | None = None
     store: FrameStore | None = None
+    base: _Capture | None = None  # --append: the template's views, as a capture registered in the object frame
     try:
-        inputs = capture_inputs(sources, opts.obj_id)
-        several = len(inputs) > 1
+        if opts.append:
+            db, target = open_appended(output, opts)
+        taken = _capture_names(db) if db is not None and opts.append else []
+        inputs = capture_inputs(sources, opts.obj_id, taken)
+        several = len(inputs) > 1 or opts.append
         caps = [_Capture(c, _open(c, opts), f"{c.name}/" if several else "") for c in inputs]
-        fingerprints = {cap.prefix + n: fp for cap in caps for n, fp in cap.seq.fingerprints().items()}
+        seqs = [cap.seq for cap in caps if cap.seq is not None]
+        fingerprints = {cap.prefix + n: fp for cap, seq in zip(caps, seqs, strict=True)
+                        for n, fp in seq.fingerprints().items()}
         if resumed:
-            db, target = open_resumed(sources, output, opts, None if several else caps[0].seq, fingerprints)
+            db, target = open_resumed(sources, output, opts, None if several else seqs[0], fingerprints)
         store = FrameStore(output)
+        if opts.append:
+            assert db is not None
+            base = _template_capture(db, store, opts)
         for cap in caps:
             _load(cap, opts, timer, store)
     except BaseException:
@@ -241,11 +250,11 @@ def run_scan(sources: Path | Sequence[Path], output: Path, opts: ScanOptions,
         if db is None:
             # obj_id: the BOP object the scan followed (its ground truth and masks), for `gscan eval`
             db, target = create_output(output, opts, dict(opts.meta) | scan_meta(sources, opts) | {
-                "obj_id": caps[0].seq.obj_id, "input_frames": fingerprints, "camera": caps[0].camera})
+                "obj_id": seqs[0].obj_id, "input_frames": fingerprints, "camera": caps[0].camera})
         created = file_identity(output)  # a new output in place: only this file is removed on failure
-        if resumed:  # only once the input is known to hold frames: a complete database stays complete
+        if resumed or opts.append:  # only once the input is known to hold frames: a complete database stays complete
             db.mark_partial()
-        result = _scan_frames(caps, output, opts, db, store, resumed, timer)
+        result = _scan_frames(caps if base is None else [base, *caps], output, opts, db, store, resumed, timer)
         result.camera = caps[0].camera
     except BaseException as e:
         store.close()
@@ -294,6 +303,7 @@ def _load(cap: _Capture, opts: ScanOptions, timer: StageTimer, store: FrameStore
     """The camera check, the capture mode and the load of one capture (frames named with its prefix)."""
     before = dict(timer.timings)
     detections: dict[str, Detection] = {}
+    assert cap.seq is not None
     with timer.stage("camera", total=1) as advance:  # (after the checks that refuse the input in one line)
         cap.seq, cap.camera = check_camera(cap.source, cap.seq, opts, detections)
         advance(1)
@@ -302,6 +312,7 @@ def _load(cap: _Capture, opts: ScanOptions, timer: StageTimer, store: FrameStore
         cap.mode, cap.masks_given = detect_capture_mode(cap.seq, opts.mode)
         advance(1)
     seq = cap.seq
+    assert seq is not None
     with timer.stage("load", total=len(seq)) as advance:
         cap.frames, cap.failed, cap.selection = load_frames(seq, cap.mode, cap.masks_given, opts.config.selection,
                                                             opts.config.segmentation, store, advance, cap.prefix)
@@ -311,7 +322,7 @@ def _load(cap: _Capture, opts: ScanOptions, timer: StageTimer, store: FrameStore
     cap.problems = {cap.prefix + n: why for n, why in sorted(seq.problems.items(),
                                                               key=lambda kv: index.get(kv[0], -1))}
     if not cap.frames:  # one line (the CLI contract), no per-frame warnings before it
-        first = next(iter(seq.problems.items()), ("?", "?"))
+        first = next(iter(cap.problems.items()), ("?", "?"))
         raise InputError(cap.source,
                          f"no usable frame ({len(cap.problems)} unusable); first: {first[0]}: {first[1]}")
     _add_timings(cap, before, timer)
@@ -328,11 +339,18 @@ def _scan_frames(caps: list[_Capture], output: Path, opts: ScanOptions, db: Temp
                  resumed: bool, timer: StageTimer) -> ScanResult:
     with ThreadPoolExecutor(max_workers=WORKERS) as pool:
         for cap in caps:
+            if cap.reg is not None:  # the template appended to
+                continue
             before = dict(timer.timings)
             _register_capture(cap, opts, db, store, resumed, timer, pool)
             _add_timings(cap, before, timer)
         if len(caps) > 1:
             _join(caps, opts.config, timer, pool)
+    for cap in caps[1:] if opts.append else []:
+        assert cap.join is not None
+        if cap.join.T_a_b is None:  # the template is left as it was
+            raise InputError(cap.source, f"cannot be joined to the template {output}: {cap.join.reason}; the "
+                             "template is left as it was")
 
     # the captures' frames as one sequence in the first capture's world (a capture not joined: unregistered)
     frames = [f for cap in caps for f in cap.frames]
@@ -368,6 +386,8 @@ def _scan_frames(caps: list[_Capture], output: Path, opts: ScanOptions, db: Temp
     with timer.stage("fuse", total=1) as advance:
         model, T_obj_world = _fuse(data, T_world_cam, mask_of, first.reg.plane_world, opts.config.fusion,
                                    first.source)
+        if opts.append:  # the template's frame is kept: its views' poses stay as they were
+            T_obj_world = np.eye(4)
         advance(1)
 
     cfg = for_capture(opts.config, first.mode)
@@ -392,9 +412,14 @@ def _scan_frames(caps: list[_Capture], output: Path, opts: ScanOptions, db: Temp
         db.set_meta("parts", parts)
         db.set_meta("skipped", problems)
         db.set_meta("selection", selection.to_meta())
-        db.set_meta("captures", [_capture_meta(cap, T_obj_world) for cap in caps] if len(caps) > 1 else [])
+        if opts.append:  # the template's captures as they were recorded, then the new ones
+            recorded = _template_captures(db) + [_capture_meta(cap, T_obj_world) for cap in caps[1:]]
+            db.set_meta("captures", recorded)
+            db.set_meta("input", [c["input"] for c in recorded])
+        else:
+            db.set_meta("captures", [_capture_meta(cap, T_obj_world) for cap in caps] if len(caps) > 1 else [])
+            db.set_meta("support_plane", first.reg.plane_world is not None)
         db.set_meta("voxel_size", model.voxel_size)
-        db.set_meta("support_plane", first.reg.plane_world is not None)
         db.set_meta("timings_s", timer.timings)
         db.mark_complete()
         advance(1)
@@ -407,8 +432,78 @@ def _scan_frames(caps: list[_Capture], output: Path, opts: ScanOptions, db: Temp
                       mesh_vertices=len(mesh.vertices), mesh_triangles=len(mesh.triangles),
                       timings_s=dict(timer.timings), problems=problems, keyframes=len(keyframes),
                       unregistered_reasons=reasons | problems, parts=parts, noise=first.reg.rparams.noise,
-                      selection=selection.summary(),
-                      captures=[_capture_summary(cap) for cap in caps] if len(caps) > 1 else [])
+                      selection=selection.summary(), captures=(
+                          [_capture_summary(cap) for cap in caps] if not opts.append else
+                          [{k: c.get(k) for k in _capture_summary(caps[1])} for c in db.get_meta("captures")]))
+
+
+def _capture_names(db: TemplateDB) -> list[str]:
+    """The names of the captures a template was scanned from."""
+    return [c["name"] for c in _template_captures(db)]
+
+
+def _template_captures(db: TemplateDB) -> list[dict]:
+    """A template's "captures" meta; a template of one capture: that capture, named after its input."""
+    caps = db.get_meta("captures") or []
+    if caps:
+        return list(caps)
+    src = db.get_meta("input")
+    views = db.views()
+    return [{"name": (Path(src).stem if Path(src).suffix else Path(src).name) or "capture", "input": src,
+             "mode": db.get_meta("mode"), "frames": len(views),
+             "registered": sum(v.T_obj_cam is not None for v in views), "joined": True, "reason": None,
+             "T_obj_world": None}]
+
+
+def _template_capture(db: TemplateDB, store: FrameStore, opts: ScanOptions) -> _Capture:
+    """The views of the template appended to (`--append`) as a capture registered in the object frame: their
+    images and masks put in the frame store, their poses, qualities and the reasons of the unregistered ones. A
+    template of one capture has its views renamed `CAPTURE/FRAME` first, as a scan of several names them."""
+    if not db.get_meta("captures"):
+        [only] = _template_captures(db)
+        prefix = f"{only['name']}/"
+        db.rename_views(prefix)
+        meta = db.meta()
+        with db.batch():
+            db.set_meta("captures", [only | {"T_obj_world": np.eye(4).tolist()}])
+            for key in ("unregistered_reasons", "skipped", "input_frames"):
+                db.set_meta(key, {prefix + n: v for n, v in (meta.get(key) or {}).items()})
+            db.set_meta("unregistered", [prefix + n for n in meta.get("unregistered") or []])
+            db.set_meta("parts", [[prefix + n for n in p] for p in meta.get("parts") or []])
+    meta = db.meta()
+    frames: list[Frame] = []
+    T_obj_cam: list[np.ndarray | None] = []
+    quality: dict[int, float] = {}
+    for k, name in enumerate(db.view_names()):
+        v = db.view(name, load_images=True)
+        if v.color is None or v.depth is None:
+            raise InputError(db.path, f"view {name!r} is stored without its images: captures cannot be appended")
+        store.put(name, color=v.color, depth=v.depth, mask=v.mask)
+        feats = db.features(name)
+        f = Frame(StoredFrame(name, v.intrinsics, None, False), n_keypoints=0 if feats is None else len(feats))
+        if feats is not None and v.T_obj_cam is not None:
+            f.object_keypoints = _object_keypoints(feats.pixels, v.mask)
+        frames.append(f)
+        T_obj_cam.append(v.T_obj_cam)
+        if v.quality is not None:
+            quality[k] = v.quality
+    noise = meta.get("noise") or {}
+    rparams = for_capture(opts.config, meta.get("mode") or STATIC_OBJECT).registration
+    with contextlib.suppress(TypeError, ValueError, KeyError):
+        rparams = replace(rparams, noise=DepthNoise(**noise["keypoint"]), depth_noise=DepthNoise(**noise["depth"]))
+    names = [f.name for f in frames]
+
+    def mask_of(k: int) -> np.ndarray | None:
+        return store.get(names[k], "mask")
+
+    reasons = {n: why for n, why in (meta.get("unregistered_reasons") or {}).items() if n in set(names)}
+    cap = _Capture(CaptureInput("template", db.path), None, "", mode=meta.get("mode") or STATIC_OBJECT,
+                   frames=frames, selection=Selection(opts.config.selection, kept=names),
+                   problems=dict(meta.get("skipped") or {}))
+    cap.data = FrameData(frames, store, db, cap.mode, False, _icp_voxel(opts.config))
+    cap.reg = _Registered(T_obj_cam, mask_of, None, quality, reasons, [list(p) for p in meta.get("parts") or []],
+                          [], set(), rparams)
+    return cap
 
 
 def _register_capture(cap: _Capture, opts: ScanOptions, db: TemplateDB, store: FrameStore, resumed: bool,

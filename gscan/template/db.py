@@ -527,6 +527,13 @@ class TemplateDB:
                 c.execute("DELETE FROM views WHERE id=?", (row[0],))
             c.execute("DELETE FROM edges WHERE src=? OR tgt=?", (name, name))
 
+    def rename_views(self, prefix: str) -> None:
+        """Put `prefix` before the name of every view, in the views and in the edges that join them (a template
+        of one capture becoming one of several: its frames named `CAPTURE/FRAME`)."""
+        with self._tx() as c:
+            c.execute("UPDATE views SET name = ? || name", (prefix,))
+            c.execute("UPDATE edges SET src = ? || src, tgt = ? || tgt", (prefix, prefix))
+
     def view_names(self) -> list[str]:
         """All view names in input order (input_index, then insertion)."""
         return [r[0] for r in self._q("SELECT name FROM views ORDER BY input_index IS NULL, input_index, id")]
