@@ -71,7 +71,7 @@ from gscan.registration.dense import DenseGeometry
 from gscan.registration.edges import COMMIT_ROWS, EdgeSink, RegData, Registrar, bounded_map, icp_cloud
 from gscan.registration.join import Join, JoinView, join_captures, spread
 from gscan.registration.noise import DepthNoise
-from gscan.registration.pairwise import RegisterParams
+from gscan.registration.pairwise import RegisterParams, register_features
 from gscan.registration.sequence import capture_noise, optimise_sequence, register_edges
 from gscan.scanning.camera import check_camera
 from gscan.scanning.capture_mode import MOVING_OBJECT, STATIC_OBJECT
@@ -82,7 +82,7 @@ from gscan.scanning.keyframes import keyframe_candidates, select_keyframes
 from gscan.scanning.options import ScanOptions
 from gscan.scanning.output import create_output, open_appended, open_resumed, scan_meta
 from gscan.scanning.segment import SegmentParams, segment_frame
-from gscan.scanning.select import Selection
+from gscan.scanning.select import BLURRED, LITTLE_MOTION, Selection
 from gscan.scanning.store import FrameStore, LazyList, StoredFrame
 from gscan.template.db import Edge, TemplateDB, View
 
@@ -168,6 +168,7 @@ class _Capture:
     frames: list[Frame] = field(default_factory=list)
     failed: list[tuple[str, InputError]] = field(default_factory=list)
     selection: Selection | None = None
+    skipped: list[StoredFrame] = field(default_factory=list)  # frames selection skipped, images in the store
     problems: dict[str, str] = field(default_factory=dict)  # unusable frames (prefixed names) -> why
     detections: dict[str, Detection] = field(default_factory=dict)
     data: FrameData | None = None
@@ -194,6 +195,8 @@ class _Registered:
     edges: list[Edge]
     restored: set[tuple[str, str]]
     rparams: RegisterParams
+    # frames skipped by selection: name -> T_world_cam found by registration to their reference, or why not
+    placed: dict[str, np.ndarray | str] = field(default_factory=dict)
 
 
 def run_scan(sources: Path | Sequence[Path], output: Path, opts: ScanOptions,
@@ -314,8 +317,9 @@ def _load(cap: _Capture, opts: ScanOptions, timer: StageTimer, store: FrameStore
     seq = cap.seq
     assert seq is not None
     with timer.stage("load", total=len(seq)) as advance:
-        cap.frames, cap.failed, cap.selection = load_frames(seq, cap.mode, cap.masks_given, opts.config.selection,
-                                                            opts.config.segmentation, store, advance, cap.prefix)
+        cap.frames, cap.failed, cap.selection, cap.skipped = load_frames(
+            seq, cap.mode, cap.masks_given, opts.config.selection, opts.config.segmentation, store, advance,
+            cap.prefix)
     # in input order (the camera check reads frames on two threads): the listing problems first, as found,
     # then unreadable frames in the order of their names
     index = {name: i for i, name in enumerate(seq.names)}
@@ -419,6 +423,7 @@ def _scan_frames(caps: list[_Capture], output: Path, opts: ScanOptions, db: Temp
         else:
             db.set_meta("captures", [_capture_meta(cap, T_obj_world) for cap in caps] if len(caps) > 1 else [])
             db.set_meta("support_plane", first.reg.plane_world is not None)
+        db.set_meta("selection_poses", _selection_poses(caps, T_obj_world))
         db.set_meta("voxel_size", model.voxel_size)
         db.set_meta("timings_s", timer.timings)
         db.mark_complete()
@@ -470,6 +475,13 @@ def _template_capture(db: TemplateDB, store: FrameStore, opts: ScanOptions) -> _
                 db.set_meta(key, {prefix + n: v for n, v in (meta.get(key) or {}).items()})
             db.set_meta("unregistered", [prefix + n for n in meta.get("unregistered") or []])
             db.set_meta("parts", [[prefix + n for n in p] for p in meta.get("parts") or []])
+            sel = dict(meta.get("selection") or {})
+            db.set_meta("selection", sel | {"frames": {prefix + n: v for n, v in (sel.get("frames") or {}).items()}})
+            old = meta.get("selection_poses") or {}
+            db.set_meta("selection_poses", {
+                "frames": {prefix + n: T for n, T in (old.get("frames") or {}).items()},
+                "reference": {prefix + n: prefix + r for n, r in (old.get("reference") or {}).items()},
+                "reasons": {prefix + n: why for n, why in (old.get("reasons") or {}).items()}})
     meta = db.meta()
     frames: list[Frame] = []
     T_obj_cam: list[np.ndarray | None] = []
@@ -497,12 +509,19 @@ def _template_capture(db: TemplateDB, store: FrameStore, opts: ScanOptions) -> _
         return store.get(names[k], "mask")
 
     reasons = {n: why for n, why in (meta.get("unregistered_reasons") or {}).items() if n in set(names)}
+    # the frames its selection skipped, as recorded (their poses already in the object frame)
+    placed_meta = meta.get("selection_poses") or {}
+    skipped = {n: (BLURRED if why.startswith("blurred") else LITTLE_MOTION, why)
+               for n, why in ((meta.get("selection") or {}).get("frames") or {}).items()}
+    selection = Selection(opts.config.selection, kept=names, skipped=skipped,
+                          reference=dict(placed_meta.get("reference") or {}))
+    placed: dict[str, np.ndarray | str] = {n: np.asarray(T) for n, T in (placed_meta.get("frames") or {}).items()}
+    placed |= dict(placed_meta.get("reasons") or {})
     cap = _Capture(CaptureInput("template", db.path), None, "", mode=meta.get("mode") or STATIC_OBJECT,
-                   frames=frames, selection=Selection(opts.config.selection, kept=names),
-                   problems=dict(meta.get("skipped") or {}))
+                   frames=frames, selection=selection, problems=dict(meta.get("skipped") or {}))
     cap.data = FrameData(frames, store, db, cap.mode, False, _icp_voxel(opts.config))
     cap.reg = _Registered(T_obj_cam, mask_of, None, quality, reasons, [list(p) for p in meta.get("parts") or []],
-                          [], set(), rparams)
+                          [], set(), rparams, placed)
     return cap
 
 
@@ -543,6 +562,41 @@ def _register_capture(cap: _Capture, opts: ScanOptions, db: TemplateDB, store: F
         mask_of, plane_world = _segment(data, res.T_world_cam, opts.segment, seg, advance)
     cap.reg = _Registered(res.T_world_cam, mask_of, plane_world, res.quality, res.unregistered_reasons, res.parts,
                           res.edges, res.restored, rparams)
+    with timer.stage("place", total=len(cap.skipped)) as advance:
+        cap.reg.placed = _place_skipped(cap, cfg.features, rparams, pool, advance)
+
+
+def _place_skipped(cap: _Capture, fparams: FeatureParams, rparams: RegisterParams, pool: ThreadPoolExecutor,
+                   advance: Callable[[int], None]) -> dict[str, np.ndarray | str]:
+    """A pose for each frame frame selection skipped: registered (like an edge) to the kept frame it was compared
+    with, which moved little from it; name -> T_world_cam, or why it has none (its reference has no pose, or the
+    edge was refused). Such frames are not fused and are never keyframes."""
+    data, r = cap.data, cap.reg
+    assert data is not None and r is not None and cap.selection is not None
+    index = {f.name: k for k, f in enumerate(cap.frames)}
+
+    def place(stored: StoredFrame) -> np.ndarray | str:
+        ref = cap.selection.reference[stored.name]  # type: ignore[union-attr]
+        k = index.get(ref)
+        T_world_ref = None if k is None else r.T_world_cam[k]
+        if k is None or T_world_ref is None:
+            return f"skipped by frame selection; the frame it was compared with ({ref}) has no pose"
+        frame = stored.load(data.store)
+        mask = data.object_mask(k)  # a moving object's: the reference's (the view moved little)
+        b = data.reg(k)
+        feats = extract_features(frame, fparams, mask=mask)
+        cloud = None if data.icp_voxel is None else icp_cloud(frame.depth, frame.intrinsics, mask, data.icp_voxel)
+        a = RegData(feats, cloud, DenseGeometry.from_depth(frame.depth, frame.intrinsics, mask, image=frame.color))
+        res = register_features(a.feats, b.feats, rparams, clouds=(a.cloud, b.cloud), dense=(a.dense, b.dense))
+        if not res.accepted or res.T_tgt_src is None:
+            return f"skipped by frame selection; not placed against {ref}: {res.reason}"
+        return T_world_ref @ res.T_tgt_src
+
+    out: dict[str, np.ndarray | str] = {}
+    for stored, got in zip(cap.skipped, bounded_map(pool, place, cap.skipped, AHEAD), strict=True):
+        out[stored.name] = got
+        advance(1)
+    return out
 
 
 def _join(caps: list[_Capture], config: ScanConfig, timer: StageTimer, pool: ThreadPoolExecutor) -> None:
@@ -591,12 +645,32 @@ def _join_views(cap: _Capture, k: int, oparams: FeatureParams, icp_voxel: float 
     return [v for v in pool.map(view, [reg[j] for j in spread(len(reg), k)]) if v is not None]
 
 
+def _selection_poses(caps: list[_Capture], T_obj_world: np.ndarray) -> dict:
+    """The template's "selection_poses" meta: {"frames": {name: T_obj_cam}, "reference": {name: the kept frame it
+    was registered to}, "reasons": {name: why it has no pose}} of the frames frame selection skipped."""
+    frames, refs, reasons = {}, {}, {}
+    for cap in caps:
+        r = cap.reg
+        assert r is not None and cap.selection is not None
+        T_join = np.eye(4) if cap.join is None else cap.join.T_a_b
+        for name, got in r.placed.items():
+            if isinstance(got, str):
+                reasons[name] = got
+            elif T_join is None:
+                reasons[name] = f"capture {cap.input.name} was not joined to the others"
+            else:
+                frames[name] = (T_obj_world @ T_join @ got).tolist()
+                refs[name] = cap.selection.reference[name]
+    return {"frames": frames, "reference": refs, "reasons": reasons}
+
+
 def _merged_selection(caps: list[_Capture]) -> Selection:
     out = Selection(caps[0].selection.params)  # type: ignore[union-attr]
     for cap in caps:
         assert cap.selection is not None
         out.kept += cap.selection.kept
         out.skipped |= cap.selection.skipped
+        out.reference |= cap.selection.reference
     return out
 
 

@@ -752,7 +752,9 @@ class TemplateDB:
 
     def poses(self) -> dict:
         """The dict `gscan poses --json` prints: {"frames": {name: T_obj_cam}, "unregistered": [names],
-        "unregistered_reasons": {name: reason}, "skipped_by_selection": {name: reason}, "parts": [[names]]};
+        "unregistered_reasons": {name: reason}, "skipped_by_selection": {name: reason}, "from_reference":
+        {name: kept frame}, "parts": [[names]]}; frames skipped by selection that were placed by registration to the
+        kept frame they were compared with (`from_reference`) are in "frames" too;
         unregistered as in `scan --json`: the views without a pose, then the input frames the scan could not read
         (its "skipped" meta); skipped by selection: the input frames the scan's frame selection left out (not
         failures); parts: `parts()`."""
@@ -761,11 +763,20 @@ class TemplateDB:
         unreg = unregistered_names(views, self.get_meta("skipped"))
         sel = self.get_meta("selection")
         skipped = sel.get("frames") if isinstance(sel, dict) else None
+        skipped = {str(k): str(v) for k, v in skipped.items()} if isinstance(skipped, dict) else {}
+        placed = self.get_meta("selection_poses")
+        placed = placed if isinstance(placed, dict) else {}
+        frames |= {str(k): v for k, v in (placed.get("frames") or {}).items() if str(k) in skipped}
+        for k, why in (placed.get("reasons") or {}).items():  # not placed: why, after why it was skipped
+            if str(k) in skipped:
+                skipped[str(k)] = f"{skipped[str(k)]}; {why}"
         return {"frames": frames, "unregistered": unreg,
                 "unregistered_reasons": unregistered_reasons(unreg, self.get_meta("unregistered_reasons"),
                                                              self.get_meta("skipped")),
-                "skipped_by_selection": {str(k): str(v) for k, v in skipped.items()} if isinstance(skipped, dict)
-                else {}, "parts": self.parts()}
+                "skipped_by_selection": skipped,
+                "from_reference": {str(k): str(v) for k, v in (placed.get("reference") or {}).items()
+                                   if str(k) in frames},
+                "parts": self.parts()}
 
     def load_template(self, keyframes_only: bool = True) -> Template:
         """Everything the estimator needs, loaded once: registered (key)frame views with their keypoints

@@ -56,19 +56,22 @@ def template_info(path: str | Path) -> TemplateInfo:
 class TemplatePoses:
     """The camera pose T_obj_cam (4 x 4, metres) of every registered input frame by name; the frames without
     one (`unregistered`, with `unregistered_reasons`), those frame selection left out (`skipped_by_selection`:
-    name -> why) and the separate parts of the capture (`TemplateDB.parts`)."""
+    name -> why; those of them with a pose are in `frames` too, placed by registration to the kept frame
+    `from_reference` names, not fused) and the separate parts of the capture (`TemplateDB.parts`)."""
 
     frames: dict[str, list[list[float]]]
     unregistered: list[str] = field(default_factory=list)
     unregistered_reasons: dict[str, str] = field(default_factory=dict)
     skipped_by_selection: dict[str, str] = field(default_factory=dict)
     parts: list[list[str]] = field(default_factory=list)
+    from_reference: dict[str, str] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
         """The `poses --json` object."""
         return {"frames": self.frames, "unregistered": self.unregistered,
                 "unregistered_reasons": self.unregistered_reasons,
-                "skipped_by_selection": self.skipped_by_selection, "parts": self.parts}
+                "skipped_by_selection": self.skipped_by_selection, "from_reference": self.from_reference,
+                "parts": self.parts}
 
 
 def template_poses(path: str | Path) -> TemplatePoses:
