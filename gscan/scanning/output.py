@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import shutil
 from collections.abc import Callable
 from pathlib import Path
@@ -23,6 +24,8 @@ from gscan.template.db import TemplateDB
 
 if TYPE_CHECKING:
     from gscan.io.recordings.sequence import RecordingSequence
+
+log = logging.getLogger(__name__)
 
 RESUME_KEYS = ("input", "format", "intrinsics_sha256", "depth_scale_option", "config", "mode_option", "segment",
                "obj_id_option", "topics_option", "depth_camera")
@@ -73,21 +76,51 @@ def open_resumed(sources: list[Path], output: Path, opts: ScanOptions, seq: Sequ
         # version does not read differs
         with contextlib.suppress(ValueError, TypeError):
             stored["config"] = json.loads(json.dumps(ScanConfig.model_validate(stored["config"]).model_dump()))
-        if stored != {k: json.loads(json.dumps(meta[k])) for k in stored}:
-            raise InputError(output, "was written from another input or configuration", fix="restart")
-        _check_frames(output, db.get_meta("input_frames"), json.loads(json.dumps(frames)), seq)
+        now = {k: json.loads(json.dumps(meta[k])) for k in stored}
+        differ = [k for k in stored if stored[k] != now[k]]
+        if differ and differ != ["input"]:
+            raise InputError(output, f"was written from another input or configuration ({_differences(differ)})",
+                             fix="restart")
+        try:
+            _check_frames(output, db.get_meta("input_frames"), json.loads(json.dumps(frames)), seq)
+        except InputError as e:
+            if differ:  # another capture at another path
+                raise InputError(output, f"was written from another input ({stored['input']}, now {now['input']}): "
+                                 f"{e.reason}", fix="restart") from None
+            raise
         in_place = db.status != "complete" and journal_fits(output)
     except BaseException:
         db.close()
         raise
     db.close()
+    if differ:  # the same frames, byte for byte, at another path: the capture was moved
+        log.warning("%s: the capture was moved (%s, now %s); its frames are the same: resuming", output,
+                    stored["input"], now["input"])
+
+    def moved(db: TemplateDB) -> TemplateDB:
+        if differ:
+            db.set_meta("input", meta["input"])
+        return db
+
     if in_place:
-        return TemplateDB.open(output, require_complete=False, writable=True, wal=True), None
+        return moved(TemplateDB.open(output, require_complete=False, writable=True, wal=True)), None
+
     def continued(target: Output) -> TemplateDB:
         shutil.copyfile(output, target.open())
-        return TemplateDB.open(target.tmp, require_complete=False, writable=True, wal=True)
+        return moved(TemplateDB.open(target.tmp, require_complete=False, writable=True, wal=True))
 
     return _beside(Output(output, force=True, kind=".gscan file path"), continued)
+
+
+_KEY_WORDS = {"input": "the input", "format": "the input layout", "intrinsics_sha256": "the --intrinsics file",
+              "depth_scale_option": "--depth-scale", "config": "the configuration", "mode_option": "--mode",
+              "segment": "--no-segment", "obj_id_option": "--obj-id", "topics_option": "the image topics",
+              "depth_camera": "the depth camera"}
+
+
+def _differences(keys: list[str]) -> str:
+    """What differs from the interrupted scan, in words (RESUME_KEYS)."""
+    return ", ".join(f"{_KEY_WORDS.get(k, k)} differs" for k in keys)
 
 
 def open_appended(output: Path, opts: ScanOptions) -> tuple[TemplateDB, Output]:
