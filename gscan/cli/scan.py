@@ -111,6 +111,8 @@ def print_scan_summary(result: Any) -> None:
             f"{given:g} px; the texture lines up at {used:g} px ({cam['texture_agreement']['used']:.0%} of textured "
             f"tiles against {cam['texture_agreement']['given']:.0%}), used with the given intrinsics as the depth "
             "camera's. --intrinsics and --depth-intrinsics set both cameras")
+    for line in result.damage:  # the recording's damaged records: damage, not missing frames
+        say(("damaged recording:", "red"), f" {line}")
     sel = result.selection
     if sel.get("skipped"):  # frame selection: not failures, counted by reason
         why = "; ".join(f"{k} frames {w}" for w, k in sel["reasons"].items())

@@ -114,6 +114,8 @@ class ScanResult:
     noise: DepthNoise | None = None  # the noise model of lifted keypoints registration used
     # frame selection: {"kept": int, "skipped": int, "reasons": {why: frames}}; skipped frames are not failures
     selection: dict = field(default_factory=dict)
+    # a recording's damaged records, one line each (file, topic, messages listed and read, where they are missing)
+    damage: list[str] = field(default_factory=list)
     # a scan of several captures: each one's name, input, frames, registered, whether it was joined (and why not),
     # seconds per stage (`_capture_summary`); empty for one capture
     captures: list[dict] = field(default_factory=list)
@@ -130,7 +132,8 @@ class ScanResult:
                 "mode": self.mode, "mesh": {"vertices": self.mesh_vertices, "triangles": self.mesh_triangles},
                 "timings_s": {k: round(v, 3) for k, v in self.timings_s.items()},
                 "skipped": dict(self.problems), "keyframes": self.keyframes, "selection": dict(self.selection),
-                "camera": self.camera} | ({"captures": list(self.captures)} if self.captures else {})
+                "camera": self.camera, "damage": list(self.damage)} | (
+                    {"captures": list(self.captures)} if self.captures else {})
 
 
 def _icp_voxel(cfg: ScanConfig) -> float | None:
@@ -437,7 +440,8 @@ def _scan_frames(caps: list[_Capture], output: Path, opts: ScanOptions, db: Temp
                       mesh_vertices=len(mesh.vertices), mesh_triangles=len(mesh.triangles),
                       timings_s=dict(timer.timings), problems=problems, keyframes=len(keyframes),
                       unregistered_reasons=reasons | problems, parts=parts, noise=first.reg.rparams.noise,
-                      selection=selection.summary(), captures=(
+                      selection=selection.summary(),
+                      damage=[line for cap in caps if cap.seq is not None for line in cap.seq.damage], captures=(
                           [_capture_summary(cap) for cap in caps] if not opts.append else
                           [{k: c.get(k) for k in _capture_summary(caps[1])} for c in db.get_meta("captures")]))
 
