@@ -53,6 +53,7 @@ from gscan.features import (
     extract_features,
     extract_features_in_mask,
 )
+from gscan.geometry.coverage import template_coverage
 from gscan.geometry.plane import Plane
 from gscan.geometry.transforms import transform_points
 from gscan.io.camera import RGBDFrame
@@ -107,6 +108,7 @@ class ScanResult:
     selection: dict = field(default_factory=dict)
     # the colour camera's check (`check_camera`): given and used focal lengths, texture agreement; None: not run
     camera: dict | None = None
+    coverage: dict | None = None  # {"share": float, "missing": [sentences]} (`gscan.geometry.coverage`)
 
     def to_json(self) -> dict:
         """The `scan --json` object of the CLI contract."""
@@ -118,7 +120,7 @@ class ScanResult:
                 "mode": self.mode, "mesh": {"vertices": self.mesh_vertices, "triangles": self.mesh_triangles},
                 "timings_s": {k: round(v, 3) for k, v in self.timings_s.items()},
                 "skipped": dict(self.problems), "keyframes": self.keyframes, "selection": dict(self.selection),
-                "camera": self.camera}
+                "camera": self.camera, "coverage": self.coverage}
 
 
 def _icp_voxel(cfg: ScanConfig) -> float | None:
@@ -302,6 +304,8 @@ def _scan_frames(data: FrameData, source: Path, output: Path, opts: ScanOptions,
         db.set_meta("voxel_size", model.voxel_size)
         db.set_meta("support_plane", plane_world is not None)
         db.set_meta("timings_s", timer.timings)
+        coverage = template_coverage([T for T in T_obj_cam if T is not None], mesh)  # which sides were seen
+        db.set_meta("coverage", coverage.to_meta())
         db.mark_complete()
         advance(1)
     stored_edges = db.edges()
@@ -313,7 +317,7 @@ def _scan_frames(data: FrameData, source: Path, output: Path, opts: ScanOptions,
                       mesh_vertices=len(mesh.vertices), mesh_triangles=len(mesh.triangles),
                       timings_s=dict(timer.timings), problems=problems, keyframes=len(keyframes),
                       unregistered_reasons=reasons | problems, parts=parts, noise=rparams.noise,
-                      selection=selection.summary())
+                      selection=selection.summary(), coverage=coverage.to_json())
 
 
 def _fuse(data: FrameData, T_world_cam: list[np.ndarray | None], mask_of: Callable[[int], np.ndarray | None],
