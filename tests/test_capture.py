@@ -118,7 +118,9 @@ def test_motion_cue_keeps_a_frame_every_min_motion_degrees(meshes_dir, tmp_path)
     assert all(8.5 <= a <= 15.0 for a in angles), angles
     est = [f["angle_deg"] for f in list(meta["frames"].values())[1:]]
     assert np.allclose(est, angles, atol=2.0), (est, angles)
-    assert json.loads(r.stdout)["coverage"]["covered"] >= 4
+    cov = json.loads(r.stdout)["coverage"]
+    assert cov["covered"] >= 4 and 0 < cov["share"] < 0.5  # a quarter turn on one ring
+    assert any(m.startswith("the bottom was not seen") for m in cov["missing"]), cov
     # the same frames kept every 6th: the rule is what keeps them
     r = _run("capture", "--from", str(bag), "-o", str(tmp_path / "every"), "--every", "6")
     assert r.returncode == 0, r.stderr
@@ -204,6 +206,8 @@ def test_preview_follows_the_capture(bags, tmp_path):
                           on_frame=preview.update)
         assert preview.updates == res.seen == 12 and preview._views == len(res.kept) == 6
         assert "kept **6**" in preview._stats.content
+        # what is still missing, in words: the bottom (the views circle the object 40 deg above the table)
+        assert "the bottom was not seen: scan the object upside down" in preview._missing.content
         assert preview._cloud is not None and preview._current is not None
     finally:
         preview.stop()
