@@ -252,21 +252,53 @@ def _run(*args: str, timeout: float = 600) -> subprocess.CompletedProcess:
 
 
 @pytest.mark.slow
-def test_an_upright_scan_reports_the_bottom_missing(tmp_path):
-    """A rendered upright capture (cameras 30 and 55 deg above the table) scanned: `scan --json` and `info --json`
-    give the share (well below 1) and name the bottom missing; the scan's summary says it too."""
+def test_an_upright_scan_reports_the_bottom_missing(tmp_path, capsys):
+    """A rendered upright capture (cameras 30 and 55 deg above the table) scanned: the scan's `--json` object and
+    `info --json` give the share (well below 1) and name the bottom missing; the scan's summary says it too."""
+    import gscan
+    from gscan.cli.scan import print_scan_summary
+
     mesh = synth.box_mesh((0.14, 0.09, 0.07), synth.procedural_box_texture(3, (512, 768)))
     synth.render_capture(mesh, tmp_path / "cap", 12, mode="static", elevations_deg=(30.0, 55.0), intr=INTR)
     out = tmp_path / "box.gscan"
-    r = _run("scan", str(tmp_path / "cap"), "-o", str(out), "--json")
-    assert r.returncode == 0, r.stderr
-    res = json.loads(r.stdout)
-    cov = res["coverage"]
+    res = gscan.scan(tmp_path / "cap", out)
+    cov = json.loads(json.dumps(res.to_json()))["coverage"]  # what `scan --json` prints
     assert set(cov) == {"share", "missing"} and 0.3 < cov["share"] < 0.8, cov
     assert any(m.startswith("the bottom was not seen") for m in cov["missing"]), cov
     assert not any(m.startswith("the top") for m in cov["missing"]), cov  # seen through its surface
-    info = json.loads(_run("info", str(out), "--json").stdout)
-    assert info["coverage"] == cov
+    print_scan_summary(res)
+    said = capsys.readouterr().err
+    assert f"coverage: {cov['share']:.0%} of the viewing directions seen" in said
+    assert "missing: the bottom was not seen: scan the object upside down" in said
+    r = _run("info", str(out), "--json")
+    assert json.loads(r.stdout)["coverage"] == cov, r.stderr
     with TemplateDB.open(out) as db:
         c = db.coverage()
         assert c is not None and int(c.counts.sum()) >= 12 and round(c.share, 4) == cov["share"]
+
+
+def test_the_mesh_export_marks_observed_and_filled_faces(tmp_path):
+    """The PLY export's face property `filled`, read back with trimesh: 0 on every face of the fused surface
+    (the open box as a scan fuses it), 1 on the faces closing its open bottom added; all 0 with the holes kept."""
+    import trimesh
+
+    from gscan.exporters import export
+
+    box = _open_box()
+    path = tmp_path / "t.gscan"
+    with TemplateDB.create(path, meta={"source": "scan"}) as db:
+        db.set_mesh(box)
+        db.mark_complete()
+    export(path, "ply", tmp_path / "closed.ply")
+    export(path, "ply", tmp_path / "open.ply", close=False)
+    closed = trimesh.load(tmp_path / "closed.ply", process=False)
+    filled = closed.metadata["_ply_raw"]["face"]["data"]["filled"].astype(bool)
+    assert filled.shape == (len(closed.faces),) and filled.sum() == len(closed.faces) - len(box.triangles) > 0
+    assert closed.is_watertight
+    observed = closed.vertices[closed.faces[~filled]]
+    np.testing.assert_allclose(np.sort(observed.reshape(-1, 3), axis=0),
+                               np.sort(box.vertices[box.triangles].reshape(-1, 3), axis=0), atol=1e-6)
+    assert np.allclose(closed.vertices[closed.faces[filled]][..., 2], 0.0, atol=1e-6)  # the bottom cap
+    kept = trimesh.load(tmp_path / "open.ply", process=False)
+    flags = kept.metadata["_ply_raw"]["face"]["data"]["filled"]
+    assert len(kept.faces) == len(box.triangles) and flags.shape == (len(kept.faces),) and not flags.any()
