@@ -219,8 +219,8 @@ def test_preview_follows_the_capture(bags, tmp_path):
 
 @pytest.mark.browser
 def test_preview_in_the_browser(bags, tmp_path):
-    """`gscan capture --from slower.bag --preview --real-time`: the page shows the colour and depth images and
-    the numbers while it runs; Ctrl+C then ends it with exit 0."""
+    """`gscan capture --from slower.bag --preview --real-time`: the page shows the colour and depth images, the
+    numbers and what is still missing while it runs; Ctrl+C then ends it with exit 0."""
     from playwright.sync_api import sync_playwright
 
     sys.path.insert(0, str(ROOT / "web"))
@@ -242,6 +242,7 @@ def test_preview_in_the_browser(bags, tmp_path):
                 img.wait_for(timeout=30_000)
                 assert _wait(lambda: vp.png_array(img.screenshot()).std() > 20, 30)  # the rendered view, not grey
                 page.get_by_text("frames seen").first.wait_for(timeout=30_000)
+                page.get_by_text("the bottom was not seen").first.wait_for(timeout=30_000)  # what is missing
             finally:
                 browser.close()
         proc.send_signal(signal.SIGINT)

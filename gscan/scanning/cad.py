@@ -179,7 +179,7 @@ def template_from_mesh(mesh_path: str | Path, output: str | Path, *, n_views: in
             P, C = _voxel_cloud(np.concatenate(cloud_p), np.concatenate(cloud_c), voxel)
             db.set_cloud(P, C)
             db.set_mesh(mesh.to_mesh())
-            db.set_meta("coverage", template_coverage(poses, mesh.to_mesh()).to_meta())  # the mesh's frame: z is +z
+            db.set_meta("coverage", template_coverage(poses, mesh.to_mesh()).to_meta())  # mesh frame: +z is the top
             db.mark_complete()
             x, y, z = (float(v) for v in db.extent())
             result = TemplateResult(output=output, views=int(n_views), descriptor=feature_params.kind, source="mesh",
