@@ -92,6 +92,21 @@ def test_views_from_everywhere_cover_everything_and_nothing_is_missing():
     assert coverage_map(np.zeros((0, 3))).share == 0.0
 
 
+_unit_vectors = st.tuples(*(st.floats(-1.0, 1.0),) * 3).filter(lambda v: np.linalg.norm(v) > 1e-3)
+
+
+@given(_unit_vectors, st.lists(_unit_vectors, min_size=1, max_size=6), _unit_vectors)
+def test_regions_are_a_partition_and_more_views_never_see_less(front, views, extra):
+    parts = regions(lattice(), np.array(front))
+    assert np.array_equal(np.sum([m.astype(int) for m in parts.values()], axis=0), np.ones(COVERAGE_DIRECTIONS, int))
+    assert parts["top"].sum() == np.sum(lattice()[:, 2] > np.sin(np.radians(50))) and parts["bottom"].any()
+    V = np.array(views, dtype=float)
+    before, after = coverage_map(V), coverage_map(np.vstack([V, extra]))
+    assert np.all(after.counts >= before.counts) and after.share >= before.share
+    b, a = before.region_shares(), after.region_shares()
+    assert all(a[k] >= b[k] for k in b) and len(after.missing()) <= len(before.missing())
+
+
 def test_regions_split_the_sphere_and_are_named_about_the_first_view():
     D = lattice()
     parts = regions(D, np.array([0.0, -1.0, 0.0]))
