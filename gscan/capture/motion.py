@@ -31,21 +31,22 @@ from gscan.geometry.plane import dominant_plane
 from gscan.geometry.transforms import inv_T
 from gscan.io.camera import Intrinsics, backproject, backproject_pixels
 
-UP_PLANE_MIN_FRAC = 0.2  # share of the first kept frame's depth a plane needs to be taken for the table
-UP_PLANE_ITERATIONS = 200
-
 
 @dataclass(frozen=True)
 class MotionParams:
     """min_angle_deg: change of viewing direction that keeps a frame; max_corners: corners tracked;
     min_tracked: fewer corners followed with depth means tracking is lost; region: central fraction of the
-    image width and height where corners are taken; tau: Kabsch inlier distance (m)."""
+    image width and height where corners are taken; tau: Kabsch inlier distance (m); up_plane_min_frac,
+    up_plane_iterations: the share of the first kept frame's depth a plane needs to be taken for the table that
+    gives the coverage its up (`up_frame`), and the RANSAC hypotheses that look for it."""
 
     min_angle_deg: float = 10.0
     max_corners: int = 300
     min_tracked: int = 20
     region: float = 0.6
     tau: float = 0.015
+    up_plane_min_frac: float = 0.2
+    up_plane_iterations: int = 200
 
 
 @dataclass
@@ -59,12 +60,12 @@ class MotionUpdate:
     lost: bool
 
 
-def up_frame(depth: np.ndarray, intr: Intrinsics) -> np.ndarray:
+def up_frame(depth: np.ndarray, intr: Intrinsics, params: MotionParams = MotionParams()) -> np.ndarray:
     """R_up_cam [3 x 3]: a camera's axes into the preview's up frame (module docstring), from its depth [H x W]
-    (m): z = the dominant plane's normal when one holds `UP_PLANE_MIN_FRAC` of the depth and faces the image's
+    (m): z = the dominant plane's normal when one holds `up_plane_min_frac` of the depth and faces the image's
     up (a table under the object), else the image's up (-y); x = the camera's x made horizontal; y = z x x."""
     up = np.array([0.0, -1.0, 0.0])
-    plane = dominant_plane(backproject(depth, intr), UP_PLANE_MIN_FRAC, UP_PLANE_ITERATIONS)
+    plane = dominant_plane(backproject(depth, intr), params.up_plane_min_frac, params.up_plane_iterations)
     if plane is not None and plane.normal[1] < -0.3:
         up = plane.normal / np.linalg.norm(plane.normal)
     x = np.array([1.0, 0.0, 0.0]) - up[0] * up
@@ -179,7 +180,7 @@ class MotionTracker:
             mid = depth[int(0.4 * h):int(0.6 * h), int(0.4 * w):int(0.6 * w)]
             valid = mid[mid > 0] if np.any(mid > 0) else depth[depth > 0]
             self.center = np.array([0.0, 0.0, float(np.median(valid)) if valid.size else 1.0])
-            self.R_up_first = up_frame(depth, self.intr)
+            self.R_up_first = up_frame(depth, self.intr, self.params)
         self._T_first_ref = up.T_first_cam.copy()
         self._ref_dir = self._direction(self._T_first_ref)
         assert self.R_up_first is not None

@@ -24,6 +24,9 @@ the direction of the first view (`front`: the side the scan started from; back, 
 from there). A region with less than `REGION_SEEN` of its cells seen is named, "not seen" below
 `REGION_UNSEEN`, else "only partly seen", with what to do about it; a side missing mostly below the equator is
 named by its lower part (all views were high above the table).
+
+The numbers below are the definition, not settings: a stored map, another template's and the capture
+preview's shares mean the same only when they are fixed.
 """
 from __future__ import annotations
 
