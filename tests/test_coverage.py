@@ -175,6 +175,31 @@ def test_observed_surface_sees_the_top_but_never_the_bottom():
     assert template_coverage(below, MeshData(V, full.triangles)).missing() == []
 
 
+def test_a_template_whose_up_is_not_z_is_mapped_to_the_same_coverage():
+    """A scan without a support plane keeps the first camera's axes (up = -y): the same views and surface in
+    that frame, with up given, give the same map as in a z-up frame, and the viewer's points are in the
+    object frame."""
+    from gscan.geometry.coverage import up_rotation
+
+    box = _open_box()
+    centre = 0.5 * (box.vertices.min(0) + box.vertices.max(0))
+    poses = _poses(_upright_dirs(), centre)
+    z_up = template_coverage(poses, box)
+    Q = np.eye(4)
+    Q[:3, :3] = up_rotation(np.array([0.0, -1.0, 0.0])).T  # z-up coordinates -> the camera-like object frame
+    assert np.allclose(Q[:3, :3] @ [0.0, 0.0, 1.0], [0.0, -1.0, 0.0])
+    turned = template_coverage([Q @ T for T in poses], MeshData(box.vertices @ Q[:3, :3].T, box.triangles),
+                               up=(0.0, -1.0, 0.0))
+    assert np.array_equal(turned.counts, z_up.counts) and np.array_equal(turned.seen, z_up.seen)
+    assert turned.missing() == z_up.missing() and turned.missing()[0].startswith("the bottom was not seen")
+    np.testing.assert_allclose(turned.directions_obj, z_up.directions @ Q[:3, :3].T, atol=1e-12)
+    back = CoverageMap.from_meta(json.loads(json.dumps(turned.to_meta())))
+    np.testing.assert_allclose(back.directions_obj, turned.directions_obj, atol=1e-8)
+    # the up not given: the camera-like frame's "bottom" would be its -z, and the words wrong
+    assert template_coverage([Q @ T for T in poses], MeshData(box.vertices @ Q[:3, :3].T, box.triangles)
+                             ).missing() != z_up.missing()
+
+
 def test_up_frame_of_a_rendered_frame_is_the_table_normal():
     """The preview's up (`up_frame`) from one rendered frame 40 deg above a table: the table's normal in that
     camera, within 2 deg; the camera's x stays horizontal."""

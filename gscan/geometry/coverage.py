@@ -3,7 +3,9 @@ preview and the template.
 
 The sphere of directions around the object is cut into `COVERAGE_DIRECTIONS` cells, the points of a
 Fibonacci lattice (`lattice`; equal-area bands in z, golden-angle steps in azimuth), in a frame whose z is up
-(the template frame of a scan: z along the support-plane normal; the preview: its own estimate of up).
+(`CoverageMap.R_up_obj` turns object-frame directions into it: the identity for a scan with a support plane, whose
+z is the plane's normal, and for a CAD template, whose +z is taken for up; the first camera's image up for a scan
+without one; the capture preview has its own estimate of up).
 A cell is seen when
   - a view looks at the object from within `COVERAGE_RADIUS_DEG` of it (the view's direction: from the
     object's centre to the camera centre; `view_counts` counts the views per cell), or
@@ -31,7 +33,7 @@ preview's shares mean the same only when they are fixed.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -124,18 +126,25 @@ def regions(directions: np.ndarray, front: np.ndarray) -> dict[str, np.ndarray]:
 
 @dataclass(frozen=True)
 class CoverageMap:
-    """Which cells of `lattice(len(counts))` (z up) are seen: counts [K] int (views within the radius),
-    surface [K] bool (seen through observed surface normals), front [3] (the first view's direction: names
-    the sides)."""
+    """Which cells of `lattice(len(counts))` (up frame: z up) are seen: counts [K] int (views within the radius),
+    surface [K] bool (seen through observed surface normals), front [3] (the first view's direction, up frame:
+    names the sides), R_up_obj [3 x 3] (object-frame directions into the up frame; identity when the object's
+    z is up)."""
 
     counts: np.ndarray
     surface: np.ndarray
     front: np.ndarray
+    R_up_obj: np.ndarray = field(default_factory=lambda: np.eye(3))
 
     @property
     def directions(self) -> np.ndarray:
-        """[K x 3] the cells' directions."""
+        """[K x 3] the cells' directions (up frame)."""
         return lattice(len(self.counts))
+
+    @property
+    def directions_obj(self) -> np.ndarray:
+        """[K x 3] the cells' directions in the object frame."""
+        return self.directions @ np.asarray(self.R_up_obj)
 
     @property
     def seen(self) -> np.ndarray:
@@ -181,10 +190,12 @@ class CoverageMap:
 
     def to_meta(self) -> dict[str, Any]:
         """The template's "coverage" meta value (JSON): the lattice size, per-cell counts and surface flags,
-        front, and the share (redundant, for readers without this module)."""
+        front, R_up_obj, and the share (redundant, for readers without this module)."""
         return {"lattice": "fibonacci", "directions": len(self.counts), "radius_deg": COVERAGE_RADIUS_DEG,
                 "counts": [int(c) for c in self.counts], "surface": [int(bool(s)) for s in self.surface],
-                "front": [round(float(x), 6) for x in self.front], "share": round(self.share, 4)}
+                "front": [round(float(x), 6) for x in self.front],
+                "R_up_obj": [[round(float(x), 9) for x in row] for row in np.asarray(self.R_up_obj)],
+                "share": round(self.share, 4)}
 
     @classmethod
     def from_meta(cls, meta: Any) -> CoverageMap:
@@ -199,7 +210,10 @@ class CoverageMap:
         c = np.asarray(counts, dtype=np.int64)
         if (c < 0).any():
             raise ValueError("negative view counts in the coverage map")
-        return cls(c, np.asarray(surface, dtype=bool), np.asarray(front, dtype=np.float64))
+        R = np.asarray(meta.get("R_up_obj", np.eye(3).tolist()), dtype=np.float64)
+        if R.shape != (3, 3) or not np.allclose(R @ R.T, np.eye(3), atol=1e-6):
+            raise ValueError("the coverage map's R_up_obj is no rotation")
+        return cls(c, np.asarray(surface, dtype=bool), np.asarray(front, dtype=np.float64), R)
 
 
 def coverage_map(view_dirs: np.ndarray, normals: np.ndarray | None = None, areas: np.ndarray | None = None,
@@ -242,13 +256,27 @@ def outward_faces(mesh: MeshData) -> tuple[np.ndarray, np.ndarray]:
     return normals, areas
 
 
-def template_coverage(T_obj_cam: Sequence[np.ndarray], mesh: MeshData | None) -> CoverageMap:
-    """The coverage of a template: its registered views' poses (object frame, z up) and its mesh's observed
-    faces; directions from the centre of the mesh's bounding box (the origin without a mesh)."""
+def up_rotation(up: np.ndarray) -> np.ndarray:
+    """R_up_obj [3 x 3]: object-frame directions into a frame whose z is `up` [3] (object frame) and whose x is
+    the object's x made perpendicular to it (its y when x is along `up`)."""
+    z = _unit(up)[0]
+    x = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = _unit(x - (x @ z) * z)[0]
+    return np.stack([x, np.cross(z, x), z])
+
+
+def template_coverage(T_obj_cam: Sequence[np.ndarray], mesh: MeshData | None,
+                      up: np.ndarray | Sequence[float] | None = None) -> CoverageMap:
+    """The coverage of a template: its registered views' poses (T_obj_cam [4 x 4]) and its mesh's observed
+    faces; directions from the centre of the mesh's bounding box (the origin without a mesh). up [3]: the
+    object's up in its frame (default +z, a scan's support-plane normal)."""
+    R = np.eye(3) if up is None else up_rotation(np.asarray(up, dtype=np.float64))
     if mesh is not None and len(mesh.vertices):
         V = np.asarray(mesh.vertices, dtype=np.float64)
         centre = 0.5 * (V.min(0) + V.max(0))
         normals, areas = outward_faces(mesh)
+        normals = normals @ R.T
     else:
         centre, normals, areas = np.zeros(3), None, None
-    return coverage_map(viewing_directions(T_obj_cam, centre), normals, areas)
+    c = coverage_map(viewing_directions(T_obj_cam, centre) @ R.T, normals, areas)
+    return CoverageMap(c.counts, c.surface, c.front, R)

@@ -304,7 +304,9 @@ def _scan_frames(data: FrameData, source: Path, output: Path, opts: ScanOptions,
         db.set_meta("voxel_size", model.voxel_size)
         db.set_meta("support_plane", plane_world is not None)
         db.set_meta("timings_s", timer.timings)
-        coverage = template_coverage([T for T in T_obj_cam if T is not None], mesh)  # which sides were seen
+        # which sides were seen; without a support plane the template frame is the first camera's: up is its -y
+        coverage = template_coverage([T for T in T_obj_cam if T is not None], mesh,
+                                     up=None if plane_world is not None else (0.0, -1.0, 0.0))
         db.set_meta("coverage", coverage.to_meta())
         db.mark_complete()
         advance(1)

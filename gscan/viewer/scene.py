@@ -137,7 +137,7 @@ def build_scene(server: Any, data: ViewerData, options: ViewerOptions, frame: RG
 def coverage_points(coverage: CoverageMap, center: np.ndarray, size: float) -> tuple[np.ndarray, np.ndarray]:
     """The coverage map as points: [K x 3] float32 on a sphere of `COVERAGE_RADIUS` x size about `center` [3]
     (object frame), one per cell, and their [K x 3] uint8 colours (`coverage_colors`)."""
-    pts = np.asarray(center, dtype=np.float64) + coverage.directions * COVERAGE_RADIUS * size
+    pts = np.asarray(center, dtype=np.float64) + coverage.directions_obj * COVERAGE_RADIUS * size
     return pts.astype(np.float32), coverage_colors(coverage.counts, coverage.surface)
 
 
