@@ -132,7 +132,7 @@ def coverage_text(coverage: dict[str, Any] | None) -> list[str]:
 
 
 def coverage_lines(coverage: dict[str, Any] | None) -> None:
-    """`coverage_text` on stdout (`info`)."""
+    """`coverage_text`, a `line` each (`info`)."""
     for text in coverage_text(coverage):
         line(text)
 
