@@ -10,7 +10,7 @@ import typer
 
 from gscan.cli.choices import ScanFormat, ScanMode
 from gscan.cli.imports import SCAN_IMPORTS, import_holding_ctrl_c
-from gscan.cli.output import UsageError, err, print_json, say, say_interrupted, setup_logging
+from gscan.cli.output import UsageError, coverage_text, err, print_json, say, say_interrupted, setup_logging
 from gscan.cli.texts import DEPTH_INTRINSICS_HELP, DEPTH_TO_COLOR_HELP, JSON_HELP
 
 
@@ -104,6 +104,8 @@ def print_scan_summary(result: Any) -> None:
         f"({result.mode}), edges {result.edges_accepted} accepted / {result.edges_rejected} rejected, "
         f"mesh {result.mesh_vertices} vertices / {result.mesh_triangles} triangles, "
         f"{result.keyframes} keyframes (the views estimate matches)")
+    for text in coverage_text(result.coverage):
+        say(text)
     cam = result.camera
     if cam is not None and cam["corrected"]:
         given, used = cam["given_focal_px"][0], cam["colour_focal_px"][0]

@@ -54,6 +54,7 @@ from gscan.features import (
     extract_features,
     extract_features_in_mask,
 )
+from gscan.geometry.coverage import template_coverage
 from gscan.geometry.plane import Plane
 from gscan.geometry.transforms import transform_points
 from gscan.io.camera import RGBDFrame
@@ -121,6 +122,7 @@ class ScanResult:
     captures: list[dict] = field(default_factory=list)
     # the colour camera's check (`check_camera`): given and used focal lengths, texture agreement; None: not run
     camera: dict | None = None
+    coverage: dict | None = None  # {"share": float, "missing": [sentences]} (`gscan.geometry.coverage`)
 
     def to_json(self) -> dict:
         """The `scan --json` object of the CLI contract."""
@@ -132,7 +134,7 @@ class ScanResult:
                 "mode": self.mode, "mesh": {"vertices": self.mesh_vertices, "triangles": self.mesh_triangles},
                 "timings_s": {k: round(v, 3) for k, v in self.timings_s.items()},
                 "skipped": dict(self.problems), "keyframes": self.keyframes, "selection": dict(self.selection),
-                "camera": self.camera, "damage": list(self.damage)} | (
+                "camera": self.camera, "coverage": self.coverage, "damage": list(self.damage)} | (
                     {"captures": list(self.captures)} if self.captures else {})
 
 
@@ -429,6 +431,11 @@ def _scan_frames(caps: list[_Capture], output: Path, opts: ScanOptions, db: Temp
         db.set_meta("selection_poses", _selection_poses(caps, T_obj_world))
         db.set_meta("voxel_size", model.voxel_size)
         db.set_meta("timings_s", timer.timings)
+        # which sides were seen; without a support plane the template frame is the first camera's: up is its -y
+        plane = bool(db.get_meta("support_plane")) if opts.append else first.reg.plane_world is not None
+        coverage = template_coverage([T for T in T_obj_cam if T is not None], mesh,
+                                     up=None if plane else (0.0, -1.0, 0.0))
+        db.set_meta("coverage", coverage.to_meta())
         db.mark_complete()
         advance(1)
     stored_edges = db.edges()
@@ -440,7 +447,7 @@ def _scan_frames(caps: list[_Capture], output: Path, opts: ScanOptions, db: Temp
                       mesh_vertices=len(mesh.vertices), mesh_triangles=len(mesh.triangles),
                       timings_s=dict(timer.timings), problems=problems, keyframes=len(keyframes),
                       unregistered_reasons=reasons | problems, parts=parts, noise=first.reg.rparams.noise,
-                      selection=selection.summary(),
+                      selection=selection.summary(), coverage=coverage.to_json(),
                       damage=[line for cap in caps if cap.seq is not None for line in cap.seq.damage], captures=(
                           [_capture_summary(cap) for cap in caps] if not opts.append else
                           [{k: c.get(k) for k in _capture_summary(caps[1])} for c in db.get_meta("captures")]))

@@ -42,6 +42,7 @@ import numpy as np
 
 from gscan.errors import GscanError, InputError, not_a_file
 from gscan.features import Features
+from gscan.geometry.coverage import CoverageMap
 from gscan.geometry.mesh import MeshData, to_u8_colors
 from gscan.geometry.transforms import is_rigid
 from gscan.io.camera import Intrinsics
@@ -743,6 +744,18 @@ class TemplateDB:
                                unregistered_reasons=unregistered_reasons(unreg, self.get_meta("unregistered_reasons"),
                                                                          self.get_meta("skipped")),
                                selection=selection_summary(self.get_meta("selection")), parts=self.parts())
+
+    def coverage(self) -> CoverageMap | None:
+        """Which viewing directions of the object the template has seen (`gscan.geometry.coverage`; its "coverage"
+        meta, written by the scan and by template-from-mesh); None for a template made before it was recorded.
+        InputError naming the database when the stored map is malformed."""
+        meta = self.get_meta("coverage")
+        if meta is None:
+            return None
+        try:
+            return CoverageMap.from_meta(meta)
+        except ValueError as e:
+            raise InputError(self.path, f"malformed coverage record: {e}") from None
 
     def parts(self) -> list[list[str]]:
         """The frames of each part of the capture that no confident edge joins to the template's frames (largest

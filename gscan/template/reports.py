@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 
+from gscan.geometry.coverage import CoverageMap
 from gscan.geometry.meshfill import boundary_edges
 from gscan.template.db import TemplateDB
 from gscan.template.records import TemplateSummary
@@ -26,12 +27,14 @@ class MeshSize:
 
 @dataclass(frozen=True)
 class TemplateInfo:
-    """What a template database holds (`summary`), its mesh's size (None: no mesh) and the scan's colour camera
-    check (the "camera" meta of gscan.scanning.calibration; None: not run)."""
+    """What a template database holds (`summary`), its mesh's size (None: no mesh), the scan's colour camera
+    check (the "camera" meta of gscan.scanning.calibration; None: not run) and its coverage of viewing
+    directions (`TemplateDB.coverage`; None: unknown, a template made before it was recorded)."""
 
     summary: TemplateSummary
     mesh: MeshSize | None
     camera: dict[str, Any] | None
+    coverage: CoverageMap | None = None
 
     def to_json(self) -> dict[str, Any]:
         """The `info --json` object."""
@@ -41,15 +44,15 @@ class TemplateInfo:
                 "extent_m": list(s.extent_m), "grasps": list(s.grasps),
                 "unregistered_reasons": dict(s.unregistered_reasons), "selection": dict(s.selection),
                 "parts": [list(p) for p in s.parts], "mesh": None if self.mesh is None else asdict(self.mesh),
-                "camera": self.camera}
+                "camera": self.camera, "coverage": None if self.coverage is None else self.coverage.to_json()}
 
 
 def template_info(path: str | Path) -> TemplateInfo:
     """The summary of the template database at `path` (a partial one too; InputError naming a bad file)."""
     with TemplateDB.open(path, require_complete=False) as db:
-        summary, m, camera = db.summary(), db.mesh(), db.get_meta("camera")
+        summary, m, camera, coverage = db.summary(), db.mesh(), db.get_meta("camera"), db.coverage()
     mesh = None if m is None else MeshSize(len(m.vertices), len(m.triangles), len(boundary_edges(m.triangles)))
-    return TemplateInfo(summary, mesh, camera)
+    return TemplateInfo(summary, mesh, camera, coverage)
 
 
 @dataclass(frozen=True)
