@@ -110,6 +110,7 @@ def test_two_sided_scan_joins_both_sides_and_refuses_another_object(two_sided):
     # the fused surface, as observed, covers the whole box, the bottom included (the upright capture alone covers
     # about 90 % of it: the face it stands on is never seen)
     assert _completeness(out, box, T_tmpl_mesh) >= 0.97
+    assert not any("bottom" in m for m in res["coverage"]["missing"]), res["coverage"]
 
 
 @pytest.fixture(scope="module")
@@ -128,7 +129,10 @@ def test_append_gives_the_poses_of_scanning_both_at_once(two_sided, upright_only
     out.write_bytes(upright_only.read_bytes())
     with TemplateDB.open(out) as db:
         before = {n: np.asarray(T) for n, T in db.poses()["frames"].items()}
+        cov = db.coverage()
+        assert cov is not None and any("bottom" in m for m in cov.missing), "the upright capture sees no bottom"
     res = scan(down.path, out, append=True)
+    assert res.coverage is not None and not any("bottom" in m for m in res.coverage["missing"]), res.coverage
     assert [c["name"] for c in res.captures] == ["up", "down"] and all(c["joined"] for c in res.captures)
     with TemplateDB.open(out) as db:
         after = {n: np.asarray(T) for n, T in db.poses()["frames"].items()}
