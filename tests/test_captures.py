@@ -130,7 +130,7 @@ def test_append_gives_the_poses_of_scanning_both_at_once(two_sided, upright_only
     with TemplateDB.open(out) as db:
         before = {n: np.asarray(T) for n, T in db.poses()["frames"].items()}
         cov = db.coverage()
-        assert cov is not None and any("bottom" in m for m in cov.missing), "the upright capture sees no bottom"
+        assert cov is not None and any("bottom" in m for m in cov.missing()), "the upright capture sees no bottom"
     res = scan(down.path, out, append=True)
     assert res.coverage is not None and not any("bottom" in m for m in res.coverage["missing"]), res.coverage
     assert [c["name"] for c in res.captures] == ["up", "down"] and all(c["joined"] for c in res.captures)
