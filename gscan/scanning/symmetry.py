@@ -1,0 +1,333 @@
+"""An object's symmetries found on its template's surface: discrete 2- and 4-fold turns about its principal axes and
+continuous revolution, each holding in shape alone or in shape and texture (`gscan.geometry.symmetry.Symmetries`).
+
+Shape: the surface is sampled evenly by area (a dense reference set and a sparser test set, seeded). The candidate
+axes are the principal axes of the area-weighted surface, through the centre of its bounding box in those axes. A
+candidate rotation S holds when the rotated test samples S p lie on the surface: within `tol` of the reference set
+for `inlier_share` of the samples tested. Continuous revolution is S at every `360 / continuous_steps` degrees; 4-fold
+is tested before 2-fold. An axis with a 4-fold turn or revolution has no preferred perpendicular direction (equal
+moments), so its perpendicular 2-fold axes are searched by angle in that plane. The discrete list is the closure
+(the group) of the turns found, the identity left out.
+
+Tolerance: `tol = spacing + tolerance_sigmas * surface_sigma`, with the reference set's sample spacing and the
+template's own surface error: for a scan the fused surface's voxel (quantisation, voxel / 2) and the capture's depth
+noise at the keyframes' median distance (its "noise" meta), combined in quadrature; for a mesh its template cloud's
+voxel / 2.
+
+Unseen parts: a scanned surface is open where no camera saw it (above all the bottom, cut by the support plane). A
+rotated sample that lands off the surface but no farther from an open boundary than from the surface (plus `tol`)
+fell into such a hole: it is not tested, neither for nor against. A symmetry needs at least `min_tested_share` of the
+samples tested, so an unseen part can neither make one nor break one.
+
+Texture: each sample's appearance is its colour divided by the mean intensity of its neighbourhood, so smooth shading
+baked into a scan's colours cancels while print and colour changes stay. Per tested sample, agreement means an
+appearance difference at S p no larger than the median difference under the identity moved by the tolerance (what
+the shape test allows); so the identity agrees for half of the samples and unrelated points for `f_rand` of them.
+S holds in texture unless its agreeing share lies below the midpoint of those two and significantly (4 standard
+errors) below one half: a plain surface, whose unrelated points agree as often as near ones, holds in texture.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import Annotated
+
+import numpy as np
+from pydantic import Field
+from scipy.spatial import cKDTree
+
+from gscan.geometry.mesh import MeshData
+from gscan.geometry.meshfill import boundary_edges
+from gscan.geometry.symmetry import Symmetries, axis_rotation
+from gscan.settings import SETTINGS
+from gscan.synth.mesh import TexturedMesh, sample_bilinear
+from gscan.template.db import TemplateDB
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class SymmetryParams:
+    """How an object's symmetries are found (`find_symmetries`, module docstring)."""
+
+    __pydantic_config__ = SETTINGS
+
+    enabled: Annotated[bool, Field(description="find the object's symmetries at the end of the scan")] = True
+    reference_samples: Annotated[int, Field(ge=1000, description="surface samples the rotated ones are compared "
+                                            "with (their spacing is part of the tolerance)")] = 60000
+    test_samples: Annotated[int, Field(ge=100, description="surface samples rotated by each candidate")] = 3000
+    tolerance_sigmas: Annotated[float, Field(gt=0, description="tolerance in standard deviations of the template's "
+                                             "surface error (module docstring)")] = 2.0
+    inlier_share: Annotated[float, Field(gt=0, le=1, description="a rotation holds when this share of the tested "
+                                         "samples lands within the tolerance of the surface")] = 0.9
+    min_tested_share: Annotated[float, Field(gt=0, le=1, description="... and at least this share of them landed "
+                                             "on seen parts (not in a hole of the surface)")] = 0.5
+    continuous_steps: Annotated[int, Field(ge=8, description="revolution is tested at this many angles")] = 36
+    plane_step_deg: Annotated[float, Field(gt=0, le=15, description="angle step of the search for 2-fold axes "
+                                           "perpendicular to a 4-fold or revolution axis")] = 1.0
+
+
+@dataclass(frozen=True)
+class Surface:
+    """Samples of an object's surface: points [N x 3] (m, object frame), colours [N x 3] float (0-255, or None),
+    the open boundary's samples [B x 3] (holes: unseen parts), and the reference spacing (m)."""
+
+    points: np.ndarray
+    colors: np.ndarray | None
+    boundary: np.ndarray
+    area: float
+
+
+def _sample_triangles(V: np.ndarray, F: np.ndarray, n: int, rng: np.random.Generator
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """n points spread by area over the triangles: (points [n x 3], face index [n], barycentrics [n x 3])."""
+    tri = V[F]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    face = rng.choice(len(F), size=n, p=area / area.sum())
+    r1, r2 = rng.random(n), rng.random(n)
+    s = np.sqrt(r1)
+    bary = np.stack([1 - s, s * (1 - r2), s * r2], axis=1)
+    return np.einsum("nk,nkd->nd", bary, tri[face]), face, bary
+
+
+def _boundary_points(V: np.ndarray, F: np.ndarray, step: float) -> np.ndarray:
+    """[B x 3] points every `step` (m) along the mesh's open edges (none for a closed mesh)."""
+    E = boundary_edges(F)
+    if len(E) == 0:
+        return np.zeros((0, 3))
+    a, b = V[E[:, 0]], V[E[:, 1]]
+    k = np.maximum(1, np.ceil(np.linalg.norm(b - a, axis=1) / step)).astype(int)
+    t = np.concatenate([np.arange(m) / m for m in k])
+    return np.repeat(a, k, axis=0) + t[:, None] * np.repeat(b - a, k, axis=0)
+
+
+def surface_of_mesh(mesh: MeshData, n: int, seed: int = 0) -> Surface:
+    """The surface of a mesh with per-vertex colours (a scan's fused mesh), `n` samples."""
+    V = np.asarray(mesh.vertices, np.float64)
+    F = np.asarray(mesh.triangles, np.int64)
+    P, face, bary = _sample_triangles(V, F, n, np.random.default_rng(seed))
+    C = None
+    if mesh.vertex_colors is not None:
+        VC = np.asarray(mesh.vertex_colors, np.float64)
+        VC = VC * 255.0 if VC.max(initial=0) <= 1.0 else VC
+        C = np.einsum("nk,nkd->nd", bary, VC[F[face]])
+    area = _area(V, F)
+    return Surface(P, C, _boundary_points(V, F, 0.5 * np.sqrt(area / n)), area)
+
+
+def surface_of_textured_mesh(mesh: TexturedMesh, n: int, seed: int = 0) -> Surface:
+    """The surface of a textured mesh (a CAD model), `n` samples coloured from its texture image."""
+    V, F = mesh.vertices, mesh.triangles.astype(np.int64)
+    P, face, bary = _sample_triangles(V, F, n, np.random.default_rng(seed))
+    uv = np.einsum("nk,nkd->nd", bary, mesh.uv[face])
+    C = sample_bilinear(mesh.texture, uv).astype(np.float64)
+    area = _area(V, F)
+    return Surface(P, C, _boundary_points(V, F, 0.5 * np.sqrt(area / n)), area)
+
+
+def _area(V: np.ndarray, F: np.ndarray) -> float:
+    tri = V[F]
+    return float(0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum())
+
+
+@dataclass(frozen=True)
+class _Verdict:
+    holds: bool  # in shape
+    inliers: float  # share of the tested samples within the tolerance
+    tested: float  # share of the samples tested (not fallen into a hole)
+    texture: bool  # holds in texture too (meaningful when `holds`)
+
+
+class _Detector:
+    """The shape and texture tests of one surface (module docstring)."""
+
+    def __init__(self, ref: Surface, test_idx: np.ndarray, tol: float, params: SymmetryParams):
+        self.params, self.tol = params, tol
+        self.Q = ref.points
+        self.tree = cKDTree(self.Q)
+        self.btree = cKDTree(ref.boundary) if len(ref.boundary) else None
+        self.P = self.Q[test_idx]
+        self.test_idx = test_idx
+        self.appearance = None if ref.colors is None else self._appearance(ref.colors)
+        if self.appearance is not None:
+            rng = np.random.default_rng(1)
+            a = self.appearance
+            # the identity moved by half the tolerance in a random direction: what the shape test lets through
+            d = rng.normal(size=self.P.shape)
+            d *= 0.5 * tol / np.linalg.norm(d, axis=1, keepdims=True)
+            _, j = self.tree.query(self.P + d)
+            diff_id = np.linalg.norm(a[test_idx] - a[j], axis=1)
+            # never below one level of an 8-bit colour in each channel: smaller differences are quantisation
+            self.tau = max(float(np.median(diff_id)), float(np.sqrt(3.0) / np.median(self.local)))
+            jr = rng.integers(0, len(self.Q), len(self.P))
+            self.f_rand = float(np.mean(np.linalg.norm(a[test_idx] - a[jr], axis=1) <= self.tau))
+
+    def _appearance(self, C: np.ndarray) -> np.ndarray:
+        """[N x 3] colour over the mean intensity of the sample's 16 nearest neighbours (shading cancels)."""
+        _, nb = self.tree.query(self.Q, k=16)
+        inten = C.mean(axis=1)
+        self.local = np.maximum(inten[nb].mean(axis=1), 1.0)
+        return C / self.local[:, None]
+
+    def test(self, S: np.ndarray) -> _Verdict:
+        X = self.P @ S[:3, :3].T + S[:3, 3]
+        d, j = self.tree.query(X)
+        off = d > self.tol
+        if self.btree is not None and off.any():
+            db, _ = self.btree.query(X[off])
+            hole = np.zeros(len(X), bool)
+            hole[off] = db <= d[off] + self.tol
+        else:
+            hole = np.zeros(len(X), bool)
+        tested = ~hole
+        n_tested = int(tested.sum())
+        share_tested = n_tested / len(X)
+        inl = float((~off & tested).sum() / max(n_tested, 1))
+        holds = share_tested >= self.params.min_tested_share and inl >= self.params.inlier_share
+        texture = True
+        if holds and self.appearance is not None:
+            ok = ~off & tested
+            a = self.appearance
+            diff = np.linalg.norm(a[self.test_idx[ok]] - a[j[ok]], axis=1)
+            f = float(np.mean(diff <= self.tau))
+            se = np.sqrt(0.25 / max(int(ok.sum()), 1))
+            texture = not (f < 0.5 * (0.5 + self.f_rand) and f < 0.5 - 4 * se)
+        return _Verdict(holds, inl, share_tested, texture)
+
+    def test_revolution(self, axis: np.ndarray, c: np.ndarray) -> _Verdict:
+        """Every turn about the axis (the worst of `continuous_steps` angles)."""
+        n = self.params.continuous_steps
+        worst: _Verdict | None = None
+        texture = True
+        for k in range(1, n):
+            v = self.test(axis_rotation(axis, c, 2 * np.pi * k / n))
+            if not v.holds:
+                return v
+            texture &= v.texture
+            worst = v if worst is None or v.inliers < worst.inliers else worst
+        assert worst is not None
+        return _Verdict(True, worst.inliers, worst.tested, texture)
+
+
+def _closure(gens: list[np.ndarray], limit: int = 64) -> list[np.ndarray]:
+    """The group [4 x 4] the rotations `gens` generate, the identity first (at most `limit` elements)."""
+    group = [np.eye(4)]
+    frontier = list(group)
+    while frontier and len(group) < limit:
+        new = []
+        for A in frontier:
+            for G in gens:
+                B = G @ A
+                if not any(np.allclose(B, E, atol=1e-6) for E in group + new):
+                    new.append(B)
+        group += new
+        frontier = new
+    return group[:limit]
+
+
+def _perpendicular(axis: np.ndarray, ref: np.ndarray, theta: float) -> np.ndarray:
+    """Unit vector perpendicular to `axis`, at angle theta from the projection of `ref` into that plane."""
+    u = ref - axis * (ref @ axis)
+    u /= np.linalg.norm(u)
+    w = np.cross(axis, u)
+    return np.cos(theta) * u + np.sin(theta) * w
+
+
+def detect_symmetries(surface: Surface, surface_sigma: float, params: SymmetryParams = SymmetryParams()
+                      ) -> Symmetries:
+    """The symmetries of a sampled surface (module docstring); `surface_sigma` (m) is the template's own surface
+    error. Deterministic."""
+    Q = surface.points
+    n = len(Q)
+    if n < 100:
+        return Symmetries()
+    spacing = float(np.sqrt(surface.area / n))
+    tol = spacing + params.tolerance_sigmas * float(surface_sigma)
+    test_idx = np.random.default_rng(2).choice(n, size=min(params.test_samples, n), replace=False)
+    det = _Detector(surface, np.sort(test_idx), tol, params)
+    mu = Q.mean(axis=0)
+    _, vecs = np.linalg.eigh(np.cov((Q - mu).T))
+    axes = [vecs[:, i] / np.linalg.norm(vecs[:, i]) for i in range(3)]
+    local = (Q - mu) @ vecs
+    c = mu + vecs @ (0.5 * (local.min(axis=0) + local.max(axis=0)))  # the box centre in the principal axes
+    log.debug("symmetry: %d samples, spacing %.2f mm, tolerance %.2f mm", n, 1e3 * spacing, 1e3 * tol)
+
+    continuous: list[tuple[np.ndarray, np.ndarray, bool]] = []
+    gens: list[np.ndarray] = []
+    for a in axes:
+        v = det.test_revolution(a, c)
+        if v.holds:  # a body of revolution: every other turn is one of its own times a flip
+            continuous.append((a, c, v.texture))
+            flip = axis_rotation(next(b for b in axes if b is not a), c, np.pi)
+            if det.test(flip).holds:
+                gens.append(flip)
+            break
+    if not continuous:
+        flips: list[np.ndarray] = []  # axes of the 2-fold turns found
+        round_axes: list[np.ndarray] = []  # 4-fold axes: no preferred perpendicular direction (equal moments)
+        for a in axes:
+            R4 = axis_rotation(a, c, np.pi / 2)
+            if det.test(R4).holds:
+                gens.append(R4)
+                round_axes.append(a)
+            elif det.test(axis_rotation(a, c, np.pi)).holds:
+                gens.append(axis_rotation(a, c, np.pi))
+                flips.append(a)
+        for a in round_axes:
+            if any(abs(float(f @ a)) < 1e-6 for f in flips + round_axes):
+                continue  # a perpendicular 2-fold (or 4-fold) axis is known: the group follows from it
+            # its perpendicular 2-fold axes repeat every 90 degrees: coarse, then fine angle steps
+            ref = next(b for b in axes if b is not a)
+
+            def share(theta_deg: float, a: np.ndarray = a, ref: np.ndarray = ref) -> float:
+                return det.test(axis_rotation(_perpendicular(a, ref, np.radians(theta_deg)), c, np.pi)).inliers
+
+            step = params.plane_step_deg
+            th = max((float(x) for x in np.arange(0.0, 90.0, 5 * step)), key=share)
+            th = max((th + k * step for k in range(-5, 6)), key=share)
+            R2 = axis_rotation(_perpendicular(a, ref, np.radians(th)), c, np.pi)
+            if det.test(R2).holds:
+                gens.append(R2)
+    group = _closure(gens)[1:]
+    disc, disc_tex = [], []
+    for S in group:
+        v = det.test(S)
+        if v.holds:  # an element of the group the found turns generate: checked itself all the same
+            disc.append(S)
+            disc_tex.append(v.texture)
+    return Symmetries(tuple(disc), tuple(disc_tex), tuple((a, o) for a, o, _ in continuous),
+                      tuple(t for _, _, t in continuous))
+
+
+def scan_surface_sigma(db: TemplateDB) -> float | None:
+    """The surface error (m) of a scanned template: its fused voxel (quantisation, voxel / 2) and the capture's
+    depth noise at the keyframes' median distance, in quadrature; None without a "voxel_size" meta."""
+    from gscan.registration.noise import DepthNoise
+
+    voxel = db.get_meta("voxel_size")
+    if not isinstance(voxel, (int, float)) or not voxel > 0:
+        return None
+    sigma2 = (0.5 * float(voxel)) ** 2
+    noise = db.get_meta("noise")
+    depth = noise.get("depth") if isinstance(noise, dict) else None
+    dists = [float(np.linalg.norm(v.T_obj_cam[:3, 3])) for v in db.views(keyframes_only=True)
+             if v.T_obj_cam is not None]
+    if isinstance(depth, dict) and dists:
+        try:
+            model = DepthNoise(**{k: float(depth[k]) for k in ("c0", "c1", "c2")})
+        except (KeyError, TypeError, ValueError):
+            model = None
+        if model is not None:
+            sigma2 += float(model.sigma(float(np.median(dists)))) ** 2
+    return float(np.sqrt(sigma2))
+
+
+def find_symmetries(db: TemplateDB, params: SymmetryParams = SymmetryParams()) -> Symmetries:
+    """The symmetries of a scanned template: its fused mesh and its colours (module docstring); none without a
+    mesh or a "voxel_size" meta."""
+    mesh = db.mesh()
+    sigma = scan_surface_sigma(db)
+    if mesh is None or len(mesh.triangles) == 0 or sigma is None:
+        log.info("%s: no fused mesh or voxel size: symmetries not searched", db.path)
+        return Symmetries()
+    return detect_symmetries(surface_of_mesh(mesh, params.reference_samples), sigma, params)
