@@ -135,7 +135,8 @@ def template_from_mesh(
         result = render_template(mesh, output, n_views=views, scale=scale, force=force, progress=progress)
     if json_out:  # the `template-from-mesh --json` object (TemplateResult has no to_json: gscan.scanning.cad)
         print_json({"output": str(result.output), "views": result.views, "descriptor": result.descriptor,
-                    "source": result.source, "extent_m": list(result.extent_m)})
+                    "source": result.source, "extent_m": list(result.extent_m),
+                    "symmetries": result.symmetries.to_json()})
     else:
         say((str(output), "bold"), f": {result.views} views rendered from {mesh}")
 

@@ -32,6 +32,31 @@ def poses(
     part_lines(result.parts)
 
 
+def symmetry_lines(sym: dict) -> None:
+    """A line per symmetry of an `info --json` "symmetries" object: each turn's angle and axis (object frame), the
+    axis of revolution with a point on it (mm), and whether it holds in the texture too."""
+    import numpy as np
+
+    from gscan.geometry.symmetry import Symmetries, turn_of
+
+    s = Symmetries.from_json(sym)
+    if not s:
+        line("symmetries: none found")
+        return
+
+    def vec(x: np.ndarray, scale: float = 1.0) -> str:
+        return "(" + ", ".join(f"{float(c) * scale + 0.0:.3g}" for c in x) + ")"
+
+    def held(t: bool) -> str:
+        return "shape and texture" if t else "shape only"
+
+    for (axis, offset), t in zip(s.continuous, s.continuous_in_texture, strict=True):
+        line(f"symmetry: revolution about axis {vec(axis)} through {vec(offset, 1000.0)} mm ({held(t)})")
+    for S, t in zip(s.discrete, s.discrete_in_texture, strict=True):
+        axis, angle = turn_of(S)
+        line(f"symmetry: {angle:.0f} deg about axis {vec(axis)} ({held(t)})")
+
+
 def info(
     template: Path = typer.Argument(..., help="template database"),
     json_out: bool = typer.Option(False, "--json", help=JSON_HELP),
@@ -63,6 +88,9 @@ def info(
                 used = "used" if v["corrected"] else "checked, kept"
                 line(f"colour camera: focal length given {v['given_focal_px'][0]:g} px, {used} "
                      f"{v['colour_focal_px'][0]:g} px (from the texture of {v['pairs']} frame pairs)")
+            continue
+        if k == "symmetries":
+            symmetry_lines(v)
             continue
         if k == "mesh" and v is not None:
             holes = " (export closes them; --keep-holes keeps them)" if v["open_edges"] else ", watertight"

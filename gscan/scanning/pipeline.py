@@ -19,6 +19,7 @@ Stages (each timed, each reported through a `Progress`):
             stay unregistered and are never fused
   segment   object masks (given, background subtraction, or support plane + working volume)
   fuse      TSDF fusion of the object's depth; template frame (fuse.template_frame)
+  symmetry  the object's symmetries on the fused mesh (`gscan.scanning.symmetry`), stored in the "symmetries" meta
   database  poses, masks, keyframes and keypoints in the object frame, mesh, cloud; status complete
 
 Memory does not grow with the capture: after the load a stage holds a few frames at a time, reading their
@@ -54,6 +55,7 @@ from gscan.features import (
     extract_features_in_mask,
 )
 from gscan.geometry.plane import Plane
+from gscan.geometry.symmetry import Symmetries
 from gscan.geometry.transforms import transform_points
 from gscan.io.camera import RGBDFrame
 from gscan.io.output import (
@@ -79,6 +81,7 @@ from gscan.scanning.output import create_output, open_resumed, scan_meta
 from gscan.scanning.segment import SegmentParams, segment_frame
 from gscan.scanning.select import Selection
 from gscan.scanning.store import FrameStore, LazyList
+from gscan.scanning.symmetry import scan_symmetries
 from gscan.template.db import Edge, TemplateDB, View
 
 log = logging.getLogger(__name__)
@@ -107,6 +110,7 @@ class ScanResult:
     selection: dict = field(default_factory=dict)
     # the colour camera's check (`check_camera`): given and used focal lengths, texture agreement; None: not run
     camera: dict | None = None
+    symmetries: Symmetries = field(default_factory=Symmetries)  # the object's (object frame)
 
     def to_json(self) -> dict:
         """The `scan --json` object of the CLI contract."""
@@ -118,7 +122,7 @@ class ScanResult:
                 "mode": self.mode, "mesh": {"vertices": self.mesh_vertices, "triangles": self.mesh_triangles},
                 "timings_s": {k: round(v, 3) for k, v in self.timings_s.items()},
                 "skipped": dict(self.problems), "keyframes": self.keyframes, "selection": dict(self.selection),
-                "camera": self.camera}
+                "camera": self.camera, "symmetries": self.symmetries.to_json()}
 
 
 def _icp_voxel(cfg: ScanConfig) -> float | None:
@@ -285,6 +289,13 @@ def _scan_frames(data: FrameData, source: Path, output: Path, opts: ScanOptions,
         model, T_obj_world = _fuse(data, T_world_cam, mask_of, plane_world, cfg.fusion, source)
         advance(1)
 
+    with timer.stage("symmetry", total=1) as advance:  # on the fused mesh, at the cameras' median distance
+        dist = np.median([np.linalg.norm((T_obj_world @ T)[:3, 3]) for T in T_world_cam if T is not None])
+        symmetries = scan_symmetries(model.mesh.transformed(T_obj_world), model.voxel_size, rparams.depth_noise,
+                                     float(dist), cfg.symmetry)
+        db.set_meta("symmetries", symmetries.to_json())
+        advance(1)
+
     with timer.stage("database", total=n + 1) as advance, db.batch():
         T_obj_cam = [None if T is None else T_obj_world @ T for T in T_world_cam]
         keyframes = _store_views(data, T_obj_cam, mask_of, quality, cfg, db, advance)
@@ -313,7 +324,7 @@ def _scan_frames(data: FrameData, source: Path, output: Path, opts: ScanOptions,
                       mesh_vertices=len(mesh.vertices), mesh_triangles=len(mesh.triangles),
                       timings_s=dict(timer.timings), problems=problems, keyframes=len(keyframes),
                       unregistered_reasons=reasons | problems, parts=parts, noise=rparams.noise,
-                      selection=selection.summary())
+                      selection=selection.summary(), symmetries=symmetries)
 
 
 def _fuse(data: FrameData, T_world_cam: list[np.ndarray | None], mask_of: Callable[[int], np.ndarray | None],

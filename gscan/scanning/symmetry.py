@@ -39,6 +39,7 @@ from scipy.spatial import cKDTree
 from gscan.geometry.mesh import MeshData
 from gscan.geometry.meshfill import boundary_edges
 from gscan.geometry.symmetry import Symmetries, axis_rotation
+from gscan.registration.noise import DepthNoise
 from gscan.settings import SETTINGS
 from gscan.synth.mesh import TexturedMesh, sample_bilinear
 from gscan.template.db import TemplateDB
@@ -214,7 +215,7 @@ def _closure(gens: list[np.ndarray], limit: int = 64) -> list[np.ndarray]:
     group = [np.eye(4)]
     frontier = list(group)
     while frontier and len(group) < limit:
-        new = []
+        new: list[np.ndarray] = []
         for A in frontier:
             for G in gens:
                 B = G @ A
@@ -299,35 +300,40 @@ def detect_symmetries(surface: Surface, surface_sigma: float, params: SymmetryPa
                       tuple(t for _, _, t in continuous))
 
 
-def scan_surface_sigma(db: TemplateDB) -> float | None:
-    """The surface error (m) of a scanned template: its fused voxel (quantisation, voxel / 2) and the capture's
-    depth noise at the keyframes' median distance, in quadrature; None without a "voxel_size" meta."""
-    from gscan.registration.noise import DepthNoise
-
-    voxel = db.get_meta("voxel_size")
-    if not isinstance(voxel, (int, float)) or not voxel > 0:
-        return None
+def scan_surface_sigma(voxel: float, depth_noise: DepthNoise | None, distance: float | None) -> float:
+    """The surface error (m) of a fused scan: its voxel (quantisation, voxel / 2) and the capture's depth noise at
+    the cameras' typical distance (m) from the object, in quadrature (the noise left out when either is None)."""
     sigma2 = (0.5 * float(voxel)) ** 2
+    if depth_noise is not None and distance is not None:
+        sigma2 += float(depth_noise.sigma(float(distance))) ** 2
+    return float(np.sqrt(sigma2))
+
+
+def scan_symmetries(mesh: MeshData, voxel: float, depth_noise: DepthNoise | None, distance: float | None,
+                    params: SymmetryParams = SymmetryParams()) -> Symmetries:
+    """The symmetries of a scan's fused mesh (object frame, per-vertex colours from the keyframes' images) with the
+    tolerance `scan_surface_sigma` gives; none for an empty mesh or when `params.enabled` is off."""
+    if not params.enabled or len(mesh.triangles) == 0:
+        return Symmetries()
+    sigma = scan_surface_sigma(voxel, depth_noise, distance)
+    return detect_symmetries(surface_of_mesh(mesh, params.reference_samples), sigma, params)
+
+
+def find_symmetries(db: TemplateDB, params: SymmetryParams = SymmetryParams()) -> Symmetries:
+    """The symmetries of a scanned template (`scan_symmetries`): its fused mesh, "voxel_size" and "noise" meta, and
+    its registered views' median distance from the object; none without a mesh or a voxel size."""
+    mesh = db.mesh()
+    voxel = db.get_meta("voxel_size")
+    if mesh is None or not isinstance(voxel, (int, float)) or not voxel > 0:
+        log.info("%s: no fused mesh or voxel size: symmetries not searched", db.path)
+        return Symmetries()
     noise = db.get_meta("noise")
     depth = noise.get("depth") if isinstance(noise, dict) else None
-    dists = [float(np.linalg.norm(v.T_obj_cam[:3, 3])) for v in db.views(keyframes_only=True)
-             if v.T_obj_cam is not None]
-    if isinstance(depth, dict) and dists:
+    model = None
+    if isinstance(depth, dict):
         try:
             model = DepthNoise(**{k: float(depth[k]) for k in ("c0", "c1", "c2")})
         except (KeyError, TypeError, ValueError):
             model = None
-        if model is not None:
-            sigma2 += float(model.sigma(float(np.median(dists)))) ** 2
-    return float(np.sqrt(sigma2))
-
-
-def find_symmetries(db: TemplateDB, params: SymmetryParams = SymmetryParams()) -> Symmetries:
-    """The symmetries of a scanned template: its fused mesh and its colours (module docstring); none without a
-    mesh or a "voxel_size" meta."""
-    mesh = db.mesh()
-    sigma = scan_surface_sigma(db)
-    if mesh is None or len(mesh.triangles) == 0 or sigma is None:
-        log.info("%s: no fused mesh or voxel size: symmetries not searched", db.path)
-        return Symmetries()
-    return detect_symmetries(surface_of_mesh(mesh, params.reference_samples), sigma, params)
+    dists = [float(np.linalg.norm(v.T_obj_cam[:3, 3])) for v in db.views() if v.T_obj_cam is not None]
+    return scan_symmetries(mesh, float(voxel), model, float(np.median(dists)) if dists else None, params)

@@ -43,6 +43,7 @@ import numpy as np
 from gscan.errors import GscanError, InputError, not_a_file
 from gscan.features import Features
 from gscan.geometry.mesh import MeshData, to_u8_colors
+from gscan.geometry.symmetry import Symmetries
 from gscan.geometry.transforms import is_rigid
 from gscan.io.camera import Intrinsics
 from gscan.io.images import image_too_large
@@ -736,6 +737,14 @@ class TemplateDB:
                                unregistered_reasons=unregistered_reasons(unreg, self.get_meta("unregistered_reasons"),
                                                                          self.get_meta("skipped")),
                                selection=selection_summary(self.get_meta("selection")), parts=self.parts())
+
+    def symmetries(self) -> Symmetries:
+        """The object's symmetries (its "symmetries" meta, `Symmetries.to_json`'s form; none when absent, as in
+        templates written before symmetries were found). InputError naming the database for a malformed one."""
+        try:
+            return Symmetries.from_json(self.get_meta("symmetries"))
+        except ValueError as e:
+            raise InputError(self.path, f"meta 'symmetries': {e}") from None
 
     def parts(self) -> list[list[str]]:
         """The frames of each part of the capture that no confident edge joins to the template's frames (largest

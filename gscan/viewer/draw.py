@@ -39,6 +39,16 @@ def edge_color(edge: Edge, rmse_red_m: float) -> tuple[int, int, int]:
     return quality_color(1.0 - t)
 
 
+def symmetry_color(fold: int, in_texture: bool) -> tuple[int, int, int]:
+    """An axis of symmetry's colour: revolution magenta, a 4-fold (or higher) axis orange, a 2-fold one cyan; pale
+    when it holds in shape alone (the texture tells the turned poses apart)."""
+    base = (220, 40, 220) if fold == 0 else (240, 140, 20) if fold >= 3 else (20, 190, 220)
+    if in_texture:
+        return base
+    r, g, b = (int(round(0.45 * c + 0.55 * 235)) for c in base)
+    return r, g, b
+
+
 def thumbnail(img: np.ndarray, max_side: int) -> np.ndarray:
     """[H x W x 3] uint8 -> the image downscaled (area filter) so its longest side is <= max_side."""
     h, w = img.shape[:2]

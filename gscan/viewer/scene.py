@@ -1,8 +1,8 @@
 """The viewer's 3D scene (viser), in the template (object) frame: the template's axes, the fused mesh and
 cloud, one camera frustum per registered view with its snapshot (coloured by quality, click selects the
-view), pose-graph edges between camera centres, the views' 3D keypoints, grasp frames, and optionally a
-query frame's cloud placed by an estimated pose. `build_scene` returns each layer's handles (`SceneLayers`);
-the viewer app (`gscan.viewer.app.ViewerApp`) holds them.
+view), pose-graph edges between camera centres, the views' 3D keypoints, grasp frames, the object's axes of
+symmetry (`symmetry_segments`), and optionally a query frame's cloud placed by an estimated pose. `build_scene`
+returns each layer's handles (`SceneLayers`); the viewer app (`gscan.viewer.app.ViewerApp`) holds them.
 """
 from __future__ import annotations
 
@@ -14,13 +14,14 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from gscan.geometry.symmetry import Symmetries
 from gscan.geometry.transforms import inv_T, transform_points
 from gscan.io.camera import Intrinsics, RGBDFrame, point_cloud
 from gscan.template.db import MeshData, View
 from gscan.viewer.data import ViewerData, ViewerOptions
-from gscan.viewer.draw import QUERY_CAMERA_COLOR, edge_color, hue_colors, quality_color, thumbnail
+from gscan.viewer.draw import QUERY_CAMERA_COLOR, edge_color, hue_colors, quality_color, symmetry_color, thumbnail
 
-LAYERS = ("mesh", "cloud", "frustums", "edges", "rejected", "keypoints", "scene", "grasps")
+LAYERS = ("mesh", "cloud", "frustums", "edges", "rejected", "keypoints", "scene", "grasps", "symmetries")
 
 
 @dataclass
@@ -107,6 +108,12 @@ def build_scene(server: Any, data: ViewerData, options: ViewerOptions, frame: RG
         layers["grasps"].append(sc.add_frame(f"/grasps/{_node(name)}", axes_length=0.15 * s, axes_radius=0.006 * s,
                                              wxyz=quat_wxyz(T[:3, :3]), position=T[:3, 3]))
         layers["grasps"].append(sc.add_label(f"/grasps/{_node(name)}/label", name))
+    seg, seg_cols, labels = symmetry_segments(d.symmetries, d.center, s)
+    if len(seg):
+        layers["symmetries"].append(sc.add_line_segments("/symmetries/axes", seg, seg_cols, thickness=4.0,
+                                                         thickness_units="screen"))
+        for i, (text, at) in enumerate(labels):
+            layers["symmetries"].append(sc.add_label(f"/symmetries/label_{i}", text, position=at))
     scene_points_obj = None
     if frame is not None and T_cam_obj is not None:
         T_obj_cam = inv_T(np.asarray(T_cam_obj, dtype=np.float64))
@@ -118,6 +125,28 @@ def build_scene(server: Any, data: ViewerData, options: ViewerOptions, frame: RG
         layers["scene"].append(_add_frustum(sc, o, frustum_scale, "/scene/camera", frame.intrinsics, T_obj_cam,
                                             thumb, QUERY_CAMERA_COLOR, None))
     return SceneLayers(layers, frustum_scale, scene_points_obj)
+
+
+def symmetry_label(fold: int, in_texture: bool) -> str:
+    """What an axis of symmetry is called in the scene and the GUI: "revolution" or "n-fold", and what it holds in."""
+    return ("revolution" if fold == 0 else f"{fold}-fold") + (" (shape+texture)" if in_texture else " (shape)")
+
+
+def symmetry_segments(symmetries: Symmetries, center: np.ndarray, size: float
+                      ) -> tuple[np.ndarray, np.ndarray, list[tuple[str, np.ndarray]]]:
+    """The axes of symmetry as drawn: segments [K x 2 x 3] float32 (1.5 x the object's size, centred where the axis
+    passes nearest the object's centre [3]), their colours [K x 2 x 3] uint8 (`symmetry_color`) and a label
+    (text, position [3]) at one end of each."""
+    seg, cols, labels = [], [], []
+    for ax in symmetries.axes():
+        mid = ax.point + ax.direction * float((np.asarray(center) - ax.point) @ ax.direction)
+        a, b = mid - 0.75 * size * ax.direction, mid + 0.75 * size * ax.direction
+        seg.append([a, b])
+        cols.append([symmetry_color(ax.fold, ax.in_texture)] * 2)
+        labels.append((symmetry_label(ax.fold, ax.in_texture), b))
+    if not seg:
+        return np.zeros((0, 2, 3), np.float32), np.zeros((0, 2, 3), np.uint8), []
+    return np.asarray(seg, np.float32), np.asarray(cols, np.uint8), labels
 
 
 def _node(name: str) -> str:
