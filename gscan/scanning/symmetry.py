@@ -4,10 +4,12 @@ continuous revolution, each holding in shape alone or in shape and texture (`gsc
 Shape: the surface is sampled evenly by area (a dense reference set and a sparser test set, seeded). The candidate
 axes are the principal axes of the area-weighted surface, through the centre of its bounding box in those axes. A
 candidate rotation S holds when the rotated test samples S p lie on the surface: within `tol` of the reference set
-for `inlier_share` of the samples tested. Continuous revolution is S at every `360 / continuous_steps` degrees; 4-fold
-is tested before 2-fold. An axis with a 4-fold turn or revolution has no preferred perpendicular direction (equal
-moments), so its perpendicular 2-fold axes are searched by angle in that plane. The discrete list is the closure
-(the group) of the turns found, the identity left out.
+for `inlier_share` of the samples tested. Revolution (S at every `360 / continuous_steps` degrees) is tested first;
+about an axis of revolution only a flip end over end (about any perpendicular axis) is left to find. Otherwise each
+axis gets a 4-fold, else a 2-fold test. A 4-fold axis has no preferred perpendicular direction (equal moments), so
+unless a perpendicular turn is known, its perpendicular 2-fold axes are searched by angle in that plane (the least
+residual). The discrete list is the closure (the group) of the turns found, the identity left out, each element
+tested again (shape and texture).
 
 Tolerance: `tol = spacing + tolerance_sigmas * surface_sigma`, with the reference set's sample spacing and the
 template's own surface error: for a scan the fused surface's voxel (quantisation, voxel / 2) and the capture's depth
@@ -65,7 +67,8 @@ class SymmetryParams:
                                              "on seen parts (not in a hole of the surface)")] = 0.5
     continuous_steps: Annotated[int, Field(ge=8, description="revolution is tested at this many angles")] = 36
     plane_step_deg: Annotated[float, Field(gt=0, le=15, description="angle step of the search for 2-fold axes "
-                                           "perpendicular to a 4-fold or revolution axis")] = 1.0
+                                           "perpendicular to a 4-fold axis (5 steps coarse, then 1, then 1/5 "
+                                           "about the best)")] = 1.0
 
 
 @dataclass(frozen=True)
@@ -137,6 +140,7 @@ class _Verdict:
     inliers: float  # share of the tested samples within the tolerance
     tested: float  # share of the samples tested (not fallen into a hole)
     texture: bool  # holds in texture too (meaningful when `holds`)
+    residual: float  # mean distance (m) of the tested samples to the surface, each capped at the tolerance
 
 
 class _Detector:
@@ -185,6 +189,7 @@ class _Detector:
         share_tested = n_tested / len(X)
         inl = float((~off & tested).sum() / max(n_tested, 1))
         holds = share_tested >= self.params.min_tested_share and inl >= self.params.inlier_share
+        residual = float(np.minimum(d[tested], self.tol).mean()) if n_tested else self.tol
         texture = True
         if holds and self.appearance is not None:
             ok = ~off & tested
@@ -193,7 +198,7 @@ class _Detector:
             f = float(np.mean(diff <= self.tau))
             se = np.sqrt(0.25 / max(int(ok.sum()), 1))
             texture = not (f < 0.5 * (0.5 + self.f_rand) and f < 0.5 - 4 * se)
-        return _Verdict(holds, inl, share_tested, texture)
+        return _Verdict(holds, inl, share_tested, texture, residual)
 
     def test_revolution(self, axis: np.ndarray, c: np.ndarray) -> _Verdict:
         """Every turn about the axis (the worst of `continuous_steps` angles)."""
@@ -207,7 +212,7 @@ class _Detector:
             texture &= v.texture
             worst = v if worst is None or v.inliers < worst.inliers else worst
         assert worst is not None
-        return _Verdict(True, worst.inliers, worst.tested, texture)
+        return _Verdict(True, worst.inliers, worst.tested, texture, worst.residual)
 
 
 def _closure(gens: list[np.ndarray], limit: int = 64) -> list[np.ndarray]:
@@ -280,12 +285,13 @@ def detect_symmetries(surface: Surface, surface_sigma: float, params: SymmetryPa
             # its perpendicular 2-fold axes repeat every 90 degrees: coarse, then fine angle steps
             ref = next(b for b in axes if b is not a)
 
-            def share(theta_deg: float, a: np.ndarray = a, ref: np.ndarray = ref) -> float:
-                return det.test(axis_rotation(_perpendicular(a, ref, np.radians(theta_deg)), c, np.pi)).inliers
+            def residual(theta_deg: float, a: np.ndarray = a, ref: np.ndarray = ref) -> float:
+                return det.test(axis_rotation(_perpendicular(a, ref, np.radians(theta_deg)), c, np.pi)).residual
 
             step = params.plane_step_deg
-            th = max((float(x) for x in np.arange(0.0, 90.0, 5 * step)), key=share)
-            th = max((th + k * step for k in range(-5, 6)), key=share)
+            th = min((float(x) for x in np.arange(0.0, 90.0, 5 * step)), key=residual)
+            th = min((th + k * step for k in range(-5, 6)), key=residual)
+            th = min((th + k * step / 5 for k in range(-5, 6)), key=residual)
             R2 = axis_rotation(_perpendicular(a, ref, np.radians(th)), c, np.pi)
             if det.test(R2).holds:
                 gens.append(R2)
