@@ -153,26 +153,34 @@ class _Detector:
         self.btree = cKDTree(ref.boundary) if len(ref.boundary) else None
         self.P = self.Q[test_idx]
         self.test_idx = test_idx
-        self.appearance = None if ref.colors is None else self._appearance(ref.colors)
-        if self.appearance is not None:
+        self.colors = ref.colors
+        if self.colors is not None:
+            self._app = np.full((len(self.Q), 3), np.nan)  # appearances, computed where asked for
+            self._local = np.full(len(self.Q), np.nan)  # ... and the local mean intensities they divide by
             rng = np.random.default_rng(1)
-            a = self.appearance
+            a_p = self.appearance(test_idx)
             # the identity moved by half the tolerance in a random direction: what the shape test lets through
             d = rng.normal(size=self.P.shape)
             d *= 0.5 * tol / np.linalg.norm(d, axis=1, keepdims=True)
             _, j = self.tree.query(self.P + d)
-            diff_id = np.linalg.norm(a[test_idx] - a[j], axis=1)
+            diff_id = np.linalg.norm(a_p - self.appearance(j), axis=1)
             # never below one level of an 8-bit colour in each channel: smaller differences are quantisation
-            self.tau = max(float(np.median(diff_id)), float(np.sqrt(3.0) / np.median(self.local)))
+            level = np.sqrt(3.0) / float(np.median(self._local[test_idx]))
+            self.tau = max(float(np.median(diff_id)), level)
             jr = rng.integers(0, len(self.Q), len(self.P))
-            self.f_rand = float(np.mean(np.linalg.norm(a[test_idx] - a[jr], axis=1) <= self.tau))
+            self.f_rand = float(np.mean(np.linalg.norm(a_p - self.appearance(jr), axis=1) <= self.tau))
 
-    def _appearance(self, C: np.ndarray) -> np.ndarray:
-        """[N x 3] colour over the mean intensity of the sample's 16 nearest neighbours (shading cancels)."""
-        _, nb = self.tree.query(self.Q, k=16)
-        inten = C.mean(axis=1)
-        self.local = np.maximum(inten[nb].mean(axis=1), 1.0)
-        return C / self.local[:, None]
+    def appearance(self, idx: np.ndarray) -> np.ndarray:
+        """[K x 3] colour of samples `idx` [K] over the mean intensity of their 16 nearest neighbours (shading
+        cancels)."""
+        assert self.colors is not None
+        todo = np.unique(idx[np.isnan(self._app[idx, 0])])
+        if len(todo):
+            _, nb = self.tree.query(self.Q[todo], k=16)
+            local = np.maximum(self.colors[nb].mean(axis=(1, 2)), 1.0)
+            self._app[todo] = self.colors[todo] / local[:, None]
+            self._local[todo] = local
+        return self._app[idx]
 
     def test(self, S: np.ndarray) -> _Verdict:
         X = self.P @ S[:3, :3].T + S[:3, 3]
@@ -191,10 +199,9 @@ class _Detector:
         holds = share_tested >= self.params.min_tested_share and inl >= self.params.inlier_share
         residual = float(np.minimum(d[tested], self.tol).mean()) if n_tested else self.tol
         texture = True
-        if holds and self.appearance is not None:
+        if holds and self.colors is not None:
             ok = ~off & tested
-            a = self.appearance
-            diff = np.linalg.norm(a[self.test_idx[ok]] - a[j[ok]], axis=1)
+            diff = np.linalg.norm(self.appearance(self.test_idx[ok]) - self.appearance(j[ok]), axis=1)
             f = float(np.mean(diff <= self.tau))
             se = np.sqrt(0.25 / max(int(ok.sum()), 1))
             texture = not (f < 0.5 * (0.5 + self.f_rand) and f < 0.5 - 4 * se)
