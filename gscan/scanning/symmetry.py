@@ -13,8 +13,11 @@ tested again (shape and texture).
 
 Tolerance: `tol = spacing + tolerance_sigmas * surface_sigma`, with the reference set's sample spacing and the
 template's own surface error: for a scan the fused surface's voxel (quantisation, voxel / 2) and the capture's depth
-noise at the keyframes' median distance (its "noise" meta), combined in quadrature; for a mesh its template cloud's
-voxel / 2.
+noise at the cameras' median distance from the object (its "noise" meta), combined in quadrature; for a mesh its
+template cloud's voxel / 2.
+
+Not searched: 3- and 6-fold turns, and the turns of a shape whose three principal moments are equal (a cube, a
+sphere: its principal axes are arbitrary); a symmetry left unfound keeps poses apart, the safe side.
 
 Unseen parts: a scanned surface is open where no camera saw it (above all the bottom, cut by the support plane). A
 rotated sample that lands off the surface but no farther from an open boundary than from the surface (plus `tol`)
@@ -38,7 +41,7 @@ import numpy as np
 from pydantic import Field
 from scipy.spatial import cKDTree
 
-from gscan.geometry.mesh import MeshData
+from gscan.geometry.mesh import MeshData, to_u8_colors
 from gscan.geometry.meshfill import boundary_edges
 from gscan.geometry.symmetry import Symmetries, axis_rotation
 from gscan.registration.noise import DepthNoise
@@ -74,7 +77,7 @@ class SymmetryParams:
 @dataclass(frozen=True)
 class Surface:
     """Samples of an object's surface: points [N x 3] (m, object frame), colours [N x 3] float (0-255, or None),
-    the open boundary's samples [B x 3] (holes: unseen parts), and the reference spacing (m)."""
+    the open boundary's samples [B x 3] (holes: unseen parts), and the surface's area (m^2)."""
 
     points: np.ndarray
     colors: np.ndarray | None
@@ -94,8 +97,16 @@ def _sample_triangles(V: np.ndarray, F: np.ndarray, n: int, rng: np.random.Gener
     return np.einsum("nk,nkd->nd", bary, tri[face]), face, bary
 
 
+WELD_M = 1e-6  # vertices this close are one (a mesh's copies of a vertex at a texture seam)
+
+
 def _boundary_points(V: np.ndarray, F: np.ndarray, step: float) -> np.ndarray:
-    """[B x 3] points every `step` (m) along the mesh's open edges (none for a closed mesh)."""
+    """[B x 3] points every `step` (m) along the mesh's open edges (none for a closed mesh). Copies of a vertex (at
+    texture seams, or a mesh whose faces share none) are welded first: their edges are not holes."""
+    _, first, inverse = np.unique(np.round(V / WELD_M).astype(np.int64), axis=0, return_index=True,
+                                  return_inverse=True)
+    V, F = V[first], inverse.reshape(-1)[F]
+    F = F[(F[:, 0] != F[:, 1]) & (F[:, 1] != F[:, 2]) & (F[:, 0] != F[:, 2])]
     E = boundary_edges(F)
     if len(E) == 0:
         return np.zeros((0, 3))
@@ -112,8 +123,7 @@ def surface_of_mesh(mesh: MeshData, n: int, seed: int = 0) -> Surface:
     P, face, bary = _sample_triangles(V, F, n, np.random.default_rng(seed))
     C = None
     if mesh.vertex_colors is not None:
-        VC = np.asarray(mesh.vertex_colors, np.float64)
-        VC = VC * 255.0 if VC.max(initial=0) <= 1.0 else VC
+        VC = to_u8_colors(mesh.vertex_colors).astype(np.float64)
         C = np.einsum("nk,nkd->nd", bary, VC[F[face]])
     area = _area(V, F)
     return Surface(P, C, _boundary_points(V, F, 0.5 * np.sqrt(area / n)), area)
