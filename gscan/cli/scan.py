@@ -10,7 +10,7 @@ import typer
 
 from gscan.cli.choices import ScanFormat, ScanMode
 from gscan.cli.imports import SCAN_IMPORTS, import_holding_ctrl_c
-from gscan.cli.output import UsageError, err, print_json, say, say_interrupted, setup_logging
+from gscan.cli.output import UsageError, err, print_json, say, say_interrupted, setup_logging, symmetry_texts
 from gscan.cli.texts import DEPTH_INTRINSICS_HELP, DEPTH_TO_COLOR_HELP, JSON_HELP
 
 
@@ -113,6 +113,7 @@ def print_scan_summary(result: Any) -> None:
     for k, part in enumerate(result.parts, 1):
         say((f"separate part {k}:", "yellow"), f" {len(part)} frames ({', '.join(part)}), not joined to the "
             "template's frames with confidence: scanned again with views between them, they can be")
+    say(("symmetries:", "bold"), " " + "; ".join(symmetry_texts(result.symmetries.to_json())))
 
 
 def template_from_mesh(

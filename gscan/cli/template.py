@@ -6,7 +6,7 @@ from pathlib import Path
 import typer
 
 from gscan.cli.choices import ExportFormat
-from gscan.cli.output import err, format_pose, line, part_lines, print_json
+from gscan.cli.output import err, format_pose, line, part_lines, print_json, symmetry_texts
 from gscan.cli.texts import JSON_HELP
 
 
@@ -30,31 +30,6 @@ def poses(
     for name, why in result.skipped_by_selection.items():
         line(f"{name}: skipped by frame selection: {why}")
     part_lines(result.parts)
-
-
-def symmetry_lines(sym: dict) -> None:
-    """A line per symmetry of an `info --json` "symmetries" object: each turn's angle and axis (object frame), the
-    axis of revolution with a point on it (mm), and whether it holds in the texture too."""
-    import numpy as np
-
-    from gscan.geometry.symmetry import Symmetries, turn_of
-
-    s = Symmetries.from_json(sym)
-    if not s:
-        line("symmetries: none found")
-        return
-
-    def vec(x: np.ndarray, scale: float = 1.0) -> str:
-        return "(" + ", ".join(f"{float(c) * scale + 0.0:.3g}" for c in x) + ")"
-
-    def held(t: bool) -> str:
-        return "shape and texture" if t else "shape only"
-
-    for (axis, offset), t in zip(s.continuous, s.continuous_in_texture, strict=True):
-        line(f"symmetry: revolution about axis {vec(axis)} through {vec(offset, 1000.0)} mm ({held(t)})")
-    for S, t in zip(s.discrete, s.discrete_in_texture, strict=True):
-        axis, angle = turn_of(S)
-        line(f"symmetry: {angle:.0f} deg about axis {vec(axis)} ({held(t)})")
 
 
 def info(
@@ -90,7 +65,8 @@ def info(
                      f"{v['colour_focal_px'][0]:g} px (from the texture of {v['pairs']} frame pairs)")
             continue
         if k == "symmetries":
-            symmetry_lines(v)
+            for text in symmetry_texts(v):
+                line(f"symmetry: {text}")
             continue
         if k == "mesh" and v is not None:
             holes = " (export closes them; --keep-holes keeps them)" if v["open_edges"] else ", watertight"
