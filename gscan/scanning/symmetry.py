@@ -192,7 +192,8 @@ class _Detector:
             self._local[todo] = local
         return self._app[idx]
 
-    def test(self, S: np.ndarray) -> _Verdict:
+    def test(self, S: np.ndarray, texture: bool = True) -> _Verdict:
+        """The shape test of S [4 x 4] and, when it holds and `texture`, the texture test."""
         X = self.P @ S[:3, :3].T + S[:3, 3]
         d, j = self.tree.query(X)
         off = d > self.tol
@@ -208,14 +209,14 @@ class _Detector:
         inl = float((~off & tested).sum() / max(n_tested, 1))
         holds = share_tested >= self.params.min_tested_share and inl >= self.params.inlier_share
         residual = float(np.minimum(d[tested], self.tol).mean()) if n_tested else self.tol
-        texture = True
-        if holds and self.colors is not None:
+        in_texture = True
+        if holds and texture and self.colors is not None:
             ok = ~off & tested
             diff = np.linalg.norm(self.appearance(self.test_idx[ok]) - self.appearance(j[ok]), axis=1)
             f = float(np.mean(diff <= self.tau))
             se = np.sqrt(0.25 / max(int(ok.sum()), 1))
-            texture = not (f < 0.5 * (0.5 + self.f_rand) and f < 0.5 - 4 * se)
-        return _Verdict(holds, inl, share_tested, texture, residual)
+            in_texture = not (f < 0.5 * (0.5 + self.f_rand) and f < 0.5 - 4 * se)
+        return _Verdict(holds, inl, share_tested, in_texture, residual)
 
     def test_revolution(self, axis: np.ndarray, c: np.ndarray) -> _Verdict:
         """Every turn about the axis (the worst of `continuous_steps` angles)."""
@@ -282,7 +283,7 @@ def detect_symmetries(surface: Surface, surface_sigma: float, params: SymmetryPa
         if v.holds:  # a body of revolution: every other turn is one of its own times a flip
             continuous.append((a, c, v.texture))
             flip = axis_rotation(next(b for b in axes if b is not a), c, np.pi)
-            if det.test(flip).holds:
+            if det.test(flip, texture=False).holds:
                 gens.append(flip)
             break
     if not continuous:
@@ -290,10 +291,10 @@ def detect_symmetries(surface: Surface, surface_sigma: float, params: SymmetryPa
         round_axes: list[np.ndarray] = []  # 4-fold axes: no preferred perpendicular direction (equal moments)
         for a in axes:
             R4 = axis_rotation(a, c, np.pi / 2)
-            if det.test(R4).holds:
+            if det.test(R4, texture=False).holds:
                 gens.append(R4)
                 round_axes.append(a)
-            elif det.test(axis_rotation(a, c, np.pi)).holds:
+            elif det.test(axis_rotation(a, c, np.pi), texture=False).holds:
                 gens.append(axis_rotation(a, c, np.pi))
                 flips.append(a)
         for a in round_axes:
@@ -303,14 +304,15 @@ def detect_symmetries(surface: Surface, surface_sigma: float, params: SymmetryPa
             ref = next(b for b in axes if b is not a)
 
             def residual(theta_deg: float, a: np.ndarray = a, ref: np.ndarray = ref) -> float:
-                return det.test(axis_rotation(_perpendicular(a, ref, np.radians(theta_deg)), c, np.pi)).residual
+                S = axis_rotation(_perpendicular(a, ref, np.radians(theta_deg)), c, np.pi)
+                return det.test(S, texture=False).residual
 
             step = params.plane_step_deg
             th = min((float(x) for x in np.arange(0.0, 90.0, 5 * step)), key=residual)
             th = min((th + k * step for k in range(-5, 6)), key=residual)
             th = min((th + k * step / 5 for k in range(-5, 6)), key=residual)
             R2 = axis_rotation(_perpendicular(a, ref, np.radians(th)), c, np.pi)
-            if det.test(R2).holds:
+            if det.test(R2, texture=False).holds:
                 gens.append(R2)
     group = _closure(gens)[1:]
     disc, disc_tex = [], []
