@@ -144,6 +144,30 @@ class _PrintableFormatter(logging.Formatter):
         return printable(super().format(record))
 
 
+def symmetry_texts(sym: dict) -> list[str]:
+    """A text per symmetry of a "symmetries" JSON object (`info`, `scan --json`): the axis of revolution with a point
+    on it (mm), each turn's angle and axis (object frame), and whether it holds in the texture too; ["none found"]
+    without any."""
+    import numpy as np
+
+    from gscan.geometry.symmetry import Symmetries, turn_of
+
+    s = Symmetries.from_json(sym)
+
+    def vec(x: np.ndarray, scale: float = 1.0) -> str:
+        return "(" + ", ".join(f"{float(c) * scale + 0.0:.3g}" for c in x) + ")"
+
+    def held(t: bool) -> str:
+        return "shape and texture" if t else "shape only"
+
+    out = [f"revolution about axis {vec(a)} through {vec(o, 1000.0)} mm ({held(t)})"
+           for (a, o), t in zip(s.continuous, s.continuous_in_texture, strict=True)]
+    for S, t in zip(s.discrete, s.discrete_in_texture, strict=True):
+        axis, angle = turn_of(S)
+        out.append(f"{angle:.0f} deg about axis {vec(axis)} ({held(t)})")
+    return out or ["none found"]
+
+
 def setup_logging(verbose: bool) -> None:
     """Log lines on stderr: INFO and up with -v, else warnings and errors."""
     handler = logging.StreamHandler(sys.stderr)

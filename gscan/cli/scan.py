@@ -10,7 +10,16 @@ import typer
 
 from gscan.cli.choices import ScanFormat, ScanMode
 from gscan.cli.imports import SCAN_IMPORTS, import_holding_ctrl_c
-from gscan.cli.output import UsageError, coverage_text, err, print_json, say, say_interrupted, setup_logging
+from gscan.cli.output import (
+    UsageError,
+    coverage_text,
+    err,
+    print_json,
+    say,
+    say_interrupted,
+    setup_logging,
+    symmetry_texts,
+)
 from gscan.cli.texts import DEPTH_INTRINSICS_HELP, DEPTH_TO_COLOR_HELP, JSON_HELP
 
 
@@ -133,6 +142,7 @@ def print_scan_summary(result: Any) -> None:
     for k, part in enumerate(result.parts, 1):
         say((f"separate part {k}:", "yellow"), f" {len(part)} frames ({', '.join(part)}), not joined to the "
             "template's frames with confidence: scanned again with views between them, they can be")
+    say(("symmetries:", "bold"), " " + "; ".join(symmetry_texts(result.symmetries.to_json())))
 
 
 def template_from_mesh(
@@ -155,7 +165,8 @@ def template_from_mesh(
         result = render_template(mesh, output, n_views=views, scale=scale, force=force, progress=progress)
     if json_out:  # the `template-from-mesh --json` object (TemplateResult has no to_json: gscan.scanning.cad)
         print_json({"output": str(result.output), "views": result.views, "descriptor": result.descriptor,
-                    "source": result.source, "extent_m": list(result.extent_m)})
+                    "source": result.source, "extent_m": list(result.extent_m),
+                    "symmetries": result.symmetries.to_json()})
     else:
         say((str(output), "bold"), f": {result.views} views rendered from {mesh}")
 

@@ -6,7 +6,7 @@ from pathlib import Path
 import typer
 
 from gscan.cli.choices import ExportFormat
-from gscan.cli.output import coverage_lines, err, format_pose, line, part_lines, print_json
+from gscan.cli.output import coverage_lines, err, format_pose, line, part_lines, print_json, symmetry_texts
 from gscan.cli.texts import JSON_HELP
 
 
@@ -66,6 +66,9 @@ def info(
             continue
         if k == "coverage":
             coverage_lines(v)
+        elif k == "symmetries":
+            for text in symmetry_texts(v):
+                line(f"symmetry: {text}")
             continue
         if k == "mesh" and v is not None:
             holes = " (export closes them; --keep-holes keeps them)" if v["open_edges"] else ", watertight"

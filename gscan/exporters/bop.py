@@ -4,7 +4,8 @@ Layout (BOP toolkit conventions, docs/bop_datasets_format.md; millimetres, row-m
 
     camera.json                       {cx, cy, fx, fy, width, height, depth_scale}
     models/obj_000001.ply             template mesh in mm with vertex normals and colours
-    models/models_info.json           {"1": {diameter, min_x/y/z, size_x/y/z}} in mm
+    models/models_info.json           {"1": {diameter, min_x/y/z, size_x/y/z[, symmetries_discrete,
+                                      symmetries_continuous]}} in mm
     models_eval/obj_000001.ply        the same mesh, models_info.json the same: the models the BOP toolkit's
     models_eval/models_info.json      scorer reads (BOP resamples its CAD models there for even vertex spacing;
                                       a TSDF mesh's vertices already lie about one voxel apart)
@@ -17,6 +18,13 @@ Layout (BOP toolkit conventions, docs/bop_datasets_format.md; millimetres, row-m
                                                 px_count_visib, visib_fract}]}
     test_targets_bop19.json           [{im_id, inst_count: 1, obj_id: 1, scene_id: 1}] (evaluation targets)
     gscan_views.json                  {im_id: template view name} (gscan's own addition)
+
+Symmetries (the template's, `TemplateDB.symmetries`): those that hold in shape and texture, as BOP keeps them (its
+potential symmetries by shape, less those the texture resolves: the BOP Challenge 2019 page, section 2.3 of Hodan
+et al., "BOP Challenge 2020 on 6D Object Localization"); `symmetries_discrete` lists each turn as a row-major 4 x 4
+`T_obj_obj'` flattened to 16 numbers, translation in mm, `symmetries_continuous` each axis of revolution as
+{"axis": [3] unit, "offset": [3] mm, a point on it}, what `bop_toolkit_lib.misc.get_symmetry_transformations` reads.
+A template without symmetries gets neither key (BOP's own asymmetric objects have none).
 
 The mesh is closed into a watertight model (`close`, see `gscan.exporters.watertight`: the scan's mesh is
 open where the support plane cut it), which is what BOP's renderers and scorers expect.
@@ -41,6 +49,7 @@ import numpy as np
 from gscan.errors import InputError
 from gscan.evaluate.metrics import diameter
 from gscan.exporters.common import MeshRaycaster, bbox_xywh, imwrite, posed_views, template_mesh
+from gscan.geometry.symmetry import Symmetries
 from gscan.geometry.transforms import inv_T
 from gscan.template.codec import depth_to_mm_u16
 from gscan.template.db import MeshData, TemplateDB
@@ -81,13 +90,31 @@ def write_ply_mm(mesh: MeshData, path: Path) -> None:
     path.write_bytes(header.encode("ascii") + verts.tobytes() + faces.tobytes())
 
 
-def models_info(mesh: MeshData) -> dict:
-    """BOP models_info entry (mm): diameter (largest vertex distance) and the axis-aligned box."""
+def models_info(mesh: MeshData, symmetries: Symmetries | None = None) -> dict:
+    """BOP models_info entry (mm): diameter (largest vertex distance), the axis-aligned box and the symmetries that
+    hold in shape and texture (module docstring)."""
     V = np.asarray(mesh.vertices, dtype=np.float64) * 1000.0
     diam = diameter(V)
     lo, hi = V.min(axis=0), V.max(axis=0)
-    return {"diameter": diam, "min_x": float(lo[0]), "min_y": float(lo[1]), "min_z": float(lo[2]),
+    info = {"diameter": diam, "min_x": float(lo[0]), "min_y": float(lo[1]), "min_z": float(lo[2]),
             "size_x": float(hi[0] - lo[0]), "size_y": float(hi[1] - lo[1]), "size_z": float(hi[2] - lo[2])}
+    return info | bop_symmetries(symmetries or Symmetries())
+
+
+def bop_symmetries(symmetries: Symmetries) -> dict:
+    """The `symmetries_discrete` / `symmetries_continuous` keys of a models_info entry (mm; module docstring) for the
+    symmetries that hold in shape and texture; {} without any."""
+    s = symmetries.in_texture()
+    out: dict = {}
+    if s.discrete:
+        scale = np.ones((4, 4))
+        scale[:3, 3] = 1000.0  # the translation column in mm
+        out["symmetries_discrete"] = [[float(x) for x in (np.asarray(S, np.float64) * scale).reshape(-1)]
+                                      for S in s.discrete]
+    if s.continuous:
+        out["symmetries_continuous"] = [{"axis": [float(x) for x in a], "offset": [float(x) * 1000.0 for x in o]}
+                                        for a, o in s.continuous]
+    return out
 
 
 def write_bop(db: TemplateDB, out: Path, close: bool = True) -> int:
@@ -111,7 +138,7 @@ def write_bop(db: TemplateDB, out: Path, close: bool = True) -> int:
            "height": intr0.height, "width": intr0.width}
     _dump(out / "camera.json", cam)
     if mesh is not None:
-        info = {str(OBJ_ID): models_info(mesh)}
+        info = {str(OBJ_ID): models_info(mesh, db.symmetries())}
         for models in ("models", "models_eval"):
             (out / models).mkdir()
             write_ply_mm(mesh, out / models / f"obj_{OBJ_ID:06d}.ply")

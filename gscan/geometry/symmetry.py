@@ -29,6 +29,33 @@ def axis_rotation(axis: np.ndarray, offset: np.ndarray, angle_rad: float) -> np.
     return make_T(R, c - R @ c)
 
 
+def turn_of(S: np.ndarray) -> tuple[np.ndarray, float]:
+    """(unit axis [3], angle in degrees in [0, 360)) of the rotation part of S [4 x 4], turning right-handed about
+    the axis, whose largest component is positive (so a turn and its inverse read 90 and 270 degrees about one
+    axis); the identity is 0 degrees about (0, 0, 1)."""
+    from scipy.spatial.transform import Rotation
+
+    rv = Rotation.from_matrix(np.asarray(S, dtype=np.float64)[:3, :3]).as_rotvec()
+    angle = float(np.linalg.norm(rv))
+    if angle < 1e-9:
+        return np.array([0.0, 0.0, 1.0]), 0.0
+    axis = rv / angle
+    if axis[int(np.argmax(np.abs(axis)))] < 0:
+        axis, angle = -axis, 2 * np.pi - angle
+    return axis + 0.0, float(np.degrees(angle))
+
+
+@dataclass(frozen=True)
+class SymmetryAxis:
+    """An axis of symmetry (object frame, metres): unit `direction` [3], a `point` [3] on it, its `fold` (n for the
+    turns by 360/n degrees about it, 0 for revolution) and whether those turns hold in texture too."""
+
+    direction: np.ndarray
+    point: np.ndarray
+    fold: int
+    in_texture: bool
+
+
 @dataclass(frozen=True)
 class Symmetries:
     """An object's symmetries (module docstring). Empty: none known."""
@@ -70,6 +97,29 @@ class Symmetries:
         base = list(out)
         for D in self.discrete:
             out += [S @ D for S in base]
+        return out
+
+    def axes(self) -> list[SymmetryAxis]:
+        """The axes of symmetry: each axis of revolution, then each axis the discrete turns are about (turns about
+        one axis grouped: its fold from the smallest of them; in texture when all of them are)."""
+        out = [SymmetryAxis(np.asarray(a, float), np.asarray(o, float), 0, t)
+               for (a, o), t in zip(self.continuous, self.continuous_in_texture, strict=True)]
+        groups: list[tuple[np.ndarray, np.ndarray, list[float], list[bool]]] = []
+        for S, t in zip(self.discrete, self.discrete_in_texture, strict=True):
+            axis, angle = turn_of(S)
+            S = np.asarray(S, dtype=np.float64)
+            point = np.linalg.lstsq(np.eye(3) - S[:3, :3], S[:3, 3], rcond=1e-6)[0]  # fixed points: the axis
+            point = point - axis * float(point @ axis)
+            for a, p, angles, flags in groups:
+                if abs(float(a @ axis)) > 1 - 1e-6 and np.linalg.norm(p - point) < 1e-6:
+                    angles.append(angle)
+                    flags.append(t)
+                    break
+            else:
+                groups.append((axis, point, [angle], [t]))
+        for a, p, angles, flags in groups:
+            step = min(min(x, 360.0 - x) for x in angles)
+            out.append(SymmetryAxis(a, p, max(2, int(round(360.0 / step))), all(flags)))
         return out
 
     def to_json(self) -> dict:

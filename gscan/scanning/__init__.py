@@ -2,7 +2,7 @@
 
 - api: `scan(source, output, options) -> ScanResult` (what `gscan scan` runs)
 - options: `ScanOptions` (every option of one scan, one typed value)
-- pipeline: the stages (camera, mode, load, features, noise, register, posegraph, segment, fuse, database),
+- pipeline: the stages (camera, mode, load, features, noise, register, posegraph, segment, fuse, symmetry, database),
   `ScanResult`; frames: the input's frames loaded and read back; output: the database, new or resumed; camera:
   the colour focal length checked before the scan
 - select: frame selection (`FrameSelector`: the frames a scan keeps, by motion and sharpness)

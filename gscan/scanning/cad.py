@@ -16,11 +16,14 @@ voxel-downsampled; the template mesh is the input mesh with per-vertex colours s
 Textures: OBJ + MTL + image via `gscan.synth.load_textured_mesh`; meshes with per-vertex colours
 (PLY, GLB without texture) are rendered with flat per-face colours (the mean of the face's vertex
 colours); meshes with neither render grey.
+
+Symmetries (`gscan.scanning.symmetry`) are found on the exact mesh with colours from its texture, to the template
+cloud's resolution (surface error voxel / 2), and stored in the "symmetries" meta.
 """
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -30,10 +33,12 @@ from gscan.errors import InputError
 from gscan.features import OBJECT_FEATURES, FeatureParams, extract_features
 from gscan.geometry.coverage import template_coverage
 from gscan.geometry.pointset import voxel_mean
+from gscan.geometry.symmetry import Symmetries
 from gscan.geometry.transforms import look_at, transform_points
 from gscan.io.camera import RGBDFrame, backproject
 from gscan.io.output import Output, remove_sqlite_sidecars
 from gscan.progress import NullProgress, Progress
+from gscan.scanning.symmetry import SymmetryParams, detect_symmetries, surface_of_textured_mesh
 from gscan.synth import DEFAULT_INTRINSICS, SynthScene, TexturedMesh, load_textured_mesh
 from gscan.template.db import TemplateDB, View
 
@@ -106,18 +111,20 @@ def _voxel_cloud(points: np.ndarray, colors: np.ndarray, voxel: float) -> tuple[
 @dataclass(frozen=True)
 class TemplateResult:
     """A template rendered from a mesh: the database written, its number of views, descriptor kind, source
-    ("mesh") and the object's extent [3] (m, mesh frame)."""
+    ("mesh"), the object's extent [3] (m, mesh frame) and its symmetries (mesh frame)."""
 
     output: Path
     views: int
     descriptor: str
     source: str
     extent_m: tuple[float, float, float]
+    symmetries: Symmetries = field(default_factory=Symmetries)
 
 
 def template_from_mesh(mesh_path: str | Path, output: str | Path, *, n_views: int = 36, scale: float = 1.0,
                        force: bool = False, progress: Progress | None = None,
-                       feature_params: FeatureParams | None = None) -> TemplateResult:
+                       feature_params: FeatureParams | None = None,
+                       symmetry_params: SymmetryParams | None = None) -> TemplateResult:
     """Render `n_views` snapshots of a textured mesh into a new template database (the mesh's frame is kept).
 
     Args:
@@ -128,9 +135,10 @@ def template_from_mesh(mesh_path: str | Path, output: str | Path, *, n_views: in
         force: replace an existing `output`.
         progress: stage progress reporting, none by default.
         feature_params: the keypoints stored (default: the estimator's query keypoints, OBJECT_FEATURES).
+        symmetry_params: how the mesh's symmetries are found (default `SymmetryParams()`; `enabled=False`: not).
 
     Returns:
-        TemplateResult: output, views, descriptor kind, source "mesh", extent_m [3].
+        TemplateResult: output, views, descriptor kind, source "mesh", extent_m [3], symmetries.
 
     Raises:
         InputError: naming the file, for a missing / unreadable / degenerate mesh, a bad `n_views` or `scale`,
@@ -143,6 +151,7 @@ def template_from_mesh(mesh_path: str | Path, output: str | Path, *, n_views: in
         raise InputError(mesh_path, f"scale must be positive, not {scale}")
     progress = progress or NullProgress()
     feature_params = feature_params or OBJECT_FEATURES  # the estimator's query keypoints
+    symmetry_params = symmetry_params or SymmetryParams()
     mesh = _load_mesh(mesh_path, scale)
     if mesh.radius <= 0:
         raise InputError(mesh_path, "mesh is degenerate (all vertices coincide)")
@@ -180,10 +189,15 @@ def template_from_mesh(mesh_path: str | Path, output: str | Path, *, n_views: in
             db.set_cloud(P, C)
             db.set_mesh(mesh.to_mesh())
             db.set_meta("coverage", template_coverage(poses, mesh.to_mesh()).to_meta())  # mesh frame: +z is the top
+            symmetries = Symmetries()
+            if symmetry_params.enabled:
+                symmetries = detect_symmetries(surface_of_textured_mesh(mesh, symmetry_params.reference_samples),
+                                               0.5 * voxel, symmetry_params)
+            db.set_meta("symmetries", symmetries.to_json())
             db.mark_complete()
             x, y, z = (float(v) for v in db.extent())
             result = TemplateResult(output=output, views=int(n_views), descriptor=feature_params.kind, source="mesh",
-                                    extent_m=(x, y, z))
+                                    extent_m=(x, y, z), symmetries=symmetries)
             advance(1)
         log.info("%s: %d views, %d keypoints, cloud %d points", output, n_views, n_kp, len(P))
     except BaseException as e:  # the sibling goes; an existing output stays as it was

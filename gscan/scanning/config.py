@@ -4,9 +4,9 @@ convention), loaded from YAML by the CLI.
 Sections: camera (`FocalCheckParams`), selection (`SelectionParams`), features (`FeatureParams`), registration
 (`RegisterParams`, GMatch's settings in registration.gmatch), posegraph (`SequenceParams`: which pairs are
 registered, the noise estimate, the pose graph), segmentation (`SegmentParams`), fusion (`FusionParams`), keyframes
-(`KeyframeParams`), join (`JoinParams`: how the captures of a scan of several are joined). `gscan config dump`
-prints them as commented YAML. The defaults that depend on the capture (a static scene's whole frames, a moving
-object's masked views) are set by one function, `for_capture`.
+(`KeyframeParams`), join (`JoinParams`: how the captures of a scan of several are joined), symmetry
+(`SymmetryParams`). `gscan config dump` prints them as commented YAML. The defaults that depend on the capture (a
+static scene's whole frames, a moving object's masked views) are set by one function, `for_capture`.
 """
 from __future__ import annotations
 
@@ -26,6 +26,7 @@ from gscan.scanning.fuse import FusionParams
 from gscan.scanning.keyframes import KeyframeParams
 from gscan.scanning.segment import SegmentParams
 from gscan.scanning.select import SelectionParams
+from gscan.scanning.symmetry import SymmetryParams
 from gscan.settings import dump_yaml, read_yaml, validate
 
 # sections another reader takes from the same file (`gscan.estimate.settings.load_estimate_params`): accepted here
@@ -50,6 +51,7 @@ class ScanConfig(BaseModel):
     fusion: FusionParams = FusionParams()
     keyframes: KeyframeParams = KeyframeParams()
     join: JoinParams = JoinParams()
+    symmetry: SymmetryParams = SymmetryParams()
 
     @model_validator(mode="before")
     @classmethod

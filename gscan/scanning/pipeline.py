@@ -19,6 +19,7 @@ Stages (each timed, each reported through a `Progress`):
             stay unregistered and are never fused
   segment   object masks (given, background subtraction, or support plane + working volume)
   fuse      TSDF fusion of the object's depth; template frame (fuse.template_frame)
+  symmetry  the object's symmetries on the fused mesh (`gscan.scanning.symmetry`), stored in the "symmetries" meta
   database  poses, masks, keyframes and keypoints in the object frame, mesh, cloud; status complete
 
 Memory does not grow with the capture: after the load a stage holds a few frames at a time, reading their
@@ -56,6 +57,7 @@ from gscan.features import (
 )
 from gscan.geometry.coverage import template_coverage
 from gscan.geometry.plane import Plane
+from gscan.geometry.symmetry import Symmetries
 from gscan.geometry.transforms import transform_points
 from gscan.io.camera import RGBDFrame
 from gscan.io.captures import CaptureInput, capture_inputs
@@ -85,6 +87,7 @@ from gscan.scanning.output import create_output, open_appended, open_resumed, sc
 from gscan.scanning.segment import SegmentParams, segment_frame
 from gscan.scanning.select import BLURRED, LITTLE_MOTION, Selection
 from gscan.scanning.store import FrameStore, LazyList, StoredFrame
+from gscan.scanning.symmetry import scan_symmetries
 from gscan.template.db import Edge, TemplateDB, View
 
 if TYPE_CHECKING:
@@ -123,6 +126,7 @@ class ScanResult:
     # the colour camera's check (`check_camera`): given and used focal lengths, texture agreement; None: not run
     camera: dict | None = None
     coverage: dict | None = None  # {"share": float, "missing": [sentences]} (`gscan.geometry.coverage`)
+    symmetries: Symmetries = field(default_factory=Symmetries)  # the object's (object frame)
 
     def to_json(self) -> dict:
         """The `scan --json` object of the CLI contract."""
@@ -134,8 +138,8 @@ class ScanResult:
                 "mode": self.mode, "mesh": {"vertices": self.mesh_vertices, "triangles": self.mesh_triangles},
                 "timings_s": {k: round(v, 3) for k, v in self.timings_s.items()},
                 "skipped": dict(self.problems), "keyframes": self.keyframes, "selection": dict(self.selection),
-                "camera": self.camera, "coverage": self.coverage, "damage": list(self.damage)} | (
-                    {"captures": list(self.captures)} if self.captures else {})
+                "camera": self.camera, "coverage": self.coverage, "symmetries": self.symmetries.to_json(),
+                "damage": list(self.damage)} | ({"captures": list(self.captures)} if self.captures else {})
 
 
 def _icp_voxel(cfg: ScanConfig) -> float | None:
@@ -402,6 +406,13 @@ def _scan_frames(caps: list[_Capture], output: Path, opts: ScanOptions, db: Temp
     cfg = for_capture(opts.config, first.mode)
     problems = {n_: why for cap in caps for n_, why in cap.problems.items()}
     selection = _merged_selection(caps)
+    with timer.stage("symmetry", total=1) as advance:  # on the fused mesh, at the cameras' median distance
+        dist = np.median([np.linalg.norm((T_obj_world @ T)[:3, 3]) for T in T_world_cam if T is not None])
+        symmetries = scan_symmetries(model.mesh.transformed(T_obj_world), model.voxel_size,
+                                     first.reg.rparams.depth_noise, float(dist), opts.config.symmetry)
+        db.set_meta("symmetries", symmetries.to_json())
+        advance(1)
+
     with timer.stage("database", total=n + 1) as advance, db.batch():
         T_obj_cam = [None if T is None else T_obj_world @ T for T in T_world_cam]
         keyframes = _store_views(data, T_obj_cam, mask_of, quality, cfg, db, advance)
@@ -447,7 +458,7 @@ def _scan_frames(caps: list[_Capture], output: Path, opts: ScanOptions, db: Temp
                       mesh_vertices=len(mesh.vertices), mesh_triangles=len(mesh.triangles),
                       timings_s=dict(timer.timings), problems=problems, keyframes=len(keyframes),
                       unregistered_reasons=reasons | problems, parts=parts, noise=first.reg.rparams.noise,
-                      selection=selection.summary(), coverage=coverage.to_json(),
+                      selection=selection.summary(), coverage=coverage.to_json(), symmetries=symmetries,
                       damage=[line for cap in caps if cap.seq is not None for line in cap.seq.damage], captures=(
                           [_capture_summary(cap) for cap in caps] if not opts.append else
                           [{k: c.get(k) for k in _capture_summary(caps[1])} for c in db.get_meta("captures")]))

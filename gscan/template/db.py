@@ -44,6 +44,7 @@ from gscan.errors import GscanError, InputError, not_a_file
 from gscan.features import Features
 from gscan.geometry.coverage import CoverageMap
 from gscan.geometry.mesh import MeshData, to_u8_colors
+from gscan.geometry.symmetry import Symmetries
 from gscan.geometry.transforms import is_rigid
 from gscan.io.camera import Intrinsics
 from gscan.io.images import image_too_large
@@ -756,6 +757,13 @@ class TemplateDB:
             return CoverageMap.from_meta(meta)
         except ValueError as e:
             raise InputError(self.path, f"malformed coverage record: {e}") from None
+    def symmetries(self) -> Symmetries:
+        """The object's symmetries (its "symmetries" meta, `Symmetries.to_json`'s form; none when absent, as in
+        templates written before symmetries were found). InputError naming the database for a malformed one."""
+        try:
+            return Symmetries.from_json(self.get_meta("symmetries"))
+        except ValueError as e:
+            raise InputError(self.path, f"meta 'symmetries': {e}") from None
 
     def parts(self) -> list[list[str]]:
         """The frames of each part of the capture that no confident edge joins to the template's frames (largest

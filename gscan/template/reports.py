@@ -11,6 +11,7 @@ import numpy as np
 
 from gscan.geometry.coverage import CoverageMap
 from gscan.geometry.meshfill import boundary_edges
+from gscan.geometry.symmetry import Symmetries
 from gscan.template.db import TemplateDB
 from gscan.template.records import TemplateSummary
 
@@ -28,13 +29,15 @@ class MeshSize:
 @dataclass(frozen=True)
 class TemplateInfo:
     """What a template database holds (`summary`), its mesh's size (None: no mesh), the scan's colour camera
-    check (the "camera" meta of gscan.scanning.calibration; None: not run) and its coverage of viewing
-    directions (`TemplateDB.coverage`; None: unknown, a template made before it was recorded)."""
+    check (the "camera" meta of gscan.scanning.calibration; None: not run), its coverage of viewing directions
+    (`TemplateDB.coverage`; None: unknown, a template made before it was recorded) and the object's symmetries
+    (none when not found or not searched)."""
 
     summary: TemplateSummary
     mesh: MeshSize | None
     camera: dict[str, Any] | None
     coverage: CoverageMap | None = None
+    symmetries: Symmetries = field(default_factory=Symmetries)
 
     def to_json(self) -> dict[str, Any]:
         """The `info --json` object."""
@@ -44,15 +47,17 @@ class TemplateInfo:
                 "extent_m": list(s.extent_m), "grasps": list(s.grasps),
                 "unregistered_reasons": dict(s.unregistered_reasons), "selection": dict(s.selection),
                 "parts": [list(p) for p in s.parts], "mesh": None if self.mesh is None else asdict(self.mesh),
-                "camera": self.camera, "coverage": None if self.coverage is None else self.coverage.to_json()}
+                "camera": self.camera, "coverage": None if self.coverage is None else self.coverage.to_json(),
+                "symmetries": self.symmetries.to_json()}
 
 
 def template_info(path: str | Path) -> TemplateInfo:
     """The summary of the template database at `path` (a partial one too; InputError naming a bad file)."""
     with TemplateDB.open(path, require_complete=False) as db:
-        summary, m, camera, coverage = db.summary(), db.mesh(), db.get_meta("camera"), db.coverage()
+        summary, m, camera = db.summary(), db.mesh(), db.get_meta("camera")
+        coverage, symmetries = db.coverage(), db.symmetries()
     mesh = None if m is None else MeshSize(len(m.vertices), len(m.triangles), len(boundary_edges(m.triangles)))
-    return TemplateInfo(summary, mesh, camera, coverage)
+    return TemplateInfo(summary, mesh, camera, coverage, symmetries)
 
 
 @dataclass(frozen=True)

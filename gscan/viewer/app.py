@@ -39,7 +39,7 @@ from gscan.template.db import Edge, View, unregistered_names
 from gscan.viewer.access import TokenGate, check_token
 from gscan.viewer.data import ViewerData, ViewerOptions, load_viewer_data
 from gscan.viewer.draw import draw_keypoints, draw_matches, legend_html
-from gscan.viewer.scene import build_scene
+from gscan.viewer.scene import build_scene, symmetry_label
 from gscan.viewer.text import md_text
 
 log = logging.getLogger(__name__)
@@ -179,6 +179,10 @@ class ViewerApp:
                    f"size: {d.size * 100:.1f} cm  ", coverage_markdown(d.coverage)]
         if unreg:
             summary.append(f"  \n**unregistered ({len(unreg)}):** " + ", ".join(md_text(n) for n in unreg))
+        axes = d.symmetries.axes()
+        summary.append("  \n**symmetries:** " + (", ".join(
+            f"{symmetry_label(a.fold, a.in_texture)} about ({', '.join(f'{x + 0.0:.2f}' for x in a.direction)})"
+            for a in axes) if axes else "none found"))
         if has_frame:
             summary.append("  \n**query frame:** " + ("pose not found (cloud not placed)" if T_cam_obj is None
                                                        else "cloud placed by the estimated pose"))
@@ -187,7 +191,7 @@ class ViewerApp:
         with gui.add_folder("Layers", expand_by_default=False):
             toggles = [("Mesh", "mesh"), ("Cloud", "cloud"), ("Frustums", "frustums"), ("Edges", "edges"),
                        ("Rejected edges", "rejected"), ("3D keypoints", "keypoints"), ("Grasps", "grasps"),
-                       ("Query frame", "scene"), ("Coverage", "coverage")]
+                       ("Symmetry axes", "symmetries"), ("Query frame", "scene"), ("Coverage", "coverage")]
             for label, key in toggles:
                 if self.layers.get(key):
                     cb = gui.add_checkbox(label, initial_value=all(h.visible for h in self.layers[key]))

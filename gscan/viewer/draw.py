@@ -49,6 +49,14 @@ def coverage_colors(counts: np.ndarray, surface: np.ndarray | None = None) -> np
     if surface is not None:
         c[(np.asarray(counts) == 0) & np.asarray(surface, dtype=bool)] = SURFACE_SEEN_COLOR
     return c
+def symmetry_color(fold: int, in_texture: bool) -> tuple[int, int, int]:
+    """An axis of symmetry's colour: revolution magenta, a 4-fold (or higher) axis orange, a 2-fold one cyan; pale
+    when it holds in shape alone (the texture tells the turned poses apart)."""
+    base = (220, 40, 220) if fold == 0 else (240, 140, 20) if fold >= 3 else (20, 190, 220)
+    if in_texture:
+        return base
+    r, g, b = (int(round(0.45 * c + 0.55 * 235)) for c in base)
+    return r, g, b
 
 
 def thumbnail(img: np.ndarray, max_side: int) -> np.ndarray:

@@ -2,9 +2,10 @@
 cloud, one camera frustum per registered view with its snapshot (coloured by quality, click selects the
 view), pose-graph edges between camera centres, the views' 3D keypoints, grasp frames, the coverage map
 (`coverage_points`: a sphere of points around the object, one per direction cell, coloured by how many views
-saw the object from there, blue where only the observed surface did, grey where nothing did), and optionally
-a query frame's cloud placed by an estimated pose. `build_scene` returns each layer's handles (`SceneLayers`);
-the viewer app (`gscan.viewer.app.ViewerApp`) holds them.
+saw the object from there, blue where only the observed surface did, grey where nothing did), the object's axes
+of symmetry (`symmetry_segments`), and optionally a query frame's cloud placed by an estimated pose.
+`build_scene` returns each layer's handles (`SceneLayers`); the viewer app (`gscan.viewer.app.ViewerApp`) holds
+them.
 """
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from gscan.geometry.coverage import CoverageMap
+from gscan.geometry.symmetry import Symmetries
 from gscan.geometry.transforms import inv_T, transform_points
 from gscan.io.camera import Intrinsics, RGBDFrame, point_cloud
 from gscan.template.db import MeshData, View
@@ -27,10 +29,11 @@ from gscan.viewer.draw import (
     edge_color,
     hue_colors,
     quality_color,
+    symmetry_color,
     thumbnail,
 )
 
-LAYERS = ("mesh", "cloud", "frustums", "edges", "rejected", "keypoints", "scene", "grasps", "coverage")
+LAYERS = ("mesh", "cloud", "frustums", "edges", "rejected", "keypoints", "scene", "grasps", "coverage", "symmetries")
 COVERAGE_RADIUS = 0.75  # the coverage map's sphere, in object sizes about the object's centre
 
 
@@ -121,6 +124,12 @@ def build_scene(server: Any, data: ViewerData, options: ViewerOptions, frame: RG
     if d.coverage is not None:
         pts, cols = coverage_points(d.coverage, d.center, d.size)
         layers["coverage"].append(sc.add_point_cloud("/coverage", pts, cols, point_size=0.04 * s))
+    seg, seg_cols, labels = symmetry_segments(d.symmetries, d.center, s)
+    if len(seg):
+        layers["symmetries"].append(sc.add_line_segments("/symmetries/axes", seg, seg_cols, thickness=4.0,
+                                                         thickness_units="screen"))
+        for i, (text, at) in enumerate(labels):
+            layers["symmetries"].append(sc.add_label(f"/symmetries/label_{i}", text, position=at))
     scene_points_obj = None
     if frame is not None and T_cam_obj is not None:
         T_obj_cam = inv_T(np.asarray(T_cam_obj, dtype=np.float64))
@@ -139,6 +148,26 @@ def coverage_points(coverage: CoverageMap, center: np.ndarray, size: float) -> t
     (object frame), one per cell, and their [K x 3] uint8 colours (`coverage_colors`)."""
     pts = np.asarray(center, dtype=np.float64) + coverage.directions_obj * COVERAGE_RADIUS * size
     return pts.astype(np.float32), coverage_colors(coverage.counts, coverage.surface)
+def symmetry_label(fold: int, in_texture: bool) -> str:
+    """What an axis of symmetry is called in the scene and the GUI: "revolution" or "n-fold", and what it holds in."""
+    return ("revolution" if fold == 0 else f"{fold}-fold") + (" (shape+texture)" if in_texture else " (shape)")
+
+
+def symmetry_segments(symmetries: Symmetries, center: np.ndarray, size: float
+                      ) -> tuple[np.ndarray, np.ndarray, list[tuple[str, np.ndarray]]]:
+    """The axes of symmetry as drawn: segments [K x 2 x 3] float32 (1.5 x the object's size, centred where the axis
+    passes nearest the object's centre [3]), their colours [K x 2 x 3] uint8 (`symmetry_color`) and a label
+    (text, position [3]) at one end of each."""
+    seg, cols, labels = [], [], []
+    for ax in symmetries.axes():
+        mid = ax.point + ax.direction * float((np.asarray(center) - ax.point) @ ax.direction)
+        a, b = mid - 0.75 * size * ax.direction, mid + 0.75 * size * ax.direction
+        seg.append([a, b])
+        cols.append([symmetry_color(ax.fold, ax.in_texture)] * 2)
+        labels.append((symmetry_label(ax.fold, ax.in_texture), b))
+    if not seg:
+        return np.zeros((0, 2, 3), np.float32), np.zeros((0, 2, 3), np.uint8), []
+    return np.asarray(seg, np.float32), np.asarray(cols, np.uint8), labels
 
 
 def _node(name: str) -> str:
