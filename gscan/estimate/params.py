@@ -118,6 +118,18 @@ class RivalParams:
 
 
 @dataclass(frozen=True)
+class SymmetryParams:
+    """The template's symmetries that hold in shape and texture (gscan.estimate.symmetric): rival poses that differ
+    by one are one answer, returned by a fixed rule."""
+
+    enabled: Annotated[bool, Field(description="read the template's symmetries (false: every symmetric pose is a "
+                                   "rival, as for an object without them)")] = True
+    grasp_step_deg: Annotated[float, Field(description="deg: a grasp is offered at every turn of this step about a "
+                                           "continuous axis", gt=0, le=180)] = 30.0
+    __pydantic_config__ = SETTINGS
+
+
+@dataclass(frozen=True)
 class RefineParams:
     """Stage 5: anchored point-to-plane ICP (gscan.estimate.refine)."""
 
@@ -195,6 +207,8 @@ class EstimateParams:
         default_factory=AcceptParams)
     rivals: Annotated[RivalParams, Field(description="rival poses of an accepted one")] = field(
         default_factory=RivalParams)
+    symmetry: Annotated[SymmetryParams, Field(description="the object's symmetries")] = field(
+        default_factory=SymmetryParams)
     pnp: Annotated[PnPParams, Field(description="2D-3D fallback without depth")] = field(default_factory=PnPParams)
     holes: Annotated[HoleParams, Field(description="2D-3D in the depth's holes")] = field(default_factory=HoleParams)
     threads: Annotated[ThreadParams, Field(description="threads while estimating")] = field(

@@ -15,6 +15,9 @@ rivals (`ListVerifier`).
   accepted at another pose is compared with the accepted pose on the query keypoints that support one pose and
   not the other (a sign test at level `rivals.p`): the pose they significantly favour is returned; when neither
   is favoured the view is ambiguous (the reason starts with `AMBIGUOUS`).
+- symmetries: poses are compared up to the template's symmetries that hold in shape and texture
+  (gscan.estimate.symmetric): a rival within the tolerance of an equivalent of the accepted pose is the same answer,
+  not an ambiguous view. A symmetry in shape alone is no excuse: there the texture decides, as above.
 """
 from __future__ import annotations
 
@@ -29,6 +32,7 @@ from gscan.estimate.query import QueryFrame
 from gscan.estimate.refine import refine_pose
 from gscan.estimate.result import EstimateResult, found, not_found
 from gscan.estimate.retrieval import TemplateIndex
+from gscan.estimate.symmetric import PoseGroup
 from gscan.estimate.verify import Evidence, accept, list_spread, pose_evidence, query_sinks
 from gscan.features import Features
 from gscan.geometry.kabsch import kabsch_trimmed
@@ -50,6 +54,13 @@ class ListVerifier:
         # similarity at which a supporting keypoint's descriptor agrees (cosine for unit descriptors, else the
         # negated distance)
         self.support_sim = 1.0 - 0.5 * sd ** 2 if index.unit else -sd
+        # the poses that look alike (none when the settings ignore the template's symmetries)
+        self.group = PoseGroup.of(model.symmetries) if params.symmetry.enabled else PoseGroup()
+
+    def apart(self, T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
+        """(degrees, metres) between T_a and the nearest pose that looks as T_b does (T_b itself without
+        symmetries)."""
+        return self.group.apart(T_a, T_b) if self.group else pose_error(T_a, T_b)
 
     def evidence(self, q: QueryFrame, T_cam_obj: np.ndarray, feats: Features, S: np.ndarray,
                  q_location: np.ndarray, kp_idx: np.ndarray | None = None,
@@ -122,15 +133,15 @@ class ListVerifier:
             assert res.T_cam_obj is not None and res.evidence is not None
             if checked >= p.rivals.lists:
                 break
-            deg, dist = pose_error(r.T, res.T_cam_obj)
+            deg, dist = self.apart(r.T, res.T_cam_obj)
             if deg <= p.refine.max_turn_deg and dist <= self.model.radius:
                 continue
             checked += 1
             alt = self.verify_list(q, qk, r, refine, timer)
             if alt.T_cam_obj is None or alt.evidence is None:
                 continue
-            deg, dist = pose_error(alt.T_cam_obj, res.T_cam_obj)
-            if deg <= p.hypotheses.merge_deg and dist <= p.hypotheses.merge_dist:  # the same pose: not a rival
+            deg, dist = self.apart(alt.T_cam_obj, res.T_cam_obj)
+            if deg <= p.hypotheses.merge_deg and dist <= p.hypotheses.merge_dist:  # the same answer: not a rival
                 continue
             a, b = res.evidence.supporters, alt.evidence.supporters
             only_res, only_alt = len(np.setdiff1d(a, b)), len(np.setdiff1d(b, a))

@@ -20,6 +20,8 @@ annotated_poses/) and which show something else:
   that no correct registration joins;
 - `gap_orbit_capture`: two arcs of an orbit with a gap between them, low over a plain table: two parts of
   one scene that share no surface.
+
+And an object that looks the same from two sides: `half_turn_box`, a box printed alike under a half turn.
 """
 from __future__ import annotations
 
@@ -28,10 +30,11 @@ from pathlib import Path
 
 import numpy as np
 
-from gscan.geometry.transforms import rotvec_to_R
+from gscan.geometry.symmetry import Symmetries, axis_rotation
+from gscan.geometry.transforms import rotvec_to_R, transform_points
 from gscan.io.camera import Intrinsics
 from gscan.synth.capture import default_distance, render_capture, write_capture
-from gscan.synth.mesh import TexturedMesh, cylinder_mesh
+from gscan.synth.mesh import TexturedMesh, box_mesh, cylinder_mesh
 from gscan.synth.render import DEFAULT_INTRINSICS, Gloss, RenderedFrame
 from gscan.synth.textures import procedural_box_texture
 
@@ -196,3 +199,28 @@ def gap_orbit_capture(mesh: TexturedMesh, out_dir: str | Path, n_first: int = 6,
                             table_kind=table_kind)
     names = _names(len(frames))
     return Case(_write(out_dir, frames, intr), names, names, mesh=mesh)
+
+
+def half_turn_box(size_xyz: tuple[float, float, float], seed: int = 0,
+                  bottom_alike: bool = True) -> tuple[TexturedMesh, Symmetries]:
+    """A box centred at the origin whose print is the same after a half turn about its z axis: the -x and -y faces
+    repeat the +x and +y faces' print turned, the top's two triangles (split along a diagonal) carry one print,
+    and so does the bottom's when bottom_alike (else the bottom keeps its own print, so only the bottom tells the
+    turn). Returns the mesh and its symmetries: the three half turns hold in shape, the one about z in texture
+    too when bottom_alike."""
+    base = box_mesh(size_xyz, procedural_box_texture(seed), name="half-turn box")
+    corners = base.vertices[base.triangles]  # [12 x 3 x 3]: two triangles per face, +x -x +y -y +z -z
+    keep = [0, 1, 4, 5, 8, 10]
+    Rz = axis_rotation(np.array([0.0, 0.0, 1.0]), np.zeros(3), np.pi)
+    turned = transform_points(Rz, corners[keep].reshape(-1, 3)).reshape(-1, 3, 3)
+    tris = [corners[keep], turned[:-1] if not bottom_alike else turned]
+    uvs = [base.uv[keep], base.uv[keep[:-1]] if not bottom_alike else base.uv[keep]]
+    if not bottom_alike:
+        tris.append(corners[[11]])
+        uvs.append(base.uv[[11]])
+    flat = np.round(np.concatenate(tris).reshape(-1, 3), 9)
+    verts, inverse = np.unique(flat, axis=0, return_inverse=True)
+    mesh = TexturedMesh(verts, inverse.reshape(-1, 3).astype(np.int32), np.concatenate(uvs), base.texture,
+                        name=base.name)
+    turns = tuple(axis_rotation(np.eye(3)[i], np.zeros(3), np.pi) for i in (2, 0, 1))
+    return mesh, Symmetries(turns, (bottom_alike, False, False))
