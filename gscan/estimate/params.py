@@ -114,6 +114,9 @@ class RivalParams:
                                         "accepted list's", ge=0)] = 0.4
     p: Annotated[float, Field(description="one-sided level of the sign test that lets one of two accepted poses win",
                               gt=0, lt=1)] = 0.05
+    turn_margin: Annotated[float, Field(description="a pose and its turn by a symmetry in shape only: one wins when "
+                                        "its keypoints for it alone outnumber the other's by this fraction of the "
+                                        "keypoints for either (and the sign test)", ge=0, le=1)] = 0.15
     __pydantic_config__ = SETTINGS
 
 

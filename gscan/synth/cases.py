@@ -21,7 +21,8 @@ annotated_poses/) and which show something else:
 - `gap_orbit_capture`: two arcs of an orbit with a gap between them, low over a plain table: two parts of
   one scene that share no surface.
 
-And an object that looks the same from two sides: `half_turn_box`, a box printed alike under a half turn.
+And objects that look the same from two sides: `half_turn_box`, a box printed alike under a half turn;
+`half_turn_can`, a can whose label shows its print twice around.
 """
 from __future__ import annotations
 
@@ -224,3 +225,21 @@ def half_turn_box(size_xyz: tuple[float, float, float], seed: int = 0,
                         name=base.name)
     turns = tuple(axis_rotation(np.eye(3)[i], np.zeros(3), np.pi) for i in (2, 0, 1))
     return mesh, Symmetries(turns, (bottom_alike, False, False))
+
+
+def half_turn_can(radius: float, height: float, seed: int = 0) -> tuple[TexturedMesh, Symmetries]:
+    """An upright can (`cylinder_mesh`, axis z) whose label repeats its print twice around and whose caps' prints are
+    the same after a half turn. Returns the mesh and its symmetries: every turn about z and the flip about x hold
+    in shape, the half turn about z in texture too."""
+    tex = procedural_box_texture(seed, (512, 1024)).copy()
+    h, w = tex.shape[:2]
+    tex[h // 4:, w // 2:] = tex[h // 4:, :w // 2]  # the label: the side's texture, u in [0, 0.5) and [0.5, 1)
+    ry, rx = int(np.ceil(0.12 * h)) + 2, int(np.ceil(0.12 * w)) + 2
+    for cu in (0.25, 0.75):  # each cap's disc (uv centre (cu, 0.875)): its right half the left half turned
+        cx, cy = int(round(cu * w)), int(round(0.125 * h))
+        box = tex[cy - ry:cy + ry, cx - rx:cx + rx]
+        box[:, rx:] = box[::-1, ::-1][:, rx:].copy()
+    mesh = cylinder_mesh(radius, height, tex, name="half-turn can", segments=96)
+    z, x = np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0])
+    turns = (axis_rotation(z, np.zeros(3), np.pi), axis_rotation(x, np.zeros(3), np.pi))
+    return mesh, Symmetries(turns, (True, False), ((z, np.zeros(3)),), (False,))
