@@ -132,7 +132,7 @@ def main(argv: list[str] | None = None) -> int:
               f"{a['marked']} |")
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1) + "\n", encoding="utf-8")
-    return 1 if any(r[k]["wrong"] for r in rows for k in ("before", "after")) else 0
+    return 1 if any(r["after"]["wrong"] for r in rows) else 0  # (before: the estimator without symmetries)
 
 
 def total(rows: list[dict]) -> dict:
