@@ -36,10 +36,9 @@ from gscan.estimate.estimator import Estimator  # noqa: E402
 from gscan.estimate.params import EstimateParams, SymmetryParams  # noqa: E402
 from gscan.estimate.rivals import AMBIGUOUS  # noqa: E402
 from gscan.evaluate.metrics import add  # noqa: E402
-from gscan.geometry.transforms import look_at, rotvec_to_R, transform_points  # noqa: E402
 from gscan.io.camera import RGBDFrame  # noqa: E402
 from gscan.scanning.cad import template_from_mesh  # noqa: E402
-from gscan.synth import DEFAULT_INTRINSICS, SynthScene, rest_on_table, save_textured_mesh  # noqa: E402
+from gscan.synth import DEFAULT_INTRINSICS, save_textured_mesh, view_on_table  # noqa: E402
 from gscan.synth.cases import half_turn_box, half_turn_can  # noqa: E402
 from gscan.template.db import TemplateDB  # noqa: E402
 
@@ -64,12 +63,9 @@ def views(mesh, n: int, seed: int):
     rng = np.random.default_rng(seed)
     out = []
     for i in range(n):
-        T_world_obj = rest_on_table(mesh, rotvec_to_R([0.0, 0.0, rng.uniform(0, 2 * np.pi)]))
-        c = transform_points(T_world_obj, mesh.center[None])[0]
-        el, az, dist = np.radians(rng.uniform(25, 65)), rng.uniform(0, 2 * np.pi), rng.uniform(0.35, 0.55)
-        eye = c + dist * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
-        r = SynthScene([(mesh, T_world_obj)], seed=seed + i).render(look_at(eye, c), DEFAULT_INTRINSICS,
-                                                                    rng=np.random.default_rng([seed, i]))
+        yaw = rng.uniform(0, 2 * np.pi)
+        el, az, dist = rng.uniform(25, 65), np.degrees(rng.uniform(0, 2 * np.pi)), rng.uniform(0.35, 0.55)
+        r = view_on_table(mesh, yaw, az, el, dist, seed + i, [seed, i])
         out.append((RGBDFrame(f"{i:03d}", r.color, r.depth, DEFAULT_INTRINSICS), r.T_cam_obj))
     return out
 

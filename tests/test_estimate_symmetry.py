@@ -28,6 +28,7 @@ from gscan.synth import (
     procedural_box_texture,
     rest_on_table,
     save_textured_mesh,
+    view_on_table,
 )
 from gscan.synth.cases import half_turn_box
 from gscan.template.db import TemplateDB
@@ -66,12 +67,7 @@ def bottom_differs(tmp_path_factory):
 
 def on_table(mesh, azimuth_deg: float, yaw: float = 0.3):
     """The box resting on the table, seen from 50 deg elevation and 0.4 m: (frame, T_cam_obj)."""
-    T_world_obj = rest_on_table(mesh, rotvec_to_R([0.0, 0.0, yaw]))
-    c = transform_points(T_world_obj, mesh.center[None])[0]
-    el, az = np.radians(50.0), np.radians(azimuth_deg)
-    eye = c + 0.4 * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
-    r = SynthScene([(mesh, T_world_obj)], seed=0).render(look_at(eye, c), DEFAULT_INTRINSICS,
-                                                         rng=np.random.default_rng(0))
+    r = view_on_table(mesh, yaw, azimuth_deg, 50.0, 0.4)
     return RGBDFrame("query", r.color, r.depth, DEFAULT_INTRINSICS), r.T_cam_obj
 
 
