@@ -6,6 +6,7 @@ truth up to the symmetries that hold in texture (none wrong)."""
 from __future__ import annotations
 
 import itertools
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +14,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from gscan.errors import InputError
 from gscan.estimate import Estimator, Tracker
 from gscan.estimate.params import EstimateParams, SymmetryParams
 from gscan.estimate.rivals import AMBIGUOUS
@@ -124,6 +126,15 @@ def test_grasps_are_offered_in_each_equivalent(alike):
     assert np.allclose(offered[0], res.grasps["top"]) and np.allclose(offered[0], res.T_cam_obj @ G)
     assert np.allclose(offered[1], res.T_cam_obj @ RZ @ G)
     assert len(res.to_json()["grasp_equivalents"]["top"]) == 2
+
+
+def test_malformed_symmetries_name_the_template(alike, tmp_path):
+    path = tmp_path / "bad.gscan"
+    shutil.copy(alike[1], path)
+    with TemplateDB.open(path, writable=True) as db:
+        db.set_meta("symmetries", {"discrete": [[1.0, 2.0]]})
+    with pytest.raises(InputError, match="bad.gscan.*symmetries cannot be read"):
+        Estimator.from_path(path)
 
 
 def test_a_shape_only_symmetry_leaves_a_tie_refused(bottom_differs):

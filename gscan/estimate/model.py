@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from gscan.errors import InputError
 from gscan.geometry.pointset import pca_normals, voxel_down_indices
 from gscan.geometry.symmetry import Symmetries
 from gscan.template.db import Template
@@ -53,6 +54,9 @@ class ObjectModel:
 
 def symmetries_of(tpl: Template) -> Symmetries:
     """The object's symmetries, the template's "symmetries" meta (`Symmetries.to_json`); none when absent.
-    ValueError for a malformed value."""
+    InputError naming the template for a malformed value."""
     meta = tpl.meta if isinstance(tpl.meta, dict) else {}
-    return Symmetries.from_json(meta.get("symmetries"))
+    try:
+        return Symmetries.from_json(meta.get("symmetries"))
+    except ValueError as e:
+        raise InputError(tpl.path or "template", f"its symmetries cannot be read: {e}") from None
