@@ -6,6 +6,8 @@ turns that key into its own option (`--force`, `--resume`, ...), so the library 
 """
 from __future__ import annotations
 
+import errno
+import os
 from pathlib import Path
 
 # what an InputError's `fix` may name (the CLI holds the option or command of each)
@@ -61,5 +63,10 @@ def not_a_file(path: str | Path, what: str) -> InputError:
     if path.exists():
         return InputError(path, f"is not a regular file; expected the {what}")
     if path.is_symlink():
+        try:
+            os.stat(path)
+        except OSError as e:
+            if e.errno == errno.ELOOP:
+                return InputError(path, f"is a loop of symbolic links; expected the {what}")
         return InputError(path, f"{what} not found (a broken symbolic link)")
     return InputError(path, f"{what} not found")

@@ -58,6 +58,21 @@ def test_summary_and_database(built, meshes_dir):
             assert v.mask[w, u].all()
 
 
+def test_a_mesh_template_stores_its_coverage(built, meshes_dir):
+    """template-from-mesh stores the coverage of its rendered views and the mesh's surface (mesh frame, z up):
+    the map `template_coverage` gives for the same views, reported by `info --json`."""
+    from gscan.geometry.coverage import template_coverage
+    from gscan.template.reports import template_info
+
+    mesh = load_textured_mesh(meshes_dir / MESH / "model_0.obj")
+    expected = template_coverage(view_poses(mesh, 8), mesh.to_mesh())
+    with TemplateDB.open(built[0]) as db:
+        c = db.coverage()
+    assert c is not None and np.array_equal(c.counts, expected.counts) and np.array_equal(c.seen, expected.seen)
+    assert int(c.counts.sum()) >= 8 and c.surface.any()
+    assert template_info(built[0]).to_json()["coverage"] == expected.to_json()
+
+
 def test_template_keypoints_are_the_estimators_query_keypoints(built):
     """A CAD template stores keypoints detected with the settings the estimator detects its queries with."""
     from gscan.estimate.estimator import EstimateParams

@@ -118,7 +118,9 @@ def test_motion_cue_keeps_a_frame_every_min_motion_degrees(meshes_dir, tmp_path)
     assert all(8.5 <= a <= 15.0 for a in angles), angles
     est = [f["angle_deg"] for f in list(meta["frames"].values())[1:]]
     assert np.allclose(est, angles, atol=2.0), (est, angles)
-    assert json.loads(r.stdout)["coverage"]["covered"] >= 4
+    cov = json.loads(r.stdout)["coverage"]
+    assert cov["covered"] >= 4 and 0 < cov["share"] < 0.5  # a quarter turn on one ring
+    assert any(m.startswith("the bottom was not seen") for m in cov["missing"]), cov
     # the same frames kept every 6th: the rule is what keeps them
     r = _run("capture", "--from", str(bag), "-o", str(tmp_path / "every"), "--every", "6")
     assert r.returncode == 0, r.stderr
@@ -204,6 +206,8 @@ def test_preview_follows_the_capture(bags, tmp_path):
                           on_frame=preview.update)
         assert preview.updates == res.seen == 12 and preview._views == len(res.kept) == 6
         assert "kept **6**" in preview._stats.content
+        # what is still missing, in words: the bottom (the views circle the object 40 deg above the table)
+        assert "the bottom was not seen: scan the object upside down" in preview._missing.content
         assert preview._cloud is not None and preview._current is not None
     finally:
         preview.stop()
@@ -215,8 +219,8 @@ def test_preview_follows_the_capture(bags, tmp_path):
 
 @pytest.mark.browser
 def test_preview_in_the_browser(bags, tmp_path):
-    """`gscan capture --from slower.bag --preview --real-time`: the page shows the colour and depth images and
-    the numbers while it runs; Ctrl+C then ends it with exit 0."""
+    """`gscan capture --from slower.bag --preview --real-time`: the page shows the colour and depth images, the
+    numbers and what is still missing while it runs; Ctrl+C then ends it with exit 0."""
     from playwright.sync_api import sync_playwright
 
     sys.path.insert(0, str(ROOT / "web"))
@@ -238,6 +242,7 @@ def test_preview_in_the_browser(bags, tmp_path):
                 img.wait_for(timeout=30_000)
                 assert _wait(lambda: vp.png_array(img.screenshot()).std() > 20, 30)  # the rendered view, not grey
                 page.get_by_text("frames seen").first.wait_for(timeout=30_000)
+                page.get_by_text("the bottom was not seen").first.wait_for(timeout=30_000)  # what is missing
             finally:
                 browser.close()
         proc.send_signal(signal.SIGINT)

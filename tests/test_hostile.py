@@ -553,6 +553,27 @@ def test_intrinsics_file_that_is_a_folder_is_named_a_folder(ctx: Ctx, tmp_path: 
     assert "is a folder" in line and "not found" not in line and "--intrinsics" in line, line
 
 
+def test_links_inside_the_capture_are_named_for_what_they_are(ctx: Ctx, tmp_path: Path):
+    """Inside a capture's rgb/ and depth/: a link to itself, links to each other, a folder link named like an
+    image. Each frame they spoil is reported by name for what it is (a loop of links, a folder), not as a missing
+    depth image or a broken link; the other frames are scanned."""
+    cap = tmp_path / "cap"
+    shutil.copytree(ctx.capture, cap)
+    os.symlink("990.png", cap / "rgb" / "990.png")  # a link to itself
+    os.symlink("992.png", cap / "rgb" / "991.png")  # two links to each other
+    os.symlink("991.png", cap / "rgb" / "992.png")
+    for n in ("990", "991", "992"):
+        shutil.copy(cap / "depth" / "000000.png", cap / "depth" / f"{n}.png")
+    os.symlink("../rgb", cap / "rgb" / "993.png")  # a folder named like an image
+    os.symlink("loop", cap / "depth" / "loop")  # not an image: no frame of its own
+    res = json.loads(_ok(_gscan("scan", cap, "-o", tmp_path / "o.gscan", "--json")).stdout)
+    why = res["unregistered_reasons"]
+    assert res["registered"] == N_VIEWS and sorted(why) == ["990", "991", "992", "993"], why
+    for n in ("990", "991", "992"):
+        assert f"{n}.png: is a loop of symbolic links" in why[n], why
+    assert "993.png: is a folder (a symbolic link to one), not a colour image" in why["993"], why
+
+
 def _hot_journal(template: Path, path: Path) -> Path:
     """A copy of `template` left by a writer killed mid-transaction: its pages half written, the hot journal
     beside it."""

@@ -268,6 +268,54 @@ def test_unpaired_colour_frames_are_reported_and_left_out(views, tmp_path):
         assert np.array_equal(seq["000003"].color, views.colors[3])
 
 
+def _damage_mcap_record(path: Path, topic: str, k: int) -> None:
+    """Make the k-th message record of `topic` in an uncompressed MCAP declare 2^40 bytes: the reader loses the
+    records after it in its chunk, as a damaged file does."""
+    import struct
+
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None
+    channel = next(c.id for c in summary.channels.values() if c.topic == topic)
+    data = bytearray(path.read_bytes())
+    i, seen = 0, 0
+    while True:  # a message record: opcode 0x05, u64 length, u16 channel id, ...
+        i = data.index(b"\x05", i)
+        length, ch = struct.unpack_from("<QH", data, i + 1)
+        if ch == channel and 22 < length < len(data) - i:
+            if seen == k:
+                break
+            seen += 1
+            i += 9 + length
+            continue
+        i += 1
+    struct.pack_into("<Q", data, i + 1, 2**40)
+    path.write_bytes(bytes(data))
+
+
+def test_damaged_records_are_reported_as_damage(views, tmp_path):
+    """An MCAP whose colour record declares 2^40 bytes loses the records after it in its chunk: the damage is
+    reported (topic, messages listed and read, where), in the scan's summary and --json, and a colour frame whose
+    depth was lost is said to be lost to the damage, not "no depth frame within 16.7 ms"."""
+    rec = write_mcap(tmp_path / "damaged.mcap", views.frames(), K_COLOR, topics=("color", "aligned"),
+                     compressed=False)
+    _damage_mcap_record(rec, "/camera/camera/color/image_raw", 4)
+    with open_sequence(rec) as seq:
+        assert seq.damage and all("damaged records:" in d and "could not be read" in d for d in seq.damage)
+        assert any("/camera/camera/aligned_depth_to_color/image_raw" in d for d in seq.damage), seq.damage
+        lost = [n for n, why in seq.problems.items() if "among the recording's damaged records" in why]
+        assert lost and not any("within 16.7 ms" in why for why in seq.problems.values()), seq.problems
+    proc = subprocess.run([sys.executable, "-m", "gscan.cli", "scan", str(rec), "-o", str(tmp_path / "d.gscan"),
+                           "--json"], capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    res = json.loads(proc.stdout)
+    assert res["damage"] == seq.damage
+    assert all(res["unregistered_reasons"][n] == seq.problems[n] for n in lost)
+    assert "damaged recording:" in proc.stderr or "damaged records" in proc.stderr
+
+
 # --------------------------------------------------------------------------------------- streaming
 
 

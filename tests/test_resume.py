@@ -235,6 +235,36 @@ def test_resume_refuses_another_input(capture: Path, reference, tmp_path: Path):
     assert db.read_bytes() == before
 
 
+def test_resume_of_a_moved_capture_goes_on(capture: Path, reference, tmp_path: Path):
+    """A partial scan whose capture was moved to another folder (the same frames, byte for byte) resumes from the
+    new place, naming both paths, and ends as the uninterrupted scan; the template records the new path. A moved
+    capture whose frames changed too is refused naming both paths."""
+    import shutil
+
+    moved = tmp_path / "moved"
+    shutil.copytree(capture, moved)
+    db = tmp_path / "partial.gscan"
+    shutil.copy(capture.parent / "reference.gscan", db)
+    with sqlite3.connect(db) as c:
+        c.execute("UPDATE meta SET value='\"partial\"' WHERE key='status'")
+    c.close()
+    (moved / "depth" / "000001.png").write_bytes((moved / "depth" / "000002.png").read_bytes())
+    before = db.read_bytes()
+    r = _gscan("scan", moved, "-o", db, "--resume", "--json")
+    assert r.returncode == 2, r.stderr
+    line = r.stderr.strip().splitlines()[-1]
+    assert str(capture.resolve()) in line and str(moved.resolve()) in line and "000001.png changed" in line, line
+    assert db.read_bytes() == before
+    (moved / "depth" / "000001.png").write_bytes((capture / "depth" / "000001.png").read_bytes())
+    r = _gscan("scan", moved, "-o", db, "--resume", "--json")
+    assert r.returncode == 0, r.stderr
+    assert "the capture was moved" in r.stderr and str(moved.resolve()) in r.stderr
+    out = json.loads(r.stdout)
+    assert out["registered"] == reference[0]["registered"] and out["edges"] == reference[0]["edges"]
+    with TemplateDB.open(db) as t:
+        assert t.get_meta("input") == str(moved.resolve())
+
+
 def test_resume_refuses_a_stored_view_without_keypoints(capture: Path, reference, tmp_path: Path):
     """A partial database whose unregistered view lost its keypoints (written by another tool, or damaged) cannot
     be resumed from: one line naming the database, not an internal error."""

@@ -476,8 +476,9 @@ def test_info_json_keeps_its_keys(db_path: Path) -> None:
     assert r.returncode == 0, r.stderr
     out = json.loads(r.stdout)
     assert list(out) == ["schema", "status", "views", "registered", "keyframes", "descriptor", "source", "extent_m",
-                         "grasps", "unregistered_reasons", "selection", "parts", "mesh", "camera"]
+                         "grasps", "unregistered_reasons", "selection", "parts", "mesh", "camera", "coverage"]
     assert out["selection"] == {} and out["parts"] == []  # written without frame selection, in one part
+    assert out["coverage"] is None  # no coverage recorded: unknown
     assert out["camera"] is None  # not written by a scan: no colour camera check
     assert out["status"] == "partial" and out["views"] == 2 and out["registered"] == 1 and out["grasps"] == ["g"]
     assert out["unregistered_reasons"] == {"b": "no accepted edge"}

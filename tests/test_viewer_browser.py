@@ -156,6 +156,39 @@ def test_selection_and_match_panel_state(template):
         app.stop()
 
 
+def test_coverage_map_is_drawn(template, tmp_path):
+    """The coverage layer: nothing for a template without a coverage record; with one, a point per direction cell
+    around the object, coloured as `coverage_points` says (the colours are the map's)."""
+    import shutil
+
+    from gscan.geometry.coverage import COVERAGE_DIRECTIONS, template_coverage
+    from gscan.viewer.app import coverage_markdown
+    from gscan.viewer.scene import coverage_points
+
+    app = serve(template.path, port=vp.free_port())
+    try:
+        assert app.data.coverage is None and not app.layers["coverage"]
+    finally:
+        app.stop()
+    assert coverage_markdown(None).startswith("coverage: unknown")
+    path = tmp_path / "covered.gscan"
+    shutil.copy(template.path, path)
+    with TemplateDB.open(path, writable=True) as db:
+        cov = template_coverage([v.T_obj_cam for v in db.views() if v.T_obj_cam is not None], db.mesh())
+        db.set_meta("coverage", cov.to_meta())
+    app = serve(path, port=vp.free_port())
+    try:
+        (cloud,) = app.layers["coverage"]
+        pts, cols = coverage_points(cov, app.data.center, app.data.size)
+        assert len(pts) == COVERAGE_DIRECTIONS
+        np.testing.assert_allclose(np.asarray(cloud.points, np.float64), pts, atol=1e-4)  # viser sends float16
+        np.testing.assert_array_equal(np.asarray(cloud.colors), cols)
+        assert len(np.unique(cols, axis=0)) >= 2  # seen and unseen cells differ
+    finally:
+        app.stop()
+    assert f"coverage: {cov.share:.0%} of the viewing directions seen" in coverage_markdown(cov)
+
+
 def test_start_camera_keeps_clear_of_the_frustums():
     """The browser's start camera looks at the object from a direction away from every view's camera: with a
     view right on the default direction (a CAD template's first view at 62 deg elevation, 3.7 deg from it) the

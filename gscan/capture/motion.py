@@ -11,9 +11,11 @@ each frame's viewing direction onto the object. A frame is kept when its viewing
 last kept frame's by at least `min_angle_deg`, or when tracking is lost (too few corners followed: it
 becomes the new reference, its motion assumed zero).
 
-Coverage: `COVERAGE_DIRECTIONS` directions spread evenly over the sphere around the object (Fibonacci
-lattice), each counting the kept views whose viewing direction lies within `COVERAGE_RADIUS_DEG` of it.
-The directions are in the first kept frame's camera axes (x right, y down, z forward from it).
+Coverage: `gscan.geometry.coverage`, the definition the template's coverage uses, over the kept views'
+directions. Its cells are in the preview's up frame (`up_frame`): z along the normal of the table the first
+kept frame shows (the image's up when it shows none), y horizontal away from the first kept camera, x to
+its right; so the first view is the front, and the bottom the object stands on is named missing until a
+view sees it from below.
 Cheap enough for every frame of a live camera: a few hundred corners tracked and one small Kabsch.
 """
 from __future__ import annotations
@@ -23,25 +25,28 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from gscan.geometry.coverage import CoverageMap, cells_within, lattice
 from gscan.geometry.kabsch import kabsch_trimmed
+from gscan.geometry.plane import dominant_plane
 from gscan.geometry.transforms import inv_T
-from gscan.io.camera import Intrinsics, backproject_pixels
-
-COVERAGE_DIRECTIONS = 96
-COVERAGE_RADIUS_DEG = 20.0
+from gscan.io.camera import Intrinsics, backproject, backproject_pixels
 
 
 @dataclass(frozen=True)
 class MotionParams:
     """min_angle_deg: change of viewing direction that keeps a frame; max_corners: corners tracked;
     min_tracked: fewer corners followed with depth means tracking is lost; region: central fraction of the
-    image width and height where corners are taken; tau: Kabsch inlier distance (m)."""
+    image width and height where corners are taken; tau: Kabsch inlier distance (m); up_plane_min_frac,
+    up_plane_iterations: the share of the first kept frame's depth a plane needs to be taken for the table that
+    gives the coverage its up (`up_frame`), and the RANSAC hypotheses that look for it."""
 
     min_angle_deg: float = 10.0
     max_corners: int = 300
     min_tracked: int = 20
     region: float = 0.6
     tau: float = 0.015
+    up_plane_min_frac: float = 0.2
+    up_plane_iterations: int = 200
 
 
 @dataclass
@@ -55,32 +60,43 @@ class MotionUpdate:
     lost: bool
 
 
-def fibonacci_directions(n: int) -> np.ndarray:
-    """[n x 3] unit vectors spread evenly over the sphere."""
-    k = np.arange(n) + 0.5
-    z = 1.0 - 2.0 * k / n
-    r = np.sqrt(np.maximum(0.0, 1.0 - z * z))
-    phi = np.pi * (1.0 + 5.0 ** 0.5) * k
-    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+def up_frame(depth: np.ndarray, intr: Intrinsics, params: MotionParams = MotionParams()) -> np.ndarray:
+    """R_up_cam [3 x 3]: a camera's axes into the preview's up frame (module docstring), from its depth [H x W]
+    (m): z = the dominant plane's normal when one holds `up_plane_min_frac` of the depth and faces the image's
+    up (a table under the object), else the image's up (-y); x = the camera's x made horizontal; y = z x x."""
+    up = np.array([0.0, -1.0, 0.0])
+    plane = dominant_plane(backproject(depth, intr), params.up_plane_min_frac, params.up_plane_iterations)
+    if plane is not None and plane.normal[1] < -0.3:
+        up = plane.normal / np.linalg.norm(plane.normal)
+    x = np.array([1.0, 0.0, 0.0]) - up[0] * up
+    x /= np.linalg.norm(x)
+    return np.stack([x, np.cross(up, x), up])
 
 
 @dataclass
 class Coverage:
-    """How many kept views see the object from each of `directions` [K x 3] (first kept camera's axes)."""
+    """How many kept views see the object from each cell of `gscan.geometry.coverage.lattice()` (cells in the
+    preview's up frame); `views` are the kept views' directions in that frame."""
 
-    directions: np.ndarray = field(default_factory=lambda: fibonacci_directions(COVERAGE_DIRECTIONS))
-    counts: np.ndarray = field(default_factory=lambda: np.zeros(COVERAGE_DIRECTIONS, dtype=np.int64))
-    views: list[np.ndarray] = field(default_factory=list)  # viewing directions of the kept views
+    directions: np.ndarray = field(default_factory=lattice)
+    counts: np.ndarray = field(default_factory=lambda: np.zeros(len(lattice()), dtype=np.int64))
+    views: list[np.ndarray] = field(default_factory=list)
 
     def add(self, direction: np.ndarray) -> None:
+        """Count a kept view whose direction (object centre to camera, up frame) is `direction` [3]."""
         d = np.asarray(direction, dtype=np.float64)
         d = d / max(float(np.linalg.norm(d)), 1e-12)
         self.views.append(d)
-        self.counts += (self.directions @ d) >= np.cos(np.radians(COVERAGE_RADIUS_DEG))
+        self.counts += cells_within(self.directions, d)
+
+    def map(self) -> CoverageMap:
+        """The coverage so far (the first kept view is the front)."""
+        front = self.views[0] if self.views else np.array([0.0, -1.0, 0.0])
+        return CoverageMap(self.counts.copy(), np.zeros(len(self.counts), dtype=bool), front)
 
     @property
     def covered(self) -> int:
-        """Directions seen by at least one kept view."""
+        """Cells seen by at least one kept view."""
         return int(np.count_nonzero(self.counts))
 
 
@@ -92,6 +108,7 @@ class MotionTracker:
         self.params = params
         self.coverage = Coverage()
         self.center: np.ndarray | None = None  # object centre in the first kept camera (m)
+        self.R_up_first: np.ndarray | None = None  # the first kept camera's axes into the up frame (`up_frame`)
         self._ref_grey: np.ndarray | None = None
         self._ref_px: np.ndarray | None = None  # [N x 1 x 2] float32 corners of the reference frame
         self._ref_pts: np.ndarray | None = None  # [N x 3] their camera points
@@ -163,9 +180,11 @@ class MotionTracker:
             mid = depth[int(0.4 * h):int(0.6 * h), int(0.4 * w):int(0.6 * w)]
             valid = mid[mid > 0] if np.any(mid > 0) else depth[depth > 0]
             self.center = np.array([0.0, 0.0, float(np.median(valid)) if valid.size else 1.0])
+            self.R_up_first = up_frame(depth, self.intr, self.params)
         self._T_first_ref = up.T_first_cam.copy()
         self._ref_dir = self._direction(self._T_first_ref)
-        self.coverage.add(self._ref_dir)
+        assert self.R_up_first is not None
+        self.coverage.add(self.R_up_first @ self._ref_dir)
         corners = cv2.goodFeaturesToTrack(grey, self.params.max_corners, 0.01, 7, mask=self._region(grey.shape))
         if corners is None:
             self._ref_grey, self._ref_px, self._ref_pts = grey, np.zeros((0, 1, 2), np.float32), np.zeros((0, 3))

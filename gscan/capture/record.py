@@ -54,6 +54,7 @@ class FrameUpdate:
     motion: MotionUpdate
     coverage: Coverage
     center: np.ndarray | None  # the object centre in the first kept camera (m), once a frame is kept
+    R_up_first: np.ndarray | None = None  # [3 x 3] the first kept camera's axes into the coverage's up frame
 
 
 @dataclass
@@ -66,11 +67,14 @@ class CaptureResult:
     profile: str
     covered: int
     directions: int
+    share: float = 0.0  # covered / directions (`gscan.geometry.coverage`)
+    missing: list[str] = field(default_factory=list)  # the regions not yet seen, with what to do
 
     def to_json(self) -> dict:
         return {"output": str(self.output), "frames_seen": self.seen, "frames": len(self.kept),
                 "names": list(self.kept), "stopped": self.interrupted, "device": self.device,
-                "profile": self.profile, "coverage": {"covered": self.covered, "directions": self.directions}}
+                "profile": self.profile, "coverage": {"covered": self.covered, "directions": self.directions,
+                                                      "share": round(self.share, 4), "missing": list(self.missing)}}
 
 
 def check_capture_output(output: Path, recording: Path | None = None) -> None:
@@ -166,7 +170,7 @@ def run_capture(camera: RealSenseCamera, output: str | Path, options: CaptureOpt
                                          "angle_deg": round(up.angle_deg, 2), "tracking_lost": up.lost}
                 if on_frame is not None:
                     on_frame(FrameUpdate(frame, intr, seen, len(frames_meta), keep, up, tracker.coverage,
-                                       tracker.center))
+                                       tracker.center, tracker.R_up_first))
                 if options.max_frames is not None and len(frames_meta) >= options.max_frames:
                     break
                 if stop.is_set():
@@ -183,8 +187,8 @@ def run_capture(camera: RealSenseCamera, output: str | Path, options: CaptureOpt
                 "profile": camera.profile, "depth_scale_m": camera.depth_scale, "depth_units": "mm",
                 "keep": rule, "frames_seen": seen, "frames": frames_meta}
         _write_atomic(output / "capture.json", (json.dumps(meta, indent=1) + "\n").encode())
-    cov = tracker.coverage
+    cov = tracker.coverage.map()
     log.info("%s: kept %d of %d frames, %d of %d directions covered", output, len(writer.names), seen, cov.covered,
              len(cov.counts))
     return CaptureResult(output, seen, list(writer.names), interrupted, camera.device, camera.profile, cov.covered,
-                         len(cov.counts))
+                         len(cov.counts), cov.share, cov.missing())

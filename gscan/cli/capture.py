@@ -79,3 +79,5 @@ def capture(
     how = "stopped: " if result.interrupted else ""
     say(f"{how}captured {len(result.kept)} frames (of {result.seen} seen) into {result.output}; "
         f"{result.covered} of {result.directions} viewing directions covered")
+    for words in result.missing:
+        say(("missing:", "yellow"), f" {words}")

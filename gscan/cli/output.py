@@ -122,6 +122,21 @@ def part_lines(parts: list[list[str]]) -> None:
         line(f"separate part {k}: {len(part)} frames ({', '.join(part)}), not joined to the registered ones")
 
 
+def coverage_text(coverage: dict[str, Any] | None) -> list[str]:
+    """The lines naming a template's coverage of viewing directions (the `"coverage"` JSON object; None: a template
+    made before coverage was recorded): the share seen, then each missing region with what to do."""
+    if coverage is None:
+        return ["coverage: unknown (the template was made before coverage was recorded)"]
+    return ([f"coverage: {coverage['share']:.0%} of the viewing directions seen"]
+            + [f"missing: {m}" for m in coverage["missing"]])
+
+
+def coverage_lines(coverage: dict[str, Any] | None) -> None:
+    """`coverage_text`, a `line` each (`info`)."""
+    for text in coverage_text(coverage):
+        line(text)
+
+
 class _PrintableFormatter(logging.Formatter):
     """Log lines with control characters escaped (frame and file names come from the input)."""
 

@@ -10,13 +10,15 @@ import typer
 
 from gscan.cli.choices import ScanFormat, ScanMode
 from gscan.cli.imports import SCAN_IMPORTS, import_holding_ctrl_c
-from gscan.cli.output import UsageError, err, print_json, say, say_interrupted, setup_logging
+from gscan.cli.output import UsageError, coverage_text, err, print_json, say, say_interrupted, setup_logging
 from gscan.cli.texts import DEPTH_INTRINSICS_HELP, DEPTH_TO_COLOR_HELP, JSON_HELP
 
 
 def scan(
-    input_dir: Path = typer.Argument(..., help="RGB-D folder (capture, Open3D, TUM or BOP layout) or recording "
-                                     "(.bag, .db3, .mcap, rosbag2 folder)"),
+    inputs: list[Path] = typer.Argument(..., help="RGB-D folder (capture, Open3D, TUM or BOP layout) or recording "
+                                        "(.bag, .db3, .mcap, rosbag2 folder); several: captures of one object "
+                                        "(upright, upside down, ...) joined into one template; a BOP dataset "
+                                        "folder: its onboarding captures of --obj-id"),
     output: Path = typer.Option(..., "-o", "--output", help="template database to write (OBJ.gscan)"),
     format: ScanFormat = typer.Option("auto", "--format", help="input layout (auto: detected)"),
     intrinsics: Path | None = typer.Option(None, "--intrinsics", help="cam_K.txt or Open3D intrinsics JSON"),
@@ -24,10 +26,13 @@ def scan(
     mode: ScanMode = typer.Option("auto", "--mode", help="capture mode (auto: detected)"),
     no_segment: bool = typer.Option(False, "--no-segment", help="fuse the whole scene, not the object alone"),
     resume: bool = typer.Option(False, "--resume", help="continue an interrupted scan into OUTPUT"),
+    append: bool = typer.Option(False, "--append", help="add the captures to the template OUTPUT (its views and "
+                                "frame kept; left as it was when a capture cannot be joined to it)"),
     force: bool = typer.Option(False, "--force", help="replace an existing OUTPUT"),
     config: Path | None = typer.Option(None, "--config", help="YAML configuration (see `gscan config dump`)"),
     obj_id: int | None = typer.Option(None, "--obj-id", min=1, max=2**31 - 1,
-                                      help="BOP folder: the object to scan (default: the first in scene_gt.json)"),
+                                      help="BOP folder: the object to scan (default: the first in scene_gt.json; "
+                                      "a BOP dataset's onboarding captures: the only object there)"),
     color_topic: str | None = typer.Option(None, "--color-topic",
                                            help="recording: the colour image topic (default: detected)"),
     depth_topic: str | None = typer.Option(None, "--depth-topic",
@@ -37,7 +42,8 @@ def scan(
     json_out: bool = typer.Option(False, "--json", help=JSON_HELP),
     verbose: bool = typer.Option(False, "-v", "--verbose", help="log progress details to stderr"),
 ) -> None:
-    """Register every view of an RGB-D capture into one object frame and write a template database."""
+    """Register every view of an RGB-D capture (or of several captures of one object) into one object frame and
+    write a template database."""
     setup_logging(verbose)
     import_holding_ctrl_c(*SCAN_IMPORTS)
     from gscan.io.camera import depth_camera_of
@@ -49,14 +55,17 @@ def scan(
 
     if resume and force:
         raise UsageError(output, "--resume and --force exclude each other")
-    check_not_input(output, [input_dir, intrinsics, config, depth_intrinsics, depth_to_color])
+    if append and (resume or force):
+        raise UsageError(output, f"--append and {'--resume' if resume else '--force'} exclude each other")
+    check_not_input(output, [*inputs, intrinsics, config, depth_intrinsics, depth_to_color])
     options = ScanOptions(format=format.value, intrinsics=intrinsics, depth_scale=depth_scale, mode=mode.value,
-                          segment=not no_segment, resume=resume, force=force, config=load_config(config),
+                          segment=not no_segment, resume=resume, append=append, force=force,
+                          config=load_config(config),
                           obj_id=obj_id, color_topic=color_topic, depth_topic=depth_topic,
                           depth_camera=depth_camera_of(depth_intrinsics, depth_to_color))
     try:
         with RichProgress(err, enabled=not json_out or sys.stderr.isatty()) as progress:
-            result = scan_capture(input_dir, output, options, progress=progress)
+            result = scan_capture(inputs, output, options, progress=progress)
     except KeyboardInterrupt:  # Ctrl+C: the partial database is kept for --resume (typer exits 130)
         say_interrupted(interrupted_scan_line(output, force))
         raise
@@ -95,6 +104,8 @@ def print_scan_summary(result: Any) -> None:
         f"({result.mode}), edges {result.edges_accepted} accepted / {result.edges_rejected} rejected, "
         f"mesh {result.mesh_vertices} vertices / {result.mesh_triangles} triangles, "
         f"{result.keyframes} keyframes (the views estimate matches)")
+    for text in coverage_text(result.coverage):
+        say(text)
     cam = result.camera
     if cam is not None and cam["corrected"]:
         given, used = cam["given_focal_px"][0], cam["colour_focal_px"][0]
@@ -102,6 +113,8 @@ def print_scan_summary(result: Any) -> None:
             f"{given:g} px; the texture lines up at {used:g} px ({cam['texture_agreement']['used']:.0%} of textured "
             f"tiles against {cam['texture_agreement']['given']:.0%}), used with the given intrinsics as the depth "
             "camera's. --intrinsics and --depth-intrinsics set both cameras")
+    for line in result.damage:  # the recording's damaged records: damage, not missing frames
+        say(("damaged recording:", "red"), f" {line}")
     sel = result.selection
     if sel.get("skipped"):  # frame selection: not failures, counted by reason
         why = "; ".join(f"{k} frames {w}" for w, k in sel["reasons"].items())
@@ -110,6 +123,13 @@ def print_scan_summary(result: Any) -> None:
     for name in result.unregistered:  # each with its reason (a frame that could not be read: why)
         what = "skipped frame" if name in result.problems else "unregistered frame"
         say((f"{what} {name}:", "yellow"), f" {result.unregistered_reasons.get(name, '')}")
+    for cap in result.captures:  # a scan of several captures: how each was joined
+        if cap["joined"]:
+            say((f"capture {cap['name']}:", "bold"), f" {cap['registered']}/{cap['frames']} frames registered, "
+                "joined to the template")
+        else:
+            say((f"capture {cap['name']}:", "yellow"), f" not joined to the template ({cap['reason']}); its frames "
+                "are a separate part, nothing of it was fused")
     for k, part in enumerate(result.parts, 1):
         say((f"separate part {k}:", "yellow"), f" {len(part)} frames ({', '.join(part)}), not joined to the "
             "template's frames with confidence: scanned again with views between them, they can be")

@@ -1,4 +1,5 @@
-"""Mesh exports (PLY / OBJ / GLB) through trimesh: metres, object frame, vertex colours, holes closed by default."""
+"""Mesh exports (PLY / OBJ / GLB) through trimesh: metres, object frame, vertex colours, holes closed by default.
+The PLY marks each face observed or filled (face property `filled`: 1 where closing the holes added it)."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -35,8 +36,10 @@ def write_mesh(db: TemplateDB, path: Path, fmt: str, close: bool = True) -> tupl
     mesh = require_mesh(db, close)
     tm = to_trimesh(mesh)
     if fmt == "ply":
-        if mesh.filled is not None:  # a face property: 1 where closing the holes added the triangle
-            tm.face_attributes["filled"] = np.asarray(mesh.filled, dtype=np.uint8)
+        # a face property: 1 where closing the holes added the triangle (no camera saw it), 0 on the observed
+        # surface; every face 0 for a mesh exported as fused (`close` off)
+        filled = np.zeros(len(mesh.triangles), bool) if mesh.filled is None else mesh.filled
+        tm.face_attributes["filled"] = np.asarray(filled, dtype=np.uint8)
         data = trimesh.exchange.ply.export_ply(tm, encoding="binary", vertex_normal=True)
     elif fmt == "obj":
         data = trimesh.exchange.obj.export_obj(tm, include_color=True, include_normals=True,

@@ -7,6 +7,8 @@
 - pointset: `pca_normals`, `voxel_mean`, `voxel_down_indices`, `coincident_groups`
 - plane: `Plane`, `ransac_plane`
 - mesh: `MeshData` (vertex-coloured triangle mesh), `to_u8_colors`
+- coverage: `CoverageMap`, `coverage_map`, `template_coverage` (which viewing directions of an object were seen;
+  imported from `gscan.geometry.coverage`)
 """
 from __future__ import annotations
 

@@ -115,6 +115,10 @@ def _pair(colors: dict[str, Path], depths: dict[str, Path], masks: dict[str, Pat
     frames, problems = [], {}
     for name, c in colors.items():
         d = depths.get(name)
+        if c.is_dir():
+            link = " (a symbolic link to one)" if c.is_symlink() else ""
+            problems[name] = f"{c.name}: is a folder{link}, not a colour image"
+            continue
         if d is None:
             problems[name] = f"{c.name}: no depth image {name}.* in {depth_dir.name}/"
             continue

@@ -89,6 +89,7 @@ class Sequence(FrameIteration):
             {n: T for n, T in layout.gt_T_world_cam.items() if n in keep}
         self.has_masks: bool = any(s.mask is not None for s in specs.values())
         self.problems: dict[str, str] = problems
+        self.damage: list[str] = []  # a recording's damaged records (`RecordingSequence.damage`); none in a folder
         self.obj_id: int | None = layout.obj_id
         self.gt_problems: dict[str, str] = dict(layout.gt_problems)  # unreadable ground-truth files, left out
         self.depth_camera = depth_camera  # unregistered depth's own camera (frames reproject it), or None

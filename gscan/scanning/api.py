@@ -1,6 +1,7 @@
 """`scan(source, output, options)`: the scan stage's Python entry point, what `gscan scan` runs."""
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import fields, replace
 from pathlib import Path
 from typing import Any
@@ -13,13 +14,17 @@ from gscan.scanning.pipeline import ScanResult, run_scan
 _OPTION_NAMES = frozenset(f.name for f in fields(ScanOptions))
 
 
-def scan(source: str | Path, output: str | Path, options: ScanOptions | None = None, *,
+def scan(source: str | Path | Sequence[str | Path], output: str | Path, options: ScanOptions | None = None, *,
          progress: Progress | None = None, **changes: Any) -> ScanResult:
-    """Register every view of an RGB-D capture into one object frame and write a template database.
+    """Register every view of an RGB-D capture (or of several captures of one object) into one object frame and
+    write a template database.
 
     Args:
         source: the capture folder (capture, Open3D, TUM or BOP layout), or a recording (a RealSense or ROS 1
-            .bag, a rosbag2 .db3 / .mcap or its folder).
+            .bag, a rosbag2 .db3 / .mcap or its folder); or a list of them, captures of one object (upright,
+            upside down, another day: the object may have moved against the table), joined into one template,
+            their frames named `CAPTURE/FRAME`; or a BOP dataset folder whose onboarding captures of the object
+            `obj_id` are read as its captures (`gscan.io.captures`).
         output: the template database to write (`OBJ.gscan`).
         options: the scan's options (`ScanOptions`: input layout, intrinsics, depth scale and depth camera, mode,
             segmentation, resume / force, the stages' settings `config`, ...); None: the defaults.
@@ -45,4 +50,7 @@ def scan(source: str | Path, output: str | Path, options: ScanOptions | None = N
     if config is not None and not isinstance(config, ScanConfig):
         changes["config"] = load_config(config)
     opts = replace(options or ScanOptions(), **changes)
-    return run_scan(Path(source), Path(output), opts, progress=progress)
+    sources = [Path(source)] if isinstance(source, (str, Path)) else [Path(s) for s in source]
+    if not sources:
+        raise ValueError("scan() needs at least one capture")
+    return run_scan(sources, Path(output), opts, progress=progress)

@@ -28,6 +28,7 @@ import numpy as np
 
 from gscan.errors import InputError
 from gscan.features import OBJECT_FEATURES, FeatureParams, extract_features
+from gscan.geometry.coverage import template_coverage
 from gscan.geometry.pointset import voxel_mean
 from gscan.geometry.transforms import look_at, transform_points
 from gscan.io.camera import RGBDFrame, backproject
@@ -156,8 +157,9 @@ def template_from_mesh(mesh_path: str | Path, output: str | Path, *, n_views: in
         scene = SynthScene([(mesh, np.eye(4))], table=False, shadows=False, background_rgb=(0, 0, 0), seed=0)
         cloud_p, cloud_c = [], []
         n_kp = 0
+        poses = view_poses(mesh, n_views)
         with progress.stage("render", total=n_views) as advance:
-            for i, T_obj_cam in enumerate(view_poses(mesh, n_views)):
+            for i, T_obj_cam in enumerate(poses):
                 r = scene.render(T_obj_cam, intr, noise=False)
                 name = f"view_{i:03d}"
                 frame = RGBDFrame(name=name, color=r.color, depth=r.depth_clean, intrinsics=intr, mask=r.mask)
@@ -177,6 +179,7 @@ def template_from_mesh(mesh_path: str | Path, output: str | Path, *, n_views: in
             P, C = _voxel_cloud(np.concatenate(cloud_p), np.concatenate(cloud_c), voxel)
             db.set_cloud(P, C)
             db.set_mesh(mesh.to_mesh())
+            db.set_meta("coverage", template_coverage(poses, mesh.to_mesh()).to_meta())  # mesh frame: +z is the top
             db.mark_complete()
             x, y, z = (float(v) for v in db.extent())
             result = TemplateResult(output=output, views=int(n_views), descriptor=feature_params.kind, source="mesh",

@@ -4,8 +4,9 @@ convention), loaded from YAML by the CLI.
 Sections: camera (`FocalCheckParams`), selection (`SelectionParams`), features (`FeatureParams`), registration
 (`RegisterParams`, GMatch's settings in registration.gmatch), posegraph (`SequenceParams`: which pairs are
 registered, the noise estimate, the pose graph), segmentation (`SegmentParams`), fusion (`FusionParams`), keyframes
-(`KeyframeParams`). `gscan config dump` prints them as commented YAML. The defaults that depend on the capture
-(a static scene's whole frames, a moving object's masked views) are set by one function, `for_capture`.
+(`KeyframeParams`), join (`JoinParams`: how the captures of a scan of several are joined). `gscan config dump`
+prints them as commented YAML. The defaults that depend on the capture (a static scene's whole frames, a moving
+object's masked views) are set by one function, `for_capture`.
 """
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, model_validator
 
 from gscan.features import FeatureParams
+from gscan.registration.join import JoinParams
 from gscan.registration.pairwise import RegisterParams
 from gscan.registration.sequence import SequenceParams
 from gscan.scanning.calibration import FocalCheckParams
@@ -47,6 +49,7 @@ class ScanConfig(BaseModel):
     segmentation: SegmentParams = SegmentParams()
     fusion: FusionParams = FusionParams()
     keyframes: KeyframeParams = KeyframeParams()
+    join: JoinParams = JoinParams()
 
     @model_validator(mode="before")
     @classmethod

@@ -2,7 +2,7 @@
 (`load_frames`), and the kept frames as the later stages read them (`FrameData`).
 
 - `detect_capture_mode(seq, mode_option) -> (mode, masks given)`: from a few frames spread over the input
-- `load_frames(...) -> (kept frames, unreadable frames, selection)`, `read_ahead(seq)`
+- `load_frames(...) -> (kept frames, unreadable frames, selection, skipped frames)`, `read_ahead(seq)`
 - `Frame`: a kept frame (counts, pose-independent facts); `FrameData`: images, masks and registration data on
   demand (the `SequenceFrames` registration reads)
 """
@@ -169,24 +169,34 @@ def detect_capture_mode(seq: Sequence | RecordingSequence, mode_option: str) -> 
 
 
 def load_frames(seq: Sequence | RecordingSequence, mode: str, masks_given: bool, params: SelectionParams,
-                seg: SegmentParams, store: FrameStore, advance: Callable[[int], None]
-                ) -> tuple[list[Frame], list[tuple[str, InputError]], Selection]:
+                seg: SegmentParams, store: FrameStore, advance: Callable[[int], None], prefix: str = ""
+                ) -> tuple[list[Frame], list[tuple[str, InputError]], Selection, list[StoredFrame]]:
     """Reads the input once, in order, keeping the frames frame selection keeps (`gscan.scanning.select`): their images
     go to the store, with a moving object's mask (`moving_object_masks`: the support plane and the object on it,
-    else the difference from the background). Returns (kept frames, frames that could not be read, selection)."""
+    else the difference from the background). Returns (kept frames, frames that could not be read, selection, the
+    frames selection skipped with their images in the store, to be placed by registration to the kept frame each was
+    compared with), the frames named `prefix` + their name in the input (a capture's name and "/" when a scan has
+    several)."""
     moving = mode == MOVING_OBJECT
     selector = FrameSelector(params, mask_needed=moving)
     selection = Selection(params)
     frames: list[Frame] = []
+    skipped: list[StoredFrame] = []
     failed: list[tuple[str, InputError]] = []
     for name, frame in read_ahead(seq):
         advance(1)
+        name = prefix + name
         if isinstance(frame, InputError):
             failed.append((name, frame))
             continue
+        if prefix:
+            frame = replace(frame, name=name)
         why = selector.consider(frame)
         if why is not None:
             selection.skipped[name] = why
+            if selector.reference is not None:  # kept in the store, to be placed by registration to its reference
+                selection.reference[name] = selector.reference
+                skipped.append(StoredFrame.put(store, frame))
             continue
         f = Frame(StoredFrame.put(store, frame))
         selection.kept.append(name)
@@ -205,7 +215,7 @@ def load_frames(seq: Sequence | RecordingSequence, mode: str, masks_given: bool,
         for f in frames:
             if f.plane_cam is None:
                 store.put(f.name, object_mask=foreground_mask(store.need(f.name, "depth"), bg))
-    return frames, failed, selection
+    return frames, failed, selection, skipped
 
 
 def read_ahead(seq: Sequence | RecordingSequence) -> Iterator[tuple[str, RGBDFrame | InputError]]:

@@ -24,7 +24,9 @@ class ScanOptions:
 
     format: the input layout, one of FORMAT_CHOICES; intrinsics: a cam_K.txt / Open3D JSON overriding the layout's;
     depth_scale: metres per raw depth unit overriding the layout's; mode: one of MODE_CHOICES; segment: fuse the
-    object alone (False: the whole scene); resume: continue an interrupted scan into the output; force: replace an
+    object alone (False: the whole scene); resume: continue an interrupted scan into the output; append: add the
+    captures to the existing template at the output (its views, poses and frame kept; left as it was when a capture
+    cannot be joined to it); force: replace an
     existing output; config: the stages' settings; obj_id: a BOP folder's object (None: the first in
     scene_gt.json); color_topic, depth_topic: a recording's image topics (None: detected when unambiguous);
     depth_camera: depth images not registered to colour (a Kinect v1): their own camera, its intrinsics and its
@@ -38,6 +40,7 @@ class ScanOptions:
     mode: str = "auto"
     segment: bool = True
     resume: bool = False
+    append: bool = False
     force: bool = False
     config: ScanConfig = field(default_factory=ScanConfig)
     obj_id: int | None = None
@@ -49,6 +52,8 @@ class ScanOptions:
     def __post_init__(self) -> None:
         if self.format not in FORMAT_CHOICES:
             raise ValueError(f"format must be one of {', '.join(FORMAT_CHOICES)}, not {self.format!r}")
+        if self.append and (self.resume or self.force):
+            raise ValueError("append excludes resume and force")
         if self.mode not in MODE_CHOICES:
             raise ValueError(f"mode must be one of {', '.join(MODE_CHOICES)}, not {self.mode!r}")
         if self.intrinsics is not None and not isinstance(self.intrinsics, Path):

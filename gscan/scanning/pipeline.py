@@ -37,10 +37,11 @@ from __future__ import annotations
 
 import contextlib
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -53,9 +54,11 @@ from gscan.features import (
     extract_features,
     extract_features_in_mask,
 )
+from gscan.geometry.coverage import template_coverage
 from gscan.geometry.plane import Plane
 from gscan.geometry.transforms import transform_points
 from gscan.io.camera import RGBDFrame
+from gscan.io.captures import CaptureInput, capture_inputs
 from gscan.io.output import (
     Output,
     check_output,
@@ -65,21 +68,28 @@ from gscan.io.output import (
     remove_sqlite_sidecars,
 )
 from gscan.progress import Progress, StageTimer
-from gscan.registration.edges import COMMIT_ROWS, EdgeSink, Registrar, bounded_map
+from gscan.registration.dense import DenseGeometry
+from gscan.registration.edges import COMMIT_ROWS, EdgeSink, RegData, Registrar, bounded_map, icp_cloud
+from gscan.registration.join import Join, JoinView, join_captures, spread
 from gscan.registration.noise import DepthNoise
+from gscan.registration.pairwise import RegisterParams, register_features
 from gscan.registration.sequence import capture_noise, optimise_sequence, register_edges
 from gscan.scanning.camera import check_camera
-from gscan.scanning.capture_mode import MOVING_OBJECT
+from gscan.scanning.capture_mode import MOVING_OBJECT, STATIC_OBJECT
 from gscan.scanning.config import ScanConfig, for_capture
-from gscan.scanning.frames import WORKERS, FrameData, detect_capture_mode, load_frames
+from gscan.scanning.frames import WORKERS, Frame, FrameData, detect_capture_mode, load_frames
 from gscan.scanning.fuse import FusedModel, FusionParams, fuse_tsdf, template_frame
 from gscan.scanning.keyframes import keyframe_candidates, select_keyframes
 from gscan.scanning.options import ScanOptions
-from gscan.scanning.output import create_output, open_resumed, scan_meta
+from gscan.scanning.output import create_output, open_appended, open_resumed, scan_meta
 from gscan.scanning.segment import SegmentParams, segment_frame
-from gscan.scanning.select import Selection
-from gscan.scanning.store import FrameStore, LazyList
+from gscan.scanning.select import BLURRED, LITTLE_MOTION, Selection
+from gscan.scanning.store import FrameStore, LazyList, StoredFrame
 from gscan.template.db import Edge, TemplateDB, View
+
+if TYPE_CHECKING:
+    from gscan.io.recordings.sequence import RecordingSequence
+    from gscan.io.sequence import Sequence as FrameSequence
 
 log = logging.getLogger(__name__)
 
@@ -105,8 +115,14 @@ class ScanResult:
     noise: DepthNoise | None = None  # the noise model of lifted keypoints registration used
     # frame selection: {"kept": int, "skipped": int, "reasons": {why: frames}}; skipped frames are not failures
     selection: dict = field(default_factory=dict)
+    # a recording's damaged records, one line each (file, topic, messages listed and read, where they are missing)
+    damage: list[str] = field(default_factory=list)
+    # a scan of several captures: each one's name, input, frames, registered, whether it was joined (and why not),
+    # seconds per stage (`_capture_summary`); empty for one capture
+    captures: list[dict] = field(default_factory=list)
     # the colour camera's check (`check_camera`): given and used focal lengths, texture agreement; None: not run
     camera: dict | None = None
+    coverage: dict | None = None  # {"share": float, "missing": [sentences]} (`gscan.geometry.coverage`)
 
     def to_json(self) -> dict:
         """The `scan --json` object of the CLI contract."""
@@ -118,7 +134,8 @@ class ScanResult:
                 "mode": self.mode, "mesh": {"vertices": self.mesh_vertices, "triangles": self.mesh_triangles},
                 "timings_s": {k: round(v, 3) for k, v in self.timings_s.items()},
                 "skipped": dict(self.problems), "keyframes": self.keyframes, "selection": dict(self.selection),
-                "camera": self.camera}
+                "camera": self.camera, "coverage": self.coverage, "damage": list(self.damage)} | (
+                    {"captures": list(self.captures)} if self.captures else {})
 
 
 def _icp_voxel(cfg: ScanConfig) -> float | None:
@@ -142,55 +159,87 @@ class _EdgeRecords(EdgeSink):
         return self.db.batch()
 
 
-def run_scan(source: Path, output: Path, opts: ScanOptions, progress: Progress | None = None) -> ScanResult:
-    """Run the whole pipeline (see the module docstring). Raises InputError for bad input.
+@dataclass
+class _Capture:
+    """One capture of the scan as its stages fill it in: read and loaded (`_load`), then registered in its own
+    world (`_register_capture`), then joined to the first (`_join`)."""
+
+    input: CaptureInput
+    seq: FrameSequence | RecordingSequence | None  # None: the views of the template appended to
+    prefix: str  # of its frames' names: "CAPTURE/" when the scan has several, else ""
+    camera: dict | None = None
+    mode: str = ""
+    masks_given: bool = False
+    frames: list[Frame] = field(default_factory=list)
+    failed: list[tuple[str, InputError]] = field(default_factory=list)
+    selection: Selection | None = None
+    skipped: list[StoredFrame] = field(default_factory=list)  # frames selection skipped, images in the store
+    problems: dict[str, str] = field(default_factory=dict)  # unusable frames (prefixed names) -> why
+    detections: dict[str, Detection] = field(default_factory=dict)
+    data: FrameData | None = None
+    reg: _Registered | None = None
+    timings: dict[str, float] = field(default_factory=dict)  # seconds per stage spent on this capture
+    join: Join | None = None  # how it was joined to the captures before it (None: the first, or one capture)
+
+    @property
+    def source(self) -> Path:
+        return self.input.source
+
+
+@dataclass
+class _Registered:
+    """A capture registered in its own world: per kept frame T_world_cam (None: unregistered), object masks (a
+    function of the frame's index), the support plane, view qualities, the pose graph's outcome."""
+
+    T_world_cam: list[np.ndarray | None]
+    mask_of: Callable[[int], np.ndarray | None]
+    plane_world: Plane | None
+    quality: dict[int, float]
+    reasons: dict[str, str]
+    parts: list[list[str]]
+    edges: list[Edge]
+    restored: set[tuple[str, str]]
+    rparams: RegisterParams
+    # frames skipped by selection: name -> T_world_cam found by registration to their reference, or why not
+    placed: dict[str, np.ndarray | str] = field(default_factory=dict)
+
+
+def run_scan(sources: Path | Sequence[Path], output: Path, opts: ScanOptions,
+             progress: Progress | None = None) -> ScanResult:
+    """Run the whole pipeline (see the module docstring) on one capture or several of one object. Raises
+    InputError for bad input.
 
     The output is checked before any frame is read (so a bad output fails on one line). A new output is
     written in place (resumable); an existing one (`force`) is replaced only by a complete new database,
     written beside it, so a failed or interrupted run leaves it as it was. The kept frames' images wait in a
     `FrameStore` beside the output while the scan runs (gone when it ends, however it ends).
     """
-    from gscan.io import open_sequence
-
+    sources = [sources] if isinstance(sources, Path) else [Path(s) for s in sources]
     resumed = opts.resume and output.is_file()
-    check_output(output, force=opts.force or resumed, kind=".gscan file path", fix="resume")
+    check_output(output, force=opts.force or resumed or opts.append, kind=".gscan file path", fix="resume")
     timer = StageTimer(progress)
     db: TemplateDB | None = None
     target: Output | None = None
     store: FrameStore | None = None
+    base: _Capture | None = None  # --append: the template's views, as a capture registered in the object frame
     try:
-        seq = open_sequence(source, format=opts.format, intrinsics=opts.intrinsics,
-                            depth_scale=opts.depth_scale, obj_id=opts.obj_id, color_topic=opts.color_topic,
-                            depth_topic=opts.depth_topic, depth_camera=opts.depth_camera)
-        if opts.obj_id is not None and seq.format != "bop":
-            raise InputError(source, f"an object id is for BOP scene folders, this is a {seq.format} folder")
-        if opts.obj_id is not None and seq.gt_T_cam_obj is None:
-            raise InputError(source / "scene_gt.json", "not found (the object id picks an object of its "
-                             "poses)", fix="obj_id")
-        if opts.obj_id is not None and not seq.gt_T_cam_obj:
-            raise InputError(source / "scene_gt.json", f"holds no pose of object {opts.obj_id}", fix="obj_id")
-        fingerprints = seq.fingerprints()
+        if opts.append:
+            db, target = open_appended(output, opts)
+        taken = _capture_names(db) if db is not None and opts.append else []
+        inputs = capture_inputs(sources, opts.obj_id, taken)
+        several = len(inputs) > 1 or opts.append
+        caps = [_Capture(c, _open(c, opts), f"{c.name}/" if several else "") for c in inputs]
+        seqs = [cap.seq for cap in caps if cap.seq is not None]
+        fingerprints = {cap.prefix + n: fp for cap, seq in zip(caps, seqs, strict=True)
+                        for n, fp in seq.fingerprints().items()}
         if resumed:
-            db, target = open_resumed(source, output, opts, seq, fingerprints)
-        detections: dict[str, Detection] = {}
-        with timer.stage("camera", total=1) as advance:  # (after the checks that refuse the input in one line)
-            seq, camera = check_camera(source, seq, opts, detections)
-            advance(1)
+            db, target = open_resumed(sources, output, opts, None if several else seqs[0], fingerprints)
         store = FrameStore(output)
-        with timer.stage("mode", total=1) as advance:
-            mode, masks_given = detect_capture_mode(seq, opts.mode)
-            advance(1)
-        with timer.stage("load", total=len(seq)) as advance:
-            frames, failed, selection = load_frames(seq, mode, masks_given, opts.config.selection,
-                                                   opts.config.segmentation, store, advance)
-        # in input order (the camera check reads frames on two threads): the listing problems first, as found,
-        # then unreadable frames in the order of their names
-        index = {name: i for i, name in enumerate(seq.names)}
-        problems = dict(sorted(seq.problems.items(), key=lambda kv: index.get(kv[0], -1)))
-        if not frames:  # one line (the CLI contract), no per-frame warnings before it
-            first = next(iter(problems.items()), ("?", "?"))
-            raise InputError(source,
-                             f"no usable frame ({len(problems)} unusable); first: {first[0]}: {first[1]}")
+        if opts.append:
+            assert db is not None
+            base = _template_capture(db, store, opts)
+        for cap in caps:
+            _load(cap, opts, timer, store)
     except BaseException:
         if store is not None:
             store.close()
@@ -199,22 +248,22 @@ def run_scan(source: Path, output: Path, opts: ScanOptions, progress: Progress |
         if target is not None:
             target.discard()
         raise
-    for name, err in failed:
-        log.warning("skipping frame %s: %s", name, err)
+    for cap in caps:
+        for name, err in cap.failed:
+            log.warning("skipping frame %s: %s", name, err)
 
     made = missing_folders(output)
     created = None
     try:
         if db is None:
             # obj_id: the BOP object the scan followed (its ground truth and masks), for `gscan eval`
-            db, target = create_output(output, opts, dict(opts.meta) | scan_meta(source, opts) | {
-                "obj_id": seq.obj_id, "input_frames": fingerprints, "camera": camera})
+            db, target = create_output(output, opts, dict(opts.meta) | scan_meta(sources, opts) | {
+                "obj_id": seqs[0].obj_id, "input_frames": fingerprints, "camera": caps[0].camera})
         created = file_identity(output)  # a new output in place: only this file is removed on failure
-        if resumed:  # only once the input is known to hold frames: a complete database stays complete
+        if resumed or opts.append:  # only once the input is known to hold frames: a complete database stays complete
             db.mark_partial()
-        data = FrameData(frames, store, db, mode, masks_given, _icp_voxel(opts.config), detections)
-        result = _scan_frames(data, source, output, opts, db, resumed, timer, problems, selection)
-        result.camera = camera
+        result = _scan_frames(caps if base is None else [base, *caps], output, opts, db, store, resumed, timer)
+        result.camera = caps[0].camera
     except BaseException as e:
         store.close()
         if db is not None:
@@ -240,68 +289,153 @@ def run_scan(source: Path, output: Path, opts: ScanOptions, progress: Progress |
     return result
 
 
+def _open(c: CaptureInput, opts: ScanOptions) -> FrameSequence | RecordingSequence:
+    """A capture's frames, opened (its layout and calibration read; no frame yet). InputError naming it."""
+    from gscan.io import open_sequence
+
+    obj_id = opts.obj_id if c.obj_id is None else c.obj_id
+    seq = open_sequence(c.source, format=c.format or opts.format, intrinsics=opts.intrinsics,
+                        depth_scale=opts.depth_scale, obj_id=obj_id, color_topic=opts.color_topic,
+                        depth_topic=opts.depth_topic, depth_camera=opts.depth_camera)
+    if obj_id is not None and seq.format != "bop":
+        raise InputError(c.source, f"an object id is for BOP scene folders, this is a {seq.format} folder")
+    if obj_id is not None and seq.gt_T_cam_obj is None:
+        raise InputError(c.source / "scene_gt.json", "not found (the object id picks an object of its "
+                         "poses)", fix="obj_id")
+    if obj_id is not None and not seq.gt_T_cam_obj:
+        raise InputError(c.source / "scene_gt.json", f"holds no pose of object {obj_id}", fix="obj_id")
+    return seq
+
+
+def _load(cap: _Capture, opts: ScanOptions, timer: StageTimer, store: FrameStore) -> None:
+    """The camera check, the capture mode and the load of one capture (frames named with its prefix)."""
+    before = dict(timer.timings)
+    detections: dict[str, Detection] = {}
+    assert cap.seq is not None
+    with timer.stage("camera", total=1) as advance:  # (after the checks that refuse the input in one line)
+        cap.seq, cap.camera = check_camera(cap.source, cap.seq, opts, detections)
+        advance(1)
+    cap.detections = {cap.prefix + n: d for n, d in detections.items()}
+    with timer.stage("mode", total=1) as advance:
+        cap.mode, cap.masks_given = detect_capture_mode(cap.seq, opts.mode)
+        advance(1)
+    seq = cap.seq
+    assert seq is not None
+    with timer.stage("load", total=len(seq)) as advance:
+        cap.frames, cap.failed, cap.selection, cap.skipped = load_frames(
+            seq, cap.mode, cap.masks_given, opts.config.selection, opts.config.segmentation, store, advance,
+            cap.prefix)
+    # in input order (the camera check reads frames on two threads): the listing problems first, as found,
+    # then unreadable frames in the order of their names
+    index = {name: i for i, name in enumerate(seq.names)}
+    cap.problems = {cap.prefix + n: why for n, why in sorted(seq.problems.items(),
+                                                              key=lambda kv: index.get(kv[0], -1))}
+    if not cap.frames:  # one line (the CLI contract), no per-frame warnings before it
+        first = next(iter(cap.problems.items()), ("?", "?"))
+        raise InputError(cap.source,
+                         f"no usable frame ({len(cap.problems)} unusable); first: {first[0]}: {first[1]}")
+    _add_timings(cap, before, timer)
+
+
+def _add_timings(cap: _Capture, before: dict[str, float], timer: StageTimer) -> None:
+    for k, v in timer.timings.items():
+        if v - before.get(k, 0.0) > 0:
+            cap.timings[k] = cap.timings.get(k, 0.0) + v - before.get(k, 0.0)
+
+
 # ------------------------------------------------------------------------------------------ the stages
-def _scan_frames(data: FrameData, source: Path, output: Path, opts: ScanOptions, db: TemplateDB, resumed: bool,
-                 timer: StageTimer, problems: dict[str, str], selection: Selection) -> ScanResult:
-    frames, mode = data.frames, data.mode
-    cfg = for_capture(opts.config, mode)
-    log.info("%s capture, %d of %d frames kept%s", mode, len(frames), len(frames) + len(selection.skipped),
-             ", masks given" if data.masks_given else "")
-
-    # each stage's writes are batched: one commit per stage, or per COMMIT_ROWS records in a long one
-    with timer.stage("features", total=len(frames)) as advance, db.batch():
-        db.set_meta("mode", mode)
-        db.set_meta("selection", selection.to_meta())
-        _extract(data, cfg.features, db, resumed, advance)
-    if not any(f.n_keypoints for f in frames):  # every frame dark, textureless or without depth: nothing to scan
-        raise InputError(source, f"no keypoint with depth in any of the {len(frames)} frames "
-                         "(dark or textureless images, or no valid depth)")
-
-    n = len(frames)
-    rparams, sparams = cfg.registration, cfg.posegraph
+def _scan_frames(caps: list[_Capture], output: Path, opts: ScanOptions, db: TemplateDB, store: FrameStore,
+                 resumed: bool, timer: StageTimer) -> ScanResult:
     with ThreadPoolExecutor(max_workers=WORKERS) as pool:
-        with timer.stage("noise", total=1) as advance, db.batch():
-            if sparams.estimate_noise:
-                kp_noise, depth_noise = capture_noise(data, rparams, sparams.pilot_pairs, pool)
-                rparams = replace(rparams, noise=kp_noise, depth_noise=depth_noise)
-            db.set_meta("noise", {"keypoint": rparams.noise.to_dict(), "depth": rparams.depth_noise.to_dict()})
-            advance(1)
-        sink = _EdgeRecords(db)
-        reg = Registrar(data, rparams, sink, db.edges() if resumed else (), AHEAD)
-        with timer.stage("register", total=max(1, n - 1)) as advance, db.batch():
-            edges = register_edges(reg, sparams, pool, advance)
-        with timer.stage("posegraph", total=1) as advance:
-            res = optimise_sequence(reg, edges, sparams, pool)
-            advance(1)
-    edges, T_world_cam, quality = res.edges, res.T_world_cam, res.quality
-    registered = [k for k in range(n) if T_world_cam[k] is not None]
-    reasons, parts = res.unregistered_reasons, res.parts
+        for cap in caps:
+            if cap.reg is not None:  # the template appended to
+                continue
+            before = dict(timer.timings)
+            _register_capture(cap, opts, db, store, resumed, timer, pool)
+            _add_timings(cap, before, timer)
+        if len(caps) > 1:
+            _join(caps, opts.config, timer, pool)
+    for cap in caps[1:] if opts.append else []:
+        assert cap.join is not None
+        if cap.join.T_a_b is None:  # the template is left as it was
+            raise InputError(cap.source, f"cannot be joined to the template {output}: {cap.join.reason}; the "
+                             "template is left as it was")
 
-    with timer.stage("segment", total=n) as advance:
-        seg = replace(cfg.segmentation, depth_noise=rparams.depth_noise)  # the capture's own
-        mask_of, plane_world = _segment(data, T_world_cam, opts.segment, seg, advance)
+    # the captures' frames as one sequence in the first capture's world (a capture not joined: unregistered)
+    frames = [f for cap in caps for f in cap.frames]
+    n = len(frames)
+    offsets = np.cumsum([0] + [len(cap.frames) for cap in caps])
+    T_world_cam: list[np.ndarray | None] = []
+    quality: dict[int, float] = {}
+    reasons: dict[str, str] = {}
+    parts: list[list[str]] = []
+    for cap, off in zip(caps, offsets, strict=False):
+        r = cap.reg
+        assert r is not None
+        T_join = np.eye(4) if cap.join is None else cap.join.T_a_b
+        if T_join is None:  # its own part, never fused at a guessed pose
+            why = f"capture {cap.input.name} was not joined to the others: {cap.join.reason}"  # type: ignore[union-attr]
+            reasons |= {f.name: why for f, T in zip(cap.frames, r.T_world_cam, strict=True) if T is not None}
+            parts.append([f.name for f, T in zip(cap.frames, r.T_world_cam, strict=True) if T is not None])
+            T_world_cam += [None] * len(cap.frames)
+        else:
+            T_world_cam += [None if T is None else T_join @ T for T in r.T_world_cam]
+            quality |= {off + k: q for k, q in r.quality.items()}
+        reasons |= r.reasons
+        parts += r.parts
+    registered = [k for k in range(n) if T_world_cam[k] is not None]
+    first = caps[0]
+    assert first.reg is not None and first.data is not None
+    data = FrameData(frames, store, db, first.mode, first.masks_given, _icp_voxel(opts.config))
+
+    def mask_of(g: int) -> np.ndarray | None:
+        c = int(np.searchsorted(offsets, g, side="right")) - 1
+        return caps[c].reg.mask_of(g - int(offsets[c]))  # type: ignore[union-attr]
 
     with timer.stage("fuse", total=1) as advance:
-        model, T_obj_world = _fuse(data, T_world_cam, mask_of, plane_world, cfg.fusion, source)
+        model, T_obj_world = _fuse(data, T_world_cam, mask_of, first.reg.plane_world, opts.config.fusion,
+                                   first.source)
+        if opts.append:  # the template's frame is kept: its views' poses stay as they were
+            T_obj_world = np.eye(4)
         advance(1)
 
+    cfg = for_capture(opts.config, first.mode)
+    problems = {n_: why for cap in caps for n_, why in cap.problems.items()}
+    selection = _merged_selection(caps)
     with timer.stage("database", total=n + 1) as advance, db.batch():
         T_obj_cam = [None if T is None else T_obj_world @ T for T in T_world_cam]
         keyframes = _store_views(data, T_obj_cam, mask_of, quality, cfg, db, advance)
-        for e in edges:  # the pose graph's verdicts, also where a resumed run reaches another one
-            if e.pruned or (e.src, e.tgt) in res.restored:
-                db.add_edge(e)
+        for cap in caps:
+            for e in cap.reg.edges:  # type: ignore[union-attr]  # the pose graph's verdicts, also where a
+                if e.pruned or (e.src, e.tgt) in cap.reg.restored:  # type: ignore[union-attr]  # resumed run
+                    db.add_edge(e)  # reaches another one
         mesh = model.mesh.transformed(T_obj_world)
         db.set_mesh(mesh)
         db.set_cloud(transform_points(T_obj_world, model.points), model.point_colors)
         unregistered = [f.name for f, T in zip(frames, T_world_cam, strict=True) if T is None]
+        db.set_meta("mode", first.mode)
+        noise = first.reg.rparams
+        db.set_meta("noise", {"keypoint": noise.noise.to_dict(), "depth": noise.depth_noise.to_dict()})
         db.set_meta("unregistered", unregistered)
         db.set_meta("unregistered_reasons", reasons)
         db.set_meta("parts", parts)
         db.set_meta("skipped", problems)
+        db.set_meta("selection", selection.to_meta())
+        if opts.append:  # the template's captures as they were recorded, then the new ones
+            recorded = _template_captures(db) + [_capture_meta(cap, T_obj_world) for cap in caps[1:]]
+            db.set_meta("captures", recorded)
+            db.set_meta("input", [c["input"] for c in recorded])
+        else:
+            db.set_meta("captures", [_capture_meta(cap, T_obj_world) for cap in caps] if len(caps) > 1 else [])
+            db.set_meta("support_plane", first.reg.plane_world is not None)
+        db.set_meta("selection_poses", _selection_poses(caps, T_obj_world))
         db.set_meta("voxel_size", model.voxel_size)
-        db.set_meta("support_plane", plane_world is not None)
         db.set_meta("timings_s", timer.timings)
+        # which sides were seen; without a support plane the template frame is the first camera's: up is its -y
+        plane = bool(db.get_meta("support_plane")) if opts.append else first.reg.plane_world is not None
+        coverage = template_coverage([T for T in T_obj_cam if T is not None], mesh,
+                                     up=None if plane else (0.0, -1.0, 0.0))
+        db.set_meta("coverage", coverage.to_meta())
         db.mark_complete()
         advance(1)
     stored_edges = db.edges()
@@ -309,11 +443,269 @@ def _scan_frames(data: FrameData, source: Path, output: Path, opts: ScanOptions,
     total_edges = len(stored_edges)
     return ScanResult(output=output, frames=n + len(selection.skipped) + len(problems),
                       registered=len(registered), unregistered=unregistered + sorted(problems),
-                      edges_accepted=accepted, edges_rejected=total_edges - accepted, mode=mode,
+                      edges_accepted=accepted, edges_rejected=total_edges - accepted, mode=first.mode,
                       mesh_vertices=len(mesh.vertices), mesh_triangles=len(mesh.triangles),
                       timings_s=dict(timer.timings), problems=problems, keyframes=len(keyframes),
-                      unregistered_reasons=reasons | problems, parts=parts, noise=rparams.noise,
-                      selection=selection.summary())
+                      unregistered_reasons=reasons | problems, parts=parts, noise=first.reg.rparams.noise,
+                      selection=selection.summary(), coverage=coverage.to_json(),
+                      damage=[line for cap in caps if cap.seq is not None for line in cap.seq.damage], captures=(
+                          [_capture_summary(cap) for cap in caps] if not opts.append else
+                          [{k: c.get(k) for k in _capture_summary(caps[1])} for c in db.get_meta("captures")]))
+
+
+def _capture_names(db: TemplateDB) -> list[str]:
+    """The names of the captures a template was scanned from."""
+    return [c["name"] for c in _template_captures(db)]
+
+
+def _template_captures(db: TemplateDB) -> list[dict]:
+    """A template's "captures" meta; a template of one capture: that capture, named after its input."""
+    caps = db.get_meta("captures") or []
+    if caps:
+        return list(caps)
+    src = db.get_meta("input")
+    views = db.views()
+    return [{"name": (Path(src).stem if Path(src).suffix else Path(src).name) or "capture", "input": src,
+             "mode": db.get_meta("mode"), "frames": len(views),
+             "registered": sum(v.T_obj_cam is not None for v in views), "joined": True, "reason": None,
+             "T_obj_world": None}]
+
+
+def _template_capture(db: TemplateDB, store: FrameStore, opts: ScanOptions) -> _Capture:
+    """The views of the template appended to (`--append`) as a capture registered in the object frame: their
+    images and masks put in the frame store, their poses, qualities and the reasons of the unregistered ones. A
+    template of one capture has its views renamed `CAPTURE/FRAME` first, as a scan of several names them."""
+    if not db.get_meta("captures"):
+        [only] = _template_captures(db)
+        prefix = f"{only['name']}/"
+        db.rename_views(prefix)
+        meta = db.meta()
+        with db.batch():
+            db.set_meta("captures", [only | {"T_obj_world": np.eye(4).tolist()}])
+            for key in ("unregistered_reasons", "skipped", "input_frames"):
+                db.set_meta(key, {prefix + n: v for n, v in (meta.get(key) or {}).items()})
+            db.set_meta("unregistered", [prefix + n for n in meta.get("unregistered") or []])
+            db.set_meta("parts", [[prefix + n for n in p] for p in meta.get("parts") or []])
+            sel = dict(meta.get("selection") or {})
+            db.set_meta("selection", sel | {"frames": {prefix + n: v for n, v in (sel.get("frames") or {}).items()}})
+            old = meta.get("selection_poses") or {}
+            db.set_meta("selection_poses", {
+                "frames": {prefix + n: T for n, T in (old.get("frames") or {}).items()},
+                "reference": {prefix + n: prefix + r for n, r in (old.get("reference") or {}).items()},
+                "reasons": {prefix + n: why for n, why in (old.get("reasons") or {}).items()}})
+    meta = db.meta()
+    frames: list[Frame] = []
+    T_obj_cam: list[np.ndarray | None] = []
+    quality: dict[int, float] = {}
+    for k, name in enumerate(db.view_names()):
+        v = db.view(name, load_images=True)
+        if v.color is None or v.depth is None:
+            raise InputError(db.path, f"view {name!r} is stored without its images: captures cannot be appended")
+        store.put(name, color=v.color, depth=v.depth, mask=v.mask)
+        feats = db.features(name)
+        f = Frame(StoredFrame(name, v.intrinsics, None, False), n_keypoints=0 if feats is None else len(feats))
+        if feats is not None and v.T_obj_cam is not None:
+            f.object_keypoints = _object_keypoints(feats.pixels, v.mask)
+        frames.append(f)
+        T_obj_cam.append(v.T_obj_cam)
+        if v.quality is not None:
+            quality[k] = v.quality
+    noise = meta.get("noise") or {}
+    rparams = for_capture(opts.config, meta.get("mode") or STATIC_OBJECT).registration
+    with contextlib.suppress(TypeError, ValueError, KeyError):
+        rparams = replace(rparams, noise=DepthNoise(**noise["keypoint"]), depth_noise=DepthNoise(**noise["depth"]))
+    names = [f.name for f in frames]
+
+    def mask_of(k: int) -> np.ndarray | None:
+        return store.get(names[k], "mask")
+
+    reasons = {n: why for n, why in (meta.get("unregistered_reasons") or {}).items() if n in set(names)}
+    # the frames its selection skipped, as recorded (their poses already in the object frame)
+    placed_meta = meta.get("selection_poses") or {}
+    skipped = {n: (BLURRED if why.startswith("blurred") else LITTLE_MOTION, why)
+               for n, why in ((meta.get("selection") or {}).get("frames") or {}).items()}
+    selection = Selection(opts.config.selection, kept=names, skipped=skipped,
+                          reference=dict(placed_meta.get("reference") or {}))
+    placed: dict[str, np.ndarray | str] = {n: np.asarray(T) for n, T in (placed_meta.get("frames") or {}).items()}
+    placed |= dict(placed_meta.get("reasons") or {})
+    cap = _Capture(CaptureInput("template", db.path), None, "", mode=meta.get("mode") or STATIC_OBJECT,
+                   frames=frames, selection=selection, problems=dict(meta.get("skipped") or {}))
+    cap.data = FrameData(frames, store, db, cap.mode, False, _icp_voxel(opts.config))
+    cap.reg = _Registered(T_obj_cam, mask_of, None, quality, reasons, [list(p) for p in meta.get("parts") or []],
+                          [], set(), rparams, placed)
+    return cap
+
+
+def _register_capture(cap: _Capture, opts: ScanOptions, db: TemplateDB, store: FrameStore, resumed: bool,
+                      timer: StageTimer, pool: ThreadPoolExecutor) -> None:
+    """Features, noise, pairwise registration, pose graph and segmentation of one capture, in its own world."""
+    frames, mode = cap.frames, cap.mode
+    cfg = for_capture(opts.config, mode)
+    data = cap.data = FrameData(frames, store, db, mode, cap.masks_given, _icp_voxel(opts.config), cap.detections)
+    assert cap.selection is not None
+    log.info("%s%s capture, %d of %d frames kept%s", f"{cap.input.name}: " if cap.prefix else "", mode,
+             len(frames), len(frames) + len(cap.selection.skipped), ", masks given" if data.masks_given else "")
+
+    # each stage's writes are batched: one commit per stage, or per COMMIT_ROWS records in a long one
+    with timer.stage("features", total=len(frames)) as advance, db.batch():
+        _extract(data, cfg.features, db, resumed, advance)
+    if not any(f.n_keypoints for f in frames):  # every frame dark, textureless or without depth: nothing to scan
+        raise InputError(cap.source, f"no keypoint with depth in any of the {len(frames)} frames "
+                         "(dark or textureless images, or no valid depth)")
+
+    n = len(frames)
+    rparams, sparams = cfg.registration, cfg.posegraph
+    with timer.stage("noise", total=1) as advance:
+        if sparams.estimate_noise:
+            kp_noise, depth_noise = capture_noise(data, rparams, sparams.pilot_pairs, pool)
+            rparams = replace(rparams, noise=kp_noise, depth_noise=depth_noise)
+        advance(1)
+    sink = _EdgeRecords(db)
+    reg = Registrar(data, rparams, sink, db.edges() if resumed else (), AHEAD)
+    with timer.stage("register", total=max(1, n - 1)) as advance, db.batch():
+        edges = register_edges(reg, sparams, pool, advance)
+    with timer.stage("posegraph", total=1) as advance:
+        res = optimise_sequence(reg, edges, sparams, pool)
+        advance(1)
+
+    with timer.stage("segment", total=n) as advance:
+        seg = replace(cfg.segmentation, depth_noise=rparams.depth_noise)  # the capture's own
+        mask_of, plane_world = _segment(data, res.T_world_cam, opts.segment, seg, advance)
+    cap.reg = _Registered(res.T_world_cam, mask_of, plane_world, res.quality, res.unregistered_reasons, res.parts,
+                          res.edges, res.restored, rparams)
+    with timer.stage("place", total=len(cap.skipped)) as advance:
+        cap.reg.placed = _place_skipped(cap, cfg.features, rparams, pool, advance)
+
+
+def _place_skipped(cap: _Capture, fparams: FeatureParams, rparams: RegisterParams, pool: ThreadPoolExecutor,
+                   advance: Callable[[int], None]) -> dict[str, np.ndarray | str]:
+    """A pose for each frame frame selection skipped: registered (like an edge) to the kept frame it was compared
+    with, which moved little from it; name -> T_world_cam, or why it has none (its reference has no pose, or the
+    edge was refused). Such frames are not fused and are never keyframes."""
+    data, r = cap.data, cap.reg
+    assert data is not None and r is not None and cap.selection is not None
+    index = {f.name: k for k, f in enumerate(cap.frames)}
+
+    def place(stored: StoredFrame) -> np.ndarray | str:
+        ref = cap.selection.reference[stored.name]  # type: ignore[union-attr]
+        k = index.get(ref)
+        T_world_ref = None if k is None else r.T_world_cam[k]
+        if k is None or T_world_ref is None:
+            return f"skipped by frame selection; the frame it was compared with ({ref}) has no pose"
+        frame = stored.load(data.store)
+        mask = data.object_mask(k)  # a moving object's: the reference's (the view moved little)
+        b = data.reg(k)
+        feats = extract_features(frame, fparams, mask=mask)
+        cloud = None if data.icp_voxel is None else icp_cloud(frame.depth, frame.intrinsics, mask, data.icp_voxel)
+        a = RegData(feats, cloud, DenseGeometry.from_depth(frame.depth, frame.intrinsics, mask, image=frame.color))
+        res = register_features(a.feats, b.feats, rparams, clouds=(a.cloud, b.cloud), dense=(a.dense, b.dense))
+        if not res.accepted or res.T_tgt_src is None:
+            return f"skipped by frame selection; not placed against {ref}: {res.reason}"
+        return T_world_ref @ res.T_tgt_src
+
+    out: dict[str, np.ndarray | str] = {}
+    for stored, got in zip(cap.skipped, bounded_map(pool, place, cap.skipped, AHEAD), strict=True):
+        out[stored.name] = got
+        advance(1)
+    return out
+
+
+def _join(caps: list[_Capture], config: ScanConfig, timer: StageTimer, pool: ThreadPoolExecutor) -> None:
+    """Joins each capture after the first to those joined before it (`gscan.registration.join`), on the object's
+    own keypoints and depth (the object moved against the table between captures)."""
+    params = config.join
+    # object-only registration (a moving object's settings), with the first capture's noise
+    first = caps[0].reg
+    assert first is not None
+    moving = for_capture(config, MOVING_OBJECT).registration
+    rparams = replace(moving, noise=first.rparams.noise, depth_noise=first.rparams.depth_noise)
+    oparams = replace(OBJECT_FEATURES, kind=config.features.kind, max_keypoints=config.features.max_keypoints)
+    with timer.stage("join", total=len(caps) - 1) as advance:
+        joined = _join_views(caps[0], params.views, oparams, _icp_voxel(config), pool)
+        for cap in caps[1:]:
+            views = _join_views(cap, params.views, oparams, _icp_voxel(config), pool)
+            cap.join = join_captures(joined, views, rparams, params, pool)
+            if cap.join.T_a_b is not None:
+                T = cap.join.T_a_b
+                joined += [JoinView(v.name, v.reg, T @ v.T_world_cam) for v in views]
+                log.info("capture %s joined to the others (%d of %d view pairs agree)", cap.input.name,
+                         len(cap.join.agreeing), cap.join.tried)
+            else:
+                log.warning("capture %s is not joined to the others: %s", cap.input.name, cap.join.reason)
+            advance(1)
+
+
+def _join_views(cap: _Capture, k: int, oparams: FeatureParams, icp_voxel: float | None,
+                pool: ThreadPoolExecutor) -> list[JoinView]:
+    """Up to k registered views of a capture, spread over it, with the object in view: keypoints detected in the
+    object mask, depth samples and ICP cloud inside it (camera frame), pose in the capture's world."""
+    r, data = cap.reg, cap.data
+    assert r is not None and data is not None
+    reg = [i for i, T in enumerate(r.T_world_cam) if T is not None]
+
+    def view(i: int) -> JoinView | None:
+        mask, T = r.mask_of(i), r.T_world_cam[i]
+        if mask is None or not mask.any() or T is None:
+            return None
+        frame = data.frame(i)
+        feats = extract_features_in_mask(frame, mask, oparams)
+        cloud = None if icp_voxel is None else icp_cloud(frame.depth, frame.intrinsics, mask, icp_voxel)
+        dense = DenseGeometry.from_depth(frame.depth, frame.intrinsics, mask, image=frame.color)
+        return JoinView(frame.name, RegData(feats, cloud, dense), T)
+
+    return [v for v in pool.map(view, [reg[j] for j in spread(len(reg), k)]) if v is not None]
+
+
+def _selection_poses(caps: list[_Capture], T_obj_world: np.ndarray) -> dict:
+    """The template's "selection_poses" meta: {"frames": {name: T_obj_cam}, "reference": {name: the kept frame it
+    was registered to}, "reasons": {name: why it has no pose}} of the frames frame selection skipped."""
+    frames, refs, reasons = {}, {}, {}
+    for cap in caps:
+        r = cap.reg
+        assert r is not None and cap.selection is not None
+        T_join = np.eye(4) if cap.join is None else cap.join.T_a_b
+        for name, got in r.placed.items():
+            if isinstance(got, str):
+                reasons[name] = got
+            elif T_join is None:
+                reasons[name] = f"capture {cap.input.name} was not joined to the others"
+            else:
+                frames[name] = (T_obj_world @ T_join @ got).tolist()
+                refs[name] = cap.selection.reference[name]
+    return {"frames": frames, "reference": refs, "reasons": reasons}
+
+
+def _merged_selection(caps: list[_Capture]) -> Selection:
+    out = Selection(caps[0].selection.params)  # type: ignore[union-attr]
+    for cap in caps:
+        assert cap.selection is not None
+        out.kept += cap.selection.kept
+        out.skipped |= cap.selection.skipped
+        out.reference |= cap.selection.reference
+    return out
+
+
+def _capture_summary(cap: _Capture) -> dict:
+    """A capture of a scan of several, in `scan --json`'s "captures"."""
+    r = cap.reg
+    assert r is not None
+    return {"name": cap.input.name, "input": str(cap.source), "mode": cap.mode, "frames": len(cap.frames),
+            "registered": sum(T is not None for T in r.T_world_cam),
+            "joined": cap.join is None or cap.join.T_a_b is not None,
+            "reason": None if cap.join is None else cap.join.reason,
+            "timings_s": {k: round(v, 3) for k, v in cap.timings.items()}}
+
+
+def _capture_meta(cap: _Capture, T_obj_world: np.ndarray) -> dict:
+    """A capture's record in the template's "captures" meta: its summary, the noise its registration used, how it
+    was joined and T_obj_world [4 x 4] of its world (None: not joined)."""
+    r = cap.reg
+    assert r is not None
+    T = np.eye(4) if cap.join is None else cap.join.T_a_b
+    return _capture_summary(cap) | {
+        "noise": {"keypoint": r.rparams.noise.to_dict(), "depth": r.rparams.depth_noise.to_dict()},
+        "join": None if cap.join is None else cap.join.to_meta(),
+        "T_obj_world": None if T is None else (T_obj_world @ T).tolist()}
 
 
 def _fuse(data: FrameData, T_world_cam: list[np.ndarray | None], mask_of: Callable[[int], np.ndarray | None],

@@ -72,6 +72,8 @@ class Selection:
     params: SelectionParams
     kept: list[str] = field(default_factory=list)
     skipped: dict[str, tuple[str, str]] = field(default_factory=dict)
+    # a skipped frame -> the kept frame it was compared with (its pose is found by registration to that one)
+    reference: dict[str, str] = field(default_factory=dict)
 
     def summary(self) -> dict:
         """{"kept": frames kept, "skipped": frames skipped, "reasons": {why, in words: frames}} (`scan --json`)."""
@@ -184,6 +186,11 @@ class FrameSelector:
         self._depth = 1.0  # its centre depth (m)
         self._sharpness: deque[float] = deque(maxlen=params.blur_window)
         self._grey: np.ndarray | None = None  # the frame last considered
+
+    @property
+    def reference(self) -> str | None:
+        """The name of the last kept frame, the one a skipped frame was compared with."""
+        return self._ref_name
 
     def consider(self, frame: RGBDFrame) -> tuple[str, str] | None:
         """None: keep the frame; else (category, reason) it is skipped for."""

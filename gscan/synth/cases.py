@@ -19,7 +19,9 @@ annotated_poses/) and which show something else:
 - `two_scenes_capture`: a capture of one object followed by a few frames of another scene, two parts
   that no correct registration joins;
 - `gap_orbit_capture`: two arcs of an orbit with a gap between them, low over a plain table: two parts of
-  one scene that share no surface.
+  one scene that share no surface;
+- `two_sided_captures`: two captures of one object, upright and upside down (or on its side), the object moved
+  against the table between them: the captures of a template that knows both sides.
 
 And objects that look the same from two sides: `half_turn_box`, a box printed alike under a half turn;
 `half_turn_can`, a can whose label shows its print twice around.
@@ -200,6 +202,30 @@ def gap_orbit_capture(mesh: TexturedMesh, out_dir: str | Path, n_first: int = 6,
                             table_kind=table_kind)
     names = _names(len(frames))
     return Case(_write(out_dir, frames, intr), names, names, mesh=mesh)
+
+
+#: the turn of the object about the vertical between the two captures of `two_sided_captures` (degrees)
+TWO_SIDED_YAW_DEG = 40.0
+
+
+def two_sided_captures(mesh: TexturedMesh, out_dir: str | Path, n_views: int = 12, upside_down: bool = True,
+                       elevations_deg: tuple[float, ...] = (30.0, 55.0), table_kind: str = "newspaper",
+                       seed: int = 0, intr: Intrinsics = DEFAULT_INTRINSICS) -> tuple[Case, Case]:
+    """Two static captures of `mesh` on the same table, as a user scans both sides of an object: out_dir/up with
+    the object upright, then out_dir/down with it turned upside down (about its x axis; on its side about y when
+    `upside_down` is False) and by TWO_SIDED_YAW_DEG about the vertical: the object moved against the table, so
+    the table agrees with no pose that joins the two. Ground truth (annotated_poses/) is in the mesh's frame in
+    both, so the two captures' poses are comparable."""
+    out = Path(out_dir)
+    flip = rotvec_to_R(np.array([np.pi, 0.0, 0.0] if upside_down else [0.0, np.pi / 2, 0.0]))
+    R_down = rotvec_to_R(np.array([0.0, 0.0, np.radians(TWO_SIDED_YAW_DEG)])) @ flip
+    cases = []
+    for k, (name, R) in enumerate([("up", None), ("down", R_down)]):
+        frames = render_capture(mesh, None, n_views, mode="static", intr=intr, seed=seed + k, R_world_obj=R,
+                                elevations_deg=elevations_deg, table_kind=table_kind)
+        names = _names(len(frames))
+        cases.append(Case(_write(out / name, frames, intr), names, names, mesh=mesh))
+    return cases[0], cases[1]
 
 
 def half_turn_box(size_xyz: tuple[float, float, float], seed: int = 0,

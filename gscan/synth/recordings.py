@@ -268,16 +268,17 @@ def write_rosbag2(path: str | Path, frames: Iterable[RecordingFrame], color_intr
 
 def write_mcap(path: str | Path, frames: Iterable[RecordingFrame], color_intrinsics: Intrinsics,
                depth_camera: DepthCamera | None = None, topics: tuple[str, ...] = ("color", "depth"),
-               extrinsics: str = "tf_static", color_encoding: str = "rgb8") -> Path:
-    """A bare MCAP file of `frames` (the messages of `write_rosbag2`) written with the mcap package's writer."""
-    from mcap.writer import Writer
+               extrinsics: str = "tf_static", color_encoding: str = "rgb8", compressed: bool = True) -> Path:
+    """A bare MCAP file of `frames` (the messages of `write_rosbag2`) written with the mcap package's writer, its
+    chunks zstd-compressed (the writer's default) or not (`compressed` False: records as they are stored)."""
+    from mcap.writer import CompressionType, Writer
 
     path = Path(path)
     m = _Msgs(ros1=False)
     schemas: dict[str, int] = {}
     channels: dict[str, int] = {}
     with open(path, "wb") as fh:
-        w = Writer(fh)
+        w = Writer(fh, compression=CompressionType.ZSTD if compressed else CompressionType.NONE)
         w.start(profile="ros2", library="gscan.synth")
         for topic, typ, t_ns, msg in _ros2_messages(frames, color_intrinsics, depth_camera, topics, extrinsics, m,
                                                       color_encoding):

@@ -42,6 +42,7 @@ import numpy as np
 
 from gscan.errors import GscanError, InputError, not_a_file
 from gscan.features import Features
+from gscan.geometry.coverage import CoverageMap
 from gscan.geometry.mesh import MeshData, to_u8_colors
 from gscan.geometry.transforms import is_rigid
 from gscan.io.camera import Intrinsics
@@ -527,6 +528,13 @@ class TemplateDB:
                 c.execute("DELETE FROM views WHERE id=?", (row[0],))
             c.execute("DELETE FROM edges WHERE src=? OR tgt=?", (name, name))
 
+    def rename_views(self, prefix: str) -> None:
+        """Put `prefix` before the name of every view, in the views and in the edges that join them (a template
+        of one capture becoming one of several: its frames named `CAPTURE/FRAME`)."""
+        with self._tx() as c:
+            c.execute("UPDATE views SET name = ? || name", (prefix,))
+            c.execute("UPDATE edges SET src = ? || src, tgt = ? || tgt", (prefix, prefix))
+
     def view_names(self) -> list[str]:
         """All view names in input order (input_index, then insertion)."""
         return [r[0] for r in self._q("SELECT name FROM views ORDER BY input_index IS NULL, input_index, id")]
@@ -737,6 +745,18 @@ class TemplateDB:
                                                                          self.get_meta("skipped")),
                                selection=selection_summary(self.get_meta("selection")), parts=self.parts())
 
+    def coverage(self) -> CoverageMap | None:
+        """Which viewing directions of the object the template has seen (`gscan.geometry.coverage`; its "coverage"
+        meta, written by the scan and by template-from-mesh); None for a template made before it was recorded.
+        InputError naming the database when the stored map is malformed."""
+        meta = self.get_meta("coverage")
+        if meta is None:
+            return None
+        try:
+            return CoverageMap.from_meta(meta)
+        except ValueError as e:
+            raise InputError(self.path, f"malformed coverage record: {e}") from None
+
     def parts(self) -> list[list[str]]:
         """The frames of each part of the capture that no confident edge joins to the template's frames (largest
         first; the scan's "parts" meta, empty when there is none or the scan predates it)."""
@@ -745,7 +765,9 @@ class TemplateDB:
 
     def poses(self) -> dict:
         """The dict `gscan poses --json` prints: {"frames": {name: T_obj_cam}, "unregistered": [names],
-        "unregistered_reasons": {name: reason}, "skipped_by_selection": {name: reason}, "parts": [[names]]};
+        "unregistered_reasons": {name: reason}, "skipped_by_selection": {name: reason}, "from_reference":
+        {name: kept frame}, "parts": [[names]]}; frames skipped by selection that were placed by registration to the
+        kept frame they were compared with (`from_reference`) are in "frames" too;
         unregistered as in `scan --json`: the views without a pose, then the input frames the scan could not read
         (its "skipped" meta); skipped by selection: the input frames the scan's frame selection left out (not
         failures); parts: `parts()`."""
@@ -754,11 +776,20 @@ class TemplateDB:
         unreg = unregistered_names(views, self.get_meta("skipped"))
         sel = self.get_meta("selection")
         skipped = sel.get("frames") if isinstance(sel, dict) else None
+        skipped = {str(k): str(v) for k, v in skipped.items()} if isinstance(skipped, dict) else {}
+        placed = self.get_meta("selection_poses")
+        placed = placed if isinstance(placed, dict) else {}
+        frames |= {str(k): v for k, v in (placed.get("frames") or {}).items() if str(k) in skipped}
+        for k, why in (placed.get("reasons") or {}).items():  # not placed: why, after why it was skipped
+            if str(k) in skipped:
+                skipped[str(k)] = f"{skipped[str(k)]}; {why}"
         return {"frames": frames, "unregistered": unreg,
                 "unregistered_reasons": unregistered_reasons(unreg, self.get_meta("unregistered_reasons"),
                                                              self.get_meta("skipped")),
-                "skipped_by_selection": {str(k): str(v) for k, v in skipped.items()} if isinstance(skipped, dict)
-                else {}, "parts": self.parts()}
+                "skipped_by_selection": skipped,
+                "from_reference": {str(k): str(v) for k, v in (placed.get("reference") or {}).items()
+                                   if str(k) in frames},
+                "parts": self.parts()}
 
     def load_template(self, keyframes_only: bool = True) -> Template:
         """Everything the estimator needs, loaded once: registered (key)frame views with their keypoints

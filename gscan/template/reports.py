@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 
+from gscan.geometry.coverage import CoverageMap
 from gscan.geometry.meshfill import boundary_edges
 from gscan.template.db import TemplateDB
 from gscan.template.records import TemplateSummary
@@ -26,12 +27,14 @@ class MeshSize:
 
 @dataclass(frozen=True)
 class TemplateInfo:
-    """What a template database holds (`summary`), its mesh's size (None: no mesh) and the scan's colour camera
-    check (the "camera" meta of gscan.scanning.calibration; None: not run)."""
+    """What a template database holds (`summary`), its mesh's size (None: no mesh), the scan's colour camera
+    check (the "camera" meta of gscan.scanning.calibration; None: not run) and its coverage of viewing
+    directions (`TemplateDB.coverage`; None: unknown, a template made before it was recorded)."""
 
     summary: TemplateSummary
     mesh: MeshSize | None
     camera: dict[str, Any] | None
+    coverage: CoverageMap | None = None
 
     def to_json(self) -> dict[str, Any]:
         """The `info --json` object."""
@@ -41,34 +44,37 @@ class TemplateInfo:
                 "extent_m": list(s.extent_m), "grasps": list(s.grasps),
                 "unregistered_reasons": dict(s.unregistered_reasons), "selection": dict(s.selection),
                 "parts": [list(p) for p in s.parts], "mesh": None if self.mesh is None else asdict(self.mesh),
-                "camera": self.camera}
+                "camera": self.camera, "coverage": None if self.coverage is None else self.coverage.to_json()}
 
 
 def template_info(path: str | Path) -> TemplateInfo:
     """The summary of the template database at `path` (a partial one too; InputError naming a bad file)."""
     with TemplateDB.open(path, require_complete=False) as db:
-        summary, m, camera = db.summary(), db.mesh(), db.get_meta("camera")
+        summary, m, camera, coverage = db.summary(), db.mesh(), db.get_meta("camera"), db.coverage()
     mesh = None if m is None else MeshSize(len(m.vertices), len(m.triangles), len(boundary_edges(m.triangles)))
-    return TemplateInfo(summary, mesh, camera)
+    return TemplateInfo(summary, mesh, camera, coverage)
 
 
 @dataclass(frozen=True)
 class TemplatePoses:
     """The camera pose T_obj_cam (4 x 4, metres) of every registered input frame by name; the frames without
     one (`unregistered`, with `unregistered_reasons`), those frame selection left out (`skipped_by_selection`:
-    name -> why) and the separate parts of the capture (`TemplateDB.parts`)."""
+    name -> why; those of them with a pose are in `frames` too, placed by registration to the kept frame
+    `from_reference` names, not fused) and the separate parts of the capture (`TemplateDB.parts`)."""
 
     frames: dict[str, list[list[float]]]
     unregistered: list[str] = field(default_factory=list)
     unregistered_reasons: dict[str, str] = field(default_factory=dict)
     skipped_by_selection: dict[str, str] = field(default_factory=dict)
     parts: list[list[str]] = field(default_factory=list)
+    from_reference: dict[str, str] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
         """The `poses --json` object."""
         return {"frames": self.frames, "unregistered": self.unregistered,
                 "unregistered_reasons": self.unregistered_reasons,
-                "skipped_by_selection": self.skipped_by_selection, "parts": self.parts}
+                "skipped_by_selection": self.skipped_by_selection, "from_reference": self.from_reference,
+                "parts": self.parts}
 
 
 def template_poses(path: str | Path) -> TemplatePoses:

@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 
 from gscan.errors import InputError
+from gscan.geometry.coverage import CoverageMap
 from gscan.io.camera import RGBDFrame
 from gscan.template.db import Edge, View, unregistered_names
 from gscan.viewer.access import TokenGate, check_token
@@ -175,7 +176,7 @@ class ViewerApp:
         summary = [f"**{md_text(d.path.name)}** · {md_text(d.meta.get('source', 'scan'))}  ",
                    f"views: {len(d.views)} · registered: {len(reg)}  ",
                    f"edges: {acc} accepted ({loops} loop) · {len(d.edges) - acc} rejected  ",
-                   f"size: {d.size * 100:.1f} cm"]
+                   f"size: {d.size * 100:.1f} cm  ", coverage_markdown(d.coverage)]
         if unreg:
             summary.append(f"  \n**unregistered ({len(unreg)}):** " + ", ".join(md_text(n) for n in unreg))
         if has_frame:
@@ -186,7 +187,7 @@ class ViewerApp:
         with gui.add_folder("Layers", expand_by_default=False):
             toggles = [("Mesh", "mesh"), ("Cloud", "cloud"), ("Frustums", "frustums"), ("Edges", "edges"),
                        ("Rejected edges", "rejected"), ("3D keypoints", "keypoints"), ("Grasps", "grasps"),
-                       ("Query frame", "scene")]
+                       ("Query frame", "scene"), ("Coverage", "coverage")]
             for label, key in toggles:
                 if self.layers.get(key):
                     cb = gui.add_checkbox(label, initial_value=all(h.visible for h in self.layers[key]))
@@ -283,6 +284,15 @@ class ViewerApp:
         self._match_md.content = "\n".join(txt)
         self._match_image.visible = True
         self._match_md.visible = True
+
+
+def coverage_markdown(coverage: CoverageMap | None) -> str:
+    """The panel's lines on the template's coverage: the share of viewing directions seen and each missing region
+    (None: a template made before coverage was recorded)."""
+    if coverage is None:
+        return "coverage: unknown (not recorded in this template)"
+    return "  \n".join([f"coverage: {coverage.share:.0%} of the viewing directions seen"]
+                        + [f"missing: {md_text(m)}" for m in coverage.missing()])
 
 
 def _edge_label(e: Edge) -> str:

@@ -1,8 +1,9 @@
 """Live preview of `gscan capture` in the browser (viser): the colour image, the depth, and the coverage.
 
-GUI panel: the latest colour image and its depth (colour-mapped 0.2-2 m, holes black), and a line of numbers
-(frames seen and kept, directions covered, the angle moved since the last kept frame, tracking state).
-Scene: the object centre at the origin, z up (the first kept camera's "up"); a sphere of directions around
+GUI panel: the latest colour image and its depth (colour-mapped 0.2-2 m, holes black), a line of numbers
+(frames seen and kept, directions covered, the angle moved since the last kept frame, tracking state) and
+what is still missing, in words (`gscan.geometry.coverage`: the bottom too, until a view sees it).
+Scene: the object centre at the origin, z up (`gscan.capture.motion.up_frame`); a sphere of directions around
 it coloured by how many kept views see the object from that side (grey none, orange one, yellow two,
 green three or more: `gscan.capture.motion.Coverage`); a frustum per kept view and a white one for the
 current camera. Images are refreshed at most `MAX_IMAGE_HZ` times a second, so the preview costs the
@@ -22,7 +23,7 @@ import numpy as np
 
 from gscan.capture.record import FrameUpdate
 from gscan.viewer.app import PortInUseError, check_port, quiet_websockets
-from gscan.viewer.draw import thumbnail
+from gscan.viewer.draw import coverage_colors, thumbnail
 from gscan.viewer.scene import quat_wxyz
 
 log = logging.getLogger(__name__)
@@ -30,9 +31,9 @@ log = logging.getLogger(__name__)
 MAX_IMAGE_HZ = 8.0
 IMAGE_PX = 320  # longest side of the preview images
 DEPTH_RANGE_M = (0.2, 2.0)
-# first kept camera (x right, y down, z forward) -> preview world (x right, y forward, z up)
+# first kept camera (x right, y down, z forward) -> preview world (x right, y forward, z up) until the tracker
+# has its up frame
 R_WORLD_CAM0 = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
-COUNT_COLORS = np.array([[110, 110, 110], [240, 140, 30], [230, 220, 40], [40, 200, 70]], dtype=np.uint8)
 
 
 def depth_image(depth_mm: np.ndarray, max_px: int = IMAGE_PX) -> np.ndarray:
@@ -46,9 +47,11 @@ def depth_image(depth_mm: np.ndarray, max_px: int = IMAGE_PX) -> np.ndarray:
     return rgb
 
 
-def coverage_colors(counts: np.ndarray) -> np.ndarray:
-    """[K] view counts -> [K x 3] uint8 colours (0, 1, 2, 3+)."""
-    return COUNT_COLORS[np.minimum(np.asarray(counts), len(COUNT_COLORS) - 1)]
+def missing_text(missing: list[str]) -> str:
+    """The panel's markdown naming what is still missing (`CoverageMap.missing`)."""
+    if not missing:
+        return "every side of the object seen"
+    return "still missing:  \n" + "  \n".join(f"- {m}" for m in missing)
 
 
 class CapturePreview:
@@ -77,6 +80,8 @@ class CapturePreview:
         self._color = gui.add_image(blank, label="Colour", format="jpeg", jpeg_quality=80)
         self._depth = gui.add_image(blank, label="Depth (0.2-2 m)", format="jpeg", jpeg_quality=80)
         self._center: np.ndarray | None = None  # object centre in the first kept camera (m)
+        self._R_world_first = R_WORLD_CAM0  # the first kept camera's axes into the preview world
+        self._missing = gui.add_markdown("")
         self._cloud: Any = None  # viser handles of the coverage sphere and the current camera
         self._current: Any = None
 
@@ -88,6 +93,8 @@ class CapturePreview:
             if self._center is None and u.center is not None:
                 self._center = np.asarray(u.center, dtype=np.float64)
                 self._radius = 0.5 * max(float(np.linalg.norm(self._center)), 0.05)
+                if u.R_up_first is not None:
+                    self._R_world_first = np.asarray(u.R_up_first, dtype=np.float64)
             now = time.monotonic()
             if u.kept_now or now - self._last_image >= 1.0 / MAX_IMAGE_HZ:
                 self._last_image = now
@@ -98,6 +105,8 @@ class CapturePreview:
             self._stats.content = (f"frames seen **{u.seen}** · kept **{u.kept}**  \n"
                                    f"directions covered **{cov.covered} / {len(cov.counts)}**  \n"
                                    f"moved {u.motion.angle_deg:.1f}° since the last kept frame · tracking: {state}")
+            if u.kept_now:
+                self._missing.content = missing_text(cov.map().missing())
             if self._center is None:
                 return
             R, t = self._pose(u.motion.T_first_cam)
@@ -107,7 +116,7 @@ class CapturePreview:
                 self._views += 1
                 sc.add_camera_frustum(f"/views/{self._views:06d}", fov=fov, aspect=aspect, scale=0.15 * self._radius,
                                       color=(60, 170, 255), wxyz=quat_wxyz(R), position=t)
-                pts = (R_WORLD_CAM0 @ cov.directions.T).T * self._radius
+                pts = cov.directions * self._radius  # already in the up frame
                 self._cloud = sc.add_point_cloud("/coverage", pts.astype(np.float32), coverage_colors(cov.counts),
                                                  point_size=0.06 * self._radius)
             if self._current is None:
@@ -118,7 +127,8 @@ class CapturePreview:
 
     def _pose(self, T_first_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         assert self._center is not None
-        return R_WORLD_CAM0 @ T_first_cam[:3, :3], R_WORLD_CAM0 @ (T_first_cam[:3, 3] - self._center)
+        R = self._R_world_first
+        return R @ T_first_cam[:3, :3], R @ (T_first_cam[:3, 3] - self._center)
 
     def stop(self) -> None:
         with contextlib.redirect_stdout(io.StringIO()):

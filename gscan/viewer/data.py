@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gscan.geometry.coverage import CoverageMap
 from gscan.template.db import Edge, MeshData, TemplateDB, View
 from gscan.viewer.draw import image_wh, thumbnail
 
@@ -47,6 +48,7 @@ class ViewerData:
     quality: dict[str, float | None] = field(default_factory=dict)
     center: np.ndarray = field(default_factory=lambda: np.zeros(3))
     size: float = 0.1  # largest side of the object's bounding box (m)
+    coverage: CoverageMap | None = None  # which viewing directions the template saw (None: not recorded)
 
     @property
     def registered(self) -> list[View]:
@@ -57,7 +59,7 @@ def load_viewer_data(db_path: str | Path, options: ViewerOptions = ViewerOptions
     """Read a complete template database (InputError for a partial, missing or foreign one)."""
     with TemplateDB.open(db_path, require_complete=True) as db:
         meta, edges = db.meta(), db.edges()
-        mesh, cloud, grasps = db.mesh(), db.cloud(), db.grasps()
+        mesh, cloud, grasps, coverage = db.mesh(), db.cloud(), db.grasps(), db.coverage()
         names = db.view_names()
         # Image decoding (OpenCV releases the GIL) dominates opening a large template: one view per task.
         with ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 1)) as pool:
@@ -72,6 +74,7 @@ def load_viewer_data(db_path: str | Path, options: ViewerOptions = ViewerOptions
         kps[v.name] = ((np.zeros((0, 2), np.float32), np.zeros((0, 3), np.float32)) if f is None
                        else (np.asarray(f.pixels, np.float32), np.asarray(f.points, np.float32)))
     data = ViewerData(Path(db_path), meta, views, thumbs, sizes, kps, edges, mesh, cloud, grasps)
+    data.coverage = coverage
     data.quality = _view_quality(views, edges, options.rmse_red_m)
     data.center, data.size = _object_box(data)
     return data

@@ -9,6 +9,9 @@ import numpy as np
 from gscan.template.db import Edge
 
 QUERY_CAMERA_COLOR = (40, 120, 255)  # the frustum of a query frame placed by an estimated pose
+# coverage cells by how many views see them: none (grey), one (orange), two (yellow), three or more (green)
+COUNT_COLORS = np.array([[110, 110, 110], [240, 140, 30], [230, 220, 40], [40, 200, 70]], dtype=np.uint8)
+SURFACE_SEEN_COLOR = (90, 160, 230)  # a cell no view looked from, seen through the observed surface's normals
 
 
 def _rgb(c: np.ndarray) -> tuple[int, int, int]:
@@ -37,6 +40,15 @@ def edge_color(edge: Edge, rmse_red_m: float) -> tuple[int, int, int]:
         lo, hi = np.array([0, 200, 230]), np.array([230, 0, 200])
         return _rgb(lo + (hi - lo) * t)
     return quality_color(1.0 - t)
+
+
+def coverage_colors(counts: np.ndarray, surface: np.ndarray | None = None) -> np.ndarray:
+    """[K] view counts (and [K] bool: seen through the surface) -> [K x 3] uint8 colours (`COUNT_COLORS`;
+    `SURFACE_SEEN_COLOR` where no view but the surface saw the cell)."""
+    c = COUNT_COLORS[np.minimum(np.asarray(counts), len(COUNT_COLORS) - 1)]
+    if surface is not None:
+        c[(np.asarray(counts) == 0) & np.asarray(surface, dtype=bool)] = SURFACE_SEEN_COLOR
+    return c
 
 
 def thumbnail(img: np.ndarray, max_side: int) -> np.ndarray:
@@ -106,7 +118,8 @@ def draw_matches(img_s: np.ndarray, px_s: np.ndarray, wh_s: tuple[int, int], img
 
 
 def legend_html(red_m: float) -> str:
-    """HTML legend of the colour scales: view quality, edge RMSE (sequential, loop), rejected edges, query camera."""
+    """HTML legend of the colour scales: view quality, edge RMSE (sequential, loop), rejected edges, query camera,
+    coverage cells."""
 
     def sw(c: tuple[int, int, int]) -> str:
         return (f'<span style="display:inline-block;width:10px;height:10px;margin:0 2px;'
@@ -122,4 +135,6 @@ def legend_html(red_m: float) -> str:
             f"sequential edges, RMSE 0 → {red_m * 1000:.0f} mm: {seq}<br>"
             f"loop closures, RMSE 0 → {red_m * 1000:.0f} mm: {loop}<br>"
             f"rejected edges: {sw((160, 160, 160))}<br>"
-            f"query camera: {sw(QUERY_CAMERA_COLOR)}</div>")
+            f"query camera: {sw(QUERY_CAMERA_COLOR)}<br>"
+            "coverage, views 0 / 1 / 2 / 3+: " + "".join(sw(_rgb(c)) for c in COUNT_COLORS)
+            + f", observed surface only: {sw(SURFACE_SEEN_COLOR)}</div>")

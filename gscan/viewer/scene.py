@@ -1,7 +1,9 @@
 """The viewer's 3D scene (viser), in the template (object) frame: the template's axes, the fused mesh and
 cloud, one camera frustum per registered view with its snapshot (coloured by quality, click selects the
-view), pose-graph edges between camera centres, the views' 3D keypoints, grasp frames, and optionally a
-query frame's cloud placed by an estimated pose. `build_scene` returns each layer's handles (`SceneLayers`);
+view), pose-graph edges between camera centres, the views' 3D keypoints, grasp frames, the coverage map
+(`coverage_points`: a sphere of points around the object, one per direction cell, coloured by how many views
+saw the object from there, blue where only the observed surface did, grey where nothing did), and optionally
+a query frame's cloud placed by an estimated pose. `build_scene` returns each layer's handles (`SceneLayers`);
 the viewer app (`gscan.viewer.app.ViewerApp`) holds them.
 """
 from __future__ import annotations
@@ -14,13 +16,22 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from gscan.geometry.coverage import CoverageMap
 from gscan.geometry.transforms import inv_T, transform_points
 from gscan.io.camera import Intrinsics, RGBDFrame, point_cloud
 from gscan.template.db import MeshData, View
 from gscan.viewer.data import ViewerData, ViewerOptions
-from gscan.viewer.draw import QUERY_CAMERA_COLOR, edge_color, hue_colors, quality_color, thumbnail
+from gscan.viewer.draw import (
+    QUERY_CAMERA_COLOR,
+    coverage_colors,
+    edge_color,
+    hue_colors,
+    quality_color,
+    thumbnail,
+)
 
-LAYERS = ("mesh", "cloud", "frustums", "edges", "rejected", "keypoints", "scene", "grasps")
+LAYERS = ("mesh", "cloud", "frustums", "edges", "rejected", "keypoints", "scene", "grasps", "coverage")
+COVERAGE_RADIUS = 0.75  # the coverage map's sphere, in object sizes about the object's centre
 
 
 @dataclass
@@ -107,6 +118,9 @@ def build_scene(server: Any, data: ViewerData, options: ViewerOptions, frame: RG
         layers["grasps"].append(sc.add_frame(f"/grasps/{_node(name)}", axes_length=0.15 * s, axes_radius=0.006 * s,
                                              wxyz=quat_wxyz(T[:3, :3]), position=T[:3, 3]))
         layers["grasps"].append(sc.add_label(f"/grasps/{_node(name)}/label", name))
+    if d.coverage is not None:
+        pts, cols = coverage_points(d.coverage, d.center, d.size)
+        layers["coverage"].append(sc.add_point_cloud("/coverage", pts, cols, point_size=0.04 * s))
     scene_points_obj = None
     if frame is not None and T_cam_obj is not None:
         T_obj_cam = inv_T(np.asarray(T_cam_obj, dtype=np.float64))
@@ -118,6 +132,13 @@ def build_scene(server: Any, data: ViewerData, options: ViewerOptions, frame: RG
         layers["scene"].append(_add_frustum(sc, o, frustum_scale, "/scene/camera", frame.intrinsics, T_obj_cam,
                                             thumb, QUERY_CAMERA_COLOR, None))
     return SceneLayers(layers, frustum_scale, scene_points_obj)
+
+
+def coverage_points(coverage: CoverageMap, center: np.ndarray, size: float) -> tuple[np.ndarray, np.ndarray]:
+    """The coverage map as points: [K x 3] float32 on a sphere of `COVERAGE_RADIUS` x size about `center` [3]
+    (object frame), one per cell, and their [K x 3] uint8 colours (`coverage_colors`)."""
+    pts = np.asarray(center, dtype=np.float64) + coverage.directions_obj * COVERAGE_RADIUS * size
+    return pts.astype(np.float32), coverage_colors(coverage.counts, coverage.surface)
 
 
 def _node(name: str) -> str:

@@ -17,6 +17,7 @@ does not grow with the recording's length. Depth is reprojected into the colour 
 """
 from __future__ import annotations
 
+import itertools
 import logging
 import threading
 from collections.abc import Iterator
@@ -97,6 +98,9 @@ class RecordingSequence(FrameIteration):
         self.gt_problems: dict[str, str] = {}  # a recording carries no ground truth: none unreadable either
         self.has_masks = False
         self.obj_id: int | None = None
+        # the recording's damaged records, one line each (topic, messages the file's index lists and those read,
+        # where they are missing); empty for an intact recording
+        self.damage: list[str] = []
         self._src: MessageSource | None = src
         self._scale_override = scale_override
         self._pairs = {p.name: (k, p) for k, p in enumerate(pairs)}
@@ -292,6 +296,54 @@ def _index(src: MessageSource, setup: StreamSetup, color_intr: Intrinsics) -> tu
     return idx[c], idx[d]
 
 
+@dataclass(frozen=True)
+class _Damage:
+    """Messages of a topic that the file's index lists but that could not be read (damaged records): how many, of
+    how many, and the log-time window they are missing from (between the last message read before and the first
+    after; None: the recording's start or end)."""
+
+    topic: str
+    expected: int
+    read: int
+    after_ns: int | None
+    before_ns: int | None
+    start_ns: int
+
+    def covers(self, t_ns: int) -> bool:
+        """Whether log time t_ns lies in the window the messages are missing from."""
+        return (self.after_ns is None or t_ns > self.after_ns) and (self.before_ns is None or t_ns < self.before_ns)
+
+    def describe(self) -> str:
+        def at(t: int) -> str:
+            return f"{(t - self.start_ns) * 1e-9:.3f} s"
+
+        a, b = self.after_ns, self.before_ns
+        if a is None:
+            where = "none was read" if b is None else f"before the message at {at(b)}"
+        else:
+            where = f"after the message at {at(a)}" if b is None else f"between the messages at {at(a)} and {at(b)}"
+        return (f"{self.expected - self.read} of the {self.expected} messages the file's index lists on "
+                f"{self.topic} could not be read, {where} (from the recording's start)")
+
+
+def _damage(topic: str, logs: list[int], expected: int, span: tuple[int, int], period_ns: float) -> _Damage | None:
+    """The damage of a topic whose messages read (their log times) are fewer than its index lists: the missing
+    ones placed in the widest stretch without a message read, in the recording's image `span` (first and last log
+    time of its colour and depth messages) at the image streams' `period_ns`."""
+    if expected <= len(logs):
+        return None
+    t = np.sort(np.asarray(logs, dtype=np.int64))
+    start, end = span
+    if len(t) == 0:
+        return _Damage(topic, expected, 0, None, None, start)
+    # stretches without a message: before the first, between two, after the last (None: the recording's ends)
+    stretches = [(None, int(t[0]), int(t[0]) - start)] + [
+        (int(a), int(b), int(b - a) - period_ns) for a, b in itertools.pairwise(t)] + [
+        (int(t[-1]), None, end - int(t[-1]))]
+    after, before, _ = max(stretches, key=lambda w: w[2])
+    return _Damage(topic, expected, len(t), after, before, start)
+
+
 def _ms(seconds: float) -> str:
     return f"{seconds * 1000:.1f} ms"
 
@@ -336,6 +388,18 @@ def _open(path: Path, fmt: str, src: MessageSource, color_topic: str | None, dep
         raise InputError(path, f"--intrinsics are for {intr.width}x{intr.height} images, topic {c} is "
                          f"{setup.color_intrinsics.width}x{setup.color_intrinsics.height}")
     cix, dix = _index(src, setup, intr)
+    counts = src.counts()
+    logs = np.sort(np.asarray(cix.logs + dix.logs, dtype=np.int64))
+    span = (int(logs[0]), int(logs[-1])) if len(logs) else (0, 0)
+    # the image streams' period: their messages' median step, or the span over the messages the index lists
+    steps = [float(np.median(np.diff(np.sort(np.asarray(ix.logs, dtype=np.int64))))) for ix in (cix, dix)
+             if len(ix.logs) > 1]
+    steps += [(span[1] - span[0]) / (counts[t] - 1) for t in (c, d) if counts.get(t, 0) > 1]
+    period = min(steps, default=0.0)
+    damage = {topic: dmg for ix, topic in ((cix, c), (dix, d))
+              if (dmg := _damage(topic, ix.logs, counts.get(topic, 0), span, period)) is not None}
+    for dmg in damage.values():
+        log.warning("%s: damaged records: %s", path, dmg.describe())
     for ix, topic in ((cix, c), (dix, d)):
         if not ix.keys:
             raise InputError(path, f"topic {topic} holds no message")
@@ -373,6 +437,11 @@ def _open(path: Path, fmt: str, src: MessageSource, color_topic: str | None, dep
         else:
             k = int(np.searchsorted(dts, ct[a]))
             near_s = min(abs(int(dts[m]) - int(ct[a])) for m in (k - 1, k) if 0 <= m < len(dts)) * 1e-9
+            lost = damage.get(d)
+            if lost is not None and lost.covers(int(cix.logs[i])):
+                problems[name] = (f"its depth message on {d} is among the recording's damaged records "
+                                  f"({lost.describe()})")
+                continue
             why = "is paired with another colour frame" if near_s <= tol else "is farther"
             problems[name] = (f"no depth frame on {d} within {_ms(tol)} of this colour frame (the nearest, "
                               f"{_ms(near_s)} away, {why})")
@@ -394,6 +463,7 @@ def _open(path: Path, fmt: str, src: MessageSource, color_topic: str | None, dep
                              "pass --depth-scale")
         scale, override = float(str(np.float32(units))), False
     seq = RecordingSequence(path, fmt, src, setup, intr, scale, override, pairs, problems, tol)
+    seq.damage = [f"{path}: damaged records: {dmg.describe()}" for dmg in damage.values()]
     for name in list(seq.names):  # depth-scale sanity check on the first frame that decodes
         try:
             first = seq[name]

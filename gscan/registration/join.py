@@ -1,0 +1,170 @@
+"""Joining two captures of one object: the rigid motion from one capture's world into the other's.
+
+Between two captures the object moved against the table (turned upside down, put elsewhere, another day), so
+only the object's own points may vote: each capture offers a few registered views (`JoinView`: keypoints and
+depth samples inside the object mask, camera frame, and the view's pose in its capture's world). Every pair of
+views, one per capture, is registered like every edge of a sequence (GMatch, Kabsch, guided refinement, the
+dense and texture checks of `gscan.registration.pairwise`), on the object alone; an accepted pair proposes a
+motion T_worldA_worldB. Two proposals agree when they differ by less than `agree_sigmas` of their own predicted
+uncertainty (the poses' sigmas from the keypoint noise, floored at the noise of one keypoint pair at the
+views' depth). The captures are joined when the largest agreeing group holds at least `min_pairs` pairs, with
+at least two views of each capture among them, and no other motion has at least half its support (a symmetric
+object turned over may match two ways: then no join is guessed). The motion is the mean of the group's.
+"""
+from __future__ import annotations
+
+import logging
+from collections import Counter
+from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from typing import Annotated
+
+import numpy as np
+from pydantic import Field
+
+from gscan.geometry.transforms import inv_T, mean_pose, rotation_angle_deg
+from gscan.registration.edges import RegData
+from gscan.registration.pairwise import PairResult, RegisterParams, register_features
+from gscan.settings import SETTINGS
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class JoinParams:
+    """How captures of one object are joined."""
+
+    __pydantic_config__ = SETTINGS
+
+    views: Annotated[int, Field(ge=2, le=32, description="registered views of each capture tried against the "
+                                "other's (spread over the capture)")] = 8
+    min_pairs: Annotated[int, Field(ge=2, description="view pairs that must agree on the motion joining two "
+                                    "captures")] = 3
+    agree_sigmas: Annotated[float, Field(gt=0, description="two view pairs agree when their motions differ by "
+                                         "less than this many of their predicted standard deviations")] = 4.0
+
+
+@dataclass(frozen=True)
+class JoinView:
+    """A registered view a capture offers for joining: name, object-only registration data (camera frame), and
+    T_world_cam [4 x 4] in its capture's world."""
+
+    name: str
+    reg: RegData
+    T_world_cam: np.ndarray
+
+
+@dataclass
+class Join:
+    """The outcome of joining capture B to capture A: T_a_b [4 x 4] (B's world into A's) or None with the
+    reason; the view pairs tried and those that agree on the motion (names, A's first)."""
+
+    T_a_b: np.ndarray | None
+    reason: str | None
+    tried: int
+    accepted: int
+    agreeing: list[tuple[str, str]] = field(default_factory=list)
+
+    def to_meta(self) -> dict:
+        return {"joined": self.T_a_b is not None, "reason": self.reason, "pairs_tried": self.tried,
+                "pairs_accepted": self.accepted, "pairs_agreeing": [list(p) for p in self.agreeing],
+                "T_a_b": None if self.T_a_b is None else self.T_a_b.tolist()}
+
+
+@dataclass(frozen=True)
+class _Proposal:
+    a: str
+    b: str
+    T_a_b: np.ndarray
+    sigma_deg: float
+    sigma_m: float
+    n: int  # inliers the pair's pose rests on
+
+
+def spread(n: int, k: int) -> list[int]:
+    """k indices spread evenly over range(n) (all of them when n <= k), in order."""
+    if n <= k:
+        return list(range(n))
+    return sorted({int(round(x)) for x in np.linspace(0, n - 1, k)})
+
+
+def _differ(p: _Proposal, q: _Proposal, centre: np.ndarray, radius: float) -> tuple[float, float]:
+    """How far two proposals differ, in their predicted sigmas: (rotation angle / its sigma, displacement of the
+    object's points (within `radius` of its `centre` [3] in A's world: at most the centre's displacement +
+    angle * radius) / its sigma)."""
+    D = p.T_a_b @ inv_T(q.T_a_b)
+    ang = rotation_angle_deg(D[:3, :3])
+    disp = float(np.linalg.norm(D[:3, :3] @ centre + D[:3, 3] - centre)) + np.radians(ang) * radius
+    s_deg = np.hypot(p.sigma_deg, q.sigma_deg)
+    s_m = np.hypot(p.sigma_m, q.sigma_m)
+    return ang / s_deg, disp / s_m
+
+
+def join_captures(a: Sequence[JoinView], b: Sequence[JoinView], rparams: RegisterParams, params: JoinParams,
+                  pool: ThreadPoolExecutor) -> Join:
+    """Join capture B's world to capture A's (module docstring) from their offered views."""
+    pairs = [(va, vb) for va in a for vb in b]
+    if not pairs:
+        return Join(None, "no registered view with the object in view to join by", 0, 0)
+
+    def register(pair: tuple[JoinView, JoinView]) -> PairResult:
+        va, vb = pair
+        return register_features(vb.reg.feats, va.reg.feats, rparams, clouds=(vb.reg.cloud, va.reg.cloud),
+                                 dense=(vb.reg.dense, va.reg.dense))
+
+    results = list(pool.map(register, pairs))
+    proposals: list[_Proposal] = []
+    reasons: Counter[str] = Counter()
+    for (va, vb), r in zip(pairs, results, strict=True):
+        if not r.accepted or r.T_tgt_src is None:
+            reasons[(r.reason or "not accepted").split(":")[0]] += 1
+            continue
+        # r maps B's camera into A's: world A <- cam A <- cam B <- world B
+        T = va.T_world_cam @ r.T_tgt_src @ inv_T(vb.T_world_cam)
+        z = float(np.median(va.reg.feats.points[:, 2])) if len(va.reg.feats) else 1.0
+        floor = float(rparams.noise.pair_sigma(z, z))
+        n = len(r.inliers) if r.inliers is not None else r.n_matches
+        proposals.append(_Proposal(va.name, vb.name, T, max(r.sigma_deg or 0.0, 0.0), max(r.sigma_m or 0.0, floor),
+                                   n))
+    tried = len(pairs)
+    if not proposals:
+        common = ", ".join(f"{why} ({k})" for why, k in reasons.most_common(2))
+        return Join(None, f"none of {tried} view pairs matched the object of the other capture: {common}", tried, 0)
+
+    centre, radius = _object_extent(a)
+    floor_deg = np.degrees(max(p.sigma_m for p in proposals) / max(radius, 1e-3))
+
+    def agree(p: _Proposal, q: _Proposal) -> bool:
+        pd = _Proposal(p.a, p.b, p.T_a_b, max(p.sigma_deg, floor_deg), p.sigma_m, p.n)
+        qd = _Proposal(q.a, q.b, q.T_a_b, max(q.sigma_deg, floor_deg), q.sigma_m, q.n)
+        d_rot, d_pos = _differ(pd, qd, centre, radius)
+        return d_rot <= params.agree_sigmas and d_pos <= params.agree_sigmas
+
+    groups = [[q for q in proposals if agree(p, q)] for p in proposals]
+    order = sorted(range(len(groups)), key=lambda i: (-len(groups[i]), -sum(q.n for q in groups[i]), i))
+    best = groups[order[0]]
+    rival = next((groups[i] for i in order[1:] if not any(agree(p, q) for p in best for q in groups[i])), [])
+    accepted = len(proposals)
+    names_a, names_b = {p.a for p in best}, {p.b for p in best}
+    if len(best) < params.min_pairs or len(names_a) < 2 or len(names_b) < 2:
+        return Join(None, f"too little agreement: {len(best)} of {accepted} accepted view pairs ({tried} tried) "
+                    f"agree on one motion ({len(names_a)} and {len(names_b)} views of the two captures), "
+                    f"{params.min_pairs} needed", tried, accepted, [(p.a, p.b) for p in best])
+    if len(rival) >= max(params.min_pairs, len(best) / 2):
+        return Join(None, f"ambiguous: two motions join the captures ({len(best)} and {len(rival)} view pairs "
+                    "agree on each; a symmetric object?)", tried, accepted, [(p.a, p.b) for p in best])
+    T = mean_pose([p.T_a_b for p in best])
+    log.info("joined: %d of %d accepted view pairs (%d tried) agree", len(best), accepted, tried)
+    return Join(T, None, tried, accepted, [(p.a, p.b) for p in best])
+
+
+def _object_extent(views: Sequence[JoinView]) -> tuple[np.ndarray, float]:
+    """(centroid [3], RMS distance (m) from it) of the views' object keypoints in their capture's world."""
+    pts = [v.reg.feats.points.astype(np.float64) @ v.T_world_cam[:3, :3].T + v.T_world_cam[:3, 3]
+           for v in views if len(v.reg.feats)]
+    if not pts:
+        return np.zeros(3), 0.0
+    p = np.concatenate(pts)
+    c = p.mean(0)
+    return c, float(np.sqrt(np.mean(np.sum((p - c) ** 2, axis=1))))

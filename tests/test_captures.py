@@ -1,0 +1,170 @@
+"""Several captures of one object, one template (issue 38): the captures a scan reads (`gscan.io.captures`), and
+end to end a box scanned upright and upside down (the object moved against the table between the captures) with a
+capture of another object given by mistake."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+from scipy.spatial import cKDTree
+
+from gscan import synth
+from gscan.errors import InputError
+from gscan.geometry.transforms import inv_T, mean_pose, rotation_angle_deg, transform_points
+from gscan.io.captures import capture_inputs
+from gscan.scanning.api import scan
+from gscan.synth.cases import two_sided_captures
+from gscan.template.db import TemplateDB
+from tests._scan_checks import WRONG_RENDERED
+
+BOX_SIZE = (0.08, 0.05, 0.12)
+
+
+def _folder(path: Path) -> Path:
+    path.mkdir(parents=True)
+    return path
+
+
+def test_capture_names_are_the_folders_made_unique(tmp_path):
+    a, b = _folder(tmp_path / "one" / "cap"), _folder(tmp_path / "two" / "cap")
+    rec = tmp_path / "shelf.bag"
+    rec.write_bytes(b"")
+    got = capture_inputs([a, b, rec, a], None)
+    assert [c.name for c in got] == ["cap", "cap-2", "shelf", "cap-3"]
+    assert [c.source for c in got] == [a, b, rec, a]
+
+
+def test_bop_onboarding_captures_of_one_object(tmp_path):
+    ds = tmp_path / "ds"
+    for d in ["onboarding_static/obj_000002_down", "onboarding_static/obj_000002_up", "onboarding_dynamic/obj_000002",
+              "onboarding_static/obj_000005_up", "onboarding_static/notes"]:
+        _folder(ds / d)
+    got = capture_inputs([ds], 2)
+    assert [c.name for c in got] == ["obj_000002_up", "obj_000002_down", "obj_000002"]
+    assert all(c.obj_id == 2 and c.format == "bop" for c in got)
+    with pytest.raises(InputError, match="objects 2, 5: choose one"):
+        capture_inputs([ds], None)
+    with pytest.raises(InputError, match="no onboarding capture of object 7"):
+        capture_inputs([ds], 7)
+    with pytest.raises(InputError, match="give it alone"):
+        capture_inputs([ds, _folder(tmp_path / "other")], 2)
+    assert [c.name for c in capture_inputs([ds], 5)] == ["obj_000005_up"]
+
+
+def _gt_T_obj_cam(capture: Path) -> dict[str, np.ndarray]:
+    """frame -> ground-truth T_obj_cam (the mesh's frame) of a rendered capture."""
+    return {f.stem: inv_T(np.loadtxt(f)) for f in sorted((capture / "annotated_poses").glob("*.txt"))}
+
+
+def _completeness(db_path: Path, mesh: synth.TexturedMesh, T_tmpl_mesh: np.ndarray, tol: float = 0.005) -> float:
+    """Share of the true surface (sampled evenly) within `tol` of the template's fused cloud (observed surface
+    only: the cloud holds no filled hole)."""
+    with TemplateDB.open(db_path) as db:
+        pts, _ = db.cloud()
+    tm = trimesh.Trimesh(mesh.vertices, mesh.triangles, process=False)
+    samples, _ = trimesh.sample.sample_surface_even(tm, 20000, seed=0)
+    d, _ = cKDTree(pts).query(transform_points(T_tmpl_mesh, samples))
+    return float((d < tol).mean())
+
+
+@pytest.fixture(scope="module")
+def two_sided(tmp_path_factory, meshes_dir):
+    """A printed box scanned upright and upside down, with a capture of another object given by mistake."""
+    root = tmp_path_factory.mktemp("two_sided")
+    box = synth.box_mesh(BOX_SIZE, synth.procedural_box_texture(3, (512, 768)), name="box")
+    up, down = two_sided_captures(box, root / "box", n_views=12)
+    other = synth.load_textured_mesh(meshes_dir / "Vans_Cereal_Honey_Nut_Crunch_11_oz_box" / "model_0.obj")
+    synth.render_capture(other, root / "cereal", 8, seed=5, table_kind="wood")
+    out = root / "box.gscan"
+    proc = subprocess.run([sys.executable, "-m", "gscan.cli", "scan", str(up.path), str(down.path),
+                           str(root / "cereal"), "-o", str(out), "--json"], capture_output=True, text=True,
+                          timeout=1200)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return box, up, down, out, json.loads(proc.stdout)
+
+
+@pytest.mark.slow
+def test_two_sided_scan_joins_both_sides_and_refuses_another_object(two_sided):
+    box, up, down, out, res = two_sided
+    caps = {c["name"]: c for c in res["captures"]}
+    assert caps["up"]["joined"] and caps["down"]["joined"], caps
+    assert not caps["cereal"]["joined"] and caps["cereal"]["reason"], caps
+    assert "join" in res["timings_s"]
+    with TemplateDB.open(out) as db:
+        poses = {n: np.asarray(T) for n, T in db.poses()["frames"].items()}
+    # every frame of both captures in one object frame, named CAPTURE/FRAME; nothing of the other object
+    gt = {f"{c.path.name}/{n}": T for c in (up, down) for n, T in _gt_T_obj_cam(c.path).items()}
+    assert set(poses) == set(gt), sorted(set(poses) ^ set(gt))
+    cereal = [n for n in res["unregistered"] if n.startswith("cereal/")]
+    assert len(cereal) == 8 and all("capture cereal was not joined" in res["unregistered_reasons"][n] for n in cereal)
+    assert sorted(cereal) in [sorted(p) for p in res["parts"]]
+    T_tmpl_mesh = mean_pose([poses[n] @ inv_T(gt[n]) for n in poses])
+    for n, T in poses.items():
+        D = inv_T(T_tmpl_mesh @ gt[n]) @ T
+        assert rotation_angle_deg(D[:3, :3]) < WRONG_RENDERED[0] and np.linalg.norm(D[:3, 3]) < WRONG_RENDERED[1], n
+    # the fused surface, as observed, covers the whole box, the bottom included (the upright capture alone covers
+    # about 90 % of it: the face it stands on is never seen)
+    assert _completeness(out, box, T_tmpl_mesh) >= 0.97
+    assert not any("bottom" in m for m in res["coverage"]["missing"]), res["coverage"]
+
+
+@pytest.fixture(scope="module")
+def upright_only(two_sided, tmp_path_factory):
+    """The upright capture alone, scanned: the template captures are appended to."""
+    _, up, _, _, _ = two_sided
+    out = tmp_path_factory.mktemp("upright") / "up.gscan"
+    scan(up.path, out)
+    return out
+
+
+@pytest.mark.slow
+def test_append_gives_the_poses_of_scanning_both_at_once(two_sided, upright_only, tmp_path):
+    _, _, down, both, _ = two_sided
+    out = tmp_path / "appended.gscan"
+    out.write_bytes(upright_only.read_bytes())
+    with TemplateDB.open(out) as db:
+        before = {n: np.asarray(T) for n, T in db.poses()["frames"].items()}
+        cov = db.coverage()
+        assert cov is not None and any("bottom" in m for m in cov.missing()), "the upright capture sees no bottom"
+    res = scan(down.path, out, append=True)
+    assert res.coverage is not None and not any("bottom" in m for m in res.coverage["missing"]), res.coverage
+    assert [c["name"] for c in res.captures] == ["up", "down"] and all(c["joined"] for c in res.captures)
+    with TemplateDB.open(out) as db:
+        after = {n: np.asarray(T) for n, T in db.poses()["frames"].items()}
+    with TemplateDB.open(both) as db:
+        at_once = {n: np.asarray(T) for n, T in db.poses()["frames"].items()}
+    # the template's views keep their poses (its frame is kept), renamed up/FRAME as a scan of several names them
+    assert {f"up/{n}" for n in before} == {n for n in after if n.startswith("up/")}
+    for n, T in before.items():
+        np.testing.assert_allclose(after[f"up/{n}"], T, atol=1e-9)
+    assert set(after) == set(at_once)
+    # the same poses as the scan of both at once, up to the template frame: that scan sets it from the surface of
+    # both captures, the appended one keeps the upright capture's (measured: 0.8 deg / 6 mm apart); the views
+    # relative to each other agree within 0.1 deg / 1 mm
+    A = mean_pose([at_once[n] @ inv_T(after[n]) for n in after])
+    assert rotation_angle_deg(A[:3, :3]) < 2.0 and np.linalg.norm(A[:3, 3]) < 0.015
+    for n in after:
+        D = inv_T(at_once[n]) @ A @ after[n]
+        assert rotation_angle_deg(D[:3, :3]) < 0.1 and np.linalg.norm(D[:3, 3]) < 0.001, n
+
+
+@pytest.mark.slow
+def test_append_of_a_capture_that_cannot_be_joined_leaves_the_template_as_it_was(two_sided, upright_only, tmp_path):
+    _, _, _, both, _ = two_sided
+    out = tmp_path / "up.gscan"
+    out.write_bytes(upright_only.read_bytes())
+    before = out.read_bytes()
+    cereal = both.parent / "cereal"
+    proc = subprocess.run([sys.executable, "-m", "gscan.cli", "scan", str(cereal), "-o", str(out), "--append"],
+                          capture_output=True, text=True, timeout=1200)
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    lines = [ln for ln in proc.stderr.splitlines() if ln.startswith("error:")]
+    assert len(lines) == 1 and str(cereal) in lines[0] and "cannot be joined" in lines[0], proc.stderr[-2000:]
+    assert "Traceback" not in proc.stderr
+    assert out.read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["up.gscan"]
