@@ -53,7 +53,8 @@ class ServiceError(Exception):
 @dataclass(frozen=True)
 class Pose:
     """One template's result (the `gscan estimate --json` object). T_cam_obj: 4x4 nested lists (metres) or None
-    when not found (see `reason`); grasps: name -> 4x4 T_cam_grasp."""
+    when not found (see `reason`); grasps: name -> 4x4 T_cam_grasp; symmetry: the object's symmetries the pose was
+    picked under (None for an object without them)."""
 
     T_cam_obj: list[list[float]] | None
     score: float
@@ -63,6 +64,7 @@ class Pose:
     grasps: dict[str, list[list[float]]] = field(default_factory=dict)
     timings_ms: dict[str, float] = field(default_factory=dict)
     method: str = "gmatch"
+    symmetry: str | None = None
 
     @property
     def found(self) -> bool:
@@ -72,7 +74,7 @@ class Pose:
     def from_json(cls, d: dict[str, Any]) -> Pose:
         return cls(d.get("T_cam_obj"), float(d.get("score", 0.0)), int(d.get("n_matches", 0)), d.get("view"),
                    d.get("reason"), dict(d.get("grasps") or {}), dict(d.get("timings_ms") or {}),
-                   str(d.get("method", "gmatch")))
+                   str(d.get("method", "gmatch")), d.get("symmetry"))
 
 
 @dataclass(frozen=True)

@@ -295,7 +295,12 @@ def test_grasps_json_contract(meshes, template, tmp_path):
     np.testing.assert_allclose(res.grasps["top"], res.T_cam_obj @ T_obj_grasp, atol=1e-12)
     np.testing.assert_allclose(res.grasps["side"], res.T_cam_obj, atol=1e-12)  # T_cam_obj @ identity: float64 rounding
     out = json.loads(json.dumps(res.to_json()))
-    assert list(out) == ["T_cam_obj", "score", "n_matches", "view", "reason", "grasps", "timings_ms", "method"]
+    assert list(out) == ["T_cam_obj", "score", "n_matches", "view", "reason", "grasps", "timings_ms", "method",
+                         "symmetry", "grasp_equivalents"]
+    assert out["symmetry"] is None  # an object without symmetries: each grasp has one equivalent, the grasp
+    assert {k: np.asarray(v).shape for k, v in out["grasp_equivalents"].items()} == {"top": (1, 4, 4),
+                                                                                     "side": (1, 4, 4)}
+    assert np.array_equal(out["grasp_equivalents"]["top"][0], out["grasps"]["top"])
     assert np.asarray(out["T_cam_obj"]).shape == (4, 4) and out["reason"] is None
     assert isinstance(out["score"], float) and isinstance(out["n_matches"], int) and isinstance(out["view"], str)
     assert {k: np.asarray(v).shape for k, v in out["grasps"].items()} == {"top": (4, 4), "side": (4, 4)}

@@ -4,18 +4,17 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
 from gscan.estimate.estimator import Estimator
 from gscan.estimate.params import EstimateParams, RivalParams
-from gscan.geometry.transforms import look_at, pose_error, rotvec_to_R, transform_points
+from gscan.geometry.transforms import pose_error
 from gscan.io.camera import RGBDFrame
 from gscan.registration.noise import sign_test
 from gscan.scanning.cad import template_from_mesh
-from gscan.synth import DEFAULT_INTRINSICS, SynthScene, load_textured_mesh, rest_on_table
+from gscan.synth import DEFAULT_INTRINSICS, load_textured_mesh, view_on_table
 
 # the same print on both large faces, other prints on the ends (bench/estimate.py's one wrong pose before the
 # rival check was this box)
@@ -31,12 +30,7 @@ def twin(meshes_dir: Path, tmp_path_factory):
 
 def view(mesh, azimuth_deg: float):
     """The box lying on a newspaper table, seen from 52 deg elevation and 0.39 m: (frame, T_cam_obj)."""
-    T_world_obj = rest_on_table(mesh, rotvec_to_R([0.0, 0.0, 2.645]))
-    c = transform_points(T_world_obj, mesh.center[None])[0]
-    el, az = np.radians(51.7), np.radians(azimuth_deg)
-    eye = c + 0.39 * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
-    r = SynthScene([(mesh, T_world_obj)], seed=0).render(look_at(eye, c), DEFAULT_INTRINSICS,
-                                                         rng=np.random.default_rng(0))
+    r = view_on_table(mesh, 2.645, azimuth_deg, 51.7, 0.39)
     return RGBDFrame("query", r.color, r.depth, DEFAULT_INTRINSICS), r.T_cam_obj
 
 

@@ -52,6 +52,9 @@ def estimate(
         line(f"found: view {result.view}, {result.n_matches} matched keypoint pairs (GMatch's list), "
              f"score {result.score:.3f}")
         err.print("T_cam_obj =\n" + format_matrix(out["T_cam_obj"]))
+        if result.symmetry is not None:
+            line(f"the object looks the same under {result.symmetry}: this is the pose its fixed rule picks "
+                 "(docs/method.md, Symmetric objects)")
         for name, T in out["grasps"].items():
             line(f"grasp {name}: T_cam_grasp =")
             err.print(format_matrix(T))

@@ -10,10 +10,11 @@
 Modules, in the order of the stages: `query` (the frame's full-image work, once; the query keypoints),
 `retrieval` (TemplateIndex: the template's stacked descriptors, view votes, neighbourhoods), `hypotheses`
 (GMatch lists of the neighbourhoods, pre-scored and pooled), `rivals` (solve, refine and verify the lists; rival
-poses), `refine` (anchored ICP), `verify` (the evidence a pose is accepted on), `pnp` (2D-3D fallback without
-depth), `estimator` (Estimator, the façade composing them), `track` (the previous pose as a prior), `model` (the
-object's surface), `params` (EstimateParams, a section per stage), `settings` (its YAML), `result`
-(EstimateResult, the `estimate --json` object).
+poses), `symmetric` (poses that look alike under the object's symmetries, and the rule that picks one), `refine`
+(anchored ICP), `verify` (the evidence a pose is accepted on), `pnp` (2D-3D fallback without depth), `estimator`
+(Estimator, the façade composing them), `track` (the previous pose as a prior), `model` (the object's surface),
+`params` (EstimateParams, a section per stage), `settings` (its YAML), `result` (EstimateResult, the `estimate
+--json` object).
 """
 from gscan.estimate.estimator import Estimator
 from gscan.estimate.params import EstimateParams

@@ -41,7 +41,13 @@ support-plane fit, the search region) is done once (`gscan.estimate.query`):
    same pose sharpened), are solved, refined and verified too. A rival accepted at another pose is compared with the
    accepted pose on the query keypoints that support one pose and not the other (a sign test at level `rivals.p`): the
    pose they significantly favour is returned; when neither is favoured the view is ambiguous and no pose is returned
-   (nor sought by PnP in the depth's holes).
+   (nor sought by PnP in the depth's holes). Poses are compared up to the template's symmetries that hold in shape
+   and texture: a rival that differs from the accepted pose by one is the same answer (`gscan.estimate.symmetric`).
+8. symmetry: for such an object the returned pose is the equivalent a fixed rule picks (the one whose rotation lies
+   nearest the object's +z up in the image, +x to the right; `gscan.estimate.symmetric`), the same for every
+   equivalent the hypotheses found, marked `EstimateResult.symmetry`; with `near` (the tracker's previous pose), the
+   equivalent nearest it. Each grasp is offered in every equivalent (`grasp_equivalents`, a continuous axis sampled
+   every `symmetry.grasp_step_deg`).
 
 A frame that comes with the intrinsics the template's scan found its capture's colour camera not to have
 (gscan.scanning.calibration) is first read as the scan read the capture (`as_scanned`).
@@ -169,12 +175,14 @@ class Estimator:
         lift_keypoints(np.zeros((1, 2)), np.ones((2, 2), np.float32), tiny)
 
     # ------------------------------------------------------------------------------------------------
-    def estimate(self, frame: RGBDFrame, mask: np.ndarray | None = None, refine: bool = True) -> EstimateResult:
-        """Pose T_cam_obj of the template's object in `frame` (mask: optional [H x W] bool search region)."""
+    def estimate(self, frame: RGBDFrame, mask: np.ndarray | None = None, refine: bool = True,
+                 near: np.ndarray | None = None) -> EstimateResult:
+        """Pose T_cam_obj of the template's object in `frame` (mask: optional [H x W] bool search region; near: a
+        pose [4 x 4] whose nearest symmetric equivalent is returned instead of the rule's, stage 8)."""
         t0 = time.perf_counter()
         q = self.prepare(frame, mask)
         with self.limit_threads():
-            return self._estimate(q, refine, t0)
+            return self._estimate(q, refine, t0, near)
 
     def prepare(self, frame: RGBDFrame, mask: np.ndarray | None = None) -> QueryFrame:
         """The frame's full-image work (back-projection, support plane, search region), done once; several
@@ -214,16 +222,25 @@ class Estimator:
                 stack.callback(cv2.setNumThreads, n)
             yield
 
-    def result(self, res: EstimateResult, timer: StageTimer, t0: float) -> EstimateResult:
-        """`res` completed: its grasps at the pose and its timings (`timed`, total since t0)."""
+    def result(self, res: EstimateResult, timer: StageTimer, t0: float,
+               near: np.ndarray | None = None) -> EstimateResult:
+        """`res` completed: its pose the symmetric equivalent stage 8 picks (nearest `near` [4 x 4] when given), its
+        grasps at the pose and in every equivalent, and its timings (`timed`, total since t0)."""
+        group = self.verifier.group
         if res.T_cam_obj is not None:
-            res.grasps = self.model.grasps_at(res.T_cam_obj)
+            T = res.T_cam_obj
+            if group:
+                T = res.T_cam_obj = group.canonical(T) if near is None else group.nearest(T, near)
+                res.symmetry = group.label
+            res.grasps = self.model.grasps_at(T)
+            poses = group.equivalents(T, self.params.symmetry.grasp_step_deg) if group else [T]
+            res.grasp_equivalents = {k: [E @ G for E in poses] for k, G in self.model.grasps.items()}
         else:
             log.info("not found: %s", res.reason)
         return timed(res, timer, t0)
 
     # ------------------------------------------------------------------------------------------------
-    def _estimate(self, q: QueryFrame, refine: bool, t0: float) -> EstimateResult:
+    def _estimate(self, q: QueryFrame, refine: bool, t0: float, near: np.ndarray | None = None) -> EstimateResult:
         """Stages 1-7 (module docstring) on a prepared frame, threads as they are."""
         p = self.params
         timer = StageTimer()
@@ -240,7 +257,7 @@ class Estimator:
                 res = estimate_pnp(self.index, q.frame, feats, r.S, self.index.top_views(r.votes), p.pnp, timer)
                 if not res.found:
                     res.reason = f"{res.reason} (query depth unusable)"
-                return self.result(res, timer, t0)
+                return self.result(res, timer, t0, near)
             with timer.stage("match"):
                 qk = query_keypoints(feats, r.S)
                 lists = hypothesise(self.index, qk, r, self.matcher, p.gmatch.order, p.hypotheses,
@@ -249,7 +266,7 @@ class Estimator:
         if not res.found and not use_pnp and not (res.reason or "").startswith(AMBIGUOUS):
             # (an ambiguous view stays ambiguous to 2D-3D matching in its holes, on less evidence)
             res = pnp_without_depth(self.index, self.model.samples, q, res, p, timer)
-        return self.result(self._above(q, res), timer, t0)
+        return self.result(self._above(q, res), timer, t0, near)
 
     def _above(self, q: QueryFrame, res: EstimateResult) -> EstimateResult:
         """`res`, or not found when its pose sinks the object into the frame's support plane (verify). A 3D-3D

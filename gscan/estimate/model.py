@@ -1,12 +1,14 @@
-"""The template's object surface as the estimator uses it: the cloud ICP pairs and the score projects, and the
-object's extent."""
+"""The template's object surface as the estimator uses it: the cloud ICP pairs and the score projects, the
+object's extent, its grasps and its symmetries."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from gscan.errors import InputError
 from gscan.geometry.pointset import pca_normals, voxel_down_indices
+from gscan.geometry.symmetry import Symmetries
 from gscan.template.db import Template
 
 
@@ -16,7 +18,7 @@ class ObjectModel:
     frame; model_points [Q x 3]: the points metrics use (mesh vertices when the template has a mesh, else the
     cloud); samples [S x 3] the cloud voxel-downsampled (ICP source, depth score, support-plane rule) with
     normals [S x 3]; center [3], radius: the cloud's bounding-box centre and its farthest point from it (m);
-    grasps {name: T_obj_grasp [4 x 4]}."""
+    grasps {name: T_obj_grasp [4 x 4]}; symmetries: the template's "symmetries" meta (`symmetries_of`)."""
 
     cloud: np.ndarray = field(repr=False)
     model_points: np.ndarray = field(repr=False)
@@ -25,6 +27,7 @@ class ObjectModel:
     center: np.ndarray
     radius: float
     grasps: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
+    symmetries: Symmetries = field(default_factory=Symmetries)
 
     @classmethod
     def from_template(cls, tpl: Template, voxel: float) -> ObjectModel:
@@ -41,8 +44,19 @@ class ObjectModel:
         lo, hi = cloud.min(0), cloud.max(0)
         center = 0.5 * (lo + hi)
         radius = float(np.linalg.norm(cloud - center, axis=1).max())
-        return cls(cloud, model_points, samples, pca_normals(samples), center, radius, dict(tpl.grasps))
+        return cls(cloud, model_points, samples, pca_normals(samples), center, radius, dict(tpl.grasps),
+                   symmetries_of(tpl))
 
     def grasps_at(self, T_cam_obj: np.ndarray) -> dict[str, np.ndarray]:
         """{name: T_cam_grasp [4 x 4]} = T_cam_obj @ T_obj_grasp."""
         return {k: T_cam_obj @ G for k, G in self.grasps.items()}
+
+
+def symmetries_of(tpl: Template) -> Symmetries:
+    """The object's symmetries, the template's "symmetries" meta (`Symmetries.to_json`); none when absent.
+    InputError naming the template for a malformed value."""
+    meta = tpl.meta if isinstance(tpl.meta, dict) else {}
+    try:
+        return Symmetries.from_json(meta.get("symmetries"))
+    except ValueError as e:
+        raise InputError(tpl.path or "template", f"its symmetries cannot be read: {e}") from None

@@ -114,6 +114,21 @@ class RivalParams:
                                         "accepted list's", ge=0)] = 0.4
     p: Annotated[float, Field(description="one-sided level of the sign test that lets one of two accepted poses win",
                               gt=0, lt=1)] = 0.05
+    turn_margin: Annotated[float, Field(description="a pose and its turn by a symmetry in shape only: one wins when "
+                                        "its keypoints for it alone outnumber the other's by this fraction of the "
+                                        "keypoints for either (and the sign test)", ge=0, le=1)] = 0.15
+    __pydantic_config__ = SETTINGS
+
+
+@dataclass(frozen=True)
+class SymmetryParams:
+    """The template's symmetries that hold in shape and texture (gscan.estimate.symmetric): rival poses that differ
+    by one are one answer, returned by a fixed rule."""
+
+    enabled: Annotated[bool, Field(description="read the template's symmetries (false: every symmetric pose is a "
+                                   "rival, as for an object without them)")] = True
+    grasp_step_deg: Annotated[float, Field(description="deg: a grasp is offered at every turn of this step about a "
+                                           "continuous axis", gt=0, le=180)] = 30.0
     __pydantic_config__ = SETTINGS
 
 
@@ -195,6 +210,8 @@ class EstimateParams:
         default_factory=AcceptParams)
     rivals: Annotated[RivalParams, Field(description="rival poses of an accepted one")] = field(
         default_factory=RivalParams)
+    symmetry: Annotated[SymmetryParams, Field(description="the object's symmetries")] = field(
+        default_factory=SymmetryParams)
     pnp: Annotated[PnPParams, Field(description="2D-3D fallback without depth")] = field(default_factory=PnPParams)
     holes: Annotated[HoleParams, Field(description="2D-3D in the depth's holes")] = field(default_factory=HoleParams)
     threads: Annotated[ThreadParams, Field(description="threads while estimating")] = field(

@@ -20,7 +20,12 @@ STAGES = ("features", "retrieval", "match", "solve", "refine", "total")
 class EstimateResult:
     """Outcome of one estimate. T_cam_obj [4 x 4] or None (not found, see `reason`); grasps
     {name: T_cam_grasp [4 x 4]} = T_cam_obj @ T_obj_grasp (empty when not found); timings_ms per stage;
-    evidence: what the accepted or refused pose rested on (None when no pose was solved)."""
+    evidence: what the accepted or refused pose rested on (None when no pose was solved).
+
+    symmetry: for an object that looks the same under some turns (in shape and texture), the pose is the one of its
+    equivalents the estimator's rule picks (gscan.estimate.symmetric) and this names the symmetries; None otherwise.
+    grasp_equivalents {name: [T_cam_grasp [4 x 4], ...]}: each grasp in every equivalent pose, the reported pose's
+    first (the grasp alone without symmetries)."""
 
     T_cam_obj: np.ndarray | None
     score: float
@@ -31,17 +36,21 @@ class EstimateResult:
     timings_ms: dict[str, float] = field(default_factory=dict)
     method: str = "gmatch"  # "gmatch" (3D-3D) | "pnp" (2D-3D, no usable depth) | "track" (refined from a prior)
     evidence: Evidence | None = None
+    symmetry: str | None = None
+    grasp_equivalents: dict[str, list[np.ndarray]] = field(default_factory=dict)
 
     @property
     def found(self) -> bool:
         return self.T_cam_obj is not None
 
     def to_json(self) -> dict:
-        """The `gscan estimate --json` object (the command-line contract's keys, plus "method"); matrices as nested
-        lists, metres."""
+        """The `gscan estimate --json` object (the command-line contract's keys, plus "method", "symmetry" and
+        "grasp_equivalents"); matrices as nested lists, metres."""
         return {"T_cam_obj": matrix_json(self.T_cam_obj), "score": float(self.score), "n_matches": int(self.n_matches),
                 "view": self.view, "reason": self.reason, "grasps": {k: matrix_json(v) for k, v in self.grasps.items()},
-                "timings_ms": {k: float(self.timings_ms.get(k, 0.0)) for k in STAGES}, "method": self.method}
+                "timings_ms": {k: float(self.timings_ms.get(k, 0.0)) for k in STAGES}, "method": self.method,
+                "symmetry": self.symmetry,
+                "grasp_equivalents": {k: [matrix_json(T) for T in v] for k, v in self.grasp_equivalents.items()}}
 
 
 def matrix_json(T: np.ndarray | None) -> list[list[float]] | None:

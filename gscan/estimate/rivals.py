@@ -15,6 +15,15 @@ rivals (`ListVerifier`).
   accepted at another pose is compared with the accepted pose on the query keypoints that support one pose and
   not the other (a sign test at level `rivals.p`): the pose they significantly favour is returned; when neither
   is favoured the view is ambiguous (the reason starts with `AMBIGUOUS`).
+- symmetries: poses are compared up to the template's symmetries that hold in shape and texture
+  (gscan.estimate.symmetric): a rival within the tolerance of an equivalent of the accepted pose is the same answer,
+  not an ambiguous view. A symmetry in shape alone is no excuse: there the texture decides, as above, and the
+  accepted pose turned by each discrete symmetry that holds in shape only is weighed as a rival too, whether or
+  not a match list found it (a view that hides what tells the turn, such as a box's bottom on the table, is an
+  exact tie: refused, never answered by the pre-score's order). Its keypoints are weighed by `local_support`:
+  a query keypoint supports a pose when any template keypoint within `verify.support_radius` of it at the pose
+  agrees (not only its nearest by descriptor, which on twin prints picks one twin by the template views' angles
+  and so biases the count); a keypoint the print repeats under the turn supports both poses and decides nothing.
 """
 from __future__ import annotations
 
@@ -29,9 +38,11 @@ from gscan.estimate.query import QueryFrame
 from gscan.estimate.refine import refine_pose
 from gscan.estimate.result import EstimateResult, found, not_found
 from gscan.estimate.retrieval import TemplateIndex
-from gscan.estimate.verify import Evidence, accept, list_spread, pose_evidence, query_sinks
+from gscan.estimate.symmetric import PoseGroup
+from gscan.estimate.verify import Evidence, accept, list_spread, pose_evidence, query_sinks, visible
 from gscan.features import Features
 from gscan.geometry.kabsch import kabsch_trimmed
+from gscan.geometry.symmetry import Symmetries
 from gscan.geometry.transforms import pose_error
 from gscan.progress import StageTimer
 from gscan.registration.noise import sign_test
@@ -50,6 +61,16 @@ class ListVerifier:
         # similarity at which a supporting keypoint's descriptor agrees (cosine for unit descriptors, else the
         # negated distance)
         self.support_sim = 1.0 - 0.5 * sd ** 2 if index.unit else -sd
+        # the poses that look alike (none when the settings ignore the template's symmetries), and the turns that
+        # hold in shape only (the texture must tell them)
+        sym = model.symmetries if params.symmetry.enabled else Symmetries()
+        self.group = PoseGroup.of(sym)
+        self.shape_turns = [S for S, t in zip(sym.discrete, sym.discrete_in_texture, strict=True) if not t]
+
+    def apart(self, T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
+        """(degrees, metres) between T_a and the nearest pose that looks as T_b does (T_b itself without
+        symmetries)."""
+        return self.group.apart(T_a, T_b) if self.group else pose_error(T_a, T_b)
 
     def evidence(self, q: QueryFrame, T_cam_obj: np.ndarray, feats: Features, S: np.ndarray,
                  q_location: np.ndarray, kp_idx: np.ndarray | None = None,
@@ -122,25 +143,109 @@ class ListVerifier:
             assert res.T_cam_obj is not None and res.evidence is not None
             if checked >= p.rivals.lists:
                 break
-            deg, dist = pose_error(r.T, res.T_cam_obj)
+            deg, dist = self.apart(r.T, res.T_cam_obj)
             if deg <= p.refine.max_turn_deg and dist <= self.model.radius:
                 continue
             checked += 1
             alt = self.verify_list(q, qk, r, refine, timer)
             if alt.T_cam_obj is None or alt.evidence is None:
                 continue
-            deg, dist = pose_error(alt.T_cam_obj, res.T_cam_obj)
-            if deg <= p.hypotheses.merge_deg and dist <= p.hypotheses.merge_dist:  # the same pose: not a rival
+            deg, dist = self.apart(alt.T_cam_obj, res.T_cam_obj)
+            if deg <= p.hypotheses.merge_deg and dist <= p.hypotheses.merge_dist:  # the same answer: not a rival
                 continue
-            a, b = res.evidence.supporters, alt.evidence.supporters
-            only_res, only_alt = len(np.setdiff1d(a, b)), len(np.setdiff1d(b, a))
-            if sign_test(only_res, only_alt) < p.rivals.p:
+            if any(self.near(alt.T_cam_obj, res.T_cam_obj @ S) for S in self.shape_turns):
+                res, tie = self.weigh_turn(q, qk, res, alt, deg)
+            else:
+                res, tie = self.weigh(res, alt, deg, dist)
+            if tie is not None:
+                return tie
+        return self.against_shape_turns(q, qk, res, refine, timer)
+
+    def near(self, T_a: np.ndarray, T_b: np.ndarray) -> bool:
+        """T_a lies within the pooling tolerance of T_b or of a pose that looks as T_b does."""
+        deg, dist = self.apart(T_a, T_b)
+        return deg <= self.params.hypotheses.merge_deg and dist <= self.params.hypotheses.merge_dist
+
+    def weigh(self, res: EstimateResult, alt: EstimateResult, deg: float,
+              dist: float) -> tuple[EstimateResult, EstimateResult | None]:
+        """(the pose the keypoints that support one of two accepted poses and not the other significantly favour,
+        None), or (res, the ambiguous view's not-found result) when neither is favoured; deg, dist: how far apart
+        they are (the reason's)."""
+        assert res.evidence is not None and alt.evidence is not None
+        a, b = res.evidence.supporters, alt.evidence.supporters
+        only_res, only_alt = len(np.setdiff1d(a, b)), len(np.setdiff1d(b, a))
+        if sign_test(only_res, only_alt) < self.params.rivals.p:
+            return res, None
+        if sign_test(only_alt, only_res) < self.params.rivals.p:
+            log.debug("a rival pose wins (%d keypoints for it alone, %d against)", only_alt, only_res)
+            return alt, None
+        return res, not_found(f"{AMBIGUOUS}: a pose {deg:.0f} deg / {dist * 1000:.0f} mm away explains it as well "
+                              f"({only_res} keypoints agree with one pose only, {only_alt} with the other)",
+                              res.n_matches, res.view, res.score, evidence=res.evidence)
+
+    def against_shape_turns(self, q: QueryFrame, qk: QueryKeypoints, res: EstimateResult, refine: bool,
+                            timer: StageTimer) -> EstimateResult:
+        """The accepted `res` against itself turned by each symmetry that holds in shape only (module docstring):
+        the turned pose, refined, is a rival when its evidence is accepted as the pose's own was."""
+        p = self.params
+        for S in self.shape_turns:
+            assert res.T_cam_obj is not None and res.evidence is not None
+            T = res.T_cam_obj @ S
+            with timer.stage("refine"):
+                if refine:
+                    T = refine_pose(self.model, q, T, None, q.off_plane, p.refine)
+                ev = self.evidence(q, T, qk.feats, qk.S, qk.location)
+            ev.n_matches, ev.n_inliers, ev.spread_m = res.evidence.n_matches, res.evidence.n_inliers, \
+                res.evidence.spread_m
+            if self.sinks(q, T) is not None or accept(ev, self.model.radius, p.accept) is not None:
                 continue
-            if sign_test(only_alt, only_res) < p.rivals.p:
-                log.debug("a rival pose wins (%d keypoints for it alone, %d against)", only_alt, only_res)
-                res = alt
+            if self.near(T, res.T_cam_obj):
                 continue
-            return not_found(f"{AMBIGUOUS}: a pose {deg:.0f} deg / {dist * 1000:.0f} mm away explains it as well "
-                             f"({only_res} keypoints agree with one pose only, {only_alt} with the other)",
-                             res.n_matches, res.view, res.score, evidence=res.evidence)
+            res, tie = self.weigh_turn(q, qk, res, found(T, ev.score, res.n_matches, res.view, res.method, ev),
+                                       self.apart(T, res.T_cam_obj)[0])
+            if tie is not None:
+                return tie
         return res
+
+    def weigh_turn(self, q: QueryFrame, qk: QueryKeypoints, res: EstimateResult, alt: EstimateResult,
+                   deg: float) -> tuple[EstimateResult, EstimateResult | None]:
+        """`weigh` for an accepted pose and its turn by a symmetry in shape: on `local_support`, and a pose wins
+        only when its keypoints for it alone outnumber the other's by `rivals.turn_margin` of the keypoints for
+        either (the template's views are not symmetric, so on an exact tie a twin print's keypoints still agree
+        better on the side its views saw squarely: up to 6 % of them on the rendered boxes of
+        tests/test_estimate_symmetry.py; the print that tells the turn gives 20 % and more)."""
+        assert res.T_cam_obj is not None and alt.T_cam_obj is not None
+        p = self.params.rivals
+        a, b = self.local_support(q, res.T_cam_obj, qk), self.local_support(q, alt.T_cam_obj, qk)
+        only_res, only_alt = len(np.setdiff1d(a, b)), len(np.setdiff1d(b, a))
+        margin = p.turn_margin * len(np.union1d(a, b))
+        if sign_test(only_res, only_alt) < p.p and only_res - only_alt >= margin:
+            return res, None
+        if sign_test(only_alt, only_res) < p.p and only_alt - only_res >= margin:
+            log.debug("the pose turned by a shape symmetry wins (%d keypoints for it alone, %d against)",
+                      only_alt, only_res)
+            return alt, None
+        return res, not_found(f"{AMBIGUOUS}: the pose turned {deg:.0f} deg by the object's symmetry in shape "
+                              f"explains it as well ({only_res} keypoints agree with one pose only, {only_alt} with "
+                              f"the other)", res.n_matches, res.view, res.score, evidence=res.evidence)
+
+    def local_support(self, q: QueryFrame, T_cam_obj: np.ndarray, qk: QueryKeypoints) -> np.ndarray:
+        """The location ids (sorted) of the query keypoints with a template keypoint (of the views near the pose's
+        viewing direction, visible at the pose) within `verify.support_radius` of them at T_cam_obj [4 x 4] whose
+        descriptor agrees (module docstring)."""
+        from scipy.spatial import cKDTree
+
+        p = self.params.verify
+        kp_idx = self.index.offered_keypoints(T_cam_obj, p.support_views_deg)
+        vis, kp_cam, _ = visible(T_cam_obj, q.frame.intrinsics, self.index.points_obj[kp_idx])
+        q_pts = qk.feats.points.astype(np.float64)
+        if len(vis) == 0 or len(q_pts) == 0:
+            return np.zeros(0, np.int64)
+        k = min(16, len(vis))
+        d, j = cKDTree(kp_cam).query(q_pts, k=k, distance_upper_bound=p.support_radius)
+        d, j = d.reshape(len(q_pts), k), j.reshape(len(q_pts), k)
+        near = np.isfinite(d)
+        cols = kp_idx[vis][np.where(near, j, 0)]
+        sim = qk.S[np.arange(len(q_pts))[:, None], cols] * (1.0 if self.index.unit else -1.0)
+        agree = (near & (sim >= self.support_sim)).any(axis=1)
+        return np.unique(qk.location[agree]).astype(np.int64)

@@ -15,6 +15,11 @@ Per frame (`Tracker.step`):
    estimate (score, confirmed surface): otherwise the prior no longer holds.
 2. otherwise a full estimate (`Estimator.estimate`).
 
+An object that looks the same under some turns (its template's symmetries in shape and texture,
+gscan.estimate.symmetric) has several right poses in every frame: each frame's pose is the equivalent nearest the
+previous pose (the prediction in a tracked frame, the last pose found before a full estimate), so the track never
+flips between them; the first frame's is the estimator's rule's.
+
 Each frame's status: "found" (a full estimate found it, the first time or right after a tracked frame whose
 prior failed), "tracked" (the local refinement held), "lost" (no pose), "refound" (a full estimate found it
 again after lost frames). No frame-wide work is done in a tracked frame: no plane fit, no full-frame
@@ -104,6 +109,7 @@ class Tracker:
         """Forget the prior: the next frame gets a full estimate."""
         self._T: np.ndarray | None = None  # the last pose
         self._T_before: np.ndarray | None = None  # the pose before it (consecutive frames only)
+        self._T_last: np.ndarray | None = None  # the last pose found, across lost frames (symmetric equivalents)
         self._ref_score = 0.0  # the last full estimate's depth score
         self._lost = False  # frames were lost since the last pose
         self._seen = False  # a pose was ever found
@@ -125,7 +131,7 @@ class Tracker:
         if res is not None:
             status = "tracked"
         else:
-            res = self.est.estimate(frame, mask=mask)
+            res = self.est.estimate(frame, mask=mask, near=self._T_last)
             status = "lost" if res.T_cam_obj is None else ("refound" if self._lost and self._seen else "found")
             if res.T_cam_obj is not None:
                 self._ref_score = res.score
@@ -135,7 +141,7 @@ class Tracker:
             self._lost = True
         else:
             self._T_before = self._T
-            self._T = res.T_cam_obj
+            self._T = self._T_last = res.T_cam_obj
             self._lost, self._seen = False, True
         return TrackStep(frame.name, status, res)
 
@@ -173,7 +179,8 @@ class Tracker:
         if score < a.min_score or confirmed < a.min_confirmed or score < self._ref_score - p.max_score_drop:
             return None
         view = est.view_names[int(np.argmax(est.index.axes @ (T[:3, :3].T @ np.array([0.0, 0.0, 1.0]))))]
-        return est.result(found(T, score, 0, view, "track", Evidence(score=score, confirmed=confirmed)), timer, t0)
+        return est.result(found(T, score, 0, view, "track", Evidence(score=score, confirmed=confirmed)), timer, t0,
+                          T_pred)
 
     def _with_keypoints(self, frame: RGBDFrame, mask: np.ndarray | None, T_pred: np.ndarray, est: Estimator,
                         p: TrackParams) -> EstimateResult | None:
@@ -229,7 +236,7 @@ class Tracker:
             log.debug("%s: the prior no longer holds: %s", frame.name, why)
             return None
         view = est.view_names[int(np.argmax(ix.axes @ (T2[:3, :3].T @ np.array([0.0, 0.0, 1.0]))))]
-        return est.result(found(T2, ev.score, ev.n_inliers, view, "track", ev), timer, t0)
+        return est.result(found(T2, ev.score, ev.n_inliers, view, "track", ev), timer, t0, T_pred)
 
     def _pairs(self, q_pts: np.ndarray, S: np.ndarray, kp_idx: np.ndarray,
                T_pred: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -4,8 +4,8 @@ Public API (import from `gscan.synth`):
 - meshes: `TexturedMesh`, `load_textured_mesh`, `box_mesh`, `cylinder_mesh`, `save_textured_mesh`
 - textures: `procedural_box_texture`, `table_texture`
 - rendering: `SynthScene`, `RenderedFrame`, `Gloss`, `DEFAULT_INTRINSICS`, `DepthNoise`, `apply_depth_noise`
-- capture: `orbit_poses`, `turntable_poses`, `rest_on_table`, `place_distractors`, `default_distance`,
-  `write_capture`, `render_capture`
+- capture: `orbit_poses`, `turntable_poses`, `rest_on_table`, `view_on_table`, `place_distractors`,
+  `default_distance`, `write_capture`, `render_capture`
 """
 from __future__ import annotations
 
@@ -17,6 +17,7 @@ from gscan.synth.capture import (
                                  render_capture,
                                  rest_on_table,
                                  turntable_poses,
+                                 view_on_table,
                                  write_capture,
 )
 from gscan.synth.mesh import (
@@ -38,5 +39,5 @@ __all__ = [
     "box_mesh", "cylinder_mesh", "default_distance", "depth_sigma", "footprint_radius", "load_textured_mesh",
     "orbit_poses", "place_distractors", "procedural_box_texture", "render_capture", "rest_on_table",
     "sample_bilinear", "sample_mip", "save_textured_mesh", "table_texture", "texture_pyramid", "turntable_poses",
-    "write_capture",
+    "view_on_table", "write_capture",
 ]

@@ -57,6 +57,19 @@ def rest_on_table(mesh: TexturedMesh, R_world_obj: np.ndarray | None = None,
     return make_T(R, t)
 
 
+def view_on_table(mesh: TexturedMesh, yaw: float, azimuth_deg: float, elevation_deg: float, distance: float,
+                  scene_seed: int = 0, noise_seed: int | list[int] = 0) -> RenderedFrame:
+    """`mesh` resting on the table (`rest_on_table`) turned by `yaw` (rad) about the vertical, seen from `distance`
+    (m) at `azimuth_deg` and `elevation_deg` towards its bounding-box centre (`DEFAULT_INTRINSICS`); the table's
+    texture seeded by scene_seed, the depth noise by noise_seed."""
+    T_world_obj = rest_on_table(mesh, rotvec_to_R(np.array([0.0, 0.0, yaw])))
+    c = transform_points(T_world_obj, mesh.center[None])[0]
+    el, az = np.radians(elevation_deg), np.radians(azimuth_deg)
+    eye = c + distance * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    return SynthScene([(mesh, T_world_obj)], seed=scene_seed).render(look_at(eye, c), DEFAULT_INTRINSICS,
+                                                                     rng=np.random.default_rng(noise_seed))
+
+
 def turntable_poses(T_world_obj: np.ndarray, mesh: TexturedMesh, n: int, total_deg: float = 360.0) -> list[np.ndarray]:
     """n poses of an object spinning about the vertical axis through its bounding-box centre (step total/n)."""
     c = transform_points(T_world_obj, mesh.center[None])[0]

@@ -22,6 +22,9 @@ annotated_poses/) and which show something else:
   one scene that share no surface;
 - `two_sided_captures`: two captures of one object, upright and upside down (or on its side), the object moved
   against the table between them: the captures of a template that knows both sides.
+
+And objects that look the same from two sides: `half_turn_box`, a box printed alike under a half turn;
+`half_turn_can`, a can whose label shows its print twice around.
 """
 from __future__ import annotations
 
@@ -30,10 +33,11 @@ from pathlib import Path
 
 import numpy as np
 
-from gscan.geometry.transforms import rotvec_to_R
+from gscan.geometry.symmetry import Symmetries, axis_rotation
+from gscan.geometry.transforms import rotvec_to_R, transform_points
 from gscan.io.camera import Intrinsics
 from gscan.synth.capture import default_distance, render_capture, write_capture
-from gscan.synth.mesh import TexturedMesh, cylinder_mesh
+from gscan.synth.mesh import TexturedMesh, box_mesh, cylinder_mesh
 from gscan.synth.render import DEFAULT_INTRINSICS, Gloss, RenderedFrame
 from gscan.synth.textures import procedural_box_texture
 
@@ -222,3 +226,46 @@ def two_sided_captures(mesh: TexturedMesh, out_dir: str | Path, n_views: int = 1
         names = _names(len(frames))
         cases.append(Case(_write(out / name, frames, intr), names, names, mesh=mesh))
     return cases[0], cases[1]
+
+
+def half_turn_box(size_xyz: tuple[float, float, float], seed: int = 0,
+                  bottom_alike: bool = True) -> tuple[TexturedMesh, Symmetries]:
+    """A box centred at the origin whose print is the same after a half turn about its z axis: the -x and -y faces
+    repeat the +x and +y faces' print turned, the top's two triangles (split along a diagonal) carry one print,
+    and so does the bottom's when bottom_alike (else the bottom keeps its own print, so only the bottom tells the
+    turn). Returns the mesh and its symmetries: the three half turns hold in shape, the one about z in texture
+    too when bottom_alike."""
+    base = box_mesh(size_xyz, procedural_box_texture(seed), name="half-turn box")
+    corners = base.vertices[base.triangles]  # [12 x 3 x 3]: two triangles per face, +x -x +y -y +z -z
+    keep = [0, 1, 4, 5, 8, 10]
+    Rz = axis_rotation(np.array([0.0, 0.0, 1.0]), np.zeros(3), np.pi)
+    turned = transform_points(Rz, corners[keep].reshape(-1, 3)).reshape(-1, 3, 3)
+    tris = [corners[keep], turned[:-1] if not bottom_alike else turned]
+    uvs = [base.uv[keep], base.uv[keep[:-1]] if not bottom_alike else base.uv[keep]]
+    if not bottom_alike:
+        tris.append(corners[[11]])
+        uvs.append(base.uv[[11]])
+    flat = np.round(np.concatenate(tris).reshape(-1, 3), 9)
+    verts, inverse = np.unique(flat, axis=0, return_inverse=True)
+    mesh = TexturedMesh(verts, inverse.reshape(-1, 3).astype(np.int32), np.concatenate(uvs), base.texture,
+                        name=base.name)
+    turns = tuple(axis_rotation(np.eye(3)[i], np.zeros(3), np.pi) for i in (2, 0, 1))
+    return mesh, Symmetries(turns, (bottom_alike, False, False))
+
+
+def half_turn_can(radius: float, height: float, seed: int = 0) -> tuple[TexturedMesh, Symmetries]:
+    """An upright can (`cylinder_mesh`, axis z) whose label repeats its print twice around and whose caps' prints are
+    the same after a half turn. Returns the mesh and its symmetries: every turn about z and the flip about x hold
+    in shape, the half turn about z in texture too."""
+    tex = procedural_box_texture(seed, (512, 1024)).copy()
+    h, w = tex.shape[:2]
+    tex[h // 4:, w // 2:] = tex[h // 4:, :w // 2]  # the label: the side's texture, u in [0, 0.5) and [0.5, 1)
+    ry, rx = int(np.ceil(0.12 * h)) + 2, int(np.ceil(0.12 * w)) + 2
+    for cu in (0.25, 0.75):  # each cap's disc (uv centre (cu, 0.875)): its right half the left half turned
+        cx, cy = int(round(cu * w)), int(round(0.125 * h))
+        box = tex[cy - ry:cy + ry, cx - rx:cx + rx]
+        box[:, rx:] = box[::-1, ::-1][:, rx:].copy()
+    mesh = cylinder_mesh(radius, height, tex, name="half-turn can", segments=96)
+    z, x = np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0])
+    turns = (axis_rotation(z, np.zeros(3), np.pi), axis_rotation(x, np.zeros(3), np.pi))
+    return mesh, Symmetries(turns, (True, False), ((z, np.zeros(3)),), (False,))
