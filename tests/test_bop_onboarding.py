@@ -128,6 +128,7 @@ def test_scan_of_onboarding_captures(tmp_path: Path):
     assert res["frames"] == res["registered"] == 24 and res["unregistered"] == [], res
     with TemplateDB.open(out) as db:
         poses = {n: np.asarray(T) for n, T in db.poses()["frames"].items()}
+        assert db.get_meta("format") == "bop"  # the onboarding captures' layout, not the dataset folder's
     assert set(poses) == names
     gt = {f"{c}/{n}": inv_T(T) for c, p in data.captures.items()
           for n, T in open_sequence(p, obj_id=2).gt_T_cam_obj.items()}  # evaluation only
