@@ -89,6 +89,15 @@ def test_reads_back_with_the_bop_toolkit(small_dataset: BopOnboarding):
     np.testing.assert_allclose(cam["K"], SMALL.K)
 
 
+def test_scan_meta_names_the_captures_layout(small_dataset: BopOnboarding):
+    """The template's meta records the onboarding captures' layout (bop); the dataset folder itself is no RGB-D
+    layout (detecting one refused it)."""
+    from gscan.scanning.options import ScanOptions
+    from gscan.scanning.output import scan_meta
+
+    assert scan_meta([small_dataset.root], ScanOptions(obj_id=3))["format"] == "bop"
+
+
 def _cli(*args: str | Path) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "gscan.cli", *map(str, args)], capture_output=True, text=True,
                           cwd=ROOT, timeout=600, check=False)
