@@ -96,6 +96,11 @@ OBJECTS = (
 )
 
 
+def distractor_pool() -> dict[str, TexturedMesh]:
+    """The shared meshes the query scenes place around their targets, by name."""
+    return {d: load_textured_mesh(MESHES / d / "model_0.obj") for d in DISTRACTOR_POOL}
+
+
 def build_mesh(spec: ObjectSpec) -> TexturedMesh:
     """The object's textured mesh (mesh frame = ground-truth object frame)."""
     if spec.source.startswith("box:"):
@@ -269,7 +274,7 @@ def run(args: argparse.Namespace) -> dict:
 
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
-    pool = {d: load_textured_mesh(MESHES / d / "model_0.obj") for d in DISTRACTOR_POOL}
+    pool = distractor_pool()
     recs: list[dict] = []
     old_recs: list[dict] = []
     compare = Compare(args.compare, work) if args.compare else None

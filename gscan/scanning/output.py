@@ -36,9 +36,12 @@ def scan_meta(sources: list[Path], opts: ScanOptions) -> dict:
     the inputs (one path, or the list of a scan of several captures), the layout as detected (`--format auto` and
     the named layout agree), the calibration files' contents."""
     from gscan.io import detect_format
+    from gscan.io.captures import is_onboarding
 
-    def fmt(source: Path) -> str:
-        return detect_format(source) if opts.format == "auto" else opts.format
+    def fmt(source: Path) -> str:  # a BOP dataset folder's onboarding captures are BOP scene folders
+        if opts.format != "auto":
+            return opts.format
+        return "bop" if is_onboarding(source) else detect_format(source)
 
     one = len(sources) == 1
     return {"source": "scan",

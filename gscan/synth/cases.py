@@ -208,6 +208,19 @@ def gap_orbit_capture(mesh: TexturedMesh, out_dir: str | Path, n_first: int = 6,
 TWO_SIDED_YAW_DEG = 40.0
 
 
+def two_sided_frames(mesh: TexturedMesh, n_views: int = 12, upside_down: bool = True,
+                     elevations_deg: tuple[float, ...] = (30.0, 55.0), table_kind: str = "newspaper",
+                     seed: int = 0, intr: Intrinsics = DEFAULT_INTRINSICS,
+                     ) -> tuple[list[RenderedFrame], list[RenderedFrame]]:
+    """The frames of `two_sided_captures` (the up capture's, the down capture's), rendered, not written."""
+    flip = rotvec_to_R(np.array([np.pi, 0.0, 0.0] if upside_down else [0.0, np.pi / 2, 0.0]))
+    R_down = rotvec_to_R(np.array([0.0, 0.0, np.radians(TWO_SIDED_YAW_DEG)])) @ flip
+    up, down = (render_capture(mesh, None, n_views, mode="static", intr=intr, seed=seed + k, R_world_obj=R,
+                               elevations_deg=elevations_deg, table_kind=table_kind)
+                for k, R in enumerate((None, R_down)))
+    return up, down
+
+
 def two_sided_captures(mesh: TexturedMesh, out_dir: str | Path, n_views: int = 12, upside_down: bool = True,
                        elevations_deg: tuple[float, ...] = (30.0, 55.0), table_kind: str = "newspaper",
                        seed: int = 0, intr: Intrinsics = DEFAULT_INTRINSICS) -> tuple[Case, Case]:
@@ -217,12 +230,9 @@ def two_sided_captures(mesh: TexturedMesh, out_dir: str | Path, n_views: int = 1
     the table agrees with no pose that joins the two. Ground truth (annotated_poses/) is in the mesh's frame in
     both, so the two captures' poses are comparable."""
     out = Path(out_dir)
-    flip = rotvec_to_R(np.array([np.pi, 0.0, 0.0] if upside_down else [0.0, np.pi / 2, 0.0]))
-    R_down = rotvec_to_R(np.array([0.0, 0.0, np.radians(TWO_SIDED_YAW_DEG)])) @ flip
+    sides = two_sided_frames(mesh, n_views, upside_down, elevations_deg, table_kind, seed, intr)
     cases = []
-    for k, (name, R) in enumerate([("up", None), ("down", R_down)]):
-        frames = render_capture(mesh, None, n_views, mode="static", intr=intr, seed=seed + k, R_world_obj=R,
-                                elevations_deg=elevations_deg, table_kind=table_kind)
+    for name, frames in zip(("up", "down"), sides, strict=True):
         names = _names(len(frames))
         cases.append(Case(_write(out / name, frames, intr), names, names, mesh=mesh))
     return cases[0], cases[1]
