@@ -9,7 +9,10 @@ motion T_worldA_worldB. Two proposals agree when they differ by less than `agree
 uncertainty (the poses' sigmas from the keypoint noise, floored at the noise of one keypoint pair at the
 views' depth). The captures are joined when the largest agreeing group holds at least `min_pairs` pairs, with
 at least two views of each capture among them, and no other motion has at least half its support (a symmetric
-object turned over may match two ways: then no join is guessed). The motion is the mean of the group's.
+object turned over may match two ways: then no join is guessed). The motion is the mean of the group's. Last, the
+object of B turned about its principal axes (90, 180, 270 deg) must be refuted by the views' depth or texture, as
+an edge's pose is: a print repeated on the top and the bottom matches at a turned motion, which only the other
+sides can tell (`_turn_not_refuted`).
 """
 from __future__ import annotations
 
@@ -23,7 +26,10 @@ from typing import Annotated
 import numpy as np
 from pydantic import Field
 
+from gscan.geometry.symmetry import axis_rotation
 from gscan.geometry.transforms import inv_T, mean_pose, rotation_angle_deg
+from gscan.registration.colour import ColourAgreement
+from gscan.registration.dense import DepthAgreement, colour_agreement, depth_agreement
 from gscan.registration.edges import RegData
 from gscan.registration.pairwise import PairResult, RegisterParams, register_features
 from gscan.settings import SETTINGS
@@ -155,8 +161,71 @@ def join_captures(a: Sequence[JoinView], b: Sequence[JoinView], rparams: Registe
         return Join(None, f"ambiguous: two motions join the captures ({len(best)} and {len(rival)} view pairs "
                     "agree on each; a symmetric object?)", tried, accepted, [(p.a, p.b) for p in best])
     T = mean_pose([p.T_a_b for p in best])
+    turned = _turn_not_refuted(T, a, b, rparams, pool)
+    if turned is not None:
+        return Join(None, f"ambiguous: {turned} joins the captures as well ({len(best)} view pairs agree on the "
+                    "motion found; a side seen alike in both?)", tried, accepted, [(p.a, p.b) for p in best])
     log.info("joined: %d of %d accepted view pairs (%d tried) agree", len(best), accepted, tried)
     return Join(T, None, tried, accepted, [(p.a, p.b) for p in best])
+
+
+def _turn_not_refuted(T_a_b: np.ndarray, a: Sequence[JoinView], b: Sequence[JoinView], rparams: RegisterParams,
+                      pool: ThreadPoolExecutor) -> str | None:
+    """The first turn of capture B's object about one of its principal axes (90, 180, 270 deg, through its centre)
+    that the views do not refute when it is joined so, in words; None when every turn is refuted. A turn is refuted
+    as an edge's pose is (`gscan.registration.pairwise`, rule 3): by the depth (more than `max_see_through` of the
+    overlap seen through, or half the consistent depth of the motion found) or by the texture (fewer than
+    `min_colour_agreement` of the overlap's textured tiles line up). A view pair may match a side the object shows
+    alike both ways up (a print repeated on its top and bottom): the motion found then turns the object, and
+    only the views of its other sides can tell."""
+    pts = np.concatenate([v.reg.dense.points.astype(np.float64) @ v.T_world_cam[:3, :3].T + v.T_world_cam[:3, 3]
+                          for v in b if len(v.reg.dense.points)] or [np.zeros((0, 3))])
+    if len(pts) < 3:
+        return None
+    c = pts.mean(0)
+    axes = np.linalg.svd(pts - c, full_matrices=False)[2]
+    found = _agreement(T_a_b, a, b, rparams, pool)
+    if _texture_refutes(found[1], rparams):
+        return "the views' texture disagrees under the motion found; any motion"
+    for k, axis in enumerate(axes):
+        for deg in (180, 90, 270):
+            depth, colour = _agreement(T_a_b @ axis_rotation(axis, c, np.radians(deg)), a, b, rparams, pool)
+            if (depth.see_through_fraction > rparams.max_see_through
+                    or depth.consistent < 0.5 * found[0].consistent):
+                continue  # the shape refutes it
+            if _texture_refutes(colour, rparams):
+                continue
+            return f"the object turned {deg} deg about its {('first', 'second', 'third')[k]} principal axis"
+    return None
+
+
+def _texture_refutes(colour: ColourAgreement, rparams: RegisterParams) -> bool:
+    """Whether texture refutes a pose as it does an edge's (enough textured tiles, too few of them lining up)."""
+    return colour.informative >= rparams.min_colour_tiles and colour.agreeing_fraction < rparams.min_colour_agreement
+
+
+def _agreement(T_a_b: np.ndarray, a: Sequence[JoinView], b: Sequence[JoinView], rparams: RegisterParams,
+               pool: ThreadPoolExecutor) -> tuple[DepthAgreement, ColourAgreement]:
+    """Depth and texture agreement of the views of B (joined by T_a_b) with the two views of A each sees the object
+    from nearest (by viewing direction onto the object)."""
+    def centre(v: JoinView, T: np.ndarray) -> np.ndarray:
+        return (T @ v.T_world_cam)[:3, 3]
+
+    def pairs_of(vb: JoinView) -> list[tuple[JoinView, JoinView]]:
+        cb = centre(vb, T_a_b)
+        near = sorted(a, key=lambda va: float(np.linalg.norm(centre(va, np.eye(4)) - cb)))[:2]
+        return [(va, vb) for va in near]
+
+    def check(pair: tuple[JoinView, JoinView]) -> tuple[DepthAgreement, ColourAgreement]:
+        va, vb = pair
+        T = inv_T(va.T_world_cam) @ T_a_b @ vb.T_world_cam  # B's camera into A's
+        return (depth_agreement(vb.reg.dense, va.reg.dense, T, rparams.depth_noise),
+                colour_agreement(vb.reg.dense, va.reg.dense, T, rparams.depth_noise))
+
+    d, col = DepthAgreement(0, 0, 0, 0, 0), ColourAgreement(0, 0)
+    for dd, cc in pool.map(check, [p for vb in b for p in pairs_of(vb)]):
+        d, col = d + dd, col + cc
+    return d, col
 
 
 def _object_extent(views: Sequence[JoinView]) -> tuple[np.ndarray, float]:
