@@ -168,3 +168,26 @@ def test_append_of_a_capture_that_cannot_be_joined_leaves_the_template_as_it_was
     assert "Traceback" not in proc.stderr
     assert out.read_bytes() == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["up.gscan"]
+
+
+@pytest.mark.slow
+def test_a_print_repeated_on_top_and_bottom_never_joins_turned(meshes_dir, tmp_path):
+    """The Pepsi 12-pack carries the same print on its top and bottom: view pairs of the two sides match at a
+    motion that turns the object 180 deg, which once joined its upside-down capture at that motion (all 12 frames
+    180 deg off). A capture is joined at the right motion or not at all: its frames, when joined, are within the
+    wrong-pose bound of the truth."""
+    pack = synth.load_textured_mesh(meshes_dir / "Pepsi_Caffeine_Free_Diet_12_CT" / "model_0.obj")
+    up, down = two_sided_captures(pack, tmp_path / "pack", n_views=12)
+    res = scan([up.path, down.path], tmp_path / "pack.gscan")
+    caps = {c["name"]: c for c in res.captures}
+    with TemplateDB.open(tmp_path / "pack.gscan") as db:
+        poses = {n: np.asarray(T) for n, T in db.poses()["frames"].items()}
+    gt = {f"{c.path.name}/{n}": T for c in (up, down) for n, T in _gt_T_obj_cam(c.path).items()}
+    T_tmpl_mesh = mean_pose([poses[n] @ inv_T(gt[n]) for n in poses if n.startswith("up/")])
+    if caps["down"]["joined"]:
+        for n, T in poses.items():
+            D = inv_T(T_tmpl_mesh @ gt[n]) @ T
+            assert rotation_angle_deg(D[:3, :3]) < WRONG_RENDERED[0], (n, caps)
+    else:
+        assert "ambiguous" in caps["down"]["reason"], caps
+        assert not any(n.startswith("down/") for n in poses)
