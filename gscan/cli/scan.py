@@ -10,7 +10,7 @@ import typer
 
 from gscan.cli.choices import ScanFormat, ScanMode
 from gscan.cli.imports import SCAN_IMPORTS, import_holding_ctrl_c
-from gscan.cli.output import UsageError, err, print_json, say, say_interrupted, setup_logging
+from gscan.cli.output import UsageError, camera_line, err, print_json, say, say_interrupted, setup_logging
 from gscan.cli.texts import DEPTH_INTRINSICS_HELP, DEPTH_TO_COLOR_HELP, JSON_HELP
 
 
@@ -105,12 +105,8 @@ def print_scan_summary(result: Any) -> None:
         f"mesh {result.mesh_vertices} vertices / {result.mesh_triangles} triangles, "
         f"{result.keyframes} keyframes (the views estimate matches)")
     cam = result.camera
-    if cam is not None and cam["corrected"]:
-        given, used = cam["given_focal_px"][0], cam["colour_focal_px"][0]
-        say(("colour camera:", "yellow"), f" the depth did not line up with the colour at the given focal length "
-            f"{given:g} px; the texture lines up at {used:g} px ({cam['texture_agreement']['used']:.0%} of textured "
-            f"tiles against {cam['texture_agreement']['given']:.0%}), used with the given intrinsics as the depth "
-            "camera's. --intrinsics and --depth-intrinsics set both cameras")
+    if cam is not None:
+        say(*camera_line(cam))
     sel = result.selection
     if sel.get("skipped"):  # frame selection: not failures, counted by reason
         why = "; ".join(f"{k} frames {w}" for w, k in sel["reasons"].items())
