@@ -94,18 +94,21 @@ def camera_report(check: FocalCheck, edges: EdgeEvidence, K: Intrinsics, frames:
     def px(x: float) -> float | None:
         return round(K.fx * x, 1) if np.isfinite(x) else None
 
+    def num(x: float) -> float | None:
+        return round(x, 3) if np.isfinite(x) else None
+
     confirmed = verdict != UNCONFIRMED
     warning = None
     if not confirmed:
-        warning = (f"could not confirm the focal length {K.fx:g} px ({reason}); the texture lines up best at "
-                   f"{px(check.estimate) or '?'} px (interval {px(check.low) or '?'}-{px(check.high) or '?'} px); "
-                   f"scanned with the given {K.fx:g} px: the poses of all {len(frames)} frames rest on it"
+        best = (f"; the texture lines up best at {px(check.estimate)} px (interval {px(check.low) or '?'}-"
+                f"{px(check.high) or '?'} px)" if np.isfinite(check.estimate) else "")
+        warning = (f"could not confirm the focal length {K.fx:g} px ({reason}){best}; scanned with the given "
+                   f"{K.fx:g} px: the poses of all {len(frames)} frames rest on it"
                    + ("" if off else f"; a known calibration: {FLAGS}"))
     return {"given_focal_px": [K.fx, K.fy], "colour_focal_px": [round(Kc.fx, 1), round(Kc.fy, 1)],
             "verdict": verdict, "confirmed": confirmed, "corrected": check.significant, "reason": reason,
             "warning": warning, "estimate_px": px(check.estimate), "interval_px": [px(check.low), px(check.high)],
             "pairs": check.pairs, "p_value": round(check.p_value, 4),
-            "texture_agreement": {"given": round(check.agreement.get(1.0, float("nan")), 3),
-                                  "used": round(check.peak, 3)},
+            "texture_agreement": {"given": num(check.agreement.get(1.0, float("nan"))), "used": num(check.peak)},
             "depth_edges": e, "unconfirmed_frames": [] if confirmed else frames,
             "given_intrinsics": K.to_dict(), "colour_intrinsics": Kc.to_dict()}

@@ -81,9 +81,13 @@ class EdgeEvidence:
     scale: float
 
     def to_dict(self) -> dict:
+        """JSON-ready (null for the medians of no frame)."""
+        def num(x: float, digits: int) -> float | None:
+            return round(x, digits) if np.isfinite(x) else None
+
         return {"verdict": self.verdict, "frames": len(self.frames), "off": self.off,
-                "p_value": round(self.p_value, 4), "median_offset_px": round(self.offset_px, 1),
-                "median_scale": round(self.scale, 3)}
+                "p_value": round(self.p_value, 4), "median_offset_px": num(self.offset_px, 1),
+                "median_scale": num(self.scale, 3)}
 
 
 def depth_jumps(depth: np.ndarray, sigmas: float, noise: DepthNoise = DepthNoise()) -> np.ndarray:
