@@ -148,7 +148,7 @@ def test_real_kinect_every_second_frame_with_the_readme_intrinsics(real_dir: Pat
     """Every second frame of scan/ (0.33 s apart), the README's 585 px for both cameras: the check finds the colour
     camera's focal length within 2 % and no frame is wrong, or it warns and flags every frame (`found_or_flagged`;
     before the check's interval it said "checked, kept 585 px"); the frames it registers are at least 25 of 30.
-    Measured: corrected to 526.4 px (511.5-546.0), 30 of 30 registered, one frame beyond 10 cm (000005, the
+    Measured: corrected to 526.4 px (504.2-553.4), 30 of 30 registered, one frame beyond 10 cm (000005, the
     original 000010 at 1.7 deg / 10.5 cm, where every neighbour pair's texture lines up better under the scan's
     poses than under the ground truth's: the calibrated scan's test finds the same frame at 10.5 cm)."""
     work = tmp_path_factory.mktemp("kitchen_half")
