@@ -37,7 +37,8 @@ def test_registered_depth_keeps_the_given_intrinsics(tmp_path, box):
     """Rendered depth lies on its colour pixels: the texture lines up best at the given focal length, and the
     check stops after s = 1 and its two neighbours."""
     got = check(C.two_camera_capture(box, tmp_path / "one", colour_scale=1.0, n_views=8).path)
-    assert got is not None and got.scale == 1.0 and not got.significant, got
+    assert got.verdict == "kept" and got.scale == 1.0 and not got.significant, got
+    assert got.low <= 1.0 <= got.high and got.high - got.low <= 0.06, got
     assert sorted(got.agreement) == [0.95, 1.0, 1.05] and got.agreement[1.0] > max(got.agreement[0.95],
                                                                                    got.agreement[1.05]) + 0.1
 
@@ -46,7 +47,8 @@ def test_registered_depth_keeps_the_given_intrinsics(tmp_path, box):
 def test_a_colour_camera_of_another_focal_length_is_found(tmp_path, box, scale):
     """Colour from a camera of `scale` times the given focal length: found within 2 %, significantly better."""
     got = check(C.two_camera_capture(box, tmp_path / "two", colour_scale=scale, n_views=8).path)
-    assert got is not None and got.significant and abs(got.scale / scale - 1) < 0.02, got
+    assert got.verdict == "corrected" and got.significant and abs(got.scale / scale - 1) < 0.02, got
+    assert got.low <= scale <= got.high and not got.low <= 1.0 <= got.high, got
     assert got.peak > got.agreement[1.0] + 0.2 and got.p_value < 0.05, got
 
 
@@ -64,9 +66,16 @@ def test_the_peak_is_sought_on_every_group_when_half_of_them_say_nothing(tmp_pat
     assert got is not None and got.pairs == 8 and got.significant and abs(got.scale / 1.12 - 1) < 0.02, got
 
 
-def test_too_few_frames_say_nothing(tmp_path, box):
-    """Three frames make two pairs at most: no verdict."""
-    assert check(C.two_camera_capture(box, tmp_path / "few", colour_scale=0.9, n_views=8).path, n=3) is None
+def test_too_few_frames_cannot_confirm(tmp_path, box):
+    """Three frames make two pairs at most: the check says it could not confirm the focal length, and why; two
+    frames make no pair at all."""
+    from gscan.scanning.calibration import UNCONFIRMED
+
+    path = C.two_camera_capture(box, tmp_path / "few", colour_scale=0.9, n_views=8).path
+    for n in (3, 2):
+        got = check(path, n=n)
+        assert got.verdict == UNCONFIRMED and not got.confirmed and not got.significant and got.scale == 1.0, got
+        assert got.reason and ("pairs" in got.reason or "frames" in got.reason), got
 
 
 def test_two_threads_give_the_same_check(tmp_path, box):
@@ -114,3 +123,38 @@ def test_a_frame_that_cannot_be_detected_raises_its_error_in_every_thread(tmp_pa
 
     with pytest.raises(ValueError, match="uint8"):
         check_colour_focal(read, len(names), PARAMS, FEATURES, workers=2, detections={})
+
+
+def test_depth_edges_cannot_tell_without_depth_jumps(tmp_path, box):
+    """A flat box lying on a table (rendered, depth registered): no neighbouring depths farther apart than the
+    noise allows (1.4 cm at most, 0.6 m away), so the depth-edge test says it cannot tell rather than guess."""
+    from gscan.scanning.calibration import SCALES
+    from gscan.scanning.depth_edges import edge_evidence
+
+    seq = open_sequence(C.two_camera_capture(box, tmp_path / "edges", colour_scale=1.0, n_views=4).path)
+    got = edge_evidence([seq[n] for n in seq.names], SCALES)
+    assert got.verdict == "undecided" and not got.frames, got
+
+
+def test_depth_edges_on_real_frames(real_dir: Path):
+    """Real sensors: 7-Scenes' Kinect v1 depth is not registered to its colour (read with the README's one set of
+    intrinsics: its jumps lie 10-50 px off the colour edges); the Open3D sample's PrimeSense depth is registered by
+    the sensor (its jumps on the colour edges)."""
+    import cv2
+
+    from gscan.io.camera import RGBDFrame, load_intrinsics
+    from gscan.scanning.calibration import SCALES
+    from gscan.scanning.depth_edges import edge_evidence
+
+    seq = open_sequence(real_dir / "7scenes_redkitchen" / "scan")
+    kinect = edge_evidence([seq[seq.names[i]] for i in range(0, 60, 8)], SCALES)
+    assert kinect.verdict == "not registered" and kinect.offset_px > 10, kinect
+    root = real_dir / "open3d_rgbd"
+    K = load_intrinsics(root / "camera_primesense.json")
+    frames = []
+    for i in range(5):
+        colour = cv2.cvtColor(cv2.imread(str(root / "RGBD" / "color" / f"{i:05d}.jpg")), cv2.COLOR_BGR2RGB)
+        depth = cv2.imread(str(root / "RGBD" / "depth" / f"{i:05d}.png"), cv2.IMREAD_UNCHANGED) / 1000.0
+        frames.append(RGBDFrame(f"{i}", colour, depth.astype(np.float32), K))
+    primesense = edge_evidence(frames, SCALES)
+    assert primesense.verdict == "registered" and primesense.offset_px < 2, primesense

@@ -24,6 +24,7 @@ from real import (
     scan_with_cli,
     score_queries,
     score_trajectory,
+    subsampled,
     template_poses,
     texture_check,
 )
@@ -86,11 +87,73 @@ def test_real_kinect_scan_with_the_readme_intrinsics_finds_the_colour_camera(rea
     out = tmp_path_factory.mktemp("kitchen_readme") / "kitchen.gscan"
     summary = scan_with_cli(root, out, NO_CALIBRATION, "--no-segment")
     cam = summary["camera"]
-    assert cam["corrected"] and 500 <= cam["colour_focal_px"][0] <= 550, cam
+    assert cam["corrected"] and cam["verdict"] == "corrected", cam
     gt = ground_truth(root, NO_CALIBRATION)
-    ours = score_trajectory(template_poses(out), gt)
+    ours = found_or_flagged(summary, out, root, gt)
     assert ours.registered >= 58 and not ours.wrong, ours
     assert set(summary["unregistered_reasons"]) == set(summary["unregistered"]), summary
     q = score_queries(out, root, NO_CALIBRATION, gt)
     assert not q.wrong, q.wrong
     assert len(q.found) >= 20, q
+
+
+PUBLISHED_COLOUR_FOCAL_PX = 525.0  # bench/real.py's calibration
+
+
+def found_or_flagged(summary: dict, template: Path, root: Path, gt: dict):
+    """The scan's colour camera check on 7-Scenes with the README's 585 px for both cameras: either it confirms a
+    focal length, which is then the colour camera's (within 2 % of the published 525 px, inside its interval) and no
+    registered frame lies beyond 5 deg / 10 cm but one where the ground truth is the weaker (`gt_weaker_at`, as
+    the calibrated scan's test allows), or it says it could not confirm the focal length (a warning) and names
+    every frame as resting on it. Either way the depth edges say the depth is not registered to the colour and
+    name the flags that fix it. The trajectory's score."""
+    cam = summary["camera"]
+    edges = cam["depth_edges"]
+    assert edges["verdict"] == "not registered" and "--depth-intrinsics" in edges["fix"], edges
+    assert "--depth-to-color" in edges["fix"], edges
+    T = template_poses(template)
+    ours = score_trajectory(T, gt)
+    if cam["confirmed"]:
+        assert cam["verdict"] in ("kept", "corrected") and cam["warning"] is None, cam
+        assert abs(cam["colour_focal_px"][0] / PUBLISHED_COLOUR_FOCAL_PX - 1) <= 0.02, cam
+        lo, hi = cam["interval_px"]
+        assert lo is not None and hi is not None and lo <= cam["colour_focal_px"][0] <= hi, cam
+        assert len(ours.wrong) <= 1 and all(gt_weaker_at(n, T, gt, root, cam) for n in ours.wrong), ours
+    else:
+        assert cam["verdict"] == "could not confirm" and "could not confirm" in cam["warning"], cam
+        assert set(cam["unconfirmed_frames"]) == set(gt), cam
+    return ours
+
+
+def gt_weaker_at(name: str, T_obj_cam: dict, gt: dict, root: Path, cam: dict) -> bool:
+    """Every frame pair up to two apart among the frames within two of `name` lines up the images' texture better
+    under the scan's relative poses than under the ground truth's (`texture_check`, the frames read as the scan
+    read them)."""
+    from gscan.io import open_sequence
+    from gscan.io.camera import DepthCamera, Intrinsics
+
+    kw = {}
+    if cam["corrected"]:
+        kw = {"intrinsics": Intrinsics.from_dict(cam["colour_intrinsics"]),
+              "depth_camera": DepthCamera(Intrinsics.from_dict(cam["given_intrinsics"]))}
+    seq = open_sequence(root / "scan", **kw)
+    names = sorted(T_obj_cam)
+    i = names.index(name)
+    near = names[max(0, i - 2):i + 3]
+    tex = texture_check({n: T_obj_cam[n] for n in near}, gt, seq)
+    return tex.pairs > 0 and tex.scan_better == tex.pairs
+
+
+def test_real_kinect_every_second_frame_with_the_readme_intrinsics(real_dir: Path, tmp_path_factory):
+    """Every second frame of scan/ (0.33 s apart), the README's 585 px for both cameras: the check finds the colour
+    camera's focal length within 2 % and no frame is wrong, or it warns and flags every frame (`found_or_flagged`;
+    before the check's interval it said "checked, kept 585 px"); the frames it registers are at least 25 of 30.
+    Measured: corrected to 526.4 px (504.2-553.4), 30 of 30 registered, one frame beyond 10 cm (000005, the
+    original 000010 at 1.7 deg / 10.5 cm, where every neighbour pair's texture lines up better under the scan's
+    poses than under the ground truth's: the calibrated scan's test finds the same frame at 10.5 cm)."""
+    work = tmp_path_factory.mktemp("kitchen_half")
+    root = subsampled(real_dir / "7scenes_redkitchen", 2, work / "data")
+    out = work / "half.gscan"
+    summary = scan_with_cli(root, out, NO_CALIBRATION, "--no-segment")
+    ours = found_or_flagged(summary, out, root, ground_truth(root, NO_CALIBRATION))
+    assert ours.registered >= 25, ours

@@ -188,3 +188,20 @@ def say_interrupted(text: str) -> None:
 def interrupt_said() -> bool:
     """Whether a command already said what its interruption left."""
     return _interrupt_said
+
+
+def camera_line(cam: dict) -> tuple[tuple[str, str], str]:
+    """The colour camera check's line (`scan`'s summary, `info`): kept or corrected with the estimate's interval, or
+    the warning that it could not confirm the focal length (`gscan.scanning.camera.camera_report`)."""
+    given, used = cam["given_focal_px"][0], cam["colour_focal_px"][0]
+    lo, hi = (f"{x:g}" if x is not None else "?" for x in cam.get("interval_px", [None, None]))
+    found = f"the texture of {cam['pairs']} frame pairs lines up best at {cam.get('estimate_px')} px ({lo}-{hi} px)"
+    verdict = cam.get("verdict", "corrected" if cam["corrected"] else "kept")
+    if verdict == "corrected":
+        return (("colour camera:", "yellow"), f" the depth did not line up with the colour at the given focal length "
+                f"{given:g} px; {found}: used {used:g} px ({cam['texture_agreement']['used']:.0%} of textured "
+                f"tiles against {cam['texture_agreement']['given']:.0%}), with the given intrinsics as the depth "
+                "camera's. --intrinsics and --depth-intrinsics set both cameras")
+    if verdict == "kept":
+        return (("colour camera:", "bold"), f" focal length given {given:g} px, checked, kept: {found}")
+    return (("colour camera: warning:", "red"), f" {cam['warning']}")

@@ -12,6 +12,7 @@ from gscan.cli.choices import ScanFormat, ScanMode
 from gscan.cli.imports import SCAN_IMPORTS, import_holding_ctrl_c
 from gscan.cli.output import (
     UsageError,
+    camera_line,
     coverage_text,
     err,
     print_json,
@@ -116,12 +117,8 @@ def print_scan_summary(result: Any) -> None:
     for text in coverage_text(result.coverage):
         say(text)
     cam = result.camera
-    if cam is not None and cam["corrected"]:
-        given, used = cam["given_focal_px"][0], cam["colour_focal_px"][0]
-        say(("colour camera:", "yellow"), f" the depth did not line up with the colour at the given focal length "
-            f"{given:g} px; the texture lines up at {used:g} px ({cam['texture_agreement']['used']:.0%} of textured "
-            f"tiles against {cam['texture_agreement']['given']:.0%}), used with the given intrinsics as the depth "
-            "camera's. --intrinsics and --depth-intrinsics set both cameras")
+    if cam is not None:
+        say(*camera_line(cam))
     for line in result.damage:  # the recording's damaged records: damage, not missing frames
         say(("damaged recording:", "red"), f" {line}")
     sel = result.selection

@@ -6,7 +6,7 @@ from pathlib import Path
 import typer
 
 from gscan.cli.choices import ExportFormat
-from gscan.cli.output import coverage_lines, err, format_pose, line, part_lines, print_json, symmetry_texts
+from gscan.cli.output import camera_line, coverage_lines, err, format_pose, line, part_lines, print_json, symmetry_texts
 from gscan.cli.texts import JSON_HELP
 
 
@@ -60,13 +60,13 @@ def info(
             continue
         if k == "camera":
             if v is not None:
-                used = "used" if v["corrected"] else "checked, kept"
-                line(f"colour camera: focal length given {v['given_focal_px'][0]:g} px, {used} "
-                     f"{v['colour_focal_px'][0]:g} px (from the texture of {v['pairs']} frame pairs)")
+                tag, text = camera_line(v)
+                line(f"{tag[0]}{text}")
             continue
         if k == "coverage":
             coverage_lines(v)
-        elif k == "symmetries":
+            continue
+        if k == "symmetries":
             for text in symmetry_texts(v):
                 line(f"symmetry: {text}")
             continue

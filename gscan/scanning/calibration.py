@@ -13,17 +13,25 @@ given one (same principal point, no baseline: a baseline of a few centimetres sh
 is absorbed by the poses and the colour check's shift search). For each s, pairs of frames one and two apart
 are registered with the scan's own rules, and each pair's share of textured tiles lining up is averaged over
 the pairs (a pair that fails to register counts 0):
-- s = 1 and its neighbours in `SCALES` first, on every other group: when s = 1 lines up the most, the given
-  intrinsics stand;
+- s = 1 and its neighbours in `SCALES` first, on every other group: when s = 1 lines up the most and the verdict
+  below keeps it, the given intrinsics stand;
 - else a walk over `SCALES` on those groups, away from 1 towards the better neighbour, until two scales in a row
   line up no more than the best so far (registered texture has one peak; the far side of 1 lines up less than 1);
-  then the best scale, its neighbours and s = 1 on every group, moving on while a neighbour lines up more there
-  (the walk's groups may say little: their pairs may fail to register);
-- the best scale is tested against s = 1: it must line up more tiles than s = 1 in significantly more pairs than
-  not (a sign test at level `alpha`) and by at least `min_gain` on average; otherwise the given intrinsics stand;
-- the estimate is the vertex of the parabola through the best value and its neighbours, and its share the
-  parabola's value there (single evaluations are noisy to about 0.01 near the peak: the fit is the better figure,
-  and one more evaluation at the vertex would add a noisy one).
+  then the best scale, `FIT` scales either side of it and s = 1 on every group, moving on while a neighbour lines
+  up more there (the walk's groups may say little: their pairs may fail to register), and one scale further out
+  on every group while the peak may lie beyond the scales tried;
+- the estimate is the vertex of the least-squares parabola through the best scale and `FIT` scales either side
+  (single evaluations are noisy to about 0.01-0.02 near the peak: the fit is the better figure), and its
+  uncertainty the interval of that vertex over resamples of the pairs (a bootstrap, level 1 - alpha), widened by
+  the fit's own error (`GRID_ERROR`);
+- the verdict: "kept" when the interval holds 1 and is at most +-`max_uncertainty` wide; "corrected" when it
+  excludes 1 (the given focal length is then the worse one, however wide the interval) and the best scale lines
+  up more tiles than s = 1 significantly (Wilcoxon's signed-rank test over the pairs at level `alpha`: a pair a
+  few tiles worse weighs little, a failed pair a lot) and by at least `min_gain` on average; otherwise "could
+  not confirm", with the reason (too few pairs registered, a peak at the edge of the scales, an interval too
+  wide, a preference not significant). A focal length it could not confirm is the given one, scanned with and
+  reported as a warning (gscan.scanning.camera); so is one the depth's edges contradict
+  (gscan.scanning.depth_edges).
 
 With depth registered to the colour (a rendered capture, a RealSense aligned stream), any s other than 1
 moves the depth off its colour pixels and the texture lines up best at 1.
@@ -44,13 +52,17 @@ from gscan.features import Detection, FeatureParams, Features, detect, extract_f
 from gscan.io.align import align_depth_to_color
 from gscan.io.camera import DepthCamera, Intrinsics, RGBDFrame, lift_keypoints
 from gscan.registration.dense import DenseGeometry, image_texture
-from gscan.registration.noise import sign_test
 from gscan.registration.pairwise import RegisterParams, register_features
 from gscan.settings import SETTINGS
 
 log = logging.getLogger(__name__)
 
 SCALES = (0.8, 0.85, 0.9, 0.95, 1.0, 1.05, 1.1, 1.15, 1.2)  # colour focal length / given: the grid the check walks
+FIT = 2  # the vertex's parabola: the best scale and this many on each side (the texture's peak is about that wide)
+WINDOW = FIT * 0.05  # ... the same as a difference of scales
+# the parabola's own error: its vertex sits off a peak that is not a parabola by up to a quarter of the grid step
+# (0.010 measured at a rendered capture's sharp peak, colour camera 1.12), added to each side of the interval
+GRID_ERROR = 0.0125
 
 
 @dataclass(frozen=True)
@@ -67,19 +79,34 @@ class FocalCheckParams:
     groups: Annotated[int, Field(ge=1, description="first frames i spread over the capture")] = 8
     keypoints: Annotated[int, Field(ge=50, description="the strongest keypoints kept per frame (enough to register "
                                     "neighbours, and fast)")] = 800
-    alpha: Annotated[float, Field(gt=0, lt=1, description="the sign test's level")] = 0.05
+    alpha: Annotated[float, Field(gt=0, lt=1, description="the level of the signed-rank test and of the estimate's "
+                                  "interval (1 - alpha)")] = 0.05
     min_gain: Annotated[float, Field(ge=0, le=1, description="the least gain in the mean share of textured tiles "
                                      "lining up")] = 0.03
+    edge_frames: Annotated[int, Field(ge=1, description="frames spread over the capture whose depth jumps are "
+                                      "compared with their colour edges (gscan.scanning.depth_edges)")] = 8
+    bootstrap: Annotated[int, Field(ge=50, description="resamples of the pairs for the estimate's "
+                                    "uncertainty")] = 400
+    max_uncertainty: Annotated[float, Field(gt=0, lt=1, description="the widest interval (half of it, relative to the "
+                                            "focal length) that keeps the given focal length: a focal length off "
+                                            "by x bends the frames' geometry by about x (3 cm at 1 m for the 3 % of "
+                                            "the default)")] = 0.03
+
+
+KEPT, CORRECTED, UNCONFIRMED = "kept", "corrected", "could not confirm"
 
 
 @dataclass(frozen=True)
 class FocalCheck:
-    """scale: the colour camera's focal length over the given one that lines the texture up best (1.0 when
-    the given intrinsics stand); agreement: mean share of textured tiles lining up, per scale tried (over the
-    pairs tried at that scale); peak: the share at `scale` (the parabola's value at its vertex, or the scale's
-    own mean when it was tried);
-    pairs: frame pairs compared; better_pairs: pairs lining up more tiles at the best scale tried than at 1;
-    p_value: the sign test's; significant: the data reject the given intrinsics for the colour camera."""
+    """scale: the colour camera's focal length over the given one the scan uses (1.0 unless corrected); estimate:
+    the one the texture lines up best at (the parabola's vertex; NaN when no pair registered) and low, high: its
+    interval at level 1 - alpha (a bootstrap over the pairs, widened by GRID_ERROR; -inf / inf where the texture's
+    peak lies at or beyond the scales tried in more than alpha / 2 of the resamples); verdict: KEPT (1 lies in the
+    interval, which is narrow), CORRECTED (the interval excludes 1, and the pairs line up significantly better)
+    or UNCONFIRMED, with `reason`; agreement: mean share of textured tiles lining up, per scale tried (over the
+    pairs tried at that scale); peak: the share at `estimate`; pairs: frame pairs compared; better_pairs: pairs
+    lining up more tiles at the best scale tried than at 1; p_value: the signed-rank test's; significant: the data
+    reject the given intrinsics for the colour camera (verdict CORRECTED)."""
 
     scale: float
     agreement: dict[float, float]
@@ -88,6 +115,16 @@ class FocalCheck:
     p_value: float
     significant: bool
     peak: float
+    estimate: float = float("nan")
+    low: float = -float("inf")
+    high: float = float("inf")
+    verdict: str = UNCONFIRMED
+    reason: str | None = None
+
+    @property
+    def confirmed(self) -> bool:
+        """The focal length the scan uses is the one the data give (kept or corrected)."""
+        return self.verdict != UNCONFIRMED
 
     def colour_intrinsics(self, given: Intrinsics) -> Intrinsics:
         """The colour camera's intrinsics: the given ones with the focal length scaled."""
@@ -124,7 +161,7 @@ def _starts(n: int, span: int, count: int) -> list[int]:
 
 def check_colour_focal(read: Callable[[int], RGBDFrame | None], n: int, params: RegisterParams,
                        fparams: FeatureParams, check: FocalCheckParams = FocalCheckParams(),
-                       workers: int = 1, detections: dict[str, Detection] | None = None) -> FocalCheck | None:
+                       workers: int = 1, detections: dict[str, Detection] | None = None) -> FocalCheck:
     """The check of the module docstring on a capture of n frames, frame i read by read(i) (None: unusable), its
     depth registered to its colour as given. Pairs (i, i + step) for each of `check.steps` (neighbours move
     little, the next ones more) from `check.groups` first frames i spread over the capture, every other group
@@ -133,8 +170,8 @@ def check_colour_focal(read: Callable[[int], RGBDFrame | None], n: int, params: 
     keypoints, at most `check.keypoints` a frame, are kept); `workers` groups at a time, on threads. detections:
     when given (SIFT kinds), each frame read is detected as `extract_features(frame, fparams)` detects it
     (`detect`), its keypoints taken from that, and the detection left there by frame name, for the scan's features
-    stage to start from (one detection of those frames, not two). None when fewer than 4 pairs register at any scale
-    tried."""
+    stage to start from (one detection of those frames, not two). The verdict UNCONFIRMED, with its reason, when
+    fewer than 4 pairs register at the scales tried (or no pair can be formed)."""
     steps = check.steps
     starts = _starts(n, max(steps), check.groups)
     pairs = [(i, i + step) for i in starts for step in steps]
@@ -218,8 +255,13 @@ def check_colour_focal(read: Callable[[int], RGBDFrame | None], n: int, params: 
             out[s] = float(v[at].mean()) if at.any() else 0.0
         return live, out
 
+    def unconfirmed(why: str, live: np.ndarray | None = None, mean: dict[float, float] | None = None) -> FocalCheck:
+        n = int(live.sum()) if live is not None else 0
+        return FocalCheck(1.0, dict(sorted((mean or {}).items())), n, 0, 1.0, False,
+                          (mean or {}).get(1.0, float("nan")), reason=why)
+
     if not pairs:
-        return None
+        return unconfirmed(f"too few frames ({n}) to register pairs {max(steps)} apart")
     one = SCALES.index(1.0)
     near = SCALES[one - 1:one + 2]
     walk = starts[::2]  # the groups the walk seeks the texture's peak on
@@ -227,7 +269,9 @@ def check_colour_focal(read: Callable[[int], RGBDFrame | None], n: int, params: 
     tried = ~np.isnan(per_pair[1.0])
     live, mean = means(tried)
     if live.sum() >= 4 and mean[1.0] >= max(mean.values()):  # the texture peaks at the given focal length
-        return FocalCheck(1.0, dict(sorted(mean.items())), int(live.sum()), 0, 1.0, False, mean[1.0])
+        first = _verdict(per_pair, live, check, mean)
+        if first.verdict == KEPT:
+            return first
     # towards the better neighbour (no walk when no pair registered on the walk's groups: the step below decides)
     step = 1 if mean[SCALES[one + 1]] > mean[SCALES[one - 1]] else -1
     walked = [one + step]
@@ -239,28 +283,105 @@ def check_colour_focal(read: Callable[[int], RGBDFrame | None], n: int, params: 
         walked.append(walked[-1] + step)
         evaluate([SCALES[walked[-1]]], walk)
         live, mean = means(tried)
-    k = best_of(walked)
+    k = best_of([*walked, one])
     while True:  # the best and its neighbours on every group; a neighbour better there becomes the best
-        evaluate(sorted({1.0, *SCALES[max(0, k - 1):k + 2]}), starts)
+        evaluate(sorted({1.0, *SCALES[max(0, k - FIT):k + FIT + 1]}), starts)
         live, mean = means(np.ones(len(pairs), bool))
         top = best_of(range(max(0, k - 1), min(len(SCALES), k + 2)))
         if top == k:
             break
         k = top
-    if live.sum() < 4:
-        return None
-    best, vertex, peak = SCALES[k], SCALES[k], mean[SCALES[k]]
-    if 0 < k < len(SCALES) - 1:  # the vertex of the parabola through the best and its neighbours (less noisy)
-        x = np.array(SCALES[k - 1:k + 2])
-        fit = np.polyfit(x, np.array([mean[s] for s in x]), 2)
-        if fit[0] < 0:
-            vertex = round(float(np.clip(-fit[1] / (2 * fit[0]), x[0], x[2])), 4)
-            peak = float(np.polyval(fit, vertex))
     for s in sorted(mean):
         log.debug("colour focal x%.3f: %.3f of the textured tiles line up", s, mean[s])
-    d = per_pair[best][live] - per_pair[1.0][live]
+    if live.sum() < 4:
+        return unconfirmed(f"{int(live.sum())} frame pairs registered at the focal lengths tried (at least 4 needed)",
+                           live, mean)
+    while True:  # the next scale out on every group while the peak may lie beyond the scales tried on all of them
+        got = _verdict(per_pair, live, check, mean)
+        on_all = [i for i, s in enumerate(SCALES) if s in per_pair and not np.isnan(per_pair[s][live]).any()]
+        beyond = on_all[0] - 1 if got.low == -np.inf else on_all[-1] + 1 if got.high == np.inf else -1
+        if not 0 <= beyond < len(SCALES):
+            return got
+        evaluate([SCALES[beyond]], starts)
+        live, mean = means(np.ones(len(pairs), bool))
+
+
+def _signed_rank(d: np.ndarray) -> float:
+    """One-sided p-value of Wilcoxon's signed-rank test that the pairs' differences d [n] lean positive (1 when none
+    differs): a pair lining up a few tiles fewer is weighed as the little it is, a failed pair as the lot."""
+    from scipy.stats import wilcoxon
+
+    if not np.any(d != 0):
+        return 1.0
+    return float(wilcoxon(d, alternative="greater", zero_method="wilcox").pvalue)
+
+
+def _vertex(x: np.ndarray, y: np.ndarray, halfwidth: float) -> float:
+    """The abscissa of the peak of y over x [m] (sorted): the vertex of the least-squares parabola through the
+    points within `halfwidth` of the best one (a single scale's mean is noisy to about 0.01-0.02: more points
+    steady the vertex), kept within them; -inf / inf when the best is the first / last (the peak may lie beyond)."""
+    k = int(np.argmax(y))
+    if k == 0:
+        return -np.inf
+    if k == len(x) - 1:
+        return np.inf
+    near = np.abs(x - x[k]) <= halfwidth + 1e-9
+    xs, ys = x[near], y[near]
+    fit = np.polyfit(xs, ys, 2)
+    if fit[0] >= 0:  # no curvature: the best one
+        return float(x[k])
+    return float(np.clip(-fit[1] / (2 * fit[0]), xs[0], xs[-1]))
+
+
+def _verdict(per_pair: dict[float, np.ndarray], live: np.ndarray, check: FocalCheckParams,
+             agreement: dict[float, float]) -> FocalCheck:
+    """The estimate, its interval and the verdict (FocalCheck) from each live pair's share at each scale tried on
+    all of them (agreement: every scale's mean share, `FocalCheck.agreement`). The interval: the vertex (`_vertex`)
+    over `check.bootstrap` resamples of the pairs (a fixed seed: the same figures every run), its alpha / 2 and
+    1 - alpha / 2 quantiles."""
+    scales = np.array(sorted(s for s, v in per_pair.items() if not np.isnan(v[live]).any()))
+    M = np.stack([per_pair[s][live] for s in scales], axis=1)  # pairs x scales
+    mean = {float(s): float(m) for s, m in zip(scales, M.mean(axis=0), strict=True)}
+    n = len(M)
+    estimate = _vertex(scales, M.mean(axis=0), WINDOW)
+    rng = np.random.default_rng(0)
+    boot = np.array([_vertex(scales, M[rng.integers(0, n, n)].mean(axis=0), WINDOW)
+                     for _ in range(check.bootstrap)])
+    boot.sort()  # (with -inf / inf: no interpolation between resamples)
+    B = len(boot)
+    low, high = float(boot[int(np.floor(check.alpha / 2 * B))]), \
+        float(boot[int(np.ceil((1 - check.alpha / 2) * B) - 1)])
+    k = int(np.argmax(M.mean(axis=0)))
+    best = float(scales[k])
+    d = M[:, k] - M[:, list(scales).index(1.0)]
     better, worse = int(np.sum(d > 0)), int(np.sum(d < 0))
-    p = sign_test(better, worse)
-    significant = best != 1.0 and p < check.alpha and mean[best] - mean[1.0] >= check.min_gain
-    return FocalCheck(vertex if significant else 1.0, dict(sorted(mean.items())), int(live.sum()), better, p,
-                      significant, peak if significant else mean[1.0])
+    p = _signed_rank(d)
+    peak = mean[best]
+    if np.isfinite(estimate):  # the parabola's value at its vertex
+        near = np.abs(scales - best) <= WINDOW + 1e-9
+        fit = np.polyfit(scales[near], M.mean(axis=0)[near], 2)
+        peak = float(np.polyval(fit, estimate)) if fit[0] < 0 else peak
+    for s, v in zip(scales, M.T, strict=True):
+        log.debug("colour focal x%.2f, each pair's share: %s", s, np.round(v, 3).tolist())
+    low, high = low - GRID_ERROR, high + GRID_ERROR
+    half = (high - low) / 2
+    tried = ", ".join(f"{s:g}" for s in scales)
+    if not np.isfinite(half):
+        verdict, why = UNCONFIRMED, (f"the texture of {n} frame pairs peaks at or beyond the edge of the focal lengths "
+                                     f"tried (x{tried} the given) in more than {check.alpha / 2:.1%} of resamples")
+    elif low <= 1.0 <= high and half <= check.max_uncertainty:
+        verdict, why = KEPT, None
+    elif low <= 1.0 <= high:
+        verdict, why = UNCONFIRMED, (f"the texture of {n} frame pairs lines up about as well over x{low:.3f}-"
+                                     f"x{high:.3f} the given focal length (wider than +-{check.max_uncertainty:.0%})")
+    elif p < check.alpha and peak - mean[1.0] >= check.min_gain:
+        verdict, why = CORRECTED, None
+    else:
+        verdict, why = UNCONFIRMED, (f"the texture lines up best at x{estimate:.3f} the given focal length but not "
+                                     f"significantly better than at the given one ({better} pairs better, {worse} "
+                                     f"worse, p = {p:.3f}; a gain of {peak - mean[1.0]:.3f})")
+    corrected = verdict == CORRECTED
+    log.debug("colour focal: x%.3f [%.3f, %.3f] from %d pairs: %s", estimate, low, high, n, verdict)
+    return FocalCheck(round(estimate, 4) if corrected else 1.0, dict(sorted(agreement.items())), n, better, p,
+                      corrected, peak if corrected else mean[1.0], estimate=round(estimate, 4), low=round(low, 4),
+                      high=round(high, 4), verdict=verdict, reason=why)
