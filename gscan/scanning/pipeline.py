@@ -123,7 +123,8 @@ class ScanResult:
     # a scan of several captures: each one's name, input, frames, registered, whether it was joined (and why not),
     # seconds per stage (`_capture_summary`); empty for one capture
     captures: list[dict] = field(default_factory=list)
-    # the colour camera's check (`check_camera`): given and used focal lengths, texture agreement; None: not run
+    # the colour camera's check (`check_camera`): verdict, focal lengths given and used, the estimate's interval, the
+    # depth-edge evidence, the frames resting on an unconfirmed focal length; None: not run
     camera: dict | None = None
     coverage: dict | None = None  # {"share": float, "missing": [sentences]} (`gscan.geometry.coverage`)
     symmetries: Symmetries = field(default_factory=Symmetries)  # the object's (object frame)
