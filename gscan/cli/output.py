@@ -64,6 +64,8 @@ _FIXES = {
     "port": "choose another --port",
     "host": "choose another --host",
     "output": "choose another output with -o",
+    "roi": "--roi takes X,Y,W,H: a box inside the first frame, in pixels",
+    "mask": "--mask takes a mask image of the first frame (its size, non-zero on the object)",
 }
 
 

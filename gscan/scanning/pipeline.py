@@ -81,7 +81,7 @@ from gscan.scanning.fuse import FusedModel, FusionParams, fuse_tsdf, template_fr
 from gscan.scanning.keyframes import keyframe_candidates, select_keyframes
 from gscan.scanning.options import ScanOptions
 from gscan.scanning.output import create_output, open_appended, open_resumed, scan_meta
-from gscan.scanning.segment import SegmentParams, segment_frame
+from gscan.scanning.segment import ChosenObject, ObjectHint, SegmentParams, object_hint, segment_frame
 from gscan.scanning.select import Selection
 from gscan.scanning.store import FrameStore, LazyList, StoredFrame
 from gscan.template.db import Edge, TemplateDB, View
@@ -119,6 +119,8 @@ class ScanResult:
     captures: list[dict] = field(default_factory=list)
     # the colour camera's check (`check_camera`): given and used focal lengths, texture agreement; None: not run
     camera: dict | None = None
+    # which object segmentation chose and why (`gscan.scanning.segment.ChosenObject.to_json`); None: not segmented
+    object: dict | None = None
 
     def to_json(self) -> dict:
         """The `scan --json` object of the CLI contract."""
@@ -130,7 +132,8 @@ class ScanResult:
                 "mode": self.mode, "mesh": {"vertices": self.mesh_vertices, "triangles": self.mesh_triangles},
                 "timings_s": {k: round(v, 3) for k, v in self.timings_s.items()},
                 "skipped": dict(self.problems), "keyframes": self.keyframes, "selection": dict(self.selection),
-                "camera": self.camera} | ({"captures": list(self.captures)} if self.captures else {})
+                "camera": self.camera, "object": self.object} | (
+                    {"captures": list(self.captures)} if self.captures else {})
 
 
 def _icp_voxel(cfg: ScanConfig) -> float | None:
@@ -174,6 +177,7 @@ class _Capture:
     reg: _Registered | None = None
     timings: dict[str, float] = field(default_factory=dict)  # seconds per stage spent on this capture
     join: Join | None = None  # how it was joined to the captures before it (None: the first, or one capture)
+    hint: ObjectHint | None = None  # the user's choice of the object in its first frame (--roi / --mask)
 
     @property
     def source(self) -> Path:
@@ -194,6 +198,7 @@ class _Registered:
     edges: list[Edge]
     restored: set[tuple[str, str]]
     rparams: RegisterParams
+    chosen: ChosenObject | None = None  # the object segmentation chose, and why
 
 
 def run_scan(sources: Path | Sequence[Path], output: Path, opts: ScanOptions,
@@ -232,6 +237,7 @@ def run_scan(sources: Path | Sequence[Path], output: Path, opts: ScanOptions,
             base = _template_capture(db, store, opts)
         for cap in caps:
             _load(cap, opts, timer, store)
+        caps[0].hint = _first_frame_hint(caps[0], opts, store)
     except BaseException:
         if store is not None:
             store.close()
@@ -420,6 +426,9 @@ def _scan_frames(caps: list[_Capture], output: Path, opts: ScanOptions, db: Temp
             db.set_meta("captures", [_capture_meta(cap, T_obj_world) for cap in caps] if len(caps) > 1 else [])
             db.set_meta("support_plane", first.reg.plane_world is not None)
         db.set_meta("voxel_size", model.voxel_size)
+        chosen = None if first.reg.chosen is None else first.reg.chosen.to_json()
+        if not opts.append:
+            db.set_meta("object", chosen)
         db.set_meta("timings_s", timer.timings)
         db.mark_complete()
         advance(1)
@@ -434,7 +443,8 @@ def _scan_frames(caps: list[_Capture], output: Path, opts: ScanOptions, db: Temp
                       unregistered_reasons=reasons | problems, parts=parts, noise=first.reg.rparams.noise,
                       selection=selection.summary(), captures=(
                           [_capture_summary(cap) for cap in caps] if not opts.append else
-                          [{k: c.get(k) for k in _capture_summary(caps[1])} for c in db.get_meta("captures")]))
+                          [{k: c.get(k) for k in _capture_summary(caps[1])} for c in db.get_meta("captures")]),
+                      object=chosen)
 
 
 def _capture_names(db: TemplateDB) -> list[str]:
@@ -540,9 +550,9 @@ def _register_capture(cap: _Capture, opts: ScanOptions, db: TemplateDB, store: F
 
     with timer.stage("segment", total=n) as advance:
         seg = replace(cfg.segmentation, depth_noise=rparams.depth_noise)  # the capture's own
-        mask_of, plane_world = _segment(data, res.T_world_cam, opts.segment, seg, advance)
+        mask_of, plane_world, chosen = _segment(data, res.T_world_cam, opts.segment, seg, advance, cap.hint)
     cap.reg = _Registered(res.T_world_cam, mask_of, plane_world, res.quality, res.unregistered_reasons, res.parts,
-                          res.edges, res.restored, rparams)
+                          res.edges, res.restored, rparams, chosen)
 
 
 def _join(caps: list[_Capture], config: ScanConfig, timer: StageTimer, pool: ThreadPoolExecutor) -> None:
@@ -737,10 +747,28 @@ def _object_keypoints(pixels: np.ndarray, mask: np.ndarray | None) -> int:
     return int(mask[uv[inside, 1], uv[inside, 0]].sum())
 
 
+def _first_frame_hint(cap: _Capture, opts: ScanOptions, store: FrameStore) -> ObjectHint | None:
+    """The object the user chose in the capture's first frame (`opts.roi` / `opts.mask`), checked against it
+    (InputError); None when neither is given."""
+    if opts.roi is None and opts.mask is None:
+        return None
+    fix = "roi" if opts.roi is not None else "mask"
+    first = cap.seq.names[0] if cap.seq is not None and len(cap.seq.names) else None
+    if first is None or not cap.frames or cap.frames[0].name != cap.prefix + first:
+        skipped = cap.selection.skipped if cap.selection is not None else {}
+        why = cap.problems.get(cap.prefix + str(first)) or next(
+            (r for n, (_, r) in skipped.items() if n in (first, cap.prefix + str(first))), "not kept")
+        raise InputError(cap.source, f"the first frame {first} is not scanned ({why}), and the object is chosen in it",
+                         fix=fix)
+    return object_hint(opts.roi, opts.mask, cap.frames[0].stored.load(store), cap.source)
+
+
 def _segment(data: FrameData, T_world_cam: list[np.ndarray | None], segment: bool, seg: SegmentParams,
-             advance: Callable[[int], None]) -> tuple[Callable[[int], np.ndarray | None], Plane | None]:
-    """Per-frame object masks for fusion (a function of the frame index, the masks being in the store) and the
-    support plane in the world frame (or None); sets each frame's count of keypoints inside its mask.
+             advance: Callable[[int], None], hint: ObjectHint | None = None
+             ) -> tuple[Callable[[int], np.ndarray | None], Plane | None, ChosenObject | None]:
+    """Per-frame object masks for fusion (a function of the frame index, the masks being in the store), the
+    support plane in the world frame (or None) and the object chosen (or None); sets each frame's count of
+    keypoints inside its mask. `hint`: the user's choice of the object in frame 0 (its pose: its world).
 
     The plane defines the template frame's z axis even when masks are given: for a static object
     it comes from the working volume over the registered frames; for a moving object from the
@@ -752,6 +780,7 @@ def _segment(data: FrameData, T_world_cam: list[np.ndarray | None], segment: boo
     n = len(frames)
     reg = [k for k, T in enumerate(T_world_cam) if T is not None]
     plane: Plane | None = None
+    chosen: ChosenObject | None = None
     if not segment:
         def mask_of(k: int) -> np.ndarray | None:
             return None
@@ -763,8 +792,13 @@ def _segment(data: FrameData, T_world_cam: list[np.ndarray | None], segment: boo
         plane = None if plane_cam is None or T_world_ref is None else plane_cam.transformed(T_world_ref)
         mask_of = data.object_mask
     else:  # given masks win
+        if hint is not None and (not reg or reg[0] != 0):
+            log.warning("the first frame is not registered: the object is chosen from where the views look, not "
+                        "from its %s", hint.by)
+            hint = None
         vol = estimate_working_volume(LazyList(len(reg), lambda i: data.frame(reg[i])),
-                                      [T for T in (T_world_cam[k] for k in reg) if T is not None], seg)
+                                      [T for T in (T_world_cam[k] for k in reg) if T is not None], seg, hint)
+        chosen = None if vol is None else vol.chosen
 
         def mask_at(k: int) -> np.ndarray | None:
             return segment_in_volume(data.frame(k), T_world_cam[k], vol, seg).mask
@@ -783,4 +817,4 @@ def _segment(data: FrameData, T_world_cam: list[np.ndarray | None], segment: boo
             feats = data.db.features(f.name)
             f.object_keypoints = 0 if feats is None else _object_keypoints(feats.pixels, mask_of(k))
         advance(1)
-    return mask_of, plane
+    return mask_of, plane, chosen
