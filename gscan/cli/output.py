@@ -69,6 +69,14 @@ _FIXES = {
 }
 
 
+def object_line(obj: dict) -> str:
+    """The object segmentation chose (the "object" of `scan --json` / `info --json`) in one line."""
+    length, width, height = obj["size_m"]
+    by = {"roi": "the --roi box", "mask": "the --mask"}.get(obj["by"], "where the views look")
+    return (f"object: {length:.2f} x {width:.2f} m, {height:.2f} m high, chosen by {by}: {obj['reason']} (its "
+            f"centre at the centre of {obj['centre_share']:.0%} of the views)")
+
+
 def error_line(e: BaseException) -> str:
     """The one line an error is reported with: its message (control characters escaped) and, for an
     InputError with a `fix`, the option of this CLI that addresses it."""

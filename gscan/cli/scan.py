@@ -10,7 +10,7 @@ import typer
 
 from gscan.cli.choices import ScanFormat, ScanMode
 from gscan.cli.imports import SCAN_IMPORTS, import_holding_ctrl_c
-from gscan.cli.output import UsageError, err, print_json, say, say_interrupted, setup_logging
+from gscan.cli.output import UsageError, err, object_line, print_json, say, say_interrupted, setup_logging
 from gscan.cli.texts import DEPTH_INTRINSICS_HELP, DEPTH_TO_COLOR_HELP, JSON_HELP
 
 
@@ -136,6 +136,8 @@ def print_scan_summary(result: Any) -> None:
             f"{given:g} px; the texture lines up at {used:g} px ({cam['texture_agreement']['used']:.0%} of textured "
             f"tiles against {cam['texture_agreement']['given']:.0%}), used with the given intrinsics as the depth "
             "camera's. --intrinsics and --depth-intrinsics set both cameras")
+    if result.object is not None:
+        say(("object:", "bold"), " " + object_line(result.object).removeprefix("object: "))
     sel = result.selection
     if sel.get("skipped"):  # frame selection: not failures, counted by reason
         why = "; ".join(f"{k} frames {w}" for w, k in sel["reasons"].items())

@@ -6,7 +6,7 @@ from pathlib import Path
 import typer
 
 from gscan.cli.choices import ExportFormat
-from gscan.cli.output import err, format_pose, line, part_lines, print_json
+from gscan.cli.output import err, format_pose, line, object_line, part_lines, print_json
 from gscan.cli.texts import JSON_HELP
 
 
@@ -63,6 +63,10 @@ def info(
                 used = "used" if v["corrected"] else "checked, kept"
                 line(f"colour camera: focal length given {v['given_focal_px'][0]:g} px, {used} "
                      f"{v['colour_focal_px'][0]:g} px (from the texture of {v['pairs']} frame pairs)")
+            continue
+        if k == "object":
+            if v is not None:
+                line(object_line(v))
             continue
         if k == "mesh" and v is not None:
             holes = " (export closes them; --keep-holes keeps them)" if v["open_edges"] else ", watertight"

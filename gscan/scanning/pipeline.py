@@ -235,9 +235,10 @@ def run_scan(sources: Path | Sequence[Path], output: Path, opts: ScanOptions,
         if opts.append:
             assert db is not None
             base = _template_capture(db, store, opts)
+        hint = _first_frame_hint(caps[0], opts)  # before the loads: a bad box or mask fails at once
         for cap in caps:
             _load(cap, opts, timer, store)
-        caps[0].hint = _first_frame_hint(caps[0], opts, store)
+        caps[0].hint = _kept_first(caps[0], hint)
     except BaseException:
         if store is not None:
             store.close()
@@ -747,20 +748,32 @@ def _object_keypoints(pixels: np.ndarray, mask: np.ndarray | None) -> int:
     return int(mask[uv[inside, 1], uv[inside, 0]].sum())
 
 
-def _first_frame_hint(cap: _Capture, opts: ScanOptions, store: FrameStore) -> ObjectHint | None:
-    """The object the user chose in the capture's first frame (`opts.roi` / `opts.mask`), checked against it
-    (InputError); None when neither is given."""
-    if opts.roi is None and opts.mask is None:
+def _first_frame_hint(cap: _Capture, opts: ScanOptions) -> ObjectHint | None:
+    """The object the user chose in the capture's first frame (`opts.roi` / `opts.mask`), checked against that
+    frame (InputError); None when neither is given."""
+    if (opts.roi is None and opts.mask is None) or cap.seq is None or not len(cap.seq.names):
         return None
-    fix = "roi" if opts.roi is not None else "mask"
-    first = cap.seq.names[0] if cap.seq is not None and len(cap.seq.names) else None
-    if first is None or not cap.frames or cap.frames[0].name != cap.prefix + first:
+    first = cap.seq.names[0]
+    try:
+        frame = cap.seq[first]
+    except InputError as e:
+        raise InputError(e.path, f"{e.reason} (the first frame, which the object is chosen in)",
+                         fix="roi" if opts.roi is not None else "mask") from None
+    return object_hint(opts.roi, opts.mask, frame, cap.source)
+
+
+def _kept_first(cap: _Capture, hint: ObjectHint | None) -> ObjectHint | None:
+    """`hint` once the capture is loaded: InputError when its first frame, which the hint is about, was not kept."""
+    if hint is None or cap.seq is None:
+        return hint
+    first = cap.seq.names[0]
+    if not cap.frames or cap.frames[0].name != cap.prefix + first:
         skipped = cap.selection.skipped if cap.selection is not None else {}
-        why = cap.problems.get(cap.prefix + str(first)) or next(
-            (r for n, (_, r) in skipped.items() if n in (first, cap.prefix + str(first))), "not kept")
+        why = cap.problems.get(cap.prefix + first) or next(
+            (r for n, (_, r) in skipped.items() if n in (first, cap.prefix + first)), "not kept")
         raise InputError(cap.source, f"the first frame {first} is not scanned ({why}), and the object is chosen in it",
-                         fix=fix)
-    return object_hint(opts.roi, opts.mask, cap.frames[0].stored.load(store), cap.source)
+                         fix=hint.by)
+    return hint
 
 
 def _segment(data: FrameData, T_world_cam: list[np.ndarray | None], segment: bool, seg: SegmentParams,

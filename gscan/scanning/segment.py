@@ -51,6 +51,7 @@ SUPPORT_RADII = 2.0        # plane and cluster within this many image half-width
 FIXATION_SPREAD = 0.1      # axes turning less than this (mean sin^2 of their angles, ~18 deg) leave the fixation
                            # point along that direction to the views' centre depth
 CENTRE_REGION = 0.5        # a view's centre: this central fraction of its image's width and height
+CENTRED = 0.5              # what stands at the centre of at least this share of the views is the object
 
 
 @dataclass(frozen=True)
@@ -139,7 +140,8 @@ class Segmentation:
 
 @dataclass(frozen=True)
 class WorkingVolume:
-    """Vertical cylinder over the support plane: base centre on the plane, axis = plane normal."""
+    """Vertical cylinder over the support plane: base centre on the plane, axis = plane normal; with a
+    `footprint`, only the part of it over that region of the plane (`Footprint`)."""
 
     plane_world: Plane
     center_world: np.ndarray    # [3] on the plane
@@ -147,6 +149,7 @@ class WorkingVolume:
     height: float               # m above the plane
     height_min: float = 0.0     # m: nearer the plane is the plane (its depth noise)
     chosen: ChosenObject | None = None  # which object the volume holds, and why
+    footprint: Footprint | None = None  # the region of the plane it stands on (None: the whole disc)
 
     def contains(self, pts_world: np.ndarray, height_min: float = 0.0) -> np.ndarray:
         """[N x 3] world points -> [N] bool inside the cylinder (heights in [height_min, height])."""
@@ -154,7 +157,10 @@ class WorkingVolume:
         h = self.plane_world.height(p)
         h0 = self.plane_world.height(self.center_world[None])[0]
         radial = p - self.center_world - (h - h0)[:, None] * self.plane_world.normal
-        return (h >= height_min) & (h <= self.height) & (np.linalg.norm(radial, axis=1) <= self.radius)
+        inside = (h >= height_min) & (h <= self.height) & (np.linalg.norm(radial, axis=1) <= self.radius)
+        if self.footprint is not None:
+            inside &= self.footprint.covers(p)
+        return inside
 
 
     def contains_camera(self, pts_cam: np.ndarray, T_world_cam: np.ndarray, height_min: float = 0.0) -> np.ndarray:
@@ -166,7 +172,30 @@ class WorkingVolume:
         d = np.asarray(pts_cam, dtype=np.float32) - c
         along = d @ n  # height above the base centre (the centre is on the plane)
         radial2 = np.einsum("...i,...i->...", d, d) - along * along
-        return (along >= height_min) & (along <= self.height) & (radial2 <= self.radius ** 2)
+        inside = (along >= height_min) & (along <= self.height) & (radial2 <= self.radius ** 2)
+        if self.footprint is not None and inside.any():
+            pw = transform_points(np.asarray(T_world_cam, dtype=np.float64), np.asarray(pts_cam)[inside])
+            inside[inside] = self.footprint.covers(pw)
+        return inside
+
+
+@dataclass(frozen=True)
+class Footprint:
+    """A region of a plane: cells of `cell` m ([gH x gW] bool `grid`, cell (i, j) at origin + (j, i) * cell in
+    the plane coordinates `basis` [2 x 3] . p)."""
+
+    grid: np.ndarray
+    origin: np.ndarray
+    basis: np.ndarray
+    cell: float
+
+    def covers(self, pts_world: np.ndarray) -> np.ndarray:
+        """[N x 3] world points -> [N] bool: over the region (along the plane's normal)."""
+        ij = np.floor((np.asarray(pts_world, dtype=np.float64) @ self.basis.T - self.origin) / self.cell).astype(int)
+        ok = (ij[:, 0] >= 0) & (ij[:, 1] >= 0) & (ij[:, 0] < self.grid.shape[1]) & (ij[:, 1] < self.grid.shape[0])
+        out = np.zeros(len(ij), dtype=bool)
+        out[ok] = self.grid[ij[ok, 1], ij[ok, 0]]
+        return out
 
 
 def fit_support_plane(points: np.ndarray, viewpoint: np.ndarray,
@@ -563,6 +592,11 @@ def estimate_working_volume(frames: Sequence[RGBDFrame], T_world_cam: list[np.nd
                "frame")
     else:
         order = sorted(range(len(clusters)), key=lambda k: (not stands[k], -shares[k], near[k]))
+        if not stands[order[0]] or shares[order[0]] < CENTRED:
+            foot = Footprint(region, origin, basis, cell)
+            return _surface_volume(plane, foot, [C for C, st in zip(clusters, stands, strict=True) if st],
+                                   shares[order[0]] if stands[order[0]] else 0.0, fixation, T_world_cam, par, params,
+                                   len(clusters))
         chosen = [order[0]]
         why = ("standing on the support surface under the fixation point" if stands[order[0]] else
                "no cluster stands on the support surface under the fixation point: the one") + (
@@ -580,6 +614,38 @@ def estimate_working_volume(frames: Sequence[RGBDFrame], T_world_cam: list[np.nd
     vol = WorkingVolume(plane, centre, radius, float(hc.max()) + params.volume_margin, par.height_min, obj)
     log.info("working volume: radius %.3f m, height %.3f m, %d cluster points (centre depth %s m); object %s",
              vol.radius, vol.height, len(C), "?" if z_c is None else f"{z_c:.2f}", obj.to_json())
+    return vol
+
+
+def _surface_volume(plane: Plane, foot: Footprint, standing: list[np.ndarray], best_share: float,
+                    fixation: np.ndarray | None, T_world_cam: Sequence[np.ndarray], par: SegmentParams,
+                    params: SegmentParams, candidates: int) -> WorkingVolume:
+    """The volume over the whole support surface `foot` (the plane's region under the fixation point) from just
+    below the plane (its depth noise, `par.plane_distance`) to above what stands on it (`standing`: clusters
+    [N x 3]): the object of a capture whose views centre on no one thing standing on the surface (the best of
+    them at the centre of `best_share` of the views), a table and what is on it."""
+    cells = np.argwhere(foot.grid)
+    xy = foot.origin + (cells[:, ::-1] + 0.5) * foot.cell
+    P0 = xy @ foot.basis - plane.offset * plane.normal  # the cells' centres on the plane [M x 3]
+    centre = P0.mean(0)
+    radius = float(np.linalg.norm(P0 - centre, axis=1).max()) + foot.cell
+    top = max((float(plane.height(C).max()) for C in standing), default=0.0)
+    length, width, _ = _footprint_size(P0, plane)
+    hit = 0
+    for T in T_world_cam:  # views whose optical axis meets the plane over the surface
+        c, z = T[:3, 3], T[:3, 2]
+        along = float(plane.normal @ z)
+        if along < -1e-6:
+            hit += bool(foot.covers((c - float(plane.height(c[None])[0]) / along * z)[None])[0])
+    share = hit / max(1, len(T_world_cam))
+    obj = ChosenObject("fixation", (length, width, top), share,
+                       None if fixation is None else float(np.linalg.norm(centre - fixation)), True, candidates,
+                       f"no one thing standing on the support surface under the fixation point is at the centre of "
+                       f"{CENTRED:.0%} of the views (the most: {best_share:.0%}): the surface and the "
+                       f"{len(standing)} things on it")
+    vol = WorkingVolume(plane, centre, radius, top + params.volume_margin, -par.plane_distance, obj, foot)
+    log.info("working volume: the support surface, %.2f x %.2f m, %.3f m high; object %s", length, width,
+             vol.height, obj.to_json())
     return vol
 
 

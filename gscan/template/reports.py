@@ -26,12 +26,14 @@ class MeshSize:
 
 @dataclass(frozen=True)
 class TemplateInfo:
-    """What a template database holds (`summary`), its mesh's size (None: no mesh) and the scan's colour camera
-    check (the "camera" meta of gscan.scanning.calibration; None: not run)."""
+    """What a template database holds (`summary`), its mesh's size (None: no mesh), the scan's colour camera
+    check (the "camera" meta of gscan.scanning.calibration; None: not run) and the object segmentation chose and
+    why (the "object" meta, `gscan.scanning.segment.ChosenObject.to_json`; None: not segmented)."""
 
     summary: TemplateSummary
     mesh: MeshSize | None
     camera: dict[str, Any] | None
+    object: dict[str, Any] | None = None
 
     def to_json(self) -> dict[str, Any]:
         """The `info --json` object."""
@@ -41,15 +43,15 @@ class TemplateInfo:
                 "extent_m": list(s.extent_m), "grasps": list(s.grasps),
                 "unregistered_reasons": dict(s.unregistered_reasons), "selection": dict(s.selection),
                 "parts": [list(p) for p in s.parts], "mesh": None if self.mesh is None else asdict(self.mesh),
-                "camera": self.camera}
+                "camera": self.camera, "object": self.object}
 
 
 def template_info(path: str | Path) -> TemplateInfo:
     """The summary of the template database at `path` (a partial one too; InputError naming a bad file)."""
     with TemplateDB.open(path, require_complete=False) as db:
-        summary, m, camera = db.summary(), db.mesh(), db.get_meta("camera")
+        summary, m, camera, obj = db.summary(), db.mesh(), db.get_meta("camera"), db.get_meta("object")
     mesh = None if m is None else MeshSize(len(m.vertices), len(m.triangles), len(boundary_edges(m.triangles)))
-    return TemplateInfo(summary, mesh, camera)
+    return TemplateInfo(summary, mesh, camera, obj if isinstance(obj, dict) else None)
 
 
 @dataclass(frozen=True)
