@@ -12,13 +12,20 @@ in the world frame from several frames, the object cluster above it (DBSCAN) def
 cylindrical working volume (axis along the plane normal), and every frame is segmented by
 that volume, so all masks agree with each other.
 
+Which object (`estimate_working_volume`): the one the views look at. The fixation point is where the optical
+axes pass closest (a sweep's nearly parallel axes leave its depth to the views' centre depth); the support
+plane is fitted within `SUPPORT_RADII` image half-widths of it, and the support surface is the plane's inliers
+under it (holes filled: what stands on it hides it). Among the clusters standing on that surface (the surface
+all round their footprint: not beside it, not overhanging its edge) the one held in the central
+`CENTRE_REGION` of the most views is the object; when none is there in `CENTRED` of the views, the object is
+the surface and what stands on it (a table swept past). The user may choose instead (`object_hint`: a box or
+a mask of the first frame). `ChosenObject` says which and why.
+
 The working range comes from the capture, not from a fixed distance: a scan keeps the object in the
 middle of the image, so the depth at the image centre (median over a central window) says how far the
-object is. Depth beyond `centre_depth_factor` times that is background; the plane and the cluster are
-looked for within `SUPPORT_RADII` image half-widths of the point the frames keep centred, among what most
-frames have in view (`seen_by`); the RANSAC
-band, the height that counts as off the table and the clustering radius grow with the depth noise
-(`params.depth_noise`, the capture's own model) and the pixel spacing at that depth.
+object is. Depth beyond `centre_depth_factor` times that is background; the RANSAC band, the height that
+counts as off the table and the clustering radius grow with the depth noise (`params.depth_noise`, the
+capture's own model) and the pixel spacing at that depth.
 
 Pose estimation's search region (`off_plane_region`): the pixels in front of a query frame's dominant
 plane (`support_plane`, a faster RANSAC on a strided cloud). Both plane finders share `ransac_plane`.
