@@ -347,3 +347,25 @@ def test_object_hint_rejects_bad_boxes_and_masks(scene, tmp_path):
             object_hint(None, tmp_path / name, frame, tmp_path)
         assert e.value.fix == "mask" and words in str(e.value) and name in str(e.value)
     assert object_hint(None, None, frame, tmp_path) is None
+
+
+def test_a_sweep_past_a_table_keeps_the_table_and_what_stands_on_it(scene):
+    """Cameras passing sideways along the table, looking past the two boxes at its far side: neither box is at the
+    centre of half the views, so the object is the table surface with both boxes on it (the volume holds both
+    and reaches just below the surface), and it says so."""
+    from gscan.geometry.transforms import look_at
+
+    target = box_mesh(TARGET_SIZE, procedural_box_texture(1))
+    distractor = box_mesh((0.06, 0.06, 0.14), procedural_box_texture(2), name="distractor")
+    T_t = rest_on_table(target)
+    T_d = rest_on_table(distractor, None, (0.25, 0.05))
+    sc = SynthScene([(target, T_t), (distractor, T_d)], seed=4, table_texture_size=1024)
+    poses = [look_at(np.array([x, -0.45, 0.40]), np.array([x, 0.5, 0.0])) for x in np.linspace(-0.25, 0.45, 6)]
+    renders = [sc.render(T, INTR, rng=np.random.default_rng(k), noise_params=NOISE) for k, T in enumerate(poses)]
+    frames = [RGBDFrame(f"{k:06d}", r.color, r.depth, INTR) for k, r in enumerate(renders)]
+    vol = estimate_working_volume(frames, poses)
+    assert vol is not None and vol.chosen is not None
+    assert vol.chosen.by == "fixation" and "surface" in vol.chosen.reason, vol.chosen
+    assert vol.footprint is not None and vol.height_min < 0
+    for T in (T_t, T_d):
+        assert vol.contains(T[:3, 3][None] + [0, 0, 0.03])[0], (T[:3, 3], vol)
