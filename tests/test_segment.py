@@ -369,3 +369,26 @@ def test_a_sweep_past_a_table_keeps_the_table_and_what_stands_on_it(scene):
     assert vol.footprint is not None and vol.height_min < 0
     for T in (T_t, T_d):
         assert vol.contains(T[:3, 3][None] + [0, 0, 0.03])[0], (T[:3, 3], vol)
+
+
+@pytest.mark.slow
+def test_scan_with_a_box_keeps_the_object_inside_it(scene, tmp_path):
+    """The pipeline end to end: `scan` with `roi` around the distractor in the first frame fuses the distractor
+    (0.06 x 0.06 x 0.14 m), not the target the orbit looks at (0.12 x 0.08 x 0.10 m), and says so in its result
+    and in the template (`info --json`)."""
+    from gscan.scanning.api import scan
+    from gscan.scanning.options import ScanOptions
+    from gscan.synth.capture import write_capture
+    from gscan.template.reports import template_info
+
+    _, _, renders, _ = scene
+    cap = write_capture(tmp_path / "cap", renders, INTR, write_masks=False)
+    sel = renders[0].labels == 1
+    ys, xs = np.nonzero(sel)
+    roi = (int(xs.min()), int(ys.min()), int(xs.max() - xs.min()) + 1, int(ys.max() - ys.min()) + 1)
+    res = scan(cap, tmp_path / "d.gscan", ScanOptions(roi=roi))
+    assert res.object is not None and res.object["by"] == "roi", res.object
+    info = template_info(tmp_path / "d.gscan")
+    assert info.object == res.object
+    assert 0.12 < res.object["size_m"][2] < 0.17 and res.object["size_m"][0] < 0.10, res.object
+    assert max(info.summary.extent_m) < 0.19 and sorted(info.summary.extent_m)[1] < 0.10, info.summary.extent_m

@@ -476,9 +476,10 @@ def test_info_json_keeps_its_keys(db_path: Path) -> None:
     assert r.returncode == 0, r.stderr
     out = json.loads(r.stdout)
     assert list(out) == ["schema", "status", "views", "registered", "keyframes", "descriptor", "source", "extent_m",
-                         "grasps", "unregistered_reasons", "selection", "parts", "mesh", "camera"]
+                         "grasps", "unregistered_reasons", "selection", "parts", "mesh", "camera", "object"]
     assert out["selection"] == {} and out["parts"] == []  # written without frame selection, in one part
     assert out["camera"] is None  # not written by a scan: no colour camera check
+    assert out["object"] is None  # nor an object chosen by segmentation
     assert out["status"] == "partial" and out["views"] == 2 and out["registered"] == 1 and out["grasps"] == ["g"]
     assert out["unregistered_reasons"] == {"b": "no accepted edge"}
     assert isinstance(out["extent_m"], list) and len(out["extent_m"]) == 3
