@@ -73,8 +73,8 @@ def object_line(obj: dict) -> str:
     """The object segmentation chose (the "object" of `scan --json` / `info --json`) in one line."""
     length, width, height = obj["size_m"]
     by = {"roi": "the --roi box", "mask": "the --mask"}.get(obj["by"], "where the views look")
-    return (f"object: {length:.2f} x {width:.2f} m, {height:.2f} m high, chosen by {by}: {obj['reason']} (its "
-            f"centre at the centre of {obj['centre_share']:.0%} of the views)")
+    share = "" if obj["by"] == "fixation" else f" (at the centre of {obj['centre_share']:.0%} of the views)"
+    return f"object: {length:.2f} x {width:.2f} m, {height:.2f} m high, chosen by {by}: {obj['reason']}{share}"
 
 
 def error_line(e: BaseException) -> str:
