@@ -798,6 +798,9 @@ def _segment(data: FrameData, T_world_cam: list[np.ndarray | None], segment: boo
         def mask_of(k: int) -> np.ndarray | None:
             return None
     elif data.mode == MOVING_OBJECT:
+        if hint is not None:
+            log.warning("a moving object's masks come from the background: the %s of the first frame is not used",
+                        hint.by)
         ref = frames[reg[0]]
         plane_cam = ref.plane_cam if ref.plane_cam is not None else segment_frame(
             replace(data.frame(reg[0]), mask=None), seg).plane_cam
