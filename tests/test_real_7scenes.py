@@ -6,8 +6,9 @@ the scan never saw, with no wrong pose returned.
 7-Scenes records colour and depth with two cameras; the scan gets the calibration published for the data through
 --intrinsics, --depth-intrinsics and --depth-to-color (bench/real.py: the values and their source, and the rows
 these tests assert). The capture sweeps a kitchen corner rather than keeping one object in view, so the template is
-the scene's (--no-segment), and the default segmented template (the table the views look at) is checked too. The ground truth (KinectFusion) is good to about 1 cm / 1 deg by the data's README, and
-less where the camera moves fast.
+the scene's (--no-segment), and the default segmented template (the table the views look at) is checked too. The
+ground truth (KinectFusion) is good to about 1 cm / 1 deg by the data's README, and less where the camera moves
+fast.
 """
 from __future__ import annotations
 
