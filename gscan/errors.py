@@ -23,6 +23,8 @@ FIXES = (
     "port",           # the viewer's port
     "host",           # the viewer's address
     "output",         # another output (an existing one that may not be replaced)
+    "roi",            # the box that shows the object in the first frame
+    "mask",           # the mask that shows the object in the first frame
 )
 
 

@@ -382,6 +382,37 @@ def _(ctx: Ctx, work: Path) -> Run:
     return _scan_case(work, cap, "negscale", "-0.001", extra=("--depth-scale", "-0.001"))
 
 
+# --roi / --mask: the object in the first frame (320 x 240 here)
+@case("scan-roi-outside-the-image")
+def _(ctx: Ctx, work: Path) -> Run:
+    return _scan_case(work, ctx.capture, "--roi", "320 x 240", extra=("--roi", "300,200,50,50"))
+
+
+@case("scan-roi-not-four-numbers")
+def _(ctx: Ctx, work: Path) -> Run:
+    return _scan_case(work, ctx.capture, "--roi", "1,2,3", extra=("--roi", "1,2,3"))
+
+
+@case("scan-mask-empty")
+def _(ctx: Ctx, work: Path) -> Run:
+    assert cv2.imwrite(str(work / "empty_mask.png"), np.zeros((INTR.height, INTR.width), np.uint8))
+    return _scan_case(work, ctx.capture, "--mask", "empty_mask.png", "empty",
+                      extra=("--mask", str(work / "empty_mask.png")))
+
+
+@case("scan-mask-of-another-size")
+def _(ctx: Ctx, work: Path) -> Run:
+    assert cv2.imwrite(str(work / "big_mask.png"), np.full((2 * INTR.height, 2 * INTR.width), 255, np.uint8))
+    return _scan_case(work, ctx.capture, "--mask", "big_mask.png", f"{2 * INTR.width} x {2 * INTR.height}",
+                      extra=("--mask", str(work / "big_mask.png")))
+
+
+@case("scan-roi-and-mask")
+def _(ctx: Ctx, work: Path) -> Run:
+    assert cv2.imwrite(str(work / "m.png"), np.full((INTR.height, INTR.width), 255, np.uint8))
+    return _scan_case(work, ctx.capture, "--roi", "--mask", extra=("--roi", "0,0,10,10", "--mask", str(work / "m.png")))
+
+
 @case("scan-duplicate-frame-names")
 def _(ctx: Ctx, work: Path) -> Run:
     cap = _copy_capture(ctx, work)

@@ -6,8 +6,9 @@ the scan never saw, with no wrong pose returned.
 7-Scenes records colour and depth with two cameras; the scan gets the calibration published for the data through
 --intrinsics, --depth-intrinsics and --depth-to-color (bench/real.py: the values and their source, and the rows
 these tests assert). The capture sweeps a kitchen corner rather than keeping one object in view, so the template is
-the scene's (--no-segment). The ground truth (KinectFusion) is good to about 1 cm / 1 deg by the data's README, and
-less where the camera moves fast.
+the scene's (--no-segment), and the default segmented template (the table the views look at) is checked too. The
+ground truth (KinectFusion) is good to about 1 cm / 1 deg by the data's README, and less where the camera moves
+fast.
 """
 from __future__ import annotations
 
@@ -157,3 +158,26 @@ def test_real_kinect_every_second_frame_with_the_readme_intrinsics(real_dir: Pat
     summary = scan_with_cli(root, out, NO_CALIBRATION, "--no-segment")
     ours = found_or_flagged(summary, out, root, ground_truth(root, NO_CALIBRATION))
     assert ours.registered >= 25, ours
+
+
+def test_real_kinect_default_template_is_the_table_the_views_are_centred_on(real_dir: Path, tmp_path_factory):
+    """The default scan (segmented, the README's intrinsics) keeps the object the views look at: the capture sweeps
+    past a table (mugs, magazines) into a kitchen corner, no one thing on the table is at the centre of most views,
+    so the object is the table top under the fixation point and what stands on it, not a chair's rail at its
+    edge nor a strip of the counter beyond it (before: 6 of 30 queries found). The cameras, hand-held over it, are
+    0.4-1.0 m above its plane (the floor is 1.3 m or more below them). Against that template at least 20 of the
+    30 queries are found within 5 deg / 5 cm (22 when measured; 19 with the published calibration), and no pose
+    is returned beyond 10 deg / 10 cm."""
+    import numpy as np
+
+    root = real_dir / "7scenes_redkitchen"
+    out = tmp_path_factory.mktemp("kitchen_object") / "kitchen.gscan"
+    summary = scan_with_cli(root, out, NO_CALIBRATION)
+    obj = summary["object"]
+    assert obj["by"] == "fixation" and obj["on_support"], obj
+    assert obj["centre_share"] > 0 and obj["size_m"][2] < 0.5, obj
+    heights = [T[2, 3] for T in template_poses(out).values()]  # template frame: z up from the support plane
+    assert 0.4 < float(np.median(heights)) < 1.0, heights
+    q = score_queries(out, root, NO_CALIBRATION, ground_truth(root, NO_CALIBRATION))
+    assert not q.wrong, q.wrong
+    assert len(q.found) >= 20, q

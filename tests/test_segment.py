@@ -11,10 +11,13 @@ from gscan.geometry.plane import Plane, ransac_plane
 from gscan.geometry.transforms import inv_T, make_T, rotvec_to_R, transform_points
 from gscan.io.camera import RGBDFrame
 from gscan.scanning.segment import (
+    ObjectHint,
     WorkingVolume,
     estimate_working_volume,
     fit_support_plane,
+    object_hint,
     segment_frame,
+    segment_in_volume,
     segment_sequence,
 )
 from gscan.synth import (
@@ -253,3 +256,139 @@ def test_turntable_sequence_in_object_frame():
     for seg, r in zip(segs, renders, strict=True):
         assert iou_valid(seg.mask, r) >= 0.9
         assert not np.any(seg.mask & (r.labels == 1))
+
+
+def _footprint_centre(T_world_obj: np.ndarray) -> np.ndarray:
+    return T_world_obj[:2, 3]
+
+
+def test_the_object_chosen_is_the_one_the_views_are_centred_on(scene):
+    """The default choice says why: the target the orbit looks at, at the centre of every view, standing on the
+    table, its footprint and height those of the box (within the volume's margin and the depth noise)."""
+    frames, poses, _, T_t = scene
+    vol = estimate_working_volume(frames, poses)
+    assert vol is not None and vol.chosen is not None
+    c = vol.chosen
+    assert c.by == "fixation" and c.on_support and c.centre_share == 1.0, c
+    assert c.fixation_m is not None and c.fixation_m < 0.05, c
+    length, width, height = c.size_m
+    diag = np.hypot(*TARGET_SIZE[:2])
+    assert TARGET_SIZE[0] - 0.02 < length < diag + 0.02 and TARGET_SIZE[1] - 0.02 < width < diag, c
+    assert abs(height - TARGET_SIZE[2]) < 0.02, c
+    assert c.to_json()["by"] == "fixation" and c.reason
+
+
+def test_a_larger_structure_at_the_edge_of_the_views_is_not_chosen():
+    """A tall panel at the table's edge, larger than the target and in most views, but at their edge: the
+    target the views are centred on is chosen."""
+    target = box_mesh(TARGET_SIZE, procedural_box_texture(6))
+    panel = box_mesh((0.40, 0.06, 0.30), procedural_box_texture(7), name="panel")
+    T_t = rest_on_table(target)
+    sc = SynthScene([(target, T_t), (panel, rest_on_table(panel, None, (0.0, 0.30)))], seed=3,
+                    table_texture_size=1024)
+    poses = orbit_poses(np.array([0.0, 0.0, 0.05]), 0.5, [35.0], 6, azimuth0_deg=200.0)
+    poses = [T for T in poses if T[1, 3] < 0.2]  # the panel never between the camera and the target
+    renders = [sc.render(T, INTR, rng=np.random.default_rng(k), noise_params=NOISE) for k, T in enumerate(poses)]
+    frames = [RGBDFrame(f"{k:06d}", r.color, r.depth, INTR) for k, r in enumerate(renders)]
+    assert sum((r.labels == 1).sum() > (r.labels == 0).sum() for r in renders) >= 1  # the panel is the larger
+    vol = estimate_working_volume(frames, poses)
+    assert vol is not None and vol.chosen is not None
+    assert np.linalg.norm(vol.center_world[:2] - T_t[:2, 3]) < 0.02, (vol.center_world, vol.chosen)
+    assert vol.radius < 0.15
+
+
+@pytest.mark.parametrize("by", ["roi", "mask"])
+def test_roi_and_mask_choose_the_object_inside_them(scene, tmp_path, by):
+    """A box or a mask around the distractor in the first frame: the distractor is chosen, not the target the
+    views are centred on; the volume's centre projects inside the box."""
+    frames, poses, renders, _ = scene
+    sel = renders[0].labels == 1
+    ys, xs = np.nonzero(sel)
+    x0, y0 = max(0, int(xs.min()) - 3), max(0, int(ys.min()) - 3)
+    roi = (x0, y0, min(INTR.width, int(xs.max()) + 4) - x0, min(INTR.height, int(ys.max()) + 4) - y0)
+    if by == "roi":
+        hint = object_hint(roi, None, frames[0], tmp_path)
+    else:
+        import cv2
+
+        cv2.imwrite(str(tmp_path / "m.png"), sel.astype(np.uint8) * 255)
+        hint = object_hint(None, tmp_path / "m.png", frames[0], tmp_path)
+    assert isinstance(hint, ObjectHint) and hint.by == by
+    vol = estimate_working_volume(frames, poses, hint=hint)
+    assert vol is not None and vol.chosen is not None and vol.chosen.by == by
+    # the distractor (0.06 x 0.06 x 0.14 m at (0.25, 0.05)): the volume's centre on its footprint, and the first
+    # frame's mask inside the box and on the distractor
+    assert np.linalg.norm(vol.center_world[:2] - [0.25, 0.05]) < 0.015, vol.center_world
+    m = segment_in_volume(frames[0], poses[0], vol).mask
+    x, y, w, h = roi
+    in_box = np.zeros_like(m)
+    in_box[y:y + h, x:x + w] = True
+    assert m.sum() > 100 and (m & in_box).sum() >= 0.95 * m.sum() and iou_valid(m, renders[0]) < 0.05
+    assert (m & sel).sum() >= 0.8 * (sel & (frames[0].depth > 0)).sum()
+    segs = segment_sequence(frames, poses)[0]  # without a hint: the target
+    assert not np.any(segs[0].mask & sel)
+
+
+def test_object_hint_rejects_bad_boxes_and_masks(scene, tmp_path):
+    """A box outside the image, an empty mask, a mask of another size, no file: InputError whose fix names
+    the option."""
+    import cv2
+
+    frame = scene[0][0]
+    H, W = frame.depth.shape
+    for roi in ((W - 10, 0, 20, 20), (0, 0, W + 1, H), (W + 5, H + 5, 10, 10)):
+        with pytest.raises(InputError) as e:
+            object_hint(roi, None, frame, tmp_path)
+        assert e.value.fix == "roi" and str(W) in str(e.value)
+    cv2.imwrite(str(tmp_path / "empty.png"), np.zeros((H, W), np.uint8))
+    cv2.imwrite(str(tmp_path / "big.png"), np.full((2 * H, 2 * W), 255, np.uint8))
+    for name, words in (("empty.png", "empty"), ("big.png", f"{2 * W} x {2 * H}"), ("none.png", "not a file")):
+        with pytest.raises(InputError) as e:
+            object_hint(None, tmp_path / name, frame, tmp_path)
+        assert e.value.fix == "mask" and words in str(e.value) and name in str(e.value)
+    assert object_hint(None, None, frame, tmp_path) is None
+
+
+def test_a_sweep_past_a_table_keeps_the_table_and_what_stands_on_it(scene):
+    """Cameras passing sideways along the table, looking past the two boxes at its far side: neither box is at the
+    centre of half the views, so the object is the table surface with both boxes on it (the volume holds both
+    and reaches just below the surface), and it says so."""
+    from gscan.geometry.transforms import look_at
+
+    target = box_mesh(TARGET_SIZE, procedural_box_texture(1))
+    distractor = box_mesh((0.06, 0.06, 0.14), procedural_box_texture(2), name="distractor")
+    T_t = rest_on_table(target)
+    T_d = rest_on_table(distractor, None, (0.25, 0.05))
+    sc = SynthScene([(target, T_t), (distractor, T_d)], seed=4, table_texture_size=1024)
+    poses = [look_at(np.array([x, -0.45, 0.40]), np.array([x, 0.5, 0.0])) for x in np.linspace(-0.25, 0.45, 6)]
+    renders = [sc.render(T, INTR, rng=np.random.default_rng(k), noise_params=NOISE) for k, T in enumerate(poses)]
+    frames = [RGBDFrame(f"{k:06d}", r.color, r.depth, INTR) for k, r in enumerate(renders)]
+    vol = estimate_working_volume(frames, poses)
+    assert vol is not None and vol.chosen is not None
+    assert vol.chosen.by == "fixation" and "surface" in vol.chosen.reason, vol.chosen
+    assert vol.footprint is not None and vol.height_min < 0
+    for T in (T_t, T_d):
+        assert vol.contains(T[:3, 3][None] + [0, 0, 0.03])[0], (T[:3, 3], vol)
+
+
+@pytest.mark.slow
+def test_scan_with_a_box_keeps_the_object_inside_it(scene, tmp_path):
+    """The pipeline end to end: `scan` with `roi` around the distractor in the first frame fuses the distractor
+    (0.06 x 0.06 x 0.14 m), not the target the orbit looks at (0.12 x 0.08 x 0.10 m), and says so in its result
+    and in the template (`info --json`)."""
+    from gscan.scanning.api import scan
+    from gscan.scanning.options import ScanOptions
+    from gscan.synth.capture import write_capture
+    from gscan.template.reports import template_info
+
+    _, _, renders, _ = scene
+    cap = write_capture(tmp_path / "cap", renders, INTR, write_masks=False)
+    sel = renders[0].labels == 1
+    ys, xs = np.nonzero(sel)
+    roi = (int(xs.min()), int(ys.min()), int(xs.max() - xs.min()) + 1, int(ys.max() - ys.min()) + 1)
+    res = scan(cap, tmp_path / "d.gscan", ScanOptions(roi=roi))
+    assert res.object is not None and res.object["by"] == "roi", res.object
+    info = template_info(tmp_path / "d.gscan")
+    assert info.object == res.object
+    assert 0.12 < res.object["size_m"][2] < 0.17 and res.object["size_m"][0] < 0.10, res.object
+    assert max(info.summary.extent_m) < 0.19 and sorted(info.summary.extent_m)[1] < 0.10, info.summary.extent_m

@@ -477,11 +477,12 @@ def test_info_json_keeps_its_keys(db_path: Path) -> None:
     out = json.loads(r.stdout)
     assert list(out) == ["schema", "status", "views", "registered", "keyframes", "descriptor", "source", "extent_m",
                          "grasps", "unregistered_reasons", "selection", "parts", "mesh", "camera", "coverage",
-                         "symmetries"]
+                         "symmetries", "object"]
     assert out["selection"] == {} and out["parts"] == []  # written without frame selection, in one part
     assert out["coverage"] is None  # no coverage recorded: unknown
     assert out["camera"] is None  # not written by a scan: no colour camera check
     assert out["symmetries"]["holds_in"] is None and out["symmetries"]["discrete"] == []  # none searched
+    assert out["object"] is None  # nor an object chosen by segmentation
     assert out["status"] == "partial" and out["views"] == 2 and out["registered"] == 1 and out["grasps"] == ["g"]
     assert out["unregistered_reasons"] == {"b": "no accepted edge"}
     assert isinstance(out["extent_m"], list) and len(out["extent_m"]) == 3

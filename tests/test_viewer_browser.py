@@ -27,7 +27,15 @@ from gscan.geometry.transforms import look_at
 from gscan.io.camera import RGBDFrame
 from gscan.template.db import TemplateDB
 from gscan.viewer.app import PortInUseError, check_port, serve
-from gscan.viewer.draw import draw_matches, edge_color, quality_color, scale_pixels, thumbnail
+from gscan.viewer.draw import (
+    OBJECT_OUTLINE_COLOR,
+    draw_matches,
+    edge_color,
+    outline_mask,
+    quality_color,
+    scale_pixels,
+    thumbnail,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -220,6 +228,20 @@ def test_thumbnail_and_pixel_mapping(h, w, side):
     back = scale_pixels(corners, (th.shape[1], th.shape[0]), (w, h))
     # pixel coordinates scaled to the thumbnail and back: float64 rounding (np.allclose's atol 1e-8)
     assert np.allclose(back, [[0, 0], [w - 1, h - 1]])
+
+
+def test_object_outline_on_a_keyframe_thumbnail():
+    """The chosen object's mask (full size) outlined on a half-size thumbnail: the outline's pixels lie on the
+    mask's border, scaled, and nowhere inside or far outside it."""
+    mask = np.zeros((240, 320), bool)
+    mask[60:180, 100:220] = True
+    th = np.zeros((120, 160, 3), np.uint8)
+    out = outline_mask(th, mask)
+    drawn = np.all(out == OBJECT_OUTLINE_COLOR, axis=2)
+    assert not th.any() and drawn.sum() > 4 * 50
+    ys, xs = np.nonzero(drawn)
+    assert xs.min() >= 48 and xs.max() <= 111 and ys.min() >= 28 and ys.max() <= 91
+    assert not drawn[40:80, 60:100].any()  # the inside is left as it was
 
 
 def test_colour_scales_and_match_drawing():

@@ -64,7 +64,17 @@ _FIXES = {
     "port": "choose another --port",
     "host": "choose another --host",
     "output": "choose another output with -o",
+    "roi": "--roi takes X,Y,W,H: a box inside the first frame, in pixels",
+    "mask": "--mask takes a mask image of the first frame (its size, non-zero on the object)",
 }
+
+
+def object_line(obj: dict) -> str:
+    """The object segmentation chose (the "object" of `scan --json` / `info --json`) in one line."""
+    length, width, height = obj["size_m"]
+    by = {"roi": "the --roi box", "mask": "the --mask"}.get(obj["by"], "where the views look")
+    share = "" if obj["by"] == "fixation" else f" (at the centre of {obj['centre_share']:.0%} of the views)"
+    return f"object: {length:.2f} x {width:.2f} m, {height:.2f} m high, chosen by {by}: {obj['reason']}{share}"
 
 
 def error_line(e: BaseException) -> str:

@@ -15,6 +15,7 @@ from gscan.cli.output import (
     camera_line,
     coverage_text,
     err,
+    object_line,
     print_json,
     say,
     say_interrupted,
@@ -49,6 +50,10 @@ def scan(
                                            help="recording: the depth image topic (default: detected)"),
     depth_intrinsics: Path | None = typer.Option(None, "--depth-intrinsics", help=DEPTH_INTRINSICS_HELP),
     depth_to_color: Path | None = typer.Option(None, "--depth-to-color", help=DEPTH_TO_COLOR_HELP),
+    roi: str | None = typer.Option(None, "--roi", metavar="X,Y,W,H", help="the object's box in the first frame "
+                                   "(pixels; default: the object the views are centred on)"),
+    mask: Path | None = typer.Option(None, "--mask", help="a mask image of the first frame, non-zero on the object "
+                                     "(as BundleSDF and FoundationPose take)"),
     json_out: bool = typer.Option(False, "--json", help=JSON_HELP),
     verbose: bool = typer.Option(False, "-v", "--verbose", help="log progress details to stderr"),
 ) -> None:
@@ -67,12 +72,21 @@ def scan(
         raise UsageError(output, "--resume and --force exclude each other")
     if append and (resume or force):
         raise UsageError(output, f"--append and {'--resume' if resume else '--force'} exclude each other")
-    check_not_input(output, [*inputs, intrinsics, config, depth_intrinsics, depth_to_color])
+    if roi is not None and mask is not None:
+        raise UsageError(mask, "--roi and --mask exclude each other")
+    if mask is not None and no_segment:
+        raise UsageError(mask, "--mask chooses the object to segment; --no-segment keeps the whole scene")
+    if roi is not None and no_segment:
+        raise UsageError(None, "--roi chooses the object to segment; --no-segment keeps the whole scene")
+    if mask is not None and not mask.is_file():
+        raise UsageError(mask, "--mask: not a file; expected a mask image of the first frame")
+    check_not_input(output, [*inputs, intrinsics, config, depth_intrinsics, depth_to_color, mask])
     options = ScanOptions(format=format.value, intrinsics=intrinsics, depth_scale=depth_scale, mode=mode.value,
                           segment=not no_segment, resume=resume, append=append, force=force,
                           config=load_config(config),
                           obj_id=obj_id, color_topic=color_topic, depth_topic=depth_topic,
-                          depth_camera=depth_camera_of(depth_intrinsics, depth_to_color))
+                          depth_camera=depth_camera_of(depth_intrinsics, depth_to_color),
+                          roi=None if roi is None else parse_roi(roi), mask=mask)
     try:
         with RichProgress(err, enabled=not json_out or sys.stderr.isatty()) as progress:
             result = scan_capture(inputs, output, options, progress=progress)
@@ -83,6 +97,18 @@ def scan(
         print_json(result.to_json())
     else:
         print_scan_summary(result)
+
+
+def parse_roi(text: str) -> tuple[int, int, int, int]:
+    """--roi X,Y,W,H: four integers, a positive width and height (UsageError naming the option)."""
+    parts = [p.strip() for p in text.split(",")]
+    try:
+        x, y, w, h = (int(p) for p in parts)
+    except ValueError:
+        raise UsageError(None, f"--roi must be X,Y,W,H (four integers, pixels), not {text!r}") from None
+    if w <= 0 or h <= 0 or x < 0 or y < 0:
+        raise UsageError(None, f"--roi {text}: X and Y must be at least 0, W and H positive (pixels)")
+    return x, y, w, h
 
 
 def interrupted_scan_line(output: Path, force: bool) -> str:
@@ -119,6 +145,8 @@ def print_scan_summary(result: Any) -> None:
     cam = result.camera
     if cam is not None:
         say(*camera_line(cam))
+    if result.object is not None:
+        say(("object:", "bold"), " " + object_line(result.object).removeprefix("object: "))
     for line in result.damage:  # the recording's damaged records: damage, not missing frames
         say(("damaged recording:", "red"), f" {line}")
     sel = result.selection

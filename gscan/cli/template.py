@@ -6,7 +6,17 @@ from pathlib import Path
 import typer
 
 from gscan.cli.choices import ExportFormat
-from gscan.cli.output import camera_line, coverage_lines, err, format_pose, line, part_lines, print_json, symmetry_texts
+from gscan.cli.output import (
+    camera_line,
+    coverage_lines,
+    err,
+    format_pose,
+    line,
+    object_line,
+    part_lines,
+    print_json,
+    symmetry_texts,
+)
 from gscan.cli.texts import JSON_HELP
 
 
@@ -69,6 +79,10 @@ def info(
         if k == "symmetries":
             for text in symmetry_texts(v):
                 line(f"symmetry: {text}")
+            continue
+        if k == "object":
+            if v is not None:
+                line(object_line(v))
             continue
         if k == "mesh" and v is not None:
             holes = " (export closes them; --keep-holes keeps them)" if v["open_edges"] else ", watertight"

@@ -31,7 +31,9 @@ class ScanOptions:
     scene_gt.json); color_topic, depth_topic: a recording's image topics (None: detected when unambiguous);
     depth_camera: depth images not registered to colour (a Kinect v1): their own camera, its intrinsics and its
     pose in the colour camera (`gscan.io.camera.DepthCamera`, from `load_depth_camera(intrinsics, T_color_depth)`);
-    meta: more keys for the template's meta table (JSON values).
+    meta: more keys for the template's meta table (JSON values); roi: the object's box (x, y, width, height in
+    pixels) in the first frame of the first capture, or mask: a mask image of that frame (non-zero on the object):
+    the object segmentation keeps (None: chosen from where the views look; `gscan.scanning.segment`).
     """
 
     format: str = "auto"
@@ -48,6 +50,8 @@ class ScanOptions:
     depth_topic: str | None = None
     depth_camera: DepthCamera | None = None
     meta: Mapping[str, Any] = field(default_factory=dict)
+    roi: tuple[int, int, int, int] | None = None
+    mask: Path | None = None
 
     def __post_init__(self) -> None:
         if self.format not in FORMAT_CHOICES:
@@ -58,6 +62,14 @@ class ScanOptions:
             raise ValueError(f"mode must be one of {', '.join(MODE_CHOICES)}, not {self.mode!r}")
         if self.intrinsics is not None and not isinstance(self.intrinsics, Path):
             object.__setattr__(self, "intrinsics", Path(self.intrinsics))
+        if self.roi is not None and self.mask is not None:
+            raise ValueError("roi and mask exclude each other")
+        if self.roi is not None:
+            if len(self.roi) != 4 or self.roi[2] <= 0 or self.roi[3] <= 0:
+                raise ValueError(f"roi must be (x, y, width, height) with a positive width and height, not {self.roi}")
+            object.__setattr__(self, "roi", tuple(int(v) for v in self.roi))
+        if self.mask is not None and not isinstance(self.mask, Path):
+            object.__setattr__(self, "mask", Path(self.mask))
         if self.depth_camera is not None and not isinstance(self.depth_camera, DepthCamera):
             raise TypeError(f"depth_camera must be a DepthCamera (gscan.io.camera.load_depth_camera), not "
                             f"{type(self.depth_camera).__name__}")

@@ -84,7 +84,7 @@ from gscan.scanning.fuse import FusedModel, FusionParams, fuse_tsdf, template_fr
 from gscan.scanning.keyframes import keyframe_candidates, select_keyframes
 from gscan.scanning.options import ScanOptions
 from gscan.scanning.output import create_output, open_appended, open_resumed, scan_meta
-from gscan.scanning.segment import SegmentParams, segment_frame
+from gscan.scanning.segment import ChosenObject, ObjectHint, SegmentParams, object_hint, segment_frame
 from gscan.scanning.select import BLURRED, LITTLE_MOTION, Selection
 from gscan.scanning.store import FrameStore, LazyList, StoredFrame
 from gscan.scanning.symmetry import scan_symmetries
@@ -128,6 +128,8 @@ class ScanResult:
     camera: dict | None = None
     coverage: dict | None = None  # {"share": float, "missing": [sentences]} (`gscan.geometry.coverage`)
     symmetries: Symmetries = field(default_factory=Symmetries)  # the object's (object frame)
+    # which object segmentation chose and why (`gscan.scanning.segment.ChosenObject.to_json`); None: not segmented
+    object: dict | None = None
 
     def to_json(self) -> dict:
         """The `scan --json` object of the CLI contract."""
@@ -140,7 +142,8 @@ class ScanResult:
                 "timings_s": {k: round(v, 3) for k, v in self.timings_s.items()},
                 "skipped": dict(self.problems), "keyframes": self.keyframes, "selection": dict(self.selection),
                 "camera": self.camera, "coverage": self.coverage, "symmetries": self.symmetries.to_json(),
-                "damage": list(self.damage)} | ({"captures": list(self.captures)} if self.captures else {})
+                "object": self.object, "damage": list(self.damage)} | (
+                    {"captures": list(self.captures)} if self.captures else {})
 
 
 def _icp_voxel(cfg: ScanConfig) -> float | None:
@@ -185,6 +188,7 @@ class _Capture:
     reg: _Registered | None = None
     timings: dict[str, float] = field(default_factory=dict)  # seconds per stage spent on this capture
     join: Join | None = None  # how it was joined to the captures before it (None: the first, or one capture)
+    hint: ObjectHint | None = None  # the user's choice of the object in its first frame (--roi / --mask)
 
     @property
     def source(self) -> Path:
@@ -207,6 +211,7 @@ class _Registered:
     rparams: RegisterParams
     # frames skipped by selection: name -> T_world_cam found by registration to their reference, or why not
     placed: dict[str, np.ndarray | str] = field(default_factory=dict)
+    chosen: ChosenObject | None = None  # the object segmentation chose, and why
 
 
 def run_scan(sources: Path | Sequence[Path], output: Path, opts: ScanOptions,
@@ -243,8 +248,10 @@ def run_scan(sources: Path | Sequence[Path], output: Path, opts: ScanOptions,
         if opts.append:
             assert db is not None
             base = _template_capture(db, store, opts)
+        hint = _first_frame_hint(caps[0], opts)  # before the loads: a bad box or mask fails at once
         for cap in caps:
             _load(cap, opts, timer, store)
+        caps[0].hint = _kept_first(caps[0], hint)
     except BaseException:
         if store is not None:
             store.close()
@@ -442,6 +449,9 @@ def _scan_frames(caps: list[_Capture], output: Path, opts: ScanOptions, db: Temp
             db.set_meta("support_plane", first.reg.plane_world is not None)
         db.set_meta("selection_poses", _selection_poses(caps, T_obj_world))
         db.set_meta("voxel_size", model.voxel_size)
+        chosen = None if first.reg.chosen is None else first.reg.chosen.to_json()
+        if not opts.append:
+            db.set_meta("object", chosen)
         db.set_meta("timings_s", timer.timings)
         # which sides were seen; without a support plane the template frame is the first camera's: up is its -y
         plane = bool(db.get_meta("support_plane")) if opts.append else first.reg.plane_world is not None
@@ -462,7 +472,8 @@ def _scan_frames(caps: list[_Capture], output: Path, opts: ScanOptions, db: Temp
                       selection=selection.summary(), coverage=coverage.to_json(), symmetries=symmetries,
                       damage=[line for cap in caps if cap.seq is not None for line in cap.seq.damage], captures=(
                           [_capture_summary(cap) for cap in caps] if not opts.append else
-                          [{k: c.get(k) for k in _capture_summary(caps[1])} for c in db.get_meta("captures")]))
+                          [{k: c.get(k) for k in _capture_summary(caps[1])} for c in db.get_meta("captures")]),
+                      object=chosen)
 
 
 def _capture_names(db: TemplateDB) -> list[str]:
@@ -582,9 +593,9 @@ def _register_capture(cap: _Capture, opts: ScanOptions, db: TemplateDB, store: F
 
     with timer.stage("segment", total=n) as advance:
         seg = replace(cfg.segmentation, depth_noise=rparams.depth_noise)  # the capture's own
-        mask_of, plane_world = _segment(data, res.T_world_cam, opts.segment, seg, advance)
+        mask_of, plane_world, chosen = _segment(data, res.T_world_cam, opts.segment, seg, advance, cap.hint)
     cap.reg = _Registered(res.T_world_cam, mask_of, plane_world, res.quality, res.unregistered_reasons, res.parts,
-                          res.edges, res.restored, rparams)
+                          res.edges, res.restored, rparams, chosen=chosen)
     with timer.stage("place", total=len(cap.skipped)) as advance:
         cap.reg.placed = _place_skipped(cap, cfg.features, rparams, pool, advance)
 
@@ -834,10 +845,40 @@ def _object_keypoints(pixels: np.ndarray, mask: np.ndarray | None) -> int:
     return int(mask[uv[inside, 1], uv[inside, 0]].sum())
 
 
+def _first_frame_hint(cap: _Capture, opts: ScanOptions) -> ObjectHint | None:
+    """The object the user chose in the capture's first frame (`opts.roi` / `opts.mask`), checked against that
+    frame (InputError); None when neither is given."""
+    if (opts.roi is None and opts.mask is None) or cap.seq is None or not len(cap.seq.names):
+        return None
+    first = cap.seq.names[0]
+    try:
+        frame = cap.seq[first]
+    except InputError as e:
+        raise InputError(e.path, f"{e.reason} (the first frame, which the object is chosen in)",
+                         fix="roi" if opts.roi is not None else "mask") from None
+    return object_hint(opts.roi, opts.mask, frame, cap.source)
+
+
+def _kept_first(cap: _Capture, hint: ObjectHint | None) -> ObjectHint | None:
+    """`hint` once the capture is loaded: InputError when its first frame, which the hint is about, was not kept."""
+    if hint is None or cap.seq is None:
+        return hint
+    first = cap.seq.names[0]
+    if not cap.frames or cap.frames[0].name != cap.prefix + first:
+        skipped = cap.selection.skipped if cap.selection is not None else {}
+        why = cap.problems.get(cap.prefix + first) or next(
+            (r for n, (_, r) in skipped.items() if n in (first, cap.prefix + first)), "not kept")
+        raise InputError(cap.source, f"the first frame {first} is not scanned ({why}), and the object is chosen in it",
+                         fix=hint.by)
+    return hint
+
+
 def _segment(data: FrameData, T_world_cam: list[np.ndarray | None], segment: bool, seg: SegmentParams,
-             advance: Callable[[int], None]) -> tuple[Callable[[int], np.ndarray | None], Plane | None]:
-    """Per-frame object masks for fusion (a function of the frame index, the masks being in the store) and the
-    support plane in the world frame (or None); sets each frame's count of keypoints inside its mask.
+             advance: Callable[[int], None], hint: ObjectHint | None = None
+             ) -> tuple[Callable[[int], np.ndarray | None], Plane | None, ChosenObject | None]:
+    """Per-frame object masks for fusion (a function of the frame index, the masks being in the store), the
+    support plane in the world frame (or None) and the object chosen (or None); sets each frame's count of
+    keypoints inside its mask. `hint`: the user's choice of the object in frame 0 (its pose: its world).
 
     The plane defines the template frame's z axis even when masks are given: for a static object
     it comes from the working volume over the registered frames; for a moving object from the
@@ -849,10 +890,14 @@ def _segment(data: FrameData, T_world_cam: list[np.ndarray | None], segment: boo
     n = len(frames)
     reg = [k for k, T in enumerate(T_world_cam) if T is not None]
     plane: Plane | None = None
+    chosen: ChosenObject | None = None
     if not segment:
         def mask_of(k: int) -> np.ndarray | None:
             return None
     elif data.mode == MOVING_OBJECT:
+        if hint is not None:
+            log.warning("a moving object's masks come from the background: the %s of the first frame is not used",
+                        hint.by)
         ref = frames[reg[0]]
         plane_cam = ref.plane_cam if ref.plane_cam is not None else segment_frame(
             replace(data.frame(reg[0]), mask=None), seg).plane_cam
@@ -860,8 +905,13 @@ def _segment(data: FrameData, T_world_cam: list[np.ndarray | None], segment: boo
         plane = None if plane_cam is None or T_world_ref is None else plane_cam.transformed(T_world_ref)
         mask_of = data.object_mask
     else:  # given masks win
+        if hint is not None and (not reg or reg[0] != 0):
+            log.warning("the first frame is not registered: the object is chosen from where the views look, not "
+                        "from its %s", hint.by)
+            hint = None
         vol = estimate_working_volume(LazyList(len(reg), lambda i: data.frame(reg[i])),
-                                      [T for T in (T_world_cam[k] for k in reg) if T is not None], seg)
+                                      [T for T in (T_world_cam[k] for k in reg) if T is not None], seg, hint)
+        chosen = None if vol is None else vol.chosen
 
         def mask_at(k: int) -> np.ndarray | None:
             return segment_in_volume(data.frame(k), T_world_cam[k], vol, seg).mask
@@ -880,4 +930,4 @@ def _segment(data: FrameData, T_world_cam: list[np.ndarray | None], segment: boo
             feats = data.db.features(f.name)
             f.object_keypoints = 0 if feats is None else _object_keypoints(feats.pixels, mask_of(k))
         advance(1)
-    return mask_of, plane
+    return mask_of, plane, chosen

@@ -12,13 +12,20 @@ in the world frame from several frames, the object cluster above it (DBSCAN) def
 cylindrical working volume (axis along the plane normal), and every frame is segmented by
 that volume, so all masks agree with each other.
 
+Which object (`estimate_working_volume`): the one the views look at. The fixation point is where the optical
+axes pass closest (a sweep's nearly parallel axes leave its depth to the views' centre depth); the support
+plane is fitted within `SUPPORT_RADII` image half-widths of it, and the support surface is the plane's inliers
+under it (holes filled: what stands on it hides it). Among the clusters standing on that surface (the surface
+all round their footprint: not beside it, not overhanging its edge) the one held in the central
+`CENTRE_REGION` of the most views is the object; when none is there in `CENTRED` of the views, the object is
+the surface and what stands on it (a table swept past). The user may choose instead (`object_hint`: a box or
+a mask of the first frame). `ChosenObject` says which and why.
+
 The working range comes from the capture, not from a fixed distance: a scan keeps the object in the
 middle of the image, so the depth at the image centre (median over a central window) says how far the
-object is. Depth beyond `centre_depth_factor` times that is background; the plane and the cluster are
-looked for within `SUPPORT_RADII` image half-widths of the point the frames keep centred, among what most
-frames have in view (`seen_by`); the RANSAC
-band, the height that counts as off the table and the clustering radius grow with the depth noise
-(`params.depth_noise`, the capture's own model) and the pixel spacing at that depth.
+object is. Depth beyond `centre_depth_factor` times that is background; the RANSAC band, the height that
+counts as off the table and the clustering radius grow with the depth noise (`params.depth_noise`, the
+capture's own model) and the pixel spacing at that depth.
 
 Pose estimation's search region (`off_plane_region`): the pixels in front of a query frame's dominant
 plane (`support_plane`, a faster RANSAC on a strided cloud). Both plane finders share `ransac_plane`.
@@ -30,7 +37,8 @@ from __future__ import annotations
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from typing import Annotated
+from pathlib import Path
+from typing import Annotated, Any
 
 import cv2
 import numpy as np
@@ -39,7 +47,7 @@ from pydantic import Field
 from gscan.errors import InputError
 from gscan.geometry.plane import Plane, dominant_plane, ransac_plane
 from gscan.geometry.transforms import transform_points
-from gscan.io.camera import RGBDFrame, backproject
+from gscan.io.camera import Intrinsics, RGBDFrame, backproject
 from gscan.registration.noise import DepthNoise
 from gscan.settings import SETTINGS
 
@@ -47,6 +55,10 @@ log = logging.getLogger(__name__)
 
 CENTRE_WINDOW = 0.2        # the central window is this fraction of the image's width and height
 SUPPORT_RADII = 2.0        # plane and cluster within this many image half-widths (at the centre depth) of the centre
+FIXATION_SPREAD = 0.1      # axes turning less than this (mean sin^2 of their angles, ~18 deg) leave the fixation
+                           # point along that direction to the views' centre depth
+CENTRE_REGION = 0.5        # a view's centre: this central fraction of its image's width and height
+CENTRED = 0.5              # what stands at the centre of at least this share of the views is the object
 
 
 @dataclass(frozen=True)
@@ -83,8 +95,6 @@ class SegmentParams:
                                                 "ends at this multiple of the depth at the image centre")] = 1.5
     noise_sigmas: Annotated[float, Field(gt=0, description="a point is off the plane when it is this many depth "
                                          "sigmas above it (the bands widen with the depth noise)")] = 3.0
-    seen_by: Annotated[float, Field(gt=0, le=1, description="the object is inside the image of at least this share "
-                                    "of the frames (what most frames leave out is not the object)")] = 0.8
     background_frames: Annotated[int, Field(ge=1, le=1000, description="a moving object without a support plane (in "
                                             "hand) is what stands out of the background depth, taken from this many "
                                             "kept frames (evenly spaced)")] = 30
@@ -137,13 +147,16 @@ class Segmentation:
 
 @dataclass(frozen=True)
 class WorkingVolume:
-    """Vertical cylinder over the support plane: base centre on the plane, axis = plane normal."""
+    """Vertical cylinder over the support plane: base centre on the plane, axis = plane normal; with a
+    `footprint`, only the part of it over that region of the plane (`Footprint`)."""
 
     plane_world: Plane
     center_world: np.ndarray    # [3] on the plane
     radius: float               # m
     height: float               # m above the plane
     height_min: float = 0.0     # m: nearer the plane is the plane (its depth noise)
+    chosen: ChosenObject | None = None  # which object the volume holds, and why
+    footprint: Footprint | None = None  # the region of the plane it stands on (None: the whole disc)
 
     def contains(self, pts_world: np.ndarray, height_min: float = 0.0) -> np.ndarray:
         """[N x 3] world points -> [N] bool inside the cylinder (heights in [height_min, height])."""
@@ -151,7 +164,10 @@ class WorkingVolume:
         h = self.plane_world.height(p)
         h0 = self.plane_world.height(self.center_world[None])[0]
         radial = p - self.center_world - (h - h0)[:, None] * self.plane_world.normal
-        return (h >= height_min) & (h <= self.height) & (np.linalg.norm(radial, axis=1) <= self.radius)
+        inside = (h >= height_min) & (h <= self.height) & (np.linalg.norm(radial, axis=1) <= self.radius)
+        if self.footprint is not None:
+            inside &= self.footprint.covers(p)
+        return inside
 
 
     def contains_camera(self, pts_cam: np.ndarray, T_world_cam: np.ndarray, height_min: float = 0.0) -> np.ndarray:
@@ -163,7 +179,30 @@ class WorkingVolume:
         d = np.asarray(pts_cam, dtype=np.float32) - c
         along = d @ n  # height above the base centre (the centre is on the plane)
         radial2 = np.einsum("...i,...i->...", d, d) - along * along
-        return (along >= height_min) & (along <= self.height) & (radial2 <= self.radius ** 2)
+        inside = (along >= height_min) & (along <= self.height) & (radial2 <= self.radius ** 2)
+        if self.footprint is not None and inside.any():
+            pw = transform_points(np.asarray(T_world_cam, dtype=np.float64), np.asarray(pts_cam)[inside])
+            inside[inside] = self.footprint.covers(pw)
+        return inside
+
+
+@dataclass(frozen=True)
+class Footprint:
+    """A region of a plane: cells of `cell` m ([gH x gW] bool `grid`, cell (i, j) at origin + (j, i) * cell in
+    the plane coordinates `basis` [2 x 3] . p)."""
+
+    grid: np.ndarray
+    origin: np.ndarray
+    basis: np.ndarray
+    cell: float
+
+    def covers(self, pts_world: np.ndarray) -> np.ndarray:
+        """[N x 3] world points -> [N] bool: over the region (along the plane's normal)."""
+        ij = np.floor((np.asarray(pts_world, dtype=np.float64) @ self.basis.T - self.origin) / self.cell).astype(int)
+        ok = (ij[:, 0] >= 0) & (ij[:, 1] >= 0) & (ij[:, 0] < self.grid.shape[1]) & (ij[:, 1] < self.grid.shape[0])
+        out = np.zeros(len(ij), dtype=bool)
+        out[ok] = self.grid[ij[ok, 1], ij[ok, 0]]
+        return out
 
 
 def fit_support_plane(points: np.ndarray, viewpoint: np.ndarray,
@@ -319,9 +358,15 @@ def segment_frame(frame: RGBDFrame, params: SegmentParams = SegmentParams(),
     return Segmentation(m, None, "depth", f"{why}: component nearest the image centre")
 
 
-def _look_at_point(T_world_cam: list[np.ndarray], plane: Plane) -> np.ndarray:
-    """[3] point the cameras look at: least-squares meeting point of the optical axes when they
-    spread, else where the first optical axis meets the plane."""
+def _fixation_point(T_world_cam: Sequence[np.ndarray], centre: np.ndarray | None) -> np.ndarray | None:
+    """[3] world point the optical axes pass closest to (least squares over the views' axes).
+
+    Along a direction in which the axes hardly turn (a sweep: nearly parallel axes) they do not fix the point;
+    there `FIXATION_SPREAD` pulls it to `centre` (the views' centre point, `_centre_point`): views that converge
+    (circling an object) set it by their axes, a sweep by its centre depth. None without views, or without a
+    centre when the axes do not spread."""
+    if not len(T_world_cam):
+        return None
     A = np.zeros((3, 3))
     b = np.zeros(3)
     for T in T_world_cam:
@@ -329,20 +374,17 @@ def _look_at_point(T_world_cam: list[np.ndarray], plane: Plane) -> np.ndarray:
         P = np.eye(3) - np.outer(z, z)
         A += P
         b += P @ c
-    if len(T_world_cam) >= 2 and np.linalg.cond(A) < 1e4:
-        return np.linalg.solve(A, b)
-    c, z = T_world_cam[0][:3, 3], T_world_cam[0][:3, 2]
-    denom = plane.normal @ z
-    t = -plane.height(c[None])[0] / denom if abs(denom) > 1e-6 else 0.5
-    return c + max(t, 0.0) * z
+    w = FIXATION_SPREAD * len(T_world_cam)
+    if centre is None:
+        return np.linalg.solve(A, b) if np.linalg.eigvalsh(A)[0] > w else None
+    return np.linalg.solve(A + w * np.eye(3), b + w * np.asarray(centre, dtype=np.float64))
 
 
 def _centre_point(frames: list[RGBDFrame], T_world_cam: list[np.ndarray], depths: list[float | None]
                   ) -> np.ndarray | None:
     """[3] world point the frames keep in the middle of the image: per frame the point on the optical axis at
     its `centre_depth` (`depths`, one per frame), then the coordinate-wise median over the frames (robust to a
-    few frames that look elsewhere). Unlike the axes' meeting point it needs no spread of viewing directions (a
-    hand-held sweep looks along nearly parallel axes). None when no frame has centre depth."""
+    few frames that look elsewhere). None when no frame has centre depth."""
     pts = []
     for f, T, z in zip(frames, T_world_cam, depths, strict=True):
         if z is not None:
@@ -353,29 +395,133 @@ def _centre_point(frames: list[RGBDFrame], T_world_cam: list[np.ndarray], depths
     return np.median(np.asarray(pts), axis=0) if pts else None
 
 
-def _seen_by_most(points_world: np.ndarray, frames: list[RGBDFrame], T_world_cam: list[np.ndarray],
-                  seen_by: float) -> np.ndarray:
-    """[N] bool: the points [N x 3] inside the image of at least `seen_by` of the frames: a scan keeps its
-    object in view, so what most frames leave out (the far end of a room a sweep passes) is not the object."""
-    seen = np.zeros(len(points_world), dtype=int)
-    for f, T in zip(frames, T_world_cam, strict=True):
-        p = transform_points(np.linalg.inv(T), points_world)
-        K = f.intrinsics
-        z = np.where(p[:, 2] > 1e-6, p[:, 2], np.nan)
-        u, v = K.fx * p[:, 0] / z + K.cx, K.fy * p[:, 1] / z + K.cy
-        seen += (u >= 0) & (u <= K.width - 1) & (v >= 0) & (v <= K.height - 1)
-    return seen >= seen_by * len(frames)
+def _centre_share(point_world: np.ndarray, T_world_cam: Sequence[np.ndarray], K: Intrinsics) -> float:
+    """Share of the views (cameras T_world_cam, intrinsics K) that hold the world point [3] in front of them
+    and in the central `CENTRE_REGION` of their image: how much the capture is about what is there."""
+    if not len(T_world_cam):
+        return 0.0
+    Ts = np.asarray(T_world_cam, dtype=np.float64)
+    d = np.asarray(point_world, dtype=np.float64) - Ts[:, :3, 3]
+    p = np.einsum("nji,nj->ni", Ts[:, :3, :3], d)  # R^T (x - t): camera-frame points [N x 3]
+    z = np.where(p[:, 2] > 1e-6, p[:, 2], np.nan)
+    u, v = K.fx * p[:, 0] / z + K.cx, K.fy * p[:, 1] / z + K.cy
+    inside = (np.abs(u - (K.width - 1) / 2) <= CENTRE_REGION * K.width / 2) & (
+        np.abs(v - (K.height - 1) / 2) <= CENTRE_REGION * K.height / 2)
+    return float(inside.mean())
+
+
+def _plane_basis(plane: Plane) -> np.ndarray:
+    """[2 x 3] orthonormal directions spanning the plane."""
+    n = plane.normal
+    a = np.eye(3)[int(np.argmin(np.abs(n)))]
+    e1 = np.cross(n, a)
+    e1 /= np.linalg.norm(e1)
+    return np.stack([e1, np.cross(n, e1)])
+
+
+def _support_region(inliers_2d: np.ndarray, cell: float, at: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """The support surface under the point `at` [2] (plane coordinates; None: the largest surface), from the
+    plane's inliers [N x 2]: an occupancy grid of `cell` m, closed over one cell (gaps between samples) and
+    opened over one (a wall or cabinet front crossing the plane leaves a thin line of inliers, no surface); its
+    connected part under `at` (else the nearest), with the holes it encloses filled (what stands on it hides
+    the surface under it). Returns ([gH x gW] bool grid, [2] origin of cell (0, 0))."""
+    lo = inliers_2d.min(0) - 2 * cell
+    ij = np.floor((inliers_2d - lo) / cell).astype(int)
+    shape = ij.max(0) + 3
+    grid = np.zeros((int(shape[1]), int(shape[0])), dtype=np.uint8)
+    grid[ij[:, 1], ij[:, 0]] = 1
+    square = np.ones((3, 3), np.uint8)
+    opened = cv2.morphologyEx(cv2.morphologyEx(grid, cv2.MORPH_CLOSE, square), cv2.MORPH_OPEN, square)
+    n, labels = cv2.connectedComponents(opened, connectivity=8)
+    if n <= 1:
+        return opened.astype(bool), lo
+    if at is None:
+        keep = 1 + int(np.argmax(np.bincount(labels.ravel())[1:]))
+    else:
+        c = (np.asarray(at) - lo) / cell
+        yy, xx = np.nonzero(labels)
+        keep = int(labels[yy, xx][np.argmin((xx + 0.5 - c[0]) ** 2 + (yy + 0.5 - c[1]) ** 2)])
+    return _fill_holes(labels == keep, np.ones(grid.shape, dtype=bool)), lo
+
+
+def _on_support(foot_2d: np.ndarray, region: np.ndarray, origin: np.ndarray, cell: float) -> tuple[float, float]:
+    """How the footprint points [N x 2] (plane coordinates) lie on the support region (`_support_region`): the
+    share of their cells over it, and the share of the cells around them (two cells wide) over it (what stands
+    on a surface has the surface all round; what stands beside its edge or overhangs it does not)."""
+    ij = np.floor((foot_2d - origin) / cell).astype(int)
+    ok = (ij[:, 0] >= 0) & (ij[:, 1] >= 0) & (ij[:, 0] < region.shape[1]) & (ij[:, 1] < region.shape[0])
+    if not ok.any():
+        return 0.0, 0.0
+    foot = np.zeros(region.shape, dtype=np.uint8)
+    foot[ij[ok, 1], ij[ok, 0]] = 1
+    ring = cv2.dilate(foot, np.ones((5, 5), np.uint8)).astype(bool) & ~foot.astype(bool)
+    over = float(region[ij[ok, 1], ij[ok, 0]].sum()) / len(foot_2d)
+    return over, float(region[ring].mean()) if ring.any() else 0.0
+
+
+@dataclass(frozen=True)
+class ObjectHint:
+    """The user's choice of the object: a mask [H x W] bool of the frame `frame` (an index into the frames
+    segmentation gets), from a box (`by` "roi") or a mask image (`by` "mask")."""
+
+    frame: int
+    mask: np.ndarray
+    by: str
+
+
+@dataclass(frozen=True)
+class ChosenObject:
+    """Which object segmentation chose, and why (the template's "object" meta, `scan --json`, `info --json`).
+
+    by: "fixation" (where the views look), "roi" or "mask" (the user's choice in the first frame);
+    size_m: its footprint's length and width on the support plane and its height above it (m);
+    centre_share: share of the registered views holding its centre in the central `CENTRE_REGION` of the image;
+    fixation_m: its centre's distance to the fixation point (m; None without one);
+    on_support: it stands on the support surface under the fixation point (not beside it);
+    candidates: the clusters above the support plane it was chosen from; reason: one line.
+    """
+
+    by: str
+    size_m: tuple[float, float, float]
+    centre_share: float
+    fixation_m: float | None
+    on_support: bool
+    candidates: int
+    reason: str
+
+    def to_json(self) -> dict[str, Any]:
+        return {"by": self.by, "size_m": [round(float(x), 3) for x in self.size_m],
+                "centre_share": round(self.centre_share, 3),
+                "fixation_m": None if self.fixation_m is None else round(self.fixation_m, 3),
+                "on_support": self.on_support, "candidates": self.candidates, "reason": self.reason}
+
+
+def _footprint_size(C: np.ndarray, plane: Plane) -> tuple[float, float, float]:
+    """Length and width of the points' [N x 3] footprint on the plane (along its principal directions) and their
+    height above it (m)."""
+    f = C @ _plane_basis(plane).T
+    f = f - f.mean(0)
+    _, _, Vt = np.linalg.svd(f, full_matrices=False)
+    r = f @ Vt.T
+    ext = np.sort(r.max(0) - r.min(0))[::-1]
+    return float(ext[0]), float(ext[1]), float(plane.height(C).max())
 
 
 def estimate_working_volume(frames: Sequence[RGBDFrame], T_world_cam: list[np.ndarray],
-                            params: SegmentParams = SegmentParams()) -> WorkingVolume | None:
-    """Support plane (world frame) and a cylinder around the object cluster on it (`frames`: any sequence,
-    only the frames used are read).
+                            params: SegmentParams = SegmentParams(), hint: ObjectHint | None = None
+                            ) -> WorkingVolume | None:
+    """Support plane (world frame) and a cylinder around the object on it (`frames`: any sequence, only the
+    frames used are read), the object chosen from where the views look, or from the user's `hint`.
 
-    Uses `volume_frames` frames evenly spaced over the sequence (stride-4 points in each frame's
-    `depth_range`) within `SUPPORT_RADII` image half-widths of the point they keep centred; the bands follow
-    the noise at the median centre depth (`at_depth`). The cluster nearest that point (by size and distance)
-    is the object. Returns None when no plane or no cluster above it is found.
+    The fixation point (`_fixation_point`, over every view's axis) is where the capture looks. The plane is
+    fitted on stride-4 points of `volume_frames` frames evenly spaced over the sequence (each in its
+    `depth_range`) within `SUPPORT_RADII` image half-widths of it; its inliers, closed over their holes, are the
+    support surface. The points above the plane are clustered (DBSCAN); a cluster stands on the surface when
+    most of its footprint lies over it and it reaches down to it. The object is the standing cluster held in the
+    centre of the most views (`_centre_share`; nearer the fixation point on a tie): a structure at the edge of
+    the views, or beside the surface the views look at, is never chosen over it. With a `hint`, the plane is
+    fitted around the hint's points and the object is the clusters mostly inside the hint in its frame. The bands
+    follow the noise at the median centre depth (`at_depth`). Returns None when no plane or no cluster is found.
     """
     import open3d as o3d
 
@@ -396,11 +542,21 @@ def estimate_working_volume(frames: Sequence[RGBDFrame], T_world_cam: list[np.nd
         p = backproject(f.depth, f.intrinsics)[::4, ::4][valid[::4, ::4]]
         pts.append(transform_points(T, p))
     P = np.concatenate(pts)
-    centre = _centre_point(used, cams, depths)
+    fixation = _fixation_point(T_world_cam, _centre_point(used, cams, depths))
+    target = fixation
+    hint_pts = None
+    if hint is not None:
+        hf = frames[hint.frame]
+        sel = hint.mask & (hf.depth > 0)
+        if sel.any():
+            hint_pts = transform_points(T_world_cam[hint.frame], backproject(hf.depth, hf.intrinsics)[sel])
+            target = np.median(hint_pts, axis=0)
     reach = np.inf
-    if centre is not None and z_c is not None:
+    if target is not None and z_c is not None:
         reach = SUPPORT_RADII * z_c * min(K.width / K.fx, K.height / K.fy) / 2
-        P = P[np.linalg.norm(P - centre, axis=1) <= reach]
+        P = P[np.linalg.norm(P - target, axis=1) <= reach]
+    if hint_pts is not None:
+        P = np.concatenate([P, hint_pts[:: max(1, len(hint_pts) // 5000)]])
     plane = fit_support_plane(P, np.mean([T[:3, 3] for T in cams], axis=0), par)
     if plane is None:
         return None
@@ -408,31 +564,95 @@ def estimate_working_volume(frames: Sequence[RGBDFrame], T_world_cam: list[np.nd
     Q = np.asarray(pc.points)
     Q = Q[np.lexsort((Q[:, 2], Q[:, 1], Q[:, 0]))]  # order-independent clustering input
     h = plane.height(Q)
+    basis = _plane_basis(plane)
+    cell = 2 * par.cluster_eps
+    region, origin = _support_region(Q[np.abs(h) < par.plane_distance] @ basis.T, cell,
+                                     None if target is None else target @ basis.T)
     Q = Q[(h > par.height_min) & (h < par.height_max)]
-    Q = Q[_seen_by_most(Q, used, cams, params.seen_by)]
     if len(Q) < 20:
         return None
     labels = np.asarray(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(Q)).cluster_dbscan(
         par.cluster_eps, min_points=8))
-    target = centre if centre is not None else _look_at_point(cams, plane)
-    scale = max(0.1, reach / 8) if np.isfinite(reach) else 0.1
-    best, best_score = -1, -np.inf
-    for lab in range(labels.max() + 1):
-        C = Q[labels == lab]
-        d = np.linalg.norm(C.mean(0) - target)
-        score = float(len(C) / (1.0 + (d / scale) ** 2))
-        if len(C) >= 20 and score > best_score:
-            best, best_score = lab, score
-    if best < 0:
+    clusters = [Q[labels == lab] for lab in range(labels.max() + 1) if (labels == lab).sum() >= 20]
+    if not clusters:
         return None
-    C = Q[labels == best]
+    support = [_on_support(C @ basis.T, region, origin, cell) for C in clusters]
+    stands = [over >= 0.5 and around >= 0.75 and plane.height(C).min() <= par.height_min + cell
+              for C, (over, around) in zip(clusters, support, strict=True)]
+    shares = [_centre_share(C.mean(0), T_world_cam, K) for C in clusters]
+    near = [np.inf if fixation is None else float(np.linalg.norm(C.mean(0) - fixation)) for C in clusters]
+    if hint is not None:
+        hT = np.linalg.inv(np.asarray(T_world_cam[hint.frame], dtype=np.float64))
+        inside = []
+        for C in clusters:
+            p = transform_points(hT, C)
+            zc = np.where(p[:, 2] > 1e-6, p[:, 2], np.nan)
+            u, v = K.fx * p[:, 0] / zc + K.cx, K.fy * p[:, 1] / zc + K.cy
+            ok = np.isfinite(u) & np.isfinite(v)
+            ui, vi = np.round(u[ok]).astype(int), np.round(v[ok]).astype(int)
+            on = (ui >= 0) & (vi >= 0) & (ui < hint.mask.shape[1]) & (vi < hint.mask.shape[0])
+            inside.append(float(hint.mask[vi[on], ui[on]].sum()) / len(C))
+        chosen = [k for k, s in enumerate(inside) if s >= 0.5]
+        if not chosen:
+            return None
+        why = (f"the {len(chosen)} cluster(s) above the support plane mostly inside the {hint.by} of the first "
+               "frame")
+    else:
+        order = sorted(range(len(clusters)), key=lambda k: (not stands[k], -shares[k], near[k]))
+        if not stands[order[0]] or shares[order[0]] < CENTRED:
+            foot = Footprint(region, origin, basis, cell)
+            return _surface_volume(plane, foot, [C for C, st in zip(clusters, stands, strict=True) if st],
+                                   shares[order[0]] if stands[order[0]] else 0.0, fixation, T_world_cam, par, params,
+                                   len(clusters))
+        chosen = [order[0]]
+        why = ("standing on the support surface under the fixation point" if stands[order[0]] else
+               "no cluster stands on the support surface under the fixation point: the one") + (
+            f", at the centre of {shares[order[0]]:.0%} of the views (the most)")
+    C = np.concatenate([clusters[k] for k in chosen])
     hc = plane.height(C)
     foot = C - hc[:, None] * plane.normal
     centre = foot.mean(0)
     radius = float(np.linalg.norm(foot - centre, axis=1).max()) + params.volume_margin
-    vol = WorkingVolume(plane, centre, radius, float(hc.max()) + params.volume_margin, par.height_min)
-    log.info("working volume: radius %.3f m, height %.3f m, %d cluster points (centre depth %s m)", vol.radius,
-             vol.height, len(C), "?" if z_c is None else f"{z_c:.2f}")
+    cm = C.mean(0)
+    obj = ChosenObject("fixation" if hint is None else hint.by, _footprint_size(C, plane),
+                       _centre_share(cm, T_world_cam, K),
+                       None if fixation is None else float(np.linalg.norm(cm - fixation)),
+                       bool(all(stands[k] for k in chosen)), len(clusters), why)
+    vol = WorkingVolume(plane, centre, radius, float(hc.max()) + params.volume_margin, par.height_min, obj)
+    log.info("working volume: radius %.3f m, height %.3f m, %d cluster points (centre depth %s m); object %s",
+             vol.radius, vol.height, len(C), "?" if z_c is None else f"{z_c:.2f}", obj.to_json())
+    return vol
+
+
+def _surface_volume(plane: Plane, foot: Footprint, standing: list[np.ndarray], best_share: float,
+                    fixation: np.ndarray | None, T_world_cam: Sequence[np.ndarray], par: SegmentParams,
+                    params: SegmentParams, candidates: int) -> WorkingVolume:
+    """The volume over the whole support surface `foot` (the plane's region under the fixation point) from just
+    below the plane (its depth noise, `par.plane_distance`) to above what stands on it (`standing`: clusters
+    [N x 3]): the object of a capture whose views centre on no one thing standing on the surface (the best of
+    them at the centre of `best_share` of the views), a table and what is on it."""
+    cells = np.argwhere(foot.grid)
+    xy = foot.origin + (cells[:, ::-1] + 0.5) * foot.cell
+    P0 = xy @ foot.basis - plane.offset * plane.normal  # the cells' centres on the plane [M x 3]
+    centre = P0.mean(0)
+    radius = float(np.linalg.norm(P0 - centre, axis=1).max()) + foot.cell
+    top = max((float(plane.height(C).max()) for C in standing), default=0.0)
+    length, width, _ = _footprint_size(P0, plane)
+    hit = 0
+    for T in T_world_cam:  # views whose optical axis meets the plane over the surface
+        c, z = T[:3, 3], T[:3, 2]
+        along = float(plane.normal @ z)
+        if along < -1e-6:
+            hit += bool(foot.covers((c - float(plane.height(c[None])[0]) / along * z)[None])[0])
+    share = hit / max(1, len(T_world_cam))
+    obj = ChosenObject("fixation", (length, width, top), share,
+                       None if fixation is None else float(np.linalg.norm(centre - fixation)), True, candidates,
+                       f"no one thing standing on the support surface under the fixation point is at the centre of "
+                       f"{CENTRED:.0%} of the views (the most: {best_share:.0%}): the surface and the "
+                       f"{len(standing)} things on it")
+    vol = WorkingVolume(plane, centre, radius, top + params.volume_margin, -par.plane_distance, obj, foot)
+    log.info("working volume: the support surface, %.2f x %.2f m, %.3f m high; object %s", length, width,
+             vol.height, obj.to_json())
     return vol
 
 
@@ -468,3 +688,35 @@ def segment_in_volume(frame: RGBDFrame, T_world_cam: np.ndarray | None, vol: Wor
     cand = valid & vol.contains_camera(backproject(f.depth, f.intrinsics), T, vol.height_min)
     m = pick_component(cand, f.depth, params, keep_fraction=0.05)
     return Segmentation(m, vol.plane_world.transformed(np.linalg.inv(T)), "volume")
+
+
+def object_hint(roi: tuple[int, int, int, int] | None, mask: Path | None, first: RGBDFrame, source: Path
+                ) -> ObjectHint | None:
+    """The user's choice of the object in the first frame `first` (of the capture at `source`), checked: a box
+    (x, y, width, height in pixels, inside the image) or a mask image of the frame's size, non-zero on the object
+    (any channel). None when neither is given. Raises InputError (fix "roi" / "mask") naming what is wrong."""
+    H, W = first.depth.shape
+    if roi is not None:
+        x, y, w, h = (int(v) for v in roi)
+        if w <= 0 or h <= 0 or x < 0 or y < 0 or x + w > W or y + h > H:
+            raise InputError(source, f"the box x={x}, y={y}, width={w}, height={h} is not inside the first frame "
+                             f"{first.name} ({W} x {H} px)", fix="roi")
+        m = np.zeros((H, W), dtype=bool)
+        m[y:y + h, x:x + w] = True
+        return ObjectHint(0, m, "roi")
+    if mask is None:
+        return None
+    if not Path(mask).is_file():
+        raise InputError(mask, "is not a file; expected a mask image of the first frame", fix="mask")
+    img = cv2.imread(str(mask), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise InputError(mask, "cannot be read as an image", fix="mask")
+    if img.shape[:2] != (H, W):
+        raise InputError(mask, f"is {img.shape[1]} x {img.shape[0]} px; the first frame {first.name} is {W} x {H} px",
+                         fix="mask")
+    m = np.asarray(img.any(axis=2) if img.ndim == 3 else img > 0, dtype=bool)
+    if not m.any():
+        raise InputError(mask, "is empty: no pixel marks the object", fix="mask")
+    if not (m & (first.depth > 0)).any():
+        raise InputError(mask, f"marks no pixel with depth in the first frame {first.name}", fix="mask")
+    return ObjectHint(0, m, "mask")

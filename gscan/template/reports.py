@@ -30,14 +30,16 @@ class MeshSize:
 class TemplateInfo:
     """What a template database holds (`summary`), its mesh's size (None: no mesh), the scan's colour camera
     check (the "camera" meta of gscan.scanning.calibration; None: not run), its coverage of viewing directions
-    (`TemplateDB.coverage`; None: unknown, a template made before it was recorded) and the object's symmetries
-    (none when not found or not searched)."""
+    (`TemplateDB.coverage`; None: unknown, a template made before it was recorded), the object's symmetries
+    (none when not found or not searched) and the object segmentation chose and why (the "object" meta,
+    `gscan.scanning.segment.ChosenObject.to_json`; None: not segmented)."""
 
     summary: TemplateSummary
     mesh: MeshSize | None
     camera: dict[str, Any] | None
     coverage: CoverageMap | None = None
     symmetries: Symmetries = field(default_factory=Symmetries)
+    object: dict[str, Any] | None = None
 
     def to_json(self) -> dict[str, Any]:
         """The `info --json` object."""
@@ -48,16 +50,16 @@ class TemplateInfo:
                 "unregistered_reasons": dict(s.unregistered_reasons), "selection": dict(s.selection),
                 "parts": [list(p) for p in s.parts], "mesh": None if self.mesh is None else asdict(self.mesh),
                 "camera": self.camera, "coverage": None if self.coverage is None else self.coverage.to_json(),
-                "symmetries": self.symmetries.to_json()}
+                "symmetries": self.symmetries.to_json(), "object": self.object}
 
 
 def template_info(path: str | Path) -> TemplateInfo:
     """The summary of the template database at `path` (a partial one too; InputError naming a bad file)."""
     with TemplateDB.open(path, require_complete=False) as db:
-        summary, m, camera = db.summary(), db.mesh(), db.get_meta("camera")
+        summary, m, camera, obj = db.summary(), db.mesh(), db.get_meta("camera"), db.get_meta("object")
         coverage, symmetries = db.coverage(), db.symmetries()
     mesh = None if m is None else MeshSize(len(m.vertices), len(m.triangles), len(boundary_edges(m.triangles)))
-    return TemplateInfo(summary, mesh, camera, coverage, symmetries)
+    return TemplateInfo(summary, mesh, camera, coverage, symmetries, obj if isinstance(obj, dict) else None)
 
 
 @dataclass(frozen=True)

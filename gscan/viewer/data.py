@@ -16,7 +16,7 @@ import numpy as np
 from gscan.geometry.coverage import CoverageMap
 from gscan.geometry.symmetry import Symmetries
 from gscan.template.db import Edge, MeshData, TemplateDB, View
-from gscan.viewer.draw import image_wh, thumbnail
+from gscan.viewer.draw import image_wh, outline_mask, thumbnail
 
 
 @dataclass(frozen=True)
@@ -72,6 +72,8 @@ def load_viewer_data(db_path: str | Path, options: ViewerOptions = ViewerOptions
     for v in views:
         img = v.color if v.color is not None else np.full((v.intrinsics.height, v.intrinsics.width, 3), 90, np.uint8)
         thumbs[v.name], sizes[v.name] = thumbnail(img, options.thumb_px), image_wh(img)
+        if v.keyframe and v.mask is not None and v.mask.any():  # the object segmentation chose
+            thumbs[v.name] = outline_mask(thumbs[v.name], v.mask)
         v.color = v.depth = v.mask = None  # only the thumbnail is shown: free the memory
         f = feats[v.name]
         kps[v.name] = ((np.zeros((0, 2), np.float32), np.zeros((0, 3), np.float32)) if f is None

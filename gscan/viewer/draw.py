@@ -68,6 +68,21 @@ def thumbnail(img: np.ndarray, max_side: int) -> np.ndarray:
     return cv2.resize(img, (max(1, round(w * s)), max(1, round(h * s))), interpolation=cv2.INTER_AREA)
 
 
+OBJECT_OUTLINE_COLOR = (60, 255, 60)  # the object segmentation chose, outlined on a keyframe
+
+
+def outline_mask(img: np.ndarray, mask: np.ndarray, color: tuple[int, int, int] = OBJECT_OUTLINE_COLOR
+                 ) -> np.ndarray:
+    """A copy of the image [h x w x 3] with the outline of the mask [H x W] bool (any size: scaled to the image)
+    drawn on it, 2 px wide."""
+    h, w = img.shape[:2]
+    m = cv2.resize(np.asarray(mask, dtype=np.uint8), (w, h), interpolation=cv2.INTER_NEAREST)
+    contours, _ = cv2.findContours(m, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    out = np.ascontiguousarray(img).copy()
+    cv2.drawContours(out, contours, -1, color, 2)
+    return out
+
+
 def scale_pixels(pixels: np.ndarray, src_wh: tuple[int, int], dst_wh: tuple[int, int]) -> np.ndarray:
     """[N x 2] pixels (u, v) of a src_wh image -> the same points in a resized dst_wh image
     (pixel-centre convention, per-axis factors)."""
