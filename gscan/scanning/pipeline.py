@@ -470,10 +470,16 @@ def _scan_frames(caps: list[_Capture], output: Path, opts: ScanOptions, db: Temp
                       timings_s=dict(timer.timings), problems=problems, keyframes=len(keyframes),
                       unregistered_reasons=reasons | problems, parts=parts, noise=first.reg.rparams.noise,
                       selection=selection.summary(), coverage=coverage.to_json(), symmetries=symmetries,
-                      damage=[line for cap in caps if cap.seq is not None for line in cap.seq.damage], captures=(
-                          [_capture_summary(cap) for cap in caps] if not opts.append else
-                          [{k: c.get(k) for k in _capture_summary(caps[1])} for c in db.get_meta("captures")]),
-                      object=chosen)
+                      damage=[line for cap in caps if cap.seq is not None for line in cap.seq.damage],
+                      captures=_captures_summary(caps, db, opts.append), object=chosen)
+
+
+def _captures_summary(caps: list[_Capture], db: TemplateDB, append: bool) -> list[dict]:
+    """`scan --json`'s "captures": each capture's summary (`_capture_summary`); after --append the template's
+    records first (as its meta holds them); empty for a scan of one capture."""
+    if append:
+        return [{k: c.get(k) for k in _capture_summary(caps[1])} for c in db.get_meta("captures")]
+    return [_capture_summary(cap) for cap in caps] if len(caps) > 1 else []
 
 
 def _capture_names(db: TemplateDB) -> list[str]:
