@@ -314,6 +314,11 @@ def test_damaged_records_are_reported_as_damage(views, tmp_path):
     assert res["damage"] == seq.damage
     assert all(res["unregistered_reasons"][n] == seq.problems[n] for n in lost)
     assert "damaged recording:" in proc.stderr or "damaged records" in proc.stderr
+    proc = subprocess.run([sys.executable, "-m", "gscan.cli", "track", str(tmp_path / "d.gscan"), str(rec), "--json"],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    tracked = json.loads(proc.stdout)
+    assert tracked["damage"] == seq.damage and set(lost) <= set(tracked["unreadable"]), tracked["unreadable"]
 
 
 # --------------------------------------------------------------------------------------- streaming

@@ -113,5 +113,7 @@ def track(
         f": {st['found']} found, {st['tracked']} tracked, {st['refound']} re-found, {st['lost']} lost; "
         f"median {out['timings_ms']['median']:.0f} ms per frame"
         + (f"; poses written to {written}" if written is not None else ""))
+    for damaged in out["damage"]:  # the recording's damaged records: damage, not missing frames
+        say(("damaged recording:", "red"), f" {damaged}")
     for name, reason in out["unreadable"].items():
         say((f"skipped frame {name}:", "yellow"), f" {reason}")

@@ -268,10 +268,12 @@ class Tracker:
 
 @dataclass
 class TrackRun:
-    """A tracked sequence: steps in frame order; problems {frame: reason} for frames that could not be read."""
+    """A tracked sequence: steps in frame order; problems {frame: reason} for frames that could not be read; damage:
+    a recording's damaged records, one line each (`RecordingSequence.damage`)."""
 
     steps: list[TrackStep]
     problems: dict[str, str] = field(default_factory=dict)
+    damage: list[str] = field(default_factory=list)
 
     def names(self, status: str) -> list[str]:
         return [s.frame for s in self.steps if s.status == status]
@@ -283,7 +285,7 @@ class TrackRun:
                 "with_pose": sum(s.result.T_cam_obj is not None for s in self.steps),
                 "status": {k: len(self.names(k)) for k in STATUSES},
                 "lost": self.names("lost"), "refound": self.names("refound"),
-                "unreadable": dict(self.problems),
+                "unreadable": dict(self.problems), "damage": list(self.damage),
                 "timings_ms": {"median": float(np.median(ms)), "p90": float(np.percentile(ms, 90)),
                                "total": float(ms.sum())},
                 "per_frame": [s.to_json() for s in self.steps]}
@@ -294,7 +296,7 @@ def track_sequence(estimator: Estimator, sequence, params: TrackParams = TrackPa
     """Track the estimator's object through a `gscan.io.sequence.Sequence` (every readable frame in order;
     the sequence's masks are not used). Frames that cannot be read are recorded in `problems` and skipped."""
     tracker = Tracker(estimator, params)
-    run = TrackRun([], dict(sequence.problems))
+    run = TrackRun([], dict(sequence.problems), list(sequence.damage))
     for name in sequence.names:
         try:
             frame = sequence[name]
