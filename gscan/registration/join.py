@@ -26,6 +26,7 @@ from typing import Annotated
 import numpy as np
 from pydantic import Field
 
+from gscan.geometry.icp import icp_point_to_plane
 from gscan.geometry.symmetry import axis_rotation
 from gscan.geometry.transforms import inv_T, mean_pose, rotation_angle_deg
 from gscan.registration.colour import ColourAgreement
@@ -172,24 +173,47 @@ def join_captures(a: Sequence[JoinView], b: Sequence[JoinView], rparams: Registe
 def _turn_not_refuted(T_a_b: np.ndarray, a: Sequence[JoinView], b: Sequence[JoinView], rparams: RegisterParams,
                       pool: ThreadPoolExecutor) -> str | None:
     """The first turn of capture B's object about one of its principal axes (90, 180, 270 deg, through its centre)
-    that the views do not refute when it is joined so, in words; None when every turn is refuted. A turn is refuted
-    as an edge's pose is (`gscan.registration.pairwise`, rule 3): by the depth (more than `max_see_through` of the
-    overlap seen through, or half the consistent depth of the motion found) or by the texture (fewer than
-    `min_colour_agreement` of the overlap's textured tiles line up). A view pair may match a side the object shows
-    alike both ways up (a print repeated on its top and bottom): the motion found then turns the object, and
-    only the views of its other sides can tell."""
+    that the views do not refute when it is joined so, in words; None when every turn is refuted. A view pair may
+    match a side the object shows alike both ways up (a print repeated on its top and bottom): the motion found
+    then turns the object, and only the views of its other sides can tell. A turn is refuted as an edge's pose is
+    (`gscan.registration.pairwise`, rule 3): by the depth (more than `max_see_through` of the overlap seen through,
+    or half the consistent depth of the motion found) or by the texture (fewer than `min_colour_agreement` of the
+    overlap's textured tiles line up). Not by comparing its texture with the motion found's: two motions overlap
+    different sides, and a print repeated on the top and bottom, seen squarely by both captures, lines up better
+    under the wrong motion than the sides, seen obliquely, under the right one (the Pepsi pack: 0.86 against
+    0.47). A turned motion is judged refined on the object's depth."""
     pts = np.concatenate([v.reg.dense.points.astype(np.float64) @ v.T_world_cam[:3, :3].T + v.T_world_cam[:3, 3]
                           for v in b if len(v.reg.dense.points)] or [np.zeros((0, 3))])
     if len(pts) < 3:
         return None
-    c = pts.mean(0)
-    axes = np.linalg.svd(pts - c, full_matrices=False)[2]
+    # the turns are about the principal axes through the centre of the points' box in those axes: the points of one
+    # capture miss the face the object stands on, so their mean is off the centre a symmetric shape turns about
+    m = pts.mean(0)
+    axes = np.linalg.svd(pts - m, full_matrices=False)[2]
+    q = (pts - m) @ axes.T
+    c = m + (0.5 * (q.min(0) + q.max(0))) @ axes
+    # a turned motion is first refined on the object's depth (point to plane, A's surface onto B's), so that a turn
+    # about an approximate axis is judged at its best (the motion found is judged as the view pairs solved it)
+    src = np.concatenate([v.reg.dense.points.astype(np.float64) @ v.T_world_cam[:3, :3].T + v.T_world_cam[:3, 3]
+                          for v in a if len(v.reg.dense.points)] or [np.zeros((0, 3))])
+    normals = np.concatenate([v.reg.dense.point_normals @ v.T_world_cam[:3, :3].T for v in a
+                              if len(v.reg.dense.points)] or [np.zeros((0, 3))])
+    reach = 0.1 * float(np.sqrt(np.mean(np.sum((pts - m) ** 2, axis=1))))
+
+    def refined(T: np.ndarray) -> np.ndarray:
+        if len(src) < 10:
+            return T
+        T_b_a, _ = icp_point_to_plane(src[::4], normals[::4], pts[::4], inv_T(T), reach)
+        return inv_T(T_b_a)
+
     found = _agreement(T_a_b, a, b, rparams, pool)
+    log.debug("join: the motion found: depth %s, texture %s", found[0], found[1])
     if _texture_refutes(found[1], rparams):
         return "the views' texture disagrees under the motion found; any motion"
     for k, axis in enumerate(axes):
         for deg in (180, 90, 270):
-            depth, colour = _agreement(T_a_b @ axis_rotation(axis, c, np.radians(deg)), a, b, rparams, pool)
+            depth, colour = _agreement(refined(T_a_b @ axis_rotation(axis, c, np.radians(deg))), a, b, rparams, pool)
+            log.debug("join: turned %d deg about axis %d: depth %s, texture %s", deg, k, depth, colour)
             if (depth.see_through_fraction > rparams.max_see_through
                     or depth.consistent < 0.5 * found[0].consistent):
                 continue  # the shape refutes it
