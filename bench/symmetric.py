@@ -10,7 +10,7 @@ Objects (gscan.synth.cases), each a CAD template (36 views) whose "symmetries" m
 
 Views: the object resting on the newspaper table at a random turn, a camera at a random azimuth, 25-65 deg
 elevation and 0.35-0.55 m (seeded). Each view is estimated by the estimator with `symmetry.enabled` false
-("before": every equivalent pose a rival) and true ("after"). A pose is wrong when its ADD against the nearest of
+("before": every equivalent pose a rival) and true with `symmetry.weigh_shape_turns` ("after"). A pose is wrong when its ADD against the nearest of
 the ground truth's equivalents under the symmetries that hold in texture (none for the bottom-differs box) exceeds
 10 % of the object's diameter.
 
@@ -85,7 +85,7 @@ def run_object(tmp: Path, i: int, kind: str, builder, kw: dict, n_views: int) ->
     with TemplateDB.open(tpl, writable=True) as db:
         db.set_meta("symmetries", sym.to_json())
     ests = {"before": Estimator.from_path(tpl, EstimateParams(symmetry=SymmetryParams(enabled=False))),
-            "after": Estimator.from_path(tpl)}
+            "after": Estimator.from_path(tpl, EstimateParams(symmetry=SymmetryParams(weigh_shape_turns=True)))}
     tex = sym.in_texture()
     group = [np.eye(4)] + list(tex.discrete)  # (the objects' texture symmetries are discrete)
     pts = mesh.vertices

@@ -143,7 +143,7 @@ def test_a_shape_only_symmetry_leaves_a_tie_refused(bottom_differs):
     the symmetry in shape is weighed on keypoints that agree at either pose. Seen from below, the bottom's print
     decides and the pose is right."""
     mesh, tpl = bottom_differs
-    est = Estimator.from_path(tpl)
+    est = Estimator.from_path(tpl, EstimateParams(symmetry=SymmetryParams(weigh_shape_turns=True)))
     frame, T_gt = on_table(mesh, 250.0)
     before = Estimator.from_path(tpl, EstimateParams(symmetry=SymmetryParams(enabled=False))).estimate(frame)
     assert before.found and pose_error(before.T_cam_obj, T_gt)[0] > 170, "the trap"
@@ -167,7 +167,8 @@ def test_a_printed_box_with_shape_symmetries_is_told_apart_by_its_print(tmp_path
     the pose is the true one (not an equivalent)."""
     mesh = box_mesh(SIZE, procedural_box_texture(5))
     sym = Symmetries(half_turn_box(SIZE)[1].discrete, (False, False, False))
-    est = Estimator.from_path(make_template(mesh, sym, tmp_path / "printed"))
+    est = Estimator.from_path(make_template(mesh, sym, tmp_path / "printed"),
+                              EstimateParams(symmetry=SymmetryParams(weigh_shape_turns=True)))
     for az in (40.0, 200.0):
         frame, T_gt = on_table(mesh, az)
         res = est.estimate(frame)

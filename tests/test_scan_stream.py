@@ -193,8 +193,10 @@ def test_still_frames_are_skipped_and_reported_not_failed(stops: dict, capsys: p
         return r
 
     poses = json.loads(cli("poses", str(stops["template"]), "--json").stdout)
-    assert set(poses["frames"]) == set(names) - still and poses["unregistered"] == []
-    assert set(poses["skipped_by_selection"]) == still
+    # every frame has a pose: the still ones placed by registration to the frame they stood still at
+    assert set(poses["frames"]) == set(names) and poses["unregistered"] == []
+    assert set(poses["skipped_by_selection"]) == still and set(poses["from_reference"]) == still
+    assert set(poses["from_reference"].values()) <= {"000003", "000015"}, poses["from_reference"]
     for why in poses["skipped_by_selection"].values():  # the frame it stood still at: the one before the stop
         assert why.startswith("moved 0.0") and ("since frame 000003" in why or "since frame 000015" in why), why
     info = json.loads(cli("info", str(stops["template"]), "--json").stdout)

@@ -297,6 +297,7 @@ def test_depth_from_a_separate_camera(template: Path, meshes, tmp_path: Path):
                          capture_output=True, text=True, timeout=300, check=False)
     assert cli.returncode == 0, cli.stderr
     T_cli = np.asarray(json.loads(cli.stdout)["T_cam_obj"])
+    assert T_cli.shape == (4, 4), json.loads(cli.stdout)["reason"]
     deg, m = pose_error(T_cli, T_gt)
     assert deg < 5.0 and m < 0.01, (deg, m)
 

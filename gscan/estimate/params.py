@@ -129,6 +129,10 @@ class SymmetryParams:
                                    "rival, as for an object without them)")] = True
     grasp_step_deg: Annotated[float, Field(description="deg: a grasp is offered at every turn of this step about a "
                                            "continuous axis", gt=0, le=180)] = 30.0
+    weigh_shape_turns: Annotated[bool, Field(description="weigh every accepted pose against its turns by the "
+                                             "template's symmetries in shape only, refusing a tie (off by default: "
+                                             "scans find such turns on most boxes, and on the few keypoints that tell "
+                                             "them apart the weighing refuses views a print decides)")] = False
     __pydantic_config__ = SETTINGS
 
 

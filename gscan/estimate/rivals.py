@@ -65,7 +65,8 @@ class ListVerifier:
         # hold in shape only (the texture must tell them)
         sym = model.symmetries if params.symmetry.enabled else Symmetries()
         self.group = PoseGroup.of(sym)
-        self.shape_turns = [S for S, t in zip(sym.discrete, sym.discrete_in_texture, strict=True) if not t]
+        self.shape_turns = [S for S, t in zip(sym.discrete, sym.discrete_in_texture, strict=True)
+                            if not t and params.symmetry.weigh_shape_turns]
 
     def apart(self, T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
         """(degrees, metres) between T_a and the nearest pose that looks as T_b does (T_b itself without
