@@ -10,9 +10,9 @@ Objects (gscan.synth.cases), each a CAD template (36 views) whose "symmetries" m
 
 Views: the object resting on the newspaper table at a random turn, a camera at a random azimuth, 25-65 deg
 elevation and 0.35-0.55 m (seeded). Each view is estimated by the estimator with `symmetry.enabled` false
-("before": every equivalent pose a rival) and true with `symmetry.weigh_shape_turns` ("after"). A pose is wrong when its ADD against the nearest of
-the ground truth's equivalents under the symmetries that hold in texture (none for the bottom-differs box) exceeds
-10 % of the object's diameter.
+("before": every equivalent pose a rival) and true with `symmetry.weigh_shape_turns` ("after"). A pose is wrong
+when its ADD against the nearest of the ground truth's equivalents under the symmetries that hold in texture (none
+for the bottom-differs box) exceeds 10 % of the object's diameter.
 
     python bench/symmetric.py            # 7 objects, 10 views each
     python bench/symmetric.py --quick    # one object of each kind, 4 views each
