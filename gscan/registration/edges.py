@@ -45,6 +45,14 @@ class RegData:
     cloud: np.ndarray | None
     dense: DenseGeometry
 
+    @classmethod
+    def of_frame(cls, feats: Features, depth: np.ndarray, color: np.ndarray, intrinsics: Intrinsics,
+                 mask: np.ndarray | None, icp_voxel: float | None) -> RegData:
+        """A frame's registration data: its keypoints, and its depth [H x W] (m) and colour [H x W x 3] sampled
+        inside `mask` (all of it: None), with the ICP cloud when `icp_voxel` is given."""
+        cloud = None if icp_voxel is None else icp_cloud(depth, intrinsics, mask, icp_voxel)
+        return cls(feats, cloud, DenseGeometry.from_depth(depth, intrinsics, mask, image=color))
+
 
 class SequenceFrames(Protocol):
     """The frames of a sequence as its registration reads them (frame k: 0 <= k < len). Thread-safe."""

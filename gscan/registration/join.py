@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import logging
 from collections import Counter
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Annotated
@@ -182,8 +182,7 @@ def _turn_not_refuted(T_a_b: np.ndarray, a: Sequence[JoinView], b: Sequence[Join
     different sides, and a print repeated on the top and bottom, seen squarely by both captures, lines up better
     under the wrong motion than the sides, seen obliquely, under the right one (the Pepsi pack: 0.86 against
     0.47). A turned motion is judged refined on the object's depth."""
-    pts = np.concatenate([v.reg.dense.points.astype(np.float64) @ v.T_world_cam[:3, :3].T + v.T_world_cam[:3, 3]
-                          for v in b if len(v.reg.dense.points)] or [np.zeros((0, 3))])
+    pts = _in_world(b, lambda v: v.reg.dense.points)
     if len(pts) < 3:
         return None
     # the turns are about the principal axes through the centre of the points' box in those axes: the points of one
@@ -194,10 +193,8 @@ def _turn_not_refuted(T_a_b: np.ndarray, a: Sequence[JoinView], b: Sequence[Join
     c = m + (0.5 * (q.min(0) + q.max(0))) @ axes
     # a turned motion is first refined on the object's depth (point to plane, A's surface onto B's), so that a turn
     # about an approximate axis is judged at its best (the motion found is judged as the view pairs solved it)
-    src = np.concatenate([v.reg.dense.points.astype(np.float64) @ v.T_world_cam[:3, :3].T + v.T_world_cam[:3, 3]
-                          for v in a if len(v.reg.dense.points)] or [np.zeros((0, 3))])
-    normals = np.concatenate([v.reg.dense.point_normals @ v.T_world_cam[:3, :3].T for v in a
-                              if len(v.reg.dense.points)] or [np.zeros((0, 3))])
+    src = _in_world(a, lambda v: v.reg.dense.points)
+    normals = _in_world(a, lambda v: v.reg.dense.point_normals, directions=True)
     reach = 0.1 * float(np.sqrt(np.mean(np.sum((pts - m) ** 2, axis=1))))
 
     def refined(T: np.ndarray) -> np.ndarray:
@@ -252,12 +249,19 @@ def _agreement(T_a_b: np.ndarray, a: Sequence[JoinView], b: Sequence[JoinView], 
     return d, col
 
 
+def _in_world(views: Sequence[JoinView], of: Callable[[JoinView], np.ndarray], directions: bool = False
+              ) -> np.ndarray:
+    """[N x 3] the views' points (or, `directions`, unit vectors) `of(view)` [n x 3] (camera frame), in their
+    capture's world, stacked."""
+    out = [of(v).astype(np.float64) @ v.T_world_cam[:3, :3].T + (0.0 if directions else v.T_world_cam[:3, 3])
+           for v in views]
+    return np.concatenate(out) if out else np.zeros((0, 3))
+
+
 def _object_extent(views: Sequence[JoinView]) -> tuple[np.ndarray, float]:
     """(centroid [3], RMS distance (m) from it) of the views' object keypoints in their capture's world."""
-    pts = [v.reg.feats.points.astype(np.float64) @ v.T_world_cam[:3, :3].T + v.T_world_cam[:3, 3]
-           for v in views if len(v.reg.feats)]
-    if not pts:
+    p = _in_world(views, lambda v: v.reg.feats.points)
+    if not len(p):
         return np.zeros(3), 0.0
-    p = np.concatenate(pts)
     c = p.mean(0)
     return c, float(np.sqrt(np.mean(np.sum((p - c) ** 2, axis=1))))

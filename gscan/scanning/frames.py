@@ -23,8 +23,7 @@ from gscan.features import Detection
 from gscan.geometry.plane import Plane
 from gscan.io.camera import RGBDFrame
 from gscan.io.sequence import Sequence
-from gscan.registration.dense import DenseGeometry
-from gscan.registration.edges import RegData, bounded_map, icp_cloud
+from gscan.registration.edges import RegData, bounded_map
 from gscan.scanning.capture_mode import (
     MOVING_OBJECT,
     STATIC_OBJECT,
@@ -116,11 +115,8 @@ class FrameData:
         f = self.frames[k].stored
         feats = self.db.features(f.name)
         assert feats is not None, f.name
-        depth = self.store.need(f.name, "depth")
-        reg_mask = self.object_mask(k)
-        cloud = None if self.icp_voxel is None else icp_cloud(depth, f.intrinsics, reg_mask, self.icp_voxel)
-        data = RegData(feats, cloud, DenseGeometry.from_depth(depth, f.intrinsics, reg_mask,
-                                                               image=self.store.need(f.name, "color")))
+        data = RegData.of_frame(feats, self.store.need(f.name, "depth"), self.store.need(f.name, "color"),
+                                f.intrinsics, self.object_mask(k), self.icp_voxel)
         with self._lock:
             self._cache[k] = data
             while len(self._cache) > REG_CACHE:

@@ -70,8 +70,7 @@ from gscan.io.output import (
     remove_sqlite_sidecars,
 )
 from gscan.progress import Progress, StageTimer
-from gscan.registration.dense import DenseGeometry
-from gscan.registration.edges import COMMIT_ROWS, EdgeSink, RegData, Registrar, bounded_map, icp_cloud
+from gscan.registration.edges import COMMIT_ROWS, EdgeSink, RegData, Registrar, bounded_map
 from gscan.registration.join import Join, JoinView, join_captures, spread
 from gscan.registration.noise import DepthNoise
 from gscan.registration.pairwise import RegisterParams, register_features
@@ -627,9 +626,8 @@ def _place_skipped(cap: _Capture, fparams: FeatureParams, rparams: RegisterParam
         frame = stored.load(data.store)
         mask = data.object_mask(k)  # a moving object's: the reference's (the view moved little)
         b = data.reg(k)
-        feats = extract_features(frame, fparams, mask=mask)
-        cloud = None if data.icp_voxel is None else icp_cloud(frame.depth, frame.intrinsics, mask, data.icp_voxel)
-        a = RegData(feats, cloud, DenseGeometry.from_depth(frame.depth, frame.intrinsics, mask, image=frame.color))
+        a = RegData.of_frame(extract_features(frame, fparams, mask=mask), frame.depth, frame.color, frame.intrinsics,
+                             mask, data.icp_voxel)
         res = register_features(a.feats, b.feats, rparams, clouds=(a.cloud, b.cloud), dense=(a.dense, b.dense))
         if not res.accepted or res.T_tgt_src is None:
             return f"skipped by frame selection; not placed against {ref}: {res.reason}"
@@ -681,9 +679,8 @@ def _join_views(cap: _Capture, k: int, oparams: FeatureParams, icp_voxel: float 
             return None
         frame = data.frame(i)
         feats = extract_features_in_mask(frame, mask, oparams)
-        cloud = None if icp_voxel is None else icp_cloud(frame.depth, frame.intrinsics, mask, icp_voxel)
-        dense = DenseGeometry.from_depth(frame.depth, frame.intrinsics, mask, image=frame.color)
-        return JoinView(frame.name, RegData(feats, cloud, dense), T)
+        return JoinView(frame.name, RegData.of_frame(feats, frame.depth, frame.color, frame.intrinsics, mask,
+                                                     icp_voxel), T)
 
     return [v for v in pool.map(view, [reg[j] for j in spread(len(reg), k)]) if v is not None]
 
