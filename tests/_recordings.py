@@ -79,3 +79,41 @@ def render_views(meshes_dir: Path, n: int, of_ring: int | None = None, seed: int
             fd = scene.render(T_wc @ T_color_depth, depth_intr, rng=np.random.default_rng([seed, i, 1]))
             offset.append(fd.depth_clean if clean else fd.depth)
     return Views(colors, depths, offset if T_color_depth is not None else None, gts, rendered)
+
+
+def playback(bag: Path) -> tuple[list[tuple[np.ndarray, np.ndarray]], dict]:
+    """Every frameset pyrealsense2's playback device returns for a recording (.bag or .db3; no alignment) and its
+    stream parameters: depth scale, T_color_depth, the colour and depth rs2_intrinsics, and "numbers": each
+    frameset's (colour, depth) frame numbers."""
+    import pyrealsense2 as rs
+
+    cfg = rs.config()
+    cfg.enable_device_from_file(str(bag), repeat_playback=False)
+    pipe = rs.pipeline()
+    cfg.resolve(rs.pipeline_wrapper(pipe)).get_device().as_playback().set_real_time(False)
+    prof = pipe.start(cfg)
+    try:
+        dp = prof.get_stream(rs.stream.depth).as_video_stream_profile()
+        cp = prof.get_stream(rs.stream.color).as_video_stream_profile()
+        ex = dp.get_extrinsics_to(cp)
+        T = np.eye(4)
+        T[:3, :3] = np.asarray(ex.rotation).reshape(3, 3).T  # rs2_extrinsics rotation is column-major
+        T[:3, 3] = ex.translation
+        info = {"scale": prof.get_device().first_depth_sensor().get_depth_scale(), "T_color_depth": T,
+                "color": cp.get_intrinsics(), "depth": dp.get_intrinsics()}
+        frames, info["numbers"] = [], []
+        while True:
+            ok, fs = pipe.try_wait_for_frames(2000)
+            if not ok:
+                break
+            cf, df = fs.get_color_frame(), fs.get_depth_frame()
+            frames.append((np.asanyarray(cf.get_data()).copy(), np.asanyarray(df.get_data()).copy()))
+            info["numbers"].append((cf.get_frame_number(), df.get_frame_number()))
+    finally:
+        pipe.stop()
+    return frames, info
+
+
+def same_rs_intrinsics(rs_intr, intr: Intrinsics) -> bool:
+    return (rs_intr.width, rs_intr.height) == (intr.width, intr.height) and np.allclose(
+        [rs_intr.fx, rs_intr.fy, rs_intr.ppx, rs_intr.ppy], [intr.fx, intr.fy, intr.cx, intr.cy], atol=1e-4)

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from _recordings import K_COLOR, K_DEPTH, PERIOD_NS, T0_NS, T_depth_offset, render_views
+from _recordings import K_COLOR, K_DEPTH, PERIOD_NS, T0_NS, T_depth_offset, playback, render_views, same_rs_intrinsics
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -94,49 +94,14 @@ def test_recording_reads_the_capture_frames(recs, kind):
         assert seq.pair_tolerance_s == pytest.approx(0.5 * PERIOD_NS * 1e-9, rel=1e-4)
 
 
-def _playback(bag: Path) -> tuple[list[tuple[np.ndarray, np.ndarray]], dict]:
-    """Every frameset pyrealsense2's playback device returns (no alignment) and its stream parameters."""
-    import pyrealsense2 as rs
-
-    cfg = rs.config()
-    cfg.enable_device_from_file(str(bag), repeat_playback=False)
-    pipe = rs.pipeline()
-    cfg.resolve(rs.pipeline_wrapper(pipe)).get_device().as_playback().set_real_time(False)
-    prof = pipe.start(cfg)
-    try:
-        dp = prof.get_stream(rs.stream.depth).as_video_stream_profile()
-        cp = prof.get_stream(rs.stream.color).as_video_stream_profile()
-        ex = dp.get_extrinsics_to(cp)
-        T = np.eye(4)
-        T[:3, :3] = np.asarray(ex.rotation).reshape(3, 3).T  # rs2_extrinsics rotation is column-major
-        T[:3, 3] = ex.translation
-        info = {"scale": prof.get_device().first_depth_sensor().get_depth_scale(), "T_color_depth": T,
-                "color": cp.get_intrinsics(), "depth": dp.get_intrinsics()}
-        frames = []
-        while True:
-            ok, fs = pipe.try_wait_for_frames(2000)
-            if not ok:
-                break
-            frames.append((np.asanyarray(fs.get_color_frame().get_data()).copy(),
-                           np.asanyarray(fs.get_depth_frame().get_data()).copy()))
-    finally:
-        pipe.stop()
-    return frames, info
-
-
-def _same_intrinsics(rs_intr, intr: Intrinsics) -> bool:
-    return (rs_intr.width, rs_intr.height) == (intr.width, intr.height) and np.allclose(
-        [rs_intr.fx, rs_intr.fy, rs_intr.ppx, rs_intr.ppy], [intr.fx, intr.fy, intr.cx, intr.cy], atol=1e-4)
-
-
 @pytest.mark.parametrize("kind", ["bag", "bag_unaligned"])
 def test_pyrealsense2_playback_returns_the_frames_gscan_reads(recs, kind):
-    frames, info = _playback(recs[kind])
+    frames, info = playback(recs[kind])
     with open_sequence(recs[kind]) as seq:
         assert len(frames) == len(seq) == 12
         assert info["scale"] == pytest.approx(seq.depth_scale, rel=1e-6)
-        assert _same_intrinsics(info["color"], seq.setup.color_intrinsics)
-        assert _same_intrinsics(info["depth"], seq.setup.depth_camera.intrinsics)
+        assert same_rs_intrinsics(info["color"], seq.setup.color_intrinsics)
+        assert same_rs_intrinsics(info["depth"], seq.setup.depth_camera.intrinsics)
         np.testing.assert_allclose(info["T_color_depth"], seq.setup.depth_camera.T_color_depth, atol=1e-6)
         for name, (color, raw) in zip(seq.names, frames, strict=True):
             c, d = seq.raw(name)

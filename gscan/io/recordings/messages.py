@@ -13,16 +13,30 @@ frame is decoded). Two wire formats:
   then the same fields with ROS 2's Header (int32 sec, uint32 nanosec, string frame_id), strings
   NUL-terminated with the NUL counted in their length, and primitives aligned to their size
   relative to the end of the encapsulation header.
+
+sensor_msgs CompressedImage (Header, string format, uint8[] data) is read in both wire formats too; its
+pixels are decoded only when the frame is read. The layouts, by the `format` string:
+
+- image_transport `compressed`: "<encoding>; png compressed bgr8" (or jpeg; "jpeg" alone in old drivers):
+  a PNG or JPEG file, decoded by OpenCV (librealsense 2.59 writes colour so, losslessly as PNG);
+- image_transport `compressedDepth`: "16UC1; compressedDepth png" (librealsense 2.59's depth): a 12-byte
+  header (int32 format, float32 depthQuantA, depthQuantB) and a 16-bit PNG; for 32FC1 the PNG holds
+  quantised inverse depth, depth = depthQuantA / (value - depthQuantB);
+- librealsense's zstd: "<encoding>; zstd; <W>x<H> step=<S>": the raw pixels compressed with zstd
+  (colour formats it has no PNG for, e.g. YUYV).
+The image size is read from the PNG / JPEG header (or the format string) without decoding the pixels.
 """
 from __future__ import annotations
 
+import re
 import struct
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
 
 from gscan.io.images import image_too_large
+from gscan.io.recordings.source import zstd_decompress
 
 #: Colour encodings read, with their channel count (sensor_msgs/image_encodings, librealsense's names).
 COLOR_ENCODINGS = {"rgb8": 3, "bgr8": 3, "rgba8": 4, "bgra8": 4, "8uc3": 3, "yuyv": 2, "yuv422_yuy2": 2,
@@ -39,7 +53,9 @@ class ImageMsg:
     """One sensor_msgs/Image, its pixels still in the message buffer.
 
     stamp_ns: header stamp (ns); data: step * height bytes (a view, valid while the buffer lives);
-    depth_units: librealsense's per-frame metres per depth unit (0 when absent).
+    depth_units: librealsense's per-frame metres per depth unit (0 when absent); compression: "" (raw pixels),
+    "image" (a PNG / JPEG file), "depth" (compressedDepth) or "zstd" (see the module docstring), with data the
+    compressed bytes and encoding the image's encoding before compression.
     """
 
     stamp_ns: int
@@ -51,6 +67,7 @@ class ImageMsg:
     step: int
     data: memoryview
     depth_units: float = 0.0
+    compression: str = ""
 
     def problem(self, channels_bytes: int) -> str | None:
         """Why the pixels cannot be read as width x height pixels of `channels_bytes` bytes each (None when they
@@ -60,6 +77,8 @@ class ImageMsg:
         too_large = image_too_large(self.width, self.height)  # the limit every image gscan reads is held to
         if too_large:
             return too_large
+        if self.compression:  # the decoded pixels are checked when the frame is read
+            return None
         if self.step < self.width * channels_bytes:
             return f"row step {self.step} is shorter than {self.width} pixels of {channels_bytes} bytes"
         if len(self.data) < self.step * self.height:
@@ -130,6 +149,148 @@ def parse_cdr_image(buf: bytes | memoryview) -> ImageMsg:
     return ImageMsg(sec * 1_000_000_000 + nsec, frame_id, height, width, encoding, bool(big), step, data)
 
 
+_PNG = b"\x89PNG\r\n\x1a\n"
+_JPEG_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
+_ZSTD_FORMAT = re.compile(r"^(\d+)x(\d+)\s+step=(\d+)$")
+DEPTH_HEADER_BYTES = 12  # compressed_depth_image_transport's ConfigHeader: int32 format, float32 quantA, quantB
+
+
+def compressed_size(data: memoryview) -> tuple[int, int]:
+    """(width, height) from a PNG's IHDR or a JPEG's start-of-frame segment; MessageError for other data."""
+    try:
+        if bytes(data[:8]) == _PNG:
+            w, h = struct.unpack_from(">II", data, 16)
+            return int(w), int(h)
+        if bytes(data[:2]) == b"\xff\xd8":
+            i = 2
+            while i + 4 <= len(data):
+                if data[i] != 0xFF:
+                    break
+                marker = data[i + 1]
+                if marker in _JPEG_SOF:
+                    h, w = struct.unpack_from(">HH", data, i + 5)
+                    return int(w), int(h)
+                if marker == 0x01 or 0xD0 <= marker <= 0xD8:  # markers without a length
+                    i += 2
+                    continue
+                (n,) = struct.unpack_from(">H", data, i + 2)
+                i += 2 + n
+            raise MessageError("JPEG data without a frame header")
+    except struct.error:
+        raise MessageError("compressed image header truncated") from None
+    raise MessageError(f"compressed data is neither PNG nor JPEG (starts {bytes(data[:8]).hex()})")
+
+
+def _compressed(stamp_ns: int, frame_id: str, fmt: str, data: memoryview) -> ImageMsg:
+    """An ImageMsg of CompressedImage fields: its encoding, size and compression from `fmt` and the data's
+    header (see the module docstring)."""
+    parts = [p.strip() for p in fmt.split(";")]
+    low = fmt.lower()
+    if "compresseddepth" in low:
+        if "rvl" in low:
+            raise MessageError(f"compressedDepth format '{fmt}' (RVL) is not read; PNG is")
+        encoding = parts[0] if len(parts) > 1 else "16UC1"
+        w, h = compressed_size(data[DEPTH_HEADER_BYTES:])
+        return ImageMsg(stamp_ns, frame_id, h, w, encoding, False, 0, data, compression="depth")
+    if len(parts) >= 3 and parts[1].lower() == "zstd":
+        m = _ZSTD_FORMAT.match(parts[2])
+        if m is None:
+            raise MessageError(f"zstd image format '{fmt}' does not give the size ('WxH step=S')")
+        w, h, step = (int(g) for g in m.groups())
+        return ImageMsg(stamp_ns, frame_id, h, w, parts[0], False, step, data, compression="zstd")
+    w, h = compressed_size(data)
+    encoding = parts[0] if len(parts) > 1 else "bgr8"  # a bare "jpeg" / "png": image_transport's bgr8
+    return ImageMsg(stamp_ns, frame_id, h, w, encoding, False, 0, data, compression="image")
+
+
+def parse_ros1_compressed(buf: bytes | memoryview) -> ImageMsg:
+    """A ROS 1 sensor_msgs/CompressedImage from its serialised bytes."""
+    mv = memoryview(buf)
+    try:
+        _seq, sec, nsec, n = struct.unpack_from("<IIII", mv, 0)
+        off = 16
+        frame_id = bytes(mv[off:off + n]).decode("utf-8", "replace")
+        off += n
+        (n,) = struct.unpack_from("<I", mv, off)
+        fmt = bytes(mv[off + 4:off + 4 + n]).decode("ascii", "replace")
+        off += 4 + n
+        (n,) = struct.unpack_from("<I", mv, off)
+        off += 4
+    except struct.error as e:
+        raise MessageError(f"truncated sensor_msgs/CompressedImage ({e})") from None
+    if off + n > len(mv):
+        raise MessageError(f"compressed data runs past the message end ({off + n} > {len(mv)} bytes)")
+    return _compressed(sec * 1_000_000_000 + nsec, frame_id, fmt, mv[off:off + n])
+
+
+def parse_cdr_compressed(buf: bytes | memoryview) -> ImageMsg:
+    """A ROS 2 sensor_msgs/msg/CompressedImage from its CDR bytes."""
+    mv = memoryview(buf)
+    if len(mv) < 4:
+        raise MessageError("message shorter than its CDR encapsulation header")
+    e = "<" if mv[1] & 1 else ">"
+    try:
+        sec, nsec = struct.unpack_from(e + "iI", mv, 4)
+        frame_id, off = _cdr_string(mv, 8, e)
+        fmt, off = _cdr_string(mv, off, e)
+        off = (off + 3) & ~3
+        (n,) = struct.unpack_from(e + "I", mv, 4 + off)
+        off += 4
+    except (struct.error, IndexError) as err:
+        raise MessageError(f"truncated sensor_msgs/msg/CompressedImage ({err})") from None
+    if 4 + off + n > len(mv):
+        raise MessageError(f"compressed data runs past the message end ({4 + off + n} > {len(mv)} bytes)")
+    return _compressed(sec * 1_000_000_000 + nsec, frame_id, fmt, mv[4 + off:4 + off + n])
+
+
+def parse_image(wire: str, compressed: bool, data: bytes | memoryview) -> ImageMsg:
+    """An Image (compressed: a CompressedImage) message of the wire format "ros1" | "cdr"."""
+    if compressed:
+        return parse_ros1_compressed(data) if wire == "ros1" else parse_cdr_compressed(data)
+    return parse_ros1_image(data) if wire == "ros1" else parse_cdr_image(data)
+
+
+def decompressed(msg: ImageMsg) -> ImageMsg:
+    """The message with its pixels decoded (itself when they are raw); MessageError when they do not decode to
+    the size its header gives."""
+    if not msg.compression:
+        return msg
+    if msg.compression == "zstd":
+        try:
+            raw = zstd_decompress(msg.data)
+        except ValueError as e:
+            raise MessageError(str(e)) from None
+        return replace(msg, data=memoryview(raw), compression="")
+    payload = msg.data[DEPTH_HEADER_BYTES:] if msg.compression == "depth" else msg.data
+    arr = cv2.imdecode(np.frombuffer(payload, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    if arr is None:
+        raise MessageError("compressed image does not decode")
+    if arr.shape[:2] != (msg.height, msg.width):
+        raise MessageError(f"compressed image decodes to {arr.shape[1]}x{arr.shape[0]}, its header says "
+                           f"{msg.width}x{msg.height}")
+    if msg.compression == "depth":
+        if arr.dtype != np.uint16 or arr.ndim != 2:
+            raise MessageError(f"compressedDepth image is {arr.dtype} with {arr.shape[2:] or 1} channels, "
+                               "not 16-bit single-channel")
+        if msg.encoding.lower() == FLOAT_DEPTH:  # quantised inverse depth
+            a, b = struct.unpack_from("<ff", msg.data, 4)
+            inv = arr.astype(np.float32)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                z = np.where(arr > 0, np.float32(a) / (inv - np.float32(b)), np.float32(0.0)).astype(np.float32)
+            return replace(msg, encoding=FLOAT_DEPTH, is_bigendian=False, step=msg.width * 4,
+                           data=z.reshape(-1).view(np.uint8).data, compression="")
+        return replace(msg, encoding="16uc1", is_bigendian=False, step=msg.width * 2,
+                       data=arr.reshape(-1).view(np.uint8).data, compression="")
+    if arr.dtype != np.uint8:
+        raise MessageError(f"compressed colour image is {arr.dtype}, not 8-bit")
+    channels = 1 if arr.ndim == 2 else arr.shape[2]
+    encoding = {1: "mono8", 3: "bgr8", 4: "bgra8"}.get(channels)  # OpenCV decodes to BGR order
+    if encoding is None:
+        raise MessageError(f"compressed colour image has {channels} channels")
+    return replace(msg, encoding=encoding, is_bigendian=False, step=msg.width * channels,
+                   data=np.ascontiguousarray(arr).reshape(-1).data, compression="")
+
+
 def encoding_kind(encoding: str) -> str | None:
     """"color" | "grey" | "depth" for the encodings gscan reads, None for others."""
     enc = encoding.lower()
@@ -151,6 +312,7 @@ def _rows(msg: ImageMsg, bpp: int, dtype: np.dtype) -> np.ndarray:
 
 def color_pixels(msg: ImageMsg) -> np.ndarray:
     """[H x W x 3] uint8 RGB copy of a colour (or grey) image message; MessageError for other encodings."""
+    msg = decompressed(msg)
     enc = msg.encoding.lower()
     ch = COLOR_ENCODINGS.get(enc) or GREY_ENCODINGS.get(enc)
     if ch is None:
@@ -176,6 +338,7 @@ def color_pixels(msg: ImageMsg) -> np.ndarray:
 
 def depth_raw(msg: ImageMsg) -> np.ndarray:
     """[H x W] copy of a depth message's values: uint16 raw units, or float32 metres for 32FC1."""
+    msg = decompressed(msg)
     enc = msg.encoding.lower()
     nbytes = DEPTH_ENCODINGS.get(enc)
     if nbytes is None:

@@ -1,15 +1,20 @@
-"""ROS recordings (ROS 1 bags, rosbag2): sensor_msgs Image topics with their CameraInfo, extrinsics from TF.
+"""ROS recordings (ROS 1 bags, rosbag2): sensor_msgs Image (or CompressedImage) topics with their CameraInfo,
+extrinsics from TF.
 
 Topics are found by type, as image_transport and the camera drivers lay them out (realsense2_camera:
 /camera/camera/color/image_raw, /camera/camera/depth/image_rect_raw,
 /camera/camera/aligned_depth_to_color/image_raw, each with a sibling camera_info topic):
 
-- colour: Image topics whose encoding is colour (rgb8, bgr8, rgba8, bgra8, yuyv, uyvy); grey (mono8)
+- images: sensor_msgs Image topics, and CompressedImage ones (image_transport's `compressed` PNG / JPEG and
+  `compressedDepth` PNG, e.g. .../image_raw/compressed, .../image_rect_raw/compressedDepth) unless the raw
+  topic they were compressed from is recorded too (then that one is read).
+- colour: image topics whose encoding is colour (rgb8, bgr8, rgba8, bgra8, yuyv, uyvy); grey (mono8)
   topics only when chosen with --color-topic. Depth: 16UC1 / mono16 (millimetres, REP 118) or 32FC1
   (metres). Several candidates: those whose name says colour ("color", "colour", "rgb") or depth
   ("depth") are kept, then, for depth, the ones already registered to the colour camera (same optical
   frame, e.g. aligned_depth_to_color); a choice that is still not unique is refused, naming the options.
-- intrinsics: the CameraInfo topic beside each image topic (`<namespace>/camera_info`), first message.
+- intrinsics: the CameraInfo topic beside each image topic (`<namespace>/camera_info`; for a compressed topic,
+  beside the raw topic it was compressed from), first message.
 - depth-to-colour extrinsics: none needed when both images are in one optical frame (header frame_id);
   otherwise the chain of transforms between the two frames on /tf_static (tf2_msgs/TFMessage), or
   realsense2_camera's `extrinsics/depth_to_color` message (rotation column-major, as librealsense's).
@@ -30,8 +35,7 @@ from gscan.io.recordings.messages import (
     ImageMsg,
     MessageError,
     encoding_kind,
-    parse_cdr_image,
-    parse_ros1_image,
+    parse_image,
 )
 from gscan.io.recordings.source import MessageSource
 from gscan.io.recordings.streams import StreamSetup, camera_info_intrinsics, recorded_depth_camera, transform_msg_T
@@ -39,30 +43,44 @@ from gscan.io.recordings.streams import StreamSetup, camera_info_intrinsics, rec
 log = logging.getLogger(__name__)
 
 IMAGE = "sensor_msgs/msg/Image"
+COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
+TRANSPORTS = ("compressed", "compressedDepth")  # image_transport's sub-topics read
 CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 TF_MESSAGE = "tf2_msgs/msg/TFMessage"
 EXTRINSICS = ("realsense2_camera_msgs/msg/Extrinsics", "realsense2_camera/msg/Extrinsics")
 COLOR_WORDS = ("color", "colour", "rgb")
 
 
-def parse_image(src: MessageSource, data: bytes | memoryview) -> ImageMsg:
-    return parse_ros1_image(data) if src.wire == "ros1" else parse_cdr_image(data)
-
-
-def first_image(src: MessageSource, topic: str) -> ImageMsg | None:
-    """The first message of an Image topic, parsed (None when the topic is empty or its message is unreadable)."""
+def first_image(src: MessageSource, topic: str, compressed: bool) -> ImageMsg | None:
+    """The first message of an image topic, parsed (None when the topic is empty or its message is unreadable)."""
     for _, _, data in src.messages([topic]):
         try:
-            return parse_image(src, data)
+            return parse_image(src.wire, compressed, data)
         except MessageError:
             return None
     return None
 
 
-def camera_info_topic(image_topic: str) -> str:
-    """image_transport's convention: the CameraInfo topic beside an image topic."""
-    ns = image_topic.rsplit("/", 1)[0]
+def _raw_topic(topic: str) -> str:
+    """The topic a compressed image topic was compressed from (image_transport: <raw>/compressed)."""
+    base, _, last = topic.rpartition("/")
+    return base if last in TRANSPORTS and base else topic
+
+
+def camera_info_topic(image_topic: str, compressed: bool = False) -> str:
+    """image_transport's convention: the CameraInfo topic beside an image topic (beside its raw topic when it is
+    a compressed one)."""
+    ns = (_raw_topic(image_topic) if compressed else image_topic).rsplit("/", 1)[0]
     return f"{ns}/camera_info"
+
+
+def image_topics(topics: dict[str, str]) -> tuple[list[str], frozenset[str]]:
+    """The image topics to choose from and which of them are compressed: Image topics, and CompressedImage ones
+    of image_transport whose raw topic is not recorded."""
+    raw = [t for t, ty in topics.items() if ty == IMAGE]
+    compressed = frozenset(t for t, ty in topics.items() if ty == COMPRESSED_IMAGE
+                           and t.rpartition("/")[2] in TRANSPORTS and topics.get(_raw_topic(t)) != IMAGE)
+    return sorted(raw) + sorted(compressed), compressed
 
 
 def _listing(topics: list[str]) -> str:
@@ -179,12 +197,13 @@ def _realsense_extrinsics(src: MessageSource, topics: dict[str, str]) -> np.ndar
 def ros_setup(src: MessageSource, color_topic: str | None = None, depth_topic: str | None = None) -> StreamSetup:
     """The colour and depth streams of a ROS 1 bag or rosbag2 (see the module docstring)."""
     topics = src.topics()
-    images = [t for t, ty in topics.items() if ty == IMAGE]
+    images, compressed = image_topics(topics)
     if not images:
-        other = sorted(t for t, ty in topics.items() if ty.startswith("sensor_msgs/msg/Compressed"))
-        hint = f" (compressed image topics {', '.join(other)} are not read)" if other else ""
-        raise InputError(src.path, f"no sensor_msgs/Image topic in the recording{hint}")
-    firsts = {t: first_image(src, t) for t in images}
+        other = sorted(t for t, ty in topics.items() if ty == COMPRESSED_IMAGE)
+        hint = (f" (CompressedImage topics {', '.join(other)} are not image_transport's "
+                f"{' or '.join(TRANSPORTS)} sub-topics)") if other else ""
+        raise InputError(src.path, f"no sensor_msgs/Image or CompressedImage topic in the recording{hint}")
+    firsts = {t: first_image(src, t, t in compressed) for t in images}
     color = _choose_color(src.path, firsts, color_topic)
     cfirst = firsts[color]
     if cfirst is None:
@@ -197,7 +216,7 @@ def ros_setup(src: MessageSource, color_topic: str | None = None, depth_topic: s
         raise InputError(src.path, f"--color-topic and --depth-topic are the same topic {color}")
     intr = {}
     for topic in (color, depth):
-        info = camera_info_topic(topic)
+        info = camera_info_topic(topic, topic in compressed)
         if topics.get(info) != CAMERA_INFO:
             raise InputError(src.path, f"no CameraInfo for {topic} (topic {info} missing)")
         msg = None
@@ -224,4 +243,5 @@ def ros_setup(src: MessageSource, color_topic: str | None = None, depth_topic: s
                              "in different camera frames and the recording holds no transform between them "
                              "(/tf_static)")
         T = T_cd
-    return StreamSetup(kind, color, depth, intr[color], recorded_depth_camera(intr[depth], T, src.path), scale)
+    return StreamSetup(kind, color, depth, intr[color], recorded_depth_camera(intr[depth], T, src.path), scale,
+                       compressed & {color, depth})

@@ -41,8 +41,6 @@ from gscan.io.recordings.messages import (
     color_pixels,
     depth_metres,
     encoding_kind,
-    parse_cdr_image,
-    parse_ros1_image,
 )
 from gscan.io.recordings.pairing import pair_frames, pair_tolerance
 from gscan.io.recordings.realsense import is_realsense, realsense_setup
@@ -159,9 +157,9 @@ class RecordingSequence(FrameIteration):
             pass
 
     # ------------------------------------------------------------------ reading
-    def _parse(self, data: bytes | memoryview) -> ImageMsg:
+    def _parse(self, topic: str, data: bytes | memoryview) -> ImageMsg:
         assert self._src is not None
-        return parse_ros1_image(data) if self._src.wire == "ros1" else parse_cdr_image(data)
+        return self.setup.parse(self._src.wire, topic, data)
 
     def _restart(self, start_ns: int) -> None:
         assert self._src is not None
@@ -200,7 +198,7 @@ class RecordingSequence(FrameIteration):
 
     def _decode(self, p: _Pair, craw: bytes | memoryview, draw: bytes | memoryview) -> RGBDFrame:
         try:
-            cmsg, dmsg = self._parse(craw), self._parse(draw)
+            cmsg, dmsg = self._parse(self.setup.color_topic, craw), self._parse(self.setup.depth_topic, draw)
             color = color_pixels(cmsg)
             scale = self.depth_scale if self._scale_override or not dmsg.depth_units > 0 else dmsg.depth_units
             depth = depth_metres(dmsg, scale)
@@ -240,9 +238,9 @@ class RecordingSequence(FrameIteration):
         with self._lock:
             craw, draw = self._messages_of(k, p)
             try:
-                dmsg = self._parse(draw)
+                dmsg = self._parse(self.setup.depth_topic, draw)
                 scale = self.depth_scale if self._scale_override or not dmsg.depth_units > 0 else dmsg.depth_units
-                return color_pixels(self._parse(craw)), depth_metres(dmsg, scale)
+                return color_pixels(self._parse(self.setup.color_topic, craw)), depth_metres(dmsg, scale)
             except MessageError as e:
                 raise InputError(self.root, f"frame {p.name}: {e}") from None
 
@@ -258,20 +256,21 @@ class _Index:
 
 
 def _index(src: MessageSource, setup: StreamSetup, color_intr: Intrinsics) -> tuple[_Index, _Index]:
-    """One pass over the colour and depth messages: their keys, header stamps and what is wrong with each."""
+    """One pass over the colour and depth messages: their keys, timestamps (the header's, or the camera's from
+    `setup.stamps`) and what is wrong with each."""
     c, d = setup.color_topic, setup.depth_topic
     idx = {c: _Index([], [], [], [], []), d: _Index([], [], [], [], [])}
     expect = {c: ("color", "grey"), d: ("depth",)}
     intr = {c: color_intr, d: setup.depth_camera.intrinsics}
-    parse = parse_ros1_image if src.wire == "ros1" else parse_cdr_image
     last: dict[str, tuple[int, int]] = {}
     for topic, log_ns, data in src.messages([c, d]):
         prev = last.get(topic)
         occ = prev[1] + 1 if prev is not None and prev[0] == log_ns else 0
         last[topic] = (log_ns, occ)
         ix = idx[topic]
+        camera_stamps = setup.stamps.get(topic)
         try:
-            msg = parse(data)
+            msg = setup.parse(src.wire, topic, data)
         except MessageError as e:
             ix.keys.append((log_ns, occ))
             ix.stamps.append(0)
@@ -285,11 +284,13 @@ def _index(src: MessageSource, setup: StreamSetup, color_intr: Intrinsics) -> tu
             want = "a colour" if topic == c else "a depth"
             problem = f"encoding '{msg.encoding}' is not {want} image"
         problem = problem or _size_problem(msg, intr[topic], topic)
+        if problem is None and camera_stamps is not None and log_ns not in camera_stamps:
+            problem = "no camera timestamp for it in the stream's metadata"
         if problem is None:
             enc = msg.encoding.lower()
             problem = msg.problem(DEPTH_ENCODINGS.get(enc) or COLOR_ENCODINGS.get(enc) or GREY_ENCODINGS.get(enc) or 1)
         ix.keys.append((log_ns, occ))
-        ix.stamps.append(msg.stamp_ns)
+        ix.stamps.append(camera_stamps.get(log_ns, 0) if camera_stamps is not None else msg.stamp_ns)
         ix.logs.append(log_ns)
         ix.problems.append(problem)
         ix.depth_units.append(msg.depth_units)

@@ -7,6 +7,9 @@ format's own library; images are parsed by `gscan.io.recordings.messages`, witho
 
 - `.bag` and rosbag2 `.db3` files or folders (metadata.yaml): the `rosbags` package (`AnyReader`),
   with the message definitions stored in the bag, or ROS 2 Humble's when a rosbag2 stores none.
+  A message compressed on its own with zstd (librealsense 2.58 writes every message so, in a `.db3` with
+  no metadata.yaml to say it) is recognised by the zstd frame magic, which no CDR message starts with,
+  and decompressed.
 - `.mcap`: the `mcap` package's reader (the format's reference implementation), messages decoded
   with `mcap-ros2-support` from the schemas stored in the file.
 
@@ -25,6 +28,27 @@ from gscan.errors import InputError
 log = logging.getLogger(__name__)
 
 Raw = tuple[str, int, bytes | memoryview]  # (topic, log time ns, serialised message)
+
+ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"  # a zstd frame's first four bytes; a CDR message starts with 00 0x 00 00
+MAX_MESSAGE_BYTES = 1 << 30  # a decompressed message larger than this is refused (a corrupt size field)
+
+
+def zstd_decompress(data: bytes | memoryview) -> bytes:
+    """The bytes of one zstd frame (or several concatenated); ValueError when they do not decompress."""
+    import zstandard
+
+    try:
+        out = zstandard.ZstdDecompressor().decompressobj().decompress(bytes(data))
+    except zstandard.ZstdError as e:
+        raise ValueError(f"zstd data does not decompress ({e})") from None
+    if len(out) > MAX_MESSAGE_BYTES:
+        raise ValueError(f"decompresses to {len(out)} bytes")
+    return out
+
+
+def unwrap(data: bytes | memoryview) -> bytes | memoryview:
+    """A serialised message as it is, or decompressed when it is a zstd frame (a message compressed alone)."""
+    return zstd_decompress(data) if bytes(data[:4]) == ZSTD_MAGIC else data
 
 
 class MessageSource(Protocol):
@@ -100,7 +124,7 @@ class RosbagsSource:
             return
         try:
             for c, t, data in self._reader.messages(connections=conns, start=start_ns):
-                yield c.topic, int(t), data
+                yield c.topic, int(t), unwrap(data) if self.wire == "cdr" else data
         except InputError:
             raise
         except Exception as e:  # noqa: BLE001 - a corrupt chunk / page surfaces here
@@ -108,7 +132,7 @@ class RosbagsSource:
 
     def decode(self, topic: str, data: bytes | memoryview) -> Any:
         try:
-            return self._reader.deserialize(bytes(data), self._conns[topic][0].msgtype)
+            return self._reader.deserialize(bytes(unwrap(data)), self._conns[topic][0].msgtype)
         except Exception as e:  # noqa: BLE001
             raise InputError(self.path, f"topic {topic}: message does not deserialise ({_why(e)})") from None
 

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from dataclasses import field as dc_field
 from pathlib import Path
 from typing import Any
 
@@ -10,6 +11,7 @@ import numpy as np
 
 from gscan.errors import InputError
 from gscan.io.camera import DepthCamera, Intrinsics, implausible_intrinsics
+from gscan.io.recordings.messages import ImageMsg, parse_image
 
 log = logging.getLogger(__name__)
 
@@ -23,6 +25,9 @@ class StreamSetup:
     depth_camera: the depth stream's camera (its intrinsics, and T_color_depth mapping its points into the colour
     camera: identity when both topics are in one optical frame); depth_scale: metres per raw unit of 16-bit depth
     (None when the recording does not say; float depth is in metres). kind names the recording in messages.
+    compressed: the topics whose messages are sensor_msgs CompressedImage; stamps: topic -> {log time (ns):
+    the camera's timestamp of the frame logged then (ns)}, for recordings whose image headers carry the
+    recording time instead (librealsense's rosbag2, which keeps the camera's in its metadata topics).
     """
 
     kind: str
@@ -31,6 +36,13 @@ class StreamSetup:
     color_intrinsics: Intrinsics
     depth_camera: DepthCamera
     depth_scale: float | None
+    compressed: frozenset[str] = frozenset()
+    stamps: dict[str, dict[int, int]] = dc_field(default_factory=dict)
+
+    def parse(self, wire: str, topic: str, data: bytes | memoryview) -> ImageMsg:
+        """A message of the colour or depth topic parsed (its pixels not decoded); MessageError when it does not
+        parse."""
+        return parse_image(wire, topic in self.compressed, data)
 
     @property
     def registered(self) -> bool:
