@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import os
+import sqlite3
 import subprocess
 import sys
 from pathlib import Path
@@ -22,6 +23,7 @@ import numpy as np
 import pytest
 from _recordings import K_COLOR, K_DEPTH, T_depth_offset, playback, render_views, same_rs_intrinsics
 
+from gscan.errors import InputError
 from gscan.io import open_sequence
 from gscan.template.db import TemplateDB
 
@@ -151,6 +153,24 @@ def test_sdk_colour_formats_read_as_fed(views, fmt, tmp_path):
             want = cv2.cvtColor(cv2.cvtColor(rgb, cv2.COLOR_RGB2YUV_YUYV), cv2.COLOR_YUV2RGB_YUYV) \
                 if fmt == "yuyv" else rgb
             assert np.array_equal(seq[name].color, want), name
+
+
+def test_a_frame_whose_image_does_not_decode_is_reported_and_left_out(views, tmp_path):
+    """The second colour frame's PNG spoilt in the SDK's .db3 (its header, and so its size, kept): the recording
+    opens, and reading that frame raises naming it, recorded in `problems`; the other frames read as fed."""
+    path, _ = record(views, tmp_path / "spoilt", n=3)
+    with sqlite3.connect(path) as con:
+        (tid,) = con.execute("SELECT id FROM topics WHERE name LIKE '%Color_0/image/data/compressed'").fetchone()
+        mid, data = con.execute("SELECT id, data FROM messages WHERE topic_id = ? ORDER BY timestamp LIMIT 1 "
+                                "OFFSET 1", (tid,)).fetchone()
+        keep = bytes(data).index(b"\x89PNG") + 33  # the PNG signature and its IHDR chunk
+        con.execute("UPDATE messages SET data = ? WHERE id = ?", (data[:keep] + b"\0" * (len(data) - keep), mid))
+    with open_sequence(path) as seq:
+        assert seq.names == ["000000", "000001", "000002"]
+        with pytest.raises(InputError, match="frame 000001: compressed image does not decode") as e:
+            seq["000001"]
+        assert e.value.path == path and "000001" in seq.problems
+        assert np.array_equal(seq["000002"].color, views.colors[2])
 
 
 def _gscan(*args: str | Path) -> dict:

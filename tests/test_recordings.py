@@ -12,11 +12,13 @@ writer) in the layouts librealsense's recorder and realsense2_camera use.
 from __future__ import annotations
 
 import json
+import struct
 import subprocess
 import sys
 import tracemalloc
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 from _recordings import K_COLOR, K_DEPTH, PERIOD_NS, T0_NS, T_depth_offset, playback, render_views, same_rs_intrinsics
@@ -92,6 +94,23 @@ def test_recording_reads_the_capture_frames(recs, kind):
             assert np.array_equal(a.color, b.color) and np.array_equal(a.depth, b.depth), name
         assert seq.timestamps["000003"] == pytest.approx((T0_NS + 3 * PERIOD_NS) * 1e-9, abs=1e-9)
         assert seq.pair_tolerance_s == pytest.approx(0.5 * PERIOD_NS * 1e-9, rel=1e-4)
+
+
+@pytest.mark.parametrize("storage", ["sqlite3", "mcap"])
+def test_compressed_image_topics_read_the_capture_frames(views, recs, storage, tmp_path):
+    """image_transport's CompressedImage topics (colour .../image_raw/compressed as PNG, depth .../compressedDepth),
+    as `ros2 bag record` stores a camera driver's compressed topics: the capture's frames, pixel for pixel, with
+    the CameraInfo of the raw topic they were compressed from."""
+    path = write_rosbag2(tmp_path / "compressed", views.frames(), K_COLOR, topics=("color", "aligned"),
+                         storage=storage, transport="compressed")
+    folder = open_sequence(recs["folder"])
+    with open_sequence(path) as seq:
+        assert seq.setup.compressed == {seq.setup.color_topic, seq.setup.depth_topic}
+        assert seq.setup.color_topic.endswith("color/image_raw/compressed")
+        assert seq.names == folder.names and seq.problems == {} and seq.intrinsics == K_COLOR
+        for name in seq.names:
+            a, b = folder[name], seq[name]
+            assert np.array_equal(a.color, b.color) and np.array_equal(a.depth, b.depth), name
 
 
 @pytest.mark.parametrize("kind", ["bag", "bag_unaligned"])
@@ -488,3 +507,50 @@ def test_recording_frames_above_the_pixel_limit_are_refused_from_their_header(re
     lines = r.stderr.strip().splitlines()
     assert r.returncode == 2 and len(lines) == 1 and str(recs["bag"]) in lines[0], r.stderr
     assert "above the limit of 76799 pixels" in lines[0] and not out.exists()
+
+
+def _compressed_msg(fmt: str, data: bytes) -> bytes:
+    """A ROS 2 CompressedImage serialised (CDR), its header stamped 1.5 s in frame "cam"."""
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    T = ts.types
+    hdr = T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=1, nanosec=500_000_000), frame_id="cam")
+    msg = T["sensor_msgs/msg/CompressedImage"](header=hdr, format=fmt, data=np.frombuffer(data, np.uint8))
+    return bytes(ts.serialize_cdr(msg, "sensor_msgs/msg/CompressedImage"))
+
+
+def test_compressed_depth_of_float_depth_is_its_quantised_inverse_depth():
+    """compressed_depth_image_transport's 32FC1 coding (inverse depth quantised to 16 bits, depthQuantA = 100,
+    depthQuantB = 1 - 100 / 10 m, 0 = invalid) decodes to metres within its quantisation step, holes kept."""
+    from gscan.io.recordings.messages import depth_raw, parse_image
+
+    rng = np.random.default_rng(3)
+    z = rng.uniform(0.3, 3.0, (48, 64)).astype(np.float32)
+    z[5:9, 10:20] = 0.0
+    a, b = 100.0, 1.0 - 100.0 / 10.0
+    inv = np.where(z > 0, np.rint(a / np.where(z > 0, z, 1.0) + b), 0).astype(np.uint16)
+    ok, png = cv2.imencode(".png", inv)
+    assert ok
+    msg = parse_image("cdr", True, _compressed_msg("32FC1; compressedDepth png",
+                                                   struct.pack("<iff", 0, a, b) + png.tobytes()))
+    assert (msg.width, msg.height, msg.encoding, msg.stamp_ns, msg.frame_id) == (64, 48, "32FC1", 1_500_000_000, "cam")
+    got = depth_raw(msg)
+    assert got.dtype == np.float32 and np.all(got[5:9, 10:20] == 0)
+    # half a quantisation step of the inverse depth either way: at most 0.5 z^2 / (a - 0.5 z) metres
+    bound = 0.5 * z ** 2 / (a - 0.5 * z)
+    assert np.all(np.abs(got - z)[z > 0] <= bound[z > 0] + 1e-6)
+
+
+def test_jpeg_colour_reads_as_opencv_decodes_it():
+    """A bare "jpeg" CompressedImage (old drivers, image_transport's bgr8): its size from the JPEG frame header
+    without decoding, its pixels as OpenCV decodes the file, RGB."""
+    from gscan.io.recordings.messages import color_pixels, parse_image
+
+    rgb = np.random.default_rng(4).integers(0, 256, (40, 56, 3), dtype=np.uint8)
+    ok, jpg = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+    assert ok
+    msg = parse_image("cdr", True, _compressed_msg("jpeg", jpg.tobytes()))
+    assert (msg.width, msg.height, msg.compression) == (56, 40, "image")
+    want = cv2.cvtColor(cv2.imdecode(jpg, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+    assert np.array_equal(color_pixels(msg), want)

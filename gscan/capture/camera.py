@@ -1,7 +1,7 @@
 """A RealSense camera, or a RealSense recording played back, as a stream of colour + aligned depth frames.
 
 Both go through one pyrealsense2 pipeline; only the device differs: a connected camera
-(`rs.config.enable_stream` with the chosen size and rate) or the playback device of a `.bag`
+(`rs.config.enable_stream` with the chosen size and rate) or the playback device of a `.bag` or `.db3`
 (`rs.config.enable_device_from_file`, played as fast as it is read unless `real_time`). Depth is aligned to
 the colour camera with the device's intrinsics and depth-to-colour extrinsics, and converted to millimetres
 with its depth scale, so frames come out as the capture layout stores them.
@@ -101,9 +101,10 @@ class RealSenseCamera:
         if self.recording is not None:
             if not self.recording.is_file():
                 raise InputError(self.recording, "recording not found" if not self.recording.exists()
-                                 else "not a file (a RealSense .bag)")
+                                 else "not a file (a RealSense .bag or .db3)")
         elif len(_rs().context().query_devices()) == 0:
-            raise InputError(None, "no RealSense camera connected (--from REC.bag plays a recording instead)")
+            raise InputError(None, "no RealSense camera connected (--from REC.bag or REC.db3 plays a recording "
+                             "instead)")
 
     def __enter__(self) -> RealSenseCamera:
         rs = _rs()

@@ -11,12 +11,13 @@ from typing import Any
 import typer
 
 from gscan.cli.output import UsageError, err, line, print_json, printable, say, say_interrupted, setup_logging
-from gscan.cli.texts import JSON_HELP
+from gscan.cli.texts import JSON_HELP, RECORDING_HELP
 
 
 def eval_cmd(
     template: Path = typer.Argument(..., help="template database of the object"),
-    scenes: Path = typer.Argument(..., help="BOP scene folder, or a folder of rendered scenes (capture layout)"),
+    scenes: Path = typer.Argument(..., help="BOP scene folder, a folder of rendered scenes (capture layout), or "
+                                  f"a {RECORDING_HELP}"),
     output: Path = typer.Option(..., "-o", "--output", help="BOP19 results CSV to write"),
     obj_id: int = typer.Option(1, "--obj-id", min=1, max=2**31 - 1, help="object id in scene_gt.json and in the CSV"),
     model: Path | None = typer.Option(None, "--model",
@@ -91,7 +92,7 @@ def _run_batch(noun: str, run: Callable[[Any], Any], json_out: bool, table: Call
 
 def batch(
     captures_dir: Path = typer.Argument(..., help="folder of capture folders and recordings (.bag, .db3, .mcap, "
-                                        "rosbag2 folders)"),
+                                        "rosbag2 folders; RealSense ones of every SDK)"),
     output: Path = typer.Option(..., "-o", "--output", help="folder of the templates (NAME.gscan) and of the report "
                                 "(batch.json, batch.csv)"),
     config: Path | None = typer.Option(None, "--config", help="YAML configuration of every scan"),

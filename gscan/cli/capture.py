@@ -7,12 +7,12 @@ from typing import Any
 import typer
 
 from gscan.cli.output import UsageError, print_json, say, say_interrupted, setup_logging
-from gscan.cli.texts import JSON_HELP
+from gscan.cli.texts import JSON_HELP, RS_PLAYBACK_HELP
 
 
 def capture(
     output: Path = typer.Option(..., "-o", "--output", help="capture folder to write (rgb/, depth/, cam_K.txt)"),
-    from_file: Path | None = typer.Option(None, "--from", help="play this RealSense .bag instead of a live camera"),
+    from_file: Path | None = typer.Option(None, "--from", help=RS_PLAYBACK_HELP),
     fps: int | None = typer.Option(None, "--fps", min=1, max=1000,
                                    help="stream rate (live: 30 by default; --from: the recording's)"),
     every: int | None = typer.Option(None, "--every", min=1, help="keep every Nth frame instead of the motion rule"),

@@ -8,7 +8,13 @@ import typer
 
 from gscan.cli.choices import format_choices
 from gscan.cli.output import UsageError, err, format_matrix, line, print_json, say, setup_logging
-from gscan.cli.texts import DEPTH_INTRINSICS_HELP, DEPTH_TO_COLOR_HELP, ESTIMATE_CONFIG_HELP, JSON_HELP
+from gscan.cli.texts import (
+    DEPTH_INTRINSICS_HELP,
+    DEPTH_TO_COLOR_HELP,
+    ESTIMATE_CONFIG_HELP,
+    JSON_HELP,
+    RECORDING_HELP,
+)
 
 
 def load_query_frame(color: Path, depth: Path, intrinsics: Path, depth_scale: float, mask: Path | None,
@@ -63,7 +69,8 @@ def estimate(
 
 def track(
     template: Path = typer.Argument(..., help="template database (OBJ.gscan)"),
-    input_path: Path = typer.Argument(..., metavar="INPUT", help="RGB-D sequence: a folder in any layout scan reads"),
+    input_path: Path = typer.Argument(..., metavar="INPUT", help="RGB-D sequence: a folder in any layout scan "
+                                      f"reads, or a {RECORDING_HELP}"),
     output: Path | None = typer.Option(
         None, "-o", "--output", help="folder for one T_cam_obj per frame (ob_in_cam 4x4 text) + summary.json"),
     format: str = typer.Option("auto", "--format", help="auto|capture|open3d|tum|bop"),

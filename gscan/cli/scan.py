@@ -22,14 +22,14 @@ from gscan.cli.output import (
     setup_logging,
     symmetry_texts,
 )
-from gscan.cli.texts import DEPTH_INTRINSICS_HELP, DEPTH_TO_COLOR_HELP, JSON_HELP
+from gscan.cli.texts import DEPTH_INTRINSICS_HELP, DEPTH_TO_COLOR_HELP, JSON_HELP, RECORDING_HELP
 
 
 def scan(
-    inputs: list[Path] = typer.Argument(..., help="RGB-D folder (capture, Open3D, TUM or BOP layout) or recording "
-                                        "(.bag, .db3, .mcap, rosbag2 folder); several: captures of one object "
-                                        "(upright, upside down, ...) joined into one template; a BOP dataset "
-                                        "folder: its onboarding captures of --obj-id"),
+    inputs: list[Path] = typer.Argument(..., help="RGB-D folder (capture, Open3D, TUM or BOP layout) or "
+                                        f"{RECORDING_HELP}; several: captures of one object (upright, upside down, "
+                                        "...) joined into one template; a BOP dataset folder: its onboarding "
+                                        "captures of --obj-id"),
     output: Path = typer.Option(..., "-o", "--output", help="template database to write (OBJ.gscan)"),
     format: ScanFormat = typer.Option("auto", "--format", help="input layout (auto: detected)"),
     intrinsics: Path | None = typer.Option(None, "--intrinsics", help="cam_K.txt or Open3D intrinsics JSON"),

@@ -8,6 +8,10 @@
   .../aligned_depth_to_color/image_raw, sibling camera_info topics, /tf_static).
 - `write_mcap`: the same messages in a bare MCAP file written with the `mcap` package's writer (schemas
   "ros2msg", messages CDR-encoded, as rosbag2's MCAP storage plugin writes them).
+  Both can write the images as image_transport's CompressedImage topics instead (`transport="compressed"`:
+  colour .../image_raw/compressed as PNG, "rgb8; png compressed bgr8"; depth .../compressedDepth as
+  "16UC1; compressedDepth png", a 12-byte header and a 16-bit PNG), as `ros2 bag record` of a camera
+  driver's compressed topics stores them.
 
 Frames are given as an iterable (written one by one, so long recordings need no memory): each a
 `RecordingFrame` with an RGB colour image, raw uint16 depth (units of `depth_units` metres) and a time.
@@ -94,6 +98,20 @@ class _Msgs:
         data = np.ascontiguousarray(pixels).view(np.uint8).reshape(-1)
         return self.T["sensor_msgs/msg/Image"](header=header, height=h, width=w, encoding=encoding, is_bigendian=0,
                                                step=int(data.size // h), data=data)
+
+    def compressed_image(self, header: Any, pixels: np.ndarray, encoding: str) -> Any:
+        """image_transport's CompressedImage of an RGB (rgb8) or 16-bit depth (16UC1) image, PNG-coded."""
+        import cv2
+
+        depth = pixels.dtype == np.uint16
+        ok, png = cv2.imencode(".png", pixels if depth else cv2.cvtColor(pixels, cv2.COLOR_RGB2BGR))
+        assert ok
+        if depth:  # compressed_depth_image_transport's ConfigHeader: format PNG (0), depthQuantA, depthQuantB
+            data = np.concatenate([np.frombuffer(struct.pack("<iff", 0, 0.0, 0.0), np.uint8), png.reshape(-1)])
+            fmt = f"{encoding}; compressedDepth png"
+        else:
+            data, fmt = png.reshape(-1), f"{encoding}; png compressed bgr8"
+        return self.T["sensor_msgs/msg/CompressedImage"](header=header, format=fmt, data=data)
 
     def camera_info(self, header: Any, intr: Intrinsics, distortion_model: str) -> Any:
         ROI = self.T["sensor_msgs/msg/RegionOfInterest"]
@@ -189,8 +207,8 @@ def write_realsense_bag(path: str | Path, frames: Iterable[RecordingFrame], colo
 
 
 def _ros2_messages(frames: Iterable[RecordingFrame], color_intrinsics: Intrinsics, depth_camera: DepthCamera | None,
-                   topics: tuple[str, ...], extrinsics: str, m: _Msgs,
-                   color_encoding: str = "rgb8") -> Iterable[tuple[str, str, int, Any]]:
+                   topics: tuple[str, ...], extrinsics: str, m: _Msgs, color_encoding: str = "rgb8",
+                   transport: str = "raw") -> Iterable[tuple[str, str, int, Any]]:
     """(topic, type, log time, message) of a realsense2_camera recording, static ones first."""
     depth_camera = depth_camera or DepthCamera(color_intrinsics)
     depth_intrinsics, T_color_depth = depth_camera.intrinsics, depth_camera.T_color_depth
@@ -237,20 +255,26 @@ def _ros2_messages(frames: Iterable[RecordingFrame], color_intrinsics: Intrinsic
             if img is None:
                 continue
             hdr = m.header(t_ns, frame)
-            yield f"{base}/{name}", "sensor_msgs/msg/Image", t_ns, m.image(hdr, np.asarray(img), enc)
+            if transport == "compressed":
+                sub = "compressed" if topic == "color" else "compressedDepth"
+                yield (f"{base}/{name}/{sub}", "sensor_msgs/msg/CompressedImage", t_ns,
+                       m.compressed_image(hdr, np.asarray(img), enc))
+            else:
+                yield f"{base}/{name}", "sensor_msgs/msg/Image", t_ns, m.image(hdr, np.asarray(img), enc)
             yield f"{base}/camera_info", "sensor_msgs/msg/CameraInfo", t_ns, m.camera_info(hdr, intr, "plumb_bob")
 
 
 def write_rosbag2(path: str | Path, frames: Iterable[RecordingFrame], color_intrinsics: Intrinsics,
                   depth_camera: DepthCamera | None = None, storage: str = "sqlite3",
                   topics: tuple[str, ...] = ("color", "depth"),
-                  extrinsics: str = "tf_static", color_encoding: str = "rgb8") -> Path:
+                  extrinsics: str = "tf_static", color_encoding: str = "rgb8", transport: str = "raw") -> Path:
     """A rosbag2 folder (realsense2_camera topics) of `frames`; returns the path of its storage file
     (`<folder>/<folder name>.db3` or `.mcap`). topics: any of "color", "depth" (depth camera,
     image_rect_raw), "aligned" (depth registered to colour: aligned_depth_to_color). extrinsics:
     "tf_static", "realsense" (extrinsics/depth_to_color) or "none". depth_camera: the depth topic's camera (None:
     the colour camera's). color_encoding: the colour messages' encoding label (another one than rgb8 makes a
-    recording of an encoding gscan does not read; the RGB pixels are kept)."""
+    recording of an encoding gscan does not read; the RGB pixels are kept). transport: "raw" (sensor_msgs Image)
+    or "compressed" (CompressedImage, see the module docstring)."""
     from rosbags.rosbag2 import StoragePlugin, Writer
 
     path = Path(path)
@@ -259,7 +283,7 @@ def write_rosbag2(path: str | Path, frames: Iterable[RecordingFrame], color_intr
     conns: dict[str, Any] = {}
     with Writer(path, version=9, storage_plugin=plugin) as w:
         for topic, typ, t_ns, msg in _ros2_messages(frames, color_intrinsics, depth_camera, topics, extrinsics, m,
-                                                      color_encoding):
+                                                      color_encoding, transport):
             if topic not in conns:
                 conns[topic] = w.add_connection(topic, typ, typestore=m.ts)
             w.write(conns[topic], t_ns, m.serialize(msg, typ))
@@ -268,9 +292,11 @@ def write_rosbag2(path: str | Path, frames: Iterable[RecordingFrame], color_intr
 
 def write_mcap(path: str | Path, frames: Iterable[RecordingFrame], color_intrinsics: Intrinsics,
                depth_camera: DepthCamera | None = None, topics: tuple[str, ...] = ("color", "depth"),
-               extrinsics: str = "tf_static", color_encoding: str = "rgb8", compressed: bool = True) -> Path:
-    """A bare MCAP file of `frames` (the messages of `write_rosbag2`) written with the mcap package's writer, its
-    chunks zstd-compressed (the writer's default) or not (`compressed` False: records as they are stored)."""
+               extrinsics: str = "tf_static", color_encoding: str = "rgb8", compressed: bool = True,
+               transport: str = "raw") -> Path:
+    """A bare MCAP file of `frames` (the messages of `write_rosbag2`, `transport` as there) written with the mcap
+    package's writer, its chunks zstd-compressed (the writer's default) or not (`compressed` False: records as
+    they are stored)."""
     from mcap.writer import CompressionType, Writer
 
     path = Path(path)
@@ -281,7 +307,7 @@ def write_mcap(path: str | Path, frames: Iterable[RecordingFrame], color_intrins
         w = Writer(fh, compression=CompressionType.ZSTD if compressed else CompressionType.NONE)
         w.start(profile="ros2", library="gscan.synth")
         for topic, typ, t_ns, msg in _ros2_messages(frames, color_intrinsics, depth_camera, topics, extrinsics, m,
-                                                      color_encoding):
+                                                      color_encoding, transport):
             if typ not in schemas:
                 text, _ = m.ts.generate_msgdef(typ, ros_version=2)
                 schemas[typ] = w.register_schema(name=typ, encoding="ros2msg", data=text.encode())
