@@ -21,7 +21,7 @@ undoes that), under the same /device_0/sensor_S/<Type>_<i> prefixes:
   .../image/camera_info                    sensor_msgs/CameraInfo beside every frame (2.59)
   .../camera_info                          std_msgs/String "width=..;height=..;fx=..;ppx=..;fy=..;ppy=..;
                                            model=..;coeffs=.." (both; read when no CameraInfo is recorded;
-                                           written with 6 significant digits)
+                                           its numbers written with 6 decimals)
   .../image/metadata                       std_msgs/String "Frame number=..;timestamp=<ms>;...": the
                                            camera's timestamp (the image header holds the recording time)
   .../tf/ref_<k>                           std_msgs/String "rotation=<9, column-major>;translation=<3>":
