@@ -554,3 +554,30 @@ def test_jpeg_colour_reads_as_opencv_decodes_it():
     assert (msg.width, msg.height, msg.compression) == (56, 40, "image")
     want = cv2.cvtColor(cv2.imdecode(jpg, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
     assert np.array_equal(color_pixels(msg), want)
+
+
+def test_messages_compressed_alone_with_zstd_read_as_the_plain_ones(recs, tmp_path):
+    """librealsense 2.58 compresses every message of its .db3 alone with zstd and writes no metadata.yaml that
+    says so: such a file reads as the plain one; a message whose zstd frame is cut short spoils its frame only
+    (reported by name), not the recording."""
+    import sqlite3
+
+    import zstandard
+
+    db3 = tmp_path / "zstd.db3"
+    db3.write_bytes(recs["db3"].read_bytes())
+    with sqlite3.connect(db3) as con:
+        rows = con.execute("SELECT id, data FROM messages").fetchall()
+        con.executemany("UPDATE messages SET data = ? WHERE id = ?",
+                        [(zstandard.ZstdCompressor().compress(data), i) for i, data in rows])
+    with open_sequence(recs["db3"]) as ref, open_sequence(db3) as seq:
+        assert seq.names == ref.names and seq.problems == {} and seq.intrinsics == ref.intrinsics
+        for name in ("000000", "000005", "000011"):
+            assert np.array_equal(seq[name].color, ref[name].color) and np.array_equal(seq[name].depth, ref[name].depth)
+    with sqlite3.connect(db3) as con:
+        mid, data = con.execute("SELECT m.id, m.data FROM messages m JOIN topics t ON m.topic_id = t.id WHERE "
+                                "t.name LIKE '%/color/image_raw' ORDER BY m.timestamp LIMIT 1 OFFSET 4").fetchone()
+        con.execute("UPDATE messages SET data = ? WHERE id = ?", (data[: len(data) // 2], mid))
+    with open_sequence(db3) as seq:
+        assert "000004" not in seq.names and len(seq) == 11
+        assert "zstd data does not decompress" in seq.problems["000004"]

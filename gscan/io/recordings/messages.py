@@ -36,7 +36,7 @@ import cv2
 import numpy as np
 
 from gscan.io.images import image_too_large
-from gscan.io.recordings.source import zstd_decompress
+from gscan.io.recordings.source import unwrap, zstd_decompress
 
 #: Colour encodings read, with their channel count (sensor_msgs/image_encodings, librealsense's names).
 COLOR_ENCODINGS = {"rgb8": 3, "bgr8": 3, "rgba8": 4, "bgra8": 4, "8uc3": 3, "yuyv": 2, "yuv422_yuy2": 2,
@@ -244,7 +244,13 @@ def parse_cdr_compressed(buf: bytes | memoryview) -> ImageMsg:
 
 
 def parse_image(wire: str, compressed: bool, data: bytes | memoryview) -> ImageMsg:
-    """An Image (compressed: a CompressedImage) message of the wire format "ros1" | "cdr"."""
+    """An Image (compressed: a CompressedImage) message of the wire format "ros1" | "cdr" (a CDR message
+    compressed alone with zstd is decompressed first)."""
+    if wire == "cdr":
+        try:
+            data = unwrap(data)
+        except ValueError as e:
+            raise MessageError(str(e)) from None
     if compressed:
         return parse_ros1_compressed(data) if wire == "ros1" else parse_cdr_compressed(data)
     return parse_ros1_image(data) if wire == "ros1" else parse_cdr_image(data)

@@ -9,7 +9,7 @@ format's own library; images are parsed by `gscan.io.recordings.messages`, witho
   with the message definitions stored in the bag, or ROS 2 Humble's when a rosbag2 stores none.
   A message compressed on its own with zstd (librealsense 2.58 writes every message so, in a `.db3` with
   no metadata.yaml to say it) is recognised by the zstd frame magic, which no CDR message starts with,
-  and decompressed.
+  and decompressed when it is decoded or parsed (`unwrap`): a corrupt one spoils that message alone.
 - `.mcap`: the `mcap` package's reader (the format's reference implementation), messages decoded
   with `mcap-ros2-support` from the schemas stored in the file.
 
@@ -34,16 +34,18 @@ MAX_MESSAGE_BYTES = 1 << 30  # a decompressed message larger than this is refuse
 
 
 def zstd_decompress(data: bytes | memoryview) -> bytes:
-    """The bytes of one zstd frame (or several concatenated); ValueError when they do not decompress."""
+    """The bytes of a zstd frame; ValueError when they do not decompress (truncated, corrupt) or would decompress
+    to more than MAX_MESSAGE_BYTES (refused from the frame header's size before anything is allocated)."""
     import zstandard
 
+    raw = bytes(data)
     try:
-        out = zstandard.ZstdDecompressor().decompressobj().decompress(bytes(data))
+        size = zstandard.get_frame_parameters(raw).content_size
+        if size != zstandard.CONTENTSIZE_UNKNOWN and size > MAX_MESSAGE_BYTES:
+            raise ValueError(f"zstd frame claims {size} bytes, more than {MAX_MESSAGE_BYTES}")
+        return zstandard.ZstdDecompressor().decompress(raw, max_output_size=MAX_MESSAGE_BYTES)
     except zstandard.ZstdError as e:
         raise ValueError(f"zstd data does not decompress ({e})") from None
-    if len(out) > MAX_MESSAGE_BYTES:
-        raise ValueError(f"decompresses to {len(out)} bytes")
-    return out
 
 
 def unwrap(data: bytes | memoryview) -> bytes | memoryview:
@@ -124,7 +126,7 @@ class RosbagsSource:
             return
         try:
             for c, t, data in self._reader.messages(connections=conns, start=start_ns):
-                yield c.topic, int(t), unwrap(data) if self.wire == "cdr" else data
+                yield c.topic, int(t), data
         except InputError:
             raise
         except Exception as e:  # noqa: BLE001 - a corrupt chunk / page surfaces here
