@@ -7,6 +7,7 @@ pyrealsense2==2.58.4.10922` for 2.58's zstd-compressed messages, or 2.57.7 for t
 - every layout reads the frames fed, the intrinsics, depth scale, extrinsics and camera timestamps;
 - pyrealsense2's own playback of the installed SDK's `.db3` returns the frames gscan reads;
 - colour formats the SDK stores otherwise (BGR8, RGBA8 as PNG; YUYV zstd-compressed) read as fed;
+- a frame whose image does not decode is reported by name; a `.db3` without intrinsics exits 2 naming it;
 - `gscan scan`, `track` and `capture --from` of a `.db3` give what they give for a folder of the same frames.
 """
 from __future__ import annotations
@@ -171,6 +172,24 @@ def test_a_frame_whose_image_does_not_decode_is_reported_and_left_out(views, tmp
             seq["000001"]
         assert e.value.path == path and "000001" in seq.problems
         assert np.array_equal(seq["000002"].color, views.colors[2])
+
+
+def test_an_sdk_db3_without_intrinsics_exits_2_naming_it(views, tmp_path):
+    """The SDK's .db3 with the colour stream's CameraInfo and camera_info text removed: `gscan scan` exits 2 with one
+    line naming the file and the topics looked for, and writes nothing."""
+    path, _ = record(views, tmp_path / "no_intrinsics", n=2)
+    with sqlite3.connect(path) as con:
+        ids = [i for (i,) in con.execute("SELECT id FROM topics WHERE name LIKE '%/Color_0/%camera_info'")]
+        assert len(ids) == 2
+        con.executemany("DELETE FROM messages WHERE topic_id = ?", [(i,) for i in ids])
+        con.executemany("DELETE FROM topics WHERE id = ?", [(i,) for i in ids])
+    out = tmp_path / "out.gscan"
+    r = subprocess.run([sys.executable, "-m", "gscan.cli", "scan", str(path), "-o", str(out)], capture_output=True,
+                       text=True, cwd=ROOT, timeout=300, check=False)
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and len(lines) == 1 and "Traceback" not in r.stderr, r.stderr
+    assert lines[0].startswith(f"error: {path}: no CameraInfo for /device_0/sensor_1/Color_0/image/data/compressed")
+    assert "Color_0/image/camera_info" in lines[0] and not out.exists()
 
 
 def _gscan(*args: str | Path) -> dict:

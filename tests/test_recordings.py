@@ -7,7 +7,11 @@ writer) in the layouts librealsense's recorder and realsense2_camera use.
 - a scan of each recording gives the same poses as a scan of the folder;
 - unaligned depth (a depth camera 5 cm off, turned 2 degrees, other intrinsics) is reprojected within a
   millimetre of the truth, identically from every kind, and its scan is as accurate as the aligned capture's;
+- image_transport's CompressedImage topics (PNG colour, compressedDepth, JPEG, 32FC1 inverse depth) and
+  messages compressed alone with zstd (librealsense 2.58's .db3) read as the raw ones;
 - pairing, streaming (bounded buffering, random access), and bad input through the real CLI.
+
+RealSense recordings written by pyrealsense2's own recorder are tested in test_realsense_sdk.
 """
 from __future__ import annotations
 
