@@ -6,7 +6,9 @@ Run as a script so that the recording can be written by whichever pyrealsense2 i
 or another SDK version put first on PYTHONPATH): the SDK decides the layout (.bag up to 2.57, rosbag2 .db3 from
 2.58). FRAMES.npz holds colors [N x H x W x 3] uint8 RGB, depths [N x Hd x Wd] uint16 raw units, K_color and
 K_depth [3 x 3], T_color_depth [4 x 4], depth_units (metres per unit), period_ms, t0_ms and color_format (rgb8,
-bgr8, rgba8 or yuyv: what the colour sensor streams; the RGB pixels are converted to it). Prints the SDK version.
+bgr8, rgba8 or yuyv: what the colour sensor streams; the RGB pixels are converted to it); optional: color_clock_ms
+(the colour frames' timestamps on another clock: their offset, with the system-time domain) and pause_s (between
+frames; 0.01 by default). Prints the SDK version.
 """
 from __future__ import annotations
 
@@ -72,19 +74,23 @@ def record(frames: dict, out: str) -> None:
     depth_sensor.start(sync)
     color_sensor.start(sync)
     keep = []  # the SDK reads a frame's pixels after on_video_frame returns
+    clock = frames.get("color_clock_ms")
     for i, (rgb, raw) in enumerate(zip(colors, depths, strict=True)):
         t_ms = float(frames["t0_ms"]) + i * float(frames["period_ms"])
         for sensor, profile, px, nbytes in ((depth_sensor, dp, np.ascontiguousarray(raw), 2),
                                             (color_sensor, cp, color_bytes(rgb, fmt), bpp)):
             keep.append(px)
+            other_clock = sensor is color_sensor and clock is not None
             f = rs.software_video_frame()
-            f.pixels, f.bpp, f.stride, f.timestamp = px, nbytes, px.shape[1] * nbytes, t_ms
-            f.domain, f.frame_number = rs.timestamp_domain.hardware_clock, i
+            f.pixels, f.bpp, f.stride = px, nbytes, px.shape[1] * nbytes
+            f.timestamp = t_ms + float(clock) if other_clock else t_ms
+            f.domain = rs.timestamp_domain.system_time if other_clock else rs.timestamp_domain.hardware_clock
+            f.frame_number = i
             f.profile = profile.as_video_stream_profile()
             if sensor is depth_sensor:
                 f.depth_units = units
             sensor.on_video_frame(f)
-        time.sleep(0.01)  # the recorder writes from its own thread
+        time.sleep(float(frames.get("pause_s", 0.01)))  # the recorder writes from its own thread
     time.sleep(0.2)
     depth_sensor.stop()
     color_sensor.stop()

@@ -50,16 +50,17 @@ if not EXTRA_SDKS:
 
 
 def record(views, out: Path, sdk: str | None = None, unaligned: bool = False, color_format: str = "rgb8",
-           n: int | None = None) -> tuple[Path, str]:
+           n: int | None = None, **extra: float) -> tuple[Path, str]:
     """A recording of the views written by pyrealsense2's recorder (the SDK at `sdk`, or the installed one), as
     OUT.db3 or, when that SDK writes ROS 1 bags, OUT.bag; and the SDK's version. Aligned: depth from the colour
-    camera, identity extrinsics; unaligned: from the depth camera at T_depth_offset() with K_DEPTH."""
+    camera, identity extrinsics; unaligned: from the depth camera at T_depth_offset() with K_DEPTH. extra: the
+    recorder's optional settings (tests/_rs_record.py)."""
     frames = views.frames(unaligned=unaligned)[:n]
     K_d, T = (K_DEPTH, T_depth_offset()) if unaligned else (K_COLOR, np.eye(4))
     data = out.with_suffix(".npz")
     np.savez(data, colors=np.stack([f.color for f in frames]), depths=np.stack([f.depth for f in frames]),
              K_color=K_COLOR.K, K_depth=K_d.K, T_color_depth=T, depth_units=0.001, period_ms=PERIOD_MS,
-             t0_ms=T0_MS, color_format=color_format)
+             t0_ms=T0_MS, color_format=color_format, **extra)
     env = dict(os.environ)
     if sdk:
         env["PYTHONPATH"] = os.pathsep.join([sdk, env.get("PYTHONPATH", "")])
@@ -140,6 +141,18 @@ def test_sdk_unaligned_recording_gives_its_depth_camera(views, sdk, tmp_path):
                 c, d = seq.raw(name)
                 assert np.array_equal(color[i], c), name
                 assert np.array_equal(depth[i].astype(np.float32) * np.float32(0.001), d), name
+
+
+def test_timestamps_of_two_clocks_pair_by_recording_time(views, tmp_path):
+    """Colour timestamps on another clock (system time, 5 s off) than depth's (hardware clock) never pair by
+    value: the frames are paired by the times they were recorded at (fed 0.1 s apart), every frame as fed."""
+    path, _ = record(views, tmp_path / "clocks", n=4, color_clock_ms=5000.0, pause_s=0.1)
+    with open_sequence(path) as seq:
+        assert len(seq) == 4 and seq.problems == {}
+        assert seq.timestamps["000000"] < 1.0  # the recording time, not the camera's 1 s or 6 s
+        for i, name in enumerate(seq.names):
+            assert np.array_equal(seq[name].color, views.colors[i]), name
+            assert np.array_equal(seq[name].depth, views.frames()[i].depth * np.float32(0.001)), name
 
 
 @pytest.mark.parametrize("fmt", ["bgr8", "rgba8", "yuyv"])

@@ -27,7 +27,8 @@ undoes that), under the same /device_0/sensor_S/<Type>_<i> prefixes:
   .../tf/ref_<k>                           std_msgs/String "rotation=<9, column-major>;translation=<3>":
                                            the extrinsics from the reference stream to this one
   /device_0/sensor_S/option/Depth_Units/value   std_msgs/String, metres per depth unit ("%f": 6 decimals)
-Frames are paired by the camera's timestamps, as librealsense's playback does.
+Frames are paired by the camera's timestamps, as librealsense's playback does; when colour and depth's are in
+different domains (clocks) or missing, by their recording times (the image headers').
 """
 from __future__ import annotations
 
@@ -190,26 +191,42 @@ def _intrinsics(src: MessageSource, topics: dict[str, str], image_topic: str) ->
                      f"{prefix}/image/camera_info, {prefix}/camera_info)")
 
 
-def _camera_stamps(src: MessageSource, topics: dict[str, str], image_topic: str) -> dict[int, int] | None:
-    """{log time (ns): the camera's timestamp (ns)} of a .db3 stream's frames, from its image/metadata strings
-    ("timestamp=<ms>"); None for a .bag (its image headers carry the camera's timestamps) or when the metadata
-    topic is missing."""
+def _camera_stamps(src: MessageSource, topics: dict[str, str], image_topic: str) -> tuple[dict[int, int], str] | None:
+    """({log time (ns): the camera's timestamp (ns)}, the timestamps' domain) of a .db3 stream's frames, from its
+    image/metadata strings ("timestamp=<ms>", "timestamp_domain=..."); None for a .bag (its image headers carry
+    the camera's timestamps) or when the stream's metadata holds no timestamp."""
     topic = f"{_prefix(image_topic)}/image/metadata"
     if src.wire == "ros1" or topics.get(topic) != STRING:
         return None
     stamps: dict[int, int] = {}
+    domains: set[str] = set()
     for t, log_ns, data in src.messages([topic]):
-        value = _key_values(str(src.decode(t, data).data)).get("timestamp")
+        kv = _key_values(str(src.decode(t, data).data))
         try:
-            ms = float(value) if value is not None else float("nan")
+            ms = float(kv.get("timestamp", "nan"))
         except ValueError:
             ms = float("nan")
         if np.isfinite(ms):
             stamps.setdefault(log_ns, round(ms * 1e6))
-    if not stamps:
-        log.warning("%s: %s holds no timestamp; frames are paired by their header stamps", src.path, topic)
-        return None
-    return stamps
+            domains.add(kv.get("timestamp_domain", ""))
+    return (stamps, " / ".join(sorted(domains))) if stamps else None
+
+
+def _pairing_stamps(src: MessageSource, topics: dict[str, str], color: str, depth: str) -> dict[str, dict[int, int]]:
+    """The camera timestamps of both streams of a .db3 when both have them in one domain (then the frames are
+    paired by them); otherwise none (paired by the recording times in the image headers), said in the log."""
+    if src.wire == "ros1":
+        return {}
+    cs, ds = _camera_stamps(src, topics, color), _camera_stamps(src, topics, depth)
+    if cs is None or ds is None:
+        log.warning("%s: %s carries no camera timestamps; colour and depth are paired by their recording times",
+                    src.path, color if cs is None else depth)
+        return {}
+    if cs[1] != ds[1]:
+        log.warning("%s: colour timestamps are %s, depth's %s: colour and depth are paired by their recording "
+                    "times", src.path, cs[1] or "of no domain", ds[1] or "of no domain")
+        return {}
+    return {color: cs[0], depth: ds[0]}
 
 
 def realsense_setup(src: MessageSource, color_topic: str | None = None, depth_topic: str | None = None) -> StreamSetup:
@@ -224,7 +241,7 @@ def realsense_setup(src: MessageSource, color_topic: str | None = None, depth_to
     sensor = _prefix(depth).rsplit("/", 1)[0]
     T = _extrinsics(src, topics, _prefix(color), _prefix(depth))
     compressed = frozenset(t for t in (color, depth) if topics[t] == COMPRESSED_IMAGE)
-    stamps = {t: st for t in (color, depth) if (st := _camera_stamps(src, topics, t)) is not None}
+    stamps = _pairing_stamps(src, topics, color, depth)
     kind = "RealSense bag" if src.wire == "ros1" else "RealSense rosbag2"
     return StreamSetup(kind, color, depth, intr[color], recorded_depth_camera(intr[depth], T, src.path),
                        _depth_units(src, topics, sensor), compressed, stamps)
