@@ -513,14 +513,18 @@ def test_recording_frames_above_the_pixel_limit_are_refused_from_their_header(re
     assert "above the limit of 76799 pixels" in lines[0] and not out.exists()
 
 
-def _compressed_msg(fmt: str, data: bytes) -> bytes:
-    """A ROS 2 CompressedImage serialised (CDR), its header stamped 1.5 s in frame "cam"."""
+def _compressed_msg(fmt: str, data: bytes, wire: str = "cdr") -> bytes:
+    """A CompressedImage serialised as ROS 2 (CDR) or ROS 1 writes it, its header stamped 1.5 s in frame "cam"."""
     from rosbags.typesys import Stores, get_typestore
 
-    ts = get_typestore(Stores.ROS2_HUMBLE)
+    ts = get_typestore(Stores.ROS1_NOETIC if wire == "ros1" else Stores.ROS2_HUMBLE)
     T = ts.types
-    hdr = T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=1, nanosec=500_000_000), frame_id="cam")
+    stamp = T["builtin_interfaces/msg/Time"](sec=1, nanosec=500_000_000)
+    H = T["std_msgs/msg/Header"]
+    hdr = H(seq=7, stamp=stamp, frame_id="cam") if wire == "ros1" else H(stamp=stamp, frame_id="cam")
     msg = T["sensor_msgs/msg/CompressedImage"](header=hdr, format=fmt, data=np.frombuffer(data, np.uint8))
+    if wire == "ros1":
+        return bytes(ts.serialize_ros1(msg, "sensor_msgs/msg/CompressedImage"))
     return bytes(ts.serialize_cdr(msg, "sensor_msgs/msg/CompressedImage"))
 
 
@@ -546,16 +550,18 @@ def test_compressed_depth_of_float_depth_is_its_quantised_inverse_depth():
     assert np.all(np.abs(got - z)[z > 0] <= bound[z > 0] + 1e-6)
 
 
-def test_jpeg_colour_reads_as_opencv_decodes_it():
-    """A bare "jpeg" CompressedImage (old drivers, image_transport's bgr8): its size from the JPEG frame header
-    without decoding, its pixels as OpenCV decodes the file, RGB."""
+@pytest.mark.parametrize("wire", ["ros1", "cdr"])
+def test_jpeg_colour_reads_as_opencv_decodes_it(wire):
+    """A bare "jpeg" CompressedImage (old drivers, image_transport's bgr8) of a ROS 1 bag or a rosbag2: its size
+    from the JPEG frame header without decoding, its pixels as OpenCV decodes the file, RGB."""
     from gscan.io.recordings.messages import color_pixels, parse_image
 
     rgb = np.random.default_rng(4).integers(0, 256, (40, 56, 3), dtype=np.uint8)
     ok, jpg = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
     assert ok
-    msg = parse_image("cdr", True, _compressed_msg("jpeg", jpg.tobytes()))
+    msg = parse_image(wire, True, _compressed_msg("jpeg", jpg.tobytes(), wire))
     assert (msg.width, msg.height, msg.compression) == (56, 40, "image")
+    assert (msg.stamp_ns, msg.frame_id, msg.encoding) == (1_500_000_000, "cam", "bgr8")
     want = cv2.cvtColor(cv2.imdecode(jpg, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
     assert np.array_equal(color_pixels(msg), want)
 
