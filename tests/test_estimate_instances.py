@@ -1,7 +1,8 @@
-"""Every instance in one frame (gscan.estimate.instances): rendered piles of 2-5 copies (touching or nearly, some
-lying on a side, one distractor), two templated objects in one pile, a look-alike box, a twin-printed box whose
-view stays ambiguous, and the claims of two templates on the same pixels. Every test but the last-but-one builds CAD templates and renders
-piles: slow (about 4 minutes in all on a loaded 2-core machine, most of it the templates)."""
+"""Every instance in one frame (gscan.estimate.instances): rendered piles of 2-5 copies (touching or nearly,
+some lying on a side, one distractor), two templated objects in one pile, a look-alike box, a twin-printed box
+whose view stays ambiguous, and the claims of two templates on the same pixels. Every test but the claims' builds
+CAD templates and renders piles: slow (about 4 minutes in all on a loaded 2-core machine, most of it the
+templates)."""
 from __future__ import annotations
 
 from pathlib import Path
