@@ -311,6 +311,7 @@ def estimate_templates(estimators: list[Estimator], frame: RGBDFrame, mask: np.n
     for est in estimators:
         key = (est.params.features, est.params.query) if est.camera_fix is None else None
         shared = cache.get(key) if key is not None else None
+        prepared_ms = 0.0
         if shared is None:
             t0 = time.perf_counter()
             with est.limit_threads():
@@ -321,9 +322,13 @@ def estimate_templates(estimators: list[Estimator], frame: RGBDFrame, mask: np.n
             shared = (q, feats)
             if key is not None:
                 cache[key] = shared
-            log.debug("frame prepared for %s in %.0f ms", est.name, ms_since(t0))
+            prepared_ms = ms_since(t0)
         q, feats = shared
-        outs.append(estimate_all(est, frame, mask, refine, None if feats is None else (q, feats)))
+        out = estimate_all(est, frame, mask, refine, None if feats is None else (q, feats))
+        if feats is not None:  # the frame's preparation and features counted where they were computed
+            out.timings_ms["features"] += prepared_ms
+            out.timings_ms["total"] += prepared_ms
+        outs.append(out)
     resolve_claims(outs, [e.params.instances.max_overlap for e in estimators])
     return outs
 
