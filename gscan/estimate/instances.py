@@ -14,9 +14,10 @@ repeated on what the instances found so far do not explain:
   still refuses the pose.
 - a pose that shares more than `max_overlap` of its pixels with an instance already found, or lies closer
   than the thinnest extent to one, is a duplicate: never returned.
-- the search stops at the first refusal (its reason is the list's when nothing was found) or after
-  `instances.max_instances` instances. Instances are returned best score first (depth agreement, then
-  keypoint support).
+- a refused search is tried again `instances.retries` times in a row, the keypoints of the lists it refused
+  left out (another instance may lie beyond them); the search stops after that (the last refusal is the
+  list's reason when nothing was found), or after `instances.max_instances` instances. Instances are returned
+  best score first (depth agreement, then keypoint support).
 
 Several templates (`estimate_templates`): the frame's search region and features are shared by the templates
 that read the frame alike (the same descriptor kind and keypoint settings, no camera correction of their own);
@@ -180,10 +181,12 @@ class InstanceSearch:
         v = np.clip(np.rint(self.feats.pixels[:, 1]).astype(np.int64), 0, H - 1)
         reason: str | None = f"the cap of {self.p.max_instances} instances reached"
         prev: tuple[list[MatchList], np.ndarray] | None = None  # the last search's lists, its keypoints' ids
-        for _ in range(2 * self.p.max_instances):  # (a search ends in an instance, or an ambiguous one left out)
+        dropped = np.zeros(len(self.feats), bool)  # keypoints of refused lists
+        refusals = 0  # refusals in a row
+        for _ in range(2 * self.p.max_instances + self.p.retries):  # (an instance, an ambiguous one, a refusal)
             if len(found) >= self.p.max_instances:
                 break
-            keep = ~removed[v, u]
+            keep = ~removed[v, u] & ~dropped
             if int((keep & agree).sum()) < p.accept.min_matches:
                 reason = "too few keypoints left that agree with the template"
                 break
@@ -227,7 +230,15 @@ class InstanceSearch:
                 if (reason or "").startswith(AMBIGUOUS) and tie and tie[0].T_cam_obj is not None:
                     removed |= self.pixels(self.q, tie[0].T_cam_obj)  # no pose there, but others may lie beyond
                     continue
-                break
+                refusals += 1
+                tried = [c for c in lists if c.n >= p.accept.min_matches][: max(1, p.verify.lists)]
+                if refusals > self.p.retries or not tried:
+                    break
+                # the refused lists' keypoints leave the next search (their pixels may hold another instance)
+                dropped[ids[np.concatenate([c.matches[:, 1] for c in tried])]] = True
+                prev = None
+                continue
+            refusals = 0
             pix = self.pixels(self.q, res.T_cam_obj)
             res.pixels = pix
             if any(self.same(res.T_cam_obj, pix, f.T_cam_obj, f.pixels) for f in found
