@@ -19,6 +19,7 @@ instances in the pile. Every estimator estimates a first frame untimed (compiled
 
     python bench/instances.py                     # both splits
     python bench/instances.py --split tune --json out.json
+    python bench/instances.py --retries 1         # a refused search tried again
 """
 from __future__ import annotations
 
@@ -27,11 +28,12 @@ import json
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
-from gscan.estimate.estimator import Estimator
+from gscan.estimate.estimator import EstimateParams, Estimator
 from gscan.io.camera import RGBDFrame
 from gscan.synth import load_textured_mesh
 from gscan.synth.piles import render_pile
@@ -74,14 +76,14 @@ def score(est: Estimator, results, truths: list[np.ndarray], visible: np.ndarray
             "duplicates": dup}
 
 
-def run_object(name: str, seeds: int, root: Path) -> dict:
+def run_object(name: str, seeds: int, root: Path, params: EstimateParams) -> dict:
     from gscan.scanning.cad import template_from_mesh
 
     tpl = root / f"{name}.gscan"
     template_from_mesh(MESHES / name / "model_0.obj", tpl, n_views=36)
     mesh = load_textured_mesh(MESHES / name / "model_0.obj")
     distractor = load_textured_mesh(MESHES / DISTRACTOR / "model_0.obj")
-    est = Estimator.from_path(tpl)
+    est = Estimator.from_path(tpl, params)
     est.estimate(frame_of(render_pile([mesh], 999)))  # untimed: compiled kernels loaded
     rows = []
     for n in COUNTS:
@@ -126,13 +128,17 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--split", choices=["tune", "held_out", "both"], default="both")
     ap.add_argument("--seeds", type=int, default=2, help="piles per object and number of instances")
+    ap.add_argument("--retries", type=int, default=None, help="estimate.instances.retries (default: the setting's)")
     ap.add_argument("--json", type=Path, default=None, help="write the rows and the summary here")
     args = ap.parse_args()
     splits = list(SPLITS) if args.split == "both" else [args.split]
+    params = EstimateParams()
+    if args.retries is not None:
+        params = replace(params, instances=replace(params.instances, retries=args.retries))
     report = {}
     with tempfile.TemporaryDirectory() as tmp:
         for split in splits:
-            objects = [run_object(name, args.seeds, Path(tmp)) for name in SPLITS[split]]
+            objects = [run_object(name, args.seeds, Path(tmp), params) for name in SPLITS[split]]
             report[split] = {"summary": summary(objects), "objects": objects}
     print("| split | piles + negatives | instances | recall % | precision % | duplicates | wrong | "
           "CPU ratio to one estimate, 2 / 3 / 4 / 5 instances |")

@@ -201,7 +201,8 @@ class InstanceParams:
     max_instances: Annotated[int, Field(description="instances sought per template and frame at most (each one more "
                                         "search on what the found ones leave)", ge=1)] = 8
     retries: Annotated[int, Field(description="searches after a refusal in a row, the refused lists' keypoints left "
-                                  "out (another instance may lie beyond them)", ge=0)] = 1
+                                  "out (another instance may lie beyond them; each costs a search of the frame)",
+                                  ge=0)] = 0
     explain_dist: Annotated[float, Field(description="m: a pixel whose point lies this close to a found pose's surface "
                                          "is explained by it (its keypoints and depth leave the next search)",
                                          gt=0)] = 0.008
