@@ -28,26 +28,49 @@ from __future__ import annotations
 
 import logging
 import time
+from contextlib import AbstractContextManager
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from gscan.estimate.hypotheses import MatchList, QueryKeypoints, hypothesise, prescore, query_keypoints
+from gscan.estimate.hypotheses import Matcher, MatchList, QueryKeypoints, hypothesise, prescore, query_keypoints
+from gscan.estimate.model import ObjectModel
+from gscan.estimate.params import EstimateParams
 from gscan.estimate.query import QueryFrame, query_features
 from gscan.estimate.result import STAGES, EstimateResult, matrix_json, ms_since, not_found
-from gscan.estimate.retrieval import Retrieval
-from gscan.estimate.rivals import AMBIGUOUS
+from gscan.estimate.retrieval import Retrieval, TemplateIndex
+from gscan.estimate.rivals import AMBIGUOUS, ListVerifier
 from gscan.estimate.verify import visible
 from gscan.features import Features
 from gscan.geometry.transforms import transform_points
-from gscan.io.camera import RGBDFrame
+from gscan.io.camera import Intrinsics, RGBDFrame
 from gscan.progress import StageTimer
 
-if TYPE_CHECKING:
-    from gscan.estimate.estimator import Estimator
+
+class Searcher(Protocol):
+    """What the instance search uses of `gscan.estimate.estimator.Estimator` (which calls it: this module does not
+    import it)."""
+
+    name: str
+    params: EstimateParams
+    index: TemplateIndex
+    model: ObjectModel
+    verifier: ListVerifier
+    matcher: Matcher
+    camera_fix: tuple[Intrinsics, Intrinsics] | None
+
+    def prepare(self, frame: RGBDFrame, mask: np.ndarray | None = None) -> QueryFrame: ...
+
+    def limit_threads(self) -> AbstractContextManager[None]: ...
+
+    def estimate(self, frame: RGBDFrame, mask: np.ndarray | None = None, refine: bool = True,
+                 near: np.ndarray | None = None) -> EstimateResult: ...
+
+    def result(self, res: EstimateResult, timer: StageTimer, t0: float,
+               near: np.ndarray | None = None) -> EstimateResult: ...
 
 log = logging.getLogger(__name__)
 
@@ -148,7 +171,7 @@ def subset(feats: Features, keep: np.ndarray) -> Features:
 class InstanceSearch:
     """The repeated search of one template in one prepared frame (module docstring)."""
 
-    def __init__(self, est: Estimator, q: QueryFrame, feats: Features, refine: bool):
+    def __init__(self, est: Searcher, q: QueryFrame, feats: Features, refine: bool):
         self.est, self.q, self.feats, self.refine = est, q, feats, refine
         self.p = est.params.instances
         self.thin = thinnest_extent(est.model.samples)
@@ -254,7 +277,7 @@ class InstanceSearch:
         return Instances(est.name, found, None if found else reason, reason)
 
 
-def carried(lists: list[MatchList], ids: np.ndarray, now: np.ndarray, est: Estimator, qk: QueryKeypoints,
+def carried(lists: list[MatchList], ids: np.ndarray, now: np.ndarray, est: Searcher, qk: QueryKeypoints,
             r: Retrieval) -> list[MatchList]:
     """The match lists of a previous search on the keypoints left: each list's pairs whose query keypoint
     (ids [M]: the previous search's keypoints' ids) is still there (now [M']: this search's ids), lists of at
@@ -279,7 +302,7 @@ def overlapping(pix_a: np.ndarray, pix_b: np.ndarray, max_overlap: float) -> boo
     return n > 0 and int((pix_a & pix_b).sum()) > max_overlap * n
 
 
-def estimate_all(est: Estimator, frame: RGBDFrame, mask: np.ndarray | None = None, refine: bool = True,
+def estimate_all(est: Searcher, frame: RGBDFrame, mask: np.ndarray | None = None, refine: bool = True,
                  shared: tuple[QueryFrame, Features] | None = None) -> Instances:
     """Every instance of `est`'s object in `frame` (module docstring); shared: the frame prepared and its
     features when another template already computed them (`estimate_templates`)."""
@@ -313,7 +336,7 @@ def estimate_all(est: Estimator, frame: RGBDFrame, mask: np.ndarray | None = Non
     return out
 
 
-def estimate_templates(estimators: list[Estimator], frame: RGBDFrame, mask: np.ndarray | None = None,
+def estimate_templates(estimators: list[Searcher], frame: RGBDFrame, mask: np.ndarray | None = None,
                        refine: bool = True) -> list[Instances]:
     """Every instance of every template in `frame` (module docstring), one `Instances` per estimator in order.
     The frame is prepared and its features computed once for the templates that read it alike."""
