@@ -79,8 +79,9 @@ class Pose:
 
 @dataclass(frozen=True)
 class EstimateResponse:
-    results: dict[str, Pose]  # template name -> result
+    results: dict[str, Pose]  # template name -> result (with all_instances: its first instance)
     timings_ms: dict[str, float]
+    instances: dict[str, list[Pose]] = field(default_factory=dict)  # with all_instances: every one, best first
 
 
 @dataclass(frozen=True)
@@ -106,14 +107,18 @@ class GscanClient:
 
     def estimate(self, color: ImageInput, depth: ImageInput, intrinsics: IntrinsicsInput, depth_scale: float = 0.001,
                  mask: ImageInput | None = None, templates: list[str] | None = None,
-                 depth_camera: DepthCamera | None = None) -> EstimateResponse:
+                 depth_camera: DepthCamera | None = None, all_instances: bool = False) -> EstimateResponse:
         """The pose of every requested template's object (default: all) in one RGB-D frame (depth from a
-        separate camera: `depth_camera`)."""
+        separate camera: `depth_camera`); all_instances: every instance of each (`EstimateResponse.instances`)."""
         fields = self._frame_fields(color, depth, intrinsics, depth_scale, mask, depth_camera)
         if templates:
             fields.append(("templates", None, ",".join(templates).encode()))
+        if all_instances:
+            fields.append(("all", None, b"true"))
         d = self._request("POST", "/estimate", fields)
-        return EstimateResponse({k: Pose.from_json(v) for k, v in d["results"].items()}, dict(d["timings_ms"]))
+        insts = {k: [Pose.from_json(p) for p in v["instances"]] for k, v in (d.get("instances") or {}).items()}
+        return EstimateResponse({k: Pose.from_json(v) for k, v in d["results"].items()}, dict(d["timings_ms"]),
+                                insts)
 
     def track(self, session: str, color: ImageInput, depth: ImageInput, intrinsics: IntrinsicsInput,
               depth_scale: float = 0.001, mask: ImageInput | None = None, template: str | None = None,

@@ -151,6 +151,30 @@ def _estimate_args(template: Path) -> list[str]:
             str(held / "depth" / "000000.png"), "--intrinsics", str(held / "cam_K.txt"), "--json"]
 
 
+def test_estimate_all_lists_each_template_and_gives_claimed_pixels_to_one(sample_template: Path, tmp_path: Path):
+    """`estimate A B --all --json`: a list per template, each instance the single estimate's object plus its
+    pixels; the same object under two names claims the same pixels, so one keeps the instance and the other
+    lists it as refused, naming it. Several templates without --all, or --max-instances without it: exit 2."""
+    import shutil
+
+    twin = tmp_path / "twin.gscan"
+    shutil.copy(sample_template, twin)
+    single = json.loads(_gscan(*_estimate_args(sample_template)).stdout)
+    args = _estimate_args(sample_template)
+    r = _gscan(*args[:2], str(twin), *args[2:], "--all")
+    assert r.returncode == 0, r.stderr
+    js = json.loads(r.stdout)
+    first, second = js["templates"]
+    assert [first["template"], second["template"]] == [sample_template.stem, "twin"]
+    assert len(first["instances"]) == 1 and first["reason"] is None and first["instances"][0]["pixels"]["count"] > 0
+    inst = first["instances"][0]
+    assert set(single) <= set(inst) and np.allclose(inst["T_cam_obj"], single["T_cam_obj"], atol=2e-3)
+    assert second["instances"] == [] and "claimed by template " + sample_template.stem in second["refused"][0]["reason"]
+    for bad in ([*args[:2], str(twin), *args[2:]], [*args, "--max-instances", "2"]):
+        r = _gscan(*bad)
+        assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+
+
 def test_config_dump_loads_back_and_its_estimate_section_reaches_estimate(sample_template: Path, tmp_path: Path):
     """`config dump` prints the scan's sections, then `estimate:`; the whole file loads back as the defaults of
     both, and an edited `estimate:` value given to `estimate --config` changes the estimate."""

@@ -177,6 +177,26 @@ def test_twenty_frames_found_not_found_and_bad(service, meshes):
     assert again.found
 
 
+def test_every_instance_through_the_service(service, meshes):
+    """all=true: every copy of the object in a pile, each within 5 deg / 1 cm, best score first; `results` holds
+    the first (a one-instance caller reads it as before)."""
+    from gscan.synth.piles import render_pile
+
+    _, client = service
+    pile = render_pile([meshes[0], meshes[0], meshes[1]], 3)
+    c, d = frame_bytes(pile.frame)
+    res = client.estimate(c, d, K_TEXT, all_instances=True)
+    poses = res.instances["scrabble"]
+    assert len(poses) == 2 and res.results["scrabble"] == poses[0]
+    hit = sorted(int(np.argmin([pose_error(np.asarray(p.T_cam_obj), T)[1] for T in pile.T_cam_objs[:2]]))
+                 for p in poses)
+    assert hit == [0, 1]
+    for p, T in zip(poses, pile.T_cam_objs[hit], strict=True):
+        deg, m = pose_error(np.asarray(p.T_cam_obj), T)
+        assert deg < 5.0 and m < 0.01
+    assert poses[0].score >= poses[1].score
+
+
 def test_tracking_session_through_the_service(service, meshes):
     _, client = service
     rng_seed = 3

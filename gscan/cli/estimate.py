@@ -28,7 +28,8 @@ def load_query_frame(color: Path, depth: Path, intrinsics: Path, depth_scale: fl
 
 
 def estimate(
-    template: Path = typer.Argument(..., help="template database (OBJ.gscan)"),
+    templates: list[Path] = typer.Argument(..., metavar="TEMPLATE...",
+                                           help="template database(s) (OBJ.gscan); several need --all"),
     color: Path = typer.Option(..., "--color", help="colour image"),
     depth: Path = typer.Option(..., "--depth", help="16-bit depth image"),
     intrinsics: Path = typer.Option(..., "--intrinsics", help="cam_K.txt or Open3D intrinsics JSON"),
@@ -38,16 +39,32 @@ def estimate(
     depth_intrinsics: Path | None = typer.Option(None, "--depth-intrinsics", help=DEPTH_INTRINSICS_HELP),
     depth_to_color: Path | None = typer.Option(None, "--depth-to-color", help=DEPTH_TO_COLOR_HELP),
     config: Path | None = typer.Option(None, "--config", help=ESTIMATE_CONFIG_HELP),
+    all_instances: bool = typer.Option(False, "--all", help="every instance of every template (a list per "
+                                       "template, best score first)"),
+    max_instances: int | None = typer.Option(None, "--max-instances", min=1, help="with --all: instances sought "
+                                             "per template at most (default: the configuration's "
+                                             "estimate.instances.max_instances, 8)"),
     json_out: bool = typer.Option(False, "--json", help=JSON_HELP),
 ) -> None:
-    """Estimate the object's pose T_cam_obj in a new RGB-D frame."""
+    """Estimate the object's pose T_cam_obj in a new RGB-D frame (--all: every instance of every template)."""
+    from dataclasses import replace
+
     from gscan.estimate.estimator import Estimator
     from gscan.estimate.settings import load_estimate_params
 
+    if len(templates) > 1 and not all_instances:
+        raise UsageError(templates[1], "several templates are estimated together with --all only")
+    if max_instances is not None and not all_instances:
+        raise UsageError(None, "--max-instances is a setting of --all")
     params = load_estimate_params(config)
-    estimator = Estimator.from_path(template, params)
+    if max_instances is not None:
+        params = replace(params, instances=replace(params.instances, max_instances=max_instances))
+    estimators = [Estimator.from_path(t, params) for t in templates]
     frame = load_query_frame(color, depth, intrinsics, depth_scale, mask, depth_intrinsics, depth_to_color)
-    result = estimator.estimate(frame, mask=frame.mask, refine=not no_icp)
+    if all_instances:
+        estimate_every_instance(estimators, frame, not no_icp, json_out)
+        return
+    result = estimators[0].estimate(frame, mask=frame.mask, refine=not no_icp)
     out = result.to_json()
     if json_out:
         print_json(out)
@@ -65,6 +82,35 @@ def estimate(
             line(f"grasp {name}: T_cam_grasp =")
             err.print(format_matrix(T))
     err.print("timings (ms): " + ", ".join(f"{k} {v:.1f}" for k, v in out["timings_ms"].items()))
+
+
+def estimate_every_instance(estimators: list[Any], frame: Any, refine: bool, json_out: bool) -> None:
+    """`estimate --all`: every instance of every template (gscan.estimate.instances.estimate_templates), printed
+    or as the JSON object {"templates": [Instances.to_json(), ...], "timings_ms": {"total"}}."""
+    import time
+
+    from gscan.estimate.instances import estimate_templates
+
+    t0 = time.perf_counter()
+    outs = estimate_templates(estimators, frame, frame.mask, refine)
+    total = 1e3 * (time.perf_counter() - t0)
+    if json_out:
+        print_json({"templates": [o.to_json() for o in outs], "timings_ms": {"total": total}})
+        return
+    for o in outs:
+        if not o.results:
+            say((f"{o.template}: no instance found", "yellow"), f": {o.reason}")
+        else:
+            line(f"{o.template}: {len(o.results)} instance{'s' if len(o.results) > 1 else ''} found "
+                 f"(search stopped: {o.stopped})")
+        for k, r in enumerate(o.results):
+            js = r.to_json()
+            line(f"  instance {k + 1}: score {r.score:.3f}, {r.n_matches} matched keypoint pairs, "
+                 f"{int(r.pixels.sum()) if r.pixels is not None else 0} pixels explained; T_cam_obj =")
+            err.print(format_matrix(js["T_cam_obj"]))
+        for r in o.refused:
+            say(("  refused:", "yellow"), f" {r.reason}")
+    err.print(f"timings (ms): total {total:.1f}")
 
 
 def track(

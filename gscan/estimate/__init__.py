@@ -1,6 +1,8 @@
 """Pose estimation of a templated object in RGB-D frames, and tracking through sequences.
 
     Estimator.from_path(template) -> Estimator;  Estimator.estimate(frame, mask=None) -> EstimateResult
+    Estimator.estimate_all(frame) -> Instances (every instance); estimate_templates(estimators, frame) ->
+    [Instances] (every instance of several templates, the frame's features computed once)
     Tracker(estimator).step(frame) -> TrackStep;  track_sequence(estimator, sequence) -> TrackRun
     write_poses(run, out_dir, force=False): one `ob_in_cam` 4x4 text file per frame with a pose
 
@@ -13,10 +15,12 @@ Modules, in the order of the stages: `query` (the frame's full-image work, once;
 poses), `symmetric` (poses that look alike under the object's symmetries, and the rule that picks one), `refine`
 (anchored ICP), `verify` (the evidence a pose is accepted on), `pnp` (2D-3D fallback without depth), `estimator`
 (Estimator, the façade composing them), `track` (the previous pose as a prior), `model` (the object's surface),
+`instances` (every instance of one or more templates: the search repeated on what found ones leave),
 `params` (EstimateParams, a section per stage), `settings` (its YAML), `result` (EstimateResult, the `estimate
 --json` object).
 """
 from gscan.estimate.estimator import Estimator
+from gscan.estimate.instances import Instances, estimate_templates
 from gscan.estimate.params import EstimateParams
 from gscan.estimate.result import STAGES, EstimateResult
 from gscan.estimate.settings import dump_estimate_defaults, load_estimate_params
@@ -24,5 +28,5 @@ from gscan.estimate.track import STATUSES, Tracker, TrackParams, TrackRun, Track
 from gscan.estimate.verify import AcceptParams, Evidence
 
 __all__ = ["STAGES", "STATUSES", "AcceptParams", "EstimateParams", "EstimateResult", "Estimator", "Evidence",
-           "TrackParams", "TrackRun", "TrackStep", "Tracker", "dump_estimate_defaults", "load_estimate_params",
-           "track_sequence", "write_poses"]
+           "Instances", "TrackParams", "TrackRun", "TrackStep", "Tracker", "dump_estimate_defaults",
+           "estimate_templates", "load_estimate_params", "track_sequence", "write_poses"]

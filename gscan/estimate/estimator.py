@@ -75,6 +75,7 @@ import numpy as np
 
 from gscan.errors import InputError
 from gscan.estimate.hypotheses import GMatchLists, Matcher, hypothesise, query_keypoints
+from gscan.estimate.instances import Instances, estimate_all
 from gscan.estimate.model import ObjectModel
 from gscan.estimate.params import DEFAULT_PARAMS, EstimateParams
 from gscan.estimate.pnp import estimate_pnp, pnp_without_depth
@@ -97,7 +98,7 @@ from gscan.template.db import Template, open_template
 
 log = logging.getLogger(__name__)
 
-__all__ = ["STAGES", "EstimateParams", "EstimateResult", "Estimator"]
+__all__ = ["STAGES", "EstimateParams", "EstimateResult", "Estimator", "Instances"]
 
 
 class Estimator:
@@ -189,6 +190,11 @@ class Estimator:
         templates estimated in one frame share it (`estimate_prepared`)."""
         with self.limit_threads():
             return prepare_query(self.as_scanned(frame), mask, self.params.query)
+
+    def estimate_all(self, frame: RGBDFrame, mask: np.ndarray | None = None, refine: bool = True) -> Instances:
+        """Every instance of the template's object in `frame` (gscan.estimate.instances): found poses best score
+        first, each verified as `estimate`'s pose is, never two on one instance; none with the reason."""
+        return estimate_all(self, frame, mask, refine)
 
     def estimate_prepared(self, q: QueryFrame, refine: bool = True) -> EstimateResult:
         """`estimate` on a frame `prepare` made (several templates estimated in one frame share it)."""

@@ -195,6 +195,26 @@ class ThreadParams:
 
 
 @dataclass(frozen=True)
+class InstanceParams:
+    """Every instance of a template in one frame (`Estimator.estimate_all`, gscan.estimate.instances)."""
+
+    max_instances: Annotated[int, Field(description="instances sought per template and frame at most (each one more "
+                                        "search on what the found ones leave)", ge=1)] = 8
+    retries: Annotated[int, Field(description="searches after a refusal in a row, the refused lists' keypoints left "
+                                  "out (another instance may lie beyond them; each costs a search of the frame)",
+                                  ge=0)] = 0
+    explain_dist: Annotated[float, Field(description="m: a pixel whose point lies this close to a found pose's surface "
+                                         "is explained by it (its keypoints and depth leave the next search)",
+                                         gt=0)] = 0.008
+    dilate_px: Annotated[int, Field(description="px: the explained pixels grown by this much (keypoints at the "
+                                    "object's border)", ge=0)] = 3
+    max_overlap: Annotated[float, Field(description="two poses explaining more than this fraction of the smaller's "
+                                        "pixels in common are one instance (a rival there is weighed as today, a "
+                                        "second pose there is a duplicate)", gt=0, le=1)] = 0.3
+    __pydantic_config__ = SETTINGS
+
+
+@dataclass(frozen=True)
 class EstimateParams:
     """Every setting of `Estimator`, a section per stage."""
 
@@ -220,6 +240,8 @@ class EstimateParams:
     holes: Annotated[HoleParams, Field(description="2D-3D in the depth's holes")] = field(default_factory=HoleParams)
     threads: Annotated[ThreadParams, Field(description="threads while estimating")] = field(
         default_factory=ThreadParams)
+    instances: Annotated[InstanceParams, Field(description="every instance in a frame (estimate --all)")] = field(
+        default_factory=InstanceParams)
     __pydantic_config__ = SETTINGS
 
 

@@ -25,7 +25,8 @@ class EstimateResult:
     symmetry: for an object that looks the same under some turns (in shape and texture), the pose is the one of its
     equivalents the estimator's rule picks (gscan.estimate.symmetric) and this names the symmetries; None otherwise.
     grasp_equivalents {name: [T_cam_grasp [4 x 4], ...]}: each grasp in every equivalent pose, the reported pose's
-    first (the grasp alone without symmetries)."""
+    first (the grasp alone without symmetries). pixels: [H x W] bool the pixels the pose explains (set by
+    `Estimator.estimate_all` only; not in `to_json`, whose instance object adds their count and box)."""
 
     T_cam_obj: np.ndarray | None
     score: float
@@ -38,6 +39,7 @@ class EstimateResult:
     evidence: Evidence | None = None
     symmetry: str | None = None
     grasp_equivalents: dict[str, list[np.ndarray]] = field(default_factory=dict)
+    pixels: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def found(self) -> bool:

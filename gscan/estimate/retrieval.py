@@ -103,9 +103,18 @@ class TemplateIndex:
         """Query descriptors [M x D] -> the retrieval matrix, the view votes and each keypoint's nearest."""
         S = self.similarity(q_desc)
         nn, best = self.nearest(S)
+        return Retrieval(S, self.votes(nn, best), nn, best)
+
+    def votes(self, nn: np.ndarray, best: np.ndarray) -> np.ndarray:
+        """[V] each view's votes: a query keypoint votes for the view holding its nearest template descriptor nn [M]
+        when that one is close enough (best [M]: its value in S)."""
         ok = best >= 1.0 - 0.5 * self.params.max_dist ** 2 if self.unit else best < self.eps_f
-        # each query keypoint votes for the view holding its nearest template descriptor
-        return Retrieval(S, np.bincount(self.kp_view[nn[ok]], minlength=len(self.view_names)), nn, best)
+        return np.bincount(self.kp_view[nn[ok]], minlength=len(self.view_names))
+
+    def subset(self, r: Retrieval, keep: np.ndarray) -> Retrieval:
+        """`r` of the query keypoints `keep` ([M] bool or indices) only, its votes counted again."""
+        nn, best = r.nn[keep], r.best[keep]
+        return Retrieval(r.S[keep], self.votes(nn, best), nn, best)
 
     def nearest(self, S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Each row's nearest template keypoint in S [M x N] (first on ties) and its value: ([M], [M])."""

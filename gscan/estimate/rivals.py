@@ -28,6 +28,7 @@ rivals (`ListVerifier`).
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 
 import numpy as np
 
@@ -50,6 +51,9 @@ from gscan.registration.noise import sign_test
 log = logging.getLogger(__name__)
 
 AMBIGUOUS = "ambiguous view"  # the reason's start when two poses explain the frame alike
+
+#: (accepted, rival) -> the rival is another instance of the object, on pixels of its own (`Estimator.estimate_all`)
+Separate = Callable[[EstimateResult, EstimateResult], bool]
 
 
 class ListVerifier:
@@ -91,9 +95,10 @@ class ListVerifier:
         return query_sinks(q, T_cam_obj, self.model.samples, self.params.verify)
 
     def verify_lists(self, q: QueryFrame, qk: QueryKeypoints, lists: list[MatchList], refine: bool,
-                     timer: StageTimer) -> EstimateResult:
+                     timer: StageTimer, separate: Separate | None = None) -> EstimateResult:
         """The pose of the pooled lists (best pre-score first): the first accepted of the `verify.lists` best,
-        weighed against its rivals, else the best list's refusal."""
+        weighed against its rivals, else the best list's refusal. separate: when given, a rival it calls another
+        instance is no rival (`against_rivals`)."""
         p = self.params
         if not lists:
             return not_found("too few geometrically consistent matches (no list of 3)")
@@ -103,7 +108,7 @@ class ListVerifier:
             res = self.verify_list(q, qk, c, refine, timer, best=c is lists[0])
             if res.found:
                 rivals = [r for r in listed[i + 1:] if r.support >= p.rivals.min_support * c.support]
-                return self.against_rivals(q, qk, res, rivals, refine, timer)
+                return self.against_rivals(q, qk, res, rivals, refine, timer, separate)
             first = first or res
         if first is None:
             n = max(c.n for c in lists)
@@ -135,9 +140,11 @@ class ListVerifier:
         return found(T_cam_obj, ev.score, c.longest, view, "gmatch", ev)
 
     def against_rivals(self, q: QueryFrame, qk: QueryKeypoints, res: EstimateResult, rivals: list[MatchList],
-                       refine: bool, timer: StageTimer) -> EstimateResult:
+                       refine: bool, timer: StageTimer, separate: Separate | None = None) -> EstimateResult:
         """The accepted `res` against its rival lists (module docstring): the pose the keypoints significantly
-        favour, or not found when the view cannot tell them apart."""
+        favour, or not found when the view cannot tell them apart. separate: when given, an accepted rival it
+        calls another instance (apart, on pixels of its own) is left to a later search and does not count
+        among the `rivals.lists` checked: a rival on the same pixels is still weighed."""
         p = self.params
         checked = 0
         for r in rivals:
@@ -153,6 +160,9 @@ class ListVerifier:
                 continue
             deg, dist = self.apart(alt.T_cam_obj, res.T_cam_obj)
             if deg <= p.hypotheses.merge_deg and dist <= p.hypotheses.merge_dist:  # the same answer: not a rival
+                continue
+            if separate is not None and separate(res, alt):
+                checked -= 1
                 continue
             if any(self.near(alt.T_cam_obj, res.T_cam_obj @ S) for S in self.shape_turns):
                 res, tie = self.weigh_turn(q, qk, res, alt, deg)

@@ -34,8 +34,24 @@ class Pose(BaseModel):
     method: str = Field(description="gmatch | pnp | track")
 
 
+class Instance(Pose):
+    pixels: dict[str, Any] = Field(description="the pixels the pose explains: count and box [x0, y0, x1, y1]")
+
+
+class InstanceList(BaseModel):
+    template: str
+    instances: list[Instance] = Field(description="every instance found, best score first")
+    reason: str | None = Field(description="why none was found (null when some were)")
+    stopped: str | None = Field(description="why the search stopped")
+    refused: list[Instance] = Field(description="instances given to another template claiming their pixels")
+    timings_ms: dict[str, float]
+
+
 class EstimateResponse(BaseModel):
-    results: dict[str, Pose] = Field(description="per template: the `gscan estimate --json` object")
+    results: dict[str, Pose] = Field(description="per template: the `gscan estimate --json` object (with all: its "
+                                                 "first instance, or not found with the reason)")
+    instances: dict[str, InstanceList] | None = Field(None, description="with all: per template, the `gscan "
+                                                      "estimate --all --json` object of the template")
     timings_ms: dict[str, float]
 
 
@@ -191,11 +207,12 @@ def create_app(service: Service) -> Any:
         templates: Annotated[str | None, Form(description="comma-separated template names (default: all)")] = None,
         depth_intrinsics: Annotated[str | None, Form(description=DEPTH_INTRINSICS)] = None,
         depth_to_color: Annotated[str | None, Form(description=DEPTH_TO_COLOR)] = None,
+        all: Annotated[bool, Form(description="every instance of every template (`instances`)")] = False,
     ) -> dict[str, Any]:
-        """The pose of every requested template's object in one RGB-D frame."""
+        """The pose of every requested template's object in one RGB-D frame (all: every instance of each)."""
         c, d, m = await _read("color", color), await _read("depth", depth), await _read("mask", mask)
         return await run_in_threadpool(service.estimate, c or b"", d or b"", intrinsics, depth_scale, m, templates,
-                                       depth_intrinsics, depth_to_color)
+                                       depth_intrinsics, depth_to_color, all)
 
     @app.post("/track/{session}", response_model=TrackResponse, responses=ERRORS)
     async def track(

@@ -3,8 +3,9 @@ templates loaded once and kept warm.
 
     GET    /health              -> {"templates": [names]}
     POST   /estimate            multipart: color, depth, intrinsics, [depth_scale], [mask], [templates],
-                                [depth_intrinsics], [depth_to_color]
+                                [depth_intrinsics], [depth_to_color], [all]
                                 -> {"results": {name: <the estimate --json object>}, "timings_ms": {"total": ...}}
+                                with all=true also "instances": {name: <its estimate --all --json object>}
     POST   /track/{session}     multipart: color, depth, intrinsics, [depth_scale], [mask], [template],
                                 [depth_intrinsics], [depth_to_color]
                                 -> {"session", "template", "frame", "status", "result", "timings_ms"}
@@ -33,7 +34,8 @@ from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Any
 
-from gscan.estimate import EstimateParams, Estimator, Tracker
+from gscan.estimate import EstimateParams, Estimator, Tracker, estimate_templates
+from gscan.estimate.result import not_found
 from gscan.io.camera import DepthCamera
 from gscan.service.decode import MAX_PIXELS, RequestError, decode_frame, depth_camera_fields
 
@@ -91,13 +93,23 @@ class Service:
 
     def estimate(self, color: bytes, depth: bytes, intrinsics: str, depth_scale: float, mask: bytes | None,
                  templates: str | None, depth_intrinsics: str | None = None,
-                 depth_to_color: str | None = None) -> dict[str, Any]:
+                 depth_to_color: str | None = None, all_instances: bool = False) -> dict[str, Any]:
+        """The pose of every requested template's object; all_instances: every instance of each
+        (`estimate_templates`), the response's "instances" {name: the `estimate --all` object of the template}
+        and its "results" each template's first instance (or its reason)."""
         t0 = time.perf_counter()
         names = self.names("templates", templates)
         cam, served = self.request_depth_camera(depth_intrinsics, depth_to_color)
         with self.lock:
             frame = decode_frame(color, depth, intrinsics, depth_scale, mask, max_pixels=self.params.max_pixels,
                                  depth_camera=cam, served=served)
+            if all_instances:
+                outs = estimate_templates([self.estimators[n] for n in names], frame, frame.mask)
+                insts = {n: o.to_json() for n, o in zip(names, outs, strict=True)}
+                first_of = {n: i["instances"][0] if i["instances"] else not_found(i["reason"] or "not found").to_json()
+                            for n, i in insts.items()}
+                return {"results": first_of, "instances": insts,
+                        "timings_ms": {"total": (time.perf_counter() - t0) * 1e3}}
             first = self.estimators[names[0]]
             q = first.prepare(frame, frame.mask)  # the frame's full-image work, shared by the templates
             results = {}

@@ -1,0 +1,88 @@
+"""Piles: several copies of one or more objects resting side by side on a table, touching and partly hiding one
+another, some lying on a side (the rendered scenes of the many-instances tests and bench/instances.py).
+
+`pile_poses` places the objects in a row along the world x axis, each separated from the next by a small gap
+measured on their rotated vertices (so no two interpenetrate, whatever their yaw), with a random sideways offset;
+`render_pile` renders them on a textured table seen from a random elevation and azimuth.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from gscan.geometry.transforms import look_at, rotvec_to_R, transform_points
+from gscan.io.camera import Intrinsics
+from gscan.synth.capture import rest_on_table
+from gscan.synth.mesh import TexturedMesh
+from gscan.synth.render import DEFAULT_INTRINSICS, RenderedFrame, SynthScene
+
+SIDE = rotvec_to_R(np.array([np.pi / 2, 0.0, 0.0]))  # lying on a side: turned 90 deg about a horizontal axis
+
+
+@dataclass
+class Pile:
+    """A rendered pile: the frame (`RenderedFrame`, its labels k = objects[k]), the objects' meshes,
+    T_cam_obj [K x 4 x 4] of each and visible [K] the fraction of each object's silhouette (rendered alone from the
+    same camera) the others and the image border leave in sight (BOP's visib_fract)."""
+
+    frame: RenderedFrame
+    meshes: list[TexturedMesh]
+    T_cam_objs: np.ndarray
+    visible: np.ndarray
+
+
+def pile_poses(meshes: list[TexturedMesh], rng: np.random.Generator, lying_frac: float = 0.3,
+               gap: tuple[float, float] = (0.002, 0.02), sideways: float = 0.03) -> list[np.ndarray]:
+    """T_world_obj [4 x 4] of each mesh: a random yaw (and on a side with probability `lying_frac`), resting on
+    z = 0, in a row along +x with a gap drawn from `gap` (m) between neighbours' extents and a sideways offset
+    drawn from +-`sideways` (m); the row is centred on the origin."""
+    poses, x = [], 0.0
+    for m in meshes:
+        R = rotvec_to_R(np.array([0.0, 0.0, rng.uniform(0.0, 2 * np.pi)]))
+        if rng.uniform() < lying_frac:
+            R = R @ SIDE
+        v = m.vertices @ R.T
+        lo, hi = v.min(0), v.max(0)
+        cx = x - lo[0]
+        poses.append(rest_on_table(m, R, (float(cx + 0.5 * (lo[0] + hi[0])), float(rng.uniform(-sideways, sideways)))))
+        x = cx + hi[0] + rng.uniform(*gap)
+    shift = np.eye(4)
+    shift[0, 3] = -0.5 * (x - gap[0])
+    return [shift @ T for T in poses]
+
+
+def render_pile(meshes: list[TexturedMesh], seed: int, distance: float = 0.6, elevation: tuple[float, float] = (35, 70),
+                table_kind: str = "newspaper", lying_frac: float = 0.3) -> Pile:
+    """The meshes piled (`pile_poses`, seeded by `seed`) and seen from `distance` (m; farther, 1.1 times the row's
+    length, for a long row) at an elevation drawn from `elevation` (deg) and any azimuth, towards the pile's
+    centre; depth noise seeded by `seed`."""
+    rng = np.random.default_rng(seed)
+    T_wo = pile_poses(meshes, rng, lying_frac)
+    ends = np.array([transform_points(T, m.vertices)[:, 0] for m, T in zip(meshes, T_wo, strict=True)],
+                    dtype=object)
+    row = max(float(e.max()) for e in ends) - min(float(e.min()) for e in ends)
+    distance = max(distance, 1.1 * row)  # the whole row in sight from any azimuth
+    c = np.mean([transform_points(T, m.center[None])[0] for m, T in zip(meshes, T_wo, strict=True)], axis=0)
+    e, a = np.radians(rng.uniform(*elevation)), rng.uniform(0.0, 2 * np.pi)
+    T_wc = look_at(c + distance * np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)]), c)
+    r = SynthScene(list(zip(meshes, T_wo, strict=True)), seed=seed, table_kind=table_kind).render(
+        T_wc, DEFAULT_INTRINSICS, rng=np.random.default_rng([seed, 1]))
+    T_cw = np.linalg.inv(T_wc)
+    visible = [float((r.labels == k).sum()) / max(1, silhouette_px(m, T_cw @ T, DEFAULT_INTRINSICS))
+               for k, (m, T) in enumerate(zip(meshes, T_wo, strict=True))]
+    return Pile(r, meshes, np.stack([T_cw @ T for T in T_wo]), np.array(visible))
+
+
+def silhouette_px(mesh: TexturedMesh, T_cam_obj: np.ndarray, intr: Intrinsics) -> int:
+    """Pixels of the mesh's whole silhouette at T_cam_obj [4 x 4], on an image plane reaching half an image past
+    every border of intr's (triangles in front of the camera filled)."""
+    pc = transform_points(T_cam_obj, mesh.vertices)
+    tri = mesh.triangles[(pc[mesh.triangles, 2] > 1e-3).all(axis=1)]
+    uv = np.stack([pc[:, 0] / np.maximum(pc[:, 2], 1e-3) * intr.fx + intr.cx + intr.width / 2,
+                   pc[:, 1] / np.maximum(pc[:, 2], 1e-3) * intr.fy + intr.cy + intr.height / 2], 1)
+    canvas = np.zeros((2 * intr.height, 2 * intr.width), np.uint8)
+    for t in np.rint(uv[tri]).astype(np.int32):  # (one polygon list in one call would fill overlaps even-odd)
+        cv2.fillConvexPoly(canvas, t, 1)
+    return int(canvas.sum())
