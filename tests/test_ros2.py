@@ -1,0 +1,379 @@
+"""The ROS 2 node (gscan.ros2, `gscan ros2`) on a real ROS 2 graph in the test process: rclpy over Fast DDS, each
+test in its own DDS domain on the loopback interface. A driver node plays the bundled sample's held-back frames
+(gscan.demo.SAMPLES) to the node and checks the published poses against their ground truth."""
+from __future__ import annotations
+
+import itertools
+import json
+import os
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gscan.demo import SAMPLES
+from gscan.evaluate.metrics import add
+from gscan.geometry.transforms import pose_error
+from gscan.io import open_sequence
+from gscan.ros2.inputs import LatestSlot, Pair, Pairer
+
+try:  # the wheels exist for CPython 3.11 on Linux (x86-64, aarch64) only; the test extra installs them there
+    import rclpy
+    from geometry_msgs.msg import PoseArray, PoseStamped
+    from rclpy.executors import SingleThreadedExecutor
+    from sensor_msgs.msg import CameraInfo, Image
+    from std_msgs.msg import String
+    from visualization_msgs.msg import Marker, MarkerArray
+    HAVE_RCLPY = True
+except ImportError as e:
+    HAVE_RCLPY, WHY = False, str(e)
+needs_rclpy = pytest.mark.skipif(not HAVE_RCLPY, reason="the ROS 2 wheels (gscan[ros2]: ros-rclpy, cp311 manylinux) "
+                                 "cannot be imported on this platform")
+
+ROOT = Path(__file__).resolve().parents[1]
+_domains = itertools.count()
+# the demo's tolerance on the held-back frames (tests/test_demo.py): ADD under 5 mm, rotation under a degree
+MAX_ADD_MM, MAX_ROT_DEG = 5.0, 1.0
+
+
+def _domain() -> int:
+    """A DDS domain of this test alone (parallel runs of the suite do not hear each other)."""
+    return 1 + (os.getpid() * 7 + next(_domains)) % 200
+
+
+@pytest.fixture(autouse=True)
+def _loopback(monkeypatch):
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")  # Kilted's name for ROS_LOCALHOST_ONLY=1
+    monkeypatch.setenv("ROS_LOCALHOST_ONLY", "1")
+
+
+@pytest.fixture(scope="module")
+def template(tmp_path_factory) -> Path:
+    """The sample box's template from its mesh (the mesh's frame is the ground truth's object frame)."""
+    from gscan.scanning.cad import template_from_mesh
+
+    out = tmp_path_factory.mktemp("ros2") / "box.gscan"
+    template_from_mesh(SAMPLES / "object" / "box.obj", out, n_views=16)
+    return out
+
+
+@pytest.fixture(scope="module")
+def heldout():
+    return open_sequence(SAMPLES / "heldout")
+
+
+# ------------------------------------------------------------------------------------------ without ROS
+
+
+class _Msg:
+    def __init__(self, t_ns: int):
+        class _S:
+            sec, nanosec = divmod(t_ns, 1_000_000_000)
+
+        class _H:
+            stamp = _S()
+
+        self.header = _H()
+
+
+def test_pairer_pairs_by_stamp_within_the_tolerance_and_keeps_a_bounded_queue():
+    p = Pairer(tolerance_ns=10_000_000, queue=3)
+    c0, d0 = _Msg(1_000_000_000), _Msg(1_004_000_000)
+    assert p.add("color", c0, 0.0) is None
+    pair = p.add("depth", d0, 0.0)
+    assert pair is not None and pair.color is c0 and pair.depth is d0
+    assert p.add("depth", _Msg(2_000_000_000), 0.0) is None  # 1 s from any colour: waits
+    assert p.add("color", _Msg(2_050_000_000), 0.0) is None  # 50 ms off: no pair
+    for i in range(5):  # colour images whose depth never comes: at most `queue` wait, the others are dropped
+        assert p.add("color", _Msg(3_000_000_000 + i * 100_000_000), 0.0) is None
+    assert len(p._waiting["color"]) == 3 and p.unpaired >= 3
+    late = p.add("depth", _Msg(3_400_000_000), 0.0)
+    assert late is not None and late.color.header.stamp.nanosec == 400_000_000
+    assert not p._waiting["color"] and not p._waiting["depth"]  # everything older went with the pair
+
+
+def test_latest_slot_drops_the_waiting_frame_for_a_newer_one():
+    slot = LatestSlot()
+    a, b = Pair(1, 1, 0.0), Pair(2, 2, 0.0)
+    slot.put(a)
+    slot.put(b)
+    assert slot.dropped == 1 and slot.take(0) is b
+    assert not slot.wait_idle(0.01)  # the worker holds b
+    slot.done()
+    assert slot.wait_idle(0.01) and slot.take(0.01) is None
+
+
+# ------------------------------------------------------------------------------------------ the graph
+
+
+def _image(rgb_or_depth: np.ndarray, encoding: str, t_ns: int, frame_id: str = "camera_color_optical_frame"):
+    msg = Image()
+    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(int(t_ns), 1_000_000_000)
+    msg.header.frame_id = frame_id
+    a = np.ascontiguousarray(rgb_or_depth)
+    msg.height, msg.width = a.shape[:2]
+    msg.encoding = encoding
+    msg.step = a.strides[0]
+    msg.data = a.tobytes()
+    return msg
+
+
+def _info(K: np.ndarray, w: int, h: int, t_ns: int):
+    msg = CameraInfo()
+    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(int(t_ns), 1_000_000_000)
+    msg.width, msg.height = w, h
+    msg.k = [float(x) for x in K.ravel()]
+    return msg
+
+
+class Graph:
+    """The node under test and a driver node (publishers of the camera's topics, subscribers of the node's) in one
+    context, spun by a background thread."""
+
+    def __init__(self, template: Path, **params):
+        from rclpy.parameter import Parameter
+
+        from gscan.ros2.node import PoseNode, init_context, load_templates
+
+        self.ctx = init_context(None, _domain())
+        overrides = [Parameter(k, value=v) for k, v in params.items()]
+        self.node = PoseNode(load_templates([template]), context=self.ctx, parameter_overrides=overrides)
+        p = self.node.params
+        self.driver = rclpy.create_node("driver", context=self.ctx)
+        self.color = self.driver.create_publisher(Image, p.color_topic, 5)
+        self.depth = self.driver.create_publisher(Image, p.depth_topic, 5)
+        self.info = self.driver.create_publisher(CameraInfo, p.camera_info_topic, 5)
+        self.status: list[dict] = []
+        self.poses: list[PoseStamped] = []
+        self.arrays: list[PoseArray] = []
+        self.markers: list[MarkerArray] = []
+        self._cv = threading.Condition()
+        ns = "/gscan"
+        for kind, topic, store in ((PoseStamped, f"{ns}/box/pose", self.poses), (PoseArray, f"{ns}/box/poses",
+                                   self.arrays), (MarkerArray, f"{ns}/markers", self.markers)):
+            self.driver.create_subscription(kind, topic, lambda m, s=store: self._got(s, m), 50)
+        self.driver.create_subscription(String, f"{ns}/status", lambda m: self._got(self.status, json.loads(m.data)),
+                                        50)
+        self.executor = SingleThreadedExecutor(context=self.ctx)
+        self.executor.add_node(self.node)
+        self.executor.add_node(self.driver)
+        self._stop = threading.Event()
+        self._spin = threading.Thread(target=self._run, daemon=True)
+        self._spin.start()
+        end = time.monotonic() + 10
+        pubs = (self.color, self.depth, self.info)
+        while any(p.get_subscription_count() == 0 for p in pubs) and time.monotonic() < end:
+            time.sleep(0.02)
+        assert all(p.get_subscription_count() for p in pubs), "the node's subscriptions were not discovered"
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            self.executor.spin_once(timeout_sec=0.05)
+
+    def _got(self, store: list, msg) -> None:
+        with self._cv:
+            store.append(msg)
+            self._cv.notify_all()
+
+    def wait_status(self, n: int, timeout_s: float = 30.0) -> list[dict]:
+        with self._cv:
+            assert self._cv.wait_for(lambda: len(self.status) >= n, timeout_s), f"{len(self.status)} of {n} statuses"
+        return self.status
+
+    def send(self, frame, t_ns: int, info: bool = True, color_encoding: str = "rgb8", depth=None) -> None:
+        if info:
+            self.info.publish(_info(frame.intrinsics.K, frame.intrinsics.width, frame.intrinsics.height, t_ns))
+            time.sleep(0.05)  # CameraInfo before its images, as a camera driver sends them
+        raw = np.round(frame.depth / 0.001).astype(np.uint16) if depth is None else depth
+        self.depth.publish(_image(raw, "16UC1", t_ns))
+        self.color.publish(_image(frame.color, color_encoding, t_ns))
+
+    def close(self) -> None:
+        self._stop.set()
+        self._spin.join()
+        self.executor.shutdown()
+        self.node.close()
+        self.driver.destroy_node()
+        rclpy.try_shutdown(context=self.ctx)
+
+
+@pytest.fixture
+def graph(template):
+    graphs: list[Graph] = []
+
+    def make(**params) -> Graph:
+        graphs.append(Graph(template, **params))
+        return graphs[-1]
+
+    yield make
+    for g in graphs:
+        g.close()
+
+
+@needs_rclpy
+def test_node_publishes_the_sample_poses_within_the_demo_tolerance(graph, heldout, template):
+    from scipy.spatial.transform import Rotation
+
+    from gscan.estimate import Estimator
+    from gscan.geometry.transforms import make_T
+
+    g = graph()
+    t0 = time.time_ns()
+    stamps = []
+    for i, name in enumerate(heldout.names):  # one frame at a time: none is dropped
+        stamps.append(t0 + i * 100_000_000)
+        g.send(heldout[name], stamps[-1])
+        g.wait_status(i + 1)
+    st = g.status
+    assert [s["stamp_ns"] for s in st] == stamps  # every frame got its status, in order
+    assert all(s["objects"]["box"]["status"] in ("found", "refound", "tracked") for s in st), st
+    assert all(s["latency_ms"] > 0 and s["ms"] > 0 and s["dropped"] == 0 for s in st)
+    time.sleep(0.2)
+    assert len(g.poses) == len(g.arrays) == len(g.markers) == len(heldout.names)
+    pts = Estimator.from_path(template).model_points
+    for name, stamp, msg, arr in zip(heldout.names, stamps, g.poses, g.arrays, strict=True):
+        assert msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec == stamp
+        assert msg.header.frame_id == "camera_color_optical_frame"
+        q, p = msg.pose.orientation, msg.pose.position
+        T = make_T(Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix(), [p.x, p.y, p.z])
+        T_gt = heldout.gt_T_cam_obj[name]
+        rot, _ = pose_error(T, T_gt)
+        assert rot < MAX_ROT_DEG and add(pts, T, T_gt) * 1000 < MAX_ADD_MM, (name, rot, add(pts, T, T_gt))
+        assert len(arr.poses) == 1 and arr.poses[0].position.x == p.x
+    m = g.markers[-1].markers[0]
+    assert m.type == Marker.TRIANGLE_LIST and m.action == Marker.ADD and 0 < len(m.points) <= 3 * 3000
+    assert m.pose.position.x == g.poses[-1].pose.position.x
+
+
+@needs_rclpy
+def test_no_pose_is_published_for_a_frame_without_the_object(graph, heldout):
+    g = graph()
+    frame = heldout[heldout.names[0]]
+    empty = np.zeros_like(frame.depth, dtype=np.uint16)  # no depth anywhere: nothing the estimator can accept
+    g.send(frame, 1_000_000_000, depth=empty)
+    st = g.wait_status(1)[0]
+    assert st["objects"]["box"]["status"] == "lost" and st["objects"]["box"]["reason"]
+    time.sleep(0.3)
+    assert g.poses == [] and [len(a.poses) for a in g.arrays] == [0]
+    assert g.markers[0].markers[0].action == Marker.DELETE
+
+
+@needs_rclpy
+def test_bad_input_is_logged_once_per_cause_and_the_node_stays_up(graph, heldout, caplog):
+    g = graph()
+    p = g.node.params
+    frame = heldout[heldout.names[0]]
+    intr = frame.intrinsics
+    # depth before any CameraInfo: twice, logged once
+    g.send(frame, 1_000_000_000, info=False)
+    g.wait_status(1)
+    g.send(frame, 1_100_000_000, info=False)
+    st = g.wait_status(2)
+    assert all(p.camera_info_topic in s["error"] and "no CameraInfo" in s["error"] for s in st)
+    # a CameraInfo with zero focal length
+    K0 = intr.K.copy()
+    K0[0, 0] = K0[1, 1] = 0.0
+    g.info.publish(_info(K0, intr.width, intr.height, 1_200_000_000))
+    time.sleep(0.1)
+    g.send(frame, 1_200_000_000, info=False)
+    st = g.wait_status(3)
+    assert p.camera_info_topic in st[2]["error"] and "focal" in st[2]["error"]
+    # a colour image in a depth encoding; a depth image of another size
+    g.send(frame, 1_300_000_000, color_encoding="mono16")
+    st = g.wait_status(4)
+    assert p.color_topic in st[3]["error"] and "mono16" in st[3]["error"]
+    g.send(frame, 1_400_000_000, depth=np.zeros((240, 320), np.uint16))
+    st = g.wait_status(5)
+    assert p.depth_topic in st[4]["error"] and "320x240" in st[4]["error"]
+    # the node is still up: a good frame gets a pose
+    g.send(frame, 1_500_000_000)
+    st = g.wait_status(6)
+    assert st[5]["objects"]["box"]["status"] == "found"
+    warnings = [r.getMessage() for r in caplog.records if r.name == "gscan.ros2.node"]
+    assert len(warnings) == 4 and sum("no CameraInfo" in w for w in warnings) == 1, warnings
+    assert len(g.node.problems) == 4 and g.node.problems[(p.camera_info_topic, st[0]["error"].split(": ", 1)[1])] == 2
+
+
+@needs_rclpy
+def test_a_node_that_falls_behind_drops_old_frames(graph, heldout):
+    g = graph(queue=2)
+    frames = [heldout[n] for n in heldout.names]
+    g.info.publish(_info(frames[0].intrinsics.K, 640, 480, 0))
+    time.sleep(0.1)
+    n = 12
+    for i in range(n):  # much faster than the estimator: frames must be dropped, none may queue up
+        f = frames[i % len(frames)]
+        t = 1_000_000_000 + i * 10_000_000
+        g.depth.publish(_image(np.round(f.depth / 0.001).astype(np.uint16), "16UC1", t))
+        g.color.publish(_image(f.color, "rgb8", t))
+        time.sleep(0.01)
+    end = time.monotonic() + 30
+    while g.node.pairs < n and time.monotonic() < end:
+        time.sleep(0.05)
+    assert g.node.wait_idle(30)
+    node = g.node
+    assert node.pairs == n and node.dropped > 0 and node.processed + node.dropped == n
+    st = g.wait_status(node.processed)
+    assert len(st) == node.processed and st[-1]["stamp_ns"] == 1_000_000_000 + (n - 1) * 10_000_000  # the newest
+    assert all(s["objects"]["box"]["status"] != "lost" for s in st)
+
+
+# ------------------------------------------------------------------------------------------ --play, the CLI
+
+
+def _recording(tmp_path: Path, heldout) -> Path:
+    from gscan.synth.recordings import RecordingFrame, write_mcap
+
+    frames = [RecordingFrame(f.color, np.round(f.depth / 0.001).astype(np.uint16), 1_700_000_000_000_000_000
+                             + i * 400_000_000) for i, f in enumerate(heldout[n] for n in heldout.names)]
+    return write_mcap(tmp_path / "sample.mcap", frames, heldout[heldout.names[0]].intrinsics, topics=("color",
+                                                                                                       "aligned"))
+
+
+@needs_rclpy
+def test_play_feeds_a_recording_through_the_node(template, heldout, tmp_path):
+    from gscan.ros2.node import load_templates
+    from gscan.ros2.run import run
+
+    path = _recording(tmp_path, heldout)
+    seen: list[dict] = []
+
+    def ready(node, player):
+        node.create_subscription(String, "~/status", lambda m: seen.append(json.loads(m.data)), 10)
+
+    out = run(load_templates([template]), play=path, domain_id=_domain(), on_ready=ready)
+    assert out["played"] == 4 and out["pairs"] == 4 and out["processed"] + out["dropped"] == 4
+    assert out["with_pose"]["box"] == out["processed"] >= 2 and not out["problems"]
+
+
+def _cli(*args: str, env_extra: dict | None = None, pre: str = "pass") -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "ROS_DOMAIN_ID": str(_domain()),
+           "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", **(env_extra or {})}
+    code = f"import sys; {pre}; from gscan.cli import main; sys.argv = ['gscan', *sys.argv[1:]]; main()"
+    return subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, env=env, timeout=120)
+
+
+@needs_rclpy
+def test_cli_plays_a_recording_and_refuses_bad_input(template, heldout, tmp_path):
+    path = _recording(tmp_path, heldout)
+    r = _cli("ros2", str(template), "--play", str(path), "--rate", "2", "--json", "--ros-args", "-p",
+             "sync_tolerance:=0.005")
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    assert out["played"] == 4 and out["with_pose"]["box"] == out["processed"] >= 1
+    r = _cli("ros2", str(template), "--play", str(tmp_path / "none.mcap"))
+    assert r.returncode == 2 and r.stderr.strip().splitlines() == [f"error: {tmp_path / 'none.mcap'}: recording "
+                                                                    "not found"]
+    r = _cli("ros2", str(template), "--ros-args", "-p", "depth_scale:=-1.0")
+    assert r.returncode == 2 and "depth_scale" in r.stderr and "Traceback" not in r.stderr, r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1, r.stderr
+
+
+def test_cli_names_the_extra_when_rclpy_is_missing(template):
+    r = _cli("ros2", str(template), pre="sys.modules['rclpy'] = None")
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.strip().splitlines() == [r.stderr.strip()] and "gscan[ros2]" in r.stderr
