@@ -215,6 +215,10 @@ class PoseNode(Node):
         while (pair := self._slot.take()) is not None:
             try:
                 self._process(pair)
+            except InputError as e:  # a frame the template's estimator refuses (its size, say)
+                problem = InputProblem(self.params.color_topic, e.reason)
+                self._problem(problem)
+                self._publish_status(pair, {"error": str(problem)}, 0.0, 0.0)
             except Exception as e:  # an internal error in one frame: logged, the node stays up
                 log.exception("frame %s: internal error", msg_stamp_ns(pair.color))
                 self._publish_status(pair, {"error": f"internal error: {e.__class__.__name__}: {e}"}, 0.0, 0.0)

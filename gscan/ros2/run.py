@@ -6,7 +6,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import rclpy
-from rclpy.executors import SingleThreadedExecutor
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 
 from gscan.ros2.node import PoseNode, TemplateTrack, init_context
 from gscan.ros2.play import Player
@@ -19,7 +19,7 @@ def run(tracks: list[TemplateTrack], ros_args: list[str] | None = None, play: Pa
         rate: float = 1.0, on_ready: Callable[[PoseNode, Player | None], None] | None = None,
         domain_id: int | None = None) -> dict:
     """Spin a `PoseNode` for `tracks` (ROS arguments `ros_args`: `--ros-args -p name:=value -r ...`) until the
-    context shuts down (Ctrl+C), or, with `play`, until the recording was played and its last frame processed;
+    context shuts down or Ctrl+C, or, with `play`, until the recording was played and its last frame processed;
     returns the node's `summary()` (with `played`: the colour images the player published). InputError for a
     bad parameter value or a recording that cannot be played."""
     ctx = init_context(["gscan", *(ros_args or [])], domain_id)
@@ -35,15 +35,18 @@ def run(tracks: list[TemplateTrack], ros_args: list[str] | None = None, play: Pa
             player.start()
         if on_ready is not None:
             on_ready(node, player)
-        while ctx.ok():
-            executor.spin_once(timeout_sec=0.1)
-            if player is not None and player.done.is_set():
-                end = time.monotonic() + ARRIVAL_S
-                while node.received["color"] < player.frames and time.monotonic() < end and ctx.ok():
-                    executor.spin_once(timeout_sec=0.05)
-                while not node.wait_idle(0.1) and ctx.ok():
-                    executor.spin_once(timeout_sec=0)
-                break
+        try:
+            while ctx.ok():
+                executor.spin_once(timeout_sec=0.1)
+                if player is not None and player.done.is_set():
+                    end = time.monotonic() + ARRIVAL_S
+                    while node.received["color"] < player.frames and time.monotonic() < end and ctx.ok():
+                        executor.spin_once(timeout_sec=0.05)
+                    while not node.wait_idle(0.1) and ctx.ok():
+                        executor.spin_once(timeout_sec=0)
+                    break
+        except (KeyboardInterrupt, ExternalShutdownException):  # Ctrl+C: how a node is stopped, not an error
+            pass
         out = node.summary()
         if player is not None:
             out["played"] = player.frames
