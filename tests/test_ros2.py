@@ -324,6 +324,25 @@ def test_a_node_that_falls_behind_drops_old_frames(graph, heldout):
     assert all(s["objects"]["box"]["status"] != "lost" for s in st)
 
 
+@needs_rclpy
+def test_the_marker_mesh_is_simplified_to_the_triangle_budget():
+    import trimesh
+
+    from gscan.geometry.mesh import MeshData
+    from gscan.ros2.node import marker_points
+
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=0.05)  # 5120 triangles
+    colours = np.tile(np.array([[200, 10, 10]], np.uint8), (len(sphere.vertices), 1))
+    mesh = MeshData(np.asarray(sphere.vertices), np.asarray(sphere.faces), colours)
+    points, rgba = marker_points(mesh, 500)
+    assert 0 < len(points) <= 3 * 500 and len(points) % 3 == 0 and len(rgba) == len(points)
+    radii = np.linalg.norm([[p.x, p.y, p.z] for p in points], axis=1)
+    assert np.all(np.abs(radii - 0.05) < 0.005)  # still the sphere
+    assert abs(rgba[0].r - 200 / 255) < 0.02 and rgba[0].a == 1.0
+    small, _ = marker_points(mesh, 6000)  # within the budget: every triangle as it is
+    assert len(small) == 3 * len(sphere.faces)
+
+
 # ------------------------------------------------------------------------------------------ --play, the CLI
 
 
