@@ -27,6 +27,10 @@ from gscan.ros2.settings import Ros2Params
 
 log = logging.getLogger(__name__)
 
+#: seconds between the subscriptions' discovery and the first message: a publisher that sees a subscription
+#: matched may still be unknown to it for a moment, and what it sends then is lost
+SETTLE_S = 0.5
+
 
 class Player(Node):
     """Publishes a recording's images and CameraInfo on `params`' topics from a thread (`start`); `done` is set when
@@ -83,6 +87,7 @@ class Player(Node):
             while (any(pub.get_subscription_count() == 0 for _, pub in self._routes.values())
                    and time.monotonic() < end and not self._stop.is_set()):
                 time.sleep(0.02)
+            self._stop.wait(SETTLE_S)
             t0_rec: int | None = None
             t0 = time.monotonic()
             for topic, t_ns, data in self._src.messages(list(self._routes)):

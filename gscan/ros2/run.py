@@ -33,9 +33,9 @@ def run(tracks: list[TemplateTrack], ros_args: list[str] | None = None, play: Pa
             player = Player(play, node.params, rate=rate, context=ctx)
             executor.add_node(player)
             player.start()
-        if on_ready is not None:
-            on_ready(node, player)
         try:
+            if on_ready is not None:
+                on_ready(node, player)
             while ctx.ok():
                 executor.spin_once(timeout_sec=0.1)
                 if player is not None and player.done.is_set():
