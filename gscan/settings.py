@@ -50,16 +50,16 @@ def read_yaml(path: str | Path) -> dict[str, Any]:
     return data
 
 
-def validate(model: type[M], data: dict[str, Any], path: str | Path | None) -> M:
+def validate(model: type[M], data: dict[str, Any], path: str | Path | None, what: str = "config key") -> M:
     """`data` validated as `model` (a settings class or a model of sections); InputError naming `path` and the
-    first offending key (`section.key`)."""
+    first offending key (`section.key`), called `what` ("ROS parameter" for the ROS 2 node's)."""
     try:
         return TypeAdapter(model).validate_python(data)
     except ValidationError as e:
         err = e.errors()[0]
         where = ".".join(str(x) for x in err["loc"])
         msg = err["msg"].removeprefix("Value error, ")
-        raise InputError(path, f"invalid config key {where}: {msg}" if where else f"invalid config: {msg}") from None
+        raise InputError(path, f"invalid {what} {where}: {msg}" if where else f"invalid config: {msg}") from None
 
 
 def to_data(settings: Any) -> Any:

@@ -40,6 +40,9 @@ def ros2(
     from gscan.estimate.settings import load_estimate_params
     from gscan.ros2.node import load_templates
     from gscan.ros2.run import run
+    from gscan.ros2.settings import check_ros_args
+
+    check_ros_args(ros_args)  # before the templates load
 
     if play is not None and not play.exists():
         raise UsageError(play, "recording not found")

@@ -122,7 +122,7 @@ def declare_params(node: Node) -> Ros2Params:
     for name, default, about in setting_fields(Ros2Params()):
         desc = ParameterDescriptor(description=about, read_only=True, dynamic_typing=True)
         values[name] = node.declare_parameter(name, default, desc).value
-    return validate(Ros2Params, values, None)
+    return validate(Ros2Params, values, None, what="ROS parameter")
 
 
 class PoseNode(Node):
@@ -141,6 +141,7 @@ class PoseNode(Node):
         self.problems: dict[tuple[str, str], int] = {}  # (topic, reason) -> times seen
         self.received = {"color": 0, "depth": 0, "camera_info": 0}
         self.pairs = self.processed = 0
+        self.refused = 0  # paired frames the node could not use (bad input, an internal error): a status with `error`
         self.with_pose = {t.name: 0 for t in templates}
         self.cpu_step_s = 0.0  # CPU time of the trackers' steps (the worker thread's)
         self.cpu_frame_s = 0.0  # CPU time of the worker for whole frames (conversion, steps, publishing)
@@ -275,6 +276,8 @@ class PoseNode(Node):
         stamp = msg_stamp_ns(pair.color)
         latency_ms = (now_ns - stamp) / 1e6
         self.cpu_frame_s += cpu_s
+        if "error" in body:
+            self.refused += 1
         if "objects" in body:
             self.latency_ms.append(latency_ms)
         status = {"stamp_ns": stamp, "frame_id": pair.color.header.frame_id, "latency_ms": round(latency_ms, 2),
@@ -303,14 +306,19 @@ class PoseNode(Node):
         """Counts of the run so far (the CLI's last lines, `--json`)."""
         lat = np.array(self.latency_ms) if self.latency_ms else np.zeros(1)
         return {"received": dict(self.received), "pairs": self.pairs, "processed": self.processed,
-                "dropped": self.dropped, "unpaired": self.unpaired, "with_pose": dict(self.with_pose),
+                "refused": self.refused, "dropped": self.dropped, "unpaired": self.unpaired,
+                "with_pose": dict(self.with_pose),
                 "latency_ms": {"median": float(np.median(lat)), "p90": float(np.percentile(lat, 90))},
                 "problems": [f"topic {topic}: {reason} ({n}x)" for (topic, reason), n in self.problems.items()]}
 
 
 def init_context(args: list[str] | None = None, domain_id: int | None = None) -> Any:
     """A new rclpy Context, initialised with the ROS arguments `args` (`--ros-args ...`) and, when given, its own
-    DDS domain."""
+    DDS domain; InputError when rcl refuses the arguments."""
     ctx = rclpy.Context()
-    rclpy.init(args=args, context=ctx, domain_id=domain_id)
+    try:
+        rclpy.init(args=args, context=ctx, domain_id=domain_id)
+    except Exception as e:  # noqa: BLE001 - rclpy's RCLError (a private module): bad ROS arguments, params file
+        why = " ".join(str(e).split()).removeprefix("failed to initialize rcl: ").split(". Error:")[0]
+        raise InputError(None, f"ROS arguments: {why}") from None
     return ctx

@@ -2,7 +2,9 @@
 here and nowhere else."""
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Annotated
 
 from pydantic import Field
@@ -36,3 +38,32 @@ class Ros2Params:
     marker_triangles: Annotated[int, Field(description="the mesh in the MarkerArray is simplified to at most this "
                                            "many triangles", ge=12)] = 3000
     __pydantic_config__ = SETTINGS
+
+
+#: parameters every rclpy node has besides the node's own
+BUILTIN_PARAMS = ("use_sim_time", "start_type_description_service")
+
+
+def check_ros_args(args: list[str]) -> None:
+    """Refuse `-p` / `--param` arguments (`--ros-args -p name:=value`) that are malformed or name no parameter of the
+    node (`Ros2Params`' fields, `BUILTIN_PARAMS`, `qos_overrides.*`): a typo would otherwise be ignored silently.
+    A `node:name:=value` rule for another node is left alone. InputError naming the argument (or the
+    `--params-file` that is not a file)."""
+    from dataclasses import fields
+
+    from gscan.errors import InputError, not_a_file
+
+    known = {f.name for f in fields(Ros2Params)} | set(BUILTIN_PARAMS)
+    for flag, rule in itertools.pairwise(args):
+        if flag == "--params-file" and not Path(rule).is_file():  # rcl would log its own line before refusing it
+            raise not_a_file(rule, "ROS parameters file")
+        if flag not in ("-p", "--param"):
+            continue
+        name, sep, _ = rule.partition(":=")
+        if not sep or not name:
+            raise InputError(None, f"ROS argument {flag} {rule!r}: expected name:=value")
+        node, _, name = name.rpartition(":")
+        if node not in ("", "gscan") or name in known or name.startswith("qos_overrides."):
+            continue
+        raise InputError(None, f"ROS argument {flag} {rule!r}: the node has no parameter {name!r} (its "
+                         f"parameters: {', '.join(sorted(known))})")
