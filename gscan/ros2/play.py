@@ -64,7 +64,7 @@ class Player(Node):
             camera_info_topic(setup.color_topic): (CameraInfo,
                                                    self.create_publisher(CameraInfo, params.camera_info_topic, qos)),
         }
-        self.color_topic = setup.color_topic
+        self.color_topic, self.depth_topic = setup.color_topic, setup.depth_topic
         self.published = dict.fromkeys(self._routes, 0)
         self.done = threading.Event()
         self._stop = threading.Event()
@@ -110,3 +110,8 @@ class Player(Node):
     def frames(self) -> int:
         """Colour images published so far."""
         return self.published[self.color_topic]
+
+    @property
+    def depth_frames(self) -> int:
+        """Depth images published so far."""
+        return self.published[self.depth_topic]

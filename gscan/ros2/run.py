@@ -40,7 +40,8 @@ def run(tracks: list[TemplateTrack], ros_args: list[str] | None = None, play: Pa
                 executor.spin_once(timeout_sec=0.1)
                 if player is not None and player.done.is_set():
                     end = time.monotonic() + ARRIVAL_S
-                    while node.received["color"] < player.frames and time.monotonic() < end and ctx.ok():
+                    while ((node.received["color"] < player.frames or node.received["depth"] < player.depth_frames)
+                           and time.monotonic() < end and ctx.ok()):
                         executor.spin_once(timeout_sec=0.05)
                     while not node.wait_idle(0.1) and ctx.ok():
                         executor.spin_once(timeout_sec=0)
