@@ -9,6 +9,7 @@ file is validated against the stages' own bounds and choices, and its comments a
 - `read_yaml(path) -> dict`: a configuration file's sections (InputError naming the file)
 - `validate(model, data, path)`: the sections as `model` (InputError naming the file and the key)
 - `dump_yaml(settings, header) -> str`: commented YAML of a settings value, a section per nested class
+- `setting_fields(settings) -> [(name, value, description)]`: a settings value's fields in declaration order
 """
 from __future__ import annotations
 
@@ -49,16 +50,16 @@ def read_yaml(path: str | Path) -> dict[str, Any]:
     return data
 
 
-def validate(model: type[M], data: dict[str, Any], path: str | Path | None) -> M:
+def validate(model: type[M], data: dict[str, Any], path: str | Path | None, what: str = "config key") -> M:
     """`data` validated as `model` (a settings class or a model of sections); InputError naming `path` and the
-    first offending key (`section.key`)."""
+    first offending key (`section.key`), called `what` ("ROS parameter" for the ROS 2 node's)."""
     try:
         return TypeAdapter(model).validate_python(data)
     except ValidationError as e:
         err = e.errors()[0]
         where = ".".join(str(x) for x in err["loc"])
         msg = err["msg"].removeprefix("Value error, ")
-        raise InputError(path, f"invalid config key {where}: {msg}" if where else f"invalid config: {msg}") from None
+        raise InputError(path, f"invalid {what} {where}: {msg}" if where else f"invalid config: {msg}") from None
 
 
 def to_data(settings: Any) -> Any:
@@ -66,7 +67,7 @@ def to_data(settings: Any) -> Any:
     return TypeAdapter(type(settings)).dump_python(settings, mode="json")
 
 
-def _fields(settings: Any) -> list[tuple[str, Any, str]]:
+def setting_fields(settings: Any) -> list[tuple[str, Any, str]]:
     """(name, value, description) of each field of a settings value, in declaration order."""
     if isinstance(settings, BaseModel):
         return [(k, getattr(settings, k), f.description or "") for k, f in type(settings).model_fields.items()]
@@ -88,7 +89,7 @@ def dump_yaml(settings: Any, header: str = "") -> str:
     lines = [f"# {line}" if line else "#" for line in header.splitlines()]
 
     def walk(value: Any, indent: str) -> None:
-        for name, v, about in _fields(value):
+        for name, v, about in setting_fields(value):
             if _is_section(v):
                 lines.append(f"{indent}{name}:{f'  # {about}' if about else ''}")
                 walk(v, indent + "  ")

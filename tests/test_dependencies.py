@@ -9,7 +9,9 @@ name itself).
 
 - gscan/: each import is a `dependencies` entry; one that only an optional extra provides (ray: the batch extra)
   or whose entry has an environment marker (pyrealsense2: x86-64 only) is imported inside a function, so that
-  `import gscan` works without it. The test extra's packages are not gscan's.
+  `import gscan` works without it, except in the extra's own package (gscan/ros2 for the ros2 extra: its modules
+  load only after `gscan.ros2.require_rclpy()`). The test extra's packages are not gscan's; an extra that names
+  another (`gscan[ros2]`) declares that one's packages too.
 - tests/, bench/, web/, samples/: `dependencies` or the test extra.
 """
 from __future__ import annotations
@@ -65,9 +67,16 @@ def requirement_name(req: str) -> str:
 def declared(pyproject: dict) -> Declared:
     deps = pyproject["project"].get("dependencies", [])
     extras = pyproject["project"].get("optional-dependencies", {})
+    named = {k: frozenset(requirement_name(r) for r in v) for k, v in extras.items()}
+
+    def expanded(names: frozenset[str]) -> frozenset[str]:  # "gscan[ros2]" in an extra: the ros2 extra's names
+        own = [r for v in extras.values() for r in v if requirement_name(r) == "gscan"]
+        inner = {m.group(1) for r in own for m in [re.search(r"\[([^\]]+)\]", r)] if m}
+        return names | frozenset().union(*(named.get(x, frozenset()) for x in inner)) if "gscan" in names else names
+
     return Declared(frozenset(requirement_name(r) for r in deps if ";" not in r),
                     frozenset(requirement_name(r) for r in deps if ";" in r),
-                    {k: frozenset(requirement_name(r) for r in v) for k, v in extras.items()})
+                    {k: expanded(v) for k, v in named.items()})
 
 
 def _type_checking_only(node: ast.AST) -> bool:
@@ -139,7 +148,8 @@ def problems(found: list[Import], decl: Declared, library: bool) -> list[str]:
         if library:
             if not dists & optional:
                 out.append(f"{where}: not in pyproject's dependencies ({', '.join(sorted(dists))})")
-            elif not i.lazy:
+            elif not i.lazy and not any(dists & v and i.path.is_relative_to(ROOT / "gscan" / k)
+                                        for k, v in decl.extras.items()):
                 out.append(f"{where}: optional ({', '.join(sorted(dists & optional))}) but imported at module level")
         elif not dists & (decl.conditional | decl.extras.get("test", frozenset())):
             out.append(f"{where}: neither a dependency nor in the test extra ({', '.join(sorted(dists))})")

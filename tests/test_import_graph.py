@@ -30,7 +30,7 @@ STAGES: list[tuple[str, ...]] = [
     ("gscan.evaluate",),
     ("gscan.exporters",),
     ("gscan.viewer",),
-    ("gscan.service", "gscan.batch", "gscan.client", "gscan.demo"),
+    ("gscan.service", "gscan.ros2", "gscan.batch", "gscan.client", "gscan.demo"),
     ("gscan.cli", "gscan"),  # the command line, and the package's public API (gscan/__init__.py)
 ]
 

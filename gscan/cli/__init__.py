@@ -10,7 +10,8 @@ and logs go to stderr.
 - choices: the choice types, made from the library's lists
 - imports: the rule for imports in the command modules (heavy modules inside the command functions)
 - scan (scan, template-from-mesh, config dump), estimate (estimate, track), template (info, poses, grasp add /
-  list, export), view, service (serve), batch (eval, batch, batch-eval), capture, demo: the commands
+  list, export), view, service (serve), ros2 (the ROS 2 node), batch (eval, batch, batch-eval), capture, demo: the
+  commands
 
 Importing this package loads `main` alone: the application and its commands load when `main` has set the process
 up, or on first use of the names below (PEP 562); the library a command runs loads inside the command.

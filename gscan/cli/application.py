@@ -10,6 +10,7 @@ from gscan.cli.batch import batch, batch_eval, eval_cmd
 from gscan.cli.capture import capture
 from gscan.cli.demo import demo
 from gscan.cli.estimate import estimate, track
+from gscan.cli.ros2 import ROS2_CONTEXT, ros2
 from gscan.cli.scan import config_dump, scan, template_from_mesh
 from gscan.cli.service import serve
 from gscan.cli.template import export, grasp_add, grasp_list, info, poses
@@ -33,6 +34,7 @@ app.command()(info)
 app.command()(export)
 app.command()(view)
 app.command()(serve)
+app.command(context_settings=ROS2_CONTEXT)(ros2)
 grasp_app.command("add")(grasp_add)
 grasp_app.command("list")(grasp_list)
 app.command("eval")(eval_cmd)
