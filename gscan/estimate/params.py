@@ -117,6 +117,10 @@ class RivalParams:
     turn_margin: Annotated[float, Field(description="a pose and its turn by a symmetry in shape only: one wins when "
                                         "its keypoints for it alone outnumber the other's by this fraction of the "
                                         "keypoints for either (and the sign test)", ge=0, le=1)] = 0.15
+    unseen_rate: Annotated[float, Field(description="a pose whose turn by a symmetry in shape puts some of its "
+                                        "supporting keypoints on surface the template has not seen: the keypoints "
+                                        "elsewhere must support it at this fraction of the rate those do, else the "
+                                        "view is ambiguous", ge=0, le=1)] = 0.5
     __pydantic_config__ = SETTINGS
 
 

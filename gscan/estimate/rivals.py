@@ -24,11 +24,25 @@ rivals (`ListVerifier`).
   a query keypoint supports a pose when any template keypoint within `verify.support_radius` of it at the pose
   agrees (not only its nearest by descriptor, which on twin prints picks one twin by the template views' angles
   and so biases the count); a keypoint the print repeats under the turn supports both poses and decides nothing.
+- unseen sides: a template from one upright capture has never seen the object's bottom, and the accepted pose
+  turned by a symmetry in shape (upside down) would show the bottom where the pose shows the top. The keypoints
+  on that part support the pose whatever the bottom looks like, so they cannot tell the two apart: a print
+  repeated on the top and bottom (a drinks pack) is matched to the top with the object upside down. For each such
+  turn not refuted by the depth, the pose's supporters (`local_support`) are split into those the turn puts on
+  surface the template has not seen (no template surface sample within twice the support radius) and the rest
+  (on seen surface under both poses). The view is ambiguous when the rest would not accept the pose on its own
+  (`accept.min_support` supporters and `accept.min_support_ratio` of the keypoints there), or, when the unseen
+  part holds `accept.min_support` supporters or more (enough to have carried the pose), when the rest supports it
+  at less than `rivals.unseen_rate` of the unseen part's rate (a right pose is supported alike on both parts, a
+  turned one mostly where the template cannot tell). The turned pose is not weighed itself: the template's views,
+  all from above, barely predict how the sides look from below (5-17 supporters at the true pose of upside-down
+  views of one-sided templates).
 """
 from __future__ import annotations
 
 import logging
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -44,7 +58,7 @@ from gscan.estimate.verify import Evidence, accept, list_spread, pose_evidence, 
 from gscan.features import Features
 from gscan.geometry.kabsch import kabsch_trimmed
 from gscan.geometry.symmetry import Symmetries
-from gscan.geometry.transforms import pose_error
+from gscan.geometry.transforms import inv_T, pose_error, transform_points
 from gscan.progress import StageTimer
 from gscan.registration.noise import sign_test
 
@@ -69,8 +83,10 @@ class ListVerifier:
         # hold in shape only (the texture must tell them)
         sym = model.symmetries if params.symmetry.enabled else Symmetries()
         self.group = PoseGroup.of(sym)
-        self.shape_turns = [S for S, t in zip(sym.discrete, sym.discrete_in_texture, strict=True)
-                            if not t and params.symmetry.weigh_shape_turns]
+        turns = [S for S, t in zip(sym.discrete, sym.discrete_in_texture, strict=True) if not t]
+        self.shape_turns = turns if params.symmetry.weigh_shape_turns else []
+        self.unseen_turns = turns
+        self._seen: Any = None  # cKDTree of the template's surface samples (all seen: filled holes hold none)
 
     def apart(self, T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
         """(degrees, metres) between T_a and the nearest pose that looks as T_b does (T_b itself without
@@ -170,7 +186,8 @@ class ListVerifier:
                 res, tie = self.weigh(res, alt, deg, dist)
             if tie is not None:
                 return tie
-        return self.against_shape_turns(q, qk, res, refine, timer)
+        res = self.against_shape_turns(q, qk, res, refine, timer)
+        return self.against_unseen_turns(q, qk, res, refine, timer) if res.found else res
 
     def near(self, T_a: np.ndarray, T_b: np.ndarray) -> bool:
         """T_a lies within the pooling tolerance of T_b or of a pose that looks as T_b does."""
@@ -216,6 +233,56 @@ class ListVerifier:
                                        self.apart(T, res.T_cam_obj)[0])
             if tie is not None:
                 return tie
+        return res
+
+    def off_seen_surface(self, T_cam_obj: np.ndarray, qk: QueryKeypoints, radius: float) -> np.ndarray:
+        """[M] bool: the query keypoints farther than `radius` (m) from the template's surface at T_cam_obj."""
+        from scipy.spatial import cKDTree
+
+        if self._seen is None:
+            self._seen = cKDTree(self.model.samples)
+        T_obj_cam = inv_T(T_cam_obj)
+        d, _ = self._seen.query(transform_points(T_obj_cam, qk.feats.points.astype(np.float64)))
+        return np.asarray(d > radius)
+
+    def against_unseen_turns(self, q: QueryFrame, qk: QueryKeypoints, res: EstimateResult, refine: bool,
+                             timer: StageTimer) -> EstimateResult:
+        """The accepted `res` against itself turned by each symmetry in shape onto surface the template has not
+        seen (module docstring): res, or the ambiguous view's not-found result."""
+        p = self.params
+        assert res.T_cam_obj is not None and res.evidence is not None
+        z = float(transform_points(res.T_cam_obj, self.model.center[None])[0, 2])
+        radius = p.verify.support_radius + 0.01 * max(z - 0.5, 0.0)  # as the keypoint support's
+        on = ~self.off_seen_surface(res.T_cam_obj, qk, radius)
+        support: np.ndarray | None = None
+        for S in self.unseen_turns:
+            T = res.T_cam_obj @ S
+            with timer.stage("refine"):
+                if refine:
+                    T = refine_pose(self.model, q, T, None, q.off_plane, p.refine)
+            off = on & self.off_seen_surface(T, qk, 2.0 * radius)
+            unseen = np.unique(qk.location[off])
+            known = np.setdiff1d(np.unique(qk.location[on]), unseen)
+            if support is None:
+                support = self.local_support(q, res.T_cam_obj, qk)
+            n_unseen = len(np.intersect1d(support, unseen))
+            if n_unseen == 0:
+                continue
+            if (self.evidence(q, T, qk.feats, qk.S, qk.location).score < p.accept.min_score
+                    or self.sinks(q, T) is not None):
+                continue  # the depth refutes the turn
+            n_known = len(np.intersect1d(support, known))
+            log.debug("turn onto unseen surface: %d of %d supporters there, %d of %d elsewhere", n_unseen, len(unseen),
+                      n_known, len(known))
+            rate_unseen, rate_known = n_unseen / len(unseen), n_known / max(1, len(known))
+            if (n_known < p.accept.min_support or rate_known < p.accept.min_support_ratio
+                    or (n_unseen >= p.accept.min_support and rate_known < p.rivals.unseen_rate * rate_unseen)):
+                deg = self.apart(T, res.T_cam_obj)[0]
+                return not_found(f"{AMBIGUOUS}: the pose turned {deg:.0f} deg by the object's symmetry in shape "
+                                 f"would show a side the template has not seen where {n_unseen} of the keypoints "
+                                 f"supporting the pose lie ({n_unseen} of {len(support)}; elsewhere {n_known} of "
+                                 f"{len(known)} support it): scan the object upside down as well",
+                                 res.n_matches, res.view, res.score, evidence=res.evidence)
         return res
 
     def weigh_turn(self, q: QueryFrame, qk: QueryKeypoints, res: EstimateResult, alt: EstimateResult,
