@@ -20,12 +20,13 @@ screen: EGL through Mesa (llvmpipe, no GPU or display); gscan's ray-casts the sa
 pixel where OpenGL does (`gscan.evaluate.metrics.VSD_RENDER_PIXEL_OFFSET`).
 
 What the user provides (this script downloads nothing and imports nothing of the toolkit: it only runs it):
-- a checkout of https://github.com/thodan/bop_toolkit (`--toolkit`); it is put on PYTHONPATH, not installed;
+- a checkout of https://github.com/thodan/bop_toolkit (`--toolkit`); its patched copy is put on PYTHONPATH;
+  git, which applies the patch;
 - a Python that runs it (`--python`, default: this one), with the packages its evaluation imports: numpy, scipy,
   imageio, pypng, vispy, PyOpenGL, and Mesa's EGL (Debian: libegl1 libgl1-mesa-dri). gscan's environment plus
   three packages does, e.g.
       python3 -m venv --system-site-packages /tmp/boptk-venv
-      /tmp/boptk-venv/bin/pip install pypng vispy pyopengl
+      /tmp/boptk-venv/bin/pip install pypng vispy pyopengl   # and imageio scipy where that Python lacks them
   (the toolkit's pyproject pins numpy<2; its evaluation runs on numpy 2).
 """
 from __future__ import annotations
