@@ -55,7 +55,7 @@ from pathlib import Path
 import numpy as np
 
 from gscan.errors import InputError
-from gscan.evaluate.metrics import diameter
+from gscan.evaluate.metrics import VSD_DELTA_M, diameter
 from gscan.exporters.common import MeshRaycaster, bbox_xywh, imwrite, posed_views, template_mesh
 from gscan.geometry.symmetry import Symmetries
 from gscan.geometry.transforms import inv_T
@@ -196,10 +196,11 @@ def write_bop(db: TemplateDB, out: Path, close: bool = True) -> int:
     return len(views)
 
 
-def toolkit_patch(im_size: tuple[int, int], symmetric: bool, delta_mm: float = VISIB_DELTA_MM) -> str:
+def toolkit_patch(im_size: tuple[int, int], symmetric: bool, delta_mm: float = VSD_DELTA_M * 1000.0) -> str:
     """A unified diff for the BOP toolkit's checkout (`git apply`) that registers dataset TOOLKIT_DATASET: object
     OBJ_ID (in its symmetric ids if `symmetric`), test scene SCENE_ID, images of `im_size` (width, height), VSD
-    delta `delta_mm`. Each hunk anchors on one line before and one after the insertion (module docstring)."""
+    delta `delta_mm` (gscan's VSD_DELTA_M). Each hunk anchors on one line before and one after the insertion
+    (module docstring)."""
     name, (w, h) = TOOLKIT_DATASET, im_size
     sym = f"[{OBJ_ID}]" if symmetric else "[]"
     delta = f"{delta_mm:g}"
