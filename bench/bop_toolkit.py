@@ -13,19 +13,20 @@ gscan scores the last three with `gscan.evaluate.score_results` (`gscan eval`'s 
 estimating); the toolkit scores all four with eval_bop19_pose.py, run in a subprocess on the same files. Prints
 AR, AR VSD, AR MSSD and AR MSPD from each, and their differences (gscan - toolkit).
 
-The toolkit knows datasets by name: the export is shown to it as dataset "tudl" (three objects, none symmetric,
-640 x 480 images, VSD delta 15 mm: BOP19's settings for the sample), a folder of links to the export in which
-models 2 and 3 are links to model 1 (the toolkit loads every model of a dataset; no estimate or target names
-them). Its VSD renders with its vispy renderer off screen: EGL through Mesa (llvmpipe, no GPU or display);
-gscan's ray-casts the same mesh with open3d.
+The toolkit knows datasets by name: it scores the export as a user does, under the name "gscan" that the export's
+bop_toolkit.patch registers (docs/exports.md), applied with `git apply` to a copy of the checkout's
+bop_toolkit_lib/ and scripts/ (the checkout itself is left as it is). Its VSD renders with its vispy renderer off
+screen: EGL through Mesa (llvmpipe, no GPU or display); gscan's ray-casts the same mesh with open3d, sampling each
+pixel where OpenGL does (`gscan.evaluate.metrics.VSD_RENDER_PIXEL_OFFSET`).
 
 What the user provides (this script downloads nothing and imports nothing of the toolkit: it only runs it):
-- a checkout of https://github.com/thodan/bop_toolkit (`--toolkit`); it is put on PYTHONPATH, not installed;
+- a checkout of https://github.com/thodan/bop_toolkit (`--toolkit`); its patched copy is put on PYTHONPATH;
+  git, which applies the patch;
 - a Python that runs it (`--python`, default: this one), with the packages its evaluation imports: numpy, scipy,
   imageio, pypng, vispy, PyOpenGL, and Mesa's EGL (Debian: libegl1 libgl1-mesa-dri). gscan's environment plus
   three packages does, e.g.
       python3 -m venv --system-site-packages /tmp/boptk-venv
-      /tmp/boptk-venv/bin/pip install pypng vispy pyopengl
+      /tmp/boptk-venv/bin/pip install pypng vispy pyopengl   # and imageio scipy where that Python lacks them
   (the toolkit's pyproject pins numpy<2; its evaluation runs on numpy 2).
 """
 from __future__ import annotations
@@ -44,11 +45,11 @@ import numpy as np
 
 from gscan.demo import SAMPLES
 from gscan.evaluate import score_results
+from gscan.exporters.bop import TOOLKIT_DATASET
 from gscan.geometry.transforms import make_T, rotvec_to_R
 
 ROOT = Path(__file__).resolve().parents[1]
-DATASET = "tudl"  # the BOP dataset name the export is shown to the toolkit under (see the module docstring)
-N_MODELS = 3  # TUD-L's objects: the toolkit loads models 1-3
+DATASET = TOOLKIT_DATASET  # the name the export's bop_toolkit.patch registers it under
 NOISE = {"noise5": (5.0, 0.01), "noise20": (20.0, 0.03)}  # name -> (max rotation deg, max translation m)
 METRICS = {"AR": "bop19_average_recall", "AR VSD": "bop19_average_recall_vsd",
            "AR MSSD": "bop19_average_recall_mssd", "AR MSPD": "bop19_average_recall_mspd"}
@@ -99,19 +100,18 @@ def write_results(path: Path, poses: dict[int, np.ndarray], scene_id: int = 1, o
     path.write_text("\n".join(lines) + "\n")
 
 
-def toolkit_dataset(export: Path, root: Path) -> Path:
-    """BOP_PATH for the toolkit: root/DATASET, links to the export's test split and targets, models_eval with
-    models 1..N_MODELS linked to the export's model 1 and their models_info entries copied from its."""
-    ds = root / DATASET
-    (ds / "models_eval").mkdir(parents=True)
-    (ds / "test").symlink_to(export / "test")
-    (ds / "test_targets_bop19.json").symlink_to(export / "test_targets_bop19.json")
-    info = json.loads((export / "models_eval" / "models_info.json").read_text())
-    ids = range(1, N_MODELS + 1)
-    (ds / "models_eval" / "models_info.json").write_text(json.dumps({str(k): info["1"] for k in ids}))
-    for k in ids:
-        (ds / "models_eval" / f"obj_{k:06d}.ply").symlink_to(export / "models_eval" / "obj_000001.ply")
-    return root
+def patched_toolkit(toolkit: Path, export: Path, work: Path) -> Path:
+    """work/bop_toolkit: a copy of the checkout's bop_toolkit_lib/ and scripts/ (not its tests' data) with the
+    export's bop_toolkit.patch applied by `git apply`, as a user applies it; RuntimeError with git's message when
+    the patch does not apply."""
+    dst = work / "bop_toolkit"
+    for sub in ("bop_toolkit_lib", "scripts"):
+        shutil.copytree(toolkit / sub, dst / sub, ignore=shutil.ignore_patterns("tests", "__pycache__"))
+    r = subprocess.run(["git", "apply", str(export / "bop_toolkit.patch")], cwd=dst, capture_output=True, text=True,
+                       check=False)
+    if r.returncode != 0:
+        raise RuntimeError(f"{export / 'bop_toolkit.patch'} does not apply to {toolkit}: {r.stderr.strip()}")
+    return dst
 
 
 def run_toolkit(toolkit: Path, python: Path, bop_path: Path, results: Path, names: list[str], work: Path,
@@ -135,7 +135,7 @@ def run_toolkit(toolkit: Path, python: Path, bop_path: Path, results: Path, name
     with log.open("w") as f:
         r = subprocess.run(cmd, stdout=f, stderr=subprocess.STDOUT, env=env, cwd=toolkit, check=False)
     if r.returncode != 0:
-        sys.exit(f"the BOP toolkit failed ({r.returncode}); the end of {log}:\n{log.read_text()[-3000:]}")
+        raise RuntimeError(f"the BOP toolkit failed ({r.returncode}); the end of {log}:\n{log.read_text()[-3000:]}")
     out = {}
     for name in names:
         scores = json.loads((eval_path / Path(name).stem / "scores_bop19.json").read_text())
@@ -197,6 +197,8 @@ def main() -> None:
         work = Path(tempfile.mkdtemp(prefix="gscan-bop-toolkit-"))
     try:
         report = compare(toolkit, args.python, work, args.renderer, args.seed)
+    except RuntimeError as e:
+        sys.exit(str(e))
     finally:
         if args.work is None:
             shutil.rmtree(work, ignore_errors=True)
@@ -206,7 +208,7 @@ def main() -> None:
 
 
 def compare(toolkit: Path, python: Path, work: Path, renderer: str, seed: int) -> dict:
-    template, export, results = work / "sample.gscan", work / "export", work / "results"
+    template, export, results = work / "sample.gscan", work / "datasets" / DATASET, work / "results"
     results.mkdir()
     t0 = time.perf_counter()
     gscan_cli("scan", SAMPLES / "capture", "-o", template, "--json")
@@ -230,9 +232,9 @@ def compare(toolkit: Path, python: Path, work: Path, renderer: str, seed: int) -
             rep = score_results(results / names[name], scene, model)
             gscan[name] = ({k: float(rep.metrics[k]) for k in METRICS}, gscan_errors([r.to_json() for r in rep.rows]))
     t_score = time.perf_counter() - t0
-    bop_path = toolkit_dataset(export, work / "toolkit_data")
+    patched = patched_toolkit(toolkit, export, work)
     t0 = time.perf_counter()
-    tk = run_toolkit(toolkit, python.absolute(), bop_path, results, list(names.values()), work, renderer)
+    tk = run_toolkit(patched, python.absolute(), export.parent, results, list(names.values()), work, renderer)
     t_toolkit = time.perf_counter() - t0
     return {"images": len(gt), "seed": seed, "noise": {k: {"max_deg": d, "max_m": m} for k, (d, m) in NOISE.items()},
             "seconds": {"scan + export": t_build, "gscan eval (estimate + score)": t_eval,

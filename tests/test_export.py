@@ -139,6 +139,9 @@ def test_bop_export(synth: tuple[Path, dict], tmp_path: Path) -> None:
     for name in ("obj_000001.ply", "models_info.json"):
         assert (out / "models_eval" / name).read_bytes() == (out / "models" / name).read_bytes()
     assert json.loads((out / "gscan_views.json").read_text())["2"] == "frame 02 é"
+    # the lines the BOP toolkit needs to know the export (tests/test_bop_toolkit.py applies them to the toolkit)
+    patch = (out / "bop_toolkit.patch").read_text()
+    assert f'p["im_size"] = ({K.width}, {K.height})' in patch and patch.count("\n@@ -") == 4
     targets = json.loads((out / "test_targets_bop19.json").read_text())
     assert targets[1] == {"im_id": 1, "inst_count": 1, "obj_id": 1, "scene_id": 1} and len(targets) == 4
     _check_with_gscan_io(scene, gt["Ts"])

@@ -259,9 +259,9 @@ def test_vsd_visibility_rules():
 
 
 def test_vsd_on_rendered_plate_and_recall():
-    """The plate ray-cast (geometry.raycast) gives the analytic depth images; BOP19's taus scale with the
-    diameter, and AR_VSD averages the recall over its thresholds (strictly below) and the taus."""
-    from gscan.evaluate.metrics import VSD_TAU_FRACTIONS, ar_vsd, vsd, vsd_taus
+    """The plate ray-cast (geometry.raycast) gives the analytic depth images, with VSD's pixel offset too; BOP19's
+    taus scale with the diameter, and AR_VSD averages the recall over its thresholds (strictly below) and the taus."""
+    from gscan.evaluate.metrics import VSD_RENDER_PIXEL_OFFSET, VSD_TAU_FRACTIONS, ar_vsd, vsd, vsd_taus
     from gscan.geometry.raycast import MeshRaycaster
 
     V = np.array([[-HALF, -HALF, 0], [HALF, -HALF, 0], [HALF, HALF, 0], [-HALF, HALF, 0]])
@@ -270,6 +270,11 @@ def test_vsd_on_rendered_plate_and_recall():
     for z in (1.0, 1.25):
         T_obj_cam = make_T(np.eye(3), [0.0, 0.0, -z])  # the camera z metres in front of the plate, facing it
         np.testing.assert_allclose(caster.depth(cam, T_obj_cam), _plate_depth(z), atol=1e-6)  # float32 depth
+    # VSD's renders sample pixel (u, v) at (u + 0.5, v + 0.5), as OpenGL does (the BOP toolkit's renderers): at
+    # 1 m the plate's edges at 39.45 and 59.55 px take in the 21 columns and rows 39-59
+    inside = np.abs(np.arange(100) + VSD_RENDER_PIXEL_OFFSET - 49.5) < 100.0 * HALF
+    hit = caster.depth(cam, make_T(np.eye(3), [0.0, 0.0, -1.0]), VSD_RENDER_PIXEL_OFFSET) > 0
+    assert hit.sum() == 21 * 21 and (hit == inside[:, None] & inside[None, :]).all()
     diam = 2 * np.sqrt(2) * HALF  # 0.2843 m: the plate's diagonal
     taus = vsd_taus(diam)
     np.testing.assert_allclose(taus, VSD_TAU_FRACTIONS * diam)

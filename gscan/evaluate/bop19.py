@@ -14,7 +14,8 @@ scores such a CSV (any method's) with the same errors and metrics, without estim
 Metrics over all images with ground truth (a not-found pose counts as an infinite error):
 "AUC ADD" / "AUC ADD-S" (YCB-Video AUC, 0-10 cm, percent), "AR VSD" / "AR MSSD" / "AR MSPD" (BOP19
 average recalls, percent), "AR" (their mean: BOP19's AR, as the BOP toolkit's eval_bop19_pose.py computes
-it), "found" (percent of images with a pose), "mean time ms". VSD renders the model, so it needs a mesh;
+it), "found" (percent of images with a pose), "mean time ms". VSD renders the model (ray-cast, each pixel
+sampled where the toolkit's OpenGL renderers sample it: `metrics.VSD_RENDER_PIXEL_OFFSET`), so it needs a mesh;
 with a point cloud alone "AR VSD" and "AR" are left out. Objects are taken as asymmetric (no symmetry
 transformations). All model vertices are used (ADD-S's nearest neighbours exactly, by k-d tree).
 Model: the template's mesh (else its cloud), or `model_path` (any mesh trimesh reads, in the ground
@@ -43,9 +44,20 @@ import numpy as np
 
 from gscan.errors import InputError, not_a_file
 from gscan.estimate.estimator import Estimator
+from gscan.evaluate.metrics import (
+    VSD_RENDER_PIXEL_OFFSET,
+    ar_mspd,
+    ar_mssd,
+    ar_vsd,
+    auc,
+    diameter,
+    mspd,
+    mssd,
+    vsd,
+    vsd_taus,
+)
 from gscan.evaluate.metrics import add as add_err
 from gscan.evaluate.metrics import adds as adds_err
-from gscan.evaluate.metrics import ar_mspd, ar_mssd, ar_vsd, auc, diameter, mspd, mssd, vsd, vsd_taus
 from gscan.geometry.raycast import MeshRaycaster
 from gscan.geometry.transforms import inv_T, mean_pose, pose_error, transform_points
 from gscan.io import open_sequence
@@ -380,8 +392,8 @@ def _errors(row: EvalRow, T_gt: np.ndarray, frame: RGBDFrame, pts: np.ndarray, c
     except ValueError:  # estimated model partly behind the camera
         row.mspd = float("inf")
     if caster is not None:
-        d_est = caster.depth(frame.intrinsics, inv_T(T_est))
-        d_gt = caster.depth(frame.intrinsics, inv_T(T_gt))
+        d_est = caster.depth(frame.intrinsics, inv_T(T_est), VSD_RENDER_PIXEL_OFFSET)
+        d_gt = caster.depth(frame.intrinsics, inv_T(T_gt), VSD_RENDER_PIXEL_OFFSET)
         row.vsd = vsd(frame.depth, d_est, d_gt, frame.intrinsics, taus).tolist()
 
 

@@ -38,6 +38,10 @@ VSD_TAU_FRACTIONS = np.round(np.arange(0.05, 0.51, 0.05), 10)
 VSD_THRESHOLDS = np.round(np.arange(0.05, 0.51, 0.05), 10)
 #: BOP19 VSD visibility tolerance (m): a model pixel more than this behind the measured surface is occluded.
 VSD_DELTA_M = 0.015
+#: Where VSD's model renders sample each pixel (added to its integer coordinates, `MeshRaycaster.depth`'s
+#: pixel_offset): the BOP toolkit's renderers project with OpenGL from K, which samples pixel (u, v) at
+#: (u + 0.5, v + 0.5); rendering there gives its silhouettes pixel for pixel, and so its VSD errors.
+VSD_RENDER_PIXEL_OFFSET = 0.5
 
 
 def _as_T(T: np.ndarray, name: str) -> np.ndarray:

@@ -18,6 +18,14 @@ Layout (BOP toolkit conventions, docs/bop_datasets_format.md; millimetres, row-m
                                                 px_count_visib, visib_fract}]}
     test_targets_bop19.json           [{im_id, inst_count: 1, obj_id: 1, scene_id: 1}] (evaluation targets)
     gscan_views.json                  {im_id: template view name} (gscan's own addition)
+    bop_toolkit.patch                 registers the dataset as "gscan" in a checkout of the BOP toolkit (below)
+
+The BOP toolkit knows datasets by name only: their object ids, image size and VSD delta are written in its
+`bop_toolkit_lib/dataset_params.py` and `scripts/eval_bop19_pose.py`, with no other place to add one. The
+export's `bop_toolkit.patch` adds dataset "gscan" there (object 1, symmetric if the template is, scene 1, the
+views' image size, delta 15 mm): `git apply` it in the toolkit's checkout, make the export BOP_PATH/gscan and
+name results `METHOD_gscan-test.csv` (docs/exports.md). Its context lines are the toolkit's as of 2026-06 (commit
+cea62d6); `git apply` finds them where they moved and refuses a checkout where they changed.
 
 Symmetries (the template's, `TemplateDB.symmetries`): those that hold in shape and texture, as BOP keeps them (its
 potential symmetries by shape, less those the texture resolves: the BOP Challenge 2019 page, section 2.3 of Hodan
@@ -47,7 +55,7 @@ from pathlib import Path
 import numpy as np
 
 from gscan.errors import InputError
-from gscan.evaluate.metrics import diameter
+from gscan.evaluate.metrics import VSD_DELTA_M, diameter
 from gscan.exporters.common import MeshRaycaster, bbox_xywh, imwrite, posed_views, template_mesh
 from gscan.geometry.symmetry import Symmetries
 from gscan.geometry.transforms import inv_T
@@ -60,6 +68,7 @@ SCENE_ID = 1
 OBJ_ID = 1
 DEPTH_SCALE = 1.0  # raw uint16 * DEPTH_SCALE = millimetres
 VISIB_DELTA_MM = 15.0
+TOOLKIT_DATASET = "gscan"  # the name bop_toolkit.patch gives the export in the BOP toolkit
 
 
 def write_ply_mm(mesh: MeshData, path: Path) -> None:
@@ -181,7 +190,47 @@ def write_bop(db: TemplateDB, out: Path, close: bool = True) -> int:
     _dump(out / "gscan_views.json", names)
     targets = [{"im_id": int(k), "inst_count": 1, "obj_id": OBJ_ID, "scene_id": SCENE_ID} for k in scene_gt]
     (out / "test_targets_bop19.json").write_text(json.dumps(targets, indent=1) + "\n", encoding="utf-8")
+    symmetric = bool(bop_symmetries(db.symmetries()))
+    patch = toolkit_patch((intr0.width, intr0.height), symmetric)
+    (out / "bop_toolkit.patch").write_text(patch, encoding="utf-8")
     return len(views)
+
+
+def toolkit_patch(im_size: tuple[int, int], symmetric: bool, delta_mm: float = VSD_DELTA_M * 1000.0) -> str:
+    """A unified diff for the BOP toolkit's checkout (`git apply`) that registers dataset TOOLKIT_DATASET: object
+    OBJ_ID (in its symmetric ids if `symmetric`), test scene SCENE_ID, images of `im_size` (width, height), VSD
+    delta `delta_mm` (gscan's VSD_DELTA_M). Each hunk anchors on one line before and one after the insertion
+    (module docstring)."""
+    name, (w, h) = TOOLKIT_DATASET, im_size
+    sym = f"[{OBJ_ID}]" if symmetric else "[]"
+    delta = f"{delta_mm:g}"
+    return "\n".join([
+        "--- a/bop_toolkit_lib/dataset_params.py",
+        "+++ b/bop_toolkit_lib/dataset_params.py",
+        "@@ -81,2 +81,3 @@",
+        "     obj_ids = {",
+        f'+        "{name}": [{OBJ_ID}],',
+        '         "lm": list(range(1, 16)),',
+        "@@ -105,2 +106,3 @@",
+        "     symmetric_obj_ids = {",
+        f'+        "{name}": {sym},',
+        '         "lm": [3, 7, 10, 11],',
+        "@@ -202,3 +204,7 @@",
+        "     # Linemod (LM).",
+        '-    if dataset_name == "lm":',
+        f'+    if dataset_name == "{name}":  # a gscan BOP export (gscan export --format bop)',
+        f'+        p["scene_ids"] = [{SCENE_ID}]',
+        f'+        p["im_size"] = ({w}, {h})',
+        "+",
+        '+    elif dataset_name == "lm":',
+        '         p["scene_ids"] = list(range(1, 16))',
+        "--- a/scripts/eval_bop19_pose.py",
+        "+++ b/scripts/eval_bop19_pose.py",
+        "@@ -30,2 +30,3 @@",
+        '             "vsd_deltas": {',
+        f'+                "{name}": {delta},',
+        '                 "hb": 15,',
+        ""])
 
 
 def _dump(path: Path, obj: dict) -> None:
