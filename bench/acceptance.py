@@ -66,10 +66,19 @@ def run(split: str, starts: list[float], gaps: list[float], table: str, masks: b
                 deg, m = pose_error(r.T_tgt_src, T_gt) if r.T_tgt_src is not None else (np.inf, np.inf)
                 out[g].append({"mesh": md.name, "start": s0, "accepted": r.accepted, "deg": deg, "m": m,
                                "why": (r.reason or "accepted").split(" (")[0], "sigma_deg": r.sigma_deg})
-            print(f"{md.name[:34]:34s} {s0:5.0f}  " + "  ".join(
-                f"{g:.0f}:{'+' if x[-1]['accepted'] and x[-1]['deg'] < WRONG_DEG and x[-1]['m'] < WRONG_M else '.'}"
-                for g, x in out.items()), file=sys.stderr, flush=True)
+            print(f"{md.name[:34]:34s} {s0:5.0f}  " + "  ".join(f"{g:.0f}:{_mark(x[-1])}" for g, x in out.items()),
+                  file=sys.stderr, flush=True)
     return out
+
+
+def is_right(r: dict) -> bool:
+    """A pair's pose within 5 deg and 2 cm of the ground truth."""
+    return bool(r["deg"] < WRONG_DEG and r["m"] < WRONG_M)
+
+
+def _mark(r: dict) -> str:
+    """+ registered right, x registered wrong, . refused."""
+    return ("+" if is_right(r) else "x") if r["accepted"] else "."
 
 
 def report(out: dict[float, list[dict]]) -> None:
@@ -77,10 +86,10 @@ def report(out: dict[float, list[dict]]) -> None:
           "weak: sigma claimed / actual rotation error (median) | other refusals |")
     print("|---|---|---|---|---|---|---|")
     for g, recs in out.items():
-        right = [r["deg"] < WRONG_DEG and r["m"] < WRONG_M for r in recs]
+        right = [is_right(r) for r in recs]
         acc = [r["accepted"] for r in recs]
         weak = [r for r in recs if r["why"] == "weak geometry"]
-        w_right = sum(r["deg"] < WRONG_DEG and r["m"] < WRONG_M for r in weak)
+        w_right = sum(is_right(r) for r in weak)
         ratio = np.median([r["deg"] / r["sigma_deg"] for r in weak if r["sigma_deg"]]) if weak else float("nan")
         claimed = np.median([r["sigma_deg"] for r in weak]) if weak else float("nan")
         other = Counter(r["why"] for r in recs if not r["accepted"] and r["why"] != "weak geometry")
@@ -88,6 +97,11 @@ def report(out: dict[float, list[dict]]) -> None:
               f"{int(np.sum(np.logical_and(acc, np.logical_not(right))))} | {w_right} / {len(weak) - w_right} | "
               f"{claimed:.1f} deg, error {ratio:.1f} x sigma | "
               + ", ".join(f"{k} {v}" for k, v in other.most_common()) + " |")
+    for g, recs in out.items():
+        for r in recs:
+            if r["accepted"] and not is_right(r):
+                print(f"registered wrong at {g:.0f} deg: {r['mesh']} from {r['start']:.0f} deg, {r['deg']:.1f} deg / "
+                      f"{1000 * r['m']:.0f} mm off, sigma {r['sigma_deg']:.2f} deg")
 
 
 def main() -> None:
