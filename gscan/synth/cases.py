@@ -7,7 +7,8 @@ annotated_poses/) and which show something else:
 - `far_capture`: the object 1.5-2.5 m from the camera, where the depth noise grows with the square of the
   distance and the object fills a small part of the frame;
 - `glossy_can_capture`: a can with a wrapped label lying on the table (curved), glossy: specular highlights
-  that move with the viewpoint and lose the depth where they shine (`Gloss`);
+  that move with the viewpoint and lose the depth where they shine (`Gloss`); `glossy_bottle_capture`: a
+  narrower one, farther away, standing on a turntable, whose label few pixels show;
 - `ring_jump_capture`: 20-degree steps around two rings, the second 25 degrees higher than the first, joined
   by one 25-degree jump;
 - `shifted_depth_capture`: the depth image shifted a few pixels against the colour image, as a sensor
@@ -88,6 +89,20 @@ def glossy_can_capture(out_dir: str | Path, n_views: int = 24, mode: str = "turn
     R_lying = rotvec_to_R(np.array([np.pi / 2, 0.0, 0.0]))
     frames = render_capture(mesh, None, n_views, mode=mode, intr=intr, seed=seed, R_world_obj=R_lying,
                             gloss=gloss, elevations_deg=(30.0,) if mode == "turntable" else (30.0, 55.0),
+                            table_kind=table_kind)
+    names = _names(len(frames))
+    return Case(_write(out_dir, frames, intr), names, names, mesh=mesh)
+
+
+def glossy_bottle_capture(out_dir: str | Path, n_views: int = 36, seed: int = 0, distance: float = 0.9,
+                          table_kind: str = "plain", intr: Intrinsics = DEFAULT_INTRINSICS) -> Case:
+    """A glossy bottle (a narrow cylinder, 6 cm across, 20 cm tall, a printed label) standing on a turntable,
+    `distance` from the camera at 20 deg elevation: it turns about its own axis, so its shape says nothing of the
+    turn and only the curved label does, which few pixels show; broad highlights (shininess 20) lose the depth
+    where they shine (dropout 0.25)."""
+    mesh = cylinder_mesh(0.03, 0.2, procedural_box_texture(5, (1024, 768)), name="glossy_bottle")
+    frames = render_capture(mesh, None, n_views, mode="turntable", intr=intr, seed=seed,
+                            gloss=Gloss(shininess=20.0, dropout=0.25), elevations_deg=(20.0,), distance=distance,
                             table_kind=table_kind)
     names = _names(len(frames))
     return Case(_write(out_dir, frames, intr), names, names, mesh=mesh)

@@ -1,0 +1,78 @@
+"""Registration's acceptance against the evidence: a glossy bottle whose edges are each too loose to place a frame
+alone, and two-frame captures of the shared meshes far apart (a held-out split, bench/acceptance.py's).
+
+What is asked of a rule that follows the evidence: the bottle registers at least 90 % of its frames, the two-frame
+captures at least 93 / 57 / 41 % of their pairs at 20 / 60 / 120 deg, none beyond 5 deg / 2 cm. The current rule
+(a fixed bound on how tightly an edge pins its pose, gscan.registration.pairwise rule "weak geometry") does not
+reach that; those tests are expected to fail (strict) until a rule does, and the tests that no frame or pair is
+wrong must pass with any rule.
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gscan.synth import cases as C
+from tests._scan_checks import Outcome, scan_case
+
+ROOT = Path(__file__).resolve().parents[1]
+GAPS = (20.0, 60.0, 120.0)
+EARLIER_SUCCESS = {20.0: 0.93, 60.0: 0.57, 120.0: 0.41}  # the rules before the fixed bound, on unseen objects
+
+
+@pytest.fixture(scope="module")
+def bottle(tmp_path_factory) -> Outcome:
+    root = tmp_path_factory.mktemp("bottle")
+    return scan_case(C.glossy_bottle_capture(root / "cap", n_views=36, seed=1), root / "bottle.gscan")
+
+
+@pytest.mark.slow
+def test_glossy_bottle_no_frame_wrong(bottle):
+    """The bottle's edges claim a rotation sigma of 1.4-3.8 deg and are a median 3.3 deg off the truth (39 of 126
+    beyond 5 deg, though they pass the depth and colour checks): pooled as if independent, they place 34 of the 36
+    frames 19-49 deg off. No frame may be placed wrong; every unplaced frame says why."""
+    bottle.check_reasons()
+    assert not bottle.wrong, bottle.describe()
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="the fixed bound refuses the bottle's loose edges one at a time (1 of 36 "
+                   "frames registered); pooling them as measured is not safe (34 of 36 wrong)")
+def test_glossy_bottle_registers_nine_in_ten(bottle):
+    """At least 90 % of the bottle's 36 frames registered, none wrong."""
+    assert len(bottle.registered) >= 0.9 * len(bottle.case.object_frames) and not bottle.wrong, bottle.describe()
+
+
+@pytest.fixture(scope="module")
+def pairs() -> dict[float, list[dict]]:
+    """bench/acceptance.py's two-frame captures of the held-out meshes, plain table, object pixels, start 0."""
+    sys.path.insert(0, str(ROOT / "bench"))
+    from acceptance import run
+
+    return run("held-out", [0.0], list(GAPS), "plain", masks=True)
+
+
+def _right(r: dict) -> bool:
+    from acceptance import is_right
+
+    return is_right(r)
+
+
+@pytest.mark.slow
+def test_two_frame_captures_none_wrong(pairs):
+    """No pair of the held-out split registered beyond 5 deg / 2 cm, at any gap."""
+    wrong = [(g, r["mesh"], round(r["deg"], 1), round(r["m"], 3)) for g, rs in pairs.items() for r in rs
+             if r["accepted"] and not _right(r)]
+    assert not wrong, wrong
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="the fixed bound refuses far-apart views whose few pairs pin the pose "
+                   "loosely; no rule that follows the evidence is shown safe yet")
+def test_two_frame_captures_reach_the_earlier_success(pairs):
+    """At each gap, at least the earlier rules' success on unseen objects (93 / 57 / 41 %)."""
+    got = {g: float(np.mean([r["accepted"] and _right(r) for r in rs])) for g, rs in pairs.items()}
+    assert all(got[g] >= EARLIER_SUCCESS[g] for g in GAPS), got
