@@ -4,7 +4,9 @@
 #   bash scripts/setup.sh [DEMO ARGS]          system packages, a venv, gscan; then `gscan demo [DEMO ARGS]`
 #   bash scripts/setup.sh --test [PYTEST ARGS] the same with the test extra and Chromium; then `ruff check` and
 #                                              `mypy` (configured in pyproject.toml; either failing fails the
-#                                              run) and `python -m pytest -q [PYTEST ARGS]` in the repository
+#                                              run), beside them `gscan demo --no-view` (compiles the numeric
+#                                              kernels once), then `python -m pytest -q -n auto --dist loadfile
+#                                              [PYTEST ARGS]` (every core) in the repository
 #   bash scripts/setup.sh --system [--test]    only the system packages (a container's build step, say)
 #
 # Works as root (apt-get directly) or as a user (apt-get through sudo, only when a package is missing);
@@ -67,10 +69,25 @@ say "installing gscan$extra into $venv (first time: about 2 GB of wheels)"
 
 if [ "$test_mode" = 1 ]; then
   cd "$root"
+  # numba compiles the kernels on their first use into its on-disk cache (beside the modules): the demo compiles
+  # them once, on a core of its own while ruff and mypy run, and every test worker then loads them from the cache
+  # instead of each compiling its own
+  warm="$(mktemp -d)"
+  say "compiling the numeric kernels (gscan demo --no-view, beside the checks)"
+  "$venv/bin/python" -m gscan.cli demo --no-view --output "$warm/demo-output" >"$warm/demo.log" 2>&1 &
+  warm_pid=$!
+  trap 'kill "$warm_pid" 2>/dev/null || true; rm -rf "$warm"' EXIT
   say "ruff check (lint)"
   "$venv/bin/python" -m ruff check --no-cache || { echo "setup: error: ruff check failed" >&2; exit 1; }
   say "mypy (types: gscan)"
   "$venv/bin/python" -m mypy --cache-dir /dev/null || { echo "setup: error: mypy failed" >&2; exit 1; }
-  exec "$venv/bin/python" -m pytest -q "$@"
+  if ! wait "$warm_pid"; then
+    tail -n 20 "$warm/demo.log" >&2
+    echo "setup: error: gscan demo --no-view (the kernels' compilation) failed" >&2; exit 1
+  fi
+  rm -rf "$warm"
+  trap - EXIT
+  # the suite on every core (pytest-xdist), each test file on one worker: a file's module fixtures are made once
+  exec "$venv/bin/python" -m pytest -q -n auto --dist loadfile "$@"
 fi
 exec "$venv/bin/gscan" demo "$@"

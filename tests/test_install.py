@@ -182,12 +182,13 @@ def test_setup_installs_missing_system_packages_with_sudo_only_when_not_root(tmp
     assert r.returncode == 0 and not log.exists(), r.stderr  # nothing missing: no apt-get, no sudo
 
 
-@pytest.mark.parametrize("failing", [None, "ruff", "mypy"])
+@pytest.mark.parametrize("failing", [None, "ruff", "mypy", "gscan.cli"])
 def test_setup_test_runs_ruff_and_mypy_before_the_tests_and_stops_when_one_fails(tmp_path: Path,
                                                                                    failing: str | None):
-    """scripts/setup.sh --test (what .ci/run runs) lints with ruff, type-checks with mypy, then runs pytest with
-    the given arguments; a failing check fails the run (non-zero exit, one line naming it) before the tests. The
-    venv's interpreter is a stand-in that logs its calls and fails as `failing` says."""
+    """scripts/setup.sh --test (what .ci/run runs) lints with ruff, type-checks with mypy and, beside them, compiles
+    the numeric kernels with `gscan demo --no-view` (into a temporary folder it removes), then runs pytest on every
+    core with the given arguments; a failing step fails the run (non-zero exit, one line naming it) before the
+    tests. The venv's interpreter is a stand-in that logs its calls and fails as `failing` says."""
     venv, log = tmp_path / "venv", tmp_path / "calls.log"
     (venv / "bin").mkdir(parents=True)
     stub = venv / "bin" / "python"
@@ -196,12 +197,23 @@ def test_setup_test_runs_ruff_and_mypy_before_the_tests_and_stops_when_one_fails
     r = subprocess.run(["bash", str(ROOT / "scripts" / "setup.sh"), "--test", "-x", "tests/test_config.py"],
                        capture_output=True, text=True, timeout=60,
                        env=_env(GSCAN_NO_APT="1", GSCAN_VENV=str(venv), PYTHON=sys.executable))
-    calls = [c.split()[:2] for c in log.read_text().splitlines()]
+    lines = log.read_text().splitlines()
+    # the demo runs in the background: its call is logged among the checks', in no fixed order
+    demo = [line for line in lines if line.startswith("-m gscan.cli ")]
+    calls = [c.split()[:2] for c in lines if not c.startswith("-m gscan.cli ")]
     ran = [["-m", "pip"], ["-m", "ruff"], ["-m", "mypy"], ["-m", "pytest"]]
+    assert len(demo) <= 1 and all(d.split()[2:5] == ["demo", "--no-view", "--output"] for d in demo), demo
+    warm = [Path(d.split()[5]).parent for d in demo]
+    assert not any(w.exists() for w in warm), warm  # its temporary folder is gone, also after a failure
     if failing is None:
         assert r.returncode == 0, r.stderr
-        assert calls == ran and log.read_text().splitlines()[-1] == "-m pytest -q -x tests/test_config.py"
+        assert calls == ran and lines[-1] == "-m pytest -q -n auto --dist loadfile -x tests/test_config.py"
+        assert len(demo) == 1 and lines.index(demo[0]) < len(lines) - 1  # compiled before the tests
     else:
         last = r.stderr.strip().splitlines()[-1]
-        assert r.returncode == 1 and last.startswith(f"setup: error: {failing}") and "failed" in last, r.stderr
-        assert calls == ran[: ran.index(["-m", failing]) + 1]  # nothing after the failing check
+        name = "gscan demo" if failing == "gscan.cli" else failing
+        assert r.returncode == 1 and last.startswith(f"setup: error: {name}") and "failed" in last, r.stderr
+        if failing == "gscan.cli":  # the checks ran to the end, the tests did not
+            assert len(demo) == 1 and calls == ran[:3]
+        else:
+            assert calls == ran[: ran.index(["-m", failing]) + 1]  # nothing after the failing check
