@@ -68,6 +68,20 @@ say "installing gscan$extra into $venv (first time: about 2 GB of wheels)"
 "$venv/bin/python" -m pip install -q --disable-pip-version-check -e "$root$extra"
 
 if [ "$test_mode" = 1 ]; then
+  # the RealSense recording tests record with the SDK's own recorder of each recording layout: the venv's
+  # pyrealsense2 (2.59: .db3, PNG images), and 2.57 (.bag) and 2.58 (.db3, zstd messages) each in a folder of its
+  # own (GSCAN_TEST_PYREALSENSE2), where gscan never imports them
+  sdks=""
+  for v in 2.57.7.10387 2.58.4.10922; do
+    d="$venv/realsense-sdks/$v"
+    if [ ! -d "$d/pyrealsense2" ]; then
+      say "installing pyrealsense2 $v into $d (the recording tests)"
+      "$venv/bin/python" -m pip install -q --disable-pip-version-check --no-deps --target "$d" "pyrealsense2==$v" \
+        || die "could not install pyrealsense2 $v (the recording tests)"
+    fi
+    sdks="${sdks:+$sdks:}$d"
+  done
+  export GSCAN_TEST_PYREALSENSE2="${GSCAN_TEST_PYREALSENSE2:-$sdks}"
   cd "$root"
   # numba compiles the kernels on their first use into its on-disk cache (beside the modules): the demo compiles
   # them once, on a core of its own while ruff and mypy run, and every test worker then loads them from the cache
