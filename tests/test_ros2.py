@@ -267,6 +267,29 @@ def test_node_publishes_the_sample_poses_within_the_demo_tolerance(graph, heldou
 
 
 @needs_rclpy
+def test_instances_publishes_every_instance_estimate_all_finds(graph, heldout, template):
+    """With `instances`, the PoseArray holds the poses `Estimator.estimate_all` finds in the frame (the sample's
+    one box, at the truth), counted in the status; the PoseStamped is still the tracker's."""
+    from gscan.estimate import Estimator
+
+    g = graph(instances=True)
+    est = Estimator.from_path(template)
+    t0 = time.time_ns()
+    for i, name in enumerate(heldout.names[:2]):
+        g.send(heldout[name], t0 + i * 100_000_000)
+        g.wait_status(i + 1)
+    time.sleep(0.2)
+    pts = est.model_points
+    for name, st, arr in zip(heldout.names[:2], g.status, g.arrays, strict=True):
+        want = [r.T_cam_obj for r in est.estimate_all(heldout[name]).results]
+        assert st["objects"]["box"]["instances"] == len(arr.poses) == len(want) == 1, st
+        p = arr.poses[0].position
+        assert np.allclose([p.x, p.y, p.z], want[0][:3, 3], atol=1e-6)
+        assert add(pts, want[0], heldout.gt_T_cam_obj[name]) * 1000 < MAX_ADD_MM
+    assert len(g.poses) == 2
+
+
+@needs_rclpy
 def test_no_pose_is_published_for_a_frame_without_the_object(graph, heldout):
     import cv2
 

@@ -7,7 +7,8 @@ estimate when the object is lost, tracking while it is found) and publishes, sta
 header:
 
 - `~/<template>/pose` (geometry_msgs/PoseStamped): T_cam_obj, only when the estimator accepted a pose
-- `~/<template>/poses` (geometry_msgs/PoseArray): the accepted poses of the frame (the one pose, or none)
+- `~/<template>/poses` (geometry_msgs/PoseArray): the accepted poses of the frame (the tracker's one pose, or
+  none; with the parameter `instances`, every instance `Estimator.estimate_all` finds, best score first)
 - `~/markers` (visualization_msgs/MarkerArray): each template's mesh at its pose (DELETE when lost)
 - `~/status` (std_msgs/String): one JSON object per frame (`FrameStatus`)
 
@@ -255,10 +256,15 @@ class PoseNode(Node):
             array = PoseArray(header=header)
             marker = self._markers[t.name]
             marker.header = header
+            if p.instances:  # every instance: each result passed the estimator's verification
+                found = t.tracker.est.estimate_all(frame).results
+                array.poses = [_pose_msg(r.T_cam_obj) for r in found if r.T_cam_obj is not None]
+                objects[t.name]["instances"] = len(array.poses)
             if res.T_cam_obj is not None:  # only a pose the estimator accepted is published
                 pose = _pose_msg(res.T_cam_obj)
                 self._pose_pub[t.name].publish(PoseStamped(header=header, pose=pose))
-                array.poses = [pose]
+                if not p.instances:
+                    array.poses = [pose]
                 marker.pose, marker.action = pose, Marker.ADD
                 self.with_pose[t.name] += 1
             else:

@@ -37,6 +37,9 @@ class Ros2Params:
                                        "matches reliable and best-effort publishers)")] = True
     marker_triangles: Annotated[int, Field(description="the mesh in the MarkerArray is simplified to at most this "
                                            "many triangles", ge=12)] = 3000
+    instances: Annotated[bool, Field(description="~/<template>/poses holds every instance found in the frame "
+                                     "(Estimator.estimate_all, beside the tracker: more CPU per frame) instead of "
+                                     "the tracker's one pose")] = False
     __pydantic_config__ = SETTINGS
 
 
