@@ -54,7 +54,15 @@ from gscan.estimate.refine import refine_pose
 from gscan.estimate.result import EstimateResult, found, not_found
 from gscan.estimate.retrieval import TemplateIndex
 from gscan.estimate.symmetric import PoseGroup
-from gscan.estimate.verify import Evidence, accept, list_spread, pose_evidence, query_sinks, visible
+from gscan.estimate.verify import (
+    Evidence,
+    accept,
+    list_spread,
+    pose_evidence,
+    query_sinks,
+    support_radius,
+    visible,
+)
 from gscan.features import Features
 from gscan.geometry.kabsch import kabsch_trimmed
 from gscan.geometry.symmetry import Symmetries
@@ -251,8 +259,7 @@ class ListVerifier:
         seen (module docstring): res, or the ambiguous view's not-found result."""
         p = self.params
         assert res.T_cam_obj is not None and res.evidence is not None
-        z = float(transform_points(res.T_cam_obj, self.model.center[None])[0, 2])
-        radius = p.verify.support_radius + 0.01 * max(z - 0.5, 0.0)  # as the keypoint support's
+        radius = support_radius(p.verify, float(transform_points(res.T_cam_obj, self.model.center[None])[0, 2]))
         on = ~self.off_seen_surface(res.T_cam_obj, qk, radius)
         support: np.ndarray | None = None
         for S in self.unseen_turns:

@@ -280,12 +280,17 @@ def pose_evidence(q: QueryFrame, T_cam_obj: np.ndarray, samples: np.ndarray, cen
     seen = visible(T_cam_obj, frame.intrinsics, samples)  # the template surface the pose shows
     n_c, n_b, n = depth_votes(frame.depth, frame.intrinsics, T_cam_obj, samples, params.depth_tol, q.off_plane, seen)
     ev = Evidence(score=n_c / max(1, n_c + n_b), confirmed=n_c / max(1, n))
-    z = float(transform_points(T_cam_obj, center[None])[0, 2])
-    radius = params.support_radius + 0.01 * max(z - 0.5, 0.0)
+    radius = support_radius(params, float(transform_points(T_cam_obj, center[None])[0, 2]))
     ev.supporters, ev.on_surface, ev.offer = keypoint_support(
         T_cam_obj, kp_points, kp_idx, sim, sim_cols, q_points, q_location, samples, frame.depth, frame.intrinsics,
         radius, min_sim, params.depth_tol, sign, seen[1])
     return ev
+
+
+def support_radius(params: VerifyParams, z: float) -> float:
+    """m: how near a query keypoint a template keypoint supports it, for an object at depth z (m):
+    `support_radius`, growing 1 % of the depth beyond 0.5 m."""
+    return params.support_radius + 0.01 * max(z - 0.5, 0.0)
 
 
 def query_sinks(q: QueryFrame, T_cam_obj: np.ndarray, samples: np.ndarray, params: VerifyParams) -> float | None:
