@@ -125,15 +125,23 @@ def _cdr_string(mv: memoryview, off: int, e: str) -> tuple[str, int]:
     return s, off + n
 
 
-def parse_cdr_image(buf: bytes | memoryview) -> ImageMsg:
-    """A ROS 2 sensor_msgs/msg/Image from its CDR bytes (little- or big-endian encapsulation)."""
+def _cdr_header(buf: bytes | memoryview) -> tuple[memoryview, str, int, str, int]:
+    """The std_msgs/Header every image message starts with, from CDR bytes: (the bytes, the struct byte order,
+    stamp in ns, frame id, offset after it, past the 4-byte encapsulation). MessageError without an encapsulation
+    header; struct.error / IndexError when truncated (the caller names the message)."""
     mv = memoryview(buf)
     if len(mv) < 4:
         raise MessageError("message shorter than its CDR encapsulation header")
     e = "<" if mv[1] & 1 else ">"
+    sec, nsec = struct.unpack_from(e + "iI", mv, 4)
+    frame_id, off = _cdr_string(mv, 8, e)
+    return mv, e, sec * 1_000_000_000 + nsec, frame_id, off
+
+
+def parse_cdr_image(buf: bytes | memoryview) -> ImageMsg:
+    """A ROS 2 sensor_msgs/msg/Image from its CDR bytes (little- or big-endian encapsulation)."""
     try:
-        sec, nsec = struct.unpack_from(e + "iI", mv, 4)
-        frame_id, off = _cdr_string(mv, 8, e)
+        mv, e, stamp, frame_id, off = _cdr_header(buf)
         off = (off + 3) & ~3
         height, width = struct.unpack_from(e + "II", mv, 4 + off)
         encoding, off = _cdr_string(mv, off + 8, e)
@@ -146,7 +154,7 @@ def parse_cdr_image(buf: bytes | memoryview) -> ImageMsg:
         data = mv[4 + off:4 + off + n]
     except (struct.error, IndexError) as err:
         raise MessageError(f"truncated sensor_msgs/msg/Image ({err})") from None
-    return ImageMsg(sec * 1_000_000_000 + nsec, frame_id, height, width, encoding, bool(big), step, data)
+    return ImageMsg(stamp, frame_id, height, width, encoding, bool(big), step, data)
 
 
 _PNG = b"\x89PNG\r\n\x1a\n"
@@ -225,13 +233,8 @@ def parse_ros1_compressed(buf: bytes | memoryview) -> ImageMsg:
 
 def parse_cdr_compressed(buf: bytes | memoryview) -> ImageMsg:
     """A ROS 2 sensor_msgs/msg/CompressedImage from its CDR bytes."""
-    mv = memoryview(buf)
-    if len(mv) < 4:
-        raise MessageError("message shorter than its CDR encapsulation header")
-    e = "<" if mv[1] & 1 else ">"
     try:
-        sec, nsec = struct.unpack_from(e + "iI", mv, 4)
-        frame_id, off = _cdr_string(mv, 8, e)
+        mv, e, stamp, frame_id, off = _cdr_header(buf)
         fmt, off = _cdr_string(mv, off, e)
         off = (off + 3) & ~3
         (n,) = struct.unpack_from(e + "I", mv, 4 + off)
@@ -240,7 +243,7 @@ def parse_cdr_compressed(buf: bytes | memoryview) -> ImageMsg:
         raise MessageError(f"truncated sensor_msgs/msg/CompressedImage ({err})") from None
     if 4 + off + n > len(mv):
         raise MessageError(f"compressed data runs past the message end ({4 + off + n} > {len(mv)} bytes)")
-    return _compressed(sec * 1_000_000_000 + nsec, frame_id, fmt, mv[4 + off:4 + off + n])
+    return _compressed(stamp, frame_id, fmt, mv[4 + off:4 + off + n])
 
 
 def parse_image(wire: str, compressed: bool, data: bytes | memoryview) -> ImageMsg:
