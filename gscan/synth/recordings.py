@@ -136,13 +136,13 @@ def write_realsense_bag(path: str | Path, frames: Iterable[RecordingFrame], colo
                         depth_camera: DepthCamera | None = None, depth_units: float = 0.001, fps: int = 30,
                         color_encoding: str = "rgb8",
                         depth_units_option: bool = True, camera_info: bool = True, compress: bool = False,
-                        streams: tuple[str, ...] = ("Depth", "Color")) -> Path:
+                        streams: tuple[str, ...] = ("Depth", "Color"), chunk_bytes: int | None = None) -> Path:
     """A RealSense .bag of `frames` (see the module docstring); returns its path.
 
     depth_camera: the depth stream's camera, of the depth images' size (None: depth registered to colour).
     depth_units_option=False leaves out the Depth Units option (bad-input tests); camera_info=False the CameraInfo
     topics; streams the streams recorded ("Depth", "Color"); compress chunks the bag with LZ4 as the recorder's
-    compression option does.
+    compression option does; chunk_bytes: the size at which a chunk is closed (None: rosbags' 1 MiB).
     """
     from rosbags.rosbag1 import Writer
 
@@ -154,6 +154,8 @@ def write_realsense_bag(path: str | Path, frames: Iterable[RecordingFrame], colo
     w = Writer(path)
     if compress:
         w.set_compression(Writer.CompressionFormat.LZ4)
+    if chunk_bytes is not None:
+        w.chunk_threshold = chunk_bytes
     conns: dict[str, Any] = {}
 
     def put(topic: str, typ: str, t_ns: int, msg: Any, extra: bytes = b"") -> None:

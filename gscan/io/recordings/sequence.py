@@ -45,7 +45,7 @@ from gscan.io.recordings.messages import (
 from gscan.io.recordings.pairing import pair_frames, pair_tolerance
 from gscan.io.recordings.realsense import is_realsense, realsense_setup
 from gscan.io.recordings.ros import ros_setup
-from gscan.io.recordings.source import MessageSource, open_source
+from gscan.io.recordings.source import DamagedRecords, MessageSource, open_source
 from gscan.io.recordings.streams import StreamSetup
 
 log = logging.getLogger(__name__)
@@ -309,40 +309,101 @@ class _Damage:
     after_ns: int | None
     before_ns: int | None
     start_ns: int
+    located: int = 0  # of the missing ones, those in the located damaged records (`_Located`), reported there
+    placed: bool = True  # False: the messages read leave no stretch where they could have been
 
-    def covers(self, t_ns: int) -> bool:
+    def covers(self, t_ns: int, margin_ns: float = 0.0) -> bool:
         """Whether log time t_ns lies in the window the messages are missing from."""
-        return (self.after_ns is None or t_ns > self.after_ns) and (self.before_ns is None or t_ns < self.before_ns)
+        return self.placed and (self.after_ns is None or t_ns > self.after_ns) and \
+            (self.before_ns is None or t_ns < self.before_ns)
+
+    def holds(self, topic: str) -> bool:
+        return topic == self.topic
 
     def describe(self) -> str:
         def at(t: int) -> str:
             return f"{(t - self.start_ns) * 1e-9:.3f} s"
 
         a, b = self.after_ns, self.before_ns
+        if not self.placed:
+            where = ("where, the messages read do not tell (they leave no stretch without one: lost at the "
+                     "recording's start or end, or the index overcounts)")
+            return (f"{self.expected - self.read - self.located} of the {self.expected} messages the file's index "
+                    f"lists on {self.topic} could not be read, {where}")
         if a is None:
             where = "none was read" if b is None else f"before the message at {at(b)}"
         else:
             where = f"after the message at {at(a)}" if b is None else f"between the messages at {at(a)} and {at(b)}"
-        return (f"{self.expected - self.read} of the {self.expected} messages the file's index lists on "
-                f"{self.topic} could not be read, {where} (from the recording's start)")
+        besides = f" besides the {self.located} in the damaged records located" if self.located else ""
+        return (f"{self.expected - self.read - self.located} of the {self.expected} messages the file's index lists "
+                f"on {self.topic} could not be read{besides}, {where} (from the recording's start)")
 
 
-def _damage(topic: str, logs: list[int], expected: int, span: tuple[int, int], period_ns: float) -> _Damage | None:
-    """The damage of a topic whose messages read (their log times) are fewer than its index lists: the missing
-    ones placed in the widest stretch without a message read, in the recording's image `span` (first and last log
-    time of its colour and depth messages) at the image streams' `period_ns`."""
-    if expected <= len(logs):
+@dataclass(frozen=True)
+class _Located:
+    """Damaged records the file locates (`DamagedRecords`), with the image topics that lack messages in their
+    window by their own periods (`by_period`: topic -> messages) when the file does not tell their topics."""
+
+    records: DamagedRecords
+    start_ns: int
+    by_period: dict[str, int]
+
+    def covers(self, t_ns: int, margin_ns: float = 0.0) -> bool:
+        return self.records.covers(t_ns, margin_ns)
+
+    def holds(self, topic: str) -> bool:
+        return topic in self.records.topics or topic in self.by_period
+
+    def describe(self) -> str:
+        guess = ("on topics the file does not tell; by the image streams' periods, "
+                 + ", ".join(f"{n} on {t}" for t, n in self.by_period.items())) if self.by_period else ""
+        return self.records.describe(self.start_ns, guess)
+
+
+def _missing_by_period(rec: DamagedRecords, logs: list[int]) -> int:
+    """How many messages of a stream (its log times read) are missing in the records' window, by the stream's own
+    period (its median step): over the steps from the last message at or before the window to the first at or
+    after it, those of 1.5 periods or more count their length in periods less one. 0 when the stream does not
+    reach past both ends of the window."""
+    t = np.sort(np.asarray(logs, dtype=np.int64))
+    if len(t) < 3 or rec.first_ns is None or rec.last_ns is None:
+        return 0
+    period = float(np.median(np.diff(t)))
+    a, b = int(np.searchsorted(t, rec.first_ns, "right")) - 1, int(np.searchsorted(t, rec.last_ns, "left"))
+    if a < 0 or b >= len(t) or period <= 0:
+        return 0
+    steps = np.diff(t[a:b + 1]) / period
+    return int(np.sum(np.where(steps >= 1.5, np.rint(steps) - 1, 0)))
+
+
+def _by_period(rec: DamagedRecords, streams: dict[str, list[int]]) -> dict[str, int]:
+    """The image streams (topic -> log times read) that lack messages in the window of records whose topics the
+    file does not tell, by `_missing_by_period`; {} when those add up to more messages than the records hold (the
+    streams' timing does not tell either)."""
+    if rec.topics:
+        return {}
+    out = {t: n for t, logs in streams.items() if (n := _missing_by_period(rec, logs)) > 0}
+    return out if sum(out.values()) <= rec.count else {}
+
+
+def _damage(topic: str, logs: list[int], expected: int, span: tuple[int, int], period_ns: float,
+            located: int = 0) -> _Damage | None:
+    """The damage of a topic whose messages read (their log times) and `located` (in damaged records the file
+    locates) are fewer than its index lists: the missing ones placed in the widest stretch without a message read,
+    in the recording's image `span` (first and last log time of its colour and depth messages) at the image
+    streams' `period_ns`."""
+    if expected <= len(logs) + located:
         return None
     t = np.sort(np.asarray(logs, dtype=np.int64))
     start, end = span
     if len(t) == 0:
-        return _Damage(topic, expected, 0, None, None, start)
+        return _Damage(topic, expected, 0, None, None, start, located)
     # stretches without a message: before the first, between two, after the last (None: the recording's ends)
     stretches = [(None, int(t[0]), int(t[0]) - start)] + [
         (int(a), int(b), int(b - a) - period_ns) for a, b in itertools.pairwise(t)] + [
         (int(t[-1]), None, end - int(t[-1]))]
-    after, before, _ = max(stretches, key=lambda w: w[2])
-    return _Damage(topic, expected, len(t), after, before, start)
+    after, before, excess = max(stretches, key=lambda w: w[2])
+    return _Damage(topic, expected, len(t), after, before, start, located, placed=excess > 0.5 * period_ns)
 
 
 def _ms(seconds: float) -> str:
@@ -369,6 +430,13 @@ def open_recording(path: str | Path, color_topic: str | None = None, depth_topic
     src = open_source(path)
     try:
         return _open(path, fmt, src, color_topic, depth_topic, intrinsics, depth_scale)
+    except InputError as e:  # a recording refused for what its damaged records took says so
+        lost = src.damaged()
+        src.close()
+        if lost and e.path == path:
+            raise InputError(path, f"{e.reason} (the recording has damaged records: {lost[0].describe(None)}"
+                             f"{f'; {len(lost) - 1} more' if len(lost) > 1 else ''})", e.fix) from None
+        raise
     except BaseException:
         src.close()
         raise
@@ -392,15 +460,20 @@ def _open(path: Path, fmt: str, src: MessageSource, color_topic: str | None, dep
     counts = src.counts()
     logs = np.sort(np.asarray(cix.logs + dix.logs, dtype=np.int64))
     span = (int(logs[0]), int(logs[-1])) if len(logs) else (0, 0)
-    # the image streams' period: their messages' median step, or the span over the messages the index lists
+    # the image streams' period: their messages' median step; the span over the messages the index lists only when
+    # neither stream has two messages read (that span misses messages lost at the recording's end)
     steps = [float(np.median(np.diff(np.sort(np.asarray(ix.logs, dtype=np.int64))))) for ix in (cix, dix)
              if len(ix.logs) > 1]
-    steps += [(span[1] - span[0]) / (counts[t] - 1) for t in (c, d) if counts.get(t, 0) > 1]
+    steps = steps or [(span[1] - span[0]) / (counts[t] - 1) for t in (c, d) if counts.get(t, 0) > 1]
     period = min(steps, default=0.0)
-    damage = {topic: dmg for ix, topic in ((cix, c), (dix, d))
-              if (dmg := _damage(topic, ix.logs, counts.get(topic, 0), span, period)) is not None}
-    for dmg in damage.values():
-        log.warning("%s: damaged records: %s", path, dmg.describe())
+    located = [_Located(r, span[0], _by_period(r, {c: cix.logs, d: dix.logs})) for r in src.damaged()]
+    damage: list[_Located | _Damage] = list(located)
+    for ix, topic in ((cix, c), (dix, d)):
+        known = sum(x.records.topics.get(topic, 0) + x.by_period.get(topic, 0) for x in located)
+        if (short := _damage(topic, ix.logs, counts.get(topic, 0), span, period, known)) is not None:
+            damage.append(short)
+    for lost in damage:
+        log.warning("%s: damaged records: %s", path, lost.describe())
     for ix, topic in ((cix, c), (dix, d)):
         if not ix.keys:
             raise InputError(path, f"topic {topic} holds no message")
@@ -438,14 +511,17 @@ def _open(path: Path, fmt: str, src: MessageSource, color_topic: str | None, dep
         else:
             k = int(np.searchsorted(dts, ct[a]))
             near_s = min(abs(int(dts[m]) - int(ct[a])) for m in (k - 1, k) if 0 <= m < len(dts)) * 1e-9
-            lost = damage.get(d)
-            if lost is not None and lost.covers(int(cix.logs[i])):
+            took = next((x for x in damage if x.holds(d) and x.covers(int(cix.logs[i]), tol * 1e9)), None)
+            if took is not None:
                 problems[name] = (f"its depth message on {d} is among the recording's damaged records "
-                                  f"({lost.describe()})")
+                                  f"({took.describe()})")
                 continue
             why = "is paired with another colour frame" if near_s <= tol else "is farther"
             problems[name] = (f"no depth frame on {d} within {_ms(tol)} of this colour frame (the nearest, "
                               f"{_ms(near_s)} away, {why})")
+            here = next((x for x in located if not x.records.topics and x.covers(int(cix.logs[i]), tol * 1e9)), None)
+            if here is not None:  # lost records of topics the file does not tell, at this time
+                problems[name] += f"; the recording has damaged records here ({here.describe()})"
     for i, p in enumerate(cix.problems):
         if p is not None:
             problems[f"{i:0{width}d}"] = f"colour message on {c}: {p}"
@@ -464,7 +540,7 @@ def _open(path: Path, fmt: str, src: MessageSource, color_topic: str | None, dep
                              "pass --depth-scale")
         scale, override = float(str(np.float32(units))), False
     seq = RecordingSequence(path, fmt, src, setup, intr, scale, override, pairs, problems, tol)
-    seq.damage = [f"{path}: damaged records: {dmg.describe()}" for dmg in damage.values()]
+    seq.damage = [f"{path}: damaged records: {dmg.describe()}" for dmg in damage]
     for name in list(seq.names):  # depth-scale sanity check on the first frame that decodes
         try:
             first = seq[name]
