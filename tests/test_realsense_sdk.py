@@ -8,6 +8,7 @@ pyrealsense2==2.58.4.10922` for 2.58's zstd-compressed messages, or 2.57.7 for t
 - pyrealsense2's own playback of the installed SDK's `.db3` returns the frames gscan reads;
 - colour formats the SDK stores otherwise (BGR8, RGBA8 as PNG; YUYV zstd-compressed) read as fed;
 - a frame whose image does not decode is reported by name; a `.db3` without intrinsics exits 2 naming it;
+- a row missing from the `.db3` is reported as damage, its frame as lost to it;
 - `gscan scan`, `track` and `capture --from` of a `.db3` give what they give for a folder of the same frames.
 """
 from __future__ import annotations
@@ -104,7 +105,7 @@ def test_sdk_recording_reads_the_frames_fed(views, folder, sdk, tmp_path):
     ref = open_sequence(folder)
     with open_sequence(path) as seq:
         assert seq.kind == ("RealSense rosbag2" if path.suffix == ".db3" else "RealSense bag"), version
-        assert seq.names == ref.names and seq.problems == {} and not seq.aligned
+        assert seq.names == ref.names and seq.problems == {} and seq.damage == [] and not seq.aligned
         assert seq.intrinsics == K_COLOR and seq.depth_scale == 0.001
         _timestamps_ok(seq, 12)
         for name in seq.names:
@@ -186,6 +187,28 @@ def test_a_frame_whose_image_does_not_decode_is_reported_and_left_out(views, tmp
             seq["000001"]
         assert e.value.path == path and "000001" in seq.problems
         assert np.array_equal(seq["000002"].color, views.colors[2])
+
+
+def test_a_row_missing_from_an_sdk_db3_is_reported_as_damage(views, tmp_path):
+    """The SDK's .db3 (no metadata stored; log times as the recorder's thread wrote them) with the 4th depth image's
+    row deleted: the gap in its message ids is reported, put on the depth topic by the depth stream's period and no
+    other, and frame 000003 is said to have lost its depth to it; the other frames read as fed."""
+    path, _ = record(views, tmp_path / "gap", n=8)
+    with sqlite3.connect(path) as con:
+        (tid,) = con.execute("SELECT id FROM topics WHERE name LIKE '%Depth_0/image/data%'").fetchone()
+        (mid,) = con.execute("SELECT id FROM messages WHERE topic_id = ? ORDER BY id LIMIT 1 OFFSET 3",
+                             (tid,)).fetchone()
+        con.execute("DELETE FROM messages WHERE id = ?", (mid,))
+    with open_sequence(path) as seq:
+        assert len(seq.damage) == 1, seq.damage
+        depth = seq.setup.depth_topic
+        assert seq.damage[0].startswith(f"{path}: damaged records: message id {mid} of {path.name}: missing from its "
+                                        "messages table"), seq.damage
+        assert seq.damage[0].count(" on /") == 1 and f"by the image streams' periods, 1 on {depth})" in seq.damage[0]
+        assert list(seq.problems) == ["000003"] and "among the recording's damaged records" in seq.problems["000003"]
+        assert seq.names == ["000000", "000001", "000002", "000004", "000005", "000006", "000007"]
+        for name in seq.names:
+            assert np.array_equal(seq[name].color, views.colors[int(name)]), name
 
 
 def test_an_sdk_db3_without_intrinsics_exits_2_naming_it(views, tmp_path):

@@ -89,7 +89,7 @@ def folder_scan(recs, tmp_path_factory):
 def test_recording_reads_the_capture_frames(recs, kind):
     folder = open_sequence(recs["folder"])
     with open_sequence(recs[kind]) as seq:
-        assert seq.format == kind and not seq.aligned and seq.problems == {}
+        assert seq.format == kind and not seq.aligned and seq.problems == {} and seq.damage == []
         assert seq.names == folder.names == [f"{i:06d}" for i in range(12)]
         assert seq.intrinsics == folder.intrinsics == K_COLOR
         assert seq.depth_scale == 0.001
@@ -307,6 +307,21 @@ def test_damaged_records_are_reported_as_damage(views, tmp_path):
     assert proc.returncode == 0, proc.stderr[-2000:]
     tracked = json.loads(proc.stdout)
     assert tracked["damage"] == seq.damage and set(lost) <= set(tracked["unreadable"]), tracked["unreadable"]
+
+
+def test_a_rosbag2_folder_of_a_damaged_mcap_reports_its_damage_and_reads_the_rest(tmp_path):
+    """A rosbag2 folder (metadata.yaml + one MCAP) whose 5th colour record declares 2^40 bytes is read as the bare MCAP
+    is: the records lost are reported as damage and the frames before them read, not the whole folder refused."""
+    frames = _tiny(12)
+    rec = write_rosbag2(tmp_path / "folder", frames, K_TINY, storage="mcap", topics=("color", "aligned"))
+    _damage_mcap_record(rec, "/camera/camera/color/image_raw", 4)
+    with open_sequence(rec.parent) as seq:
+        assert seq.format == "rosbag2" and len(seq.damage) == 2, seq.damage
+        assert all(line.startswith(f"{rec.parent}: damaged records: ") and "could not be read" in line
+                   for line in seq.damage), seq.damage
+        assert seq.names[:4] == ["000000", "000001", "000002", "000003"]
+        for i, name in enumerate(seq.names):
+            assert np.array_equal(seq[name].color, frames[i].color), name
 
 
 # --------------------------------------------------------------------------------------- streaming
