@@ -52,7 +52,8 @@ def _connect(path: Path) -> sqlite3.Connection:
 
 
 def _listed(con: sqlite3.Connection) -> dict[str, int] | None:
-    """topic -> message_count of the metadata rosbag2 stored in the file, None when there is none."""
+    """topic -> message_count of the metadata rosbag2 stored in the file, None when there is none, or when it is
+    the metadata of a bag split into several files (its counts are the whole bag's, not this file's)."""
     if not con.execute("SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'metadata'").fetchone():
         return None
     row = con.execute("SELECT metadata FROM metadata ORDER BY id DESC LIMIT 1").fetchone()
@@ -61,6 +62,8 @@ def _listed(con: sqlite3.Connection) -> dict[str, int] | None:
     try:
         meta = yaml.safe_load(row[0])
         info = meta.get("rosbag2_bagfile_information", meta)
+        if len(info.get("relative_file_paths") or []) > 1:
+            return None
         return {str(t["topic_metadata"]["name"]): int(t["message_count"])
                 for t in info["topics_with_message_count"]}
     except (yaml.YAMLError, AttributeError, KeyError, TypeError, ValueError):

@@ -90,7 +90,7 @@ class DamagedRecords:
 
         on = ", ".join(f"{n} on {t}" for t, n in self.topics.items()) if self.topics else \
             (attributed or "on topics the file does not tell")
-        if len(self.topics) > MAX_TOPICS_LISTED:  # the image topics' counts first, the others summed up
+        if len(self.topics) > MAX_TOPICS_LISTED:  # the topics with the most lost messages named, the others summed
             top = sorted(self.topics.items(), key=lambda tn: (-tn[1], tn[0]))
             rest = top[MAX_TOPICS_LISTED:]
             on = ", ".join(f"{n} on {t}" for t, n in top[:MAX_TOPICS_LISTED]) + \
