@@ -1,8 +1,9 @@
 """Damaged ROS recordings: what is lost is reported as damage where the file locates it, and the rest is read.
 
 - a ROS 1 bag's damaged chunk (data that does not decompress, a record header that cannot be read, with or without
-  its index records) or damaged record (a length that runs past its chunk): reported with the chunk's byte offset,
-  the messages its index lists (per topic) and their log times; the frames of the other chunks read as written;
+  its index records, index records that cannot be read) or damaged record (a length that runs past its chunk):
+  reported with the chunk's byte offset, the messages its index lists (per topic) and their log times; the
+  frames of the other chunks read as written;
 - a rosbag2 `.db3` whose rows were deleted: the gaps in its message ids reported (which ids, between which times),
   attributed to a topic by the counts its metadata (metadata.yaml, or the copy in the file) lists, or else by
   the image streams' own periods; rows lost at the end are told by those counts only;
@@ -68,9 +69,10 @@ def _damage_bag(bag: Path, case: str, pos: int, datapos: int, chunk: dict[str, l
     if case == "bad-compression":  # the LZ4 frame's magic number: its data does not decompress
         data[datapos:datapos + 4] = b"\0\0\0\0"
         lost = chunk
-    elif case in ("wrong-header", "wrong-header-and-index"):
-        _spoil_header(data, pos)
-        if case == "wrong-header-and-index":  # its first index record (IDXDATA, op 4) too
+    elif case in ("wrong-header", "wrong-header-and-index", "damaged-index"):
+        if case != "damaged-index":
+            _spoil_header(data, pos)
+        if case != "wrong-header":  # its first index record (IDXDATA, op 4)
             k = data.index(b"op=\x04", pos)
             data[k + 3] = 9
         lost = chunk
@@ -89,7 +91,8 @@ def _which(color: np.ndarray, frames: list[RecordingFrame]) -> int:
     return next(i for i, f in enumerate(frames) if np.array_equal(f.color, color))
 
 
-@pytest.mark.parametrize("case", ["bad-compression", "wrong-header", "wrong-header-and-index", "truncated-record"])
+@pytest.mark.parametrize("case", ["bad-compression", "wrong-header", "wrong-header-and-index", "damaged-index",
+                                  "truncated-record"])
 def test_a_damaged_bag_chunk_is_reported_and_the_other_chunks_are_read(tmp_path, case):
     frames = _frames()
     bag = write_realsense_bag(tmp_path / "d.bag", frames, K, compress=case == "bad-compression", chunk_bytes=30_000)

@@ -9,6 +9,8 @@ reads each chunk on its own:
 - a chunk whose record header cannot be read: its index records (IDXDATA) are found from their end (they fill
   the bytes before the next chunk or the index, and their sizes follow from the chunk info's counts); when they
   do not parse either, the chunk info's per-connection counts and time range describe what was lost;
+- a chunk whose index records cannot be read: nothing tells where its messages lie; the chunk info describes
+  what was lost;
 - a chunk whose data does not decompress: every message its index records list is lost;
 - a record that cannot be read, or is not the message its index lists: that message is lost.
 
@@ -114,15 +116,17 @@ class TolerantBag1Reader(Reader):
         """The chunk record at ci.pos and its index records (which end at `end`), or its damage in `lost`."""
         assert self.bio is not None
         entries: list[tuple[int, IndexData]] = []
+        stage = "its record header"
         try:
             self.bio.seek(ci.pos)
             chunk = self.read_chunk()
+            stage = "its index records"
             for _ in range(len(ci.connection_counts)):
                 entries += self._index_record(ci)
             self.chunks[ci.pos] = chunk
         except DAMAGE_ERRORS as e:
-            why = f"its record header cannot be read ({_why(e).rstrip('.')})"
-            entries = self._index_from_end(ci, end)
+            why = f"{stage} cannot be read ({_why(e).rstrip('.')})"
+            entries = self._index_from_end(ci, end) if stage == "its record header" else []
             lost = LostChunk(ci.pos, why, True)
             if entries:
                 lost.entries = {(cid, ix.time, ix.offset) for cid, ix in entries}
