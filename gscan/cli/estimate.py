@@ -164,8 +164,9 @@ def track(
         if step.instances is not None:
             held = ", ".join(f"{i.id} {i.status}" + (f" {i.result.score:.2f}" if i.result.T_cam_obj is not None
                                                      else "") for i in step.instances)
-            say(f"{step.frame}: ", f"{sum(i.result.T_cam_obj is not None for i in step.instances)} instances "
-                f"({held or 'none'}; {step.ms():.0f} ms)")
+            n = sum(i.result.T_cam_obj is not None for i in step.instances)
+            say(f"{step.frame}: ", f"{n} instance{'' if n == 1 else 's'} with a pose ({held or 'none'}; "
+                f"{step.ms():.0f} ms)")
             return
         res = step.result
         what = f"score {res.score:.2f}" if res.T_cam_obj is not None else str(res.reason)
