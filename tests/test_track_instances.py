@@ -120,6 +120,10 @@ def check_assignment(tracker: InstanceTracker, copy_of: dict[int, int]) -> None:
     assert list(got) == [4] and got[4] is far
     got = tracker._assign([far], [1, 2, 3], {}, 3)  # the cap reached: the nearest waiting identity
     assert list(got) == [end] and got[end] is far
+    # two identities refined onto one instance: the one that moved less from its own prediction keeps it
+    held = {a: found(last[a], 0.9, 20, "v", "track"), b: found(last[a], 0.9, 20, "v", "track")}
+    tracker._one_per_instance(held, {a: last[a], b: last[b]})
+    assert list(held) == [a]
 
 
 @pytest.mark.slow
