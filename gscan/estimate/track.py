@@ -156,7 +156,7 @@ class Tracker:
         res = None
         T_pred = self.predicted()
         if T_pred is not None:
-            res = self._local(frame, mask, T_pred)
+            res = self.local(frame, mask, T_pred)
         if res is not None:
             return TrackStep(frame.name, self.record(res, True), res)
         res = self.est.estimate(frame, mask=mask, near=self._T_last)
@@ -197,12 +197,7 @@ class Tracker:
 
     def local(self, frame: RGBDFrame, mask: np.ndarray | None, T_pred: np.ndarray) -> EstimateResult | None:
         """The local refinement from the predicted pose T_pred [4 x 4] in a frame already `as_scanned` (module
-        docstring), or None when the prior does not hold; the state is left to `record`."""
-        return self._local(frame, mask, T_pred)
-
-    def _local(self, frame: RGBDFrame, mask: np.ndarray | None, T_pred: np.ndarray) -> EstimateResult | None:
-        """The local refinement from the predicted pose (module docstring), or None when the prior does not
-        hold."""
+        docstring), or None when the prior does not hold; the pose is taken by `record`."""
         est, p = self.est, self.params
         with est.limit_threads():
             if self._unchecked + 1 < p.appearance_every:
