@@ -10,9 +10,10 @@ of a single-instance `Tracker` (gscan.estimate.track). Per frame:
    its own prediction keeps it, the other's prior failed.
 2. a search, `estimate_all` on the pixels the instances held in step 1 do not explain (their pixels are removed
    from its keypoints and depth before it starts), runs whenever an identity has no pose yet in this frame (its
-   prior failed, or it is lost: the single tracker re-estimates in every such frame), in the first frame, and
-   every `search_every`-th frame while every identity is held (instances coming into view), as long as fewer
-   than `instances.max_instances` identities exist. It seeks at most max_instances less the instances held.
+   prior failed, or it is lost: the single tracker re-estimates in every such frame), in every frame until an
+   instance is found, and every `search_every`-th frame while every identity is held (instances coming into
+   view), as long as fewer than `instances.max_instances` identities exist. It seeks at most max_instances less
+   the instances held.
 3. its poses (each verified as every `estimate_all` pose is) go to the identities without a pose, one to one by
    pose continuity: a minimum-cost assignment (scipy's `linear_sum_assignment`) of the distance between a pose's
    centre and the identity's predicted centre (its last one when lost), pairs farther than `gate` times the
