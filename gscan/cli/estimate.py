@@ -125,29 +125,48 @@ def track(
     depth_intrinsics: Path | None = typer.Option(None, "--depth-intrinsics", help=DEPTH_INTRINSICS_HELP),
     depth_to_color: Path | None = typer.Option(None, "--depth-to-color", help=DEPTH_TO_COLOR_HELP),
     force: bool = typer.Option(False, "--force", help="replace an existing OUTPUT"),
+    all_instances: bool = typer.Option(False, "--all", help="every instance, each with its identity across frames "
+                                       "(OUTPUT gets instance_<id>/ folders)"),
+    max_instances: int | None = typer.Option(None, "--max-instances", min=1, help="with --all: identities at most "
+                                             "(default: the configuration's estimate.instances.max_instances, 8)"),
     json_out: bool = typer.Option(False, "--json", help=JSON_HELP),
     verbose: bool = typer.Option(False, "-v", "--verbose", help="log progress details to stderr"),
 ) -> None:
-    """Estimate the object's pose through an RGB-D sequence, the previous pose as a prior."""
+    """Estimate the object's pose through an RGB-D sequence, the previous pose as a prior (--all: every instance,
+    each with its identity)."""
     setup_logging(verbose)
-    from gscan.estimate import Estimator, track_sequence, write_poses
+    from dataclasses import replace
+
+    from gscan.estimate import Estimator, InstanceTracker, load_estimate_params, track_sequence, write_poses
     from gscan.io import check_output_path, open_sequence
     from gscan.io.camera import depth_camera_of
     from gscan.io.output import check_not_input
 
     if format not in format_choices():
         raise UsageError(None, f"--format must be one of {', '.join(format_choices())}, not {format!r}")
+    if max_instances is not None and not all_instances:
+        raise UsageError(None, "--max-instances is a setting of --all")
     if output is not None:  # refused before any work; never one of the inputs, whatever --force says
         check_not_input(output, [template, input_path, intrinsics, depth_intrinsics, depth_to_color])
         if output.exists() and (not output.is_dir() or any(output.iterdir())) and not force:
             raise UsageError(output, "exists and is not empty (pass --force to replace it)")
         check_output_path(output)
-    estimator = Estimator.from_path(template)
+    params = load_estimate_params(None)
+    if max_instances is not None:
+        params = replace(params, instances=replace(params.instances, max_instances=max_instances))
+    estimator = Estimator.from_path(template, params)
     seq = open_sequence(input_path, format, intrinsics=intrinsics, depth_scale=depth_scale,
                         depth_camera=depth_camera_of(depth_intrinsics, depth_to_color))
 
     def report(step: Any) -> None:
         if json_out:
+            return
+        if step.instances is not None:
+            held = ", ".join(f"{i.id} {i.status}" + (f" {i.result.score:.2f}" if i.result.T_cam_obj is not None
+                                                     else "") for i in step.instances)
+            n = sum(i.result.T_cam_obj is not None for i in step.instances)
+            say(f"{step.frame}: ", f"{n} instance{'' if n == 1 else 's'} with a pose ({held or 'none'}; "
+                f"{step.ms():.0f} ms)")
             return
         res = step.result
         what = f"score {res.score:.2f}" if res.T_cam_obj is not None else str(res.reason)
@@ -155,7 +174,8 @@ def track(
         say(f"{step.frame}: ", (step.status, style) if style else step.status,
             f" ({what}, {res.timings_ms.get('total', 0.0):.0f} ms)")
 
-    run = track_sequence(estimator, seq, on_step=report)
+    run = track_sequence(estimator, seq, on_step=report,
+                         tracker=InstanceTracker(estimator) if all_instances else None)
     written = write_poses(run, output, force=force) if output is not None else None
     out = run.to_json(written)
     if json_out:
@@ -166,6 +186,9 @@ def track(
         f": {st['found']} found, {st['tracked']} tracked, {st['refound']} re-found, {st['lost']} lost; "
         f"median {out['timings_ms']['median']:.0f} ms per frame"
         + (f"; poses written to {written}" if written is not None else ""))
+    for inst in out.get("instances", []):
+        line(f"instance {inst['id']}: {inst['frames']} frames with a pose ({inst['first']} to {inst['last']}), "
+             f"lost in {len(inst['lost'])}, re-found in {len(inst['refound'])}")
     for damaged in out["damage"]:  # the recording's damaged records: damage, not missing frames
         say(("damaged recording:", "red"), f" {damaged}")
     for name, reason in out["unreadable"].items():

@@ -4,6 +4,8 @@
     Estimator.estimate_all(frame) -> Instances (every instance); estimate_templates(estimators, frame) ->
     [Instances] (every instance of several templates, the frame's features computed once)
     Tracker(estimator).step(frame) -> TrackStep;  track_sequence(estimator, sequence) -> TrackRun
+    InstanceTracker(estimator).step(frame) -> TrackStep with every instance and its identity (`track --all`;
+    track_sequence(estimator, sequence, tracker=InstanceTracker(estimator)))
     write_poses(run, out_dir, force=False): one `ob_in_cam` 4x4 text file per frame with a pose
 
     load_estimate_params(config) -> EstimateParams: the `estimate:` section of a YAML configuration file;
@@ -14,7 +16,8 @@ Modules, in the order of the stages: `query` (the frame's full-image work, once;
 (GMatch lists of the neighbourhoods, pre-scored and pooled), `rivals` (solve, refine and verify the lists; rival
 poses), `symmetric` (poses that look alike under the object's symmetries, and the rule that picks one), `refine`
 (anchored ICP), `verify` (the evidence a pose is accepted on), `pnp` (2D-3D fallback without depth), `estimator`
-(Estimator, the façade composing them), `track` (the previous pose as a prior), `model` (the object's surface),
+(Estimator, the façade composing them), `track` (the previous pose as a prior), `track_instances` (every
+instance tracked, each with its identity), `model` (the object's surface),
 `instances` (every instance of one or more templates: the search repeated on what found ones leave),
 `params` (EstimateParams, a section per stage), `settings` (its YAML), `result` (EstimateResult, the `estimate
 --json` object).
@@ -25,8 +28,9 @@ from gscan.estimate.params import EstimateParams
 from gscan.estimate.result import STAGES, EstimateResult
 from gscan.estimate.settings import dump_estimate_defaults, load_estimate_params
 from gscan.estimate.track import STATUSES, Tracker, TrackParams, TrackRun, TrackStep, track_sequence, write_poses
+from gscan.estimate.track_instances import InstanceTracker
 from gscan.estimate.verify import AcceptParams, Evidence
 
 __all__ = ["STAGES", "STATUSES", "AcceptParams", "EstimateParams", "EstimateResult", "Estimator", "Evidence",
-           "Instances", "TrackParams", "TrackRun", "TrackStep", "Tracker", "dump_estimate_defaults",
+           "InstanceTracker", "Instances", "TrackParams", "TrackRun", "TrackStep", "Tracker", "dump_estimate_defaults",
            "estimate_templates", "load_estimate_params", "track_sequence", "write_poses"]

@@ -191,10 +191,13 @@ class Estimator:
         with self.limit_threads():
             return prepare_query(self.as_scanned(frame), mask, self.params.query)
 
-    def estimate_all(self, frame: RGBDFrame, mask: np.ndarray | None = None, refine: bool = True) -> Instances:
+    def estimate_all(self, frame: RGBDFrame, mask: np.ndarray | None = None, refine: bool = True,
+                     explained: np.ndarray | None = None, max_instances: int | None = None) -> Instances:
         """Every instance of the template's object in `frame` (gscan.estimate.instances): found poses best score
-        first, each verified as `estimate`'s pose is, never two on one instance; none with the reason."""
-        return estimate_all(self, frame, mask, refine)
+        first, each verified as `estimate`'s pose is, never two on one instance; none with the reason. explained:
+        [H x W] bool pixels of instances known already (left out of the search); max_instances: this call's cap
+        (default `instances.max_instances`)."""
+        return estimate_all(self, frame, mask, refine, explained=explained, max_instances=max_instances)
 
     def estimate_prepared(self, q: QueryFrame, refine: bool = True) -> EstimateResult:
         """`estimate` on a frame `prepare` made (several templates estimated in one frame share it)."""
@@ -232,6 +235,11 @@ class Estimator:
                near: np.ndarray | None = None) -> EstimateResult:
         """`res` completed: its pose the symmetric equivalent stage 8 picks (nearest `near` [4 x 4] when given), its
         grasps at the pose and in every equivalent, and its timings (`timed`, total since t0)."""
+        return timed(self.settle(res, near), timer, t0)
+
+    def settle(self, res: EstimateResult, near: np.ndarray | None = None) -> EstimateResult:
+        """`res` with its pose the symmetric equivalent stage 8 picks (nearest `near` [4 x 4] when given) and its
+        grasps at that pose and in every equivalent (a settled pose may be settled again nearer another pose)."""
         group = self.verifier.group
         if res.T_cam_obj is not None:
             T = res.T_cam_obj
@@ -243,7 +251,7 @@ class Estimator:
             res.grasp_equivalents = {k: [E @ G for E in poses] for k, G in self.model.grasps.items()}
         else:
             log.info("not found: %s", res.reason)
-        return timed(res, timer, t0)
+        return res
 
     # ------------------------------------------------------------------------------------------------
     def _estimate(self, q: QueryFrame, refine: bool, t0: float, near: np.ndarray | None = None) -> EstimateResult:

@@ -36,7 +36,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Protocol
 
 import numpy as np
 from pydantic import Field
@@ -81,20 +81,51 @@ class TrackParams:
                                           "that frame ...", ge=0)] = 0.01
     max_icp_turn_deg: Annotated[float, Field(description="... as does turning it further (deg)", ge=0)] = 5.0
     icp_max_points: Annotated[int, Field(description="template points ICP uses (evenly subsampled)", ge=10)] = 800
+    search_every: Annotated[int, Field(description="every instance (--all): frames between searches for new "
+                                       "instances while every known one is held (0: only when one is not)",
+                                       ge=0)] = 10
+    gate: Annotated[float, Field(description="every instance (--all): a pose found by a search takes the identity "
+                                 "of an instance without a pose whose centre lies within this fraction of the "
+                                 "object's diameter", gt=0)] = 0.5
     __pydantic_config__ = SETTINGS
+
+
+@dataclass
+class InstanceStep:
+    """One instance in one frame of a track of every instance: its identity (1, 2, ... in the order first found),
+    status (STATUSES) and estimate (not found when lost)."""
+
+    id: int
+    status: str
+    result: EstimateResult
+
+    def to_json(self) -> dict:
+        return {"id": self.id, "status": self.status, **self.result.to_json()}
 
 
 @dataclass
 class TrackStep:
     """One frame of a track: its name, status (STATUSES) and the estimate (method "track" when refined
-    locally)."""
+    locally). A track of every instance (`gscan.estimate.track_instances`) adds `instances`, every identity known
+    so far by id, and `total_ms`, the frame's time; its status and estimate are then those of the first instance
+    with a pose (lowest id), or lost."""
 
     frame: str
     status: str
     result: EstimateResult
+    instances: list[InstanceStep] | None = None
+    total_ms: float | None = None
 
     def to_json(self) -> dict:
-        return {"frame": self.frame, "status": self.status, **self.result.to_json()}
+        out = {"frame": self.frame, "status": self.status, **self.result.to_json()}
+        if self.instances is not None:
+            out["instances"] = [i.to_json() for i in self.instances]
+            out["frame_ms"] = self.ms()
+        return out
+
+    def ms(self) -> float:
+        """The frame's time in milliseconds."""
+        return self.total_ms if self.total_ms is not None else float(self.result.timings_ms.get("total", 0.0))
 
 
 class Tracker:
@@ -123,15 +154,34 @@ class Tracker:
         """The object's pose in `frame` (mask: optional [H x W] bool search region)."""
         frame = self.est.as_scanned(frame)
         res = None
-        if self._T is not None:
-            T_pred = self._T
-            if self.params.constant_velocity and self._T_before is not None:
-                T_pred = self._T @ inv_T(self._T_before) @ self._T
-            res = self._local(frame, mask, T_pred)
+        T_pred = self.predicted()
+        if T_pred is not None:
+            res = self.local(frame, mask, T_pred)
         if res is not None:
+            return TrackStep(frame.name, self.record(res, True), res)
+        res = self.est.estimate(frame, mask=mask, near=self._T_last)
+        return TrackStep(frame.name, self.record(res, False), res)
+
+    def predicted(self) -> np.ndarray | None:
+        """The pose [4 x 4] the next frame is refined from (the last one, moved by the last frame-to-frame motion
+        when `constant_velocity`), or None when the last frame had no pose."""
+        if self._T is None:
+            return None
+        if self.params.constant_velocity and self._T_before is not None:
+            return self._T @ inv_T(self._T_before) @ self._T
+        return self._T
+
+    @property
+    def last_pose(self) -> np.ndarray | None:
+        """The last pose found [4 x 4], across lost frames (None before the first)."""
+        return self._T_last
+
+    def record(self, res: EstimateResult, local: bool) -> str:
+        """Take `res` as this frame's estimate (local: the refinement from the prior held; otherwise a full
+        estimate's, found or not) and return the frame's status (STATUSES)."""
+        if local:
             status = "tracked"
         else:
-            res = self.est.estimate(frame, mask=mask, near=self._T_last)
             status = "lost" if res.T_cam_obj is None else ("refound" if self._lost and self._seen else "found")
             if res.T_cam_obj is not None:
                 self._ref_score = res.score
@@ -143,11 +193,11 @@ class Tracker:
             self._T_before = self._T
             self._T = self._T_last = res.T_cam_obj
             self._lost, self._seen = False, True
-        return TrackStep(frame.name, status, res)
+        return status
 
-    def _local(self, frame: RGBDFrame, mask: np.ndarray | None, T_pred: np.ndarray) -> EstimateResult | None:
-        """The local refinement from the predicted pose (module docstring), or None when the prior does not
-        hold."""
+    def local(self, frame: RGBDFrame, mask: np.ndarray | None, T_pred: np.ndarray) -> EstimateResult | None:
+        """The local refinement from the predicted pose T_pred [4 x 4] in a frame already `as_scanned` (module
+        docstring), or None when the prior does not hold; the pose is taken by `record`."""
         est, p = self.est, self.params
         with est.limit_threads():
             if self._unchecked + 1 < p.appearance_every:
@@ -278,9 +328,29 @@ class TrackRun:
     def names(self, status: str) -> list[str]:
         return [s.frame for s in self.steps if s.status == status]
 
+    def instances(self) -> list[dict] | None:
+        """Per identity of a track of every instance (None for a single-instance track), by id: "id", "frames"
+        (with a pose), "first" and "last" (frames with a pose), "lost" and "refound" (frame names)."""
+        if not any(s.instances is not None for s in self.steps):
+            return None
+        out: dict[int, dict] = {}
+        for s in self.steps:
+            for i in s.instances or []:
+                e = out.setdefault(i.id, {"id": i.id, "frames": 0, "first": None, "last": None, "lost": [],
+                                          "refound": []})
+                if i.result.T_cam_obj is not None:
+                    e["frames"] += 1
+                    e["first"] = e["first"] or s.frame
+                    e["last"] = s.frame
+                if i.status in ("lost", "refound"):
+                    e[i.status].append(s.frame)
+        return [out[k] for k in sorted(out)]
+
     def to_json(self, output: Path | None = None) -> dict:
-        """The `gscan track --json` object."""
-        ms = np.array([s.result.timings_ms.get("total", 0.0) for s in self.steps]) if self.steps else np.zeros(1)
+        """The `gscan track --json` object (a track of every instance adds "instances", `instances()`)."""
+        ms = np.array([s.ms() for s in self.steps]) if self.steps else np.zeros(1)
+        instances = self.instances()
+        extra = {} if instances is None else {"instances": instances}
         return {"output": None if output is None else str(output), "frames": len(self.steps),
                 "with_pose": sum(s.result.T_cam_obj is not None for s in self.steps),
                 "status": {k: len(self.names(k)) for k in STATUSES},
@@ -288,14 +358,26 @@ class TrackRun:
                 "unreadable": dict(self.problems), "damage": list(self.damage),
                 "timings_ms": {"median": float(np.median(ms)), "p90": float(np.percentile(ms, 90)),
                                "total": float(ms.sum())},
-                "per_frame": [s.to_json() for s in self.steps]}
+                **extra, "per_frame": [s.to_json() for s in self.steps]}
+
+
+class FrameTracker(Protocol):
+    """What `track_sequence` steps through a sequence: `Tracker`, or
+    `gscan.estimate.track_instances.InstanceTracker` (every instance, each with its identity)."""
+
+    def step(self, frame: RGBDFrame, mask: np.ndarray | None = None) -> TrackStep: ...
+
+    def skip(self) -> None: ...
 
 
 def track_sequence(estimator: Estimator, sequence, params: TrackParams = TrackParams(),
-                   on_step: Callable[[TrackStep], None] | None = None) -> TrackRun:
+                   on_step: Callable[[TrackStep], None] | None = None,
+                   tracker: FrameTracker | None = None) -> TrackRun:
     """Track the estimator's object through a `gscan.io.sequence.Sequence` (every readable frame in order;
-    the sequence's masks are not used). Frames that cannot be read are recorded in `problems` and skipped."""
-    tracker = Tracker(estimator, params)
+    the sequence's masks are not used) with `tracker` (default: a `Tracker` of the estimator with `params`). Frames
+    that cannot be read are recorded in `problems` and skipped."""
+    if tracker is None:
+        tracker = Tracker(estimator, params)
     run = TrackRun([], dict(sequence.problems), list(sequence.damage))
     for name in sequence.names:
         try:
@@ -316,11 +398,18 @@ def pose_file_name(frame: str) -> str:
     return f"{frame}.txt"
 
 
+def instance_folder(instance_id: int) -> str:
+    """The folder of one instance's poses in a track of every instance."""
+    return f"instance_{instance_id}"
+
+
 def write_poses(run: TrackRun, out: str | Path, force: bool = False) -> Path:
     """Write one T_cam_obj per frame with a pose (4x4 text, FoundationPose / BOP `ob_in_cam`, metres, named
     after the frame) and `summary.json` (TrackRun.to_json) into folder `out`. Frames without a pose get no
-    file (the summary lists them lost). Written into a hidden temporary sibling and renamed into place, so
-    `out` is never half-written; an existing non-empty `out` is refused without `force` (InputError)."""
+    file (the summary lists them lost). A track of every instance writes each frame's first instance there
+    (`TrackStep`) and every instance's poses into `instance_<id>/`, the same layout. Written into a hidden
+    temporary sibling and renamed into place, so `out` is never half-written; an existing non-empty `out` is
+    refused without `force` (InputError)."""
     from gscan.io import check_output_path, missing_folders, remove_empty_folders
 
     out = Path(out)
@@ -336,6 +425,10 @@ def write_poses(run: TrackRun, out: str | Path, force: bool = False) -> Path:
         for s in run.steps:
             if s.result.T_cam_obj is not None:
                 np.savetxt(tmp / pose_file_name(s.frame), s.result.T_cam_obj, fmt="%.10g")
+            for i in s.instances or []:
+                if i.result.T_cam_obj is not None:
+                    (tmp / instance_folder(i.id)).mkdir(exist_ok=True)
+                    np.savetxt(tmp / instance_folder(i.id) / pose_file_name(s.frame), i.result.T_cam_obj, fmt="%.10g")
         (tmp / "summary.json").write_text(json.dumps(run.to_json(out), indent=1) + "\n", encoding="utf-8")
         if out.exists():
             old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old.", dir=out.parent))

@@ -3,7 +3,9 @@ another, some lying on a side (the rendered scenes of the many-instances tests a
 
 `pile_poses` places the objects in a row along the world x axis, each separated from the next by a small gap
 measured on their rotated vertices (so no two interpenetrate, whatever their yaw), with a random sideways offset;
-`render_pile` renders them on a textured table seen from a random elevation and azimuth.
+`render_pile` renders them on a textured table seen from a random elevation and azimuth; `render_row_sequence`
+renders a sequence of a row of copies under a static camera, one moving, one hidden for some frames (the tests
+and bench of tracking every instance).
 """
 from __future__ import annotations
 
@@ -12,7 +14,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from gscan.geometry.transforms import look_at, rotvec_to_R, transform_points
+from gscan.geometry.transforms import look_at, make_T, rotvec_to_R, transform_points
 from gscan.io.camera import Intrinsics
 from gscan.synth.capture import rest_on_table
 from gscan.synth.mesh import TexturedMesh
@@ -86,3 +88,55 @@ def silhouette_px(mesh: TexturedMesh, T_cam_obj: np.ndarray, intr: Intrinsics) -
     for t in np.rint(uv[tri]).astype(np.int32):  # (one polygon list in one call would fill overlaps even-odd)
         cv2.fillConvexPoly(canvas, t, 1)
     return int(canvas.sum())
+
+
+@dataclass
+class RowSequence:
+    """A rendered sequence of copies in a row: frames [F] (`RenderedFrame`), T_cam_objs [F x K x 4 x 4] of every copy
+    in every frame, seen [F x K] each copy's pixels in sight as a fraction of its pixels in the first frame."""
+
+    frames: list[RenderedFrame]
+    T_cam_objs: np.ndarray
+    seen: np.ndarray
+
+
+def render_row_sequence(mesh: TexturedMesh, copies: int, n_frames: int, seed: int, moving: int | None = None,
+                        moves: range = range(0), hidden: int | None = None, hides: tuple[int, ...] = (),
+                        occluder: TexturedMesh | None = None, distance: float = 0.65) -> RowSequence:
+    """`copies` copies of `mesh` upright in a row on a wood table (`pile_poses`, 3-4 cm apart, seeded by `seed`), a
+    static camera at `distance` (m) from the row's centre, 50 deg above the table. Copy `moving` slides 1 cm and
+    turns 3 deg about the vertical in each frame of `moves`; in the frames `hides` `occluder` is held upright
+    between the camera and copy `hidden`, past half the way to the camera, its x-z face to the camera (elsewhere
+    out of the view). Depth noise seeded by (seed, frame)."""
+    T_wo = pile_poses([mesh] * copies, np.random.default_rng(seed), lying_frac=0.0, gap=(0.03, 0.04),
+                      sideways=0.01)
+    away = make_T(np.eye(3), np.array([3.0, 0.0, 0.0]))
+    objects = [(mesh, T) for T in T_wo] + ([(occluder, away)] if occluder is not None else [])
+    scene = SynthScene(objects, seed=seed, table_kind="wood")
+    centres = [transform_points(T, mesh.center[None])[0] for T in T_wo]
+    c = np.mean(centres, axis=0)
+    el, az = np.radians(50.0), np.radians(-80.0)
+    eye = c + distance * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    T_wc = look_at(eye, c)
+    T_occ = away
+    if occluder is not None and hidden is not None:
+        T_occ = look_at(centres[hidden] + 0.55 * (eye - centres[hidden]), eye)
+        T_occ[:3, :3] = T_occ[:3, :3] @ np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+        T_occ[:3, 3] -= T_occ[:3, :3] @ occluder.center
+    T_cw = np.linalg.inv(T_wc)
+    frames, truths, seen = [], [], []
+    for i in range(n_frames):
+        poses = list(T_wo)
+        if moving is not None:
+            k = sum(1 for f in moves if f <= i)
+            cm = centres[moving]
+            R = rotvec_to_R(np.array([0.0, 0.0, np.radians(3.0 * k)]))
+            poses[moving] = make_T(R, cm - R @ cm + np.array([0.0, 0.01 * k, 0.0])) @ T_wo[moving]
+        extra = [T_occ if i in hides else away] if occluder is not None else []
+        r = scene.render(T_wc, DEFAULT_INTRINSICS, rng=np.random.default_rng([seed, i]),
+                         T_world_obj_override=poses + extra)
+        frames.append(r)
+        truths.append([T_cw @ T for T in poses])
+        seen.append([float((r.labels == j).sum()) for j in range(copies)])
+    seen_a = np.array(seen)
+    return RowSequence(frames, np.array(truths), seen_a / np.maximum(seen_a[:1], 1.0))
