@@ -191,10 +191,12 @@ class Estimator:
         with self.limit_threads():
             return prepare_query(self.as_scanned(frame), mask, self.params.query)
 
-    def estimate_all(self, frame: RGBDFrame, mask: np.ndarray | None = None, refine: bool = True) -> Instances:
+    def estimate_all(self, frame: RGBDFrame, mask: np.ndarray | None = None, refine: bool = True,
+                     max_instances: int | None = None) -> Instances:
         """Every instance of the template's object in `frame` (gscan.estimate.instances): found poses best score
-        first, each verified as `estimate`'s pose is, never two on one instance; none with the reason."""
-        return estimate_all(self, frame, mask, refine)
+        first, each verified as `estimate`'s pose is, never two on one instance; none with the reason.
+        max_instances: at most this many sought (None: the setting `instances.max_instances`)."""
+        return estimate_all(self, frame, mask, refine, max_instances=max_instances)
 
     def estimate_prepared(self, q: QueryFrame, refine: bool = True) -> EstimateResult:
         """`estimate` on a frame `prepare` made (several templates estimated in one frame share it)."""

@@ -171,9 +171,10 @@ def subset(feats: Features, keep: np.ndarray) -> Features:
 class InstanceSearch:
     """The repeated search of one template in one prepared frame (module docstring)."""
 
-    def __init__(self, est: Searcher, q: QueryFrame, feats: Features, refine: bool):
+    def __init__(self, est: Searcher, q: QueryFrame, feats: Features, refine: bool, max_instances: int | None = None):
         self.est, self.q, self.feats, self.refine = est, q, feats, refine
         self.p = est.params.instances
+        self.cap = self.p.max_instances if max_instances is None else max_instances  # instances sought at most
         self.thin = thinnest_extent(est.model.samples)
         self.timer = StageTimer()
 
@@ -202,12 +203,12 @@ class InstanceSearch:
         agree = r_all.best >= est.verifier.support_sim if est.index.unit else -r_all.best >= est.verifier.support_sim
         u = np.clip(np.rint(self.feats.pixels[:, 0]).astype(np.int64), 0, W - 1)
         v = np.clip(np.rint(self.feats.pixels[:, 1]).astype(np.int64), 0, H - 1)
-        reason: str | None = f"the cap of {self.p.max_instances} instances reached"
+        reason: str | None = f"the cap of {self.cap} instances reached"
         prev: tuple[list[MatchList], np.ndarray] | None = None  # the last search's lists, its keypoints' ids
         dropped = np.zeros(len(self.feats), bool)  # keypoints of refused lists
         refusals = 0  # refusals in a row
-        for _ in range(2 * self.p.max_instances + self.p.retries):  # (an instance, an ambiguous one, a refusal)
-            if len(found) >= self.p.max_instances:
+        for _ in range(2 * self.cap + self.p.retries):  # (an instance, an ambiguous one, a refusal)
+            if len(found) >= self.cap:
                 break
             keep = ~removed[v, u] & ~dropped
             if int((keep & agree).sum()) < p.accept.min_matches:
@@ -303,9 +304,10 @@ def overlapping(pix_a: np.ndarray, pix_b: np.ndarray, max_overlap: float) -> boo
 
 
 def estimate_all(est: Searcher, frame: RGBDFrame, mask: np.ndarray | None = None, refine: bool = True,
-                 shared: tuple[QueryFrame, Features] | None = None) -> Instances:
+                 shared: tuple[QueryFrame, Features] | None = None, max_instances: int | None = None) -> Instances:
     """Every instance of `est`'s object in `frame` (module docstring); shared: the frame prepared and its
-    features when another template already computed them (`estimate_templates`)."""
+    features when another template already computed them (`estimate_templates`); max_instances: the cap for
+    this frame (None: `instances.max_instances`)."""
     t0 = time.perf_counter()
     timer = StageTimer()
     with est.limit_threads():
@@ -326,7 +328,7 @@ def estimate_all(est: Searcher, frame: RGBDFrame, mask: np.ndarray | None = None
             where = "the query frame" + (" mask" if q.mask is not None else "")
             out = Instances(est.name, [], f"too few keypoints in {where}")
         else:
-            search = InstanceSearch(est, q, feats, refine)
+            search = InstanceSearch(est, q, feats, refine, max_instances)
             out = search.run()
             for k, t in search.timer.timings.items():
                 timer.timings[k] = timer.timings.get(k, 0.0) + t
