@@ -57,7 +57,7 @@ from typing import Any
 import numpy as np
 
 from gscan.errors import InputError, not_a_file
-from gscan.estimate.estimator import Estimator
+from gscan.estimate.estimator import EstimateParams, Estimator
 from gscan.evaluate.metrics import (
     VSD_RENDER_PIXEL_OFFSET,
     VSD_THRESHOLDS,
@@ -466,19 +466,21 @@ def _truths(seq: Any, name: str) -> list[tuple[int, np.ndarray]] | None:
 
 def evaluate(template: str | Path, scenes: str | Path, output_csv: str | Path, obj_id: int = 1,
              model_path: str | Path | None = None, refine: bool = True, force: bool = False,
-             gt_capture: str | Path | None = None, max_instances: int | None = None) -> EvalReport:
+             gt_capture: str | Path | None = None, max_instances: int | None = None,
+             params: EstimateParams | None = None) -> EvalReport:
     """Estimate the pose of every instance of the template's object in every image under `scenes`, write
     BOP19 CSV `output_csv` and return the metrics (poses in the ground truth's object frame, see the module
     docstring). max_instances: the instances sought in every image (None: each image's target count, a
-    single estimate where that is one). InputError for an existing output without `force`, a missing or partial
-    template, unreadable scenes, targets or model, a scanned template scored against ground truth that no
-    ground-truth capture (`gt_capture`, else the template's own input) relates to its frame, or a gscan BOP
-    export of another template scored without `gt_capture`."""
+    single estimate where that is one); params: the estimator's settings (None: the defaults). InputError for an
+    existing output without `force`, a missing or partial template, unreadable scenes, targets or model, a
+    scanned template scored against ground truth that no ground-truth capture (`gt_capture`, else the
+    template's own input) relates to its frame, or a gscan BOP export of another template scored without
+    `gt_capture`."""
     output_csv = Path(output_csv)
     check_not_input(output_csv, [template, scenes, model_path, gt_capture])
     check_output(output_csv, force=force, kind=".csv file path")
     template = Path(template)
-    estimator = Estimator.from_path(template)
+    estimator = Estimator.from_path(template) if params is None else Estimator.from_path(template, params)
     folders = _scene_dirs(Path(scenes))
     seqs = [(scene_id, open_sequence(folder, format="auto", obj_id=obj_id)) for scene_id, folder in folders]
     for _, seq in seqs:  # the scores need every ground-truth pose
