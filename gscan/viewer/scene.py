@@ -39,6 +39,7 @@ from gscan.viewer.instances import ShownInstances
 LAYERS = ("mesh", "cloud", "frustums", "edges", "rejected", "keypoints", "scene", "grasps", "coverage", "symmetries",
           "instances")
 COVERAGE_RADIUS = 0.75  # the coverage map's sphere, in object sizes about the object's centre
+INSTANCE_TRIANGLES = 3000  # an instance's mesh is the template's simplified to this many triangles (one colour)
 
 
 @dataclass
@@ -149,14 +150,15 @@ def build_scene(server: Any, data: ViewerData, options: ViewerOptions, frame: RG
     instances_obj = [] if instances is None or T_cam_obj is None else instance_poses(instances, T_cam_obj)
     if instances is not None:
         hues = hue_colors(len(instances_obj))
+        light = None if d.mesh is None or not len(d.mesh.triangles) else d.mesh.simplified(INSTANCE_TRIANGLES)
         for f, T, hue in zip(instances.found, instances_obj, hues, strict=True):
             node = f"/instances/i{f.rank}"
             layers["instances"].append(sc.add_frame(node, axes_length=0.2 * s, axes_radius=0.005 * s,
                                                     wxyz=quat_wxyz(T[:3, :3]), position=T[:3, 3]))
             color = tuple(int(c) for c in hue)
-            if d.mesh is not None and len(d.mesh.triangles):
+            if light is not None:
                 layers["instances"].append(sc.add_mesh_simple(
-                    f"{node}/mesh", np.asarray(d.mesh.vertices, np.float32), np.asarray(d.mesh.triangles, np.uint32),
+                    f"{node}/mesh", np.asarray(light.vertices, np.float32), np.asarray(light.triangles, np.uint32),
                     color=color, opacity=0.55, side="double"))
             else:  # no mesh: the object's box
                 layers["instances"].append(sc.add_box(f"{node}/box", color=color, dimensions=(s, s, s), opacity=0.4,
