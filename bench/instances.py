@@ -13,6 +13,12 @@ returned pose near no instance is wrong (also in a negative), one near an instan
 duplicate. Recall: found / instances; precision: returned
 poses that find an instance / returned.
 
+BOP: each object's piles written as a BOP test split (`gscan.synth.piles.write_bop_piles`: the copies object 1, the
+distractor object 2, test targets of the copies with at least 10 % in sight) and scored through `gscan eval`'s
+`evaluate` (estimate_all up to each image's inst_count, the BOP toolkit's matching): BOP19's AR and its three
+recalls, pooled over a split's objects (weighted by their instances scored, as one dataset's recall pools its
+targets).
+
 CPU: the process CPU time of `estimate_all` on each pile, as a ratio to the single `estimate` on the same frame
 (timed right before it, same estimator: one call finds one instance); the median ratio per number of
 instances in the pile. Every estimator estimates a first frame untimed (compiled kernels loaded).
@@ -34,9 +40,10 @@ from pathlib import Path
 import numpy as np
 
 from gscan.estimate.estimator import EstimateParams, Estimator
+from gscan.evaluate.bop19 import evaluate
 from gscan.io.camera import RGBDFrame
 from gscan.synth import load_textured_mesh
-from gscan.synth.piles import render_pile
+from gscan.synth.piles import render_pile, write_bop_piles
 
 MESHES = Path(__file__).resolve().parents[2] / "shared" / "data" / "meshes"
 SPLITS = {
@@ -48,6 +55,7 @@ DISTRACTOR = "Whey_Protein_Chocolate_12_Packets"
 NEGATIVE = ["Apples_to_Apples_Kids_Edition", "Clue_Board_Game_Classic_Edition"]
 COUNTS = (2, 3, 4, 5)
 MIN_VISIBLE = 0.3  # instances with less of their silhouette in sight are not counted (found or not)
+BOP_METRICS = ("AR", "AR VSD", "AR MSSD", "AR MSPD")
 
 
 def frame_of(pile) -> RGBDFrame:
@@ -86,10 +94,12 @@ def run_object(name: str, seeds: int, root: Path, params: EstimateParams) -> dic
     est = Estimator.from_path(tpl, params)
     est.estimate(frame_of(render_pile([mesh], 999)))  # untimed: compiled kernels loaded
     rows = []
+    piles = []
     for n in COUNTS:
         for s in range(seeds):
             seed = 1000 * n + s
             pile = render_pile([mesh] * n + [distractor], seed)
+            piles.append(pile)
             frame = frame_of(pile)
             c0 = time.process_time()
             est.estimate(frame)
@@ -107,7 +117,11 @@ def run_object(name: str, seeds: int, root: Path, params: EstimateParams) -> dic
     out = est.estimate_all(frame_of(render_pile(negs, 77)))
     rows.append({"n": 0, "seed": 77, "instances": 0, "found": 0, "returned": len(out.results),
                  "wrong": len(out.results), "duplicates": 0, "reason": out.reason})
-    return {"object": name, "rows": rows}
+    scene = write_bop_piles(piles, root / f"{name}_bop", [[1] * (len(p.meshes) - 1) + [2] for p in piles])
+    rep = evaluate(tpl, scene.parent, root / f"{name}_bop.csv", params=params)
+    bop = {"instances": len(rep.rows), "found": rep.n_found, **{k: rep.metrics[k] for k in BOP_METRICS}}
+    print(f"{name[:24]:24s} BOP: AR {bop['AR']:.1f} over {bop['instances']} instances", file=sys.stderr)
+    return {"object": name, "rows": rows, "bop": bop}
 
 
 def summary(objects: list[dict]) -> dict:
@@ -115,13 +129,16 @@ def summary(objects: list[dict]) -> dict:
     inst = sum(r["instances"] for r in rows)
     found = sum(r["found"] for r in rows)
     returned = sum(r["returned"] for r in rows)
+    weights = [o["bop"]["instances"] for o in objects]  # a split's recalls pool its objects' instances
     ratios = {n: float(np.median([r["cpu_all_ms"] / r["cpu_single_ms"] for r in rows if r["n"] == n]))
               for n in COUNTS if any(r["n"] == n for r in rows)}
     return {"piles": sum(r["n"] > 0 for r in rows), "negatives": sum(r["n"] == 0 for r in rows), "instances": inst,
             "recall": found / max(1, inst), "precision": (returned - sum(r["wrong"] + r["duplicates"] for r in rows))
             / max(1, returned), "wrong": sum(r["wrong"] for r in rows),
             "duplicates": sum(r["duplicates"] for r in rows), "cpu_ratio_by_n": ratios,
-            "median_cpu_single_ms": float(np.median([r["cpu_single_ms"] for r in rows if r["n"] > 0]))}
+            "median_cpu_single_ms": float(np.median([r["cpu_single_ms"] for r in rows if r["n"] > 0])),
+            "bop": {k: float(np.average([o["bop"][k] for o in objects], weights=weights)) for k in BOP_METRICS}
+            | {"instances": sum(weights)}}
 
 
 def main() -> None:
@@ -141,13 +158,15 @@ def main() -> None:
             objects = [run_object(name, args.seeds, Path(tmp), params) for name in SPLITS[split]]
             report[split] = {"summary": summary(objects), "objects": objects}
     print("| split | piles + negatives | instances | recall % | precision % | duplicates | wrong | "
-          "CPU ratio to one estimate, 2 / 3 / 4 / 5 instances |")
-    print("|---|---|---|---|---|---|---|---|")
+          "CPU ratio to one estimate, 2 / 3 / 4 / 5 instances | BOP instances | BOP AR (VSD / MSSD / MSPD) |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for split, rep in report.items():
         s = rep["summary"]
         ratios = " / ".join(f"{s['cpu_ratio_by_n'][n]:.2f}" for n in COUNTS if n in s["cpu_ratio_by_n"])
+        b = s["bop"]
         print(f"| {split} | {s['piles']} + {s['negatives']} | {s['instances']} | {100 * s['recall']:.1f} | "
-              f"{100 * s['precision']:.1f} | {s['duplicates']} | {s['wrong']} | {ratios} |")
+              f"{100 * s['precision']:.1f} | {s['duplicates']} | {s['wrong']} | {ratios} | {b['instances']} | "
+              f"{b['AR']:.1f} ({b['AR VSD']:.1f} / {b['AR MSSD']:.1f} / {b['AR MSPD']:.1f}) |")
     if args.json is not None:
         args.json.write_text(json.dumps(report, indent=1))
 

@@ -81,6 +81,40 @@ def test_patch_registers_the_export_once(toolkit: tuple[Path, Path], tmp_path: P
     assert again.returncode != 0 and "patch does not apply" in again.stderr
 
 
+def test_matching_is_the_toolkits(toolkit: tuple[Path, Path]):
+    """`bop_matched` (several instances per image) equals the toolkit's `pose_matching.match_poses` on random
+    errors of 1-5 estimates against 1-4 instances, ties (equal errors and scores) included."""
+    import json
+
+    import numpy as np
+
+    from gscan.evaluate.metrics import bop_matched
+
+    rng = np.random.default_rng(7)
+    cases = []
+    for _ in range(300):
+        e, g = int(rng.integers(1, 6)), int(rng.integers(1, 5))
+        cases.append({"scores": rng.choice([0.2, 0.5, 0.9], e).tolist(),  # ties in score keep the results' order
+                      "errors": np.round(rng.uniform(0, 1, (e, g)), 1).tolist()})  # ties in error: the first
+    code = ("import json, sys\n"
+            "from bop_toolkit_lib.pose_matching import match_poses\n"
+            "out = []\n"
+            "for c in json.load(sys.stdin):\n"
+            "    errs = [{'est_id': i, 'score': s, 'errors': {g: [x] for g, x in enumerate(row)},\n"
+            "             'gt_visib_fracts': {g: 1.0 for g in range(len(row))}} for i, (s, row) in\n"
+            "            enumerate(zip(c['scores'], c['errors']))]\n"
+            "    out.append([sorted(m['gt_id'] for m in match_poses(errs, [t])) for t in (0.25, 0.55)])\n"
+            "print(json.dumps(out))")
+    r = subprocess.run([str(toolkit[1]), "-c", code], input=json.dumps(cases), capture_output=True, text=True,
+                       check=False, env={**os.environ, "PYTHONPATH": str(toolkit[0])})
+    assert r.returncode == 0, r.stderr
+    theirs = json.loads(r.stdout)
+    for c, t in zip(cases, theirs, strict=True):
+        order = sorted(range(len(c["scores"])), key=lambda i: -c["scores"][i])
+        ours = bop_matched(np.array(c["errors"])[order], [0.25, 0.55])
+        assert [np.flatnonzero(ours[:, k]).tolist() for k in range(2)] == t, c
+
+
 @pytest.mark.slow
 def test_toolkit_scores_as_gscan(toolkit: tuple[Path, Path], export: Path, tmp_path: Path):
     """eval_bop19_pose.py (vispy renderer) on the ground truth and on two perturbed sets (up to 5 deg / 1 cm and

@@ -729,6 +729,23 @@ def _(ctx: Ctx, work: Path) -> Run:
     return Run(_cli("view", ctx.template, "--port", "70000"), ["--port"])
 
 
+@case("view-estimate-of-another-template")
+def _(ctx: Ctx, work: Path) -> Run:
+    result = work / "all.json"
+    result.write_text(json.dumps({"templates": [{"template": "a", "instances": []},
+                                                {"template": "b", "instances": []}]}))
+    return Run(_cli("view", ctx.template, "--port", str(_free_port()), "--estimate", result),
+               ["all.json", f"no result of template {ctx.template.stem}"])
+
+
+@case("view-estimate-not-a-result")
+def _(ctx: Ctx, work: Path) -> Run:
+    result = work / "pose.json"
+    result.write_text(json.dumps({"T": np.eye(4).tolist()}))
+    return Run(_cli("view", ctx.template, "--port", str(_free_port()), "--estimate", result),
+               ["pose.json", "not an estimate result"])
+
+
 @case("serve-depth-to-color-without-depth-intrinsics")
 def _(ctx: Ctx, work: Path) -> Run:
     np.savetxt(work / "T_color_depth.txt", np.eye(4))

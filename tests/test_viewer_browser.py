@@ -5,6 +5,7 @@ scan pipeline produces one. Browser tests use Debian's /usr/bin/chromium through
 """
 from __future__ import annotations
 
+import contextlib
 import importlib.util
 import itertools
 import json
@@ -280,9 +281,28 @@ def _open_drawn_page(browser, port: int, tmp_path: Path, name: str):
     return page
 
 
+@contextlib.contextmanager
+def _cli_viewer_page(db: Path, extra: list[str], tmp_path: Path, name: str):
+    """`gscan view DB EXTRA...` in a subprocess and a Chromium page on it once its 3D view is drawn (screenshot
+    `name`); afterwards the viewer's log must say it was ready."""
+    from playwright.sync_api import sync_playwright
+
+    port = vp.free_port()
+    proc, _ = vp.start_viewer(db, port, extra=extra, log_path=tmp_path / "viewer.log")
+    try:
+        with sync_playwright() as p:
+            browser = vp.launch(p)
+            try:
+                yield _open_drawn_page(browser, port, tmp_path, name)
+            finally:
+                browser.close()
+    finally:
+        vp.stop_viewer(proc)
+    assert "viewer ready at" in (tmp_path / "viewer.log").read_text()
+
+
 @pytest.mark.browser
 def test_viewer_in_browser(template, tmp_path):
-    from playwright.sync_api import sync_playwright
 
     # A query frame on disk with its pose: `gscan view --color --depth --intrinsics --pose`.
     from gscan.synth import write_capture
@@ -293,42 +313,31 @@ def test_viewer_in_browser(template, tmp_path):
     (tmp_path / "pose.json").write_text(json.dumps({"T": fr.T_cam_obj.tolist()}))
     query = ["--color", str(cap / "rgb" / "000000.png"), "--depth", str(cap / "depth" / "000000.png"),
              "--intrinsics", str(cap / "cam_K.txt"), "--pose", str(tmp_path / "pose.json")]
-    port = vp.free_port()
-    proc, _ = vp.start_viewer(template.path, port, extra=query, log_path=tmp_path / "viewer.log")
-    try:
-        with sync_playwright() as p:
-            browser = vp.launch(p)
-            try:
-                page = _open_drawn_page(browser, port, tmp_path, "viewer.png")
-                # The GUI lists the views and names the unregistered ones, the unreadable input frame too.
-                assert page.locator(f"input[id='{vp.gui_control_id(page, 'View')}']").input_value() == "000000"
-                assert page.get_by_text("unregistered (2):").count() == 1
-                assert page.get_by_text("000004, 000009").count() == 1
-                assert page.get_by_text("cloud placed by the estimated pose").count() == 1
-                # Moving the view slider changes the displayed image.
-                img = vp.gui_image(page, "View image")
-                before = img.screenshot()
-                vp.gui_slider(page, "View #").focus()
-                page.keyboard.press("ArrowRight")
-                after = vp.wait_image_changed(img, before)
-                assert after != before
-                page.get_by_text("000001 (2/6)").wait_for(timeout=10_000)
-                assert page.get_by_text("000001 (2/6)").count() == 1
-                # Choosing an edge opens the match panel with its numbers.
-                assert page.get_by_text("matches:").count() == 0
-                vp.select_option(page, "Edge", "000001 → 000002 (sequential)")
-                page.get_by_text("matches:").first.wait_for(timeout=10_000)
-                text = page.get_by_text("matches:").first.inner_text()
-                with TemplateDB.open(template.path) as db:
-                    e = next(e for e in db.edges() if (e.src, e.tgt) == ("000001", "000002"))
-                assert f"matches: {len(e.matches)}" in text
-                assert vp.gui_image(page, "Matches").is_visible()
-                _screenshot(page, tmp_path, "viewer_match.png")
-            finally:
-                browser.close()
-    finally:
-        vp.stop_viewer(proc)
-    assert "viewer ready at" in (tmp_path / "viewer.log").read_text()
+    with _cli_viewer_page(template.path, query, tmp_path, "viewer.png") as page:
+        # The GUI lists the views and names the unregistered ones, the unreadable input frame too.
+        assert page.locator(f"input[id='{vp.gui_control_id(page, 'View')}']").input_value() == "000000"
+        assert page.get_by_text("unregistered (2):").count() == 1
+        assert page.get_by_text("000004, 000009").count() == 1
+        assert page.get_by_text("cloud placed by the estimated pose").count() == 1
+        # Moving the view slider changes the displayed image.
+        img = vp.gui_image(page, "View image")
+        before = img.screenshot()
+        vp.gui_slider(page, "View #").focus()
+        page.keyboard.press("ArrowRight")
+        after = vp.wait_image_changed(img, before)
+        assert after != before
+        page.get_by_text("000001 (2/6)").wait_for(timeout=10_000)
+        assert page.get_by_text("000001 (2/6)").count() == 1
+        # Choosing an edge opens the match panel with its numbers.
+        assert page.get_by_text("matches:").count() == 0
+        vp.select_option(page, "Edge", "000001 → 000002 (sequential)")
+        page.get_by_text("matches:").first.wait_for(timeout=10_000)
+        text = page.get_by_text("matches:").first.inner_text()
+        with TemplateDB.open(template.path) as db:
+            e = next(e for e in db.edges() if (e.src, e.tgt) == ("000001", "000002"))
+        assert f"matches: {len(e.matches)}" in text
+        assert vp.gui_image(page, "Matches").is_visible()
+        _screenshot(page, tmp_path, "viewer_match.png")
 
 
 def _screen_xy(camera, p_world: np.ndarray) -> tuple[float, float]:
@@ -431,3 +440,108 @@ def test_gscan_view_on_the_bundled_sample(sample_template, tmp_path):
                 browser.close()
     finally:
         vp.stop_viewer(proc)
+
+
+# ------------------------------------------------------------------------------------ instances (`--estimate`)
+def _shifted(T_cam_obj: np.ndarray, dx: float, turn: float = 0.0) -> np.ndarray:
+    """T_cam_obj moved by dx (m) along the object's x axis and turned by `turn` (rad) about its z axis."""
+    from gscan.geometry.transforms import rotvec_to_R
+
+    M = np.eye(4)
+    M[:3, :3] = rotvec_to_R([0.0, 0.0, turn])
+    M[0, 3] = dx
+    return T_cam_obj @ M
+
+
+def _instances_result(T_cam_obj: np.ndarray, path: Path) -> list[np.ndarray]:
+    """An `estimate --all --json` file for template "box": three instances (the true pose and two beside it) and
+    one refused; returns the three poses in rank order."""
+    poses = [T_cam_obj, _shifted(T_cam_obj, 0.12, np.pi / 2), _shifted(T_cam_obj, -0.12)]
+    inst = [{"T_cam_obj": T.tolist(), "score": s, "view": f"00000{k}", "reason": None,
+             "pixels": {"count": 9000 - 1000 * k, "box": [0, 0, 10, 10]}}
+            for k, (T, s) in enumerate(zip(poses, (0.93, 0.8, 0.71), strict=True))]
+    refused = [{"T_cam_obj": None, "score": 0.6, "reason": "its pixels are claimed by template mug, better supported"}]
+    doc = {"templates": [{"template": "mug", "instances": [], "reason": "too few matches", "refused": []},
+                         {"template": "box", "instances": inst, "reason": None, "refused": refused,
+                          "stopped": "too few keypoints left that agree with the template"}]}
+    path.write_text(json.dumps(doc))
+    return poses
+
+
+def test_instances_of_an_estimate_are_drawn_at_their_poses(template, tmp_path):
+    """`gscan view --estimate`: every instance found is drawn at its pose relative to the first (which the
+    template frame shows, the frame's cloud placed by it), labelled with its rank and score; the refused one is
+    named in the Instances panel. A result of other templates only, or a pose that is not rigid, is refused
+    naming the file."""
+    from gscan.viewer.instances import read_estimate_result
+    from gscan.viewer.text import md_text
+
+    T_world_obj = template.T_world_obj
+    fr = template.scene.render(look_at(T_world_obj[:3, 3] + [0.25, -0.35, 0.3], T_world_obj[:3, 3]), noise=False)
+    frame = RGBDFrame("query", fr.color, fr.depth, fr.intrinsics)
+    poses = _instances_result(fr.T_cam_obj, tmp_path / "all.json")
+    shown = read_estimate_result(tmp_path / "all.json", "box")
+    assert [f.label for f in shown.found] == ["#1 · 0.93", "#2 · 0.80", "#3 · 0.71"]
+    app = serve(template.path, port=vp.free_port(), scene_frame=frame, instances=shown)
+    try:
+        assert len(app.instances_obj) == 3 and len(app.layers["instances"]) == 9  # axes, mesh, label each
+        for T_obj_inst, T in zip(app.instances_obj, poses, strict=True):  # inv(T_cam_first) @ T_cam_inst
+            np.testing.assert_allclose(T_obj_inst, np.linalg.inv(fr.T_cam_obj) @ T, atol=1e-9)
+        np.testing.assert_allclose(app.instances_obj[0], np.eye(4), atol=1e-9)
+        assert np.linalg.norm(app.instances_obj[1][:3, 3] - [0.12, 0, 0]) < 1e-9
+        # the frame's cloud is placed by the first instance: it lies on the template's box and table
+        assert app.scene_points_obj is not None and np.mean(_box_or_table_distance(app.scene_points_obj) < 0.004) > 0.97
+        text = shown.markdown()  # names and reasons are data: shown literally (md_text)
+        assert "found: 3 · refused: 1" in text and md_text("#2 · 0.80 · view 000001 · 8000 px") in text
+        assert "refused 1: " + md_text("its pixels are claimed by template mug, better supported") in text
+    finally:
+        app.stop()
+    single = tmp_path / "one.json"  # a single estimate's result that found nothing: the reason shown
+    single.write_text(json.dumps({"T_cam_obj": None, "reason": "ambiguous view", "score": 0.0}))
+    none = read_estimate_result(single, "box")
+    assert not none.found and "none found: ambiguous view" in none.markdown()
+    other = tmp_path / "other.json"
+    doc = json.loads((tmp_path / "all.json").read_text())
+    doc["templates"][1]["template"] = "can"
+    other.write_text(json.dumps(doc))
+    with pytest.raises(InputError, match="no result of template box") as e:
+        read_estimate_result(other, "box")
+    assert e.value.path == other
+    doc["templates"][1]["template"] = "box"
+    doc["templates"][1]["instances"][1]["T_cam_obj"][0][0] = 3.0
+    other.write_text(json.dumps(doc))
+    with pytest.raises(InputError, match="result 2: pose is not a rigid transform"):
+        read_estimate_result(other, "box")
+
+
+@pytest.mark.browser
+def test_instances_in_browser(template, tmp_path):
+    """`gscan view box.gscan --estimate all.json --color ... ` in Chromium: the 3D view draws the three instances and
+    the Instances panel lists them by rank and score, and the refused one with its reason."""
+
+    from gscan.synth import write_capture
+
+    T_world_obj = template.T_world_obj
+    fr = template.scene.render(look_at(T_world_obj[:3, 3] + [0.3, 0.3, 0.35], T_world_obj[:3, 3]), noise=False)
+    cap = write_capture(tmp_path / "query", [fr], fr.intrinsics)
+    _instances_result(fr.T_cam_obj, tmp_path / "all.json")
+    tpl = template.path  # box.gscan: the result's "box"
+    query = ["--color", str(cap / "rgb" / "000000.png"), "--depth", str(cap / "depth" / "000000.png"),
+             "--intrinsics", str(cap / "cam_K.txt"), "--estimate", str(tmp_path / "all.json")]
+    with _cli_viewer_page(tpl, query, tmp_path, "viewer_instances.png") as page:
+        for text in ("found: 3 · refused: 1", "#1 · 0.93 · view 000000 · 9000 px",
+                     "refused 1: its pixels are claimed by template mug, better supported",
+                     "cloud placed by the first instance's pose"):
+            page.get_by_text(text).first.wait_for(timeout=10_000)
+        _screenshot(page, tmp_path, "viewer_instances.png")
+        # the instances (meshes and rank labels, drawn in WebGL) are what the Instances layer hides
+        before = vp.canvas_region(vp.png_array(page.screenshot())).astype(int)
+        page.get_by_text("Layers", exact=True).click()
+        page.locator(f"[id='{vp.gui_control_id(page, 'Instances')}']").click()
+
+        def changed() -> int:  # pixels of the 3D view that changed clearly (the instances cover a few thousand)
+            after = vp.canvas_region(vp.png_array(page.screenshot())).astype(int)
+            return int((np.abs(after - before).max(axis=2) > 40).sum())
+        vp.wait_until(lambda: changed() > 2000, 15.0)
+        _screenshot(page, tmp_path, "viewer_instances_hidden.png")
+        assert changed() > 2000

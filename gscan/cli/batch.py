@@ -25,6 +25,9 @@ def eval_cmd(
     gt_capture: Path | None = typer.Option(
         None, "--gt-capture", help="capture a scanned template came from, with ground-truth poses, to relate its "
         "frame to the ground truth's (default: the template's own input folder)"),
+    max_instances: int | None = typer.Option(
+        None, "--max-instances", min=1, help="instances sought in every image (default: each image's target "
+        "count, from test_targets_bop19.json or the ground truth; one instance: the single estimate)"),
     no_icp: bool = typer.Option(False, "--no-icp", help="skip the ICP refinement"),
     force: bool = typer.Option(False, "--force", help="replace an existing output"),
     json_out: bool = typer.Option(False, "--json", help=JSON_HELP),
@@ -35,11 +38,12 @@ def eval_cmd(
     from gscan.evaluate.bop19 import evaluate
 
     report = evaluate(template, scenes, output, obj_id=obj_id, model_path=model, refine=not no_icp, force=force,
-                      gt_capture=gt_capture)
+                      gt_capture=gt_capture, max_instances=max_instances)
     if json_out:
         print_json(report.to_json())
         return
-    table = Table(title=f"{report.n_images} images, {report.n_found} found")
+    counted = f"{len(report.rows)} instances, " if len(report.rows) != report.n_images else ""
+    table = Table(title=f"{report.n_images} images, {counted}{report.n_found} found")
     table.add_column("metric")
     table.add_column("value", justify="right")
     for k, v in report.metrics.items():

@@ -20,6 +20,9 @@ def view(
     depth_scale: float = typer.Option(0.001, "--depth-scale", help="metres per raw depth unit"),
     pose: Path | None = typer.Option(
         None, "--pose", help='T_cam_obj of --color\'s frame instead of estimating it: {"T": 4x4} or a bare 4x4 list'),
+    estimate: Path | None = typer.Option(
+        None, "--estimate", help="an estimate result (`gscan estimate --json`, with --all: every instance) to draw: "
+        "each pose found, and the refused ones in a panel; with --color/--depth/--intrinsics, in that frame"),
     token: str | None = typer.Option(None, "--token", help="serve only browsers that open the URL with "
                                      "?token=TOKEN (1-256 of A-Z a-z 0-9 . _ ~ -)"),
 ) -> None:
@@ -33,16 +36,23 @@ def view(
         say(("warning:", "yellow"), f" --host {host} is not a loopback address: every image of {template.name} "
             "is served without authentication to anyone who can reach this port; pass --token to require one")
 
-    frame = T_cam_obj = None
+    frame = T_cam_obj = instances = None
     if pose is not None and color is None:
         raise UsageError(pose, "--pose places a query frame: it needs --color, --depth and --intrinsics")
+    if pose is not None and estimate is not None:
+        raise UsageError(estimate, "--estimate and --pose both give the frame's poses: pass one")
+    if estimate is not None:
+        from gscan.viewer.instances import read_estimate_result
+
+        instances = read_estimate_result(estimate, template.stem)
     if color is not None or depth is not None or intrinsics is not None:
         if color is None or depth is None or intrinsics is None:
             raise UsageError(None, "--color, --depth and --intrinsics go together")
         frame = load_query_frame(color, depth, intrinsics, depth_scale, None)
-        T_cam_obj = _query_pose(template, frame, pose)
+        if instances is None:
+            T_cam_obj = _query_pose(template, frame, pose)
     run_viewer(template, host=host, port=port, scene_frame=frame, T_cam_obj=T_cam_obj, token=token,
-               on_ready=lambda url: say("viewer ready at ", (url, "bold"), " (Ctrl+C to stop)"))
+               instances=instances, on_ready=lambda url: say("viewer ready at ", (url, "bold"), " (Ctrl+C to stop)"))
 
 
 def _query_pose(template: Path, frame: Any, pose: Path | None) -> Any:

@@ -11,12 +11,26 @@ the image (the same for all rows of one image). Only found poses are written. Th
 to a temporary name and renamed, so it is never half-written. `score_results(results_csv, scenes, model_path)`
 scores such a CSV (any method's) with the same errors and metrics, without estimating.
 
-Metrics over all images with ground truth (a not-found pose counts as an infinite error):
+Several instances per image, as BOP19 scores them: a BOP dataset's test targets (test_targets_bop19.json in its
+root, two folders above a scene: scene_id, im_id, obj_id, inst_count) choose the images scored and how many
+instances of the object each holds; the inst_count most visible ground-truth instances (scene_gt_info.json's
+visib_fract) are scored, and as many of the image's best-scoring estimates. Without targets every ground-truth
+instance of the object in the image is scored (one in the capture layout). `evaluate` estimates an image of one
+instance with the single estimate (`Estimator.estimate`) and an image of several with `Estimator.estimate_all`, up
+to its inst_count (`max_instances` sets the count sought everywhere); every pose found is written to the CSV.
+Estimates are matched to instances as the BOP toolkit's `pose_matching.match_poses` does (`metrics.bop_matched`):
+per error function and threshold, greedily by decreasing score, each estimate to the unmatched instance with the
+smallest error under the threshold; a recall is matched instances / instances scored. A report row is one
+instance scored: the estimate assigned to it (by score, the nearest free instance by MSSD, those within half the
+diameter first), or not found. With one instance and one estimate per image this is the single-pose scoring: a
+match is an error under the threshold.
+
+Metrics over all instances scored (a not-found pose counts as an infinite error):
 "AUC ADD" / "AUC ADD-S" (YCB-Video AUC, 0-10 cm, percent), "AR VSD" / "AR MSSD" / "AR MSPD" (BOP19
 average recalls, percent), "AR" (their mean: BOP19's AR, as the BOP toolkit's eval_bop19_pose.py computes
-it), "found" (percent of images with a pose), "mean time ms". VSD renders the model (ray-cast, each pixel
-sampled where the toolkit's OpenGL renderers sample it: `metrics.VSD_RENDER_PIXEL_OFFSET`), so it needs a mesh;
-with a point cloud alone "AR VSD" and "AR" are left out. Objects are taken as asymmetric (no symmetry
+it), "found" (percent of instances with a pose), "mean time ms" (per image). VSD renders the model (ray-cast,
+each pixel sampled where the toolkit's OpenGL renderers sample it: `metrics.VSD_RENDER_PIXEL_OFFSET`), so it
+needs a mesh; with a point cloud alone "AR VSD" and "AR" are left out. Objects are taken as asymmetric (no symmetry
 transformations). All model vertices are used (ADD-S's nearest neighbours exactly, by k-d tree).
 Model: the template's mesh (else its cloud), or `model_path` (any mesh trimesh reads, in the ground
 truth's object frame; BOP models in millimetres are detected by a diameter above 10 units and scaled to
@@ -43,16 +57,17 @@ from typing import Any
 import numpy as np
 
 from gscan.errors import InputError, not_a_file
-from gscan.estimate.estimator import Estimator
+from gscan.estimate.estimator import EstimateParams, Estimator
 from gscan.evaluate.metrics import (
     VSD_RENDER_PIXEL_OFFSET,
-    ar_mspd,
-    ar_mssd,
-    ar_vsd,
+    VSD_THRESHOLDS,
     auc,
+    bop_matched,
     diameter,
     mspd,
+    mspd_thresholds,
     mssd,
+    mssd_thresholds,
     vsd,
     vsd_taus,
 )
@@ -71,12 +86,15 @@ log = logging.getLogger(__name__)
 CSV_HEADER = "scene_id,im_id,obj_id,score,R,t,time"
 MM_DIAMETER_LIMIT = 10.0  # a model whose diameter exceeds this many units is taken to be in millimetres
 GSCAN_VIEWS = "gscan_views.json"  # a gscan BOP export's map of image ids to the template's view names
+TARGETS = "test_targets_bop19.json"  # a BOP dataset's test targets: the images and instance counts scored
 
 
 @dataclass
 class EvalRow:
-    """One image: ids, pose of the ground truth's object frame (None = not found), errors (inf when not
-    found; nan without ground truth)."""
+    """One ground-truth instance scored (a row per estimate, or one not found, in an image without ground truth):
+    ids, the pose assigned to it in the ground truth's object frame (None = not found), errors (inf when not
+    found; nan without ground truth), gt_id (its index in the image's scene_gt list; 0 in other layouts, None
+    without ground truth)."""
 
     scene_id: int
     im_id: int
@@ -90,12 +108,14 @@ class EvalRow:
     mspd: float = float("nan")
     reason: str | None = None
     vsd: list[float] | None = None  # one error per BOP19 tau (metrics.VSD_TAU_FRACTIONS); None without a mesh
+    gt_id: int | None = None
 
     def to_json(self) -> dict:
         def f(x: float) -> float | None:
             return None if not np.isfinite(x) else float(x)
 
-        return {"scene_id": self.scene_id, "im_id": self.im_id, "found": self.found, "score": float(self.score),
+        return {"scene_id": self.scene_id, "im_id": self.im_id, "gt_id": self.gt_id, "found": self.found,
+                "score": float(self.score),
                 "time_s": float(self.time_s), "add_m": f(self.add), "adds_m": f(self.adds), "mssd_m": f(self.mssd),
                 "mspd_px": f(self.mspd), "vsd": None if self.vsd is None else [f(x) for x in self.vsd],
                 "reason": self.reason,
@@ -104,7 +124,8 @@ class EvalRow:
 
 @dataclass
 class EvalReport:
-    """n_images evaluated, n_found with a pose, metrics {name: value} (see module docstring), rows."""
+    """n_images evaluated, n_found rows with a pose, metrics {name: value} (see module docstring), rows (one per
+    ground-truth instance scored, `EvalRow`)."""
 
     output: Path
     n_images: int
@@ -114,7 +135,8 @@ class EvalReport:
     diameter_m: float = float("nan")  # the model's diameter, the scale of the metrics' thresholds
 
     def to_json(self) -> dict:
-        return {"output": str(self.output), "n_images": self.n_images, "n_found": self.n_found,
+        return {"output": str(self.output), "n_images": self.n_images, "n_instances": len(self.rows),
+                "n_found": self.n_found,
                 "metrics": {k: float(v) for k, v in self.metrics.items()}, "rows": [r.to_json() for r in self.rows]}
 
 
@@ -297,24 +319,173 @@ def _export_to_gt(template: Path, seqs: list, exported: dict[int, dict[str, str]
                          fix="gt_capture") from None
 
 
+def read_targets(folders: list[tuple[int, Path]], obj_id: int) -> dict[tuple[int, int], int] | None:
+    """{(scene_id, im_id): inst_count} of object `obj_id` in the BOP test targets (`TARGETS` in the dataset root,
+    two folders above a scene), or None when no scene has such a file. InputError naming the file when it is
+    malformed."""
+    targets: dict[tuple[int, int], int] | None = None
+    for path in sorted({folder.parent.parent / TARGETS for _, folder in folders}):
+        if not path.is_file():
+            continue
+        doc = _read_json(path)
+        try:
+            entries = [(int(t["scene_id"]), int(t["im_id"]), int(t["obj_id"]), int(t["inst_count"])) for t in doc]
+        except (TypeError, KeyError, ValueError, OverflowError) as e:
+            raise InputError(path, f"malformed target ({e.__class__.__name__}: {e}): each needs scene_id, im_id, "
+                             "obj_id and inst_count") from None
+        if any(n < 1 for *_, n in entries):
+            raise InputError(path, "an inst_count below 1")
+        targets = targets or {}
+        targets.update({(s, i): n for s, i, o, n in entries if o == obj_id})
+    return targets
+
+
+def _read_json(path: Path) -> Any:
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError) as e:
+        raise InputError(path, f"unreadable ({e.__class__.__name__}: {e})"[:300]) from None
+
+
+def _visib_fracts(scene: Path) -> dict[int, list[float]]:
+    """{im_id: visib_fract of each scene_gt entry} from the scene's scene_gt_info.json ({} without one)."""
+    path = scene / "scene_gt_info.json"
+    if not path.is_file():
+        return {}
+    doc = _read_json(path)
+    try:
+        return {int(k): [float(e["visib_fract"]) for e in v] for k, v in doc.items()}
+    except (TypeError, KeyError, ValueError, AttributeError, OverflowError) as e:
+        raise InputError(path, f"malformed entry ({e.__class__.__name__}: {e}): each needs visib_fract") from None
+
+
+def scored_instances(instances: list[tuple[int, np.ndarray]], inst_count: int,
+                     visib: list[float] | None) -> list[tuple[int, np.ndarray]]:
+    """The ground-truth instances (gt_id, T_cam_obj [4 x 4]) an image's target scores, in gt_id order: the
+    `inst_count` most visible (BOP19's rule, by the visib_fract of each scene_gt entry, `visib`; without it the
+    first ones), all of them when there are no more."""
+    if len(instances) <= inst_count:
+        return instances
+    def vis(i: int) -> float:
+        gt_id = instances[i][0]
+        return visib[gt_id] if visib is not None and gt_id < len(visib) else 1.0
+
+    keep = sorted(sorted(range(len(instances)), key=vis, reverse=True)[:inst_count])
+    return [instances[i] for i in keep]
+
+
+@dataclass
+class _Hits:
+    """One image's scored instances, matched as the BOP toolkit matches them: [G x T] bool per MSSD / MSPD
+    threshold, [G x K x T] per VSD tolerance and threshold (None without a mesh)."""
+
+    mssd: np.ndarray
+    mspd: np.ndarray
+    vsd: np.ndarray | None
+
+
+class _Scorer:
+    """The errors of an image's estimates against its ground-truth instances: one row per scored instance, and the
+    BOP matches (`_Hits`) that the average recalls count."""
+
+    def __init__(self, pts: np.ndarray, caster: MeshRaycaster | None, diameter: float):
+        self.pts, self.caster, self.diam = pts, caster, diameter
+        self.taus = vsd_taus(diameter)
+
+    def image(self, scene_id: int, im_id: int, frame: RGBDFrame, ests: list[tuple[float, np.ndarray]],
+              truths: list[tuple[int, np.ndarray]] | None, inst_count: int, time_s: float,
+              miss: tuple[float, str | None]) -> tuple[list[EvalRow], _Hits | None]:
+        """Rows and matches of one image. ests: (score, T_cam_obj [4 x 4]) of each estimate; truths: the scored
+        ground-truth instances (gt_id, T_cam_obj), None without ground truth (a row per estimate, errors NaN);
+        inst_count: the estimates scored, the best-scoring ones (BOP: as many as the target's instances);
+        miss: the score and reason of a row whose instance no estimate was assigned to."""
+        order = sorted(range(len(ests)), key=lambda i: -ests[i][0])  # stable: ties keep the results' order
+        ests = [ests[i] for i in order][:max(1, inst_count)]
+        if not truths:
+            if not ests:
+                return [EvalRow(scene_id, im_id, False, miss[0], time_s, None, reason=miss[1])], None
+            return [EvalRow(scene_id, im_id, True, s, time_s, T) for s, T in ests], None
+        E, G = len(ests), len(truths)
+        mssd_e = np.array([[mssd(self.pts, T, T_gt) for _, T_gt in truths] for _, T in ests]).reshape(E, G)
+        mspd_e = np.array([[self._mspd(T, T_gt, frame) for _, T_gt in truths] for _, T in ests]).reshape(E, G)
+        vsd_e = None
+        if self.caster is not None:
+            d_est = [self._render(T, frame) for _, T in ests]
+            d_gt = [self._render(T_gt, frame) for _, T_gt in truths]
+            vsd_e = np.array([[vsd(frame.depth, de, dg, frame.intrinsics, self.taus) for dg in d_gt]
+                              for de in d_est]).reshape(E, G, len(self.taus))
+        # the rows: each estimate, best score first, gets the free instance it is closest to (MSSD) among those
+        # within the loosest MSSD threshold (BOP's matching there), then those left the free ones nearest
+        loosest = float(mssd_thresholds(self.diam)[-1])
+        owner: dict[int, int] = {}  # instance -> estimate
+        for within in (True, False):
+            for e in range(E):
+                free = [g for g in range(G) if g not in owner and (mssd_e[e, g] < loosest or not within)]
+                if free and e not in owner.values():
+                    owner[min(free, key=lambda g: mssd_e[e, g])] = e
+        rows = []
+        for g, (gt_id, T_gt) in enumerate(truths):
+            if g not in owner:
+                row = EvalRow(scene_id, im_id, False, miss[0], time_s, None, reason=miss[1] if not ests else
+                              "no estimate left for this instance (the others' were assigned to other instances)")
+                row.add = row.adds = row.mssd = row.mspd = float("inf")
+                row.vsd = None if self.caster is None else [float("inf")] * len(self.taus)
+            else:
+                e = owner[g]
+                score, T = ests[e]
+                row = EvalRow(scene_id, im_id, True, score, time_s, T, add=add_err(self.pts, T, T_gt),
+                              adds=adds_err(self.pts, T, T_gt), mssd=float(mssd_e[e, g]), mspd=float(mspd_e[e, g]),
+                              vsd=None if vsd_e is None else vsd_e[e, g].tolist())
+            row.gt_id = gt_id
+            rows.append(row)
+        th_mssd = mssd_thresholds(self.diam)
+        th_mspd = mspd_thresholds(frame.intrinsics.width)
+        hits_vsd = None if vsd_e is None else np.stack(
+            [bop_matched(vsd_e[:, :, k], VSD_THRESHOLDS) for k in range(len(self.taus))], axis=1)
+        return rows, _Hits(bop_matched(mssd_e, th_mssd), bop_matched(mspd_e, th_mspd), hits_vsd)
+
+    def _mspd(self, T: np.ndarray, T_gt: np.ndarray, frame: RGBDFrame) -> float:
+        try:
+            return mspd(self.pts, T, T_gt, frame.intrinsics)
+        except ValueError:  # estimated model partly behind the camera
+            return float("inf")
+
+    def _render(self, T_cam_obj: np.ndarray, frame: RGBDFrame) -> np.ndarray:
+        assert self.caster is not None
+        return self.caster.depth(frame.intrinsics, inv_T(T_cam_obj), VSD_RENDER_PIXEL_OFFSET)
+
+
+def _truths(seq: Any, name: str) -> list[tuple[int, np.ndarray]] | None:
+    """Every ground-truth instance (gt_id, T_cam_obj [4 x 4]) of the sequence's object in image `name` (a BOP
+    scene's every one, another layout's one), None when the image has none."""
+    if seq.gt_instances is not None:
+        return seq.gt_instances.get(name) or None
+    T = (seq.gt_T_cam_obj or {}).get(name)
+    return None if T is None else [(0, T)]
+
+
 def evaluate(template: str | Path, scenes: str | Path, output_csv: str | Path, obj_id: int = 1,
              model_path: str | Path | None = None, refine: bool = True, force: bool = False,
-             gt_capture: str | Path | None = None) -> EvalReport:
-    """Estimate the pose of the template's object in every image under `scenes`, write BOP19 CSV
-    `output_csv` and return the metrics (poses in the ground truth's object frame, see the module
-    docstring). InputError for an existing output without `force`, a missing or partial template,
-    unreadable scenes or model, a scanned template scored against ground truth that no ground-truth
-    capture (`gt_capture`, else the template's own input) relates to its frame, or a gscan BOP export of
-    another template scored without `gt_capture`."""
+             gt_capture: str | Path | None = None, max_instances: int | None = None,
+             params: EstimateParams | None = None) -> EvalReport:
+    """Estimate the pose of every instance of the template's object in every image under `scenes`, write
+    BOP19 CSV `output_csv` and return the metrics (poses in the ground truth's object frame, see the module
+    docstring). max_instances: the instances sought in every image (None: each image's target count, a
+    single estimate where that is one); params: the estimator's settings (None: the defaults). InputError for an
+    existing output without `force`, a missing or partial template, unreadable scenes, targets or model, a
+    scanned template scored against ground truth that no ground-truth capture (`gt_capture`, else the
+    template's own input) relates to its frame, or a gscan BOP export of another template scored without
+    `gt_capture`."""
     output_csv = Path(output_csv)
     check_not_input(output_csv, [template, scenes, model_path, gt_capture])
     check_output(output_csv, force=force, kind=".csv file path")
     template = Path(template)
-    estimator = Estimator.from_path(template)
+    estimator = Estimator.from_path(template) if params is None else Estimator.from_path(template, params)
     folders = _scene_dirs(Path(scenes))
     seqs = [(scene_id, open_sequence(folder, format="auto", obj_id=obj_id)) for scene_id, folder in folders]
     for _, seq in seqs:  # the scores need every ground-truth pose
         require_ground_truth(seq.gt_problems)
+    targets = read_targets(folders, obj_id)
     exported = {scene_id: v for scene_id, folder in folders if (v := _exported_views(folder)) is not None}
     if exported and gt_capture is None:
         T_obj_gt: np.ndarray | None = _export_to_gt(template, seqs, exported)
@@ -331,87 +502,79 @@ def evaluate(template: str | Path, scenes: str | Path, output_csv: str | Path, o
     if model_path is None:  # the template's mesh, in the ground truth's object frame
         pts = transform_points(inv_T(T_obj_gt), pts)
     diam = diameter(pts)
-    taus = vsd_taus(diam)
     caster = MeshRaycaster(pts, tris) if tris is not None else None
     if caster is None:
         log.warning("the model is a point cloud: no VSD, so no BOP AR (its MSSD and MSPD recalls are reported)")
+    scorer = _Scorer(pts, caster, diam)
     rows: list[EvalRow] = []
+    hits: list[_Hits] = []
+    times: list[float] = []
     lines = [CSV_HEADER]
-    width = 640
     bop_gt = False  # some scene has a scene_gt.json
     for scene_id, seq in seqs:
-        gt = seq.gt_T_cam_obj or {}
         bop_gt |= seq.format == "bop" and seq.gt_T_cam_obj is not None
+        visib = _visib_fracts(seq.root) if targets is not None and seq.format == "bop" else {}
         for name in seq.names:
+            im_id = int(name) if name.isdigit() else seq.names.index(name)
+            if targets is not None and (scene_id, im_id) not in targets:
+                continue  # not a target of this object
             try:
                 frame = seq[name]
             except InputError as e:  # an unreadable image is left out (and reported), not fatal
                 log.warning("scene %d: image %s left out: %s", scene_id, name, e)
                 continue
-            width = frame.intrinsics.width
-            im_id = int(name) if name.isdigit() else seq.names.index(name)
+            truths = _truths(seq, name)
+            inst_count = targets[(scene_id, im_id)] if targets is not None else len(truths or [])
             t0 = time.perf_counter()
-            res = estimator.estimate(frame, mask=None, refine=refine)
+            if max_instances is None and inst_count <= 1 and len(truths or []) <= 1:
+                res = estimator.estimate(frame, mask=None, refine=refine)  # one instance: the single estimate
+                found = [(res.score, res.T_cam_obj)] if res.T_cam_obj is not None else []
+                miss = (res.score, res.reason)
+            else:
+                out = estimator.estimate_all(frame, None, refine,
+                                             max_instances=max_instances if max_instances is not None else inst_count)
+                found = [(r.score, r.T_cam_obj) for r in out.results if r.T_cam_obj is not None]
+                miss = (0.0, out.reason)
             dt = time.perf_counter() - t0
-            T_est = None if res.T_cam_obj is None else res.T_cam_obj @ T_obj_gt  # the ground-truth model's pose
-            row = EvalRow(scene_id, im_id, res.found, res.score, dt, T_est, reason=res.reason)
-            T_gt = gt.get(name)
-            if T_gt is not None:
-                _errors(row, T_gt, frame, pts, caster, taus)
-            if T_est is not None:  # found
-                lines.append(_csv_row(scene_id, im_id, obj_id, res.score, T_est, dt))
-            rows.append(row)
-            log.info("scene %d image %d: %s", scene_id, im_id, "found" if res.found else f"not found ({res.reason})")
+            ests = [(s, T @ T_obj_gt) for s, T in found]  # the ground-truth model's poses
+            lines += [_csv_row(scene_id, im_id, obj_id, s, T, dt) for s, T in ests]
+            if truths is not None:
+                truths = scored_instances(truths, inst_count, visib.get(im_id))
+            image_rows, image_hits = scorer.image(scene_id, im_id, frame, ests, truths, inst_count, dt, miss)
+            rows += image_rows
+            times.append(dt)
+            if image_hits is not None:
+                hits.append(image_hits)
+            log.info("scene %d image %d: %d found (%s)", scene_id, im_id, len(ests), miss[1] or "")
     if not rows:
         raise InputError(Path(scenes), "no image to evaluate")
     if bop_gt and all(np.isnan(r.add) for r in rows):  # the metrics would silently be left out
         raise InputError(Path(scenes), f"scene_gt.json holds no pose of object {obj_id}", fix="obj_id")
-    found = [r for r in rows if r.found and np.isfinite(r.add)]
-    if found and all(r.add > diam for r in found):
+    with_gt = [r for r in rows if r.found and np.isfinite(r.add)]
+    if with_gt and all(r.add > diam for r in with_gt):
         log.warning("every pose found is more than the object's diameter (%.0f mm) from the ground truth: are the "
                     "template and the ground truth in one frame (the ground-truth capture, the model)?", 1000 * diam)
-    with Output(output_csv, force=force, kind=".csv file path") as out:
-        out.tmp.write_text("\n".join(lines) + "\n", encoding="utf-8")
-    return EvalReport(output_csv, len(rows), sum(r.found for r in rows), _metrics(rows, diam, width), rows, diam)
-
-
-def _errors(row: EvalRow, T_gt: np.ndarray, frame: RGBDFrame, pts: np.ndarray, caster: MeshRaycaster | None,
-            taus: np.ndarray) -> None:
-    """Set `row`'s errors of its pose against the ground truth T_cam_obj `T_gt` [4 x 4] in `frame`, on the model's
-    vertices `pts` [N x 3] (VSD with its mesh `caster`, at the tolerances `taus`); infinite when not found."""
-    T_est = row.T_cam_obj
-    if T_est is None:
-        row.add = row.adds = row.mssd = row.mspd = float("inf")
-        row.vsd = None if caster is None else [float("inf")] * len(taus)
-        return
-    row.add = add_err(pts, T_est, T_gt)
-    row.adds = adds_err(pts, T_est, T_gt)
-    row.mssd = mssd(pts, T_est, T_gt)
-    try:
-        row.mspd = mspd(pts, T_est, T_gt, frame.intrinsics)
-    except ValueError:  # estimated model partly behind the camera
-        row.mspd = float("inf")
-    if caster is not None:
-        d_est = caster.depth(frame.intrinsics, inv_T(T_est), VSD_RENDER_PIXEL_OFFSET)
-        d_gt = caster.depth(frame.intrinsics, inv_T(T_gt), VSD_RENDER_PIXEL_OFFSET)
-        row.vsd = vsd(frame.depth, d_est, d_gt, frame.intrinsics, taus).tolist()
+    with Output(output_csv, force=force, kind=".csv file path") as out_file:
+        out_file.tmp.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return EvalReport(output_csv, len(times), sum(r.found for r in rows), _metrics(rows, hits, times, diam), rows,
+                      diam)
 
 
 ROTATION_TOL = 1e-3  # max |R R^T - I| of a results CSV's rotation (9 significant digits, float32 rounding pass)
 
 
-def read_results(path: Path, obj_id: int) -> dict[tuple[int, int], tuple[float, np.ndarray, float]]:
-    """{(scene_id, im_id): (score, T_cam_obj [4 x 4] in metres, time s)} of object `obj_id` in the BOP19 results
-    CSV `path` (the module docstring's format; the header line is optional), the highest-scoring estimate of each
-    image. InputError naming the file and the line for a malformed row (not 7 fields, R not a rotation, a value
-    that is not a finite number)."""
+def read_results(path: Path, obj_id: int) -> dict[tuple[int, int], list[tuple[float, np.ndarray, float]]]:
+    """{(scene_id, im_id): [(score, T_cam_obj [4 x 4] in metres, time s), ...]} of object `obj_id` in the BOP19
+    results CSV `path` (the module docstring's format; the header line is optional), every estimate of each image
+    in the file's order. InputError naming the file and the line for a malformed row (not 7 fields, R not a
+    rotation, a value that is not a finite number)."""
     if not path.is_file():
         raise not_a_file(path, "results CSV")
     try:
         lines = path.read_text(encoding="utf-8").splitlines()
     except (OSError, UnicodeDecodeError) as e:
         raise InputError(path, f"unreadable ({e.__class__.__name__}: {e})") from None
-    best: dict[tuple[int, int], tuple[float, np.ndarray, float]] = {}
+    out: dict[tuple[int, int], list[tuple[float, np.ndarray, float]]] = {}
     for n, line in enumerate(lines, 1):
         if not line.strip() or (n == 1 and line.startswith("scene_id")):
             continue
@@ -432,69 +595,81 @@ def read_results(path: Path, obj_id: int) -> dict[tuple[int, int], tuple[float, 
         R = R.reshape(3, 3)
         if np.abs(R @ R.T - np.eye(3)).max() > ROTATION_TOL or np.linalg.det(R) < 0:
             raise InputError(path, f"line {n}: R is not a rotation matrix")
-        if oid != obj_id or ((scene_id, im_id) in best and best[(scene_id, im_id)][0] >= score):
+        if oid != obj_id:
             continue
         T = np.eye(4)
         T[:3, :3], T[:3, 3] = R, t / 1000.0
-        best[(scene_id, im_id)] = (score, T, time_s)
-    return best
+        out.setdefault((scene_id, im_id), []).append((score, T, time_s))
+    return out
 
 
 def score_results(results_csv: str | Path, scenes: str | Path, model_path: str | Path,
                   obj_id: int = 1) -> EvalReport:
     """Score the BOP19 results CSV `results_csv` (any method's; `evaluate` writes one) against the ground truth of
-    object `obj_id` in `scenes`, with the errors and metrics `evaluate` reports, without estimating: per image the
-    estimate with the highest score (BOP19's rule for one instance of the object per image; an image without
-    one counts as not found), its time the CSV's. `model_path`: the object model in the ground truth's frame (a
-    BOP model in millimetres is scaled; a gscan BOP export's is models_eval/obj_000001.ply). Only images with
-    ground truth are scored. InputError for a missing or malformed CSV, unreadable scenes or model, or scenes
-    without ground truth of `obj_id`."""
+    object `obj_id` in `scenes`, with the errors and metrics `evaluate` reports, without estimating: per image
+    the best-scoring estimates, as many as the target's instances (BOP19's rule; the test targets', else every
+    ground-truth instance of the object in the image), matched to the instances as the BOP toolkit matches them;
+    an instance without an estimate counts as not found. The image's time is its first estimate's. `model_path`:
+    the object model in the ground truth's frame (a BOP model in millimetres is scaled; a gscan BOP export's is
+    models_eval/obj_000001.ply). Only images with ground truth (and targets, where the dataset lists them) are
+    scored. InputError for a missing or malformed CSV or targets, unreadable scenes or model, or scenes without
+    ground truth of `obj_id`."""
     results_csv = Path(results_csv)
     estimates = read_results(results_csv, obj_id)
     folders = _scene_dirs(Path(scenes))
     seqs = [(scene_id, open_sequence(folder, format="auto", obj_id=obj_id)) for scene_id, folder in folders]
     for _, seq in seqs:
         require_ground_truth(seq.gt_problems)
+    targets = read_targets(folders, obj_id)
     pts, tris = load_model_file(Path(model_path))
     diam = diameter(pts)
-    taus = vsd_taus(diam)
-    caster = MeshRaycaster(pts, tris) if tris is not None else None
+    scorer = _Scorer(pts, MeshRaycaster(pts, tris) if tris is not None else None, diam)
     rows: list[EvalRow] = []
-    width = 640
+    hits: list[_Hits] = []
+    times: list[float] = []
     for scene_id, seq in seqs:
-        gt = seq.gt_T_cam_obj or {}
+        visib = _visib_fracts(seq.root) if targets is not None and seq.format == "bop" else {}
         for name in seq.names:
-            if name not in gt:
+            truths = _truths(seq, name)
+            im_id = int(name) if name.isdigit() else seq.names.index(name)
+            if truths is None or (targets is not None and (scene_id, im_id) not in targets):
                 continue
             try:
                 frame = seq[name]
             except InputError as e:  # an unreadable image is left out (and reported), as evaluate does
                 log.warning("scene %d: image %s left out: %s", scene_id, name, e)
                 continue
-            width = frame.intrinsics.width
-            im_id = int(name) if name.isdigit() else seq.names.index(name)
-            est = estimates.get((scene_id, im_id))
-            row = (EvalRow(scene_id, im_id, True, est[0], est[2], est[1]) if est is not None else
-                   EvalRow(scene_id, im_id, False, 0.0, 0.0, None, reason="no estimate in the results"))
-            _errors(row, gt[name], frame, pts, caster, taus)
-            rows.append(row)
+            inst_count = targets[(scene_id, im_id)] if targets is not None else len(truths)
+            found = estimates.get((scene_id, im_id), [])
+            dt = found[0][2] if found else 0.0
+            image_rows, image_hits = scorer.image(
+                scene_id, im_id, frame, [(s, T) for s, T, _ in found],
+                scored_instances(truths, inst_count, visib.get(im_id)), inst_count, dt,
+                (0.0, "no estimate in the results"))
+            rows += image_rows
+            times.append(dt)
+            if image_hits is not None:
+                hits.append(image_hits)
     if not rows:
         raise InputError(Path(scenes), f"holds no image with a ground-truth pose of object {obj_id}", fix="obj_id")
-    return EvalReport(results_csv, len(rows), sum(r.found for r in rows), _metrics(rows, diam, width), rows, diam)
+    return EvalReport(results_csv, len(times), sum(r.found for r in rows), _metrics(rows, hits, times, diam), rows,
+                      diam)
 
 
-def _metrics(rows: list[EvalRow], diameter: float, width: int) -> dict[str, float]:
+def _metrics(rows: list[EvalRow], hits: list[_Hits], times: list[float], diameter: float) -> dict[str, float]:
+    """The report's metrics (module docstring) of its rows, the images' BOP matches `hits` and their times (s).
+    An image of one instance and one estimate gives its errors' recalls (a match is an error under the threshold)."""
     g = [r for r in rows if not np.isnan(r.add)]
     m: dict[str, float] = {"found": 100.0 * sum(r.found for r in rows) / len(rows),
-                           "mean time ms": 1e3 * float(np.mean([r.time_s for r in rows]))}
-    if g:
+                           "mean time ms": 1e3 * float(np.mean(times))}
+    if g and hits:
         m["AUC ADD"] = auc([r.add for r in g])
         m["AUC ADD-S"] = auc([r.adds for r in g])
-        vsds = [r.vsd for r in g if r.vsd is not None]
-        if len(vsds) == len(g):
-            m["AR VSD"] = 100.0 * ar_vsd(vsds)
-        m["AR MSSD"] = 100.0 * ar_mssd([r.mssd for r in g], diameter)
-        m["AR MSPD"] = 100.0 * ar_mspd([r.mspd for r in g], width)
+        if all(h.vsd is not None for h in hits):
+            v = np.concatenate([h.vsd for h in hits if h.vsd is not None])  # [N x K x T]
+            m["AR VSD"] = 100.0 * float(np.mean([v[:, k, :].mean(axis=0) for k in range(v.shape[1])]))
+        m["AR MSSD"] = 100.0 * float(np.concatenate([h.mssd for h in hits]).mean(axis=0).mean())
+        m["AR MSPD"] = 100.0 * float(np.concatenate([h.mspd for h in hits]).mean(axis=0).mean())
         if "AR VSD" in m:  # BOP19's AR: the mean of the three average recalls
             m["AR"] = (m["AR VSD"] + m["AR MSSD"] + m["AR MSPD"]) / 3.0
     return m

@@ -334,6 +334,26 @@ def recall_at(errors: Sequence[float] | np.ndarray, thresholds: Sequence[float] 
     return (e[:, None] < th[None, :]).mean(axis=0)
 
 
+def bop_matched(errors: np.ndarray, thresholds: Sequence[float] | np.ndarray) -> np.ndarray:
+    """[G x T] bool: which ground-truth instances the estimates match at each threshold, as the BOP toolkit's
+    `pose_matching.match_poses` matches them. errors [E x G]: the error of each estimate (rows in decreasing score
+    order, ties in the results' order) against each ground-truth instance (columns in gt_id order; NaN / inf
+    never match). At each threshold every estimate in turn takes the instance not yet matched with the smallest
+    error strictly below the threshold (the first of equal ones); each instance is matched at most once."""
+    e = np.asarray(errors, dtype=np.float64)
+    th = np.asarray(thresholds, dtype=np.float64).reshape(-1)
+    if e.ndim != 2:
+        raise ValueError(f"errors must be an [E x G] array, got shape {e.shape}")
+    e = np.where(np.isfinite(e), e, np.inf)
+    out = np.zeros((e.shape[1], len(th)), bool)
+    for k, t in enumerate(th):
+        for row in e:
+            cand = np.where(~out[:, k] & (row < t), row, np.inf)
+            if cand.size and np.isfinite(cand).any():
+                out[int(np.argmin(cand)), k] = True
+    return out
+
+
 def average_recall(errors: Sequence[float] | np.ndarray, thresholds: Sequence[float] | np.ndarray) -> float:
     """Mean of `recall_at` over the thresholds, in [0, 1] (BOP AR of one error function)."""
     return float(recall_at(errors, thresholds).mean())

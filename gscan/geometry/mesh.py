@@ -42,3 +42,19 @@ class MeshData:
         """The same mesh with its vertices mapped from frame a into frame b ([V x 3] float64)."""
         return MeshData(vertices=transform_points(T_b_a, self.vertices), triangles=self.triangles,
                         vertex_colors=self.vertex_colors, filled=self.filled)
+
+    def simplified(self, max_triangles: int) -> MeshData:
+        """The mesh with at most `max_triangles` triangles (open3d's quadric decimation, colours carried; `filled`
+        dropped), or itself when it has no more."""
+        if len(self.triangles) <= max_triangles:
+            return self
+        import open3d as o3d
+
+        m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(np.asarray(self.vertices, np.float64)),
+                                      o3d.utility.Vector3iVector(np.asarray(self.triangles, np.int32)))
+        if self.vertex_colors is not None:
+            m.vertex_colors = o3d.utility.Vector3dVector(np.asarray(self.vertex_colors, np.float64) / 255.0)
+        m = m.simplify_quadric_decimation(max_triangles)
+        colors = None if self.vertex_colors is None else \
+            (np.asarray(m.vertex_colors) * 255).round().astype(np.uint8)
+        return MeshData(np.asarray(m.vertices), np.asarray(m.triangles), colors)

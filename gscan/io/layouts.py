@@ -51,6 +51,8 @@ class Layout:
     intrinsics_expected: str = ""              # what to name when intrinsics are missing
     per_frame_K: bool = False                  # BOP: intrinsics come with each frame
     gt_T_cam_obj: dict[str, np.ndarray] | None = None
+    # BOP: every ground-truth instance of `obj_id` per image, (its index in the image's scene_gt list, T_cam_obj)
+    gt_instances: dict[str, list[tuple[int, np.ndarray]]] | None = None
     gt_T_world_cam: dict[str, np.ndarray] | None = None
     problems: dict[str, str] = field(default_factory=dict)
     obj_id: int | None = None                  # BOP: the object whose scene_gt pose / mask is used
@@ -285,8 +287,9 @@ def _read_json(path: Path) -> dict:
 
 def discover_bop(root: Path, obj_id: int | None = None) -> Layout:
     """BOP scene: rgb/ (or gray/), depth/, scene_camera.json (cam_K, depth_scale: raw * s = mm),
-    optional scene_gt.json (-> T_cam_obj of `obj_id`, default the first image's first object) and
-    mask_visib/ or mask/ ({im_id:06d}_{instance:06d}.png)."""
+    optional scene_gt.json (-> T_cam_obj of `obj_id`, default the first image's first object: its first
+    instance in gt_T_cam_obj, every instance in gt_instances) and mask_visib/ or mask/
+    ({im_id:06d}_{instance:06d}.png, the first instance's)."""
     cam_path = root / "scene_camera.json"
     if not cam_path.is_file():
         raise InputError(cam_path, "BOP scene_camera.json not found")
@@ -304,6 +307,7 @@ def discover_bop(root: Path, obj_id: int | None = None) -> Layout:
     frames, problems = _pair(colors, depths, None, root / "depth")
     kept: list[FrameSpec] = []
     gt: dict[str, np.ndarray] = {}
+    instances: dict[str, list[tuple[int, np.ndarray]]] = {}
     for f in frames:
         try:
             im_id = int(f.name)
@@ -322,23 +326,26 @@ def discover_bop(root: Path, obj_id: int | None = None) -> Layout:
             try:
                 if obj_id is None and entries:
                     obj_id = int(entries[0]["obj_id"])
-                k = next((k for k, e in enumerate(entries) if int(e["obj_id"]) == obj_id), None)
-                if k is not None:
+                ks = [k for k, e in enumerate(entries) if int(e["obj_id"]) == obj_id]
+                for k in ks:
                     e = entries[k]
                     T = np.eye(4)
                     T[:3, :3] = np.asarray(e["cam_R_m2c"], dtype=np.float64).reshape(3, 3)
                     T[:3, 3] = np.asarray(e["cam_t_m2c"], dtype=np.float64).reshape(3) / 1000.0
                     if not np.all(np.isfinite(T)):
                         raise ValueError("non-finite pose")
-                    gt[f.name] = check_rigid(T, gt_path)
+                    instances.setdefault(f.name, []).append((k, check_rigid(T, gt_path)))
+                if ks:
+                    gt[f.name] = instances[f.name][0][1]
                     if mask_dir is not None:
-                        m = mask_dir / f"{im_id:06d}_{k:06d}.png"
+                        m = mask_dir / f"{im_id:06d}_{ks[0]:06d}.png"
                         f.mask = m if m.is_file() else None
             except (TypeError, KeyError, ValueError, AttributeError, OverflowError) as e:
                 raise InputError(gt_path, f"malformed entry for image {im_id} ({e.__class__.__name__})") from None
         kept.append(f)
     return Layout("bop", root, kept, 0.001, None, "scene_camera.json", per_frame_K=True,
-                  gt_T_cam_obj=gt if scene_gt is not None else None, problems=problems, obj_id=obj_id)
+                  gt_T_cam_obj=gt if scene_gt is not None else None,
+                  gt_instances=instances if scene_gt is not None else None, problems=problems, obj_id=obj_id)
 
 
 def detect_format(root: Path) -> str:

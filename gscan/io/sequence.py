@@ -65,7 +65,8 @@ class Sequence(FrameIteration):
 
     Attributes: name (folder name), format ("capture"|"open3d"|"tum"|"bop"), root, names (usable
     frame names in order), intrinsics (sequence / first frame), depth_scale (metres per raw unit),
-    gt_T_cam_obj / gt_T_world_cam (name -> [4 x 4], or None when the layout has none),
+    gt_T_cam_obj / gt_T_world_cam (name -> [4 x 4], or None when the layout has none), gt_instances (BOP: name ->
+    every ground-truth instance of obj_id, (index in the image's scene_gt list, T_cam_obj [4 x 4]); else None),
     has_masks, problems (name -> reason, frames left out or that failed to load), obj_id (BOP: the object
     whose ground truth and masks are used, None for the other layouts or a BOP folder without scene_gt).
     """
@@ -85,6 +86,8 @@ class Sequence(FrameIteration):
         keep = set(specs)
         self.gt_T_cam_obj = None if layout.gt_T_cam_obj is None else \
             {n: T for n, T in layout.gt_T_cam_obj.items() if n in keep}
+        self.gt_instances = None if layout.gt_instances is None else \
+            {n: v for n, v in layout.gt_instances.items() if n in keep}
         self.gt_T_world_cam = None if layout.gt_T_world_cam is None else \
             {n: T for n, T in layout.gt_T_world_cam.items() if n in keep}
         self.has_masks: bool = any(s.mask is not None for s in specs.values())

@@ -90,17 +90,8 @@ def load_templates(paths: list[Path], estimate: EstimateParams = DEFAULT_PARAMS,
 def marker_points(mesh: MeshData, max_triangles: int) -> tuple[list[Point], list[ColorRGBA]]:
     """A TRIANGLE_LIST marker's points and colours (object frame) of `mesh`, simplified to at most
     `max_triangles` triangles (open3d's quadric decimation)."""
+    mesh = mesh.simplified(max_triangles)
     V, F, C = mesh.vertices, mesh.triangles, mesh.vertex_colors
-    if len(F) > max_triangles:
-        import open3d as o3d
-
-        m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(V.astype(np.float64)),
-                                      o3d.utility.Vector3iVector(F.astype(np.int32)))
-        if C is not None:
-            m.vertex_colors = o3d.utility.Vector3dVector(C.astype(np.float64) / 255.0)
-        m = m.simplify_quadric_decimation(max_triangles)
-        V, F = np.asarray(m.vertices), np.asarray(m.triangles)
-        C = (np.asarray(m.vertex_colors) * 255).round().astype(np.uint8) if C is not None else None
     corners = F.reshape(-1)
     points = [Point(x=float(p[0]), y=float(p[1]), z=float(p[2])) for p in V[corners]]
     colors = [] if C is None else [ColorRGBA(r=c[0] / 255.0, g=c[1] / 255.0, b=c[2] / 255.0, a=1.0)

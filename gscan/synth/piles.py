@@ -5,11 +5,15 @@ another, some lying on a side (the rendered scenes of the many-instances tests a
 measured on their rotated vertices (so no two interpenetrate, whatever their yaw), with a random sideways offset;
 `render_pile` renders them on a textured table seen from a random elevation and azimuth; `render_row_sequence`
 renders a sequence of a row of copies under a static camera, one moving, one hidden for some frames (the tests
-and bench of tracking every instance).
+and bench of tracking every instance); `write_bop_piles` writes piles as a BOP test split (several instances
+of an object per image, the test targets with their `inst_count`), which `gscan eval` scores as the BOP
+toolkit does.
 """
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -140,3 +144,40 @@ def render_row_sequence(mesh: TexturedMesh, copies: int, n_frames: int, seed: in
         seen.append([float((r.labels == j).sum()) for j in range(copies)])
     seen_a = np.array(seen)
     return RowSequence(frames, np.array(truths), seen_a / np.maximum(seen_a[:1], 1.0))
+
+
+BOP_MIN_VISIB = 0.1  # BOP19's test targets count the instances with at least this visib_fract
+
+
+def write_bop_piles(piles: list[Pile], root: Path, obj_ids: list[list[int]], scene_id: int = 1) -> Path:
+    """Write `piles` as one BOP test scene, root/test/{scene_id:06d} (image k = piles[k]: rgb/, depth/ in 0.1 mm,
+    scene_camera.json, scene_gt.json with every object of the pile, scene_gt_info.json with each one's
+    visib_fract), and root/test_targets_bop19.json: per image and object, inst_count = its instances with at least
+    BOP_MIN_VISIB in sight (BOP19's rule). obj_ids: per pile, the BOP id of each of its objects (copies of one mesh
+    share one). Returns the scene folder. Existing files are replaced."""
+    scene = root / "test" / f"{scene_id:06d}"
+    for sub in ("rgb", "depth"):
+        (scene / sub).mkdir(parents=True, exist_ok=True)
+    cams, gts, infos, targets = {}, {}, {}, []
+    if len(obj_ids) != len(piles):
+        raise ValueError(f"{len(piles)} piles, obj_ids for {len(obj_ids)}")
+    for im_id, (pile, ids) in enumerate(zip(piles, obj_ids, strict=True)):
+        if len(pile.T_cam_objs) != len(ids):
+            raise ValueError(f"pile {im_id} holds {len(pile.T_cam_objs)} objects, obj_ids names {len(ids)}")
+        f = pile.frame
+        cv2.imwrite(str(scene / "rgb" / f"{im_id:06d}.png"), cv2.cvtColor(f.color, cv2.COLOR_RGB2BGR))
+        cv2.imwrite(str(scene / "depth" / f"{im_id:06d}.png"),
+                    np.clip(np.rint(f.depth * 10000), 0, 65535).astype(np.uint16))
+        cams[str(im_id)] = {"cam_K": f.intrinsics.K.reshape(-1).tolist(), "depth_scale": 0.1}
+        gts[str(im_id)] = [{"obj_id": int(o), "cam_R_m2c": T[:3, :3].reshape(-1).tolist(),
+                            "cam_t_m2c": (T[:3, 3] * 1000.0).tolist()}
+                           for o, T in zip(ids, pile.T_cam_objs, strict=True)]
+        infos[str(im_id)] = [{"visib_fract": float(v)} for v in pile.visible]
+        for o in sorted(set(ids)):
+            n = sum(int(oid == o and v >= BOP_MIN_VISIB) for oid, v in zip(ids, pile.visible, strict=True))
+            if n:
+                targets.append({"im_id": im_id, "inst_count": n, "obj_id": int(o), "scene_id": scene_id})
+    for name, doc in (("scene_camera.json", cams), ("scene_gt.json", gts), ("scene_gt_info.json", infos)):
+        (scene / name).write_text(json.dumps(doc), encoding="utf-8")
+    (root / "test_targets_bop19.json").write_text(json.dumps(targets, indent=1) + "\n", encoding="utf-8")
+    return scene

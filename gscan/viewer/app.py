@@ -10,7 +10,9 @@ silent move to another port) and populates the scene (`gscan.viewer.scene`), all
 - pose-graph edges as line segments between camera centres: sequential edges green .. red by ICP RMSE,
   loop closures cyan .. magenta by RMSE, rejected edges grey (own toggle); a legend explains the scales;
 - the views' 3D keypoints (hidden by default), grasp frames as axes;
-- optionally a query RGB-D frame's cloud placed in the template frame by an estimated `T_cam_obj`.
+- optionally a query RGB-D frame's cloud placed in the template frame by an estimated `T_cam_obj`, and the
+  instances an estimate found in it (`gscan.viewer.instances`): the template's mesh at each pose, labelled with
+  its rank and score, and an "Instances" panel naming each one found and each one refused with its reason.
 
 GUI: layer toggles, point / frustum size sliders, a view slider + dropdown (or click a frustum) showing the
 view's image with its keypoints and its edges, "Go to view" (moves every browser's camera to the view's
@@ -39,6 +41,7 @@ from gscan.template.db import Edge, View, unregistered_names
 from gscan.viewer.access import TokenGate, check_token
 from gscan.viewer.data import ViewerData, ViewerOptions, load_viewer_data
 from gscan.viewer.draw import draw_keypoints, draw_matches, legend_html
+from gscan.viewer.instances import ShownInstances
 from gscan.viewer.scene import build_scene, symmetry_label
 from gscan.viewer.text import md_text
 
@@ -83,13 +86,14 @@ class ViewerApp:
 
     scene_frame / T_cam_obj [4 x 4]: a query frame and the object's pose in it (see `serve`); grasps:
     {name: T_obj_grasp [4 x 4]} drawn as axes; gate / token: the token gate in front of viser (None: viser
-    serves host:port itself) and its token, which the url carries.
+    serves host:port itself) and its token, which the url carries; instances: an estimate's instances in the
+    frame, drawn relative to T_cam_obj.
     """
 
     def __init__(self, server: Any, data: ViewerData, host: str, port: int, options: ViewerOptions,
                  scene_frame: RGBDFrame | None = None, T_cam_obj: np.ndarray | None = None,
                  grasps: dict[str, np.ndarray] | None = None, gate: TokenGate | None = None,
-                 token: str | None = None):
+                 token: str | None = None, instances: ShownInstances | None = None):
         self.server, self.data, self.host, self.port, self.options = server, data, host, port, options
         self.gate = gate
         self.url = f"http://[{host}]:{port}" if ":" in host else f"http://{host}:{port}"  # IPv6 in brackets
@@ -100,10 +104,12 @@ class ViewerApp:
         self._by_name = {v.name: v for v in data.views}
         self._current: str | None = None
         self._edge_labels: dict[str, Edge] = {}
-        scene = build_scene(server, data, options, scene_frame, T_cam_obj, grasps or {}, self.select_view)
+        scene = build_scene(server, data, options, scene_frame, T_cam_obj, grasps or {}, self.select_view, instances)
         self.layers: dict[str, list] = scene.layers  # layer key -> viser scene handles (toggled together)
         self.frustum_scale = scene.frustum_scale  # frustum depth (m) at "Frustum size" 1
         self.scene_points_obj = scene.scene_points_obj  # [N x 3] query-frame cloud drawn (template frame) or None
+        self.instances_obj = scene.instances_obj  # T_obj_inst [4 x 4] of each instance drawn (template frame)
+        self.instances = instances
         self._build_gui(scene_frame is not None, T_cam_obj)
         if data.views:
             self.select_view(data.views[0].name)
@@ -184,14 +190,19 @@ class ViewerApp:
             f"{symmetry_label(a.fold, a.in_texture)} about ({', '.join(f'{x + 0.0:.2f}' for x in a.direction)})"
             for a in axes) if axes else "none found"))
         if has_frame:
+            placed = "the estimated pose" if self.instances is None else "the first instance's pose"
             summary.append("  \n**query frame:** " + ("pose not found (cloud not placed)" if T_cam_obj is None
-                                                       else "cloud placed by the estimated pose"))
+                                                       else f"cloud placed by {placed}"))
         gui.add_markdown("\n".join(summary))
+        if self.instances is not None:
+            with gui.add_folder("Instances"):
+                self._instances_md = gui.add_markdown(self.instances.markdown())
 
         with gui.add_folder("Layers", expand_by_default=False):
             toggles = [("Mesh", "mesh"), ("Cloud", "cloud"), ("Frustums", "frustums"), ("Edges", "edges"),
                        ("Rejected edges", "rejected"), ("3D keypoints", "keypoints"), ("Grasps", "grasps"),
-                       ("Symmetry axes", "symmetries"), ("Query frame", "scene"), ("Coverage", "coverage")]
+                       ("Symmetry axes", "symmetries"), ("Query frame", "scene"), ("Coverage", "coverage"),
+                       ("Instances", "instances")]
             for label, key in toggles:
                 if self.layers.get(key):
                     cb = gui.add_checkbox(label, initial_value=all(h.visible for h in self.layers[key]))
@@ -314,7 +325,8 @@ def _mm(x: float | None) -> str:
 # ------------------------------------------------------------------------------------------ building
 def serve(db_path: str | Path, host: str = "127.0.0.1", port: int = 8080, scene_frame: RGBDFrame | None = None,
           T_cam_obj: np.ndarray | None = None, grasps: dict[str, np.ndarray] | None = None,
-          options: ViewerOptions = ViewerOptions(), token: str | None = None) -> ViewerApp:
+          options: ViewerOptions = ViewerOptions(), token: str | None = None,
+          instances: ShownInstances | None = None) -> ViewerApp:
     """Load a complete template and serve it on http://host:port; returns once the scene is populated.
 
     scene_frame / T_cam_obj [4 x 4]: a query frame and the object's estimated pose in it; the frame's cloud
@@ -322,6 +334,9 @@ def serve(db_path: str | Path, host: str = "127.0.0.1", port: int = 8080, scene_
     grasps: {name: T_obj_grasp [4 x 4]} drawn as axes, added to the template's own grasps.
     token: serve only connections that carry it (`gscan.viewer.access.TokenGate`; viser then listens on
     127.0.0.1 alone); the app's url carries it.
+    instances: the instances an estimate found in scene_frame (`gscan.viewer.instances.read_estimate_result`),
+    each drawn at its pose relative to T_cam_obj (default: the first instance's pose, which the template frame
+    then shows), and listed, with the refused ones, in the "Instances" panel.
     Raises InputError (partial / missing database, a token that cannot stand in a URL) and PortInUseError.
     """
     import viser
@@ -349,9 +364,11 @@ def serve(db_path: str | Path, host: str = "127.0.0.1", port: int = 8080, scene_
         if isinstance(e, OSError):  # the gate lost the race for the port
             raise PortInUseError(host, port, e.strerror or str(e)) from None
         raise
+    if instances is not None and T_cam_obj is None and instances.found:
+        T_cam_obj = instances.found[0].T_cam_obj
     try:
         return ViewerApp(server, data, host, port, options, scene_frame, T_cam_obj, {**data.grasps, **(grasps or {})},
-                         gate=gate, token=token)
+                         gate=gate, token=token, instances=instances)
     except BaseException:
         if gate is not None:
             gate.stop()
@@ -377,10 +394,10 @@ def quiet_websockets() -> None:
 def run_viewer(db_path: str | Path, host: str = "127.0.0.1", port: int = 8080, scene_frame: RGBDFrame | None = None,
                T_cam_obj: np.ndarray | None = None, grasps: dict[str, np.ndarray] | None = None,
                on_ready: Callable[[str], None] | None = None, options: ViewerOptions = ViewerOptions(),
-               token: str | None = None) -> None:
+               token: str | None = None, instances: ShownInstances | None = None) -> None:
     """`serve` and block until interrupted (Ctrl+C); `on_ready(url)` is called once the scene is populated."""
     app = serve(db_path, host, port, scene_frame=scene_frame, T_cam_obj=T_cam_obj, grasps=grasps, options=options,
-                token=token)
+                token=token, instances=instances)
     try:
         if on_ready is not None:
             on_ready(app.url)

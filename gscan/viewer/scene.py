@@ -3,14 +3,16 @@ cloud, one camera frustum per registered view with its snapshot (coloured by qua
 view), pose-graph edges between camera centres, the views' 3D keypoints, grasp frames, the coverage map
 (`coverage_points`: a sphere of points around the object, one per direction cell, coloured by how many views
 saw the object from there, blue where only the observed surface did, grey where nothing did), the object's axes
-of symmetry (`symmetry_segments`), and optionally a query frame's cloud placed by an estimated pose.
+of symmetry (`symmetry_segments`), optionally a query frame's cloud placed by an estimated pose, and the instances
+an estimate found in it (`instance_poses`: the template's mesh, or its box, at each pose, labelled with its rank and
+score).
 `build_scene` returns each layer's handles (`SceneLayers`); the viewer app (`gscan.viewer.app.ViewerApp`) holds
 them.
 """
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -32,9 +34,12 @@ from gscan.viewer.draw import (
     symmetry_color,
     thumbnail,
 )
+from gscan.viewer.instances import ShownInstances
 
-LAYERS = ("mesh", "cloud", "frustums", "edges", "rejected", "keypoints", "scene", "grasps", "coverage", "symmetries")
+LAYERS = ("mesh", "cloud", "frustums", "edges", "rejected", "keypoints", "scene", "grasps", "coverage", "symmetries",
+          "instances")
 COVERAGE_RADIUS = 0.75  # the coverage map's sphere, in object sizes about the object's centre
+INSTANCE_TRIANGLES = 3000  # an instance's mesh is the template's simplified to this many triangles (one colour)
 
 
 @dataclass
@@ -45,15 +50,17 @@ class SceneLayers:
     layers: dict[str, list]
     frustum_scale: float
     scene_points_obj: np.ndarray | None
+    instances_obj: list[np.ndarray] = field(default_factory=list)  # T_obj_inst [4 x 4] of each instance drawn
 
 
 def build_scene(server: Any, data: ViewerData, options: ViewerOptions, frame: RGBDFrame | None,
                 T_cam_obj: np.ndarray | None, grasps: dict[str, np.ndarray],
-                on_select_view: Callable[[str], None]) -> SceneLayers:
+                on_select_view: Callable[[str], None], instances: ShownInstances | None = None) -> SceneLayers:
     """Populate `server.scene` (a viser server) and set its initial camera.
 
     frame / T_cam_obj [4 x 4]: a query frame and the object's pose in it (its cloud is drawn when both are given).
     grasps: {name: T_obj_grasp [4 x 4]}. on_select_view(name) is called when a view's frustum is clicked.
+    instances: the poses an estimate found in the frame, drawn relative to T_cam_obj (`instance_poses`).
     """
     sc, d, o = server.scene, data, options
     s = d.size
@@ -140,7 +147,32 @@ def build_scene(server: Any, data: ViewerData, options: ViewerOptions, frame: RG
         thumb = thumbnail(frame.color, o.frustum_px)
         layers["scene"].append(_add_frustum(sc, o, frustum_scale, "/scene/camera", frame.intrinsics, T_obj_cam,
                                             thumb, QUERY_CAMERA_COLOR, None))
-    return SceneLayers(layers, frustum_scale, scene_points_obj)
+    instances_obj = [] if instances is None or T_cam_obj is None else instance_poses(instances, T_cam_obj)
+    if instances is not None:
+        hues = hue_colors(len(instances_obj))
+        light = None if d.mesh is None or not len(d.mesh.triangles) else d.mesh.simplified(INSTANCE_TRIANGLES)
+        for f, T, hue in zip(instances.found, instances_obj, hues, strict=True):
+            node = f"/instances/i{f.rank}"
+            layers["instances"].append(sc.add_frame(node, axes_length=0.2 * s, axes_radius=0.005 * s,
+                                                    wxyz=quat_wxyz(T[:3, :3]), position=T[:3, 3]))
+            color = tuple(int(c) for c in hue)
+            if light is not None:
+                layers["instances"].append(sc.add_mesh_simple(
+                    f"{node}/mesh", np.asarray(light.vertices, np.float32), np.asarray(light.triangles, np.uint32),
+                    color=color, opacity=0.55, side="double"))
+            else:  # no mesh: the object's box
+                layers["instances"].append(sc.add_box(f"{node}/box", color=color, dimensions=(s, s, s), opacity=0.4,
+                                                      position=d.center))
+            layers["instances"].append(sc.add_label(f"{node}/label", f.label, position=d.center))
+    return SceneLayers(layers, frustum_scale, scene_points_obj, instances_obj)
+
+
+def instance_poses(instances: ShownInstances, T_cam_obj: np.ndarray) -> list[np.ndarray]:
+    """T_obj_inst [4 x 4] of each instance found (rank order): its pose T_cam_inst seen from the template frame
+    that `T_cam_obj` [4 x 4] places the query camera in, inv(T_cam_obj) @ T_cam_inst (the identity for the
+    instance whose pose places the camera)."""
+    T_obj_cam = inv_T(np.asarray(T_cam_obj, dtype=np.float64))
+    return [T_obj_cam @ f.T_cam_obj for f in instances.found]
 
 
 def coverage_points(coverage: CoverageMap, center: np.ndarray, size: float) -> tuple[np.ndarray, np.ndarray]:

@@ -93,6 +93,7 @@ class RecordingSequence(FrameIteration):
         self.aligned = not setup.registered  # registered depth takes the colour intrinsics (and an override) as is
         self.gt_T_cam_obj: dict[str, np.ndarray] | None = None
         self.gt_T_world_cam: dict[str, np.ndarray] | None = None
+        self.gt_instances: dict[str, list[tuple[int, np.ndarray]]] | None = None
         self.gt_problems: dict[str, str] = {}  # a recording carries no ground truth: none unreadable either
         self.has_masks = False
         self.obj_id: int | None = None
