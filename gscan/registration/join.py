@@ -11,9 +11,9 @@ views' depth). The captures are joined when the largest agreeing group holds at 
 at least two views of each capture among them, and no other motion has at least half its support (a symmetric
 object turned over may match two ways: then no join is guessed). The motion is the mean of the group's. Last, the
 object of B turned about its principal axes (90, 180, 270 deg) must be refuted by the views' depth or texture, as
-an edge's pose is, or be outweighed by the motion found: a print repeated on the top and the bottom matches at a
-turned motion, which only the other sides can tell (`_turn_not_refuted`). Depth and texture are judged over the
-whole overlap: every view of B against every view of A.
+an edge's pose is, or its texture be outweighed by the motion found's: a print repeated on the top and the bottom
+matches at a turned motion, which only the other sides can tell (`_turn_not_refuted`). Depth and texture are
+judged over the whole overlap: every view of B against every view of A.
 """
 from __future__ import annotations
 
