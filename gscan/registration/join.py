@@ -185,10 +185,8 @@ def _turn_not_refuted(T_a_b: np.ndarray, a: Sequence[JoinView], b: Sequence[Join
     is outweighed by the motion found's: it lines up in less than `ratio` of the share of tiles the motion found
     lines up in, each over `min_colour_tiles` or more. Two motions overlap different sides, so the shares are
     compared with a wide margin, and the amount of depth they explain is not compared at all: a print repeated on
-    the top and bottom, seen squarely by both captures, lines up better under the wrong motion than the sides,
-    seen obliquely, under the right one (the Pepsi pack over all view pairs: 0.91 of its tiles against 0.63, and
-    31,781 consistent depth samples against 6,329), while a turn that a partly repeated print supports lines up in
-    0.26-0.34 of the tiles where the right motion lines up in 0.83-0.87 (Crayola, the flat box). A turned motion
+    the top and bottom, seen squarely by both captures, lines up better and explains more depth under the wrong
+    motion than the sides, seen obliquely, under the right one (docs/method.md, the join). A turned motion
     is judged refined on the object's depth."""
     pts = _in_world(b, lambda v: v.reg.dense.points)
     if len(pts) < 3:
