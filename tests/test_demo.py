@@ -39,18 +39,6 @@ def test_heldout_frames_are_found_accurately(sample_template):
         assert r.add_mm < 5.0 and r.rot_err_deg < 1.0, r
 
 
-@pytest.mark.slow
-def test_demo_command_runs_without_viewer(tmp_path):
-    """The demo's summary lines, whatever the terminal width (the lines are not wrapped; whitespace is joined
-    in case a terminal does)."""
-    proc = subprocess.run([sys.executable, "-m", "gscan.cli", "demo", "--no-view", "-o", str(tmp_path)],
-                          capture_output=True, text=True, timeout=600)
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    out = " ".join(proc.stderr.split())
-    assert "30/30 frames registered" in out and "held-back frames: 4/4 found" in out, proc.stderr[-2000:]
-    assert (tmp_path / "sample.gscan").is_file()
-
-
 def _python(code: str, cache: object, **env: str) -> subprocess.CompletedProcess:
     """`code` in a fresh interpreter whose numba cache is the folder `cache`."""
     return subprocess.run([sys.executable, "-c", textwrap.dedent(code)], capture_output=True, text=True, timeout=600,

@@ -90,7 +90,9 @@ def test_readme_install_command_in_a_fresh_venv(tmp_path: Path):
 @pytest.mark.slow
 def test_wheel_install_runs_the_demo_from_another_folder(tmp_path: Path):
     """`pip install .` (a built wheel, not editable) of a clean copy; the copy is deleted, then `gscan demo`
-    runs from another folder: the bundled sample comes from the installed package."""
+    runs from another folder: the bundled sample comes from the installed package. This and the test above are
+    the suite's runs of the `gscan demo` command: its summary lines, whatever the terminal width (the lines are
+    not wrapped; whitespace is joined in case a terminal does), and its template in the output folder."""
     src = _clean_copy(tmp_path / "src")
     py = _venv_seeing_this_environment(tmp_path / "venv")
     r = subprocess.run([str(py), "-m", "pip", "install", "-q", str(src)], capture_output=True, text=True,
