@@ -7,9 +7,8 @@ import sys
 import textwrap
 
 import numpy as np
-import pytest
 
-from gscan.demo import FIRST_RUN, SAMPLES, evaluate_sample, kernel_modules
+from gscan.demo import SAMPLES, evaluate_sample, kernel_modules
 from gscan.evaluate.bop19 import template_to_gt
 from gscan.geometry.transforms import inv_T, pose_error
 from gscan.io import open_sequence
@@ -74,24 +73,3 @@ def test_kernels_cached_says_whether_numba_compiled_them(tmp_path):
     assert {"gscan.matching.kernel", "gscan.geometry.kabsch_kernel"} <= set(names), names
     out = _python("from gscan.demo import kernels_cached; print(kernels_cached())", tmp_path / "new")
     assert out.stdout.split() == ["False"], out.stderr[-2000:]
-
-
-@pytest.mark.slow
-def test_the_demo_says_when_it_compiles_the_kernels(tmp_path):
-    """The first demo scan in a new numba cache logs FIRST_RUN (a warning, for the command line's log handler) and
-    leaves every kernel module compiled: the next run says nothing."""
-    code = f"""
-        import logging
-        from pathlib import Path
-        from gscan.demo import kernels_cached, scan_sample, evaluate_sample
-        logging.basicConfig(format="LOG %(levelname)s %(message)s")
-        print("cached before", kernels_cached(), flush=True)
-        result = scan_sample(Path({str(tmp_path / "out")!r}))
-        evaluate_sample(result.output)
-        print("cached after", kernels_cached(), flush=True)
-        scan_sample(Path({str(tmp_path / "out")!r}))
-        """
-    out = _python(code, tmp_path / "cache")
-    assert out.returncode == 0, out.stderr[-2000:]
-    assert "cached before False" in out.stdout and "cached after True" in out.stdout, out.stdout
-    assert out.stderr.count(f"LOG WARNING {FIRST_RUN}") == 1, out.stderr[-2000:]
