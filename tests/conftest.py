@@ -17,6 +17,7 @@ failure, not an unlucky draw. `HYPOTHESIS_PROFILE=explore python -m pytest` draw
 from __future__ import annotations
 
 import os
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -62,13 +63,26 @@ def real_dir(shared_data: Path) -> Path:
 
 
 @pytest.fixture(scope="session")
-def sample_template(tmp_path_factory) -> Path:
+def sample_template(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The bundled sample (gscan.demo.SAMPLES / "capture") scanned by the real pipeline (`gscan.scan`), once per
-    session."""
+    run: under pytest-xdist every worker is a session of its own, so the first worker that needs the template
+    scans it into the run's temporary folder (the workers' common parent) while holding a lock there, and the
+    others wait for it and read the same file. Tests only read it (those that change a template change a copy)."""
+    import fcntl
+
     import gscan
     from gscan.demo import SAMPLES
 
-    out = tmp_path_factory.mktemp("sample") / "sample.gscan"
-    res = gscan.scan(SAMPLES / "capture", out)
-    assert res.registered == res.frames == 30
+    root = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        root = root.parent  # the run's folder, which holds each worker's
+    done = root / "sample_template.path"  # written once the scan has passed its check
+    with open(root / "sample_template.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes
+        if done.is_file():
+            return Path(done.read_text())
+        out = Path(tempfile.mkdtemp(prefix="sample", dir=root)) / "sample.gscan"
+        res = gscan.scan(SAMPLES / "capture", out)
+        assert res.registered == res.frames == 30
+        done.write_text(str(out))
     return out

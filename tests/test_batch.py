@@ -1,10 +1,12 @@
 """`gscan batch` and `gscan batch-eval` (issue 22): many captures scanned and many templates scored on Ray.
 
 End to end through the real CLI on a local Ray runtime of 2 workers: 4 rendered captures (8 views, 320 x 240), one
-of them corrupt; the templates equal `gscan.scan()`'s in this process; the corrupt one is reported with its one-line
-reason and exit code 2; a Ray worker killed in the middle of a scan has its task retried and the template resumed;
-a second run skips everything without starting Ray; without Ray the command says how to install it. The fast tests
-cover the parts that need no Ray: finding the captures, the plan, the exit codes, the manifest and the joined CSV.
+of them corrupt, beside three loops of symbolic links; the templates equal `gscan.scan()`'s in this process; the
+corrupt capture and the loops are reported with their one-line reasons and exit code 2; the Ray worker scanning
+box0 is killed in the middle of its scan, and its task is retried and the template resumed. Ray starts once for all
+of that (a runtime's start and its workers' imports cost more than a small scan). A second run skips everything
+without starting Ray; without Ray the command says how to install it. The fast tests cover the parts that need no
+Ray: finding the captures, the plan, the exit codes, the manifest and the joined CSV.
 """
 from __future__ import annotations
 
@@ -17,6 +19,7 @@ import sqlite3
 import subprocess
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -34,6 +37,7 @@ INTR = synth.DEFAULT_INTRINSICS.scaled(0.5)  # 320 x 240
 N_VIEWS = 8
 NAMES = ("box0", "box1", "box2", "box3")
 CORRUPT = "box3"
+LOOPS = ("a", "b", "loop")  # `_loops`: broken entries beside the captures
 TIMEOUT_S = 600
 
 
@@ -73,11 +77,12 @@ def _digest(path: Path) -> str:
 
 @pytest.fixture(scope="module")
 def captures(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """4 rendered captures; box3's intrinsics file is garbage."""
+    """4 rendered captures (box3's intrinsics file is garbage) and three loops of links (`_loops`)."""
     root = tmp_path_factory.mktemp("batch") / "captures"
     for k, name in enumerate(NAMES):
         _render(root / name, k)
     (root / CORRUPT / "cam_K.txt").write_text("not a matrix\n")
+    _loops(root)
     return root
 
 
@@ -100,34 +105,77 @@ def references(captures: Path, reference_box0: Path) -> dict[str, Path]:
     return refs
 
 
+@dataclass
+class FirstRun:
+    """The first `gscan batch` run: its process, its templates folder and the worker killed in it."""
+
+    proc: subprocess.CompletedProcess
+    out: Path
+    killed: tuple[int, int, bool] | None  # (Ray worker, its scan's process, that process ended with the worker)
+
+
 @pytest.fixture(scope="module")
-def first_run(captures: Path) -> tuple[subprocess.CompletedProcess, Path]:
-    """`gscan batch` over the 4 captures on a local runtime of 2 workers."""
+def first_run(captures: Path) -> FirstRun:
+    """`gscan batch` over `captures` on a local runtime of 2 workers; the Ray worker running box0's scan is killed
+    (SIGKILL) once the scan has written a view to its partial template."""
     out = captures.parent / "templates"
-    return _gscan("batch", captures, "-o", out, "--workers", "2", "--json"), out
+    target = out / "box0.gscan"
+    proc = subprocess.Popen(_cli("batch", captures, "-o", out, "--workers", "2", "--json"), stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    killed = None
+    try:
+        t0 = time.monotonic()
+        while proc.poll() is None and time.monotonic() - t0 < TIMEOUT_S and killed is None:
+            child = next((pid for pid, req in _children().items() if req.get("key") == "box0"), None)
+            if child is not None and _partial_with_views(target):
+                worker = _parent(child)
+                assert b"ray::" in Path(f"/proc/{worker}/cmdline").read_bytes()  # the Ray worker running the task
+                os.kill(worker, signal.SIGKILL)
+                killed = (worker, child, _gone(child))
+            time.sleep(0.01)
+        stdout, stderr = proc.communicate(timeout=TIMEOUT_S)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    return FirstRun(subprocess.CompletedProcess(proc.args, proc.returncode, stdout, stderr), out, killed)
 
 
 # ------------------------------------------------------------------------------------------ end to end (Ray)
+PROC = Path("/proc/self/status").is_file()  # the first run finds the worker to kill through /proc (Linux)
+
+
 @pytest.mark.slow
 def test_batch_scans_as_scan_does_and_reports_the_corrupt_capture(captures: Path, references: dict[str, Path],
-                                                                  first_run) -> None:
-    r, out = first_run
-    assert r.returncode == 2, r.stderr  # one capture had bad input, none crashed
-    report = json.loads(r.stdout)  # exactly one JSON object on stdout
+                                                                  first_run: FirstRun) -> None:
+    """The good captures' templates equal `gscan.scan()`'s (box0's too, resumed after its worker was killed); the
+    corrupt capture and each loop of links are a failed capture with a one-line reason naming it, and the run
+    exits with code 2 (bad input only, nothing crashed); no output for a failed capture."""
+    r, out = first_run.proc, first_run.out
+    assert r.returncode == 2, r.stderr  # captures had bad input, none crashed
+    report = json.loads(r.stdout)  # exactly one JSON object on stdout (Ray's messages about the dead worker: not)
     assert json.loads((out / "batch.json").read_text()) == report
     s = report["summary"]
-    assert (s["captures"], s["scanned"], s["failed"], s["failed_input"], s["skipped"]) == (4, 3, 1, 1, 0)
+    resumed = int(first_run.killed is not None)  # box0
+    assert (s["captures"], s["scanned"], s["resumed"], s["failed"], s["failed_input"], s["skipped"]) == (
+        7, 3 - resumed, resumed, 4, 4, 0)
     assert s["runtime"] == "local" and s["cpus"] == 2 and s["max_retries"] >= 1
     rows = {row["name"]: row for row in report["captures"]}
-    assert list(rows) == list(NAMES)
+    assert list(rows) == sorted([*NAMES, *LOOPS])
     bad = rows[CORRUPT]
     assert bad["status"] == "failed" and bad["error_kind"] == "input"
     assert "\n" not in bad["error"] and str(captures / CORRUPT / "cam_K.txt") in bad["error"], bad["error"]
     assert f"failed {CORRUPT}: {bad['error']}" in r.stderr
-    assert not (out / f"{CORRUPT}.gscan").exists()  # no half-written output
+    for name in LOOPS:  # once "internal error: RuntimeError: Symlink loop" and nothing scanned
+        row = rows[name]
+        assert row["status"] == "failed" and row["error_kind"] == "input", row
+        assert "loop of symbolic links" in row["error"] and str(captures / name) in row["error"], row
+    for name in (CORRUPT, *LOOPS):
+        assert not (out / f"{name}.gscan").exists()  # no half-written output
     for name, ref in references.items():
         row = rows[name]
-        assert row["status"] == "scanned" and row["attempts"] == 1, row
+        resumed = name == "box0" and first_run.killed is not None
+        assert (row["status"], row["attempts"]) == (("resumed", 2) if resumed else ("scanned", 1)), row
         _assert_same_poses(out / f"{name}.gscan", ref)
         with TemplateDB.open(ref) as db:
             summary = db.summary()
@@ -140,15 +188,40 @@ def test_batch_scans_as_scan_does_and_reports_the_corrupt_capture(captures: Path
         assert gt["reference"] == "T_cam_obj" and gt["gt_frames"] == row["registered"]
         assert gt["ate_rmse_m"] < 0.005 and gt["wrong_frames"] == [], gt
     lines = (out / "batch.csv").read_text().splitlines()
-    assert lines[0].startswith("name,status,attempts,frames,registered,") and len(lines) == 1 + len(NAMES)
-    assert lines[4].startswith(f"{CORRUPT},failed,")
+    assert lines[0].startswith("name,status,attempts,frames,registered,") and len(lines) == 1 + len(rows)
+    assert [ln.split(",")[0] for ln in lines[1:]] == list(rows)
+    assert lines[1 + list(rows).index(CORRUPT)].startswith(f"{CORRUPT},failed,")
 
 
 @pytest.mark.slow
-def test_second_run_skips_every_complete_template(captures: Path, first_run, tmp_path: Path) -> None:
+@pytest.mark.skipif(not PROC, reason="finds the worker through /proc (Linux)")
+def test_a_worker_killed_mid_scan_is_retried_and_its_template_resumed(references: dict[str, Path],
+                                                                     first_run: FirstRun) -> None:
+    """The first run's Ray worker scanning box0, killed once the scan had written a view: the scan's own process
+    ends with it, the task is retried and resumes the partial template, which ends complete, valid and equal to
+    `gscan.scan()`'s; the other captures are scanned once."""
+    killed = first_run.killed
+    assert killed is not None, "the scan of box0 ended before its worker could be killed"
+    assert killed[2], "the scan's process outlived its worker"
+    rows = {row["name"]: row for row in json.loads(first_run.proc.stdout)["captures"]}
+    assert rows["box0"]["attempts"] == 2 and rows["box0"]["status"] == "resumed", rows["box0"]
+    assert rows["box1"]["status"] == "scanned" and rows["box1"]["attempts"] == 1
+    target = first_run.out / "box0.gscan"
+    with TemplateDB.open(target) as db:  # complete and valid
+        assert db.status == "complete"
+        conn = sqlite3.connect(target)
+        try:
+            assert conn.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
+        finally:
+            conn.close()
+    _assert_same_poses(target, references["box0"])
+
+
+@pytest.mark.slow
+def test_second_run_skips_every_complete_template(captures: Path, first_run: FirstRun, tmp_path: Path) -> None:
     """The good captures again (links to them) into a copy of the first run's templates: every one is skipped
     (Ray is not even started) and no template is touched."""
-    r, out = first_run
+    r, out = first_run.proc, first_run.out
     assert r.returncode == 2, r.stderr
     again, templates = tmp_path / "captures", tmp_path / "templates"
     again.mkdir()
@@ -221,50 +294,6 @@ def _partial_with_views(db: Path) -> bool:
     return status == "partial" and views > 0
 
 
-@pytest.mark.slow
-@pytest.mark.skipif(not Path("/proc/self/status").is_file(), reason="finds the worker through /proc (Linux)")
-def test_a_worker_killed_mid_scan_is_retried_and_its_template_resumed(captures: Path, references: dict[str, Path],
-                                                                     tmp_path: Path) -> None:
-    caps, out = tmp_path / "captures", tmp_path / "templates"
-    caps.mkdir()
-    for name in ("box0", "box1"):
-        (caps / name).symlink_to(captures / name, target_is_directory=True)
-    target = out / "box0.gscan"
-    proc = subprocess.Popen(_cli("batch", caps, "-o", out, "--workers", "2", "--json"), stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
-    killed = None
-    try:
-        t0 = time.monotonic()
-        while proc.poll() is None and time.monotonic() - t0 < TIMEOUT_S and killed is None:
-            child = next((pid for pid, req in _children().items() if req.get("key") == "box0"), None)
-            if child is not None and _partial_with_views(target):
-                worker = _parent(child)
-                assert b"ray::" in Path(f"/proc/{worker}/cmdline").read_bytes()  # the Ray worker running the task
-                os.kill(worker, signal.SIGKILL)
-                killed = (worker, child, _gone(child))
-            time.sleep(0.01)
-        stdout, stderr = proc.communicate(timeout=TIMEOUT_S)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-    assert killed is not None, "the scan of box0 ended before its worker could be killed"
-    assert killed[2], "the scan's process outlived its worker"
-    assert proc.returncode == 0, stderr
-    report = json.loads(stdout)  # Ray's own messages about the dead worker are not on stdout
-    rows = {row["name"]: row for row in report["captures"]}
-    assert rows["box0"]["attempts"] == 2 and rows["box0"]["status"] == "resumed", rows["box0"]
-    assert rows["box1"]["status"] == "scanned" and rows["box1"]["attempts"] == 1
-    with TemplateDB.open(target) as db:  # complete and valid
-        assert db.status == "complete"
-        conn = sqlite3.connect(target)
-        try:
-            assert conn.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
-        finally:
-            conn.close()
-    _assert_same_poses(target, references["box0"])
-
-
 @pytest.fixture(scope="module")
 def scenes(captures: Path) -> Path:
     """3 views of each good box from a higher ring (capture layout, ground-truth poses)."""
@@ -275,11 +304,11 @@ def scenes(captures: Path) -> Path:
 
 
 @pytest.mark.slow
-def test_batch_eval_joins_the_pairs_as_eval_scores_them(captures: Path, first_run, scenes: Path,
+def test_batch_eval_joins_the_pairs_as_eval_scores_them(captures: Path, first_run: FirstRun, scenes: Path,
                                                         tmp_path: Path) -> None:
     from gscan.evaluate.bop19 import evaluate
 
-    _, templates = first_run
+    templates = first_run.out
     res = _gscan("batch-eval", templates, scenes, "-o", tmp_path / "gscan_test.csv", "--workers", "2", "--json")
     assert res.returncode == 0, res.stderr
     report = json.loads(res.stdout)
@@ -481,22 +510,6 @@ def test_find_captures_reports_loops_of_links_as_failed_captures(tmp_path: Path)
         assert "loop of symbolic links" in str(found[name].problem)
     assert "does not exist" in str(found["gone"].problem)
     assert find_captures(caps, caps / "loop") and find_captures(caps, caps / "a")  # an output on a loop: no crash
-
-
-def test_batch_scans_the_captures_beside_loops_of_links(tmp_path: Path) -> None:
-    """`gscan batch CAPS` with a link loop in CAPS once stopped with "internal error: RuntimeError: Symlink
-    loop" and scanned nothing: each loop is a failed capture with its reason, the other one is scanned."""
-    caps = tmp_path / "caps"
-    _render(caps / "box0", 0)
-    _loops(caps)
-    r = _gscan("batch", caps, "-o", tmp_path / "out", "--workers", "2", "--json")
-    assert r.returncode == 2, r.stderr  # bad input only
-    rows = {row["name"]: row for row in json.loads(r.stdout)["captures"]}
-    assert rows["box0"]["status"] == "scanned", rows["box0"]
-    for name in ("a", "b", "loop"):
-        assert rows[name]["status"] == "failed" and rows[name]["error_kind"] == "input"
-        assert "loop of symbolic links" in rows[name]["error"] and str(caps / name) in rows[name]["error"]
-    assert (tmp_path / "out" / "box0.gscan").is_file()
 
 
 def test_manifest_pairs_on_loops_of_links_get_object_ids(tmp_path: Path) -> None:

@@ -7,9 +7,8 @@ import sys
 import textwrap
 
 import numpy as np
-import pytest
 
-from gscan.demo import FIRST_RUN, SAMPLES, evaluate_sample, kernel_modules
+from gscan.demo import SAMPLES, evaluate_sample, kernel_modules
 from gscan.evaluate.bop19 import template_to_gt
 from gscan.geometry.transforms import inv_T, pose_error
 from gscan.io import open_sequence
@@ -37,18 +36,6 @@ def test_heldout_frames_are_found_accurately(sample_template):
         assert r.found, r.name
         # held-back frames: ADD under 5 mm, rotation under a degree (the demo prints the measured values)
         assert r.add_mm < 5.0 and r.rot_err_deg < 1.0, r
-
-
-@pytest.mark.slow
-def test_demo_command_runs_without_viewer(tmp_path):
-    """The demo's summary lines, whatever the terminal width (the lines are not wrapped; whitespace is joined
-    in case a terminal does)."""
-    proc = subprocess.run([sys.executable, "-m", "gscan.cli", "demo", "--no-view", "-o", str(tmp_path)],
-                          capture_output=True, text=True, timeout=600)
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    out = " ".join(proc.stderr.split())
-    assert "30/30 frames registered" in out and "held-back frames: 4/4 found" in out, proc.stderr[-2000:]
-    assert (tmp_path / "sample.gscan").is_file()
 
 
 def _python(code: str, cache: object, **env: str) -> subprocess.CompletedProcess:
@@ -86,24 +73,3 @@ def test_kernels_cached_says_whether_numba_compiled_them(tmp_path):
     assert {"gscan.matching.kernel", "gscan.geometry.kabsch_kernel"} <= set(names), names
     out = _python("from gscan.demo import kernels_cached; print(kernels_cached())", tmp_path / "new")
     assert out.stdout.split() == ["False"], out.stderr[-2000:]
-
-
-@pytest.mark.slow
-def test_the_demo_says_when_it_compiles_the_kernels(tmp_path):
-    """The first demo scan in a new numba cache logs FIRST_RUN (a warning, for the command line's log handler) and
-    leaves every kernel module compiled: the next run says nothing."""
-    code = f"""
-        import logging
-        from pathlib import Path
-        from gscan.demo import kernels_cached, scan_sample, evaluate_sample
-        logging.basicConfig(format="LOG %(levelname)s %(message)s")
-        print("cached before", kernels_cached(), flush=True)
-        result = scan_sample(Path({str(tmp_path / "out")!r}))
-        evaluate_sample(result.output)
-        print("cached after", kernels_cached(), flush=True)
-        scan_sample(Path({str(tmp_path / "out")!r}))
-        """
-    out = _python(code, tmp_path / "cache")
-    assert out.returncode == 0, out.stderr[-2000:]
-    assert "cached before False" in out.stdout and "cached after True" in out.stdout, out.stdout
-    assert out.stderr.count(f"LOG WARNING {FIRST_RUN}") == 1, out.stderr[-2000:]

@@ -15,7 +15,7 @@ import trimesh
 import yaml
 
 from gscan.errors import InputError
-from gscan.exporters import export
+from gscan.exporters import ExportResult, export
 from gscan.exporters.common import render_depth
 from gscan.features import Features
 from gscan.geometry.mesh import MeshData
@@ -402,7 +402,25 @@ def test_cli_export_says_what_it_wrote(synth: tuple[Path, dict], tmp_path: Path)
 SAMPLE_BOX_M3 = 0.16 * 0.10 * 0.07
 
 
-def test_sample_models_are_watertight_with_the_box_volume(sample_template: Path, tmp_path: Path) -> None:
+@pytest.fixture(scope="module")
+def sample_meshes(sample_template: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """The scanned sample exported once as PLY and OBJ (format -> file; each export closes the mesh again, a few
+    seconds): the tests below only read them."""
+    out = tmp_path_factory.mktemp("sample_meshes")
+    for fmt in ("ply", "obj"):
+        export(sample_template, fmt, out / f"m.{fmt}")
+    return {fmt: out / f"m.{fmt}" for fmt in ("ply", "obj")}
+
+
+@pytest.fixture(scope="module")
+def sample_colmap(sample_template: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, ExportResult]:
+    """The scanned sample exported once as a COLMAP model (its folder and the export's result), read only."""
+    out = tmp_path_factory.mktemp("sample_colmap") / "colmap"
+    return out, export(sample_template, "colmap", out)
+
+
+def test_sample_models_are_watertight_with_the_box_volume(sample_template: Path, sample_meshes: dict[str, Path],
+                                                          tmp_path: Path) -> None:
     """The exported models of the scanned sample are closed and hold the box's volume within 5 %: the fused
     surface lies within about a voxel (1 mm) of the faces, 0.6 % of the volume per face pair, and TSDF rounds
     the box's edges off; the cut bottom is walled down to the measured table plane."""
@@ -416,9 +434,9 @@ def test_sample_models_are_watertight_with_the_box_volume(sample_template: Path,
         assert ply.is_watertight and ply.is_winding_consistent, models
         assert abs(ply.volume * 1e-9 / SAMPLE_BOX_M3 - 1) < 0.05, (models, ply.volume)  # mm^3 -> m^3
     assert (out / "models" / "obj_000001.ply").read_bytes() == (out / "models_eval" / "obj_000001.ply").read_bytes()
-    for fmt in ("ply", "obj", "glb"):
-        export(sample_template, fmt, tmp_path / f"m.{fmt}")
-        m = trimesh.load(tmp_path / f"m.{fmt}", force="mesh")
+    export(sample_template, "glb", tmp_path / "m.glb")
+    for fmt, path in (*sample_meshes.items(), ("glb", tmp_path / "m.glb")):
+        m = trimesh.load(path, force="mesh")
         # the same bound as the BOP model's (above): surface within a voxel, edges rounded
         assert m.is_watertight and abs(m.volume / SAMPLE_BOX_M3 - 1) < 0.05, (fmt, m.volume)
     fp = tmp_path / "fp"
@@ -446,15 +464,13 @@ def test_sample_models_are_watertight_with_the_box_volume(sample_template: Path,
     assert f"{mesh['open_edges']} open edges" in " ".join(proc.stderr.split())
 
 
-def test_sample_colmap_points_carry_their_reprojection_error(sample_template: Path, tmp_path: Path) -> None:
+def test_sample_colmap_points_carry_their_reprojection_error(sample_colmap: tuple[Path, ExportResult]) -> None:
     """Every 3D point's `error` is its track's mean reprojection error in pixels, recomputed here through
     pycolmap's own camera model (COLMAP showed -1 for all of them, and a mean error of 0). Tracks hold
     observations within 1 px of their point (gscan's poses are fixed, so farther ones are split off); the mean
     over the sample, with its registered poses, is far below that (measured 0.16 px; 0.3 leaves room for
     another platform's registration)."""
-    out = tmp_path / "colmap"
-    export(sample_template, "colmap", out)
-    rec = pycolmap.Reconstruction(str(out))
+    rec = pycolmap.Reconstruction(str(sample_colmap[0]))
     errors, recomputed = [], []
     for p in rec.points3D.values():
         d = []
@@ -471,13 +487,12 @@ def test_sample_colmap_points_carry_their_reprojection_error(sample_template: Pa
     assert max(p.track.length() for p in rec.points3D.values()) > 5  # tracks still span many views
 
 
-def test_sample_colmap_points_are_seen_in_two_images_at_least(sample_template: Path, tmp_path: Path) -> None:
+def test_sample_colmap_points_are_seen_in_two_images_at_least(sample_colmap: tuple[Path, ExportResult]) -> None:
     """Every 3D point of the sample's model is seen in at least two images (a point seen once has no
     reprojection error to speak of: 70 % of the points were, and pulled the mean error from 0.159 to 0.048 px),
     and the mean reprojection error gscan reports is pycolmap's own on the model read back (printed to 4
     decimals). Measured: 10017 points, mean track length 3.63, 0.159 px."""
-    out = tmp_path / "colmap"
-    res = export(sample_template, "colmap", out)
+    out, res = sample_colmap
     rec = pycolmap.Reconstruction(str(out))
     lengths = np.array([p.track.length() for p in rec.points3D.values()])
     assert len(lengths) > 1000 and lengths.min() >= 2, (len(lengths), lengths.min())
@@ -487,7 +502,7 @@ def test_sample_colmap_points_are_seen_in_two_images_at_least(sample_template: P
     assert float(match[2]) == pytest.approx(rec.compute_mean_reprojection_error(), abs=5e-5)  # 4 decimals
 
 
-def test_sample_models_pass_open3d_watertight_checks(sample_template: Path, tmp_path: Path) -> None:
+def test_sample_models_pass_open3d_watertight_checks(sample_meshes: dict[str, Path]) -> None:
     """open3d's checks on the exported models of the scanned sample (a rendered box of known size): watertight
     (edge- and vertex-manifold, no two triangles crossing: the hole-closing's walls crossed in 52 pairs) and a
     volume within 5 % of the box's (the bound above; measured -0.4 %). The PLY flags the triangles the closing
@@ -495,13 +510,12 @@ def test_sample_models_pass_open3d_watertight_checks(sample_template: Path, tmp_
     quarter (measured 99 %: a fan closes the hole left where the fused surface folded through itself)."""
     import open3d as o3d
 
-    for fmt in ("ply", "obj"):
-        export(sample_template, fmt, tmp_path / f"m.{fmt}")
-        m = o3d.io.read_triangle_mesh(str(tmp_path / f"m.{fmt}"))
+    for fmt, path in sample_meshes.items():
+        m = o3d.io.read_triangle_mesh(str(path))
         assert not m.is_self_intersecting(), fmt
         assert m.is_edge_manifold() and m.is_vertex_manifold() and m.is_watertight(), fmt
         assert abs(m.get_volume() / SAMPLE_BOX_M3 - 1) < 0.05, (fmt, m.get_volume())
-    ply = trimesh.load(tmp_path / "m.ply", process=False)
+    ply = trimesh.load(sample_meshes["ply"], process=False)
     filled = ply.metadata["_ply_raw"]["face"]["data"]["filled"].astype(bool)
     assert filled.shape == (len(ply.faces),) and 0 < filled.mean() < 0.1, filled.mean()
     z = ply.vertices[:, 2]
