@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from gscan.estimate import Estimator, estimate_templates
-from gscan.estimate.instances import Instances, compact_rows, explained_pixels, resolve_claims, thinnest_extent
+from gscan.estimate.instances import Instances, explained_pixels, resolve_claims, thinnest_extent
 from gscan.estimate.result import found
 from gscan.estimate.verify import Evidence
 from gscan.geometry.transforms import pose_error
@@ -154,22 +154,6 @@ def test_the_better_supported_template_keeps_the_pixels():
     assert [r.evidence.support for r in b.results] == [30]
     assert len(b.refused) == 1 and "claimed by template a" in b.refused[0].reason
     assert b.to_json()["refused"][0]["T_cam_obj"] is None
-
-
-def test_compact_rows_keeps_the_rows_of_the_matrix_it_was():
-    """Shrinking the retrieval matrix in place, search after search, leaves exactly the original matrix's kept
-    rows (bit for bit) at its front; a row not held any more is refused."""
-    rng = np.random.default_rng(3)
-    full = rng.standard_normal((40, 7)).astype(np.float32)
-    S, held = full.copy(), np.arange(40)
-    for _ in range(4):
-        ids = np.sort(rng.choice(held, size=len(held) - 7, replace=False))
-        out = compact_rows(S, held, ids)
-        np.testing.assert_array_equal(out, full[ids])
-        assert np.shares_memory(out, S)
-        held = ids
-    with pytest.raises(ValueError):
-        compact_rows(S, held, np.sort([held[0], np.setdiff1d(np.arange(40), held)[0]]))
 
 
 @pytest.mark.slow

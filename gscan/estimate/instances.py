@@ -205,7 +205,6 @@ class InstanceSearch:
         agree = r_all.best >= est.verifier.support_sim if est.index.unit else -r_all.best >= est.verifier.support_sim
         u = np.clip(np.rint(self.feats.pixels[:, 0]).astype(np.int64), 0, W - 1)
         v = np.clip(np.rint(self.feats.pixels[:, 1]).astype(np.int64), 0, H - 1)
-        held = np.arange(len(self.feats))  # the keypoints whose rows lead r_all.S (`compact_rows`), in order
         reason: str | None = f"the cap of {self.cap} instances reached"
         prev: tuple[list[MatchList], np.ndarray] | None = None  # the last search's lists, its keypoints' ids
         dropped = np.zeros(len(self.feats), bool)  # keypoints of refused lists
@@ -224,10 +223,7 @@ class InstanceSearch:
             else:
                 feats = subset(self.feats, keep)
                 with self.timer.stage("retrieval"):
-                    # the kept keypoints only ever shrink: their rows are moved up within r_all.S, not copied out
-                    r = Retrieval(compact_rows(r_all.S, held, ids), est.index.votes(r_all.nn[ids], r_all.best[ids]),
-                                  r_all.nn[ids], r_all.best[ids])
-                    held = ids
+                    r = est.index.subset(r_all, keep)
             qk = query_keypoints(feats, r.S)
             tie: list[EstimateResult] = []
 
@@ -282,20 +278,6 @@ class InstanceSearch:
             removed |= pix
         found.sort(key=lambda r: (-r.score, -(r.evidence.support if r.evidence is not None else 0)))
         return Instances(est.name, found, None if found else reason, reason)
-
-
-def compact_rows(S: np.ndarray, held: np.ndarray, ids: np.ndarray) -> np.ndarray:
-    """S [M x N] whose first len(held) rows are the rows `held` (sorted ids) of the matrix it was, with the rows
-    `ids` (sorted, a subset of held) moved to its front in place: returns S[:len(ids)], equal to the original
-    matrix's rows ids (bit for bit), without allocating a copy of the matrix. The rows past len(ids) are
-    left stale."""
-    at = np.searchsorted(held, ids)  # where each kept row lies now (at[j] >= j: moving up never overwrites one)
-    if len(ids) and (at[-1] >= len(held) or not np.array_equal(held[at], ids)):
-        raise ValueError("compact_rows: the rows kept are not among the rows held")
-    for j, a in enumerate(at.tolist()):
-        if a != j:
-            S[j] = S[a]
-    return S[:len(ids)]
 
 
 def carried(lists: list[MatchList], ids: np.ndarray, now: np.ndarray, est: Searcher, qk: QueryKeypoints,

@@ -111,6 +111,11 @@ class TemplateIndex:
         ok = best >= 1.0 - 0.5 * self.params.max_dist ** 2 if self.unit else best < self.eps_f
         return np.bincount(self.kp_view[nn[ok]], minlength=len(self.view_names))
 
+    def subset(self, r: Retrieval, keep: np.ndarray) -> Retrieval:
+        """`r` of the query keypoints `keep` ([M] bool or indices) only, its votes counted again."""
+        nn, best = r.nn[keep], r.best[keep]
+        return Retrieval(r.S[keep], self.votes(nn, best), nn, best)
+
     def nearest(self, S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Each row's nearest template keypoint in S [M x N] (first on ties) and its value: ([M], [M])."""
         nn = np.argmax(S, axis=1) if self.unit else np.argmin(S, axis=1)
