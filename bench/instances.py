@@ -168,10 +168,11 @@ def main() -> None:
     for split, rep in report.items():
         s = rep["summary"]
         ratios = " / ".join(f"{s['cpu_ratio_by_n'][n]:.2f}" for n in COUNTS if n in s["cpu_ratio_by_n"])
-        b = s["bop"] or {"instances": 0, **{k: float("nan") for k in BOP_METRICS}}
+        b = s["bop"]
+        bop = "- | -" if b is None else \
+            f"{b['instances']} | {b['AR']:.1f} ({b['AR VSD']:.1f} / {b['AR MSSD']:.1f} / {b['AR MSPD']:.1f})"
         print(f"| {split} | {s['piles']} + {s['negatives']} | {s['instances']} | {100 * s['recall']:.1f} | "
-              f"{100 * s['precision']:.1f} | {s['duplicates']} | {s['wrong']} | {ratios} | {b['instances']} | "
-              f"{b['AR']:.1f} ({b['AR VSD']:.1f} / {b['AR MSSD']:.1f} / {b['AR MSPD']:.1f}) |")
+              f"{100 * s['precision']:.1f} | {s['duplicates']} | {s['wrong']} | {ratios} | {bop} |")
     if args.json is not None:
         args.json.write_text(json.dumps(report, indent=1))
 
