@@ -26,6 +26,7 @@ instances in the pile. Every estimator estimates a first frame untimed (compiled
     python bench/instances.py                     # both splits
     python bench/instances.py --split tune --json out.json
     python bench/instances.py --retries 1         # a refused search tried again
+    python bench/instances.py --cpu-only          # the piles' CPU ratios and scores only: no negatives, no BOP
 """
 from __future__ import annotations
 
@@ -84,7 +85,7 @@ def score(est: Estimator, results, truths: list[np.ndarray], visible: np.ndarray
             "duplicates": dup}
 
 
-def run_object(name: str, seeds: int, root: Path, params: EstimateParams) -> dict:
+def run_object(name: str, seeds: int, root: Path, params: EstimateParams, cpu_only: bool = False) -> dict:
     from gscan.scanning.cad import template_from_mesh
 
     tpl = root / f"{name}.gscan"
@@ -113,6 +114,8 @@ def run_object(name: str, seeds: int, root: Path, params: EstimateParams) -> dic
             print(f"{name[:24]:24s} n={n} seed={seed}: found {row['found']}/{row['instances']}, wrong {row['wrong']}, "
                   f"dup {row['duplicates']}, cpu all/single {row['cpu_all_ms']:.0f}/{row['cpu_single_ms']:.0f} ms",
                   file=sys.stderr)
+    if cpu_only:
+        return {"object": name, "rows": rows, "bop": None}
     negs = [load_textured_mesh(MESHES / m / "model_0.obj") for m in NEGATIVE] + [distractor]
     out = est.estimate_all(frame_of(render_pile(negs, 77)))
     rows.append({"n": 0, "seed": 77, "instances": 0, "found": 0, "returned": len(out.results),
@@ -129,7 +132,8 @@ def summary(objects: list[dict]) -> dict:
     inst = sum(r["instances"] for r in rows)
     found = sum(r["found"] for r in rows)
     returned = sum(r["returned"] for r in rows)
-    weights = [o["bop"]["instances"] for o in objects]  # a split's recalls pool its objects' instances
+    # a split's recalls pool its objects' instances
+    weights = [o["bop"]["instances"] for o in objects if o["bop"] is not None]
     ratios = {n: float(np.median([r["cpu_all_ms"] / r["cpu_single_ms"] for r in rows if r["n"] == n]))
               for n in COUNTS if any(r["n"] == n for r in rows)}
     return {"piles": sum(r["n"] > 0 for r in rows), "negatives": sum(r["n"] == 0 for r in rows), "instances": inst,
@@ -138,7 +142,7 @@ def summary(objects: list[dict]) -> dict:
             "duplicates": sum(r["duplicates"] for r in rows), "cpu_ratio_by_n": ratios,
             "median_cpu_single_ms": float(np.median([r["cpu_single_ms"] for r in rows if r["n"] > 0])),
             "bop": {k: float(np.average([o["bop"][k] for o in objects], weights=weights)) for k in BOP_METRICS}
-            | {"instances": sum(weights)}}
+            | {"instances": sum(weights)} if weights else None}
 
 
 def main() -> None:
@@ -146,6 +150,7 @@ def main() -> None:
     ap.add_argument("--split", choices=["tune", "held_out", "both"], default="both")
     ap.add_argument("--seeds", type=int, default=2, help="piles per object and number of instances")
     ap.add_argument("--retries", type=int, default=None, help="estimate.instances.retries (default: the setting's)")
+    ap.add_argument("--cpu-only", action="store_true", help="the piles only (CPU ratios, recall): no negatives, no BOP")
     ap.add_argument("--json", type=Path, default=None, help="write the rows and the summary here")
     args = ap.parse_args()
     splits = list(SPLITS) if args.split == "both" else [args.split]
@@ -155,7 +160,7 @@ def main() -> None:
     report = {}
     with tempfile.TemporaryDirectory() as tmp:
         for split in splits:
-            objects = [run_object(name, args.seeds, Path(tmp), params) for name in SPLITS[split]]
+            objects = [run_object(name, args.seeds, Path(tmp), params, args.cpu_only) for name in SPLITS[split]]
             report[split] = {"summary": summary(objects), "objects": objects}
     print("| split | piles + negatives | instances | recall % | precision % | duplicates | wrong | "
           "CPU ratio to one estimate, 2 / 3 / 4 / 5 instances | BOP instances | BOP AR (VSD / MSSD / MSPD) |")
@@ -164,9 +169,10 @@ def main() -> None:
         s = rep["summary"]
         ratios = " / ".join(f"{s['cpu_ratio_by_n'][n]:.2f}" for n in COUNTS if n in s["cpu_ratio_by_n"])
         b = s["bop"]
+        bop = "- | -" if b is None else \
+            f"{b['instances']} | {b['AR']:.1f} ({b['AR VSD']:.1f} / {b['AR MSSD']:.1f} / {b['AR MSPD']:.1f})"
         print(f"| {split} | {s['piles']} + {s['negatives']} | {s['instances']} | {100 * s['recall']:.1f} | "
-              f"{100 * s['precision']:.1f} | {s['duplicates']} | {s['wrong']} | {ratios} | {b['instances']} | "
-              f"{b['AR']:.1f} ({b['AR VSD']:.1f} / {b['AR MSSD']:.1f} / {b['AR MSPD']:.1f}) |")
+              f"{100 * s['precision']:.1f} | {s['duplicates']} | {s['wrong']} | {ratios} | {bop} |")
     if args.json is not None:
         args.json.write_text(json.dumps(report, indent=1))
 
