@@ -31,10 +31,12 @@ from gscan.settings import SETTINGS
 
 log = logging.getLogger(__name__)
 
-KINDS = ("sift", "rootsift", "orb")
-_DIMS = {"sift": 128, "rootsift": 128, "orb": 32}
-_DTYPES = {"sift": np.float32, "rootsift": np.float32, "orb": np.uint8}
-DESCRIPTOR_KINDS = {k: (_DIMS[k], _DTYPES[k]) for k in KINDS}  # kind -> (descriptor length, dtype)
+KINDS = ("sift", "rootsift", "orb")  # the image descriptors (FeatureParams.kind)
+# RootSIFT image keypoints and RootFPFH depth keypoints in one set (`gscan.features.depth.joint_features`)
+JOINT = "rootsift+fpfh"
+_DIMS = {"sift": 128, "rootsift": 128, "orb": 32, JOINT: 128 + 33}
+_DTYPES = {"sift": np.float32, "rootsift": np.float32, "orb": np.uint8, JOINT: np.float32}
+DESCRIPTOR_KINDS = {k: (_DIMS[k], _DTYPES[k]) for k in _DIMS}  # kind -> (descriptor length, dtype)
 
 
 @dataclass
@@ -43,8 +45,10 @@ class Features:
 
     pixels: [N x 2] float32 (u, v); points: [N x 3] float32 metres, in the camera frame as extracted (a
     template database stores a registered view's points in the object frame: `transformed`);
-    descriptors: [N x 128] float32 (sift, rootsift) or [N x 32] uint8 (orb);
-    kind: "sift" | "rootsift" | "orb"; scales: [N] float32 keypoint size (pixels), or None (not stored).
+    descriptors: [N x 128] float32 (sift, rootsift), [N x 32] uint8 (orb) or [N x 161] float32 (rootsift+fpfh:
+    an image keypoint's RootSIFT then 33 zeros, a depth keypoint's 128 zeros then its scaled RootFPFH);
+    kind: "sift" | "rootsift" | "orb" | "rootsift+fpfh"; scales: [N] float32 keypoint size (pixels; a depth
+    keypoint's: 0), or None (not stored).
     """
 
     pixels: np.ndarray
@@ -54,8 +58,8 @@ class Features:
     scales: np.ndarray | None = None
 
     def __post_init__(self) -> None:
-        if self.kind not in KINDS:
-            raise ValueError(f"unknown descriptor kind {self.kind!r}; expected one of {KINDS}")
+        if self.kind not in DESCRIPTOR_KINDS:
+            raise ValueError(f"unknown descriptor kind {self.kind!r}; expected one of {tuple(DESCRIPTOR_KINDS)}")
         n = len(self.pixels)
         if (self.pixels.shape != (n, 2) or self.points.shape != (n, 3)
                 or (self.scales is not None and self.scales.shape != (n,))):
@@ -67,6 +71,13 @@ class Features:
 
     def __len__(self) -> int:
         return len(self.pixels)
+
+    @property
+    def from_depth(self) -> np.ndarray:
+        """[N] bool: the keypoints found in the depth's geometry (rootsift+fpfh: a non-zero FPFH part)."""
+        if self.kind != JOINT:
+            return np.zeros(len(self), bool)
+        return np.abs(self.descriptors[:, 128:]).sum(axis=1) > 0
 
     @property
     def metric(self) -> str:
@@ -116,6 +127,17 @@ class FeatureParams:
     orb_scale_factor: Annotated[float, Field(gt=1, description="ORB pyramid scale factor (OpenCV's default)")] = 1.2
     orb_n_levels: Annotated[int, Field(ge=1, description="ORB pyramid levels (OpenCV's default)")] = 8
     orb_fast_threshold: Annotated[int, Field(ge=1, description="ORB FAST threshold (OpenCV's default)")] = 20
+    depth_max_keypoints: Annotated[int, Field(ge=10, le=5000, description="most salient depth keypoints kept per "
+                                              "frame")] = 300
+    depth_voxel_rel: Annotated[float, Field(gt=0, le=0.2, description="depth keypoints: the points' voxel, as a "
+                                            "share of the object's size ...")] = 1 / 80
+    depth_noise_voxel: Annotated[float, Field(ge=0, description="... and at least this many depth noise sigmas")] = 3.0
+    depth_salient_rel: Annotated[float, Field(gt=0, le=1, description="ISS salient radius, as a share of the "
+                                              "object's size")] = 0.08
+    depth_nonmax_rel: Annotated[float, Field(gt=0, le=1, description="ISS non-maximum radius, as a share of the "
+                                             "object's size")] = 0.04
+    depth_fpfh_rel: Annotated[float, Field(gt=0, le=1, description="FPFH radius, as a share of the object's "
+                                           "size")] = 0.25
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
@@ -132,16 +154,16 @@ OBJECT_FEATURES = FeatureParams(sift_contrast_threshold=0.02)
 
 
 def metric_of(kind: str) -> str:
-    """"l2" for sift/rootsift, "hamming" for orb."""
-    if kind not in KINDS:
-        raise ValueError(f"unknown descriptor kind {kind!r}; expected one of {KINDS}")
+    """"l2" for sift/rootsift/rootsift+fpfh, "hamming" for orb."""
+    if kind not in DESCRIPTOR_KINDS:
+        raise ValueError(f"unknown descriptor kind {kind!r}; expected one of {tuple(DESCRIPTOR_KINDS)}")
     return "hamming" if kind == "orb" else "l2"
 
 
 def empty_features(kind: str) -> Features:
     """A Features with N = 0 of the given kind (descriptor width and dtype set)."""
-    if kind not in KINDS:
-        raise ValueError(f"unknown descriptor kind {kind!r}; expected one of {KINDS}")
+    if kind not in DESCRIPTOR_KINDS:
+        raise ValueError(f"unknown descriptor kind {kind!r}; expected one of {tuple(DESCRIPTOR_KINDS)}")
     return Features(pixels=np.zeros((0, 2), np.float32), points=np.zeros((0, 3), np.float32),
                     descriptors=np.zeros((0, _DIMS[kind]), _DTYPES[kind]), kind=kind, scales=np.zeros(0, np.float32))
 
