@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from gscan.features import FeatureParams, descriptor_distances, extract_features
-from gscan.features.depth import FPFH_EPS_F, depth_keypoints, extract_keypoints, joint_features
+from gscan.features.depth import FPFH_EPS_F, choose_source, depth_keypoints, extract_keypoints, joint_features
 from gscan.features.keypoints import JOINT
 from gscan.geometry.transforms import inv_T, pose_error, transform_points
 from gscan.io.camera import RGBDFrame
@@ -115,3 +115,14 @@ def test_a_plain_box_registers_on_its_depth_and_a_quarter_turn_is_refused(plain_
     # without the depth samples a set of depth keypoints is never accepted
     r2 = register_features(feats[0], feats[1], RegisterParams())
     assert not r2.accepted and "depth check" in (r2.reason or "")
+
+
+def test_the_keypoint_source_is_chosen_from_the_image_keypoints():
+    auto = FeatureParams(keypoints="auto", auto_min_keypoints=60)
+    assert choose_source(auto, [10, 80, 30]) == "both"  # median 30 < 60: depth keypoints join
+    assert choose_source(auto, [70, 80, 30]) == "sift"
+    assert choose_source(FeatureParams(keypoints="auto", kind="orb"), [0, 0]) == "sift"  # depth joins rootsift only
+    assert choose_source(FeatureParams(keypoints="depth"), [500]) == "depth"
+    assert choose_source(FeatureParams(), [0]) == "sift"  # the default: the image's, as before
+    with pytest.raises(ValueError, match="rootsift"):
+        FeatureParams(keypoints="both", kind="sift")

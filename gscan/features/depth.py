@@ -200,3 +200,17 @@ def extract_keypoints(frame: RGBDFrame, params: FeatureParams, source: str,
         raise ValueError(f"keypoint source must be sift, depth or both, not {source!r}")
     image = extract_features(frame, params, mask=mask, detection=detection) if source == "both" else None
     return joint_features(image, depth_keypoints(frame, sigma_of_z, params, mask))
+
+
+AUTO_PILOT = 8  # frames spread over a capture whose image keypoints decide `keypoints: auto`
+
+
+def choose_source(params: FeatureParams, counts: list[int]) -> str:
+    """The keypoints a capture registers with ("sift" | "depth" | "both"): params.keypoints unless "auto";
+    auto: "both" when the median of `counts` (image keypoints of the pilot frames) is below
+    params.auto_min_keypoints and the image descriptor is rootsift, else "sift"."""
+    if params.keypoints != "auto":
+        return params.keypoints
+    if params.kind != "rootsift" or not counts:
+        return "sift"
+    return "both" if float(np.median(counts)) < params.auto_min_keypoints else "sift"

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from typing import Annotated
+from typing import Annotated, Literal
 
 import cv2
 import numpy as np
@@ -127,6 +127,13 @@ class FeatureParams:
     orb_scale_factor: Annotated[float, Field(gt=1, description="ORB pyramid scale factor (OpenCV's default)")] = 1.2
     orb_n_levels: Annotated[int, Field(ge=1, description="ORB pyramid levels (OpenCV's default)")] = 8
     orb_fast_threshold: Annotated[int, Field(ge=1, description="ORB FAST threshold (OpenCV's default)")] = 20
+    keypoints: Annotated[Literal["auto", "sift", "depth", "both"], Field(
+        description="which keypoints a scan registers with: the image's (sift: of `kind`), the depth's shape "
+        "(depth: ISS + FPFH on the object's points), both in one set, or auto: both when the capture's frames hold "
+        "fewer than auto_min_keypoints image keypoints (median of up to 8 frames spread over it), else the "
+        "image's; depth and both need kind rootsift (auto keeps the image's with another kind)")] = "sift"
+    auto_min_keypoints: Annotated[int, Field(ge=0, description="auto: below this median of image keypoints per "
+                                             "frame (the object's, with a mask) the depth keypoints join")] = 60
     depth_max_keypoints: Annotated[int, Field(ge=10, le=5000, description="most salient depth keypoints kept per "
                                               "frame")] = 300
     depth_voxel_rel: Annotated[float, Field(gt=0, le=0.2, description="depth keypoints: the points' voxel, as a "
@@ -142,6 +149,9 @@ class FeatureParams:
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
             raise ValueError(f"unknown descriptor kind {self.kind!r}; expected one of {KINDS}")
+        if self.keypoints in ("depth", "both") and self.kind != "rootsift":
+            raise ValueError(f"keypoints {self.keypoints!r} joins depth keypoints to rootsift ones, not {self.kind}; "
+                             "set keypoints: sift or kind: rootsift")
         if self.max_keypoints <= 0 or self.lift_window < 0:
             raise ValueError(f"max_keypoints must be > 0 and lift_window >= 0 "
                              f"(got {self.max_keypoints}, {self.lift_window})")

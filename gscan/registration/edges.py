@@ -180,7 +180,7 @@ class Registrar:
         # refinement of gscan.registration.pairwise), which also weigh it in the pose graph
         used = r.inliers if r.inliers is not None and len(r.inliers) else r.matches
         e = Edge(self.names[i], self.names[j], r.T_tgt_src, used, r.cost, r.rmse, r.fitness, "sequential",
-                     r.accepted, r.reason)
+                 r.accepted, r.reason, r.accepted and r.depth_only)
         return e, (edge_evidence(e, a, b, self.rparams) if e.accepted and e.T_tgt_src is not None else None)
 
     def register(self, pairs: list[tuple[int, int]], kind: str, pool: ThreadPoolExecutor) -> list[Edge]:
