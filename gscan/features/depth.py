@@ -11,14 +11,20 @@ search them like SIFT keypoints (its geometric search does not care where the ca
   within the feature radius), turned into "RootFPFH" like RootSIFT (each histogram L1-normalised,
   square-rooted, the whole unit-L2) so that L2 distances lie in [0, sqrt(2)] as RootSIFT's do.
 
-Scales (`depth_scales`): every radius is tied to the object's size (the 90th percentile of the points'
+Scales (`depth_scales`): every radius is tied to the object's size (twice the 90th percentile of the points'
 distance to their median, `size`) and to the depth noise at its depth (sigma from `DepthNoise`): the voxel
-is max(size x voxel_rel, noise_voxel x sigma), the normal radius 3 voxels, the ISS salient and non-maximum
-radii salient_rel / nonmax_rel of the size, the FPFH radius fpfh_rel of the size (at least 5 voxels). A
-noise-sized voxel keeps the normals (and so FPFH's angles) from describing the noise.
+is max(size x depth_voxel_rel, depth_noise_voxel x sigma), the normal radius 3 voxels, the ISS salient and
+non-maximum radii depth_salient_rel / depth_nonmax_rel of the size, the FPFH radius depth_fpfh_rel of the size
+(at least 5 voxels); the depth_* fields of `FeatureParams`. A noise-sized voxel keeps the normals (and so
+FPFH's angles) from describing the noise.
 
-Deterministic: open3d's voxel grid, KD-tree searches and ISS are run single-threaded on a fixed input order;
-the keypoints are sorted by decreasing ISS saliency (smallest eigenvalue), ties by (v, u).
+Deterministic: the downsampled points are sorted before open3d's normals, ISS and FPFH see them, and the
+keypoints are sorted by decreasing saliency (the smallest eigenvalue of their neighbourhood's scatter), ties
+by (v, u); the same frame gives identical arrays (tested).
+
+- `depth_keypoints(frame, sigma_of_z, params, mask) -> DepthKeypoints`; `joint_features(image, depth) ->
+  Features` (kind rootsift+fpfh); `extract_keypoints(frame, params, source, sigma_of_z, mask)`: one call for
+  "sift" | "depth" | "both"; `choose_source(params, counts)`: what `features.keypoints: auto` picks.
 """
 from __future__ import annotations
 

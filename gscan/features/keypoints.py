@@ -14,6 +14,8 @@ Descriptor scales (they matter to GMatch's feature threshold `eps_f`):
 - "rootsift": the SIFT vector L1-normalised then square-rooted (Arandjelovic & Zisserman
   2012), unit L2 norm, so L2 distances lie in [0, sqrt(2)] (Hellinger distance of SIFT).
 - "orb": uint8 [N x 32] (256-bit) binary strings; distance = Hamming bit count in [0, 256].
+- "rootsift+fpfh": float32 [N x 161], RootSIFT image keypoints and scaled RootFPFH depth keypoints in one set
+  (`gscan.features.depth.joint_features`); L2 distances, RootSIFT's scale; two kinds are never close.
 """
 from __future__ import annotations
 
