@@ -2,6 +2,9 @@
 a box of one colour on a plain table, seen from views 10 and 90 deg apart (about 3 s to render)."""
 from __future__ import annotations
 
+import contextlib
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 import pytest
 
@@ -11,6 +14,7 @@ from gscan.features.keypoints import JOINT
 from gscan.geometry.transforms import inv_T, pose_error, transform_points
 from gscan.io.camera import RGBDFrame
 from gscan.registration.dense import DenseGeometry, outside_silhouette
+from gscan.registration.edges import LOOP_DEPTH_ONLY, RegData, Registrar
 from gscan.registration.noise import DepthNoise
 from gscan.registration.pairwise import RegisterParams, register_features
 from gscan.synth.capture import render_capture
@@ -154,3 +158,53 @@ def test_a_scan_on_both_keypoints_registers_a_printed_box(tmp_path, meshes_dir):
     gt = open_sequence(cap).gt_T_cam_obj
     assert res.registered == 12, res.unregistered_reasons
     assert frame_errors(poses, {n: inv_T(T) for n, T in gt.items()}).wrong(5.0, 0.02) == []
+
+
+class _Frames:
+    """The plain box's frames as a sequence's registration reads them (`SequenceFrames`)."""
+
+    def __init__(self, frames, feats):
+        self.data = [RegData(fe, None, DenseGeometry.from_depth(f.depth, f.intrinsics, f.mask, image=f.color))
+                     for f, fe in zip(frames, feats, strict=True)]
+        self.names = [f"{k:06d}" for k in range(len(frames))]
+
+    def __len__(self) -> int:
+        return len(self.data)
+
+    def reg(self, k: int) -> RegData:
+        return self.data[k]
+
+    def descriptors(self, k: int) -> np.ndarray:
+        return self.data[k].feats.descriptors
+
+    def n_keypoints(self, k: int) -> int:
+        return len(self.data[k].feats)
+
+    def depth_m(self, k: int) -> float | None:
+        return float(np.median(self.data[k].feats.points[:, 2]))
+
+
+class _Sink:
+    def __init__(self):
+        self.edges = []
+
+    def add(self, edge) -> None:
+        self.edges.append(edge)
+
+    def commit(self) -> None:
+        pass
+
+    def batch(self):
+        return contextlib.nullcontext()
+
+
+def test_a_loop_closure_the_depth_alone_decides_is_refused(plain_box):
+    """The same pair of the plain box's views: as consecutive frames the depth alone may register it (the edge
+    says so); as a loop closure it is refused (a plain shape's own half turn fits as well)."""
+    feats = [extract_keypoints(_frame(f, n), FP, "depth", NOISE.sigma, mask=f.mask)
+             for f, n in zip(plain_box[:2], "ab", strict=True)]
+    with ThreadPoolExecutor(1) as pool:
+        seq = Registrar(_Frames(plain_box[:2], feats), RegisterParams(), _Sink()).register([(0, 1)], "sequential", pool)
+        loop = Registrar(_Frames(plain_box[:2], feats), RegisterParams(), _Sink()).register([(0, 1)], "loop", pool)
+    assert seq[0].accepted and seq[0].depth_only, seq[0].reason
+    assert not loop[0].accepted and loop[0].reason == LOOP_DEPTH_ONLY

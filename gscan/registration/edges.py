@@ -12,6 +12,7 @@ registration data of frame k, its descriptors, keypoint count and median depth);
 from __future__ import annotations
 
 import contextlib
+import functools
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -29,6 +30,8 @@ from gscan.registration.edge import Edge
 from gscan.registration.pairwise import RegisterParams, register_features
 from gscan.registration.posegraph import information_from_points
 
+LOOP_DEPTH_ONLY = ("ambiguous shape: a loop closure the depth alone decides (a plain surface: the shape's own "
+                   "symmetry would fit as well)")
 AGAINST_ODOMETRY = "contradicts the capture's odometry"  # how the reason of such an edge begins (`against_odometry`)
 ICP_VOXEL_STRIDE = 2  # pixel stride of the clouds kept for ICP before voxel downsampling (a sampling internal)
 COMMIT_ROWS = 64  # database writes are committed in chunks of this many edges or views (a transaction size)
@@ -170,12 +173,17 @@ class Registrar:
         self.evidence: dict[tuple[str, str], Evidence] = {}
         self.written = 0  # edges handed to the sink so far (committed every COMMIT_ROWS)
 
-    def _pair(self, pair: tuple[int, int]) -> tuple[Edge, Evidence | None] | None:
+    def _pair(self, pair: tuple[int, int], loop: bool = False) -> tuple[Edge, Evidence | None] | None:
         i, j = pair
         if (self.names[i], self.names[j]) in self.done:
             return None
         a, b = self.frames.reg(i), self.frames.reg(j)
         r = register_features(a.feats, b.feats, self.rparams, clouds=(a.cloud, b.cloud), dense=(a.dense, b.dense))
+        if loop and r.accepted and r.depth_only:
+            # frames far apart on a plain shape: its own half turn fits the depth, the silhouette and the shading
+            # as well (measured: every wrong loop closure of plain turntable boxes), and no chain of frames
+            # between the two vouches for the pose; consecutive frames turn little, so theirs stay
+            r.accepted, r.reason = False, LOOP_DEPTH_ONLY
         # the edge keeps the correspondences its pose was solved from (GMatch's list grown by the guided
         # refinement of gscan.registration.pairwise), which also weigh it in the pose graph
         used = r.inliers if r.inliers is not None and len(r.inliers) else r.matches
@@ -188,7 +196,8 @@ class Registrar:
         (a frame's registration data stays in the cache for its next edges), handed to the sink in the order
         given."""
         order = sorted(range(len(pairs)), key=lambda k: pairs[k])
-        computed = zip(order, bounded_map(pool, self._pair, [pairs[k] for k in order], self.ahead), strict=True)
+        work = functools.partial(self._pair, loop=kind != "sequential")
+        computed = zip(order, bounded_map(pool, work, [pairs[k] for k in order], self.ahead), strict=True)
         ready: dict[int, tuple[Edge, Evidence | None] | None] = {}
         out = []
         for k, (i, j) in enumerate(pairs):
