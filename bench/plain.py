@@ -28,7 +28,7 @@ from gscan.registration.dense import DenseGeometry
 from gscan.registration.noise import DepthNoise
 from gscan.registration.pairwise import RegisterParams, register_features
 from gscan.synth.capture import render_capture
-from gscan.synth.mesh import TexturedMesh, load_textured_mesh
+from gscan.synth.mesh import TexturedMesh, load_textured_mesh, plain_mesh
 
 MESHES = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "meshes"
 TUNE = ["ReadytoUse_Rolled_Fondant_Pure_White_24_oz_box"]
@@ -39,9 +39,7 @@ SOURCES = ("sift", "depth", "both")
 
 def plain(name: str) -> TexturedMesh:
     """The shared mesh `name` with its texture replaced by its mean colour."""
-    m = load_textured_mesh(MESHES / name / "model_0.obj")
-    col = m.texture.reshape(-1, 3).mean(axis=0).astype(np.uint8)
-    return TexturedMesh(m.vertices, m.triangles, m.uv, np.tile(col, (4, 4, 1)), name=f"{name}_plain")
+    return plain_mesh(load_textured_mesh(MESHES / name / "model_0.obj"))
 
 
 def run(name: str, n: int) -> dict[str, dict[str, float]]:

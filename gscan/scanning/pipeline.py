@@ -600,7 +600,7 @@ def _register_capture(cap: _Capture, opts: ScanOptions, db: TemplateDB, store: F
             rparams = replace(rparams, noise=kp_noise, depth_noise=depth_noise)
         advance(1)
     sink = _EdgeRecords(db)
-    reg = Registrar(data, rparams, sink, db.edges() if resumed else (), AHEAD)
+    reg = Registrar(data, rparams, sink, db.edges() if resumed else (), AHEAD, cfg.features.auto_min_keypoints)
     with timer.stage("register", total=max(1, n - 1)) as advance, db.batch():
         edges = register_edges(reg, sparams, pool, advance)
     with timer.stage("posegraph", total=1) as advance:
