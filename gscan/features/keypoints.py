@@ -135,7 +135,9 @@ class FeatureParams:
         "fewer than auto_min_keypoints image keypoints (median of up to 8 frames spread over it), else the "
         "image's; depth and both need kind rootsift (auto keeps the image's with another kind)")] = "sift"
     auto_min_keypoints: Annotated[int, Field(ge=0, description="auto: below this median of image keypoints per "
-                                             "frame (the object's, with a mask) the depth keypoints join")] = 60
+                                             "frame (the object's, with a mask) the depth keypoints join; a frame "
+                                             "with fewer is plain, and its texture (shading) cannot refute a loop "
+                                             "closure's half turn (method.md, plain objects)")] = 60
     depth_max_keypoints: Annotated[int, Field(ge=10, le=5000, description="most salient depth keypoints kept per "
                                               "frame")] = 300
     depth_voxel_rel: Annotated[float, Field(gt=0, le=0.2, description="depth keypoints: the points' voxel, as a "
