@@ -10,7 +10,9 @@ SIFT-only in the same run.
 Split: the depth-alone thresholds (`RegisterParams.max_see_through_shape`, `max_outside_shape`) and
 FPFH_EPS_F were set on TUNE; HELD_OUT was not looked at before.
 
-    python bench/plain.py [--objects NAME ...] [--frames 36]
+With --scans, whole scans instead (`scan_object`): registered and wrong frames per object on sift and both.
+
+    python bench/plain.py [--objects NAME ...] [--frames 36] [--scans]
 """
 from __future__ import annotations
 
@@ -69,11 +71,52 @@ def run(name: str, n: int) -> dict[str, dict[str, float]]:
     return out
 
 
+def scan_object(name: str, n: int, keypoints: str, work: Path) -> dict[str, int]:
+    """A whole scan (`gscan.scanning.api.scan`, the defaults but `features.keypoints`) of one object's capture:
+    {"frames", "registered", "wrong", "turn_refused"}; wrong: beyond 5 deg / 2 cm of the truth relative to the
+    other registered frames (`frame_errors`); turn_refused: loop closures refused as the object's half turn."""
+    from gscan.evaluate.metrics import frame_errors
+    from gscan.io import open_sequence
+    from gscan.registration.edges import LOOP_TURN
+    from gscan.scanning.api import scan
+    from gscan.scanning.config import ScanConfig
+    from gscan.template.db import TemplateDB
+
+    cap = work / f"{name}_{n}"
+    if not cap.exists():
+        render_capture(plain(name), cap, n, mode="turntable", seed=0, table_kind="plain")
+    out = work / f"{name}_{n}_{keypoints}.gscan"
+    res = scan(cap, out, config=ScanConfig(features=FeatureParams(keypoints=keypoints)))
+    with TemplateDB.open(out) as db:
+        poses = {k: np.asarray(T) for k, T in db.poses()["frames"].items()}
+        turned = sum(1 for e in db.edges() if (e.reason or "").startswith(LOOP_TURN.split("{")[0]))
+    gt = open_sequence(cap).gt_T_cam_obj
+    wrong = frame_errors(poses, {k: inv_T(T) for k, T in gt.items()}).wrong(5.0, 0.02)
+    return {"frames": n, "registered": res.registered, "wrong": len(wrong), "turn_refused": turned}
+
+
+def scans(objects: list[str], n: int) -> None:
+    """Whole scans of each object on `sift` and on `both`, printed one line each."""
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        for name in objects:
+            split = "tune" if name in TUNE else "held-out"
+            for kp in ("sift", "both"):
+                r = scan_object(name, n, kp, Path(tmp))
+                print(f"{split:8s} {name[:40]:40s} scan {kp:5s} registered {r['registered']:2d}/{r['frames']} wrong "
+                      f"{r['wrong']:2d} loop closures refused as a half turn {r['turn_refused']}", flush=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--objects", nargs="*", default=TUNE + HELD_OUT)
     ap.add_argument("--frames", type=int, default=36)
+    ap.add_argument("--scans", action="store_true", help="whole scans (sift and both) instead of pairs")
     a = ap.parse_args()
+    if a.scans:
+        scans(a.objects, a.frames)
+        return
     total = {s: np.zeros(3) for s in SOURCES}
     for name in a.objects:
         res = run(name, a.frames)

@@ -200,7 +200,10 @@ class Registrar:
             # few image keypoints to have print, the shape alone must (its shading follows the faces' angle to
             # the camera and light, which the turn keeps: it favours the turned pose)
             printed = min(_image_keypoints(a.feats), _image_keypoints(b.feats)) >= self.min_print_keypoints
-            turned = turn_not_refuted(a.dense, b.dense, r.T_tgt_src, self.rparams, texture=printed)
+            judged = r.colour is not None and r.colour.informative >= self.rparams.min_colour_tiles
+            # on printed frames a texture verdict is the print's, which a half turn does not keep: it decided
+            turned = (None if printed and judged
+                      else turn_not_refuted(a.dense, b.dense, r.T_tgt_src, self.rparams, texture=printed))
             if turned is not None:
                 r.accepted, r.reason = False, LOOP_TURN.format(turned)
         # the edge keeps the correspondences its pose was solved from (GMatch's list grown by the guided
