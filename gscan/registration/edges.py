@@ -169,7 +169,10 @@ class Registrar:
     A resumed scan reuses the edges the interrupted run stored (`stored`, kept in `done`); `restored` holds those it
     had pruned by the pose graph, put back for this run's pose graph to judge; `evidence` holds the accepted edges'
     computed here (`optimise` computes that of stored ones). `ahead`: pairs submitted to the pool and not yet
-    consumed."""
+    consumed. Loop closures: one the depth alone decides is refused (`LOOP_DEPTH_ONLY`); one whose frames are plain
+    (fewer than `min_print_keypoints` image keypoints: the scan's `features.auto_min_keypoints`) or whose pose the
+    texture did not judge is refused when the views do not refute the object's half turns (`LOOP_TURN`,
+    `gscan.registration.turns`)."""
 
     def __init__(self, frames: SequenceFrames, rparams: RegisterParams, sink: EdgeSink,
                  stored: Iterable[Edge] = (), ahead: int = 4,
