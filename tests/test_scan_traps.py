@@ -138,8 +138,8 @@ def test_a_frame_whose_edges_disagree_is_placed_by_more_edges(tmp_path, monkeypa
     turn = np.eye(4)
     turn[:3, :3] = rotvec_to_R(np.radians([0.0, 3.0, 0.0]))
 
-    def off(self, pair):
-        got = measured(self, pair)
+    def off(self, pair, loop=False):
+        got = measured(self, pair, loop)
         if got is not None and pair == (0, 1):
             got[0].T_tgt_src = turn @ got[0].T_tgt_src
         return got

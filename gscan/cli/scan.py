@@ -142,6 +142,12 @@ def print_scan_summary(result: Any) -> None:
         f"{result.keyframes} keyframes (the views estimate matches)")
     for text in coverage_text(result.coverage):
         say(text)
+    kp = result.keypoints
+    if kp and kp.get("source") != "sift":  # depth keypoints took part: which, why, and how many edges they decided
+        why = (f"auto: median {kp['median_image_keypoints']:g} image keypoints per frame"
+               if kp.get("chosen_by") == "auto" and kp.get("median_image_keypoints") is not None else "configured")
+        say(("keypoints:", "bold"), f" {kp['source']} ({why}); {kp.get('depth_only_edges', 0)} accepted edges decided "
+            "by the depth alone (a plain surface: no texture to check them)")
     cam = result.camera
     if cam is not None:
         say(*camera_line(cam))

@@ -14,12 +14,14 @@ Descriptor scales (they matter to GMatch's feature threshold `eps_f`):
 - "rootsift": the SIFT vector L1-normalised then square-rooted (Arandjelovic & Zisserman
   2012), unit L2 norm, so L2 distances lie in [0, sqrt(2)] (Hellinger distance of SIFT).
 - "orb": uint8 [N x 32] (256-bit) binary strings; distance = Hamming bit count in [0, 256].
+- "rootsift+fpfh": float32 [N x 161], RootSIFT image keypoints and scaled RootFPFH depth keypoints in one set
+  (`gscan.features.depth.joint_features`); L2 distances, RootSIFT's scale; two kinds are never close.
 """
 from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from typing import Annotated
+from typing import Annotated, Literal
 
 import cv2
 import numpy as np
@@ -31,10 +33,12 @@ from gscan.settings import SETTINGS
 
 log = logging.getLogger(__name__)
 
-KINDS = ("sift", "rootsift", "orb")
-_DIMS = {"sift": 128, "rootsift": 128, "orb": 32}
-_DTYPES = {"sift": np.float32, "rootsift": np.float32, "orb": np.uint8}
-DESCRIPTOR_KINDS = {k: (_DIMS[k], _DTYPES[k]) for k in KINDS}  # kind -> (descriptor length, dtype)
+KINDS = ("sift", "rootsift", "orb")  # the image descriptors (FeatureParams.kind)
+# RootSIFT image keypoints and RootFPFH depth keypoints in one set (`gscan.features.depth.joint_features`)
+JOINT = "rootsift+fpfh"
+_DIMS = {"sift": 128, "rootsift": 128, "orb": 32, JOINT: 128 + 33}
+_DTYPES = {"sift": np.float32, "rootsift": np.float32, "orb": np.uint8, JOINT: np.float32}
+DESCRIPTOR_KINDS = {k: (_DIMS[k], _DTYPES[k]) for k in _DIMS}  # kind -> (descriptor length, dtype)
 
 
 @dataclass
@@ -43,8 +47,10 @@ class Features:
 
     pixels: [N x 2] float32 (u, v); points: [N x 3] float32 metres, in the camera frame as extracted (a
     template database stores a registered view's points in the object frame: `transformed`);
-    descriptors: [N x 128] float32 (sift, rootsift) or [N x 32] uint8 (orb);
-    kind: "sift" | "rootsift" | "orb"; scales: [N] float32 keypoint size (pixels), or None (not stored).
+    descriptors: [N x 128] float32 (sift, rootsift), [N x 32] uint8 (orb) or [N x 161] float32 (rootsift+fpfh:
+    an image keypoint's RootSIFT then 33 zeros, a depth keypoint's 128 zeros then its scaled RootFPFH);
+    kind: "sift" | "rootsift" | "orb" | "rootsift+fpfh"; scales: [N] float32 keypoint size (pixels; a depth
+    keypoint's: 0), or None (not stored).
     """
 
     pixels: np.ndarray
@@ -54,8 +60,8 @@ class Features:
     scales: np.ndarray | None = None
 
     def __post_init__(self) -> None:
-        if self.kind not in KINDS:
-            raise ValueError(f"unknown descriptor kind {self.kind!r}; expected one of {KINDS}")
+        if self.kind not in DESCRIPTOR_KINDS:
+            raise ValueError(f"unknown descriptor kind {self.kind!r}; expected one of {tuple(DESCRIPTOR_KINDS)}")
         n = len(self.pixels)
         if (self.pixels.shape != (n, 2) or self.points.shape != (n, 3)
                 or (self.scales is not None and self.scales.shape != (n,))):
@@ -67,6 +73,13 @@ class Features:
 
     def __len__(self) -> int:
         return len(self.pixels)
+
+    @property
+    def from_depth(self) -> np.ndarray:
+        """[N] bool: the keypoints found in the depth's geometry (rootsift+fpfh: a non-zero FPFH part)."""
+        if self.kind != JOINT:
+            return np.zeros(len(self), bool)
+        return np.abs(self.descriptors[:, 128:]).sum(axis=1) > 0
 
     @property
     def metric(self) -> str:
@@ -116,10 +129,33 @@ class FeatureParams:
     orb_scale_factor: Annotated[float, Field(gt=1, description="ORB pyramid scale factor (OpenCV's default)")] = 1.2
     orb_n_levels: Annotated[int, Field(ge=1, description="ORB pyramid levels (OpenCV's default)")] = 8
     orb_fast_threshold: Annotated[int, Field(ge=1, description="ORB FAST threshold (OpenCV's default)")] = 20
+    keypoints: Annotated[Literal["auto", "sift", "depth", "both"], Field(
+        description="which keypoints a scan registers with: the image's (sift: of `kind`), the depth's shape "
+        "(depth: ISS + FPFH on the object's points), both in one set, or auto: both when the capture's frames hold "
+        "fewer than auto_min_keypoints image keypoints (median of up to 8 frames spread over it), else the "
+        "image's; depth and both need kind rootsift (auto keeps the image's with another kind)")] = "sift"
+    auto_min_keypoints: Annotated[int, Field(ge=0, description="auto: below this median of image keypoints per "
+                                             "frame (the object's, with a mask) the depth keypoints join; a frame "
+                                             "with fewer is plain, and its texture (shading) cannot refute a loop "
+                                             "closure's half turn (method.md, plain objects)")] = 60
+    depth_max_keypoints: Annotated[int, Field(ge=10, le=5000, description="most salient depth keypoints kept per "
+                                              "frame")] = 300
+    depth_voxel_rel: Annotated[float, Field(gt=0, le=0.2, description="depth keypoints: the points' voxel, as a "
+                                            "share of the object's size ...")] = 1 / 80
+    depth_noise_voxel: Annotated[float, Field(ge=0, description="... and at least this many depth noise sigmas")] = 3.0
+    depth_salient_rel: Annotated[float, Field(gt=0, le=1, description="ISS salient radius, as a share of the "
+                                              "object's size")] = 0.08
+    depth_nonmax_rel: Annotated[float, Field(gt=0, le=1, description="ISS non-maximum radius, as a share of the "
+                                             "object's size")] = 0.04
+    depth_fpfh_rel: Annotated[float, Field(gt=0, le=1, description="FPFH radius, as a share of the object's "
+                                           "size")] = 0.25
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
             raise ValueError(f"unknown descriptor kind {self.kind!r}; expected one of {KINDS}")
+        if self.keypoints in ("depth", "both") and self.kind != "rootsift":
+            raise ValueError(f"keypoints {self.keypoints!r} joins depth keypoints to rootsift ones, not {self.kind}; "
+                             "set keypoints: sift or kind: rootsift")
         if self.max_keypoints <= 0 or self.lift_window < 0:
             raise ValueError(f"max_keypoints must be > 0 and lift_window >= 0 "
                              f"(got {self.max_keypoints}, {self.lift_window})")
@@ -132,16 +168,16 @@ OBJECT_FEATURES = FeatureParams(sift_contrast_threshold=0.02)
 
 
 def metric_of(kind: str) -> str:
-    """"l2" for sift/rootsift, "hamming" for orb."""
-    if kind not in KINDS:
-        raise ValueError(f"unknown descriptor kind {kind!r}; expected one of {KINDS}")
+    """"l2" for sift/rootsift/rootsift+fpfh, "hamming" for orb."""
+    if kind not in DESCRIPTOR_KINDS:
+        raise ValueError(f"unknown descriptor kind {kind!r}; expected one of {tuple(DESCRIPTOR_KINDS)}")
     return "hamming" if kind == "orb" else "l2"
 
 
 def empty_features(kind: str) -> Features:
     """A Features with N = 0 of the given kind (descriptor width and dtype set)."""
-    if kind not in KINDS:
-        raise ValueError(f"unknown descriptor kind {kind!r}; expected one of {KINDS}")
+    if kind not in DESCRIPTOR_KINDS:
+        raise ValueError(f"unknown descriptor kind {kind!r}; expected one of {tuple(DESCRIPTOR_KINDS)}")
     return Features(pixels=np.zeros((0, 2), np.float32), points=np.zeros((0, 3), np.float32),
                     descriptors=np.zeros((0, _DIMS[kind]), _DTYPES[kind]), kind=kind, scales=np.zeros(0, np.float32))
 

@@ -92,7 +92,8 @@ ORDERS = ("ratio", "distance")
 # object-pixel keypoints at wide view changes (whole frames succeed at every value, and a scan of a static
 # object uses a lower one there: fewer candidates, a faster search). SIFT / ORB: the smallest value at the
 # best whole-frame rate of their sweeps.
-_DEFAULT_EPS_F = {"rootsift": 0.6, "sift": 150.0, "orb": 64.0}
+# rootsift+fpfh: RootSIFT's, its FPFH part scaled to match (`gscan.features.depth.FPFH_SCALE`).
+_DEFAULT_EPS_F = {"rootsift": 0.6, "sift": 150.0, "orb": 64.0, "rootsift+fpfh": 0.6}
 
 
 def default_eps_f(kind: str) -> float:

@@ -320,3 +320,28 @@ def _plane_pairs(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarray, 
     q, vi, ui, idx = _landing(src, tgt, T_tgt_src)
     n = tgt.normals[vi, ui]
     return q, n, np.sum(n * (q - tgt.grid[vi, ui]), axis=1), noise.pair_sigma(q[:, 2], tgt.depth[vi, ui]), idx
+
+
+def outside_silhouette(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarray, margin: int = 2) -> float:
+    """The share of the samples of each frame that, moved into the other by T_tgt_src, fall inside its image
+    but more than `margin` samples away from any of its valid samples (both directions pooled; 0 when none
+    falls inside). With object-only samples (a mask) this is the silhouette test: every point of the object
+    projects inside the object's silhouette in any view, hidden or not, so a right pose leaves only the
+    depth's holes and the mask's rim outside; a pose turned by a symmetry of the shape rarely fits the
+    silhouette too (a box turned a quarter shows its long side where the short one was)."""
+    import cv2
+
+    out = inside = 0
+    for a, b, T in ((src, tgt, T_tgt_src), (tgt, src, inv_T(T_tgt_src))):
+        q = transform_points(T, a.points)
+        front = q[:, 2] > 1e-3
+        zf = np.where(front, q[:, 2], 1.0)
+        u = np.rint(q[:, 0] / zf * b.fx + b.cx).astype(np.int64)
+        v = np.rint(q[:, 1] / zf * b.fy + b.cy).astype(np.int64)
+        h, w = b.depth.shape
+        ok = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        # samples' distance to the nearest valid sample of b (0 on one)
+        far = cv2.distanceTransform((b.depth <= 0).astype(np.uint8), cv2.DIST_L2, 3)
+        inside += int(ok.sum())
+        out += int(np.count_nonzero(far[v[ok], u[ok]] > margin))
+    return out / inside if inside else 0.0

@@ -24,6 +24,7 @@ class Edge:
     kind: str = "sequential"
     accepted: bool = True
     reason: str | None = None
+    depth_only: bool = False  # accepted on depth keypoints that the texture could not judge (not stored)
 
     @property
     def pruned(self) -> bool:

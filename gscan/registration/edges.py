@@ -12,6 +12,7 @@ registration data of frame k, its descriptors, keypoint count and median depth);
 from __future__ import annotations
 
 import contextlib
+import functools
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -21,14 +22,18 @@ from typing import Protocol, TypeVar
 
 import numpy as np
 
-from gscan.features import Features
+from gscan.features import FeatureParams, Features
 from gscan.geometry.transforms import transform_points
 from gscan.io.camera import Intrinsics, backproject
 from gscan.registration.dense import DenseGeometry, in_source_frame, pose_information
 from gscan.registration.edge import Edge
 from gscan.registration.pairwise import RegisterParams, register_features
 from gscan.registration.posegraph import information_from_points
+from gscan.registration.turns import turn_not_refuted
 
+LOOP_DEPTH_ONLY = ("ambiguous shape: a loop closure the depth alone decides (a plain surface: the shape's own "
+                   "symmetry would fit as well)")
+LOOP_TURN = "ambiguous shape: a loop closure the views cannot tell from {}"  # {}: the turn, in words
 AGAINST_ODOMETRY = "contradicts the capture's odometry"  # how the reason of such an edge begins (`against_odometry`)
 ICP_VOXEL_STRIDE = 2  # pixel stride of the clouds kept for ICP before voxel downsampling (a sampling internal)
 COMMIT_ROWS = 64  # database writes are committed in chunks of this many edges or views (a transaction size)
@@ -152,6 +157,11 @@ def edge_evidence(e: Edge, a: RegData, b: RegData, rparams: RegisterParams) -> E
     return Evidence(info, float(np.median(ps[:, 2])), float(np.sqrt(np.mean(r * r))))
 
 
+def _image_keypoints(feats: Features) -> int:
+    """How many of a frame's keypoints the image found (not the depth)."""
+    return len(feats) - int(feats.from_depth.sum())
+
+
 class Registrar:
     """Pairwise registration of frame pairs into edges handed to `sink`, with the evidence the pose graph weighs
     them by.
@@ -159,28 +169,51 @@ class Registrar:
     A resumed scan reuses the edges the interrupted run stored (`stored`, kept in `done`); `restored` holds those it
     had pruned by the pose graph, put back for this run's pose graph to judge; `evidence` holds the accepted edges'
     computed here (`optimise` computes that of stored ones). `ahead`: pairs submitted to the pool and not yet
-    consumed."""
+    consumed. Loop closures: one the depth alone decides is refused (`LOOP_DEPTH_ONLY`); one whose frames are plain
+    (fewer than `min_print_keypoints` image keypoints: the scan's `features.auto_min_keypoints`) or whose pose the
+    texture did not judge is refused when the views do not refute the object's half turns (`LOOP_TURN`,
+    `gscan.registration.turns`)."""
 
     def __init__(self, frames: SequenceFrames, rparams: RegisterParams, sink: EdgeSink,
-                 stored: Iterable[Edge] = (), ahead: int = 4):
+                 stored: Iterable[Edge] = (), ahead: int = 4,
+                 min_print_keypoints: int = FeatureParams().auto_min_keypoints):
         self.frames, self.rparams, self.sink, self.ahead = frames, rparams, sink, ahead
+        self.min_print_keypoints = min_print_keypoints  # fewer image keypoints: a plain frame (the loop turn rule)
         self.names = list(frames.names)
         self.done = {(e.src, e.tgt): e for e in stored}
         self.restored: set[tuple[str, str]] = set()
         self.evidence: dict[tuple[str, str], Evidence] = {}
         self.written = 0  # edges handed to the sink so far (committed every COMMIT_ROWS)
 
-    def _pair(self, pair: tuple[int, int]) -> tuple[Edge, Evidence | None] | None:
+    def _pair(self, pair: tuple[int, int], loop: bool = False) -> tuple[Edge, Evidence | None] | None:
         i, j = pair
         if (self.names[i], self.names[j]) in self.done:
             return None
         a, b = self.frames.reg(i), self.frames.reg(j)
         r = register_features(a.feats, b.feats, self.rparams, clouds=(a.cloud, b.cloud), dense=(a.dense, b.dense))
+        if loop and r.accepted and r.depth_only:
+            # frames far apart on a plain shape: its own half turn fits the depth, the silhouette and the shading
+            # as well (measured: every wrong loop closure of plain turntable boxes), and no chain of frames
+            # between the two vouches for the pose; consecutive frames turn little, so theirs stay
+            r.accepted, r.reason = False, LOOP_DEPTH_ONLY
+        elif loop and r.accepted and r.T_tgt_src is not None:
+            # a plain box's half turn passes on image keypoints too (its corners match either way), and its
+            # shading lines up either way (measured: the wrong loop closures of plain boxes scanned on sift had a
+            # texture verdict): the views must refute each of the object's half turns, and where a frame has too
+            # few image keypoints to have print, the shape alone must (its shading follows the faces' angle to
+            # the camera and light, which the turn keeps: it favours the turned pose)
+            printed = min(_image_keypoints(a.feats), _image_keypoints(b.feats)) >= self.min_print_keypoints
+            judged = r.colour is not None and r.colour.informative >= self.rparams.min_colour_tiles
+            # on printed frames a texture verdict is the print's, which a half turn does not keep: it decided
+            turned = (None if printed and judged
+                      else turn_not_refuted(a.dense, b.dense, r.T_tgt_src, self.rparams, texture=printed))
+            if turned is not None:
+                r.accepted, r.reason = False, LOOP_TURN.format(turned)
         # the edge keeps the correspondences its pose was solved from (GMatch's list grown by the guided
         # refinement of gscan.registration.pairwise), which also weigh it in the pose graph
         used = r.inliers if r.inliers is not None and len(r.inliers) else r.matches
         e = Edge(self.names[i], self.names[j], r.T_tgt_src, used, r.cost, r.rmse, r.fitness, "sequential",
-                     r.accepted, r.reason)
+                 r.accepted, r.reason, r.accepted and r.depth_only)
         return e, (edge_evidence(e, a, b, self.rparams) if e.accepted and e.T_tgt_src is not None else None)
 
     def register(self, pairs: list[tuple[int, int]], kind: str, pool: ThreadPoolExecutor) -> list[Edge]:
@@ -188,7 +221,8 @@ class Registrar:
         (a frame's registration data stays in the cache for its next edges), handed to the sink in the order
         given."""
         order = sorted(range(len(pairs)), key=lambda k: pairs[k])
-        computed = zip(order, bounded_map(pool, self._pair, [pairs[k] for k in order], self.ahead), strict=True)
+        work = functools.partial(self._pair, loop=kind != "sequential")
+        computed = zip(order, bounded_map(pool, work, [pairs[k] for k in order], self.ahead), strict=True)
         ready: dict[int, tuple[Edge, Evidence | None] | None] = {}
         out = []
         for k, (i, j) in enumerate(pairs):

@@ -34,6 +34,7 @@ from gscan.registration.colour import ColourAgreement
 from gscan.registration.dense import DepthAgreement, colour_agreement, depth_agreement
 from gscan.registration.edges import RegData
 from gscan.registration.pairwise import PairResult, RegisterParams, register_features
+from gscan.registration.turns import AXES, principal_turns, texture_refutes
 from gscan.settings import SETTINGS
 
 log = logging.getLogger(__name__)
@@ -191,17 +192,11 @@ def _turn_not_refuted(T_a_b: np.ndarray, a: Sequence[JoinView], b: Sequence[Join
     pts = _in_world(b, lambda v: v.reg.dense.points)
     if len(pts) < 3:
         return None
-    # the turns are about the principal axes through the centre of the points' box in those axes: the points of one
-    # capture miss the face the object stands on, so their mean is off the centre a symmetric shape turns about
-    m = pts.mean(0)
-    axes = np.linalg.svd(pts - m, full_matrices=False)[2]
-    q = (pts - m) @ axes.T
-    c = m + (0.5 * (q.min(0) + q.max(0))) @ axes
+    axes, c, reach = principal_turns(pts)
     # a turned motion is first refined on the object's depth (point to plane, A's surface onto B's), so that a turn
     # about an approximate axis is judged at its best (the motion found is judged as the view pairs solved it)
     src = _in_world(a, lambda v: v.reg.dense.points)
     normals = _in_world(a, lambda v: v.reg.dense.point_normals, directions=True)
-    reach = 0.1 * float(np.sqrt(np.mean(np.sum((pts - m) ** 2, axis=1))))
 
     def refined(T: np.ndarray) -> np.ndarray:
         if len(src) < 10:
@@ -211,7 +206,7 @@ def _turn_not_refuted(T_a_b: np.ndarray, a: Sequence[JoinView], b: Sequence[Join
 
     found = _agreement(T_a_b, a, b, rparams, pool)
     log.debug("join: the motion found: depth %s, texture %s", found[0], found[1])
-    if _texture_refutes(found[1], rparams):
+    if texture_refutes(found[1], rparams):
         return "the views' texture disagrees under the motion found; any motion"
     for k, axis in enumerate(axes):
         for deg in (180, 90, 270):
@@ -219,15 +214,10 @@ def _turn_not_refuted(T_a_b: np.ndarray, a: Sequence[JoinView], b: Sequence[Join
             log.debug("join: turned %d deg about axis %d: depth %s, texture %s", deg, k, depth, colour)
             if depth.see_through_fraction > rparams.max_see_through:
                 continue  # the shape refutes it
-            if _texture_refutes(colour, rparams) or _texture_outweighs(found[1], colour, ratio, rparams):
+            if texture_refutes(colour, rparams) or _texture_outweighs(found[1], colour, ratio, rparams):
                 continue
-            return f"the object turned {deg} deg about its {('first', 'second', 'third')[k]} principal axis"
+            return f"the object turned {deg} deg about its {AXES[k]} principal axis"
     return None
-
-
-def _texture_refutes(colour: ColourAgreement, rparams: RegisterParams) -> bool:
-    """Whether texture refutes a pose as it does an edge's (enough textured tiles, too few of them lining up)."""
-    return colour.informative >= rparams.min_colour_tiles and colour.agreeing_fraction < rparams.min_colour_agreement
 
 
 def _texture_outweighs(found: ColourAgreement, other: ColourAgreement, ratio: float, rparams: RegisterParams

@@ -70,6 +70,7 @@ import numpy as np
 from pydantic import Field
 
 from gscan.features import FeatureParams, Features, descriptor_distances, extract_features
+from gscan.features.keypoints import JOINT
 from gscan.geometry.icp import icp
 from gscan.geometry.kabsch import kabsch, kabsch_trimmed
 from gscan.geometry.transforms import inv_T, pose_error, transform_points
@@ -77,7 +78,13 @@ from gscan.io.camera import RGBDFrame, point_cloud
 from gscan.matching.baselines import BASELINES, BaselineParams, run_baseline
 from gscan.matching.gmatch import GMatchParams, GMatchResult, default_eps_f, gmatch
 from gscan.registration.colour import ColourAgreement
-from gscan.registration.dense import DenseGeometry, DepthAgreement, colour_agreement, depth_agreement
+from gscan.registration.dense import (
+    DenseGeometry,
+    DepthAgreement,
+    colour_agreement,
+    depth_agreement,
+    outside_silhouette,
+)
 from gscan.registration.dense import refine_pose as refine_with_depth
 from gscan.registration.noise import DepthNoise
 from gscan.registration.pool_kernel import near_pairs, pool_rows
@@ -131,6 +138,13 @@ class RegisterParams:
                                                  "texture of fewer than this share of the overlap's textured tiles "
                                                  "lines up under its pose (unrelated texture: about 1 in 17)")] = 1 / 3
     min_colour_tiles: Annotated[int, Field(ge=1, description="rule 3: textured tiles the colour verdict needs")] = 8
+    max_see_through_shape: Annotated[float, Field(ge=0, le=1, description="rule 3: an edge of depth keypoints "
+                                                  "(rootsift+fpfh) that the texture cannot judge (a plain object: "
+                                                  "the depth alone decides) is rejected beyond this share seen "
+                                                  "through")] = 0.005
+    max_outside_shape: Annotated[float, Field(ge=0, le=1, description="rule 3: ... or when more than this share of "
+                                              "either frame's depth samples lands off the other's (its "
+                                              "silhouette, with masks)")] = 0.05
     dense_refine: Annotated[bool | None, Field(description="refine each edge's pose on its keypoints and both frames' "
                                                "depth together (point-to-plane); null = on, and in a scan for a "
                                                "moving object only (a static scene's depth drifts from the truth "
@@ -188,6 +202,8 @@ class PairResult:
     sigma_m: float | None = None  # predicted RMS position standard deviation of its pairs' points (rule 2)
     agreement: DepthAgreement | None = None  # the depth check of rule 3, when it ran
     colour: ColourAgreement | None = None  # the colour check of rule 3, when it ran
+    depth_only: bool = False  # accepted on depth keypoints with no texture verdict: the depth alone decided it
+    outside: float | None = None  # the depth-alone verdict's share of samples landing off the other frame
     timings_ms: dict[str, float] = field(default_factory=dict)
 
 
@@ -385,13 +401,19 @@ def pose_by_support(pts_s: np.ndarray, pts_t: np.ndarray, support_pool: GuidedPo
     return k, T_ref, lists[k][keep], (inliers if len(inliers) >= len(lists[k]) else np.zeros((0, 2), np.int32))
 
 
+def _mostly_depth(from_depth: np.ndarray | None, pairs: np.ndarray) -> bool:
+    """Whether most of the pairs [K x 2] (source, target) have a depth keypoint as source (from_depth [Ns] bool)."""
+    return from_depth is not None and len(pairs) > 0 and 2 * int(from_depth[pairs[:, 0]].sum()) > len(pairs)
+
+
 def register_points(pts_s: np.ndarray, pts_t: np.ndarray, desc_s: np.ndarray, desc_t: np.ndarray, kind: str,
                     params: RegisterParams = RegisterParams(), clouds: tuple | None = None,
-                    dense: tuple[DenseGeometry, DenseGeometry] | None = None) -> PairResult:
+                    dense: tuple[DenseGeometry, DenseGeometry] | None = None,
+                    fs_depth: np.ndarray | None = None) -> PairResult:
     """Register camera-frame keypoints pts_s [Ns x 3] -> pts_t [Nt x 3] (descriptors [N x D] of `kind`).
 
     clouds: optional (src [P x 3], tgt [Q x 3]) camera-frame clouds for ICP; dense: optional (source, target)
-    depth samples for rule 3.
+    depth samples for rule 3; fs_depth: [Ns] bool the source keypoints found in the depth (rootsift+fpfh).
     """
     tm: dict[str, float] = {}
     t0 = time.perf_counter()
@@ -474,6 +496,26 @@ def register_points(pts_s: np.ndarray, pts_t: np.ndarray, desc_s: np.ndarray, de
             out.reason = (f"colour disagrees (the texture lines up in {c.agreeing} of {c.informative} tiles of the "
                           f"overlap under the pose)")
             return out
+        if kind == JOINT and (c.informative < params.min_colour_tiles or _mostly_depth(fs_depth, inliers)):
+            # the depth decides: the texture cannot judge (a plain surface, whose shading agrees under a turned
+            # pose too), or the pose rests mostly on depth keypoints. Stricter bounds: a pose turned 10-20 deg
+            # on a box sees through 1-2 % of the overlap, a right one 0.1 % at most; a pose turned by a symmetry
+            # of the shape lands 14-27 % of its samples off the other silhouette, a right one 5 % at most
+            # (BENCHMARKS.md, plain objects)
+            out.depth_only = True
+            if a.see_through_fraction > params.max_see_through_shape:
+                out.reason = (f"depth disagrees ({a.see_through_fraction:.1%} of the overlap seen through; the "
+                              f"texture cannot judge the pose, so at most {params.max_see_through_shape:.1%})")
+                return out
+            off = out.outside = outside_silhouette(dense[0], dense[1], T)
+            if off > params.max_outside_shape:
+                out.reason = (f"silhouette disagrees ({off:.1%} of the samples land off the other frame's "
+                              f"surface; the texture cannot judge the pose, so at most "
+                              f"{params.max_outside_shape:.1%})")
+                return out
+    elif kind == JOINT:
+        out.reason = "depth keypoints need the depth check (no depth samples given)"
+        return out
     if params.icp and clouds is not None and clouds[0] is not None and clouds[1] is not None:
         t0 = time.perf_counter()
         r_icp = icp(clouds[0], clouds[1], T, params.icp_max_dist, params.icp_voxel, params.icp_iterations, True)
@@ -513,7 +555,8 @@ def register_features(fs: Features, ft: Features, params: RegisterParams = Regis
     """
     if fs.kind != ft.kind:
         raise ValueError(f"descriptor kinds differ: {fs.kind} vs {ft.kind}")
-    return register_points(fs.points, ft.points, fs.descriptors, ft.descriptors, fs.kind, params, clouds, dense)
+    return register_points(fs.points, ft.points, fs.descriptors, ft.descriptors, fs.kind, params, clouds, dense,
+                           fs.from_depth if fs.kind == JOINT else None)
 
 
 def frame_cloud(frame: RGBDFrame, stride: int = 2, mask: np.ndarray | None = None) -> np.ndarray:

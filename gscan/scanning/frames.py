@@ -73,6 +73,9 @@ class FrameData:
         self.frames, self.store, self.db, self.mode, self.masks_given = frames, store, db, mode, masks_given
         self.icp_voxel = icp_voxel
         self.detections = {} if detections is None else detections
+        # the keypoints the frames were registered with (`gscan.features.depth.choose_source`), set by the
+        # features stage: {"source": sift|depth|both, "chosen_by": auto|config, "median_image_keypoints": n|None}
+        self.keypoints: dict = {"source": "sift", "chosen_by": "config", "median_image_keypoints": None}
         self._cache: OrderedDict[int, RegData] = OrderedDict()
         self._lock = threading.Lock()
 

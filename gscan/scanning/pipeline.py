@@ -55,6 +55,7 @@ from gscan.features import (
     extract_features,
     extract_features_in_mask,
 )
+from gscan.features.depth import AUTO_PILOT, choose_source, depth_keypoints, extract_keypoints, joint_features
 from gscan.geometry.coverage import template_coverage
 from gscan.geometry.plane import Plane
 from gscan.geometry.symmetry import Symmetries
@@ -129,6 +130,9 @@ class ScanResult:
     symmetries: Symmetries = field(default_factory=Symmetries)  # the object's (object frame)
     # which object segmentation chose and why (`gscan.scanning.segment.ChosenObject.to_json`); None: not segmented
     object: dict | None = None
+    # the keypoints registration used (the first capture's `FrameData.keypoints`) and "depth_only_edges": the
+    # accepted edges of this run that the depth alone decided (`gscan.registration.pairwise`)
+    keypoints: dict = field(default_factory=dict)
 
     def to_json(self) -> dict:
         """The `scan --json` object of the CLI contract."""
@@ -141,7 +145,7 @@ class ScanResult:
                 "timings_s": {k: round(v, 3) for k, v in self.timings_s.items()},
                 "skipped": dict(self.problems), "keyframes": self.keyframes, "selection": dict(self.selection),
                 "camera": self.camera, "coverage": self.coverage, "symmetries": self.symmetries.to_json(),
-                "object": self.object, "damage": list(self.damage)} | (
+                "object": self.object, "damage": list(self.damage), "keypoints": dict(self.keypoints)} | (
                     {"captures": list(self.captures)} if self.captures else {})
 
 
@@ -452,9 +456,13 @@ def _scan_frames(caps: list[_Capture], output: Path, opts: ScanOptions, db: Temp
         db.set_meta("selection_poses", _selection_poses(caps, T_obj_world))
         db.set_meta("voxel_size", model.voxel_size)
         chosen = None if first.reg.chosen is None else first.reg.chosen.to_json()
+        assert first.data is not None
+        keypoints = dict(first.data.keypoints, depth_only_edges=sum(
+            1 for cap in caps if cap.reg is not None for e in cap.reg.edges if e.accepted and e.depth_only))
         if not opts.append:
             db.set_meta("object", chosen)
         db.set_meta("timings_s", timer.timings)
+        db.set_meta("keypoints", keypoints)
         # which sides were seen; without a support plane the template frame is the first camera's: up is its -y
         plane = bool(db.get_meta("support_plane")) if opts.append else first.reg.plane_world is not None
         coverage = template_coverage([T for T in T_obj_cam if T is not None], mesh,
@@ -473,7 +481,7 @@ def _scan_frames(caps: list[_Capture], output: Path, opts: ScanOptions, db: Temp
                       unregistered_reasons=reasons | problems, parts=parts, noise=first.reg.rparams.noise,
                       selection=selection.summary(), coverage=coverage.to_json(), symmetries=symmetries,
                       damage=[line for cap in caps if cap.seq is not None for line in cap.seq.damage],
-                      captures=_captures_summary(caps, db, opts.append), object=chosen)
+                      captures=_captures_summary(caps, db, opts.append), object=chosen, keypoints=keypoints)
 
 
 def _captures_summary(caps: list[_Capture], db: TemplateDB, append: bool) -> list[dict]:
@@ -579,7 +587,7 @@ def _register_capture(cap: _Capture, opts: ScanOptions, db: TemplateDB, store: F
 
     # each stage's writes are batched: one commit per stage, or per COMMIT_ROWS records in a long one
     with timer.stage("features", total=len(frames)) as advance, db.batch():
-        _extract(data, cfg.features, db, resumed, advance)
+        _extract(data, cfg.features, cfg.registration.depth_noise, db, resumed, advance)
     if not any(f.n_keypoints for f in frames):  # every frame dark, textureless or without depth: nothing to scan
         raise InputError(cap.source, f"no keypoint with depth in any of the {len(frames)} frames "
                          "(dark or textureless images, or no valid depth)")
@@ -592,7 +600,7 @@ def _register_capture(cap: _Capture, opts: ScanOptions, db: TemplateDB, store: F
             rparams = replace(rparams, noise=kp_noise, depth_noise=depth_noise)
         advance(1)
     sink = _EdgeRecords(db)
-    reg = Registrar(data, rparams, sink, db.edges() if resumed else (), AHEAD)
+    reg = Registrar(data, rparams, sink, db.edges() if resumed else (), AHEAD, cfg.features.auto_min_keypoints)
     with timer.stage("register", total=max(1, n - 1)) as advance, db.batch():
         edges = register_edges(reg, sparams, pool, advance)
     with timer.stage("posegraph", total=1) as advance:
@@ -626,8 +634,8 @@ def _place_skipped(cap: _Capture, fparams: FeatureParams, rparams: RegisterParam
         frame = stored.load(data.store)
         mask = data.object_mask(k)  # a moving object's: the reference's (the view moved little)
         b = data.reg(k)
-        a = RegData.of_frame(extract_features(frame, fparams, mask=mask), frame.depth, frame.color, frame.intrinsics,
-                             mask, data.icp_voxel)
+        feats = extract_keypoints(frame, fparams, data.keypoints["source"], rparams.depth_noise.sigma, mask=mask)
+        a = RegData.of_frame(feats, frame.depth, frame.color, frame.intrinsics, mask, data.icp_voxel)
         res = register_features(a.feats, b.feats, rparams, clouds=(a.cloud, b.cloud), dense=(a.dense, b.dense))
         if not res.accepted or res.T_tgt_src is None:
             return f"skipped by frame selection; not placed against {ref}: {res.reason}"
@@ -757,23 +765,51 @@ def _fuse(data: FrameData, T_world_cam: list[np.ndarray | None], mask_of: Callab
     return model, template_frame(obj_pts, plane_world, T_world_cam0)
 
 
-def _extract(data: FrameData, fparams: FeatureParams, db: TemplateDB, resumed: bool,
+def _choose_keypoints(data: FrameData, fparams: FeatureParams) -> dict[int, Features]:
+    """Decide the capture's keypoints (`choose_source`, into data.keypoints); with `keypoints: auto` from the
+    image keypoints of up to AUTO_PILOT frames spread over it, returned by frame index for the features stage."""
+    n = len(data.frames)
+    pilot: dict[int, Features] = {}
+    if fparams.keypoints == "auto" and fparams.kind == "rootsift" and n:
+        for k in sorted({int(j) for j in np.linspace(0, n - 1, min(AUTO_PILOT, n))}):
+            pilot[k] = extract_features(data.frame(k), fparams, mask=data.object_mask(k),
+                                        detection=data.detections.pop(data.frames[k].name, None))
+    counts = [len(f) for f in pilot.values()]
+    source = choose_source(fparams, counts)
+    data.keypoints = {"source": source, "chosen_by": "auto" if fparams.keypoints == "auto" else "config",
+                      "median_image_keypoints": float(np.median(counts)) if counts else None}
+    log.info("keypoints: %s (%s%s)", source, data.keypoints["chosen_by"],
+             f", median {np.median(counts):g} image keypoints in {len(counts)} frames" if counts else "")
+    return pilot
+
+
+def _extract(data: FrameData, fparams: FeatureParams, depth_noise: DepthNoise, db: TemplateDB, resumed: bool,
              advance: Callable[[int], None]) -> None:
     """Each frame's registration keypoints (camera frame; a moving object's only), stored at once with the view's
-    images: the one write of those. A resumed scan reuses the keypoints of views stored without a pose."""
+    images: the one write of those. Which keypoints (the image's, the depth's, both) is decided first
+    (`_choose_keypoints`); depth keypoints are scaled by the depth noise `depth_noise`. A resumed scan reuses the
+    keypoints of views stored without a pose."""
     frames = data.frames
     stored = set(db.view_names()) if resumed else set()
     db_poses = {v.name: v.T_obj_cam for v in db.views()} if stored else {}
     for name in stored - {f.name for f in frames}:  # a view of a frame this scan does not keep
         db.remove_view(name)
+    pilot = _choose_keypoints(data, fparams)
+    source = data.keypoints["source"]
 
     def frame_work(k: int) -> tuple[RGBDFrame | None, Features | None]:
         name = frames[k].name
         if name in stored and db_poses.get(name, 1) is None:
             return None, None  # stored by the interrupted run, still in the camera frame
         frame = data.frame(k)
-        return frame, extract_features(frame, fparams, mask=data.object_mask(k),
-                                       detection=data.detections.pop(name, None))
+        mask = data.object_mask(k)
+        image = pilot.pop(k, None)
+        if image is None or source == "depth":
+            return frame, extract_keypoints(frame, fparams, source, depth_noise.sigma, mask=mask,
+                                            detection=data.detections.pop(name, None))
+        if source == "sift":
+            return frame, image
+        return frame, joint_features(image, depth_keypoints(frame, depth_noise.sigma, fparams, mask))
 
     # OpenCV releases the GIL: two threads use both cores; results are per frame and written in input order,
     # so the output does not depend on the scheduling

@@ -1,7 +1,7 @@
 """Synthetic RGB-D renderer with exact ground truth (open3d RaycastingScene on the CPU).
 
 Public API (import from `gscan.synth`):
-- meshes: `TexturedMesh`, `load_textured_mesh`, `box_mesh`, `cylinder_mesh`, `save_textured_mesh`
+- meshes: `TexturedMesh`, `load_textured_mesh`, `plain_mesh`, `box_mesh`, `cylinder_mesh`, `save_textured_mesh`
 - textures: `procedural_box_texture`, `table_texture`
 - rendering: `SynthScene`, `RenderedFrame`, `Gloss`, `DEFAULT_INTRINSICS`, `DepthNoise`, `apply_depth_noise`
 - capture: `orbit_poses`, `turntable_poses`, `rest_on_table`, `view_on_table`, `place_distractors`,
@@ -25,6 +25,7 @@ from gscan.synth.mesh import (
                                  box_mesh,
                                  cylinder_mesh,
                                  load_textured_mesh,
+                                 plain_mesh,
                                  sample_bilinear,
                                  sample_mip,
                                  save_textured_mesh,
@@ -37,7 +38,7 @@ from gscan.synth.textures import procedural_box_texture, table_texture
 __all__ = [
     "DEFAULT_INTRINSICS", "DepthNoise", "Gloss", "RenderedFrame", "SynthScene", "TexturedMesh", "apply_depth_noise",
     "box_mesh", "cylinder_mesh", "default_distance", "depth_sigma", "footprint_radius", "load_textured_mesh",
-    "orbit_poses", "place_distractors", "procedural_box_texture", "render_capture", "rest_on_table",
+    "orbit_poses", "place_distractors", "plain_mesh", "procedural_box_texture", "render_capture", "rest_on_table",
     "sample_bilinear", "sample_mip", "save_textured_mesh", "table_texture", "texture_pyramid", "turntable_poses",
     "view_on_table", "write_capture",
 ]

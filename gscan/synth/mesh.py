@@ -158,6 +158,12 @@ _BOX_FACES = (
 )
 
 
+def plain_mesh(mesh: TexturedMesh) -> TexturedMesh:
+    """`mesh` with its texture replaced by its mean colour (a plain version of a printed object)."""
+    col = mesh.texture.reshape(-1, 3).mean(axis=0).astype(np.uint8)
+    return TexturedMesh(mesh.vertices, mesh.triangles, mesh.uv, np.tile(col, (4, 4, 1)), name=f"{mesh.name}_plain")
+
+
 def box_mesh(size_xyz: tuple[float, float, float] | np.ndarray, texture: np.ndarray, name: str = "box",
              grid: tuple[int, int] = (3, 2), margin_px: int = 4) -> TexturedMesh:
     """Closed box of `size_xyz` metres centred at the origin, each face showing its own atlas region.

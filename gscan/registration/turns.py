@@ -1,0 +1,147 @@
+"""Turns of an object about its principal axes, and whether two views' depth and texture refute them.
+
+A pose between two views of an object is told from the object's own turns (the same views with the object turned
+about a principal axis) only by what the turn changes: the shape where it is not symmetric, the print where there
+is some. On a plain box the half turn about any of its axes leaves the shape, the silhouette and the shading alike,
+and keypoints found on its corners and edges match either way: an edge posed at the half turn passes every check
+of `gscan.registration.pairwise`. `turn_not_refuted` asks the checks about the edge's turned poses: where one of
+them passes as well, the views cannot tell the pose from it. Capture joins (`gscan.registration.join`) ask the
+same of their motion.
+
+- `principal_turns(points)`: the principal axes of an object's points and the centre they are turned about
+- `texture_refutes(colour, params)`: whether texture refutes a pose as it does an edge's
+- `turn_not_refuted(src, tgt, T_tgt_src, params, texture)`: the first half turn of an edge two views cannot refute
+"""
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from gscan.geometry.symmetry import axis_rotation
+from gscan.geometry.transforms import inv_T, transform_points
+from gscan.registration.colour import ColourAgreement
+from gscan.registration.dense import DenseGeometry, colour_agreement, depth_agreement, outside_silhouette, refine_pose
+from gscan.registration.pairwise import RegisterParams
+
+log = logging.getLogger(__name__)
+
+AXES = ("first", "second", "third")  # principal axes, by decreasing spread
+REACH = 0.1  # ICP pairing distance of a turned pose, as a share of the points' RMS radius (a turn's axis error)
+CENTRE_STEPS = 7  # centres tried across a turn's axis, a side (`_best_centre`)
+
+
+def principal_turns(points: np.ndarray, axes: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, float]:
+    """(axes [3 x 3] (rows, unit, by decreasing spread), centre [3], reach (m)) of an object's points [N x 3], N >= 3.
+
+    axes: the points' principal axes unless given (rows, orthonormal). The centre is that of the points' box in the
+    axes, not their mean: the points seen from one side miss the faces turned away (and the one the object stands
+    on), so their mean is off the centre a symmetric shape turns about. reach: how far a turned pose is let slide
+    when it is refined (`REACH` of the RMS radius)."""
+    m = points.mean(0)
+    if axes is None:
+        axes = np.linalg.svd(points - m, full_matrices=False)[2]
+    q = (points - m) @ axes.T
+    centre = m + (0.5 * (q.min(0) + q.max(0))) @ axes
+    return axes, centre, REACH * float(np.sqrt(np.mean(np.sum((points - m) ** 2, axis=1))))
+
+
+def texture_refutes(colour: ColourAgreement, params: RegisterParams) -> bool:
+    """Whether texture refutes a pose as it does an edge's (rule 3: enough textured tiles in the overlap, too few of
+    them lining up)."""
+    return colour.informative >= params.min_colour_tiles and colour.agreeing_fraction < params.min_colour_agreement
+
+
+def turn_not_refuted(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarray, params: RegisterParams,
+                     texture: bool = True) -> str | None:
+    """The first half turn of the object about one of its axes that src's and tgt's depth and texture do not refute,
+    in words; None when each is refuted.
+
+    src, tgt: the two views' depth samples (the object's: a masked scan's); T_tgt_src [4 x 4] the edge's pose. The
+    axes are the principal axes of both views' points in src's camera (tgt's moved by the pose) and those of their
+    normals (`_turn_axes`), through a centre where the views contradict the turned pose least (`_best_centre`);
+    the turned pose is then refined on the depth (`gscan.registration.dense.refine_pose`), so that a turn about an
+    approximate axis is judged at its best. It is refuted only by what contradicts it: the depth (more than
+    `params.max_see_through` of the overlap seen through, the bound the pose itself passed), the silhouette (more
+    than `params.max_outside_shape` of the samples off the other view's object) or, with `texture` (the views have
+    print), the texture (`texture_refutes`); a turn is no rival where too little of it lands on the other view's
+    depth for an edge to be verified (`params.min_overlap`, rule 3). Less overlap is no evidence against it: a
+    half turn of a plain box seen from opposite sides lays the faces each view sees onto each other, and overlaps
+    more than the right pose, which shares the top alone."""
+    pts = np.concatenate([src.points, transform_points(inv_T(T_tgt_src), tgt.points)])
+    if len(pts) < 10 or len(tgt) < 10:
+        return None
+    normals = np.concatenate([src.point_normals, tgt.point_normals @ T_tgt_src[:3, :3]])
+    for name, axis, centre in _turn_axes(pts, normals):
+        none = np.zeros((0, 3))
+        T, _ = refine_pose(src, tgt, none, none, _best_centre(src, tgt, T_tgt_src, pts, axis, centre, params),
+                           params.noise, params.depth_noise)
+        depth = depth_agreement(src, tgt, T, params.depth_noise)
+        off = outside_silhouette(src, tgt, T)
+        log.debug("half turn about the %s axis: depth %s, %.1f %% off the silhouette", name, depth, 100 * off)
+        if depth.consistent + depth.see_through < params.min_overlap:
+            continue  # out of the other view's sight: no pose the checks would accept (rule 3)
+        if depth.see_through_fraction > params.max_see_through or off > params.max_outside_shape:
+            continue  # the shape refutes it
+        if texture and texture_refutes(colour_agreement(src, tgt, T, params.depth_noise), params):
+            continue
+        return f"the object turned half about its {name} axis"
+    return None
+
+
+def _turn_axes(pts: np.ndarray, normals: np.ndarray) -> list[tuple[str, np.ndarray, np.ndarray]]:
+    """(name, axis [3], centre [3]) of each axis an edge's object [N x 3] is turned about: the
+    principal directions of its surface normals [N x 3] first (a box's face normals: exact where the points' axes
+    tilt, the two views seeing different parts of it), then its points' principal axes, each unless within 10 deg
+    of one before; the centre that of the points' box in the axes of its set (`principal_turns`)."""
+    faces = _face_axes(normals)
+    out: list[tuple[str, np.ndarray, np.ndarray]] = []
+    for kind, given in (("face", faces), ("principal", None)):
+        axes, centre, _ = principal_turns(pts, given)
+        for n, a in zip(AXES, axes, strict=True):
+            if all(abs(float(a @ b[1])) < np.cos(np.radians(10.0)) for b in out):
+                out.append((f"{n} {kind}", a, centre))
+    return out
+
+
+def _face_axes(normals: np.ndarray, rounds: int = 5) -> np.ndarray:
+    """[3 x 3] rows: the directions a box's faces point along, from its surface normals [N x 3]: the normals'
+    principal directions, then each made the mean of the normals within 20 deg of it (either sign) and the three
+    made orthonormal again, a few rounds (edge and rim normals, and rounded parts, tilt the principal
+    directions by up to 10 deg)."""
+    axes = np.linalg.eigh(normals.T @ normals)[1][:, ::-1].T
+    for _ in range(rounds):
+        c = normals @ axes.T  # [N x 3] cosines
+        near = np.abs(c) > np.cos(np.radians(20.0))
+        if not near.any(axis=0).all():
+            break
+        m = np.stack([(normals[near[:, k]] * np.sign(c[near[:, k], k])[:, None]).sum(0) for k in range(3)])
+        u, _, vt = np.linalg.svd(m)
+        axes = u @ vt  # the orthonormal rows nearest the means
+    return axes
+
+
+def _best_centre(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarray, pts: np.ndarray, axis: np.ndarray,
+                 centre: np.ndarray, params: RegisterParams) -> np.ndarray:
+    """T_tgt_src [4 x 4] turned half about `axis` [3] through the point [3] near `centre` (within half the points'
+    [N x 3] extent across the axis, a grid of CENTRE_STEPS a side) where the views contradict it least (the shares of
+    the overlap seen through and of the samples off the other silhouette beyond the bounds that refute a turn),
+    and, among those they do not contradict, where most depth samples agree. The points' box misses the far
+    half of the object where both views see the same faces under a wrong pose, which puts the centre off by up to
+    half the object's depth; nearest-point refinement from there would pull the turned pose back onto the faces
+    the wrong pose laid onto each other."""
+    u = np.cross(axis, [1.0, 0.0, 0.0] if abs(axis[0]) < 0.9 else [0.0, 1.0, 0.0])
+    u /= np.linalg.norm(u)
+    v = np.cross(axis, u)
+    half = 0.5 * np.ptp(pts @ np.stack([u, v]).T, axis=0)
+    best, best_key = T_tgt_src, (np.inf, 0)
+    for a in np.linspace(-1.0, 1.0, CENTRE_STEPS):
+        for b in np.linspace(-1.0, 1.0, CENTRE_STEPS):
+            T = T_tgt_src @ axis_rotation(axis, centre + a * half[0] * u + b * half[1] * v, np.pi)
+            d = depth_agreement(src, tgt, T, params.depth_noise)
+            off = outside_silhouette(src, tgt, T)
+            # uncontradicted centres first (within the bounds that refute a turn), the best supported of them
+            c = max(0.0, d.see_through_fraction - params.max_see_through) + max(0.0, off - params.max_outside_shape)
+            if (c, -d.consistent) < best_key:
+                best, best_key = T, (c, -d.consistent)
+    return best
