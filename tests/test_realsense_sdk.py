@@ -192,7 +192,8 @@ def test_a_frame_whose_image_does_not_decode_is_reported_and_left_out(views, tmp
 def test_a_row_missing_from_an_sdk_db3_is_reported_as_damage(views, tmp_path):
     """The SDK's .db3 (no metadata stored; log times as the recorder's thread wrote them) with the 4th depth image's
     row deleted: the gap in its message ids is reported, put on the depth topic by the depth stream's period and no
-    other, and frame 000003 is said to have lost its depth to it; the other frames read as fed."""
+    other (or said not to be told, where the log times do not show it), and frame 000003 is said to have lost its
+    depth to it; the other frames read as fed."""
     path, _ = record(views, tmp_path / "gap", n=8)
     with sqlite3.connect(path) as con:
         (tid,) = con.execute("SELECT id FROM topics WHERE name LIKE '%Depth_0/image/data%'").fetchone()
@@ -204,7 +205,11 @@ def test_a_row_missing_from_an_sdk_db3_is_reported_as_damage(views, tmp_path):
         depth = seq.setup.depth_topic
         assert seq.damage[0].startswith(f"{path}: damaged records: message id {mid} of {path.name}: missing from its "
                                         "messages table"), seq.damage
-        assert seq.damage[0].count(" on /") == 1 and f"by the image streams' periods, 1 on {depth})" in seq.damage[0]
+        # the topic is inferred from the streams' periods in the log times the recorder's thread wrote; on a busy
+        # machine they may not tell, and the report must then say so rather than guess
+        told = f"by the image streams' periods, 1 on {depth})" in seq.damage[0]
+        assert seq.damage[0].count(" on /") == int(told), seq.damage
+        assert told or "(on topics the file does not tell)" in seq.damage[0], seq.damage
         assert list(seq.problems) == ["000003"] and "among the recording's damaged records" in seq.problems["000003"]
         assert seq.names == ["000000", "000001", "000002", "000004", "000005", "000006", "000007"]
         for name in seq.names:
