@@ -29,7 +29,7 @@ from gscan.registration.dense import DenseGeometry, in_source_frame, pose_inform
 from gscan.registration.edge import Edge
 from gscan.registration.pairwise import RegisterParams, register_features
 from gscan.registration.posegraph import information_from_points
-from gscan.registration.turns import turn_not_refuted
+from gscan.registration.turns import has_print, turn_not_refuted
 
 LOOP_DEPTH_ONLY = ("ambiguous shape: a loop closure the depth alone decides (a plain surface: the shape's own "
                    "symmetry would fit as well)")
@@ -157,11 +157,6 @@ def edge_evidence(e: Edge, a: RegData, b: RegData, rparams: RegisterParams) -> E
     return Evidence(info, float(np.median(ps[:, 2])), float(np.sqrt(np.mean(r * r))))
 
 
-def _image_keypoints(feats: Features) -> int:
-    """How many of a frame's keypoints the image found (not the depth)."""
-    return len(feats) - int(feats.from_depth.sum())
-
-
 class Registrar:
     """Pairwise registration of frame pairs into edges handed to `sink`, with the evidence the pose graph weighs
     them by.
@@ -202,7 +197,7 @@ class Registrar:
             # texture verdict): the views must refute each of the object's half turns, and where a frame has too
             # few image keypoints to have print, the shape alone must (its shading follows the faces' angle to
             # the camera and light, which the turn keeps: it favours the turned pose)
-            printed = min(_image_keypoints(a.feats), _image_keypoints(b.feats)) >= self.min_print_keypoints
+            printed = has_print(a.feats, b.feats, self.min_print_keypoints)
             judged = r.colour is not None and r.colour.informative >= self.rparams.min_colour_tiles
             # on printed frames a texture verdict is the print's, which a half turn does not keep: it decided
             turned = (None if printed and judged

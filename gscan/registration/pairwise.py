@@ -138,6 +138,11 @@ class RegisterParams:
                                                  "texture of fewer than this share of the overlap's textured tiles "
                                                  "lines up under its pose (unrelated texture: about 1 in 17)")] = 1 / 3
     min_colour_tiles: Annotated[int, Field(ge=1, description="rule 3: textured tiles the colour verdict needs")] = 8
+    alone_colour_agreement: Annotated[float, Field(ge=0, le=1, description="an edge that alone places a frame (a "
+                                                   "two-frame capture) is taken on its print, without weighing the "
+                                                   "object's half turns, only when at least this share of the "
+                                                   "overlap's textured tiles lines up (look-alike sides of a box "
+                                                   "lined up in 41-78 % under wrong poses)")] = 0.9
     max_see_through_shape: Annotated[float, Field(ge=0, le=1, description="rule 3: an edge of depth keypoints "
                                                   "(rootsift+fpfh) that the texture cannot judge (a plain object: "
                                                   "the depth alone decides) is rejected beyond this share seen "
@@ -566,9 +571,9 @@ def frame_cloud(frame: RGBDFrame, stride: int = 2, mask: np.ndarray | None = Non
 
 def register_frames(frame_s: RGBDFrame, frame_t: RGBDFrame, params: RegisterParams = RegisterParams(), *,
                     feature_params: FeatureParams | None = None, use_masks: bool = False,
-                    icp_stride: int = 2) -> PairResult:
+                    icp_stride: int = 2, alone: bool = True) -> PairResult:
     """Register two RGB-D frames: keypoints and depth samples of both, then `register_features` (ICP on their
-    clouds when params.icp).
+    clouds when params.icp); with `alone`, an accepted pose is then weighed against the object's half turns.
 
     Args:
         frame_s, frame_t: the source and target frames.
@@ -576,6 +581,11 @@ def register_frames(frame_s: RGBDFrame, frame_t: RGBDFrame, params: RegisterPara
         feature_params: the keypoints extracted (default FeatureParams()).
         use_masks: keypoints and ICP clouds inside the frames' masks only (whole frames by default).
         icp_stride: pixel stride of the ICP clouds.
+        alone: the pair is the only evidence placing one frame against the other (a two-frame capture): no cycle
+            of further edges can catch a pose turned half about the object, so the edge is refused ("ambiguous
+            shape: the only edge placing its frame ...", `gscan.registration.turns.lone_edge_turn`) when a half
+            turn of the object survives the depth and texture checks as well. False: the pose is one edge of a
+            sequence, judged with the others.
 
     Returns:
         PairResult as `register_features`; T_tgt_src [4 x 4] maps source-camera points into the target camera.
@@ -593,6 +603,14 @@ def register_frames(frame_s: RGBDFrame, frame_t: RGBDFrame, params: RegisterPara
              DenseGeometry.from_depth(frame_t.depth, frame_t.intrinsics, mt, image=frame_t.color))
     out = register_features(fs, ft, params, clouds, dense)
     out.timings_ms["features"] = t_feat
+    if alone and out.accepted:
+        from gscan.registration.turns import lone_edge_turn  # turns builds on this module
+
+        t0 = time.perf_counter()
+        why = lone_edge_turn(fs, ft, dense[0], dense[1], out, params, fp.auto_min_keypoints)
+        out.timings_ms["turns"] = (time.perf_counter() - t0) * 1e3
+        if why is not None:
+            out.accepted, out.reason = False, why
     return out
 
 

@@ -11,6 +11,9 @@ same of their motion.
 - `principal_turns(points)`: the principal axes of an object's points and the centre they are turned about
 - `texture_refutes(colour, params)`: whether texture refutes a pose as it does an edge's
 - `turn_not_refuted(src, tgt, T_tgt_src, params, texture)`: the first half turn of an edge two views cannot refute
+- `has_print(fs, ft, min_keypoints)`: whether both frames have print (enough keypoints the image found)
+- `lone_edge_turn(fs, ft, src, tgt, r, params, min_print_keypoints)`: the rule for an edge that alone places a
+  frame (a two-frame capture): refused (`LONE_TURN`) when one of its half turns survives the depth and the texture
 """
 from __future__ import annotations
 
@@ -18,17 +21,19 @@ import logging
 
 import numpy as np
 
+from gscan.features import Features
 from gscan.geometry.symmetry import axis_rotation
 from gscan.geometry.transforms import inv_T, transform_points
 from gscan.registration.colour import ColourAgreement
 from gscan.registration.dense import DenseGeometry, colour_agreement, depth_agreement, outside_silhouette, refine_pose
-from gscan.registration.pairwise import RegisterParams
+from gscan.registration.pairwise import PairResult, RegisterParams
 
 log = logging.getLogger(__name__)
 
 AXES = ("first", "second", "third")  # principal axes, by decreasing spread
 REACH = 0.1  # ICP pairing distance of a turned pose, as a share of the points' RMS radius (a turn's axis error)
 CENTRE_STEPS = 7  # centres tried across a turn's axis, a side (`_best_centre`)
+LONE_TURN = "ambiguous shape: the only edge placing its frame, which the views cannot tell from {}"  # {}: the turn
 
 
 def principal_turns(points: np.ndarray, axes: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, float]:
@@ -50,6 +55,36 @@ def texture_refutes(colour: ColourAgreement, params: RegisterParams) -> bool:
     """Whether texture refutes a pose as it does an edge's (rule 3: enough textured tiles in the overlap, too few of
     them lining up)."""
     return colour.informative >= params.min_colour_tiles and colour.agreeing_fraction < params.min_colour_agreement
+
+
+def has_print(fs: Features, ft: Features, min_keypoints: int) -> bool:
+    """Whether both frames have print: at least `min_keypoints` keypoints the image found (not the depth) in each;
+    a plain frame's are its corners and rims, a few dozen."""
+    return min(len(f) - int(f.from_depth.sum()) for f in (fs, ft)) >= min_keypoints
+
+
+def lone_edge_turn(fs: Features, ft: Features, src: DenseGeometry, tgt: DenseGeometry, r: PairResult,
+                   params: RegisterParams, min_print_keypoints: int) -> str | None:
+    """Why the accepted edge r (fs -> ft keypoints, src -> tgt depth samples) cannot place a frame alone, in words
+    (`LONE_TURN`); None when the print settles its pose or each of the object's half turns is refuted
+    (`turn_not_refuted`, by the texture too where both frames have print, `has_print`).
+
+    An edge that is the only evidence placing a frame has no cycle to catch a pose turned half about the object:
+    two views of a box whose sides look alike match strongly at a turn of it (measured: two-frame captures 120 deg
+    apart registered 90 or 180 deg off with a rotation sigma of 0.2-0.3 deg, the texture lining up in 41-78 % of
+    the overlap's tiles; right poses in 50-100 %). So the texture settles it, as it does a loop closure's, only
+    where both frames have print and nearly all of it lines up (`params.alone_colour_agreement`); otherwise the
+    half turns are weighed. A turn that lays the views' faces onto each other's hidden side leaves little overlap
+    and no texture verdict: it is not refuted, and the edge is refused."""
+    if not r.accepted or r.T_tgt_src is None:
+        return None
+    printed = has_print(fs, ft, min_print_keypoints)
+    c = r.colour
+    if (printed and c is not None and c.informative >= params.min_colour_tiles
+            and c.agreeing_fraction >= params.alone_colour_agreement):
+        return None
+    turned = turn_not_refuted(src, tgt, r.T_tgt_src, params, texture=printed)
+    return None if turned is None else LONE_TURN.format(turned)
 
 
 def turn_not_refuted(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarray, params: RegisterParams,
