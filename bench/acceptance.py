@@ -7,7 +7,10 @@ elevation, at azimuth s and s + each gap (20 / 60 / 120 deg), for each start azi
 (`register_frames`: whole-frame keypoints, the pose refined on the depth and checked against the depth and the
 texture; --masks: the object's pixels only). Right: within 5 deg and 2 cm of the ground truth.
 
-Per gap: pairs registered at a right pose (%), registered at a wrong pose (count; must be 0), and the pairs
+Per gap: pairs registered at a right pose (%), registered at a wrong pose (count; must be 0), the pairs refused
+because a half turn of the object fits the two views as well (the rule for an edge that alone places a frame,
+`gscan.registration.turns.lone_edge_turn`), split by their pose's actual error (without that rule the wrong ones
+would have been registered), and the pairs
 refused as weak geometry split by their pose's actual error: right (what a looser rule could gain) and wrong
 (what it would let through), both also among those that pass every other rule (registered again without the
 bound: the depth and colour checks), with the rotation sigma the refused edges claim against their actual rotation error
@@ -33,6 +36,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 WRONG_DEG, WRONG_M = 5.0, 0.02
 WEAK = "weak geometry"  # registration's reason for an edge whose pose its evidence pins too loosely
+TURN = "ambiguous shape"  # ... for an edge alone placing a frame that a half turn fits as well (turns.LONE_TURN)
 DEVELOPMENT = ("Whey_Protein_Chocolate_12_Packets", "Diet_Pepsi_Soda_Cola12_Pack_12_oz_Cans",
                "Pepsi_Caffeine_Free_Diet_12_CT", "Mattel_SKIP_BO_Card_Game",
                "ReadytoUse_Rolled_Fondant_Pure_White_24_oz_box", "Polar_Herring_Fillets_Smoked_Peppered_705_oz_total",
@@ -68,12 +72,13 @@ def run(split: str, starts: list[float], gaps: list[float], table: str, masks: b
                 T_gt = inv_T(views[gi + 1][1]) @ views[0][1]
                 r = register_frames(views[0][0], views[gi + 1][0], RegisterParams(), use_masks=masks)
                 deg, m = pose_error(r.T_tgt_src, T_gt) if r.T_tgt_src is not None else (np.inf, np.inf)
-                why = (r.reason or "accepted").split(" (")[0]
+                why = (r.reason or "accepted").split(" (")[0].split(":")[0]
                 # a weak edge again without the bound: would it pass the depth and colour checks?
                 rest = why == WEAK and register_frames(views[0][0], views[gi + 1][0], unbounded,
                                                        use_masks=masks).accepted
                 out[g].append({"mesh": md.name, "start": s0, "accepted": r.accepted, "deg": deg, "m": m,
-                               "why": why, "sigma_deg": r.sigma_deg, "passes_the_rest": rest})
+                               "why": why, "sigma_deg": r.sigma_deg, "passes_the_rest": rest,
+                               "colour": None if r.colour is None else (r.colour.agreeing, r.colour.informative)})
             print(f"{md.name[:34]:34s} {s0:5.0f}  " + "  ".join(f"{g:.0f}:{_mark(x[-1])}" for g, x in out.items()),
                   file=sys.stderr, flush=True)
     return out
@@ -90,10 +95,11 @@ def _mark(r: dict) -> str:
 
 
 def report(out: dict[float, list[dict]]) -> None:
-    print("| gap | pairs | registered right % | registered wrong | refused as weak geometry: right / wrong | "
+    print("| gap | pairs | registered right % | registered wrong | refused as a half turn's rival: right / wrong | "
+          "refused as weak geometry: right / wrong | "
           "... of which pass every other rule: right / wrong | "
           "weak: sigma claimed / actual rotation error (median) | other refusals |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|")
     for g, recs in out.items():
         right = [is_right(r) for r in recs]
         acc = [r["accepted"] for r in recs]
@@ -103,9 +109,12 @@ def report(out: dict[float, list[dict]]) -> None:
         w_right = sum(is_right(r) for r in weak)
         ratio = np.median([r["deg"] / r["sigma_deg"] for r in weak if r["sigma_deg"]]) if weak else float("nan")
         claimed = np.median([r["sigma_deg"] for r in weak]) if weak else float("nan")
-        other = Counter(r["why"] for r in recs if not r["accepted"] and r["why"] != WEAK)
+        turn = [r for r in recs if r["why"] == TURN]
+        t_right = sum(is_right(r) for r in turn)
+        other = Counter(r["why"] for r in recs if not r["accepted"] and r["why"] not in (WEAK, TURN))
         print(f"| {g:.0f} deg | {len(recs)} | {100 * np.mean(np.logical_and(acc, right)):.0f} | "
-              f"{int(np.sum(np.logical_and(acc, np.logical_not(right))))} | {w_right} / {len(weak) - w_right} | "
+              f"{int(np.sum(np.logical_and(acc, np.logical_not(right))))} | {t_right} / {len(turn) - t_right} | "
+              f"{w_right} / {len(weak) - w_right} | "
               f"{rest_right} / {len(rest) - rest_right} | "
               f"{claimed:.1f} deg, error {ratio:.1f} x sigma | "
               + ", ".join(f"{k} {v}" for k, v in other.most_common()) + " |")
@@ -115,6 +124,9 @@ def report(out: dict[float, list[dict]]) -> None:
             print(f"weak, passing every other rule, at {g:.0f} deg (sigma claimed: error): " + ", ".join(
                 f"{r['sigma_deg']:.2f}: {r['deg']:.1f} deg / {1000 * r['m']:.0f} mm" for r in rest))
         for r in recs:
+            if r["why"] == TURN and not is_right(r):
+                print(f"refused as a half turn's rival at {g:.0f} deg (registered wrong without that rule): "
+                      f"{r['mesh']} from {r['start']:.0f} deg, {r['deg']:.1f} deg / {1000 * r['m']:.0f} mm off")
             if r["accepted"] and not is_right(r):
                 print(f"registered wrong at {g:.0f} deg: {r['mesh']} from {r['start']:.0f} deg, {r['deg']:.1f} deg / "
                       f"{1000 * r['m']:.0f} mm off, sigma {r['sigma_deg']:.2f} deg")
