@@ -1,8 +1,10 @@
 """Pairwise registration: features -> match (GMatch or a baseline) -> pose -> verdict.
 
 `register_features(fs, ft, params, clouds, dense)` registers two frames' keypoints; `register_frames(frame_s,
-frame_t)` also extracts the features and samples the depth (the one-call Python API). T_tgt_src maps
-source-camera points into the target camera (p_t = T_tgt_src @ p_s).
+frame_t)` also extracts the features and samples the depth (the one-call Python API), and weighs the pose of a
+two-frame capture, which no other edge vouches for, against the object's half turns
+(`gscan.registration.turns.lone_edge_turn`). T_tgt_src maps source-camera points into the target camera
+(p_t = T_tgt_src @ p_s).
 
 Every residual is measured in units of the depth noise (`gscan.registration.noise`): a pair of keypoints
 at depths z_s, z_t has the per-axis standard deviation s = params.noise.pair_sigma(z_s, z_t), so a gate of
