@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -80,6 +81,30 @@ def test_two_views_of_a_box_alike_front_and_back_are_refused_at_its_half_turn():
     assert r.T_tgt_src is not None and r.reason is not None and r.reason.startswith("ambiguous shape: the only edge")
     deg, m = pose_error(r.T_tgt_src, inv_T(T_world_b) @ T_world_a)
     assert not is_right({"deg": deg, "m": m})  # the pose the rule refused is the wrong one
+
+
+def test_a_scan_of_those_two_views_refuses_the_same_edge(tmp_path):
+    """The same two views given to `gscan.scan` as a capture of two frames: its one edge alone places the second
+    frame, so the scan weighs it as `register_frames` does and leaves that frame unregistered, with the reason."""
+    sys.path.insert(0, str(ROOT / "bench"))
+    from acceptance import meshes
+    from match import render_views
+
+    from gscan.geometry.transforms import inv_T
+    from gscan.scanning.api import scan
+    from gscan.synth import DEFAULT_INTRINSICS, load_textured_mesh, rest_on_table
+    from gscan.synth.capture import write_capture
+
+    held = meshes("held-out")
+    seed = [m.name for m in held].index("Frozen_Scrabble_Jr")
+    T_world_obj = rest_on_table(load_textured_mesh(held[seed] / "model_0.obj"))
+    views = render_views(held[seed], [90.0, 210.0], seed=seed, table_kind="plain")
+    frames = [SimpleNamespace(color=f.color, depth=f.depth, mask=f.mask, T_cam_obj=inv_T(T) @ T_world_obj)
+              for f, T in views]
+    res = scan(write_capture(tmp_path / "cap", frames, DEFAULT_INTRINSICS), tmp_path / "two.gscan")
+    assert len(res.unregistered) == 1, (res.registered, res.unregistered_reasons)
+    why = next(iter(res.unregistered_reasons.values()))
+    assert "ambiguous shape: the only edge" in why, why
 
 
 @pytest.mark.slow

@@ -29,7 +29,7 @@ from gscan.registration.dense import DenseGeometry, in_source_frame, pose_inform
 from gscan.registration.edge import Edge
 from gscan.registration.pairwise import RegisterParams, register_features
 from gscan.registration.posegraph import information_from_points
-from gscan.registration.turns import has_print, turn_not_refuted
+from gscan.registration.turns import has_print, lone_edge_turn, turn_not_refuted
 
 LOOP_DEPTH_ONLY = ("ambiguous shape: a loop closure the depth alone decides (a plain surface: the shape's own "
                    "symmetry would fit as well)")
@@ -167,7 +167,8 @@ class Registrar:
     consumed. Loop closures: one the depth alone decides is refused (`LOOP_DEPTH_ONLY`); one whose frames are plain
     (fewer than `min_print_keypoints` image keypoints: the scan's `features.auto_min_keypoints`) or whose pose the
     texture did not judge is refused when the views do not refute the object's half turns (`LOOP_TURN`,
-    `gscan.registration.turns`)."""
+    `gscan.registration.turns`). A capture of two frames has one edge and no cycle: it is weighed as
+    `register_frames` weighs a lone edge (`gscan.registration.turns.lone_edge_turn`)."""
 
     def __init__(self, frames: SequenceFrames, rparams: RegisterParams, sink: EdgeSink,
                  stored: Iterable[Edge] = (), ahead: int = 4,
@@ -204,6 +205,11 @@ class Registrar:
                       else turn_not_refuted(a.dense, b.dense, r.T_tgt_src, self.rparams, texture=printed))
             if turned is not None:
                 r.accepted, r.reason = False, LOOP_TURN.format(turned)
+        if len(self.names) == 2 and r.accepted:
+            # a two-frame capture: its one edge alone places the second frame, as in `register_frames`
+            why = lone_edge_turn(a.feats, b.feats, a.dense, b.dense, r, self.rparams, self.min_print_keypoints)
+            if why is not None:
+                r.accepted, r.reason = False, why
         # the edge keeps the correspondences its pose was solved from (GMatch's list grown by the guided
         # refinement of gscan.registration.pairwise), which also weigh it in the pose graph
         used = r.inliers if r.inliers is not None and len(r.inliers) else r.matches
