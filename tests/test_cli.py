@@ -58,6 +58,41 @@ def test_help_starts_without_the_library():
     assert "|".join(FORMAT_CHOICES) in _gscan("track", "--help", columns=300).stdout.split()
 
 
+def test_bad_input_is_refused_before_open3d_loads(tmp_path: Path):
+    """open3d costs about a CPU second to import: `gscan scan` of a missing folder and `gscan estimate` with a
+    missing template refuse their input without it (the scan imports it when its first stage begins; the scan's
+    configuration reads the meshes of `gscan.synth`, not its renderer)."""
+    code = ("import sys\nfrom gscan.cli import main\nsys.argv = ['gscan', *sys.argv[1:]]\ntry:\n    main()\n"
+            "except SystemExit as e:\n    print(e.code, 'open3d' in sys.modules)")
+    for args in (["scan", str(tmp_path / "missing"), "-o", str(tmp_path / "x.gscan")],
+                 ["estimate", str(tmp_path / "missing.gscan"), "--color", "c.png", "--depth", "d.png", "--intrinsics",
+                  "K.txt"]):
+        r = subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, timeout=120,
+                           cwd=ROOT)
+        assert r.stdout.split() == ["2", "False"], (args, r.stdout, r.stderr)
+        assert r.stderr.startswith("error: ") and "missing" in r.stderr, r.stderr
+
+
+def test_the_scan_imports_the_rest_when_its_first_stage_begins(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
+    """`ImportsAtFirstStage` (what `gscan scan` reports its stages to) imports its modules before the first stage
+    runs, once, and passes every stage on."""
+    from gscan.cli.imports import ImportsAtFirstStage
+    from gscan.progress import StageTimer
+
+    (tmp_path / "gscan_test_stage_import.py").write_text("LOADS = [1]\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.delitem(sys.modules, "gscan_test_stage_import", raising=False)
+    timer = StageTimer()
+    progress = ImportsAtFirstStage(timer, ("gscan_test_stage_import",))
+    assert "gscan_test_stage_import" not in sys.modules
+    for name in ("camera", "load", "camera"):
+        with progress.stage(name, total=1) as advance:
+            module = sys.modules["gscan_test_stage_import"]
+            advance(1)
+    assert module.LOADS == [1] and sys.modules["gscan_test_stage_import"] is module
+    assert sorted(timer.timings) == ["camera", "load"]
+
+
 @pytest.mark.parametrize("columns", [40, 300])
 @pytest.mark.parametrize("command", ["scan", "export", "estimate", "eval", "demo"])
 def test_help_shows_flags_plainly_and_choice_lists_whole(command: str, columns: int):

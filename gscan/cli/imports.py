@@ -2,14 +2,23 @@
 own modules (the choice types read the library's lists when first used: `gscan.cli.choices`); the library
 modules a command runs (numpy, OpenCV, open3d, the pipeline, the estimator, the service, Ray, ...) are imported
 at the top of the command's function, so that `gscan --help` and a bad option are answered without loading them.
-The scan imports its C extensions with Ctrl+C held (`import_holding_ctrl_c`)."""
+The scan imports its C extensions with Ctrl+C held (`import_holding_ctrl_c`); open3d, which the scan needs only once
+its input is open, when its first stage begins (`ImportsAtFirstStage`), so that a bad input is refused without it."""
 from __future__ import annotations
 
+import contextlib
 import importlib
 import signal
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from gscan.progress import Progress
 
 #: what a scan imports (with its lazy C-extension imports)
 SCAN_IMPORTS = ("gscan.scanning.api", "open3d", "scipy.spatial")
+#: of those, what a scan needs only once its input is open: imported when its first stage begins
+STAGE_IMPORTS = ("open3d",)
 
 
 def import_holding_ctrl_c(*modules: str) -> None:
@@ -28,6 +37,22 @@ def import_holding_ctrl_c(*modules: str) -> None:
         signal.signal(signal.SIGINT, previous)
     if caught:  # again, to the handler it would have met (KeyboardInterrupt, or nothing where it is ignored)
         signal.raise_signal(signal.SIGINT)
+
+
+class ImportsAtFirstStage:
+    """A `Progress` that imports `modules` (with Ctrl+C held) when the first stage begins, then reports every stage
+    to `progress`. The scan opens and checks its input before its first stage: a bad input is refused without
+    loading them."""
+
+    def __init__(self, progress: Progress, modules: tuple[str, ...]):
+        self.progress = progress
+        self._modules = modules
+
+    def stage(self, name: str, total: int | None = None) -> contextlib.AbstractContextManager[Callable[[int], None]]:
+        if self._modules:
+            modules, self._modules = self._modules, ()
+            import_holding_ctrl_c(*modules)
+        return self.progress.stage(name, total)
 
 
 _import_holding_ctrl_c = import_holding_ctrl_c  # its name as `gscan.cli._import_holding_ctrl_c` (tests/test_resume.py)

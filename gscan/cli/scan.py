@@ -9,7 +9,7 @@ from typing import Any
 import typer
 
 from gscan.cli.choices import ScanFormat, ScanMode
-from gscan.cli.imports import SCAN_IMPORTS, import_holding_ctrl_c
+from gscan.cli.imports import SCAN_IMPORTS, STAGE_IMPORTS, ImportsAtFirstStage, import_holding_ctrl_c
 from gscan.cli.output import (
     UsageError,
     camera_line,
@@ -60,7 +60,7 @@ def scan(
     """Register every view of an RGB-D capture (or of several captures of one object) into one object frame and
     write a template database."""
     setup_logging(verbose)
-    import_holding_ctrl_c(*SCAN_IMPORTS)
+    import_holding_ctrl_c(*(m for m in SCAN_IMPORTS if m not in STAGE_IMPORTS))
     from gscan.io.camera import depth_camera_of
     from gscan.io.output import check_not_input
     from gscan.progress import RichProgress
@@ -89,7 +89,7 @@ def scan(
                           roi=None if roi is None else parse_roi(roi), mask=mask)
     try:
         with RichProgress(err, enabled=not json_out or sys.stderr.isatty()) as progress:
-            result = scan_capture(inputs, output, options, progress=progress)
+            result = scan_capture(inputs, output, options, progress=ImportsAtFirstStage(progress, STAGE_IMPORTS))
     except KeyboardInterrupt:  # Ctrl+C: the partial database is kept for --resume (typer exits 130)
         say_interrupted(interrupted_scan_line(output, force))
         raise

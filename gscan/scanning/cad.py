@@ -39,7 +39,7 @@ from gscan.io.camera import RGBDFrame, backproject
 from gscan.io.output import Output, remove_sqlite_sidecars
 from gscan.progress import NullProgress, Progress
 from gscan.scanning.symmetry import SymmetryParams, detect_symmetries, surface_of_textured_mesh
-from gscan.synth import DEFAULT_INTRINSICS, SynthScene, TexturedMesh, load_textured_mesh
+from gscan.synth.mesh import TexturedMesh, load_textured_mesh
 from gscan.template.db import TemplateDB, View
 
 log = logging.getLogger(__name__)
@@ -66,6 +66,8 @@ def fibonacci_directions(n: int) -> np.ndarray:
 
 def view_poses(mesh: TexturedMesh, n_views: int, fill: float = FILL) -> list[np.ndarray]:
     """T_obj_cam [4 x 4] of `n_views` cameras looking at the mesh's bounding-box centre."""
+    from gscan.synth.render import DEFAULT_INTRINSICS  # the renderer (open3d), once a mesh is read
+
     intr = DEFAULT_INTRINSICS
     dist = mesh.radius * intr.fx / (0.5 * fill * intr.width)
     c = mesh.center
@@ -156,6 +158,7 @@ def template_from_mesh(mesh_path: str | Path, output: str | Path, *, n_views: in
     if mesh.radius <= 0:
         raise InputError(mesh_path, "mesh is degenerate (all vertices coincide)")
     target = Output(output, force=force, kind=".gscan file path")  # checked before the mesh is rendered
+    from gscan.synth.render import DEFAULT_INTRINSICS, SynthScene  # open3d: a bad input is refused without it
     db = None
     try:
         db = TemplateDB.create(target.open(), force=True, meta={
