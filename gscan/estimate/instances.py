@@ -184,20 +184,22 @@ class InstanceSearch:
         self.cap = self.p.max_instances if max_instances is None else max_instances
         self.thin = thinnest_extent(est.model.samples)
         self.timer = StageTimer()
-        # the last pixels computed per pose (q, T_cam_obj bytes) -> pixels: a pose weighed as another's rival
-        # (`separate`) and then found asks for the same ones
-        self._pixels: dict[bytes, tuple[QueryFrame, np.ndarray]] = {}
+        # the pixels computed in the frame last asked about, per pose (T_cam_obj's bytes): a pose weighed against
+        # several rivals (`separate`), or weighed and then found, asks for the same ones
+        self._pixels_q: QueryFrame | None = None
+        self._pixels: dict[bytes, np.ndarray] = {}
 
     def pixels(self, q: QueryFrame, T_cam_obj: np.ndarray) -> np.ndarray:
         """[H x W] bool the pixels the pose explains in q (`explained_pixels`; read only: shared by the calls
         with the same q and pose)."""
+        if q is not self._pixels_q:
+            self._pixels_q, self._pixels = q, {}
         key = np.ascontiguousarray(T_cam_obj, dtype=np.float64).tobytes()
-        hit = self._pixels.get(key)
-        if hit is not None and hit[0] is q:
-            return hit[1]
-        pix = explained_pixels(q, self.est.model.samples, T_cam_obj, self.p.explain_dist, self.p.dilate_px)
-        pix.flags.writeable = False
-        self._pixels[key] = (q, pix)
+        pix = self._pixels.get(key)
+        if pix is None:
+            pix = explained_pixels(q, self.est.model.samples, T_cam_obj, self.p.explain_dist, self.p.dilate_px)
+            pix.flags.writeable = False
+            self._pixels[key] = pix
         return pix
 
     def same(self, T_a: np.ndarray, pix_a: np.ndarray, T_b: np.ndarray, pix_b: np.ndarray) -> bool:
