@@ -27,6 +27,7 @@ instances in the pile. Every estimator estimates a first frame untimed (compiled
     python bench/instances.py --split tune --json out.json
     python bench/instances.py --retries 1         # a refused search tried again
     python bench/instances.py --cpu-only          # the piles' CPU ratios and scores only: no negatives, no BOP
+    python bench/instances.py --cpu-only --counts 1   # the same on piles of one copy
 """
 from __future__ import annotations
 
@@ -85,7 +86,8 @@ def score(est: Estimator, results, truths: list[np.ndarray], visible: np.ndarray
             "duplicates": dup}
 
 
-def run_object(name: str, seeds: int, root: Path, params: EstimateParams, cpu_only: bool = False) -> dict:
+def run_object(name: str, seeds: int, root: Path, params: EstimateParams, cpu_only: bool = False,
+               counts: tuple[int, ...] = COUNTS) -> dict:
     from gscan.scanning.cad import template_from_mesh
 
     tpl = root / f"{name}.gscan"
@@ -96,7 +98,7 @@ def run_object(name: str, seeds: int, root: Path, params: EstimateParams, cpu_on
     est.estimate(frame_of(render_pile([mesh], 999)))  # untimed: compiled kernels loaded
     rows = []
     piles = []
-    for n in COUNTS:
+    for n in counts:
         for s in range(seeds):
             seed = 1000 * n + s
             pile = render_pile([mesh] * n + [distractor], seed)
@@ -135,7 +137,7 @@ def summary(objects: list[dict]) -> dict:
     # a split's recalls pool its objects' instances
     weights = [o["bop"]["instances"] for o in objects if o["bop"] is not None]
     ratios = {n: float(np.median([r["cpu_all_ms"] / r["cpu_single_ms"] for r in rows if r["n"] == n]))
-              for n in COUNTS if any(r["n"] == n for r in rows)}
+              for n in sorted({r["n"] for r in rows if r["n"] > 0})}
     return {"piles": sum(r["n"] > 0 for r in rows), "negatives": sum(r["n"] == 0 for r in rows), "instances": inst,
             "recall": found / max(1, inst), "precision": (returned - sum(r["wrong"] + r["duplicates"] for r in rows))
             / max(1, returned), "wrong": sum(r["wrong"] for r in rows),
@@ -151,6 +153,8 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=2, help="piles per object and number of instances")
     ap.add_argument("--retries", type=int, default=None, help="estimate.instances.retries (default: the setting's)")
     ap.add_argument("--cpu-only", action="store_true", help="the piles only (CPU ratios, recall): no negatives, no BOP")
+    ap.add_argument("--counts", type=int, nargs="+", default=list(COUNTS),
+                    help="copies per pile (with --cpu-only, 1: the cost of estimate_all where there is one)")
     ap.add_argument("--json", type=Path, default=None, help="write the rows and the summary here")
     args = ap.parse_args()
     splits = list(SPLITS) if args.split == "both" else [args.split]
@@ -160,14 +164,16 @@ def main() -> None:
     report = {}
     with tempfile.TemporaryDirectory() as tmp:
         for split in splits:
-            objects = [run_object(name, args.seeds, Path(tmp), params, args.cpu_only) for name in SPLITS[split]]
+            objects = [run_object(name, args.seeds, Path(tmp), params, args.cpu_only, tuple(args.counts))
+                       for name in SPLITS[split]]
             report[split] = {"summary": summary(objects), "objects": objects}
+    counts = " / ".join(str(n) for n in args.counts)
     print("| split | piles + negatives | instances | recall % | precision % | duplicates | wrong | "
-          "CPU ratio to one estimate, 2 / 3 / 4 / 5 instances | BOP instances | BOP AR (VSD / MSSD / MSPD) |")
+          f"CPU ratio to one estimate, {counts} instances | BOP instances | BOP AR (VSD / MSSD / MSPD) |")
     print("|---|---|---|---|---|---|---|---|---|---|")
     for split, rep in report.items():
         s = rep["summary"]
-        ratios = " / ".join(f"{s['cpu_ratio_by_n'][n]:.2f}" for n in COUNTS if n in s["cpu_ratio_by_n"])
+        ratios = " / ".join(f"{s['cpu_ratio_by_n'][n]:.2f}" for n in args.counts if n in s["cpu_ratio_by_n"])
         b = s["bop"]
         bop = "- | -" if b is None else \
             f"{b['instances']} | {b['AR']:.1f} ({b['AR VSD']:.1f} / {b['AR MSSD']:.1f} / {b['AR MSPD']:.1f})"

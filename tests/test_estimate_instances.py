@@ -170,3 +170,26 @@ def test_explained_pixels_follow_the_surface(meshes, templates):
     T = r.T_cam_obj.copy()
     T[:3, 3] += T[:3, 0] * 1.5 * thinnest_extent(est.model.samples) + T[:3, 1] * 0.1
     assert (explained_pixels(q, est.model.samples, T, 0.008, 0) & on).sum() < 0.3 * on.sum()
+
+
+def test_explained_pixels_by_grid_equal_those_by_kd_tree(monkeypatch):
+    """The grid's neighbours within the distance are the kd-tree's (its fallback when the points spread too wide
+    for a grid): the same pixels at the true pose, a shifted one and several distances."""
+    import gscan.estimate.instances as instances
+    from gscan.estimate.query import QueryFrame
+    from gscan.geometry.transforms import inv_T, transform_points
+
+    box = box_mesh((0.12, 0.08, 0.05), procedural_box_texture(3, (256, 384)))
+    r = view_on_table(box, 0.3, 40.0, 50.0, 0.5)
+    q = QueryFrame(RGBDFrame("q", r.color, r.depth, r.intrinsics), None, 1.0)
+    on = r.mask & (r.depth > 0)
+    samples = transform_points(inv_T(r.T_cam_obj), q.cloud[on][::3].astype(np.float64))
+    shifted = r.T_cam_obj.copy()
+    shifted[:3, 3] += np.array([0.02, -0.01, 0.005])
+    cases = [(T, dist, px) for T in (r.T_cam_obj, shifted) for dist, px in ((0.002, 0), (0.008, 2), (0.03, 4))]
+    by_grid = [explained_pixels(q, samples, T, dist, px) for T, dist, px in cases]
+    monkeypatch.setattr(instances.NearestGrid, "build", classmethod(lambda cls, *a, **k: None))
+    by_tree = [explained_pixels(q, samples, T, dist, px) for T, dist, px in cases]
+    assert by_grid[0].sum() > 0.8 * on.sum()
+    for a, b in zip(by_grid, by_tree, strict=True):
+        assert a.any() and np.array_equal(a, b)

@@ -45,6 +45,7 @@ from gscan.estimate.retrieval import Retrieval, TemplateIndex
 from gscan.estimate.rivals import AMBIGUOUS, ListVerifier
 from gscan.estimate.verify import visible
 from gscan.features import Features
+from gscan.geometry.grid_kernel import NearestGrid
 from gscan.geometry.transforms import transform_points
 from gscan.io.camera import Intrinsics, RGBDFrame
 from gscan.progress import StageTimer
@@ -137,9 +138,13 @@ def explained_pixels(q: QueryFrame, samples: np.ndarray, T_cam_obj: np.ndarray, 
     ys, xs = np.nonzero(sil[::2, ::2].astype(bool) & (q.frame.depth[::2, ::2] > 0))
     if len(ys) == 0:
         return out
-    d, _ = cKDTree(pc, balanced_tree=False, compact_nodes=False).query(
-        q.cloud[2 * ys, 2 * xs].astype(np.float64), distance_upper_bound=dist)
-    ok = np.isfinite(d)
+    pts = q.cloud[2 * ys, 2 * xs].astype(np.float64)
+    grid = NearestGrid.build(pc, dist)  # the pairs of a kd-tree with distance_upper_bound, without its build
+    if grid is not None:
+        ok, _ = grid.query(pts)
+    else:
+        d, _ = cKDTree(pc, balanced_tree=False, compact_nodes=False).query(pts, distance_upper_bound=dist)
+        ok = np.isfinite(d)
     half = np.zeros(((H + 1) // 2, (W + 1) // 2), bool)
     half[ys[ok], xs[ok]] = True
     out = np.repeat(np.repeat(half, 2, axis=0), 2, axis=1)[:H, :W]
@@ -179,10 +184,23 @@ class InstanceSearch:
         self.cap = self.p.max_instances if max_instances is None else max_instances
         self.thin = thinnest_extent(est.model.samples)
         self.timer = StageTimer()
+        # the pixels computed in the frame last asked about, per pose (T_cam_obj's bytes): a pose weighed against
+        # several rivals (`separate`), or weighed and then found, asks for the same ones
+        self._pixels_q: QueryFrame | None = None
+        self._pixels: dict[bytes, np.ndarray] = {}
 
     def pixels(self, q: QueryFrame, T_cam_obj: np.ndarray) -> np.ndarray:
-        """[H x W] bool the pixels the pose explains in q (`explained_pixels`)."""
-        return explained_pixels(q, self.est.model.samples, T_cam_obj, self.p.explain_dist, self.p.dilate_px)
+        """[H x W] bool the pixels the pose explains in q (`explained_pixels`; read only: shared by the calls
+        with the same q and pose)."""
+        if q is not self._pixels_q:
+            self._pixels_q, self._pixels = q, {}
+        key = np.ascontiguousarray(T_cam_obj, dtype=np.float64).tobytes()
+        pix = self._pixels.get(key)
+        if pix is None:
+            pix = explained_pixels(q, self.est.model.samples, T_cam_obj, self.p.explain_dist, self.p.dilate_px)
+            pix.flags.writeable = False
+            self._pixels[key] = pix
+        return pix
 
     def same(self, T_a: np.ndarray, pix_a: np.ndarray, T_b: np.ndarray, pix_b: np.ndarray) -> bool:
         """Two poses are one instance: centres closer than the thinnest extent, or more than `max_overlap` of the
@@ -265,7 +283,7 @@ class InstanceSearch:
                 prev = None
                 continue
             refusals = 0
-            pix = self.pixels(self.q, res.T_cam_obj)
+            pix = self.pixels(self.q, res.T_cam_obj).copy()  # the caller's to keep
             res.pixels = pix
             if any(self.same(res.T_cam_obj, pix, f.T_cam_obj, f.pixels) for f in found
                    if f.T_cam_obj is not None and f.pixels is not None):

@@ -243,15 +243,23 @@ class ListVerifier:
                 return tie
         return res
 
-    def off_seen_surface(self, T_cam_obj: np.ndarray, qk: QueryKeypoints, radius: float) -> np.ndarray:
-        """[M] bool: the query keypoints farther than `radius` (m) from the template's surface at T_cam_obj."""
+    def off_seen_surface(self, T_cam_obj: np.ndarray, qk: QueryKeypoints, radius: float,
+                         among: np.ndarray | None = None) -> np.ndarray:
+        """[M] bool: the query keypoints farther than `radius` (m) from the template's surface at T_cam_obj;
+        among ([M] bool): only those keypoints are measured, the others are False (each keypoint's answer does
+        not depend on the others)."""
         from scipy.spatial import cKDTree
 
         if self._seen is None:
             self._seen = cKDTree(self.model.samples)
         T_obj_cam = inv_T(T_cam_obj)
-        d, _ = self._seen.query(transform_points(T_obj_cam, qk.feats.points.astype(np.float64)))
-        return np.asarray(d > radius)
+        pts = qk.feats.points if among is None else qk.feats.points[among]
+        d, _ = self._seen.query(transform_points(T_obj_cam, pts.astype(np.float64)))
+        if among is None:
+            return np.asarray(d > radius)
+        out = np.zeros(len(qk.feats.points), bool)
+        out[among] = d > radius
+        return out
 
     def against_unseen_turns(self, q: QueryFrame, qk: QueryKeypoints, res: EstimateResult, refine: bool,
                              timer: StageTimer) -> EstimateResult:
@@ -267,7 +275,7 @@ class ListVerifier:
             with timer.stage("refine"):
                 if refine:
                     T = refine_pose(self.model, q, T, None, q.off_plane, p.refine)
-            off = on & self.off_seen_surface(T, qk, 2.0 * radius)
+            off = self.off_seen_surface(T, qk, 2.0 * radius, among=on)
             unseen = np.unique(qk.location[off])
             known = np.setdiff1d(np.unique(qk.location[on]), unseen)
             if support is None:
@@ -275,15 +283,17 @@ class ListVerifier:
             n_unseen = len(np.intersect1d(support, unseen))
             if n_unseen == 0:
                 continue
-            if (self.evidence(q, T, qk.feats, qk.S, qk.location).score < p.accept.min_score
-                    or self.sinks(q, T) is not None):
-                continue  # the depth refutes the turn
             n_known = len(np.intersect1d(support, known))
             log.debug("turn onto unseen surface: %d of %d supporters there, %d of %d elsewhere", n_unseen, len(unseen),
                       n_known, len(known))
             rate_unseen, rate_known = n_unseen / len(unseen), n_known / max(1, len(known))
             if (n_known < p.accept.min_support or rate_known < p.accept.min_support_ratio
                     or (n_unseen >= p.accept.min_support and rate_known < p.rivals.unseen_rate * rate_unseen)):
+                # the depth is asked only here: a turn it refutes and one the supporters do not make ambiguous
+                # both leave the pose as it is
+                if (self.evidence(q, T, qk.feats, qk.S, qk.location).score < p.accept.min_score
+                        or self.sinks(q, T) is not None):
+                    continue  # the depth refutes the turn
                 deg = self.apart(T, res.T_cam_obj)[0]
                 return not_found(f"{AMBIGUOUS}: the pose turned {deg:.0f} deg by the object's symmetry in shape "
                                  f"would show a side the template has not seen where {n_unseen} of the keypoints "
