@@ -25,7 +25,8 @@ class KeyframeParams:
     min_views: Annotated[int, Field(ge=1, description="at least this many template views when the capture has them "
                                     "(the angle shrinks for a short sweep)")] = 8
     min_object_keypoints: Annotated[int, Field(ge=0, description="keyframes are views with at least this many "
-                                               "keypoints on the object (when any has)")] = 24
+                                               "keypoints on the object, and views with fewer where none of those "
+                                               "looks from")] = 24
 
 
 def view_direction(T_obj_cam: np.ndarray) -> np.ndarray:
