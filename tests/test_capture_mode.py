@@ -78,6 +78,31 @@ def test_keyframes_of_a_short_sweep_are_the_views_with_object_keypoints():
     assert len(select_keyframes(dirs, 12.0, 5, counts, min_keypoints=24, min_views=8)) == 5  # the cap wins
 
 
+def test_a_side_seen_only_by_poorly_supplied_views_keeps_keyframes():
+    """Two rings of 12 views (an upright capture at elevation 30 deg, an upside-down one below the object): the
+    upright ring's half on one side sees a plainly printed face (few object keypoints). More than min_views views
+    are well supplied, yet that half keeps keyframes: no well-supplied view looks from there. A poorly supplied
+    view next to a well-supplied one (within the angle) is still left out."""
+    def ring(el_deg: float, az0: float) -> list[np.ndarray]:
+        e = np.radians(el_deg)
+        return [np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
+                for a in np.radians(az0 + np.arange(0, 360, 30))]
+
+    dirs = dict(enumerate(ring(-30.0, 0.0) + ring(30.0, 40.0)))
+    counts = {k: (11 if k < 12 and dirs[k][0] < 0 else 60) for k in dirs}  # the -x half of the upright ring: poor
+    kf = select_keyframes(dirs, 12.0, 120, counts, min_keypoints=24, min_views=8)
+    assert sorted(kf) == sorted(dirs), kf  # every view: none lies within 12 deg of another
+    poor = [k for k in kf if counts[k] < 24]
+    assert len(poor) == sum(counts[k] < 24 for k in dirs) > 0
+    near = dict(dirs)
+    near[24] = dirs[0] + np.array([0.0, 0.05, 0.0])  # 3 deg from view 0, well supplied
+    near[24] /= np.linalg.norm(near[24])
+    counts[24] = 80
+    counts[0] = 11  # view 0 poorly supplied now: view 24 covers its direction
+    kf = select_keyframes(near, 12.0, 120, counts, min_keypoints=24, min_views=8)
+    assert 24 in kf and 0 not in kf, kf
+
+
 def test_frames_without_the_object_are_nokeyframe_candidates():
     """A registered frame whose object mask is empty (a sweep that starts elsewhere) offers no keyframe: its stored
     object keypoints would be none, and the template its background; unregistered frames neither. With no frame

@@ -25,7 +25,8 @@ class KeyframeParams:
     min_views: Annotated[int, Field(ge=1, description="at least this many template views when the capture has them "
                                     "(the angle shrinks for a short sweep)")] = 8
     min_object_keypoints: Annotated[int, Field(ge=0, description="keyframes are views with at least this many "
-                                               "keypoints on the object (when any has)")] = 24
+                                               "keypoints on the object, and views with fewer where none of those "
+                                               "looks from")] = 24
 
 
 def view_direction(T_obj_cam: np.ndarray) -> np.ndarray:
@@ -52,25 +53,36 @@ def select_keyframes(view_dirs: dict[int, np.ndarray], min_angle_deg: float, max
     view_dirs: frame index -> unit viewing direction in the object frame (`view_direction`);
     object_keypoints: frame index -> keypoints with depth on the object (None: all equal).
     Frames with at least `min_keypoints` object keypoints are candidates (all frames when fewer than
-    `min_views` have that many), taken in order of decreasing count (then index): a frame becomes a keyframe when
-    its direction is at least the angle from every keyframe already chosen. The angle starts at `min_angle_deg`; it
-    grows by 10 % while more than `max_views` qualify and shrinks by 20 % (down to 0.5 deg) while fewer than
-    `min_views` do, so a short sweep over a few degrees still keeps several views. Returns sorted indices.
+    `min_views` have that many), and so is a frame with fewer whose direction lies at least the angle from every
+    such frame: a side of the object that only poorly supplied views saw (a face printed plainly, a second
+    capture's other side) keeps a keyframe instead of leaving its directions to views of other faces. Candidates
+    are taken in order of decreasing count (then index): a frame becomes a keyframe when its direction is at
+    least the angle from every keyframe already chosen. The angle starts at `min_angle_deg`; it grows by 10 %
+    while more than `max_views` qualify and shrinks by 20 % (down to 0.5 deg) while fewer than `min_views` do, so a
+    short sweep over a few degrees still keeps several views. Returns sorted indices.
     """
     if not view_dirs:
         return []
     counts = object_keypoints or {}
     order = sorted(view_dirs, key=lambda i: (-counts.get(i, 0), i))
     rich = [i for i in order if counts.get(i, 0) >= min_keypoints]
-    order = rich if len(rich) >= min(min_views, len(order)) else order
+    if len(rich) < min(min_views, len(order)):
+        rich = order
+    rich_set = set(rich)
+    R = np.array([view_dirs[i] for i in rich])
+    cos_rich = {i: float(np.max(R @ view_dirs[i])) for i in order}  # cosine to each frame's nearest rich one
+
+    def candidates(angle: float) -> list[int]:
+        return [i for i in order if i in rich_set or cos_rich[i] <= np.cos(np.radians(angle))]
+
     angle = min_angle_deg
-    chosen = _greedy(order, view_dirs, angle)
+    chosen = _greedy(candidates(angle), view_dirs, angle)
     while len(chosen) > max_views and angle < 180:
         angle = max(angle * 1.1, angle + 0.5)
-        chosen = _greedy(order, view_dirs, angle)
+        chosen = _greedy(candidates(angle), view_dirs, angle)
     while len(chosen) < min(min_views, max_views, len(order)) and angle > 0.5:
         angle = max(angle * 0.8, 0.5)
-        chosen = _greedy(order, view_dirs, angle)
+        chosen = _greedy(candidates(angle), view_dirs, angle)
     return sorted(chosen[:max_views])
 
 
