@@ -101,6 +101,12 @@ def test_a_side_seen_only_by_poorly_supplied_views_keeps_keyframes():
     counts[0] = 11  # view 0 poorly supplied now: view 24 covers its direction
     kf = select_keyframes(near, 12.0, 120, counts, min_keypoints=24, min_views=8)
     assert 24 in kf and 0 not in kf, kf
+    # the well-supplied keyframes are chosen as without the poor views: 14 views 7 deg apart give 7 at 12 deg,
+    # fewer than min_views, so the angle shrinks until all 14 are kept; a poor view far off is added to them
+    arc = {k: np.array([np.cos(a), np.sin(a), 0.0]) for k, a in enumerate(np.radians(7.0 * np.arange(14)))}
+    arc[14] = np.array([-1.0, 0.0, 0.0])
+    kf = select_keyframes(arc, 12.0, 120, {k: 11 if k == 14 else 60 for k in arc}, min_keypoints=24, min_views=8)
+    assert kf == list(range(15)), kf
 
 
 def test_frames_without_the_object_are_nokeyframe_candidates():

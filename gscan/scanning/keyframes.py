@@ -53,36 +53,33 @@ def select_keyframes(view_dirs: dict[int, np.ndarray], min_angle_deg: float, max
     view_dirs: frame index -> unit viewing direction in the object frame (`view_direction`);
     object_keypoints: frame index -> keypoints with depth on the object (None: all equal).
     Frames with at least `min_keypoints` object keypoints are candidates (all frames when fewer than
-    `min_views` have that many), and so is a frame with fewer whose direction lies at least the angle from every
-    such frame: a side of the object that only poorly supplied views saw (a face printed plainly, a second
-    capture's other side) keeps a keyframe instead of leaving its directions to views of other faces. Candidates
-    are taken in order of decreasing count (then index): a frame becomes a keyframe when its direction is at
-    least the angle from every keyframe already chosen. The angle starts at `min_angle_deg`; it grows by 10 %
-    while more than `max_views` qualify and shrinks by 20 % (down to 0.5 deg) while fewer than `min_views` do, so a
-    short sweep over a few degrees still keeps several views. Returns sorted indices.
+    `min_views` have that many), taken in order of decreasing count (then index): a frame becomes a keyframe when
+    its direction is at least the angle from every keyframe already chosen. The angle starts at `min_angle_deg`; it
+    grows by 10 % while more than `max_views` qualify and shrinks by 20 % (down to 0.5 deg) while fewer than
+    `min_views` do, so a short sweep over a few degrees still keeps several views. Then a frame with fewer
+    keypoints whose direction lies at least that angle from every candidate is added the same way (after the
+    others, up to `max_views`): a side of the object that only poorly supplied views saw (a face printed
+    plainly, a second capture's other side) keeps a keyframe instead of leaving its directions to views of other
+    faces, and the well-supplied keyframes are those chosen without it. Returns sorted indices.
     """
     if not view_dirs:
         return []
     counts = object_keypoints or {}
     order = sorted(view_dirs, key=lambda i: (-counts.get(i, 0), i))
     rich = [i for i in order if counts.get(i, 0) >= min_keypoints]
-    if len(rich) < min(min_views, len(order)):
-        rich = order
-    rich_set = set(rich)
-    R = np.array([view_dirs[i] for i in rich])
-    cos_rich = {i: float(np.max(R @ view_dirs[i])) for i in order}  # cosine to each frame's nearest rich one
-
-    def candidates(angle: float) -> list[int]:
-        return [i for i in order if i in rich_set or cos_rich[i] <= np.cos(np.radians(angle))]
-
+    rich = rich if len(rich) >= min(min_views, len(order)) else order
     angle = min_angle_deg
-    chosen = _greedy(candidates(angle), view_dirs, angle)
+    chosen = _greedy(rich, view_dirs, angle)
     while len(chosen) > max_views and angle < 180:
         angle = max(angle * 1.1, angle + 0.5)
-        chosen = _greedy(candidates(angle), view_dirs, angle)
+        chosen = _greedy(rich, view_dirs, angle)
     while len(chosen) < min(min_views, max_views, len(order)) and angle > 0.5:
         angle = max(angle * 0.8, 0.5)
-        chosen = _greedy(candidates(angle), view_dirs, angle)
+        chosen = _greedy(rich, view_dirs, angle)
+    R = np.array([view_dirs[i] for i in rich])
+    rich_set, cos_max = set(rich), np.cos(np.radians(angle))
+    poor = [i for i in order if i not in rich_set and float(np.max(R @ view_dirs[i])) <= cos_max]
+    chosen = _greedy(chosen + poor, view_dirs, angle)
     return sorted(chosen[:max_views])
 
 
