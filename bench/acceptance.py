@@ -60,7 +60,8 @@ def run(split: str, starts: list[float], gaps: list[float], table: str, masks: b
     from match import render_views
 
     from gscan.geometry.transforms import inv_T, pose_error
-    from gscan.registration.pairwise import RegisterParams, register_frames
+    from gscan.registration.frames import register_frames
+    from gscan.registration.pairwise import RegisterParams
 
     unbounded = RegisterParams(max_sigma_deg=1e9, max_sigma_rel=1e9)  # every rule but weak geometry
 

@@ -35,7 +35,7 @@ _EXPORTS = {
     "FeatureParams": "gscan.features",
     "gmatch": "gscan.matching.gmatch",
     "GMatchParams": "gscan.matching.gmatch",
-    "register_frames": "gscan.registration.pairwise",
+    "register_frames": "gscan.registration.frames",
     "RegisterParams": "gscan.registration.pairwise",
     "PairResult": "gscan.registration.pairwise",
     "scan": "gscan.scanning.api",
@@ -66,7 +66,8 @@ if TYPE_CHECKING:
     from gscan.io.images import load_frame
     from gscan.io.sequence import open_sequence
     from gscan.matching.gmatch import GMatchParams, gmatch
-    from gscan.registration.pairwise import PairResult, RegisterParams, register_frames
+    from gscan.registration.frames import register_frames
+    from gscan.registration.pairwise import PairResult, RegisterParams
     from gscan.scanning.api import scan
     from gscan.scanning.cad import TemplateResult, template_from_mesh
     from gscan.scanning.config import ScanConfig

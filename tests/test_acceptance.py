@@ -72,7 +72,7 @@ def test_two_views_of_a_box_alike_front_and_back_are_refused_at_its_half_turn():
     from match import render_views
 
     from gscan.geometry.transforms import inv_T, pose_error
-    from gscan.registration.pairwise import register_frames
+    from gscan.registration.frames import register_frames
 
     held = meshes("held-out")
     seed = [m.name for m in held].index("Frozen_Scrabble_Jr")

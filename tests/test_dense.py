@@ -46,7 +46,7 @@ def test_a_thin_box_turned_edge_on_gives_no_edge_at_a_wrong_pose(meshes_dir):
     their common edge, or took a normal from across it, pulled such pairs 20 deg off at a claimed 0.5 deg."""
     from gscan.geometry.transforms import inv_T, pose_error
     from gscan.io.camera import RGBDFrame
-    from gscan.registration.pairwise import register_frames
+    from gscan.registration.frames import register_frames
     from gscan.scanning.capture_mode import MOVING_OBJECT
     from gscan.scanning.config import ScanConfig, for_capture
     from gscan.synth import load_textured_mesh, render_capture

@@ -199,12 +199,13 @@ class _Sink:
 
 
 def test_a_loop_closure_the_depth_alone_decides_is_refused(plain_box):
-    """The same pair of the plain box's views: as consecutive frames the depth alone may register it (the edge
-    says so); as a loop closure it is refused (a plain shape's own half turn fits as well)."""
+    """The same pair of the plain box's views, in a sequence of its three: as consecutive frames the depth alone may
+    register it (the edge says so); as a loop closure it is refused (a plain shape's own half turn fits as well).
+    (A capture of those two frames alone is weighed against the half turns: tests/test_acceptance.py.)"""
     feats = [extract_keypoints(_frame(f, n), FP, "depth", NOISE.sigma, mask=f.mask)
-             for f, n in zip(plain_box[:2], "ab", strict=True)]
+             for f, n in zip(plain_box, "abc", strict=True)]
     with ThreadPoolExecutor(1) as pool:
-        seq = Registrar(_Frames(plain_box[:2], feats), RegisterParams(), _Sink()).register([(0, 1)], "sequential", pool)
-        loop = Registrar(_Frames(plain_box[:2], feats), RegisterParams(), _Sink()).register([(0, 1)], "loop", pool)
+        seq = Registrar(_Frames(plain_box, feats), RegisterParams(), _Sink()).register([(0, 1)], "sequential", pool)
+        loop = Registrar(_Frames(plain_box, feats), RegisterParams(), _Sink()).register([(0, 1)], "loop", pool)
     assert seq[0].accepted and seq[0].depth_only, seq[0].reason
     assert not loop[0].accepted and loop[0].reason == LOOP_DEPTH_ONLY

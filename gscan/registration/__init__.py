@@ -1,8 +1,8 @@
 """Registration: pairs of frames (match, Kabsch, optional ICP, verdict), loop-closure candidates, and the
 pose graph that turns the accepted edges into one camera pose per frame.
 
-- pairwise: `register_frames(frame_s, frame_t) -> PairResult`, `register_features`, `RegisterParams`,
-  `frame_cloud`, `relative_pose`
+- frames: `register_frames(frame_s, frame_t) -> PairResult`
+- pairwise: `register_features`, `RegisterParams`, `frame_cloud`, `relative_pose`
 - loops: `select_loop_candidates`, `LoopParams`, `LoopCandidate`
 - posegraph: `optimize_pose_graph -> PoseGraphResult`, `spanning_poses`, `GraphEdge`, `PoseGraphParams`,
   `information_from_points`
@@ -21,8 +21,9 @@ from typing import TYPE_CHECKING
 from gscan._lazy import lazy_exports
 
 _EXPORTS = {
-    **dict.fromkeys(("METHODS", "PairResult", "RegisterParams", "frame_cloud", "register_features", "register_frames",
-                     "relative_pose"), "gscan.registration.pairwise"),
+    **dict.fromkeys(("METHODS", "PairResult", "RegisterParams", "frame_cloud", "register_features", "relative_pose"),
+                    "gscan.registration.pairwise"),
+    "register_frames": "gscan.registration.frames",
     **dict.fromkeys(("LoopCandidate", "LoopParams", "select_loop_candidates"), "gscan.registration.loops"),
     **dict.fromkeys(("GraphEdge", "PoseGraphParams", "PoseGraphResult", "information_from_points",
                      "optimize_pose_graph", "spanning_poses"), "gscan.registration.posegraph"),
@@ -33,6 +34,7 @@ _EXPORTS = {
 
 if TYPE_CHECKING:
     from gscan.registration.edge import Edge
+    from gscan.registration.frames import register_frames
     from gscan.registration.loops import LoopCandidate, LoopParams, select_loop_candidates
     from gscan.registration.pairwise import (
         METHODS,
@@ -40,7 +42,6 @@ if TYPE_CHECKING:
         RegisterParams,
         frame_cloud,
         register_features,
-        register_frames,
         relative_pose,
     )
     from gscan.registration.posegraph import (

@@ -1,10 +1,8 @@
 """Pairwise registration: features -> match (GMatch or a baseline) -> pose -> verdict.
 
-`register_features(fs, ft, params, clouds, dense)` registers two frames' keypoints; `register_frames(frame_s,
-frame_t)` also extracts the features and samples the depth (the one-call Python API), and weighs the pose of a
-two-frame capture, which no other edge vouches for, against the object's half turns
-(`gscan.registration.turns.lone_edge_turn`). T_tgt_src maps source-camera points into the target camera
-(p_t = T_tgt_src @ p_s).
+`register_features(fs, ft, params, clouds, dense)` registers two frames' keypoints (`register_frames`, in
+`gscan.registration.frames`, also extracts them and samples the depth). T_tgt_src maps source-camera points into
+the target camera (p_t = T_tgt_src @ p_s).
 
 Every residual is measured in units of the depth noise (`gscan.registration.noise`): a pair of keypoints
 at depths z_s, z_t has the per-axis standard deviation s = params.noise.pair_sigma(z_s, z_t), so a gate of
@@ -71,7 +69,7 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import Field
 
-from gscan.features import FeatureParams, Features, descriptor_distances, extract_features
+from gscan.features import Features, descriptor_distances
 from gscan.features.keypoints import JOINT
 from gscan.geometry.icp import icp
 from gscan.geometry.kabsch import kabsch, kabsch_trimmed
@@ -569,51 +567,6 @@ def register_features(fs: Features, ft: Features, params: RegisterParams = Regis
 def frame_cloud(frame: RGBDFrame, stride: int = 2, mask: np.ndarray | None = None) -> np.ndarray:
     """Camera-frame ICP cloud [P x 3] of an RGBDFrame (valid depth, every `stride`-th pixel, optional mask)."""
     return point_cloud(frame, mask, stride)[0]
-
-
-def register_frames(frame_s: RGBDFrame, frame_t: RGBDFrame, params: RegisterParams = RegisterParams(), *,
-                    feature_params: FeatureParams | None = None, use_masks: bool = False,
-                    icp_stride: int = 2, alone: bool = True) -> PairResult:
-    """Register two RGB-D frames: keypoints and depth samples of both, then `register_features` (ICP on their
-    clouds when params.icp); with `alone`, an accepted pose is then weighed against the object's half turns.
-
-    Args:
-        frame_s, frame_t: the source and target frames.
-        params: matcher, pose and acceptance parameters.
-        feature_params: the keypoints extracted (default FeatureParams()).
-        use_masks: keypoints and ICP clouds inside the frames' masks only (whole frames by default).
-        icp_stride: pixel stride of the ICP clouds.
-        alone: the pair is the only evidence placing one frame against the other (a two-frame capture): no cycle
-            of further edges can catch a pose turned half about the object, so the edge is refused ("ambiguous
-            shape: the only edge placing its frame ...", `gscan.registration.turns.lone_edge_turn`) when a half
-            turn of the object survives the depth and texture checks as well. False: the pose is one edge of a
-            sequence, judged with the others.
-
-    Returns:
-        PairResult as `register_features`; T_tgt_src [4 x 4] maps source-camera points into the target camera.
-        timings_ms["features"] is the extraction time.
-    """
-    fp = feature_params if feature_params is not None else FeatureParams()
-    ms = frame_s.mask if use_masks else None
-    mt = frame_t.mask if use_masks else None
-    t0 = time.perf_counter()
-    fs = extract_features(frame_s, fp, mask=ms)
-    ft = extract_features(frame_t, fp, mask=mt)
-    t_feat = (time.perf_counter() - t0) * 1e3
-    clouds = (frame_cloud(frame_s, icp_stride, ms), frame_cloud(frame_t, icp_stride, mt)) if params.icp else None
-    dense = (DenseGeometry.from_depth(frame_s.depth, frame_s.intrinsics, ms, image=frame_s.color),
-             DenseGeometry.from_depth(frame_t.depth, frame_t.intrinsics, mt, image=frame_t.color))
-    out = register_features(fs, ft, params, clouds, dense)
-    out.timings_ms["features"] = t_feat
-    if alone and out.accepted:
-        from gscan.registration.turns import lone_edge_turn  # turns builds on this module
-
-        t0 = time.perf_counter()
-        why = lone_edge_turn(fs, ft, dense[0], dense[1], out, params, fp.auto_min_keypoints)
-        out.timings_ms["turns"] = (time.perf_counter() - t0) * 1e3
-        if why is not None:
-            out.accepted, out.reason = False, why
-    return out
 
 
 def relative_pose(T_world_cam_s: np.ndarray, T_world_cam_t: np.ndarray) -> np.ndarray:
