@@ -29,7 +29,7 @@ from gscan.registration.dense import DenseGeometry, in_source_frame, pose_inform
 from gscan.registration.edge import Edge
 from gscan.registration.pairwise import RegisterParams, register_features
 from gscan.registration.posegraph import information_from_points
-from gscan.registration.turns import has_print, lone_edge_turn, turn_not_refuted
+from gscan.registration.turns import edge_turn, lone_edge_turn
 
 LOOP_DEPTH_ONLY = ("ambiguous shape: a loop closure the depth alone decides (a plain surface: the shape's own "
                    "symmetry would fit as well)")
@@ -198,11 +198,8 @@ class Registrar:
             # texture verdict): the views must refute each of the object's half turns, and where a frame has too
             # few image keypoints to have print, the shape alone must (its shading follows the faces' angle to
             # the camera and light, which the turn keeps: it favours the turned pose)
-            printed = has_print(a.feats, b.feats, self.min_print_keypoints)
-            judged = r.colour is not None and r.colour.informative >= self.rparams.min_colour_tiles
             # on printed frames a texture verdict is the print's, which a half turn does not keep: it decided
-            turned = (None if printed and judged
-                      else turn_not_refuted(a.dense, b.dense, r.T_tgt_src, self.rparams, texture=printed))
+            turned = edge_turn(a.feats, b.feats, a.dense, b.dense, r, self.rparams, self.min_print_keypoints, 0.0)
             if turned is not None:
                 r.accepted, r.reason = False, LOOP_TURN.format(turned)
         if len(self.names) == 2 and r.accepted:

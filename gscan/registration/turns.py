@@ -12,6 +12,8 @@ same of their motion.
 - `texture_refutes(colour, params)`: whether texture refutes a pose as it does an edge's
 - `turn_not_refuted(src, tgt, T_tgt_src, params, texture)`: the first half turn of an edge two views cannot refute
 - `has_print(fs, ft, min_keypoints)`: whether both frames have print (enough keypoints the image found)
+- `edge_turn(fs, ft, src, tgt, r, params, min_print_keypoints, min_agreement)`: the first half turn an accepted
+  edge's views do not refute, unless its print settles the pose (loop closures: any texture verdict)
 - `lone_edge_turn(fs, ft, src, tgt, r, params, min_print_keypoints)`: the rule for an edge that alone places a
   frame (a two-frame capture): refused (`LONE_TURN`) when one of its half turns survives the depth and the texture
 """
@@ -63,27 +65,34 @@ def has_print(fs: Features, ft: Features, min_keypoints: int) -> bool:
     return min(len(f) - int(f.from_depth.sum()) for f in (fs, ft)) >= min_keypoints
 
 
-def lone_edge_turn(fs: Features, ft: Features, src: DenseGeometry, tgt: DenseGeometry, r: PairResult,
-                   params: RegisterParams, min_print_keypoints: int) -> str | None:
-    """Why the accepted edge r (fs -> ft keypoints, src -> tgt depth samples) cannot place a frame alone, in words
-    (`LONE_TURN`); None when the print settles its pose or each of the object's half turns is refuted
-    (`turn_not_refuted`, by the texture too where both frames have print, `has_print`).
-
-    An edge that is the only evidence placing a frame has no cycle to catch a pose turned half about the object:
-    two views of a box whose sides look alike match strongly at a turn of it (measured: two-frame captures 120 deg
-    apart registered 90 or 180 deg off with a rotation sigma of 0.2-0.3 deg, the texture lining up in 41-78 % of
-    the overlap's tiles; right poses in 50-100 %). So the texture settles it, as it does a loop closure's, only
-    where both frames have print and nearly all of it lines up (`params.alone_colour_agreement`); otherwise the
-    half turns are weighed. A turn that lays the views' faces onto each other's hidden side leaves little overlap
-    and no texture verdict: it is not refuted, and the edge is refused."""
+def edge_turn(fs: Features, ft: Features, src: DenseGeometry, tgt: DenseGeometry, r: PairResult,
+              params: RegisterParams, min_print_keypoints: int, min_agreement: float) -> str | None:
+    """The first of the object's half turns, in words, that the views do not refute for the accepted edge r (fs ->
+    ft keypoints, src -> tgt depth samples); None when the print settles its pose (both frames have print,
+    `has_print`, and at least `min_agreement` of the overlap's textured tiles line up: 0 for any texture verdict)
+    or each turn is refuted (`turn_not_refuted`, by the texture too where both frames have print)."""
     if not r.accepted or r.T_tgt_src is None:
         return None
     printed = has_print(fs, ft, min_print_keypoints)
     c = r.colour
     if (printed and c is not None and c.informative >= params.min_colour_tiles
-            and c.agreeing_fraction >= params.alone_colour_agreement):
+            and c.agreeing_fraction >= min_agreement):
         return None
-    turned = turn_not_refuted(src, tgt, r.T_tgt_src, params, texture=printed)
+    return turn_not_refuted(src, tgt, r.T_tgt_src, params, texture=printed)
+
+
+def lone_edge_turn(fs: Features, ft: Features, src: DenseGeometry, tgt: DenseGeometry, r: PairResult,
+                   params: RegisterParams, min_print_keypoints: int) -> str | None:
+    """Why the accepted edge r cannot place a frame alone, in words (`LONE_TURN`); None when `edge_turn` finds no
+    turn the views leave standing, the print settling the pose only where nearly all of it lines up
+    (`params.alone_colour_agreement`).
+
+    An edge that is the only evidence placing a frame has no cycle to catch a pose turned half about the object:
+    two views of a box whose sides look alike match strongly at a turn of it (measured: two-frame captures 120 deg
+    apart registered 90 or 180 deg off with a rotation sigma of 0.2-0.3 deg, the texture lining up in 41-78 % of
+    the overlap's tiles; right poses in 50-100 %). A turn that lays the views' faces onto each other's hidden side
+    leaves little overlap and no texture verdict: it is not refuted, and the edge is refused."""
+    turned = edge_turn(fs, ft, src, tgt, r, params, min_print_keypoints, params.alone_colour_agreement)
     return None if turned is None else LONE_TURN.format(turned)
 
 
