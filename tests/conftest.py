@@ -41,6 +41,23 @@ def pytest_configure(config: pytest.Config) -> None:
     factory = getattr(config, "_tmp_path_factory", None)
     if factory is not None:
         set_hypothesis_home_dir(factory.getbasetemp() / "hypothesis")
+    # pytest-xdist hands the files out in collection order (see below), not largest file first
+    if hasattr(config.option, "loadscopereorder"):
+        config.option.loadscopereorder = False
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Files with the most long (slow or browser) tests run first, then the larger files: pytest-xdist's
+    `--dist loadfile` gives each worker the next whole file as it frees up, and a long file begun last keeps one
+    worker busy while the other has nothing left. A file's own tests keep their order."""
+    def long(item: pytest.Item) -> bool:
+        return item.get_closest_marker("slow") is not None or item.get_closest_marker("browser") is not None
+
+    files: dict[str, list[pytest.Item]] = {}
+    for item in items:
+        files.setdefault(item.nodeid.split("::")[0], []).append(item)
+    order = sorted(files.values(), key=lambda its: (-sum(map(long, its)), -len(its)))
+    items[:] = [item for its in order for item in its]
 
 
 @pytest.fixture(scope="session")
