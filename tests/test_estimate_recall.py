@@ -106,7 +106,7 @@ def rendered(scanned, distractors) -> Callable[[str, int, bool], tuple[RGBDFrame
     read-only, so that no estimate can change what another one reads."""
     frames: dict[tuple[str, int, bool], tuple[RGBDFrame, np.ndarray]] = {}
 
-    def get(kind: str, i: int, with_target: bool = True) -> tuple[RGBDFrame, np.ndarray]:
+    def get(kind: str, i: int, with_target: bool) -> tuple[RGBDFrame, np.ndarray]:
         if (kind, i, with_target) not in frames:
             frame, T_gt = render_scene(scanned[kind][0], SCENES[kind][i], distractors, with_target=with_target)
             frame.color.setflags(write=False)
@@ -120,7 +120,7 @@ def rendered(scanned, distractors) -> Callable[[str, int, bool], tuple[RGBDFrame
 def test_failure_kinds_are_found(kind, scanned, rendered):
     mesh, est, T_obj_gt = scanned[kind]
     for i, scene in enumerate(SCENES[kind]):
-        frame, T_gt = rendered(kind, i)
+        frame, T_gt = rendered(kind, i, True)
         res = est.estimate(frame)
         assert res.found, (kind, scene, res.reason)
         T_est = res.T_cam_obj @ T_obj_gt
