@@ -18,7 +18,7 @@ from gscan.errors import InputError
 from gscan.geometry.transforms import inv_T, mean_pose, rotation_angle_deg, transform_points
 from gscan.io.captures import capture_inputs
 from gscan.scanning.api import scan
-from gscan.synth.cases import two_sided_captures
+from gscan.synth.cases import Case, two_sided_captures
 from gscan.template.db import TemplateDB
 from tests._scan_checks import WRONG_RENDERED
 
@@ -170,14 +170,21 @@ def test_append_of_a_capture_that_cannot_be_joined_leaves_the_template_as_it_was
     assert sorted(p.name for p in tmp_path.iterdir()) == ["up.gscan"]
 
 
+@pytest.fixture(scope="module")
+def pepsi_sides(tmp_path_factory, meshes_dir) -> tuple[Case, Case]:
+    """The Pepsi 12-pack, whose top and bottom carry the same print, rendered upright and upside down (12 views
+    each); the tests only read the captures."""
+    pack = synth.load_textured_mesh(meshes_dir / "Pepsi_Caffeine_Free_Diet_12_CT" / "model_0.obj")
+    return two_sided_captures(pack, tmp_path_factory.mktemp("pepsi") / "pack", n_views=12)
+
+
 @pytest.mark.slow
-def test_a_print_repeated_on_top_and_bottom_never_joins_turned(meshes_dir, tmp_path):
+def test_a_print_repeated_on_top_and_bottom_never_joins_turned(pepsi_sides, tmp_path):
     """The Pepsi 12-pack carries the same print on its top and bottom: view pairs of the two sides match at a
     motion that turns the object 180 deg, which once joined its upside-down capture at that motion (all 12 frames
     180 deg off). A capture is joined at the right motion or not at all: its frames, when joined, are within the
     wrong-pose bound of the truth."""
-    pack = synth.load_textured_mesh(meshes_dir / "Pepsi_Caffeine_Free_Diet_12_CT" / "model_0.obj")
-    up, down = two_sided_captures(pack, tmp_path / "pack", n_views=12)
+    up, down = pepsi_sides
     res = scan([up.path, down.path], tmp_path / "pack.gscan")
     caps = {c["name"]: c for c in res.captures}
     with TemplateDB.open(tmp_path / "pack.gscan") as db:
@@ -218,7 +225,7 @@ def test_a_box_printed_alike_on_top_and_bottom_joins_at_the_right_motion(tmp_pat
 @pytest.mark.xfail(strict=True, reason="1 of the 12 upside-down views (000009) is still answered with the pose "
                    "turned 180 deg: its sides support the turned pose at 0.62 of the rate its top does, above "
                    "rivals.unseen_rate (the 11 others are refused; all 12 were wrong before that rule)")
-def test_a_one_sided_template_never_takes_the_bottom_for_the_top(meshes_dir, tmp_path):
+def test_a_one_sided_template_never_takes_the_bottom_for_the_top(pepsi_sides, tmp_path):
     """The Pepsi 12-pack scanned upright only: its template has never seen the bottom, which carries the top's
     print. Seen upside down, the pack's bottom matches the template's top at the pose turned 180 deg (the sides
     repeat under that turn too), and that pose was accepted. Every estimate on the upside-down views must be the
@@ -226,8 +233,7 @@ def test_a_one_sided_template_never_takes_the_bottom_for_the_top(meshes_dir, tmp
     from gscan.estimate import Estimator
     from gscan.io.sequence import open_sequence
 
-    pack = synth.load_textured_mesh(meshes_dir / "Pepsi_Caffeine_Free_Diet_12_CT" / "model_0.obj")
-    up, down = two_sided_captures(pack, tmp_path / "pack", n_views=12)
+    up, down = pepsi_sides
     scan(up.path, tmp_path / "up.gscan")
     with TemplateDB.open(tmp_path / "up.gscan") as db:
         poses = {n: np.asarray(T) for n, T in db.poses()["frames"].items()}
