@@ -242,7 +242,7 @@ class InstanceSearch:
                 feats = subset(self.feats, keep)
                 with self.timer.stage("retrieval"):
                     r = est.index.subset(r_all, keep)
-            qk = query_keypoints(feats, r.S)
+            qk = query_keypoints(feats, r.S, r.rows)
             tie: list[EstimateResult] = []
 
             def separate(res: EstimateResult, alt: EstimateResult, q: QueryFrame = q,
