@@ -340,7 +340,9 @@ class ListVerifier:
         d, j = cKDTree(kp_cam).query(q_pts, k=k, distance_upper_bound=p.support_radius)
         d, j = d.reshape(len(q_pts), k), j.reshape(len(q_pts), k)
         near = np.isfinite(d)
-        cols = kp_idx[vis][np.where(near, j, 0)]
-        sim = qk.S[qk.row_of(np.arange(len(q_pts)))[:, None], cols] * (1.0 if self.index.unit else -1.0)
+        some = np.flatnonzero(near.any(axis=1))  # the similarities read only where a template keypoint is near
+        near = near[some]
+        cols = kp_idx[vis][np.where(near, j[some], 0)]
+        sim = qk.S[qk.row_of(some)[:, None], cols] * (1.0 if self.index.unit else -1.0)
         agree = (near & (sim >= self.support_sim)).any(axis=1)
-        return np.unique(qk.location[agree]).astype(np.int64)
+        return np.unique(qk.location[some[agree]]).astype(np.int64)
