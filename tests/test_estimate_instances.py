@@ -200,6 +200,7 @@ def test_explained_pixels_in_the_silhouettes_box_equal_the_whole_frames():
     the whole frame (sampled, repeated and dilated there), for poses partly out of the frame, odd shifts and
     several dilations."""
     import cv2
+    from scipy.spatial import cKDTree
 
     from gscan.estimate.query import QueryFrame
     from gscan.estimate.verify import visible
@@ -211,7 +212,7 @@ def test_explained_pixels_in_the_silhouettes_box_equal_the_whole_frames():
         sil = np.zeros((H, W), np.uint8)
         cv2.fillConvexPoly(sil, cv2.convexHull(uv.astype(np.int32)), 1)
         ys, xs = np.nonzero(sil[::2, ::2].astype(bool) & (q.frame.depth[::2, ::2] > 0))
-        d = np.linalg.norm(q.cloud[2 * ys, 2 * xs].astype(np.float64)[:, None] - pc[None], axis=2).min(axis=1)
+        d, _ = cKDTree(pc).query(q.cloud[2 * ys, 2 * xs].astype(np.float64), distance_upper_bound=dist)
         half = np.zeros(((H + 1) // 2, (W + 1) // 2), bool)
         half[ys[d < dist], xs[d < dist]] = True
         out = np.repeat(np.repeat(half, 2, axis=0), 2, axis=1)[:H, :W].astype(np.uint8)
