@@ -160,3 +160,14 @@ def test_a_subset_read_through_its_rows_equals_the_copied_rows(seed, unit):
     on = rng.integers(0, len(rows), int(rng.integers(0, 20)))
     for a, b in zip(best_columns(S, rows[on], cols), best_columns(sub, on, cols), strict=True):
         np.testing.assert_array_equal(a, b)
+
+
+def test_a_subset_read_without_its_row_map_is_refused():
+    """A keypoint subset's similarity rows live in the whole frame's matrix: reading it without the row map
+    (row i taken for keypoint i) would give another keypoint's support, so it raises."""
+    from gscan.estimate.verify import keypoint_support
+
+    S = np.zeros((5, 4), np.float32)  # 5 rows, 3 query keypoints
+    with pytest.raises(ValueError, match="sim_rows"):
+        keypoint_support(np.eye(4), np.zeros((4, 3)), np.arange(4), S, np.arange(4), np.zeros((3, 3)), np.arange(3),
+                         np.zeros((10, 3)), np.zeros((8, 8)), None, 0.01, 0.5, 0.01)  # type: ignore[arg-type]

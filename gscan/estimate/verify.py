@@ -208,6 +208,8 @@ def keypoint_support(T_cam_obj: np.ndarray, kp_points: np.ndarray, kp_idx: np.nd
     from gscan.geometry.grid_kernel import NearestGrid
 
     none = np.zeros(0, np.int64)
+    if sim_rows is None and len(sim) != len(q_points):  # a subset of S's rows read without its row map
+        raise ValueError(f"the similarity has {len(sim)} rows for {len(q_points)} query keypoints: pass sim_rows")
     if len(q_points) == 0:
         return none, 0, 0
     # query keypoints on the predicted visible surface
