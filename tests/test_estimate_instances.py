@@ -193,3 +193,43 @@ def test_explained_pixels_by_grid_equal_those_by_kd_tree(monkeypatch):
     assert by_grid[0].sum() > 0.8 * on.sum()
     for a, b in zip(by_grid, by_tree, strict=True):
         assert a.any() and np.array_equal(a, b)
+
+
+def test_explained_pixels_in_the_silhouettes_box_equal_the_whole_frames():
+    """explained_pixels works in the silhouette's bounding box: the same pixels as the plain computation over
+    the whole frame (sampled, repeated and dilated there), for poses partly out of the frame, odd shifts and
+    several dilations."""
+    import cv2
+    from scipy.spatial import cKDTree
+
+    from gscan.estimate.query import QueryFrame
+    from gscan.estimate.verify import visible
+    from gscan.geometry.transforms import inv_T, transform_points
+
+    def whole_frame(q, samples, T, dist, px):
+        H, W = q.frame.depth.shape
+        _, pc, uv = visible(T, q.frame.intrinsics, samples)
+        sil = np.zeros((H, W), np.uint8)
+        cv2.fillConvexPoly(sil, cv2.convexHull(uv.astype(np.int32)), 1)
+        ys, xs = np.nonzero(sil[::2, ::2].astype(bool) & (q.frame.depth[::2, ::2] > 0))
+        d, _ = cKDTree(pc).query(q.cloud[2 * ys, 2 * xs].astype(np.float64), distance_upper_bound=dist)
+        half = np.zeros(((H + 1) // 2, (W + 1) // 2), bool)
+        half[ys[d < dist], xs[d < dist]] = True
+        out = np.repeat(np.repeat(half, 2, axis=0), 2, axis=1)[:H, :W].astype(np.uint8)
+        return (cv2.dilate(out, np.ones((2 * px + 1,) * 2, np.uint8)) if px else out).astype(bool)
+
+    box = box_mesh((0.12, 0.08, 0.05), procedural_box_texture(3, (256, 384)))
+    r = view_on_table(box, 0.3, 40.0, 50.0, 0.5)
+    q = QueryFrame(RGBDFrame("q", r.color, r.depth, r.intrinsics), None, 1.0)
+    on = r.mask & (r.depth > 0)
+    samples = transform_points(inv_T(r.T_cam_obj), q.cloud[on][::5].astype(np.float64))
+    rng = np.random.default_rng(3)
+    for k in range(8):
+        T = r.T_cam_obj.copy()
+        if k:  # shifted by up to a frame's half width: some partly out of the frame
+            T[:3, 3] += rng.uniform(-1, 1, 3) * np.array([0.25, 0.2, 0.02]) + 0.0013 * k
+        for dist, px in ((0.004, 0), (0.008, 1), (0.008, 2), (0.03, 5)):
+            got = explained_pixels(q, samples, T, dist, px)
+            assert np.array_equal(got, whole_frame(q, samples, T, dist, px)), (k, dist, px)
+            if k == 0:
+                assert got.sum() > 0.5 * on.sum()

@@ -136,3 +136,38 @@ def test_count_unique_rows_is_numpys(seed, spread):
     if len(keys) > 4:
         keys[: len(keys) // 3] = keys[-(len(keys) // 3):]  # repeated rows
     assert count_unique_rows(keys) == len(np.unique(keys, axis=0))
+
+
+@given(seed=st.integers(0, 10_000), unit=st.booleans())
+@settings(max_examples=30, deadline=None)
+def test_a_subset_read_through_its_rows_equals_the_copied_rows(seed, unit):
+    """The instance search's later searches read their keypoints' rows in the frame's whole retrieval matrix
+    (`Retrieval.rows`): candidates and best columns equal those of the rows copied out (S[keep])."""
+    rng = np.random.default_rng(seed)
+    M, N = int(rng.integers(2, 30)), int(rng.integers(2, 50))
+    S = rng.random((M, N)).astype(np.float32) if unit else (rng.integers(0, 12, (M, N)) / 10.0).astype(np.float32)
+    rows = np.flatnonzero(rng.random(M) < 0.6)
+    if len(rows) == 0:
+        rows = np.array([0])
+    sub = S[rows]
+    q_order, q_starts = _groups(rng, len(rows), 3)
+    cols = rng.choice(N, int(rng.integers(1, N + 1)), replace=False).astype(np.int64)
+    tg = TemplateGroups(cols, *_groups(rng, len(cols), 3))
+    got = neighbourhood_candidates(S, unit, rows[q_order], q_starts, tg, 0.6, "ratio")
+    want = neighbourhood_candidates(sub, unit, q_order, q_starts, tg, 0.6, "ratio")
+    for a, b in zip((got.src, got.tgt, got.dist), (want.src, want.tgt, want.dist), strict=True):
+        np.testing.assert_array_equal(a, b)
+    on = rng.integers(0, len(rows), int(rng.integers(0, 20)))
+    for a, b in zip(best_columns(S, rows[on], cols), best_columns(sub, on, cols), strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_a_subset_read_without_its_row_map_is_refused():
+    """A keypoint subset's similarity rows live in the whole frame's matrix: reading it without the row map
+    (row i taken for keypoint i) would give another keypoint's support, so it raises."""
+    from gscan.estimate.verify import keypoint_support
+
+    S = np.zeros((5, 4), np.float32)  # 5 rows, 3 query keypoints
+    with pytest.raises(ValueError, match="sim_rows"):
+        keypoint_support(np.eye(4), np.zeros((4, 3)), np.arange(4), S, np.arange(4), np.zeros((3, 3)), np.arange(3),
+                         np.zeros((10, 3)), np.zeros((8, 8)), None, 0.01, 0.5, 0.01)  # type: ignore[arg-type]

@@ -44,11 +44,12 @@ class MatchList:
 
 @dataclass
 class QueryKeypoints:
-    """The query's lifted keypoints and their similarity to the template. S: the retrieval matrix [M x N];
+    """The query's lifted keypoints and their similarity to the template. S: the retrieval matrix [M' x N];
     location [M]: a location id per keypoint (orientations of one point share it); order [M], starts [G]: the
     locations' keypoints (order[starts[g]:starts[g+1]], gscan.geometry.pointset.coincident_groups); group_kp
     [G]: a keypoint of each location; candidates: the GMatch candidates of the neighbourhoods to match, found
-    together (central view -> its neighbourhood's)."""
+    together (central view -> its neighbourhood's); rows [M]: each keypoint's row in S (None: row i is
+    keypoint i; `Retrieval.rows`)."""
 
     feats: Features
     S: np.ndarray = field(repr=False)
@@ -57,14 +58,20 @@ class QueryKeypoints:
     starts: np.ndarray = field(repr=False)
     group_kp: np.ndarray = field(repr=False)
     candidates: dict[int, Candidates] = field(default_factory=dict, repr=False)
+    rows: np.ndarray | None = field(default=None, repr=False)
+
+    def row_of(self, kp: np.ndarray) -> np.ndarray:
+        """The rows in S of the keypoints kp [K] (indices)."""
+        return kp if self.rows is None else self.rows[kp]
 
 
-def query_keypoints(feats: Features, S: np.ndarray) -> QueryKeypoints:
-    """The query keypoints grouped by location (S [M x N]: the retrieval matrix)."""
+def query_keypoints(feats: Features, S: np.ndarray, rows: np.ndarray | None = None) -> QueryKeypoints:
+    """The query keypoints grouped by location (S: the retrieval matrix, rows [M]: the keypoints' rows in it,
+    None: row i is keypoint i)."""
     order, starts = coincident_groups(feats.points)
     location = np.empty(len(feats), np.int64)
     location[order] = np.repeat(np.arange(len(starts)), np.diff(np.r_[starts, len(feats)]))
-    return QueryKeypoints(feats, S, location, order, starts, order[starts])
+    return QueryKeypoints(feats, S, location, order, starts, order[starts], rows=rows)
 
 
 #: a neighbourhood's lists: (index, central view, query keypoints) -> [(matches [n x 2], cost)], best first
@@ -90,8 +97,8 @@ class GMatchLists:
         # the candidates of the [Ns x G] group distance block, read from S without building the block
         cand = qk.candidates.get(v)
         if cand is None:
-            cand = neighbourhood_candidates(qk.S, index.unit, qk.order, qk.starts, nb.groups, index.eps_f,
-                                            self.gmatch.order)
+            cand = neighbourhood_candidates(qk.S, index.unit, qk.row_of(qk.order), qk.starts, nb.groups,
+                                            index.eps_f, self.gmatch.order)
         res = search_candidates(nb.points[nb.order[nb.starts]], qk.feats.points[gq], cand, self.gmatch)
         best = np.asarray(res.matches, dtype=np.int64).reshape(-1, 2)
         out = [(np.stack([gs[best[:, 0]], gq[best[:, 1]]], 1), float(res.cost))]
@@ -112,8 +119,8 @@ def hypothesise(index: TemplateIndex, qk: QueryKeypoints, retrieval: Retrieval, 
     keypoint's nearest template descriptor agrees; support_radius: m at 0.5 m depth."""
     views = index.top_neighbourhoods(retrieval.votes)
     qk.candidates = dict(zip(views, neighbourhoods_candidates(
-        qk.S, index.unit, qk.order, qk.starts, [index.neighbourhoods[v].groups for v in views], index.eps_f,
-        gmatch_order), strict=True))
+        qk.S, index.unit, qk.row_of(qk.order), qk.starts, [index.neighbourhoods[v].groups for v in views],
+        index.eps_f, gmatch_order), strict=True))
     lists: list[MatchList] = []
     seen: set[bytes] = set()
     for v in views:

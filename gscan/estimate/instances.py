@@ -1,7 +1,8 @@
 """Every instance of one or more templates in one frame (`Estimator.estimate_all`, `estimate_templates`).
 
-A frame's features and retrieval are computed once; the search of `Estimator.estimate` (stages 3-7) is then
-repeated on what the instances found so far do not explain:
+A frame's features and retrieval are computed once (a later search reads its keypoints' rows of the retrieval
+matrix in place, `Retrieval.rows`); the search of `Estimator.estimate` (stages 3-7) is then repeated on what the
+instances found so far do not explain:
 
 - a found pose explains the pixels whose point lies within `instances.explain_dist` of its surface, inside its
   silhouette (`explained_pixels`, grown by `instances.dilate_px`); their keypoints leave the next search's
@@ -127,30 +128,39 @@ def explained_pixels(q: QueryFrame, samples: np.ndarray, T_cam_obj: np.ndarray, 
                      dilate_px: int) -> np.ndarray:
     """[H x W] bool the pixels a pose explains: inside the convex silhouette of the template surface samples
     [S x 3] visible at T_cam_obj [4 x 4], with a point within `dist` (m) of those samples; decided on every
-    second pixel of every second row (each standing for its 2 x 2 block) and grown by dilate_px."""
+    second pixel of every second row (each standing for its 2 x 2 block) and grown by dilate_px. Computed in
+    the silhouette's bounding box (from even pixel coordinates, grown by dilate_px): the same pixels as over
+    the whole frame."""
     H, W = q.frame.depth.shape
     out = np.zeros((H, W), bool)
     _, pc, uv = visible(T_cam_obj, q.frame.intrinsics, samples)
     if len(uv) < 3:
         return out
-    sil = np.zeros((H, W), np.uint8)
-    cv2.fillConvexPoly(sil, cv2.convexHull(uv.astype(np.int32)), 1)
-    ys, xs = np.nonzero(sil[::2, ::2].astype(bool) & (q.frame.depth[::2, ::2] > 0))
+    hull = cv2.convexHull(uv.astype(np.int32))
+    x0, y0 = (int(hull[..., 0].min()) - dilate_px) // 2 * 2, (int(hull[..., 1].min()) - dilate_px) // 2 * 2
+    x0, y0 = max(0, x0), max(0, y0)
+    x1, y1 = min(W, int(hull[..., 0].max()) + 2 + dilate_px), min(H, int(hull[..., 1].max()) + 2 + dilate_px)
+    sil = np.zeros((y1 - y0, x1 - x0), np.uint8)
+    cv2.fillConvexPoly(sil, hull - np.array([x0, y0], np.int32), 1)
+    box = (slice(y0, y1), slice(x0, x1))
+    ys, xs = np.nonzero(sil[::2, ::2].astype(bool) & (q.frame.depth[box][::2, ::2] > 0))
     if len(ys) == 0:
         return out
-    pts = q.cloud[2 * ys, 2 * xs].astype(np.float64)
+    pts = q.cloud[y0 + 2 * ys, x0 + 2 * xs].astype(np.float64)
     grid = NearestGrid.build(pc, dist)  # the pairs of a kd-tree with distance_upper_bound, without its build
     if grid is not None:
         ok, _ = grid.query(pts)
     else:
         d, _ = cKDTree(pc, balanced_tree=False, compact_nodes=False).query(pts, distance_upper_bound=dist)
         ok = np.isfinite(d)
-    half = np.zeros(((H + 1) // 2, (W + 1) // 2), bool)
+    h, w = y1 - y0, x1 - x0
+    half = np.zeros(((h + 1) // 2, (w + 1) // 2), bool)
     half[ys[ok], xs[ok]] = True
-    out = np.repeat(np.repeat(half, 2, axis=0), 2, axis=1)[:H, :W]
+    crop = np.repeat(np.repeat(half, 2, axis=0), 2, axis=1)[:h, :w]
     if dilate_px > 0:
         k = 2 * dilate_px + 1
-        out = cv2.dilate(out.astype(np.uint8), np.ones((k, k), np.uint8)).astype(bool)
+        crop = cv2.dilate(crop.astype(np.uint8), np.ones((k, k), np.uint8)).astype(bool)
+    out[box] = crop
     return out
 
 
@@ -158,9 +168,10 @@ def without(q: QueryFrame, removed: np.ndarray) -> QueryFrame:
     """The query frame with the pixels `removed` ([H x W] bool) taken out: no depth, no point, not in the
     search region or off the plane (the support plane and the caller's mask otherwise kept)."""
     f = q.frame
-    depth = np.where(removed, 0, f.depth).astype(f.depth.dtype)
+    depth = f.depth.copy()
+    depth[removed] = 0
     cloud = q.cloud.copy()
-    cloud[removed] = 0.0
+    cloud.reshape(-1, 3)[np.flatnonzero(removed)] = 0.0  # (by pixel index: a boolean mask over 3 channels is slower)
     mask = None if q.mask is None else q.mask & ~removed
     off = None if q.off_plane is None else q.off_plane & ~removed
     return QueryFrame(RGBDFrame(f.name, f.color, depth, f.intrinsics, f.mask), mask, q.depth_frac, q.plane, off,
@@ -242,7 +253,7 @@ class InstanceSearch:
                 feats = subset(self.feats, keep)
                 with self.timer.stage("retrieval"):
                     r = est.index.subset(r_all, keep)
-            qk = query_keypoints(feats, r.S)
+            qk = query_keypoints(feats, r.S, r.rows)
             tie: list[EstimateResult] = []
 
             def separate(res: EstimateResult, alt: EstimateResult, q: QueryFrame = q,

@@ -42,14 +42,17 @@ class Neighbourhood:
 
 @dataclass(frozen=True)
 class Retrieval:
-    """The query against the index. S [M x N]: similarity (unit descriptors) or distance of every query keypoint
-    to every template keypoint; votes [V]: query keypoints voting for each view; nn [M]: each query keypoint's
-    nearest template keypoint (first on ties), best [M]: its value in S."""
+    """The query against the index. S [M' x N]: similarity (unit descriptors) or distance of query keypoints to
+    every template keypoint; votes [V]: query keypoints voting for each view; nn [M]: each query keypoint's
+    nearest template keypoint (first on ties), best [M]: its value in S; rows [M]: each query keypoint's row in
+    S (None: row i is keypoint i, M' = M). A subset of the keypoints (`TemplateIndex.subset`) reads its rows in
+    its parent's S: the matrix is not copied."""
 
     S: np.ndarray = field(repr=False)
     votes: np.ndarray
     nn: np.ndarray = field(repr=False)
     best: np.ndarray = field(repr=False)
+    rows: np.ndarray | None = field(default=None, repr=False)
 
 
 class TemplateIndex:
@@ -112,9 +115,11 @@ class TemplateIndex:
         return np.bincount(self.kp_view[nn[ok]], minlength=len(self.view_names))
 
     def subset(self, r: Retrieval, keep: np.ndarray) -> Retrieval:
-        """`r` of the query keypoints `keep` ([M] bool or indices) only, its votes counted again."""
+        """`r` of the query keypoints `keep` ([M] bool or indices) only, its votes counted again; the same S,
+        their rows in it mapped (`Retrieval.rows`)."""
         nn, best = r.nn[keep], r.best[keep]
-        return Retrieval(r.S[keep], self.votes(nn, best), nn, best)
+        rows = np.arange(len(r.nn))[keep] if r.rows is None else r.rows[keep]
+        return Retrieval(r.S, self.votes(nn, best), nn, best, rows.astype(np.int64))
 
     def nearest(self, S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Each row's nearest template keypoint in S [M x N] (first on ties) and its value: ([M], [M])."""

@@ -103,16 +103,16 @@ class ListVerifier:
 
     def evidence(self, q: QueryFrame, T_cam_obj: np.ndarray, feats: Features, S: np.ndarray,
                  q_location: np.ndarray, kp_idx: np.ndarray | None = None,
-                 sim_cols: np.ndarray | None = None) -> Evidence:
-        """Depth agreement and keypoint support of a pose (`gscan.estimate.verify.pose_evidence`). S [M x C]: the
-        query keypoints' similarity (unit descriptors) or distance to template keypoints; kp_idx: the template
-        keypoints offered (default: those of the views near the pose's viewing direction) and sim_cols their
-        columns in S (default: S holds every keypoint)."""
+                 sim_cols: np.ndarray | None = None, sim_rows: np.ndarray | None = None) -> Evidence:
+        """Depth agreement and keypoint support of a pose (`gscan.estimate.verify.pose_evidence`). S [M' x C]: the
+        query keypoints' similarity (unit descriptors) or distance to template keypoints, sim_rows [M] their rows
+        in S (default: row i is keypoint i); kp_idx: the template keypoints offered (default: those of the views
+        near the pose's viewing direction) and sim_cols their columns in S (default: S holds every keypoint)."""
         if kp_idx is None:
             kp_idx = self.index.offered_keypoints(T_cam_obj, self.params.verify.support_views_deg)
         return pose_evidence(q, T_cam_obj, self.model.samples, self.model.center, self.index.points_obj, kp_idx,
                              S, kp_idx if sim_cols is None else sim_cols, feats.points, q_location,
-                             self.params.verify, self.support_sim, 1.0 if self.index.unit else -1.0)
+                             self.params.verify, self.support_sim, 1.0 if self.index.unit else -1.0, sim_rows)
 
     def sinks(self, q: QueryFrame, T_cam_obj: np.ndarray) -> float | None:
         """The fraction of the object the pose puts inside the frame's support plane when too large, else None."""
@@ -151,7 +151,7 @@ class ListVerifier:
         with timer.stage("refine"):
             if refine:  # not cut by a given mask: a mask that clips the silhouette pulls ICP to the cut
                 T_cam_obj = refine_pose(self.model, q, T_cam_obj, (src[keep], dst[keep]), q.off_plane, p.refine)
-            ev = self.evidence(q, T_cam_obj, qk.feats, qk.S, qk.location)
+            ev = self.evidence(q, T_cam_obj, qk.feats, qk.S, qk.location, sim_rows=qk.rows)
             # inliers count query keypoint locations (pooled lists pair one keypoint with several template views)
             ev.n_matches, ev.n_inliers = c.longest, len(np.unique(qk.location[c.matches[keep, 1]]))
             ev.spread_m = list_spread(src[keep])
@@ -230,7 +230,7 @@ class ListVerifier:
             with timer.stage("refine"):
                 if refine:
                     T = refine_pose(self.model, q, T, None, q.off_plane, p.refine)
-                ev = self.evidence(q, T, qk.feats, qk.S, qk.location)
+                ev = self.evidence(q, T, qk.feats, qk.S, qk.location, sim_rows=qk.rows)
             ev.n_matches, ev.n_inliers, ev.spread_m = res.evidence.n_matches, res.evidence.n_inliers, \
                 res.evidence.spread_m
             if self.sinks(q, T) is not None or accept(ev, self.model.radius, p.accept) is not None:
@@ -291,7 +291,7 @@ class ListVerifier:
                     or (n_unseen >= p.accept.min_support and rate_known < p.rivals.unseen_rate * rate_unseen)):
                 # the depth is asked only here: a turn it refutes and one the supporters do not make ambiguous
                 # both leave the pose as it is
-                if (self.evidence(q, T, qk.feats, qk.S, qk.location).score < p.accept.min_score
+                if (self.evidence(q, T, qk.feats, qk.S, qk.location, sim_rows=qk.rows).score < p.accept.min_score
                         or self.sinks(q, T) is not None):
                     continue  # the depth refutes the turn
                 deg = self.apart(T, res.T_cam_obj)[0]
@@ -340,7 +340,9 @@ class ListVerifier:
         d, j = cKDTree(kp_cam).query(q_pts, k=k, distance_upper_bound=p.support_radius)
         d, j = d.reshape(len(q_pts), k), j.reshape(len(q_pts), k)
         near = np.isfinite(d)
-        cols = kp_idx[vis][np.where(near, j, 0)]
-        sim = qk.S[np.arange(len(q_pts))[:, None], cols] * (1.0 if self.index.unit else -1.0)
+        some = np.flatnonzero(near.any(axis=1))  # the similarities read only where a template keypoint is near
+        near = near[some]
+        cols = kp_idx[vis][np.where(near, j[some], 0)]
+        sim = qk.S[qk.row_of(some)[:, None], cols] * (1.0 if self.index.unit else -1.0)
         agree = (near & (sim >= self.support_sim)).any(axis=1)
-        return np.unique(qk.location[agree]).astype(np.int64)
+        return np.unique(qk.location[some[agree]]).astype(np.int64)

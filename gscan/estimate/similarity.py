@@ -116,7 +116,8 @@ class TemplateGroups:
 def neighbourhood_candidates(S: np.ndarray, unit: bool, q_order: np.ndarray, q_starts: np.ndarray,
                              tg: TemplateGroups, eps_f: float, order: str, capacity: int = 1 << 16) -> Candidates:
     """GMatch candidates (`gscan.matching.gmatch.Candidates`) of template rows `tg` against the query groups
-    (`q_order`, `q_starts` [G] from coincident_groups of the query keypoints) under the feature threshold
+    (`q_order`, `q_starts` [G] from coincident_groups of the query keypoints; q_order holds their rows in S,
+    which may be a subset of S's rows) under the feature threshold
     eps_f: those `extract_candidates(dist, eps_f, order)` gives on dist [R x G], dist[r, g] the distance of
     the best-agreeing member pair. S [M x N] float32: cosine similarities of unit descriptors (`unit`;
     distance sqrt(2 - 2 s)) or distances. capacity: candidates the first pass has room for (a second pass

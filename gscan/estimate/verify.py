@@ -185,8 +185,8 @@ def depth_score(depth: np.ndarray, intr: Intrinsics, T_cam_obj: np.ndarray, clou
 def keypoint_support(T_cam_obj: np.ndarray, kp_points: np.ndarray, kp_idx: np.ndarray, sim: np.ndarray,
                      sim_cols: np.ndarray, q_points: np.ndarray, q_location: np.ndarray, surface_obj: np.ndarray,
                      depth: np.ndarray, intr: Intrinsics, radius: float, min_sim: float,
-                     depth_tol: float, sign: float = 1.0,
-                     surface_cam: np.ndarray | None = None) -> tuple[np.ndarray, int, int]:
+                     depth_tol: float, sign: float = 1.0, surface_cam: np.ndarray | None = None,
+                     sim_rows: np.ndarray | None = None) -> tuple[np.ndarray, int, int]:
     """(supporters, on_surface, offer) of a pose (Evidence): the location ids [support] of the supporting query
     keypoints, sorted.
 
@@ -196,9 +196,10 @@ def keypoint_support(T_cam_obj: np.ndarray, kp_points: np.ndarray, kp_idx: np.nd
     millimetres.
 
     kp_points [N x 3]: object-frame points of every template keypoint; kp_idx [K]: those of the views near the
-    query direction; sim [M x C]: descriptor similarity of the M query keypoints to template keypoints (cosine
+    query direction; sim [M' x C]: descriptor similarity of the M query keypoints to template keypoints (cosine
     of unit descriptors, or the distance with sign -1: the similarity is sign * sim), sim_cols [K] the column of
-    each of kp_idx; q_points [M x 3]: camera-frame query keypoints;
+    each of kp_idx, sim_rows [M] the row of each query keypoint (None: row i is keypoint i); q_points [M x 3]:
+    camera-frame query keypoints;
     q_location [M]: a location id per query keypoint (keypoints of one point with several orientations share
     it); surface_obj [P x 3]: the template cloud, surface_cam its points visible at the pose (camera frame,
     `visible`'s) when the caller has them; radius: keypoint match distance (m)."""
@@ -207,6 +208,8 @@ def keypoint_support(T_cam_obj: np.ndarray, kp_points: np.ndarray, kp_idx: np.nd
     from gscan.geometry.grid_kernel import NearestGrid
 
     none = np.zeros(0, np.int64)
+    if sim_rows is None and len(sim) != len(q_points):  # a subset of S's rows read without its row map
+        raise ValueError(f"the similarity has {len(sim)} rows for {len(q_points)} query keypoints: pass sim_rows")
     if len(q_points) == 0:
         return none, 0, 0
     # query keypoints on the predicted visible surface
@@ -229,7 +232,8 @@ def keypoint_support(T_cam_obj: np.ndarray, kp_points: np.ndarray, kp_idx: np.nd
     if len(sel) == 0 or len(on) == 0:
         return none, on_surface, 0
     offer = count_unique_rows(np.floor(kp_points[kp_idx[sel]] / 0.002).astype(np.int64))
-    nn, best = best_columns(sim, on, sim_cols[sel], sign)  # the best offered keypoint of each query keypoint on
+    # the best offered keypoint of each query keypoint on
+    nn, best = best_columns(sim, on if sim_rows is None else sim_rows[on], sim_cols[sel], sign)
     agree = best >= min_sim
     near = np.linalg.norm(kp_cam[nn] - q_points[on], axis=1) < radius
     return np.unique(q_location[on[agree & near]]).astype(np.int64), on_surface, offer
@@ -269,12 +273,13 @@ def sinks_into_plane(T_cam_obj: np.ndarray, cloud: np.ndarray, plane: Plane, hei
 def pose_evidence(q: QueryFrame, T_cam_obj: np.ndarray, samples: np.ndarray, center: np.ndarray,
                   kp_points: np.ndarray, kp_idx: np.ndarray, sim: np.ndarray, sim_cols: np.ndarray,
                   q_points: np.ndarray, q_location: np.ndarray, params: VerifyParams, min_sim: float,
-                  sign: float) -> Evidence:
+                  sign: float, sim_rows: np.ndarray | None = None) -> Evidence:
     """Depth agreement and keypoint support of the pose T_cam_obj (module docstring); n_matches, n_inliers and
     spread_m are left to the caller. samples [S x 3]: the template surface (object frame), center [3] its
     centre; kp_points [N x 3]: template keypoints (object frame), kp_idx [K] those offered; sim [M x C]: the
     query keypoints' similarity (sign 1) or distance (sign -1) to template keypoints, sim_cols [K] the offered
-    ones' columns; q_points [M x 3], q_location [M]: the query keypoints (camera frame) and their location ids;
+    ones' columns, sim_rows [M] the query keypoints' rows (None: row i is keypoint i); q_points [M x 3],
+    q_location [M]: the query keypoints (camera frame) and their location ids;
     min_sim: the similarity (or negated distance) at which a keypoint agrees."""
     frame = q.frame
     seen = visible(T_cam_obj, frame.intrinsics, samples)  # the template surface the pose shows
@@ -283,7 +288,7 @@ def pose_evidence(q: QueryFrame, T_cam_obj: np.ndarray, samples: np.ndarray, cen
     radius = support_radius(params, float(transform_points(T_cam_obj, center[None])[0, 2]))
     ev.supporters, ev.on_surface, ev.offer = keypoint_support(
         T_cam_obj, kp_points, kp_idx, sim, sim_cols, q_points, q_location, samples, frame.depth, frame.intrinsics,
-        radius, min_sim, params.depth_tol, sign, seen[1])
+        radius, min_sim, params.depth_tol, sign, seen[1], sim_rows)
     return ev
 
 
