@@ -21,9 +21,9 @@ from gscan.registration.join import JoinParams
 from gscan.registration.pairwise import RegisterParams
 from gscan.registration.sequence import SequenceParams
 from gscan.scanning.calibration import FocalCheckParams
-from gscan.scanning.capture_mode import MOVING_OBJECT, STATIC_OBJECT
 from gscan.scanning.fuse import FusionParams
 from gscan.scanning.keyframes import KeyframeParams
+from gscan.scanning.modes import MOVING_OBJECT, STATIC_OBJECT
 from gscan.scanning.segment import SegmentParams
 from gscan.scanning.select import SelectionParams
 from gscan.scanning.symmetry import SymmetryParams
