@@ -66,3 +66,21 @@ class GMatchParams:
             raise ValueError("need T >= 1, L >= 3, K2 >= 1, K3 >= 1")
         if not (0 < self.eps_c < 1 and self.eta > 0 and self.eta_ref_depth > 0):
             raise ValueError("need 0 < eps_c < 1 (a relative distance error) and positive eta, eta_ref_depth")
+
+
+BASELINES = ("ratio", "mutual", "ransac", "lo-ransac", "fgr")
+
+
+@dataclass(frozen=True)
+class BaselineParams:
+    """The baseline matchers' settings (for comparison with GMatch)."""
+
+    __pydantic_config__ = SETTINGS
+
+    ratio: Annotated[float, Field(gt=0, le=1, description="Lowe's ratio")] = 0.75
+    inlier_dist: Annotated[float, Field(gt=0, description="RANSAC / LO-RANSAC inlier threshold (m)")] = 0.01
+    iterations: Annotated[int, Field(ge=1, description="RANSAC / LO-RANSAC maximum trials")] = 100_000
+    confidence: Annotated[float, Field(gt=0, lt=1, description="RANSAC confidence")] = 0.999
+    fgr_dist_factor: Annotated[float, Field(gt=0, description="FGR's final correspondence distance, in "
+                                            "inlier_dist")] = 2.5
+    seed: Annotated[int, Field(ge=0, description="random seed")] = 0
