@@ -32,7 +32,7 @@ def default_eps_f(kind: str) -> float:
 
 @dataclass(frozen=True)
 class GMatchParams:
-    """GMatch's settings (module docstring)."""
+    """GMatch's settings (gscan.matching.gmatch's docstring)."""
 
     __pydantic_config__ = SETTINGS
 

@@ -19,7 +19,8 @@ METHODS = ("gmatch",) + BASELINES
 
 @dataclass(frozen=True)
 class RegisterParams:
-    """How a pair of frames is registered and when the edge is accepted (rules 1-4 of the module docstring)."""
+    """How a pair of frames is registered and when the edge is accepted (rules 1-4 of gscan.registration.pairwise's
+    docstring)."""
 
     __pydantic_config__ = SETTINGS
 
@@ -111,6 +112,8 @@ class RegisterParams:
 
 @dataclass(frozen=True)
 class LoopParams:
+    """Which pairs of nodes are tried as loop closures (gscan.registration.loops)."""
+
     max_per_node: int = 4          # each node takes part in at most this many candidates
     min_index_gap: int = 3         # skip near-sequential pairs (|i - j| < gap)
     max_angle_deg: float = 75.0    # views overlap when viewing directions are within this angle ...
@@ -123,6 +126,8 @@ class LoopParams:
 
 @dataclass(frozen=True)
 class PoseGraphParams:
+    """The robust pose-graph optimisation's rounds (gscan.registration.posegraph)."""
+
     alpha: float = 1e-6                          # an edge is inconsistent beyond the chi^2_6 (1 - alpha) quantile
     max_rounds: int = 200                        # reject / re-optimise rounds
     max_iterations: int = 100                    # LM iterations per optimisation

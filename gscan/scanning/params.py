@@ -13,7 +13,7 @@ from gscan.settings import SETTINGS
 
 @dataclass(frozen=True)
 class FocalCheckParams:
-    """The check's settings (module docstring)."""
+    """The check's settings (gscan.scanning.calibration's docstring)."""
 
     __pydantic_config__ = SETTINGS
 
@@ -41,7 +41,7 @@ class FocalCheckParams:
 
 @dataclass(frozen=True)
 class SymmetryParams:
-    """How an object's symmetries are found (`find_symmetries`, module docstring)."""
+    """How an object's symmetries are found (`gscan.scanning.symmetry.find_symmetries`, that module's docstring)."""
 
     __pydantic_config__ = SETTINGS
 
