@@ -49,7 +49,6 @@ def estimate(
     """Estimate the object's pose T_cam_obj in a new RGB-D frame (--all: every instance of every template)."""
     from dataclasses import replace
 
-    from gscan.estimate.estimator import Estimator
     from gscan.estimate.settings import load_estimate_params
 
     if len(templates) > 1 and not all_instances:
@@ -59,7 +58,7 @@ def estimate(
     params = load_estimate_params(config)
     if max_instances is not None:
         params = replace(params, instances=replace(params.instances, max_instances=max_instances))
-    estimators = [Estimator.from_path(t, params) for t in templates]
+    estimators = [open_estimator(t, params) for t in templates]
     frame = load_query_frame(color, depth, intrinsics, depth_scale, mask, depth_intrinsics, depth_to_color)
     if all_instances:
         estimate_every_instance(estimators, frame, not no_icp, json_out)
@@ -82,6 +81,17 @@ def estimate(
             line(f"grasp {name}: T_cam_grasp =")
             err.print(format_matrix(T))
     err.print("timings (ms): " + ", ".join(f"{k} {v:.1f}" for k, v in out["timings_ms"].items()))
+
+
+def open_estimator(path: Path, params: Any) -> Any:
+    """`Estimator.from_path(path, params)`, the template opened (and a missing or foreign file refused) before the
+    estimator's stages load: a bad input is answered without numba and scipy."""
+    from gscan.template.db import open_template
+
+    template = open_template(path)
+    from gscan.estimate.estimator import Estimator
+
+    return Estimator(template, params)
 
 
 def estimate_every_instance(estimators: list[Any], frame: Any, refine: bool, json_out: bool) -> None:

@@ -2,8 +2,9 @@
 own modules (the choice types read the library's lists when first used: `gscan.cli.choices`); the library
 modules a command runs (numpy, OpenCV, open3d, the pipeline, the estimator, the service, Ray, ...) are imported
 at the top of the command's function, so that `gscan --help` and a bad option are answered without loading them.
-The scan imports its C extensions with Ctrl+C held (`import_holding_ctrl_c`); open3d, which the scan needs only once
-its input is open, when its first stage begins (`ImportsAtFirstStage`), so that a bad input is refused without it."""
+The scan imports its C extensions with Ctrl+C held (`import_holding_ctrl_c`): the pipeline (numba, scipy) once its
+input and output are opened and checked (`gscan.scanning.opening.open_scan`), open3d when its first stage begins
+(`ImportsAtFirstStage`), so that a bad input is refused without them."""
 from __future__ import annotations
 
 import contextlib
@@ -15,8 +16,8 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     from gscan.progress import Progress
 
-#: what a scan imports (with its lazy C-extension imports)
-SCAN_IMPORTS = ("gscan.scanning.api", "open3d", "scipy.spatial")
+#: what a scan imports (with its lazy C-extension imports), once its input is opened (`gscan.scanning.opening`)
+SCAN_IMPORTS = ("gscan.scanning.pipeline", "open3d", "scipy.spatial")
 #: of those, what a scan needs only once its input is open: imported when its first stage begins
 STAGE_IMPORTS = ("open3d",)
 

@@ -60,12 +60,11 @@ def scan(
     """Register every view of an RGB-D capture (or of several captures of one object) into one object frame and
     write a template database."""
     setup_logging(verbose)
-    import_holding_ctrl_c(*(m for m in SCAN_IMPORTS if m not in STAGE_IMPORTS))
     from gscan.io.camera import depth_camera_of
     from gscan.io.output import check_not_input
     from gscan.progress import RichProgress
-    from gscan.scanning.api import scan as scan_capture
     from gscan.scanning.config import load_config
+    from gscan.scanning.opening import open_scan
     from gscan.scanning.options import ScanOptions
 
     if resume and force:
@@ -89,7 +88,16 @@ def scan(
                           roi=None if roi is None else parse_roi(roi), mask=mask)
     try:
         with RichProgress(err, enabled=not json_out or sys.stderr.isatty()) as progress:
-            result = scan_capture(inputs, output, options, progress=ImportsAtFirstStage(progress, STAGE_IMPORTS))
+            opened = open_scan(inputs, output, options)  # a bad input is refused before the pipeline loads
+            try:
+                import_holding_ctrl_c(*(m for m in SCAN_IMPORTS if m not in STAGE_IMPORTS))
+            except BaseException:
+                opened.discard()
+                raise
+            from gscan.scanning.pipeline import run_scan
+
+            result = run_scan(inputs, output, options, progress=ImportsAtFirstStage(progress, STAGE_IMPORTS),
+                              opened=opened)
     except KeyboardInterrupt:  # Ctrl+C: the partial database is kept for --resume (typer exits 130)
         say_interrupted(interrupted_scan_line(output, force))
         raise

@@ -22,14 +22,36 @@ instance tracked, each with its identity), `model` (the object's surface),
 `params` (EstimateParams, a section per stage), `settings` (its YAML), `result` (EstimateResult, the `estimate
 --json` object).
 """
-from gscan.estimate.estimator import Estimator
-from gscan.estimate.instances import Instances, estimate_templates
-from gscan.estimate.params import EstimateParams
-from gscan.estimate.result import STAGES, EstimateResult
-from gscan.estimate.settings import dump_estimate_defaults, load_estimate_params
-from gscan.estimate.track import STATUSES, Tracker, TrackParams, TrackRun, TrackStep, track_sequence, write_poses
-from gscan.estimate.track_instances import InstanceTracker
-from gscan.estimate.verify import AcceptParams, Evidence
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from gscan._lazy import lazy_exports
+
+# names imported on first use (PEP 562): `settings` and `params` read the configuration without loading the
+# estimator's stages (numba, scipy)
+_EXPORTS = {
+    "Estimator": "gscan.estimate.estimator", "Instances": "gscan.estimate.instances",
+    "estimate_templates": "gscan.estimate.instances", "EstimateParams": "gscan.estimate.params",
+    "AcceptParams": "gscan.estimate.params", "STAGES": "gscan.estimate.result",
+    "EstimateResult": "gscan.estimate.result", "dump_estimate_defaults": "gscan.estimate.settings",
+    "load_estimate_params": "gscan.estimate.settings", "STATUSES": "gscan.estimate.track",
+    "Tracker": "gscan.estimate.track", "TrackParams": "gscan.estimate.track", "TrackRun": "gscan.estimate.track",
+    "TrackStep": "gscan.estimate.track", "track_sequence": "gscan.estimate.track",
+    "write_poses": "gscan.estimate.track", "InstanceTracker": "gscan.estimate.track_instances",
+    "Evidence": "gscan.estimate.verify",
+}
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
+
+if TYPE_CHECKING:
+    from gscan.estimate.estimator import Estimator
+    from gscan.estimate.instances import Instances, estimate_templates
+    from gscan.estimate.params import AcceptParams, EstimateParams
+    from gscan.estimate.result import STAGES, EstimateResult
+    from gscan.estimate.settings import dump_estimate_defaults, load_estimate_params
+    from gscan.estimate.track import STATUSES, Tracker, TrackParams, TrackRun, TrackStep, track_sequence, write_poses
+    from gscan.estimate.track_instances import InstanceTracker
+    from gscan.estimate.verify import Evidence
 
 __all__ = ["STAGES", "STATUSES", "AcceptParams", "EstimateParams", "EstimateResult", "Estimator", "Evidence",
            "InstanceTracker", "Instances", "TrackParams", "TrackRun", "TrackStep", "Tracker", "dump_estimate_defaults",

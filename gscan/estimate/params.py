@@ -12,7 +12,7 @@ from typing import Annotated
 from pydantic import Field
 
 from gscan.features import OBJECT_FEATURES, FeatureParams
-from gscan.matching.gmatch import GMatchParams
+from gscan.matching.params import GMatchParams
 from gscan.settings import SETTINGS
 
 

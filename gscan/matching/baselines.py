@@ -24,32 +24,14 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field
-from typing import Annotated
 
 import numpy as np
-from pydantic import Field
 
 from gscan.geometry.kabsch import kabsch
-from gscan.settings import SETTINGS
+from gscan.matching.params import BASELINES, BaselineParams
 
 log = logging.getLogger(__name__)
 
-BASELINES = ("ratio", "mutual", "ransac", "lo-ransac", "fgr")
-
-
-@dataclass(frozen=True)
-class BaselineParams:
-    """The baseline matchers' settings (for comparison with GMatch)."""
-
-    __pydantic_config__ = SETTINGS
-
-    ratio: Annotated[float, Field(gt=0, le=1, description="Lowe's ratio")] = 0.75
-    inlier_dist: Annotated[float, Field(gt=0, description="RANSAC / LO-RANSAC inlier threshold (m)")] = 0.01
-    iterations: Annotated[int, Field(ge=1, description="RANSAC / LO-RANSAC maximum trials")] = 100_000
-    confidence: Annotated[float, Field(gt=0, lt=1, description="RANSAC confidence")] = 0.999
-    fgr_dist_factor: Annotated[float, Field(gt=0, description="FGR's final correspondence distance, in "
-                                            "inlier_dist")] = 2.5
-    seed: Annotated[int, Field(ge=0, description="random seed")] = 0
 
 
 @dataclass

@@ -22,10 +22,8 @@ from collections import Counter
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import Annotated
 
 import numpy as np
-from pydantic import Field
 
 from gscan.geometry.icp import icp_point_to_plane
 from gscan.geometry.symmetry import axis_rotation
@@ -34,27 +32,10 @@ from gscan.registration.colour import ColourAgreement
 from gscan.registration.dense import DepthAgreement, colour_agreement, depth_agreement
 from gscan.registration.edges import RegData
 from gscan.registration.pairwise import PairResult, RegisterParams, register_features
+from gscan.registration.params import JoinParams
 from gscan.registration.turns import AXES, principal_turns, texture_refutes
-from gscan.settings import SETTINGS
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class JoinParams:
-    """How captures of one object are joined."""
-
-    __pydantic_config__ = SETTINGS
-
-    views: Annotated[int, Field(ge=2, le=32, description="registered views of each capture tried against the "
-                                "other's (spread over the capture)")] = 8
-    min_pairs: Annotated[int, Field(ge=2, description="view pairs that must agree on the motion joining two "
-                                    "captures")] = 3
-    agree_sigmas: Annotated[float, Field(gt=0, description="two view pairs agree when their motions differ by "
-                                         "less than this many of their predicted standard deviations")] = 4.0
-    turn_texture_ratio: Annotated[float, Field(gt=0, lt=1, description="the object turned about a principal axis "
-                                               "is outweighed when its share of the overlap's textured tiles that "
-                                               "line up is below this fraction of the motion found's")] = 0.5
 
 
 @dataclass(frozen=True)

@@ -12,6 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from gscan.registration.params import LoopParams
+
 DEFAULT_DEPTH_M = 0.5  # the depth a node looks at when it is not given (an object on a table at arm's length)
 
 
@@ -26,18 +28,6 @@ class LoopCandidate:
     distance_m: float     # distance between the camera centres
     similarity: float     # appearance similarity (cosine of tf-idf bag-of-words vectors), 0 if unused
     reason: str           # "overlap" | "appearance" | "overlap+appearance"
-
-
-@dataclass(frozen=True)
-class LoopParams:
-    max_per_node: int = 4          # each node takes part in at most this many candidates
-    min_index_gap: int = 3         # skip near-sequential pairs (|i - j| < gap)
-    max_angle_deg: float = 75.0    # views overlap when viewing directions are within this angle ...
-    max_baseline: float = 1.0      # ... and the camera centres within this multiple of the depth they look at
-    appearance_top_k: int = 2      # per node, the k most similar nodes by appearance are candidates
-    min_similarity: float = 0.2    # ... if their similarity reaches this
-    vocabulary_size: int = 64      # bag-of-words words (k-means on the descriptors)
-    seed: int = 0
 
 
 def bow_vectors(descriptors: Sequence[np.ndarray], vocabulary_size: int = 64, seed: int = 0,

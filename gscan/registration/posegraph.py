@@ -49,6 +49,7 @@ import numpy as np
 
 from gscan.geometry.transforms import inv_T, rotation_angle_deg
 from gscan.registration.loops import LoopCandidate, LoopParams, bow_vectors, select_loop_candidates
+from gscan.registration.params import PoseGraphParams
 
 __all__ = [
     "EdgeReport",
@@ -149,17 +150,6 @@ class PoseGraphResult:
         """[4 x 4] pose of node i in the reference node's frame (None when node i is unregistered)."""
         T, R = self.T_world_node[i], self.T_world_node[self.reference_node]
         return None if T is None or R is None else inv_T(R) @ T
-
-
-@dataclass(frozen=True)
-class PoseGraphParams:
-    alpha: float = 1e-6                          # an edge is inconsistent beyond the chi^2_6 (1 - alpha) quantile
-    max_rounds: int = 200                        # reject / re-optimise rounds
-    max_iterations: int = 100                    # LM iterations per optimisation
-
-    def __post_init__(self) -> None:
-        if not 0 < self.alpha < 1 or self.max_rounds < 1 or self.max_iterations < 1:
-            raise ValueError("need 0 < alpha < 1, max_rounds >= 1 and max_iterations >= 1")
 
 
 def _rotvecs(R: np.ndarray) -> np.ndarray:

@@ -18,10 +18,9 @@ import logging
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Annotated, overload
+from typing import overload
 
 import numpy as np
-from pydantic import Field
 
 from gscan.geometry.transforms import inv_T, rotation_angle_deg, transform_points
 from gscan.registration.dense import plane_residuals
@@ -33,61 +32,21 @@ from gscan.registration.edges import (
     SequenceFrames,
     edge_evidence,
 )
-from gscan.registration.loops import LoopParams, select_loop_candidates
+from gscan.registration.loops import select_loop_candidates
 from gscan.registration.noise import DepthNoise, estimate_noise
 from gscan.registration.pairwise import RegisterParams, register_features
+from gscan.registration.params import LoopParams, PoseGraphParams, SequenceParams  # noqa: F401 - its importers read it here too
 from gscan.registration.posegraph import (
     INCONSISTENT,
     GraphEdge,
-    PoseGraphParams,
     PoseGraphResult,
     optimize_pose_graph,
     spanning_poses,
 )
-from gscan.settings import SETTINGS
 
 log = logging.getLogger(__name__)
 
 NO_KEYPOINTS = "no keypoint with depth (dark or textureless image, or no valid depth)"
-_LP, _PG = LoopParams(), PoseGraphParams()
-
-
-@dataclass(frozen=True)
-class SequenceParams:
-    """How a sequence is registered: which pairs, how the pose graph judges them, how a view's quality is scored."""
-
-    __pydantic_config__ = SETTINGS
-
-    loop_candidates: Annotated[int, Field(ge=0, description="loop-closure candidates tried per frame")] = (
-        _LP.max_per_node)
-    max_view_angle_deg: Annotated[float, Field(gt=0, le=180, description="loop candidates view the object within "
-                                               "this angle")] = _LP.max_angle_deg
-    alpha: Annotated[float, Field(gt=0, lt=1, description="an edge is inconsistent with the others when its chi^2 is "
-                                  "beyond the (1 - alpha) quantile (6 degrees of freedom)")] = _PG.alpha
-    bridge_min_matches: Annotated[int, Field(ge=3, description="an edge that alone joins two parts of the graph needs "
-                                             "this many matches; weaker, it is cut and the parts reported")] = (
-        2 * RegisterParams().min_matches)
-    max_skip: Annotated[int, Field(ge=1, le=32, description="a frame is tried against up to this many preceding "
-                                   "frames, its predecessor first, until one is accepted")] = 3
-    second_opinions: Annotated[int, Field(ge=0, le=16, description="more frames a frame the pose graph cut loose is "
-                                          "registered to (the views nearest its own); 0 = none")] = 2
-    pilot_pairs: Annotated[int, Field(ge=0, le=256, description="sequential pairs, spread over the capture, whose "
-                                      "residuals fit the capture's noise (estimate_noise)")] = 8
-    odometry_sigmas: Annotated[float, Field(gt=0, description="a loop edge is rejected when it turns the view "
-                                            "against the capture's odometry by more than this many of registration's "
-                                            "largest accepted rotation sigmas per frame between its two")] = 5.0
-    estimate_noise: Annotated[bool, Field(description="estimate the capture's noise (registration.noise and "
-                                          "depth_noise the priors); false = use those as given")] = True
-    quality_rms_sigma: Annotated[float, Field(gt=0, description="a view whose best accepted edge has this RMS "
-                                              "keypoint residual (noise sigmas) gets quality 0")] = 3.4
-
-    def loop_params(self) -> LoopParams:
-        """The loop-closure candidates' parameters."""
-        return LoopParams(max_per_node=self.loop_candidates, max_angle_deg=self.max_view_angle_deg)
-
-    def graph_params(self) -> PoseGraphParams:
-        """The pose graph's parameters."""
-        return PoseGraphParams(alpha=self.alpha)
 
 
 @dataclass

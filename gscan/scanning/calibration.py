@@ -43,17 +43,15 @@ import threading
 from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
-from typing import Annotated
 
 import numpy as np
-from pydantic import Field
 
 from gscan.features import Detection, FeatureParams, Features, detect, extract_features
 from gscan.io.align import align_depth_to_color
 from gscan.io.camera import DepthCamera, Intrinsics, RGBDFrame, lift_keypoints
 from gscan.registration.dense import DenseGeometry, image_texture
 from gscan.registration.pairwise import RegisterParams, register_features
-from gscan.settings import SETTINGS
+from gscan.scanning.params import FocalCheckParams
 
 log = logging.getLogger(__name__)
 
@@ -63,34 +61,6 @@ WINDOW = FIT * 0.05  # ... the same as a difference of scales
 # the parabola's own error: its vertex sits off a peak that is not a parabola by up to a quarter of the grid step
 # (0.010 measured at a rendered capture's sharp peak, colour camera 1.12), added to each side of the interval
 GRID_ERROR = 0.0125
-
-
-@dataclass(frozen=True)
-class FocalCheckParams:
-    """The check's settings (module docstring)."""
-
-    __pydantic_config__ = SETTINGS
-
-    check_colour_focal: Annotated[bool, Field(description="a folder capture with one set of intrinsics: check that "
-                                              "its depth lines up with its colour, and when the texture says the "
-                                              "colour camera's focal length differs, scan with the one the data "
-                                              "give")] = True
-    steps: Annotated[tuple[int, ...], Field(min_length=1, description="frame pairs (i, i + step) registered")] = (1, 2)
-    groups: Annotated[int, Field(ge=1, description="first frames i spread over the capture")] = 8
-    keypoints: Annotated[int, Field(ge=50, description="the strongest keypoints kept per frame (enough to register "
-                                    "neighbours, and fast)")] = 800
-    alpha: Annotated[float, Field(gt=0, lt=1, description="the level of the signed-rank test and of the estimate's "
-                                  "interval (1 - alpha)")] = 0.05
-    min_gain: Annotated[float, Field(ge=0, le=1, description="the least gain in the mean share of textured tiles "
-                                     "lining up")] = 0.03
-    edge_frames: Annotated[int, Field(ge=1, description="frames spread over the capture whose depth jumps are "
-                                      "compared with their colour edges (gscan.scanning.depth_edges)")] = 8
-    bootstrap: Annotated[int, Field(ge=50, description="resamples of the pairs for the estimate's "
-                                    "uncertainty")] = 400
-    max_uncertainty: Annotated[float, Field(gt=0, lt=1, description="the widest interval (half of it, relative to the "
-                                            "focal length) that keeps the given focal length: a focal length off "
-                                            "by x bends the frames' geometry by about x (3 cm at 1 m for the 3 % of "
-                                            "the default)")] = 0.03
 
 
 KEPT, CORRECTED, UNCONFIRMED = "kept", "corrected", "could not confirm"

@@ -26,12 +26,10 @@ import numpy as np
 from gscan.geometry.plane import Plane
 from gscan.io.camera import RGBDFrame
 from gscan.registration.colour import image_noise, min_texture_std, texture_image, tile_ids, tile_scores
+from gscan.scanning.modes import MOVING_OBJECT, STATIC_OBJECT
 from gscan.scanning.segment import SegmentParams, segment_frame
 
 log = logging.getLogger(__name__)
-
-STATIC_OBJECT = "static-object"
-MOVING_OBJECT = "moving-object"
 
 
 @dataclass

@@ -17,16 +17,13 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, model_validator
 
 from gscan.features import FeatureParams
-from gscan.registration.join import JoinParams
-from gscan.registration.pairwise import RegisterParams
-from gscan.registration.sequence import SequenceParams
-from gscan.scanning.calibration import FocalCheckParams
-from gscan.scanning.capture_mode import MOVING_OBJECT, STATIC_OBJECT
+from gscan.registration.params import JoinParams, RegisterParams, SequenceParams
 from gscan.scanning.fuse import FusionParams
 from gscan.scanning.keyframes import KeyframeParams
+from gscan.scanning.modes import MOVING_OBJECT, STATIC_OBJECT
+from gscan.scanning.params import FocalCheckParams, SymmetryParams
 from gscan.scanning.segment import SegmentParams
 from gscan.scanning.select import SelectionParams
-from gscan.scanning.symmetry import SymmetryParams
 from gscan.settings import dump_yaml, read_yaml, validate
 
 # sections another reader takes from the same file (`gscan.estimate.settings.load_estimate_params`): accepted here

@@ -5,12 +5,14 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from gscan.io.camera import DepthCamera
 from gscan.io.layouts import FORMATS
-from gscan.scanning.capture_mode import MOVING_OBJECT, STATIC_OBJECT
-from gscan.scanning.config import ScanConfig
+from gscan.scanning.modes import MOVING_OBJECT, STATIC_OBJECT
+
+if TYPE_CHECKING:
+    from gscan.scanning.config import ScanConfig
 
 #: the input layouts `format` may name ("auto": detected)
 FORMAT_CHOICES = ("auto", *FORMATS)
@@ -44,7 +46,7 @@ class ScanOptions:
     resume: bool = False
     append: bool = False
     force: bool = False
-    config: ScanConfig = field(default_factory=ScanConfig)
+    config: ScanConfig = field(default_factory=lambda: _default_config())
     obj_id: int | None = None
     color_topic: str | None = None
     depth_topic: str | None = None
@@ -73,3 +75,11 @@ class ScanOptions:
         if self.depth_camera is not None and not isinstance(self.depth_camera, DepthCamera):
             raise TypeError(f"depth_camera must be a DepthCamera (gscan.io.camera.load_depth_camera), not "
                             f"{type(self.depth_camera).__name__}")
+
+
+def _default_config() -> ScanConfig:
+    """The default `ScanConfig`, its module imported when first needed: the stages' settings classes load numba
+    and scipy, which the command line's choices (FORMAT_CHOICES, MODE_CHOICES) do without."""
+    from gscan.scanning.config import ScanConfig
+
+    return ScanConfig()

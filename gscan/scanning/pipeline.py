@@ -61,10 +61,8 @@ from gscan.geometry.plane import Plane
 from gscan.geometry.symmetry import Symmetries
 from gscan.geometry.transforms import transform_points
 from gscan.io.camera import RGBDFrame
-from gscan.io.captures import CaptureInput, capture_inputs
+from gscan.io.captures import CaptureInput
 from gscan.io.output import (
-    Output,
-    check_output,
     file_identity,
     missing_folders,
     remove_empty_folders,
@@ -82,8 +80,9 @@ from gscan.scanning.config import ScanConfig, for_capture
 from gscan.scanning.frames import WORKERS, Frame, FrameData, detect_capture_mode, load_frames
 from gscan.scanning.fuse import FusedModel, FusionParams, fuse_tsdf, template_frame
 from gscan.scanning.keyframes import keyframe_candidates, select_keyframes
+from gscan.scanning.opening import OpenedScan, open_scan, template_captures
 from gscan.scanning.options import ScanOptions
-from gscan.scanning.output import create_output, open_appended, open_resumed, scan_meta
+from gscan.scanning.output import create_output, scan_meta
 from gscan.scanning.segment import ChosenObject, ObjectHint, SegmentParams, object_hint, segment_frame
 from gscan.scanning.select import BLURRED, LITTLE_MOTION, Selection
 from gscan.scanning.store import FrameStore, LazyList, StoredFrame
@@ -218,7 +217,7 @@ class _Registered:
 
 
 def run_scan(sources: Path | Sequence[Path], output: Path, opts: ScanOptions,
-             progress: Progress | None = None) -> ScanResult:
+             progress: Progress | None = None, opened: OpenedScan | None = None) -> ScanResult:
     """Run the whole pipeline (see the module docstring) on one capture or several of one object. Raises
     InputError for bad input.
 
@@ -226,27 +225,20 @@ def run_scan(sources: Path | Sequence[Path], output: Path, opts: ScanOptions,
     written in place (resumable); an existing one (`force`) is replaced only by a complete new database,
     written beside it, so a failed or interrupted run leaves it as it was. The kept frames' images wait in a
     `FrameStore` beside the output while the scan runs (gone when it ends, however it ends).
+
+    opened: the input and output `open_scan(sources, output, opts)` opened (`gscan scan` opens them before this
+    module loads); None: opened here.
     """
-    sources = [sources] if isinstance(sources, Path) else [Path(s) for s in sources]
-    resumed = opts.resume and output.is_file()
-    check_output(output, force=opts.force or resumed or opts.append, kind=".gscan file path", fix="resume")
+    if opened is None:
+        opened = open_scan(sources, output, opts)
+    sources, resumed, db, target = opened.sources, opened.resumed, opened.db, opened.target
     timer = StageTimer(progress)
-    db: TemplateDB | None = None
-    target: Output | None = None
     store: FrameStore | None = None
     base: _Capture | None = None  # --append: the template's views, as a capture registered in the object frame
     try:
-        if opts.append:
-            db, target = open_appended(output, opts)
-        taken = _capture_names(db) if db is not None and opts.append else []
-        inputs = capture_inputs(sources, opts.obj_id, taken)
-        several = len(inputs) > 1 or opts.append
-        caps = [_Capture(c, _open(c, opts), f"{c.name}/" if several else "") for c in inputs]
+        caps = [_Capture(c, seq, prefix) for c, seq, prefix in opened.captures]
         seqs = [cap.seq for cap in caps if cap.seq is not None]
-        fingerprints = {cap.prefix + n: fp for cap, seq in zip(caps, seqs, strict=True)
-                        for n, fp in seq.fingerprints().items()}
-        if resumed:
-            db, target = open_resumed(sources, output, opts, None if several else seqs[0], fingerprints)
+        fingerprints = opened.fingerprints
         store = FrameStore(output)
         if opts.append:
             assert db is not None
@@ -302,24 +294,6 @@ def run_scan(sources: Path | Sequence[Path], output: Path, opts: ScanOptions,
         remove_sqlite_sidecars(output)  # a killed writer's journal or log there would be replayed into ours
         target.commit()
     return result
-
-
-def _open(c: CaptureInput, opts: ScanOptions) -> FrameSequence | RecordingSequence:
-    """A capture's frames, opened (its layout and calibration read; no frame yet). InputError naming it."""
-    from gscan.io import open_sequence
-
-    obj_id = opts.obj_id if c.obj_id is None else c.obj_id
-    seq = open_sequence(c.source, format=c.format or opts.format, intrinsics=opts.intrinsics,
-                        depth_scale=opts.depth_scale, obj_id=obj_id, color_topic=opts.color_topic,
-                        depth_topic=opts.depth_topic, depth_camera=opts.depth_camera)
-    if obj_id is not None and seq.format != "bop":
-        raise InputError(c.source, f"an object id is for BOP scene folders, this is a {seq.format} folder")
-    if obj_id is not None and seq.gt_T_cam_obj is None:
-        raise InputError(c.source / "scene_gt.json", "not found (the object id picks an object of its "
-                         "poses)", fix="obj_id")
-    if obj_id is not None and not seq.gt_T_cam_obj:
-        raise InputError(c.source / "scene_gt.json", f"holds no pose of object {obj_id}", fix="obj_id")
-    return seq
 
 
 def _load(cap: _Capture, opts: ScanOptions, timer: StageTimer, store: FrameStore) -> None:
@@ -447,7 +421,7 @@ def _scan_frames(caps: list[_Capture], output: Path, opts: ScanOptions, db: Temp
         db.set_meta("skipped", problems)
         db.set_meta("selection", selection.to_meta())
         if opts.append:  # the template's captures as they were recorded, then the new ones
-            recorded = _template_captures(db) + [_capture_meta(cap, T_obj_world) for cap in caps[1:]]
+            recorded = template_captures(db) + [_capture_meta(cap, T_obj_world) for cap in caps[1:]]
             db.set_meta("captures", recorded)
             db.set_meta("input", [c["input"] for c in recorded])
         else:
@@ -492,30 +466,12 @@ def _captures_summary(caps: list[_Capture], db: TemplateDB, append: bool) -> lis
     return [_capture_summary(cap) for cap in caps] if len(caps) > 1 else []
 
 
-def _capture_names(db: TemplateDB) -> list[str]:
-    """The names of the captures a template was scanned from."""
-    return [c["name"] for c in _template_captures(db)]
-
-
-def _template_captures(db: TemplateDB) -> list[dict]:
-    """A template's "captures" meta; a template of one capture: that capture, named after its input."""
-    caps = db.get_meta("captures") or []
-    if caps:
-        return list(caps)
-    src = db.get_meta("input")
-    views = db.views()
-    return [{"name": (Path(src).stem if Path(src).suffix else Path(src).name) or "capture", "input": src,
-             "mode": db.get_meta("mode"), "frames": len(views),
-             "registered": sum(v.T_obj_cam is not None for v in views), "joined": True, "reason": None,
-             "T_obj_world": None}]
-
-
 def _template_capture(db: TemplateDB, store: FrameStore, opts: ScanOptions) -> _Capture:
     """The views of the template appended to (`--append`) as a capture registered in the object frame: their
     images and masks put in the frame store, their poses, qualities and the reasons of the unregistered ones. A
     template of one capture has its views renamed `CAPTURE/FRAME` first, as a scan of several names them."""
     if not db.get_meta("captures"):
-        [only] = _template_captures(db)
+        [only] = template_captures(db)
         prefix = f"{only['name']}/"
         db.rename_views(prefix)
         meta = db.meta()

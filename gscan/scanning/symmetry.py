@@ -35,43 +35,19 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from typing import Annotated
 
 import numpy as np
-from pydantic import Field
 from scipy.spatial import cKDTree
 
 from gscan.geometry.mesh import MeshData, to_u8_colors
 from gscan.geometry.meshfill import boundary_edges
 from gscan.geometry.symmetry import Symmetries, axis_rotation
 from gscan.registration.noise import DepthNoise
-from gscan.settings import SETTINGS
+from gscan.scanning.params import SymmetryParams
 from gscan.synth.mesh import TexturedMesh, sample_bilinear
 from gscan.template.db import TemplateDB
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class SymmetryParams:
-    """How an object's symmetries are found (`find_symmetries`, module docstring)."""
-
-    __pydantic_config__ = SETTINGS
-
-    enabled: Annotated[bool, Field(description="find the object's symmetries at the end of the scan")] = True
-    reference_samples: Annotated[int, Field(ge=1000, description="surface samples the rotated ones are compared "
-                                            "with (their spacing is part of the tolerance)")] = 60000
-    test_samples: Annotated[int, Field(ge=100, description="surface samples rotated by each candidate")] = 3000
-    tolerance_sigmas: Annotated[float, Field(gt=0, description="tolerance in standard deviations of the template's "
-                                             "surface error (module docstring)")] = 2.0
-    inlier_share: Annotated[float, Field(gt=0, le=1, description="a rotation holds when this share of the tested "
-                                         "samples lands within the tolerance of the surface")] = 0.9
-    min_tested_share: Annotated[float, Field(gt=0, le=1, description="... and at least this share of them landed "
-                                             "on seen parts (not in a hole of the surface)")] = 0.5
-    continuous_steps: Annotated[int, Field(ge=8, description="revolution is tested at this many angles")] = 36
-    plane_step_deg: Annotated[float, Field(gt=0, le=15, description="angle step of the search for 2-fold axes "
-                                           "perpendicular to a 4-fold axis (5 steps coarse, then 1, then 1/5 "
-                                           "about the best)")] = 1.0
 
 
 @dataclass(frozen=True)
