@@ -75,7 +75,7 @@ import numpy as np
 
 from gscan.errors import InputError
 from gscan.estimate.hypotheses import GMatchLists, Matcher, hypothesise, query_keypoints
-from gscan.estimate.instances import Instances, estimate_all
+from gscan.estimate.instances import Instances, elsewhere, estimate_all
 from gscan.estimate.model import ObjectModel
 from gscan.estimate.params import DEFAULT_PARAMS, EstimateParams
 from gscan.estimate.pnp import estimate_pnp, pnp_without_depth
@@ -277,6 +277,7 @@ class Estimator:
                 lists = hypothesise(self.index, qk, r, self.matcher, p.gmatch.order, p.hypotheses,
                                     self.verifier.support_sim, p.verify.support_radius)
             res = self.verifier.verify_lists(q, qk, lists, refine, timer)
+            res = elsewhere(self, q, feats, r, res, refine, timer)
         if not res.found and not use_pnp and not (res.reason or "").startswith(AMBIGUOUS):
             # (an ambiguous view stays ambiguous to 2D-3D matching in its holes, on less evidence)
             res = pnp_without_depth(self.index, self.model.samples, q, res, p, timer)
