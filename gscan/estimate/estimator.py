@@ -43,6 +43,9 @@ support-plane fit, the search region) is done once (`gscan.estimate.query`):
    pose they significantly favour is returned; when neither is favoured the view is ambiguous and no pose is returned
    (nor sought by PnP in the depth's holes). Poses are compared up to the template's symmetries that hold in shape
    and texture: a rival that differs from the accepted pose by one is the same answer (`gscan.estimate.symmetric`).
+   Then the frame outside the accepted pose is searched as `estimate_all`'s next search would
+   (`gscan.estimate.instances.elsewhere`, `rivals.elsewhere`): a pose accepted at another place (a second copy,
+   or a look-alike printed alike on the faces in view) makes the view ambiguous, the reason naming both places.
 8. symmetry: for such an object the returned pose is the equivalent a fixed rule picks (the one whose rotation lies
    nearest the object's +z up in the image, +x to the right; `gscan.estimate.symmetric`), the same for every
    equivalent the hypotheses found, marked `EstimateResult.symmetry`; with `near` (the tracker's previous pose), the

@@ -19,6 +19,9 @@ repeated on what the instances found so far do not explain:
   list's reason when nothing was found), or after `instances.max_instances` instances. Instances are returned
   best score first (depth agreement, then keypoint support).
 
+The single estimate runs one such search after it accepts a pose (`elsewhere`): a second place accepted there
+refuses the view as ambiguous (one pose cannot say which of two objects the template fits is meant).
+
 Several templates (`estimate_templates`): the frame's search region and features are shared by the templates
 that read the frame alike (the same descriptor kind and keypoint settings, no camera correction of their own);
 where two templates' instances claim the same pixels (more than `max_overlap` of the smaller's), the one with
