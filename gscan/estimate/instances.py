@@ -310,7 +310,8 @@ def elsewhere(est: Searcher, q: QueryFrame, feats: Features, r: Retrieval, res: 
 
     The search is `estimate_all`'s next one: the keypoints and depth outside the pixels `res` explains, matched
     and verified as the first search was (rivals included); then, when nothing is accepted there, 2D-3D PnP on
-    the depth's holes outside those pixels (`pnp_without_depth`: an object in a stereo shadow). A pose found there
+    the depth's holes outside those pixels (`pnp_without_depth`: an object in a stereo shadow; its pose refused
+    when it sinks into the support plane, as the single estimate's is). A pose found there
     whose centre lies within the object's thinnest extent of the accepted one's, or which shares more than
     `instances.max_overlap` of its pixels with it, is the same place. The depth search runs only when the
     keypoints left that agree with the template could carry an accepted pose (`could_hold`): a pose needs
@@ -349,6 +350,8 @@ def elsewhere(est: Searcher, q: QueryFrame, feats: Features, r: Retrieval, res: 
             alt = None
     if alt is None or alt.T_cam_obj is None:
         alt = pnp_without_depth(est.index, est.model.samples, q, not_found("none"), p, timer, exclude=pix)
+        if alt.T_cam_obj is not None and est.verifier.sinks(q, alt.T_cam_obj) is not None:
+            return res  # refused as the single estimate's 2D-3D pose is (`Estimator._above`)
     if alt.T_cam_obj is None:
         return res
     other = transform_points(alt.T_cam_obj, est.model.center[None])[0]
