@@ -309,7 +309,8 @@ def elsewhere(est: Searcher, q: QueryFrame, feats: Features, r: Retrieval, res: 
     carry the object's print (a pose of either passes every check; one pose cannot say which object is meant).
 
     The search is `estimate_all`'s next one: the keypoints and depth outside the pixels `res` explains, matched
-    and verified as the first search was (rivals included); then, when nothing is accepted there, 2D-3D PnP on
+    and verified as the first search was (not weighed against rivals: two poses tying there still put
+    something the template fits there); then, when nothing is accepted there, 2D-3D PnP on
     the depth's holes outside those pixels (`pnp_without_depth`: an object in a stereo shadow; its pose refused
     when it sinks into the support plane, as the single estimate's is). A pose found there
     whose centre lies within the object's thinnest extent of the accepted one's, or which shares more than
@@ -343,7 +344,11 @@ def elsewhere(est: Searcher, q: QueryFrame, feats: Features, r: Retrieval, res: 
         with timer.stage("match"):
             lists = hypothesise(est.index, qk, r_out, est.matcher, p.gmatch.order, p.hypotheses,
                                 est.verifier.support_sim, p.verify.support_radius)
-        alt = est.verifier.verify_lists(q_out, qk, lists, refine, timer)
+        # the first of the `verify.lists` best lists accepted, not weighed against its rivals: a place where
+        # two poses tie still holds something the template fits
+        alt = next((a for c in [c for c in lists if c.n >= p.accept.min_matches][: max(1, p.verify.lists)]
+                    if (a := est.verifier.verify_list(q_out, qk, c, refine, timer, best=c is lists[0])).found),
+                   not_found("none"))
         if alt.T_cam_obj is not None and overlapping(
                 pix, explained_pixels(q, est.model.samples, alt.T_cam_obj, p.instances.explain_dist,
                                       p.instances.dilate_px), p.instances.max_overlap):
