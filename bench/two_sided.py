@@ -20,6 +20,9 @@ against the table). The one-sided template is `gscan.scan(up)`, the two-sided on
   accepted (ADD > 10 % of the diameter, or any pose in a negative scene): must be 0;
 - time: the join stage's seconds, and the seconds per frame the second capture's registration took against the
   first's (`ScanResult.to_json()["captures"][i]["timings_s"]`, summed over its stages).
+- the CPU time per estimate with the single estimate's search elsewhere (`rivals.elsewhere`, the default)
+  against without it: every scene estimated both ways, the order alternating between scenes (the poses scored
+  are the default's).
 
 Splits: this benchmark tunes nothing. "tune" holds objects gscan's scan and estimation were developed on (the
 tests' box, Frozen_Scrabble_Jr, Crayola_Bonus_64_Crayons, and the tall box whose misses the keyframe selection was
@@ -37,6 +40,7 @@ import argparse
 import json
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -51,6 +55,7 @@ from recall import (
     summarise,
 )
 
+from gscan.estimate.params import DEFAULT_PARAMS
 from gscan.evaluate.bop19 import template_to_gt
 from gscan.evaluate.metrics import frame_errors
 from gscan.geometry.transforms import inv_T, pose_error, rotvec_to_R, transform_points
@@ -63,6 +68,7 @@ from gscan.template.db import TemplateDB
 WRONG_FRAME = (5.0, 0.02)  # deg, m
 NEAR_M = 0.005  # a surface sample within this of the template's cloud is covered
 N_SAMPLES = 20000
+WITHOUT_ELSEWHERE = replace(DEFAULT_PARAMS, rivals=replace(DEFAULT_PARAMS.rivals, elsewhere=False))
 
 OBJECTS = (  # (spec, in the quick run); kind "side" is bench/recall.py's, unused here
     (ObjectSpec("box_tests", "tune", "side", "box:0.14x0.09x0.07:3"), True),
@@ -199,6 +205,17 @@ def scenes(spec: ObjectSpec, oi: int, mesh: TexturedMesh, pool: dict[str, Textur
                                                           DEFAULT_INTRINSICS), (T_gt if k < n else None)
 
 
+def timed_pair(est, plain, frame: RGBDFrame, first: bool):
+    """(CPU ms of est.estimate(frame), of plain.estimate(frame), est's result); est first when `first` (the
+    order alternates between scenes, so that neither is always the warmer)."""
+    out = {}
+    for e in ((est, plain) if first else (plain, est)):
+        t1 = time.process_time()
+        r = e.estimate(frame)
+        out[id(e)] = ((time.process_time() - t1) * 1e3, r)
+    return out[id(est)][0], out[id(plain)][0], out[id(est)][1]
+
+
 def run(args: argparse.Namespace) -> dict:
     from gscan.estimate.estimator import Estimator
 
@@ -223,17 +240,19 @@ def run(args: argparse.Namespace) -> dict:
                   f"{r['wrong_frames']} joined {r['joined']} complete {100 * r['completeness']:.1f} % bottom "
                   f"{100 * r['bottom']:.1f} % ({time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
         ests = {kind: Estimator.from_path(s["tpl"]) for kind, s in built.items()}
+        # the same estimate without the search elsewhere (rivals.elsewhere), timed alternately: its cost
+        plain = {kind: Estimator.from_path(s["tpl"], WITHOUT_ELSEWHERE) for kind, s in built.items()}
         diameter = float(np.linalg.norm(mesh.extent))
         for k, (label, pose, frame, T_gt) in enumerate(scenes(spec, oi, mesh, pool, n_scenes)):
             for kind, est in ests.items():
                 if k == 0:
                     est.estimate(frame)  # untimed: the first call
-                t1 = time.process_time()
-                res = est.estimate(frame)
-                cpu = (time.process_time() - t1) * 1e3
+                    plain[kind].estimate(frame)
+                cpu, cpu_plain, res = timed_pair(est, plain[kind], frame, first=k % 2 == 0)
                 base = {"scene": label, "split": spec.split, "template": kind, "pose": pose,
                         "positive": T_gt is not None, "diameter": diameter, "n_matches": res.n_matches,
-                        "score": res.score, "reason": res.reason, "cpu_ms": cpu}
+                        "score": res.score, "reason": res.reason, "cpu_ms": cpu,
+                        "cpu_ms_without_elsewhere": cpu_plain}
                 rec = score(base, res.T_cam_obj, recs[kind]["T_obj_gt"], T_gt, mesh)
                 est_recs.append(rec)
                 err = ("not found: " + str(res.reason)) if not res.found else (
@@ -259,6 +278,7 @@ def summary(scan_recs: list[dict], est_recs: list[dict]) -> dict:
             nonup = [r for r in est_recs if r["template"] == kind and r["pose"] in ("side", "upside down")
                      and split in ("all", r["split"])]
             two = [r for r in ss if r["s_per_frame"]]
+            es_kind = [r for r in est_recs if r["template"] == kind and split in ("all", r["split"])]
             out.setdefault(split, {})[kind] = {
                 "objects": len(ss), "frames": sum(r["frames"] for r in ss),
                 "registered": sum(r["registered"] for r in ss), "wrong frames": sum(r["wrong_frames"] for r in ss),
@@ -273,6 +293,9 @@ def summary(scan_recs: list[dict], est_recs: list[dict]) -> dict:
                 "join s": float(np.mean([r["join_s"] for r in two])) if two else None,
                 "second / first s per frame": float(np.mean([r["s_per_frame"][1] / r["s_per_frame"][0] for r in two]))
                 if two else None,
+                "cpu with / without elsewhere": float(sum(r["cpu_ms"] for r in es_kind) /
+                                                      sum(r["cpu_ms_without_elsewhere"] for r in es_kind))
+                if es_kind else None,
                 # the stages' seconds; not in the table: the process's first scan also compiles the kernels
                 "scan s": float(np.mean([r["total_s"] for r in ss])),
             }
@@ -292,8 +315,8 @@ def main() -> None:
     out = run(args)
     print("\n| split | template | objects | frames registered | wrong frames | joined | completeness % | bottom % | "
           "found % | found, not upright % | within 5 deg / 1 cm % | AUC ADD-S | wrong accepted (incl. negatives) | "
-          "join s | s per frame, 2nd / 1st capture |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+          "join s | s per frame, 2nd / 1st capture | CPU per estimate, with / without the search elsewhere |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
 
     def f(v: float | None, fmt: str = ".1f") -> str:
         return "-" if v is None else format(v, fmt)
@@ -305,7 +328,7 @@ def main() -> None:
                   f"{joined} | {f(v['completeness %'])} | "
                   f"{f(v['bottom %'])} | {f(v['found %'])} | {f(v['found not upright %'])} | "
                   f"{f(v['within 5deg/1cm %'])} | {f(v['AUC ADD-S'])} | {v['wrong accepted']} | {f(v['join s'])} | "
-                  f"{f(v['second / first s per frame'], '.2f')} |")
+                  f"{f(v['second / first s per frame'], '.2f')} | {f(v['cpu with / without elsewhere'], '.2f')} |")
     if args.json:
         Path(args.json).write_text(json.dumps(out, indent=1))
 

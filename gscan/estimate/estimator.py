@@ -43,6 +43,9 @@ support-plane fit, the search region) is done once (`gscan.estimate.query`):
    pose they significantly favour is returned; when neither is favoured the view is ambiguous and no pose is returned
    (nor sought by PnP in the depth's holes). Poses are compared up to the template's symmetries that hold in shape
    and texture: a rival that differs from the accepted pose by one is the same answer (`gscan.estimate.symmetric`).
+   Then the frame outside the accepted pose is searched as `estimate_all`'s next search would
+   (`gscan.estimate.instances.elsewhere`, `rivals.elsewhere`): a pose accepted at another place (a second copy,
+   or a look-alike printed alike on the faces in view) makes the view ambiguous, the reason naming both places.
 8. symmetry: for such an object the returned pose is the equivalent a fixed rule picks (the one whose rotation lies
    nearest the object's +z up in the image, +x to the right; `gscan.estimate.symmetric`), the same for every
    equivalent the hypotheses found, marked `EstimateResult.symmetry`; with `near` (the tracker's previous pose), the
@@ -75,7 +78,7 @@ import numpy as np
 
 from gscan.errors import InputError
 from gscan.estimate.hypotheses import GMatchLists, Matcher, hypothesise, query_keypoints
-from gscan.estimate.instances import Instances, estimate_all
+from gscan.estimate.instances import Instances, elsewhere, estimate_all
 from gscan.estimate.model import ObjectModel
 from gscan.estimate.params import DEFAULT_PARAMS, EstimateParams
 from gscan.estimate.pnp import estimate_pnp, pnp_without_depth
@@ -277,6 +280,7 @@ class Estimator:
                 lists = hypothesise(self.index, qk, r, self.matcher, p.gmatch.order, p.hypotheses,
                                     self.verifier.support_sim, p.verify.support_radius)
             res = self.verifier.verify_lists(q, qk, lists, refine, timer)
+            res = elsewhere(self, q, feats, r, res, refine, timer)
         if not res.found and not use_pnp and not (res.reason or "").startswith(AMBIGUOUS):
             # (an ambiguous view stays ambiguous to 2D-3D matching in its holes, on less evidence)
             res = pnp_without_depth(self.index, self.model.samples, q, res, p, timer)

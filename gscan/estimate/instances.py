@@ -20,6 +20,9 @@ instances found so far do not explain:
   list's reason when nothing was found), or after `instances.max_instances` instances. Instances are returned
   best score first (depth agreement, then keypoint support).
 
+The single estimate runs one such search after it accepts a pose (`elsewhere`): a second place accepted there
+refuses the view as ambiguous (one pose cannot say which of two objects the template fits is meant).
+
 Several templates (`estimate_templates`): the frame's search region and features are shared by the templates
 that read the frame alike (the same descriptor kind and keypoint settings, no camera correction of their own);
 where two templates' instances claim the same pixels (more than `max_overlap` of the smaller's), the one with
@@ -40,11 +43,12 @@ from scipy.spatial import cKDTree
 from gscan.estimate.hypotheses import Matcher, MatchList, QueryKeypoints, hypothesise, prescore, query_keypoints
 from gscan.estimate.model import ObjectModel
 from gscan.estimate.params import EstimateParams
+from gscan.estimate.pnp import pnp_without_depth
 from gscan.estimate.query import QueryFrame, query_features
 from gscan.estimate.result import STAGES, EstimateResult, matrix_json, ms_since, not_found
 from gscan.estimate.retrieval import Retrieval, TemplateIndex
 from gscan.estimate.rivals import AMBIGUOUS, ListVerifier
-from gscan.estimate.verify import visible
+from gscan.estimate.verify import support_radius, visible
 from gscan.features import Features
 from gscan.geometry.grid_kernel import NearestGrid
 from gscan.geometry.transforms import transform_points
@@ -307,6 +311,89 @@ class InstanceSearch:
             removed |= pix
         found.sort(key=lambda r: (-r.score, -(r.evidence.support if r.evidence is not None else 0)))
         return Instances(est.name, found, None if found else reason, reason)
+
+
+def elsewhere(est: Searcher, q: QueryFrame, feats: Features, r: Retrieval, res: EstimateResult, refine: bool,
+              timer: StageTimer) -> EstimateResult:
+    """The single estimate's accepted `res` (3D-3D), or the ambiguous view's not-found result when another place
+    of the frame fits the template too (`rivals.elsewhere`): a second copy, or a look-alike whose faces in view
+    carry the object's print (a pose of either passes every check; one pose cannot say which object is meant).
+
+    The search is `estimate_all`'s next one: the keypoints and depth outside the pixels `res` explains, matched
+    and verified as the first search was (not weighed against rivals: two poses tying there still put
+    something the template fits there); then, when nothing is accepted there, 2D-3D PnP on
+    the depth's holes outside those pixels (`pnp_without_depth`: an object in a stereo shadow; its pose refused
+    when it sinks into the support plane, as the single estimate's is). A pose found there
+    whose centre lies within the object's thinnest extent of the accepted one's, or which shares more than
+    `instances.max_overlap` of its pixels with it, is the same place. The depth search runs only when the
+    keypoints left that agree with the template could carry an accepted pose (`could_hold`): a pose needs
+    `accept.min_matches` inliers and, short of `accept.strong_matches` of them, `accept.min_support` supporting
+    keypoints, all on one object (an inlier's descriptor agrees unless `verify.support_dist` is set below
+    GMatch's eps_f). feats, r: the frame's keypoints and their retrieval; timer: the estimate's stages."""
+    p = est.params
+    if not p.rivals.elsewhere or res.T_cam_obj is None:
+        return res
+    T = res.T_cam_obj
+    pix = explained_pixels(q, est.model.samples, T, p.instances.explain_dist, p.instances.dilate_px)
+    H, W = pix.shape
+    u = np.clip(np.rint(feats.pixels[:, 0]).astype(np.int64), 0, W - 1)
+    v = np.clip(np.rint(feats.pixels[:, 1]).astype(np.int64), 0, H - 1)
+    keep = ~pix[v, u]
+    sign = 1.0 if est.index.unit else -1.0
+    agree = sign * r.best >= est.verifier.support_sim
+    inliers_agree = p.verify.support_dist is None or p.verify.support_dist >= est.index.eps_f
+    need = min(p.accept.min_support, p.accept.strong_matches) if inliers_agree else p.accept.min_matches
+    q_out = without(q, pix)
+    thin = thinnest_extent(est.model.samples)
+    centre = transform_points(T, est.model.center[None])[0]
+    alt: EstimateResult | None = None
+    if could_hold(feats.points[keep & agree], max(need, p.accept.min_matches),
+                  2.0 * (est.model.radius + support_radius(p.verify, float(feats.points[:, 2].max(initial=0.0))))):
+        with timer.stage("retrieval"):
+            r_out = est.index.subset(r, keep)
+        qk = query_keypoints(subset(feats, keep), r_out.S, r_out.rows)
+        with timer.stage("match"):
+            lists = hypothesise(est.index, qk, r_out, est.matcher, p.gmatch.order, p.hypotheses,
+                                est.verifier.support_sim, p.verify.support_radius)
+        # the first of the `verify.lists` best lists accepted, not weighed against its rivals: a place where
+        # two poses tie still holds something the template fits
+        alt = next((a for c in [c for c in lists if c.n >= p.accept.min_matches][: max(1, p.verify.lists)]
+                    if (a := est.verifier.verify_list(q_out, qk, c, refine, timer, best=c is lists[0])).found),
+                   not_found("none"))
+        if alt.T_cam_obj is not None and overlapping(
+                pix, explained_pixels(q, est.model.samples, alt.T_cam_obj, p.instances.explain_dist,
+                                      p.instances.dilate_px), p.instances.max_overlap):
+            alt = None
+    if alt is None or alt.T_cam_obj is None:
+        alt = pnp_without_depth(est.index, est.model.samples, q, not_found("none"), p, timer, exclude=pix)
+        if alt.T_cam_obj is not None and est.verifier.sinks(q, alt.T_cam_obj) is not None:
+            return res  # refused as the single estimate's 2D-3D pose is (`Estimator._above`)
+    if alt.T_cam_obj is None:
+        return res
+    other = transform_points(alt.T_cam_obj, est.model.center[None])[0]
+    if np.linalg.norm(other - centre) < thin:
+        return res
+    how = (f"{alt.evidence.support} keypoints agree with it" if alt.method == "gmatch" and alt.evidence is not None
+           else f"{alt.n_matches} 2D-3D matches agree with it where the depth has a hole")
+    here = ", ".join(f"{x:.2f}" for x in centre)
+    there = ", ".join(f"{x:.2f}" for x in other)
+    log.info("a second place fits the template: (%s) and (%s) m", here, there)
+    return not_found(f"{AMBIGUOUS}: two places in the frame fit the template, centred at ({here}) m and at ({there}) "
+                     f"m in the camera frame ({res.evidence.support if res.evidence else 0} keypoints agree with the "
+                     f"first; {how}): a second copy, or a look-alike printed alike on the faces in view; a mask "
+                     f"on one of them picks it", res.n_matches, res.view, res.score,
+                     evidence=res.evidence)
+
+
+def could_hold(points: np.ndarray, need: int, span: float) -> bool:
+    """Whether `need` of the keypoints points [K x 3] (camera frame) lie within `span` (m) of one of them: the
+    keypoints supporting one pose lie on one object, within its diameter plus the support radius of each other
+    (a cheap necessary condition for a pose there)."""
+    if len(points) < need:
+        return False
+    tree = cKDTree(np.asarray(points, dtype=np.float64))
+    counts = tree.query_ball_point(tree.data, span, return_length=True)
+    return bool(np.max(counts) >= need)
 
 
 def carried(lists: list[MatchList], ids: np.ndarray, now: np.ndarray, est: Searcher, qk: QueryKeypoints,

@@ -121,6 +121,10 @@ class RivalParams:
                                         "supporting keypoints on surface the template has not seen: the keypoints "
                                         "elsewhere must support it at this fraction of the rate those do, else the "
                                         "view is ambiguous", ge=0, le=1)] = 0.5
+    elsewhere: Annotated[bool, Field(description="the single estimate searches the frame outside the accepted pose's "
+                                     "pixels (its depth and its holes) as `estimate --all` does; a pose accepted at "
+                                     "another place there (a second copy, or a look-alike printed alike on the faces "
+                                     "in view) refuses the view as ambiguous")] = True
     __pydantic_config__ = SETTINGS
 
 

@@ -26,15 +26,19 @@ from gscan.progress import StageTimer
 
 
 def pnp_without_depth(index: TemplateIndex, samples: np.ndarray, q: QueryFrame, failed: EstimateResult,
-                      params: EstimateParams, timer: StageTimer) -> EstimateResult:
+                      params: EstimateParams, timer: StageTimer,
+                      exclude: np.ndarray | None = None) -> EstimateResult:
     """After a failed 3D-3D estimate: 2D-3D PnP on the search region's pixels without depth (dilated by
-    `holes.dilate_px`). samples [S x 3]: the template surface (object frame) the see-through check projects.
-    Returns the PnP result when it finds the object, else `failed` with PnP's reason appended. Skipped when
-    less than `holes.min_frac` of the region lacks depth."""
+    `holes.dilate_px`). samples [S x 3]: the template surface (object frame) the see-through check projects;
+    exclude: [H x W] bool pixels left out of the holes (those a pose found already explains). Returns the PnP
+    result when it finds the object, else `failed` with PnP's reason appended. Skipped when less than
+    `holes.min_frac` of the region lacks depth."""
     p = params.holes
     if not p.enabled:
         return failed
     frame, region = q.frame, q.region
+    if exclude is not None:
+        region = region & ~exclude
     # holes an object could leave: opening drops speckle and the thin bands of stereo shadows
     k = 2 * p.open_px + 1
     holes = cv2.morphologyEx(((frame.depth <= 0) & region).astype(np.uint8), cv2.MORPH_OPEN,
