@@ -65,7 +65,7 @@ def ratio_ransac_lists(index: TemplateIndex, v: int, qk: QueryKeypoints) -> list
     feats = qk.feats
     if len(nb.idx) < 3 or len(feats) < 3:
         return [(np.zeros((0, 2), np.int64), 1.0)]
-    dist = index.distances(qk.S[:, nb.idx]).T  # [N_neighbourhood x M_query]
+    dist = index.distances(qk.similarity(nb.idx)).T  # [N_neighbourhood x M_query]
     res = run_baseline("ratio", nb.points, feats.points, dist)
     if res.T_tgt_src is None or len(res.matches) == 0:
         return [(np.zeros((0, 2), np.int64), 1.0)]

@@ -10,6 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from gscan.estimate.hypotheses import QueryKeypoints
 from gscan.estimate.similarity import (
     TemplateGroups,
     _unit_distance,
@@ -142,7 +143,8 @@ def test_count_unique_rows_is_numpys(seed, spread):
 @settings(max_examples=30, deadline=None)
 def test_a_subset_read_through_its_rows_equals_the_copied_rows(seed, unit):
     """The instance search's later searches read their keypoints' rows in the frame's whole retrieval matrix
-    (`Retrieval.rows`): candidates and best columns equal those of the rows copied out (S[keep])."""
+    (`Retrieval.rows`): candidates, best columns and `QueryKeypoints.similarity` equal those of the rows copied out
+    (S[keep])."""
     rng = np.random.default_rng(seed)
     M, N = int(rng.integers(2, 30)), int(rng.integers(2, 50))
     S = rng.random((M, N)).astype(np.float32) if unit else (rng.integers(0, 12, (M, N)) / 10.0).astype(np.float32)
@@ -160,6 +162,8 @@ def test_a_subset_read_through_its_rows_equals_the_copied_rows(seed, unit):
     on = rng.integers(0, len(rows), int(rng.integers(0, 20)))
     for a, b in zip(best_columns(S, rows[on], cols), best_columns(sub, on, cols), strict=True):
         np.testing.assert_array_equal(a, b)
+    qk = QueryKeypoints(None, S, *(np.zeros(0, np.int64),) * 4, rows=rows)  # type: ignore[arg-type]
+    np.testing.assert_array_equal(qk.similarity(cols), sub[:, cols])  # what a `Matcher` reads
 
 
 def test_a_subset_read_without_its_row_map_is_refused():

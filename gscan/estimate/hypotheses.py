@@ -64,6 +64,13 @@ class QueryKeypoints:
         """The rows in S of the keypoints kp [K] (indices)."""
         return kp if self.rows is None else self.rows[kp]
 
+    def similarity(self, cols: np.ndarray) -> np.ndarray:
+        """S's columns cols [C] for every keypoint, in keypoint order [M x C] (a later instance search's
+        keypoints are a subset of S's rows: read S through this or `row_of`, never row i as keypoint i)."""
+        if self.rows is None:
+            return self.S[:, cols]
+        return self.S[self.rows[:, None], cols]
+
 
 def query_keypoints(feats: Features, S: np.ndarray, rows: np.ndarray | None = None) -> QueryKeypoints:
     """The query keypoints grouped by location (S: the retrieval matrix, rows [M]: the keypoints' rows in it,
