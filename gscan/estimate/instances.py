@@ -182,6 +182,18 @@ def without(q: QueryFrame, removed: np.ndarray) -> QueryFrame:
                       _cloud=cloud, _heights=q.heights)
 
 
+def keypoint_cells(feats: Features, shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """(rows [N], columns [N]) of the pixel each keypoint of feats lies on, in an image of `shape` (H, W, ...)."""
+    H, W = shape[:2]
+    return (np.clip(np.rint(feats.pixels[:, 1]).astype(np.int64), 0, H - 1),
+            np.clip(np.rint(feats.pixels[:, 0]).astype(np.int64), 0, W - 1))
+
+
+def agreeing(est: Searcher, r: Retrieval) -> np.ndarray:
+    """[M] bool the query keypoints whose nearest template descriptor agrees (`verifier.support_sim`)."""
+    return (r.best if est.index.unit else -r.best) >= est.verifier.support_sim
+
+
 def subset(feats: Features, keep: np.ndarray) -> Features:
     """The keypoints `keep` ([N] bool) of `feats`."""
     return Features(feats.pixels[keep], feats.points[keep], feats.descriptors[keep], feats.kind,
@@ -231,13 +243,12 @@ class InstanceSearch:
         are often there already), and matches afresh only when none of them is accepted."""
         est, p = self.est, self.est.params
         found: list[EstimateResult] = []
-        H, W = self.q.frame.depth.shape[:2]
-        removed = np.zeros((H, W), bool) if self.explained is None else self.explained.copy()
+        shape = self.q.frame.depth.shape[:2]
+        removed = np.zeros(shape, bool) if self.explained is None else self.explained.copy()
         with self.timer.stage("retrieval"):
             r_all = est.index.retrieve(self.feats.descriptors)
-        agree = r_all.best >= est.verifier.support_sim if est.index.unit else -r_all.best >= est.verifier.support_sim
-        u = np.clip(np.rint(self.feats.pixels[:, 0]).astype(np.int64), 0, W - 1)
-        v = np.clip(np.rint(self.feats.pixels[:, 1]).astype(np.int64), 0, H - 1)
+        agree = agreeing(est, r_all)
+        v, u = keypoint_cells(self.feats, shape)
         reason: str | None = f"the cap of {self.cap} instances reached"
         prev: tuple[list[MatchList], np.ndarray] | None = None  # the last search's lists, its keypoints' ids
         dropped = np.zeros(len(self.feats), bool)  # keypoints of refused lists
@@ -324,8 +335,9 @@ def elsewhere(est: Searcher, q: QueryFrame, feats: Features, r: Retrieval, res: 
     something the template fits there); then, when nothing is accepted there, 2D-3D PnP on
     the depth's holes outside those pixels (`pnp_without_depth`: an object in a stereo shadow; its pose refused
     when it sinks into the support plane, as the single estimate's is). A pose found there
-    whose centre lies within the object's thinnest extent of the accepted one's, or which shares more than
-    `instances.max_overlap` of its pixels with it, is the same place. The depth search runs only when the
+    whose centre lies within the object's thinnest extent of the accepted one's is the same place; so is a pose
+    of the depth search that shares more than `instances.max_overlap` of its pixels with it (PnP is then tried; a
+    PnP pose in a hole explains few pixels of depth, so only its centre is compared). The depth search runs only when the
     keypoints left that agree with the template could carry an accepted pose (`could_hold`): a pose needs
     `accept.min_matches` inliers and, short of `accept.strong_matches` of them, `accept.min_support` supporting
     keypoints, all on one object (an inlier's descriptor agrees unless `verify.support_dist` is set below
@@ -335,20 +347,13 @@ def elsewhere(est: Searcher, q: QueryFrame, feats: Features, r: Retrieval, res: 
         return res
     T = res.T_cam_obj
     pix = explained_pixels(q, est.model.samples, T, p.instances.explain_dist, p.instances.dilate_px)
-    H, W = pix.shape
-    u = np.clip(np.rint(feats.pixels[:, 0]).astype(np.int64), 0, W - 1)
-    v = np.clip(np.rint(feats.pixels[:, 1]).astype(np.int64), 0, H - 1)
-    keep = ~pix[v, u]
-    sign = 1.0 if est.index.unit else -1.0
-    agree = sign * r.best >= est.verifier.support_sim
+    keep = ~pix[keypoint_cells(feats, pix.shape)]
     inliers_agree = p.verify.support_dist is None or p.verify.support_dist >= est.index.eps_f
     need = min(p.accept.min_support, p.accept.strong_matches) if inliers_agree else p.accept.min_matches
-    q_out = without(q, pix)
-    thin = thinnest_extent(est.model.samples)
-    centre = transform_points(T, est.model.center[None])[0]
     alt: EstimateResult | None = None
-    if could_hold(feats.points[keep & agree], max(need, p.accept.min_matches),
+    if could_hold(feats.points[keep & agreeing(est, r)], max(need, p.accept.min_matches),
                   2.0 * (est.model.radius + support_radius(p.verify, float(feats.points[:, 2].max(initial=0.0))))):
+        q_out = without(q, pix)
         with timer.stage("retrieval"):
             r_out = est.index.subset(r, keep)
         qk = query_keypoints(subset(feats, keep), r_out.S, r_out.rows)
@@ -370,8 +375,9 @@ def elsewhere(est: Searcher, q: QueryFrame, feats: Features, r: Retrieval, res: 
             return res  # refused as the single estimate's 2D-3D pose is (`Estimator._above`)
     if alt.T_cam_obj is None:
         return res
+    centre = transform_points(T, est.model.center[None])[0]
     other = transform_points(alt.T_cam_obj, est.model.center[None])[0]
-    if np.linalg.norm(other - centre) < thin:
+    if np.linalg.norm(other - centre) < thinnest_extent(est.model.samples):
         return res
     how = (f"{alt.evidence.support} keypoints agree with it" if alt.method == "gmatch" and alt.evidence is not None
            else f"{alt.n_matches} 2D-3D matches agree with it where the depth has a hole")

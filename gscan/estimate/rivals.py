@@ -114,6 +114,10 @@ class ListVerifier:
                              S, kp_idx if sim_cols is None else sim_cols, feats.points, q_location,
                              self.params.verify, self.support_sim, 1.0 if self.index.unit else -1.0, sim_rows)
 
+    def evidence_of(self, q: QueryFrame, T_cam_obj: np.ndarray, qk: QueryKeypoints) -> Evidence:
+        """`evidence` of the pose against the query keypoints qk, read through their rows in the retrieval matrix."""
+        return self.evidence(q, T_cam_obj, qk.feats, qk.S, qk.location, sim_rows=qk.rows)
+
     def sinks(self, q: QueryFrame, T_cam_obj: np.ndarray) -> float | None:
         """The fraction of the object the pose puts inside the frame's support plane when too large, else None."""
         return query_sinks(q, T_cam_obj, self.model.samples, self.params.verify)
@@ -151,7 +155,7 @@ class ListVerifier:
         with timer.stage("refine"):
             if refine:  # not cut by a given mask: a mask that clips the silhouette pulls ICP to the cut
                 T_cam_obj = refine_pose(self.model, q, T_cam_obj, (src[keep], dst[keep]), q.off_plane, p.refine)
-            ev = self.evidence(q, T_cam_obj, qk.feats, qk.S, qk.location, sim_rows=qk.rows)
+            ev = self.evidence_of(q, T_cam_obj, qk)
             # inliers count query keypoint locations (pooled lists pair one keypoint with several template views)
             ev.n_matches, ev.n_inliers = c.longest, len(np.unique(qk.location[c.matches[keep, 1]]))
             ev.spread_m = list_spread(src[keep])
@@ -230,7 +234,7 @@ class ListVerifier:
             with timer.stage("refine"):
                 if refine:
                     T = refine_pose(self.model, q, T, None, q.off_plane, p.refine)
-                ev = self.evidence(q, T, qk.feats, qk.S, qk.location, sim_rows=qk.rows)
+                ev = self.evidence_of(q, T, qk)
             ev.n_matches, ev.n_inliers, ev.spread_m = res.evidence.n_matches, res.evidence.n_inliers, \
                 res.evidence.spread_m
             if self.sinks(q, T) is not None or accept(ev, self.model.radius, p.accept) is not None:
@@ -291,7 +295,7 @@ class ListVerifier:
                     or (n_unseen >= p.accept.min_support and rate_known < p.rivals.unseen_rate * rate_unseen)):
                 # the depth is asked only here: a turn it refutes and one the supporters do not make ambiguous
                 # both leave the pose as it is
-                if (self.evidence(q, T, qk.feats, qk.S, qk.location, sim_rows=qk.rows).score < p.accept.min_score
+                if (self.evidence_of(q, T, qk).score < p.accept.min_score
                         or self.sinks(q, T) is not None):
                     continue  # the depth refutes the turn
                 deg = self.apart(T, res.T_cam_obj)[0]
