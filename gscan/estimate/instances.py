@@ -337,8 +337,8 @@ def elsewhere(est: Searcher, q: QueryFrame, feats: Features, r: Retrieval, res: 
     when it sinks into the support plane, as the single estimate's is). A pose found there
     whose centre lies within the object's thinnest extent of the accepted one's is the same place; so is a pose
     of the depth search that shares more than `instances.max_overlap` of its pixels with it (PnP is then tried; a
-    PnP pose in a hole explains few pixels of depth, so only its centre is compared). The depth search runs only when the
-    keypoints left that agree with the template could carry an accepted pose (`could_hold`): a pose needs
+    PnP pose in a hole explains few pixels of depth, so only its centre is compared). The depth search runs only
+    when the keypoints left that agree with the template could carry an accepted pose (`could_hold`): a pose needs
     `accept.min_matches` inliers and, short of `accept.strong_matches` of them, `accept.min_support` supporting
     keypoints, all on one object (an inlier's descriptor agrees unless `verify.support_dist` is set below
     GMatch's eps_f). feats, r: the frame's keypoints and their retrieval; timer: the estimate's stages."""
