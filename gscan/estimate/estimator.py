@@ -77,7 +77,7 @@ from pathlib import Path
 import numpy as np
 
 from gscan.errors import InputError
-from gscan.estimate.hypotheses import GMatchLists, Matcher, hypothesise, query_keypoints
+from gscan.estimate.hypotheses import GMatchLists, Matcher, QueryKeypoints, hypothesise, query_keypoints
 from gscan.estimate.instances import Instances, elsewhere, estimate_all
 from gscan.estimate.model import ObjectModel
 from gscan.estimate.params import DEFAULT_PARAMS, EstimateParams
@@ -85,7 +85,7 @@ from gscan.estimate.pnp import estimate_pnp, pnp_without_depth
 from gscan.estimate.query import QueryFrame, backproject32, prepare_query, query_features
 from gscan.estimate.refine import normal_equations
 from gscan.estimate.result import STAGES, EstimateResult, not_found, timed
-from gscan.estimate.retrieval import TemplateIndex
+from gscan.estimate.retrieval import Retrieval, TemplateIndex
 from gscan.estimate.rivals import AMBIGUOUS, ListVerifier
 from gscan.estimate.similarity import TemplateGroups, best_columns, neighbourhood_candidates
 from gscan.features import descriptor_distances
@@ -280,11 +280,30 @@ class Estimator:
                 lists = hypothesise(self.index, qk, r, self.matcher, p.gmatch.order, p.hypotheses,
                                     self.verifier.support_sim, p.verify.support_radius)
             res = self.verifier.verify_lists(q, qk, lists, refine, timer)
+            if not res.found and p.retrieval.next_round and not (res.reason or "").startswith(AMBIGUOUS):
+                res = self._next_round(q, qk, r, res, refine, timer)
             res = elsewhere(self, q, feats, r, res, refine, timer)
         if not res.found and not use_pnp and not (res.reason or "").startswith(AMBIGUOUS):
             # (an ambiguous view stays ambiguous to 2D-3D matching in its holes, on less evidence)
             res = pnp_without_depth(self.index, self.model.samples, q, res, p, timer)
         return self.result(self._above(q, res), timer, t0, near)
+
+    def _next_round(self, q: QueryFrame, qk: QueryKeypoints, r: Retrieval, res: EstimateResult, refine: bool,
+                    timer: StageTimer) -> EstimateResult:
+        """The pose of the next `retrieval.top_k` neighbourhoods by votes when the first ones' lists gave none
+        (`res`, returned when these give none either): clutter's keypoints vote for views too, and a weakly
+        printed object's right views can rank below them. Their lists are verified under the short lists' rule
+        (the first round's best list was the frame's best-supported) and weighed against their rivals."""
+        k = self.params.retrieval.top_k
+        views = self.index.top_neighbourhoods(r.votes, 2 * k)[k:]
+        if not views:
+            return res
+        p = self.params
+        with timer.stage("match"):
+            lists = hypothesise(self.index, qk, r, self.matcher, p.gmatch.order, p.hypotheses,
+                                self.verifier.support_sim, p.verify.support_radius, views)
+        second = self.verifier.verify_lists(q, qk, lists, refine, timer, best=False)
+        return second if second.found or (second.reason or "").startswith(AMBIGUOUS) else res
 
     def _above(self, q: QueryFrame, res: EstimateResult) -> EstimateResult:
         """`res`, or not found when its pose sinks the object into the frame's support plane (verify). A 3D-3D

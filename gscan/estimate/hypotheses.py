@@ -120,11 +120,13 @@ class GMatchLists:
 
 def hypothesise(index: TemplateIndex, qk: QueryKeypoints, retrieval: Retrieval, matcher: Matcher,
                 gmatch_order: str, params: HypothesesParams, support_sim: float,
-                support_radius: float) -> list[MatchList]:
-    """Stages 3-4 (module docstring): the distinct lists of at least 3 pairs of the top neighbourhoods, pre-scored
-    and pooled, best pre-score support first. support_sim: the similarity (negated distance) at which a query
-    keypoint's nearest template descriptor agrees; support_radius: m at 0.5 m depth."""
-    views = index.top_neighbourhoods(retrieval.votes)
+                support_radius: float, views: list[int] | None = None) -> list[MatchList]:
+    """Stages 3-4 (module docstring): the distinct lists of at least 3 pairs of the top neighbourhoods (or of the
+    neighbourhoods of the central views `views`), pre-scored and pooled, best pre-score support first.
+    support_sim: the similarity (negated distance) at which a query keypoint's nearest template descriptor
+    agrees; support_radius: m at 0.5 m depth."""
+    if views is None:
+        views = index.top_neighbourhoods(retrieval.votes)
     qk.candidates = dict(zip(views, neighbourhoods_candidates(
         qk.S, index.unit, qk.row_of(qk.order), qk.starts, [index.neighbourhoods[v].groups for v in views],
         index.eps_f, gmatch_order), strict=True))

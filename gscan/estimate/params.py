@@ -67,6 +67,9 @@ class RetrievalParams:
                                       "central view's", ge=0, le=180)] = 60.0
     max_dist: Annotated[float, Field(description="descriptor distance under which a query keypoint votes for a view "
                                      "(RootSIFT L2)", gt=0)] = 0.5
+    next_round: Annotated[bool, Field(description="when no list of the top_k neighbourhoods gives an accepted pose "
+                                      "(and the view is not ambiguous), the next top_k by votes are matched too "
+                                      "(the single estimate)")] = True
     __pydantic_config__ = SETTINGS
 
 

@@ -137,15 +137,16 @@ class TemplateIndex:
         order = np.lexsort((np.arange(len(votes)), -votes))
         return [int(v) for v in order[: self.params.top_k] if votes[v] > 0]
 
-    def top_neighbourhoods(self, votes: np.ndarray) -> list[int]:
+    def top_neighbourhoods(self, votes: np.ndarray, count: int | None = None) -> list[int]:
         """Central views of the neighbourhoods to match: views by their own votes [V] (ties by view order), each
-        taken unless a neighbourhood already taken holds it, up to top_k; views without a vote are left out.
-        Clutter spreads votes over many views: taking a view's neighbours with it leaves room for a view of
-        another side of the object."""
+        taken unless a neighbourhood already taken holds it, up to `count` (default top_k); views without a vote
+        are left out. Clutter spreads votes over many views: taking a view's neighbours with it leaves room for a
+        view of another side of the object."""
+        count = self.params.top_k if count is None else count
         chosen: list[int] = []
         covered: set[int] = set()
         for v in np.lexsort((np.arange(len(votes)), -votes)):
-            if votes[v] <= 0 or len(chosen) >= self.params.top_k:
+            if votes[v] <= 0 or len(chosen) >= count:
                 break
             if int(v) not in covered:
                 chosen.append(int(v))
