@@ -13,7 +13,10 @@ support-plane fit, the search region) is done once (`gscan.estimate.query`):
    than `retrieval.max_dist` votes for that descriptor's view. A view's neighbourhood is itself and the
    `retrieval.joint_views` - 1 views whose optical axes are nearest to its own, within `retrieval.joint_deg`; the
    views with most votes are taken as centres (a view inside a neighbourhood already taken is skipped), up to
-   `retrieval.top_k`.
+   `retrieval.top_k`. When no list of these gives an accepted pose (and the view is not ambiguous), the next
+   `top_k` neighbourhoods by votes are matched, solved and verified (stages 3-7, under the short lists' rule:
+   `retrieval.next_round`): the clutter's keypoints vote too, and a sparsely printed object's right views can
+   rank below the views they vote for.
 3. match (`gscan.estimate.hypotheses`): GMatch (gscan.matching.gmatch) of each retrieved neighbourhood's keypoints
    jointly, all expressed in its central view's camera frame (view direction +z), against the query keypoints (+z): a
    pose between keyframes, or a face the scan saw from a steeper angle than the query, collects its matches from
