@@ -294,9 +294,10 @@ class Estimator:
     def _next_round(self, q: QueryFrame, qk: QueryKeypoints, r: Retrieval, res: EstimateResult, refine: bool,
                     timer: StageTimer) -> EstimateResult:
         """The pose of the next `retrieval.top_k` neighbourhoods by votes when the first ones' lists gave none
-        (`res`, returned when these give none either): clutter's keypoints vote for views too, and a weakly
+        (`res`, returned when these give none either): clutter's keypoints vote for views too, and a sparsely
         printed object's right views can rank below them. Their lists are verified under the short lists' rule
-        (the first round's best list was the frame's best-supported) and weighed against their rivals."""
+        (the long lists' relaxed rule is the first round's best list's alone) and an accepted one is weighed
+        against its rivals as in the first round."""
         k = self.params.retrieval.top_k
         views = self.index.top_neighbourhoods(r.votes, 2 * k)[k:]
         if not views:
