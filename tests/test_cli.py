@@ -58,18 +58,24 @@ def test_help_starts_without_the_library():
     assert "|".join(FORMAT_CHOICES) in _gscan("track", "--help", columns=300).stdout.split()
 
 
-def test_bad_input_is_refused_before_the_heavy_libraries_load(tmp_path: Path):
-    """numba, scipy and open3d cost about a CPU second to import: `gscan scan` and `gscan estimate` refuse a bad
-    input (a missing folder or template, an exclusive option pair, a missing configuration) and answer `--help`
-    without them (the scan opens its input before the pipeline loads, and open3d when its first stage begins; the
-    estimator opens its templates before its stages load; the configuration's settings classes are light)."""
+def test_bad_input_is_refused_before_the_heavy_libraries_load(tmp_path: Path, sample_template: Path):
+    """numba, scipy and open3d cost about a CPU second to import (viser half of one): `gscan scan`, `gscan
+    estimate`, `gscan track` and `gscan view` refuse a bad input (a missing folder, template or query file, an
+    exclusive option pair, a missing configuration) and answer `--help` without them (the scan opens its input
+    before the pipeline loads, and open3d when its first stage begins; the estimator opens its templates and the
+    query's files or sequence before its stages load; the viewer opens its template before its scene and server
+    load; the configuration's settings classes are light)."""
     code = ("import sys\nfrom gscan.cli import main\nsys.argv = ['gscan', *sys.argv[1:]]\ntry:\n    main()\n"
-            "except SystemExit as e:\n    print('exit', e.code, *sorted(m for m in ('numba', 'scipy', 'open3d') "
-            "if m in sys.modules))")
+            "except SystemExit as e:\n    print('exit', e.code, *sorted(m for m in ('numba', 'scipy', 'open3d', "
+            "'viser') if m in sys.modules))")
     out = str(tmp_path / "x.gscan")
-    estimate = ["estimate", str(tmp_path / "missing.gscan"), "--color", "c.png", "--depth", "d.png", "--intrinsics",
-                "K.txt"]
+    query = ["--color", str(tmp_path / "c.png"), "--depth", "d.png", "--intrinsics", "K.txt"]
+    estimate = ["estimate", str(tmp_path / "missing.gscan"), *query]
     for args, rc in (([*estimate], 2), ([*estimate, "--config", str(tmp_path / "missing.yaml")], 2),
+                     (["estimate", str(sample_template), *query], 2),
+                     (["track", str(sample_template), str(tmp_path / "missing")], 2),
+                     (["track", str(tmp_path / "missing.gscan"), str(tmp_path / "missing")], 2),
+                     (["view", str(tmp_path / "missing.gscan")], 2),
                      (["scan", str(tmp_path / "missing"), "-o", out], 2),
                      (["scan", str(tmp_path / "missing"), "-o", out, "--resume", "--force"], 2),
                      (["scan", str(tmp_path / "missing"), "-o", out, "--config", str(tmp_path / "missing.yaml")], 2),

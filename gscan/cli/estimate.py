@@ -58,8 +58,13 @@ def estimate(
     params = load_estimate_params(config)
     if max_instances is not None:
         params = replace(params, instances=replace(params.instances, max_instances=max_instances))
-    estimators = [open_estimator(t, params) for t in templates]
+    # the templates and the query's files are read and checked before the estimator's stages load: a bad input
+    # is answered without numba and scipy
+    opened = [open_estimable(t) for t in templates]
     frame = load_query_frame(color, depth, intrinsics, depth_scale, mask, depth_intrinsics, depth_to_color)
+    from gscan.estimate.estimator import Estimator
+
+    estimators = [Estimator(t, params) for t in opened]
     if all_instances:
         estimate_every_instance(estimators, frame, not no_icp, json_out)
         return
@@ -83,15 +88,14 @@ def estimate(
     err.print("timings (ms): " + ", ".join(f"{k} {v:.1f}" for k, v in out["timings_ms"].items()))
 
 
-def open_estimator(path: Path, params: Any) -> Any:
-    """`Estimator.from_path(path, params)`, the template opened (and a missing or foreign file refused) before the
-    estimator's stages load: a bad input is answered without numba and scipy."""
+def open_estimable(path: Path) -> Any:
+    """The Template of `path` (`gscan.template.db.open_template`), refused unless it holds a view with keypoints,
+    without loading the estimator's stages (numba, scipy)."""
     from gscan.template.db import open_template
 
     template = open_template(path)
-    from gscan.estimate.estimator import Estimator
-
-    return Estimator(template, params)
+    template.require_keypoints()
+    return template
 
 
 def estimate_every_instance(estimators: list[Any], frame: Any, refine: bool, json_out: bool) -> None:
@@ -147,7 +151,7 @@ def track(
     setup_logging(verbose)
     from dataclasses import replace
 
-    from gscan.estimate import Estimator, InstanceTracker, load_estimate_params, track_sequence, write_poses
+    from gscan.estimate.settings import load_estimate_params
     from gscan.io import check_output_path, open_sequence
     from gscan.io.camera import depth_camera_of
     from gscan.io.output import check_not_input
@@ -164,9 +168,13 @@ def track(
     params = load_estimate_params(None)
     if max_instances is not None:
         params = replace(params, instances=replace(params.instances, max_instances=max_instances))
-    estimator = Estimator.from_path(template, params)
+    # the template and the sequence are opened and checked before the estimator's stages load (numba, scipy)
+    tpl = open_estimable(template)
     seq = open_sequence(input_path, format, intrinsics=intrinsics, depth_scale=depth_scale,
                         depth_camera=depth_camera_of(depth_intrinsics, depth_to_color))
+    from gscan.estimate import Estimator, InstanceTracker, track_sequence, write_poses
+
+    estimator = Estimator(tpl, params)
 
     def report(step: Any) -> None:
         if json_out:

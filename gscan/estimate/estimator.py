@@ -79,7 +79,6 @@ from pathlib import Path
 
 import numpy as np
 
-from gscan.errors import InputError
 from gscan.estimate.hypotheses import GMatchLists, Matcher, QueryKeypoints, hypothesise, query_keypoints
 from gscan.estimate.instances import Instances, elsewhere, estimate_all
 from gscan.estimate.model import ObjectModel
@@ -115,8 +114,7 @@ class Estimator:
     def __init__(self, tpl: Template, params: EstimateParams = DEFAULT_PARAMS, matcher: Matcher | None = None):
         """tpl: a loaded template (TemplateDB.load_template: object keypoints in the object frame); matcher: the
         match lists of a view neighbourhood (default: `GMatchLists`, benchmarks put a baseline in its place)."""
-        if tpl.kind is None or len(tpl.view_names) == 0 or len(tpl.descriptors) == 0:
-            raise InputError(tpl.path, "template holds no registered view with keypoints")
+        tpl.require_keypoints()
         if tpl.kind != params.features.kind:
             params = replace(params, features=replace(params.features, kind=tpl.kind))
         self.params = params

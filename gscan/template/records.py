@@ -10,6 +10,7 @@ from typing import Any
 
 import numpy as np
 
+from gscan.errors import InputError
 from gscan.geometry.mesh import MeshData
 from gscan.io.camera import Intrinsics, RGBDFrame
 
@@ -90,3 +91,8 @@ class Template:
     mesh: MeshData | None
     grasps: dict[str, np.ndarray] = field(default_factory=dict)
     extent_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    def require_keypoints(self) -> None:
+        """InputError unless the template holds a registered view with keypoints (what an estimate needs)."""
+        if self.kind is None or len(self.view_names) == 0 or len(self.descriptors) == 0:
+            raise InputError(self.path, "template holds no registered view with keypoints")

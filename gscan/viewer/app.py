@@ -42,7 +42,6 @@ from gscan.viewer.access import TokenGate, check_token
 from gscan.viewer.data import ViewerData, ViewerOptions, load_viewer_data
 from gscan.viewer.draw import draw_keypoints, draw_matches, legend_html
 from gscan.viewer.instances import ShownInstances
-from gscan.viewer.scene import build_scene, symmetry_label
 from gscan.viewer.text import md_text
 
 log = logging.getLogger(__name__)
@@ -104,6 +103,8 @@ class ViewerApp:
         self._by_name = {v.name: v for v in data.views}
         self._current: str | None = None
         self._edge_labels: dict[str, Edge] = {}
+        from gscan.viewer.scene import build_scene  # scipy: loaded once a template is served
+
         scene = build_scene(server, data, options, scene_frame, T_cam_obj, grasps or {}, self.select_view, instances)
         self.layers: dict[str, list] = scene.layers  # layer key -> viser scene handles (toggled together)
         self.frustum_scale = scene.frustum_scale  # frustum depth (m) at "Frustum size" 1
@@ -174,6 +175,8 @@ class ViewerApp:
     # -- GUI ---------------------------------------------------------------------------------------
     def _build_gui(self, has_frame: bool, T_cam_obj: np.ndarray | None) -> None:
         """The GUI panel: summary, layer toggles and sizes, the Views folder, the Match panel, the legend."""
+        from gscan.viewer.scene import symmetry_label
+
         gui, d, o = self.server.gui, self.data, self.options
         reg = d.registered
         unreg = unregistered_names(d.views, d.meta.get("skipped"))  # as `gscan poses` lists them
@@ -339,12 +342,12 @@ def serve(db_path: str | Path, host: str = "127.0.0.1", port: int = 8080, scene_
     then shows), and listed, with the refused ones, in the "Instances" panel.
     Raises InputError (partial / missing database, a token that cannot stand in a URL) and PortInUseError.
     """
-    import viser
-
     data = load_viewer_data(db_path, options)  # a bad template is named before any port is tried
     if token is not None:
         check_token(token)
     check_port(host, port)
+    import viser  # once the template and the port are checked: a bad one is answered without it
+
     quiet_websockets()
     with contextlib.redirect_stdout(io.StringIO()) as banner:  # viser prints a banner; library code never prints
         server = viser.ViserServer(host="127.0.0.1" if token is not None else host, port=0 if token is not None
