@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import os
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -79,27 +80,52 @@ def real_dir(shared_data: Path) -> Path:
     return shared_data / "real"
 
 
-@pytest.fixture(scope="session")
-def sample_template(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """The bundled sample (gscan.demo.SAMPLES / "capture") scanned by the real pipeline (`gscan.scan`), once per
-    run: under pytest-xdist every worker is a session of its own, so the first worker that needs the template
-    scans it into the run's temporary folder (the workers' common parent) while holding a lock there, and the
-    others wait for it and read the same file. Tests only read it (those that change a template change a copy)."""
+def _made_once(tmp_path_factory: pytest.TempPathFactory, key: str, name: str, make: Callable[[Path], None]) -> Path:
+    """The file `name` that `make(path)` writes, made once per run: under pytest-xdist every worker is a session of
+    its own, so the first worker that asks for `key` makes it in the run's temporary folder (the workers' common
+    parent) while holding a lock there, and the others wait for it and read the same file. `make` raises (or fails
+    an assertion) when what it made is wrong: nothing is recorded then, and the next test that asks makes it
+    again. The tests only read the file (those that change one change a copy)."""
     import fcntl
-
-    import gscan
-    from gscan.demo import SAMPLES
 
     root = tmp_path_factory.getbasetemp()
     if os.environ.get("PYTEST_XDIST_WORKER"):
         root = root.parent  # the run's folder, which holds each worker's
-    done = root / "sample_template.path"  # written once the scan has passed its check
-    with open(root / "sample_template.lock", "w") as lock:
+    done = root / f"{key}.path"  # written once `make` has returned
+    with open(root / f"{key}.lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes
         if done.is_file():
             return Path(done.read_text())
-        out = Path(tempfile.mkdtemp(prefix="sample", dir=root)) / "sample.gscan"
-        res = gscan.scan(SAMPLES / "capture", out)
-        assert res.registered == res.frames == 30
+        out = Path(tempfile.mkdtemp(prefix=key, dir=root)) / name
+        make(out)
         done.write_text(str(out))
     return out
+
+
+@pytest.fixture(scope="session")
+def sample_template(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The bundled sample (gscan.demo.SAMPLES / "capture") scanned by the real pipeline (`gscan.scan`), once per
+    run (`_made_once`)."""
+    def make(out: Path) -> None:
+        import gscan
+        from gscan.demo import SAMPLES
+
+        res = gscan.scan(SAMPLES / "capture", out)
+        assert res.registered == res.frames == 30
+
+    return _made_once(tmp_path_factory, "sample_template", "sample.gscan", make)
+
+
+@pytest.fixture(scope="session")
+def cad_template(meshes_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> Callable[[str, int], Path]:
+    """(mesh, views) -> the CAD template `gscan.template_from_mesh` renders of the shared mesh meshes/MESH with
+    that many views, MESH.gscan, made once per run (`_made_once`): several files estimate against the same one."""
+    def get(mesh: str, n_views: int) -> Path:
+        def make(out: Path) -> None:
+            from gscan.scanning.cad import template_from_mesh
+
+            template_from_mesh(meshes_dir / mesh / "model_0.obj", out, n_views=n_views)
+
+        return _made_once(tmp_path_factory, f"cad-{mesh}-{n_views}", f"{mesh}.gscan", make)
+
+    return get

@@ -51,13 +51,8 @@ def meshes(meshes_dir: Path) -> dict:
 
 
 @pytest.fixture(scope="module")
-def templates(meshes_dir: Path, tmp_path_factory) -> dict:
-    root = tmp_path_factory.mktemp("instances")
-    out = {}
-    for n in (BOX, OTHER, TWIN_FACED):
-        template_from_mesh(meshes_dir / n / "model_0.obj", root / f"{n}.gscan", n_views=36)
-        out[n] = Estimator.from_path(root / f"{n}.gscan")
-    return out
+def templates(cad_template) -> dict:
+    return {n: Estimator.from_path(cad_template(n, 36)) for n in (BOX, OTHER, TWIN_FACED)}
 
 
 @pytest.mark.slow

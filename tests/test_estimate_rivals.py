@@ -13,7 +13,6 @@ from gscan.estimate.params import EstimateParams, RivalParams
 from gscan.geometry.transforms import pose_error
 from gscan.io.camera import RGBDFrame
 from gscan.registration.noise import sign_test
-from gscan.scanning.cad import template_from_mesh
 from gscan.synth import DEFAULT_INTRINSICS, load_textured_mesh, view_on_table
 
 # the same print on both large faces, other prints on the ends (bench/estimate.py's one wrong pose before the
@@ -22,10 +21,8 @@ TWIN_FACED = "Nestle_Raisinets_Milk_Chocolate_35_oz_992_g"
 
 
 @pytest.fixture(scope="module")
-def twin(meshes_dir: Path, tmp_path_factory):
-    out = tmp_path_factory.mktemp("rivals") / "twin.gscan"
-    template_from_mesh(meshes_dir / TWIN_FACED / "model_0.obj", out, n_views=36)
-    return load_textured_mesh(meshes_dir / TWIN_FACED / "model_0.obj"), out
+def twin(meshes_dir: Path, cad_template):
+    return load_textured_mesh(meshes_dir / TWIN_FACED / "model_0.obj"), cad_template(TWIN_FACED, 36)
 
 
 def view(mesh, azimuth_deg: float):

@@ -132,15 +132,12 @@ def test_without_targets_every_instance_is_scored(piles, tmp_path):
 
 
 @pytest.mark.slow
-def test_gscan_eval_scores_every_instance_of_a_pile(piles, meshes_dir, tmp_path):
+def test_gscan_eval_scores_every_instance_of_a_pile(piles, cad_template, tmp_path):
     """`evaluate` on the piles with a CAD template: estimate_all up to each target's inst_count; every pose it
     writes is right (MSSD under 5 % of the diameter) or counted as a miss, and the recall is the matched share of
     the instances (at least the issue's two per pile); --max-instances 1 scores one instance per image."""
-    from gscan.scanning.cad import template_from_mesh
-
     _, scene, ps, _, diam = piles
-    tpl = tmp_path / "box.gscan"
-    template_from_mesh(meshes_dir / BOX / "model_0.obj", tpl, n_views=36)
+    tpl = cad_template(BOX, 36)
     rep = evaluate(tpl, scene.parent, tmp_path / "all.csv")
     lines = (tmp_path / "all.csv").read_text().splitlines()[1:]
     n_inst = len(rep.rows)

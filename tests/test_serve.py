@@ -25,7 +25,6 @@ from gscan.client import GscanClient, Pose, ServiceError
 from gscan.errors import InputError
 from gscan.geometry.transforms import look_at, pose_error, rotvec_to_R, transform_points
 from gscan.io.camera import DepthCamera, Intrinsics, load_depth_camera
-from gscan.scanning.cad import template_from_mesh
 from gscan.service.decode import RequestError, decode_frame, depth_camera_fields, depth_camera_intrinsics, parse_pose
 from gscan.synth import (
     DEFAULT_INTRINSICS,
@@ -91,10 +90,8 @@ def meshes(meshes_dir: Path):
 
 
 @pytest.fixture(scope="module")
-def template(meshes_dir: Path, tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("serve") / "scrabble.gscan"
-    template_from_mesh(meshes_dir / TARGET / "model_0.obj", out, n_views=16)
-    return out
+def template(cad_template) -> Path:
+    return cad_template(TARGET, 16)  # TARGET.gscan: the service names it TARGET
 
 
 @pytest.fixture(scope="module")
@@ -135,13 +132,13 @@ def started_service(template: Path, *options: str) -> Iterator[tuple[subprocess.
 
 def test_twenty_frames_found_not_found_and_bad(service, meshes):
     proc, client = service
-    assert client.health() == ["scrabble"]
+    assert client.health() == [TARGET]
     good = [(seed, True) for seed in range(8)] + [(seed, False) for seed in range(8, 12)]
     for seed, present in good:  # 12 frames the service answers with 200
         r, T_gt = render(meshes, seed, present)
         c, d = frame_bytes(r)
         res = client.estimate(c, d, K_TEXT)
-        pose = res.results["scrabble"]
+        pose = res.results[TARGET]
         assert res.timings_ms["total"] > 0 and set(pose.timings_ms) >= {"features", "match", "total"}
         if present:
             assert pose.found, (seed, pose.reason)
@@ -172,8 +169,8 @@ def test_twenty_frames_found_not_found_and_bad(service, meshes):
         assert e.value.status == status, (field, e.value)
         assert e.value.detail.startswith(field + ":") and "\n" not in e.value.detail, e.value.detail
     assert proc.poll() is None  # still running ...
-    assert client.health() == ["scrabble"]  # ... and answering
-    again = client.estimate(c, d, K_TEXT).results["scrabble"]
+    assert client.health() == [TARGET]  # ... and answering
+    again = client.estimate(c, d, K_TEXT).results[TARGET]
     assert again.found
 
 
@@ -186,8 +183,8 @@ def test_every_instance_through_the_service(service, meshes):
     pile = render_pile([meshes[0], meshes[0], meshes[1]], 3)
     c, d = frame_bytes(pile.frame)
     res = client.estimate(c, d, K_TEXT, all_instances=True)
-    poses = res.instances["scrabble"]
-    assert len(poses) == 2 and res.results["scrabble"] == poses[0]
+    poses = res.instances[TARGET]
+    assert len(poses) == 2 and res.results[TARGET] == poses[0]
     hit = sorted(int(np.argmin([pose_error(np.asarray(p.T_cam_obj), T)[1] for T in pile.T_cam_objs[:2]]))
                  for p in poses)
     assert hit == [0, 1]
@@ -204,7 +201,7 @@ def test_tracking_session_through_the_service(service, meshes):
     c, d = frame_bytes(r)
     steps = [client.track("cam-1", c, d, K_TEXT) for _ in range(3)]
     assert [s.status for s in steps] == ["found", "tracked", "tracked"]
-    assert [s.frame for s in steps] == [0, 1, 2] and all(s.template == "scrabble" for s in steps)
+    assert [s.frame for s in steps] == [0, 1, 2] and all(s.template == TARGET for s in steps)
     for s in steps:
         deg, m = pose_error(np.asarray(s.result.T_cam_obj), T_gt)
         assert deg < 5.0 and m < 0.01
@@ -259,7 +256,7 @@ def test_serve_from_python(template: Path):
     try:
         url = proc.stdout.readline().strip()
         assert url.startswith("http://127.0.0.1:"), proc.stderr.read() if proc.poll() is not None else url
-        assert GscanClient(url, timeout=60).health() == ["scrabble"]
+        assert GscanClient(url, timeout=60).health() == [TARGET]
     finally:
         proc.terminate()
         proc.wait(30)
@@ -283,7 +280,7 @@ def test_body_limit_and_framework_errors(template: Path):
     assert r.status_code == 400 and r.json()["detail"].startswith("request: ")
     r = client.get("/nowhere")
     assert r.status_code == 404 and r.json()["detail"] == "request: Not Found"
-    assert client.get("/health").json() == {"templates": ["scrabble"]}
+    assert client.get("/health").json() == {"templates": [TARGET]}
 
 
 def _post_estimate(client: GscanClient, color: bytes, depth: bytes, **fields: object) -> dict:
@@ -323,11 +320,11 @@ def test_depth_from_a_separate_camera(template: Path, meshes, tmp_path: Path):
 
     with started_service(template, "--depth-intrinsics", str(tmp_path / "depth_K.txt"), "--depth-to-color",
                          str(tmp_path / "T_color_depth.txt")) as (proc, client):
-        served = client.estimate(c, d, K_TEXT).results["scrabble"]  # the service's depth camera
-        own = client.estimate(c, d, K_TEXT, depth_camera=DepthCamera(K_DEPTH, T_cd)).results["scrabble"]
+        served = client.estimate(c, d, K_TEXT).results[TARGET]  # the service's depth camera
+        own = client.estimate(c, d, K_TEXT, depth_camera=DepthCamera(K_DEPTH, T_cd)).results[TARGET]
         # the fields as a cam_K.txt and a pose .json hold them
         as_json = Pose.from_json(_post_estimate(client, c, d, depth_intrinsics=(tmp_path / "depth_K.txt").read_text(),
-                                                depth_to_color=json.dumps({"T": T_cd.tolist()}))["results"]["scrabble"])
+                                                depth_to_color=json.dumps({"T": T_cd.tolist()}))["results"][TARGET])
         for pose in (served, own, as_json):
             assert pose.found, pose.reason
             np.testing.assert_allclose(np.asarray(pose.T_cam_obj), T_cli, atol=1e-9)
@@ -336,7 +333,7 @@ def test_depth_from_a_separate_camera(template: Path, meshes, tmp_path: Path):
         np.testing.assert_allclose(np.asarray(step.result.T_cam_obj), T_cli, atol=1e-9)
         # the colour camera's own depth, named as a depth camera equal to the colour camera: found, at the truth
         reg = client.estimate(c, frame_bytes(r)[1], K_TEXT,
-                              depth_camera=DepthCamera(DEFAULT_INTRINSICS)).results["scrabble"]
+                              depth_camera=DepthCamera(DEFAULT_INTRINSICS)).results[TARGET]
         assert reg.found and pose_error(np.asarray(reg.T_cam_obj), T_gt)[0] < 5.0
         shifted = T_cd.copy()
         shifted[0, 3] = 5.0  # metres: every depth pixel lands beside the colour image
@@ -357,7 +354,7 @@ def test_depth_from_a_separate_camera(template: Path, meshes, tmp_path: Path):
                 _post_estimate(client, c, depth_png, **fields)
             assert e.value.status == status, (field, e.value)
             assert e.value.detail.startswith(field + ":") and "\n" not in e.value.detail, e.value.detail
-        assert proc.poll() is None and client.estimate(c, d, K_TEXT).results["scrabble"].found
+        assert proc.poll() is None and client.estimate(c, d, K_TEXT).results[TARGET].found
 
 
 def test_depth_camera_fields_and_poses(tmp_path: Path):

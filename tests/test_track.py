@@ -14,7 +14,6 @@ from gscan.errors import InputError
 from gscan.estimate import Estimator, Tracker, track_sequence, write_poses
 from gscan.geometry.transforms import look_at, make_T, pose_error, rotvec_to_R, transform_points
 from gscan.io import open_sequence
-from gscan.scanning.cad import template_from_mesh
 from gscan.synth import (
     DEFAULT_INTRINSICS,
     SynthScene,
@@ -31,10 +30,8 @@ AWAY = (8, 9, 10)  # frames in which the object is out of the view
 
 
 @pytest.fixture(scope="module")
-def template(meshes_dir: Path, tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("track") / "target.gscan"
-    template_from_mesh(meshes_dir / TARGET / "model_0.obj", out, n_views=16)
-    return out
+def template(cad_template) -> Path:
+    return cad_template(TARGET, 16)
 
 
 @pytest.fixture(scope="module")

@@ -18,7 +18,6 @@ from gscan.estimate.track_instances import InstanceTracker
 from gscan.geometry.transforms import make_T, pose_error
 from gscan.io import open_sequence
 from gscan.io.camera import RGBDFrame
-from gscan.scanning.cad import template_from_mesh
 from gscan.synth import DEFAULT_INTRINSICS, load_textured_mesh, write_capture
 from gscan.synth.piles import render_row_sequence
 
@@ -30,10 +29,8 @@ HIDDEN, HIDES = 0, (7, 8, 9)  # copy 0 is behind the occluder in these frames
 
 
 @pytest.fixture(scope="module")
-def template(meshes_dir: Path, tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("track_all") / "target.gscan"
-    template_from_mesh(meshes_dir / TARGET / "model_0.obj", out, n_views=16)
-    return out
+def template(cad_template) -> Path:
+    return cad_template(TARGET, 16)
 
 
 @pytest.fixture(scope="module")
