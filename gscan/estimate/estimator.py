@@ -114,13 +114,13 @@ class Estimator:
     def __init__(self, tpl: Template, params: EstimateParams = DEFAULT_PARAMS, matcher: Matcher | None = None):
         """tpl: a loaded template (TemplateDB.load_template: object keypoints in the object frame); matcher: the
         match lists of a view neighbourhood (default: `GMatchLists`, benchmarks put a baseline in its place)."""
-        tpl.require_keypoints()
-        if tpl.kind != params.features.kind:
-            params = replace(params, features=replace(params.features, kind=tpl.kind))
+        kind = tpl.require_keypoints()
+        if kind != params.features.kind:
+            params = replace(params, features=replace(params.features, kind=kind))
         self.params = params
         self.path = tpl.path
         self.name = Path(tpl.path).stem if tpl.path is not None else "template"
-        self.kind = tpl.kind
+        self.kind = kind
         self.index = TemplateIndex(tpl, params.gmatch.eps_f, params.retrieval)
         self.model = ObjectModel.from_template(tpl, params.refine.voxel)
         self.verifier = ListVerifier(self.index, self.model, params)

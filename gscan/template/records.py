@@ -92,7 +92,9 @@ class Template:
     grasps: dict[str, np.ndarray] = field(default_factory=dict)
     extent_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
-    def require_keypoints(self) -> None:
-        """InputError unless the template holds a registered view with keypoints (what an estimate needs)."""
+    def require_keypoints(self) -> str:
+        """The keypoints' kind; InputError unless the template holds a registered view with keypoints (what an
+        estimate needs)."""
         if self.kind is None or len(self.view_names) == 0 or len(self.descriptors) == 0:
             raise InputError(self.path, "template holds no registered view with keypoints")
+        return self.kind
