@@ -2,6 +2,7 @@
 registered to its colour keeps its intrinsics; one whose colour camera has another focal length gets that one back."""
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
@@ -27,6 +28,22 @@ def box(meshes_dir: Path):
     return load_textured_mesh(meshes_dir / "Whey_Protein_Chocolate_12_Packets" / "model_0.obj")
 
 
+@pytest.fixture(scope="module")
+def capture(box, tmp_path_factory: pytest.TempPathFactory) -> Callable[[float, int], Path]:
+    """(colour scale, views) -> the folder of `two_camera_capture(box, ...)` with that colour camera and that many
+    views, rendered once for the module (several tests check the same capture); the tests only read it."""
+    made: dict[tuple[float, int], Path] = {}
+
+    def get(colour_scale: float, n_views: int) -> Path:
+        if (colour_scale, n_views) not in made:
+            out = tmp_path_factory.mktemp("capture")
+            made[colour_scale, n_views] = C.two_camera_capture(box, out, colour_scale=colour_scale,
+                                                               n_views=n_views).path
+        return made[colour_scale, n_views]
+
+    return get
+
+
 def check(path: Path, n: int | None = None, workers: int = 1):
     seq = open_sequence(path)
     names = seq.names[:n]
@@ -44,9 +61,9 @@ def test_registered_depth_keeps_the_given_intrinsics(tmp_path, box):
 
 
 @pytest.mark.parametrize("scale", [0.88, 1.12])
-def test_a_colour_camera_of_another_focal_length_is_found(tmp_path, box, scale):
+def test_a_colour_camera_of_another_focal_length_is_found(capture, scale):
     """Colour from a camera of `scale` times the given focal length: found within 2 %, significantly better."""
-    got = check(C.two_camera_capture(box, tmp_path / "two", colour_scale=scale, n_views=8).path)
+    got = check(capture(scale, 8))
     assert got.verdict == "corrected" and got.significant and abs(got.scale / scale - 1) < 0.02, got
     assert got.low <= scale <= got.high and not got.low <= 1.0 <= got.high, got
     assert got.peak > got.agreement[1.0] + 0.2 and got.p_value < 0.05, got
@@ -66,34 +83,34 @@ def test_the_peak_is_sought_on_every_group_when_half_of_them_say_nothing(tmp_pat
     assert got is not None and got.pairs == 8 and got.significant and abs(got.scale / 1.12 - 1) < 0.02, got
 
 
-def test_too_few_frames_cannot_confirm(tmp_path, box):
+def test_too_few_frames_cannot_confirm(capture):
     """Three frames make two pairs at most: the check says it could not confirm the focal length, and why; two
     frames make no pair at all."""
     from gscan.scanning.calibration import UNCONFIRMED
 
-    path = C.two_camera_capture(box, tmp_path / "few", colour_scale=0.9, n_views=8).path
+    path = capture(0.9, 8)
     for n in (3, 2):
         got = check(path, n=n)
         assert got.verdict == UNCONFIRMED and not got.confirmed and not got.significant and got.scale == 1.0, got
         assert got.reason and ("pairs" in got.reason or "frames" in got.reason), got
 
 
-def test_two_threads_give_the_same_check(tmp_path, box):
+def test_two_threads_give_the_same_check(capture):
     """The scan runs the check's frame groups on two threads: every figure is the one a single thread gives (the
     walk and the vertex, on a capture whose colour camera differs)."""
-    path = C.two_camera_capture(box, tmp_path / "threads", colour_scale=0.9, n_views=8).path
+    path = capture(0.9, 8)
     one, two = check(path), check(path, workers=2)
     assert one is not None and len(one.agreement) > 3 and one == two, (one, two)
 
 
-def test_the_scan_detects_each_frame_once(tmp_path, box, monkeypatch):
+def test_the_scan_detects_each_frame_once(tmp_path, capture, monkeypatch):
     """The check's keypoints come from the detection the scan's features stage makes, and that stage starts from
     it: on a capture whose colour camera the check corrects (the sequence read again with other intrinsics),
     every frame's whole image is detected once, and every frame is registered."""
     import gscan.features.keypoints as features
     from gscan.scanning.api import scan
 
-    path = C.two_camera_capture(box, tmp_path / "cap", colour_scale=0.88, n_views=8).path
+    path = capture(0.88, 8)
     shape = open_sequence(path)[0].depth.shape
     whole: list[int] = []
     detect = features._detect

@@ -387,7 +387,8 @@ def _max_rss(*args: str | Path, env: dict | None = None) -> tuple[subprocess.Com
 def test_image_bombs_are_refused_from_their_header(ctx: Ctx, tmp_path: Path):
     """A 0.4 MB PNG declaring 12000 x 12000 pixels (432 MB decoded) as estimate's colour image, and a capture
     whose frames are such images: refused from the header, exit 2 naming the file and the limit, and the peak
-    memory stays that of an ordinary run (a decode would add 432 MB)."""
+    memory stays that of a run refused before it reads any image (a colour image that does not exist; both are
+    refused before the estimator loads), where a decode would add 432 MB."""
     cap = tmp_path / "bombcap"
     for sub in ("rgb", "depth"):
         (cap / sub).mkdir(parents=True)
@@ -396,9 +397,9 @@ def test_image_bombs_are_refused_from_their_header(ctx: Ctx, tmp_path: Path):
     s = BOMB_SIDE / INTR.width
     (cap / "cam_K.txt").write_text(f"{INTR.fx * s} 0 {BOMB_SIDE / 2}\n0 {INTR.fy * s} {BOMB_SIDE / 2}\n0 0 1\n")
     q = ctx.capture
-    normal, base = _max_rss("estimate", ctx.template, "--color", q / "rgb" / "000001.png", "--depth",
-                            q / "depth" / "000001.png", "--intrinsics", q / "cam_K.txt", "--json")
-    _ok(normal)
+    missing, base = _max_rss("estimate", ctx.template, "--color", tmp_path / "missing.png", "--depth",
+                             q / "depth" / "000001.png", "--intrinsics", q / "cam_K.txt", "--json")
+    _error(missing, "missing.png")
     bomb, rss = _max_rss("estimate", ctx.template, "--color", ctx.bomb, "--depth", q / "depth" / "000001.png",
                          "--intrinsics", q / "cam_K.txt", "--json")
     line = _error(bomb, "color.png")
