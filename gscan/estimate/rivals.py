@@ -57,6 +57,7 @@ from gscan.estimate.symmetric import PoseGroup
 from gscan.estimate.verify import (
     Evidence,
     accept,
+    list_refusal,
     list_spread,
     pose_evidence,
     query_sinks,
@@ -134,7 +135,8 @@ class ListVerifier:
         first: EstimateResult | None = None
         listed = [c for c in lists if c.n >= p.accept.min_matches]
         for i, c in enumerate(listed[: max(1, p.verify.lists)]):
-            res = self.verify_list(q, qk, c, refine, timer, best=best and c is lists[0])
+            # the first refusal is the answer when none is accepted: the later ones' reasons are not read
+            res = self.verify_list(q, qk, c, refine, timer, best=best and c is lists[0], explain=first is None)
             if res.found:
                 rivals = [r for r in listed[i + 1:] if r.support >= p.rivals.min_support * c.support]
                 return self.against_rivals(q, qk, res, rivals, refine, timer, separate)
@@ -146,21 +148,27 @@ class ListVerifier:
         return first
 
     def verify_list(self, q: QueryFrame, qk: QueryKeypoints, c: MatchList, refine: bool, timer: StageTimer,
-                    best: bool = True) -> EstimateResult:
-        """Solve, refine and verify one match list (best: the frame's best-supported list, `accept`)."""
+                    best: bool = True, explain: bool = True) -> EstimateResult:
+        """Solve, refine and verify one match list (best: the frame's best-supported list, `accept`). explain:
+        False when the caller reads only whether the list is accepted (a refusal's reason and evidence are not
+        read): a list its solve alone refuses (`list_refusal`) is then refused before it is refined, with that
+        reason and the list's evidence only; accepted or not, the answer is the one explain=True gives."""
         p = self.params
+        view = self.index.view_names[c.view]
         with timer.stage("solve"):
             src = self.index.points_obj[c.matches[:, 0]]
             dst = qk.feats.points[c.matches[:, 1]].astype(np.float64)
             T_cam_obj, keep = kabsch_trimmed(src, dst, p.hypotheses.trim_tau)
+            # inliers count query keypoint locations (pooled lists pair one keypoint with several template views)
+            listed = Evidence(n_matches=c.longest, n_inliers=len(np.unique(qk.location[c.matches[keep, 1]])),
+                              spread_m=list_spread(src[keep]))
+        if not explain and (why := list_refusal(listed, self.model.radius, p.accept, best)) is not None:
+            return not_found(why, c.longest, view, evidence=listed)
         with timer.stage("refine"):
             if refine:  # not cut by a given mask: a mask that clips the silhouette pulls ICP to the cut
                 T_cam_obj = refine_pose(self.model, q, T_cam_obj, (src[keep], dst[keep]), q.off_plane, p.refine)
             ev = self.evidence_of(q, T_cam_obj, qk)
-            # inliers count query keypoint locations (pooled lists pair one keypoint with several template views)
-            ev.n_matches, ev.n_inliers = c.longest, len(np.unique(qk.location[c.matches[keep, 1]]))
-            ev.spread_m = list_spread(src[keep])
-        view = self.index.view_names[c.view]
+            ev.n_matches, ev.n_inliers, ev.spread_m = listed.n_matches, listed.n_inliers, listed.spread_m
         below = self.sinks(q, T_cam_obj)
         why = accept(ev, self.model.radius, p.accept, best) if below is None else \
             f"pose puts {below:.0%} of the object inside the support plane"
@@ -184,7 +192,7 @@ class ListVerifier:
             if deg <= p.refine.max_turn_deg and dist <= self.model.radius:
                 continue
             checked += 1
-            alt = self.verify_list(q, qk, r, refine, timer)
+            alt = self.verify_list(q, qk, r, refine, timer, explain=False)
             if alt.T_cam_obj is None or alt.evidence is None:
                 continue
             deg, dist = self.apart(alt.T_cam_obj, res.T_cam_obj)

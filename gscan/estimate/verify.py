@@ -75,20 +75,37 @@ def accept(ev: Evidence, radius: float, p: AcceptParams, best: bool = True) -> s
     if ev.score < p.min_score or ev.confirmed < p.min_confirmed:
         return (f"pose not confirmed by the depth (score {ev.score:.2f}, {ev.confirmed:.0%} of visible surface "
                 f"confirmed)")
-    if ev.n_inliers < p.min_matches:
-        return f"too few geometrically consistent matches ({ev.n_inliers} < {p.min_matches} after trimming)"
+    why = list_refusal(ev, radius, p, best)
+    if why is not None:
+        return why
     shown = min(ev.on_surface, ev.offer)
-    if best and ev.n_matches >= p.strong_matches and ev.n_inliers >= p.strong_matches:
+    if strong_rule(ev, p, best):
         if ev.support_ratio >= p.strong_min_ratio:
             return None
         return f"the object's appearance does not agree ({ev.support} of {shown} keypoints on its surface match)"
-    if ev.spread_m < p.min_spread * radius:
-        return f"the {ev.n_inliers} matches lie on a line ({ev.spread_m * 1000:.1f} mm across)"
     if ev.support >= p.min_support and ev.support_ratio >= p.min_support_ratio:
         return None
     return (f"too little evidence: {ev.support} of {shown} keypoints on the object's surface agree with the template "
             f"(need {p.min_support} and {p.min_support_ratio:.0%}), {ev.n_inliers} consistent matches (or a list of "
             f"{p.strong_matches})")
+
+
+def strong_rule(ev: Evidence, p: AcceptParams, best: bool) -> bool:
+    """The pose takes the long list's relaxed support rule (`accept`): the frame's best-supported list, with
+    `strong_matches` pairs in its longest list and as many inliers."""
+    return best and ev.n_matches >= p.strong_matches and ev.n_inliers >= p.strong_matches
+
+
+def list_refusal(ev: Evidence, radius: float, p: AcceptParams, best: bool = True) -> str | None:
+    """The reason `accept` refuses the pose whatever the depth and the keypoints say, read from its list alone
+    (ev's n_matches, n_inliers and spread_m, known once the list is solved, before it is refined): too few
+    inliers, or, off the long list's rule, inliers on a line (spread under `min_spread` of the object `radius`,
+    m); None when the list leaves the decision to the evidence."""
+    if ev.n_inliers < p.min_matches:
+        return f"too few geometrically consistent matches ({ev.n_inliers} < {p.min_matches} after trimming)"
+    if not strong_rule(ev, p, best) and ev.spread_m < p.min_spread * radius:
+        return f"the {ev.n_inliers} matches lie on a line ({ev.spread_m * 1000:.1f} mm across)"
+    return None
 
 
 def list_spread(points: np.ndarray) -> float:
