@@ -48,7 +48,7 @@ import numpy as np
 
 from gscan.estimate.hypotheses import MatchList, QueryKeypoints
 from gscan.estimate.model import ObjectModel
-from gscan.estimate.params import EstimateParams
+from gscan.estimate.params import AcceptParams, EstimateParams
 from gscan.estimate.query import QueryFrame
 from gscan.estimate.refine import refine_pose
 from gscan.estimate.result import EstimateResult, found, not_found
@@ -104,20 +104,24 @@ class ListVerifier:
 
     def evidence(self, q: QueryFrame, T_cam_obj: np.ndarray, feats: Features, S: np.ndarray,
                  q_location: np.ndarray, kp_idx: np.ndarray | None = None,
-                 sim_cols: np.ndarray | None = None, sim_rows: np.ndarray | None = None) -> Evidence:
+                 sim_cols: np.ndarray | None = None, sim_rows: np.ndarray | None = None,
+                 gate: AcceptParams | None = None) -> Evidence:
         """Depth agreement and keypoint support of a pose (`gscan.estimate.verify.pose_evidence`). S [M' x C]: the
         query keypoints' similarity (unit descriptors) or distance to template keypoints, sim_rows [M] their rows
         in S (default: row i is keypoint i); kp_idx: the template keypoints offered (default: those of the views
-        near the pose's viewing direction) and sim_cols their columns in S (default: S holds every keypoint)."""
+        near the pose's viewing direction) and sim_cols their columns in S (default: S holds every keypoint);
+        gate: the keypoint support is left empty when the depth alone refuses the pose under that rule."""
         if kp_idx is None:
             kp_idx = self.index.offered_keypoints(T_cam_obj, self.params.verify.support_views_deg)
         return pose_evidence(q, T_cam_obj, self.model.samples, self.model.center, self.index.points_obj, kp_idx,
                              S, kp_idx if sim_cols is None else sim_cols, feats.points, q_location,
-                             self.params.verify, self.support_sim, 1.0 if self.index.unit else -1.0, sim_rows)
+                             self.params.verify, self.support_sim, 1.0 if self.index.unit else -1.0, sim_rows, gate)
 
-    def evidence_of(self, q: QueryFrame, T_cam_obj: np.ndarray, qk: QueryKeypoints) -> Evidence:
-        """`evidence` of the pose against the query keypoints qk, read through their rows in the retrieval matrix."""
-        return self.evidence(q, T_cam_obj, qk.feats, qk.S, qk.location, sim_rows=qk.rows)
+    def evidence_of(self, q: QueryFrame, T_cam_obj: np.ndarray, qk: QueryKeypoints,
+                    gate: AcceptParams | None = None) -> Evidence:
+        """`evidence` of the pose against the query keypoints qk, read through their rows in the retrieval matrix
+        (gate: `evidence`'s)."""
+        return self.evidence(q, T_cam_obj, qk.feats, qk.S, qk.location, sim_rows=qk.rows, gate=gate)
 
     def sinks(self, q: QueryFrame, T_cam_obj: np.ndarray) -> float | None:
         """The fraction of the object the pose puts inside the frame's support plane when too large, else None."""
@@ -152,7 +156,8 @@ class ListVerifier:
         """Solve, refine and verify one match list (best: the frame's best-supported list, `accept`). explain:
         False when the caller reads only whether the list is accepted (a refusal's reason and evidence are not
         read): a list its solve alone refuses (`list_refusal`) is then refused before it is refined, with that
-        reason and the list's evidence only; accepted or not, the answer is the one explain=True gives."""
+        reason and the list's evidence only, and a pose the depth refutes is refused without its keypoint
+        support; accepted or not, the answer is the one explain=True gives."""
         p = self.params
         view = self.index.view_names[c.view]
         with timer.stage("solve"):
@@ -167,7 +172,7 @@ class ListVerifier:
         with timer.stage("refine"):
             if refine:  # not cut by a given mask: a mask that clips the silhouette pulls ICP to the cut
                 T_cam_obj = refine_pose(self.model, q, T_cam_obj, (src[keep], dst[keep]), q.off_plane, p.refine)
-            ev = self.evidence_of(q, T_cam_obj, qk)
+            ev = self.evidence_of(q, T_cam_obj, qk, None if explain else p.accept)
             ev.n_matches, ev.n_inliers, ev.spread_m = listed.n_matches, listed.n_inliers, listed.spread_m
         below = self.sinks(q, T_cam_obj)
         why = accept(ev, self.model.radius, p.accept, best) if below is None else \

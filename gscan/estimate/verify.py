@@ -72,10 +72,7 @@ def accept(ev: Evidence, radius: float, p: AcceptParams, best: bool = True) -> s
     the frame's best-supported hypothesis; a long list's relaxed support rule applies to it only (a runner-up
     whose better-supported rival was refused must pass the short lists' rule: a box turned onto its twin face
     keeps a long list and some support)."""
-    if ev.score < p.min_score or ev.confirmed < p.min_confirmed:
-        return (f"pose not confirmed by the depth (score {ev.score:.2f}, {ev.confirmed:.0%} of visible surface "
-                f"confirmed)")
-    why = list_refusal(ev, radius, p, best)
+    why = depth_refusal(ev, p) or list_refusal(ev, radius, p, best)
     if why is not None:
         return why
     shown = min(ev.on_surface, ev.offer)
@@ -88,6 +85,14 @@ def accept(ev: Evidence, radius: float, p: AcceptParams, best: bool = True) -> s
     return (f"too little evidence: {ev.support} of {shown} keypoints on the object's surface agree with the template "
             f"(need {p.min_support} and {p.min_support_ratio:.0%}), {ev.n_inliers} consistent matches (or a list of "
             f"{p.strong_matches})")
+
+
+def depth_refusal(ev: Evidence, p: AcceptParams) -> str | None:
+    """The reason `accept` refuses the pose on its depth agreement alone (ev's score and confirmed), else None."""
+    if ev.score < p.min_score or ev.confirmed < p.min_confirmed:
+        return (f"pose not confirmed by the depth (score {ev.score:.2f}, {ev.confirmed:.0%} of visible surface "
+                f"confirmed)")
+    return None
 
 
 def strong_rule(ev: Evidence, p: AcceptParams, best: bool) -> bool:
@@ -290,18 +295,22 @@ def sinks_into_plane(T_cam_obj: np.ndarray, cloud: np.ndarray, plane: Plane, hei
 def pose_evidence(q: QueryFrame, T_cam_obj: np.ndarray, samples: np.ndarray, center: np.ndarray,
                   kp_points: np.ndarray, kp_idx: np.ndarray, sim: np.ndarray, sim_cols: np.ndarray,
                   q_points: np.ndarray, q_location: np.ndarray, params: VerifyParams, min_sim: float,
-                  sign: float, sim_rows: np.ndarray | None = None) -> Evidence:
+                  sign: float, sim_rows: np.ndarray | None = None, gate: AcceptParams | None = None) -> Evidence:
     """Depth agreement and keypoint support of the pose T_cam_obj (module docstring); n_matches, n_inliers and
     spread_m are left to the caller. samples [S x 3]: the template surface (object frame), center [3] its
     centre; kp_points [N x 3]: template keypoints (object frame), kp_idx [K] those offered; sim [M x C]: the
     query keypoints' similarity (sign 1) or distance (sign -1) to template keypoints, sim_cols [K] the offered
     ones' columns, sim_rows [M] the query keypoints' rows (None: row i is keypoint i); q_points [M x 3],
     q_location [M]: the query keypoints (camera frame) and their location ids;
-    min_sim: the similarity (or negated distance) at which a keypoint agrees."""
+    min_sim: the similarity (or negated distance) at which a keypoint agrees. gate: when given and the depth
+    agreement alone refuses the pose under that rule (`depth_refusal`), the keypoint support is not computed
+    (left empty: for a caller that reads only whether the pose is accepted)."""
     frame = q.frame
     seen = visible(T_cam_obj, frame.intrinsics, samples)  # the template surface the pose shows
     n_c, n_b, n = depth_votes(frame.depth, frame.intrinsics, T_cam_obj, samples, params.depth_tol, q.off_plane, seen)
     ev = Evidence(score=n_c / max(1, n_c + n_b), confirmed=n_c / max(1, n))
+    if gate is not None and depth_refusal(ev, gate) is not None:
+        return ev
     radius = support_radius(params, float(transform_points(T_cam_obj, center[None])[0, 2]))
     ev.supporters, ev.on_surface, ev.offer = keypoint_support(
         T_cam_obj, kp_points, kp_idx, sim, sim_cols, q_points, q_location, samples, frame.depth, frame.intrinsics,
