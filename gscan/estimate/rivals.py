@@ -7,7 +7,10 @@ rivals (`ListVerifier`).
   would pull the pose toward the cut).
 - verify (`gscan.estimate.verify`): accepted from the evidence, never from the list length alone, and refused
   when it sinks the object into the support plane. When the best list's pose is refused, the next
-  `verify.lists` - 1 lists are tried, under the short lists' stricter rule.
+  `verify.lists` - 1 lists are tried, under the short lists' stricter rule. Where a refusal's reason is not
+  read (those later lists, the rivals below, the search elsewhere of gscan.estimate.instances), a list its solve
+  alone rules out (`list_refusal`: too few inliers, or on a line) is refused before ICP, and a pose the depth
+  refutes is refused before its keypoint support is counted: the same answers at less cost.
 - rivals: a box printed alike on two faces fits a pose turned onto its twin face as well as the right one, in
   shape and in most keypoints. The next `rivals.lists` lists whose pre-score support reaches
   `rivals.min_support` of the accepted list's, and whose poses lie beyond the refinement's reach of the
