@@ -131,11 +131,13 @@ class ListVerifier:
         return query_sinks(q, T_cam_obj, self.model.samples, self.params.verify)
 
     def verify_lists(self, q: QueryFrame, qk: QueryKeypoints, lists: list[MatchList], refine: bool,
-                     timer: StageTimer, separate: Separate | None = None, best: bool = True) -> EstimateResult:
+                     timer: StageTimer, separate: Separate | None = None, best: bool = True,
+                     explain: bool = True) -> EstimateResult:
         """The pose of the pooled lists (best pre-score first): the first accepted of the `verify.lists` best,
         weighed against its rivals, else the best list's refusal. separate: when given, a rival it calls another
         instance is no rival (`against_rivals`); best: the first list is the frame's best-supported (False: every
-        list is verified under the short lists' rule, `accept`)."""
+        list is verified under the short lists' rule, `accept`); explain: False when a refusal's reason is not
+        read (`verify_list`)."""
         p = self.params
         if not lists:
             return not_found("too few geometrically consistent matches (no list of 3)")
@@ -143,7 +145,8 @@ class ListVerifier:
         listed = [c for c in lists if c.n >= p.accept.min_matches]
         for i, c in enumerate(listed[: max(1, p.verify.lists)]):
             # the first refusal is the answer when none is accepted: the later ones' reasons are not read
-            res = self.verify_list(q, qk, c, refine, timer, best=best and c is lists[0], explain=first is None)
+            res = self.verify_list(q, qk, c, refine, timer, best=best and c is lists[0],
+                                   explain=explain and first is None)
             if res.found:
                 rivals = [r for r in listed[i + 1:] if r.support >= p.rivals.min_support * c.support]
                 return self.against_rivals(q, qk, res, rivals, refine, timer, separate)
