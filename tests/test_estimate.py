@@ -13,7 +13,8 @@ from gscan.errors import InputError
 from gscan.estimate.estimator import STAGES, Estimator
 from gscan.estimate.params import EstimateParams, HoleParams, RivalParams, ThreadParams, VerifyParams
 from gscan.estimate.query import query_features
-from gscan.estimate.verify import AcceptParams
+from gscan.estimate.rivals import ListVerifier
+from gscan.estimate.verify import AcceptParams, Evidence, accept, depth_refusal, list_refusal
 from gscan.evaluate.metrics import add
 from gscan.geometry.transforms import look_at, make_T, pose_error, rotvec_to_R, transform_points
 from gscan.io.camera import RGBDFrame
@@ -507,3 +508,53 @@ print(json.dumps({"found": res.found, "warmed": min(before),
                        cwd=ROOT, check=True)
     out = json.loads(p.stdout.strip().splitlines()[-1])
     assert out["found"] and out["warmed"] >= 1 and out["new"] == [], out
+
+
+def test_what_refuses_a_list_before_icp_refuses_it_after():
+    """The shortcut of a verification whose reason is not read (`ListVerifier.verify_list`, explain=False) is
+    sound: on a grid of evidence around every threshold of `accept`, a list `list_refusal` refuses (read before
+    ICP) and a pose `depth_refusal` refuses (read before the keypoint support) are refused by `accept` whatever
+    the rest of the evidence, and every accepted pose passes both."""
+    p, radius = AcceptParams(), 0.1
+    accepted = refused_early = 0
+    for n_matches in (5, 13, 14, 30):
+        for n_inliers in (3, 4, 5, 13, 14, 30):
+            for spread in (0.0, 0.0049, 0.005, 0.02):
+                for score, confirmed in ((0.59, 0.5), (0.6, 0.14), (0.6, 0.15), (0.9, 0.9)):
+                    for support, shown in ((0, 0), (1, 10), (9, 20), (10, 50), (10, 51), (40, 100)):
+                        for best in (True, False):
+                            ev = Evidence(n_matches, n_inliers, spread, score, confirmed, shown, shown,
+                                          np.arange(support))
+                            early = list_refusal(ev, radius, p, best) or depth_refusal(ev, p)
+                            if accept(ev, radius, p, best) is None:
+                                assert early is None, ev
+                                accepted += 1
+                            else:
+                                refused_early += early is not None
+    assert accepted > 0 and refused_early > 0
+
+
+def test_every_list_gets_the_same_answer_when_only_acceptance_is_read(meshes, estimator, monkeypatch):
+    """`ListVerifier.verify_list` with explain=False (the search elsewhere, rival lists, the lists after the first
+    refusal) skips ICP for a list its solve alone refuses and the keypoint support of a pose the depth refutes:
+    every list verified in three cluttered scenes (two with the target, one without), the first search's and the
+    search elsewhere's, is verified both ways here, with the same answer and the same pose; some are refused
+    before ICP."""
+    verify_list = ListVerifier.verify_list
+    seen = {"lists": 0, "before_icp": 0}
+
+    def both(self, q, qk, c, refine, timer, best=True, explain=True):
+        full = verify_list(self, q, qk, c, refine, timer, best=best)
+        quick = verify_list(self, q, qk, c, refine, timer, best=best, explain=False)
+        assert quick.found == full.found, (full.reason, quick.reason)
+        if full.found:
+            np.testing.assert_array_equal(quick.T_cam_obj, full.T_cam_obj)
+        seen["lists"] += 1
+        seen["before_icp"] += list_refusal(full.evidence, estimator.model.radius, estimator.params.accept,
+                                           best) is not None
+        return full if explain else quick
+
+    monkeypatch.setattr(ListVerifier, "verify_list", both)
+    for seed, with_target in ((0, True), (3, True), (1, False)):
+        estimator.estimate(as_frame(render_scene(meshes[0], meshes[1:], seed, with_target)[0]))
+    assert seen["before_icp"] >= 1, seen

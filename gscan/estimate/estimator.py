@@ -304,7 +304,7 @@ class Estimator:
         with timer.stage("match"):
             lists = hypothesise(self.index, qk, r, self.matcher, p.gmatch.order, p.hypotheses,
                                 self.verifier.support_sim, p.verify.support_radius, views)
-        second = self.verifier.verify_lists(q, qk, lists, refine, timer, best=False)
+        second = self.verifier.verify_lists(q, qk, lists, refine, timer, best=False, explain=False)
         return second if second.found or (second.reason or "").startswith(AMBIGUOUS) else res
 
     def _above(self, q: QueryFrame, res: EstimateResult) -> EstimateResult:

@@ -180,22 +180,26 @@ def merge_agreeing(lists: list[MatchList], points_obj: np.ndarray, q_points: np.
     Ts = np.stack([c.T for c in order])
     trace_min = 1.0 + 2.0 * np.cos(np.radians(params.merge_deg))
     owner = np.full(len(order), -1)
+    free = np.ones(len(order), bool)  # not yet owned by a representative
     for i, c in enumerate(order):  # each unowned list in order becomes a representative of those agreeing
-        if owner[i] >= 0:
+        if not free[i]:
             members[owner[i]].append(c.matches)
             continue
         k = len(merged)
         merged.append(MatchList(c.n, c.cost, c.view, c.matches, c.support, c.T, c.n))
         members.append([c.matches])
-        rest = np.flatnonzero(owner[i + 1:] < 0) + i + 1
+        rest = np.flatnonzero(free[i + 1:]) + i + 1
         tr = np.einsum("ij,nij->n", c.T[:3, :3], Ts[rest, :3, :3])  # trace(R_c^T R_n)
         near = np.linalg.norm(Ts[rest, :3, 3] - c.T[:3, 3], axis=1) <= params.merge_dist
-        owner[rest[(tr >= trace_min) & near]] = k
+        joined = rest[(tr >= trace_min) & near]
+        owner[joined] = k
+        free[joined] = False
+    width = int(q_points.shape[0]) + 1  # a pair's code: template keypoint * width + query keypoint
     for rep, ms in zip(merged, members, strict=True):
         rep.longest = max(len(m) for m in ms)
         if len(ms) > 1:
             m = np.concatenate(ms)
-            _, first = np.unique(m, axis=0, return_index=True)
+            _, first = np.unique(m[:, 0] * width + m[:, 1], return_index=True)  # (np.unique by rows is slower)
             m = m[np.sort(first)]  # the best list's pairs first, in order
             # pooled pairs off the representative's pose by more than twice the trim distance are left out
             r = np.linalg.norm(transform_points(rep.T, points_obj[m[:, 0]]) - q_points[m[:, 1]], axis=1)

@@ -363,7 +363,8 @@ def elsewhere(est: Searcher, q: QueryFrame, feats: Features, r: Retrieval, res: 
         # the first of the `verify.lists` best lists accepted, not weighed against its rivals: a place where
         # two poses tie still holds something the template fits
         alt = next((a for c in [c for c in lists if c.n >= p.accept.min_matches][: max(1, p.verify.lists)]
-                    if (a := est.verifier.verify_list(q_out, qk, c, refine, timer, best=c is lists[0])).found),
+                    if (a := est.verifier.verify_list(q_out, qk, c, refine, timer, best=c is lists[0],
+                                                      explain=False)).found),
                    not_found("none"))
         if alt.T_cam_obj is not None and overlapping(
                 pix, explained_pixels(q, est.model.samples, alt.T_cam_obj, p.instances.explain_dist,

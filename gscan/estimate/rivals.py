@@ -7,7 +7,10 @@ rivals (`ListVerifier`).
   would pull the pose toward the cut).
 - verify (`gscan.estimate.verify`): accepted from the evidence, never from the list length alone, and refused
   when it sinks the object into the support plane. When the best list's pose is refused, the next
-  `verify.lists` - 1 lists are tried, under the short lists' stricter rule.
+  `verify.lists` - 1 lists are tried, under the short lists' stricter rule. Where a refusal's reason is not
+  read (those later lists, the rivals below, the search elsewhere of gscan.estimate.instances), a list its solve
+  alone rules out (`list_refusal`: too few inliers, or on a line) is refused before ICP, and a pose the depth
+  refutes is refused before its keypoint support is counted: the same answers at less cost.
 - rivals: a box printed alike on two faces fits a pose turned onto its twin face as well as the right one, in
   shape and in most keypoints. The next `rivals.lists` lists whose pre-score support reaches
   `rivals.min_support` of the accepted list's, and whose poses lie beyond the refinement's reach of the
@@ -48,7 +51,7 @@ import numpy as np
 
 from gscan.estimate.hypotheses import MatchList, QueryKeypoints
 from gscan.estimate.model import ObjectModel
-from gscan.estimate.params import EstimateParams
+from gscan.estimate.params import AcceptParams, EstimateParams
 from gscan.estimate.query import QueryFrame
 from gscan.estimate.refine import refine_pose
 from gscan.estimate.result import EstimateResult, found, not_found
@@ -57,6 +60,7 @@ from gscan.estimate.symmetric import PoseGroup
 from gscan.estimate.verify import (
     Evidence,
     accept,
+    list_refusal,
     list_spread,
     pose_evidence,
     query_sinks,
@@ -103,38 +107,46 @@ class ListVerifier:
 
     def evidence(self, q: QueryFrame, T_cam_obj: np.ndarray, feats: Features, S: np.ndarray,
                  q_location: np.ndarray, kp_idx: np.ndarray | None = None,
-                 sim_cols: np.ndarray | None = None, sim_rows: np.ndarray | None = None) -> Evidence:
+                 sim_cols: np.ndarray | None = None, sim_rows: np.ndarray | None = None,
+                 gate: AcceptParams | None = None) -> Evidence:
         """Depth agreement and keypoint support of a pose (`gscan.estimate.verify.pose_evidence`). S [M' x C]: the
         query keypoints' similarity (unit descriptors) or distance to template keypoints, sim_rows [M] their rows
         in S (default: row i is keypoint i); kp_idx: the template keypoints offered (default: those of the views
-        near the pose's viewing direction) and sim_cols their columns in S (default: S holds every keypoint)."""
+        near the pose's viewing direction) and sim_cols their columns in S (default: S holds every keypoint);
+        gate: the keypoint support is left empty when the depth alone refuses the pose under that rule."""
         if kp_idx is None:
             kp_idx = self.index.offered_keypoints(T_cam_obj, self.params.verify.support_views_deg)
         return pose_evidence(q, T_cam_obj, self.model.samples, self.model.center, self.index.points_obj, kp_idx,
                              S, kp_idx if sim_cols is None else sim_cols, feats.points, q_location,
-                             self.params.verify, self.support_sim, 1.0 if self.index.unit else -1.0, sim_rows)
+                             self.params.verify, self.support_sim, 1.0 if self.index.unit else -1.0, sim_rows, gate)
 
-    def evidence_of(self, q: QueryFrame, T_cam_obj: np.ndarray, qk: QueryKeypoints) -> Evidence:
-        """`evidence` of the pose against the query keypoints qk, read through their rows in the retrieval matrix."""
-        return self.evidence(q, T_cam_obj, qk.feats, qk.S, qk.location, sim_rows=qk.rows)
+    def evidence_of(self, q: QueryFrame, T_cam_obj: np.ndarray, qk: QueryKeypoints,
+                    gate: AcceptParams | None = None) -> Evidence:
+        """`evidence` of the pose against the query keypoints qk, read through their rows in the retrieval matrix
+        (gate: `evidence`'s)."""
+        return self.evidence(q, T_cam_obj, qk.feats, qk.S, qk.location, sim_rows=qk.rows, gate=gate)
 
     def sinks(self, q: QueryFrame, T_cam_obj: np.ndarray) -> float | None:
         """The fraction of the object the pose puts inside the frame's support plane when too large, else None."""
         return query_sinks(q, T_cam_obj, self.model.samples, self.params.verify)
 
     def verify_lists(self, q: QueryFrame, qk: QueryKeypoints, lists: list[MatchList], refine: bool,
-                     timer: StageTimer, separate: Separate | None = None, best: bool = True) -> EstimateResult:
+                     timer: StageTimer, separate: Separate | None = None, best: bool = True,
+                     explain: bool = True) -> EstimateResult:
         """The pose of the pooled lists (best pre-score first): the first accepted of the `verify.lists` best,
         weighed against its rivals, else the best list's refusal. separate: when given, a rival it calls another
         instance is no rival (`against_rivals`); best: the first list is the frame's best-supported (False: every
-        list is verified under the short lists' rule, `accept`)."""
+        list is verified under the short lists' rule, `accept`); explain: False when a refusal's reason is not
+        read (`verify_list`)."""
         p = self.params
         if not lists:
             return not_found("too few geometrically consistent matches (no list of 3)")
         first: EstimateResult | None = None
         listed = [c for c in lists if c.n >= p.accept.min_matches]
         for i, c in enumerate(listed[: max(1, p.verify.lists)]):
-            res = self.verify_list(q, qk, c, refine, timer, best=best and c is lists[0])
+            # the first refusal is the answer when none is accepted: the later ones' reasons are not read
+            res = self.verify_list(q, qk, c, refine, timer, best=best and c is lists[0],
+                                   explain=explain and first is None)
             if res.found:
                 rivals = [r for r in listed[i + 1:] if r.support >= p.rivals.min_support * c.support]
                 return self.against_rivals(q, qk, res, rivals, refine, timer, separate)
@@ -146,21 +158,28 @@ class ListVerifier:
         return first
 
     def verify_list(self, q: QueryFrame, qk: QueryKeypoints, c: MatchList, refine: bool, timer: StageTimer,
-                    best: bool = True) -> EstimateResult:
-        """Solve, refine and verify one match list (best: the frame's best-supported list, `accept`)."""
+                    best: bool = True, explain: bool = True) -> EstimateResult:
+        """Solve, refine and verify one match list (best: the frame's best-supported list, `accept`). explain:
+        False when the caller reads only whether the list is accepted (a refusal's reason and evidence are not
+        read): a list its solve alone refuses (`list_refusal`) is then refused before it is refined, with that
+        reason and the list's evidence only, and a pose the depth refutes is refused without its keypoint
+        support; accepted or not, the answer is the one explain=True gives."""
         p = self.params
+        view = self.index.view_names[c.view]
         with timer.stage("solve"):
             src = self.index.points_obj[c.matches[:, 0]]
             dst = qk.feats.points[c.matches[:, 1]].astype(np.float64)
             T_cam_obj, keep = kabsch_trimmed(src, dst, p.hypotheses.trim_tau)
+            # inliers count query keypoint locations (pooled lists pair one keypoint with several template views)
+            listed = Evidence(n_matches=c.longest, n_inliers=len(np.unique(qk.location[c.matches[keep, 1]])),
+                              spread_m=list_spread(src[keep]))
+        if not explain and (why := list_refusal(listed, self.model.radius, p.accept, best)) is not None:
+            return not_found(why, c.longest, view, evidence=listed)
         with timer.stage("refine"):
             if refine:  # not cut by a given mask: a mask that clips the silhouette pulls ICP to the cut
                 T_cam_obj = refine_pose(self.model, q, T_cam_obj, (src[keep], dst[keep]), q.off_plane, p.refine)
-            ev = self.evidence_of(q, T_cam_obj, qk)
-            # inliers count query keypoint locations (pooled lists pair one keypoint with several template views)
-            ev.n_matches, ev.n_inliers = c.longest, len(np.unique(qk.location[c.matches[keep, 1]]))
-            ev.spread_m = list_spread(src[keep])
-        view = self.index.view_names[c.view]
+            ev = self.evidence_of(q, T_cam_obj, qk, None if explain else p.accept)
+            ev.n_matches, ev.n_inliers, ev.spread_m = listed.n_matches, listed.n_inliers, listed.spread_m
         below = self.sinks(q, T_cam_obj)
         why = accept(ev, self.model.radius, p.accept, best) if below is None else \
             f"pose puts {below:.0%} of the object inside the support plane"
@@ -184,7 +203,7 @@ class ListVerifier:
             if deg <= p.refine.max_turn_deg and dist <= self.model.radius:
                 continue
             checked += 1
-            alt = self.verify_list(q, qk, r, refine, timer)
+            alt = self.verify_list(q, qk, r, refine, timer, explain=False)
             if alt.T_cam_obj is None or alt.evidence is None:
                 continue
             deg, dist = self.apart(alt.T_cam_obj, res.T_cam_obj)

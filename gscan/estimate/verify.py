@@ -72,23 +72,45 @@ def accept(ev: Evidence, radius: float, p: AcceptParams, best: bool = True) -> s
     the frame's best-supported hypothesis; a long list's relaxed support rule applies to it only (a runner-up
     whose better-supported rival was refused must pass the short lists' rule: a box turned onto its twin face
     keeps a long list and some support)."""
-    if ev.score < p.min_score or ev.confirmed < p.min_confirmed:
-        return (f"pose not confirmed by the depth (score {ev.score:.2f}, {ev.confirmed:.0%} of visible surface "
-                f"confirmed)")
-    if ev.n_inliers < p.min_matches:
-        return f"too few geometrically consistent matches ({ev.n_inliers} < {p.min_matches} after trimming)"
+    why = depth_refusal(ev, p) or list_refusal(ev, radius, p, best)
+    if why is not None:
+        return why
     shown = min(ev.on_surface, ev.offer)
-    if best and ev.n_matches >= p.strong_matches and ev.n_inliers >= p.strong_matches:
+    if strong_rule(ev, p, best):
         if ev.support_ratio >= p.strong_min_ratio:
             return None
         return f"the object's appearance does not agree ({ev.support} of {shown} keypoints on its surface match)"
-    if ev.spread_m < p.min_spread * radius:
-        return f"the {ev.n_inliers} matches lie on a line ({ev.spread_m * 1000:.1f} mm across)"
     if ev.support >= p.min_support and ev.support_ratio >= p.min_support_ratio:
         return None
     return (f"too little evidence: {ev.support} of {shown} keypoints on the object's surface agree with the template "
             f"(need {p.min_support} and {p.min_support_ratio:.0%}), {ev.n_inliers} consistent matches (or a list of "
             f"{p.strong_matches})")
+
+
+def depth_refusal(ev: Evidence, p: AcceptParams) -> str | None:
+    """The reason `accept` refuses the pose on its depth agreement alone (ev's score and confirmed), else None."""
+    if ev.score < p.min_score or ev.confirmed < p.min_confirmed:
+        return (f"pose not confirmed by the depth (score {ev.score:.2f}, {ev.confirmed:.0%} of visible surface "
+                f"confirmed)")
+    return None
+
+
+def strong_rule(ev: Evidence, p: AcceptParams, best: bool) -> bool:
+    """The pose takes the long list's relaxed support rule (`accept`): the frame's best-supported list, with
+    `strong_matches` pairs in its longest list and as many inliers."""
+    return best and ev.n_matches >= p.strong_matches and ev.n_inliers >= p.strong_matches
+
+
+def list_refusal(ev: Evidence, radius: float, p: AcceptParams, best: bool = True) -> str | None:
+    """The reason `accept` refuses the pose whatever the depth and the keypoints say, read from its list alone
+    (ev's n_matches, n_inliers and spread_m, known once the list is solved, before it is refined): too few
+    inliers, or, off the long list's rule, inliers on a line (spread under `min_spread` of the object `radius`,
+    m); None when the list leaves the decision to the evidence."""
+    if ev.n_inliers < p.min_matches:
+        return f"too few geometrically consistent matches ({ev.n_inliers} < {p.min_matches} after trimming)"
+    if not strong_rule(ev, p, best) and ev.spread_m < p.min_spread * radius:
+        return f"the {ev.n_inliers} matches lie on a line ({ev.spread_m * 1000:.1f} mm across)"
+    return None
 
 
 def list_spread(points: np.ndarray) -> float:
@@ -273,18 +295,22 @@ def sinks_into_plane(T_cam_obj: np.ndarray, cloud: np.ndarray, plane: Plane, hei
 def pose_evidence(q: QueryFrame, T_cam_obj: np.ndarray, samples: np.ndarray, center: np.ndarray,
                   kp_points: np.ndarray, kp_idx: np.ndarray, sim: np.ndarray, sim_cols: np.ndarray,
                   q_points: np.ndarray, q_location: np.ndarray, params: VerifyParams, min_sim: float,
-                  sign: float, sim_rows: np.ndarray | None = None) -> Evidence:
+                  sign: float, sim_rows: np.ndarray | None = None, gate: AcceptParams | None = None) -> Evidence:
     """Depth agreement and keypoint support of the pose T_cam_obj (module docstring); n_matches, n_inliers and
     spread_m are left to the caller. samples [S x 3]: the template surface (object frame), center [3] its
     centre; kp_points [N x 3]: template keypoints (object frame), kp_idx [K] those offered; sim [M x C]: the
     query keypoints' similarity (sign 1) or distance (sign -1) to template keypoints, sim_cols [K] the offered
     ones' columns, sim_rows [M] the query keypoints' rows (None: row i is keypoint i); q_points [M x 3],
     q_location [M]: the query keypoints (camera frame) and their location ids;
-    min_sim: the similarity (or negated distance) at which a keypoint agrees."""
+    min_sim: the similarity (or negated distance) at which a keypoint agrees. gate: when given and the depth
+    agreement alone refuses the pose under that rule (`depth_refusal`), the keypoint support is not computed
+    (left empty: for a caller that reads only whether the pose is accepted)."""
     frame = q.frame
     seen = visible(T_cam_obj, frame.intrinsics, samples)  # the template surface the pose shows
     n_c, n_b, n = depth_votes(frame.depth, frame.intrinsics, T_cam_obj, samples, params.depth_tol, q.off_plane, seen)
     ev = Evidence(score=n_c / max(1, n_c + n_b), confirmed=n_c / max(1, n))
+    if gate is not None and depth_refusal(ev, gate) is not None:
+        return ev
     radius = support_radius(params, float(transform_points(T_cam_obj, center[None])[0, 2]))
     ev.supporters, ev.on_surface, ev.offer = keypoint_support(
         T_cam_obj, kp_points, kp_idx, sim, sim_cols, q_points, q_location, samples, frame.depth, frame.intrinsics,
