@@ -74,7 +74,6 @@ def test_bad_input_is_refused_before_the_heavy_libraries_load(tmp_path: Path, sa
     query = ["--color", str(tmp_path / "c.png"), "--depth", "d.png", "--intrinsics", "K.txt"]
     estimate = ["estimate", str(tmp_path / "missing.gscan"), *query]
     for args, rc in (([*estimate], 2), ([*estimate, "--config", str(tmp_path / "missing.yaml")], 2),
-                     (["eval", str(tmp_path / "missing.gscan"), missing, "-o", str(tmp_path / "r.csv")], 2),
                      (["eval", str(sample_template), missing, "-o", str(tmp_path / "r.csv")], 2),
                      (["serve", str(tmp_path / "missing.gscan")], 2),
                      (["batch", missing, "-o", str(tmp_path / "templates")], 2),
