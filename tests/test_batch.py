@@ -349,10 +349,14 @@ def _without_time(metrics: dict) -> dict:
 # ------------------------------------------------------------------------------------------ without Ray
 @pytest.mark.parametrize("command", ["batch", "batch-eval"])
 def test_without_ray_the_command_says_how_to_install_it(command: str, tmp_path: Path) -> None:
+    """Inputs that pass the checks made before Ray loads (a recording to scan; a template and its scenes)."""
     (tmp_path / "caps").mkdir()
+    (tmp_path / "caps" / "box.bag").write_bytes(b"")
+    (tmp_path / "scenes" / "box").mkdir(parents=True)
+    (tmp_path / "caps" / "box.gscan").write_bytes(b"")
     args = [command, str(tmp_path / "caps"), "-o", str(tmp_path / "out")]
     if command == "batch-eval":
-        args.insert(2, str(tmp_path / "caps"))
+        args.insert(2, str(tmp_path / "scenes"))
     code = ("import sys; sys.modules['ray'] = None; sys.argv = ['gscan'] + sys.argv[1:]; "
             "from gscan.cli import main; main()")
     r = subprocess.run([sys.executable, "-c", code, *args], check=False, capture_output=True, text=True,

@@ -59,19 +59,27 @@ def test_help_starts_without_the_library():
 
 
 def test_bad_input_is_refused_before_the_heavy_libraries_load(tmp_path: Path, sample_template: Path):
-    """numba, scipy and open3d cost about a CPU second to import (viser half of one): `gscan scan`, `gscan
-    estimate`, `gscan track` and `gscan view` refuse a bad input (a missing folder, template or query file, an
-    exclusive option pair, a missing configuration) and answer `--help` without them (the scan opens its input
+    """numba, scipy and open3d cost about a CPU second to import (viser half of one, Ray and trimesh a third):
+    every command refuses a bad input (a missing folder, template, mesh or query file, an output on its input, an
+    exclusive option pair, a missing configuration) and answers `--help` without them (the scan opens its input
     before the pipeline loads, and open3d when its first stage begins; the estimator opens its templates and the
-    query's files or sequence before its stages load; the viewer opens its template before its scene and server
-    load; the configuration's settings classes are light)."""
+    query's files or sequence before its stages load, as `eval` and `serve` do; the viewer opens its template
+    before its scene and server load; the batches check their inputs before Ray loads; the configuration's
+    settings classes are light)."""
     code = ("import sys\nfrom gscan.cli import main\nsys.argv = ['gscan', *sys.argv[1:]]\ntry:\n    main()\n"
             "except SystemExit as e:\n    print('exit', e.code, *sorted(m for m in ('numba', 'scipy', 'open3d', "
-            "'viser') if m in sys.modules))")
+            "'viser', 'ray', 'trimesh') if m in sys.modules))")
     out = str(tmp_path / "x.gscan")
+    missing = str(tmp_path / "missing")
     query = ["--color", str(tmp_path / "c.png"), "--depth", "d.png", "--intrinsics", "K.txt"]
     estimate = ["estimate", str(tmp_path / "missing.gscan"), *query]
     for args, rc in (([*estimate], 2), ([*estimate, "--config", str(tmp_path / "missing.yaml")], 2),
+                     (["eval", str(sample_template), missing, "-o", str(tmp_path / "r.csv")], 2),
+                     (["serve", str(tmp_path / "missing.gscan")], 2),
+                     (["batch", missing, "-o", str(tmp_path / "templates")], 2),
+                     (["batch-eval", missing, missing, "-o", str(tmp_path / "r.csv")], 2),
+                     (["capture", "--from", missing, "--no-preview", "-o", missing], 2),
+                     (["template-from-mesh", str(tmp_path / "missing.obj"), "-o", out], 2),
                      (["estimate", str(sample_template), *query], 2),
                      (["track", str(sample_template), str(tmp_path / "missing")], 2),
                      (["track", str(tmp_path / "missing.gscan"), str(tmp_path / "missing")], 2),

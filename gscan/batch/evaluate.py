@@ -341,7 +341,6 @@ def run_batch_eval(output_csv: str | Path, *, templates_dir: str | Path | None =
             with one object id, no pair at all, a cluster that cannot be reached. A pair's bad input is its
             row's error, not an exception.
     """
-    require_ray()
     t0 = time.monotonic()
     output_csv = Path(output_csv)
     for path in (output_csv, *objects_paths(output_csv)):
@@ -356,6 +355,7 @@ def run_batch_eval(output_csv: str | Path, *, templates_dir: str | Path | None =
         assert templates_dir is not None and scenes_dir is not None
         pairs, lone_templates, lone_scenes = find_pairs(templates_dir, scenes_dir)
     assign_obj_ids(pairs)
+    require_ray()  # after the input checks: a bad input is refused without loading Ray
     jobs = [{"kind": "eval", "key": p.name, "template": str(p.template), "scenes": str(p.scenes), "obj_id": p.obj_id,
              "model": None if p.model is None else str(p.model),
              "gt_capture": None if p.gt_capture is None else str(p.gt_capture), "refine": refine,

@@ -20,7 +20,7 @@ from gscan.evaluate.metrics import ate, frame_errors
 from gscan.geometry.transforms import inv_T
 from gscan.io.layouts import FORMATS, discover
 from gscan.io.recordings.kinds import recording_format
-from gscan.scanning.capture_mode import STATIC_OBJECT
+from gscan.scanning.modes import STATIC_OBJECT
 from gscan.template.db import TemplateDB
 
 log = logging.getLogger(__name__)

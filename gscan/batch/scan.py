@@ -326,7 +326,6 @@ def run_batch(captures_dir: str | Path, templates_dir: str | Path, *, config: Sc
             configuration that does not validate, a cluster that cannot be reached. A capture's bad input is
             its row's error, not an exception.
     """
-    require_ray()
     t0 = time.monotonic()
     captures_dir, templates_dir = Path(captures_dir), Path(templates_dir)
     check_templates_dir(captures_dir, templates_dir)
@@ -344,6 +343,7 @@ def run_batch(captures_dir: str | Path, templates_dir: str | Path, *, config: Sc
             todo.append(cap)
         else:
             rows[cap.name] = row
+    require_ray()  # after the input checks: a bad input is refused without loading Ray
     templates_dir.mkdir(parents=True, exist_ok=True)
     runtime, capacity = None, 0
     if todo:

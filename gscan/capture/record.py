@@ -24,10 +24,11 @@ import cv2
 import numpy as np
 
 from gscan.capture.camera import CameraFrame, RealSenseCamera
+from gscan.capture.folder import check_capture_output
 from gscan.capture.motion import Coverage, MotionParams, MotionTracker, MotionUpdate
 from gscan.errors import InputError
 from gscan.io.camera import Intrinsics
-from gscan.io.output import check_not_input, check_output_path, missing_folders, remove_empty_folders
+from gscan.io.output import missing_folders, remove_empty_folders
 
 log = logging.getLogger(__name__)
 
@@ -75,18 +76,6 @@ class CaptureResult:
                 "names": list(self.kept), "stopped": self.interrupted, "device": self.device,
                 "profile": self.profile, "coverage": {"covered": self.covered, "directions": self.directions,
                                                       "share": round(self.share, 4), "missing": list(self.missing)}}
-
-
-def check_capture_output(output: Path, recording: Path | None = None) -> None:
-    """InputError naming `output` unless it is a new folder or an empty one that can be written, apart from
-    the `recording` played (`check_not_input`)."""
-    check_not_input(output, [recording])
-    if output.exists():
-        if not output.is_dir():
-            raise InputError(output, "exists and is not a folder")
-        if any(output.iterdir()):
-            raise InputError(output, "exists and is not empty; choose a new capture folder")
-    check_output_path(output / "cam_K.txt")
 
 
 def _write_atomic(path: Path, data: bytes) -> None:

@@ -62,14 +62,6 @@ def _job_error_line(name: str, error: str | None, fix: str | None) -> str:
     return printable(f"{name}: {error or 'failed'}" + (f"; {hint}" if hint else ""))
 
 
-def _start_batch(verbose: bool) -> None:
-    """Logging as asked; exit 2 with the install command when Ray is missing."""
-    setup_logging(verbose)
-    from gscan.batch.runtime import require_ray
-
-    require_ray()
-
-
 def _run_batch(noun: str, run: Callable[[Any], Any], json_out: bool, table: Callable[[Any], None] | None = None,
                interrupted: str | None = None) -> Any:
     """The report of `run(monitor)` (a batch), run under the live progress table with Ray's own messages kept
@@ -112,7 +104,7 @@ def batch(
 
     A complete template is skipped, a partial one resumed; a failing capture does not stop the others.
     Exit code 0 when every capture succeeded, 2 when some had bad input, 1 otherwise."""
-    _start_batch(verbose)
+    setup_logging(verbose)
     from gscan.batch.scan import run_batch
 
     report = _run_batch("captures", lambda monitor: run_batch(captures_dir, output, config=config, address=address,
@@ -169,7 +161,7 @@ def batch_eval(
 
     Pairs: NAME.gscan in TEMPLATES_DIR with SCENES_DIR/NAME, or the rows of --manifest.
     Exit code 0 when every pair was evaluated, 2 when some had bad input, 1 otherwise."""
-    _start_batch(verbose)
+    setup_logging(verbose)
     if manifest is not None and (templates_dir is not None or scenes_dir is not None):
         raise UsageError(manifest, "--manifest names the pairs: leave out TEMPLATES_DIR and SCENES_DIR")
     if manifest is None and (templates_dir is None or scenes_dir is None):

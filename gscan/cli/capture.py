@@ -38,23 +38,24 @@ def capture(
     from dataclasses import replace
 
     setup_logging(verbose)
-    from gscan.capture import CameraOptions, CaptureOptions, MotionParams, RealSenseCamera, run_capture
-
     if (width is None) != (height is None):
         raise UsageError(None, "--width and --height go together")
     if align not in ("gscan", "librealsense"):
         raise UsageError(None, f"--align must be gscan or librealsense, not {align!r}")
+    from gscan.capture.folder import check_capture_output
+
+    check_capture_output(output, from_file)  # a bad output is refused before the camera's libraries load
+    from gscan.capture import CameraOptions, CaptureOptions, MotionParams, RealSenseCamera, run_capture
+
     opts = CaptureOptions(every=every, motion=replace(MotionParams(), min_angle_deg=min_motion), max_frames=max_frames)
     camera = RealSenseCamera(from_file, CameraOptions(width=width, height=height, fps=fps, real_time=real_time,
                                                       align=align))
     show = preview if preview is not None else from_file is None
     viewer = None
     if show:
-        from gscan.capture.record import check_capture_output
         from gscan.viewer.capture_preview import CapturePreview
 
-        check_capture_output(output, from_file)  # a bad output or a missing camera is named before the preview starts
-        camera.check()
+        camera.check()  # a missing camera is named before the preview starts
         viewer = CapturePreview(host, port)
         say("preview at ", (viewer.url, "bold"))
     stop = threading.Event()

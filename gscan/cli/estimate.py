@@ -50,6 +50,7 @@ def estimate(
     from dataclasses import replace
 
     from gscan.estimate.settings import load_estimate_params
+    from gscan.template.db import open_estimable
 
     if len(templates) > 1 and not all_instances:
         raise UsageError(templates[1], "several templates are estimated together with --all only")
@@ -86,16 +87,6 @@ def estimate(
             line(f"grasp {name}: T_cam_grasp =")
             err.print(format_matrix(T))
     err.print("timings (ms): " + ", ".join(f"{k} {v:.1f}" for k, v in out["timings_ms"].items()))
-
-
-def open_estimable(path: Path) -> Any:
-    """The Template of `path` (`gscan.template.db.open_template`), refused unless it holds a view with keypoints,
-    without loading the estimator's stages (numba, scipy)."""
-    from gscan.template.db import open_template
-
-    template = open_template(path)
-    template.require_keypoints()
-    return template
 
 
 def estimate_every_instance(estimators: list[Any], frame: Any, refine: bool, json_out: bool) -> None:
@@ -155,6 +146,7 @@ def track(
     from gscan.io import check_output_path, open_sequence
     from gscan.io.camera import depth_camera_of
     from gscan.io.output import check_not_input
+    from gscan.template.db import open_estimable
 
     if format not in format_choices():
         raise UsageError(None, f"--format must be one of {', '.join(format_choices())}, not {format!r}")

@@ -194,12 +194,13 @@ def template_from_mesh(
 ) -> None:
     """Render snapshots around a CAD mesh into a template database (mesh frame kept)."""
     from gscan.io.output import check_not_input
-    from gscan.progress import RichProgress
-    from gscan.scanning.cad import template_from_mesh as render_template
 
     if scale <= 0:
         raise UsageError(mesh, f"--scale must be positive, not {scale}")
     check_not_input(output, [mesh])
+    from gscan.progress import RichProgress
+    from gscan.scanning.cad import template_from_mesh as render_template
+
     with RichProgress(err, enabled=not json_out) as progress:
         result = render_template(mesh, output, n_views=views, scale=scale, force=force, progress=progress)
     if json_out:  # the `template-from-mesh --json` object (TemplateResult has no to_json: gscan.scanning.cad)

@@ -24,7 +24,7 @@ def serve(
     setup_logging(verbose)
     from gscan.estimate.settings import load_estimate_params
     from gscan.io.camera import depth_camera_of
-    from gscan.service import ServeParams
+    from gscan.service.params import ServeParams
     from gscan.service.server import serve as run_service
 
     # the estimators' settings: the file's `estimate:` section (a bad key: exit 2 before any template loads)

@@ -52,12 +52,12 @@ import logging
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from gscan.errors import InputError, not_a_file
-from gscan.estimate.estimator import EstimateParams, Estimator
+from gscan.estimate.params import EstimateParams
 from gscan.evaluate.metrics import (
     VSD_RENDER_PIXEL_OFFSET,
     VSD_THRESHOLDS,
@@ -79,7 +79,10 @@ from gscan.io import open_sequence
 from gscan.io.camera import RGBDFrame
 from gscan.io.layouts import FORMATS, detect_format, discover, require_ground_truth
 from gscan.io.output import Output, check_not_input, check_output
-from gscan.template.db import TemplateDB
+from gscan.template.db import TemplateDB, open_estimable
+
+if TYPE_CHECKING:  # imported by `evaluate` once its inputs are checked: a bad input is refused without numba
+    from gscan.estimate.estimator import Estimator
 
 log = logging.getLogger(__name__)
 
@@ -480,7 +483,8 @@ def evaluate(template: str | Path, scenes: str | Path, output_csv: str | Path, o
     check_not_input(output_csv, [template, scenes, model_path, gt_capture])
     check_output(output_csv, force=force, kind=".csv file path")
     template = Path(template)
-    estimator = Estimator.from_path(template) if params is None else Estimator.from_path(template, params)
+    # the template and the scenes are opened and checked before the estimator's stages load (numba, scipy)
+    tpl = open_estimable(template)
     folders = _scene_dirs(Path(scenes))
     seqs = [(scene_id, open_sequence(folder, format="auto", obj_id=obj_id)) for scene_id, folder in folders]
     for _, seq in seqs:  # the scores need every ground-truth pose
@@ -498,6 +502,9 @@ def evaluate(template: str | Path, scenes: str | Path, output_csv: str | Path, o
         log.warning("%s: no ground-truth capture relates the scanned template's frame to the ground truth's; "
                     "the CSV holds poses of the template's own frame (a ground-truth capture relates them)", template)
         T_obj_gt = np.eye(4)  # no ground truth anywhere: poses of the template's own frame
+    from gscan.estimate.estimator import Estimator
+
+    estimator = Estimator(tpl) if params is None else Estimator(tpl, params)
     pts, tris = load_model(None if model_path is None else Path(model_path), template, estimator)
     if model_path is None:  # the template's mesh, in the ground truth's object frame
         pts = transform_points(inv_T(T_obj_gt), pts)

@@ -22,7 +22,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from gscan.geometry.kabsch import umeyama
 from gscan.geometry.transforms import inv_T, rotation_angle_deg, transform_points
@@ -171,6 +170,8 @@ def add(pts: np.ndarray, T_est: np.ndarray, T_gt: np.ndarray) -> float:
 def adds(pts: np.ndarray, T_est: np.ndarray, T_gt: np.ndarray) -> float:
     """ADD-S (ADI): mean over model points in the GT pose of the distance to the nearest
     model point in the estimated pose (m). pts: [N x 3] object frame."""
+    from scipy.spatial import cKDTree  # here, not at the top: the batch's ground-truth check needs no scipy
+
     pts = _as_pts(pts)
     # |T_gt p - T_est q| = |T_est^-1 T_gt p - q|: search the model-frame cloud itself
     query = transform_points(inv_T(_as_T(T_est, "T_est")) @ _as_T(T_gt, "T_gt"), pts)

@@ -154,10 +154,11 @@ def template_from_mesh(mesh_path: str | Path, output: str | Path, *, n_views: in
     progress = progress or NullProgress()
     feature_params = feature_params or OBJECT_FEATURES  # the estimator's query keypoints
     symmetry_params = symmetry_params or SymmetryParams()
+    # checked before the mesh loads (trimesh, scipy) and is rendered
+    target = Output(output, force=force, kind=".gscan file path")
     mesh = _load_mesh(mesh_path, scale)
     if mesh.radius <= 0:
         raise InputError(mesh_path, "mesh is degenerate (all vertices coincide)")
-    target = Output(output, force=force, kind=".gscan file path")  # checked before the mesh is rendered
     from gscan.synth.render import DEFAULT_INTRINSICS, SynthScene  # open3d: a bad input is refused without it
     db = None
     try:

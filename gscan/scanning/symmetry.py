@@ -37,7 +37,6 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from gscan.geometry.mesh import MeshData, to_u8_colors
 from gscan.geometry.meshfill import boundary_edges
@@ -133,6 +132,8 @@ class _Detector:
     """The shape and texture tests of one surface (module docstring)."""
 
     def __init__(self, ref: Surface, test_idx: np.ndarray, tol: float, params: SymmetryParams):
+        from scipy.spatial import cKDTree  # here: `template-from-mesh` refuses a bad mesh without scipy
+
         self.params, self.tol = params, tol
         self.Q = ref.points
         self.tree = cKDTree(self.Q)

@@ -8,11 +8,20 @@
 The contract (endpoints, fields, errors) is in `gscan.service.service`; `gscan.service.api` is the HTTP layer
 (FastAPI, imported only when an application is made); `gscan.client` is the Python client.
 """
-from typing import Any
+from __future__ import annotations
 
-from gscan.service.decode import RequestError, decode_frame
-from gscan.service.server import load_service, serve, template_name
-from gscan.service.service import ServeParams, Service
+from typing import TYPE_CHECKING, Any
+
+from gscan._lazy import lazy_exports
+
+if TYPE_CHECKING:
+    from gscan.service.service import Service
+
+# imported on first use: `gscan serve` builds its settings and checks its templates before the estimator loads
+_EXPORTS = {"RequestError": "gscan.service.decode", "decode_frame": "gscan.service.decode",
+            "load_service": "gscan.service.server", "serve": "gscan.service.server",
+            "template_name": "gscan.service.server", "ServeParams": "gscan.service.params",
+            "Service": "gscan.service.service"}
 
 
 def create_app(service: Service) -> Any:
@@ -24,3 +33,5 @@ def create_app(service: Service) -> Any:
 
 __all__ = ["RequestError", "ServeParams", "Service", "create_app", "decode_frame", "load_service", "serve",
            "template_name"]
+
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

@@ -7,11 +7,15 @@ import logging
 import socket
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from gscan.errors import InputError
-from gscan.estimate import Estimator
 from gscan.io.camera import DepthCamera
-from gscan.service.service import ServeParams, Service
+from gscan.service.params import ServeParams
+from gscan.template.db import open_estimable
+
+if TYPE_CHECKING:  # imported once the templates are checked: a bad one is refused without numba and scipy
+    from gscan.service.service import Service
 
 log = logging.getLogger(__name__)
 
@@ -29,14 +33,17 @@ def load_service(templates: Sequence[str | Path], params: ServeParams | None = N
     if not templates:
         raise InputError(None, "no template given")
     params = params or ServeParams()
-    estimators: dict[str, Estimator] = {}
+    opened = {}
     for t in templates:
         name = template_name(t)
-        if name in estimators:
+        if name in opened:
             raise InputError(t, f"another template is already served as {name!r} (names are file names without "
                                 ".gscan)")
-        estimators[name] = Estimator.from_path(t, params.estimate)
-    return Service(estimators, params, depth_camera)
+        opened[name] = open_estimable(t)
+    from gscan.estimate.estimator import Estimator
+    from gscan.service.service import Service
+
+    return Service({name: Estimator(tpl, params.estimate) for name, tpl in opened.items()}, params, depth_camera)
 
 
 def bind(host: str, port: int) -> socket.socket:

@@ -31,26 +31,17 @@ import re
 import threading
 import time
 from collections import OrderedDict
-from dataclasses import dataclass, field
 from typing import Any
 
-from gscan.estimate import EstimateParams, Estimator, Tracker, estimate_templates
+from gscan.estimate import Estimator, Tracker, estimate_templates
 from gscan.estimate.result import not_found
 from gscan.io.camera import DepthCamera
-from gscan.service.decode import MAX_PIXELS, RequestError, decode_frame, depth_camera_fields
+from gscan.service.decode import RequestError, decode_frame, depth_camera_fields
+from gscan.service.params import ServeParams
 
 log = logging.getLogger(__name__)
 
 SESSION_ID = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
-
-
-@dataclass(frozen=True)
-class ServeParams:
-    max_request_bytes: int = 64 << 20  # a larger request body is refused (413) before it is read
-    max_pixels: int = MAX_PIXELS  # per image, checked on the header before decoding
-    max_sessions: int = 32  # tracking sessions kept (least recently used dropped first)
-    session_ttl_s: float = 600.0  # a session idle this long is dropped
-    estimate: EstimateParams = field(default_factory=EstimateParams)  # the estimators' settings (`--config`)
 
 
 class _Session:

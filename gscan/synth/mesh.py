@@ -105,11 +105,11 @@ def load_textured_mesh(path_obj: str | Path, scale: float = 1.0) -> TexturedMesh
     Meshes without texture coordinates get a 1x1 texture of their material / face colour.
     Raises InputError naming the file when it cannot be read or holds no triangles.
     """
-    import trimesh
-
     path = Path(path_obj)
     if not path.is_file():
         raise not_a_file(path, "mesh file")
+    import trimesh  # after the check: a missing file is refused without it (and scipy)
+
     try:
         tm = trimesh.load(str(path), force="mesh", process=False)
     except Exception as e:  # noqa: BLE001 - trimesh raises many exception types for malformed files

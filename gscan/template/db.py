@@ -837,3 +837,11 @@ def open_template(path: str | Path) -> Template:
     """Open a complete database and load its Template (InputError as `TemplateDB.open`)."""
     with TemplateDB.open(path, require_complete=True) as db:
         return db.load_template()
+
+
+def open_estimable(path: str | Path) -> Template:
+    """`open_template`, refused (InputError) unless the template holds a registered view with keypoints (what an
+    estimate needs): the callers check a template this way before the estimator's stages (numba, scipy) load."""
+    template = open_template(path)
+    template.require_keypoints()
+    return template
