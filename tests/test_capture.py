@@ -125,7 +125,10 @@ def test_motion_cue_keeps_a_frame_every_min_motion_degrees(meshes_dir, tmp_path)
     r = _run("capture", "--from", str(bag), "-o", str(tmp_path / "every"), "--every", "6")
     assert r.returncode == 0, r.stderr
     every = json.loads((tmp_path / "every" / "capture.json").read_text())
-    assert [f["number"] for f in every["frames"].values()] == list(range(0, 36, 6))
+    kept = [f["number"] for f in every["frames"].values()]
+    # every 6th frame delivered; librealsense's playback can, on a loaded machine, emit the recording's first colour
+    # frame before its depth frame, unpaired, and then starts at frame 1 (seen once in a full test run)
+    assert kept in (list(range(0, 36, 6)), list(range(1, 36, 6))), kept
 
 
 def _start_capture(args: list[str], log: Path) -> subprocess.Popen:
