@@ -38,7 +38,8 @@ LIVE_DEFAULT = (640, 480, 30)  # width, height, fps of a live capture when not c
 @dataclass(frozen=True)
 class CameraOptions:
     """width / height / fps: the streams to open (None: the recording's own; a live camera uses LIVE_DEFAULT);
-    real_time: play a recording at its recorded pace (default: as fast as frames are consumed, none dropped);
+    real_time: play a recording at its recorded pace (default: as fast as frames are consumed, none dropped but,
+    rarely on a loaded machine, the first, whose colour and depth the playback then delivers unpaired);
     timeout_s: how long a live camera may deliver nothing before it is given up; align: "gscan" | "librealsense"
     (see the module docstring)."""
 
