@@ -65,7 +65,9 @@ fi
 extra=""
 if [ "$test_mode" = 1 ]; then extra="[test]"; fi
 say "installing gscan$extra into $venv (first time: about 2 GB of wheels)"
-"$venv/bin/python" -m pip install -q --disable-pip-version-check -e "$root$extra"
+# --no-compile: Python compiles a module's bytecode on its first import instead (of the wheels' 150 MB of sources,
+# only what gscan imports), not all of it up front
+"$venv/bin/python" -m pip install -q --disable-pip-version-check --no-compile -e "$root$extra"
 
 if [ "$test_mode" = 1 ]; then
   # the RealSense recording tests record with the SDK's own recorder of each recording layout: the venv's
