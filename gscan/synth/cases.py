@@ -8,7 +8,8 @@ annotated_poses/) and which show something else:
   distance and the object fills a small part of the frame;
 - `glossy_can_capture`: a can with a wrapped label lying on the table (curved), glossy: specular highlights
   that move with the viewpoint and lose the depth where they shine (`Gloss`); `glossy_bottle_capture`: a
-  narrower one, farther away, standing on a turntable, whose label few pixels show;
+  narrower one, farther away, standing on a turntable, whose label few pixels show (upright under the light from
+  above, it shows no highlight);
 - `ring_jump_capture`: 20-degree steps around two rings, the second 25 degrees higher than the first, joined
   by one 25-degree jump;
 - `shifted_depth_capture`: the depth image shifted a few pixels against the colour image, as a sensor
@@ -98,8 +99,9 @@ def glossy_bottle_capture(out_dir: str | Path, n_views: int = 36, seed: int = 0,
                           table_kind: str = "plain", intr: Intrinsics = DEFAULT_INTRINSICS) -> Case:
     """A glossy bottle (a narrow cylinder, 6 cm across, 20 cm tall, a printed label) standing on a turntable,
     `distance` from the camera at 20 deg elevation: it turns about its own axis, so its shape says nothing of the
-    turn and only the curved label does, which few pixels show; broad highlights (shininess 20) lose the depth
-    where they shine (dropout 0.25)."""
+    turn and only the curved label does, which few pixels show. Glossy (shininess 20, depth lost above a
+    highlight term of 0.25), but upright under the default light from above its side faces the half vector about
+    40 deg off: the highlight stays below one grey level and loses no depth (bench/bottle_edges.py)."""
     mesh = cylinder_mesh(0.03, 0.2, procedural_box_texture(5, (1024, 768)), name="glossy_bottle")
     frames = render_capture(mesh, None, n_views, mode="turntable", intr=intr, seed=seed,
                             gloss=Gloss(shininess=20.0, dropout=0.25), elevations_deg=(20.0,), distance=distance,
