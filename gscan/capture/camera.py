@@ -38,8 +38,9 @@ LIVE_DEFAULT = (640, 480, 30)  # width, height, fps of a live capture when not c
 @dataclass(frozen=True)
 class CameraOptions:
     """width / height / fps: the streams to open (None: the recording's own; a live camera uses LIVE_DEFAULT);
-    real_time: play a recording at its recorded pace (default: as fast as frames are consumed, none dropped but,
-    rarely on a loaded machine, the first, whose colour and depth the playback then delivers unpaired);
+    real_time: play a recording at its recorded pace (default: as fast as frames are consumed; a frame whose
+    colour and depth the playback delivers in two framesets, which happens on a loaded machine, is paired again by
+    timestamp, `LonePairer`);
     timeout_s: how long a live camera may deliver nothing before it is given up; align: "gscan" | "librealsense"
     (see the module docstring)."""
 
@@ -60,6 +61,58 @@ class CameraFrame:
     timestamp_ms: float
     color: np.ndarray
     depth_mm: np.ndarray
+
+
+@dataclass
+class LoneFrame:
+    """A colour or depth frame as librealsense delivered it: number, timestamp (ms), data, colour format."""
+
+    number: int
+    timestamp_ms: float
+    pixels: np.ndarray  # the frame's data, copied (librealsense reuses its buffers)
+    fmt: Any = None
+
+
+class LonePairer:
+    """Pairs a colour frame and a depth frame delivered in separate framesets (librealsense's playback does so on a
+    loaded machine, most often for a recording's first frame): the last lone frame of each stream is held, and the
+    two make one frame when their timestamps are at most `tolerance_ms` apart (half the frame period, as
+    `gscan.io.recordings.pairing` pairs a recording's streams). A lone frame replaced by a newer one of its stream,
+    or passed by a whole frameset, is dropped (logged)."""
+
+    def __init__(self, tolerance_ms: float) -> None:
+        self.tolerance_ms = tolerance_ms
+        self.colour: LoneFrame | None = None
+        self.depth: LoneFrame | None = None
+
+    def add(self, kind: str, lone: LoneFrame) -> tuple[LoneFrame, LoneFrame] | None:
+        """Hold a lone frame of `kind` ("colour" | "depth"); (colour, depth) when it completes a pair."""
+        held = self.colour if kind == "colour" else self.depth
+        if held is not None:
+            log.debug("lone %s frame %d dropped: no partner within %.1f ms", kind, held.number, self.tolerance_ms)
+        if kind == "colour":
+            self.colour = lone
+        else:
+            self.depth = lone
+        if self.colour is None or self.depth is None:
+            return None
+        if abs(self.colour.timestamp_ms - self.depth.timestamp_ms) > self.tolerance_ms:
+            # keep the newer one: the older cannot meet a partner later than the newer's
+            if self.colour.timestamp_ms < self.depth.timestamp_ms:
+                self.colour = None
+            else:
+                self.depth = None
+            return None
+        pair = (self.colour, self.depth)
+        self.colour = self.depth = None
+        return pair
+
+    def passed(self) -> None:
+        """A whole frameset came: lone frames held before it have lost their partner."""
+        for kind, held in (("colour", self.colour), ("depth", self.depth)):
+            if held is not None:
+                log.debug("lone %s frame %d dropped: a whole frameset followed it", kind, held.number)
+        self.colour = self.depth = None
 
 
 def _rs() -> Any:
@@ -189,7 +242,9 @@ class RealSenseCamera:
         assert self._pipe is not None, "enter the camera first"
         last_number = None
         waited = time.monotonic()
-        factor = self.depth_scale * 1000.0
+        # lone colour or depth frames are paired again where gscan aligns (rs.align needs a whole frameset)
+        fps = self._pipe.get_active_profile().get_stream(rs.stream.color).fps() or 30
+        lone = LonePairer(500.0 / fps) if self._align is None else None
         while True:
             try:
                 ok, fs = self._pipe.try_wait_for_frames(200)
@@ -207,26 +262,44 @@ class RealSenseCamera:
             if self._align is not None:
                 fs = self._align.process(fs)
             c, d = fs.get_color_frame(), fs.get_depth_frame()
-            if not c or not d:
-                continue
-            number = int(c.get_frame_number())
-            if number == last_number:  # the same colour frame delivered again with a newer depth frame
-                continue
-            last_number = number
-            color = _to_rgb(np.asanyarray(c.get_data()), c.get_profile().format(), rs)
-            raw = np.asanyarray(d.get_data())
-            if self.registered or self._align is not None:
-                if abs(factor - 1.0) < 1e-6:  # millimetre units already (D400 default)
-                    mm = raw.astype(np.uint16, copy=True)
-                else:
-                    mm = np.clip(np.rint(raw.astype(np.float64) * factor), 0, 65535).astype(np.uint16)
+            if c and d:
+                if lone is not None:
+                    lone.passed()
+                cf = LoneFrame(int(c.get_frame_number()), float(c.get_timestamp()), np.asanyarray(c.get_data()),
+                           c.get_profile().format())
+                df = LoneFrame(int(d.get_frame_number()), float(d.get_timestamp()), np.asanyarray(d.get_data()))
+            elif lone is not None and (c or d):
+                f = c or d
+                held = LoneFrame(int(f.get_frame_number()), float(f.get_timestamp()),
+                             np.array(np.asanyarray(f.get_data()), copy=True), f.get_profile().format())
+                pair = lone.add("colour" if c else "depth", held)
+                if pair is None:
+                    continue
+                cf, df = pair
             else:
-                depth = raw.astype(np.float32)
-                depth *= np.float32(self.depth_scale)  # metres, as the recording reader computes them
-                assert self.intrinsics is not None and self.depth_camera is not None
-                aligned = align_depth_to_color(depth, self.depth_camera, self.intrinsics)
-                mm = np.clip(np.rint(aligned.astype(np.float64) * 1000.0), 0, 65535).astype(np.uint16)
-            yield CameraFrame(number, float(c.get_timestamp()), color, mm)
+                continue
+            if cf.number == last_number:  # the same colour frame delivered again with a newer depth frame
+                continue
+            last_number = cf.number
+            yield self._frame(cf, df, rs)
+
+    def _frame(self, c: LoneFrame, d: LoneFrame, rs: Any) -> CameraFrame:
+        """The CameraFrame of a colour and a depth frame: RGB colour, depth in millimetres aligned to colour."""
+        color = _to_rgb(c.pixels, c.fmt, rs)
+        raw = d.pixels
+        factor = self.depth_scale * 1000.0
+        if self.registered or self._align is not None:
+            if abs(factor - 1.0) < 1e-6:  # millimetre units already (D400 default)
+                mm = raw.astype(np.uint16, copy=True)
+            else:
+                mm = np.clip(np.rint(raw.astype(np.float64) * factor), 0, 65535).astype(np.uint16)
+        else:
+            depth = raw.astype(np.float32)
+            depth *= np.float32(self.depth_scale)  # metres, as the recording reader computes them
+            assert self.intrinsics is not None and self.depth_camera is not None
+            aligned = align_depth_to_color(depth, self.depth_camera, self.intrinsics)
+            mm = np.clip(np.rint(aligned.astype(np.float64) * 1000.0), 0, 65535).astype(np.uint16)
+        return CameraFrame(c.number, c.timestamp_ms, color, mm)
 
 
 def _to_rgb(px: np.ndarray, fmt: Any, rs: Any) -> np.ndarray:
