@@ -16,7 +16,8 @@ distance to their median, `size`) and to the depth noise at its depth (sigma fro
 is max(size x depth_voxel_rel, depth_noise_voxel x sigma), the normal radius 3 voxels, the ISS salient and
 non-maximum radii depth_salient_rel / depth_nonmax_rel of the size, the FPFH radius depth_fpfh_rel of the size
 (at least 5 voxels); the depth_* fields of `FeatureParams`. A noise-sized voxel keeps the normals (and so
-FPFH's angles) from describing the noise.
+FPFH's angles) from describing the noise. A keypoint's position is known to voxel / sqrt(3) per axis
+(`location_sigma`), which registration adds to the depth noise of its pairs.
 
 Deterministic: the downsampled points are sorted before open3d's normals, ISS and FPFH see them, and the
 keypoints are sorted by decreasing saliency (the smallest eigenvalue of their neighbourhood's scatter), ties

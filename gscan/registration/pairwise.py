@@ -5,9 +5,11 @@
 the target camera (p_t = T_tgt_src @ p_s).
 
 Every residual is measured in units of the depth noise (`gscan.registration.noise`): a pair of keypoints
-at depths z_s, z_t has the per-axis standard deviation s = params.noise.pair_sigma(z_s, z_t), so a gate of
+at depths z_s, z_t has the per-axis standard deviation s = params.noise.pair_sigma(z_s, z_t, l), so a gate of
 3.4 s keeps 99 % of the true pairs of a Kinect at 2 m (s about 12 mm) and of a render at 0.6 m (s about
-1.5 mm) alike.
+1.5 mm) alike; l combines the two keypoints' location sigmas in quadrature (`Features.location_sigma`: 0 for
+image keypoints, 0.58 voxel for depth keypoints, `gscan.features.depth.location_sigma`), in every gate, rule 2
+and the information.
 
 Acceptance rules, applied in this order (the first failing one is the `reason`):
 1. "too few matches": fewer than `min_matches` geometric matches (the pairs the pose rests on).
