@@ -11,8 +11,12 @@ Split: the depth-alone thresholds (`RegisterParams.max_see_through_shape`, `max_
 FPFH_EPS_F were set on TUNE; HELD_OUT was not looked at before.
 
 With --scans, whole scans instead (`scan_object`): registered and wrong frames per object on sift and both.
+With --residuals, how well each kind of keypoint is located (`residuals`): on `both` keypoints, the distances at
+the true pose of the inlier pairs of the accepted consecutive pairs, and of the true pairs (mutual nearest
+keypoints of a kind within 2 cm under the truth), in units of the sensor's s and of s with the keypoints' location
+sigma (`Features.location_sigma`).
 
-    python bench/plain.py [--objects NAME ...] [--frames 36] [--scans]
+    python bench/plain.py [--objects NAME ...] [--frames 36] [--scans | --residuals]
 """
 from __future__ import annotations
 
@@ -71,6 +75,44 @@ def run(name: str, n: int) -> dict[str, dict[str, float]]:
     return out
 
 
+def residuals(name: str, n: int) -> None:
+    """Print, per keypoint kind, the median distance at the true pose in s (sensor only / with location sigma) of
+    the accepted consecutive pairs' inliers and of the true pairs (module docstring) of one object's capture."""
+    from scipy.spatial import cKDTree
+
+    frames = render_capture(plain(name), None, n, mode="turntable", seed=0, table_kind="plain")
+    dense = [DenseGeometry.from_depth(f.depth, f.intrinsics, f.mask, image=f.color) for f in frames]
+    noise, fp, params = DepthNoise(), FeatureParams(), RegisterParams(dense_refine=True)
+    feats = [extract_keypoints(RGBDFrame(f"{k:06d}", f.color, f.depth, f.intrinsics), fp, "both", noise.sigma,
+                               mask=f.mask) for k, f in enumerate(frames)]
+    got: dict[tuple[str, bool], list[np.ndarray]] = {}
+    for k in range(1, n):
+        a, b = feats[k - 1], feats[k]
+        gt = frames[k].T_cam_obj @ inv_T(frames[k - 1].T_cam_obj)
+        q, p = transform_points(gt, a.points.astype(np.float64)), b.points.astype(np.float64)
+        j = cKDTree(p).query(q)[1]
+        i = cKDTree(q).query(p)[1]
+        true = np.flatnonzero((i[j] == np.arange(len(q))) & (a.from_depth == b.from_depth[j])
+                              & (np.linalg.norm(q - p[j], axis=1) < 0.02))
+        sets = {"true pairs": np.stack([true, j[true]], 1)}
+        r = register_features(a, b, params, dense=(dense[k - 1], dense[k]))
+        if r.accepted and r.inliers is not None:
+            sets["accepted inliers"] = r.inliers
+        for what, m in sets.items():
+            d = np.linalg.norm(q[m[:, 0]] - p[m[:, 1]], axis=1)
+            s0 = noise.pair_sigma(q[m[:, 0], 2], p[m[:, 1], 2])
+            s1 = noise.pair_sigma(q[m[:, 0], 2], p[m[:, 1], 2],
+                                  np.hypot(a.location_sigma[m[:, 0]], b.location_sigma[m[:, 1]]))
+            for depth in (False, True):
+                keep = a.from_depth[m[:, 0]] == depth
+                got.setdefault((what, depth), []).append(np.stack([d[keep] / s0[keep], d[keep] / s1[keep]], 1))
+    for (what, depth), parts in sorted(got.items()):
+        x = np.concatenate(parts)
+        print(f"{name[:40]:40s} {what:16s} {'depth' if depth else 'image'} keypoints: {len(x)} pairs, median "
+              f"{np.median(x[:, 0]):.2f} s (sensor), {np.median(x[:, 1]):.2f} s (with location sigma); a chi "
+              f"distribution of 3 axes: 1.54", flush=True)
+
+
 def scan_object(name: str, n: int, keypoints: str, work: Path) -> dict[str, int]:
     """A whole scan (`gscan.scanning.api.scan`, the defaults but `features.keypoints`) of one object's capture:
     {"frames", "registered", "wrong", "turn_refused"}; wrong: beyond 5 deg / 2 cm of the truth relative to the
@@ -113,7 +155,12 @@ def main() -> None:
     ap.add_argument("--objects", nargs="*", default=TUNE + HELD_OUT)
     ap.add_argument("--frames", type=int, default=36)
     ap.add_argument("--scans", action="store_true", help="whole scans (sift and both) instead of pairs")
+    ap.add_argument("--residuals", action="store_true", help="the keypoints' distances at the true pose")
     a = ap.parse_args()
+    if a.residuals:
+        for name in a.objects:
+            residuals(name, a.frames)
+        return
     if a.scans:
         scans(a.objects, a.frames)
         return

@@ -16,7 +16,8 @@ distance to their median, `size`) and to the depth noise at its depth (sigma fro
 is max(size x depth_voxel_rel, depth_noise_voxel x sigma), the normal radius 3 voxels, the ISS salient and
 non-maximum radii depth_salient_rel / depth_nonmax_rel of the size, the FPFH radius depth_fpfh_rel of the size
 (at least 5 voxels); the depth_* fields of `FeatureParams`. A noise-sized voxel keeps the normals (and so
-FPFH's angles) from describing the noise.
+FPFH's angles) from describing the noise. A keypoint's position is known to voxel / sqrt(3) per axis
+(`location_sigma`), which registration adds to the depth noise of its pairs.
 
 Deterministic: the downsampled points are sorted before open3d's normals, ISS and FPFH see them, and the
 keypoints are sorted by decreasing saliency (the smallest eigenvalue of their neighbourhood's scatter), ties
@@ -90,6 +91,24 @@ class DepthKeypoints:
 
     def __len__(self) -> int:
         return len(self.pixels)
+
+    @property
+    def location_sigma(self) -> float:
+        """Per-axis standard deviation (m) of each keypoint's position on the surface (`location_sigma`)."""
+        return 0.0 if self.scales is None else location_sigma(self.scales)
+
+
+def location_sigma(scales: DepthScales) -> float:
+    """Per-axis standard deviation (m) of a depth keypoint's position on the object's surface.
+
+    A keypoint is a point of the voxel-downsampled cloud (one per occupied voxel) where ISS's saliency peaks
+    within the non-maximum radius. Another view voxelises the object on a grid that the object's motion has
+    shifted by an arbitrary fraction of a voxel, so the same peak falls on the voxel point of the cell that
+    now holds it or on a neighbour's: per axis, anywhere within one voxel either side, uniformly, which gives a
+    standard deviation of voxel / sqrt(3). The salient and FPFH radii are larger, but they set what a keypoint
+    describes, not where it sits.
+    """
+    return scales.voxel / float(np.sqrt(3.0))
 
 
 def _empty() -> DepthKeypoints:
@@ -179,7 +198,8 @@ FPFH_SCALE = 0.6 / FPFH_EPS_F
 
 def joint_features(image: Features | None, depth: DepthKeypoints) -> Features:
     """One keypoint set of kind rootsift+fpfh: `image` (RootSIFT; None: none) then the depth keypoints, each
-    descriptor [161] its own kind's part with zeros in the other's (the FPFH part scaled by FPFH_SCALE)."""
+    descriptor [161] its own kind's part with zeros in the other's (the FPFH part scaled by FPFH_SCALE); a depth
+    keypoint's scale is its location sigma (m, `location_sigma`)."""
     if image is not None and image.kind != "rootsift":
         raise ValueError(f"depth keypoints join rootsift image keypoints, not {image.kind}")
     img = image if image is not None else empty_features("rootsift")
@@ -188,7 +208,7 @@ def joint_features(image: Features | None, depth: DepthKeypoints) -> Features:
     desc[:ni, :128] = img.descriptors
     desc[ni:, 128:] = depth.descriptors * np.float32(FPFH_SCALE)
     scales = np.concatenate([img.scales if img.scales is not None else np.zeros(ni, np.float32),
-                             np.zeros(nd, np.float32)]).astype(np.float32)
+                             np.full(nd, depth.location_sigma, np.float32)]).astype(np.float32)
     return Features(pixels=np.concatenate([img.pixels, depth.pixels]).astype(np.float32),
                     points=np.concatenate([img.points, depth.points]).astype(np.float32),
                     descriptors=desc, kind=JOINT, scales=scales)

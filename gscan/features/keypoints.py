@@ -50,7 +50,7 @@ class Features:
     descriptors: [N x 128] float32 (sift, rootsift), [N x 32] uint8 (orb) or [N x 161] float32 (rootsift+fpfh:
     an image keypoint's RootSIFT then 33 zeros, a depth keypoint's 128 zeros then its scaled RootFPFH);
     kind: "sift" | "rootsift" | "orb" | "rootsift+fpfh"; scales: [N] float32 keypoint size (pixels; a depth
-    keypoint's: 0), or None (not stored).
+    keypoint's: its location sigma in metres, `location_sigma`), or None (not stored).
     """
 
     pixels: np.ndarray
@@ -80,6 +80,17 @@ class Features:
         if self.kind != JOINT:
             return np.zeros(len(self), bool)
         return np.abs(self.descriptors[:, 128:]).sum(axis=1) > 0
+
+    @property
+    def location_sigma(self) -> np.ndarray:
+        """[N] float64 per-axis standard deviation (m) of each keypoint's position on the surface beyond the
+        depth noise model's (`gscan.registration.noise`): a depth keypoint's (`gscan.features.depth`, stored
+        in `scales`), 0 for an image keypoint (the model holds its localisation)."""
+        out = np.zeros(len(self))
+        if self.kind == JOINT and self.scales is not None:
+            d = self.from_depth
+            out[d] = self.scales[d]
+        return out
 
     @property
     def metric(self) -> str:

@@ -226,10 +226,11 @@ def colour_agreement(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarr
 
 
 def refine_pose(src: DenseGeometry, tgt: DenseGeometry, kp_s: np.ndarray, kp_t: np.ndarray, T_tgt_src: np.ndarray,
-                kp_noise: DepthNoise, depth_noise: DepthNoise, gates: tuple[float, ...] = (8.0, 5.0, 3.0, 3.0, 3.0)
-                ) -> tuple[np.ndarray, np.ndarray]:
+                kp_noise: DepthNoise, depth_noise: DepthNoise, gates: tuple[float, ...] = (8.0, 5.0, 3.0, 3.0, 3.0),
+                kp_loc: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The pose that best explains both the keypoint pairs and the depth: Gauss-Newton on the keypoint
-    residuals T kp_s - kp_t ([M x 3] pairs, three axes each, sigma s of `kp_noise`) and the point-to-plane
+    residuals T kp_s - kp_t ([M x 3] pairs, three axes each, sigma s of `kp_noise` with the pairs' location
+    sigmas kp_loc [M], m, None: 0, `DepthNoise.pair_sigma`) and the point-to-plane
     distances of src's depth samples to tgt's surface (projective association, one per sample landing on
     tgt's depth, sigma s of `depth_noise` at their two depths), Huber-weighted beyond HUBER sigmas. Depth samples
     farther than the round's gate (sigmas) from the surface, or facing away from it (MIN_NORMAL_COS), are left
@@ -243,23 +244,23 @@ def refine_pose(src: DenseGeometry, tgt: DenseGeometry, kp_s: np.ndarray, kp_t: 
 
     T = np.asarray(T_tgt_src, dtype=np.float64).copy()
     for gate in gates:
-        H, g = _normal_equations(src, tgt, kp_s, kp_t, T, kp_noise, depth_noise, gate)
+        H, g = _normal_equations(src, tgt, kp_s, kp_t, T, kp_noise, depth_noise, gate, kp_loc)
         try:
             dx = -np.linalg.solve(H, g)
         except np.linalg.LinAlgError:
             break
         T = make_T(rotvec_to_R(dx[:3]), dx[3:]) @ T
-    return T, pose_information(src, tgt, kp_s, kp_t, T, kp_noise, depth_noise, gates[-1])
+    return T, pose_information(src, tgt, kp_s, kp_t, T, kp_noise, depth_noise, gates[-1], kp_loc)
 
 
 def pose_information(src: DenseGeometry, tgt: DenseGeometry, kp_s: np.ndarray, kp_t: np.ndarray,
-                     T_tgt_src: np.ndarray, kp_noise: DepthNoise, depth_noise: DepthNoise, gate: float = 3.0
-                     ) -> np.ndarray:
+                     T_tgt_src: np.ndarray, kp_noise: DepthNoise, depth_noise: DepthNoise, gate: float = 3.0,
+                     kp_loc: np.ndarray | None = None) -> np.ndarray:
     """[6 x 6] information (rotation first) of T_tgt_src from the keypoint pairs and the depth samples within
     `gate` sigmas of the surface, as `refine_pose` weighs them, for a small motion in the TARGET frame
     (`in_source_frame` turns it into the source frame's)."""
     T = np.asarray(T_tgt_src, dtype=np.float64)
-    return _normal_equations(src, tgt, kp_s, kp_t, T, kp_noise, depth_noise, gate)[0]
+    return _normal_equations(src, tgt, kp_s, kp_t, T, kp_noise, depth_noise, gate, kp_loc)[0]
 
 
 def in_source_frame(information_tgt: np.ndarray, T_tgt_src: np.ndarray) -> np.ndarray:
@@ -276,12 +277,13 @@ HUBER = 2.0  # residuals beyond this many sigmas weigh as the Huber loss does (l
 
 
 def _normal_equations(src: DenseGeometry, tgt: DenseGeometry, kp_s: np.ndarray, kp_t: np.ndarray, T: np.ndarray,
-                      kp_noise: DepthNoise, depth_noise: DepthNoise, gate: float) -> tuple[np.ndarray, np.ndarray]:
+                      kp_noise: DepthNoise, depth_noise: DepthNoise, gate: float, kp_loc: np.ndarray | None = None
+                      ) -> tuple[np.ndarray, np.ndarray]:
     """(J^T W J [6 x 6], J^T W r [6]) of `refine_pose`'s residuals at T, for a small motion (rotation vector,
     translation) applied in tgt's frame."""
     kp_s = np.asarray(kp_s, dtype=np.float64).reshape(-1, 3)
     kp_t = np.asarray(kp_t, dtype=np.float64).reshape(-1, 3)
-    s_kp = kp_noise.pair_sigma(kp_s[:, 2], kp_t[:, 2])
+    s_kp = kp_noise.pair_sigma(kp_s[:, 2], kp_t[:, 2], 0.0 if kp_loc is None else kp_loc)
     H, g = np.zeros((6, 6)), np.zeros(6)
     q = transform_points(T, kp_s)
     r = q - kp_t

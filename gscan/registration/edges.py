@@ -145,15 +145,17 @@ def edge_evidence(e: Edge, a: RegData, b: RegData, rparams: RegisterParams) -> E
     assert e.T_tgt_src is not None  # an accepted edge has a pose
     ps = a.feats.points[e.matches[:, 0]].astype(np.float64)
     pt = b.feats.points[e.matches[:, 1]].astype(np.float64)
+    loc = np.hypot(a.feats.location_sigma[e.matches[:, 0]], b.feats.location_sigma[e.matches[:, 1]])
+    sg = rparams.noise.pair_sigma(ps[:, 2], pt[:, 2], loc)
     # the precision the edge claims, as registration solved it (keypoints, and the depth when it took part),
     # in the source frame, the frame of the pose graph's residual: an edge whose pose the depth pins must
     # agree with the others to that precision (the graph's floor keeps strong edges from dominating)
     if rparams.refines_on_depth:
         info = in_source_frame(pose_information(a.dense, b.dense, ps, pt, e.T_tgt_src, rparams.noise,
-                                                rparams.depth_noise), e.T_tgt_src)
+                                                rparams.depth_noise, kp_loc=loc), e.T_tgt_src)
     else:
-        info = information_from_points(ps, rparams.noise.pair_sigma(ps[:, 2], pt[:, 2]))
-    r = np.linalg.norm(transform_points(e.T_tgt_src, ps) - pt, axis=1) / rparams.noise.pair_sigma(ps[:, 2], pt[:, 2])
+        info = information_from_points(ps, sg)
+    r = np.linalg.norm(transform_points(e.T_tgt_src, ps) - pt, axis=1) / sg
     return Evidence(info, float(np.median(ps[:, 2])), float(np.sqrt(np.mean(r * r))))
 
 

@@ -16,6 +16,10 @@ Registration uses s as the unit of every keypoint residual: a pair is an inlier 
 sum of the pairs' information with that weight. The same model, with its own coefficients, describes a
 single depth pixel (the depth samples that verify and refine an edge, `gscan.registration.dense`): a
 keypoint's depth is the median of a window of pixels, so it is several times less noisy than one pixel.
+A keypoint found in the depth's geometry (`gscan.features.depth`) is not a surface point seen twice: each
+view picks it anew on its own voxel grid, so its position carries a location sigma of its own (per axis,
+`Features.location_sigma`), added in quadrature: s^2 = sigma^2(z_a) + sigma^2(z_b) + l_a^2 + l_b^2 (l = 0
+for image keypoints, whose localisation error the model's c1 term holds).
 A scan estimates both from the residuals of a few sequential pairs registered under a generous prior
 (`estimate_noise`), so thresholds follow the sensor in hand (a Kinect at 2 m, a RealSense at 0.5 m, a
 clean render) instead of a constant.
@@ -67,16 +71,20 @@ class DepthNoise:
         z2 = np.square(np.asarray(z, dtype=np.float64))
         return np.sqrt(self.c0 + self.c1 * z2 + self.c2 * z2 * z2)
 
-    def pair_sigma(self, z_a: np.ndarray | float, z_b: np.ndarray | float) -> np.ndarray:
-        """[N] per-axis standard deviation s (m) of the difference of two points at depths z_a, z_b [N]."""
-        return np.sqrt(self.sigma(z_a) ** 2 + self.sigma(z_b) ** 2)
+    def pair_sigma(self, z_a: np.ndarray | float, z_b: np.ndarray | float,
+                   loc: np.ndarray | float = 0.0) -> np.ndarray:
+        """[N] per-axis standard deviation s (m) of the difference of two points at depths z_a, z_b [N], whose
+        keypoints are located on the surface to a combined per-axis sigma loc [N] (m) beyond the model's own
+        (module docstring: 0 for image keypoints, whose localisation the model holds)."""
+        return np.sqrt(self.sigma(z_a) ** 2 + self.sigma(z_b) ** 2 + np.square(loc))
 
     def to_dict(self) -> dict[str, float]:
         return {"c0": float(self.c0), "c1": float(self.c1), "c2": float(self.c2)}
 
 
 def estimate_noise(residuals: np.ndarray, z_a: np.ndarray, z_b: np.ndarray, prior: DepthNoise = DepthNoise(),
-                   dof: int = 3, min_pairs: int = 60, gate: float | None = None) -> DepthNoise:
+                   dof: int = 3, min_pairs: int = 60, gate: float | None = None,
+                   loc: np.ndarray | None = None) -> DepthNoise:
     """DepthNoise fitted to residuals [N] (m) of inlier pairs at depths z_a, z_b [N]: lengths of 3-D
     differences (dof 3: keypoint pairs) or signed distances along one direction (dof 1: a depth sample to
     the other frame's surface).
@@ -84,7 +92,9 @@ def estimate_noise(residuals: np.ndarray, z_a: np.ndarray, z_b: np.ndarray, prio
     E[r^2] = dof s^2 is linear in (c0, c1, c2): an iteratively re-weighted, non-negative least-squares fit,
     each round dropping the pairs beyond `gate` s of the current fit (default: the 99 % point of the chi
     distribution with `dof` degrees of freedom), starting from `prior`. Coefficients never go below the
-    floor (MIN_C0, MIN_C1). Returns `prior` when fewer than `min_pairs` pairs are left.
+    floor (MIN_C0, MIN_C1). Returns `prior` when fewer than `min_pairs` pairs are left. loc [N] (m): each pair's
+    combined keypoint location sigma (`DepthNoise.pair_sigma`; None: 0), known and so not fitted: the model's
+    coefficients describe the sensor alone.
     """
     from scipy.optimize import nnls
     from scipy.stats import chi2
@@ -92,10 +102,12 @@ def estimate_noise(residuals: np.ndarray, z_a: np.ndarray, z_b: np.ndarray, prio
     r2 = np.square(np.asarray(residuals, dtype=np.float64))
     za2 = np.square(np.asarray(z_a, dtype=np.float64))
     zb2 = np.square(np.asarray(z_b, dtype=np.float64))
-    ok = np.isfinite(r2) & (za2 > 0) & (zb2 > 0)
-    r2, za2, zb2 = r2[ok], za2[ok], zb2[ok]
-    A = np.stack([np.full(len(r2), 2.0), za2 + zb2, za2 * za2 + zb2 * zb2], axis=1)  # s^2 = A @ c
-    r2, A = r2[np.isfinite(A).all(1)], A[np.isfinite(A).all(1)]
+    l2 = np.zeros(len(r2)) if loc is None else np.square(np.asarray(loc, dtype=np.float64))
+    ok = np.isfinite(r2) & (za2 > 0) & (zb2 > 0) & np.isfinite(l2)
+    r2, za2, zb2, l2 = r2[ok], za2[ok], zb2[ok], l2[ok]
+    A = np.stack([np.full(len(r2), 2.0), za2 + zb2, za2 * za2 + zb2 * zb2], axis=1)  # s^2 = A @ c + l2
+    fin = np.isfinite(A).all(1)
+    r2, A, l2 = r2[fin], A[fin], l2[fin]
     if gate is None:
         gate = float(np.sqrt(chi2.ppf(0.99, dof)))
     # the gate truncates the chi-square: E[r^2 | |r| < gate s] = k s^2 with k a little below dof
@@ -103,13 +115,13 @@ def estimate_noise(residuals: np.ndarray, z_a: np.ndarray, z_b: np.ndarray, prio
     noise = prior
     for _ in range(6):
         c = np.array([noise.c0, noise.c1, noise.c2])
-        s2 = A @ c
+        s2 = A @ c + l2
         keep = r2 < gate * gate * s2
         if keep.sum() < min_pairs:
             log.info("noise: %d pairs within the gate, keeping %s", int(keep.sum()), noise)
             return noise
         w = 1.0 / s2[keep]  # relative weights: the variance of r^2 grows with s^4
-        c_new, _ = nnls(A[keep] * w[:, None] * k, r2[keep] * w)
+        c_new, _ = nnls(A[keep] * w[:, None] * k, (r2[keep] - k * l2[keep]) * w)
         fitted = DepthNoise(max(float(c_new[0]), MIN_C0), max(float(c_new[1]), MIN_C1), float(c_new[2]))
         if np.allclose([fitted.c0, fitted.c1, fitted.c2], c, rtol=1e-3, atol=1e-12):
             noise = fitted

@@ -5,9 +5,11 @@
 the target camera (p_t = T_tgt_src @ p_s).
 
 Every residual is measured in units of the depth noise (`gscan.registration.noise`): a pair of keypoints
-at depths z_s, z_t has the per-axis standard deviation s = params.noise.pair_sigma(z_s, z_t), so a gate of
+at depths z_s, z_t has the per-axis standard deviation s = params.noise.pair_sigma(z_s, z_t, l), so a gate of
 3.4 s keeps 99 % of the true pairs of a Kinect at 2 m (s about 12 mm) and of a render at 0.6 m (s about
-1.5 mm) alike.
+1.5 mm) alike; l combines the two keypoints' location sigmas in quadrature (`Features.location_sigma`: 0 for
+image keypoints, 0.58 voxel for depth keypoints, `gscan.features.depth.location_sigma`), in every gate, rule 2
+and the information.
 
 Acceptance rules, applied in this order (the first failing one is the `reason`):
 1. "too few matches": fewer than `min_matches` geometric matches (the pairs the pose rests on).
@@ -192,30 +194,40 @@ class GuidedPool:
         return ii[ok], jj[ok]
 
 
-def _pairs_near(ps: np.ndarray, pt: np.ndarray, pool: GuidedPool, T: np.ndarray, gate: float, noise: DepthNoise
+def _locations(loc: np.ndarray | None, n: int) -> np.ndarray:
+    """[n] float64 keypoint location sigmas (m; `Features.location_sigma`), zeros when not given."""
+    return np.zeros(n) if loc is None else np.asarray(loc, np.float64).reshape(n)
+
+
+def _pairs_near(ps: np.ndarray, pt: np.ndarray, pool: GuidedPool, T: np.ndarray, gate: float, noise: DepthNoise,
+                loc_s: np.ndarray | None = None, loc_t: np.ndarray | None = None
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Pool pairs within gate x s under T: (source idx [K], target idx [K], residual [K] m, s [K] m)."""
+    """Pool pairs within gate x s under T: (source idx [K], target idx [K], residual [K] m, s [K] m); loc_s [Ns],
+    loc_t [Nt]: the keypoints' location sigmas (m, None: 0)."""
+    ls, lt = _locations(loc_s, len(ps)), _locations(loc_t, len(pt))
     q = transform_points(T, ps)
-    # the lookup radius takes the target depth as the source point's own depth in the target frame; the
-    # exact s of each found pair (its two depths) decides below
-    ii, jj = pool.near(q, 1.5 * gate * noise.pair_sigma(q[:, 2], q[:, 2]))
+    # the lookup radius takes the target depth as the source point's own depth in the target frame and the
+    # largest target location sigma; the exact s of each found pair (its two depths and keypoints) decides below
+    ii, jj = pool.near(q, 1.5 * gate * noise.pair_sigma(q[:, 2], q[:, 2], np.hypot(ls, lt.max(initial=0.0))))
     r = np.linalg.norm(q[ii] - pt[jj], axis=1)
-    sg = noise.pair_sigma(ps[ii, 2], pt[jj, 2])
+    sg = noise.pair_sigma(ps[ii, 2], pt[jj, 2], np.hypot(ls[ii], lt[jj]))
     ok = r < gate * sg
     return ii[ok], jj[ok], r[ok], sg[ok]
 
 
 def refine_pose(pts_s: np.ndarray, pts_t: np.ndarray, pool: GuidedPool, T: np.ndarray, gates: tuple[float, ...],
-                noise: DepthNoise, min_pairs: int) -> tuple[np.ndarray, np.ndarray]:
+                noise: DepthNoise, min_pairs: int, loc_s: np.ndarray | None = None,
+                loc_t: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Guided refinement (module docstring): (T_tgt_src [4 x 4], inliers [K x 2] int32).
 
-    pts_s [Ns x 3], pts_t [Nt x 3], pool the pairs it may use, T the starting pose.
+    pts_s [Ns x 3], pts_t [Nt x 3], pool the pairs it may use, T the starting pose; loc_s [Ns], loc_t [Nt] the
+    keypoints' location sigmas (m, None: 0).
     Returns the input pose and an empty inlier set when no round keeps `min_pairs` pairs.
     """
     ps, pt = np.asarray(pts_s, np.float64), np.asarray(pts_t, np.float64)
     best = np.zeros((0, 2), np.int32)
     for gate in gates:
-        ii, jj, r, sg = _pairs_near(ps, pt, pool, T, gate, noise)
+        ii, jj, r, sg = _pairs_near(ps, pt, pool, T, gate, noise, loc_s, loc_t)
         ok = _one_to_one(ii, jj, r / sg)
         if len(ok) < min_pairs:
             break
@@ -225,10 +237,12 @@ def refine_pose(pts_s: np.ndarray, pts_t: np.ndarray, pool: GuidedPool, T: np.nd
 
 
 def consistent_pairs(pts_s: np.ndarray, pts_t: np.ndarray, pool: GuidedPool, T: np.ndarray, gate: float,
-                     noise: DepthNoise) -> np.ndarray:
-    """[K x 2] int32 pairs of `pool` (source, target) within gate x s of each other under T_tgt_src, one-to-one."""
+                     noise: DepthNoise, loc_s: np.ndarray | None = None, loc_t: np.ndarray | None = None
+                     ) -> np.ndarray:
+    """[K x 2] int32 pairs of `pool` (source, target) within gate x s of each other under T_tgt_src, one-to-one
+    (loc_s [Ns], loc_t [Nt]: the keypoints' location sigmas, m, None: 0)."""
     ps, pt = np.asarray(pts_s, np.float64), np.asarray(pts_t, np.float64)
-    ii, jj, r, sg = _pairs_near(ps, pt, pool, T, gate, noise)
+    ii, jj, r, sg = _pairs_near(ps, pt, pool, T, gate, noise, loc_s, loc_t)
     ok = _one_to_one(ii, jj, r / sg)
     return np.stack([ii[ok], jj[ok]], axis=1).astype(np.int32)
 
@@ -266,7 +280,8 @@ def lists_to_verify(res: GMatchResult, n_other: int, min_len: int) -> tuple[list
 
 
 def pose_by_support(pts_s: np.ndarray, pts_t: np.ndarray, support_pool: GuidedPool, refine_pool: GuidedPool,
-                    lists: list[np.ndarray], params: RegisterParams) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:
+                    lists: list[np.ndarray], params: RegisterParams, loc_s: np.ndarray | None = None,
+                    loc_t: np.ndarray | None = None) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:
     """(index of the chosen list, T_tgt_src [4 x 4], its kept pairs [K x 2], its refined inliers [R x 2] or empty).
 
     Each list's pose (kabsch_trimmed) is refined by `refine_pose` on `support_pool`; its support is the refined
@@ -277,16 +292,18 @@ def pose_by_support(pts_s: np.ndarray, pts_t: np.ndarray, support_pool: GuidedPo
     they are: a list's refinement must keep at least its own length, else its support is its kept pairs.
     With params.refine, T is the chosen list's pose refined on `support_pool`, and the returned inliers are
     the `refine_pool` pairs consistent with it within the last refinement gate (empty, as when no round
-    kept the list's length, if they are fewer than the list); else T is the list's own pose.
+    kept the list's length, if they are fewer than the list); else T is the list's own pose. loc_s [Ns], loc_t
+    [Nt]: the keypoints' location sigmas (m, None: 0), in every pair's s.
     """
     if not lists:
         raise ValueError("pose_by_support needs at least GMatch's own list")
     noise = params.noise
+    ls, lt = _locations(loc_s, len(pts_s)), _locations(loc_t, len(pts_t))
     best = None
     verified: list[np.ndarray] = []
     for k, m in enumerate(lists):
         src, dst = pts_s[m[:, 0]], pts_t[m[:, 1]]
-        tau = params.trim_gate * noise.pair_sigma(src[:, 2], dst[:, 2])
+        tau = params.trim_gate * noise.pair_sigma(src[:, 2], dst[:, 2], np.hypot(ls[m[:, 0]], lt[m[:, 1]]))
         if any((np.linalg.norm(transform_points(V, src) - dst, axis=1) < tau).all() for V in verified):
             continue  # every pair agrees with a pose already checked
         T, keep = kabsch_trimmed(src, dst, tau)
@@ -295,7 +312,7 @@ def pose_by_support(pts_s: np.ndarray, pts_t: np.ndarray, support_pool: GuidedPo
         verified.append(T)
         if len(lists) == 1 and not params.refine:  # nothing to compare, nothing to refine
             return 0, T, m[keep], np.zeros((0, 2), np.int32)
-        T_ref, refined = refine_pose(pts_s, pts_t, support_pool, T, params.refine_gates, noise, len(m))
+        T_ref, refined = refine_pose(pts_s, pts_t, support_pool, T, params.refine_gates, noise, len(m), ls, lt)
         support = len(refined) if len(refined) else int(keep.sum())
         if k == 0:
             first, support_0 = (k, T, keep, T_ref, refined), support
@@ -307,7 +324,7 @@ def pose_by_support(pts_s: np.ndarray, pts_t: np.ndarray, support_pool: GuidedPo
     if not len(refined):
         return k, T, lists[k][keep], refined
     # the inliers (what the pose graph weighs an edge by): the candidates alone that agree with the pose
-    inliers = consistent_pairs(pts_s, pts_t, refine_pool, T_ref, params.refine_gates[-1], noise)
+    inliers = consistent_pairs(pts_s, pts_t, refine_pool, T_ref, params.refine_gates[-1], noise, ls, lt)
     return k, T_ref, lists[k][keep], (inliers if len(inliers) >= len(lists[k]) else np.zeros((0, 2), np.int32))
 
 
@@ -319,11 +336,14 @@ def _mostly_depth(from_depth: np.ndarray | None, pairs: np.ndarray) -> bool:
 def register_points(pts_s: np.ndarray, pts_t: np.ndarray, desc_s: np.ndarray, desc_t: np.ndarray, kind: str,
                     params: RegisterParams = RegisterParams(), clouds: tuple | None = None,
                     dense: tuple[DenseGeometry, DenseGeometry] | None = None,
-                    fs_depth: np.ndarray | None = None) -> PairResult:
+                    fs_depth: np.ndarray | None = None, loc_s: np.ndarray | None = None,
+                    loc_t: np.ndarray | None = None) -> PairResult:
     """Register camera-frame keypoints pts_s [Ns x 3] -> pts_t [Nt x 3] (descriptors [N x D] of `kind`).
 
     clouds: optional (src [P x 3], tgt [Q x 3]) camera-frame clouds for ICP; dense: optional (source, target)
-    depth samples for rule 3; fs_depth: [Ns] bool the source keypoints found in the depth (rootsift+fpfh).
+    depth samples for rule 3; fs_depth: [Ns] bool the source keypoints found in the depth (rootsift+fpfh);
+    loc_s [Ns], loc_t [Nt]: the keypoints' location sigmas (m, `Features.location_sigma`; None: 0), in every
+    pair's s (the gates, rule 2's residual and the information).
     """
     tm: dict[str, float] = {}
     t0 = time.perf_counter()
@@ -348,7 +368,7 @@ def register_points(pts_s: np.ndarray, pts_t: np.ndarray, desc_s: np.ndarray, de
         T = None
     elif params.method == "gmatch":  # a consistent list may hold a far-off pair (module docstring)
         lists, costs = lists_to_verify(res, params.verify, params.verify_min_len)
-        k, T, kept, refined = pose_by_support(ps, pt, support_pool, refine_pool, lists, params)
+        k, T, kept, refined = pose_by_support(ps, pt, support_pool, refine_pool, lists, params, loc_s, loc_t)
         if k:
             log.debug("register: hypothesis list %d (%d pairs) outsupports GMatch's (%d pairs)", k, len(lists[k]), n)
             matches, n, cost = lists[k], len(lists[k]), costs[k]
@@ -360,7 +380,8 @@ def register_points(pts_s: np.ndarray, pts_t: np.ndarray, desc_s: np.ndarray, de
                      T_match=None if T is None else T.copy(), inliers=inliers, timings_ms=tm)
     if T is not None and len(inliers):
         src, dst = ps[inliers[:, 0]], pt[inliers[:, 1]]
-        sg = params.noise.pair_sigma(src[:, 2], dst[:, 2])
+        loc = np.hypot(_locations(loc_s, len(ps))[inliers[:, 0]], _locations(loc_t, len(pt))[inliers[:, 1]])
+        sg = params.noise.pair_sigma(src[:, 2], dst[:, 2], loc)
         r = np.linalg.norm(transform_points(T, src) - dst, axis=1)
         out.rmse = float(np.sqrt(np.mean(r * r)))
         out.rms_sigma = float(np.sqrt(np.mean(np.square(r / sg))))
@@ -377,7 +398,8 @@ def register_points(pts_s: np.ndarray, pts_t: np.ndarray, desc_s: np.ndarray, de
         return out
     if dense is not None and params.refines_on_depth:
         t0 = time.perf_counter()
-        T, out.information = refine_with_depth(dense[0], dense[1], src, dst, T, params.noise, params.depth_noise)
+        T, out.information = refine_with_depth(dense[0], dense[1], src, dst, T, params.noise, params.depth_noise,
+                                               kp_loc=loc)
         out.T_tgt_src = T
         out.sigma_deg, out.sigma_m = pose_sigma(out.information, dst)
         tm["refine"] = (time.perf_counter() - t0) * 1e3
@@ -465,8 +487,10 @@ def register_features(fs: Features, ft: Features, params: RegisterParams = Regis
     """
     if fs.kind != ft.kind:
         raise ValueError(f"descriptor kinds differ: {fs.kind} vs {ft.kind}")
+    joint = fs.kind == JOINT
     return register_points(fs.points, ft.points, fs.descriptors, ft.descriptors, fs.kind, params, clouds, dense,
-                           fs.from_depth if fs.kind == JOINT else None)
+                           fs.from_depth if joint else None, fs.location_sigma if joint else None,
+                           ft.location_sigma if joint else None)
 
 
 def frame_cloud(frame: RGBDFrame, stride: int = 2, mask: np.ndarray | None = None) -> np.ndarray:

@@ -69,8 +69,9 @@ def capture_noise(frames: SequenceFrames, params: RegisterParams, pilot_pairs: i
                   ) -> tuple[DepthNoise, DepthNoise]:
     """The capture's noise, of a lifted keypoint and of a depth pixel (`gscan.registration.noise`): up to
     `pilot_pairs` sequential pairs spread evenly over the capture, registered under the priors of `params`;
-    the keypoint residuals of their inliers, and the distances of their depth samples to the other frame's
-    surface within 5 prior sigmas, are fitted. A prior stays when too few pairs are left."""
+    the keypoint residuals of their inliers (less their keypoints' known location sigmas), and the distances of
+    their depth samples to the other frame's surface within 5 prior sigmas, are fitted. A prior stays when too
+    few pairs are left."""
     n = len(frames)
     picks = sorted({int(j) for j in np.linspace(1, n - 1, min(pilot_pairs, n - 1))}) if n > 1 else []
 
@@ -78,19 +79,20 @@ def capture_noise(frames: SequenceFrames, params: RegisterParams, pilot_pairs: i
         fs, ft = frames.reg(j - 1), frames.reg(j)
         r = register_features(fs.feats, ft.feats, params, dense=(fs.dense, ft.dense))
         if not r.accepted or r.T_tgt_src is None or r.inliers is None or not len(r.inliers):
-            return (np.zeros(0),) * 6
+            return (np.zeros(0),) * 7
         ps = fs.feats.points[r.inliers[:, 0]].astype(np.float64)
         pt = ft.feats.points[r.inliers[:, 1]].astype(np.float64)
+        loc = np.hypot(fs.feats.location_sigma[r.inliers[:, 0]], ft.feats.location_sigma[r.inliers[:, 1]])
         e, za, zb = plane_residuals(fs.dense, ft.dense, r.T_tgt_src)
         near = np.abs(e) < 5.0 * params.depth_noise.pair_sigma(za, zb)
-        return (np.linalg.norm(transform_points(r.T_tgt_src, ps) - pt, axis=1), ps[:, 2], pt[:, 2],
+        return (np.linalg.norm(transform_points(r.T_tgt_src, ps) - pt, axis=1), ps[:, 2], pt[:, 2], loc,
                 e[near], za[near], zb[near])
 
     got = list(pool.map(pair, picks))
     if not got:
         return params.noise, params.depth_noise
-    r, za, zb, e, da, db = (np.concatenate(x) for x in zip(*got, strict=True))
-    return (estimate_noise(r, za, zb, prior=params.noise),
+    r, za, zb, loc, e, da, db = (np.concatenate(x) for x in zip(*got, strict=True))
+    return (estimate_noise(r, za, zb, prior=params.noise, loc=loc),
             estimate_noise(e, da, db, prior=params.depth_noise, dof=1))
 
 
