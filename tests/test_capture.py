@@ -78,7 +78,12 @@ def test_capture_aligns_unaligned_depth(bags, tmp_path, align):
     assert r.returncode == 0, r.stderr
     cap, rec = open_sequence(out), open_sequence(bags["unaligned"])
     assert cap.names == ["000000", "000001", "000002"]
-    for name, src in zip(cap.names, ("000000", "000004", "000008"), strict=True):
+    # every 4th frame delivered, each compared with the recording's frame of its number: on a loaded machine
+    # librealsense's playback can leave the first frame unpaired (seen in a full test run with rs.align, which needs
+    # whole framesets and so skips it; gscan's alignment pairs it again, `LonePairer`) or drop it
+    numbers = [f["number"] for f in json.loads((out / "capture.json").read_text())["frames"].values()]
+    assert numbers in ([0, 4, 8], [1, 5, 9]), numbers
+    for name, src in zip(cap.names, rec.names[numbers[0]::4], strict=False):
         a, b = cap[name].depth, rec[src].depth
         assert np.array_equal(cap[name].color, rec[src].color)
         both = (a > 0) & (b > 0)
