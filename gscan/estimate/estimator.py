@@ -118,6 +118,9 @@ class Estimator:
         """tpl: a loaded template (TemplateDB.load_template: object keypoints in the object frame); matcher: the
         match lists of a view neighbourhood (default: `GMatchLists`, benchmarks put a baseline in its place)."""
         kind = tpl.require_keypoints()
+        if kind == JOINT and not params.query.depth_keypoints:  # the template's image keypoints alone
+            tpl = tpl.image_keypoints()
+            kind = tpl.require_keypoints()
         image_kind = "rootsift" if kind == JOINT else kind  # a joint set's image keypoints are RootSIFT
         if image_kind != params.features.kind:
             params = replace(params, features=replace(params.features, kind=image_kind))
@@ -131,7 +134,7 @@ class Estimator:
         self.matcher: Matcher = matcher or GMatchLists(params.gmatch, params.accept.min_matches,
                                                        params.hypotheses.runner_up_margin)
         self.view_names = self.index.view_names
-        self.query_depth = query_depth(tpl, params.query.depth_keypoints)
+        self.query_depth = query_depth(tpl)
         if self.query_depth is not None:  # poses the depth alone decides meet the keyframes' texture (verifier)
             self.verifier.keyframes = KeyframeTextures(tpl.path, self.view_names, self.index.T_obj_cam)
             self.verifier.depth_noise = self.query_depth.noise
@@ -327,10 +330,11 @@ class Estimator:
                          res.score, res.method, res.evidence)
 
 
-def query_depth(tpl: Template, enabled: bool) -> QueryDepth | None:
+def query_depth(tpl: Template) -> QueryDepth | None:
     """How a query's keypoints are joined with its depth keypoints for `tpl` (`QueryDepth`): None unless its
     keypoints are joint (rootsift+fpfh); at the template's depth keypoints' object size and its capture's depth
-    noise (its "keypoints" and "noise" meta), the size None (no depth keypoints) when not `enabled` or unknown."""
+    noise (its "keypoints" and "noise" meta; the default noise model without the latter), the size None (no depth
+    keypoints) when unknown."""
     if tpl.kind != JOINT:
         return None
     meta = tpl.meta if isinstance(tpl.meta, dict) else {}
@@ -340,4 +344,4 @@ def query_depth(tpl: Template, enabled: bool) -> QueryDepth | None:
         depth_noise = DepthNoise(**noise["depth"]) if isinstance(noise, dict) else DepthNoise()
     except (TypeError, KeyError, ValueError):
         depth_noise, size = DepthNoise(), None
-    return QueryDepth(float(size) if enabled and size else None, depth_noise)
+    return QueryDepth(float(size) if size else None, depth_noise)

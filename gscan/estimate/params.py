@@ -69,7 +69,9 @@ class QueryParams:
                                         "detection boxes", ge=0)] = 150
     depth_keypoints: Annotated[bool, Field(description="a template whose keyframes hold depth keypoints (scanned on "
                                            "features.keypoints depth or both): the query's depth keypoints join "
-                                           "its image keypoints (method.md, plain objects)")] = True
+                                           "its image keypoints; off, the template's image keypoints alone are "
+                                           "matched. Off by default: in clutter a box of about the object's size "
+                                           "is taken for a plain object (method.md, plain objects)")] = False
     __pydantic_config__ = SETTINGS
 
 

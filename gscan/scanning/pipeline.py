@@ -138,7 +138,8 @@ class ScanResult:
     # which object segmentation chose and why (`gscan.scanning.segment.ChosenObject.to_json`); None: not segmented
     object: dict | None = None
     # the keypoints registration used (the first capture's `FrameData.keypoints`) and "depth_only_edges": the
-    # accepted edges of this run that the depth alone decided (`gscan.registration.pairwise`)
+    # accepted edges of this run that the depth alone decided (`gscan.registration.pairwise`); with depth keypoints
+    # on the keyframes, "object": "both" and "object_depth_size" (m) they and a query's are found at
     keypoints: dict = field(default_factory=dict)
 
     def to_json(self) -> dict:
@@ -444,8 +445,9 @@ def _scan_frames(caps: list[_Capture], output: Path, opts: ScanOptions, db: Temp
         chosen = None if first.reg.chosen is None else first.reg.chosen.to_json()
         assert first.data is not None
         keypoints = dict(first.data.keypoints, depth_only_edges=sum(
-            1 for cap in caps if cap.reg is not None for e in cap.reg.edges if e.accepted and e.depth_only),
-            object=object_source, object_depth_size=depth_size)
+            1 for cap in caps if cap.reg is not None for e in cap.reg.edges if e.accepted and e.depth_only))
+        if object_source == "both":  # (a template of the image's keypoints keeps its meta as it was)
+            keypoints |= {"object": object_source, "object_depth_size": depth_size}
         if not opts.append:
             db.set_meta("object", chosen)
         db.set_meta("timings_s", timer.timings)
