@@ -294,9 +294,10 @@ def _box_symmetries() -> list[np.ndarray]:
 
 @pytest.fixture(scope="module")
 def plain_part(tmp_path_factory):
-    """A CAD template of a one-colour box (24 views) storing image and depth keypoints, and a cluttered frame of
-    it beside a printed box of about its size and a flat plain box, with the frame of the two others alone
-    (about 15 s)."""
+    """A CAD template of a one-colour box (24 views) storing image and depth keypoints, a cluttered frame of it
+    beside a printed box of about its size and a flat plain box, the frame of the two others alone, and two more
+    frames of them alone: one whose printed box fits the part's depth, one whose boxes fit it only off their
+    outlines (about 15 s)."""
     from dataclasses import replace
 
     from gscan.features import OBJECT_FEATURES
@@ -312,31 +313,34 @@ def plain_part(tmp_path_factory):
     tpl = tmp / "part.gscan"
     template_from_mesh(save_textured_mesh(part, tmp / "part.obj"), tpl, n_views=24,
                        feature_params=replace(OBJECT_FEATURES, keypoints="both"))
-    rng = np.random.default_rng(0)
-    T_world_part = rest_on_table(part, rotvec_to_R([0.0, 0.0, rng.uniform(0, 2 * np.pi)]))
-    placed = list(zip(others, place_distractors(part, T_world_part, others, rng), strict=True))
-    c = T_world_part[:3, 3] + [0.0, 0.0, 0.11]
-    e, a = np.radians(35.0), np.radians(30.0)
-    T_world_cam = look_at(c + 0.7 * np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)]), c)
-    frames = []
-    for objs in ([(part, T_world_part)] + placed, placed):
-        r = SynthScene(objs, seed=0, table_kind="wood").render(T_world_cam, DEFAULT_INTRINSICS,
-                                                               rng=np.random.default_rng([0, 1]))
-        frames.append(RGBDFrame("plain_part", r.color, r.depth, DEFAULT_INTRINSICS))
-    return tpl, frames[0], frames[1], inv_T(T_world_cam) @ T_world_part, part
+    frames, truth = [], []
+    for seed in (0, 1, 7):  # (bench/plain.py --lookalikes' seeds)
+        rng = np.random.default_rng(seed)
+        T_world_part = rest_on_table(part, rotvec_to_R([0.0, 0.0, rng.uniform(0, 2 * np.pi)]))
+        placed = list(zip(others, place_distractors(part, T_world_part, others, rng), strict=True))
+        c = T_world_part[:3, 3] + [0.0, 0.0, 0.11]
+        e, a = np.radians(35.0), np.radians(30.0)
+        T_world_cam = look_at(c + 0.7 * np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)]), c)
+        for objs in ([(part, T_world_part)] + placed, placed)[0 if seed == 0 else 1:]:
+            r = SynthScene(objs, seed=seed, table_kind="wood").render(T_world_cam, DEFAULT_INTRINSICS,
+                                                                      rng=np.random.default_rng([seed, 1]))
+            frames.append(RGBDFrame("plain_part", r.color, r.depth, DEFAULT_INTRINSICS))
+        truth.append(inv_T(T_world_cam) @ T_world_part)
+    return tpl, frames[0], frames[1], truth[0], part, frames[2], frames[3]
 
 
 def test_a_plain_part_is_found_on_its_depth_keypoints_and_refused_without_it(plain_part):
     """With `query.depth_keypoints` the plain part is found within 5 deg / 2 cm (up to the box's half turns) and the
-    result says the depth alone decided; the frame without it is refused. Off (the default), the same template's
-    image keypoints alone find nothing: the print is missing."""
+    result says the depth alone decided; the frames without it are refused, one by the texture check and one by the
+    silhouettes of a pose the depth alone decided. Off (the default), the same template's image keypoints alone
+    find nothing: the print is missing."""
     from dataclasses import replace
 
     from gscan.estimate import Estimator
     from gscan.estimate.params import DEFAULT_PARAMS, QueryParams
     from gscan.template.db import TemplateDB
 
-    tpl, frame, empty, T_cam_part, part = plain_part
+    tpl, frame, empty, T_cam_part, part, printed, flat = plain_part
     with TemplateDB.open(tpl) as db:
         assert db.descriptor_kind() == JOINT and db.get_meta("keypoints")["object_depth_size"] > 0.1
     on = Estimator.from_path(tpl, replace(DEFAULT_PARAMS, query=QueryParams(depth_keypoints=True)))
@@ -346,6 +350,12 @@ def test_a_plain_part_is_found_on_its_depth_keypoints_and_refused_without_it(pla
     assert err[0] < 5.0 and err[1] < 0.02, err
     assert res.depth_only and res.to_json()["depth_only"] is True
     assert not on.estimate(empty).found
+    # the printed box takes a pose the depth alone decides and every silhouette allows: its print refutes it
+    lookalike = on.estimate(printed)
+    assert not lookalike.found and lookalike.reason.startswith("texture disagrees"), lookalike.reason
+    # a pose on the others that the depth allows lays the part's outline off what the frame shows
+    offside = on.estimate(flat)
+    assert not offside.found and offside.reason.startswith("silhouette disagrees"), offside.reason
     off = Estimator.from_path(tpl)
     assert off.kind == "rootsift" and off.query_depth is None
     assert not off.estimate(frame).found

@@ -211,8 +211,10 @@ class ListVerifier:
             return None
         why = silhouette_refusal(q, T_cam_obj, self.model.samples, self.params.refine.voxel, self.depth_noise,
                                  self.params.accept)
-        if why is None and self.keyframes is not None:
-            why = texture_refusal(q, T_cam_obj, self.keyframes, self.depth_noise, self.params.accept)
+        if why is None:
+            why = "no texture check for a pose the depth alone decided (the template's keyframes are not known)" \
+                if self.keyframes is None else \
+                texture_refusal(q, T_cam_obj, self.keyframes, self.depth_noise, self.params.accept)
         return why
 
     def against_rivals(self, q: QueryFrame, qk: QueryKeypoints, res: EstimateResult, rivals: list[MatchList],

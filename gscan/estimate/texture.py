@@ -2,9 +2,9 @@
 
 A plain object's pose rests on its shape: its keypoint support is mostly depth keypoints, and the depth confirms
 any pose that lays its surface on a surface of that shape. In clutter another box of about its size offers such
-a surface: measured on the plain Fondant box's negative scenes, poses on a printed box fit the depth entirely
-(score 1.0, 90 % of the visible surface confirmed, none of it off the objects standing on the table), held by 15-20
-consistent depth keypoint pairs. The print refutes them: the template's keyframes saw a plain surface there.
+a surface: measured on the plain Fondant box's scenes without it, poses on a printed box fit the depth entirely
+(score 1.0, 90 % of the visible surface confirmed, 0.3-1.7 % of it off the objects standing on the table), held by
+15-20 consistent depth keypoint pairs. The print refutes them: the template's keyframes saw a plain surface there.
 
 So the query's texture is compared with the keyframe nearest the pose's viewing direction by registration's
 texture check (`gscan.registration.dense.colour_agreement`): the keyframe's object samples (its mask) and the
@@ -12,7 +12,8 @@ query's search region, each with its band-passed texture, moved into each other 
 informative where its texture varies beyond the image's noise, in either image, and agrees where it lines up.
 Print on the query where the keyframe is plain lines up nowhere. The pose is refused when at least
 `accept.min_colour_tiles` tiles are informative and fewer than `accept.min_colour_agreement` of them agree
-(registration's rule for an edge); no informative tile (plain against plain) leaves the pose to the depth.
+(registration's rule for an edge); no informative tile (plain against plain) leaves the pose to the depth. A
+template without its keyframes' images cannot check the texture: the pose is refused.
 
 The keyframes' images are read from the template file on first use and their samples cached (`KeyframeTextures`).
 """
@@ -73,7 +74,8 @@ def texture_refusal(q: QueryFrame, T_cam_obj: np.ndarray, keyframes: KeyframeTex
     v = keyframes.nearest(T_cam_obj)
     kf = keyframes.dense(v)
     if kf is None:
-        return None
+        return (f"the template keeps no image of its view {keyframes.names[v]} to check the texture of a pose the "
+                "depth alone decided")
     frame = q.frame
     query = DenseGeometry.from_depth(frame.depth, frame.intrinsics, q.search, image=frame.color)
     T_kf_cam = inv_T(keyframes.T_obj_cam[v]) @ inv_T(T_cam_obj)  # query camera -> keyframe camera
