@@ -264,24 +264,21 @@ def estimates(objects: list[str], n: int, frames: int, negatives: int, work: Pat
 
 
 def lookalikes(n: int, work: Path) -> None:
-    """A CAD template of a one-colour box (16 x 9 x 22 cm, 24 views, image and depth keypoints) estimated with the
-    query's depth keypoints in `n` frames of it beside a printed box of about its size (15 x 8 x 20 cm) and a flat
-    plain box (20 x 12 x 6 cm), and in `n` frames of those two alone, seen from 0.7 m at 35 deg elevation: found /
-    wrong (beyond 5 deg / 2 cm up to the box's half turns, or any pose without the box) / depth-only. Not tuned on:
-    the case that keeps `query.depth_keypoints` off by default."""
+    """A CAD template of a one-colour box (`gscan.synth.cases.plain_part_meshes`, 24 views, image and depth
+    keypoints) estimated with the query's depth keypoints in `n` frames of it beside a printed box of about its size
+    and a flat plain box, and in `n` frames of those two alone (`plain_part_scene`): found / wrong (beyond 5 deg /
+    2 cm up to the box's half turns, or any pose without the box) / depth-only. Not tuned on: the case that keeps
+    `query.depth_keypoints` off by default."""
     from gscan.estimate import Estimator
     from gscan.estimate.params import DEFAULT_PARAMS, QueryParams
     from gscan.features import OBJECT_FEATURES
-    from gscan.geometry.transforms import look_at, rotvec_to_R
     from gscan.scanning.cad import template_from_mesh
-    from gscan.synth import DEFAULT_INTRINSICS, SynthScene, box_mesh, place_distractors, procedural_box_texture
-    from gscan.synth.capture import rest_on_table
+    from gscan.synth import DEFAULT_INTRINSICS
+    from gscan.synth.cases import plain_part_meshes, plain_part_scene
     from gscan.synth.mesh import save_textured_mesh
 
     work.mkdir(parents=True, exist_ok=True)
-    part = box_mesh((0.16, 0.09, 0.22), np.full((4, 4, 3), 235, np.uint8), name="plain_part")
-    others = [box_mesh((0.15, 0.08, 0.20), procedural_box_texture(3, (256, 384)), name="printed"),
-              box_mesh((0.20, 0.12, 0.06), np.full((4, 4, 3), 200, np.uint8), name="plain_flat")]
+    part = plain_part_meshes()[0]
     tpl = work / "plain_part.gscan"
     if not tpl.exists():
         template_from_mesh(save_textured_mesh(part, work / "plain_part.obj"), tpl, n_views=24,
@@ -290,20 +287,11 @@ def lookalikes(n: int, work: Path) -> None:
     turns = [np.eye(3)] + [2.0 * np.outer(a, a) - np.eye(3) for a in np.eye(3)]
     counts = {True: [0, 0, 0], False: [0, 0, 0]}
     for seed in range(n):
-        rng = np.random.default_rng(seed)
-        T_wp = rest_on_table(part, rotvec_to_R([0.0, 0.0, rng.uniform(0, 2 * np.pi)]))
-        placed = list(zip(others, place_distractors(part, T_wp, others, rng), strict=True))
-        c = T_wp[:3, 3] + [0.0, 0.0, 0.11]
-        e, a = np.radians(35.0), np.radians(30.0)
-        T_wc = look_at(c + 0.7 * np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)]), c)
         for with_part in (True, False):
-            objs = ([(part, T_wp)] if with_part else []) + placed
-            r = SynthScene(objs, seed=seed, table_kind="wood").render(T_wc, DEFAULT_INTRINSICS,
-                                                                      rng=np.random.default_rng([seed, 1]))
+            r, T_gt = plain_part_scene(seed, with_part)
             res = est.estimate(RGBDFrame(f"part_{seed}", r.color, r.depth, DEFAULT_INTRINSICS))
             wrong = False
             if res.T_cam_obj is not None:
-                T_gt = inv_T(T_wc) @ T_wp
                 errs = []
                 for R in turns:
                     S = np.eye(4)

@@ -297,36 +297,27 @@ def plain_part(tmp_path_factory):
     """A CAD template of a one-colour box (24 views) storing image and depth keypoints, a cluttered frame of it
     beside a printed box of about its size and a flat plain box, the frame of the two others alone, and two more
     frames of them alone: one whose printed box fits the part's depth, one whose boxes fit it only off their
-    outlines (about 15 s)."""
+    outlines (`gscan.synth.cases.plain_part_scene`, bench/plain.py --lookalikes' seeds 0, 1 and 7; about 15 s)."""
     from dataclasses import replace
 
     from gscan.features import OBJECT_FEATURES
-    from gscan.geometry.transforms import look_at, rotvec_to_R
     from gscan.scanning.cad import template_from_mesh
-    from gscan.synth import DEFAULT_INTRINSICS, SynthScene, place_distractors, procedural_box_texture, rest_on_table
+    from gscan.synth import DEFAULT_INTRINSICS
+    from gscan.synth.cases import plain_part_meshes, plain_part_scene
     from gscan.synth.mesh import save_textured_mesh
 
     tmp = tmp_path_factory.mktemp("plain_part")
-    part = box_mesh((0.16, 0.09, 0.22), np.full((4, 4, 3), 235, np.uint8), name="plain_part")
-    others = [box_mesh((0.15, 0.08, 0.20), procedural_box_texture(3, (256, 384)), name="printed"),
-              box_mesh((0.20, 0.12, 0.06), np.full((4, 4, 3), 200, np.uint8), name="plain_flat")]
+    part = plain_part_meshes()[0]
     tpl = tmp / "part.gscan"
     template_from_mesh(save_textured_mesh(part, tmp / "part.obj"), tpl, n_views=24,
                        feature_params=replace(OBJECT_FEATURES, keypoints="both"))
-    frames, truth = [], []
-    for seed in (0, 1, 7):  # (bench/plain.py --lookalikes' seeds)
-        rng = np.random.default_rng(seed)
-        T_world_part = rest_on_table(part, rotvec_to_R([0.0, 0.0, rng.uniform(0, 2 * np.pi)]))
-        placed = list(zip(others, place_distractors(part, T_world_part, others, rng), strict=True))
-        c = T_world_part[:3, 3] + [0.0, 0.0, 0.11]
-        e, a = np.radians(35.0), np.radians(30.0)
-        T_world_cam = look_at(c + 0.7 * np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)]), c)
-        for objs in ([(part, T_world_part)] + placed, placed)[0 if seed == 0 else 1:]:
-            r = SynthScene(objs, seed=seed, table_kind="wood").render(T_world_cam, DEFAULT_INTRINSICS,
-                                                                      rng=np.random.default_rng([seed, 1]))
-            frames.append(RGBDFrame("plain_part", r.color, r.depth, DEFAULT_INTRINSICS))
-        truth.append(inv_T(T_world_cam) @ T_world_part)
-    return tpl, frames[0], frames[1], truth[0], part, frames[2], frames[3]
+    frames = {}
+    for seed, with_part in ((0, True), (0, False), (1, False), (7, False)):
+        r, T_cam_part = plain_part_scene(seed, with_part)
+        frames[seed, with_part] = RGBDFrame("plain_part", r.color, r.depth, DEFAULT_INTRINSICS)
+        if with_part:
+            truth = T_cam_part
+    return (tpl, frames[0, True], frames[0, False], truth, part, frames[1, False], frames[7, False])
 
 
 def test_a_plain_part_is_found_on_its_depth_keypoints_and_refused_without_it(plain_part):
