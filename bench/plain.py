@@ -16,12 +16,22 @@ the true pose of the inlier pairs of the accepted consecutive pairs, and of the 
 keypoints of a kind within 2 cm under the truth), in units of the sensor's s and of s with the keypoints' location
 sigma (`Features.location_sigma`).
 
+With --estimate, pose estimation in clutter (`estimates`): each object's templates scanned on sift and on both
+(the latter estimated with the query's depth keypoints, `query.depth_keypoints`), in `--scenes` cluttered scenes
+with the object and `--negatives` without it (`estimate_scenes`). The estimator's rules for a pose the depth alone
+decides (the local support of depth keypoints, the silhouettes with a margin of two template samples, the
+keyframes' texture) were set on TUNE's scenes; HELD_OUT's were run once after. With --lookalikes N, a plain CAD
+box beside boxes of about its size (`lookalikes`), the case that keeps `query.depth_keypoints` off by default.
+
     python bench/plain.py [--objects NAME ...] [--frames 36] [--scans | --residuals]
+    python bench/plain.py --estimate [--scenes 8] [--negatives 3] [--work DIR]
+    python bench/plain.py --lookalikes 8
 """
 from __future__ import annotations
 
 import argparse
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -150,13 +160,182 @@ def scans(objects: list[str], n: int) -> None:
                       f"{r['wrong']:2d} loop closures refused as a half turn {r['turn_refused']}", flush=True)
 
 
+def estimate_scenes(name: str, oi: int, n: int, printed: dict[str, TexturedMesh], negatives: int):
+    """Yields (label, RGBDFrame, T_cam_gt or None for a negative) of one plain object's cluttered scenes: the object
+    upright at a random yaw among one printed shared mesh and one other plain object (a realistic shelf holds
+    both), on a wood, fabric, plain or newspaper table, seen from 20-50 deg elevation (the scan's turntable looked
+    from 30), then `negatives` scenes of the two others alone (bench/recall.py's scene maker)."""
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from recall import QUERY_TABLES, render_query
+
+    from gscan.geometry.transforms import rotvec_to_R
+    from gscan.synth import DEFAULT_INTRINSICS
+
+    target = plain(name)
+    others = [o for o in TUNE + HELD_OUT if o != name]
+    for k in range(n + negatives):
+        seed = 1000 + 100 * oi + k
+        rng = np.random.default_rng([seed, 0x9A1])
+        names = sorted(printed)
+        distractors = [printed[names[int(rng.integers(len(names)))]], plain(others[int(rng.integers(len(others)))])]
+        R = rotvec_to_R([0.0, 0.0, rng.uniform(0, 2 * np.pi)])
+        el, az = rng.uniform(20, 50), rng.uniform(0, 360)
+        table = QUERY_TABLES[(oi + k) % len(QUERY_TABLES)]
+        r, T_gt = render_query(target, R, el, az, distractors, seed, table, with_target=k < n)
+        label = f"{name[:24]}/{k}" if k < n else f"{name[:24]}/empty{k - n}"
+        yield label, RGBDFrame(label, r.color, r.depth, DEFAULT_INTRINSICS), (T_gt if k < n else None)
+
+
+def estimates(objects: list[str], n: int, frames: int, negatives: int, work: Path) -> None:
+    """Each object's templates scanned on `sift` and on `both` (`scan_object`, cached in `work`), the latter
+    estimated with the query's depth keypoints (`query.depth_keypoints`, off by default), in its cluttered scenes
+    (`estimate_scenes`): per template found / wrong accepted (ADD-S beyond 2 cm, or any pose in a negative) / AUC
+    ADD-S (0-10 cm) / depth-only poses, and the time per estimate as a ratio to sift's on the same scenes. Every
+    scene's row is printed, then each split's totals."""
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from recall import DISTRACTOR_POOL
+    from recall import MESHES as RECALL_MESHES
+
+    from gscan.errors import InputError
+    from gscan.estimate import Estimator
+    from gscan.estimate.params import DEFAULT_PARAMS, QueryParams
+    from gscan.evaluate.bop19 import template_to_gt
+    from gscan.evaluate.metrics import adds, auc
+    from gscan.io import open_sequence
+
+    printed = {d: load_textured_mesh(RECALL_MESHES / d / "model_0.obj") for d in DISTRACTOR_POOL
+               if d not in TUNE + HELD_OUT}
+    work.mkdir(parents=True, exist_ok=True)
+    depth_on = replace(DEFAULT_PARAMS, query=QueryParams(depth_keypoints=True))  # off by default
+    rows: list[dict] = []
+    for name in objects:
+        split = "tune" if name in TUNE else "held-out"
+        oi = (TUNE + HELD_OUT).index(name) if name in TUNE + HELD_OUT else len(TUNE + HELD_OUT)  # seeds per object
+        ests, to_gt = {}, {}
+        for kp in ("sift", "both"):
+            tpl = work / f"{name}_{frames}_{kp}.gscan"
+            if not tpl.exists():
+                scan_object(name, frames, kp, work)
+            try:
+                to_gt[kp] = template_to_gt(tpl, open_sequence(work / f"{name}_{frames}").gt_T_cam_obj)
+            except InputError as e:  # a scan of one registered frame: no template to estimate with (finds nothing)
+                print(f"{split:8s} {name[:32]:32s} {kp:4s} template unusable: {e.reason}", flush=True)
+                continue
+            ests[kp] = Estimator.from_path(tpl, depth_on if kp == "both" else DEFAULT_PARAMS)
+        verts = plain(name).vertices
+        for label, frame, T_gt in estimate_scenes(name, oi, n, printed, negatives):
+            for kp in ("sift", "both"):
+                if kp not in ests:
+                    rows.append({"split": split, "kp": kp, "label": label, "positive": T_gt is not None, "found": False,
+                                 "adds": None, "wrong": False, "cpu": float("nan"), "depth_only": False})
+                    continue
+                est = ests[kp]
+                est.estimate(frame)  # untimed once: the first call of a template loads its kernels
+                t0 = time.process_time()
+                res = est.estimate(frame)
+                cpu = time.process_time() - t0
+                e = None if res.T_cam_obj is None or T_gt is None else adds(verts, res.T_cam_obj @ to_gt[kp], T_gt)
+                wrong = res.found and (T_gt is None or e is None or e > 0.02)
+                rows.append({"split": split, "kp": kp, "label": label, "positive": T_gt is not None, "found": res.found,
+                             "adds": e, "wrong": wrong, "cpu": cpu, "depth_only": res.depth_only})
+                print(f"{split:8s} {label:32s} {kp:4s} {'found' if res.found else 'none ':5s} "
+                      f"{'' if e is None else f'ADD-S {1000 * e:6.1f} mm'} {'WRONG ' if wrong else ''}"
+                      f"{'depth-only ' if res.depth_only else ''}{cpu:.2f} s"
+                      f"{'' if res.found else ' (' + str(res.reason)[:90] + ')'}", flush=True)
+    for split in ("tune", "held-out", "all"):
+        rs = [r for r in rows if split == "all" or r["split"] == split]
+        if not rs:
+            continue
+        timed = {r["label"] for r in rs if r["kp"] == "sift" and np.isfinite(r["cpu"])}  # scenes both estimated
+        base = np.mean([r["cpu"] for r in rs if r["kp"] == "sift" and r["label"] in timed])
+        for kp in ("sift", "both"):
+            k = [r for r in rs if r["kp"] == kp]
+            pos = [r for r in k if r["positive"]]
+            print(f"{split:8s} {kp:4s} found {sum(r['found'] for r in pos)}/{len(pos)} wrong "
+                  f"{sum(r['wrong'] for r in k)} (of {len(k)} scenes, {len(k) - len(pos)} negative) AUC ADD-S "
+                  f"{auc([r['adds'] if r['found'] and r['adds'] is not None else float('inf') for r in pos]):.3f} "
+                  f"depth-only {sum(r['depth_only'] for r in k)} time x"
+                  f"{np.mean([r['cpu'] for r in k if r['label'] in timed]) / base:.2f} "
+                  f"of sift", flush=True)
+
+
+def lookalikes(n: int, work: Path) -> None:
+    """A CAD template of a one-colour box (`gscan.synth.cases.plain_part_meshes`, 24 views, image and depth
+    keypoints) estimated with the query's depth keypoints in `n` frames of it beside a printed box of about its size
+    and a flat plain box, and in `n` frames of those two alone (`plain_part_scene`): found / wrong (beyond 5 deg /
+    2 cm up to the box's half turns, or any pose without the box) / depth-only. Not tuned on: the case that keeps
+    `query.depth_keypoints` off by default."""
+    from gscan.estimate import Estimator
+    from gscan.estimate.params import DEFAULT_PARAMS, QueryParams
+    from gscan.features import OBJECT_FEATURES
+    from gscan.scanning.cad import template_from_mesh
+    from gscan.synth import DEFAULT_INTRINSICS
+    from gscan.synth.cases import plain_part_meshes, plain_part_scene
+    from gscan.synth.mesh import save_textured_mesh
+
+    work.mkdir(parents=True, exist_ok=True)
+    part = plain_part_meshes()[0]
+    tpl = work / "plain_part.gscan"
+    if not tpl.exists():
+        template_from_mesh(save_textured_mesh(part, work / "plain_part.obj"), tpl, n_views=24,
+                           feature_params=replace(OBJECT_FEATURES, keypoints="both"))
+    est = Estimator.from_path(tpl, replace(DEFAULT_PARAMS, query=QueryParams(depth_keypoints=True)))
+    turns = [np.eye(3)] + [2.0 * np.outer(a, a) - np.eye(3) for a in np.eye(3)]
+    counts = {True: [0, 0, 0], False: [0, 0, 0]}
+    for seed in range(n):
+        for with_part in (True, False):
+            r, T_gt = plain_part_scene(seed, with_part)
+            res = est.estimate(RGBDFrame(f"part_{seed}", r.color, r.depth, DEFAULT_INTRINSICS))
+            wrong = False
+            if res.T_cam_obj is not None:
+                errs = []
+                for R in turns:
+                    S = np.eye(4)
+                    S[:3, :3] = R
+                    errs.append(pose_error(res.T_cam_obj @ S, T_gt))
+                deg, m = min(errs)
+                wrong = not with_part or deg > 5.0 or m > 0.02
+            counts[with_part] = [x + y for x, y in zip(counts[with_part], [res.found, wrong, res.depth_only],
+                                                       strict=True)]
+            print(f"look-alikes seed {seed} {'with the part' if with_part else 'without it  '} "
+                  f"{'found' if res.found else 'none '} {'WRONG ' if wrong else ''}"
+                  f"{'depth-only' if res.depth_only else ''} {'' if res.found else str(res.reason)[:100]}", flush=True)
+    for with_part, (found, wrong, depth) in counts.items():
+        print(f"look-alikes {'with the part' if with_part else 'without it'}: found {found}/{n} wrong {wrong} "
+              f"depth-only {depth}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--objects", nargs="*", default=TUNE + HELD_OUT)
     ap.add_argument("--frames", type=int, default=36)
     ap.add_argument("--scans", action="store_true", help="whole scans (sift and both) instead of pairs")
     ap.add_argument("--residuals", action="store_true", help="the keypoints' distances at the true pose")
+    ap.add_argument("--estimate", action="store_true", help="estimation in clutter with sift and both templates")
+    ap.add_argument("--scenes", type=int, default=6, help="--estimate: scenes with the object, per object")
+    ap.add_argument("--negatives", type=int, default=2, help="--estimate: scenes without it, per object")
+    ap.add_argument("--work", type=Path, default=None, help="--estimate: keep captures and templates here")
+    ap.add_argument("--lookalikes", type=int, default=0, help="frames of a plain CAD box beside look-alike boxes")
     a = ap.parse_args()
+    if a.lookalikes:
+        import tempfile
+
+        with tempfile.TemporaryDirectory() as tmp:
+            lookalikes(a.lookalikes, Path(tmp) if a.work is None else a.work)
+        return
+    if a.estimate:
+        import tempfile
+
+        if a.work is not None:
+            estimates(a.objects, a.scenes, a.frames, a.negatives, a.work)
+        else:
+            with tempfile.TemporaryDirectory() as tmp:
+                estimates(a.objects, a.scenes, a.frames, a.negatives, Path(tmp))
+        return
     if a.residuals:
         for name in a.objects:
             residuals(name, a.frames)

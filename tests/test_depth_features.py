@@ -158,6 +158,11 @@ def test_a_scan_on_both_keypoints_registers_a_printed_box(tmp_path, meshes_dir):
     with TemplateDB.open(tmp_path / "box.gscan") as db:
         poses = {n: np.asarray(T) for n, T in db.poses()["frames"].items()}
         assert db.features("000000").kind == JOINT and db.features("000000").from_depth.any()
+        # the keyframes keep joint object keypoints at one size (what `estimate` matches with depth keypoints)
+        assert db.descriptor_kind() == JOINT and res.keypoints["object"] == "both"
+        assert 0.05 < res.keypoints["object_depth_size"] < 0.5
+        keyframes = [v.name for v in db.views(keyframes_only=True)]
+        assert keyframes and all(db.features(k, "object").from_depth.any() for k in keyframes)
     gt = open_sequence(cap).gt_T_cam_obj
     assert res.registered == 12, res.unregistered_reasons
     assert frame_errors(poses, {n: inv_T(T) for n, T in gt.items()}).wrong(5.0, 0.02) == []
@@ -274,3 +279,103 @@ def test_the_noise_fit_leaves_the_keypoints_location_out():
     fit = estimate_noise(r, za, zb, prior=prior, loc=loc)
     np.testing.assert_allclose(fit.sigma(z), NOISE.sigma(z), rtol=0.05)  # measured within 2 %
     assert (estimate_noise(r, za, zb, prior=prior).sigma(z) > 1.1 * NOISE.sigma(z)).all()  # 12-30 % over
+
+
+# -------------------------------------------------------------------------------- estimation (a plain CAD part)
+def _box_symmetries() -> list[np.ndarray]:
+    """The turns a box's shape (and one colour) is alike under: identity and half turns about its axes."""
+    out = [np.eye(4)]
+    for axis in np.eye(3):
+        T = np.eye(4)
+        T[:3, :3] = 2.0 * np.outer(axis, axis) - np.eye(3)  # 180 deg about `axis`
+        out.append(T)
+    return out
+
+
+@pytest.fixture(scope="module")
+def plain_part(tmp_path_factory):
+    """A CAD template of a one-colour box (24 views) storing image and depth keypoints, a cluttered frame of it
+    beside a printed box of about its size and a flat plain box, the frame of the two others alone, and two more
+    frames of them alone: one whose printed box fits the part's depth, one whose boxes fit it only off their
+    outlines (`gscan.synth.cases.plain_part_scene`, bench/plain.py --lookalikes' seeds 0, 1 and 7; about 15 s)."""
+    from dataclasses import replace
+
+    from gscan.features import OBJECT_FEATURES
+    from gscan.scanning.cad import template_from_mesh
+    from gscan.synth import DEFAULT_INTRINSICS
+    from gscan.synth.cases import plain_part_meshes, plain_part_scene
+    from gscan.synth.mesh import save_textured_mesh
+
+    tmp = tmp_path_factory.mktemp("plain_part")
+    part = plain_part_meshes()[0]
+    tpl = tmp / "part.gscan"
+    template_from_mesh(save_textured_mesh(part, tmp / "part.obj"), tpl, n_views=24,
+                       feature_params=replace(OBJECT_FEATURES, keypoints="both"))
+    frames = {}
+    for seed, with_part in ((0, True), (0, False), (1, False), (7, False)):
+        r, T_cam_part = plain_part_scene(seed, with_part)
+        frames[seed, with_part] = RGBDFrame("plain_part", r.color, r.depth, DEFAULT_INTRINSICS)
+        if with_part:
+            truth = T_cam_part
+    return (tpl, frames[0, True], frames[0, False], truth, part, frames[1, False], frames[7, False])
+
+
+def test_a_plain_part_is_found_on_its_depth_keypoints_and_refused_without_it(plain_part):
+    """With `query.depth_keypoints` the plain part is found within 5 deg / 2 cm (up to the box's half turns) and the
+    result says the depth alone decided; the frames without it are refused, one by the texture check and one by the
+    silhouettes of a pose the depth alone decided. Off (the default), the same template's image keypoints alone
+    find nothing: the print is missing."""
+    from dataclasses import replace
+
+    from gscan.estimate import Estimator
+    from gscan.estimate.params import DEFAULT_PARAMS, QueryParams
+    from gscan.template.db import TemplateDB
+
+    tpl, frame, empty, T_cam_part, part, printed, flat = plain_part
+    with TemplateDB.open(tpl) as db:
+        assert db.descriptor_kind() == JOINT and db.get_meta("keypoints")["object_depth_size"] > 0.1
+    on = Estimator.from_path(tpl, replace(DEFAULT_PARAMS, query=QueryParams(depth_keypoints=True)))
+    res = on.estimate(frame)
+    assert res.found, res.reason
+    err = min(pose_error(res.T_cam_obj @ S, T_cam_part) for S in _box_symmetries())
+    assert err[0] < 5.0 and err[1] < 0.02, err
+    assert res.depth_only and res.to_json()["depth_only"] is True
+    assert not on.estimate(empty).found
+    # the printed box takes a pose the depth alone decides and every silhouette allows: its print refutes it
+    lookalike = on.estimate(printed)
+    assert not lookalike.found and lookalike.reason.startswith("texture disagrees"), lookalike.reason
+    # a pose on the others that the depth allows lays the part's outline off what the frame shows
+    offside = on.estimate(flat)
+    assert not offside.found and offside.reason.startswith("silhouette disagrees"), offside.reason
+    off = Estimator.from_path(tpl)
+    assert off.kind == "rootsift" and off.query_depth is None
+    assert not off.estimate(frame).found
+
+
+def test_a_templates_image_keypoints_are_its_joint_sets_image_part(plain_part):
+    """`Template.image_keypoints`: the rows without an FPFH part, their RootSIFT part, each view's offsets
+    recounted; the query's joint set holds the search region's depth keypoints at the template's size."""
+    from gscan.estimate import Estimator
+    from gscan.estimate.query import QueryDepth, query_features
+    from gscan.template.db import open_template
+
+    tpl = open_template(plain_part[0])
+    img = tpl.image_keypoints()
+    depth = np.abs(tpl.descriptors[:, 128:]).sum(axis=1) > 0
+    assert depth.any() and (~depth).any() and img.kind == "rootsift"
+    np.testing.assert_array_equal(img.descriptors, tpl.descriptors[~depth, :128])
+    np.testing.assert_array_equal(img.points_obj, tpl.points_obj[~depth])
+    for v in range(len(img.view_names)):
+        assert np.all(img.kp_view[img.view_offsets[v]:img.view_offsets[v + 1]] == v)
+    assert img.view_offsets[-1] == (~depth).sum()
+    est = Estimator(tpl)  # depth keypoints off: no query depth
+    assert est.query_depth is None
+    q = est.prepare(plain_part[1])
+    size = float(tpl.meta["keypoints"]["object_depth_size"])
+    feats = query_features(q.frame, q.search, est.params.features, est.params.query,
+                           depth=QueryDepth(size, DepthNoise()))
+    assert feats.kind == JOINT and 0 < feats.from_depth.sum() <= est.params.features.max_keypoints
+    u, v = np.rint(feats.pixels[feats.from_depth]).astype(int).T
+    assert q.search[v, u].mean() > 0.95  # on the search region's points (voxel centres: a rim pixel may fall out)
+    np.testing.assert_allclose(feats.location_sigma[feats.from_depth], max(size / 80, 3 * float(
+        NOISE.sigma(np.median(q.cloud[q.search][:, 2])))) / np.sqrt(3), rtol=1e-5)

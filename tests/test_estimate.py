@@ -298,7 +298,7 @@ def test_grasps_json_contract(meshes, template, tmp_path):
     np.testing.assert_allclose(res.grasps["side"], res.T_cam_obj, atol=1e-12)  # T_cam_obj @ identity: float64 rounding
     out = json.loads(json.dumps(res.to_json()))
     assert list(out) == ["T_cam_obj", "score", "n_matches", "view", "reason", "grasps", "timings_ms", "method",
-                         "symmetry", "grasp_equivalents"]
+                         "symmetry", "grasp_equivalents", "depth_only"]
     assert out["symmetry"] is None  # an object without symmetries: each grasp has one equivalent, the grasp
     assert {k: np.asarray(v).shape for k, v in out["grasp_equivalents"].items()} == {"top": (1, 4, 4),
                                                                                      "side": (1, 4, 4)}

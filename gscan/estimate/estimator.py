@@ -84,13 +84,15 @@ from gscan.estimate.instances import Instances, elsewhere, estimate_all
 from gscan.estimate.model import ObjectModel
 from gscan.estimate.params import DEFAULT_PARAMS, EstimateParams
 from gscan.estimate.pnp import estimate_pnp, pnp_without_depth
-from gscan.estimate.query import QueryFrame, backproject32, prepare_query, query_features
+from gscan.estimate.query import QueryDepth, QueryFrame, backproject32, prepare_query, query_features
 from gscan.estimate.refine import normal_equations
 from gscan.estimate.result import STAGES, EstimateResult, not_found, timed
 from gscan.estimate.retrieval import Retrieval, TemplateIndex
 from gscan.estimate.rivals import AMBIGUOUS, ListVerifier
 from gscan.estimate.similarity import TemplateGroups, best_columns, neighbourhood_candidates
+from gscan.estimate.texture import KeyframeTextures
 from gscan.features import descriptor_distances
+from gscan.features.keypoints import JOINT
 from gscan.geometry.grid_kernel import NearestGrid
 from gscan.geometry.kabsch import kabsch_trimmed
 from gscan.geometry.plane import ransac_plane
@@ -99,6 +101,7 @@ from gscan.io.align import align_depth_to_color
 from gscan.io.camera import DepthCamera, Intrinsics, RGBDFrame, lift_keypoints
 from gscan.matching.gmatch import search_candidates
 from gscan.progress import StageTimer
+from gscan.registration.noise import DepthNoise
 from gscan.template.db import Template, open_template
 
 log = logging.getLogger(__name__)
@@ -115,8 +118,12 @@ class Estimator:
         """tpl: a loaded template (TemplateDB.load_template: object keypoints in the object frame); matcher: the
         match lists of a view neighbourhood (default: `GMatchLists`, benchmarks put a baseline in its place)."""
         kind = tpl.require_keypoints()
-        if kind != params.features.kind:
-            params = replace(params, features=replace(params.features, kind=kind))
+        if kind == JOINT and not params.query.depth_keypoints:  # the template's image keypoints alone
+            tpl = tpl.image_keypoints()
+            kind = tpl.require_keypoints()
+        image_kind = "rootsift" if kind == JOINT else kind  # a joint set's image keypoints are RootSIFT
+        if image_kind != params.features.kind:
+            params = replace(params, features=replace(params.features, kind=image_kind))
         self.params = params
         self.path = tpl.path
         self.name = Path(tpl.path).stem if tpl.path is not None else "template"
@@ -127,6 +134,10 @@ class Estimator:
         self.matcher: Matcher = matcher or GMatchLists(params.gmatch, params.accept.min_matches,
                                                        params.hypotheses.runner_up_margin)
         self.view_names = self.index.view_names
+        self.query_depth = query_depth(tpl)
+        if self.query_depth is not None:  # poses the depth alone decides meet the keyframes' texture (verifier)
+            self.verifier.keyframes = KeyframeTextures(tpl.path, self.view_names, self.index.T_obj_cam)
+            self.verifier.depth_noise = self.query_depth.noise
         self.model_points = self.model.model_points  # for metrics: mesh vertices, else the cloud
         # the scan found the capture's depth off its colour at the given intrinsics (gscan.scanning.calibration): a
         # frame read with those same intrinsics is read as the scan read the capture
@@ -264,7 +275,7 @@ class Estimator:
         timer = StageTimer()
         use_pnp = q.depth_frac < p.query.min_depth_frac
         with timer.stage("features"):
-            feats = query_features(q.frame, q.search, p.features, p.query, lift=not use_pnp)
+            feats = query_features(q.frame, q.search, p.features, p.query, lift=not use_pnp, depth=self.query_depth)
         if len(feats) < 3:
             where = "the query frame" + (" mask" if q.mask is not None else "")
             res = not_found(f"too few keypoints in {where}")
@@ -317,3 +328,20 @@ class Estimator:
             return res
         return not_found(f"pose puts {below:.0%} of the object inside the support plane", res.n_matches, res.view,
                          res.score, res.method, res.evidence)
+
+
+def query_depth(tpl: Template) -> QueryDepth | None:
+    """How a query's keypoints are joined with its depth keypoints for `tpl` (`QueryDepth`): None unless its
+    keypoints are joint (rootsift+fpfh); at the template's depth keypoints' object size and its capture's depth
+    noise (its "keypoints" and "noise" meta; the default noise model without the latter), the size None (no depth
+    keypoints) when unknown."""
+    if tpl.kind != JOINT:
+        return None
+    meta = tpl.meta if isinstance(tpl.meta, dict) else {}
+    kp, noise = meta.get("keypoints"), meta.get("noise")
+    size = kp.get("object_depth_size") if isinstance(kp, dict) else None
+    try:
+        depth_noise = DepthNoise(**noise["depth"]) if isinstance(noise, dict) else DepthNoise()
+    except (TypeError, KeyError, ValueError):
+        depth_noise, size = DepthNoise(), None
+    return QueryDepth(float(size) if size else None, depth_noise)

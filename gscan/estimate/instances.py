@@ -44,7 +44,7 @@ from gscan.estimate.hypotheses import Matcher, MatchList, QueryKeypoints, hypoth
 from gscan.estimate.model import ObjectModel
 from gscan.estimate.params import EstimateParams
 from gscan.estimate.pnp import pnp_without_depth
-from gscan.estimate.query import QueryFrame, query_features
+from gscan.estimate.query import QueryDepth, QueryFrame, query_features
 from gscan.estimate.result import STAGES, EstimateResult, matrix_json, ms_since, not_found
 from gscan.estimate.retrieval import Retrieval, TemplateIndex
 from gscan.estimate.rivals import AMBIGUOUS, ListVerifier
@@ -67,6 +67,7 @@ class Searcher(Protocol):
     verifier: ListVerifier
     matcher: Matcher
     camera_fix: tuple[Intrinsics, Intrinsics] | None
+    query_depth: QueryDepth | None
 
     def prepare(self, frame: RGBDFrame, mask: np.ndarray | None = None) -> QueryFrame: ...
 
@@ -442,8 +443,8 @@ def estimate_all(est: Searcher, frame: RGBDFrame, mask: np.ndarray | None = None
             q = est.prepare(frame, mask)
             use_depth = q.depth_frac >= est.params.query.min_depth_frac
             with timer.stage("features"):
-                feats = query_features(q.frame, q.search, est.params.features, est.params.query) if use_depth \
-                    else None
+                feats = query_features(q.frame, q.search, est.params.features, est.params.query,
+                                       depth=est.query_depth) if use_depth else None
         else:
             q, feats = shared
         if feats is None:  # no usable depth: the single estimate's 2D-3D pose is the one instance it can give
@@ -472,7 +473,7 @@ def estimate_templates(estimators: list[Searcher], frame: RGBDFrame, mask: np.nd
     cache: dict[tuple, tuple[QueryFrame, Features | None]] = {}
     outs: list[Instances] = []
     for est in estimators:
-        key = (est.params.features, est.params.query) if est.camera_fix is None else None
+        key = (est.params.features, est.params.query, est.query_depth) if est.camera_fix is None else None
         shared = cache.get(key) if key is not None else None
         prepared_ms = 0.0
         if shared is None:
@@ -480,8 +481,8 @@ def estimate_templates(estimators: list[Searcher], frame: RGBDFrame, mask: np.nd
             with est.limit_threads():
                 q = est.prepare(frame, mask)
                 use_depth = q.depth_frac >= est.params.query.min_depth_frac
-                feats = query_features(q.frame, q.search, est.params.features, est.params.query) \
-                    if use_depth else None
+                feats = query_features(q.frame, q.search, est.params.features, est.params.query,
+                                       depth=est.query_depth) if use_depth else None
             shared = (q, feats)
             if key is not None:
                 cache[key] = shared

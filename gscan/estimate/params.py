@@ -13,7 +13,10 @@ from pydantic import Field
 
 from gscan.features import OBJECT_FEATURES, FeatureParams
 from gscan.matching.params import GMatchParams
+from gscan.registration.params import RegisterParams
 from gscan.settings import SETTINGS
+
+_REGISTER = RegisterParams()  # registration's rules for a pose the depth alone decides: the one source of both
 
 
 @dataclass(frozen=True)
@@ -35,6 +38,17 @@ class AcceptParams:
                                               "show there ...", ge=0, le=1)] = 0.2
     min_spread: Annotated[float, Field(description="... and inliers spread across this fraction of the object radius "
                                        "(not a line)", ge=0)] = 0.05
+    max_outside_shape: Annotated[float, Field(description="a pose the depth alone decides (a template with depth "
+                                              "keypoints, no image keypoints to judge it) is refused when more than "
+                                              "this share of the surface it shows lands off the objects in the frame, "
+                                              "or of the object it lies on outside its outline (registration's "
+                                              "silhouette bound) ...", ge=0, le=1)] = _REGISTER.max_outside_shape
+    min_colour_tiles: Annotated[int, Field(description="... or when at least this many textured tiles of the query and "
+                                           "the nearest keyframe overlap under it ...", ge=1)] = (
+        _REGISTER.min_colour_tiles)
+    min_colour_agreement: Annotated[float, Field(description="... and fewer than this share of them line up "
+                                                 "(registration's texture rule)", ge=0, le=1)] = (
+        _REGISTER.min_colour_agreement)
     __pydantic_config__ = SETTINGS
 
 
@@ -53,6 +67,11 @@ class QueryParams:
                                       ge=0)] = 16
     min_region_px: Annotated[int, Field(description="search-region blobs smaller than this (px) are left out of the "
                                         "detection boxes", ge=0)] = 150
+    depth_keypoints: Annotated[bool, Field(description="a template whose keyframes hold depth keypoints (scanned on "
+                                           "features.keypoints depth or both): the query's depth keypoints join "
+                                           "its image keypoints; off, the template's image keypoints alone are "
+                                           "matched. Off by default: in clutter a box of about the object's size "
+                                           "is taken for a plain object (method.md, plain objects)")] = False
     __pydantic_config__ = SETTINGS
 
 

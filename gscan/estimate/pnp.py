@@ -21,6 +21,8 @@ from gscan.estimate.result import EstimateResult, found, not_found
 from gscan.estimate.retrieval import TemplateIndex
 from gscan.estimate.verify import depth_votes
 from gscan.features import Features
+from gscan.features.depth import joint_features
+from gscan.features.keypoints import JOINT
 from gscan.io.camera import RGBDFrame
 from gscan.progress import StageTimer
 
@@ -50,6 +52,8 @@ def pnp_without_depth(index: TemplateIndex, samples: np.ndarray, q: QueryFrame, 
     holes = cv2.dilate(holes, np.ones((k, k), np.uint8)).astype(bool) & region
     with timer.stage("features"):
         feats = query_features(frame, holes, params.features, params.query, lift=False)
+        if index.kind == JOINT:  # the template's joint set: the image's keypoints alone (the holes have no depth)
+            feats = joint_features(feats, None)
     if len(feats) >= 3:
         with timer.stage("retrieval"):
             r = index.retrieve(feats.descriptors)

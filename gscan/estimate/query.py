@@ -15,8 +15,10 @@ from numba import njit
 from gscan.errors import InputError
 from gscan.estimate.params import QueryParams
 from gscan.features import FeatureParams, Features, empty_features, extract_features, extract_features_in_mask
+from gscan.features.depth import depth_keypoints, joint_features
 from gscan.geometry.plane import Plane, dominant_plane
 from gscan.io.camera import RGBDFrame, pixel_rays
+from gscan.registration.noise import DepthNoise
 
 
 @dataclass
@@ -128,6 +130,12 @@ def plane_heights(q: QueryFrame, plane: Plane) -> np.ndarray:
     return q.cloud @ n + np.float32(plane.offset)
 
 
+def off_plane_margin(z: np.ndarray | float) -> np.ndarray | float:
+    """m: how far in front of the support plane a point at depth z (m) stands to be off it (the search region):
+    8 mm + 0.5 % of its depth."""
+    return 0.008 + 0.005 * z
+
+
 def prepare_query(frame: RGBDFrame, mask: np.ndarray | None, params: QueryParams) -> QueryFrame:
     """The frame's per-frame geometry: the valid-depth fraction of the search region and, without a mask (a
     given mask is the search region) and with usable depth, the dominant plane and the pixels in front of it
@@ -145,16 +153,49 @@ def prepare_query(frame: RGBDFrame, mask: np.ndarray | None, params: QueryParams
         q.plane = fit_plane(q, params.plane_min_frac, params.plane_iterations)
         heights = q.heights
         if heights is not None:
-            region = valid & (heights > 0.008 + 0.005 * frame.depth)
+            region = valid & (heights > off_plane_margin(frame.depth))
             q.off_plane = region if region.mean() >= 0.002 else None
     return q
 
 
+@dataclass(frozen=True)
+class QueryDepth:
+    """A query's depth keypoints for a template whose keyframes hold joint keypoints (rootsift+fpfh: the image's
+    and the depth's, `gscan.features.depth`): found on the search region's points at the template's object size
+    `size` (m; None: no depth keypoints, the image's alone in the joint set) and its capture's depth noise `noise`,
+    with the depth_* settings of the estimator's `features`, at most its max_keypoints (the image keypoints'
+    count: the region holds the clutter too, whose salient points compete with the object's)."""
+
+    size: float | None
+    noise: DepthNoise
+
+
+def join_depth(frame: RGBDFrame, region: np.ndarray | None, image: Features, features: FeatureParams,
+               depth: QueryDepth | None, lift: bool = True) -> Features:
+    """`image` (the region's image keypoints) as the template reads them: unchanged without `depth`; else joined
+    with the depth keypoints of `region` ([H x W] bool; None: the whole frame) into one rootsift+fpfh set (none
+    without `lift`: a frame without usable depth)."""
+    if depth is None:
+        return image
+    dk = None
+    if lift and depth.size is not None and (region is None or region.any()):
+        dk = depth_keypoints(frame, depth.noise.sigma, features, region, size=depth.size,
+                             max_keypoints=features.max_keypoints)
+    return joint_features(image, dk)
+
+
 def query_features(frame: RGBDFrame, mask: np.ndarray | None, features: FeatureParams, params: QueryParams,
-                   lift: bool = True) -> Features:
+                   lift: bool = True, depth: QueryDepth | None = None) -> Features:
     """The query keypoints (stage 1) inside `mask` ([H x W] bool; None: the whole frame), detected on the
-    mask's blobs' boxes (`region_boxes`). Without `lift` (PnP) every keypoint is kept: a unit placeholder depth
-    is lifted, so only pixels and descriptors are meaningful."""
+    mask's blobs' boxes (`region_boxes`), joined with the mask's depth keypoints for a template that holds them
+    (`depth`, `join_depth`). Without `lift` (PnP) every keypoint is kept: a unit placeholder depth is lifted, so
+    only pixels and descriptors are meaningful."""
+    image = _image_features(frame, mask, features, params, lift)
+    return join_depth(frame, mask, image, features, depth, lift)
+
+
+def _image_features(frame: RGBDFrame, mask: np.ndarray | None, features: FeatureParams, params: QueryParams,
+                    lift: bool) -> Features:
     fparams = features if lift else replace(features, lift_window=0)
     if not lift:
         frame = RGBDFrame(frame.name, frame.color, np.ones_like(frame.depth), frame.intrinsics)

@@ -46,13 +46,20 @@ class EstimateResult:
         return self.T_cam_obj is not None
 
     def to_json(self) -> dict:
-        """The `gscan estimate --json` object (the command-line contract's keys, plus "method", "symmetry" and
-        "grasp_equivalents"); matrices as nested lists, metres."""
+        """The `gscan estimate --json` object (the command-line contract's keys, plus "method", "symmetry",
+        "grasp_equivalents" and "depth_only"); matrices as nested lists, metres."""
         return {"T_cam_obj": matrix_json(self.T_cam_obj), "score": float(self.score), "n_matches": int(self.n_matches),
                 "view": self.view, "reason": self.reason, "grasps": {k: matrix_json(v) for k, v in self.grasps.items()},
                 "timings_ms": {k: float(self.timings_ms.get(k, 0.0)) for k in STAGES}, "method": self.method,
                 "symmetry": self.symmetry,
-                "grasp_equivalents": {k: [matrix_json(T) for T in v] for k, v in self.grasp_equivalents.items()}}
+                "grasp_equivalents": {k: [matrix_json(T) for T in v] for k, v in self.grasp_equivalents.items()},
+                "depth_only": self.depth_only}
+
+    @property
+    def depth_only(self) -> bool:
+        """Whether the depth alone decided the found pose (a template with depth keypoints whose image keypoints
+        could not judge it: `gscan.estimate.verify.decided_by_depth`)."""
+        return self.found and self.evidence is not None and self.evidence.depth_only
 
 
 def matrix_json(T: np.ndarray | None) -> list[list[float]] | None:

@@ -57,22 +57,26 @@ from gscan.estimate.refine import refine_pose
 from gscan.estimate.result import EstimateResult, found, not_found
 from gscan.estimate.retrieval import TemplateIndex
 from gscan.estimate.symmetric import PoseGroup
+from gscan.estimate.texture import KeyframeTextures, texture_refusal
 from gscan.estimate.verify import (
     Evidence,
     accept,
+    decided_by_depth,
     list_refusal,
     list_spread,
     pose_evidence,
     query_sinks,
+    silhouette_refusal,
     support_radius,
     visible,
 )
 from gscan.features import Features
+from gscan.features.keypoints import JOINT
 from gscan.geometry.kabsch import kabsch_trimmed
 from gscan.geometry.symmetry import Symmetries
 from gscan.geometry.transforms import inv_T, pose_error, transform_points
 from gscan.progress import StageTimer
-from gscan.registration.noise import sign_test
+from gscan.registration.noise import DepthNoise, sign_test
 
 log = logging.getLogger(__name__)
 
@@ -99,6 +103,9 @@ class ListVerifier:
         self.shape_turns = turns if params.symmetry.weigh_shape_turns else []
         self.unseen_turns = turns
         self._seen: Any = None  # cKDTree of the template's surface samples (all seen: filled holes hold none)
+        # a template with depth keypoints: its keyframes' textures and its depth noise (`by_depth`)
+        self.keyframes: KeyframeTextures | None = None
+        self.depth_noise = DepthNoise()
 
     def apart(self, T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
         """(degrees, metres) between T_a and the nearest pose that looks as T_b does (T_b itself without
@@ -118,7 +125,8 @@ class ListVerifier:
             kp_idx = self.index.offered_keypoints(T_cam_obj, self.params.verify.support_views_deg)
         return pose_evidence(q, T_cam_obj, self.model.samples, self.model.center, self.index.points_obj, kp_idx,
                              S, kp_idx if sim_cols is None else sim_cols, feats.points, q_location,
-                             self.params.verify, self.support_sim, 1.0 if self.index.unit else -1.0, sim_rows, gate)
+                             self.params.verify, self.support_sim, 1.0 if self.index.unit else -1.0, sim_rows, gate,
+                             feats.from_depth if self.index.kind == JOINT else None)
 
     def evidence_of(self, q: QueryFrame, T_cam_obj: np.ndarray, qk: QueryKeypoints,
                     gate: AcceptParams | None = None) -> Evidence:
@@ -183,9 +191,31 @@ class ListVerifier:
         below = self.sinks(q, T_cam_obj)
         why = accept(ev, self.model.radius, p.accept, best) if below is None else \
             f"pose puts {below:.0%} of the object inside the support plane"
+        if why is None and self.index.kind == JOINT:
+            why = self.by_depth(q, T_cam_obj, ev, qk.feats.from_depth, qk.location, c.matches[keep, 1])
         if why is not None:
             return not_found(why, c.longest, view, ev.score, evidence=ev)
         return found(T_cam_obj, ev.score, c.longest, view, "gmatch", ev)
+
+    def by_depth(self, q: QueryFrame, T_cam_obj: np.ndarray, ev: Evidence, from_depth: np.ndarray,
+                 location: np.ndarray, inliers: np.ndarray) -> str | None:
+        """For a template with depth keypoints, an accepted pose's evidence marked when the depth alone decided it
+        (`decided_by_depth`: from_depth [M] which query keypoints are depth keypoints, location [M] their location
+        ids, inliers [K] the list's inlier keypoints), and then the reason the stricter shape rules refuse it
+        (`silhouette_refusal`, then the keyframes' texture: `texture_refusal`), else None."""
+        loc_depth = np.zeros(int(location.max()) + 1 if len(location) else 0, bool)
+        loc_depth[location[from_depth]] = True
+        inl = np.unique(location[inliers])
+        ev.depth_only = decided_by_depth(ev, loc_depth, int(np.count_nonzero(loc_depth[inl])), self.params.accept)
+        if not ev.depth_only:
+            return None
+        why = silhouette_refusal(q, T_cam_obj, self.model.samples, self.params.refine.voxel, self.depth_noise,
+                                 self.params.accept)
+        if why is None:
+            why = "no texture check for a pose the depth alone decided (the template's keyframes are not known)" \
+                if self.keyframes is None else \
+                texture_refusal(q, T_cam_obj, self.keyframes, self.depth_noise, self.params.accept)
+        return why
 
     def against_rivals(self, q: QueryFrame, qk: QueryKeypoints, res: EstimateResult, rivals: list[MatchList],
                        refine: bool, timer: StageTimer, separate: Separate | None = None) -> EstimateResult:

@@ -44,11 +44,12 @@ from pydantic import Field
 from gscan.errors import InputError
 from gscan.estimate.estimator import Estimator
 from gscan.estimate.hypotheses import query_keypoints
-from gscan.estimate.query import QueryFrame
+from gscan.estimate.query import QueryFrame, join_depth
 from gscan.estimate.refine import refine_pose
 from gscan.estimate.result import EstimateResult, found
 from gscan.estimate.verify import Evidence, accept, depth_votes, list_spread, visible
 from gscan.features import descriptor_distances, extract_features_in_mask
+from gscan.features.keypoints import JOINT
 from gscan.geometry.kabsch import kabsch_trimmed
 from gscan.geometry.transforms import inv_T, transform_points
 from gscan.io.camera import RGBDFrame
@@ -251,7 +252,9 @@ class Tracker:
             region[y0:y1, x0:x1] = True
             if mask is not None:
                 region &= mask
-            feats = extract_features_in_mask(frame, region, est.params.features, est.params.query.crop_margin)
+            feats = join_depth(frame, region, extract_features_in_mask(frame, region, est.params.features,
+                                                                       est.params.query.crop_margin),
+                               est.params.features, est.query_depth)
         if len(feats) < 3:
             log.debug("%s: too few keypoints around the prior pose", frame.name)
             return None
@@ -263,7 +266,7 @@ class Tracker:
             else:
                 S = descriptor_distances(feats.descriptors, ix.descriptors[kp_idx], ix.kind)
         with timer.stage("match"):
-            src, dst = self._pairs(feats.points.astype(np.float64), S, kp_idx, T_pred)
+            src, dst, rows = self._pairs(feats.points.astype(np.float64), S, kp_idx, T_pred)
         with timer.stage("solve"):
             T1, keep = T_pred, np.zeros(len(src), bool)
             if len(src) >= 3:
@@ -280,6 +283,8 @@ class Tracker:
             ev.n_inliers = int(keep.sum())
             ev.spread_m = list_spread(src[keep])
         why = accept(ev, est.model.radius, est.params.accept)
+        if why is None and ix.kind == JOINT:  # the depth alone may decide: the stricter shape rules (rivals)
+            why = est.verifier.by_depth(q, T2, ev, feats.from_depth, location, rows[keep])
         if why is None and ev.score < self._ref_score - p.max_score_drop:
             why = f"depth score dropped to {ev.score:.2f} from {self._ref_score:.2f}"
         if why is not None:
@@ -289,10 +294,11 @@ class Tracker:
         return est.result(found(T2, ev.score, ev.n_inliers, view, "track", ev), timer, t0, T_pred)
 
     def _pairs(self, q_pts: np.ndarray, S: np.ndarray, kp_idx: np.ndarray,
-               T_pred: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+               T_pred: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Each query keypoint [M x 3] paired with the template keypoint (of kp_idx, descriptor similarities or
         distances S [M x K]) most similar to it among those predicted within search_radius at T_pred, when it
-        agrees (support_dist): (object-frame points [P x 3], camera-frame points [P x 3])."""
+        agrees (support_dist): (object-frame points [P x 3], camera-frame points [P x 3], the query keypoints
+        paired [P])."""
         from scipy.spatial import cKDTree
 
         est = self.est
@@ -300,7 +306,7 @@ class Tracker:
         kp_cam = transform_points(T_pred, kp_obj)
         k = min(16, len(kp_cam))
         if k == 0:
-            return np.zeros((0, 3)), np.zeros((0, 3))
+            return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.int64)
         d, j = cKDTree(kp_cam).query(q_pts, k=k, distance_upper_bound=self.params.search_radius)
         d, j = d.reshape(len(q_pts), k), j.reshape(len(q_pts), k)
         near = np.isfinite(d)
@@ -310,7 +316,7 @@ class Tracker:
         best = np.argmax(sim, axis=1)
         ok = sim[np.arange(len(q_pts)), best] >= est.verifier.support_sim
         rows = np.flatnonzero(ok)
-        return kp_obj[jj[rows, best[rows]]], q_pts[rows]
+        return kp_obj[jj[rows, best[rows]]], q_pts[rows], rows
 
 
 # ------------------------------------------------------------------------------------------------ sequences

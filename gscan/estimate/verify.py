@@ -26,11 +26,12 @@ import cv2
 import numpy as np
 
 from gscan.estimate.params import AcceptParams, VerifyParams
-from gscan.estimate.query import QueryFrame
+from gscan.estimate.query import QueryFrame, off_plane_margin
 from gscan.estimate.similarity import best_columns
 from gscan.geometry.plane import Plane
 from gscan.geometry.transforms import transform_points
 from gscan.io.camera import Intrinsics
+from gscan.registration.noise import DepthNoise
 
 
 @dataclass
@@ -51,6 +52,7 @@ class Evidence:
     on_surface: int = 0
     offer: int = 0
     supporters: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64), repr=False)
+    depth_only: bool = False  # the depth decided: no image keypoints could judge the pose (`decided_by_depth`)
 
     @property
     def support(self) -> int:
@@ -64,7 +66,8 @@ class Evidence:
     def to_json(self) -> dict:
         return {"n_matches": self.n_matches, "n_inliers": self.n_inliers, "spread_m": round(self.spread_m, 5),
                 "score": round(self.score, 4), "confirmed": round(self.confirmed, 4), "support": self.support,
-                "on_surface": self.on_surface, "offer": self.offer, "support_ratio": round(self.support_ratio, 4)}
+                "on_surface": self.on_surface, "offer": self.offer, "support_ratio": round(self.support_ratio, 4),
+                "depth_only": self.depth_only}
 
 
 def accept(ev: Evidence, radius: float, p: AcceptParams, best: bool = True) -> str | None:
@@ -85,6 +88,72 @@ def accept(ev: Evidence, radius: float, p: AcceptParams, best: bool = True) -> s
     return (f"too little evidence: {ev.support} of {shown} keypoints on the object's surface agree with the template "
             f"(need {p.min_support} and {p.min_support_ratio:.0%}), {ev.n_inliers} consistent matches (or a list of "
             f"{p.strong_matches})")
+
+
+def decided_by_depth(ev: Evidence, location_depth: np.ndarray, inliers_depth: int, p: AcceptParams) -> bool:
+    """Whether the depth alone decided the pose of a template with depth keypoints: its image keypoints would not
+    carry it (fewer than `min_support` of its supporters are image keypoints: a plain object's print cannot
+    judge the pose), or most of its list's inliers are depth keypoints (`inliers_depth` of ev.n_inliers).
+    location_depth [G] bool: which query keypoint locations are depth keypoints."""
+    image = int(np.count_nonzero(~location_depth[ev.supporters])) if len(ev.supporters) else 0
+    return image < p.min_support or 2 * inliers_depth > ev.n_inliers
+
+
+def silhouette_refusal(q: QueryFrame, T_cam_obj: np.ndarray, samples: np.ndarray, spacing: float,
+                       noise: DepthNoise, p: AcceptParams) -> str | None:
+    """The reason the silhouettes refute a pose the depth alone decided (`decided_by_depth`), else None: more than
+    `max_outside_shape` of either side lies off the other's (`silhouette_outside`)."""
+    tpl, query = silhouette_outside(q, T_cam_obj, samples, spacing, noise)
+    if max(tpl, query) > p.max_outside_shape:
+        return (f"silhouette disagrees ({tpl:.1%} of the surface the pose shows lands off the objects in the frame, "
+                f"{query:.1%} of the object it lies on outside the pose's outline; no texture can judge the pose, so "
+                f"at most {p.max_outside_shape:.1%})")
+    return None
+
+
+def silhouette_outside(q: QueryFrame, T_cam_obj: np.ndarray, samples: np.ndarray, spacing: float,
+                       noise: DepthNoise) -> tuple[float, float]:
+    """(template, query): how much of each side lies off the other's silhouette under the pose (registration's
+    silhouette test, both directions, with a margin of two template samples: `spacing` m, projected at the pose's
+    median depth).
+
+    template: the share of the template surface samples [S x 3] visible at T_cam_obj and standing off the support
+    plane by the search region's margin (`off_plane_margin`; all without a plane) that land farther than the
+    margin from the search region (the mask, else the pixels off the plane): an object lies on something the
+    frame shows standing there. query: the share of the query's object under the pose that lies farther than the
+    margin outside the pose's outline (its visible samples' pixels, closed over the sample spacing): the object is
+    the part of the search region, split at the depth's jumps (3 sigmas of `noise`), holding most of the pose's
+    depth-confirmed samples. A pose laid on a larger object leaves the rest of it outside; a right pose leaves only
+    what touches the object at its depth (then the pose is refused: a refusal, never a wrong pose). (0, 0) without
+    a search region."""
+    from gscan.scanning.depth_edges import depth_jumps
+
+    region, frame = q.search, q.frame
+    if region is None:
+        return 0.0, 0.0
+    intr = frame.intrinsics
+    _, pc, uv = visible(T_cam_obj, intr, samples)
+    if len(pc) == 0:
+        return 0.0, 0.0
+    r = int(np.ceil(2.0 * spacing * intr.fx / float(np.median(pc[:, 2]))))
+    grow = np.ones((2 * r + 1, 2 * r + 1), np.uint8)
+    keep = q.plane.height(pc) > off_plane_margin(pc[:, 2]) if q.plane is not None else np.ones(len(pc), bool)
+    near_region = cv2.dilate(region.astype(np.uint8), grow).astype(bool)
+    tpl = float(np.mean(~near_region[uv[keep, 1], uv[keep, 0]])) if keep.any() else 0.0
+    dots = np.zeros(region.shape, np.uint8)
+    dots[uv[:, 1], uv[:, 0]] = 1
+    outline = cv2.morphologyEx(dots, cv2.MORPH_CLOSE, grow)
+    zq = frame.depth[uv[:, 1], uv[:, 0]].astype(np.float64)
+    confirmed = (zq > 0) & (np.abs(zq - pc[:, 2]) < 3.0 * noise.pair_sigma(pc[:, 2], np.where(zq > 0, zq, 1.0)))
+    parts = region & ~depth_jumps(frame.depth, 3.0, noise)
+    _, label = cv2.connectedComponents(parts.astype(np.uint8), connectivity=4)
+    held = label[uv[confirmed, 1], uv[confirmed, 0]]
+    held = held[held > 0]
+    if len(held) == 0:
+        return tpl, 0.0
+    obj = label == np.bincount(held).argmax()
+    off = obj & ~cv2.dilate(outline, grow).astype(bool)
+    return tpl, float(off.sum()) / max(1, int(obj.sum()))
 
 
 def depth_refusal(ev: Evidence, p: AcceptParams) -> str | None:
@@ -208,7 +277,8 @@ def keypoint_support(T_cam_obj: np.ndarray, kp_points: np.ndarray, kp_idx: np.nd
                      sim_cols: np.ndarray, q_points: np.ndarray, q_location: np.ndarray, surface_obj: np.ndarray,
                      depth: np.ndarray, intr: Intrinsics, radius: float, min_sim: float,
                      depth_tol: float, sign: float = 1.0, surface_cam: np.ndarray | None = None,
-                     sim_rows: np.ndarray | None = None) -> tuple[np.ndarray, int, int]:
+                     sim_rows: np.ndarray | None = None,
+                     local: np.ndarray | None = None) -> tuple[np.ndarray, int, int]:
     """(supporters, on_surface, offer) of a pose (Evidence): the location ids [support] of the supporting query
     keypoints, sorted.
 
@@ -224,7 +294,12 @@ def keypoint_support(T_cam_obj: np.ndarray, kp_points: np.ndarray, kp_idx: np.nd
     camera-frame query keypoints;
     q_location [M]: a location id per query keypoint (keypoints of one point with several orientations share
     it); surface_obj [P x 3]: the template cloud, surface_cam its points visible at the pose (camera frame,
-    `visible`'s) when the caller has them; radius: keypoint match distance (m)."""
+    `visible`'s) when the caller has them; radius: keypoint match distance (m).
+
+    local [M] bool: query keypoints judged by the local rule instead (depth keypoints: FPFH describes a corner
+    or a rim, which every corner or rim of a box resembles, so the nearest descriptor among hundreds is rarely
+    the keypoint's own): such a keypoint supports the pose when any offered template keypoint within `radius`
+    of it at the pose agrees (the rule `ListVerifier.local_support` weighs rivals by)."""
     from scipy.spatial import cKDTree
 
     from gscan.geometry.grid_kernel import NearestGrid
@@ -258,7 +333,30 @@ def keypoint_support(T_cam_obj: np.ndarray, kp_points: np.ndarray, kp_idx: np.nd
     nn, best = best_columns(sim, on if sim_rows is None else sim_rows[on], sim_cols[sel], sign)
     agree = best >= min_sim
     near = np.linalg.norm(kp_cam[nn] - q_points[on], axis=1) < radius
+    if local is not None:
+        lo = local[on]
+        near[lo] = _local_agreement(on[lo], kp_cam, sel, sim, sim_cols, sim_rows, q_points, radius, min_sim, sign)
+        agree[lo] = True
     return np.unique(q_location[on[agree & near]]).astype(np.int64), on_surface, offer
+
+
+def _local_agreement(rows: np.ndarray, kp_cam: np.ndarray, sel: np.ndarray, sim: np.ndarray, sim_cols: np.ndarray,
+                     sim_rows: np.ndarray | None, q_points: np.ndarray, radius: float, min_sim: float,
+                     sign: float) -> np.ndarray:
+    """[R] whether each query keypoint `rows` has a template keypoint within `radius` (kp_cam [K x 3] the offered
+    ones shown, camera frame; sel [K] their positions in sim_cols) whose descriptor agrees (`keypoint_support`'s
+    local rule)."""
+    from scipy.spatial import cKDTree
+
+    if len(rows) == 0 or len(kp_cam) == 0:
+        return np.zeros(len(rows), bool)
+    k = min(16, len(kp_cam))
+    d, j = cKDTree(kp_cam).query(np.asarray(q_points[rows], dtype=np.float64), k=k, distance_upper_bound=radius)
+    d, j = d.reshape(len(rows), k), j.reshape(len(rows), k)
+    near = np.isfinite(d)
+    cols = sim_cols[sel][np.where(near, j, 0)]
+    r = rows if sim_rows is None else sim_rows[rows]
+    return (near & (sim[r[:, None], cols] * sign >= min_sim)).any(axis=1)
 
 
 def count_unique_rows(keys: np.ndarray) -> int:
@@ -295,7 +393,8 @@ def sinks_into_plane(T_cam_obj: np.ndarray, cloud: np.ndarray, plane: Plane, hei
 def pose_evidence(q: QueryFrame, T_cam_obj: np.ndarray, samples: np.ndarray, center: np.ndarray,
                   kp_points: np.ndarray, kp_idx: np.ndarray, sim: np.ndarray, sim_cols: np.ndarray,
                   q_points: np.ndarray, q_location: np.ndarray, params: VerifyParams, min_sim: float,
-                  sign: float, sim_rows: np.ndarray | None = None, gate: AcceptParams | None = None) -> Evidence:
+                  sign: float, sim_rows: np.ndarray | None = None, gate: AcceptParams | None = None,
+                  local: np.ndarray | None = None) -> Evidence:
     """Depth agreement and keypoint support of the pose T_cam_obj (module docstring); n_matches, n_inliers and
     spread_m are left to the caller. samples [S x 3]: the template surface (object frame), center [3] its
     centre; kp_points [N x 3]: template keypoints (object frame), kp_idx [K] those offered; sim [M x C]: the
@@ -304,7 +403,8 @@ def pose_evidence(q: QueryFrame, T_cam_obj: np.ndarray, samples: np.ndarray, cen
     q_location [M]: the query keypoints (camera frame) and their location ids;
     min_sim: the similarity (or negated distance) at which a keypoint agrees. gate: when given and the depth
     agreement alone refuses the pose under that rule (`depth_refusal`), the keypoint support is not computed
-    (left empty: for a caller that reads only whether the pose is accepted)."""
+    (left empty: for a caller that reads only whether the pose is accepted). local [M] bool: the query keypoints
+    judged by `keypoint_support`'s local rule (depth keypoints)."""
     frame = q.frame
     seen = visible(T_cam_obj, frame.intrinsics, samples)  # the template surface the pose shows
     n_c, n_b, n = depth_votes(frame.depth, frame.intrinsics, T_cam_obj, samples, params.depth_tol, q.off_plane, seen)
@@ -314,7 +414,7 @@ def pose_evidence(q: QueryFrame, T_cam_obj: np.ndarray, samples: np.ndarray, cen
     radius = support_radius(params, float(transform_points(T_cam_obj, center[None])[0, 2]))
     ev.supporters, ev.on_surface, ev.offer = keypoint_support(
         T_cam_obj, kp_points, kp_idx, sim, sim_cols, q_points, q_location, samples, frame.depth, frame.intrinsics,
-        radius, min_sim, params.depth_tol, sign, seen[1], sim_rows)
+        radius, min_sim, params.depth_tol, sign, seen[1], sim_rows, local)
     return ev
 
 

@@ -61,10 +61,17 @@ class DepthScales:
 _ISS_GAMMA, _ISS_MIN_NEIGHBORS = 0.975, 5
 
 
-def depth_scales(points: np.ndarray, sigma: float, p: FeatureParams) -> DepthScales:
-    """The radii for an object of points [N x 3] (m) whose depth noise is sigma (m, per axis, at its depth)."""
+def object_size(points: np.ndarray) -> float:
+    """An object's size (m) from its points [N x 3]: twice the 90th percentile distance to their median."""
     c = np.median(points, axis=0)
-    size = 2.0 * float(np.percentile(np.linalg.norm(points - c, axis=1), 90))
+    return 2.0 * float(np.percentile(np.linalg.norm(points - c, axis=1), 90))
+
+
+def depth_scales(points: np.ndarray, sigma: float, p: FeatureParams, size: float | None = None) -> DepthScales:
+    """The radii for an object of points [N x 3] (m) whose depth noise is sigma (m, per axis, at its depth); size:
+    the object's size when known (a template's, for a query whose points are not the object's alone), else
+    `object_size(points)`."""
+    size = object_size(points) if size is None else float(size)
     voxel = max(size * p.depth_voxel_rel, p.depth_noise_voxel * sigma)
     return DepthScales(size, voxel, 3.0 * voxel, max(size * p.depth_salient_rel, 2.0 * voxel),
                        max(size * p.depth_nonmax_rel, voxel), max(size * p.depth_fpfh_rel, 5.0 * voxel))
@@ -118,13 +125,15 @@ def _empty() -> DepthKeypoints:
 
 def depth_keypoints(frame: RGBDFrame, sigma_of_z: Callable[[np.ndarray], np.ndarray],
                     params: FeatureParams, mask: np.ndarray | None = None,
-                    stride: int = 1) -> DepthKeypoints:
+                    stride: int = 1, size: float | None = None, max_keypoints: int | None = None) -> DepthKeypoints:
     """Depth keypoints of `frame` (module docstring), on the pixels of `mask` [H x W] bool when given.
 
     sigma_of_z: the depth noise, a callable z [N] (m) -> per-axis sigma [N] (m) (`DepthNoise.sigma`).
     params: the depth_* fields set the scales and the count (depth_max_keypoints).
     stride: pixel stride of the points read (1: every pixel).
-    Returns DepthKeypoints (N <= depth_max_keypoints; empty when fewer than 50 points or no salient point).
+    size: the object's size (m) the scales follow (None: the points', `object_size`: they are the object's).
+    max_keypoints: the count kept (None: depth_max_keypoints).
+    Returns DepthKeypoints (N <= the count; empty when fewer than 50 points or no salient point).
     """
     import open3d as o3d
 
@@ -132,7 +141,7 @@ def depth_keypoints(frame: RGBDFrame, sigma_of_z: Callable[[np.ndarray], np.ndar
     if len(pts) < 50:
         return _empty()
     z = float(np.median(pts[:, 2]))
-    sc = depth_scales(pts, float(np.asarray(sigma_of_z(np.array([z])))[0]), params)
+    sc = depth_scales(pts, float(np.asarray(sigma_of_z(np.array([z])))[0]), params, size)
     prev = o3d.utility.get_verbosity_level()
     o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
     try:
@@ -169,7 +178,7 @@ def depth_keypoints(frame: RGBDFrame, sigma_of_z: Callable[[np.ndarray], np.ndar
     v = intr.fy * p[:, 1] / p[:, 2] + intr.cy
     keep = np.isfinite(sal) & (hist.sum(axis=1) > 0)
     o = np.flatnonzero(keep)
-    o = o[np.lexsort((u[o], v[o], -sal[o]))][: params.depth_max_keypoints]
+    o = o[np.lexsort((u[o], v[o], -sal[o]))][: params.depth_max_keypoints if max_keypoints is None else max_keypoints]
     log.debug("frame %s: %d depth keypoints (size %.3f m, voxel %.4f m, fpfh radius %.3f m)", frame.name, len(o),
               sc.size, sc.voxel, sc.fpfh_radius)
     return DepthKeypoints(np.stack([u[o], v[o]], 1).astype(np.float32), p[o].astype(np.float32),
@@ -196,13 +205,14 @@ FPFH_EPS_F = 0.3
 FPFH_SCALE = 0.6 / FPFH_EPS_F
 
 
-def joint_features(image: Features | None, depth: DepthKeypoints) -> Features:
-    """One keypoint set of kind rootsift+fpfh: `image` (RootSIFT; None: none) then the depth keypoints, each
-    descriptor [161] its own kind's part with zeros in the other's (the FPFH part scaled by FPFH_SCALE); a depth
-    keypoint's scale is its location sigma (m, `location_sigma`)."""
+def joint_features(image: Features | None, depth: DepthKeypoints | None) -> Features:
+    """One keypoint set of kind rootsift+fpfh: `image` (RootSIFT; None: none) then the depth keypoints (None:
+    none), each descriptor [161] its own kind's part with zeros in the other's (the FPFH part scaled by
+    FPFH_SCALE); a depth keypoint's scale is its location sigma (m, `location_sigma`)."""
     if image is not None and image.kind != "rootsift":
         raise ValueError(f"depth keypoints join rootsift image keypoints, not {image.kind}")
     img = image if image is not None else empty_features("rootsift")
+    depth = depth if depth is not None else _empty()
     ni, nd = len(img), len(depth)
     desc = np.zeros((ni + nd, 128 + FPFH_DIM), np.float32)
     desc[:ni, :128] = img.descriptors

@@ -23,7 +23,7 @@ cloud's resolution (surface error voxel / 2), and stored in the "symmetries" met
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -31,6 +31,8 @@ import numpy as np
 
 from gscan.errors import InputError
 from gscan.features import OBJECT_FEATURES, FeatureParams, extract_features
+from gscan.features.depth import depth_keypoints, joint_features, object_size
+from gscan.features.keypoints import JOINT
 from gscan.geometry.coverage import template_coverage
 from gscan.geometry.pointset import voxel_mean
 from gscan.geometry.symmetry import Symmetries
@@ -38,6 +40,7 @@ from gscan.geometry.transforms import look_at, transform_points
 from gscan.io.camera import RGBDFrame, backproject
 from gscan.io.output import Output, remove_sqlite_sidecars
 from gscan.progress import NullProgress, Progress
+from gscan.registration.noise import DepthNoise
 from gscan.scanning.symmetry import SymmetryParams, detect_symmetries, surface_of_textured_mesh
 from gscan.synth.mesh import TexturedMesh, load_textured_mesh
 from gscan.template.db import TemplateDB, View
@@ -103,6 +106,18 @@ def _load_mesh(path: Path, scale: float) -> TexturedMesh:
     return TexturedMesh(mesh.vertices, mesh.triangles, uv, np.ascontiguousarray(texture), name=mesh.name)
 
 
+def _depth_size(scene: Any, poses: list[np.ndarray], intr: Any) -> float | None:
+    """The object's size its depth keypoints are found at (`gscan.features.depth.object_size`): the median over
+    the views of the size of the object's points in each (a scan's keyframes take the same median)."""
+    sizes = []
+    for T_obj_cam in poses:
+        r = scene.render(T_obj_cam, intr, noise=False)
+        pts = backproject(r.depth_clean, intr)[r.mask & (r.depth_clean > 0)]
+        if len(pts) >= 50:
+            sizes.append(object_size(pts.astype(np.float64)))
+    return float(np.median(sizes)) if sizes else None
+
+
 def _voxel_cloud(points: np.ndarray, colors: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
     """Voxel-grid mean of [N x 3] points and [N x 3] uint8 colours -> ([M x 3] float32, [M x 3] uint8)."""
     M = voxel_mean(np.hstack([np.asarray(points, np.float64).reshape(-1, 3),
@@ -136,7 +151,9 @@ def template_from_mesh(mesh_path: str | Path, output: str | Path, *, n_views: in
         scale: mesh units to metres (0.001 for millimetres).
         force: replace an existing `output`.
         progress: stage progress reporting, none by default.
-        feature_params: the keypoints stored (default: the estimator's query keypoints, OBJECT_FEATURES).
+        feature_params: the keypoints stored (default: the estimator's query keypoints, OBJECT_FEATURES); with
+            keypoints "depth" or "both", the image's and the depth's in one set (a plain part: method.md, plain
+            objects), the depth's at the views' median object size and the default depth noise.
         symmetry_params: how the mesh's symmetries are found (default `SymmetryParams()`; `enabled=False`: not).
 
     Returns:
@@ -162,8 +179,10 @@ def template_from_mesh(mesh_path: str | Path, output: str | Path, *, n_views: in
     from gscan.synth.render import DEFAULT_INTRINSICS, SynthScene  # open3d: a bad input is refused without it
     db = None
     try:
+        joint = feature_params.keypoints in ("depth", "both")
         db = TemplateDB.create(target.open(), force=True, meta={
-            "source": "mesh", "descriptor": {"kind": feature_params.kind, "max_keypoints": feature_params.max_keypoints,
+            "source": "mesh", "descriptor": {"kind": JOINT if joint else feature_params.kind,
+                                             "max_keypoints": feature_params.max_keypoints,
                                              "sift_contrast_threshold": feature_params.sift_contrast_threshold},
             "mesh_source": {"path": str(mesh_path), "scale": float(scale), "views": int(n_views), "fill": FILL}})
         intr = DEFAULT_INTRINSICS
@@ -171,12 +190,20 @@ def template_from_mesh(mesh_path: str | Path, output: str | Path, *, n_views: in
         cloud_p, cloud_c = [], []
         n_kp = 0
         poses = view_poses(mesh, n_views)
+        size = _depth_size(scene, poses, intr) if joint else None
+        if joint:
+            db.set_meta("keypoints", {"source": "both", "chosen_by": "config", "object": "both",
+                                      "object_depth_size": size})
+        image_params = replace(feature_params, keypoints="sift")
         with progress.stage("render", total=n_views) as advance:
             for i, T_obj_cam in enumerate(poses):
                 r = scene.render(T_obj_cam, intr, noise=False)
                 name = f"view_{i:03d}"
                 frame = RGBDFrame(name=name, color=r.color, depth=r.depth_clean, intrinsics=intr, mask=r.mask)
-                feats = extract_features(frame, feature_params, mask=r.mask)
+                feats = extract_features(frame, image_params, mask=r.mask)
+                if joint:  # at the one size a query's are found at, with the depth noise a query assumes
+                    feats = joint_features(feats, depth_keypoints(frame, DepthNoise().sigma, feature_params, r.mask,
+                                                                  size=size))
                 db.add_view(View(name=name, intrinsics=intr, T_obj_cam=T_obj_cam, color=r.color,
                                  depth=np.where(r.mask, r.depth_clean, 0.0).astype(np.float32), mask=r.mask,
                                  keyframe=True, quality=float(len(feats)), input_index=i),
@@ -200,7 +227,8 @@ def template_from_mesh(mesh_path: str | Path, output: str | Path, *, n_views: in
             db.set_meta("symmetries", symmetries.to_json())
             db.mark_complete()
             x, y, z = (float(v) for v in db.extent())
-            result = TemplateResult(output=output, views=int(n_views), descriptor=feature_params.kind, source="mesh",
+            result = TemplateResult(output=output, views=int(n_views),
+                                    descriptor=JOINT if joint else feature_params.kind, source="mesh",
                                     extent_m=(x, y, z), symmetries=symmetries)
             advance(1)
         log.info("%s: %d views, %d keypoints, cloud %d points", output, n_views, n_kp, len(P))

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Annotated
+from typing import Annotated, Literal
 
 import numpy as np
 from pydantic import Field
@@ -27,6 +27,10 @@ class KeyframeParams:
     min_object_keypoints: Annotated[int, Field(ge=0, description="keyframes are views with at least this many "
                                                "keypoints on the object, and views with fewer where none of those "
                                                "looks from")] = 24
+    object_keypoints: Annotated[Literal["auto", "sift", "both"], Field(
+        description="the keypoints keyframes keep on the object for estimation: the image's (sift), the image's and "
+        "the depth's in one set (both; needs features.kind rootsift), or auto: both where the capture registered "
+        "with depth keypoints (features.keypoints depth or both), else the image's")] = "auto"
 
 
 def view_direction(T_obj_cam: np.ndarray) -> np.ndarray:

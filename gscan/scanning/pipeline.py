@@ -55,12 +55,20 @@ from gscan.features import (
     extract_features,
     extract_features_in_mask,
 )
-from gscan.features.depth import AUTO_PILOT, choose_source, depth_keypoints, extract_keypoints, joint_features
+from gscan.features.depth import (
+    AUTO_PILOT,
+    choose_source,
+    depth_keypoints,
+    extract_keypoints,
+    joint_features,
+    object_size,
+)
+from gscan.features.keypoints import JOINT
 from gscan.geometry.coverage import template_coverage
 from gscan.geometry.plane import Plane
 from gscan.geometry.symmetry import Symmetries
 from gscan.geometry.transforms import transform_points
-from gscan.io.camera import RGBDFrame
+from gscan.io.camera import RGBDFrame, point_cloud
 from gscan.io.captures import CaptureInput
 from gscan.io.output import (
     file_identity,
@@ -130,7 +138,8 @@ class ScanResult:
     # which object segmentation chose and why (`gscan.scanning.segment.ChosenObject.to_json`); None: not segmented
     object: dict | None = None
     # the keypoints registration used (the first capture's `FrameData.keypoints`) and "depth_only_edges": the
-    # accepted edges of this run that the depth alone decided (`gscan.registration.pairwise`)
+    # accepted edges of this run that the depth alone decided (`gscan.registration.pairwise`); with depth keypoints
+    # on the keyframes, "object": "both" and "object_depth_size" (m) they and a query's are found at
     keypoints: dict = field(default_factory=dict)
 
     def to_json(self) -> dict:
@@ -403,7 +412,11 @@ def _scan_frames(caps: list[_Capture], output: Path, opts: ScanOptions, db: Temp
 
     with timer.stage("database", total=n + 1) as advance, db.batch():
         T_obj_cam = [None if T is None else T_obj_world @ T for T in T_world_cam]
-        keyframes = _store_views(data, T_obj_cam, mask_of, quality, cfg, db, advance)
+        object_source = _object_source(caps, opts.config, db, opts.append)
+        keyframes, depth_size = _store_views(data, T_obj_cam, mask_of, quality, cfg, db, advance,
+                                             first.reg.rparams.depth_noise if object_source == "both" else None)
+        if object_source == "both":  # the keyframes' object keypoints are a joint set: the estimator reads this
+            db.set_meta("descriptor", JOINT)
         for cap in caps:
             for e in cap.reg.edges:  # type: ignore[union-attr]  # the pose graph's verdicts, also where a
                 if e.pruned or (e.src, e.tgt) in cap.reg.restored:  # type: ignore[union-attr]  # resumed run
@@ -433,6 +446,8 @@ def _scan_frames(caps: list[_Capture], output: Path, opts: ScanOptions, db: Temp
         assert first.data is not None
         keypoints = dict(first.data.keypoints, depth_only_edges=sum(
             1 for cap in caps if cap.reg is not None for e in cap.reg.edges if e.accepted and e.depth_only))
+        if object_source == "both":  # (a template of the image's keypoints keeps its meta as it was)
+            keypoints |= {"object": object_source, "object_depth_size": depth_size}
         if not opts.append:
             db.set_meta("object", chosen)
         db.set_meta("timings_s", timer.timings)
@@ -790,15 +805,46 @@ def _median_depth(feats: Features) -> float | None:
     return float(np.median(feats.points[:, 2])) if len(feats) else None
 
 
+def _object_source(caps: list[_Capture], config: ScanConfig, db: TemplateDB, append: bool) -> str:
+    """The keypoints the keyframes keep for estimation, "sift" (the image's) or "both" (the image's and the
+    depth's, one rootsift+fpfh set): `keyframes.object_keypoints` unless "auto"; auto: "both" where a capture
+    registered with depth keypoints, or, appended to, the template's keyframes hold them."""
+    chosen = config.keyframes.object_keypoints
+    if chosen == "auto":
+        stored = db.get_meta("keypoints") if append else None
+        depth = any(c.data is not None and c.data.keypoints["source"] in ("depth", "both") for c in caps) or (
+            isinstance(stored, dict) and stored.get("object") == "both")
+        chosen = "both" if depth else "sift"
+    if chosen == "both" and config.features.kind != "rootsift":
+        raise ValueError(f"keyframes.object_keypoints: both joins depth keypoints to rootsift ones, not "
+                         f"{config.features.kind}")
+    return chosen
+
+
+def _depth_size(data: FrameData, keyframes: set[int], mask_of: Callable[[int], np.ndarray | None]) -> float | None:
+    """The object's size (m) the keyframes' depth keypoints are found at, and a query's: the median over the
+    keyframes of the size registration scales a view's depth keypoints by (`object_size` of its masked points);
+    None when no keyframe has a mask with 50 points."""
+    sizes = []
+    for k in sorted(keyframes):
+        m = mask_of(k)
+        pts = point_cloud(data.frame(k), m)[0] if m is not None else np.zeros((0, 3))
+        if len(pts) >= 50:
+            sizes.append(object_size(pts.astype(np.float64)))
+    return float(np.median(sizes)) if sizes else None
+
+
 def _store_views(data: FrameData, T_obj_cam: list[np.ndarray | None], mask_of: Callable[[int], np.ndarray | None],
-                 quality: dict[int, float], cfg: ScanConfig, db: TemplateDB,
-                 advance: Callable[[int], None]) -> set[int]:
+                 quality: dict[int, float], cfg: ScanConfig, db: TemplateDB, advance: Callable[[int], None],
+                 depth_noise: DepthNoise | None = None) -> tuple[set[int], float | None]:
     """Completes every view with its pose (its keypoints follow into the object frame), mask, keyframe flag and
-    quality; chooses the keyframes and returns their indices.
+    quality; chooses the keyframes and returns their indices and the depth keypoints' object size (m; None
+    without depth keypoints).
 
     Keyframes also keep keypoints on the object alone, detected inside the object mask with the
     estimator's settings: the template's keypoints for pose estimation (registration keypoints of a
-    static object are mostly on the table)."""
+    static object are mostly on the table). With `depth_noise` (the capture's) they are joint: the image's and
+    the depth's on the mask's points, all views' at one size (`_depth_size`), the one a query's are found at."""
     frames = data.frames
 
     def shows(k: int) -> bool:
@@ -811,13 +857,19 @@ def _store_views(data: FrameData, T_obj_cam: list[np.ndarray | None], mask_of: C
                                      {k: frames[k].object_keypoints for k in dirs}, kc.min_object_keypoints,
                                      kc.min_views))
     oparams = replace(OBJECT_FEATURES, kind=cfg.features.kind, max_keypoints=cfg.features.max_keypoints)
+    size = _depth_size(data, keyframes, mask_of) if depth_noise is not None else None
 
     def view_work(k: int) -> tuple[np.ndarray | None, Features | None]:
         f = frames[k].stored
         if T_obj_cam[k] is None:  # an unregistered view keeps the mask it came with
             return (data.store.get(f.name, "given_mask") if f.has_mask else None), None
         m = mask_of(k)
-        obj = extract_features_in_mask(data.frame(k), m, oparams) if k in keyframes and m is not None else None
+        if k not in keyframes or m is None:
+            return m, None
+        frame = data.frame(k)
+        obj = extract_features_in_mask(frame, m, oparams)
+        if depth_noise is not None:
+            obj = joint_features(obj, depth_keypoints(frame, depth_noise.sigma, cfg.features, m, size=size))
         return m, obj
 
     with ThreadPoolExecutor(max_workers=WORKERS) as pool:
@@ -829,7 +881,7 @@ def _store_views(data: FrameData, T_obj_cam: list[np.ndarray | None], mask_of: C
             if obj is not None and T is not None:
                 db.add_features(frames[k].name, obj.transformed(T), role="object")
             advance(1)
-    return keyframes
+    return keyframes, size
 
 
 def _object_keypoints(pixels: np.ndarray, mask: np.ndarray | None) -> int:

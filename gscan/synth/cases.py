@@ -26,7 +26,8 @@ annotated_poses/) and which show something else:
   against the table between them: the captures of a template that knows both sides.
 
 And objects that look the same from two sides: `half_turn_box`, a box printed alike under a half turn;
-`half_turn_can`, a can whose label shows its print twice around.
+`half_turn_can`, a can whose label shows its print twice around. And `plain_part_scene`: a box of one colour
+beside boxes of about its size, one printed and one plain, that its depth alone fits as well.
 """
 from __future__ import annotations
 
@@ -296,3 +297,32 @@ def half_turn_can(radius: float, height: float, seed: int = 0) -> tuple[Textured
     z, x = np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0])
     turns = (axis_rotation(z, np.zeros(3), np.pi), axis_rotation(x, np.zeros(3), np.pi))
     return mesh, Symmetries(turns, (True, False), ((z, np.zeros(3)),), (False,))
+
+
+def plain_part_meshes() -> tuple[TexturedMesh, list[TexturedMesh]]:
+    """A box of one colour (16 x 9 x 22 cm, centred at the origin) and the two boxes `plain_part_scene` puts beside
+    it: a printed one of about its size (15 x 8 x 20 cm) and a flat plain one (20 x 12 x 6 cm)."""
+    part = box_mesh((0.16, 0.09, 0.22), np.full((4, 4, 3), 235, np.uint8), name="plain_part")
+    return part, [box_mesh((0.15, 0.08, 0.20), procedural_box_texture(3, (256, 384)), name="printed"),
+                  box_mesh((0.20, 0.12, 0.06), np.full((4, 4, 3), 200, np.uint8), name="plain_flat")]
+
+
+def plain_part_scene(seed: int, with_part: bool = True) -> tuple[RenderedFrame, np.ndarray]:
+    """(frame, T_cam_part [4 x 4]) of `plain_part_meshes`' part upright at a random yaw (seeded) on a wood table with
+    the two others around it (without it: they alone, the part's place empty), seen from 0.7 m at 35 deg
+    elevation."""
+    from gscan.geometry.transforms import look_at
+    from gscan.synth.capture import place_distractors, rest_on_table
+    from gscan.synth.render import SynthScene
+
+    part, others = plain_part_meshes()
+    rng = np.random.default_rng(seed)
+    T_world_part = rest_on_table(part, rotvec_to_R(np.array([0.0, 0.0, rng.uniform(0, 2 * np.pi)])))
+    placed = list(zip(others, place_distractors(part, T_world_part, others, rng), strict=True))
+    c = T_world_part[:3, 3] + [0.0, 0.0, 0.11]
+    e, a = np.radians(35.0), np.radians(30.0)
+    T_world_cam = look_at(c + 0.7 * np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)]), c)
+    objs = ([(part, T_world_part)] if with_part else []) + placed
+    r = SynthScene(objs, seed=seed, table_kind="wood").render(T_world_cam, DEFAULT_INTRINSICS,
+                                                              rng=np.random.default_rng([seed, 1]))
+    return r, np.linalg.inv(T_world_cam) @ T_world_part

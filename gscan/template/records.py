@@ -4,13 +4,14 @@ the in-memory `Template` the estimator loads (numpy arrays; shapes in each docst
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from gscan.errors import InputError
+from gscan.features.keypoints import JOINT
 from gscan.geometry.mesh import MeshData
 from gscan.io.camera import Intrinsics, RGBDFrame
 
@@ -98,3 +99,16 @@ class Template:
         if self.kind is None or len(self.view_names) == 0 or len(self.descriptors) == 0:
             raise InputError(self.path, "template holds no registered view with keypoints")
         return self.kind
+
+    def image_keypoints(self) -> Template:
+        """This template with its image keypoints alone: a joint set (rootsift+fpfh, `gscan.features.depth`) loses
+        its depth keypoints and its descriptors their FPFH part (kind rootsift, as a template scanned on the image's
+        keypoints holds them); any other template unchanged."""
+        if self.kind != JOINT:
+            return self
+        image = ~(np.abs(self.descriptors[:, 128:]).sum(axis=1) > 0)
+        counts = np.bincount(self.kp_view[image], minlength=len(self.view_names))
+        return replace(self, kind="rootsift", kp_view=self.kp_view[image], pixels=self.pixels[image],
+                       points_obj=self.points_obj[image],
+                       descriptors=np.ascontiguousarray(self.descriptors[image, :128]),
+                       view_offsets=np.concatenate([[0], np.cumsum(counts)]).astype(np.int64))

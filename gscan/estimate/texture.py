@@ -1,0 +1,88 @@
+"""The texture check of a pose the depth alone decided (a template with depth keypoints, `decided_by_depth`).
+
+A plain object's pose rests on its shape: its keypoint support is mostly depth keypoints, and the depth confirms
+any pose that lays its surface on a surface of that shape. In clutter another box of about its size offers such
+a surface: measured on the plain Fondant box's scenes without it, poses on a printed box fit the depth entirely
+(score 1.0, 90 % of the visible surface confirmed, 0.3-1.7 % of it off the objects standing on the table), held by
+15-20 consistent depth keypoint pairs. The print refutes them: the template's keyframes saw a plain surface there.
+
+So the query's texture is compared with the keyframe nearest the pose's viewing direction by registration's
+texture check (`gscan.registration.dense.colour_agreement`): the keyframe's object samples (its mask) and the
+query's search region, each with its band-passed texture, moved into each other by the pose; a tile is
+informative where its texture varies beyond the image's noise, in either image, and agrees where it lines up.
+Print on the query where the keyframe is plain lines up nowhere. The pose is refused when at least
+`accept.min_colour_tiles` tiles are informative and fewer than `accept.min_colour_agreement` of them agree
+(registration's rule for an edge); no informative tile (plain against plain) leaves the pose to the depth. A
+template without its keyframes' images cannot check the texture: the pose is refused.
+
+The keyframes' images are read from the template file on first use and their samples cached (`KeyframeTextures`).
+"""
+from __future__ import annotations
+
+import logging
+import threading
+from pathlib import Path
+
+import numpy as np
+
+from gscan.estimate.params import AcceptParams
+from gscan.estimate.query import QueryFrame
+from gscan.geometry.transforms import inv_T
+from gscan.registration.dense import DenseGeometry, colour_agreement
+from gscan.registration.noise import DepthNoise
+
+log = logging.getLogger(__name__)
+
+
+class KeyframeTextures:
+    """The keyframes' object samples with their texture (`DenseGeometry`), read from the template file `path`
+    (views `names`, poses T_obj_cam [V x 4 x 4]) when first asked for, then kept."""
+
+    def __init__(self, path: str | Path | None, names: list[str], T_obj_cam: np.ndarray):
+        self.path, self.names, self.T_obj_cam = path, names, np.asarray(T_obj_cam, dtype=np.float64)
+        self._dense: dict[int, DenseGeometry | None] = {}
+        self._lock = threading.Lock()
+
+    def nearest(self, T_cam_obj: np.ndarray) -> int:
+        """The keyframe whose optical axis lies nearest the query camera's at the pose T_cam_obj [4 x 4]."""
+        axis = T_cam_obj[:3, :3].T @ np.array([0.0, 0.0, 1.0])
+        return int(np.argmax(self.T_obj_cam[:, :3, 2] @ axis))
+
+    def dense(self, v: int) -> DenseGeometry | None:
+        """Keyframe v's object samples with texture; None when the template keeps no images of it."""
+        with self._lock:
+            if v not in self._dense:
+                self._dense[v] = self._read(v)
+            return self._dense[v]
+
+    def _read(self, v: int) -> DenseGeometry | None:
+        from gscan.template.db import TemplateDB
+
+        if self.path is None:
+            return None
+        with TemplateDB.open(self.path) as db:
+            view = db.view(self.names[v])
+        if view.color is None or view.depth is None:
+            return None
+        return DenseGeometry.from_depth(view.depth, view.intrinsics, view.mask, image=view.color)
+
+
+def texture_refusal(q: QueryFrame, T_cam_obj: np.ndarray, keyframes: KeyframeTextures, noise: DepthNoise,
+                    p: AcceptParams) -> str | None:
+    """The reason the query's texture refutes a pose the depth alone decided (module docstring), else None.
+    noise: the template's depth noise (its capture's)."""
+    v = keyframes.nearest(T_cam_obj)
+    kf = keyframes.dense(v)
+    if kf is None:
+        return (f"the template keeps no image of its view {keyframes.names[v]} to check the texture of a pose the "
+                "depth alone decided")
+    frame = q.frame
+    query = DenseGeometry.from_depth(frame.depth, frame.intrinsics, q.search, image=frame.color)
+    T_kf_cam = inv_T(keyframes.T_obj_cam[v]) @ inv_T(T_cam_obj)  # query camera -> keyframe camera
+    c = colour_agreement(query, kf, T_kf_cam, noise)
+    log.debug("texture against keyframe %s: %d of %d informative tiles agree", keyframes.names[v], c.agreeing,
+              c.informative)
+    if c.informative >= p.min_colour_tiles and c.agreeing_fraction < p.min_colour_agreement:
+        return (f"texture disagrees ({c.agreeing} of {c.informative} textured tiles line up with the template's view "
+                f"{keyframes.names[v]}; the depth alone decided the pose)")
+    return None
