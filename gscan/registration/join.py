@@ -207,8 +207,10 @@ def _turn_not_refuted(T_a_b: np.ndarray, a: Sequence[JoinView], b: Sequence[Join
     log.debug("join: the motion found: depth %s, texture %s", found[0], found[1])
     if texture_refutes(found[1], rparams):
         return "the views' texture disagrees under the motion found; any motion"
-    # (words, the motion, whether it is judged refined on the depth: a turn, not another group's motion, which is
-    # judged as its view pairs solved it, like the motion found)
+    # (words, the motion, whether it is a turn: judged refined on the depth, and refuted by any rule; another
+    # group's motion is judged as its view pairs solved it, like the motion found, and refuted by the depth or by
+    # the texture both overlap only: the shares of tiles two motions line up in are measured on different sides,
+    # and a second group of view pairs was refused outright before the two could be compared on the same evidence)
     rivals = [(f"the object turned {deg} deg about its {AXES[k]} principal axis",
                T_a_b @ axis_rotation(axis, c, np.radians(deg)), True) for k, axis in enumerate(axes)
               for deg in (180, 90, 270)]
@@ -220,8 +222,8 @@ def _turn_not_refuted(T_a_b: np.ndarray, a: Sequence[JoinView], b: Sequence[Join
         log.debug("join: %s: depth %s, texture %s", words, depth, colour)
         if depth.see_through_fraction > rparams.max_see_through:
             continue  # the shape refutes it
-        if texture_refutes(colour, rparams) or _texture_outweighs(found[1], colour, params.turn_texture_ratio,
-                                                                    rparams):
+        if turn and (texture_refutes(colour, rparams)
+                     or _texture_outweighs(found[1], colour, params.turn_texture_ratio, rparams)):
             continue
         if alike is None:
             alike = _Alike(T_a_b, refined(T_a_b), a, b, rparams, pool)
