@@ -8,7 +8,7 @@ same texture in the other; under a wrong one on unrelated texture, however alike
 `texture_image` band-passes a grey image (minus its Gaussian blur at `BAND_SIGMA` px): exposure and shading
 differences between the views go, the texture stays. `gscan.registration.dense.colour_agreement` samples,
 for the depth samples of one frame that land on the other's surface, the other frame's texture where they
-land, and groups them in tiles of `TILE` px of the first frame (`tile_agreement`). A tile is informative
+land, and groups them in tiles of `TILE` px of the first frame (`tile_scores`). A tile is informative
 when its texture varies beyond the image noise (`image_noise`, estimated from the image itself). The whole
 overlap is first shifted by the one image displacement within `SEARCH` that correlates best (a right
 pose is good to a few pixels); a tile then agrees when its normalised cross-correlation there beats each
@@ -137,9 +137,3 @@ def tile_scores(Ia: np.ndarray, tiles: np.ndarray, tgt_texture: np.ndarray, u: n
     far = _tile_zncc(Ia, t, len(ids), tgt_texture, u, v, tuple((bx + dx, by + dy) for dx, dy in FAR)).max(axis=0)
     return ids, informative, informative & (near[best] > far) & (near[best] > 0)
 
-
-def tile_agreement(Ia: np.ndarray, tiles: np.ndarray, tgt_texture: np.ndarray, u: np.ndarray, v: np.ndarray,
-                   min_std: float) -> ColourAgreement:
-    """`tile_scores` counted: informative tiles, and those agreeing."""
-    _, informative, agree = tile_scores(Ia, tiles, tgt_texture, u, v, min_std)
-    return ColourAgreement(int(informative.sum()), int(agree.sum()))

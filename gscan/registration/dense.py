@@ -31,8 +31,8 @@ from gscan.registration.colour import (
     image_noise,
     min_texture_std,
     texture_image,
-    tile_agreement,
     tile_ids,
+    tile_scores,
 )
 from gscan.registration.noise import DepthNoise
 
@@ -209,10 +209,30 @@ def colour_agreement(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarr
     """Colour agreement of two frames' `DenseGeometry` (each with its texture) under T_tgt_src, in both
     directions, over the samples whose depth agrees within k sigmas of `noise` (`gscan.registration.colour`);
     nothing is informative when a frame has no texture."""
-    out = ColourAgreement(0, 0)
-    for a, b, T in ((src, tgt, T_tgt_src), (tgt, src, inv_T(T_tgt_src))):
+    t = colour_tiles(src, tgt, T_tgt_src, noise, k)
+    return ColourAgreement(len(t.agrees), int(t.agrees.sum()))
+
+
+@dataclass(frozen=True)
+class ColourTiles:
+    """The informative tiles of `colour_agreement`, one by one: direction [T] (0: src's tiles landing on tgt, 1:
+    tgt's on src), tile id [T] (`gscan.registration.colour.tile_ids` of its source image), agrees [T] bool, and
+    centre [T x 3]: the mean of the tile's samples, in its source camera's frame (m)."""
+
+    direction: np.ndarray
+    tile: np.ndarray
+    agrees: np.ndarray
+    centre: np.ndarray
+
+
+def colour_tiles(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarray, noise: DepthNoise,
+                 k: float = 3.0) -> ColourTiles:
+    """The tiles `colour_agreement` counts (`ColourTiles`); none when a frame has no texture."""
+    parts: list[tuple[np.ndarray, ...]] = []
+    for d, (a, b, T) in enumerate(((src, tgt, T_tgt_src), (tgt, src, inv_T(T_tgt_src)))):
         if a.texture is None or b.texture is None or a.pixels is None:
-            return ColourAgreement(0, 0)
+            parts = []
+            break
         q, _, e, sd, idx = _plane_pairs(a, b, T, noise)
         ok = np.abs(e) <= k * sd
         q, idx = q[ok], idx[ok]
@@ -220,9 +240,20 @@ def colour_agreement(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarr
         u = q[:, 0] / q[:, 2] * fx + cx
         v = q[:, 1] / q[:, 2] * fy + cy
         pu, pv = a.pixels[idx, 0], a.pixels[idx, 1]
-        out = out + tile_agreement(a.texture[pv, pu].astype(np.float64), tile_ids(pu, pv, a.texture.shape[1]),
-                                   b.texture, u, v, min_texture_std(a.texture_noise))
-    return out
+        tiles = tile_ids(pu, pv, a.texture.shape[1])
+        ids, informative, agree = tile_scores(a.texture[pv, pu].astype(np.float64), tiles, b.texture, u, v,
+                                              min_texture_std(a.texture_noise))
+        ids, agree = ids[informative], agree[informative]
+        # each informative tile's centre: the mean of its samples
+        at = np.minimum(np.searchsorted(ids, tiles), max(len(ids) - 1, 0))
+        mine = ids[at] == tiles if len(ids) else np.zeros(len(tiles), bool)
+        n = np.bincount(at[mine], minlength=len(ids))
+        pts = a.points[idx[mine]].astype(np.float64)
+        centre = np.stack([np.bincount(at[mine], pts[:, j], len(ids)) for j in range(3)], 1) / np.maximum(n, 1)[:, None]
+        parts.append((np.full(len(ids), d), ids, agree, centre))
+    if not parts:
+        return ColourTiles(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, bool), np.zeros((0, 3)))
+    return ColourTiles(*(np.concatenate(x) for x in zip(*parts, strict=True)))
 
 
 def refine_pose(src: DenseGeometry, tgt: DenseGeometry, kp_s: np.ndarray, kp_t: np.ndarray, T_tgt_src: np.ndarray,

@@ -8,12 +8,14 @@ dense and texture checks of `gscan.registration.pairwise`), on the object alone;
 motion T_worldA_worldB. Two proposals agree when they differ by less than `agree_sigmas` of their own predicted
 uncertainty (the poses' sigmas from the keypoint noise, floored at the noise of one keypoint pair at the
 views' depth). The captures are joined when the largest agreeing group holds at least `min_pairs` pairs, with
-at least two views of each capture among them, and no other motion has at least half its support (a symmetric
-object turned over may match two ways: then no join is guessed). The motion is the mean of the group's. Last, the
-object of B turned about its principal axes (90, 180, 270 deg) must be refuted by the views' depth or texture, as
-an edge's pose is, or its texture be outweighed by the motion found's: a print repeated on the top and the bottom
-matches at a turned motion, which only the other sides can tell (`_turn_not_refuted`). Depth and texture are
-judged over the whole overlap: every view of B against every view of A.
+at least two views of each capture among them. The motion is the mean of the group's. Last, the object of B
+turned about its principal axes (90, 180, 270 deg) must be refuted by the views' depth or texture, as an edge's pose
+is, or its texture be outweighed by the motion found's: a print repeated on the top and the bottom matches at a
+turned motion, which only the other sides can tell (`_turn_not_refuted`; `_Alike` compares two motions on the
+surface patches both overlap). Depth and texture are judged over the whole overlap: every view of B against every
+view of A. Where another group holds at least half as many pairs (a symmetric object turned over may match two
+ways), each motion must refute the other as well as its own turns: the captures are joined at the one that does,
+and not at all when both or neither do (no join is guessed).
 """
 from __future__ import annotations
 
@@ -22,16 +24,21 @@ from collections import Counter
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from math import comb
 
 import numpy as np
 
+from gscan.features import descriptor_distances
+from gscan.features.keypoints import JOINT
 from gscan.geometry.icp import icp_point_to_plane
+from gscan.geometry.kabsch import kabsch
 from gscan.geometry.symmetry import axis_rotation
 from gscan.geometry.transforms import inv_T, mean_pose, rotation_angle_deg
-from gscan.registration.colour import ColourAgreement
-from gscan.registration.dense import DepthAgreement, colour_agreement, depth_agreement
+from gscan.matching.gmatch import default_eps_f
+from gscan.registration.colour import TILE, ColourAgreement
+from gscan.registration.dense import ColourTiles, DepthAgreement, colour_agreement, colour_tiles, depth_agreement
 from gscan.registration.edges import RegData
-from gscan.registration.pairwise import PairResult, RegisterParams, register_features
+from gscan.registration.pairwise import GuidedPool, PairResult, RegisterParams, consistent_pairs, register_features
 from gscan.registration.params import JoinParams
 from gscan.registration.turns import AXES, principal_turns, texture_refutes
 
@@ -144,32 +151,43 @@ def join_captures(a: Sequence[JoinView], b: Sequence[JoinView], rparams: Registe
         return Join(None, f"too little agreement: {len(best)} of {accepted} accepted view pairs ({tried} tried) "
                     f"agree on one motion ({len(names_a)} and {len(names_b)} views of the two captures), "
                     f"{params.min_pairs} needed", tried, accepted, [(p.a, p.b) for p in best])
-    if len(rival) >= max(params.min_pairs, len(best) / 2):
-        return Join(None, f"ambiguous: two motions join the captures ({len(best)} and {len(rival)} view pairs "
-                    "agree on each; a symmetric object?)", tried, accepted, [(p.a, p.b) for p in best])
     T = mean_pose([p.T_a_b for p in best])
-    turned = _turn_not_refuted(T, a, b, rparams, params.turn_texture_ratio, pool)
-    if turned is not None:
-        return Join(None, f"ambiguous: {turned} joins the captures as well ({len(best)} view pairs agree on the "
-                    "motion found; a side seen alike in both?)", tried, accepted, [(p.a, p.b) for p in best])
+    if len(rival) >= max(params.min_pairs, len(best) / 2):
+        # two motions: each must refute the other (and its own turns) on the evidence both share
+        T_rival = mean_pose([p.T_a_b for p in rival])
+        standing = [(g, M) for g, M, other in ((best, T, T_rival), (rival, T_rival, T))
+                    if len({p.a for p in g}) >= 2 and len({p.b for p in g}) >= 2
+                    and _turn_not_refuted(M, a, b, rparams, params, pool, others=(other,)) is None]
+        if len(standing) != 1:
+            return Join(None, f"ambiguous: two motions join the captures ({len(best)} and {len(rival)} view pairs "
+                        "agree on each; a symmetric object?)", tried, accepted, [(p.a, p.b) for p in best])
+        best, T = standing[0]
+        log.info("join: of two motions (%d and %d view pairs), the texture refutes one", len(best), len(rival))
+    else:
+        turned = _turn_not_refuted(T, a, b, rparams, params, pool)
+        if turned is not None:
+            return Join(None, f"ambiguous: {turned} joins the captures as well ({len(best)} view pairs agree on "
+                        "the motion found; a side seen alike in both?)", tried, accepted, [(p.a, p.b) for p in best])
     log.info("joined: %d of %d accepted view pairs (%d tried) agree", len(best), accepted, tried)
     return Join(T, None, tried, accepted, [(p.a, p.b) for p in best])
 
 
 def _turn_not_refuted(T_a_b: np.ndarray, a: Sequence[JoinView], b: Sequence[JoinView], rparams: RegisterParams,
-                      ratio: float, pool: ThreadPoolExecutor) -> str | None:
-    """The first turn of capture B's object about one of its principal axes (90, 180, 270 deg, through its centre)
-    that the views do not refute when it is joined so, in words; None when every turn is refuted. A view pair may
-    match a side the object shows alike both ways up (a print repeated on its top and bottom): the motion found
-    then turns the object, and only the views of its other sides can tell. A turn is refuted as an edge's pose is
-    (`gscan.registration.pairwise`, rule 3): by the depth (more than `max_see_through` of the overlap seen through)
-    or by the texture (fewer than `min_colour_agreement` of the overlap's textured tiles line up); or its texture
-    is outweighed by the motion found's: it lines up in less than `ratio` of the share of tiles the motion found
-    lines up in, each over `min_colour_tiles` or more. Two motions overlap different sides, so the shares are
-    compared with a wide margin, and the amount of depth they explain is not compared at all: a print repeated on
-    the top and bottom, seen squarely by both captures, lines up better and explains more depth under the wrong
-    motion than the sides, seen obliquely, under the right one (docs/method.md, the join). A turned motion
-    is judged refined on the object's depth."""
+                      params: JoinParams, pool: ThreadPoolExecutor, others: Sequence[np.ndarray] = ()) -> str | None:
+    """The first turn of capture B's object about one of its principal axes (90, 180, 270 deg, through its centre),
+    or of the `others` motions [4 x 4] (a second group of view pairs'), that the views do not refute when it is
+    joined so, in words; None when every one is refuted. A view pair may match a side the object shows alike both
+    ways up (a print repeated on its top and bottom): the motion found then turns the object, and only the views of
+    its other sides can tell. A turn is refuted as an edge's pose is (`gscan.registration.pairwise`, rule 3): by
+    the depth (more than `max_see_through` of the overlap seen through) or by the texture (fewer than
+    `min_colour_agreement` of the overlap's textured tiles line up); or its texture is outweighed by the motion
+    found's: it lines up in less than `params.turn_texture_ratio` of the share of tiles the motion found lines up
+    in, each over `min_colour_tiles` or more (two motions overlap different sides, so the shares are compared with
+    a wide margin); or, both refined alike on the keypoints and compared on the surface patches both overlap, the
+    texture favours the motion found (`_Alike`). A turned motion is judged by the first three rules refined on the
+    object's depth; the amount of depth two motions explain is not compared: a print repeated on the top and
+    bottom, seen squarely by both captures, lines up better and explains more depth under the wrong motion than the
+    sides, seen obliquely, under the right one (docs/method.md, the join)."""
     pts = _in_world(b, lambda v: v.reg.dense.points)
     if len(pts) < 3:
         return None
@@ -189,16 +207,146 @@ def _turn_not_refuted(T_a_b: np.ndarray, a: Sequence[JoinView], b: Sequence[Join
     log.debug("join: the motion found: depth %s, texture %s", found[0], found[1])
     if texture_refutes(found[1], rparams):
         return "the views' texture disagrees under the motion found; any motion"
-    for k, axis in enumerate(axes):
-        for deg in (180, 90, 270):
-            depth, colour = _agreement(refined(T_a_b @ axis_rotation(axis, c, np.radians(deg))), a, b, rparams, pool)
-            log.debug("join: turned %d deg about axis %d: depth %s, texture %s", deg, k, depth, colour)
-            if depth.see_through_fraction > rparams.max_see_through:
-                continue  # the shape refutes it
-            if texture_refutes(colour, rparams) or _texture_outweighs(found[1], colour, ratio, rparams):
-                continue
-            return f"the object turned {deg} deg about its {AXES[k]} principal axis"
+    # (words, the motion, whether it is a turn: judged refined on the depth, and refuted by any rule; another
+    # group's motion is judged as its view pairs solved it, like the motion found, and refuted by the depth or by
+    # the texture both overlap only: the shares of tiles two motions line up in are measured on different sides,
+    # and a second group of view pairs was refused outright before the two could be compared on the same evidence)
+    rivals = [(f"the object turned {deg} deg about its {AXES[k]} principal axis",
+               T_a_b @ axis_rotation(axis, c, np.radians(deg)), True) for k, axis in enumerate(axes)
+              for deg in (180, 90, 270)]
+    rivals += [("another group of view pairs' motion", T, False) for T in others]
+    alike: _Alike | None = None
+    for words, T, turn in rivals:
+        T_depth = refined(T)
+        depth, colour = _agreement(T_depth if turn else T, a, b, rparams, pool)
+        log.debug("join: %s: depth %s, texture %s", words, depth, colour)
+        if depth.see_through_fraction > rparams.max_see_through:
+            continue  # the shape refutes it
+        if turn and (texture_refutes(colour, rparams)
+                     or _texture_outweighs(found[1], colour, params.turn_texture_ratio, rparams)):
+            continue
+        if alike is None:
+            alike = _Alike(T_a_b, refined(T_a_b), a, b, rparams, pool)
+        if alike.outweighs(T, T_depth, params.turn_sign_alpha, words):
+            continue
+        return words
     return None
+
+
+KP_GATES = (16.0, 8.0, 5.0, 3.0, 3.0)  # noise sigmas: a joint keypoint refinement's gates (`_Alike.refined`)
+
+
+class _Alike:
+    """Two motions joining captures A and B, refined alike and compared on the same evidence.
+
+    Each motion is refined on the keypoint pairs of every view pair that agree with it (guided, as an edge's pose
+    is: descriptor distance below GMatch's eps_f, one-to-one, within the gate's sigmas of the keypoint noise; one
+    rigid motion over all view pairs, the gates shrinking from `KP_GATES[0]`, wide enough to draw in a turn about an
+    approximate axis), from the motion as given and from it refined on the depth, whichever start keeps more pairs:
+    each is judged at its best supported pose, neither favoured by how it was found. The texture then compares them
+    on the tiles informative under both (the same patches of the same images, `colour_tiles`, each landing where
+    its motion puts it), grouped into surface patches of one tile's footprint (`TILE` px at the views' median
+    depth: the views see one patch many times, and its texture is one piece of evidence). A patch favours the motion
+    under which more of its tiles line up. The other motion is refuted when a sign test rejects that the patches
+    favour either motion alike: at most `turn_sign_alpha` chance that a fair coin gives the other motion as few
+    patches. A print repeated under the turn lines up alike under both (no patch favours either); a wrong motion
+    loses where the print differs."""
+
+    def __init__(self, T_a_b: np.ndarray, T_depth: np.ndarray, a: Sequence[JoinView], b: Sequence[JoinView],
+                 rparams: RegisterParams, pool: ThreadPoolExecutor):
+        self.a, self.b, self.rparams, self.pool = a, b, rparams, pool
+        kind = a[0].reg.feats.kind if a else "sift"
+        eps = rparams.gmatch.eps_f if rparams.gmatch.eps_f is not None else default_eps_f(kind)
+        self.pools = {(i, j): GuidedPool(va.reg.feats.points, descriptor_distances(
+            vb.reg.feats.descriptors, va.reg.feats.descriptors, kind), eps)
+            for i, va in enumerate(a) for j, vb in enumerate(b) if len(va.reg.feats) and len(vb.reg.feats)}
+        self.T_a_b, self.pairs = self.refined(T_a_b, T_depth)
+        z = np.concatenate([v.reg.dense.points[:, 2] for v in a]) if a else np.ones(1)
+        fx = max(a[0].reg.dense.full_intrinsics[0], 1.0) if a else 1.0
+        self.patch = TILE * float(np.median(z)) / fx
+        self.patches = self._patches(_tiles(self.T_a_b, a, b, rparams, pool))
+
+    def refined(self, T: np.ndarray, T_depth: np.ndarray) -> tuple[np.ndarray, int]:
+        """(T_a_b [4 x 4], keypoint pairs it rests on): the better supported of the keypoint refinements from T
+        and from T_depth (the former on a tie)."""
+        one, two = self._on_keypoints(T), self._on_keypoints(T_depth)
+        return one if one[1] >= two[1] else two
+
+    def _on_keypoints(self, T: np.ndarray) -> tuple[np.ndarray, int]:
+        noise, n = self.rparams.noise, 0
+        for gate in KP_GATES:
+            src, dst, w = [], [], []
+            for (i, j), gp in self.pools.items():
+                va, vb = self.a[i], self.b[j]
+                fa, fb = va.reg.feats, vb.reg.feats
+                loc_b, loc_a = (fb.location_sigma, fa.location_sigma) if fb.kind == JOINT else (None, None)
+                pr = consistent_pairs(fb.points, fa.points, gp, inv_T(va.T_world_cam) @ T @ vb.T_world_cam, gate,
+                                      noise, loc_b, loc_a)
+                ps, pt = fb.points[pr[:, 0]].astype(np.float64), fa.points[pr[:, 1]].astype(np.float64)
+                loc = 0.0 if loc_b is None or loc_a is None else np.hypot(loc_b[pr[:, 0]], loc_a[pr[:, 1]])
+                src.append(ps @ vb.T_world_cam[:3, :3].T + vb.T_world_cam[:3, 3])
+                dst.append(pt @ va.T_world_cam[:3, :3].T + va.T_world_cam[:3, 3])
+                w.append(1.0 / np.square(noise.pair_sigma(ps[:, 2], pt[:, 2], loc)))
+            k = sum(len(x) for x in src)
+            if k < self.rparams.min_matches:
+                break
+            T, n = kabsch(np.concatenate(src), np.concatenate(dst), np.concatenate(w)), k
+        return T, n
+
+    def outweighs(self, T: np.ndarray, T_depth: np.ndarray, alpha: float, words: str) -> bool:
+        """Whether the texture refutes the other motion T_a_b [4 x 4] (T_depth: it refined on the depth) against
+        this one (class docstring)."""
+        M, n = self.refined(T, T_depth)
+        other = self._patches(_tiles(M, self.a, self.b, self.rparams, self.pool))
+        mine = theirs = both = 0
+        for patch in self.patches.keys() & other.keys():
+            (n1, k1), (n2, k2) = self.patches[patch], other[patch]
+            both += 1
+            mine += k1 * n2 > k2 * n1
+            theirs += k2 * n1 > k1 * n2
+        p = sign_test(mine, theirs)
+        log.debug("join: %s, refined on %d keypoint pairs (the motion found: %d): %d surface patches favour the "
+                  "motion found, %d it (of %d both overlap), p = %.2g", words, n, self.pairs, mine, theirs, both, p)
+        return p <= alpha
+
+    def _patches(self, tiles: dict[_TileKey, tuple[bool, np.ndarray]]) -> dict[tuple[int, ...], tuple[int, int]]:
+        """(informative tiles, tiles that line up) of each surface patch: a tile's direction (whose view, so whose
+        capture world) and the cube of side `self.patch` its centre lies in."""
+        out: dict[tuple[int, ...], tuple[int, int]] = {}
+        for key, (g, centre) in tiles.items():
+            patch = (key[2], *(int(x) for x in np.floor(centre / self.patch)))
+            n, k = out.get(patch, (0, 0))
+            out[patch] = (n + 1, k + int(g))
+        return out
+
+
+def sign_test(k: int, m: int) -> float:
+    """One-sided sign test: the chance that a fair coin gives at least k heads in k + m tosses."""
+    n = k + m
+    return sum(comb(n, i) for i in range(k, n + 1)) / 2.0 ** n if n else 1.0
+
+
+_TileKey = tuple[int, int, int, int]  # (view of A, view of B, direction (0: B's tiles), tile id)
+
+
+def _tiles(T_a_b: np.ndarray, a: Sequence[JoinView], b: Sequence[JoinView], rparams: RegisterParams,
+           pool: ThreadPoolExecutor) -> dict[_TileKey, tuple[bool, np.ndarray]]:
+    """The informative tiles of every view pair of A and B joined by T_a_b: key -> (whether it lines up, its centre
+    [3] in its own view's capture world)."""
+    def check(pair: tuple[int, int]) -> dict[_TileKey, tuple[bool, np.ndarray]]:
+        va, vb = a[pair[0]], b[pair[1]]
+        t: ColourTiles = colour_tiles(vb.reg.dense, va.reg.dense, inv_T(va.T_world_cam) @ T_a_b @ vb.T_world_cam,
+                                      rparams.depth_noise)
+        out = {}
+        for d, tile, g, centre in zip(t.direction, t.tile, t.agrees, t.centre, strict=True):
+            T = vb.T_world_cam if d == 0 else va.T_world_cam
+            out[(pair[0], pair[1], int(d), int(tile))] = (bool(g), T[:3, :3] @ centre + T[:3, 3])
+        return out
+
+    tiles: dict[_TileKey, tuple[bool, np.ndarray]] = {}
+    for got in pool.map(check, [(i, j) for i in range(len(a)) for j in range(len(b))]):
+        tiles |= got
+    return tiles
 
 
 def _texture_outweighs(found: ColourAgreement, other: ColourAgreement, ratio: float, rparams: RegisterParams

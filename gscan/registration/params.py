@@ -193,3 +193,9 @@ class JoinParams:
     turn_texture_ratio: Annotated[float, Field(gt=0, lt=1, description="the object turned about a principal axis "
                                                "is outweighed when its share of the overlap's textured tiles that "
                                                "line up is below this fraction of the motion found's")] = 0.5
+    turn_sign_alpha: Annotated[float, Field(gt=0, lt=0.5, description="another motion (a turn of the object, or a "
+                                            "second group of view pairs') is refuted by the texture both line up "
+                                            "on when so few of the surface patches where they differ favour it "
+                                            "that a fair coin would give as few with at most this chance (a sign "
+                                            "test: the risk of refuting a motion the texture supports as well)")] \
+        = 1e-3
