@@ -18,14 +18,15 @@ template without its keyframes' images cannot check the texture: the pose is ref
 That rule needs `accept.min_colour_tiles` tiles, and a box of about the object's size a little way off (0.7 m: 7 of
 its 48-pixel tiles overlap) leaves it without a verdict; nor does its share tell the poses apart on a plain
 template: its informative tiles are mostly the rims and creases, whose shading lines up under any pose that lays a
-box's faces on a box's faces (right poses measured 2-14 of 7-19 lining up, wrong ones on a printed box 1-11 of
-3-15). So the faces' interiors are judged on their own (`gscan.registration.dense.interior`: the samples with no
-rim and no crease within the band-pass's reach, `PRINT_REACH_PX`), where the band-passed texture is the surface's
-print and not its shading: a tile textured there in one image whose counterpart in the other is plain
-(`gscan.registration.colour.print_tiles`: below that image's informative level, both levels set by each image's
-own noise) is print the other lacks, a fact measured per tile against the sensor's noise, not a rank test's
-chance. A pose with such a tile is refused when fewer than `accept.min_colour_agreement` of the interiors'
-informative tiles line up (a one-sided tile never does); a plain template seen on its own plain faces has none.
+box's faces on a box's faces (bench/plain.py's look-alike frames, seeds 0-7: right poses 2-14 of 7-19 lining up,
+wrong ones on a printed box 1-11 of 3-15). So the faces' interiors are judged on their own
+(`gscan.registration.dense.interior`: the samples with no rim and no crease within the band-pass's reach,
+`PRINT_REACH_PX`), where the band-passed texture is the surface's print and not its shading: a tile textured there
+in one image whose counterpart in the other is plain (`gscan.registration.colour.print_tiles`: below that image's
+informative level, both levels set by each image's own noise) is print the other lacks, a fact measured per tile
+against the sensor's noise, not a rank test's chance. A pose with such a tile is refused when fewer than
+`accept.min_colour_agreement` of the interiors' informative tiles line up (a one-sided tile never does); a plain
+template seen on its own plain faces has none.
 
 The keyframes' images are read from the template file on first use and their samples cached (`KeyframeTextures`).
 """
