@@ -263,12 +263,11 @@ def estimates(objects: list[str], n: int, frames: int, negatives: int, work: Pat
                   f"of sift", flush=True)
 
 
-def lookalikes(n: int, work: Path) -> None:
+def lookalikes(n: int, work: Path, first: int = 0) -> None:
     """A CAD template of a one-colour box (`gscan.synth.cases.plain_part_meshes`, 24 views, image and depth
     keypoints) estimated with the query's depth keypoints in `n` frames of it beside a printed box of about its size
     and a flat plain box, and in `n` frames of those two alone (`plain_part_scene`): found / wrong (beyond 5 deg /
-    2 cm up to the box's half turns, or any pose without the box) / depth-only. Not tuned on: the case that keeps
-    `query.depth_keypoints` off by default."""
+    2 cm up to the box's half turns, or any pose without the box) / depth-only; seeds first .. first + n - 1."""
     from gscan.estimate import Estimator
     from gscan.estimate.params import DEFAULT_PARAMS, QueryParams
     from gscan.features import OBJECT_FEATURES
@@ -286,7 +285,7 @@ def lookalikes(n: int, work: Path) -> None:
     est = Estimator.from_path(tpl, replace(DEFAULT_PARAMS, query=QueryParams(depth_keypoints=True)))
     turns = [np.eye(3)] + [2.0 * np.outer(a, a) - np.eye(3) for a in np.eye(3)]
     counts = {True: [0, 0, 0], False: [0, 0, 0]}
-    for seed in range(n):
+    for seed in range(first, first + n):
         for with_part in (True, False):
             r, T_gt = plain_part_scene(seed, with_part)
             res = est.estimate(RGBDFrame(f"part_{seed}", r.color, r.depth, DEFAULT_INTRINSICS))
@@ -320,12 +319,13 @@ def main() -> None:
     ap.add_argument("--negatives", type=int, default=2, help="--estimate: scenes without it, per object")
     ap.add_argument("--work", type=Path, default=None, help="--estimate: keep captures and templates here")
     ap.add_argument("--lookalikes", type=int, default=0, help="frames of a plain CAD box beside look-alike boxes")
+    ap.add_argument("--first-seed", type=int, default=0, help="--lookalikes: the first scene's seed")
     a = ap.parse_args()
     if a.lookalikes:
         import tempfile
 
         with tempfile.TemporaryDirectory() as tmp:
-            lookalikes(a.lookalikes, Path(tmp) if a.work is None else a.work)
+            lookalikes(a.lookalikes, Path(tmp) if a.work is None else a.work, a.first_seed)
         return
     if a.estimate:
         import tempfile

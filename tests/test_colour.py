@@ -10,7 +10,7 @@ import pytest
 from gscan.geometry.transforms import make_T
 from gscan.io.camera import Intrinsics
 from gscan.registration.colour import image_noise
-from gscan.registration.dense import DenseGeometry, colour_agreement, depth_agreement
+from gscan.registration.dense import DenseGeometry, colour_agreement, depth_agreement, interior, print_agreement
 from gscan.registration.noise import DepthNoise
 
 W, H = 320, 240
@@ -54,6 +54,42 @@ def test_no_texture_gives_no_verdict():
     assert colour_agreement(g, g, np.eye(4), NOISE).informative == 0  # pixel noise alone is no texture
     assert colour_agreement(_plane(_texture(0)), DenseGeometry.from_depth(np.full((H, W), 1.0), INTR),
                             np.eye(4), NOISE).informative == 0  # a frame without its image
+
+
+def test_print_one_frame_lacks_is_one_sided_and_never_lines_up():
+    """`print_agreement`: a printed plane against the same plane plain (pixel noise only): every tile textured in
+    the printed frame is one-sided, none lines up, and the plain frame's tiles are not informative; against itself
+    the tiles line up and none is one-sided."""
+    rng = np.random.default_rng(3)
+    plain = _plane(np.clip(128 + rng.normal(0, 2.0, (H, W, 1)), 0, 255).astype(np.uint8).repeat(3, axis=2))
+    printed = _plane(_texture(0))
+    c = print_agreement(printed, plain, np.eye(4), NOISE)
+    assert c.informative >= 20 and c.one_sided == c.informative and c.agreeing == 0, c
+    assert print_agreement(plain, printed, np.eye(4), NOISE) == c  # both directions are counted
+    same = print_agreement(printed, printed, np.eye(4), NOISE)
+    assert same.informative == 2 * c.informative and same.one_sided == 0, same
+    assert same.agreeing > 0.9 * same.informative, same
+
+
+def test_interior_leaves_out_the_crease_and_the_rim():
+    """`interior`: a roof (two planes meeting at 90 deg along the image's middle column) inside a mask keeps the
+    samples farther than the reach from the ridge and from the mask's edge, and none nearer."""
+    u = np.arange(W, dtype=np.float64)[None, :].repeat(H, axis=0)
+    depth = (1.0 / (1.0 - np.abs(u - INTR.cx) / INTR.fx)).astype(np.float32)  # z = 1 + |x|: a box's edge
+    mask = np.zeros((H, W), bool)
+    mask[40:200, 40:280] = True
+    g = DenseGeometry.from_depth(depth, INTR, mask, image=_texture(0))
+    reach = 12.0
+    kept = interior(g, NOISE, reach)
+    assert 0 < len(kept.points) < len(g.points) and kept.pixels is not None and g.pixels is not None
+    pu, pv = kept.pixels[:, 0], kept.pixels[:, 1]
+    edge = np.minimum.reduce([pu - 40, 279 - pu, pv - 40, 199 - pv])
+    assert np.all(np.abs(pu - INTR.cx) > reach) and np.all(edge >= reach), (pu, pv)
+    gu, gv = g.pixels[:, 0], g.pixels[:, 1]
+    far = (np.abs(gu - INTR.cx) > 2 * reach + 8) & (np.minimum.reduce([gu - 40, 279 - gu, gv - 40, 199 - gv]) >
+                                                     2 * reach + 8)
+    assert far.sum() > 50 and {tuple(p) for p in g.pixels[far]} <= {tuple(p) for p in kept.pixels}
+    np.testing.assert_array_equal(kept.points, kept.grid[kept.depth > 0])  # the samples listed as kept
 
 
 @pytest.mark.parametrize("sigma", [1.0, 3.0, 8.0])

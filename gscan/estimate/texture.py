@@ -15,6 +15,19 @@ Print on the query where the keyframe is plain lines up nowhere. The pose is ref
 (registration's rule for an edge); no informative tile (plain against plain) leaves the pose to the depth. A
 template without its keyframes' images cannot check the texture: the pose is refused.
 
+That rule needs `accept.min_colour_tiles` tiles, and a box of about the object's size a little way off (0.7 m: 7 of
+its 48-pixel tiles overlap) leaves it without a verdict; nor does its share tell the poses apart on a plain
+template: its informative tiles are mostly the rims and creases, whose shading lines up under any pose that lays a
+box's faces on a box's faces (bench/plain.py's look-alike frames, seeds 0-7: right poses 2-14 of 7-19 lining up,
+wrong ones on a printed box 1-11 of 3-15). So the faces' interiors are judged on their own
+(`gscan.registration.dense.interior`: the samples with no rim and no crease within the band-pass's reach,
+`PRINT_REACH_PX`), where the band-passed texture is the surface's print and not its shading: a tile textured there
+in one image whose counterpart in the other is plain (`gscan.registration.colour.print_tiles`: below that image's
+informative level, both levels set by each image's own noise) is print the other lacks, a fact measured per tile
+against the sensor's noise, not a rank test's chance. A pose with such a tile is refused when fewer than
+`accept.min_colour_agreement` of the interiors' informative tiles line up (a one-sided tile never does); a plain
+template seen on its own plain faces has none.
+
 The keyframes' images are read from the template file on first use and their samples cached (`KeyframeTextures`).
 """
 from __future__ import annotations
@@ -28,10 +41,13 @@ import numpy as np
 from gscan.estimate.params import AcceptParams
 from gscan.estimate.query import QueryFrame
 from gscan.geometry.transforms import inv_T
-from gscan.registration.dense import DenseGeometry, colour_agreement
+from gscan.registration.colour import BAND_SIGMA
+from gscan.registration.dense import DenseGeometry, colour_agreement, interior, print_agreement
 from gscan.registration.noise import DepthNoise
 
 log = logging.getLogger(__name__)
+
+PRINT_REACH_PX = 3.0 * BAND_SIGMA  # px: how far the band-pass's blur carries a rim's or a crease's shading
 
 
 class KeyframeTextures:
@@ -85,4 +101,11 @@ def texture_refusal(q: QueryFrame, T_cam_obj: np.ndarray, keyframes: KeyframeTex
     if c.informative >= p.min_colour_tiles and c.agreeing_fraction < p.min_colour_agreement:
         return (f"texture disagrees ({c.agreeing} of {c.informative} textured tiles line up with the template's view "
                 f"{keyframes.names[v]}; the depth alone decided the pose)")
+    pr = print_agreement(interior(query, noise, PRINT_REACH_PX), interior(kf, noise, PRINT_REACH_PX), T_kf_cam, noise)
+    log.debug("print against keyframe %s: %d of %d informative interior tiles one-sided, %d agree", keyframes.names[v],
+              pr.one_sided, pr.informative, pr.agreeing)
+    if pr.one_sided and pr.agreeing < p.min_colour_agreement * pr.informative:
+        return (f"print disagrees ({pr.one_sided} of {pr.informative} textured tiles of the faces' interiors are print "
+                f"that the query or the template's view {keyframes.names[v]} lacks, {pr.agreeing} line up; the depth "
+                "alone decided the pose)")
     return None

@@ -111,6 +111,15 @@ def _tile_zncc(Ia: np.ndarray, t: np.ndarray, n_tiles: int, tgt_texture: np.ndar
     return cov / np.sqrt(np.maximum(var_a * var_b, 1e-12))
 
 
+def _correlatable(u: np.ndarray, v: np.ndarray, shape: tuple[int, ...], search: tuple[tuple[int, int], ...]
+                  ) -> np.ndarray:
+    """[K] bool: the landing positions (u [K], v [K]) that stay inside an image of `shape` at every displacement
+    `tile_scores` tries (search and its baseline's)."""
+    H, W = shape[:2]
+    m = max(abs(c) for s in search + FAR for c in s) * 2 + 1
+    return (u >= m) & (u < W - 1 - m) & (v >= m) & (v < H - 1 - m)
+
+
 def tile_scores(Ia: np.ndarray, tiles: np.ndarray, tgt_texture: np.ndarray, u: np.ndarray, v: np.ndarray,
                 min_std: float, search: tuple[tuple[int, int], ...] = SEARCH
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -118,9 +127,7 @@ def tile_scores(Ia: np.ndarray, tiles: np.ndarray, tgt_texture: np.ndarray, u: n
     tile ids; (u [K], v [K]): where they land in the target image (pixels); min_std: an informative tile's
     texture; search: the image displacements tried for the whole overlap. Returns (tile ids [T], informative [T]
     bool, agreeing [T] bool)."""
-    H, W = tgt_texture.shape
-    m = max(abs(c) for s in search + FAR for c in s) * 2 + 1
-    keep = (u >= m) & (u < W - 1 - m) & (v >= m) & (v < H - 1 - m)
+    keep = _correlatable(u, v, tgt_texture.shape, search)
     Ia, tiles, u, v = Ia[keep], tiles[keep], u[keep], v[keep]
     ids, t = np.unique(tiles, return_inverse=True)
     n = np.bincount(t, minlength=len(ids))
@@ -137,3 +144,39 @@ def tile_scores(Ia: np.ndarray, tiles: np.ndarray, tgt_texture: np.ndarray, u: n
     far = _tile_zncc(Ia, t, len(ids), tgt_texture, u, v, tuple((bx + dx, by + dy) for dx, dy in FAR)).max(axis=0)
     return ids, informative, informative & (near[best] > far) & (near[best] > 0)
 
+
+@dataclass(frozen=True)
+class PrintAgreement:
+    """Tiles of the overlap (both directions) on the faces' interiors (`gscan.registration.dense.interior`):
+    informative ones (textured in the image they tile), those whose counterpart in the other image is plain
+    (one-sided: print one image has and the other lacks), and those that line up with a textured counterpart."""
+
+    informative: int
+    one_sided: int
+    agreeing: int
+
+    def __add__(self, other: PrintAgreement) -> PrintAgreement:
+        return PrintAgreement(self.informative + other.informative, self.one_sided + other.one_sided,
+                              self.agreeing + other.agreeing)
+
+
+def print_tiles(Ia: np.ndarray, tiles: np.ndarray, tgt_texture: np.ndarray, u: np.ndarray, v: np.ndarray,
+                min_std: float, tgt_min_std: float) -> PrintAgreement:
+    """`tile_scores` of the source samples (Ia [K], tiles [K], landing at u [K], v [K] in the target's texture),
+    with each informative tile's counterpart judged: plain when the target's texture where its samples land
+    (nearest pixel) varies less than tgt_min_std, the target image's informative level. A one-sided tile never
+    counts as lining up: the rank test passes on noise against a plain counterpart about 1 time in 17."""
+    ids, informative, agree = tile_scores(Ia, tiles, tgt_texture, u, v, min_std)
+    if not informative.any():
+        return PrintAgreement(0, 0, 0)
+    keep = _correlatable(u, v, tgt_texture.shape, SEARCH)
+    H, W = tgt_texture.shape
+    ub = np.clip(np.rint(u[keep]).astype(np.int64), 0, W - 1)
+    vb = np.clip(np.rint(v[keep]).astype(np.int64), 0, H - 1)
+    b = tgt_texture[vb, ub].astype(np.float64)
+    t = np.searchsorted(ids, tiles[keep])  # ids: the sorted tiles of the same kept samples
+    n = np.bincount(t, minlength=len(ids))
+    dev = b - (np.bincount(t, b, len(ids)) / np.maximum(n, 1))[t]
+    plain = np.sqrt(np.bincount(t, dev * dev, len(ids)) / np.maximum(n - 1, 1)) < tgt_min_std
+    one_sided = informative & plain
+    return PrintAgreement(int(informative.sum()), int(one_sided.sum()), int((agree & ~one_sided).sum()))

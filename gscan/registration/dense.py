@@ -27,9 +27,11 @@ from gscan.geometry.transforms import inv_T, transform_points
 from gscan.io.camera import Intrinsics
 from gscan.registration.colour import (
     ColourAgreement,
+    PrintAgreement,
     grey_image,
     image_noise,
     min_texture_std,
+    print_tiles,
     texture_image,
     tile_ids,
     tile_scores,
@@ -233,16 +235,8 @@ def colour_tiles(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarray, 
         if a.texture is None or b.texture is None or a.pixels is None:
             parts = []
             break
-        q, _, e, sd, idx = _plane_pairs(a, b, T, noise)
-        ok = np.abs(e) <= k * sd
-        q, idx = q[ok], idx[ok]
-        fx, fy, cx, cy = b.full_intrinsics
-        u = q[:, 0] / q[:, 2] * fx + cx
-        v = q[:, 1] / q[:, 2] * fy + cy
-        pu, pv = a.pixels[idx, 0], a.pixels[idx, 1]
-        tiles = tile_ids(pu, pv, a.texture.shape[1])
-        ids, informative, agree = tile_scores(a.texture[pv, pu].astype(np.float64), tiles, b.texture, u, v,
-                                              min_texture_std(a.texture_noise))
+        Ia, tiles, u, v, idx = _tile_samples(a, b, T, noise, k)
+        ids, informative, agree = tile_scores(Ia, tiles, b.texture, u, v, min_texture_std(a.texture_noise))
         ids, agree = ids[informative], agree[informative]
         # each informative tile's centre: the mean of its samples
         at = np.minimum(np.searchsorted(ids, tiles), max(len(ids) - 1, 0))
@@ -254,6 +248,66 @@ def colour_tiles(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarray, 
     if not parts:
         return ColourTiles(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, bool), np.zeros((0, 3)))
     return ColourTiles(*(np.concatenate(x) for x in zip(*parts, strict=True)))
+
+
+def _tile_samples(a: DenseGeometry, b: DenseGeometry, T_b_a: np.ndarray, noise: DepthNoise, k: float
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """a's samples (with texture and pixels) whose depth lands on b's within k sigmas of `noise` under T_b_a: (their
+    texture in a [K], their tiles of a's image [K], where they land in b's image: u [K], v [K] pixels, their
+    indices [K] into a.points)."""
+    assert a.texture is not None and a.pixels is not None
+    q, _, e, sd, idx = _plane_pairs(a, b, T_b_a, noise)
+    ok = np.abs(e) <= k * sd
+    q, idx = q[ok], idx[ok]
+    fx, fy, cx, cy = b.full_intrinsics
+    u = q[:, 0] / q[:, 2] * fx + cx
+    v = q[:, 1] / q[:, 2] * fy + cy
+    pu, pv = a.pixels[idx, 0], a.pixels[idx, 1]
+    return a.texture[pv, pu].astype(np.float64), tile_ids(pu, pv, a.texture.shape[1]), u, v, idx
+
+
+def interior(g: DenseGeometry, noise: DepthNoise, reach_px: float) -> DenseGeometry:
+    """g with only the samples on a face's interior: every sample within reach_px pixels (a square of samples) is
+    valid (no rim: g leaves out samples across a depth jump and outside its mask) and its normal lies within
+    three sigmas of the normals' difference of this one's (no crease). A normal is a cross product of central
+    differences over two sample spacings d = z / fx, so each axis' slope has sigma sqrt(2) sigma(z) / (2 d) and
+    two normals differ by sqrt(2) times that: the bound is 3 sigma(z) / d radians (at most 90 deg). There the
+    shading is smooth (one normal, no occlusion), so a band-passed texture within reach of the samples is the
+    surface's own print, not shading."""
+    d, good = g.depth, g.depth > 0
+    h, w = d.shape
+    R = int(np.ceil(reach_px * g.fx / g.full_intrinsics[0])) if g.full_intrinsics[0] > 0 else 0
+    spacing = np.where(good, d, 1.0) / g.fx
+    cos_max = np.cos(np.minimum(3.0 * noise.sigma(np.where(good, d, 1.0).ravel()).reshape(d.shape) / spacing,
+                                np.pi / 2))
+    keep = good.copy()
+    for dv in range(-R, R + 1):
+        rows = np.clip(np.arange(h) + dv, 0, h - 1)
+        for du in range(-R, R + 1):
+            if dv == 0 and du == 0:
+                continue
+            cols = np.clip(np.arange(w) + du, 0, w - 1)
+            keep &= good[np.ix_(rows, cols)] & (np.sum(g.normals[np.ix_(rows, cols)] * g.normals, axis=-1) >= cos_max)
+    index = np.full(d.shape, -1, np.int64)
+    index[good] = np.arange(int(good.sum()))  # g.points and g.pixels list the valid samples row by row
+    kept = index[keep]
+    return DenseGeometry(np.where(keep, d, 0.0), g.grid, g.normals, g.points[kept], g.fx, g.fy, g.cx, g.cy,
+                         None if g.pixels is None else g.pixels[kept], g.full_intrinsics, g.texture, g.texture_noise)
+
+
+def print_agreement(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarray, noise: DepthNoise,
+                    k: float = 3.0) -> PrintAgreement:
+    """`colour_agreement`'s tiles judged against their counterparts (`gscan.registration.colour.print_tiles`), in
+    both directions, over the samples whose depth agrees within k sigmas of `noise`; give it `interior`
+    geometries, where texture is print. Nothing is informative when a frame has no texture."""
+    out = PrintAgreement(0, 0, 0)
+    for a, b, T in ((src, tgt, T_tgt_src), (tgt, src, inv_T(T_tgt_src))):
+        if a.texture is None or b.texture is None or a.pixels is None:
+            return PrintAgreement(0, 0, 0)
+        Ia, tiles, u, v, _ = _tile_samples(a, b, T, noise, k)
+        out = out + print_tiles(Ia, tiles, b.texture, u, v, min_texture_std(a.texture_noise),
+                                min_texture_std(b.texture_noise))
+    return out
 
 
 def refine_pose(src: DenseGeometry, tgt: DenseGeometry, kp_s: np.ndarray, kp_t: np.ndarray, T_tgt_src: np.ndarray,
