@@ -92,6 +92,8 @@ def test_foreign_sections_are_ignored_and_others_refused(tmp_path):
     ("segmentation:\n  depth_max: 1.0e+300\n", "segmentation.depth_max"),
     ("segmentation:\n  depth_min: 5\n  depth_max: 10\nfusion:\n  depth_max: 2\n",
      "segmentation.depth_min must be below fusion.depth_max"),
+    ("keyframes:\n  object_keypoints: both\nfeatures:\n  kind: sift\n",
+     "keyframes.object_keypoints: both joins depth keypoints to rootsift ones, not sift"),
 ])
 def test_bad_config_names_the_file_and_the_key(tmp_path, text, words):
     path = tmp_path / "bad.yaml"

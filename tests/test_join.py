@@ -5,10 +5,8 @@ compared on the surface patches both overlap."""
 from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
-from math import comb
 
 import numpy as np
-import pytest
 
 from gscan import synth
 from gscan.features.keypoints import OBJECT_FEATURES, extract_features_in_mask
@@ -16,7 +14,7 @@ from gscan.geometry.transforms import inv_T, rotation_angle_deg
 from gscan.io.camera import RGBDFrame
 from gscan.registration.colour import ColourAgreement
 from gscan.registration.edges import RegData
-from gscan.registration.join import Join, JoinParams, JoinView, _texture_outweighs, join_captures, sign_test, spread
+from gscan.registration.join import Join, JoinParams, JoinView, _texture_outweighs, join_captures, spread
 from gscan.registration.pairwise import RegisterParams
 from gscan.scanning.config import ScanConfig, for_capture
 from gscan.scanning.modes import MOVING_OBJECT
@@ -46,14 +44,6 @@ def test_too_few_textured_tiles_outweigh_nothing():
     few = RP.min_colour_tiles - 1
     assert not _texture_outweighs(ColourAgreement(few, few), ColourAgreement(100, 0), RATIO, RP)
     assert not _texture_outweighs(ColourAgreement(100, 100), ColourAgreement(few, 0), RATIO, RP)
-
-
-def test_the_sign_test_is_the_binomial_tail():
-    assert sign_test(0, 0) == 1.0
-    assert sign_test(3, 0) == 1 / 8
-    assert sign_test(0, 3) == 1.0
-    assert sign_test(31, 0) == pytest.approx(2.0 ** -31)
-    assert sign_test(6, 4) == pytest.approx(sum(comb(10, i) for i in range(6, 11)) / 1024)
 
 
 def _join_rendered(mesh: synth.TexturedMesh, n_views: int) -> tuple[Join, np.ndarray]:

@@ -205,10 +205,12 @@ class ListVerifier:
         (`silhouette_refusal`, then the keyframes' texture: `texture_refusal`), else None."""
         loc_depth = np.zeros(int(location.max()) + 1 if len(location) else 0, bool)
         loc_depth[location[from_depth]] = True
-        inl = np.unique(location[inliers])
-        ev.depth_only = decided_by_depth(ev, loc_depth, int(np.count_nonzero(loc_depth[inl])), self.params.accept)
-        if not ev.depth_only:
-            return None
+        ev.depth_only = decided_by_depth(ev, loc_depth, np.unique(location[inliers]), self.params.accept)
+        return self.depth_only_refusal(q, T_cam_obj) if ev.depth_only else None
+
+    def depth_only_refusal(self, q: QueryFrame, T_cam_obj: np.ndarray) -> str | None:
+        """The reason the stricter shape rules refuse a pose the depth alone decided (`silhouette_refusal`, then
+        the keyframes' texture: `texture_refusal`), else None."""
         why = silhouette_refusal(q, T_cam_obj, self.model.samples, self.params.refine.voxel, self.depth_noise,
                                  self.params.accept)
         if why is None:
@@ -291,6 +293,10 @@ class ListVerifier:
                 continue
             if self.near(T, res.T_cam_obj):
                 continue
+            if res.evidence.depth_only:  # the turned pose rests on the same depth: the same stricter rules
+                ev.depth_only = True
+                if self.depth_only_refusal(q, T) is not None:
+                    continue
             res, tie = self.weigh_turn(q, qk, res, found(T, ev.score, res.n_matches, res.view, res.method, ev),
                                        self.apart(T, res.T_cam_obj)[0])
             if tie is not None:

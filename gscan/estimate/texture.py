@@ -19,7 +19,7 @@ That rule needs `accept.min_colour_tiles` tiles, and a box of about the object's
 its 48-pixel tiles overlap) leaves it without a verdict; nor does its share tell the poses apart on a plain
 template: its informative tiles are mostly the rims and creases, whose shading lines up under any pose that lays a
 box's faces on a box's faces (bench/plain.py's look-alike frames, seeds 0-7: right poses 2-14 of 7-19 lining up,
-wrong ones on a printed box 1-11 of 3-15). So the faces' interiors are judged on their own
+the wrong ones on a printed box it let through 1-8 of 3-14). So the faces' interiors are judged on their own
 (`gscan.registration.dense.interior`: the samples with no rim and no crease within the band-pass's reach,
 `PRINT_REACH_PX`), where the band-passed texture is the surface's print and not its shading: a tile textured there
 in one image whose counterpart in the other is plain (`gscan.registration.colour.print_tiles`: below that image's

@@ -283,8 +283,9 @@ class Tracker:
             ev.n_inliers = int(keep.sum())
             ev.spread_m = list_spread(src[keep])
         why = accept(ev, est.model.radius, est.params.accept)
-        if why is None and ix.kind == JOINT:  # the depth alone may decide: the stricter shape rules (rivals)
-            why = est.verifier.by_depth(q, T2, ev, feats.from_depth, location, rows[keep])
+        if why is None and ix.kind == JOINT:  # the depth alone may decide: the stricter shape rules (rivals), on
+            # the frame prepared as an estimate's is (the silhouettes need its pixels off the table)
+            why = est.verifier.by_depth(est.prepare(frame, mask), T2, ev, feats.from_depth, location, rows[keep])
         if why is None and ev.score < self._ref_score - p.max_score_drop:
             why = f"depth score dropped to {ev.score:.2f} from {self._ref_score:.2f}"
         if why is not None:

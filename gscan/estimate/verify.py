@@ -90,13 +90,14 @@ def accept(ev: Evidence, radius: float, p: AcceptParams, best: bool = True) -> s
             f"{p.strong_matches})")
 
 
-def decided_by_depth(ev: Evidence, location_depth: np.ndarray, inliers_depth: int, p: AcceptParams) -> bool:
+def decided_by_depth(ev: Evidence, location_depth: np.ndarray, inliers: np.ndarray, p: AcceptParams) -> bool:
     """Whether the depth alone decided the pose of a template with depth keypoints: its image keypoints would not
     carry it (fewer than `min_support` of its supporters are image keypoints: a plain object's print cannot
-    judge the pose), or most of its list's inliers are depth keypoints (`inliers_depth` of ev.n_inliers).
-    location_depth [G] bool: which query keypoint locations are depth keypoints."""
+    judge the pose), or most of its list's inliers are depth keypoints. location_depth [G] bool: which query
+    keypoint locations are depth keypoints; inliers [I]: the inliers' location ids, each once (a keypoint of
+    several orientations is one location, as the supporters are)."""
     image = int(np.count_nonzero(~location_depth[ev.supporters])) if len(ev.supporters) else 0
-    return image < p.min_support or 2 * inliers_depth > ev.n_inliers
+    return image < p.min_support or 2 * int(np.count_nonzero(location_depth[inliers])) > len(inliers)
 
 
 def silhouette_refusal(q: QueryFrame, T_cam_obj: np.ndarray, samples: np.ndarray, spacing: float,

@@ -30,7 +30,7 @@ by (v, u); the same frame gives identical arrays (tested).
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Any
 
@@ -65,6 +65,13 @@ def object_size(points: np.ndarray) -> float:
     """An object's size (m) from its points [N x 3]: twice the 90th percentile distance to their median."""
     c = np.median(points, axis=0)
     return 2.0 * float(np.percentile(np.linalg.norm(points - c, axis=1), 90))
+
+
+def median_object_size(point_sets: Iterable[np.ndarray]) -> float | None:
+    """The median `object_size` (m) of the views' object points [N_i x 3] of 50 points or more: the one size a
+    template's depth keypoints, and a query's, are found at; None when no view has 50 points."""
+    sizes = [object_size(np.asarray(p, np.float64)) for p in point_sets if len(p) >= 50]
+    return float(np.median(sizes)) if sizes else None
 
 
 def depth_scales(points: np.ndarray, sigma: float, p: FeatureParams, size: float | None = None) -> DepthScales:

@@ -41,6 +41,14 @@ _DTYPES = {"sift": np.float32, "rootsift": np.float32, "orb": np.uint8, JOINT: n
 DESCRIPTOR_KINDS = {k: (_DIMS[k], _DTYPES[k]) for k in _DIMS}  # kind -> (descriptor length, dtype)
 
 
+def depth_rows(descriptors: np.ndarray, kind: str) -> np.ndarray:
+    """[N] bool: which keypoints of descriptors [N x D] of `kind` were found in the depth's geometry (rootsift+fpfh:
+    a non-zero FPFH part; none of any other kind)."""
+    if kind != JOINT:
+        return np.zeros(len(descriptors), bool)
+    return np.abs(descriptors[:, 128:]).sum(axis=1) > 0
+
+
 @dataclass
 class Features:
     """Keypoints of one frame (or template view) with descriptors and 3D points.
@@ -77,9 +85,7 @@ class Features:
     @property
     def from_depth(self) -> np.ndarray:
         """[N] bool: the keypoints found in the depth's geometry (rootsift+fpfh: a non-zero FPFH part)."""
-        if self.kind != JOINT:
-            return np.zeros(len(self), bool)
-        return np.abs(self.descriptors[:, 128:]).sum(axis=1) > 0
+        return depth_rows(self.descriptors, self.kind)
 
     @property
     def location_sigma(self) -> np.ndarray:

@@ -24,7 +24,6 @@ from collections import Counter
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from math import comb
 
 import numpy as np
 
@@ -38,6 +37,7 @@ from gscan.matching.gmatch import default_eps_f
 from gscan.registration.colour import TILE, ColourAgreement
 from gscan.registration.dense import ColourTiles, DepthAgreement, colour_agreement, colour_tiles, depth_agreement
 from gscan.registration.edges import RegData
+from gscan.registration.noise import sign_test
 from gscan.registration.pairwise import GuidedPool, PairResult, RegisterParams, consistent_pairs, register_features
 from gscan.registration.params import JoinParams
 from gscan.registration.turns import AXES, principal_turns, texture_refutes
@@ -161,8 +161,8 @@ def join_captures(a: Sequence[JoinView], b: Sequence[JoinView], rparams: Registe
         if len(standing) != 1:
             return Join(None, f"ambiguous: two motions join the captures ({len(best)} and {len(rival)} view pairs "
                         "agree on each; a symmetric object?)", tried, accepted, [(p.a, p.b) for p in best])
-        best, T = standing[0]
         log.info("join: of two motions (%d and %d view pairs), the texture refutes one", len(best), len(rival))
+        best, T = standing[0]
     else:
         turned = _turn_not_refuted(T, a, b, rparams, params, pool)
         if turned is not None:
@@ -185,9 +185,10 @@ def _turn_not_refuted(T_a_b: np.ndarray, a: Sequence[JoinView], b: Sequence[Join
     in, each over `min_colour_tiles` or more (two motions overlap different sides, so the shares are compared with
     a wide margin); or, both refined alike on the keypoints and compared on the surface patches both overlap, the
     texture favours the motion found (`_Alike`). A turned motion is judged by the first three rules refined on the
-    object's depth; the amount of depth two motions explain is not compared: a print repeated on the top and
-    bottom, seen squarely by both captures, lines up better and explains more depth under the wrong motion than the
-    sides, seen obliquely, under the right one (docs/method.md, the join)."""
+    object's depth; an `others` motion, as its view pairs solved it, by the depth and by `_Alike` only (the shares
+    of tiles measure different sides); the amount of depth two motions explain is not compared: a print repeated on
+    the top and bottom, seen squarely by both captures, lines up better and explains more depth under the wrong
+    motion than the sides, seen obliquely, under the right one (docs/method.md, the join)."""
     pts = _in_world(b, lambda v: v.reg.dense.points)
     if len(pts) < 3:
         return None
@@ -318,12 +319,6 @@ class _Alike:
             n, k = out.get(patch, (0, 0))
             out[patch] = (n + 1, k + int(g))
         return out
-
-
-def sign_test(k: int, m: int) -> float:
-    """One-sided sign test: the chance that a fair coin gives at least k heads in k + m tosses."""
-    n = k + m
-    return sum(comb(n, i) for i in range(k, n + 1)) / 2.0 ** n if n else 1.0
 
 
 _TileKey = tuple[int, int, int, int]  # (view of A, view of B, direction (0: B's tiles), tile id)

@@ -31,7 +31,7 @@ import numpy as np
 
 from gscan.errors import InputError
 from gscan.features import OBJECT_FEATURES, FeatureParams, extract_features
-from gscan.features.depth import depth_keypoints, joint_features, object_size
+from gscan.features.depth import depth_keypoints, joint_features, median_object_size
 from gscan.features.keypoints import JOINT
 from gscan.geometry.coverage import template_coverage
 from gscan.geometry.pointset import voxel_mean
@@ -109,13 +109,11 @@ def _load_mesh(path: Path, scale: float) -> TexturedMesh:
 def _depth_size(scene: Any, poses: list[np.ndarray], intr: Any) -> float | None:
     """The object's size its depth keypoints are found at (`gscan.features.depth.object_size`): the median over
     the views of the size of the object's points in each (a scan's keyframes take the same median)."""
-    sizes = []
-    for T_obj_cam in poses:
+    def points(T_obj_cam: np.ndarray) -> np.ndarray:
         r = scene.render(T_obj_cam, intr, noise=False)
-        pts = backproject(r.depth_clean, intr)[r.mask & (r.depth_clean > 0)]
-        if len(pts) >= 50:
-            sizes.append(object_size(pts.astype(np.float64)))
-    return float(np.median(sizes)) if sizes else None
+        return backproject(r.depth_clean, intr)[r.mask & (r.depth_clean > 0)]
+
+    return median_object_size(points(T) for T in poses)
 
 
 def _voxel_cloud(points: np.ndarray, colors: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:

@@ -81,6 +81,9 @@ class ScanConfig(BaseModel):
     def _segment_within_fusion(self) -> ScanConfig:
         if self.fusion.depth_max is not None and self.segmentation.depth_min >= self.fusion.depth_max:
             raise ValueError("segmentation.depth_min must be below fusion.depth_max (nothing could be fused)")
+        if self.keyframes.object_keypoints == "both" and self.features.kind != "rootsift":
+            raise ValueError(f"keyframes.object_keypoints: both joins depth keypoints to rootsift ones, not "
+                             f"{self.features.kind}; set object_keypoints: sift or features.kind: rootsift")
         return self
 
 

@@ -61,7 +61,7 @@ from gscan.features.depth import (
     depth_keypoints,
     extract_keypoints,
     joint_features,
-    object_size,
+    median_object_size,
 )
 from gscan.features.keypoints import JOINT
 from gscan.geometry.coverage import template_coverage
@@ -415,8 +415,9 @@ def _scan_frames(caps: list[_Capture], output: Path, opts: ScanOptions, db: Temp
         object_source = _object_source(caps, opts.config, db, opts.append)
         keyframes, depth_size = _store_views(data, T_obj_cam, mask_of, quality, cfg, db, advance,
                                              first.reg.rparams.depth_noise if object_source == "both" else None)
-        if object_source == "both":  # the keyframes' object keypoints are a joint set: the estimator reads this
-            db.set_meta("descriptor", JOINT)
+        # the keyframes' object keypoints' kind, which the estimator reads: set on every run (an --append that
+        # stores image keypoints alone replaces a joint template's)
+        db.set_meta("descriptor", JOINT if object_source == "both" else opts.config.features.kind)
         for cap in caps:
             for e in cap.reg.edges:  # type: ignore[union-attr]  # the pose graph's verdicts, also where a
                 if e.pruned or (e.src, e.tgt) in cap.reg.restored:  # type: ignore[union-attr]  # resumed run
@@ -815,9 +816,10 @@ def _object_source(caps: list[_Capture], config: ScanConfig, db: TemplateDB, app
         depth = any(c.data is not None and c.data.keypoints["source"] in ("depth", "both") for c in caps) or (
             isinstance(stored, dict) and stored.get("object") == "both")
         chosen = "both" if depth else "sift"
-    if chosen == "both" and config.features.kind != "rootsift":
-        raise ValueError(f"keyframes.object_keypoints: both joins depth keypoints to rootsift ones, not "
-                         f"{config.features.kind}")
+    if chosen == "both" and config.features.kind != "rootsift":  # chosen by auto: a configuration asking for
+        # "both" is refused when it is read (ScanConfig)
+        raise ValueError(f"the template's keyframes hold depth keypoints joined to rootsift ones: an appended "
+                         f"capture's features.kind must be rootsift, not {config.features.kind}")
     return chosen
 
 
@@ -825,13 +827,11 @@ def _depth_size(data: FrameData, keyframes: set[int], mask_of: Callable[[int], n
     """The object's size (m) the keyframes' depth keypoints are found at, and a query's: the median over the
     keyframes of the size registration scales a view's depth keypoints by (`object_size` of its masked points);
     None when no keyframe has a mask with 50 points."""
-    sizes = []
-    for k in sorted(keyframes):
+    def points(k: int) -> np.ndarray:
         m = mask_of(k)
-        pts = point_cloud(data.frame(k), m)[0] if m is not None else np.zeros((0, 3))
-        if len(pts) >= 50:
-            sizes.append(object_size(pts.astype(np.float64)))
-    return float(np.median(sizes)) if sizes else None
+        return point_cloud(data.frame(k), m)[0] if m is not None else np.zeros((0, 3))
+
+    return median_object_size(points(k) for k in sorted(keyframes))
 
 
 def _store_views(data: FrameData, T_obj_cam: list[np.ndarray | None], mask_of: Callable[[int], np.ndarray | None],

@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from gscan.errors import InputError
-from gscan.features.keypoints import JOINT
+from gscan.features.keypoints import JOINT, depth_rows
 from gscan.geometry.mesh import MeshData
 from gscan.io.camera import Intrinsics, RGBDFrame
 
@@ -106,7 +106,7 @@ class Template:
         keypoints holds them); any other template unchanged."""
         if self.kind != JOINT:
             return self
-        image = ~(np.abs(self.descriptors[:, 128:]).sum(axis=1) > 0)
+        image = ~depth_rows(self.descriptors, self.kind)
         counts = np.bincount(self.kp_view[image], minlength=len(self.view_names))
         return replace(self, kind="rootsift", kp_view=self.kp_view[image], pixels=self.pixels[image],
                        points_obj=self.points_obj[image],
