@@ -211,7 +211,7 @@ def colour_agreement(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarr
     """Colour agreement of two frames' `DenseGeometry` (each with its texture) under T_tgt_src, in both
     directions, over the samples whose depth agrees within k sigmas of `noise` (`gscan.registration.colour`);
     nothing is informative when a frame has no texture."""
-    t = colour_tiles(src, tgt, T_tgt_src, noise, k)
+    t = colour_tiles(src, tgt, T_tgt_src, noise, k, centres=False)
     return ColourAgreement(len(t.agrees), int(t.agrees.sum()))
 
 
@@ -219,7 +219,7 @@ def colour_agreement(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarr
 class ColourTiles:
     """The informative tiles of `colour_agreement`, one by one: direction [T] (0: src's tiles landing on tgt, 1:
     tgt's on src), tile id [T] (`gscan.registration.colour.tile_ids` of its source image), agrees [T] bool, and
-    centre [T x 3]: the mean of the tile's samples, in its source camera's frame (m)."""
+    centre [T x 3]: the mean of the tile's samples, in its source camera's frame (m; [0 x 3] when not asked for)."""
 
     direction: np.ndarray
     tile: np.ndarray
@@ -228,8 +228,9 @@ class ColourTiles:
 
 
 def colour_tiles(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarray, noise: DepthNoise,
-                 k: float = 3.0) -> ColourTiles:
-    """The tiles `colour_agreement` counts (`ColourTiles`); none when a frame has no texture."""
+                 k: float = 3.0, centres: bool = True) -> ColourTiles:
+    """The tiles `colour_agreement` counts (`ColourTiles`); none when a frame has no texture. centres: whether to
+    locate each tile (its counts alone, on every edge's check, need not)."""
     parts: list[tuple[np.ndarray, ...]] = []
     for d, (a, b, T) in enumerate(((src, tgt, T_tgt_src), (tgt, src, inv_T(T_tgt_src)))):
         if a.texture is None or b.texture is None or a.pixels is None:
@@ -238,6 +239,9 @@ def colour_tiles(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarray, 
         Ia, tiles, u, v, idx = _tile_samples(a, b, T, noise, k)
         ids, informative, agree = tile_scores(Ia, tiles, b.texture, u, v, min_texture_std(a.texture_noise))
         ids, agree = ids[informative], agree[informative]
+        if not centres:
+            parts.append((np.full(len(ids), d), ids, agree, np.zeros((0, 3))))
+            continue
         # each informative tile's centre: the mean of its samples
         at = np.minimum(np.searchsorted(ids, tiles), max(len(ids) - 1, 0))
         mine = ids[at] == tiles if len(ids) else np.zeros(len(tiles), bool)
