@@ -98,7 +98,7 @@ def texture_refusal(q: QueryFrame, T_cam_obj: np.ndarray, keyframes: KeyframeTex
     c = colour_agreement(query, kf, T_kf_cam, noise)
     log.debug("texture against keyframe %s: %d of %d informative tiles agree", keyframes.names[v], c.agreeing,
               c.informative)
-    if c.informative >= p.min_colour_tiles and c.agreeing_fraction < p.min_colour_agreement:
+    if c.refutes(p.min_colour_tiles, p.min_colour_agreement):
         return (f"texture disagrees ({c.agreeing} of {c.informative} textured tiles line up with the template's view "
                 f"{keyframes.names[v]}; the depth alone decided the pose)")
     pr = print_agreement(interior(query, noise, PRINT_REACH_PX), interior(kf, noise, PRINT_REACH_PX), T_kf_cam, noise)

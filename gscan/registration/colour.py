@@ -81,6 +81,11 @@ class ColourAgreement:
     def agreeing_fraction(self) -> float:
         return self.agreeing / max(1, self.informative)
 
+    def refutes(self, min_tiles: int, min_agreement: float) -> bool:
+        """Whether the texture refutes the pose (registration's rule 3): at least `min_tiles` informative tiles,
+        fewer than `min_agreement` of them lining up."""
+        return self.informative >= min_tiles and self.agreeing_fraction < min_agreement
+
     def __add__(self, other: ColourAgreement) -> ColourAgreement:
         return ColourAgreement(self.informative + other.informative, self.agreeing + other.agreeing)
 

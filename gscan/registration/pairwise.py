@@ -424,7 +424,7 @@ def register_points(pts_s: np.ndarray, pts_t: np.ndarray, desc_s: np.ndarray, de
         t0 = time.perf_counter()
         c = out.colour = colour_agreement(dense[0], dense[1], T, params.depth_noise)
         tm["colour"] = (time.perf_counter() - t0) * 1e3
-        if c.informative >= params.min_colour_tiles and c.agreeing_fraction < params.min_colour_agreement:
+        if c.refutes(params.min_colour_tiles, params.min_colour_agreement):
             out.reason = (f"colour disagrees (the texture lines up in {c.agreeing} of {c.informative} tiles of the "
                           f"overlap under the pose)")
             return out

@@ -56,7 +56,7 @@ def principal_turns(points: np.ndarray, axes: np.ndarray | None = None) -> tuple
 def texture_refutes(colour: ColourAgreement, params: RegisterParams) -> bool:
     """Whether texture refutes a pose as it does an edge's (rule 3: enough textured tiles in the overlap, too few of
     them lining up)."""
-    return colour.informative >= params.min_colour_tiles and colour.agreeing_fraction < params.min_colour_agreement
+    return colour.refutes(params.min_colour_tiles, params.min_colour_agreement)
 
 
 def has_print(fs: Features, ft: Features, min_keypoints: int) -> bool:
