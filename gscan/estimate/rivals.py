@@ -64,6 +64,7 @@ from gscan.estimate.verify import (
     decided_by_depth,
     list_refusal,
     list_spread,
+    near_agreeing,
     pose_evidence,
     query_sinks,
     silhouette_refusal,
@@ -388,21 +389,10 @@ class ListVerifier:
         """The location ids (sorted) of the query keypoints with a template keypoint (of the views near the pose's
         viewing direction, visible at the pose) within `verify.support_radius` of them at T_cam_obj [4 x 4] whose
         descriptor agrees (module docstring)."""
-        from scipy.spatial import cKDTree
-
         p = self.params.verify
         kp_idx = self.index.offered_keypoints(T_cam_obj, p.support_views_deg)
         vis, kp_cam, _ = visible(T_cam_obj, q.frame.intrinsics, self.index.points_obj[kp_idx])
-        q_pts = qk.feats.points.astype(np.float64)
-        if len(vis) == 0 or len(q_pts) == 0:
-            return np.zeros(0, np.int64)
-        k = min(16, len(vis))
-        d, j = cKDTree(kp_cam).query(q_pts, k=k, distance_upper_bound=p.support_radius)
-        d, j = d.reshape(len(q_pts), k), j.reshape(len(q_pts), k)
-        near = np.isfinite(d)
-        some = np.flatnonzero(near.any(axis=1))  # the similarities read only where a template keypoint is near
-        near = near[some]
-        cols = kp_idx[vis][np.where(near, j[some], 0)]
-        sim = qk.S[qk.row_of(some)[:, None], cols] * (1.0 if self.index.unit else -1.0)
-        agree = (near & (sim >= self.support_sim)).any(axis=1)
-        return np.unique(qk.location[some[agree]]).astype(np.int64)
+        cols, sign = kp_idx[vis], (1.0 if self.index.unit else -1.0)
+        agree = near_agreeing(qk.feats.points, kp_cam, p.support_radius,
+                              lambda some, j: qk.S[qk.row_of(some)[:, None], cols[j]] * sign >= self.support_sim)
+        return np.unique(qk.location[agree]).astype(np.int64)

@@ -20,6 +20,7 @@ A pose is accepted from what the frame shows, not from a fixed match count:
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import cv2
@@ -347,17 +348,30 @@ def _local_agreement(rows: np.ndarray, kp_cam: np.ndarray, sel: np.ndarray, sim:
     """[R] whether each query keypoint `rows` has a template keypoint within `radius` (kp_cam [K x 3] the offered
     ones shown, camera frame; sel [K] their positions in sim_cols) whose descriptor agrees (`keypoint_support`'s
     local rule)."""
+    r, cols = (rows if sim_rows is None else sim_rows[rows]), sim_cols[sel]
+    return near_agreeing(q_points[rows], kp_cam, radius,
+                         lambda some, j: sim[r[some][:, None], cols[j]] * sign >= min_sim)
+
+
+def near_agreeing(q_pts: np.ndarray, kp_cam: np.ndarray, radius: float,
+                  agrees: Callable[[np.ndarray, np.ndarray], np.ndarray]) -> np.ndarray:
+    """[R] bool: whether each query point q_pts [R x 3] has, among its 16 nearest template keypoints kp_cam [K x 3]
+    (camera frame) within `radius` (m), one whose descriptor agrees. agrees(some [R'], j [R' x k]) -> [R' x k] bool
+    judges the query rows `some` that have a template keypoint near against kp_cam's rows j (any row where none is
+    near: masked out), so that the similarities are read only there."""
     from scipy.spatial import cKDTree
 
-    if len(rows) == 0 or len(kp_cam) == 0:
-        return np.zeros(len(rows), bool)
+    out = np.zeros(len(q_pts), bool)
+    if len(q_pts) == 0 or len(kp_cam) == 0:
+        return out
     k = min(16, len(kp_cam))
-    d, j = cKDTree(kp_cam).query(np.asarray(q_points[rows], dtype=np.float64), k=k, distance_upper_bound=radius)
-    d, j = d.reshape(len(rows), k), j.reshape(len(rows), k)
+    d, j = cKDTree(kp_cam).query(np.asarray(q_pts, dtype=np.float64), k=k, distance_upper_bound=radius)
+    d, j = d.reshape(len(q_pts), k), j.reshape(len(q_pts), k)
     near = np.isfinite(d)
-    cols = sim_cols[sel][np.where(near, j, 0)]
-    r = rows if sim_rows is None else sim_rows[rows]
-    return (near & (sim[r[:, None], cols] * sign >= min_sim)).any(axis=1)
+    some = np.flatnonzero(near.any(axis=1))
+    near = near[some]
+    out[some] = (near & agrees(some, np.where(near, j[some], 0))).any(axis=1)
+    return out
 
 
 def count_unique_rows(keys: np.ndarray) -> int:
