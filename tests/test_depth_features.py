@@ -219,6 +219,29 @@ def test_a_loop_closure_the_depth_alone_decides_is_refused(plain_box):
     assert not loop[0].accepted and loop[0].reason == LOOP_DEPTH_ONLY
 
 
+def test_a_sequential_edge_turning_more_than_its_half_turn_is_refused(meshes_dir):
+    """The plain Crayola box (its mean colour) on a 36-frame turntable (10 deg a frame): its frames 8 and 11, a skip
+    edge of the scan on image and depth keypoints, register at 158 deg, the box's half turn off the true 30 deg,
+    and the shading lets that through; consecutive frames turn little, so an edge turning more than 90 deg must
+    refute the object's half turns and is refused (`SEQUENTIAL_TURN`). Frames 9 and 10 (10 deg) stay accepted,
+    within 5 deg / 2 cm of the truth at the object. About 10 s."""
+    from gscan.registration.edges import SEQUENTIAL_TURN
+    from gscan.synth.mesh import load_textured_mesh, plain_mesh
+
+    mesh = plain_mesh(load_textured_mesh(meshes_dir / "Crayola_Bonus_64_Crayons" / "model_0.obj"))
+    frames = render_capture(mesh, None, 36, mode="turntable", seed=0, table_kind="plain")[8:12]
+    feats = [extract_keypoints(_frame(f, str(k)), FP, "both", NOISE.sigma, mask=f.mask) for k, f in enumerate(frames)]
+    with ThreadPoolExecutor(1) as pool:  # four frames: a capture of two weighs its one edge as a lone edge
+        far, near = Registrar(_Frames(frames, feats), RegisterParams(), _Sink()).register([(0, 3), (1, 2)],
+                                                                                        "sequential", pool)
+    assert not far.accepted and far.reason.startswith(SEQUENTIAL_TURN.split("{")[0]), far.reason
+    assert near.accepted, near.reason
+    T_true = frames[2].T_cam_obj @ inv_T(frames[1].T_cam_obj)
+    centre = frames[1].T_cam_obj[:3, 3][None]  # the object's origin in the source camera
+    moved = np.linalg.norm(transform_points(near.T_tgt_src, centre) - transform_points(T_true, centre))
+    assert pose_error(near.T_tgt_src, T_true)[0] < 5.0 and moved < 0.02
+
+
 def test_depth_keypoints_are_located_to_their_voxel(plain_box):
     """A depth keypoint's position carries its own sigma, voxel / sqrt(3) per axis (`location_sigma`): the true
     pairs of two views 10 deg apart (mutual nearest within 3 voxels under the true pose) lie beyond the sensor's

@@ -23,7 +23,7 @@ from typing import Protocol, TypeVar
 import numpy as np
 
 from gscan.features import FeatureParams, Features
-from gscan.geometry.transforms import transform_points
+from gscan.geometry.transforms import rotation_angle_deg, transform_points
 from gscan.io.camera import Intrinsics, backproject
 from gscan.registration.dense import DenseGeometry, in_source_frame, pose_information
 from gscan.registration.edge import Edge
@@ -34,6 +34,9 @@ from gscan.registration.turns import edge_turn, lone_edge_turn
 LOOP_DEPTH_ONLY = ("ambiguous shape: a loop closure the depth alone decides (a plain surface: the shape's own "
                    "symmetry would fit as well)")
 LOOP_TURN = "ambiguous shape: a loop closure the views cannot tell from {}"  # {}: the turn, in words
+SEQUENTIAL_TURN = ("ambiguous shape: a sequential edge turning {:.0f} deg, which the views cannot tell from {} (a "
+                   "smaller turn)")  # {}: the edge's rotation, the turn in words
+SEQUENTIAL_MAX_TURN_DEG = 90.0  # a sequential edge turning more may have a half turn of the object that turns less
 AGAINST_ODOMETRY = "contradicts the capture's odometry"  # how the reason of such an edge begins (`against_odometry`)
 ICP_VOXEL_STRIDE = 2  # pixel stride of the clouds kept for ICP before voxel downsampling (a sampling internal)
 COMMIT_ROWS = 64  # database writes are committed in chunks of this many edges or views (a transaction size)
@@ -169,7 +172,8 @@ class Registrar:
     consumed. Loop closures: one the depth alone decides is refused (`LOOP_DEPTH_ONLY`); one whose frames are plain
     (fewer than `min_print_keypoints` image keypoints: the scan's `features.auto_min_keypoints`) or whose pose the
     texture did not judge is refused when the views do not refute the object's half turns (`LOOP_TURN`,
-    `gscan.registration.turns`). A capture of two frames has one edge and no cycle: it is weighed as
+    `gscan.registration.turns`); so is a sequential edge turning more than SEQUENTIAL_MAX_TURN_DEG
+    (`SEQUENTIAL_TURN`). A capture of two frames has one edge and no cycle: it is weighed as
     `register_frames` weighs a lone edge (`gscan.registration.turns.lone_edge_turn`)."""
 
     def __init__(self, frames: SequenceFrames, rparams: RegisterParams, sink: EdgeSink,
@@ -204,6 +208,16 @@ class Registrar:
             turned = edge_turn(a.feats, b.feats, a.dense, b.dense, r, self.rparams, self.min_print_keypoints, 0.0)
             if turned is not None:
                 r.accepted, r.reason = False, LOOP_TURN.format(turned)
+        elif r.accepted and r.T_tgt_src is not None and (
+                angle := rotation_angle_deg(r.T_tgt_src[:3, :3])) > SEQUENTIAL_MAX_TURN_DEG:
+            # consecutive frames turn little: of a pose and its half turns about the object, which the shape alone
+            # cannot tell apart, a sequential edge stands for the one that turns least; turning more than 90 deg, a
+            # half turn may turn less (measured: a plain box's skip edge placed 3 frames of 10 deg at 158 deg, its
+            # half turn off, which the shading let through), so the views must refute the object's half turns,
+            # as a loop closure's
+            turned = edge_turn(a.feats, b.feats, a.dense, b.dense, r, self.rparams, self.min_print_keypoints, 0.0)
+            if turned is not None:
+                r.accepted, r.reason = False, SEQUENTIAL_TURN.format(angle, turned)
         if len(self.names) == 2 and r.accepted:
             # a two-frame capture: its one edge alone places the second frame, as in `register_frames`
             why = lone_edge_turn(a.feats, b.feats, a.dense, b.dense, r, self.rparams, self.min_print_keypoints)
