@@ -219,12 +219,13 @@ def test_a_loop_closure_the_depth_alone_decides_is_refused(plain_box):
     assert not loop[0].accepted and loop[0].reason == LOOP_DEPTH_ONLY
 
 
-def test_a_sequential_edge_turning_more_than_its_half_turn_is_refused(meshes_dir):
-    """The plain Crayola box (its mean colour) on a 36-frame turntable (10 deg a frame): its frames 8 and 11, a skip
-    edge of the scan on image and depth keypoints, register at 158 deg, the box's half turn off the true 30 deg,
-    and the shading lets that through; consecutive frames turn little, so an edge turning more than 90 deg must
-    refute the object's half turns and is refused (`SEQUENTIAL_TURN`). Frames 9 and 10 (10 deg) stay accepted,
-    within 5 deg / 2 cm of the truth at the object. About 10 s."""
+def test_a_sequential_edge_over_frames_between_must_refute_its_half_turns(meshes_dir):
+    """The plain Crayola box (its mean colour) on a 36-frame turntable (10 deg a frame): its frames 8 and 11, an edge
+    over the frames between (tried when they fail), register at 158 deg, the box's half turn off the true 30 deg,
+    and the shading lets that through; only an edge of consecutive frames turning at most 90 deg stands for the
+    least turning of its pose and its half turns, so this one must refute the half turns and is refused
+    (`SEQUENTIAL_TURN`), as it is when frames 8 and 11 are consecutive (turning 158 deg). Frames 9 and 10 (10 deg)
+    stay accepted, within 5 deg / 2 cm of the truth at the object. About 10 s."""
     from gscan.registration.edges import SEQUENTIAL_TURN
     from gscan.synth.mesh import load_textured_mesh, plain_mesh
 
@@ -234,7 +235,13 @@ def test_a_sequential_edge_turning_more_than_its_half_turn_is_refused(meshes_dir
     with ThreadPoolExecutor(1) as pool:  # four frames: a capture of two weighs its one edge as a lone edge
         far, near = Registrar(_Frames(frames, feats), RegisterParams(), _Sink()).register([(0, 3), (1, 2)],
                                                                                         "sequential", pool)
-    assert not far.accepted and far.reason.startswith(SEQUENTIAL_TURN.split("{")[0]), far.reason
+        # the same two frames as consecutive ones (a sparser capture's): turning more than 90 deg, the same rule
+        order = [0, 3, 2]
+        turned = Registrar(_Frames([frames[k] for k in order], [feats[k] for k in order]), RegisterParams(),
+                           _Sink()).register([(0, 1)], "sequential", pool)[0]
+    refused = SEQUENTIAL_TURN.split("{")[0]
+    assert not far.accepted and far.reason.startswith(refused + "over 3 frames"), far.reason
+    assert not turned.accepted and turned.reason.startswith(refused + "turning 158 deg"), turned.reason
     assert near.accepted, near.reason
     T_true = frames[2].T_cam_obj @ inv_T(frames[1].T_cam_obj)
     centre = frames[1].T_cam_obj[:3, 3][None]  # the object's origin in the source camera

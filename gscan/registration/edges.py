@@ -34,9 +34,8 @@ from gscan.registration.turns import edge_turn, lone_edge_turn
 LOOP_DEPTH_ONLY = ("ambiguous shape: a loop closure the depth alone decides (a plain surface: the shape's own "
                    "symmetry would fit as well)")
 LOOP_TURN = "ambiguous shape: a loop closure the views cannot tell from {}"  # {}: the turn, in words
-SEQUENTIAL_TURN = ("ambiguous shape: a sequential edge turning {:.0f} deg, which the views cannot tell from {} (a "
-                   "smaller turn)")  # {}: the edge's rotation, the turn in words
-SEQUENTIAL_MAX_TURN_DEG = 90.0  # a sequential edge turning more may have a half turn of the object that turns less
+SEQUENTIAL_TURN = "ambiguous shape: a sequential edge {}, which the views cannot tell from {}"  # {}: why, the turn
+SEQUENTIAL_MAX_TURN_DEG = 90.0  # an edge of consecutive frames turning more may have a half turn that turns less
 AGAINST_ODOMETRY = "contradicts the capture's odometry"  # how the reason of such an edge begins (`against_odometry`)
 ICP_VOXEL_STRIDE = 2  # pixel stride of the clouds kept for ICP before voxel downsampling (a sampling internal)
 COMMIT_ROWS = 64  # database writes are committed in chunks of this many edges or views (a transaction size)
@@ -172,8 +171,8 @@ class Registrar:
     consumed. Loop closures: one the depth alone decides is refused (`LOOP_DEPTH_ONLY`); one whose frames are plain
     (fewer than `min_print_keypoints` image keypoints: the scan's `features.auto_min_keypoints`) or whose pose the
     texture did not judge is refused when the views do not refute the object's half turns (`LOOP_TURN`,
-    `gscan.registration.turns`); so is a sequential edge turning more than SEQUENTIAL_MAX_TURN_DEG
-    (`SEQUENTIAL_TURN`). A capture of two frames has one edge and no cycle: it is weighed as
+    `gscan.registration.turns`); so is a sequential edge over more than one frame or turning more than
+    SEQUENTIAL_MAX_TURN_DEG (`SEQUENTIAL_TURN`). A capture of two frames has one edge and no cycle: it is weighed as
     `register_frames` weighs a lone edge (`gscan.registration.turns.lone_edge_turn`)."""
 
     def __init__(self, frames: SequenceFrames, rparams: RegisterParams, sink: EdgeSink,
@@ -209,15 +208,18 @@ class Registrar:
             if turned is not None:
                 r.accepted, r.reason = False, LOOP_TURN.format(turned)
         elif r.accepted and r.T_tgt_src is not None and (
-                angle := rotation_angle_deg(r.T_tgt_src[:3, :3])) > SEQUENTIAL_MAX_TURN_DEG:
+                j - i > 1 or rotation_angle_deg(r.T_tgt_src) > SEQUENTIAL_MAX_TURN_DEG):
             # consecutive frames turn little: of a pose and its half turns about the object, which the shape alone
-            # cannot tell apart, a sequential edge stands for the one that turns least; turning more than 90 deg, a
-            # half turn may turn less (measured: a plain box's skip edge placed 3 frames of 10 deg at 158 deg, its
-            # half turn off, which the shading let through), so the views must refute the object's half turns,
-            # as a loop closure's
+            # cannot tell apart, an edge of consecutive frames stands for the one that turns least while it turns
+            # at most 90 deg (every half turn of it then turns more). An edge turning more, or over frames between
+            # (tried when those failed: it may turn several frames' worth), has no such claim, and the views must
+            # refute the object's half turns, as a loop closure's (measured: plain boxes' edges over 3 frames
+            # registered at their half turns, 158 deg for a true 30 and 45 deg for a true 135)
             turned = edge_turn(a.feats, b.feats, a.dense, b.dense, r, self.rparams, self.min_print_keypoints, 0.0)
             if turned is not None:
-                r.accepted, r.reason = False, SEQUENTIAL_TURN.format(angle, turned)
+                edge = (f"over {j - i} frames" if j - i > 1 else
+                        f"turning {rotation_angle_deg(r.T_tgt_src):.0f} deg, more than consecutive frames do")
+                r.accepted, r.reason = False, SEQUENTIAL_TURN.format(edge, turned)
         if len(self.names) == 2 and r.accepted:
             # a two-frame capture: its one edge alone places the second frame, as in `register_frames`
             why = lone_edge_turn(a.feats, b.feats, a.dense, b.dense, r, self.rparams, self.min_print_keypoints)
