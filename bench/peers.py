@@ -176,7 +176,7 @@ def fpfh_ransac_icp_chain(frames: list[RGBDFrame], depth_max: float, seed: int =
 
 CONTRIB = Path(__file__).resolve().parents[1] / ".venv" / "opencv-contrib"  # PPF: opencv-contrib's folder
 PPF_VOXEL = 0.05  # of the model's diameter: the clouds given to the PPF detector (its own sampling step)
-PPF_TOP = 5  # PPF poses with most votes refined by ICP; the one with most votes is kept
+PPF_TOP = 5  # PPF poses with most votes refined by ICP; the one with the best ICP fitness is kept
 
 
 class PeerUnavailable(RuntimeError):
@@ -199,10 +199,11 @@ class PPFPeer:
             raise PeerUnavailable(
                 f"the PPF peer needs opencv-contrib in {site}: {sys.executable} -m pip install --no-deps --target "
                 f"{site} opencv-contrib-python-headless=={version}")
-        env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(site)] + [p for p in [os.environ.get("PYTHONPATH")]
-                                                                         if p]))
+        paths = [str(site), os.environ.get("PYTHONPATH", "")]
+        env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in paths if p))
         self.proc = subprocess.Popen([sys.executable, str(Path(__file__).with_name("ppf_child.py"))],
                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env)
+        self.model: o3d.geometry.PointCloud | None = None  # the model the child was trained on last
 
     def __enter__(self) -> PPFPeer:
         return self
@@ -231,6 +232,7 @@ class PPFPeer:
         if answer is None:
             raise RuntimeError(f"the PPF child ended (exit {self.proc.wait()})")
         poses, seconds = answer
+        assert self.model is not None, "the first call gives the model"
         reg = o3d.pipelines.registration
         best, best_fit = None, -1.0
         for T, _votes in poses:  # most votes first: a tie keeps the pose with more votes
