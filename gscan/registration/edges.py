@@ -207,7 +207,7 @@ class Registrar:
             turned = edge_turn(a.feats, b.feats, a.dense, b.dense, r, self.rparams, self.min_print_keypoints, 0.0)
             if turned is not None:
                 r.accepted, r.reason = False, LOOP_TURN.format(turned)
-        elif r.accepted and r.T_tgt_src is not None and (
+        elif not loop and r.accepted and r.T_tgt_src is not None and (
                 j - i > 1 or rotation_angle_deg(r.T_tgt_src) > SEQUENTIAL_MAX_TURN_DEG):
             # consecutive frames turn little: of a pose and its half turns about the object, which the shape alone
             # cannot tell apart, an edge of consecutive frames stands for the one that turns least while it turns
