@@ -293,9 +293,6 @@ class PeerEstimator:
         return T, time.process_time() - t0 + child
 
 
-GSCAN_KINDS = ("sift", "depth", "both")  # templates scanned on each; depth and both estimated with depth keypoints
-
-
 def estimates(objects: list[str], n: int, frames: int, negatives: int, work: Path) -> None:
     """Each object's templates scanned on `sift`, `depth` and `both` (`scan_object`, cached in `work`), the latter
     two estimated with the query's depth keypoints (`query.depth_keypoints`, off by default), and the peers
@@ -321,13 +318,13 @@ def estimates(objects: list[str], n: int, frames: int, negatives: int, work: Pat
     depth_on = replace(DEFAULT_PARAMS, query=QueryParams(depth_keypoints=True))  # off by default
     rows: list[dict] = []
     ppf = open_ppf()
-    methods = GSCAN_KINDS + (("fpfh", "ppf") if ppf is not None else ("fpfh",))
+    methods = SOURCES + (("fpfh", "ppf") if ppf is not None else ("fpfh",))
     with ppf or nullcontext():
         for name in objects:
             split = "tune" if name in TUNE else "held-out"
             oi = (TUNE + HELD_OUT).index(name) if name in TUNE + HELD_OUT else len(TUNE + HELD_OUT)  # seeds
             ests, to_gt = {}, {}
-            for kp in GSCAN_KINDS:
+            for kp in SOURCES:
                 tpl = work / f"{name}_{frames}_{kp}.gscan"
                 if not tpl.exists():
                     scan_object(name, frames, kp, work)
@@ -338,7 +335,7 @@ def estimates(objects: list[str], n: int, frames: int, negatives: int, work: Pat
                     continue
                 ests[kp] = Estimator.from_path(tpl, DEFAULT_PARAMS if kp == "sift" else depth_on)
             if "both" in ests:
-                for peer in methods[len(GSCAN_KINDS):]:  # the peers' model: the both template's mesh
+                for peer in methods[len(SOURCES):]:  # the peers' model: the both template's mesh
                     ests[peer] = PeerEstimator(peer, work / f"{name}_{frames}_both.gscan", ppf)
                     to_gt[peer] = to_gt["both"]
             verts = plain(name).vertices
