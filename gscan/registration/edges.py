@@ -27,7 +27,7 @@ from gscan.geometry.transforms import rotation_angle_deg, transform_points
 from gscan.io.camera import Intrinsics, backproject
 from gscan.registration.dense import DenseGeometry, in_source_frame, pose_information
 from gscan.registration.edge import Edge
-from gscan.registration.pairwise import RegisterParams, register_features
+from gscan.registration.pairwise import PairResult, RegisterParams, register_features
 from gscan.registration.posegraph import information_from_points
 from gscan.registration.turns import edge_turn, lone_edge_turn
 
@@ -197,7 +197,7 @@ class Registrar:
             # as well (measured: every wrong loop closure of plain turntable boxes), and no chain of frames
             # between the two vouches for the pose; consecutive frames turn little, so theirs stay
             r.accepted, r.reason = False, LOOP_DEPTH_ONLY
-        elif loop and r.accepted and r.T_tgt_src is not None:
+        elif r.accepted and r.T_tgt_src is not None and (weighed := self._weighed_against_turns(i, j, r, loop)):
             # a plain box's half turn passes on image keypoints too (its corners match either way), and its
             # shading lines up either way (measured: the wrong loop closures of plain boxes scanned on sift had a
             # texture verdict): the views must refute each of the object's half turns, and where a frame has too
@@ -206,20 +206,8 @@ class Registrar:
             # on printed frames a texture verdict is the print's, which a half turn does not keep: it decided
             turned = edge_turn(a.feats, b.feats, a.dense, b.dense, r, self.rparams, self.min_print_keypoints, 0.0)
             if turned is not None:
-                r.accepted, r.reason = False, LOOP_TURN.format(turned)
-        elif not loop and r.accepted and r.T_tgt_src is not None and (
-                j - i > 1 or rotation_angle_deg(r.T_tgt_src) > SEQUENTIAL_MAX_TURN_DEG):
-            # consecutive frames turn little: of a pose and its half turns about the object, which the shape alone
-            # cannot tell apart, an edge of consecutive frames stands for the one that turns least while it turns
-            # at most 90 deg (every half turn of it then turns more). An edge turning more, or over frames between
-            # (tried when those failed: it may turn several frames' worth), has no such claim, and the views must
-            # refute the object's half turns, as a loop closure's (measured: plain boxes' edges over 3 frames
-            # registered at their half turns, 158 deg for a true 30 and 45 deg for a true 135)
-            turned = edge_turn(a.feats, b.feats, a.dense, b.dense, r, self.rparams, self.min_print_keypoints, 0.0)
-            if turned is not None:
-                edge = (f"over {j - i} frames" if j - i > 1 else
-                        f"turning {rotation_angle_deg(r.T_tgt_src):.0f} deg, more than consecutive frames do")
-                r.accepted, r.reason = False, SEQUENTIAL_TURN.format(edge, turned)
+                r.accepted = False
+                r.reason = LOOP_TURN.format(turned) if loop else SEQUENTIAL_TURN.format(weighed, turned)
         if len(self.names) == 2 and r.accepted:
             # a two-frame capture: its one edge alone places the second frame, as in `register_frames`
             why = lone_edge_turn(a.feats, b.feats, a.dense, b.dense, r, self.rparams, self.min_print_keypoints)
@@ -231,6 +219,23 @@ class Registrar:
         e = Edge(self.names[i], self.names[j], r.T_tgt_src, used, r.cost, r.rmse, r.fitness, "sequential",
                  r.accepted, r.reason, r.accepted and r.depth_only)
         return e, (edge_evidence(e, a, b, self.rparams) if e.accepted and e.T_tgt_src is not None else None)
+
+    @staticmethod
+    def _weighed_against_turns(i: int, j: int, r: PairResult, loop: bool) -> str:
+        """Why the accepted edge i -> j (pose r.T_tgt_src) must refute the object's half turns, in words; "" when
+        it need not. A loop closure must. Consecutive frames turn little: of a pose and its half turns about the
+        object, which the shape alone cannot tell apart, an edge of consecutive frames stands for the one that turns
+        least while it turns at most SEQUENTIAL_MAX_TURN_DEG (every half turn of it then turns more). An edge
+        turning more, or over frames between (tried when those failed: it may turn several frames' worth), has no
+        such claim (measured: plain boxes' edges over 3 frames registered at their half turns, 158 deg for a true
+        30 and 45 deg for a true 135)."""
+        if loop:
+            return "a loop closure"
+        if j - i > 1:
+            return f"over {j - i} frames"
+        assert r.T_tgt_src is not None
+        turn = rotation_angle_deg(r.T_tgt_src)
+        return f"turning {turn:.0f} deg, more than consecutive frames do" if turn > SEQUENTIAL_MAX_TURN_DEG else ""
 
     def register(self, pairs: list[tuple[int, int]], kind: str, pool: ThreadPoolExecutor) -> list[Edge]:
         """Edges of `pairs`, computed on the pool (numba and OpenCV release the GIL) in the order of their frames
