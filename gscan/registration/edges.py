@@ -36,6 +36,7 @@ LOOP_DEPTH_ONLY = ("ambiguous shape: a loop closure the depth alone decides (a p
 LOOP_TURN = "ambiguous shape: a loop closure the views cannot tell from {}"  # {}: the turn, in words
 SEQUENTIAL_TURN = "ambiguous shape: a sequential edge {}, which the views cannot tell from {}"  # {}: why, the turn
 SEQUENTIAL_MAX_TURN_DEG = 90.0  # an edge of consecutive frames turning more may have a half turn that turns less
+SKIPPED_STEP_FACTOR = 2.0  # frames that failed to register are assumed to turn at most this x the largest step
 AGAINST_ODOMETRY = "contradicts the capture's odometry"  # how the reason of such an edge begins (`against_odometry`)
 ICP_VOXEL_STRIDE = 2  # pixel stride of the clouds kept for ICP before voxel downsampling (a sampling internal)
 COMMIT_ROWS = 64  # database writes are committed in chunks of this many edges or views (a transaction size)
@@ -153,8 +154,9 @@ def edge_evidence(e: Edge, a: RegData, b: RegData, rparams: RegisterParams) -> E
     # in the source frame, the frame of the pose graph's residual: an edge whose pose the depth pins must
     # agree with the others to that precision (the graph's floor keeps strong edges from dominating)
     if rparams.refines_on_depth:
-        info = in_source_frame(pose_information(a.dense, b.dense, ps, pt, e.T_tgt_src, rparams.noise,
-                                                rparams.depth_noise, kp_loc=loc), e.T_tgt_src)
+        kp = slice(0, 0) if e.depth_only else slice(None)  # the depth alone posed a depth-only edge
+        info = in_source_frame(pose_information(a.dense, b.dense, ps[kp], pt[kp], e.T_tgt_src, rparams.noise,
+                                                rparams.depth_noise, kp_loc=loc[kp]), e.T_tgt_src)
     else:
         info = information_from_points(ps, sg)
     r = np.linalg.norm(transform_points(e.T_tgt_src, ps) - pt, axis=1) / sg
@@ -171,9 +173,10 @@ class Registrar:
     consumed. Loop closures: one the depth alone decides is refused (`LOOP_DEPTH_ONLY`); one whose frames are plain
     (fewer than `min_print_keypoints` image keypoints: the scan's `features.auto_min_keypoints`) or whose pose the
     texture did not judge is refused when the views do not refute the object's half turns (`LOOP_TURN`,
-    `gscan.registration.turns`); so is a sequential edge over more than one frame or turning more than
-    SEQUENTIAL_MAX_TURN_DEG (`SEQUENTIAL_TURN`). A capture of two frames has one edge and no cycle: it is weighed as
-    `register_frames` weighs a lone edge (`gscan.registration.turns.lone_edge_turn`)."""
+    `gscan.registration.turns`); so is a sequential edge turning more than its frames can
+    (`_weighed_against_turns`, `SEQUENTIAL_TURN`). A capture of two frames has one edge and no cycle: it is weighed
+    as `register_frames` weighs a lone edge (`gscan.registration.turns.lone_edge_turn`). `steps`: the turn (deg) of
+    each accepted edge of consecutive frames registered so far."""
 
     def __init__(self, frames: SequenceFrames, rparams: RegisterParams, sink: EdgeSink,
                  stored: Iterable[Edge] = (), ahead: int = 4,
@@ -185,6 +188,7 @@ class Registrar:
         self.restored: set[tuple[str, str]] = set()
         self.evidence: dict[tuple[str, str], Evidence] = {}
         self.written = 0  # edges handed to the sink so far (committed every COMMIT_ROWS)
+        self.steps: list[float] = []
 
     def _pair(self, pair: tuple[int, int], loop: bool = False) -> tuple[Edge, Evidence | None] | None:
         i, j = pair
@@ -220,22 +224,27 @@ class Registrar:
                  r.accepted, r.reason, r.accepted and r.depth_only)
         return e, (edge_evidence(e, a, b, self.rparams) if e.accepted and e.T_tgt_src is not None else None)
 
-    @staticmethod
-    def _weighed_against_turns(i: int, j: int, r: PairResult, loop: bool) -> str:
+    def _weighed_against_turns(self, i: int, j: int, r: PairResult, loop: bool) -> str:
         """Why the accepted edge i -> j (pose r.T_tgt_src) must refute the object's half turns, in words; "" when
-        it need not. A loop closure must. Consecutive frames turn little: of a pose and its half turns about the
-        object, which the shape alone cannot tell apart, an edge of consecutive frames stands for the one that turns
-        least while it turns at most SEQUENTIAL_MAX_TURN_DEG (every half turn of it then turns more). An edge
-        turning more, or over frames between (tried when those failed: it may turn several frames' worth), has no
-        such claim (measured: plain boxes' edges over 3 frames registered at their half turns, 158 deg for a true
-        30 and 45 deg for a true 135)."""
+        it need not. A loop closure must. Of a pose and its half turns about the object, which the shape alone
+        cannot tell apart, a sequential edge stands for its pose when the truth turns at most B < 90 deg and the
+        pose does too: a half turn of a truth turning at most B turns at least 180 - B > B. Consecutive frames
+        are taken to turn at most B = SEQUENTIAL_MAX_TURN_DEG. An edge over j - i frames, tried because the frames
+        between failed, at most B = SKIPPED_STEP_FACTOR x (j - i) x the largest turn of the capture's accepted
+        consecutive edges (`steps`; none yet: no bound); as that is an assumption, B must stay below 45 deg,
+        which keeps a box's quarter turns apart too (90 - B > B). Measured without a bound: plain boxes' edges
+        over 3 frames registered at their half turns, 158 deg for a true 30 (10 deg steps) and 45 deg for a true
+        135 (45 deg steps)."""
         if loop:
             return "a loop closure"
-        if j - i > 1:
-            return f"over {j - i} frames"
         assert r.T_tgt_src is not None
         turn = rotation_angle_deg(r.T_tgt_src)
-        return f"turning {turn:.0f} deg, more than consecutive frames do" if turn > SEQUENTIAL_MAX_TURN_DEG else ""
+        if j - i == 1:
+            return f"turning {turn:.0f} deg, more than consecutive frames do" if turn > SEQUENTIAL_MAX_TURN_DEG else ""
+        bound = SKIPPED_STEP_FACTOR * (j - i) * max(self.steps, default=np.inf)
+        if bound >= SEQUENTIAL_MAX_TURN_DEG / 2:
+            return f"over {j - i} frames"
+        return f"over {j - i} frames turning {turn:.0f} deg, more than {bound:.0f}" if turn > bound else ""
 
     def register(self, pairs: list[tuple[int, int]], kind: str, pool: ThreadPoolExecutor) -> list[Edge]:
         """Edges of `pairs`, computed on the pool (numba and OpenCV release the GIL) in the order of their frames
@@ -265,5 +274,7 @@ class Registrar:
                 self.written += 1
                 if self.written % COMMIT_ROWS == 0:
                     self.sink.commit()
+            if kind == "sequential" and j - i == 1 and e.accepted and e.T_tgt_src is not None:
+                self.steps.append(rotation_angle_deg(e.T_tgt_src))
             out.append(e)
         return out

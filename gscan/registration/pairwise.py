@@ -83,6 +83,7 @@ from gscan.registration.dense import (
     DepthAgreement,
     colour_agreement,
     depth_agreement,
+    outside_outline,
     outside_silhouette,
 )
 from gscan.registration.dense import refine_pose as refine_with_depth
@@ -333,6 +334,50 @@ def _mostly_depth(from_depth: np.ndarray | None, pairs: np.ndarray) -> bool:
     return from_depth is not None and len(pairs) > 0 and 2 * int(from_depth[pairs[:, 0]].sum()) > len(pairs)
 
 
+def _judge_on_depth(out: PairResult, T_tgt_src: np.ndarray, dense: tuple[DenseGeometry, DenseGeometry],
+                    dst: np.ndarray, params: RegisterParams) -> tuple[np.ndarray, str | None]:
+    """The depth decides the edge `out` (the texture cannot judge: a plain surface, whose shading agrees under a
+    turned pose too; or the pose rests mostly on depth keypoints): its pose is refined on the depth alone from the
+    keypoints' (depth keypoints are picked anew in each view, and their bias pulls the pose: the tune box's
+    turntable edges 1.4-4.5 deg off came within 0.4-1.2 deg), the depth alone must pin it (rule 2, on its
+    information), and stricter bounds hold: a pose turned 10-20 deg on a box sees through 1-2 % of the overlap, a
+    right one 0.1 % at most; a pose turned by a symmetry of the shape lands 14-27 % of its samples off the other
+    silhouette, a right one 5 % at most (BENCHMARKS.md, plain objects); and the outline at the pixel agrees to
+    the pose's own claimed precision (3 sigma): a pose slid along a plain face lands the object's outline off by
+    the slide, far beyond what it claims. Returns the pose refined from T_tgt_src and the refusal's reason (None:
+    accepted); sets out's pose, information, sigmas and checks. dst [K x 3]: the pairs' target points (where
+    rule 2 weighs the pose)."""
+    none = np.zeros((0, 3))
+    T, out.information = refine_with_depth(dense[0], dense[1], none, none, T_tgt_src, params.noise,
+                                           params.depth_noise)
+    out.T_tgt_src = T
+    out.sigma_deg, out.sigma_m = pose_sigma(out.information, dst)
+    depth = float(np.median(dst[:, 2]))
+    if out.sigma_deg > params.max_sigma_deg or out.sigma_m > params.max_sigma_rel * depth:
+        return T, (f"weak geometry (the depth alone pins the pose to {out.sigma_deg:.1f} deg and the pairs' points to "
+                   f"{out.sigma_m * 1000:.1f} mm, beyond {params.max_sigma_deg:g} deg / "
+                   f"{params.max_sigma_rel * depth * 1000:.1f} mm; the texture cannot judge the pose)")
+    a = out.agreement = depth_agreement(dense[0], dense[1], T, params.depth_noise)
+    if a.see_through_fraction > params.max_see_through_shape or a.consistent + a.see_through < params.min_overlap:
+        return T, (f"depth disagrees ({a.see_through_fraction:.1%} of the overlap of {a.consistent + a.see_through} "
+                   f"samples seen through; the texture cannot judge the pose, so at most "
+                   f"{params.max_see_through_shape:.1%})")
+    c = out.colour = colour_agreement(dense[0], dense[1], T, params.depth_noise)
+    if c.refutes(params.min_colour_tiles, params.min_colour_agreement):
+        return T, f"colour disagrees (the texture lines up in {c.agreeing} of {c.informative} tiles of the overlap)"
+    off = out.outside = outside_silhouette(dense[0], dense[1], T)
+    if off > params.max_outside_shape:
+        return T, (f"silhouette disagrees ({off:.1%} of the samples land off the other frame's surface; the texture "
+                   f"cannot judge the pose, so at most {params.max_outside_shape:.1%})")
+    margin = 3.0 * out.sigma_m
+    off = outside_outline(dense[0], dense[1], T, margin)
+    if off > params.max_outside_outline:
+        return T, (f"outline disagrees ({off:.1%} of the samples land over {margin * 1000:.1f} mm, three times the "
+                   f"pose's sigma, off the other frame's outline; the texture cannot judge the pose, so at most "
+                   f"{params.max_outside_outline:.1%})")
+    return T, None
+
+
 def register_points(pts_s: np.ndarray, pts_t: np.ndarray, desc_s: np.ndarray, desc_t: np.ndarray, kind: str,
                     params: RegisterParams = RegisterParams(), clouds: tuple | None = None,
                     dense: tuple[DenseGeometry, DenseGeometry] | None = None,
@@ -429,21 +474,9 @@ def register_points(pts_s: np.ndarray, pts_t: np.ndarray, desc_s: np.ndarray, de
                           f"overlap under the pose)")
             return out
         if kind == JOINT and (c.informative < params.min_colour_tiles or _mostly_depth(fs_depth, inliers)):
-            # the depth decides: the texture cannot judge (a plain surface, whose shading agrees under a turned
-            # pose too), or the pose rests mostly on depth keypoints. Stricter bounds: a pose turned 10-20 deg
-            # on a box sees through 1-2 % of the overlap, a right one 0.1 % at most; a pose turned by a symmetry
-            # of the shape lands 14-27 % of its samples off the other silhouette, a right one 5 % at most
-            # (BENCHMARKS.md, plain objects)
             out.depth_only = True
-            if a.see_through_fraction > params.max_see_through_shape:
-                out.reason = (f"depth disagrees ({a.see_through_fraction:.1%} of the overlap seen through; the "
-                              f"texture cannot judge the pose, so at most {params.max_see_through_shape:.1%})")
-                return out
-            off = out.outside = outside_silhouette(dense[0], dense[1], T)
-            if off > params.max_outside_shape:
-                out.reason = (f"silhouette disagrees ({off:.1%} of the samples land off the other frame's "
-                              f"surface; the texture cannot judge the pose, so at most "
-                              f"{params.max_outside_shape:.1%})")
+            T, out.reason = _judge_on_depth(out, T, dense, dst, params)
+            if out.reason is not None:
                 return out
     elif kind == JOINT:
         out.reason = "depth keypoints need the depth check (no depth samples given)"

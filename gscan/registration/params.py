@@ -72,6 +72,10 @@ class RegisterParams:
     max_outside_shape: Annotated[float, Field(ge=0, le=1, description="rule 3: ... or when more than this share of "
                                               "either frame's depth samples lands off the other's (its "
                                               "silhouette, with masks)")] = 0.05
+    max_outside_outline: Annotated[float, Field(ge=0, le=1, description="rule 3: ... or when more than this share "
+                                                "of the samples land off the other frame's outline by more than "
+                                                "three times the pose's positional sigma and two pixels (full "
+                                                "resolution: a pose slid along a plain face)")] = 0.01
     dense_refine: Annotated[bool | None, Field(description="refine each edge's pose on its keypoints and both frames' "
                                                "depth together (point-to-plane); null = on, and in a scan for a "
                                                "moving object only (a static scene's depth drifts from the truth "
