@@ -151,7 +151,7 @@ def test_the_outline_refuses_a_pose_slid_along_a_face(plain_box):
     T = fb.T_cam_obj @ slid @ inv_T(fa.T_cam_obj)
     assert outside_outline(da, db, T, 0.0045) > RegisterParams().max_outside_outline
     unmasked = [DenseGeometry.from_depth(f.depth, f.intrinsics) for f in (fa, fb)]
-    assert unmasked[0].outline is None and outside_outline(*unmasked, T) == 0.0
+    assert unmasked[0].outline is None and outside_outline(*unmasked, T, 0.0) == 0.0
 
 
 def test_an_edge_over_frames_between_stands_for_its_pose_within_its_frames_turn():
