@@ -27,7 +27,9 @@ Acceptance rules, applied in this order (the first failing one is the `reason`):
    "colour disagrees" (with the frames' texture in `dense`): of the overlap's textured tiles, fewer than
    `min_colour_agreement` line up under the pose (`gscan.registration.colour`: depth cannot tell a pose
    from its mirror on a symmetric object, the texture around it can); no verdict with fewer than
-   `min_colour_tiles` textured tiles.
+   `min_colour_tiles` textured tiles. Where the depth decides (depth keypoints and no texture verdict, or the
+   pose resting mostly on depth keypoints: `PairResult.depth_only`), the pose is refined on the depth alone and
+   judged again, with stricter bounds (`_judge_on_depth`).
 4. with ICP (params.icp and both clouds given), point-to-plane ICP from the match pose, then
    "icp fitness" below `min_fitness`, "icp rmse" above `max_rmse`, or "icp shift": ICP moved the
    match pose by more than `max_icp_shift_deg` / `max_icp_shift_m` (a slide, not a refinement).
