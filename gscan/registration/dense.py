@@ -56,9 +56,8 @@ class DenseGeometry:
     (unit, towards the camera), points [P x 3] of the kept samples; fx, fy, cx, cy the intrinsics of the
     sampled grid. With the frame's grey image: pixels [P x 2] (u, v) of the kept samples in the image,
     full_intrinsics (fx, fy, cx, cy) of the image, texture [H x W] its band-passed grey levels and
-    texture_noise the image's noise (`gscan.registration.colour`). outline [H x W] uint8, with a mask: each
-    pixel's distance (px, at most 255) to the mask, the object's silhouette, at the image's full resolution
-    (`outside_outline`); None without a mask.
+    texture_noise the image's noise (`gscan.registration.colour`). mask [H x W] bool: the object's silhouette
+    at the image's full resolution, when one was given (`outline`).
     """
 
     depth: np.ndarray
@@ -73,7 +72,7 @@ class DenseGeometry:
     full_intrinsics: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
     texture: np.ndarray | None = None
     texture_noise: float = 0.0
-    outline: np.ndarray | None = None
+    mask: np.ndarray | None = None
 
     @classmethod
     def from_depth(cls, depth: np.ndarray, intr: Intrinsics, mask: np.ndarray | None = None,
@@ -116,13 +115,8 @@ class DenseGeometry:
         if image is not None and image.shape[:2] == depth.shape:
             tex, noise = texture if texture is not None else image_texture(image)
             pixels = np.stack([u[gu[good]], v[gv[good]]], axis=1)
-        outline = None
-        if mask is not None and mask.shape == depth.shape:
-            import cv2
-
-            outline = np.minimum(cv2.distanceTransform((~mask).astype(np.uint8), cv2.DIST_L2, 3), 255).astype(np.uint8)
         return cls(d, grid, n, grid[good], fx, fy, cx, cy, pixels, (intr.fx, intr.fy, intr.cx, intr.cy), tex, noise,
-                   outline)
+                   mask if mask is not None and mask.shape == depth.shape else None)
 
     def __len__(self) -> int:
         return len(self.points)
@@ -131,6 +125,17 @@ class DenseGeometry:
     def point_normals(self) -> np.ndarray:
         """[P x 3] the normals of `points` (the kept samples), gathered once."""
         return self.normals[self.depth > 0]
+
+    @cached_property
+    def outline(self) -> np.ndarray | None:
+        """[H x W] uint8: each pixel's distance (px, at most 255) to the mask (`outside_outline`), computed once
+        when asked for; None without a mask."""
+        if self.mask is None:
+            return None
+        import cv2
+
+        far = cv2.distanceTransform((~self.mask).astype(np.uint8), cv2.DIST_L2, 3)
+        return np.minimum(far, 255).astype(np.uint8)
 
 
 def _half_step(depth: np.ndarray, intr: Intrinsics, v: np.ndarray, u: np.ndarray, dv: int, du: int) -> np.ndarray:
@@ -184,20 +189,26 @@ class DepthAgreement:
                               self.occluded + other.occluded, self.landed + other.landed, self.total + other.total)
 
 
+def _project(q: np.ndarray, intrinsics: tuple[float, float, float, float], shape: tuple[int, ...]
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The points q [N x 3] (camera frame) in front of a camera with `intrinsics` (fx, fy, cx, cy) that land inside
+    its image of `shape` (H, W): their columns [K] and rows [K] (nearest pixel), depths [K] and indices [K] in q."""
+    fx, fy, cx, cy = intrinsics
+    front = q[:, 2] > 1e-3
+    z = np.where(front, q[:, 2], 1.0)
+    u = np.rint(q[:, 0] / z * fx + cx).astype(np.int64)
+    v = np.rint(q[:, 1] / z * fy + cy).astype(np.int64)
+    idx = np.flatnonzero(front & (u >= 0) & (u < shape[1]) & (v >= 0) & (v < shape[0]))
+    return u[idx], v[idx], z[idx], idx
+
+
 def _landing(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarray
             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """src's samples that land on a valid sample of tgt under T_tgt_src: (their points in tgt's camera
     frame [K x 3], the rows [K] and columns [K] of tgt's samples they land on, their indices [K] in
     src.points)."""
     q = transform_points(T_tgt_src, src.points)
-    z = q[:, 2]
-    front = z > 1e-3
-    zf = np.where(front, z, 1.0)
-    u = np.rint(q[:, 0] / zf * tgt.fx + tgt.cx).astype(np.int64)
-    v = np.rint(q[:, 1] / zf * tgt.fy + tgt.cy).astype(np.int64)
-    h, w = tgt.depth.shape
-    idx = np.flatnonzero(front & (u >= 0) & (u < w) & (v >= 0) & (v < h))
-    vi, ui = v[idx], u[idx]
+    ui, vi, _, idx = _project(q, (tgt.fx, tgt.fy, tgt.cx, tgt.cy), tgt.depth.shape)
     has = tgt.depth[vi, ui] > 0
     return q[idx[has]], vi[has], ui[has], idx[has]
 
@@ -435,16 +446,9 @@ def outside_outline(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarra
     for a, b, T in ((src, tgt, T_tgt_src), (tgt, src, inv_T(T_tgt_src))):
         if b.outline is None:
             return 0.0
-        fx, fy, cx, cy = b.full_intrinsics
-        q = transform_points(T, a.points)
-        front = q[:, 2] > 1e-3
-        zf = np.where(front, q[:, 2], 1.0)
-        u = np.rint(q[:, 0] / zf * fx + cx).astype(np.int64)
-        v = np.rint(q[:, 1] / zf * fy + cy).astype(np.int64)
-        h, w = b.outline.shape
-        ok = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
-        inside += int(ok.sum())
-        out += int(np.count_nonzero(b.outline[v[ok], u[ok]] > fx * margin_m / zf[ok] + rim_px))
+        u, v, z, _ = _project(transform_points(T, a.points), b.full_intrinsics, b.outline.shape)
+        inside += len(u)
+        out += int(np.count_nonzero(b.outline[v, u] > b.full_intrinsics[0] * margin_m / z + rim_px))
     return out / inside if inside else 0.0
 
 
@@ -459,15 +463,9 @@ def outside_silhouette(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.nda
 
     out = inside = 0
     for a, b, T in ((src, tgt, T_tgt_src), (tgt, src, inv_T(T_tgt_src))):
-        q = transform_points(T, a.points)
-        front = q[:, 2] > 1e-3
-        zf = np.where(front, q[:, 2], 1.0)
-        u = np.rint(q[:, 0] / zf * b.fx + b.cx).astype(np.int64)
-        v = np.rint(q[:, 1] / zf * b.fy + b.cy).astype(np.int64)
-        h, w = b.depth.shape
-        ok = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        u, v, _, _ = _project(transform_points(T, a.points), (b.fx, b.fy, b.cx, b.cy), b.depth.shape)
         # samples' distance to the nearest valid sample of b (0 on one)
         far = cv2.distanceTransform((b.depth <= 0).astype(np.uint8), cv2.DIST_L2, 3)
-        inside += int(ok.sum())
-        out += int(np.count_nonzero(far[v[ok], u[ok]] > margin))
+        inside += len(u)
+        out += int(np.count_nonzero(far[v, u] > margin))
     return out / inside if inside else 0.0
