@@ -168,7 +168,7 @@ def test_an_edge_over_frames_between_stands_for_its_pose_within_its_frames_turn(
 
     reg = Registrar(_Frames([], []), RegisterParams(), _Sink())
     assert reg._weighed_against_turns(0, 2, turned(20.0), False) == "over 2 frames"  # no step measured yet
-    reg.steps = [9.0, 10.0, 10.5]
+    reg.largest_step = 10.5
     assert reg._weighed_against_turns(0, 2, turned(20.0), False) == ""  # B = 42
     assert reg._weighed_against_turns(0, 2, turned(43.0), False).startswith("over 2 frames turning 43 deg")
     assert reg._weighed_against_turns(0, 3, turned(30.0), False) == "over 3 frames"  # B = 63: beyond 45

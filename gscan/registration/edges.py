@@ -175,8 +175,8 @@ class Registrar:
     texture did not judge is refused when the views do not refute the object's half turns (`LOOP_TURN`,
     `gscan.registration.turns`); so is a sequential edge turning more than its frames can
     (`_weighed_against_turns`, `SEQUENTIAL_TURN`). A capture of two frames has one edge and no cycle: it is weighed
-    as `register_frames` weighs a lone edge (`gscan.registration.turns.lone_edge_turn`). `steps`: the turn (deg) of
-    each accepted edge of consecutive frames registered so far."""
+    as `register_frames` weighs a lone edge (`gscan.registration.turns.lone_edge_turn`). `largest_step`: the most
+    an accepted edge of consecutive frames registered so far turns (deg; None before the first)."""
 
     def __init__(self, frames: SequenceFrames, rparams: RegisterParams, sink: EdgeSink,
                  stored: Iterable[Edge] = (), ahead: int = 4,
@@ -188,7 +188,7 @@ class Registrar:
         self.restored: set[tuple[str, str]] = set()
         self.evidence: dict[tuple[str, str], Evidence] = {}
         self.written = 0  # edges handed to the sink so far (committed every COMMIT_ROWS)
-        self.steps: list[float] = []
+        self.largest_step: float | None = None
 
     def _pair(self, pair: tuple[int, int], loop: bool = False) -> tuple[Edge, Evidence | None] | None:
         i, j = pair
@@ -231,7 +231,7 @@ class Registrar:
         pose does too: a half turn of a truth turning at most B turns at least 180 - B > B. Consecutive frames
         are taken to turn at most B = SEQUENTIAL_MAX_TURN_DEG. An edge over j - i frames, tried because the frames
         between failed, at most B = SKIPPED_STEP_FACTOR x (j - i) x the largest turn of the capture's accepted
-        consecutive edges (`steps`; none yet: no bound); as that is an assumption, B must stay below 45 deg,
+        consecutive edges (`largest_step`; none yet: no bound); as that is an assumption, B must stay below 45 deg,
         which keeps a box's quarter turns apart too (90 - B > B). Measured without a bound: plain boxes' edges
         over 3 frames registered at their half turns, 158 deg for a true 30 (10 deg steps) and 45 deg for a true
         135 (45 deg steps)."""
@@ -241,7 +241,7 @@ class Registrar:
         turn = rotation_angle_deg(r.T_tgt_src)
         if j - i == 1:
             return f"turning {turn:.0f} deg, more than consecutive frames do" if turn > SEQUENTIAL_MAX_TURN_DEG else ""
-        bound = SKIPPED_STEP_FACTOR * (j - i) * max(self.steps, default=np.inf)
+        bound = np.inf if self.largest_step is None else SKIPPED_STEP_FACTOR * (j - i) * self.largest_step
         if bound >= SEQUENTIAL_MAX_TURN_DEG / 2:
             return f"over {j - i} frames"
         return f"over {j - i} frames turning {turn:.0f} deg, more than {bound:.0f}" if turn > bound else ""
@@ -275,6 +275,6 @@ class Registrar:
                 if self.written % COMMIT_ROWS == 0:
                     self.sink.commit()
             if kind == "sequential" and j - i == 1 and e.accepted and e.T_tgt_src is not None:
-                self.steps.append(rotation_angle_deg(e.T_tgt_src))
+                self.largest_step = max(self.largest_step or 0.0, rotation_angle_deg(e.T_tgt_src))
             out.append(e)
         return out
