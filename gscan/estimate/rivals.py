@@ -32,8 +32,10 @@ rivals (`ListVerifier`).
   on that part support the pose whatever the bottom looks like, so they cannot tell the two apart: a print
   repeated on the top and bottom (a drinks pack) is matched to the top with the object upside down. For each such
   turn not refuted by the depth, the pose's supporters (`local_support`) are split into those the turn puts on
-  surface the template has not seen (no template surface sample within twice the support radius) and the rest
-  (on seen surface under both poses). The view is ambiguous when the rest would not accept the pose on its own
+  or beside surface the template has not seen (no template surface sample within twice the support radius, or
+  within that reach of the template's surface turned where it has none: a keypoint on the top's rim lies on the
+  bottom's rim under the turn, and its descriptor sees across the rim) and the rest (on seen surface under both
+  poses). The view is ambiguous when the rest would not accept the pose on its own
   (`accept.min_support` supporters and `accept.min_support_ratio` of the keypoints there), or, when the unseen
   part holds `accept.min_support` supporters or more (enough to have carried the pose), when the rest supports it
   at less than `rivals.unseen_rate` of the unseen part's rate (a right pose is supported alike on both parts, a
@@ -104,6 +106,7 @@ class ListVerifier:
         self.shape_turns = turns if params.symmetry.weigh_shape_turns else []
         self.unseen_turns = turns
         self._seen: Any = None  # cKDTree of the template's surface samples (all seen: filled holes hold none)
+        self._unseen: dict[bytes, Any] = {}  # (turn, radius) -> cKDTree of the surface the template has not seen
         # a template with depth keypoints: its keyframes' textures and its depth noise (`by_depth`)
         self.keyframes: KeyframeTextures | None = None
         self.depth_noise = DepthNoise()
@@ -322,6 +325,30 @@ class ListVerifier:
         out[among] = d > radius
         return out
 
+    def near_unseen(self, T_cam_obj: np.ndarray, S: np.ndarray, qk: QueryKeypoints, radius: float,
+                    among: np.ndarray) -> np.ndarray:
+        """[M] bool: the query keypoints (of `among` [M] bool) within `radius` (m) of surface the template has not
+        seen, at T_cam_obj: of the template's surface turned by the symmetry in shape S [4 x 4], the part farther
+        than `radius` from its seen surface (a keypoint on a face's rim is described by what lies beyond the
+        rim too)."""
+        from scipy.spatial import cKDTree
+
+        key = S.tobytes() + np.float64(radius).tobytes()
+        if key not in self._unseen:
+            turned = transform_points(S, self.model.samples)
+            if self._seen is None:
+                self._seen = cKDTree(self.model.samples)
+            d, _ = self._seen.query(turned)
+            self._unseen[key] = cKDTree(turned[d > radius]) if (d > radius).any() else None
+        tree = self._unseen[key]
+        out = np.zeros(len(qk.feats.points), bool)
+        if tree is None:
+            return out
+        pts = transform_points(inv_T(T_cam_obj), qk.feats.points[among].astype(np.float64))
+        d, _ = tree.query(pts)
+        out[among] = d <= radius
+        return out
+
     def against_unseen_turns(self, q: QueryFrame, qk: QueryKeypoints, res: EstimateResult, refine: bool,
                              timer: StageTimer) -> EstimateResult:
         """The accepted `res` against itself turned by each symmetry in shape onto surface the template has not
@@ -336,7 +363,7 @@ class ListVerifier:
             with timer.stage("refine"):
                 if refine:
                     T = refine_pose(self.model, q, T, None, q.off_plane, p.refine)
-            off = self.off_seen_surface(T, qk, 2.0 * radius, among=on)
+            off = self.off_seen_surface(T, qk, 2.0 * radius, among=on) | self.near_unseen(T, S, qk, 2.0 * radius, on)
             unseen = np.unique(qk.location[off])
             known = np.setdiff1d(np.unique(qk.location[on]), unseen)
             if support is None:
