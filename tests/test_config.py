@@ -66,6 +66,12 @@ def test_a_file_of_the_earlier_keys_reads_the_same(tmp_path):
     assert not cfg.posegraph.estimate_noise
     path.write_text("registration:\n  noise: null\n")
     assert load_config(path) == ScanConfig()
+    # a template's noise meta as written now: the depth's model along the ray as well
+    path.write_text("registration:\n  noise:\n    keypoint: {c0: 1.0e-6, c1: 0, c2: 0}\n"
+                    "    depth: {c0: 2.0e-6, c1: 0, c2: 1.0e-6}\n"
+                    "    depth_ray: {c0: 3.0e-6, c1: 1.0e-6, c2: 0, along_ray: true}\n")
+    r = load_config(path).registration
+    assert r.depth_noise_ray.along_ray and r.depth_noise_ray.c0 == 3e-6 and r.depth_noise.c0 == 2e-6
 
 
 def test_foreign_sections_are_ignored_and_others_refused(tmp_path):

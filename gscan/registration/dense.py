@@ -20,6 +20,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cached_property
+from typing import NamedTuple
 
 import numpy as np
 
@@ -57,7 +58,8 @@ class DenseGeometry:
     sampled grid. With the frame's grey image: pixels [P x 2] (u, v) of the kept samples in the image,
     full_intrinsics (fx, fy, cx, cy) of the image, texture [H x W] its band-passed grey levels and
     texture_noise the image's noise (`gscan.registration.colour`). mask [H x W] bool: the object's silhouette
-    at the image's full resolution, when one was given (`outline`).
+    at the image's full resolution, when one was given (`outline`), and rim [R x 3] points on its rim
+    (`rim_points`).
     """
 
     depth: np.ndarray
@@ -73,6 +75,7 @@ class DenseGeometry:
     texture: np.ndarray | None = None
     texture_noise: float = 0.0
     mask: np.ndarray | None = None
+    rim: np.ndarray | None = None
 
     @classmethod
     def from_depth(cls, depth: np.ndarray, intr: Intrinsics, mask: np.ndarray | None = None,
@@ -115,8 +118,9 @@ class DenseGeometry:
         if image is not None and image.shape[:2] == depth.shape:
             tex, noise = texture if texture is not None else image_texture(image)
             pixels = np.stack([u[gu[good]], v[gv[good]]], axis=1)
+        mask = mask if mask is not None and mask.shape == depth.shape else None
         return cls(d, grid, n, grid[good], fx, fy, cx, cy, pixels, (intr.fx, intr.fy, intr.cx, intr.cy), tex, noise,
-                   mask if mask is not None and mask.shape == depth.shape else None)
+                   mask, None if mask is None else rim_points(depth, intr, mask))
 
     def __len__(self) -> int:
         return len(self.points)
@@ -128,14 +132,32 @@ class DenseGeometry:
 
     @cached_property
     def outline(self) -> np.ndarray | None:
-        """[H x W] uint8: each pixel's distance (px, at most 255) to the mask (`outside_outline`), computed once
-        when asked for; None without a mask."""
+        """[H x W] float32: each pixel's distance (px) to the mask, 0 inside it (`outside_outline`,
+        `_rim_equations`), computed once when asked for; None without a mask."""
         if self.mask is None:
             return None
         import cv2
 
-        far = cv2.distanceTransform((~self.mask).astype(np.uint8), cv2.DIST_L2, 3)
-        return np.minimum(far, 255).astype(np.uint8)
+        return cv2.distanceTransform((~self.mask).astype(np.uint8), cv2.DIST_L2, 3)
+
+
+def rim_points(depth: np.ndarray, intr: Intrinsics, mask: np.ndarray, window: int = 2, step: int = 2
+               ) -> np.ndarray:
+    """[R x 3] camera-frame points on the rim of `mask` ([H x W] bool; depth [H x W] m): every `step`-th pixel of
+    the mask's one-pixel rim, at the nearest depth inside the mask within `window` px of it (the object's surface
+    there: a rim pixel's own depth may mix the object with what lies behind it); rim pixels without depth near are
+    left out. Every point of the object projects inside its silhouette in any view, and the rim's points are the
+    ones a pose slid along a plain face moves out of it first (the sampled points stay a sample's stride inside)."""
+    import cv2
+
+    inner = cv2.erode(mask.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+    v, u = np.nonzero(mask & ~inner)
+    v, u = v[::step], u[::step]
+    inside = np.where(mask & (depth > 0), depth, np.inf).astype(np.float32)
+    near = cv2.erode(inside, np.ones((2 * window + 1, 2 * window + 1), np.uint8))[v, u].astype(np.float64)
+    ok = np.isfinite(near)
+    v, u, z = v[ok], u[ok], near[ok]
+    return np.stack([(u - intr.cx) / intr.fx * z, (v - intr.cy) / intr.fy * z, z], axis=1)
 
 
 def _half_step(depth: np.ndarray, intr: Intrinsics, v: np.ndarray, u: np.ndarray, dv: int, du: int) -> np.ndarray:
@@ -219,10 +241,10 @@ def depth_agreement(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarra
     `noise` is that of a depth pixel."""
     out = DepthAgreement(0, 0, 0, 0, 0)
     for a, b, T in ((src, tgt, T_tgt_src), (tgt, src, inv_T(T_tgt_src))):
-        e, z, zm = plane_residuals(a, b, T)
-        tol = k * noise.pair_sigma(z, zm)
+        p = plane_residuals(a, b, T)
+        e, tol = p.e, k * p.sigma(noise)
         out = out + DepthAgreement(int((np.abs(e) <= tol).sum()), int((e > tol).sum()), int((e < -tol).sum()),
-                                   len(z), len(a))
+                                   len(e), len(a))
     return out
 
 
@@ -336,7 +358,7 @@ def print_agreement(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarra
 
 def refine_pose(src: DenseGeometry, tgt: DenseGeometry, kp_s: np.ndarray, kp_t: np.ndarray, T_tgt_src: np.ndarray,
                 kp_noise: DepthNoise, depth_noise: DepthNoise, gates: tuple[float, ...] = (8.0, 5.0, 3.0, 3.0, 3.0),
-                kp_loc: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                kp_loc: np.ndarray | None = None, rims: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """The pose that best explains both the keypoint pairs and the depth: Gauss-Newton on the keypoint
     residuals T kp_s - kp_t ([M x 3] pairs, three axes each, sigma s of `kp_noise` with the pairs' location
     sigmas kp_loc [M], m, None: 0, `DepthNoise.pair_sigma`) and the point-to-plane
@@ -345,7 +367,8 @@ def refine_pose(src: DenseGeometry, tgt: DenseGeometry, kp_s: np.ndarray, kp_t: 
     farther than the round's gate (sigmas) from the surface, or facing away from it (MIN_NORMAL_COS), are left
     out; the gate shrinks over the rounds (one GN step each), so a pose a few centimetres off is drawn in first.
     Depth pins what keypoints on a distant wall leave loose (the near table); keypoints pin what depth leaves
-    loose (sliding along a plane).
+    loose (sliding along a plane). rims: each frame's rim points (`rim_points`) that land off the other's mask
+    are drawn onto it too (`_rim_equations`): what pins a slide along a plain face where no keypoint does.
 
     Returns (T_tgt_src [4 x 4], information [6 x 6] of the final pose, rotation first: `pose_information`).
     """
@@ -353,23 +376,23 @@ def refine_pose(src: DenseGeometry, tgt: DenseGeometry, kp_s: np.ndarray, kp_t: 
 
     T = np.asarray(T_tgt_src, dtype=np.float64).copy()
     for gate in gates:
-        H, g = _normal_equations(src, tgt, kp_s, kp_t, T, kp_noise, depth_noise, gate, kp_loc)
+        H, g = _normal_equations(src, tgt, kp_s, kp_t, T, kp_noise, depth_noise, gate, kp_loc, rims)
         try:
             dx = -np.linalg.solve(H, g)
         except np.linalg.LinAlgError:
             break
         T = make_T(rotvec_to_R(dx[:3]), dx[3:]) @ T
-    return T, pose_information(src, tgt, kp_s, kp_t, T, kp_noise, depth_noise, gates[-1], kp_loc)
+    return T, pose_information(src, tgt, kp_s, kp_t, T, kp_noise, depth_noise, gates[-1], kp_loc, rims)
 
 
 def pose_information(src: DenseGeometry, tgt: DenseGeometry, kp_s: np.ndarray, kp_t: np.ndarray,
                      T_tgt_src: np.ndarray, kp_noise: DepthNoise, depth_noise: DepthNoise, gate: float = 3.0,
-                     kp_loc: np.ndarray | None = None) -> np.ndarray:
+                     kp_loc: np.ndarray | None = None, rims: bool = False) -> np.ndarray:
     """[6 x 6] information (rotation first) of T_tgt_src from the keypoint pairs and the depth samples within
     `gate` sigmas of the surface, as `refine_pose` weighs them, for a small motion in the TARGET frame
     (`in_source_frame` turns it into the source frame's)."""
     T = np.asarray(T_tgt_src, dtype=np.float64)
-    return _normal_equations(src, tgt, kp_s, kp_t, T, kp_noise, depth_noise, gate, kp_loc)[0]
+    return _normal_equations(src, tgt, kp_s, kp_t, T, kp_noise, depth_noise, gate, kp_loc, rims)[0]
 
 
 def in_source_frame(information_tgt: np.ndarray, T_tgt_src: np.ndarray) -> np.ndarray:
@@ -386,8 +409,8 @@ HUBER = 2.0  # residuals beyond this many sigmas weigh as the Huber loss does (l
 
 
 def _normal_equations(src: DenseGeometry, tgt: DenseGeometry, kp_s: np.ndarray, kp_t: np.ndarray, T: np.ndarray,
-                      kp_noise: DepthNoise, depth_noise: DepthNoise, gate: float, kp_loc: np.ndarray | None = None
-                      ) -> tuple[np.ndarray, np.ndarray]:
+                      kp_noise: DepthNoise, depth_noise: DepthNoise, gate: float, kp_loc: np.ndarray | None = None,
+                      rims: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """(J^T W J [6 x 6], J^T W r [6]) of `refine_pose`'s residuals at T, for a small motion (rotation vector,
     translation) applied in tgt's frame."""
     kp_s = np.asarray(kp_s, dtype=np.float64).reshape(-1, 3)
@@ -413,15 +436,86 @@ def _normal_equations(src: DenseGeometry, tgt: DenseGeometry, kp_s: np.ndarray, 
     en = np.abs(e) / sd
     wd = np.where(en <= HUBER, 1.0, HUBER / np.maximum(en, 1e-12)) / np.square(sd)
     Jd = np.concatenate([np.cross(qd, n), n], axis=1)
-    return H + (Jd * wd[:, None]).T @ Jd, g + (Jd * wd[:, None]).T @ e
+    H, g = H + (Jd * wd[:, None]).T @ Jd, g + (Jd * wd[:, None]).T @ e
+    if rims:
+        for a, b, forward in ((src, tgt, True), (tgt, src, False)):
+            Hr, gr = _rim_equations(a, b, T, forward)
+            H, g = H + Hr, g + gr
+    return H, g
 
 
-def plane_residuals(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarray
-                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Signed point-to-plane distances [K] of src's samples landing on tgt's depth under T_tgt_src, with their
-    depth in tgt's camera [K] and tgt's measured depth there [K] (what the depth noise is estimated from)."""
+RIM_PX = 2.0  # a mask's rim is ragged: a rim point within this many pixels of the other mask lies on it
+RIM_SIGMA_PX = 1.0  # ... and beyond them, its distance is uncertain by about a pixel
+
+
+def _rim_equations(a: DenseGeometry, b: DenseGeometry, T_tgt_src: np.ndarray, forward: bool
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """(J^T W J [6 x 6], J^T W r [6]) of a's rim points off b's mask: each point's distance (m, at its depth) to the
+    mask where it lands beyond RIM_PX, 0 nearer (one-sided: every point of the object projects inside its
+    silhouette; without the band the rim's raggedness would pull every pose inwards), sigma RIM_SIGMA_PX at its
+    depth, Huber-weighted; for a small motion applied in the target frame of T_tgt_src, a the
+    source when `forward`, else the target (moved by the inverse)."""
+    H, g = np.zeros((6, 6)), np.zeros(6)
+    far = b.outline
+    if a.rim is None or not len(a.rim) or far is None:
+        return H, g
+    T = T_tgt_src if forward else inv_T(T_tgt_src)
+    q = transform_points(T, a.rim)
+    u, v, z, idx = _project(q, b.full_intrinsics, far.shape)
+    dist = far[v, u] - RIM_PX
+    out = dist > 0
+    if not out.any():
+        return H, g
+    q, u, v, z, dist = q[idx][out], u[out], v[out], z[out], dist[out]
+    H_img, W_img = far.shape  # the distance's gradient there, by central differences
+    gu = 0.5 * (far[v, np.minimum(u + 1, W_img - 1)] - far[v, np.maximum(u - 1, 0)])
+    gv = 0.5 * (far[np.minimum(v + 1, H_img - 1), u] - far[np.maximum(v - 1, 0), u])
+    fx = b.full_intrinsics[0]
+    r = dist * z / fx
+    # d r / d q = grad(dist) . d(u, v)/d q * z / f: the gradient along the image axes, less the perspective term
+    grad = np.stack([gu, gv, -(gu * q[:, 0] + gv * q[:, 1]) / z], axis=1)
+    if forward:  # q = T p moves by (w x q + t)
+        J = np.concatenate([np.cross(q, grad), grad], axis=1)
+    else:  # q = T^-1 p moves by -R^T (w x p + t), p = T q the point in the target frame
+        p = transform_points(T_tgt_src, q)
+        b_dir = grad @ T_tgt_src[:3, :3].T
+        J = -np.concatenate([np.cross(p, b_dir), b_dir], axis=1)
+    s = RIM_SIGMA_PX * z / fx
+    rn = r / s
+    w = np.where(rn <= HUBER, 1.0, HUBER / np.maximum(rn, 1e-12)) / np.square(s)
+    return (J * w[:, None]).T @ J, (J * w[:, None]).T @ r
+
+
+class PlaneResiduals(NamedTuple):
+    """src's samples landing on tgt's depth, measured along tgt's normals there: signed point-to-plane distances
+    e [K] (m), the samples' depth in tgt's camera z_src [K] and tgt's measured depth there z_tgt [K], and the |cos|
+    at which each frame's ray meets the normal, cos_src [K] and cos_tgt [K] (what the depth noise is estimated
+    from: `DepthNoise.normal_sigma`)."""
+
+    e: np.ndarray
+    z_src: np.ndarray
+    z_tgt: np.ndarray
+    cos_src: np.ndarray
+    cos_tgt: np.ndarray
+
+    def sigma(self, noise: DepthNoise) -> np.ndarray:
+        """[K] standard deviation of e under the depth pixel's `noise`."""
+        return noise.normal_sigma(self.z_src, self.z_tgt, self.cos_src, self.cos_tgt)
+
+
+def _residuals(q: np.ndarray, n: np.ndarray, g: np.ndarray, T_tgt_src: np.ndarray) -> PlaneResiduals:
+    """`PlaneResiduals` of src's samples q [K x 3] (in tgt's camera) against tgt's samples g [K x 3] with normals
+    n [K x 3]; src's camera sits at T_tgt_src's translation."""
+    ray_src = q - T_tgt_src[:3, 3]
+    cos_src = np.abs(np.sum(n * ray_src, axis=1)) / np.maximum(np.linalg.norm(ray_src, axis=1), 1e-12)
+    cos_tgt = np.abs(np.sum(n * g, axis=1)) / np.maximum(np.linalg.norm(g, axis=1), 1e-12)
+    return PlaneResiduals(np.sum(n * (q - g), axis=1), q[:, 2], g[:, 2], cos_src, cos_tgt)
+
+
+def plane_residuals(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarray) -> PlaneResiduals:
+    """The point-to-plane distances of src's samples landing on tgt's depth under T_tgt_src (`PlaneResiduals`)."""
     q, vi, ui, _ = _landing(src, tgt, T_tgt_src)
-    return np.sum(tgt.normals[vi, ui] * (q - tgt.grid[vi, ui]), axis=1), q[:, 2], tgt.depth[vi, ui]
+    return _residuals(q, tgt.normals[vi, ui], tgt.grid[vi, ui], T_tgt_src)
 
 
 def _plane_pairs(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarray, noise: DepthNoise
@@ -430,23 +524,25 @@ def _plane_pairs(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarray, 
     signed point-to-plane distances [K], their sigma [K], their indices [K] in src.points)."""
     q, vi, ui, idx = _landing(src, tgt, T_tgt_src)
     n = tgt.normals[vi, ui]
-    return q, n, np.sum(n * (q - tgt.grid[vi, ui]), axis=1), noise.pair_sigma(q[:, 2], tgt.depth[vi, ui]), idx
+    p = _residuals(q, n, tgt.grid[vi, ui], T_tgt_src)
+    return q, n, p.e, p.sigma(noise), idx
 
 
 def outside_outline(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarray, margin_m: float,
-                    rim_px: float = 2.0) -> float:
-    """The share of the samples of each frame that, moved into the other by T_tgt_src, fall inside its image but
-    farther off its mask than `margin_m` at the sample's depth plus `rim_px` (the mask's ragged rim), at the
-    image's full resolution (`outline`), both directions pooled; 0 when none falls inside or a frame has no mask.
-    `outside_silhouette` at the pixel, on the mask alone (every point of the object projects inside its
-    silhouette, with depth or not): a pose slid along a plain face keeps the face on the face and its depth, and
-    moves the outline by the slide (the tune box's turntable at 0.6 m, no margin: right poses none, slid 2 cm
-    2-47 %)."""
+                    rim_px: float = RIM_PX) -> float:
+    """The share of the rim points (`rim_points`; the samples where a frame has none) of each frame that, moved
+    into the other by T_tgt_src, fall inside its image but farther off its mask than `margin_m` at the point's
+    depth plus `rim_px` (the mask's ragged rim), at the image's full resolution (`outline`), both directions
+    pooled; 0 when none falls inside or a frame has no mask. `outside_silhouette` at the pixel, on the mask alone
+    (every point of the object projects inside its silhouette, with depth or not): a pose slid along a plain face
+    keeps the face on the face and its depth, and moves the outline by the slide (a plain box at 0.6 m, no
+    margin: right poses none; slid 1 cm along any of its axes, 18-26 % of the rim, 0-0.5 % of the samples)."""
     out = inside = 0
     for a, b, T in ((src, tgt, T_tgt_src), (tgt, src, inv_T(T_tgt_src))):
         if b.outline is None:
             return 0.0
-        u, v, z, _ = _project(transform_points(T, a.points), b.full_intrinsics, b.outline.shape)
+        pts = a.points if a.rim is None or not len(a.rim) else a.rim
+        u, v, z, _ = _project(transform_points(T, pts), b.full_intrinsics, b.outline.shape)
         inside += len(u)
         out += int(np.count_nonzero(b.outline[v, u] > b.full_intrinsics[0] * margin_m / z + rim_px))
     return out / inside if inside else 0.0

@@ -155,8 +155,9 @@ def edge_evidence(e: Edge, a: RegData, b: RegData, rparams: RegisterParams) -> E
     # agree with the others to that precision (the graph's floor keeps strong edges from dominating)
     if rparams.refines_on_depth:
         kp = slice(0, 0) if e.depth_only else slice(None)  # the depth alone posed a depth-only edge
+        depth_noise = rparams.depth_noise_ray if e.depth_only else rparams.depth_noise
         info = in_source_frame(pose_information(a.dense, b.dense, ps[kp], pt[kp], e.T_tgt_src, rparams.noise,
-                                                rparams.depth_noise, kp_loc=loc[kp]), e.T_tgt_src)
+                                                depth_noise, kp_loc=loc[kp], rims=e.depth_only), e.T_tgt_src)
     else:
         info = information_from_points(ps, sg)
     r = np.linalg.norm(transform_points(e.T_tgt_src, ps) - pt, axis=1) / sg

@@ -341,8 +341,9 @@ def _judge_on_depth(out: PairResult, T_tgt_src: np.ndarray, dense: tuple[DenseGe
     """The depth decides the edge `out` (the texture cannot judge: a plain surface, whose shading agrees under a
     turned pose too; or the pose rests mostly on depth keypoints): its pose is refined on the depth alone from the
     keypoints' (depth keypoints are picked anew in each view, and their bias pulls the pose: the tune box's
-    turntable edges 1.4-4.5 deg off came within 0.4-1.2 deg), the depth alone must pin it (rule 2, on its
-    information), and stricter bounds hold: a pose turned 10-20 deg on a box sees through 1-2 % of the overlap, a
+    turntable edges 1.4-4.5 deg off came within 0.4-1.2 deg), with the depth's noise along the ray and the frames'
+    rims drawn onto each other's masks (docs/method.md, "Plain objects"), the depth alone must pin it (rule 2, on
+    its information), and stricter bounds hold: a pose turned 10-20 deg on a box sees through 1-2 % of the overlap, a
     right one 0.1 % at most; a pose turned by a symmetry of the shape lands 14-27 % of its samples off the other
     silhouette, a right one 5 % at most (BENCHMARKS.md, plain objects); and the outline at the pixel agrees to
     the pose's own claimed precision (3 sigma): a pose slid along a plain face lands the object's outline off by
@@ -351,7 +352,7 @@ def _judge_on_depth(out: PairResult, T_tgt_src: np.ndarray, dense: tuple[DenseGe
     rule 2 weighs the pose)."""
     none = np.zeros((0, 3))
     T, out.information = refine_with_depth(dense[0], dense[1], none, none, T_tgt_src, params.noise,
-                                           params.depth_noise)
+                                           params.depth_noise_ray, rims=True)
     out.T_tgt_src = T
     out.sigma_deg, out.sigma_m = pose_sigma(out.information, dst)
     depth = float(np.median(dst[:, 2]))
@@ -359,7 +360,7 @@ def _judge_on_depth(out: PairResult, T_tgt_src: np.ndarray, dense: tuple[DenseGe
         return T, (f"weak geometry (the depth alone pins the pose to {out.sigma_deg:.1f} deg and the pairs' points to "
                    f"{out.sigma_m * 1000:.1f} mm, beyond {params.max_sigma_deg:g} deg / "
                    f"{params.max_sigma_rel * depth * 1000:.1f} mm; the texture cannot judge the pose)")
-    a = out.agreement = depth_agreement(dense[0], dense[1], T, params.depth_noise)
+    a = out.agreement = depth_agreement(dense[0], dense[1], T, params.depth_noise_ray)
     if a.see_through_fraction > params.max_see_through_shape or a.consistent + a.see_through < params.min_overlap:
         return T, (f"depth disagrees ({a.see_through_fraction:.1%} of the overlap of {a.consistent + a.see_through} "
                    f"samples seen through; the texture cannot judge the pose, so at most "

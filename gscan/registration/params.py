@@ -5,7 +5,7 @@ captures are joined (`JoinParams`, gscan.registration.join). numpy and pydantic 
 read and validated without loading the compiled kernels."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Annotated, Literal
 
 from pydantic import Field
@@ -33,6 +33,10 @@ class RegisterParams:
                                        "estimates its capture's own (posegraph.estimate_noise)")] = DepthNoise()
     depth_noise: Annotated[DepthNoise, Field(description="noise of one depth pixel (the depth check and the depth "
                                              "refinement); a scan's prior, like noise")] = DepthNoise()
+    depth_noise_ray: Annotated[DepthNoise, Field(description="the same noise with its error along the sensor's ray "
+                                                 "(`DepthNoise.along_ray`): where the depth alone judges a pose "
+                                                 "(a plain object); a scan's prior, like noise")] = DepthNoise(
+        along_ray=True)
     min_matches: Annotated[int, Field(ge=3, description="rule 1: an edge needs at least this many geometric "
                                       "matches")] = 6
     max_rms: Annotated[float, Field(gt=0, description="rule 2: an edge's keypoint residual RMS may be at most this "
@@ -112,6 +116,20 @@ class RegisterParams:
     def refines_on_depth(self) -> bool:
         """Whether the pose is refined on keypoints and depth together (dense_refine; null: on)."""
         return self.dense_refine is not False
+
+    def noise_models(self) -> dict[str, dict[str, float]]:
+        """The noise models (`noise`, `depth_noise`, `depth_noise_ray`) by their names in a template's "noise"
+        meta and in the settings' `registration.noise`: keypoint, depth, depth_ray."""
+        return {"keypoint": self.noise.to_dict(), "depth": self.depth_noise.to_dict(),
+                "depth_ray": self.depth_noise_ray.to_dict()}
+
+    def with_noise_models(self, models: dict) -> RegisterParams:
+        """These settings with the noise models of `models` (`noise_models`' form; a model it lacks keeps this
+        one's: templates written before the along-the-ray model have none). Raises TypeError, ValueError or
+        KeyError on a damaged record."""
+        return replace(self, noise=DepthNoise(**models["keypoint"]), depth_noise=DepthNoise(**models["depth"]),
+                       depth_noise_ray=DepthNoise(**models["depth_ray"]) if "depth_ray" in models
+                       else self.depth_noise_ray)
 
 
 @dataclass(frozen=True)

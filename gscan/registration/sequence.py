@@ -66,8 +66,9 @@ class SequenceResult:
 
 
 def capture_noise(frames: SequenceFrames, params: RegisterParams, pilot_pairs: int, pool: ThreadPoolExecutor
-                  ) -> tuple[DepthNoise, DepthNoise]:
-    """The capture's noise, of a lifted keypoint and of a depth pixel (`gscan.registration.noise`): up to
+                  ) -> tuple[DepthNoise, DepthNoise, DepthNoise]:
+    """The capture's noise, of a lifted keypoint and of a depth pixel, the latter per axis and along the ray
+    (`gscan.registration.noise`; `RegisterParams.noise`, `depth_noise`, `depth_noise_ray`): up to
     `pilot_pairs` sequential pairs spread evenly over the capture, registered under the priors of `params`;
     the keypoint residuals of their inliers (less their keypoints' known location sigmas), and the distances of
     their depth samples to the other frame's surface within 5 prior sigmas, are fitted. A prior stays when too
@@ -79,21 +80,22 @@ def capture_noise(frames: SequenceFrames, params: RegisterParams, pilot_pairs: i
         fs, ft = frames.reg(j - 1), frames.reg(j)
         r = register_features(fs.feats, ft.feats, params, dense=(fs.dense, ft.dense))
         if not r.accepted or r.T_tgt_src is None or r.inliers is None or not len(r.inliers):
-            return (np.zeros(0),) * 7
+            return (np.zeros(0),) * 9
         ps = fs.feats.points[r.inliers[:, 0]].astype(np.float64)
         pt = ft.feats.points[r.inliers[:, 1]].astype(np.float64)
         loc = np.hypot(fs.feats.location_sigma[r.inliers[:, 0]], ft.feats.location_sigma[r.inliers[:, 1]])
-        e, za, zb = plane_residuals(fs.dense, ft.dense, r.T_tgt_src)
-        near = np.abs(e) < 5.0 * params.depth_noise.pair_sigma(za, zb)
+        d = plane_residuals(fs.dense, ft.dense, r.T_tgt_src)
+        near = np.abs(d.e) < 5.0 * params.depth_noise.pair_sigma(d.z_src, d.z_tgt)
         return (np.linalg.norm(transform_points(r.T_tgt_src, ps) - pt, axis=1), ps[:, 2], pt[:, 2], loc,
-                e[near], za[near], zb[near])
+                d.e[near], d.z_src[near], d.z_tgt[near], d.cos_src[near], d.cos_tgt[near])
 
     got = list(pool.map(pair, picks))
     if not got:
-        return params.noise, params.depth_noise
-    r, za, zb, loc, e, da, db = (np.concatenate(x) for x in zip(*got, strict=True))
+        return params.noise, params.depth_noise, params.depth_noise_ray
+    r, za, zb, loc, e, da, db, ca, cb = (np.concatenate(x) for x in zip(*got, strict=True))
     return (estimate_noise(r, za, zb, prior=params.noise, loc=loc),
-            estimate_noise(e, da, db, prior=params.depth_noise, dof=1))
+            estimate_noise(e, da, db, prior=params.depth_noise, dof=1),
+            estimate_noise(e, da, db, prior=params.depth_noise_ray, dof=1, cosines=(ca, cb)))
 
 
 def register_edges(reg: Registrar, params: SequenceParams, pool: ThreadPoolExecutor,

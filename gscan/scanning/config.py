@@ -54,7 +54,8 @@ class ScanConfig(BaseModel):
     @classmethod
     def _earlier_keys(cls, data: Any) -> Any:
         """Files written for earlier versions keep working: the `match` section is registration.gmatch (its
-        `method`, registration.method); `registration.noise` was null (estimated) or the two models used as given."""
+        `method`, registration.method); `registration.noise` was null (estimated) or the models used as given
+        (keypoint, depth, and depth_ray where written)."""
         if not isinstance(data, dict) or not isinstance(data.get("registration") or {}, dict):
             return data
         data = dict(data)
@@ -67,11 +68,13 @@ class ScanConfig(BaseModel):
             reg["gmatch"] = {**match, **(reg.get("gmatch") or {})}
         elif match is not None:
             reg["gmatch"] = match  # refused below, named as a section
-        if "noise" in reg and (reg["noise"] is None or (isinstance(reg["noise"], dict)
-                                                        and set(reg["noise"]) == {"keypoint", "depth"})):
+        if "noise" in reg and (reg["noise"] is None or (isinstance(reg["noise"], dict) and set(reg["noise"]) in (
+                {"keypoint", "depth"}, {"keypoint", "depth", "depth_ray"}))):
             models = reg.pop("noise")
             if models is not None:
                 reg["noise"], reg["depth_noise"] = models["keypoint"], models["depth"]
+                if "depth_ray" in models:
+                    reg["depth_noise_ray"] = models["depth_ray"]
                 data["posegraph"] = {"estimate_noise": False, **(data.get("posegraph") or {})}
         if reg or "registration" in data:
             data["registration"] = reg

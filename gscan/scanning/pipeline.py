@@ -427,8 +427,7 @@ def _scan_frames(caps: list[_Capture], output: Path, opts: ScanOptions, db: Temp
         db.set_cloud(transform_points(T_obj_world, model.points), model.point_colors)
         unregistered = [f.name for f, T in zip(frames, T_world_cam, strict=True) if T is None]
         db.set_meta("mode", first.mode)
-        noise = first.reg.rparams
-        db.set_meta("noise", {"keypoint": noise.noise.to_dict(), "depth": noise.depth_noise.to_dict()})
+        db.set_meta("noise", first.reg.rparams.noise_models())
         db.set_meta("unregistered", unregistered)
         db.set_meta("unregistered_reasons", reasons)
         db.set_meta("parts", parts)
@@ -524,7 +523,7 @@ def _template_capture(db: TemplateDB, store: FrameStore, opts: ScanOptions) -> _
     noise = meta.get("noise") or {}
     rparams = for_capture(opts.config, meta.get("mode") or STATIC_OBJECT).registration
     with contextlib.suppress(TypeError, ValueError, KeyError):
-        rparams = replace(rparams, noise=DepthNoise(**noise["keypoint"]), depth_noise=DepthNoise(**noise["depth"]))
+        rparams = rparams.with_noise_models(noise)
     names = [f.name for f in frames]
 
     def mask_of(k: int) -> np.ndarray | None:
@@ -568,8 +567,8 @@ def _register_capture(cap: _Capture, opts: ScanOptions, db: TemplateDB, store: F
     rparams, sparams = cfg.registration, cfg.posegraph
     with timer.stage("noise", total=1) as advance:
         if sparams.estimate_noise:
-            kp_noise, depth_noise = capture_noise(data, rparams, sparams.pilot_pairs, pool)
-            rparams = replace(rparams, noise=kp_noise, depth_noise=depth_noise)
+            kp_noise, depth_noise, ray = capture_noise(data, rparams, sparams.pilot_pairs, pool)
+            rparams = replace(rparams, noise=kp_noise, depth_noise=depth_noise, depth_noise_ray=ray)
         advance(1)
     sink = _EdgeRecords(db)
     reg = Registrar(data, rparams, sink, db.edges() if resumed else (), AHEAD, cfg.features.auto_min_keypoints)
@@ -628,7 +627,7 @@ def _join(caps: list[_Capture], config: ScanConfig, timer: StageTimer, pool: Thr
     first = caps[0].reg
     assert first is not None
     moving = for_capture(config, MOVING_OBJECT).registration
-    rparams = replace(moving, noise=first.rparams.noise, depth_noise=first.rparams.depth_noise)
+    rparams = moving.with_noise_models(first.rparams.noise_models())
     oparams = replace(OBJECT_FEATURES, kind=config.features.kind, max_keypoints=config.features.max_keypoints)
     with timer.stage("join", total=len(caps) - 1) as advance:
         joined = _join_views(caps[0], params.views, oparams, _icp_voxel(config), pool)
@@ -712,7 +711,7 @@ def _capture_meta(cap: _Capture, T_obj_world: np.ndarray) -> dict:
     assert r is not None
     T = np.eye(4) if cap.join is None else cap.join.T_a_b
     return _capture_summary(cap) | {
-        "noise": {"keypoint": r.rparams.noise.to_dict(), "depth": r.rparams.depth_noise.to_dict()},
+        "noise": r.rparams.noise_models(),
         "join": None if cap.join is None else cap.join.to_meta(),
         "T_obj_world": None if T is None else (T_obj_world @ T).tolist()}
 

@@ -334,7 +334,7 @@ def find_symmetries(db: TemplateDB, params: SymmetryParams = SymmetryParams()) -
     model = None
     if isinstance(depth, dict):
         try:
-            model = DepthNoise(**{k: float(depth[k]) for k in ("c0", "c1", "c2")})
+            model = DepthNoise(float(depth["c0"]), float(depth["c1"]), float(depth["c2"]))
         except (KeyError, TypeError, ValueError):
             model = None
     dists = [float(np.linalg.norm(v.T_obj_cam[:3, 3])) for v in db.views() if v.T_obj_cam is not None]
