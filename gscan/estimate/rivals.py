@@ -47,6 +47,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -105,7 +106,6 @@ class ListVerifier:
         turns = [S for S, t in zip(sym.discrete, sym.discrete_in_texture, strict=True) if not t]
         self.shape_turns = turns if params.symmetry.weigh_shape_turns else []
         self.unseen_turns = turns
-        self._seen: Any = None  # cKDTree of the template's surface samples (all seen: filled holes hold none)
         self._unseen: dict[bytes, Any] = {}  # (turn, radius) -> cKDTree of the surface the template has not seen
         # a template with depth keypoints: its keyframes' textures and its depth noise (`by_depth`)
         self.keyframes: KeyframeTextures | None = None
@@ -307,23 +307,31 @@ class ListVerifier:
                 return tie
         return res
 
+    @cached_property
+    def seen(self) -> Any:
+        """cKDTree of the template's surface samples (all seen: filled holes hold none), built when first asked."""
+        from scipy.spatial import cKDTree
+
+        return cKDTree(self.model.samples)
+
+    @staticmethod
+    def _distances(tree: Any, T_cam_obj: np.ndarray, qk: QueryKeypoints, among: np.ndarray | None) -> np.ndarray:
+        """[M] each query keypoint's distance (m) at T_cam_obj to the nearest point of `tree` (object frame); among
+        ([M] bool): only those keypoints are measured, the others are NaN (no comparison holds for them)."""
+        pts = qk.feats.points if among is None else qk.feats.points[among]
+        d, _ = tree.query(transform_points(inv_T(T_cam_obj), pts.astype(np.float64)))
+        if among is None:
+            return np.asarray(d)
+        out = np.full(len(qk.feats.points), np.nan)
+        out[among] = d
+        return out
+
     def off_seen_surface(self, T_cam_obj: np.ndarray, qk: QueryKeypoints, radius: float,
                          among: np.ndarray | None = None) -> np.ndarray:
         """[M] bool: the query keypoints farther than `radius` (m) from the template's surface at T_cam_obj;
         among ([M] bool): only those keypoints are measured, the others are False (each keypoint's answer does
         not depend on the others)."""
-        from scipy.spatial import cKDTree
-
-        if self._seen is None:
-            self._seen = cKDTree(self.model.samples)
-        T_obj_cam = inv_T(T_cam_obj)
-        pts = qk.feats.points if among is None else qk.feats.points[among]
-        d, _ = self._seen.query(transform_points(T_obj_cam, pts.astype(np.float64)))
-        if among is None:
-            return np.asarray(d > radius)
-        out = np.zeros(len(qk.feats.points), bool)
-        out[among] = d > radius
-        return out
+        return self._distances(self.seen, T_cam_obj, qk, among) > radius
 
     def near_unseen(self, T_cam_obj: np.ndarray, S: np.ndarray, qk: QueryKeypoints, radius: float,
                     among: np.ndarray) -> np.ndarray:
@@ -336,18 +344,12 @@ class ListVerifier:
         key = S.tobytes() + np.float64(radius).tobytes()
         if key not in self._unseen:
             turned = transform_points(S, self.model.samples)
-            if self._seen is None:
-                self._seen = cKDTree(self.model.samples)
-            d, _ = self._seen.query(turned)
+            d, _ = self.seen.query(turned)
             self._unseen[key] = cKDTree(turned[d > radius]) if (d > radius).any() else None
         tree = self._unseen[key]
-        out = np.zeros(len(qk.feats.points), bool)
         if tree is None:
-            return out
-        pts = transform_points(inv_T(T_cam_obj), qk.feats.points[among].astype(np.float64))
-        d, _ = tree.query(pts)
-        out[among] = d <= radius
-        return out
+            return np.zeros(len(qk.feats.points), bool)
+        return self._distances(tree, T_cam_obj, qk, among) <= radius
 
     def against_unseen_turns(self, q: QueryFrame, qk: QueryKeypoints, res: EstimateResult, refine: bool,
                              timer: StageTimer) -> EstimateResult:

@@ -375,8 +375,8 @@ def _judge_on_depth(out: PairResult, T_tgt_src: np.ndarray, dense: tuple[DenseGe
     margin = 3.0 * out.sigma_m
     off = outside_outline(dense[0], dense[1], T, margin)
     if off > params.max_outside_outline:
-        return T, (f"outline disagrees ({off:.1%} of the samples land over {margin * 1000:.1f} mm, three times the "
-                   f"pose's sigma, off the other frame's outline; the texture cannot judge the pose, so at most "
+        return T, (f"outline disagrees ({off:.1%} of the rim points land over {margin * 1000:.1f} mm, three times "
+                   f"the pose's sigma, off the other frame's outline; the texture cannot judge the pose, so at most "
                    f"{params.max_outside_outline:.1%})")
     return T, None
 

@@ -6,7 +6,7 @@ read and validated without loading the compiled kernels."""
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import Field
 
@@ -15,6 +15,12 @@ from gscan.registration.noise import DepthNoise
 from gscan.settings import SETTINGS
 
 METHODS = ("gmatch",) + BASELINES
+
+
+# the noise models by their names in a template's "noise" meta and in the settings' `registration.noise`, and the
+# fields of RegisterParams they set; templates and settings written before the model along the ray lack it
+NOISE_MODELS = {"keypoint": "noise", "depth": "depth_noise", "depth_ray": "depth_noise_ray"}
+REQUIRED_NOISE_MODELS = ("keypoint", "depth")
 
 
 @dataclass(frozen=True)
@@ -118,18 +124,16 @@ class RegisterParams:
         return self.dense_refine is not False
 
     def noise_models(self) -> dict[str, dict[str, float]]:
-        """The noise models (`noise`, `depth_noise`, `depth_noise_ray`) by their names in a template's "noise"
-        meta and in the settings' `registration.noise`: keypoint, depth, depth_ray."""
-        return {"keypoint": self.noise.to_dict(), "depth": self.depth_noise.to_dict(),
-                "depth_ray": self.depth_noise_ray.to_dict()}
+        """The noise models by their names in a template's "noise" meta (`NOISE_MODELS`)."""
+        return {name: getattr(self, field).to_dict() for name, field in NOISE_MODELS.items()}
 
     def with_noise_models(self, models: dict) -> RegisterParams:
-        """These settings with the noise models of `models` (`noise_models`' form; a model it lacks keeps this
-        one's: templates written before the along-the-ray model have none). Raises TypeError, ValueError or
-        KeyError on a damaged record."""
-        return replace(self, noise=DepthNoise(**models["keypoint"]), depth_noise=DepthNoise(**models["depth"]),
-                       depth_noise_ray=DepthNoise(**models["depth_ray"]) if "depth_ray" in models
-                       else self.depth_noise_ray)
+        """These settings with the noise models of `models` (`noise_models`' form; keypoint and depth needed, a
+        model it lacks keeps this one's: templates written before the along-the-ray model have none). Raises
+        TypeError, ValueError or KeyError on a damaged record."""
+        changes: dict[str, Any] = {field: DepthNoise(**models[name]) for name, field in NOISE_MODELS.items()
+                                   if name in models or name in REQUIRED_NOISE_MODELS}
+        return replace(self, **changes)
 
 
 @dataclass(frozen=True)

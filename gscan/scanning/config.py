@@ -17,7 +17,13 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, model_validator
 
 from gscan.features import FeatureParams
-from gscan.registration.params import JoinParams, RegisterParams, SequenceParams
+from gscan.registration.params import (
+    NOISE_MODELS,
+    REQUIRED_NOISE_MODELS,
+    JoinParams,
+    RegisterParams,
+    SequenceParams,
+)
 from gscan.scanning.fuse import FusionParams
 from gscan.scanning.keyframes import KeyframeParams
 from gscan.scanning.modes import MOVING_OBJECT, STATIC_OBJECT
@@ -68,13 +74,12 @@ class ScanConfig(BaseModel):
             reg["gmatch"] = {**match, **(reg.get("gmatch") or {})}
         elif match is not None:
             reg["gmatch"] = match  # refused below, named as a section
-        if "noise" in reg and (reg["noise"] is None or (isinstance(reg["noise"], dict) and set(reg["noise"]) in (
-                {"keypoint", "depth"}, {"keypoint", "depth", "depth_ray"}))):
-            models = reg.pop("noise")
+        noise = reg.get("noise", {})
+        if noise is None or (isinstance(noise, dict)
+                             and set(REQUIRED_NOISE_MODELS) <= set(noise) <= set(NOISE_MODELS)):
+            models = reg.pop("noise", None)
             if models is not None:
-                reg["noise"], reg["depth_noise"] = models["keypoint"], models["depth"]
-                if "depth_ray" in models:
-                    reg["depth_noise_ray"] = models["depth_ray"]
+                reg.update({NOISE_MODELS[name]: model for name, model in models.items()})
                 data["posegraph"] = {"estimate_noise": False, **(data.get("posegraph") or {})}
         if reg or "registration" in data:
             data["registration"] = reg
