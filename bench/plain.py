@@ -322,7 +322,8 @@ def estimates(objects: list[str], n: int, frames: int, negatives: int, work: Pat
     with ppf or nullcontext():
         for name in objects:
             split = "tune" if name in TUNE else "held-out"
-            oi = (TUNE + HELD_OUT).index(name) if name in TUNE + HELD_OUT else len(TUNE + HELD_OUT)  # seeds
+            known = TUNE + HELD_OUT  # the scenes' seeds: another object's after theirs
+            oi = known.index(name) if name in known else len(known) + [o for o in objects if o not in known].index(name)
             ests, to_gt = {}, {}
             for kp in SOURCES:
                 tpl = work / f"{name}_{frames}_{kp}.gscan"

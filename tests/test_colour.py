@@ -137,3 +137,39 @@ def test_the_correlation_kernel_is_numpys_to_the_bit(seed):
     for shifts in (SEARCH, FAR):
         got = _tile_zncc(Ia, t, len(sizes), tex, u, v, shifts)
         assert np.array_equal(got, _tile_zncc_numpy(Ia, t, tex, u, v, shifts))
+
+
+def _shaded(colour: tuple[int, int, int], seed: int) -> np.ndarray:
+    """[H x W x 3] uint8: one colour shaded from 40 % to 100 % across the image (a face turning from the light),
+    with pixel noise of 2 grey levels."""
+    rng = np.random.default_rng(seed)
+    shade = np.linspace(0.4, 1.0, W)[None, :, None]
+    img = np.asarray(colour, np.float64)[None, None, :] * shade + rng.normal(0, 2.0, (H, W, 3))
+    return np.clip(img, 0, 255).astype(np.uint8)
+
+
+def test_chromaticity_ignores_shading_and_tells_another_colour():
+    """`chromaticity` / `chroma_shift` / `dense.chroma_pairs`: a plane seen right under two shadings of one colour
+    lies within noise of itself (the shading turned the other way: each pair's brightness differs up to 2.5
+    times); the same plane in a colour 0.1 away in chromaticity lies that far; a dark image tells nothing, a grey
+    one has no chromaticity."""
+    from gscan.registration.colour import chroma_shift, chromaticity
+    from gscan.registration.dense import chroma_pairs
+
+    olive = (150, 152, 92)
+    a = _shaded(olive, 0)
+    b = np.ascontiguousarray(_shaded(olive, 1)[:, ::-1])
+    ga = _plane(a)
+    pairs = chroma_pairs(ga, _plane(b), np.eye(4), NOISE, chromaticity(a, 0.01), chromaticity(b, 0.01))
+    same, n = chroma_shift(*pairs)
+    assert n > 1000 and same < 0.003, (same, n)
+    red = (200, 100, 92)  # r 0.51 instead of 0.38, g 0.26 instead of 0.38
+    c = _shaded(red, 2)
+    other, n = chroma_shift(*chroma_pairs(ga, _plane(c), np.eye(4), NOISE, chromaticity(a, 0.01),
+                                          chromaticity(c, 0.01)))
+    want = np.hypot(200 / 392 - 150 / 394, 100 / 392 - 152 / 394)
+    assert n > 1000 and abs(other - want) < 0.01, (other, want)
+    dark = (_shaded(olive, 3) // 40).astype(np.uint8)  # channel sums of 3-10 grey levels: noise dominates
+    assert np.isnan(chromaticity(dark, 0.01)).all()
+    assert chromaticity(a[..., 0], 0.01) is None
+    assert chroma_shift(np.full((3, 2), np.nan), np.zeros((3, 2))) == (0.0, 0)

@@ -522,6 +522,60 @@ def test_print_the_plain_part_lacks_refutes_a_pose_on_a_printed_box(plain_part):
     assert not res.found and res.reason.startswith("print disagrees"), res.reason
 
 
+def test_a_twin_of_the_part_in_another_colour_is_refused_by_its_colour(plain_part):
+    """The part's shape in blue (the part is a light grey) where the part stood: depth, silhouettes and texture
+    (plain on plain) all fit; its colour, 0.19 away in chromaticity, refutes the pose. With the colour bound lifted
+    the twin is taken for the part."""
+    from dataclasses import replace
+
+    from gscan.estimate import Estimator
+    from gscan.estimate.params import DEFAULT_PARAMS, AcceptParams, QueryParams
+    from gscan.synth import DEFAULT_INTRINSICS
+    from gscan.synth.cases import plain_part_scene
+
+    tpl = plain_part[0]
+    r, T_cam_twin = plain_part_scene(0, colour=(60, 120, 235))
+    twin = RGBDFrame("twin", r.color, r.depth, DEFAULT_INTRINSICS)
+    on = replace(DEFAULT_PARAMS, query=QueryParams(depth_keypoints=True))
+    res = Estimator.from_path(tpl, on).estimate(twin)
+    assert not res.found and res.reason.startswith("colour disagrees"), res.reason
+    blind = Estimator.from_path(tpl, replace(on, accept=AcceptParams(max_chroma_shift=1.0))).estimate(twin)
+    assert blind.found and blind.depth_only, blind.reason
+    err = min(pose_error(blind.T_cam_obj @ S, T_cam_twin) for S in _box_symmetries())
+    assert err[0] < 5.0 and err[1] < 0.02, err
+
+
+def test_a_pose_the_depth_alone_decided_is_refused_where_the_image_border_cuts_the_part(plain_part):
+    """The part's frame cut at the column of its centre: half its silhouette lies beyond the border, where no
+    silhouette can bound it (`beyond_border`: 0 in the whole frame at the true pose), and the true pose, which
+    every rule for a pose the depth alone decided passes in the whole frame, is refused there."""
+    from dataclasses import replace
+
+    from gscan.estimate import Estimator
+    from gscan.estimate.params import DEFAULT_PARAMS, QueryParams
+    from gscan.estimate.verify import beyond_border
+    from gscan.geometry.transforms import transform_points
+    from gscan.io.camera import Intrinsics
+    from gscan.template.db import open_template
+
+    tpl, frame, T_cam_part = plain_part[0], plain_part[1], plain_part[3]
+    intr = frame.intrinsics
+    u0 = int(round(T_cam_part[0, 3] / T_cam_part[2, 3] * intr.fx + intr.cx))
+    cut_intr = Intrinsics(intr.fx, intr.fy, intr.cx - u0, intr.cy, intr.width - u0, intr.height)
+    cut = RGBDFrame("cut", np.ascontiguousarray(frame.color[:, u0:]), np.ascontiguousarray(frame.depth[:, u0:]),
+                    cut_intr)
+    part = open_template(tpl).mesh.vertices
+    assert beyond_border(T_cam_part, intr, part) == 0.0
+    assert 0.3 < beyond_border(T_cam_part, cut_intr, part) < 0.7
+    behind = T_cam_part.copy()
+    behind[2, 3] = -1.0
+    assert beyond_border(behind, intr, part) == 1.0 and transform_points(behind, part)[:, 2].max() < 0
+    est = Estimator.from_path(tpl, replace(DEFAULT_PARAMS, query=QueryParams(depth_keypoints=True)))
+    assert est.verifier.depth_only_refusal(est.prepare(frame), T_cam_part) is None
+    why = est.verifier.depth_only_refusal(est.prepare(cut), T_cam_part)
+    assert why is not None and why.startswith("the object at this pose reaches beyond the image's border"), why
+
+
 def test_a_templates_image_keypoints_are_its_joint_sets_image_part(plain_part):
     """`Template.image_keypoints`: the rows without an FPFH part, their RootSIFT part, each view's offsets
     recounted; the query's joint set holds the search region's depth keypoints at the template's size."""

@@ -136,7 +136,8 @@ class Estimator:
         self.view_names = self.index.view_names
         self.query_depth = query_depth(tpl)
         if self.query_depth is not None:  # poses the depth alone decides meet the keyframes' texture (verifier)
-            self.verifier.keyframes = KeyframeTextures(tpl.path, self.view_names, self.index.T_obj_cam)
+            self.verifier.keyframes = KeyframeTextures(tpl.path, self.view_names, self.index.T_obj_cam,
+                                                      params.accept.max_chroma_shift / 3.0)
             self.verifier.depth_noise = self.query_depth.noise
         self.model_points = self.model.model_points  # for metrics: mesh vertices, else the cloud
         # the scan found the capture's depth off its colour at the given intrinsics (gscan.scanning.calibration): a

@@ -49,6 +49,10 @@ class AcceptParams:
     min_colour_agreement: Annotated[float, Field(description="... and fewer than this share of them line up "
                                                  "(registration's texture rule)", ge=0, le=1)] = (
         _REGISTER.min_colour_agreement)
+    max_chroma_shift: Annotated[float, Field(description="... or when its surface's colour lies farther than this "
+                                             "from the nearest keyframe's, in rg chromaticity (shading leaves it; a "
+                                             "grey lit at 4500 K instead of 6500 K, the white balance unchanged, "
+                                             "moves about as far)", ge=0, le=1)] = 0.05
     __pydantic_config__ = SETTINGS
 
 

@@ -64,6 +64,7 @@ from gscan.estimate.texture import KeyframeTextures, texture_refusal
 from gscan.estimate.verify import (
     Evidence,
     accept,
+    border_refusal,
     decided_by_depth,
     list_refusal,
     list_spread,
@@ -214,14 +215,15 @@ class ListVerifier:
 
     def depth_only_refusal(self, q: QueryFrame, T_cam_obj: np.ndarray) -> str | None:
         """The reason the stricter shape rules refuse a pose the depth alone decided (`silhouette_refusal`, then
-        the keyframes' texture: `texture_refusal`), else None."""
+        the keyframes' texture and colour: `texture_refusal`, then the image's border: `border_refusal`), else
+        None."""
         why = silhouette_refusal(q, T_cam_obj, self.model.samples, self.params.refine.voxel, self.depth_noise,
                                  self.params.accept)
         if why is None:
             why = "no texture check for a pose the depth alone decided (the template's keyframes are not known)" \
                 if self.keyframes is None else \
                 texture_refusal(q, T_cam_obj, self.keyframes, self.depth_noise, self.params.accept)
-        return why
+        return why or border_refusal(q.frame.intrinsics, T_cam_obj, self.model.samples, self.params.accept)
 
     def against_rivals(self, q: QueryFrame, qk: QueryKeypoints, res: EstimateResult, rivals: list[MatchList],
                        refine: bool, timer: StageTimer, separate: Separate | None = None) -> EstimateResult:

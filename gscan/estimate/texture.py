@@ -28,6 +28,15 @@ against the sensor's noise, not a rank test's chance. A pose with such a tile is
 `accept.min_colour_agreement` of the interiors' informative tiles line up (a one-sided tile never does); a plain
 template seen on its own plain faces has none.
 
+Plain against plain leaves the texture nothing to judge, and another plain object of about the object's size fits
+its depth, its silhouettes and its (absent) print. Its colour tells them apart: the query's samples landing on the
+keyframe's surface under the pose are paired with the keyframe's pixels there, each side's chromaticity (r and g over
+the channels' sum, `gscan.registration.colour.chromaticity`: shading scales the channels alike and leaves it) is
+compared, and the pose is refused when the pairs' median difference lies beyond `accept.max_chroma_shift` (0.05: a
+grey surface lit at 4500 K instead of 6500 K with the white balance unchanged moves about that far, far more than
+a right pose's pairs differ: BENCHMARKS.md, "Plain objects"). Pixels too dark to tell a chromaticity within a third
+of the bound count for neither side, and fewer than MIN_CHROMA_PAIRS pairs give no verdict.
+
 The keyframes' images are read from the template file on first use and their samples cached (`KeyframeTextures`).
 """
 from __future__ import annotations
@@ -41,22 +50,25 @@ import numpy as np
 from gscan.estimate.params import AcceptParams
 from gscan.estimate.query import QueryFrame
 from gscan.geometry.transforms import inv_T
-from gscan.registration.colour import BAND_SIGMA
-from gscan.registration.dense import DenseGeometry, colour_agreement, interior, print_agreement
+from gscan.registration.colour import BAND_SIGMA, chroma_shift, chromaticity
+from gscan.registration.dense import DenseGeometry, chroma_pairs, colour_agreement, interior, print_agreement
 from gscan.registration.noise import DepthNoise
 
 log = logging.getLogger(__name__)
 
 PRINT_REACH_PX = 3.0 * BAND_SIGMA  # px: how far the band-pass's blur carries a rim's or a crease's shading
+MIN_CHROMA_PAIRS = 16  # sample pairs the colour check needs for a verdict (a median over fewer is a few pixels')
 
 
 class KeyframeTextures:
-    """The keyframes' object samples with their texture (`DenseGeometry`), read from the template file `path`
-    (views `names`, poses T_obj_cam [V x 4 x 4]) when first asked for, then kept."""
+    """The keyframes' object samples with their texture (`DenseGeometry`) and their images' chromaticity
+    (`chromaticity`, told within chroma_sigma), read from the template file `path` (views `names`, poses T_obj_cam
+    [V x 4 x 4]) when first asked for, then kept."""
 
-    def __init__(self, path: str | Path | None, names: list[str], T_obj_cam: np.ndarray):
+    def __init__(self, path: str | Path | None, names: list[str], T_obj_cam: np.ndarray, chroma_sigma: float):
         self.path, self.names, self.T_obj_cam = path, names, np.asarray(T_obj_cam, dtype=np.float64)
-        self._dense: dict[int, DenseGeometry | None] = {}
+        self.chroma_sigma = chroma_sigma
+        self._read_views: dict[int, tuple[DenseGeometry | None, np.ndarray | None]] = {}
         self._lock = threading.Lock()
 
     def nearest(self, T_cam_obj: np.ndarray) -> int:
@@ -66,21 +78,29 @@ class KeyframeTextures:
 
     def dense(self, v: int) -> DenseGeometry | None:
         """Keyframe v's object samples with texture; None when the template keeps no images of it."""
-        with self._lock:
-            if v not in self._dense:
-                self._dense[v] = self._read(v)
-            return self._dense[v]
+        return self._get(v)[0]
 
-    def _read(self, v: int) -> DenseGeometry | None:
+    def chroma(self, v: int) -> np.ndarray | None:
+        """Keyframe v's image's chromaticity [H x W x 2]; None without a colour image of it."""
+        return self._get(v)[1]
+
+    def _get(self, v: int) -> tuple[DenseGeometry | None, np.ndarray | None]:
+        with self._lock:
+            if v not in self._read_views:
+                self._read_views[v] = self._read(v)
+            return self._read_views[v]
+
+    def _read(self, v: int) -> tuple[DenseGeometry | None, np.ndarray | None]:
         from gscan.template.db import TemplateDB
 
         if self.path is None:
-            return None
+            return None, None
         with TemplateDB.open(self.path) as db:
             view = db.view(self.names[v])
         if view.color is None or view.depth is None:
-            return None
-        return DenseGeometry.from_depth(view.depth, view.intrinsics, view.mask, image=view.color)
+            return None, None
+        return (DenseGeometry.from_depth(view.depth, view.intrinsics, view.mask, image=view.color),
+                chromaticity(view.color, self.chroma_sigma))
 
 
 def texture_refusal(q: QueryFrame, T_cam_obj: np.ndarray, keyframes: KeyframeTextures, noise: DepthNoise,
@@ -108,4 +128,23 @@ def texture_refusal(q: QueryFrame, T_cam_obj: np.ndarray, keyframes: KeyframeTex
         return (f"print disagrees ({pr.one_sided} of {pr.informative} textured tiles of the faces' interiors are print "
                 f"that the query or the template's view {keyframes.names[v]} lacks, {pr.agreeing} line up; the depth "
                 "alone decided the pose)")
+    return chroma_refusal(query, kf, T_kf_cam, frame.color, keyframes.chroma(v), noise, p.max_chroma_shift,
+                          keyframes.names[v])
+
+
+def chroma_refusal(query: DenseGeometry, kf: DenseGeometry, T_kf_cam: np.ndarray, image: np.ndarray,
+                   kf_chroma: np.ndarray | None, noise: DepthNoise, max_shift: float, name: str) -> str | None:
+    """The reason the colour of the surface under a pose refutes it (module docstring), else None: the query's
+    samples (`query`, of its colour `image`) landing on the keyframe's surface (`kf`, its chromaticity kf_chroma,
+    T_kf_cam the query camera in the keyframe's) at least MIN_CHROMA_PAIRS times, where both images are bright
+    enough to tell a chromaticity within a third of max_shift, lie farther than max_shift from the keyframe's
+    (`chroma_shift`). Without a colour image on either side, no verdict."""
+    q_chroma = chromaticity(image, max_shift / 3.0)
+    if q_chroma is None or kf_chroma is None:
+        return None
+    shift, n = chroma_shift(*chroma_pairs(query, kf, T_kf_cam, noise, q_chroma, kf_chroma))
+    log.debug("colour against keyframe %s: %d pairs, chromaticity %.4f apart", name, n, shift)
+    if n >= MIN_CHROMA_PAIRS and shift > max_shift:
+        return (f"colour disagrees (the surface under the pose lies {shift:.3f} in chromaticity from the template's "
+                f"view {name}'s, beyond {max_shift:.3f}; the depth alone decided the pose)")
     return None

@@ -185,3 +185,32 @@ def print_tiles(Ia: np.ndarray, tiles: np.ndarray, tgt_texture: np.ndarray, u: n
     plain = np.sqrt(np.bincount(t, dev * dev, len(ids)) / np.maximum(n - 1, 1)) < tgt_min_std
     one_sided = informative & plain
     return PrintAgreement(int(informative.sum()), int(one_sided.sum()), int((agree & ~one_sided).sum()))
+
+
+CHROMA_BOX = 5  # px: the box a pixel's chromaticity is averaged over (its noise falls by this factor)
+
+
+def chromaticity(image: np.ndarray, max_sigma: float) -> np.ndarray | None:
+    """[H x W x 2] float32: the (r, g) chromaticity, each channel over the channels' sum, of an [H x W x 3] RGB image
+    averaged over CHROMA_BOX px boxes; NaN where the image is too dark to tell it: a channel of noise sigma
+    (`image_noise`) moves the chromaticity of a sum S by about sqrt(2) sigma / (CHROMA_BOX S), kept where that is at
+    most max_sigma. Shading scales the channels alike and leaves it; a surface of another colour moves it. None for a
+    grey image."""
+    img = np.asarray(image)
+    if img.ndim != 3 or img.shape[2] < 3:
+        return None
+    rgb = cv2.blur(img[..., :3].astype(np.float32), (CHROMA_BOX, CHROMA_BOX))
+    s = rgb.sum(axis=2)
+    dark = np.sqrt(2.0) * max(image_noise(grey_image(img)), 1.0 / np.sqrt(12.0)) / (CHROMA_BOX * max_sigma)
+    return np.where((s >= dark)[..., None], rgb[..., :2] / np.maximum(s, 1e-6)[..., None], np.nan).astype(np.float32)
+
+
+def chroma_shift(a: np.ndarray, b: np.ndarray) -> tuple[float, int]:
+    """(shift, n): how far the chromaticities b [K x 2] lie from a [K x 2] pair by pair, as the length of the
+    pairs' median difference (each axis' median: the colour one surface has and the other lacks, whatever a few
+    pairs across a rim say), over the n pairs known in both (not NaN); (0, 0) without any."""
+    d = np.asarray(b, np.float64) - np.asarray(a, np.float64)
+    d = d[np.isfinite(d).all(axis=1)]
+    if not len(d):
+        return 0.0, 0
+    return float(np.linalg.norm(np.median(d, axis=0))), len(d)

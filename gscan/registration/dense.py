@@ -312,6 +312,23 @@ def _tile_samples(a: DenseGeometry, b: DenseGeometry, T_b_a: np.ndarray, noise: 
     return a.texture[pv, pu].astype(np.float64), tile_ids(pu, pv, a.texture.shape[1]), u, v, idx
 
 
+def chroma_pairs(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarray, noise: DepthNoise,
+                 src_chroma: np.ndarray, tgt_chroma: np.ndarray, k: float = 3.0) -> tuple[np.ndarray, np.ndarray]:
+    """The chromaticities (`gscan.registration.colour.chromaticity`, [H x W x 2] of each frame's image) of src's
+    samples (with pixels) whose depth lands on tgt's within k sigmas of `noise` under T_tgt_src, inside tgt's mask
+    when it has one: (at the sample in src [K x 2], where it lands in tgt [K x 2], nearest pixel)."""
+    assert src.pixels is not None
+    q, _, e, sd, idx = _plane_pairs(src, tgt, T_tgt_src, noise)
+    u, v, _, kept = _project(q, tgt.full_intrinsics, tgt_chroma.shape[:2])
+    ok = np.abs(e[kept]) <= k * sd[kept]
+    u, v, idx = u[ok], v[ok], idx[kept][ok]
+    if tgt.mask is not None:
+        inside = tgt.mask[v, u]
+        u, v, idx = u[inside], v[inside], idx[inside]
+    pu, pv = src.pixels[idx, 0], src.pixels[idx, 1]
+    return src_chroma[pv, pu], tgt_chroma[v, u]
+
+
 def interior(g: DenseGeometry, noise: DepthNoise, reach_px: float) -> DenseGeometry:
     """g with only the samples on a face's interior: every sample within reach_px pixels (a square of samples) is
     valid (no rim: g leaves out samples across a depth jump and outside its mask) and its normal lies within

@@ -307,15 +307,19 @@ def plain_part_meshes() -> tuple[TexturedMesh, list[TexturedMesh]]:
                   box_mesh((0.20, 0.12, 0.06), np.full((4, 4, 3), 200, np.uint8), name="plain_flat")]
 
 
-def plain_part_scene(seed: int, with_part: bool = True) -> tuple[RenderedFrame, np.ndarray]:
+def plain_part_scene(seed: int, with_part: bool = True, colour: tuple[int, int, int] | None = None
+                     ) -> tuple[RenderedFrame, np.ndarray]:
     """(frame, T_cam_part [4 x 4]) of `plain_part_meshes`' part upright at a random yaw (seeded) on a wood table with
     the two others around it (without it: they alone, the part's place empty), seen from 0.7 m at 35 deg
-    elevation."""
+    elevation. colour: RGB, the part in that one colour instead (a twin of its shape in another colour)."""
     from gscan.geometry.transforms import look_at
     from gscan.synth.capture import place_distractors, rest_on_table
     from gscan.synth.render import SynthScene
 
     part, others = plain_part_meshes()
+    if colour is not None:
+        part = TexturedMesh(part.vertices, part.triangles, part.uv, np.full((4, 4, 3), colour, np.uint8),
+                            name=f"{part.name}_twin")
     rng = np.random.default_rng(seed)
     T_world_part = rest_on_table(part, rotvec_to_R(np.array([0.0, 0.0, rng.uniform(0, 2 * np.pi)])))
     placed = list(zip(others, place_distractors(part, T_world_part, others, rng), strict=True))
