@@ -151,8 +151,8 @@ def _shaded(colour: tuple[int, int, int], seed: int) -> np.ndarray:
 def test_chromaticity_ignores_shading_and_tells_another_colour():
     """`chromaticity` / `chroma_shift` / `dense.chroma_pairs`: a plane seen right under two shadings of one colour
     lies within noise of itself (the shading turned the other way: each pair's brightness differs up to 2.5
-    times); the same plane in a colour 0.1 away in chromaticity lies that far; a dark image tells nothing, a grey
-    one has no chromaticity."""
+    times); the same plane in a colour 0.1 away in chromaticity lies that far, and in stripes of two colours whose
+    mean is the plane's, as far as each stripe; a dark image tells nothing, a grey one has no chromaticity."""
     from gscan.registration.colour import chroma_shift, chromaticity
     from gscan.registration.dense import chroma_pairs
 
@@ -169,6 +169,14 @@ def test_chromaticity_ignores_shading_and_tells_another_colour():
                                           chromaticity(c, 0.01)))
     want = np.hypot(200 / 392 - 150 / 394, 100 / 392 - 152 / 394)
     assert n > 1000 and abs(other - want) < 0.01, (other, want)
+    # a print of two colours either side of the olive: their mean chromaticity is the olive's, each pair far off
+    half = np.zeros((H, W), bool)
+    half[:, ::16] = True
+    half = np.cumsum(half, axis=1) % 2 == 1
+    two = np.where(half[..., None], _shaded((180, 122, 92), 4), _shaded((120, 182, 92), 5))
+    printed, _ = chroma_shift(*chroma_pairs(ga, _plane(two), np.eye(4), NOISE, chromaticity(a, 0.01),
+                                            chromaticity(two, 0.01)))
+    assert printed > 0.05, printed
     dark = (_shaded(olive, 3) // 40).astype(np.uint8)  # channel sums of 3-10 grey levels: noise dominates
     assert np.isnan(chromaticity(dark, 0.01)).all()
     assert chromaticity(a[..., 0], 0.01) is None

@@ -26,7 +26,9 @@ class EstimateResult:
     equivalents the estimator's rule picks (gscan.estimate.symmetric) and this names the symmetries; None otherwise.
     grasp_equivalents {name: [T_cam_grasp [4 x 4], ...]}: each grasp in every equivalent pose, the reported pose's
     first (the grasp alone without symmetries). pixels: [H x W] bool the pixels the pose explains (set by
-    `Estimator.estimate_all` only; not in `to_json`, whose instance object adds their count and box)."""
+    `Estimator.estimate_all` only; not in `to_json`, whose instance object adds their count and box). T_refuted:
+    a pose the rules for a pose the depth alone decided refused, that pose [4 x 4] (the verifier weighs later
+    poses against it; not in `to_json`)."""
 
     T_cam_obj: np.ndarray | None
     score: float
@@ -40,6 +42,7 @@ class EstimateResult:
     symmetry: str | None = None
     grasp_equivalents: dict[str, list[np.ndarray]] = field(default_factory=dict)
     pixels: np.ndarray | None = field(default=None, repr=False)
+    T_refuted: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def found(self) -> bool:

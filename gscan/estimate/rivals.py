@@ -155,20 +155,53 @@ class ListVerifier:
         if not lists:
             return not_found("too few geometrically consistent matches (no list of 3)")
         first: EstimateResult | None = None
+        refuted: list[EstimateResult] = []  # poses the rules for the depth alone refuted (`depth_only_refusal`)
         listed = [c for c in lists if c.n >= p.accept.min_matches]
         for i, c in enumerate(listed[: max(1, p.verify.lists)]):
             # the first refusal is the answer when none is accepted: the later ones' reasons are not read
             res = self.verify_list(q, qk, c, refine, timer, best=best and c is lists[0],
                                    explain=explain and first is None)
             if res.found:
+                if (why := self.better_fit_refuted(res, refuted)) is not None:
+                    return not_found(why, res.n_matches, res.view, res.score, evidence=res.evidence)
                 rivals = [r for r in listed[i + 1:] if r.support >= p.rivals.min_support * c.support]
                 return self.against_rivals(q, qk, res, rivals, refine, timer, separate)
+            if res.T_refuted is not None:
+                refuted.append(res)
             first = first or res
         if first is None:
             n = max(c.n for c in lists)
             return not_found(f"too few geometrically consistent matches ({n} < {p.accept.min_matches})", n,
                              self.index.view_names[lists[0].view])
         return first
+
+    def better_fit_refuted(self, res: EstimateResult, refuted: list[EstimateResult]) -> str | None:
+        """The reason a pose the depth alone decided (`res`, found) is refused because a pose of a list verified
+        before it lies at the same place (its object's centre within the object's radius), fits the depth at least
+        as well (depth score and share of the visible surface confirmed) and was refuted by the rules for a pose
+        the depth alone decides (refuted: those poses' results, not found, with their evidence and `T_refuted`): the
+        depth, which alone decides `res`, prefers a pose known wrong, so it cannot tell `res` right either (a
+        right pose refuted by its shadows' texture, and the box turned 39 deg that the silhouettes' margin let
+        through next to it). A refuted pose that is the same answer as `res` (within `hypotheses.merge_deg` and
+        `merge_dist`, up to the object's symmetries) does not count: a rule's verdict at its edge. None when there
+        is no such pose."""
+        ev, p = res.evidence, self.params.hypotheses
+        if ev is None or not ev.depth_only or res.T_cam_obj is None:
+            return None
+        centre = res.T_cam_obj[:3, :3] @ self.model.center + res.T_cam_obj[:3, 3]
+        for r in refuted:
+            e = r.evidence
+            assert e is not None and r.T_refuted is not None
+            there = r.T_refuted[:3, :3] @ self.model.center + r.T_refuted[:3, 3]
+            deg, dist = self.apart(r.T_refuted, res.T_cam_obj)
+            if deg <= p.merge_deg and dist <= p.merge_dist:  # the same answer (a rule's verdict at its edge)
+                continue
+            if np.linalg.norm(there - centre) <= self.model.radius and e.score >= ev.score and \
+                    e.confirmed >= ev.confirmed:
+                return (f"a pose that fits the depth there better (score {e.score:.2f} against {ev.score:.2f}, "
+                        f"{e.confirmed:.0%} of its visible surface confirmed against {ev.confirmed:.0%}) was refuted "
+                        f"({r.reason}); the depth alone decided this one and cannot tell it right")
+        return None
 
     def verify_list(self, q: QueryFrame, qk: QueryKeypoints, c: MatchList, refine: bool, timer: StageTimer,
                     best: bool = True, explain: bool = True) -> EstimateResult:
@@ -198,6 +231,10 @@ class ListVerifier:
             f"pose puts {below:.0%} of the object inside the support plane"
         if why is None and self.index.kind == JOINT:
             why = self.by_depth(q, T_cam_obj, ev, qk.feats.from_depth, qk.location, c.matches[keep, 1])
+            if why is not None:
+                res = not_found(why, c.longest, view, ev.score, evidence=ev)
+                res.T_refuted = T_cam_obj
+                return res
         if why is not None:
             return not_found(why, c.longest, view, ev.score, evidence=ev)
         return found(T_cam_obj, ev.score, c.longest, view, "gmatch", ev)
@@ -242,6 +279,8 @@ class ListVerifier:
                 continue
             checked += 1
             alt = self.verify_list(q, qk, r, refine, timer, explain=False)
+            if alt.T_refuted is not None and (why := self.better_fit_refuted(res, [alt])) is not None:
+                return not_found(why, res.n_matches, res.view, res.score, evidence=res.evidence)
             if alt.T_cam_obj is None or alt.evidence is None:
                 continue
             deg, dist = self.apart(alt.T_cam_obj, res.T_cam_obj)

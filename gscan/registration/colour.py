@@ -206,11 +206,12 @@ def chromaticity(image: np.ndarray, max_sigma: float) -> np.ndarray | None:
 
 
 def chroma_shift(a: np.ndarray, b: np.ndarray) -> tuple[float, int]:
-    """(shift, n): how far the chromaticities b [K x 2] lie from a [K x 2] pair by pair, as the length of the
-    pairs' median difference (each axis' median: the colour one surface has and the other lacks, whatever a few
-    pairs across a rim say), over the n pairs known in both (not NaN); (0, 0) without any."""
+    """(shift, n): how far the chromaticities b [K x 2] lie from a [K x 2] pair by pair, the median of the pairs'
+    distances, over the n pairs known in both (not NaN); (0, 0) without any. A light or white balance that differs
+    moves every pair alike (the median is that move); a surface of another colour moves most pairs, each its own
+    way (a print's colours: their mean difference would cancel)."""
     d = np.asarray(b, np.float64) - np.asarray(a, np.float64)
     d = d[np.isfinite(d).all(axis=1)]
     if not len(d):
         return 0.0, 0
-    return float(np.linalg.norm(np.median(d, axis=0))), len(d)
+    return float(np.median(np.linalg.norm(d, axis=1))), len(d)
