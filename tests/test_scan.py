@@ -89,6 +89,10 @@ def test_turntable_capture_registers_on_the_object(tmp_path, meshes_dir):
     res = scan(cap, tmp_path / "tt.gscan")
     assert res.mode == "moving-object"
     assert res.registered == 24, res.unregistered
+    # before a static camera the texture cannot check the focal length (the background lines up at any): it says so
+    from gscan.scanning.camera import MOVED_NOT
+    assert res.camera is not None and res.camera["verdict"] == "could not confirm" and not res.camera["corrected"]
+    assert res.camera["reason"] == MOVED_NOT and MOVED_NOT in res.camera["warning"], res.camera
     ate, n = _ate_to_gt(tmp_path / "tt.gscan", cap)
     # a turntable capture: trajectory within 5 mm of the truth
     assert n == 24 and ate <= 0.005, f"ATE {ate * 1000:.2f} mm"
@@ -180,7 +184,7 @@ def test_unusable_frames_are_named_in_input_order(tmp_path, monkeypatch):
     for p in sorted((cap / "rgb").glob("*.jpg")):
         p.write_bytes(p.read_bytes()[: p.stat().st_size // 2])  # the header reads, the image does not decode
 
-    def backwards(source, seq, opts, detections):
+    def backwards(source, seq, opts, detections, mode):
         for name in reversed(seq.names):
             with pytest.raises(InputError):
                 seq[name]

@@ -34,7 +34,9 @@ the pairs (a pair that fails to register counts 0):
   (gscan.scanning.depth_edges).
 
 With depth registered to the colour (a rendered capture, a RealSense aligned stream), any s other than 1
-moves the depth off its colour pixels and the texture lines up best at 1.
+moves the depth off its colour pixels and the texture lines up best at 1. The pairs are registered over whole
+frames, as a camera moving over a still scene is: before a static camera (a turntable) the check is not run
+(gscan.scanning.camera).
 """
 from __future__ import annotations
 

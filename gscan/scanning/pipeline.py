@@ -310,16 +310,16 @@ def _load(cap: _Capture, opts: ScanOptions, timer: StageTimer, store: FrameStore
     before = dict(timer.timings)
     detections: dict[str, Detection] = {}
     assert cap.seq is not None
-    with timer.stage("camera", total=1) as advance:  # (after the checks that refuse the input in one line)
+    with timer.stage("mode", total=1) as advance:  # (after the checks that refuse the input in one line)
+        cap.mode, cap.masks_given = detect_capture_mode(cap.seq, opts.mode)
+        advance(1)
+    with timer.stage("camera", total=1) as advance:
         # (read again, if at all, as this capture was opened: its own layout and object)
         own = replace(opts, format=cap.input.format or opts.format,
                       obj_id=opts.obj_id if cap.input.obj_id is None else cap.input.obj_id)
-        cap.seq, cap.camera = check_camera(cap.source, cap.seq, own, detections)
+        cap.seq, cap.camera = check_camera(cap.source, cap.seq, own, detections, cap.mode)
         advance(1)
     cap.detections = {cap.prefix + n: d for n, d in detections.items()}
-    with timer.stage("mode", total=1) as advance:
-        cap.mode, cap.masks_given = detect_capture_mode(cap.seq, opts.mode)
-        advance(1)
     seq = cap.seq
     assert seq is not None
     with timer.stage("load", total=len(seq)) as advance:
