@@ -231,12 +231,10 @@ class ListVerifier:
             f"pose puts {below:.0%} of the object inside the support plane"
         if why is None and self.index.kind == JOINT:
             why = self.by_depth(q, T_cam_obj, ev, qk.feats.from_depth, qk.location, c.matches[keep, 1])
-            if why is not None:
-                res = not_found(why, c.longest, view, ev.score, evidence=ev)
-                res.T_refuted = T_cam_obj
-                return res
         if why is not None:
-            return not_found(why, c.longest, view, ev.score, evidence=ev)
+            res = not_found(why, c.longest, view, ev.score, evidence=ev)
+            res.T_refuted = T_cam_obj if ev.depth_only else None  # refuted by the rules for the depth alone
+            return res
         return found(T_cam_obj, ev.score, c.longest, view, "gmatch", ev)
 
     def by_depth(self, q: QueryFrame, T_cam_obj: np.ndarray, ev: Evidence, from_depth: np.ndarray,
