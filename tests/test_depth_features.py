@@ -203,7 +203,9 @@ def test_the_keypoint_source_is_chosen_from_the_image_keypoints():
     assert choose_source(auto, [70, 80, 30]) == "sift"
     assert choose_source(FeatureParams(keypoints="auto", kind="orb"), [0, 0]) == "sift"  # depth joins rootsift only
     assert choose_source(FeatureParams(keypoints="depth"), [500]) == "depth"
-    assert choose_source(FeatureParams(), [0]) == "sift"  # the default: the image's, as before
+    assert choose_source(FeatureParams(), [0]) == "both"  # the default, auto: a plain object's depth keypoints join
+    assert choose_source(FeatureParams(), [500]) == "sift"
+    assert choose_source(FeatureParams(keypoints="sift"), [0]) == "sift"
     with pytest.raises(ValueError, match="rootsift"):
         FeatureParams(keypoints="both", kind="sift")
 
@@ -449,14 +451,12 @@ def _box_symmetries() -> list[np.ndarray]:
 
 @pytest.fixture(scope="module")
 def plain_part(tmp_path_factory):
-    """A CAD template of a one-colour box (24 views) storing image and depth keypoints, a cluttered frame of it
+    """A CAD template of a one-colour box (24 views; `keypoints: auto`, the default, stores image and depth
+    keypoints for a plain mesh), a cluttered frame of it
     beside a printed box of about its size and a flat plain box, the frame of the two others alone, and two more
     frames of them alone: one whose printed box fits the part's depth, one whose boxes fit it only off their
     outlines, and one whose printed box fits it with fewer textured tiles than registration's texture rule needs
     (`gscan.synth.cases.plain_part_scene`, bench/plain.py --lookalikes' seeds 0, 1, 7 and 5; about 15 s)."""
-    from dataclasses import replace
-
-    from gscan.features import OBJECT_FEATURES
     from gscan.scanning.cad import template_from_mesh
     from gscan.synth import DEFAULT_INTRINSICS
     from gscan.synth.cases import plain_part_meshes, plain_part_scene
@@ -465,8 +465,7 @@ def plain_part(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("plain_part")
     part = plain_part_meshes()[0]
     tpl = tmp / "part.gscan"
-    template_from_mesh(save_textured_mesh(part, tmp / "part.obj"), tpl, n_views=24,
-                       feature_params=replace(OBJECT_FEATURES, keypoints="both"))
+    template_from_mesh(save_textured_mesh(part, tmp / "part.obj"), tpl, n_views=24)
     frames = {}
     for seed, with_part in ((0, True), (0, False), (1, False), (7, False), (5, False)):
         r, T_cam_part = plain_part_scene(seed, with_part)
@@ -477,10 +476,11 @@ def plain_part(tmp_path_factory):
 
 
 def test_a_plain_part_is_found_on_its_depth_keypoints_and_refused_without_it(plain_part):
-    """With `query.depth_keypoints` the plain part is found within 5 deg / 2 cm (up to the box's half turns) and the
-    result says the depth alone decided; the frames without it are refused, one by the texture check and one by the
-    silhouettes of a pose the depth alone decided. Off (the default), the same template's image keypoints alone
-    find nothing: the print is missing."""
+    """The template of the plain mesh holds depth keypoints, chosen from its views' few image keypoints. With
+    `query.depth_keypoints` (the default) the plain part is found within 5 deg / 2 cm (up to the box's half turns)
+    and the result says the depth alone decided; the frames without it are refused, one by the texture check and
+    one by the silhouettes of a pose the depth alone decided. Off, the same template's image keypoints alone find
+    nothing: the print is missing."""
     from dataclasses import replace
 
     from gscan.estimate import Estimator
@@ -490,7 +490,9 @@ def test_a_plain_part_is_found_on_its_depth_keypoints_and_refused_without_it(pla
     tpl, frame, empty, T_cam_part, part, printed, flat, _ = plain_part
     with TemplateDB.open(tpl) as db:
         assert db.descriptor_kind() == JOINT and db.get_meta("keypoints")["object_depth_size"] > 0.1
-    on = Estimator.from_path(tpl, replace(DEFAULT_PARAMS, query=QueryParams(depth_keypoints=True)))
+        meta = db.get_meta("keypoints")
+        assert meta["chosen_by"] == "auto" and meta["median_image_keypoints"] < FP.auto_min_keypoints, meta
+    on = Estimator.from_path(tpl)
     res = on.estimate(frame)
     assert res.found, res.reason
     err = min(pose_error(res.T_cam_obj @ S, T_cam_part) for S in _box_symmetries())
@@ -503,7 +505,7 @@ def test_a_plain_part_is_found_on_its_depth_keypoints_and_refused_without_it(pla
     # a pose on the others that the depth allows lays the part's outline off what the frame shows
     offside = on.estimate(flat)
     assert not offside.found and offside.reason.startswith("silhouette disagrees"), offside.reason
-    off = Estimator.from_path(tpl)
+    off = Estimator.from_path(tpl, replace(DEFAULT_PARAMS, query=QueryParams(depth_keypoints=False)))
     assert off.kind == "rootsift" and off.query_depth is None
     assert not off.estimate(frame).found
 
@@ -647,7 +649,11 @@ def test_a_templates_image_keypoints_are_its_joint_sets_image_part(plain_part):
     for v in range(len(img.view_names)):
         assert np.all(img.kp_view[img.view_offsets[v]:img.view_offsets[v + 1]] == v)
     assert img.view_offsets[-1] == (~depth).sum()
-    est = Estimator(tpl)  # depth keypoints off: no query depth
+    from dataclasses import replace
+
+    from gscan.estimate.params import DEFAULT_PARAMS, QueryParams
+
+    est = Estimator(tpl, replace(DEFAULT_PARAMS, query=QueryParams(depth_keypoints=False)))  # off: no query depth
     assert est.query_depth is None
     q = est.prepare(plain_part[1])
     size = float(tpl.meta["keypoints"]["object_depth_size"])

@@ -72,10 +72,10 @@ class QueryParams:
     min_region_px: Annotated[int, Field(description="search-region blobs smaller than this (px) are left out of the "
                                         "detection boxes", ge=0)] = 150
     depth_keypoints: Annotated[bool, Field(description="a template whose keyframes hold depth keypoints (scanned on "
-                                           "features.keypoints depth or both): the query's depth keypoints join "
-                                           "its image keypoints; off, the template's image keypoints alone are "
-                                           "matched. Off by default: in clutter a box of about the object's size "
-                                           "is taken for a plain object (method.md, plain objects)")] = False
+                                           "features.keypoints depth or both, or auto on a plain object): the "
+                                           "query's depth keypoints join its image keypoints, and a pose the depth "
+                                           "alone decides meets the stricter rules (method.md, plain objects); off, "
+                                           "the template's image keypoints alone are matched")] = True
     __pydantic_config__ = SETTINGS
 
 

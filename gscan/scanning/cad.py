@@ -31,7 +31,13 @@ import numpy as np
 
 from gscan.errors import InputError
 from gscan.features import OBJECT_FEATURES, FeatureParams, extract_features
-from gscan.features.depth import depth_keypoints, joint_features, median_object_size
+from gscan.features.depth import (
+    AUTO_PILOT,
+    choose_source,
+    depth_keypoints,
+    joint_features,
+    median_object_size,
+)
 from gscan.features.keypoints import JOINT
 from gscan.geometry.coverage import template_coverage
 from gscan.geometry.pointset import voxel_mean
@@ -106,6 +112,21 @@ def _load_mesh(path: Path, scale: float) -> TexturedMesh:
     return TexturedMesh(mesh.vertices, mesh.triangles, uv, np.ascontiguousarray(texture), name=mesh.name)
 
 
+def _keypoint_source(feature_params: FeatureParams, scene: Any, poses: list[np.ndarray], intr: Any
+                     ) -> tuple[str, list[int]]:
+    """(the keypoints the template stores, "sift" | "depth" | "both"; the image keypoint counts it was chosen from):
+    `feature_params.keypoints`, or with auto the scan's rule (`choose_source`) on the image keypoints of up to
+    AUTO_PILOT views spread over the sphere (a plain mesh stores its depth keypoints too)."""
+    counts: list[int] = []
+    if feature_params.keypoints == "auto" and feature_params.kind == "rootsift":
+        image_params = replace(feature_params, keypoints="sift")
+        for k in sorted({int(j) for j in np.linspace(0, len(poses) - 1, min(AUTO_PILOT, len(poses)))}):
+            r = scene.render(poses[k], intr, noise=False)
+            frame = RGBDFrame(name=f"view_{k:03d}", color=r.color, depth=r.depth_clean, intrinsics=intr, mask=r.mask)
+            counts.append(len(extract_features(frame, image_params, mask=r.mask)))
+    return choose_source(feature_params, counts), counts
+
+
 def _depth_size(scene: Any, poses: list[np.ndarray], intr: Any) -> float | None:
     """The object's size its depth keypoints are found at (`gscan.features.depth.object_size`): the median over
     the views of the size of the object's points in each (a scan's keyframes take the same median)."""
@@ -150,8 +171,9 @@ def template_from_mesh(mesh_path: str | Path, output: str | Path, *, n_views: in
         force: replace an existing `output`.
         progress: stage progress reporting, none by default.
         feature_params: the keypoints stored (default: the estimator's query keypoints, OBJECT_FEATURES); with
-            keypoints "depth" or "both", the image's and the depth's in one set (a plain part: method.md, plain
-            objects), the depth's at the views' median object size and the default depth noise.
+            keypoints "depth" or "both", or "auto" on a plain mesh (`_keypoint_source`), the image's and the
+            depth's in one set (a plain part: method.md, plain objects), the depth's at the views' median object
+            size and the default depth noise.
         symmetry_params: how the mesh's symmetries are found (default `SymmetryParams()`; `enabled=False`: not).
 
     Returns:
@@ -177,21 +199,23 @@ def template_from_mesh(mesh_path: str | Path, output: str | Path, *, n_views: in
     from gscan.synth.render import DEFAULT_INTRINSICS, SynthScene  # open3d: a bad input is refused without it
     db = None
     try:
-        joint = feature_params.keypoints in ("depth", "both")
+        intr = DEFAULT_INTRINSICS
+        scene = SynthScene([(mesh, np.eye(4))], table=False, shadows=False, background_rgb=(0, 0, 0), seed=0)
+        poses = view_poses(mesh, n_views)
+        source, counts = _keypoint_source(feature_params, scene, poses, intr)
+        joint = source in ("depth", "both")
         db = TemplateDB.create(target.open(), force=True, meta={
             "source": "mesh", "descriptor": {"kind": JOINT if joint else feature_params.kind,
                                              "max_keypoints": feature_params.max_keypoints,
                                              "sift_contrast_threshold": feature_params.sift_contrast_threshold},
             "mesh_source": {"path": str(mesh_path), "scale": float(scale), "views": int(n_views), "fill": FILL}})
-        intr = DEFAULT_INTRINSICS
-        scene = SynthScene([(mesh, np.eye(4))], table=False, shadows=False, background_rgb=(0, 0, 0), seed=0)
         cloud_p, cloud_c = [], []
         n_kp = 0
-        poses = view_poses(mesh, n_views)
         size = _depth_size(scene, poses, intr) if joint else None
         if joint:
-            db.set_meta("keypoints", {"source": "both", "chosen_by": "config", "object": "both",
-                                      "object_depth_size": size})
+            db.set_meta("keypoints", {"source": "both", "chosen_by": "auto" if counts else "config", "object": "both",
+                                      "object_depth_size": size,
+                                      "median_image_keypoints": float(np.median(counts)) if counts else None})
         image_params = replace(feature_params, keypoints="sift")
         with progress.stage("render", total=n_views) as advance:
             for i, T_obj_cam in enumerate(poses):
