@@ -32,10 +32,11 @@ Plain against plain leaves the texture nothing to judge, and another plain objec
 its depth, its silhouettes and its (absent) print. Its colour tells them apart: the query's samples landing on the
 keyframe's surface under the pose are paired with the keyframe's pixels there, each side's chromaticity (r and g over
 the channels' sum, `gscan.registration.colour.chromaticity`: shading scales the channels alike and leaves it) is
-compared, and the pose is refused when the pairs' median difference lies beyond `accept.max_chroma_shift` (0.05: a
-grey surface lit at 4500 K instead of 6500 K with the white balance unchanged moves about that far, far more than
-a right pose's pairs differ: BENCHMARKS.md, "Plain objects"). Pixels too dark to tell a chromaticity within a third
-of the bound count for neither side, and fewer than MIN_CHROMA_PAIRS pairs give no verdict.
+compared pair by pair, and the pose is refused when the median of the pairs' distances lies beyond
+`accept.max_chroma_shift` (0.05: a grey surface lit at 4500 K instead of 6500 K with the white balance unchanged
+moves about that far, far more than a right pose's pairs differ: BENCHMARKS.md, "Plain objects"). Pixels too dark
+to tell a chromaticity within a third of the bound count for neither side, and fewer than MIN_CHROMA_PAIRS pairs
+give no verdict.
 
 The keyframes' images are read from the template file on first use and their samples cached (`KeyframeTextures`).
 """
