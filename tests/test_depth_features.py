@@ -203,9 +203,7 @@ def test_the_keypoint_source_is_chosen_from_the_image_keypoints():
     assert choose_source(auto, [70, 80, 30]) == "sift"
     assert choose_source(FeatureParams(keypoints="auto", kind="orb"), [0, 0]) == "sift"  # depth joins rootsift only
     assert choose_source(FeatureParams(keypoints="depth"), [500]) == "depth"
-    assert choose_source(FeatureParams(), [0]) == "both"  # the default, auto: a plain object's depth keypoints join
-    assert choose_source(FeatureParams(), [500]) == "sift"
-    assert choose_source(FeatureParams(keypoints="sift"), [0]) == "sift"
+    assert choose_source(FeatureParams(), [0]) == "sift"  # the default: the image's
     with pytest.raises(ValueError, match="rootsift"):
         FeatureParams(keypoints="both", kind="sift")
 
@@ -451,12 +449,15 @@ def _box_symmetries() -> list[np.ndarray]:
 
 @pytest.fixture(scope="module")
 def plain_part(tmp_path_factory):
-    """A CAD template of a one-colour box (24 views; `keypoints: auto`, the default, stores image and depth
-    keypoints for a plain mesh), a cluttered frame of it
+    """A CAD template of a one-colour box (24 views; `keypoints: auto` stores image and depth keypoints for a plain
+    mesh), a cluttered frame of it
     beside a printed box of about its size and a flat plain box, the frame of the two others alone, and two more
     frames of them alone: one whose printed box fits the part's depth, one whose boxes fit it only off their
     outlines, and one whose printed box fits it with fewer textured tiles than registration's texture rule needs
     (`gscan.synth.cases.plain_part_scene`, bench/plain.py --lookalikes' seeds 0, 1, 7 and 5; about 15 s)."""
+    from dataclasses import replace
+
+    from gscan.features import OBJECT_FEATURES
     from gscan.scanning.cad import template_from_mesh
     from gscan.synth import DEFAULT_INTRINSICS
     from gscan.synth.cases import plain_part_meshes, plain_part_scene
@@ -465,7 +466,8 @@ def plain_part(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("plain_part")
     part = plain_part_meshes()[0]
     tpl = tmp / "part.gscan"
-    template_from_mesh(save_textured_mesh(part, tmp / "part.obj"), tpl, n_views=24)
+    template_from_mesh(save_textured_mesh(part, tmp / "part.obj"), tpl, n_views=24,
+                       feature_params=replace(OBJECT_FEATURES, keypoints="auto"))
     frames = {}
     for seed, with_part in ((0, True), (0, False), (1, False), (7, False), (5, False)):
         r, T_cam_part = plain_part_scene(seed, with_part)
