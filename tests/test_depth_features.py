@@ -292,6 +292,32 @@ def test_a_loop_closure_the_depth_alone_decides_is_refused(plain_box):
     assert not loop[0].accepted and loop[0].reason == LOOP_DEPTH_ONLY
 
 
+def test_a_loop_closures_half_turn_out_of_the_other_views_sight_stands():
+    """The plain box seen from opposite sides (azimuths 0 and 180 deg), posed at its half turn about its vertical
+    axis (each view's faces laid onto the other's): `turn_not_refuted` finds the right pose, one of that pose's half
+    turns, unrefuted. A turn landing too little on the other view for any check (here every turn: the overlap asked
+    for raised beyond the views' samples) is no rival for a sequential edge, and stands for a loop closure
+    (`unseen`): nothing refutes it (a plain package's loop closure half a turn apart was registered so, the right
+    turn's refined pose landing nothing on the other view)."""
+    from dataclasses import replace
+
+    from gscan.geometry.transforms import make_T
+    from gscan.registration.turns import turn_not_refuted
+
+    mesh = box_mesh((0.16, 0.09, 0.22), np.full((4, 4, 3), 235, np.uint8), name="plain_box")
+    fa, fb = render_capture(mesh, None, 2, mode="static", seed=0, table_kind="plain",
+                            view_angles_deg=[(30.0, 0.0), (30.0, 180.0)])
+    da, db = (DenseGeometry.from_depth(f.depth, f.intrinsics, f.mask) for f in (fa, fb))
+    half = make_T(np.diag([-1.0, -1.0, 1.0]), np.zeros(3))  # the box's half turn about its vertical (z) axis
+    wrong = fb.T_cam_obj @ half @ inv_T(fa.T_cam_obj)
+    params = RegisterParams()
+    assert turn_not_refuted(da, db, wrong, params, texture=False) is not None
+    blind = replace(params, min_overlap=len(da) + len(db))
+    assert turn_not_refuted(da, db, wrong, blind, texture=False) is None
+    stands = turn_not_refuted(da, db, wrong, blind, texture=False, unseen=True)
+    assert stands is not None and stands.endswith("out of the other view's sight"), stands
+
+
 def test_a_sequential_edge_over_frames_between_must_refute_its_half_turns(meshes_dir):
     """The plain Crayola box (its mean colour) on a 36-frame turntable (10 deg a frame): its frames 8 and 11, an edge
     over the frames between (tried when they fail), register at 158 deg, the box's half turn off the true 30 deg,

@@ -209,7 +209,8 @@ class Registrar:
             # few image keypoints to have print, the shape alone must (its shading follows the faces' angle to
             # the camera and light, which the turn keeps: it favours the turned pose)
             # on printed frames a texture verdict is the print's, which a half turn does not keep: it decided
-            turned = edge_turn(a.feats, b.feats, a.dense, b.dense, r, self.rparams, self.min_print_keypoints, 0.0)
+            turned = edge_turn(a.feats, b.feats, a.dense, b.dense, r, self.rparams, self.min_print_keypoints, 0.0,
+                               unseen=loop)
             if turned is not None:
                 r.accepted = False
                 r.reason = LOOP_TURN.format(turned) if loop else SEQUENTIAL_TURN.format(weighed, turned)

@@ -10,9 +10,10 @@ same of their motion.
 
 - `principal_turns(points)`: the principal axes of an object's points and the centre they are turned about
 - `texture_refutes(colour, params)`: whether texture refutes a pose as it does an edge's
-- `turn_not_refuted(src, tgt, T_tgt_src, params, texture)`: the first half turn of an edge two views cannot refute
+- `turn_not_refuted(src, tgt, T_tgt_src, params, texture, unseen)`: the first half turn of an edge two views
+  cannot refute
 - `has_print(fs, ft, min_keypoints)`: whether both frames have print (enough keypoints the image found)
-- `edge_turn(fs, ft, src, tgt, r, params, min_print_keypoints, min_agreement)`: the first half turn an accepted
+- `edge_turn(fs, ft, src, tgt, r, params, min_print_keypoints, min_agreement, unseen)`: the first half turn an accepted
   edge's views do not refute, unless its print settles the pose (loop closures: any texture verdict)
 - `lone_edge_turn(fs, ft, src, tgt, r, params, min_print_keypoints)`: the rule for an edge that alone places a
   frame (a two-frame capture): refused (`LONE_TURN`) when one of its half turns survives the depth and the texture
@@ -66,11 +67,13 @@ def has_print(fs: Features, ft: Features, min_keypoints: int) -> bool:
 
 
 def edge_turn(fs: Features, ft: Features, src: DenseGeometry, tgt: DenseGeometry, r: PairResult,
-              params: RegisterParams, min_print_keypoints: int, min_agreement: float) -> str | None:
+              params: RegisterParams, min_print_keypoints: int, min_agreement: float, unseen: bool = False
+              ) -> str | None:
     """The first of the object's half turns, in words, that the views do not refute for the accepted edge r (fs ->
     ft keypoints, src -> tgt depth samples); None when the print settles its pose (both frames have print,
     `has_print`, and at least `min_agreement` of the overlap's textured tiles line up: 0 for any texture verdict)
-    or each turn is refuted (`turn_not_refuted`, by the texture too where both frames have print)."""
+    or each turn is refuted (`turn_not_refuted`, by the texture too where both frames have print; unseen: as
+    there)."""
     if not r.accepted or r.T_tgt_src is None:
         return None
     printed = has_print(fs, ft, min_print_keypoints)
@@ -78,7 +81,7 @@ def edge_turn(fs: Features, ft: Features, src: DenseGeometry, tgt: DenseGeometry
     if (printed and c is not None and c.informative >= params.min_colour_tiles
             and c.agreeing_fraction >= min_agreement):
         return None
-    return turn_not_refuted(src, tgt, r.T_tgt_src, params, texture=printed)
+    return turn_not_refuted(src, tgt, r.T_tgt_src, params, texture=printed, unseen=unseen)
 
 
 def lone_edge_turn(fs: Features, ft: Features, src: DenseGeometry, tgt: DenseGeometry, r: PairResult,
@@ -97,7 +100,7 @@ def lone_edge_turn(fs: Features, ft: Features, src: DenseGeometry, tgt: DenseGeo
 
 
 def turn_not_refuted(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarray, params: RegisterParams,
-                     texture: bool = True) -> str | None:
+                     texture: bool = True, unseen: bool = False) -> str | None:
     """The first half turn of the object about one of its axes that src's and tgt's depth and texture do not refute,
     in words; None when each is refuted.
 
@@ -109,9 +112,11 @@ def turn_not_refuted(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarr
     `params.max_see_through` of the overlap seen through, the bound the pose itself passed), the silhouette (more
     than `params.max_outside_shape` of the samples off the other view's object) or, with `texture` (the views have
     print), the texture (`texture_refutes`); a turn is no rival where too little of it lands on the other view's
-    depth for an edge to be verified (`params.min_overlap`, rule 3). Less overlap is no evidence against it: a
-    half turn of a plain box seen from opposite sides lays the faces each view sees onto each other, and overlaps
-    more than the right pose, which shares the top alone."""
+    depth for an edge to be verified (`params.min_overlap`, rule 3), unless `unseen`: then it stands, as nothing
+    refutes it (a loop closure's: no chain of frames between vouches for the pose, and a plain package's views half
+    a turn apart were registered at its half turn, the right pose's refined turn landing nothing on the other view).
+    Less overlap is no evidence against a turn: a half turn of a plain box seen from opposite sides lays the faces
+    each view sees onto each other, and overlaps more than the right pose, which shares the top alone."""
     pts = np.concatenate([src.points, transform_points(inv_T(T_tgt_src), tgt.points)])
     if len(pts) < 10 or len(tgt) < 10:
         return None
@@ -124,6 +129,8 @@ def turn_not_refuted(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarr
         off = outside_silhouette(src, tgt, T)
         log.debug("half turn about the %s axis: depth %s, %.1f %% off the silhouette", name, depth, 100 * off)
         if depth.consistent + depth.see_through < params.min_overlap:
+            if unseen:
+                return f"the object turned half about its {name} axis, out of the other view's sight"
             continue  # out of the other view's sight: no pose the checks would accept (rule 3)
         if depth.see_through_fraction > params.max_see_through or off > params.max_outside_shape:
             continue  # the shape refutes it
