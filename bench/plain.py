@@ -313,7 +313,7 @@ def estimates(objects: list[str], n: int, frames: int, negatives: int, work: Pat
     from gscan.io import open_sequence
 
     printed = {d: load_textured_mesh(RECALL_MESHES / d / "model_0.obj") for d in DISTRACTOR_POOL
-               if d not in TUNE + HELD_OUT}
+               if d not in TUNE + HELD_OUT + objects}  # a plain object's printed self: its colour, size and shape
     work.mkdir(parents=True, exist_ok=True)
     depth_on = replace(DEFAULT_PARAMS, query=QueryParams(depth_keypoints=True))  # off by default
     rows: list[dict] = []

@@ -578,12 +578,13 @@ def test_a_twin_of_the_part_in_another_colour_is_refused_by_its_colour(plain_par
 def test_a_pose_the_depth_alone_decided_is_refused_where_the_image_border_cuts_the_part(plain_part):
     """The part's frame cut at the column of its centre: half its silhouette lies beyond the border, where no
     silhouette can bound it (`beyond_border`: 0 in the whole frame at the true pose), and the true pose, which
-    every rule for a pose the depth alone decided passes in the whole frame, is refused there."""
+    every rule for a pose the depth alone decided passes in the whole frame, is refused there. Its evidence with
+    a fifth of the depth seen through is refused too (registration's bound for an edge, 15 %)."""
     from dataclasses import replace
 
     from gscan.estimate import Estimator
     from gscan.estimate.params import DEFAULT_PARAMS, QueryParams
-    from gscan.estimate.verify import beyond_border
+    from gscan.estimate.verify import Evidence, beyond_border
     from gscan.geometry.transforms import transform_points
     from gscan.io.camera import Intrinsics
     from gscan.template.db import open_template
@@ -601,9 +602,15 @@ def test_a_pose_the_depth_alone_decided_is_refused_where_the_image_border_cuts_t
     behind[2, 3] = -1.0
     assert beyond_border(behind, intr, part) == 1.0 and transform_points(behind, part)[:, 2].max() < 0
     est = Estimator.from_path(tpl, replace(DEFAULT_PARAMS, query=QueryParams(depth_keypoints=True)))
-    assert est.verifier.depth_only_refusal(est.prepare(frame), T_cam_part) is None
-    why = est.verifier.depth_only_refusal(est.prepare(cut), T_cam_part)
+    q = est.prepare(frame)
+    ev = Evidence(score=1.0, confirmed=0.9, depth_only=True)  # the depth at the true pose: nothing seen through
+    assert est.verifier.depth_only_refusal(q, T_cam_part, ev) is None
+    why = est.verifier.depth_only_refusal(est.prepare(cut), T_cam_part, ev)
     assert why is not None and why.startswith("the object at this pose reaches beyond the image's border"), why
+    # the depth seen through at more of the surface than registration allows an edge (15 %) refutes it first
+    seen_through = replace(ev, score=0.80)
+    why = est.verifier.depth_only_refusal(q, T_cam_part, seen_through)
+    assert why is not None and why.startswith("depth disagrees (20% of the surface"), why
 
 
 def test_a_pose_is_not_taken_where_a_better_fit_of_the_depth_was_refuted(plain_part):

@@ -38,11 +38,15 @@ class AcceptParams:
                                               "show there ...", ge=0, le=1)] = 0.2
     min_spread: Annotated[float, Field(description="... and inliers spread across this fraction of the object radius "
                                        "(not a line)", ge=0)] = 0.05
-    max_outside_shape: Annotated[float, Field(description="a pose the depth alone decides (a template with depth "
-                                              "keypoints, no image keypoints to judge it) is refused when more than "
-                                              "this share of the surface it shows lands off the objects in the frame, "
-                                              "or of the object it lies on outside its outline (registration's "
-                                              "silhouette bound) ...", ge=0, le=1)] = _REGISTER.max_outside_shape
+    max_see_through: Annotated[float, Field(description="a pose the depth alone decides (a template with depth "
+                                            "keypoints, no image keypoints to judge it) is refused when the depth "
+                                            "is seen through at more than this share of the surface it shows that "
+                                            "the depth judges (registration's bound for an edge) ...", ge=0,
+                                            le=1)] = _REGISTER.max_see_through
+    max_outside_shape: Annotated[float, Field(description="... or when more than this share of the surface it shows "
+                                              "lands off the objects in the frame, or of the object it lies on "
+                                              "outside its outline (registration's silhouette bound) ...", ge=0,
+                                              le=1)] = _REGISTER.max_outside_shape
     min_colour_tiles: Annotated[int, Field(description="... or when at least this many textured tiles of the query and "
                                            "the nearest keyframe overlap under it ...", ge=1)] = (
         _REGISTER.min_colour_tiles)

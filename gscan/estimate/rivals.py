@@ -246,12 +246,16 @@ class ListVerifier:
         loc_depth = np.zeros(int(location.max()) + 1 if len(location) else 0, bool)
         loc_depth[location[from_depth]] = True
         ev.depth_only = decided_by_depth(ev, loc_depth, np.unique(location[inliers]), self.params.accept)
-        return self.depth_only_refusal(q, T_cam_obj) if ev.depth_only else None
+        return self.depth_only_refusal(q, T_cam_obj, ev) if ev.depth_only else None
 
-    def depth_only_refusal(self, q: QueryFrame, T_cam_obj: np.ndarray) -> str | None:
-        """The reason the stricter shape rules refuse a pose the depth alone decided (`silhouette_refusal`, then
-        the keyframes' texture and colour: `texture_refusal`, then the image's border: `border_refusal`), else
-        None."""
+    def depth_only_refusal(self, q: QueryFrame, T_cam_obj: np.ndarray, ev: Evidence) -> str | None:
+        """The reason the stricter rules refuse a pose the depth alone decided (its evidence `ev`: the depth seen
+        through beyond registration's bound for an edge, `accept.max_see_through`; `silhouette_refusal`; the
+        keyframes' texture and colour, `texture_refusal`; the image's border, `border_refusal`), else None."""
+        p = self.params.accept
+        if 1.0 - ev.score > p.max_see_through:
+            return (f"depth disagrees ({1.0 - ev.score:.0%} of the surface the pose shows is seen through; the depth "
+                    f"alone decided the pose, so at most {p.max_see_through:.0%})")
         why = silhouette_refusal(q, T_cam_obj, self.model.samples, self.params.refine.voxel, self.depth_noise,
                                  self.params.accept)
         if why is None:
@@ -338,7 +342,7 @@ class ListVerifier:
                 continue
             if res.evidence.depth_only:  # the turned pose rests on the same depth: the same stricter rules
                 ev.depth_only = True
-                if self.depth_only_refusal(q, T) is not None:
+                if self.depth_only_refusal(q, T, ev) is not None:
                     continue
             res, tie = self.weigh_turn(q, qk, res, found(T, ev.score, res.n_matches, res.view, res.method, ev),
                                        self.apart(T, res.T_cam_obj)[0])
