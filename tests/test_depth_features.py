@@ -607,7 +607,7 @@ def test_a_pose_the_depth_alone_decided_is_refused_where_the_image_border_cuts_t
     assert est.verifier.depth_only_refusal(q, T_cam_part, ev) is None
     why = est.verifier.depth_only_refusal(est.prepare(cut), T_cam_part, ev)
     assert why is not None and why.startswith("the object at this pose reaches beyond the image's border"), why
-    # the depth seen through at more of the surface than registration allows an edge (15 %) refutes it first
+    # the depth seen through at more of the surface than registration allows an edge (15 %) refutes it too
     seen_through = replace(ev, score=0.80)
     why = est.verifier.depth_only_refusal(q, T_cam_part, seen_through)
     assert why is not None and why.startswith("depth disagrees (20% of the surface"), why

@@ -249,20 +249,18 @@ class ListVerifier:
         return self.depth_only_refusal(q, T_cam_obj, ev) if ev.depth_only else None
 
     def depth_only_refusal(self, q: QueryFrame, T_cam_obj: np.ndarray, ev: Evidence) -> str | None:
-        """The reason the stricter rules refuse a pose the depth alone decided (its evidence `ev`: the depth seen
-        through beyond registration's bound for an edge, `accept.max_see_through`; `silhouette_refusal`; the
-        keyframes' texture and colour, `texture_refusal`; the image's border, `border_refusal`), else None."""
+        """The reason the stricter rules refuse a pose the depth alone decided (its evidence `ev`), else None; the
+        first of: `silhouette_refusal`; the keyframes' texture and colour, `texture_refusal`; the depth seen through
+        beyond registration's bound for an edge, `accept.max_see_through`; the image's border, `border_refusal`."""
         p = self.params.accept
-        if 1.0 - ev.score > p.max_see_through:
-            return (f"depth disagrees ({1.0 - ev.score:.0%} of the surface the pose shows is seen through; the depth "
-                    f"alone decided the pose, so at most {p.max_see_through:.0%})")
-        why = silhouette_refusal(q, T_cam_obj, self.model.samples, self.params.refine.voxel, self.depth_noise,
-                                 self.params.accept)
+        why = silhouette_refusal(q, T_cam_obj, self.model.samples, self.params.refine.voxel, self.depth_noise, p)
         if why is None:
             why = "no texture check for a pose the depth alone decided (the template's keyframes are not known)" \
-                if self.keyframes is None else \
-                texture_refusal(q, T_cam_obj, self.keyframes, self.depth_noise, self.params.accept)
-        return why or border_refusal(q.frame.intrinsics, T_cam_obj, self.model.samples, self.params.accept)
+                if self.keyframes is None else texture_refusal(q, T_cam_obj, self.keyframes, self.depth_noise, p)
+        if why is None and 1.0 - ev.score > p.max_see_through:
+            why = (f"depth disagrees ({1.0 - ev.score:.0%} of the surface the pose shows is seen through; the depth "
+                   f"alone decided the pose, so at most {p.max_see_through:.0%})")
+        return why or border_refusal(q.frame.intrinsics, T_cam_obj, self.model.samples, p)
 
     def against_rivals(self, q: QueryFrame, qk: QueryKeypoints, res: EstimateResult, rivals: list[MatchList],
                        refine: bool, timer: StageTimer, separate: Separate | None = None) -> EstimateResult:
