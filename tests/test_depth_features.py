@@ -9,7 +9,14 @@ import numpy as np
 import pytest
 
 from gscan.features import FeatureParams, Features, descriptor_distances, extract_features
-from gscan.features.depth import FPFH_EPS_F, choose_source, depth_keypoints, extract_keypoints, joint_features
+from gscan.features.depth import (
+    FPFH_EPS_F,
+    choose_source,
+    depth_keypoints,
+    extract_keypoints,
+    joint_features,
+    pilot_frames,
+)
 from gscan.features.keypoints import JOINT
 from gscan.geometry.transforms import inv_T, pose_error, transform_points
 from gscan.io.camera import RGBDFrame
@@ -204,6 +211,7 @@ def test_the_keypoint_source_is_chosen_from_the_image_keypoints():
     assert choose_source(FeatureParams(keypoints="auto", kind="orb"), [0, 0]) == "sift"  # depth joins rootsift only
     assert choose_source(FeatureParams(keypoints="depth"), [500]) == "depth"
     assert choose_source(FeatureParams(), [0]) == "sift"  # the default: the image's
+    assert pilot_frames(36) == [0, 5, 10, 15, 20, 25, 30, 35] and pilot_frames(3) == [0, 1, 2] and pilot_frames(0) == []
     with pytest.raises(ValueError, match="rootsift"):
         FeatureParams(keypoints="both", kind="sift")
 

@@ -248,6 +248,12 @@ def extract_keypoints(frame: RGBDFrame, params: FeatureParams, source: str,
 AUTO_PILOT = 8  # frames spread over a capture whose image keypoints decide `keypoints: auto`
 
 
+def pilot_frames(n: int) -> list[int]:
+    """The indices of the at most AUTO_PILOT frames (or views) spread over n whose image keypoints decide
+    `keypoints: auto` (`choose_source`)."""
+    return sorted({int(j) for j in np.linspace(0, n - 1, min(AUTO_PILOT, n))}) if n > 0 else []
+
+
 def choose_source(params: FeatureParams, counts: list[int]) -> str:
     """The keypoints a capture registers with ("sift" | "depth" | "both"): params.keypoints unless "auto";
     auto: "both" when the median of `counts` (image keypoints of the pilot frames) is below

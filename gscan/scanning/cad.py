@@ -31,13 +31,7 @@ import numpy as np
 
 from gscan.errors import InputError
 from gscan.features import OBJECT_FEATURES, FeatureParams, extract_features
-from gscan.features.depth import (
-    AUTO_PILOT,
-    choose_source,
-    depth_keypoints,
-    joint_features,
-    median_object_size,
-)
+from gscan.features.depth import choose_source, depth_keypoints, joint_features, median_object_size, pilot_frames
 from gscan.features.keypoints import JOINT
 from gscan.geometry.coverage import template_coverage
 from gscan.geometry.pointset import voxel_mean
@@ -116,11 +110,11 @@ def _keypoint_source(feature_params: FeatureParams, scene: Any, poses: list[np.n
                      ) -> tuple[str, list[int]]:
     """(the keypoints the template stores, "sift" | "depth" | "both"; the image keypoint counts it was chosen from):
     `feature_params.keypoints`, or with auto the scan's rule (`choose_source`) on the image keypoints of up to
-    AUTO_PILOT views spread over the sphere (a plain mesh stores its depth keypoints too)."""
+    views spread over the sphere (`pilot_frames`: a plain mesh stores its depth keypoints too)."""
     counts: list[int] = []
     if feature_params.keypoints == "auto" and feature_params.kind == "rootsift":
         image_params = replace(feature_params, keypoints="sift")
-        for k in sorted({int(j) for j in np.linspace(0, len(poses) - 1, min(AUTO_PILOT, len(poses)))}):
+        for k in pilot_frames(len(poses)):
             r = scene.render(poses[k], intr, noise=False)
             frame = RGBDFrame(name=f"view_{k:03d}", color=r.color, depth=r.depth_clean, intrinsics=intr, mask=r.mask)
             counts.append(len(extract_features(frame, image_params, mask=r.mask)))

@@ -56,12 +56,12 @@ from gscan.features import (
     extract_features_in_mask,
 )
 from gscan.features.depth import (
-    AUTO_PILOT,
     choose_source,
     depth_keypoints,
     extract_keypoints,
     joint_features,
     median_object_size,
+    pilot_frames,
 )
 from gscan.features.keypoints import JOINT
 from gscan.geometry.coverage import template_coverage
@@ -738,11 +738,11 @@ def _fuse(data: FrameData, T_world_cam: list[np.ndarray | None], mask_of: Callab
 
 def _choose_keypoints(data: FrameData, fparams: FeatureParams) -> dict[int, Features]:
     """Decide the capture's keypoints (`choose_source`, into data.keypoints); with `keypoints: auto` from the
-    image keypoints of up to AUTO_PILOT frames spread over it, returned by frame index for the features stage."""
+    image keypoints of the frames spread over it (`pilot_frames`), returned by frame index for the features stage."""
     n = len(data.frames)
     pilot: dict[int, Features] = {}
     if fparams.keypoints == "auto" and fparams.kind == "rootsift" and n:
-        for k in sorted({int(j) for j in np.linspace(0, n - 1, min(AUTO_PILOT, n))}):
+        for k in pilot_frames(n):
             pilot[k] = extract_features(data.frame(k), fparams, mask=data.object_mask(k),
                                         detection=data.detections.pop(data.frames[k].name, None))
     counts = [len(f) for f in pilot.values()]
