@@ -137,7 +137,7 @@ class Estimator:
         self.query_depth = query_depth(tpl)
         if self.query_depth is not None:  # poses the depth alone decides meet the keyframes' texture (verifier)
             self.verifier.keyframes = KeyframeTextures(tpl.path, self.view_names, self.index.T_obj_cam,
-                                                      params.accept.max_chroma_shift / 3.0)
+                                                      params.accept.max_chroma_shift)
             self.verifier.depth_noise = self.query_depth.noise
         self.model_points = self.model.model_points  # for metrics: mesh vertices, else the cloud
         # the scan found the capture's depth off its colour at the given intrinsics (gscan.scanning.calibration): a

@@ -18,6 +18,8 @@ from gscan.features import FeatureParams, Features, empty_features, extract_feat
 from gscan.features.depth import depth_keypoints, joint_features
 from gscan.geometry.plane import Plane, dominant_plane
 from gscan.io.camera import RGBDFrame, pixel_rays
+from gscan.registration.colour import chromaticity
+from gscan.registration.dense import DenseGeometry
 from gscan.registration.noise import DepthNoise
 
 
@@ -38,6 +40,8 @@ class QueryFrame:
     off_plane: np.ndarray | None = None
     _cloud: np.ndarray | None = field(default=None, repr=False)
     _heights: np.ndarray | None = field(default=None, repr=False)
+    _textured: DenseGeometry | None = field(default=None, repr=False)
+    _chroma: dict[float, np.ndarray | None] = field(default_factory=dict, repr=False)
 
     @property
     def heights(self) -> np.ndarray | None:
@@ -54,6 +58,22 @@ class QueryFrame:
     def region(self) -> np.ndarray:
         """[H x W] bool: the caller's mask, or every pixel."""
         return self.mask if self.mask is not None else np.ones(self.frame.depth.shape, bool)
+
+    @property
+    def textured(self) -> DenseGeometry:
+        """The search region's depth samples with the frame's texture (`DenseGeometry`: what the texture and colour
+        checks of a pose the depth alone decided compare), computed once."""
+        if self._textured is None:
+            self._textured = DenseGeometry.from_depth(self.frame.depth, self.frame.intrinsics, self.search,
+                                                      image=self.frame.color)
+        return self._textured
+
+    def chroma(self, max_sigma: float) -> np.ndarray | None:
+        """The frame's chromaticity told within max_sigma (`gscan.registration.colour.chromaticity`), computed once
+        per bound."""
+        if max_sigma not in self._chroma:
+            self._chroma[max_sigma] = chromaticity(self.frame.color, max_sigma)
+        return self._chroma[max_sigma]
 
     @property
     def cloud(self) -> np.ndarray:

@@ -63,12 +63,12 @@ MIN_CHROMA_PAIRS = 16  # sample pairs the colour check needs for a verdict (a me
 
 class KeyframeTextures:
     """The keyframes' object samples with their texture (`DenseGeometry`) and their images' chromaticity
-    (`chromaticity`, told within chroma_sigma), read from the template file `path` (views `names`, poses T_obj_cam
-    [V x 4 x 4]) when first asked for, then kept."""
+    (`chromaticity`, told as the colour check of bound max_chroma_shift needs: `chroma_sigma`), read from the
+    template file `path` (views `names`, poses T_obj_cam [V x 4 x 4]) when first asked for, then kept."""
 
-    def __init__(self, path: str | Path | None, names: list[str], T_obj_cam: np.ndarray, chroma_sigma: float):
+    def __init__(self, path: str | Path | None, names: list[str], T_obj_cam: np.ndarray, max_chroma_shift: float):
         self.path, self.names, self.T_obj_cam = path, names, np.asarray(T_obj_cam, dtype=np.float64)
-        self.chroma_sigma = chroma_sigma
+        self.chroma_sigma = chroma_sigma(max_chroma_shift)
         self._read_views: dict[int, tuple[DenseGeometry | None, np.ndarray | None]] = {}
         self._lock = threading.Lock()
 
@@ -113,8 +113,7 @@ def texture_refusal(q: QueryFrame, T_cam_obj: np.ndarray, keyframes: KeyframeTex
     if kf is None:
         return (f"the template keeps no image of its view {keyframes.names[v]} to check the texture of a pose the "
                 "depth alone decided")
-    frame = q.frame
-    query = DenseGeometry.from_depth(frame.depth, frame.intrinsics, q.search, image=frame.color)
+    query = q.textured
     T_kf_cam = inv_T(keyframes.T_obj_cam[v]) @ inv_T(T_cam_obj)  # query camera -> keyframe camera
     c = colour_agreement(query, kf, T_kf_cam, noise)
     log.debug("texture against keyframe %s: %d of %d informative tiles agree", keyframes.names[v], c.agreeing,
@@ -129,18 +128,23 @@ def texture_refusal(q: QueryFrame, T_cam_obj: np.ndarray, keyframes: KeyframeTex
         return (f"print disagrees ({pr.one_sided} of {pr.informative} textured tiles of the faces' interiors are print "
                 f"that the query or the template's view {keyframes.names[v]} lacks, {pr.agreeing} line up; the depth "
                 "alone decided the pose)")
-    return chroma_refusal(query, kf, T_kf_cam, frame.color, keyframes.chroma(v), noise, p.max_chroma_shift,
-                          keyframes.names[v])
+    return chroma_refusal(query, kf, T_kf_cam, q.chroma(chroma_sigma(p.max_chroma_shift)), keyframes.chroma(v),
+                          noise, p.max_chroma_shift, keyframes.names[v])
 
 
-def chroma_refusal(query: DenseGeometry, kf: DenseGeometry, T_kf_cam: np.ndarray, image: np.ndarray,
+def chroma_sigma(max_shift: float) -> float:
+    """How well a pixel's chromaticity must be told to count for the colour check of bound max_shift: a third of
+    it (`chromaticity`'s max_sigma)."""
+    return max_shift / 3.0
+
+
+def chroma_refusal(query: DenseGeometry, kf: DenseGeometry, T_kf_cam: np.ndarray, q_chroma: np.ndarray | None,
                    kf_chroma: np.ndarray | None, noise: DepthNoise, max_shift: float, name: str) -> str | None:
     """The reason the colour of the surface under a pose refutes it (module docstring), else None: the query's
-    samples (`query`, of its colour `image`) landing on the keyframe's surface (`kf`, its chromaticity kf_chroma,
-    T_kf_cam the query camera in the keyframe's) at least MIN_CHROMA_PAIRS times, where both images are bright
-    enough to tell a chromaticity within a third of max_shift, lie farther than max_shift from the keyframe's
+    samples (`query`, its image's chromaticity q_chroma) landing on the keyframe's surface (`kf`, its chromaticity
+    kf_chroma, T_kf_cam the query camera in the keyframe's) at least MIN_CHROMA_PAIRS times, where both images are
+    bright enough to tell a chromaticity within `chroma_sigma`, lie farther than max_shift from the keyframe's
     (`chroma_shift`). Without a colour image on either side, no verdict."""
-    q_chroma = chromaticity(image, max_shift / 3.0)
     if q_chroma is None or kf_chroma is None:
         return None
     shift, n = chroma_shift(*chroma_pairs(query, kf, T_kf_cam, noise, q_chroma, kf_chroma))
