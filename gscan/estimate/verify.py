@@ -31,7 +31,7 @@ from gscan.estimate.query import QueryFrame, off_plane_margin
 from gscan.estimate.similarity import best_columns
 from gscan.geometry.plane import Plane
 from gscan.geometry.transforms import transform_points
-from gscan.io.camera import Intrinsics
+from gscan.io.camera import Intrinsics, project
 from gscan.registration.noise import DepthNoise
 
 
@@ -130,11 +130,11 @@ def beyond_border(T_cam_obj: np.ndarray, intr: Intrinsics, samples: np.ndarray) 
     rests on the silhouette checks for the object's extent; a look-alike cut by the border fits any object whose
     surface in view is like its own (measured: poses on boxes at the border, 25-42 % beyond it)."""
     pc = transform_points(T_cam_obj, samples)
-    z = np.where(pc[:, 2] > 1e-3, pc[:, 2], np.nan)
-    u = pc[:, 0] / z * intr.fx + intr.cx
-    v = pc[:, 1] / z * intr.fy + intr.cy
-    inside = (u >= 0) & (u < intr.width) & (v >= 0) & (v < intr.height)  # NaN compares False
-    return float(1.0 - np.mean(inside)) if len(pc) else 0.0
+    if not len(pc):
+        return 0.0
+    uv = project(pc[pc[:, 2] > 1e-3], intr)
+    inside = (uv >= 0).all(axis=1) & (uv[:, 0] < intr.width) & (uv[:, 1] < intr.height)
+    return 1.0 - int(inside.sum()) / len(pc)
 
 
 def silhouette_outside(q: QueryFrame, T_cam_obj: np.ndarray, samples: np.ndarray, spacing: float,
