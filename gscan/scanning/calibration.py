@@ -93,6 +93,13 @@ class FocalCheck:
     verdict: str = UNCONFIRMED
     reason: str | None = None
 
+    @classmethod
+    def not_confirmed(cls, reason: str, agreement: dict[float, float] | None = None, pairs: int = 0) -> FocalCheck:
+        """A check that could not confirm the given focal length (kept: scale 1) for `reason`; agreement: each
+        scale's mean share tried, pairs: the frame pairs compared."""
+        agreement = dict(sorted((agreement or {}).items()))
+        return cls(1.0, agreement, pairs, 0, 1.0, False, agreement.get(1.0, float("nan")), reason=reason)
+
     @property
     def confirmed(self) -> bool:
         """The focal length the scan uses is the one the data give (kept or corrected)."""
@@ -227,13 +234,8 @@ def check_colour_focal(read: Callable[[int], RGBDFrame | None], n: int, params: 
             out[s] = float(v[at].mean()) if at.any() else 0.0
         return live, out
 
-    def unconfirmed(why: str, live: np.ndarray | None = None, mean: dict[float, float] | None = None) -> FocalCheck:
-        n = int(live.sum()) if live is not None else 0
-        return FocalCheck(1.0, dict(sorted((mean or {}).items())), n, 0, 1.0, False,
-                          (mean or {}).get(1.0, float("nan")), reason=why)
-
     if not pairs:
-        return unconfirmed(f"too few frames ({n}) to register pairs {max(steps)} apart")
+        return FocalCheck.not_confirmed(f"too few frames ({n}) to register pairs {max(steps)} apart")
     one = SCALES.index(1.0)
     near = SCALES[one - 1:one + 2]
     walk = starts[::2]  # the groups the walk seeks the texture's peak on
@@ -266,8 +268,9 @@ def check_colour_focal(read: Callable[[int], RGBDFrame | None], n: int, params: 
     for s in sorted(mean):
         log.debug("colour focal x%.3f: %.3f of the textured tiles line up", s, mean[s])
     if live.sum() < 4:
-        return unconfirmed(f"{int(live.sum())} frame pairs registered at the focal lengths tried (at least 4 needed)",
-                           live, mean)
+        return FocalCheck.not_confirmed(
+            f"{int(live.sum())} frame pairs registered at the focal lengths tried (at least 4 needed)", mean,
+            int(live.sum()))
     while True:  # the next scale out on every group while the peak may lie beyond the scales tried on all of them
         got = _verdict(per_pair, live, check, mean)
         on_all = [i for i, s in enumerate(SCALES) if s in per_pair and not np.isnan(per_pair[s][live]).any()]

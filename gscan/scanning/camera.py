@@ -55,7 +55,7 @@ def check_camera(source: Path, seq: Sequence | RecordingSequence, opts: ScanOpti
             return None
 
     if mode == MOVING_OBJECT:
-        check = FocalCheck(1.0, {}, 0, 0, 1.0, False, float("nan"), reason=MOVED_NOT)
+        check = FocalCheck.not_confirmed(MOVED_NOT)
     else:
         static = for_capture(cfg, STATIC_OBJECT)
         check = check_colour_focal(read, len(seq.names), static.registration, static.features, cfg.camera,
