@@ -19,7 +19,7 @@ from gscan.features.depth import depth_keypoints, joint_features
 from gscan.geometry.plane import Plane, dominant_plane
 from gscan.io.camera import RGBDFrame, pixel_rays
 from gscan.registration.colour import chromaticity
-from gscan.registration.dense import DenseGeometry
+from gscan.registration.dense import DenseGeometry, interior
 from gscan.registration.noise import DepthNoise
 
 
@@ -42,6 +42,7 @@ class QueryFrame:
     _heights: np.ndarray | None = field(default=None, repr=False)
     _textured: DenseGeometry | None = field(default=None, repr=False)
     _chroma: dict[float, np.ndarray | None] = field(default_factory=dict, repr=False)
+    _interior: dict[tuple[DepthNoise, float], DenseGeometry] = field(default_factory=dict, repr=False)
 
     @property
     def heights(self) -> np.ndarray | None:
@@ -67,6 +68,14 @@ class QueryFrame:
             self._textured = DenseGeometry.from_depth(self.frame.depth, self.frame.intrinsics, self.search,
                                                       image=self.frame.color)
         return self._textured
+
+    def textured_interior(self, noise: DepthNoise, reach_px: float) -> DenseGeometry:
+        """`textured`'s samples on a face's interior (`gscan.registration.dense.interior`), computed once per
+        noise model and reach."""
+        key = (noise, reach_px)
+        if key not in self._interior:
+            self._interior[key] = interior(self.textured, noise, reach_px)
+        return self._interior[key]
 
     def chroma(self, max_sigma: float) -> np.ndarray | None:
         """The frame's chromaticity told within max_sigma (`gscan.registration.colour.chromaticity`), computed once

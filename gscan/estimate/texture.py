@@ -70,6 +70,7 @@ class KeyframeTextures:
         self.path, self.names, self.T_obj_cam = path, names, np.asarray(T_obj_cam, dtype=np.float64)
         self.chroma_sigma = chroma_sigma(max_chroma_shift)
         self._read_views: dict[int, tuple[DenseGeometry | None, np.ndarray | None]] = {}
+        self._interiors: dict[tuple[int, DepthNoise], DenseGeometry] = {}
         self._lock = threading.Lock()
 
     def nearest(self, T_cam_obj: np.ndarray) -> int:
@@ -80,6 +81,17 @@ class KeyframeTextures:
     def dense(self, v: int) -> DenseGeometry | None:
         """Keyframe v's object samples with texture; None when the template keeps no images of it."""
         return self._get(v)[0]
+
+    def interior(self, v: int, noise: DepthNoise) -> DenseGeometry | None:
+        """Keyframe v's samples on a face's interior (`gscan.registration.dense.interior`, within `PRINT_REACH_PX`),
+        computed once per noise model; None when the template keeps no images of it."""
+        kf = self.dense(v)
+        if kf is None:
+            return None
+        with self._lock:
+            if (v, noise) not in self._interiors:
+                self._interiors[(v, noise)] = interior(kf, noise, PRINT_REACH_PX)
+            return self._interiors[(v, noise)]
 
     def chroma(self, v: int) -> np.ndarray | None:
         """Keyframe v's image's chromaticity [H x W x 2]; None without a colour image of it."""
@@ -121,7 +133,9 @@ def texture_refusal(q: QueryFrame, T_cam_obj: np.ndarray, keyframes: KeyframeTex
     if c.refutes(p.min_colour_tiles, p.min_colour_agreement):
         return (f"texture disagrees ({c.agreeing} of {c.informative} textured tiles line up with the template's view "
                 f"{keyframes.names[v]}; the depth alone decided the pose)")
-    pr = print_agreement(interior(query, noise, PRINT_REACH_PX), interior(kf, noise, PRINT_REACH_PX), T_kf_cam, noise)
+    kf_interior = keyframes.interior(v, noise)
+    assert kf_interior is not None  # the keyframe has samples (kf above)
+    pr = print_agreement(q.textured_interior(noise, PRINT_REACH_PX), kf_interior, T_kf_cam, noise)
     log.debug("print against keyframe %s: %d of %d informative interior tiles one-sided, %d agree", keyframes.names[v],
               pr.one_sided, pr.informative, pr.agreeing)
     if pr.one_sided and pr.agreeing < p.min_colour_agreement * pr.informative:
