@@ -125,6 +125,17 @@ class DenseGeometry:
     def __len__(self) -> int:
         return len(self.points)
 
+    def subset(self, keep: np.ndarray) -> DenseGeometry:
+        """The samples where keep [h x w] bool holds (of the valid ones), with the frame's texture; no mask or rim."""
+        good = self.depth > 0
+        keep = keep & good
+        index = np.full(self.depth.shape, -1, np.int64)
+        index[good] = np.arange(int(good.sum()))  # points and pixels list the valid samples row by row
+        kept = index[keep]
+        return DenseGeometry(np.where(keep, self.depth, 0.0), self.grid, self.normals, self.points[kept], self.fx,
+                             self.fy, self.cx, self.cy, None if self.pixels is None else self.pixels[kept],
+                             self.full_intrinsics, self.texture, self.texture_noise)
+
     @cached_property
     def point_normals(self) -> np.ndarray:
         """[P x 3] the normals of `points` (the kept samples), gathered once."""
@@ -355,11 +366,7 @@ def interior(g: DenseGeometry, noise: DepthNoise, reach_px: float) -> DenseGeome
                 continue
             cols = np.clip(np.arange(w) + du, 0, w - 1)
             keep &= good[np.ix_(rows, cols)] & (np.sum(g.normals[np.ix_(rows, cols)] * g.normals, axis=-1) >= cos_max)
-    index = np.full(d.shape, -1, np.int64)
-    index[good] = np.arange(int(good.sum()))  # g.points and g.pixels list the valid samples row by row
-    kept = index[keep]
-    return DenseGeometry(np.where(keep, d, 0.0), g.grid, g.normals, g.points[kept], g.fx, g.fy, g.cx, g.cy,
-                         None if g.pixels is None else g.pixels[kept], g.full_intrinsics, g.texture, g.texture_noise)
+    return g.subset(keep)
 
 
 def print_agreement(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarray, noise: DepthNoise,

@@ -25,6 +25,7 @@ import logging
 import numpy as np
 
 from gscan.features import Features
+from gscan.geometry.plane import Plane, dominant_plane
 from gscan.geometry.symmetry import axis_rotation
 from gscan.geometry.transforms import inv_T, transform_points
 from gscan.registration.colour import ColourAgreement
@@ -36,6 +37,8 @@ log = logging.getLogger(__name__)
 AXES = ("first", "second", "third")  # principal axes, by decreasing spread
 REACH = 0.1  # ICP pairing distance of a turned pose, as a share of the points' RMS radius (a turn's axis error)
 CENTRE_STEPS = 7  # centres tried across a turn's axis, a side (`_best_centre`)
+PLANE_ITERATIONS = 64  # RANSAC hypotheses of a view's dominant plane (`support_plane`; seeded)
+SAME_PLANE_DEG = 10.0  # two views' dominant planes are one under a pose only with normals this near (`support_plane`)
 LONE_TURN = "ambiguous shape: the only edge placing its frame, which the views cannot tell from {}"  # {}: the turn
 
 
@@ -121,10 +124,14 @@ def turn_not_refuted(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarr
     if len(pts) < 10 or len(tgt) < 10:
         return None
     normals = np.concatenate([src.point_normals, tgt.point_normals @ T_tgt_src[:3, :3]])
+    plane = support_plane(src, tgt, T_tgt_src, params)
     for name, axis, centre in _turn_axes(pts, normals):
         none = np.zeros((0, 3))
         T, _ = refine_pose(src, tgt, none, none, _best_centre(src, tgt, T_tgt_src, pts, axis, centre, params),
                            params.noise, params.depth_noise)
+        if plane is not None and plane.height(inv_T(T)[:3, 3]) < 0:
+            log.debug("half turn about the %s axis: tgt's camera behind the plane both views see", name)
+            continue  # tgt's camera behind the table the views see from above: no camera sees through a table
         depth = depth_agreement(src, tgt, T, params.depth_noise)
         off = outside_silhouette(src, tgt, T)
         log.debug("half turn about the %s axis: depth %s, %.1f %% off the silhouette", name, depth, 100 * off)
@@ -138,6 +145,44 @@ def turn_not_refuted(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarr
             continue
         return f"the object turned half about its {name} axis"
     return None
+
+
+def support_plane(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarray, params: RegisterParams
+                  ) -> Plane | None:
+    """The printed plane both views see from one side under the pose T_tgt_src [4 x 4], in src's camera frame
+    (normal towards it), or None. Each view's dominant plane (`dominant_plane`: at most 5 % of its samples behind it,
+    so a table and not an object's face seen head-on) must hold `params.support_plane_min_frac` of its depth
+    samples; the pose must lay tgt's onto src's (normals within SAME_PLANE_DEG, tgt's plane through src's within
+    three sigmas of the depth noise and of a pose turned by rule 2's bound, `max_sigma_deg`, at the plane's
+    distance), and the plane's print confirm it: most of its textured tiles (at least `min_colour_tiles`, rule 3's
+    verdict) line up. Whole frames only: a masked view holds the object alone, whose faces a camera may see from
+    either side. The scene is rigid: a turn of the object is a turn of the table with it, and one that puts a
+    camera under the table (a turn about an axis along it) is refuted by it. A plain table pins only its own tilt
+    and height: the motion along it rests on the object's keypoints alone, and there poses 1-4 deg off claiming
+    0.13-0.16 deg passed every other rule (two-frame captures on a plain table, whole frames; its faint texture
+    lined up in 5 of 13-16 tiles under them, a printed table's in 70-85 % under right poses 120 deg apart): the
+    turns stay to be refuted by the views."""
+    if src.mask is not None or tgt.mask is not None:
+        return None
+    planes = [dominant_plane(np.where((g.depth > 0)[..., None], g.grid, 0.0), params.support_plane_min_frac,
+                             PLANE_ITERATIONS, stride=1) for g in (src, tgt)]
+    a, b = planes
+    if a is None or b is None:
+        return None
+    b_src = b.transformed(inv_T(T_tgt_src))
+    z = abs(a.offset)  # the plane's distance from src's camera
+    foot = -a.offset * a.normal  # the point of src's plane nearest that camera
+    tolerance = 3.0 * (float(params.depth_noise.sigma(z)) + z * np.radians(params.max_sigma_deg))
+    if float(a.normal @ b_src.normal) < np.cos(np.radians(SAME_PLANE_DEG)) or abs(float(b_src.height(foot))) > \
+            tolerance:
+        return None
+    on = [g.subset(np.abs(p.height(g.grid)) <= 3.0 * params.depth_noise.sigma(g.grid[..., 2]))
+          for g, p in ((src, a), (tgt, b))]
+    table = colour_agreement(on[0], on[1], T_tgt_src, params.depth_noise)
+    log.debug("the plane both views see: its texture %s under the pose", table)
+    if table.informative < params.min_colour_tiles or 2 * table.agreeing <= table.informative:
+        return None  # the table's print does not confirm the pose: fewer than most of its tiles line up
+    return a
 
 
 def _turn_axes(pts: np.ndarray, normals: np.ndarray) -> list[tuple[str, np.ndarray, np.ndarray]]:
