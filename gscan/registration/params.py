@@ -76,10 +76,10 @@ class RegisterParams:
                                                    "overlap's textured tiles lines up (look-alike sides of a box "
                                                    "lined up in 41-78 % under wrong poses)")] = 0.9
     support_plane_min_frac: Annotated[float, Field(gt=0, le=1, description="a half turn of the object is refuted "
-                                                   "when it puts the two cameras on opposite sides of a plane both "
-                                                   "views see from one side under the edge's pose (the table of a "
-                                                   "whole-frame capture), a plane holding at least this share of "
-                                                   "each view's depth samples")] = 0.3
+                                                   "when it puts the two cameras on opposite sides of a printed plane "
+                                                   "both views see from one side under the edge's pose (the table "
+                                                   "of a whole-frame capture), a plane holding at least this share "
+                                                   "of each view's depth samples")] = 0.3
     max_see_through_shape: Annotated[float, Field(ge=0, le=1, description="rule 3: an edge of depth keypoints "
                                                   "(rootsift+fpfh) that the texture cannot judge (a plain object: "
                                                   "the depth alone decides) is rejected beyond this share seen "

@@ -12,6 +12,8 @@ same of their motion.
 - `texture_refutes(colour, params)`: whether texture refutes a pose as it does an edge's
 - `turn_not_refuted(src, tgt, T_tgt_src, params, texture, unseen)`: the first half turn of an edge two views
   cannot refute
+- `support_plane(src, tgt, T_tgt_src, params)`: the printed table two whole views see from one side, under which no
+  turn may put a camera
 - `has_print(fs, ft, min_keypoints)`: whether both frames have print (enough keypoints the image found)
 - `edge_turn(fs, ft, src, tgt, r, params, min_print_keypoints, min_agreement, unseen)`: the first half turn an accepted
   edge's views do not refute, unless its print settles the pose (loop closures: any texture verdict)
@@ -164,9 +166,8 @@ def support_plane(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarray,
     turns stay to be refuted by the views."""
     if src.mask is not None or tgt.mask is not None:
         return None
-    planes = [dominant_plane(np.where((g.depth > 0)[..., None], g.grid, 0.0), params.support_plane_min_frac,
-                             PLANE_ITERATIONS, stride=1) for g in (src, tgt)]
-    a, b = planes
+    a, b = (dominant_plane(np.where((g.depth > 0)[..., None], g.grid, 0.0), params.support_plane_min_frac,
+                           PLANE_ITERATIONS, stride=1) for g in (src, tgt))
     if a is None or b is None:
         return None
     b_src = b.transformed(inv_T(T_tgt_src))
