@@ -21,6 +21,7 @@ import numpy as np
 from gscan.geometry.meshfill import close_holes_cleanly, non_manifold_edges
 from gscan.geometry.transforms import transform_points
 from gscan.io.camera import backproject
+from gscan.io.sequence import spread_indices
 from gscan.template.db import MeshData, TemplateDB
 
 log = logging.getLogger(__name__)
@@ -44,7 +45,7 @@ def support_floor_z(db: TemplateDB, mesh: MeshData) -> float | None:
     names = [v.name for v in db.views(load_images=False) if v.T_obj_cam is not None]
     if not names:
         return None
-    pick = [names[i] for i in np.unique(np.linspace(0, len(names) - 1, min(FLOOR_VIEWS, len(names))).astype(int))]
+    pick = [names[i] for i in spread_indices(len(names), FLOOR_VIEWS)]
     heights = []
     for name in pick:
         v = db.view(name, load_images=True)

@@ -38,6 +38,7 @@ import numpy as np
 
 from gscan.features.keypoints import JOINT, Detection, FeatureParams, Features, empty_features, extract_features
 from gscan.io.camera import RGBDFrame, point_cloud
+from gscan.io.sequence import spread_indices
 
 log = logging.getLogger(__name__)
 
@@ -251,7 +252,7 @@ AUTO_PILOT = 8  # frames spread over a capture whose image keypoints decide `key
 def pilot_frames(n: int) -> list[int]:
     """The indices of the at most AUTO_PILOT frames (or views) spread over n whose image keypoints decide
     `keypoints: auto` (`choose_source`)."""
-    return sorted({int(j) for j in np.linspace(0, n - 1, min(AUTO_PILOT, n))}) if n > 0 else []
+    return spread_indices(n, AUTO_PILOT)
 
 
 def choose_source(params: FeatureParams, counts: list[int]) -> str:

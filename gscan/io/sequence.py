@@ -35,6 +35,12 @@ log = logging.getLogger(__name__)
 _EIGHT_BIT_MODES = {"1", "L", "P", "LA", "PA", "RGB", "RGBA", "RGBX", "CMYK", "YCbCr", "LAB", "HSV"}
 
 
+def spread_indices(n: int, k: int) -> list[int]:
+    """At most k indices spread evenly over range(n), the first and the last included (each rounded down; all of
+    them when n <= k): the frames or views a stage samples from a sequence."""
+    return [int(i) for i in np.unique(np.linspace(0, n - 1, min(k, n)).astype(int))] if n > 0 else []
+
+
 def image_header(path: Path) -> tuple[int, int, str]:
     """(width, height, PIL mode) read from the image header only; InputError naming the file (also for an
     OpenEXR image and one above the pixel limit, `gscan.io.images.image_size`)."""

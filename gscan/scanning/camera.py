@@ -12,7 +12,7 @@ from gscan.errors import InputError
 from gscan.features import Detection
 from gscan.io import open_sequence
 from gscan.io.camera import DepthCamera, Intrinsics, RGBDFrame
-from gscan.io.sequence import Sequence
+from gscan.io.sequence import Sequence, spread_indices
 from gscan.scanning.calibration import KEPT, SCALES, UNCONFIRMED, FocalCheck, check_colour_focal
 from gscan.scanning.capture_mode import MOVING_OBJECT, STATIC_OBJECT
 from gscan.scanning.config import for_capture
@@ -60,8 +60,8 @@ def check_camera(source: Path, seq: Sequence | RecordingSequence, opts: ScanOpti
         static = for_capture(cfg, STATIC_OBJECT)
         check = check_colour_focal(read, len(seq.names), static.registration, static.features, cfg.camera,
                                    workers=WORKERS, detections=detections)
-    spread = np.unique(np.linspace(0, len(seq.names) - 1, min(cfg.camera.edge_frames, len(seq.names))).astype(int))
-    edges = edge_evidence([f for f in (read(int(i)) for i in spread) if f is not None], SCALES)
+    spread = spread_indices(len(seq.names), cfg.camera.edge_frames)
+    edges = edge_evidence([f for f in (read(i) for i in spread) if f is not None], SCALES)
     K = seq.intrinsics
     report = camera_report(check, edges, K, list(seq.names))
     if not report["confirmed"]:  # said by the scan's summary and --json (a warning here would precede a bad input's
