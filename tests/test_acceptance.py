@@ -3,8 +3,9 @@ alone, and two-frame captures of the shared meshes far apart (a held-out split, 
 
 What is asked of a rule that follows the evidence: the bottle registers at least 90 % of its frames, the two-frame
 captures at least 93 / 57 / 41 % of their pairs at 20 / 60 / 120 deg, none beyond 5 deg / 2 cm. The current rule
-(a fixed bound on how tightly an edge pins its pose, gscan.registration.pairwise rule "weak geometry", and for a
-two-frame capture the weighing of its lone edge against the object's half turns, gscan.registration.turns) does
+(a fixed bound on how tightly an edge pins its pose, gscan.registration.pairwise rule "weak geometry", with a
+two-frame capture's lone edge refined on its pixels where its keypoints pin it loosely,
+gscan.registration.photometric, and weighed against the object's half turns, gscan.registration.turns) does
 not reach that; those tests are expected to fail (strict) until a rule does, and the tests that no frame or pair is
 wrong must pass with any rule.
 """
@@ -43,7 +44,10 @@ def test_glossy_bottle_no_frame_wrong(bottle):
 @pytest.mark.slow
 @pytest.mark.xfail(strict=True, reason="the fixed bound refuses the bottle's loose edges one at a time (1 of 36 "
                    "frames registered); pooling them as measured is not safe (34 of 36 wrong): keypoints whose "
-                   "support crosses the bottle's static outline lag its turn (bench/bottle_edges.py)")
+                   "support crosses the bottle's static outline lag its turn (bench/bottle_edges.py). Its pixels "
+                   "place each turn within 1.6 deg (tests/test_photometric.py), but a scan on them is a chain whose "
+                   "ring no loop closes (a half turn of the 41 px wide bottle is not refuted: it has fewer than 60 "
+                   "image keypoints and 8 textured 48 px tiles) and which drifts 1-2 deg: 6 of 26 frames wrong")
 def test_glossy_bottle_registers_nine_in_ten(bottle):
     """At least 90 % of the bottle's 36 frames registered, none wrong."""
     assert len(bottle.registered) >= 0.9 * len(bottle.case.object_frames) and not bottle.wrong, bottle.describe()
@@ -166,10 +170,10 @@ def test_two_frame_captures_none_wrong(pairs):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="the fixed bound refuses far-apart views whose few pairs pin the pose "
-                   "loosely, and a pair whose print lines up in fewer than 9 in 10 tiles is refused where a half "
-                   "turn of the object fits as well (83 / 44 / 10 % on all four starts); no rule that follows the "
-                   "evidence is shown safe yet")
+@pytest.mark.xfail(strict=True, reason="a pair whose print lines up in fewer than 9 in 10 tiles is refused "
+                   "where a half turn of the object fits as well: of the 14 pairs refused as weak geometry that their "
+                   "pixels now place, 11 are refused so (85 / 46 / 12 % on all four starts, 83 / 44 / 10 % without "
+                   "the pixels); no rule that follows the evidence further is shown safe yet")
 def test_two_frame_captures_reach_the_earlier_success(pairs):
     """At each gap, at least the earlier rules' success on unseen objects (93 / 57 / 41 %)."""
     got = {g: float(np.mean([r["accepted"] and _right(r) for r in rs])) for g, rs in pairs.items()}

@@ -59,7 +59,8 @@ class DenseGeometry:
     full_intrinsics (fx, fy, cx, cy) of the image, texture [H x W] its band-passed grey levels and
     texture_noise the image's noise (`gscan.registration.colour`). mask [H x W] bool: the object's silhouette
     at the image's full resolution, when one was given (`outline`), and rim [R x 3] points on its rim
-    (`rim_points`).
+    (`rim_points`). image_depth [H x W]: the frame's depth at full resolution (the array given, not a copy), for
+    `gscan.registration.photometric`.
     """
 
     depth: np.ndarray
@@ -76,6 +77,7 @@ class DenseGeometry:
     texture_noise: float = 0.0
     mask: np.ndarray | None = None
     rim: np.ndarray | None = None
+    image_depth: np.ndarray | None = None
 
     @classmethod
     def from_depth(cls, depth: np.ndarray, intr: Intrinsics, mask: np.ndarray | None = None,
@@ -120,7 +122,7 @@ class DenseGeometry:
             pixels = np.stack([u[gu[good]], v[gv[good]]], axis=1)
         mask = mask if mask is not None and mask.shape == depth.shape else None
         return cls(d, grid, n, grid[good], fx, fy, cx, cy, pixels, (intr.fx, intr.fy, intr.cx, intr.cy), tex, noise,
-                   mask, None if mask is None else rim_points(depth, intr, mask))
+                   mask, None if mask is None else rim_points(depth, intr, mask), depth)
 
     def __len__(self) -> int:
         return len(self.points)

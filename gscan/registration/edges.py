@@ -196,7 +196,9 @@ class Registrar:
         if (self.names[i], self.names[j]) in self.done:
             return None
         a, b = self.frames.reg(i), self.frames.reg(j)
-        r = register_features(a.feats, b.feats, self.rparams, clouds=(a.cloud, b.cloud), dense=(a.dense, b.dense))
+        alone = len(self.names) == 2  # a two-frame capture: its one edge alone places the second frame
+        r = register_features(a.feats, b.feats, self.rparams, clouds=(a.cloud, b.cloud), dense=(a.dense, b.dense),
+                              alone=alone)
         if loop and r.accepted and r.depth_only:
             # frames far apart on a plain shape: its own half turn fits the depth, the silhouette and the shading
             # as well (measured: every wrong loop closure of plain turntable boxes), and no chain of frames
@@ -214,8 +216,7 @@ class Registrar:
             if turned is not None:
                 r.accepted = False
                 r.reason = LOOP_TURN.format(turned) if loop else SEQUENTIAL_TURN.format(weighed, turned)
-        if len(self.names) == 2 and r.accepted:
-            # a two-frame capture: its one edge alone places the second frame, as in `register_frames`
+        if alone and r.accepted:  # as in `register_frames`
             why = lone_edge_turn(a.feats, b.feats, a.dense, b.dense, r, self.rparams, self.min_print_keypoints)
             if why is not None:
                 r.accepted, r.reason = False, why

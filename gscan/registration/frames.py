@@ -46,7 +46,7 @@ def register_frames(frame_s: RGBDFrame, frame_t: RGBDFrame, params: RegisterPara
     clouds = (frame_cloud(frame_s, icp_stride, ms), frame_cloud(frame_t, icp_stride, mt)) if params.icp else None
     dense = (DenseGeometry.from_depth(frame_s.depth, frame_s.intrinsics, ms, image=frame_s.color),
              DenseGeometry.from_depth(frame_t.depth, frame_t.intrinsics, mt, image=frame_t.color))
-    out = register_features(fs, ft, params, clouds, dense)
+    out = register_features(fs, ft, params, clouds, dense, alone=alone)
     out.timings_ms["features"] = t_feat
     if alone and out.accepted:
         t0 = time.perf_counter()

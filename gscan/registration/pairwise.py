@@ -20,7 +20,11 @@ Acceptance rules, applied in this order (the first failing one is the `reason`):
    standard deviation predicted by its information matrix (the pairs' noise and layout, and the depth's
    when it took part: a few pairs on one face of a box pin it badly) beyond `max_sigma_deg` in rotation, or the
    RMS positional standard deviation of its pairs' points beyond `max_sigma_rel` of their median depth
-   (1 sigma; both a third or less of the 5 deg / 2 cm at 0.6 m that a wrong pose is).
+   (1 sigma; both a third or less of the 5 deg / 2 cm at 0.6 m that a wrong pose is). An edge that alone places
+   a frame (a two-frame capture, `alone`) and is pinned too loosely so is refined on both frames' texture pixel
+   by pixel (`gscan.registration.photometric`, with the depth refinement) and judged by that pose's sigma;
+   "texture disagrees" where the pixels turn the pose farther from the keypoints' and depth's than both allow
+   (`rotation_disagreement`), and rule 3's colour check judges the pose before that refinement too.
 3. "depth disagrees" (with `dense`, both frames' `DenseGeometry`): under the pose, more than
    `max_see_through` of the overlap of the two depth images is seen through (`gscan.registration.dense`);
    "too little depth overlap" when fewer than `min_overlap` samples land on the other frame's depth.
@@ -87,10 +91,12 @@ from gscan.registration.dense import (
     depth_agreement,
     outside_outline,
     outside_silhouette,
+    pose_information,
 )
 from gscan.registration.dense import refine_pose as refine_with_depth
 from gscan.registration.noise import DepthNoise
 from gscan.registration.params import METHODS, RegisterParams  # noqa: F401 - its importers read it here too
+from gscan.registration.photometric import DISAGREEING_CHI2, refine_photometric, rotation_disagreement
 from gscan.registration.pool_kernel import near_pairs, pool_rows
 from gscan.registration.posegraph import information_from_points
 
@@ -331,6 +337,11 @@ def pose_by_support(pts_s: np.ndarray, pts_t: np.ndarray, support_pool: GuidedPo
     return k, T_ref, lists[k][keep], (inliers if len(inliers) >= len(lists[k]) else np.zeros((0, 2), np.int32))
 
 
+def _loose(out: PairResult, max_deg: float, max_m: float) -> bool:
+    """Whether rule 2 refuses the pose as weak geometry: its rotation or position sigma beyond the bounds."""
+    return out.sigma_deg is not None and out.sigma_m is not None and (out.sigma_deg > max_deg or out.sigma_m > max_m)
+
+
 def _mostly_depth(from_depth: np.ndarray | None, pairs: np.ndarray) -> bool:
     """Whether most of the pairs [K x 2] (source, target) have a depth keypoint as source (from_depth [Ns] bool)."""
     return from_depth is not None and len(pairs) > 0 and 2 * int(from_depth[pairs[:, 0]].sum()) > len(pairs)
@@ -385,13 +396,14 @@ def register_points(pts_s: np.ndarray, pts_t: np.ndarray, desc_s: np.ndarray, de
                     params: RegisterParams = RegisterParams(), clouds: tuple | None = None,
                     dense: tuple[DenseGeometry, DenseGeometry] | None = None,
                     fs_depth: np.ndarray | None = None, loc_s: np.ndarray | None = None,
-                    loc_t: np.ndarray | None = None) -> PairResult:
+                    loc_t: np.ndarray | None = None, alone: bool = False) -> PairResult:
     """Register camera-frame keypoints pts_s [Ns x 3] -> pts_t [Nt x 3] (descriptors [N x D] of `kind`).
 
     clouds: optional (src [P x 3], tgt [Q x 3]) camera-frame clouds for ICP; dense: optional (source, target)
     depth samples for rule 3; fs_depth: [Ns] bool the source keypoints found in the depth (rootsift+fpfh);
     loc_s [Ns], loc_t [Nt]: the keypoints' location sigmas (m, `Features.location_sigma`; None: 0), in every
-    pair's s (the gates, rule 2's residual and the information).
+    pair's s (the gates, rule 2's residual and the information); alone: the edge alone places a frame (a two-frame
+    capture; rule 2's photometric refinement).
     """
     tm: dict[str, float] = {}
     t0 = time.perf_counter()
@@ -452,9 +464,27 @@ def register_points(pts_s: np.ndarray, pts_t: np.ndarray, desc_s: np.ndarray, de
         out.sigma_deg, out.sigma_m = pose_sigma(out.information, dst)
         tm["refine"] = (time.perf_counter() - t0) * 1e3
     depth = float(np.median(pt[inliers[:, 1], 2]))
-    if out.sigma_deg is not None and out.sigma_m is not None and (out.sigma_deg > params.max_sigma_deg
-                                                                  or out.sigma_m > params.max_sigma_rel * depth):
-        what = "pairs and the depth" if dense is not None and params.refines_on_depth else "pairs"
+    what = "pairs and the depth" if dense is not None and params.refines_on_depth else "pairs"
+    T_geometric = T  # the pose of the keypoints and depth, which the colour check judges too
+    if (alone and dense is not None and params.photometric and params.refines_on_depth and out.information is not None
+            and _loose(out, params.max_sigma_deg, params.max_sigma_rel * depth)):
+        t0 = time.perf_counter()
+        none = np.zeros((0, 3))  # the depth's information alone: the keypoints' lag is what the pixels correct
+        by_depth = pose_information(dense[0], dense[1], none, none, T, params.noise, params.depth_noise)
+        fit = refine_photometric(dense[0], dense[1], T, by_depth, params.depth_noise)
+        tm["photometric"] = (time.perf_counter() - t0) * 1e3
+        if fit is not None:
+            apart = rotation_disagreement(T, out.information, fit.T_tgt_src, fit.information)
+            if apart > DISAGREEING_CHI2:
+                out.reason = (f"texture disagrees (the pixels turn the pose {fit.turn_deg(T):.2f} deg from where the "
+                              f"keypoints and depth put it, {np.sqrt(apart):.1f} sigmas of both)")
+                return out
+            T = out.T_tgt_src = fit.T_tgt_src
+            out.information = fit.information
+            out.sigma_deg, out.sigma_m = fit.sigma_deg, pose_sigma(fit.information, dst)[1]
+            what += f", and the texture of {fit.pixels} pixels"
+    if _loose(out, params.max_sigma_deg, params.max_sigma_rel * depth):
+        assert out.sigma_deg is not None and out.sigma_m is not None  # what _loose judged
         out.reason = (f"weak geometry (the {n_kept} {what} pin the pose to {out.sigma_deg:.1f} deg and the "
                       f"pairs' points to {out.sigma_m * 1000:.1f} mm, beyond {params.max_sigma_deg:g} deg / "
                       f"{params.max_sigma_rel * depth * 1000:.1f} mm)")
@@ -470,7 +500,12 @@ def register_points(pts_s: np.ndarray, pts_t: np.ndarray, desc_s: np.ndarray, de
             out.reason = f"depth disagrees ({a.see_through_fraction:.0%} of the overlap seen through)"
             return out
         t0 = time.perf_counter()
-        c = out.colour = colour_agreement(dense[0], dense[1], T, params.depth_noise)
+        c = colour_agreement(dense[0], dense[1], T, params.depth_noise)
+        if T is not T_geometric and not c.refutes(params.min_colour_tiles, params.min_colour_agreement):
+            # a pose refined on the texture lines it up by construction: the verdict (here and on the object's
+            # half turns, `gscan.registration.turns`) stands on the pose before
+            c = colour_agreement(dense[0], dense[1], T_geometric, params.depth_noise)
+        out.colour = c
         tm["colour"] = (time.perf_counter() - t0) * 1e3
         if c.refutes(params.min_colour_tiles, params.min_colour_agreement):
             out.reason = (f"colour disagrees (the texture lines up in {c.agreeing} of {c.informative} tiles of the "
@@ -506,7 +541,7 @@ def register_points(pts_s: np.ndarray, pts_t: np.ndarray, desc_s: np.ndarray, de
 
 def register_features(fs: Features, ft: Features, params: RegisterParams = RegisterParams(),
                       clouds: tuple[np.ndarray | None, np.ndarray | None] | None = None,
-                      dense: tuple[DenseGeometry, DenseGeometry] | None = None) -> PairResult:
+                      dense: tuple[DenseGeometry, DenseGeometry] | None = None, alone: bool = False) -> PairResult:
     """Register the keypoints of two frames (camera-frame points, viewed along +z): match, pose, depth check,
     optional ICP, verdict (module docstring).
 
@@ -515,6 +550,8 @@ def register_features(fs: Features, ft: Features, params: RegisterParams = Regis
         params: matcher, pose and acceptance parameters.
         clouds: (source [P x 3], target [Q x 3]) camera-frame clouds for ICP (used when params.icp).
         dense: (source, target) depth samples: the pose is refined on them and checked against them.
+        alone: the edge alone places a frame (a two-frame capture): where its keypoints and depth pin the pose too
+            loosely, it is refined on the frames' texture too (rule 2, `gscan.registration.photometric`).
 
     Returns:
         PairResult: T_tgt_src [4 x 4] (source camera -> target camera) or None, the matches [M x 2] (source,
@@ -526,7 +563,7 @@ def register_features(fs: Features, ft: Features, params: RegisterParams = Regis
     joint = fs.kind == JOINT
     return register_points(fs.points, ft.points, fs.descriptors, ft.descriptors, fs.kind, params, clouds, dense,
                            fs.from_depth if joint else None, fs.location_sigma if joint else None,
-                           ft.location_sigma if joint else None)
+                           ft.location_sigma if joint else None, alone)
 
 
 def frame_cloud(frame: RGBDFrame, stride: int = 2, mask: np.ndarray | None = None) -> np.ndarray:

@@ -95,6 +95,10 @@ class RegisterParams:
                                                "depth together (point-to-plane); null = on, and in a scan for a "
                                                "moving object only (a static scene's depth drifts from the truth "
                                                "where the camera moves fast)")] = None
+    photometric: Annotated[bool, Field(description="rule 2: where the keypoints and depth pin the pose of an edge "
+                                       "that alone places a frame (a two-frame capture) too loosely, refine it on "
+                                       "both frames' texture pixel by pixel and judge it by that "
+                                       "(`gscan.registration.photometric`; with the depth refinement)")] = True
     min_overlap: Annotated[int, Field(ge=1, description="rule 3: depth samples that must land on the other frame to "
                                       "verify the pose")] = 50
     icp: Annotated[bool, Field(description="refine each edge by point-to-plane ICP (off: on textured planar scenes "

@@ -96,6 +96,15 @@ def glossy_can_capture(out_dir: str | Path, n_views: int = 24, mode: str = "turn
     return Case(_write(out_dir, frames, intr), names, names, mesh=mesh)
 
 
+def glossy_bottle_frames(n_views: int = 36, seed: int = 0, distance: float = 0.9, table_kind: str = "plain",
+                         intr: Intrinsics = DEFAULT_INTRINSICS) -> tuple[TexturedMesh, list[RenderedFrame]]:
+    """(mesh, frames) of `glossy_bottle_capture`, rendered and not written."""
+    mesh = cylinder_mesh(0.03, 0.2, procedural_box_texture(5, (1024, 768)), name="glossy_bottle")
+    return mesh, render_capture(mesh, None, n_views, mode="turntable", intr=intr, seed=seed,
+                                gloss=Gloss(shininess=20.0, dropout=0.25), elevations_deg=(20.0,), distance=distance,
+                                table_kind=table_kind)
+
+
 def glossy_bottle_capture(out_dir: str | Path, n_views: int = 36, seed: int = 0, distance: float = 0.9,
                           table_kind: str = "plain", intr: Intrinsics = DEFAULT_INTRINSICS) -> Case:
     """A glossy bottle (a narrow cylinder, 6 cm across, 20 cm tall, a printed label) standing on a turntable,
@@ -103,10 +112,7 @@ def glossy_bottle_capture(out_dir: str | Path, n_views: int = 36, seed: int = 0,
     turn and only the curved label does, which few pixels show. Glossy (shininess 20, depth lost above a
     highlight term of 0.25), but upright under the default light from above its side faces the half vector about
     40 deg off: the highlight stays below one grey level and loses no depth (bench/bottle_edges.py)."""
-    mesh = cylinder_mesh(0.03, 0.2, procedural_box_texture(5, (1024, 768)), name="glossy_bottle")
-    frames = render_capture(mesh, None, n_views, mode="turntable", intr=intr, seed=seed,
-                            gloss=Gloss(shininess=20.0, dropout=0.25), elevations_deg=(20.0,), distance=distance,
-                            table_kind=table_kind)
+    mesh, frames = glossy_bottle_frames(n_views, seed, distance, table_kind, intr)
     names = _names(len(frames))
     return Case(_write(out_dir, frames, intr), names, names, mesh=mesh)
 
