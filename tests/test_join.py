@@ -12,9 +12,10 @@ from gscan import synth
 from gscan.features.keypoints import OBJECT_FEATURES, extract_features_in_mask
 from gscan.geometry.transforms import inv_T, rotation_angle_deg
 from gscan.io.camera import RGBDFrame
+from gscan.io.sequence import spread_indices
 from gscan.registration.colour import ColourAgreement
 from gscan.registration.edges import RegData
-from gscan.registration.join import Join, JoinParams, JoinView, _texture_outweighs, join_captures, spread
+from gscan.registration.join import Join, JoinParams, JoinView, _texture_outweighs, join_captures
 from gscan.registration.pairwise import RegisterParams
 from gscan.scanning.config import ScanConfig, for_capture
 from gscan.scanning.modes import MOVING_OBJECT
@@ -55,7 +56,7 @@ def _join_rendered(mesh: synth.TexturedMesh, n_views: int) -> tuple[Join, np.nda
 
     def views(frames: list, side: str) -> list[JoinView]:
         out = []
-        for i in spread(len(frames), JoinParams().views):
+        for i in spread_indices(len(frames), JoinParams().views, nearest=True):
             f = frames[i]
             feats = extract_features_in_mask(RGBDFrame(f"{side}/{i}", f.color, f.depth, synth.DEFAULT_INTRINSICS),
                                              f.mask, OBJECT_FEATURES)

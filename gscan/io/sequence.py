@@ -35,10 +35,12 @@ log = logging.getLogger(__name__)
 _EIGHT_BIT_MODES = {"1", "L", "P", "LA", "PA", "RGB", "RGBA", "RGBX", "CMYK", "YCbCr", "LAB", "HSV"}
 
 
-def spread_indices(n: int, k: int) -> list[int]:
-    """At most k indices spread evenly over range(n), the first and the last included (each rounded down; all of
-    them when n <= k): the frames or views a stage samples from a sequence."""
-    return [int(i) for i in np.unique(np.linspace(0, n - 1, min(k, n)).astype(int))] if n > 0 else []
+def spread_indices(n: int, k: int, nearest: bool = False) -> list[int]:
+    """At most k indices spread evenly over range(n), the first and (k > 1) the last included (each rounded down, or to
+    the nearest with `nearest`; all of them when n <= k), in order: the frames or views a stage samples from a
+    sequence."""
+    x = np.linspace(0, n - 1, min(k, n))
+    return [int(i) for i in np.unique(x.round() if nearest else x).astype(int)] if n > 0 else []
 
 
 def image_header(path: Path) -> tuple[int, int, str]:

@@ -82,13 +82,6 @@ class _Proposal:
     n: int  # inliers the pair's pose rests on
 
 
-def spread(n: int, k: int) -> list[int]:
-    """k indices spread evenly over range(n) (all of them when n <= k), in order."""
-    if n <= k:
-        return list(range(n))
-    return sorted({int(round(x)) for x in np.linspace(0, n - 1, k)})
-
-
 def _differ(p: _Proposal, q: _Proposal, centre: np.ndarray, radius: float) -> tuple[float, float]:
     """How far two proposals differ, in their predicted sigmas: (rotation angle / its sigma, displacement of the
     object's points (within `radius` of its `centre` [3] in A's world: at most the centre's displacement +

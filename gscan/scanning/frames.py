@@ -22,7 +22,7 @@ from gscan.errors import InputError
 from gscan.features import Detection
 from gscan.geometry.plane import Plane
 from gscan.io.camera import RGBDFrame
-from gscan.io.sequence import Sequence
+from gscan.io.sequence import Sequence, spread_indices
 from gscan.registration.edges import RegData, bounded_map
 from gscan.scanning.capture_mode import (
     MOVING_OBJECT,
@@ -209,7 +209,7 @@ def load_frames(seq: Sequence | RecordingSequence, mode: str, masks_given: bool,
         frames.append(f)
     if moving and not masks_given and any(f.plane_cam is None for f in frames):
         # without a support plane (an object in hand) the object is what stands out of the background
-        picks = np.unique(np.linspace(0, len(frames) - 1, min(seg.background_frames, len(frames))).round().astype(int))
+        picks = spread_indices(len(frames), seg.background_frames, nearest=True)
         bg = background_depth([store.need(frames[k].name, "depth") for k in picks])
         for f in frames:
             if f.plane_cam is None:

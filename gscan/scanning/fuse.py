@@ -24,6 +24,7 @@ from gscan.geometry.mesh import MeshData, to_u8_colors
 from gscan.geometry.plane import Plane
 from gscan.geometry.transforms import inv_T, make_T, transform_points
 from gscan.io.camera import RGBDFrame, backproject
+from gscan.io.sequence import spread_indices
 from gscan.settings import SETTINGS
 
 log = logging.getLogger(__name__)
@@ -84,12 +85,14 @@ def _extent_estimate(use: list[int], frames: Sequence[RGBDFrame], masks: Sequenc
     """Largest extent (m) of the masked points of a few of the frames `use` in the world frame (robust
     percentiles)."""
     pts = []
-    for i in np.unique(np.linspace(0, len(use) - 1, min(6, len(use))).round().astype(int)):
+    for i in spread_indices(len(use), 6, nearest=True):
         k = use[i]
         f = frames[k]
         d = _masked_depth(f, masks[k])
         p = backproject(d, f.intrinsics)[::4, ::4][d[::4, ::4] > 0]
-        pts.append(transform_points(T_world_cam[k], p))
+        T = T_world_cam[k]
+        assert T is not None, "the frames used are registered"
+        pts.append(transform_points(T, p))
     P = np.concatenate(pts) if pts else np.zeros((0, 3))
     if len(P) < 10:
         return 0.0

@@ -76,9 +76,10 @@ from gscan.io.output import (
     remove_empty_folders,
     remove_sqlite_sidecars,
 )
+from gscan.io.sequence import spread_indices
 from gscan.progress import Progress, StageTimer
 from gscan.registration.edges import COMMIT_ROWS, EdgeSink, RegData, Registrar, bounded_map
-from gscan.registration.join import Join, JoinView, join_captures, spread
+from gscan.registration.join import Join, JoinView, join_captures
 from gscan.registration.noise import DepthNoise
 from gscan.registration.pairwise import RegisterParams, register_features
 from gscan.registration.sequence import capture_noise, optimise_sequence, register_edges
@@ -661,7 +662,7 @@ def _join_views(cap: _Capture, k: int, oparams: FeatureParams, icp_voxel: float 
         return JoinView(frame.name, RegData.of_frame(feats, frame.depth, frame.color, frame.intrinsics, mask,
                                                      icp_voxel), T)
 
-    return [v for v in pool.map(view, [reg[j] for j in spread(len(reg), k)]) if v is not None]
+    return [v for v in pool.map(view, [reg[j] for j in spread_indices(len(reg), k, nearest=True)]) if v is not None]
 
 
 def _selection_poses(caps: list[_Capture], T_obj_world: np.ndarray) -> dict:

@@ -48,6 +48,7 @@ from gscan.errors import InputError
 from gscan.geometry.plane import Plane, dominant_plane, ransac_plane
 from gscan.geometry.transforms import transform_points
 from gscan.io.camera import Intrinsics, RGBDFrame, backproject
+from gscan.io.sequence import spread_indices
 from gscan.registration.noise import DepthNoise
 from gscan.settings import SETTINGS
 
@@ -527,7 +528,7 @@ def estimate_working_volume(frames: Sequence[RGBDFrame], T_world_cam: list[np.nd
 
     if not frames:
         return None
-    idx = np.unique(np.linspace(0, len(frames) - 1, min(params.volume_frames, len(frames))).round().astype(int))
+    idx = spread_indices(len(frames), params.volume_frames, nearest=True)
     used = [frames[i] for i in idx]
     cams = [T_world_cam[i] for i in idx]
     depths = [centre_depth(f) for f in used]
