@@ -30,7 +30,7 @@ from scipy.spatial.transform import Rotation
 
 from gscan.geometry.transforms import inv_T, make_T, rotation_angle_deg, rotvec_to_R
 from gscan.registration.colour import BAND_SIGMA
-from gscan.registration.dense import EDGE_REL, DenseGeometry
+from gscan.registration.dense import EDGE_REL, HUBER, DenseGeometry
 from gscan.registration.noise import DepthNoise
 
 SMOOTH_PX = 2.0  # px: the Gaussian the source depth is smoothed with before its pixels are lifted
@@ -49,7 +49,6 @@ JACKKNIFE_BANDS = 6  # the jackknife's groups: quantile bands of the pixels' row
 JACKKNIFE_ITERATIONS = 4  # steps of each band's solve, from the full solve's pose
 DISAGREEING_CHI2 = 16.27  # chi-square of 3 dof beyond which two estimates of one rotation disagree (p = 0.001)
 STOP = 1e-6  # rad / m: a step this small ends the solve
-HUBER = 2.0  # residuals beyond this many scales weigh as the Huber loss does
 
 
 @dataclass
