@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 from gscan.geometry.symmetry import axis_rotation
 from gscan.geometry.transforms import inv_T, make_T, pose_error, rotvec_to_R
 from gscan.io.camera import RGBDFrame
-from gscan.registration.dense import DenseGeometry, pose_information
+from gscan.registration.dense import DenseGeometry, pose_information, pose_sigma
 from gscan.registration.noise import DepthNoise
 from gscan.registration.photometric import inner_pixels, refine_photometric, rotation_disagreement
 from gscan.synth.cases import glossy_bottle_frames
@@ -61,6 +61,7 @@ def test_the_pixels_turn_the_bottle_as_far_as_it_turned(bottle):
         ratios.append(deg / fit.sigma_deg)
         assert deg < 1.5 and deg < 4 * fit.sigma_deg and fit.sigma_deg < 1.0, (i, deg, fit.sigma_deg)
         assert fit.sigma_deg >= fit.jackknife_sigma_deg and fit.sigma_deg >= fit.model_sigma_deg
+        assert np.isclose(pose_sigma(fit.information, np.zeros((0, 3)))[0], fit.sigma_deg)  # what rule 2 reads
         assert fit.pixels >= 1000
     assert np.median(errors) < 0.8 and np.median(ratios) < 1.5, (errors, ratios)
 

@@ -92,6 +92,7 @@ from gscan.registration.dense import (
     outside_outline,
     outside_silhouette,
     pose_information,
+    pose_sigma,
 )
 from gscan.registration.dense import refine_pose as refine_with_depth
 from gscan.registration.noise import DepthNoise
@@ -126,30 +127,6 @@ class PairResult:
     depth_only: bool = False  # accepted on depth keypoints with no texture verdict: the depth alone decided it
     outside: float | None = None  # the depth-alone verdict's share of samples landing off the other frame
     timings_ms: dict[str, float] = field(default_factory=dict)
-
-
-def pose_sigma(information: np.ndarray, points: np.ndarray) -> tuple[float, float]:
-    """(largest rotation standard deviation in degrees, RMS positional standard deviation in metres of
-    `points` [N x 3] (target frame) moved by the pose) of a pose with [6 x 6] information (rotation first);
-    inf when it is singular. A rotation about an axis through the points barely moves them: what matters for
-    a registration is how far its pose can move the surface it was solved on (and, through the rotation, the
-    surface far from it)."""
-    try:
-        C = np.linalg.inv(information)
-    except np.linalg.LinAlgError:
-        return float("inf"), float("inf")
-    ev = np.linalg.eigvalsh(C)
-    if ev.min() < 0:  # numerically singular
-        return float("inf"), float("inf")
-    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    # displacement of p for a small motion (w, t): -[p]x w + t = G x; its covariance G C G^T, trace summed
-    x, y, z = p[:, 0], p[:, 1], p[:, 2]
-    zero, one = np.zeros(len(p)), np.ones(len(p))
-    var = 0.0
-    for G in (np.stack([zero, z, -y, one, zero, zero], 1), np.stack([-z, zero, x, zero, one, zero], 1),
-              np.stack([y, -x, zero, zero, zero, one], 1)):
-        var += float(np.einsum("ij,jk,ik->", G, C, G)) / max(1, len(p))
-    return float(np.degrees(np.sqrt(np.linalg.eigvalsh(C[:3, :3]).max()))), float(np.sqrt(var))
 
 
 ROWS_MAX_PER_SOURCE = 300  # pool pairs per source keypoint up to which the pool is looked up by rows

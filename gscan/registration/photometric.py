@@ -30,7 +30,7 @@ from scipy.spatial.transform import Rotation
 
 from gscan.geometry.transforms import inv_T, make_T, rotation_angle_deg, rotvec_to_R
 from gscan.registration.colour import BAND_SIGMA
-from gscan.registration.dense import EDGE_REL, HUBER, DenseGeometry
+from gscan.registration.dense import EDGE_REL, HUBER, DenseGeometry, pose_sigma
 from gscan.registration.noise import DepthNoise
 
 SMOOTH_PX = 2.0  # px: the Gaussian the source depth is smoothed with before its pixels are lifted
@@ -54,15 +54,18 @@ STOP = 1e-6  # rad / m: a step this small ends the solve
 @dataclass
 class PhotometricFit:
     """T_tgt_src [4 x 4]; information [6 x 6] (rotation first, a small motion in the target frame) of the pose from
-    the pixels, keypoints and depth, scaled so that its rotation sigma is `sigma_deg`; sigma_deg the larger of the
-    model's rotation sigma (`model_sigma_deg`) and the jackknife's; pixels: the source pixels that took part."""
+    the pixels and the depth, scaled so that its rotation sigma is `sigma_deg`, the larger of the model's rotation
+    sigma (`model_sigma_deg`) and the jackknife's; pixels: the source pixels that took part."""
 
     T_tgt_src: np.ndarray
     information: np.ndarray
-    sigma_deg: float
     model_sigma_deg: float
     jackknife_sigma_deg: float
     pixels: int
+
+    @property
+    def sigma_deg(self) -> float:
+        return max(self.model_sigma_deg, self.jackknife_sigma_deg)
 
     def turn_deg(self, T_tgt_src: np.ndarray) -> float:
         """The rotation (deg) between this pose and T_tgt_src [4 x 4]."""
@@ -199,16 +202,6 @@ def _solve(src: _Source, keep: np.ndarray, tgt: _Target, T0: np.ndarray, prior: 
     return T, Hp + prior, corr, n
 
 
-def _rotation_sigma_deg(information: np.ndarray) -> float:
-    """The largest rotation standard deviation (deg) of a pose with information [6 x 6] (rotation first)."""
-    try:
-        C = np.linalg.inv(information)
-    except np.linalg.LinAlgError:
-        return float("inf")
-    ev = np.linalg.eigvalsh(C[:3, :3])
-    return float(np.degrees(np.sqrt(ev.max()))) if ev.min() > 0 else float("inf")
-
-
 def refine_photometric(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarray, information: np.ndarray,
                        noise: DepthNoise) -> PhotometricFit | None:
     """The pose of src in tgt refined on both frames' texture (module docstring), from T_tgt_src [4 x 4] and the
@@ -237,10 +230,10 @@ def refine_photometric(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.nda
     d = np.asarray(turns) - np.mean(turns, axis=0)
     C = (JACKKNIFE_BANDS - 1) / JACKKNIFE_BANDS * d.T @ d
     jack = float(np.degrees(np.sqrt(max(np.linalg.eigvalsh(C).max(), 0.0))))
-    model = _rotation_sigma_deg(info)
+    model = pose_sigma(info, np.zeros((0, 3)))[0]
     sigma = max(model, jack)
     scaled = info * (model / sigma) ** 2 if sigma > 0 and np.isfinite(sigma) else info
-    return PhotometricFit(T, scaled, sigma, model, jack, n)
+    return PhotometricFit(T, scaled, model, jack, n)
 
 
 def rotation_disagreement(T_a: np.ndarray, information_a: np.ndarray, T_b: np.ndarray, information_b: np.ndarray
