@@ -10,7 +10,14 @@ import pytest
 from gscan.geometry.transforms import make_T
 from gscan.io.camera import Intrinsics
 from gscan.registration.colour import image_noise
-from gscan.registration.dense import DenseGeometry, colour_agreement, depth_agreement, interior, print_agreement
+from gscan.registration.dense import (
+    DenseGeometry,
+    colour_agreement,
+    depth_agreement,
+    interior,
+    interior_pixels,
+    print_agreement,
+)
 from gscan.registration.noise import DepthNoise
 
 W, H = 320, 240
@@ -90,6 +97,30 @@ def test_interior_leaves_out_the_crease_and_the_rim():
                                                      2 * reach + 8)
     assert far.sum() > 50 and {tuple(p) for p in g.pixels[far]} <= {tuple(p) for p in kept.pixels}
     np.testing.assert_array_equal(kept.points, kept.grid[kept.depth > 0])  # the samples listed as kept
+
+
+def test_interior_pixels_find_the_print_of_a_face_seen_nearly_edge_on():
+    """`interior_pixels`: the same roof with a face 34 px wide beside the ridge (a box's side seen nearly edge on),
+    sampled every 2 px: its pixels at least the reach from the mask's edge and the reach less a stride of g from
+    the ridge are kept, to the pixel, and none nearer."""
+    u = np.arange(W, dtype=np.float64)[None, :].repeat(H, axis=0)
+    depth = (1.0 / (1.0 - np.abs(u - INTR.cx) / INTR.fx)).astype(np.float32)
+    mask = np.zeros((H, W), bool)
+    mask[40:200, 126:280] = True  # the face left of the ridge (cx = 159.5) is 34 px wide
+    g = DenseGeometry.from_depth(depth, INTR, mask, samples=1600, image=_texture(0))
+    s = int(round(INTR.fx / g.fx))
+    reach = 12.0
+    kept = interior_pixels(g, NOISE, reach)
+    assert kept.pixels is not None and g.fine.pixels is not None and s >= 4
+    pu, pv = kept.pixels[:, 0], kept.pixels[:, 1]
+    edge = np.minimum.reduce([pu - 126 + 1, 280 - pu, pv - 40 + 1, 200 - pv])  # px to the nearest pixel outside
+    assert np.all(edge >= reach) and np.all(np.abs(pu - INTR.cx) >= reach - s - 1), (pu, pv)
+    narrow = pu < INTR.cx
+    assert narrow.sum() > 100  # the narrow face keeps its middle strip (x > 137 px, x < 145 px)
+    fu, fv = g.fine.pixels[:, 0], g.fine.pixels[:, 1]
+    clear = (np.minimum.reduce([fu - 126 + 1, 280 - fu, fv - 40 + 1, 200 - fv]) >= reach + 1) & \
+        (np.abs(fu - INTR.cx) >= reach + s + 1)
+    assert {tuple(p) for p in g.fine.pixels[clear]} <= {tuple(p) for p in kept.pixels}
 
 
 @pytest.mark.parametrize("sigma", [1.0, 3.0, 8.0])

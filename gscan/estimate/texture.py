@@ -51,13 +51,12 @@ import numpy as np
 from gscan.estimate.params import AcceptParams
 from gscan.estimate.query import QueryFrame
 from gscan.geometry.transforms import inv_T
-from gscan.registration.colour import BAND_SIGMA, chroma_shift, chromaticity
+from gscan.registration.colour import PRINT_REACH_PX, chroma_shift, chromaticity
 from gscan.registration.dense import DenseGeometry, chroma_pairs, colour_agreement, interior, print_agreement
 from gscan.registration.noise import DepthNoise
 
 log = logging.getLogger(__name__)
 
-PRINT_REACH_PX = 3.0 * BAND_SIGMA  # px: how far the band-pass's blur carries a rim's or a crease's shading
 MIN_CHROMA_PAIRS = 16  # sample pairs the colour check needs for a verdict (a median over fewer is a few pixels')
 
 

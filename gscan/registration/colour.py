@@ -30,6 +30,7 @@ TILE = 48  # px: the side of a tile of the source image
 MIN_TILE_SAMPLES = 16  # samples a tile needs to correlate
 TEXTURE_SNR = 3.0  # a tile is informative when its texture's std is this many times the image noise ...
 MIN_TEXTURE = 1.0  # ... and at least this many grey levels (8-bit quantisation and compression floor)
+PRINT_REACH_PX = 3.0 * BAND_SIGMA  # px: how far the band-pass's blur carries a rim's or a crease's shading
 SEARCH = tuple((dx, dy) for dx in range(-6, 7, 3) for dy in range(-6, 7, 3))  # px: where the pose's alignment is sought
 FAR_RADIUS = 15.0  # px: the baseline's displacements, beyond the band-pass's reach
 FAR = tuple((round(FAR_RADIUS * np.cos(a)), round(FAR_RADIUS * np.sin(a))) for a in np.arange(16) * np.pi / 8)
