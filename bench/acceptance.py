@@ -8,13 +8,13 @@ elevation, at azimuth s and s + each gap (20 / 60 / 120 deg), for each start azi
 texture; --masks: the object's pixels only). Right: within 5 deg and 2 cm of the ground truth.
 
 Per gap: pairs registered at a right pose (%), registered at a wrong pose (count; must be 0), the pairs refused
-because a half turn of the object fits the two views as well (the rule for an edge that alone places a frame,
-`gscan.registration.turns.lone_edge_turn`), split by their pose's actual error (without that rule the wrong ones
-would have been registered), and the pairs
-refused as weak geometry split by their pose's actual error: right (what a looser rule could gain) and wrong
-(what it would let through), both also among those that pass every other rule (registered again without the
-bound: the depth and colour checks), with the rotation sigma the refused edges claim against their actual rotation error
-(median ratio): a sigma that understates the error cannot be the basis of a looser rule.
+because a turn of the object (half or, on object pixels, quarter) fits the two views as well (the rule for an
+edge that alone places a frame, `gscan.registration.turns.lone_edge_turn`), split by their pose's actual error
+(without that rule the wrong ones would have been registered), and the pairs refused as weak geometry split by
+their pose's actual error: right (what a looser rule could gain) and wrong (what it would let through), both also
+among those that pass every other rule (registered again without the bound: the depth and colour checks), with
+the rotation sigma the refused edges claim against their actual rotation error (median ratio): a sigma that
+understates the error cannot be the basis of a looser rule.
 
 Splits (`HELD_OUT`): the acceptance rules were developed on the meshes of tests/test_register.py, tests/test_scan*.py
 and bench/scan.py's notes (`DEVELOPMENT`); the other twelve are held out.
@@ -36,7 +36,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 WRONG_DEG, WRONG_M = 5.0, 0.02
 WEAK = "weak geometry"  # registration's reason for an edge whose pose its evidence pins too loosely
-TURN = "ambiguous shape"  # ... for an edge alone placing a frame that a half turn fits as well (turns.LONE_TURN)
+TURN = "ambiguous shape"  # ... for an edge alone placing a frame that one of its turns fits as well (turns.LONE_TURN)
 DEVELOPMENT = ("Whey_Protein_Chocolate_12_Packets", "Diet_Pepsi_Soda_Cola12_Pack_12_oz_Cans",
                "Pepsi_Caffeine_Free_Diet_12_CT", "Mattel_SKIP_BO_Card_Game",
                "ReadytoUse_Rolled_Fondant_Pure_White_24_oz_box", "Polar_Herring_Fillets_Smoked_Peppered_705_oz_total",
@@ -71,7 +71,9 @@ def run(split: str, starts: list[float], gaps: list[float], table: str, masks: b
             views = render_views(md, [s0] + [s0 + g for g in gaps], seed=mi, table_kind=table)
             for gi, g in enumerate(gaps):
                 T_gt = inv_T(views[gi + 1][1]) @ views[0][1]
+                t0 = time.perf_counter()
                 r = register_frames(views[0][0], views[gi + 1][0], RegisterParams(), use_masks=masks)
+                seconds = time.perf_counter() - t0
                 deg, m = pose_error(r.T_tgt_src, T_gt) if r.T_tgt_src is not None else (np.inf, np.inf)
                 why = (r.reason or "accepted").split(" (")[0].split(":")[0]
                 # a weak edge again without the bound: would it pass the depth and colour checks?
@@ -79,7 +81,8 @@ def run(split: str, starts: list[float], gaps: list[float], table: str, masks: b
                                                        use_masks=masks).accepted
                 out[g].append({"mesh": md.name, "start": s0, "accepted": r.accepted, "deg": deg, "m": m,
                                "why": why, "sigma_deg": r.sigma_deg, "passes_the_rest": rest,
-                               "colour": None if r.colour is None else (r.colour.agreeing, r.colour.informative)})
+                               "colour": None if r.colour is None else (r.colour.agreeing, r.colour.informative),
+                               "seconds": seconds, "turn_seconds": r.timings_ms.get("turns", 0.0) / 1e3})
             print(f"{md.name[:34]:34s} {s0:5.0f}  " + "  ".join(f"{g:.0f}:{_mark(x[-1])}" for g, x in out.items()),
                   file=sys.stderr, flush=True)
     return out
@@ -96,7 +99,7 @@ def _mark(r: dict) -> str:
 
 
 def report(out: dict[float, list[dict]]) -> None:
-    print("| gap | pairs | registered right % | registered wrong | refused as a half turn's rival: right / wrong | "
+    print("| gap | pairs | registered right % | registered wrong | refused as a turn's rival: right / wrong | "
           "refused as weak geometry: right / wrong | "
           "... of which pass every other rule: right / wrong | "
           "weak: sigma claimed / actual rotation error (median) | other refusals |")
@@ -126,7 +129,7 @@ def report(out: dict[float, list[dict]]) -> None:
                 f"{r['sigma_deg']:.2f}: {r['deg']:.1f} deg / {1000 * r['m']:.0f} mm" for r in rest))
         for r in recs:
             if r["why"] == TURN and not is_right(r):
-                print(f"refused as a half turn's rival at {g:.0f} deg (registered wrong without that rule): "
+                print(f"refused as a turn's rival at {g:.0f} deg (registered wrong without that rule): "
                       f"{r['mesh']} from {r['start']:.0f} deg, {r['deg']:.1f} deg / {1000 * r['m']:.0f} mm off")
             if r["accepted"] and not is_right(r):
                 print(f"registered wrong at {g:.0f} deg: {r['mesh']} from {r['start']:.0f} deg, {r['deg']:.1f} deg / "
@@ -147,6 +150,11 @@ def main() -> None:
     print(f"\n{a.split} split, {a.table} table, {'object pixels' if a.masks else 'whole frames'}, starts {a.starts}: "
           f"{time.time() - t0:.0f} s")
     report(out)
+    every = [r for rs in out.values() for r in rs]
+    print(f"time per pair (register_frames): median {np.median([r['seconds'] for r in every]):.3f} s, of which "
+          f"the turn rule median {np.median([r['turn_seconds'] for r in every]):.3f} s (max "
+          f"{max(r['turn_seconds'] for r in every):.2f} s); the turn rule's share of the total "
+          f"{sum(r['turn_seconds'] for r in every) / sum(r['seconds'] for r in every):.0%}")
 
 
 if __name__ == "__main__":

@@ -68,24 +68,33 @@ def _right(r: dict) -> bool:
     return is_right(r)
 
 
-def test_two_views_of_a_box_alike_front_and_back_are_refused_at_its_half_turn():
-    """Frozen Scrabble Jr (held out) seen from 90 and 210 deg: its opposite sides look alike, and the two views
-    match strongly 180 deg off the truth (sigma 0.2-0.3 deg, the depth and colour checks pass). The pair is the
-    only evidence placing one view: the object's half turn (the right pose) fits as well, so it is refused."""
+@pytest.mark.parametrize("split, name, azimuths, refused, off_deg", [
+    ("held-out", "Frozen_Scrabble_Jr", (90.0, 210.0), "colour disagrees (sampled finely", 180.0),
+    ("development", "Whey_Protein_Chocolate_12_Packets", (270.0, 390.0), "ambiguous shape: the only edge", 90.0),
+])
+def test_two_views_of_a_box_matched_at_its_turn_are_refused(split, name, azimuths, refused, off_deg):
+    """Two views of a box whose sides look alike, object pixels, matched strongly at a turn of the truth (sigma
+    0.2-0.3 deg, the depth check and the colour check of the default samples pass); the pair is the only evidence
+    placing one view. Frozen Scrabble Jr (held out) from 90 and 210 deg, 180 deg off: its print, sampled finely,
+    lines up in 7 of 35 tiles under the pose, and rule 3 refuses it (before, refused as ambiguous). Whey Protein
+    (development) from 270 and 30 deg, 90 deg off: its print, sampled finely, refutes each of the object's half
+    turns, but the quarter turn the pose is off by (the right pose) stands: refused, naming the quarter turn
+    (weighing the half turns alone, the edge was accepted 90 deg off)."""
     sys.path.insert(0, str(ROOT / "bench"))
-    from acceptance import is_right, meshes
+    from acceptance import meshes
     from match import render_views
 
     from gscan.geometry.transforms import inv_T, pose_error
     from gscan.registration.frames import register_frames
 
-    held = meshes("held-out")
-    seed = [m.name for m in held].index("Frozen_Scrabble_Jr")
-    (a, T_world_a), (b, T_world_b) = render_views(held[seed], [90.0, 210.0], seed=seed, table_kind="plain")
+    ms = meshes(split)
+    seed = [m.name for m in ms].index(name)
+    (a, T_world_a), (b, T_world_b) = render_views(ms[seed], list(azimuths), seed=seed, table_kind="plain")
     r = register_frames(a, b, use_masks=True)
-    assert r.T_tgt_src is not None and r.reason is not None and r.reason.startswith("ambiguous shape: the only edge")
-    deg, m = pose_error(r.T_tgt_src, inv_T(T_world_b) @ T_world_a)
-    assert not is_right({"deg": deg, "m": m})  # the pose the rule refused is the wrong one
+    assert r.T_tgt_src is not None and r.reason is not None and r.reason.startswith(refused), r.reason
+    assert off_deg == 180.0 or "quarter" in r.reason, r.reason
+    deg, _ = pose_error(r.T_tgt_src, inv_T(T_world_b) @ T_world_a)
+    assert abs(deg - off_deg) < 5.0  # the pose the rule refused is the wrong one
 
 
 def test_two_whole_views_far_apart_are_placed_where_the_table_refutes_the_half_turns():
@@ -129,7 +138,8 @@ def test_two_whole_views_far_apart_are_placed_where_the_table_refutes_the_half_t
     seed = [m.name for m in held].index("Clue_Board_Game_Classic_Edition")
     (a, T_world_a), (b, T_world_b) = render_views(held[seed], [0.0, 60.0], seed=seed, table_kind="plain")
     r = register_frames(a, b, use_masks=False)
-    assert r.T_tgt_src is not None and r.reason is not None and r.reason.startswith("ambiguous shape: the only edge")
+    assert r.T_tgt_src is not None and r.reason is not None
+    assert r.reason.startswith("ambiguous shape: the only edge"), r.reason
     deg, m = pose_error(r.T_tgt_src, inv_T(T_world_b) @ T_world_a)
     assert not is_right({"deg": deg, "m": m})
     plain = [DenseGeometry.from_depth(f.depth, f.intrinsics, image=f.color) for f in (a, b)]
@@ -170,10 +180,9 @@ def test_two_frame_captures_none_wrong(pairs):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="a pair whose print lines up in fewer than 9 in 10 tiles is refused "
-                   "where a half turn of the object fits as well: of the 14 pairs refused as weak geometry that their "
-                   "pixels now place, 11 are refused so (85 / 46 / 12 % on all four starts, 83 / 44 / 10 % without "
-                   "the pixels); no rule that follows the evidence further is shown safe yet")
+@pytest.mark.xfail(strict=True, reason="from start 0, 83 / 67 / 42 % (90 / 77 / 29 % on all four starts): at 20 "
+                   "deg two boxes seen nearly edge on (Raisinets, Vans) have no print verdict (under 60 image "
+                   "keypoints, their faces' interiors under 8 tiles), and a turn that fits their shape stands")
 def test_two_frame_captures_reach_the_earlier_success(pairs):
     """At each gap, at least the earlier rules' success on unseen objects (93 / 57 / 41 %)."""
     got = {g: float(np.mean([r["accepted"] and _right(r) for r in rs])) for g, rs in pairs.items()}

@@ -126,6 +126,7 @@ class PairResult:
     colour: ColourAgreement | None = None  # the colour check of rule 3, when it ran
     depth_only: bool = False  # accepted on depth keypoints with no texture verdict: the depth alone decided it
     outside: float | None = None  # the depth-alone verdict's share of samples landing off the other frame
+    T_textured: np.ndarray | None = None  # [4 x 4] the pose the texture judges, where the pixels then refined it
     timings_ms: dict[str, float] = field(default_factory=dict)
 
 
@@ -442,7 +443,6 @@ def register_points(pts_s: np.ndarray, pts_t: np.ndarray, desc_s: np.ndarray, de
         tm["refine"] = (time.perf_counter() - t0) * 1e3
     depth = float(np.median(pt[inliers[:, 1], 2]))
     what = "pairs and the depth" if dense is not None and params.refines_on_depth else "pairs"
-    T_geometric = T  # the pose of the keypoints and depth, which the colour check judges too
     if (alone and dense is not None and params.photometric and params.refines_on_depth and out.information is not None
             and _loose(out, params.max_sigma_deg, params.max_sigma_rel * depth)):
         t0 = time.perf_counter()
@@ -456,6 +456,7 @@ def register_points(pts_s: np.ndarray, pts_t: np.ndarray, desc_s: np.ndarray, de
                 out.reason = (f"texture disagrees (the pixels turn the pose {fit.turn_deg(T):.2f} deg from where the "
                               f"keypoints and depth put it, {np.sqrt(apart):.1f} sigmas of both)")
                 return out
+            out.T_textured = T
             T = out.T_tgt_src = fit.T_tgt_src
             out.information = fit.information
             out.sigma_deg, out.sigma_m = fit.sigma_deg, pose_sigma(fit.information, dst)[1]
@@ -478,10 +479,10 @@ def register_points(pts_s: np.ndarray, pts_t: np.ndarray, desc_s: np.ndarray, de
             return out
         t0 = time.perf_counter()
         c = colour_agreement(dense[0], dense[1], T, params.depth_noise)
-        if T is not T_geometric and not c.refutes(params.min_colour_tiles, params.min_colour_agreement):
+        if out.T_textured is not None and not c.refutes(params.min_colour_tiles, params.min_colour_agreement):
             # a pose refined on the texture lines it up by construction: the verdict (here and on the object's
-            # half turns, `gscan.registration.turns`) stands on the pose before
-            c = colour_agreement(dense[0], dense[1], T_geometric, params.depth_noise)
+            # turns, `gscan.registration.turns`) stands on the pose before
+            c = colour_agreement(dense[0], dense[1], out.T_textured, params.depth_noise)
         out.colour = c
         tm["colour"] = (time.perf_counter() - t0) * 1e3
         if c.refutes(params.min_colour_tiles, params.min_colour_agreement):
