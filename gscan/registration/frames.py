@@ -1,6 +1,6 @@
 """Two RGB-D frames registered in one call: `register_frames(frame_s, frame_t) -> PairResult`, the one-call Python
 API. It extracts both frames' keypoints, samples their depth, registers them (`gscan.registration.pairwise`) and
-weighs the pose of a two-frame capture, which no other edge vouches for, against the object's half turns
+weighs the pose of a two-frame capture, which no other edge vouches for, against the object's turns
 (`gscan.registration.turns.lone_edge_turn`). T_tgt_src maps source-camera points into the target camera."""
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ def register_frames(frame_s: RGBDFrame, frame_t: RGBDFrame, params: RegisterPara
                     feature_params: FeatureParams | None = None, use_masks: bool = False,
                     icp_stride: int = 2, alone: bool = True) -> PairResult:
     """Register two RGB-D frames: keypoints and depth samples of both, then `register_features` (ICP on their
-    clouds when params.icp); with `alone`, an accepted pose is then weighed against the object's half turns.
+    clouds when params.icp); with `alone`, an accepted pose is then weighed against the object's turns.
 
     Args:
         frame_s, frame_t: the source and target frames.
@@ -26,10 +26,10 @@ def register_frames(frame_s: RGBDFrame, frame_t: RGBDFrame, params: RegisterPara
         use_masks: keypoints and ICP clouds inside the frames' masks only (whole frames by default).
         icp_stride: pixel stride of the ICP clouds.
         alone: the pair is the only evidence placing one frame against the other (a two-frame capture): no cycle
-            of further edges can catch a pose turned half about the object, so the edge is refused ("ambiguous
-            shape: the only edge placing its frame ...", `gscan.registration.turns.lone_edge_turn`) when a half
-            turn of the object survives the depth and texture checks as well. False: the pose is one edge of a
-            sequence, judged with the others.
+            of further edges can catch a pose turned about the object, so the edge is refused ("ambiguous shape:
+            the only edge placing its frame ...", `gscan.registration.turns.lone_edge_turn`) when a turn of the
+            object (half; on masked frames, quarter too) survives the depth and texture checks as well. False: the
+            pose is one edge of a sequence, judged with the others.
 
     Returns:
         PairResult as `register_features`; T_tgt_src [4 x 4] maps source-camera points into the target camera.
