@@ -320,11 +320,13 @@ _TileKey = tuple[int, int, int, int]  # (view of A, view of B, direction (0: B's
 def _tiles(T_a_b: np.ndarray, a: Sequence[JoinView], b: Sequence[JoinView], rparams: RegisterParams,
            pool: ThreadPoolExecutor) -> dict[_TileKey, tuple[bool, np.ndarray]]:
     """The informative tiles of every view pair of A and B joined by T_a_b: key -> (whether it lines up, its centre
-    [3] in its own view's capture world)."""
+    [3] in its own view's capture world), on the views sampled every 2 px (`DenseGeometry.fine`: on the default
+    samples a tile along an outline holds too few to be judged, and the Tena pads' half turn was left standing on
+    the 14 patches both motions overlapped)."""
     def check(pair: tuple[int, int]) -> dict[_TileKey, tuple[bool, np.ndarray]]:
         va, vb = a[pair[0]], b[pair[1]]
-        t: ColourTiles = colour_tiles(vb.reg.dense, va.reg.dense, inv_T(va.T_world_cam) @ T_a_b @ vb.T_world_cam,
-                                      rparams.depth_noise)
+        T_va_vb = inv_T(va.T_world_cam) @ T_a_b @ vb.T_world_cam
+        t: ColourTiles = colour_tiles(vb.reg.dense.fine, va.reg.dense.fine, T_va_vb, rparams.depth_noise)
         out = {}
         for d, tile, g, centre in zip(t.direction, t.tile, t.agrees, t.centre, strict=True):
             T = vb.T_world_cam if d == 0 else va.T_world_cam
