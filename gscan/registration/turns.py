@@ -114,21 +114,22 @@ def lone_edge_turn(fs: Features, ft: Features, src: DenseGeometry, tgt: DenseGeo
     Object pixels (both frames masked) are judged finely (`turn_not_refuted`'s `fine`): the texture on samples every
     `FINE_STRIDE` px (a small object's overlap holds few tiles of the default samples), the pose refused where rule
     3 refutes it there ("colour disagrees"); print where the frames have image keypoints enough or the faces'
-    interiors (`interior_pixels`, where texture is not shading) hold a verdict's tiles; and the quarter turns
-    weighed too. Whole frames keep the default samples and the half turns: there a plain table's faint texture lined
-    up finely under poses 2.4 deg / 23 mm off (Vans from 0 and 60 deg, accepted claiming 0.14 deg)."""
+    interiors (`interior_pixels`, where texture is not shading) hold a verdict's tiles, the interiors' print
+    refuting turns too; and the quarter turns weighed too. Whole frames keep the default samples and the half turns:
+    there a plain table's faint texture lined up finely under poses 2.4 deg / 23 mm off (Vans from 0 and 60 deg,
+    accepted claiming 0.14 deg)."""
     if not r.accepted or r.T_tgt_src is None:
         return None
     if src.mask is None or tgt.mask is None:
         turned = edge_turn(fs, ft, src, tgt, r, params, min_print_keypoints, params.alone_colour_agreement)
         return None if turned is None else LONE_TURN.format(turned)
     fine = (src.fine, tgt.fine)
+    inner = (interior_pixels(src, params.depth_noise, PRINT_REACH_PX),
+             interior_pixels(tgt, params.depth_noise, PRINT_REACH_PX))
     # the texture judges the pose before the pixels refined it (which lines their texture up by construction)
     judged = r.T_textured if r.T_textured is not None else r.T_tgt_src
     printed = has_print(fs, ft, min_print_keypoints) or colour_agreement(
-        interior_pixels(src, params.depth_noise, PRINT_REACH_PX),
-        interior_pixels(tgt, params.depth_noise, PRINT_REACH_PX), judged,
-        params.depth_noise).informative >= params.min_colour_tiles
+        *inner, judged, params.depth_noise).informative >= params.min_colour_tiles
     if printed:
         c = colour_agreement(*fine, judged, params.depth_noise)
         if texture_refutes(c, params):
@@ -136,13 +137,14 @@ def lone_edge_turn(fs: Features, ft: Features, src: DenseGeometry, tgt: DenseGeo
                     f"tiles of the overlap under the pose)")
         if c.informative >= params.min_colour_tiles and c.agreeing_fraction >= params.alone_colour_agreement:
             return None
-    turned = turn_not_refuted(src, tgt, r.T_tgt_src, params, texture=printed, fine=fine)
+    turned = turn_not_refuted(src, tgt, r.T_tgt_src, params, texture=printed, fine=fine, inner=inner)
     return None if turned is None else LONE_TURN.format(turned)
 
 
 def turn_not_refuted(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarray, params: RegisterParams,
                      texture: bool = True, unseen: bool = False,
-                     fine: tuple[DenseGeometry, DenseGeometry] | None = None) -> str | None:
+                     fine: tuple[DenseGeometry, DenseGeometry] | None = None,
+                     inner: tuple[DenseGeometry, DenseGeometry] | None = None) -> str | None:
     """The first turn of the object about one of its axes that src's and tgt's depth and texture do not refute, in
     words; None when each is refuted.
 
@@ -164,7 +166,9 @@ def turn_not_refuted(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarr
     judged on them) the quarter turns too (a box with two sides alike fits its quarter turn: Whey from 270 and 30
     deg was registered 90 deg off, its half turns refuted), each also as centred before the depth's refinement,
     where most of its print lines up: the refinement slides a box's faces along each other, and the right turn
-    (0.7 deg off as centred, 16 of 23 tiles lining up) ended 2.7 deg off with 3 of 26."""
+    (0.7 deg off as centred, 16 of 23 tiles lining up) ended 2.7 deg off with 3 of 26. `inner`: the two views'
+    samples on their faces' interiors (`interior_pixels`), whose texture is print: a turn is refuted by it too, where
+    the fine tiles' share is lifted by outlines and creases that line up under a turn of a box as under its pose."""
     pts = np.concatenate([src.points, transform_points(inv_T(T_tgt_src), tgt.points)])
     if len(pts) < 10 or len(tgt) < 10:
         return None
@@ -176,23 +180,23 @@ def turn_not_refuted(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarr
             centred = _best_centre(src, tgt, T_tgt_src, pts, axis, centre, params, angle)
             none = np.zeros((0, 3))
             refined = refine_pose(src, tgt, none, none, centred, params.noise, params.depth_noise)[0]
-            verdict = _turn_verdict(src, tgt, refined, params, plane, texture, fine)
+            verdict = _turn_verdict(src, tgt, refined, params, plane, texture, fine, inner)
             log.debug("%s turn about the %s axis: %s", turn, name, verdict)
             if verdict == "unseen" and unseen:
                 return f"the object turned {turn} about its {name} axis, out of the other view's sight"
             if verdict == "stands" or (fine is not None and texture and _turn_verdict(
-                    src, tgt, centred, params, plane, texture, fine, lined_up=True) == "stands"):
+                    src, tgt, centred, params, plane, texture, fine, inner, lined_up=True) == "stands"):
                 return f"the object turned {turn} about its {name} axis"
     return None
 
 
 def _turn_verdict(src: DenseGeometry, tgt: DenseGeometry, T: np.ndarray, params: RegisterParams,
                   plane: Plane | None, texture: bool, fine: tuple[DenseGeometry, DenseGeometry] | None,
-                  lined_up: bool = False) -> str:
+                  inner: tuple[DenseGeometry, DenseGeometry] | None = None, lined_up: bool = False) -> str:
     """What the views say of a turned pose T [4 x 4] (`turn_not_refuted`): "unseen" (too little of it lands on the
-    other view's depth to verify it), "stands", or what refutes it ("plane", "shape", "texture"; with `lined_up`,
-    the texture also where fewer than most of at least `params.min_colour_tiles` tiles line up: it stands only on
-    the print's word)."""
+    other view's depth to verify it), "stands", or what refutes it ("plane", "shape", "texture", "print": the
+    interiors' texture, `inner`; with `lined_up`, the texture also where fewer than most of at least
+    `params.min_colour_tiles` tiles line up: it stands only on the print's word)."""
     if plane is not None and plane.height(inv_T(T)[:3, 3]) < 0:
         return "plane"  # tgt's camera behind the table the views see from above: no camera sees through a table
     depth = depth_agreement(src, tgt, T, params.depth_noise)
@@ -206,6 +210,8 @@ def _turn_verdict(src: DenseGeometry, tgt: DenseGeometry, T: np.ndarray, params:
         if texture_refutes(c, params) or (lined_up and (c.informative < params.min_colour_tiles
                                                         or 2 * c.agreeing <= c.informative)):
             return "texture"
+        if inner is not None and texture_refutes(colour_agreement(*inner, T, params.depth_noise), params):
+            return "print"
     return "stands"
 
 
