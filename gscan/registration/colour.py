@@ -87,6 +87,15 @@ class ColourAgreement:
         fewer than `min_agreement` of them lining up."""
         return self.informative >= min_tiles and self.agreeing_fraction < min_agreement
 
+    def settles(self, min_tiles: int, min_agreement: float) -> bool:
+        """Whether the texture settles the pose: at least `min_tiles` informative tiles, at least `min_agreement`
+        of them lining up."""
+        return self.informative >= min_tiles and self.agreeing_fraction >= min_agreement
+
+    def mostly_agrees(self, min_tiles: int) -> bool:
+        """Whether most of at least `min_tiles` informative tiles line up."""
+        return self.informative >= min_tiles and 2 * self.agreeing > self.informative
+
     def __add__(self, other: ColourAgreement) -> ColourAgreement:
         return ColourAgreement(self.informative + other.informative, self.agreeing + other.agreeing)
 

@@ -92,8 +92,7 @@ def edge_turn(fs: Features, ft: Features, src: DenseGeometry, tgt: DenseGeometry
         return None
     printed = has_print(fs, ft, min_print_keypoints)
     c = r.colour
-    if (printed and c is not None and c.informative >= params.min_colour_tiles
-            and c.agreeing_fraction >= min_agreement):
+    if printed and c is not None and c.settles(params.min_colour_tiles, min_agreement):
         return None
     return turn_not_refuted(src, tgt, r.T_tgt_src, params, texture=printed, unseen=unseen)
 
@@ -135,7 +134,7 @@ def lone_edge_turn(fs: Features, ft: Features, src: DenseGeometry, tgt: DenseGeo
         if texture_refutes(c, params):
             return (f"colour disagrees (sampled finely, the texture lines up in {c.agreeing} of {c.informative} "
                     f"tiles of the overlap under the pose)")
-        if c.informative >= params.min_colour_tiles and c.agreeing_fraction >= params.alone_colour_agreement:
+        if c.settles(params.min_colour_tiles, params.alone_colour_agreement):
             return None
     turned = turn_not_refuted(src, tgt, r.T_tgt_src, params, texture=printed, fine=fine, inner=inner)
     return None if turned is None else LONE_TURN.format(turned)
@@ -207,8 +206,7 @@ def _turn_verdict(src: DenseGeometry, tgt: DenseGeometry, T: np.ndarray, params:
         return "shape"
     if texture:
         c = colour_agreement(*(fine or (src, tgt)), T, params.depth_noise)
-        if texture_refutes(c, params) or (lined_up and (c.informative < params.min_colour_tiles
-                                                        or 2 * c.agreeing <= c.informative)):
+        if texture_refutes(c, params) or (lined_up and not c.mostly_agrees(params.min_colour_tiles)):
             return "texture"
         if inner is not None and texture_refutes(colour_agreement(*inner, T, params.depth_noise), params):
             return "print"
@@ -247,7 +245,7 @@ def support_plane(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarray,
           for g, p in ((src, a), (tgt, b))]
     table = colour_agreement(on[0], on[1], T_tgt_src, params.depth_noise)
     log.debug("the plane both views see: its texture %s under the pose", table)
-    if table.informative < params.min_colour_tiles or 2 * table.agreeing <= table.informative:
+    if not table.mostly_agrees(params.min_colour_tiles):
         return None  # the table's print does not confirm the pose: fewer than most of its tiles line up
     return a
 
