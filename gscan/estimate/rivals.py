@@ -42,6 +42,10 @@ rivals (`ListVerifier`).
   turned one mostly where the template cannot tell). The turned pose is not weighed itself: the template's views,
   all from above, barely predict how the sides look from below (5-17 supporters at the true pose of upside-down
   views of one-sided templates).
+- weak poses: a pose accepted on the short lists' rule (not the long list's) whose turn by a symmetry in shape only
+  fits the depth too is ambiguous unless the keypoints that support one of the two and not the other favour it
+  (`against_alike_turns`): with a template of both sides no side is unseen, and a print repeated on the top and
+  bottom leaves a pose on a few keypoints of it as undecided as the one-sided template's.
 """
 from __future__ import annotations
 
@@ -66,12 +70,14 @@ from gscan.estimate.verify import (
     accept,
     border_refusal,
     decided_by_depth,
+    depth_refusal,
     list_refusal,
     list_spread,
     near_agreeing,
     pose_evidence,
     query_sinks,
     silhouette_refusal,
+    strong_rule,
     support_radius,
     visible,
 )
@@ -296,7 +302,9 @@ class ListVerifier:
             if tie is not None:
                 return tie
         res = self.against_shape_turns(q, qk, res, refine, timer)
-        return self.against_unseen_turns(q, qk, res, refine, timer) if res.found else res
+        if res.found:
+            res = self.against_unseen_turns(q, qk, res, refine, timer)
+        return self.against_alike_turns(q, qk, res, refine, timer) if res.found else res
 
     def near(self, T_a: np.ndarray, T_b: np.ndarray) -> bool:
         """T_a lies within the pooling tolerance of T_b or of a pose that looks as T_b does."""
@@ -431,6 +439,36 @@ class ListVerifier:
                                  f"supporting the pose lie ({n_unseen} of {len(support)}; elsewhere {n_known} of "
                                  f"{len(known)} support it): scan the object upside down as well",
                                  res.n_matches, res.view, res.score, evidence=res.evidence)
+        return res
+
+    def against_alike_turns(self, q: QueryFrame, qk: QueryKeypoints, res: EstimateResult, refine: bool,
+                            timer: StageTimer) -> EstimateResult:
+        """A pose accepted on the short lists' rule (`accept`) against itself turned by each symmetry that holds in
+        shape only (module docstring): where the depth does not refute the turn, the keypoints that support one of
+        the two and not the other (`local_support`) must favour the pose (a sign test at `rivals.p`), else the view
+        is ambiguous. res, or the ambiguous view's not-found result."""
+        p = self.params
+        assert res.T_cam_obj is not None and res.evidence is not None
+        if not self.unseen_turns or strong_rule(res.evidence, p.accept, True):
+            return res
+        support = self.local_support(q, res.T_cam_obj, qk)
+        for S in self.unseen_turns:
+            T = res.T_cam_obj @ S
+            with timer.stage("refine"):
+                if refine:
+                    T = refine_pose(self.model, q, T, None, q.off_plane, p.refine)
+            if self.sinks(q, T) is not None or depth_refusal(self.evidence_of(q, T, qk), p.accept) is not None:
+                continue  # the depth refutes the turn
+            turned = self.local_support(q, T, qk)
+            only_res, only_alt = len(np.setdiff1d(support, turned)), len(np.setdiff1d(turned, support))
+            log.debug("turn by a symmetry in shape, fitting the depth: %d keypoints support the pose alone, %d it",
+                      only_res, only_alt)
+            if sign_test(only_res, only_alt) >= p.rivals.p:
+                deg = self.apart(T, res.T_cam_obj)[0]
+                return not_found(f"{AMBIGUOUS}: the pose turned {deg:.0f} deg by the object's symmetry in shape fits "
+                                 f"the depth as well, and the keypoints do not tell them apart ({only_res} agree with "
+                                 f"the pose only, {only_alt} with the turn)", res.n_matches, res.view, res.score,
+                                 evidence=res.evidence)
         return res
 
     def weigh_turn(self, q: QueryFrame, qk: QueryKeypoints, res: EstimateResult, alt: EstimateResult,
