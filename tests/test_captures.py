@@ -178,26 +178,54 @@ def pepsi_sides(tmp_path_factory, meshes_dir) -> tuple[Case, Case]:
     return two_sided_captures(pack, tmp_path_factory.mktemp("pepsi") / "pack", n_views=12)
 
 
-@pytest.mark.slow
-def test_a_print_repeated_on_top_and_bottom_never_joins_turned(pepsi_sides, tmp_path):
-    """The Pepsi 12-pack carries the same print on its top and bottom: view pairs of the two sides match at a
-    motion that turns the object 180 deg, which once joined its upside-down capture at that motion (all 12 frames
-    180 deg off). A capture is joined at the right motion or not at all: its frames, when joined, are within the
-    wrong-pose bound of the truth."""
+@pytest.fixture(scope="module")
+def pepsi_template(pepsi_sides, tmp_path_factory) -> Path:
+    """The Pepsi 12-pack's two captures scanned into one template, checked joined right (`_joined_right`)."""
     up, down = pepsi_sides
-    res = scan([up.path, down.path], tmp_path / "pack.gscan")
-    caps = {c["name"]: c for c in res.captures}
-    with TemplateDB.open(tmp_path / "pack.gscan") as db:
+    out = tmp_path_factory.mktemp("pepsi_tpl") / "pack.gscan"
+    poses = _joined_right(up, down, out)
+    assert sum(n.startswith("down/") for n in poses) == 12
+    return out
+
+
+@pytest.mark.slow
+def test_a_print_repeated_on_top_and_bottom_joins_at_the_half_turn_of_the_motion_found(pepsi_template):
+    """The Pepsi 12-pack carries the same print on its top and bottom: the view pairs of the two sides agree on a
+    motion that turns the object 180 deg (45 pairs; it once joined the upside-down capture there, all 12 frames
+    180 deg off). On the surface patches both overlap, its half turn about the first principal axis wins 18 to 1
+    (refused as ambiguous before): the capture is joined at that turn, refined on its 113 keypoint pairs, every
+    frame within the wrong-pose bound of the truth (the fixture), and the template says it was joined at a turn."""
+    with TemplateDB.open(pepsi_template) as db:
+        join = next(c["join"] for c in db.meta()["captures"] if c["name"] == "down")
+    assert "180 deg" in join["joined_at_turn"], join
+
+
+@pytest.mark.slow
+def test_a_weak_pose_of_a_print_repeated_on_top_and_bottom_is_never_its_twin(pepsi_sides, pepsi_template,
+                                                                              meshes_dir):
+    """bench/two_sided.py's Pepsi scene 1: the pack lies on its side, small among two other packs. With the
+    two-sided template a pose 179 deg off (its top's print laid on the template's bottom) was accepted on 11
+    supporters within 2 cm; the turn, the truth, fits the depth as well, and 10 keypoints for the pose alone
+    against 4 for the turn do not tell them apart. The estimate is the true pose or a refusal as ambiguous."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+    from recall import distractor_pool
+    from two_sided import OBJECTS, scenes
+
+    from gscan.estimate import Estimator
+
+    oi, spec = next((i, s) for i, (s, _) in enumerate(OBJECTS) if s.name == "pepsi_pack")
+    mesh = synth.load_textured_mesh(meshes_dir / spec.source / "model_0.obj")
+    _, _, frame, T_gt = next(x for k, x in enumerate(scenes(spec, oi, mesh, distractor_pool(), 10)) if k == 1)
+    with TemplateDB.open(pepsi_template) as db:
         poses = {n: np.asarray(T) for n, T in db.poses()["frames"].items()}
-    gt = {f"{c.path.name}/{n}": T for c in (up, down) for n, T in _gt_T_obj_cam(c.path).items()}
-    T_tmpl_mesh = mean_pose([poses[n] @ inv_T(gt[n]) for n in poses if n.startswith("up/")])
-    if caps["down"]["joined"]:
-        for n, T in poses.items():
-            D = inv_T(T_tmpl_mesh @ gt[n]) @ T
-            assert rotation_angle_deg(D[:3, :3]) < WRONG_RENDERED[0], (n, caps)
+    gt = _gt_T_obj_cam(pepsi_sides[0].path)
+    res = Estimator.from_path(pepsi_template).estimate(frame)
+    if res.found:
+        T_tmpl_mesh = mean_pose([poses[f"up/{n}"] @ inv_T(T) for n, T in gt.items()])
+        D = inv_T(T_gt @ inv_T(T_tmpl_mesh)) @ res.T_cam_obj
+        assert rotation_angle_deg(D[:3, :3]) < WRONG_RENDERED[0], res
     else:
-        assert "ambiguous" in caps["down"]["reason"], caps
-        assert not any(n.startswith("down/") for n in poses)
+        assert res.reason.startswith("ambiguous view"), res.reason
 
 
 def _joined_right(up: Case, down: Case, out: Path) -> dict[str, np.ndarray]:

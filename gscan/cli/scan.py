@@ -173,8 +173,10 @@ def print_scan_summary(result: Any) -> None:
         say((f"{what} {name}:", "yellow"), f" {result.unregistered_reasons.get(name, '')}")
     for cap in result.captures:  # a scan of several captures: how each was joined
         if cap["joined"]:
+            turned = cap.get("joined_at_turn")
             say((f"capture {cap['name']}:", "bold"), f" {cap['registered']}/{cap['frames']} frames registered, "
-                "joined to the template")
+                "joined to the template" + (f" ({turned} from the motion its view pairs agree on: a print repeated "
+                                            "under that turn, the texture both share decided)" if turned else ""))
         else:
             say((f"capture {cap['name']}:", "yellow"), f" not joined to the template ({cap['reason']}); its frames "
                 "are a separate part, nothing of it was fused")

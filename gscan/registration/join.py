@@ -12,8 +12,10 @@ at least two views of each capture among them. The motion is the mean of the gro
 turned about its principal axes (90, 180, 270 deg) must be refuted by the views' depth or texture, as an edge's pose
 is, or its texture be outweighed by the motion found's: a print repeated on the top and the bottom matches at a
 turned motion, which only the other sides can tell (`_turn_not_refuted`; `_Alike` compares two motions on the
-surface patches both overlap). Depth and texture are judged over the whole overlap: every view of B against every
-view of A. Where another group holds at least half as many pairs (a symmetric object turned over may match two
+surface patches both overlap). Where those patches refute the motion found in a turn's favour instead, the turn
+(refined on the keypoints) is judged in its place, the motion found among the motions it must refute, and the
+captures are joined at it when it stands (`Join.turned`). Depth and texture are judged over the whole overlap:
+every view of B against every view of A. Where another group holds at least half as many pairs (a symmetric object turned over may match two
 ways), each motion must refute the other as well as its own turns: the captures are joined at the one that does,
 and not at all when both or neither do (no join is guessed).
 """
@@ -65,11 +67,22 @@ class Join:
     tried: int
     accepted: int
     agreeing: list[tuple[str, str]] = field(default_factory=list)
+    turned: str | None = None  # joined at a turn of the motion the view pairs agree on, in words
 
     def to_meta(self) -> dict:
         return {"joined": self.T_a_b is not None, "reason": self.reason, "pairs_tried": self.tried,
                 "pairs_accepted": self.accepted, "pairs_agreeing": [list(p) for p in self.agreeing],
-                "T_a_b": None if self.T_a_b is None else self.T_a_b.tolist()}
+                "joined_at_turn": self.turned, "T_a_b": None if self.T_a_b is None else self.T_a_b.tolist()}
+
+
+@dataclass(frozen=True)
+class _Standing:
+    """A motion the views do not refute beside the one judged, in words; `better` [4 x 4]: it refined on the
+    keypoints where the texture both overlap refutes the one judged in its favour (the sign test the other way
+    round), else None."""
+
+    words: str
+    better: np.ndarray | None
 
 
 @dataclass(frozen=True)
@@ -158,18 +171,29 @@ def join_captures(a: Sequence[JoinView], b: Sequence[JoinView], rparams: Registe
         best, T = standing[0]
     else:
         turned = _turn_not_refuted(T, a, b, rparams, params, pool)
+        # the texture both overlap may refute the motion found in favour of its turn (a print repeated on two
+        # sides matched the view pairs to the turned object): the turn is judged as the motion found is, the motion
+        # found among those it must refute, and the captures are joined at it when it stands
+        if turned is not None and turned.better is not None and \
+                _turn_not_refuted(turned.better, a, b, rparams, params, pool, others=(T,)) is None:
+            log.info("join: the texture refutes the motion %d view pairs agree on in favour of %s", len(best),
+                     turned.words)
+            return Join(turned.better, None, tried, accepted, [(p.a, p.b) for p in best], turned.words)
         if turned is not None:
-            return Join(None, f"ambiguous: {turned} joins the captures as well ({len(best)} view pairs agree on "
-                        "the motion found; a side seen alike in both?)", tried, accepted, [(p.a, p.b) for p in best])
+            return Join(None, f"ambiguous: {turned.words} joins the captures as well ({len(best)} view pairs agree "
+                        "on the motion found; a side seen alike in both?)", tried, accepted,
+                        [(p.a, p.b) for p in best])
     log.info("joined: %d of %d accepted view pairs (%d tried) agree", len(best), accepted, tried)
     return Join(T, None, tried, accepted, [(p.a, p.b) for p in best])
 
 
 def _turn_not_refuted(T_a_b: np.ndarray, a: Sequence[JoinView], b: Sequence[JoinView], rparams: RegisterParams,
-                      params: JoinParams, pool: ThreadPoolExecutor, others: Sequence[np.ndarray] = ()) -> str | None:
+                      params: JoinParams, pool: ThreadPoolExecutor, others: Sequence[np.ndarray] = ()
+                      ) -> _Standing | None:
     """The first turn of capture B's object about one of its principal axes (90, 180, 270 deg, through its centre),
     or of the `others` motions [4 x 4] (a second group of view pairs'), that the views do not refute when it is
-    joined so, in words; None when every one is refuted. A view pair may match a side the object shows alike both
+    joined so (`_Standing`: with it refined on the keypoints where the texture both overlap refutes T_a_b in its
+    favour); None when every one is refuted. A view pair may match a side the object shows alike both
     ways up (a print repeated on its top and bottom): the motion found then turns the object, and only the views of
     its other sides can tell. A turn is refuted as an edge's pose is (`gscan.registration.pairwise`, rule 3): by
     the depth (more than `max_see_through` of the overlap seen through) or by the texture (fewer than
@@ -200,7 +224,7 @@ def _turn_not_refuted(T_a_b: np.ndarray, a: Sequence[JoinView], b: Sequence[Join
     found = _agreement(T_a_b, a, b, rparams, pool)
     log.debug("join: the motion found: depth %s, texture %s", found[0], found[1])
     if texture_refutes(found[1], rparams):
-        return "the views' texture disagrees under the motion found; any motion"
+        return _Standing("the views' texture disagrees under the motion found; any motion", None)
     # (words, the motion, whether it is a turn: judged refined on the depth, and refuted by any rule; another
     # group's motion is judged as its view pairs solved it, like the motion found, and refuted by the depth or by
     # the texture both overlap only: the shares of tiles two motions line up in are measured on different sides,
@@ -213,6 +237,8 @@ def _turn_not_refuted(T_a_b: np.ndarray, a: Sequence[JoinView], b: Sequence[Join
     for words, T, turn in rivals:
         T_depth = refined(T)
         depth, colour = _agreement(T_depth if turn else T, a, b, rparams, pool)
+        if turn and depth.consistent == 0:  # the refinement slid the object off the views: judge the turn as given
+            depth, colour = _agreement(T, a, b, rparams, pool)
         log.debug("join: %s: depth %s, texture %s", words, depth, colour)
         if depth.see_through_fraction > rparams.max_see_through:
             continue  # the shape refutes it
@@ -221,9 +247,10 @@ def _turn_not_refuted(T_a_b: np.ndarray, a: Sequence[JoinView], b: Sequence[Join
             continue
         if alike is None:
             alike = _Alike(T_a_b, refined(T_a_b), a, b, rparams, pool)
-        if alike.outweighs(T, T_depth, params.turn_sign_alpha, words):
+        mine, theirs, M = alike.compare(T, T_depth, words)
+        if sign_test(mine, theirs) <= params.turn_sign_alpha:
             continue
-        return words
+        return _Standing(words, M if sign_test(theirs, mine) <= params.turn_sign_alpha else None)
     return None
 
 
@@ -287,9 +314,10 @@ class _Alike:
             T, n = kabsch(np.concatenate(src), np.concatenate(dst), np.concatenate(w)), k
         return T, n
 
-    def outweighs(self, T: np.ndarray, T_depth: np.ndarray, alpha: float, words: str) -> bool:
-        """Whether the texture refutes the other motion T_a_b [4 x 4] (T_depth: it refined on the depth) against
-        this one (class docstring)."""
+    def compare(self, T: np.ndarray, T_depth: np.ndarray, words: str) -> tuple[int, int, np.ndarray]:
+        """(surface patches that favour this motion, those that favour the other, the other refined on the
+        keypoints [4 x 4]) for the other motion T_a_b [4 x 4] (T_depth: it refined on the depth; class
+        docstring)."""
         M, n = self.refined(T, T_depth)
         other = self._patches(_tiles(M, self.a, self.b, self.rparams, self.pool))
         mine = theirs = both = 0
@@ -298,10 +326,10 @@ class _Alike:
             both += 1
             mine += k1 * n2 > k2 * n1
             theirs += k2 * n1 > k1 * n2
-        p = sign_test(mine, theirs)
         log.debug("join: %s, refined on %d keypoint pairs (the motion found: %d): %d surface patches favour the "
-                  "motion found, %d it (of %d both overlap), p = %.2g", words, n, self.pairs, mine, theirs, both, p)
-        return p <= alpha
+                  "motion found, %d it (of %d both overlap), p = %.2g", words, n, self.pairs, mine, theirs, both,
+                  sign_test(mine, theirs))
+        return mine, theirs, M
 
     def _patches(self, tiles: dict[_TileKey, tuple[bool, np.ndarray]]) -> dict[tuple[int, ...], tuple[int, int]]:
         """(informative tiles, tiles that line up) of each surface patch: a tile's direction (whose view, so whose

@@ -702,6 +702,7 @@ def _capture_summary(cap: _Capture) -> dict:
             "registered": sum(T is not None for T in r.T_world_cam),
             "joined": cap.join is None or cap.join.T_a_b is not None,
             "reason": None if cap.join is None else cap.join.reason,
+            "joined_at_turn": None if cap.join is None else cap.join.turned,
             "timings_s": {k: round(v, 3) for k, v in cap.timings.items()}}
 
 
