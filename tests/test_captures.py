@@ -93,6 +93,7 @@ def test_two_sided_scan_joins_both_sides_and_refuses_another_object(two_sided):
     box, up, down, out, res = two_sided
     caps = {c["name"]: c for c in res["captures"]}
     assert caps["up"]["joined"] and caps["down"]["joined"], caps
+    assert caps["down"]["joined_at_turn"] is None, caps  # joined at the motion its view pairs agree on
     assert not caps["cereal"]["joined"] and caps["cereal"]["reason"], caps
     assert "join" in res["timings_s"]
     with TemplateDB.open(out) as db:
