@@ -306,6 +306,16 @@ class ListVerifier:
             res = self.against_unseen_turns(q, qk, res, refine, timer)
         return self.against_alike_turns(q, qk, res, refine, timer) if res.found else res
 
+    def turned(self, q: QueryFrame, T_cam_obj: np.ndarray, S: np.ndarray, refine: bool, timer: StageTimer
+               ) -> np.ndarray:
+        """The pose T_cam_obj [4 x 4] turned by the symmetry S [4 x 4] (object frame), refined on the query's depth
+        when `refine` (without anchors: no keypoint was matched at the turn)."""
+        T = T_cam_obj @ S
+        with timer.stage("refine"):
+            if refine:
+                T = refine_pose(self.model, q, T, None, q.off_plane, self.params.refine)
+        return T
+
     def near(self, T_a: np.ndarray, T_b: np.ndarray) -> bool:
         """T_a lies within the pooling tolerance of T_b or of a pose that looks as T_b does."""
         deg, dist = self.apart(T_a, T_b)
@@ -335,10 +345,8 @@ class ListVerifier:
         p = self.params
         for S in self.shape_turns:
             assert res.T_cam_obj is not None and res.evidence is not None
-            T = res.T_cam_obj @ S
+            T = self.turned(q, res.T_cam_obj, S, refine, timer)
             with timer.stage("refine"):
-                if refine:
-                    T = refine_pose(self.model, q, T, None, q.off_plane, p.refine)
                 ev = self.evidence_of(q, T, qk)
             ev.n_matches, ev.n_inliers, ev.spread_m = res.evidence.n_matches, res.evidence.n_inliers, \
                 res.evidence.spread_m
@@ -410,10 +418,7 @@ class ListVerifier:
         on = ~self.off_seen_surface(res.T_cam_obj, qk, radius)
         support: np.ndarray | None = None
         for S in self.unseen_turns:
-            T = res.T_cam_obj @ S
-            with timer.stage("refine"):
-                if refine:
-                    T = refine_pose(self.model, q, T, None, q.off_plane, p.refine)
+            T = self.turned(q, res.T_cam_obj, S, refine, timer)
             off = self.off_seen_surface(T, qk, 2.0 * radius, among=on) | self.near_unseen(T, S, qk, 2.0 * radius, on)
             unseen = np.unique(qk.location[off])
             known = np.setdiff1d(np.unique(qk.location[on]), unseen)
@@ -453,10 +458,7 @@ class ListVerifier:
             return res
         support = self.local_support(q, res.T_cam_obj, qk)
         for S in self.unseen_turns:
-            T = res.T_cam_obj @ S
-            with timer.stage("refine"):
-                if refine:
-                    T = refine_pose(self.model, q, T, None, q.off_plane, p.refine)
+            T = self.turned(q, res.T_cam_obj, S, refine, timer)
             if self.sinks(q, T) is not None or depth_refusal(self.evidence_of(q, T, qk), p.accept) is not None:
                 continue  # the depth refutes the turn
             turned = self.local_support(q, T, qk)

@@ -15,9 +15,9 @@ turned motion, which only the other sides can tell (`_turn_not_refuted`; `_Alike
 surface patches both overlap). Where those patches refute the motion found in a turn's favour instead, the turn
 (refined on the keypoints) is judged in its place, the motion found among the motions it must refute, and the
 captures are joined at it when it stands (`Join.turned`). Depth and texture are judged over the whole overlap:
-every view of B against every view of A. Where another group holds at least half as many pairs (a symmetric object turned over may match two
-ways), each motion must refute the other as well as its own turns: the captures are joined at the one that does,
-and not at all when both or neither do (no join is guessed).
+every view of B against every view of A. Where another group holds at least half as many pairs (a symmetric
+object turned over may match two ways), each motion must refute the other as well as its own turns: the captures
+are joined at the one that does, and not at all when both or neither do (no join is guessed).
 """
 from __future__ import annotations
 
