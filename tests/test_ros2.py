@@ -457,15 +457,21 @@ def test_cli_refuses_a_recording_whose_depth_is_not_registered(template, heldout
 def test_ctrl_c_stops_the_node_with_its_counts(template):
     import signal
 
+    # PYTHONFAULTHANDLER: a node that does not stop is aborted and its threads' stacks come back in the failure
     env = {**os.environ, "PYTHONPATH": str(ROOT), "ROS_DOMAIN_ID": str(_domain()),
-           "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
+           "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", "PYTHONFAULTHANDLER": "1"}
     proc = subprocess.Popen([sys.executable, "-m", "gscan.cli", "ros2", str(template), "--json"], env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         line = proc.stderr.readline()  # the ready line: the node is up
         assert "ROS 2 node /gscan follows box" in line, line + proc.stderr.read()
         proc.send_signal(signal.SIGINT)
-        out, err = proc.communicate(timeout=90)  # the shutdown is slow on a busy machine
+        try:
+            out, err = proc.communicate(timeout=90)  # the shutdown is slow on a busy machine
+        except subprocess.TimeoutExpired:
+            proc.send_signal(signal.SIGABRT)
+            out, err = proc.communicate(timeout=30)
+            pytest.fail(f"the node did not stop within 90 s of Ctrl+C; its threads then:\n{err[-6000:]}")
     finally:
         proc.kill()
     assert proc.returncode == 0, err

@@ -309,12 +309,16 @@ class PoseNode(Node):
                 "problems": [f"topic {topic}: {reason} ({n}x)" for (topic, reason), n in self.problems.items()]}
 
 
-def init_context(args: list[str] | None = None, domain_id: int | None = None) -> Any:
+def init_context(args: list[str] | None = None, domain_id: int | None = None, signals: bool = True) -> Any:
     """A new rclpy Context, initialised with the ROS arguments `args` (`--ros-args ...`) and, when given, its own
-    DDS domain; InputError when rcl refuses the arguments."""
+    DDS domain; signals: whether rclpy installs its Ctrl+C and SIGTERM handlers (False: the caller handles
+    them); InputError when rcl refuses the arguments."""
+    from rclpy.signals import SignalHandlerOptions
+
     ctx = rclpy.Context()
     try:
-        rclpy.init(args=args, context=ctx, domain_id=domain_id)
+        rclpy.init(args=args, context=ctx, domain_id=domain_id,
+                   signal_handler_options=None if signals else SignalHandlerOptions.NO)
     except Exception as e:  # noqa: BLE001 - rclpy's RCLError (a private module): bad ROS arguments, params file
         why = " ".join(str(e).split()).removeprefix("failed to initialize rcl: ").split(". Error:")[0]
         raise InputError(None, f"ROS arguments: {why}") from None

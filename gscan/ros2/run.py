@@ -1,9 +1,13 @@
 """`run`: the gscan node (and a recording's player) spun in this process until Ctrl+C or the recording's end."""
 from __future__ import annotations
 
+import signal
+import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 import rclpy
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
@@ -22,8 +26,43 @@ def run(tracks: list[TemplateTrack], ros_args: list[str] | None = None, play: Pa
     context shuts down or Ctrl+C, or, with `play`, until the recording was played and its last frame processed;
     returns the node's `summary()` (with `played`: the colour images the player published). InputError for a
     bad parameter value or a recording that cannot be played."""
-    ctx = init_context(["gscan", *(ros_args or [])], domain_id)
+    # Ctrl+C (and SIGTERM) set a flag the loop below reads between spins: an exception raised at any point inside
+    # rclpy's calls could leave one of its locks held and the shutdown waiting on it
+    ctx = init_context(["gscan", *(ros_args or [])], domain_id, signals=False)
     executor = SingleThreadedExecutor(context=ctx)
+    with _stop_signals() as stop:
+        try:
+            return _spin(ctx, executor, tracks, play, rate, on_ready, stop)
+        finally:
+            executor.shutdown()
+            rclpy.try_shutdown(context=ctx)
+
+
+@contextmanager
+def _stop_signals() -> Iterator[threading.Event]:
+    """An event set by the first Ctrl+C or SIGTERM while in the block (a second Ctrl+C raises KeyboardInterrupt);
+    the previous handlers back after it. Off the main thread no handler can be set: the event is only the
+    caller's."""
+    stop = threading.Event()
+    if threading.current_thread() is not threading.main_thread():
+        yield stop
+        return
+
+    def on_signal(signum: int, frame: object) -> None:
+        stop.set()
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield stop
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+
+
+def _spin(ctx: Any, executor: SingleThreadedExecutor, tracks: list[TemplateTrack], play: Path | None,
+          rate: float, on_ready: Callable[[PoseNode, Player | None], None] | None, stop: threading.Event) -> dict:
+    """`run`'s node (and player) on `executor` until `stop`, the context's end or the recording's."""
     node: PoseNode | None = None
     player: Player | None = None
     try:
@@ -36,7 +75,7 @@ def run(tracks: list[TemplateTrack], ros_args: list[str] | None = None, play: Pa
         try:
             if on_ready is not None:
                 on_ready(node, player)
-            while ctx.ok():
+            while ctx.ok() and not stop.is_set():
                 executor.spin_once(timeout_sec=0.1)
                 if player is not None and player.done.is_set():
                     end = time.monotonic() + ARRIVAL_S
@@ -58,5 +97,3 @@ def run(tracks: list[TemplateTrack], ros_args: list[str] | None = None, play: Pa
             player.destroy_node()
         if node is not None:
             node.close()
-        executor.shutdown()
-        rclpy.try_shutdown(context=ctx)
