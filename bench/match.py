@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import itertools
+import os
 import subprocess
 import sys
 import time
@@ -70,7 +71,8 @@ def render_views(mesh_dir: Path, azimuths_deg: list[float], seed: int, elevation
 
 
 def _meshes(n: int | None) -> list[Path]:
-    ms = sorted(p for p in (SHARED / "data" / "meshes").iterdir() if (p / "model_0.obj").is_file())
+    data = Path(os.environ.get("GSCAN_TEST_DATA") or SHARED / "data")  # as tests/conftest.py
+    ms = sorted(p for p in (data / "meshes").iterdir() if (p / "model_0.obj").is_file())
     return ms[:n] if n else ms
 
 

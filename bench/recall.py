@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from dataclasses import dataclass
@@ -61,7 +62,7 @@ from gscan.synth import (
 from gscan.synth.mesh import cylinder_mesh
 
 ROOT = Path(__file__).resolve().parents[1]
-MESHES = ROOT.parent / "shared" / "data" / "meshes"
+MESHES = Path(os.environ.get("GSCAN_TEST_DATA") or ROOT.parent / "shared" / "data") / "meshes"  # as tests/conftest.py
 DISTRACTOR_POOL = ("Apples_to_Apples_Kids_Edition", "Crunch_Girl_Scouts_Candy_Bars_Peanut_Butter_Creme_78_oz_box",
                    "Diet_Pepsi_Soda_Cola12_Pack_12_oz_Cans", "Nestle_Carnation_Cinnamon_Coffeecake_Kit_1913OZ",
                    "The_Coffee_Bean_Tea_Leaf_KCup_Packs_Jasmine_Green_Tea_16_count",
