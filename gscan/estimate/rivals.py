@@ -302,9 +302,12 @@ class ListVerifier:
             if tie is not None:
                 return tie
         res = self.against_shape_turns(q, qk, res, refine, timer)
-        if res.found:
-            res = self.against_unseen_turns(q, qk, res, refine, timer)
-        return self.against_alike_turns(q, qk, res, refine, timer) if res.found else res
+        if res.T_cam_obj is None:
+            return res
+        # the pose's turns by the symmetries in shape only, refined once for the two rules that weigh them
+        turns = [(S, self.turned(q, res.T_cam_obj, S, refine, timer)) for S in self.unseen_turns]
+        res = self.against_unseen_turns(q, qk, res, turns)
+        return self.against_alike_turns(q, qk, res, turns) if res.found else res
 
     def turned(self, q: QueryFrame, T_cam_obj: np.ndarray, S: np.ndarray, refine: bool, timer: StageTimer
                ) -> np.ndarray:
@@ -408,17 +411,17 @@ class ListVerifier:
             return np.zeros(len(qk.feats.points), bool)
         return self._distances(tree, T_cam_obj, qk, among) <= radius
 
-    def against_unseen_turns(self, q: QueryFrame, qk: QueryKeypoints, res: EstimateResult, refine: bool,
-                             timer: StageTimer) -> EstimateResult:
+    def against_unseen_turns(self, q: QueryFrame, qk: QueryKeypoints, res: EstimateResult,
+                             turns: list[tuple[np.ndarray, np.ndarray]]) -> EstimateResult:
         """The accepted `res` against itself turned by each symmetry in shape onto surface the template has not
-        seen (module docstring): res, or the ambiguous view's not-found result."""
+        seen (module docstring; turns: (each symmetry in shape only S [4 x 4], the pose turned by it and refined,
+        `turned`)): res, or the ambiguous view's not-found result."""
         p = self.params
         assert res.T_cam_obj is not None and res.evidence is not None
         radius = support_radius(p.verify, float(transform_points(res.T_cam_obj, self.model.center[None])[0, 2]))
         on = ~self.off_seen_surface(res.T_cam_obj, qk, radius)
         support: np.ndarray | None = None
-        for S in self.unseen_turns:
-            T = self.turned(q, res.T_cam_obj, S, refine, timer)
+        for S, T in turns:
             off = self.off_seen_surface(T, qk, 2.0 * radius, among=on) | self.near_unseen(T, S, qk, 2.0 * radius, on)
             unseen = np.unique(qk.location[off])
             known = np.setdiff1d(np.unique(qk.location[on]), unseen)
@@ -446,19 +449,18 @@ class ListVerifier:
                                  res.n_matches, res.view, res.score, evidence=res.evidence)
         return res
 
-    def against_alike_turns(self, q: QueryFrame, qk: QueryKeypoints, res: EstimateResult, refine: bool,
-                            timer: StageTimer) -> EstimateResult:
+    def against_alike_turns(self, q: QueryFrame, qk: QueryKeypoints, res: EstimateResult,
+                            turns: list[tuple[np.ndarray, np.ndarray]]) -> EstimateResult:
         """A pose accepted on the short lists' rule (`accept`) against itself turned by each symmetry that holds in
-        shape only (module docstring): where the depth does not refute the turn, the keypoints that support one of
-        the two and not the other (`local_support`) must favour the pose (a sign test at `rivals.p`), else the view
-        is ambiguous. res, or the ambiguous view's not-found result."""
+        shape only (module docstring; turns: as `against_unseen_turns`'): where the depth does not refute the
+        turn, the keypoints that support one of the two and not the other (`local_support`) must favour the pose (a
+        sign test at `rivals.p`), else the view is ambiguous. res, or the ambiguous view's not-found result."""
         p = self.params
         assert res.T_cam_obj is not None and res.evidence is not None
-        if not self.unseen_turns or strong_rule(res.evidence, p.accept, True):
+        if not turns or strong_rule(res.evidence, p.accept, True):
             return res
         support = self.local_support(q, res.T_cam_obj, qk)
-        for S in self.unseen_turns:
-            T = self.turned(q, res.T_cam_obj, S, refine, timer)
+        for _, T in turns:
             if self.sinks(q, T) is not None or depth_refusal(self.evidence_of(q, T, qk), p.accept) is not None:
                 continue  # the depth refutes the turn
             turned = self.local_support(q, T, qk)

@@ -174,10 +174,10 @@ def turn_not_refuted(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarr
     normals = np.concatenate([src.point_normals, tgt.point_normals @ T_tgt_src[:3, :3]])
     plane = support_plane(src, tgt, T_tgt_src, params)
     turns = TURNS if fine is not None else TURNS[:1]
+    none = np.zeros((0, 3))
     for name, axis, centre in _turn_axes(pts, normals):
         for angle, turn in turns:
             centred = _best_centre(src, tgt, T_tgt_src, pts, axis, centre, params, angle)
-            none = np.zeros((0, 3))
             refined = refine_pose(src, tgt, none, none, centred, params.noise, params.depth_noise)[0]
             verdict = _turn_verdict(src, tgt, refined, params, plane, texture, fine, inner)
             log.debug("%s turn about the %s axis: %s", turn, name, verdict)
@@ -284,9 +284,10 @@ def _face_axes(normals: np.ndarray, rounds: int = 5) -> np.ndarray:
 
 def _best_centre(src: DenseGeometry, tgt: DenseGeometry, T_tgt_src: np.ndarray, pts: np.ndarray, axis: np.ndarray,
                  centre: np.ndarray, params: RegisterParams, angle: float = np.pi) -> np.ndarray:
-    """T_tgt_src [4 x 4] turned half about `axis` [3] through the point [3] near `centre` (within half the points'
-    [N x 3] extent across the axis, a grid of CENTRE_STEPS a side) where the views contradict it least (the shares of
-    the overlap seen through and of the samples off the other silhouette beyond the bounds that refute a turn),
+    """T_tgt_src [4 x 4] turned by `angle` (rad; half by default) about `axis` [3] through the point [3] near
+    `centre` (within half the points' [N x 3] extent across the axis, a grid of CENTRE_STEPS a side) where the views
+    contradict it least (the shares of the overlap seen through and of the samples off the other silhouette beyond
+    the bounds that refute a turn),
     and, among those they do not contradict, where most depth samples agree. The points' box misses the far
     half of the object where both views see the same faces under a wrong pose, which puts the centre off by up to
     half the object's depth; nearest-point refinement from there would pull the turned pose back onto the faces
