@@ -53,15 +53,16 @@ def test_capture_from_a_bag_writes_its_frames_and_scan_reads_them(bags, tmp_path
     r = _run("capture", "--from", str(bags["registered"]), "-o", str(out), "--every", "1", "--json")
     assert r.returncode == 0, r.stderr
     res = json.loads(r.stdout)
-    assert res["frames"] == res["frames_seen"] == 12 and not res["stopped"]
+    meta = json.loads((out / "capture.json").read_text())
+    numbers = [f["number"] for f in meta["frames"].values()]
+    assert res["frames"] == res["frames_seen"] == 12 and not res["stopped"], (numbers, r.stderr)
+    assert numbers == list(range(12))
     cap, rec = open_sequence(out), open_sequence(bags["registered"])
     assert cap.format == "capture" and cap.names == rec.names and cap.problems == {}
     assert cap.intrinsics == rec.intrinsics == K_COLOR
     for name in cap.names:
         assert np.array_equal(cap[name].color, rec[name].color), name
         assert np.array_equal(cap[name].depth, rec[name].depth), name
-    meta = json.loads((out / "capture.json").read_text())
-    assert [f["number"] for f in meta["frames"].values()] == list(range(12))
     assert meta["keep"] == {"every": 1} and meta["depth_units"] == "mm"
     assert not list(out.rglob(".*.tmp"))
     r = _run("scan", str(out), "-o", str(tmp_path / "cap.gscan"), "--json")

@@ -33,6 +33,9 @@ from gscan.io.recordings.streams import is_identity, recorded_depth_camera, same
 log = logging.getLogger(__name__)
 
 LIVE_DEFAULT = (640, 480, 30)  # width, height, fps of a live capture when not chosen
+# a recording's playback reports "stopped" once its reader is at the end, while its last framesets may still be on
+# their way through the pipeline (seen after the stop even unloaded): they are waited for until none came this long
+END_GRACE_S = 2.0
 
 
 @dataclass(frozen=True)
@@ -242,6 +245,7 @@ class RealSenseCamera:
         assert self._pipe is not None, "enter the camera first"
         last_number = None
         waited = time.monotonic()
+        stopped_at: float | None = None  # when the playback was first seen stopped
         # lone colour or depth frames are paired again where gscan aligns (rs.align needs a whole frameset)
         fps = self._pipe.get_active_profile().get_stream(rs.stream.color).fps() or 30
         lone = LonePairer(500.0 / fps) if self._align is None else None
@@ -252,7 +256,11 @@ class RealSenseCamera:
                 raise InputError(self._where(), f"streaming failed ({_why(e)})") from None
             if not ok:
                 if self._ended():
-                    return
+                    now = time.monotonic()
+                    stopped_at = now if stopped_at is None else stopped_at
+                    if now - max(stopped_at, waited) > END_GRACE_S:
+                        return
+                    continue
                 if time.monotonic() - waited > self.options.timeout_s:
                     if self._playback is not None:
                         return
