@@ -11,6 +11,7 @@ import signal
 import subprocess
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -45,7 +46,11 @@ def bags(views, tmp_path_factory):
             # 4 frames a second, for Ctrl+C and the preview at the recorded pace (3 s)
             "slow": write_realsense_bag(root / "slow.bag", views.frames(period_ns=250_000_000), K_COLOR),
             # 30 s at the recorded pace: the browser test ends it with Ctrl+C once the page shows it
-            "slower": write_realsense_bag(root / "slower.bag", views.frames(period_ns=2_500_000_000), K_COLOR)}
+            "slower": write_realsense_bag(root / "slower.bag", views.frames(period_ns=2_500_000_000), K_COLOR),
+            # the depth of frames 4 and 5 lost (the SDK's syncer hands colour 4 and 5 on with depth 3)
+            "lost_depth": write_realsense_bag(root / "lost_depth.bag",
+                                              [replace(f, depth=None) if i in (4, 5) else f
+                                               for i, f in enumerate(views.frames())], K_COLOR)}
 
 
 def test_capture_from_a_bag_writes_its_frames_and_scan_reads_them(bags, tmp_path):
@@ -68,6 +73,27 @@ def test_capture_from_a_bag_writes_its_frames_and_scan_reads_them(bags, tmp_path
     r = _run("scan", str(out), "-o", str(tmp_path / "cap.gscan"), "--json")
     assert r.returncode == 0, r.stderr
     assert json.loads(r.stdout)["registered"] == 12
+
+
+def test_capture_leaves_out_colour_frames_whose_depth_was_lost(bags, tmp_path):
+    """As `scan REC.bag` does: frames 4 and 5 left out by name with the reason, never kept with another
+    moment's depth; the frames kept are the recording's other frames, pixel for pixel."""
+    out = tmp_path / "cap"
+    r = _run("capture", "--from", str(bags["lost_depth"]), "-o", str(out), "--every", "1", "--json")
+    assert r.returncode == 0, r.stderr
+    res = json.loads(r.stdout)
+    assert res["frames"] == 10 and sorted(res["left_out"]) == ["4", "5"], res
+    assert all("no depth frame within 16.7 ms" in why for why in res["left_out"].values()), res["left_out"]
+    meta = json.loads((out / "capture.json").read_text())
+    assert [f["number"] for f in meta["frames"].values()] == [0, 1, 2, 3, 6, 7, 8, 9, 10, 11]
+    assert meta["left_out"] == res["left_out"]
+    cap, rec = open_sequence(out), open_sequence(bags["lost_depth"])
+    assert sorted(rec.problems) == ["000004", "000005"] and len(rec.names) == len(cap.names) == 10
+    for name, rec_name in zip(cap.names, rec.names, strict=True):
+        assert np.array_equal(cap[name].color, rec[rec_name].color), name
+        assert np.array_equal(cap[name].depth, rec[rec_name].depth), name
+    r = _run("capture", "--from", str(bags["lost_depth"]), "-o", str(tmp_path / "said"), "--every", "1")
+    assert r.returncode == 0 and "left out: colour frame 4: no depth frame within" in r.stderr, r.stderr
 
 
 @pytest.mark.parametrize("align", ["gscan", "librealsense"])
@@ -275,7 +301,8 @@ def test_frames_are_named_by_their_colour_messages(bags):
 def test_lone_colour_and_depth_frames_are_paired_by_timestamp():
     """Colour and depth delivered in separate framesets make one frame when at most half a frame period apart
     (30 fps: 16.7 ms); the older of two lone frames too far apart is dropped, a newer lone frame of one stream
-    replaces the held one, and a whole frameset drops what was held before it."""
+    replaces the held one, and a whole frameset drops what was held before it; the colour frames dropped are
+    `left_out`."""
     pairer = LonePairer(500.0 / 30)
 
     def lone(number: int, t_ms: float) -> LoneFrame:
@@ -298,3 +325,8 @@ def test_lone_colour_and_depth_frames_are_paired_by_timestamp():
     assert pairer.add("depth", lone(5, 1166.0)) is None
     pairer.passed()
     assert pairer.add("colour", lone(5, 1167.0)) is None
+    # the colour frames dropped are said, with the reason (depth frames are not frames of the capture)
+    pairer.passed("the recording ended")
+    assert sorted(pairer.left_out) == [1, 3, 5]
+    assert pairer.left_out[1] == "no depth frame came with it (none within 16.7 ms)"
+    assert pairer.left_out[5] == "no depth frame came with it (the recording ended)"

@@ -81,18 +81,25 @@ class LonePairer:
     loaded machine, most often for a recording's first frame): the last lone frame of each stream is held, and the
     two make one frame when their timestamps are at most `tolerance_ms` apart (half the frame period, as
     `gscan.io.recordings.pairing` pairs a recording's streams). A lone frame replaced by a newer one of its stream,
-    or passed by a whole frameset, is dropped (logged)."""
+    or passed by a whole frameset, is dropped (logged); a colour frame dropped so is written into `left_out`
+    (its device frame number: the reason)."""
 
-    def __init__(self, tolerance_ms: float) -> None:
+    def __init__(self, tolerance_ms: float, left_out: dict[int, str] | None = None) -> None:
         self.tolerance_ms = tolerance_ms
         self.colour: LoneFrame | None = None
         self.depth: LoneFrame | None = None
+        self.left_out = {} if left_out is None else left_out
+
+    def _drop(self, kind: str, held: LoneFrame, why: str) -> None:
+        log.debug("lone %s frame %d dropped: %s", kind, held.number, why)
+        if kind == "colour":
+            self.left_out[held.number] = f"no depth frame came with it ({why})"
 
     def add(self, kind: str, lone: LoneFrame) -> tuple[LoneFrame, LoneFrame] | None:
         """Hold a lone frame of `kind` ("colour" | "depth"); (colour, depth) when it completes a pair."""
         held = self.colour if kind == "colour" else self.depth
         if held is not None:
-            log.debug("lone %s frame %d dropped: no partner within %.1f ms", kind, held.number, self.tolerance_ms)
+            self._drop(kind, held, f"none within {self.tolerance_ms:.1f} ms")
         if kind == "colour":
             self.colour = lone
         else:
@@ -102,6 +109,7 @@ class LonePairer:
         if abs(self.colour.timestamp_ms - self.depth.timestamp_ms) > self.tolerance_ms:
             # keep the newer one: the older cannot meet a partner later than the newer's
             if self.colour.timestamp_ms < self.depth.timestamp_ms:
+                self._drop("colour", self.colour, f"none within {self.tolerance_ms:.1f} ms")
                 self.colour = None
             else:
                 self.depth = None
@@ -110,11 +118,11 @@ class LonePairer:
         self.colour = self.depth = None
         return pair
 
-    def passed(self) -> None:
-        """A whole frameset came: lone frames held before it have lost their partner."""
+    def passed(self, why: str = "a whole frameset followed it") -> None:
+        """A whole frameset came (or the stream ended: `why`): lone frames held have lost their partner."""
         for kind, held in (("colour", self.colour), ("depth", self.depth)):
             if held is not None:
-                log.debug("lone %s frame %d dropped: a whole frameset followed it", kind, held.number)
+                self._drop(kind, held, why)
         self.colour = self.depth = None
 
 
@@ -149,6 +157,8 @@ class RealSenseCamera:
         self._pipe: Any = None
         self._playback: Any = None
         self._align: Any = None
+        # colour frames delivered and not made frames of (device frame number: the reason; `frames`)
+        self.left_out: dict[int, str] = {}
 
     def _where(self) -> Path | None:
         return self.recording
@@ -240,15 +250,21 @@ class RealSenseCamera:
         return self._playback is not None and self._playback.current_status() == rs.playback_status.stopped
 
     def frames(self) -> Iterator[CameraFrame]:
-        """Aligned framesets as they come, until the recording ends (a live camera streams until the caller stops)."""
+        """Aligned framesets as they come, until the recording ends (a live camera streams until the caller stops).
+
+        A colour frame whose depth lies more than half a frame period from it (the SDK's syncer hands on the last
+        depth frame when a recording lost some: a depth image of another moment), or which no depth frame came
+        with, is not made a frame: it is written into `left_out` with the reason (as `gscan scan REC.bag` leaves
+        it out), unless the SDK delivers it again with its own depth."""
         rs = _rs()
         assert self._pipe is not None, "enter the camera first"
         last_number = None
         waited = time.monotonic()
         stopped_at: float | None = None  # when the playback was first seen stopped
-        # lone colour or depth frames are paired again where gscan aligns (rs.align needs a whole frameset)
         fps = self._pipe.get_active_profile().get_stream(rs.stream.color).fps() or 30
-        lone = LonePairer(500.0 / fps) if self._align is None else None
+        tolerance_ms = 500.0 / fps  # half the colour frame period, as a recording's streams are paired
+        # lone colour or depth frames are paired again where gscan aligns (rs.align needs a whole frameset)
+        lone = LonePairer(tolerance_ms, self.left_out) if self._align is None else None
         while True:
             try:
                 ok, fs = self._pipe.try_wait_for_frames(200)
@@ -259,18 +275,32 @@ class RealSenseCamera:
                     now = time.monotonic()
                     stopped_at = now if stopped_at is None else stopped_at
                     if now - max(stopped_at, waited) > END_GRACE_S:
+                        if lone is not None:
+                            lone.passed("the recording ended")
                         return
                     continue
                 if time.monotonic() - waited > self.options.timeout_s:
-                    if self._playback is not None:
+                    if self._playback is not None:  # (librealsense's playback can hang on a recording's gap)
+                        log.warning("%s: the playback delivered nothing for %g s before the recording's end: "
+                                    "the frames after that are not read", self.recording, self.options.timeout_s)
                         return
                     raise InputError(None, f"the camera delivered no frame for {self.options.timeout_s:g} s")
                 continue
             waited = time.monotonic()
-            if self._align is not None:
-                fs = self._align.process(fs)
             c, d = fs.get_color_frame(), fs.get_depth_frame()
             if c and d:
+                apart = abs(float(c.get_timestamp()) - float(d.get_timestamp()))
+                if apart > tolerance_ms and c.get_frame_timestamp_domain() == d.get_frame_timestamp_domain():
+                    number = int(c.get_frame_number())
+                    if number != last_number:
+                        self.left_out[number] = (f"no depth frame within {tolerance_ms:.1f} ms of this colour frame "
+                                                 f"(the SDK paired depth frame {d.get_frame_number()}, {apart:.1f} ms "
+                                                 f"away)")
+                        log.info("colour frame %d left out: %s", number, self.left_out[number])
+                    continue
+                if self._align is not None:
+                    fs = self._align.process(fs)
+                    c, d = fs.get_color_frame(), fs.get_depth_frame()
                 if lone is not None:
                     lone.passed()
                 cf = LoneFrame(int(c.get_frame_number()), float(c.get_timestamp()), np.asanyarray(c.get_data()),
@@ -285,10 +315,13 @@ class RealSenseCamera:
                     continue
                 cf, df = pair
             else:
+                if c and int(c.get_frame_number()) != last_number:  # rs.align needs a whole frameset
+                    self.left_out[int(c.get_frame_number())] = "no depth frame came with it"
                 continue
             if cf.number == last_number:  # the same colour frame delivered again with a newer depth frame
                 continue
             last_number = cf.number
+            self.left_out.pop(cf.number, None)
             yield self._frame(cf, df, rs)
 
     def _frame(self, c: LoneFrame, d: LoneFrame, rs: Any) -> CameraFrame:

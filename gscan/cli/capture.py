@@ -80,5 +80,7 @@ def capture(
     how = "stopped: " if result.interrupted else ""
     say(f"{how}captured {len(result.kept)} frames (of {result.seen} seen) into {result.output}; "
         f"{result.covered} of {result.directions} viewing directions covered")
+    for number, why in result.left_out.items():
+        say(("left out:", "yellow"), f" colour frame {number}: {why}")
     for words in result.missing:
         say(("missing:", "yellow"), f" {words}")
