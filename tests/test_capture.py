@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 from _recordings import K_COLOR, K_DEPTH, MESH, T0_NS, T_depth_offset, render_views
 
-from gscan.capture.camera import LoneFrame, LonePairer
+from gscan.capture.camera import LoneFrame, LonePairer, skipped_frames
 from gscan.geometry.transforms import inv_T
 from gscan.io import DepthCamera, open_sequence
 from gscan.synth import load_textured_mesh
@@ -60,19 +60,33 @@ def test_capture_from_a_bag_writes_its_frames_and_scan_reads_them(bags, tmp_path
     res = json.loads(r.stdout)
     meta = json.loads((out / "capture.json").read_text())
     numbers = [f["number"] for f in meta["frames"].values()]
-    assert res["frames"] == res["frames_seen"] == 12 and not res["stopped"], (numbers, r.stderr)
-    assert numbers == list(range(12))
+    # every recorded frame, but those the SDK's playback skipped on a loaded machine, which are named
+    assert res["left_out"] == {} and meta["skipped"] == res["skipped"], res
+    assert numbers == [k for k in range(12) if f"{k:06d}" not in res["skipped"]], (numbers, res["skipped"])
+    assert res["frames"] == res["frames_seen"] == 12 - len(res["skipped"]) and not res["stopped"], r.stderr
     cap, rec = open_sequence(out), open_sequence(bags["registered"])
-    assert cap.format == "capture" and cap.names == rec.names and cap.problems == {}
+    assert cap.format == "capture" and cap.problems == {}
     assert cap.intrinsics == rec.intrinsics == K_COLOR
-    for name in cap.names:
-        assert np.array_equal(cap[name].color, rec[name].color), name
-        assert np.array_equal(cap[name].depth, rec[name].depth), name
+    for name, number in zip(cap.names, numbers, strict=True):
+        assert np.array_equal(cap[name].color, rec[f"{number:06d}"].color), name
+        assert np.array_equal(cap[name].depth, rec[f"{number:06d}"].depth), name
     assert meta["keep"] == {"every": 1} and meta["depth_units"] == "mm"
     assert not list(out.rglob(".*.tmp"))
     r = _run("scan", str(out), "-o", str(tmp_path / "cap.gscan"), "--json")
     assert r.returncode == 0, r.stderr
-    assert json.loads(r.stdout)["registered"] == 12
+    assert json.loads(r.stdout)["registered"] == len(numbers)
+
+
+def test_capture_at_the_recorded_pace_names_the_frames_the_playback_dropped(bags, tmp_path):
+    """`--real-time` plays as a live camera streams: frames read too slowly are dropped (the first, read while the
+    capture starts, as a rule); those it never delivered are named, so that the frames kept and the skipped make
+    the recording."""
+    r = _run("capture", "--from", str(bags["registered"]), "-o", str(tmp_path / "cap"), "--every", "1",
+             "--real-time", "--json")
+    assert r.returncode == 0, r.stderr
+    res = json.loads(r.stdout)
+    numbers = [f["number"] for f in json.loads((tmp_path / "cap" / "capture.json").read_text())["frames"].values()]
+    assert sorted([f"{k:06d}" for k in numbers] + res["skipped"]) == [f"{k:06d}" for k in range(12)], res
 
 
 def test_capture_leaves_out_colour_frames_whose_depth_was_lost(bags, tmp_path):
@@ -82,16 +96,17 @@ def test_capture_leaves_out_colour_frames_whose_depth_was_lost(bags, tmp_path):
     r = _run("capture", "--from", str(bags["lost_depth"]), "-o", str(out), "--every", "1", "--json")
     assert r.returncode == 0, r.stderr
     res = json.loads(r.stdout)
-    assert res["frames"] == 10 and sorted(res["left_out"]) == ["4", "5"], res
+    assert sorted(res["left_out"]) == ["4", "5"], res
     assert all("no depth frame within 16.7 ms" in why for why in res["left_out"].values()), res["left_out"]
     meta = json.loads((out / "capture.json").read_text())
-    assert [f["number"] for f in meta["frames"].values()] == [0, 1, 2, 3, 6, 7, 8, 9, 10, 11]
-    assert meta["left_out"] == res["left_out"]
+    numbers = [f["number"] for f in meta["frames"].values()]
+    assert numbers == [k for k in (0, 1, 2, 3, 6, 7, 8, 9, 10, 11) if f"{k:06d}" not in res["skipped"]], res
+    assert meta["left_out"] == res["left_out"] and res["frames"] == len(numbers)
     cap, rec = open_sequence(out), open_sequence(bags["lost_depth"])
-    assert sorted(rec.problems) == ["000004", "000005"] and len(rec.names) == len(cap.names) == 10
-    for name, rec_name in zip(cap.names, rec.names, strict=True):
-        assert np.array_equal(cap[name].color, rec[rec_name].color), name
-        assert np.array_equal(cap[name].depth, rec[rec_name].depth), name
+    assert sorted(rec.problems) == ["000004", "000005"]
+    for name, number in zip(cap.names, numbers, strict=True):
+        assert np.array_equal(cap[name].color, rec[f"{number:06d}"].color), name
+        assert np.array_equal(cap[name].depth, rec[f"{number:06d}"].depth), name
     r = _run("capture", "--from", str(bags["lost_depth"]), "-o", str(tmp_path / "said"), "--every", "1")
     assert r.returncode == 0 and "left out: colour frame 4: no depth frame within" in r.stderr, r.stderr
 
@@ -241,7 +256,9 @@ def test_preview_follows_the_capture(bags, tmp_path):
     try:
         res = run_capture(RealSenseCamera(bags["registered"]), tmp_path / "cap", CaptureOptions(every=2),
                           on_frame=preview.update)
-        assert preview.updates == res.seen == 12 and preview._views == len(res.kept) == 6
+        # every recorded frame reaches the preview, but those the SDK's playback skipped on a loaded machine
+        assert preview.updates == res.seen == 12 - len(res.skipped) and preview._views == len(res.kept)
+        assert len(res.kept) == 6 or res.skipped
         assert "kept **6**" in preview._stats.content
         # what is still missing, in words: the bottom (the views circle the object 40 deg above the table)
         assert "the bottom was not seen: scan the object upside down" in preview._missing.content
@@ -296,6 +313,19 @@ def test_frames_are_named_by_their_colour_messages(bags):
     seq = open_sequence(bags["registered"])
     assert seq.names == [f"{i:06d}" for i in range(12)]
     assert [round((seq.timestamps[n] * 1e9 - T0_NS) / 33_333_333) for n in seq.names] == list(range(12))
+
+
+def test_the_frames_a_playback_skipped_are_found_by_their_timestamps():
+    """The recorded colour frames whose camera timestamp no delivered frame carries (within 1 ms), by name; not
+    told when most delivered frames match no recorded one (another clock), or when either side is empty."""
+    recorded = {f"{k:06d}": 1.7e12 + 1000.0 * k / 30 for k in range(6)}
+    delivered = [t + 0.01 for n, t in recorded.items() if n not in ("000000", "000004")]
+    assert skipped_frames(recorded, delivered) == ["000000", "000004"]
+    assert skipped_frames(recorded, list(recorded.values())) == []
+    assert skipped_frames(recorded, [t + 0.9 for t in recorded.values()]) == []
+    assert skipped_frames(recorded, [t + 1.5 for t in recorded.values()]) is None  # another clock
+    assert skipped_frames(recorded, [*list(recorded.values())[:2], 5.0, 6.0, 7.0]) is None
+    assert skipped_frames(recorded, []) is None and skipped_frames({}, delivered) is None
 
 
 def test_lone_colour_and_depth_frames_are_paired_by_timestamp():

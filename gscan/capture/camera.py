@@ -82,7 +82,7 @@ class LonePairer:
     two make one frame when their timestamps are at most `tolerance_ms` apart (half the frame period, as
     `gscan.io.recordings.pairing` pairs a recording's streams). A lone frame replaced by a newer one of its stream,
     or passed by a whole frameset, is dropped (logged); a colour frame dropped so is written into `left_out`
-    (its device frame number: the reason)."""
+    (its device frame number: the reason; a reason already there is kept)."""
 
     def __init__(self, tolerance_ms: float, left_out: dict[int, str] | None = None) -> None:
         self.tolerance_ms = tolerance_ms
@@ -93,7 +93,7 @@ class LonePairer:
     def _drop(self, kind: str, held: LoneFrame, why: str) -> None:
         log.debug("lone %s frame %d dropped: %s", kind, held.number, why)
         if kind == "colour":
-            self.left_out[held.number] = f"no depth frame came with it ({why})"
+            self.left_out.setdefault(held.number, f"no depth frame came with it ({why})")
 
     def add(self, kind: str, lone: LoneFrame) -> tuple[LoneFrame, LoneFrame] | None:
         """Hold a lone frame of `kind` ("colour" | "depth"); (colour, depth) when it completes a pair."""
@@ -126,12 +126,56 @@ class LonePairer:
         self.colour = self.depth = None
 
 
+def skipped_frames(expected_ms: dict[str, float], delivered_ms: list[float], tolerance_ms: float = 1.0
+                   ) -> list[str] | None:
+    """The recording's colour frames (name -> camera timestamp, ms: as `gscan scan REC.bag` names and reads them)
+    that the playback never delivered (`delivered_ms`: the colour timestamps it delivered, within `tolerance_ms`),
+    in name order; None when the two cannot be compared: fewer than half the frames delivered match a recorded
+    one (the SDK reads its timestamps from another clock than gscan's reader found)."""
+    recorded = np.sort(np.fromiter(expected_ms.values(), np.float64, len(expected_ms)))
+    got = np.sort(np.asarray(delivered_ms, np.float64))
+    if len(recorded) == 0 or len(got) == 0:
+        return None
+
+    def near(a: np.ndarray, b: np.ndarray) -> np.ndarray:  # [len(a)] bool: within tolerance of some b
+        i = np.clip(np.searchsorted(b, a), 1, len(b) - 1) if len(b) > 1 else np.zeros(len(a), np.int64)
+        return np.minimum(np.abs(a - b[i]), np.abs(a - b[np.maximum(i - 1, 0)])) <= tolerance_ms
+
+    if 2 * int(near(got, recorded).sum()) < len(got):
+        return None
+    return sorted(n for n, t in expected_ms.items() if not near(np.array([t]), got)[0])
+
+
 def _rs() -> Any:
     try:
         import pyrealsense2 as rs
     except ImportError as e:  # pragma: no cover - pyrealsense2 is a dependency
         raise InputError(None, f"pyrealsense2 is not installed ({e})") from None
     return rs
+
+
+def _recorded_colour_ms(recording: Path) -> dict[str, float]:
+    """The recording's colour frames as gscan's reader names them -> camera timestamp (ms); empty when gscan's
+    reader cannot read it (the playback's skips are then not told)."""
+    from gscan.io import open_sequence
+
+    reader = logging.getLogger("gscan.io")  # its frames left out are the capture's to say (`left_out`)
+    level = reader.level
+    reader.setLevel(logging.ERROR)
+    try:
+        seq = open_sequence(recording)
+    except InputError as e:
+        log.info("%s: frames not listed (%s): the playback's skips cannot be told", recording, e)
+        return {}
+    finally:
+        reader.setLevel(level)
+    try:
+        stamps = getattr(seq, "timestamps", {})
+        return {n: 1000.0 * t for n, t in stamps.items()}
+    finally:
+        close = getattr(seq, "close", None)
+        if close is not None:
+            close()
 
 
 def _why(e: BaseException) -> str:
@@ -159,6 +203,10 @@ class RealSenseCamera:
         self._align: Any = None
         # colour frames delivered and not made frames of (device frame number: the reason; `frames`)
         self.left_out: dict[int, str] = {}
+        # a recording's colour frames its playback never delivered (their names, as `gscan scan REC.bag` gives
+        # them: `skipped_frames`), once it has ended; empty when none or when that cannot be told
+        self.skipped: list[str] = []
+        self._recorded_ms: dict[str, float] = {}  # the recording's colour frames, as gscan's reader finds them
 
     def _where(self) -> Path | None:
         return self.recording
@@ -179,6 +227,7 @@ class RealSenseCamera:
         self.check()
         cfg = rs.config()
         if self.recording is not None:
+            self._recorded_ms = _recorded_colour_ms(self.recording)
             cfg.enable_device_from_file(str(self.recording), repeat_playback=False)
             w, h, fps = o.width or 0, o.height or 0, o.fps or 0
         else:
@@ -255,7 +304,7 @@ class RealSenseCamera:
         A colour frame whose depth lies more than half a frame period from it (the SDK's syncer hands on the last
         depth frame when a recording lost some: a depth image of another moment), or which no depth frame came
         with, is not made a frame: it is written into `left_out` with the reason (as `gscan scan REC.bag` leaves
-        it out), unless the SDK delivers it again with its own depth."""
+        it out), unless its own depth frame still comes (alone, or with the colour frame delivered again)."""
         rs = _rs()
         assert self._pipe is not None, "enter the camera first"
         last_number = None
@@ -265,6 +314,7 @@ class RealSenseCamera:
         tolerance_ms = 500.0 / fps  # half the colour frame period, as a recording's streams are paired
         # lone colour or depth frames are paired again where gscan aligns (rs.align needs a whole frameset)
         lone = LonePairer(tolerance_ms, self.left_out) if self._align is None else None
+        delivered: list[float] = []  # every colour frame's timestamp (ms), whatever became of it
         while True:
             try:
                 ok, fs = self._pipe.try_wait_for_frames(200)
@@ -277,27 +327,35 @@ class RealSenseCamera:
                     if now - max(stopped_at, waited) > END_GRACE_S:
                         if lone is not None:
                             lone.passed("the recording ended")
+                        self._count_skipped(delivered)
                         return
                     continue
                 if time.monotonic() - waited > self.options.timeout_s:
                     if self._playback is not None:  # (librealsense's playback can hang on a recording's gap)
                         log.warning("%s: the playback delivered nothing for %g s before the recording's end: "
                                     "the frames after that are not read", self.recording, self.options.timeout_s)
+                        self._count_skipped(delivered)
                         return
                     raise InputError(None, f"the camera delivered no frame for {self.options.timeout_s:g} s")
                 continue
             waited = time.monotonic()
             c, d = fs.get_color_frame(), fs.get_depth_frame()
+            if c:
+                delivered.append(float(c.get_timestamp()))
             if c and d:
                 apart = abs(float(c.get_timestamp()) - float(d.get_timestamp()))
                 if apart > tolerance_ms and c.get_frame_timestamp_domain() == d.get_frame_timestamp_domain():
                     number = int(c.get_frame_number())
-                    if number != last_number:
-                        self.left_out[number] = (f"no depth frame within {tolerance_ms:.1f} ms of this colour frame "
-                                                 f"(the SDK paired depth frame {d.get_frame_number()}, {apart:.1f} ms "
-                                                 f"away)")
-                        log.info("colour frame %d left out: %s", number, self.left_out[number])
-                    continue
+                    if number == last_number:
+                        continue
+                    self.left_out[number] = (f"no depth frame within {tolerance_ms:.1f} ms of this colour frame "
+                                             f"(the SDK paired depth frame {d.get_frame_number()}, {apart:.1f} ms "
+                                             f"away)")
+                    log.info("colour frame %d: %s", number, self.left_out[number])
+                    if lone is None:
+                        continue
+                    d = None  # its own depth frame may still come alone (then it is paired, and not left out)
+            if c and d:
                 if self._align is not None:
                     fs = self._align.process(fs)
                     c, d = fs.get_color_frame(), fs.get_depth_frame()
@@ -323,6 +381,14 @@ class RealSenseCamera:
             last_number = cf.number
             self.left_out.pop(cf.number, None)
             yield self._frame(cf, df, rs)
+
+    def _count_skipped(self, delivered_ms: list[float]) -> None:
+        """At the recording's end: `skipped`, the recorded colour frames the playback never delivered (its
+        pipeline can drop some on a loaded machine, and does at the recorded pace when frames are read slower)."""
+        self.skipped = skipped_frames(self._recorded_ms, delivered_ms) or [] if self._recorded_ms else []
+        if self.skipped:
+            log.info("%s: the playback skipped %d recorded frames (%s)", self.recording, len(self.skipped),
+                        ", ".join(self.skipped))
 
     def _frame(self, c: LoneFrame, d: LoneFrame, rs: Any) -> CameraFrame:
         """The CameraFrame of a colour and a depth frame: RGB colour, depth in millimetres aligned to colour."""

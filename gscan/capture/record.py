@@ -2,10 +2,11 @@
 
 The folder is the capture layout `gscan scan` reads: `cam_K.txt` (the colour intrinsics), `rgb/NNNNNN.png`
 (RGB), `depth/NNNNNN.png` (uint16 millimetres, aligned to colour), plus `capture.json` (device, streams,
-depth scale, the keep rule, each kept frame's device frame number and timestamp, and the colour frames left out
-for want of their depth, with the reason: `RealSenseCamera.frames`). It is valid at every
-moment: cam_K.txt is written before the first frame, and each frame's two images are written to hidden
-temporary files and renamed into place, depth before colour (a frame exists once its colour image does).
+depth scale, the keep rule, each kept frame's device frame number and timestamp, the colour frames left out
+for want of their depth, with the reason, and a recording's frames its playback skipped: `RealSenseCamera`).
+It is valid at every moment: cam_K.txt is written before the first frame, and each frame's two images are
+written to hidden temporary files and renamed into place, depth before colour (a frame exists once its colour
+image does).
 So a capture stopped at any point (`stop` set, Ctrl+C) is a capture of the frames kept so far.
 
 Which frames are kept: every Nth (`every`), or those whose viewing direction moved by `min_angle_deg`
@@ -73,10 +74,13 @@ class CaptureResult:
     missing: list[str] = field(default_factory=list)  # the regions not yet seen, with what to do
     # colour frames delivered without their depth, not made frames: device frame number -> the reason
     left_out: dict[int, str] = field(default_factory=dict)
+    # a recording's frames its playback never delivered, by the names `gscan scan REC.bag` gives them
+    skipped: list[str] = field(default_factory=list)
 
     def to_json(self) -> dict:
         return {"output": str(self.output), "frames_seen": self.seen, "frames": len(self.kept),
                 "names": list(self.kept), "left_out": {str(n): why for n, why in self.left_out.items()},
+                "skipped": list(self.skipped),
                 "stopped": self.interrupted, "device": self.device,
                 "profile": self.profile, "coverage": {"covered": self.covered, "directions": self.directions,
                                                       "share": round(self.share, 4), "missing": list(self.missing)}}
@@ -179,10 +183,11 @@ def run_capture(camera: RealSenseCamera, output: str | Path, options: CaptureOpt
         meta = {"device": camera.device, "source": str(camera.recording) if camera.recording else "live",
                 "profile": camera.profile, "depth_scale_m": camera.depth_scale, "depth_units": "mm",
                 "keep": rule, "frames_seen": seen, "frames": frames_meta,
-                "left_out": {str(n): why for n, why in sorted(camera.left_out.items())}}
+                "left_out": {str(n): why for n, why in sorted(camera.left_out.items())}, "skipped": camera.skipped}
         _write_atomic(output / "capture.json", (json.dumps(meta, indent=1) + "\n").encode())
     cov = tracker.coverage.map()
     log.info("%s: kept %d of %d frames, %d of %d directions covered", output, len(writer.names), seen, cov.covered,
              len(cov.counts))
     return CaptureResult(output, seen, list(writer.names), interrupted, camera.device, camera.profile, cov.covered,
-                         len(cov.counts), cov.share, cov.missing(), dict(sorted(camera.left_out.items())))
+                         len(cov.counts), cov.share, cov.missing(), dict(sorted(camera.left_out.items())),
+                         list(camera.skipped))

@@ -82,5 +82,10 @@ def capture(
         f"{result.covered} of {result.directions} viewing directions covered")
     for number, why in result.left_out.items():
         say(("left out:", "yellow"), f" colour frame {number}: {why}")
+    if result.skipped:
+        why = ("played at the recorded pace, frames read too slowly are dropped as a live camera's are" if real_time
+               else "play it again, or scan the recording itself")
+        say(("skipped:", "yellow"), f" the SDK's playback never delivered {len(result.skipped)} of the recording's "
+            f"frames ({', '.join(result.skipped)}, as scan names them): {why}")
     for words in result.missing:
         say(("missing:", "yellow"), f" {words}")
