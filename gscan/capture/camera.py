@@ -385,10 +385,10 @@ class RealSenseCamera:
     def _count_skipped(self, delivered_ms: list[float]) -> None:
         """At the recording's end: `skipped`, the recorded colour frames the playback never delivered (its
         pipeline can drop some on a loaded machine, and does at the recorded pace when frames are read slower)."""
-        self.skipped = skipped_frames(self._recorded_ms, delivered_ms) or [] if self._recorded_ms else []
+        self.skipped = (skipped_frames(self._recorded_ms, delivered_ms) or []) if self._recorded_ms else []
         if self.skipped:
             log.info("%s: the playback skipped %d recorded frames (%s)", self.recording, len(self.skipped),
-                        ", ".join(self.skipped))
+                     ", ".join(self.skipped))
 
     def _frame(self, c: LoneFrame, d: LoneFrame, rs: Any) -> CameraFrame:
         """The CameraFrame of a colour and a depth frame: RGB colour, depth in millimetres aligned to colour."""
