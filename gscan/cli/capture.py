@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
 
 import typer
 
@@ -33,8 +32,6 @@ def capture(
     """Record a capture folder from a RealSense camera (or a recording): the frames that moved enough, or every Nth.
 
     Ctrl+C ends the capture; the folder then holds the frames kept so far, a capture `gscan scan` reads."""
-    import signal
-    import threading
     from dataclasses import replace
 
     setup_logging(verbose)
@@ -58,20 +55,15 @@ def capture(
         camera.check()  # a missing camera is named before the preview starts
         viewer = CapturePreview(host, port)
         say("preview at ", (viewer.url, "bold"))
-    stop = threading.Event()
+    from gscan.signals import stop_on
 
-    def on_sigint(signum: int, frame: Any) -> None:  # the first Ctrl+C ends the capture; a second one aborts
-        stop.set()
-        signal.signal(signal.SIGINT, signal.default_int_handler)
-
-    previous = signal.signal(signal.SIGINT, on_sigint)
     try:
-        result = run_capture(camera, output, opts, stop=stop, on_frame=viewer.update if viewer else None)
+        with stop_on() as stop:  # the first Ctrl+C ends the capture; a second one aborts
+            result = run_capture(camera, output, opts, stop=stop, on_frame=viewer.update if viewer else None)
     except KeyboardInterrupt:
         say_interrupted("interrupted: nothing was written")
         raise
     finally:
-        signal.signal(signal.SIGINT, previous)
         if viewer is not None:
             viewer.stop()
     if json_out:

@@ -4,8 +4,7 @@ from __future__ import annotations
 import signal
 import threading
 import time
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -14,6 +13,7 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 
 from gscan.ros2.node import PoseNode, TemplateTrack, init_context
 from gscan.ros2.play import Player
+from gscan.signals import stop_on
 
 #: after a recording's last message: how long the node may take to receive what is still on its way (s)
 ARRIVAL_S = 2.0
@@ -30,34 +30,12 @@ def run(tracks: list[TemplateTrack], ros_args: list[str] | None = None, play: Pa
     # rclpy's calls could leave one of its locks held and the shutdown waiting on it
     ctx = init_context(["gscan", *(ros_args or [])], domain_id, signals=False)
     executor = SingleThreadedExecutor(context=ctx)
-    with _stop_signals() as stop:
+    with stop_on((signal.SIGINT, signal.SIGTERM)) as stop:
         try:
             return _spin(ctx, executor, tracks, play, rate, on_ready, stop)
         finally:
             executor.shutdown()
             rclpy.try_shutdown(context=ctx)
-
-
-@contextmanager
-def _stop_signals() -> Iterator[threading.Event]:
-    """An event set by the first Ctrl+C or SIGTERM while in the block (a second Ctrl+C raises KeyboardInterrupt);
-    the previous handlers back after it. Off the main thread no handler can be set: the event is only the
-    caller's."""
-    stop = threading.Event()
-    if threading.current_thread() is not threading.main_thread():
-        yield stop
-        return
-
-    def on_signal(signum: int, frame: object) -> None:
-        stop.set()
-        signal.signal(signal.SIGINT, signal.default_int_handler)
-
-    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        yield stop
-    finally:
-        for s, handler in previous.items():
-            signal.signal(s, handler)
 
 
 def _spin(ctx: Any, executor: SingleThreadedExecutor, tracks: list[TemplateTrack], play: Path | None,
