@@ -28,6 +28,7 @@ import numpy as np
 from gscan.errors import InputError
 from gscan.io.align import align_depth_to_color
 from gscan.io.camera import DepthCamera, Intrinsics
+from gscan.io.recordings.pairing import pair_frames
 from gscan.io.recordings.streams import is_identity, recorded_depth_camera, same_intrinsics
 
 log = logging.getLogger(__name__)
@@ -129,21 +130,19 @@ class LonePairer:
 def skipped_frames(expected_ms: dict[str, float], delivered_ms: list[float], tolerance_ms: float = 1.0
                    ) -> list[str] | None:
     """The recording's colour frames (name -> camera timestamp, ms: as `gscan scan REC.bag` names and reads them)
-    that the playback never delivered (`delivered_ms`: the colour timestamps it delivered, within `tolerance_ms`),
-    in name order; None when the two cannot be compared: fewer than half the frames delivered match a recorded
-    one (the SDK reads its timestamps from another clock than gscan's reader found)."""
-    recorded = np.sort(np.fromiter(expected_ms.values(), np.float64, len(expected_ms)))
-    got = np.sort(np.asarray(delivered_ms, np.float64))
+    that the playback never delivered (`delivered_ms`: the colour timestamps it delivered; paired one to one within
+    `tolerance_ms`, as a recording's streams are: `pair_frames`), in name order; None when the two cannot be
+    compared: fewer than half the frames delivered match a recorded one (the SDK reads its timestamps from another
+    clock than gscan's reader found)."""
+    names = list(expected_ms)
+    recorded = np.rint(np.array(list(expected_ms.values()), np.float64) * 1e6).astype(np.int64)
+    got = np.unique(np.rint(np.asarray(delivered_ms, np.float64) * 1e6).astype(np.int64))  # ns, each frame once
     if len(recorded) == 0 or len(got) == 0:
         return None
-
-    def near(a: np.ndarray, b: np.ndarray) -> np.ndarray:  # [len(a)] bool: within tolerance of some b
-        i = np.clip(np.searchsorted(b, a), 1, len(b) - 1) if len(b) > 1 else np.zeros(len(a), np.int64)
-        return np.minimum(np.abs(a - b[i]), np.abs(a - b[np.maximum(i - 1, 0)])) <= tolerance_ms
-
-    if 2 * int(near(got, recorded).sum()) < len(got):
+    pairs = pair_frames(recorded, got, tolerance_ms * 1e-3)
+    if 2 * len(pairs) < len(got):
         return None
-    return sorted(n for n, t in expected_ms.items() if not near(np.array([t]), got)[0])
+    return sorted(n for i, n in enumerate(names) if i not in pairs)
 
 
 def _rs() -> Any:
