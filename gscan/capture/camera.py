@@ -205,7 +205,6 @@ class RealSenseCamera:
         # a recording's colour frames its playback never delivered (their names, as `gscan scan REC.bag` gives
         # them: `skipped_frames`), once it has ended; empty when none or when that cannot be told
         self.skipped: list[str] = []
-        self._recorded_ms: dict[str, float] = {}  # the recording's colour frames, as gscan's reader finds them
 
     def _where(self) -> Path | None:
         return self.recording
@@ -226,7 +225,6 @@ class RealSenseCamera:
         self.check()
         cfg = rs.config()
         if self.recording is not None:
-            self._recorded_ms = _recorded_colour_ms(self.recording)
             cfg.enable_device_from_file(str(self.recording), repeat_playback=False)
             w, h, fps = o.width or 0, o.height or 0, o.fps or 0
         else:
@@ -384,7 +382,8 @@ class RealSenseCamera:
     def _count_skipped(self, delivered_ms: list[float]) -> None:
         """At the recording's end: `skipped`, the recorded colour frames the playback never delivered (its
         pipeline can drop some on a loaded machine, and does at the recorded pace when frames are read slower)."""
-        self.skipped = (skipped_frames(self._recorded_ms, delivered_ms) or []) if self._recorded_ms else []
+        recorded = _recorded_colour_ms(self.recording) if self.recording is not None else {}
+        self.skipped = skipped_frames(recorded, delivered_ms) or []
         if self.skipped:
             log.info("%s: the playback skipped %d recorded frames (%s)", self.recording, len(self.skipped),
                      ", ".join(self.skipped))
