@@ -180,14 +180,14 @@ def run_capture(camera: RealSenseCamera, output: str | Path, options: CaptureOpt
                 raise KeyboardInterrupt
             raise InputError(camera.recording, f"no frame delivered ({seen} seen)")
         rule = {"every": options.every} if options.every else {"min_angle_deg": options.motion.min_angle_deg}
+        left_out = dict(sorted(camera.left_out.items()))
         meta = {"device": camera.device, "source": str(camera.recording) if camera.recording else "live",
                 "profile": camera.profile, "depth_scale_m": camera.depth_scale, "depth_units": "mm",
                 "keep": rule, "frames_seen": seen, "frames": frames_meta,
-                "left_out": {str(n): why for n, why in sorted(camera.left_out.items())}, "skipped": camera.skipped}
+                "left_out": {str(n): why for n, why in left_out.items()}, "skipped": camera.skipped}
         _write_atomic(output / "capture.json", (json.dumps(meta, indent=1) + "\n").encode())
     cov = tracker.coverage.map()
     log.info("%s: kept %d of %d frames, %d of %d directions covered", output, len(writer.names), seen, cov.covered,
              len(cov.counts))
     return CaptureResult(output, seen, list(writer.names), interrupted, camera.device, camera.profile, cov.covered,
-                         len(cov.counts), cov.share, cov.missing(), dict(sorted(camera.left_out.items())),
-                         list(camera.skipped))
+                         len(cov.counts), cov.share, cov.missing(), left_out, list(camera.skipped))
