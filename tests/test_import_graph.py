@@ -16,7 +16,8 @@ PACKAGE = ROOT / "gscan"
 
 # earliest first; a module belongs to the longest prefix listed
 STAGES: list[tuple[str, ...]] = [
-    ("gscan.errors", "gscan.progress", "gscan._lazy", "gscan._version", "gscan.threads", "gscan.settings"),
+    ("gscan.errors", "gscan.progress", "gscan._lazy", "gscan._version", "gscan.threads", "gscan.settings",
+     "gscan.signals"),
     ("gscan.geometry",),
     ("gscan.io",),
     ("gscan.capture",),  # records captures from a camera or a recording (input, like io)
