@@ -168,9 +168,11 @@ class Registrar:
     """Pairwise registration of frame pairs into edges handed to `sink`, with the evidence the pose graph weighs
     them by.
 
-    A resumed scan reuses the edges the interrupted run stored (`stored`, kept in `done`); `restored` holds those it
-    had pruned by the pose graph, put back for this run's pose graph to judge; `evidence` holds the accepted edges'
-    computed here (`optimise` computes that of stored ones). `ahead`: pairs submitted to the pool and not yet
+    A resumed scan reuses the edges the interrupted run stored (`stored`, kept in `done`); `restored` holds the
+    edges stored with another verdict than this run's: those the interrupted run had pruned by the pose graph, put
+    back for this run's pose graph to judge, and the loop closures the capture's steady motion admitted
+    (`gscan.registration.sequence.admit_by_motion`); `evidence` holds the accepted edges' computed here (`optimise`
+    computes that of stored ones). `ahead`: pairs submitted to the pool and not yet
     consumed. Loop closures: one the depth alone decides is refused (`LOOP_DEPTH_ONLY`); one whose frames are plain
     (fewer than `min_print_keypoints` image keypoints: the scan's `features.auto_min_keypoints`) or whose pose the
     texture did not judge is refused when the views do not refute the object's half turns (`LOOP_TURN`,

@@ -188,7 +188,8 @@ class SequenceParams:
     alpha: Annotated[float, Field(gt=0, lt=1, description="an edge is inconsistent with the others when its chi^2 is "
                                   "beyond the (1 - alpha) quantile (6 degrees of freedom)")] = _PG.alpha
     bridge_min_matches: Annotated[int, Field(ge=3, description="an edge that alone joins two parts of the graph needs "
-                                             "this many matches; weaker, it is cut and the parts reported")] = (
+                                             "this many matches, or the capture's steady motion pinning it; weaker, it "
+                                             "is cut and the parts reported")] = (
         2 * RegisterParams().min_matches)
     max_skip: Annotated[int, Field(ge=1, le=32, description="a frame is tried against up to this many preceding "
                                    "frames, its predecessor first, until one is accepted")] = 3
@@ -196,6 +197,11 @@ class SequenceParams:
                                           "registered to (the views nearest its own); 0 = none")] = 2
     pilot_pairs: Annotated[int, Field(ge=0, le=256, description="sequential pairs, spread over the capture, whose "
                                       "residuals fit the capture's noise (estimate_noise)")] = 8
+    steady_min_steps: Annotated[int, Field(ge=2, description="accepted edges of consecutive frames needed to measure "
+                                           "the capture's steady motion (fewer: none is used)")] = 8
+    steady_sigmas: Annotated[float, Field(gt=0, description="an edge agrees with the capture's steady motion when it "
+                                          "lies within this many of the prediction's spreads, in rotation and "
+                                          "translation")] = 3.0
     odometry_sigmas: Annotated[float, Field(gt=0, description="a loop edge is rejected when it turns the view "
                                             "against the capture's odometry by more than this many of registration's "
                                             "largest accepted rotation sigmas per frame between its two")] = 5.0

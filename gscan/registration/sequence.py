@@ -4,7 +4,9 @@
   (`max_skip` frames in all), then loop closures chosen by view overlap and bag-of-words votes
   (`gscan.registration.loops`); each edge by `gscan.registration.pairwise`, handed to the sink as computed
 - noise (`capture_noise`): the capture's own keypoint and depth noise, from a few sequential pairs
-- pose graph (`optimise_sequence`): edges that contradict the capture's odometry are rejected, the rest
+- pose graph (`optimise_sequence`): edges that contradict the capture's odometry are rejected, loop closures
+  the depth alone decided that the capture's steady motion tells from the object's turns accepted
+  (`admit_by_motion`), the rest
   optimised robustly (`gscan.registration.posegraph`); a frame it cuts loose is registered to
   `second_opinions` more frames and the graph optimised again; frames not joined to the reference stay
   without a pose, each with its reason
@@ -27,12 +29,15 @@ from gscan.registration.dense import plane_residuals
 from gscan.registration.edge import PRUNED, Edge
 from gscan.registration.edges import (
     AGAINST_ODOMETRY,
+    LOOP_DEPTH_ONLY,
+    SEQUENTIAL_MAX_TURN_DEG,
     Evidence,
     Registrar,
     SequenceFrames,
     edge_evidence,
 )
 from gscan.registration.loops import select_loop_candidates
+from gscan.registration.motion import SteadyMotion, steady_motion
 from gscan.registration.noise import DepthNoise, estimate_noise
 from gscan.registration.pairwise import RegisterParams, register_features
 from gscan.registration.params import LoopParams, PoseGraphParams, SequenceParams  # noqa: F401 - its importers read it here too
@@ -53,8 +58,8 @@ NO_KEYPOINTS = "no keypoint with depth (dark or textureless image, or no valid d
 class SequenceResult:
     """A registered sequence: its edges (registration's and the pose graph's verdicts), T_world_cam [4 x 4] per
     frame (None: unregistered), each registered frame's quality in [0, 1], the pose graph's result, why each
-    unregistered frame is, the frames of the parts not joined to the reference, and the edges a resumed run
-    restored (stored pruned, judged again)."""
+    unregistered frame is, the frames of the parts not joined to the reference, and the edges whose stored verdict
+    this run changed (pruned ones a resumed run restored, loop closures the steady motion admitted)."""
 
     edges: list[Edge]
     T_world_cam: list[np.ndarray | None]
@@ -195,12 +200,69 @@ def against_odometry(n: int, edges: list[Edge], index: dict[str, int], max_sigma
                         f"their drift reaches {bound:.0f} deg at most)")
 
 
+def capture_motion(edges: list[Edge], index: dict[str, int], min_steps: int) -> SteadyMotion | None:
+    """The capture's steady motion (`gscan.registration.motion`) from the edges between consecutive frames that
+    registration accepted (the pose graph's verdict aside: the same steps however often the graph is optimised);
+    None with fewer than `min_steps` of them."""
+    return steady_motion([e.T_tgt_src for e in edges if e.kind == "sequential" and e.T_tgt_src is not None
+                          and (e.accepted or e.pruned) and index[e.tgt] - index[e.src] == 1], min_steps)
+
+
+def admit_by_motion(motion: SteadyMotion, edges: list[Edge], index: dict[str, int], sigmas: float,
+                    min_matches: int) -> list[Edge]:
+    """Accepts the loop closures the depth alone decided, refused as ambiguous (`LOOP_DEPTH_ONLY`: a plain box's
+    half turn fits its depth as well), whose pose the capture's steady motion tells from the object's turns: the
+    pose lies within `sigmas` of the prediction's spreads over its frames' gap, and that bound D stays below half a
+    quarter turn, so each turn, at least 90 deg from the pose, lies at least 90 - D > D from the prediction (the
+    assumption of a sequential edge over skipped frames, `gscan.registration.edges.Registrar`: the capture turns
+    as its accepted steps do). Only on `min_matches` or more (`bridge_min_matches`): the prediction over many
+    frames tells the turns apart, not a slide of a centimetre, and two loop closures on a plain box's 7-8 image
+    keypoints, 0.7-1.5 deg off, together joined two parts 2 cm apart. Not those on image keypoints of plain frames
+    (`LOOP_TURN`): 12 of a plain box's corners and rims placed one 1.3 deg off. Returns them."""
+    admitted = []
+    for e in edges:
+        if (e.accepted or e.kind != "loop" or e.T_tgt_src is None or e.reason != LOOP_DEPTH_ONLY
+                or len(e.matches) < min_matches):
+            continue
+        gap = index[e.tgt] - index[e.src]
+        if gap < 1 or sigmas * motion.sigma(gap)[0] >= SEQUENTIAL_MAX_TURN_DEG / 2:
+            continue
+        if motion.agrees(e.T_tgt_src, gap, sigmas):
+            e.accepted, e.reason, e.depth_only = True, None, True
+            admitted.append(e)
+    return admitted
+
+
+def bridge_strength(motion: SteadyMotion | None, e: Edge, gap: int, depth: float, rparams: RegisterParams,
+                    params: SequenceParams) -> bool:
+    """Whether edge e (over `gap` frames, its points `depth` m away) has evidence enough to join two parts of the
+    pose graph alone: enough matches (`bridge_min_matches`; its depth agreement is a condition of every accepted
+    edge), or the capture's steady motion pinning its pose over the gap as tightly as registration asks of an edge
+    (`max_sigma_deg`, `max_sigma_rel` of the depth) and e agreeing with it (within `steady_sigmas` of the
+    spreads)."""
+    if len(e.matches) >= params.bridge_min_matches:
+        return True
+    if motion is None or e.T_tgt_src is None or gap < 1:
+        return False
+    s_deg, s_m = motion.sigma(gap)
+    return (s_deg <= rparams.max_sigma_deg and s_m <= rparams.max_sigma_rel * depth
+            and motion.agrees(e.T_tgt_src, gap, params.steady_sigmas))
+
+
 def _optimise(reg: Registrar, edges: list[Edge], index: dict[str, int], params: SequenceParams
               ) -> tuple[list[np.ndarray | None], dict[int, float], PoseGraphResult]:
-    """Pose graph over accepted edges (those that contradict the odometry rejected first, `against_odometry`)
+    """Pose graph over accepted edges (those that contradict the odometry rejected first, `against_odometry`;
+    loop closures the capture's steady motion tells from the object's turns accepted, `admit_by_motion`)
     -> (T_world_cam per frame or None, quality in [0, 1] per frame, the pose graph's result with edge indices
     into the accepted edges)."""
     n, rparams, evidence = len(reg.names), reg.rparams, reg.evidence
+    motion = capture_motion(edges, index, params.steady_min_steps)
+    if motion is not None:
+        admitted = admit_by_motion(motion, edges, index, params.steady_sigmas, params.bridge_min_matches)
+        reg.restored |= {(e.src, e.tgt) for e in admitted}  # stored refused: written again with this verdict
+        log.info("steady motion: %.2f deg a frame (spread %.2f deg, %.1f mm over %d steps); %d loop closures it "
+                 "tells from the object's turns", rotation_angle_deg(motion.T_step), motion.sigma_deg,
+                 1000 * motion.sigma_m, motion.steps, len(admitted))
     against_odometry(n, edges, index, rparams.max_sigma_deg, params.odometry_sigmas)
     use = [e for e in edges if e.accepted and e.T_tgt_src is not None]
     graph = []
@@ -212,10 +274,8 @@ def _optimise(reg: Registrar, edges: list[Edge], index: dict[str, int], params: 
         if ev is None:  # an edge a resumed scan took from the database
             ev = evidence[(e.src, e.tgt)] = edge_evidence(e, reg.frames.reg(i), reg.frames.reg(j), rparams)
         found.append(ev)
-        # an edge may join two parts of the graph alone only on strong evidence: enough matches (its depth
-        # agreement is already a condition of every accepted edge)
-        graph.append(GraphEdge(i, j, e.T_tgt_src, ev.info, strong=len(e.matches) >= params.bridge_min_matches,
-                               weight=len(e.matches), depth=ev.depth))
+        strong = bridge_strength(motion, e, j - i, ev.depth, rparams, params)
+        graph.append(GraphEdge(i, j, e.T_tgt_src, ev.info, strong=strong, weight=len(e.matches), depth=ev.depth))
     res = optimize_pose_graph(n, graph, spanning_poses(n, graph), params.graph_params())
     best: dict[int, float] = {}
     for rep, e, ev in zip(res.edges, use, found, strict=True):
