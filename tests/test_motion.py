@@ -158,6 +158,9 @@ def test_a_plain_box_on_a_turntable_closes_its_ring_by_its_steady_motion(tmp_pat
         poses = {n: np.asarray(T) for n, T in db.poses()["frames"].items()}
         edges = db.edges()
     assert len(poses) >= 0.9 * 36, res.unregistered_reasons
+    # the summary says what the motion decided: a 10 deg step, the loop closures it told from the turns
+    motion = res.to_json()["motion"]
+    assert abs(motion["step_deg"] - 10.0) < 0.5 and motion["spread_deg"] < 1.0 and motion["loop_closures"] >= 1
     assert not frame_errors(poses, {n: gt[n] for n in poses}).wrong(5.0, 0.02)
     # the loop closures the motion admitted are stored as accepted; those at a half turn stay refused
     index = {n: k for k, n in enumerate(sorted(gt))}

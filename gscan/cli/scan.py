@@ -156,6 +156,11 @@ def print_scan_summary(result: Any) -> None:
                if kp.get("chosen_by") == "auto" and kp.get("median_image_keypoints") is not None else "configured")
         say(("keypoints:", "bold"), f" {kp['source']} ({why}); {kp.get('depth_only_edges', 0)} accepted edges decided "
             "by the depth alone (a plain surface: no texture to check them)")
+    mo = result.motion
+    if mo and mo["loop_closures"]:  # the steady motion decided loop closures the views could not
+        say(("steady motion:", "bold"), f" {mo['step_deg']:.1f} deg a frame (spread {mo['spread_deg']:.2f} deg / "
+            f"{mo['spread_mm']:.1f} mm over {mo['steps']} steps); {mo['loop_closures']} loop closures told from the "
+            "object's turns by it")
     cam = result.camera
     if cam is not None:
         say(*camera_line(cam))

@@ -189,6 +189,7 @@ class Registrar:
         self.names = list(frames.names)
         self.done = {(e.src, e.tgt): e for e in stored}
         self.restored: set[tuple[str, str]] = set()
+        self.by_motion: set[tuple[str, str]] = set()  # loop closures the steady motion admitted (in restored too)
         self.evidence: dict[tuple[str, str], Evidence] = {}
         self.written = 0  # edges handed to the sink so far (committed every COMMIT_ROWS)
         self.largest_step: float | None = None

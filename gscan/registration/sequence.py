@@ -58,8 +58,10 @@ NO_KEYPOINTS = "no keypoint with depth (dark or textureless image, or no valid d
 class SequenceResult:
     """A registered sequence: its edges (registration's and the pose graph's verdicts), T_world_cam [4 x 4] per
     frame (None: unregistered), each registered frame's quality in [0, 1], the pose graph's result, why each
-    unregistered frame is, the frames of the parts not joined to the reference, and the edges whose stored verdict
-    this run changed (pruned ones a resumed run restored, loop closures the steady motion admitted)."""
+    unregistered frame is, the frames of the parts not joined to the reference, the edges whose stored verdict
+    this run changed (pruned ones a resumed run restored, loop closures the steady motion admitted), and the
+    capture's steady motion with the loop closures it decided that stayed accepted (`SteadyMotion.to_json`; None
+    with too few consecutive edges)."""
 
     edges: list[Edge]
     T_world_cam: list[np.ndarray | None]
@@ -68,6 +70,7 @@ class SequenceResult:
     unregistered_reasons: dict[str, str]
     parts: list[list[str]]
     restored: set[tuple[str, str]]
+    motion: dict | None = None
 
 
 def capture_noise(frames: SequenceFrames, params: RegisterParams, pilot_pairs: int, pool: ThreadPoolExecutor
@@ -259,7 +262,8 @@ def _optimise(reg: Registrar, edges: list[Edge], index: dict[str, int], params: 
     motion = capture_motion(edges, index, params.steady_min_steps)
     if motion is not None:
         admitted = admit_by_motion(motion, edges, index, params.steady_sigmas, params.bridge_min_matches)
-        reg.restored |= {(e.src, e.tgt) for e in admitted}  # stored refused: written again with this verdict
+        reg.by_motion |= {(e.src, e.tgt) for e in admitted}
+        reg.restored |= reg.by_motion  # stored refused: written again with this verdict
         log.info("steady motion: %.2f deg a frame (spread %.2f deg, %.1f mm over %d steps); %d loop closures it "
                  "tells from the object's turns", rotation_angle_deg(motion.T_step), motion.sigma_deg,
                  1000 * motion.sigma_m, motion.steps, len(admitted))
@@ -340,8 +344,11 @@ def optimise_sequence(reg: Registrar, edges: list[Edge], params: SequenceParams,
     index = {nm: k for k, nm in enumerate(reg.names)}
     T_world_cam, quality, graph = _optimise_with_second_opinions(reg, pool, edges, index, params)
     names = reg.names
+    motion = capture_motion(edges, index, params.steady_min_steps)
+    decided = sum(1 for e in edges if e.accepted and (e.src, e.tgt) in reg.by_motion)
     return SequenceResult(edges, T_world_cam, quality, graph, unregistered_reasons(reg.frames, edges, graph, index),
-                          [[names[k] for k in part] for part in graph.parts], reg.restored)
+                          [[names[k] for k in part] for part in graph.parts], reg.restored,
+                          None if motion is None else motion.to_json(decided))
 
 
 def _optimise_with_second_opinions(reg: Registrar, pool: ThreadPoolExecutor, edges: list[Edge],

@@ -142,6 +142,9 @@ class ScanResult:
     # accepted edges of this run that the depth alone decided (`gscan.registration.pairwise`); with depth keypoints
     # on the keyframes, "object": "both" and "object_depth_size" (m) they and a query's are found at
     keypoints: dict = field(default_factory=dict)
+    # the first capture's steady motion and the loop closures it decided (`SequenceResult.motion`); None: too few
+    # accepted consecutive edges to measure one
+    motion: dict | None = None
 
     def to_json(self) -> dict:
         """The `scan --json` object of the CLI contract."""
@@ -154,7 +157,8 @@ class ScanResult:
                 "timings_s": {k: round(v, 3) for k, v in self.timings_s.items()},
                 "skipped": dict(self.problems), "keyframes": self.keyframes, "selection": dict(self.selection),
                 "camera": self.camera, "coverage": self.coverage, "symmetries": self.symmetries.to_json(),
-                "object": self.object, "damage": list(self.damage), "keypoints": dict(self.keypoints)} | (
+                "object": self.object, "damage": list(self.damage), "keypoints": dict(self.keypoints),
+                "motion": self.motion} | (
                     {"captures": list(self.captures)} if self.captures else {})
 
 
@@ -224,6 +228,7 @@ class _Registered:
     # frames skipped by selection: name -> T_world_cam found by registration to their reference, or why not
     placed: dict[str, np.ndarray | str] = field(default_factory=dict)
     chosen: ChosenObject | None = None  # the object segmentation chose, and why
+    motion: dict | None = None  # the capture's steady motion (`SequenceResult.motion`)
 
 
 def run_scan(sources: Path | Sequence[Path], output: Path, opts: ScanOptions,
@@ -471,7 +476,8 @@ def _scan_frames(caps: list[_Capture], output: Path, opts: ScanOptions, db: Temp
                       unregistered_reasons=reasons | problems, parts=parts, noise=first.reg.rparams.noise,
                       selection=selection.summary(), coverage=coverage.to_json(), symmetries=symmetries,
                       damage=[line for cap in caps if cap.seq is not None for line in cap.seq.damage],
-                      captures=_captures_summary(caps, db, opts.append), object=chosen, keypoints=keypoints)
+                      captures=_captures_summary(caps, db, opts.append), object=chosen, keypoints=keypoints,
+                      motion=first.reg.motion)
 
 
 def _captures_summary(caps: list[_Capture], db: TemplateDB, append: bool) -> list[dict]:
@@ -583,7 +589,7 @@ def _register_capture(cap: _Capture, opts: ScanOptions, db: TemplateDB, store: F
         seg = replace(cfg.segmentation, depth_noise=rparams.depth_noise)  # the capture's own
         mask_of, plane_world, chosen = _segment(data, res.T_world_cam, opts.segment, seg, advance, cap.hint)
     cap.reg = _Registered(res.T_world_cam, mask_of, plane_world, res.quality, res.unregistered_reasons, res.parts,
-                          res.edges, res.restored, rparams, chosen=chosen)
+                          res.edges, res.restored, rparams, chosen=chosen, motion=res.motion)
     with timer.stage("place", total=len(cap.skipped)) as advance:
         cap.reg.placed = _place_skipped(cap, cfg.features, rparams, pool, advance)
 
