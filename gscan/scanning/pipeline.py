@@ -142,8 +142,8 @@ class ScanResult:
     # accepted edges of this run that the depth alone decided (`gscan.registration.pairwise`); with depth keypoints
     # on the keyframes, "object": "both" and "object_depth_size" (m) they and a query's are found at
     keypoints: dict = field(default_factory=dict)
-    # the first capture's steady motion and the loop closures it decided (`SequenceResult.motion`); None: too few
-    # accepted consecutive edges to measure one
+    # the steady motion of the first capture that measured one (an --append's stored template measures none) and the
+    # loop closures it decided (`SequenceResult.motion`); None: no capture had accepted consecutive edges enough
     motion: dict | None = None
 
     def to_json(self) -> dict:
@@ -477,7 +477,7 @@ def _scan_frames(caps: list[_Capture], output: Path, opts: ScanOptions, db: Temp
                       selection=selection.summary(), coverage=coverage.to_json(), symmetries=symmetries,
                       damage=[line for cap in caps if cap.seq is not None for line in cap.seq.damage],
                       captures=_captures_summary(caps, db, opts.append), object=chosen, keypoints=keypoints,
-                      motion=first.reg.motion)
+                      motion=next((c.reg.motion for c in caps if c.reg is not None and c.reg.motion), None))
 
 
 def _captures_summary(caps: list[_Capture], db: TemplateDB, append: bool) -> list[dict]:
