@@ -252,21 +252,17 @@ def bridge_strength(motion: SteadyMotion | None, e: Edge, gap: int, depth: float
             and motion.agrees(e.T_tgt_src, gap, params.steady_sigmas))
 
 
-def _optimise(reg: Registrar, edges: list[Edge], index: dict[str, int], params: SequenceParams
-              ) -> tuple[list[np.ndarray | None], dict[int, float], PoseGraphResult]:
+def _optimise(reg: Registrar, edges: list[Edge], index: dict[str, int], params: SequenceParams,
+              motion: SteadyMotion | None) -> tuple[list[np.ndarray | None], dict[int, float], PoseGraphResult]:
     """Pose graph over accepted edges (those that contradict the odometry rejected first, `against_odometry`;
     loop closures the capture's steady motion tells from the object's turns accepted, `admit_by_motion`)
     -> (T_world_cam per frame or None, quality in [0, 1] per frame, the pose graph's result with edge indices
     into the accepted edges)."""
     n, rparams, evidence = len(reg.names), reg.rparams, reg.evidence
-    motion = capture_motion(edges, index, params.steady_min_steps)
     if motion is not None:
         admitted = admit_by_motion(motion, edges, index, params.steady_sigmas, params.bridge_min_matches)
         reg.by_motion |= {(e.src, e.tgt) for e in admitted}
         reg.restored |= reg.by_motion  # stored refused: written again with this verdict
-        log.info("steady motion: %.2f deg a frame (spread %.2f deg, %.1f mm over %d steps); %d loop closures it "
-                 "tells from the object's turns", rotation_angle_deg(motion.T_step), motion.sigma_deg,
-                 1000 * motion.sigma_m, motion.steps, len(admitted))
     against_odometry(n, edges, index, rparams.max_sigma_deg, params.odometry_sigmas)
     use = [e for e in edges if e.accepted and e.T_tgt_src is not None]
     graph = []
@@ -342,20 +338,25 @@ def optimise_sequence(reg: Registrar, edges: list[Edge], params: SequenceParams,
     edges (the new ones overturned them) is cut again, its new edges rejected, and the graph optimised a third
     time without them."""
     index = {nm: k for k, nm in enumerate(reg.names)}
-    T_world_cam, quality, graph = _optimise_with_second_opinions(reg, pool, edges, index, params)
-    names = reg.names
+    # the steps are the same for every optimisation below: second opinions add loop closures only
     motion = capture_motion(edges, index, params.steady_min_steps)
+    T_world_cam, quality, graph = _optimise_with_second_opinions(reg, pool, edges, index, params, motion)
+    names = reg.names
     decided = sum(1 for e in edges if e.accepted and (e.src, e.tgt) in reg.by_motion)
+    if motion is not None:
+        log.info("steady motion: %.2f deg a frame (spread %.2f deg, %.1f mm over %d steps); %d loop closures it "
+                 "told from the object's turns", rotation_angle_deg(motion.T_step), motion.sigma_deg,
+                 1000 * motion.sigma_m, motion.steps, decided)
     return SequenceResult(edges, T_world_cam, quality, graph, unregistered_reasons(reg.frames, edges, graph, index),
                           [[names[k] for k in part] for part in graph.parts], reg.restored,
                           None if motion is None else motion.to_json(decided))
 
 
 def _optimise_with_second_opinions(reg: Registrar, pool: ThreadPoolExecutor, edges: list[Edge],
-                                   index: dict[str, int], params: SequenceParams
+                                   index: dict[str, int], params: SequenceParams, motion: SteadyMotion | None
                                    ) -> tuple[list[np.ndarray | None], dict[int, float], PoseGraphResult]:
     n = len(reg.names)
-    first = _optimise(reg, edges, index, params)
+    first = _optimise(reg, edges, index, params, motion)
     cut = cut_frames(n, edges, index, first[2])
     if not cut:
         return first
@@ -377,7 +378,7 @@ def _optimise_with_second_opinions(reg: Registrar, pool: ThreadPoolExecutor, edg
                 held.setdefault(k, []).append((e, why))
                 e.accepted, e.reason = True, None
     judged = [e for e in edges if e.accepted]
-    second = _optimise(reg, edges, index, params)
+    second = _optimise(reg, edges, index, params, motion)
     overturned = [k for k in cut if second[0][k] is not None and not any(e.accepted for e, _ in held.get(k, []))]
     if not overturned:
         return second
@@ -392,7 +393,7 @@ def _optimise_with_second_opinions(reg: Registrar, pool: ThreadPoolExecutor, edg
     for k in overturned:
         for e, why in held.get(k, []):
             e.accepted, e.reason = False, why
-    return _optimise(reg, edges, index, params)
+    return _optimise(reg, edges, index, params, motion)
 
 
 def unregistered_reasons(frames: SequenceFrames, edges: list[Edge], graph: PoseGraphResult,
