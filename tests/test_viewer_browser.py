@@ -397,7 +397,7 @@ def test_frustum_click_and_go_to_view(template):
                 assert moved() > 2.0  # the browser view moved
                 # Layer toggles: hide the frustums from the (collapsed) Layers folder.
                 page.get_by_text("Layers", exact=True).click()
-                page.locator(f"[id='{vp.gui_control_id(page, 'Frustums')}']").uncheck()  # waits for the opening folder
+                vp.uncheck(page, "Frustums")
                 t0 = time.perf_counter()
                 while any(h.visible for h in app.layers["frustums"]) and time.perf_counter() - t0 < 10:
                     time.sleep(0.1)
@@ -537,7 +537,7 @@ def test_instances_in_browser(template, tmp_path):
         # the instances (meshes and rank labels, drawn in WebGL) are what the Instances layer hides
         before = vp.canvas_region(vp.png_array(page.screenshot())).astype(int)
         page.get_by_text("Layers", exact=True).click()
-        page.locator(f"[id='{vp.gui_control_id(page, 'Instances')}']").uncheck()  # waits for the opening folder
+        vp.uncheck(page, "Instances")
 
         def changed() -> int:  # pixels of the 3D view that changed clearly (the instances cover a few thousand)
             after = vp.canvas_region(vp.png_array(page.screenshot())).astype(int)

@@ -90,6 +90,20 @@ def gui_control_id(page, label: str) -> str:
     return page.locator(f"xpath=//label[normalize-space()='{label}']").first.get_attribute("for")
 
 
+def uncheck(page, label: str, timeout_s: float = 20.0) -> None:
+    """Uncheck the viser checkbox labelled `label`. A click while its folder still opens, on a loaded machine, can
+    leave it checked (Playwright then raises): the state is read back and the click repeated until it holds."""
+    t0 = time.perf_counter()
+    while True:
+        box = page.locator(f"[id='{gui_control_id(page, label)}']")
+        if not box.is_checked():
+            return
+        if time.perf_counter() - t0 > timeout_s:
+            raise AssertionError(f"checkbox {label!r} still checked after {timeout_s:.0f} s")
+        box.click()
+        wait_until(lambda b=box: not b.is_checked(), 3.0)
+
+
 def gui_slider(page, label: str):
     """Locator of the thumb (role=slider) of the viser slider labelled `label`."""
     return page.locator(f"[id='{gui_control_id(page, label)}'] [role=slider]")
