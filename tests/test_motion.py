@@ -1,5 +1,6 @@
 """The capture's steady motion (gscan.registration.motion) and what a scan decides by it
-(gscan.registration.sequence): loop closures told from the object's turns, weak edges joining two parts."""
+(gscan.registration.sequence): loop closures told from the object's turns, edges the shape's checks refused, weak
+edges joining two parts."""
 from __future__ import annotations
 
 import numpy as np
@@ -11,11 +12,15 @@ from gscan.geometry.transforms import inv_T, rotation_angle_deg
 from gscan.registration.edge import Edge
 from gscan.registration.edges import LOOP_DEPTH_ONLY, LOOP_TURN
 from gscan.registration.motion import steady_motion
-from gscan.registration.pairwise import RegisterParams
+from gscan.registration.pairwise import NO_TEXTURE_VERDICT, RegisterParams, refused_by_shape
 from gscan.registration.params import SequenceParams
 from gscan.registration.sequence import admit_by_motion, bridge_strength, capture_motion
 
 NO_MATCHES = np.zeros((0, 2), np.int32)
+SILHOUETTE = (f"silhouette disagrees (9.6% of the samples land off the other frame's surface; {NO_TEXTURE_VERDICT}, "
+              "so at most 5.0%)")
+SEEN_THROUGH = (f"depth disagrees (0.8% of the overlap of 253 samples seen through; {NO_TEXTURE_VERDICT}, so at most "
+                "0.5%)")
 
 
 def _rot(axis: np.ndarray, deg: float) -> np.ndarray:
@@ -57,6 +62,10 @@ def _chain(T_world: list[np.ndarray]) -> list[Edge]:
 
 def _index(n: int) -> dict[str, int]:
     return {f"{k:06d}": k for k in range(n)}
+
+
+def _at_60cm(e: Edge) -> float:
+    return 0.6
 
 
 @settings(max_examples=25, deadline=None)
@@ -101,7 +110,7 @@ def test_a_loop_closure_the_steady_motion_tells_from_its_turns_is_accepted():
     edges = _chain(T) + [right, half, quarter, refuted, on_image]
     motion = capture_motion(edges, _index(36), 8)
     assert motion is not None
-    assert admit_by_motion(motion, edges, _index(36), 3.0, 0) == [right]
+    assert admit_by_motion(motion, edges, _index(36), 3.0, 0, RegisterParams(), _at_60cm) == [right]
     assert right.accepted and right.reason is None and right.depth_only
     assert not half.accepted and not quarter.accepted and not refuted.accepted and not on_image.accepted
 
@@ -114,7 +123,36 @@ def test_an_uneven_capture_decides_no_loop_closure():
     edges = _chain(T) + [loop]
     motion = capture_motion(edges, _index(36), 8)
     assert motion is not None and 3.0 * motion.sigma(28)[0] > 45.0
-    assert admit_by_motion(motion, edges, _index(36), 3.0, 0) == [] and not loop.accepted
+    assert admit_by_motion(motion, edges, _index(36), 3.0, 0, RegisterParams(), _at_60cm) == [] and not loop.accepted
+
+
+@pytest.mark.parametrize("jitter, off_deg, reason, admitted", [
+    (0.2, 0.0, SILHOUETTE, True), (0.2, 0.0, SEEN_THROUGH, True), (0.2, 3.0, SILHOUETTE, False),
+    (3.0, 0.0, SILHOUETTE, False),
+    (0.2, 0.0, "colour disagrees (the texture lines up in 3 of 10 tiles of the overlap)", False),
+    (0.2, 0.0, "too little depth overlap to verify the pose (40 samples)", False),
+    (0.2, 0.0, "weak geometry (the depth alone pins the pose to 1.6 deg and the pairs' points to 2.0 mm, beyond 1 deg /"
+               " 6.0 mm; the texture cannot judge the pose)", False)])
+def test_an_edge_the_shapes_checks_refused_stands_where_the_steady_motion_pins_it(jitter, off_deg, reason, admitted):
+    """A plain box seen edge on: the edge 7 -> 8, posed by the depth alone, refused by the silhouette or the depth
+    seen through (its rims lose depth). Where the steps scatter little (0.2 deg) the motion pins it within
+    registration's bounds and it is accepted where it agrees (not 3 deg off); where they scatter (3 deg) it stays
+    refused, and so do a texture verdict against it, too little overlap to check it and a pose the depth cannot
+    pin."""
+    T = _turntable(36, 10.0, jitter)
+    edge = _edge(T, 7, 8, reason=reason, turn_deg=off_deg)
+    edges = [e for e in _chain(T) if e.src != "000007"] + [edge]
+    motion = capture_motion(edges, _index(36), 8)
+    assert motion is not None
+    got = admit_by_motion(motion, edges, _index(36), 3.0, 12, RegisterParams(), _at_60cm)
+    assert got == ([edge] if admitted else [])
+    assert edge.accepted is admitted and edge.depth_only is admitted
+
+
+def test_the_shape_checks_reasons_are_told_apart():
+    assert refused_by_shape(SILHOUETTE) and refused_by_shape(SEEN_THROUGH)
+    assert not refused_by_shape(LOOP_DEPTH_ONLY) and not refused_by_shape(None)
+    assert not refused_by_shape("depth disagrees (3% of the overlap seen through)")  # a texture verdict was given
 
 
 @pytest.mark.parametrize("jitter, off_deg, matches, strong", [
@@ -160,7 +198,7 @@ def test_a_plain_box_on_a_turntable_closes_its_ring_by_its_steady_motion(tmp_pat
     assert len(poses) >= 0.9 * 36, res.unregistered_reasons
     # the summary says what the motion decided: a 10 deg step, the loop closures it told from the turns
     motion = res.to_json()["motion"]
-    assert abs(motion["step_deg"] - 10.0) < 0.5 and motion["spread_deg"] < 1.0 and motion["loop_closures"] >= 1
+    assert abs(motion["step_deg"] - 10.0) < 0.5 and motion["spread_deg"] < 1.0 and motion["decided_edges"] >= 1
     assert not frame_errors(poses, {n: gt[n] for n in poses}).wrong(5.0, 0.02)
     # the loop closures the motion admitted are stored as accepted; those at a half turn stay refused
     index = {n: k for k, n in enumerate(sorted(gt))}

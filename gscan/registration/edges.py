@@ -170,7 +170,7 @@ class Registrar:
 
     A resumed scan reuses the edges the interrupted run stored (`stored`, kept in `done`); `restored` holds the
     edges stored with another verdict than this run's: those the interrupted run had pruned by the pose graph, put
-    back for this run's pose graph to judge, and the loop closures the capture's steady motion admitted
+    back for this run's pose graph to judge, and the refused edges the capture's steady motion admitted
     (`gscan.registration.sequence.admit_by_motion`); `evidence` holds the accepted edges' computed here (`optimise`
     computes that of stored ones). `ahead`: pairs submitted to the pool and not yet
     consumed. Loop closures: one the depth alone decides is refused (`LOOP_DEPTH_ONLY`); one whose frames are plain
@@ -189,7 +189,7 @@ class Registrar:
         self.names = list(frames.names)
         self.done = {(e.src, e.tgt): e for e in stored}
         self.restored: set[tuple[str, str]] = set()
-        self.by_motion: set[tuple[str, str]] = set()  # loop closures the steady motion admitted (in restored too)
+        self.by_motion: set[tuple[str, str]] = set()  # refused edges the steady motion admitted (in restored too)
         self.evidence: dict[tuple[str, str], Evidence] = {}
         self.written = 0  # edges handed to the sink so far (committed every COMMIT_ROWS)
         self.largest_step: float | None = None

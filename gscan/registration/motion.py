@@ -47,11 +47,11 @@ class SteadyMotion:
         s_deg, s_m = self.sigma(gap)
         return deg <= sigmas * s_deg and m <= sigmas * s_m
 
-    def to_json(self, loop_closures: int) -> dict:
-        """`{step_deg, spread_deg, spread_mm, steps, loop_closures}`: the step's rotation, the spread, how many
-        edges measured them, and how many loop closures it decided (the scan's summary)."""
+    def to_json(self, decided: int) -> dict:
+        """`{step_deg, spread_deg, spread_mm, steps, decided_edges}`: the step's rotation, the spread, how many
+        edges measured them, and how many refused edges it vouched for (the scan's summary)."""
         return {"step_deg": round(rotation_angle_deg(self.T_step), 3), "spread_deg": round(self.sigma_deg, 3),
-                "spread_mm": round(1000 * self.sigma_m, 2), "steps": self.steps, "loop_closures": loop_closures}
+                "spread_mm": round(1000 * self.sigma_m, 2), "steps": self.steps, "decided_edges": decided}
 
 
 def steady_motion(steps: list[np.ndarray], min_steps: int) -> SteadyMotion | None:

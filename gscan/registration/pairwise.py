@@ -103,6 +103,14 @@ from gscan.registration.posegraph import information_from_points
 
 log = logging.getLogger(__name__)
 
+NO_TEXTURE_VERDICT = "the texture cannot judge the pose"  # in the reasons of the shape's checks of a depth-alone pose
+SHAPE_REFUSALS = ("depth disagrees", "silhouette disagrees", "outline disagrees")  # those checks' reasons begin so
+
+
+def refused_by_shape(reason: str | None) -> bool:
+    """Whether `reason` is the refusal of a pose the depth alone decided, pinned as tightly as rule 2 asks, by one of
+    the shape's checks (`_judge_on_depth`: the depth seen through, the silhouette, the outline)."""
+    return reason is not None and reason.startswith(SHAPE_REFUSALS) and NO_TEXTURE_VERDICT in reason
 
 
 @dataclass
@@ -350,22 +358,23 @@ def _judge_on_depth(out: PairResult, T_tgt_src: np.ndarray, dense: tuple[DenseGe
                    f"{out.sigma_m * 1000:.1f} mm, beyond {params.max_sigma_deg:g} deg / "
                    f"{params.max_sigma_rel * depth * 1000:.1f} mm; the texture cannot judge the pose)")
     a = out.agreement = depth_agreement(dense[0], dense[1], T, params.depth_noise_ray)
-    if a.see_through_fraction > params.max_see_through_shape or a.consistent + a.see_through < params.min_overlap:
+    if a.consistent + a.see_through < params.min_overlap:
+        return T, f"too little depth overlap to verify the pose ({a.consistent + a.see_through} samples)"
+    if a.see_through_fraction > params.max_see_through_shape:
         return T, (f"depth disagrees ({a.see_through_fraction:.1%} of the overlap of {a.consistent + a.see_through} "
-                   f"samples seen through; the texture cannot judge the pose, so at most "
-                   f"{params.max_see_through_shape:.1%})")
+                   f"samples seen through; {NO_TEXTURE_VERDICT}, so at most {params.max_see_through_shape:.1%})")
     c = out.colour = colour_agreement(dense[0], dense[1], T, params.depth_noise)
     if c.refutes(params.min_colour_tiles, params.min_colour_agreement):
         return T, f"colour disagrees (the texture lines up in {c.agreeing} of {c.informative} tiles of the overlap)"
     off = out.outside = outside_silhouette(dense[0], dense[1], T)
     if off > params.max_outside_shape:
-        return T, (f"silhouette disagrees ({off:.1%} of the samples land off the other frame's surface; the texture "
-                   f"cannot judge the pose, so at most {params.max_outside_shape:.1%})")
+        return T, (f"silhouette disagrees ({off:.1%} of the samples land off the other frame's surface; "
+                   f"{NO_TEXTURE_VERDICT}, so at most {params.max_outside_shape:.1%})")
     margin = 3.0 * out.sigma_m
     off = outside_outline(dense[0], dense[1], T, margin)
     if off > params.max_outside_outline:
         return T, (f"outline disagrees ({off:.1%} of the rim points land over {margin * 1000:.1f} mm, three times "
-                   f"the pose's sigma, off the other frame's outline; the texture cannot judge the pose, so at most "
+                   f"the pose's sigma, off the other frame's outline; {NO_TEXTURE_VERDICT}, so at most "
                    f"{params.max_outside_outline:.1%})")
     return T, None
 

@@ -5,8 +5,8 @@
   (`gscan.registration.loops`); each edge by `gscan.registration.pairwise`, handed to the sink as computed
 - noise (`capture_noise`): the capture's own keypoint and depth noise, from a few sequential pairs
 - pose graph (`optimise_sequence`): edges that contradict the capture's odometry are rejected, loop closures
-  the depth alone decided that the capture's steady motion tells from the object's turns accepted
-  (`admit_by_motion`), the rest
+  the depth alone decided that the capture's steady motion tells from the object's turns, and poses the shape's
+  checks refused that it pins, accepted (`admit_by_motion`), the rest
   optimised robustly (`gscan.registration.posegraph`); a frame it cuts loose is registered to
   `second_opinions` more frames and the graph optimised again; frames not joined to the reference stay
   without a pose, each with its reason
@@ -39,7 +39,7 @@ from gscan.registration.edges import (
 from gscan.registration.loops import select_loop_candidates
 from gscan.registration.motion import SteadyMotion, steady_motion
 from gscan.registration.noise import DepthNoise, estimate_noise
-from gscan.registration.pairwise import RegisterParams, register_features
+from gscan.registration.pairwise import RegisterParams, refused_by_shape, register_features
 from gscan.registration.params import LoopParams, PoseGraphParams, SequenceParams  # noqa: F401 - its importers read it here too
 from gscan.registration.posegraph import (
     INCONSISTENT,
@@ -59,8 +59,8 @@ class SequenceResult:
     """A registered sequence: its edges (registration's and the pose graph's verdicts), T_world_cam [4 x 4] per
     frame (None: unregistered), each registered frame's quality in [0, 1], the pose graph's result, why each
     unregistered frame is, the frames of the parts not joined to the reference, the edges whose stored verdict
-    this run changed (pruned ones a resumed run restored, loop closures the steady motion admitted), and the
-    capture's steady motion with the loop closures it decided that stayed accepted (`SteadyMotion.to_json`; None
+    this run changed (pruned ones a resumed run restored, refused ones the steady motion admitted), and the
+    capture's steady motion with the edges it decided that stayed accepted (`SteadyMotion.to_json`; None
     with too few consecutive edges)."""
 
     edges: list[Edge]
@@ -211,26 +211,43 @@ def capture_motion(edges: list[Edge], index: dict[str, int], min_steps: int) -> 
                           and (e.accepted or e.pruned) and index[e.tgt] - index[e.src] == 1], min_steps)
 
 
+def motion_pins(motion: SteadyMotion, T_tgt_src: np.ndarray, gap: int, depth: float, rparams: RegisterParams,
+                sigmas: float) -> bool:
+    """Whether the capture's steady motion pins the pose over `gap` frames as tightly as registration asks of an
+    edge (`max_sigma_deg`, `max_sigma_rel` of the points' depth `depth`, m) and T_tgt_src [4 x 4] agrees with it
+    (within `sigmas` of the spreads)."""
+    s_deg, s_m = motion.sigma(gap)
+    return (gap >= 1 and s_deg <= rparams.max_sigma_deg and s_m <= rparams.max_sigma_rel * depth
+            and motion.agrees(T_tgt_src, gap, sigmas))
+
+
 def admit_by_motion(motion: SteadyMotion, edges: list[Edge], index: dict[str, int], sigmas: float,
-                    min_matches: int) -> list[Edge]:
-    """Accepts the loop closures the depth alone decided, refused as ambiguous (`LOOP_DEPTH_ONLY`: a plain box's
-    half turn fits its depth as well), whose pose the capture's steady motion tells from the object's turns: the
-    pose lies within `sigmas` of the prediction's spreads over its frames' gap, and that bound D stays below half a
-    quarter turn, so each turn, at least 90 deg from the pose, lies at least 90 - D > D from the prediction (the
-    assumption of a sequential edge over skipped frames, `gscan.registration.edges.Registrar`: the capture turns
-    as its accepted steps do). Only on `min_matches` or more (`bridge_min_matches`): the prediction over many
-    frames tells the turns apart, not a slide of a centimetre, and two loop closures on a plain box's 7-8 image
-    keypoints, 0.7-1.5 deg off, together joined two parts 2 cm apart. Not those on image keypoints of plain frames
-    (`LOOP_TURN`): 12 of a plain box's corners and rims placed one 1.3 deg off. Returns them."""
+                    min_matches: int, rparams: RegisterParams, depth: Callable[[Edge], float]) -> list[Edge]:
+    """Accepts the refused edges whose pose the capture's steady motion vouches for (the assumption of a sequential
+    edge over skipped frames, `gscan.registration.edges.Registrar`: the capture turns as its accepted steps do);
+    returns them, marked `depth_only` (the depth alone posed them).
+    - Loop closures the depth alone decided, refused as ambiguous (`LOOP_DEPTH_ONLY`: a plain box's half turn fits
+      its depth as well): the pose lies within `sigmas` of the prediction's spreads over its frames' gap, and that
+      bound D stays below half a quarter turn, so each turn, at least 90 deg from the pose, lies at least 90 - D > D
+      from the prediction. Only on `min_matches` or more (`bridge_min_matches`): the prediction over many frames
+      tells the turns apart, not a slide of a centimetre, and two loop closures on a plain box's 7-8 image
+      keypoints, 0.7-1.5 deg off, together joined two parts 2 cm apart. Not those on image keypoints of plain frames
+      (`LOOP_TURN`): 12 of a plain box's corners and rims placed one 1.3 deg off.
+    - Poses the depth alone decided that the shape's checks refused (`refused_by_shape`: the depth seen through,
+      the silhouette, the outline; a plain box seen edge on loses depth at its rims, which these count against the
+      pose): where the motion pins the pose as registration would (`motion_pins`, `depth`: the median depth of the
+      edge's source points, m), a slide or turn those checks refute lies beyond it."""
     admitted = []
     for e in edges:
-        if (e.accepted or e.kind != "loop" or e.T_tgt_src is None or e.reason != LOOP_DEPTH_ONLY
-                or len(e.matches) < min_matches):
+        if e.accepted or e.T_tgt_src is None:
             continue
         gap = index[e.tgt] - index[e.src]
-        if gap < 1 or sigmas * motion.sigma(gap)[0] >= SEQUENTIAL_MAX_TURN_DEG / 2:
-            continue
-        if motion.agrees(e.T_tgt_src, gap, sigmas):
+        if e.kind == "loop" and e.reason == LOOP_DEPTH_ONLY and len(e.matches) >= min_matches:
+            vouched = (gap >= 1 and sigmas * motion.sigma(gap)[0] < SEQUENTIAL_MAX_TURN_DEG / 2
+                       and motion.agrees(e.T_tgt_src, gap, sigmas))
+        else:
+            vouched = refused_by_shape(e.reason) and motion_pins(motion, e.T_tgt_src, gap, depth(e), rparams, sigmas)
+        if vouched:
             e.accepted, e.reason, e.depth_only = True, None, True
             admitted.append(e)
     return admitted
@@ -240,27 +257,27 @@ def bridge_strength(motion: SteadyMotion | None, e: Edge, gap: int, depth: float
                     params: SequenceParams) -> bool:
     """Whether edge e (over `gap` frames, its points `depth` m away) has evidence enough to join two parts of the
     pose graph alone: enough matches (`bridge_min_matches`; its depth agreement is a condition of every accepted
-    edge), or the capture's steady motion pinning its pose over the gap as tightly as registration asks of an edge
-    (`max_sigma_deg`, `max_sigma_rel` of the depth) and e agreeing with it (within `steady_sigmas` of the
-    spreads)."""
+    edge), or the capture's steady motion pinning its pose over the gap and e agreeing with it (`motion_pins`)."""
     if len(e.matches) >= params.bridge_min_matches:
         return True
-    if motion is None or e.T_tgt_src is None or gap < 1:
-        return False
-    s_deg, s_m = motion.sigma(gap)
-    return (s_deg <= rparams.max_sigma_deg and s_m <= rparams.max_sigma_rel * depth
-            and motion.agrees(e.T_tgt_src, gap, params.steady_sigmas))
+    return (motion is not None and e.T_tgt_src is not None
+            and motion_pins(motion, e.T_tgt_src, gap, depth, rparams, params.steady_sigmas))
 
 
 def _optimise(reg: Registrar, edges: list[Edge], index: dict[str, int], params: SequenceParams,
               motion: SteadyMotion | None) -> tuple[list[np.ndarray | None], dict[int, float], PoseGraphResult]:
     """Pose graph over accepted edges (those that contradict the odometry rejected first, `against_odometry`;
-    loop closures the capture's steady motion tells from the object's turns accepted, `admit_by_motion`)
+    refused edges the capture's steady motion vouches for accepted, `admit_by_motion`)
     -> (T_world_cam per frame or None, quality in [0, 1] per frame, the pose graph's result with edge indices
     into the accepted edges)."""
     n, rparams, evidence = len(reg.names), reg.rparams, reg.evidence
     if motion is not None:
-        admitted = admit_by_motion(motion, edges, index, params.steady_sigmas, params.bridge_min_matches)
+        def depth(e: Edge) -> float:  # the median depth of the edge's source points (m; none: nan, pins nothing)
+            z = reg.frames.reg(index[e.src]).feats.points[e.matches[:, 0], 2]
+            return float(np.median(z)) if len(z) else float("nan")
+
+        admitted = admit_by_motion(motion, edges, index, params.steady_sigmas, params.bridge_min_matches, rparams,
+                                   depth)
         reg.by_motion |= {(e.src, e.tgt) for e in admitted}
         reg.restored |= reg.by_motion  # stored refused: written again with this verdict
     against_odometry(n, edges, index, rparams.max_sigma_deg, params.odometry_sigmas)
@@ -344,8 +361,8 @@ def optimise_sequence(reg: Registrar, edges: list[Edge], params: SequenceParams,
     names = reg.names
     decided = sum(1 for e in edges if e.accepted and (e.src, e.tgt) in reg.by_motion)
     if motion is not None:
-        log.info("steady motion: %.2f deg a frame (spread %.2f deg, %.1f mm over %d steps); %d loop closures it "
-                 "told from the object's turns", rotation_angle_deg(motion.T_step), motion.sigma_deg,
+        log.info("steady motion: %.2f deg a frame (spread %.2f deg, %.1f mm over %d steps); %d refused edges it "
+                 "accepted", rotation_angle_deg(motion.T_step), motion.sigma_deg,
                  1000 * motion.sigma_m, motion.steps, decided)
     return SequenceResult(edges, T_world_cam, quality, graph, unregistered_reasons(reg.frames, edges, graph, index),
                           [[names[k] for k in part] for part in graph.parts], reg.restored,
