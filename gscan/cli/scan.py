@@ -157,10 +157,12 @@ def print_scan_summary(result: Any) -> None:
         say(("keypoints:", "bold"), f" {kp['source']} ({why}); {kp.get('depth_only_edges', 0)} accepted edges decided "
             "by the depth alone (a plain surface: no texture to check them)")
     mo = result.motion
-    if mo and mo["decided_edges"]:  # the steady motion decided edges the views could not
+    if mo and (mo["decided_edges"] or mo["bridges"]):  # the steady motion decided what the views could not
+        bridged = ", ".join(f"{a} -> {b}" for a, b in mo["bridges"]) or "none"
         say(("steady motion:", "bold"), f" {mo['step_deg']:.1f} deg a frame (spread {mo['spread_deg']:.2f} deg / "
             f"{mo['spread_mm']:.1f} mm over {mo['steps']} steps); {mo['decided_edges']} refused edges accepted by "
-            "it (loop closures it told from the object's turns, edges the shape's checks refused that it pins)")
+            "it (loop closures it told from the object's turns, edges the shape's checks refused that it pins); "
+            f"breaks bridged by its prediction, in a cycle that closes: {bridged}")
     cam = result.camera
     if cam is not None:
         say(*camera_line(cam))

@@ -190,6 +190,7 @@ class Registrar:
         self.done = {(e.src, e.tgt): e for e in stored}
         self.restored: set[tuple[str, str]] = set()
         self.by_motion: set[tuple[str, str]] = set()  # refused edges the steady motion admitted (in restored too)
+        self.bridged: list[tuple[int, int]] = []  # breaks (k0, k1) the last pose graph joined by the motion's bridges
         self.evidence: dict[tuple[str, str], Evidence] = {}
         self.written = 0  # edges handed to the sink so far (committed every COMMIT_ROWS)
         self.largest_step: float | None = None

@@ -203,12 +203,14 @@ def against_odometry(n: int, edges: list[Edge], index: dict[str, int], max_sigma
                         f"their drift reaches {bound:.0f} deg at most)")
 
 
-def capture_motion(edges: list[Edge], index: dict[str, int], min_steps: int) -> SteadyMotion | None:
+def capture_motion(edges: list[Edge], index: dict[str, int], min_steps: int, depth: float = 0.0
+                   ) -> SteadyMotion | None:
     """The capture's steady motion (`gscan.registration.motion`) from the edges between consecutive frames that
-    registration accepted (the pose graph's verdict aside: the same steps however often the graph is optimised);
-    None with fewer than `min_steps` of them."""
+    registration accepted (the pose graph's verdict aside: the same steps however often the graph is optimised),
+    positions compared at `depth` m along the optical axis (the object's); None with fewer than `min_steps` of
+    them."""
     return steady_motion([e.T_tgt_src for e in edges if e.kind == "sequential" and e.T_tgt_src is not None
-                          and (e.accepted or e.pruned) and index[e.tgt] - index[e.src] == 1], min_steps)
+                          and (e.accepted or e.pruned) and index[e.tgt] - index[e.src] == 1], min_steps, depth)
 
 
 def motion_pins(motion: SteadyMotion, T_tgt_src: np.ndarray, gap: int, depth: float, rparams: RegisterParams,
@@ -219,6 +221,20 @@ def motion_pins(motion: SteadyMotion, T_tgt_src: np.ndarray, gap: int, depth: fl
     s_deg, s_m = motion.sigma(gap)
     return (gap >= 1 and s_deg <= rparams.max_sigma_deg and s_m <= rparams.max_sigma_rel * depth
             and motion.agrees(T_tgt_src, gap, sigmas))
+
+
+def _steps_depth(reg: Registrar, edges: list[Edge], index: dict[str, int]) -> float:
+    """The median depth (m) of the points of the accepted edges between consecutive frames: where the object lies,
+    at which the steady motion compares positions (their evidence, which the pose graph weighs them by, computed
+    here for edges a resumed scan took from the database); 0 without such edges."""
+    depths = []
+    for e in edges:
+        i, j = index[e.src], index[e.tgt]
+        if e.accepted and e.kind == "sequential" and j - i == 1 and e.T_tgt_src is not None and len(e.matches):
+            if (e.src, e.tgt) not in reg.evidence:
+                reg.evidence[(e.src, e.tgt)] = edge_evidence(e, reg.frames.reg(i), reg.frames.reg(j), reg.rparams)
+            depths.append(reg.evidence[(e.src, e.tgt)].depth)
+    return float(np.median(depths)) if depths else 0.0
 
 
 def admit_by_motion(motion: SteadyMotion, edges: list[Edge], index: dict[str, int], sigmas: float,
@@ -264,6 +280,39 @@ def bridge_strength(motion: SteadyMotion | None, e: Edge, gap: int, depth: float
             and motion_pins(motion, e.T_tgt_src, gap, depth, rparams, params.steady_sigmas))
 
 
+def motion_bridges(n: int, spans: list[tuple[int, int]], motion: SteadyMotion, max_skip: int, depth: float,
+                   rparams: RegisterParams) -> list[GraphEdge]:
+    """Weak pose-graph edges the capture's steady motion lays over its breaks: where no accepted edge spans
+    consecutive frames k0 .. k1 + 1 (`spans`: the accepted edges' (i, j), i < j; one over more than `max_skip`
+    frames spans nothing: a loop closure), an edge from k0 to k1 + 1 at the motion's prediction, its information
+    the prediction's spread over the gap, where that pins the pose as tightly as registration asks of an edge
+    (`max_sigma_deg`, `max_sigma_rel` of the capture's depth `depth`, m). Not `strong`: the pose graph cuts one that
+    alone joins two parts, so the motion never places a part alone; where two such edges join the same parts, or a
+    loop closure joins them too, the cycle through them must close within the noise (the graph's consistency test),
+    which checks the motion over the breaks against the registered frames (a ring of 36 turntable frames split
+    twice: the halves' chains and the two predictions turn 360 deg together). The frames inside a break stay
+    without a pose."""
+    covered = np.zeros(max(n - 1, 0), bool)
+    for i, j in spans:
+        if j - i <= max_skip:
+            covered[i:j] = True
+    out, k = [], 0
+    while k < n - 1:
+        if covered[k]:
+            k += 1
+            continue
+        k1 = k
+        while k1 + 1 < n - 1 and not covered[k1 + 1]:
+            k1 += 1
+        a, b = k, k1 + 1
+        s_deg, s_m = motion.sigma(b - a)
+        if 0 < s_deg <= rparams.max_sigma_deg and 0 < s_m <= rparams.max_sigma_rel * depth:
+            info = np.diag([np.radians(s_deg) ** -2] * 3 + [s_m ** -2] * 3)
+            out.append(GraphEdge(a, b, motion.predict(b - a), info, strong=False, weight=0.0, depth=depth))
+        k = b
+    return out
+
+
 def _optimise(reg: Registrar, edges: list[Edge], index: dict[str, int], params: SequenceParams,
               motion: SteadyMotion | None) -> tuple[list[np.ndarray | None], dict[int, float], PoseGraphResult]:
     """Pose graph over accepted edges (those that contradict the odometry rejected first, `against_odometry`;
@@ -293,7 +342,12 @@ def _optimise(reg: Registrar, edges: list[Edge], index: dict[str, int], params: 
         found.append(ev)
         strong = bridge_strength(motion, e, j - i, ev.depth, rparams, params)
         graph.append(GraphEdge(i, j, e.T_tgt_src, ev.info, strong=strong, weight=len(e.matches), depth=ev.depth))
-    res = optimize_pose_graph(n, graph, spanning_poses(n, graph), params.graph_params())
+    bridges = [] if motion is None or not found else motion_bridges(
+        n, [(min(g.src, g.tgt), max(g.src, g.tgt)) for g in graph], motion, params.max_skip,
+        float(np.median([ev.depth for ev in found])), rparams)
+    res = optimize_pose_graph(n, graph + bridges, spanning_poses(n, graph + bridges), params.graph_params())
+    reg.bridged = [(rep.src, rep.tgt) for rep in res.edges[len(graph):] if rep.accepted]
+    res.edges = res.edges[:len(graph)]  # the registered edges' verdicts; the bridges' are reg.bridged
     best: dict[int, float] = {}
     for rep, e, ev in zip(res.edges, use, found, strict=True):
         # the pose graph's verdict joins the registration's: pruned edges are recorded as rejected
@@ -356,17 +410,18 @@ def optimise_sequence(reg: Registrar, edges: list[Edge], params: SequenceParams,
     time without them."""
     index = {nm: k for k, nm in enumerate(reg.names)}
     # the steps are the same for every optimisation below: second opinions add loop closures only
-    motion = capture_motion(edges, index, params.steady_min_steps)
+    motion = capture_motion(edges, index, params.steady_min_steps, _steps_depth(reg, edges, index))
     T_world_cam, quality, graph = _optimise_with_second_opinions(reg, pool, edges, index, params, motion)
     names = reg.names
     decided = sum(1 for e in edges if e.accepted and (e.src, e.tgt) in reg.by_motion)
+    bridges = [[names[a], names[b]] for a, b in reg.bridged]
     if motion is not None:
         log.info("steady motion: %.2f deg a frame (spread %.2f deg, %.1f mm over %d steps); %d refused edges it "
-                 "accepted", rotation_angle_deg(motion.T_step), motion.sigma_deg,
-                 1000 * motion.sigma_m, motion.steps, decided)
+                 "accepted; %d breaks it bridged", rotation_angle_deg(motion.T_step), motion.sigma_deg,
+                 1000 * motion.sigma_m, motion.steps, decided, len(bridges))
     return SequenceResult(edges, T_world_cam, quality, graph, unregistered_reasons(reg.frames, edges, graph, index),
                           [[names[k] for k in part] for part in graph.parts], reg.restored,
-                          None if motion is None else motion.to_json(decided))
+                          None if motion is None else motion.to_json(decided, bridges))
 
 
 def _optimise_with_second_opinions(reg: Registrar, pool: ThreadPoolExecutor, edges: list[Edge],
