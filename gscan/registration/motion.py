@@ -2,8 +2,9 @@
 even orbit), that motion predicts the pose between frames further apart.
 
 A scan uses the prediction where the frames' own evidence leaves a choice open (`gscan.registration.sequence`):
-whether an edge that alone joins two parts of the pose graph stands, and a loop closure that the views cannot
-tell from the object's turns (a plain box's half turn fits its depth as well). The motion is what the capture's
+whether an edge that alone joins two parts of the pose graph stands, a loop closure that the views cannot tell
+from the object's turns (a plain box's half turn fits its depth as well), a pose the shape's checks refused, and
+across the chain's breaks, as weak edges a cycle must confirm. The motion is what the capture's
 accepted consecutive edges measure: their mean step and how far each lies from it. Over `gap` frames the
 prediction is the step taken `gap` times, and it may be off by `gap` times the steps' spread (the steps' deviations
 taken to add up in one direction, as a hand's slowly changing speed does, not to average out). Positions are
