@@ -142,8 +142,9 @@ class ScanResult:
     # accepted edges of this run that the depth alone decided (`gscan.registration.pairwise`); with depth keypoints
     # on the keyframes, "object": "both" and "object_depth_size" (m) they and a query's are found at
     keypoints: dict = field(default_factory=dict)
-    # the steady motion of the first capture that measured one (an --append's stored template measures none) and the
-    # loop closures it decided (`SequenceResult.motion`); None: no capture had accepted consecutive edges enough
+    # the steady motion of the first capture that measured one (an --append's stored template measures none), the
+    # refused edges it accepted and the breaks it bridged (`SequenceResult.motion`); None: no capture had enough
+    # accepted consecutive edges
     motion: dict | None = None
 
     def to_json(self) -> dict:
