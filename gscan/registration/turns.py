@@ -114,9 +114,17 @@ def lone_edge_turn(fs: Features, ft: Features, src: DenseGeometry, tgt: DenseGeo
     `FINE_STRIDE` px (a small object's overlap holds few tiles of the default samples), the pose refused where rule
     3 refutes it there ("colour disagrees"); print where the frames have image keypoints enough or the faces'
     interiors (`interior_pixels`, where texture is not shading) hold a verdict's tiles, the interiors' print
-    refuting turns too; and the quarter turns weighed too. Whole frames keep the default samples and the half turns:
-    there a plain table's faint texture lined up finely under poses 2.4 deg / 23 mm off (Vans from 0 and 60 deg,
-    accepted claiming 0.14 deg)."""
+    refuting turns too; and the quarter turns weighed too. Frames without print whose fine texture settles the pose
+    (at least `params.alone_colour_agreement` of its tiles lining up: outlines, creases and shading seen alike from
+    both views) have their turns judged by that texture too, a turn under which it does not line up (rule 3) being
+    refuted: a box seen nearly edge on has no print verdict (Vans from 0 and 20 deg: 50 image keypoints, its faces'
+    interiors 7 tiles), while its texture lines up in 18 of 18 fine tiles under the pose and 0 of 12 under the
+    half turn its shape fits. That texture refutes only a turn whose tiles disagree, never one it cannot judge. A
+    plain object's fine texture does not settle its pose (plain renders of the shared meshes, 20-120 deg apart:
+    at most 72 % of the tiles line up under right poses), so its turns are judged as before. Whole frames keep the
+    default samples
+    and the half turns: there a plain table's faint texture lined up finely under poses 2.4 deg / 23 mm off (Vans
+    from 0 and 60 deg, accepted claiming 0.14 deg)."""
     if not r.accepted or r.T_tgt_src is None:
         return None
     if src.mask is None or tgt.mask is None:
@@ -129,14 +137,15 @@ def lone_edge_turn(fs: Features, ft: Features, src: DenseGeometry, tgt: DenseGeo
     judged = r.T_textured if r.T_textured is not None else r.T_tgt_src
     printed = has_print(fs, ft, min_print_keypoints) or colour_agreement(
         *inner, judged, params.depth_noise).informative >= params.min_colour_tiles
+    c = colour_agreement(*fine, judged, params.depth_noise)
+    settled = c.settles(params.min_colour_tiles, params.alone_colour_agreement)
     if printed:
-        c = colour_agreement(*fine, judged, params.depth_noise)
         if texture_refutes(c, params):
             return (f"colour disagrees (sampled finely, the texture lines up in {c.agreeing} of {c.informative} "
                     f"tiles of the overlap under the pose)")
-        if c.settles(params.min_colour_tiles, params.alone_colour_agreement):
+        if settled:
             return None
-    turned = turn_not_refuted(src, tgt, r.T_tgt_src, params, texture=printed, fine=fine, inner=inner)
+    turned = turn_not_refuted(src, tgt, r.T_tgt_src, params, texture=printed or settled, fine=fine, inner=inner)
     return None if turned is None else LONE_TURN.format(turned)
 
 
