@@ -25,7 +25,7 @@ template's mesh as their model (`PeerEstimator`), in `--scenes` cluttered scenes
 without it (`estimate_scenes`). The estimator's rules for a pose the depth alone decides (the local support of
 depth keypoints, the silhouettes with a margin of two template samples, the keyframes' texture) were set on TUNE's
 scenes; HELD_OUT's were run once after. With --lookalikes N, a plain CAD box beside boxes of about its size
-(`lookalikes`), the case that keeps `query.depth_keypoints` off by default.
+(`lookalikes`), the case that decides when a pose the depth alone decided may be taken (`query.depth_keypoints`).
 
 The PPF peer runs OpenCV's contrib module in a child process (bench/ppf_child.py); without it the benchmark says
 so and runs the others. Install it beside the venv (the same OpenCV version):
@@ -39,6 +39,7 @@ so and runs the others. Install it beside the venv (the same OpenCV version):
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import tempfile
 import time
@@ -59,7 +60,7 @@ from gscan.synth.mesh import TexturedMesh, load_textured_mesh, plain_mesh
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench/'s modules: peers, scan, recall
 
-MESHES = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "meshes"
+MESHES = Path(os.environ.get("GSCAN_TEST_DATA") or Path(__file__).resolve().parents[2] / "shared" / "data") / "meshes"
 TUNE = ["ReadytoUse_Rolled_Fondant_Pure_White_24_oz_box"]
 HELD_OUT = ["Crayola_Bonus_64_Crayons", "Nestle_Raisinets_Milk_Chocolate_35_oz_992_g",
             "Pepsi_Caffeine_Free_Diet_12_CT"]
@@ -295,7 +296,7 @@ class PeerEstimator:
 
 def estimates(objects: list[str], n: int, frames: int, negatives: int, work: Path) -> None:
     """Each object's templates scanned on `sift`, `depth` and `both` (`scan_object`, cached in `work`), the latter
-    two estimated with the query's depth keypoints (`query.depth_keypoints`, off by default), and the peers
+    two estimated with the query's depth keypoints too (`query.depth_keypoints`, the default), and the peers
     (`PeerEstimator`, model: the `both` template's mesh), in its cluttered scenes (`estimate_scenes`): per method
     found / wrong accepted (ADD-S beyond 2 cm, or any pose in a negative) / AUC ADD-S (0-10 cm) / depth-only poses,
     and the CPU time per estimate as a ratio to sift's on the same scenes. Every scene's row is printed, then each
@@ -307,7 +308,7 @@ def estimates(objects: list[str], n: int, frames: int, negatives: int, work: Pat
 
     from gscan.errors import InputError
     from gscan.estimate import Estimator
-    from gscan.estimate.params import DEFAULT_PARAMS, QueryParams
+    from gscan.estimate.params import DEFAULT_PARAMS
     from gscan.evaluate.bop19 import template_to_gt
     from gscan.evaluate.metrics import adds, auc
     from gscan.io import open_sequence
@@ -315,7 +316,6 @@ def estimates(objects: list[str], n: int, frames: int, negatives: int, work: Pat
     printed = {d: load_textured_mesh(RECALL_MESHES / d / "model_0.obj") for d in DISTRACTOR_POOL
                if d not in TUNE + HELD_OUT + objects}  # a plain object's printed self: its colour, size and shape
     work.mkdir(parents=True, exist_ok=True)
-    depth_on = replace(DEFAULT_PARAMS, query=QueryParams(depth_keypoints=True))  # off by default
     rows: list[dict] = []
     ppf = open_ppf()
     methods = SOURCES + (("fpfh", "ppf") if ppf is not None else ("fpfh",))
@@ -334,7 +334,7 @@ def estimates(objects: list[str], n: int, frames: int, negatives: int, work: Pat
                 except InputError as e:  # a scan of one registered frame: no template to estimate with
                     print(f"{split:8s} {name[:32]:32s} {kp:5s} template unusable: {e.reason}", flush=True)
                     continue
-                ests[kp] = Estimator.from_path(tpl, DEFAULT_PARAMS if kp == "sift" else depth_on)
+                ests[kp] = Estimator.from_path(tpl, DEFAULT_PARAMS)
             if "both" in ests:
                 for peer in methods[len(SOURCES):]:  # the peers' model: the both template's mesh
                     ests[peer] = PeerEstimator(peer, work / f"{name}_{frames}_both.gscan", ppf)
@@ -386,7 +386,7 @@ def lookalikes(n: int, work: Path, first: int = 0) -> None:
     and a flat plain box, and in `n` frames of those two alone (`plain_part_scene`): found / wrong (beyond 5 deg /
     2 cm up to the box's half turns, or any pose without the box) / depth-only; seeds first .. first + n - 1."""
     from gscan.estimate import Estimator
-    from gscan.estimate.params import DEFAULT_PARAMS, QueryParams
+    from gscan.estimate.params import DEFAULT_PARAMS
     from gscan.features import OBJECT_FEATURES
     from gscan.scanning.cad import template_from_mesh
     from gscan.synth import DEFAULT_INTRINSICS
@@ -399,7 +399,7 @@ def lookalikes(n: int, work: Path, first: int = 0) -> None:
     if not tpl.exists():
         template_from_mesh(save_textured_mesh(part, work / "plain_part.obj"), tpl, n_views=24,
                            feature_params=replace(OBJECT_FEATURES, keypoints="both"))
-    est = Estimator.from_path(tpl, replace(DEFAULT_PARAMS, query=QueryParams(depth_keypoints=True)))
+    est = Estimator.from_path(tpl, DEFAULT_PARAMS)
     turns = [np.eye(3)] + [2.0 * np.outer(a, a) - np.eye(3) for a in np.eye(3)]
     counts = {True: [0, 0, 0], False: [0, 0, 0]}
     for seed in range(first, first + n):

@@ -15,6 +15,7 @@ from gscan.registration.motion import steady_motion
 from gscan.registration.pairwise import NO_TEXTURE_VERDICT, RegisterParams, refused_by_shape
 from gscan.registration.params import SequenceParams
 from gscan.registration.sequence import admit_by_motion, bridge_strength, capture_motion
+from tests._scan_checks import plain_turntable_scan
 
 NO_MATCHES = np.zeros((0, 2), np.int32)
 SILHOUETTE = (f"silhouette disagrees (9.6% of the samples land off the other frame's surface; {NO_TEXTURE_VERDICT}, "
@@ -194,7 +195,7 @@ def test_a_plain_box_on_a_turntable_closes_its_ring_by_its_steady_motion(tmp_pat
     decides (refused as ambiguous without the motion: 17 of 36 frames registered). With the steady motion the
     weak bridges stand and the ring closes: at least 90 % of the frames registered, none wrong (5 deg / 2 cm
     relative to the others), the half-turn loop closures still refused. About 40 s."""
-    res, poses, gt, edges = _plain_turntable_scan("Vans_Cereal_Honey_Nut_Crunch_11_oz_box", tmp_path, meshes_dir)
+    res, poses, gt, edges = plain_turntable_scan("Vans_Cereal_Honey_Nut_Crunch_11_oz_box", tmp_path, meshes_dir)
     # the summary says what the motion decided: a 10 deg step, the loop closures it told from the turns
     motion = res.to_json()["motion"]
     assert abs(motion["step_deg"] - 10.0) < 0.5 and motion["spread_deg"] < 1.0 and motion["decided_edges"] >= 1
@@ -299,31 +300,5 @@ def test_a_plain_box_seen_edge_on_is_joined_across_its_breaks(tmp_path, meshes_d
     where every edge is 86-143 deg off or refused, its ring falls into two halves seen from opposite sides (17 of 36
     registered without the bridges). The steady motion's predictions bridge both breaks, the ring's cycle closes,
     and at least 90 % of the frames are registered, none wrong; the summary names the bridges. About 30 s."""
-    res, _, _, _ = _plain_turntable_scan("Nestle_Raisinets_Milk_Chocolate_35_oz_992_g", tmp_path, meshes_dir)
+    res, _, _, _ = plain_turntable_scan("Nestle_Raisinets_Milk_Chocolate_35_oz_992_g", tmp_path, meshes_dir)
     assert len(res.to_json()["motion"]["bridges"]) >= 2
-
-
-def _plain_turntable_scan(name: str, tmp_path, meshes_dir):
-    """A shared mesh made plain (one colour) on a 36-frame turntable, scanned on `both` keypoints: (the scan's
-    result, its poses, the true T_world_cam, its stored edges), after checking that at least 90 % of the frames are
-    registered and none is wrong (5 deg / 2 cm relative to the others)."""
-    from gscan.evaluate.metrics import frame_errors
-    from gscan.features import FeatureParams
-    from gscan.io import open_sequence
-    from gscan.scanning.api import scan
-    from gscan.scanning.config import ScanConfig
-    from gscan.synth.capture import render_capture
-    from gscan.synth.mesh import load_textured_mesh, plain_mesh
-    from gscan.template.db import TemplateDB
-
-    mesh = plain_mesh(load_textured_mesh(meshes_dir / name / "model_0.obj"))
-    cap = tmp_path / "cap"
-    render_capture(mesh, cap, 36, mode="turntable", seed=0, table_kind="plain")
-    res = scan(cap, tmp_path / "box.gscan", config=ScanConfig(features=FeatureParams(keypoints="both")))
-    gt = {n: inv_T(T) for n, T in open_sequence(cap).gt_T_cam_obj.items()}
-    with TemplateDB.open(tmp_path / "box.gscan") as db:
-        poses = {n: np.asarray(T) for n, T in db.poses()["frames"].items()}
-        edges = db.edges()
-    assert len(poses) >= 0.9 * 36, res.unregistered_reasons
-    assert not frame_errors(poses, {n: gt[n] for n in poses}).wrong(5.0, 0.02)
-    return res, poses, gt, edges
