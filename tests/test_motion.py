@@ -232,11 +232,11 @@ def test_the_steady_motion_bridges_the_breaks_of_a_ring_where_the_cycle_closes()
 
     T = _turntable(36, 10.0, 0.2)
     chain = _halves(T)
-    motion = capture_motion(chain, _index(36), 8)
+    motion = capture_motion(chain, _index(36), 8, depth=0.6)  # positions compared at the object
     assert motion is not None
     graph = _graph(chain)
     spans = [(g.src, g.tgt) for g in graph]
-    bridges = motion_bridges(36, spans, motion, 3, 0.6, RegisterParams())
+    bridges = motion_bridges(36, spans, motion, 3, RegisterParams())
     assert [(b.src, b.tgt) for b in bridges] == [(8, 10), (26, 28)] and not any(b.strong for b in bridges)
     res = optimize_pose_graph(36, graph + bridges, spanning_poses(36, graph + bridges),
                               SequenceParams().graph_params())
@@ -253,13 +253,13 @@ def test_the_steady_motion_bridges_the_breaks_of_a_ring_where_the_cycle_closes()
     # an open chain broken once (no loop closure): its bridge alone would join the parts: cut
     one = [e for e in _chain(T) if e.src not in ("000008", "000009")]
     g1 = _graph(one)
-    b1 = motion_bridges(36, [(g.src, g.tgt) for g in g1], motion, 3, 0.6, RegisterParams())
+    b1 = motion_bridges(36, [(g.src, g.tgt) for g in g1], motion, 3, RegisterParams())
     assert [(b.src, b.tgt) for b in b1] == [(8, 10)]
     r1 = optimize_pose_graph(36, g1 + b1, spanning_poses(36, g1 + b1), SequenceParams().graph_params())
     assert not r1.edges[-1].accepted and len(r1.parts) == 1
 
-    uneven = capture_motion(_halves(_turntable(36, 10.0, 3.0)), _index(36), 8)
-    assert uneven is not None and motion_bridges(36, spans, uneven, 3, 0.6, RegisterParams()) == []
+    uneven = capture_motion(_halves(_turntable(36, 10.0, 3.0)), _index(36), 8, depth=0.6)
+    assert uneven is not None and motion_bridges(36, spans, uneven, 3, RegisterParams()) == []
 
 
 def test_a_bridge_the_cycle_refutes_is_cut():
@@ -278,10 +278,10 @@ def test_a_bridge_the_cycle_refutes_is_cut():
         T.append(Tk)
         az += steps[k] * (350.0 / 356.0)  # the turns still add up to one revolution over the ring
     chain = _halves(T)
-    motion = capture_motion(chain, _index(36), 8)
+    motion = capture_motion(chain, _index(36), 8, depth=0.6)
     assert motion is not None
     graph = _graph(chain)
-    bridges = motion_bridges(36, [(g.src, g.tgt) for g in graph], motion, 3, 0.6, RegisterParams())
+    bridges = motion_bridges(36, [(g.src, g.tgt) for g in graph], motion, 3, RegisterParams())
     res = optimize_pose_graph(36, graph + bridges, spanning_poses(36, graph + bridges),
                               SequenceParams().graph_params())
     assert not all(r.accepted for r in res.edges[len(graph):])

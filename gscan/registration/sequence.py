@@ -280,18 +280,19 @@ def bridge_strength(motion: SteadyMotion | None, e: Edge, gap: int, depth: float
             and motion_pins(motion, e.T_tgt_src, gap, depth, rparams, params.steady_sigmas))
 
 
-def motion_bridges(n: int, spans: list[tuple[int, int]], motion: SteadyMotion, max_skip: int, depth: float,
+def motion_bridges(n: int, spans: list[tuple[int, int]], motion: SteadyMotion, max_skip: int,
                    rparams: RegisterParams) -> list[GraphEdge]:
     """Weak pose-graph edges the capture's steady motion lays over its breaks: where no accepted edge spans
     consecutive frames k0 .. k1 + 1 (`spans`: the accepted edges' (i, j), i < j; one over more than `max_skip`
     frames spans nothing: a loop closure), an edge from k0 to k1 + 1 at the motion's prediction, its information
     the prediction's spread over the gap, where that pins the pose as tightly as registration asks of an edge
-    (`max_sigma_deg`, `max_sigma_rel` of the capture's depth `depth`, m). Not `strong`: the pose graph cuts one that
+    (`max_sigma_deg`, `max_sigma_rel` of the depth the motion compares positions at, `motion.at`). Not `strong`: the pose graph cuts one that
     alone joins two parts, so the motion never places a part alone; where two such edges join the same parts, or a
     loop closure joins them too, the cycle through them must close within the noise (the graph's consistency test),
     which checks the motion over the breaks against the registered frames (a ring of 36 turntable frames split
     twice: the halves' chains and the two predictions turn 360 deg together). The frames inside a break stay
     without a pose."""
+    depth = float(motion.at[2])
     covered = np.zeros(max(n - 1, 0), bool)
     for i, j in spans:
         if j - i <= max_skip:
@@ -342,9 +343,8 @@ def _optimise(reg: Registrar, edges: list[Edge], index: dict[str, int], params: 
         found.append(ev)
         strong = bridge_strength(motion, e, j - i, ev.depth, rparams, params)
         graph.append(GraphEdge(i, j, e.T_tgt_src, ev.info, strong=strong, weight=len(e.matches), depth=ev.depth))
-    bridges = [] if motion is None or not found else motion_bridges(
-        n, [(min(g.src, g.tgt), max(g.src, g.tgt)) for g in graph], motion, params.max_skip,
-        float(np.median([ev.depth for ev in found])), rparams)
+    bridges = [] if motion is None else motion_bridges(
+        n, [(min(g.src, g.tgt), max(g.src, g.tgt)) for g in graph], motion, params.max_skip, rparams)
     res = optimize_pose_graph(n, graph + bridges, spanning_poses(n, graph + bridges), params.graph_params())
     reg.bridged = [(rep.src, rep.tgt) for rep in res.edges[len(graph):] if rep.accepted]
     res.edges = res.edges[:len(graph)]  # the registered edges' verdicts; the bridges' are reg.bridged
