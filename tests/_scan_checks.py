@@ -126,18 +126,18 @@ def box_ring_capture(root: Path, n_views: int, intr: Intrinsics) -> Path:
 
 
 def plain_turntable_scan(name: str, root: Path, meshes_dir: Path) -> tuple[ScanResult, dict, dict, list[Edge]]:
-    """A shared mesh made plain (one colour) on a 36-frame turntable (`root`/cap), scanned on `both` keypoints into
-    `root`/box.gscan: (the scan's result, its poses, the true T_world_cam, its stored edges), after checking that at
-    least 90 % of the frames are registered and none is wrong (WRONG_RENDERED relative to the others)."""
-    from gscan.features import FeatureParams
-    from gscan.scanning.config import ScanConfig
+    """A shared mesh made plain (one colour) on a 36-frame turntable (`root`/cap), scanned at the defaults into
+    `root`/box.gscan: (the scan's result, its poses, the true T_world_cam, its stored edges), after checking that the
+    scan chose `both` keypoints from the frames' image keypoints (`features.keypoints: auto`), that at least 90 % of
+    the frames are registered and that none is wrong (WRONG_RENDERED relative to the others)."""
     from gscan.synth.capture import render_capture
     from gscan.synth.mesh import load_textured_mesh, plain_mesh
 
     mesh = plain_mesh(load_textured_mesh(meshes_dir / name / "model_0.obj"))
     cap = root / "cap"
     render_capture(mesh, cap, 36, mode="turntable", seed=0, table_kind="plain")
-    res = scan(cap, root / "box.gscan", config=ScanConfig(features=FeatureParams(keypoints="both")))
+    res = scan(cap, root / "box.gscan")
+    assert (res.keypoints["source"], res.keypoints["chosen_by"]) == ("both", "auto"), res.keypoints
     gt = {n: inv_T(T) for n, T in open_sequence(cap).gt_T_cam_obj.items()}
     with TemplateDB.open(root / "box.gscan") as db:
         poses = {n: np.asarray(T) for n, T in db.poses()["frames"].items()}

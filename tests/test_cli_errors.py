@@ -783,9 +783,12 @@ def _(ctx: Ctx, work: Path) -> Run:
 
 @case("scan-every-frame-dark")
 def _(ctx: Ctx, work: Path) -> Run:
+    """Every colour frame black, scanned on the image's keypoints (`features.keypoints: sift`; by default the depth's
+    join where the image holds too few, and register a black capture's shape: not bad input)."""
     cap = _copy_capture(ctx, work, "lens_cap_on")
     _for_each(cap / "rgb", "*.png", lambda p: cv2.imwrite(str(p), np.zeros((INTR.height, INTR.width, 3), np.uint8)))
-    return _scan_case(work, cap, "lens_cap_on", "keypoint")
+    (work / "image_keypoints.yaml").write_text("features:\n  keypoints: sift\n")
+    return _scan_case(work, cap, "lens_cap_on", "keypoint", extra=("--config", str(work / "image_keypoints.yaml")))
 
 
 @case("grasp-add-missing-pose-file")

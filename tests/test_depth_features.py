@@ -227,7 +227,8 @@ def test_the_keypoint_source_is_chosen_from_the_image_keypoints():
     assert choose_source(auto, [70, 80, 30]) == "sift"
     assert choose_source(FeatureParams(keypoints="auto", kind="orb"), [0, 0]) == "sift"  # depth joins rootsift only
     assert choose_source(FeatureParams(keypoints="depth"), [500]) == "depth"
-    assert choose_source(FeatureParams(), [0]) == "sift"  # the default: the image's
+    assert choose_source(FeatureParams(), [0]) == "both"  # the default, auto: a frame without print
+    assert choose_source(FeatureParams(keypoints="sift"), [0]) == "sift"
     assert pilot_frames(36) == [0, 5, 10, 15, 20, 25, 30, 35] and pilot_frames(3) == [0, 1, 2] and pilot_frames(0) == []
     with pytest.raises(ValueError, match="rootsift"):
         FeatureParams(keypoints="both", kind="sift")

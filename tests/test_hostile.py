@@ -112,7 +112,7 @@ def _png_bomb(path: Path, w: int, h: int, depth16: bool = False) -> Path:
 @dataclass
 class Ctx:
     capture: Path  # a capture that scans (rgb/ depth/ masks/ annotated_poses/ cam_K.txt)
-    dark: Path  # the same capture with every colour image black: a scan of it fails
+    dark: Path  # the same capture with every colour image black and every depth image empty: a scan of it fails
     mesh: Path  # the box as a textured OBJ
     template: Path  # a complete scanned template of `capture`
     cad: Path  # a complete CAD template of `mesh`
@@ -131,6 +131,8 @@ def ctx(tmp_path_factory: pytest.TempPathFactory) -> Ctx:
     shutil.copytree(base / "capture", dark)
     for p in (dark / "rgb").iterdir():
         p.write_bytes(_black_png(INTR))
+    for p in (dark / "depth").iterdir():  # depth alone registers a plain object: none either
+        p.write_bytes(_black_png(INTR, np.uint16))
     mesh_path = synth.save_textured_mesh(mesh, base / "box" / "box.obj")
     scan(base / "capture", base / "scanned.gscan")
     template_from_mesh(mesh_path, base / "cad.gscan", n_views=6)
@@ -138,10 +140,12 @@ def ctx(tmp_path_factory: pytest.TempPathFactory) -> Ctx:
     return Ctx(base / "capture", dark, mesh_path, base / "scanned.gscan", base / "cad.gscan", bomb)
 
 
-def _black_png(intr) -> bytes:
+def _black_png(intr, dtype=np.uint8) -> bytes:
+    """A PNG of zeros of the camera's size: colour (uint8, three channels) or depth (uint16)."""
     import cv2
 
-    return cv2.imencode(".png", np.zeros((intr.height, intr.width, 3), np.uint8))[1].tobytes()
+    shape = (intr.height, intr.width) + ((3,) if dtype == np.uint8 else ())
+    return cv2.imencode(".png", np.zeros(shape, dtype))[1].tobytes()
 
 
 def _precious(ctx: Ctx, path: Path) -> Path:
@@ -155,7 +159,7 @@ def _precious(ctx: Ctx, path: Path) -> Path:
 
 # ------------------------------------------------------------------------------------------ 1. no data loss
 def test_failed_force_scan_keeps_the_old_template(ctx: Ctx, tmp_path: Path):
-    """`scan DARK -o precious.gscan --force` fails (no keypoint in any frame): the existing template is left
+    """`scan DARK -o precious.gscan --force` fails (no keypoint in any frame, no depth): the existing template is left
     byte for byte, nothing else is left beside it; a scan that succeeds does replace it."""
     keep = _precious(ctx, tmp_path / "out" / "precious.gscan")
     before = _sha(keep)

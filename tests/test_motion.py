@@ -190,11 +190,11 @@ def test_a_weak_bridge_stands_where_the_steady_motion_pins_it(jitter, off_deg, m
 
 @pytest.mark.slow
 def test_a_plain_box_on_a_turntable_closes_its_ring_by_its_steady_motion(tmp_path, meshes_dir):
-    """A 36-frame turntable of the Vans cereal box made plain (one colour), scanned on `both` keypoints: its
-    edge-on views split the chain, and the loop closures that would join the parts are ones the depth alone
-    decides (refused as ambiguous without the motion: 17 of 36 frames registered). With the steady motion the
-    weak bridges stand and the ring closes: at least 90 % of the frames registered, none wrong (5 deg / 2 cm
-    relative to the others), the half-turn loop closures still refused. About 40 s."""
+    """A 36-frame turntable of the Vans cereal box made plain (one colour), scanned at the defaults (`both` keypoints,
+    by `auto`): its edge-on views split the chain, and the loop closures that would join the parts are ones the depth
+    alone decides (refused as ambiguous without the motion: 17 of 36 frames registered). With the steady motion the weak
+    bridges stand and the ring closes: at least 90 % of the frames registered, none wrong (5 deg / 2 cm relative to the
+    others), the half-turn loop closures still refused. About 40 s."""
     res, poses, gt, edges = plain_turntable_scan("Vans_Cereal_Honey_Nut_Crunch_11_oz_box", tmp_path, meshes_dir)
     # the summary says what the motion decided: a 10 deg step, the loop closures it told from the turns
     motion = res.to_json()["motion"]
@@ -296,9 +296,9 @@ def test_a_bridge_the_cycle_refutes_is_cut():
 
 @pytest.mark.slow
 def test_a_plain_box_seen_edge_on_is_joined_across_its_breaks(tmp_path, meshes_dir):
-    """The Raisinets box made plain on a 36-frame turntable, scanned on `both`: seen edge on at frames 9 and 27,
-    where every edge is 86-143 deg off or refused, its ring falls into two halves seen from opposite sides (17 of 36
-    registered without the bridges). The steady motion's predictions bridge both breaks, the ring's cycle closes,
+    """The Raisinets box made plain on a 36-frame turntable, scanned at the defaults (`both`): seen edge on at frames 9
+    and 27, where every edge is 86-143 deg off or refused, its ring falls into two halves seen from opposite sides (17
+    of 36 registered without the bridges). The steady motion's predictions bridge both breaks, the ring's cycle closes,
     and at least 90 % of the frames are registered, none wrong; the summary names the bridges. About 30 s."""
     res, _, _, _ = plain_turntable_scan("Nestle_Raisinets_Milk_Chocolate_35_oz_992_g", tmp_path, meshes_dir)
     assert len(res.to_json()["motion"]["bridges"]) >= 2

@@ -156,6 +156,9 @@ def print_scan_summary(result: Any) -> None:
                if kp.get("chosen_by") == "auto" and kp.get("median_image_keypoints") is not None else "configured")
         say(("keypoints:", "bold"), f" {kp['source']} ({why}); {kp.get('depth_only_edges', 0)} accepted edges decided "
             "by the depth alone (a plain surface: no texture to check them)")
+    elif kp and kp.get("object_image_keypoints") is not None:  # registered on the image, a plain object on it
+        say(("keypoints:", "bold"), f" registered on the image's; the keyframes keep the depth's on the object too "
+            f"(auto: median {kp['object_image_keypoints']:g} image keypoints on the object a keyframe)")
     mo = result.motion
     if mo and (mo["decided_edges"] or mo["bridges"]):  # the steady motion decided what the views could not
         bridged = ", ".join(f"{a} -> {b}" for a, b in mo["bridges"]) or "none"

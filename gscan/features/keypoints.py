@@ -150,7 +150,7 @@ class FeatureParams:
         description="which keypoints a scan registers with: the image's (sift: of `kind`), the depth's shape "
         "(depth: ISS + FPFH on the object's points), both in one set, or auto: both when the capture's frames hold "
         "fewer than auto_min_keypoints image keypoints (median of up to 8 frames spread over it: a plain object), "
-        "else the image's; depth and both need kind rootsift (auto keeps the image's with another kind)")] = "sift"
+        "else the image's; depth and both need kind rootsift (auto keeps the image's with another kind)")] = "auto"
     auto_min_keypoints: Annotated[int, Field(ge=0, description="auto: below this median of image keypoints per "
                                              "frame (the object's, with a mask) the depth keypoints join; a frame "
                                              "with fewer is plain, and its texture (shading) cannot refute a loop "

@@ -282,16 +282,15 @@ def bridge_strength(motion: SteadyMotion | None, e: Edge, gap: int, depth: float
 
 def motion_bridges(n: int, spans: list[tuple[int, int]], motion: SteadyMotion, max_skip: int,
                    rparams: RegisterParams) -> list[GraphEdge]:
-    """Weak pose-graph edges the capture's steady motion lays over its breaks: where no accepted edge spans
-    consecutive frames k0 .. k1 + 1 (`spans`: the accepted edges' (i, j), i < j; one over more than `max_skip`
-    frames spans nothing: a loop closure), an edge from k0 to k1 + 1 at the motion's prediction, its information
-    the prediction's spread over the gap, where that pins the pose as tightly as registration asks of an edge
-    (`max_sigma_deg`, `max_sigma_rel` of the depth the motion compares positions at, `motion.at`). Not `strong`: the pose graph cuts one that
-    alone joins two parts, so the motion never places a part alone; where two such edges join the same parts, or a
-    loop closure joins them too, the cycle through them must close within the noise (the graph's consistency test),
-    which checks the motion over the breaks against the registered frames (a ring of 36 turntable frames split
-    twice: the halves' chains and the two predictions turn 360 deg together). The frames inside a break stay
-    without a pose."""
+    """Weak pose-graph edges the capture's steady motion lays over its breaks: where no accepted edge spans consecutive
+    frames k0 .. k1 + 1 (`spans`: the accepted edges' (i, j), i < j; one over more than `max_skip` frames spans nothing:
+    a loop closure), an edge from k0 to k1 + 1 at the motion's prediction, its information the prediction's spread over
+    the gap, where that pins the pose as tightly as registration asks of an edge (`max_sigma_deg`, `max_sigma_rel` of
+    the depth the motion compares positions at, `motion.at`). Not `strong`: the pose graph cuts one that alone joins two
+    parts, so the motion never places a part alone; where two such edges join the same parts, or a loop closure joins
+    them too, the cycle through them must close within the noise (the graph's consistency test), which checks the motion
+    over the breaks against the registered frames (a ring of 36 turntable frames split twice: the halves' chains and the
+    two predictions turn 360 deg together). The frames inside a break stay without a pose."""
     depth = float(motion.at[2])
     covered = np.zeros(max(n - 1, 0), bool)
     for i, j in spans:

@@ -30,7 +30,9 @@ class KeyframeParams:
     object_keypoints: Annotated[Literal["auto", "sift", "both"], Field(
         description="the keypoints keyframes keep on the object for estimation: the image's (sift), the image's and "
         "the depth's in one set (both; needs features.kind rootsift), or auto: both where the capture registered "
-        "with depth keypoints (features.keypoints depth or both), else the image's")] = "auto"
+        "with depth keypoints (features.keypoints depth or both) or the keyframes hold a median below "
+        "features.auto_min_keypoints image keypoints on the object (a plain object on a printed table), else the "
+        "image's")] = "auto"
 
 
 def view_direction(T_obj_cam: np.ndarray) -> np.ndarray:

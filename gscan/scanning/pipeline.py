@@ -419,9 +419,9 @@ def _scan_frames(caps: list[_Capture], output: Path, opts: ScanOptions, db: Temp
 
     with timer.stage("database", total=n + 1) as advance, db.batch():
         T_obj_cam = [None if T is None else T_obj_world @ T for T in T_world_cam]
-        object_source = _object_source(caps, opts.config, db, opts.append)
-        keyframes, depth_size = _store_views(data, T_obj_cam, mask_of, quality, cfg, db, advance,
-                                             first.reg.rparams.depth_noise if object_source == "both" else None)
+        keyframes, object_source, depth_size, object_counts = _store_views(
+            data, T_obj_cam, mask_of, quality, cfg, db, advance, _object_source(caps, opts.config, db, opts.append),
+            first.reg.rparams.depth_noise)
         # the keyframes' object keypoints' kind, which the estimator reads: set on every run (an --append that
         # stores image keypoints alone replaces a joint template's)
         db.set_meta("descriptor", JOINT if object_source == "both" else opts.config.features.kind)
@@ -455,6 +455,8 @@ def _scan_frames(caps: list[_Capture], output: Path, opts: ScanOptions, db: Temp
             1 for cap in caps if cap.reg is not None for e in cap.reg.edges if e.accepted and e.depth_only))
         if object_source == "both":  # (a template of the image's keypoints keeps its meta as it was)
             keypoints |= {"object": object_source, "object_depth_size": depth_size}
+            if object_counts is not None:  # the keyframes' own image keypoints on the object chose it
+                keypoints["object_image_keypoints"] = float(np.median(object_counts))
         if not opts.append:
             db.set_meta("object", chosen)
         db.set_meta("timings_s", timer.timings)
@@ -814,16 +816,20 @@ def _median_depth(feats: Features) -> float | None:
     return float(np.median(feats.points[:, 2])) if len(feats) else None
 
 
-def _object_source(caps: list[_Capture], config: ScanConfig, db: TemplateDB, append: bool) -> str:
+def _object_source(caps: list[_Capture], config: ScanConfig, db: TemplateDB, append: bool) -> str | None:
     """The keypoints the keyframes keep for estimation, "sift" (the image's) or "both" (the image's and the
     depth's, one rootsift+fpfh set): `keyframes.object_keypoints` unless "auto"; auto: "both" where a capture
-    registered with depth keypoints, or, appended to, the template's keyframes hold them."""
+    registered with depth keypoints, or, appended to, the template's keyframes hold them; else None: the keyframes'
+    own image keypoints on the object decide (`_store_views`: a plain object on a printed table registers on the
+    table's keypoints)."""
     chosen = config.keyframes.object_keypoints
     if chosen == "auto":
         stored = db.get_meta("keypoints") if append else None
         depth = any(c.data is not None and c.data.keypoints["source"] in ("depth", "both") for c in caps) or (
             isinstance(stored, dict) and stored.get("object") == "both")
-        chosen = "both" if depth else "sift"
+        if not depth:
+            return None
+        chosen = "both"
     if chosen == "both" and config.features.kind != "rootsift":  # chosen by auto: a configuration asking for
         # "both" is refused when it is read (ScanConfig)
         raise ValueError(f"the template's keyframes hold depth keypoints joined to rootsift ones: an appended "
@@ -844,15 +850,19 @@ def _depth_size(data: FrameData, keyframes: set[int], mask_of: Callable[[int], n
 
 def _store_views(data: FrameData, T_obj_cam: list[np.ndarray | None], mask_of: Callable[[int], np.ndarray | None],
                  quality: dict[int, float], cfg: ScanConfig, db: TemplateDB, advance: Callable[[int], None],
-                 depth_noise: DepthNoise | None = None) -> tuple[set[int], float | None]:
+                 source: str | None, depth_noise: DepthNoise
+                 ) -> tuple[set[int], str, float | None, list[int] | None]:
     """Completes every view with its pose (its keypoints follow into the object frame), mask, keyframe flag and
-    quality; chooses the keyframes and returns their indices and the depth keypoints' object size (m; None
-    without depth keypoints).
+    quality; chooses the keyframes and returns their indices, the keypoints they keep on the object ("sift" or
+    "both"), the depth keypoints' object size (m; None without depth keypoints) and, where the keyframes decided
+    that (`source` None), their image keypoint counts on the object.
 
     Keyframes also keep keypoints on the object alone, detected inside the object mask with the
     estimator's settings: the template's keypoints for pose estimation (registration keypoints of a
-    static object are mostly on the table). With `depth_noise` (the capture's) they are joint: the image's and
-    the depth's on the mask's points, all views' at one size (`_depth_size`), the one a query's are found at."""
+    static object are mostly on the table). `source` "both" (`_object_source`) makes them joint: the image's and
+    the depth's (of the capture's `depth_noise`) on the mask's points, all views' at one size (`_depth_size`), the
+    one a query's are found at; None lets the keyframes' image keypoints decide as `features.keypoints: auto`
+    decides a capture's (`choose_source`: below a median of `features.auto_min_keypoints`, a plain object)."""
     frames = data.frames
 
     def shows(k: int) -> bool:
@@ -865,19 +875,27 @@ def _store_views(data: FrameData, T_obj_cam: list[np.ndarray | None], mask_of: C
                                      {k: frames[k].object_keypoints for k in dirs}, kc.min_object_keypoints,
                                      kc.min_views))
     oparams = replace(OBJECT_FEATURES, kind=cfg.features.kind, max_keypoints=cfg.features.max_keypoints)
-    size = _depth_size(data, keyframes, mask_of) if depth_noise is not None else None
+    masks = {k: m for k in sorted(keyframes) if T_obj_cam[k] is not None and (m := mask_of(k)) is not None}
+    with ThreadPoolExecutor(max_workers=WORKERS) as pool:
+        image = dict(zip(masks, pool.map(lambda k: extract_features_in_mask(data.frame(k), masks[k], oparams), masks),
+                         strict=True))
+    counts = None if source is not None else [len(f) for f in image.values()]
+    chosen = source if source is not None else choose_source(replace(cfg.features, keypoints="auto"), counts or [])
+    if counts is not None:
+        log.info("keyframes' object keypoints: %s (auto, %d keyframes' image keypoints on the object: median %s)",
+                 chosen, len(counts), np.median(counts) if counts else None)
+    size = _depth_size(data, keyframes, mask_of) if chosen == "both" else None
 
     def view_work(k: int) -> tuple[np.ndarray | None, Features | None]:
         f = frames[k].stored
         if T_obj_cam[k] is None:  # an unregistered view keeps the mask it came with
             return (data.store.get(f.name, "given_mask") if f.has_mask else None), None
         m = mask_of(k)
-        if k not in keyframes or m is None:
+        if k not in image or m is None:
             return m, None
-        frame = data.frame(k)
-        obj = extract_features_in_mask(frame, m, oparams)
-        if depth_noise is not None:
-            obj = joint_features(obj, depth_keypoints(frame, depth_noise.sigma, cfg.features, m, size=size))
+        obj = image[k]
+        if chosen == "both":
+            obj = joint_features(obj, depth_keypoints(data.frame(k), depth_noise.sigma, cfg.features, m, size=size))
         return m, obj
 
     with ThreadPoolExecutor(max_workers=WORKERS) as pool:
@@ -889,7 +907,7 @@ def _store_views(data: FrameData, T_obj_cam: list[np.ndarray | None], mask_of: C
             if obj is not None and T is not None:
                 db.add_features(frames[k].name, obj.transformed(T), role="object")
             advance(1)
-    return keyframes, size
+    return keyframes, chosen, size, counts
 
 
 def _object_keypoints(pixels: np.ndarray, mask: np.ndarray | None) -> int:
