@@ -140,21 +140,25 @@ def residuals(name: str, n: int) -> None:
 
 
 def scan_object(name: str, n: int, keypoints: str, work: Path) -> dict:
-    """A whole scan (`gscan.scanning.api.scan`, the defaults but `features.keypoints`) of one object's capture,
-    scored by bench/scan.py's `score` ("registered", "wrong": beyond 5 deg / 2 cm of the truth relative to the
-    other registered frames, "ate_rmse"), with "turn_refused" (loop closures refused as the object's half turn)
-    and "s_per_frame" (wall time)."""
+    """A whole scan (`gscan.scanning.api.scan`, the defaults but `features.keypoints`, and on `sift` the keyframes'
+    keypoints) of one object's capture, scored by bench/scan.py's `score` ("registered", "wrong": beyond 5 deg / 2 cm of
+    the truth relative to the other registered frames, "ate_rmse"), with "turn_refused" (loop closures refused as the
+    object's half turn) and "s_per_frame" (wall time)."""
     from scan import gt_T_world_cam, score
 
     from gscan.registration.edges import LOOP_TURN
     from gscan.scanning.api import scan
     from gscan.scanning.config import ScanConfig
+    from gscan.scanning.keyframes import KeyframeParams
     from gscan.template.db import TemplateDB
 
     cap = capture(name, n, work)
     out = work / f"{name}_{n}_{keypoints}.gscan"
     t0 = time.perf_counter()
-    res = scan(cap, out, config=ScanConfig(features=FeatureParams(keypoints=keypoints)), force=True)
+    # `sift`: the image's keypoints alone, also on the keyframes (auto would add the plain object's depth keypoints)
+    keyframes = KeyframeParams(object_keypoints="sift" if keypoints == "sift" else "auto")
+    config = ScanConfig(features=FeatureParams(keypoints=keypoints), keyframes=keyframes)
+    res = scan(cap, out, config=config, force=True)
     seconds = time.perf_counter() - t0
     with TemplateDB.open(out) as db:
         poses = {k: np.asarray(T) for k, T in db.poses()["frames"].items()}
