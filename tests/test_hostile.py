@@ -171,6 +171,28 @@ def test_failed_force_scan_keeps_the_old_template(ctx: Ctx, tmp_path: Path):
     assert _hidden(keep.parent) == []
 
 
+def test_black_images_with_depth_register_on_the_depth(ctx: Ctx, tmp_path: Path):
+    """Every colour image black but the depth kept (a dark room, an infrared depth camera): not bad input. The scan
+    takes the depth's keypoints (`features.keypoints: auto`: no image keypoint) and places what its shape pins,
+    none wrong (5 deg / 2 cm relative to the others); each frame it leaves says why."""
+    from gscan.evaluate.metrics import frame_errors
+    from gscan.geometry.transforms import inv_T
+    from gscan.io import open_sequence
+    from gscan.scanning.api import scan
+
+    dark = tmp_path / "dark_room"
+    shutil.copytree(ctx.capture, dark)
+    for p in (dark / "rgb").iterdir():
+        p.write_bytes(_black_png(INTR))
+    res = scan(dark, tmp_path / "dark.gscan")
+    assert res.keypoints["source"] == "both" and res.keypoints["median_image_keypoints"] == 0, res.keypoints
+    gt = {n: inv_T(T) for n, T in open_sequence(dark).gt_T_cam_obj.items()}
+    with TemplateDB.open(tmp_path / "dark.gscan") as db:
+        poses = {n: np.asarray(T) for n, T in db.poses()["frames"].items()}
+    assert len(poses) >= 2 and not frame_errors(poses, {n: gt[n] for n in poses}).wrong(5.0, 0.02)
+    assert set(res.unregistered_reasons) == set(gt) - set(poses)
+
+
 def test_failed_force_writers_keep_old_outputs_and_name_the_file_size_limit(ctx: Ctx, tmp_path: Path):
     """scan, template-from-mesh, export (a file and a folder) and eval with --force, each stopped by the
     process's file size limit (RLIMIT_FSIZE: the real error a full file system also gives SQLite and Python):

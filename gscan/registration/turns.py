@@ -122,9 +122,8 @@ def lone_edge_turn(fs: Features, ft: Features, src: DenseGeometry, tgt: DenseGeo
     half turn its shape fits. That texture refutes only a turn whose tiles disagree, never one it cannot judge. A
     plain object's fine texture does not settle its pose (plain renders of the shared meshes, 20-120 deg apart:
     at most 72 % of the tiles line up under right poses), so its turns are judged as before. Whole frames keep the
-    default samples
-    and the half turns: there a plain table's faint texture lined up finely under poses 2.4 deg / 23 mm off (Vans
-    from 0 and 60 deg, accepted claiming 0.14 deg)."""
+    default samples and the half turns: there a plain table's faint texture lined up finely under poses 2.4 deg /
+    23 mm off (Vans from 0 and 60 deg, accepted claiming 0.14 deg)."""
     if not r.accepted or r.T_tgt_src is None:
         return None
     if src.mask is None or tgt.mask is None:

@@ -890,10 +890,9 @@ def _store_views(data: FrameData, T_obj_cam: list[np.ndarray | None], mask_of: C
         f = frames[k].stored
         if T_obj_cam[k] is None:  # an unregistered view keeps the mask it came with
             return (data.store.get(f.name, "given_mask") if f.has_mask else None), None
-        m = mask_of(k)
-        if k not in image or m is None:
-            return m, None
-        obj = image[k]
+        if k not in image:  # not a keyframe, or one without a mask
+            return mask_of(k), None
+        m, obj = masks[k], image[k]
         if chosen == "both":
             obj = joint_features(obj, depth_keypoints(data.frame(k), depth_noise.sigma, cfg.features, m, size=size))
         return m, obj
