@@ -21,7 +21,8 @@ SCENES, NEGATIVES = 8, 3
 def _static_scan(root: Path, meshes_dir: Path) -> dict:
     """The plain box's static capture (24 views, two rings, newspaper table) scanned at the defaults into
     `root`/box.gscan; its ground truth T_cam_obj, after checking that every frame registered and the keyframes keep
-    the object's depth keypoints because its own image keypoints are few."""
+    the object's depth keypoints because its own image keypoints are few, as the summary says."""
+    from gscan.cli.scan import print_scan_summary
     from gscan.features import FeatureParams
     from gscan.io import open_sequence
     from gscan.scanning.api import scan
@@ -35,12 +36,13 @@ def _static_scan(root: Path, meshes_dir: Path) -> dict:
     kp = res.keypoints
     assert res.registered == 24 and kp["source"] == "sift" and kp["object"] == "both", kp
     assert kp["object_image_keypoints"] < FeatureParams().auto_min_keypoints, kp
+    print_scan_summary(res)
     return open_sequence(cap).gt_T_cam_obj
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("capture", ["turntable", "static"])
-def test_a_plain_box_is_found_in_clutter_and_never_wrong(capture, tmp_path, meshes_dir):
+def test_a_plain_box_is_found_in_clutter_and_never_wrong(capture, tmp_path, meshes_dir, capsys):
     """At least 6 of its 8 scenes found within 2 cm ADD-S (7 of 8 from either capture; the static capture's template
     without the keyframes' depth keypoints: 0 of 8), no pose wrong, no pose in a scene without it; each miss says
     why. About 30 s each."""
@@ -59,6 +61,7 @@ def test_a_plain_box_is_found_in_clutter_and_never_wrong(capture, tmp_path, mesh
         gt_T_cam_obj = {n: inv_T(T) for n, T in plain_turntable_scan(NAME, tmp_path, meshes_dir)[2].items()}
     else:
         gt_T_cam_obj = _static_scan(tmp_path, meshes_dir)
+        assert "the keyframes keep the depth's on the object too" in capsys.readouterr().err
     to_gt = template_to_gt(tmp_path / "box.gscan", gt_T_cam_obj)
     est = Estimator.from_path(tmp_path / "box.gscan")
     printed = {d: load_textured_mesh(RECALL_MESHES / d / "model_0.obj") for d in DISTRACTOR_POOL
