@@ -143,6 +143,12 @@ class Evidence:
     rms: float
 
 
+def source_depth(e: Edge, a: RegData) -> float:
+    """The median depth (m) of edge e's source points (frame a's matched keypoints); nan without matches."""
+    z = a.feats.points[e.matches[:, 0], 2].astype(np.float64)
+    return float(np.median(z)) if len(z) else float("nan")
+
+
 def edge_evidence(e: Edge, a: RegData, b: RegData, rparams: RegisterParams) -> Evidence:
     """The evidence of the accepted edge e from frame a to frame b (their registration data)."""
     assert e.T_tgt_src is not None  # an accepted edge has a pose
@@ -161,7 +167,7 @@ def edge_evidence(e: Edge, a: RegData, b: RegData, rparams: RegisterParams) -> E
     else:
         info = information_from_points(ps, sg)
     r = np.linalg.norm(transform_points(e.T_tgt_src, ps) - pt, axis=1) / sg
-    return Evidence(info, float(np.median(ps[:, 2])), float(np.sqrt(np.mean(r * r))))
+    return Evidence(info, source_depth(e, a), float(np.sqrt(np.mean(r * r))))
 
 
 class Registrar:

@@ -35,6 +35,7 @@ from gscan.registration.edges import (
     Registrar,
     SequenceFrames,
     edge_evidence,
+    source_depth,
 )
 from gscan.registration.loops import select_loop_candidates
 from gscan.registration.motion import SteadyMotion, steady_motion
@@ -213,27 +214,26 @@ def capture_motion(edges: list[Edge], index: dict[str, int], min_steps: int, dep
                           and (e.accepted or e.pruned) and index[e.tgt] - index[e.src] == 1], min_steps, depth)
 
 
+def _pinned(motion: SteadyMotion, gap: int, depth: float, rparams: RegisterParams) -> bool:
+    """Whether the steady motion's prediction over `gap` frames is as tight as registration asks of an edge
+    (`max_sigma_deg`, `max_sigma_rel` of the points' depth `depth`, m)."""
+    s_deg, s_m = motion.sigma(gap)
+    return gap >= 1 and s_deg <= rparams.max_sigma_deg and s_m <= rparams.max_sigma_rel * depth
+
+
 def motion_pins(motion: SteadyMotion, T_tgt_src: np.ndarray, gap: int, depth: float, rparams: RegisterParams,
                 sigmas: float) -> bool:
-    """Whether the capture's steady motion pins the pose over `gap` frames as tightly as registration asks of an
-    edge (`max_sigma_deg`, `max_sigma_rel` of the points' depth `depth`, m) and T_tgt_src [4 x 4] agrees with it
-    (within `sigmas` of the spreads)."""
-    s_deg, s_m = motion.sigma(gap)
-    return (gap >= 1 and s_deg <= rparams.max_sigma_deg and s_m <= rparams.max_sigma_rel * depth
-            and motion.agrees(T_tgt_src, gap, sigmas))
+    """Whether the capture's steady motion pins the pose over `gap` frames (`_pinned`) and T_tgt_src [4 x 4] agrees
+    with it (within `sigmas` of the spreads)."""
+    return _pinned(motion, gap, depth, rparams) and motion.agrees(T_tgt_src, gap, sigmas)
 
 
 def _steps_depth(reg: Registrar, edges: list[Edge], index: dict[str, int]) -> float:
-    """The median depth (m) of the points of the accepted edges between consecutive frames: where the object lies,
-    at which the steady motion compares positions (their evidence, which the pose graph weighs them by, computed
-    here for edges a resumed scan took from the database); 0 without such edges."""
-    depths = []
-    for e in edges:
-        i, j = index[e.src], index[e.tgt]
-        if e.accepted and e.kind == "sequential" and j - i == 1 and e.T_tgt_src is not None and len(e.matches):
-            if (e.src, e.tgt) not in reg.evidence:
-                reg.evidence[(e.src, e.tgt)] = edge_evidence(e, reg.frames.reg(i), reg.frames.reg(j), reg.rparams)
-            depths.append(reg.evidence[(e.src, e.tgt)].depth)
+    """The median depth (m) of the source points of the accepted edges between consecutive frames (`source_depth`):
+    where the object lies, at which the steady motion compares positions; 0 without such edges."""
+    depths = [source_depth(e, reg.frames.reg(index[e.src])) for e in edges
+              if e.accepted and e.kind == "sequential" and index[e.tgt] - index[e.src] == 1
+              and e.T_tgt_src is not None and len(e.matches)]
     return float(np.median(depths)) if depths else 0.0
 
 
@@ -306,7 +306,7 @@ def motion_bridges(n: int, spans: list[tuple[int, int]], motion: SteadyMotion, m
             k1 += 1
         a, b = k, k1 + 1
         s_deg, s_m = motion.sigma(b - a)
-        if 0 < s_deg <= rparams.max_sigma_deg and 0 < s_m <= rparams.max_sigma_rel * depth:
+        if min(s_deg, s_m) > 0 and _pinned(motion, b - a, depth, rparams):
             info = np.diag([np.radians(s_deg) ** -2] * 3 + [s_m ** -2] * 3)
             out.append(GraphEdge(a, b, motion.predict(b - a), info, strong=False, weight=0.0, depth=depth))
         k = b
@@ -321,9 +321,8 @@ def _optimise(reg: Registrar, edges: list[Edge], index: dict[str, int], params: 
     into the accepted edges)."""
     n, rparams, evidence = len(reg.names), reg.rparams, reg.evidence
     if motion is not None:
-        def depth(e: Edge) -> float:  # the median depth of the edge's source points (m; none: nan, pins nothing)
-            z = reg.frames.reg(index[e.src]).feats.points[e.matches[:, 0], 2]
-            return float(np.median(z)) if len(z) else float("nan")
+        def depth(e: Edge) -> float:  # nan without matches: pins nothing
+            return source_depth(e, reg.frames.reg(index[e.src]))
 
         admitted = admit_by_motion(motion, edges, index, params.steady_sigmas, params.bridge_min_matches, rparams,
                                    depth)
