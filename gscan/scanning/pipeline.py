@@ -879,9 +879,11 @@ def _store_views(data: FrameData, T_obj_cam: list[np.ndarray | None], mask_of: C
     with ThreadPoolExecutor(max_workers=WORKERS) as pool:
         image = dict(zip(masks, pool.map(lambda k: extract_features_in_mask(data.frame(k), masks[k], oparams), masks),
                          strict=True))
-    counts = None if source is not None else [len(f) for f in image.values()]
-    chosen = source if source is not None else choose_source(replace(cfg.features, keypoints="auto"), counts or [])
-    if counts is not None:
+    counts: list[int] | None = None
+    chosen = source
+    if chosen is None:  # auto, nothing registered on depth keypoints: the keyframes' own count decides
+        counts = [len(f) for f in image.values()]
+        chosen = choose_source(replace(cfg.features, keypoints="auto"), counts)
         log.info("keyframes' object keypoints: %s (auto, %d keyframes' image keypoints on the object: median %s)",
                  chosen, len(counts), np.median(counts) if counts else None)
     size = _depth_size(data, keyframes, mask_of) if chosen == "both" else None
